@@ -1,0 +1,49 @@
+"""Structured records of firmware defects and hazards the emulated device ran into.
+
+The emulator reproduces the firmware's defects faithfully; these records are how it tells the user that
+it did.  Each event carries the absolute byte offset (bytes received since power-on) of the byte that
+triggered it, so a capture can be lined up with ``tactdeform-hw decode``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any
+
+
+class HazardKind(str, Enum):
+    PARSER_LOCKED = "parser_locked"  # 0xFE with electrode_num 0: the parser never reads again
+    UNREAD_WHILE_LOCKED = "unread_while_locked"  # bytes arrived that a locked parser will never read
+    PATTERN_HOLDS_COMMAND_BYTE = "pattern_holds_command_byte"  # likely desync after a truncated command
+    STALE_CHANNELS = "stale_channels"  # raising electrode_num brought back older pattern values
+    U16_WAITING = "u16_waiting"  # main loop spinning on a half-received u16
+    CLAMPED = "clamped"  # polarity > 1 or pulse height > 4095 clamped by the firmware
+    IGNORED_ZERO = "ignored_zero"  # pulse width 0 or frequency 0 ignored
+    UNKNOWN_BYTES = "unknown_bytes"  # bytes that are not commands (ignored, one each)
+    CHANNELS_BEYOND_HV513 = "channels_beyond_hv513"  # electrode_num > 8 * hv513 count
+    HV513_REINIT = "hv513_reinit"  # 0xF5 re-detects the stack and clears every HV513 output
+    # Timing and link hazards (recorded by the timed model):
+    QUEUE_OVERFLOW = "queue_overflow"  # receive queue full: the rest of a USB packet was discarded
+    TORN_PATTERN = "torn_pattern"  # one scan used part old, part new pattern
+    OVERRUN = "overrun"  # a scan took longer than the period
+    WATCHDOG_RESET = "watchdog_reset"  # the interrupt ran > 300 ms: reboot to power-on state
+    SENSE_CURRENT = "sense_current"  # channels off in the pattern still get a non-zero sense pulse
+
+
+@dataclass(frozen=True)
+class Hazard:
+    kind: HazardKind
+    offset: int
+    detail: dict[str, Any] = field(default_factory=dict)
+    time_us: float | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"kind": self.kind.value, "offset": self.offset, "detail": dict(self.detail)}
+        if self.time_us is not None:
+            d["time_us"] = self.time_us
+        return d
+
+    def __str__(self) -> str:
+        at = f" t={self.time_us:.1f}us" if self.time_us is not None else ""
+        return f"{self.kind.value} @byte {self.offset}{at}: {self.detail}"

@@ -1,0 +1,328 @@
+"""The firmware's serial parser, byte-exact, defects included.
+
+The firmware's main loop calls the parser over and over.  One call (see the protocol reference):
+
+1. no command in progress and a byte waiting → read it as the command; 0xFF/0xF5 reply and return at
+   once; an unknown byte returns at once; otherwise the command is now in progress, needing the payload
+   size (for 0xFE: ``electrode_num`` *now*);
+2. command in progress → consume payload while bytes wait and fewer than needed were read; a u16 is read
+   only when both bytes wait (with one waiting the call spins); the completion check is inside that loop,
+   so a command that needs 0 bytes never completes (the locked parser);
+3. sleep one RTOS tick and return.
+
+:meth:`Parser.call` is exactly one such call and tells the timed model what happened; :meth:`Parser.run`
+is the untimed fast path, equivalent to calling ``call`` until nothing changes (a property test holds the
+two together).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from enum import Enum
+
+from ..protocol import firmware_math as fm
+from ..protocol.commands import encode_measure_reply
+from ..protocol.constants import (
+    DAC_MAX_CODE,
+    OUTPUTS_PER_HV513,
+    PAYLOAD_KIND,
+    SENSE_HEIGHT_SHIFT,
+    Opcode,
+)
+from .hazards import Hazard, HazardKind
+from .registers import Registers
+
+_COMMAND_BYTE_MIN = min(Opcode)
+_MEASURE = int(Opcode.MEASURE)
+_PATTERN = int(Opcode.PATTERN)
+_HV513 = int(Opcode.HV513_COUNT)
+# opcode -> payload bytes needed (pattern resolved at run time); unknown opcodes absent
+_SIZE = {int(op): {"u8": 1, "u16": 2, None: 0, "pattern": -1}[k] for op, k in PAYLOAD_KIND.items()}
+
+
+class CallResult(Enum):
+    """What one parser call did; ``slept`` says whether it ended with the 1 ms RTOS sleep."""
+
+    IDLE = ("idle", True)  # nothing to do
+    REPLIED = ("replied", False)  # 0xFF or 0xF5 answered
+    IGNORED = ("ignored", False)  # unknown command byte consumed
+    PROGRESS = ("progress", True)  # payload consumed, command not complete yet
+    COMPLETED = ("completed", True)  # a command with a payload completed
+    STUCK_U16 = ("stuck_u16", False)  # spinning on a half-received u16: the call has not returned
+    LOCKED = ("locked", True)  # 0xFE with electrode_num 0 in progress forever
+
+    @property
+    def slept(self) -> bool:
+        return self.value[1]
+
+
+class Parser:
+    """Receive buffer + command state + the effects on :class:`Registers`.
+
+    ``hv513_detect`` is the board's detection (called on 0xF5); ``on_hv513_reinit`` lets the scan engine
+    clear its chain model; ``on_command`` (optional) is told ``(opcode, value, offset)`` at completion.
+    """
+
+    def __init__(
+        self,
+        regs: Registers,
+        hazards: list[Hazard],
+        hv513_detect: Callable[[], int],
+        *,
+        on_hv513_reinit: Callable[[], None] | None = None,
+        on_command: Callable[[int, object, int], None] | None = None,
+    ) -> None:
+        self.regs = regs
+        self.hazards = hazards
+        self.hv513_detect = hv513_detect
+        self.on_hv513_reinit = on_hv513_reinit
+        self.on_command = on_command
+        self.rx = bytearray()
+        self.pos = 0  # index of the next unread byte in rx
+        self.base = 0  # absolute offset of rx[0]
+        self.tx = bytearray()
+        self.cmd: int | None = None
+        self.cmd_offset = 0
+        self.needed = 0
+        self.count = 0
+        self.locked = False
+        self._unknown_start = -1  # offset where the current run of unknown bytes began
+        self._unknown_len = 0
+        self._u16_reported_at = -1
+
+    # --- buffer -------------------------------------------------------------------------------------------
+
+    def receive(self, data: bytes) -> None:
+        if self.pos > 4096 and self.pos * 2 > len(self.rx):
+            del self.rx[: self.pos]
+            self.base += self.pos
+            self.pos = 0
+        self.rx += data
+        if self.locked and data:
+            self.hazards.append(
+                Hazard(
+                    HazardKind.UNREAD_WHILE_LOCKED,
+                    self.base + len(self.rx) - len(data),
+                    {"bytes": len(data), "pending": self.pending},
+                )
+            )
+
+    @property
+    def pending(self) -> int:
+        return len(self.rx) - self.pos
+
+    @property
+    def offset(self) -> int:
+        """Absolute offset of the next byte to be read."""
+        return self.base + self.pos
+
+    def take_tx(self) -> bytes:
+        out = bytes(self.tx)
+        self.tx.clear()
+        return out
+
+    # --- one firmware call ---------------------------------------------------------------------------------
+
+    def call(self) -> CallResult:
+        rx = self.rx
+        if self.cmd is None:
+            if self.pos >= len(rx):
+                return CallResult.IDLE
+            op = rx[self.pos]
+            self.pos += 1
+            size = _SIZE.get(op)
+            if size is None:
+                self._note_unknown(self.base + self.pos - 1)
+                return CallResult.IGNORED
+            self._flush_unknown()
+            if size == 0:
+                self._reply(op, self.base + self.pos - 1)
+                return CallResult.REPLIED
+            self._start(op, size, self.base + self.pos - 1)
+        return self._consume_payload()
+
+    # --- untimed fast path ---------------------------------------------------------------------------------
+
+    def run(self) -> None:
+        """Consume everything the firmware would consume from what is waiting (no timing)."""
+        rx = self.rx
+        n = len(rx)
+        while True:
+            if self.cmd is not None:
+                r = self._consume_payload()
+                if r is not CallResult.COMPLETED:
+                    break
+                continue
+            pos = self.pos
+            if pos >= n:
+                break
+            op = rx[pos]
+            size = _SIZE.get(op)
+            if size is None:
+                # a run of unknown bytes: skip it in one go, one hazard for the run
+                j = pos + 1
+                while j < n and rx[j] < _COMMAND_BYTE_MIN:
+                    j += 1
+                if self._unknown_len == 0:
+                    self._unknown_start = self.base + pos
+                self._unknown_len += j - pos
+                self.pos = j
+                continue
+            self._flush_unknown()
+            self.pos = pos + 1
+            if size == 0:
+                self._reply(op, self.base + pos)
+            else:
+                self._start(op, size, self.base + pos)
+        self._flush_unknown()
+        if self.cmd is not None and self.needed == 2 and self.count == 0 and self.pending == 1:
+            at = self.offset
+            if self._u16_reported_at != at:
+                self._u16_reported_at = at
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.U16_WAITING,
+                        at,
+                        {"command": Opcode(self.cmd).name, "low_byte": self.rx[self.pos]},
+                    )
+                )
+
+    # --- pieces --------------------------------------------------------------------------------------------
+
+    def _note_unknown(self, offset: int) -> None:
+        if self._unknown_len == 0:
+            self._unknown_start = offset
+        self._unknown_len += 1
+
+    def _flush_unknown(self) -> None:
+        if self._unknown_len:
+            self.hazards.append(
+                Hazard(HazardKind.UNKNOWN_BYTES, self._unknown_start, {"count": self._unknown_len})
+            )
+            self._unknown_len = 0
+
+    def _reply(self, op: int, offset: int) -> None:
+        regs = self.regs
+        if op == _MEASURE:
+            n = regs.electrode_num
+            self.tx += encode_measure_reply(regs.voltage[:n])
+        else:  # 0xF5
+            regs.hv513_num = self.hv513_detect()
+            self.tx.append(regs.hv513_num & 0xFF)
+            self.hazards.append(Hazard(HazardKind.HV513_REINIT, offset, {"hv513_num": regs.hv513_num}))
+            if self.on_hv513_reinit is not None:
+                self.on_hv513_reinit()
+        if self.on_command is not None:
+            self.on_command(op, None, offset)
+
+    def _start(self, op: int, size: int, offset: int) -> None:
+        self.cmd = op
+        self.cmd_offset = offset
+        self.count = 0
+        if size < 0:  # pattern: electrode_num at the moment the command byte is read
+            size = self.regs.electrode_num
+            if size == 0:
+                self.locked = True
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.PARSER_LOCKED,
+                        offset,
+                        {"reason": "pattern command with electrode_num 0; the parser never reads again"},
+                    )
+                )
+        self.needed = size
+
+    def _consume_payload(self) -> CallResult:
+        op = self.cmd
+        assert op is not None
+        rx = self.rx
+        avail = len(rx) - self.pos
+        if op == _PATTERN:
+            if self.needed == 0:
+                return CallResult.LOCKED
+            take = min(avail, self.needed - self.count)
+            if take:
+                start = self.count
+                payload = rx[self.pos : self.pos + take]
+                self.regs.stim_pattern[start : start + take] = payload
+                if max(payload) >= _COMMAND_BYTE_MIN:
+                    i = next(i for i, b in enumerate(payload) if b >= _COMMAND_BYTE_MIN)
+                    self._hazard(
+                        HazardKind.PATTERN_HOLDS_COMMAND_BYTE,
+                        self.base + self.pos + i,
+                        command_offset=self.cmd_offset,
+                        channel=start + i,
+                        value=payload[i],
+                    )
+                self.pos += take
+                self.count += take
+            if self.count == self.needed:
+                self._complete(op, None)
+                return CallResult.COMPLETED
+            return CallResult.PROGRESS
+        if self.needed == 1:
+            if avail < 1:
+                return CallResult.PROGRESS
+            value = rx[self.pos]
+            self.pos += 1
+        else:
+            if avail < 2:
+                return CallResult.STUCK_U16 if avail == 1 else CallResult.PROGRESS
+            value = rx[self.pos] | rx[self.pos + 1] << 8
+            self.pos += 2
+        self._complete(op, value)
+        return CallResult.COMPLETED
+
+    def _complete(self, op: int, value: int | None) -> None:
+        regs = self.regs
+        offset = self.cmd_offset
+        self.cmd = None
+        if op == _PATTERN:
+            pass
+        elif value is None:  # pragma: no cover - every other command has a value
+            raise AssertionError(op)
+        elif op == Opcode.POLARITY:
+            regs.polarity = 1 if value >= 1 else 0
+            if value > 1:
+                self._hazard(HazardKind.CLAMPED, offset, field="polarity", value=value, stored=1)
+        elif op == Opcode.ELECTRODE_NUM:
+            old = regs.electrode_num
+            regs.electrode_num = value
+            if value > old:
+                stale = {ch: regs.stim_pattern[ch] for ch in range(old, value) if regs.stim_pattern[ch]}
+                if stale:
+                    self._hazard(HazardKind.STALE_CHANNELS, offset, old=old, new=value, channels=stale)
+            if value > regs.hv513_num * OUTPUTS_PER_HV513:
+                self._hazard(
+                    HazardKind.CHANNELS_BEYOND_HV513,
+                    offset,
+                    electrode_num=value,
+                    hv513_num=regs.hv513_num,
+                    channels_driven=regs.hv513_num * OUTPUTS_PER_HV513,
+                )
+        elif op == Opcode.PULSE_HEIGHT:
+            regs.pulse_height = min(value, DAC_MAX_CODE)
+            if value > DAC_MAX_CODE:
+                self._hazard(HazardKind.CLAMPED, offset, field="pulse_height", value=value, stored=DAC_MAX_CODE)
+        elif op == Opcode.PULSE_WIDTH:
+            if value:
+                regs.pulse_width = value
+            else:
+                self._hazard(HazardKind.IGNORED_ZERO, offset, field="pulse_width")
+        elif op == Opcode.SENSE_HEIGHT:
+            regs.sense_pulse_height = value << SENSE_HEIGHT_SHIFT
+        elif op == Opcode.SENSE_WIDTH:
+            regs.sense_pulse_width = value
+        elif op == Opcode.DISCHARGE:
+            regs.discharge_time = value
+        elif op == Opcode.FREQUENCY:
+            if value:
+                regs.period_us = fm.period_us_from_rate(value)
+                regs.timer_alarm_ticks = fm.alarm_ticks(regs.period_us)
+            else:
+                self._hazard(HazardKind.IGNORED_ZERO, offset, field="frequency")
+        if self.on_command is not None:
+            self.on_command(op, value, offset)
+
+    def _hazard(self, kind: HazardKind, offset: int, **detail: object) -> None:
+        self.hazards.append(Hazard(kind, offset, dict(detail)))

@@ -1,0 +1,57 @@
+"""The firmware's global variables, with their power-on values."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..protocol import firmware_math as fm
+from ..protocol.constants import PATTERN_BUFFER_SIZE, POWER_ON_PERIOD_US, POWER_ON_POLARITY
+
+
+class Registers:
+    """Plain attributes (the parser's hot loop touches them); ``snapshot`` hands out copies."""
+
+    __slots__ = (
+        "electrode_num",
+        "polarity",
+        "pulse_height",
+        "pulse_width",
+        "sense_pulse_height",
+        "sense_pulse_width",
+        "discharge_time",
+        "period_us",
+        "timer_alarm_ticks",
+        "hv513_num",
+        "stim_pattern",
+        "voltage",
+    )
+
+    def __init__(self, hv513_num: int = 0) -> None:
+        self.electrode_num = 0
+        self.polarity = POWER_ON_POLARITY
+        self.pulse_height = 0
+        self.pulse_width = 0
+        self.sense_pulse_height = 0
+        self.sense_pulse_width = 0
+        self.discharge_time = 0
+        self.period_us = POWER_ON_PERIOD_US
+        self.timer_alarm_ticks = fm.alarm_ticks(POWER_ON_PERIOD_US)
+        self.hv513_num = hv513_num
+        self.stim_pattern = bytearray(PATTERN_BUFFER_SIZE)
+        # voltage[ch] holds the ADC reading (raw >> 2) of the channel's last pulse; 0 until a scan runs.
+        self.voltage = [0] * PATTERN_BUFFER_SIZE
+
+    def snapshot(self) -> dict[str, Any]:
+        return {
+            "electrode_num": self.electrode_num,
+            "polarity": self.polarity,
+            "pulse_height": self.pulse_height,
+            "pulse_width": self.pulse_width,
+            "sense_pulse_height": self.sense_pulse_height,
+            "sense_pulse_width": self.sense_pulse_width,
+            "discharge_time": self.discharge_time,
+            "period_us": self.period_us,
+            "timer_alarm_ticks": self.timer_alarm_ticks,
+            "hv513_num": self.hv513_num,
+            "stim_pattern": list(self.stim_pattern),
+        }

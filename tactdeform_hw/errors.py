@@ -1,0 +1,106 @@
+"""The one exception tree of tactdeform_hw.
+
+Every error the package raises derives from :class:`TactDeformError`, so a study script can catch one
+type.  The branches follow what a caller can do about the failure: fix its input
+(:class:`ConfigurationError`), fix its use of the protocol (:class:`ProtocolError`), check the cable or
+port (:class:`TransportError`), or stop and look at the participant's limits (:class:`SafetyError`).
+Foreign errors (``construct``, ``serial``, ``usb``) are re-raised ``from`` their cause so the original
+traceback stays visible.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class TactDeformError(Exception):
+    """Root of every error raised by tactdeform_hw.  ``code`` carries a backend code where one exists."""
+
+    def __init__(self, message: str, *, code: int | None = None) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+# --- input that is wrong before anything is sent -------------------------------------------------------
+
+
+class ConfigurationError(TactDeformError, ValueError):
+    """A value, file or option that cannot be used as given."""
+
+
+class LimitError(ConfigurationError):
+    """A value outside what the wire, the firmware or the hardware can carry.
+
+    The message always names the field, the value and the limit, because a researcher reading it at the
+    bench must be able to fix the input without opening the source.
+    """
+
+    def __init__(self, field: str, value: Any, limit: str) -> None:
+        super().__init__(f"{field}={value!r} is out of range: {limit}")
+        self.field = field
+        self.value = value
+        self.limit = limit
+
+
+class MissingDependencyError(TactDeformError, ImportError):
+    """An optional dependency is needed for what was asked; the message names the extra to install."""
+
+    def __init__(self, package: str, extra: str, purpose: str) -> None:
+        super().__init__(
+            f"{purpose} needs the optional package {package!r}: pip install 'tactdeform_hw[{extra}]'"
+        )
+        self.package = package
+        self.extra = extra
+
+
+# --- the protocol --------------------------------------------------------------------------------------
+
+
+class ProtocolError(TactDeformError):
+    """The byte stream or its use does not match the eTactileKit protocol."""
+
+
+class DecodeError(ProtocolError):
+    """Bytes that cannot be read as the expected reply or command (wraps ``construct.ConstructError``)."""
+
+
+class ShortReplyError(ProtocolError):
+    """The device answered with fewer bytes than the command's reply holds."""
+
+    def __init__(self, command: str, expected: int, received: bytes) -> None:
+        super().__init__(
+            f"{command}: expected a {expected}-byte reply, got {len(received)} byte(s) "
+            f"({received.hex() or 'nothing'})"
+        )
+        self.expected = expected
+        self.received = received
+
+
+class ProtocolMisuseError(ProtocolError):
+    """A command sequence that would trigger a known firmware defect; refused before anything is written."""
+
+
+# --- the link ------------------------------------------------------------------------------------------
+
+
+class TransportError(TactDeformError):
+    """The port, the USB link or the emulator's stream failed or is closed."""
+
+
+class PortNotOpenError(TransportError):
+    """I/O on a device or port that is closed."""
+
+
+class DeviceTimeoutError(TransportError, TimeoutError):
+    """A read or write did not complete in time."""
+
+
+class DeviceGoneError(TransportError):
+    """The device disappeared mid-session (unplugged, reset, or its link was cut)."""
+
+
+# --- the person ----------------------------------------------------------------------------------------
+
+
+class SafetyError(TactDeformError):
+    """A request that would exceed a participant's calibrated limits, or a fail-safe that tripped."""

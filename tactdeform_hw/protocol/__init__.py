@@ -1,0 +1,54 @@
+"""The eTactileKit serial protocol: command bytes, payloads, replies, units and limits.  No I/O here."""
+
+from .commands import (
+    AnyCommand,
+    MeasureReply,
+    Hv513CountReply,
+    build,
+    encode_discharge,
+    encode_electrode_num,
+    encode_frequency,
+    encode_pattern,
+    encode_polarity,
+    encode_pulse_height,
+    encode_pulse_width,
+    encode_sense_height,
+    encode_sense_width,
+    parse,
+    parse_hv513_reply,
+    parse_measure_reply,
+    MEASURE_REQUEST,
+    HV513_COUNT_REQUEST,
+)
+from .constants import Opcode, PAYLOAD_KIND
+from .decoder import DecodedCommand, StreamDecoder, decode
+from .units import CurrentTransfer, DEFAULT_TRANSFER, check_int
+
+__all__ = [
+    "AnyCommand",
+    "CurrentTransfer",
+    "DEFAULT_TRANSFER",
+    "DecodedCommand",
+    "HV513_COUNT_REQUEST",
+    "Hv513CountReply",
+    "MEASURE_REQUEST",
+    "MeasureReply",
+    "Opcode",
+    "PAYLOAD_KIND",
+    "StreamDecoder",
+    "build",
+    "check_int",
+    "decode",
+    "encode_discharge",
+    "encode_electrode_num",
+    "encode_frequency",
+    "encode_pattern",
+    "encode_polarity",
+    "encode_pulse_height",
+    "encode_pulse_width",
+    "encode_sense_height",
+    "encode_sense_width",
+    "parse",
+    "parse_hv513_reply",
+    "parse_measure_reply",
+]

@@ -1,0 +1,61 @@
+"""The firmware's own arithmetic for values the host sets, so host and emulator compute them identically.
+
+The period is held as a 32-bit float and the timer alarm as ``uint32(period) * 2`` ticks of 0.5 µs: a
+rate that does not divide 1 000 000 evenly runs slightly faster than asked.  Hosts that budget scan time
+must use these numbers, not ``1e6 / rate``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .constants import (
+    OUTPUTS_PER_HV513,
+    STACK_SENSE_NUMERATOR,
+    STACK_SENSE_OFFSET,
+    TIMER_TICKS_PER_US,
+)
+
+
+def period_us_from_rate(rate_hz: int) -> float:
+    """``period_us = 1e6 / v`` stored as float32 (returned as the Python float of that float32)."""
+    return float(np.float32(np.float32(1_000_000.0) / np.float32(rate_hz)))
+
+
+def alarm_ticks(period_us: float) -> int:
+    """``uint32(period_us) * 2``: the truncated period in 0.5 µs timer ticks."""
+    return (int(period_us) & 0xFFFFFFFF) * TIMER_TICKS_PER_US
+
+
+def effective_rate_hz(alarm_ticks_value: int) -> float:
+    """The scan rate the timer really produces when scans fit the period."""
+    return TIMER_TICKS_PER_US * 1e6 / alarm_ticks_value if alarm_ticks_value else math.inf
+
+
+def stack_count_from_reading(reading: float) -> int:
+    """``round(9368.8636 / r - 1.51)``: stacked boards (controller included) from the averaged ADC reading."""
+    if reading <= 0:
+        return 0
+    return int(round(STACK_SENSE_NUMERATOR / reading - STACK_SENSE_OFFSET))
+
+
+def reading_for_stack(stack_count: int) -> float:
+    """The averaged analog reading a stack of ``stack_count`` boards produces (the model's inverse)."""
+    return float(round(STACK_SENSE_NUMERATOR / (stack_count + STACK_SENSE_OFFSET)))
+
+
+def hv513_count(board_kind: str, stack_count: int) -> int:
+    """HV513 chips the firmware believes it drives, by board kind and detected stack count."""
+    if board_kind == "compact":
+        return (stack_count - 1) * 4 if stack_count >= 1 else 0
+    if board_kind == "large":
+        if stack_count >= 2:
+            return (stack_count - 1) * 8
+        return 1
+    raise ValueError(f"board kind {board_kind!r} is not 'compact' or 'large'")
+
+
+def channels_driven(hv513: int) -> int:
+    return hv513 * OUTPUTS_PER_HV513
