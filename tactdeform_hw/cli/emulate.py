@@ -1,0 +1,61 @@
+"""``tactdeform-hw emulate``: serve the emulated board on a pseudo-terminal."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import time
+from typing import Any
+
+from .common import progress
+
+
+def register(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "emulate",
+        help="serve the emulated board on a pseudo-terminal any program can open",
+        description="Create a pseudo-terminal with the emulated eTactileKit behind it. The device path "
+        "(e.g. /dev/pts/7) is the first line of stdout; point the eTactileKit GUI, its Python library, a "
+        "Unity app or a terminal at it. Serves until interrupted (Ctrl-C or SIGTERM); hazards the "
+        "firmware would hit are reported on stderr as they happen.",
+    )
+    p.add_argument("--pty", action="store_true", required=True, help="serve on a pseudo-terminal (required)")
+    p.add_argument("--board", choices=("compact", "large"), default="compact", help="board kind (default compact)")
+    p.add_argument("--switching-boards", type=int, default=1, help="stacked switching boards (default 1)")
+    p.add_argument("--spy", action="store_true", help="hex-dump every byte both ways with timestamps to stderr")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..emulator import Emulator
+    from ..emulator.pty_server import PtyServer
+
+    emu = Emulator(args.board, args.switching_boards)
+
+    def spy(direction: str, data: bytes, t: float) -> None:
+        progress(f"{t:.6f} {direction} {data.hex(' ')}")
+
+    server = PtyServer(emu, hook=spy if args.spy else None)
+    print(server.path, flush=True)
+    progress(f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {server.path}")
+
+    def _term(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _term)
+    server.start()
+    seen = 0
+    try:
+        while True:
+            time.sleep(0.1)
+            while seen < len(emu.hazards):
+                progress(f"hazard: {emu.hazards[seen]}")
+                seen += 1
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+        progress(f"stopped: {server.bytes_in} bytes in, {server.bytes_out} bytes out, {len(emu.hazards)} hazard(s)")
+    sys.stdout.flush()
+    return 0

@@ -1,0 +1,90 @@
+"""A plain in-process port around an :class:`Emulator`: the smallest thing the driver can talk to.
+
+It has the parts of pyserial's ``Serial`` the driver uses (``open``, ``close``, ``write``, ``read``,
+``in_waiting``, ``out_waiting``, ``reset_input_buffer``, ``timeout``, ``dtr``, ``rts``), no more, so tests
+run without pyserial's machinery.  Replies are available as soon as ``write`` returns; a read asks for
+more than the device wrote returns what there is at once (in-process, waiting could not bring more).
+An optional ``spy`` callable sees every byte both ways with a timestamp.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+from ..errors import PortNotOpenError
+from .core import Emulator
+
+SpyFn = Callable[[str, bytes, float], None]
+
+
+class EmulatorPort:
+    def __init__(self, emulator: Emulator | None = None, *, timeout: float | None = 0.5, spy: SpyFn | None = None) -> None:
+        self.emulator = emulator if emulator is not None else Emulator()
+        self.timeout = timeout
+        self.write_timeout: float | None = None
+        self.is_open = False
+        self.dtr = False
+        self.rts = False
+        self.port = "emulator"
+        self.spy = spy
+        self.bytes_written = 0
+        self._rx = bytearray()  # device → host, not yet read
+        self._lock = threading.Lock()
+
+    def open(self) -> None:
+        self.is_open = True
+
+    def close(self) -> None:
+        self.is_open = False
+
+    def _check(self) -> None:
+        if not self.is_open:
+            raise PortNotOpenError("emulator port is not open")
+
+    def write(self, data: bytes) -> int:
+        self._check()
+        data = bytes(data)
+        with self._lock:
+            if self.spy:
+                self.spy("tx", data, time.monotonic())
+            reply = self.emulator.feed(data)
+            self.bytes_written += len(data)
+            if reply:
+                if self.spy:
+                    self.spy("rx", reply, time.monotonic())
+                self._rx += reply
+        return len(data)
+
+    def read(self, size: int = 1) -> bytes:
+        self._check()
+        with self._lock:
+            out = bytes(self._rx[:size])
+            del self._rx[:size]
+        return out
+
+    @property
+    def in_waiting(self) -> int:
+        return len(self._rx)
+
+    @property
+    def out_waiting(self) -> int:
+        return 0
+
+    def reset_input_buffer(self) -> None:
+        self._check()
+        self._rx.clear()
+
+    def reset_output_buffer(self) -> None:
+        self._check()
+
+    def flush(self) -> None:
+        self._check()
+
+    def __enter__(self) -> EmulatorPort:
+        self.open()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
