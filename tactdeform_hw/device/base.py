@@ -60,7 +60,7 @@ class Device(ABC):
     def _close_transport(self) -> None:
         """Release the port."""
 
-    def _discard_input(self) -> None:
+    def _discard_input(self) -> None:  # noqa: B027 - optional hook, a no-op by default
         """Drop stale bytes waiting from the device (optional for transports)."""
 
     # --- state ---------------------------------------------------------------------------------------------

@@ -89,6 +89,7 @@ class Parser:
         self._unknown_start = -1  # offset where the current run of unknown bytes began
         self._unknown_len = 0
         self._u16_reported_at = -1
+        self._unread_reported_to = 0  # absolute offset up to which unread-while-locked bytes were reported
 
     # --- buffer -------------------------------------------------------------------------------------------
 
@@ -98,14 +99,6 @@ class Parser:
             self.base += self.pos
             self.pos = 0
         self.rx += data
-        if self.locked and data:
-            self.hazards.append(
-                Hazard(
-                    HazardKind.UNREAD_WHILE_LOCKED,
-                    self.base + len(self.rx) - len(data),
-                    {"bytes": len(data), "pending": self.pending},
-                )
-            )
 
     @property
     def pending(self) -> int:
@@ -175,7 +168,9 @@ class Parser:
             else:
                 self._start(op, size, self.base + pos)
         self._flush_unknown()
-        if self.cmd is not None and self.needed == 2 and self.count == 0 and self.pending == 1:
+        if self.locked:
+            self._report_unread()
+        elif self.cmd is not None and self.needed == 2 and self.count == 0 and self.pending == 1:
             at = self.offset
             if self._u16_reported_at != at:
                 self._u16_reported_at = at
@@ -188,6 +183,16 @@ class Parser:
                 )
 
     # --- pieces --------------------------------------------------------------------------------------------
+
+    def _report_unread(self) -> None:
+        """Every byte a locked parser will never read is reported once, by offset."""
+        end = self.base + len(self.rx)
+        start = max(self._unread_reported_to, self.offset)
+        if end > start:
+            self.hazards.append(
+                Hazard(HazardKind.UNREAD_WHILE_LOCKED, start, {"bytes": end - start, "pending": self.pending})
+            )
+            self._unread_reported_to = end
 
     def _note_unknown(self, offset: int) -> None:
         if self._unknown_len == 0:
@@ -239,6 +244,7 @@ class Parser:
         avail = len(rx) - self.pos
         if op == _PATTERN:
             if self.needed == 0:
+                self._report_unread()
                 return CallResult.LOCKED
             take = min(avail, self.needed - self.count)
             if take:

@@ -1,9 +1,11 @@
 """The eTactileKit serial protocol: command bytes, payloads, replies, units and limits.  No I/O here."""
 
 from .commands import (
+    HV513_COUNT_REQUEST,
+    MEASURE_REQUEST,
     AnyCommand,
-    MeasureReply,
     Hv513CountReply,
+    MeasureReply,
     build,
     encode_discharge,
     encode_electrode_num,
@@ -17,12 +19,10 @@ from .commands import (
     parse,
     parse_hv513_reply,
     parse_measure_reply,
-    MEASURE_REQUEST,
-    HV513_COUNT_REQUEST,
 )
-from .constants import Opcode, PAYLOAD_KIND
+from .constants import PAYLOAD_KIND, Opcode
 from .decoder import DecodedCommand, StreamDecoder, decode
-from .units import CurrentTransfer, DEFAULT_TRANSFER, check_int
+from .units import DEFAULT_TRANSFER, CurrentTransfer, check_int
 
 __all__ = [
     "AnyCommand",

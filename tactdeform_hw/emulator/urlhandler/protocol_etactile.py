@@ -37,7 +37,7 @@ def forget_shared(name: str | None = None) -> None:
             _shared.pop(name, None)
 
 
-class Serial(SerialBase):
+class Serial(SerialBase):  # type: ignore[misc]
     """pyserial port backed by an in-process :class:`Emulator`."""
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
@@ -48,7 +48,7 @@ class Serial(SerialBase):
         super().__init__(*args, **kwargs)
 
     def open(self) -> None:
-        if self.is_open:
+        if self.is_open:  # type: ignore[has-type]
             raise SerialException("Port is already open.")
         if self._port is None:
             raise SerialException("Port must be configured before it can be used.")

@@ -1,0 +1,237 @@
+"""The driver: configuration order, refusals that write nothing, all-off on close, typed errors."""
+
+from __future__ import annotations
+
+import pytest
+
+from tactdeform_hw.device import ChannelMapping, EtactileKitDevice, StimConfig, open_device
+from tactdeform_hw.emulator import Emulator
+from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.errors import (
+    ConfigurationError,
+    DeviceGoneError,
+    LimitError,
+    PortNotOpenError,
+    ProtocolMisuseError,
+    SafetyError,
+    ShortReplyError,
+    TransportError,
+)
+from tactdeform_hw.protocol.decoder import OK, decode
+
+
+class RecordingPort(EmulatorPort):
+    """An in-process port that records every write and the line states at open."""
+
+    def __init__(self, emulator: Emulator | None = None, **kw: object) -> None:
+        super().__init__(emulator, **kw)  # type: ignore[arg-type]
+        self.writes: list[bytes] = []
+        self.lines_at_open: tuple[bool, bool] | None = None
+        self.dtr = True  # pyserial's default would assert both lines
+        self.rts = True
+
+    def open(self) -> None:
+        self.lines_at_open = (self.dtr, self.rts)
+        super().open()
+
+    def write(self, data: bytes) -> int:
+        self.writes.append(bytes(data))
+        return super().write(data)
+
+
+@pytest.fixture
+def port() -> RecordingPort:
+    return RecordingPort()
+
+
+@pytest.fixture
+def dev(port: RecordingPort) -> EtactileKitDevice:
+    return EtactileKitDevice(port)
+
+
+def test_lines_are_low_before_open(port: RecordingPort) -> None:
+    EtactileKitDevice(port).close()
+    assert port.lines_at_open == (False, False)
+
+
+def test_configure_then_pattern_reaches_the_firmware(dev: EtactileKitDevice, port: RecordingPort) -> None:
+    dev.configure(StimConfig(current_ua=1500, rate_hz=125, discharge_us=45))
+    dev.send_pattern([1] * 16 + [0] * 15 + [2])
+    s = port.emulator.state()
+    assert s["electrode_num"] == 32 and s["pulse_height"] == 150 and s["pulse_width"] == 200
+    assert s["discharge_time"] == 45 and s["period_us"] == 8000.0 and s["polarity"] == 1
+    assert s["stim_pattern"][:32] == [1] * 16 + [0] * 15 + [2]
+    assert port.emulator.hazards == []  # the driver triggers no defect
+    # one write per command, each a whole command
+    for w in port.writes:
+        assert all(i.status == OK for i in decode(w, 32))
+    assert port.writes[-1] == bytes([0xFE] + [1] * 16 + [0] * 15 + [2])
+
+
+def test_configure_order_never_stimulates_half_set(dev: EtactileKitDevice, port: RecordingPort) -> None:
+    dev.configure(StimConfig(current_ua=1000))
+    names = [decode(w, 32)[0].name for w in port.writes]
+    assert names[0] == "PULSE_HEIGHT" and port.writes[0] == b"\xfb\x00\x00"
+    assert names.index("ELECTRODE_NUM") + 1 == names.index("PATTERN")
+    assert names[-1] == "PULSE_HEIGHT"
+
+
+def test_reconfiguring_clears_stale_channels(dev: EtactileKitDevice, port: RecordingPort) -> None:
+    dev.configure(StimConfig(electrode_count=8, current_ua=100))
+    dev.send_pattern([1] * 8)
+    dev.configure(StimConfig(electrode_count=4, current_ua=100))
+    dev.configure(StimConfig(electrode_count=8, current_ua=100))
+    assert port.emulator.state()["stim_pattern"][:8] == [0] * 8
+    assert port.emulator.hazards == []
+
+
+@pytest.mark.parametrize(
+    ("call", "error"),
+    [
+        (lambda d: d.send_pattern([1] * 32), ProtocolMisuseError),  # before configure
+        (lambda d: d.set_current(100), ProtocolMisuseError),
+        (lambda d: d.measure(), ProtocolMisuseError),
+        (lambda d: d.configure(StimConfig(electrode_count=0)), LimitError),
+        (lambda d: d.configure(StimConfig(current_ua=10_010)), LimitError),
+        (lambda d: d.configure(StimConfig(current_ua=155)), LimitError),
+        (lambda d: d.configure(StimConfig(pulse_width_us=0)), LimitError),
+        (lambda d: d.configure(StimConfig(rate_hz=0)), LimitError),
+        (lambda d: d.configure(StimConfig(rate_hz=70_000)), LimitError),
+        (lambda d: d.configure(StimConfig(discharge_us=256)), LimitError),
+        (lambda d: d.configure(StimConfig(polarity="up")), LimitError),  # type: ignore[arg-type]
+        (lambda d: d.configure(StimConfig(sense_current_ua=30)), LimitError),
+        (lambda d: d.configure(StimConfig(pulse_width_us=float("nan"))), LimitError),  # type: ignore[arg-type]
+    ],
+)
+def test_refusals_before_configure_write_nothing(dev: EtactileKitDevice, port: RecordingPort, call, error) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(error):
+        call(dev)
+    assert port.writes == []
+
+
+@pytest.mark.parametrize(
+    ("levels", "error", "match"),
+    [
+        ([1] * 31, ProtocolMisuseError, "31 level"),
+        ([1] * 33, ProtocolMisuseError, "33 level"),
+        ([1] * 31 + [3], LimitError, r"pattern\[31\]"),
+        ([1] * 31 + [-1], LimitError, r"pattern\[31\]"),
+        ([1] * 31 + [1.0], LimitError, r"pattern\[31\]"),
+        ([1] * 31 + [True], LimitError, r"pattern\[31\]"),
+        (None, LimitError, "pattern"),
+    ],
+)
+def test_pattern_refusals_write_nothing(dev: EtactileKitDevice, port: RecordingPort, levels, error, match: str) -> None:  # type: ignore[no-untyped-def]
+    dev.configure(StimConfig(current_ua=100))
+    before = list(port.writes)
+    with pytest.raises(error, match=match):
+        dev.send_pattern(levels)
+    assert port.writes == before
+
+
+def test_current_above_cap_is_refused_and_nothing_written(port: RecordingPort) -> None:
+    from tactdeform_hw.device import SafetyGuard
+
+    dev = EtactileKitDevice(port, guard=SafetyGuard(cap_ua=2000))
+    with pytest.raises(SafetyError):
+        dev.configure(StimConfig(current_ua=2500))
+    assert port.writes == []
+    dev.configure(StimConfig(current_ua=2000))
+    before = list(port.writes)
+    with pytest.raises(SafetyError):
+        dev.set_current(2010)
+    assert port.writes == before
+
+
+def test_close_sends_all_off_and_is_idempotent(dev: EtactileKitDevice, port: RecordingPort) -> None:
+    dev.configure(StimConfig(current_ua=1000))
+    dev.send_pattern([1] * 32)
+    dev.close()
+    dev.close()
+    s = port.emulator.state()
+    assert s["stim_pattern"][:32] == [0] * 32 and s["pulse_height"] == 0
+    assert not port.is_open
+    with pytest.raises(PortNotOpenError):
+        dev.send_pattern([0] * 32)
+
+
+def test_context_manager_all_off_on_exception() -> None:
+    port = RecordingPort()
+    with pytest.raises(RuntimeError):
+        with EtactileKitDevice(port) as dev:
+            dev.configure(StimConfig(current_ua=500))
+            dev.send_pattern([2] * 32)
+            raise RuntimeError("renderer crashed")
+    assert port.emulator.state()["stim_pattern"][:32] == [0] * 32
+
+
+def test_channel_mapping_reorders_to_hardware(port: RecordingPort) -> None:
+    mapping = ChannelMapping.from_list([3, 2, 1, 0], hw_channels=4)
+    dev = EtactileKitDevice(port, mapping=mapping)
+    dev.configure(StimConfig(electrode_count=4, current_ua=100))
+    dev.send_pattern([1, 0, 0, 2])
+    assert port.emulator.state()["stim_pattern"][:4] == [2, 0, 0, 1]
+    with pytest.raises(LimitError, match="mapping"):
+        dev.configure(StimConfig(electrode_count=8))
+
+
+def test_mapping_validation() -> None:
+    with pytest.raises(ConfigurationError, match="second electrode"):
+        ChannelMapping((0, 1, 1), 3)
+    with pytest.raises(LimitError, match=r"mapping\[1\]"):
+        ChannelMapping((0, 5), 3)
+
+
+def test_measure_and_hv513(dev: EtactileKitDevice) -> None:
+    dev.configure(StimConfig(electrode_count=12))
+    assert dev.measure() == [0] * 12
+    assert dev.hv513_count() == 4
+
+
+class SilentPort(RecordingPort):
+    def read(self, size: int = 1) -> bytes:
+        return b"\x01"[: min(size, 1)] if size > 1 else b""
+
+
+def test_short_reply_is_typed() -> None:
+    dev = EtactileKitDevice(SilentPort())
+    dev.configure(StimConfig(electrode_count=4))
+    with pytest.raises(ShortReplyError, match="expected a 8-byte reply, got 1"):
+        dev.measure()
+    with pytest.raises(ShortReplyError):
+        dev.hv513_count()
+
+
+class BrokenPort(RecordingPort):
+    def write(self, data: bytes) -> int:
+        raise OSError(5, "Input/output error")
+
+
+def test_transport_failures_are_typed() -> None:
+    dev = EtactileKitDevice(BrokenPort())
+    with pytest.raises(DeviceGoneError) as err:
+        dev.configure(StimConfig())
+    assert isinstance(err.value.__cause__, OSError)
+
+
+def test_resync_recovers_a_desynchronised_parser(dev: EtactileKitDevice, port: RecordingPort) -> None:
+    dev.configure(StimConfig(current_ua=300))
+    port.emulator.feed(b"\xfe" + b"\x01" * 10)  # a pattern cut short by a fault on the link
+    port.emulator.feed(b"\xfb\xdc")  # and a half pulse height
+    dev.resync()
+    s = port.emulator.state()
+    assert s["rx_pending"] == 0 and s["electrode_num"] == 32 and s["pulse_height"] == 30
+    assert s["stim_pattern"][:32] == [0] * 32
+    dev.send_pattern([1] * 32)
+    assert port.emulator.state()["stim_pattern"][:32] == [1] * 32
+
+
+def test_open_device_by_url_and_errors() -> None:
+    with open_device("etactile://?board=large&switching_boards=2") as d:
+        assert d.hv513_count() == 16
+    with pytest.raises(TransportError):
+        open_device("/dev/does-not-exist-etactile")
+    import serial
+
+    with pytest.raises(serial.SerialException, match="unknown option"):
+        serial.serial_for_url("etactile://?bogus=1")

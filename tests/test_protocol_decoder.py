@@ -1,0 +1,55 @@
+"""The streaming decoder reads captures the way the firmware does."""
+
+from __future__ import annotations
+
+from tactdeform_hw.protocol.decoder import (
+    LOCKED,
+    OK,
+    TRUNCATED,
+    UNKNOWN,
+    UNREAD,
+    StreamDecoder,
+    decode,
+    parse_hex,
+)
+
+
+def test_decodes_a_configuration() -> None:
+    items = decode(parse_hex("fc 04 fe 01 02 00 01 fb 64 00 f6 7d 00 ff f5"))
+    assert [(i.name, i.value, i.status) for i in items] == [
+        ("ELECTRODE_NUM", 4, OK),
+        ("PATTERN", b"\x01\x02\x00\x01", OK),
+        ("PULSE_HEIGHT", 100, OK),
+        ("FREQUENCY", 125, OK),
+        ("MEASURE", None, OK),
+        ("HV513_COUNT", None, OK),
+    ]
+    assert [i.offset for i in items] == [0, 2, 7, 10, 13, 14]
+
+
+def test_marks_unknown_truncated_locked_and_unread() -> None:
+    items = decode(b"\x00\x13\xfc\x02\xfe\x01")
+    assert [i.status for i in items] == [UNKNOWN, OK, TRUNCATED]
+    assert items[0].raw == b"\x00\x13"
+    items = decode(b"\xfe\x01\x02")
+    assert [i.status for i in items] == [LOCKED, UNREAD]
+    assert "LOCKS THE PARSER" in items[0].describe() and "UNREAD" in items[1].describe()
+
+
+def test_flags_command_bytes_inside_a_pattern() -> None:
+    items = decode(b"\xfc\x03\xfe\x01\xfb\x10")
+    assert "cut short" in items[1].note
+
+
+def test_streaming_equals_one_shot() -> None:
+    data = parse_hex("fc 04 fe 01 02 00 01 fb 64 00 13 f6 7d")
+    dec = StreamDecoder()
+    items = []
+    for b in data:
+        items += dec.feed(bytes([b]))
+    items += dec.finish()
+    assert [i.to_dict() for i in items] == [i.to_dict() for i in decode(data)]
+
+
+def test_parse_hex_accepts_common_spellings() -> None:
+    assert parse_hex("0xfc,0x20:FE\n01") == b"\xfc\x20\xfe\x01"
