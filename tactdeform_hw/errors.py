@@ -104,3 +104,14 @@ class DeviceGoneError(TransportError):
 
 class SafetyError(TactDeformError):
     """A request that would exceed a participant's calibrated limits, or a fail-safe that tripped."""
+
+
+class ProfileError(ConfigurationError):
+    """A participant profile that cannot be used: the message names the file and the field, because the
+    person fixing it is at the bench with the participant waiting."""
+
+    def __init__(self, source: str, field: str, problem: str) -> None:
+        super().__init__(f"participant profile {source}: {field}: {problem}; nothing was sent")
+        self.source = source
+        self.field = field
+        self.problem = problem

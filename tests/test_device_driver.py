@@ -160,7 +160,7 @@ def test_context_manager_all_off_on_exception() -> None:
     with pytest.raises(RuntimeError):
         with EtactileKitDevice(port) as dev:
             dev.configure(StimConfig(current_ua=500))
-            dev.send_pattern([2] * 32)
+            dev.send_pattern([2] * 8 + [0] * 24)
             raise RuntimeError("renderer crashed")
     assert port.emulator.state()["stim_pattern"][:32] == [0] * 32
 

@@ -64,11 +64,11 @@ def test_pty_locked_parser_reproduced_and_reported(pty_server: PtyServer) -> Non
 def test_driver_over_pty(pty_server: PtyServer) -> None:
     with _device(pty_server.path) as dev:
         dev.configure(StimConfig(current_ua=800))
-        dev.send_pattern([1, 2] * 16)
+        dev.send_pattern([1, 2, 0, 0] * 8)
         assert dev.hv513_count() == 4
         assert len(dev.measure()) == 32
         deadline = time.monotonic() + 2
-        while pty_server.emulator.state()["stim_pattern"][:32] != [1, 2] * 16 and time.monotonic() < deadline:
+        while pty_server.emulator.state()["stim_pattern"][:32] != [1, 2, 0, 0] * 8 and time.monotonic() < deadline:
             time.sleep(0.005)
     deadline = time.monotonic() + 2
     while pty_server.emulator.state()["stim_pattern"][:32] != [0] * 32 and time.monotonic() < deadline:
@@ -121,3 +121,27 @@ def test_emulate_cli_prints_path_first_and_serves() -> None:
         out, err = proc.communicate(timeout=10)
     assert proc.returncode == 0, err
     assert "stopped:" in err
+
+
+def test_emulate_cli_records_a_trace_while_serving(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    trace = tmp_path / "session.csv"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tactdeform_hw.cli", "emulate", "--pty", "--trace", str(trace)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        path = proc.stdout.readline().strip()  # type: ignore[union-attr]
+        with open_pty(path, timeout=2) as s:
+            s.write(b"\xfc\x04\xfb\x64\x00\xfa\xc8\x00\xf7\x2d\xf6\x7d\x00\xfe\x01\x00\x00\x00")
+            time.sleep(0.3)
+            s.write(b"\xf5")
+            assert s.read(1) == b"\x04"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    text = trace.read_text()
+    assert len(text.splitlines()) > 10
+    assert "dac" in text.lower()

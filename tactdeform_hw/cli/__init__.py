@@ -15,6 +15,12 @@ COMMANDS: tuple[str, ...] = (
     "ports",
     "decode",
     "send",
+    "play",
+    "export",
+    "render",
+    "timing",
+    "calibrate",
+    "replay_log",
 )
 
 

@@ -9,7 +9,8 @@ from typing import Any
 
 DEVICE_HELP = (
     "serial port path (e.g. /dev/ttyACM0), pyserial URL (e.g. etactile://?board=compact), "
-    "or 'emulator' (default: the in-process emulator)"
+    "usb:VID:PID[:SERIAL] for the board's USB interface through pyusb (e.g. usb:303a:1001), "
+    "usb-emulator, or 'emulator' (default: the in-process emulator)"
 )
 
 
@@ -25,3 +26,72 @@ def print_json(obj: Any) -> None:
 
 def progress(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
+
+
+# --- participant safety (every command that can stimulate) ------------------------------------------------
+
+PARTICIPANT_HELP = (
+    "participant profile (.json or .toml, see 'tactdeform-hw calibrate'): its cap, regional amplitudes, "
+    "charge and ramp limits, pulse width and polarity bound every current this command sends; a malformed "
+    "file is refused before the device is opened"
+)
+
+
+def add_participant_arg(parser: argparse.ArgumentParser) -> None:
+    """``--participant FILE`` and ``--audit-log FILE`` (JSON lines of every command sent)."""
+    parser.add_argument("--participant", metavar="FILE", default=None, help=PARTICIPANT_HELP)
+    parser.add_argument(
+        "--audit-log",
+        metavar="FILE",
+        default=None,
+        help="append every command sent (with its time) and every safety refusal or clip to FILE as JSON lines",
+    )
+
+
+def profile_from_args(args: argparse.Namespace) -> Any:
+    """The participant profile named by ``--participant`` (None without one); raises
+    :class:`~tactdeform_hw.errors.ProfileError` naming the field for a bad file."""
+    path = getattr(args, "participant", None)
+    if not path:
+        return None
+    from ..device.profiles import load_profile
+
+    return load_profile(path)
+
+
+def guard_from_args(args: argparse.Namespace, *, region_of: Any = None) -> Any:
+    """The safety guard for this command: the participant's limits with ``--participant``, the 10 mA
+    hardware ceiling without.  Call it before opening the device, so a bad profile sends nothing."""
+    from ..device.safety import SafetyGuard
+
+    profile = profile_from_args(args)
+    if profile is None:
+        return SafetyGuard()
+    return SafetyGuard.from_profile(profile, region_of=region_of)
+
+
+def audit_from_args(args: argparse.Namespace, **session: Any) -> Any:
+    """An :class:`~tactdeform_hw.device.audit.AuditLog` for ``--audit-log`` (None without one)."""
+    path = getattr(args, "audit_log", None)
+    if not path:
+        return None
+    from ..device.audit import AuditLog
+
+    session.setdefault("command", getattr(args, "command", None))
+    session.setdefault("device", getattr(args, "device", None))
+    session.setdefault("participant_file", getattr(args, "participant", None))
+    return AuditLog(path, **session)
+
+
+def hold(device: Any, seconds: float, *, interval_s: float = 0.02) -> None:
+    """Hold the current frame for ``seconds`` while telling the device's fail-safe watchdog that the
+    owner is still there (a deliberate hold must not look like a stalled renderer)."""
+    import time
+
+    end = time.monotonic() + max(0.0, seconds)
+    while True:
+        device.keepalive()
+        left = end - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(interval_s, left))

@@ -24,6 +24,12 @@ def register(sub: Any) -> None:
     p.add_argument("--board", choices=("compact", "large"), default="compact", help="board kind (default compact)")
     p.add_argument("--switching-boards", type=int, default=1, help="stacked switching boards (default 1)")
     p.add_argument("--spy", action="store_true", help="hex-dump every byte both ways with timestamps to stderr")
+    p.add_argument(
+        "--trace",
+        metavar="FILE",
+        help="record a waveform trace while serving, following the wall clock on the timed model: "
+        ".vcd (GTKWave; needs the 'trace' extra), .csv or .json event list",
+    )
     p.set_defaults(func=run)
 
 
@@ -33,10 +39,25 @@ def run(args: argparse.Namespace) -> int:
 
     emu = Emulator(args.board, args.switching_boards)
 
-    def spy(direction: str, data: bytes, t: float) -> None:
-        progress(f"{t:.6f} {direction} {data.hex(' ')}")
+    hooks = []
+    if args.spy:
 
-    server = PtyServer(emu, hook=spy if args.spy else None)
+        def spy(direction: str, data: bytes, t: float) -> None:
+            progress(f"{t:.6f} {direction} {data.hex(' ')}")
+
+        hooks.append(spy)
+    live = None
+    if args.trace:
+        from ..emulator.trace import LiveTrace
+
+        live = LiveTrace(args.trace, board=args.board, switching_boards=args.switching_boards)
+        hooks.append(live.hook)
+
+    def hook(direction: str, data: bytes, t: float) -> None:
+        for h in hooks:
+            h(direction, data, t)
+
+    server = PtyServer(emu, hook=hook if hooks else None)
     print(server.path, flush=True)
     progress(f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {server.path}")
 
@@ -49,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         while True:
             time.sleep(0.1)
+            if live is not None:
+                live.poll()
             while seen < len(emu.hazards):
                 progress(f"hazard: {emu.hazards[seen]}")
                 seen += 1
@@ -56,6 +79,9 @@ def run(args: argparse.Namespace) -> int:
         pass
     finally:
         server.stop()
+        if live is not None:
+            live.close()
+            progress(f"trace written to {args.trace}")
         progress(f"stopped: {server.bytes_in} bytes in, {server.bytes_out} bytes out, {len(emu.hazards)} hazard(s)")
     sys.stdout.flush()
     return 0

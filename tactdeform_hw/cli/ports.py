@@ -1,61 +1,74 @@
-"""``tactdeform-hw ports``: serial ports that may be an eTactileKit."""
+"""``tactdeform-hw ports``: serial ports and USB devices that may be an eTactileKit."""
 
 from __future__ import annotations
 
 import argparse
 from typing import Any
 
-from ..protocol.constants import ESPRESSIF_VID
 from .common import print_json
 
 
 def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "ports",
-        help="list serial ports, marking the ones that look like an eTactileKit (ESP32-S3, VID 0x303A)",
-        description="List serial ports with VID:PID, serial number and product. A port with Espressif's "
-        "vendor id 0x303A is marked as a likely eTactileKit controller (ESP32-S3 native USB).",
+        help="list serial ports and USB devices, marking the ones that look like an eTactileKit",
+        description="List candidate boards seen two ways: serial ports (pyserial; the system's CDC-ACM "
+        "driver owns the board, e.g. /dev/ttyACM0 or COM3) and USB devices (pyusb; opened directly, "
+        "e.g. usb:303a:1001:SERIAL). The DEVICE column is what --device takes. A device with Espressif's "
+        "vendor id 0x303A is marked as a likely controller (ESP32-S3 native USB), with the evidence. "
+        "Nothing is opened and no byte is sent. Without pyusb or libusb the serial ports are still "
+        "listed and a note says why USB devices are not.",
     )
-    p.add_argument("--json", action="store_true", help="print JSON records")
+    p.add_argument("--json", action="store_true", help="print one JSON object: candidates, usb_available, notes")
+    p.add_argument("--no-usb", action="store_true", help="list serial ports only (skip pyusb)")
+    p.add_argument(
+        "--all",
+        action="store_true",
+        help="also list serial ports without USB ids and USB devices that are neither Espressif nor CDC-ACM",
+    )
+    p.add_argument(
+        "--usb-emulator",
+        action="store_true",
+        help="search the emulated USB bus (one emulated board) instead of the system's: shows what a "
+        "board looks like without hardware",
+    )
     p.set_defaults(func=run)
 
 
 def serial_candidates() -> list[dict[str, Any]]:
-    from serial.tools import list_ports
+    """Serial ports as plain records (kept for callers of the earlier API)."""
+    from ..device.discovery import serial_candidates as _serial
 
-    out = []
-    for info in list_ports.comports():
-        vid, pid = info.vid, info.pid
-        hint = ""
-        if vid == ESPRESSIF_VID:
-            hint = "Espressif VID 0x303A: likely an ESP32-S3 eTactileKit controller"
-        out.append(
-            {
-                "transport": "serial",
-                "device": info.device,
-                "vid": f"{vid:04x}" if vid is not None else None,
-                "pid": f"{pid:04x}" if pid is not None else None,
-                "serial_number": info.serial_number,
-                "product": info.product,
-                "description": info.description,
-                "hint": hint,
-            }
-        )
-    return out
+    return [c.to_dict() for c in _serial()]
 
 
 def run(args: argparse.Namespace) -> int:
-    rows = serial_candidates()
+    from ..device.discovery import discover
+
+    backend = None
+    if args.usb_emulator:
+        from ..emulator.usb_backend import EmulatedUsbBackend
+
+        backend = EmulatedUsbBackend()
+    result = discover(usb=not args.no_usb, usb_backend=backend, include_all=args.all)
     if args.json:
-        print_json(rows)
+        print_json(result.to_dict())
         return 0
-    if not rows:
-        print("no serial ports found (the emulator is always available as --device emulator)")
-        return 0
-    for r in rows:
-        ids = f"{r['vid']}:{r['pid']}" if r["vid"] else "----:----"
-        line = f"{r['device']:<20} {ids}  {r['description'] or ''}"
-        if r["hint"]:
-            line += f"   <- {r['hint']}"
-        print(line)
+    if not result.candidates:
+        print("no candidate boards found (the emulator is always available as --device emulator)")
+    else:
+        print(f"{'ROUTE':<7} {'DEVICE':<36} {'VID:PID':<9}  DESCRIPTION")
+    for c in result.candidates:
+        desc = " ".join(x for x in (c.product, f"[{c.location}]" if c.location and c.transport == "usb" else None) if x)
+        print(f"{c.transport:<7} {c.device:<36} {c.ids:<9}  {desc}")
+        if c.likely:
+            print(f"{'':<7} likely an eTactileKit controller: {'; '.join(c.reasons)}")
+        elif c.reasons:
+            print(f"{'':<7} {'; '.join(c.reasons)}")
+        if c.same_board_as:
+            print(f"{'':<7} the same board as {c.same_board_as} (opening it over USB detaches that serial port)")
+        for note in c.notes:
+            print(f"{'':<7} note: {note}")
+    for note in result.notes:
+        print(f"note: {note}")
     return 0

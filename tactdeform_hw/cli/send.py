@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import time
 from typing import Any
 
 from ..errors import ConfigurationError
-from .common import add_device_arg, print_json
+from .common import add_device_arg, add_participant_arg, audit_from_args, guard_from_args, hold, print_json, profile_from_args
 
 
 def register(sub: Any) -> None:
@@ -19,13 +18,14 @@ def register(sub: Any) -> None:
         "safety guard; nothing is written when a value is out of range.",
     )
     add_device_arg(p)
+    add_participant_arg(p)
     p.add_argument("--pattern", required=True, help="comma-separated levels in application order: 0 off, 1 mono, 2 biphasic; or 'all:1'")
     p.add_argument("--electrodes", type=int, default=32, help="electrode count (default 32)")
     p.add_argument("--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)")
-    p.add_argument("--pulse-width", type=int, default=200, help="pulse width in µs (default 200)")
+    p.add_argument("--pulse-width", type=int, default=None, help="pulse width in µs (default: the participant's, else 200)")
     p.add_argument("--discharge", type=int, default=45, help="discharge time in µs (default 45)")
     p.add_argument("--frequency", type=int, default=125, help="stimulation rate in Hz (default 125)")
-    p.add_argument("--polarity", choices=("anodic", "cathodic"), default="anodic")
+    p.add_argument("--polarity", choices=("anodic", "cathodic"), default=None, help="default: the participant's, else anodic")
     p.add_argument("--hold", type=float, default=0.0, help="seconds to hold the pattern before all-off (default 0)")
     p.add_argument("--json", action="store_true", help="print what was sent and the device's state as JSON")
     p.set_defaults(func=run)
@@ -46,27 +46,37 @@ def parse_pattern(text: str, electrodes: int) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     from ..device import StimConfig, open_device
+    from ..device.failsafe import FailSafe
 
+    profile = profile_from_args(args)  # a bad profile is refused before anything is opened
+    guard = guard_from_args(args)
     config = StimConfig(
         electrode_count=args.electrodes,
         current_ua=args.current_ua,
-        pulse_width_us=args.pulse_width,
+        pulse_width_us=args.pulse_width if args.pulse_width is not None else (profile.pulse_width_us if profile else 200),
         discharge_us=args.discharge,
         rate_hz=args.frequency,
-        polarity=args.polarity,
+        polarity=args.polarity or (profile.polarity if profile else "anodic"),
     )
     levels = parse_pattern(args.pattern, args.electrodes)
     from ..protocol.units import DEFAULT_TRANSFER
 
     config.validated(DEFAULT_TRANSFER)  # refuse before the port is even opened
-    with open_device(args.device, timeout=args.timeout) as dev:
+    guard.check_config(config)
+    audit = audit_from_args(args, participant=profile.participant if profile else None)
+    dev = open_device(args.device, timeout=args.timeout, guard=guard, audit=audit)
+    with FailSafe(dev):
         dev.configure(config)
         dev.send_pattern(levels)
         emu = getattr(getattr(dev, "port", None), "emulator", None)
         state = emu.state() if emu is not None else None
         if args.hold > 0:
-            time.sleep(args.hold)
+            hold(dev, args.hold)
+    if audit is not None:
+        audit.close()
     result: dict[str, Any] = {"device": args.device, "config": config.__dict__, "pattern": levels}
+    result["sent_current_ua"] = DEFAULT_TRANSFER.to_ua(state["pulse_height"]) if state is not None else None
+    result["safety"] = list(guard.log)
     if state is not None:
         result["emulator_state"] = {k: v for k, v in state.items() if k != "stim_pattern"}
         result["emulator_pattern"] = state["stim_pattern"][: args.electrodes]

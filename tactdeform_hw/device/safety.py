@@ -1,44 +1,651 @@
-"""The one guard every current passes on its way to the device.
+"""The one guard every current passes on its way to the device, and the interlock behind it.
 
-:class:`~tactdeform_hw.device.base.Device` calls the guard inside the methods that set a current or send
-a pattern, before the bytes are built, so no caller above the device layer can skip it.  The base guard
-enforces the hardware ceiling (10 mA); participant profiles tighten it.
+Two layers, both inside :class:`~tactdeform_hw.device.base.Device`, so nothing above the device layer can
+skip them:
+
+1. **The guard** (:meth:`SafetyGuard.check_config`, :meth:`SafetyGuard.request`,
+   :meth:`SafetyGuard.frame_height`) decides what current may be sent.  ``configure``, ``set_current``,
+   ``send_pattern``, ``keepalive`` and ``resync`` all go through it before any byte is built.
+2. **The interlock** (:meth:`SafetyGuard.check_wire`) sees every command the device layer writes — it is
+   called from ``Device._send``, the single place bytes leave for the transport — and keeps a shadow of
+   the firmware's registers.  It refuses a command whose effect would break a limit whatever code path
+   produced it, so a future method that forgets the guard is stopped at the wire.  Only writing to the
+   port object directly (``device.port.write`` or ``serial.serial_for_url(...).write``) bypasses it:
+   that is not the driver, it is the raw transport, and no Python-level check can stop a caller who
+   opens the port themselves.
+
+Limits (µA unless noted):
+
+* the hardware ceiling, 10 mA (never raised);
+* the participant's ``cap_ua``;
+* the regional amplitude of every electrode active in the frame.  The firmware has **one pulse height
+  per scan** (the 0xFB register applies to every channel whose pattern value is 1 or 2), so a frame's
+  height is the **lowest** limit among the electrodes it activates;
+* charge per pulse, ``current × width`` in nC (per phase for biphasic pulses: both phases have the same
+  height and width), as a current limit ``max_charge_nc × 1000 / width``;
+* a ramp limit: the pulse height may rise by at most ``ramp_ua_per_frame`` from one frame to the next
+  (counted from 0 after configure, all-off, resync and a watchdog stop, so stimulation always starts soft);
+* the sense current: every channel whose pattern value is not 1 or 2 receives the sense pulse, so it must
+  be within the *lowest* electrode limit and the charge limit;
+* polarity may change only while no current can flow (pulse height 0 or no active channel, and sense 0);
+* frames whose scan would fill the stimulation period are refused: the parser runs only between scans,
+  and back-to-back scans would leave the host unable to change anything, all-off included; scans that
+  could trip the firmware's 300 ms interrupt watchdog are refused at configure time.
+
+**Refuse or clip** — the documented rule:
+
+* *Refused* (:class:`~tactdeform_hw.errors.SafetyError`, nothing written): a requested current above the
+  participant's cap (values above the 10 mA ceiling, negative, fractional or not numbers are refused
+  earlier as :class:`~tactdeform_hw.errors.LimitError`); a configuration whose charge per pulse, sense
+  current, pulse width (wider than calibrated), polarity (other than calibrated) or scan time breaks a
+  limit; a polarity change while stimulating; any command the interlock finds unsafe.  These are caller
+  errors: a script that asks for more than the participant's cap has a bug, and silently delivering less
+  would hide it.
+* *Clipped* (logged, the lower height sent): the frame's height is lowered to the lowest regional limit of
+  the electrodes it activates, and increases are limited to the ramp step.  These depend on which
+  electrodes a frame happens to activate, which the renderer cannot know in advance; the frame still
+  renders, at a height that is safe for every electrode in it.
+
+Every refusal and every clip is appended to :attr:`SafetyGuard.log` (the latest 10 000; :attr:`counts`
+keeps totals), sent to the ``tactdeform_hw.safety`` logger (refusals at warning level, clips at info) and to
+``sink`` (the session's audit log when one is enabled).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import logging
+import math
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
-from ..errors import SafetyError
-from ..protocol.constants import MAX_CURRENT_UA
-from .config import StimConfig
+from ..errors import LimitError, SafetyError
+from ..protocol.constants import (
+    CURRENT_STEP_UA,
+    MAX_CURRENT_UA,
+    PATTERN_BIPHASIC,
+    PATTERN_BUFFER_SIZE,
+    PATTERN_MONOPHASIC,
+    SENSE_HEIGHT_SHIFT,
+    Opcode,
+)
+from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
+from .config import POLARITY_CODE, StimConfig
+
+if TYPE_CHECKING:
+    from .mapping import ChannelMapping
+    from .profiles import ParticipantProfile
+
+logger = logging.getLogger("tactdeform_hw.safety")
+
+#: 10 mA × 200 µs: the TactDeform hardware's largest pulse at its own pulse width.  Without a profile the
+#: guard allows no more charge per pulse than that.
+DEFAULT_MAX_CHARGE_NC = MAX_CURRENT_UA * 200 / 1000.0
+#: The firmware's interrupt watchdog reboots the chip when one scan runs longer than this.
+INTERRUPT_WATCHDOG_US = 300_000.0
+#: Scans are refused well before the watchdog: the estimate below leaves this much margin.
+SCAN_LIMIT_US = 250_000.0
+_ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
+_EPS = 1e-6
+LOG_LIMIT = 10_000
+
+
+def grid_regions(
+    rows: int = 6, cols: int = 6, *, skip_corners: bool = True, region_rows: int = 3, region_cols: int = 3
+) -> tuple[int, ...]:
+    """Region index of each electrode of a row-major grid (application order), regions row-major too.
+
+    The default is the TactDeform finger-pad array: 6 × 6 minus the corners = 32 electrodes, row 0 at the
+    fingertip, grouped 2 × 2 into 3 × 3 regions (the corner regions hold 3 electrodes, the others 4);
+    region 4 is the centre.
+    """
+    out: list[int] = []
+    corners = {(0, 0), (0, cols - 1), (rows - 1, 0), (rows - 1, cols - 1)} if skip_corners else set()
+    for r in range(rows):
+        for c in range(cols):
+            if (r, c) in corners:
+                continue
+            out.append((r * region_rows // rows) * region_cols + (c * region_cols // cols))
+    return tuple(out)
+
+
+#: Region of each of the 32 TactDeform electrodes, application order.
+TACTDEFORM_REGION_OF: tuple[int, ...] = grid_regions()
 
 
 @dataclass
+class _Shadow:
+    """What the firmware's registers hold as far as the host can know (None: unknown)."""
+
+    electrode_num: int | None = None
+    height_code: int | None = None
+    sense_code: int | None = None
+    polarity: int | None = None
+    width_us: int | None = None
+    sense_width_us: int | None = None
+    pattern: list[int | None] = field(default_factory=lambda: [None] * PATTERN_BUFFER_SIZE)
+
+    def copy(self) -> _Shadow:
+        return _Shadow(
+            self.electrode_num,
+            self.height_code,
+            self.sense_code,
+            self.polarity,
+            self.width_us,
+            self.sense_width_us,
+            list(self.pattern),
+        )
+
+
+def estimate_scan_us(electrodes: int, width_us: int, discharge_us: int, sense_width_us: int) -> float:
+    """A generous upper estimate of one scan (every channel biphasic): the firmware's order of SPI
+    exchanges and busy-waits, rounded up.  Only used to keep scans far from the 300 ms watchdog."""
+    pulse = 6.6 + max(width_us, sense_width_us, 7)
+    per_channel = 5.0 + 2 * pulse + 6.6 + 6.6 + max(discharge_us, 3)
+    return electrodes * per_channel + 8 * 256 * 0.1
+
+
 class SafetyGuard:
-    """Limits in µA.  ``check_*`` return the value that may be sent or raise :class:`SafetyError`."""
+    """Participant limits, enforced before bytes are built (guard) and as they are written (interlock).
 
-    cap_ua: int = MAX_CURRENT_UA
-    log: list[dict[str, object]] = field(default_factory=list)
+    ``cap_ua`` alone gives the hardware-ceiling guard every device has by default.  A profile adds regional
+    amplitudes, its charge limit, its calibrated polarity and pulse width, and optionally a ramp; use
+    :meth:`from_profile`.  ``region_of`` maps each application electrode to its region (default: the
+    TactDeform array when the device has 32 electrodes).  When the region map does not fit the configured
+    electrode count, every electrode gets the lowest regional amplitude — the safe direction.
+    """
 
-    def __post_init__(self) -> None:
-        if not 0 <= self.cap_ua <= MAX_CURRENT_UA:
-            raise SafetyError(f"cap_ua={self.cap_ua} is out of range: 0 to {MAX_CURRENT_UA} µA")
+    def __init__(
+        self,
+        cap_ua: int = MAX_CURRENT_UA,
+        *,
+        regions_ua: Sequence[int] | None = None,
+        region_of: Sequence[int] | None = None,
+        max_charge_nc: float = DEFAULT_MAX_CHARGE_NC,
+        ramp_ua_per_frame: int | None = None,
+        polarity: str | None = None,
+        max_pulse_width_us: int | None = None,
+        participant: str | None = None,
+        sink: Callable[[dict[str, Any]], None] | None = None,
+    ) -> None:
+        if isinstance(cap_ua, bool) or not isinstance(cap_ua, int) or not 0 <= cap_ua <= MAX_CURRENT_UA:
+            raise SafetyError(f"cap_ua={cap_ua!r} is out of range: 0 to {MAX_CURRENT_UA} µA")
+        if not (isinstance(max_charge_nc, (int, float)) and math.isfinite(max_charge_nc) and max_charge_nc >= 0):
+            raise SafetyError(f"max_charge_nc={max_charge_nc!r} must be a finite number >= 0")
+        if ramp_ua_per_frame is not None and (
+            isinstance(ramp_ua_per_frame, bool)
+            or not isinstance(ramp_ua_per_frame, int)
+            or ramp_ua_per_frame < CURRENT_STEP_UA
+        ):
+            raise SafetyError(f"ramp_ua_per_frame={ramp_ua_per_frame!r} must be an integer >= {CURRENT_STEP_UA} µA")
+        if polarity is not None and polarity not in POLARITY_CODE:
+            raise SafetyError(f"polarity={polarity!r} is not 'anodic' or 'cathodic'")
+        self.cap_ua = cap_ua
+        self.regions_ua: tuple[int, ...] | None = None
+        if regions_ua is not None:
+            regs = tuple(regions_ua)
+            for i, v in enumerate(regs):
+                if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= cap_ua:
+                    raise SafetyError(f"regions_ua[{i}]={v!r} is out of range: 0 to cap_ua={cap_ua} µA")
+            if not regs:
+                raise SafetyError("regions_ua is empty")
+            self.regions_ua = regs
+        self.region_of: tuple[int, ...] | None = tuple(region_of) if region_of is not None else None
+        if self.region_of is not None and self.regions_ua is not None:
+            for i, r in enumerate(self.region_of):
+                if not 0 <= r < len(self.regions_ua):
+                    raise SafetyError(f"region_of[{i}]={r!r} names no region (0 to {len(self.regions_ua) - 1})")
+        self.max_charge_nc = float(max_charge_nc)
+        self.ramp_ua_per_frame = ramp_ua_per_frame
+        self.polarity = polarity
+        self.max_pulse_width_us = max_pulse_width_us
+        self.participant = participant
+        self.sink = sink
+        #: The most recent refusals and clips (bounded: a long session clips every frame of some patterns);
+        #: :attr:`counts` keeps the totals and the audit log keeps every one.
+        self.log: deque[dict[str, Any]] = deque(maxlen=LOG_LIMIT)
+        self.counts: dict[str, int] = {}
+        self._shadow = _Shadow()
+        self._hw_limits_cache: tuple[Any, ...] | None = None
 
-    def check_config(self, config: StimConfig) -> StimConfig:
-        self._check_current("current_ua", config.current_ua)
-        self._check_current("sense_current_ua", config.sense_current_ua)
-        return config
+    @classmethod
+    def from_profile(
+        cls,
+        profile: ParticipantProfile,
+        *,
+        region_of: Sequence[int] | None = None,
+        sink: Callable[[dict[str, Any]], None] | None = None,
+    ) -> SafetyGuard:
+        return cls(
+            profile.cap_ua,
+            regions_ua=profile.regions_ua,
+            region_of=region_of,
+            max_charge_nc=min(profile.charge_limit_nc, DEFAULT_MAX_CHARGE_NC),
+            ramp_ua_per_frame=profile.ramp_ua_per_frame,
+            polarity=profile.polarity,
+            max_pulse_width_us=profile.pulse_width_us,
+            participant=profile.participant,
+            sink=sink,
+        )
 
-    def check_current(self, current_ua: int, levels: Sequence[int] | None = None) -> int:
-        self._check_current("current_ua", current_ua)
+    # --- logging ---------------------------------------------------------------------------------------------
+
+    def _record(self, event: str, rule: str, message: str, **detail: Any) -> dict[str, Any]:
+        entry: dict[str, Any] = {"t": time.time(), "event": event, "rule": rule, "message": message, **detail}
+        if self.participant:
+            entry["participant"] = self.participant
+        self.log.append(entry)
+        key = f"{event}:{rule}"
+        self.counts[key] = self.counts.get(key, 0) + 1
+        # a refusal is a caller's error; a clip is the documented rule doing its job, frame after frame
+        logger.log(logging.WARNING if event == "refused" else logging.INFO, "%s (%s): %s", event, rule, message)
+        if self.sink is not None:
+            try:
+                self.sink(entry)
+            except Exception:  # an audit sink failing must never stop the guard from refusing
+                logger.exception("safety sink failed")
+        return entry
+
+    def note_refusal(self, exc: Exception) -> None:
+        """Log a refusal raised elsewhere (a value the wire cannot carry)."""
+        detail: dict[str, Any] = {}
+        if isinstance(exc, LimitError):
+            detail = {"field": exc.field, "value": repr(exc.value)}
+        self._record("refused", "value", str(exc), **detail)
+
+    def note_clip(self, rule: str, requested_ua: int, sent_ua: int, why: str) -> None:
+        self._record(
+            "clipped", rule, f"pulse height lowered from {requested_ua} to {sent_ua} µA: {why}",
+            requested_ua=requested_ua, sent_ua=sent_ua,
+        )
+
+    def _refuse(self, rule: str, message: str, **detail: Any) -> SafetyError:
+        self._record("refused", rule, message, **detail)
+        return SafetyError(f"{message}; nothing was sent")
+
+    # --- limits ----------------------------------------------------------------------------------------------
+
+    def _region_map(self, electrodes: int) -> tuple[int, ...] | None:
+        if self.regions_ua is None:
+            return None
+        rmap = self.region_of
+        if rmap is None and electrodes == len(TACTDEFORM_REGION_OF) and len(self.regions_ua) == 9:
+            rmap = TACTDEFORM_REGION_OF
+        if rmap is not None and len(rmap) == electrodes:
+            return rmap
+        return None
+
+    def electrode_limits(self, electrodes: int) -> list[int]:
+        """The regional limit of each application electrode (cap when there are no regions)."""
+        if self.regions_ua is None:
+            return [self.cap_ua] * electrodes
+        rmap = self._region_map(electrodes)
+        if rmap is None:
+            low = min(self.regions_ua)
+            return [min(low, self.cap_ua)] * electrodes
+        return [min(self.regions_ua[r], self.cap_ua) for r in rmap]
+
+    def charge_limit_ua(self, width_us: int) -> int:
+        """The largest current (10 µA steps) whose pulse of ``width_us`` stays within the charge limit."""
+        if width_us <= 0:
+            return MAX_CURRENT_UA
+        ua = self.max_charge_nc * 1000.0 / width_us
+        return int(min(MAX_CURRENT_UA, math.floor(ua / CURRENT_STEP_UA + _EPS) * CURRENT_STEP_UA))
+
+    def base_limit_ua(self, width_us: int) -> int:
+        """Ceiling, cap and charge: what any frame may carry before its electrodes are known."""
+        return min(MAX_CURRENT_UA, self.cap_ua, self.charge_limit_ua(width_us))
+
+    def frame_limit(self, levels: Sequence[int] | None, width_us: int) -> tuple[int, dict[str, Any]]:
+        """The lowest limit applicable to a frame, and why."""
+        limit = self.base_limit_ua(width_us)
+        why: dict[str, Any] = {"rule": "cap" if limit == self.cap_ua else "charge"}
+        if self.charge_limit_ua(width_us) > self.cap_ua:
+            why = {"rule": "cap"}
+        if levels is None:
+            return limit, why
+        limits = self.electrode_limits(len(levels))
+        rmap = self._region_map(len(levels))
+        for i, v in enumerate(levels):
+            if v in _ACTIVE and limits[i] < limit:
+                limit = limits[i]
+                why = {"rule": "region", "electrode": i}
+                if rmap is not None:
+                    why["region"] = rmap[i]
+        return limit, why
+
+    # --- the guard: what may be sent -------------------------------------------------------------------------
+
+    def validate_current(self, value: object, transfer: CurrentTransfer, field_name: str = "current_ua") -> int:
+        """A wire-valid current (integer, 10 µA steps, within the ceiling) or a logged :class:`LimitError`."""
+        try:
+            return transfer.check_current(value, field_name)
+        except LimitError as exc:
+            self._record("refused", "value", str(exc), field=field_name, value=repr(value))
+            raise
+
+    def request(self, current_ua: int, field_name: str = "current_ua") -> int:
+        """A current a caller asks for (already checked as a wire value): refused above the cap."""
+        if current_ua > self.cap_ua:
+            raise self._refuse(
+                "cap",
+                f"{field_name}={current_ua} µA exceeds the cap of {self.cap_ua} µA"
+                + (f" for participant {self.participant}" if self.participant else ""),
+                requested_ua=current_ua,
+                limit_ua=self.cap_ua,
+            )
         return current_ua
 
-    def check_pattern(self, levels: Sequence[int], current_ua: int) -> None:
-        self._check_current("current_ua", current_ua)
+    def check_config(
+        self,
+        config: StimConfig,
+        *,
+        stimulating: bool = False,
+        polarity_in_force: str | None = None,
+        transfer: CurrentTransfer = DEFAULT_TRANSFER,
+    ) -> StimConfig:
+        """Refuse a configuration that breaks a limit; return it unchanged otherwise."""
+        self.request(config.current_ua)
+        if self.polarity is not None and config.polarity != self.polarity:
+            raise self._refuse(
+                "polarity",
+                f"polarity={config.polarity!r} differs from the participant's calibrated {self.polarity!r}",
+                requested=config.polarity,
+            )
+        if self.max_pulse_width_us is not None and config.pulse_width_us > self.max_pulse_width_us:
+            raise self._refuse(
+                "pulse_width",
+                f"pulse_width_us={config.pulse_width_us} is wider than the calibrated {self.max_pulse_width_us} µs "
+                "(the calibrated amplitudes would feel stronger)",
+                requested=config.pulse_width_us,
+                limit=self.max_pulse_width_us,
+            )
+        charge = config.current_ua * config.pulse_width_us / 1000.0
+        if charge > self.max_charge_nc + _EPS:
+            raise self._refuse(
+                "charge",
+                f"current_ua={config.current_ua} × pulse_width_us={config.pulse_width_us} = {charge:g} nC per pulse "
+                f"exceeds the charge limit of {self.max_charge_nc:g} nC",
+                charge_nc=charge,
+                limit_nc=self.max_charge_nc,
+            )
+        if config.sense_current_ua:
+            sense_ua = transfer.to_ua(transfer.to_code(config.sense_current_ua, "sense_current_ua"))
+            low = min(self.electrode_limits(config.electrode_count) or [self.cap_ua])
+            if sense_ua > low + _EPS:
+                raise self._refuse(
+                    "sense",
+                    f"sense_current_ua={config.sense_current_ua} reaches every channel that is off and exceeds "
+                    f"the lowest electrode limit of {low} µA",
+                    requested_ua=config.sense_current_ua,
+                    limit_ua=low,
+                )
+            sense_charge = sense_ua * config.sense_width_us / 1000.0
+            if sense_charge > self.max_charge_nc + _EPS:
+                raise self._refuse(
+                    "sense_charge",
+                    f"sense pulse of {sense_charge:g} nC exceeds the charge limit of {self.max_charge_nc:g} nC",
+                    charge_nc=sense_charge,
+                )
+        scan = estimate_scan_us(config.electrode_count, config.pulse_width_us, config.discharge_us, config.sense_width_us)
+        if scan > SCAN_LIMIT_US:
+            raise self._refuse(
+                "scan_time",
+                f"a scan of {config.electrode_count} electrodes at {config.pulse_width_us} µs could take "
+                f"{scan / 1000:.0f} ms; the firmware reboots (interrupt watchdog) past {INTERRUPT_WATCHDOG_US / 1000:.0f} ms",
+                scan_us=scan,
+            )
+        if stimulating and polarity_in_force is not None and config.polarity != polarity_in_force:
+            raise self._refuse(
+                "polarity_change",
+                f"polarity change {polarity_in_force} -> {config.polarity} while channels are stimulating; "
+                "call all_off() first",
+            )
+        return config
 
-    def _check_current(self, name: str, current_ua: int) -> None:
-        if current_ua > self.cap_ua:
-            self.log.append({"event": "refused", "field": name, "value": current_ua, "limit": self.cap_ua})
-            raise SafetyError(f"{name}={current_ua} µA exceeds the cap of {self.cap_ua} µA; nothing was sent")
+    def frame_height(
+        self,
+        levels: Sequence[int] | None,
+        target_ua: int,
+        in_force_ua: int,
+        width_us: int,
+        *,
+        raise_when_idle: bool = True,
+    ) -> int:
+        """The pulse height for a frame: the target, lowered to the frame's lowest limit and to the ramp.
+
+        ``levels`` is the frame's pattern in application order (None or all-off: no electrode active).
+        With no active electrode the height is never raised unless ``raise_when_idle`` (configure and
+        set_current set the height for frames to come; a frame that switches everything off leaves it).
+        """
+        limit, why = self.frame_limit(levels, width_us)
+        active = levels is not None and any(v in _ACTIVE for v in levels)
+        height = min(target_ua, limit)
+        if height < target_ua and active:
+            self._record(
+                "clipped",
+                why["rule"],
+                f"frame height lowered from {target_ua} to {height} µA ({why['rule']} limit"
+                + (f", electrode {why['electrode']} in region {why.get('region')}" if "electrode" in why else "")
+                + ")",
+                requested_ua=target_ua,
+                sent_ua=height,
+                **{k: v for k, v in why.items() if k != "rule"},
+            )
+        if not active and not raise_when_idle:
+            height = min(height, in_force_ua)
+        if self.ramp_ua_per_frame is not None and height > in_force_ua + self.ramp_ua_per_frame:
+            ramped = in_force_ua + self.ramp_ua_per_frame
+            if active:
+                self._record(
+                    "clipped",
+                    "ramp",
+                    f"increase from {in_force_ua} to {height} µA limited to {ramped} µA this frame "
+                    f"(ramp {self.ramp_ua_per_frame} µA per frame)",
+                    requested_ua=height,
+                    sent_ua=ramped,
+                )
+            height = ramped
+        return max(0, height)
+
+    def check_scan(self, scan_us: float, period_us: float, gap_min_us: float) -> None:
+        """Refuse a frame whose scan would leave the parser no time before the next alarm: back-to-back
+        scans starve the main loop, and then not even an all-off would be read."""
+        if scan_us > period_us - gap_min_us:
+            raise self._refuse(
+                "scan_overrun",
+                f"this frame's scan takes about {scan_us:.0f} µs of the {period_us:.0f} µs period; with less than "
+                f"{gap_min_us:.0f} µs between scans the firmware's parser cannot run and the host could not "
+                "switch the frame off (fewer active electrodes, biphasic → monophasic, a shorter pulse or "
+                "discharge, or a lower rate fixes it)",
+                scan_us=round(scan_us, 1),
+                period_us=period_us,
+            )
+
+    # Compatibility with the original two-method guard.
+
+    def check_current(self, current_ua: int, levels: Sequence[int] | None = None) -> int:
+        """Refuse above the cap; return the height a frame of ``levels`` may carry (no ramp applied)."""
+        self.request(current_ua)
+        limit, _ = self.frame_limit(levels, 0)
+        return min(current_ua, limit)
+
+    def check_pattern(self, levels: Sequence[int], current_ua: int) -> None:
+        self.request(current_ua)
+
+    # --- the interlock: every command as it is written ----------------------------------------------------------
+
+    @property
+    def shadow(self) -> _Shadow:
+        """A copy of what the interlock believes the firmware holds."""
+        return self._shadow.copy()
+
+    def mark_unknown(self) -> None:
+        """The firmware's state can no longer be known (a failed write, a reconnect, a reset)."""
+        self._shadow = _Shadow()
+
+    def commit(self, shadow: _Shadow) -> None:
+        self._shadow = shadow
+
+    def _hw_limits(self, mapping: ChannelMapping | None, num: int) -> list[int]:
+        key = (id(mapping), num, self.cap_ua, self.regions_ua, self.region_of)
+        if self._hw_limits_cache is not None and self._hw_limits_cache[0] == key:
+            return list(self._hw_limits_cache[1])
+        if mapping is None:
+            limits = self.electrode_limits(num)
+        else:
+            app = self.electrode_limits(mapping.electrodes)
+            limits = [0] * num  # a hardware channel no electrode maps to must never stimulate
+            for i, ch in enumerate(mapping.app_to_hw):
+                if ch < num:
+                    limits[ch] = app[i]
+        self._hw_limits_cache = (key, limits)
+        return list(limits)
+
+    def check_wire(
+        self,
+        data: bytes,
+        *,
+        mapping: ChannelMapping | None = None,
+        transfer: CurrentTransfer = DEFAULT_TRANSFER,
+    ) -> _Shadow:
+        """Refuse a write whose effect on the firmware would break a limit; return the shadow it leads to
+        (commit it with :meth:`commit` once the write succeeded).
+
+        Commands that can only remove current (pulse height 0, sense height 0, an all-off pattern) and
+        bytes that are not commands are always allowed: they are how the driver makes an unknown state
+        safe.  Everything else must leave the shadow within every limit, counting unknown registers as
+        their worst case.
+        """
+        sh = self._shadow.copy()
+        i = 0
+        n = len(data)
+        while i < n:
+            op = data[i]
+            i += 1
+            if op in (Opcode.MEASURE, Opcode.HV513_COUNT):
+                continue
+            if op < min(Opcode):
+                # a byte that is not a command may complete whatever command was in progress on the device
+                # (it is how a resync starts): afterwards nothing about the registers can be trusted
+                sh = _Shadow()
+                continue
+            if op == Opcode.PATTERN:
+                num = sh.electrode_num
+                if num is None:
+                    raise self._refuse("interlock", "pattern while the firmware's electrode count is unknown (resync first)")
+                if num == 0:
+                    raise self._refuse("interlock", "pattern with electrode count 0 would lock the firmware's parser")
+                payload = data[i : i + num]
+                if len(payload) != num:
+                    raise self._refuse(
+                        "interlock", f"pattern of {len(payload)} byte(s) for electrode count {num} would desynchronise"
+                    )
+                i += num
+                sh.pattern[:num] = list(payload)
+                if any(payload):
+                    self._verify(sh, "pattern", mapping, transfer)
+                continue
+            size = 2 if op in (Opcode.PULSE_HEIGHT, Opcode.PULSE_WIDTH, Opcode.FREQUENCY) else 1
+            if i + size > n:
+                raise self._refuse("interlock", f"command 0x{op:02X} cut short ({n - i} of {size} payload bytes)")
+            value = data[i] if size == 1 else data[i] | data[i + 1] << 8
+            i += size
+            if op == Opcode.PULSE_HEIGHT:
+                before = sh.height_code
+                sh.height_code = min(value, 4095)
+                if value:
+                    prev_ua = transfer.to_ua(before) if before is not None else 0.0
+                    new_ua = transfer.to_ua(sh.height_code)
+                    if self.ramp_ua_per_frame is not None and new_ua > prev_ua + self.ramp_ua_per_frame + _EPS:
+                        raise self._refuse(
+                            "interlock",
+                            f"pulse height {new_ua:g} µA rises more than {self.ramp_ua_per_frame} µA above {prev_ua:g} µA",
+                        )
+                    self._verify(sh, "pulse height", mapping, transfer)
+            elif op == Opcode.SENSE_HEIGHT:
+                sh.sense_code = value << SENSE_HEIGHT_SHIFT
+                if value:
+                    self._verify(sh, "sense height", mapping, transfer)
+            elif op == Opcode.POLARITY:
+                new = 1 if value >= 1 else 0
+                if sh.polarity != new and self._current_can_flow(sh):
+                    raise self._refuse(
+                        "polarity_change",
+                        "polarity change while current can flow (pulse height and an active channel, or a sense "
+                        "current); switch everything off first",
+                    )
+                sh.polarity = new
+            elif op == Opcode.ELECTRODE_NUM:
+                sh.electrode_num = value
+                self._verify(sh, "electrode count", mapping, transfer)
+            elif op == Opcode.PULSE_WIDTH:
+                if value:
+                    sh.width_us = value
+                self._verify(sh, "pulse width", mapping, transfer)
+            elif op == Opcode.SENSE_WIDTH:
+                sh.sense_width_us = value
+                self._verify(sh, "sense width", mapping, transfer)
+            # discharge and frequency carry no current
+        return sh
+
+    def _current_can_flow(self, sh: _Shadow) -> bool:
+        if sh.sense_code != 0 and sh.electrode_num != 0:
+            return True
+        if sh.height_code == 0:
+            return False
+        num = sh.electrode_num
+        if num is None:
+            return True
+        return any(v is None or v in _ACTIVE for v in sh.pattern[:num])
+
+    def _verify(self, sh: _Shadow, what: str, mapping: ChannelMapping | None, transfer: CurrentTransfer) -> None:
+        """Every channel the firmware scans receives at most its limit; unknowns count as their worst."""
+        num = sh.electrode_num
+        height_ua = transfer.to_ua(sh.height_code) if sh.height_code is not None else math.inf
+        if height_ua > self.cap_ua + _EPS:
+            raise self._refuse("interlock", f"{what}: pulse height {height_ua:g} µA above the cap of {self.cap_ua} µA")
+        if height_ua > 0 and sh.height_code is not None:
+            width = sh.width_us
+            if width is None:
+                raise self._refuse("interlock", f"{what}: non-zero pulse height while the pulse width is unknown")
+            if height_ua * width / 1000.0 > self.max_charge_nc + _EPS:
+                raise self._refuse(
+                    "interlock",
+                    f"{what}: {height_ua:g} µA × {width} µs exceeds the charge limit of {self.max_charge_nc:g} nC",
+                )
+        if num is None:
+            if height_ua > 0:
+                raise self._refuse("interlock", f"{what}: current possible while the electrode count is unknown")
+            return
+        limits = self._hw_limits(mapping, num)
+        sense_ua = transfer.to_ua(sh.sense_code) if sh.sense_code is not None else math.inf
+        for ch in range(num):
+            level = sh.pattern[ch]
+            if level is None or level in _ACTIVE:
+                if height_ua > limits[ch] + _EPS:
+                    raise self._refuse(
+                        "interlock",
+                        f"{what}: channel {ch} would receive {height_ua:g} µA, above its limit of {limits[ch]} µA",
+                        channel=ch,
+                    )
+            if level is None or level not in _ACTIVE:
+                if sense_ua > limits[ch] + _EPS:
+                    raise self._refuse(
+                        "interlock",
+                        f"{what}: channel {ch} would receive a sense current of {sense_ua:g} µA, above {limits[ch]} µA",
+                        channel=ch,
+                    )
+        if sense_ua > 0 and sh.sense_code is not None:
+            sw = sh.sense_width_us if sh.sense_width_us is not None else 255
+            if sense_ua * sw / 1000.0 > self.max_charge_nc + _EPS:
+                raise self._refuse("interlock", f"{what}: sense pulse exceeds the charge limit")
+
+
+def require_int(field_name: str, value: object) -> int:
+    """An integer (bools, floats, NaN refused) for the guard's own inputs."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise LimitError(field_name, value, "an integer")
+    return value

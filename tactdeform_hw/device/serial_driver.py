@@ -9,10 +9,12 @@ from __future__ import annotations
 
 from typing import Any, Protocol
 
-from ..errors import DeviceGoneError, DeviceTimeoutError, TransportError
+from ..errors import DeviceGoneError, DeviceTimeoutError, TactDeformError, TransportError
 from ..protocol.constants import BAUD_RATE
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
+from .audit import AuditLog
 from .base import Device
+from .pacing import Pacer, default_pacer
 from .mapping import ChannelMapping
 from .safety import SafetyGuard
 
@@ -48,8 +50,10 @@ class EtactileKitDevice(Device):
         mapping: ChannelMapping | None = None,
         transfer: CurrentTransfer = DEFAULT_TRANSFER,
         guard: SafetyGuard | None = None,
+        pacer: Pacer | None = None,
+        audit: AuditLog | None = None,
     ) -> None:
-        super().__init__(mapping=mapping, transfer=transfer, guard=guard)
+        super().__init__(mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit)
         self.port = port
         self._errors = _serial_error_types()
         if not port.is_open:
@@ -61,6 +65,11 @@ class EtactileKitDevice(Device):
             except self._errors as exc:
                 self._closed = True
                 raise TransportError(f"cannot open {getattr(port, 'port', port)!s}: {exc}") from exc
+            except TactDeformError:
+                self._closed = True
+                raise
+        if pacer is None:  # what a port needs is known only once it is open (a URL builds its device then)
+            self.pacer = default_pacer(port)
 
     def _write(self, data: bytes) -> None:
         try:
@@ -84,6 +93,42 @@ class EtactileKitDevice(Device):
         except self._errors as exc:
             raise DeviceGoneError(f"cannot flush input: {exc}") from exc
 
+    def _reopen_transport(self) -> None:
+        try:
+            self.port.close()
+        except self._errors:
+            pass
+        for line in ("dtr", "rts"):
+            if hasattr(self.port, line):
+                setattr(self.port, line, False)
+        try:
+            self.port.open()
+        except self._errors as exc:
+            raise DeviceGoneError(f"cannot reopen {getattr(self.port, 'port', self.port)!s}: {exc}") from exc
+
+    def _reset_transport(self) -> bool:
+        """A port that models the reset line offers ``pulse_reset``; the in-process emulator is reset
+        directly; a real ESP32-S3 on its USB Serial/JTAG port is held in reset while RTS is asserted with
+        DTR released (the sequence esptool uses), so the pulse is RTS high for 100 ms."""
+        pulse = getattr(self.port, "pulse_reset", None)
+        if callable(pulse):
+            pulse()
+            return True
+        emulator = getattr(self.port, "emulator", None)
+        if emulator is not None and callable(getattr(emulator, "reset", None)):
+            emulator.reset()
+            return True
+        if not (hasattr(self.port, "rts") and hasattr(self.port, "dtr")):
+            return False
+        try:
+            self.port.dtr = False
+            self.port.rts = True
+            self.pacer.clock.sleep(0.1)
+            self.port.rts = False
+        except self._errors as exc:
+            raise DeviceGoneError(f"cannot pulse the reset line: {exc}") from exc
+        return True
+
     def _close_transport(self) -> None:
         try:
             self.port.close()
@@ -96,11 +141,16 @@ class EtactileKitDevice(Device):
 
 
 def open_port(name: str, *, timeout: float = DEFAULT_TIMEOUT_S, baudrate: int = BAUD_RATE) -> Any:
-    """An unopened pyserial port for a path, a URL, or ``emulator`` (the in-process emulator)."""
+    """An unopened pyserial port for a path, a URL, or ``emulator`` (the in-process emulator); or a
+    pyserial-compatible USB port for ``usb:VID:PID[:SERIAL]`` (pyusb, no serial driver) and
+    ``usb-emulator`` (the emulated board behind an emulated USB bus)."""
     import serial
 
     from .. import register_url_handlers
+    from .usb_transport import is_usb_name, usb_port_for_name
 
+    if is_usb_name(name):
+        return usb_port_for_name(name, timeout=timeout, baudrate=baudrate)
     register_url_handlers()
     if name in ("emulator", "emu", ""):
         name = "etactile://"
@@ -122,6 +172,12 @@ def open_device(
     mapping: ChannelMapping | None = None,
     transfer: CurrentTransfer = DEFAULT_TRANSFER,
     guard: SafetyGuard | None = None,
+    pacer: Pacer | None = None,
+    audit: AuditLog | None = None,
 ) -> EtactileKitDevice:
-    """Open a device by name: a serial port path, a pyserial URL, or ``emulator`` (the default)."""
-    return EtactileKitDevice(open_port(name, timeout=timeout), mapping=mapping, transfer=transfer, guard=guard)
+    """Open a device by name: a serial port path, a pyserial URL, ``usb:VID:PID[:SERIAL]``,
+    ``usb-emulator``, or ``emulator`` (the default).  ``pacer`` defaults to what the port needs (see
+    :func:`~tactdeform_hw.device.pacing.default_pacer`); ``audit`` enables the session's audit log."""
+    return EtactileKitDevice(
+        open_port(name, timeout=timeout), mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit
+    )

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from .board import Board
@@ -22,6 +23,7 @@ class Emulator:
     def __init__(self, board: str | Board = "compact", switching_boards: int = 1, *, stack_reading: float | None = None) -> None:
         self.board = board if isinstance(board, Board) else Board(board, switching_boards, stack_reading)
         self.hazards: list[Hazard] = []
+        self.scan: Callable[[Emulator], None] | None = None
         self._power_on()
 
     def _power_on(self) -> None:
@@ -36,6 +38,8 @@ class Emulator:
 
     def feed(self, data: bytes) -> bytes:
         """Deliver bytes to the device; return the bytes it writes back."""
+        if self.scan is not None:
+            self.scan(self)
         self.parser.receive(bytes(data))
         self.parser.run()
         return self.parser.take_tx()

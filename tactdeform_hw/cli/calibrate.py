@@ -1,0 +1,205 @@
+"""``tactdeform-hw calibrate``: the regional calibration procedure, writing a participant profile.
+
+Keys: ``+``/``u`` raise 10 µA, ``-``/``l`` lower 10 µA, ``>``/``<`` ten steps, ``a`` (or Enter, or ``!``)
+accept — in the first phase it means "that is uncomfortable" — ``c`` feel the centre again while matching,
+``q`` quit without saving.  Interactive on a terminal; with ``--keys FILE`` (``-`` for standard input),
+or whenever standard input is not a terminal, the keys come from a script (whitespace and ``#`` comments
+ignored), so the procedure can be run from tests and rehearsed without a participant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from ..errors import ConfigurationError, LimitError
+from .common import add_device_arg, print_json, progress
+
+
+def register(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "calibrate",
+        help="calibrate a participant's regional amplitudes and write their profile",
+        description="The TactDeform calibration: the centre region rises from 0 µA in 10 µA steps until "
+        "the participant reports discomfort (accept), is lowered until clear and pain-free (accept); each "
+        "other region is matched to the centre's intensity from 0 µA (accept each); all regions are then "
+        "adjusted together (accept). The profile is written only when every phase was accepted. Keys: + raise, "
+        "- lower, > / < ten steps, a accept, c compare with the centre, q quit. Every current passes the "
+        "safety guard (never above --max-ua) and all channels go off on exit.",
+    )
+    add_device_arg(p)
+    p.add_argument(
+        "--participant",
+        required=True,
+        metavar="ID|FILE",
+        help="participant identifier (the profile is written to ID.json, or --out), or the profile file to "
+        "write (.json or .toml)",
+    )
+    p.add_argument("--out", metavar="FILE", help="profile file to write (.json or .toml; default: ID.json)")
+    p.add_argument("--keys", metavar="FILE", help="read keys from FILE ('-' for standard input) instead of the keyboard")
+    p.add_argument("--max-ua", type=int, default=5000, help="calibration ceiling in µA, ≤ 10000 (default 5000)")
+    p.add_argument("--pulse-width", type=int, default=200, help="pulse width in µs (default 200, TactDeform)")
+    p.add_argument("--polarity", choices=("anodic", "cathodic"), default="anodic")
+    p.add_argument("--contact-mode", choices=("orientation", "uniform"), default="orientation",
+                   help="the participant's preferred contact rendering (TactDeform task 2)")
+    p.add_argument("--ramp-ua", type=int, default=None, help="ramp limit to store in the profile (µA per frame)")
+    p.add_argument("--hold-ms", type=float, default=None,
+                   help="with a key script: hold each step this long (default 0; interactive: until the next key)")
+    p.add_argument("--audit-log", metavar="FILE", help="append every command sent to FILE as JSON lines")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.set_defaults(func=run)
+
+
+_ID_RE = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+
+
+def _targets(args: argparse.Namespace) -> tuple[str, Path]:
+    part = args.participant
+    looks_like_file = "/" in part or "\\" in part or Path(part).suffix.lower() in (".yaml", ".yml", ".txt", ".ini", ".cfg")
+    if looks_like_file and Path(part).suffix.lower() not in (".json", ".toml"):
+        raise ConfigurationError(f"--participant {part}: a profile is written as .json or .toml")
+    if Path(part).suffix.lower() in (".json", ".toml"):
+        out = Path(part)
+        pid = out.stem
+    else:
+        pid = part
+        out = Path(args.out) if args.out else Path(f"{pid}.json")
+    if args.out:
+        out = Path(args.out)
+    if out.suffix.lower() not in (".json", ".toml"):
+        raise ConfigurationError(f"--out {out}: a profile is written as .json or .toml")
+    if not _ID_RE.match(pid):
+        raise LimitError("participant", pid, "1-64 characters of A-Z a-z 0-9 . _ -")
+    return pid, out
+
+
+def _script_keys(args: argparse.Namespace) -> list[str] | None:
+    from ..device.calibration import parse_key_script
+
+    if args.keys == "-" or (args.keys is None and not sys.stdin.isatty()):
+        return parse_key_script(sys.stdin.read())
+    if args.keys:
+        try:
+            return parse_key_script(Path(args.keys).read_text(encoding="utf-8"))
+        except OSError as exc:
+            raise ConfigurationError(f"--keys {args.keys}: cannot be read ({exc.strerror or exc})") from exc
+    return None
+
+
+def _apply(dev: Any, stim: Any) -> None:
+    """Lower the current before moving the stimulus, raise it after: no electrode ever gets a level meant
+    for another."""
+    levels = stim.levels()
+    if stim.current_ua <= dev.target_ua:
+        dev.set_current(stim.current_ua)
+        dev.send_pattern(levels)
+    else:
+        dev.send_pattern(levels)
+        dev.set_current(stim.current_ua)
+
+
+def _hold(dev: Any, seconds: float) -> None:
+    end = time.monotonic() + seconds
+    while True:
+        dev.keepalive()
+        left = end - time.monotonic()
+        if left <= 0:
+            return
+        time.sleep(min(0.02, left))
+
+
+def _interactive_keys(dev: Any) -> Any:
+    """Single keys from the terminal (raw mode), keeping the device's watchdog fed between keys."""
+    import select
+    import termios
+    import tty
+
+    fd = sys.stdin.fileno()
+    old = termios.tcgetattr(fd)
+    try:
+        tty.setcbreak(fd)
+        while True:
+            ready, _, _ = select.select([sys.stdin], [], [], 0.02)
+            if not ready:
+                dev.keepalive()
+                continue
+            ch = sys.stdin.read(1)
+            if ch == "\n":
+                ch = "\r"
+            if ch.strip() == "" and ch != "\r":
+                continue
+            yield ch
+    finally:
+        termios.tcsetattr(fd, termios.TCSADRAIN, old)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..device import StimConfig, open_device
+    from ..device.calibration import Calibration, Phase
+    from ..device.failsafe import FailSafe
+    from ..device.profiles import save_profile
+    from ..device.safety import SafetyGuard
+
+    pid, out = _targets(args)
+    cal = Calibration(pid, max_ua=args.max_ua)
+    config = StimConfig(electrode_count=32, current_ua=0, pulse_width_us=args.pulse_width, polarity=args.polarity)
+    guard = SafetyGuard(cap_ua=args.max_ua)
+    from ..protocol.units import DEFAULT_TRANSFER
+
+    config.validated(DEFAULT_TRANSFER)
+    guard.check_config(config)
+    keys = _script_keys(args)
+    audit = None
+    if args.audit_log:
+        from ..device.audit import AuditLog
+
+        audit = AuditLog(args.audit_log, command="calibrate", participant=pid, device=args.device)
+    hold_s = (args.hold_ms or 0.0) / 1000.0
+    dev = open_device(args.device, timeout=args.timeout, guard=guard, audit=audit)
+    steps = 0
+    peak = 0
+    with FailSafe(dev):
+        dev.configure(config)
+        stim = cal.stimulus()
+        progress(f"{stim.prompt}  [{stim.current_ua} µA]")
+        source = keys if keys is not None else _interactive_keys(dev)
+        for key in source:
+            stim = cal.press(key)
+            steps += 1
+            peak = max(peak, stim.current_ua)
+            _apply(dev, stim)
+            progress(f"{stim.prompt}  [{stim.current_ua} µA]")
+            if cal.finished:
+                break
+            if keys is not None and hold_s > 0:
+                _hold(dev, hold_s)
+        dev.all_off()
+    if audit is not None:
+        audit.close()
+    result: dict[str, Any] = {"participant": pid, "phase": cal.phase.value, "keys": steps, "peak_ua": peak}
+    if cal.phase is not Phase.DONE:
+        result["profile"] = None
+        if args.json:
+            print_json(result)
+        why = "quit" if cal.phase is Phase.ABORTED else f"the keys ended in phase {cal.phase.value}"
+        progress(f"calibration not finished ({why}); no profile written")
+        return 1
+    profile = cal.profile(
+        pulse_width_us=args.pulse_width,
+        polarity=args.polarity,
+        contact_mode=args.contact_mode,
+        ramp_ua_per_frame=args.ramp_ua,
+        source=str(out),
+    )
+    save_profile(profile, out)
+    result["profile"] = str(out)
+    result.update(profile.to_dict())
+    if args.json:
+        print_json(result)
+    else:
+        print(f"wrote {out}: cap {profile.cap_ua} µA, regions {list(profile.regions_ua)} µA")
+    return 0

@@ -1,0 +1,165 @@
+"""``tactdeform-hw render``: run a synthetic study trajectory over a scene through the renderer to a
+device, and write every frame the device held.
+
+    tactdeform-hw render --scene cube --trajectory approach-face --approach tactdeform \\
+        --device emulator --frames frames.jsonl
+
+Each line of the frames file is one pattern: ``t`` (s), ``state`` (idle / approaching / interacting),
+``feature``, ``texture``, ``electrodes`` (32 ints in application order, 0 off, 1 on) and ``sent``
+(whether a command went to the device).  With the emulator, every sent frame is compared with the
+emulator's pattern buffer; any mismatch makes the command exit with status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import Any
+
+from .common import add_device_arg, print_json, progress
+
+#: The study tasks' trajectories (Task 1 approaches, Task 2 contacts, Task 3 slides, Phase 2 exploration).
+TRAJECTORIES: tuple[str, ...] = (
+    "approach-face",
+    "approach-edge-h",
+    "approach-edge-v",
+    "approach-edge-d1",
+    "approach-edge-d2",
+    "approach-corner",
+    "contact-steep-left",
+    "contact-shallow-left",
+    "contact-shallow-right",
+    "contact-steep-right",
+    "slide-smooth",
+    "slide-rough",
+    "slide-rougher",
+    "explore",
+)
+APPROACHES: tuple[str, ...] = ("tactdeform", "ua", "cam")
+
+
+def register(sub: Any) -> None:
+    p: argparse.ArgumentParser = sub.add_parser(
+        "render",
+        help="render a study trajectory over a scene to a device (emulator by default)",
+        description="Drive a device with the TactDeform renderer (or the UA / CAM baselines) along a "
+        "synthetic study trajectory over a scene. The device is configured once and sent a pattern only "
+        "when it changes. --frames writes one JSON line per pattern held; with the emulator every sent "
+        "pattern is checked against the emulator's pattern buffer and any mismatch exits with status 1.",
+    )
+    p.add_argument(
+        "--scene",
+        required=True,
+        help="sphere, cube, teapot, bunny, task1, task2, task3, a mesh file (OBJ/STL/PLY) or a scene "
+        "description (.toml/.json)",
+    )
+    p.add_argument("--trajectory", required=True, choices=TRAJECTORIES, metavar="NAME", help="one of: " + ", ".join(TRAJECTORIES))
+    p.add_argument("--speed", type=float, default=None, help="finger speed in mm/s (default: the trajectory's own)")
+    p.add_argument("--rate", type=float, default=72.0, help="tracking rate in Hz (default 72, the VR loop)")
+    p.add_argument("--approach", choices=APPROACHES, default=None, help="rendering approach (default: the scene's, tactdeform)")
+    p.add_argument(
+        "--contact-mode",
+        choices=("orientation", "uniform"),
+        default=None,
+        help="stationary contact: orientation-specific shift (eq. 4) or uniform (default: the scene's, orientation)",
+    )
+    add_device_arg(p)
+    p.add_argument("--frames", metavar="FILE", default=None, help="write the frames as JSON lines to FILE")
+    p.add_argument("--gif", metavar="OUT.gif", default=None, help="also draw the held patterns on the array as an animated GIF (needs the plot extra)")
+    p.add_argument("--current-ua", type=int, default=0, help="participant current in µA (default 0: patterns only)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the trajectory's random parts (default 0)")
+    p.add_argument("--realtime", action="store_true", help="pace the run to the trajectory's clock")
+    p.add_argument("--json", action="store_true", help="print the run summary as JSON")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..device import open_device
+    from ..errors import LimitError
+    from ..render.array import ElectrodeArray
+    from ..render.pipeline import FrameRecord, Renderer
+    from ..render.scene import RenderOptions, load_scene
+    from ..render.trajectories import make_trajectory, scene_for_trajectory
+
+    if not args.rate > 0 or args.rate != args.rate:
+        raise LimitError("--rate", args.rate, "> 0 Hz")
+    if args.speed is not None and (not args.speed > 0 or args.speed == float("inf")):
+        raise LimitError("--speed", args.speed, "a finite speed > 0 mm/s")
+    if args.current_ua < 0:
+        raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
+    options = None
+    if args.approach is not None or args.contact_mode is not None:
+        options = RenderOptions(contact_mode=args.contact_mode or "orientation", approach=args.approach or "tactdeform")
+    scene = load_scene(args.scene, options=options)
+    # A slide needs a surface of its texture level; the trajectory module gives a scene that has one.
+    scene = scene_for_trajectory(args.trajectory, scene)
+    # The finger's path is geometry: plan it where faces, edges and corners are classified, whatever
+    # approach renders it (the baselines' scenes do not classify features).
+    plan = scene
+    if scene.options.approach != "tactdeform":
+        plan = scene.with_options(RenderOptions(contact_mode=scene.options.contact_mode, approach="tactdeform"))
+    kw: dict[str, Any] = {"rate_hz": args.rate, "seed": args.seed}
+    if args.speed is not None:
+        kw["speed_mm_s"] = args.speed
+    poses = make_trajectory(args.trajectory, plan, **kw)
+    scene.prepare()
+    total = len(poses)
+    array = ElectrodeArray.tactdeform()
+    quiet = args.quiet
+    if not quiet:
+        progress(f"render: {args.trajectory} over {args.scene} at {args.rate:g} Hz, {total} poses, approach "
+                 f"{args.approach or scene.options.approach}, device {args.device}")
+    out = open(args.frames, "w", encoding="utf-8") if args.frames else None  # noqa: SIM115
+    gif_records: list[dict[str, Any]] | None = [] if args.gif else None
+    try:
+        with open_device(args.device, timeout=args.timeout, mapping=array.channel_mapping()) as dev:
+            verify = getattr(getattr(dev, "port", None), "emulator", None) is not None
+            renderer = Renderer(
+                scene,
+                dev,
+                array=array,
+                approach=args.approach,
+                contact_mode=args.contact_mode,
+                current_ua=args.current_ua,
+                verify=verify,
+            )
+
+            def write(rec: FrameRecord) -> None:
+                if out is not None:
+                    out.write(json.dumps(rec.to_json(), separators=(",", ":")) + "\n")
+                if gif_records is not None:
+                    gif_records.append(rec.to_json())
+
+            def report(i: int, s: Any) -> None:
+                if not quiet:
+                    progress(f"render: {i}/{total} poses, {s.frames_sent} frames sent, {s.mismatches} mismatches")
+
+            every = max(1, total // 10) if total > 2000 else total + 1
+            summary = renderer.run(poses, on_record=write, progress=report, progress_every=every, realtime=args.realtime)
+    finally:
+        if out is not None:
+            out.close()
+    result = summary.as_dict()
+    result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": args.rate, "verified": verify,
+                   "device": args.device, "frames_file": args.frames})
+    if gif_records is not None:
+        from ..viz.array_picture import draw_frames_gif
+
+        gif = draw_frames_gif(array, gif_records, args.gif, current_ua=args.current_ua or None,
+                              title=f"{args.trajectory} over {args.scene}")
+        result["gif"] = {"path": str(gif.path), "frames": gif.frames, "notes": list(gif.notes)}
+    if args.json:
+        print_json(result)
+    else:
+        states = ", ".join(f"{k} {v}" for k, v in sorted(result["states"].items()))
+        check = f", {summary.mismatches} mismatch(es) against the emulator" if verify else ""
+        print(f"{result['poses']} poses ({states}); {result['frames_sent']} frames sent "
+              f"({result['interpolated']} interpolated){check}; median {result['step_us_median']} µs per pose")
+        if result["dropped"]:
+            print(f"dropped samples: {result['dropped']}")
+    if verify and summary.mismatches:
+        print(f"render: emulator pattern buffer differs from a sent frame: {summary.first_mismatch}", file=sys.stderr)
+        return 1
+    return 0

@@ -1,0 +1,244 @@
+"""``tactdeform-hw timing``: the scan budget of a configuration, pattern-update latency, waveform traces.
+
+Computed from the firmware's own arithmetic and the named timing model
+(:class:`~tactdeform_hw.emulator.timing.TimingModel`), so a firmware developer can check a configuration
+before flashing a board: per-channel cost, scan time, period, margin, verdict and the rate really reached.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from typing import Any
+
+from ..errors import ConfigurationError, LimitError
+from .common import print_json
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser(
+        "timing",
+        help="scan budget, overruns, update latency and waveform traces of a configuration",
+        description="Emulate the stimulation scan of a configuration with the timing model and print its "
+        "budget: per-channel cost, scan time, timer period, margin and verdict (fits / overrun / watchdog "
+        "reset). Example (the TactDeform setting): --electrodes 32 --pulse-width 200 --discharge 45 "
+        "--frequency 125.",
+    )
+    p.add_argument("--electrodes", type=int, default=None, help="electrode_num, 0-255 (default 32, or the pattern's length)")
+    p.add_argument("--pattern", default="1",
+                   help="one value for every channel (1 monophasic, 2 biphasic, other: sense pulse) or a comma "
+                   "list, one per channel (default 1)")
+    p.add_argument("--pulse-width", type=int, default=200, help="stimulation pulse width in us, 1-65535 (default 200)")
+    p.add_argument("--pulse-height", type=int, default=100, help="pulse height as a DAC code, 0-4095 (default 100 = 1 mA)")
+    p.add_argument("--discharge", type=int, default=45, help="channel discharge time in us, 0-255 (default 45)")
+    p.add_argument("--frequency", type=int, default=125, help="stimulation rate in Hz, 1-65535 (default 125)")
+    p.add_argument("--polarity", type=int, choices=(0, 1), default=1, help="1 anodic (default), 0 cathodic")
+    p.add_argument("--sense-height", type=int, default=0, help="sense pulse height as sent, 0-255 (stored << 2)")
+    p.add_argument("--sense-width", type=int, default=0, help="sense pulse width in us, 0-255")
+    p.add_argument("--board", choices=("compact", "large"), default="compact", help="board kind (default compact)")
+    p.add_argument("--switching-boards", type=int, default=1, help="stacked switching boards (default 1)")
+    p.add_argument("--hv513", type=int, default=None,
+                   help="HV513 count the firmware believes in (default: what the board's detection returns)")
+    p.add_argument("--overrun-policy", choices=("immediate", "skip"), default=None,
+                   help="what follows a scan longer than the period (default immediate: the chip's behaviour)")
+    p.add_argument("--set", dest="model_set", action="append", default=[], metavar="NAME=VALUE",
+                   help="change a timing-model constant, e.g. --set gpio_write_us=0.1 (repeatable; "
+                   "--list-model shows them all)")
+    p.add_argument("--list-model", action="store_true", help="print every timing constant with its source and exit")
+    p.add_argument("--latency", action="store_true",
+                   help="also measure the latency of a pattern update over USB and UART (wire + loop tick + scan)")
+    p.add_argument("--phases", type=int, default=16, help="update moments spread over one period for --latency")
+    p.add_argument("--vcd", metavar="FILE", default=None,
+                   help="write BL, LE, POL, CLK, DIN, DAC, SEL (and ADC) of --cycles scans as a VCD (needs pyvcd)")
+    p.add_argument("--events", metavar="FILE", default=None, help="write the same scans as an event list (.csv or .json)")
+    p.add_argument("--cycles", type=int, default=2, help="scans to trace for --vcd/--events (default 2)")
+    p.add_argument("--png", metavar="FILE", default=None,
+                   help="draw a timing diagram of --cycles scans as a PNG: pulses per channel against time, the "
+                   "period and any overrun marked (needs the plot extra)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
+    p.set_defaults(func=run)
+
+
+def _parse_value(text: str) -> Any:
+    if text.lower() in ("none", "off"):
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+def model_from_args(args: argparse.Namespace) -> Any:
+    from ..emulator.timing import TimingModel
+
+    changes: dict[str, Any] = {}
+    for item in args.model_set:
+        if "=" not in item:
+            raise LimitError("--set", item, "NAME=VALUE")
+        name, value = item.split("=", 1)
+        changes[name.strip()] = _parse_value(value.strip())
+    if args.overrun_policy is not None:
+        changes["overrun_policy"] = args.overrun_policy
+    return TimingModel().with_(**changes) if changes else TimingModel()
+
+
+def config_from_args(args: argparse.Namespace) -> Any:
+    from ..emulator.board import Board
+    from ..emulator.scan import ScanConfig
+
+    text = str(args.pattern).strip()
+    pattern: int | list[int]
+    if "," in text:
+        try:
+            pattern = [int(v) for v in text.split(",") if v.strip() != ""]
+        except ValueError as exc:
+            raise LimitError("--pattern", text, "integers 0-255 separated by commas") from exc
+    else:
+        try:
+            pattern = int(text)
+        except ValueError as exc:
+            raise LimitError("--pattern", text, "an integer 0-255 or a comma list") from exc
+    electrodes = args.electrodes
+    if electrodes is None:
+        electrodes = len(pattern) if isinstance(pattern, list) else 32
+    hv = args.hv513
+    if hv is None:
+        hv = Board(args.board, args.switching_boards).detect_hv513()
+    return ScanConfig.make(
+        electrodes,
+        pattern,
+        pulse_width_us=args.pulse_width,
+        pulse_height=args.pulse_height,
+        discharge_us=args.discharge,
+        rate_hz=args.frequency,
+        polarity=args.polarity,
+        sense_height_raw=args.sense_height,
+        sense_width_us=args.sense_width,
+        hv513_num=hv,
+    )
+
+
+def trace_scans(cfg: Any, model: Any, cycles: int, sinks: list[Any], board: str = "compact", switching_boards: int = 1) -> Any:
+    """Run ``cycles`` scans of ``cfg`` from power-on (registers set directly) into ``sinks``."""
+    from ..emulator.timed import TimedEmulator
+
+    if not isinstance(cycles, int) or cycles < 1:
+        raise LimitError("--cycles", cycles, "an integer >= 1")
+    emu = TimedEmulator(board, switching_boards, model=model)
+    for s in sinks:
+        emu.attach(s)
+    emu.configure(cfg)
+    while emu.reports.scan_count() < cycles:
+        emu.advance_to(emu.next_alarm / 1000.0 if math.isfinite(emu.next_alarm) else emu.now_us + 1e6)
+    # let the last scan finish
+    emu.advance_to(max(emu.now_us, emu.runs[-1].end_ns / 1000.0))
+    for s in sinks:
+        emu.detach(s)
+        s.close()
+    return emu
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..emulator.reports import Budget
+
+    model = model_from_args(args)
+    if args.list_model:
+        rows = model.describe()
+        if args.json:
+            print_json(rows)
+        else:
+            for r in rows:
+                print(f"{r['name']:<26}{r['value']!s:>12} {r['unit']:<8} {r['source']:<17} {r['doc']}")
+        return 0
+    cfg = config_from_args(args)
+    budget = Budget.of(cfg, model, requested_rate_hz=args.frequency)
+    result: dict[str, Any] = budget.to_dict()
+    result["model"] = model.to_dict()
+    result["assumptions"] = model.assumptions()
+
+    if args.latency:
+        if cfg.electrode_num == 0:
+            raise ConfigurationError("--latency needs at least one electrode")
+        from ..emulator.timed import pattern_latency
+
+        result["latency"] = {}
+        for link in ("usb", "uart"):
+            lat = pattern_latency(cfg, link, model=model, phases=args.phases, board=args.board,
+                                  switching_boards=args.switching_boards)
+            lat.pop("runs")
+            result["latency"][link] = lat
+
+    written = _write_traces(args, cfg, model)
+    if written:
+        result["traces"] = written
+    if args.png:
+        result["png"] = _draw_png(args, cfg, model)
+
+    if args.json:
+        print_json(result)
+        return 0
+    print(budget.table())
+    if args.latency:
+        print()
+        print(_latency_table(result["latency"]))
+    for path in written:
+        print(f"wrote {path}")
+    if args.png:
+        print(f"wrote {args.png}")
+    return 0
+
+
+def _draw_png(args: argparse.Namespace, cfg: Any, model: Any) -> dict[str, Any]:
+    from ..viz.timing_diagram import draw_reports_png
+
+    emu = trace_scans(cfg, model, args.cycles, [], args.board, args.switching_boards)
+    title = (f"{cfg.electrode_num} electrodes, {args.pulse_width} µs pulses, {args.discharge} µs discharge, "
+             f"{args.frequency} Hz")
+    info = draw_reports_png(emu.reports, args.png, first_cycle=0, max_cycles=args.cycles, title=title)
+    return {"path": str(info.path), "cycles": info.cycles_drawn, "overruns": info.overruns_drawn,
+            "size_px": list(info.size_px)}
+
+
+def _write_traces(args: argparse.Namespace, cfg: Any, model: Any) -> list[str]:
+    if not args.vcd and not args.events:
+        return []
+    from ..emulator.trace import CsvSink, JsonSink, VcdSink
+
+    sinks: list[Any] = []
+    paths: list[str] = []
+    if args.vcd:
+        sinks.append(VcdSink(args.vcd))
+        paths.append(args.vcd)
+    if args.events:
+        low = args.events.lower()
+        if low.endswith(".csv"):
+            sinks.append(CsvSink(args.events))
+        elif low.endswith(".json"):
+            sinks.append(JsonSink(args.events))
+        else:
+            for s in sinks:
+                s.close()
+            raise LimitError("--events", args.events, "a file name ending in .csv or .json")
+        paths.append(args.events)
+    trace_scans(cfg, model, args.cycles, sinks, args.board, args.switching_boards)
+    return paths
+
+
+def _latency_table(lat: dict[str, Any]) -> str:
+    lines = ["Pattern update latency (same pattern, written at moments spread over one period), us:",
+             f"{'link':<6}{'':<14}{'min':>10}{'mean':>10}{'max':>10}"]
+    labels = (("wire_us", "wire"), ("loop_wait_us", "loop tick"), ("scan_wait_us", "scan wait"),
+              ("first_channel_us", "first channel"), ("last_channel_us", "last channel"))
+    for link, d in lat.items():
+        for key, label in labels:
+            s = d[key]
+            if s["min"] is None:
+                lines.append(f"{link:<6}{label:<14}{'never':>10}")
+                continue
+            lines.append(f"{link:<6}{label:<14}{s['min']:>10.1f}{s['mean']:>10.1f}{s['max']:>10.1f}")
+        link = ""
+    return "\n".join(lines)

@@ -1,0 +1,414 @@
+"""Fail-safe: the firmware never goes on stimulating an old pattern with nobody driving it.
+
+The firmware has no host watchdog of its own: once a pattern and a pulse height are set it scans them
+forever.  So the host must switch everything off whenever its owner stops, for whatever reason.
+:class:`FailSafe` covers:
+
+* **normal close and exceptions** — ``with FailSafe(device):`` closes the device (every channel off, then
+  the port) however the block ends;
+* **SIGINT / SIGTERM** — the handler stops stimulation at once (if the signal arrived in the middle of a
+  write, it starts with the resync zeros, because the firmware may hold half a command), then raises
+  ``KeyboardInterrupt`` / ``SystemExit(143)`` so the program unwinds and closes normally;
+* **interpreter exit** — an ``atexit`` hook closes every device still open;
+* **a stalled renderer** — a watchdog sends all-off when no frame (``send_pattern``, ``set_current`` or
+  ``keepalive``) came for ``watchdog_s`` (default 100 ms).  The stop keeps the target current and the
+  caller's last frame, so when frames come again stimulation resumes — from height 0, under the ramp
+  limit when the profile has one;
+* **a parser out of step** — optionally, a probe every ``probe_interval_s`` (a measure request must be
+  answered with exactly two bytes per channel) and a refresh every ``refresh_interval_s`` (the height and
+  the pattern the firmware should hold are written again, overwriting anything a lost or corrupted byte
+  changed).  A failed probe, a failed write or a vanished port triggers :meth:`FailSafe.recover`:
+  resync (256 zeros, height 0, all-off, the whole configuration), reconnecting the port if it is gone,
+  and, if the firmware still does not answer (a locked parser reads nothing, ever), a pulse on the
+  board's reset line.
+
+**Recovery time.**  With probing and refreshing every ``T`` seconds, a fault that the link does not report
+is overwritten or detected within ``T`` plus the time of one poll; recovery (resync) then takes about
+20 payload commands (≈ 25 ms at the paced rate), and the firmware applies the all-off within one parser
+tick and one scan period.  :meth:`FailSafe.recovery_bound_s` returns that bound for the settings in use;
+the fault-injection tests hold every injected fault to it.
+
+**What no host can do.**  If the host process is killed with SIGKILL, or loses power, nothing runs: the
+firmware keeps stimulating until the board is unplugged (the controller is USB-powered, so unplugging
+stops it).  A byte corrupted on a link without a checksum can set any pulse height until the next refresh
+or probe; USB's CRC makes that a reported transfer error instead (see :mod:`tactdeform_hw.emulator.faults`).
+"""
+
+from __future__ import annotations
+
+import atexit
+import logging
+import signal
+import threading
+import weakref
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from types import FrameType, TracebackType
+from typing import Any
+
+from ..errors import (
+    DecodeError,
+    DeviceGoneError,
+    LimitError,
+    PortNotOpenError,
+    ShortReplyError,
+    TactDeformError,
+    TransportError,
+)
+from .base import Device
+from .pacing import Clock
+
+logger = logging.getLogger("tactdeform_hw.failsafe")
+
+DEFAULT_WATCHDOG_S = 0.100
+DEFAULT_POLL_S = 0.002
+
+_open_devices: weakref.WeakSet[Device] = weakref.WeakSet()
+_atexit_installed = False
+
+
+def _close_all_at_exit() -> None:
+    for dev in list(_open_devices):
+        try:
+            if not dev.closed:
+                dev.close()
+        except Exception:  # exiting: nothing else can be done, but say so
+            logger.exception("all-off at exit failed for %r", dev)
+
+
+def register_at_exit(device: Device) -> None:
+    """Close ``device`` (all channels off) when the interpreter exits."""
+    global _atexit_installed
+    _open_devices.add(device)
+    if not _atexit_installed:
+        atexit.register(_close_all_at_exit)
+        _atexit_installed = True
+
+
+@dataclass
+class FailSafeEvent:
+    kind: str
+    t: float
+    detail: dict[str, Any] = field(default_factory=dict)
+
+
+class FailSafe:
+    """Watches one device.  Use as a context manager, or ``start()`` / ``stop()``.
+
+    ``clock`` defaults to the device's pacing clock, so in a simulated session (a timed emulator) the
+    watchdog runs in simulated time: drive it with :meth:`poll` (``thread=False``).
+    """
+
+    def __init__(
+        self,
+        device: Device,
+        *,
+        watchdog_s: float | None = DEFAULT_WATCHDOG_S,
+        probe_interval_s: float | None = None,
+        refresh_interval_s: float | None = None,
+        poll_s: float = DEFAULT_POLL_S,
+        verify_readback: bool = False,
+        signals: bool = True,
+        at_exit: bool = True,
+        thread: bool = True,
+        clock: Clock | None = None,
+        on_event: Callable[[FailSafeEvent], None] | None = None,
+    ) -> None:
+        for name, value in (("watchdog_s", watchdog_s), ("probe_interval_s", probe_interval_s), ("refresh_interval_s", refresh_interval_s)):
+            if value is not None and not (isinstance(value, (int, float)) and value > 0 and value == value):
+                raise TactDeformError(f"{name}={value!r} must be a positive number of seconds or None")
+        self.device = device
+        self.watchdog_s = watchdog_s
+        self.probe_interval_s = probe_interval_s
+        self.refresh_interval_s = refresh_interval_s
+        self.poll_s = poll_s
+        self.verify_readback = verify_readback
+        self.readback = Readback()
+        self.clock: Clock = clock if clock is not None else device.pacer.clock
+        self.on_event = on_event
+        self.events: list[FailSafeEvent] = []
+        self.watchdog_trips = 0
+        self.recoveries = 0
+        self._want_signals = signals
+        self._want_atexit = at_exit
+        self._want_thread = thread
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._old_handlers: dict[int, Any] = {}
+        self._last_probe: float | None = None
+        self._last_refresh: float | None = None
+        self._polling = False
+        self._probe_failure: str | None = None
+        self._transport_failed = False
+
+    # --- lifecycle -----------------------------------------------------------------------------------------
+
+    def start(self) -> FailSafe:
+        if self._want_atexit:
+            register_at_exit(self.device)
+        if self._want_signals and threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._old_handlers[sig] = signal.signal(sig, self._on_signal)
+        if self._want_thread and self._thread is None:
+            self._stop.clear()
+            self._thread = threading.Thread(target=self._run, name="tactdeform-failsafe", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout=2.0)
+        self._thread = None
+        for sig, old in self._old_handlers.items():
+            try:
+                signal.signal(sig, old)
+            except (ValueError, TypeError):  # not the main thread any more, or a foreign handler
+                pass
+        self._old_handlers.clear()
+
+    def __enter__(self) -> FailSafe:
+        return self.start()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.stop()
+        try:
+            self.device.close()
+        except TactDeformError:
+            if exc is None:
+                raise
+            logger.exception("all-off on exit failed")
+
+    # --- what the owner's absence triggers -----------------------------------------------------------------
+
+    def _event(self, kind: str, **detail: Any) -> FailSafeEvent:
+        ev = FailSafeEvent(kind, self.clock.now(), detail)
+        self.events.append(ev)
+        audit = self.device.audit
+        if audit is not None:
+            audit.event(kind, t=ev.t, **detail)
+        log = logger.warning if kind not in ("refresh", "probe_ok") else logger.debug
+        log("fail-safe %s %s", kind, detail)
+        if self.on_event is not None:
+            self.on_event(ev)
+        return ev
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        dev = self.device
+        try:
+            if not dev.closed:
+                if dev._writing:  # the signal cut a write: the firmware may hold half a command
+                    dev._needs_resync = True
+                dev.close()
+            self._event("signal", signal=signal.Signals(signum).name)
+        except Exception:
+            logger.exception("all-off on signal %s failed", signum)
+        self._stop.set()
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise SystemExit(128 + signum)
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.poll_s):
+            try:
+                self.poll()
+            except PortNotOpenError:
+                return
+            except Exception:
+                logger.exception("fail-safe poll failed")
+
+    def poll(self, now: float | None = None) -> None:
+        """One look at the device: watchdog, then probe and refresh when due.  Re-entrant calls (a poll
+        whose own writes advance a simulated clock) are ignored."""
+        if self._polling or self.device.closed or self.device._op is not None:
+            # never in the middle of the owner's own operation: a frame is written whole or not at all
+            return
+        self._polling = True
+        try:
+            self._poll(self.clock.now() if now is None else now)
+        finally:
+            self._polling = False
+
+    def _poll(self, now: float) -> None:
+        dev = self.device
+        if dev.config is None:
+            return
+        last = dev.last_frame_time
+        if self.watchdog_s is not None and last is not None and now - last > self.watchdog_s and dev.stimulating:
+            self.watchdog_trips += 1
+            self._guarded(dev.suspend)
+            self._event("watchdog", idle_s=round(now - last, 6), limit_s=self.watchdog_s)
+        if dev.needs_resync:
+            self.recover("a write failed", transport=self._transport_failed)
+            return
+        if self.probe_interval_s is not None and (self._last_probe is None or now - self._last_probe >= self.probe_interval_s):
+            self._last_probe = now
+            if not self._guarded(lambda: self._probe(now)):
+                self.recover(self._probe_failure or "probe unanswered")
+                return
+        if self.refresh_interval_s is not None and (
+            self._last_refresh is None or now - self._last_refresh >= self.refresh_interval_s
+        ):
+            self._last_refresh = now
+            self._guarded(lambda: refresh(dev))
+
+    def _probe(self, now: float) -> bool:
+        """A measure must come back whole; with ``verify_readback`` its voltages must also fit what the
+        host set (see :class:`Readback`)."""
+        dev = self.device
+        self._probe_failure = None
+        cfg = dev.config
+        if cfg is None:
+            return True
+        try:
+            volts = dev.measure()
+        except (ShortReplyError, LimitError, DecodeError):
+            dev._needs_resync = True
+            self._probe_failure = "probe unanswered"
+            return False
+        if not self.verify_readback:
+            return True
+        settled = dev.last_state_write is None or now - dev.last_state_write > 1.5 / cfg.rate_hz + 0.003
+        if not settled or dev._last_pattern is None or cfg.sense_current_ua:
+            return True
+        problem = self.readback.check(volts, dev._last_pattern, dev.current_ua)
+        if problem is not None:
+            self._probe_failure = f"readback: {problem}"
+            dev._needs_resync = True
+            return False
+        return True
+
+    def _guarded(self, fn: Callable[[], Any]) -> Any:
+        """Run a device operation; a transport failure marks the device for recovery instead of raising."""
+        try:
+            return fn()
+        except (TransportError, TactDeformError) as exc:
+            if isinstance(exc, PortNotOpenError) and self.device.closed:
+                raise
+            self._transport_failed = isinstance(exc, TransportError)
+            self.device._needs_resync = True
+            self._event("error", error=f"{type(exc).__name__}: {exc}")
+            return False
+
+    def recover(self, reason: str, *, transport: bool = False) -> bool:
+        """Bring the firmware back in step: resync; reset if it still does not answer (a hung or locked
+        parser reads nothing, ever); reconnect when the port itself failed (then that comes first).
+        Raises :class:`DeviceGoneError` when nothing works (stimulation state unknown: unplug the board)."""
+        dev = self.device
+        self.recoveries += 1
+        self._transport_failed = False
+        self._event("recover", reason=reason)
+        steps: list[tuple[str, Callable[[], Any]]] = [
+            ("resync", dev.resync),
+            ("reset", dev.hardware_reset),
+            ("reconnect", dev.reconnect),
+        ]
+        if transport:
+            steps = [steps[2], steps[0], steps[1]]
+        tried: set[str] = set()
+        while steps:
+            name, step = steps.pop(0)
+            if name in tried:
+                continue
+            tried.add(name)
+            try:
+                if step() is False:
+                    continue
+                if dev.probe():
+                    self._event("recovered", by=name)
+                    return True
+            except (TransportError, TactDeformError) as exc:
+                if isinstance(exc, PortNotOpenError) and dev.closed:
+                    raise
+                self._event("recover_step_failed", step=name, error=f"{type(exc).__name__}: {exc}")
+                if isinstance(exc, TransportError) and "reconnect" not in tried:
+                    # the port itself failed: reopen it before anything else
+                    steps = [s for s in steps if s[0] == "reconnect"] + [s for s in steps if s[0] != "reconnect"]
+        self._event("unrecoverable", reason=reason)
+        raise DeviceGoneError(
+            f"the firmware does not answer after resync, reconnect and reset ({reason}); it may still be "
+            "stimulating: unplug the board"
+        )
+
+    def recovery_bound_s(self, scan_period_s: float = 0.008, resync_s: float = 0.035) -> float:
+        """The longest a fault the link does not report can affect stimulation with these settings: it is
+        noticed by the next probe (or overwritten by the next refresh), the probe's reply times out, a
+        resync is tried and probed again, and the reset that follows stops everything at once; the
+        scan in progress finishes.  Infinite without probing or refreshing."""
+        interval = min(x for x in (self.probe_interval_s, self.refresh_interval_s, float("inf")) if x is not None)
+        if interval == float("inf"):
+            return float("inf")
+        timeout = float(getattr(getattr(self.device, "port", None), "timeout", None) or 0.0)
+        return interval + self.poll_s + 2 * timeout + resync_s + scan_period_s + 0.002
+
+
+class Readback:
+    """Checks a measure reply (each channel's voltage during its last pulse) against what the host set.
+
+    * A channel the pattern has off (with sense current 0) is pulsed at height 0: it must read (almost)
+      0.  A voltage there means current reaches a channel meant off.
+    * A channel the pattern has on, at a height of at least ``min_ua``, must read clearly above 0.
+    * Per channel, the ratio voltage / set current is learned from readings that passed; a reading far
+      above ``ratio × current`` means the height in force is higher than the host set.
+
+    It is a heuristic on a real finger (contact changes impedance), exact on the emulator's skin model,
+    and opt-in (``FailSafe(verify_readback=True)``): a false alarm costs one resync, a missed fault is
+    still bounded by the refresh.
+    """
+
+    def __init__(self, *, off_codes: int = 2, min_ua: int = 200, rise: float = 1.3, slack_codes: int = 3) -> None:
+        self.off_codes = off_codes
+        self.min_ua = min_ua
+        self.rise = rise
+        self.slack_codes = slack_codes
+        self.ratio: dict[int, float] = {}
+
+    def check(self, volts: list[int], pattern: bytes, height_ua: int) -> str | None:
+        n = min(len(volts), len(pattern))
+        learned: dict[int, float] = {}
+        for ch in range(n):
+            on = pattern[ch] in (1, 2)
+            v = volts[ch]
+            if not on or height_ua == 0:
+                if v > self.off_codes:
+                    return f"channel {ch} is meant off but reads {v}"
+                continue
+            if height_ua < self.min_ua:
+                continue
+            if v <= self.off_codes:
+                return f"channel {ch} is meant on at {height_ua} µA but reads {v}"
+            r = self.ratio.get(ch)
+            if r is not None and v > r * height_ua * self.rise + self.slack_codes:
+                return f"channel {ch} reads {v}, more than {height_ua} µA gives ({r * height_ua:.0f})"
+            learned[ch] = v / height_ua
+        self.ratio.update(learned)
+        return None
+
+
+def refresh(device: Device) -> None:
+    """Write again the height and the pattern the firmware should hold (the same bytes as before, so a
+    firmware in step sees no change; one that lost or mis-read a byte is put right)."""
+    from .. import protocol as p
+
+    with device._lock:
+        cfg = device.config
+        if cfg is None or device.closed:
+            return
+        device._op = device._op or "refresh"
+        try:
+            pattern = device._last_pattern if device._last_pattern is not None else bytes(cfg.electrode_count)
+            device._send(p.encode_pulse_height(device.transfer.to_code(device.current_ua)))
+            device._send(p.encode_pattern(pattern, electrode_num=cfg.electrode_count))
+        finally:
+            if device._op == "refresh":
+                device._op = None
+
+
+def watch(device: Device, **kwargs: Any) -> FailSafe:
+    """Start a :class:`FailSafe` on ``device`` (thread, signals, atexit) and return it."""
+    return FailSafe(device, **kwargs).start()

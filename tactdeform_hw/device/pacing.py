@@ -1,0 +1,357 @@
+"""Pacing: the driver writes no faster than the firmware reads.
+
+The firmware moves each arriving USB packet into a 256-byte receive queue and discards the rest of the
+packet at the first byte that does not fit — silently: the host is neither held back nor told.  Its
+parser handles at most one command with a payload per 1 ms RTOS tick (it sleeps one tick after each).
+A host that writes a configuration burst, or frames faster than one command per millisecond, therefore
+loses bytes and desynchronises the parser.  :class:`Pacer` prevents both:
+
+* it spaces commands that carry a payload at least ``command_interval_s`` apart (default 1.2 ms: one
+  tick plus margin for the tick's phase and the USB frame) — and further apart when the scans leave the
+  parser less room (below), and
+* it keeps a conservative model of the device's queue — every byte written is counted as occupying the
+  queue until ``link_latency_s`` plus one tick after the parser could have started on it — and waits
+  until a write fits whole.
+
+Bytes that are not commands (the 256 zeros of a resync) are written in 64-byte chunks, each counted as
+taking as long as the parser needs to skip them, so even a queue holding a half-read command never
+overflows.
+
+**The scans decide the parser's pace.**  The stimulation interrupt pre-empts the main loop, so the parser
+runs only in the gap between the end of one scan and the next alarm.  A command with a payload ends with
+a one-tick sleep; when the gap is shorter than a tick (the TactDeform setting: 32 channels × 245 µs =
+7.85 ms of an 8 ms period) the next call comes only after the next scan — **one payload command per scan
+period**, not per millisecond.  Unknown bytes cost one call each (a few µs) and no sleep.  The device layer
+tells the pacer the period and its estimate of the scan (:func:`estimate_scan_us`, the firmware's own
+sequence of SPI exchanges and busy-waits) through :meth:`Pacer.set_timing`, and the guard refuses frames
+whose scan would leave no gap at all (back-to-back scans starve the parser: the host could not even
+switch them off).
+
+Time comes from a :class:`Clock`.  :class:`MonotonicClock` sleeps for real (serial ports, the pty
+emulator); :class:`InstantClock` reads wall time but never waits, for the untimed in-process emulator whose
+parser consumes every byte the moment it is written; a timed emulator exposes its own simulated clock
+(:class:`SimulatedClock`), so pacing advances emulated time rather than wall time.
+
+**Robust encoding** (``robust_encoding=True``, for links that can lose bytes — a UART, or a test that
+injects faults): each command is followed by padding bytes chosen so that a lost byte can only make a
+value smaller or leave the old value, never larger, and never lock the parser:
+
+* after a u16 (pulse height, width, frequency): two 0x00 — losing the low byte leaves ``high`` (≤ the
+  value), losing the high byte leaves ``low | 0 << 8`` (≤ the value), losing both gives 0;
+* after a u8 value ``v`` (electrode count, polarity): ``v`` itself — if the payload is lost the padding
+  becomes the payload and means the same; otherwise it is an unknown byte and ignored;
+* after other u8 values (sense height, sense width, discharge): one 0x00;
+* after a pattern: two 0x00 — a lost level byte makes the padding the last channel's level (off).
+
+and no payload byte may be ≥ 0xF5 (a command byte), so a lost command byte turns its payload into
+ignored unknown bytes rather than into a command.  The device layer lowers pulse heights whose low byte
+would be ≥ 0xF5 by up to 110 µA and refuses other such values.  The padding costs a few unknown bytes
+per command, which the firmware skips without sleeping.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from ..protocol.constants import PAYLOAD_KIND, RX_QUEUE_SIZE, USB_PACKET_SIZE, Opcode
+
+COMMAND_BYTE_MIN = min(Opcode)
+
+# The firmware's scan, as the protocol reference gives it (µs).  The SPI exchange is the firmware's own
+# figure; the GPIO write, interrupt entry and the parser's cost per unknown byte are assumptions.
+SPI_EXCHANGE_US = 6.6
+GPIO_WRITE_US = 0.05
+ISR_ENTRY_US = 2.0
+PARSER_BYTE_US = 4.0  # one parser call plus one byte read, rounded up
+#: Frames whose estimated scan leaves less than this before the next alarm are refused by the guard.
+SCAN_GAP_MIN_US = 50.0
+
+
+def _busy_wait_us(us: int) -> float:
+    """The firmware's ``delay(us)``: at least 3 µs, ``int(us * 2.0 - 5.4)`` ticks of 0.5 µs."""
+    us = max(us, 3)
+    return max(0, int(us * 2.0 - 5.4)) * 0.5
+
+
+def _monophasic_us(width_us: int) -> float:
+    wait = _busy_wait_us(width_us - 7) if width_us >= 7 else 0.0
+    return 2 * SPI_EXCHANGE_US + wait
+
+
+def estimate_scan_us(
+    levels: Sequence[int], width_us: int, discharge_us: int, sense_width_us: int = 0, hv513: int = 4
+) -> float:
+    """One scan of ``levels`` (hardware order, one per channel the firmware scans), from the firmware's
+    order of operations: select (LE, DIN, CLK), POL, the pulse (1: monophasic, 2: two phases, anything
+    else: the sense pulse), the discharge exchange and busy-wait; plus interrupt entry and the chain clear.
+    Rounded up by 0.5 % + 2 µs so that it errs long."""
+    mono = _monophasic_us(width_us)
+    sense = _monophasic_us(sense_width_us)
+    discharge = SPI_EXCHANGE_US + 3 * GPIO_WRITE_US + (_busy_wait_us(discharge_us - 7) if discharge_us > 7 else 0.0)
+    select = 5 * GPIO_WRITE_US
+    total = ISR_ENTRY_US + 2 * GPIO_WRITE_US * 8 * max(hv513, 1)
+    for v in levels:
+        if v == 1:
+            pulse = mono
+        elif v == 2:
+            pulse = 2 * mono + 2 * GPIO_WRITE_US
+        else:
+            pulse = sense
+        total += select + GPIO_WRITE_US + pulse + discharge
+    return total * 1.005 + 2.0
+
+
+def firmware_period_us(rate_hz: int) -> float:
+    """The alarm period the firmware derives from a rate (float32 division, truncated to whole µs)."""
+    from ..protocol.firmware_math import period_us_from_rate
+
+    return float(int(period_us_from_rate(rate_hz)))
+
+
+class Clock(Protocol):
+    def now(self) -> float: ...
+
+    def sleep(self, seconds: float) -> None: ...
+
+
+class MonotonicClock:
+    """Wall time (``time.monotonic``) and real sleeps."""
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def sleep(self, seconds: float) -> None:
+        if seconds > 0:
+            time.sleep(seconds)
+
+
+class InstantClock:
+    """Wall time that never waits: for a device that consumes every byte the moment it is written (the
+    untimed in-process emulator).  The pacer still keeps its books; ``skipped_s`` is what it would have
+    waited on a real link."""
+
+    def __init__(self) -> None:
+        self.skipped_s = 0.0
+
+    def now(self) -> float:
+        # the waits that were skipped count as having passed, so the pacer's books stay consistent
+        return time.monotonic() + self.skipped_s
+
+    def sleep(self, seconds: float) -> None:
+        if seconds > 0:
+            self.skipped_s += seconds
+
+
+class SimulatedClock:
+    """Time that passes only when someone sleeps (or calls :meth:`advance`); ``on_advance`` lets a
+    simulation run up to the new time."""
+
+    def __init__(self, start: float = 0.0, on_advance: Callable[[float], None] | None = None) -> None:
+        self._t = float(start)
+        self.on_advance = on_advance
+
+    def now(self) -> float:
+        return self._t
+
+    def sleep(self, seconds: float) -> None:
+        if seconds > 0:
+            self.advance(seconds)
+
+    def advance(self, seconds: float) -> None:
+        self._t += seconds
+        if self.on_advance is not None:
+            self.on_advance(self._t)
+
+
+@dataclass(frozen=True)
+class PacingPolicy:
+    queue_bytes: int = RX_QUEUE_SIZE
+    command_interval_s: float = 0.0012
+    tick_s: float = 0.001
+    link_latency_s: float = 0.001
+    chunk_bytes: int = USB_PACKET_SIZE
+    robust_encoding: bool = False
+
+
+@dataclass
+class PacingStats:
+    commands: int = 0
+    payload_commands: int = 0
+    bytes_written: int = 0
+    padding_bytes: int = 0
+    waits: int = 0
+    waited_s: float = 0.0
+    max_queue_estimate: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return dict(self.__dict__)
+
+
+def has_payload(data: bytes) -> bool:
+    """Whether the command starting ``data`` makes the parser sleep a tick afterwards."""
+    return bool(data) and data[0] >= COMMAND_BYTE_MIN and PAYLOAD_KIND.get(data[0]) is not None
+
+
+def padding_for(data: bytes) -> bytes:
+    """The robust-encoding padding that follows one whole command (see the module docstring)."""
+    if not data or data[0] < COMMAND_BYTE_MIN:
+        return b""
+    op = data[0]
+    kind = PAYLOAD_KIND.get(op)
+    if kind is None:
+        return b""
+    if kind == "u16" or kind == "pattern":
+        return b"\x00\x00"
+    if op in (Opcode.ELECTRODE_NUM, Opcode.POLARITY) and len(data) >= 2 and data[1] < COMMAND_BYTE_MIN:
+        return bytes([data[1]])
+    return b"\x00"
+
+
+def command_like_payload(data: bytes) -> int | None:
+    """Index of the first payload byte of a command that looks like a command byte (None if none)."""
+    for i, b in enumerate(data[1:], start=1):
+        if b >= COMMAND_BYTE_MIN:
+            return i
+    return None
+
+
+@dataclass
+class Pacer:
+    """Spaces and sizes writes to what the firmware can take (see the module docstring)."""
+
+    clock: Clock = field(default_factory=MonotonicClock)
+    policy: PacingPolicy = field(default_factory=PacingPolicy)
+    stats: PacingStats = field(default_factory=PacingStats)
+
+    def __post_init__(self) -> None:
+        self._inflight: deque[tuple[float, int]] = deque()  # (time the bytes are surely consumed, count)
+        self._last_done = -1e18
+        self._last_payload_write = -1e18
+        self.period_s: float | None = None
+        self.scan_s: float | None = None
+
+    def set_timing(self, period_s: float | None, scan_s: float | None) -> None:
+        """The firmware's alarm period and the (estimated) scan in force; None: unknown (1 ms pace)."""
+        self.period_s = period_s
+        self.scan_s = scan_s
+
+    def payload_interval_s(self) -> float:
+        """How far apart commands with a payload must be for the parser to keep up."""
+        base = self.policy.command_interval_s
+        if self.period_s is None or self.scan_s is None:
+            return base
+        gap = self.period_s - self.scan_s
+        tick = self.policy.tick_s
+        if tick <= 0:
+            return base
+        if gap <= 0:
+            return max(base, self.period_s * 1.05 + 0.0002)  # starved: the guard refuses such frames
+        per_period = max(1, int(gap / tick)) if gap >= tick else 1
+        return max(base, self.period_s / per_period * 1.05 + 0.0002)
+
+    def skip_s(self, nbytes: int) -> float:
+        """How long the parser needs to skip ``nbytes`` unknown bytes."""
+        if self.period_s is None or self.scan_s is None:
+            return self.policy.tick_s * max(1, nbytes / 64)
+        gap_us = max(1.0, (self.period_s - self.scan_s) * 1e6)
+        per_period = max(1.0, gap_us / PARSER_BYTE_US)
+        return self.period_s * (nbytes / per_period) * 1.1 + self.policy.tick_s
+
+    @property
+    def robust(self) -> bool:
+        return self.policy.robust_encoding
+
+    def reset(self) -> None:
+        """Forget the queue model (after a reconnect or a device reset the queue is empty)."""
+        self._inflight.clear()
+        self._last_done = -1e18
+
+    def queue_estimate(self, now: float | None = None) -> int:
+        t = self.clock.now() if now is None else now
+        while self._inflight and self._inflight[0][0] <= t:
+            self._inflight.popleft()
+        return sum(n for _, n in self._inflight)
+
+    def _wait_until(self, t: float) -> None:
+        now = self.clock.now()
+        if t > now:
+            self.stats.waits += 1
+            self.stats.waited_s += t - now
+            self.clock.sleep(t - now)
+
+    def _fit(self, size: int) -> None:
+        """Wait until ``size`` bytes fit in the modelled queue."""
+        limit = self.policy.queue_bytes
+        while True:
+            now = self.clock.now()
+            occupied = self.queue_estimate(now)
+            if occupied + size <= limit or not self._inflight:
+                return
+            # the queue frees in order: wait for the first entry that makes room
+            need = occupied + size - limit
+            freed = 0
+            for done, n in self._inflight:
+                freed += n
+                if freed >= need:
+                    self._wait_until(done)
+                    break
+
+    def _account(self, size: int, duration_s: float) -> None:
+        now = self.clock.now()
+        arrival = now + self.policy.link_latency_s
+        start = max(arrival, self._last_done)
+        done = start + duration_s
+        self._last_done = done
+        self._inflight.append((done + self.policy.tick_s, size))
+        self.stats.max_queue_estimate = max(self.stats.max_queue_estimate, self.queue_estimate(now))
+
+    def write(self, write: Callable[[bytes], None], data: bytes) -> None:
+        """Write one command (or a run of non-command bytes) through ``write``, paced."""
+        if not data:
+            return
+        if data[0] < COMMAND_BYTE_MIN:
+            step = max(1, self.policy.chunk_bytes)
+            for i in range(0, len(data), step):
+                chunk = data[i : i + step]
+                self._fit(len(chunk))
+                write(chunk)
+                self._account(len(chunk), self.skip_s(len(chunk)))
+                self.stats.bytes_written += len(chunk)
+            return
+        payload = has_payload(data)
+        out = data + padding_for(data) if self.policy.robust_encoding else data
+        self._fit(len(out))
+        interval = self.payload_interval_s()
+        if payload:
+            self._wait_until(self._last_payload_write + interval)
+        write(out)
+        if payload:
+            self._last_payload_write = self.clock.now()
+            self.stats.payload_commands += 1
+        self._account(len(out), interval if payload else self.skip_s(len(out) - 1))
+        self.stats.commands += 1
+        self.stats.bytes_written += len(out)
+        self.stats.padding_bytes += len(out) - len(data)
+
+
+def default_pacer(port: Any) -> Pacer:
+    """The pacer a port needs.
+
+    * A port that offers ``pacing_clock`` (a timed emulator) is paced in its simulated time.
+    * A port whose ``robust_encoding`` is true gets the loss-tolerant encoding.
+    * The untimed in-process emulator (a port holding an ``Emulator`` that parses every byte as it is
+      written) needs no waiting: its pacer only keeps the books, on a simulated clock.
+    * Anything else — a real board, a pty — is paced in wall time.
+    """
+    policy = PacingPolicy(robust_encoding=bool(getattr(port, "robust_encoding", False)))
+    clock = getattr(port, "pacing_clock", None)
+    if clock is not None:
+        return Pacer(clock=clock, policy=policy)
+    emulator = getattr(port, "emulator", None)
+    if emulator is not None and callable(getattr(emulator, "feed", None)) and not hasattr(emulator, "clock"):
+        return Pacer(clock=InstantClock())
+    return Pacer(clock=MonotonicClock())

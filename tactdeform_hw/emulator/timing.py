@@ -1,0 +1,243 @@
+"""Every timing constant of the emulated controller, named, sourced and changeable in one place.
+
+Each field of :class:`TimingModel` carries its unit in its name and, in its metadata, where the number
+comes from:
+
+* ``firmware`` — read from the firmware's code (exact: a literal in an expression or a branch);
+* ``firmware comment`` — a figure the firmware's authors wrote down next to the code;
+* ``platform`` — a property of the ESP32-S3 / arduino-esp32 / FreeRTOS build the firmware runs on;
+* ``assumption`` — a plausible value nobody has measured on a board yet.  These are the numbers to
+  refine with a logic analyser; every report that depends on them says so through
+  :meth:`TimingModel.describe`.
+
+The simulation keeps time in integer nanoseconds (``*_ns`` properties round the µs fields to 1 ns), so
+a scan that repeats for hours accumulates no floating-point drift and the event-exact engine and its
+reference step-through agree to the nanosecond, not to a tolerance.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields, replace
+from functools import cached_property
+from typing import Any
+
+from ..errors import ConfigurationError, LimitError
+from ..protocol.constants import RX_QUEUE_SIZE, TIMER_TICKS_PER_US
+
+OVERRUN_POLICIES = ("immediate", "skip")
+"""What follows a scan longer than the timer period.
+
+``immediate`` (the default, Espressif's documented behaviour): the auto-reload alarm is re-enabled when
+the handler returns, the counter has already passed it, so it fires at once and scans run back to back.
+``skip``: the missed alarm is dropped and the next scan starts on the original period grid (what a timer
+that ignores passed alarms would do); offered to compare against, not because the chip does it.
+"""
+
+
+def _f(default: Any, unit: str, source: str, doc: str) -> Any:
+    return field(default=default, metadata={"unit": unit, "source": source, "doc": doc})
+
+
+@dataclass(frozen=True)
+class TimingModel:
+    """The controller's timing, from the SPI exchange to the interrupt watchdog.
+
+    The defaults reproduce the worked figure of the protocol reference: 32 electrodes at pattern 1,
+    200 µs pulses, 45 µs discharge, 125 Hz → 245.25 µs per channel, a 7850.2 µs scan inside the 8000 µs
+    period; 50 µs discharge → 8010.2 µs, an overrun.
+    """
+
+    # --- the scan interrupt -------------------------------------------------------------------------------
+    spi_exchange_us: float = _f(6.6, "µs", "firmware comment", "one DAC/ADC SPI exchange")
+    dac_change_at_us: float = _f(3.3, "µs", "firmware comment", "when the DAC output changes within an exchange")
+    adc_sample_at_us: float = _f(
+        0.0, "µs", "assumption", "when the ADC samples within the exchange that returns the reading"
+    )
+    gpio_write_us: float = _f(0.05, "µs", "assumption", "one fast GPIO write (LE, DIN, CLK, POL, BL)")
+    isr_entry_us: float = _f(2.0, "µs", "assumption", "from the timer alarm to the first statement of the handler")
+    isr_exit_us: float = _f(0.0, "µs", "assumption", "from the handler's last statement to the alarm re-enable")
+    pulse_wait_offset_us: int = _f(7, "µs", "firmware", "monophasic: busy-wait w - 7 µs only if w >= 7")
+    discharge_wait_offset_us: int = _f(7, "µs", "firmware", "discharge: busy-wait d - 7 µs only if d > 7")
+    delay_min_us: int = _f(3, "µs", "firmware", "delay(us) raises us below this to this")
+    delay_ticks_per_us: float = _f(2.0, "ticks/µs", "firmware", "delay target = int(us * this - offset)")
+    delay_offset_ticks: float = _f(5.4, "ticks", "firmware", "delay target = int(us * scale - this)")
+    timer_tick_us: float = _f(
+        1.0 / TIMER_TICKS_PER_US, "µs", "platform", "stimulation timer tick: 80 MHz APB / 40 = 2 MHz"
+    )
+    overrun_policy: str = _f("immediate", "", "platform", "what follows a scan longer than the period")
+    watchdog_us: float | None = _f(
+        300_000.0, "µs", "platform", "interrupt watchdog (arduino-esp32, ESP32-S3); None disables it"
+    )
+    boot_us: float = _f(0.0, "µs", "assumption", "reboot to a running main loop after a watchdog reset")
+    timer_start_us: float = _f(0.0, "µs", "assumption", "from boot to the stimulation timer's start")
+
+    # --- the main loop and the parser ---------------------------------------------------------------------
+    rtos_tick_us: float = _f(1000.0, "µs", "platform", "FreeRTOS tick (1 kHz); vTaskDelay(1) waits for the next")
+    tick_phase_us: float = _f(0.0, "µs", "assumption", "first RTOS tick after boot, modulo the tick period")
+    parser_call_us: float = _f(2.0, "µs", "assumption", "one parser call's overhead (Serial.available() and the loop)")
+    parser_byte_us: float = _f(1.0, "µs", "assumption", "reading one byte from the receive queue")
+    hv513_detect_us: float = _f(1000.0, "µs", "assumption", "0xF5: 50 analogRead() calls to count the boards")
+    rx_queue_bytes: int = _f(RX_QUEUE_SIZE, "bytes", "firmware", "receive queue; the rest of a packet is discarded")
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "overrun_policy":
+                if value not in OVERRUN_POLICIES:
+                    raise LimitError(f.name, value, " or ".join(OVERRUN_POLICIES))
+                continue
+            if f.name == "watchdog_us" and value is None:
+                continue
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise LimitError(f.name, value, "a finite number >= 0")
+        if self.timer_tick_us <= 0:
+            raise LimitError("timer_tick_us", self.timer_tick_us, "a positive number")
+        if self.rtos_tick_us <= 0:
+            raise LimitError("rtos_tick_us", self.rtos_tick_us, "a positive number")
+        if not self.adc_sample_at_us <= self.dac_change_at_us <= self.spi_exchange_us:
+            raise ConfigurationError(
+                "the exchange must sample the ADC before the DAC changes, within the exchange: "
+                f"adc_sample_at_us={self.adc_sample_at_us} <= dac_change_at_us={self.dac_change_at_us} "
+                f"<= spi_exchange_us={self.spi_exchange_us}"
+            )
+        if self.watchdog_us is not None and self.watchdog_us <= 0:
+            raise LimitError("watchdog_us", self.watchdog_us, "a positive number or None")
+        if not isinstance(self.rx_queue_bytes, int) or self.rx_queue_bytes < 1:
+            raise LimitError("rx_queue_bytes", self.rx_queue_bytes, "an integer >= 1")
+
+    # --- integer-nanosecond views (the simulation's clock) ------------------------------------------------
+
+    @cached_property
+    def spi_ns(self) -> int:
+        return _ns(self.spi_exchange_us)
+
+    @cached_property
+    def dac_at_ns(self) -> int:
+        return _ns(self.dac_change_at_us)
+
+    @cached_property
+    def adc_at_ns(self) -> int:
+        return _ns(self.adc_sample_at_us)
+
+    @cached_property
+    def gpio_ns(self) -> int:
+        return _ns(self.gpio_write_us)
+
+    @cached_property
+    def isr_entry_ns(self) -> int:
+        return _ns(self.isr_entry_us)
+
+    @cached_property
+    def isr_exit_ns(self) -> int:
+        return _ns(self.isr_exit_us)
+
+    @cached_property
+    def tick_ns(self) -> int:
+        """One stimulation-timer tick (0.5 µs by default)."""
+        return _ns(self.timer_tick_us)
+
+    @cached_property
+    def watchdog_ns(self) -> int | None:
+        return None if self.watchdog_us is None else _ns(self.watchdog_us)
+
+    @cached_property
+    def boot_ns(self) -> int:
+        return _ns(self.boot_us)
+
+    @cached_property
+    def timer_start_ns(self) -> int:
+        return _ns(self.timer_start_us)
+
+    @cached_property
+    def rtos_tick_ns(self) -> int:
+        return _ns(self.rtos_tick_us)
+
+    @cached_property
+    def tick_phase_ns(self) -> int:
+        return _ns(self.tick_phase_us) % self.rtos_tick_ns
+
+    @cached_property
+    def call_ns(self) -> int:
+        return _ns(self.parser_call_us)
+
+    @cached_property
+    def byte_ns(self) -> int:
+        return _ns(self.parser_byte_us)
+
+    @cached_property
+    def hv513_detect_ns(self) -> int:
+        return _ns(self.hv513_detect_us)
+
+    # --- the firmware's arithmetic ------------------------------------------------------------------------
+
+    def delay_ticks(self, us: int) -> int:
+        """``delay(us)``: raise to the minimum, then wait ``int(us * 2.0 - 5.4)`` timer ticks.
+
+        Computed in double precision like the firmware's C expression (``2.0`` and ``5.4`` are doubles).
+        A negative target (impossible with the defaults) waits nothing.
+        """
+        if us < self.delay_min_us:
+            us = self.delay_min_us
+        return max(0, int(us * self.delay_ticks_per_us - self.delay_offset_ticks))
+
+    def delay_ns(self, us: int) -> int:
+        return self.delay_ticks(us) * self.tick_ns
+
+    def pulse_wait_ns(self, width_us: int) -> int:
+        """The busy-wait inside a monophasic pulse of ``width_us`` (none below the offset)."""
+        if width_us >= self.pulse_wait_offset_us:
+            return self.delay_ns(width_us - self.pulse_wait_offset_us)
+        return 0
+
+    def discharge_wait_ns(self, discharge_us: int) -> int:
+        """The busy-wait with BL low during the discharge (only above the offset)."""
+        if discharge_us > self.discharge_wait_offset_us:
+            return self.delay_ns(discharge_us - self.discharge_wait_offset_us)
+        return 0
+
+    def pulse_width_ns(self, width_us: int) -> int:
+        """Time the current flows in one monophasic pulse: DAC change to DAC change.
+
+        One full exchange plus the busy-wait: never shorter than the exchange (6.6 µs by default), and
+        about ``w - 3.4`` µs for long pulses (200 µs → 196.6 µs)."""
+        return self.spi_ns + self.pulse_wait_ns(width_us)
+
+    def alarm_period_ns(self, alarm_ticks: int) -> int:
+        return alarm_ticks * self.tick_ns
+
+    # --- documentation ------------------------------------------------------------------------------------
+
+    def describe(self) -> list[dict[str, Any]]:
+        """One row per constant: name, value, unit, source and meaning (for reports and ``--json``)."""
+        return [
+            {
+                "name": f.name,
+                "value": getattr(self, f.name),
+                "unit": f.metadata.get("unit", ""),
+                "source": f.metadata.get("source", ""),
+                "doc": f.metadata.get("doc", ""),
+            }
+            for f in fields(self)
+        ]
+
+    def assumptions(self) -> list[str]:
+        """Names of the constants that are assumptions, not read from the firmware or the platform."""
+        return [f.name for f in fields(self) if f.metadata.get("source") == "assumption"]
+
+    def with_(self, **changes: Any) -> TimingModel:
+        """A copy with some constants changed (validated like the original)."""
+        unknown = set(changes) - {f.name for f in fields(self)}
+        if unknown:
+            raise ConfigurationError(f"unknown timing constant(s): {', '.join(sorted(unknown))}")
+        return replace(self, **changes)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+def _ns(us: float) -> int:
+    return int(round(us * 1000.0))
+
+
+DEFAULT_MODEL = TimingModel()

@@ -1,0 +1,143 @@
+"""The two Phase 2 baselines TactDeform was compared with, exactly as the paper defines them.
+
+* UA, uniform activation: every electrode on while the fingertip is inside the object's boundary.
+* CAM, contact-area mapping: each electrode on when its own position is in contact, i.e. inside the
+  surface.
+
+Neither has states, stability windows or expansion; both share the manager's input checks (a bad sample
+is dropped and counted, never rendered) and its event-driven output (a frame only when the pattern
+changes), so the three approaches are compared on the same footing.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Protocol
+
+import numpy as np
+
+from .array import ElectrodeArray
+from .manager import IDLE, INTERACTING, ManagerOutput, ManagerStats, check_pose, quat_axes
+from .patterns import Pattern
+from .tracking import QUAT_NORM_TOLERANCE
+
+APPROACHES: tuple[str, ...] = ("tactdeform", "ua", "cam")
+
+
+class ContainsScene(Protocol):
+    def contains(self, points_mm: np.ndarray) -> np.ndarray: ...
+
+
+class _Baseline:
+    """Shared input checks and change detection."""
+
+    name = "baseline"
+
+    def __init__(self, array: ElectrodeArray | None = None, *, on_level: int = 1, quat_norm_tolerance: float = QUAT_NORM_TOLERANCE) -> None:
+        self.array = array if array is not None else ElectrodeArray.tactdeform()
+        self.on_level = on_level
+        self.quat_norm_tolerance = quat_norm_tolerance
+        self.stats = ManagerStats()
+        n = self.array.count
+        self.off: Pattern = (0,) * n
+        self.all_on: Pattern = (on_level,) * n
+        self.reset()
+
+    def reset(self) -> None:
+        self._t: float | None = None
+        self.state = IDLE
+        self.pattern: Pattern = self.off
+        self.last_sent: Pattern | None = None
+
+    def _drop(self, t: Any, reason: str) -> ManagerOutput:
+        d = self.stats.dropped
+        d[reason] = d.get(reason, 0) + 1
+        try:
+            tf = float(t)
+        except (TypeError, ValueError):
+            tf = math.nan
+        return ManagerOutput(tf, self.state, None, None, None, self.name, self.pattern, [], reason)
+
+    def update(self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None) -> ManagerOutput:
+        self.stats.updates += 1
+        checked = check_pose(t_s, position_mm, orientation_wxyz, self._t, self.quat_norm_tolerance)
+        if isinstance(checked, str):
+            return self._drop(t_s, checked)
+        t, p, q, renormed = checked
+        if renormed:
+            self.stats.normalised_quaternions += 1
+        sd = None
+        if query is not None:
+            try:
+                sd = float(query.signed_distance_mm)
+            except (AttributeError, TypeError, ValueError):
+                return self._drop(t, "query")
+            if sd - sd != 0.0:
+                return self._drop(t, "query")
+        self._t = t
+        pat = self._pattern(p, q, sd, scene)
+        state = INTERACTING if any(pat) else IDLE
+        if state != self.state:
+            self.stats.transitions += 1
+        self.state = state
+        self.pattern = pat
+        frames: list[tuple[float, Pattern]] = []
+        if pat != self.last_sent:
+            frames.append((t, pat))
+            self.last_sent = pat
+            self.stats.frames_out += 1
+        feature = getattr(query, "feature", None) if state == INTERACTING else None
+        texture = getattr(query, "texture_level", None) if state == INTERACTING else None
+        return ManagerOutput(t, state, feature, None, texture, self.name, pat, frames)
+
+    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any) -> Pattern:
+        raise NotImplementedError
+
+
+class UniformActivation(_Baseline):
+    """UA: all electrodes while the pad centre is inside (signed distance ≤ 0) the nearest object."""
+
+    name = "ua"
+
+    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any) -> Pattern:
+        return self.all_on if (sd is not None and sd <= 0.0) else self.off
+
+
+class ContactAreaMapping(_Baseline):
+    """CAM: electrode i on when its own centre, placed on the pad in the world, is inside the scene.
+
+    The electrodes lie in the pad plane (finger-frame z = 0) at their array positions relative to the
+    array centre, which is the tracked pad position.  A pad far outside every object skips the
+    per-electrode test (``reach_mm`` beyond the array's radius cannot reach a surface)."""
+
+    name = "cam"
+
+    def __init__(self, array: ElectrodeArray | None = None, *, on_level: int = 1, quat_norm_tolerance: float = QUAT_NORM_TOLERANCE) -> None:
+        super().__init__(array, on_level=on_level, quat_norm_tolerance=quat_norm_tolerance)
+        rel = self.array.world_offsets()
+        self._rel = np.ascontiguousarray(rel, dtype=float)
+        self.reach_mm = float(np.hypot(rel[:, 0], rel[:, 1]).max()) + 1e-6
+        self._levels = np.array([0, on_level], dtype=np.int64)
+
+    def electrode_positions(self, p: tuple[float, float, float], q: tuple[float, ...]) -> np.ndarray:
+        """World positions (N, 3) of the electrode centres for a pad pose."""
+        X, Y, _ = quat_axes(*q)
+        basis = np.array((X, Y))
+        world: np.ndarray = np.asarray(p) + self._rel @ basis
+        return world
+
+    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any) -> Pattern:
+        if sd is None or sd > self.reach_mm or scene is None:
+            return self.off
+        inside = np.asarray(scene.contains(self.electrode_positions(p, q)), dtype=bool)
+        return tuple(self._levels[inside.astype(np.int64)].tolist())
+
+
+def make_baseline(name: str, array: ElectrodeArray | None = None, *, on_level: int = 1) -> _Baseline:
+    if name == "ua":
+        return UniformActivation(array, on_level=on_level)
+    if name == "cam":
+        return ContactAreaMapping(array, on_level=on_level)
+    from ..errors import LimitError
+
+    raise LimitError("approach", name, "'ua' or 'cam' for a baseline")

@@ -1,0 +1,695 @@
+"""The pattern manager: TactDeform's Idle → Approaching → Interacting state machine.
+
+One call per tracking sample (:meth:`PatternManager.update`) turns a finger pose and the scene's answer
+about the nearest surface into the frames to send.  The manager never talks to a device; it says *what*
+to send and *when* (only when the pattern changes), and the pipeline sends it.
+
+States (paper): Idle — no contact; Approaching — contact detected, the feature (face / edge / corner)
+picks the pattern and it expands one frame per 2 mm of travel toward the surface (eq. 1–3);
+Interacting — sustained, stable contact: a stationary pad gets the orientation-shifted contact pattern
+(eq. 4) or the uniform one, a sliding pad the texture-shifted pattern (eq. 5–7).  Losing contact returns
+to Idle from any state; Interacting only ends through Idle.
+
+Temporal filtering.  The paper asks for parameters to be stable over a short window before they change
+the state or the pattern, without giving lengths.  Physiological tremor is 8–12 Hz with about 1 mm
+amplitude, so a tremor-driven excursion across a threshold lasts at most half a period (62.5 ms at 8 Hz)
+and its displacement over a window W is at most 2 mm, i.e. an apparent speed of 2 mm / W.  The defaults
+below follow from that (every one is a :class:`ManagerConfig` field):
+
+* contact is entered at once (latency matters most there) and left only after the pad has been more
+  than ``contact_release_mm`` = 1.5 mm outside the surface for ``contact_loss_window_s`` = 70 ms (longer
+  than any tremor half period), or at once beyond ``contact_loss_far_mm`` = 10 mm;
+* speeds come from the net displacement over ``motion_window_s`` = 0.3 s, where tremor reads as at most
+  6.7 mm/s — below ``settle_speed_mm_s`` = 8 mm/s and below the sliding thresholds (12 mm/s on, 8 mm/s
+  off).  Approaching becomes Interacting once contact has lasted ``sustain_s`` = 0.15 s and the normal
+  speed has stayed below the settle speed for ``settle_hold_s`` = 0.15 s — longer than the ≈0.12 s a
+  20 mm/s press-and-withdraw reads as still at its turning point, so a reversal is not taken for a rest;
+* feature, edge orientation, θ level, sliding direction and texture level each change only after their
+  new value has held for 0.1 s, and the angular ones also have a margin past the bin boundary (7.5°, 5°
+  and 10°); the expansion frame and the texture shift count step down only ``frame_release_mm`` =
+  1.25 mm below a boundary;
+* texture travel is the displacement of the position averaged over ``slide_smoothing_s`` = 0.125 s (one
+  8 Hz period: tremor keeps at most a fifth of its amplitude), so a sliding finger's tremor does not
+  rock the texture back and forth; the sum still telescopes, so it cannot drift.
+
+Interpretations beyond the windows (all :class:`ManagerConfig` fields): eq. 3's count grows without
+bound while a pattern has a few frames — ``approach_overflow="cycle"`` restarts the ring at the centre,
+``"hold"`` stops at the outer ring; travel is ``"net"`` (withdrawing contracts the pattern, never below
+frame 0) or ``"forward"``; the texture level is the surface's ``k_texture``; which contexts render and in
+which sliding directions reproduce the tasks (Task 2 rendered only stationary contact, Task 3 only
+rightward strokes).
+
+Frame interpolation.  When the finger moves more than one frame's worth between two samples (a 10 m/s
+approach covers 70 frames per 72 Hz sample), the update returns every frame it passed — up to one of
+each distinct frame — with timestamps spread over the interval, so none is skipped in effect.
+
+Bad input (NaN / inf position, time or quaternion, a quaternion far from unit length, time going
+backwards, a malformed surface query) is dropped and counted; the last pattern stays.  A pose that jumps
+further than ``teleport_min_mm`` faster than ``max_speed_mm_s`` is a tracking teleport: its displacement
+is not counted as travel and any contact restarts from Idle.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field, fields
+from typing import Any, Literal
+
+from ..errors import LimitError
+from .array import ElectrodeArray
+from .contexts import (
+    ApproachState,
+    Debounced,
+    FrameAccumulator,
+    contact_angle_deg,
+    counts_to_show,
+    displayed_frame,
+    mask_phase,
+    quantise_angle,
+    theta_level,
+)
+from .patterns import DIRECTIONS, EDGE_ORIENTATIONS, FEATURES, Pattern, PatternParams, PatternSet
+from .tracking import QUAT_NORM_TOLERANCE
+
+IDLE = "idle"
+APPROACHING = "approaching"
+INTERACTING = "interacting"
+STATES: tuple[str, ...] = (IDLE, APPROACHING, INTERACTING)
+
+ContactMode = Literal["orientation", "uniform"]
+
+
+@dataclass(frozen=True)
+class ManagerConfig:
+    """Every choice the renderer makes, with the paper's value or a documented interpretation."""
+
+    # eq. 1–3
+    alpha: float = 1.0
+    d_electrode_mm: float | None = None  # None: the array's pitch (2.0 mm on the TactDeform array)
+    approach_travel: Literal["net", "forward"] = "net"
+    approach_overflow: Literal["cycle", "hold"] = "cycle"
+    frame_release_mm: float = 1.25
+    # contact detection
+    contact_enter_mm: float = 0.0
+    contact_release_mm: float = 1.5
+    contact_loss_window_s: float = 0.07
+    contact_loss_far_mm: float = 10.0
+    # Approaching → Interacting
+    sustain_s: float = 0.15
+    motion_window_s: float = 0.3
+    settle_speed_mm_s: float = 8.0
+    settle_hold_s: float = 0.15
+    # stationary / sliding
+    slide_on_mm_s: float = 12.0
+    slide_off_mm_s: float = 8.0
+    slide_smoothing_s: float = 0.125
+    # stability windows and hysteresis margins
+    feature_window_s: float = 0.1
+    orientation_window_s: float = 0.1
+    orientation_margin_deg: float = 7.5
+    theta_window_s: float = 0.1
+    theta_margin_deg: float = 5.0
+    direction_window_s: float = 0.1
+    direction_margin_deg: float = 10.0
+    texture_window_s: float = 0.1
+    # contact context (eq. 4)
+    contact_mode: ContactMode = "orientation"
+    theta_plane: Literal["finger", "horizontal"] = "finger"
+    up_axis: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    # sliding context (eq. 5–7)
+    beta: float = 1.0
+    mask_step_spacings: int | None = None  # None: k spacings per count (the spec's interpretation)
+    use_texture: bool = True  # False: every surface renders as smooth (no texture machinery)
+    slide_directions: frozenset[str] | None = None  # None: all 8; Task 3 rendered only {"E"}
+    render_contact: bool = True  # Task 3 rendered nothing while stationary
+    render_sliding: bool = True  # Task 2 rendered nothing while moving
+    # input robustness
+    max_speed_mm_s: float = 20000.0
+    teleport_min_mm: float = 50.0
+    quat_norm_tolerance: float = QUAT_NORM_TOLERANCE  # the tracking layer's: rounding, not garbage
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, float) and not math.isfinite(v):
+                raise LimitError(f.name, v, "a finite number")
+        nonneg = (
+            "contact_release_mm", "contact_loss_window_s", "contact_loss_far_mm", "sustain_s", "settle_speed_mm_s", "settle_hold_s",
+            "slide_off_mm_s", "feature_window_s", "orientation_window_s", "orientation_margin_deg",
+            "theta_window_s", "theta_margin_deg", "direction_window_s", "direction_margin_deg",
+            "texture_window_s", "teleport_min_mm", "frame_release_mm", "slide_smoothing_s",
+        )
+        for name in nonneg:
+            if getattr(self, name) < 0:
+                raise LimitError(name, getattr(self, name), "≥ 0")
+        if not self.alpha > 0:
+            raise LimitError("alpha", self.alpha, "> 0")
+        if self.d_electrode_mm is not None and not self.d_electrode_mm > 0:
+            raise LimitError("d_electrode_mm", self.d_electrode_mm, "> 0 mm")
+        if not self.motion_window_s > 0:
+            raise LimitError("motion_window_s", self.motion_window_s, "> 0 s")
+        if self.slide_smoothing_s > self.motion_window_s:
+            raise LimitError("slide_smoothing_s", self.slide_smoothing_s, f"≤ motion_window_s ({self.motion_window_s})")
+        if self.slide_on_mm_s < self.slide_off_mm_s:
+            raise LimitError("slide_on_mm_s", self.slide_on_mm_s, f"≥ slide_off_mm_s ({self.slide_off_mm_s})")
+        if self.contact_release_mm > self.contact_loss_far_mm:
+            raise LimitError("contact_release_mm", self.contact_release_mm, f"≤ contact_loss_far_mm ({self.contact_loss_far_mm})")
+        if self.contact_mode not in ("orientation", "uniform"):
+            raise LimitError("contact_mode", self.contact_mode, "'orientation' or 'uniform'")
+        if self.approach_overflow not in ("cycle", "hold"):
+            raise LimitError("approach_overflow", self.approach_overflow, "'cycle' or 'hold'")
+        if self.theta_plane not in ("finger", "horizontal"):
+            raise LimitError("theta_plane", self.theta_plane, "'finger' or 'horizontal'")
+        if self.beta == 0:
+            raise LimitError("beta", self.beta, "+1 (opposite to the finger) or -1")
+        if not self.max_speed_mm_s > 0:
+            raise LimitError("max_speed_mm_s", self.max_speed_mm_s, "> 0")
+        if not 0 < self.quat_norm_tolerance < 1:
+            raise LimitError("quat_norm_tolerance", self.quat_norm_tolerance, "between 0 and 1")
+        if self.slide_directions is not None:
+            bad = set(self.slide_directions) - set(DIRECTIONS)
+            if bad:
+                raise LimitError("slide_directions", sorted(bad), f"names from {', '.join(DIRECTIONS)}")
+        if self.mask_step_spacings is not None and self.mask_step_spacings < 1:
+            raise LimitError("mask_step_spacings", self.mask_step_spacings, "≥ 1 spacing (or None for k)")
+        u = self.up_axis
+        if len(u) != 3 or abs(math.sqrt(sum(c * c for c in u)) - 1.0) > 1e-6:
+            raise LimitError("up_axis", u, "a unit 3-vector")
+
+
+@dataclass(slots=True)
+class ManagerOutput:
+    """What one update decided.  ``frames`` are the patterns to send now, in order, with the time each
+    stands for (interpolated frames get times inside the last interval); empty when nothing changed."""
+
+    t_s: float
+    state: str
+    feature: str | None
+    orientation: str | None
+    texture: int | None
+    context: str | None
+    pattern: Pattern
+    frames: list[tuple[float, Pattern]] = field(default_factory=list)
+    dropped: str | None = None
+
+
+@dataclass
+class ManagerStats:
+    updates: int = 0
+    dropped: dict[str, int] = field(default_factory=dict)
+    teleports: int = 0
+    transitions: int = 0
+    frames_out: int = 0
+    interpolated: int = 0
+    normalised_quaternions: int = 0
+
+    @property
+    def dropped_total(self) -> int:
+        return sum(self.dropped.values())
+
+
+def quat_axes(w: float, x: float, y: float, z: float) -> tuple[tuple[float, float, float], ...]:
+    """The finger frame's x (right), y (toward the fingertip) and z (out of the pad) axes in world
+    coordinates: the columns of the rotation matrix of a unit quaternion (w, x, y, z)."""
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    return (
+        (1.0 - 2.0 * (yy + zz), 2.0 * (xy + wz), 2.0 * (xz - wy)),
+        (2.0 * (xy - wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz + wx)),
+        (2.0 * (xz + wy), 2.0 * (yz - wx), 1.0 - 2.0 * (xx + yy)),
+    )
+
+
+def _floats(v: Any, n: int) -> tuple[float, ...] | None:
+    """``n`` finite floats from a sequence or numpy array, or None."""
+    try:
+        vals = v.tolist() if hasattr(v, "tolist") else list(v)
+    except TypeError:
+        return None
+    if len(vals) != n:
+        return None
+    out: list[float] = []
+    for c in vals:
+        try:
+            f = float(c)
+        except (TypeError, ValueError):
+            return None
+        if f - f != 0.0:  # NaN or ±inf
+            return None
+        out.append(f)
+    return tuple(out)
+
+
+def check_pose(
+    t_s: Any, position_mm: Any, orientation_wxyz: Any, t_prev: float | None, quat_tolerance: float
+) -> tuple[float, tuple[float, float, float], tuple[float, float, float, float], bool] | str:
+    """A tracking sample as plain floats with a unit quaternion, or the reason it cannot be used:
+    ``time`` (not a finite number), ``time-backwards``, ``position`` (not three finite numbers),
+    ``orientation`` (not four finite numbers) or ``orientation-norm`` (length off 1 by more than
+    ``quat_tolerance`` — a zero or garbage quaternion rather than rounding).  The flag says whether the
+    quaternion was renormalised."""
+    try:
+        t = float(t_s)
+    except (TypeError, ValueError):
+        return "time"
+    if t - t != 0.0:
+        return "time"
+    if t_prev is not None and t < t_prev:
+        return "time-backwards"
+    p = _floats(position_mm, 3)
+    if p is None:
+        return "position"
+    q = _floats(orientation_wxyz, 4)
+    if q is None:
+        return "orientation"
+    qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    if not abs(qn - 1.0) <= quat_tolerance:
+        return "orientation-norm"
+    renormed = False
+    if qn != 1.0:
+        renormed = abs(qn - 1.0) > 1e-9
+        q = (q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn)
+    return t, p, q, renormed  # type: ignore[return-value]
+
+
+class PatternManager:
+    """State machine + stability filters + event-driven output for one finger on one array."""
+
+    def __init__(
+        self,
+        array: ElectrodeArray | None = None,
+        config: ManagerConfig | None = None,
+        *,
+        patterns: PatternSet | None = None,
+        pattern_params: PatternParams | None = None,
+    ) -> None:
+        self.array = array if array is not None else (patterns.array if patterns is not None else ElectrodeArray.tactdeform())
+        self.config = config or ManagerConfig()
+        self.patterns = patterns if patterns is not None else PatternSet(self.array, pattern_params)
+        cfg = self.config
+        self.d_mm = cfg.d_electrode_mm if cfg.d_electrode_mm is not None else self.array.pitch_mm
+        self.frame_unit_mm = self.d_mm / cfg.alpha
+        if cfg.frame_release_mm >= self.frame_unit_mm:
+            raise LimitError("frame_release_mm", cfg.frame_release_mm, f"< one frame ({self.frame_unit_mm:g} mm)")
+        self.stats = ManagerStats()
+        self._allowed_dirs = (
+            None if cfg.slide_directions is None else frozenset(DIRECTIONS.index(d) for d in cfg.slide_directions)
+        )
+        self.reset()
+
+    # --- lifecycle ---------------------------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """Forget the finger: Idle, nothing shown, no history (statistics are kept)."""
+        cfg = self.config
+        self.state = IDLE
+        self.context: str | None = None
+        self._t: float | None = None
+        self._p: tuple[float, float, float] | None = None
+        self._n: tuple[float, float, float] | None = None
+        self._hist: deque[tuple[float, float, float, float]] = deque()
+        self._onset_t = 0.0
+        self._above_since: float | None = None
+        self._settled_since: float | None = None
+        self.feature = Debounced(cfg.feature_window_s)
+        self.orientation = Debounced(cfg.orientation_window_s)
+        self.texture = Debounced(cfg.texture_window_s)
+        self.theta = Debounced(cfg.theta_window_s)
+        self.direction = Debounced(cfg.direction_window_s)
+        self.approach = ApproachState(self.frame_unit_mm, mode=cfg.approach_travel, release_mm=cfg.frame_release_mm)
+        self.slide = FrameAccumulator(self.d_mm)
+        self._m_prev: tuple[float, float, float] | None = None
+        self._ns: int | None = None
+        self._ns_k = 0
+        self.sliding = False
+        self.theta_deg: float | None = None
+        self._family: tuple[Any, ...] | None = None
+        self._count: int | None = None
+        self.pattern: Pattern = self.patterns.off
+        self.last_sent: Pattern | None = None
+
+    # --- public --------------------------------------------------------------------------------------------------
+
+    @property
+    def frame(self) -> int:
+        """Eq. 3's frame count n in the current contact."""
+        return self.approach.frame
+
+    @property
+    def shift_count(self) -> int:
+        """Eq. 7's n_s for the current texture level (0 when smooth)."""
+        k = self._k()
+        if not k:
+            return 0
+        return self._ns if (self._ns is not None and self._ns_k == k) else self.slide.whole // k
+
+    def update(self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any) -> ManagerOutput:
+        """Advance by one tracking sample.  ``query`` is the scene's
+        :class:`~tactdeform_hw.render.geometry.SurfaceQuery` for the pad centre, or None (no object)."""
+        self.stats.updates += 1
+        # --- validate everything before any state changes ------------------------------------------------
+        checked = check_pose(t_s, position_mm, orientation_wxyz, self._t, self.config.quat_norm_tolerance)
+        if isinstance(checked, str):
+            return self._drop(t_s, checked)
+        t, p, q, renormed = checked
+        if renormed:
+            self.stats.normalised_quaternions += 1
+        sd = 0.0
+        normal: tuple[float, ...] | None = None
+        feat = None
+        if query is not None:
+            try:
+                sd = float(query.signed_distance_mm)
+                normal = _floats(query.normal, 3)
+                feat = query.feature
+            except (AttributeError, TypeError, ValueError):
+                return self._drop(t, "query")
+            if sd - sd != 0.0 or normal is None or feat not in FEATURES:
+                return self._drop(t, "query")
+            nn = math.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
+            if not nn > 0.5:
+                return self._drop(t, "query")
+            normal = (normal[0] / nn, normal[1] / nn, normal[2] / nn)
+
+        cfg = self.config
+        t_prev = self._t
+        p_prev = self._p
+        teleport = False
+        if p_prev is not None and t_prev is not None:
+            dx, dy, dz = p[0] - p_prev[0], p[1] - p_prev[1], p[2] - p_prev[2]
+            step = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if step > cfg.teleport_min_mm and step > cfg.max_speed_mm_s * (t - t_prev):
+                teleport = True
+                self.stats.teleports += 1
+                self._hist.clear()
+        self._t = t
+        self._p = p
+        hist = self._hist
+        hist.append((t, p[0], p[1], p[2]))
+        w0 = t - cfg.motion_window_s
+        while len(hist) > 2 and hist[1][0] <= w0:
+            hist.popleft()
+
+        # --- contact ------------------------------------------------------------------------------------------
+        old_state = self.state
+        if self.state != IDLE:
+            lost = teleport or normal is None or sd > cfg.contact_loss_far_mm
+            if not lost and sd > cfg.contact_release_mm:
+                if self._above_since is None:
+                    self._above_since = t
+                lost = t - self._above_since >= cfg.contact_loss_window_s
+            elif not lost:
+                self._above_since = None
+            if lost:
+                self._to_idle()
+        seq: list[Pattern]
+        if self.state == IDLE:
+            if normal is not None and sd <= cfg.contact_enter_mm:
+                seq = self._onset(t, p, q, sd, normal, feat, query)  # type: ignore[arg-type]
+            else:
+                seq = [self.patterns.off]
+        else:
+            # In contact implies a query (no query loses contact) and a previous sample.
+            seq = self._in_contact(t, p, p_prev, q, sd, normal, feat, query)  # type: ignore[arg-type]
+        if self.state != old_state:
+            self.stats.transitions += 1
+        self._n = normal  # type: ignore[assignment]
+        return self._emit(t, t_prev, seq)
+
+    # --- internals -----------------------------------------------------------------------------------------
+
+    def _drop(self, t: Any, reason: str) -> ManagerOutput:
+        d = self.stats.dropped
+        d[reason] = d.get(reason, 0) + 1
+        try:
+            tf = float(t)
+        except (TypeError, ValueError):
+            tf = math.nan
+        return ManagerOutput(tf, self.state, self.feature.value, self._orient_value_name(), self.texture.value,
+                             self.context, self.pattern, [], reason)
+
+    def _to_idle(self) -> None:
+        self.state = IDLE
+        self.context = None
+        self._above_since = None
+        self.sliding = False
+        self.theta_deg = None
+        self._family = None
+        self._count = None
+        for d in (self.feature, self.orientation, self.texture, self.theta, self.direction):
+            d.force(None)
+
+    def _k(self) -> int:
+        v = self.texture.value
+        return int(v) if (v and self.config.use_texture) else 0
+
+    def _edge_bin(self, query: Any, q: tuple[float, ...], current: int | None) -> int | None:
+        e = query.edge_direction
+        if e is None:
+            return current
+        ev = _floats(e, 3)
+        if ev is None:
+            return current
+        X, Y, _ = quat_axes(*q)
+        ex = ev[0] * X[0] + ev[1] * X[1] + ev[2] * X[2]
+        ey = ev[0] * Y[0] + ev[1] * Y[1] + ev[2] * Y[2]
+        if ex * ex + ey * ey < 0.04:  # the edge points (almost) into the pad: orientation undefined
+            return current
+        ang = math.degrees(math.atan2(ey, ex))
+        return quantise_angle(ang, 4, 180.0, current, self.config.orientation_margin_deg)
+
+    def _texture_of(self, query: Any) -> int:
+        if not self.config.use_texture:
+            return 0
+        try:
+            k = int(query.texture_level)
+        except (AttributeError, TypeError, ValueError):
+            return 0
+        return k if 0 <= k <= 8 else 0
+
+    def _onset(self, t: float, p: tuple[float, ...], q: tuple[float, ...], sd: float, normal: tuple[float, ...], feat: str, query: Any) -> list[Pattern]:
+        cfg = self.config
+        self.state = APPROACHING
+        self.context = APPROACHING
+        self._onset_t = t
+        self._above_since = None
+        self._settled_since = None
+        self.feature.force(feat)
+        self.orientation.force(self._edge_bin(query, q, None) if feat == "edge" else None)
+        if feat == "edge" and self.orientation.value is None:
+            self.orientation.force(0)
+        self.texture.force(self._texture_of(query))
+        self.approach.begin(cfg.contact_enter_mm - sd)
+        self.slide.reset()
+        self._m_prev = None
+        self._ns = None
+        self._family = None
+        self._count = -1
+        return self._approach_seq(onset=True)
+
+    def _approach_seq(self, onset: bool = False) -> list[Pattern]:
+        feat = self.feature.value
+        orient = EDGE_ORIENTATIONS[self.orientation.value] if feat == "edge" else None
+        frames = self.patterns.frames(feat, orient)
+        nf = len(frames)
+        fam = ("approach", feat, orient)
+        n = self.approach.frame
+        if onset or fam == self._family:
+            counts = counts_to_show(self._count, n, nf)
+        else:
+            counts = [n]
+        self._family = fam
+        self._count = n
+        ov = self.config.approach_overflow
+        return [frames[displayed_frame(c, nf, ov)] for c in counts]
+
+    def _velocity(self) -> tuple[float, float, float] | None:
+        hist = self._hist
+        t1, x1, y1, z1 = hist[-1]
+        t0, x0, y0, z0 = hist[0]
+        span = t1 - t0
+        if not span > 1e-9:
+            return None
+        return ((x1 - x0) / span, (y1 - y0) / span, (z1 - z0) / span)
+
+    def _in_contact(self, t: float, p: tuple[float, ...], p_prev: tuple[float, ...], q: tuple[float, ...], sd: float,
+                    normal: tuple[float, ...], feat: str, query: Any) -> list[Pattern]:
+        cfg = self.config
+        # Displacement projected on the normal (mean of the last two normals on curved surfaces).
+        n0 = self._n if self._n is not None else normal
+        mx, my, mz = n0[0] + normal[0], n0[1] + normal[1], n0[2] + normal[2]
+        mn = math.sqrt(mx * mx + my * my + mz * mz)
+        if mn < 1e-9:
+            mx, my, mz, mn = normal[0], normal[1], normal[2], 1.0
+        dx, dy, dz = p[0] - p_prev[0], p[1] - p_prev[1], p[2] - p_prev[2]
+        toward = -(dx * mx + dy * my + dz * mz) / mn
+
+        # Parameters with stability windows.
+        self.feature.update(feat, t)
+        if self.feature.value == "edge":
+            cur = self.orientation.value
+            cand = self._edge_bin(query, q, cur) if feat == "edge" else cur
+            if cand is None:
+                cand = 0
+            if cur is None:
+                self.orientation.force(cand)
+            else:
+                self.orientation.update(cand, t)
+        self.texture.update(self._texture_of(query), t)
+
+        v = self._velocity()
+        if self.state == APPROACHING:
+            self.approach.advance(toward)
+            if v is not None and abs(v[0] * normal[0] + v[1] * normal[1] + v[2] * normal[2]) <= cfg.settle_speed_mm_s:
+                if self._settled_since is None:
+                    self._settled_since = t
+            else:
+                self._settled_since = None
+            ss = self._settled_since
+            if ss is not None and t - ss >= cfg.settle_hold_s and t - self._onset_t >= cfg.sustain_s:
+                self.state = INTERACTING
+                self._family = None
+                self.theta.force(None)
+                self.direction.force(None)
+                self.sliding = False
+            else:
+                self.context = APPROACHING
+                return self._approach_seq()
+
+        # Interacting: stationary contact or sliding.
+        if v is None and self.sliding:
+            # No time has passed since the window's start (repeated timestamps): keep sliding as is.
+            self.context = "sliding"
+            return self._sliding_seq()
+        vt = None
+        speed = 0.0
+        if v is not None:
+            vn = v[0] * normal[0] + v[1] * normal[1] + v[2] * normal[2]
+            vt = (v[0] - vn * normal[0], v[1] - vn * normal[1], v[2] - vn * normal[2])
+            speed = math.sqrt(vt[0] * vt[0] + vt[1] * vt[1] + vt[2] * vt[2])
+            if self.sliding:
+                self.sliding = speed > cfg.slide_off_mm_s
+            else:
+                self.sliding = speed >= cfg.slide_on_mm_s
+        X, Y, Z = quat_axes(*q)
+        k = self._k()
+        m = self._smoothed_position(t) if k else None
+        mp = self._m_prev
+        self._m_prev = m
+        if self.sliding and vt is not None and speed > 0.0:
+            ux, uy, uz = vt[0] / speed, vt[1] / speed, vt[2] / speed
+            if m is not None and mp is not None:
+                # Texture travel: the smoothed position's displacement along the motion (telescopes).
+                self.slide.add((m[0] - mp[0]) * ux + (m[1] - mp[1]) * uy + (m[2] - mp[2]) * uz)
+            a = math.degrees(math.atan2(ux * Y[0] + uy * Y[1] + uz * Y[2], ux * X[0] + uy * X[1] + uz * X[2]))
+            cur = self.direction.value
+            cand = quantise_angle(a, 8, 360.0, cur, cfg.direction_margin_deg)
+            if cur is None:
+                self.direction.force(cand)
+            else:
+                self.direction.update(cand, t)
+            self.context = "sliding"
+            return self._sliding_seq()
+        self.context = "contact"
+        if not cfg.render_contact:
+            self._family = None
+            return [self.patterns.off]
+        feat_v = self.feature.value
+        orient = EDGE_ORIENTATIONS[self.orientation.value] if feat_v == "edge" else None
+        self._family = None
+        if cfg.contact_mode == "uniform":
+            return [self.patterns.static(feat_v, orient)]
+        th = contact_angle_deg(normal, X, Z, plane=cfg.theta_plane, up=cfg.up_axis)
+        self.theta_deg = th
+        cur = self.theta.value
+        cand = theta_level(th, cur, cfg.theta_margin_deg)
+        if cur is None:
+            self.theta.force(cand)
+        else:
+            self.theta.update(cand, t)
+        return [self.patterns.contact(feat_v, orient, self.theta.value)]
+
+    def _smoothed_position(self, t: float) -> tuple[float, float, float]:
+        """Mean position over the last ``slide_smoothing_s``: one 8 Hz period, which leaves at most a
+        fifth of an 8–12 Hz tremor, so a finger sliding with tremor does not rock the texture back and
+        forth.  Recomputed from the samples each time (no running sum to drift)."""
+        hist = self._hist
+        t0 = t - self.config.slide_smoothing_s
+        sx = sy = sz = 0.0
+        n = 0
+        for e in reversed(hist):
+            if e[0] < t0 and n:
+                break
+            sx += e[1]
+            sy += e[2]
+            sz += e[3]
+            n += 1
+        return (sx / n, sy / n, sz / n)
+
+    def _shift_shown(self, k: int) -> int:
+        """Eq. 7's n_s with the same release band as the expansion frames: the count goes down only
+        once the travel is ``frame_release_mm`` below the count's start."""
+        unit = self.d_mm * k
+        travel = self.slide.travel_mm
+        n_true = self.slide.whole // k
+        cur = self._ns if self._ns_k == k else None
+        if cur is None or n_true > cur:
+            cur = n_true
+        elif n_true < cur and travel < cur * unit - self.config.frame_release_mm:
+            cur = max(n_true, math.floor((travel + self.config.frame_release_mm) / unit))
+        self._ns = cur
+        self._ns_k = k
+        return cur
+
+    def _sliding_seq(self) -> list[Pattern]:
+        cfg = self.config
+        feat = self.feature.value
+        orient = EDGE_ORIENTATIONS[self.orientation.value] if feat == "edge" else None
+        direction: int = self.direction.value
+        if not cfg.render_sliding or (self._allowed_dirs is not None and direction not in self._allowed_dirs):
+            self._family = None
+            return [self.patterns.off]
+        k = self._k()
+        ps = self.patterns
+        if k == 0:
+            self._family = None
+            return [ps.static(feat, orient)]
+        count = self._shift_shown(k)
+        period = ps.mask_period(k)
+        step = k if cfg.mask_step_spacings is None else cfg.mask_step_spacings
+        distinct = period // math.gcd(step, period)
+        fam = ("slide", feat, orient, direction, k)
+        counts = counts_to_show(self._count, count, distinct) if fam == self._family else [count]
+        self._family = fam
+        self._count = count
+        pf = ps.params.mask_period_factor
+        return [ps.sliding(feat, orient, direction, k, mask_phase(c, k, pf, cfg.mask_step_spacings, cfg.beta)) for c in counts]
+
+    def _emit(self, t: float, t_prev: float | None, seq: list[Pattern]) -> ManagerOutput:
+        last = self.last_sent
+        out: list[Pattern] = []
+        for pat in seq:
+            if pat != (out[-1] if out else last):
+                out.append(pat)
+        frames: list[tuple[float, Pattern]] = []
+        if out:
+            m = len(out)
+            if m > 1 and t_prev is not None and t > t_prev:
+                dt = (t - t_prev) / m
+                frames = [(t_prev + dt * (i + 1) if i < m - 1 else t, pat) for i, pat in enumerate(out)]
+            else:
+                frames = [(t, pat) for pat in out]
+            self.last_sent = out[-1]
+            self.stats.frames_out += m
+            self.stats.interpolated += m - 1
+        if seq:
+            self.pattern = seq[-1]
+        return ManagerOutput(t, self.state, self.feature.value, self._orient_value_name(), self.texture.value,
+                             self.context, self.pattern, frames)
+
+    def _orient_value_name(self) -> str | None:
+        if self.feature.value != "edge" or self.orientation.value is None:
+            return None
+        return str(EDGE_ORIENTATIONS[self.orientation.value])

@@ -1,0 +1,1177 @@
+"""Triangle meshes as touchable solids: file reading, fitting into the study's box, closest-point queries,
+inside/outside, and the local feature (face, edge, corner) under a contact.
+
+What is built, and when
+-----------------------
+Construction reads the file, places the mesh (rotation, then scaled so its largest extent is ``fit_mm``,
+centred on ``center_mm``), welds duplicate vertices and drops degenerate triangles: numpy only.
+Everything else is built on first use (or by :meth:`TriangleMesh.prepare`) and only if the run needs it:
+
+* the *index* (needs scipy, extra ``mesh``): per-triangle data packed for the distance kernel, surface
+  samples in a KD-tree, pseudo-normals (closed meshes) or a winding-number hierarchy (open ones);
+* the *features* (only when contacts are classified): dihedral angles, sharp-edge chains, corners.
+
+Closest triangle, exactly
+-------------------------
+The KD-tree holds points *on* the surface: every vertex (standing for its incident triangles) and, on
+triangles longer than the sample spacing s, a barycentric grid of n = ⌈L/s⌉ steps (standing for that
+triangle).  Every point of every triangle then lies within h = max L/(n√3) of one of its own samples.
+For a query p, the nearest sample is at d₁ ≥ D (the true distance), and the closest triangle has a sample
+within D + h ≤ d₁ + h; so the triangles of the samples inside the ball of radius d₁ + h contain the
+closest one.  Their exact point–triangle distances are computed in one vectorised pass.  The cost is
+two tree look-ups and one kernel over a few dozen triangles near the surface, more far from it.
+
+Sign
+----
+Closed, consistently oriented meshes (every edge shared by exactly two triangles, in opposite
+directions) take the sign from the angle-weighted pseudo-normal of the closest feature (Bærentzen &
+Aanæs 2005), which is exact.  Anything else (open boundaries, intersecting parts like the teapot's spout
+and handle) uses the generalised winding number (Jacobson et al. 2013) ≥ ½, evaluated exactly for
+triangle clusters near the point and by their dipole far away.
+
+Feature under the contact
+-------------------------
+An edge between two triangles is *sharp* when the angle between their normals is at least
+``sharp_angle_deg`` and it is convex (or ``concave_edges`` is set); boundary edges (a thin lip) are sharp
+when ``boundary_edges_sharp``.  Scanned meshes fold a few triangles; such noise is dropped by keeping only
+chains of sharp edges at least ``min_chain_mm`` long.  A vertex where three or more sharp edges meet (or
+two meeting at a turn of at least ``corner_turn_deg``) is a corner.  A contact whose closest point is
+within ``feature_band_mm`` of a corner reads as a corner, else within the band of a sharp edge as an edge
+(with that edge's direction), else as a face.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import ConfigurationError, MissingDependencyError
+from .geometry import (
+    DEFAULT_FEATURE_BAND_MM,
+    SurfaceQuery,
+    SurfaceSite,
+    TextureRegion,
+    as_point,
+    as_points,
+)
+from .primitives import _PlacedSolid
+
+DEFAULT_FIT_MM = 200.0
+"""Largest extent of a mesh in the studies' Phase 2: every object fits a 20 × 20 × 20 cm box."""
+
+_SENTINEL_COORD = 1.0e15
+
+# Bound ufuncs: the per-query kernel works on a few dozen rows, where numpy's Python-level wrappers
+# (np.clip, ndarray.min) cost more than the arithmetic.
+_minimum = np.minimum
+_maximum = np.maximum
+_where = np.where
+
+
+def _scipy_spatial() -> Any:
+    try:
+        import scipy.spatial
+    except ImportError as exc:  # pragma: no cover - exercised only without the extra
+        raise MissingDependencyError("scipy", "mesh", "the triangle-mesh acceleration structure") from exc
+    return scipy.spatial
+
+
+# --- reading ------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class MeshData:
+    """Vertices (V, 3) and triangles (F, 3) as read from a file, in the file's units."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    source: str = ""
+
+
+def read_obj(path: str | os.PathLike[str]) -> MeshData:
+    """Vertices and faces of a Wavefront OBJ file (polygons are fanned into triangles; texture and normal
+    indices, groups and materials are ignored).  Errors name the line."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise ConfigurationError(f"cannot read mesh file {str(p)!r}: {exc.strerror or exc}") from exc
+    vertices: list[tuple[float, float, float]] = []
+    faces: list[tuple[int, int, int]] = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        if line.startswith("v "):
+            parts = line.split()
+            try:
+                vertices.append((float(parts[1]), float(parts[2]), float(parts[3])))
+            except (IndexError, ValueError):
+                raise ConfigurationError(f"{p}: line {lineno}: vertex needs three numbers: {line.strip()!r}") from None
+        elif line.startswith("f "):
+            tokens = line.split()[1:]
+            if len(tokens) < 3:
+                raise ConfigurationError(f"{p}: line {lineno}: face needs at least three vertices: {line.strip()!r}")
+            idx = []
+            nv = len(vertices)
+            for tok in tokens:
+                try:
+                    i = int(tok.split("/", 1)[0])
+                except ValueError:
+                    raise ConfigurationError(f"{p}: line {lineno}: bad vertex index {tok!r}") from None
+                j = i - 1 if i > 0 else nv + i
+                if i == 0 or not 0 <= j < nv:
+                    raise ConfigurationError(
+                        f"{p}: line {lineno}: vertex index {i} refers to no vertex (there are {nv} so far)"
+                    )
+                idx.append(j)
+            for k in range(1, len(idx) - 1):
+                faces.append((idx[0], idx[k], idx[k + 1]))
+    if not vertices or not faces:
+        raise ConfigurationError(f"{p}: no triangles found (vertices: {len(vertices)}, faces: {len(faces)})")
+    v = np.array(vertices, dtype=float)
+    if not np.isfinite(v).all():
+        raise ConfigurationError(f"{p}: vertex coordinates must be finite")
+    return MeshData(v, np.array(faces, dtype=np.int64), str(p))
+
+
+def _read_with_trimesh(path: Path) -> MeshData:
+    try:
+        import trimesh
+    except ImportError as exc:
+        raise MissingDependencyError("trimesh", "mesh", f"reading {path.suffix} meshes") from exc
+    try:
+        loaded = trimesh.load(str(path), force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many types; the file is the problem either way
+        raise ConfigurationError(f"cannot read mesh file {str(path)!r}: {exc}") from exc
+    v = np.array(getattr(loaded, "vertices", ()), dtype=float)
+    f = np.array(getattr(loaded, "faces", ()), dtype=np.int64)
+    if v.size == 0 or f.size == 0:
+        raise ConfigurationError(f"{path}: no triangles found")
+    return MeshData(v, f, str(path))
+
+
+MESH_SUFFIXES = (".obj", ".stl", ".ply")
+
+
+def read_mesh(path: str | os.PathLike[str]) -> MeshData:
+    """Read OBJ with our own reader, STL and PLY through trimesh (extra ``mesh``)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigurationError(f"mesh file {str(p)!r} does not exist")
+    suffix = p.suffix.lower()
+    if suffix == ".obj":
+        return read_obj(p)
+    if suffix in (".stl", ".ply"):
+        return _read_with_trimesh(p)
+    raise ConfigurationError(f"mesh file {str(p)!r}: unsupported format {suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
+
+
+# --- cleaning and topology ----------------------------------------------------------------------------
+
+
+def _clean(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weld coincident vertices, drop triangles that repeat a vertex, have no area, or repeat a triangle."""
+    extent = float(np.ptp(vertices, axis=0).max()) or 1.0
+    quantum = extent * 1e-9
+    keys = np.round(vertices / quantum).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.argsort(first)
+    remap = np.empty_like(order)
+    remap[order] = np.arange(len(order))
+    v = vertices[first[order]]
+    f = remap[inverse[faces]]
+    ok = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
+    f = f[ok]
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    f = f[area2 > (extent * 1e-7) ** 2]
+    _, keep = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+    f = f[np.sort(keep)]
+    used = np.unique(f)
+    if len(used) < len(v):
+        remap2 = np.full(len(v), -1, dtype=np.int64)
+        remap2[used] = np.arange(len(used))
+        v = v[used]
+        f = remap2[f]
+    return v, f.astype(np.int64)
+
+
+@dataclass(frozen=True, eq=False)
+class _Topology:
+    edges: np.ndarray  # (E, 2) vertex ids, sorted per row
+    face_edges: np.ndarray  # (F, 3) edge id of half-edge k (v_k -> v_{k+1})
+    edge_faces: np.ndarray  # (E, 2) the first two faces of each edge, -1 when absent
+    edge_count: np.ndarray  # (E,) faces per edge
+    consistent: bool  # every two-face edge is used in opposite directions
+    watertight: bool
+
+
+def _topology(faces: np.ndarray, n_vertices: int) -> _Topology:
+    n_faces = len(faces)
+    he = np.stack((faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]), axis=1).reshape(-1, 2)
+    lo = np.minimum(he[:, 0], he[:, 1])
+    hi = np.maximum(he[:, 0], he[:, 1])
+    key = lo * np.int64(n_vertices) + hi
+    uniq, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    edges = np.stack((uniq // n_vertices, uniq % n_vertices), axis=1)
+    order = np.argsort(inverse, kind="stable")
+    starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    first = order[starts]
+    second_ok = counts >= 2
+    second = np.full(len(uniq), -1, dtype=np.int64)
+    second[second_ok] = order[starts[second_ok] + 1]
+    edge_faces = np.stack((first // 3, np.where(second >= 0, second // 3, -1)), axis=1)
+    two = counts == 2
+    consistent = bool(np.all(he[first[two], 0] == he[second[two], 1]))
+    watertight = bool(np.all(counts == 2)) and consistent
+    return _Topology(edges, inverse.reshape(n_faces, 3), edge_faces, counts, consistent, watertight)
+
+
+# --- the index: closest triangles ---------------------------------------------------------------------
+
+
+def _closest_on_triangle(
+    px: float, py: float, pz: float, tri: Sequence[Sequence[float]]
+) -> tuple[float, float, float, int]:
+    """Closest point of a triangle to p, and its region: 0 face, 1/2/3 vertex A/B/C, 4/5/6 edge AB/BC/CA.
+
+    Ericson, Real-Time Collision Detection, 5.1.5, on Python floats: cheaper than numpy for one triangle.
+    """
+    (ax, ay, az), (bx, by, bz), (cx, cy, cz) = tri
+    abx, aby, abz = bx - ax, by - ay, bz - az
+    acx, acy, acz = cx - ax, cy - ay, cz - az
+    apx, apy, apz = px - ax, py - ay, pz - az
+    d1 = abx * apx + aby * apy + abz * apz
+    d2 = acx * apx + acy * apy + acz * apz
+    if d1 <= 0.0 and d2 <= 0.0:
+        return ax, ay, az, 1
+    bpx, bpy, bpz = px - bx, py - by, pz - bz
+    d3 = abx * bpx + aby * bpy + abz * bpz
+    d4 = acx * bpx + acy * bpy + acz * bpz
+    if d3 >= 0.0 and d4 <= d3:
+        return bx, by, bz, 2
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        v = d1 / (d1 - d3)
+        return ax + v * abx, ay + v * aby, az + v * abz, 4
+    cpx, cpy, cpz = px - cx, py - cy, pz - cz
+    d5 = abx * cpx + aby * cpy + abz * cpz
+    d6 = acx * cpx + acy * cpy + acz * cpz
+    if d6 >= 0.0 and d5 <= d6:
+        return cx, cy, cz, 3
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        w = d2 / (d2 - d6)
+        return ax + w * acx, ay + w * acy, az + w * acz, 6
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return bx + w * (cx - bx), by + w * (cy - by), bz + w * (cz - bz), 5
+    denom = va + vb + vc
+    if denom == 0.0:  # degenerate triangle: fall back to its first vertex
+        return ax, ay, az, 1
+    v = vb / denom
+    w = vc / denom
+    return ax + abx * v + acx * w, ay + aby * v + acy * w, az + abz * v + acz * w, 0
+
+
+class _WindingNumber:
+    """Generalised winding number of an (open or self-intersecting) triangle soup, two-level fast version:
+    exact solid angles for clusters within ``beta`` cluster radii of the point, dipoles beyond."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 16, beta: float = 2.0) -> None:
+        a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
+        centroids = (a + b + c) / 3.0
+        leaves: list[np.ndarray] = []
+        stack = [np.arange(len(faces))]
+        while stack:
+            ids = stack.pop()
+            if len(ids) <= leaf_size:
+                leaves.append(ids)
+                continue
+            pts = centroids[ids]
+            axis = int(np.argmax(np.ptp(pts, axis=0)))
+            order = np.argsort(pts[:, axis], kind="stable")
+            half = len(ids) // 2
+            stack.append(ids[order[:half]])
+            stack.append(ids[order[half:]])
+        area_vec = 0.5 * np.cross(b - a, c - a)
+        area = np.linalg.norm(area_vec, axis=1)
+        n_leaves = len(leaves)
+        width = max(len(x) for x in leaves)
+        table = np.full((n_leaves, width), len(faces), dtype=np.int64)
+        self.centre = np.empty((n_leaves, 3))
+        self.radius = np.empty(n_leaves)
+        self.dipole = np.empty((n_leaves, 3))
+        for i, ids in enumerate(leaves):
+            table[i, : len(ids)] = ids
+            w = area[ids]
+            centre = (centroids[ids] * w[:, None]).sum(0) / max(w.sum(), 1e-300)
+            corners = np.concatenate((a[ids], b[ids], c[ids]))
+            self.centre[i] = centre
+            self.radius[i] = float(np.sqrt(((corners - centre) ** 2).sum(1)).max())
+            self.dipole[i] = area_vec[ids].sum(0)
+        far = np.full((1, 3), _SENTINEL_COORD)
+        self.a = np.concatenate((a, far))
+        self.b = np.concatenate((b, far))
+        self.c = np.concatenate((c, far))
+        self.table = table
+        self.width = width
+        self.beta = float(beta)
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        p = np.atleast_2d(points)
+        if len(p) > 8:
+            # Points far apart share few near clusters; evaluate spatially sorted chunks.
+            order = np.lexsort((p[:, 2], p[:, 1], p[:, 0]))
+            out = np.empty(len(p))
+            for start in range(0, len(p), 8):
+                chunk = order[start : start + 8]
+                out[chunk] = self._evaluate(p[chunk])
+            return out
+        return self._evaluate(p)
+
+    def _evaluate(self, p: np.ndarray) -> np.ndarray:
+        d = p[:, None, :] - self.centre[None, :, :]  # (N, L, 3) from centre to point
+        dist = np.sqrt(np.einsum("nlk,nlk->nl", d, d))
+        near = dist < self.beta * self.radius[None, :]
+        safe = np.where(near, 1.0, dist)
+        far_term = -np.einsum("nlk,lk->nl", d, self.dipole) / safe**3
+        total = np.where(near, 0.0, far_term).sum(axis=1)
+        leaves = np.flatnonzero(near.any(axis=0))
+        if leaves.size:
+            tris = self.table[leaves].ravel()
+            pa = self.a[tris][None, :, :] - p[:, None, :]
+            pb = self.b[tris][None, :, :] - p[:, None, :]
+            pc = self.c[tris][None, :, :] - p[:, None, :]
+            la = np.sqrt(np.einsum("ntk,ntk->nt", pa, pa))
+            lb = np.sqrt(np.einsum("ntk,ntk->nt", pb, pb))
+            lc = np.sqrt(np.einsum("ntk,ntk->nt", pc, pc))
+            num = np.einsum("ntk,ntk->nt", pa, np.cross(pb, pc))
+            den = (
+                la * lb * lc
+                + np.einsum("ntk,ntk->nt", pa, pb) * lc
+                + np.einsum("ntk,ntk->nt", pa, pc) * lb
+                + np.einsum("ntk,ntk->nt", pb, pc) * la
+            )
+            omega = 2.0 * np.arctan2(num, den)
+            mask = np.repeat(near[:, leaves], self.width, axis=1)
+            total = total + np.where(mask, omega, 0.0).sum(axis=1)
+        winding: np.ndarray = total / (4.0 * math.pi)
+        return winding
+
+
+def _refine_long_edges(vertices: np.ndarray, faces: np.ndarray, max_len: float, rounds: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Split every edge longer than ``max_len`` at its midpoint, conformingly (both triangles of an edge are
+    split, so a closed mesh stays closed), until none is left.  The surface is unchanged; only its
+    triangles get small enough for vertex samples to cover them."""
+    v, f = vertices, faces
+    for _ in range(rounds):
+        n_v = len(v)
+        he = np.stack((f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]), axis=1).reshape(-1, 2)
+        key = np.minimum(he[:, 0], he[:, 1]) * np.int64(n_v) + np.maximum(he[:, 0], he[:, 1])
+        uniq, inverse = np.unique(key, return_inverse=True)
+        inverse = inverse.ravel()
+        ea, eb = uniq // n_v, uniq % n_v
+        long_edge = np.linalg.norm(v[ea] - v[eb], axis=1) > max_len
+        if not long_edge.any():
+            break
+        mid_id = np.full(len(uniq), -1, dtype=np.int64)
+        mid_id[long_edge] = n_v + np.arange(int(long_edge.sum()))
+        v = np.concatenate((v, (v[ea[long_edge]] + v[eb[long_edge]]) / 2.0))
+        m = mid_id[inverse].reshape(-1, 3)  # midpoint of edge k (v_k -> v_k+1), -1 if kept
+        split = m >= 0
+        n_split = split.sum(axis=1)
+        out = [f[n_split == 0]]
+        # One split: roll so that it is edge 0, then bisect from the opposite vertex.
+        sel = np.flatnonzero(n_split == 1)
+        if sel.size:
+            k = np.argmax(split[sel], axis=1)
+            rows = np.arange(3)[None, :]
+            idx = (rows + k[:, None]) % 3
+            fv = np.take_along_axis(f[sel], idx, axis=1)
+            mm = np.take_along_axis(m[sel], idx, axis=1)[:, 0]
+            out.append(np.stack((fv[:, 0], mm, fv[:, 2]), axis=1))
+            out.append(np.stack((mm, fv[:, 1], fv[:, 2]), axis=1))
+        # Two splits: roll so that the kept edge is edge 2.
+        sel = np.flatnonzero(n_split == 2)
+        if sel.size:
+            kept = np.argmin(split[sel], axis=1)
+            idx = (np.arange(3)[None, :] + (kept[:, None] + 1)) % 3
+            fv = np.take_along_axis(f[sel], idx, axis=1)
+            mm = np.take_along_axis(m[sel], idx, axis=1)
+            m0, m1 = mm[:, 0], mm[:, 1]
+            out.append(np.stack((m0, fv[:, 1], m1), axis=1))
+            out.append(np.stack((fv[:, 0], m0, m1), axis=1))
+            out.append(np.stack((fv[:, 0], m1, fv[:, 2]), axis=1))
+        # Three splits: four similar triangles.
+        sel = np.flatnonzero(n_split == 3)
+        if sel.size:
+            fv, mm = f[sel], m[sel]
+            out.append(np.stack((fv[:, 0], mm[:, 0], mm[:, 2]), axis=1))
+            out.append(np.stack((mm[:, 0], fv[:, 1], mm[:, 1]), axis=1))
+            out.append(np.stack((mm[:, 2], mm[:, 1], fv[:, 2]), axis=1))
+            out.append(np.stack((mm[:, 0], mm[:, 1], mm[:, 2]), axis=1))
+        f = np.concatenate(out)
+    return v, f
+
+
+# Rows of the per-triangle linear map r = G @ (p, 1) used by the distance kernel.
+_R_SQ = slice(0, 3)  # |p - S_k|^2 - |p|^2 for the edge starts A, B, C
+_R_T = slice(3, 6)  # edge parameter t_k of p's projection on edge k, unclamped
+_R_S2 = slice(6, 9)  # 2 (p - S_k) . D_k
+_R_L2 = slice(9, 12)  # |D_k|^2 (constant rows)
+_R_BARY = slice(12, 15)  # barycentric (u, v, w) of p's projection on the plane
+_R_PD = 15  # signed distance of p to the plane
+_N_ROWS = 16
+
+
+class _Index:
+    """Everything a closest-triangle query needs, built once per mesh (in coordinates centred on the
+    mesh, so the expanded squared distances keep their precision)."""
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, topo: _Topology, sample_spacing_mm: float | None,
+                 sign_method: str) -> None:
+        spatial = _scipy_spatial()
+        if sign_method == "auto":
+            sign_method = "pseudonormal" if topo.watertight else "winding"
+        if sign_method not in ("pseudonormal", "winding"):
+            raise ConfigurationError(f"sign_method={sign_method!r} must be 'auto', 'pseudonormal' or 'winding'")
+        if sign_method == "pseudonormal" and not topo.watertight:
+            raise ConfigurationError(
+                "sign_method='pseudonormal' needs a closed, consistently oriented mesh; use 'winding' or 'auto'"
+            )
+        self.sign_method = sign_method
+        self.origin = (vertices.min(axis=0) + vertices.max(axis=0)) / 2.0
+        edge_len = np.linalg.norm(vertices[topo.edges[:, 0]] - vertices[topo.edges[:, 1]], axis=1)
+        if sample_spacing_mm is None:
+            spacing = 2.0 * float(np.median(edge_len))
+        else:
+            spacing = float(sample_spacing_mm)
+            if not math.isfinite(spacing) or spacing <= 0:
+                raise ConfigurationError(f"sample_spacing_mm={sample_spacing_mm!r} must be a positive length")
+        self.spacing_mm = spacing
+        v, f = _refine_long_edges(vertices - self.origin, faces, spacing)
+        self.vertices = v  # local (centred) coordinates
+        self.faces = f
+        self.original_triangles = len(faces)
+        n_faces = len(f)
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        e1, e2 = b - a, c - a
+        cross = np.cross(e1, e2)
+        self.face_normals = cross / np.linalg.norm(cross, axis=1)[:, None]
+
+        # Distance kernel rows (see _R_*): every quantity but the clamping is linear in p.
+        starts = np.stack((a, b, c), axis=1)  # (F, 3, 3)
+        dirs = np.stack((b - a, c - b, a - c), axis=1)
+        l2 = np.einsum("fkj,fkj->fk", dirs, dirs)
+        g = np.zeros((n_faces, _N_ROWS, 4))
+        g[:, _R_SQ, 0:3] = -2.0 * starts
+        g[:, _R_SQ, 3] = np.einsum("fkj,fkj->fk", starts, starts)
+        g[:, _R_T, 0:3] = dirs / l2[:, :, None]
+        g[:, _R_T, 3] = -np.einsum("fkj,fkj->fk", starts, dirs) / l2
+        g[:, _R_S2, 0:3] = 2.0 * dirs
+        g[:, _R_S2, 3] = -2.0 * np.einsum("fkj,fkj->fk", starts, dirs)
+        g[:, _R_L2, 3] = l2
+        g11 = np.einsum("ij,ij->i", e1, e1)
+        g12 = np.einsum("ij,ij->i", e1, e2)
+        g22 = np.einsum("ij,ij->i", e2, e2)
+        det = g11 * g22 - g12 * g12
+        mu = (g22[:, None] * e1 - g12[:, None] * e2) / det[:, None]
+        mv = (g11[:, None] * e2 - g12[:, None] * e1) / det[:, None]
+        g[:, 12, 0:3], g[:, 12, 3] = mu, -np.einsum("ij,ij->i", mu, a)
+        g[:, 13, 0:3], g[:, 13, 3] = mv, -np.einsum("ij,ij->i", mv, a)
+        g[:, 14, 0:3] = -(mu + mv)
+        g[:, 14, 3] = 1.0 - g[:, 12, 3] - g[:, 13, 3]
+        g[:, _R_PD, 0:3] = self.face_normals
+        g[:, _R_PD, 3] = -np.einsum("ij,ij->i", self.face_normals, a)
+        # A sentinel triangle far away pads the vertex-to-triangle table.
+        sentinel = np.zeros((1, _N_ROWS, 4))
+        sentinel[0, _R_SQ, 3] = _SENTINEL_COORD
+        sentinel[0, _R_L2, 3] = 1.0
+        sentinel[0, 12:15, 3] = -1.0
+        self.rows = np.concatenate((g, sentinel))
+        self.sentinel = n_faces
+        self._stamp = np.zeros(n_faces + 1, dtype=np.int32)
+
+        # Every point of a triangle lies within its vertex-covering radius (circumradius when acute,
+        # half the longest edge otherwise) of one of its vertices.
+        la, lb, lc = (np.sqrt(l2[:, k]) for k in range(3))
+        area2 = np.linalg.norm(cross, axis=1)
+        circum = la * lb * lc / np.maximum(2.0 * area2, 1e-300)
+        longest = np.maximum(np.maximum(la, lb), lc)
+        obtuse = 2.0 * longest**2 >= la**2 + lb**2 + lc**2
+        cover = np.where(obtuse, longest / 2.0, circum)
+        self.cover_mm = float(cover.max())
+        # Bounding spheres of the triangles, for pruning candidate pairs in batched inside tests.
+        self.tri_centre = (a + b + c) / 3.0
+        self.tri_radius = np.sqrt(
+            np.maximum(
+                np.maximum(((a - self.tri_centre) ** 2).sum(1), ((b - self.tri_centre) ** 2).sum(1)),
+                ((c - self.tri_centre) ** 2).sum(1),
+            )
+        )
+
+        # Samples: the vertices, each standing for its incident triangles (vertices with many get
+        # several samples so that the table stays narrow).
+        corner_vertex = f.ravel()
+        corner_face = np.repeat(np.arange(n_faces), 3)
+        order = np.argsort(corner_vertex, kind="stable")
+        counts = np.bincount(corner_vertex, minlength=len(v))
+        width = int(min(max(int(np.percentile(counts, 99)), 4), 16))
+        rows_per_vertex = np.maximum(1, -(-counts // width))
+        sample_vertex = np.repeat(np.arange(len(v)), rows_per_vertex)
+        table = np.full((len(sample_vertex), width), n_faces, dtype=np.int64)
+        first_row = np.concatenate(([0], np.cumsum(rows_per_vertex)[:-1]))
+        vstart = np.concatenate(([0], np.cumsum(counts)[:-1]))
+        rank = np.arange(len(corner_vertex)) - vstart[corner_vertex[order]]
+        table_row = first_row[corner_vertex[order]] + rank // width
+        table[table_row, rank % width] = corner_face[order]
+        self.table = table
+        self.samples = v[sample_vertex]
+        self.tree = spatial.cKDTree(self.samples)
+
+        self.winding: _WindingNumber | None = None
+        self.topology = rtopo = _topology(f, len(v))
+        if sign_method == "pseudonormal":
+            ef = rtopo.edge_faces
+            self.edge_pn = self.face_normals[ef[:, 0]] + self.face_normals[ef[:, 1]]
+            self.face_edges = rtopo.face_edges
+            angles = np.empty((n_faces, 3))
+            for k, (u, w) in enumerate(((b - a, c - a), (c - b, a - b), (a - c, b - c))):
+                cosang = np.einsum("ij,ij->i", u, w) / (np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1))
+                angles[:, k] = np.arccos(np.clip(cosang, -1.0, 1.0))
+            vpn = np.zeros((len(v), 3))
+            for k in range(3):
+                for axis in range(3):
+                    vpn[:, axis] += np.bincount(
+                        f[:, k], weights=angles[:, k] * self.face_normals[:, axis], minlength=len(v)
+                    )
+            self.vertex_pn = vpn
+        else:
+            self.winding = _WindingNumber(v, f)
+
+        # Coherence hint: the closest point of the previous query (on the surface, so an upper bound).
+        self._hint_point: np.ndarray | None = None
+        self._hint_closest: np.ndarray | None = None
+        self._hint_distance = 0.0
+        self._sign_point: np.ndarray | None = None
+        self._sign_inside = False
+        self._sign_radius = 0.0
+
+    @property
+    def n_triangles(self) -> int:
+        return len(self.faces)
+
+    def _radius(self, p: np.ndarray) -> float:
+        """Radius of a ball around p (local coordinates) that holds a vertex of the closest triangle."""
+        if self._hint_point is not None:
+            moved = p - self._hint_point
+            step = math.sqrt(float(moved @ moved))
+            gap_p = p - self._hint_closest
+            upper = math.sqrt(float(gap_p @ gap_p))  # the old closest point is on the surface
+            lower = self._hint_distance - step  # the distance is 1-Lipschitz
+            if upper - lower <= 2.0 * self.cover_mm:
+                return upper * (1.0 + 1e-9) + self.cover_mm + 1e-9
+        d1, _ = self.tree.query(p)
+        return float(d1) * (1.0 + 1e-9) + self.cover_mm + 1e-9
+
+    def closest_triangle(self, p: np.ndarray) -> int:
+        """The triangle closest to p (local coordinates), exactly."""
+        ids = self.tree.query_ball_point(p, self._radius(p))
+        tris = self.table[ids].ravel()
+        if len(tris) > 96:
+            tris = self._dedupe(tris)
+        r = self.rows[tris] @ np.array((p[0], p[1], p[2], 1.0))
+        t = _maximum(_minimum(r[:, _R_T], 1.0), 0.0)
+        d2e = (t * r[:, _R_L2] - r[:, _R_S2]) * t + r[:, _R_SQ]
+        bary = r[:, _R_BARY]
+        inside = _minimum(_minimum(bary[:, 0], bary[:, 1]), bary[:, 2]) >= 0.0
+        pd = r[:, _R_PD]
+        d2 = _where(inside, pd * pd - float(p @ p), _minimum(_minimum(d2e[:, 0], d2e[:, 1]), d2e[:, 2]))
+        return int(tris[d2.argmin()])
+
+    def _dedupe(self, tris: np.ndarray) -> np.ndarray:
+        """Distinct triangles of a candidate list (order free): scatter positions, keep the winners.
+        Cheaper than np.unique's sort for the few thousand candidates of a far query."""
+        stamp = self._stamp
+        positions = np.arange(len(tris), dtype=np.int32)
+        stamp[tris] = positions
+        unique: np.ndarray = tris[stamp[tris] == positions]
+        return unique
+
+    def closest_triangles(self, points: np.ndarray) -> np.ndarray:
+        """Vectorised over points (local coordinates): one kernel pass over all their candidates."""
+        d1, _ = self.tree.query(points)
+        balls = self.tree.query_ball_point(points, d1 * (1.0 + 1e-9) + self.cover_mm + 1e-9)
+        sizes = np.fromiter((len(b) for b in balls), dtype=np.int64, count=len(balls))
+        ids = np.fromiter((i for b in balls for i in b), dtype=np.int64, count=int(sizes.sum()))
+        tris = self.table[ids].ravel()
+        owner = np.repeat(np.arange(len(points)), sizes * self.table.shape[1])
+        ph = np.concatenate((points, np.ones((len(points), 1))), axis=1)
+        r = np.einsum("mij,mj->mi", self.rows[tris], ph[owner])
+        t = np.clip(r[:, _R_T], 0.0, 1.0)
+        d2e = (t * r[:, _R_L2] - r[:, _R_S2]) * t + r[:, _R_SQ]
+        pd = r[:, _R_PD]
+        pp = np.einsum("ij,ij->i", points, points)[owner]
+        d2 = np.where(r[:, _R_BARY].min(axis=1) >= 0.0, pd * pd - pp, d2e.min(axis=1))
+        order = np.lexsort((d2, owner))
+        first = np.concatenate(([0], np.flatnonzero(np.diff(owner[order])) + 1))
+        return tris[order[first]]
+
+    def finish(self, p: np.ndarray, tri: int, remember: bool = True) -> tuple[float, np.ndarray, np.ndarray, int]:
+        """Signed distance, closest point (local), outward normal and region code for the closest triangle."""
+        px, py, pz = float(p[0]), float(p[1]), float(p[2])
+        qx, qy, qz, region = _closest_on_triangle(px, py, pz, self.vertices[self.faces[tri]].tolist())
+        dx, dy, dz = px - qx, py - qy, pz - qz
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if self.winding is None:
+            pn = self._pseudo_normal(tri, region)
+            inside = dx * pn[0] + dy * pn[1] + dz * pn[2] < 0.0
+        else:
+            pn = self.face_normals[tri]
+            inside = self._winding_inside(p)
+        if dist > 1e-9:
+            s = -1.0 if inside else 1.0
+            normal = np.array((s * dx / dist, s * dy / dist, s * dz / dist))
+        else:
+            normal = pn / math.sqrt(float(pn @ pn))
+        closest = np.array((qx, qy, qz))
+        if remember:
+            self._hint_point = p.copy()
+            self._hint_closest = closest
+            self._hint_distance = dist
+            if self.winding is not None and self._sign_point is not None and np.array_equal(self._sign_point, p):
+                self._sign_radius = dist
+        return (-dist if inside else dist), closest, normal, region
+
+    def _winding_inside(self, p: np.ndarray) -> bool:
+        """Winding-number inside test, skipped when the previous answer still holds: a point that moved
+        less than its previous distance to the surface cannot have crossed it (the distance is
+        1-Lipschitz), so it keeps the previous side."""
+        if self._sign_point is not None:
+            moved = p - self._sign_point
+            if math.sqrt(float(moved @ moved)) < self._sign_radius:
+                return self._sign_inside
+        assert self.winding is not None
+        inside = bool(self.winding(p)[0] >= 0.5)
+        self._sign_point = p.copy()
+        self._sign_inside = inside
+        self._sign_radius = 0.0
+        return inside
+
+    def _pseudo_normal(self, tri: int, region: int) -> np.ndarray:
+        pn: np.ndarray
+        if region == 0:
+            pn = self.face_normals[tri]
+        elif region <= 3:
+            pn = self.vertex_pn[self.faces[tri, region - 1]]
+        else:
+            pn = self.edge_pn[self.face_edges[tri, region - 4]]
+        return pn
+
+    def inside(self, points: np.ndarray) -> np.ndarray:
+        """Inside test for many points (local coordinates): on or inside the surface is inside."""
+        if self.winding is not None:
+            out: np.ndarray = self.winding(points) >= 0.5
+            return out
+        n = len(points)
+        d1, _ = self.tree.query(points)
+        centre = points.mean(axis=0)
+        spread = float(np.sqrt(((points - centre) ** 2).sum(axis=1).max()))
+        # Every point is at least d1 - cover from the surface.  If that exceeds the cloud's diameter, no
+        # surface runs between the points: they all lie on the side of the first one.
+        if float(d1.min()) - self.cover_mm > 2.0 * spread:
+            sd = self.finish(points[0], self.closest_triangle(points[0]), remember=False)[0]
+            return np.full(n, sd <= 0.0)
+        radius = spread + float(d1.max()) + self.cover_mm + 1e-9
+        ids = self.tree.query_ball_point(centre, radius)
+        if n * len(ids) > 40_000:  # a cloud spread over much of the mesh: point by point
+            return self._inside_each(points)
+        shared = self._dedupe(self.table[ids].ravel())
+        shared = shared[shared != self.sentinel]
+        # A triangle can be a point's closest only if its bounding sphere reaches within d1 of it.
+        m = self.tri_centre[shared]
+        reach = d1[:, None] + self.tri_radius[shared][None, :]
+        d2c = (points * points).sum(axis=1)[:, None] - 2.0 * points @ m.T + (m * m).sum(axis=1)[None, :]
+        owner, col = np.nonzero(d2c <= reach * reach + 1e-9)
+        tris = shared[col]
+        ph = np.concatenate((points, np.ones((n, 1))), axis=1)
+        r = np.einsum("mij,mj->mi", self.rows[tris], ph[owner])
+        t = _maximum(_minimum(r[:, _R_T], 1.0), 0.0)
+        d2e = (t * r[:, _R_L2] - r[:, _R_S2]) * t + r[:, _R_SQ]
+        bary = r[:, _R_BARY]
+        face = bary.min(axis=1) >= 0.0
+        pp = (points * points).sum(axis=1)[owner]
+        d2 = np.where(face, r[:, _R_PD] ** 2 - pp, d2e.min(axis=1))
+        order = np.lexsort((d2, owner))
+        first = order[np.concatenate(([0], np.flatnonzero(np.diff(owner[order])) + 1))]
+        # Closest feature of each point's closest triangle, and the side of its pseudo-normal.
+        best = tris[first]
+        k = np.argmin(d2e[first], axis=1)
+        tk = t[first, k]
+        on_face = face[first]
+        corner = np.where(tk <= 0.0, k, (k + 1) % 3)
+        at_vertex = ~on_face & ((tk <= 0.0) | (tk >= 1.0))
+        tri_v = self.vertices[self.faces[best]]  # (n, 3, 3)
+        start = tri_v[np.arange(n), k]
+        end = tri_v[np.arange(n), (k + 1) % 3]
+        q_edge = start + tk[:, None] * (end - start)
+        q_face = points - r[first, _R_PD][:, None] * self.face_normals[best]
+        q = np.where(on_face[:, None], q_face, q_edge)
+        pn = np.where(
+            on_face[:, None],
+            self.face_normals[best],
+            np.where(
+                at_vertex[:, None],
+                self.vertex_pn[self.faces[best, corner]],
+                self.edge_pn[self.face_edges[best, k]],
+            ),
+        )
+        inside: np.ndarray = ((points - q) * pn).sum(axis=1) <= 0.0
+        return inside
+
+    def _inside_each(self, points: np.ndarray) -> np.ndarray:
+        tris = self.closest_triangles(points)
+        out = np.empty(len(points), dtype=bool)
+        for i, (p, tri) in enumerate(zip(points.tolist(), tris.tolist())):
+            qx, qy, qz, region = _closest_on_triangle(p[0], p[1], p[2], self.vertices[self.faces[tri]].tolist())
+            pn = self._pseudo_normal(tri, region)
+            out[i] = (p[0] - qx) * pn[0] + (p[1] - qy) * pn[1] + (p[2] - qz) * pn[2] <= 0.0
+        return out
+
+
+# --- features -----------------------------------------------------------------------------------------
+
+
+class _Features:
+    """Sharp edges and corners of a mesh, and the search for the nearest of them."""
+
+    def __init__(
+        self,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        topo: _Topology,
+        face_normals: np.ndarray,
+        *,
+        sharp_angle_deg: float,
+        min_chain_mm: float,
+        concave_edges: bool,
+        boundary_edges_sharp: bool,
+        corner_turn_deg: float,
+    ) -> None:
+        edges, ef, counts = topo.edges, topo.edge_faces, topo.edge_count
+        two = counts == 2
+        n1 = face_normals[ef[:, 0]]
+        n2 = face_normals[np.where(ef[:, 1] >= 0, ef[:, 1], ef[:, 0])]
+        dihedral = np.degrees(np.arccos(np.clip(np.einsum("ij,ij->i", n1, n2), -1.0, 1.0)))
+        # Convex when the far vertex of the second face lies below the first face's plane.
+        f2 = faces[np.where(ef[:, 1] >= 0, ef[:, 1], ef[:, 0])]
+        far = np.where(
+            (f2[:, 0] != edges[:, 0]) & (f2[:, 0] != edges[:, 1]),
+            f2[:, 0],
+            np.where((f2[:, 1] != edges[:, 0]) & (f2[:, 1] != edges[:, 1]), f2[:, 1], f2[:, 2]),
+        )
+        convex = np.einsum("ij,ij->i", n1, vertices[far] - vertices[edges[:, 0]]) < 0.0
+        sharp = two & (dihedral >= sharp_angle_deg) & (convex | bool(concave_edges))
+        if boundary_edges_sharp:
+            sharp |= counts == 1
+        self.dihedral_deg = np.where(two, dihedral, np.nan)
+        cand = np.flatnonzero(sharp)
+        kept = cand
+        if cand.size and min_chain_mm > 0:
+            kept = self._long_chains(vertices, edges, cand, min_chain_mm, len(vertices))
+        self.sharp_edges = kept
+        seg = edges[kept]
+        self.seg_a = vertices[seg[:, 0]] if kept.size else np.empty((0, 3))
+        d = vertices[seg[:, 1]] - vertices[seg[:, 0]] if kept.size else np.empty((0, 3))
+        length = np.linalg.norm(d, axis=1)
+        self.seg_d = d
+        self.seg_inv_len2 = 1.0 / np.maximum(length * length, 1e-300)
+        self.seg_dir = d / np.maximum(length, 1e-300)[:, None]
+        seg_normals = n1[kept] + np.where(two[kept, None], n2[kept], 0.0) if kept.size else np.empty((0, 3))
+        norms = np.linalg.norm(seg_normals, axis=1)
+        self.seg_normal = seg_normals / np.where(norms > 0, norms, 1.0)[:, None]
+        valence = np.bincount(seg.ravel(), minlength=len(vertices)) if kept.size else np.zeros(len(vertices), int)
+        corners = valence >= 3
+        two_v = np.flatnonzero(valence == 2)
+        if two_v.size:
+            # Turning angle where a chain of two sharp edges bends.
+            inc: dict[int, list[np.ndarray]] = {int(v): [] for v in two_v}
+            for (va, vb), dvec in zip(seg.tolist(), d):
+                if va in inc:
+                    inc[va].append(dvec)
+                if vb in inc:
+                    inc[vb].append(-dvec)
+            for v, vecs in inc.items():
+                u, w = vecs[0], vecs[1]
+                cosang = float(np.dot(u, w) / (np.linalg.norm(u) * np.linalg.norm(w)))
+                turn = 180.0 - math.degrees(math.acos(max(-1.0, min(1.0, cosang))))
+                if turn >= corner_turn_deg:
+                    corners[v] = True
+        self.valence = valence
+        self.corner_vertices = np.flatnonzero(corners)
+        self.corner_points = vertices[self.corner_vertices]
+
+    @staticmethod
+    def _long_chains(vertices: np.ndarray, edges: np.ndarray, cand: np.ndarray, min_len: float, n_vertices: int) -> np.ndarray:
+        sparse = _scipy_sparse()
+        seg = edges[cand]
+        graph = sparse.coo_matrix(
+            (np.ones(len(cand)), (seg[:, 0], seg[:, 1])), shape=(n_vertices, n_vertices)
+        ).tocsr()
+        _, labels = sparse.csgraph.connected_components(graph, directed=False)
+        comp = labels[seg[:, 0]]
+        lengths = np.linalg.norm(vertices[seg[:, 1]] - vertices[seg[:, 0]], axis=1)
+        total = np.bincount(comp, weights=lengths)
+        kept: np.ndarray = cand[total[comp] >= min_len]
+        return kept
+
+    def build_lookup(self, band_mm: float) -> None:
+        """Hash the corners and sharp edges into cubic cells so that a contact far from every feature
+        (the usual case) is recognised as a face by one dictionary look-up."""
+        cell = max(2.0 * band_mm, 1.0)
+        grid: dict[tuple[int, int, int], tuple[list[int], list[int]]] = {}
+
+        def cells(lo: np.ndarray, hi: np.ndarray) -> list[tuple[int, int, int]]:
+            a = np.floor(lo / cell).astype(int)
+            b = np.floor(hi / cell).astype(int)
+            return [
+                (i, j, k)
+                for i in range(a[0], b[0] + 1)
+                for j in range(a[1], b[1] + 1)
+                for k in range(a[2], b[2] + 1)
+            ]
+
+        for i, point in enumerate(self.corner_points):
+            for key in cells(point - band_mm, point + band_mm):
+                grid.setdefault(key, ([], []))[0].append(i)
+        ends = self.seg_a + self.seg_d
+        for i in range(len(self.seg_a)):
+            lo = np.minimum(self.seg_a[i], ends[i]) - band_mm
+            hi = np.maximum(self.seg_a[i], ends[i]) + band_mm
+            for key in cells(lo, hi):
+                grid.setdefault(key, ([], []))[1].append(i)
+        self._grid = {key: (np.array(c, dtype=np.int64), np.array(e, dtype=np.int64)) for key, (c, e) in grid.items()}
+        self._cell = cell
+        self._band = band_mm
+
+    def nearest(self, q: np.ndarray, band_mm: float) -> tuple[str, np.ndarray | None]:
+        """Feature at a surface point ``q``: corner / edge (with direction) within ``band_mm``, else face."""
+        if getattr(self, "_band", None) != band_mm:
+            self.build_lookup(band_mm)
+        cell = self._cell
+        hit = self._grid.get((math.floor(q[0] / cell), math.floor(q[1] / cell), math.floor(q[2] / cell)))
+        if hit is None:
+            return "face", None
+        corners, segs = hit
+        band2 = band_mm * band_mm
+        if corners.size:
+            dc = self.corner_points[corners] - q
+            if float(np.einsum("ij,ij->i", dc, dc).min()) <= band2:
+                return "corner", None
+        if segs.size:
+            a, d = self.seg_a[segs], self.seg_d[segs]
+            w = q - a
+            t = np.clip(np.einsum("ij,ij->i", w, d) * self.seg_inv_len2[segs], 0.0, 1.0)
+            diff = w - t[:, None] * d
+            d2 = np.einsum("ij,ij->i", diff, diff)
+            i = int(np.argmin(d2))
+            if float(d2[i]) <= band2:
+                return "edge", self.seg_dir[segs[i]].copy()
+        return "face", None
+
+
+def _scipy_sparse() -> Any:
+    try:
+        import scipy.sparse
+        import scipy.sparse.csgraph
+    except ImportError as exc:  # pragma: no cover
+        raise MissingDependencyError("scipy", "mesh", "finding sharp-edge chains on a mesh") from exc
+    return scipy.sparse
+
+
+# --- the object ---------------------------------------------------------------------------------------
+
+
+class TriangleMesh(_PlacedSolid):
+    """A solid bounded by a triangle mesh, placed in the world and fitted into a box."""
+
+    kind = "mesh"
+
+    def __init__(
+        self,
+        name: str,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        *,
+        center_mm: Sequence[float] = (0.0, 0.0, 0.0),
+        rotation: object | None = None,
+        fit_mm: float | None = DEFAULT_FIT_MM,
+        scale: float = 1.0,
+        texture_level: int = 0,
+        texture_regions: Sequence[TextureRegion] = (),
+        feature_band_mm: float = DEFAULT_FEATURE_BAND_MM,
+        classify_features: bool = True,
+        sharp_angle_deg: float = 40.0,
+        min_chain_mm: float = 10.0,
+        concave_edges: bool = False,
+        boundary_edges_sharp: bool = True,
+        corner_turn_deg: float = 60.0,
+        sign_method: str = "auto",
+        sample_spacing_mm: float | None = None,
+        source: str = "",
+    ) -> None:
+        super().__init__(
+            name, center_mm, rotation, texture_level, texture_regions, feature_band_mm, classify_features
+        )
+        v = np.asarray(vertices, dtype=float)
+        f = np.asarray(faces)
+        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3 or not np.isfinite(v).all():
+            raise ConfigurationError(f"{name}: vertices must be a finite (V, 3) array with V ≥ 3")
+        if f.ndim != 2 or f.shape[1] != 3 or len(f) < 1 or not np.issubdtype(f.dtype, np.integer):
+            raise ConfigurationError(f"{name}: faces must be an integer (F, 3) array")
+        if f.min() < 0 or f.max() >= len(v):
+            raise ConfigurationError(f"{name}: face indices must lie in [0, {len(v) - 1}]")
+        if sign_method not in ("auto", "pseudonormal", "winding"):
+            raise ConfigurationError(f"{name}: sign_method={sign_method!r} must be 'auto', 'pseudonormal' or 'winding'")
+        if self.rotation is not None:
+            v = v @ self.rotation.T
+        lo, hi = v.min(axis=0), v.max(axis=0)
+        extent = float((hi - lo).max())
+        if extent <= 0:
+            raise ConfigurationError(f"{name}: the mesh has no extent")
+        if fit_mm is not None:
+            fit = float(fit_mm)
+            if not math.isfinite(fit) or fit <= 0:
+                raise ConfigurationError(f"{name}.fit_mm={fit_mm!r} must be a positive length")
+            factor = fit / extent
+        else:
+            factor = float(scale)
+            if not math.isfinite(factor) or factor <= 0:
+                raise ConfigurationError(f"{name}.scale={scale!r} must be a positive number")
+        v = (v - (lo + hi) / 2.0) * factor + self.center_mm
+        v, f = _clean(v, f.astype(np.int64))
+        if len(f) == 0:
+            raise ConfigurationError(f"{name}: no triangle with a non-zero area")
+        self.scale_factor = factor
+        self.source = source
+        self.sign_method = sign_method
+        self.sample_spacing_mm = sample_spacing_mm
+        self._feature_params: dict[str, Any] = dict(
+            sharp_angle_deg=float(sharp_angle_deg),
+            min_chain_mm=float(min_chain_mm),
+            concave_edges=bool(concave_edges),
+            boundary_edges_sharp=bool(boundary_edges_sharp),
+            corner_turn_deg=float(corner_turn_deg),
+        )
+        self._topo: _Topology | None = None
+        # Closed meshes wound inside-out are turned right way out.
+        topo = self._topology_of(v, f)
+        if topo.watertight and _signed_volume(v, f) < 0:
+            f = f[:, ::-1].copy()
+            self._topo = None
+        self.vertices_mm = v
+        self.faces = f
+        self._index: _Index | None = None
+        self._features: _Features | None = None
+        self._bounds = (v.min(axis=0), v.max(axis=0))
+
+    def _topology_of(self, v: np.ndarray, f: np.ndarray) -> _Topology:
+        self._topo = _topology(f, len(v))
+        return self._topo
+
+    @classmethod
+    def from_file(cls, name: str, path: str | os.PathLike[str], **kwargs: Any) -> TriangleMesh:
+        data = read_mesh(path)
+        return cls(name, data.vertices, data.faces, source=data.source, **kwargs)
+
+    # -- what is built ------------------------------------------------------------------------------
+
+    @property
+    def topology(self) -> _Topology:
+        if self._topo is None:
+            self._topo = _topology(self.faces, len(self.vertices_mm))
+        return self._topo
+
+    @property
+    def is_watertight(self) -> bool:
+        return self.topology.watertight
+
+    @property
+    def n_triangles(self) -> int:
+        return len(self.faces)
+
+    @property
+    def index_built(self) -> bool:
+        return self._index is not None
+
+    @property
+    def features_built(self) -> bool:
+        return self._features is not None
+
+    @property
+    def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._bounds
+
+    def prepare(self, *, features: bool | None = None) -> None:
+        """Build the index now (and the feature tables when contacts are classified) instead of on the
+        first query, so the first rendered frame does not pay for it."""
+        self._ensure_index()
+        if self.classify_features if features is None else features:
+            self._ensure_features()
+
+    def _ensure_index(self) -> _Index:
+        if self._index is None:
+            self._index = _Index(self.vertices_mm, self.faces, self.topology, self.sample_spacing_mm, self.sign_method)
+        return self._index
+
+    def _ensure_features(self) -> _Features:
+        if self._features is None:
+            index = self._ensure_index()
+            features = _Features(
+                index.vertices, index.faces, index.topology, index.face_normals, **self._feature_params
+            )
+            features.build_lookup(self.feature_band_mm)
+            self._features = features
+        return self._features
+
+    @property
+    def index(self) -> _Index:
+        return self._ensure_index()
+
+    @property
+    def features(self) -> _Features:
+        return self._ensure_features()
+
+    # -- queries ------------------------------------------------------------------------------------
+
+    def query(self, point_mm: np.ndarray) -> SurfaceQuery:
+        p = as_point(point_mm)
+        index = self._index if self._index is not None else self._ensure_index()
+        local = p - index.origin
+        tri = index.closest_triangle(local)
+        sd, closest_local, normal, _ = index.finish(local, tri)
+        feature, edge_dir = "face", None
+        if self.classify_features:
+            feats = self._features if self._features is not None else self._ensure_features()
+            feature, edge_dir = feats.nearest(closest_local, self.feature_band_mm)
+        closest = closest_local + index.origin
+        level, region = self._texture_at(closest)
+        return SurfaceQuery(self.name, sd, closest, normal, feature, edge_dir, level, region)
+
+    def closest_points(self, points_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Signed distances (N,) and closest points (N, 3) of many points."""
+        index = self._ensure_index()
+        local = as_points(points_mm) - index.origin
+        tris = index.closest_triangles(local)
+        sd = np.empty(len(local))
+        cp = np.empty((len(local), 3))
+        for i, (p, tri) in enumerate(zip(local, tris.tolist())):
+            sd[i], cp[i], _, _ = index.finish(p, tri, remember=False)
+        return sd, cp + index.origin
+
+    def contains(self, points_mm: np.ndarray) -> np.ndarray:
+        pts = as_points(points_mm)
+        lo, hi = self._bounds
+        out = np.zeros(len(pts), dtype=bool)
+        box = np.all((pts >= lo) & (pts <= hi), axis=1)
+        if box.any():
+            index = self._ensure_index()
+            out[box] = index.inside(pts[box] - index.origin)
+        return out
+
+    # -- sites for trajectories ------------------------------------------------------------------------
+
+    def sites(self, feature: str, toward: np.ndarray | None = None, limit: int = 16) -> list[SurfaceSite]:
+        """Representative places for a feature, best first: those whose normal points most along
+        ``toward`` (default: at the eye, the world origin), at least 20 mm apart.  Faces: vertices that
+        read as faces from just outside; edges: midpoints of sharp edges away from corners; corners:
+        corner vertices."""
+        index = self._ensure_index()
+        origin = index.origin
+        if feature == "face":
+            # Triangle centres on locally flat patches: pressed 3 mm in, the pad still finds the same
+            # triangle, so a finger frame built on the site's normal is the one measured in contact.
+            centres = index.vertices[index.faces].mean(axis=1) + origin
+            normals = index.face_normals
+            score = self._toward_score(centres, normals, toward)
+            out: list[SurfaceSite] = []
+            for tri in np.argsort(-score)[:20000].tolist():
+                point = centres[tri]
+                n = normals[tri]
+                if any(np.linalg.norm(point - s.point_mm) < 20.0 for s in out):
+                    continue
+                q_out = self.query(point + 2.0 * n)
+                if q_out.feature != "face" or float(np.dot(q_out.normal, n)) < 0.999:
+                    continue
+                q_in = self.query(point - 3.0 * n)
+                if float(np.dot(q_in.normal, n)) < 0.999 or np.linalg.norm(q_in.closest_point_mm - point) > 0.05:
+                    continue
+                out.append(SurfaceSite(self.name, "face", point, n.copy(), None, q_out.texture_level))
+                if len(out) >= limit:
+                    break
+            return out
+        if feature not in ("edge", "corner"):
+            return []
+        feats = self._ensure_features()
+        if feature == "edge":
+            corner_set = feats.corner_points + origin
+            mids = feats.seg_a + 0.5 * feats.seg_d + origin
+            score = self._toward_score(mids, feats.seg_normal, toward)
+            out = []
+            for i in np.argsort(-score).tolist():
+                mid = mids[i]
+                if corner_set.shape[0] and np.min(np.linalg.norm(corner_set - mid, axis=1)) <= 2 * self.feature_band_mm:
+                    continue
+                if any(np.linalg.norm(mid - s.point_mm) < 20.0 for s in out):
+                    continue
+                level = self._texture_at(mid)[0]
+                out.append(SurfaceSite(self.name, "edge", mid, feats.seg_normal[i], feats.seg_dir[i].copy(), level))
+                if len(out) >= limit:
+                    break
+            return out
+        normals = self._vertex_normals(refined=True)
+        points = index.vertices[feats.corner_vertices] + origin
+        cn = normals[feats.corner_vertices]
+        order: list[int] = np.argsort(-self._toward_score(points, cn, toward)).tolist() if len(points) else []
+        return [
+            SurfaceSite(self.name, "corner", points[i], cn[i], None, self._texture_at(points[i])[0])
+            for i in order[:limit]
+        ]
+
+    @staticmethod
+    def _toward_score(points: np.ndarray, normals: np.ndarray, toward: np.ndarray | None) -> np.ndarray:
+        score: np.ndarray
+        if toward is not None:
+            score = normals @ np.asarray(toward, dtype=float)
+        else:
+            to_eye = -points / np.maximum(np.linalg.norm(points, axis=1), 1e-9)[:, None]
+            score = np.einsum("ij,ij->i", normals, to_eye)
+        return score
+
+    def _vertex_normals(self, refined: bool = False) -> np.ndarray:
+        """Unit vertex normals (angle-weighted on closed meshes); the first vertices of the refined mesh
+        are the original ones, in the same order."""
+        index = self._ensure_index()
+        if index.winding is None:
+            vpn = index.vertex_pn
+        else:
+            vpn = np.zeros_like(index.vertices)
+            for k in range(3):
+                np.add.at(vpn, index.faces[:, k], index.face_normals)
+        if not refined:
+            vpn = vpn[: len(self.vertices_mm)]
+        norms = np.linalg.norm(vpn, axis=1)
+        return vpn / np.where(norms > 0, norms, 1.0)[:, None]
+
+
+def _signed_volume(v: np.ndarray, f: np.ndarray) -> float:
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)

@@ -1,0 +1,361 @@
+"""Poses in, device commands out: scene query → pattern manager (or a baseline) → :class:`Device`.
+
+The renderer configures the device once, then sends a pattern only when it differs from the one the
+device holds, so a finger resting on an object costs no serial traffic.  It speaks only the
+:class:`~tactdeform_hw.device.base.Device` interface — application-order levels — and never bytes.
+
+Every tracking sample yields at least one :class:`FrameRecord`; a sample whose update passed several
+expansion or texture frames yields one record per frame (each sent), so the records are exactly the
+device's pattern history.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..device.base import Device
+from ..device.config import StimConfig
+from ..errors import ConfigurationError, LimitError
+from .array import ElectrodeArray
+from .baselines import make_baseline
+from .contexts import TEXTURE_NAMES
+from .manager import ManagerConfig, ManagerOutput, PatternManager
+from .patterns import Pattern, PatternParams, PatternSet
+
+
+@dataclass(slots=True)
+class FrameRecord:
+    """One pattern the device held (or kept holding) at time ``t_s``."""
+
+    t_s: float
+    state: str
+    feature: str | None
+    texture: int | None
+    electrodes: Pattern
+    sent: bool
+    approach: str = "tactdeform"
+    context: str | None = None
+    orientation: str | None = None
+    interpolated: bool = False
+    dropped: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """The frames-file line: ``t``, ``state``, ``feature``, ``texture``, ``electrodes``, ``sent``."""
+        tex = self.texture
+        return {
+            "t": self.t_s if math.isfinite(self.t_s) else None,
+            "state": self.state,
+            "feature": self.feature,
+            "texture": None if tex is None else (TEXTURE_NAMES[tex] if 0 <= tex < len(TEXTURE_NAMES) else tex),
+            "electrodes": [1 if v else 0 for v in self.electrodes],
+            "sent": self.sent,
+        }
+
+
+#: Called before each frame is sent; returns a current in µA to apply first, or None to keep the
+#: present one.  This is where participant safety profiles and calibrated regional levels plug in.
+CurrentHook = Callable[[FrameRecord], "int | None"]
+
+
+@dataclass
+class RunSummary:
+    poses: int = 0
+    records: int = 0
+    frames_sent: int = 0
+    interpolated: int = 0
+    dropped: dict[str, int] = field(default_factory=dict)
+    teleports: int = 0
+    states: dict[str, int] = field(default_factory=dict)
+    mismatches: int = 0
+    first_mismatch: dict[str, Any] | None = None
+    step_us: list[float] = field(default_factory=list, repr=False)
+
+    def as_dict(self) -> dict[str, Any]:
+        us = sorted(self.step_us)
+        return {
+            "poses": self.poses,
+            "records": self.records,
+            "frames_sent": self.frames_sent,
+            "interpolated": self.interpolated,
+            "dropped": dict(self.dropped),
+            "teleports": self.teleports,
+            "states": dict(self.states),
+            "mismatches": self.mismatches,
+            "first_mismatch": self.first_mismatch,
+            "step_us_median": round(statistics.median(us), 2) if us else None,
+            "step_us_p99": round(us[min(len(us) - 1, int(0.99 * len(us)))], 2) if us else None,
+        }
+
+
+def _scene_flag(scene: Any, name: str, default: Any) -> Any:
+    needs = getattr(scene, "needs", None)
+    if needs is not None and hasattr(needs, name):
+        return getattr(needs, name)
+    return default
+
+
+def _scene_option(scene: Any, name: str) -> Any:
+    for holder in (getattr(scene, "options", None), getattr(scene, "render", None), scene):
+        if holder is not None and hasattr(holder, name):
+            return getattr(holder, name)
+    return None
+
+
+class Renderer:
+    """Drives one device from a pose stream over one scene.
+
+    ``approach`` is ``"tactdeform"``, ``"ua"`` or ``"cam"`` for the whole run, a mapping from object
+    name to one of them (``"*"`` the default) to compare approaches per object, or None to take the
+    scene's (its options' approach and any per-object overrides; TactDeform for a bare object).  ``contact_mode`` (the
+    participant's choice in Task 2) overrides the scene's render option; ``current_ua`` is the
+    participant's calibrated level, set by ``configure``; ``current_hook`` may change it per frame.
+    With ``verify`` and an emulator behind the device, every sent frame is compared with the
+    emulator's pattern buffer (mapped back to application order) and mismatches are counted.
+    """
+
+    def __init__(
+        self,
+        scene: Any,
+        device: Device | None = None,
+        *,
+        array: ElectrodeArray | None = None,
+        approach: str | Mapping[str, str] | None = None,
+        config: ManagerConfig | None = None,
+        pattern_params: PatternParams | None = None,
+        contact_mode: str | None = None,
+        current_ua: int = 0,
+        stim_config: StimConfig | None = None,
+        current_hook: CurrentHook | None = None,
+        verify: bool = False,
+    ) -> None:
+        self.scene = scene
+        self.device = device
+        self.array = array if array is not None else ElectrodeArray.tactdeform()
+        self._scene_approach: Callable[[str], str] | None = None
+        if approach is None:
+            # The scene decides, per object (a description's ``approach`` keys) or for the run.
+            default = getattr(getattr(scene, "options", None), "approach", None) or "tactdeform"
+            self.approach_map: dict[str, str] = {"*": default}
+            per_object = getattr(scene, "approach_for", None)
+            if callable(per_object):
+                self._scene_approach = per_object
+                for obj in getattr(scene, "objects", ()):
+                    self.approach_map[obj.name] = per_object(obj.name)
+        elif isinstance(approach, str):
+            self.approach_map = {"*": approach}
+        else:
+            self.approach_map = dict(approach)
+            self.approach_map.setdefault("*", "tactdeform")
+        cfg = config or ManagerConfig()
+        mode = contact_mode if contact_mode is not None else _scene_option(scene, "contact_mode")
+        overrides: dict[str, Any] = {}
+        if mode is not None and mode != cfg.contact_mode:
+            overrides["contact_mode"] = mode
+        # Leave out what the scene does not need: no texture machinery on an all-smooth scene.
+        if not _scene_flag(scene, "needs_texture", True) and cfg.use_texture:
+            overrides["use_texture"] = False
+        if overrides:
+            from dataclasses import replace
+
+            cfg = replace(cfg, **overrides)
+        self.config = cfg
+        self.renderers: dict[str, Any] = {}
+        for a in set(self.approach_map.values()):
+            if a == "tactdeform":
+                self.renderers[a] = PatternManager(self.array, cfg, patterns=PatternSet(self.array, pattern_params))
+            else:
+                level = pattern_params.on_level if pattern_params is not None else 1
+                self.renderers[a] = make_baseline(a, self.array, on_level=level)
+        self.current_ua = current_ua
+        self.stim_config = stim_config
+        self.current_hook = current_hook
+        self.verify = verify
+        self.summary = RunSummary()
+        self._device_pattern: Pattern | None = None
+        self._mapping = self.array.channel_mapping()
+        self._emulator: Any = None
+        self._started = False
+        self._dwell_s = 0.0
+
+    # --- device ------------------------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Configure the device once (electrode count, pulse shape, current) — all channels off."""
+        if self._started:
+            return
+        self._started = True
+        dev = self.device
+        if dev is None:
+            return
+        if dev.mapping is not None and dev.mapping != self._mapping:
+            raise ConfigurationError(
+                f"the device's channel mapping {dev.mapping.app_to_hw} differs from the array's "
+                f"{self._mapping.app_to_hw}; open the device with mapping=array.channel_mapping()"
+            )
+        if dev.mapping is None and self._mapping.app_to_hw != tuple(range(self._mapping.hw_channels)):
+            raise ConfigurationError(
+                f"array {self.array.name!r} maps electrodes to hardware channels {self._mapping.app_to_hw} but the "
+                "device has no mapping; open the device with mapping=array.channel_mapping()"
+            )
+        cfg = self.stim_config or StimConfig(electrode_count=self._mapping.hw_channels, current_ua=self.current_ua)
+        dev.configure(cfg)
+        self._device_pattern = (0,) * self.array.count
+        if self.verify:
+            self._emulator = getattr(getattr(dev, "port", None), "emulator", None)
+
+    def close(self) -> None:
+        if self.device is not None and not self.device.closed:
+            self.device.all_off()
+
+    def __enter__(self) -> Renderer:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --- per sample -------------------------------------------------------------------------------------------
+
+    def approach_for(self, query: Any) -> str:
+        name = getattr(query, "object_name", None)
+        if name is None:
+            return self.approach_map["*"]
+        hit = self.approach_map.get(name)
+        if hit is None:
+            hit = self._scene_approach(name) if self._scene_approach is not None else self.approach_map["*"]
+            if hit not in self.renderers:
+                raise LimitError(f"approach[{name}]", hit, "'tactdeform', 'ua' or 'cam'")
+            self.approach_map[name] = hit
+        return hit
+
+    def step(self, pose: Any) -> list[FrameRecord]:
+        """Render one tracking sample: ``pose`` has ``t_s``, ``position_mm`` and ``orientation`` (w, x, y, z),
+        or is a ``(t_s, position_mm, orientation)`` tuple."""
+        if not self._started:
+            self.start()
+        t0 = time.perf_counter()
+        if isinstance(pose, tuple):
+            t_s, pos, quat = pose
+        else:
+            t_s, pos, quat = pose.t_s, pose.position_mm, pose.orientation
+        query = self._query(pos)
+        active = self.approach_for(query)
+        out: ManagerOutput | None = None
+        for name, r in self.renderers.items():
+            if name == "tactdeform":
+                o = r.update(t_s, pos, quat, query)
+            else:
+                o = r.update(t_s, pos, quat, query, self.scene)
+            if name == active:
+                out = o
+        assert out is not None
+        records = self._send(out, active)
+        self.summary.step_us.append((time.perf_counter() - t0) * 1e6)
+        s = self.summary
+        s.poses += 1
+        s.records += len(records)
+        s.states[out.state] = s.states.get(out.state, 0) + 1
+        if out.dropped:
+            s.dropped[out.dropped] = s.dropped.get(out.dropped, 0) + 1
+        return records
+
+    def _query(self, pos: Any) -> Any:
+        try:
+            import numpy as np
+
+            p = np.asarray(pos, dtype=float)
+            if p.shape != (3,) or not np.all(np.isfinite(p)):
+                return None
+        except (TypeError, ValueError):
+            return None
+        return self.scene.query(p)
+
+    def _send(self, out: ManagerOutput, approach: str) -> list[FrameRecord]:
+        frames = out.frames
+        # A change of approach (per-object runs) or a device holding something else: send what is shown.
+        if not frames and self._device_pattern is not None and out.pattern != self._device_pattern:
+            frames = [(out.t_s, out.pattern)]
+        records: list[FrameRecord] = []
+        if not frames:
+            records.append(FrameRecord(out.t_s, out.state, out.feature, out.texture, out.pattern, False, approach,
+                                       out.context, out.orientation, False, out.dropped))
+            return records
+        last = len(frames) - 1
+        for i, (tf, pat) in enumerate(frames):
+            rec = FrameRecord(tf, out.state, out.feature, out.texture, pat, True, approach, out.context,
+                              out.orientation, i < last, out.dropped)
+            if pat == self._device_pattern:
+                rec.sent = False
+            else:
+                self._deliver(rec)
+            records.append(rec)
+        return records
+
+    def _deliver(self, rec: FrameRecord) -> None:
+        dev = self.device
+        if dev is None:
+            self._device_pattern = rec.electrodes
+            self.summary.frames_sent += 1
+            self.summary.interpolated += int(rec.interpolated)
+            return
+        if self.current_hook is not None:
+            want = self.current_hook(rec)
+            if want is not None and want != dev.current_ua:
+                dev.set_current(int(want))
+        dev.send_pattern(rec.electrodes)
+        if rec.interpolated and self._dwell_s > 0.0:
+            time.sleep(self._dwell_s)
+        self._device_pattern = rec.electrodes
+        self.summary.frames_sent += 1
+        self.summary.interpolated += int(rec.interpolated)
+        emu = self._emulator
+        if emu is not None:
+            hw = emu.state()["stim_pattern"][: self._mapping.hw_channels]
+            got = tuple(self._mapping.to_application(hw))
+            if got != tuple(rec.electrodes):
+                self.summary.mismatches += 1
+                if self.summary.first_mismatch is None:
+                    self.summary.first_mismatch = {"t": rec.t_s, "sent": list(rec.electrodes), "emulator": list(got)}
+
+    # --- whole runs ---------------------------------------------------------------------------------------------
+
+    def run(
+        self,
+        poses: Iterable[Any],
+        *,
+        on_record: Callable[[FrameRecord], None] | None = None,
+        progress: Callable[[int, RunSummary], None] | None = None,
+        progress_every: int = 1000,
+        realtime: bool = False,
+        min_dwell_s: float = 1.0 / 125.0,
+    ) -> RunSummary:
+        """Render a whole pose stream.
+
+        ``realtime`` paces the stream to the poses' clock and holds every interpolated frame for
+        ``min_dwell_s`` (one stimulation period at 125 Hz: a pattern held for less is never scanned out)
+        before the next; otherwise the stream runs as fast as it can (CI, offline studies)."""
+        self.start()
+        self._dwell_s = min_dwell_s if realtime else 0.0
+        wall0: float | None = None
+        t_first: float | None = None
+        for i, pose in enumerate(poses):
+            if realtime:
+                t = pose[0] if isinstance(pose, tuple) else pose.t_s
+                if t_first is None and math.isfinite(t):
+                    t_first, wall0 = t, time.perf_counter()
+                if t_first is not None and wall0 is not None and math.isfinite(t):
+                    delay = (t - t_first) - (time.perf_counter() - wall0)
+                    if delay > 0:
+                        time.sleep(delay)
+            for rec in self.step(pose):
+                if on_record is not None:
+                    on_record(rec)
+            if progress is not None and (i + 1) % progress_every == 0:
+                progress(i + 1, self.summary)
+        self.summary.teleports = sum(r.stats.teleports for r in self.renderers.values())
+        return self.summary

@@ -1,0 +1,323 @@
+"""Targets for the conformance suite: the emulator three ways (CI), or a real board (opt-in).
+
+``pytest tests/conformance`` runs every check on the three emulated targets — the pyserial URL handler
+(``etactile://``), a real pseudo-terminal (``pty``) and the emulated USB device through pyusb
+(``usb-emulator``).  ``--device`` picks one target instead:
+
+* ``etactile://[?options]``, ``emulator``, ``pty``, ``usb-emulator[?options]`` — an emulated board;
+* a serial port (``/dev/ttyACM0``, ``COM3``) or ``usb:303a:1001[:SERIAL]`` — a real board.  Skipped, with
+  the reason, when the board is not attached or (for ``usb:``) pyusb or libusb is missing.
+
+The ``--device`` option itself is registered in ``tests/conftest.py`` (pytest accepts new options only
+from the root conftest); this file reads it.  Tunables for the bench come from the environment:
+``ETACTILE_REPLY_BUDGET_MS`` (default 20), ``ETACTILE_QUIET_MS`` (how long "no reply" must last;
+default 30 on an emulator, 60 on a board).
+
+At the end of the run the terminal summary prints an "eTactileKit conformance report" with the figures
+each check measured (latencies, rhythm); ``--junitxml`` carries the same figures as test properties.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import sys
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+
+from tactdeform_hw.device import open_port
+from tactdeform_hw.errors import MissingDependencyError, TransportError
+
+EMULATED_TARGETS = ("etactile://", "pty", "usb-emulator")
+REPLY_TIMEOUT_S = 0.5
+
+
+def _env_ms(name: str, default: float) -> float:
+    raw = os.environ.get(name)
+    if not raw:
+        return default
+    try:
+        return float(raw)
+    except ValueError:
+        raise pytest.UsageError(f"{name}={raw!r} is not a number of milliseconds") from None
+
+
+@dataclass
+class Target:
+    """One device the checks run against.
+
+    ``timed``: host-observable timing is the firmware's (a board, or the emulated USB device whose
+    emulator runs on the clock); the URL handler and the pty serve the untimed emulator, which answers
+    at once and has no tick.  ``state``: the firmware's registers (emulated targets only).
+    """
+
+    name: str
+    kind: str  # "emulator" or "board"
+    route: str  # "url", "pty", "usb" or "serial"
+    timed: bool
+    make_port: Callable[[], Any]
+    state: Callable[[], dict[str, Any]] | None = None
+    hv513_expected: int | None = None
+    settle_fn: Callable[[int], None] | None = None
+    cleanup: list[Callable[[], None]] = field(default_factory=list)
+
+    @property
+    def is_board(self) -> bool:
+        return self.kind == "board"
+
+    @property
+    def quiet_s(self) -> float:
+        return _env_ms("ETACTILE_QUIET_MS", 60.0 if self.is_board else 30.0) / 1000.0
+
+    @property
+    def reply_budget_s(self) -> float:
+        return _env_ms("ETACTILE_REPLY_BUDGET_MS", 20.0) / 1000.0
+
+    def open(self) -> Any:
+        """A new, opened port with DTR and RTS low (an ESP32 must not be reset by the suite)."""
+        port = self.make_port()
+        for line in ("dtr", "rts"):
+            if hasattr(port, line):
+                setattr(port, line, False)
+        port.open()
+        return port
+
+    def settle(self, commands: int = 1) -> None:
+        """Wait until the device has read everything sent (``commands`` with a payload, one per tick)."""
+        if self.settle_fn is not None:
+            self.settle_fn(commands)
+        else:
+            time.sleep((commands + 4) / 1000.0 + (0.01 if self.is_board else 0.0))
+
+
+# --- building targets ----------------------------------------------------------------------------------
+
+
+def _url_target(name: str) -> Target:
+    from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
+
+    query = name.partition("?")[2] if name.startswith("etactile://") else ""
+    shared = f"conformance-{uuid.uuid4().hex[:8]}"
+    url = f"etactile://{shared}" + (f"?{query}" if query else "")
+    first = open_port(url, timeout=REPLY_TIMEOUT_S)
+    first.open()  # creates the shared emulator the test's ports talk to
+    emu = shared_emulator(shared)
+    assert emu is not None
+    t = Target(
+        name=name,
+        kind="emulator",
+        route="url",
+        timed=False,
+        make_port=lambda: open_port(url, timeout=REPLY_TIMEOUT_S),
+        state=emu.state,
+        hv513_expected=emu.board.detect_hv513(),
+        settle_fn=lambda n: None,
+    )
+    t.cleanup += [first.close, lambda: forget_shared(shared)]
+    return t
+
+
+class _CountingPort:
+    """A port that counts the bytes written through it (so a settle can wait for the device to have
+    read them all)."""
+
+    def __init__(self, port: Any, counter: list[int]) -> None:
+        object.__setattr__(self, "_port", port)
+        object.__setattr__(self, "_counter", counter)
+
+    def write(self, data: bytes) -> Any:
+        n = self._port.write(data)
+        self._counter[0] += len(data)
+        return n
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._port, name)
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        setattr(self._port, name, value)
+
+
+class _FedEmulator:
+    """The emulator as the pty server sees it, counting the bytes it has finished processing."""
+
+    def __init__(self, emulator: Any) -> None:
+        self.emulator = emulator
+        self.fed = 0
+
+    def feed(self, data: bytes) -> bytes:
+        reply: bytes = self.emulator.feed(data)
+        self.fed += len(data)
+        return reply
+
+
+def _pty_target(name: str) -> Target:
+    if sys.platform == "win32":
+        pytest.skip("the pty target needs a POSIX pseudo-terminal")
+    from tactdeform_hw.emulator import Emulator
+    from tactdeform_hw.emulator.pty_server import PtyServer
+
+    emu = Emulator()
+    fed = _FedEmulator(emu)
+    server = PtyServer(fed).start()  # type: ignore[arg-type]
+    written = [0]
+
+    def settle(commands: int) -> None:
+        # the relay thread hands bytes over as they come: wait until it has processed all sent so far
+        deadline = time.monotonic() + 2.0
+        while fed.fed < written[0] and time.monotonic() < deadline:
+            time.sleep(0.001)
+
+    t = Target(
+        name=name,
+        kind="emulator",
+        route="pty",
+        timed=False,
+        make_port=lambda: _CountingPort(open_port(server.path, timeout=REPLY_TIMEOUT_S), written),
+        state=emu.state,
+        hv513_expected=emu.board.detect_hv513(),
+        settle_fn=settle,
+    )
+    t.cleanup.append(server.stop)
+    return t
+
+
+def _usb_emulator_target(name: str) -> Target:
+    pytest.importorskip("usb.core", reason="the usb-emulator target needs pyusb (pip install 'tactdeform_hw[usb]')")
+    from tactdeform_hw.device.usb_transport import UsbCdcPort
+    from tactdeform_hw.emulator.usb_backend import backend_from_name
+
+    backend = backend_from_name(name)
+    dev = backend.device
+
+    def make_port() -> Any:
+        return UsbCdcPort(0x303A, 0x1001, backend=backend, timeout=REPLY_TIMEOUT_S, write_timeout=REPLY_TIMEOUT_S, name=name)
+
+    return Target(
+        name=name,
+        kind="emulator",
+        route="usb",
+        timed=True,
+        make_port=make_port,
+        state=dev.state,
+        hv513_expected=dev.emulator.board.detect_hv513(),
+        settle_fn=lambda n: dev.settle(),
+    )
+
+
+def _serial_board_target(name: str) -> Target:
+    if sys.platform != "win32" and not os.path.exists(name):
+        pytest.skip(
+            f"no board at {name}: plug the eTactileKit in, or pass --device with its port "
+            "(`tactdeform-hw ports` lists candidates)"
+        )
+    probe = open_port(name, timeout=REPLY_TIMEOUT_S)
+    probe.dtr = probe.rts = False
+    try:
+        probe.open()
+    except Exception as exc:  # noqa: BLE001 - any failure to open means no usable board here
+        pytest.skip(f"cannot open {name} ({exc}); is the board attached and the port free?")
+    probe.close()
+    return Target(name=name, kind="board", route="serial", timed=True,
+                  make_port=lambda: open_port(name, timeout=REPLY_TIMEOUT_S))  # fmt: skip
+
+
+def _usb_board_target(name: str) -> Target:
+    try:
+        from tactdeform_hw.device.usb_transport import usb_port_for_name
+
+        probe = usb_port_for_name(name, timeout=REPLY_TIMEOUT_S)
+        probe.open()
+    except MissingDependencyError as exc:
+        pytest.skip(str(exc))
+    except TransportError as exc:
+        if exc.code == errno.ENODEV or "no USB backend" in str(exc):
+            pytest.skip(str(exc))
+        raise  # attached but unusable (permissions, busy): the message says what to fix
+    probe.close()
+    return Target(name=name, kind="board", route="usb", timed=True,
+                  make_port=lambda: usb_port_for_name(name, timeout=REPLY_TIMEOUT_S))  # fmt: skip
+
+
+_UNAVAILABLE: dict[str, str] = {}  # board name -> why it was skipped (probed once per session)
+
+
+def build_target(name: str) -> Target:
+    if name in _UNAVAILABLE:
+        pytest.skip(_UNAVAILABLE[name])
+    try:
+        return _build_target(name)
+    except pytest.skip.Exception as exc:
+        if _is_board_name(name):
+            _UNAVAILABLE[name] = str(exc.msg)
+        raise
+
+
+def _build_target(name: str) -> Target:
+    if name in ("emulator", "emu", "") or name.startswith("etactile://"):
+        return _url_target(name or "etactile://")
+    if name == "pty":
+        return _pty_target(name)
+    if name == "usb-emulator" or name.startswith("usb-emulator?"):
+        return _usb_emulator_target(name)
+    if name.startswith("usb:"):
+        return _usb_board_target(name)
+    if "://" in name:
+        raise pytest.UsageError(f"--device {name}: only etactile:// URLs are emulated targets")
+    return _serial_board_target(name)
+
+
+def _is_board_name(name: str) -> bool:
+    return not (name in ("emulator", "emu", "pty") or name.startswith(("etactile://", "usb-emulator")))
+
+
+# --- pytest plumbing ---------------------------------------------------------------------------------------
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    if "target_name" not in metafunc.fixturenames:
+        return
+    chosen = metafunc.config.getoption("--device", default=None)
+    names = [chosen] if chosen else list(EMULATED_TARGETS)
+    params = [pytest.param(n, id=n, marks=[pytest.mark.hardware] if _is_board_name(n) else []) for n in names]
+    metafunc.parametrize("target_name", params)
+
+
+@pytest.fixture
+def target(target_name: str) -> Iterator[Target]:
+    t = build_target(target_name)
+    try:
+        yield t
+    finally:
+        for fn in reversed(t.cleanup):
+            fn()
+
+
+_REPORT: list[tuple[str, str, str]] = []
+
+
+@pytest.fixture
+def report(request: pytest.FixtureRequest, target: Target) -> Callable[[str, str], None]:
+    """``report(figure, text)``: a measured figure for the conformance report (and junit properties)."""
+    check = request.node.originalname
+
+    def note(figure: str, text: str) -> None:
+        _REPORT.append((target.name, f"{check}: {figure}", text))
+        request.node.user_properties.append((figure, text))
+
+    return note
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
+    if not _REPORT:
+        return
+    tr = terminalreporter
+    tr.section("eTactileKit conformance report")
+    for name in dict.fromkeys(t for t, _, _ in _REPORT):
+        tr.write_line(f"target {name}:")
+        for _, figure, text in (r for r in _REPORT if r[0] == name):
+            tr.write_line(f"  {figure:<58} {text}")

@@ -1,0 +1,362 @@
+"""The guard and the interlock: every current passes them, whichever public method or path sends it."""
+
+from __future__ import annotations
+
+import datetime as dt
+import inspect
+import json
+import random
+
+import pytest
+
+from tactdeform_hw import protocol as p
+from tactdeform_hw.device import ChannelMapping, Device, EtactileKitDevice, StimConfig
+from tactdeform_hw.device.audit import AuditLog
+from tactdeform_hw.device.profiles import ParticipantProfile
+from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF, SafetyGuard, grid_regions
+from tactdeform_hw.emulator import Emulator
+from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.errors import LimitError, ProtocolMisuseError, SafetyError
+from tactdeform_hw.protocol.decoder import decode
+
+REGIONS = (1500, 1400, 1500, 1300, 1200, 1300, 1500, 1400, 1500)
+PROFILE = ParticipantProfile("P01", 2000, REGIONS, dt.date(2024, 5, 1))
+CENTRE = [1 if r == 4 else 0 for r in TACTDEFORM_REGION_OF]
+CORNER = [1 if r == 0 else 0 for r in TACTDEFORM_REGION_OF]
+ALL = [1] * 32
+
+
+class RecordingPort(EmulatorPort):
+    def __init__(self) -> None:
+        super().__init__()
+        self.writes: list[bytes] = []
+
+    def write(self, data: bytes) -> int:
+        self.writes.append(bytes(data))
+        return super().write(data)
+
+
+def device(guard: SafetyGuard | None = None, **kw: object) -> tuple[EtactileKitDevice, RecordingPort]:
+    port = RecordingPort()
+    return EtactileKitDevice(port, guard=guard or SafetyGuard.from_profile(PROFILE), **kw), port  # type: ignore[arg-type]
+
+
+def height(port: RecordingPort) -> int:
+    return port.emulator.state()["pulse_height"] * 10
+
+
+def test_region_map_is_the_tactdeform_array() -> None:
+    assert len(TACTDEFORM_REGION_OF) == 32
+    counts = [TACTDEFORM_REGION_OF.count(r) for r in range(9)]
+    assert counts == [3, 4, 3, 4, 4, 4, 3, 4, 3]  # corner regions lose their corner electrode
+    assert TACTDEFORM_REGION_OF[:4] == (0, 1, 1, 2)  # fingertip row, left to right
+    assert grid_regions(3, 3, skip_corners=False) == tuple(range(9))
+
+
+def test_frame_height_is_the_lowest_active_region_and_lowering_comes_first() -> None:
+    dev, port = device()
+    dev.configure(StimConfig(current_ua=1500))
+    assert height(port) == 1500  # nothing active yet: cap and charge only
+    dev.send_pattern(CORNER)
+    assert height(port) == 1500 and dev.current_ua == 1500
+    n = len(port.writes)
+    dev.send_pattern(CENTRE)  # the centre's limit is 1200: the height goes down BEFORE the pattern
+    names = [decode(w, 32)[0].name for w in port.writes[n:]]
+    assert names == ["PULSE_HEIGHT", "PATTERN"] and height(port) == 1200
+    n = len(port.writes)
+    dev.send_pattern(CORNER)  # back up: the pattern first, the height after
+    names = [decode(w, 32)[0].name for w in port.writes[n:]]
+    assert names == ["PATTERN", "PULSE_HEIGHT"] and height(port) == 1500
+    dev.send_pattern(ALL)
+    assert height(port) == 1200 and dev.target_ua == 1500
+    clips = [e for e in dev.guard.log if e["event"] == "clipped"]
+    assert clips and clips[-1]["rule"] == "region" and clips[-1]["region"] == 4
+    dev.close()
+
+
+def test_every_intermediate_firmware_state_is_within_the_limits() -> None:
+    """Torn or not, no scan between two writes can combine a pattern with a height too high for it."""
+    limits = SafetyGuard.from_profile(PROFILE).electrode_limits(32)
+    rng = random.Random(7)
+    emu = Emulator()
+    port = RecordingPort()
+    port.emulator = emu
+    dev = EtactileKitDevice(port, guard=SafetyGuard.from_profile(PROFILE))
+    worst = 0.0
+    checked = 0
+
+    def check() -> None:
+        nonlocal worst, checked
+        s = emu.state()
+        h = s["pulse_height"] * 10
+        for ch in range(s["electrode_num"]):
+            if s["stim_pattern"][ch] in (1, 2):
+                worst = max(worst, h / limits[ch])
+                assert h <= limits[ch], (ch, h, limits[ch])
+        checked += 1
+
+    orig = port.write
+
+    def write(data: bytes) -> int:
+        n = orig(data)
+        check()
+        return n
+
+    port.write = write  # type: ignore[method-assign]
+    dev.configure(StimConfig(current_ua=2000))
+    refused = 0
+    for _ in range(300):
+        levels = [rng.choice((0, 0, 0, 1, 1, 2)) for _ in range(32)]
+        try:
+            dev.send_pattern(levels)
+        except SafetyError:  # a frame whose scan would fill the period: refused, nothing written
+            refused += 1
+        if rng.random() < 0.2:
+            dev.set_current(rng.randrange(0, 201) * 10)
+    dev.close()
+    assert checked > 300 and worst <= 1.0 and refused < 150
+
+
+def test_charge_pulse_width_polarity_sense_and_scan_refusals_write_nothing() -> None:
+    cases = [
+        (SafetyGuard(), StimConfig(current_ua=10_000, pulse_width_us=400), "charge"),
+        (SafetyGuard.from_profile(PROFILE), StimConfig(current_ua=1000, pulse_width_us=250), "wider than the calibrated"),
+        (SafetyGuard.from_profile(PROFILE), StimConfig(current_ua=1000, polarity="cathodic"), "calibrated 'anodic'"),
+        (SafetyGuard.from_profile(PROFILE), StimConfig(current_ua=0, sense_current_ua=1240, sense_width_us=10), "lowest electrode limit"),
+        (SafetyGuard(max_charge_nc=10.0), StimConfig(current_ua=0, sense_current_ua=40, sense_width_us=255), "sense pulse"),
+        (SafetyGuard(), StimConfig(electrode_count=255, current_ua=0, pulse_width_us=65535), "watchdog"),
+        (SafetyGuard.from_profile(PROFILE), StimConfig(current_ua=2010), "exceeds the cap of 2000"),
+    ]
+    for guard, cfg, text in cases:
+        dev, port = device(guard)
+        with pytest.raises(SafetyError, match=text):
+            dev.configure(cfg)
+        assert port.writes == []
+        assert guard.log[-1]["event"] == "refused"
+        dev.close()
+
+
+def test_charge_limit_from_profile() -> None:
+    prof = ParticipantProfile("P02", 2000, REGIONS, dt.date(2024, 5, 1), max_charge_nc=200.0)
+    dev, port = device(SafetyGuard.from_profile(prof))
+    with pytest.raises(SafetyError, match="charge"):
+        dev.configure(StimConfig(current_ua=1010))  # 1010 µA × 200 µs = 202 nC
+    dev.configure(StimConfig(current_ua=1000))
+    dev.close()
+
+
+def test_ramp_limits_increases_per_frame_and_restarts_from_zero() -> None:
+    prof = ParticipantProfile("P03", 2000, REGIONS, dt.date(2024, 5, 1), ramp_ua_per_frame=400)
+    dev, port = device(SafetyGuard.from_profile(prof))
+    dev.configure(StimConfig(current_ua=1500))
+    seen = [height(port)]
+    for _ in range(5):
+        dev.send_pattern(CORNER)
+        seen.append(height(port))
+    assert seen == [400, 800, 1200, 1500, 1500, 1500]
+    dev.suspend()  # a fail-safe stop keeps the frame and the target
+    assert height(port) == 0 and port.emulator.state()["stim_pattern"][:32] == [0] * 32
+    for expect in (400, 800):
+        dev.keepalive()  # the owner is back: resume, ramped
+        assert height(port) == expect
+        assert port.emulator.state()["stim_pattern"][:32] == CORNER
+    dev.set_current(500)  # decreases are never limited
+    assert height(port) == 500
+    assert any(e["rule"] == "ramp" for e in dev.guard.log)
+    dev.all_off()
+    dev.send_pattern(CORNER)
+    assert height(port) == 0  # all_off set the target to 0: nothing until the caller sets a current
+    dev.close()
+
+
+def test_polarity_changes_only_while_everything_is_off() -> None:
+    dev, port = device(SafetyGuard())
+    dev.configure(StimConfig(current_ua=500, polarity="anodic"))
+    dev.send_pattern(ALL)
+    with pytest.raises(SafetyError, match="polarity change"):
+        dev.configure(StimConfig(current_ua=500, polarity="cathodic"))
+    dev.all_off()
+    dev.configure(StimConfig(current_ua=500, polarity="cathodic"))
+    assert port.emulator.state()["polarity"] == 0
+    n = len(port.writes)
+    dev.send_pattern(ALL)
+    with pytest.raises(SafetyError, match="polarity change while current can flow"):
+        dev._send(p.encode_polarity(1))  # the interlock, below every public method
+    assert len(port.writes) == n + 1
+    dev.close()
+
+
+def test_interlock_refuses_unsafe_bytes_whatever_sends_them() -> None:
+    dev, port = device()
+    with pytest.raises(SafetyError, match="electrode count is unknown"):
+        dev._send(p.encode_pattern([1] * 32))
+    with pytest.raises(SafetyError, match="pulse width is unknown"):
+        dev._send(p.encode_pulse_height(10))
+    dev.configure(StimConfig(current_ua=1000))
+    n = len(port.writes)
+    for data, text in [
+        (p.encode_pulse_height(201), "above the cap"),
+        (p.encode_pulse_height(201) + p.encode_pulse_height(0), "above the cap"),
+        (p.encode_pattern(CENTRE) + p.encode_pulse_height(130), "above its limit of 1200"),
+        (p.encode_electrode_num(0) + p.encode_pattern(b""), "lock"),
+        (b"\xfb\x10", "cut short"),
+        (p.encode_sense_height(255), "sense current"),
+    ]:
+        with pytest.raises(SafetyError, match=text):
+            dev._send(data)
+    assert len(port.writes) == n  # nothing reached the port
+    assert all(e["event"] == "refused" for e in list(dev.guard.log)[-6:])
+    dev.close()
+
+
+def test_unmapped_hardware_channels_can_never_stimulate() -> None:
+    mapping = ChannelMapping.from_list([0, 2], hw_channels=4)
+    dev, port = device(SafetyGuard(), mapping=mapping)
+    dev.configure(StimConfig(electrode_count=4, current_ua=500))
+    dev.send_pattern([1, 1])
+    with pytest.raises(SafetyError, match="channel 1"):
+        dev._send(p.encode_pattern([1, 1, 1, 0]))
+    dev.close()
+
+
+#: Every public method of Device and what proves it cannot deliver more than the guard allows.
+COVERED = {
+    "configure": "refusals above, region clip on the first frame",
+    "set_current": "cap refusal, region clip",
+    "send_pattern": "region clip, ordering",
+    "keepalive": "resumes through the same frame logic (ramp test)",
+    "suspend": "only removes current",
+    "all_off": "only removes current",
+    "measure": "no current command",
+    "probe": "a measure",
+    "hv513_count": "no current command",
+    "resync": "resync tests: configuration again through configure",
+    "reconnect": "resync",
+    "hardware_reset": "resync",
+    "close": "all-off",
+    "config": "property",
+    "current_ua": "property",
+    "target_ua": "property",
+    "audit": "property",
+    "needs_resync": "property",
+    "suspended": "property",
+    "stimulating": "property",
+    "closed": "property",
+    "electrodes": "property",
+}
+
+
+def test_no_public_method_is_unreviewed() -> None:
+    public = {n for n, _ in inspect.getmembers(Device) if not n.startswith("_")}
+    assert public <= set(COVERED), f"new public Device member(s) {public - set(COVERED)}: add them to the guard tests"
+
+
+@pytest.mark.parametrize(
+    "call",
+    [
+        lambda d: d.set_current(2010),
+        lambda d: d.set_current(-10),
+        lambda d: d.set_current(float("nan")),
+        lambda d: d.set_current(1205),
+        lambda d: d.set_current("1000"),
+        lambda d: d.configure(StimConfig(current_ua=2100)),
+        lambda d: d.configure(StimConfig(current_ua=True)),  # type: ignore[arg-type]
+        lambda d: d.send_pattern([3] * 32),
+        lambda d: d.send_pattern([1] * 31),
+    ],
+)
+def test_every_public_path_refuses_before_writing(call) -> None:  # type: ignore[no-untyped-def]
+    dev, port = device()
+    dev.configure(StimConfig(current_ua=1000))
+    dev.send_pattern(CENTRE)
+    n = len(port.writes)
+    with pytest.raises((SafetyError, LimitError, ProtocolMisuseError)):
+        call(dev)
+    assert len(port.writes) == n
+    assert height(port) <= 1200
+    assert dev.guard.log[-1]["event"] == "refused"  # every refusal is logged
+    dev.close()
+
+
+def test_resync_follows_the_protocol_reference_order() -> None:
+    dev, port = device(SafetyGuard())
+    dev.configure(StimConfig(current_ua=300))
+    dev.send_pattern(ALL)
+    port.emulator.feed(b"\xfe" + b"\x01" * 10)  # a pattern cut short on the link
+    port.emulator.feed(b"\xfb\xdc")  # and a half pulse height (0xDC would become 220 = 2.2 mA)
+    n = len(port.writes)
+    dev.resync()
+    names = [decode(w, 32)[0].name if w[0] >= 0xF5 else "ZEROS" for w in port.writes[n:]]
+    assert b"".join(port.writes[n : n + names.count("ZEROS")]) == bytes(256)
+    rest = [x for x in names if x != "ZEROS"]
+    assert rest[:4] == ["PULSE_HEIGHT", "SENSE_HEIGHT", "ELECTRODE_NUM", "PATTERN"]
+    assert "PATTERN" not in rest[-1:] and rest[-1] == "PULSE_HEIGHT"
+    s = port.emulator.state()
+    assert s["rx_pending"] == 0 and s["electrode_num"] == 32 and s["pulse_height"] == 30
+    assert s["stim_pattern"][:32] == [0] * 32  # no pattern until the caller's next frame
+    assert dev.suspended
+    dev.keepalive()  # the owner's next frame brings the pattern back
+    assert port.emulator.state()["stim_pattern"][:32] == ALL
+
+
+def test_resync_survives_a_zero_landing_as_electrode_count() -> None:
+    dev, port = device(SafetyGuard())
+    dev.configure(StimConfig(current_ua=300))
+    port.emulator.feed(b"\xfc")  # an electrode-count command whose value never came: the zeros give it 0
+    dev.resync()
+    assert not port.emulator.locked and port.emulator.state()["electrode_num"] == 32
+    dev.send_pattern(ALL)
+    assert port.emulator.state()["stim_pattern"][:32] == ALL
+
+
+def test_resync_without_configuration_stops_every_current() -> None:
+    emu = Emulator()
+    emu.feed(p.encode_electrode_num(8) + p.encode_pattern([1] * 8) + p.encode_pulse_width(200)
+             + p.encode_pulse_height(500) + p.encode_sense_height(10))  # a previous session left this running
+    port = RecordingPort()
+    port.emulator = emu
+    dev = EtactileKitDevice(port)
+    dev.resync()
+    s = emu.state()
+    assert s["pulse_height"] == 0 and s["sense_pulse_height"] == 0
+    dev.close()
+
+
+def test_guard_events_reach_the_audit_log(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "audit.jsonl"
+    log = AuditLog(path, participant="P01")
+    dev, port = device(audit=log)
+    dev.configure(StimConfig(current_ua=1500))
+    dev.send_pattern(CENTRE)
+    with pytest.raises(SafetyError):
+        dev.set_current(5000)
+    dev.close()
+    log.close()
+    recs = [json.loads(x) for x in path.read_text().splitlines()]
+    assert recs[0]["type"] == "session" and recs[0]["participant"] == "P01"
+    tx = [r for r in recs if r["type"] == "tx"]
+    assert sum(len(bytes.fromhex(r["hex"])) for r in tx) == sum(len(w) for w in port.writes)
+    assert [r["hex"] for r in tx] == [w.hex() for w in port.writes]
+    assert all(r["ok"] and r["t"] >= 0 for r in tx) and [r["t"] for r in tx] == sorted(r["t"] for r in tx)
+    safety = [r for r in recs if r["type"] == "safety"]
+    assert {s["event"] for s in safety} == {"clipped", "refused"}
+    assert tx[-1]["op"] == "close"
+
+
+def test_raw_port_is_outside_the_driver() -> None:
+    """The documented boundary: a second handle on the same emulated board writes around the driver.
+    The guard protects the driver's API; whoever opens the port themselves has left it."""
+    import serial
+
+    from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
+
+    forget_shared()
+    dev = EtactileKitDevice(serial.serial_for_url("etactile://bench-raw", do_not_open=True), guard=SafetyGuard(cap_ua=500))
+    dev.configure(StimConfig(current_ua=500))
+    raw = serial.serial_for_url("etactile://bench-raw")
+    raw.write(p.encode_pulse_height(900))
+    assert shared_emulator("bench-raw").state()["pulse_height"] == 900  # type: ignore[union-attr]
+    raw.close()
+    dev.close()
+    assert shared_emulator("bench-raw").state()["pulse_height"] == 0  # type: ignore[union-attr]
+    forget_shared()

@@ -1,0 +1,170 @@
+"""Pacing: the driver never overflows the firmware's 256-byte queue nor outruns its 1 ms-per-command parser."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+from tactdeform_hw.device import EtactileKitDevice, StimConfig, open_device
+from tactdeform_hw.device.pacing import (
+    InstantClock,
+    MonotonicClock,
+    Pacer,
+    PacingPolicy,
+    SimulatedClock,
+    default_pacer,
+    padding_for,
+)
+from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF, SafetyGuard
+from tactdeform_hw.emulator.faults import TimedPort
+from tactdeform_hw.emulator.hazards import HazardKind
+from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.protocol.constants import PAYLOAD_KIND
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import safety_scenarios as ss  # noqa: E402
+
+RATE_HZ = ss.RENDERER_MAX_RATE_HZ
+
+
+def frames(n: int, electrodes: int = 32) -> list[list[int]]:
+    """Every frame different, alternating low- and high-limit regions so the height moves every frame."""
+    out = []
+    for i in range(n):
+        if electrodes == 32:
+            region = (4, 0, 3, 8, 1)[i % 5]
+            out.append([1 if r == region else 0 for r in TACTDEFORM_REGION_OF])
+        else:
+            out.append([(i + k) % 3 for k in range(electrodes)])
+    return out
+
+
+def session(link: str, robust: bool, guard: SafetyGuard | None = None) -> tuple[TimedPort, EtactileKitDevice]:
+    port = TimedPort(link=link, robust_encoding=robust)
+    dev = EtactileKitDevice(port, guard=guard or SafetyGuard.from_profile(ss.PROFILE))
+    return port, dev
+
+
+def assert_nothing_lost(port: TimedPort) -> None:
+    emu = port.emulator
+    emu.run_until_idle()
+    assert emu.losses == [], [lo.describe() for lo in emu.losses[:3]]
+    assert not [h for h in emu.hazards if h.kind is HazardKind.QUEUE_OVERFLOW]
+    bad = [c for c in emu.commands if not c.in_sync]
+    assert bad == [], bad[:3]
+    assert emu.queue.high_water <= emu.queue.capacity
+
+
+@pytest.mark.parametrize(("link", "robust"), [("usb", False), ("usb", True), ("uart", False), ("uart", True)])
+def test_zero_losses_at_the_renderers_highest_rate(link: str, robust: bool) -> None:
+    port, dev = session(link, robust)
+    dev.configure(StimConfig(current_ua=1500))
+    sent = 0
+    heights = set()
+    for i, levels in enumerate(frames(int(RATE_HZ * 1.0))):
+        port.advance_to(0.05 + i / RATE_HZ)
+        dev.send_pattern(levels)
+        heights.add(dev.current_ua)
+        sent += 1
+    assert len(heights) >= 3  # the height really moved with the frames
+    assert_nothing_lost(port)
+    patterns = [c for c in port.emulator.commands if c.name == "PATTERN"]
+    copies = 2 if robust else 1
+    assert len(patterns) >= sent * copies  # every frame reached the parser (all-off patterns of configure too)
+    assert patterns[-1].value == bytes(frames(int(RATE_HZ * 1.0))[-1])
+    # the frames kept to the renderer's schedule: pacing never pushed a frame past the next one
+    assert port.now_s < 0.05 + sent / RATE_HZ + 0.02
+    dev.close()
+
+
+@pytest.mark.parametrize("link", ["usb", "uart"])
+def test_zero_losses_on_full_reconfigurations_and_resyncs(link: str) -> None:
+    port, dev = session(link, True, SafetyGuard())
+    for i in range(6):  # back to back: nothing waits between them but the pacer
+        n = 32 if i % 2 else 64  # 64 channels at 245 µs need a longer period: 60 Hz
+        dev.configure(StimConfig(electrode_count=n, current_ua=500 + 100 * i, rate_hz=125 - i if n == 32 else 60))
+        dev.send_pattern([1] * dev.electrodes)
+        dev.all_off()
+        dev.resync()
+    assert_nothing_lost(port)
+    s = port.emulator.state()
+    assert s["electrode_num"] == 32 and s["pulse_height"] == 0
+    dev.close()
+
+
+def test_zero_losses_with_whole_queue_patterns() -> None:
+    """255 electrodes: each pattern command is 256 bytes, the whole queue."""
+    port, dev = session("usb", False, SafetyGuard())
+    dev.configure(StimConfig(electrode_count=255, current_ua=100, pulse_width_us=20, discharge_us=10, rate_hz=100))
+    for i, levels in enumerate(frames(40, 255)):
+        port.advance_to(0.02 + i * 0.004)
+        dev.send_pattern(levels)
+    assert_nothing_lost(port)
+    dev.close()
+
+
+def test_without_pacing_the_same_traffic_loses_bytes() -> None:
+    """The control: the checks above can fail.  An unpaced burst overflows the queue."""
+    port, _ = session("usb", False, SafetyGuard())
+    unpaced = Pacer(clock=port.pacing_clock, policy=PacingPolicy(command_interval_s=0, queue_bytes=10**9, link_latency_s=0, tick_s=0))
+    dev = EtactileKitDevice(port, guard=SafetyGuard(), pacer=unpaced)
+    dev.configure(StimConfig(current_ua=500))
+    for levels in frames(12):
+        dev.send_pattern(levels)
+    port.emulator.run_until_idle()
+    assert port.emulator.losses, "an unpaced burst should have overflowed the 256-byte queue"
+    assert any(h.kind is HazardKind.QUEUE_OVERFLOW for h in port.emulator.hazards)
+
+
+def test_pacer_spacing_and_queue_model() -> None:
+    clock = SimulatedClock()
+    pacer = Pacer(clock=clock)
+    times: list[tuple[float, bytes]] = []
+    cmds = [b"\xfb\x10\x00", b"\xfe" + bytes(32), b"\xff", b"\xfe" + bytes(32), bytes(256), b"\xfa\xc8\x00"]
+    for c in cmds:
+        pacer.write(lambda d: times.append((clock.now(), d)), c)
+        assert pacer.queue_estimate() <= 256
+    payload_times = [t for t, d in times if d[0] >= 0xF5 and PAYLOAD_KIND.get(d[0]) is not None]
+    gaps = [b - a for a, b in zip(payload_times, payload_times[1:])]
+    assert min(gaps) >= pacer.policy.command_interval_s - 1e-12
+    zeros = [d for _, d in times if d[:1] == b"\x00"]
+    assert b"".join(zeros) == bytes(256) and max(len(z) for z in zeros) <= 64
+    assert pacer.stats.commands == 5 and pacer.stats.waits > 0
+    # with scans filling 7.9 of 8 ms, the parser takes one payload command per period, not per ms
+    pacer.set_timing(0.008, 0.0079)
+    assert pacer.payload_interval_s() > 0.008
+    pacer.set_timing(0.008, 0.0018)  # a 6 ms gap: six ticks, six commands per period
+    assert 0.0012 <= pacer.payload_interval_s() < 0.002
+
+
+def test_robust_padding() -> None:
+    assert padding_for(b"\xfb\xe8\x03") == b"\x00\x00"
+    assert padding_for(b"\xfc\x20") == b"\x20" and padding_for(b"\xfd\x01") == b"\x01"
+    assert padding_for(b"\xf9\x00") == b"\x00" and padding_for(b"\xfe\x01\x02") == b"\x00\x00"
+    assert padding_for(b"\xff") == b"" and padding_for(bytes(8)) == b""
+
+
+def test_robust_encoding_avoids_command_like_payload_bytes() -> None:
+    port, dev = session("usb", True, SafetyGuard())
+    dev.configure(StimConfig(current_ua=2500))  # code 250 = 0xFA: a command byte as the low byte
+    assert dev.current_ua == 2440 and any(e["rule"] == "encoding" for e in dev.guard.log)
+    from tactdeform_hw.errors import LimitError
+
+    with pytest.raises(LimitError, match="pulse_width_us"):
+        dev.configure(StimConfig(current_ua=100, pulse_width_us=250))
+    dev.close()
+
+
+def test_default_pacers() -> None:
+    assert isinstance(default_pacer(EmulatorPort()).clock, InstantClock)
+    with open_device("emulator") as dev:
+        assert isinstance(dev.pacer.clock, InstantClock)  # the untimed emulator is never slowed down
+    port = TimedPort()
+    assert default_pacer(port).clock is port.pacing_clock and default_pacer(port).robust
+
+    class RealLike:
+        is_open = True
+
+    assert isinstance(default_pacer(RealLike()).clock, MonotonicClock)

@@ -1,0 +1,134 @@
+"""Waveform traces: VCD, CSV and JSON event lists, recording while serving, the missing-pyvcd error."""
+
+from __future__ import annotations
+
+import builtins
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+from tactdeform_hw.emulator.scan import ScanConfig, Signal, reference_scan
+from tactdeform_hw.emulator.timed import TimedEmulator
+from tactdeform_hw.emulator.trace import CsvSink, JsonSink, LiveTrace, MemorySink, VcdSink, open_trace
+from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
+from tactdeform_hw.protocol import commands as c
+
+CFG = ScanConfig.make(4, [1, 2, 0, 1], sense_height_raw=2, sense_width_us=20, rate_hz=500)
+
+
+def record(*sinks: object, until_us: float = 6_500) -> TimedEmulator:
+    emu = TimedEmulator()
+    for s in sinks:
+        emu.attach(s)
+    emu.configure(CFG)
+    emu.write(c.encode_discharge(45), 3_000)
+    emu.advance_to(until_us)
+    for s in sinks:
+        s.close()  # type: ignore[attr-defined]
+    return emu
+
+
+def test_event_lists_agree_with_each_other_and_the_scans(tmp_path: Path) -> None:
+    mem = MemorySink()
+    csv_path, json_path = tmp_path / "t.csv", tmp_path / "t.json"
+    emu = record(mem, CsvSink(csv_path), JsonSink(json_path))
+    rows = list(csv.DictReader(csv_path.open()))
+    items = json.loads(json_path.read_text())
+    assert len(rows) == len(items) == len(mem.events)
+    assert [int(r["time_ns"]) for r in rows] == [e["t_ns"] for e in items] == [e[0] for e in mem.events]
+    times = [e[0] for e in mem.events]
+    assert times == sorted(times)
+    # the scans' events, shifted to their alarms, in order
+    sig = [(t, n, v) for t, n, v in mem.events if not n.startswith("MARK") and t > 0]
+    starts = [r.start_ns + j * r.stride_ns for r in emu.runs for j in range(r.count)]
+    assert starts == [2_000_000, 4_000_000, 6_000_000]
+    ref = reference_scan(CFG)
+    assert sig[: len(ref.events)] == [(2_000_000 + t, Signal(s).name, v) for t, s, v in ref.events]
+    # the discharge command lands between two scans, as a marker
+    marks = [(t, n, v) for t, n, v in mem.events if n == "MARK:command"]
+    assert len(marks) == 1 and marks[0][2]["name"] == "DISCHARGE" and 3_000_000 < marks[0][0] < 6_000_000
+    assert any(r["kind"] == "command" and r["name"] == "DISCHARGE" for r in rows)
+
+
+def test_vcd_opens_with_the_signals_and_changes(tmp_path: Path) -> None:
+    pytest.importorskip("vcd")
+    path = tmp_path / "scan.vcd"
+    record(VcdSink(path), until_us=4_500)
+    text = path.read_text()
+    assert "$timescale 1 ns $end" in text
+    for name in ("BL", "LE", "POL", "CLK", "DIN", "DAC", "SEL", "ADC", "event"):
+        assert f" {name} $end" in text
+    # the first DAC change of the first scan: 2000 us + 2 us + 6 GPIO writes + 3.3 us; code 100 in binary
+    assert "#2005600\nb1100100 " in text
+    assert "bx " in text  # SEL: no output latched at power-on
+    from vcd.reader import TokenKind, tokenize
+
+    with path.open("rb") as f:
+        kinds = {t.kind for t in tokenize(f)}
+    assert TokenKind.CHANGE_TIME in kinds and TokenKind.CHANGE_VECTOR in kinds
+
+
+def test_missing_pyvcd_names_the_extra(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    real_import = builtins.__import__
+
+    def fake_import(name: str, *args: object, **kwargs: object) -> object:
+        if name == "vcd" or name.startswith("vcd."):
+            raise ImportError("no vcd")
+        return real_import(name, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(builtins, "__import__", fake_import)
+    with pytest.raises(MissingDependencyError) as exc:
+        VcdSink(tmp_path / "x.vcd")
+    assert exc.value.package == "pyvcd" and exc.value.extra == "trace"
+
+
+def test_open_trace_picks_the_format_by_suffix(tmp_path: Path) -> None:
+    for suffix, cls in ((".csv", CsvSink), (".json", JsonSink)):
+        s = open_trace(tmp_path / f"a{suffix}")
+        assert isinstance(s, cls)
+        s.close()
+    with pytest.raises(ConfigurationError):
+        open_trace(tmp_path / "a.txt")
+
+
+def test_live_trace_records_while_serving(tmp_path: Path) -> None:
+    now = [0.0]
+    path = tmp_path / "live.csv"
+    with LiveTrace(path, link="uart", clock=lambda: now[0]) as live:
+        now[0] = 0.001
+        assert live.feed(c.encode_electrode_num(2)) == b""
+        now[0] = 0.005
+        live.poll()
+        now[0] = 0.006
+        live.feed(c.MEASURE_REQUEST)
+        now[0] = 0.030
+        reply = live.poll()
+        assert reply == c.encode_measure_reply(live.emulator.registers.voltage[:2])
+        assert live.emulator.now_us == pytest.approx(30_000)
+    rows = list(csv.DictReader(path.open()))
+    assert any(r["kind"] == "command" and r["name"] == "MEASURE" for r in rows)
+    assert any(r["name"] == "LE" for r in rows)  # scans ran (every 10 ms at power-on)
+    assert live.closed
+
+
+def test_live_trace_as_a_pty_server_hook(tmp_path: Path) -> None:
+    pytest.importorskip("vcd")
+    import serial
+
+    from tactdeform_hw.emulator import Emulator
+    from tactdeform_hw.emulator.pty_server import PtyServer
+
+    path = tmp_path / "served.vcd"
+    live = LiveTrace(path, link="usb")
+    with PtyServer(Emulator(), hook=live.hook) as server:
+        port = serial.Serial(server.path, 921600, timeout=1)
+        port.write(c.encode_electrode_num(4) + c.HV513_COUNT_REQUEST)
+        assert port.read(1) == b"\x04"  # answered by the served (untimed) emulator
+        port.close()
+        live.poll()
+    live.close()
+    text = path.read_text()
+    assert "event" in text and "command:ELECTRODE_NUM" in text and "command:HV513_COUNT" in text
+    assert live.emulator.registers.electrode_num == 4
