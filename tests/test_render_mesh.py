@@ -12,10 +12,13 @@ from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
 from tactdeform_hw.render.mesh import TriangleMesh, read_mesh, read_obj
 from tactdeform_hw.render.primitives import Box
 from tactdeform_hw.render.scene import load_scene
+from tactdeform_hw.render.tracking import quat_to_matrix
 
 SHARED = Path(__file__).resolve().parents[1] / ".." / "shared"
 BUNNY = SHARED / "meshes" / "stanford_bunny.obj"
-needs_bunny = pytest.mark.skipif(not BUNNY.is_file(), reason=f"the Stanford bunny is not at {BUNNY} (../shared absent)")
+needs_bunny = pytest.mark.skipif(
+    not BUNNY.is_file(), reason=f"the Stanford bunny is not at {BUNNY} (../shared absent)"
+)
 
 
 def cube_mesh(half: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
@@ -128,6 +131,58 @@ def test_cube_mesh_matches_the_analytic_cube(mesh_and_box: tuple[TriangleMesh, B
     np.testing.assert_array_equal(mesh.contains(pts), box.contains(pts))
     sd, cp = mesh.closest_points(pts[:50])
     np.testing.assert_allclose(sd, [box.query(p).signed_distance_mm for p in pts[:50]], atol=1e-7)
+
+
+def test_electrode_clouds_match_the_analytic_cube(mesh_and_box: tuple[TriangleMesh, Box]) -> None:
+    """Clustered points (the 32 electrodes of a pad) take the batched inside test; it must be exact."""
+    mesh, box = mesh_and_box
+    rng = np.random.default_rng(8)
+    grid = np.array(
+        [(x, y, 0.0) for y in range(6) for x in range(6) if (x, y) not in ((0, 0), (5, 0), (0, 5), (5, 5))]
+    )
+    grid = (grid - [2.5, 2.5, 0.0]) * 2.0
+    for _ in range(60):
+        centre = np.array([10.0, 20.0, 30.0]) + np.clip(rng.uniform(-60, 60, 3), -52, 52)
+        q = rng.normal(size=4)
+        cloud = centre + grid @ quat_to_matrix(q / np.linalg.norm(q)).T
+        np.testing.assert_array_equal(mesh.contains(cloud), box.contains(cloud))
+
+
+def test_refinement_keeps_the_surface_closed() -> None:
+    v, f = cube_mesh()
+    mesh = TriangleMesh("m", v, f, fit_mm=100.0, sample_spacing_mm=7.0)
+    index = mesh.index
+    assert index.n_triangles > 12 and index.topology.watertight
+    lengths = np.linalg.norm(
+        index.vertices[index.topology.edges[:, 0]] - index.vertices[index.topology.edges[:, 1]], axis=1
+    )
+    assert lengths.max() <= 7.0 + 1e-9
+    area = (
+        0.5
+        * np.linalg.norm(
+            np.cross(
+                index.vertices[index.faces[:, 1]] - index.vertices[index.faces[:, 0]],
+                index.vertices[index.faces[:, 2]] - index.vertices[index.faces[:, 0]],
+            ),
+            axis=1,
+        ).sum()
+    )
+    assert area == pytest.approx(6 * 100.0**2)
+    assert index.cover_mm <= 7.0 / np.sqrt(3.0) + 1e-9
+
+
+def test_feature_tables_are_built_only_for_tactdeform() -> None:
+    from tactdeform_hw.render.scene import RenderOptions
+
+    ua = load_scene("teapot", options=RenderOptions(approach="ua"))
+    ua.prepare()
+    assert ua.built_parts()["mesh_index"] == ["teapot"] and ua.built_parts()["mesh_features"] == []
+    ua.query(np.array([0.0, 0.0, 0.0]))
+    assert ua.built_parts()["mesh_features"] == []
+    td = load_scene("teapot")
+    assert td.built_parts()["mesh_index"] == []  # lazy until prepared or queried
+    td.prepare()
+    assert td.built_parts()["mesh_features"] == ["teapot"]
 
 
 def test_cube_mesh_features(mesh_and_box: tuple[TriangleMesh, Box]) -> None:

@@ -57,7 +57,9 @@ def test_quaternion_matrix_round_trip(w: float, x: float, y: float, z: float) ->
 def test_quaternion_composition_matches_matrices() -> None:
     a = quat_from_axis_angle([1, 2, 3], 40.0)
     b = quat_from_axis_angle([0, 1, 0], -75.0)
-    np.testing.assert_allclose(quat_to_matrix(quat_multiply(a, b)), quat_to_matrix(a) @ quat_to_matrix(b), atol=1e-12)
+    np.testing.assert_allclose(
+        quat_to_matrix(quat_multiply(a, b)), quat_to_matrix(a) @ quat_to_matrix(b), atol=1e-12
+    )
     np.testing.assert_allclose(rotation_from_euler_deg(0, 0, 90) @ [1, 0, 0], [0, 1, 0], atol=1e-12)
 
 
@@ -166,7 +168,9 @@ def test_csv_errors_name_row_and_column(body: str, message: str) -> None:
 def test_csv_header_and_drop_mode() -> None:
     with pytest.raises(ConfigurationError, match="lacks column"):
         read_pose_csv(io.StringIO("t_s,x_mm\n0,0\n"))
-    text = HEADER + "# comment\n0,0,0,0,1,0,0,0\n\n0.1,nan,0,0,1,0,0,0\n0.2,0,0,0,3,0,0,0\n0.3,1,2,3,1,0,0,0\n"
+    text = (
+        HEADER + "# comment\n0,0,0,0,1,0,0,0\n\n0.1,nan,0,0,1,0,0,0\n0.2,0,0,0,3,0,0,0\n0.3,1,2,3,1,0,0,0\n"
+    )
     validator = PoseValidator()
     poses = read_pose_csv(io.StringIO(text), invalid="drop", validator=validator)
     assert [p.t_s for p in poses] == [0.0, 0.3]
@@ -246,7 +250,12 @@ def test_corner_and_face_approaches_hit_their_feature(cube) -> None:
 
 @pytest.mark.parametrize("level", list(CONTACT_THETA_DEG))
 def test_contact_tasks_land_theta_in_each_level(cube, level: str) -> None:
-    bounds = {"steep-left": (-90, -30), "shallow-left": (-30, 0), "shallow-right": (0, 30), "steep-right": (30, 90)}
+    bounds = {
+        "steep-left": (-90, -30),
+        "shallow-left": (-30, 0),
+        "shallow-right": (0, 30),
+        "steep-right": (30, 90),
+    }
     poses = make_trajectory(f"contact-{level}", cube)
     contact = [(p, q) for p, q in _contact_queries(cube, poses) if q.signed_distance_mm <= 0]
     lo, hi = bounds[level]
@@ -306,7 +315,9 @@ def test_tremor_and_noise_are_seeded(cube) -> None:
 
 def test_tremor_has_its_amplitude_and_frequency(cube) -> None:
     clean = make_trajectory("contact-shallow-right", cube, rate_hz=240.0)
-    shaky = make_trajectory("contact-shallow-right", cube, rate_hz=240.0, tremor_mm=1.0, tremor_hz=10.0, seed=2)
+    shaky = make_trajectory(
+        "contact-shallow-right", cube, rate_hz=240.0, tremor_mm=1.0, tremor_hz=10.0, seed=2
+    )
     delta = np.array([s.position_mm - c.position_mm for s, c in zip(shaky, clean)])
     amplitude = np.linalg.norm(delta, axis=1)
     assert amplitude.max() == pytest.approx(1.0, abs=0.01)

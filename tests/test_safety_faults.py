@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 
 from tactdeform_hw.device.pacing import estimate_scan_us
-from tactdeform_hw.emulator.faults import Fault, FaultKind, LINK_FAULTS, TimedPort, random_plan
+from tactdeform_hw.emulator.faults import LINK_FAULTS, Fault, FaultKind, TimedPort, random_plan
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import safety_scenarios as ss  # noqa: E402

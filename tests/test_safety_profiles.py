@@ -139,12 +139,28 @@ def test_constructor_validates_too() -> None:
     assert err.value.field == "regions_ua"
 
 
-@pytest.mark.parametrize("command", ["send", "calibrate"])
+@pytest.mark.parametrize("command", ["send", "calibrate", "render", "play"])
 def test_cli_refuses_bad_profile_before_opening_the_device(tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str) -> None:
     from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
 
     forget_shared()
     bad = write_json(tmp_path, {**GOOD, "cap_ua": 12_000})
+    if command in ("render", "play"):
+        if command == "render":
+            argv = ["render", "--scene", "cube", "--trajectory", "approach-face", "--quiet"]
+        else:
+            pattern = Path(__file__).resolve().parents[1] / ".." / "shared" / "etactilekit-formats" / "test_pattern.json"
+            if not pattern.exists():
+                pytest.skip(f"{pattern} is not available (the shared reference data sits beside the repository)")
+            argv = ["play", str(pattern), "--quiet"]
+        rc = main([*argv, "--device", "etactile://bad-profile", "--participant", str(bad)])
+        assert rc == 1 and "cap_ua" in capsys.readouterr().err
+        assert shared_emulator("bad-profile") is None
+        rc = main([*argv, "--device", "etactile://good-profile", "--participant", str(write_json(tmp_path, GOOD, "g.json"))])
+        assert rc == 0
+        capsys.readouterr()
+        forget_shared()
+        return
     if command == "send":
         argv = ["send", "--device", "etactile://bad-profile", "--participant", str(bad), "--pattern", "all:1", "--current-ua", "100"]
         rc = main(argv)

@@ -20,7 +20,7 @@ from typing import Any
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
 from tactdeform_hw.device.failsafe import FailSafe
 from tactdeform_hw.device.profiles import ParticipantProfile
-from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF, SafetyGuard
+from tactdeform_hw.device.safety import SafetyGuard
 from tactdeform_hw.emulator.faults import Fault, FaultKind, Intent, TimedPort, check_deliveries
 from tactdeform_hw.errors import TactDeformError
 

@@ -18,6 +18,7 @@ COMMANDS: tuple[str, ...] = (
     "play",
     "export",
     "render",
+    "study",
     "timing",
     "calibrate",
     "replay_log",

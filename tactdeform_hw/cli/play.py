@@ -25,7 +25,14 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..errors import ConfigurationError, TactDeformError
-from .common import add_device_arg, print_json, progress
+from .common import (
+    add_device_arg,
+    add_participant_arg,
+    audit_from_args,
+    guard_from_args,
+    print_json,
+    progress,
+)
 
 
 @dataclass(frozen=True)
@@ -62,6 +69,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("file", help="eTactileKit pattern file (JSON with Pattern_Data)")
     add_device_arg(p)
+    add_participant_arg(p)
     p.add_argument(
         "--array",
         metavar="ARRAY.json",
@@ -237,9 +245,10 @@ def run(
             polarity=polarity,  # type: ignore[arg-type]
         )
 
-    # Refuse every configuration before the port is opened.
+    # Refuse every configuration before the port is opened (a bad participant profile too).
+    guard = guard_from_args(args)
     for key in {(s.frequency_hz, s.polarity) for s in steps}:
-        make_config(*key).validated(DEFAULT_TRANSFER)
+        guard.check_config(make_config(*key).validated(DEFAULT_TRANSFER))
 
     summary: dict[str, Any] = {
         "file": seq.source,
@@ -278,7 +287,8 @@ def run(
             "nothing; use --dry-run to check it, or --ignore-execution-flag to send it anyway"
         )
     report = None if args.quiet else progress
-    with open_device(args.device, timeout=args.timeout, mapping=mapping) as dev:
+    audit = audit_from_args(args)
+    with open_device(args.device, timeout=args.timeout, mapping=mapping, guard=guard, audit=audit) as dev:
         try:
             chips = dev.hv513_count()
             summary["hv513_count"] = chips

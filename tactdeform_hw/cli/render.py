@@ -17,7 +17,15 @@ import json
 import sys
 from typing import Any
 
-from .common import add_device_arg, print_json, progress
+from .common import (
+    add_device_arg,
+    add_participant_arg,
+    audit_from_args,
+    guard_from_args,
+    print_json,
+    profile_from_args,
+    progress,
+)
 
 #: The study tasks' trajectories (Task 1 approaches, Task 2 contacts, Task 3 slides, Phase 2 exploration).
 TRAJECTORIES: tuple[str, ...] = (
@@ -65,9 +73,11 @@ def register(sub: Any) -> None:
         help="stationary contact: orientation-specific shift (eq. 4) or uniform (default: the scene's, orientation)",
     )
     add_device_arg(p)
+    add_participant_arg(p)
     p.add_argument("--frames", metavar="FILE", default=None, help="write the frames as JSON lines to FILE")
     p.add_argument("--gif", metavar="OUT.gif", default=None, help="also draw the held patterns on the array as an animated GIF (needs the plot extra)")
-    p.add_argument("--current-ua", type=int, default=0, help="participant current in µA (default 0: patterns only)")
+    p.add_argument("--current-ua", type=int, default=None,
+                   help="participant current in µA (default: the highest calibrated region with --participant, else 0: patterns only)")
     p.add_argument("--seed", type=int, default=0, help="seed of the trajectory's random parts (default 0)")
     p.add_argument("--realtime", action="store_true", help="pace the run to the trajectory's clock")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
@@ -87,6 +97,12 @@ def run(args: argparse.Namespace) -> int:
         raise LimitError("--rate", args.rate, "> 0 Hz")
     if args.speed is not None and (not args.speed > 0 or args.speed == float("inf")):
         raise LimitError("--speed", args.speed, "a finite speed > 0 mm/s")
+    profile = profile_from_args(args)  # a bad profile is refused before anything is opened
+    guard = guard_from_args(args)
+    if profile is not None:
+        args.current_ua = profile.stimulation_ua if args.current_ua is None else args.current_ua
+        args.contact_mode = args.contact_mode or profile.contact_mode
+    args.current_ua = 0 if args.current_ua is None else args.current_ua
     if args.current_ua < 0:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
     options = None
@@ -114,7 +130,15 @@ def run(args: argparse.Namespace) -> int:
     out = open(args.frames, "w", encoding="utf-8") if args.frames else None  # noqa: SIM115
     gif_records: list[dict[str, Any]] | None = [] if args.gif else None
     try:
-        with open_device(args.device, timeout=args.timeout, mapping=array.channel_mapping()) as dev:
+        stim_config = None
+        if profile is not None:  # the calibrated pulse; the guard refuses anything else
+            from ..device import StimConfig
+
+            stim_config = StimConfig(electrode_count=array.channel_mapping().hw_channels, current_ua=args.current_ua,
+                                     pulse_width_us=profile.pulse_width_us, polarity=profile.polarity)
+        audit = audit_from_args(args, participant=profile.participant if profile is not None else None)
+        with open_device(args.device, timeout=args.timeout, mapping=array.channel_mapping(), guard=guard,
+                         audit=audit) as dev:
             verify = getattr(getattr(dev, "port", None), "emulator", None) is not None
             renderer = Renderer(
                 scene,
@@ -123,6 +147,7 @@ def run(args: argparse.Namespace) -> int:
                 approach=args.approach,
                 contact_mode=args.contact_mode,
                 current_ua=args.current_ua,
+                stim_config=stim_config,
                 verify=verify,
             )
 

@@ -6,7 +6,15 @@ import argparse
 from typing import Any
 
 from ..errors import ConfigurationError
-from .common import add_device_arg, add_participant_arg, audit_from_args, guard_from_args, hold, print_json, profile_from_args
+from .common import (
+    add_device_arg,
+    add_participant_arg,
+    audit_from_args,
+    guard_from_args,
+    hold,
+    print_json,
+    profile_from_args,
+)
 
 
 def register(sub: Any) -> None:

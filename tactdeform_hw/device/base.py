@@ -515,6 +515,9 @@ class Device(ABC):
         """The one exit for bytes: interlock, pacing, transport, audit.  A failed write leaves the
         firmware's state unknown, so the interlock forgets it and the next frame resyncs first."""
         self._check_open()
+        data = bytes(data)
+        if not data:
+            return
         shadow = self.guard.check_wire(data, mapping=self.mapping, transfer=self.transfer)
         audit = self._audit
         op = self._op or ""

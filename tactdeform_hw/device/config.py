@@ -38,7 +38,7 @@ class StimConfig:
         check_int("pulse_width_us", self.pulse_width_us, 1, U16_MAX, "µs")
         check_int("discharge_us", self.discharge_us, 0, U8_MAX, "µs")
         check_int("rate_hz", self.rate_hz, 1, U16_MAX, "Hz")
-        if self.polarity not in POLARITY_CODE:
+        if not isinstance(self.polarity, str) or self.polarity not in POLARITY_CODE:
             raise LimitError("polarity", self.polarity, "'anodic' or 'cathodic'")
         sense_code(self.sense_current_ua, transfer)
         check_int("sense_width_us", self.sense_width_us, 0, U8_MAX, "µs")

@@ -11,7 +11,9 @@ forever.  So the host must switch everything off whenever its owner stops, for w
   ``KeyboardInterrupt`` / ``SystemExit(143)`` so the program unwinds and closes normally;
 * **interpreter exit** — an ``atexit`` hook closes every device still open;
 * **a stalled renderer** — a watchdog sends all-off when no frame (``send_pattern``, ``set_current`` or
-  ``keepalive``) came for ``watchdog_s`` (default 100 ms).  The stop keeps the target current and the
+  ``keepalive``) came for ``watchdog_s`` (default 100 ms): it acts early enough (one poll and the link's
+  latency before the deadline) that the all-off reaches the firmware within ``watchdog_s``; the scan in
+  progress then finishes, so no channel stays on longer than ``watchdog_s`` plus one scan period.  The stop keeps the target current and the
   caller's last frame, so when frames come again stimulation resumes — from height 0, under the ramp
   limit when the profile has one;
 * **a parser out of step** — optionally, a probe every ``probe_interval_s`` (a measure request must be
@@ -62,6 +64,7 @@ logger = logging.getLogger("tactdeform_hw.failsafe")
 
 DEFAULT_WATCHDOG_S = 0.100
 DEFAULT_POLL_S = 0.002
+LINK_MARGIN_S = 0.002
 
 _open_devices: weakref.WeakSet[Device] = weakref.WeakSet()
 _atexit_installed = False
@@ -122,6 +125,9 @@ class FailSafe:
         self.probe_interval_s = probe_interval_s
         self.refresh_interval_s = refresh_interval_s
         self.poll_s = poll_s
+        #: The all-off must reach the firmware within ``watchdog_s`` of the last frame: act that much
+        #: earlier than the deadline (one poll, the USB frame and a packet's wire time).
+        self.watchdog_trigger_s = max(0.0, watchdog_s - poll_s - LINK_MARGIN_S) if watchdog_s is not None else None
         self.verify_readback = verify_readback
         self.readback = Readback()
         self.clock: Clock = clock if clock is not None else device.pacer.clock
@@ -239,7 +245,8 @@ class FailSafe:
         if dev.config is None:
             return
         last = dev.last_frame_time
-        if self.watchdog_s is not None and last is not None and now - last > self.watchdog_s and dev.stimulating:
+        trigger = self.watchdog_trigger_s
+        if trigger is not None and last is not None and now - last > trigger and dev.stimulating:
             self.watchdog_trips += 1
             self._guarded(dev.suspend)
             self._event("watchdog", idle_s=round(now - last, 6), limit_s=self.watchdog_s)

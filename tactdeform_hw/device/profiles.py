@@ -264,17 +264,16 @@ def _file_format(path: Path) -> str:
     raise ProfileError(str(path), "file", f"extension {ext or '(none)'!r} is neither .json nor .toml")
 
 
-def _toml_loads(text: str) -> dict[str, Any]:
+def _toml_loads(text: str, source: str) -> dict[str, Any]:
     try:
         import tomllib
-    except ModuleNotFoundError:  # Python 3.10
+    except ModuleNotFoundError:  # Python 3.10: the same parser, as the tomli package (a dependency there)
         try:
-            import tomli as tomllib  # type: ignore[no-redef]
+            import tomli as tomllib  # type: ignore[no-redef,import-not-found,unused-ignore]
         except ModuleNotFoundError as exc:
-            from ..errors import MissingDependencyError
-
-            raise MissingDependencyError("tomli", "toml", "reading TOML profiles on Python 3.10") from exc
-    return tomllib.loads(text)
+            raise ProfileError(source, "file", "reading TOML on Python 3.10 needs the 'tomli' package") from exc
+    data: dict[str, Any] = tomllib.loads(text)
+    return data
 
 
 def load_profile(path: str | os.PathLike[str]) -> ParticipantProfile:
@@ -296,7 +295,7 @@ def load_profile(path: str | os.PathLike[str]) -> ParticipantProfile:
         if fmt == "json":
             data = json.loads(text, object_pairs_hook=_no_duplicates, parse_constant=_reject_constant)
         else:
-            data = _toml_loads(text)
+            data = _toml_loads(text, source)
     except ValueError as exc:  # json.JSONDecodeError and tomllib.TOMLDecodeError are ValueErrors
         raise ProfileError(source, "file", f"is not valid {fmt.upper()}: {exc}") from exc
     return profile_from_dict(data, source)

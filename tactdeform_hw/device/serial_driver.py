@@ -14,8 +14,8 @@ from ..protocol.constants import BAUD_RATE
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
 from .base import Device
-from .pacing import Pacer, default_pacer
 from .mapping import ChannelMapping
+from .pacing import Pacer, default_pacer
 from .safety import SafetyGuard
 
 DEFAULT_TIMEOUT_S = 0.5

@@ -40,8 +40,14 @@ central electrodes; farther out it would only touch the outer ring.  A parameter
 
 def check_texture_level(field: str, value: object) -> int:
     """Return a texture level (0, 1 or 2) or raise naming the field."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) not in TEXTURE_LEVELS:
-        raise ConfigurationError(f"{field}={value!r} is not a texture level: 0 (smooth), 1 (rough) or 2 (rougher)")
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, np.integer))
+        or int(value) not in TEXTURE_LEVELS
+    ):
+        raise ConfigurationError(
+            f"{field}={value!r} is not a texture level: 0 (smooth), 1 (rough) or 2 (rougher)"
+        )
     return int(value)
 
 
@@ -143,7 +149,9 @@ class TextureRegion:
             )
         object.__setattr__(self, "lo_mm", lo)
         object.__setattr__(self, "hi_mm", hi)
-        object.__setattr__(self, "level", check_texture_level(f"texture region {self.name!r} level", self.level))
+        object.__setattr__(
+            self, "level", check_texture_level(f"texture region {self.name!r} level", self.level)
+        )
 
 
 class RegionLookup:

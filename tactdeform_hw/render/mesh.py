@@ -7,19 +7,24 @@ Construction reads the file, places the mesh (rotation, then scaled so its large
 centred on ``center_mm``), welds duplicate vertices and drops degenerate triangles: numpy only.
 Everything else is built on first use (or by :meth:`TriangleMesh.prepare`) and only if the run needs it:
 
-* the *index* (needs scipy, extra ``mesh``): per-triangle data packed for the distance kernel, surface
-  samples in a KD-tree, pseudo-normals (closed meshes) or a winding-number hierarchy (open ones);
+* the *index* (needs scipy, extra ``mesh``): long edges split, per-triangle linear maps for the distance
+  kernel, vertices in a KD-tree, pseudo-normals (closed meshes) or a winding-number hierarchy (open ones);
 * the *features* (only when contacts are classified): dihedral angles, sharp-edge chains, corners.
 
 Closest triangle, exactly
 -------------------------
-The KD-tree holds points *on* the surface: every vertex (standing for its incident triangles) and, on
-triangles longer than the sample spacing s, a barycentric grid of n = ⌈L/s⌉ steps (standing for that
-triangle).  Every point of every triangle then lies within h = max L/(n√3) of one of its own samples.
-For a query p, the nearest sample is at d₁ ≥ D (the true distance), and the closest triangle has a sample
-within D + h ≤ d₁ + h; so the triangles of the samples inside the ball of radius d₁ + h contain the
-closest one.  Their exact point–triangle distances are computed in one vectorised pass.  The cost is
-two tree look-ups and one kernel over a few dozen triangles near the surface, more far from it.
+Edges longer than the sample spacing s (default twice the median edge) are split at their midpoints,
+conformingly, until none is left: the surface is unchanged, but every point of every triangle now lies
+within h (the largest circumradius, or half-edge for obtuse triangles, at most s/√3) of one of that
+triangle's vertices.  The KD-tree holds the vertices.  For a query p at true distance D, any point known
+to be on the surface at distance U ≥ D (the nearest vertex, or the previous query's closest point when
+the finger has moved little) bounds the search: the closest triangle has a vertex within D + h ≤ U + h,
+so the triangles around the vertices in that ball contain it.  Their squared distances come from one
+matrix product (each triangle stores the 16 quantities of the point–triangle distance that are linear
+in p) and a few clamps; the winner's closest point, region and sign are then computed exactly on floats.
+Near the surface that is one or two tree look-ups and a kernel over a few dozen triangles; far from it
+the ball, and the cost, grow.  Queries keep that coherence hint, so one object should not be queried
+from several threads at once.
 
 Sign
 ----
@@ -110,11 +115,15 @@ def read_obj(path: str | os.PathLike[str]) -> MeshData:
             try:
                 vertices.append((float(parts[1]), float(parts[2]), float(parts[3])))
             except (IndexError, ValueError):
-                raise ConfigurationError(f"{p}: line {lineno}: vertex needs three numbers: {line.strip()!r}") from None
+                raise ConfigurationError(
+                    f"{p}: line {lineno}: vertex needs three numbers: {line.strip()!r}"
+                ) from None
         elif line.startswith("f "):
             tokens = line.split()[1:]
             if len(tokens) < 3:
-                raise ConfigurationError(f"{p}: line {lineno}: face needs at least three vertices: {line.strip()!r}")
+                raise ConfigurationError(
+                    f"{p}: line {lineno}: face needs at least three vertices: {line.strip()!r}"
+                )
             idx = []
             nv = len(vertices)
             for tok in tokens:
@@ -167,7 +176,9 @@ def read_mesh(path: str | os.PathLike[str]) -> MeshData:
         return read_obj(p)
     if suffix in (".stl", ".ply"):
         return _read_with_trimesh(p)
-    raise ConfigurationError(f"mesh file {str(p)!r}: unsupported format {suffix!r}; use one of {', '.join(MESH_SUFFIXES)}")
+    raise ConfigurationError(
+        f"mesh file {str(p)!r}: unsupported format {suffix!r}; use one of {', '.join(MESH_SUFFIXES)}"
+    )
 
 
 # --- cleaning and topology ----------------------------------------------------------------------------
@@ -285,7 +296,9 @@ class _WindingNumber:
     """Generalised winding number of an (open or self-intersecting) triangle soup, two-level fast version:
     exact solid angles for clusters within ``beta`` cluster radii of the point, dipoles beyond."""
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 16, beta: float = 2.0) -> None:
+    def __init__(
+        self, vertices: np.ndarray, faces: np.ndarray, leaf_size: int = 16, beta: float = 2.0
+    ) -> None:
         a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
         centroids = (a + b + c) / 3.0
         leaves: list[np.ndarray] = []
@@ -367,7 +380,9 @@ class _WindingNumber:
         return winding
 
 
-def _refine_long_edges(vertices: np.ndarray, faces: np.ndarray, max_len: float, rounds: int = 16) -> tuple[np.ndarray, np.ndarray]:
+def _refine_long_edges(
+    vertices: np.ndarray, faces: np.ndarray, max_len: float, rounds: int = 16
+) -> tuple[np.ndarray, np.ndarray]:
     """Split every edge longer than ``max_len`` at its midpoint, conformingly (both triangles of an edge are
     split, so a closed mesh stays closed), until none is left.  The surface is unchanged; only its
     triangles get small enough for vertex samples to cover them."""
@@ -436,13 +451,21 @@ class _Index:
     """Everything a closest-triangle query needs, built once per mesh (in coordinates centred on the
     mesh, so the expanded squared distances keep their precision)."""
 
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray, topo: _Topology, sample_spacing_mm: float | None,
-                 sign_method: str) -> None:
+    def __init__(
+        self,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        topo: _Topology,
+        sample_spacing_mm: float | None,
+        sign_method: str,
+    ) -> None:
         spatial = _scipy_spatial()
         if sign_method == "auto":
             sign_method = "pseudonormal" if topo.watertight else "winding"
         if sign_method not in ("pseudonormal", "winding"):
-            raise ConfigurationError(f"sign_method={sign_method!r} must be 'auto', 'pseudonormal' or 'winding'")
+            raise ConfigurationError(
+                f"sign_method={sign_method!r} must be 'auto', 'pseudonormal' or 'winding'"
+            )
         if sign_method == "pseudonormal" and not topo.watertight:
             raise ConfigurationError(
                 "sign_method='pseudonormal' needs a closed, consistently oriented mesh; use 'winding' or 'auto'"
@@ -471,7 +494,8 @@ class _Index:
         starts = np.stack((a, b, c), axis=1)  # (F, 3, 3)
         dirs = np.stack((b - a, c - b, a - c), axis=1)
         l2 = np.einsum("fkj,fkj->fk", dirs, dirs)
-        g = np.zeros((n_faces, _N_ROWS, 4))
+        rows = np.zeros((n_faces + 1, _N_ROWS, 4))  # the last row is the sentinel
+        g = rows[:n_faces]
         g[:, _R_SQ, 0:3] = -2.0 * starts
         g[:, _R_SQ, 3] = np.einsum("fkj,fkj->fk", starts, starts)
         g[:, _R_T, 0:3] = dirs / l2[:, :, None]
@@ -492,11 +516,10 @@ class _Index:
         g[:, _R_PD, 0:3] = self.face_normals
         g[:, _R_PD, 3] = -np.einsum("ij,ij->i", self.face_normals, a)
         # A sentinel triangle far away pads the vertex-to-triangle table.
-        sentinel = np.zeros((1, _N_ROWS, 4))
-        sentinel[0, _R_SQ, 3] = _SENTINEL_COORD
-        sentinel[0, _R_L2, 3] = 1.0
-        sentinel[0, 12:15, 3] = -1.0
-        self.rows = np.concatenate((g, sentinel))
+        rows[n_faces, _R_SQ, 3] = _SENTINEL_COORD
+        rows[n_faces, _R_L2, 3] = 1.0
+        rows[n_faces, _R_BARY, 3] = -1.0
+        self.rows = rows
         self.sentinel = n_faces
         self._stamp = np.zeros(n_faces + 1, dtype=np.int32)
 
@@ -509,12 +532,28 @@ class _Index:
         obtuse = 2.0 * longest**2 >= la**2 + lb**2 + lc**2
         cover = np.where(obtuse, longest / 2.0, circum)
         self.cover_mm = float(cover.max())
-        # Bounding spheres of the triangles, for pruning candidate pairs in batched inside tests.
-        self.tri_centre = (a + b + c) / 3.0
-        self.tri_radius = np.sqrt(
+        # Bounding spheres and planes of the triangles, for pruning candidate pairs in batched tests:
+        # columns centre (3), radius, normal (3), plane offset.
+        centre = (a + b + c) / 3.0
+        radius = np.sqrt(
             np.maximum(
-                np.maximum(((a - self.tri_centre) ** 2).sum(1), ((b - self.tri_centre) ** 2).sum(1)),
-                ((c - self.tri_centre) ** 2).sum(1),
+                np.maximum(((a - centre) ** 2).sum(1), ((b - centre) ** 2).sum(1)), ((c - centre) ** 2).sum(1)
+            )
+        )
+        far = np.zeros((1, 8))
+        far[0, 0:3] = _SENTINEL_COORD  # the sentinel triangle: never within reach
+        self.tri_bounds = np.concatenate(
+            (
+                np.concatenate(
+                    (
+                        centre,
+                        radius[:, None],
+                        self.face_normals,
+                        np.einsum("ij,ij->i", self.face_normals, a)[:, None],
+                    ),
+                    axis=1,
+                ),
+                far,
             )
         )
 
@@ -569,8 +608,8 @@ class _Index:
     def n_triangles(self) -> int:
         return len(self.faces)
 
-    def _radius(self, p: np.ndarray) -> float:
-        """Radius of a ball around p (local coordinates) that holds a vertex of the closest triangle."""
+    def _upper_bound(self, p: np.ndarray) -> float:
+        """A distance from p (local coordinates) to a point on the surface: at least the true distance."""
         if self._hint_point is not None:
             moved = p - self._hint_point
             step = math.sqrt(float(moved @ moved))
@@ -578,16 +617,23 @@ class _Index:
             upper = math.sqrt(float(gap_p @ gap_p))  # the old closest point is on the surface
             lower = self._hint_distance - step  # the distance is 1-Lipschitz
             if upper - lower <= 2.0 * self.cover_mm:
-                return upper * (1.0 + 1e-9) + self.cover_mm + 1e-9
+                return upper * (1.0 + 1e-9) + 1e-9
         d1, _ = self.tree.query(p)
-        return float(d1) * (1.0 + 1e-9) + self.cover_mm + 1e-9
+        return float(d1) * (1.0 + 1e-9) + 1e-9
 
     def closest_triangle(self, p: np.ndarray) -> int:
         """The triangle closest to p (local coordinates), exactly."""
-        ids = self.tree.query_ball_point(p, self._radius(p))
+        upper = self._upper_bound(p)
+        ids = self.tree.query_ball_point(p, upper + self.cover_mm)
         tris = self.table[ids].ravel()
         if len(tris) > 96:
             tris = self._dedupe(tris)
+            # Far from the surface the ball holds many triangles; drop those whose bounding sphere
+            # stays beyond the upper bound before the full kernel.
+            b = self.tri_bounds[tris]
+            d = b[:, 0:3] - p
+            reach = upper + b[:, 3]
+            tris = tris[(d * d).sum(axis=1) <= reach * reach]
         r = self.rows[tris] @ np.array((p[0], p[1], p[2], 1.0))
         t = _maximum(_minimum(r[:, _R_T], 1.0), 0.0)
         d2e = (t * r[:, _R_L2] - r[:, _R_S2]) * t + r[:, _R_SQ]
@@ -625,7 +671,9 @@ class _Index:
         first = np.concatenate(([0], np.flatnonzero(np.diff(owner[order])) + 1))
         return tris[order[first]]
 
-    def finish(self, p: np.ndarray, tri: int, remember: bool = True) -> tuple[float, np.ndarray, np.ndarray, int]:
+    def finish(
+        self, p: np.ndarray, tri: int, remember: bool = True
+    ) -> tuple[float, np.ndarray, np.ndarray, int]:
         """Signed distance, closest point (local), outward normal and region code for the closest triangle."""
         px, py, pz = float(p[0]), float(p[1]), float(p[2])
         qx, qy, qz, region = _closest_on_triangle(px, py, pz, self.vertices[self.faces[tri]].tolist())
@@ -647,7 +695,11 @@ class _Index:
             self._hint_point = p.copy()
             self._hint_closest = closest
             self._hint_distance = dist
-            if self.winding is not None and self._sign_point is not None and np.array_equal(self._sign_point, p):
+            if (
+                self.winding is not None
+                and self._sign_point is not None
+                and np.array_equal(self._sign_point, p)
+            ):
                 self._sign_radius = dist
         return (-dist if inside else dist), closest, normal, region
 
@@ -696,20 +748,25 @@ class _Index:
             return self._inside_each(points)
         shared = self._dedupe(self.table[ids].ravel())
         shared = shared[shared != self.sentinel]
-        # A triangle can be a point's closest only if its bounding sphere reaches within d1 of it.
-        m = self.tri_centre[shared]
-        reach = d1[:, None] + self.tri_radius[shared][None, :]
-        d2c = (points * points).sum(axis=1)[:, None] - 2.0 * points @ m.T + (m * m).sum(axis=1)[None, :]
-        owner, col = np.nonzero(d2c <= reach * reach + 1e-9)
-        tris = shared[col]
+        bounds = self.tri_bounds[shared]
+        m, rho, nrm, off = bounds[:, 0:3], bounds[:, 3], bounds[:, 4:7], bounds[:, 7]
+        pp = (points * points).sum(axis=1)
+        centre_d2 = pp[:, None] - 2.0 * (points @ m.T) + (m * m).sum(axis=1)[None, :]
+        # An upper bound close to the answer: the exact distance to the triangle whose centre is nearest.
+        nearest = shared[np.argmin(centre_d2, axis=1)]
         ph = np.concatenate((points, np.ones((n, 1))), axis=1)
+        upper = np.sqrt(np.maximum(self._pair_sq_distances(self.rows[nearest], ph, pp), 0.0)) + 1e-9
+        # Keep pairs whose lower bounds (bounding sphere, plane) do not exceed it.
+        reach = upper[:, None] + rho[None, :]
+        plane = points @ nrm.T - off[None, :]
+        owner, col = np.nonzero((centre_d2 <= reach * reach) & (np.abs(plane) <= upper[:, None]))
+        tris = shared[col]
         r = np.einsum("mij,mj->mi", self.rows[tris], ph[owner])
         t = _maximum(_minimum(r[:, _R_T], 1.0), 0.0)
         d2e = (t * r[:, _R_L2] - r[:, _R_S2]) * t + r[:, _R_SQ]
         bary = r[:, _R_BARY]
         face = bary.min(axis=1) >= 0.0
-        pp = (points * points).sum(axis=1)[owner]
-        d2 = np.where(face, r[:, _R_PD] ** 2 - pp, d2e.min(axis=1))
+        d2 = np.where(face, r[:, _R_PD] ** 2 - pp[owner], d2e.min(axis=1))
         order = np.lexsort((d2, owner))
         first = order[np.concatenate(([0], np.flatnonzero(np.diff(owner[order])) + 1))]
         # Closest feature of each point's closest triangle, and the side of its pseudo-normal.
@@ -737,11 +794,23 @@ class _Index:
         inside: np.ndarray = ((points - q) * pn).sum(axis=1) <= 0.0
         return inside
 
+    @staticmethod
+    def _pair_sq_distances(rows: np.ndarray, ph: np.ndarray, pp: np.ndarray) -> np.ndarray:
+        """Squared distances of point i (homogeneous ``ph[i]``, ``pp[i] = |p|²``) to triangle ``rows[i]``."""
+        r = np.einsum("mij,mj->mi", rows, ph)
+        t = _maximum(_minimum(r[:, _R_T], 1.0), 0.0)
+        d2e = ((t * r[:, _R_L2] - r[:, _R_S2]) * t + r[:, _R_SQ]).min(axis=1)
+        face = r[:, _R_BARY].min(axis=1) >= 0.0
+        out: np.ndarray = np.where(face, r[:, _R_PD] ** 2, d2e + pp)
+        return out
+
     def _inside_each(self, points: np.ndarray) -> np.ndarray:
         tris = self.closest_triangles(points)
         out = np.empty(len(points), dtype=bool)
         for i, (p, tri) in enumerate(zip(points.tolist(), tris.tolist())):
-            qx, qy, qz, region = _closest_on_triangle(p[0], p[1], p[2], self.vertices[self.faces[tri]].tolist())
+            qx, qy, qz, region = _closest_on_triangle(
+                p[0], p[1], p[2], self.vertices[self.faces[tri]].tolist()
+            )
             pn = self._pseudo_normal(tri, region)
             out[i] = (p[0] - qx) * pn[0] + (p[1] - qy) * pn[1] + (p[2] - qz) * pn[2] <= 0.0
         return out
@@ -798,7 +867,9 @@ class _Features:
         seg_normals = n1[kept] + np.where(two[kept, None], n2[kept], 0.0) if kept.size else np.empty((0, 3))
         norms = np.linalg.norm(seg_normals, axis=1)
         self.seg_normal = seg_normals / np.where(norms > 0, norms, 1.0)[:, None]
-        valence = np.bincount(seg.ravel(), minlength=len(vertices)) if kept.size else np.zeros(len(vertices), int)
+        valence = (
+            np.bincount(seg.ravel(), minlength=len(vertices)) if kept.size else np.zeros(len(vertices), int)
+        )
         corners = valence >= 3
         two_v = np.flatnonzero(valence == 2)
         if two_v.size:
@@ -820,7 +891,9 @@ class _Features:
         self.corner_points = vertices[self.corner_vertices]
 
     @staticmethod
-    def _long_chains(vertices: np.ndarray, edges: np.ndarray, cand: np.ndarray, min_len: float, n_vertices: int) -> np.ndarray:
+    def _long_chains(
+        vertices: np.ndarray, edges: np.ndarray, cand: np.ndarray, min_len: float, n_vertices: int
+    ) -> np.ndarray:
         sparse = _scipy_sparse()
         seg = edges[cand]
         graph = sparse.coo_matrix(
@@ -858,7 +931,9 @@ class _Features:
             hi = np.maximum(self.seg_a[i], ends[i]) + band_mm
             for key in cells(lo, hi):
                 grid.setdefault(key, ([], []))[1].append(i)
-        self._grid = {key: (np.array(c, dtype=np.int64), np.array(e, dtype=np.int64)) for key, (c, e) in grid.items()}
+        self._grid = {
+            key: (np.array(c, dtype=np.int64), np.array(e, dtype=np.int64)) for key, (c, e) in grid.items()
+        }
         self._cell = cell
         self._band = band_mm
 
@@ -940,7 +1015,9 @@ class TriangleMesh(_PlacedSolid):
         if f.min() < 0 or f.max() >= len(v):
             raise ConfigurationError(f"{name}: face indices must lie in [0, {len(v) - 1}]")
         if sign_method not in ("auto", "pseudonormal", "winding"):
-            raise ConfigurationError(f"{name}: sign_method={sign_method!r} must be 'auto', 'pseudonormal' or 'winding'")
+            raise ConfigurationError(
+                f"{name}: sign_method={sign_method!r} must be 'auto', 'pseudonormal' or 'winding'"
+            )
         if self.rotation is not None:
             v = v @ self.rotation.T
         lo, hi = v.min(axis=0), v.max(axis=0)
@@ -1029,7 +1106,9 @@ class TriangleMesh(_PlacedSolid):
 
     def _ensure_index(self) -> _Index:
         if self._index is None:
-            self._index = _Index(self.vertices_mm, self.faces, self.topology, self.sample_spacing_mm, self.sign_method)
+            self._index = _Index(
+                self.vertices_mm, self.faces, self.topology, self.sample_spacing_mm, self.sign_method
+            )
         return self._index
 
     def _ensure_features(self) -> _Features:
@@ -1112,7 +1191,10 @@ class TriangleMesh(_PlacedSolid):
                 if q_out.feature != "face" or float(np.dot(q_out.normal, n)) < 0.999:
                     continue
                 q_in = self.query(point - 3.0 * n)
-                if float(np.dot(q_in.normal, n)) < 0.999 or np.linalg.norm(q_in.closest_point_mm - point) > 0.05:
+                if (
+                    float(np.dot(q_in.normal, n)) < 0.999
+                    or np.linalg.norm(q_in.closest_point_mm - point) > 0.05
+                ):
                     continue
                 out.append(SurfaceSite(self.name, "face", point, n.copy(), None, q_out.texture_level))
                 if len(out) >= limit:
@@ -1128,12 +1210,17 @@ class TriangleMesh(_PlacedSolid):
             out = []
             for i in np.argsort(-score).tolist():
                 mid = mids[i]
-                if corner_set.shape[0] and np.min(np.linalg.norm(corner_set - mid, axis=1)) <= 2 * self.feature_band_mm:
+                if (
+                    corner_set.shape[0]
+                    and np.min(np.linalg.norm(corner_set - mid, axis=1)) <= 2 * self.feature_band_mm
+                ):
                     continue
                 if any(np.linalg.norm(mid - s.point_mm) < 20.0 for s in out):
                     continue
                 level = self._texture_at(mid)[0]
-                out.append(SurfaceSite(self.name, "edge", mid, feats.seg_normal[i], feats.seg_dir[i].copy(), level))
+                out.append(
+                    SurfaceSite(self.name, "edge", mid, feats.seg_normal[i], feats.seg_dir[i].copy(), level)
+                )
                 if len(out) >= limit:
                     break
             return out

@@ -156,7 +156,9 @@ class Sphere(_PlacedSolid):
         feature_band_mm: float = DEFAULT_FEATURE_BAND_MM,
         classify_features: bool = True,
     ) -> None:
-        super().__init__(name, center_mm, None, texture_level, texture_regions, feature_band_mm, classify_features)
+        super().__init__(
+            name, center_mm, None, texture_level, texture_regions, feature_band_mm, classify_features
+        )
         r = float(radius_mm)
         if not math.isfinite(r) or r <= 0:
             raise ConfigurationError(f"{name}.radius_mm={radius_mm!r} must be a positive finite number")
@@ -274,9 +276,7 @@ class Box(_PlacedSolid):
                 edge_dir = self._dir_to_world(*axis)
         closest = self._point_to_world(*cl)
         level, region = self._texture_at(closest)
-        return SurfaceQuery(
-            self.name, sd, closest, self._dir_to_world(*n), feature, edge_dir, level, region
-        )
+        return SurfaceQuery(self.name, sd, closest, self._dir_to_world(*n), feature, edge_dir, level, region)
 
     def contains(self, points_mm: np.ndarray) -> np.ndarray:
         local = self._points_to_local(as_points(points_mm))
@@ -302,7 +302,9 @@ class Box(_PlacedSolid):
                         offset[c] += v * h[c]
                         point = self.center_mm + rot @ offset
                         out.append(
-                            SurfaceSite(self.name, "face", point, rot @ n_local, None, self._texture_at(point)[0])
+                            SurfaceSite(
+                                self.name, "face", point, rot @ n_local, None, self._texture_at(point)[0]
+                            )
                         )
         elif feature == "edge":
             for free in range(3):
@@ -316,7 +318,9 @@ class Box(_PlacedSolid):
                         axis = np.zeros(3)
                         axis[free] = 1.0
                         out.append(
-                            SurfaceSite(self.name, "edge", point, normal, rot @ axis, self._texture_at(point)[0])
+                            SurfaceSite(
+                                self.name, "edge", point, normal, rot @ axis, self._texture_at(point)[0]
+                            )
                         )
         elif feature == "corner":
             for sx in signs:
@@ -325,5 +329,7 @@ class Box(_PlacedSolid):
                         d_local = np.array((sx, sy, sz))
                         point = self.center_mm + rot @ (d_local * h)
                         normal = rot @ (d_local / math.sqrt(3.0))
-                        out.append(SurfaceSite(self.name, "corner", point, normal, None, self._texture_at(point)[0]))
+                        out.append(
+                            SurfaceSite(self.name, "corner", point, normal, None, self._texture_at(point)[0])
+                        )
         return out

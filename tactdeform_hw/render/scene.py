@@ -86,7 +86,9 @@ class RenderOptions:
 
     def __post_init__(self) -> None:
         if self.contact_mode not in CONTACT_MODES:
-            raise ConfigurationError(f"contact_mode={self.contact_mode!r} must be one of {', '.join(CONTACT_MODES)}")
+            raise ConfigurationError(
+                f"contact_mode={self.contact_mode!r} must be one of {', '.join(CONTACT_MODES)}"
+            )
         if self.approach not in APPROACHES:
             raise ConfigurationError(f"approach={self.approach!r} must be one of {', '.join(APPROACHES)}")
 
@@ -212,7 +214,9 @@ class Scene:
         names = [o.name for o in objects]
         dupes = sorted({n for n in names if names.count(n) > 1})
         if dupes:
-            raise ConfigurationError(f"scene {name!r}: object names must be unique, repeated: {', '.join(dupes)}")
+            raise ConfigurationError(
+                f"scene {name!r}: object names must be unique, repeated: {', '.join(dupes)}"
+            )
         self.name = name
         self.objects: tuple[SceneObject, ...] = tuple(objects)
         self.options = options or RenderOptions()
@@ -221,7 +225,9 @@ class Scene:
             if obj_name not in names:
                 raise ConfigurationError(f"scene {name!r}: approach given for unknown object {obj_name!r}")
             if approach not in APPROACHES:
-                raise ConfigurationError(f"object {obj_name!r}: approach={approach!r} must be one of {', '.join(APPROACHES)}")
+                raise ConfigurationError(
+                    f"object {obj_name!r}: approach={approach!r} must be one of {', '.join(APPROACHES)}"
+                )
         self.specs = tuple(specs) if specs is not None else None
         self._base_dir = base_dir
         self._mesh_dirs = tuple(mesh_dirs)
@@ -244,7 +250,13 @@ class Scene:
         objects = [_build_object(s, opts, needs, base_dir, mesh_dirs) for s in specs]
         approaches = {s.name: s.approach for s in specs if s.approach is not None}
         return cls(
-            objects, options=opts, name=name, approaches=approaches, specs=specs, base_dir=base_dir, mesh_dirs=mesh_dirs
+            objects,
+            options=opts,
+            name=name,
+            approaches=approaches,
+            specs=specs,
+            base_dir=base_dir,
+            mesh_dirs=mesh_dirs,
         )
 
     def _needs_from_objects(self) -> SceneNeeds:
@@ -279,7 +291,9 @@ class Scene:
         unknown = chosen - {s.name for s in self.specs}
         if unknown:
             raise ConfigurationError(f"scene {self.name!r} has no object(s) {', '.join(sorted(unknown))}")
-        specs = [replace(s, texture_level=level, texture_regions=()) if s.name in chosen else s for s in self.specs]
+        specs = [
+            replace(s, texture_level=level, texture_regions=()) if s.name in chosen else s for s in self.specs
+        ]
         return self._rebuild(specs, self.options)
 
     # -- what is built ---------------------------------------------------------------------------------
@@ -301,7 +315,9 @@ class Scene:
         return {
             "mesh_index": [o.name for o in meshes if o.index_built],
             "mesh_features": [o.name for o in meshes if o.features_built],
-            "feature_classification": [o.name for o in self.objects if getattr(o, "classify_features", False)],
+            "feature_classification": [
+                o.name for o in self.objects if getattr(o, "classify_features", False)
+            ],
             "texture_lookup": [o.name for o in self.objects if getattr(o, "has_texture_lookup", False)],
             "scipy_imported": "scipy.spatial" in sys.modules,
             "trimesh_imported": "trimesh" in sys.modules,
@@ -447,7 +463,9 @@ def _build_object(
 
         subdivisions = p.pop("subdivisions", 12)
         _no_more(spec, p)
-        return teapot_mesh(spec.name, center_mm=center, rotation=rotation, subdivisions=subdivisions, **mesh_kw, **common)
+        return teapot_mesh(
+            spec.name, center_mm=center, rotation=rotation, subdivisions=subdivisions, **mesh_kw, **common
+        )
     up_axis = p.pop("up_axis", "z" if spec.type == "bunny" else "y")
     if up_axis not in ("y", "z"):
         raise ConfigurationError(f"{spec.name}.up_axis={up_axis!r} must be 'y' or 'z'")
@@ -465,7 +483,14 @@ def _build_object(
     if up_axis == "z":
         r = r @ _Z_UP
     return TriangleMesh(
-        spec.name, data.vertices, data.faces, center_mm=center, rotation=r, source=data.source, **mesh_kw, **common
+        spec.name,
+        data.vertices,
+        data.faces,
+        center_mm=center,
+        rotation=r,
+        source=data.source,
+        **mesh_kw,
+        **common,
     )
 
 
@@ -495,7 +520,9 @@ def _resolve(value: Any, base_dir: Path | None) -> Path:
 
 def _no_more(spec: ObjectSpec, rest: Mapping[str, Any]) -> None:
     if rest:
-        raise ConfigurationError(f"object {spec.name!r} ({spec.type}): unknown key(s) {', '.join(sorted(rest))}")
+        raise ConfigurationError(
+            f"object {spec.name!r} ({spec.type}): unknown key(s) {', '.join(sorted(rest))}"
+        )
 
 
 # --- descriptions --------------------------------------------------------------------------------------
@@ -518,8 +545,14 @@ def parse_object(entry: Mapping[str, Any], index: int) -> ObjectSpec:
     if not isinstance(raw_regions, list):
         raise ConfigurationError(f"{name}.texture_regions must be a list of tables")
     for j, r in enumerate(raw_regions):
-        if not isinstance(r, Mapping) or set(r) - {"lo_mm", "hi_mm", "level", "name"} or not {"lo_mm", "hi_mm", "level"} <= set(r):
-            raise ConfigurationError(f"{name}.texture_regions[{j}] needs exactly lo_mm, hi_mm, level (and optional name)")
+        if (
+            not isinstance(r, Mapping)
+            or set(r) - {"lo_mm", "hi_mm", "level", "name"}
+            or not {"lo_mm", "hi_mm", "level"} <= set(r)
+        ):
+            raise ConfigurationError(
+                f"{name}.texture_regions[{j}] needs exactly lo_mm, hi_mm, level (and optional name)"
+            )
         regions.append(
             TextureRegion(
                 _floats(f"{name}.texture_regions[{j}].lo_mm", r["lo_mm"], 3),
@@ -536,7 +569,9 @@ def parse_object(entry: Mapping[str, Any], index: int) -> ObjectSpec:
     return ObjectSpec(kind, name, params, level, tuple(regions), approach, band)
 
 
-def parse_description(data: Mapping[str, Any], *, source: str = "<scene>") -> tuple[str, list[ObjectSpec], RenderOptions]:
+def parse_description(
+    data: Mapping[str, Any], *, source: str = "<scene>"
+) -> tuple[str, list[ObjectSpec], RenderOptions]:
     if not isinstance(data, Mapping):
         raise ConfigurationError(f"{source}: a scene description is a table/object at the top level")
     unknown = set(data) - {"name", "options", "objects"}
@@ -635,8 +670,12 @@ def builtin_specs(name: str) -> list[ObjectSpec]:
     if name == "task3":
         # Stacked 15 cm apart and offset in depth so that both tops can be stroked from above.
         return [
-            _spec("box", "upper", size_mm=[300.0, 20.0, 80.0], center_mm=[0.0, -110.0, 360.0], texture_level=1),
-            _spec("box", "lower", size_mm=[300.0, 20.0, 80.0], center_mm=[0.0, -260.0, 460.0], texture_level=2),
+            _spec(
+                "box", "upper", size_mm=[300.0, 20.0, 80.0], center_mm=[0.0, -110.0, 360.0], texture_level=1
+            ),
+            _spec(
+                "box", "lower", size_mm=[300.0, 20.0, 80.0], center_mm=[0.0, -260.0, 460.0], texture_level=2
+            ),
         ]
     raise ConfigurationError(f"no built-in scene {name!r}; built-ins: {', '.join(BUILTIN_SCENES)}")
 
@@ -659,7 +698,9 @@ def load_scene(
     if suffix in MESH_SUFFIXES:
         if not path.is_file():
             raise ConfigurationError(f"mesh file {str(path)!r} does not exist")
-        spec = ObjectSpec("mesh", path.stem or "mesh", {"path": str(path.resolve()), "center_mm": list(PHASE2_CENTER_MM)})
+        spec = ObjectSpec(
+            "mesh", path.stem or "mesh", {"path": str(path.resolve()), "center_mm": list(PHASE2_CENTER_MM)}
+        )
         return Scene.from_specs(path.stem or "mesh", [spec], options, mesh_dirs=mesh_dirs)
     if suffix in (".toml", ".json"):
         if not path.is_file():

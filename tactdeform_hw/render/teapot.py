@@ -185,7 +185,9 @@ def _bernstein(t: np.ndarray) -> np.ndarray:
     return np.stack((s**3, 3 * s * s * t, 3 * s * t * t, t**3), axis=1)
 
 
-def teapot_triangles(subdivisions: int = 12, groups: Sequence[str] | None = None) -> tuple[np.ndarray, np.ndarray]:
+def teapot_triangles(
+    subdivisions: int = 12, groups: Sequence[str] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (z up, Newell's units) and triangles of the tessellated teapot.
 
     Each patch becomes a ``subdivisions`` × ``subdivisions`` grid of quads, two triangles each, wound so
@@ -236,4 +238,6 @@ def teapot_mesh(
     applied after the z-up → y-up turn."""
     v, f = teapot_triangles(subdivisions)
     r = _Z_UP_TO_Y_UP if rotation is None else np.asarray(rotation, dtype=float) @ _Z_UP_TO_Y_UP
-    return TriangleMesh(name, v, f, center_mm=center_mm, rotation=r, fit_mm=fit_mm, source="utah-teapot", **kwargs)
+    return TriangleMesh(
+        name, v, f, center_mm=center_mm, rotation=r, fit_mm=fit_mm, source="utah-teapot", **kwargs
+    )

@@ -152,7 +152,9 @@ def _normalised_quaternion(q: np.ndarray, tolerance: float, field_name: str = "o
         raise LimitError(field_name, q.tolist(), "finite numbers")
     norm = math.sqrt(float(q @ q))
     if abs(norm - 1.0) > tolerance:
-        raise LimitError(f"{field_name} norm", round(norm, 6), f"a unit quaternion, norm within 1 ± {tolerance}")
+        raise LimitError(
+            f"{field_name} norm", round(norm, 6), f"a unit quaternion, norm within 1 ± {tolerance}"
+        )
     return q / norm
 
 
@@ -287,10 +289,15 @@ class PoseValidator:
             self._drop("malformed", f"pose sample is not numeric: t_s={t_s!r}, position={position_mm!r}")
             return None
         if p.shape != (3,) or q.shape != (4,):
-            self._drop("malformed", f"pose sample needs 3 position and 4 quaternion values, got {p.shape}, {q.shape}")
+            self._drop(
+                "malformed", f"pose sample needs 3 position and 4 quaternion values, got {p.shape}, {q.shape}"
+            )
             return None
         if not (math.isfinite(t) and np.isfinite(p).all() and np.isfinite(q).all()):
-            self._drop("non_finite", f"pose sample at t_s={t!r} has a NaN or infinite value: {p.tolist()}, {q.tolist()}")
+            self._drop(
+                "non_finite",
+                f"pose sample at t_s={t!r} has a NaN or infinite value: {p.tolist()}, {q.tolist()}",
+            )
             return None
         norm = math.sqrt(float(q @ q))
         if abs(norm - 1.0) > self.norm_tolerance:
@@ -347,7 +354,9 @@ def iter_pose_csv(
         reader = csv.reader(lines)
         header = next(reader, None)
         if header is None:
-            raise ConfigurationError(f"{name}: empty pose file; expected the header {','.join(POSE_CSV_COLUMNS)}")
+            raise ConfigurationError(
+                f"{name}: empty pose file; expected the header {','.join(POSE_CSV_COLUMNS)}"
+            )
         header = [h.strip() for h in header]
         missing = [c for c in POSE_CSV_COLUMNS if c not in header]
         if missing:

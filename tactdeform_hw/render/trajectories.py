@@ -140,7 +140,9 @@ class _Timeline:
         if dt > 0:
             self._add(dt, position, q)
 
-    def path(self, positions: Sequence[np.ndarray] | np.ndarray, rotations: Sequence[np.ndarray], speed_mm_s: float) -> None:
+    def path(
+        self, positions: Sequence[np.ndarray] | np.ndarray, rotations: Sequence[np.ndarray], speed_mm_s: float
+    ) -> None:
         for position, rotation in zip(positions, rotations):
             self.move(position, speed_mm_s, rotation)
 
@@ -148,7 +150,9 @@ class _Timeline:
         t = np.array(self.t)
         n = int(math.floor(t[-1] * rate_hz + 1e-9)) + 1
         if n > MAX_SAMPLES:
-            raise LimitError("trajectory samples", n, f"at most {MAX_SAMPLES} (raise the speed or lower the rate)")
+            raise LimitError(
+                "trajectory samples", n, f"at most {MAX_SAMPLES} (raise the speed or lower the rate)"
+            )
         ts = np.arange(n) / rate_hz
         pos = np.array(self.p)
         quats = np.array(self.q)
@@ -179,9 +183,13 @@ def refine_site(scene: Scene, site: SurfaceSite, penetration_mm: float) -> Surfa
     q = scene.query(site.point_mm - penetration_mm * site.normal)
     if q.object_name != site.object_name or q.feature != site.feature:
         return site
-    edge = q.edge_direction if site.feature == "edge" and q.edge_direction is not None else site.edge_direction
+    edge = (
+        q.edge_direction if site.feature == "edge" and q.edge_direction is not None else site.edge_direction
+    )
     if site.feature != "face":
-        return SurfaceSite(site.object_name, site.feature, site.point_mm, site.normal, edge, site.texture_level)
+        return SurfaceSite(
+            site.object_name, site.feature, site.point_mm, site.normal, edge, site.texture_level
+        )
     return SurfaceSite(site.object_name, site.feature, q.closest_point_mm, q.normal, edge, site.texture_level)
 
 
@@ -333,7 +341,9 @@ class _Params:
     withdraw: bool
 
 
-def _approach(tl: _Timeline | None, site: SurfaceSite, rotation: np.ndarray, prm: _Params, dwell_s: float) -> _Timeline:
+def _approach(
+    tl: _Timeline | None, site: SurfaceSite, rotation: np.ndarray, prm: _Params, dwell_s: float
+) -> _Timeline:
     start = site.point_mm + prm.start_distance_mm * site.normal
     end = site.point_mm - prm.penetration_mm * site.normal
     if tl is None:
@@ -558,10 +568,17 @@ def make_trajectory(
     if name not in TRAJECTORIES:
         raise ConfigurationError(f"unknown trajectory {name!r}; choose from {', '.join(TRAJECTORIES)}")
     family = _family(name)
-    speed = DEFAULT_SPEED_MM_S[family] if speed_mm_s is None else _positive("speed_mm_s", speed_mm_s, 1e5, "mm/s")
+    speed = (
+        DEFAULT_SPEED_MM_S[family] if speed_mm_s is None else _positive("speed_mm_s", speed_mm_s, 1e5, "mm/s")
+    )
     rate = _positive("rate_hz", rate_hz, 10_000.0, "Hz")
-    for field_name, value in (("tremor_mm", tremor_mm), ("noise_mm", noise_mm), ("noise_deg", noise_deg),
-                              ("penetration_mm", penetration_mm), ("dwell_s", dwell_s)):
+    for field_name, value in (
+        ("tremor_mm", tremor_mm),
+        ("noise_mm", noise_mm),
+        ("noise_deg", noise_deg),
+        ("penetration_mm", penetration_mm),
+        ("dwell_s", dwell_s),
+    ):
         if not math.isfinite(float(value)) or float(value) < 0:
             raise LimitError(field_name, value, "a finite number ≥ 0")
     if not math.isfinite(float(start_distance_mm)) or start_distance_mm < 80.0:
@@ -585,7 +602,11 @@ def make_trajectory(
     ts, pos, quats = tl.sample(rate)
     rng = np.random.default_rng(seed)
     if tremor_mm > 0:
-        hz = float(rng.uniform(8.0, 12.0)) if tremor_hz is None else _positive("tremor_hz", tremor_hz, rate / 2, "Hz")
+        hz = (
+            float(rng.uniform(8.0, 12.0))
+            if tremor_hz is None
+            else _positive("tremor_hz", tremor_hz, rate / 2, "Hz")
+        )
         axis = rng.normal(size=3)
         axis /= np.linalg.norm(axis)
         phase = float(rng.uniform(0.0, 2.0 * math.pi))
@@ -595,5 +616,7 @@ def make_trajectory(
     if noise_deg > 0:
         axes = rng.normal(size=(len(ts), 3))
         angles = rng.normal(scale=noise_deg, size=len(ts))
-        quats = np.array([quat_multiply(quat_from_axis_angle(a, ang), q) for a, ang, q in zip(axes, angles, quats)])
+        quats = np.array(
+            [quat_multiply(quat_from_axis_angle(a, ang), q) for a, ang, q in zip(axes, angles, quats)]
+        )
     return [Pose(float(t), p, q) for t, p, q in zip(ts, pos, quats)]

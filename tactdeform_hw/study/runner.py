@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -30,7 +30,6 @@ import numpy as np
 from ..errors import ConfigurationError, TactDeformError
 from ..protocol.constants import Opcode
 from ..render.array import ElectrodeArray
-from ..render.geometry import TEXTURE_NAMES
 from ..render.manager import ManagerConfig
 from ..render.patterns import PatternSet
 from ..render.pipeline import FrameRecord, Renderer
@@ -318,22 +317,7 @@ def run_study(
     array = ElectrodeArray.tactdeform()
     patterns = PatternSet(array)
     mapping = array.channel_mapping()
-    is_emulator = device in ("emulator", "emu", "") or device.startswith("etactile://")
-    if current_ua is not None:
-        current, source = int(current_ua), "--current-ua"
-    elif profile is not None:
-        current, source = int(profile.stimulation_ua), f"participant {profile.participant}"
-    elif is_emulator:
-        current, source = NOMINAL_EMULATOR_UA, "nominal emulator current"
-    else:
-        current, source = 0, "none given: patterns only"
     guard = guard if guard is not None else SafetyGuard()
-    stim = StimConfig(
-        electrode_count=mapping.hw_channels,
-        current_ua=current,
-        pulse_width_us=profile.pulse_width_us if profile is not None else 200,
-        polarity=profile.polarity if profile is not None else "anodic",
-    )
     scenes = _Scenes(mesh_dirs)
     runs: list[TrialRun] = [TrialRun(t) for t in study.trials]
     notes: list[str] = []
@@ -354,6 +338,20 @@ def run_study(
     dev.port = tap
     session_t = 0.0
     try:
+        if current_ua is not None:
+            current, source = int(current_ua), "--current-ua"
+        elif profile is not None:
+            current, source = int(profile.stimulation_ua), f"participant {profile.participant}"
+        elif _emulator_of(dev) is not None:
+            current, source = NOMINAL_EMULATOR_UA, "nominal emulator current"
+        else:
+            current, source = 0, "none given: patterns only"
+        stim = StimConfig(
+            electrode_count=mapping.hw_channels,
+            current_ua=current,
+            pulse_width_us=profile.pulse_width_us if profile is not None else 200,
+            polarity=profile.polarity if profile is not None else "anodic",
+        )
         for run in runs:
             trial = run.trial
             if run.skipped is not None:
@@ -438,25 +436,28 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     emu = TimedEmulator(link=link)
     at: dict[int, float] = {}
     last = -math.inf
-    for k, w in enumerate(writes):
+    for w in writes:
         t_us = max(w.t_s * 1e6, last + PACE_S * 1e6)
         last = t_us
         at[id(w)] = t_us
         emu.advance_to(max(emu.now_us, t_us))
         emu.write(w.data, at_us=t_us)
-        del k
     emu.advance_to(last + TAIL_S * 1e6)
     reports = emu.reports
     table = reports.pulse_table()
     mapping = result.array.channel_mapping()
     hw_to_app = {ch: i for i, ch in enumerate(mapping.app_to_hw)}
-    overruns = [c for c in reports.overruns()]
-    torn = reports.torn()
+    # Overruns, queue overflows and watchdog resets are in the hazard list; torn scans and lost bytes are
+    # taken from the scan runs and the loss reports (per-cycle reports would be tens of thousands).
+    torn_runs = [r.starts_ns() / 1000.0 for r in reports.runs if r.torn is not None]
     losses = list(emu.losses)
     hazards = list(emu.hazards)
     result.timed = True
     summary = reports.summary()
-    summary.pop("model_assumptions", None)
+    # The model's assumptions are the timing command's business; a pattern's "latency" to its first
+    # pulse is unbounded for an all-off frame, so the maximum says nothing about the session here.
+    for key in ("model_assumptions", "latency_us_max", "now_us"):
+        summary.pop(key, None)
     result.timed_summary = summary
     starts = table["start_us"]
     order = np.argsort(starts, kind="stable")
@@ -502,17 +503,12 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
             "_table": sel,
         }
         found: list[dict[str, Any]] = []
-        for c in overruns:
-            if lo_us <= c.start_us < hi_us:
-                found.append({"kind": "overrun", "time_us": c.start_us, "scan_us": c.duration_us})
-        for t in torn:
-            if lo_us <= t.start_us < hi_us:
-                found.append({"kind": "torn_pattern", "time_us": t.start_us})
+        for scan_starts in torn_runs:
+            for s_us in scan_starts[(scan_starts >= lo_us) & (scan_starts < hi_us)].tolist():
+                found.append({"kind": "torn_pattern", "time_us": s_us})
         for lo in losses:
-            d = lo.to_dict()
-            tl = d.get("time_us", d.get("t_us"))
-            if tl is None or lo_us <= float(tl) < hi_us:
-                found.append({"kind": "loss", **{k: v for k, v in d.items() if k in ("time_us", "t_us", "count", "reason")}})
+            if lo_us <= lo.time_us < hi_us:
+                found.append({"kind": "loss", "time_us": lo.time_us, "count": lo.count, "reason": lo.reason})
         for h in hazards:
             if h.time_us is None or lo_us <= h.time_us < hi_us:
                 found.append(h.to_dict())
@@ -532,10 +528,6 @@ def frame_intents(run: TrialRun, array: ElectrodeArray) -> list[tuple[float, tup
     return out
 
 
-def texture_name(level: int | None) -> str | None:
-    return None if level is None else TEXTURE_NAMES.get(level, str(level))
-
-
 __all__ = [
     "INTER_TRIAL_S",
     "NOMINAL_EMULATOR_UA",
@@ -549,7 +541,3 @@ __all__ = [
     "run_study",
     "trial_poses",
 ]
-
-
-def _unused(*_: Any) -> None:  # keep ``replace`` import meaningful for type checkers
-    replace

@@ -52,9 +52,12 @@ THETA_LEVEL_NAMES: tuple[str, ...] = ("steep-left", "shallow-left", "shallow-rig
 PHASE2_OBJECTS: tuple[str, ...] = ("sphere", "cube", "teapot", "bunny")
 PHASE2_APPROACHES: tuple[str, ...] = ("ua", "cam", "tactdeform")
 
-#: How far into the surface a Task 1 approach goes: 5 mm is two and a half electrode spacings, so every
-#: frame of the face's diverging ring (three rings on the 6 × 6 pad) is shown once per approach.
-TASK1_PENETRATION_MM = 5.0
+#: How far into the surface a Task 1 approach goes.  On a face, 5 mm (two and a half electrode spacings)
+#: shows every frame of the diverging ring (three rings on the 6 × 6 pad) once.  On an edge or a corner
+#: the press stops at 3.5 mm: deeper, the pad centre's nearest surface point moves more than the 3 mm
+#: feature band away from the edge (5 mm / √2 = 3.5 mm on a right-angled edge) and the renderer rightly
+#: reads a face; 3.5 mm shows two expansion frames.
+TASK1_PENETRATION_MM: dict[str, float] = {"face": 5.0, "edge": 3.5, "corner": 3.5}
 #: Where every approach starts and ends: beyond the 8 cm the study withdrew to between approaches.
 START_DISTANCE_MM = 100.0
 #: The paper's worked sliding example (rough shifts at 10 Hz, rougher at 5 Hz).
@@ -133,6 +136,7 @@ class Study:
     quick: bool = False
     seed: int = 0
     notes: tuple[str, ...] = ()
+    selection: str | None = None  # the --trials list when only some trials are run
 
     def to_json(self) -> dict[str, Any]:
         manager = {k: (sorted(v) if isinstance(v, frozenset) else v) for k, v in self.manager.items()}
@@ -141,8 +145,8 @@ class Study:
             "title": self.title,
             "quick": self.quick,
             "seed": self.seed,
+            "selection": self.selection,
             "manager": manager,
-            "notes": list(self.notes),
             "trials": len(self.trials),
         }
 
@@ -171,7 +175,7 @@ def _number(trials: list[Trial], study: str) -> tuple[Trial, ...]:
 # --- task 1 --------------------------------------------------------------------------------------------------
 
 
-def task1(seed: int = 0, quick: bool = False) -> Study:
+def task1(seed: int = 0, quick: bool = False, contact_mode: str = "orientation") -> Study:
     rng = random.Random(f"task1:{seed}")
     conditions: list[tuple[str, str | None]] = []
     if quick:
@@ -188,9 +192,9 @@ def task1(seed: int = 0, quick: bool = False) -> Study:
         expect: dict[str, Any] = {"feature": feature, "orientation": orientation, "object": "cube"}
         if orientation is not None:
             expect["edge_angle_deg"] = APPROACH_EDGE_ANGLES_DEG[orientation]
-        seg = Segment(name, None, None, TASK1_PENETRATION_MM, expect)
-        desc = f"approach a {feature}" + (f" shown {orientation} on the pad" if orientation else "")
-        trials.append(Trial(0, "", "task1", "task1", (seg,), condition=cond, description=desc))
+        seg = Segment(name, None, None, TASK1_PENETRATION_MM[feature], expect)
+        desc = f"approach {'an' if feature == 'edge' else 'a'} {feature}" + (f" shown {orientation} on the pad" if orientation else "")
+        trials.append(Trial(0, "", "task1", "task1", (seg,), contact_mode=contact_mode, condition=cond, description=desc))
     counts = {o: sum(1 for f, oo in conditions if oo == o) for o in EDGE_ORIENTATIONS}
     notes = [f"edge orientations shown: {', '.join(f'{o}×{n}' for o, n in counts.items())} (seed {seed})"]
     return Study("task1", STUDY_TITLES["task1"], _number(trials, "task1"), {}, quick, seed, tuple(notes))
@@ -199,7 +203,8 @@ def task1(seed: int = 0, quick: bool = False) -> Study:
 # --- task 2 --------------------------------------------------------------------------------------------------
 
 
-def task2(seed: int = 0, quick: bool = False) -> Study:
+def task2(seed: int = 0, quick: bool = False, contact_mode: str = "orientation") -> Study:
+    # Both contact modes are the task's comparison: ``contact_mode`` (a participant's preference) is not used.
     rng = random.Random(f"task2:{seed}")
     blocks = ["orientation", "uniform"]
     rng.shuffle(blocks)
@@ -231,7 +236,8 @@ def task2(seed: int = 0, quick: bool = False) -> Study:
 TASK3_SURFACES: tuple[str, str] = ("upper", "lower")
 
 
-def task3(seed: int = 0, quick: bool = False) -> Study:
+def task3(seed: int = 0, quick: bool = False, contact_mode: str = "orientation") -> Study:
+    # Nothing is rendered in stationary contact in Task 3, so the contact mode does not matter.
     rng = random.Random(f"task3:{seed}")
     pairs = [(a, b) for a in range(3) for b in range(a, 3)]
     cells: list[tuple[int, int]] = []
@@ -254,7 +260,13 @@ def task3(seed: int = 0, quick: bool = False) -> Study:
             Trial(0, "", "task3", "task3", segs, textures=(("upper", upper), ("lower", lower)), condition=cond,
                   description=f"stroke the upper ({TEXTURE_NAMES[upper]}) then the lower ({TEXTURE_NAMES[lower]}) surface rightward")
         )
-    notes = [f"strokes at {speed:g} mm/s, rightward; patterns rendered only while sliding rightward"]
+    notes = [
+        f"strokes at {speed:g} mm/s, rightward; texture patterns rendered only while sliding rightward, nothing "
+        "in stationary contact",
+        "the touchdown before each stroke still shows the approach expansion (frames_sent_by_context: "
+        "approaching): the renderer's settings switch off stationary contact and other sliding directions, "
+        "not the approach",
+    ]
     manager = {"slide_directions": frozenset({"E"}), "render_contact": False}
     return Study("task3", STUDY_TITLES["task3"], _number(trials, "task3"), manager, quick, seed, tuple(notes))
 
@@ -262,7 +274,7 @@ def task3(seed: int = 0, quick: bool = False) -> Study:
 # --- phase 2 -------------------------------------------------------------------------------------------------
 
 
-def phase2(seed: int = 0, quick: bool = False) -> Study:
+def phase2(seed: int = 0, quick: bool = False, contact_mode: str = "orientation") -> Study:
     rng = random.Random(f"phase2:{seed}")
     speed = QUICK_PHASE2_SPEED_MM_S if quick else PHASE2_SPEED_MM_S
     trials = []
@@ -276,7 +288,8 @@ def phase2(seed: int = 0, quick: bool = False) -> Study:
                 expect["texture"] = 1 if obj == "bunny" else 0
             seg = Segment("explore", None, speed, 3.0, expect)
             trials.append(
-                Trial(0, "", "phase2", obj, (seg,), approach=approach, block=obj, condition=f"{obj}-{approach}",
+                Trial(0, "", "phase2", obj, (seg,), approach=approach, contact_mode=contact_mode, block=obj,
+                      condition=f"{obj}-{approach}",
                       description=f"explore the {obj} under {approach.upper() if approach != 'tactdeform' else 'TactDeform'}")
             )
     notes = [f"exploration strokes at {speed:g} mm/s", "the bunny is the textured object (rough)"]
@@ -286,14 +299,18 @@ def phase2(seed: int = 0, quick: bool = False) -> Study:
 _BUILDERS = {"task1": task1, "task2": task2, "task3": task3, "phase2": phase2}
 
 
-def build_study(name: str, seed: int = 0, quick: bool = False) -> Study:
-    """The trial list of study ``name`` (``task1``, ``task2``, ``task3``, ``phase2``)."""
+def build_study(name: str, seed: int = 0, quick: bool = False, contact_mode: str = "orientation") -> Study:
+    """The trial list of study ``name`` (``task1``, ``task2``, ``task3``, ``phase2``).  ``contact_mode``
+    (a participant's preference, Task 2's finding) applies where the study does not fix it: Task 1 and
+    Phase 2."""
     builder = _BUILDERS.get(name)
     if builder is None:
         raise ConfigurationError(f"unknown study {name!r}; choose from {', '.join(STUDIES)}")
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ConfigurationError(f"seed={seed!r} must be an integer")
-    return builder(seed, quick)
+    if contact_mode not in ("orientation", "uniform"):
+        raise ConfigurationError(f"contact_mode={contact_mode!r} must be 'orientation' or 'uniform'")
+    return builder(seed, quick, contact_mode)
 
 
 def select_trials(study: Study, spec: str | None) -> Study:
@@ -321,4 +338,4 @@ def select_trials(study: Study, spec: str | None) -> Study:
             raise ConfigurationError(f"--trials {item!r} names no trial of {study.name} (conditions: {known})")
         chosen.update(hits)
     trials = tuple(t for t in study.trials if t.index in chosen)
-    return Study(study.name, study.title, trials, study.manager, study.quick, study.seed, study.notes)
+    return Study(study.name, study.title, trials, study.manager, study.quick, study.seed, study.notes, spec.strip())

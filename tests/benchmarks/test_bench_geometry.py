@@ -80,7 +80,9 @@ def test_query_bunny(benchmark, bunny: Scene) -> None:  # type: ignore[no-untype
 
 def _electrode_clouds(scene: Scene) -> list[np.ndarray]:
     """32 points on a 2 mm grid around each pad position in contact: what contact-area mapping asks."""
-    grid = np.array([(x, y, 0.0) for y in range(6) for x in range(6) if (x, y) not in ((0, 0), (5, 0), (0, 5), (5, 5))])
+    grid = np.array(
+        [(x, y, 0.0) for y in range(6) for x in range(6) if (x, y) not in ((0, 0), (5, 0), (0, 5), (5, 5))]
+    )
     grid = (grid - [2.5, 2.5, 0.0]) * 2.0
     clouds = []
     for pose in make_trajectory("approach-face", scene):

@@ -1,0 +1,147 @@
+"""``tactdeform-hw study``: run a TactDeform study's trials through the whole pipeline and report what
+each trial delivered.
+
+    tactdeform-hw study task1 --device emulator --out runs/task1
+    tactdeform-hw study phase2 --out runs/phase2 --participant p07.json --json
+
+Every trial's synthetic finger poses go through tracking, the renderer, the driver and the port (the
+emulator behind the virtual serial port by default); the bytes written are replayed into the timed
+emulator for the currents and charges the scans delivered.  ``--out`` receives ``report.json``,
+``summary.md``, the frames of every trial and pictures of the array.  Exit status: 0 when every check
+passed, 3 when a check failed, 1 on an error (bad option, bad profile, no device).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from typing import Any
+
+from .common import (
+    add_device_arg,
+    add_participant_arg,
+    audit_from_args,
+    guard_from_args,
+    print_json,
+    profile_from_args,
+    progress,
+)
+
+EXIT_CHECK_FAILED = 3
+
+
+def register(sub: Any) -> None:
+    from ..study.scenarios import STUDIES, STUDY_TITLES
+
+    p: argparse.ArgumentParser = sub.add_parser(
+        "study",
+        help="run a study's trials (task1, task2, task3, phase2) end to end and report what each delivered",
+        description="Run the trials of one TactDeform study through tracking, the renderer, the driver and the "
+        "device (the emulator by default), check what every trial delivered (the feature and texture rendered, "
+        "the frames on the wire and in the emulator's pattern buffer, the pulses the scans delivered, hazards) "
+        "and write a report to --out: report.json, summary.md, frames/ and pictures/. "
+        + " ".join(f"{k}: {v}." for k, v in STUDY_TITLES.items())
+        + " Exit status 0 when every check passed, 3 when one failed.",
+    )
+    p.add_argument("study", choices=STUDIES, help="which study to run")
+    add_device_arg(p)
+    add_participant_arg(p)
+    p.add_argument("--out", required=True, metavar="DIR", help="directory for the report (created if needed)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="seed of the trial order and of the seeded choices of the design (default 0)")
+    p.add_argument("--quick", action="store_true",
+                   help="one trial per condition (and faster strokes for task3 and phase2): a setup check in seconds")
+    p.add_argument("--trials", metavar="LIST", default=None,
+                   help="run only these trials: numbers and ranges (1-3,8) or conditions (face,edge-h)")
+    p.add_argument("--current-ua", type=int, default=None,
+                   help="stimulation current in µA (default: the participant's; without one, 1000 µA on the "
+                   "emulator so delivered charges are reported, 0 — patterns only — on a real device)")
+    p.add_argument("--rate", type=float, default=72.0, help="tracking rate in Hz (default 72, the VR loop)")
+    p.add_argument("--tremor-mm", type=float, default=0.0,
+                   help="add physiological tremor of this amplitude to every trajectory (default 0: none)")
+    p.add_argument("--no-timed", action="store_true", help="skip the timed-emulator replay (no delivered currents)")
+    p.add_argument("--no-pictures", action="store_true", help="write the JSON and Markdown only")
+    p.add_argument("--gif", action="store_true", help="also draw every trial as an animated GIF (slower)")
+    p.add_argument("--json", action="store_true", help="print the report's summary as JSON on stdout")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..errors import LimitError
+    from ..render.array import ElectrodeArray
+    from ..study.checks import check_study
+    from ..study.report import write_report
+    from ..study.runner import run_study
+    from ..study.scenarios import build_study, select_trials
+
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        raise LimitError("--rate", args.rate, "a finite rate > 0 Hz")
+    if args.current_ua is not None and args.current_ua < 0:
+        raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
+    if not (math.isfinite(args.tremor_mm) and 0 <= args.tremor_mm <= 5):
+        raise LimitError("--tremor-mm", args.tremor_mm, "0 to 5 mm")
+    # A bad profile, study or trial list is refused before the device is opened.
+    profile = profile_from_args(args)
+    array = ElectrodeArray.tactdeform()
+    guard = guard_from_args(args, region_of=tuple(int(r) for r in array.regions))
+    mode = profile.contact_mode if profile is not None else "orientation"
+    study = select_trials(build_study(args.study, seed=args.seed, quick=args.quick, contact_mode=mode), args.trials)
+    if args.current_ua is not None:
+        guard.validate_current(args.current_ua, _transfer())
+    audit = audit_from_args(args, participant=profile.participant if profile else None, study=args.study)
+    say = (lambda _m: None) if args.quiet else progress
+    say(f"study {study.name}: {len(study.trials)} trial(s){' (quick)' if study.quick else ''}, device {args.device}, "
+        f"seed {args.seed}")
+    try:
+        result = run_study(
+            study,
+            device=args.device,
+            timeout=args.timeout,
+            rate_hz=args.rate,
+            current_ua=args.current_ua,
+            guard=guard,
+            audit=audit,
+            profile=profile,
+            timed=not args.no_timed,
+            tremor_mm=args.tremor_mm,
+            progress=say,
+        )
+    finally:
+        if audit is not None:
+            audit.close()
+    design = check_study(result)
+    say(f"study {study.name}: writing the report to {args.out}")
+    report = write_report(result, design, args.out, pictures=not args.no_pictures, gif=args.gif)
+    s = report["summary"]
+    if args.json:
+        print_json({
+            "study": study.name,
+            "out": args.out,
+            "summary": s,
+            "design_checks": report["design_checks"],
+            "pictures": report.get("pictures"),
+            "trials": [
+                {"id": t["id"], "passed": t["passed"], "skipped": t["skipped"], "failed_checks": t.get("failed_checks", [])}
+                for t in report["trials"]
+            ],
+        })
+    else:
+        verdict = "all checks passed" if s["all_passed"] else f"{s['failed']} trial(s) FAILED"
+        print(f"{study.name}: {s['passed']}/{s['run']} trial(s) passed"
+              + (f", {s['skipped']} skipped" if s["skipped"] else "")
+              + f" — {verdict}; report in {args.out}/report.json and {args.out}/summary.md")
+        for name, n in s["failed_checks"].items():
+            print(f"  failed: {name} ({n} trial(s))")
+    if not s["all_passed"]:
+        if not args.quiet:
+            print(f"study {study.name}: checks failed: {', '.join(s['failed_checks']) or 'design'}", file=sys.stderr)
+        return EXIT_CHECK_FAILED
+    return 0
+
+
+def _transfer() -> Any:
+    from ..protocol.units import DEFAULT_TRANSFER
+
+    return DEFAULT_TRANSFER

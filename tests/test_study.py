@@ -1,0 +1,316 @@
+"""Study runs: trial lists, end-to-end runs on the emulator, and checks that fail when they should."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+
+import pytest
+
+from tactdeform_hw.cli import main
+from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
+from tactdeform_hw.render.pipeline import FrameRecord
+from tactdeform_hw.study import build_study, select_trials
+from tactdeform_hw.study.checks import check_study, check_trial, universe
+from tactdeform_hw.study.runner import StudyRun, replay_timed, run_study
+
+
+def _has_plot() -> bool:
+    try:
+        import matplotlib  # noqa: F401
+        import PIL  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _check(run, name: str):
+    hits = [c for c in run.checks if c.name == name]
+    assert hits, f"no check {name!r} in {[c.name for c in run.checks]}"
+    return hits[0]
+
+
+# --- the trial lists ----------------------------------------------------------------------------------------
+
+
+def test_task1_design_is_the_papers():
+    study = build_study("task1", seed=0)
+    feats = Counter(t.segments[0].expect["feature"] for t in study.trials)
+    assert feats == {"face": 7, "edge": 7, "corner": 7}
+    edges = Counter(t.segments[0].expect["orientation"] for t in study.trials if t.segments[0].expect["feature"] == "edge")
+    assert sorted(edges.values()) == [1, 2, 2, 2] and set(edges) == {"h", "v", "d1", "d2"}
+    # the seed picks the orientation shown once and the order; the same seed gives the same list
+    once = {s: next(o for o, n in Counter(
+        t.segments[0].expect["orientation"] for t in build_study("task1", seed=s).trials if t.condition.startswith("edge")
+    ).items() if n == 1) for s in range(12)}
+    assert len(set(once.values())) > 1
+    assert [t.condition for t in build_study("task1", seed=5).trials] == [t.condition for t in build_study("task1", seed=5).trials]
+    assert [t.condition for t in build_study("task1", seed=5).trials] != [t.condition for t in build_study("task1", seed=6).trials]
+
+
+def test_other_designs():
+    t2 = build_study("task2")
+    assert len(t2.trials) == 16 and len({t.condition for t in t2.trials}) == 16
+    assert {t.contact_mode for t in t2.trials} == {"orientation", "uniform"}
+    assert t2.manager == {"render_sliding": False}
+    t3 = build_study("task3")
+    pairs = Counter(tuple(sorted(lv for _, lv in t.textures)) for t in t3.trials)
+    assert len(t3.trials) == 24 and len(pairs) == 6 and set(pairs.values()) == {4}
+    assert all(len(t.segments) == 2 and [s.plan_object for s in t.segments] == ["upper", "lower"] for t in t3.trials)
+    p2 = build_study("phase2")
+    assert Counter(t.scene for t in p2.trials) == {"sphere": 3, "cube": 3, "teapot": 3, "bunny": 3}
+    assert {t.approach for t in p2.trials} == {"ua", "cam", "tactdeform"}
+    assert len(build_study("task1", quick=True).trials) == 6
+    assert len(build_study("task3", quick=True).trials) == 6
+
+
+def test_select_trials():
+    study = build_study("task1", seed=0)
+    sub = select_trials(study, "1-3,face")
+    idx = {t.index for t in sub.trials}
+    assert {1, 2, 3} <= idx and all(t.index in idx for t in study.trials if t.condition == "face")
+    assert sub.selection == "1-3,face"
+    with pytest.raises(ConfigurationError, match="numbered 1 to 21"):
+        select_trials(study, "0-4")
+    with pytest.raises(ConfigurationError, match="names no trial"):
+        select_trials(study, "edge-x")
+    with pytest.raises(ConfigurationError, match="unknown study"):
+        build_study("task9")
+
+
+# --- end to end ---------------------------------------------------------------------------------------------
+
+
+def test_task1_subset_cli_end_to_end(tmp_path, capsys):
+    out = tmp_path / "t1"
+    code = main(["study", "task1", "--device", "emulator", "--trials", "face,edge-h,corner", "--out", str(out),
+                 "--json", "--quiet", "--seed", "3"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.out
+    summary = json.loads(captured.out)
+    assert summary["summary"]["all_passed"] and summary["summary"]["failed"] == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["format"] == "tactdeform-hw study report" and report["study"]["name"] == "task1"
+    assert report["study"]["selection"] == "face,edge-h,corner"
+    assert report["design_checks"][0]["passed"] is None  # a subset is not the design
+    trials = report["trials"]
+    assert {t["condition"] for t in trials} == {"face", "edge-h", "corner"}
+    for t in trials:
+        exp = t["scenario"]["segments"][0]["expect"]
+        assert t["passed"] is True and t["failed_checks"] == []
+        assert set(t["features_seen"]) == {exp["feature"]}
+        assert [s["state"] for s in t["state_sequence"]][:3] == ["idle", "approaching", "interacting"]
+        assert t["state_sequence"][-1]["state"] == "idle"
+        assert t["commands_sent"]["PATTERN"] >= t["frames"]["sent"] >= 3
+        assert t["electrodes_activated"] and len(t["electrode_on_time_s"]) == 32
+        d = t["delivered"]
+        assert d["max_current_ua"] == 1000.0 and d["pulses_with_current"] > 0
+        on = set(t["electrodes_activated"])
+        assert {i for i, n in enumerate(d["per_electrode"]["pulses"]) if n} == on
+        assert t["emulator_hazards"] == [] and t["timing_hazards"] == []
+        names = {c["name"] for c in t["checks"]}
+        assert {"pattern_buffer_matched_every_sent_frame", "feature_rendered_matches", "approach_frames_expand",
+                "scans_delivered_each_frame", "started_and_ended_beyond_8cm"} <= names
+        frames = [json.loads(x) for x in (out / t["frames_file"]).read_text().splitlines()]
+        assert sum(f["sent"] for f in frames) == t["frames"]["sent"] and frames[0]["t"] == 0.0
+    assert (out / "summary.md").read_text().startswith("# Task 1")
+    if _has_plot():
+        assert (out / report["pictures"]["overview"]).stat().st_size > 0
+        assert all((out / t["pictures"]["strip"]).is_file() for t in trials)
+    else:
+        assert "pictures skipped" in report["pictures"]["note"]
+
+
+def test_task3_subset_textures_and_shift_rates():
+    study = select_trials(build_study("task3", seed=0, quick=True), "smooth-rough,rough-rougher")
+    result = run_study(study)
+    design = check_study(result)
+    assert design[0].passed is None
+    assert len(result.trials) == 2
+    for run in result.trials:
+        assert run.passed, [c for c in run.checks if c.passed is False]
+        for seg in run.trial.segments:
+            tag = f"[{seg.plan_object}]"
+            assert _check(run, f"texture_rendered_matches{tag}").passed
+            shift = _check(run, f"texture_shift_count{tag}")
+            assert shift.passed
+            if seg.expect["texture"] == 0:
+                assert "0 shift(s)" in shift.detail
+        assert _check(run, "silent_while_stationary[upper]").passed
+    # A rougher surface shifts at half the rate of a rough one at the same speed (eq. 7).
+    rr = next(r for r in result.trials if r.trial.condition in ("rough-rougher", "rougher-rough"))
+    counts = {}
+    for k, seg in enumerate(rr.trial.segments):
+        a, b = rr.segment_spans[k]
+        counts[seg.expect["texture"]] = sum(1 for i, r in enumerate(rr.records)
+                                            if r.sent and r.context == "sliding" and a <= rr.record_pose[i] < b)
+    assert counts[1] > 1.6 * counts[2]
+
+
+# --- the checks have teeth ----------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def task1_result() -> StudyRun:
+    result = run_study(select_trials(build_study("task1", seed=0), "face,edge-v"))
+    check_study(result)
+    assert all(r.passed for r in result.trials)
+    return result
+
+
+def test_corrupted_frame_on_the_port_fails_the_pattern_buffer_check(tmp_path, monkeypatch, capsys):
+    from tactdeform_hw.emulator.urlhandler import protocol_etactile
+
+    real_write = protocol_etactile.Serial.write
+    seen = {"patterns": 0}
+
+    def corrupting_write(self, data):
+        data = bytes(data)
+        if data[:1] == b"\xfe" and any(data[1:]):  # a frame with electrodes on
+            seen["patterns"] += 1
+            if seen["patterns"] == 2:
+                i = data.index(0, 1)  # switch on one electrode the renderer left off
+                data = data[:i] + b"\x01" + data[i + 1 :]
+        return real_write(self, data)
+
+    monkeypatch.setattr(protocol_etactile.Serial, "write", corrupting_write)
+    out = tmp_path / "bad"
+    code = main(["study", "task1", "--trials", "1", "--out", str(out), "--json", "--quiet", "--no-pictures"])
+    assert code == 3
+    report = json.loads((out / "report.json").read_text())
+    t = report["trials"][0]
+    assert t["passed"] is False
+    assert "pattern_buffer_matched_every_sent_frame" in t["failed_checks"]
+    assert report["summary"]["pattern_buffer_mismatches"] == 1
+    # the host's bytes were right: the wire check, taken before the port, still passes
+    assert "wire_carried_every_sent_frame" not in t["failed_checks"]
+    assert "FAIL" in (out / "summary.md").read_text()
+
+
+def test_wrong_feature_and_wrong_frame_fail(task1_result):
+    run = next(r for r in task1_result.trials if r.trial.condition == "face")
+    saved = list(run.records)
+    try:
+        k = next(i for i, r in enumerate(run.records) if r.state == "interacting")
+        r = run.records[k]
+        run.records[k] = FrameRecord(r.t_s, r.state, "corner", r.texture, r.electrodes, r.sent, r.approach, r.context)
+        check_trial(run, task1_result)
+        assert _check(run, "feature_rendered_matches").passed is False
+        assert "corner×1" in _check(run, "feature_rendered_matches").detail
+        assert run.passed is False
+        run.records[:] = saved
+        # a sent approach frame that is not the next ring of the face pattern
+        k = next(i for i, r in enumerate(run.records) if r.sent and r.state == "approaching" and any(r.electrodes))
+        r = run.records[k]
+        wrong = tuple(1 - v for v in r.electrodes)
+        run.records[k] = FrameRecord(r.t_s, r.state, r.feature, r.texture, wrong, True, r.approach, r.context)
+        check_trial(run, task1_result)
+        failed = {c.name for c in run.checks if c.passed is False}
+        assert {"approach_frames_expand", "wire_carried_every_sent_frame"} <= failed
+    finally:
+        run.records[:] = saved
+        check_trial(run, task1_result)
+    assert run.passed
+
+
+def test_missing_pulses_fail_the_delivery_check(task1_result):
+    run = next(r for r in task1_result.trials if r.trial.condition == "edge-v")
+    table = run.delivered["_table"]
+    on = sorted({i for r in run.records if r.sent for i, v in enumerate(r.electrodes) if v})
+    channel = task1_result.array.channel_mapping().app_to_hw[on[0]]
+    keep = table["channel"] != channel
+    run.delivered["_table"] = {k: v[keep] for k, v in table.items()}
+    try:
+        check_trial(run, task1_result)
+        c = _check(run, "scans_delivered_each_frame")
+        assert c.passed is False and "never pulsed" in c.detail
+    finally:
+        replay_timed(task1_result)
+        check_trial(run, task1_result)
+    assert _check(run, "scans_delivered_each_frame").passed
+
+
+def test_universe_holds_every_frame(task1_result):
+    known = universe(task1_result.patterns)
+    assert all(tuple(r.electrodes) in known for run in task1_result.trials for r in run.records if r.sent)
+    assert tuple([1, 0] * 16) not in known
+
+
+# --- options and degraded setups ----------------------------------------------------------------------------
+
+
+def test_missing_bunny_is_skipped_with_a_note(tmp_path, monkeypatch):
+    from tactdeform_hw.study import runner
+
+    def absent(name, dirs=()):
+        raise ConfigurationError(f"mesh {name!r} not found (looked in nowhere)")
+
+    monkeypatch.setattr(runner, "find_mesh_file", absent)
+    out = tmp_path / "p2"
+    code = main(["study", "phase2", "--trials", "sphere-ua,bunny-ua", "--out", str(out), "--quiet", "--no-pictures"])
+    assert code == 0
+    report = json.loads((out / "report.json").read_text())
+    by = {t["condition"]: t for t in report["trials"]}
+    assert by["sphere-ua"]["passed"] is True
+    assert by["bunny-ua"]["skipped"].startswith("Stanford bunny not available")
+    assert report["summary"]["skipped"] == 1 and report["summary"]["all_passed"]
+    assert any("bunny trials skipped" in n for n in report["notes"])
+    assert "skipped" in (out / "summary.md").read_text()
+
+
+def test_participant_profile_sets_current_and_limits(tmp_path):
+    profile = {"version": 1, "participant": "P07", "cap_ua": 2000, "regions_ua": [1500, 1600, 1500, 1700, 1800, 1700,
+               1500, 1600, 1500], "pulse_width_us": 200, "polarity": "anodic", "contact_mode": "uniform",
+               "calibrated_on": "2025-05-01"}
+    path = tmp_path / "p07.json"
+    path.write_text(json.dumps(profile))
+    out = tmp_path / "p"
+    assert main(["study", "task1", "--trials", "face", "--out", str(out), "--participant", str(path), "--quiet",
+                 "--no-pictures"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["participant"] == "P07" and report["current_ua"] == 1800
+    limits = report["limits_ua"]
+    for t in report["trials"]:
+        assert t["scenario"]["contact_mode"] == "uniform"
+        per = t["delivered"]["per_electrode"]["max_current_ua"]
+        assert all(ua <= limits[i] for i, ua in enumerate(per))
+        assert max(per) <= 1800 and min(v for v in per if v) < 1800  # the regional limits lowered frames
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"version": 1, "participant": "P07", "cap_ua": 2000}))
+    assert main(["study", "task1", "--out", str(tmp_path / "never"), "--participant", str(bad), "--quiet"]) == 1
+    assert not (tmp_path / "never").exists()
+
+
+def test_pictures_skipped_without_the_plot_extra(tmp_path, monkeypatch):
+    from tactdeform_hw.viz import _plot
+
+    def missing(purpose):
+        raise MissingDependencyError("matplotlib", "plot", purpose)
+
+    monkeypatch.setattr(_plot, "require", missing)
+    out = tmp_path / "np"
+    assert main(["study", "task1", "--trials", "corner", "--out", str(out), "--quiet", "--no-timed"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert "pictures skipped" in report["pictures"]["note"] and "plot" in report["pictures"]["note"]
+    assert not (out / "pictures").exists()
+    t = report["trials"][0]
+    assert t["delivered"] is None and "not run" in t["delivered_note"]
+    assert {c["name"]: c["passed"] for c in t["checks"]}["scans_delivered_each_frame"] is None
+
+
+def test_bad_options_are_refused(tmp_path):
+    assert main(["study", "task1", "--out", str(tmp_path / "x"), "--rate", "0", "--quiet"]) == 1
+    assert main(["study", "task1", "--out", str(tmp_path / "x"), "--current-ua", "15", "--quiet"]) == 1
+    assert main(["study", "task1", "--out", str(tmp_path / "x"), "--trials", "99", "--quiet"]) == 1
+    assert not (tmp_path / "x").exists()
+    with pytest.raises(SystemExit):
+        main(["study", "task7", "--out", str(tmp_path / "x")])
+
+
+def test_report_paths_are_relative(tmp_path):
+    out = tmp_path / "rel"
+    assert main(["study", "task2", "--quick", "--trials", "1", "--out", str(out), "--quiet", "--no-pictures"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert not Path(report["trials"][0]["frames_file"]).is_absolute()
+    assert report["trials"][0]["scenario"]["segments"][0]["trajectory"].startswith("contact-")
