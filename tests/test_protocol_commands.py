@@ -116,6 +116,9 @@ def test_pattern_limits() -> None:
         c.encode_pattern([1, 0, 1], electrode_num=4)
     with pytest.raises(LimitError, match="at most 255"):
         c.encode_pattern(bytes(256))
+    for bad in (None, 5, "0101", 1.5):
+        with pytest.raises(LimitError, match="pattern"):
+            c.encode_pattern(bad)  # type: ignore[arg-type]
 
 
 def test_construct_overflow_is_a_limit_error() -> None:

@@ -188,6 +188,28 @@ def test_corrupted_frame_on_the_port_fails_the_pattern_buffer_check(tmp_path, mo
     assert "FAIL" in (out / "summary.md").read_text()
 
 
+def test_stray_byte_is_an_emulator_hazard_of_its_trial_only(monkeypatch):
+    from tactdeform_hw.study import runner
+
+    real_write = runner.WireTap.write
+    done = []
+
+    def noisy_write(self, data):
+        if self.trial == 2 and self.phase == "render" and not done:
+            done.append(True)
+            self._port.write(b"\x10")  # line noise between two commands: not a command byte
+        return real_write(self, data)
+
+    monkeypatch.setattr(runner.WireTap, "write", noisy_write)
+    result = run_study(select_trials(build_study("task1", seed=0), "1-3"), timed=False)
+    check_study(result)
+    assert done
+    verdicts = [_check(r, "no_emulator_hazards").passed for r in result.trials]
+    assert verdicts == [True, False, True]
+    assert "unknown_bytes" in _check(result.trials[1], "no_emulator_hazards").detail
+    assert _check(result.trials[1], "pattern_buffer_matched_every_sent_frame").passed  # the parser skipped it
+
+
 def test_wrong_feature_and_wrong_frame_fail(task1_result):
     run = next(r for r in task1_result.trials if r.trial.condition == "face")
     saved = list(run.records)

@@ -22,7 +22,7 @@ import argparse
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigurationError, TactDeformError
 from .common import (
@@ -34,6 +34,9 @@ from .common import (
     progress,
 )
 
+if TYPE_CHECKING:
+    from ..device.config import Polarity
+
 
 @dataclass(frozen=True)
 class PlannedStep:
@@ -44,7 +47,7 @@ class PlannedStep:
     on_ms: float
     off_ms: float
     frequency_hz: int
-    polarity: str
+    polarity: Polarity
 
 
 @dataclass
@@ -124,7 +127,7 @@ def plan_steps(
 def play_sequence(
     device: Any,
     steps: Sequence[PlannedStep],
-    make_config: Callable[[int, str], Any],
+    make_config: Callable[[int, Polarity], Any],
     current_ua: int,
     *,
     clock: Callable[[], float] = time.monotonic,
@@ -235,14 +238,14 @@ def run(
         mapping = ChannelMapping(array_file.channel_mapping().app_to_hw, args.electrodes)
         n = args.electrodes
 
-    def make_config(frequency_hz: int, polarity: str) -> StimConfig:
+    def make_config(frequency_hz: int, polarity: Polarity) -> StimConfig:
         return StimConfig(
             electrode_count=n,
             current_ua=args.current_ua,
             pulse_width_us=args.pulse_width,
             discharge_us=args.discharge,
             rate_hz=frequency_hz,
-            polarity=polarity,  # type: ignore[arg-type]
+            polarity=polarity,
         )
 
     # Refuse every configuration before the port is opened (a bad participant profile too).

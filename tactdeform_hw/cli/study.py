@@ -41,7 +41,7 @@ def register(sub: Any) -> None:
         "device (the emulator by default), check what every trial delivered (the feature and texture rendered, "
         "the frames on the wire and in the emulator's pattern buffer, the pulses the scans delivered, hazards) "
         "and write a report to --out: report.json, summary.md, frames/ and pictures/. "
-        + " ".join(f"{k}: {v}." for k, v in STUDY_TITLES.items())
+        + " ".join(f"{k}: {v.split(': ', 1)[-1]}." for k, v in STUDY_TITLES.items())
         + " Exit status 0 when every check passed, 3 when one failed.",
     )
     p.add_argument("study", choices=STUDIES, help="which study to run")
@@ -60,6 +60,9 @@ def register(sub: Any) -> None:
     p.add_argument("--rate", type=float, default=72.0, help="tracking rate in Hz (default 72, the VR loop)")
     p.add_argument("--tremor-mm", type=float, default=0.0,
                    help="add physiological tremor of this amplitude to every trajectory (default 0: none)")
+    p.add_argument("--realtime", action="store_true",
+                   help="pace the run to the session clock, so a real device shows every trial at its real speed "
+                   "(default: as fast as possible; the timed replay restores the timing for the checks)")
     p.add_argument("--no-timed", action="store_true", help="skip the timed-emulator replay (no delivered currents)")
     p.add_argument("--no-pictures", action="store_true", help="write the JSON and Markdown only")
     p.add_argument("--gif", action="store_true", help="also draw every trial as an animated GIF (slower)")
@@ -107,6 +110,7 @@ def run(args: argparse.Namespace) -> int:
             timed=not args.no_timed,
             tremor_mm=args.tremor_mm,
             progress=say,
+            realtime=args.realtime,
         )
     finally:
         if audit is not None:

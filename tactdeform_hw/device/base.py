@@ -24,7 +24,7 @@ import warnings
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from types import TracebackType
-from typing import Any, TypeVar
+from typing import Concatenate, ParamSpec, TypeVar
 
 from .. import protocol as p
 from ..errors import LimitError, PortNotOpenError, ProtocolMisuseError, ShortReplyError, TransportError
@@ -59,14 +59,16 @@ _STATE_OPCODES = frozenset(
      p.Opcode.ELECTRODE_NUM, p.Opcode.POLARITY, p.Opcode.FREQUENCY}
 )
 
-_F = TypeVar("_F", bound=Callable[..., Any])
+_D = TypeVar("_D", bound="Device")
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
 
 
-def _locked(fn: _F) -> _F:
+def _locked(fn: Callable[Concatenate[_D, _P], _R]) -> Callable[Concatenate[_D, _P], _R]:
     """Run a public method under the device lock, and name it as the origin of the bytes it sends."""
 
     @functools.wraps(fn)
-    def wrapper(self: Device, *args: Any, **kwargs: Any) -> Any:
+    def wrapper(self: _D, /, *args: _P.args, **kwargs: _P.kwargs) -> _R:
         with self._lock:
             outer = self._op is None
             if outer:
@@ -77,7 +79,7 @@ def _locked(fn: _F) -> _F:
                 if outer:
                     self._op = None
 
-    return wrapper  # type: ignore[return-value]
+    return wrapper
 
 
 class Device(ABC):

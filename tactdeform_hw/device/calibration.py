@@ -27,7 +27,7 @@ from enum import Enum
 
 from ..errors import ConfigurationError, LimitError
 from ..protocol.constants import CURRENT_STEP_UA, MAX_CURRENT_UA
-from .profiles import CENTRE_REGION, REGION_COUNT, ParticipantProfile
+from .profiles import CENTRE_REGION, REGION_COUNT, ContactMode, ParticipantProfile, Polarity
 from .safety import TACTDEFORM_REGION_OF
 
 #: Order in which the other regions are matched to the centre.
@@ -205,8 +205,8 @@ class Calibration:
         self,
         *,
         pulse_width_us: int = 200,
-        polarity: str = "anodic",
-        contact_mode: str = "orientation",
+        polarity: Polarity = "anodic",
+        contact_mode: ContactMode = "orientation",
         calibrated_on: _dt.date | None = None,
         ramp_ua_per_frame: int | None = None,
         source: str = "<calibration>",
@@ -220,8 +220,8 @@ class Calibration:
             regions_ua=tuple(self.regions_ua),
             calibrated_on=calibrated_on or _dt.date.today(),
             pulse_width_us=pulse_width_us,
-            polarity=polarity,  # type: ignore[arg-type]
-            contact_mode=contact_mode,  # type: ignore[arg-type]
+            polarity=polarity,
+            contact_mode=contact_mode,
             ramp_ua_per_frame=ramp_ua_per_frame,
             notes=f"discomfort reported at {self.discomfort_ua} µA on the centre region; {len(self.history)} key(s)",
             source=source,

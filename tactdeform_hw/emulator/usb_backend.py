@@ -39,7 +39,7 @@ import threading
 import time
 import urllib.parse as urlparse
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, TypedDict
 
 from ..errors import ConfigurationError, MissingDependencyError
 from ..protocol.constants import (
@@ -239,6 +239,18 @@ def esp32s3_interfaces() -> list[InterfaceDescriptor]:
 # --- the device ---------------------------------------------------------------------------------------
 
 
+class _TimedOptions(TypedDict):
+    """What each power-up builds the firmware's :class:`TimedEmulator` from."""
+
+    board: str
+    switching_boards: int
+    link: str | LinkModel
+    tx_link: str | LinkModel | None
+    model: TimingModel | None
+    skin: SkinModel | None
+    stack_reading: float | None
+
+
 class EmulatedUsbDevice:
     """One emulated board on the bus: a :class:`~tactdeform_hw.emulator.timed.TimedEmulator` (the
     firmware in time — link, receive queue, parser rhythm, scans, watchdog) behind USB descriptors,
@@ -271,8 +283,8 @@ class EmulatedUsbDevice:
         skin: SkinModel | None = None,
         stack_reading: float | None = None,
     ) -> None:
-        self._make = dict(board=board, switching_boards=switching_boards, link=link, tx_link=tx_link,
-                          model=timing, skin=skin, stack_reading=stack_reading)  # fmt: skip
+        self._make = _TimedOptions(board=board, switching_boards=switching_boards, link=link, tx_link=tx_link,
+                                   model=timing, skin=skin, stack_reading=stack_reading)  # fmt: skip
         self.timed = self._new_timed()  # raises ConfigurationError for a bad board or model
         self.vid, self.pid = vid, pid
         self.strings: dict[int, str | None] = {1: manufacturer, 2: product, 3: serial_number}
@@ -305,11 +317,12 @@ class EmulatedUsbDevice:
         self.nak_out = False  # the device NAKs every OUT packet (firmware no longer servicing USB)
 
     def _new_timed(self) -> TimedEmulator:
-        opts = dict(self._make)
-        for key in ("link", "tx_link"):
-            if isinstance(opts[key], LinkModel):
-                opts[key] = copy.deepcopy(opts[key])
-        return TimedEmulator(**opts)  # type: ignore[arg-type]
+        opts = self._make.copy()
+        if isinstance(opts["link"], LinkModel):
+            opts["link"] = copy.deepcopy(opts["link"])
+        if isinstance(opts["tx_link"], LinkModel):
+            opts["tx_link"] = copy.deepcopy(opts["tx_link"])
+        return TimedEmulator(**opts)
 
     # --- identity --------------------------------------------------------------------------------------
 
@@ -492,8 +505,8 @@ class EmulatedUsbBackend:
             import usb.core
         except ImportError as exc:
             raise MissingDependencyError("pyusb", "usb", "the emulated USB device") from exc
-        self._usb_error = usb.core.USBError
-        self._usb_timeout = usb.core.USBTimeoutError
+        self._usb_error: type[Exception] = usb.core.USBError
+        self._usb_timeout: type[Exception] = usb.core.USBTimeoutError
         self.clock: Clock = clock if clock is not None else RealClock()
         self.lock = threading.RLock()
         self.devices: list[EmulatedUsbDevice] = []
@@ -535,7 +548,7 @@ class EmulatedUsbBackend:
     def _error(self, kind: str) -> Exception:
         code, err, text = _LIBUSB_ERRORS[kind]
         cls = self._usb_timeout if kind == "timeout" else self._usb_error
-        return cls(text, code, err)  # type: ignore[no-any-return]
+        return cls(text, code, err)
 
     def _live(self, handle: _Handle) -> EmulatedUsbDevice:
         d = handle.device
@@ -683,7 +696,9 @@ class EmulatedUsbBackend:
 
     # --- IBackend: transfers ----------------------------------------------------------------------------
 
-    def _check_transfer(self, dev_handle: _Handle, ep: int, intf: int, *, direction_in: bool) -> EmulatedUsbDevice:
+    def _check_transfer(
+        self, dev_handle: _Handle, ep: int, intf: int, *, direction_in: bool
+    ) -> tuple[EmulatedUsbDevice, EndpointDescriptor]:
         d = self._live(dev_handle)
         desc = d.endpoint(ep)
         if desc is None or bool(ep & DIR_IN) != direction_in:
@@ -692,18 +707,18 @@ class EmulatedUsbBackend:
             raise self._error("not_found")
         if ep in d.halted:
             raise self._error("pipe")
-        return d
+        return d, desc
 
     def bulk_write(self, dev_handle: _Handle, ep: int, intf: int, data: Any, timeout: int) -> int:
         payload = bytes(data)
         deadline = None if not timeout else self.clock.now() + timeout / 1000.0
         while True:
             with self.lock:
-                d = self._check_transfer(dev_handle, ep, intf, direction_in=False)
+                d, desc = self._check_transfer(dev_handle, ep, intf, direction_in=False)
                 if ep != self._cdc_endpoint(d, direction_in=False):
                     return len(payload)  # the JTAG interface: accepted and ignored
                 if not d.nak_out:
-                    size = d.endpoint(ep).wMaxPacketSize  # type: ignore[union-attr]
+                    size = desc.wMaxPacketSize
                     sent = 0
                     for i in range(0, len(payload), size):
                         pkt = payload[i : i + size]
@@ -727,7 +742,7 @@ class EmulatedUsbBackend:
         deadline = None if not timeout else self.clock.now() + timeout / 1000.0
         while True:
             with self.lock:
-                d = self._check_transfer(dev_handle, ep, intf, direction_in=True)
+                d, _ = self._check_transfer(dev_handle, ep, intf, direction_in=True)
                 if ep == self._cdc_endpoint(d, direction_in=True):
                     data = d._host_read(len(buff) * buff.itemsize)
                     if data:

@@ -60,6 +60,7 @@ from ..errors import ConfigurationError
 from ._json import load_text
 
 if TYPE_CHECKING:  # pragma: no cover
+    from ..device.config import Polarity
     from ..device.mapping import ChannelMapping
     from ..render.array import ElectrodeArray
     from .frames import Frame
@@ -67,7 +68,7 @@ if TYPE_CHECKING:  # pragma: no cover
 #: Pattern values the firmware knows: 0 off (a sense pulse), 1 monophasic, 2 biphasic.
 PATTERN_LEVELS = (0, 1, 2)
 #: ``stim_mode`` values: the polarity byte the GUI sends (1 anodic, 0 cathodic).
-STIM_MODE_POLARITY = {1: "anodic", 0: "cathodic"}
+STIM_MODE_POLARITY: dict[int, Polarity] = {1: "anodic", 0: "cathodic"}
 #: Channels the GUI scans when the array is the controller board's own ("board": "on_board").
 ON_BOARD_CHANNELS = 32
 ON_BOARD_OFFSET = 24
@@ -351,7 +352,7 @@ class PatternStep:
     stim_mode: int = 1
 
     @property
-    def polarity(self) -> str:
+    def polarity(self) -> Polarity:
         """``stim_mode`` as the device layer names it ("anodic" or "cathodic")."""
         return STIM_MODE_POLARITY[self.stim_mode]
 

@@ -180,6 +180,8 @@ HV513_COUNT_REQUEST = bytes([Opcode.HV513_COUNT])
 def encode_pattern(levels: bytes | bytearray | Sequence[int], *, electrode_num: int | None = None) -> bytes:
     """0xFE and one byte per channel.  ``electrode_num`` (the device's register), when given, must equal
     the length: a shorter pattern desynchronises the parser, a longer one leaks into the next command."""
+    if isinstance(levels, (int, str)) or not isinstance(levels, (bytes, bytearray, Sequence)):
+        raise LimitError("pattern", levels, "a sequence of integers from 0 to 255")
     try:
         payload = bytes(levels)
     except (TypeError, ValueError) as exc:

@@ -258,12 +258,14 @@ def check_pose(
         return "time"
     if t_prev is not None and t < t_prev:
         return "time-backwards"
-    p = _floats(position_mm, 3)
-    if p is None:
+    pos = _floats(position_mm, 3)
+    if pos is None:
         return "position"
-    q = _floats(orientation_wxyz, 4)
-    if q is None:
+    p = (pos[0], pos[1], pos[2])
+    quat = _floats(orientation_wxyz, 4)
+    if quat is None:
         return "orientation"
+    q = (quat[0], quat[1], quat[2], quat[3])
     qn = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
     if not abs(qn - 1.0) <= quat_tolerance:
         return "orientation-norm"
@@ -271,7 +273,7 @@ def check_pose(
     if qn != 1.0:
         renormed = abs(qn - 1.0) > 1e-9
         q = (q[0] / qn, q[1] / qn, q[2] / qn, q[3] / qn)
-    return t, p, q, renormed  # type: ignore[return-value]
+    return t, p, q, renormed
 
 
 class PatternManager:
@@ -357,21 +359,21 @@ class PatternManager:
         if renormed:
             self.stats.normalised_quaternions += 1
         sd = 0.0
-        normal: tuple[float, ...] | None = None
-        feat = None
+        normal: tuple[float, float, float] | None = None
+        feat: str | None = None
         if query is not None:
             try:
                 sd = float(query.signed_distance_mm)
-                normal = _floats(query.normal, 3)
+                raw_normal = _floats(query.normal, 3)
                 feat = query.feature
             except (AttributeError, TypeError, ValueError):
                 return self._drop(t, "query")
-            if sd - sd != 0.0 or normal is None or feat not in FEATURES:
+            if sd - sd != 0.0 or raw_normal is None or feat not in FEATURES:
                 return self._drop(t, "query")
-            nn = math.sqrt(normal[0] ** 2 + normal[1] ** 2 + normal[2] ** 2)
+            nn = math.sqrt(raw_normal[0] ** 2 + raw_normal[1] ** 2 + raw_normal[2] ** 2)
             if not nn > 0.5:
                 return self._drop(t, "query")
-            normal = (normal[0] / nn, normal[1] / nn, normal[2] / nn)
+            normal = (raw_normal[0] / nn, raw_normal[1] / nn, raw_normal[2] / nn)
 
         cfg = self.config
         t_prev = self._t

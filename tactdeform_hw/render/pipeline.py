@@ -284,6 +284,10 @@ class Renderer:
         if not frames:
             records.append(FrameRecord(out.t_s, out.state, out.feature, out.texture, out.pattern, False, approach,
                                        out.context, out.orientation, False, out.dropped))
+            if self.device is not None:
+                # Nothing changed, but the renderer is alive: feed the device's fail-safe watchdog so a
+                # held contact is not switched off, while a dead renderer still is.
+                self.device.keepalive()
             return records
         last = len(frames) - 1
         for i, (tf, pat) in enumerate(frames):

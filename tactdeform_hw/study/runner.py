@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import time
+from bisect import bisect_right
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -296,15 +297,16 @@ def run_study(
     tremor_mm: float = 0.0,
     mesh_dirs: Sequence[str] = (),
     progress: ProgressFn | None = None,
-    device_factory: Callable[..., Any] | None = None,
+    realtime: bool = False,
 ) -> StudyRun:
     """Run every trial of ``study`` on one device session; return the raw results (see :mod:`.checks`
     and :mod:`.report` for what is made of them).
 
     ``current_ua`` defaults to the participant's (``profile.stimulation_ua``), else to
     :data:`NOMINAL_EMULATOR_UA` on the emulator and 0 (patterns only) on a real device.  ``guard`` is the
-    safety guard the device enforces (a participant's limits); ``device_factory`` replaces
-    :func:`~tactdeform_hw.device.open_device` (same signature)."""
+    safety guard the device enforces (a participant's limits).  ``realtime`` paces every pose to the
+    session clock (a real device then shows each trial at its real speed); otherwise the run goes as fast
+    as it can, which changes nothing the checks look at: the timed replay restores the session's timing."""
     from ..device import StimConfig, open_device
     from ..device.safety import SafetyGuard
 
@@ -332,11 +334,11 @@ def run_study(
                     r.skipped = f"Stanford bunny not available: {exc}"
             notes.append(f"bunny trials skipped: {exc}")
     cfg = ManagerConfig(**study.manager)
-    opener = device_factory or open_device
-    dev = opener(device, timeout=timeout, mapping=mapping, guard=guard, audit=audit)
+    dev = open_device(device, timeout=timeout, mapping=mapping, guard=guard, audit=audit)
     tap = WireTap(dev.port)
     dev.port = tap
     session_t = 0.0
+    wall_start: float | None = None  # wall clock minus session time, for realtime pacing
     try:
         if current_ua is not None:
             current, source = int(current_ua), "--current-ua"
@@ -377,6 +379,12 @@ def run_study(
             tap.mark(phase="render")
             validator = PoseValidator()
             for i, pose in enumerate(run.poses):
+                if realtime:
+                    if wall_start is None:
+                        wall_start = time.perf_counter() - pose.t_s
+                    wait = pose.t_s - (time.perf_counter() - wall_start)
+                    if wait > 0:
+                        time.sleep(wait)
                 tap.mark(t_s=pose.t_s)
                 checked = validator.check_pose(pose)
                 if checked is None:
@@ -421,6 +429,7 @@ def run_study(
 # --- what the scans delivered --------------------------------------------------------------------------
 
 _STIM_KINDS = (0, 1, 2)  # PulseKind.MONO, BI_ANODIC, BI_CATHODIC
+_PULSE_COLUMNS = ("start_us", "channel", "kind", "current_ua", "charge_nc")
 
 
 def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
@@ -443,8 +452,10 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         emu.advance_to(max(emu.now_us, t_us))
         emu.write(w.data, at_us=t_us)
     emu.advance_to(last + TAIL_S * 1e6)
+    offsets = [0]
+    for w in writes[:-1]:
+        offsets.append(offsets[-1] + len(w.data))
     reports = emu.reports
-    table = reports.pulse_table()
     mapping = result.array.channel_mapping()
     hw_to_app = {ch: i for i, ch in enumerate(mapping.app_to_hw)}
     # Overruns, queue overflows and watchdog resets are in the hazard list; torn scans and lost bytes are
@@ -459,18 +470,16 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     for key in ("model_assumptions", "latency_us_max", "now_us"):
         summary.pop(key, None)
     result.timed_summary = summary
-    starts = table["start_us"]
-    order = np.argsort(starts, kind="stable")
-    cols = {k: v[order] for k, v in table.items()}
-    starts = cols["start_us"]
     for run in result.trials:
         if run.skipped is not None or not run.writes:
             continue
         run.replay_us = [at[id(w)] for w in run.writes]
         lo_us = run.replay_us[0]
         hi_us = max(run.t1_s * 1e6, run.replay_us[-1]) + 20_000.0
-        a, b = int(np.searchsorted(starts, lo_us, "left")), int(np.searchsorted(starts, hi_us, "left"))
-        sel = {k: v[a:b] for k, v in cols.items()}
+        # One window per trial, and only the columns the checks use: a study is millions of pulses.
+        window = reports.pulse_table(lo_us, hi_us)
+        sel = {k: window[k] for k in _PULSE_COLUMNS}
+        del window
         stim = np.isin(sel["kind"], _STIM_KINDS)
         live = stim & (sel["current_ua"] > 0)
         per_charge = [0.0] * result.array.count
@@ -510,7 +519,12 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
             if lo_us <= lo.time_us < hi_us:
                 found.append({"kind": "loss", "time_us": lo.time_us, "count": lo.count, "reason": lo.reason})
         for h in hazards:
-            if h.time_us is None or lo_us <= h.time_us < hi_us:
+            if h.time_us is not None:
+                mine = lo_us <= h.time_us < hi_us
+            else:  # a parser hazard: the write that holds its byte says which trial caused it
+                k = bisect_right(offsets, h.offset) - 1
+                mine = 0 <= k < len(writes) and writes[k].trial == run.trial.index
+            if mine:
                 found.append(h.to_dict())
         run.timed_hazards = found
 

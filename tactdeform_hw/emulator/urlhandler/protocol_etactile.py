@@ -37,8 +37,10 @@ def forget_shared(name: str | None = None) -> None:
             _shared.pop(name, None)
 
 
-class Serial(SerialBase):  # type: ignore[misc]
+class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type information: SerialBase is Any
     """pyserial port backed by an in-process :class:`Emulator`."""
+
+    is_open: bool  # set by SerialBase.__init__; declared so the checker knows its type
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self.emulator: Emulator | None = None
@@ -48,7 +50,7 @@ class Serial(SerialBase):  # type: ignore[misc]
         super().__init__(*args, **kwargs)
 
     def open(self) -> None:
-        if self.is_open:  # type: ignore[has-type]
+        if self.is_open:
             raise SerialException("Port is already open.")
         if self._port is None:
             raise SerialException("Port must be configured before it can be used.")
