@@ -1,24 +1,14 @@
-"""Small stand-ins for the scene side of the renderer: surface queries with the same fields as
-:class:`tactdeform_hw.render.geometry.SurfaceQuery`, a flat object, and finger poses."""
+"""Small stand-ins for the scene side of the renderer: a flat object answering with real
+:class:`tactdeform_hw.render.geometry.SurfaceQuery` values, and finger poses."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import numpy as np
 
-
-@dataclass(frozen=True)
-class FakeQuery:
-    object_name: str
-    signed_distance_mm: float
-    closest_point_mm: np.ndarray
-    normal: np.ndarray
-    feature: str
-    edge_direction: np.ndarray | None
-    texture_level: int
+from tactdeform_hw.render.geometry import SurfaceQuery
 
 
 class FakeFloor:
@@ -38,12 +28,12 @@ class FakeFloor:
         self.texture_level = texture_level
         self.queries = 0
 
-    def query(self, point_mm: np.ndarray) -> FakeQuery:
+    def query(self, point_mm: np.ndarray) -> SurfaceQuery:
         self.queries += 1
         p = np.asarray(point_mm, dtype=float)
         feat = self.feature(p) if callable(self.feature) else self.feature
         tex = self.texture_level(p) if callable(self.texture_level) else self.texture_level
-        return FakeQuery(
+        return SurfaceQuery(
             self.name,
             float(p[2]),
             np.array([p[0], p[1], 0.0]),

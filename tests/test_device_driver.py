@@ -6,7 +6,6 @@ import pytest
 
 from tactdeform_hw.device import ChannelMapping, EtactileKitDevice, StimConfig, open_device
 from tactdeform_hw.emulator import Emulator
-from tactdeform_hw.emulator.transport import EmulatorPort
 from tactdeform_hw.errors import (
     ConfigurationError,
     DeviceGoneError,
@@ -19,13 +18,14 @@ from tactdeform_hw.errors import (
 )
 from tactdeform_hw.protocol.decoder import OK, decode
 
+from . import safety_helpers
 
-class RecordingPort(EmulatorPort):
+
+class RecordingPort(safety_helpers.RecordingPort):
     """An in-process port that records every write and the line states at open."""
 
     def __init__(self, emulator: Emulator | None = None, **kw: object) -> None:
-        super().__init__(emulator, **kw)  # type: ignore[arg-type]
-        self.writes: list[bytes] = []
+        super().__init__(emulator, **kw)
         self.lines_at_open: tuple[bool, bool] | None = None
         self.dtr = True  # pyserial's default would assert both lines
         self.rts = True
@@ -33,10 +33,6 @@ class RecordingPort(EmulatorPort):
     def open(self) -> None:
         self.lines_at_open = (self.dtr, self.rts)
         super().open()
-
-    def write(self, data: bytes) -> int:
-        self.writes.append(bytes(data))
-        return super().write(data)
 
 
 @pytest.fixture

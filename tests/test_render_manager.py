@@ -10,6 +10,7 @@ import pytest
 
 from tactdeform_hw.errors import LimitError
 from tactdeform_hw.render.contexts import ApproachState, FrameAccumulator, contact_angle_deg
+from tactdeform_hw.render.geometry import SurfaceQuery
 from tactdeform_hw.render.manager import (
     APPROACHING,
     IDLE,
@@ -20,7 +21,7 @@ from tactdeform_hw.render.manager import (
 )
 from tactdeform_hw.render.patterns import DIRECTIONS, EDGE_ORIENTATIONS
 
-from .render_fakes import PAD_DOWN, FakeFloor, FakeQuery, hold_poses, line_poses, pad_down
+from .render_fakes import PAD_DOWN, FakeFloor, hold_poses, line_poses, pad_down
 
 
 def run(m: PatternManager, scene: FakeFloor, poses: list) -> list:
@@ -390,9 +391,9 @@ def test_bad_samples_are_counted_drops_that_keep_the_pattern(t, pos, quat, reaso
 
 def test_bad_surface_queries_are_drops() -> None:
     m = PatternManager()
-    nan_q = FakeQuery("x", math.nan, np.zeros(3), np.array([0, 0, 1.0]), "face", None, 0)
-    zero_n = FakeQuery("x", -1.0, np.zeros(3), np.zeros(3), "face", None, 0)
-    odd = FakeQuery("x", -1.0, np.zeros(3), np.array([0, 0, 1.0]), "vertex", None, 0)
+    nan_q = SurfaceQuery("x", math.nan, np.zeros(3), np.array([0, 0, 1.0]), "face", None, 0)
+    zero_n = SurfaceQuery("x", -1.0, np.zeros(3), np.zeros(3), "face", None, 0)
+    odd = SurfaceQuery("x", -1.0, np.zeros(3), np.array([0, 0, 1.0]), "vertex", None, 0)
     for i, q in enumerate((nan_q, zero_n, odd)):
         assert m.update(float(i), (0, 0, -1), PAD_DOWN, q).dropped == "query"
     assert m.state == IDLE and m.stats.dropped_total == 3

@@ -18,6 +18,8 @@ from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.pty_server import PtyServer
 from tactdeform_hw.emulator.transport import EmulatorPort
 
+from .safety_helpers import RecordingPort
+
 REPO = Path(__file__).resolve().parents[1]
 ALL = [1] * 32
 
@@ -73,16 +75,7 @@ def test_watchdog_thread_stops_a_silent_owner_and_resumes_when_it_returns() -> N
 
 
 def test_signal_handler_starts_with_a_resync_when_it_cut_a_write() -> None:
-    class Port(EmulatorPort):
-        def __init__(self) -> None:
-            super().__init__()
-            self.writes: list[bytes] = []
-
-        def write(self, data: bytes) -> int:
-            self.writes.append(bytes(data))
-            return super().write(data)
-
-    port = Port()
+    port = RecordingPort()
     dev = EtactileKitDevice(port)
     fs = FailSafe(dev, signals=False, at_exit=False, thread=False)
     dev.configure(StimConfig(current_ua=500))

@@ -20,9 +20,10 @@ from tactdeform_hw.device.profiles import ParticipantProfile, profile_from_dict
 from tactdeform_hw.device.safety import SafetyGuard
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.timed import TimedEmulator
-from tactdeform_hw.emulator.transport import EmulatorPort
 from tactdeform_hw.errors import TactDeformError
 from tactdeform_hw.protocol.decoder import StreamDecoder, decode
+
+from .safety_helpers import RecordingPort
 
 CASES: Counter[str] = Counter()
 PROFILE = ParticipantProfile("FZ01", 2000, (1500, 1400, 1500, 1300, 1200, 1300, 1500, 1400, 1500), dt.date(2024, 5, 1))
@@ -41,16 +42,6 @@ anything = st.one_of(
     st.lists(st.integers(-3, 300), max_size=3),
     st.decimals(allow_nan=True, allow_infinity=True),
 )
-
-
-class CountingPort(EmulatorPort):
-    def __init__(self) -> None:
-        super().__init__()
-        self.writes: list[bytes] = []
-
-    def write(self, data: bytes) -> int:
-        self.writes.append(bytes(data))
-        return super().write(data)
 
 
 def within_limits(emu: Emulator) -> bool:
@@ -143,8 +134,8 @@ def test_profile_loader_never_crashes(data: dict[str, Any]) -> None:
 # --- the driver API ----------------------------------------------------------------------------------------
 
 
-def configured() -> tuple[EtactileKitDevice, CountingPort]:
-    port = CountingPort()
+def configured() -> tuple[EtactileKitDevice, RecordingPort]:
+    port = RecordingPort()
     dev = EtactileKitDevice(port, guard=SafetyGuard.from_profile(PROFILE))
     dev.configure(StimConfig(current_ua=1500))
     return dev, port
@@ -200,7 +191,7 @@ stim_fields = st.fixed_dictionaries(
 @given(fields=stim_fields)
 def test_configure_with_anything(fields: dict[str, Any]) -> None:
     CASES["configure"] += 1
-    port = CountingPort()
+    port = RecordingPort()
     dev = EtactileKitDevice(port, guard=SafetyGuard.from_profile(PROFILE))
     try:
         dev.configure(StimConfig(**fields))

@@ -15,25 +15,16 @@ from tactdeform_hw.device.audit import AuditLog
 from tactdeform_hw.device.profiles import ParticipantProfile
 from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF, SafetyGuard, grid_regions
 from tactdeform_hw.emulator import Emulator
-from tactdeform_hw.emulator.transport import EmulatorPort
 from tactdeform_hw.errors import LimitError, ProtocolMisuseError, SafetyError
 from tactdeform_hw.protocol.decoder import decode
+
+from .safety_helpers import RecordingPort
 
 REGIONS = (1500, 1400, 1500, 1300, 1200, 1300, 1500, 1400, 1500)
 PROFILE = ParticipantProfile("P01", 2000, REGIONS, dt.date(2024, 5, 1))
 CENTRE = [1 if r == 4 else 0 for r in TACTDEFORM_REGION_OF]
 CORNER = [1 if r == 0 else 0 for r in TACTDEFORM_REGION_OF]
 ALL = [1] * 32
-
-
-class RecordingPort(EmulatorPort):
-    def __init__(self) -> None:
-        super().__init__()
-        self.writes: list[bytes] = []
-
-    def write(self, data: bytes) -> int:
-        self.writes.append(bytes(data))
-        return super().write(data)
 
 
 def device(guard: SafetyGuard | None = None, **kw: object) -> tuple[EtactileKitDevice, RecordingPort]:

@@ -27,27 +27,11 @@ from .common import (
     progress,
 )
 
-#: The study tasks' trajectories (Task 1 approaches, Task 2 contacts, Task 3 slides, Phase 2 exploration).
-TRAJECTORIES: tuple[str, ...] = (
-    "approach-face",
-    "approach-edge-h",
-    "approach-edge-v",
-    "approach-edge-d1",
-    "approach-edge-d2",
-    "approach-corner",
-    "contact-steep-left",
-    "contact-shallow-left",
-    "contact-shallow-right",
-    "contact-steep-right",
-    "slide-smooth",
-    "slide-rough",
-    "slide-rougher",
-    "explore",
-)
-APPROACHES: tuple[str, ...] = ("tactdeform", "ua", "cam")
-
 
 def register(sub: Any) -> None:
+    from ..render.scene import APPROACHES, CONTACT_MODES
+    from ..render.trajectories import TRAJECTORIES
+
     p: argparse.ArgumentParser = sub.add_parser(
         "render",
         help="render a study trajectory over a scene to a device (emulator by default)",
@@ -68,7 +52,7 @@ def register(sub: Any) -> None:
     p.add_argument("--approach", choices=APPROACHES, default=None, help="rendering approach (default: the scene's, tactdeform)")
     p.add_argument(
         "--contact-mode",
-        choices=("orientation", "uniform"),
+        choices=CONTACT_MODES,
         default=None,
         help="stationary contact: orientation-specific shift (eq. 4) or uniform (default: the scene's, orientation)",
     )

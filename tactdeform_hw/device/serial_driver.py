@@ -40,6 +40,13 @@ def _serial_error_types() -> tuple[type[BaseException], ...]:
     return (serial.SerialException, OSError)
 
 
+def _lower_lines(port: SerialLike) -> None:
+    """Set DTR and RTS low on an unopened port, so that opening it does not reset the board."""
+    for line in ("dtr", "rts"):
+        if hasattr(port, line):
+            setattr(port, line, False)
+
+
 class EtactileKitDevice(Device):
     """``port`` may be opened or not; an unopened one gets DTR/RTS low before it is opened."""
 
@@ -57,9 +64,7 @@ class EtactileKitDevice(Device):
         self.port = port
         self._errors = _serial_error_types()
         if not port.is_open:
-            for line in ("dtr", "rts"):
-                if hasattr(port, line):
-                    setattr(port, line, False)
+            _lower_lines(port)
             try:
                 port.open()
             except self._errors as exc:
@@ -98,9 +103,7 @@ class EtactileKitDevice(Device):
             self.port.close()
         except self._errors:
             pass
-        for line in ("dtr", "rts"):
-            if hasattr(self.port, line):
-                setattr(self.port, line, False)
+        _lower_lines(self.port)
         try:
             self.port.open()
         except self._errors as exc:

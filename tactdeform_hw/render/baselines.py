@@ -19,9 +19,8 @@ import numpy as np
 from .array import ElectrodeArray
 from .manager import IDLE, INTERACTING, ManagerOutput, ManagerStats, check_pose, quat_axes
 from .patterns import Pattern
+from .scene import APPROACHES as APPROACHES
 from .tracking import QUAT_NORM_TOLERANCE
-
-APPROACHES: tuple[str, ...] = ("tactdeform", "ua", "cam")
 
 
 class ContainsScene(Protocol):

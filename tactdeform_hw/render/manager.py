@@ -312,6 +312,7 @@ class PatternManager:
         self._p: tuple[float, float, float] | None = None
         self._n: tuple[float, float, float] | None = None
         self._hist: deque[tuple[float, float, float, float]] = deque()
+        self._mhist: deque[tuple[float, float, float, float]] = deque()
         self._onset_t = 0.0
         self._above_since: float | None = None
         self._settled_since: float | None = None
@@ -322,7 +323,6 @@ class PatternManager:
         self.direction = Debounced(cfg.direction_window_s)
         self.approach = ApproachState(self.frame_unit_mm, mode=cfg.approach_travel, release_mm=cfg.frame_release_mm)
         self.slide = FrameAccumulator(self.d_mm)
-        self._m_prev: tuple[float, float, float] | None = None
         self._ns: int | None = None
         self._ns_k = 0
         self.sliding = False
@@ -386,6 +386,7 @@ class PatternManager:
                 teleport = True
                 self.stats.teleports += 1
                 self._hist.clear()
+                self._mhist.clear()
         self._t = t
         self._p = p
         hist = self._hist
@@ -393,6 +394,10 @@ class PatternManager:
         w0 = t - cfg.motion_window_s
         while len(hist) > 2 and hist[1][0] <= w0:
             hist.popleft()
+        mhist = self._mhist
+        mhist.append((t, *self._smoothed_position(t)))
+        while len(mhist) > 2 and mhist[1][0] <= w0:
+            mhist.popleft()
 
         # --- contact ------------------------------------------------------------------------------------------
         old_state = self.state
@@ -409,15 +414,17 @@ class PatternManager:
         seq: list[Pattern]
         if self.state == IDLE:
             if normal is not None and sd <= cfg.contact_enter_mm:
-                seq = self._onset(t, p, q, sd, normal, feat, query)  # type: ignore[arg-type]
+                assert feat is not None  # a normal is only kept together with a checked feature
+                seq = self._onset(t, p, q, sd, normal, feat, query)
             else:
                 seq = [self.patterns.off]
         else:
             # In contact implies a query (no query loses contact) and a previous sample.
-            seq = self._in_contact(t, p, p_prev, q, sd, normal, feat, query)  # type: ignore[arg-type]
+            assert normal is not None and feat is not None and p_prev is not None
+            seq = self._in_contact(t, p, p_prev, q, sd, normal, feat, query)
         if self.state != old_state:
             self.stats.transitions += 1
-        self._n = normal  # type: ignore[assignment]
+        self._n = normal
         return self._emit(t, t_prev, seq)
 
     # --- internals -----------------------------------------------------------------------------------------
@@ -485,7 +492,6 @@ class PatternManager:
         self.texture.force(self._texture_of(query))
         self.approach.begin(cfg.contact_enter_mm - sd)
         self.slide.reset()
-        self._m_prev = None
         self._ns = None
         self._family = None
         self._count = -1
@@ -506,15 +512,6 @@ class PatternManager:
         self._count = n
         ov = self.config.approach_overflow
         return [frames[displayed_frame(c, nf, ov)] for c in counts]
-
-    def _velocity(self) -> tuple[float, float, float] | None:
-        hist = self._hist
-        t1, x1, y1, z1 = hist[-1]
-        t0, x0, y0, z0 = hist[0]
-        span = t1 - t0
-        if not span > 1e-9:
-            return None
-        return ((x1 - x0) / span, (y1 - y0) / span, (z1 - z0) / span)
 
     def _in_contact(self, t: float, p: tuple[float, ...], p_prev: tuple[float, ...], q: tuple[float, ...], sd: float,
                     normal: tuple[float, ...], feat: str, query: Any) -> list[Pattern]:
@@ -576,15 +573,15 @@ class PatternManager:
             else:
                 self.sliding = speed >= cfg.slide_on_mm_s
         X, Y, Z = quat_axes(*q)
-        k = self._k()
-        m = self._smoothed_position(t) if k else None
-        mp = self._m_prev
-        self._m_prev = m
         if self.sliding and vt is not None and speed > 0.0:
             ux, uy, uz = vt[0] / speed, vt[1] / speed, vt[2] / speed
-            if m is not None and mp is not None:
-                # Texture travel: the smoothed position's displacement along the motion (telescopes).
-                self.slide.add((m[0] - mp[0]) * ux + (m[1] - mp[1]) * uy + (m[2] - mp[2]) * uz)
+            mhist = self._mhist
+            if self._k() and len(mhist) >= 2:
+                # Texture travel: the filtered position's signed displacement along the filtered stroke
+                # direction, so tremor's back-and-forth cancels instead of adding up.
+                _, mx1, my1, mz1 = mhist[-1]
+                _, mx0, my0, mz0 = mhist[-2]
+                self.slide.add((mx1 - mx0) * ux + (my1 - my0) * uy + (mz1 - mz0) * uz)
             a = math.degrees(math.atan2(ux * Y[0] + uy * Y[1] + uz * Y[2], ux * X[0] + uy * X[1] + uz * X[2]))
             cur = self.direction.value
             cand = quantise_angle(a, 8, 360.0, cur, cfg.direction_margin_deg)
@@ -613,10 +610,27 @@ class PatternManager:
             self.theta.update(cand, t)
         return [self.patterns.contact(feat_v, orient, self.theta.value)]
 
+    def _velocity(self) -> tuple[float, float, float] | None:
+        """Velocity of the tremor-filtered position: its net displacement over ``motion_window_s``.
+
+        The raw position's displacement over the window keeps up to twice the tremor amplitude, which
+        at 1 mm reads as 6.7 mm/s in any direction — more than the 4 mm/s between ``slide_on_mm_s`` and
+        ``slide_off_mm_s``, and at a 20 mm/s stroke a direction error of up to 18°, enough to hold the
+        stroke in the wrong one of 8 bins.  Averaged over ``slide_smoothing_s`` first, 1 mm of 8–12 Hz
+        tremor reads as at most 1.5 mm/s (4° at 20 mm/s).  None when no time has passed over the window."""
+        mhist = self._mhist
+        t1, x1, y1, z1 = mhist[-1]
+        t0, x0, y0, z0 = mhist[0]
+        span = t1 - t0
+        if not span > 1e-9:
+            return None
+        return ((x1 - x0) / span, (y1 - y0) / span, (z1 - z0) / span)
+
     def _smoothed_position(self, t: float) -> tuple[float, float, float]:
         """Mean position over the last ``slide_smoothing_s``: one 8 Hz period, which leaves at most a
         fifth of an 8–12 Hz tremor, so a finger sliding with tremor does not rock the texture back and
-        forth.  Recomputed from the samples each time (no running sum to drift)."""
+        forth, nor its speed and direction.  Recomputed from the samples each time (no running sum to
+        drift)."""
         hist = self._hist
         t0 = t - self.config.slide_smoothing_s
         sx = sy = sz = 0.0

@@ -64,8 +64,8 @@ from .mesh import MESH_SUFFIXES, MeshData, TriangleMesh, read_mesh
 from .primitives import Box, Sphere
 from .tracking import rotation_from_euler_deg
 
-CONTACT_MODES = ("orientation", "uniform")
-APPROACHES = ("tactdeform", "ua", "cam")
+CONTACT_MODES: tuple[str, ...] = ("orientation", "uniform")
+APPROACHES: tuple[str, ...] = ("tactdeform", "ua", "cam")
 
 PHASE2_CENTER_MM = (0.0, -200.0, 450.0)
 """Where Phase 2 objects sit: 45 cm ahead of and 20 cm below the eye (the world origin)."""

@@ -55,6 +55,7 @@ CONTACT_THETA_DEG: dict[str, float] = {
 }
 SLIDE_LEVELS: dict[str, int] = {"smooth": 0, "rough": 1, "rougher": 2}
 
+#: The study tasks' trajectories (Task 1 approaches, Task 2 contacts, Task 3 slides, Phase 2 exploration).
 TRAJECTORIES: tuple[str, ...] = (
     "approach-face",
     "approach-edge-h",

@@ -135,7 +135,8 @@ def _colour(level: int, current_ua: float | None, full_scale_ua: float) -> tuple
         return to_rgba(OFF_COLOUR)
     frac = 1.0 if current_ua is None else float(np.clip(current_ua / full_scale_ua, 0.0, 1.0))
     cmap = colormaps["YlOrRd" if level == 1 else "Purples"]
-    return tuple(cmap(0.45 + 0.55 * frac))  # type: ignore[return-value]
+    r, g, b, a = cmap(0.45 + 0.55 * frac)
+    return (r, g, b, a)
 
 
 class _Scene:

@@ -133,7 +133,8 @@ def _rows(records: Any) -> Iterable[Any]:
         columns = [np.asarray(getattr(records, f)) for f in fields]
         if all(c.ndim >= 1 for c in columns):
             return [{f: c[k] for f, c in zip(fields, columns)} for k in range(len(columns[0]))]
-    return records  # type: ignore[no-any-return]
+    rows: Iterable[Any] = records  # anything else is taken as records already
+    return rows
 
 
 def to_pulses(records: Iterable[Any]) -> list[Pulse]:
