@@ -19,18 +19,25 @@ below follow from that (every one is a :class:`ManagerConfig` field):
 * contact is entered at once (latency matters most there) and left only after the pad has been more
   than ``contact_release_mm`` = 1.5 mm outside the surface for ``contact_loss_window_s`` = 70 ms (longer
   than any tremor half period), or at once beyond ``contact_loss_far_mm`` = 10 mm;
-* speeds come from the net displacement over ``motion_window_s`` = 0.3 s, where tremor reads as at most
-  6.7 mm/s — below ``settle_speed_mm_s`` = 8 mm/s and below the sliding thresholds (12 mm/s on, 8 mm/s
-  off).  Approaching becomes Interacting once contact has lasted ``sustain_s`` = 0.15 s and the normal
-  speed has stayed below the settle speed for ``settle_hold_s`` = 0.15 s — longer than the ≈0.12 s a
-  20 mm/s press-and-withdraw reads as still at its turning point, so a reversal is not taken for a rest;
+* the position is first averaged over ``slide_smoothing_s`` = 0.125 s (one 8 Hz period), and speeds
+  and the stroke direction come from that average's net displacement over ``motion_window_s`` =
+  0.3 s.  Tremor's own speed is large (1 mm at 10 Hz peaks at 63 mm/s, three times a 20 mm/s stroke),
+  and the raw net displacement over 0.3 s still keeps up to 2 mm of it — 6.7 mm/s in any direction,
+  more than the 4 mm/s between the sliding thresholds (12 mm/s on, 8 mm/s off) and, at 20 mm/s, up to
+  18° of direction error, enough to hold a stroke in the wrong one of 8 bins.  After the average,
+  1 mm of 8–12 Hz tremor reads as at most 1.5 mm/s (4° at 20 mm/s), inside both hysteresis bands and
+  far below ``settle_speed_mm_s`` = 8 mm/s.  Approaching becomes Interacting once contact has lasted
+  ``sustain_s`` = 0.15 s and the normal speed has stayed below the settle speed for ``settle_hold_s`` =
+  0.15 s — longer than the ≈0.125 s a 20 mm/s press-and-withdraw reads as still at its turning point,
+  so a reversal is not taken for a rest;
 * feature, edge orientation, θ level, sliding direction and texture level each change only after their
   new value has held for 0.1 s, and the angular ones also have a margin past the bin boundary (7.5°, 5°
   and 10°); the expansion frame and the texture shift count step down only ``frame_release_mm`` =
   1.25 mm below a boundary;
-* texture travel is the displacement of the position averaged over ``slide_smoothing_s`` = 0.125 s (one
-  8 Hz period: tremor keeps at most a fifth of its amplitude), so a sliding finger's tremor does not
-  rock the texture back and forth; the sum still telescopes, so it cannot drift.
+* texture travel is the signed displacement of that averaged position (tremor keeps at most a fifth of
+  its amplitude) projected on the filtered stroke direction — net, not absolute — so a sliding finger's
+  tremor cancels instead of adding shifts or rocking the texture back and forth; the sum still
+  telescopes, so it cannot drift.
 
 Interpretations beyond the windows (all :class:`ManagerConfig` fields): eq. 3's count grows without
 bound while a pattern has a few frames — ``approach_overflow="cycle"`` restarts the ring at the centre,
@@ -103,7 +110,7 @@ class ManagerConfig:
     # stationary / sliding
     slide_on_mm_s: float = 12.0
     slide_off_mm_s: float = 8.0
-    slide_smoothing_s: float = 0.125
+    slide_smoothing_s: float = 0.125  # position average before every speed, direction and texture travel
     # stability windows and hysteresis margins
     feature_window_s: float = 0.1
     orientation_window_s: float = 0.1
@@ -323,6 +330,7 @@ class PatternManager:
         self.direction = Debounced(cfg.direction_window_s)
         self.approach = ApproachState(self.frame_unit_mm, mode=cfg.approach_travel, release_mm=cfg.frame_release_mm)
         self.slide = FrameAccumulator(self.d_mm)
+        self._m_prev: tuple[float, float, float, float] | None = None
         self._ns: int | None = None
         self._ns_k = 0
         self.sliding = False
@@ -492,6 +500,7 @@ class PatternManager:
         self.texture.force(self._texture_of(query))
         self.approach.begin(cfg.contact_enter_mm - sd)
         self.slide.reset()
+        self._m_prev = None
         self._ns = None
         self._family = None
         self._count = -1
@@ -573,15 +582,15 @@ class PatternManager:
             else:
                 self.sliding = speed >= cfg.slide_on_mm_s
         X, Y, Z = quat_axes(*q)
+        m = self._mhist[-1]
+        mp = self._m_prev
+        self._m_prev = m
         if self.sliding and vt is not None and speed > 0.0:
             ux, uy, uz = vt[0] / speed, vt[1] / speed, vt[2] / speed
-            mhist = self._mhist
-            if self._k() and len(mhist) >= 2:
+            if mp is not None and self._k():
                 # Texture travel: the filtered position's signed displacement along the filtered stroke
-                # direction, so tremor's back-and-forth cancels instead of adding up.
-                _, mx1, my1, mz1 = mhist[-1]
-                _, mx0, my0, mz0 = mhist[-2]
-                self.slide.add((mx1 - mx0) * ux + (my1 - my0) * uy + (mz1 - mz0) * uz)
+                # direction, so tremor's back-and-forth cancels instead of adding up (it telescopes).
+                self.slide.add((m[1] - mp[1]) * ux + (m[2] - mp[2]) * uy + (m[3] - mp[3]) * uz)
             a = math.degrees(math.atan2(ux * Y[0] + uy * Y[1] + uz * Y[2], ux * X[0] + uy * X[1] + uz * X[2]))
             cur = self.direction.value
             cand = quantise_angle(a, 8, 360.0, cur, cfg.direction_margin_deg)
