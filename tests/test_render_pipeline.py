@@ -315,3 +315,18 @@ def test_the_renderer_builds_only_what_the_scene_needs() -> None:
     assert m.state == INTERACTING and m.context == "contact"
     assert m.theta_deg is None  # θ (eq. 4) never computed in uniform mode
     assert set(uniform.renderers) == {"tactdeform"}
+
+
+def test_offline_render_audit_log_runs_on_the_trajectory_clock(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """An offline run on the emulator stamps its audit log with session time, so a replay delivers what the
+    session delivered instead of a run compressed to however fast the host computed."""
+    import json
+
+    from tactdeform_hw.cli import main
+
+    audit = tmp_path / "audit.jsonl"
+    assert main(["render", "--scene", "cube", "--trajectory", "approach-face", "--frames", str(tmp_path / "f.jsonl"),
+                 "--current-ua", "500", "--audit-log", str(audit), "--quiet"]) == 0
+    times = [json.loads(line)["t"] for line in audit.read_text().splitlines() if '"type":"tx"' in line.replace(" ", "")]
+    poses = [json.loads(line)["t"] for line in (tmp_path / "f.jsonl").read_text().splitlines()]
+    assert times and max(times) >= 0.9 * (poses[-1] - poses[0])

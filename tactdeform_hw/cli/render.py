@@ -121,8 +121,14 @@ def run(args: argparse.Namespace) -> int:
             stim_config = StimConfig(electrode_count=array.channel_mapping().hw_channels, current_ua=args.current_ua,
                                      pulse_width_us=profile.pulse_width_us, polarity=profile.polarity)
         audit = audit_from_args(args, participant=profile.participant if profile is not None else None)
+        pacer = None
+        if not args.realtime and (args.device in ("emulator", "emu", "") or args.device.startswith("etactile://")):
+            # offline on the in-process emulator: the session runs on the trajectory's clock
+            from ..device.pacing import Pacer, SimulatedClock
+
+            pacer = Pacer(clock=SimulatedClock())
         with open_device(args.device, timeout=args.timeout, mapping=array.channel_mapping(), guard=guard,
-                         audit=audit) as dev:
+                         audit=audit, pacer=pacer) as dev:
             verify = getattr(getattr(dev, "port", None), "emulator", None) is not None
             renderer = Renderer(
                 scene,

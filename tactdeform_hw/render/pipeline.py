@@ -347,15 +347,24 @@ class Renderer:
         self._dwell_s = min_dwell_s if realtime else 0.0
         wall0: float | None = None
         t_first: float | None = None
+        # An offline run on a device whose pacing clock is simulated follows the trajectory's clock, so
+        # the audit log and the fail-safe watchdog see session time, not how fast the host computed.
+        clock = getattr(getattr(self.device, "pacer", None), "clock", None)
+        session_clock = None if realtime or not callable(getattr(clock, "advance", None)) else clock
+        clock0 = session_clock.now() if session_clock is not None else 0.0
         for i, pose in enumerate(poses):
-            if realtime:
-                t = pose[0] if isinstance(pose, tuple) else pose.t_s
-                if t_first is None and math.isfinite(t):
-                    t_first, wall0 = t, time.perf_counter()
-                if t_first is not None and wall0 is not None and math.isfinite(t):
+            t = pose[0] if isinstance(pose, tuple) else pose.t_s
+            if t_first is None and math.isfinite(t):
+                t_first, wall0 = t, time.perf_counter()
+            if t_first is not None and wall0 is not None and math.isfinite(t):
+                if realtime:
                     delay = (t - t_first) - (time.perf_counter() - wall0)
                     if delay > 0:
                         time.sleep(delay)
+                elif session_clock is not None:
+                    ahead = clock0 + (t - t_first) - session_clock.now()
+                    if ahead > 0:
+                        session_clock.advance(ahead)
             for rec in self.step(pose):
                 if on_record is not None:
                     on_record(rec)

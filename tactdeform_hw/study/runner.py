@@ -334,7 +334,14 @@ def run_study(
                     r.skipped = f"Stanford bunny not available: {exc}"
             notes.append(f"bunny trials skipped: {exc}")
     cfg = ManagerConfig(**study.manager)
-    dev = open_device(device, timeout=timeout, mapping=mapping, guard=guard, audit=audit)
+    sim_clock = None
+    if not realtime and (device in ("emulator", "emu", "") or device.startswith("etactile://")):
+        # offline on the in-process emulator: the device's clock (audit log, watchdog) is session time
+        from ..device.pacing import Pacer, SimulatedClock
+
+        sim_clock = SimulatedClock()
+    dev = open_device(device, timeout=timeout, mapping=mapping, guard=guard, audit=audit,
+                      pacer=Pacer(clock=sim_clock) if sim_clock is not None else None)
     tap = WireTap(dev.port)
     dev.port = tap
     session_t = 0.0
@@ -385,6 +392,8 @@ def run_study(
                     wait = pose.t_s - (time.perf_counter() - wall_start)
                     if wait > 0:
                         time.sleep(wait)
+                elif sim_clock is not None and pose.t_s > sim_clock.now():
+                    sim_clock.advance(pose.t_s - sim_clock.now())
                 tap.mark(t_s=pose.t_s)
                 checked = validator.check_pose(pose)
                 if checked is None:
