@@ -330,3 +330,23 @@ def test_offline_render_audit_log_runs_on_the_trajectory_clock(tmp_path) -> None
     times = [json.loads(line)["t"] for line in audit.read_text().splitlines() if '"type":"tx"' in line.replace(" ", "")]
     poses = [json.loads(line)["t"] for line in (tmp_path / "f.jsonl").read_text().splitlines()]
     assert times and max(times) >= 0.9 * (poses[-1] - poses[0])
+
+
+def test_cli_option_overrides_only_its_own_field_of_the_scene_file(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    """--contact-mode must not reset the scene file's approach (nor --approach its contact mode)."""
+    import json
+
+    from tactdeform_hw.cli import main
+
+    scene = tmp_path / "bar.json"
+    scene.write_text(json.dumps({
+        "name": "bar", "options": {"contact_mode": "uniform", "approach": "cam"},
+        "objects": [{"type": "box", "name": "bar", "size_mm": [200, 50, 50], "center_mm": [0, -200, 400]}],
+    }))
+    for extra, field, want in ((["--contact-mode", "orientation"], "approach", "cam"),
+                               (["--approach", "tactdeform"], "contact_mode", "uniform")):
+        rc = main(["render", "--scene", str(scene), "--trajectory", "approach-face", "--frames",
+                   str(tmp_path / "f.jsonl"), "--quiet", "--json", *extra])
+        assert rc == 0
+        summary = json.loads(capsys.readouterr().out)
+        assert summary[field] == want

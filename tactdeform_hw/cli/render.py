@@ -89,10 +89,13 @@ def run(args: argparse.Namespace) -> int:
     args.current_ua = 0 if args.current_ua is None else args.current_ua
     if args.current_ua < 0:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
-    options = None
+    scene = load_scene(args.scene)
     if args.approach is not None or args.contact_mode is not None:
-        options = RenderOptions(contact_mode=args.contact_mode or "orientation", approach=args.approach or "tactdeform")
-    scene = load_scene(args.scene, options=options)
+        # an option given on the command line replaces only its own field of the scene's options
+        own = scene.options
+        scene = scene.with_options(
+            RenderOptions(contact_mode=args.contact_mode or own.contact_mode, approach=args.approach or own.approach)
+        )
     # A slide needs a surface of its texture level; the trajectory module gives a scene that has one.
     scene = scene_for_trajectory(args.trajectory, scene)
     # The finger's path is geometry: plan it where faces, edges and corners are classified, whatever
@@ -158,7 +161,8 @@ def run(args: argparse.Namespace) -> int:
             out.close()
     result = summary.as_dict()
     result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": args.rate, "verified": verify,
-                   "device": args.device, "frames_file": args.frames})
+                   "device": args.device, "frames_file": args.frames, "approach": scene.options.approach,
+                   "contact_mode": scene.options.contact_mode})
     if gif_records is not None:
         from ..viz.array_picture import draw_frames_gif
 
