@@ -417,6 +417,24 @@ def test_export_cli_writes_a_pattern_the_player_accepts(tmp_path: Path, capsys) 
     assert "frames have 3 electrode level(s) but the array tactdeform-32 has 32" in capsys.readouterr().err
 
 
+def test_export_last_step_default_is_what_the_help_says(tmp_path: Path, capsys) -> None:
+    with pytest.raises(SystemExit):
+        main(["export", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "median step" not in text
+    assert "--last-ms LAST_MS how long the last step lasts (default: to the end of the record plus one frame " \
+           "interval, the median time between frames)" in text
+    # steps of 100, 100 ms; the last sent frame at 0.2 s, the record ends at 0.25 s; frames 100, 100, 50 ms apart
+    levels = [[1 if i == k else 0 for i in range(32)] for k in range(4)]
+    frames = [_frame(0.0, levels[0]), _frame(0.1, levels[1]), _frame(0.2, levels[2]), _frame(0.25, levels[3], sent=False)]
+    src, out = _frames_file(tmp_path / "run.jsonl", frames), tmp_path / "run_pattern.json"
+    assert main(["export", str(src), "-o", str(out), "--json"]) == 0
+    capsys.readouterr()
+    assert [s.on_ms for s in read_pattern_file(out).steps] == [100.0, 100.0, 50.0 + 100.0]
+    assert main(["export", str(src), "-o", str(out), "--json", "--last-ms", "20"]) == 0
+    assert [s.on_ms for s in read_pattern_file(out).steps] == [100.0, 100.0, 20.0]
+
+
 # --- play ------------------------------------------------------------------------------------------------------
 
 

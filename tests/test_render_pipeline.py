@@ -350,3 +350,28 @@ def test_cli_option_overrides_only_its_own_field_of_the_scene_file(tmp_path, cap
         assert rc == 0
         summary = json.loads(capsys.readouterr().out)
         assert summary[field] == want
+
+
+def test_scene_cost_tool_reads_a_scene_file_relative_to_the_callers_directory(tmp_path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The tool measures each scene in a child process that runs in the repository: a relative path must
+    mean the caller's working directory, not the repository's."""
+    import importlib.util
+    import json
+
+    path = Path(__file__).resolve().parents[1] / "tools" / "scene_cost.py"
+    spec = importlib.util.spec_from_file_location("scene_cost", path)
+    assert spec is not None and spec.loader is not None
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    (tmp_path / "two-bars.json").write_text(json.dumps({
+        "name": "two-bars",
+        "objects": [{"type": "box", "name": "left", "size_mm": [200, 50, 50], "center_mm": [-200, -200, 400]},
+                    {"type": "box", "name": "right", "size_mm": [200, 50, 50], "center_mm": [200, -200, 400]}],
+    }))
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(tool, "CONFIGS", (("tactdeform", "orientation"),))
+    (row,) = tool.measure(["two-bars.json"])
+    assert "error" not in row, row
+    assert row["scene"] == "two-bars.json" and row["objects"] == 2 and row["build_ms"] >= 0 and "peak_mib" in row
+    assert tool.scene_argument("cube", tmp_path) == "cube"  # built-in names go through unchanged
+    assert tool.scene_argument("sub/x.toml", tmp_path) == str(tmp_path / "sub" / "x.toml")

@@ -253,6 +253,32 @@ def test_missing_pulses_fail_the_delivery_check(task1_result):
     assert _check(run, "scans_delivered_each_frame").passed
 
 
+def test_torn_scans_count_once_in_the_timing_hazards(task1_result):
+    # over UART a pattern can be read across two parser calls with a scan between: a torn scan, which the
+    # timed emulator records both in its scan runs and as a torn_pattern hazard — a trial lists it once
+    try:
+        replay_timed(task1_result, link="uart")
+        torn = [[h["time_us"] for h in r.timed_hazards if h["kind"] == "torn_pattern"] for r in task1_result.trials]
+        assert sum(map(len, torn)) > 0
+        assert all(len(set(times)) == len(times) for times in torn), torn
+    finally:
+        replay_timed(task1_result)
+        for run in task1_result.trials:
+            check_trial(run, task1_result)
+
+
+def test_summary_names_an_unchecked_design_without_a_doubled_dash(task1_result):
+    from tactdeform_hw.study.checks import design_checks
+    from tactdeform_hw.study.report import markdown, report_json
+
+    report = report_json(task1_result, design_checks(task1_result))
+    lines = [line for line in markdown(report).splitlines() if line.startswith("Design:")]
+    assert lines == ["Design: not checked — trials face,edge-v only: "
+                     f"{len(task1_result.trials)} trial(s)"], lines
+    report["design_checks"] = [{**report["design_checks"][0], "passed": True}]
+    assert "Design: ok — trials face,edge-v only" in markdown(report)
+
+
 def test_universe_holds_every_frame(task1_result):
     known = universe(task1_result.patterns)
     assert all(tuple(r.electrodes) in known for run in task1_result.trials for r in run.records if r.sent)

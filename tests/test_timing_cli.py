@@ -90,3 +90,55 @@ def test_registered_in_the_console_script() -> None:
     assert "timing" in COMMANDS
     assert main(["timing", "--electrodes", "2", "--json"]) == 0
     assert main(["timing", "--frequency", "0"]) == 1  # a clear error, not a traceback
+
+
+def test_latency_on_a_starved_main_loop_still_reports_the_wire(capsys: pytest.CaptureFixture[str]) -> None:
+    # discharge 50: the scans run back to back, the parser never reads the pattern — but its bytes arrive
+    code, out, _ = run_cli([*TACTDEFORM, "--discharge", "50", "--latency", "--phases", "3", "--json"], capsys)
+    assert code == 0
+    lat = json.loads(out)["latency"]
+    assert lat["uart"]["wire_us"]["min"] == pytest.approx(33 * 10 * 1e6 / 921600, abs=0.01)
+    assert 0 < lat["usb"]["wire_us"]["min"] <= lat["usb"]["wire_us"]["max"] <= 1000 + 60
+    for link in ("usb", "uart"):
+        assert lat[link]["felt"] == 0
+        for key in ("loop_wait_us", "scan_wait_us", "first_channel_us", "last_channel_us"):
+            assert lat[link][key] == {"min": None, "mean": None, "max": None}
+    code, out, _ = run_cli([*TACTDEFORM, "--discharge", "50", "--latency", "--phases", "3"], capsys)
+    lines = out.splitlines()
+    head = next(i for i, line in enumerate(lines) if line.startswith("link "))
+    rows = [line.split() for line in lines[head + 1 : head + 11]]
+    wire = [r for r in rows if "wire" in r]
+    assert len(wire) == 2 and all(r[-1] != "never" and float(r[-1]) > 0 for r in wire), wire
+    assert sum(r[-1] == "never" for r in rows) == 8  # loop tick, scan wait, first and last channel, per link
+
+
+def test_events_with_an_unknown_suffix_names_the_option_and_the_suffixes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tactdeform_hw.cli import main
+
+    vcd, ev = tmp_path / "s.vcd", tmp_path / "ev.txt"
+    assert main(["timing", "--vcd", str(vcd), "--events", str(ev)]) == 1
+    err = capsys.readouterr().err
+    assert "out of range" not in err
+    assert f"--events {str(ev)!r}: unknown file suffix '.txt'; use .csv or .json" in err, err
+    assert not vcd.exists() and not ev.exists()  # refused before any trace was started
+    assert main(["timing", "--events", str(tmp_path / "noext")]) == 1
+    assert "unknown file suffix ''; use .csv or .json" in capsys.readouterr().err
+
+
+def test_output_into_a_closed_pipe_ends_quietly() -> None:
+    """``tactdeform-hw timing --json | head -3``: the reader goes away; no traceback, exit status 141."""
+    import os
+    import subprocess
+    import sys
+
+    from tactdeform_hw.cli import EXIT_BROKEN_PIPE
+
+    read_fd, write_fd = os.pipe()
+    os.close(read_fd)  # the reader is gone before the command writes a byte
+    try:
+        proc = subprocess.run([sys.executable, "-m", "tactdeform_hw.cli", "timing", "--json"], stdout=write_fd,
+                              stderr=subprocess.PIPE, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1])
+    finally:
+        os.close(write_fd)
+    assert proc.stderr == ""
+    assert proc.returncode == EXIT_BROKEN_PIPE == 141

@@ -88,6 +88,32 @@ def test_tactdeform_setting_discharge_50_overruns_the_period() -> None:
     assert b.parser_starved
 
 
+def test_skip_policy_overrun_leaves_the_main_loop_most_of_every_other_period() -> None:
+    cfg = ScanConfig.make(32, 1, pulse_width_us=200, discharge_us=50, rate_hz=125)
+    b = Budget.of(cfg, MODEL.with_(overrun_policy="skip"), 125)
+    assert b.overrun and b.verdict == "overrun" and not b.parser_starved
+    assert b.actual_rate_hz == pytest.approx(62.5)  # a scan every other period
+    # 16000 - 8010.25 us outside the scan: many RTOS ticks, so no one-command-per-period limit
+    assert not any("payload" in n or "only" in n for n in b.notes), b.notes
+    assert any("every 2 periods" in n and "7989.75" in n for n in b.notes), b.notes
+
+
+def test_skip_policy_overrun_with_less_than_a_tick_left_names_the_stride() -> None:
+    cfg = ScanConfig.make(6, 1, pulse_width_us=200, discharge_us=45, rate_hz=1000)
+    b = Budget.of(cfg, MODEL.with_(overrun_policy="skip"), 1000)
+    gap = 2000.0 - b.scan_us
+    assert b.scan_us > 1000.0 and 0 < gap < MODEL.rtos_tick_us  # overruns; two periods leave under a tick
+    assert b.actual_rate_hz == pytest.approx(500.0)
+    limit = [n for n in b.notes if "payload" in n]
+    assert len(limit) == 1 and limit[0].endswith(
+        " us outside the scan every 2 periods: the parser reads at most one command with a payload per 2 periods"), b.notes
+    assert float(limit[0].split()[1]) == pytest.approx(gap, abs=0.06)
+    # the same configuration fitting its period keeps the per-period wording
+    fits = Budget.of(ScanConfig.make(32, 1, pulse_width_us=200, discharge_us=45, rate_hz=125), MODEL, 125)
+    assert [n for n in fits.notes if "payload" in n] == [
+        "only 149.8 us per period outside the scan: the parser reads at most one command with a payload per period"]
+
+
 # --- acceptance: one small scan, event by event -----------------------------------------------------------
 
 

@@ -270,6 +270,72 @@ def test_an_alarm_landing_mid_read_interrupts_the_call_and_tears_the_scan() -> N
     assert rep.channels[k - 1].first_pulse_us < 200_000 < rep.channels[k].first_pulse_us
 
 
+def torn_hazards(emu: TimedEmulator) -> list:  # type: ignore[type-arg]
+    return [h for h in emu.hazards if h.kind == HazardKind.TORN_PATTERN]
+
+
+def test_a_torn_scan_is_recorded_as_a_torn_pattern_hazard() -> None:
+    model = TimingModel(tick_phase_us=850.0)
+    emu = TimedEmulator(model=model)
+    emu.configure(ScanConfig.make(255, 1, pulse_width_us=10, discharge_us=0, rate_hz=10))
+    emu.advance_to(50_000)
+    emu.deliver(c.encode_electrode_num(255), 60_000.0)  # the pattern command is byte 2 since power-on
+    emu.deliver(c.encode_pattern([1] * 200 + [2] * 55), 99_000.0)
+    emu.advance_to(400_000)
+    torn = emu.reports.torn()
+    hz = torn_hazards(emu)
+    assert len(torn) == 1 and len(hz) == 1
+    h, t = hz[0], torn[0]
+    assert h.offset == 2 and h.time_us == t.time_us == 100_000.0
+    k = t.new_channels
+    assert 55 < k < 200  # only channels the new pattern leaves unchanged were read before the scan
+    assert h.detail == {
+        "first_cycle": t.cycle, "cycles": 1, "cycle_start_us": 100_000.0, "command_host_offset": -1,
+        "new_channels": k, "old_channels": 255 - k, "changed": [],
+    }
+    # once the pattern is whole, nothing more is torn
+    assert all(cy.torn is (cy.index == t.cycle) for cy in emu.reports.cycles())
+
+
+def test_a_pattern_trickling_in_over_several_scans_gives_one_hazard_per_torn_cycle() -> None:
+    # 1920 baud: a byte every 5.2 ms, so each 8 ms scan catches the pattern a byte or two further on
+    emu = TimedEmulator(link=UartLink(1920))
+    emu.configure(ScanConfig.make(8, 1, pulse_width_us=200, discharge_us=45, rate_hz=125))
+    emu.advance_to(12_000)
+    new = [0, 2, 1, 0, 3, 1, 2, 0]
+    emu.write(c.encode_pattern(new), 12_100.0)
+    emu.advance_to(200_000)
+    torn = emu.reports.torn()
+    hz = torn_hazards(emu)
+    assert len(torn) > 3 and len(hz) == len(torn) == emu.reports.summary()["torn_scans"]
+    for h, t in zip(hz, torn):
+        d = h.detail
+        assert (d["first_cycle"], d["cycles"], d["cycle_start_us"], h.time_us) == (t.cycle, 1, t.time_us, t.time_us)
+        assert h.offset == 0 and d["command_host_offset"] == 0 == t.command_host_offset
+        assert (d["new_channels"], d["old_channels"]) == (t.new_channels, t.old_channels)
+        k = d["new_channels"]
+        assert d["changed"] == [[ch, 1, new[ch]] for ch in range(k) if new[ch] != 1]
+        assert len(d["changed"]) == t.changed_channels
+    assert [h.detail["new_channels"] for h in hz] == sorted(h.detail["new_channels"] for h in hz)
+
+
+def test_a_pattern_stalled_mid_read_is_one_torn_record_for_the_stretch() -> None:
+    # the host stops after 10 of the pattern's 33 bytes: every later scan is torn the same way
+    emu = TimedEmulator(link="uart")
+    emu.configure(ScanConfig.make(32, 0, discharge_us=0, pulse_width_us=1, rate_hz=1000))
+    emu.advance_to(12_000)
+    emu.write(c.encode_pattern([1] * 32)[:10], 12_100.0)
+    emu.advance_to(112_000)
+    torn = emu.reports.torn()
+    hz = torn_hazards(emu)
+    assert len(torn) > 90 and len(hz) == 1
+    assert hz[0].detail["first_cycle"] == torn[0].cycle and hz[0].detail["cycles"] == len(torn)
+    assert hz[0].detail["new_channels"] == 9 and hz[0].detail["changed"] == [[ch, 0, 1] for ch in range(9)]
+    emu.advance_to(212_000)  # the stretch goes on: still one record, with every cycle counted
+    assert len(torn_hazards(emu)) == 1
+    assert torn_hazards(emu)[0].detail["cycles"] == emu.reports.summary()["torn_scans"] > len(torn)
+
+
 # --- the watchdog ----------------------------------------------------------------------------------------
 
 

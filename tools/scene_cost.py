@@ -16,6 +16,7 @@ Primitive scenes show no mesh index and no scipy import; smooth scenes no textur
     python tools/scene_cost.py                 # table
     python tools/scene_cost.py --json          # machine-readable
     python tools/scene_cost.py --scenes cube bunny
+    python tools/scene_cost.py --scenes two-bars.toml   # files relative to the current directory
 """
 
 from __future__ import annotations
@@ -76,13 +77,23 @@ def _child(scene_name: str, approach: str, contact_mode: str, measure: str) -> d
     return out
 
 
+def scene_argument(scene: str, cwd: Path | None = None) -> str:
+    """What the child gets for ``scene``: a file path made absolute against the caller's working
+    directory ``cwd`` (the child runs in the repository), a bare name — a built-in — unchanged."""
+    path = Path(scene).expanduser()
+    if not path.suffix and len(path.parts) == 1:
+        return scene
+    return str(((Path.cwd() if cwd is None else cwd) / path).resolve())
+
+
 def _run(scene: str, approach: str, contact_mode: str, measure: str) -> dict[str, Any]:
-    cmd = [sys.executable, __file__, "--child", scene, approach, contact_mode, measure]
+    cmd = [sys.executable, __file__, "--child", scene_argument(scene), approach, contact_mode, measure]
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO)
     if proc.returncode != 0:
         last = (proc.stderr.strip().splitlines() or ["failed"])[-1]
         return {"scene": scene, "approach": approach, "contact_mode": contact_mode, "error": last}
     result: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
+    result["scene"] = scene  # as the caller named it
     return result
 
 
@@ -143,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(_child(*args[1:5])))
         return 0
     parser = argparse.ArgumentParser(description="Build time and memory of scenes, and what each leaves out.")
-    parser.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES), help="built-in names or files")
+    parser.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES), help="built-in names or scene/mesh files (relative to the current directory)")
     parser.add_argument("--json", action="store_true", help="print JSON rows instead of a table")
     ns = parser.parse_args(args)
     rows = measure(ns.scenes)

@@ -2,8 +2,9 @@
 
 ``tactdeform-hw render --frames FRAMES.jsonl`` records what the renderer sent, frame by frame.  This
 command turns that record into a pattern file the eTactileKit GUI (and ``tactdeform-hw play``) can play:
-each sent frame becomes a step held until the next one, identical consecutive frames merge, and delays
-are whole milliseconds rounded on the cumulative time line.  ``--array-out`` also writes the electrode
+each sent frame becomes a step held until the next one (the last to the end of the record plus one frame
+interval, unless ``--last-ms`` says otherwise), identical consecutive frames merge, and delays are whole
+milliseconds rounded on the cumulative time line.  ``--array-out`` also writes the electrode
 array as an eTactileKit array file, so the GUI draws the pattern on the right layout.
 """
 
@@ -38,7 +39,12 @@ def register(sub: Any) -> None:
         default=1,
         help="params.stim_mode, the polarity the GUI sends: 1 anodic (default, TactDeform), 0 cathodic",
     )
-    p.add_argument("--last-ms", type=float, help="how long the last step lasts (default: the median step)")
+    p.add_argument(
+        "--last-ms",
+        type=float,
+        help="how long the last step lasts (default: to the end of the record plus one frame interval, "
+        "the median time between frames)",
+    )
     p.add_argument("--all-frames", action="store_true", help="also export frames that were not sent")
     p.add_argument(
         "--no-merge", action="store_true", help="keep identical consecutive frames as separate steps"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigurationError, LimitError
@@ -155,6 +156,8 @@ def run(args: argparse.Namespace) -> int:
                 print(f"{r['name']:<26}{r['value']!s:>12} {r['unit']:<8} {r['source']:<17} {r['doc']}")
         return 0
     cfg = config_from_args(args)
+    if args.events:
+        _events_format(args.events)  # a bad file name is refused before any work
     budget = Budget.of(cfg, model, requested_rate_hz=args.frequency)
     result: dict[str, Any] = budget.to_dict()
     result["model"] = model.to_dict()
@@ -203,6 +206,18 @@ def _draw_png(args: argparse.Namespace, cfg: Any, model: Any) -> dict[str, Any]:
             "size_px": list(info.size_px)}
 
 
+EVENT_SUFFIXES = (".csv", ".json")
+
+
+def _events_format(path: str) -> str:
+    """``csv`` or ``json``, from the ``--events`` file's suffix (the only thing that says which)."""
+    suffix = Path(path).suffix
+    if suffix.lower() not in EVENT_SUFFIXES:
+        raise ConfigurationError(f"--events {path!r}: unknown file suffix {suffix!r}; use "
+                                 f"{' or '.join(EVENT_SUFFIXES)}")
+    return suffix.lower()[1:]
+
+
 def _write_traces(args: argparse.Namespace, cfg: Any, model: Any) -> list[str]:
     if not args.vcd and not args.events:
         return []
@@ -214,15 +229,7 @@ def _write_traces(args: argparse.Namespace, cfg: Any, model: Any) -> list[str]:
         sinks.append(VcdSink(args.vcd))
         paths.append(args.vcd)
     if args.events:
-        low = args.events.lower()
-        if low.endswith(".csv"):
-            sinks.append(CsvSink(args.events))
-        elif low.endswith(".json"):
-            sinks.append(JsonSink(args.events))
-        else:
-            for s in sinks:
-                s.close()
-            raise LimitError("--events", args.events, "a file name ending in .csv or .json")
+        sinks.append(CsvSink(args.events) if _events_format(args.events) == "csv" else JsonSink(args.events))
         paths.append(args.events)
     trace_scans(cfg, model, args.cycles, sinks, args.board, args.switching_boards)
     return paths

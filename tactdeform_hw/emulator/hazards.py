@@ -25,7 +25,7 @@ class HazardKind(str, Enum):
     HV513_REINIT = "hv513_reinit"  # 0xF5 re-detects the stack and clears every HV513 output
     # Timing and link hazards (recorded by the timed model):
     QUEUE_OVERFLOW = "queue_overflow"  # receive queue full: the rest of a USB packet was discarded
-    TORN_PATTERN = "torn_pattern"  # one scan used part old, part new pattern
+    TORN_PATTERN = "torn_pattern"  # a scan used part old, part new pattern (a stretch of like ones: one record)
     OVERRUN = "overrun"  # a scan took longer than the period
     WATCHDOG_RESET = "watchdog_reset"  # the interrupt ran > 300 ms: reboot to power-on state
     SENSE_CURRENT = "sense_current"  # channels off in the pattern still get a non-zero sense pulse

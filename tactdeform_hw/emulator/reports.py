@@ -318,18 +318,25 @@ class Budget:
         starved = stride <= scan
         rate = 0.0 if watchdog or stride == 0 else 1e9 / stride
         notes: list[str] = []
+        # The main loop runs only between scans: ``free`` ns in every ``stride``.  Under the skip policy an
+        # overrunning scan makes the stride a whole number of periods, with most of the last one free.
+        free = stride - scan
+        periods = stride // period if period else 1
         if watchdog:
             notes.append(f"the scan ({scan / 1000:.1f} us) exceeds the {model.watchdog_us:.0f} us interrupt watchdog: "
                          "the device reboots to its power-on state part-way through the first scan")
         elif overrun:
             notes.append(f"overrun by {(scan - period) / 1000:.2f} us: the next scan follows at once"
                          if model.overrun_policy == "immediate" else
-                         f"overrun by {(scan - period) / 1000:.2f} us: the missed alarm is skipped")
+                         f"overrun by {(scan - period) / 1000:.2f} us: the missed alarm is skipped, so a scan starts "
+                         f"every {periods} periods and leaves {free / 1000:.2f} us to the main loop")
         if starved and not watchdog:
             notes.append("scans run back to back: the main loop never runs, so no later command is read")
-        elif not watchdog and period - scan < model.rtos_tick_ns:
-            notes.append(f"only {(period - scan) / 1000:.1f} us per period outside the scan: the parser reads at "
-                         "most one command with a payload per period")
+        elif not watchdog and free < model.rtos_tick_ns:
+            notes.append(f"only {free / 1000:.1f} us per period outside the scan: the parser reads at most one "
+                         "command with a payload per period" if periods == 1 else
+                         f"only {free / 1000:.1f} us outside the scan every {periods} periods: the parser reads at "
+                         f"most one command with a payload per {periods} periods")
         if counts[ChannelKind.SENSE] and cfg.sense_pulse_height:
             notes.append(f"{int(counts[ChannelKind.SENSE])} channel(s) off in the pattern still get a sense pulse "
                          f"of code {cfg.sense_pulse_height}")

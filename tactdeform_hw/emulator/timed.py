@@ -169,6 +169,8 @@ class TimedEmulator:
         self._sinks: list[Any] = []
         self._scan_index = 0
         self._sense_key: tuple[Any, ...] | None = None
+        # per stretch kind: (index in hazards, what must stay the same) of the record a stretch extends
+        self._stretch: dict[HazardKind, tuple[int, tuple[Any, ...]]] = {}
         self.reboots = 0
         self.interrupted_calls = 0  # parser calls an alarm interrupted mid-read
         # main loop and timer state (set by _boot)
@@ -280,6 +282,14 @@ class TimedEmulator:
         out = bytes(self._host_rx[:n])
         del self._host_rx[:n]
         return out
+
+    def arrival_us(self, host_offset: int) -> float | None:
+        """When the host's byte at ``host_offset`` reached the receive queue (``None``: lost, or not yet
+        arrived) — whether or not the parser ever reads it."""
+        for _, host, length, t in reversed(self._segments):
+            if host >= 0 and host <= host_offset < host + length:
+                return t / 1000
+        return None
 
     def intended_offsets(self) -> list[int]:
         """Host offsets of the commands the host's byte stream holds (decoded the way the firmware reads)."""
@@ -770,6 +780,7 @@ class TimedEmulator:
         if wd is not None and dur > wd:
             run = ScanRun(self._scan_index, ta, dur, 1, tmpl, period, dur > period, False, torn, wd)
             self._record(run)
+            self._torn_hazard(run)
             self._resolve(ta, tmpl, cut=wd)
             v = regs.voltage
             for ch in range(cfg.electrode_num):
@@ -799,18 +810,11 @@ class TimedEmulator:
                 count = max(1, (limit - ta - 1) // stride + 1)
         run = ScanRun(self._scan_index, ta, stride, count, tmpl, period, overrun, starved, torn)
         self._record(run)
+        self._torn_hazard(run)
         if overrun:
             detail = {"cycles": count, "first_cycle": run.first_index, "scan_us": dur / 1000,
                       "period_us": period / 1000, "policy": m.overrun_policy, "main_loop_starved": starved}
-            prev = self.hazards[-1] if self.hazards else None
-            if (prev is not None and prev.kind == HazardKind.OVERRUN
-                    and prev.detail["first_cycle"] + prev.detail["cycles"] == run.first_index
-                    and prev.detail["scan_us"] == detail["scan_us"] and prev.detail["period_us"] == detail["period_us"]):
-                # the same overrun going on: one record for the whole stretch
-                self.hazards[-1] = Hazard(HazardKind.OVERRUN, prev.offset,
-                                          {**prev.detail, "cycles": prev.detail["cycles"] + count}, prev.time_us)
-            else:
-                self.hazards.append(Hazard(HazardKind.OVERRUN, self.parser.offset, detail, ta / 1000))
+            self._stretch_hazard(Hazard(HazardKind.OVERRUN, self.parser.offset, detail, ta / 1000), (dur, period))
         v = regs.voltage
         for ch in range(cfg.electrode_num):
             v[ch] = int(tmpl.voltages[ch])
@@ -822,6 +826,42 @@ class TimedEmulator:
         self.next_alarm = last + stride
         if self._main_next is not None and self._main_next < self._busy_until:
             self._main_next = self._busy_until
+
+    def _stretch_hazard(self, hazard: Hazard, same: tuple[Any, ...]) -> None:
+        """Record ``hazard`` (its detail has ``first_cycle`` and ``cycles``), or extend the record of the
+        same kind it continues: the next cycles, with ``same`` unchanged.  One record per stretch keeps the
+        list short when the condition lasts (a starved main loop never ends it)."""
+        hz = self.hazards
+        last = self._stretch.get(hazard.kind)
+        if last is not None and last[0] < len(hz) and last[1] == same:
+            prev = hz[last[0]]
+            if (prev.kind == hazard.kind
+                    and prev.detail["first_cycle"] + prev.detail["cycles"] == hazard.detail["first_cycle"]):
+                hz[last[0]] = Hazard(prev.kind, prev.offset,
+                                     {**prev.detail, "cycles": prev.detail["cycles"] + hazard.detail["cycles"]},
+                                     prev.time_us)
+                return
+        self._stretch[hazard.kind] = (len(hz), same)
+        hz.append(hazard)
+
+    def _torn_hazard(self, run: ScanRun) -> None:
+        """A ``torn_pattern`` record for a run of torn scans: which channels the scan took from the pattern
+        being read, and the values that changed there (``[channel, old, new]``).  The rest kept their old
+        values (the new ones have not arrived)."""
+        torn = run.torn
+        if torn is None or self._cur is None:
+            return
+        new = self.emulator.registers.stim_pattern
+        old = self._cur_old
+        k = min(torn.new_channels, torn.electrode_num)
+        changed = [[ch, old[ch] if ch < len(old) else 0, new[ch]] for ch in range(k)
+                   if new[ch] != (old[ch] if ch < len(old) else 0)]
+        offset = torn.command_device_offset - self._parser_base
+        detail = {"first_cycle": run.first_index, "cycles": run.count, "cycle_start_us": run.start_ns / 1000,
+                  "command_host_offset": torn.command_host_offset, "new_channels": k,
+                  "old_channels": torn.electrode_num - k, "changed": changed}
+        self._stretch_hazard(Hazard(HazardKind.TORN_PATTERN, offset, detail, run.start_ns / 1000),
+                             (offset, k, torn.electrode_num))
 
     def _record(self, run: ScanRun) -> None:
         self.runs.append(run)
@@ -958,7 +998,8 @@ def pattern_latency(
     timer period; each run reports the wire time (write → last byte in the queue), the wait for
     the main loop (→ the parser stored the last byte), the wait for the scan (→ channel 0's next pulse)
     and the latency to the first and to the last channel.  Returns min / mean / max of each, in µs
-    (``None`` where the update is never felt, e.g. a starved main loop)."""
+    (``None`` for what never happens: with a starved main loop the bytes arrive — the wire time is
+    reported — but the parser never reads them, so the rest is ``None``)."""
     from ..protocol.commands import encode_pattern
 
     if cfg.electrode_num == 0:
@@ -979,12 +1020,15 @@ def pattern_latency(
         # frames or the RTOS ticks by construction
         t = 50_000.0 + round(period_us * ((i * 0.6180339887498949) % 1.0), 3)
         emu.advance_to(t)
+        first = emu.host_offset
         emu.write(data, t)
         emu.advance_to(t + 4 * period_us + 4 * m.rtos_tick_us + 50_000.0)
         reps = [c for c in emu.commands if c.opcode == Opcode.PATTERN]
         if not reps:
-            rows.append({"sent_us": t, "wire_us": None, "loop_wait_us": None, "scan_wait_us": None,
-                         "first_channel_us": None, "last_channel_us": None})
+            # never read (a starved main loop): the bytes still crossed the wire unless they were lost
+            arrived = emu.arrival_us(first + len(data) - 1)
+            rows.append({"sent_us": t, "wire_us": None if arrived is None else arrived - t, "loop_wait_us": None,
+                         "scan_wait_us": None, "first_channel_us": None, "last_channel_us": None})
             continue
         r = reps[-1]
         last = r.last_channel_us

@@ -445,6 +445,7 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     """Replay the session's writes into the timed emulator and attach, per trial, the pulses delivered
     (per electrode: pulses, largest current, charge), the timing hazards in the trial's window and the
     replay time of each write."""
+    from ..emulator.hazards import HazardKind
     from ..emulator.timed import TimedEmulator
 
     writes = result.writes
@@ -468,10 +469,11 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     mapping = result.array.channel_mapping()
     hw_to_app = {ch: i for i, ch in enumerate(mapping.app_to_hw)}
     # Overruns, queue overflows and watchdog resets are in the hazard list; torn scans and lost bytes are
-    # taken from the scan runs and the loss reports (per-cycle reports would be tens of thousands).
+    # taken from the scan runs and the loss reports (per-cycle reports would be tens of thousands): a
+    # torn_pattern record covers a stretch of cycles, each trial gets the torn scans inside its window.
     torn_runs = [r.starts_ns() / 1000.0 for r in reports.runs if r.torn is not None]
     losses = list(emu.losses)
-    hazards = list(emu.hazards)
+    hazards = [h for h in emu.hazards if h.kind is not HazardKind.TORN_PATTERN]
     result.timed = True
     summary = reports.summary()
     # The model's assumptions are the timing command's business; a pattern's "latency" to its first
