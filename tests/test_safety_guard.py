@@ -351,3 +351,56 @@ def test_raw_port_is_outside_the_driver() -> None:
     dev.close()
     assert shared_emulator("bench-raw").state()["pulse_height"] == 0  # type: ignore[union-attr]
     forget_shared()
+
+
+def _two_channel_frame(height_ua: int, pattern: list[int]) -> bytes:
+    return (
+        p.encode_electrode_num(2) + p.encode_pulse_width(100) + p.encode_sense_height(0)
+        + p.encode_pattern([0, 0]) + p.encode_pulse_height(height_ua // 10) + p.encode_pattern(pattern)
+    )
+
+
+def test_interlock_limits_follow_each_mapping_and_every_change_of_the_limits() -> None:
+    """The interlock's per-channel limits are computed once and reused: a different mapping (even one
+    created where a freed one lived), or limits changed on the guard, must never see stale ones."""
+    guard = SafetyGuard(regions_ua=(1000, 500), region_of=(0, 1))
+    frame = _two_channel_frame(800, [1, 0])  # 800 µA on hardware channel 0
+    for _ in range(20):
+        # channel 0 holds electrode 0 (limit 1000): allowed
+        guard.check_wire(frame, mapping=ChannelMapping.from_list([0, 1], hw_channels=2))
+        # channel 0 holds electrode 1 (limit 500): refused, whatever the previous mapping object was
+        with pytest.raises(SafetyError, match="channel 0 would receive 800"):
+            guard.check_wire(frame, mapping=ChannelMapping.from_list([1, 0], hw_channels=2))
+    identity = ChannelMapping.identity(2)
+    guard.check_wire(frame, mapping=identity)
+    guard.regions_ua = (400, 500)  # a lowered limit takes effect at once
+    with pytest.raises(SafetyError, match="above its limit of 400"):
+        guard.check_wire(frame, mapping=identity)
+    assert guard.electrode_limits(2) == [400, 500]
+    guard.cap_ua = 300
+    assert guard.electrode_limits(2) == [300, 300]
+    with pytest.raises(SafetyError):
+        guard.check_wire(_two_channel_frame(350, [0, 1]), mapping=identity)
+    # a height above the lowest limit is still allowed on the channels whose own limit it fits
+    guard = SafetyGuard(regions_ua=(1000, 500), region_of=(0, 1))
+    guard.check_wire(_two_channel_frame(800, [1, 0]))
+    with pytest.raises(SafetyError, match="channel 1 would receive 800"):
+        guard.check_wire(_two_channel_frame(800, [0, 1]))
+
+
+def test_a_rewrite_of_the_same_state_is_not_a_state_write() -> None:
+    from tactdeform_hw.device.pacing import Pacer, SimulatedClock
+
+    clock = SimulatedClock()
+    dev = EtactileKitDevice(RecordingPort(), guard=SafetyGuard(), pacer=Pacer(clock=clock))
+    dev.configure(StimConfig(current_ua=1000))
+    dev.send_pattern(CENTRE)
+    t_first = dev.last_state_write
+    assert t_first is not None
+    clock.advance(1.0)
+    dev.send_pattern(CENTRE)  # written again (send_pattern always writes), but the firmware holds it already
+    assert dev.last_state_write == t_first
+    clock.advance(1.0)
+    dev.send_pattern(CORNER)
+    assert dev.last_state_write is not None and dev.last_state_write > t_first + 1.0
+    dev.close()

@@ -115,8 +115,8 @@ def pacing_check() -> dict[str, Any]:
 
 
 def fuzz_cases() -> dict[str, Any]:
-    sys.path.insert(0, str(HERE.parent / "tests"))
-    import test_safety_fuzz as fz
+    sys.path.insert(0, str(HERE.parent))  # the repository root: ``tests`` is a package
+    from tests import test_safety_fuzz as fz
 
     fz.CASES.clear()
     for name in dir(fz):

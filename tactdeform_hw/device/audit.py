@@ -33,6 +33,7 @@ from ..errors import ConfigurationError
 from ..protocol.constants import PAYLOAD_KIND, Opcode
 
 AUDIT_VERSION = 1
+_COMMAND_BYTE_MIN = min(Opcode)
 
 
 def describe_command(data: bytes) -> tuple[str, Any]:
@@ -40,7 +41,7 @@ def describe_command(data: bytes) -> tuple[str, Any]:
     if not data:
         return "EMPTY", None
     op = data[0]
-    if op < min(Opcode):
+    if op < _COMMAND_BYTE_MIN:
         return ("ZEROS" if not any(data) else "UNKNOWN"), len(data)
     name = Opcode(op).name
     kind = PAYLOAD_KIND.get(op)

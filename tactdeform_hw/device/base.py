@@ -544,9 +544,8 @@ class Device(ABC):
             self.guard.mark_unknown()
             self._needs_resync = True
             raise
-        before = self.guard.shadow
-        self.guard.commit(shadow)
-        if (data[0] in _STATE_OPCODES or data[0] < COMMAND_BYTE_MIN) and shadow != before:
+        changed = self.guard.commit(shadow)
+        if changed and (data[0] in _STATE_OPCODES or data[0] < COMMAND_BYTE_MIN):
             self.last_state_write = self.pacer.clock.now()  # a rewrite of the same state does not count
 
     def _frame(self, levels: Sequence[int], *, force_pattern: bool) -> None:

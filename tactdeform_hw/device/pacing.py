@@ -51,6 +51,7 @@ per command, which the firmware skips without sleeping.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -105,8 +106,10 @@ def estimate_scan_us(
     return total * 1.005 + 2.0
 
 
+@functools.lru_cache(maxsize=64)
 def firmware_period_us(rate_hz: int) -> float:
-    """The alarm period the firmware derives from a rate (float32 division, truncated to whole µs)."""
+    """The alarm period the firmware derives from a rate (float32 division, truncated to whole µs);
+    cached, as every frame asks for it."""
     from ..protocol.firmware_math import period_us_from_rate
 
     return float(int(period_us_from_rate(rate_hz)))

@@ -88,6 +88,7 @@ INTERRUPT_WATCHDOG_US = 300_000.0
 #: Scans are refused well before the watchdog: the estimate below leaves this much margin.
 SCAN_LIMIT_US = 250_000.0
 _ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
+_COMMAND_BYTE_MIN = min(Opcode)
 _EPS = 1e-6
 LOG_LIMIT = 10_000
 
@@ -208,6 +209,7 @@ class SafetyGuard:
         self.log: deque[dict[str, Any]] = deque(maxlen=LOG_LIMIT)
         self.counts: dict[str, int] = {}
         self._shadow = _Shadow()
+        self._limits_cache: tuple[Any, ...] | None = None
         self._hw_limits_cache: tuple[Any, ...] | None = None
 
     @classmethod
@@ -279,13 +281,24 @@ class SafetyGuard:
 
     def electrode_limits(self, electrodes: int) -> list[int]:
         """The regional limit of each application electrode (cap when there are no regions)."""
-        if self.regions_ua is None:
-            return [self.cap_ua] * electrodes
+        return list(self._limits(electrodes)[0])
+
+    def _limits(self, electrodes: int) -> tuple[tuple[int, ...], tuple[int, ...] | None]:
+        """:meth:`electrode_limits` and the region map, computed once per electrode count and set of limits
+        (every frame needs them; the key holds the public attributes, so changing one takes effect)."""
+        key = (electrodes, self.cap_ua, self.regions_ua, self.region_of)
+        cached = self._limits_cache
+        if cached is not None and cached[0] == key:
+            return cached[1], cached[2]
         rmap = self._region_map(electrodes)
-        if rmap is None:
-            low = min(self.regions_ua)
-            return [min(low, self.cap_ua)] * electrodes
-        return [min(self.regions_ua[r], self.cap_ua) for r in rmap]
+        if self.regions_ua is None:
+            limits = (self.cap_ua,) * electrodes
+        elif rmap is None:
+            limits = (min(min(self.regions_ua), self.cap_ua),) * electrodes
+        else:
+            limits = tuple(min(self.regions_ua[r], self.cap_ua) for r in rmap)
+        self._limits_cache = (key, limits, rmap)
+        return limits, rmap
 
     def charge_limit_ua(self, width_us: int) -> int:
         """The largest current (10 µA steps) whose pulse of ``width_us`` stays within the charge limit."""
@@ -306,8 +319,7 @@ class SafetyGuard:
             why = {"rule": "cap"}
         if levels is None:
             return limit, why
-        limits = self.electrode_limits(len(levels))
-        rmap = self._region_map(len(levels))
+        limits, rmap = self._limits(len(levels))
         for i, v in enumerate(levels):
             if v in _ACTIVE and limits[i] < limit:
                 limit = limits[i]
@@ -486,23 +498,32 @@ class SafetyGuard:
         """The firmware's state can no longer be known (a failed write, a reconnect, a reset)."""
         self._shadow = _Shadow()
 
-    def commit(self, shadow: _Shadow) -> None:
+    def commit(self, shadow: _Shadow) -> bool:
+        """Take ``shadow`` (from :meth:`check_wire`) as the firmware's state once its write succeeded;
+        True when it differs from the state before (a rewrite of the same registers changes nothing)."""
+        changed = shadow != self._shadow
         self._shadow = shadow
+        return changed
 
-    def _hw_limits(self, mapping: ChannelMapping | None, num: int) -> list[int]:
-        key = (id(mapping), num, self.cap_ua, self.regions_ua, self.region_of)
-        if self._hw_limits_cache is not None and self._hw_limits_cache[0] == key:
-            return list(self._hw_limits_cache[1])
+    def _hw_limits(self, mapping: ChannelMapping | None, num: int) -> tuple[tuple[int, ...], int]:
+        """Each hardware channel's limit, and the lowest of them."""
+        # the key holds the mapping itself (compared by value), never its id: an id can be reused
+        key = (mapping, num, self.cap_ua, self.regions_ua, self.region_of)
+        cached = self._hw_limits_cache
+        if cached is not None and cached[0] == key:
+            return cached[1], cached[2]
         if mapping is None:
-            limits = self.electrode_limits(num)
+            limits = self._limits(num)[0]
         else:
-            app = self.electrode_limits(mapping.electrodes)
-            limits = [0] * num  # a hardware channel no electrode maps to must never stimulate
+            app = self._limits(mapping.electrodes)[0]
+            hw = [0] * num  # a hardware channel no electrode maps to must never stimulate
             for i, ch in enumerate(mapping.app_to_hw):
                 if ch < num:
-                    limits[ch] = app[i]
-        self._hw_limits_cache = (key, limits)
-        return list(limits)
+                    hw[ch] = app[i]
+            limits = tuple(hw)
+        low = min(limits, default=0)
+        self._hw_limits_cache = (key, limits, low)
+        return limits, low
 
     def check_wire(
         self,
@@ -527,7 +548,7 @@ class SafetyGuard:
             i += 1
             if op in (Opcode.MEASURE, Opcode.HV513_COUNT):
                 continue
-            if op < min(Opcode):
+            if op < _COMMAND_BYTE_MIN:
                 # a byte that is not a command may complete whatever command was in progress on the device
                 # (it is how a resync starts): afterwards nothing about the registers can be trusted
                 sh = _Shadow()
@@ -620,9 +641,11 @@ class SafetyGuard:
             if height_ua > 0:
                 raise self._refuse("interlock", f"{what}: current possible while the electrode count is unknown")
             return
-        limits = self._hw_limits(mapping, num)
+        limits, low = self._hw_limits(mapping, num)
         sense_ua = transfer.to_ua(sh.sense_code) if sh.sense_code is not None else math.inf
-        for ch in range(num):
+        # within the lowest channel limit, no channel can be over its own: skip the per-channel search
+        within = height_ua <= low + _EPS and sense_ua <= low + _EPS
+        for ch in range(0 if within else num):
             level = sh.pattern[ch]
             if level is None or level in _ACTIVE:
                 if height_ua > limits[ch] + _EPS:

@@ -1,0 +1,40 @@
+"""The report tools in tools/ run and give figures of the right shape (small runs; the README's figures
+come from the full runs)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+from .conftest import REPO
+
+
+def run_tool(*args: str) -> object:
+    proc = subprocess.run([sys.executable, *args], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(proc.stdout)
+
+
+def test_frame_error_displacement_beats_velocity_integration() -> None:
+    out = run_tool("tools/frame_error.py", "--duration", "600", "--no-plot", "--json")
+    assert isinstance(out, dict)
+    for rate in ("30", "72", "90", "120"):
+        methods = out[rate]
+        exact = methods["displacement"]["mean_abs"][-1]
+        assert exact < 0.25  # sampling latency only: under a quarter of a frame on average
+        assert exact < methods["velocity-rect"]["mean_abs"][-1]
+        assert exact < methods["fixed-interval"]["mean_abs"][-1]
+
+
+def test_timing_error_reports_every_engine() -> None:
+    out = run_tool("tools/timing_error.py", "--durations", "1", "--scenarios", "steady-usb", "--no-plot", "--json")
+    engines = {row["engine"] for row in out}  # type: ignore[union-attr]
+    assert {"event-exact", "analytic"} <= engines
+
+
+def test_safety_report_quick() -> None:
+    out = run_tool("tools/safety_report.py", "--quick", "--no-fuzz", "--json")
+    assert isinstance(out, dict)
+    assert out["faults_injected"] > 0 and out["faults_survived"] == out["faults_injected"]
+    assert out["bytes_lost_unreported"] == 0
