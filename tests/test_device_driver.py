@@ -231,3 +231,18 @@ def test_open_device_by_url_and_errors() -> None:
 
     with pytest.raises(serial.SerialException, match="unknown option"):
         serial.serial_for_url("etactile://?bogus=1")
+
+
+def test_a_refused_frame_is_not_kept_for_keepalive(dev: EtactileKitDevice, port: RecordingPort) -> None:
+    """A frame the guard refuses (here: 32 biphasic channels, a scan longer than the 8 ms period) leaves
+    the previous frame as the one in force: keepalive neither resends the refused one nor raises."""
+    dev.configure(StimConfig(current_ua=500))
+    dev.send_pattern([1] * 8 + [0] * 24)
+    fed = dev.last_frame_time
+    with pytest.raises(SafetyError):
+        dev.send_pattern([2] * 32)
+    assert dev.last_frame_time == fed  # a refused frame does not feed the fail-safe watchdog
+    before = list(port.writes)
+    dev.keepalive()
+    assert port.writes == before
+    assert port.emulator.state()["stim_pattern"][:32] == [1] * 8 + [0] * 24

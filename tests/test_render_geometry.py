@@ -472,3 +472,15 @@ def test_teapot_mesh_is_upright_and_inside_out_tests_work() -> None:
     assert pot.query(above).signed_distance_mm == pytest.approx(20.0, abs=0.5)
     assert pot.contains(np.array([body, above])).tolist() == [True, False]
     assert pot.index.sign_method == "winding"
+
+
+def test_rotated_box_on_the_feature_band_border_keeps_its_feature() -> None:
+    """3 mm from the edge of a box whose band is 3 mm: the turned box's rounding must not flip it."""
+    r = rotation_from_euler_deg(45.0, 0.0, 0.0)
+    centre = np.array([10.0, 20.0, 30.0])
+    plain = Box("b", (60.0, 30.0, 90.0), (0.0, 0.0, 0.0))
+    turned = Box("b", (60.0, 30.0, 90.0), centre, rotation=r)
+    local = np.array([28.0, 12.0, 0.0])
+    assert plain.feature_band_mm == 3.0
+    assert plain.query(local).feature == "edge"
+    assert turned.query(centre + r @ local).feature == "edge"

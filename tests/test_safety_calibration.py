@@ -137,3 +137,20 @@ def test_audit_log_format_errors(tmp_path: Path) -> None:
     log.close()
     with pytest.raises(ConfigurationError, match="no commands"):
         replay(str(empty))
+
+
+def test_cli_guard_names_the_participant_being_calibrated(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import tactdeform_hw.device as device_pkg
+
+    guards = []
+    real_open = device_pkg.open_device
+
+    def spy(*args: object, **kw: object) -> object:
+        guards.append(kw["guard"])
+        return real_open(*args, **kw)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(device_pkg, "open_device", spy)
+    monkeypatch.setattr("sys.stdin", io.StringIO("+ q"))
+    monkeypatch.chdir(tmp_path)
+    assert main(["calibrate", "--participant", "P11", "--keys", "-", "--max-ua", "300"]) == 1
+    assert len(guards) == 1 and guards[0].participant == "P11" and guards[0].cap_ua == 300

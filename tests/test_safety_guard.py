@@ -355,8 +355,8 @@ def test_raw_port_is_outside_the_driver() -> None:
 
 def _two_channel_frame(height_ua: int, pattern: list[int]) -> bytes:
     return (
-        p.encode_electrode_num(2) + p.encode_pulse_width(100) + p.encode_sense_height(0)
-        + p.encode_pattern([0, 0]) + p.encode_pulse_height(height_ua // 10) + p.encode_pattern(pattern)
+        p.encode_pulse_height(0) + p.encode_sense_height(0) + p.encode_pulse_width(100)
+        + p.encode_electrode_num(2) + p.encode_pattern([0, 0]) + p.encode_pulse_height(height_ua // 10) + p.encode_pattern(pattern)
     )
 
 
@@ -367,10 +367,10 @@ def test_interlock_limits_follow_each_mapping_and_every_change_of_the_limits() -
     frame = _two_channel_frame(800, [1, 0])  # 800 µA on hardware channel 0
     for _ in range(20):
         # channel 0 holds electrode 0 (limit 1000): allowed
-        guard.check_wire(frame, mapping=ChannelMapping.from_list([0, 1], hw_channels=2))
+        guard.check_wire(frame, mapping=ChannelMapping((0, 1), 2))
         # channel 0 holds electrode 1 (limit 500): refused, whatever the previous mapping object was
         with pytest.raises(SafetyError, match="channel 0 would receive 800"):
-            guard.check_wire(frame, mapping=ChannelMapping.from_list([1, 0], hw_channels=2))
+            guard.check_wire(frame, mapping=ChannelMapping((1, 0), 2))
     identity = ChannelMapping.identity(2)
     guard.check_wire(frame, mapping=identity)
     guard.regions_ua = (400, 500)  # a lowered limit takes effect at once

@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     pid, out = _targets(args)
     cal = Calibration(pid, max_ua=args.max_ua)
     config = StimConfig(electrode_count=32, current_ua=0, pulse_width_us=args.pulse_width, polarity=args.polarity)
-    guard = SafetyGuard(cap_ua=args.max_ua)
+    guard = SafetyGuard(cap_ua=args.max_ua, participant=pid)  # its refusals and clips name the participant
     from ..protocol.units import DEFAULT_TRANSFER
 
     config.validated(DEFAULT_TRANSFER)

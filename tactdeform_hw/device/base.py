@@ -27,7 +27,14 @@ from types import TracebackType
 from typing import Concatenate, ParamSpec, TypeVar
 
 from .. import protocol as p
-from ..errors import LimitError, PortNotOpenError, ProtocolMisuseError, ShortReplyError, TransportError
+from ..errors import (
+    LimitError,
+    PortNotOpenError,
+    ProtocolMisuseError,
+    SafetyError,
+    ShortReplyError,
+    TransportError,
+)
 from ..protocol.constants import (
     CURRENT_STEP_UA,
     PATTERN_BIPHASIC,
@@ -306,11 +313,18 @@ class Device(ABC):
         except (LimitError, ProtocolMisuseError) as exc:
             self.guard.note_refusal(exc)
             raise
-        self._mark_frame()
+        previous = self._requested
         self._requested = list(levels)
-        if self._needs_resync:
-            self.resync()
-        self._frame(self._requested, force_pattern=True)
+        try:
+            if self._needs_resync:
+                self.resync()
+            self._frame(self._requested, force_pattern=True)
+        except SafetyError:
+            # A refused frame is not the caller's frame in force: keepalive must not resend it, and it
+            # does not feed the fail-safe watchdog (a renderer whose every frame is refused is stopped).
+            self._requested = previous
+            raise
+        self._mark_frame()
 
     def _check_levels(self, levels: Sequence[int]) -> None:
         expected = self.electrodes

@@ -18,6 +18,8 @@ from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from ..device.base import Device
 from ..device.config import StimConfig
 from ..errors import ConfigurationError, LimitError
@@ -266,12 +268,11 @@ class Renderer:
 
     def _query(self, pos: Any) -> Any:
         try:
-            import numpy as np
-
             p = np.asarray(pos, dtype=float)
-            if p.shape != (3,) or not np.all(np.isfinite(p)):
-                return None
         except (TypeError, ValueError):
+            return None
+        # three plain floats are checked ~10x faster than a numpy reduction over three elements
+        if p.shape != (3,) or not all(map(math.isfinite, p.tolist())):
             return None
         return self.scene.query(p)
 

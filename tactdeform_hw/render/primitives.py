@@ -262,7 +262,9 @@ class Box(_PlacedSolid):
         feature = "face"
         edge_dir = None
         if self.classify_features:
-            band = self.feature_band_mm
+            # a point exactly on the band's border must classify the same however the box is turned: the
+            # rotation's rounding (~1e-14 mm) may not move it across
+            band = self.feature_band_mm + 1e-9
             s = [h[i] - abs(cl[i]) for i in range(3)]
             near = [s[i] <= band for i in range(3)]
             count = near[0] + near[1] + near[2]
