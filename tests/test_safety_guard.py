@@ -389,7 +389,8 @@ def test_interlock_limits_follow_each_mapping_and_every_change_of_the_limits() -
 
 
 def test_a_rewrite_of_the_same_state_is_not_a_state_write() -> None:
-    from tactdeform_hw.device.pacing import Pacer, SimulatedClock
+    from tactdeform_hw.clock import SimulatedClock
+    from tactdeform_hw.device.pacing import Pacer
 
     clock = SimulatedClock()
     dev = EtactileKitDevice(RecordingPort(), guard=SafetyGuard(), pacer=Pacer(clock=clock))

@@ -7,16 +7,9 @@ from pathlib import Path
 
 import pytest
 
+from tactdeform_hw.clock import InstantClock, MonotonicClock, SimulatedClock
 from tactdeform_hw.device import EtactileKitDevice, StimConfig, open_device
-from tactdeform_hw.device.pacing import (
-    InstantClock,
-    MonotonicClock,
-    Pacer,
-    PacingPolicy,
-    SimulatedClock,
-    default_pacer,
-    padding_for,
-)
+from tactdeform_hw.device.pacing import Pacer, PacingPolicy, default_pacer, padding_for
 from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF, SafetyGuard
 from tactdeform_hw.emulator.faults import TimedPort
 from tactdeform_hw.emulator.hazards import HazardKind

@@ -127,7 +127,8 @@ def run(args: argparse.Namespace) -> int:
         pacer = None
         if not args.realtime and (args.device in ("emulator", "emu", "") or args.device.startswith("etactile://")):
             # offline on the in-process emulator: the session runs on the trajectory's clock
-            from ..device.pacing import Pacer, SimulatedClock
+            from ..clock import SimulatedClock
+            from ..device.pacing import Pacer
 
             pacer = Pacer(clock=SimulatedClock())
         with open_device(args.device, timeout=args.timeout, mapping=array.channel_mapping(), guard=guard,

@@ -27,6 +27,7 @@ from types import TracebackType
 from typing import Concatenate, ParamSpec, TypeVar
 
 from .. import protocol as p
+from ..clock import MonotonicClock
 from ..errors import (
     LimitError,
     PortNotOpenError,
@@ -49,7 +50,6 @@ from .mapping import ChannelMapping
 from .pacing import (
     COMMAND_BYTE_MIN,
     SCAN_GAP_MIN_US,
-    MonotonicClock,
     Pacer,
     command_like_payload,
     estimate_scan_us,

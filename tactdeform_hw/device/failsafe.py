@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 from types import FrameType, TracebackType
 from typing import Any
 
+from ..clock import Clock
 from ..errors import (
     DecodeError,
     DeviceGoneError,
@@ -58,7 +59,6 @@ from ..errors import (
     TransportError,
 )
 from .base import Device
-from .pacing import Clock
 
 logger = logging.getLogger("tactdeform_hw.failsafe")
 

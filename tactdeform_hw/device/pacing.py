@@ -52,12 +52,12 @@ per command, which the firmware skips without sleeping.
 from __future__ import annotations
 
 import functools
-import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
+from ..clock import Clock, InstantClock, MonotonicClock
 from ..protocol.constants import PAYLOAD_KIND, RX_QUEUE_SIZE, USB_PACKET_SIZE, Opcode
 
 COMMAND_BYTE_MIN = min(Opcode)
@@ -113,61 +113,6 @@ def firmware_period_us(rate_hz: int) -> float:
     from ..protocol.firmware_math import period_us_from_rate
 
     return float(int(period_us_from_rate(rate_hz)))
-
-
-class Clock(Protocol):
-    def now(self) -> float: ...
-
-    def sleep(self, seconds: float) -> None: ...
-
-
-class MonotonicClock:
-    """Wall time (``time.monotonic``) and real sleeps."""
-
-    def now(self) -> float:
-        return time.monotonic()
-
-    def sleep(self, seconds: float) -> None:
-        if seconds > 0:
-            time.sleep(seconds)
-
-
-class InstantClock:
-    """Wall time that never waits: for a device that consumes every byte the moment it is written (the
-    untimed in-process emulator).  The pacer still keeps its books; ``skipped_s`` is what it would have
-    waited on a real link."""
-
-    def __init__(self) -> None:
-        self.skipped_s = 0.0
-
-    def now(self) -> float:
-        # the waits that were skipped count as having passed, so the pacer's books stay consistent
-        return time.monotonic() + self.skipped_s
-
-    def sleep(self, seconds: float) -> None:
-        if seconds > 0:
-            self.skipped_s += seconds
-
-
-class SimulatedClock:
-    """Time that passes only when someone sleeps (or calls :meth:`advance`); ``on_advance`` lets a
-    simulation run up to the new time."""
-
-    def __init__(self, start: float = 0.0, on_advance: Callable[[float], None] | None = None) -> None:
-        self._t = float(start)
-        self.on_advance = on_advance
-
-    def now(self) -> float:
-        return self._t
-
-    def sleep(self, seconds: float) -> None:
-        if seconds > 0:
-            self.advance(seconds)
-
-    def advance(self, seconds: float) -> None:
-        self._t += seconds
-        if self.on_advance is not None:
-            self.on_advance(self._t)
 
 
 @dataclass(frozen=True)

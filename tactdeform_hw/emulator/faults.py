@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 from serial.serialutil import PortNotOpenError, SerialException
 
+from ..clock import SimulatedClock
 from ..errors import LimitError
 from .link import Delivery, LinkFilter, LinkModel, make_link
 from .timed import TimedEmulator
@@ -172,25 +173,9 @@ class FaultyLink(LinkFilter):
         return Delivery(d.t_ns, bytes(data), d.host_offset if f.kind is FaultKind.CORRUPT else -1, d.sent_ns)
 
 
-class SimClock:
-    """Simulated seconds: time passes when the driver sleeps or the test advances it; ``on_advance`` runs
-    the emulator up to the new time.  (It has the ``now``/``sleep`` interface of the driver's clocks.)"""
-
-    def __init__(self, start: float = 0.0, on_advance: Callable[[float], None] | None = None) -> None:
-        self._t = float(start)
-        self.on_advance = on_advance
-
-    def now(self) -> float:
-        return self._t
-
-    def sleep(self, seconds: float) -> None:
-        if seconds > 0:
-            self.advance(seconds)
-
-    def advance(self, seconds: float) -> None:
-        self._t += seconds
-        if self.on_advance is not None:
-            self.on_advance(self._t)
+#: Simulated seconds: time passes when the driver sleeps or a test advances it; ``on_advance`` runs the
+#: emulator up to the new time.
+SimClock = SimulatedClock
 
 
 class TimedPort:

@@ -337,7 +337,8 @@ def run_study(
     sim_clock = None
     if not realtime and (device in ("emulator", "emu", "") or device.startswith("etactile://")):
         # offline on the in-process emulator: the device's clock (audit log, watchdog) is session time
-        from ..device.pacing import Pacer, SimulatedClock
+        from ..clock import SimulatedClock
+        from ..device.pacing import Pacer
 
         sim_clock = SimulatedClock()
     dev = open_device(device, timeout=timeout, mapping=mapping, guard=guard, audit=audit,
