@@ -405,3 +405,18 @@ def test_a_rewrite_of_the_same_state_is_not_a_state_write() -> None:
     dev.send_pattern(CORNER)
     assert dev.last_state_write is not None and dev.last_state_write > t_first + 1.0
     dev.close()
+
+
+def test_interlock_refuses_a_sense_current_while_the_electrode_count_is_unknown() -> None:
+    """A stray byte leaves every register unknown; a sense height of 0xF5 (9.8 mA on every channel not
+    at 1 or 2) must then be refused, not waved through because the pulse height is 0."""
+    from .safety_helpers import RecordingPort
+
+    port = RecordingPort()
+    dev = EtactileKitDevice(port, guard=SafetyGuard(cap_ua=2000))
+    dev.configure(StimConfig(current_ua=500))
+    before = list(port.writes)
+    with pytest.raises(SafetyError, match="electrode count is unknown"):
+        dev._send(b"\x00\xfb\x00\x00\xf9\xf5")
+    assert port.writes == before
+    assert port.emulator.state()["sense_pulse_height"] == 0

@@ -140,12 +140,12 @@ class _Shadow:
         )
 
 
-def estimate_scan_us(electrodes: int, width_us: int, discharge_us: int, sense_width_us: int) -> float:
-    """A generous upper estimate of one scan (every channel biphasic): the firmware's order of SPI
-    exchanges and busy-waits, rounded up.  Only used to keep scans far from the 300 ms watchdog."""
-    pulse = 6.6 + max(width_us, sense_width_us, 7)
-    per_channel = 5.0 + 2 * pulse + 6.6 + 6.6 + max(discharge_us, 3)
-    return electrodes * per_channel + 8 * 256 * 0.1
+def worst_scan_us(electrodes: int, width_us: int, discharge_us: int, sense_width_us: int) -> float:
+    """One scan with every channel biphasic — the longest a configuration can make — by the pacer's
+    firmware-order estimate (which errs long).  Only used to keep scans far from the 300 ms watchdog."""
+    from .pacing import estimate_scan_us
+
+    return estimate_scan_us([2] * electrodes, width_us, discharge_us, sense_width_us, hv513=max(4, -(-electrodes // 8)))
 
 
 class SafetyGuard:
@@ -401,7 +401,7 @@ class SafetyGuard:
                     f"sense pulse of {sense_charge:g} nC exceeds the charge limit of {self.max_charge_nc:g} nC",
                     charge_nc=sense_charge,
                 )
-        scan = estimate_scan_us(config.electrode_count, config.pulse_width_us, config.discharge_us, config.sense_width_us)
+        scan = worst_scan_us(config.electrode_count, config.pulse_width_us, config.discharge_us, config.sense_width_us)
         if scan > SCAN_LIMIT_US:
             raise self._refuse(
                 "scan_time",
@@ -637,12 +637,13 @@ class SafetyGuard:
                     "interlock",
                     f"{what}: {height_ua:g} µA × {width} µs exceeds the charge limit of {self.max_charge_nc:g} nC",
                 )
+        sense_ua = transfer.to_ua(sh.sense_code) if sh.sense_code is not None else math.inf
         if num is None:
-            if height_ua > 0:
+            # any channel may be scanned, at either the pulse height or the sense height
+            if height_ua > 0 or sense_ua > 0:
                 raise self._refuse("interlock", f"{what}: current possible while the electrode count is unknown")
             return
         limits, low = self._hw_limits(mapping, num)
-        sense_ua = transfer.to_ua(sh.sense_code) if sh.sense_code is not None else math.inf
         # within the lowest channel limit, no channel can be over its own: skip the per-channel search
         within = height_ua <= low + _EPS and sense_ua <= low + _EPS
         for ch in range(0 if within else num):
