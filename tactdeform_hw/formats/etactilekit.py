@@ -62,6 +62,7 @@ from ._json import load_text
 if TYPE_CHECKING:  # pragma: no cover
     from ..device.config import Polarity
     from ..device.mapping import ChannelMapping
+    from ..device.regions import RegionMap
     from ..render.array import ElectrodeArray
     from .frames import Frame
 
@@ -187,6 +188,20 @@ class ArrayFile:
     def channel_mapping(self) -> ChannelMapping:
         """The device layer's mapping: electrode i → hardware channel."""
         return self.array.channel_mapping()
+
+    def region_map(self) -> RegionMap:
+        """The calibration region(s) of each electrode, from its coordinates in this file (application
+        order, the order of ``electrodes``): what a participant's regional limits follow, whatever order
+        the file lists its electrodes in."""
+        from ..device.regions import region_map_from_positions
+
+        return region_map_from_positions(
+            [(float(x), float(y)) for x, y in self.array.positions_mm], f"array file {self.source or self.array.name}"
+        )
+
+    def hardware_regions(self, region_of: Sequence[int]) -> dict[int, tuple[int, int]]:
+        """Hardware channel → (electrode, region) for the regions ``region_of`` gives each electrode."""
+        return {int(ch): (i, int(region_of[i])) for i, ch in enumerate(self.array.channel_mapping().app_to_hw)}
 
     def levels_for(self, pattern: Sequence[int], where: str = "pattern") -> tuple[int, ...]:
         """This array's levels out of one step of a pattern file.
