@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from typing import IO, Any
 
 from ..device.audit import AuditLog, describe_command
+from ..device.regions import RegionMap, tactdeform_region_map
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 _ACTIVE = (1, 2)
@@ -40,8 +41,10 @@ class DeliveryLog(AuditLog):
     """The session's audit log, also keeping what the console reports: the pulse heights written, the
     highest height each electrode received while active, and the guard's clips and refusals.
 
-    ``mapping`` (hardware channel ↔ application electrode) and ``region_of`` (application order) only
-    name electrodes and regions in the report; ``requested_ua`` is what the command was asked for."""
+    ``mapping`` (hardware channel ↔ application electrode) and ``region_map`` (the electrode positions)
+    go into the log's session line, so ``replay-log`` judges the session by the same positions; with
+    ``region_of`` (the guard's regions, application order) they name electrodes and regions in the report.
+    ``requested_ua`` is what the command was asked for."""
 
     def __init__(
         self,
@@ -49,6 +52,7 @@ class DeliveryLog(AuditLog):
         *,
         requested_ua: int | None = None,
         mapping: Any = None,
+        region_map: RegionMap | None = None,
         region_of: Sequence[int] | None = None,
         transfer: CurrentTransfer = DEFAULT_TRANSFER,
         **session: Any,
@@ -58,9 +62,11 @@ class DeliveryLog(AuditLog):
         if mapping is not None:
             session.setdefault("mapping", list(mapping.app_to_hw))
             session.setdefault("hw_channels", mapping.hw_channels)
-        if region_of is not None:
-            session.setdefault("region_of", [int(r) for r in region_of])
-            session.setdefault("mapping", list(range(len(region_of))))  # no mapping: electrode i on channel i
+        if region_map is not None:
+            session.setdefault("positions_mm", [list(p) for p in region_map.positions_mm])
+            session.setdefault("mapping", list(range(region_map.electrodes)))  # no mapping: electrode i on channel i
+            if region_of is None:
+                region_of = region_map.resolve(None)
         super().__init__(stream, **session)
         self.requested_ua = requested_ua
         self.mapping = mapping
@@ -146,7 +152,10 @@ class DeliveryLog(AuditLog):
         events = list(self._events.values())
         return {
             "requested_ua": self.requested_ua,
-            "max_delivered_ua": self.max_ua,
+            # the highest height an active electrode received (a height written while every electrode is
+            # off reaches none)
+            "max_delivered_ua": max(self.channel_max_ua.values(), default=0),
+            "max_height_ua": self.max_ua,
             "pulse_heights_ua": list(self.heights_ua),
             "pulse_height_changes": self.height_changes,
             "lowered": [e for e in events if e.get("event") == "clipped"],
@@ -216,3 +225,12 @@ def delivered_lines(rep: dict[str, Any]) -> list[str]:
             text += f"; on hardware channel(s) {_span(unmapped)} no electrode maps to"
         lines.append(text)
     return lines
+
+
+def session_region_map(array_file: Any, electrodes: int) -> RegionMap | None:
+    """Where the session's electrodes sit: the array file's coordinates, else the TactDeform array's for
+    32 electrodes, else unknown (None)."""
+    if array_file is not None:
+        rmap: RegionMap = array_file.region_map()
+        return rmap
+    return tactdeform_region_map() if electrodes == 32 else None

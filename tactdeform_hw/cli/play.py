@@ -295,13 +295,14 @@ def run(
             "nothing; use --dry-run to check it, or --ignore-execution-flag to send it anyway"
         )
     report = None if args.quiet else progress
-    from .delivered import DeliveryLog, delivered_lines
+    from .delivered import DeliveryLog, delivered_lines, session_region_map
 
     log = DeliveryLog(
         args.audit_log,
         requested_ua=args.current_ua,
         mapping=mapping,
-        region_of=guard.regions_for(app_electrodes),
+        region_map=session_region_map(array_file, app_electrodes),
+        region_of=guard.region_of,
         command="play",
         device=args.device,
         participant_file=args.participant,

@@ -107,14 +107,17 @@ def channel_regions(
         af = read_array_file(array)
         return af.hardware_regions(af.region_map().resolve(regions_ua)), f"{af.source} (--array)"
     header = next((r for r in read_log(path) if r.get("type") == "session"), {})
-    recorded, mapping = header.get("region_of"), header.get("mapping")
-    if not isinstance(recorded, list) or not isinstance(mapping, list) or len(recorded) != len(mapping):
+    positions, mapping = header.get("positions_mm"), header.get("mapping")
+    if not isinstance(positions, list) or not isinstance(mapping, list) or len(positions) != len(mapping):
         raise ConfigurationError(
-            f"audit log {path}: its session line records no electrode positions (region_of and mapping), so "
+            f"audit log {path}: its session line records no electrode positions (positions_mm and mapping), so "
             "the region of the electrode on each channel cannot be determined; give --array with the session's "
             "electrode-array file (or --array tactdeform for the TactDeform array on channels 0-31)"
         )
-    return {int(ch): (i, int(recorded[i])) for i, ch in enumerate(mapping)}, "the log's session line"
+    from ..device.regions import region_map_from_positions
+
+    region_of = region_map_from_positions(positions, f"the session line of {path}").resolve(regions_ua)
+    return {int(ch): (i, region_of[i]) for i, ch in enumerate(mapping)}, "the positions the log's session line records"
 
 
 def judge(table: dict[str, Any], hw: dict[int, tuple[int, int]], guard: Any) -> list[dict[str, Any]]:

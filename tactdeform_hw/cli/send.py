@@ -64,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
     from ..device.failsafe import FailSafe
     from ..formats import read_array_file
     from ..protocol.units import DEFAULT_TRANSFER
-    from .delivered import DeliveryLog, delivered_lines
+    from .delivered import DeliveryLog, delivered_lines, session_region_map
 
     profile = profile_from_args(args)  # a bad profile is refused before anything is opened
     array_file = read_array_file(args.array) if args.array else None
@@ -97,7 +97,8 @@ def run(args: argparse.Namespace) -> int:
         args.audit_log,
         requested_ua=args.current_ua,
         mapping=mapping,
-        region_of=guard.regions_for(electrodes),
+        region_map=session_region_map(array_file, electrodes),
+        region_of=guard.region_of,
         command="send",
         device=args.device,
         participant_file=args.participant,
