@@ -120,15 +120,23 @@ def channel_regions(
     return {int(ch): (i, region_of[i]) for i, ch in enumerate(mapping)}, "the positions the log's session line records"
 
 
-def judge(table: dict[str, Any], hw: dict[int, tuple[int, int]], guard: Any) -> list[dict[str, Any]]:
+def judge(
+    table: dict[str, Any], hw: dict[int, tuple[int, int]] | None, guard: Any
+) -> list[dict[str, Any]]:
     """Every pulse above the limit of the channel it reached: the regional limit of the electrode on it
-    (lowered to the cap), 0 on a channel no electrode maps to, and the charge limit per pulse."""
+    (lowered to the cap), 0 on a channel no electrode maps to, and the charge limit per pulse.  ``hw`` None
+    (no map) is only for limits that are the same in every region: every channel then has that limit."""
     import numpy as np
 
     regions: Sequence[int] = guard.regions_ua or (guard.cap_ua,) * 9
     cur = table["current_ua"]
     chans = table["channel"].astype(int)
-    limit_of = np.zeros(int(chans.max()) + 1 if chans.size else 1)
+    size = int(chans.max()) + 1 if chans.size else 1
+    if hw is None:
+        limit_of = np.full(size, float(min(min(regions), guard.cap_ua)))
+        hw = {}
+    else:
+        limit_of = np.zeros(size)
     for ch, (_e, region) in hw.items():
         if ch < limit_of.size:
             limit_of[ch] = min(regions[region], guard.cap_ua)
@@ -150,7 +158,8 @@ def judge(table: dict[str, Any], hw: dict[int, tuple[int, int]], guard: Any) -> 
             "current_ua": round(float(cur[i]), 1),
             "limit_ua": float(limit[i]),
             "charge_nc": round(float(table["charge_nc"][i]), 3),
-            "rule": "region" if over_current[i] and r is not None else ("unmapped" if over_current[i] else "charge"),
+            "rule": ("region" if r is not None else "cap" if not limit_of[ch] == 0 else "unmapped")
+            if over_current[i] else "charge",
         })
     return out
 
@@ -165,10 +174,17 @@ def run(args: argparse.Namespace) -> int:
 
         prof = load_profile(args.participant)
         guard = SafetyGuard.from_profile(prof)
-        hw, source = channel_regions(args.file, args.array, prof.regions_ua)
+        hw: dict[int, tuple[int, int]] | None = None
+        try:
+            hw, source = channel_regions(args.file, args.array, prof.regions_ua)
+        except ConfigurationError:
+            if guard.positions_matter:
+                raise
+            source = "no positions (the participant's limit is the same in every region)"
         over = judge(table, hw, guard)
         rep["judged_by"] = source
-        rep["channel_regions"] = {str(ch): {"electrode": e, "region": r} for ch, (e, r) in sorted(hw.items())}
+        if hw is not None:
+            rep["channel_regions"] = {str(ch): {"electrode": e, "region": r} for ch, (e, r) in sorted(hw.items())}
         rep["above_limit"] = over
         rep["above_limit_count"] = len(over)
         by: dict[int, dict[str, Any]] = {}
@@ -197,7 +213,7 @@ def run(args: argparse.Namespace) -> int:
                   f"{rep['judged_by']})")
             for b in rep["above_limit_by_channel"]:
                 where = (f"electrode {b['electrode']} in region {b['region']}" if b["electrode"] is not None
-                         else "no electrode")
+                         else "no electrode mapped" if b["limit_ua"] == 0 else "electrode unknown")
                 print(f"  EXCESS channel {b['channel']} ({where}, limit {b['limit_ua']:g} µA): {b['pulses']} "
                       f"pulse(s) up to {b['max_current_ua']:g} µA, {b['first_s']:.6f}-{b['last_s']:.6f} s")
     return code
