@@ -117,8 +117,7 @@ class DeliveryLog(AuditLog):
             entry.get("rule"),
             entry.get("requested_ua"),
             entry.get("sent_ua"),
-            entry.get("electrode"),
-            entry.get("region"),
+            entry.get("region") if "region" in entry else entry.get("electrode"),
         )
         hit = self._events.get(key)
         if hit is None:
@@ -127,8 +126,12 @@ class DeliveryLog(AuditLog):
                 if k in entry:
                     hit[k] = entry[k]
             hit["count"] = 0
+            hit["electrodes"] = []
             self._events[key] = hit
         hit["count"] += 1
+        e = entry.get("electrode")
+        if isinstance(e, int) and e not in hit["electrodes"] and len(hit["electrodes"]) < 256:
+            hit["electrodes"].append(e)
 
     # --- the report ----------------------------------------------------------------------------------------
 
@@ -180,11 +183,11 @@ def describe_lowering(e: dict[str, Any]) -> str:
     a, b = e.get("requested_ua"), e.get("sent_ua")
     head = f"{a} → {b} µA" if a is not None and b is not None else e.get("message", "")
     if rule == "region":
-        where = f"electrode {e['electrode']}" if "electrode" in e else "an electrode"
-        if "region" in e:
-            where += f" in region {e['region']}"
-        limit = f", limit {e['limit_ua']} µA" if "limit_ua" in e else ""
-        why = f"by region ({where}{limit})"
+        named = sorted(e.get("electrodes") or ([e["electrode"]] if "electrode" in e else []))
+        where = f"region {e['region']}" if "region" in e else "an electrode's region"
+        limit = f" limit {e['limit_ua']} µA" if "limit_ua" in e else ""
+        on = f" on electrode{'s' if len(named) > 1 else ''} {_span(named)}" if named else ""
+        why = f"by {where}{limit}{on}"
     elif rule == "ramp":
         why = "by ramp"
     elif rule in ("cap", "charge"):
@@ -208,8 +211,9 @@ def delivered_lines(rep: dict[str, Any]) -> list[str]:
         lines.append(f"  refused ({e.get('rule')}): {e.get('message', '')}{times}")
     heights = rep["pulse_heights_ua"]
     if heights:
-        more = ", …" if rep["pulse_height_changes"] > len(heights) + 1 else ""
-        lines.append(f"  pulse heights sent: {', '.join(str(h) for h in heights)}{more} µA")
+        shown = heights[:16]
+        more = ", …" if rep["pulse_height_changes"] > len(shown) + 1 else ""
+        lines.append(f"  pulse heights sent: {', '.join(str(h) for h in shown)}{more} µA")
     by_value: dict[int, list[dict[str, Any]]] = {}
     for row in rep["electrodes"]:
         by_value.setdefault(row["max_ua"], []).append(row)
