@@ -82,14 +82,21 @@ def test_border_electrode_is_refused_only_when_its_regions_differ() -> None:
 
 
 def test_no_position_means_refusal_never_a_map_by_index() -> None:
+    from tactdeform_hw.device import EtactileKitDevice
     from tactdeform_hw.device.config import StimConfig
 
+    from .safety_helpers import RecordingPort
+
     guard = SafetyGuard(2000, regions_ua=PROFILE["regions_ua"], participant="P07")
-    with pytest.raises(SafetyError, match=r"configuration of 8 electrode\(s\).*cannot be determined"):
-        guard.check_config(StimConfig(electrode_count=8, current_ua=400))
-    with pytest.raises(SafetyError, match=r"electrodes 0-7 cannot be determined"):
-        guard.frame_limit([1] + [0] * 7, 200)
-    assert guard.counts.get("refused:region") == 2
+    port = RecordingPort()
+    dev = EtactileKitDevice(port, guard=guard)
+    dev.configure(StimConfig(electrode_count=8, current_ua=400))  # nothing active yet: no limit depends on it
+    written = len(port.writes)
+    with pytest.raises(SafetyError, match=r"frame of 8 electrode\(s\): the region of electrodes 0-7 cannot be determined"):
+        dev.send_pattern([1] + [0] * 7)
+    assert len(port.writes) == written  # nothing was sent
+    assert guard.counts.get("refused:region") == 1
+    dev.close()
     with pytest.raises(SafetyError, match="no finite position"):
         region_map_from_positions([(0.0, 0.0), (float("nan"), 1.0)])
     # the same limit in every region: positions do not matter, nothing is refused

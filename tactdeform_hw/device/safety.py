@@ -408,9 +408,6 @@ class SafetyGuard:
     ) -> StimConfig:
         """Refuse a configuration that breaks a limit; return it unchanged otherwise."""
         self.request(config.current_ua)
-        if self.region_of is None:
-            # without a region map only the TactDeform array's 32 electrodes have known positions
-            self.require_positions(config.electrode_count, "configuration")
         if self.polarity is not None and config.polarity != self.polarity:
             raise self._refuse(
                 "polarity",
