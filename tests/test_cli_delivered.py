@@ -47,7 +47,7 @@ def test_send_console_shows_request_lowerings_and_delivered(profile: Path, capsy
     assert "requested 1600 µA; delivered at most 1200 µA" in out
     # the frame's height is set by the first of its electrodes with the lowest limit
     assert "lowered by region 4 limit 1200 µA on electrode 12: 1600 → 1200 µA" in out
-    assert "lowered by ramp: 1200 → 800 µA" in out
+    assert "lowered by ramp: 1 frame(s) held below their height, at 800 µA" in out
     assert "pulse heights sent: 400, 800, 1200 µA" in out
     assert "1200 µA at most on electrode(s) 12-13, 18-19 (region 4)" in out
 

@@ -202,10 +202,19 @@ def delivered_lines(rep: dict[str, Any]) -> list[str]:
     """The console's account of what went to the board (one line each)."""
     lines: list[str] = []
     req = rep.get("requested_ua")
+    if not req and not rep["max_delivered_ua"] and not rep["lowered"] and not rep["refused"]:
+        return lines  # no current asked for, none sent: patterns only, nothing to account for
     head = f"requested {req} µA; " if req is not None else ""
     lines.append(f"{head}delivered at most {rep['max_delivered_ua']} µA")
+    ramps = [e for e in rep["lowered"] if e.get("rule") == "ramp" and "sent_ua" in e]
     for e in rep["lowered"]:
-        lines.append("  " + describe_lowering(e))
+        if e not in ramps:
+            lines.append("  " + describe_lowering(e))
+    if ramps:
+        steps = sorted({int(e["sent_ua"]) for e in ramps})
+        frames = sum(int(e.get("count", 1)) for e in ramps)
+        shown = ", ".join(str(v) for v in steps[:16]) + (", …" if len(steps) > 16 else "")
+        lines.append(f"  lowered by ramp: {frames} frame(s) held below their height, at {shown} µA")
     for e in rep["refused"]:
         times = f" ×{e['count']}" if e.get("count", 1) > 1 else ""
         lines.append(f"  refused ({e.get('rule')}): {e.get('message', '')}{times}")
