@@ -319,7 +319,7 @@ class SafetyGuard:
             src = self.region_map.source if self.region_map is not None else "the region map"
             why = f"{src} places {len(self.region_of)} electrode(s)"
         else:
-            why = "no array file gives their positions (only the 32-electrode TactDeform array is known)"
+            why = "no array file gives their positions; only the 32-electrode TactDeform array's are known"
         raise self._refuse(
             "region",
             f"{what} of {electrodes} electrode(s): the region of electrodes 0-{electrodes - 1} cannot be "
