@@ -111,3 +111,18 @@ def test_render_reports_what_was_delivered(profile: Path, capsys: pytest.Capture
     assert d["max_delivered_ua"] <= 1200 and d["pulse_heights_ua"][0] == 400  # ramped from 0
     limits = [400, 1000, 1000, 1000, 1200, 1000, 1000, 1000, 1000]
     assert d["electrodes"] and all(e["max_ua"] <= limits[e["region"]] for e in d["electrodes"])
+
+
+def test_study_reports_what_was_sent_and_it_matches_the_timed_replay(
+    profile: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out_dir = tmp_path / "run"
+    rc = main(["study", "task1", "--quick", "--out", str(out_dir), "--participant", str(profile), "--quiet",
+               "--no-pictures", "--json"])
+    assert rc == 0
+    d = json.loads(capsys.readouterr().out)["delivered"]
+    report = json.loads((out_dir / "report.json").read_text())
+    assert report["sent"] == d
+    assert d["requested_ua"] == 1200 and any(e["rule"] == "region" for e in d["lowered"])
+    # the highest height an active electrode was sent is the highest current the emulated scans delivered
+    assert float(d["max_delivered_ua"]) == report["summary"]["max_current_ua"]

@@ -190,3 +190,44 @@ def test_calibrate_lights_each_region_by_position(tmp_path: Path, capsys: pytest
     centre = sorted(i for i, r in enumerate(reversed(TACTDEFORM_REGION_OF)) if r == 4)
     assert sorted(e["electrode"] for e in out["delivered"]["electrodes"]) == centre
     assert {e["region"] for e in out["delivered"]["electrodes"]} == {4}
+
+
+def test_send_with_an_array_file_limits_by_position(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    f = _files(tmp_path)
+    pattern = ",".join("1" if i == 31 else "0" for i in range(32))
+    rc = main(["send", "--array", str(f["array"]), "--participant", str(f["profile"]), "--current-ua", "2000",
+               "--pattern", pattern, "--json"])
+    assert rc == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["sent_current_ua"] == 400 and out["emulator_pattern"][31] == 1  # the emulator's registers
+    assert out["delivered"]["electrodes"] == [{"electrode": 31, "channel": 31, "max_ua": 400, "region": 0}]
+
+
+def test_replay_log_with_the_tactdeform_array_named(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    f = _files(tmp_path)
+    log = tmp_path / "identity.jsonl"
+    corner = ",".join("1" if r == 0 else "0" for r in TACTDEFORM_REGION_OF)
+    assert main(["send", "--pattern", corner, "--current-ua", "1000", "--hold", "0.05", "--audit-log", str(log)]) == 0
+    capsys.readouterr()
+    # the log records the TactDeform positions; naming the array explicitly gives the same verdict
+    for extra in ([], ["--array", "tactdeform"]):
+        assert main(["replay-log", str(log), "--participant", str(f["profile"]), "--json", *extra]) == 3
+        out = json.loads(capsys.readouterr().out)
+        corner_electrodes = {i for i, r in enumerate(TACTDEFORM_REGION_OF) if r == 0}
+        assert {o["channel"] for o in out["above_limit"]} == corner_electrodes
+        assert all(o["region"] == 0 and o["limit_ua"] == 400 for o in out["above_limit"])
+
+
+def test_region_map_of_the_kits_own_array_files() -> None:
+    from tactdeform_hw.formats import read_array_file
+
+    shared = Path(__file__).resolve().parents[1] / ".." / "shared" / "etactilekit-formats"
+    board, grid = shared / "electrode_array_main_board.json", shared / "electrodes_64.json"
+    if not board.exists() or not grid.exists():
+        pytest.skip(f"{shared} is not available (the shared reference data sits beside the repository)")
+    on_board = read_array_file(board)
+    # (-5, 15) and (5, 15) on the top row, three per row below: no electrode on a border
+    assert on_board.region_map().resolve(PROFILE["regions_ua"]) == (0, 2, 3, 4, 5, 6, 7, 8)
+    assert on_board.hardware_regions(on_board.region_map().resolve(None))[24] == (0, 0)  # channel 24 + Mapping_func
+    sixty_four = read_array_file(grid).region_map()
+    assert sixty_four.ambiguous == () and sorted(set(sixty_four.resolve(None))) == list(range(9))
