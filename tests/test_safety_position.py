@@ -79,6 +79,13 @@ def test_border_electrode_is_refused_only_when_its_regions_differ() -> None:
     assert rmap.resolve([700] * 9)[1] in (0, 1)  # same limit either way: nothing to decide
     with pytest.raises(SafetyError, match="electrode 1"):
         SafetyGuard(2000, regions_ua=PROFILE["regions_ua"], region_of=rmap)
+    # one row of electrodes spans no height: which row of regions they lie in cannot be told
+    row = region_map_from_positions([(-4.0, 0.0), (0.0, 0.0), (4.0, 0.0)])
+    assert row.candidates == ((0, 3, 6), (1, 4, 7), (2, 5, 8))
+    with pytest.raises(SafetyError, match="electrode 0 at"):
+        row.resolve(PROFILE["regions_ua"])
+    limits = [900, 800, 700] * 3  # each column the same from fingertip to base: the limit is known
+    assert [limits[r] for r in row.resolve(limits)] == [900, 800, 700]
 
 
 def test_no_position_means_refusal_never_a_map_by_index() -> None:

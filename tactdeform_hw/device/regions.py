@@ -108,9 +108,10 @@ class RegionMap:
             if len(limits) > 1:
                 shown = ", ".join(f"region {r} {regions_ua[r]} µA" for r in cand)
                 raise SafetyError(
-                    f"{self.describe(i)}: its region cannot be determined — it sits on the border of "
-                    f"{len(cand)} regions with different limits ({shown}); move it off the border in the "
-                    "array file or calibrate those regions alike; nothing was sent"
+                    f"{self.describe(i)}: its region cannot be determined — it lies on the border of "
+                    f"{len(cand)} regions with different limits ({shown}) (a centre on a third-line of the "
+                    "pad, or an array with no width or height to split); move it off the border in the array "
+                    "file or calibrate those regions alike; nothing was sent"
                 )
             out.append(cand[0])
         return tuple(out)
