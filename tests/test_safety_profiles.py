@@ -156,6 +156,13 @@ def test_cli_refuses_bad_profile_before_opening_the_device(tmp_path: Path, capsy
         rc = main([*argv, "--device", "etactile://bad-profile", "--participant", str(bad)])
         assert rc == 1 and "cap_ua" in capsys.readouterr().err
         assert shared_emulator("bad-profile") is None
+        if command == "play":
+            # an 8-electrode pattern has no known positions without its array file: its regional limits
+            # cannot be told apart, so it is refused, never mapped by index
+            good = str(write_json(tmp_path, GOOD, "g.json"))
+            rc = main([*argv, "--device", "etactile://no-array", "--participant", good])
+            assert rc == 1 and "cannot be determined" in capsys.readouterr().err
+            argv += ["--array", str(pattern.parent / "electrode_array_main_board.json")]
         rc = main([*argv, "--device", "etactile://good-profile", "--participant", str(write_json(tmp_path, GOOD, "g.json"))])
         assert rc == 0
         capsys.readouterr()

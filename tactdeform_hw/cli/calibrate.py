@@ -50,6 +50,13 @@ def register(sub: Any) -> None:
     p.add_argument("--hold-ms", type=float, default=None,
                    help="with a key script: hold each step this long (default 0; interactive: until the next key)")
     p.add_argument("--audit-log", metavar="FILE", help="append every command sent to FILE as JSON lines")
+    p.add_argument(
+        "--array",
+        metavar="ARRAY.json",
+        help="eTactileKit electrode-array file of the pad (default: the TactDeform 32-electrode array): each "
+        "region's stimulus lights the electrodes whose coordinates lie in it, on the hardware channels of its "
+        "Mapping_func",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=run)
 
@@ -90,10 +97,10 @@ def _script_keys(args: argparse.Namespace) -> list[str] | None:
     return None
 
 
-def _apply(dev: Any, stim: Any) -> None:
+def _apply(dev: Any, stim: Any, region_of: tuple[int, ...]) -> None:
     """Lower the current before moving the stimulus, raise it after: no electrode ever gets a level meant
     for another."""
-    levels = stim.levels()
+    levels = stim.levels(region_of)
     if stim.current_ua <= dev.target_ua:
         dev.set_current(stim.current_ua)
         dev.send_pattern(levels)
@@ -142,24 +149,43 @@ def run(args: argparse.Namespace) -> int:
     from ..device.calibration import Calibration, Phase
     from ..device.failsafe import FailSafe
     from ..device.profiles import save_profile
+    from ..device.regions import tactdeform_region_map
     from ..device.safety import SafetyGuard
+    from ..errors import SafetyError
+    from ..formats import read_array_file
+    from .delivered import DeliveryLog, delivered_lines
 
     pid, out = _targets(args)
     cal = Calibration(pid, max_ua=args.max_ua)
-    config = StimConfig(electrode_count=32, current_ua=0, pulse_width_us=args.pulse_width, polarity=args.polarity)
+    array_file = read_array_file(args.array) if args.array else None
+    mapping = array_file.channel_mapping() if array_file is not None else None
+    rmap = array_file.region_map() if array_file is not None else tactdeform_region_map()
+    if rmap.ambiguous:
+        i = rmap.ambiguous[0]
+        raise SafetyError(
+            f"--array: {rmap.describe(i)} sits on the border of regions {', '.join(map(str, rmap.candidates[i]))}: "
+            "a region's stimulus must light only electrodes that lie in it; nothing was sent"
+        )
+    region_of = rmap.resolve(None)
+    missing = sorted(set(range(9)) - set(region_of))
+    if missing:
+        raise ConfigurationError(f"--array: no electrode of {rmap.source} lies in region(s) {missing}")
+    config = StimConfig(
+        electrode_count=mapping.hw_channels if mapping is not None else 32,
+        current_ua=0,
+        pulse_width_us=args.pulse_width,
+        polarity=args.polarity,
+    )
     guard = SafetyGuard(cap_ua=args.max_ua, participant=pid)  # its refusals and clips name the participant
     from ..protocol.units import DEFAULT_TRANSFER
 
     config.validated(DEFAULT_TRANSFER)
     guard.check_config(config)
     keys = _script_keys(args)
-    audit = None
-    if args.audit_log:
-        from ..device.audit import AuditLog
-
-        audit = AuditLog(args.audit_log, command="calibrate", participant=pid, device=args.device)
+    audit = DeliveryLog(args.audit_log, mapping=mapping, region_map=rmap, command="calibrate", participant=pid,
+                        device=args.device, array=args.array)
     hold_s = (args.hold_ms or 0.0) / 1000.0
-    dev = open_device(args.device, timeout=args.timeout, guard=guard, audit=audit)
+    dev = open_device(args.device, timeout=args.timeout, mapping=mapping, guard=guard, audit=audit)
     steps = 0
     peak = 0
     with FailSafe(dev):
@@ -171,20 +197,25 @@ def run(args: argparse.Namespace) -> int:
             stim = cal.press(key)
             steps += 1
             peak = max(peak, stim.current_ua)
-            _apply(dev, stim)
+            _apply(dev, stim, region_of)
             progress(f"{stim.prompt}  [{stim.current_ua} µA]")
             if cal.finished:
                 break
             if keys is not None and hold_s > 0:
                 _hold(dev, hold_s)
         dev.all_off()
-    if audit is not None:
-        audit.close()
-    result: dict[str, Any] = {"participant": pid, "phase": cal.phase.value, "keys": steps, "peak_ua": peak}
+    audit.close()
+    delivered = audit.report()
+    delivered["requested_ua"] = peak  # the highest step asked for
+    result: dict[str, Any] = {"participant": pid, "phase": cal.phase.value, "keys": steps, "peak_ua": peak,
+                              "array": args.array, "delivered": delivered}
     if cal.phase is not Phase.DONE:
         result["profile"] = None
         if args.json:
             print_json(result)
+        else:
+            for line in delivered_lines(delivered):
+                progress(line)
         why = "quit" if cal.phase is Phase.ABORTED else f"the keys ended in phase {cal.phase.value}"
         progress(f"calibration not finished ({why}); no profile written")
         return 1
@@ -202,4 +233,6 @@ def run(args: argparse.Namespace) -> int:
         print_json(result)
     else:
         print(f"wrote {out}: cap {profile.cap_ua} µA, regions {list(profile.regions_ua)} µA")
+        for line in delivered_lines(delivered):
+            print(line)
     return 0

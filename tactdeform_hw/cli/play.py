@@ -28,7 +28,6 @@ from ..errors import ConfigurationError, TactDeformError
 from .common import (
     add_device_arg,
     add_participant_arg,
-    audit_from_args,
     guard_from_args,
     print_json,
     progress,
@@ -248,10 +247,14 @@ def run(
             polarity=polarity,
         )
 
-    # Refuse every configuration before the port is opened (a bad participant profile too).
-    guard = guard_from_args(args)
+    # Refuse every configuration before the port is opened (a bad participant profile too).  The regional
+    # limits follow each electrode's position in the array file, whatever order it lists them in.
+    guard = guard_from_args(args, region_of=array_file.region_map() if array_file is not None else None)
     for key in {(s.frequency_hz, s.polarity) for s in steps}:
         guard.check_config(make_config(*key).validated(DEFAULT_TRANSFER))
+    app_electrodes = len(steps[0].levels) if steps else seq.electrodes
+    if guard.positions_matter:
+        guard.require_positions(app_electrodes, f"{seq.source}: a pattern")
 
     summary: dict[str, Any] = {
         "file": seq.source,
@@ -262,6 +265,8 @@ def run(
         "pattern_electrodes": seq.electrodes,
         "device_electrodes": n,
         "mapping": list(mapping.app_to_hw) if mapping is not None else "identity",
+        "array": array_file.source if array_file is not None else None,
+        "regions": list(guard.regions_for(app_electrodes) or []) or None,
         "current_ua": args.current_ua,
         "frequencies_hz": list(seq.frequencies_hz),
         "polarities": sorted({s.polarity for s in steps}),
@@ -290,8 +295,20 @@ def run(
             "nothing; use --dry-run to check it, or --ignore-execution-flag to send it anyway"
         )
     report = None if args.quiet else progress
-    audit = audit_from_args(args)
-    with open_device(args.device, timeout=args.timeout, mapping=mapping, guard=guard, audit=audit) as dev:
+    from .delivered import DeliveryLog, delivered_lines, session_region_map
+
+    log = DeliveryLog(
+        args.audit_log,
+        requested_ua=args.current_ua,
+        mapping=mapping,
+        region_map=session_region_map(array_file, app_electrodes),
+        region_of=guard.region_of,
+        command="play",
+        device=args.device,
+        participant_file=args.participant,
+        array=args.array,
+    )
+    with log, open_device(args.device, timeout=args.timeout, mapping=mapping, guard=guard, audit=log) as dev:
         try:
             chips = dev.hv513_count()
             summary["hv513_count"] = chips
@@ -311,6 +328,7 @@ def run(
         configures=result.configures,
         elapsed_ms=round(result.elapsed_ms, 3),
         max_late_ms=round(result.max_late_ms, 3),
+        delivered=log.report(),
     )
     if args.json:
         print_json(summary)
@@ -319,4 +337,6 @@ def run(
             f"played {result.steps_played} step(s) of {seq.source} on {args.device} in "
             f"{result.elapsed_ms / 1000:.3f} s (at most {result.max_late_ms:.1f} ms late); all channels off"
         )
+        for line in delivered_lines(summary["delivered"]):
+            print(line)
     return 0

@@ -20,7 +20,6 @@ from typing import Any
 from .common import (
     add_device_arg,
     add_participant_arg,
-    audit_from_args,
     guard_from_args,
     print_json,
     profile_from_args,
@@ -81,8 +80,14 @@ def run(args: argparse.Namespace) -> int:
         raise LimitError("--rate", args.rate, "> 0 Hz")
     if args.speed is not None and (not args.speed > 0 or args.speed == float("inf")):
         raise LimitError("--speed", args.speed, "a finite speed > 0 mm/s")
+    from ..device.regions import region_map_from_positions
+    from .delivered import DeliveryLog, delivered_lines
+
     profile = profile_from_args(args)  # a bad profile is refused before anything is opened
-    guard = guard_from_args(args)
+    array = ElectrodeArray.tactdeform()
+    # regional limits follow the positions of the array the renderer draws on
+    region_map = region_map_from_positions(array.positions_mm.tolist(), f"the {array.name} array")
+    guard = guard_from_args(args, region_of=region_map)
     if profile is not None:
         args.current_ua = profile.stimulation_ua if args.current_ua is None else args.current_ua
         args.contact_mode = args.contact_mode or profile.contact_mode
@@ -109,7 +114,6 @@ def run(args: argparse.Namespace) -> int:
     poses = make_trajectory(args.trajectory, plan, **kw)
     scene.prepare()
     total = len(poses)
-    array = ElectrodeArray.tactdeform()
     quiet = args.quiet
     if not quiet:
         progress(f"render: {args.trajectory} over {args.scene} at {args.rate:g} Hz, {total} poses, approach "
@@ -123,7 +127,10 @@ def run(args: argparse.Namespace) -> int:
 
             stim_config = StimConfig(electrode_count=array.channel_mapping().hw_channels, current_ua=args.current_ua,
                                      pulse_width_us=profile.pulse_width_us, polarity=profile.polarity)
-        audit = audit_from_args(args, participant=profile.participant if profile is not None else None)
+        audit = DeliveryLog(args.audit_log, requested_ua=args.current_ua, mapping=array.channel_mapping(),
+                            region_map=region_map, region_of=guard.region_of, command="render", device=args.device,
+                            participant_file=args.participant,
+                            participant=profile.participant if profile is not None else None)
         pacer = None
         if not args.realtime and (args.device in ("emulator", "emu", "") or args.device.startswith("etactile://")):
             # offline on the in-process emulator: the session runs on the trajectory's clock
@@ -160,7 +167,10 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if out is not None:
             out.close()
+        if "audit" in locals():
+            audit.close()
     result = summary.as_dict()
+    result["delivered"] = audit.report()
     result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": args.rate, "verified": verify,
                    "device": args.device, "frames_file": args.frames, "approach": scene.options.approach,
                    "contact_mode": scene.options.contact_mode})
@@ -179,6 +189,8 @@ def run(args: argparse.Namespace) -> int:
               f"({result['interpolated']} interpolated){check}; median {result['step_us_median']} µs per pose")
         if result["dropped"]:
             print(f"dropped samples: {result['dropped']}")
+        for line in delivered_lines(result["delivered"]):
+            print(line)
     if verify and summary.mismatches:
         print(f"render: emulator pattern buffer differs from a sent frame: {summary.first_mismatch}", file=sys.stderr)
         return 1

@@ -9,6 +9,7 @@ after the fact, e.g. against the participant's profile (``--participant``).
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 from typing import Any
 
 from ..errors import ConfigurationError
@@ -27,6 +28,13 @@ def register(sub: Any) -> None:
     p.add_argument("file", help="audit log (JSON lines)")
     p.add_argument("--link", choices=("usb", "uart"), default="usb", help="link model for the replay (default usb)")
     p.add_argument("--participant", metavar="FILE", help="profile to check the delivered currents against")
+    p.add_argument(
+        "--array",
+        metavar="ARRAY.json|tactdeform",
+        help="electrode-array file of the session (or 'tactdeform' for the 32-electrode TactDeform array on "
+        "channels 0-31): each channel's limit follows the position of the electrode on it. Default: the map "
+        "the log's session line records",
+    )
     p.add_argument("--tail-ms", type=float, default=50.0, help="emulated time after the last command (default 50)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
@@ -80,6 +88,82 @@ def replay(path: str, *, link: str = "usb", tail_s: float = 0.05) -> dict[str, A
     }
 
 
+def channel_regions(
+    path: str, array: str | None, regions_ua: Sequence[int] | None = None
+) -> tuple[dict[int, tuple[int, int]], str]:
+    """Hardware channel → (electrode, region) for judging a log, and where the map came from: ``array``
+    (an array file, or ``tactdeform``), else the map the log's session line records.  A channel's region
+    comes from the position of the electrode on it, never from the channel number; a log without a map
+    (and no ``--array``) is refused, naming what is missing."""
+    from ..device.audit import read_log
+    from ..device.regions import tactdeform_region_map
+
+    if array is not None:
+        if array.lower() == "tactdeform":
+            tactdeform = tactdeform_region_map().resolve(None)
+            return {i: (i, r) for i, r in enumerate(tactdeform)}, "the TactDeform 32-electrode array (--array)"
+        from ..formats import read_array_file
+
+        af = read_array_file(array)
+        return af.hardware_regions(af.region_map().resolve(regions_ua)), f"{af.source} (--array)"
+    header = next((r for r in read_log(path) if r.get("type") == "session"), {})
+    positions, mapping = header.get("positions_mm"), header.get("mapping")
+    if not isinstance(positions, list) or not isinstance(mapping, list) or len(positions) != len(mapping):
+        raise ConfigurationError(
+            f"audit log {path}: its session line records no electrode positions (positions_mm and mapping), so "
+            "the region of the electrode on each channel cannot be determined; give --array with the session's "
+            "electrode-array file (or --array tactdeform for the TactDeform array on channels 0-31)"
+        )
+    from ..device.regions import region_map_from_positions
+
+    region_of = region_map_from_positions(positions, f"the session line of {path}").resolve(regions_ua)
+    return {int(ch): (i, region_of[i]) for i, ch in enumerate(mapping)}, "the positions the log's session line records"
+
+
+def judge(
+    table: dict[str, Any], hw: dict[int, tuple[int, int]] | None, guard: Any
+) -> list[dict[str, Any]]:
+    """Every pulse above the limit of the channel it reached: the regional limit of the electrode on it
+    (lowered to the cap), 0 on a channel no electrode maps to, and the charge limit per pulse.  ``hw`` None
+    (no map) is only for limits that are the same in every region: every channel then has that limit."""
+    import numpy as np
+
+    regions: Sequence[int] = guard.regions_ua or (guard.cap_ua,) * 9
+    cur = table["current_ua"]
+    chans = table["channel"].astype(int)
+    size = int(chans.max()) + 1 if chans.size else 1
+    if hw is None:
+        limit_of = np.full(size, float(min(min(regions), guard.cap_ua)))
+        hw = {}
+    else:
+        limit_of = np.zeros(size)
+    for ch, (_e, region) in hw.items():
+        if ch < limit_of.size:
+            limit_of[ch] = min(regions[region], guard.cap_ua)
+    limit = limit_of[chans] if chans.size else np.zeros(0)
+    over_current = (cur > 0) & (cur > limit + 1e-6)
+    over_charge = (cur > 0) & (table["charge_nc"] > guard.max_charge_nc + 1e-6)
+    out = []
+    for i in np.flatnonzero(over_current | over_charge).tolist():
+        ch = int(chans[i])
+        e: int | None = None
+        r: int | None = None
+        if ch in hw:
+            e, r = hw[ch]
+        out.append({
+            "t_s": round(float(table["start_us"][i]) / 1e6, 6),
+            "channel": ch,
+            "electrode": e,
+            "region": r,
+            "current_ua": round(float(cur[i]), 1),
+            "limit_ua": float(limit[i]),
+            "charge_nc": round(float(table["charge_nc"][i]), 3),
+            "rule": ("region" if r is not None else "cap" if not limit_of[ch] == 0 else "unmapped")
+            if over_current[i] else "charge",
+        })
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     rep = replay(args.file, link=args.link, tail_s=args.tail_ms / 1000.0)
     table = rep.pop("_table")
@@ -90,17 +174,28 @@ def run(args: argparse.Namespace) -> int:
 
         prof = load_profile(args.participant)
         guard = SafetyGuard.from_profile(prof)
-        n = int(rep["final_state"]["electrode_num"]) or 32
-        limits = guard.electrode_limits(max(n, 32))
-        over = []
-        for i in range(table["channel"].size):
-            ua = float(table["current_ua"][i])
-            ch = int(table["channel"][i])
-            if ua > 0 and ch < len(limits) and ua > limits[ch] + 1e-6:
-                over.append({"t_s": round(float(table["start_us"][i]) / 1e6, 6), "channel": ch,
-                             "current_ua": round(ua, 1), "limit_ua": limits[ch]})
-        rep["above_limit"] = over[:100]
+        hw: dict[int, tuple[int, int]] | None = None
+        try:
+            hw, source = channel_regions(args.file, args.array, prof.regions_ua)
+        except ConfigurationError:
+            if guard.positions_matter:
+                raise
+            source = "no positions (the participant's limit is the same in every region)"
+        over = judge(table, hw, guard)
+        rep["judged_by"] = source
+        if hw is not None:
+            rep["channel_regions"] = {str(ch): {"electrode": e, "region": r} for ch, (e, r) in sorted(hw.items())}
+        rep["above_limit"] = over
         rep["above_limit_count"] = len(over)
+        by: dict[int, dict[str, Any]] = {}
+        for o in over:
+            b = by.setdefault(o["channel"], {"channel": o["channel"], "electrode": o["electrode"], "region": o["region"],
+                                             "limit_ua": o["limit_ua"], "pulses": 0, "max_current_ua": 0.0,
+                                             "first_s": o["t_s"], "last_s": o["t_s"]})
+            b["pulses"] += 1
+            b["max_current_ua"] = max(b["max_current_ua"], o["current_ua"])
+            b["last_s"] = o["t_s"]
+        rep["above_limit_by_channel"] = [by[k] for k in sorted(by)]
         code = 3 if over else 0
     if args.json:
         print_json(rep)
@@ -114,5 +209,11 @@ def run(args: argparse.Namespace) -> int:
         if rep["losses"]:
             print(f"  {len(rep['losses'])} loss(es) in the replay")
         if "above_limit_count" in rep:
-            print(f"  {rep['above_limit_count']} pulse(s) above the participant's limits")
+            print(f"  {rep['above_limit_count']} pulse(s) above the participant's limits (regions from "
+                  f"{rep['judged_by']})")
+            for b in rep["above_limit_by_channel"]:
+                where = (f"electrode {b['electrode']} in region {b['region']}" if b["electrode"] is not None
+                         else "no electrode mapped" if b["limit_ua"] == 0 else "electrode unknown")
+                print(f"  EXCESS channel {b['channel']} ({where}, limit {b['limit_ua']:g} µA): {b['pulses']} "
+                      f"pulse(s) up to {b['max_current_ua']:g} µA, {b['first_s']:.6f}-{b['last_s']:.6f} s")
     return code

@@ -9,7 +9,6 @@ from ..errors import ConfigurationError
 from .common import (
     add_device_arg,
     add_participant_arg,
-    audit_from_args,
     guard_from_args,
     hold,
     print_json,
@@ -28,7 +27,15 @@ def register(sub: Any) -> None:
     add_device_arg(p)
     add_participant_arg(p)
     p.add_argument("--pattern", required=True, help="comma-separated levels in application order: 0 off, 1 mono, 2 biphasic; or 'all:1'")
-    p.add_argument("--electrodes", type=int, default=32, help="electrode count (default 32)")
+    p.add_argument("--electrodes", type=int, default=None,
+                   help="electrode count (default 32, the TactDeform array; with --array, the file's)")
+    p.add_argument(
+        "--array",
+        metavar="ARRAY.json",
+        help="eTactileKit electrode-array file: its Mapping_func places the pattern's electrodes on hardware "
+        "channels and its coordinates give each electrode's calibration region (the participant's limits "
+        "follow positions, never list order)",
+    )
     p.add_argument("--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)")
     p.add_argument("--pulse-width", type=int, default=None, help="pulse width in µs (default: the participant's, else 200)")
     p.add_argument("--discharge", type=int, default=45, help="discharge time in µs (default 45)")
@@ -55,41 +62,75 @@ def parse_pattern(text: str, electrodes: int) -> list[int]:
 def run(args: argparse.Namespace) -> int:
     from ..device import StimConfig, open_device
     from ..device.failsafe import FailSafe
+    from ..formats import read_array_file
+    from ..protocol.units import DEFAULT_TRANSFER
+    from .delivered import DeliveryLog, delivered_lines, session_region_map
 
     profile = profile_from_args(args)  # a bad profile is refused before anything is opened
-    guard = guard_from_args(args)
+    array_file = read_array_file(args.array) if args.array else None
+    mapping = array_file.channel_mapping() if array_file is not None else None
+    electrodes = args.electrodes
+    if array_file is not None:
+        if electrodes is not None and electrodes != array_file.electrodes:
+            raise ConfigurationError(
+                f"--electrodes={electrodes} but {array_file.source} has {array_file.electrodes} electrode(s); "
+                "leave --electrodes out with --array"
+            )
+        electrodes = array_file.electrodes
+    elif electrodes is None:
+        electrodes = 32
+    guard = guard_from_args(args, region_of=array_file.region_map() if array_file is not None else None)
     config = StimConfig(
-        electrode_count=args.electrodes,
+        electrode_count=mapping.hw_channels if mapping is not None else electrodes,
         current_ua=args.current_ua,
         pulse_width_us=args.pulse_width if args.pulse_width is not None else (profile.pulse_width_us if profile else 200),
         discharge_us=args.discharge,
         rate_hz=args.frequency,
         polarity=args.polarity or (profile.polarity if profile else "anodic"),
     )
-    levels = parse_pattern(args.pattern, args.electrodes)
-    from ..protocol.units import DEFAULT_TRANSFER
-
+    levels = parse_pattern(args.pattern, electrodes)
     config.validated(DEFAULT_TRANSFER)  # refuse before the port is even opened
     guard.check_config(config)
-    audit = audit_from_args(args, participant=profile.participant if profile else None)
-    dev = open_device(args.device, timeout=args.timeout, guard=guard, audit=audit)
-    with FailSafe(dev):
-        dev.configure(config)
-        dev.send_pattern(levels)
-        emu = getattr(getattr(dev, "port", None), "emulator", None)
-        state = emu.state() if emu is not None else None
-        if args.hold > 0:
-            hold(dev, args.hold)
-    if audit is not None:
-        audit.close()
+    if guard.positions_matter:
+        guard.require_positions(electrodes, "--pattern")
+    log = DeliveryLog(
+        args.audit_log,
+        requested_ua=args.current_ua,
+        mapping=mapping,
+        region_map=session_region_map(array_file, electrodes),
+        region_of=guard.region_of,
+        command="send",
+        device=args.device,
+        participant_file=args.participant,
+        participant=profile.participant if profile else None,
+    )
+    dev = open_device(args.device, timeout=args.timeout, mapping=mapping, guard=guard, audit=log)
+    try:
+        with FailSafe(dev):
+            dev.configure(config)
+            dev.send_pattern(levels)
+            emu = getattr(getattr(dev, "port", None), "emulator", None)
+            state = emu.state() if emu is not None else None
+            if args.hold > 0:
+                hold(dev, args.hold)
+    finally:
+        log.close()
+    delivered = log.report()
     result: dict[str, Any] = {"device": args.device, "config": config.__dict__, "pattern": levels}
+    if array_file is not None:
+        result["array"] = array_file.source
+        result["mapping"] = list(mapping.app_to_hw) if mapping is not None else None
+    result["requested_current_ua"] = args.current_ua
+    result["delivered"] = delivered
     result["sent_current_ua"] = DEFAULT_TRANSFER.to_ua(state["pulse_height"]) if state is not None else None
     result["safety"] = list(guard.log)
     if state is not None:
         result["emulator_state"] = {k: v for k, v in state.items() if k != "stim_pattern"}
-        result["emulator_pattern"] = state["stim_pattern"][: args.electrodes]
+        result["emulator_pattern"] = state["stim_pattern"][: config.electrode_count]
     if args.json:
         print_json(result)
     else:
-        print(f"sent {sum(1 for v in levels if v)} active electrode(s) at {config.current_ua} µA to {args.device}; all off on close")
+        print(f"sent {sum(1 for v in levels if v)} active electrode(s) to {args.device}; all off on close")
+        for line in delivered_lines(delivered):
+            print(line)
     return 0

@@ -21,7 +21,6 @@ from typing import Any
 from .common import (
     add_device_arg,
     add_participant_arg,
-    audit_from_args,
     guard_from_args,
     print_json,
     profile_from_args,
@@ -88,12 +87,20 @@ def run(args: argparse.Namespace) -> int:
     # A bad profile, study or trial list is refused before the device is opened.
     profile = profile_from_args(args)
     array = ElectrodeArray.tactdeform()
-    guard = guard_from_args(args, region_of=tuple(int(r) for r in array.regions))
+    from ..device.regions import region_map_from_positions
+    from .delivered import DeliveryLog, delivered_lines
+
+    # regional limits follow the positions of the array the renderer draws on
+    region_map = region_map_from_positions(array.positions_mm.tolist(), f"the {array.name} array")
+    guard = guard_from_args(args, region_of=region_map)
     mode = profile.contact_mode if profile is not None else "orientation"
     study = select_trials(build_study(args.study, seed=args.seed, quick=args.quick, contact_mode=mode), args.trials)
     if args.current_ua is not None:
         guard.validate_current(args.current_ua, _transfer())
-    audit = audit_from_args(args, participant=profile.participant if profile else None, study=args.study)
+    audit = DeliveryLog(args.audit_log, requested_ua=args.current_ua, mapping=array.channel_mapping(),
+                        region_map=region_map, region_of=guard.region_of, command="study", device=args.device,
+                        participant_file=args.participant, participant=profile.participant if profile else None,
+                        study=args.study)
     say = (lambda _m: None) if args.quiet else progress
     say(f"study {study.name}: {len(study.trials)} trial(s){' (quick)' if study.quick else ''}, device {args.device}, "
         f"seed {args.seed}")
@@ -113,8 +120,9 @@ def run(args: argparse.Namespace) -> int:
             realtime=args.realtime,
         )
     finally:
-        if audit is not None:
-            audit.close()
+        audit.close()
+    result.sent = audit.report()
+    result.sent["requested_ua"] = result.current_ua
     design = check_study(result)
     say(f"study {study.name}: writing the report to {args.out}")
     report = write_report(result, design, args.out, pictures=not args.no_pictures, gif=args.gif)
@@ -125,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
             "out": args.out,
             "summary": s,
             "design_checks": report["design_checks"],
+            "delivered": result.sent,
             "pictures": report.get("pictures"),
             "trials": [
                 {"id": t["id"], "passed": t["passed"], "skipped": t["skipped"], "failed_checks": t.get("failed_checks", [])}
@@ -138,6 +147,8 @@ def run(args: argparse.Namespace) -> int:
               + f" — {verdict}; report in {args.out}/report.json and {args.out}/summary.md")
         for name, n in s["failed_checks"].items():
             print(f"  failed: {name} ({n} trial(s))")
+        for line in delivered_lines(result.sent):
+            print(line)
     if not s["all_passed"]:
         if not args.quiet:
             print(f"study {study.name}: checks failed: {', '.join(s['failed_checks']) or 'design'}", file=sys.stderr)

@@ -73,6 +73,7 @@ from ..protocol.constants import (
 )
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .config import POLARITY_CODE, StimConfig
+from .regions import RegionMap, tactdeform_region_map
 
 if TYPE_CHECKING:
     from .mapping import ChannelMapping
@@ -112,8 +113,8 @@ def grid_regions(
     return tuple(out)
 
 
-#: Region of each of the 32 TactDeform electrodes, application order.
-TACTDEFORM_REGION_OF: tuple[int, ...] = grid_regions()
+#: Region of each of the 32 TactDeform electrodes, application order, from their positions on the pad.
+TACTDEFORM_REGION_OF: tuple[int, ...] = tactdeform_region_map().resolve(None)
 
 
 @dataclass
@@ -153,9 +154,17 @@ class SafetyGuard:
 
     ``cap_ua`` alone gives the hardware-ceiling guard every device has by default.  A profile adds regional
     amplitudes, its charge limit, its calibrated polarity and pulse width, and optionally a ramp; use
-    :meth:`from_profile`.  ``region_of`` maps each application electrode to its region (default: the
-    TactDeform array when the device has 32 electrodes).  When the region map does not fit the configured
-    electrode count, every electrode gets the lowest regional amplitude — the safe direction.
+    :meth:`from_profile`.
+
+    Regional limits follow each electrode's **position**.  ``region_of`` is a
+    :class:`~tactdeform_hw.device.regions.RegionMap` built from the electrode centres (an array file's
+    :meth:`~tactdeform_hw.formats.etactilekit.ArrayFile.region_map`), or one region index per application
+    electrode already derived from positions.  Without it, 32 application electrodes are the TactDeform
+    array in its own order (whose positions are known).  A frame whose electrodes have no known position
+    (no map, or a map of another length) is refused while the profile's regions differ, and so is an
+    electrode on a border between regions of different amplitude — never a map by index.  (The interlock,
+    which only sees hardware channels, still counts an electrode of unknown region at the lowest regional
+    amplitude: the safe direction for a backstop.)
     """
 
     def __init__(
@@ -163,7 +172,7 @@ class SafetyGuard:
         cap_ua: int = MAX_CURRENT_UA,
         *,
         regions_ua: Sequence[int] | None = None,
-        region_of: Sequence[int] | None = None,
+        region_of: Sequence[int] | RegionMap | None = None,
         max_charge_nc: float = DEFAULT_MAX_CHARGE_NC,
         ramp_ua_per_frame: int | None = None,
         polarity: str | None = None,
@@ -193,6 +202,11 @@ class SafetyGuard:
             if not regs:
                 raise SafetyError("regions_ua is empty")
             self.regions_ua = regs
+        self.region_map: RegionMap | None = region_of if isinstance(region_of, RegionMap) else None
+        if isinstance(region_of, RegionMap):
+            # an electrode on a border between regions of different amplitude has no one limit: refused here,
+            # before any port is opened
+            region_of = region_of.resolve(self.regions_ua)
         self.region_of: tuple[int, ...] | None = tuple(region_of) if region_of is not None else None
         if self.region_of is not None and self.regions_ua is not None:
             for i, r in enumerate(self.region_of):
@@ -217,7 +231,7 @@ class SafetyGuard:
         cls,
         profile: ParticipantProfile,
         *,
-        region_of: Sequence[int] | None = None,
+        region_of: Sequence[int] | RegionMap | None = None,
         sink: Callable[[dict[str, Any]], None] | None = None,
     ) -> SafetyGuard:
         return cls(
@@ -280,8 +294,40 @@ class SafetyGuard:
         return None
 
     def electrode_limits(self, electrodes: int) -> list[int]:
-        """The regional limit of each application electrode (cap when there are no regions)."""
+        """The regional limit of each application electrode (cap when there are no regions; the lowest
+        regional amplitude for every electrode when their positions are unknown)."""
         return list(self._limits(electrodes)[0])
+
+    def regions_for(self, electrodes: int) -> tuple[int, ...] | None:
+        """The region of each of ``electrodes`` application electrodes, or None when their positions are
+        unknown (no region map of that length, and not the TactDeform array)."""
+        if self.region_of is not None:
+            return self.region_of if len(self.region_of) == electrodes else None
+        return TACTDEFORM_REGION_OF if electrodes == len(TACTDEFORM_REGION_OF) else None
+
+    @property
+    def positions_matter(self) -> bool:
+        """True when an electrode's limit depends on its region (the profile's regions differ)."""
+        return self.regions_ua is not None and len({min(v, self.cap_ua) for v in self.regions_ua}) > 1
+
+    def require_positions(self, electrodes: int, what: str = "frame") -> None:
+        """Refuse when the regional limits of ``electrodes`` application electrodes cannot be told apart
+        by position: no region map of that length, and not the 32-electrode TactDeform array."""
+        if not self.positions_matter or self._region_map(electrodes) is not None:
+            return
+        if self.region_of is not None:
+            src = self.region_map.source if self.region_map is not None else "the region map"
+            why = f"{src} places {len(self.region_of)} electrode(s)"
+        else:
+            why = "no array file gives their positions; only the 32-electrode TactDeform array's are known"
+        raise self._refuse(
+            "region",
+            f"{what} of {electrodes} electrode(s): the region of electrodes 0-{electrodes - 1} cannot be "
+            f"determined ({why}), and the profile{' of ' + self.participant if self.participant else ''} has "
+            "different limits per region; "
+            "give the electrode-array file (--array) so each limit follows the electrode's position",
+            electrodes=electrodes,
+        )
 
     def _limits(self, electrodes: int) -> tuple[tuple[int, ...], tuple[int, ...] | None]:
         """:meth:`electrode_limits` and the region map, computed once per electrode count and set of limits
@@ -320,10 +366,12 @@ class SafetyGuard:
         if levels is None:
             return limit, why
         limits, rmap = self._limits(len(levels))
+        if rmap is None and self.positions_matter and any(v in _ACTIVE for v in levels):
+            self.require_positions(len(levels))
         for i, v in enumerate(levels):
             if v in _ACTIVE and limits[i] < limit:
                 limit = limits[i]
-                why = {"rule": "region", "electrode": i}
+                why = {"rule": "region", "electrode": i, "limit_ua": limit}
                 if rmap is not None:
                     why["region"] = rmap[i]
         return limit, why

@@ -17,7 +17,9 @@ Electrode-array file (one JSON object)::
                                             board itself (see :attr:`ArrayFile.pattern_offset`)
 
 Coordinates and the radius are millimetres on the skin side of the array, x to the right and y up (the
-GUI draws ``screen_y = 900 - (10·y + 500)``, i.e. 10 px per mm with y flipped onto the screen).  Electrodes
+GUI draws ``screen_y = 900 - (10·y + 500)``, i.e. 10 px per mm with y flipped onto the screen).  The
+coordinates also decide which of a participant's 9 calibrated regions each electrode belongs to
+(:meth:`ArrayFile.region_map`): regional limits follow positions, never the order of ``electrodes``.  Electrodes
 may also carry ``radius`` (used when ``electrode_radius`` is absent) and ``number`` (ignored, as the GUI
 ignores it); a non-zero ``z`` marks the 3-D GUI's curved arrays, which the planar renderer cannot use.
 The GUI refuses a file without ``outline``, ``electrode_radius`` or ``Mapping_func``; here ``outline`` may
@@ -62,6 +64,7 @@ from ._json import load_text
 if TYPE_CHECKING:  # pragma: no cover
     from ..device.config import Polarity
     from ..device.mapping import ChannelMapping
+    from ..device.regions import RegionMap
     from ..render.array import ElectrodeArray
     from .frames import Frame
 
@@ -187,6 +190,20 @@ class ArrayFile:
     def channel_mapping(self) -> ChannelMapping:
         """The device layer's mapping: electrode i → hardware channel."""
         return self.array.channel_mapping()
+
+    def region_map(self) -> RegionMap:
+        """The calibration region(s) of each electrode, from its coordinates in this file (application
+        order, the order of ``electrodes``): what a participant's regional limits follow, whatever order
+        the file lists its electrodes in."""
+        from ..device.regions import region_map_from_positions
+
+        return region_map_from_positions(
+            [(float(x), float(y)) for x, y in self.array.positions_mm], f"array file {self.source or self.array.name}"
+        )
+
+    def hardware_regions(self, region_of: Sequence[int]) -> dict[int, tuple[int, int]]:
+        """Hardware channel → (electrode, region) for the regions ``region_of`` gives each electrode."""
+        return {int(ch): (i, int(region_of[i])) for i, ch in enumerate(self.array.channel_mapping().app_to_hw)}
 
     def levels_for(self, pattern: Sequence[int], where: str = "pattern") -> tuple[int, ...]:
         """This array's levels out of one step of a pattern file.

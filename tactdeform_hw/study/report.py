@@ -186,6 +186,7 @@ def report_json(result: StudyRun, design: list[Check]) -> dict[str, Any]:
         "current_ua": result.current_ua,
         "current_source": result.current_source,
         "limits_ua": list(result.limits_ua),
+        "sent": result.sent,
         "rate_hz": result.rate_hz,
         "array": {"name": arr.name, "electrodes": arr.count, "pitch_mm": arr.pitch_mm,
                   "mapping": list(arr.channel_mapping().app_to_hw)},

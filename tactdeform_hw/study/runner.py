@@ -171,6 +171,9 @@ class StudyRun:
     notes: list[str] = field(default_factory=list)
     wall_s: float = 0.0
     writes: list[WireWrite] = field(default_factory=list)
+    #: What the session sent, from the device's own records (pulse heights written, each electrode's highest,
+    #: the guard's clips and refusals): see :mod:`tactdeform_hw.cli.delivered`.
+    sent: dict[str, Any] | None = None
 
 
 # --- scenes and poses ----------------------------------------------------------------------------------
