@@ -26,6 +26,7 @@ from .common import (
     profile_from_args,
     progress,
 )
+from .options import add_option
 
 
 def register(sub: Any) -> None:
@@ -47,8 +48,10 @@ def register(sub: Any) -> None:
         "description (.toml/.json)",
     )
     p.add_argument("--trajectory", required=True, choices=TRAJECTORIES, metavar="NAME", help="one of: " + ", ".join(TRAJECTORIES))
-    p.add_argument("--speed", type=float, default=None, help="finger speed in mm/s (default: the trajectory's own)")
-    p.add_argument("--rate", type=float, default=72.0, help="tracking rate in Hz (default 72, the VR loop)")
+    add_option(p, "--speed-mm-s", old=("--speed",), dest="speed", metavar="MM_S", type=float, default=None,
+               help="finger speed in mm/s (default: the trajectory's own)")
+    add_option(p, "--rate-hz", old=("--rate",), dest="rate", type=float, default=72.0,
+               help="tracking rate in Hz (default 72, the VR loop)")
     p.add_argument("--approach", choices=APPROACHES, default=None, help="rendering approach (default: the scene's, tactdeform)")
     p.add_argument(
         "--contact-mode",

@@ -13,6 +13,7 @@ from typing import Any
 
 from ..errors import ConfigurationError
 from .common import print_json
+from .options import duration
 
 
 def register(sub: Any) -> None:
@@ -27,7 +28,7 @@ def register(sub: Any) -> None:
     p.add_argument("file", help="audit log (JSON lines)")
     p.add_argument("--link", choices=("usb", "uart"), default="usb", help="link model for the replay (default usb)")
     p.add_argument("--participant", metavar="FILE", help="profile to check the delivered currents against")
-    p.add_argument("--tail-ms", type=float, default=50.0, help="emulated time after the last command (default 50)")
+    p.add_argument("--tail-ms", type=duration("ms"), default=50.0, help="emulated time after the last command (default 50)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
 

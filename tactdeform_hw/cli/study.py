@@ -27,6 +27,7 @@ from .common import (
     profile_from_args,
     progress,
 )
+from .options import add_option
 
 EXIT_CHECK_FAILED = 3
 
@@ -57,7 +58,8 @@ def register(sub: Any) -> None:
     p.add_argument("--current-ua", type=int, default=None,
                    help="stimulation current in µA (default: the participant's; without one, 1000 µA on the "
                    "emulator so delivered charges are reported, 0 — patterns only — on a real device)")
-    p.add_argument("--rate", type=float, default=72.0, help="tracking rate in Hz (default 72, the VR loop)")
+    add_option(p, "--rate-hz", old=("--rate",), dest="rate", type=float, default=72.0,
+               help="tracking rate in Hz (default 72, the VR loop)")
     p.add_argument("--tremor-mm", type=float, default=0.0,
                    help="add physiological tremor of this amplitude to every trajectory (default 0: none)")
     p.add_argument("--realtime", action="store_true",
