@@ -92,6 +92,9 @@ def run(args: argparse.Namespace) -> int:
     args.current_ua = 0 if args.current_ua is None else args.current_ua
     if args.current_ua < 0:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
+    from ..protocol.units import DEFAULT_TRANSFER
+
+    guard.request(guard.validate_current(args.current_ua, DEFAULT_TRANSFER))  # above the cap: refused before opening
     scene = load_scene(args.scene)
     if args.approach is not None or args.contact_mode is not None:
         # an option given on the command line replaces only its own field of the scene's options

@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     mode = profile.contact_mode if profile is not None else "orientation"
     study = select_trials(build_study(args.study, seed=args.seed, quick=args.quick, contact_mode=mode), args.trials)
     if args.current_ua is not None:
-        guard.validate_current(args.current_ua, _transfer())
+        guard.request(guard.validate_current(args.current_ua, _transfer()))  # above the cap: refused before opening
     audit = audit_from_args(args, participant=profile.participant if profile else None, study=args.study)
     say = (lambda _m: None) if args.quiet else progress
     say(f"study {study.name}: {len(study.trials)} trial(s){' (quick)' if study.quick else ''}, device {args.device}, "
