@@ -38,7 +38,8 @@ def warn(prog: str, message: str) -> None:
 
 def typed_flag(args: argparse.Namespace, flag: str) -> str:
     """The spelling of ``flag`` the user typed (a deprecated one, if that is what they used)."""
-    return dict(getattr(args, TYPED_ATTR, None) or {}).get(flag, flag)
+    typed: dict[str, str] = dict(getattr(args, TYPED_ATTR, None) or {})
+    return typed.get(flag, flag)
 
 
 def _remember(namespace: argparse.Namespace, canonical: str, typed: str) -> None:
@@ -86,11 +87,12 @@ def add_option(parser: argparse.ArgumentParser, flag: str, *, old: Sequence[str]
         unit = flag.rsplit("-", 1)[-1]
         kwargs["metavar"] = unit.upper() if unit in _UNIT_SUFFIXES else flag.lstrip("-").upper().replace("-", "_")
     action = parser.add_argument(flag, **kwargs)
+    alias_type = old_type if old_type is not None else kwargs.get("type")
     for alias in old:
         parser.add_argument(
             alias,
             dest=action.dest,
-            type=old_type if old_type is not None else kwargs.get("type"),
+            **({"type": alias_type} if alias_type is not None else {}),
             choices=old_choices,
             metavar=kwargs.get("metavar"),
             default=argparse.SUPPRESS,
