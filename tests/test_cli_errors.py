@@ -256,17 +256,32 @@ def test_an_unexpected_error_is_one_line_and_debug_shows_the_traceback(capsys, m
      "--rate-hz 0.0 is out of range: > 0 Hz"),
     (["render", "--scene", "cube", "--trajectory", "approach-face", "--rate", "0"], "--rate 0.0 is out of range: > 0 Hz"),
     (["study", "task1", "--out", "never", "--rate-hz", "0"], "--rate-hz 0.0 is out of range: a finite rate > 0 Hz"),
+    (["send", "--pattern", "all:3"], "--pattern value 0 (3) is out of range: 0 (off), 1 (monophasic) or 2 (biphasic)"),
+    (["send", "--pattern", "1,0,2", "--electrodes", "4"],
+     "--pattern has 3 level(s) but --electrodes is 4; give one level per electrode, or all:LEVEL"),
+    (["timing", "--pattern", "1,2,300"], "--pattern value 2 (300) is out of range: 0 to 255"),
+    (["timing", "--set", "gpio_write_us=-1"], "--set gpio_write_us=-1 is out of range: a finite number >= 0"),
+    (["timing", "--sense-current-ua", "50"],
+     "--sense-current-ua 50 is out of range: a current whose DAC code is a multiple of 4 up to 1020 (this one is code 5)"),
+    (["calibrate", "--participant", "P01", "--max-ua", "20000", "--keys", os.devnull],
+     "--max-ua 20000 is out of range: 1 to 10000 µA"),
+    (["calibrate", "--participant", "P01", "--ramp-ua", "-5", "--keys", os.devnull],
+     "--ramp-ua -5 is out of range: 10 to 10000 µA"),
+    (["export", "FRAMES", "-o", "x.json", "--frequency", "0"], "--frequency 0 is out of range: 1 to 65535 Hz"),
+    (["play", "PATTERN", "--repeat", "0"], "--repeat 0 is out of range: at least 1"),
 ])
-def test_errors_name_the_flag_typed(argv, message, capsys, tmp_path, monkeypatch) -> None:
+def test_errors_name_the_flag_typed(argv, message, capsys, tmp_path, monkeypatch, pattern_file, frames_file) -> None:
     monkeypatch.chdir(tmp_path)
-    argv = [*argv, "--device", DEVICE] if argv[0] in ("send", "render", "study") else argv
+    argv = [str(pattern_file) if a == "PATTERN" else str(frames_file) if a == "FRAMES" else a for a in argv]
+    argv = [*argv, "--device", DEVICE] if argv[0] in ("send", "render", "study", "play", "calibrate") else argv
     code, _, err = run(argv, capsys)
     assert code == 1
     assert error_line(err, argv[0]) == message
     for internal in ("rate_hz", "electrode_count", "electrodes=", "pulse_width_us", "current_ua="):
         assert internal not in err
     assert shared_emulator("cli-errors") is None
-    assert not (tmp_path / "never").exists()
+    assert not (tmp_path / "never").exists() and not (tmp_path / "x.json").exists()
+    assert not (tmp_path / "P01.json").exists()
 
 
 def test_play_names_the_file_field_for_a_rate_from_the_file(tmp_path, pattern_file, capsys) -> None:

@@ -18,7 +18,7 @@ from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from .common import add_device_arg, print_json, progress
-from .options import add_option, duration
+from .options import add_finisher, add_option, duration, range_check
 
 
 def register(sub: Any) -> None:
@@ -49,6 +49,7 @@ def register(sub: Any) -> None:
     p.add_argument("--contact-mode", choices=("orientation", "uniform"), default="orientation",
                    help="the participant's preferred contact rendering (TactDeform task 2)")
     p.add_argument("--ramp-ua", type=int, default=None, help="ramp limit to store in the profile (µA per frame)")
+    add_finisher(p, range_check("ramp_ua", "--ramp-ua", 10, 10000, "µA", step=10))
     p.add_argument("--hold-ms", type=duration("ms"), default=None,
                    help="with a key script: hold each step this long (default 0; interactive: until the next key)")
     p.add_argument("--audit-log", metavar="FILE", help="append every command sent to FILE as JSON lines")

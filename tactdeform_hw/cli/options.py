@@ -215,13 +215,21 @@ FIELD_FLAGS: dict[str, dict[str, str]] = {
     "render": {"current_ua": "--current-ua", "--rate": "--rate-hz", "--speed": "--speed-mm-s"},
     "study": {"current_ua": "--current-ua", "--rate": "--rate-hz"},
     "calibrate": {"pulse_width_us": "--pulse-width-us", "polarity": "--polarity", "cap_ua": "--max-ua",
-                  "participant": "--participant"},
+                  "participant": "--participant", "max_ua": "--max-ua"},
     "export": {"frequency_hz": "--frequency-hz", "rate_hz": "--frequency-hz", "stim_mode": "--polarity"},
     "decode": {"electrodes": "--electrodes"},
     "emulate": {"switching_boards": "--switching-boards"},
 }
 
 _FIELD_EQ = r"(?<![\w.\-\[]){field}="
+
+
+def _timing_constants() -> frozenset[str]:
+    from dataclasses import fields
+
+    from ..emulator.timing import TimingModel
+
+    return frozenset(f.name for f in fields(TimingModel))
 
 
 def _show(value: Any) -> str:
@@ -234,8 +242,6 @@ def flag_for(command: str | None, field: str, args: argparse.Namespace | None = 
     flag = table.get(field)
     if flag is None and field.startswith("--"):
         flag = field
-    if flag is None and command == "timing" and re.fullmatch(r"pattern\[\d+\]", field):
-        flag = "--pattern"
     if flag is None:
         return None
     return typed_flag(args, flag) if args is not None else flag
@@ -244,11 +250,20 @@ def flag_for(command: str | None, field: str, args: argparse.Namespace | None = 
 def user_message(exc: BaseException, command: str | None, args: argparse.Namespace | None = None) -> str:
     """The one line a user reads for ``exc``: device-layer field names replaced by the flags typed."""
     if isinstance(exc, LimitError):
-        flag = flag_for(command, str(exc.field), args)
+        field = str(exc.field)
+        indexed = re.fullmatch(r"pattern\[(\d+)\]", field)
+        if indexed and command in ("send", "timing"):
+            return f"--pattern value {indexed.group(1)} ({_show(exc.value)}) is out of range: {exc.limit}"
+        if command == "timing" and field in _timing_constants():
+            return f"--set {field}={_show(exc.value)} is out of range: {exc.limit}"
+        flag = flag_for(command, field, args)
         if flag is not None:
             return f"{flag} {_show(exc.value)} is out of range: {exc.limit}"
     text = str(exc)
     if isinstance(exc, TactDeformError):
+        # a check written with the flag (``--repeat=0``) reads like the rest: ``--repeat 0``
+        text = re.sub(r"(?<![\w-])(--[a-z][a-z0-9-]*)=(?=\S)", lambda m: f"{typed_flag(args, m.group(1)) if args else m.group(1)} ",
+                      text)
         for field in FIELD_FLAGS.get(command or "", {}):
             if field.startswith("--"):
                 continue
@@ -256,6 +271,22 @@ def user_message(exc: BaseException, command: str | None, args: argparse.Namespa
             if flag is not None:
                 text = re.sub(_FIELD_EQ.format(field=re.escape(field)), f"{flag} ", text)
     return text
+
+
+def range_check(dest: str, flag: str, lo: float, hi: float, unit: str = "", *,
+                step: int | None = None) -> Callable[[argparse.Namespace], None]:
+    """A finisher refusing ``args.<dest>`` outside ``[lo, hi]`` (or off ``step``) before the command runs,
+    for a value the command would otherwise only meet deep inside (a file writer, a saved profile)."""
+
+    def check(args: argparse.Namespace) -> None:
+        value = getattr(args, dest, None)
+        if value is None:
+            return
+        check_range(flag, value, lo, hi, unit)
+        if step and value % step:
+            raise LimitError(flag, value, f"a multiple of {step}" + (f" {unit}" if unit else ""))
+
+    return check
 
 
 def check_range(flag: str, value: Any, lo: float, hi: float, unit: str = "") -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from ..errors import ConfigurationError
+from ..errors import ConfigurationError, LimitError
 from .common import (
     add_device_arg,
     add_participant_arg,
@@ -46,6 +46,18 @@ def register(sub: Any) -> None:
 
 
 def parse_pattern(text: str, electrodes: int) -> list[int]:
+    """The levels of ``--pattern``, checked here so a bad one is refused before the port is opened."""
+    levels = _pattern_levels(text, electrodes)
+    for i, v in enumerate(levels):
+        if v not in (0, 1, 2):
+            raise LimitError(f"pattern[{i}]", v, "0 (off), 1 (monophasic) or 2 (biphasic)")
+    if len(levels) != electrodes:
+        raise ConfigurationError(f"--pattern has {len(levels)} level(s) but --electrodes is {electrodes}; give one "
+                                 "level per electrode, or all:LEVEL")
+    return levels
+
+
+def _pattern_levels(text: str, electrodes: int) -> list[int]:
     text = text.strip()
     if text.startswith("all:"):
         try:
