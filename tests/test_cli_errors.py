@@ -233,6 +233,8 @@ def test_an_unexpected_error_is_one_line_and_debug_shows_the_traceback(capsys, m
     assert code == 1
     assert "Traceback (most recent call last)" in err and 'raise RuntimeError("boom")' in err
     assert err.strip().splitlines()[-1] == "tactdeform-hw decode: error: unexpected RuntimeError: boom"
+    code, _, err = run(["decode", "fc 20", "--debug"], capsys)  # where a user adds it after seeing the error
+    assert code == 1 and "Traceback (most recent call last)" in err
 
 
 # --- 3. messages name the flag typed; a safety refusal is said once --------------------------------------

@@ -32,7 +32,9 @@ COMMANDS: tuple[str, ...] = (
 #: The exit statuses, as ``--help`` and the researcher's guide give them.
 EXIT_STATUS_HELP = """exit status:
   0    done
-  1    refused (before the device was opened: nothing was sent) or failed while running
+  1    refused (a value out of range, a safety limit, a bad file, an output that cannot be
+       written, no device: checked before the device is opened, so nothing was sent)
+       or failed while running
   2    usage: unknown option, missing value, a value of the wrong kind (not a number,
        a negative duration, not one of the choices)
   3    a check failed: study (a trial check), replay-log --participant (a pulse above the
@@ -57,7 +59,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     parser.add_argument("--debug", action="store_true",
-                        help="on an error, also print the Python traceback (for a bug report)")
+                        help="on an error, also print the Python traceback (for a bug report); may also "
+                        "follow the command's own options")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f".{name}", __name__).register(sub)
@@ -89,7 +92,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    end = words.index("--") if "--" in words else len(words)
+    debug = "--debug" in words[:end]  # accepted anywhere on the line, where a user adds it after an error
+    args = parser.parse_args([w for i, w in enumerate(words) if i >= end or w != "--debug"])
+    args.debug = debug
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
