@@ -67,6 +67,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Exit statuses shared by every command (a command may add its own, documented in its --help).
+EXIT_FAILED = 1
+EXIT_USAGE = 2
+
 #: Exit status when the reader of stdout went away (``tactdeform-hw timing --json | head -3``): 128 + SIGPIPE,
 #: what a shell reports for a tool the signal stopped, so ``set -o pipefail`` still sees the output was cut.
 EXIT_BROKEN_PIPE = 141
@@ -106,7 +110,7 @@ def _main(argv: Sequence[str] | None) -> int:
             from .options import finish
             from .outputs import preflight
 
-            finish(args)  # conversions of earlier spellings (a DAC code → µA)
+            finish(args)  # the command's own conversions and checks (µA → the DAC code timing takes)
             preflight(args, warn=lambda m: print(f"{prog}: warning: {m}", file=sys.stderr, flush=True))
             return int(args.func(args) or 0)
     except KeyboardInterrupt:
@@ -118,11 +122,6 @@ def _main(argv: Sequence[str] | None) -> int:
             traceback.print_exc()
         print(f"{prog}: error: {_describe(exc, args)}", file=sys.stderr, flush=True)
         return EXIT_FAILED
-
-
-#: Exit statuses shared by every command (a command may add its own, documented in its --help).
-EXIT_FAILED = 1
-EXIT_USAGE = 2
 
 
 def _describe(exc: BaseException, args: argparse.Namespace) -> str:

@@ -195,7 +195,7 @@ _STIM = {
 #: itself raise with the earlier flag (``--rate``); the table maps that to the current spelling too.
 FIELD_FLAGS: dict[str, dict[str, str]] = {
     "send": {**_STIM, "pattern length": "--pattern (its length)", "pattern": "--pattern"},
-    "play": {**_STIM, "rate_hz": "params.frequency of the pattern file", "--repeat": "--repeat"},
+    "play": {**_STIM, "rate_hz": "params.frequency of the pattern file"},
     "timing": {
         "electrodes": "--electrodes",
         "pulse_width_us": "--pulse-width-us",
@@ -216,9 +216,6 @@ FIELD_FLAGS: dict[str, dict[str, str]] = {
     "study": {"current_ua": "--current-ua", "--rate": "--rate-hz"},
     "calibrate": {"pulse_width_us": "--pulse-width-us", "polarity": "--polarity", "cap_ua": "--max-ua",
                   "participant": "--participant", "max_ua": "--max-ua"},
-    "export": {"frequency_hz": "--frequency-hz", "rate_hz": "--frequency-hz", "stim_mode": "--polarity"},
-    "decode": {"electrodes": "--electrodes"},
-    "emulate": {"switching_boards": "--switching-boards"},
 }
 
 _FIELD_EQ = r"(?<![\w.\-\[]){field}="
@@ -262,8 +259,8 @@ def user_message(exc: BaseException, command: str | None, args: argparse.Namespa
     text = str(exc)
     if isinstance(exc, TactDeformError):
         # a check written with the flag (``--repeat=0``) reads like the rest: ``--repeat 0``
-        text = re.sub(r"(?<![\w-])(--[a-z][a-z0-9-]*)=(?=\S)", lambda m: f"{typed_flag(args, m.group(1)) if args else m.group(1)} ",
-                      text)
+        text = re.sub(r"(?<![\w-])(--[a-z][a-z0-9-]*)=(?=\S)",
+                      lambda m: (typed_flag(args, m.group(1)) if args is not None else m.group(1)) + " ", text)
         for field in FIELD_FLAGS.get(command or "", {}):
             if field.startswith("--"):
                 continue
