@@ -579,3 +579,30 @@ def test_gitignore_covers_the_readme_outputs() -> None:
         assert ignored(path), path
     assert not ignored("tests/data/protocol_vectors.jsonl")
     assert not ignored("tactdeform_hw/cli/__init__.py")
+
+
+# --- every command: usage errors and unreadable inputs ----------------------------------------------------
+
+
+@pytest.mark.parametrize("command", ["emulate", "ports", "decode", "send", "play", "export", "render", "study",
+                                     "timing", "calibrate", "replay-log"])
+def test_an_unknown_option_is_a_usage_error_for_every_command(command, capsys) -> None:
+    err = usage_error([command, "--no-such-option"], capsys)
+    assert "Traceback" not in err
+    assert err.strip().splitlines()[-1].startswith(f"tactdeform-hw {command}: error: ")
+    assert shared_emulator("cli-errors") is None
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["replay-log", "MISSING"], "audit log MISSING: cannot be read (No such file or directory)"),
+    (["play", "MISSING", "--device", DEVICE], "MISSING: cannot read: No such file or directory"),
+    (["export", "MISSING", "-o", "OUT"], "MISSING: cannot read: No such file or directory"),
+    (["send", "--pattern", "1", "--participant", "MISSING", "--device", DEVICE], "participant profile MISSING"),
+])
+def test_a_missing_input_file_is_one_line(argv, message, tmp_path, capsys) -> None:
+    missing, out = str(tmp_path / "missing.json"), str(tmp_path / "out.json")
+    argv = [missing if a == "MISSING" else out if a == "OUT" else a for a in argv]
+    code, _, err = run(argv, capsys)
+    assert code == 1
+    assert error_line(err, argv[0]).startswith(message.replace("MISSING", missing))
+    assert shared_emulator("cli-errors") is None and not Path(out).exists()

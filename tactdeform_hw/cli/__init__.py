@@ -99,7 +99,11 @@ def _main(argv: Sequence[str] | None) -> int:
     words = list(sys.argv[1:] if argv is None else argv)
     end = words.index("--") if "--" in words else len(words)
     debug = "--debug" in words[:end]  # accepted anywhere on the line, where a user adds it after an error
-    args = parser.parse_args([w for i, w in enumerate(words) if i >= end or w != "--debug"])
+    args, extra = parser.parse_known_args([w for i, w in enumerate(words) if i >= end or w != "--debug"])
+    if extra:  # said by the command's own parser, so the line names the command and shows its usage
+        commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+        (commands.get(getattr(args, "command", None) or "") or parser).error(
+            f"unrecognized arguments: {' '.join(extra)}")
     args.debug = debug
     if not getattr(args, "func", None):
         parser.print_help()
