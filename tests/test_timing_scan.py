@@ -106,12 +106,12 @@ def test_skip_policy_overrun_with_less_than_a_tick_left_names_the_stride() -> No
     assert b.actual_rate_hz == pytest.approx(500.0)
     limit = [n for n in b.notes if "payload" in n]
     assert len(limit) == 1 and limit[0].endswith(
-        " us outside the scan every 2 periods: the parser reads at most one command with a payload per 2 periods"), b.notes
+        " µs outside the scan every 2 periods: the parser reads at most one command with a payload per 2 periods"), b.notes
     assert float(limit[0].split()[1]) == pytest.approx(gap, abs=0.06)
     # the same configuration fitting its period keeps the per-period wording
     fits = Budget.of(ScanConfig.make(32, 1, pulse_width_us=200, discharge_us=45, rate_hz=125), MODEL, 125)
     assert [n for n in fits.notes if "payload" in n] == [
-        "only 149.8 us per period outside the scan: the parser reads at most one command with a payload per period"]
+        "only 149.8 µs per period outside the scan: the parser reads at most one command with a payload per period"]
 
 
 # --- acceptance: one small scan, event by event -----------------------------------------------------------

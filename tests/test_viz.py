@@ -263,8 +263,8 @@ def test_timing_cli_png_marks_the_paper_overrun(tmp_path: Path, capsys) -> None:
 
     for discharge, overruns in ((45, 0), (50, 3)):
         out = tmp_path / f"d{discharge}.png"
-        argv = ["timing", "--discharge", str(discharge), "--cycles", "3", "--png", str(out), "--json"]
-        assert main(argv) == 0
+        argv = ["timing", "--discharge-us", str(discharge), "--cycles", "3", "--png", str(out), "--json"]
+        assert main(argv) == (3 if overruns else 0)  # exit status 3: the scan overruns its period
         png = json.loads(capsys.readouterr().out)["png"]
         assert png["overruns"] == overruns and png["cycles"] == 3
         assert out.read_bytes()[:8] == PNG_MAGIC

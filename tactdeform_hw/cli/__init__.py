@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import os
 import sys
-from collections.abc import Sequence
+import traceback
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 
 from ..errors import TactDeformError
 
@@ -26,6 +29,23 @@ COMMANDS: tuple[str, ...] = (
 )
 
 
+#: The exit statuses, as ``--help`` and the researcher's guide give them.
+EXIT_STATUS_HELP = """exit status:
+  0    done
+  1    refused (a value out of range, a safety limit, a bad file, an output that cannot be
+       written, no device: checked before the device is opened, so nothing was sent)
+       or failed while running
+  2    usage: unknown option, missing value, a value of the wrong kind (not a number,
+       a negative duration, not one of the choices)
+  3    a check failed: study (a trial check), replay-log --participant (a pulse above the
+       limits), timing (the scan OVERRUNs its period)
+  4    timing: the scan trips the interrupt WATCHDOG (the board resets)
+  130  interrupted (Ctrl-C)
+  141  standard output was closed (e.g. piped into head)
+
+Every error is one line 'tactdeform-hw COMMAND: error: ...'; --debug adds the traceback."""
+
+
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
 
@@ -34,13 +54,22 @@ def build_parser() -> argparse.ArgumentParser:
         description="eTactileKit protocol tools, a byte-exact firmware emulator and the TactDeform renderer. "
         "Every command that talks to a device takes --device: a serial port path, a pyserial URL, or "
         "'emulator' (the default: the in-process emulator, no hardware needed).",
+        epilog=EXIT_STATUS_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument("--debug", action="store_true",
+                        help="on an error, also print the Python traceback (for a bug report); may also "
+                        "follow the command's own options")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f".{name}", __name__).register(sub)
     return parser
 
+
+#: Exit statuses shared by every command (a command may add its own, documented in its --help).
+EXIT_FAILED = 1
+EXIT_USAGE = 2
 
 #: Exit status when the reader of stdout went away (``tactdeform-hw timing --json | head -3``): 128 + SIGPIPE,
 #: what a shell reports for a tool the signal stopped, so ``set -o pipefail`` still sees the output was cut.
@@ -67,17 +96,83 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    end = words.index("--") if "--" in words else len(words)
+    debug = "--debug" in words[:end]  # accepted anywhere on the line, where a user adds it after an error
+    args, extra = parser.parse_known_args([w for i, w in enumerate(words) if i >= end or w != "--debug"])
+    if extra:  # said by the command's own parser, so the line names the command and shows its usage
+        commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+        (commands.get(getattr(args, "command", None) or "") or parser).error(
+            f"unrecognized arguments: {' '.join(extra)}")
+    args.debug = debug
     if not getattr(args, "func", None):
         parser.print_help()
-        return 2
+        return EXIT_USAGE
+    prog = f"tactdeform-hw {args.command}"
     try:
-        return int(args.func(args) or 0)
-    except TactDeformError as exc:
-        print(f"tactdeform-hw {args.command}: error: {exc}", file=sys.stderr)
-        return 1
+        with _console_log(prog):
+            from .options import finish
+            from .outputs import preflight
+
+            finish(args)  # the command's own conversions and checks (µA → the DAC code timing takes)
+            preflight(args, warn=lambda m: print(f"{prog}: warning: {m}", file=sys.stderr, flush=True))
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         return 130
+    except BrokenPipeError:
+        raise
+    except Exception as exc:  # every error ends in one line; --debug adds the traceback
+        if getattr(args, "debug", False):
+            traceback.print_exc()
+        print(f"{prog}: error: {_describe(exc, args)}", file=sys.stderr, flush=True)
+        return EXIT_FAILED
+
+
+def _describe(exc: BaseException, args: argparse.Namespace) -> str:
+    """One line for the user: what was wrong, naming the flag or the file."""
+    from .options import user_message
+
+    if isinstance(exc, TactDeformError):
+        return user_message(exc, args.command, args)
+    if isinstance(exc, OSError):
+        name = exc.filename if exc.filename is not None else ""
+        what = exc.strerror or str(exc)
+        return f"{name}: {what}" if name else what
+    if isinstance(exc, ImportError):
+        return f"the Python package {exc.name!r} is not installed ({exc})" if exc.name else str(exc)
+    hint = "" if getattr(args, "debug", False) else "; run 'tactdeform-hw --debug ...' for the traceback"
+    return f"unexpected {type(exc).__name__}: {exc}{hint}"
+
+
+class _ConsoleHandler(logging.Handler):
+    """The package's warnings on stderr, one line each, prefixed like every other message of the command.
+
+    A safety refusal is left out: the refused command ends with it as its error line, and printing it
+    here too would say it twice."""
+
+    def __init__(self, prog: str) -> None:
+        super().__init__(logging.WARNING)
+        self.prog = prog
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if record.name == "tactdeform_hw.safety" and str(record.msg).startswith("%s (%s)") and record.args \
+                and record.args[0] == "refused":  # type: ignore[index]
+            return
+        try:
+            print(f"{self.prog}: warning: {record.getMessage()}", file=sys.stderr, flush=True)
+        except Exception:  # pragma: no cover - a closed stderr must not end the command
+            pass
+
+
+@contextmanager
+def _console_log(prog: str) -> Iterator[None]:
+    logger = logging.getLogger("tactdeform_hw")
+    handler = _ConsoleHandler(prog)
+    logger.addHandler(handler)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
 
 
 def _discard_stdout() -> None:

@@ -18,6 +18,7 @@ from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from .common import add_device_arg, print_json, progress
+from .options import add_finisher, add_option, duration, range_check
 
 
 def register(sub: Any) -> None:
@@ -42,12 +43,14 @@ def register(sub: Any) -> None:
     p.add_argument("--out", metavar="FILE", help="profile file to write (.json or .toml; default: ID.json)")
     p.add_argument("--keys", metavar="FILE", help="read keys from FILE ('-' for standard input) instead of the keyboard")
     p.add_argument("--max-ua", type=int, default=5000, help="calibration ceiling in µA, ≤ 10000 (default 5000)")
-    p.add_argument("--pulse-width", type=int, default=200, help="pulse width in µs (default 200, TactDeform)")
+    add_option(p, "--pulse-width-us", old=("--pulse-width",), dest="pulse_width", type=int, default=200,
+               help="pulse width in µs (default 200, TactDeform)")
     p.add_argument("--polarity", choices=("anodic", "cathodic"), default="anodic")
     p.add_argument("--contact-mode", choices=("orientation", "uniform"), default="orientation",
                    help="the participant's preferred contact rendering (TactDeform task 2)")
     p.add_argument("--ramp-ua", type=int, default=None, help="ramp limit to store in the profile (µA per frame)")
-    p.add_argument("--hold-ms", type=float, default=None,
+    add_finisher(p, range_check("ramp_ua", "--ramp-ua", 10, 10000, "µA", step=10))
+    p.add_argument("--hold-ms", type=duration("ms"), default=None,
                    help="with a key script: hold each step this long (default 0; interactive: until the next key)")
     p.add_argument("--audit-log", metavar="FILE", help="append every command sent to FILE as JSON lines")
     p.add_argument(

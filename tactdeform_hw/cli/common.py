@@ -16,7 +16,10 @@ DEVICE_HELP = (
 
 def add_device_arg(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="emulator", help=DEVICE_HELP)
-    parser.add_argument("--timeout", type=float, default=0.5, help="read/write timeout in seconds (default 0.5)")
+    from .options import add_option, positive
+
+    add_option(parser, "--timeout-s", old=("--timeout",), dest="timeout", type=positive("s"), default=0.5,
+               help="read/write timeout in seconds (default 0.5)")
 
 
 def print_json(obj: Any) -> None:

@@ -23,14 +23,47 @@ def register(sub: Any) -> None:
     src.add_argument("hex", nargs="?", help="hex bytes, e.g. 'fc 20 fe 01 01 ...' (spaces, colons, 0x allowed)")
     src.add_argument("--file", type=Path, help="capture file: raw bytes, or hex text with --hex-file")
     p.add_argument("--hex-file", action="store_true", help="the --file holds hex text, not raw bytes")
-    p.add_argument("--electrodes", type=int, default=0, help="electrode_num in force when the capture starts (default 0, power-on)")
+    p.add_argument("--electrodes", type=int, default=0,
+                   help="electrode_num in force when the capture starts, 0-255 (default 0, power-on)")
     p.add_argument("--json", action="store_true", help="print a JSON list instead of lines")
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from ..protocol.decoder import OK, decode, parse_hex
+def read_hex(text: str) -> bytes:
+    """Bytes from hex text (spaces, colons, commas, ``0x`` allowed between bytes); refused, naming the
+    position in the text (counted from 0), when a byte has one digit or a character is not hex."""
+    from ..protocol.decoder import parse_hex
 
+    odd_at: int | None = None  # where the byte being read started, while it has one digit
+    i, n = 0, len(text)
+    while i < n:
+        ch = text[i]
+        if odd_at is None and text.startswith(("0x", "0X"), i) and i + 2 < n and text[i + 2] in _HEX:
+            i += 2
+            continue
+        if ch in _HEX:
+            odd_at = i if odd_at is None else None
+        elif ch in _SEPARATORS:
+            if odd_at is not None:
+                break
+        else:
+            raise ConfigurationError(f"{ch!r} at position {i} is not a hex digit")
+        i += 1
+    if odd_at is not None:
+        raise ConfigurationError(f"odd number of hex digits at position {odd_at}: a byte is two digits")
+    return parse_hex(text)
+
+
+_HEX = frozenset("0123456789abcdefABCDEF")
+_SEPARATORS = frozenset(" \t\r\n:,;-")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..protocol.decoder import OK, decode
+    from .options import check_range
+
+    check_range("--electrodes", args.electrodes, 0, 255)
+    parse_hex = read_hex
     try:
         if args.file is not None:
             raw = args.file.read_bytes()
@@ -41,6 +74,8 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigurationError(f"cannot read the capture as {'hex' if args.hex_file or args.file is None else 'bytes'}: {exc}") from exc
     except OSError as exc:
         raise ConfigurationError(f"cannot read {args.file}: {exc}") from exc
+    if not data:
+        raise ConfigurationError("the capture is empty: no bytes to decode")
     items = decode(data, args.electrodes)
     if args.json:
         print_json([c.to_dict() for c in items])

@@ -16,6 +16,7 @@ from typing import Any
 
 from ..errors import ConfigurationError
 from .common import print_json, progress
+from .options import add_finisher, add_option, duration, polarity_code, range_check
 
 
 def register(sub: Any) -> None:
@@ -29,19 +30,17 @@ def register(sub: Any) -> None:
     )
     p.add_argument("frames", help="frames record written by 'tactdeform-hw render --frames'")
     p.add_argument("-o", "--out", required=True, help="pattern file to write (.json)")
-    p.add_argument(
-        "--frequency", type=int, default=125, help="params.frequency in Hz for every step (default 125)"
-    )
-    p.add_argument(
-        "--stim-mode",
-        type=int,
-        choices=(0, 1),
-        default=1,
-        help="params.stim_mode, the polarity the GUI sends: 1 anodic (default, TactDeform), 0 cathodic",
-    )
+    add_option(p, "--frequency-hz", old=("--frequency",), dest="frequency", type=int, default=125,
+               help="params.frequency in Hz for every step (default 125)")
+    add_finisher(p, range_check("frequency", "--frequency-hz", 1, 65535, "Hz"))
+    add_option(p, "--polarity", old=("--stim-mode",), old_type=int, old_choices=(0, 1), dest="stim_mode",
+               type=polarity_code, default=1, metavar="{anodic,cathodic}",
+               old_note="--stim-mode 1 is --polarity anodic, 0 is cathodic",
+               help="the polarity the GUI sends, written as params.stim_mode (anodic = 1, cathodic = 0): "
+               "anodic (default, TactDeform) or cathodic")
     p.add_argument(
         "--last-ms",
-        type=float,
+        type=duration("ms"),
         help="how long the last step lasts (default: to the end of the record plus one frame interval, "
         "the median time between frames)",
     )

@@ -32,6 +32,7 @@ from .common import (
     print_json,
     progress,
 )
+from .options import add_option
 
 if TYPE_CHECKING:
     from ..device.config import Polarity
@@ -87,8 +88,10 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)"
     )
-    p.add_argument("--pulse-width", type=int, default=200, help="pulse width in µs (default 200)")
-    p.add_argument("--discharge", type=int, default=45, help="discharge time in µs (default 45)")
+    add_option(p, "--pulse-width-us", old=("--pulse-width",), dest="pulse_width", type=int, default=200,
+               help="pulse width in µs (default 200)")
+    add_option(p, "--discharge-us", old=("--discharge",), dest="discharge", type=int, default=45,
+               help="discharge time in µs (default 45)")
     p.add_argument("--repeat", type=int, default=1, help="play the file this many times (default 1)")
     p.add_argument("--dry-run", action="store_true", help="check the file and print the plan; open no device")
     p.add_argument(

@@ -25,6 +25,7 @@ from .common import (
     profile_from_args,
     progress,
 )
+from .options import add_option
 
 
 def register(sub: Any) -> None:
@@ -46,8 +47,10 @@ def register(sub: Any) -> None:
         "description (.toml/.json)",
     )
     p.add_argument("--trajectory", required=True, choices=TRAJECTORIES, metavar="NAME", help="one of: " + ", ".join(TRAJECTORIES))
-    p.add_argument("--speed", type=float, default=None, help="finger speed in mm/s (default: the trajectory's own)")
-    p.add_argument("--rate", type=float, default=72.0, help="tracking rate in Hz (default 72, the VR loop)")
+    add_option(p, "--speed-mm-s", old=("--speed",), dest="speed", metavar="MM_S", type=float, default=None,
+               help="finger speed in mm/s (default: the trajectory's own)")
+    add_option(p, "--rate-hz", old=("--rate",), dest="rate", type=float, default=72.0,
+               help="tracking rate in Hz (default 72, the VR loop)")
     p.add_argument("--approach", choices=APPROACHES, default=None, help="rendering approach (default: the scene's, tactdeform)")
     p.add_argument(
         "--contact-mode",
@@ -94,6 +97,9 @@ def run(args: argparse.Namespace) -> int:
     args.current_ua = 0 if args.current_ua is None else args.current_ua
     if args.current_ua < 0:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
+    from ..protocol.units import DEFAULT_TRANSFER
+
+    guard.request(guard.validate_current(args.current_ua, DEFAULT_TRANSFER))  # above the cap: refused before opening
     scene = load_scene(args.scene)
     if args.approach is not None or args.contact_mode is not None:
         # an option given on the command line replaces only its own field of the scene's options

@@ -14,6 +14,7 @@ from typing import Any
 
 from ..errors import ConfigurationError
 from .common import print_json
+from .options import duration
 
 
 def register(sub: Any) -> None:
@@ -35,7 +36,7 @@ def register(sub: Any) -> None:
         "channels 0-31): each channel's limit follows the position of the electrode on it. Default: the map "
         "the log's session line records",
     )
-    p.add_argument("--tail-ms", type=float, default=50.0, help="emulated time after the last command (default 50)")
+    p.add_argument("--tail-ms", type=duration("ms"), default=50.0, help="emulated time after the last command (default 50)")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
 

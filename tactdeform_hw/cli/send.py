@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from ..errors import ConfigurationError
+from ..errors import ConfigurationError, LimitError
 from .common import (
     add_device_arg,
     add_participant_arg,
@@ -14,6 +14,7 @@ from .common import (
     print_json,
     profile_from_args,
 )
+from .options import add_option, duration
 
 
 def register(sub: Any) -> None:
@@ -37,16 +38,33 @@ def register(sub: Any) -> None:
         "follow positions, never list order)",
     )
     p.add_argument("--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)")
-    p.add_argument("--pulse-width", type=int, default=None, help="pulse width in µs (default: the participant's, else 200)")
-    p.add_argument("--discharge", type=int, default=45, help="discharge time in µs (default 45)")
-    p.add_argument("--frequency", type=int, default=125, help="stimulation rate in Hz (default 125)")
+    add_option(p, "--pulse-width-us", old=("--pulse-width",), dest="pulse_width", type=int, default=None,
+               help="pulse width in µs (default: the participant's, else 200)")
+    add_option(p, "--discharge-us", old=("--discharge",), dest="discharge", type=int, default=45,
+               help="discharge time in µs (default 45)")
+    add_option(p, "--frequency-hz", old=("--frequency",), dest="frequency", type=int, default=125,
+               help="stimulation rate in Hz (default 125)")
     p.add_argument("--polarity", choices=("anodic", "cathodic"), default=None, help="default: the participant's, else anodic")
-    p.add_argument("--hold", type=float, default=0.0, help="seconds to hold the pattern before all-off (default 0)")
+    add_option(p, "--hold-ms", old=("--hold",), old_type=duration("s"), dest="hold", type=duration("ms", to_s=True),
+               default=0.0, old_note="--hold took seconds, --hold-ms takes milliseconds",
+               help="hold the pattern this many ms before all-off (default 0)")
     p.add_argument("--json", action="store_true", help="print what was sent and the device's state as JSON")
     p.set_defaults(func=run)
 
 
 def parse_pattern(text: str, electrodes: int) -> list[int]:
+    """The levels of ``--pattern``, checked here so a bad one is refused before the port is opened."""
+    levels = _pattern_levels(text, electrodes)
+    for i, v in enumerate(levels):
+        if v not in (0, 1, 2):
+            raise LimitError(f"pattern[{i}]", v, "0 (off), 1 (monophasic) or 2 (biphasic)")
+    if len(levels) != electrodes:
+        raise ConfigurationError(f"--pattern has {len(levels)} level(s) but --electrodes is {electrodes}; give one "
+                                 "level per electrode, or all:LEVEL")
+    return levels
+
+
+def _pattern_levels(text: str, electrodes: int) -> list[int]:
     text = text.strip()
     if text.startswith("all:"):
         try:

@@ -26,6 +26,7 @@ from .common import (
     profile_from_args,
     progress,
 )
+from .options import add_option
 
 EXIT_CHECK_FAILED = 3
 
@@ -56,7 +57,8 @@ def register(sub: Any) -> None:
     p.add_argument("--current-ua", type=int, default=None,
                    help="stimulation current in µA (default: the participant's; without one, 1000 µA on the "
                    "emulator so delivered charges are reported, 0 — patterns only — on a real device)")
-    p.add_argument("--rate", type=float, default=72.0, help="tracking rate in Hz (default 72, the VR loop)")
+    add_option(p, "--rate-hz", old=("--rate",), dest="rate", type=float, default=72.0,
+               help="tracking rate in Hz (default 72, the VR loop)")
     p.add_argument("--tremor-mm", type=float, default=0.0,
                    help="add physiological tremor of this amplitude to every trajectory (default 0: none)")
     p.add_argument("--realtime", action="store_true",
@@ -96,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     mode = profile.contact_mode if profile is not None else "orientation"
     study = select_trials(build_study(args.study, seed=args.seed, quick=args.quick, contact_mode=mode), args.trials)
     if args.current_ua is not None:
-        guard.validate_current(args.current_ua, _transfer())
+        guard.request(guard.validate_current(args.current_ua, _transfer()))  # above the cap: refused before opening
     audit = DeliveryLog(args.audit_log, requested_ua=args.current_ua, mapping=array.channel_mapping(),
                         region_map=region_map, region_of=guard.region_of, command="study", device=args.device,
                         participant_file=args.participant, participant=profile.participant if profile else None,

@@ -14,6 +14,11 @@ from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from .common import print_json
+from .options import DeprecatedAlias, PolarityCode, add_finisher, add_option, typed_flag
+
+#: Exit statuses of ``timing`` beyond 0/1/2: the verdict a script can branch on.
+EXIT_OVERRUN = 3
+EXIT_WATCHDOG = 4
 
 
 def register(sub: Any) -> None:
@@ -22,20 +27,35 @@ def register(sub: Any) -> None:
         help="scan budget, overruns, update latency and waveform traces of a configuration",
         description="Emulate the stimulation scan of a configuration with the timing model and print its "
         "budget: per-channel cost, scan time, timer period, margin and verdict (fits / overrun / watchdog "
-        "reset). Example (the TactDeform setting): --electrodes 32 --pulse-width 200 --discharge 45 "
-        "--frequency 125.",
+        "reset). Example (the TactDeform setting): --electrodes 32 --pulse-width-us 200 --discharge-us 45 "
+        "--frequency-hz 125. Exit status: 0 when the scan fits its period, "
+        f"{EXIT_OVERRUN} when it OVERRUNs it, {EXIT_WATCHDOG} when it trips the interrupt WATCHDOG (the board "
+        "resets); 1 for a refused value, 2 for a usage error.",
     )
     p.add_argument("--electrodes", type=int, default=None, help="electrode_num, 0-255 (default 32, or the pattern's length)")
     p.add_argument("--pattern", default="1",
                    help="one value for every channel (1 monophasic, 2 biphasic, other: sense pulse) or a comma "
                    "list, one per channel (default 1)")
-    p.add_argument("--pulse-width", type=int, default=200, help="stimulation pulse width in us, 1-65535 (default 200)")
-    p.add_argument("--pulse-height", type=int, default=100, help="pulse height as a DAC code, 0-4095 (default 100 = 1 mA)")
-    p.add_argument("--discharge", type=int, default=45, help="channel discharge time in us, 0-255 (default 45)")
-    p.add_argument("--frequency", type=int, default=125, help="stimulation rate in Hz, 1-65535 (default 125)")
-    p.add_argument("--polarity", type=int, choices=(0, 1), default=1, help="1 anodic (default), 0 cathodic")
-    p.add_argument("--sense-height", type=int, default=0, help="sense pulse height as sent, 0-255 (stored << 2)")
-    p.add_argument("--sense-width", type=int, default=0, help="sense pulse width in us, 0-255")
+    add_option(p, "--pulse-width-us", old=("--pulse-width",), dest="pulse_width", type=int, default=200,
+               help="stimulation pulse width in µs, 1-65535 (default 200)")
+    add_option(p, "--current-ua", type=int, default=None,
+               help="pulse current in µA, 10 µA steps, ≤ 10000 (default 1000 = DAC code 100)")
+    p.add_argument("--pulse-height", type=int, default=100, help=argparse.SUPPRESS, action=DeprecatedAlias,
+                   canonical="--current-ua", note="--pulse-height took a DAC code; --current-ua takes µA, 10 µA per code")
+    add_option(p, "--discharge-us", old=("--discharge",), dest="discharge", type=int, default=45,
+               help="channel discharge time in µs, 0-255 (default 45)")
+    add_option(p, "--frequency-hz", old=("--frequency",), dest="frequency", type=int, default=125,
+               help="stimulation rate in Hz, 1-65535 (default 125)")
+    p.add_argument("--polarity", action=PolarityCode, default=1, metavar="{anodic,cathodic}",
+                   help="pulse polarity (default anodic)")
+    add_option(p, "--sense-current-ua", type=int, default=None,
+               help="sense pulse current in µA: the firmware stores the byte sent << 2, so 40 µA steps, ≤ 10200 "
+               "(default 0)")
+    p.add_argument("--sense-height", type=int, default=0, help=argparse.SUPPRESS, action=DeprecatedAlias,
+                   canonical="--sense-current-ua", note="--sense-height took the byte sent; --sense-current-ua takes µA")
+    add_option(p, "--sense-width-us", old=("--sense-width",), dest="sense_width", type=int, default=0,
+                help="sense pulse width in µs, 0-255")
+    add_finisher(p, currents_from_ua)
     p.add_argument("--board", choices=("compact", "large"), default="compact", help="board kind (default compact)")
     p.add_argument("--switching-boards", type=int, default=1, help="stacked switching boards (default 1)")
     p.add_argument("--hv513", type=int, default=None,
@@ -58,6 +78,28 @@ def register(sub: Any) -> None:
                    "period and any overrun marked (needs the plot extra)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     p.set_defaults(func=run)
+
+
+def currents_from_ua(args: argparse.Namespace) -> None:
+    """``--current-ua`` and ``--sense-current-ua`` (µA) as the codes the scan model takes."""
+    from ..device.config import sense_code
+    from ..protocol.units import DEFAULT_TRANSFER
+
+    typed = getattr(args, "_typed_flags", None) or {}
+    for flag, old in (("--current-ua", "--pulse-height"), ("--sense-current-ua", "--sense-height")):
+        if getattr(args, flag[2:].replace("-", "_"), None) is not None and typed_flag(args, flag) != flag:
+            raise ConfigurationError(f"give {flag} or {typed.get(flag, old)}, not both")
+    if args.current_ua is not None:
+        args.pulse_height = DEFAULT_TRANSFER.to_code(args.current_ua, "current_ua")
+    if args.sense_current_ua is not None:
+        args.sense_height = sense_code(args.sense_current_ua, DEFAULT_TRANSFER)
+
+
+def verdict_status(budget: Any) -> int:
+    """0 when the scan fits, :data:`EXIT_OVERRUN` or :data:`EXIT_WATCHDOG` when it does not."""
+    if budget.watchdog_reset:
+        return EXIT_WATCHDOG
+    return EXIT_OVERRUN if budget.overrun else 0
 
 
 def _parse_value(text: str) -> Any:
@@ -183,7 +225,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.json:
         print_json(result)
-        return 0
+        return verdict_status(budget)
     print(budget.table())
     if args.latency:
         print()
@@ -192,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {path}")
     if args.png:
         print(f"wrote {args.png}")
-    return 0
+    return verdict_status(budget)
 
 
 def _draw_png(args: argparse.Namespace, cfg: Any, model: Any) -> dict[str, Any]:
@@ -236,7 +278,7 @@ def _write_traces(args: argparse.Namespace, cfg: Any, model: Any) -> list[str]:
 
 
 def _latency_table(lat: dict[str, Any]) -> str:
-    lines = ["Pattern update latency (same pattern, written at moments spread over one period), us:",
+    lines = ["Pattern update latency (same pattern, written at moments spread over one period), µs:",
              f"{'link':<6}{'':<14}{'min':>10}{'mean':>10}{'max':>10}"]
     labels = (("wire_us", "wire"), ("loop_wait_us", "loop tick"), ("scan_wait_us", "scan wait"),
               ("first_channel_us", "first channel"), ("last_channel_us", "last channel"))

@@ -323,19 +323,19 @@ class Budget:
         free = stride - scan
         periods = stride // period if period else 1
         if watchdog:
-            notes.append(f"the scan ({scan / 1000:.1f} us) exceeds the {model.watchdog_us:.0f} us interrupt watchdog: "
+            notes.append(f"the scan ({scan / 1000:.1f} µs) exceeds the {model.watchdog_us:.0f} µs interrupt watchdog: "
                          "the device reboots to its power-on state part-way through the first scan")
         elif overrun:
-            notes.append(f"overrun by {(scan - period) / 1000:.2f} us: the next scan follows at once"
+            notes.append(f"overrun by {(scan - period) / 1000:.2f} µs: the next scan follows at once"
                          if model.overrun_policy == "immediate" else
-                         f"overrun by {(scan - period) / 1000:.2f} us: the missed alarm is skipped, so a scan starts "
-                         f"every {periods} periods and leaves {free / 1000:.2f} us to the main loop")
+                         f"overrun by {(scan - period) / 1000:.2f} µs: the missed alarm is skipped, so a scan starts "
+                         f"every {periods} periods and leaves {free / 1000:.2f} µs to the main loop")
         if starved and not watchdog:
             notes.append("scans run back to back: the main loop never runs, so no later command is read")
         elif not watchdog and free < model.rtos_tick_ns:
-            notes.append(f"only {free / 1000:.1f} us per period outside the scan: the parser reads at most one "
+            notes.append(f"only {free / 1000:.1f} µs per period outside the scan: the parser reads at most one "
                          "command with a payload per period" if periods == 1 else
-                         f"only {free / 1000:.1f} us outside the scan every {periods} periods: the parser reads at "
+                         f"only {free / 1000:.1f} µs outside the scan every {periods} periods: the parser reads at "
                          f"most one command with a payload per {periods} periods")
         if counts[ChannelKind.SENSE] and cfg.sense_pulse_height:
             notes.append(f"{int(counts[ChannelKind.SENSE])} channel(s) off in the pattern still get a sense pulse "
@@ -374,7 +374,7 @@ class Budget:
         rate = f"{self.requested_rate_hz:g} Hz, " if self.requested_rate_hz is not None else ""
         lines = [
             f"Scan budget: {self.electrodes} electrodes, {rate}timer alarm {self.alarm_ticks} ticks = "
-            f"{self.period_us:.2f} us, overrun policy {self.overrun_policy}",
+            f"{self.period_us:.2f} µs, overrun policy {self.overrun_policy}",
             f"{'kind':<24}{'channels':>9}{'select+POL':>12}{'pulse':>11}{'discharge':>11}{'per channel':>13}{'subtotal':>12}",
         ]
         for r in self.rows:
@@ -388,7 +388,7 @@ class Budget:
             f"{'period':<{w}}{self.period_us:>12.2f}",
             f"{'margin':<{w}}{self.margin_us:>12.2f}",
             f"verdict: {self.verdict.upper()}; actual rate {self.actual_rate_hz:.2f} Hz; "
-            f"effective pulse width {self.effective_width_us:.2f} us (all times in us)",
+            f"effective pulse width {self.effective_width_us:.2f} µs (all times in µs)",
         ]
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)

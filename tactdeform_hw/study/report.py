@@ -277,9 +277,9 @@ class _Tiles:
         return hit
 
 
-def _key_frames(run: TrialRun) -> tuple[list[Any], int]:
+def _key_frames(run: TrialRun, most: int = MAX_TILES) -> tuple[list[Any], int]:
     """The distinct frames sent (consecutive repeats and all-off frames left out), thinned evenly to
-    :data:`MAX_TILES`; and how many there were."""
+    ``most``; and how many there were."""
     frames = []
     last = None
     for rec in run.records:
@@ -288,8 +288,8 @@ def _key_frames(run: TrialRun) -> tuple[list[Any], int]:
         last = tuple(rec.electrodes)
         frames.append(rec)
     n = len(frames)
-    if n > MAX_TILES:
-        pick = sorted({round(i * (n - 1) / (MAX_TILES - 1)) for i in range(MAX_TILES)})
+    if n > most:
+        pick = sorted({round(i * (n - 1) / max(1, most - 1)) for i in range(most)})
         frames = [frames[i] for i in pick]
     return frames, n
 
@@ -329,23 +329,30 @@ def draw_trial_strip(run: TrialRun, tiles: _Tiles, path: Path) -> dict[str, Any]
     return {"path": path, "tiles": len(frames), "distinct_frames": total}
 
 
-def draw_overview(strips: list[Path], path: Path, scale: float = 0.5) -> Path:
-    from PIL import Image
+def draw_overview(result: StudyRun, path: Path) -> dict[str, Any]:
+    """Every trial that ran in one grid that fits a screen (see :mod:`tactdeform_hw.viz.study_overview`):
+    up to four of its distinct frames each, thinned evenly, captioned with their time and state."""
+    from ..viz.study_overview import MAX_FRAMES, OverviewFrame, OverviewTrial, draw_study_overview
 
-    images = []
-    for p in strips:
-        with Image.open(p) as im:
-            im = im.convert("RGB")
-            images.append(im.resize((max(1, int(im.width * scale)), max(1, int(im.height * scale)))))
-    width = max(im.width for im in images)
-    height = sum(im.height + 6 for im in images)
-    canvas = Image.new("RGB", (width, height), "white")
-    y = 0
-    for im in images:
-        canvas.paste(im, (0, y))
-        y += im.height + 6
-    canvas.save(path, format="PNG")
-    return path
+    trials = []
+    for run in result.trials:
+        if run.skipped is not None:
+            continue
+        frames, total = _key_frames(run, MAX_FRAMES)
+        trials.append(OverviewTrial(
+            title=run.trial.id,
+            passed=bool(run.passed),
+            frames=tuple(OverviewFrame(tuple(int(v) for v in rec.electrodes),
+                                       f"{rec.t_s - run.t0_s:.2f} s {_STATE_SHORT.get(rec.state, rec.state)}")
+                         for rec in frames),
+        ))
+    info = draw_study_overview(result.array.positions_mm, result.array.radius_mm, trials, path,
+                               title=f"{result.study.name}: {len(trials)} trial(s)")
+    return {"path": info.path, "size_px": list(info.size_px), "grid": [info.columns, info.rows],
+            "min_font_pt": info.min_font_pt}
+
+
+_STATE_SHORT = {"approaching": "appr.", "interacting": "contact", "idle": "idle"}
 
 
 def draw_pictures(result: StudyRun, out: Path, *, gif: bool = False) -> dict[str, Any]:
@@ -375,7 +382,9 @@ def draw_pictures(result: StudyRun, out: Path, *, gif: bool = False) -> dict[str
             drawn["trials"][run.trial.id] = entry
         drawn["tiles_drawn"] = len(tiles.cache)
     if strips:
-        drawn["overview"] = str(draw_overview(strips, pics / "overview.png").relative_to(out))
+        overview = draw_overview(result, pics / "overview.png")
+        drawn["overview"] = str(overview["path"].relative_to(out))
+        drawn["overview_size_px"] = overview["size_px"]
     return drawn
 
 
