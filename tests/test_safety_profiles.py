@@ -156,7 +156,7 @@ def test_cli_refuses_bad_profile_before_opening_the_device(tmp_path: Path, capsy
         rc = main([*argv, "--device", "etactile://bad-profile", "--participant", str(bad)])
         assert rc == 1 and "cap_ua" in capsys.readouterr().err
         assert shared_emulator("bad-profile") is None
-        rc = main([*argv, "--device", "etactile://good-profile", "--participant", str(write_json(tmp_path, GOOD, "g.json"))])
+        rc = main([*argv, "--device", "etactile://good-profile?timed=0", "--participant", str(write_json(tmp_path, GOOD, "g.json"))])
         assert rc == 0
         capsys.readouterr()
         forget_shared()

@@ -551,3 +551,64 @@ class BoardServer:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def settle(board: RealtimeEmulator, timeout_s: float = 2.0, step_s: float = 0.0005) -> bool:
+    """Wait (in wall time) until every byte sent has reached the parser and the parser has read all it
+    will read (or is locked, or spins on half a u16).  False if that took longer than ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        with board.lock:
+            board._advance()
+            idle = board.timed.run_until_idle(limit_us=0)
+        if idle:
+            return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(step_s)
+
+
+class UsbSerialJtagLines:
+    """DTR and RTS as the ESP32-S3's USB Serial/JTAG controller reads them.
+
+    The chip is held in reset while RTS is asserted and DTR is not (EN low on the classic auto-reset
+    circuit); the reset ends when that stops.  DTR asserted with RTS not (IO0 low) arms the download
+    boot; both lines low disarms it; both high keeps it — which is why esptool's USB-JTAG sequence goes
+    ``(DTR,RTS) = (1,0) → (1,1) → (0,1) → (0,0)``: through (1,1), not (0,0), so the chip leaves reset into
+    the ROM download mode.  esptool's hard reset (RTS high then low with DTR low) boots the application.
+    This is the emulator's reading of the controller's behaviour, consistent with both esptool sequences;
+    the ROM bootloader itself is not emulated (in download mode the application does not run)."""
+
+    def __init__(self) -> None:
+        self.dtr = False
+        self.rts = False
+        self.held = False
+        self.armed = False
+        self.download_mode = False
+        self._boot_download = False
+
+    def set(self, dtr: bool, rts: bool) -> str | None:
+        """New line levels; returns ``"held"`` when the chip enters reset, ``"released"`` when it leaves
+        it (``download_mode`` says into what), else ``None``."""
+        self.dtr, self.rts = dtr, rts
+        event = None
+        in_reset = rts and not dtr
+        if in_reset and not self.held:
+            self.held = True
+            self._boot_download = self.armed
+            event = "held"
+        elif self.held and not in_reset:
+            self.held = False
+            self.download_mode = self._boot_download
+            self.armed = False
+            event = "released"
+        if dtr and not rts:
+            self.armed = True
+        elif not dtr and not rts:
+            self.armed = False
+        return event
+
+    @property
+    def running(self) -> bool:
+        """The application runs (not held in reset, not in the ROM download mode)."""
+        return not self.held and not self.download_mode
