@@ -612,3 +612,38 @@ class UsbSerialJtagLines:
     def running(self) -> bool:
         """The application runs (not held in reset, not in the ROM download mode)."""
         return not self.held and not self.download_mode
+
+
+class BackgroundSink:
+    """Hands a trace sink's work to a writer thread, so writing a waveform file (about 57 000 events per
+    second at the TactDeform setting) does not hold up the real-time loop.  Same interface as a
+    :class:`~.trace.TraceSink`; :meth:`close` waits until everything is written."""
+
+    def __init__(self, sink: Any) -> None:
+        import queue
+
+        self.sink = sink
+        self._q: queue.SimpleQueue[tuple[str, tuple[Any, ...]] | None] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._work, name="etactile-trace", daemon=True)
+        self._thread.start()
+
+    def _work(self) -> None:
+        while True:
+            item = self._q.get()
+            if item is None:
+                return
+            getattr(self.sink, item[0])(*item[1])
+
+    def begin(self, t_ns: int) -> None:
+        self._q.put(("begin", (t_ns,)))
+
+    def scan_run(self, run: Any) -> None:
+        self._q.put(("scan_run", (run,)))
+
+    def marker(self, t_ns: int, kind: str, detail: dict[str, Any]) -> None:
+        self._q.put(("marker", (t_ns, kind, dict(detail))))
+
+    def close(self) -> None:
+        self._q.put(None)
+        self._thread.join()
+        self.sink.close()
