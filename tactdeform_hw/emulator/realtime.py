@@ -246,7 +246,7 @@ class RealtimeEmulator:
                                    model=rules.timing(model), skin=skin, stack_reading=stack_reading)
         self.lock = threading.RLock()
         self._clock = clock
-        self._t0 = clock()
+        self._t0 = clock()  # wall-clock time of device time 0
         self.lag = LagRecorder(behind_limit_us)
         self.follow_scans = follow_scans
         self.history_us = history_us
@@ -281,6 +281,11 @@ class RealtimeEmulator:
             return self.timed.state()
 
     # --- the clock -----------------------------------------------------------------------------------
+
+    @property
+    def t0(self) -> float:
+        """The wall-clock time (``clock()``) of device time 0: device µs = (wall − t0) × 1e6."""
+        return self._t0
 
     def device_us(self, t: float | None = None) -> float:
         """Device time for wall-clock time ``t`` (default now): µs since power-up, never behind the model."""
