@@ -66,7 +66,7 @@ def _check(args: argparse.Namespace) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..emulator import Emulator
-    from ..emulator.realtime import BUILD_RULES, FallBehind, RealtimeEmulator, ResetRecord
+    from ..emulator.realtime import BUILD_RULES, FallBehind, LiveView, RealtimeEmulator, ResetRecord
 
     _check(args)
     rules = BUILD_RULES[args.build or ("wifi" if args.tcp is not None else "serial")]
@@ -123,8 +123,7 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGUSR1, _usr1)
     server.start()
     seen_hazards = 0
-    last_key: Any = None
-    last_print = 0.0
+    view = LiveView()
     try:
         while True:
             time.sleep(0.05)
@@ -139,22 +138,12 @@ def run(args: argparse.Namespace) -> int:
                 if n > 3:
                     progress(f"fell behind the wall clock {n - 3} more time(s) (worst {max(b.lag_us for b in behind) / 1000:.2f} ms)")
                 del behind[:n]
-            now = time.monotonic()
-            if now - last_print < 1.0:
-                continue
             if args.untimed:
                 while seen_hazards < len(board.hazards):
                     progress(f"hazard: {board.hazards[seen_hazards]}")
                     seen_hazards += 1
-                continue
-            if args.quiet:
-                continue
-            status = board.status()
-            key = status.key()
-            if key != last_key or status.new_hazards:
-                last_key = key
-                last_print = now
-                for line in status.lines():
+            elif not args.quiet:
+                for line in view.poll(board, time.monotonic()):
                     progress(line)
     except KeyboardInterrupt:
         pass

@@ -222,6 +222,28 @@ class LiveStatus:
         return out
 
 
+class LiveView:
+    """The firmware developer's live view: at most once per ``interval_s``, and only when something
+    changed (registers in force, queue depth, scan rate, overruns, hazards, losses, resets, fall-behinds)."""
+
+    def __init__(self, interval_s: float = 1.0) -> None:
+        self.interval_s = interval_s
+        self._key: tuple[Any, ...] | None = None
+        self._last = -float("inf")
+
+    def poll(self, board: RealtimeEmulator, now: float) -> list[str]:
+        """Lines to print now (none if it is too soon or nothing changed)."""
+        if now - self._last < self.interval_s:
+            return []
+        status = board.status()
+        key = status.key()
+        if key == self._key and not status.new_hazards:
+            return []
+        self._key = key
+        self._last = now
+        return status.lines()
+
+
 class RealtimeEmulator:
     """One timed emulator on the wall clock.  Thread-safe: a server thread drives it, the main thread
     reads its status and resets it.  See the module documentation."""
@@ -430,7 +452,7 @@ class BoardServer:
         on_reset: Callable[[ResetRecord], None] | None = None,
         poll_s: float = 0.05,
     ) -> None:
-        self.board = board if board is not None else RealtimeEmulator()
+        self.board: Any = board if board is not None else RealtimeEmulator()
         self.timed = isinstance(self.board, RealtimeEmulator)
         self.hook = hook
         self.reset_on_open = reset_on_open

@@ -195,9 +195,9 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
             raise PortNotOpenError()
         if not self.timed:
             with self._lock:
-                out = bytes(self._rx[:size])
+                got = bytes(self._rx[:size])
                 del self._rx[:size]
-            return out
+            return got
         board: RealtimeEmulator = self.emulator
         timeout = Timeout(self._timeout)
         out = bytearray()
