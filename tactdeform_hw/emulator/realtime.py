@@ -484,10 +484,7 @@ class BoardServer:
 
     def reset(self, reason: str) -> ResetRecord:
         """Power-on reset now (SIGUSR1, a new client, a test); bytes not yet sent to the client go too."""
-        if self.timed:
-            rec = self.board.reset(reason)
-        else:
-            rec = reset_untimed(self.board, reason)
+        rec: ResetRecord = self.board.reset(reason) if self.timed else reset_untimed(self.board, reason)
         self._out.clear()
         self.resets.append(rec)
         if self.on_reset is not None:
