@@ -330,7 +330,7 @@ class RealtimeEmulator:
             at = self._advance()
             out = self.timed.read_tx()
             self.bytes_out += len(out)
-        if record_lag and due <= at:
+        if record_lag and due <= at + 0.001:  # a wake-up for an event now due (1 ns of float rounding)
             fb = self.lag.record(due, at - due)
             if fb is not None and self.on_behind is not None:
                 self.on_behind(fb)
