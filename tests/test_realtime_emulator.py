@@ -337,7 +337,7 @@ def _recv(sock: socket.socket, n: int, timeout: float = 2.0) -> bytes:
             if not got:
                 break
             out += got
-    except socket.timeout:
+    except TimeoutError:
         pass
     return out
 
