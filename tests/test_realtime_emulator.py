@@ -399,3 +399,29 @@ def test_tcp_reset_on_open() -> None:
             while server.connected and time.monotonic() < deadline:
                 time.sleep(0.01)
         assert len(server.resets) == 2 and server.resets[1].discarded["electrode_num"] == 9
+
+
+# --- the measuring tool ---------------------------------------------------------------------------------
+
+
+def test_realtime_lag_tool_reports_lag_cpu_and_pattern_latency() -> None:
+    import json
+    import subprocess
+    import sys
+
+    from .conftest import REPO
+
+    proc = subprocess.run([sys.executable, "tools/realtime_lag.py", "--idle", "0.3", "--stream", "0.6", "--json"],
+                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout)
+    assert out["configured"]
+    for phase in ("idle", "stream"):
+        ph = out[phase]
+        assert ph["wakeups"] > 0 and ph["lag_max_ms"] >= ph["lag_p99_ms"] >= ph["lag_median_ms"] >= 0
+        assert ph["cpu_percent"] >= 0
+    lat = out["pattern_latency_pty"]
+    assert lat["n"] >= 0.8 * lat["writes"]  # nearly every pattern written was felt
+    assert lat["min_us"] > 0  # causality: no pulse carries a pattern before the host wrote it
+    model = out["pattern_latency_model"]
+    assert model["min"] <= model["mean"] <= model["max"]

@@ -304,6 +304,13 @@ class RealtimeEmulator:
 
     # --- the clock -----------------------------------------------------------------------------------
 
+    def start_clock(self) -> None:
+        """Make now device time 0, if the model has not run yet (a server starting up after the board was
+        made: the boot's first events are not counted as late)."""
+        with self.lock:
+            if self.timed.now_us == 0 and self.bytes_in == 0:
+                self._t0 = self._clock()
+
     @property
     def t0(self) -> float:
         """The wall-clock time (``clock()``) of device time 0: device µs = (wall − t0) × 1e6."""
@@ -550,6 +557,8 @@ class BoardServer:
 
     def start(self) -> BoardServer:
         """Serve in a daemon thread (the CLI, tests and in-process tools)."""
+        if self.timed:
+            self.board.start_clock()
         self._thread = threading.Thread(target=self.serve_forever, name=self.thread_name, daemon=True)
         self._thread.start()
         return self
