@@ -71,7 +71,7 @@ class PtyServer(BoardServer):
             if self.connected:
                 rd.append(master)
             else:
-                wait = min(wait, 0.01)  # an open is seen only by looking: poll for it
+                wait = min(wait, 0.005)  # an open is seen only by looking: poll for it
             wr = [master] if self._out and self.connected else []
             try:
                 ready, _, _ = select.select(rd, wr, [], wait)
