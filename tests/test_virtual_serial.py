@@ -125,7 +125,7 @@ def test_timed_url_handler_answers_when_the_model_delivers() -> None:
     assert isinstance(s.emulator, RealtimeEmulator)
     s.write(b"\xf5")
     assert s.in_waiting == 0  # still on its way over the USB link
-    assert s.read(10) == b"\x04"  # read waits up to the timeout for what the model has still to deliver
+    assert s.read(1) == b"\x04"  # read waits (up to the timeout) for what the model has still to deliver
     s.close()
 
 

@@ -277,8 +277,6 @@ class RealtimeEmulator:
         self.bytes_in = 0
         self.bytes_out = 0
         self._status_seen = 0
-        self._status_t: float | None = None
-        self._status_scans = 0
         self.on_behind: Callable[[FallBehind], None] | None = None
 
     # --- what the board looks like from outside ----------------------------------------------------
