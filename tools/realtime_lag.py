@@ -28,6 +28,7 @@ import json
 import statistics
 import sys
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -140,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     out = {"config": {"electrodes": args.electrodes, "frequency_hz": args.frequency, "stream_hz": args.rate},
            "idle": idle, "stream": stream, "pattern_latency_pty": latency,
            "pattern_latency_model": {k: pred[k] for k in ("min", "mean", "max")},
-           "hazards": len(server.board.hazards), "configured": state["electrode_num"] == args.electrodes}
+           "hazards": len(server.board.hazards), "configured": state["electrode_num"] == args.electrodes,
+           "hazard_kinds": dict(Counter(h.kind.value for h in server.board.hazards))}
     if args.json:
         json.dump(out, sys.stdout, indent=2)
         sys.stdout.write("\n")
@@ -159,7 +161,8 @@ def main(argv: list[str] | None = None) -> int:
                   f"{st['max_us'] / 1000:6.2f} ms")
     print(f"  {'prediction (pattern_latency, USB, 64 phases)':<40} {pred['min'] / 1000:6.2f} / "
           f"{pred['mean'] / 1000:6.2f} (mean) / {pred['max'] / 1000:6.2f} ms")
-    print(f"hazards recorded: {out['hazards']}")
+    kinds = ", ".join(f"{k} {n}" for k, n in out["hazard_kinds"].items())
+    print(f"hazards recorded: {out['hazards']}" + (f" ({kinds})" if kinds else ""))
     return 0
 
 
