@@ -58,6 +58,7 @@ class PtyServer(BoardServer):
             self.poll_s = poll_s
         master = self._master
         cpu0 = time.thread_time()
+        self._begin()
         while not self._stop.is_set():
             hup = self._hung_up()
             if self.connected and hup:
@@ -67,7 +68,7 @@ class PtyServer(BoardServer):
             wait = self._tick()
             if self._out and self.connected:
                 self._flush()
-            rd = [self._wake_r]
+            rd: list[Any] = [self._wake_r]
             if self.connected:
                 rd.append(master)
             else:

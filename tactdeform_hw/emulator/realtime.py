@@ -26,7 +26,7 @@ current wall time and returns a :class:`ResetRecord` naming the state it discard
 
 from __future__ import annotations
 
-import os
+import socket
 import threading
 import time
 from collections import deque
@@ -473,9 +473,9 @@ class BoardServer:
         self._out = bytearray()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._wake_r, self._wake_w = os.pipe()
-        os.set_blocking(self._wake_r, False)
-        os.set_blocking(self._wake_w, False)
+        self._wake_r, self._wake_w = socket.socketpair()  # select() takes sockets on every platform
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
 
     @property
     def emulator(self) -> Any:
@@ -499,15 +499,15 @@ class BoardServer:
 
     def wake(self) -> None:
         try:
-            os.write(self._wake_w, b"x")
-        except (BlockingIOError, OSError):
+            self._wake_w.send(b"x")
+        except OSError:  # full (a wake-up is pending anyway) or closed
             pass
 
     def _drain_wake(self) -> None:
         try:
-            while os.read(self._wake_r, 64):
+            while self._wake_r.recv(64):
                 pass
-        except (BlockingIOError, OSError):
+        except OSError:
             pass
 
     # --- the loop's pieces ----------------------------------------------------------------------------
@@ -530,6 +530,11 @@ class BoardServer:
         if self.hook:
             self.hook("dev->host", data, time.monotonic())
         self._out += data
+
+    def _begin(self) -> None:
+        """The serving thread's first step: device time 0 is now, if the board has not run yet."""
+        if self.timed:
+            self.board.start_clock()
 
     def _tick(self) -> float:
         """Bring a timed board up to now, queue its replies; the seconds the loop may sleep."""
@@ -555,8 +560,6 @@ class BoardServer:
 
     def start(self) -> BoardServer:
         """Serve in a daemon thread (the CLI, tests and in-process tools)."""
-        if self.timed:
-            self.board.start_clock()
         self._thread = threading.Thread(target=self.serve_forever, name=self.thread_name, daemon=True)
         self._thread.start()
         return self
@@ -571,11 +574,8 @@ class BoardServer:
             self._thread.join(timeout=5)
             self._thread = None
         self._close_fds()
-        for fd in (self._wake_r, self._wake_w):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
+        for sock in (self._wake_r, self._wake_w):
+            sock.close()
 
     def __enter__(self) -> BoardServer:
         return self.start()

@@ -60,6 +60,7 @@ class TcpServer(BoardServer):
 
     def serve_forever(self) -> None:
         cpu0 = time.thread_time()
+        self._begin()
         while not self._stop.is_set():
             wait = self._tick()
             client = self._client
