@@ -359,6 +359,23 @@ def test_tcp_serves_one_client_at_a_time() -> None:
             b.close()
 
 
+def test_tcp_replies_go_only_to_the_client_that_is_connected() -> None:
+    """A reply the firmware writes after its client has gone is not kept for the next one."""
+    with TcpServer(port=0) as server:
+        a = socket.create_connection(server.address, timeout=2)
+        a.sendall(CONFIG + b"\xf5")  # the reply comes ~6 ms later, after five ticks
+        a.close()
+        time.sleep(0.1)
+        b = socket.create_connection(server.address, timeout=2)
+        try:
+            assert _recv(b, 1, timeout=0.3) == b""
+            b.sendall(b"\xf5")
+            assert _recv(b, 1) == b"\x04"
+        finally:
+            b.close()
+        assert server.bytes_dropped >= 1
+
+
 def test_tcp_flow_control_holds_the_host_back_instead_of_dropping() -> None:
     """20 000 unknown bytes and a 0xF5: the Wi-Fi build's stream loses nothing (the serial build's queue
     would drop most of them), and the reply comes once the parser has read them all."""

@@ -304,6 +304,8 @@ def test_emulate_cli_records_a_trace_while_serving(tmp_path) -> None:  # type: i
             time.sleep(0.3)
             s.write(b"\xf5")
             assert s.read(1) == b"\x04"
+            proc.send_signal(signal.SIGUSR1)  # a reset of the served board ...
+            time.sleep(0.3)
     finally:
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=20)
@@ -311,3 +313,4 @@ def test_emulate_cli_records_a_trace_while_serving(tmp_path) -> None:  # type: i
     text = trace.read_text()
     assert len(text.splitlines()) > 10
     assert "dac" in text.lower()
+    assert "SIGUSR1" in text  # ... is in the trace: the trace records the model that answers the client
