@@ -373,7 +373,6 @@ def test_tcp_replies_go_only_to_the_client_that_is_connected() -> None:
             assert _recv(b, 1) == b"\x04"
         finally:
             b.close()
-        assert server.bytes_dropped >= 1
 
 
 def test_tcp_flow_control_holds_the_host_back_instead_of_dropping() -> None:
