@@ -342,9 +342,9 @@ def test_raw_port_is_outside_the_driver() -> None:
     from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
 
     forget_shared()
-    dev = EtactileKitDevice(serial.serial_for_url("etactile://bench-raw", do_not_open=True), guard=SafetyGuard(cap_ua=500))
+    dev = EtactileKitDevice(serial.serial_for_url("etactile://bench-raw?timed=0", do_not_open=True), guard=SafetyGuard(cap_ua=500))
     dev.configure(StimConfig(current_ua=500))
-    raw = serial.serial_for_url("etactile://bench-raw")
+    raw = serial.serial_for_url("etactile://bench-raw?timed=0")
     raw.write(p.encode_pulse_height(900))
     assert shared_emulator("bench-raw").state()["pulse_height"] == 900  # type: ignore[union-attr]
     raw.close()

@@ -160,10 +160,10 @@ def test_cli_refuses_bad_profile_before_opening_the_device(tmp_path: Path, capsy
             # an 8-electrode pattern has no known positions without its array file: its regional limits
             # cannot be told apart, so it is refused, never mapped by index
             good = str(write_json(tmp_path, GOOD, "g.json"))
-            rc = main([*argv, "--device", "etactile://no-array", "--participant", good])
+            rc = main([*argv, "--device", "etactile://no-array?timed=0", "--participant", good])
             assert rc == 1 and "cannot be determined" in capsys.readouterr().err
             argv += ["--array", str(pattern.parent / "electrode_array_main_board.json")]
-        rc = main([*argv, "--device", "etactile://good-profile", "--participant", str(write_json(tmp_path, GOOD, "g.json"))])
+        rc = main([*argv, "--device", "etactile://good-profile?timed=0", "--participant", str(write_json(tmp_path, GOOD, "g.json"))])
         assert rc == 0
         capsys.readouterr()
         forget_shared()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import builtins
 import csv
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -127,6 +128,7 @@ def test_live_trace_as_a_pty_server_hook(tmp_path: Path) -> None:
         port.write(c.encode_electrode_num(4) + c.HV513_COUNT_REQUEST)
         assert port.read(1) == b"\x04"  # answered by the served (untimed) emulator
         port.close()
+        time.sleep(0.02)  # the recorder's timed model reads one command per 1 ms tick: let a few pass
         live.poll()
     live.close()
     text = path.read_text()

@@ -156,7 +156,7 @@ def open_port(name: str, *, timeout: float = DEFAULT_TIMEOUT_S, baudrate: int = 
         return usb_port_for_name(name, timeout=timeout, baudrate=baudrate)
     register_url_handlers()
     if name in ("emulator", "emu", ""):
-        name = "etactile://"
+        name = "etactile://?timed=0"  # the in-process emulator answers at once
     try:
         if "://" in name:
             port = serial.serial_for_url(name, do_not_open=True, baudrate=baudrate, timeout=timeout)

@@ -16,6 +16,7 @@ class HazardKind(str, Enum):
     PARSER_LOCKED = "parser_locked"  # 0xFE with electrode_num 0: the parser never reads again
     UNREAD_WHILE_LOCKED = "unread_while_locked"  # bytes arrived that a locked parser will never read
     PATTERN_HOLDS_COMMAND_BYTE = "pattern_holds_command_byte"  # likely desync after a truncated command
+    PAYLOAD_HOLDS_COMMAND_BYTE = "payload_holds_command_byte"  # a u8/u16 payload swallowed a command byte
     STALE_CHANNELS = "stale_channels"  # raising electrode_num brought back older pattern values
     U16_WAITING = "u16_waiting"  # main loop spinning on a half-received u16
     CLAMPED = "clamped"  # polarity > 1 or pulse height > 4095 clamped by the firmware
@@ -29,6 +30,7 @@ class HazardKind(str, Enum):
     OVERRUN = "overrun"  # a scan took longer than the period
     WATCHDOG_RESET = "watchdog_reset"  # the interrupt ran > 300 ms: reboot to power-on state
     SENSE_CURRENT = "sense_current"  # channels off in the pattern still get a non-zero sense pulse
+    U16_COMPLETED_LATE = "u16_completed_late"  # a u16's second byte came long after its first
 
 
 @dataclass(frozen=True)

@@ -40,6 +40,25 @@ _HV513 = int(Opcode.HV513_COUNT)
 _SIZE = {int(op): {"u8": 1, "u16": 2, None: 0, "pattern": -1}[k] for op, k in PAYLOAD_KIND.items()}
 
 
+_REGISTER = {
+    Opcode.POLARITY: "polarity",
+    Opcode.ELECTRODE_NUM: "electrode_num",
+    Opcode.PULSE_HEIGHT: "pulse_height",
+    Opcode.PULSE_WIDTH: "pulse_width",
+    Opcode.SENSE_HEIGHT: "sense_pulse_height",
+    Opcode.SENSE_WIDTH: "sense_pulse_width",
+    Opcode.DISCHARGE: "discharge_time",
+    Opcode.FREQUENCY: "period_us",
+}
+
+
+def register_after(op: int, regs: Registers) -> tuple[str, object]:
+    """The register a u8/u16 command writes and the value it holds now (after the command completed:
+    clamped, or unchanged where the firmware ignores a 0)."""
+    name = _REGISTER[Opcode(op)]
+    return name, getattr(regs, name)
+
+
 class CallResult(Enum):
     """What one parser call did; ``slept`` says whether it ended with the 1 ms RTOS sleep."""
 
@@ -259,6 +278,10 @@ class Parser:
                         command_offset=self.cmd_offset,
                         channel=start + i,
                         value=payload[i],
+                        command="PATTERN",
+                        swallowed=Opcode(payload[i]).name,
+                        register=f"stim_pattern[{start + i}]",
+                        stored=payload[i],
                     )
                 self.pos += take
                 self.count += take
@@ -276,8 +299,30 @@ class Parser:
                 return CallResult.STUCK_U16 if avail == 1 else CallResult.PROGRESS
             value = rx[self.pos] | rx[self.pos + 1] << 8
             self.pos += 2
+        cmd_offset = self.cmd_offset
         self._complete(op, value)
+        if rx[self.pos - 1] >= _COMMAND_BYTE_MIN or (self.needed == 2 and rx[self.pos - 2] >= _COMMAND_BYTE_MIN):
+            self._swallowed(op, cmd_offset, self.needed)
         return CallResult.COMPLETED
+
+    def _swallowed(self, op: int, cmd_offset: int, size: int) -> None:
+        """A command byte read as the payload of ``op``: the host meant a command, the firmware stored a
+        value (``fb`` then ``fc 08`` sets pulse height 0x08FC = 2300)."""
+        first = self.pos - size
+        i = next(k for k in range(size) if self.rx[first + k] >= _COMMAND_BYTE_MIN)
+        field, stored = register_after(op, self.regs)
+        value = self.rx[first] if size == 1 else self.rx[first] | self.rx[first + 1] << 8
+        self._hazard(
+            HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE,
+            self.base + first + i,
+            command=Opcode(op).name,
+            command_offset=cmd_offset,
+            swallowed=Opcode(self.rx[first + i]).name,
+            payload_byte=i,
+            value=value,
+            register=field,
+            stored=stored,
+        )
 
     def _complete(self, op: int, value: int | None) -> None:
         regs = self.regs

@@ -1,8 +1,15 @@
-"""The emulator on a real pseudo-terminal, so any program that opens a serial port can talk to it.
+"""The emulated board on a real pseudo-terminal, so any program that opens a serial port can talk to it.
 
-The server keeps its own handle on the slave side open, so a client may open, close and reopen the
-device path without the master seeing end-of-file.  The slave is put in raw mode (no echo, no line
-editing, no CR/LF translation) before any client opens it; clients such as pyserial set raw mode too.
+By default the board is the timed model on the wall clock (:class:`~.realtime.RealtimeEmulator`, USB
+link, 256-byte queue): bytes are stamped as the server reads them from the pty, replies are written
+when the model delivers them, scans run.  An untimed :class:`~.core.Emulator` (``--untimed``) answers
+every write at once instead.
+
+The slave side is put in raw mode (no echo, no line editing, no CR/LF translation) and then closed by
+the server, so the master sees when a client has the device open (no hang-up) and when the last one
+closes it (hang-up): that is what ``reset_on_open`` acts on.  Raw mode stays with the device between
+clients; clients such as pyserial set it themselves too.  Replies written while no client has the
+device open are dropped (the firmware writes into a USB port nobody reads).
 """
 
 from __future__ import annotations
@@ -10,91 +17,97 @@ from __future__ import annotations
 import os
 import select
 import sys
-import threading
 import time
 import tty
-from collections.abc import Callable
+from typing import Any
 
 from ..errors import TransportError
-from .core import Emulator
+from .realtime import BoardServer
 
 if sys.platform == "win32":  # pragma: no cover - pty is POSIX only
     raise ImportError("the pty server needs a POSIX system")
 
-ByteHook = Callable[[str, bytes, float], None]
+_HUP = select.POLLHUP | select.POLLERR
 
 
-class PtyServer:
-    """Serve ``emulator`` on a new pty.  ``path`` is the device a client opens.
+class PtyServer(BoardServer):
+    """Serve ``board`` (default: a :class:`~.realtime.RealtimeEmulator`) on a new pty; ``path`` is the
+    device a client opens.  See :class:`~.realtime.BoardServer` for the options."""
 
-    ``hook(direction, data, t)`` (optional) sees every byte both ways with a monotonic timestamp — the
-    spy and trace recorders attach here.
-    """
+    thread_name = "etactile-pty"
 
-    def __init__(self, emulator: Emulator | None = None, *, hook: ByteHook | None = None) -> None:
-        self.emulator = emulator if emulator is not None else Emulator()
-        self.hook = hook
+    def __init__(self, board: Any = None, **kwargs: Any) -> None:
+        super().__init__(board, **kwargs)
         try:
-            self._master, self._slave = os.openpty()
+            self._master, slave = os.openpty()
         except OSError as exc:
             raise TransportError(f"cannot create a pseudo-terminal: {exc}") from exc
-        tty.setraw(self._slave)
-        self.path = os.ttyname(self._slave)
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self.bytes_in = 0
-        self.bytes_out = 0
+        tty.setraw(slave)
+        self.path = os.ttyname(slave)
+        os.close(slave)
+        os.set_blocking(self._master, False)
+        self._poll = select.poll()
+        self._poll.register(self._master, select.POLLIN)
 
-    def serve_forever(self, poll_s: float = 0.05) -> None:
+    def _hung_up(self) -> bool:
+        return any(ev & _HUP for _, ev in self._poll.poll(0))
+
+    def serve_forever(self, poll_s: float | None = None) -> None:
         """Relay bytes until :meth:`stop` (or KeyboardInterrupt in the caller)."""
+        if poll_s is not None:
+            self.poll_s = poll_s
         master = self._master
+        cpu0 = time.thread_time()
+        self._begin()
         while not self._stop.is_set():
-            ready, _, _ = select.select([master], [], [], poll_s)
-            if not ready:
-                continue
+            hup = self._hung_up()
+            if self.connected and hup:
+                self._client_closed()
+            elif not self.connected and not hup:
+                self._client_opened()
+            wait = self._tick()
+            if self._out and self.connected:
+                self._flush()
+            rd: list[Any] = [self._wake_r]
+            if self.connected:
+                rd.append(master)
+            else:
+                wait = min(wait, 0.005)  # an open is seen only by looking: poll for it
+            wr = [master] if self._out and self.connected else []
             try:
-                data = os.read(master, 4096)
-            except OSError:  # the slave side went away entirely
-                time.sleep(poll_s)
-                continue
-            if not data:
-                continue
-            now = time.monotonic()
-            self.bytes_in += len(data)
-            if self.hook:
-                self.hook("host->dev", data, now)
-            reply = self.emulator.feed(data)
-            if reply:
-                if self.hook:
-                    self.hook("dev->host", reply, time.monotonic())
-                self._write_all(reply)
+                ready, _, _ = select.select(rd, wr, [], wait)
+            except (OSError, ValueError):  # closed under us by stop()
+                break
+            if self._wake_r in ready:
+                self._drain_wake()
+            if master in ready:
+                try:
+                    data = os.read(master, 4096)
+                except (BlockingIOError, InterruptedError):
+                    data = b""
+                except OSError:  # the client went away: seen as a hang-up on the next turn
+                    data = b""
+                if data:
+                    self._incoming(data, time.monotonic())
+            self.cpu_s = time.thread_time() - cpu0
 
-    def _write_all(self, data: bytes) -> None:
-        view = memoryview(data)
-        while view:
-            n = os.write(self._master, view)
-            self.bytes_out += n
-            view = view[n:]
+    def _flush(self) -> None:
+        try:
+            n = os.write(self._master, self._out)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            self._out.clear()
+            return
+        self.bytes_out += n
+        del self._out[:n]
 
-    def start(self) -> PtyServer:
-        """Serve in a daemon thread (tests and in-process tools)."""
-        self._thread = threading.Thread(target=self.serve_forever, name="etactile-pty", daemon=True)
-        self._thread.start()
-        return self
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2)
-            self._thread = None
-        for fd in (self._master, self._slave):
-            try:
-                os.close(fd)
-            except OSError:
-                pass
+    def _close_fds(self) -> None:
+        try:
+            os.close(self._master)
+        except OSError:
+            pass
 
     def __enter__(self) -> PtyServer:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
+        self.start()
+        return self

@@ -76,6 +76,8 @@ from .skin import DEFAULT_SKIN, SkinModel
 from .timing import DEFAULT_MODEL, TimingModel
 
 _INF = math.inf
+#: a u16 completed this long after the main loop began spinning on its first byte is reported
+U16_LATE_US = 2000.0
 _PATTERN = int(Opcode.PATTERN)
 _HV513 = int(Opcode.HV513_COUNT)
 _SIZE = {int(op): {"u8": 1, "u16": 2, None: 0, "pattern": -1}[k] for op, k in PAYLOAD_KIND.items()}
@@ -275,6 +277,57 @@ class TimedEmulator:
                 return False
             self.advance_to(min(end, self.now_ns + _ns(step_us)) / 1000.0)
 
+    def next_event_us(self, scans: bool = True) -> float:
+        """When the device next does something (a delivery lands, the main loop calls the parser, a reply
+        reaches the host, and with ``scans`` an alarm fires); ``inf`` when nothing is scheduled.  A
+        runner locked to the wall clock sleeps until then."""
+        t = min(self._deliveries[0][0] if self._deliveries else _INF,
+                self._tx_deliveries[0][0] if self._tx_deliveries else _INF,
+                self._main_next if self._main_next is not None else _INF,
+                self.next_alarm if scans else _INF)
+        return t / 1000.0
+
+    @property
+    def in_flight(self) -> int:
+        """Bytes written by the host that have not reached the receive queue yet."""
+        return sum(len(d[2].data) for d in self._deliveries)
+
+    def discard_history(self, before_us: float) -> None:
+        """Forget records older than ``before_us`` that nothing pending refers to (scan runs, command
+        and loss reports, reply log, write and arrival books), so a device served for hours keeps a
+        bounded memory.  Reports afterwards cover the time kept."""
+        t = _ns(before_us)
+        self.runs = [r for r in self.runs if r.end_ns >= t]
+        pending = {id(p.report) for p in self._awaiting}
+        self.commands = [c for c in self.commands if id(c) in pending or c.effect_us is None or c.effect_us * 1000 >= t]
+        self.tx_log = [e for e in self.tx_log if e[0] * 1000 >= t]
+        opened = {id(lo) for lo in self._open_losses}
+        self._losses = [lo for lo in self._losses if id(lo) in opened or lo.time_us * 1000 >= t]
+        p = self.parser
+        dev_keep = self._parser_base + (p.cmd_offset if p.cmd is not None else p.offset)
+        keep_seg = [i for i, seg in enumerate(self._segments) if seg[0] + seg[2] > dev_keep or seg[3] >= t]
+        if keep_seg and keep_seg[0] > 0:
+            first = keep_seg[0]
+            self._segments = self._segments[first:]
+            self._seg_dev = self._seg_dev[first:]
+        elif not keep_seg:
+            self._segments, self._seg_dev = [], []
+        hosts = [seg[1] for seg in self._segments if seg[1] >= 0]
+        hosts += [d[2].host_offset for d in self._deliveries if d[2].host_offset >= 0]
+        hosts += [lo.host_offset for lo in self._open_losses if lo.host_offset >= 0]
+        if self._cur is not None and self._cur.host_offset >= 0:
+            hosts.append(self._cur.host_offset)
+        host_keep = min(hosts, default=self._host_offset)
+        i = bisect_right(self._intended_starts, host_keep) - 1
+        if i > 0:
+            for off in self._intended_starts[:i]:
+                self._intended.pop(off, None)
+            self._intended_starts = self._intended_starts[i:]
+        j = bisect_right(self._write_starts, host_keep) - 1
+        if j > 0:
+            self._writes = self._writes[j:]
+            self._write_starts = self._write_starts[j:]
+
     def read_tx(self, size: int | None = None) -> bytes:
         """Reply bytes that have reached the host by now (all, or at most ``size``)."""
         self._collect_tx()
@@ -368,6 +421,7 @@ class TimedEmulator:
         self._cur_first: dict[int, int] = {}  # channels of a pattern still being read that a scan already used
         self._cur_old: bytes = b""
         self._stuck_reported = False
+        self._stuck_at: int | None = None
         self._call_end_ns = start
         self._call_dev_last = self._dev_total
         self._last_rep: CommandReport | None = None
@@ -609,6 +663,7 @@ class TimedEmulator:
         self._main_wait = _WAIT_STUCK
         if not self._stuck_reported:
             self._stuck_reported = True
+            self._stuck_at = t
             p = self.parser
             self.hazards.append(Hazard(HazardKind.U16_WAITING, p.offset,
                                        {"command": Opcode(p.cmd).name if p.cmd is not None else None,
@@ -626,6 +681,7 @@ class TimedEmulator:
                 rep = CommandReport(dev0, host, op, Opcode(op).name, sent_us=_us(self._sent_at(host)))
                 self._cur = rep
                 self._stuck_reported = False
+                self._stuck_at = None
                 if op == _PATTERN:
                     regs = self.emulator.registers
                     self._cur_old = bytes(regs.stim_pattern[: regs.electrode_num])
@@ -698,6 +754,8 @@ class TimedEmulator:
         rep.host_end = last_host + 1 if last_host >= 0 else -1
         rep.in_sync = bool(intended and intended[0] == op and intended[1] == last_host + 1)
         self.commands.append(rep)
+        if self._stuck_at is not None:
+            self._late_u16(op, t)
         self._mark(t, "command", {"name": rep.name, "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
                                   "host_offset": rep.host_offset, "in_sync": rep.in_sync})
         self._follow_losses(rep)
@@ -726,6 +784,21 @@ class TimedEmulator:
             self._awaiting = [a for a in self._awaiting if not (a.channels is None and a.report.opcode == op)]
             self._awaiting.append(_Pending(rep, _AFFECTS[op], t))
         self._cur_written = {}
+
+    def _late_u16(self, op: int, t: int) -> None:
+        """A u16 whose first byte waited longer than ``U16_LATE_US`` for its second: whatever the host
+        meant, the main loop spun meanwhile and the value is made of bytes written far apart."""
+        gap = t - self._stuck_at if self._stuck_at is not None else 0
+        self._stuck_at = None
+        if gap <= _ns(U16_LATE_US):
+            return
+        from .parser import register_after
+
+        field, stored = register_after(op, self.emulator.registers)
+        rep = self._last_rep
+        self.hazards.append(Hazard(HazardKind.U16_COMPLETED_LATE, rep.device_offset - self._parser_base if rep else -1,
+                                   {"command": Opcode(op).name, "value": rep.value if rep else None,
+                                    "gap_us": gap / 1000, "register": field, "stored": stored}, t / 1000))
 
     def _follow_losses(self, rep: CommandReport) -> None:
         if not self._open_losses:

@@ -4,6 +4,8 @@ It has the parts of pyserial's ``Serial`` the driver uses (``open``, ``close``, 
 ``in_waiting``, ``out_waiting``, ``reset_input_buffer``, ``timeout``, ``dtr``, ``rts``), no more, so tests
 run without pyserial's machinery.  Replies are available as soon as ``write`` returns; a read asks for
 more than the device wrote returns what there is at once (in-process, waiting could not bring more).
+The port declares that (``instant``, and ``pacing_clock``: a clock that never waits), so a driver paces
+it without sleeping.
 An optional ``spy`` callable sees every byte both ways with a timestamp.
 """
 
@@ -13,6 +15,7 @@ import threading
 import time
 from collections.abc import Callable
 
+from ..clock import InstantClock
 from ..errors import PortNotOpenError
 from .core import Emulator
 
@@ -20,6 +23,8 @@ SpyFn = Callable[[str, bytes, float], None]
 
 
 class EmulatorPort:
+    instant = True  # every byte is parsed the moment it is written
+
     def __init__(self, emulator: Emulator | None = None, *, timeout: float | None = 0.5, spy: SpyFn | None = None) -> None:
         self.emulator = emulator if emulator is not None else Emulator()
         self.timeout = timeout
@@ -32,6 +37,7 @@ class EmulatorPort:
         self.bytes_written = 0
         self._rx = bytearray()  # device → host, not yet read
         self._lock = threading.Lock()
+        self.pacing_clock = InstantClock()  # what a driver paces this port in: nothing to wait for
 
     def open(self) -> None:
         self.is_open = True

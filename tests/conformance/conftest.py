@@ -1,10 +1,12 @@
 """Targets for the conformance suite: the emulator three ways (CI), or a real board (opt-in).
 
-``pytest tests/conformance`` runs every check on the three emulated targets — the pyserial URL handler
-(``etactile://``), a real pseudo-terminal (``pty``) and the emulated USB device through pyusb
-(``usb-emulator``).  ``--device`` picks one target instead:
+``pytest tests/conformance`` runs every check on the four emulated targets — the pyserial URL handler
+(``etactile://``), a real pseudo-terminal (``pty``), a TCP port served with the Wi-Fi build's rules
+(``tcp``) and the emulated USB device through pyusb (``usb-emulator``).  Each serves the timed model on
+the wall clock, so the rhythm checks run on all of them.  ``--device`` picks one target instead:
 
-* ``etactile://[?options]``, ``emulator``, ``pty``, ``usb-emulator[?options]`` — an emulated board;
+* ``etactile://[?options]``, ``emulator``, ``pty``, ``tcp``, ``usb-emulator[?options]`` — an emulated
+  board (``etactile://?timed=0`` and ``emulator``: the untimed one, which has no rhythm to check);
 * a serial port (``/dev/ttyACM0``, ``COM3``) or ``usb:303a:1001[:SERIAL]`` — a real board.  Skipped, with
   the reason, when the board is not attached or (for ``usb:``) pyusb or libusb is missing.
 
@@ -33,7 +35,7 @@ import pytest
 from tactdeform_hw.device import open_port
 from tactdeform_hw.errors import MissingDependencyError, TransportError
 
-EMULATED_TARGETS = ("etactile://", "pty", "usb-emulator")
+EMULATED_TARGETS = ("etactile://", "pty", "tcp", "usb-emulator")
 REPLY_TIMEOUT_S = 0.5
 
 
@@ -51,9 +53,9 @@ def _env_ms(name: str, default: float) -> float:
 class Target:
     """One device the checks run against.
 
-    ``timed``: host-observable timing is the firmware's (a board, or the emulated USB device whose
-    emulator runs on the clock); the URL handler and the pty serve the untimed emulator, which answers
-    at once and has no tick.  ``state``: the firmware's registers (emulated targets only).
+    ``timed``: host-observable timing is the firmware's (a board, or an emulated board on the wall
+    clock); only ``etactile://?timed=0`` serves the untimed emulator, which answers at once and has no
+    tick.  ``state``: the firmware's registers (emulated targets only).
     """
 
     name: str
@@ -98,33 +100,25 @@ class Target:
 # --- building targets ----------------------------------------------------------------------------------
 
 
-def _url_target(name: str) -> Target:
-    from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
+def _settle_on(board: Any, server: Any = None, written: list[int] | None = None) -> Callable[[int], None]:
+    """Wait until a real-time board's parser has read everything sent (generous: the machine may be
+    loaded).  Behind a server, first until the server has received every byte the ports wrote."""
+    from tactdeform_hw.emulator.realtime import settle
 
-    query = name.partition("?")[2] if name.startswith("etactile://") else ""
-    shared = f"conformance-{uuid.uuid4().hex[:8]}"
-    url = f"etactile://{shared}" + (f"?{query}" if query else "")
-    first = open_port(url, timeout=REPLY_TIMEOUT_S)
-    first.open()  # creates the shared emulator the test's ports talk to
-    emu = shared_emulator(shared)
-    assert emu is not None
-    t = Target(
-        name=name,
-        kind="emulator",
-        route="url",
-        timed=False,
-        make_port=lambda: open_port(url, timeout=REPLY_TIMEOUT_S),
-        state=emu.state,
-        hv513_expected=emu.board.detect_hv513(),
-        settle_fn=lambda n: None,
-    )
-    t.cleanup += [first.close, lambda: forget_shared(shared)]
-    return t
+    def wait(commands: int) -> None:
+        deadline = time.monotonic() + 5.0
+        while server is not None and written is not None and server.bytes_in < written[0]:
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.0005)
+        settle(board, timeout_s=5.0)
+
+    return wait
 
 
 class _CountingPort:
-    """A port that counts the bytes written through it (so a settle can wait for the device to have
-    read them all)."""
+    """A port that counts the bytes written through it (so a settle can wait for the server to have
+    received them all)."""
 
     def __init__(self, port: Any, counter: list[int]) -> None:
         object.__setattr__(self, "_port", port)
@@ -142,45 +136,74 @@ class _CountingPort:
         setattr(self._port, name, value)
 
 
-class _FedEmulator:
-    """The emulator as the pty server sees it, counting the bytes it has finished processing."""
+def _url_target(name: str) -> Target:
+    from tactdeform_hw.emulator.realtime import RealtimeEmulator
+    from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
 
-    def __init__(self, emulator: Any) -> None:
-        self.emulator = emulator
-        self.fed = 0
-
-    def feed(self, data: bytes) -> bytes:
-        reply: bytes = self.emulator.feed(data)
-        self.fed += len(data)
-        return reply
+    query = name.partition("?")[2] if name.startswith("etactile://") else ""
+    shared = f"conformance-{uuid.uuid4().hex[:8]}"
+    url = f"etactile://{shared}" + (f"?{query}" if query else "")
+    first = open_port(url, timeout=REPLY_TIMEOUT_S)
+    first.open()  # creates the shared emulator the test's ports talk to
+    emu = shared_emulator(shared)
+    assert emu is not None
+    timed = isinstance(emu, RealtimeEmulator)
+    t = Target(
+        name=name,
+        kind="emulator",
+        route="url",
+        timed=timed,
+        make_port=lambda: open_port(url, timeout=REPLY_TIMEOUT_S),
+        state=emu.state,
+        hv513_expected=emu.board.detect_hv513(),
+        settle_fn=_settle_on(emu) if timed else (lambda n: None),
+    )
+    t.cleanup += [first.close, lambda: forget_shared(shared)]
+    return t
 
 
 def _pty_target(name: str) -> Target:
     if sys.platform == "win32":
         pytest.skip("the pty target needs a POSIX pseudo-terminal")
-    from tactdeform_hw.emulator import Emulator
     from tactdeform_hw.emulator.pty_server import PtyServer
 
-    emu = Emulator()
-    fed = _FedEmulator(emu)
-    server = PtyServer(fed).start()  # type: ignore[arg-type]
+    server = PtyServer().start()  # the timed board on the wall clock
     written = [0]
-
-    def settle(commands: int) -> None:
-        # the relay thread hands bytes over as they come: wait until it has processed all sent so far
-        deadline = time.monotonic() + 2.0
-        while fed.fed < written[0] and time.monotonic() < deadline:
-            time.sleep(0.001)
-
     t = Target(
         name=name,
         kind="emulator",
         route="pty",
-        timed=False,
+        timed=True,
         make_port=lambda: _CountingPort(open_port(server.path, timeout=REPLY_TIMEOUT_S), written),
-        state=emu.state,
-        hv513_expected=emu.board.detect_hv513(),
-        settle_fn=settle,
+        state=server.state,
+        hv513_expected=server.board.board.detect_hv513(),
+        settle_fn=_settle_on(server.board, server, written),
+    )
+    t.cleanup.append(server.stop)
+    return t
+
+
+def _tcp_target(name: str) -> Target:
+    from tactdeform_hw.emulator.tcp_server import TcpServer
+
+    server = TcpServer(port=0).start()  # the Wi-Fi build's rules: one client at a time, TCP flow control
+    written = [0]
+
+    def make_port() -> Any:
+        import serial
+
+        port = serial.serial_for_url(server.url, do_not_open=True, timeout=REPLY_TIMEOUT_S, write_timeout=REPLY_TIMEOUT_S)
+        return _CountingPort(port, written)
+
+    t = Target(
+        name=name,
+        kind="emulator",
+        route="tcp",
+        timed=True,
+        make_port=make_port,
+        state=server.state,
+        hv513_expected=server.board.board.detect_hv513(),
+        settle_fn=_settle_on(server.board, server, written),
     )
     t.cleanup.append(server.stop)
     return t
@@ -262,6 +285,8 @@ def _build_target(name: str) -> Target:
         return _url_target(name or "etactile://")
     if name == "pty":
         return _pty_target(name)
+    if name == "tcp":
+        return _tcp_target(name)
     if name == "usb-emulator" or name.startswith("usb-emulator?"):
         return _usb_emulator_target(name)
     if name.startswith("usb:"):
@@ -272,7 +297,7 @@ def _build_target(name: str) -> Target:
 
 
 def _is_board_name(name: str) -> bool:
-    return not (name in ("emulator", "emu", "pty") or name.startswith(("etactile://", "usb-emulator")))
+    return not (name in ("emulator", "emu", "pty", "tcp") or name.startswith(("etactile://", "usb-emulator")))
 
 
 # --- pytest plumbing ---------------------------------------------------------------------------------------

@@ -265,7 +265,7 @@ def test_one_command_per_millisecond(probe: Probe, target: Target, report: Repor
     if not target.timed:
         pytest.skip(
             f"{target.name} serves the untimed emulator (every byte is read at once); the rhythm is checked "
-            "on usb-emulator (the timed emulator behind USB) and on boards"
+            "on the timed targets (etactile://, pty, tcp, usb-emulator) and on boards"
         )
     k = 20
     probe.baseline(4)
