@@ -71,8 +71,10 @@ def _main(argv: Sequence[str] | None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    from .common import run_command
+
     try:
-        return int(args.func(args) or 0)
+        return run_command(args.func, args)
     except TactDeformError as exc:
         print(f"tactdeform-hw {args.command}: error: {exc}", file=sys.stderr)
         return 1

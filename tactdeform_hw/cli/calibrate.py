@@ -140,7 +140,6 @@ def _interactive_keys(dev: Any) -> Any:
 def run(args: argparse.Namespace) -> int:
     from ..device import StimConfig, open_device
     from ..device.calibration import Calibration, Phase
-    from ..device.failsafe import FailSafe
     from ..device.profiles import save_profile
     from ..device.safety import SafetyGuard
 
@@ -162,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     dev = open_device(args.device, timeout=args.timeout, guard=guard, audit=audit)
     steps = 0
     peak = 0
-    with FailSafe(dev):
+    with dev:  # the command's stop session watches it (see common.run_command); closing switches all off
         dev.configure(config)
         stim = cal.stimulus()
         progress(f"{stim.prompt}  [{stim.current_ua} µA]")

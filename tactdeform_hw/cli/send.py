@@ -54,7 +54,6 @@ def parse_pattern(text: str, electrodes: int) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     from ..device import StimConfig, open_device
-    from ..device.failsafe import FailSafe
 
     profile = profile_from_args(args)  # a bad profile is refused before anything is opened
     guard = guard_from_args(args)
@@ -73,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     guard.check_config(config)
     audit = audit_from_args(args, participant=profile.participant if profile else None)
     dev = open_device(args.device, timeout=args.timeout, guard=guard, audit=audit)
-    with FailSafe(dev):
+    with dev:  # the command's stop session watches it (see common.run_command); closing switches all off
         dev.configure(config)
         dev.send_pattern(levels)
         emu = getattr(getattr(dev, "port", None), "emulator", None)
