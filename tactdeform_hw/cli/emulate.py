@@ -57,17 +57,16 @@ def run(args: argparse.Namespace) -> int:
         for h in hooks:
             h(direction, data, t)
 
-    server = PtyServer(emu, hook=hook if hooks else None)
-    print(server.path, flush=True)
-    progress(f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {server.path}")
-
     def _term(signum: int, frame: object) -> None:
         raise KeyboardInterrupt
 
-    signal.signal(signal.SIGTERM, _term)
-    server.start()
+    server = PtyServer(emu, hook=hook if hooks else None)
     seen = 0
-    try:
+    try:  # from here on any stop (Ctrl-C or SIGTERM as soon as the path is out) ends in the finally below
+        signal.signal(signal.SIGTERM, _term)
+        server.start()
+        print(server.path, flush=True)
+        progress(f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {server.path}")
         while True:
             time.sleep(0.1)
             if live is not None:
