@@ -76,7 +76,7 @@ def _proc_cmdline(pid: int) -> str:
 
 def find_holders(path: str) -> list[tuple[int, str]]:
     """Processes holding ``path``: first the one that took its ``flock`` (``/proc/locks``), then every
-    other process with it open (``/proc/*/fd``), this process excepted; ``(pid, command line)`` each.
+    other process with it open (``/proc/*/fd``); ``(pid, command line)`` each.
     Empty where ``/proc`` is not there (the error then names the device only)."""
     try:
         st = os.stat(path)
@@ -93,13 +93,12 @@ def find_holders(path: str) -> list[tuple[int, str]]:
                     pids.append(int(parts[4]))
     except OSError:
         pass
-    me = os.getpid()
     try:
         entries = os.listdir("/proc")
     except OSError:
         entries = []
     for entry in entries:
-        if not entry.isdigit() or int(entry) == me or int(entry) in pids:
+        if not entry.isdigit() or int(entry) in pids:
             continue
         try:
             fds = os.listdir(f"/proc/{entry}/fd")
@@ -112,7 +111,7 @@ def find_holders(path: str) -> list[tuple[int, str]]:
                     break
             except OSError:
                 continue
-    return [(pid, _proc_cmdline(pid)) for pid in pids if pid != me and os.path.exists(f"/proc/{pid}")]
+    return [(pid, _proc_cmdline(pid)) for pid in dict.fromkeys(pids) if os.path.exists(f"/proc/{pid}")]
 
 
 _exclusive_port_class: type | None = None
