@@ -16,8 +16,8 @@ import pytest
 import serial
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig, open_device
-from tactdeform_hw.errors import DeviceBusyError, TransportError
 from tactdeform_hw.emulator.pty_server import PtyServer
+from tactdeform_hw.errors import DeviceBusyError, TransportError
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tools"))
