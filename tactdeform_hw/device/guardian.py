@@ -33,8 +33,13 @@ entry point and under every tail loss**:
 * it ends with the HV513 count request: its one-byte reply proves that the packet reached the queue up to
   its last byte (a loss only ever removes a tail) and that the parser has read it — the heights are 0.
 
-Without the proof the guardian sends 256 zeros (in 64-byte packets, each after the last had time to be
-read) and the packet again, for up to :data:`BUDGET_S`; with the proof it sends the all-off pattern
+**Paced for the 256-byte queue.**  Before its first byte the guardian waits until what the owner left
+in the queue has surely been read (``drain_s``: the owner's pacer spaces payload commands so that only a
+few are ever in flight; the owner tells the guardian that bound for its configuration).  Over USB the
+packet is safe even into a full queue (above); over a UART, where a full queue drops single bytes and
+keeps later ones, no byte sequence but zeros is safe, so there the wait is what keeps every byte in.
+Without the proof the guardian sends 256 zeros (in 64-byte packets), waits until the parser has surely
+skipped them (``zeros_s``, also from the owner), and sends the packet again, for up to :data:`BUDGET_S`; with the proof it sends the all-off pattern
 (electrode count, then the pattern, then another proof).  Pulse height 0 and sense height 0 already stop
 every current the firmware can deliver, whatever pattern it holds; the pattern is there so that a later
 height cannot reach an old pattern.  If no proof ever comes (a locked parser answers nothing) and the
@@ -63,6 +68,11 @@ GAP_ZEROS = 4
 RESYNC_ZEROS = 256
 #: A USB full-speed bulk packet: what the firmware moves into its queue, or discards the tail of, at once.
 PACKET_BYTES = 64
+#: Pacing when the owner has not said (no configuration yet): a 100 Hz alarm whose scan may starve the
+#: parser to one payload command per period, four of them in flight; 256 zeros at 50 µs of parser time
+#: per period (see :mod:`.pacing`).
+DEFAULT_DRAIN_S = 0.045
+DEFAULT_ZEROS_S = 0.2
 
 
 # --- the bytes (owner side: built with the protocol module) --------------------------------------------------
@@ -94,6 +104,22 @@ def off_packet(electrode_count: int) -> bytes:
         bytes(LEAD_ZEROS) + count + echo + bytes(GAP_ZEROS) + p.encode_pattern(bytes(n), electrode_num=n)
         + bytes(GAP_ZEROS) + p.HV513_COUNT_REQUEST
     )
+
+
+def pace_for(rate_hz: int, electrode_count: int, pulse_width_us: int, discharge_us: int,
+             sense_width_us: int) -> tuple[float, float]:
+    """``(drain_s, zeros_s)`` for a configuration: how long the firmware may need to read what the owner's
+    pacer left in flight (four payload commands at the pace of the longest scan the guard allows), and to
+    skip 256 zeros at that scan."""
+    from .pacing import SCAN_GAP_MIN_US, Pacer, estimate_scan_us, firmware_period_us
+
+    period_us = firmware_period_us(rate_hz)
+    full = estimate_scan_us(bytes([2]) * electrode_count, pulse_width_us, discharge_us, sense_width_us)
+    scan_us = min(full, period_us - SCAN_GAP_MIN_US)
+    pacer = Pacer()
+    pacer.set_timing(period_us / 1e6, scan_us / 1e6)
+    drain_s = 4 * pacer.payload_interval_s() + pacer.policy.link_latency_s + pacer.policy.tick_s
+    return drain_s, pacer.skip_s(RESYNC_ZEROS)
 
 
 # --- owner side --------------------------------------------------------------------------------------------
@@ -165,9 +191,13 @@ class Guardian:
     def set_stop(self, packet: bytes) -> bool:
         return self.tell("stop", packet.hex())
 
-    def configure(self, off: bytes | None) -> bool:
-        """The all-off pattern for the configuration in force (None: unknown, heights only)."""
-        return self.tell("off", off.hex() if off else "-")
+    def configure(self, off: bytes | None, drain_s: float | None = None, zeros_s: float | None = None) -> bool:
+        """The all-off pattern for the configuration in force (None: unknown, heights only), and how
+        long the firmware may need to read what the owner left in its queue, and to skip 256 zeros."""
+        ok = self.tell("off", off.hex() if off else "-")
+        if drain_s is not None and zeros_s is not None:
+            ok = self.tell("pace", f"{drain_s:.6f}", f"{zeros_s:.6f}") and ok
+        return ok
 
     @property
     def alive(self) -> bool:
@@ -282,24 +312,27 @@ def _pulse_reset(fd: int) -> bool:
 
 
 def switch_off(fd: int, stop: bytes, off: bytes | None, *, reset_line: bool = False, budget_s: float = BUDGET_S,
-               name: str = "") -> str:
+               drain_s: float = DEFAULT_DRAIN_S, zeros_s: float = DEFAULT_ZEROS_S, name: str = "") -> str:
     """Stop every current on the board behind ``fd``; returns how it was proved (for the message)."""
     import termios
 
     _flush(fd, termios.TCOFLUSH)  # what the dead owner left unsent never reaches the board
-    _flush(fd, termios.TCIFLUSH)  # its replies are stale
     t0 = time.monotonic()
-    end = t0 + budget_s
-    wait_s = 0.02
+    end = t0 + max(budget_s, drain_s + zeros_s + 0.1)
+    time.sleep(drain_s)  # what the owner left in the device's queue is read first (see the docstring)
+    _flush(fd, termios.TCIFLUSH)  # its replies are stale
+    wait_s = max(0.02, drain_s)
     attempt = 0
     while time.monotonic() < end:
         if attempt:
             # the packet, or its proof, was lost (a full queue) or swallowed by a half-received pattern:
-            # finish whatever is in progress with zeros, a packet at a time, and try again
+            # finish whatever is in progress with zeros, a packet at a time, let the parser skip them, and
+            # try again
             for _ in range(RESYNC_ZEROS // PACKET_BYTES):
                 if not _write_all(fd, bytes(PACKET_BYTES), end):
                     return "gave up: the port does not take bytes"
                 time.sleep(0.0012)
+            time.sleep(zeros_s)
         attempt += 1
         if not _write_all(fd, stop, end):
             return "gave up: the port does not take bytes"
@@ -340,6 +373,7 @@ def main(argv: list[str]) -> int:
         pass
     stop: bytes | None = bytes.fromhex(a.stop)
     off: bytes | None = None
+    drain_s, zeros_s = DEFAULT_DRAIN_S, DEFAULT_ZEROS_S
     sys.stdout.write("ready\n")
     sys.stdout.flush()
     sys.stdout.close()
@@ -366,10 +400,12 @@ def main(argv: list[str]) -> int:
                 stop = bytes.fromhex(words[1])
             elif words[0] == "off" and len(words) == 2:
                 off = None if words[1] == "-" else bytes.fromhex(words[1])
+            elif words[0] == "pace" and len(words) == 3:
+                drain_s, zeros_s = min(float(words[1]), 0.5), min(float(words[2]), 0.5)
     if stop is None:
         _say(a.name, f"owner (pid {a.owner_pid}) gone before it said what stops the board; nothing sent")
         return 1
-    how = switch_off(a.port_fd, stop, off, reset_line=a.reset_line, name=a.name)
+    how = switch_off(a.port_fd, stop, off, reset_line=a.reset_line, drain_s=drain_s, zeros_s=zeros_s, name=a.name)
     _say(a.name, f"owner (pid {a.owner_pid}) gone: all-off sent ({how})")
     return 0 if not how.startswith(("NO PROOF", "gave up")) else 2
 

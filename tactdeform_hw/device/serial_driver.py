@@ -29,7 +29,7 @@ from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
 from .base import Device
 from .config import StimConfig
-from .guardian import Guardian, GuardianError, off_packet
+from .guardian import Guardian, GuardianError, off_packet, pace_for
 from .mapping import ChannelMapping
 from .pacing import Pacer, default_pacer
 from .safety import SafetyGuard
@@ -234,14 +234,19 @@ class EtactileKitDevice(Device):
             self._guardian = Guardian.start(fd, name, reset_line=True)
         except GuardianError as exc:
             raise TransportError(str(exc)) from exc
-        if self.config is not None:
-            self._guardian.configure(off_packet(self.config.electrode_count))
+        self._tell_guardian()
+
+    def _tell_guardian(self) -> None:
+        g, cfg = self._guardian, self.config
+        if g is None or cfg is None:
+            return
+        drain_s, zeros_s = pace_for(cfg.rate_hz, cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us,
+                                    cfg.sense_width_us)
+        g.configure(off_packet(cfg.electrode_count), drain_s, zeros_s)
 
     def configure(self, config: StimConfig) -> None:
         super().configure(config)
-        g = self._guardian
-        if g is not None and self.config is not None:
-            g.configure(off_packet(self.config.electrode_count))
+        self._tell_guardian()
 
     def close(self) -> None:
         """All channels off, then release the port; the guardian is let go only after that all-off
