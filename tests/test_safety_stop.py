@@ -352,3 +352,12 @@ def test_a_second_signal_during_the_all_off_is_ignored(board: Board) -> None:
     assert board_is_off(board.watch.state())
     fs.stop()
     assert board.wait_free()
+
+
+def test_the_stop_latency_tool_measures_both_stops(capsys: pytest.CaptureFixture[str]) -> None:
+    import stop_latency
+
+    assert stop_latency.main(["--trials", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for sig in ("SIGTERM", "SIGKILL"):
+        assert out[sig]["trials"] == 1 and 0 < out[sig]["max_ms"] < 1000
