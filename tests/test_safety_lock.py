@@ -148,3 +148,20 @@ def test_nobody_takes_the_board_before_the_guardian_switched_it_off(board: tuple
         if proc.poll() is None:
             proc.kill()
         proc.communicate(timeout=WAIT_S)
+
+
+def test_reconnect_keeps_one_owner_and_a_guardian_on_the_new_descriptor(board: tuple[PtyServer, BoardWatch]) -> None:
+    server, watch = board
+    with open_device(server.path) as dev:
+        dev.configure(StimConfig(current_ua=600))
+        dev.send_pattern([1, 0] * 16)
+        old = dev.guardian
+        assert old is not None
+        dev.reconnect()
+        new = dev.guardian
+        assert new is not None and new.pid != old.pid and old.proc.returncode is not None and new.alive
+        with pytest.raises(DeviceBusyError):
+            open_device(server.path)  # still ours
+        dev.send_pattern([1, 0] * 16)
+        assert watch.wait(True, WAIT_S) and dev.probe()
+    assert new.proc.returncode == 0 and not watch.on

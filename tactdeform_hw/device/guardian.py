@@ -249,15 +249,15 @@ def _write_all(fd: int, data: bytes, deadline: float) -> bool:
         left = deadline - time.monotonic()
         if left <= 0:
             return False
-        _, ready, _ = select.select([], [fd], [], left)
-        if not ready:
-            continue
         try:
+            _, ready, _ = select.select([], [fd], [], left)
+            if not ready:
+                continue
             n = os.write(fd, view)
-        except BlockingIOError:
+        except (BlockingIOError, InterruptedError):
             continue
-        except InterruptedError:
-            continue
+        except (OSError, ValueError):  # the port is gone (unplugged): nothing more can be sent
+            return False
         view = view[n:]
     return True
 
@@ -272,15 +272,17 @@ def _read_reply(fd: int, timeout_s: float) -> bytes:
             left = min(left, 0.003)
         if left <= 0:
             return got
-        ready, _, _ = select.select([fd], [], [], left)
-        if not ready:
-            if got:
-                return got
-            continue
         try:
+            ready, _, _ = select.select([fd], [], [], left)
+            if not ready:
+                if got:
+                    return got
+                continue
             chunk = os.read(fd, 4096)
         except (BlockingIOError, InterruptedError):
             continue
+        except (OSError, ValueError):
+            return got
         if not chunk:
             return got
         got += chunk
