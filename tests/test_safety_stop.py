@@ -293,7 +293,7 @@ def test_an_exception_anywhere_in_a_command_switches_off(board: Board) -> None:
         dev = open_device(board.path)  # never closed by the command itself
         dev.configure(StimConfig(current_ua=900))
         dev.send_pattern([1] * 32)
-        assert board.watch.wait(True, WAIT_S)
+        assert board.watch.wait_seen_on(WAIT_S)
         raise RuntimeError("a bug deep in the command")
 
     with pytest.raises(RuntimeError, match="a bug deep"):
@@ -309,7 +309,7 @@ def test_the_watchdog_runs_while_the_main_thread_is_blocked(board: Board) -> Non
         dev.send_pattern([1] * 32)
         (watched,) = session.watched
         assert watched.device is dev and watched._thread is not None
-        assert board.watch.wait(True, WAIT_S)
+        assert board.watch.wait_seen_on(WAIT_S)
         # the main thread now blocks (here: on a condition variable) and sends no frame
         assert board.watch.wait(False, WAIT_S), board.watch.state()
         assert watched.watchdog_trips >= 1 and not dev.closed

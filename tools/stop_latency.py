@@ -79,6 +79,17 @@ class BoardWatch:
     def hazards(self) -> list[Any]:
         return self.emulator.hazards
 
+    def wait_seen_on(self, timeout: float = 30.0) -> bool:
+        """Wait until the board has delivered current at least once (it may be off again by now)."""
+        end = time.monotonic() + timeout
+        with self._cond:
+            while self.on_since is None:
+                left = end - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(left)
+        return True
+
     def wait(self, on: bool, timeout: float = 30.0) -> bool:
         """Wait until the board is (``on=True``) or is not delivering current."""
         end = time.monotonic() + timeout
@@ -95,7 +106,7 @@ OWNER = """
 import sys, time
 from tactdeform_hw.device import StimConfig, open_device
 from tactdeform_hw.device.failsafe import StopSession
-with StopSession():
+with StopSession(watchdog_s=None):  # only the signal may stop it: what is measured is the stop itself
     dev = open_device(sys.argv[1])
     dev.configure(StimConfig(current_ua=1000))
     dev.send_pattern([1, 0] * 16)
@@ -126,7 +137,8 @@ def one_trial(server: PtyServer, watch: BoardWatch, sig: int, timeout: float = 3
         os.kill(proc.pid, sig)
         if not watch.wait(False, timeout):
             raise RuntimeError(f"the board still delivers current {timeout} s after {signal.Signals(sig).name}")
-        assert watch.safe_since is not None
+        if watch.safe_since is None or watch.safe_since < t0:
+            raise RuntimeError("the board went off before the signal: nothing to measure")
         dt = watch.safe_since - t0
         proc.wait(timeout=timeout)
     finally:
