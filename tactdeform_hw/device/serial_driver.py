@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import errno
 import os
+import sys
 from typing import Any, Protocol
 
 from ..errors import DeviceBusyError, DeviceGoneError, DeviceTimeoutError, TactDeformError, TransportError
@@ -123,10 +124,13 @@ def exclusive_port_class() -> type:
     global _exclusive_port_class
     if _exclusive_port_class is not None:
         return _exclusive_port_class
+    import serial
+
+    if sys.platform == "win32":  # pragma: no cover - Windows opens a COM port for one program only anyway
+        _exclusive_port_class = serial.Serial
+        return _exclusive_port_class
     import fcntl
     import termios
-
-    import serial
 
     class ExclusivePort(serial.Serial):  # type: ignore[misc]  # pyserial ships no type information
         """A serial port opened by path, owned by one program at a time (see the module docstring)."""
