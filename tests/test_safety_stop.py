@@ -281,6 +281,59 @@ def test_off_packet_after_the_proof_never_raises_and_never_locks(n: int) -> None
     assert st["electrode_num"] == n and st["stim_pattern"][:n] == [0] * n
 
 
+def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> tuple[float, float, int]:
+    """The timed firmware over ``link``: an owner drives 16 of 32 channels at 500 µA, dies having written
+    ``owner_tail`` (a torn frame, or a burst that overflows the queue), and ``offset_us`` later the guardian's
+    bytes follow as it sends them when no proof comes back (the worst case: every retry).  Returns the
+    largest current delivered from the owner's death on, the largest once the guardian is done, and the
+    final pulse height."""
+    from tactdeform_hw import protocol as p
+    from tactdeform_hw.emulator.timed import TimedEmulator
+
+    emu = TimedEmulator(link=link)
+    t = 0.0
+    for cmd in (p.encode_electrode_num(32), p.encode_pattern(bytes(32)), p.encode_pulse_width(200),
+                p.encode_discharge(45), p.encode_frequency(125), p.encode_pulse_height(50),
+                p.encode_pattern(bytes([1, 0] * 16), electrode_num=32)):
+        emu.write(cmd, at_us=t)
+        t += 12_000
+    emu.advance_to(t)
+    death = t + 100
+    if owner_tail:
+        emu.write(owner_tail, at_us=death)
+    g = death + offset_us
+    stop = stop_packet()
+    emu.write(stop, at_us=g)
+    for k in range(1, 4):  # no proof came: 256 zeros a packet at a time, let them be skipped, the packet again
+        tk = g + k * 40_000
+        for i in range(RESYNC_ZEROS // 64):
+            emu.write(bytes(64), at_us=tk + i * 1200)
+        emu.write(stop, at_us=tk + 20_000)
+    emu.write(off_packet(32), at_us=g + 200_000)
+    emu.advance_to(g + 260_000)
+    table = emu.reports.pulse_table(death)
+    current = table["current_ua"]
+    done = table["start_us"] > g + 200_000
+    return (float(current.max()) if current.size else 0.0, float(current[done].max()) if done.any() else 0.0,
+            emu.state()["pulse_height"])
+
+
+@pytest.mark.parametrize("link", ["usb", "uart"])
+def test_guardian_bytes_on_the_timed_board_never_deliver_more_than_the_owner_left(link: str) -> None:
+    """Judged on the pulses the timed firmware delivered: whatever the owner tore (every cut of a frame,
+    alone or after a burst that overflowed the queue) and whenever the guardian's bytes land (at once, into
+    a full queue, or after the drain wait), no pulse exceeds the owner's 500 µA, and none carries current
+    once the guardian is done."""
+    from tactdeform_hw import protocol as p
+
+    frame = p.encode_pattern(bytes([1, 0] * 16), electrode_num=32) + p.encode_pulse_height(50)
+    cases = [(frame[:k], off) for k in range(len(frame)) for off in (0.0, 36_400.0)]
+    cases += [(frame * 8 + frame[:k], off) for k in range(0, len(frame), 5) for off in (0.0, 36_400.0)]
+    for tail, off in cases:
+        peak, after, height = _guardian_on_timed_board(tail, off, link)
+        assert peak <= 500.0 + 1e-6 and after == 0.0 and height == 0, (tail.hex(), off, peak, after, height)
+
+
 # --- exceptions and a blocked main thread ---------------------------------------------------------------------
 
 
