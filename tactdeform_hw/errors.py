@@ -99,6 +99,22 @@ class DeviceGoneError(TransportError):
     """The device disappeared mid-session (unplugged, reset, or its link was cut)."""
 
 
+class DeviceBusyError(TransportError):
+    """Another program owns the device: it was refused before a single byte was written.  ``holders``
+    lists ``(pid, command line)`` of the processes found holding it (empty when none could be found)."""
+
+    def __init__(self, device: str, holders: list[tuple[int, str]] | None = None, detail: str = "") -> None:
+        self.device = device
+        self.holders = list(holders or [])
+        who = "; ".join(f"pid {pid} ({cmd})" if cmd else f"pid {pid}" for pid, cmd in self.holders)
+        super().__init__(
+            f"{device} is in use by another program"
+            + (f": {who}" if who else "")
+            + (f" ({detail})" if detail else "")
+            + "; nothing was written to it"
+        )
+
+
 # --- the person ----------------------------------------------------------------------------------------
 
 

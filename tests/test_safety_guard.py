@@ -234,6 +234,11 @@ COVERED = {
     "stimulating": "property",
     "closed": "property",
     "electrodes": "property",
+    "refresh": "rewrites the height and pattern in force, through the interlock (test_safety_failsafe)",
+    "mark_unknown": "sends nothing; the next write starts with a resync",
+    "last_pattern": "property",
+    "busy": "property",
+    "writing": "property",
 }
 
 

@@ -284,7 +284,12 @@ def test_emulate_cli_prints_path_first_and_serves() -> None:
             assert s.read(1) == b"\x04"
     finally:
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=10)
+        try:
+            out, err = proc.communicate(timeout=10)
+        finally:
+            if proc.poll() is None:  # never leave an emulator behind
+                proc.kill()
+                proc.communicate()
     assert proc.returncode == 0, err
     assert "stopped:" in err
 
@@ -308,7 +313,12 @@ def test_emulate_cli_records_a_trace_while_serving(tmp_path) -> None:  # type: i
             time.sleep(0.3)
     finally:
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=20)
+        try:
+            out, err = proc.communicate(timeout=20)
+        finally:
+            if proc.poll() is None:  # never leave an emulator behind
+                proc.kill()
+                proc.communicate()
     assert proc.returncode == 0, err
     text = trace.read_text()
     assert len(text.splitlines()) > 10

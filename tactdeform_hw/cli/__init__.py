@@ -116,7 +116,9 @@ def _main(argv: Sequence[str] | None) -> int:
 
             finish(args)  # the command's own conversions and checks (µA → the DAC code timing takes)
             preflight(args, warn=lambda m: print(f"{prog}: warning: {m}", file=sys.stderr, flush=True))
-            return int(args.func(args) or 0)
+            from .common import run_command
+
+            return run_command(args.func, args)
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:

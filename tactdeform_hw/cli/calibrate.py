@@ -150,7 +150,6 @@ def _interactive_keys(dev: Any) -> Any:
 def run(args: argparse.Namespace) -> int:
     from ..device import StimConfig, open_device
     from ..device.calibration import Calibration, Phase
-    from ..device.failsafe import FailSafe
     from ..device.profiles import save_profile
     from ..device.regions import tactdeform_region_map
     from ..device.safety import SafetyGuard
@@ -191,7 +190,7 @@ def run(args: argparse.Namespace) -> int:
     dev = open_device(args.device, timeout=args.timeout, mapping=mapping, guard=guard, audit=audit)
     steps = 0
     peak = 0
-    with FailSafe(dev):
+    with dev:  # the command's stop session watches it (see common.run_command); closing switches all off
         dev.configure(config)
         stim = cal.stimulus()
         progress(f"{stim.prompt}  [{stim.current_ua} µA]")

@@ -98,3 +98,44 @@ def hold(device: Any, seconds: float, *, interval_s: float = 0.02) -> None:
         if left <= 0:
             return
         time.sleep(min(interval_s, left))
+
+
+# --- the stop (every command) -------------------------------------------------------------------------------
+
+
+def run_command(func: Any, args: argparse.Namespace) -> int:
+    """Run one subcommand under a :class:`~tactdeform_hw.device.failsafe.StopSession`: every device it
+    opens — directly or through the study runner, the renderer or anything added later — is watched by the
+    fail-safe (the no-frame watchdog in its own thread), an exception anywhere closes it (every channel
+    off), and SIGINT, SIGTERM, SIGHUP or SIGQUIT switch it off before the command ends with 128 + the
+    signal (130 for Ctrl-C) and one line on stderr, never a traceback.  The command-line entry point runs
+    every command through here, so no command can forget it."""
+    from ..device import failsafe
+
+    name = getattr(args, "command", None) or "command"
+    try:
+        with failsafe.StopSession():
+            return int(func(args) or 0)
+    except failsafe.SignalStop as stop:
+        _report_stop(name, stop.signum, stop.devices, stop.all_off)
+        return int(stop.code) if isinstance(stop.code, int) else 128 + stop.signum
+    except KeyboardInterrupt:
+        rec = failsafe.last_stop
+        if rec is not None:
+            _report_stop(name, rec.signum, rec.devices, rec.all_off)
+        else:
+            print(f"tactdeform-hw {name}: interrupted", file=sys.stderr, flush=True)
+        return 130
+
+
+def _report_stop(name: str, signum: int, devices: int, all_off: bool) -> None:
+    import signal
+
+    what = signal.Signals(signum).name
+    if devices == 0:
+        tail = "no device was open"
+    elif all_off:
+        tail = "every channel off"
+    else:
+        tail = "all-off FAILED: the board may still be stimulating, unplug it"
+    print(f"tactdeform-hw {name}: stopped by {what}; {tail}", file=sys.stderr, flush=True)

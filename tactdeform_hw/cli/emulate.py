@@ -105,10 +105,7 @@ def run(args: argparse.Namespace) -> int:
 
         server = PtyServer(board, **opts)
         where = server.path
-    print(where, flush=True)
     mode = "untimed (instant)" if args.untimed else f"in real time, {rules.name} build rules"
-    progress(f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {where}, {mode}; "
-             "SIGUSR1 resets it")
 
     reset_requested: list[str] = []
 
@@ -118,13 +115,16 @@ def run(args: argparse.Namespace) -> int:
     def _usr1(signum: int, frame: object) -> None:
         reset_requested.append("SIGUSR1")  # applied by the loop below: a handler must not take the board's lock
 
-    signal.signal(signal.SIGTERM, _term)
-    if hasattr(signal, "SIGUSR1"):
-        signal.signal(signal.SIGUSR1, _usr1)
-    server.start()
     seen_hazards = 0
     view = LiveView()
-    try:
+    try:  # from here on any stop (Ctrl-C or SIGTERM as soon as the path is out) ends in the finally below
+        signal.signal(signal.SIGTERM, _term)
+        if hasattr(signal, "SIGUSR1"):
+            signal.signal(signal.SIGUSR1, _usr1)
+        server.start()
+        print(where, flush=True)
+        progress(f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {where}, "
+                 f"{mode}; SIGUSR1 resets it")
         while True:
             time.sleep(0.05)
             while reset_requested:

@@ -19,6 +19,7 @@ long file; how late each step started is reported.  ``clock`` and ``sleep`` are 
 from __future__ import annotations
 
 import argparse
+import functools
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -29,6 +30,7 @@ from .common import (
     add_device_arg,
     add_participant_arg,
     guard_from_args,
+    hold,
     print_json,
     progress,
 )
@@ -322,6 +324,8 @@ def run(
                 )
         except TactDeformError as exc:
             progress(f"note: could not ask the board for its HV513 count ({exc})")
+        if sleep is time.sleep:  # a step held in real time feeds the fail-safe watchdog while it waits
+            sleep = functools.partial(hold, dev)
         result = play_sequence(
             dev, steps, make_config, args.current_ua, clock=clock, sleep=sleep, report=report
         )

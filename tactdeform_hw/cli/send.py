@@ -79,7 +79,6 @@ def _pattern_levels(text: str, electrodes: int) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     from ..device import StimConfig, open_device
-    from ..device.failsafe import FailSafe
     from ..formats import read_array_file
     from ..protocol.units import DEFAULT_TRANSFER
     from .delivered import DeliveryLog, delivered_lines, session_region_map
@@ -124,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
     )
     dev = open_device(args.device, timeout=args.timeout, mapping=mapping, guard=guard, audit=log)
     try:
-        with FailSafe(dev):
+        with dev:  # the command's stop session watches it (see common.run_command); closing switches all off
             dev.configure(config)
             dev.send_pattern(levels)
             emu = getattr(getattr(dev, "port", None), "emulator", None)

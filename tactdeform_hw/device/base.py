@@ -187,6 +187,39 @@ class Device(ABC):
         return self._needs_resync
 
     @property
+    def last_pattern(self) -> bytes | None:
+        """The pattern the firmware should hold, in hardware order (None: unknown, e.g. after a resync)."""
+        return self._last_pattern
+
+    @property
+    def busy(self) -> bool:
+        """True while a public operation runs: another thread must not start one between its commands."""
+        return self._op is not None
+
+    @property
+    def writing(self) -> bool:
+        """True while bytes are being handed to the transport: a stop now may leave half a command."""
+        return self._writing
+
+    def mark_unknown(self) -> None:
+        """Forget what the firmware holds (a cut write, an unanswered probe, a wrong readback): the next
+        frame, and the next all-off, start with a resync."""
+        with self._lock:
+            self.guard.mark_unknown()
+            self._needs_resync = True
+
+    @_locked
+    def refresh(self) -> None:
+        """Write again the height and the pattern the firmware should hold: the same bytes as before, so
+        a firmware in step sees no change, and one that lost or mis-read a byte is put right."""
+        cfg = self._config
+        if cfg is None or self._closed:
+            return
+        pattern = self._last_pattern if self._last_pattern is not None else bytes(cfg.electrode_count)
+        self._send(p.encode_pulse_height(self.transfer.to_code(self._current_ua)))
+        self._send(p.encode_pattern(pattern, electrode_num=cfg.electrode_count))
+
+    @property
     def suspended(self) -> bool:
         """True after a fail-safe stop; the next frame (or keepalive) resumes, ramped."""
         return self._suspended

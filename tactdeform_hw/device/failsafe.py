@@ -6,16 +6,20 @@ forever.  So the host must switch everything off whenever its owner stops, for w
 
 * **normal close and exceptions** — ``with FailSafe(device):`` closes the device (every channel off, then
   the port) however the block ends;
-* **SIGINT / SIGTERM** — the handler stops stimulation at once (if the signal arrived in the middle of a
-  write, it starts with the resync zeros, because the firmware may hold half a command), then raises
-  ``KeyboardInterrupt`` / ``SystemExit(143)`` so the program unwinds and closes normally;
+* **SIGINT, SIGTERM, SIGHUP and SIGQUIT** — one process-wide handler stops every watched device at once
+  (if the signal arrived in the middle of a write, it starts with the resync zeros, because the firmware
+  may hold half a command), then raises ``KeyboardInterrupt`` (SIGINT) or :class:`SignalStop`, a
+  ``SystemExit`` with status 128 + the signal, so the program unwinds and exits with the status a shell
+  expects.  A second signal while the first one's all-off is on the wire is ignored;
 * **interpreter exit** — an ``atexit`` hook closes every device still open;
-* **a stalled renderer** — a watchdog sends all-off when no frame (``send_pattern``, ``set_current`` or
-  ``keepalive``) came for ``watchdog_s`` (default 100 ms): it acts early enough (one poll and the link's
+* **a stalled renderer** — a watchdog thread sends all-off when no frame (``send_pattern``, ``set_current``
+  or ``keepalive``) came for ``watchdog_s`` (default 100 ms): it acts early enough (one poll and the link's
   latency before the deadline) that the all-off reaches the firmware within ``watchdog_s``; the scan in
-  progress then finishes, so no channel stays on longer than ``watchdog_s`` plus one scan period.  The stop keeps the target current and the
-  caller's last frame, so when frames come again stimulation resumes — from height 0, under the ramp
-  limit when the profile has one;
+  progress then finishes, so no channel stays on longer than ``watchdog_s`` plus one scan period.  The
+  thread runs while the main thread sleeps, waits for a key or computes; it never starts between the
+  commands of the owner's own operation (a frame is written whole or not at all).  The stop keeps the
+  target current and the caller's last frame, so when frames come again stimulation resumes — from
+  height 0, under the ramp limit when the profile has one;
 * **a parser out of step** — optionally, a probe every ``probe_interval_s`` (a measure request must be
   answered with exactly two bytes per channel) and a refresh every ``refresh_interval_s`` (the height and
   the pattern the firmware should hold are written again, overwriting anything a lost or corrupted byte
@@ -24,16 +28,25 @@ forever.  So the host must switch everything off whenever its owner stops, for w
   and, if the firmware still does not answer (a locked parser reads nothing, ever), a pulse on the
   board's reset line.
 
+**Every command that can stimulate.**  :class:`StopSession` is the process-wide form: while it is active,
+every device opened (by whatever code: a command, the study runner, a renderer) is adopted — watched by a
+:class:`FailSafe` with its watchdog thread — and the four signals stop them all.  The command-line tool
+runs every command inside one (:func:`tactdeform_hw.cli.common.run_command`), so a new command cannot
+forget it.  The watchdog thread runs in wall time; a device paced on a simulated clock (the offline
+in-process emulator, whose board dies with the process) is watched for signals and exceptions only.
+
 **Recovery time.**  With probing and refreshing every ``T`` seconds, a fault that the link does not report
 is overwritten or detected within ``T`` plus the time of one poll; recovery (resync) then takes about
 20 payload commands (≈ 25 ms at the paced rate), and the firmware applies the all-off within one parser
 tick and one scan period.  :meth:`FailSafe.recovery_bound_s` returns that bound for the settings in use;
 the fault-injection tests hold every injected fault to it.
 
-**What no host can do.**  If the host process is killed with SIGKILL, or loses power, nothing runs: the
-firmware keeps stimulating until the board is unplugged (the controller is USB-powered, so unplugging
-stops it).  A byte corrupted on a link without a checksum can set any pulse height until the next refresh
-or probe; USB's CRC makes that a reported transfer error instead (see :mod:`tactdeform_hw.emulator.faults`).
+**When the owner runs no code.**  A process killed with SIGKILL, or one that crashes in native code, runs
+no handler: its guardian process (:mod:`.guardian`), started with every device on a port that can be
+guarded, switches the board off.  What neither can do: if the guardian is killed too, or the host loses
+power, nothing runs and the firmware keeps stimulating until the board is unplugged (the controller is
+USB-powered, so unplugging stops it).  A byte corrupted on a link without a checksum can set any pulse
+height until the next refresh or probe.
 """
 
 from __future__ import annotations
@@ -48,7 +61,7 @@ from dataclasses import dataclass, field
 from types import FrameType, TracebackType
 from typing import Any
 
-from ..clock import Clock
+from ..clock import Clock, InstantClock, MonotonicClock
 from ..errors import (
     DecodeError,
     DeviceGoneError,
@@ -65,6 +78,9 @@ logger = logging.getLogger("tactdeform_hw.failsafe")
 DEFAULT_WATCHDOG_S = 0.100
 DEFAULT_POLL_S = 0.002
 LINK_MARGIN_S = 0.002
+
+#: The signals that stop a watched device: Ctrl-C, ``kill``, a closed terminal, Ctrl-\.
+STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
 
 _open_devices: weakref.WeakSet[Device] = weakref.WeakSet()
 _atexit_installed = False
@@ -88,6 +104,170 @@ def register_at_exit(device: Device) -> None:
         _atexit_installed = True
 
 
+class SignalStop(SystemExit):
+    """Raised by the stop handler after every watched device was switched off (``all_off`` says whether
+    that worked).  A ``SystemExit`` whose code is 128 + the signal, as a shell reports a signalled tool."""
+
+    def __init__(self, signum: int, all_off: bool = True, devices: int = 0) -> None:
+        super().__init__(128 + signum)
+        self.signum = signum
+        self.all_off = all_off
+        self.devices = devices
+
+    @property
+    def signal_name(self) -> str:
+        return signal.Signals(self.signum).name
+
+
+@dataclass(frozen=True)
+class StopRecord:
+    """The last stop by signal: which signal, how many devices it switched off, whether all-off worked."""
+
+    signum: int
+    devices: int
+    all_off: bool
+
+    @property
+    def signal_name(self) -> str:
+        return signal.Signals(self.signum).name
+
+
+#: Every started :class:`FailSafe`; the stop handler switches all of their devices off.
+_active: list[FailSafe] = []
+_active_lock = threading.Lock()
+_handlers_users = 0
+_old_handlers: dict[int, Any] = {}
+_stopping = False
+last_stop: StopRecord | None = None
+
+
+def _install_handlers() -> bool:
+    """Install the stop handler for :data:`STOP_SIGNALS` (main thread only; counted, so nested users
+    restore the original handlers only when the last one leaves)."""
+    global _handlers_users
+    if threading.current_thread() is not threading.main_thread():
+        return False
+    if _handlers_users == 0:
+        for sig in STOP_SIGNALS:
+            _old_handlers[sig] = signal.signal(sig, _on_stop_signal)
+    _handlers_users += 1
+    return True
+
+
+def _uninstall_handlers() -> None:
+    global _handlers_users
+    if _handlers_users <= 0:
+        return
+    _handlers_users -= 1
+    if _handlers_users == 0:
+        for sig, old in _old_handlers.items():
+            try:
+                signal.signal(sig, old)
+            except (ValueError, TypeError):  # not the main thread any more, or a foreign handler
+                pass
+        _old_handlers.clear()
+
+
+def _stop_all(signum: int, extra: FailSafe | None = None) -> StopRecord:
+    """Switch off every watched device (and ``extra``'s): the stop handler's work."""
+    global last_stop
+    with _active_lock:
+        watched = list(_active)
+    if extra is not None and extra not in watched:
+        watched.append(extra)
+    for fs in watched:
+        fs._stop.set()
+    ok = True
+    count = 0
+    for fs in watched:
+        done = fs._switch_off_for_signal(signum)
+        if done is not None:
+            count += 1
+            ok = ok and done
+    last_stop = StopRecord(signum, count, ok)
+    return last_stop
+
+
+def _raise_for(signum: int, record: StopRecord) -> None:
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
+    raise SignalStop(signum, record.all_off, record.devices)
+
+
+def _on_stop_signal(signum: int, frame: FrameType | None) -> None:
+    global _stopping
+    if _stopping:  # the first signal's all-off is on the wire: let it finish
+        return
+    _stopping = True
+    try:
+        record = _stop_all(signum)
+    finally:
+        _stopping = False
+    _raise_for(signum, record)
+
+
+def _wall_clock(clock: Clock) -> bool:
+    return isinstance(clock, (MonotonicClock, InstantClock))
+
+
+class StopSession:
+    """While active, every device opened in this process is watched (see the module docstring), and
+    SIGINT, SIGTERM, SIGHUP and SIGQUIT switch them all off before the program unwinds.  On leaving,
+    every device it adopted is closed (every channel off), however the block ends."""
+
+    def __init__(self, **failsafe_kwargs: Any) -> None:
+        self.failsafe_kwargs = failsafe_kwargs
+        self.watched: list[FailSafe] = []
+        self._handlers = False
+
+    def __enter__(self) -> StopSession:
+        global last_stop
+        last_stop = None
+        self._handlers = _install_handlers()
+        _sessions.append(self)
+        return self
+
+    def adopt(self, device: Device) -> FailSafe:
+        kw = dict(self.failsafe_kwargs)
+        kw.setdefault("thread", _wall_clock(device.pacer.clock))
+        fs = FailSafe(device, signals=False, **kw).start()
+        self.watched.append(fs)
+        return fs
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        try:
+            if self in _sessions:
+                _sessions.remove(self)
+            failed: BaseException | None = None
+            for fs in self.watched:
+                try:
+                    fs.__exit__(exc_type, exc, tb)
+                except BaseException as e:  # close the others first, then report the first failure
+                    failed = failed or e
+            self.watched.clear()
+            if failed is not None and exc is None:
+                raise failed
+        finally:
+            if self._handlers:
+                self._handlers = False
+                _uninstall_handlers()
+
+
+_sessions: list[StopSession] = []
+
+
+def adopt(device: Device) -> FailSafe | None:
+    """Called by every device as it opens: watched when a :class:`StopSession` is active."""
+    if not _sessions:
+        return None
+    return _sessions[-1].adopt(device)
+
+
 @dataclass
 class FailSafeEvent:
     kind: str
@@ -99,7 +279,8 @@ class FailSafe:
     """Watches one device.  Use as a context manager, or ``start()`` / ``stop()``.
 
     ``clock`` defaults to the device's pacing clock, so in a simulated session (a timed emulator) the
-    watchdog runs in simulated time: drive it with :meth:`poll` (``thread=False``).
+    watchdog runs in simulated time: drive it with :meth:`poll` (``thread=False``).  ``signals`` installs
+    the process-wide stop handler (main thread only); every started fail-safe is stopped by it either way.
     """
 
     def __init__(
@@ -140,7 +321,7 @@ class FailSafe:
         self._want_thread = thread
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
-        self._old_handlers: dict[int, Any] = {}
+        self._handlers = False
         self._last_probe: float | None = None
         self._last_refresh: float | None = None
         self._polling = False
@@ -152,9 +333,11 @@ class FailSafe:
     def start(self) -> FailSafe:
         if self._want_atexit:
             register_at_exit(self.device)
-        if self._want_signals and threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._old_handlers[sig] = signal.signal(sig, self._on_signal)
+        with _active_lock:
+            if self not in _active:
+                _active.append(self)
+        if self._want_signals and not self._handlers:
+            self._handlers = _install_handlers()
         if self._want_thread and self._thread is None:
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name="tactdeform-failsafe", daemon=True)
@@ -166,12 +349,12 @@ class FailSafe:
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=2.0)
         self._thread = None
-        for sig, old in self._old_handlers.items():
-            try:
-                signal.signal(sig, old)
-            except (ValueError, TypeError):  # not the main thread any more, or a foreign handler
-                pass
-        self._old_handlers.clear()
+        with _active_lock:
+            if self in _active:
+                _active.remove(self)
+        if self._handlers:
+            self._handlers = False
+            _uninstall_handlers()
 
     def __enter__(self) -> FailSafe:
         return self.start()
@@ -198,26 +381,35 @@ class FailSafe:
         audit = self.device.audit
         if audit is not None:
             audit.event(kind, t=ev.t, **detail)
-        log = logger.warning if kind not in ("refresh", "probe_ok") else logger.debug
+        log = logger.warning if kind not in ("refresh", "probe_ok", "signal") else logger.debug
         log("fail-safe %s %s", kind, detail)
         if self.on_event is not None:
             self.on_event(ev)
         return ev
 
-    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+    def _switch_off_for_signal(self, signum: int) -> bool | None:
+        """Every channel off and the port closed; True when that worked, None when already closed."""
         dev = self.device
+        if dev.closed:
+            return None
+        ok = True
         try:
-            if not dev.closed:
-                if dev._writing:  # the signal cut a write: the firmware may hold half a command
-                    dev._needs_resync = True
-                dev.close()
-            self._event("signal", signal=signal.Signals(signum).name)
+            if dev.writing:  # the signal cut a write: the firmware may hold half a command
+                dev.mark_unknown()
+            dev.close()
         except Exception:
+            ok = False
             logger.exception("all-off on signal %s failed", signum)
-        self._stop.set()
-        if signum == signal.SIGINT:
-            raise KeyboardInterrupt
-        raise SystemExit(128 + signum)
+        try:
+            self._event("signal", signal=signal.Signals(signum).name, all_off=ok)
+        except Exception:  # an audit log that cannot be written must not stop the stop
+            logger.exception("recording the signal failed")
+        return ok
+
+    def _on_signal(self, signum: int, frame: FrameType | None) -> None:
+        """The stop handler, as seen from this fail-safe: switch off every watched device, this one
+        included, then raise."""
+        _raise_for(signum, _stop_all(signum, extra=self))
 
     def _run(self) -> None:
         while not self._stop.wait(self.poll_s):
@@ -231,7 +423,7 @@ class FailSafe:
     def poll(self, now: float | None = None) -> None:
         """One look at the device: watchdog, then probe and refresh when due.  Re-entrant calls (a poll
         whose own writes advance a simulated clock) are ignored."""
-        if self._polling or self.device.closed or self.device._op is not None:
+        if self._polling or self.device.closed or self.device.busy:
             # never in the middle of the owner's own operation: a frame is written whole or not at all
             return
         self._polling = True
@@ -262,7 +454,7 @@ class FailSafe:
             self._last_refresh is None or now - self._last_refresh >= self.refresh_interval_s
         ):
             self._last_refresh = now
-            self._guarded(lambda: refresh(dev))
+            self._guarded(dev.refresh)
 
     def _probe(self, now: float) -> bool:
         """A measure must come back whole; with ``verify_readback`` its voltages must also fit what the
@@ -275,18 +467,19 @@ class FailSafe:
         try:
             volts = dev.measure()
         except (ShortReplyError, LimitError, DecodeError):
-            dev._needs_resync = True
+            dev.mark_unknown()
             self._probe_failure = "probe unanswered"
             return False
         if not self.verify_readback:
             return True
         settled = dev.last_state_write is None or now - dev.last_state_write > 1.5 / cfg.rate_hz + 0.003
-        if not settled or dev._last_pattern is None or cfg.sense_current_ua:
+        pattern = dev.last_pattern
+        if not settled or pattern is None or cfg.sense_current_ua:
             return True
-        problem = self.readback.check(volts, dev._last_pattern, dev.current_ua)
+        problem = self.readback.check(volts, pattern, dev.current_ua)
         if problem is not None:
             self._probe_failure = f"readback: {problem}"
-            dev._needs_resync = True
+            dev.mark_unknown()
             return False
         return True
 
@@ -298,7 +491,7 @@ class FailSafe:
             if isinstance(exc, PortNotOpenError) and self.device.closed:
                 raise
             self._transport_failed = isinstance(exc, TransportError)
-            self.device._needs_resync = True
+            self.device.mark_unknown()
             self._event("error", error=f"{type(exc).__name__}: {exc}")
             return False
 
@@ -398,24 +591,5 @@ class Readback:
 
 
 def refresh(device: Device) -> None:
-    """Write again the height and the pattern the firmware should hold (the same bytes as before, so a
-    firmware in step sees no change; one that lost or mis-read a byte is put right)."""
-    from .. import protocol as p
-
-    with device._lock:
-        cfg = device.config
-        if cfg is None or device.closed:
-            return
-        device._op = device._op or "refresh"
-        try:
-            pattern = device._last_pattern if device._last_pattern is not None else bytes(cfg.electrode_count)
-            device._send(p.encode_pulse_height(device.transfer.to_code(device.current_ua)))
-            device._send(p.encode_pattern(pattern, electrode_num=cfg.electrode_count))
-        finally:
-            if device._op == "refresh":
-                device._op = None
-
-
-def watch(device: Device, **kwargs: Any) -> FailSafe:
-    """Start a :class:`FailSafe` on ``device`` (thread, signals, atexit) and return it."""
-    return FailSafe(device, **kwargs).start()
+    """Write again the height and the pattern the firmware should hold (see :meth:`Device.refresh`)."""
+    device.refresh()

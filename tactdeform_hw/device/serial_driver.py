@@ -1,19 +1,36 @@
 """The eTactileKit driver over any pyserial-compatible port: a real path, a URL, or an in-process port.
 
-It never knows which of these it holds.  Opening a real port must not reset the board: pyserial asserts
-DTR and RTS on open, which an ESP32 can read as a reset request, so the port is created unopened, both
-lines are set low, and only then is it opened.
+It never knows which of these it holds; it asks the port what it can do.  Opening a real port must not
+reset the board: pyserial asserts DTR and RTS on open, which an ESP32 can read as a reset request, so the
+port is created unopened, both lines are set low, and only then is it opened.
+
+**One owner per board.**  A port opened by path (:class:`ExclusivePort`) is locked before its first byte:
+``flock(LOCK_EX | LOCK_NB)`` (pyserial's ``exclusive=True``), then ``TIOCEXCL``, which makes the kernel
+refuse any further open of the terminal to everyone but root.  A second program — another command, or a
+script using the library — gets :class:`~tactdeform_hw.errors.DeviceBusyError` naming the device and the
+process holding it (from ``/proc/locks`` and ``/proc/*/fd``); nothing is written.  The lock belongs to the
+open file description, which the owner's guardian (:mod:`.guardian`) shares, so it outlives an owner
+killed with SIGKILL until the guardian has switched the board off.
+
+**A guardian per guardable port.**  A port that declares ``guardable = True`` gets a guardian process
+when the device opens (see :mod:`.guardian`): it switches the board off if the owner dies without running
+code.  The in-process emulator declares nothing: the board it models dies with the process.
 """
 
 from __future__ import annotations
 
+import errno
+import os
+import sys
 from typing import Any, Protocol
 
-from ..errors import DeviceGoneError, DeviceTimeoutError, TactDeformError, TransportError
+from ..errors import DeviceBusyError, DeviceGoneError, DeviceTimeoutError, TactDeformError, TransportError
 from ..protocol.constants import BAUD_RATE
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
 from .base import Device
+from .config import StimConfig
+from .guardian import Guardian, GuardianError, off_packet, pace_for
 from .mapping import ChannelMapping
 from .pacing import Pacer, default_pacer
 from .safety import SafetyGuard
@@ -47,8 +64,114 @@ def _lower_lines(port: SerialLike) -> None:
             setattr(port, line, False)
 
 
+_BUSY_ERRNOS = frozenset({errno.EWOULDBLOCK, errno.EAGAIN, errno.EBUSY, errno.EACCES})
+
+
+def _proc_cmdline(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().replace(b"\0", b" ").decode("utf-8", "replace").strip()
+    except OSError:
+        return ""
+
+
+def find_holders(path: str) -> list[tuple[int, str]]:
+    """Processes holding ``path``: first the one that took its ``flock`` (``/proc/locks``), then every
+    other process with it open (``/proc/*/fd``); ``(pid, command line)`` each.
+    Empty where ``/proc`` is not there (the error then names the device only)."""
+    try:
+        st = os.stat(path)
+        real = os.path.realpath(path)
+    except OSError:
+        return []
+    key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
+    pids: list[int] = []
+    try:
+        with open("/proc/locks", encoding="ascii", errors="replace") as f:
+            for line in f:
+                parts = line.split()
+                if len(parts) >= 6 and parts[1] == "FLOCK" and parts[5] == key and parts[4].isdigit():
+                    pids.append(int(parts[4]))
+    except OSError:
+        pass
+    try:
+        entries = os.listdir("/proc")
+    except OSError:
+        entries = []
+    for entry in entries:
+        if not entry.isdigit() or int(entry) in pids:
+            continue
+        try:
+            fds = os.listdir(f"/proc/{entry}/fd")
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                if os.readlink(f"/proc/{entry}/fd/{fd}") == real:
+                    pids.append(int(entry))
+                    break
+            except OSError:
+                continue
+    return [(pid, _proc_cmdline(pid)) for pid in dict.fromkeys(pids) if os.path.exists(f"/proc/{pid}")]
+
+
+_exclusive_port_class: type | None = None
+
+
+def exclusive_port_class() -> type:
+    """:class:`ExclusivePort`: pyserial's ``Serial`` that locks the port before its first byte and declares
+    itself guardable (built on first use: pyserial is imported lazily)."""
+    global _exclusive_port_class
+    if _exclusive_port_class is not None:
+        return _exclusive_port_class
+    import serial
+
+    if sys.platform == "win32":  # pragma: no cover - Windows opens a COM port for one program only anyway
+        _exclusive_port_class = serial.Serial
+        return _exclusive_port_class
+    import fcntl
+    import termios
+
+    class ExclusivePort(serial.Serial):  # type: ignore[misc]  # pyserial ships no type information
+        """A serial port opened by path, owned by one program at a time (see the module docstring)."""
+
+        #: A guardian process can share this port (an inheritable file descriptor to a terminal).
+        guardable = True
+
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            kwargs["exclusive"] = True
+            super().__init__(*args, **kwargs)
+
+        def open(self) -> None:
+            try:
+                super().open()
+            except serial.SerialException as exc:
+                if getattr(exc, "errno", None) in _BUSY_ERRNOS:
+                    raise DeviceBusyError(str(self.port), find_holders(str(self.port)), str(exc)) from exc
+                raise
+            try:
+                fcntl.ioctl(self.fd, termios.TIOCEXCL)
+            except OSError:  # not a terminal: the flock alone guards it
+                pass
+
+        def close(self) -> None:
+            fd = getattr(self, "fd", None)
+            if self.is_open and fd is not None:
+                try:
+                    fcntl.ioctl(fd, termios.TIOCNXCL)  # the next owner may open it (a pty outlives us)
+                except OSError:
+                    pass
+            super().close()
+
+    _exclusive_port_class = ExclusivePort
+    return ExclusivePort
+
+
 class EtactileKitDevice(Device):
-    """``port`` may be opened or not; an unopened one gets DTR/RTS low before it is opened."""
+    """``port`` may be opened or not; an unopened one gets DTR/RTS low before it is opened.
+
+    ``guardian`` starts a guardian process with the device (default: when the port declares itself
+    ``guardable``); a port that cannot be guarded with ``guardian=True`` is refused."""
 
     def __init__(
         self,
@@ -59,22 +182,90 @@ class EtactileKitDevice(Device):
         guard: SafetyGuard | None = None,
         pacer: Pacer | None = None,
         audit: AuditLog | None = None,
+        guardian: bool | None = None,
     ) -> None:
         super().__init__(mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit)
         self.port = port
         self._errors = _serial_error_types()
+        self._guardian: Guardian | None = None
         if not port.is_open:
-            _lower_lines(port)
-            try:
-                port.open()
-            except self._errors as exc:
-                self._closed = True
-                raise TransportError(f"cannot open {getattr(port, 'port', port)!s}: {exc}") from exc
-            except TactDeformError:
-                self._closed = True
-                raise
+            self._open_port()
         if pacer is None:  # what a port needs is known only once it is open (a URL builds its device then)
             self.pacer = default_pacer(port)
+        self._want_guardian = bool(getattr(port, "guardable", False)) if guardian is None else guardian
+        if self._want_guardian:
+            try:
+                self._start_guardian()
+            except BaseException:
+                self._closed = True
+                self._close_transport()
+                raise
+        from .failsafe import adopt
+
+        adopt(self)  # a command's stop session watches every device opened under it
+
+    def _open_port(self) -> None:
+        port = self.port
+        _lower_lines(port)
+        if getattr(port, "exclusive", False) is None:  # a pyserial port left at its default: lock it too
+            port.exclusive = True  # type: ignore[attr-defined]
+        try:
+            port.open()
+        except self._errors as exc:
+            self._closed = True
+            name = str(getattr(port, "port", port))
+            if getattr(exc, "errno", None) in _BUSY_ERRNOS:
+                raise DeviceBusyError(name, find_holders(name), str(exc)) from exc
+            raise TransportError(f"cannot open {name}: {exc}") from exc
+        except TactDeformError:
+            self._closed = True
+            raise
+
+    @property
+    def guardian(self) -> Guardian | None:
+        """The guardian process watching this device's owner (None on a port that cannot be guarded)."""
+        return self._guardian
+
+    def _start_guardian(self) -> None:
+        if not getattr(self.port, "guardable", False):
+            raise TransportError(f"{self!r}: the port cannot be guarded (it declares no guardable file descriptor)")
+        try:
+            fd = int(self.port.fileno())  # type: ignore[attr-defined]
+        except (AttributeError, OSError, ValueError, TypeError) as exc:
+            raise TransportError(f"{self!r}: no file descriptor to share with a guardian: {exc}") from exc
+        name = str(getattr(self.port, "port", None) or getattr(self.port, "name", None) or fd)
+        try:
+            self._guardian = Guardian.start(fd, name, reset_line=True)
+        except GuardianError as exc:
+            raise TransportError(str(exc)) from exc
+        self._tell_guardian()
+
+    def _tell_guardian(self) -> None:
+        g, cfg = self._guardian, self.config
+        if g is None or cfg is None:
+            return
+        drain_s, zeros_s = pace_for(cfg.rate_hz, cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us,
+                                    cfg.sense_width_us)
+        g.configure(off_packet(cfg.electrode_count), drain_s, zeros_s)
+
+    def configure(self, config: StimConfig) -> None:
+        super().configure(config)
+        self._tell_guardian()
+
+    def close(self) -> None:
+        """All channels off, then release the port; the guardian is let go only after that all-off
+        succeeded — otherwise it switches the board off itself before it exits."""
+        done = False
+        try:
+            super().close()
+            done = True
+        finally:
+            g, self._guardian = self._guardian, None
+            if g is not None:
+                if done:
+                    g.release()
+                else:
+                    g.abandon()
 
     def _write(self, data: bytes) -> None:
         try:
@@ -99,6 +290,11 @@ class EtactileKitDevice(Device):
             raise DeviceGoneError(f"cannot flush input: {exc}") from exc
 
     def _reopen_transport(self) -> None:
+        # the guardian shares the old descriptor (and its lock): let it try to switch off through it,
+        # then start a new one on the new descriptor
+        g, self._guardian = self._guardian, None
+        if g is not None:
+            g.abandon()
         try:
             self.port.close()
         except self._errors:
@@ -108,6 +304,8 @@ class EtactileKitDevice(Device):
             self.port.open()
         except self._errors as exc:
             raise DeviceGoneError(f"cannot reopen {getattr(self.port, 'port', self.port)!s}: {exc}") from exc
+        if self._want_guardian:
+            self._start_guardian()
 
     def _reset_transport(self) -> bool:
         """A port that models the reset line offers ``pulse_reset``; the in-process emulator is reset
@@ -161,7 +359,7 @@ def open_port(name: str, *, timeout: float = DEFAULT_TIMEOUT_S, baudrate: int = 
         if "://" in name:
             port = serial.serial_for_url(name, do_not_open=True, baudrate=baudrate, timeout=timeout)
         else:
-            port = serial.Serial(port=None, baudrate=baudrate, timeout=timeout, write_timeout=timeout)
+            port = exclusive_port_class()(port=None, baudrate=baudrate, timeout=timeout, write_timeout=timeout)
             port.port = name
     except (serial.SerialException, ValueError) as exc:
         raise TransportError(f"cannot create port {name!r}: {exc}") from exc
@@ -177,10 +375,14 @@ def open_device(
     guard: SafetyGuard | None = None,
     pacer: Pacer | None = None,
     audit: AuditLog | None = None,
+    guardian: bool | None = None,
 ) -> EtactileKitDevice:
     """Open a device by name: a serial port path, a pyserial URL, ``usb:VID:PID[:SERIAL]``,
     ``usb-emulator``, or ``emulator`` (the default).  ``pacer`` defaults to what the port needs (see
-    :func:`~tactdeform_hw.device.pacing.default_pacer`); ``audit`` enables the session's audit log."""
+    :func:`~tactdeform_hw.device.pacing.default_pacer`); ``audit`` enables the session's audit log.  A
+    port path is locked for this program alone (:class:`~tactdeform_hw.errors.DeviceBusyError` if another
+    holds it) and gets a guardian process (``guardian=False`` to do without)."""
     return EtactileKitDevice(
-        open_port(name, timeout=timeout), mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit
+        open_port(name, timeout=timeout), mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit,
+        guardian=guardian,
     )

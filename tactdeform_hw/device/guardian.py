@@ -1,0 +1,416 @@
+"""The guardian: a second process that switches the board off when its owner dies without running code.
+
+The firmware scans its last pattern at its last height until told otherwise, and a process killed with
+SIGKILL, or one that crashes in native code, runs no handler, no ``finally`` and no ``atexit``.  So every
+device opened on a port that can be guarded (``port.guardable``: a serial port the host opens by path)
+starts a guardian with it:
+
+* it **shares the port**: it inherits the owner's open file descriptor, so it holds the same open file
+  description — and therefore the same ``flock`` — as the owner.  No other program can take the board
+  between the owner's death and the guardian's all-off, and the lock is released only when both are done;
+* it runs **in its own session** (``setsid``) and ignores SIGINT, SIGHUP and SIGQUIT, so a terminal's
+  Ctrl-C or hang-up, delivered to the owner's whole process group, cannot stop it first;
+* it **watches its owner through a pipe**: the owner holds the only write end, so end-of-file on the pipe
+  means the owner is gone, however it went (the kernel closes a dead process's descriptors).  A clean
+  close says ``bye`` first, after the owner's own all-off, and the guardian exits without writing;
+* it knows **nothing of the protocol**: the owner hands it the bytes to send (``stop``: the packet that
+  stops every current, ``off``: the all-off pattern for the configuration in force) and it sends them.
+
+What the owner sends it is built by :func:`stop_packet` and :func:`off_packet` for firmware v1.2.  The
+guardian does not know what the parser was doing when the owner died — it may be in the middle of any
+command, and the device's 256-byte queue may be full, in which case the firmware discards the rest of
+the USB packet at the first byte that does not fit.  So the stop packet is built to be safe **at every
+entry point and under every tail loss**:
+
+* it starts with eight zeros: a u8 or u16 command the owner left half-received is finished with zeros
+  (a zero height, a zero width or frequency, which the firmware ignores, an electrode count of 0 — the
+  guardian never sends a pattern before it has proof, so that cannot lock the parser);
+* every command in it (pulse height 0, sense height 0, each twice) has an all-zero payload and is followed
+  by zeros, so a command whose payload was cut by a lost tail is finished with zeros by the next packet,
+  which again starts with zeros — never with a command byte that would become a height's high byte;
+* a command byte read as part of a pattern the owner left half-received is a pattern value other than
+  1 and 2, which the firmware treats as off;
+* it ends with the HV513 count request: its one-byte reply proves that the packet reached the queue up to
+  its last byte (a loss only ever removes a tail) and that the parser has read it — the heights are 0.
+
+**Paced for the 256-byte queue.**  Before its first byte the guardian waits until what the owner left
+in the queue has surely been read (``drain_s``: the owner's pacer spaces payload commands so that only a
+few are ever in flight; the owner tells the guardian that bound for its configuration).  Over USB the
+packet is safe even into a full queue (above); over a UART, where a full queue drops single bytes and
+keeps later ones, no byte sequence but zeros is safe, so there the wait is what keeps every byte in.
+Without the proof the guardian sends 256 zeros (in 64-byte packets), waits until the parser has surely
+skipped them (``zeros_s``, also from the owner), and sends the packet again, for up to :data:`BUDGET_S`; with the proof it sends the all-off pattern
+(electrode count, then the pattern, then another proof).  Pulse height 0 and sense height 0 already stop
+every current the firmware can deliver, whatever pattern it holds; the pattern is there so that a later
+height cannot reach an old pattern.  If no proof ever comes (a locked parser answers nothing) and the
+owner said the port has a reset line, the guardian pulses it (RTS, as the driver does), which brings the
+firmware back to its power-on state: every height 0.
+
+The guardian is started with ``python -I -S`` on this very file: it imports nothing but the standard
+library, so it is ready in tens of milliseconds, and nothing it imports can fail.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import signal
+import sys
+import time
+from typing import Any
+
+#: How long the guardian keeps trying to get a proof before it gives up (or pulses the reset line).
+BUDGET_S = 1.0
+#: Leading and separating zeros of the stop packet (see the module docstring).
+LEAD_ZEROS = 8
+GAP_ZEROS = 4
+#: Zeros that finish any command in progress (a pattern of up to 255 channels) — the resync run.
+RESYNC_ZEROS = 256
+#: A USB full-speed bulk packet: what the firmware moves into its queue, or discards the tail of, at once.
+PACKET_BYTES = 64
+#: Pacing when the owner has not said (no configuration yet): a 100 Hz alarm whose scan may starve the
+#: parser to one payload command per period, four of them in flight; 256 zeros at 50 µs of parser time
+#: per period (see :mod:`.pacing`).
+DEFAULT_DRAIN_S = 0.045
+DEFAULT_ZEROS_S = 0.2
+
+
+# --- the bytes (owner side: built with the protocol module) --------------------------------------------------
+
+
+def stop_packet() -> bytes:
+    """Zeros, pulse height 0 twice, sense height 0 twice, each followed by zeros, and a proof request."""
+    from .. import protocol as p
+
+    z = bytes(GAP_ZEROS)
+    height0, sense0 = p.encode_pulse_height(0), p.encode_sense_height(0)
+    data = bytes(LEAD_ZEROS) + height0 + z + height0 + z + sense0 + z + sense0 + z + p.HV513_COUNT_REQUEST
+    assert len(data) <= PACKET_BYTES
+    return data
+
+
+def off_packet(electrode_count: int) -> bytes:
+    """Zeros, the electrode count (then itself again, or a zero where it would look like a command
+    byte: a lost count is then read as the same count or as 0), zeros, the all-off pattern, zeros, a proof
+    request.  Sent only after a proof that the parser is in step; the count comes first because a zero of
+    the resync may have set it to 0, and a pattern then would lock the parser."""
+    from .. import protocol as p
+    from .pacing import COMMAND_BYTE_MIN
+
+    n = int(electrode_count)
+    count = p.encode_electrode_num(n)
+    echo = bytes([n]) if n < COMMAND_BYTE_MIN else b"\x00"
+    return (
+        bytes(LEAD_ZEROS) + count + echo + bytes(GAP_ZEROS) + p.encode_pattern(bytes(n), electrode_num=n)
+        + bytes(GAP_ZEROS) + p.HV513_COUNT_REQUEST
+    )
+
+
+def pace_for(rate_hz: int, electrode_count: int, pulse_width_us: int, discharge_us: int,
+             sense_width_us: int) -> tuple[float, float]:
+    """``(drain_s, zeros_s)`` for a configuration: how long the firmware may need to read what the owner's
+    pacer left in flight (four payload commands at the pace of the longest scan the guard allows), and to
+    skip 256 zeros at that scan."""
+    from .pacing import SCAN_GAP_MIN_US, Pacer, estimate_scan_us, firmware_period_us
+
+    period_us = firmware_period_us(rate_hz)
+    full = estimate_scan_us(bytes([2]) * electrode_count, pulse_width_us, discharge_us, sense_width_us)
+    scan_us = min(full, period_us - SCAN_GAP_MIN_US)
+    pacer = Pacer()
+    pacer.set_timing(period_us / 1e6, scan_us / 1e6)
+    drain_s = 4 * pacer.payload_interval_s() + pacer.policy.link_latency_s + pacer.policy.tick_s
+    return drain_s, pacer.skip_s(RESYNC_ZEROS)
+
+
+# --- owner side --------------------------------------------------------------------------------------------
+
+
+class GuardianError(Exception):
+    """The guardian could not be started (raised as a TransportError by the driver)."""
+
+
+class Guardian:
+    """The owner's handle on its guardian process.  :meth:`start` spawns it; :meth:`configure` tells it
+    the all-off pattern of the configuration in force; :meth:`release` (after the owner's own all-off)
+    lets it go without writing; :meth:`abandon` closes the pipe without ``bye``, as a dead owner would,
+    so the guardian switches the board off."""
+
+    def __init__(self, proc: Any, pipe_w: int, name: str) -> None:
+        self.proc = proc
+        self._pipe_w: int | None = pipe_w
+        self.name = name
+
+    @property
+    def pid(self) -> int:
+        return int(self.proc.pid)
+
+    @classmethod
+    def start(cls, port_fd: int, name: str, *, stop: bytes | None = None, reset_line: bool = False,
+              ready_timeout_s: float = 10.0) -> Guardian:
+        """Spawn the guardian on ``port_fd`` (the owner's open port) and wait until it is watching."""
+        import subprocess
+
+        stop = stop_packet() if stop is None else stop
+
+        r, w = os.pipe()  # both ends close-on-exec: only the guardian gets the read end, nobody the write end
+        cmd = [sys.executable, "-I", "-S", os.path.abspath(__file__), "--port-fd", str(port_fd), "--owner-fd", str(r),
+               "--owner-pid", str(os.getpid()), "--name", name, "--stop", stop.hex()]
+        if reset_line:
+            cmd.append("--reset-line")
+        try:
+            proc = subprocess.Popen(cmd, pass_fds=(port_fd, r), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                                    start_new_session=True, close_fds=True)
+        except OSError as exc:
+            os.close(r)
+            os.close(w)
+            raise GuardianError(f"cannot start the guardian for {name}: {exc}") from exc
+        os.close(r)
+        g = cls(proc, w, name)
+        out = proc.stdout
+        assert out is not None
+        ready, _, _ = select.select([out], [], [], ready_timeout_s)
+        line = out.readline() if ready else b""
+        out.close()
+        if line.strip() != b"ready":
+            g._close_pipe()
+            proc.kill()
+            proc.wait()
+            raise GuardianError(f"the guardian for {name} did not start (it said {line!r})")
+        return g
+
+    def tell(self, *words: str) -> bool:
+        """One line to the guardian; False if it is gone (it was killed, or already acted)."""
+        if self._pipe_w is None:
+            return False
+        try:
+            os.write(self._pipe_w, (" ".join(words) + "\n").encode("ascii"))
+        except OSError:
+            return False
+        return True
+
+    def set_stop(self, packet: bytes) -> bool:
+        return self.tell("stop", packet.hex())
+
+    def configure(self, off: bytes | None, drain_s: float | None = None, zeros_s: float | None = None) -> bool:
+        """The all-off pattern for the configuration in force (None: unknown, heights only), and how
+        long the firmware may need to read what the owner left in its queue, and to skip 256 zeros."""
+        ok = self.tell("off", off.hex() if off else "-")
+        if drain_s is not None and zeros_s is not None:
+            ok = self.tell("pace", f"{drain_s:.6f}", f"{zeros_s:.6f}") and ok
+        return ok
+
+    @property
+    def alive(self) -> bool:
+        return self._pipe_w is not None and self.proc.poll() is None
+
+    def release(self, timeout_s: float = 5.0) -> None:
+        """The owner switched everything off itself: the guardian exits without writing."""
+        self.tell("bye")
+        self._close_pipe()
+        self._wait(timeout_s)
+
+    def abandon(self, timeout_s: float = 5.0) -> None:
+        """The owner could not switch off (or does not know): the guardian does it, and the call waits for
+        it, so the port is free when this returns."""
+        self._close_pipe()
+        self._wait(timeout_s)
+
+    def _close_pipe(self) -> None:
+        if self._pipe_w is not None:
+            try:
+                os.close(self._pipe_w)
+            finally:
+                self._pipe_w = None
+
+    def _wait(self, timeout_s: float) -> None:
+        import subprocess
+
+        try:
+            self.proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait()
+
+
+# --- guardian side (stdlib only) ---------------------------------------------------------------------------
+
+
+def _say(name: str, msg: str) -> None:
+    try:
+        sys.stderr.write(f"tactdeform-hw guardian [{name}]: {msg}\n")
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        pass
+
+
+def _write_all(fd: int, data: bytes, deadline: float) -> bool:
+    view = memoryview(data)
+    while view:
+        left = deadline - time.monotonic()
+        if left <= 0:
+            return False
+        try:
+            _, ready, _ = select.select([], [fd], [], left)
+            if not ready:
+                continue
+            n = os.write(fd, view)
+        except (BlockingIOError, InterruptedError):
+            continue
+        except (OSError, ValueError):  # the port is gone (unplugged): nothing more can be sent
+            return False
+        view = view[n:]
+    return True
+
+
+def _read_reply(fd: int, timeout_s: float) -> bytes:
+    """What the board answers within ``timeout_s``, read until it has been quiet for 3 ms."""
+    got = b""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        left = deadline - time.monotonic()
+        if got:
+            left = min(left, 0.003)
+        if left <= 0:
+            return got
+        try:
+            ready, _, _ = select.select([fd], [], [], left)
+            if not ready:
+                if got:
+                    return got
+                continue
+            chunk = os.read(fd, 4096)
+        except (BlockingIOError, InterruptedError):
+            continue
+        except (OSError, ValueError):
+            return got
+        if not chunk:
+            return got
+        got += chunk
+
+
+def _flush(fd: int, which: int) -> None:
+    import termios
+
+    try:
+        termios.tcflush(fd, which)
+    except (OSError, termios.error):
+        pass
+
+
+def _pulse_reset(fd: int) -> bool:
+    """RTS high for 100 ms with DTR low: an ESP32-S3 held in reset, as the driver does it."""
+    import fcntl
+    import struct
+    import termios
+
+    try:
+        fcntl.ioctl(fd, termios.TIOCMBIC, struct.pack("I", termios.TIOCM_DTR))
+        fcntl.ioctl(fd, termios.TIOCMBIS, struct.pack("I", termios.TIOCM_RTS))
+        time.sleep(0.1)
+        fcntl.ioctl(fd, termios.TIOCMBIC, struct.pack("I", termios.TIOCM_RTS))
+    except OSError:
+        return False
+    return True
+
+
+def switch_off(fd: int, stop: bytes, off: bytes | None, *, reset_line: bool = False, budget_s: float = BUDGET_S,
+               drain_s: float = DEFAULT_DRAIN_S, zeros_s: float = DEFAULT_ZEROS_S, name: str = "") -> str:
+    """Stop every current on the board behind ``fd``; returns how it was proved (for the message)."""
+    import termios
+
+    _flush(fd, termios.TCOFLUSH)  # what the dead owner left unsent never reaches the board
+    t0 = time.monotonic()
+    end = t0 + max(budget_s, drain_s + zeros_s + 0.1)
+    time.sleep(drain_s)  # what the owner left in the device's queue is read first (see the docstring)
+    _flush(fd, termios.TCIFLUSH)  # its replies are stale
+    wait_s = max(0.02, drain_s)
+    attempt = 0
+    while time.monotonic() < end:
+        if attempt:
+            # the packet, or its proof, was lost (a full queue) or swallowed by a half-received pattern:
+            # finish whatever is in progress with zeros, a packet at a time, let the parser skip them, and
+            # try again
+            for _ in range(RESYNC_ZEROS // PACKET_BYTES):
+                if not _write_all(fd, bytes(PACKET_BYTES), end):
+                    return "gave up: the port does not take bytes"
+                time.sleep(0.0012)
+            time.sleep(zeros_s)
+        attempt += 1
+        if not _write_all(fd, stop, end):
+            return "gave up: the port does not take bytes"
+        reply = _read_reply(fd, min(wait_s, max(0.0, end - time.monotonic())))
+        if reply:
+            break
+        wait_s = min(wait_s * 2, 0.2)
+    else:
+        if reset_line and _pulse_reset(fd):
+            return "no answer from the firmware; its reset line was pulsed (power-on state: every height 0)"
+        return "NO PROOF: the firmware did not answer; it may still be stimulating: unplug the board"
+    how = f"heights 0 proved after {attempt} attempt(s) in {1000 * (time.monotonic() - t0):.1f} ms"
+    if off:
+        if _write_all(fd, off, time.monotonic() + 0.5) and _read_reply(fd, 0.2):
+            how += ", all-off pattern proved"
+        else:
+            how += ", all-off pattern not proved"
+    return how
+
+
+def main(argv: list[str]) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="tactdeform-hw-guardian")
+    ap.add_argument("--port-fd", type=int, required=True)
+    ap.add_argument("--owner-fd", type=int, required=True)
+    ap.add_argument("--owner-pid", type=int, default=0)
+    ap.add_argument("--name", default="")
+    ap.add_argument("--reset-line", action="store_true")
+    ap.add_argument("--stop", required=True, help="hex bytes that stop every current")
+    a = ap.parse_args(argv)
+    for sig in (signal.SIGINT, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP, signal.SIGTTOU, signal.SIGTTIN):
+        signal.signal(sig, signal.SIG_IGN)
+    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+    try:
+        os.chdir("/")  # hold no directory of the owner's
+    except OSError:
+        pass
+    stop: bytes | None = bytes.fromhex(a.stop)
+    off: bytes | None = None
+    drain_s, zeros_s = DEFAULT_DRAIN_S, DEFAULT_ZEROS_S
+    sys.stdout.write("ready\n")
+    sys.stdout.flush()
+    sys.stdout.close()
+    buf = b""
+    owner = a.owner_fd
+    while True:
+        try:
+            chunk = os.read(owner, 4096)
+        except InterruptedError:
+            continue
+        except OSError:
+            chunk = b""
+        if not chunk:
+            break  # the owner is gone without saying bye
+        buf += chunk
+        while b"\n" in buf:
+            line, buf = buf.split(b"\n", 1)
+            words = line.decode("ascii", "replace").split()
+            if not words:
+                continue
+            if words[0] == "bye":
+                return 0
+            if words[0] == "stop" and len(words) == 2:
+                stop = bytes.fromhex(words[1])
+            elif words[0] == "off" and len(words) == 2:
+                off = None if words[1] == "-" else bytes.fromhex(words[1])
+            elif words[0] == "pace" and len(words) == 3:
+                drain_s, zeros_s = min(float(words[1]), 0.5), min(float(words[2]), 0.5)
+    if stop is None:
+        _say(a.name, f"owner (pid {a.owner_pid}) gone before it said what stops the board; nothing sent")
+        return 1
+    how = switch_off(a.port_fd, stop, off, reset_line=a.reset_line, drain_s=drain_s, zeros_s=zeros_s, name=a.name)
+    _say(a.name, f"owner (pid {a.owner_pid}) gone: all-off sent ({how})")
+    return 0 if not how.startswith(("NO PROOF", "gave up")) else 2
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
