@@ -24,12 +24,16 @@ def register(sub: Any) -> None:
     src.add_argument("--file", type=Path, help="capture file: raw bytes, or hex text with --hex-file")
     p.add_argument("--hex-file", action="store_true", help="the --file holds hex text, not raw bytes")
     p.add_argument("--electrodes", type=int, default=0, help="electrode_num in force when the capture starts (default 0, power-on)")
+    p.add_argument("--firmware", default="v1.2", help="the firmware whose parser reads the capture: v1.2 (default) or v2")
     p.add_argument("--json", action="store_true", help="print a JSON list instead of lines")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from ..protocol.decoder import OK, decode, parse_hex
+    from ..protocol.firmware import get_firmware
+
+    firmware = get_firmware(args.firmware, "--firmware")
 
     try:
         if args.file is not None:
@@ -41,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigurationError(f"cannot read the capture as {'hex' if args.hex_file or args.file is None else 'bytes'}: {exc}") from exc
     except OSError as exc:
         raise ConfigurationError(f"cannot read {args.file}: {exc}") from exc
-    items = decode(data, args.electrodes)
+    items = decode(data, args.electrodes, firmware)
     if args.json:
         print_json([c.to_dict() for c in items])
     else:

@@ -30,7 +30,8 @@ class DecodedCommand:
     raw: bytes
     opcode: int | None
     name: str
-    value: int | bytes | None
+    #: u8/u16: the value sent; pattern: its levels (the bytes on v1.2, the stored u16 heights on v2)
+    value: int | bytes | tuple[int, ...] | None
     status: str = OK
     note: str = ""
     #: What the firmware stores for a u8/u16 value (after its clamp and shift; None: ignored or no value).
@@ -47,7 +48,7 @@ class DecodedCommand:
             text = f"UNREAD ×{len(self.raw)}: the parser is locked and never reads these"
         else:
             text = self.name
-            if isinstance(self.value, bytes):
+            if isinstance(self.value, (bytes, tuple)):
                 text += f" levels=[{','.join(str(b) for b in self.value)}]"
             elif self.value is not None:
                 field = self.name.lower()
@@ -63,7 +64,7 @@ class DecodedCommand:
         return f"{self.offset:06d}  {hexbytes:<47}  {text}"
 
     def to_dict(self) -> dict[str, object]:
-        value: object = list(self.value) if isinstance(self.value, bytes) else self.value
+        value: object = list(self.value) if isinstance(self.value, (bytes, tuple)) else self.value
         return {
             "offset": self.offset,
             "raw": self.raw.hex(),
@@ -112,9 +113,9 @@ class StreamDecoder:
             else:
                 spec = by_op[c.opcode]
                 note = ""
-                value: int | bytes | None
+                value: int | bytes | tuple[int, ...] | None
                 if spec.kind == "pattern":
-                    value = c.payload
+                    value = c.payload if self.firmware.pattern_bytes_per_electrode == 1 else c.levels
                     if c.payload and max(c.payload) >= self._cmin:
                         note = "pattern holds a command byte: an earlier command was probably cut short"
                 else:
