@@ -4,12 +4,15 @@ packet: the next command's bytes become the cut command's value."""
 from __future__ import annotations
 
 import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
-from tactdeform_hw.device.safety import SafetyGuard, WireState, _tail_losses
+from tactdeform_hw.device.safety import SafetyGuard, WireState, _Shadow, _tail_losses
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.errors import SafetyError
+from tactdeform_hw.protocol.units import CurrentTransfer
 
 from .safety_helpers import RecordingPort
 
@@ -141,3 +144,76 @@ def test_steady_frames_keep_a_single_state() -> None:
     state = dev.guard.wire_state
     assert state.alternatives == () and not state.unproven
     dev.close()
+
+
+# --- the loss model against the firmware's own parser ---------------------------------------------------
+
+ONE_UA_PER_CODE = CurrentTransfer(ua_per_code=1.0)  # 4095 codes stay under the 10 mA ceiling: nothing refused
+
+
+def _command(draw: st.DrawFn, n: int) -> bytes:
+    kind = draw(st.sampled_from(["height", "sense", "width", "sense_width", "count", "pattern", "discharge"]))
+    if kind == "height":
+        return p.encode_pulse_height(draw(st.integers(0, 600)))
+    if kind == "sense":
+        return p.encode_sense_height(draw(st.integers(0, 60)))
+    if kind == "width":
+        return p.encode_pulse_width(draw(st.integers(1, 300)))
+    if kind == "sense_width":
+        return p.encode_sense_width(draw(st.integers(0, 100)))
+    if kind == "count":
+        return p.encode_electrode_num(draw(st.integers(1, 8)))
+    if kind == "discharge":
+        return p.encode_discharge(draw(st.integers(0, 60)))
+    return p.encode_pattern(draw(st.lists(st.integers(0, 3), min_size=n, max_size=n)), electrode_num=n)
+
+
+def _matches(s: _Shadow, emu: Emulator) -> bool:
+    """The firmware's registers agree with every register the interlock's state claims to know."""
+    regs = emu.state()
+    pairs = [
+        (s.electrode_num, regs["electrode_num"]), (s.height_code, regs["pulse_height"]),
+        (s.sense_code, regs["sense_pulse_height"]), (s.width_us, regs["pulse_width"]),
+        (s.sense_width_us, regs["sense_pulse_width"]), (s.polarity, regs["polarity"]),
+    ]
+    if any(mine is not None and mine != theirs for mine, theirs in pairs):
+        return False
+    if any(mine is not None and mine != theirs for mine, theirs in zip(s.pattern, regs["stim_pattern"])):
+        return False
+    return s.parse is None or s.parse.opcode == emu.parser.cmd
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.filter_too_much])
+@given(data=st.data())
+def test_every_state_a_lost_tail_leaves_is_foreseen(data: st.DataObject) -> None:
+    """Whatever tail of a write a full queue discards, the firmware ends in one of the interlock's states,
+    and stays in one of them through the next write."""
+    guard = SafetyGuard(max_charge_nc=1e9)
+    emu = Emulator()
+    setup = (
+        p.encode_pulse_height(0), p.encode_sense_height(0), p.encode_polarity(1), p.encode_pulse_width(100),
+        p.encode_sense_width(50), p.encode_electrode_num(8), p.encode_pattern([1, 0, 2, 0, 0, 1, 0, 0]),
+        p.encode_pulse_height(100),
+    )
+    for cmd in setup:
+        guard.commit(guard.check_wire(cmd, transfer=ONE_UA_PER_CODE))
+        emu.feed(cmd)
+    first = data.draw(st.composite(lambda d: _command(d, 8))())
+    try:
+        state = guard.check_wire(first, transfer=ONE_UA_PER_CODE, room=0)
+    except SafetyError:
+        assume(False)
+    guard.commit(state)
+    j = data.draw(st.integers(0, len(first) - 1))
+    kept = first[:j] + (first[min(len(first), (j // 64 + 1) * 64) :] if data.draw(st.booleans()) else b"")
+    emu.feed(kept)
+    assert any(_matches(s, emu) for s in (state.nominal, *state.alternatives))
+    n = state.nominal.electrode_num or 1
+    second = data.draw(st.composite(lambda d: _command(d, n))())
+    try:
+        state = guard.check_wire(second, transfer=ONE_UA_PER_CODE)
+    except SafetyError:
+        assume(False)
+    guard.commit(state)
+    emu.feed(second)
+    assert any(_matches(s, emu) for s in (state.nominal, *state.alternatives))
