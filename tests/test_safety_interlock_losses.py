@@ -162,7 +162,7 @@ def _command(draw: st.DrawFn, n: int) -> bytes:
     if kind == "sense_width":
         return p.encode_sense_width(draw(st.integers(0, 100)))
     if kind == "count":
-        return p.encode_electrode_num(draw(st.integers(1, 8)))
+        return p.encode_electrode_num(draw(st.sampled_from([1, 3, 8, n])))
     if kind == "discharge":
         return p.encode_discharge(draw(st.integers(0, 60)))
     return p.encode_pattern(draw(st.lists(st.integers(0, 3), min_size=n, max_size=n)), electrode_num=n)
@@ -190,15 +190,16 @@ def test_every_state_a_lost_tail_leaves_is_foreseen(data: st.DataObject) -> None
     and stays in one of them through the next write."""
     guard = SafetyGuard(max_charge_nc=1e9)
     emu = Emulator()
+    count = data.draw(st.sampled_from([8, 70]))  # 70: a pattern of two USB packets
     setup = (
         p.encode_pulse_height(0), p.encode_sense_height(0), p.encode_polarity(1), p.encode_pulse_width(100),
-        p.encode_sense_width(50), p.encode_electrode_num(8), p.encode_pattern([1, 0, 2, 0, 0, 1, 0, 0]),
+        p.encode_sense_width(50), p.encode_electrode_num(count), p.encode_pattern(([1, 0, 2, 0, 0, 1, 0, 0] * 9)[:count]),
         p.encode_pulse_height(100),
     )
     for cmd in setup:
         guard.commit(guard.check_wire(cmd, transfer=ONE_UA_PER_CODE))
         emu.feed(cmd)
-    first = data.draw(st.composite(lambda d: _command(d, 8))())
+    first = data.draw(st.composite(lambda d: _command(d, count))())
     try:
         state = guard.check_wire(first, transfer=ONE_UA_PER_CODE, room=0)
     except SafetyError:
