@@ -424,7 +424,9 @@ class Device(ABC):
     @_locked
     def resync(self) -> None:
         """Bring a parser of unknown state back in step, in the order the protocol reference gives:
-        256 zeros finish any command in progress; then pulse height 0 and the sense height 0 (a zero may
+        256 zeros finish any command in progress; the board must then answer 0xF5 (until it has, the zeros
+        may still fill its queue and cut the next command; without an answer nothing more is sent and the
+        device stays marked for a resync); then pulse height 0 and the sense height 0 (a zero may
         have landed as the high byte of a half-received u16, so the height could be anything) and an
         all-off pattern — preceded by the electrode count, because a zero may have landed as electrode
         count 0 and a pattern then would lock the parser; then the whole configuration again.  No pattern
