@@ -218,3 +218,20 @@ def test_every_state_a_lost_tail_leaves_is_foreseen(data: st.DataObject) -> None
     guard.commit(state)
     emu.feed(second)
     assert any(_matches(s, emu) for s in (state.nominal, *state.alternatives))
+
+
+def test_all_off_on_a_board_that_does_not_answer_says_so() -> None:
+    from tactdeform_hw.errors import ShortReplyError
+
+    port = RecordingPort()
+    dev = EtactileKitDevice(port, guard=SafetyGuard())
+    dev.configure(StimConfig(current_ua=400))
+    dev.send_pattern([1] * 32)
+    port.emulator.feed(b"\xfc\x00\xfe")  # something locked the parser
+    assert not dev.probe() and dev.needs_resync
+    n = len(port.writes)
+    with pytest.raises(ShortReplyError, match="0xF5 after the resync zeros"):
+        dev.all_off()
+    assert all(w == p.HV513_COUNT_REQUEST for w in port.writes[n:] if any(w))
+    assert dev.hardware_reset() and dev.probe()
+    dev.close()

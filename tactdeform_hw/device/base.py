@@ -60,9 +60,9 @@ from .safety import SafetyGuard
 #: Pattern levels a host may send: off (a sense pulse, 0 µA while sense current is 0), mono, biphasic.
 ALLOWED_LEVELS = frozenset({PATTERN_SENSE, PATTERN_MONOPHASIC, PATTERN_BIPHASIC})
 _ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
-#: Commands that change what the scans deliver (a measure right after one reads the old pulses).
 #: Requests sent after a resync's zeros before the board counts as not answering.
 _PROOF_ATTEMPTS = 2
+#: Commands that change what the scans deliver (a measure right after one reads the old pulses).
 _STATE_OPCODES = frozenset(
     {p.Opcode.PATTERN, p.Opcode.PULSE_HEIGHT, p.Opcode.PULSE_WIDTH, p.Opcode.SENSE_HEIGHT, p.Opcode.SENSE_WIDTH,
      p.Opcode.ELECTRODE_NUM, p.Opcode.POLARITY, p.Opcode.FREQUENCY}
@@ -256,6 +256,7 @@ class Device(ABC):
             self.pacer.set_timing(firmware_period_us(old.rate_hz) / 1e6, max(self._scan_us, idle_scan) / 1e6)
         if self._needs_resync:
             self._flush_parser()
+            self._require_answer()
         self._send(p.encode_pulse_height(0))
         self._current_ua = 0
         if self._config is not None:
@@ -375,6 +376,7 @@ class Device(ABC):
         n = self._config.electrode_count
         if self._needs_resync:
             self._flush_parser()
+            self._require_answer()
         self._send_critical(p.encode_pattern(bytes(n)))
         self._send_critical(p.encode_pulse_height(0))
         self._last_pattern = bytes(n)
@@ -493,6 +495,10 @@ class Device(ABC):
                 self.guard.note_in_step()
                 return True
         return False
+
+    def _require_answer(self) -> None:
+        if self._needs_resync:
+            raise ShortReplyError("0xF5 after the resync zeros (nothing more was sent)", 1, b"")
 
     @_locked
     def reconnect(self) -> None:
