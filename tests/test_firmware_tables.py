@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
+from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.errors import ConfigurationError
 from tactdeform_hw.protocol import constants as c
 from tactdeform_hw.protocol.firmware import FIRMWARES, V1_2, V2, Opcode, OpcodeV2, get_firmware
@@ -33,6 +36,7 @@ def test_v12_table() -> None:
     assert V1_2.rx_queue_bytes == 256 and V1_2.usb_packet_bytes == 64
     assert V1_2.zero_pattern_locks and V1_2.partial_payload_applied and V1_2.command_timeout_us is None
     assert V1_2.sleeps_after(0xFB, True) and not V1_2.sleeps_after(0xFF, True) and not V1_2.sleeps_after(0x00, True)
+    assert V1_2.sleeps_after(None, False) and V1_2.sleeps_after(0xFE, False)  # idle; waiting for a payload
     assert V1_2.timing.discharge_exchange and V1_2.pattern_level_max() == 255
     assert V1_2.power_on["polarity"] == 1 and V1_2.power_on["period_us"] == 10_000.0
 
@@ -67,3 +71,22 @@ def test_constants_read_the_v12_table() -> None:
     assert c.RX_QUEUE_SIZE == V1_2.rx_queue_bytes and c.USB_PACKET_SIZE == V1_2.usb_packet_bytes
     assert c.DAC_MAX_CODE == V1_2.dac_max_code and c.SENSE_HEIGHT_SHIFT == 2
     assert c.Opcode is Opcode and c.POWER_ON_PERIOD_US == V1_2.power_on["period_us"]
+
+
+@settings(max_examples=150, deadline=None)
+@given(data=st.lists(st.one_of(st.integers(0xF5, 0xFF), st.integers(0, 3), st.integers(0, 255)), max_size=120).map(bytes))
+def test_the_yield_rule_is_the_emulator_parsers(data: bytes) -> None:
+    """Call by call, the v1.2 table's yield rule says when the emulator's parser sleeps a tick."""
+    emu = Emulator()
+    parser = emu.parser
+    parser.receive(data)
+    for _ in range(len(data) + 3):
+        before = (parser.offset, len(parser.tx))
+        opcode = parser.cmd if parser.cmd is not None else (parser.rx[parser.pos] if parser.pending else None)
+        result = emu.call()
+        if result.name == "STUCK_U16":  # the call spins on a half u16 and has not returned
+            break
+        progressed = (parser.offset, len(parser.tx)) != before
+        assert V1_2.sleeps_after(opcode, progressed) == result.slept, (result, opcode, progressed)
+        if result.name in ("IDLE", "LOCKED"):
+            break

@@ -276,11 +276,14 @@ class FirmwareSpec:
         return 1
 
     def sleeps_after(self, opcode: int | None, progressed: bool) -> bool:
-        """Whether a parser call that read ``opcode`` (None: no command byte) ends with a one-tick sleep."""
+        """Whether one parser call ends with a one-tick sleep.  ``opcode`` is the byte the call read as a
+        command, or the command in progress it worked on (None: nothing was waiting); ``progressed``
+        whether it consumed or wrote a byte.  v1.2 returns at once only after a reply or an unknown byte;
+        v2 sleeps only after a call that made no progress."""
         if self.yield_rule == "when_idle":
             return not progressed
         if opcode is None:
-            return not progressed
+            return True
         c = self.by_opcode.get(opcode)
         return c is not None and c.kind is not None
 
