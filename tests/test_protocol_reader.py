@@ -117,6 +117,7 @@ def _emulator_state(data: bytes) -> dict[str, Any]:
 @settings(max_examples=300, deadline=None)
 @given(data=streams)
 def test_reader_agrees_with_the_emulator_parser(data: bytes) -> None:
+    assert list(iter_commands(data)) == list(read_commands(data).commands)
     mine = registers_after(data)
     emu = _emulator_state(data)
     for key in ("electrode_num", "polarity", "pulse_height", "pulse_width", "sense_pulse_height",
