@@ -25,6 +25,7 @@ def register(sub: Any) -> None:
     p.add_argument("--hex-file", action="store_true", help="the --file holds hex text, not raw bytes")
     p.add_argument("--electrodes", type=int, default=0,
                    help="electrode_num in force when the capture starts, 0-255 (default 0, power-on)")
+    p.add_argument("--firmware", default="v1.2", help="the firmware whose parser reads the capture: v1.2 (default) or v2")
     p.add_argument("--json", action="store_true", help="print a JSON list instead of lines")
     p.set_defaults(func=run)
 
@@ -60,8 +61,10 @@ _SEPARATORS = frozenset(" \t\r\n:,;-")
 
 def run(args: argparse.Namespace) -> int:
     from ..protocol.decoder import OK, decode
+    from ..protocol.firmware import get_firmware
     from .options import check_range
 
+    firmware = get_firmware(args.firmware, "--firmware")
     check_range("--electrodes", args.electrodes, 0, 255)
     parse_hex = read_hex
     try:
@@ -76,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigurationError(f"cannot read {args.file}: {exc}") from exc
     if not data:
         raise ConfigurationError("the capture is empty: no bytes to decode")
-    items = decode(data, args.electrodes)
+    items = decode(data, args.electrodes, firmware)
     if args.json:
         print_json([c.to_dict() for c in items])
     else:

@@ -60,6 +60,8 @@ from .safety import SafetyGuard
 #: Pattern levels a host may send: off (a sense pulse, 0 µA while sense current is 0), mono, biphasic.
 ALLOWED_LEVELS = frozenset({PATTERN_SENSE, PATTERN_MONOPHASIC, PATTERN_BIPHASIC})
 _ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
+#: Requests sent after a resync's zeros before the board counts as not answering.
+_PROOF_ATTEMPTS = 2
 #: Commands that change what the scans deliver (a measure right after one reads the old pulses).
 _STATE_OPCODES = frozenset(
     {p.Opcode.PATTERN, p.Opcode.PULSE_HEIGHT, p.Opcode.PULSE_WIDTH, p.Opcode.SENSE_HEIGHT, p.Opcode.SENSE_WIDTH,
@@ -287,6 +289,7 @@ class Device(ABC):
             self.pacer.set_timing(firmware_period_us(old.rate_hz) / 1e6, max(self._scan_us, idle_scan) / 1e6)
         if self._needs_resync:
             self._flush_parser()
+            self._require_answer()
         self._send(p.encode_pulse_height(0))
         self._current_ua = 0
         if self._config is not None:
@@ -406,6 +409,7 @@ class Device(ABC):
         n = self._config.electrode_count
         if self._needs_resync:
             self._flush_parser()
+            self._require_answer()
         self._send_critical(p.encode_pattern(bytes(n)))
         self._send_critical(p.encode_pulse_height(0))
         self._last_pattern = bytes(n)
@@ -455,7 +459,9 @@ class Device(ABC):
     @_locked
     def resync(self) -> None:
         """Bring a parser of unknown state back in step, in the order the protocol reference gives:
-        256 zeros finish any command in progress; then pulse height 0 and the sense height 0 (a zero may
+        256 zeros finish any command in progress; the board must then answer 0xF5 (until it has, the zeros
+        may still fill its queue and cut the next command; without an answer nothing more is sent and the
+        device stays marked for a resync); then pulse height 0 and the sense height 0 (a zero may
         have landed as the high byte of a half-received u16, so the height could be anything) and an
         all-off pattern — preceded by the electrode count, because a zero may have landed as electrode
         count 0 and a pattern then would lock the parser; then the whole configuration again.  No pattern
@@ -466,6 +472,8 @@ class Device(ABC):
         current the firmware can deliver."""
         self._check_open()
         self._flush_parser()
+        if self._needs_resync:
+            return  # the board did not answer after the zeros
         cfg = self._config
         if cfg is not None:
             requested = self._requested
@@ -491,6 +499,8 @@ class Device(ABC):
         else:
             self.pacer.set_timing(None, None)
         self._send(bytes(RX_QUEUE_SIZE))
+        if not self._prove_in_step():
+            return  # no answer (a locked parser, a dead link): nothing may follow; still needs a resync
         self._send(p.encode_pulse_height(0))
         self._current_ua = 0
         self._send(p.encode_sense_height(0))
@@ -504,6 +514,24 @@ class Device(ABC):
             self._scan_us = self._scan_of(cfg, bytes(n))
             self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, self._scan_us / 1e6)
         self._needs_resync = False
+
+    def _prove_in_step(self) -> bool:
+        """After the zeros the board must answer a request before any value follows: until it has, its
+        queue may still be full of zeros, and a command whose packet lost its tail there would take the next
+        command's bytes as its value (pulse height 0 then a sense height reads as 0xF900 → 4095).  A request
+        lost to that full queue changes nothing, so it is asked again (the read's timeout lets the parser
+        drain the zeros meanwhile)."""
+        for _ in range(_PROOF_ATTEMPTS):
+            self._discard_input()
+            self._send(p.HV513_COUNT_REQUEST)
+            if len(self._read(1)) == 1:
+                self.guard.note_in_step()
+                return True
+        return False
+
+    def _require_answer(self) -> None:
+        if self._needs_resync:
+            raise ShortReplyError("0xF5 after the resync zeros (nothing more was sent)", 1, b"")
 
     @_locked
     def reconnect(self) -> None:
