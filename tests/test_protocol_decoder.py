@@ -65,4 +65,4 @@ def test_cli_decodes_with_the_named_firmware(capsys) -> None:  # type: ignore[no
     assert "pulse_height=63744 (stored as 4095)" in capsys.readouterr().out
     assert main(["decode", "fb 00", "--firmware", "v3"]) != 0
     err = capsys.readouterr().err
-    assert "--firmware='v3'" in err and "v1.2, v2" in err and "Traceback" not in err
+    assert "--firmware 'v3'" in err and "v1.2, v2" in err and "Traceback" not in err

@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     from .options import check_range
 
     firmware = get_firmware(args.firmware, "--firmware")
-    check_range("--electrodes", args.electrodes, 0, 255)
+    check_range("--electrodes", args.electrodes, 0, firmware.max_electrodes)
     parse_hex = read_hex
     try:
         if args.file is not None:

@@ -17,6 +17,7 @@ from typing import IO, Any
 
 from ..device.audit import AuditLog, describe_command
 from ..device.regions import RegionMap, tactdeform_region_map
+from ..protocol.firmware import V1_2
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 _ACTIVE = (1, 2)
@@ -94,7 +95,7 @@ class DeliveryLog(AuditLog):
             return
         name, value = describe_command(logical if logical is not None else data)
         if name == "PULSE_HEIGHT" and isinstance(value, int):
-            ua = int(round(self.transfer.to_ua(min(value, 4095))))
+            ua = int(round(self.transfer.to_ua(min(value, V1_2.dac_max_code))))
             if ua != self._height:
                 self.height_changes += 1
                 if ua and len(self.heights_ua) < HEIGHTS_SHOWN and (not self.heights_ua or self.heights_ua[-1] != ua):

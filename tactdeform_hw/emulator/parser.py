@@ -316,7 +316,7 @@ class Parser:
         first = self.pos - size
         i = next(k for k in range(size) if self.rx[first + k] >= _COMMAND_BYTE_MIN)
         field, stored = register_after(op, self.regs)
-        value = self.rx[first] if size == 1 else self.rx[first] | self.rx[first + 1] << 8
+        value = self.rx[first] if size == 1 else u16_at(self.rx, first)
         self._hazard(
             HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE,
             self.base + first + i,
