@@ -47,11 +47,17 @@ def test_approach_frame_is_one_per_2mm_of_travel_and_none_is_skipped(speed: floa
     poses = press(5.0, -13.0, speed, rate)
     shown: list[int] = []
     last_count = -1
+    confirming = 0
     for t, p, q in poses:
         out = m.update(t, p, q, scene.query(p))
         depth = -float(p[2])
         if depth < 0:
             assert out.state == IDLE
+            continue
+        if out.state == IDLE:
+            # Onset is confirmed by the next sample in contact (or at once 3 mm deep): one sample late.
+            confirming += 1
+            assert confirming == 1 and depth < 3.0
             continue
         assert out.state == APPROACHING
         assert m.frame == math.floor(depth / 2.0 + 1e-9)
@@ -277,7 +283,7 @@ def test_textured_slide_shifts_at_v_over_d_k(k: int, hz: float) -> None:
     assert len(window) == pytest.approx(2.0 * hz, abs=1.5)
     ps = m.patterns
     pats = {o.pattern for o in outs if o.context == "sliding"}
-    assert pats <= {ps.sliding("face", None, 0, k, ph) for ph in range(2 * k)}
+    assert pats <= {ps.sliding("face", None, 0, k, ph) for ph in range(ps.mask_period(k))}
 
 
 @pytest.mark.parametrize("k", [1, 2])
@@ -296,7 +302,7 @@ def test_slide_direction_is_quantised_to_8(d: int) -> None:
     m, outs, _ = slide_run(1, direction_deg=45.0 * d + 12.0)
     assert m.direction.value == d
     assert outs[-1].context == "sliding"
-    assert outs[-1].pattern in {m.patterns.sliding("face", None, d, 1, ph) for ph in (0, 1)}
+    assert outs[-1].pattern in {m.patterns.sliding("face", None, d, 1, ph) for ph in range(m.patterns.mask_period(1))}
 
 
 def test_direction_on_a_bin_boundary_with_tremor_does_not_flicker() -> None:
@@ -356,7 +362,8 @@ def test_zero_velocity_zero_dt_and_infinite_gap() -> None:
     assert not m.sliding
     # A first sample with nothing before it, and an absurd first time, are fine too.
     fresh = PatternManager()
-    assert fresh.update(1e12, p, PAD_DOWN, scene.query(p)).state == APPROACHING
+    assert fresh.update(1e12, p, PAD_DOWN, scene.query(p)).state == IDLE  # onset needs a second sample
+    assert fresh.update(1e12 + 1 / 72, p, PAD_DOWN, scene.query(p)).state == APPROACHING
 
 
 @pytest.mark.parametrize(
@@ -422,9 +429,11 @@ def test_teleporting_pose_is_not_travel() -> None:
     assert m.stats.teleports == 2
     # A fresh contact 5 mm deep: frame 2, nothing of the 905 mm jump counted.
     assert o.state == APPROACHING and m.frame == 2 and m.approach.travel_mm == pytest.approx(5.0)
-    # A teleport between two places inside the object does the same.
+    # A teleport between two places inside the object does the same (1 mm deep: confirmed by the next sample).
     o = m.update(t + 2 / 72, (400.0, 0.0, -1.0), PAD_DOWN, scene.query(np.array([400.0, 0, -1.0])))
-    assert m.stats.teleports == 3 and m.frame == 0 and m.approach.travel_mm == pytest.approx(1.0)
+    assert m.stats.teleports == 3 and o.state == IDLE
+    o = m.update(t + 3 / 72, (400.0, 0.0, -1.0), PAD_DOWN, scene.query(np.array([400.0, 0, -1.0])))
+    assert o.state == APPROACHING and m.frame == 0 and m.approach.travel_mm == pytest.approx(1.0)
 
 
 @pytest.mark.parametrize("freq", [8.0, 10.0, 12.0])

@@ -70,13 +70,14 @@ def shift_count(slide_travel_mm: float, k_texture: int, d_electrode_mm: float = 
     return math.floor(slide_travel_mm / (d_electrode_mm * k_texture))
 
 
-def mask_phase(count: int, k_texture: int, period_factor: int = 2, step_spacings: int | None = None, beta: float = BETA) -> int:
+def mask_phase(count: int, k_texture: int, period_factor: int = 3, step_spacings: int | None = None, beta: float = BETA) -> int:
     """Where the texture mask stands after ``count`` shifts, in spacings modulo its period.
 
     The spec's interpretation: the mask (period ``period_factor · k``) moves ``k`` spacings per count,
     opposite to the finger for β = +1 — a mask read at coordinate ``q + phase`` along the motion, so
-    features move toward −q.  Note that with the default period 2k a shift of k inverts the stripes, so
-    consecutive counts alternate between two complementary masks and β only matters for other steps.
+    features move toward −q.  The period must exceed twice the step: at exactly 2k a shift of k inverts
+    the stripes, consecutive counts alternate between two complementary masks and the motion has no
+    direction (β = +1 and β = −1 give the same sequence).
     """
     if k_texture == 0:
         return 0
@@ -284,10 +285,18 @@ def _clip90(a: float, b: float) -> float:
     return -90.0 if th < -90.0 else (90.0 if th > 90.0 else th)
 
 
+#: Tolerance on eq. 4's bin boundaries: a θ within this of a boundary counts as on it, so an angle of
+#: exactly 30° that reaches the renderer as 29.999999999999996° (a pose's rotation and the normal's
+#: rounding) lands in the bin the paper gives 30° (steep right, [30°, 90°]).  1e-6° is far below any
+#: tracker's resolution and far above double rounding of a unit vector's angle (~1e-14°).
+THETA_TOLERANCE_DEG = 1e-6
+
+
 def theta_level(theta_deg: float, current: int | None = None, margin_deg: float = 0.0) -> int:
     """Eq. 4's bins — steep left [-90, -30), shallow left [-30, 0), shallow right [0, 30), steep right
-    [30, 90] → 0..3 — with hysteresis: the current level is kept until θ is ``margin_deg`` past its
-    boundary."""
+    [30, 90] → 0..3, each boundary taken with :data:`THETA_TOLERANCE_DEG` — with hysteresis: the current
+    level is kept until θ is ``margin_deg`` past its boundary."""
+    theta_deg += THETA_TOLERANCE_DEG
     e0, e1, e2 = THETA_EDGES_DEG
     if current is not None:
         lo = -math.inf if current == 0 else THETA_EDGES_DEG[current - 1]

@@ -99,17 +99,24 @@ class ManagerConfig:
     frame_release_mm: float = 1.25
     # contact detection
     contact_enter_mm: float = 0.0
-    contact_release_mm: float = 1.5
-    contact_loss_window_s: float = 0.07
+    onset_confirm_s: float = 0.008  # in contact over this long (two samples at ≤ 120 Hz) before onset
+    onset_deep_mm: float = 3.0  # ... or at once this deep: no hover noise reaches it
+    contact_release_mm: float = 0.75  # mean signed distance over the loss window above this: lost
+    contact_loss_window_s: float = 0.1
     contact_loss_far_mm: float = 10.0
-    # Approaching → Interacting
-    sustain_s: float = 0.15
-    motion_window_s: float = 0.3
+    recent_outside_s: float = 0.25  # an outside sample this recent gives the approach normal and start
+    # Approaching → Interacting: the finger has stopped advancing
+    sustain_s: float = 0.0  # optional minimum contact time (the paper gives none)
+    motion_window_s: float = 0.5
     settle_speed_mm_s: float = 8.0
-    settle_hold_s: float = 0.15
+    settle_hold_s: float = 0.25
+    advance_mm: float = 0.15
     # stationary / sliding
-    slide_on_mm_s: float = 12.0
-    slide_off_mm_s: float = 8.0
+    slide_on_mm_s: float = 1.5  # the documented sliding floor (≤ 2 mm/s)
+    slide_off_mm_s: float = 1.0
+    slide_start_mm: float = 0.75  # ... and this far from where the pad last rested
+    stop_window_s: float = 0.15  # recent speed below stop_fraction of the window's: stopped
+    stop_fraction: float = 0.25
     slide_smoothing_s: float = 0.125  # position average before every speed, direction and texture travel
     # stability windows and hysteresis margins
     feature_window_s: float = 0.1
@@ -143,6 +150,8 @@ class ManagerConfig:
                 raise LimitError(f.name, v, "a finite number")
         nonneg = (
             "contact_release_mm", "contact_loss_window_s", "contact_loss_far_mm", "sustain_s", "settle_speed_mm_s", "settle_hold_s",
+            "onset_confirm_s", "onset_deep_mm", "recent_outside_s", "advance_mm", "slide_start_mm", "stop_window_s",
+            "stop_fraction",
             "slide_off_mm_s", "feature_window_s", "orientation_window_s", "orientation_margin_deg",
             "theta_window_s", "theta_margin_deg", "direction_window_s", "direction_margin_deg",
             "texture_window_s", "teleport_min_mm", "frame_release_mm", "slide_smoothing_s",
@@ -154,6 +163,8 @@ class ManagerConfig:
             raise LimitError("alpha", self.alpha, "> 0")
         if self.d_electrode_mm is not None and not self.d_electrode_mm > 0:
             raise LimitError("d_electrode_mm", self.d_electrode_mm, "> 0 mm")
+        if not self.advance_mm > 0:
+            raise LimitError("advance_mm", self.advance_mm, "> 0 mm")
         if not self.motion_window_s > 0:
             raise LimitError("motion_window_s", self.motion_window_s, "> 0 s")
         if self.slide_smoothing_s > self.motion_window_s:
@@ -320,9 +331,17 @@ class PatternManager:
         self._n: tuple[float, float, float] | None = None
         self._hist: deque[tuple[float, float, float, float]] = deque()
         self._mhist: deque[tuple[float, float, float, float]] = deque()
+        self._shist: deque[tuple[float, float, float, float]] = deque()
+        self._anchor: tuple[float, float, float, float] | None = None
         self._onset_t = 0.0
-        self._above_since: float | None = None
-        self._settled_since: float | None = None
+        self._in_since: float | None = None  # Idle: first of the consecutive samples in contact
+        self._sd_hist: deque[tuple[float, float]] = deque()  # (t, signed distance) since onset
+        self._sd_sum = 0.0
+        self._outside: tuple[float, tuple[float, float, float], tuple[float, float, float], float] | None = None
+        self._n_onset: tuple[float, float, float] = (0.0, 0.0, 1.0)
+        self._m_onset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._peak_mm = 0.0
+        self._advanced_t = 0.0
         self.feature = Debounced(cfg.feature_window_s)
         self.orientation = Debounced(cfg.orientation_window_s)
         self.texture = Debounced(cfg.texture_window_s)
@@ -393,8 +412,10 @@ class PatternManager:
             if step > cfg.teleport_min_mm and step > cfg.max_speed_mm_s * (t - t_prev):
                 teleport = True
                 self.stats.teleports += 1
+                self._outside = None
                 self._hist.clear()
                 self._mhist.clear()
+                self._shist.clear()
         self._t = t
         self._p = p
         hist = self._hist
@@ -406,23 +427,40 @@ class PatternManager:
         mhist.append((t, *self._smoothed_position(t)))
         while len(mhist) > 2 and mhist[1][0] <= w0:
             mhist.popleft()
+        shist = self._shist
+        shist.append(mhist[-1])
+        w1 = t - cfg.stop_window_s
+        while len(shist) > 2 and shist[1][0] <= w1:
+            shist.popleft()
 
         # --- contact ------------------------------------------------------------------------------------------
         old_state = self.state
         if self.state != IDLE:
             lost = teleport or normal is None or sd > cfg.contact_loss_far_mm
-            if not lost and sd > cfg.contact_release_mm:
-                if self._above_since is None:
-                    self._above_since = t
-                lost = t - self._above_since >= cfg.contact_loss_window_s
-            elif not lost:
-                self._above_since = None
+            if not lost:
+                # Stability filter on leaving: the mean signed distance over the loss window (samples of
+                # this contact only) must be above the release distance, and the pad outside now.  Noise
+                # around a hover averages out; tremor on a light press averages to the press.
+                h = self._sd_hist
+                h.append((t, sd))
+                self._sd_sum += sd
+                w0 = t - cfg.contact_loss_window_s
+                while len(h) > 1 and h[0][0] < w0:
+                    self._sd_sum -= h.popleft()[1]
+                lost = sd > cfg.contact_enter_mm and self._sd_sum / len(h) > cfg.contact_release_mm
             if lost:
                 self._to_idle()
         seq: list[Pattern]
         if self.state == IDLE:
-            if normal is not None and sd <= cfg.contact_enter_mm:
-                assert feat is not None  # a normal is only kept together with a checked feature
+            inside = normal is not None and sd <= cfg.contact_enter_mm
+            if not inside:
+                self._in_since = None
+            elif self._in_since is None:
+                self._in_since = t
+            if inside and self._in_since is not None and (
+                t - self._in_since >= cfg.onset_confirm_s - 1e-9 or sd <= cfg.contact_enter_mm - cfg.onset_deep_mm
+            ):
+                assert feat is not None and normal is not None  # a normal is only kept with a checked feature
                 seq = self._onset(t, p, q, sd, normal, feat, query)
             else:
                 seq = [self.patterns.off]
@@ -433,6 +471,8 @@ class PatternManager:
         if self.state != old_state:
             self.stats.transitions += 1
         self._n = normal
+        if normal is not None and sd > cfg.contact_enter_mm:
+            self._outside = (t, p, normal, sd)
         return self._emit(t, t_prev, seq)
 
     # --- internals -----------------------------------------------------------------------------------------
@@ -450,7 +490,9 @@ class PatternManager:
     def _to_idle(self) -> None:
         self.state = IDLE
         self.context = None
-        self._above_since = None
+        self._in_since = None
+        self._sd_hist.clear()
+        self._sd_sum = 0.0
         self.sliding = False
         self.theta_deg = None
         self._family = None
@@ -491,14 +533,34 @@ class PatternManager:
         self.state = APPROACHING
         self.context = APPROACHING
         self._onset_t = t
-        self._above_since = None
-        self._settled_since = None
+        self._in_since = None
+        self._sd_hist.clear()
+        self._sd_hist.append((t, sd))
+        self._sd_sum = sd
+        # Latched at initial contact and kept through the approach (paper): the feature, the edge's
+        # orientation and the direction "toward the surface".  That direction is the normal seen just
+        # before contact (an edge's or corner's bisector, where the nearest surface point was the edge
+        # or corner itself); once inside, the nearest point moves onto a face and its normal would
+        # count travel along a bisector short by cos 45°.
+        out = self._outside
+        if out is not None and t - out[0] <= cfg.recent_outside_s:
+            n0 = out[2]
+            po = out[1]
+            travel = -((p[0] - po[0]) * n0[0] + (p[1] - po[1]) * n0[1] + (p[2] - po[2]) * n0[2]) - (out[3] - cfg.contact_enter_mm)
+        else:
+            n0 = normal
+            travel = cfg.contact_enter_mm - sd
+        self._n_onset = (n0[0], n0[1], n0[2])
+        m = self._mhist[-1]
+        self._m_onset = (m[1], m[2], m[3])
+        self._peak_mm = 0.0
+        self._advanced_t = t
         self.feature.force(feat)
         self.orientation.force(self._edge_bin(query, q, None) if feat == "edge" else None)
         if feat == "edge" and self.orientation.value is None:
             self.orientation.force(0)
         self.texture.force(self._texture_of(query))
-        self.approach.begin(cfg.contact_enter_mm - sd)
+        self.approach.begin(max(0.0, travel))
         self.slide.reset()
         self._m_prev = None
         self._ns = None
@@ -525,16 +587,41 @@ class PatternManager:
     def _in_contact(self, t: float, p: tuple[float, ...], p_prev: tuple[float, ...], q: tuple[float, ...], sd: float,
                     normal: tuple[float, ...], feat: str, query: Any) -> list[Pattern]:
         cfg = self.config
-        # Displacement projected on the normal (mean of the last two normals on curved surfaces).
-        n0 = self._n if self._n is not None else normal
-        mx, my, mz = n0[0] + normal[0], n0[1] + normal[1], n0[2] + normal[2]
-        mn = math.sqrt(mx * mx + my * my + mz * mz)
-        if mn < 1e-9:
-            mx, my, mz, mn = normal[0], normal[1], normal[2], 1.0
-        dx, dy, dz = p[0] - p_prev[0], p[1] - p_prev[1], p[2] - p_prev[2]
-        toward = -(dx * mx + dy * my + dz * mz) / mn
+        v = self._velocity()
+        if self.state == APPROACHING:
+            # Eq. 3's travel: displacement along the direction latched at contact; feature and
+            # orientation stay as they were at contact, however deep the finger goes.
+            n0 = self._n_onset
+            self.approach.advance(-((p[0] - p_prev[0]) * n0[0] + (p[1] - p_prev[1]) * n0[1] + (p[2] - p_prev[2]) * n0[2]))
+            self.texture.update(self._texture_of(query), t)
+            # Stopped advancing: the tremor-filtered position has not gone ``advance_mm`` deeper than its
+            # deepest point for ``settle_hold_s`` (any approach faster than advance_mm / settle_hold_s,
+            # 0.6 mm/s by default, keeps expanding) and is not withdrawing fast.
+            m = self._mhist[-1]
+            mo = self._m_onset
+            depth = -((m[1] - mo[0]) * n0[0] + (m[2] - mo[1]) * n0[1] + (m[3] - mo[2]) * n0[2])
+            if depth >= self._peak_mm + cfg.advance_mm:
+                self._peak_mm = depth
+                self._advanced_t = t
+            # Not withdrawing fast either: judged on the recent window, which a turn at the bottom of a
+            # press-and-withdraw leaves quickly (the long window reads such a turn as still).
+            vn = self._recent_normal_speed(n0)
+            if (
+                t - self._advanced_t >= cfg.settle_hold_s
+                and t - self._onset_t >= cfg.sustain_s
+                and abs(vn) <= cfg.settle_speed_mm_s
+            ):
+                self.state = INTERACTING
+                self._family = None
+                self.theta.force(None)
+                self.direction.force(None)
+                self.sliding = False
+                self._anchor = self._mhist[-1]
+            else:
+                self.context = APPROACHING
+                return self._approach_seq()
 
-        # Parameters with stability windows.
+        # Interacting: parameters change only after holding for their stability windows.
         self.feature.update(feat, t)
         if self.feature.value == "edge":
             cur = self.orientation.value
@@ -546,27 +633,7 @@ class PatternManager:
             else:
                 self.orientation.update(cand, t)
         self.texture.update(self._texture_of(query), t)
-
-        v = self._velocity()
-        if self.state == APPROACHING:
-            self.approach.advance(toward)
-            if v is not None and abs(v[0] * normal[0] + v[1] * normal[1] + v[2] * normal[2]) <= cfg.settle_speed_mm_s:
-                if self._settled_since is None:
-                    self._settled_since = t
-            else:
-                self._settled_since = None
-            ss = self._settled_since
-            if ss is not None and t - ss >= cfg.settle_hold_s and t - self._onset_t >= cfg.sustain_s:
-                self.state = INTERACTING
-                self._family = None
-                self.theta.force(None)
-                self.direction.force(None)
-                self.sliding = False
-            else:
-                self.context = APPROACHING
-                return self._approach_seq()
-
-        # Interacting: stationary contact or sliding.
+        # Stationary contact or sliding.
         if v is None and self.sliding:
             # No time has passed since the window's start (repeated timestamps): keep sliding as is.
             self.context = "sliding"
@@ -577,10 +644,26 @@ class PatternManager:
             vn = v[0] * normal[0] + v[1] * normal[1] + v[2] * normal[2]
             vt = (v[0] - vn * normal[0], v[1] - vn * normal[1], v[2] - vn * normal[2])
             speed = math.sqrt(vt[0] * vt[0] + vt[1] * vt[1] + vt[2] * vt[2])
+            # Sliding from displacement over the motion window (any speed above the slide_on floor),
+            # ended early when the last stop_window_s moved much less than the window's mean (a
+            # stroke that stopped need not wait for the long window to empty), and restarted only
+            # once the pad has left its resting place by slide_start_mm (tremor and noise around a
+            # rest move the filtered position far less).
+            stopped = self._recent_speed(normal) < cfg.stop_fraction * speed
             if self.sliding:
-                self.sliding = speed > cfg.slide_off_mm_s
+                self.sliding = speed > cfg.slide_off_mm_s and not stopped
+                if not self.sliding:
+                    self._anchor = self._mhist[-1]
             else:
-                self.sliding = speed >= cfg.slide_on_mm_s
+                a = self._anchor
+                m = self._mhist[-1]
+                if a is None:
+                    far = True
+                else:
+                    dx, dy, dz = m[1] - a[1], m[2] - a[2], m[3] - a[3]
+                    dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
+                    far = dx * dx + dy * dy + dz * dz - dn * dn >= cfg.slide_start_mm ** 2
+                self.sliding = speed >= cfg.slide_on_mm_s and far and not stopped
         X, Y, Z = quat_axes(*q)
         m = self._mhist[-1]
         mp = self._m_prev
@@ -634,6 +717,27 @@ class PatternManager:
         if not span > 1e-9:
             return None
         return ((x1 - x0) / span, (y1 - y0) / span, (z1 - z0) / span)
+
+    def _recent_normal_speed(self, n0: tuple[float, float, float]) -> float:
+        """Speed of the filtered position along ``n0`` over the last ``stop_window_s`` (0 with no span)."""
+        sh = self._shist
+        span = sh[-1][0] - sh[0][0]
+        if not span > 1e-9:
+            return 0.0
+        return ((sh[-1][1] - sh[0][1]) * n0[0] + (sh[-1][2] - sh[0][2]) * n0[1] + (sh[-1][3] - sh[0][3]) * n0[2]) / span
+
+    def _recent_speed(self, normal: tuple[float, float, float]) -> float:
+        """Tangential speed of the filtered position over the last ``stop_window_s``."""
+        sh = self._shist
+        t1, x1, y1, z1 = sh[-1]
+        t0, x0, y0, z0 = sh[0]
+        span = t1 - t0
+        if not span > 1e-9:
+            return math.inf
+        dx, dy, dz = x1 - x0, y1 - y0, z1 - z0
+        dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
+        dx, dy, dz = dx - dn * normal[0], dy - dn * normal[1], dz - dn * normal[2]
+        return math.sqrt(dx * dx + dy * dy + dz * dz) / span
 
     def _smoothed_position(self, t: float) -> tuple[float, float, float]:
         """Mean position over the last ``slide_smoothing_s``: one 8 Hz period, which leaves at most a
