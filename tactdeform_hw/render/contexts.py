@@ -90,8 +90,14 @@ def mask_phase(count: int, k_texture: int, period_factor: int = 3, step_spacings
 # --- accumulation without drift ------------------------------------------------------------------------------
 
 
+#: Travel within this of a frame (or shift) boundary counts as on it: far below any tracker's
+#: resolution, far above the rounding of summed float displacements (~1e-14 mm).
+BOUNDARY_TOLERANCE_MM = 1e-9
+
+
 class FrameAccumulator:
-    """Travel stored as a whole number of ``unit_mm`` plus a Kahan-compensated remainder in [0, unit).
+    """Travel stored as a whole number of ``unit_mm`` plus a Kahan-compensated remainder in
+    [-tol, unit - tol) (tol = :data:`BOUNDARY_TOLERANCE_MM`).
 
     A plain float sum of eight hours of 72 Hz displacements keeps every rounding error; here the float
     that is rounded never exceeds one unit, and the compensation carries what rounding dropped.  With
@@ -123,16 +129,13 @@ class FrameAccumulator:
         self._comp = (t - self.rem) - y
         self.rem = t
         unit = self.unit_mm
-        if t >= unit or t < 0.0:
-            k = math.floor(t / unit)
+        tol = BOUNDARY_TOLERANCE_MM
+        if t >= unit - tol or t < -tol:
+            # A travel within ``tol`` of a whole unit counts as having reached it: a finger that moved
+            # exactly 14 mm, summed from 72 Hz steps, reads 13.999999999999996 mm and must show frame 7.
+            k = math.floor((t + tol) / unit)
             self.whole += k
-            self.rem = t - k * unit
-            # floor() of a value a hair below a multiple can leave rem == unit after rounding.
-            if self.rem >= unit:
-                self.rem -= unit
-                self.whole += 1
-            elif self.rem < 0.0:
-                self.rem = 0.0
+            self.rem = t - k * unit  # in [-tol, unit - tol): the travel itself stays exact
             if self.clamp_at_zero and self.whole < 0:
                 self.whole = 0
                 self.rem = 0.0
