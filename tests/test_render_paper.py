@@ -321,7 +321,7 @@ def test_lost_tracking_never_feeds_the_watchdog_and_goes_idle(bad: str) -> None:
     if bad == "clock-back":
         # The new clock is taken as a fresh start: a new press is rendered again.
         t = t_end + (n + 1) * dt - 50.0
-        for i, (tt, p, q) in enumerate(line_poses(t, (0, 0, 2.0), (0, 0, -3.0), 20.0, 72.0)):
+        for tt, p, q in line_poses(t, (0, 0, 2.0), (0, 0, -3.0), 20.0, 72.0):
             r.step((tt, p, q))
         assert r.renderers["tactdeform"].state == APPROACHING
 
@@ -348,3 +348,73 @@ def test_ten_metres_per_second_at_1000hz_and_at_rest() -> None:
 
 def test_directions_are_the_eight_bins() -> None:
     assert len(DIRECTIONS) == 8
+
+
+# --- finding 9: tips of meshes are corners --------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def teapot() -> Any:
+    pytest.importorskip("scipy", reason="the teapot's mesh index needs scipy (extra 'mesh')")
+    from tactdeform_hw.render.scene import load_scene
+
+    scene = load_scene("teapot")
+    scene.prepare()
+    return scene
+
+
+def test_teapot_spout_tip_is_a_corner_and_its_rim_an_edge(teapot: Any) -> None:
+    obj = teapot.objects[0]
+    v = obj.index.vertices + obj.index.origin
+    tip = v[np.argmax(v[:, 0])]  # the spout's end is the pot's furthest point along +x
+    assert teapot.query(tip + np.array([3.0, 0.0, 0.0])).feature == "corner"
+    # The body's rim is a long, gently curving crease: an edge, never a corner.
+    lo, hi = obj.bounds_mm
+    rim = [q for q in (teapot.query(p) for p in obj.features.seg_a + obj.index.origin) if q.closest_point_mm[1] > hi[1] - 30.0]
+    assert rim and any(q.feature == "edge" for q in rim)
+
+
+# --- finding 10: CAM through the mesh index --------------------------------------------------------------------
+
+
+def cam_poses(scene: Any, n: int = 40, seed: int = 0) -> list[tuple[np.ndarray, tuple[float, ...]]]:
+    rng = np.random.default_rng(seed)
+    lo, hi = scene.bounds_mm
+    out = []
+    for _ in range(n):
+        q = scene.query(rng.uniform(lo - 10.0, hi + 10.0))
+        nrm = np.asarray(q.normal)
+        r = frame_from_z_y(-nrm + rng.normal(0, 0.3, 3), rng.normal(0, 1, 3))
+        out.append((np.asarray(q.closest_point_mm) - nrm * rng.uniform(-2.0, 4.0), tuple(matrix_to_quat(r))))
+    return out
+
+
+def bunny_scene() -> Any:
+    pytest.importorskip("scipy", reason="the bunny's mesh index needs scipy (extra 'mesh')")
+    from tactdeform_hw.errors import ConfigurationError
+    from tactdeform_hw.render.scene import load_scene
+
+    try:
+        scene = load_scene("bunny")
+    except ConfigurationError as exc:
+        pytest.skip(f"../shared/meshes/stanford_bunny.obj is not available: {exc}")
+    scene.prepare()
+    return scene
+
+
+@pytest.mark.parametrize("name", ["teapot", "bunny"])
+def test_cam_plane_test_agrees_with_the_per_electrode_test(name: str, teapot: Any) -> None:
+    from tactdeform_hw.render.baselines import ContactAreaMapping
+    from tactdeform_hw.render.manager import quat_axes
+
+    scene = teapot if name == "teapot" else bunny_scene()
+    cam = ContactAreaMapping()
+    some_in = some_mixed = 0
+    for p, q in cam_poses(scene):
+        X, Y, _ = quat_axes(*q)
+        fast = scene.contains_on_pad(p, np.array(X), np.array(Y), cam._offsets, scene.query(p))
+        slow = scene.contains(cam.electrode_positions(tuple(p), q))
+        assert fast.tolist() == slow.tolist()
+        some_in += bool(fast.any())
+        some_mixed += bool(fast.any() and not fast.all())
+    assert some_in and some_mixed  # the poses do cut the surface under the pad

@@ -543,6 +543,7 @@ class PatternManager:
         # or corner itself); once inside, the nearest point moves onto a face and its normal would
         # count travel along a bisector short by cos 45°.
         out = self._outside
+        n0: tuple[float, ...]
         if out is not None and t - out[0] <= cfg.recent_outside_s:
             n0 = out[2]
             po = out[1]
@@ -655,12 +656,12 @@ class PatternManager:
                 if not self.sliding:
                     self._anchor = self._mhist[-1]
             else:
-                a = self._anchor
+                anc = self._anchor
                 m = self._mhist[-1]
-                if a is None:
+                if anc is None:
                     far = True
                 else:
-                    dx, dy, dz = m[1] - a[1], m[2] - a[2], m[3] - a[3]
+                    dx, dy, dz = m[1] - anc[1], m[2] - anc[2], m[3] - anc[3]
                     dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
                     far = dx * dx + dy * dy + dz * dz - dn * dn >= cfg.slide_start_mm ** 2
                 self.sliding = speed >= cfg.slide_on_mm_s and far and not stopped
@@ -718,7 +719,7 @@ class PatternManager:
             return None
         return ((x1 - x0) / span, (y1 - y0) / span, (z1 - z0) / span)
 
-    def _recent_normal_speed(self, n0: tuple[float, float, float]) -> float:
+    def _recent_normal_speed(self, n0: tuple[float, ...]) -> float:
         """Speed of the filtered position along ``n0`` over the last ``stop_window_s`` (0 with no span)."""
         sh = self._shist
         span = sh[-1][0] - sh[0][0]
@@ -726,7 +727,7 @@ class PatternManager:
             return 0.0
         return ((sh[-1][1] - sh[0][1]) * n0[0] + (sh[-1][2] - sh[0][2]) * n0[1] + (sh[-1][3] - sh[0][3]) * n0[2]) / span
 
-    def _recent_speed(self, normal: tuple[float, float, float]) -> float:
+    def _recent_speed(self, normal: tuple[float, ...]) -> float:
         """Tangential speed of the filtered position over the last ``stop_window_s``."""
         sh = self._shist
         t1, x1, y1, z1 = sh[-1]
