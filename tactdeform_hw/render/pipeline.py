@@ -11,7 +11,7 @@ device's pattern history.
 Lost tracking.  A dropped sample (NaN or infinite pose, a clock stepping back, a garbage quaternion) is
 recorded but is not a frame: it changes nothing and does *not* feed the device's fail-safe watchdog, so a
 tracker that only delivers garbage lets the watchdog switch stimulation off.  After ``lost_tracking_s``
-(default :data:`LOST_TRACKING_S`, 0.1 s) without a valid sample the renderer itself goes Idle: every
+(default :data:`LOST_TRACKING_S`, 80 ms) without a valid sample the renderer itself goes Idle: every
 approach is reset (a clock that stepped back is accepted again as a new start) and all electrodes are
 switched off.  The time is read from the dropped samples' own clock when it is usable (finite and not
 behind the last valid sample), otherwise counted as dropped samples times the tracking period seen so far.
@@ -37,9 +37,10 @@ from .contexts import TEXTURE_NAMES
 from .manager import ManagerConfig, ManagerOutput, PatternManager
 from .patterns import Pattern, PatternParams, PatternSet
 
-#: Time without a valid tracking sample after which the renderer goes Idle (all off).  At the device's
-#: 100 ms no-frame watchdog, so the renderer turns stimulation off no later than the watchdog would.
-LOST_TRACKING_S = 0.1
+#: Time without a valid tracking sample after which the renderer goes Idle (all off): 80 ms, so that
+#: with the next sample (14 ms later at 72 Hz) the all-off is sent before the device's 100 ms no-frame
+#: watchdog would switch stimulation off by itself (which it does anyway: dropped samples send nothing).
+LOST_TRACKING_S = 0.08
 
 
 @dataclass(slots=True)
