@@ -5,39 +5,49 @@ about the nearest surface into the frames to send.  The manager never talks to a
 to send and *when* (only when the pattern changes), and the pipeline sends it.
 
 States (paper): Idle — no contact; Approaching — contact detected, the feature (face / edge / corner)
-picks the pattern and it expands one frame per 2 mm of travel toward the surface (eq. 1–3);
-Interacting — sustained, stable contact: a stationary pad gets the orientation-shifted contact pattern
-(eq. 4) or the uniform one, a sliding pad the texture-shifted pattern (eq. 5–7).  Losing contact returns
-to Idle from any state; Interacting only ends through Idle.
+picks the pattern and it expands one frame per 2 mm of travel toward the surface (eq. 1–3); the
+feature, the edge's orientation and the direction "toward the surface" are taken at initial contact and
+kept through the approach however deep the finger goes (an edge or corner is approached along its
+bisector: the normal seen just before contact); Interacting — sustained, stable contact: a stationary
+pad gets the orientation-shifted contact pattern (eq. 4) or the uniform one, a sliding pad the
+texture-shifted pattern (eq. 5–7).  Losing contact returns to Idle from any state; Interacting only ends
+through Idle.
 
 Temporal filtering.  The paper asks for parameters to be stable over a short window before they change
-the state or the pattern, without giving lengths.  Physiological tremor is 8–12 Hz with about 1 mm
-amplitude, so a tremor-driven excursion across a threshold lasts at most half a period (62.5 ms at 8 Hz)
-and its displacement over a window W is at most 2 mm, i.e. an apparent speed of 2 mm / W.  The defaults
-below follow from that (every one is a :class:`ManagerConfig` field):
+the state or the pattern, without giving lengths.  Physiological tremor is 8–12 Hz with up to about
+1 mm amplitude; tracking noise is white.  The defaults (every one a :class:`ManagerConfig` field):
 
-* contact is entered at once (latency matters most there) and left only after the pad has been more
-  than ``contact_release_mm`` = 1.5 mm outside the surface for ``contact_loss_window_s`` = 70 ms (longer
-  than any tremor half period), or at once beyond ``contact_loss_far_mm`` = 10 mm;
-* the position is first averaged over ``slide_smoothing_s`` = 0.125 s (one 8 Hz period), and speeds
-  and the stroke direction come from that average's net displacement over ``motion_window_s`` =
-  0.3 s.  Tremor's own speed is large (1 mm at 10 Hz peaks at 63 mm/s, three times a 20 mm/s stroke),
-  and the raw net displacement over 0.3 s still keeps up to 2 mm of it — 6.7 mm/s in any direction,
-  more than the 4 mm/s between the sliding thresholds (12 mm/s on, 8 mm/s off) and, at 20 mm/s, up to
-  18° of direction error, enough to hold a stroke in the wrong one of 8 bins.  After the average,
-  1 mm of 8–12 Hz tremor reads as at most 1.5 mm/s (4° at 20 mm/s), inside both hysteresis bands and
-  far below ``settle_speed_mm_s`` = 8 mm/s.  Approaching becomes Interacting once contact has lasted
-  ``sustain_s`` = 0.15 s and the normal speed has stayed below the settle speed for ``settle_hold_s`` =
-  0.15 s — longer than the ≈0.125 s a 20 mm/s press-and-withdraw reads as still at its turning point,
-  so a reversal is not taken for a rest;
-* feature, edge orientation, θ level, sliding direction and texture level each change only after their
-  new value has held for 0.1 s, and the angular ones also have a margin past the bin boundary (7.5°, 5°
-  and 10°); the expansion frame and the texture shift count step down only ``frame_release_mm`` =
-  1.25 mm below a boundary;
-* texture travel is the signed displacement of that averaged position (tremor keeps at most a fifth of
-  its amplitude) projected on the filtered stroke direction — net, not absolute — so a sliding finger's
-  tremor cancels instead of adding shifts or rocking the texture back and forth; the sum still
-  telescopes, so it cannot drift.
+* **Onset** needs the pad in contact over ``onset_confirm_s`` = 8 ms (two samples at 72–120 Hz, so a
+  real press starts within one 72 Hz frame of a stable contact, or one sample at slower rates) or at
+  once ``onset_deep_mm`` = 3 mm deep (a fast finger).  A single noisy sample never starts stimulation:
+  hovering 2 mm above with 1 mm noise is stimulated 0.19 % of the time, 1 mm above with 0.5 mm noise
+  0.30 % (``tools/render_fidelity.py``).
+* **Loss**: the mean signed distance over the contact's last ``contact_loss_window_s`` = 0.1 s is above
+  ``contact_release_mm`` = 0.75 mm while the pad is outside (noise around a hover averages out, tremor
+  on a light press averages to the press), or at once beyond ``contact_loss_far_mm`` = 10 mm.
+* The position is first averaged over ``slide_smoothing_s`` = 0.125 s (one 8 Hz period: 1 mm of
+  8–12 Hz tremor keeps at most 0.21 mm).  Speeds and the stroke direction come from that average's net
+  displacement over ``motion_window_s`` = 0.5 s.
+* **Approaching → Interacting** when the finger has stopped advancing: the averaged position has not
+  gone ``advance_mm`` = 0.15 mm deeper than its deepest point for ``settle_hold_s`` = 0.25 s (so any
+  approach faster than 0.6 mm/s keeps expanding — 1 mm/s reaches frame 15 at 30 mm) and it is not
+  withdrawing faster than ``settle_speed_mm_s`` = 8 mm/s over the last ``stop_window_s`` = 0.15 s (a
+  press-and-withdraw turns at its bottom without being taken for a rest).  Time since contact plays no
+  part (``sustain_s`` = 0 adds an optional minimum).
+* **Sliding** from the displacement over the motion window: on at ``slide_on_mm_s`` = 1.5 mm/s (the
+  documented floor; texture shifts follow eq. 5 from there, 2.5 Hz rough at 5 mm/s) once the pad has
+  left its resting place by ``slide_start_mm`` = 0.75 mm, off below ``slide_off_mm_s`` = 1 mm/s or as
+  soon as the last ``stop_window_s`` moved less than ``stop_fraction`` = 1/4 of the window's mean speed
+  (a stroke that stops is seen within about 0.2 s).  Tremor around a rest moves the averaged position
+  less than 0.45 mm, under both thresholds.
+* Edge orientation, θ level, sliding direction, texture level (and, while Interacting, the feature) each
+  change only after their new value has held for 0.1 s, and the angular ones also have a margin past the
+  bin boundary (7.5°, 5° and 10°); θ bins have a boundary tolerance of 1e-6°
+  (:data:`~.contexts.THETA_TOLERANCE_DEG`), frames and shifts one of 1e-9 mm; the expansion frame and the
+  texture shift count step down only ``frame_release_mm`` = 1.25 mm below a boundary.
+* Texture travel is the signed displacement of the averaged position projected on the filtered stroke
+  direction — net, not absolute — so a sliding finger's tremor cancels instead of adding shifts or
+  rocking the texture back and forth; the sum telescopes, so it cannot drift.
 
 Interpretations beyond the windows (all :class:`ManagerConfig` fields): eq. 3's count grows without
 bound while a pattern has a few frames — ``approach_overflow="cycle"`` restarts the ring at the centre,
@@ -51,7 +61,8 @@ approach covers 70 frames per 72 Hz sample), the update returns every frame it p
 each distinct frame — with timestamps spread over the interval, so none is skipped in effect.
 
 Bad input (NaN / inf position, time or quaternion, a quaternion far from unit length, time going
-backwards, a malformed surface query) is dropped and counted; the last pattern stays.  A pose that jumps
+backwards, a malformed surface query) is dropped and counted; the last pattern stays (the pipeline turns
+it off once tracking has been lost for its timeout).  A pose that jumps
 further than ``teleport_min_mm`` faster than ``max_speed_mm_s`` is a tracking teleport: its displacement
 is not counted as travel and any contact restarts from Idle.
 """
