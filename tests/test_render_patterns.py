@@ -281,10 +281,11 @@ def test_displayed_frame_and_interpolated_counts() -> None:
     assert [displayed_frame(n, 3, "cycle") for n in range(7)] == [0, 1, 2, 0, 1, 2, 0]
     assert [displayed_frame(n, 3, "hold") for n in range(7)] == [0, 1, 2, 2, 2, 2, 2]
     assert counts_to_show(2, 3, 3) == [3]
-    assert counts_to_show(2, 6, 3) == [4, 5, 6]
-    assert counts_to_show(6, 2, 3) == [4, 3, 2]
+    assert counts_to_show(2, 6, 3) == [3, 4, 5, 6]
+    assert counts_to_show(2, 8, 3) == [6, 7, 8]
+    assert counts_to_show(6, 2, 3) == [5, 4, 3, 2]
     assert counts_to_show(None, 1, 3) == [0, 1]
-    assert counts_to_show(-1, 40, 3) == [38, 39, 40]
+    assert counts_to_show(-1, 40, 3) == [36, 37, 38, 39, 40]  # continues from -1: 0 (mod 3) first
     assert counts_to_show(4, 4, 3) == [4]
 
 

@@ -214,8 +214,11 @@ def displayed_frame(n: int, frame_count: int, overflow: Overflow) -> int:
 def counts_to_show(n_from: int | None, n_to: int, distinct: int) -> list[int]:
     """The counts between two updates that must each be shown once so no frame is skipped in effect.
 
-    Returns the counts after ``n_from`` up to ``n_to`` (either direction), keeping only the last
-    ``distinct`` of them: a pattern with that many distinct frames has shown every one by then."""
+    Returns the counts after ``n_from`` up to ``n_to`` (either direction).  When more counts passed than
+    the pattern has ``distinct`` frames, only the last few are kept: at least ``distinct`` (every frame
+    shown once) and as many more (below ``2·distinct``) as keep the sequence continuous — the first kept
+    count follows ``n_from`` modulo ``distinct`` — so the expansion never jumps a frame between two
+    updates either."""
     if n_from is None:
         lo = max(0, n_to - distinct + 1)
         return list(range(lo, n_to + 1))
@@ -223,7 +226,8 @@ def counts_to_show(n_from: int | None, n_to: int, distinct: int) -> list[int]:
         return [n_to]
     step = 1 if n_to > n_from else -1
     span = abs(n_to - n_from)
-    m = min(span, max(1, distinct))
+    d = max(1, distinct)
+    m = span if span <= d else d + span % d
     return [n_to - step * (m - 1 - i) for i in range(m)]
 
 
