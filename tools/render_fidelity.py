@@ -137,7 +137,7 @@ def approach_rows(speeds: list[float], rates: list[float]) -> list[Row]:
     sweep = f"v {rng_span(speeds)} mm/s × {rng_span(rates)} Hz, 30 mm press"
     return [
         Row("eq. 1–3 travel per frame", "2.0 mm", f"{rng_span(per_frame)} mm", sweep, all(abs(x - 2.0) < 1e-6 for x in per_frame)),
-        Row("eq. 2 frame interval Δt / (d / v)", "1.0", rng_span(intervals), "speeds with ≥ 3 samples per frame", all(abs(x - 1.0) < 0.15 for x in intervals)),
+        Row("eq. 2 frame interval Δt / (d / v)", "1.0 ± 0.15", rng_span(intervals), "speeds with ≥ 3 samples per frame", all(abs(x - 1.0) < 0.15 for x in intervals)),
         Row("eq. 3 no frame skipped in effect", "0 runs", f"{skipped} runs", sweep, skipped == 0),
         Row("slow approach (≤ 10 mm/s) expands to frame 15 at 30 mm", "yes", f"{sum(slow_frame15)}/{len(slow_frame15)}", "v ≤ 10 mm/s", all(slow_frame15)),
     ]
@@ -215,38 +215,51 @@ def theta_rows(noises: list[float]) -> list[Row]:
 def stroke(k: int, speed: float, seconds: float, rate: float, finger: Finger | None, direction_deg: float = 0.0) -> tuple[PatternManager, list[Any], float]:
     floor = Box("floor", (4000.0, 4000.0, 2000.0), (0.0, 0.0, -1000.0), texture_level=k)
     m = PatternManager()
-    samples = line(0.0, (0, 0, 2.0), (0, 0, -1.0), 20.0, rate)
-    samples += hold(samples[-1][0], (0, 0, -1.0), 0.8, rate)
+    # Pressed 3 mm in (the study trajectories' penetration), rest, then the stroke.
+    samples = line(0.0, (0, 0, 2.0), (0, 0, -3.0), 20.0, rate)
+    samples += hold(samples[-1][0], (0, 0, -3.0), 0.8, rate)
     t0 = samples[-1][0]
     a = math.radians(direction_deg)
     u = np.array([math.cos(a), -math.sin(a), 0.0])  # finger x is world +x, finger y is world -y
     n = int(seconds * rate)
-    samples += [(t0 + i / rate, np.array([0.0, 0.0, -1.0]) + u * speed * i / rate, PAD_DOWN) for i in range(1, n + 1)]
+    samples += [(t0 + i / rate, np.array([0.0, 0.0, -3.0]) + u * speed * i / rate, PAD_DOWN) for i in range(1, n + 1)]
     return m, feed(m, floor, samples, finger), t0
 
 
 def sliding_rows(speeds: list[float], rates: list[float], noises: list[float], tremors: list[float]) -> list[Row]:
-    ratios: list[float] = []
-    against = total_shifts = 0
+    ratios: dict[str, list[float]] = {"clean": [], "noisy-fast": [], "noisy-slow": []}
+    against = {"clean": [0, 0], "noisy": [0, 0]}
     smooth_shifts = 0
+    # Perturbations: none, 0.5 mm tremor at each frequency, Gaussian noise at each level.
+    fingers = [(0.0, h) for h in tremors] + [(n, 0.0) for n in noises if n]
     for k in (1, 2):
         for v in speeds:
             for rate in rates:
-                for tremor_hz in tremors:
+                for noise, tremor_hz in fingers:
                     seconds = min(8.0, max(3.0, 12.0 * D_MM * k / v))
-                    m, outs, t0 = stroke(k, v, seconds, rate, Finger(tremor_mm=0.5 if tremor_hz else 0.0, tremor_hz=tremor_hz or 10.0))
+                    finger = Finger(noise_mm=noise, tremor_mm=0.5 if tremor_hz else 0.0, tremor_hz=tremor_hz or 10.0, seed=int(v * 10 + k))
+                    m, outs, t0 = stroke(k, v, seconds, rate, finger)
                     times = [tf for o in outs if o.context == "sliding" for tf, _ in o.frames if tf >= t0 + 1.0]
                     expected = v / (D_MM * k)
                     span = (t0 + seconds) - (t0 + 1.0)
+                    group = "clean" if not noise else ("noisy-fast" if v >= 20.0 else "noisy-slow")
                     if expected * span >= 4:
-                        ratios.append(len(times) / span / expected)
-                    seq = [pat for o in outs if o.context == "sliding" for _, pat in o.frames]
-                    for a, b in zip(seq, seq[1:]):
-                        total_shifts += 1
-                        xa = {x for (x, y), on in zip(PAD.positions_mm, a) if on and y == 1.0}
-                        xb = {x for (x, y), on in zip(PAD.positions_mm, b) if on and y == 1.0}
-                        per = m.patterns.mask_period(k) * D_MM
-                        against += {(x - k * D_MM + 5.0) % per for x in xa} == {(x + 5.0) % per for x in xb}
+                        ratios[group].append(len(times) / span / expected)
+                    # Direction of each shift within a run of sliding samples.
+                    per = m.patterns.mask_period(k) * D_MM
+                    prev = None
+                    for o in outs:
+                        if o.context != "sliding":
+                            prev = None
+                            continue
+                        for _, pat in o.frames:
+                            if prev is not None:
+                                xa = {x for (x, y), on in zip(PAD.positions_mm, prev) if on and y == 1.0}
+                                xb = {x for (x, y), on in zip(PAD.positions_mm, pat) if on and y == 1.0}
+                                tally = against["noisy" if noise else "clean"]
+                                tally[1] += 1
+                                tally[0] += {(x - k * D_MM + 5.0) % per for x in xa} == {(x + 5.0) % per for x in xb}
+                            prev = pat
     for v in speeds:
         _, outs, _ = stroke(0, v, 2.0, 72.0, None)
         smooth_shifts += max(0, len({pat for o in outs if o.context == "sliding" for _, pat in o.frames}) - 1)
@@ -263,12 +276,28 @@ def sliding_rows(speeds: list[float], rates: list[float], noises: list[float], t
         m, outs, t0 = stroke(1, v, 8.0, 72.0, None)
         times = [tf for o in outs if o.context == "sliding" for tf, _ in o.frames if tf >= t0 + 2.0]
         floor_hz.append(len(times) / 6.0 / (v / D_MM))
-    sweep = f"v {rng_span(speeds)} mm/s × {rng_span(rates)} Hz × tremor {'0/' if 0.0 in tremors else ''}0.5 mm at {rng_span([h for h in tremors if h])} Hz, k = 1, 2"
-    return [
-        Row("eq. 5 shift rate / (v / (d k))", "1.0", rng_span(ratios), sweep, all(abs(r - 1.0) <= 0.15 for r in ratios)),
-        Row("eq. 5 β = +1: pattern moves against the finger", "100 %", f"{100.0 * against / max(total_shifts, 1):.1f} %", "every shift of the sweep", against == total_shifts and total_shifts > 0),
+    base = f"v {rng_span(speeds)} mm/s × {rng_span(rates)} Hz, k = 1, 2"
+    tremor = f"tremor 0 / 0.5 mm at {rng_span([h for h in tremors if h])} Hz"
+    noisy = f"noise {rng_span([n for n in noises if n])} mm"
+    clean_a, noisy_a = against["clean"], against["noisy"]
+    rows = [
+        Row("eq. 5 shift rate / (v / (d k))", "1.0 ± 0.15", rng_span(ratios["clean"]), f"{base}, {tremor}",
+            all(abs(r - 1.0) <= 0.15 for r in ratios["clean"])),
+        Row("eq. 5 β = +1: pattern moves against the finger", "100 %", f"{100.0 * clean_a[0] / max(clean_a[1], 1):.1f} %",
+            f"every shift, {tremor}", clean_a[0] == clean_a[1] and clean_a[1] > 0),
+    ]
+    if noisy_a[1]:
+        rows += [
+            Row("eq. 5 shift rate with tracking noise, v ≥ 20 mm/s", "1.0 ± 0.25", rng_span(ratios["noisy-fast"]), f"{base}, {noisy}",
+                all(abs(r - 1.0) <= 0.25 for r in ratios["noisy-fast"])),
+            Row("  … and at 2–5 mm/s (information only: the noise is as large as the stroke)", "1.0", rng_span(ratios["noisy-slow"]),
+                f"{base}, {noisy}", True),
+            Row("eq. 5 shifts against the finger with tracking noise", "100 %", f"{100.0 * noisy_a[0] / noisy_a[1]:.1f} %",
+                f"every shift, {noisy}", noisy_a[0] >= 0.95 * noisy_a[1]),
+        ]
+    return rows + [
         Row("eq. 7 smooth (k = 0): no shift", "0", str(smooth_shifts), f"v {rng_span(speeds)} mm/s", smooth_shifts == 0),
-        Row("sliding floor: texture at 1.5 and 2 mm/s (rate / paper)", "1.0", rng_span(floor_hz), "rough, 72 Hz", all(abs(r - 1.0) <= 0.25 for r in floor_hz)),
+        Row("sliding floor: texture at 1.5 and 2 mm/s (rate / paper)", "1.0 ± 0.25", rng_span(floor_hz), "rough, 72 Hz", all(abs(r - 1.0) <= 0.25 for r in floor_hz)),
         Row("8 directions (sliding samples in the right bin)", "100 %", f"{100.0 * right / max(total, 1):.1f} %", f"8 strokes at +12°, noise {rng_span(noises)} mm", right >= 0.95 * total),
     ]
 
@@ -318,7 +347,7 @@ def state_rows(rates: list[float], noises: list[float], tremors: list[float], ho
             all(lat <= max(1000.0 / 72.0, 1000.0 / r_) + 1e-6 for lat, r_ in zip(latency, rates))),
         Row("onset: hovering 2 mm above, 1 mm noise, stimulated", "rarely", f"{hover[(2.0, 1.0)]:.2f} % of samples", f"{hover_s:g} s at 72 Hz", hover[(2.0, 1.0)] < 1.0),
         Row("onset: hovering 1 mm above, 0.5 mm noise, stimulated", "rarely", f"{hover[(1.0, 0.5)]:.2f} % of samples", f"{hover_s:g} s at 72 Hz", hover[(1.0, 0.5)] < 2.0),
-        Row("Approaching → Interacting after the finger stops", "short window", f"{rng_span(settle)} ms", f"noise {rng_span(noises)} mm, tremor 0.5 mm", all(s < 1500.0 for s in settle)),
+        Row("Approaching → Interacting after the finger stops", "short (< 1.5 s)", f"{rng_span(settle)} ms", f"noise {rng_span(noises)} mm, tremor 0.5 mm", all(s < 1500.0 for s in settle)),
         Row("no state flicker while resting with tremor and noise", "0", str(flicker), "same", flicker == 0),
         Row("lost tracking (NaN poses) → Idle, all off", "< 100 ms (watchdog)", "never" if t_lost is None else f"{t_lost:.0f} ms",
             f"72 Hz, timeout {LOST_TRACKING_S * 1000:.0f} ms", t_lost is not None and t_lost < 100.0),

@@ -38,16 +38,18 @@ the state or the pattern, without giving lengths.  Physiological tremor is 8–1
   documented floor; texture shifts follow eq. 5 from there, 2.5 Hz rough at 5 mm/s) once the pad has
   left its resting place by ``slide_start_mm`` = 0.75 mm, off below ``slide_off_mm_s`` = 1 mm/s or as
   soon as the last ``stop_window_s`` moved less than ``stop_fraction`` = 1/4 of the window's mean speed
-  (a stroke that stops is seen within about 0.2 s).  Tremor around a rest moves the averaged position
+  (a stroke that stops is seen within about 0.2 s).  A start or end the speed alone asks for must hold
+  ``slide_window_s`` = 0.1 s (tracking noise around the thresholds).  Tremor around a rest moves the averaged position
   less than 0.45 mm, under both thresholds.
 * Edge orientation, θ level, sliding direction, texture level (and, while Interacting, the feature) each
   change only after their new value has held for 0.1 s, and the angular ones also have a margin past the
   bin boundary (7.5°, 5° and 10°); θ bins have a boundary tolerance of 1e-6°
   (:data:`~.contexts.THETA_TOLERANCE_DEG`), frames and shifts one of 1e-9 mm; the expansion frame and the
   texture shift count step down only ``frame_release_mm`` = 1.25 mm below a boundary.
-* Texture travel is the signed displacement of the averaged position projected on the filtered stroke
-  direction — net, not absolute — so a sliding finger's tremor cancels instead of adding shifts or
-  rocking the texture back and forth; the sum telescopes, so it cannot drift.
+* Texture travel is measured on the averaged position in straight segments, one per sliding direction:
+  the tangential distance from the segment's start (the first starts where the pad rested).  Within a
+  segment it telescopes, so tremor and tracking noise add a bounded error instead of shifts, and the
+  texture is not rocked back and forth; it cannot drift.
 
 Interpretations beyond the windows (all :class:`ManagerConfig` fields): eq. 3's count grows without
 bound while a pattern has a few frames — ``approach_overflow="cycle"`` restarts the ring at the centre,
@@ -128,6 +130,7 @@ class ManagerConfig:
     slide_start_mm: float = 0.75  # ... and this far from where the pad last rested
     stop_window_s: float = 0.15  # recent speed below stop_fraction of the window's: stopped
     stop_fraction: float = 0.25
+    slide_window_s: float = 0.1  # a start or an end of sliding the speed asks for must hold this long
     slide_smoothing_s: float = 0.125  # position average before every speed, direction and texture travel
     # stability windows and hysteresis margins
     feature_window_s: float = 0.1
@@ -162,7 +165,7 @@ class ManagerConfig:
         nonneg = (
             "contact_release_mm", "contact_loss_window_s", "contact_loss_far_mm", "sustain_s", "settle_speed_mm_s", "settle_hold_s",
             "onset_confirm_s", "onset_deep_mm", "recent_outside_s", "advance_mm", "slide_start_mm", "stop_window_s",
-            "stop_fraction",
+            "stop_fraction", "slide_window_s",
             "slide_off_mm_s", "feature_window_s", "orientation_window_s", "orientation_margin_deg",
             "theta_window_s", "theta_margin_deg", "direction_window_s", "direction_margin_deg",
             "texture_window_s", "teleport_min_mm", "frame_release_mm", "slide_smoothing_s",
@@ -360,7 +363,10 @@ class PatternManager:
         self.direction = Debounced(cfg.direction_window_s)
         self.approach = ApproachState(self.frame_unit_mm, mode=cfg.approach_travel, release_mm=cfg.frame_release_mm)
         self.slide = FrameAccumulator(self.d_mm)
-        self._m_prev: tuple[float, float, float, float] | None = None
+        self._seg: tuple[float, float, float] | None = None
+        self._slide_change_t: float | None = None
+        self._seg_dir: int | None = None
+        self._seg_len = 0.0
         self._ns: int | None = None
         self._ns_k = 0
         self.sliding = False
@@ -505,6 +511,7 @@ class PatternManager:
         self._sd_hist.clear()
         self._sd_sum = 0.0
         self.sliding = False
+        self._slide_change_t = None
         self.theta_deg = None
         self._family = None
         self._count = None
@@ -574,7 +581,7 @@ class PatternManager:
         self.texture.force(self._texture_of(query))
         self.approach.begin(max(0.0, travel))
         self.slide.reset()
-        self._m_prev = None
+        self._seg = None
         self._ns = None
         self._family = None
         self._count = -1
@@ -628,6 +635,7 @@ class PatternManager:
                 self.theta.force(None)
                 self.direction.force(None)
                 self.sliding = False
+                self._slide_change_t = None
                 self._anchor = self._mhist[-1]
             else:
                 self.context = APPROACHING
@@ -661,10 +669,20 @@ class PatternManager:
             # stroke that stopped need not wait for the long window to empty), and restarted only
             # once the pad has left its resting place by slide_start_mm (tremor and noise around a
             # rest move the filtered position far less).
+            # A change the speed alone asks for must hold for ``slide_window_s`` (noise around the
+            # thresholds); a stop is taken at once.
             stopped = self._recent_speed(normal) < cfg.stop_fraction * speed
             if self.sliding:
-                self.sliding = speed > cfg.slide_off_mm_s and not stopped
+                if stopped:
+                    self.sliding = False
+                elif speed > cfg.slide_off_mm_s:
+                    self._slide_change_t = None
+                elif self._slide_change_t is None:
+                    self._slide_change_t = t
+                if self._slide_change_t is not None and t - self._slide_change_t >= cfg.slide_window_s:
+                    self.sliding = False
                 if not self.sliding:
+                    self._slide_change_t = None
                     self._anchor = self._mhist[-1]
             else:
                 anc = self._anchor
@@ -675,17 +693,18 @@ class PatternManager:
                     dx, dy, dz = m[1] - anc[1], m[2] - anc[2], m[3] - anc[3]
                     dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
                     far = dx * dx + dy * dy + dz * dz - dn * dn >= cfg.slide_start_mm ** 2
-                self.sliding = speed >= cfg.slide_on_mm_s and far and not stopped
+                want = speed >= cfg.slide_on_mm_s and far and not stopped
+                if not want:
+                    self._slide_change_t = None
+                elif self._slide_change_t is None:
+                    self._slide_change_t = t
+                if want and t - self._slide_change_t >= cfg.slide_window_s:
+                    self.sliding = True
+                    self._slide_change_t = None
         X, Y, Z = quat_axes(*q)
         m = self._mhist[-1]
-        mp = self._m_prev
-        self._m_prev = m
         if self.sliding and vt is not None and speed > 0.0:
             ux, uy, uz = vt[0] / speed, vt[1] / speed, vt[2] / speed
-            if mp is not None and self._k():
-                # Texture travel: the filtered position's signed displacement along the filtered stroke
-                # direction, so tremor's back-and-forth cancels instead of adding up (it telescopes).
-                self.slide.add((m[1] - mp[1]) * ux + (m[2] - mp[2]) * uy + (m[3] - mp[3]) * uz)
             a = math.degrees(math.atan2(ux * Y[0] + uy * Y[1] + uz * Y[2], ux * X[0] + uy * X[1] + uz * X[2]))
             cur = self.direction.value
             cand = quantise_angle(a, 8, 360.0, cur, cfg.direction_margin_deg)
@@ -693,8 +712,27 @@ class PatternManager:
                 self.direction.force(cand)
             else:
                 self.direction.update(cand, t)
+            # Texture travel (eq. 7's ∫ v_slide): the stroke in straight segments, one per sliding
+            # direction, each measured as the tangential distance of the filtered position from the
+            # segment's start.  Within a segment the sum telescopes, so tremor and tracking noise add a
+            # bounded error, never a drift (a per-sample projection on a noisy direction would add
+            # their correlated part at every sample); a stroke's first segment starts where the pad
+            # rested, so the travel before sliding was recognised counts too.
+            seg = self._seg
+            if seg is None or self.direction.value != self._seg_dir:
+                anc = self._anchor
+                self._seg = seg = (anc[1], anc[2], anc[3]) if (seg is None and anc is not None) else (m[1], m[2], m[3])
+                self._seg_dir = self.direction.value
+                self._seg_len = 0.0
+            dx, dy, dz = m[1] - seg[0], m[2] - seg[1], m[3] - seg[2]
+            dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
+            length = math.sqrt(max(0.0, dx * dx + dy * dy + dz * dz - dn * dn))
+            if self._k():
+                self.slide.add(length - self._seg_len)
+            self._seg_len = length
             self.context = "sliding"
             return self._sliding_seq()
+        self._seg = None
         self.context = "contact"
         if not cfg.render_contact:
             self._family = None
