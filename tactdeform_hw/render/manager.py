@@ -698,7 +698,8 @@ class PatternManager:
                     self._slide_change_t = None
                 elif self._slide_change_t is None:
                     self._slide_change_t = t
-                if want and t - self._slide_change_t >= cfg.slide_window_s:
+                since = self._slide_change_t
+                if want and since is not None and t - since >= cfg.slide_window_s:
                     self.sliding = True
                     self._slide_change_t = None
         X, Y, Z = quat_axes(*q)
