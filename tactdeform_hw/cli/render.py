@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
     array = ElectrodeArray.tactdeform()
     quiet = args.quiet
     if not quiet:
-        progress(f"render: {args.trajectory} over {args.scene} at {args.rate:g} Hz, {total} poses, approach "
+        progress(f"render: {args.trajectory} over {args.scene}{'' if recorded else f' at {args.rate:g} Hz'}, {total} poses, approach "
                  f"{args.approach or scene.options.approach}, device {args.device}")
     out = open(args.frames, "w", encoding="utf-8") if args.frames else None  # noqa: SIM115
     gif_records: list[dict[str, Any]] | None = [] if (args.gif or args.strip) else None
@@ -180,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
         if out is not None:
             out.close()
     result = summary.as_dict()
-    result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": args.rate, "verified": verify,
+    result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": None if recorded else args.rate, "verified": verify,
                    "device": args.device, "frames_file": args.frames, "approach": scene.options.approach,
                    "contact_mode": scene.options.contact_mode})
     if gif_records is not None and args.gif:
