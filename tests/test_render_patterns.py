@@ -98,13 +98,13 @@ def test_edge_is_a_line_through_the_centre_in_its_orientation(pad: ElectrodeArra
     pts = {tuple(p) for p in rel[static]}
     assert pts == {(-x, -y) for x, y in pts}
     frames = [on(f) for f in ps.frames("edge", orientation)]
-    # It grows from the centre, each frame one spacing further along and containing the previous.
-    assert frames[0].sum() == 4 and len(frames) == 3
+    # Frame 0 is the whole line (recognisable at once); later frames are the lines one spacing further
+    # out on both sides, diverging across the pad like the face's ring: disjoint, covering the pad.
+    assert np.array_equal(frames[0], static) and len(frames) >= 3
+    assert sum(f.astype(int) for f in frames).tolist() == [1] * 32
     for a_, b_ in zip(frames, frames[1:]):
-        assert np.all(b_ >= a_) and b_.sum() > a_.sum()
-        assert np.abs(along[b_]).max() - np.abs(along[a_]).max() == pytest.approx(pad.pitch_mm, rel=0.45)
-    assert np.array_equal(frames[-1], static)
-
+        assert np.abs(across[b_]).mean() - np.abs(across[a_]).mean() == pytest.approx(pad.pitch_mm, rel=0.3)
+        assert {tuple(p) for p in rel[b_]} == {(-x, -y) for x, y in rel[b_]}
 
 def test_the_four_edge_orientations_are_distinct(ps: PatternSet) -> None:
     statics = {o: ps.static("edge", o) for o in EDGE_ORIENTATIONS}
@@ -117,17 +117,23 @@ def test_the_four_edge_orientations_are_distinct(ps: PatternSet) -> None:
 
 def test_corner_is_concentrated_with_a_parametric_falloff(pad: ElectrodeArray, ps: PatternSet) -> None:
     frames = ps.frames("corner")
-    assert [active(f) for f in frames] == [4, 12]
     static = on(ps.static("corner"))
     r = radius(pad)
     assert r[static].max() < r[~static].min() + 1e-9  # a disc about the centre, nothing beyond it
+    # Frame 0 is the concentrated disc itself (falloff one spacing: centre 2 x 2 and its 8 neighbours),
+    # not the face's or the edge's first frame; each later frame reaches one spacing further.
+    assert np.array_equal(on(frames[0]), static) and active(frames[0]) == 12
+    assert frames[0] not in (ps.frames("face")[0], *(ps.frames("edge", o)[0] for o in EDGE_ORIENTATIONS))
+    rho = r - r.min()
+    for m, f in enumerate(frames):
+        assert on(f).tolist() == (rho <= pad.pitch_mm * (1 + m) + 1e-9).tolist()
+    assert active(frames[-1]) == 32
     sizes = []
     for falloff in (0.0, 1.0, 2.0, 3.0, 4.5):
         p = PatternSet(pad, PatternParams(corner_falloff_mm=falloff))
         sizes.append(active(p.static("corner")))
     assert sizes == sorted(sizes) and sizes[0] == 4 and sizes[-1] > 12
     assert active(PatternSet(pad, PatternParams(corner_falloff_mm=0.0)).static("corner")) == 4
-
 
 # --- contact (eq. 4) ---------------------------------------------------------------------------------------
 
@@ -136,27 +142,24 @@ def test_corner_is_concentrated_with_a_parametric_falloff(pad: ElectrodeArray, p
 def test_contact_levels_shift_left_to_right_only(pad: ElectrodeArray, ps: PatternSet, feature: str, orientation: str | None) -> None:
     pos = pad.positions_mm
     centroids = []
-    for level in range(4):
+    for level, c in enumerate((-4.0, -2.0, 2.0, 4.0)):
         m = on(ps.contact(feature, orientation, level))
         assert m.any()
         centroids.append(pos[m, 0].mean())
-        # Only left–right: the rows used are those of the base pattern.
+        # Eq. 4 on the whole base pattern: P(x, y) = P_base(x - c, y).
         base = on(ps.static(feature, orientation))
-        assert set(pos[m, 1]) <= set(pos[base, 1])
+        want = [bool(base[j]) if (j := pad.index_at(x - c, y)) >= 0 else False for x, y in pos]
+        assert m.tolist() == want
     assert centroids == sorted(centroids)
-    assert centroids[0] < -2.5 and centroids[1] < 0 < centroids[2] and centroids[3] > 2.5
     assert ps.contact_centres_mm == (-4.0, -2.0, 2.0, 4.0)
 
-
 def test_contact_levels_land_in_the_leftmost_to_rightmost_regions(pad: ElectrodeArray, ps: PatternSet) -> None:
+    # The vertical line (two columns) lands on the leftmost, left-centre, right-centre, rightmost columns.
+    cols = [set(pad.positions_mm[on(ps.contact("edge", "v", level)), 0]) for level in range(4)]
+    assert cols == [{-5.0, -3.0}, {-3.0, -1.0}, {1.0, 3.0}, {3.0, 5.0}]
     col = pad.regions % 3
-    steep_left = on(ps.contact("face", None, 0))
-    steep_right = on(ps.contact("face", None, 3))
-    assert set(col[steep_left]) == {0}
-    assert set(col[steep_right]) == {2}
-    assert set(pad.positions_mm[steep_left, 0]) == {-5.0, -3.0}
-    assert set(pad.positions_mm[on(ps.contact("face", None, 1)), 0]) == {-3.0, -1.0}
-
+    assert set(col[on(ps.contact("edge", "v", 0))]) == {0}
+    assert set(col[on(ps.contact("edge", "v", 3))]) == {2}
 
 # --- texture masks (eq. 5–7) -------------------------------------------------------------------------------------
 
@@ -168,22 +171,23 @@ def test_mask_k0_is_ones_and_never_divides(ps: PatternSet) -> None:
 
 
 @pytest.mark.parametrize("k", [1, 2])
-def test_mask_has_period_2k_and_moves_k_spacings_per_count(pad: ElectrodeArray, ps: PatternSet, k: int) -> None:
+def test_mask_has_period_3k_and_moves_k_spacings_per_count(pad: ElectrodeArray, ps: PatternSet, k: int) -> None:
     x = pad.positions_mm[:, 0]
     m0 = ps.mask(DIRECTIONS.index("E"), k, 0)
-    # Stripes across the motion (constant along y), k columns on, k off.
+    # Stripes across the motion (constant along y), k columns on, 2k off.
     cols = sorted(set(x))
     by_col = [bool(m0[x == c][0]) for c in cols]
     for c in cols:
         assert len(set(m0[x == c])) == 1
-    expected = [((i // k) % 2) == 0 for i in range(6)]
-    assert by_col == expected
-    # One count moves the mask by k spacings: with period 2k that is the complementary mask.
+    assert by_col == [((i // k) % 3) == 0 for i in range(6)]
+    # One count moves the mask k spacings against the (rightward) finger: column i shows what column
+    # i + k showed.  Three counts come back; the states in between are not complements of each other.
     m1 = ps.mask(DIRECTIONS.index("E"), k, mask_phase(1, k))
-    assert np.array_equal(m1, ~m0)
-    assert np.array_equal(ps.mask(0, k, mask_phase(2, k)), m0)
-    assert ps.mask_period(k) == 2 * k
-
+    m1_cols = [bool(m1[x == c][0]) for c in cols]
+    assert m1_cols == [((i // k + 1) % 3) == 0 for i in range(6)]
+    assert not np.array_equal(m1, ~m0)
+    assert np.array_equal(ps.mask(0, k, mask_phase(3, k)), m0)
+    assert ps.mask_period(k) == 3 * k
 
 def test_mask_moves_opposite_to_the_finger_for_a_one_spacing_step(pad: ElectrodeArray, ps: PatternSet) -> None:
     # With a step of one spacing (k = 2), a rightward (E) finger sees the stripes move left.
@@ -277,10 +281,11 @@ def test_displayed_frame_and_interpolated_counts() -> None:
     assert [displayed_frame(n, 3, "cycle") for n in range(7)] == [0, 1, 2, 0, 1, 2, 0]
     assert [displayed_frame(n, 3, "hold") for n in range(7)] == [0, 1, 2, 2, 2, 2, 2]
     assert counts_to_show(2, 3, 3) == [3]
-    assert counts_to_show(2, 6, 3) == [4, 5, 6]
-    assert counts_to_show(6, 2, 3) == [4, 3, 2]
+    assert counts_to_show(2, 6, 3) == [3, 4, 5, 6]
+    assert counts_to_show(2, 8, 3) == [6, 7, 8]
+    assert counts_to_show(6, 2, 3) == [5, 4, 3, 2]
     assert counts_to_show(None, 1, 3) == [0, 1]
-    assert counts_to_show(-1, 40, 3) == [38, 39, 40]
+    assert counts_to_show(-1, 40, 3) == [36, 37, 38, 39, 40]  # continues from -1: 0 (mod 3) first
     assert counts_to_show(4, 4, 3) == [4]
 
 

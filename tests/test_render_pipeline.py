@@ -183,7 +183,11 @@ def test_contact_mode_is_selectable_per_participant() -> None:
     b = [rec for p in poses for rec in uniform.step(p)][-1]
     pos = ElectrodeArray.tactdeform().positions_mm
     assert a.state == b.state == INTERACTING
-    assert pos[np.array(a.electrodes, dtype=bool), 0].min() > 2.0  # steep right: rightmost region
+    # Steep right: the face's whole pattern (every electrode) moved 4 mm right, P_base(x - 4, y).
+    assert pos[np.array(a.electrodes, dtype=bool), 0].min() == pytest.approx(-1.0)
+    pad = ElectrodeArray.tactdeform()
+    src = [pad.index_at(float(x) - 4.0, float(y)) for x, y in pos]
+    assert a.electrodes == tuple(1 if i >= 0 else 0 for i in src)
     assert b.electrodes == (1,) * 32
 
 

@@ -46,11 +46,14 @@ def register(sub: Any) -> None:
         help="sphere, cube, teapot, bunny, task1, task2, task3, a mesh file (OBJ/STL/PLY) or a scene "
         "description (.toml/.json)",
     )
-    p.add_argument("--trajectory", required=True, choices=TRAJECTORIES, metavar="NAME", help="one of: " + ", ".join(TRAJECTORIES))
+    p.add_argument("--trajectory", required=True, metavar="NAME|FILE.csv",
+                   help="a synthetic trajectory (" + ", ".join(TRAJECTORIES) + ") or a recorded one: a CSV with the "
+                   "header t_s,x_mm,y_mm,z_mm,qw,qx,qy,qz (world mm; the quaternion turns the pad frame — x right, "
+                   "y toward the fingertip, z out of the pad — into the world)")
     add_option(p, "--speed-mm-s", old=("--speed",), dest="speed", metavar="MM_S", type=float, default=None,
-               help="finger speed in mm/s (default: the trajectory's own)")
-    add_option(p, "--rate-hz", old=("--rate",), dest="rate", type=float, default=72.0,
-               help="tracking rate in Hz (default 72, the VR loop)")
+               help="finger speed in mm/s (default: the trajectory's own; synthetic only)")
+    add_option(p, "--rate-hz", old=("--rate",), dest="rate", type=float, default=None,
+               help="tracking rate in Hz (default 72, the VR loop; synthetic only)")
     p.add_argument("--approach", choices=APPROACHES, default=None, help="rendering approach (default: the scene's, tactdeform)")
     p.add_argument(
         "--contact-mode",
@@ -61,7 +64,9 @@ def register(sub: Any) -> None:
     add_device_arg(p)
     add_participant_arg(p)
     p.add_argument("--frames", metavar="FILE", default=None, help="write the frames as JSON lines to FILE")
-    p.add_argument("--gif", metavar="OUT.gif", default=None, help="also draw the held patterns on the array as an animated GIF (needs the plot extra)")
+    p.add_argument("--gif", metavar="OUT.gif", default=None, help="also draw the held patterns on the array as an animated GIF, "
+                   "each frame shown at least 250 ms with its real time on it (needs the plot extra)")
+    p.add_argument("--strip", metavar="OUT.png", default=None, help="also draw the sent frames side by side in a PNG (needs the plot extra)")
     p.add_argument("--current-ua", type=int, default=None,
                    help="participant current in µA (default: the highest calibrated region with --participant, else 0: patterns only)")
     p.add_argument("--seed", type=int, default=0, help="seed of the trajectory's random parts (default 0)")
@@ -77,8 +82,15 @@ def run(args: argparse.Namespace) -> int:
     from ..render.array import ElectrodeArray
     from ..render.pipeline import FrameRecord, Renderer
     from ..render.scene import RenderOptions, load_scene
-    from ..render.trajectories import make_trajectory, scene_for_trajectory
+    from ..render.trajectories import TRAJECTORIES, make_trajectory, scene_for_trajectory
 
+    recorded = args.trajectory not in TRAJECTORIES
+    if recorded and not args.trajectory.lower().endswith(".csv"):
+        raise LimitError("--trajectory", args.trajectory, "one of " + ", ".join(TRAJECTORIES) + " or a recorded FILE.csv")
+    if recorded and (args.speed is not None or args.rate is not None):
+        raise LimitError("--speed" if args.speed is not None else "--rate", args.speed if args.speed is not None else args.rate,
+                         "not applicable to a recorded trajectory (it has its own clock and speed)")
+    args.rate = 72.0 if args.rate is None else args.rate
     if not args.rate > 0 or args.rate != args.rate:
         raise LimitError("--rate", args.rate, "> 0 Hz")
     if args.speed is not None and (not args.speed > 0 or args.speed == float("inf")):
@@ -108,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
             RenderOptions(contact_mode=args.contact_mode or own.contact_mode, approach=args.approach or own.approach)
         )
     # A slide needs a surface of its texture level; the trajectory module gives a scene that has one.
-    scene = scene_for_trajectory(args.trajectory, scene)
+    scene = scene if recorded else scene_for_trajectory(args.trajectory, scene)
     # The finger's path is geometry: plan it where faces, edges and corners are classified, whatever
     # approach renders it (the baselines' scenes do not classify features).
     plan = scene
@@ -117,15 +129,22 @@ def run(args: argparse.Namespace) -> int:
     kw: dict[str, Any] = {"rate_hz": args.rate, "seed": args.seed}
     if args.speed is not None:
         kw["speed_mm_s"] = args.speed
-    poses = make_trajectory(args.trajectory, plan, **kw)
+    if recorded:
+        from ..render.tracking import read_pose_csv
+
+        poses = read_pose_csv(args.trajectory)  # a bad row is an error naming its line and column
+        if not poses:
+            raise LimitError("--trajectory", args.trajectory, "a CSV with at least one pose row")
+    else:
+        poses = make_trajectory(args.trajectory, plan, **kw)
     scene.prepare()
     total = len(poses)
     quiet = args.quiet
     if not quiet:
-        progress(f"render: {args.trajectory} over {args.scene} at {args.rate:g} Hz, {total} poses, approach "
+        progress(f"render: {args.trajectory} over {args.scene}{'' if recorded else f' at {args.rate:g} Hz'}, {total} poses, approach "
                  f"{args.approach or scene.options.approach}, device {args.device}")
     out = open(args.frames, "w", encoding="utf-8") if args.frames else None  # noqa: SIM115
-    gif_records: list[dict[str, Any]] | None = [] if args.gif else None
+    gif_records: list[dict[str, Any]] | None = [] if (args.gif or args.strip) else None
     try:
         stim_config = None
         if profile is not None:  # the calibrated pulse; the guard refuses anything else
@@ -177,15 +196,20 @@ def run(args: argparse.Namespace) -> int:
             audit.close()
     result = summary.as_dict()
     result["delivered"] = audit.report()
-    result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": args.rate, "verified": verify,
+    result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": None if recorded else args.rate, "verified": verify,
                    "device": args.device, "frames_file": args.frames, "approach": scene.options.approach,
                    "contact_mode": scene.options.contact_mode})
-    if gif_records is not None:
+    if gif_records is not None and args.gif:
         from ..viz.array_picture import draw_frames_gif
 
         gif = draw_frames_gif(array, gif_records, args.gif, current_ua=args.current_ua or None,
                               title=f"{args.trajectory} over {args.scene}")
         result["gif"] = {"path": str(gif.path), "frames": gif.frames, "notes": list(gif.notes)}
+    if gif_records is not None and args.strip:
+        from ..viz.strip import draw_frames_strip
+
+        strip = draw_frames_strip(array, gif_records, args.strip, title=f"{args.trajectory} over {args.scene}")
+        result["strip"] = {"path": str(strip.path), "panels": strip.panels, "left_out": strip.left_out}
     if args.json:
         print_json(result)
     else:

@@ -74,7 +74,7 @@ class _Baseline:
             if sd - sd != 0.0:
                 return self._drop(t, "query")
         self._t = t
-        pat = self._pattern(p, q, sd, scene)
+        pat = self._pattern(p, q, sd, scene, query)
         state = INTERACTING if any(pat) else IDLE
         if state != self.state:
             self.stats.transitions += 1
@@ -89,7 +89,7 @@ class _Baseline:
         texture = getattr(query, "texture_level", None) if state == INTERACTING else None
         return ManagerOutput(t, state, feature, None, texture, self.name, pat, frames)
 
-    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any) -> Pattern:
+    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any, query: Any = None) -> Pattern:
         raise NotImplementedError
 
 
@@ -98,7 +98,7 @@ class UniformActivation(_Baseline):
 
     name = "ua"
 
-    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any) -> Pattern:
+    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any, query: Any = None) -> Pattern:
         return self.all_on if (sd is not None and sd <= 0.0) else self.off
 
 
@@ -107,7 +107,10 @@ class ContactAreaMapping(_Baseline):
 
     The electrodes lie in the pad plane (finger-frame z = 0) at their array positions relative to the
     array centre, which is the tracked pad position.  A pad far outside every object skips the
-    per-electrode test (``reach_mm`` beyond the array's radius cannot reach a surface)."""
+    per-electrode test (``reach_mm`` beyond the array's radius cannot reach a surface), one pressed deeper
+    than that has every electrode inside, and a scene that can answer for points of one plane
+    (``contains_on_pad``: meshes, through their index and the pad-plane cross-section) does so instead of
+    32 separate inside tests."""
 
     name = "cam"
 
@@ -117,6 +120,17 @@ class ContactAreaMapping(_Baseline):
         self._rel = np.ascontiguousarray(rel, dtype=float)
         self.reach_mm = float(np.hypot(rel[:, 0], rel[:, 1]).max()) + 1e-6
         self._levels = np.array([0, on_level], dtype=np.int64)
+        self._offsets = np.ascontiguousarray(self.array.positions_mm - self.array.centre_mm, dtype=float)
+        self._scene_seen: Any = None
+        self._scene_plane = False
+        self._last_key: tuple[Any, ...] | None = None
+        self._last_pattern: Pattern = self.off
+
+    def _plane_test(self, scene: Any) -> bool:
+        if scene is not self._scene_seen:
+            self._scene_seen = scene
+            self._scene_plane = bool(getattr(scene, "has_plane_test", False))
+        return self._scene_plane
 
     def electrode_positions(self, p: tuple[float, float, float], q: tuple[float, ...]) -> np.ndarray:
         """World positions (N, 3) of the electrode centres for a pad pose."""
@@ -125,11 +139,24 @@ class ContactAreaMapping(_Baseline):
         world: np.ndarray = np.asarray(p) + self._rel @ basis
         return world
 
-    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any) -> Pattern:
+    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any, query: Any = None) -> Pattern:
         if sd is None or sd > self.reach_mm or scene is None:
             return self.off
-        inside = np.asarray(scene.contains(self.electrode_positions(p, q)), dtype=bool)
-        return tuple(self._levels[inside.astype(np.int64)].tolist())
+        if sd < -self.reach_mm and getattr(scene, "is_single_object", False):
+            return self.all_on  # deeper than the array's radius inside the one solid: every electrode in
+        key = (p, q, scene)
+        if key == self._last_key:
+            return self._last_pattern  # a pad at rest: the same electrodes are in contact
+        on_pad = getattr(scene, "contains_on_pad", None) if self._plane_test(scene) else None
+        if on_pad is not None:
+            X, Y, _ = quat_axes(*q)
+            inside = np.asarray(on_pad(np.asarray(p), np.asarray(X), np.asarray(Y), self._offsets, query), dtype=bool)
+        else:
+            inside = np.asarray(scene.contains(self.electrode_positions(p, q)), dtype=bool)
+        pat: Pattern = tuple(self._levels[inside.astype(np.int64)].tolist())
+        self._last_key = key
+        self._last_pattern = pat
+        return pat
 
 
 def make_baseline(name: str, array: ElectrodeArray | None = None, *, on_level: int = 1) -> _Baseline:

@@ -70,13 +70,14 @@ def shift_count(slide_travel_mm: float, k_texture: int, d_electrode_mm: float = 
     return math.floor(slide_travel_mm / (d_electrode_mm * k_texture))
 
 
-def mask_phase(count: int, k_texture: int, period_factor: int = 2, step_spacings: int | None = None, beta: float = BETA) -> int:
+def mask_phase(count: int, k_texture: int, period_factor: int = 3, step_spacings: int | None = None, beta: float = BETA) -> int:
     """Where the texture mask stands after ``count`` shifts, in spacings modulo its period.
 
     The spec's interpretation: the mask (period ``period_factor · k``) moves ``k`` spacings per count,
     opposite to the finger for β = +1 — a mask read at coordinate ``q + phase`` along the motion, so
-    features move toward −q.  Note that with the default period 2k a shift of k inverts the stripes, so
-    consecutive counts alternate between two complementary masks and β only matters for other steps.
+    features move toward −q.  The period must exceed twice the step: at exactly 2k a shift of k inverts
+    the stripes, consecutive counts alternate between two complementary masks and the motion has no
+    direction (β = +1 and β = −1 give the same sequence).
     """
     if k_texture == 0:
         return 0
@@ -89,8 +90,14 @@ def mask_phase(count: int, k_texture: int, period_factor: int = 2, step_spacings
 # --- accumulation without drift ------------------------------------------------------------------------------
 
 
+#: Travel within this of a frame (or shift) boundary counts as on it: far below any tracker's
+#: resolution, far above the rounding of summed float displacements (~1e-14 mm).
+BOUNDARY_TOLERANCE_MM = 1e-9
+
+
 class FrameAccumulator:
-    """Travel stored as a whole number of ``unit_mm`` plus a Kahan-compensated remainder in [0, unit).
+    """Travel stored as a whole number of ``unit_mm`` plus a Kahan-compensated remainder in
+    [-tol, unit - tol) (tol = :data:`BOUNDARY_TOLERANCE_MM`).
 
     A plain float sum of eight hours of 72 Hz displacements keeps every rounding error; here the float
     that is rounded never exceeds one unit, and the compensation carries what rounding dropped.  With
@@ -122,16 +129,13 @@ class FrameAccumulator:
         self._comp = (t - self.rem) - y
         self.rem = t
         unit = self.unit_mm
-        if t >= unit or t < 0.0:
-            k = math.floor(t / unit)
+        tol = BOUNDARY_TOLERANCE_MM
+        if t >= unit - tol or t < -tol:
+            # A travel within ``tol`` of a whole unit counts as having reached it: a finger that moved
+            # exactly 14 mm, summed from 72 Hz steps, reads 13.999999999999996 mm and must show frame 7.
+            k = math.floor((t + tol) / unit)
             self.whole += k
-            self.rem = t - k * unit
-            # floor() of a value a hair below a multiple can leave rem == unit after rounding.
-            if self.rem >= unit:
-                self.rem -= unit
-                self.whole += 1
-            elif self.rem < 0.0:
-                self.rem = 0.0
+            self.rem = t - k * unit  # in [-tol, unit - tol): the travel itself stays exact
             if self.clamp_at_zero and self.whole < 0:
                 self.whole = 0
                 self.rem = 0.0
@@ -210,8 +214,11 @@ def displayed_frame(n: int, frame_count: int, overflow: Overflow) -> int:
 def counts_to_show(n_from: int | None, n_to: int, distinct: int) -> list[int]:
     """The counts between two updates that must each be shown once so no frame is skipped in effect.
 
-    Returns the counts after ``n_from`` up to ``n_to`` (either direction), keeping only the last
-    ``distinct`` of them: a pattern with that many distinct frames has shown every one by then."""
+    Returns the counts after ``n_from`` up to ``n_to`` (either direction).  When more counts passed than
+    the pattern has ``distinct`` frames, only the last few are kept: at least ``distinct`` (every frame
+    shown once) and as many more (below ``2·distinct``) as keep the sequence continuous — the first kept
+    count follows ``n_from`` modulo ``distinct`` — so the expansion never jumps a frame between two
+    updates either."""
     if n_from is None:
         lo = max(0, n_to - distinct + 1)
         return list(range(lo, n_to + 1))
@@ -219,7 +226,8 @@ def counts_to_show(n_from: int | None, n_to: int, distinct: int) -> list[int]:
         return [n_to]
     step = 1 if n_to > n_from else -1
     span = abs(n_to - n_from)
-    m = min(span, max(1, distinct))
+    d = max(1, distinct)
+    m = span if span <= d else d + span % d
     return [n_to - step * (m - 1 - i) for i in range(m)]
 
 
@@ -284,10 +292,18 @@ def _clip90(a: float, b: float) -> float:
     return -90.0 if th < -90.0 else (90.0 if th > 90.0 else th)
 
 
+#: Tolerance on eq. 4's bin boundaries: a θ within this of a boundary counts as on it, so an angle of
+#: exactly 30° that reaches the renderer as 29.999999999999996° (a pose's rotation and the normal's
+#: rounding) lands in the bin the paper gives 30° (steep right, [30°, 90°]).  1e-6° is far below any
+#: tracker's resolution and far above double rounding of a unit vector's angle (~1e-14°).
+THETA_TOLERANCE_DEG = 1e-6
+
+
 def theta_level(theta_deg: float, current: int | None = None, margin_deg: float = 0.0) -> int:
     """Eq. 4's bins — steep left [-90, -30), shallow left [-30, 0), shallow right [0, 30), steep right
-    [30, 90] → 0..3 — with hysteresis: the current level is kept until θ is ``margin_deg`` past its
-    boundary."""
+    [30, 90] → 0..3, each boundary taken with :data:`THETA_TOLERANCE_DEG` — with hysteresis: the current
+    level is kept until θ is ``margin_deg`` past its boundary."""
+    theta_deg += THETA_TOLERANCE_DEG
     e0, e1, e2 = THETA_EDGES_DEG
     if current is not None:
         lo = -math.inf if current == 0 else THETA_EDGES_DEG[current - 1]

@@ -5,39 +5,51 @@ about the nearest surface into the frames to send.  The manager never talks to a
 to send and *when* (only when the pattern changes), and the pipeline sends it.
 
 States (paper): Idle — no contact; Approaching — contact detected, the feature (face / edge / corner)
-picks the pattern and it expands one frame per 2 mm of travel toward the surface (eq. 1–3);
-Interacting — sustained, stable contact: a stationary pad gets the orientation-shifted contact pattern
-(eq. 4) or the uniform one, a sliding pad the texture-shifted pattern (eq. 5–7).  Losing contact returns
-to Idle from any state; Interacting only ends through Idle.
+picks the pattern and it expands one frame per 2 mm of travel toward the surface (eq. 1–3); the
+feature, the edge's orientation and the direction "toward the surface" are taken at initial contact and
+kept through the approach however deep the finger goes (an edge or corner is approached along its
+bisector: the normal seen just before contact); Interacting — sustained, stable contact: a stationary
+pad gets the orientation-shifted contact pattern (eq. 4) or the uniform one, a sliding pad the
+texture-shifted pattern (eq. 5–7).  Losing contact returns to Idle from any state; Interacting only ends
+through Idle.
 
 Temporal filtering.  The paper asks for parameters to be stable over a short window before they change
-the state or the pattern, without giving lengths.  Physiological tremor is 8–12 Hz with about 1 mm
-amplitude, so a tremor-driven excursion across a threshold lasts at most half a period (62.5 ms at 8 Hz)
-and its displacement over a window W is at most 2 mm, i.e. an apparent speed of 2 mm / W.  The defaults
-below follow from that (every one is a :class:`ManagerConfig` field):
+the state or the pattern, without giving lengths.  Physiological tremor is 8–12 Hz with up to about
+1 mm amplitude; tracking noise is white.  The defaults (every one a :class:`ManagerConfig` field):
 
-* contact is entered at once (latency matters most there) and left only after the pad has been more
-  than ``contact_release_mm`` = 1.5 mm outside the surface for ``contact_loss_window_s`` = 70 ms (longer
-  than any tremor half period), or at once beyond ``contact_loss_far_mm`` = 10 mm;
-* the position is first averaged over ``slide_smoothing_s`` = 0.125 s (one 8 Hz period), and speeds
-  and the stroke direction come from that average's net displacement over ``motion_window_s`` =
-  0.3 s.  Tremor's own speed is large (1 mm at 10 Hz peaks at 63 mm/s, three times a 20 mm/s stroke),
-  and the raw net displacement over 0.3 s still keeps up to 2 mm of it — 6.7 mm/s in any direction,
-  more than the 4 mm/s between the sliding thresholds (12 mm/s on, 8 mm/s off) and, at 20 mm/s, up to
-  18° of direction error, enough to hold a stroke in the wrong one of 8 bins.  After the average,
-  1 mm of 8–12 Hz tremor reads as at most 1.5 mm/s (4° at 20 mm/s), inside both hysteresis bands and
-  far below ``settle_speed_mm_s`` = 8 mm/s.  Approaching becomes Interacting once contact has lasted
-  ``sustain_s`` = 0.15 s and the normal speed has stayed below the settle speed for ``settle_hold_s`` =
-  0.15 s — longer than the ≈0.125 s a 20 mm/s press-and-withdraw reads as still at its turning point,
-  so a reversal is not taken for a rest;
-* feature, edge orientation, θ level, sliding direction and texture level each change only after their
-  new value has held for 0.1 s, and the angular ones also have a margin past the bin boundary (7.5°, 5°
-  and 10°); the expansion frame and the texture shift count step down only ``frame_release_mm`` =
-  1.25 mm below a boundary;
-* texture travel is the signed displacement of that averaged position (tremor keeps at most a fifth of
-  its amplitude) projected on the filtered stroke direction — net, not absolute — so a sliding finger's
-  tremor cancels instead of adding shifts or rocking the texture back and forth; the sum still
-  telescopes, so it cannot drift.
+* **Onset** needs the pad in contact over ``onset_confirm_s`` = 8 ms (two samples at 72–120 Hz, so a
+  real press starts within one 72 Hz frame of a stable contact, or one sample at slower rates) or at
+  once ``onset_deep_mm`` = 3 mm deep (a fast finger).  A single noisy sample never starts stimulation:
+  hovering 2 mm above with 1 mm noise is stimulated 0.19 % of the time, 1 mm above with 0.5 mm noise
+  0.30 % (``tools/render_fidelity.py``).
+* **Loss**: the mean signed distance over the contact's last ``contact_loss_window_s`` = 0.1 s is above
+  ``contact_release_mm`` = 0.75 mm while the pad is outside (noise around a hover averages out, tremor
+  on a light press averages to the press), or at once beyond ``contact_loss_far_mm`` = 10 mm.
+* The position is first averaged over ``slide_smoothing_s`` = 0.125 s (one 8 Hz period: 1 mm of
+  8–12 Hz tremor keeps at most 0.21 mm).  Speeds and the stroke direction come from that average's net
+  displacement over ``motion_window_s`` = 0.5 s.
+* **Approaching → Interacting** when the finger has stopped advancing: the averaged position has not
+  gone ``advance_mm`` = 0.15 mm deeper than its deepest point for ``settle_hold_s`` = 0.25 s (so any
+  approach faster than 0.6 mm/s keeps expanding — 1 mm/s reaches frame 15 at 30 mm) and it is not
+  withdrawing faster than ``settle_speed_mm_s`` = 8 mm/s over the last ``stop_window_s`` = 0.15 s (a
+  press-and-withdraw turns at its bottom without being taken for a rest).  Time since contact plays no
+  part (``sustain_s`` = 0 adds an optional minimum).
+* **Sliding** from the displacement over the motion window: on at ``slide_on_mm_s`` = 1.5 mm/s (the
+  documented floor; texture shifts follow eq. 5 from there, 2.5 Hz rough at 5 mm/s) once the pad has
+  left its resting place by ``slide_start_mm`` = 0.75 mm, off below ``slide_off_mm_s`` = 1 mm/s or as
+  soon as the last ``stop_window_s`` moved less than ``stop_fraction`` = 1/4 of the window's mean speed
+  (a stroke that stops is seen within about 0.2 s).  A start or end the speed alone asks for must hold
+  ``slide_window_s`` = 0.1 s (tracking noise around the thresholds).  Tremor around a rest moves the averaged position
+  less than 0.45 mm, under both thresholds.
+* Edge orientation, θ level, sliding direction, texture level (and, while Interacting, the feature) each
+  change only after their new value has held for 0.1 s, and the angular ones also have a margin past the
+  bin boundary (7.5°, 5° and 10°); θ bins have a boundary tolerance of 1e-6°
+  (:data:`~.contexts.THETA_TOLERANCE_DEG`), frames and shifts one of 1e-9 mm; the expansion frame and the
+  texture shift count step down only ``frame_release_mm`` = 1.25 mm below a boundary.
+* Texture travel is measured on the averaged position in straight segments, one per sliding direction:
+  the tangential distance from the segment's start (the first starts where the pad rested).  Within a
+  segment it telescopes, so tremor and tracking noise add a bounded error instead of shifts, and the
+  texture is not rocked back and forth; it cannot drift.
 
 Interpretations beyond the windows (all :class:`ManagerConfig` fields): eq. 3's count grows without
 bound while a pattern has a few frames — ``approach_overflow="cycle"`` restarts the ring at the centre,
@@ -51,7 +63,8 @@ approach covers 70 frames per 72 Hz sample), the update returns every frame it p
 each distinct frame — with timestamps spread over the interval, so none is skipped in effect.
 
 Bad input (NaN / inf position, time or quaternion, a quaternion far from unit length, time going
-backwards, a malformed surface query) is dropped and counted; the last pattern stays.  A pose that jumps
+backwards, a malformed surface query) is dropped and counted; the last pattern stays (the pipeline turns
+it off once tracking has been lost for its timeout).  A pose that jumps
 further than ``teleport_min_mm`` faster than ``max_speed_mm_s`` is a tracking teleport: its displacement
 is not counted as travel and any contact restarts from Idle.
 """
@@ -99,17 +112,25 @@ class ManagerConfig:
     frame_release_mm: float = 1.25
     # contact detection
     contact_enter_mm: float = 0.0
-    contact_release_mm: float = 1.5
-    contact_loss_window_s: float = 0.07
+    onset_confirm_s: float = 0.008  # in contact over this long (two samples at ≤ 120 Hz) before onset
+    onset_deep_mm: float = 3.0  # ... or at once this deep: no hover noise reaches it
+    contact_release_mm: float = 0.75  # mean signed distance over the loss window above this: lost
+    contact_loss_window_s: float = 0.1
     contact_loss_far_mm: float = 10.0
-    # Approaching → Interacting
-    sustain_s: float = 0.15
-    motion_window_s: float = 0.3
+    recent_outside_s: float = 0.25  # an outside sample this recent gives the approach normal and start
+    # Approaching → Interacting: the finger has stopped advancing
+    sustain_s: float = 0.0  # optional minimum contact time (the paper gives none)
+    motion_window_s: float = 0.5
     settle_speed_mm_s: float = 8.0
-    settle_hold_s: float = 0.15
+    settle_hold_s: float = 0.25
+    advance_mm: float = 0.15
     # stationary / sliding
-    slide_on_mm_s: float = 12.0
-    slide_off_mm_s: float = 8.0
+    slide_on_mm_s: float = 1.5  # the documented sliding floor (≤ 2 mm/s)
+    slide_off_mm_s: float = 1.0
+    slide_start_mm: float = 0.75  # ... and this far from where the pad last rested
+    stop_window_s: float = 0.15  # recent speed below stop_fraction of the window's: stopped
+    stop_fraction: float = 0.25
+    slide_window_s: float = 0.1  # a start or an end of sliding the speed asks for must hold this long
     slide_smoothing_s: float = 0.125  # position average before every speed, direction and texture travel
     # stability windows and hysteresis margins
     feature_window_s: float = 0.1
@@ -143,6 +164,8 @@ class ManagerConfig:
                 raise LimitError(f.name, v, "a finite number")
         nonneg = (
             "contact_release_mm", "contact_loss_window_s", "contact_loss_far_mm", "sustain_s", "settle_speed_mm_s", "settle_hold_s",
+            "onset_confirm_s", "onset_deep_mm", "recent_outside_s", "advance_mm", "slide_start_mm", "stop_window_s",
+            "stop_fraction", "slide_window_s",
             "slide_off_mm_s", "feature_window_s", "orientation_window_s", "orientation_margin_deg",
             "theta_window_s", "theta_margin_deg", "direction_window_s", "direction_margin_deg",
             "texture_window_s", "teleport_min_mm", "frame_release_mm", "slide_smoothing_s",
@@ -154,6 +177,8 @@ class ManagerConfig:
             raise LimitError("alpha", self.alpha, "> 0")
         if self.d_electrode_mm is not None and not self.d_electrode_mm > 0:
             raise LimitError("d_electrode_mm", self.d_electrode_mm, "> 0 mm")
+        if not self.advance_mm > 0:
+            raise LimitError("advance_mm", self.advance_mm, "> 0 mm")
         if not self.motion_window_s > 0:
             raise LimitError("motion_window_s", self.motion_window_s, "> 0 s")
         if self.slide_smoothing_s > self.motion_window_s:
@@ -320,9 +345,17 @@ class PatternManager:
         self._n: tuple[float, float, float] | None = None
         self._hist: deque[tuple[float, float, float, float]] = deque()
         self._mhist: deque[tuple[float, float, float, float]] = deque()
+        self._shist: deque[tuple[float, float, float, float]] = deque()
+        self._anchor: tuple[float, float, float, float] | None = None
         self._onset_t = 0.0
-        self._above_since: float | None = None
-        self._settled_since: float | None = None
+        self._in_since: float | None = None  # Idle: first of the consecutive samples in contact
+        self._sd_hist: deque[tuple[float, float]] = deque()  # (t, signed distance) since onset
+        self._sd_sum = 0.0
+        self._outside: tuple[float, tuple[float, float, float], tuple[float, float, float], float] | None = None
+        self._n_onset: tuple[float, float, float] = (0.0, 0.0, 1.0)
+        self._m_onset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._peak_mm = 0.0
+        self._advanced_t = 0.0
         self.feature = Debounced(cfg.feature_window_s)
         self.orientation = Debounced(cfg.orientation_window_s)
         self.texture = Debounced(cfg.texture_window_s)
@@ -330,7 +363,10 @@ class PatternManager:
         self.direction = Debounced(cfg.direction_window_s)
         self.approach = ApproachState(self.frame_unit_mm, mode=cfg.approach_travel, release_mm=cfg.frame_release_mm)
         self.slide = FrameAccumulator(self.d_mm)
-        self._m_prev: tuple[float, float, float, float] | None = None
+        self._seg: tuple[float, float, float] | None = None
+        self._slide_change_t: float | None = None
+        self._seg_dir: int | None = None
+        self._seg_len = 0.0
         self._ns: int | None = None
         self._ns_k = 0
         self.sliding = False
@@ -393,8 +429,10 @@ class PatternManager:
             if step > cfg.teleport_min_mm and step > cfg.max_speed_mm_s * (t - t_prev):
                 teleport = True
                 self.stats.teleports += 1
+                self._outside = None
                 self._hist.clear()
                 self._mhist.clear()
+                self._shist.clear()
         self._t = t
         self._p = p
         hist = self._hist
@@ -406,23 +444,40 @@ class PatternManager:
         mhist.append((t, *self._smoothed_position(t)))
         while len(mhist) > 2 and mhist[1][0] <= w0:
             mhist.popleft()
+        shist = self._shist
+        shist.append(mhist[-1])
+        w1 = t - cfg.stop_window_s
+        while len(shist) > 2 and shist[1][0] <= w1:
+            shist.popleft()
 
         # --- contact ------------------------------------------------------------------------------------------
         old_state = self.state
         if self.state != IDLE:
             lost = teleport or normal is None or sd > cfg.contact_loss_far_mm
-            if not lost and sd > cfg.contact_release_mm:
-                if self._above_since is None:
-                    self._above_since = t
-                lost = t - self._above_since >= cfg.contact_loss_window_s
-            elif not lost:
-                self._above_since = None
+            if not lost:
+                # Stability filter on leaving: the mean signed distance over the loss window (samples of
+                # this contact only) must be above the release distance, and the pad outside now.  Noise
+                # around a hover averages out; tremor on a light press averages to the press.
+                h = self._sd_hist
+                h.append((t, sd))
+                self._sd_sum += sd
+                w0 = t - cfg.contact_loss_window_s
+                while len(h) > 1 and h[0][0] < w0:
+                    self._sd_sum -= h.popleft()[1]
+                lost = sd > cfg.contact_enter_mm and self._sd_sum / len(h) > cfg.contact_release_mm
             if lost:
                 self._to_idle()
         seq: list[Pattern]
         if self.state == IDLE:
-            if normal is not None and sd <= cfg.contact_enter_mm:
-                assert feat is not None  # a normal is only kept together with a checked feature
+            inside = normal is not None and sd <= cfg.contact_enter_mm
+            if not inside:
+                self._in_since = None
+            elif self._in_since is None:
+                self._in_since = t
+            if inside and self._in_since is not None and (
+                t - self._in_since >= cfg.onset_confirm_s - 1e-9 or sd <= cfg.contact_enter_mm - cfg.onset_deep_mm
+            ):
+                assert feat is not None and normal is not None  # a normal is only kept with a checked feature
                 seq = self._onset(t, p, q, sd, normal, feat, query)
             else:
                 seq = [self.patterns.off]
@@ -433,6 +488,8 @@ class PatternManager:
         if self.state != old_state:
             self.stats.transitions += 1
         self._n = normal
+        if normal is not None and sd > cfg.contact_enter_mm:
+            self._outside = (t, p, normal, sd)
         return self._emit(t, t_prev, seq)
 
     # --- internals -----------------------------------------------------------------------------------------
@@ -450,8 +507,11 @@ class PatternManager:
     def _to_idle(self) -> None:
         self.state = IDLE
         self.context = None
-        self._above_since = None
+        self._in_since = None
+        self._sd_hist.clear()
+        self._sd_sum = 0.0
         self.sliding = False
+        self._slide_change_t = None
         self.theta_deg = None
         self._family = None
         self._count = None
@@ -491,16 +551,37 @@ class PatternManager:
         self.state = APPROACHING
         self.context = APPROACHING
         self._onset_t = t
-        self._above_since = None
-        self._settled_since = None
+        self._in_since = None
+        self._sd_hist.clear()
+        self._sd_hist.append((t, sd))
+        self._sd_sum = sd
+        # Latched at initial contact and kept through the approach (paper): the feature, the edge's
+        # orientation and the direction "toward the surface".  That direction is the normal seen just
+        # before contact (an edge's or corner's bisector, where the nearest surface point was the edge
+        # or corner itself); once inside, the nearest point moves onto a face and its normal would
+        # count travel along a bisector short by cos 45°.
+        out = self._outside
+        n0: tuple[float, ...]
+        if out is not None and t - out[0] <= cfg.recent_outside_s:
+            n0 = out[2]
+            po = out[1]
+            travel = -((p[0] - po[0]) * n0[0] + (p[1] - po[1]) * n0[1] + (p[2] - po[2]) * n0[2]) - (out[3] - cfg.contact_enter_mm)
+        else:
+            n0 = normal
+            travel = cfg.contact_enter_mm - sd
+        self._n_onset = (n0[0], n0[1], n0[2])
+        m = self._mhist[-1]
+        self._m_onset = (m[1], m[2], m[3])
+        self._peak_mm = 0.0
+        self._advanced_t = t
         self.feature.force(feat)
         self.orientation.force(self._edge_bin(query, q, None) if feat == "edge" else None)
         if feat == "edge" and self.orientation.value is None:
             self.orientation.force(0)
         self.texture.force(self._texture_of(query))
-        self.approach.begin(cfg.contact_enter_mm - sd)
+        self.approach.begin(max(0.0, travel))
         self.slide.reset()
-        self._m_prev = None
+        self._seg = None
         self._ns = None
         self._family = None
         self._count = -1
@@ -525,16 +606,42 @@ class PatternManager:
     def _in_contact(self, t: float, p: tuple[float, ...], p_prev: tuple[float, ...], q: tuple[float, ...], sd: float,
                     normal: tuple[float, ...], feat: str, query: Any) -> list[Pattern]:
         cfg = self.config
-        # Displacement projected on the normal (mean of the last two normals on curved surfaces).
-        n0 = self._n if self._n is not None else normal
-        mx, my, mz = n0[0] + normal[0], n0[1] + normal[1], n0[2] + normal[2]
-        mn = math.sqrt(mx * mx + my * my + mz * mz)
-        if mn < 1e-9:
-            mx, my, mz, mn = normal[0], normal[1], normal[2], 1.0
-        dx, dy, dz = p[0] - p_prev[0], p[1] - p_prev[1], p[2] - p_prev[2]
-        toward = -(dx * mx + dy * my + dz * mz) / mn
+        v = self._velocity()
+        if self.state == APPROACHING:
+            # Eq. 3's travel: displacement along the direction latched at contact; feature and
+            # orientation stay as they were at contact, however deep the finger goes.
+            n0 = self._n_onset
+            self.approach.advance(-((p[0] - p_prev[0]) * n0[0] + (p[1] - p_prev[1]) * n0[1] + (p[2] - p_prev[2]) * n0[2]))
+            self.texture.update(self._texture_of(query), t)
+            # Stopped advancing: the tremor-filtered position has not gone ``advance_mm`` deeper than its
+            # deepest point for ``settle_hold_s`` (any approach faster than advance_mm / settle_hold_s,
+            # 0.6 mm/s by default, keeps expanding) and is not withdrawing fast.
+            m = self._mhist[-1]
+            mo = self._m_onset
+            depth = -((m[1] - mo[0]) * n0[0] + (m[2] - mo[1]) * n0[1] + (m[3] - mo[2]) * n0[2])
+            if depth >= self._peak_mm + cfg.advance_mm:
+                self._peak_mm = depth
+                self._advanced_t = t
+            # Not withdrawing fast either: judged on the recent window, which a turn at the bottom of a
+            # press-and-withdraw leaves quickly (the long window reads such a turn as still).
+            vn = self._recent_normal_speed(n0)
+            if (
+                t - self._advanced_t >= cfg.settle_hold_s
+                and t - self._onset_t >= cfg.sustain_s
+                and abs(vn) <= cfg.settle_speed_mm_s
+            ):
+                self.state = INTERACTING
+                self._family = None
+                self.theta.force(None)
+                self.direction.force(None)
+                self.sliding = False
+                self._slide_change_t = None
+                self._anchor = self._mhist[-1]
+            else:
+                self.context = APPROACHING
+                return self._approach_seq()
 
-        # Parameters with stability windows.
+        # Interacting: parameters change only after holding for their stability windows.
         self.feature.update(feat, t)
         if self.feature.value == "edge":
             cur = self.orientation.value
@@ -546,27 +653,7 @@ class PatternManager:
             else:
                 self.orientation.update(cand, t)
         self.texture.update(self._texture_of(query), t)
-
-        v = self._velocity()
-        if self.state == APPROACHING:
-            self.approach.advance(toward)
-            if v is not None and abs(v[0] * normal[0] + v[1] * normal[1] + v[2] * normal[2]) <= cfg.settle_speed_mm_s:
-                if self._settled_since is None:
-                    self._settled_since = t
-            else:
-                self._settled_since = None
-            ss = self._settled_since
-            if ss is not None and t - ss >= cfg.settle_hold_s and t - self._onset_t >= cfg.sustain_s:
-                self.state = INTERACTING
-                self._family = None
-                self.theta.force(None)
-                self.direction.force(None)
-                self.sliding = False
-            else:
-                self.context = APPROACHING
-                return self._approach_seq()
-
-        # Interacting: stationary contact or sliding.
+        # Stationary contact or sliding.
         if v is None and self.sliding:
             # No time has passed since the window's start (repeated timestamps): keep sliding as is.
             self.context = "sliding"
@@ -577,20 +664,48 @@ class PatternManager:
             vn = v[0] * normal[0] + v[1] * normal[1] + v[2] * normal[2]
             vt = (v[0] - vn * normal[0], v[1] - vn * normal[1], v[2] - vn * normal[2])
             speed = math.sqrt(vt[0] * vt[0] + vt[1] * vt[1] + vt[2] * vt[2])
+            # Sliding from displacement over the motion window (any speed above the slide_on floor),
+            # ended early when the last stop_window_s moved much less than the window's mean (a
+            # stroke that stopped need not wait for the long window to empty), and restarted only
+            # once the pad has left its resting place by slide_start_mm (tremor and noise around a
+            # rest move the filtered position far less).
+            # A change the speed alone asks for must hold for ``slide_window_s`` (noise around the
+            # thresholds); a stop is taken at once.
+            stopped = self._recent_speed(normal) < cfg.stop_fraction * speed
             if self.sliding:
-                self.sliding = speed > cfg.slide_off_mm_s
+                if stopped:
+                    self.sliding = False
+                elif speed > cfg.slide_off_mm_s:
+                    self._slide_change_t = None
+                elif self._slide_change_t is None:
+                    self._slide_change_t = t
+                if self._slide_change_t is not None and t - self._slide_change_t >= cfg.slide_window_s:
+                    self.sliding = False
+                if not self.sliding:
+                    self._slide_change_t = None
+                    self._anchor = self._mhist[-1]
             else:
-                self.sliding = speed >= cfg.slide_on_mm_s
+                anc = self._anchor
+                m = self._mhist[-1]
+                if anc is None:
+                    far = True
+                else:
+                    dx, dy, dz = m[1] - anc[1], m[2] - anc[2], m[3] - anc[3]
+                    dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
+                    far = dx * dx + dy * dy + dz * dz - dn * dn >= cfg.slide_start_mm ** 2
+                want = speed >= cfg.slide_on_mm_s and far and not stopped
+                if not want:
+                    self._slide_change_t = None
+                elif self._slide_change_t is None:
+                    self._slide_change_t = t
+                since = self._slide_change_t
+                if want and since is not None and t - since >= cfg.slide_window_s:
+                    self.sliding = True
+                    self._slide_change_t = None
         X, Y, Z = quat_axes(*q)
         m = self._mhist[-1]
-        mp = self._m_prev
-        self._m_prev = m
         if self.sliding and vt is not None and speed > 0.0:
             ux, uy, uz = vt[0] / speed, vt[1] / speed, vt[2] / speed
-            if mp is not None and self._k():
-                # Texture travel: the filtered position's signed displacement along the filtered stroke
-                # direction, so tremor's back-and-forth cancels instead of adding up (it telescopes).
-                self.slide.add((m[1] - mp[1]) * ux + (m[2] - mp[2]) * uy + (m[3] - mp[3]) * uz)
             a = math.degrees(math.atan2(ux * Y[0] + uy * Y[1] + uz * Y[2], ux * X[0] + uy * X[1] + uz * X[2]))
             cur = self.direction.value
             cand = quantise_angle(a, 8, 360.0, cur, cfg.direction_margin_deg)
@@ -598,8 +713,27 @@ class PatternManager:
                 self.direction.force(cand)
             else:
                 self.direction.update(cand, t)
+            # Texture travel (eq. 7's ∫ v_slide): the stroke in straight segments, one per sliding
+            # direction, each measured as the tangential distance of the filtered position from the
+            # segment's start.  Within a segment the sum telescopes, so tremor and tracking noise add a
+            # bounded error, never a drift (a per-sample projection on a noisy direction would add
+            # their correlated part at every sample); a stroke's first segment starts where the pad
+            # rested, so the travel before sliding was recognised counts too.
+            seg = self._seg
+            if seg is None or self.direction.value != self._seg_dir:
+                anc = self._anchor
+                self._seg = seg = (anc[1], anc[2], anc[3]) if (seg is None and anc is not None) else (m[1], m[2], m[3])
+                self._seg_dir = self.direction.value
+                self._seg_len = 0.0
+            dx, dy, dz = m[1] - seg[0], m[2] - seg[1], m[3] - seg[2]
+            dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
+            length = math.sqrt(max(0.0, dx * dx + dy * dy + dz * dz - dn * dn))
+            if self._k():
+                self.slide.add(length - self._seg_len)
+            self._seg_len = length
             self.context = "sliding"
             return self._sliding_seq()
+        self._seg = None
         self.context = "contact"
         if not cfg.render_contact:
             self._family = None
@@ -634,6 +768,27 @@ class PatternManager:
         if not span > 1e-9:
             return None
         return ((x1 - x0) / span, (y1 - y0) / span, (z1 - z0) / span)
+
+    def _recent_normal_speed(self, n0: tuple[float, ...]) -> float:
+        """Speed of the filtered position along ``n0`` over the last ``stop_window_s`` (0 with no span)."""
+        sh = self._shist
+        span = sh[-1][0] - sh[0][0]
+        if not span > 1e-9:
+            return 0.0
+        return ((sh[-1][1] - sh[0][1]) * n0[0] + (sh[-1][2] - sh[0][2]) * n0[1] + (sh[-1][3] - sh[0][3]) * n0[2]) / span
+
+    def _recent_speed(self, normal: tuple[float, ...]) -> float:
+        """Tangential speed of the filtered position over the last ``stop_window_s``."""
+        sh = self._shist
+        t1, x1, y1, z1 = sh[-1]
+        t0, x0, y0, z0 = sh[0]
+        span = t1 - t0
+        if not span > 1e-9:
+            return math.inf
+        dx, dy, dz = x1 - x0, y1 - y0, z1 - z0
+        dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
+        dx, dy, dz = dx - dn * normal[0], dy - dn * normal[1], dz - dn * normal[2]
+        return math.sqrt(dx * dx + dy * dy + dz * dz) / span
 
     def _smoothed_position(self, t: float) -> tuple[float, float, float]:
         """Mean position over the last ``slide_smoothing_s``: one 8 Hz period, which leaves at most a

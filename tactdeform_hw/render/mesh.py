@@ -40,7 +40,12 @@ An edge between two triangles is *sharp* when the angle between their normals is
 ``sharp_angle_deg`` and it is convex (or ``concave_edges`` is set); boundary edges (a thin lip) are sharp
 when ``boundary_edges_sharp``.  Scanned meshes fold a few triangles; such noise is dropped by keeping only
 chains of sharp edges at least ``min_chain_mm`` long.  A vertex where three or more sharp edges meet (or
-two meeting at a turn of at least ``corner_turn_deg``) is a corner.  A contact whose closest point is
+two meeting at a turn of at least ``corner_turn_deg``) is a corner, and so is every vertex of a *tip*: a
+sharp chain that turns by at least ``corner_turn_deg`` within ``tip_window_mm`` of its length (the pad's
+width, 10 mm).  A tip is where the surface bends sharply in several directions under one finger pad —
+the teapot's spout opening (a lip of 6 mm radius turns 90° within 10 mm), a blunt cone's point — and
+what a finger feels there is concentrated, not a line; a long gently curving crease (the teapot's rim,
+10° per 10 mm) stays an edge.  A contact whose closest point is
 within ``feature_band_mm`` of a corner reads as a corner, else within the band of a sharp edge as an edge
 (with that edge's direction), else as a face.
 """
@@ -340,7 +345,7 @@ class _WindingNumber:
 
     def __call__(self, points: np.ndarray) -> np.ndarray:
         p = np.atleast_2d(points)
-        if len(p) > 8:
+        if len(p) > 8 and float(np.ptp(p, axis=0).max()) > 20.0:
             # Points far apart share few near clusters; evaluate spatially sorted chunks.
             order = np.lexsort((p[:, 2], p[:, 1], p[:, 0]))
             out = np.empty(len(p))
@@ -595,6 +600,10 @@ class _Index:
             self.vertex_pn = vpn
         else:
             self.winding = _WindingNumber(v, f)
+        # Vertices on the border of a hole (open meshes only): near them inside and outside are the
+        # winding number's call, not a matter of crossing the surface.
+        open_vertices = np.unique(rtopo.edges[rtopo.edge_count == 1].ravel())
+        self.hole_tree = spatial.cKDTree(v[open_vertices]) if open_vertices.size else None
 
         # Coherence hint: the closest point of the previous query (on the surface, so an upper bound).
         self._hint_point: np.ndarray | None = None
@@ -834,6 +843,7 @@ class _Features:
         concave_edges: bool,
         boundary_edges_sharp: bool,
         corner_turn_deg: float,
+        tip_window_mm: float = 10.0,
     ) -> None:
         edges, ef, counts = topo.edges, topo.edge_faces, topo.edge_count
         two = counts == 2
@@ -875,17 +885,36 @@ class _Features:
         if two_v.size:
             # Turning angle where a chain of two sharp edges bends.
             inc: dict[int, list[np.ndarray]] = {int(v): [] for v in two_v}
-            for (va, vb), dvec in zip(seg.tolist(), d):
+            nbrs: dict[int, list[tuple[int, float]]] = {int(v): [] for v in two_v}
+            for (va, vb), dvec, ln in zip(seg.tolist(), d, length.tolist()):
                 if va in inc:
                     inc[va].append(dvec)
+                    nbrs[va].append((vb, ln))
                 if vb in inc:
                     inc[vb].append(-dvec)
+                    nbrs[vb].append((va, ln))
+            turns: dict[int, float] = {}
             for v, vecs in inc.items():
                 u, w = vecs[0], vecs[1]
                 cosang = float(np.dot(u, w) / (np.linalg.norm(u) * np.linalg.norm(w)))
                 turn = 180.0 - math.degrees(math.acos(max(-1.0, min(1.0, cosang))))
+                turns[v] = turn
                 if turn >= corner_turn_deg:
                     corners[v] = True
+            # Tips: the turning summed along the chain within half the window on each side.
+            half = tip_window_mm / 2.0
+            if half > 0:
+                for v in turns:
+                    total = turns[v]
+                    for first, step in nbrs[v]:
+                        prev, cur, dist = v, first, step
+                        while dist <= half and cur in turns and cur != v:
+                            total += turns[cur]
+                            a_, b_ = nbrs[cur]
+                            nxt, ln = a_ if a_[0] != prev else b_
+                            prev, cur, dist = cur, nxt, dist + ln
+                    if total >= corner_turn_deg:
+                        corners[v] = True
         self.valence = valence
         self.corner_vertices = np.flatnonzero(corners)
         self.corner_points = vertices[self.corner_vertices]
@@ -975,6 +1004,12 @@ def _scipy_sparse() -> Any:
 # --- the object ---------------------------------------------------------------------------------------
 
 
+#: On an open mesh, how close to a hole's border the pad-plane test hands over to the winding number:
+#: the winding number drifts from 1 to 0 across a hole over about its size, so a point a few millimetres
+#: from a border can be "outside" without any surface between it and an "inside" pad centre.
+HOLE_MARGIN_MM = 6.0
+
+
 class TriangleMesh(_PlacedSolid):
     """A solid bounded by a triangle mesh, placed in the world and fitted into a box."""
 
@@ -999,6 +1034,7 @@ class TriangleMesh(_PlacedSolid):
         concave_edges: bool = False,
         boundary_edges_sharp: bool = True,
         corner_turn_deg: float = 60.0,
+        tip_window_mm: float = 10.0,
         sign_method: str = "auto",
         sample_spacing_mm: float | None = None,
         source: str = "",
@@ -1047,6 +1083,7 @@ class TriangleMesh(_PlacedSolid):
             concave_edges=bool(concave_edges),
             boundary_edges_sharp=bool(boundary_edges_sharp),
             corner_turn_deg=float(corner_turn_deg),
+            tip_window_mm=float(tip_window_mm),
         )
         self._topo: _Topology | None = None
         # Closed meshes wound inside-out are turned right way out.
@@ -1057,6 +1094,7 @@ class TriangleMesh(_PlacedSolid):
         self.vertices_mm = v
         self.faces = f
         self._index: _Index | None = None
+        self._pad_reach: dict[int, tuple[np.ndarray, float]] = {}
         self._features: _Features | None = None
         self._bounds = (v.min(axis=0), v.max(axis=0))
 
@@ -1155,6 +1193,84 @@ class TriangleMesh(_PlacedSolid):
         for i, (p, tri) in enumerate(zip(local, tris.tolist())):
             sd[i], cp[i], _, _ = index.finish(p, tri, remember=False)
         return sd, cp + index.origin
+
+    def contains_on_pad(
+        self,
+        centre_mm: np.ndarray,
+        x_axis: np.ndarray,
+        y_axis: np.ndarray,
+        offsets_mm: np.ndarray,
+        centre_inside: bool | None = None,
+    ) -> np.ndarray:
+        """Which of many points of one plane are inside: the contact-area mapping's 32 electrodes.
+
+        The points are ``centre + u·x_axis + v·y_axis`` for the rows (u, v) of ``offsets_mm``.  Exact for
+        a closed mesh, and cheap because it stays local: the mesh's cross-section by the pad plane is
+        taken from the triangles near the pad only (the index's samples within the points' reach plus the
+        triangles' covering radius hold every triangle that can meet the disc), and a point is inside
+        when the segment from the centre to it crosses that cross-section an odd number of times and the
+        centre is outside, or an even number and the centre is inside.  The centre's own side comes from
+        ``centre_inside`` (the caller's query at the pad centre) or from one query here.  A vertex exactly
+        on the plane counts on its positive side and a cross-section vertex exactly on a segment's line
+        on its non-negative side, so shared vertices are counted once.  On an open mesh, points within
+        :data:`HOLE_MARGIN_MM` of a hole's border are tested one by one with the winding number instead,
+        so the answer is always :meth:`contains`'s."""
+        index = self._ensure_index()
+        c = as_point(centre_mm, "centre_mm")
+        off = np.asarray(offsets_mm, dtype=float)
+        if centre_inside is None:
+            centre_inside = self.query(c).signed_distance_mm <= 0.0
+        x0, x1, x2 = (float(v) for v in x_axis)
+        y0, y1, y2 = (float(v) for v in y_axis)
+        frame = np.array(((x0, y0, x1 * y2 - x2 * y1), (x1, y1, x2 * y0 - x0 * y2), (x2, y2, x0 * y1 - x1 * y0)))
+        local = c - index.origin
+        reach = self._pad_reach.get(id(off))
+        if reach is None or reach[0] is not off:
+            reach = (off, float(np.sqrt((off * off).sum(axis=1).max())) if len(off) else 0.0)
+            self._pad_reach = {id(off): reach}
+        out = np.full(len(off), bool(centre_inside))
+        by_winding: np.ndarray | None = None
+        if index.hole_tree is not None:
+            gap, _ = index.hole_tree.query(local, distance_upper_bound=reach[1] + HOLE_MARGIN_MM)
+            if math.isfinite(float(gap)):
+                # Near a hole of an open mesh: the points close to its border by the winding number,
+                # as contains() does; the others by crossings.
+                pts = local + off[:, 0:1] * frame[:, 0] + off[:, 1:2] * frame[:, 1]
+                return index.inside(pts)
+        ids = index.tree.query_ball_point(local, reach[1] + index.cover_mm + 1e-9)
+        if not ids and by_winding is None:
+            return out
+        tris = index._dedupe(index.table[ids].ravel()) if ids else np.empty(0, dtype=np.int64)
+        # Triangle corners in pad coordinates: (u, v, height above the pad plane).
+        pc = (index.vertices[index.faces[tris[tris != index.sentinel]]] - local) @ frame
+        pos = pc[:, :, 2] >= 0.0
+        npos = pos.sum(axis=1)
+        cut = (npos == 1) | (npos == 2)
+        pc, pos = pc[cut], pos[cut]
+        # The corner alone on its side, and the two edges from it that cross the plane.
+        k = np.argmax(pos == (npos[cut] == 1)[:, None], axis=1)
+        rows = np.arange(len(k))
+        lone = pc[rows, k]
+        a_ = pc[rows, (k + 1) % 3]
+        b_ = pc[rows, (k + 2) % 3]
+        wa = (lone[:, 2] / (lone[:, 2] - a_[:, 2]))[:, None]
+        wb = (lone[:, 2] / (lone[:, 2] - b_[:, 2]))[:, None]
+        ea = lone[:, 0:2] + wa * (a_[:, 0:2] - lone[:, 0:2])
+        eb = lone[:, 0:2] + wb * (b_[:, 0:2] - lone[:, 0:2])
+        ax, ay, bx, by = ea[:, 0], ea[:, 1], eb[:, 0], eb[:, 1]
+        px, py = off[:, 0:1], off[:, 1:2]  # segment from the centre (the origin) to each point
+        sa = px * ay - py * ax  # side of each section end relative to the line through 0 and the point
+        sb = px * by - py * bx
+        straddle = (sa >= 0.0) != (sb >= 0.0)
+        t = sa / np.where(straddle, sa - sb, 1.0)
+        pp = px * px + py * py
+        u = ((ax + t * (bx - ax)) * px + (ay + t * (by - ay)) * py) / np.where(pp > 0.0, pp, np.inf)
+        odd = ((straddle & (u >= 0.0) & (u < 1.0)).sum(axis=1) % 2).astype(bool)
+        result: np.ndarray = out ^ odd
+        if by_winding is not None and by_winding.any():
+            pts = local + off[by_winding, 0:1] * frame[:, 0] + off[by_winding, 1:2] * frame[:, 1]
+            result[by_winding] = index.inside(pts)
+        return result
 
     def contains(self, points_mm: np.ndarray) -> np.ndarray:
         pts = as_points(points_mm)

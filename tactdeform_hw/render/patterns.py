@@ -11,9 +11,12 @@ Geometry used throughout:
   innermost electrodes (the centre 2 × 2 on an even grid, the centre electrode on an odd one) sit at 0.
 * ``ring`` — ``round(rho / step)``: how many electrode spacings an electrode is beyond the innermost
   ones.  On the 6 × 6 array this reproduces the square rings (4, 12 and 16 electrodes).
-* Expansion frame ``n`` of a pattern is "one electrode spacing further along" than frame ``n - 1``:
-  the face shows ring ``n`` (a diverging ring), the edge and the corner show every electrode of their
-  support with ring ≤ ``n`` (a line and a blob growing from the centre).
+* Expansion frame ``n`` of a pattern is "one electrode spacing further along" than frame ``n - 1``,
+  and every feature is recognisable from its first frame: the face shows ring ``n`` (a ring diverging
+  from the centre 2 × 2), the edge shows the pair of lines ``n`` spacings either side of its centre line
+  (frame 0 is the whole line, then it splits and diverges across the pad), the corner shows everything
+  within its falloff plus ``n`` spacings of the centre (a concentrated blob, already wider than the face's
+  first ring, that spreads).
 """
 
 from __future__ import annotations
@@ -62,14 +65,19 @@ class PatternParams:
       falls from the innermost electrodes to nothing over this distance (``rho`` ≤ falloff); the default
       of one spacing gives the centre 2 × 2 plus its 8 edge neighbours.  Larger values spread the
       corner toward a face, smaller ones concentrate it on the centre.
-    * ``contact_half_width_mm`` — *interpretation*: the contact pattern (eq. 4) is the feature's static
-      pattern cut to a vertical band of this half-width about the centre, then shifted left or right;
-      the default (half a pitch) keeps two columns, so four shifts land on four distinct regions.
-    * ``contact_centres_mm`` — the band's centre x for the four θ levels (left to right).  ``None``: the
-      outermost band touches the array's side and the inner ones sit half way, snapped to whole spacings
-      (−4, −2, +2, +4 mm on the 6 × 6 array: the leftmost, left-centre, right-centre, rightmost regions).
-    * ``mask_period_factor`` — the texture mask's spatial period in units of k spacings (paper
-      interpretation: 2, i.e. stripes k spacings wide, k apart).
+    * ``contact_half_width_mm`` — only places the default shifts: the outermost shift puts a band of this
+      half-width about the pattern's centre against the array's side (default half a pitch).
+    * ``contact_centres_mm`` — where the four θ levels (left to right) move the pattern's centre; eq. 4
+      is P_contact(x, y) = P_base(x − c, y): the feature's whole base pattern is shifted, never cut to a
+      window, so its shape survives (what is pushed past the array's side is lost, zeros come in from
+      the other side).  ``None``: the outermost shift puts the central band against the array's side and
+      the inner ones sit half way, snapped to whole spacings (−4, −2, +2, +4 mm on the 6 × 6 array: the
+      leftmost, left-centre, right-centre, rightmost regions).
+    * ``mask_period_factor`` — the texture mask's spatial period in units of k spacings.  *Interpretation*:
+      3 — stripes k spacings wide with 2k off between them.  The mask moves k spacings per shift, so a
+      period of exactly 2k would only toggle two complementary states (no direction); with 3k every
+      shift moves the stripes one third of a period against the finger, and β = +1 and β = −1 give the
+      same states in opposite orders.  Must be ≥ 3.
     * ``on_level`` — the level of an active electrode: 1 (monophasic, the paper's setting) or 2.
     """
 
@@ -78,7 +86,7 @@ class PatternParams:
     corner_falloff_mm: float | None = None
     contact_half_width_mm: float | None = None
     contact_centres_mm: tuple[float, float, float, float] | None = None
-    mask_period_factor: int = 2
+    mask_period_factor: int = 3
     on_level: int = 1
 
     def __post_init__(self) -> None:
@@ -92,8 +100,11 @@ class PatternParams:
             c = tuple(float(v) for v in self.contact_centres_mm)
             if len(c) != 4 or not all(math.isfinite(v) for v in c):
                 raise LimitError("contact_centres_mm", self.contact_centres_mm, "four finite x positions in mm")
-        if isinstance(self.mask_period_factor, bool) or not isinstance(self.mask_period_factor, int) or self.mask_period_factor < 2:
-            raise LimitError("mask_period_factor", self.mask_period_factor, "an integer ≥ 2")
+        if isinstance(self.mask_period_factor, bool) or not isinstance(self.mask_period_factor, int) or self.mask_period_factor < 3:
+            raise LimitError(
+                "mask_period_factor", self.mask_period_factor,
+                "an integer ≥ 3 (a period of 2 steps only toggles two states: the texture would have no direction)",
+            )
         if self.on_level not in (1, 2):
             raise LimitError("on_level", self.on_level, "1 (monophasic) or 2 (biphasic)")
 
@@ -134,11 +145,15 @@ class PatternSet:
                     f"edge_half_width_mm={half:g} leaves the {o!r} edge line without electrodes on {array.name}"
                 )
             self._static[("edge", o)] = band
-            self._frames[("edge", o)] = self._growing(band)
+            # Diverging lines: line index 0 is the band itself, index m the electrodes m spacings beyond it.
+            line = np.where(band, 0, np.ceil((perp - half) / self.step_mm - _TOL)).astype(int)
+            self._frames[("edge", o)] = tuple(self._pat(line == m) for m in np.unique(line))
         falloff = p.corner_falloff_mm if p.corner_falloff_mm is not None else pitch
         blob = self.rho_mm <= falloff + _TOL
         self._static[("corner", None)] = blob
-        self._frames[("corner", None)] = self._growing(blob)
+        # Concentrated at the centre with the falloff's extent, spreading one spacing per frame.
+        reach = np.where(blob, 0, np.ceil((self.rho_mm - falloff) / self.step_mm - _TOL)).astype(int)
+        self._frames[("corner", None)] = tuple(self._pat(reach <= m) for m in np.unique(reach))
 
         # Contact (eq. 4): P_contact(x, y) = P_base(x + Δx(θ), y) with Δx = -centre(θ level).
         chw = p.contact_half_width_mm if p.contact_half_width_mm is not None else pitch / 2.0
@@ -157,7 +172,6 @@ class PatternSet:
             # src[i]: the electrode whose base value electrode i shows, or -1 (nothing there).
             src = np.array([array.index_at(float(x) + array.centre_mm[0] - c, float(y) + array.centre_mm[1]) for x, y in rel])
             self._shift_index.append(src)
-        self._window = np.abs(rel[:, 0]) <= chw + _TOL
 
         # Texture masks: coordinate across each direction in electrode spacings, starting at 0.
         self._mask_coord: list[np.ndarray] = []
@@ -185,10 +199,6 @@ class PatternSet:
         lvl = self.on_level
         return tuple(lvl if bool(m) else 0 for m in mask)
 
-    def _growing(self, support: np.ndarray) -> tuple[Pattern, ...]:
-        rings = np.unique(self.ring[support])
-        return tuple(self._pat(support & (self.ring <= k)) for k in rings)
-
     @staticmethod
     def _key(feature: str, orientation: str | None) -> tuple[str, str | None]:
         if feature == "edge":
@@ -213,7 +223,7 @@ class PatternSet:
         return self._static_cache[self._key(feature, orientation)]
 
     def contact(self, feature: str, orientation: str | None, level: int) -> Pattern:
-        """Eq. 4: the static pattern, cut to the central band, shifted to θ level ``level`` (0–3)."""
+        """Eq. 4: the feature's whole static pattern shifted to θ level ``level`` (0–3), shape intact."""
         key = self._key(feature, orientation)
         ck = (key[0], key[1], level)
         hit = self._contact_cache.get(ck)
@@ -221,7 +231,7 @@ class PatternSet:
             return hit
         if not 0 <= level < len(THETA_LEVELS):
             raise LimitError("theta level", level, "0 (steep left) to 3 (steep right)")
-        base = self._static[key] & self._window
+        base = self._static[key]
         src = self._shift_index[level]
         shifted = np.where(src >= 0, base[np.maximum(src, 0)], False)
         pat = self._pat(shifted)
@@ -230,7 +240,8 @@ class PatternSet:
 
     def mask(self, direction: int, k: int, phase: int) -> np.ndarray:
         """The texture mask (eq. 7 interpretation): stripes across ``direction``, ``k`` spacings on and
-        ``(period_factor - 1)·k`` off, advanced by ``phase`` spacings.  ``k = 0`` is the all-ones mask."""
+        ``(period_factor - 1)·k`` off, read ``phase`` spacings further along ``direction`` — so a growing
+        phase moves the stripes against ``direction``.  ``k = 0`` is the all-ones mask."""
         n = self.array.count
         if k == 0:
             return np.ones(n, dtype=bool)

@@ -7,6 +7,14 @@ device holds, so a finger resting on an object costs no serial traffic.  It spea
 Every tracking sample yields at least one :class:`FrameRecord`; a sample whose update passed several
 expansion or texture frames yields one record per frame (each sent), so the records are exactly the
 device's pattern history.
+
+Lost tracking.  A dropped sample (NaN or infinite pose, a clock stepping back, a garbage quaternion) is
+recorded but is not a frame: it changes nothing and does *not* feed the device's fail-safe watchdog, so a
+tracker that only delivers garbage lets the watchdog switch stimulation off.  After ``lost_tracking_s``
+(default :data:`LOST_TRACKING_S`, 80 ms) without a valid sample the renderer itself goes Idle: every
+approach is reset (a clock that stepped back is accepted again as a new start) and all electrodes are
+switched off.  The time is read from the dropped samples' own clock when it is usable (finite and not
+behind the last valid sample), otherwise counted as dropped samples times the tracking period seen so far.
 """
 
 from __future__ import annotations
@@ -28,6 +36,11 @@ from .baselines import make_baseline
 from .contexts import TEXTURE_NAMES
 from .manager import ManagerConfig, ManagerOutput, PatternManager
 from .patterns import Pattern, PatternParams, PatternSet
+
+#: Time without a valid tracking sample after which the renderer goes Idle (all off): 80 ms, so that
+#: with the next sample (14 ms later at 72 Hz) the all-off is sent before the device's 100 ms no-frame
+#: watchdog would switch stimulation off by itself (which it does anyway: dropped samples send nothing).
+LOST_TRACKING_S = 0.08
 
 
 @dataclass(slots=True)
@@ -134,7 +147,15 @@ class Renderer:
         stim_config: StimConfig | None = None,
         current_hook: CurrentHook | None = None,
         verify: bool = False,
+        lost_tracking_s: float = LOST_TRACKING_S,
     ) -> None:
+        if not (math.isfinite(lost_tracking_s) and lost_tracking_s > 0.0):
+            raise LimitError("lost_tracking_s", lost_tracking_s, "a finite time > 0 s")
+        self.lost_tracking_s = lost_tracking_s
+        self._last_valid_t: float | None = None
+        self._period_s = 1.0 / 72.0
+        self._invalid_run = 0
+        self.lost_tracking_events = 0
         self.scene = scene
         self.device = device
         self.array = array if array is not None else ElectrodeArray.tactdeform()
@@ -256,7 +277,11 @@ class Renderer:
             if name == active:
                 out = o
         assert out is not None
-        records = self._send(out, active)
+        if out.dropped:
+            records = self._lost(out, active)
+        else:
+            self._valid(out.t_s)
+            records = self._send(out, active)
         self.summary.step_us.append((time.perf_counter() - t0) * 1e6)
         s = self.summary
         s.poses += 1
@@ -275,6 +300,42 @@ class Renderer:
         if p.shape != (3,) or not all(map(math.isfinite, p.tolist())):
             return None
         return self.scene.query(p)
+
+    def _valid(self, t: float) -> None:
+        last = self._last_valid_t
+        if last is not None and t > last:
+            # The tracking period, smoothed; bounded so one long pause does not stretch the timeout.
+            dt = min(t - last, self.lost_tracking_s)
+            self._period_s += 0.1 * (dt - self._period_s)
+        self._last_valid_t = t
+        self._invalid_run = 0
+
+    def _lost(self, out: ManagerOutput, approach: str) -> list[FrameRecord]:
+        """A dropped sample: recorded, never sent, never a keepalive; Idle once tracking has been lost
+        for ``lost_tracking_s``."""
+        self._invalid_run += 1
+        gone = self._invalid_run * self._period_s
+        last = self._last_valid_t
+        t = out.t_s
+        if last is not None and math.isfinite(t) and t >= last:
+            gone = max(gone, t - last)
+        rec = FrameRecord(out.t_s, out.state, out.feature, out.texture, out.pattern, False, approach,
+                          out.context, out.orientation, False, out.dropped)
+        if gone < self.lost_tracking_s or (self._device_pattern is not None and not any(self._device_pattern)
+                                           and all(r.state == "idle" for r in self.renderers.values())):
+            return [rec]
+        # Tracking lost: forget the finger everywhere and switch everything off.
+        self.lost_tracking_events += 1
+        for r in self.renderers.values():
+            r.reset()
+        self._last_valid_t = None
+        off = (0,) * self.array.count
+        rec = FrameRecord(out.t_s, "idle", None, None, off, True, approach, None, None, False, "lost-tracking")
+        if off == self._device_pattern:
+            rec.sent = False
+        else:
+            self._deliver(rec)
+        return [rec]
 
     def _send(self, out: ManagerOutput, approach: str) -> list[FrameRecord]:
         frames = out.frames

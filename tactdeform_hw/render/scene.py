@@ -382,6 +382,53 @@ class Scene:
         p = as_point(point_mm)
         return [o.query(p) for o in self.objects]
 
+    @property
+    def is_single_object(self) -> bool:
+        return self._single is not None
+
+    @property
+    def has_plane_test(self) -> bool:
+        """Whether an object answers for a plane of points at once (:meth:`contains_on_pad`)."""
+        return any(hasattr(o, "contains_on_pad") for o in self.objects)
+
+    def contains_on_pad(
+        self, centre_mm: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray, offsets_mm: np.ndarray, query: Any = None
+    ) -> np.ndarray:
+        """(N,) inside any object, for points ``centre + u·x_axis + v·y_axis`` of one plane (the pad's
+        electrodes, offsets (u, v) in mm).  Objects that can answer for a plane at once (meshes) do;
+        the others get the points.  ``query`` (the scene's answer at the centre) saves the nearest
+        object's own query."""
+        off = np.asarray(offsets_mm, dtype=float)
+        c = np.asarray(centre_mm, dtype=float)
+        ex = np.asarray(x_axis, dtype=float)
+        ey = np.asarray(y_axis, dtype=float)
+        single = self._single
+        if single is not None and hasattr(single, "contains_on_pad"):
+            inside = None
+            if query is not None and getattr(query, "object_name", None) == single.name:
+                inside = float(query.signed_distance_mm) <= 0.0
+            result: np.ndarray = single.contains_on_pad(c, ex, ey, off, inside)
+            return result
+        reach = float(np.sqrt((off * off).sum(axis=1).max())) if len(off) else 0.0
+        out = np.zeros(len(off), dtype=bool)
+        pts: np.ndarray | None = None
+        for obj, (lo, hi) in zip(self.objects, self._bounds):
+            if np.any(c + reach < lo) or np.any(c - reach > hi):
+                continue
+            on_pad = getattr(obj, "contains_on_pad", None)
+            if on_pad is not None:
+                inside = None
+                if query is not None and getattr(query, "object_name", None) == obj.name:
+                    inside = float(query.signed_distance_mm) <= 0.0
+                out |= on_pad(c, ex, ey, off, inside)
+            else:
+                if pts is None:
+                    pts = c + off[:, 0:1] * ex + off[:, 1:2] * ey
+                box = np.all((pts >= lo) & (pts <= hi), axis=1)
+                if box.any():
+                    out[box] |= obj.contains(pts[box])
+        return out
+
     def contains(self, points_mm: np.ndarray, objects: Iterable[str] | None = None) -> np.ndarray:
         """(N,) inside any object (or any of the named ones) — the baselines' test."""
         pts = as_points(points_mm)

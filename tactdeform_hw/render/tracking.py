@@ -350,8 +350,10 @@ def iter_pose_csv(
     check = validator if validator is not None else PoseValidator(on_invalid="drop")
     stream, name, owned = _open_text(source)
     try:
-        lines = (line for line in stream if line.strip() and not line.lstrip().startswith("#"))
-        reader = csv.reader(lines)
+        # Keep each row's line number in the file, so an error points at the line a text editor shows.
+        numbered = [(n, line) for n, line in enumerate(stream, start=1) if line.strip() and not line.lstrip().startswith("#")]
+        line_of = [n for n, _ in numbered]
+        reader = csv.reader(line for _, line in numbered)
         header = next(reader, None)
         if header is None:
             raise ConfigurationError(
@@ -365,19 +367,20 @@ def iter_pose_csv(
             )
         cols = [header.index(c) for c in POSE_CSV_COLUMNS]
         for row_number, row in enumerate(reader, start=1):
+            where = f"line {line_of[row_number]}, row {row_number}"
             values: list[float] = []
             for column, index in zip(POSE_CSV_COLUMNS, cols):
                 if index >= len(row):
-                    raise ConfigurationError(f"{name}: row {row_number}, column {column!r}: missing value")
+                    raise ConfigurationError(f"{name}: {where}, column {column!r}: missing value")
                 cell = row[index].strip()
                 try:
                     values.append(float(cell))
                 except ValueError:
                     raise ConfigurationError(
-                        f"{name}: row {row_number}, column {column!r}: {cell!r} is not a number"
+                        f"{name}: {where}, column {column!r}: {cell!r} is not a number"
                     ) from None
             if invalid == "error":
-                _check_row(name, row_number, values, check)
+                _check_row(name, where, values, check)
             pose = check.check(values[0], values[1:4], values[4:8])
             if pose is not None:
                 yield pose
@@ -386,21 +389,21 @@ def iter_pose_csv(
             stream.close()
 
 
-def _check_row(name: str, row_number: int, values: list[float], validator: PoseValidator) -> None:
+def _check_row(name: str, where: str, values: list[float], validator: PoseValidator) -> None:
     for column, value in zip(POSE_CSV_COLUMNS, values):
         if not math.isfinite(value):
-            raise ConfigurationError(f"{name}: row {row_number}, column {column!r}: {value!r} is not finite")
+            raise ConfigurationError(f"{name}: {where}, column {column!r}: {value!r} is not finite")
     q = np.array(values[4:8])
     norm = math.sqrt(float(q @ q))
     if abs(norm - 1.0) > validator.norm_tolerance:
         raise ConfigurationError(
-            f"{name}: row {row_number}, columns 'qw'..'qz': quaternion norm {norm:.6g} is not within "
+            f"{name}: {where}, columns 'qw'..'qz': quaternion norm {norm:.6g} is not within "
             f"1 ± {validator.norm_tolerance}"
         )
     last = validator._last_t
     if last is not None and values[0] <= last:
         raise ConfigurationError(
-            f"{name}: row {row_number}, column 't_s': {values[0]!r} does not follow the previous time {last!r}"
+            f"{name}: {where}, column 't_s': {values[0]!r} does not follow the previous time {last!r}"
         )
 
 

@@ -9,7 +9,11 @@ animated GIF with one frame per change of pattern, held for its real duration.
 GIF players do not honour frames shorter than about 20 ms, and a renderer running at 72 Hz changes the
 pattern every 14 ms; :func:`draw_array_gif` therefore holds each GIF frame at least ``min_frame_ms``
 (stretching time where patterns change faster than that, never dropping one) unless ``frame_ms`` asks
-for sampling at a fixed interval instead.
+for sampling at a fixed interval instead.  A stretched frame says so on the picture: its label carries
+the real time it was held beside the time it is shown.  A renderer's frames (:func:`draw_frames_gif`)
+are held at least :data:`MIN_DISPLAY_MS` — long enough for an eye to take in a pattern — and each one
+is labelled with its real time ``t``, so an expansion is seen frame by frame and still read in real
+time.
 """
 
 from __future__ import annotations
@@ -29,6 +33,8 @@ OUTLINE_FILL = "#f4f1ea"
 #: Full-scale current for the colour ramp when none is given (the hardware ceiling, 10 mA).
 FULL_SCALE_UA = 10_000.0
 _PURPOSE = "drawing electrode-array pictures"
+#: The shortest time a renderer's frame is shown in a GIF: about what an eye needs to take in a pattern.
+MIN_DISPLAY_MS = 250.0
 
 
 @dataclass(frozen=True)
@@ -338,10 +344,12 @@ def draw_array_gif(
         seq = resample(seq, step)
     durations = []
     stretched = 0
-    for f in seq:
+    for i, f in enumerate(seq):
         d = f.duration_ms / speed
         if d < min_frame_ms:
             stretched += 1
+            real = f"real {f.duration_ms:.0f} ms, shown {min_frame_ms:.0f} ms"
+            seq[i] = PictureFrame(f.levels, f.duration_ms, f"{f.label} · {real}" if f.label else real, f.current_ua)
             d = min_frame_ms
         durations.append(int(round(d)))
     if stretched:
@@ -385,7 +393,9 @@ def draw_frames_gif(
     **options: Any,
 ) -> PictureInfo:
     """An animated GIF of frames-file lines (dicts as ``tactdeform-hw render --frames`` writes them, or
-    :class:`~tactdeform_hw.formats.frames.Frame` objects); lines without a time are skipped."""
+    :class:`~tactdeform_hw.formats.frames.Frame` objects); lines without a time are skipped.  Each frame
+    is shown at least ``min_frame_ms`` (default :data:`MIN_DISPLAY_MS`) with its real time on it."""
+    options.setdefault("min_frame_ms", MIN_DISPLAY_MS)
     from ..formats.frames import Frame, parse_frame
 
     frames = []

@@ -98,3 +98,38 @@ def test_contains_32_cube(benchmark) -> None:  # type: ignore[no-untyped-def]
 
 def test_contains_32_bunny(benchmark, bunny: Scene) -> None:  # type: ignore[no-untyped-def]
     benchmark(Cycle(bunny.contains, _electrode_clouds(bunny)))
+
+
+def _pad_calls(scene: Scene) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, object]]:
+    """The arguments of the pad-plane test along the same poses (centre, axes, its query)."""
+    calls = []
+    for pose in make_trajectory("approach-face", scene):
+        q = scene.query(pose.position_mm)
+        if q.signed_distance_mm <= 1.0:
+            calls.append((np.asarray(pose.position_mm), pose.x_axis, pose.y_axis, q))
+    return calls
+
+
+@pytest.mark.parametrize("name", ["teapot", "bunny"])
+def test_contains_on_pad_meshes(benchmark, name: str, request) -> None:  # type: ignore[no-untyped-def]
+    """CAM's 32 electrodes through the mesh index: the pad-plane cross-section (budget: the 250 µs of a
+    whole CAM pose, scene query included)."""
+    from tactdeform_hw.render.array import ElectrodeArray
+
+    pytest.importorskip("scipy", reason="the mesh index needs scipy (extra 'mesh')")
+    if name == "bunny":
+        scene = request.getfixturevalue("bunny")
+    else:
+        scene = load_scene("teapot")
+        scene.prepare()
+    offsets = ElectrodeArray.tactdeform().world_offsets()
+    calls = _pad_calls(scene)
+    state = {"i": 0}
+
+    def one():  # type: ignore[no-untyped-def]
+        c, x, y, q = calls[state["i"] % len(calls)]
+        state["i"] += 1
+        return scene.contains_on_pad(c, x, y, offsets, q)
+
+    benchmark(one)
+    _note(benchmark, 250.0)

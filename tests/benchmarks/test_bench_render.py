@@ -1,7 +1,8 @@
 """Pose → electrode pattern, per tracking sample (run: pytest tests/benchmarks --benchmark-enable).
 
 Budget: the 72 Hz frame is 13.9 ms and the renderer should take under 2 % of it — a median of at most
-50 µs per pose on primitive scenes and 250 µs on the bunny, scene query included.  The figures are
+50 µs per pose on primitive scenes and 250 µs on the bunny, scene query included; contact-area mapping
+(CAM) at most 250 µs per pose on any scene (the teapot and the bunny included).  The figures are
 recorded in ``extra_info`` (``budget_us``, ``median_us``, ``within_budget``); the manager alone and the
 baselines are measured beside them.  Each pose stream presses onto, rests on, slides over and leaves
 the surface at several places, so every state and context is in the mix.
@@ -140,4 +141,23 @@ def test_pose_to_pattern_bunny(benchmark, bunny) -> None:  # type: ignore[no-unt
     recs = benchmark(stream)
     assert recs and len(recs[-1].electrodes) == 32
     assert not math.isnan(recs[-1].t_s)
+    _record(benchmark, 250.0)
+
+
+@pytest.fixture(scope="module")
+def teapot():  # type: ignore[no-untyped-def]
+    pytest.importorskip("scipy", reason="the teapot's mesh index needs scipy (extra 'mesh')")
+    scene = load_scene("teapot")
+    scene.prepare()
+    return scene
+
+
+@pytest.mark.parametrize("name", ["teapot", "bunny"])
+def test_pose_to_pattern_cam_meshes(benchmark, name: str, request) -> None:  # type: ignore[no-untyped-def]
+    """CAM on the meshes: 32 electrodes through the mesh index, scene query included."""
+    scene = request.getfixturevalue(name)
+    r = Renderer(scene, None, approach="cam")
+    stream = Stream(r.step, surface_path(scene, n_sites=6))
+    recs = benchmark(stream)
+    assert recs and len(recs[-1].electrodes) == 32
     _record(benchmark, 250.0)
