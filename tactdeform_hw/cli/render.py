@@ -156,16 +156,16 @@ def run(args: argparse.Namespace) -> int:
                             region_map=region_map, region_of=guard.region_of, command="render", device=args.device,
                             participant_file=args.participant,
                             participant=profile.participant if profile is not None else None)
-        pacer = None
-        if not args.realtime and (args.device in ("emulator", "emu", "") or args.device.startswith("etactile://")):
-            # offline on the in-process emulator: the session runs on the trajectory's clock
+        offline_clock = None
+        if not args.realtime:
+            # on a port that answers at once (the in-process emulator) the session runs on the trajectory's clock
             from ..clock import SimulatedClock
-            from ..device.pacing import Pacer
 
-            pacer = Pacer(clock=SimulatedClock())
+            offline_clock = SimulatedClock()
         with open_device(args.device, timeout=args.timeout, mapping=array.channel_mapping(), guard=guard,
-                         audit=audit, pacer=pacer) as dev:
-            verify = getattr(getattr(dev, "port", None), "emulator", None) is not None
+                         audit=audit, offline_clock=offline_clock) as dev:
+            port = getattr(dev, "port", None)  # an instant port holds its pattern the moment it is sent
+            verify = bool(getattr(port, "instant", False)) and getattr(port, "emulator", None) is not None
             renderer = Renderer(
                 scene,
                 dev,

@@ -24,6 +24,7 @@ import os
 import sys
 from typing import Any, Protocol
 
+from ..clock import Clock
 from ..errors import DeviceBusyError, DeviceGoneError, DeviceTimeoutError, TactDeformError, TransportError
 from ..protocol.constants import BAUD_RATE
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
@@ -183,6 +184,7 @@ class EtactileKitDevice(Device):
         pacer: Pacer | None = None,
         audit: AuditLog | None = None,
         guardian: bool | None = None,
+        offline_clock: Clock | None = None,
     ) -> None:
         super().__init__(mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit)
         self.port = port
@@ -192,6 +194,9 @@ class EtactileKitDevice(Device):
             self._open_port()
         if pacer is None:  # what a port needs is known only once it is open (a URL builds its device then)
             self.pacer = default_pacer(port)
+            if offline_clock is not None and getattr(port, "instant", False):
+                # a port that answers at once (the in-process emulator) runs the session on the caller's clock
+                self.pacer = Pacer(clock=offline_clock, policy=self.pacer.policy)
         self._want_guardian = bool(getattr(port, "guardable", False)) if guardian is None else guardian
         if self._want_guardian:
             try:
@@ -376,13 +381,16 @@ def open_device(
     pacer: Pacer | None = None,
     audit: AuditLog | None = None,
     guardian: bool | None = None,
+    offline_clock: Clock | None = None,
 ) -> EtactileKitDevice:
     """Open a device by name: a serial port path, a pyserial URL, ``usb:VID:PID[:SERIAL]``,
     ``usb-emulator``, or ``emulator`` (the default).  ``pacer`` defaults to what the port needs (see
     :func:`~tactdeform_hw.device.pacing.default_pacer`); ``audit`` enables the session's audit log.  A
     port path is locked for this program alone (:class:`~tactdeform_hw.errors.DeviceBusyError` if another
-    holds it) and gets a guardian process (``guardian=False`` to do without)."""
+    holds it) and gets a guardian process (``guardian=False`` to do without).  ``offline_clock``: when the
+    port declares itself ``instant`` (it answers every byte at once), pace on this clock instead of the wall
+    clock, so an offline run keeps session time."""
     return EtactileKitDevice(
         open_port(name, timeout=timeout), mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit,
-        guardian=guardian,
+        guardian=guardian, offline_clock=offline_clock,
     )

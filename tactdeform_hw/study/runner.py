@@ -337,15 +337,13 @@ def run_study(
                     r.skipped = f"Stanford bunny not available: {exc}"
             notes.append(f"bunny trials skipped: {exc}")
     cfg = ManagerConfig(**study.manager)
-    sim_clock = None
-    if not realtime and (device in ("emulator", "emu", "") or device.startswith("etactile://")):
-        # offline on the in-process emulator: the device's clock (audit log, watchdog) is session time
-        from ..clock import SimulatedClock
-        from ..device.pacing import Pacer
+    # on a port that answers at once (the in-process emulator) the device's clock (audit log, watchdog) is
+    # session time
+    from ..clock import SimulatedClock
 
-        sim_clock = SimulatedClock()
     dev = open_device(device, timeout=timeout, mapping=mapping, guard=guard, audit=audit,
-                      pacer=Pacer(clock=sim_clock) if sim_clock is not None else None)
+                      offline_clock=None if realtime else SimulatedClock())
+    sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
     tap = WireTap(dev.port)
     dev.port = tap
     session_t = 0.0
@@ -380,7 +378,7 @@ def run_study(
             run.segment_spans = spans
             run.t0_s = offset
             emu = _emulator_of(dev)
-            run.verified = emu is not None
+            run.verified = emu is not None and sim_clock is not None  # an instant port, offline
             hazards_before = len(emu.hazards) if emu is not None else 0
             renderer = Renderer(scene, dev, array=array, approach=trial.approach, config=cfg,
                                 contact_mode=trial.contact_mode, current_ua=current, stim_config=stim,
