@@ -1,0 +1,289 @@
+"""The scan interrupt of each firmware version, statement by statement, chip-select pins included.
+
+This is the conformance walker: it produces the same event log as the firmware's own interrupt code
+built on a host (``tests/data/scan_traces_v12.jsonl`` and ``scan_traces_v2.jsonl``), in the same order
+and with the same values, for v1.2 (936c6c08) and v2 (71adee21).  The differences it carries:
+
+* v1.2 reads its parameters live and picks the waveform per channel from the pattern byte (1 mono,
+  2 biphasic anodic first, else a sense pulse); its discharge starts with one more DAC/ADC exchange.
+* v2 snapshots its parameters at scan start; the pattern is a DAC code per channel and a global mode
+  picks the waveform (0 mono, 1 biphasic with the first phase at the configured polarity, 2 the sense
+  pulse on every channel, pattern ignored); its discharge has no exchange.
+* every exchange is wrapped in chip-select writes: v1.2 lowers DA_CS then AD_CS (two writes) and raises
+  them the same way; v2 sets both in one register write.
+
+Two readings the firmware's code leaves open are options of :class:`ScanConventions`:
+``cs_writes_costed`` (whether the 6.6 µs exchange excludes the chip-select writes, as the host build
+costs them, or includes them) and ``dac_load`` (the DAC output changes 3.3 µs into the exchange, the
+firmware comment, or when DA_CS rises, as the converter's datasheet has it).  Times are kept in integer
+nanoseconds and reported in µs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from ..errors import ConfigurationError
+from ..protocol import firmware_math as fm
+from ..protocol.constants import OUTPUTS_PER_HV513, POWER_ON_PERIOD_US
+
+# Pin numbers (configuration.h, both versions)
+BL, LE, POL, CLK, DIN, AD_CS, DA_CS = 1, 2, 3, 4, 5, 43, 44
+
+DAC_LOADS = ("mid_exchange", "cs_rise")
+SCAN_FIRMWARES = ("v1.2", "v2")
+
+
+@dataclass(frozen=True)
+class ScanConventions:
+    """The timing conventions of a scan trace (defaults: the host build's ``shim``)."""
+
+    spi_exchange_ns: int = 6600
+    dac_change_at_ns: int = 3300
+    gpio_write_ns: int = 50
+    isr_entry_ns: int = 2000
+    timer_tick_ns: int = 500
+    cs_writes_costed: bool = True
+    dac_load: str = "mid_exchange"
+
+    def __post_init__(self) -> None:
+        if self.dac_load not in DAC_LOADS:
+            raise ConfigurationError(f"dac_load={self.dac_load!r} is not one of {', '.join(DAC_LOADS)}")
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "spi_exchange_us": self.spi_exchange_ns / 1000,
+            "dac_change_at_us": self.dac_change_at_ns / 1000,
+            "gpio_write_us": self.gpio_write_ns / 1000,
+            "isr_entry_us": self.isr_entry_ns / 1000,
+            "timer_tick_us": self.timer_tick_ns / 1000,
+            "cs_writes_costed": self.cs_writes_costed,
+            "dac_load": self.dac_load,
+        }
+
+
+DEFAULT_CONVENTIONS = ScanConventions()
+
+
+@dataclass(frozen=True)
+class FirmwareScanConfig:
+    """What a scan reads from the firmware's variables, with the golden files' names.
+
+    ``stim_pattern`` holds pattern bytes on v1.2 and DAC codes on v2; ``pulse_height`` is v1.2 only and
+    ``stim_mode`` v2 only.  ``frequency_hz`` None means no 0xF6 ever arrived (power-on period)."""
+
+    electrode_num: int
+    stim_pattern: Sequence[int]
+    pulse_width: int
+    discharge_time: int
+    polarity: int = 1
+    hv513_num: int = 4
+    sense_pulse_height: int = 0
+    sense_pulse_width: int = 0
+    pulse_height: int = 0
+    stim_mode: int = 0
+    frequency_hz: int | None = None
+    prior_scans: int = 0
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> FirmwareScanConfig:
+        names = cls.__dataclass_fields__
+        return cls(**{k: v for k, v in d.items() if k in names})
+
+
+@dataclass
+class ScanTrace:
+    """One logged scan: events ``[time_us, "GPIO", pin, level]`` / ``[time_us, "DAC", "DAC", code]``."""
+
+    events: list[list[Any]] = field(default_factory=list)
+    isr_return_us: float = 0.0
+    voltage: list[int] = field(default_factory=list)
+    timer_ops: list[list[Any]] = field(default_factory=list)
+    alarm_ticks: int = 0
+    chain_position: int = 0
+
+    @property
+    def duration_us(self) -> float:
+        return self.isr_return_us
+
+
+def alarm_ticks_for(firmware: str, frequency_hz: int | None) -> int:
+    """The Timer1 alarm the parser's 0xF6 statements leave (power-on 20000 when never set)."""
+    if not frequency_hz:
+        return fm.alarm_ticks(POWER_ON_PERIOD_US)
+    period = fm.period_us_from_rate_double(frequency_hz) if firmware == "v2" else fm.period_us_from_rate(frequency_hz)
+    return fm.alarm_ticks(period)
+
+
+class _Walker:
+    def __init__(self, firmware: str, conv: ScanConventions, log: bool) -> None:
+        self.fw = firmware
+        self.c = conv
+        self.log = log
+        self.t = 0
+        self.ev: list[list[Any]] = []
+        self.dac = 0
+        self.pos = 0
+
+    def _us(self, ns: int) -> float:
+        return round(ns / 1000, 3)
+
+    def gpio(self, *pins_levels: tuple[int, int]) -> None:
+        """One register write (several pins: one event each, same time, ascending pin)."""
+        self.t += self.c.gpio_write_ns
+        if self.log:
+            for pin, level in sorted(pins_levels):
+                self.ev.append([self._us(self.t), "GPIO", pin, level])
+
+    def _cs(self, level: int) -> None:
+        if self.fw == "v2":
+            self.gpio((AD_CS, level), (DA_CS, level))
+        else:
+            self.gpio((DA_CS, level))
+            self.gpio((AD_CS, level))
+
+    def _cs_free(self, level: int) -> None:
+        """Chip-select events inside the exchange's own time (the other reading)."""
+        if self.log:
+            pins = [AD_CS, DA_CS] if self.fw == "v2" else [DA_CS, AD_CS]
+            for pin in pins:
+                self.ev.append([self._us(self.t), "GPIO", pin, level])
+
+    def exchange(self, code: int) -> int:
+        """DAAD(code): returns the ADC reading (the code held when the exchange starts)."""
+        c = self.c
+        reading = self.dac
+        if c.cs_writes_costed:
+            self._cs(0)
+        else:
+            self._cs_free(0)
+        t0 = self.t
+        self.t = t0 + c.spi_exchange_ns
+        if c.dac_load == "mid_exchange" and self.log:
+            self.ev.append([self._us(t0 + c.dac_change_at_ns), "DAC", "DAC", code])
+        if c.cs_writes_costed:
+            if c.dac_load == "cs_rise":
+                self._cs_rise_with_dac(code)
+            else:
+                self._cs(1)
+        else:
+            if c.dac_load == "cs_rise" and self.log:
+                self.ev.append([self._us(self.t), "DAC", "DAC", code])
+            self._cs_free(1)
+        self.dac = code
+        return reading
+
+    def _cs_rise_with_dac(self, code: int) -> None:
+        if self.fw == "v2":
+            self.gpio((AD_CS, 1), (DA_CS, 1))
+            if self.log:
+                self.ev.append([self._us(self.t), "DAC", "DAC", code])
+        else:
+            self.gpio((DA_CS, 1))
+            if self.log:
+                self.ev.append([self._us(self.t), "DAC", "DAC", code])
+            self.gpio((AD_CS, 1))
+
+    def delay(self, us: int) -> None:
+        """``delay_exact_us``: minimum 3, then ``int(us * 2.0 - 5.4)`` ticks of the busy-wait timer."""
+        if us < 3:
+            us = 3
+        ticks = max(0, int(us * 2.0 - 5.4))
+        self.t += ticks * self.c.timer_tick_ns
+
+    def mono(self, height: int, width: int) -> int:
+        self.exchange(height)
+        if width >= 7:
+            self.delay(width - 7)
+        return self.exchange(0)
+
+    def select(self, target: int) -> None:
+        self.gpio((LE, 0))
+        if target == 0:
+            self.gpio((DIN, 1))
+            self.gpio((CLK, 1))
+            self.gpio((CLK, 0))
+            self.pos = 0
+        else:
+            self.gpio((DIN, 0))
+            for _ in range(target - self.pos):
+                self.gpio((CLK, 1))
+                self.gpio((CLK, 0))
+            self.pos = target
+        self.gpio((LE, 1))
+
+
+def trace_scan(
+    cfg: FirmwareScanConfig,
+    firmware: str = "v2",
+    conventions: ScanConventions = DEFAULT_CONVENTIONS,
+    *,
+    log: bool = True,
+) -> ScanTrace:
+    """One interrupt (after ``cfg.prior_scans`` unlogged ones), from a fresh process's chain state."""
+    if firmware not in SCAN_FIRMWARES:
+        raise ConfigurationError(f"firmware={firmware!r} is not one of {', '.join(SCAN_FIRMWARES)}")
+    w = _Walker(firmware, conventions, log=False)
+    volts: list[int] = []
+    for k in range(cfg.prior_scans + 1):
+        w.log = log and k == cfg.prior_scans
+        w.ev = []
+        w.t = conventions.isr_entry_ns
+        volts = _isr(w, cfg, firmware)
+    end = w.t
+    return ScanTrace(
+        events=w.ev,
+        isr_return_us=w._us(end),
+        voltage=volts,
+        timer_ops=[[w._us(conventions.isr_entry_ns), 1, "alarm_disable", 0], [w._us(end), 1, "alarm_enable", 0]],
+        alarm_ticks=alarm_ticks_for(firmware, cfg.frequency_hz),
+        chain_position=w.pos,
+    )
+
+
+def _isr(w: _Walker, cfg: FirmwareScanConfig, firmware: str) -> list[int]:
+    n = cfg.electrode_num
+    volts = [0] * n
+    pol = cfg.polarity
+    for ch in range(n):
+        w.select(ch)
+        w.gpio((POL, 1 if pol else 0))
+        value = cfg.stim_pattern[ch]
+        if firmware == "v2":
+            if cfg.stim_mode == 0:
+                ad = w.mono(value, cfg.pulse_width)
+            elif cfg.stim_mode == 1:
+                w.mono(value, cfg.pulse_width)
+                w.gpio((POL, 1 if pol == 0 else 0))
+                ad = w.mono(value, cfg.pulse_width)
+            else:
+                ad = w.mono(cfg.sense_pulse_height, cfg.sense_pulse_width)
+            volts[ch] = ad
+            w.gpio((POL, 1))
+            w.gpio((BL, 0))
+        else:
+            if value == 1:
+                ad = w.mono(cfg.pulse_height, cfg.pulse_width)
+            elif value == 2:
+                w.gpio((POL, 1))
+                w.mono(cfg.pulse_height, cfg.pulse_width)
+                w.gpio((POL, 0))
+                ad = w.mono(cfg.pulse_height, cfg.pulse_width)
+            else:
+                ad = w.mono(cfg.sense_pulse_height, cfg.sense_pulse_width)
+            volts[ch] = ad
+            w.exchange(0)
+            w.gpio((POL, 1))
+            w.gpio((BL, 0))
+        if cfg.discharge_time > 7:
+            w.delay(cfg.discharge_time - 7)
+        w.gpio((BL, 1))
+    w.select(OUTPUTS_PER_HV513 * cfg.hv513_num)
+    return volts
+
+
+def scan_duration_us(cfg: FirmwareScanConfig, firmware: str = "v2", conventions: ScanConventions = DEFAULT_CONVENTIONS) -> float:
+    """From the alarm to the handler's return (events not logged)."""
+    return trace_scan(cfg, firmware, conventions, log=False).isr_return_us
