@@ -1,50 +1,25 @@
-"""Numbers fixed by the eTactileKit firmware and board; the single place they are written down."""
+"""Numbers fixed by the eTactileKit firmware and board.
+
+Those a firmware version's table holds (:mod:`.firmware`) are read from the v1.2 table, the default
+firmware, so each is written down once; the rest (board, link, current transfer) are written here."""
 
 from __future__ import annotations
 
-from enum import IntEnum
-
-
-class Opcode(IntEnum):
-    """Command bytes, host to device.  Any other byte is ignored by the firmware (one byte consumed)."""
-
-    MEASURE = 0xFF
-    PATTERN = 0xFE
-    POLARITY = 0xFD
-    ELECTRODE_NUM = 0xFC
-    PULSE_HEIGHT = 0xFB
-    PULSE_WIDTH = 0xFA
-    SENSE_HEIGHT = 0xF9
-    SENSE_WIDTH = 0xF8
-    DISCHARGE = 0xF7
-    FREQUENCY = 0xF6
-    HV513_COUNT = 0xF5
-
+from .firmware import V1_2
+from .firmware import Opcode as Opcode  # the v1.2 command bytes, re-exported for existing callers
 
 #: Payload kinds: "u8", "u16" (little-endian, read only when both bytes wait), "pattern" (electrode_num
 #: bytes, taken from the value at the moment the command byte is read), None (no payload, immediate reply).
-PAYLOAD_KIND: dict[int, str | None] = {
-    Opcode.MEASURE: None,
-    Opcode.PATTERN: "pattern",
-    Opcode.POLARITY: "u8",
-    Opcode.ELECTRODE_NUM: "u8",
-    Opcode.PULSE_HEIGHT: "u16",
-    Opcode.PULSE_WIDTH: "u16",
-    Opcode.SENSE_HEIGHT: "u8",
-    Opcode.SENSE_WIDTH: "u8",
-    Opcode.DISCHARGE: "u8",
-    Opcode.FREQUENCY: "u16",
-    Opcode.HV513_COUNT: None,
-}
+PAYLOAD_KIND: dict[int, str | None] = V1_2.payload_kind
 
 #: Fixed payload sizes in bytes (the pattern's size depends on electrode_num and is absent here).
-PAYLOAD_SIZE: dict[int, int] = {op: {"u8": 1, "u16": 2, None: 0}[k] for op, k in PAYLOAD_KIND.items() if k != "pattern"}
+PAYLOAD_SIZE: dict[int, int] = V1_2.payload_size
 
 # --- firmware registers and limits ----------------------------------------------------------------------
-PATTERN_BUFFER_SIZE = 256  # stim_pattern[] entries
-MAX_ELECTRODES = 255  # electrode_num is a u8
-DAC_MAX_CODE = 4095  # 12-bit current DAC; the firmware clamps pulse height here
-SENSE_HEIGHT_SHIFT = 2  # sense_pulse_height = v << 2
+PATTERN_BUFFER_SIZE = V1_2.pattern_buffer_size  # stim_pattern[] entries
+MAX_ELECTRODES = V1_2.max_electrodes  # electrode_num is a u8
+DAC_MAX_CODE = V1_2.dac_max_code  # 12-bit current DAC; the firmware clamps pulse height here
+SENSE_HEIGHT_SHIFT = V1_2.command(Opcode.SENSE_HEIGHT).shift  # sense_pulse_height = v << 2
 U8_MAX = 0xFF
 U16_MAX = 0xFFFF
 
@@ -58,17 +33,17 @@ POLARITY_CATHODIC = 0
 POLARITY_ANODIC = 1
 
 # --- power-on state ---------------------------------------------------------------------------------------
-POWER_ON_PERIOD_US = 10_000.0  # 100 Hz
-POWER_ON_POLARITY = POLARITY_ANODIC
+POWER_ON_PERIOD_US = float(V1_2.power_on["period_us"])  # 100 Hz
+POWER_ON_POLARITY = int(V1_2.power_on["polarity"])  # POLARITY_ANODIC
 
 # --- the stimulation timer --------------------------------------------------------------------------------
-TIMER_TICKS_PER_US = 2  # 80 MHz APB / 40 = 2 MHz
+TIMER_TICKS_PER_US = V1_2.timing.timer_ticks_per_us  # 80 MHz APB / 40 = 2 MHz
 
 # --- the link ------------------------------------------------------------------------------------------
 BAUD_RATE = 921_600
 UART_BITS_PER_BYTE = 10  # 8N1
-RX_QUEUE_SIZE = 256
-USB_PACKET_SIZE = 64
+RX_QUEUE_SIZE = V1_2.rx_queue_bytes
+USB_PACKET_SIZE = V1_2.usb_packet_bytes
 USB_FRAME_US = 1000
 ESPRESSIF_VID = 0x303A
 ESP32S3_USB_JTAG_PID = 0x1001
