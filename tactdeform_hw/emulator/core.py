@@ -113,7 +113,7 @@ class Emulator:
                     Hazard(
                         HazardKind.COMMAND_PENDING,
                         at,
-                        {"command": p.spec.name_of(p.command), "needed": p.required, "queued": p.pending},
+                        {"command": p.spec.command(p.command).name, "needed": p.required, "queued": p.pending},
                         float(self.now_us),
                     )
                 )

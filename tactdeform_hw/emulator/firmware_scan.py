@@ -28,12 +28,12 @@ from typing import Any
 from ..errors import ConfigurationError
 from ..protocol import firmware_math as fm
 from ..protocol.constants import OUTPUTS_PER_HV513, POWER_ON_PERIOD_US
+from ..protocol.firmware import FirmwareSpec, get_firmware
 
 # Pin numbers (configuration.h, both versions)
 BL, LE, POL, CLK, DIN, AD_CS, DA_CS = 1, 2, 3, 4, 5, 43, 44
 
 DAC_LOADS = ("mid_exchange", "cs_rise")
-SCAN_FIRMWARES = ("v1.2", "v2")
 
 
 @dataclass(frozen=True)
@@ -109,17 +109,20 @@ class ScanTrace:
         return self.isr_return_us
 
 
-def alarm_ticks_for(firmware: str, frequency_hz: int | None) -> int:
+def alarm_ticks_for(firmware: str | FirmwareSpec, frequency_hz: int | None) -> int:
     """The Timer1 alarm the parser's 0xF6 statements leave (power-on 20000 when never set)."""
     if not frequency_hz:
         return fm.alarm_ticks(POWER_ON_PERIOD_US)
-    period = fm.period_us_from_rate_double(frequency_hz) if firmware == "v2" else fm.period_us_from_rate(frequency_hz)
+    double = get_firmware(firmware).command_timeout_us is not None  # v2's parser divides in double
+    period = fm.period_us_from_rate_double(frequency_hz) if double else fm.period_us_from_rate(frequency_hz)
     return fm.alarm_ticks(period)
 
 
 class _Walker:
-    def __init__(self, firmware: str, conv: ScanConventions, log: bool) -> None:
-        self.fw = firmware
+    def __init__(self, spec: FirmwareSpec, conv: ScanConventions, log: bool) -> None:
+        self.spec = spec
+        #: one register write per pin (v1.2: DA_CS then AD_CS) or one for both (v2), from the table
+        self.cs_one_write = spec.timing.chip_select_writes_per_exchange == 2
         self.c = conv
         self.log = log
         self.t = 0
@@ -138,7 +141,7 @@ class _Walker:
                 self.ev.append([self._us(self.t), "GPIO", pin, level])
 
     def _cs(self, level: int) -> None:
-        if self.fw == "v2":
+        if self.cs_one_write:
             self.gpio((AD_CS, level), (DA_CS, level))
         else:
             self.gpio((DA_CS, level))
@@ -147,7 +150,7 @@ class _Walker:
     def _cs_free(self, level: int) -> None:
         """Chip-select events inside the exchange's own time (the other reading)."""
         if self.log:
-            pins = [AD_CS, DA_CS] if self.fw == "v2" else [DA_CS, AD_CS]
+            pins = [AD_CS, DA_CS] if self.cs_one_write else [DA_CS, AD_CS]
             for pin in pins:
                 self.ev.append([self._us(self.t), "GPIO", pin, level])
 
@@ -176,7 +179,7 @@ class _Walker:
         return reading
 
     def _cs_rise_with_dac(self, code: int) -> None:
-        if self.fw == "v2":
+        if self.cs_one_write:
             self.gpio((AD_CS, 1), (DA_CS, 1))
             if self.log:
                 self.ev.append([self._us(self.t), "DAC", "DAC", code])
@@ -188,15 +191,13 @@ class _Walker:
 
     def delay(self, us: int) -> None:
         """``delay_exact_us``: minimum 3, then ``int(us * 2.0 - 5.4)`` ticks of the busy-wait timer."""
-        if us < 3:
-            us = 3
-        ticks = max(0, int(us * 2.0 - 5.4))
-        self.t += ticks * self.c.timer_tick_ns
+        self.t += self.spec.timing.delay_ticks(us) * self.c.timer_tick_ns
 
     def mono(self, height: int, width: int) -> int:
         self.exchange(height)
-        if width >= 7:
-            self.delay(width - 7)
+        offset = self.spec.timing.pulse_wait_offset_us
+        if width >= offset:
+            self.delay(width - offset)
         return self.exchange(0)
 
     def select(self, target: int) -> None:
@@ -217,33 +218,34 @@ class _Walker:
 
 def trace_scan(
     cfg: FirmwareScanConfig,
-    firmware: str = "v2",
+    firmware: str | FirmwareSpec = "v2",
     conventions: ScanConventions = DEFAULT_CONVENTIONS,
     *,
     log: bool = True,
 ) -> ScanTrace:
     """One interrupt (after ``cfg.prior_scans`` unlogged ones), from a fresh process's chain state."""
-    if firmware not in SCAN_FIRMWARES:
-        raise ConfigurationError(f"firmware={firmware!r} is not one of {', '.join(SCAN_FIRMWARES)}")
-    w = _Walker(firmware, conventions, log=False)
+    spec = get_firmware(firmware)
+    w = _Walker(spec, conventions, log=False)
     volts: list[int] = []
     for k in range(cfg.prior_scans + 1):
         w.log = log and k == cfg.prior_scans
         w.ev = []
         w.t = conventions.isr_entry_ns
-        volts = _isr(w, cfg, firmware)
+        volts = _isr(w, cfg, spec)
     end = w.t
     return ScanTrace(
         events=w.ev,
         isr_return_us=w._us(end),
         voltage=volts,
         timer_ops=[[w._us(conventions.isr_entry_ns), 1, "alarm_disable", 0], [w._us(end), 1, "alarm_enable", 0]],
-        alarm_ticks=alarm_ticks_for(firmware, cfg.frequency_hz),
+        alarm_ticks=alarm_ticks_for(spec.name, cfg.frequency_hz),
         chain_position=w.pos,
     )
 
 
-def _isr(w: _Walker, cfg: FirmwareScanConfig, firmware: str) -> list[int]:
+def _isr(w: _Walker, cfg: FirmwareScanConfig, spec: FirmwareSpec) -> list[int]:
+    """The handler: v2's global mode when the version has one, v1.2's per-channel pattern byte else."""
+    moded = "stim_mode" in spec.power_on
     n = cfg.electrode_num
     volts = [0] * n
     pol = cfg.polarity
@@ -251,7 +253,7 @@ def _isr(w: _Walker, cfg: FirmwareScanConfig, firmware: str) -> list[int]:
         w.select(ch)
         w.gpio((POL, 1 if pol else 0))
         value = cfg.stim_pattern[ch]
-        if firmware == "v2":
+        if moded:
             if cfg.stim_mode == 0:
                 ad = w.mono(value, cfg.pulse_width)
             elif cfg.stim_mode == 1:
@@ -260,9 +262,6 @@ def _isr(w: _Walker, cfg: FirmwareScanConfig, firmware: str) -> list[int]:
                 ad = w.mono(value, cfg.pulse_width)
             else:
                 ad = w.mono(cfg.sense_pulse_height, cfg.sense_pulse_width)
-            volts[ch] = ad
-            w.gpio((POL, 1))
-            w.gpio((BL, 0))
         else:
             if value == 1:
                 ad = w.mono(cfg.pulse_height, cfg.pulse_width)
@@ -273,17 +272,18 @@ def _isr(w: _Walker, cfg: FirmwareScanConfig, firmware: str) -> list[int]:
                 ad = w.mono(cfg.pulse_height, cfg.pulse_width)
             else:
                 ad = w.mono(cfg.sense_pulse_height, cfg.sense_pulse_width)
-            volts[ch] = ad
+        volts[ch] = ad
+        if spec.timing.discharge_exchange:
             w.exchange(0)
-            w.gpio((POL, 1))
-            w.gpio((BL, 0))
-        if cfg.discharge_time > 7:
-            w.delay(cfg.discharge_time - 7)
+        w.gpio((POL, 1))
+        w.gpio((BL, 0))
+        if cfg.discharge_time > spec.timing.discharge_wait_offset_us:
+            w.delay(cfg.discharge_time - spec.timing.discharge_wait_offset_us)
         w.gpio((BL, 1))
     w.select(OUTPUTS_PER_HV513 * cfg.hv513_num)
     return volts
 
 
-def scan_duration_us(cfg: FirmwareScanConfig, firmware: str = "v2", conventions: ScanConventions = DEFAULT_CONVENTIONS) -> float:
+def scan_duration_us(cfg: FirmwareScanConfig, firmware: str | FirmwareSpec = "v2", conventions: ScanConventions = DEFAULT_CONVENTIONS) -> float:
     """From the alarm to the handler's return (events not logged)."""
     return trace_scan(cfg, firmware, conventions, log=False).isr_return_us

@@ -19,7 +19,8 @@ from dataclasses import dataclass
 
 from ..protocol import firmware_math as fm
 from ..protocol.commands import encode_measure_reply
-from ..protocol.firmware import V2, FirmwareSpec
+from ..protocol.constants import OUTPUTS_PER_HV513
+from ..protocol.firmware import V2, CommandSpec, FirmwareSpec
 from .hazards import Hazard, HazardKind
 from .registers import RegistersV2
 
@@ -78,11 +79,6 @@ class ParserV2:
         self.command_start_us = 0
         self._unknown_start = -1
         self._unknown_len = 0
-        op = spec.opcodes
-        self._pattern = op["PATTERN"]
-        self._measure = op["MEASURE"]
-        self._hv513 = op["HV513_COUNT"]
-        self._sync = op["SYNC_CHECK"]
 
     # --- the receive queue -----------------------------------------------------------------------------
 
@@ -100,8 +96,8 @@ class ParserV2:
             del self.rx[: self.pos]
             self.base += self.pos
             self.pos = 0
-        capacity = self.spec.rx_queue_size
-        packet = self.spec.usb_packet_size
+        capacity = self.spec.rx_queue_bytes
+        packet = self.spec.usb_packet_bytes
         lost = 0
         for start in range(0, len(data), packet):
             chunk = data[start : start + packet]
@@ -137,18 +133,18 @@ class ParserV2:
             self.pos += 1
             consumed = 1
             made_progress = True
-            size = self.spec.payload_size(op, self.regs.electrode_num)
-            if size is None:
-                if op == self._measure or op == self._hv513 or op == self._sync:
-                    self._flush_unknown()
-                    self._reply(op, at)
-                else:
+            spec = self.spec.by_opcode.get(op)
+            if spec is None or spec.kind is None:
+                if spec is None:
                     self._note_unknown(at)
+                else:
+                    self._flush_unknown()
+                    self._reply(spec, at)
                 return CallOutcome(consumed, len(self.tx) - wrote_before, False)
             self._flush_unknown()
             self.command = op
             self.command_offset = at
-            self.required = size
+            self.required = self.spec.size_of(op, self.regs.electrode_num) or 0
             self.processing = True
             self.command_start_us = now_us
         if self.processing:
@@ -164,7 +160,7 @@ class ParserV2:
                         HazardKind.COMMAND_TIMEOUT,
                         self.command_offset,
                         {
-                            "command": self.spec.name_of(self.command),
+                            "command": self.spec.command(self.command).name,
                             "needed": self.required,
                             "discarded": discarded,
                             "discarded_hex": bytes(self.rx[self.pos :]).hex(),
@@ -195,11 +191,12 @@ class ParserV2:
             self.hazards.append(Hazard(HazardKind.UNKNOWN_BYTES, self._unknown_start, {"count": self._unknown_len}))
             self._unknown_len = 0
 
-    def _reply(self, op: int, offset: int) -> None:
+    def _reply(self, spec: CommandSpec, offset: int) -> None:
         regs = self.regs
-        if op == self._measure:
+        op = spec.opcode
+        if spec.reply == "measure":
             self.tx += encode_measure_reply(regs.voltage[: regs.electrode_num])
-        elif op == self._hv513:
+        elif spec.reply == "hv513":
             regs.hv513_num = self.hv513_detect()
             self.tx.append(regs.hv513_num & 0xFF)
             self.hazards.append(
@@ -216,23 +213,18 @@ class ParserV2:
         self.hazards.append(Hazard(kind, self.command_offset, dict(detail)))
 
     def _apply(self) -> None:
-        """The whole payload is queued: read it, apply it, end the command."""
+        """The whole payload is queued: read it, apply it by the table, end the command."""
         regs = self.regs
-        spec = self.spec
-        op = self.command
+        cmd = self.spec.command(self.command)
         payload = bytes(self.rx[self.pos : self.pos + self.required])
         self.pos += self.required
         self.processing = False
         self.command = 0
-        if payload and max(payload) >= spec.min_opcode and op != self._pattern:
-            self._hazard(
-                HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE,
-                command=spec.name_of(op),
-                payload=payload.hex(),
-            )
+        if payload and cmd.kind != "pattern" and max(payload) >= self.spec.command_byte_min:
+            self._hazard(HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE, command=cmd.name, payload=payload.hex())
         value: object
-        if op == self._pattern:
-            limit = spec.dac_max_code
+        if cmd.kind == "pattern":
+            limit = cmd.max_value if cmd.max_value is not None else self.spec.dac_max_code
             raw = [payload[2 * i] | payload[2 * i + 1] << 8 for i in range(len(payload) // 2)]
             heights = [min(v, limit) for v in raw]
             regs.stim_pattern[: len(heights)] = heights
@@ -240,59 +232,40 @@ class ParserV2:
             if over:
                 self._hazard(HazardKind.CLAMPED, field="stim_pattern", values=over, stored=limit)
             value = heights
-        elif len(payload) == 1:
-            value = payload[0]
         else:
-            value = payload[0] | payload[1] << 8
-        name = spec.name_of(op)
-        if name == "STIM_MODE":
-            assert isinstance(value, int)
-            regs.stim_mode = min(value, spec.max_stim_mode)
-            if value > spec.max_stim_mode:
-                self._hazard(HazardKind.CLAMPED, field="stim_mode", value=value, stored=regs.stim_mode)
-        elif name == "POLARITY":
-            assert isinstance(value, int)
-            regs.polarity = 1 if value >= 1 else 0
-            if value > 1:
-                self._hazard(HazardKind.CLAMPED, field="polarity", value=value, stored=1)
-        elif name == "ELECTRODE_NUM":
-            assert isinstance(value, int)
-            old = regs.electrode_num
-            regs.electrode_num = value
-            if value > old:
-                stale = {ch: regs.stim_pattern[ch] for ch in range(old, value) if regs.stim_pattern[ch]}
-                if stale:
-                    self._hazard(HazardKind.STALE_CHANNELS, old=old, new=value, channels=stale)
-            if value > regs.hv513_num * spec.outputs_per_hv513:
-                self._hazard(
-                    HazardKind.CHANNELS_BEYOND_HV513,
-                    electrode_num=value,
-                    hv513_num=regs.hv513_num,
-                    channels_driven=regs.hv513_num * spec.outputs_per_hv513,
-                )
-        elif name == "PULSE_WIDTH":
-            assert isinstance(value, int)
-            regs.pulse_width = value
-            if value < spec.min_distinct_width_us:
-                self._hazard(HazardKind.SHORT_PULSE_WIDTH, field="pulse_width", value=value)
-        elif name == "SENSE_HEIGHT":
-            assert isinstance(value, int)
-            regs.sense_pulse_height = value
-        elif name == "SENSE_WIDTH":
-            assert isinstance(value, int)
-            regs.sense_pulse_width = value
-        elif name == "DISCHARGE":
-            assert isinstance(value, int)
-            regs.discharge_time = value
-        elif name == "FREQUENCY":
-            assert isinstance(value, int)
-            if value:
-                regs.period_us = fm.period_us_from_rate_double(value)
-                regs.timer_alarm_ticks = fm.alarm_ticks(regs.period_us)
-            else:
-                self._hazard(HazardKind.IGNORED_ZERO, field="frequency")
+            ivalue = payload[0] if len(payload) == 1 else payload[0] | payload[1] << 8
+            value = ivalue
+            self._store(cmd, ivalue)
         if self.on_command is not None:
-            self.on_command(op, value, self.command_offset)
+            self.on_command(cmd.opcode, value, self.command_offset)
+
+    def _store(self, cmd: CommandSpec, value: int) -> None:
+        regs = self.regs
+        stored = cmd.stored(value)
+        if stored is None:
+            self._hazard(HazardKind.IGNORED_ZERO, field=cmd.register)
+            return
+        if stored != value << cmd.shift:
+            self._hazard(HazardKind.CLAMPED, field=cmd.register, value=value, stored=stored)
+        if cmd.register == "frequency":
+            regs.period_us = fm.period_us_from_rate_double(value)
+            regs.timer_alarm_ticks = fm.alarm_ticks(regs.period_us)
+            return
+        if cmd.register == "electrode_num":
+            old = regs.electrode_num
+            if stored > old:
+                stale = {ch: regs.stim_pattern[ch] for ch in range(old, stored) if regs.stim_pattern[ch]}
+                if stale:
+                    self._hazard(HazardKind.STALE_CHANNELS, old=old, new=stored, channels=stale)
+            driven = regs.hv513_num * OUTPUTS_PER_HV513
+            if stored > driven:
+                self._hazard(
+                    HazardKind.CHANNELS_BEYOND_HV513, electrode_num=stored, hv513_num=regs.hv513_num, channels_driven=driven
+                )
+        elif cmd.register == "pulse_width" and stored < self.spec.timing.pulse_wait_offset_us:
+            self._hazard(HazardKind.SHORT_PULSE_WIDTH, field="pulse_width", value=stored)
+        assert cmd.register is not None
+        setattr(regs, cmd.register, stored)
 
     @property
     def command_in_progress(self) -> bool:
