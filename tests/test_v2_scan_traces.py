@@ -9,6 +9,7 @@ import pytest
 from tactdeform_hw.emulator.firmware_scan import (
     DA_CS,
     DEFAULT_CONVENTIONS,
+    HOST_BUILD,
     FirmwareScanConfig,
     ScanConventions,
     scan_duration_us,
@@ -36,6 +37,7 @@ def _conventions(golden: dict) -> ScanConventions:
         gpio_write_ns=round(shim["gpio_write_us"] * 1000),
         isr_entry_ns=round(shim["isr_entry_us"] * 1000),
         timer_tick_ns=round(shim["timer_tick_us"] * 1000),
+        cs_writes_costed=True,
     )
 
 
@@ -43,8 +45,8 @@ def _conventions(golden: dict) -> ScanConventions:
 def test_scan_trace_matches_the_firmware(firmware: str, index: int) -> None:
     """Every event in order and value, the return time, the voltages, the timer operations."""
     golden = TRACES[firmware][index]
-    assert _conventions(golden) == DEFAULT_CONVENTIONS
-    got = trace_scan(FirmwareScanConfig.from_dict(golden["config"]), firmware)
+    assert _conventions(golden) == HOST_BUILD
+    got = trace_scan(FirmwareScanConfig.from_dict(golden["config"]), firmware, HOST_BUILD)
     assert len(got.events) == len(golden["events"])
     for k, (a, b) in enumerate(zip(got.events, golden["events"], strict=True)):
         assert a == b, f"event {k}"
@@ -61,12 +63,13 @@ def _tactdeform(firmware: str) -> FirmwareScanConfig:
 
 
 def test_chip_select_readings() -> None:
-    """The protocol notes' figures: 7869.45 / 7850.25 µs on v1.2; v2 7645.45 µs with the writes costed."""
-    inside = ScanConventions(cs_writes_costed=False)
-    assert scan_duration_us(_tactdeform("v1.2"), "v1.2") == 7869.45
-    assert scan_duration_us(_tactdeform("v1.2"), "v1.2", inside) == 7850.25
-    assert scan_duration_us(_tactdeform("v2"), "v2") == 7645.45
-    assert scan_duration_us(_tactdeform("v2"), "v2", inside) == 7639.05
+    """The protocol notes' figures: 7869.45 / 7850.25 µs on v1.2; v2 7645.45 µs with the writes costed.
+    The package's default reading counts them inside the exchange."""
+    assert DEFAULT_CONVENTIONS == ScanConventions(cs_writes_costed=False)
+    assert scan_duration_us(_tactdeform("v1.2"), "v1.2", HOST_BUILD) == 7869.45
+    assert scan_duration_us(_tactdeform("v1.2"), "v1.2") == 7850.25
+    assert scan_duration_us(_tactdeform("v2"), "v2", HOST_BUILD) == 7645.45
+    assert scan_duration_us(_tactdeform("v2"), "v2") == 7639.05
 
 
 def test_discharge_50_fits_on_v2_only() -> None:
@@ -74,14 +77,14 @@ def test_discharge_50_fits_on_v2_only() -> None:
 
     v12 = replace(_tactdeform("v1.2"), discharge_time=50)
     v2 = replace(_tactdeform("v2"), discharge_time=50)
-    assert scan_duration_us(v2, "v2") == 7805.45 < 8000
+    assert scan_duration_us(v2, "v2", HOST_BUILD) == 7805.45 < 8000
     assert scan_duration_us(v12, "v1.2", ScanConventions(cs_writes_costed=False)) > 8000
 
 
 def test_dac_load_at_cs_rise_moves_every_dac_edge_not_the_widths() -> None:
     cfg = _tactdeform("v2")
-    mid = trace_scan(cfg, "v2")
-    rise = trace_scan(cfg, "v2", ScanConventions(dac_load="cs_rise"))
+    mid = trace_scan(cfg, "v2", HOST_BUILD)
+    rise = trace_scan(cfg, "v2", ScanConventions(cs_writes_costed=True, dac_load="cs_rise"))
     dac_mid = [e for e in mid.events if e[1] == "DAC"]
     dac_rise = [e for e in rise.events if e[1] == "DAC"]
     assert [e[3] for e in dac_mid] == [e[3] for e in dac_rise]
@@ -138,3 +141,16 @@ def test_the_v12_scan_engine_agrees_with_the_golden_traces() -> None:
         expected = [e for e in walker.events if not (e[1] == "GPIO" and e[2] in (43, 44))]
         assert ours == expected, golden["name"]
         assert round(res.duration_ns / 1000, 3) == walker.isr_return_us
+
+
+def test_budget_widths_match_the_traces() -> None:
+    """The budget's effective width is DAC edge to DAC edge in the golden trace, on both versions."""
+    from tactdeform_hw.emulator.firmware_scan import budget
+
+    for firmware in ("v1.2", "v2"):
+        golden = TRACES[firmware][0]
+        dac = [e[0] for e in golden["events"] if e[1] == "DAC"]
+        b = budget(FirmwareScanConfig.from_dict(golden["config"]), firmware, HOST_BUILD)
+        assert b.effective_width_us == round(dac[1] - dac[0], 3)
+        assert b.scan_us == golden["isr_return_us"] and b.verdict == "fits"
+        assert len(b.per_channel_us) == 32 and sum(b.per_channel_us) + b.isr_entry_us + b.clear_us == pytest.approx(b.scan_us)

@@ -38,14 +38,19 @@ DAC_LOADS = ("mid_exchange", "cs_rise")
 
 @dataclass(frozen=True)
 class ScanConventions:
-    """The timing conventions of a scan trace (defaults: the host build's ``shim``)."""
+    """The timing conventions of a scan trace.
+
+    The defaults are the host build's ``shim`` except ``cs_writes_costed``: the package reads the
+    firmware's "DAAD takes 6.6 µs" as the whole call, chip selects included (the protocol reference's
+    worked figure, 7850.25 µs for the TactDeform setting on v1.2); :data:`HOST_BUILD` costs them apart
+    as the host build does (7869.45 µs)."""
 
     spi_exchange_ns: int = 6600
     dac_change_at_ns: int = 3300
     gpio_write_ns: int = 50
     isr_entry_ns: int = 2000
     timer_tick_ns: int = 500
-    cs_writes_costed: bool = True
+    cs_writes_costed: bool = False
     dac_load: str = "mid_exchange"
 
     def __post_init__(self) -> None:
@@ -65,6 +70,7 @@ class ScanConventions:
 
 
 DEFAULT_CONVENTIONS = ScanConventions()
+HOST_BUILD = ScanConventions(cs_writes_costed=True)
 
 
 @dataclass(frozen=True)
@@ -103,6 +109,8 @@ class ScanTrace:
     timer_ops: list[list[Any]] = field(default_factory=list)
     alarm_ticks: int = 0
     chain_position: int = 0
+    channel_start_us: list[float] = field(default_factory=list)
+    clear_start_us: float = 0.0
 
     @property
     def duration_us(self) -> float:
@@ -129,6 +137,7 @@ class _Walker:
         self.ev: list[list[Any]] = []
         self.dac = 0
         self.pos = 0
+        self.marks: list[int] = []  # start of each channel, then of the chain clear
 
     def _us(self, ns: int) -> float:
         return round(ns / 1000, 3)
@@ -240,6 +249,8 @@ def trace_scan(
         timer_ops=[[w._us(conventions.isr_entry_ns), 1, "alarm_disable", 0], [w._us(end), 1, "alarm_enable", 0]],
         alarm_ticks=alarm_ticks_for(spec.name, cfg.frequency_hz),
         chain_position=w.pos,
+        channel_start_us=[w._us(t) for t in w.marks[:-1]],
+        clear_start_us=w._us(w.marks[-1]),
     )
 
 
@@ -249,7 +260,9 @@ def _isr(w: _Walker, cfg: FirmwareScanConfig, spec: FirmwareSpec) -> list[int]:
     n = cfg.electrode_num
     volts = [0] * n
     pol = cfg.polarity
+    w.marks = []
     for ch in range(n):
+        w.marks.append(w.t)
         w.select(ch)
         w.gpio((POL, 1 if pol else 0))
         value = cfg.stim_pattern[ch]
@@ -280,6 +293,7 @@ def _isr(w: _Walker, cfg: FirmwareScanConfig, spec: FirmwareSpec) -> list[int]:
         if cfg.discharge_time > spec.timing.discharge_wait_offset_us:
             w.delay(cfg.discharge_time - spec.timing.discharge_wait_offset_us)
         w.gpio((BL, 1))
+    w.marks.append(w.t)
     w.select(OUTPUTS_PER_HV513 * cfg.hv513_num)
     return volts
 
@@ -287,3 +301,121 @@ def _isr(w: _Walker, cfg: FirmwareScanConfig, spec: FirmwareSpec) -> list[int]:
 def scan_duration_us(cfg: FirmwareScanConfig, firmware: str | FirmwareSpec = "v2", conventions: ScanConventions = DEFAULT_CONVENTIONS) -> float:
     """From the alarm to the handler's return (events not logged)."""
     return trace_scan(cfg, firmware, conventions, log=False).isr_return_us
+
+
+# --- the budget of one configuration, by firmware version ---------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FirmwareBudget:
+    """One scan of a configuration against its timer period, from the statement walker."""
+
+    firmware: str
+    electrodes: int
+    stim_mode: int | None
+    per_channel_us: list[float]
+    isr_entry_us: float
+    clear_us: float
+    scan_us: float
+    period_us: float
+    alarm_ticks: int
+    margin_us: float
+    overrun: bool
+    watchdog_reset: bool
+    actual_rate_hz: float
+    effective_width_us: float
+    conventions: dict[str, Any]
+    notes: list[str]
+
+    @property
+    def verdict(self) -> str:
+        if self.watchdog_reset:
+            return "watchdog reset"
+        return "overrun" if self.overrun else "fits"
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dict(self.__dict__)
+        d["verdict"] = self.verdict
+        return d
+
+    def table(self) -> str:
+        mode = "" if self.stim_mode is None else f", mode {self.stim_mode} ({MODE_NAMES[self.stim_mode]})"
+        lines = [
+            f"Scan budget, firmware {self.firmware}: {self.electrodes} electrodes{mode}, timer alarm "
+            f"{self.alarm_ticks} ticks = {self.period_us:.2f} us",
+        ]
+        distinct = sorted(set(self.per_channel_us))
+        for cost in distinct:
+            count = self.per_channel_us.count(cost)
+            lines.append(f"{'channels':<24}{count:>9}  {'per channel':>12}{cost:>11.2f}{'subtotal':>10}{count * cost:>11.2f}")
+        lines += [
+            f"{'interrupt entry':<66}{self.isr_entry_us:>11.2f}",
+            f"{'chain clear':<66}{self.clear_us:>11.2f}",
+            f"{'scan':<66}{self.scan_us:>11.2f}",
+            f"{'period':<66}{self.period_us:>11.2f}",
+            f"{'margin':<66}{self.margin_us:>11.2f}",
+            f"verdict: {self.verdict.upper()}; actual rate {self.actual_rate_hz:.2f} Hz; effective pulse width "
+            f"{self.effective_width_us:.2f} us (all times in us)",
+            "chip-select writes " + ("costed apart from" if self.conventions["cs_writes_costed"] else "inside")
+            + f" the {self.conventions['spi_exchange_us']} us exchange; DAC loads "
+            + ("3.3 us into the exchange" if self.conventions["dac_load"] == "mid_exchange" else "when DA_CS rises"),
+        ]
+        lines += [f"note: {n}" for n in self.notes]
+        return "\n".join(lines)
+
+
+MODE_NAMES = {0: "monophasic", 1: "biphasic", 2: "impedance only"}
+WATCHDOG_US = 300_000.0
+
+
+def budget(
+    cfg: FirmwareScanConfig,
+    firmware: str | FirmwareSpec = "v2",
+    conventions: ScanConventions = DEFAULT_CONVENTIONS,
+) -> FirmwareBudget:
+    """Scan time, period, margin and verdict of ``cfg`` on ``firmware`` (overruns: the next scan at once)."""
+    spec = get_firmware(firmware)
+    tr = trace_scan(cfg, spec, conventions, log=False)
+    period = tr.alarm_ticks * conventions.timer_tick_ns / 1000
+    scan = tr.isr_return_us
+    starts = tr.channel_start_us + [tr.clear_start_us]
+    per = [round(b - a, 3) for a, b in zip(starts, starts[1:], strict=False)]
+    watchdog = scan > spec.timing.watchdog_us
+    stride = max(scan, period)
+    moded = "stim_mode" in spec.power_on
+    width = cfg.sense_pulse_width if moded and cfg.stim_mode == 2 else cfg.pulse_width
+    wait = spec.timing.delay_ticks(width - spec.timing.pulse_wait_offset_us) * conventions.timer_tick_ns / 1000 \
+        if width >= spec.timing.pulse_wait_offset_us else 0.0
+    cs_extra = spec.timing.chip_select_writes_per_exchange * conventions.gpio_write_ns / 1000 \
+        if conventions.cs_writes_costed else 0.0
+    notes: list[str] = []
+    if watchdog:
+        notes.append(f"the scan exceeds the {spec.timing.watchdog_us:.0f} us interrupt watchdog: the board reboots")
+    elif scan > period:
+        notes.append(f"overrun by {scan - period:.2f} us: the next scan follows at once")
+    if moded and cfg.stim_mode == 2 and cfg.electrode_num:
+        notes.append(f"mode 2: every channel gets the sense pulse (code {cfg.sense_pulse_height}, "
+                     f"{cfg.sense_pulse_width} us) whatever the pattern; a zero pattern does not stop current")
+    if moded and cfg.stim_mode != 2 and width < spec.timing.pulse_wait_offset_us and any(cfg.stim_pattern[: cfg.electrode_num]):
+        notes.append(f"pulse width {width} us: the pulse is still one SPI exchange long")
+    driven = OUTPUTS_PER_HV513 * cfg.hv513_num
+    if cfg.electrode_num > driven:
+        notes.append(f"channels {driven}..{cfg.electrode_num - 1} lie beyond the {cfg.hv513_num} HV513 chip(s)")
+    return FirmwareBudget(
+        firmware=spec.name,
+        electrodes=cfg.electrode_num,
+        stim_mode=cfg.stim_mode if moded else None,
+        per_channel_us=per[: cfg.electrode_num],
+        isr_entry_us=conventions.isr_entry_ns / 1000,
+        clear_us=round(scan - tr.clear_start_us, 3),
+        scan_us=scan,
+        period_us=period,
+        alarm_ticks=tr.alarm_ticks,
+        margin_us=round(period - scan, 3),
+        overrun=scan > period,
+        watchdog_reset=watchdog,
+        actual_rate_hz=0.0 if watchdog or stride == 0 else 1e6 / stride,
+        effective_width_us=round(conventions.spi_exchange_ns / 1000 + cs_extra + wait, 3),
+        conventions=conventions.describe(),
+        notes=notes,
+    )
