@@ -213,7 +213,7 @@ class TimedEmulator:
         return len(self._host_rx)
 
     def state(self) -> dict[str, Any]:
-        snap = self.emulator.registers.snapshot()
+        snap: dict[str, Any] = self.emulator.registers.snapshot()
         snap["rx_pending"] = len(self.queue)
         return snap
 
