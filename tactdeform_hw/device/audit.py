@@ -30,28 +30,24 @@ from pathlib import Path
 from typing import IO, Any
 
 from ..errors import ConfigurationError
-from ..protocol.constants import PAYLOAD_KIND, Opcode
+from ..protocol.firmware import DEFAULT_FIRMWARE, FirmwareSpec
+from ..protocol.reader import first_command
 
 AUDIT_VERSION = 1
-_COMMAND_BYTE_MIN = min(Opcode)
 
 
-def describe_command(data: bytes) -> tuple[str, Any]:
-    """Name and value of the first command in ``data`` (for humans reading the log)."""
-    if not data:
+def describe_command(data: bytes, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> tuple[str, Any]:
+    """Name and value of the first command in ``data`` as the firmware reads it (for humans reading the
+    log; the value is the one sent, before the firmware's clamp; a pattern's levels as stored)."""
+    c = first_command(data, firmware=firmware)
+    if c is None:
         return "EMPTY", None
-    op = data[0]
-    if op < _COMMAND_BYTE_MIN:
+    if c.opcode is None:
         return ("ZEROS" if not any(data) else "UNKNOWN"), len(data)
-    name = Opcode(op).name
-    kind = PAYLOAD_KIND.get(op)
-    if kind == "pattern":
-        return name, list(data[1:])
-    if kind == "u8" and len(data) >= 2:
-        return name, data[1]
-    if kind == "u16" and len(data) >= 3:
-        return name, data[1] | data[2] << 8
-    return name, None
+    name = firmware.command(c.opcode).name
+    if c.levels is not None:
+        return name, list(c.levels)
+    return name, c.read_value
 
 
 class AuditLog:

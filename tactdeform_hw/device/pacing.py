@@ -51,68 +51,27 @@ per command, which the firmware skips without sleeping.
 
 from __future__ import annotations
 
-import functools
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from ..clock import Clock, InstantClock, MonotonicClock
-from ..protocol.constants import PAYLOAD_KIND, RX_QUEUE_SIZE, USB_PACKET_SIZE, Opcode
+from ..protocol.constants import RX_QUEUE_SIZE, USB_PACKET_SIZE
+from ..protocol.firmware import DEFAULT_FIRMWARE, FirmwareSpec
+from ..protocol.firmware_math import estimate_scan_us as estimate_scan_us
+from ..protocol.firmware_math import firmware_period_us as firmware_period_us
 
-COMMAND_BYTE_MIN = min(Opcode)
+COMMAND_BYTE_MIN = DEFAULT_FIRMWARE.command_byte_min
 
-# The firmware's scan, as the protocol reference gives it (µs).  The SPI exchange is the firmware's own
-# figure; the GPIO write, interrupt entry and the parser's cost per unknown byte are assumptions.
-SPI_EXCHANGE_US = 6.6
-GPIO_WRITE_US = 0.05
-ISR_ENTRY_US = 2.0
-PARSER_BYTE_US = 4.0  # one parser call plus one byte read, rounded up
+# The scan's timing constants are the firmware table's (protocol.firmware); the parser's cost per unknown
+# byte is this layer's own assumption, one parser call plus one byte read, rounded up.
+SPI_EXCHANGE_US = DEFAULT_FIRMWARE.timing.spi_exchange_us
+GPIO_WRITE_US = DEFAULT_FIRMWARE.timing.gpio_write_us
+ISR_ENTRY_US = DEFAULT_FIRMWARE.timing.isr_entry_us
+PARSER_BYTE_US = 4.0
 #: Frames whose estimated scan leaves less than this before the next alarm are refused by the guard.
 SCAN_GAP_MIN_US = 50.0
-
-
-def _busy_wait_us(us: int) -> float:
-    """The firmware's ``delay(us)``: at least 3 µs, ``int(us * 2.0 - 5.4)`` ticks of 0.5 µs."""
-    us = max(us, 3)
-    return max(0, int(us * 2.0 - 5.4)) * 0.5
-
-
-def _monophasic_us(width_us: int) -> float:
-    wait = _busy_wait_us(width_us - 7) if width_us >= 7 else 0.0
-    return 2 * SPI_EXCHANGE_US + wait
-
-
-def estimate_scan_us(
-    levels: Sequence[int], width_us: int, discharge_us: int, sense_width_us: int = 0, hv513: int = 4
-) -> float:
-    """One scan of ``levels`` (hardware order, one per channel the firmware scans), from the firmware's
-    order of operations: select (LE, DIN, CLK), POL, the pulse (1: monophasic, 2: two phases, anything
-    else: the sense pulse), the discharge exchange and busy-wait; plus interrupt entry and the chain clear.
-    Rounded up by 0.5 % + 2 µs so that it errs long."""
-    mono = _monophasic_us(width_us)
-    sense = _monophasic_us(sense_width_us)
-    discharge = SPI_EXCHANGE_US + 3 * GPIO_WRITE_US + (_busy_wait_us(discharge_us - 7) if discharge_us > 7 else 0.0)
-    select = 5 * GPIO_WRITE_US
-    total = ISR_ENTRY_US + 2 * GPIO_WRITE_US * 8 * max(hv513, 1)
-    for v in levels:
-        if v == 1:
-            pulse = mono
-        elif v == 2:
-            pulse = 2 * mono + 2 * GPIO_WRITE_US
-        else:
-            pulse = sense
-        total += select + GPIO_WRITE_US + pulse + discharge
-    return total * 1.005 + 2.0
-
-
-@functools.lru_cache(maxsize=64)
-def firmware_period_us(rate_hz: int) -> float:
-    """The alarm period the firmware derives from a rate (float32 division, truncated to whole µs);
-    cached, as every frame asks for it."""
-    from ..protocol.firmware_math import period_us_from_rate
-
-    return float(int(period_us_from_rate(rate_hz)))
 
 
 @dataclass(frozen=True)
@@ -139,30 +98,33 @@ class PacingStats:
         return dict(self.__dict__)
 
 
-def has_payload(data: bytes) -> bool:
-    """Whether the command starting ``data`` makes the parser sleep a tick afterwards."""
-    return bool(data) and data[0] >= COMMAND_BYTE_MIN and PAYLOAD_KIND.get(data[0]) is not None
+def has_payload(data: bytes, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> bool:
+    """Whether the command starting ``data`` carries a payload (on v1.2: the parser sleeps a tick after it)."""
+    if not data:
+        return False
+    c = firmware.by_opcode.get(data[0])
+    return c is not None and c.kind is not None
 
 
-def padding_for(data: bytes) -> bytes:
+def padding_for(data: bytes, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> bytes:
     """The robust-encoding padding that follows one whole command (see the module docstring)."""
-    if not data or data[0] < COMMAND_BYTE_MIN:
+    if not data:
         return b""
-    op = data[0]
-    kind = PAYLOAD_KIND.get(op)
-    if kind is None:
+    c = firmware.by_opcode.get(data[0])
+    if c is None or c.kind is None:
         return b""
-    if kind == "u16" or kind == "pattern":
+    if c.kind in ("u16", "pattern"):
         return b"\x00\x00"
-    if op in (Opcode.ELECTRODE_NUM, Opcode.POLARITY) and len(data) >= 2 and data[1] < COMMAND_BYTE_MIN:
+    if c.register in ("electrode_num", "polarity") and len(data) >= 2 and data[1] < firmware.command_byte_min:
         return bytes([data[1]])
     return b"\x00"
 
 
-def command_like_payload(data: bytes) -> int | None:
+def command_like_payload(data: bytes, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> int | None:
     """Index of the first payload byte of a command that looks like a command byte (None if none)."""
+    cmin = firmware.command_byte_min
     for i, b in enumerate(data[1:], start=1):
-        if b >= COMMAND_BYTE_MIN:
+        if b >= cmin:
             return i
     return None
 

@@ -22,22 +22,27 @@ from enum import Enum
 
 from ..protocol import firmware_math as fm
 from ..protocol.commands import encode_measure_reply
-from ..protocol.constants import (
-    DAC_MAX_CODE,
-    OUTPUTS_PER_HV513,
-    PAYLOAD_KIND,
-    SENSE_HEIGHT_SHIFT,
-    Opcode,
-)
+from ..protocol.constants import OUTPUTS_PER_HV513, Opcode
+from ..protocol.firmware import V1_2
+from ..protocol.reader import u16_at
 from .hazards import Hazard, HazardKind
 from .registers import Registers
 
-_COMMAND_BYTE_MIN = min(Opcode)
+_FIRMWARE = V1_2
+_COMMAND_BYTE_MIN = _FIRMWARE.command_byte_min
 _MEASURE = int(Opcode.MEASURE)
 _PATTERN = int(Opcode.PATTERN)
 _HV513 = int(Opcode.HV513_COUNT)
 # opcode -> payload bytes needed (pattern resolved at run time); unknown opcodes absent
-_SIZE = {int(op): {"u8": 1, "u16": 2, None: 0, "pattern": -1}[k] for op, k in PAYLOAD_KIND.items()}
+_SIZE = _FIRMWARE.size_table()
+_SPEC = _FIRMWARE.by_opcode
+
+
+def _stored(op: int, value: int) -> int:
+    """The register value the firmware stores for a complete payload (its table's clamp and shift)."""
+    v = _SPEC[op].stored(value)
+    assert v is not None
+    return v
 
 
 class CallResult(Enum):
@@ -274,7 +279,7 @@ class Parser:
         else:
             if avail < 2:
                 return CallResult.STUCK_U16 if avail == 1 else CallResult.PROGRESS
-            value = rx[self.pos] | rx[self.pos + 1] << 8
+            value = u16_at(rx, self.pos)
             self.pos += 2
         self._complete(op, value)
         return CallResult.COMPLETED
@@ -288,7 +293,7 @@ class Parser:
         elif value is None:  # pragma: no cover - every other command has a value
             raise AssertionError(op)
         elif op == Opcode.POLARITY:
-            regs.polarity = 1 if value >= 1 else 0
+            regs.polarity = _stored(op, value)
             if value > 1:
                 self._hazard(HazardKind.CLAMPED, offset, field="polarity", value=value, stored=1)
         elif op == Opcode.ELECTRODE_NUM:
@@ -307,22 +312,22 @@ class Parser:
                     channels_driven=regs.hv513_num * OUTPUTS_PER_HV513,
                 )
         elif op == Opcode.PULSE_HEIGHT:
-            regs.pulse_height = min(value, DAC_MAX_CODE)
-            if value > DAC_MAX_CODE:
-                self._hazard(HazardKind.CLAMPED, offset, field="pulse_height", value=value, stored=DAC_MAX_CODE)
+            regs.pulse_height = _stored(op, value)
+            if value > regs.pulse_height:
+                self._hazard(HazardKind.CLAMPED, offset, field="pulse_height", value=value, stored=regs.pulse_height)
         elif op == Opcode.PULSE_WIDTH:
-            if value:
+            if _SPEC[op].stored(value) is not None:
                 regs.pulse_width = value
             else:
                 self._hazard(HazardKind.IGNORED_ZERO, offset, field="pulse_width")
         elif op == Opcode.SENSE_HEIGHT:
-            regs.sense_pulse_height = value << SENSE_HEIGHT_SHIFT
+            regs.sense_pulse_height = _stored(op, value)
         elif op == Opcode.SENSE_WIDTH:
             regs.sense_pulse_width = value
         elif op == Opcode.DISCHARGE:
             regs.discharge_time = value
         elif op == Opcode.FREQUENCY:
-            if value:
+            if _SPEC[op].stored(value) is not None:
                 regs.period_us = fm.period_us_from_rate(value)
                 regs.timer_alarm_ticks = fm.alarm_ticks(regs.period_us)
             else:

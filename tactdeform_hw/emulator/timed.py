@@ -49,8 +49,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from ..errors import ConfigurationError, LimitError
-from ..protocol.constants import PAYLOAD_KIND, Opcode
+from ..protocol.constants import Opcode
 from ..protocol.decoder import StreamDecoder
+from ..protocol.firmware import V1_2
 from .board import Board
 from .core import Emulator
 from .hazards import Hazard, HazardKind
@@ -78,7 +79,7 @@ from .timing import DEFAULT_MODEL, TimingModel
 _INF = math.inf
 _PATTERN = int(Opcode.PATTERN)
 _HV513 = int(Opcode.HV513_COUNT)
-_SIZE = {int(op): {"u8": 1, "u16": 2, None: 0, "pattern": -1}[k] for op, k in PAYLOAD_KIND.items()}
+_SIZE = V1_2.size_table()
 
 # which pulses a command affects (None: any pulse)
 _AFFECTS: dict[int, tuple[int, ...] | None] = {

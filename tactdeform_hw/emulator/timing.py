@@ -23,7 +23,9 @@ from functools import cached_property
 from typing import Any
 
 from ..errors import ConfigurationError, LimitError
-from ..protocol.constants import RX_QUEUE_SIZE, TIMER_TICKS_PER_US
+from ..protocol.firmware import V1_2, FirmwareSpec, busy_wait_ticks
+
+_FW = V1_2.timing  # the defaults: the v1.2 firmware's constants (protocol.firmware holds each version's)
 
 OVERRUN_POLICIES = ("immediate", "skip")
 """What follows a scan longer than the timer period.
@@ -49,36 +51,36 @@ class TimingModel:
     """
 
     # --- the scan interrupt -------------------------------------------------------------------------------
-    spi_exchange_us: float = _f(6.6, "µs", "firmware comment", "one DAC/ADC SPI exchange")
-    dac_change_at_us: float = _f(3.3, "µs", "firmware comment", "when the DAC output changes within an exchange")
+    spi_exchange_us: float = _f(_FW.spi_exchange_us, "µs", "firmware comment", "one DAC/ADC SPI exchange")
+    dac_change_at_us: float = _f(_FW.dac_change_at_us, "µs", "firmware comment", "when the DAC output changes within an exchange")
     adc_sample_at_us: float = _f(
         0.0, "µs", "assumption", "when the ADC samples within the exchange that returns the reading"
     )
-    gpio_write_us: float = _f(0.05, "µs", "assumption", "one fast GPIO write (LE, DIN, CLK, POL, BL)")
-    isr_entry_us: float = _f(2.0, "µs", "assumption", "from the timer alarm to the first statement of the handler")
+    gpio_write_us: float = _f(_FW.gpio_write_us, "µs", "assumption", "one fast GPIO write (LE, DIN, CLK, POL, BL)")
+    isr_entry_us: float = _f(_FW.isr_entry_us, "µs", "assumption", "from the timer alarm to the first statement of the handler")
     isr_exit_us: float = _f(0.0, "µs", "assumption", "from the handler's last statement to the alarm re-enable")
-    pulse_wait_offset_us: int = _f(7, "µs", "firmware", "monophasic: busy-wait w - 7 µs only if w >= 7")
-    discharge_wait_offset_us: int = _f(7, "µs", "firmware", "discharge: busy-wait d - 7 µs only if d > 7")
-    delay_min_us: int = _f(3, "µs", "firmware", "delay(us) raises us below this to this")
-    delay_ticks_per_us: float = _f(2.0, "ticks/µs", "firmware", "delay target = int(us * this - offset)")
-    delay_offset_ticks: float = _f(5.4, "ticks", "firmware", "delay target = int(us * scale - this)")
+    pulse_wait_offset_us: int = _f(_FW.pulse_wait_offset_us, "µs", "firmware", "monophasic: busy-wait w - 7 µs only if w >= 7")
+    discharge_wait_offset_us: int = _f(_FW.discharge_wait_offset_us, "µs", "firmware", "discharge: busy-wait d - 7 µs only if d > 7")
+    delay_min_us: int = _f(_FW.delay_min_us, "µs", "firmware", "delay(us) raises us below this to this")
+    delay_ticks_per_us: float = _f(_FW.delay_ticks_per_us, "ticks/µs", "firmware", "delay target = int(us * this - offset)")
+    delay_offset_ticks: float = _f(_FW.delay_offset_ticks, "ticks", "firmware", "delay target = int(us * scale - this)")
     timer_tick_us: float = _f(
-        1.0 / TIMER_TICKS_PER_US, "µs", "platform", "stimulation timer tick: 80 MHz APB / 40 = 2 MHz"
+        _FW.timer_tick_us, "µs", "platform", "stimulation timer tick: 80 MHz APB / 40 = 2 MHz"
     )
     overrun_policy: str = _f("immediate", "", "platform", "what follows a scan longer than the period")
     watchdog_us: float | None = _f(
-        300_000.0, "µs", "platform", "interrupt watchdog (arduino-esp32, ESP32-S3); None disables it"
+        _FW.watchdog_us, "µs", "platform", "interrupt watchdog (arduino-esp32, ESP32-S3); None disables it"
     )
     boot_us: float = _f(0.0, "µs", "assumption", "reboot to a running main loop after a watchdog reset")
     timer_start_us: float = _f(0.0, "µs", "assumption", "from boot to the stimulation timer's start")
 
     # --- the main loop and the parser ---------------------------------------------------------------------
-    rtos_tick_us: float = _f(1000.0, "µs", "platform", "FreeRTOS tick (1 kHz); vTaskDelay(1) waits for the next")
+    rtos_tick_us: float = _f(_FW.rtos_tick_us, "µs", "platform", "FreeRTOS tick (1 kHz); vTaskDelay(1) waits for the next")
     tick_phase_us: float = _f(0.0, "µs", "assumption", "first RTOS tick after boot, modulo the tick period")
-    parser_call_us: float = _f(2.0, "µs", "assumption", "one parser call's overhead (Serial.available() and the loop)")
-    parser_byte_us: float = _f(1.0, "µs", "assumption", "reading one byte from the receive queue")
-    hv513_detect_us: float = _f(1000.0, "µs", "assumption", "0xF5: 50 analogRead() calls to count the boards")
-    rx_queue_bytes: int = _f(RX_QUEUE_SIZE, "bytes", "firmware", "receive queue; the rest of a packet is discarded")
+    parser_call_us: float = _f(_FW.parser_call_us, "µs", "assumption", "one parser call's overhead (Serial.available() and the loop)")
+    parser_byte_us: float = _f(_FW.parser_byte_us, "µs", "assumption", "reading one byte from the receive queue")
+    hv513_detect_us: float = _f(_FW.hv513_detect_us, "µs", "assumption", "0xF5: 50 analogRead() calls to count the boards")
+    rx_queue_bytes: int = _f(V1_2.rx_queue_bytes, "bytes", "firmware", "receive queue; the rest of a packet is discarded")
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -105,6 +107,31 @@ class TimingModel:
             raise LimitError("watchdog_us", self.watchdog_us, "a positive number or None")
         if not isinstance(self.rx_queue_bytes, int) or self.rx_queue_bytes < 1:
             raise LimitError("rx_queue_bytes", self.rx_queue_bytes, "an integer >= 1")
+
+    @classmethod
+    def for_firmware(cls, firmware: FirmwareSpec, **changes: Any) -> TimingModel:
+        """The model with a firmware version's own constants (its table in :mod:`..protocol.firmware`)."""
+        t = firmware.timing
+        base: dict[str, Any] = {
+            "spi_exchange_us": t.spi_exchange_us,
+            "dac_change_at_us": t.dac_change_at_us,
+            "gpio_write_us": t.gpio_write_us,
+            "isr_entry_us": t.isr_entry_us,
+            "pulse_wait_offset_us": t.pulse_wait_offset_us,
+            "discharge_wait_offset_us": t.discharge_wait_offset_us,
+            "delay_min_us": t.delay_min_us,
+            "delay_ticks_per_us": t.delay_ticks_per_us,
+            "delay_offset_ticks": t.delay_offset_ticks,
+            "timer_tick_us": t.timer_tick_us,
+            "watchdog_us": t.watchdog_us,
+            "rtos_tick_us": t.rtos_tick_us,
+            "parser_call_us": t.parser_call_us,
+            "parser_byte_us": t.parser_byte_us,
+            "hv513_detect_us": t.hv513_detect_us,
+            "rx_queue_bytes": firmware.rx_queue_bytes,
+        }
+        base.update(changes)
+        return cls(**base)
 
     # --- integer-nanosecond views (the simulation's clock) ------------------------------------------------
 
@@ -177,9 +204,7 @@ class TimingModel:
         Computed in double precision like the firmware's C expression (``2.0`` and ``5.4`` are doubles).
         A negative target (impossible with the defaults) waits nothing.
         """
-        if us < self.delay_min_us:
-            us = self.delay_min_us
-        return max(0, int(us * self.delay_ticks_per_us - self.delay_offset_ticks))
+        return busy_wait_ticks(us, self.delay_min_us, self.delay_ticks_per_us, self.delay_offset_ticks)
 
     def delay_ns(self, us: int) -> int:
         return self.delay_ticks(us) * self.tick_ns

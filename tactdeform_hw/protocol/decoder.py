@@ -11,15 +11,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from .constants import PAYLOAD_KIND, Opcode
+from .firmware import DEFAULT_FIRMWARE, FirmwareSpec
+from .reader import UNKNOWN as _UNKNOWN_KIND
+from .reader import ParserState, read_commands
 
 OK = "ok"
 TRUNCATED = "truncated"
 UNKNOWN = "unknown"
 LOCKED = "locked"
 UNREAD = "unread"
-
-_COMMAND_BYTE_MIN = min(Opcode)
 
 
 @dataclass(frozen=True)
@@ -33,6 +33,8 @@ class DecodedCommand:
     value: int | bytes | None
     status: str = OK
     note: str = ""
+    #: What the firmware stores for a u8/u16 value (after its clamp and shift; None: ignored or no value).
+    stored: int | None = None
 
     def describe(self) -> str:
         """One readable line: offset, bytes, what the firmware made of them."""
@@ -50,6 +52,8 @@ class DecodedCommand:
             elif self.value is not None:
                 field = self.name.lower()
                 text += f" {field}={self.value}"
+                if self.stored != self.value and self.status == OK:
+                    text += " (ignored)" if self.stored is None else f" (stored as {self.stored})"
             if self.status == TRUNCATED:
                 text += " TRUNCATED (the capture ends mid-command; the next bytes sent become its payload)"
             elif self.status == LOCKED:
@@ -68,69 +72,59 @@ class DecodedCommand:
             "value": value,
             "status": self.status,
             "note": self.note,
+            "stored": self.stored,
         }
 
 
 class StreamDecoder:
-    """Incremental decoder; ``feed`` returns what completed, ``finish`` what the capture left open."""
+    """Incremental decoder; ``feed`` returns what completed, ``finish`` what the capture left open.
 
-    def __init__(self, electrode_num: int = 0) -> None:
+    A command still waiting for payload bytes is held back and reported whole once they arrive, so a
+    capture fed in pieces decodes exactly as fed at once."""
+
+    def __init__(self, electrode_num: int = 0, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> None:
         self.electrode_num = electrode_num
+        self.firmware = firmware
         self._buf = bytearray()
         self._offset = 0  # absolute offset of _buf[0]
-        self._locked_at: int | None = None
+        self._locked = False
+        self._cmin = firmware.command_byte_min
 
     def feed(self, data: bytes) -> list[DecodedCommand]:
+        if self._locked:
+            self._buf += data
+            return []
         self._buf += data
+        reading = read_commands(bytes(self._buf), firmware=self.firmware, state=ParserState(self.electrode_num), offset=self._offset)
         out: list[DecodedCommand] = []
-        buf = self._buf
-        i = 0
-        n = len(buf)
-        if self._locked_at is not None:
-            return out
-        while i < n:
-            op = buf[i]
-            kind = PAYLOAD_KIND.get(op, "unknown")
-            if kind == "unknown":
-                j = i + 1
-                while j < n and buf[j] not in PAYLOAD_KIND:
-                    j += 1
-                out.append(DecodedCommand(self._offset + i, bytes(buf[i:j]), None, "UNKNOWN", None, UNKNOWN))
-                i = j
-                continue
-            name = Opcode(op).name
-            if kind is None:
-                out.append(DecodedCommand(self._offset + i, bytes(buf[i : i + 1]), op, name, None))
-                i += 1
-                continue
-            if kind == "pattern":
-                size = self.electrode_num
-                if size == 0:
-                    self._locked_at = self._offset + i
-                    out.append(DecodedCommand(self._offset + i, bytes(buf[i : i + 1]), op, name, None, LOCKED))
-                    i += 1
-                    break
-            else:
-                size = 1 if kind == "u8" else 2
-            if i + 1 + size > n:
+        consumed = 0
+        by_op = self.firmware.by_opcode
+        for c in reading.commands:
+            if c.kind == _UNKNOWN_KIND:
+                out.append(DecodedCommand(c.offset, c.raw, None, "UNKNOWN", None, UNKNOWN))
+            elif c.opcode is None:  # unread behind a locked parser: reported by finish()
+                break
+            elif c.locked:
+                self._locked = True
+                out.append(DecodedCommand(c.offset, c.raw, c.opcode, by_op[c.opcode].name, None, LOCKED))
+            elif not c.complete:
                 break  # wait for more bytes
-            payload = bytes(buf[i + 1 : i + 1 + size])
-            note = ""
-            value: int | bytes
-            if kind == "pattern":
-                value = payload
-                if payload and max(payload) >= _COMMAND_BYTE_MIN:
-                    note = "pattern holds a command byte: an earlier command was probably cut short"
-            elif kind == "u8":
-                value = payload[0]
-                if op == Opcode.ELECTRODE_NUM:
-                    self.electrode_num = value
             else:
-                value = payload[0] | payload[1] << 8
-            out.append(DecodedCommand(self._offset + i, bytes(buf[i : i + 1 + size]), op, name, value, OK, note))
-            i += 1 + size
-        del buf[:i]
-        self._offset += i
+                spec = by_op[c.opcode]
+                note = ""
+                value: int | bytes | None
+                if spec.kind == "pattern":
+                    value = c.payload
+                    if c.payload and max(c.payload) >= self._cmin:
+                        note = "pattern holds a command byte: an earlier command was probably cut short"
+                else:
+                    value = c.read_value
+                out.append(DecodedCommand(c.offset, c.raw, c.opcode, spec.name, value, OK, note, c.value))
+            consumed += len(c.raw)
+        if not self._locked:
+            self.electrode_num = _num_after(self.electrode_num, out, self.firmware)
+        del self._buf[:consumed]
+        self._offset += consumed
         return out
 
     def finish(self) -> list[DecodedCommand]:
@@ -138,19 +132,28 @@ class StreamDecoder:
         out: list[DecodedCommand] = []
         if not self._buf:
             return out
-        if self._locked_at is not None:
+        if self._locked:
             out.append(DecodedCommand(self._offset, bytes(self._buf), None, "UNREAD", None, UNREAD))
         else:
             op = self._buf[0]
-            out.append(DecodedCommand(self._offset, bytes(self._buf), op, Opcode(op).name, None, TRUNCATED))
+            name = self.firmware.command(op).name
+            out.append(DecodedCommand(self._offset, bytes(self._buf), op, name, None, TRUNCATED))
         self._offset += len(self._buf)
         self._buf.clear()
         return out
 
 
-def decode(data: bytes, electrode_num: int = 0) -> list[DecodedCommand]:
+def _num_after(num: int, items: list[DecodedCommand], fw: FirmwareSpec) -> int:
+    """The electrode count in force after ``items`` (the last complete electrode-count command)."""
+    for item in reversed(items):
+        if item.opcode is not None and item.status == OK and fw.by_opcode[item.opcode].register == "electrode_num":
+            return item.stored if item.stored is not None else num
+    return num
+
+
+def decode(data: bytes, electrode_num: int = 0, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> list[DecodedCommand]:
     """Decode a whole capture, the open end included."""
-    dec = StreamDecoder(electrode_num)
+    dec = StreamDecoder(electrode_num, firmware)
     return dec.feed(data) + dec.finish()
 
 

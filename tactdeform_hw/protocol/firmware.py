@@ -103,6 +103,15 @@ class CommandSpec:
         return value << self.shift
 
 
+def busy_wait_ticks(us: int, min_us: int, ticks_per_us: float, offset_ticks: float) -> int:
+    """The firmware's busy-wait ``delay(us)``: raise ``us`` to ``min_us``, then wait until the timer reaches
+    ``int(us * 2.0 - 5.4)`` ticks (``ticks_per_us``, ``offset_ticks``), computed in double precision like
+    the C expression.  A negative target (impossible with the firmware's constants) waits nothing."""
+    if us < min_us:
+        us = min_us
+    return max(0, int(us * ticks_per_us - offset_ticks))
+
+
 @dataclass(frozen=True)
 class FirmwareTiming:
     """The scan's timing constants and the busy-wait rule, as the firmware's code and comments give them.
@@ -135,11 +144,8 @@ class FirmwareTiming:
         return 1.0 / self.timer_ticks_per_us
 
     def delay_ticks(self, us: int) -> int:
-        """``delay(us)``: raise to the minimum, then wait ``int(us * 2.0 - 5.4)`` timer ticks (double
-        precision, as the C expression); a negative target waits nothing."""
-        if us < self.delay_min_us:
-            us = self.delay_min_us
-        return max(0, int(us * self.delay_ticks_per_us - self.delay_offset_ticks))
+        """``delay(us)`` in timer ticks (see :func:`busy_wait_ticks`)."""
+        return busy_wait_ticks(us, self.delay_min_us, self.delay_ticks_per_us, self.delay_offset_ticks)
 
     def busy_wait_us(self, us: int) -> float:
         """How long ``delay(us)`` waits, in µs (about ``us - 2.7``)."""
@@ -223,6 +229,11 @@ class FirmwareSpec:
         if c.kind == "pattern":
             return electrode_num * self.pattern_bytes_per_electrode
         return KIND_SIZE[c.kind]
+
+    def size_table(self) -> dict[int, int]:
+        """opcode → payload bytes, -1 for the pattern (its size is the electrode count's, taken when 0xFE
+        is read): the shape the emulators' parser loops index."""
+        return {op: -1 if c.kind == "pattern" else KIND_SIZE.get(c.kind, 0) if c.kind else 0 for op, c in self.by_opcode.items()}
 
     def command(self, opcode: int) -> CommandSpec:
         try:

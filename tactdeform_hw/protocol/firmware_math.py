@@ -7,16 +7,21 @@ must use these numbers, not ``1e6 / rate``.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
 from .constants import (
     OUTPUTS_PER_HV513,
+    PATTERN_BIPHASIC,
+    PATTERN_MONOPHASIC,
     STACK_SENSE_NUMERATOR,
     STACK_SENSE_OFFSET,
     TIMER_TICKS_PER_US,
 )
+from .firmware import V1_2, FirmwareSpec, FirmwareTiming
 
 
 def period_us_from_rate(rate_hz: int) -> float:
@@ -64,3 +69,48 @@ def hv513_count(board_kind: str, stack_count: int) -> int:
 
 def channels_driven(hv513: int) -> int:
     return hv513 * OUTPUTS_PER_HV513
+
+
+@functools.lru_cache(maxsize=64)
+def firmware_period_us(rate_hz: int) -> float:
+    """The alarm period the firmware derives from a rate (float32 division, truncated to whole µs);
+    cached, as every frame asks for it."""
+    return float(int(period_us_from_rate(rate_hz)))
+
+
+def monophasic_us(width_us: int, timing: FirmwareTiming = V1_2.timing) -> float:
+    """``monophasic(h, w)``: the DAC exchange, the busy-wait (only for ``w >= 7``), the exchange back to 0."""
+    return 2 * timing.spi_exchange_us + timing.pulse_wait_us(width_us)
+
+
+def estimate_scan_us(
+    levels: Sequence[int],
+    width_us: int,
+    discharge_us: int,
+    sense_width_us: int = 0,
+    hv513: int = 4,
+    firmware: FirmwareSpec = V1_2,
+) -> float:
+    """One scan of ``levels`` (hardware order, one per channel the firmware scans), from the firmware's
+    order of operations: select (LE, DIN, CLK), POL, the pulse (1: monophasic, 2: two phases, anything
+    else: the sense pulse), the discharge (with its ``DAAD(0)`` exchange where the firmware has one) and
+    busy-wait; plus interrupt entry and the chain clear.  Rounded up by 0.5 % + 2 µs so that it errs long.
+
+    This is the host's budget (the device layer paces and refuses frames with it); the emulator's scan
+    engine times the same sequence event by event from the same constants."""
+    t = firmware.timing
+    gpio = t.gpio_write_us
+    mono = monophasic_us(width_us, t)
+    sense = monophasic_us(sense_width_us, t)
+    discharge = (t.spi_exchange_us if t.discharge_exchange else 0.0) + 3 * gpio + t.discharge_wait_us(discharge_us)
+    select = 5 * gpio
+    total = t.isr_entry_us + 2 * gpio * OUTPUTS_PER_HV513 * max(hv513, 1)
+    for v in levels:
+        if v == PATTERN_MONOPHASIC:
+            pulse = mono
+        elif v == PATTERN_BIPHASIC:
+            pulse = 2 * mono + 2 * gpio
+        else:
+            pulse = sense
+        total += select + gpio + pulse + discharge
+    return total * 1.005 + 2.0
