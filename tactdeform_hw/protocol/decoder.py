@@ -35,6 +35,8 @@ class DecodedCommand:
     note: str = ""
     #: What the firmware stores for a u8/u16 value (after its clamp and shift; None: ignored or no value).
     stored: int | None = None
+    #: A pattern's stored elements when they are not its bytes (v2: one clamped u16 per electrode).
+    levels: tuple[int, ...] | None = None
 
     def describe(self) -> str:
         """One readable line: offset, bytes, what the firmware made of them."""
@@ -47,7 +49,9 @@ class DecodedCommand:
             text = f"UNREAD ×{len(self.raw)}: the parser is locked and never reads these"
         else:
             text = self.name
-            if isinstance(self.value, bytes):
+            if self.levels is not None:
+                text += f" heights=[{','.join(str(v) for v in self.levels)}]"
+            elif isinstance(self.value, bytes):
                 text += f" levels=[{','.join(str(b) for b in self.value)}]"
             elif self.value is not None:
                 field = self.name.lower()
@@ -73,6 +77,7 @@ class DecodedCommand:
             "status": self.status,
             "note": self.note,
             "stored": self.stored,
+            **({"levels": list(self.levels)} if self.levels is not None else {}),
         }
 
 
@@ -113,13 +118,19 @@ class StreamDecoder:
                 spec = by_op[c.opcode]
                 note = ""
                 value: int | bytes | None
-                if spec.kind == "pattern":
+                levels = None
+                if spec.kind == "pattern" and self.firmware.pattern_bytes_per_electrode > 1:
+                    value = c.payload
+                    levels = c.levels
+                    if levels and levels != _elements(c.payload, self.firmware.pattern_bytes_per_electrode):
+                        note = "pattern holds a height above the firmware's clamp: an earlier command was probably cut short"
+                elif spec.kind == "pattern":
                     value = c.payload
                     if c.payload and max(c.payload) >= self._cmin:
                         note = "pattern holds a command byte: an earlier command was probably cut short"
                 else:
                     value = c.read_value
-                out.append(DecodedCommand(c.offset, c.raw, c.opcode, spec.name, value, OK, note, c.value))
+                out.append(DecodedCommand(c.offset, c.raw, c.opcode, spec.name, value, OK, note, c.value, levels))
             consumed += len(c.raw)
         if not self._locked:
             self.electrode_num = _num_after(self.electrode_num, out, self.firmware)
@@ -141,6 +152,10 @@ class StreamDecoder:
         self._offset += len(self._buf)
         self._buf.clear()
         return out
+
+
+def _elements(payload: bytes, width: int) -> tuple[int, ...]:
+    return tuple(int.from_bytes(payload[i : i + width], "little") for i in range(0, len(payload), width))
 
 
 def _num_after(num: int, items: list[DecodedCommand], fw: FirmwareSpec) -> int:
