@@ -159,7 +159,7 @@ def run(args: argparse.Namespace) -> int:
 
         audit = AuditLog(args.audit_log, command="calibrate", participant=pid, device=args.device)
     hold_s = (args.hold_ms or 0.0) / 1000.0
-    dev = open_device(args.device, timeout=args.timeout, guard=guard, audit=audit)
+    dev = open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), guard=guard, audit=audit)
     steps = 0
     peak = 0
     with FailSafe(dev):

@@ -17,6 +17,9 @@ DEVICE_HELP = (
 def add_device_arg(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="emulator", help=DEVICE_HELP)
     parser.add_argument("--timeout", type=float, default=0.5, help="read/write timeout in seconds (default 0.5)")
+    parser.add_argument("--firmware", choices=("v1.2", "auto"), default="v1.2",
+                        help="the board's firmware: v1.2 (default) drives it without asking; auto first turns every "
+                        "current off and asks (the v2 sync check), and refuses a board that does not run v1.2")
 
 
 def print_json(obj: Any) -> None:

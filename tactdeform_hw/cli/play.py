@@ -291,7 +291,7 @@ def run(
         )
     report = None if args.quiet else progress
     audit = audit_from_args(args)
-    with open_device(args.device, timeout=args.timeout, mapping=mapping, guard=guard, audit=audit) as dev:
+    with open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=mapping, guard=guard, audit=audit) as dev:
         try:
             chips = dev.hv513_count()
             summary["hv513_count"] = chips

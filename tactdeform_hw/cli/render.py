@@ -131,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
             from ..device.pacing import Pacer
 
             pacer = Pacer(clock=SimulatedClock())
-        with open_device(args.device, timeout=args.timeout, mapping=array.channel_mapping(), guard=guard,
+        with open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=array.channel_mapping(), guard=guard,
                          audit=audit, pacer=pacer) as dev:
             verify = getattr(getattr(dev, "port", None), "emulator", None) is not None
             renderer = Renderer(

@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     config.validated(DEFAULT_TRANSFER)  # refuse before the port is even opened
     guard.check_config(config)
     audit = audit_from_args(args, participant=profile.participant if profile else None)
-    dev = open_device(args.device, timeout=args.timeout, guard=guard, audit=audit)
+    dev = open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), guard=guard, audit=audit)
     with FailSafe(dev):
         dev.configure(config)
         dev.send_pattern(levels)

@@ -177,10 +177,44 @@ def open_device(
     guard: SafetyGuard | None = None,
     pacer: Pacer | None = None,
     audit: AuditLog | None = None,
+    firmware: str = "v1.2",
 ) -> EtactileKitDevice:
     """Open a device by name: a serial port path, a pyserial URL, ``usb:VID:PID[:SERIAL]``,
     ``usb-emulator``, or ``emulator`` (the default).  ``pacer`` defaults to what the port needs (see
-    :func:`~tactdeform_hw.device.pacing.default_pacer`); ``audit`` enables the session's audit log."""
-    return EtactileKitDevice(
-        open_port(name, timeout=timeout), mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit
-    )
+    :func:`~tactdeform_hw.device.pacing.default_pacer`); ``audit`` enables the session's audit log.
+
+    ``firmware``: "v1.2" drives the board without asking; "auto" first runs the version probe
+    (:mod:`.firmware_probe`: every current off, then the sync check) and refuses a board that does not
+    run v1.2, the only version this driver's commands are written for, before any stimulating byte."""
+    if firmware not in ("v1.2", "auto"):
+        from ..errors import ConfigurationError
+
+        raise ConfigurationError(f"firmware={firmware!r}: the device layer drives 'v1.2' (or 'auto' to detect "
+                                 "and refuse any other version)")
+    port = open_port(name, timeout=timeout)
+    if firmware == "auto":
+        _probe(port)
+    return EtactileKitDevice(port, mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit)
+
+
+def _probe(port: Any) -> None:
+    """Open ``port`` (lines low) and refuse it unless the board runs v1.2; close it on refusal without
+    sending anything more."""
+    from .firmware_probe import check_firmware, detect_firmware
+
+    errors = _serial_error_types()
+    if not port.is_open:
+        _lower_lines(port)
+        try:
+            port.open()
+        except errors as exc:
+            raise TransportError(f"cannot open {getattr(port, 'port', port)!s}: {exc}") from exc
+    try:
+        det = detect_firmware(port.write, port.read, port.reset_input_buffer, sleep=default_pacer(port).clock.sleep)
+        check_firmware("v1.2", det)
+    except BaseException:
+        try:
+            port.close()
+        except errors:
+            pass
+        raise

@@ -1,4 +1,4 @@
-"""``etactile://[NAME][?board=compact|large&switching_boards=N&stack_reading=R&spy=1]``
+"""``etactile://[NAME][?board=compact|large&switching_boards=N&stack_reading=R&firmware=v1.2|v2&spy=1]``
 
 The emulated eTactileKit as a pyserial port, so ``serial.serial_for_url("etactile://")`` gives the same
 object type, exceptions and calls as a real board on ``/dev/ttyACM0``.  With a ``NAME``, every port opened
@@ -17,6 +17,7 @@ from typing import Any
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
+from ...errors import ConfigurationError
 from ..core import Emulator
 
 _shared: dict[str, Emulator] = {}
@@ -68,28 +69,29 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
             raise SerialException(f"expected etactile://[NAME][?options], not {url!r}")
         opts: dict[str, str] = {}
         for option, values in urlparse.parse_qs(parts.query, keep_blank_values=True).items():
-            if option not in ("board", "switching_boards", "stack_reading", "spy"):
+            if option not in ("board", "switching_boards", "stack_reading", "firmware", "spy"):
                 raise SerialException(
-                    f"unknown option {option!r} in {url!r} (known: board, switching_boards, stack_reading, spy)"
+                    f"unknown option {option!r} in {url!r} (known: board, switching_boards, stack_reading, firmware, spy)"
                 )
             opts[option] = values[-1]
         try:
             board = opts.get("board", "compact")
             switching = int(opts.get("switching_boards", "1"))
             reading = float(opts["stack_reading"]) if "stack_reading" in opts else None
+            firmware = opts.get("firmware", "v1.2")
         except ValueError as exc:
             raise SerialException(f"bad option value in {url!r}: {exc}") from exc
         self._spy = opts.get("spy", "0") not in ("0", "", "false", "no")
         name = (parts.netloc + parts.path).strip("/")
         try:
             if not name:
-                return Emulator(board, switching, stack_reading=reading)
+                return Emulator(board, switching, stack_reading=reading, firmware=firmware)
             with _shared_lock:
                 emu = _shared.get(name)
                 if emu is None:
-                    emu = _shared[name] = Emulator(board, switching, stack_reading=reading)
+                    emu = _shared[name] = Emulator(board, switching, stack_reading=reading, firmware=firmware)
                 return emu
-        except ValueError as exc:
+        except (ValueError, ConfigurationError) as exc:
             raise SerialException(str(exc)) from exc
 
     def _reconfigure_port(self) -> None:
