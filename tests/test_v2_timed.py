@@ -115,3 +115,26 @@ def test_pattern_in_force_is_ordered_and_upstream_pacing_is_slower() -> None:
         assert r["applied_us"]["min"] <= r["first_channel_us"]["min"] <= r["last_channel_us"]["min"]
     assert paced["applied_us"]["min"] >= 8 * 3000  # nine chunks, the last sent 24 ms after the first
     assert whole["applied_us"]["max"] < 10_000
+
+
+def test_delivered_pulses_follow_each_electrode_and_the_biphasic_polarity() -> None:
+    """Safety reads what the board delivered: per-electrode heights, both phases, the configured
+    polarity first (v2), widths as the scan really made them."""
+    emu = TimedEmulatorV2()
+    emu.write(c.encode_electrode_num(3) + c.encode_stim_mode(1) + c.encode_polarity(0) + c.encode_pulse_width(200)
+              + c.encode_pattern([100, 0, 250]), 0.0)
+    emu.advance_to(15_000.0)
+    rows = emu.delivered()
+    assert [(r["channel"], r["code"], r["polarity"]) for r in rows] == [
+        (0, 100, "cathodic"), (0, 100, "anodic"), (2, 250, "cathodic"), (2, 250, "anodic")]
+    assert {r["width_us"] for r in rows} == {196.6}
+    assert emu.peak_current_ua() == {0: 1000.0, 2: 2500.0}
+    assert rows[0]["charge_nc"] == pytest.approx(1000.0 * 196.6 / 1000)
+
+
+def test_width_zero_still_delivers_one_exchange() -> None:
+    emu = TimedEmulatorV2()
+    emu.write(c.encode_electrode_num(1) + c.encode_pulse_width(0) + c.encode_pattern([300]), 0.0)
+    emu.advance_to(15_000.0)
+    assert [r["width_us"] for r in emu.delivered()] == [6.6]
+    assert [h.kind for h in emu.hazards if h.kind is HazardKind.SHORT_PULSE_WIDTH]

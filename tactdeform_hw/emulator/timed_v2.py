@@ -22,6 +22,7 @@ from functools import lru_cache
 from typing import Any
 
 from ..errors import ConfigurationError, LimitError
+from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .board import Board
 from .core import Emulator
 from .firmware_scan import DEFAULT_CONVENTIONS, FirmwareScanConfig, ScanConventions, trace_scan
@@ -46,6 +47,7 @@ class ScanRecordV2:
     heights: tuple[int, ...]  # the pattern as read per channel (mode 2: ignored)
     onset_ns: tuple[int, ...]  # per channel, relative to start_ns: the first DAC edge
     codes: tuple[int, ...]  # per channel, the DAC code of its (first) pulse
+    pulses: tuple[PulseRow, ...] = ()  # every non-zero current: (channel, onset ns, code, width ns, POL)
 
     @property
     def end_ns(self) -> int:
@@ -56,9 +58,37 @@ class ScanRecordV2:
         return [ch for ch, code in enumerate(self.codes) if code]
 
 
+#: One delivered pulse of a scan: (channel, onset ns after the alarm, DAC code, width ns, POL level).
+PulseRow = tuple[int, int, int, int, int]
+
+
+def _pulse_rows(events: list[list[Any]], starts: list[float]) -> tuple[PulseRow, ...]:
+    """Every non-zero DAC level of a scan, from its edge to the next DAC edge, with the POL level then."""
+    rows: list[PulseRow] = []
+    pol = 1
+    ch = -1
+    open_: tuple[int, int, int, int] | None = None
+    for t, kind, pin, value in events:
+        while ch + 1 < len(starts) and t >= starts[ch + 1]:
+            ch += 1
+        if kind == "GPIO" and pin == 3:
+            pol = value
+        elif kind == "DAC":
+            t_ns = round(t * 1000)
+            if open_ is not None:
+                c0, t0, code, p0 = open_
+                rows.append((c0, t0, code, t_ns - t0, p0))
+                open_ = None
+            if value:
+                open_ = (ch, t_ns, value, pol)
+    return tuple(rows)
+
+
 @lru_cache(maxsize=1024)
-def _shape(cfg: FirmwareScanConfig, conv: ScanConventions) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], int]:
-    """(duration, onsets, codes, voltages, chain end) of one scan, from the statement walker."""
+def _shape(
+    cfg: FirmwareScanConfig, conv: ScanConventions
+) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]:
+    """(duration, onsets, codes, voltages, pulses) of one scan, from the statement walker."""
     tr = trace_scan(cfg, "v2", conv)
     starts = tr.channel_start_us
     dacs = [(e[0], e[3]) for e in tr.events if e[1] == "DAC"]
@@ -70,7 +100,7 @@ def _shape(cfg: FirmwareScanConfig, conv: ScanConventions) -> tuple[int, tuple[i
             k += 1
         onsets.append(round(dacs[k][0] * 1000) if k < len(dacs) else 0)
         codes.append(dacs[k][1] if k < len(dacs) else 0)
-    return round(tr.isr_return_us * 1000), tuple(onsets), tuple(codes), tuple(tr.voltage), tr.chain_position
+    return round(tr.isr_return_us * 1000), tuple(onsets), tuple(codes), tuple(tr.voltage), _pulse_rows(tr.events, starts)
 
 
 class TimedEmulatorV2:
@@ -106,6 +136,7 @@ class TimedEmulatorV2:
         self._last_sense_hazard = False
         self._chain_pos = 0
         self._call_time_ns = 0
+        self._hv513_in_call = False
         self.emulator.parser.on_command = self._on_command
 
     # --- the host side ---------------------------------------------------------------------------------
@@ -174,9 +205,10 @@ class TimedEmulatorV2:
             stim_mode=regs.stim_mode,
             prior_scans=0,
         )
-        duration, onsets, codes, volts, _ = _shape(cfg, self.conventions)
+        duration, onsets, codes, volts, pulses = _shape(cfg, self.conventions)
         rec = ScanRecordV2(len(self.scans), t, duration, n, regs.stim_mode, regs.polarity, regs.pulse_width,
-                           regs.sense_pulse_height, regs.sense_pulse_width, tuple(cfg.stim_pattern), onsets, codes)
+                           regs.sense_pulse_height, regs.sense_pulse_width, tuple(cfg.stim_pattern), onsets, codes,
+                           pulses)
         self.scans.append(rec)
         regs.voltage[:n] = list(volts)
         end = t + duration
@@ -226,8 +258,6 @@ class TimedEmulatorV2:
         else:
             self._next_call_ns = end
 
-    _hv513_in_call = False
-
     def _on_command(self, op: int, value: object, offset: int) -> None:
         self.applied.append((self._call_time_ns, op, value))
         if op == 0xF5:
@@ -238,6 +268,30 @@ class TimedEmulatorV2:
 
     def _last_alarm_ns(self) -> int:
         return self.scans[-1].start_ns if self.scans else 0
+
+    # --- reports: what the board delivered --------------------------------------------------------------
+
+    def delivered(self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0) -> list[dict[str, Any]]:
+        """Every pulse the scans delivered from ``since_us`` on: time, channel, DAC code, current, width,
+        charge, polarity (anodic / cathodic)."""
+        out: list[dict[str, Any]] = []
+        since = round(since_us * 1000)
+        for s in self.scans:
+            if s.start_ns < since:
+                continue
+            for ch, onset, code, width, pol in s.pulses:
+                ua = transfer.to_ua(code)
+                out.append({"scan": s.index, "t_us": (s.start_ns + onset) / 1000, "channel": ch, "code": code,
+                            "current_ua": ua, "width_us": width / 1000, "charge_nc": ua * width / 1e6,
+                            "polarity": "anodic" if pol else "cathodic"})
+        return out
+
+    def peak_current_ua(self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0) -> dict[int, float]:
+        """The highest current each channel received (channels that received none are absent)."""
+        peak: dict[int, float] = {}
+        for row in self.delivered(transfer, since_us):
+            peak[row["channel"]] = max(peak.get(row["channel"], 0.0), row["current_ua"])
+        return peak
 
 
 def pattern_in_force_v2(
