@@ -61,6 +61,8 @@ from .safety import SafetyGuard
 ALLOWED_LEVELS = frozenset({PATTERN_SENSE, PATTERN_MONOPHASIC, PATTERN_BIPHASIC})
 _ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
 #: Commands that change what the scans deliver (a measure right after one reads the old pulses).
+#: Requests sent after a resync's zeros before the board counts as not answering.
+_PROOF_ATTEMPTS = 2
 _STATE_OPCODES = frozenset(
     {p.Opcode.PATTERN, p.Opcode.PULSE_HEIGHT, p.Opcode.PULSE_WIDTH, p.Opcode.SENSE_HEIGHT, p.Opcode.SENSE_WIDTH,
      p.Opcode.ELECTRODE_NUM, p.Opcode.POLARITY, p.Opcode.FREQUENCY}
@@ -433,6 +435,8 @@ class Device(ABC):
         current the firmware can deliver."""
         self._check_open()
         self._flush_parser()
+        if self._needs_resync:
+            return  # the board did not answer after the zeros
         cfg = self._config
         if cfg is not None:
             requested = self._requested
@@ -458,6 +462,8 @@ class Device(ABC):
         else:
             self.pacer.set_timing(None, None)
         self._send(bytes(RX_QUEUE_SIZE))
+        if not self._prove_in_step():
+            return  # no answer (a locked parser, a dead link): nothing may follow; still needs a resync
         self._send(p.encode_pulse_height(0))
         self._current_ua = 0
         self._send(p.encode_sense_height(0))
@@ -471,6 +477,20 @@ class Device(ABC):
             self._scan_us = self._scan_of(cfg, bytes(n))
             self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, self._scan_us / 1e6)
         self._needs_resync = False
+
+    def _prove_in_step(self) -> bool:
+        """After the zeros the board must answer a request before any value follows: until it has, its
+        queue may still be full of zeros, and a command whose packet lost its tail there would take the next
+        command's bytes as its value (pulse height 0 then a sense height reads as 0xF900 → 4095).  A request
+        lost to that full queue changes nothing, so it is asked again (the read's timeout lets the parser
+        drain the zeros meanwhile)."""
+        for _ in range(_PROOF_ATTEMPTS):
+            self._discard_input()
+            self._send(p.HV513_COUNT_REQUEST)
+            if len(self._read(1)) == 1:
+                self.guard.note_in_step()
+                return True
+        return False
 
     @_locked
     def reconnect(self) -> None:

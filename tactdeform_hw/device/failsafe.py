@@ -324,8 +324,8 @@ class FailSafe:
                 continue
             tried.add(name)
             try:
-                if step() is False:
-                    continue
+                if step() is False or dev.needs_resync:
+                    continue  # no transport for it, or the board did not answer the step's own request
                 if dev.probe():
                     self._event("recovered", by=name)
                     return True

@@ -68,9 +68,10 @@ from ..protocol.constants import (
     PATTERN_BIPHASIC,
     PATTERN_BUFFER_SIZE,
     PATTERN_MONOPHASIC,
-    SENSE_HEIGHT_SHIFT,
-    Opcode,
 )
+from ..protocol.firmware import DEFAULT_FIRMWARE, FirmwareSpec
+from ..protocol.firmware_math import estimate_scan_us
+from ..protocol.reader import COMMAND, ParserState, ReadCommand, read_commands
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .config import POLARITY_CODE, StimConfig
 
@@ -88,9 +89,12 @@ INTERRUPT_WATCHDOG_US = 300_000.0
 #: Scans are refused well before the watchdog: the estimate below leaves this much margin.
 SCAN_LIMIT_US = 250_000.0
 _ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
-_COMMAND_BYTE_MIN = min(Opcode)
 _EPS = 1e-6
 LOG_LIMIT = 10_000
+#: The interlock follows at most this many states that lost packet tails could leave; beyond it the
+#: parser's position counts as unknown (only a resync and an answer from the board bring it back).
+MAX_ALTERNATIVES = 32
+_AT_BOUNDARY = ParserState(None)
 
 
 def grid_regions(
@@ -118,7 +122,8 @@ TACTDEFORM_REGION_OF: tuple[int, ...] = grid_regions()
 
 @dataclass
 class _Shadow:
-    """What the firmware's registers hold as far as the host can know (None: unknown)."""
+    """What the firmware's registers hold as far as the host can know (None: unknown), and where its
+    parser stands (``parse``: a command boundary, a command in progress; None: not known)."""
 
     electrode_num: int | None = None
     height_code: int | None = None
@@ -127,6 +132,9 @@ class _Shadow:
     width_us: int | None = None
     sense_width_us: int | None = None
     pattern: list[int | None] = field(default_factory=lambda: [None] * PATTERN_BUFFER_SIZE)
+    parse: ParserState | None = _AT_BOUNDARY
+    #: How this state could come about when it is not the nominal one (for refusal messages).
+    how: str = field(default="", compare=False)
 
     def copy(self) -> _Shadow:
         return _Shadow(
@@ -137,14 +145,35 @@ class _Shadow:
             self.width_us,
             self.sense_width_us,
             list(self.pattern),
+            self.parse,
+            self.how,
         )
+
+    def key(self) -> tuple[Any, ...]:
+        return (
+            self.electrode_num, self.height_code, self.sense_code, self.polarity, self.width_us,
+            self.sense_width_us, tuple(self.pattern), self.parse,
+        )
+
+
+@dataclass(frozen=True)
+class WireState:
+    """What :meth:`SafetyGuard.check_wire` concludes a write leads to: the firmware's state if every byte
+    arrives (``nominal``), the other states lost packet tails could leave (``alternatives``), and whether
+    the device's queue may be full (``unproven``: after a resync's zeros or an unknown state, until the
+    board has answered a request)."""
+
+    nominal: _Shadow
+    alternatives: tuple[_Shadow, ...] = ()
+    unproven: bool = False
+
+    def key(self) -> tuple[Any, ...]:
+        return (self.nominal.key(), tuple(a.key() for a in self.alternatives), self.unproven)
 
 
 def worst_scan_us(electrodes: int, width_us: int, discharge_us: int, sense_width_us: int) -> float:
     """One scan with every channel biphasic — the longest a configuration can make — by the pacer's
     firmware-order estimate (which errs long).  Only used to keep scans far from the 300 ms watchdog."""
-    from .pacing import estimate_scan_us
-
     return estimate_scan_us([2] * electrodes, width_us, discharge_us, sense_width_us, hv513=max(4, -(-electrodes // 8)))
 
 
@@ -208,7 +237,10 @@ class SafetyGuard:
         #: :attr:`counts` keeps the totals and the audit log keeps every one.
         self.log: deque[dict[str, Any]] = deque(maxlen=LOG_LIMIT)
         self.counts: dict[str, int] = {}
-        self._shadow = _Shadow()
+        #: The firmware version whose reading of the bytes the interlock follows (its limits model v1.2's
+        #: one pulse height per scan).
+        self.firmware: FirmwareSpec = DEFAULT_FIRMWARE
+        self._wire = WireState(_Shadow())
         self._limits_cache: tuple[Any, ...] | None = None
         self._hw_limits_cache: tuple[Any, ...] | None = None
 
@@ -491,18 +523,42 @@ class SafetyGuard:
 
     @property
     def shadow(self) -> _Shadow:
-        """A copy of what the interlock believes the firmware holds."""
-        return self._shadow.copy()
+        """A copy of what the interlock believes the firmware holds (if every byte arrived)."""
+        return self._wire.nominal.copy()
+
+    @property
+    def wire_state(self) -> WireState:
+        """Every state the interlock believes the firmware can be in."""
+        return self._wire
 
     def mark_unknown(self) -> None:
-        """The firmware's state can no longer be known (a failed write, a reconnect, a reset)."""
-        self._shadow = _Shadow()
+        """The firmware's state can no longer be known (a failed write, a reconnect, a reset): registers
+        and the parser's position unknown, the device's queue possibly full, until the board answers."""
+        self._wire = WireState(_Shadow(parse=None), (), True)
 
-    def commit(self, shadow: _Shadow) -> bool:
-        """Take ``shadow`` (from :meth:`check_wire`) as the firmware's state once its write succeeded;
-        True when it differs from the state before (a rewrite of the same registers changes nothing)."""
-        changed = shadow != self._shadow
-        self._shadow = shadow
+    def note_in_step(self, electrode_num: int | None = None) -> None:
+        """The board answered a request (0xF5's byte, 0xFF's two bytes per channel) just after the host's
+        last write: its parser read that request at a command boundary and its queue holds nothing more.
+        Registers on which the possible states disagree become unknown; ``electrode_num`` when the answer
+        proved it (a measure reply of two bytes per channel)."""
+        states = (self._wire.nominal, *self._wire.alternatives)
+        merged = states[0].copy()
+        for other in states[1:]:
+            for name in ("electrode_num", "height_code", "sense_code", "polarity", "width_us", "sense_width_us"):
+                if getattr(other, name) != getattr(merged, name):
+                    setattr(merged, name, None)
+            merged.pattern = [a if a == b else None for a, b in zip(merged.pattern, other.pattern)]
+        if electrode_num is not None:
+            merged.electrode_num = electrode_num
+        merged.parse = _AT_BOUNDARY
+        merged.how = ""
+        self._wire = WireState(merged, (), False)
+
+    def commit(self, state: WireState) -> bool:
+        """Take ``state`` (from :meth:`check_wire`) as the firmware's once its write succeeded; True when
+        it differs from the state before (a rewrite of the same registers changes nothing)."""
+        changed = state.key() != self._wire.key()
+        self._wire = state
         return changed
 
     def _hw_limits(self, mapping: ChannelMapping | None, num: int) -> tuple[tuple[int, ...], int]:
@@ -531,86 +587,191 @@ class SafetyGuard:
         *,
         mapping: ChannelMapping | None = None,
         transfer: CurrentTransfer = DEFAULT_TRANSFER,
-    ) -> _Shadow:
-        """Refuse a write whose effect on the firmware would break a limit; return the shadow it leads to
-        (commit it with :meth:`commit` once the write succeeded).
+        room: int | None = None,
+    ) -> WireState:
+        """Refuse a write whose effect on the firmware would break a limit; return the states it leads to
+        (commit them with :meth:`commit` once the write succeeded).
 
-        Commands that can only remove current (pulse height 0, sense height 0, an all-off pattern) and
-        bytes that are not commands are always allowed: they are how the driver makes an unknown state
-        safe.  Everything else must leave the shadow within every limit, counting unknown registers as
-        their worst case.
+        The write is judged as the firmware reads it (:func:`~tactdeform_hw.protocol.reader.read_commands`,
+        from where its parser stands), in every state the interlock follows, and — where the device's
+        queue may be full — as it would be read if a USB packet of it lost its tail.  ``room`` is how many
+        bytes of this write the caller's worst-case queue model is certain the device accepts (None: the
+        whole write); while the queue may be full (``unproven``: after a resync's zeros or an unknown state,
+        until :meth:`note_in_step`) no byte is certain.  Bytes that are not commands and requests the board
+        answers are always allowed: they are how the driver makes an unknown state safe and proves it.
+        Everything else must leave every state within every limit, unknown registers counting as their
+        worst case.
         """
-        sh = self._shadow.copy()
-        i = 0
-        n = len(data)
-        while i < n:
-            op = data[i]
-            i += 1
-            if op in (Opcode.MEASURE, Opcode.HV513_COUNT):
+        data = bytes(data)
+        wire = self._wire
+        cmin = self.firmware.command_byte_min
+        if data and data[0] < cmin:
+            # A resync: the host no longer trusts its picture of the firmware.  Enough non-command bytes to
+            # fill the longest payload finish any command in progress, so the parser ends at a command
+            # boundary (a locked one reads nothing more at all); the registers are unknown; and the zeros
+            # may fill the device's queue, so every later write may lose packet tails until the board has
+            # answered a request (note_in_step).
+            run = 0
+            while run < len(data) and data[run] < cmin:
+                run += 1
+            longest = self.firmware.max_electrodes * self.firmware.pattern_bytes_per_electrode
+            self._wire = WireState(_Shadow(parse=_AT_BOUNDARY if run >= longest else None), (), True)
+            try:
+                return self.check_wire(data[run:], mapping=mapping, transfer=transfer, room=room) if run < len(data) else self._wire
+            finally:
+                self._wire = wire
+        cut_from = 0 if wire.unproven else room
+        nominal: _Shadow | None = None
+        seen: dict[tuple[Any, ...], _Shadow] = {}
+        for i, state in enumerate((wire.nominal, *wire.alternatives)):
+            result = self._read(state, data, mapping, transfer, strict=i == 0, how=state.how)
+            if i == 0:
+                nominal = result
+            else:
+                seen.setdefault(result.key(), result)
+            if cut_from is not None and cut_from < len(data):
+                for lost, kept in _tail_losses(data, max(0, cut_from), self.firmware.usb_packet_bytes):
+                    how = f"bytes {lost[0]}-{lost[1] - 1} of a {len(data)}-byte write discarded by a full device queue"
+                    if state.how:
+                        how = f"{state.how}; then {how}"
+                    alt = self._read(state, kept, mapping, transfer, strict=False, how=how)
+                    seen.setdefault(alt.key(), alt)
+        assert nominal is not None
+        seen.pop(nominal.key(), None)
+        alternatives = tuple(seen.values())
+        if len(alternatives) > MAX_ALTERNATIVES:
+            alternatives = (_Shadow(parse=None, how="too many possible losses to follow"),)
+        return WireState(nominal, alternatives, wire.unproven)
+
+    def _read_unknown(self, data: bytes) -> None:
+        """From an unknown parser position only bytes that cannot complete a current-carrying value are
+        allowed: non-command bytes and the requests the board answers (the probe that proves a resync)."""
+        table = self.firmware.by_opcode
+        for i, b in enumerate(data):
+            spec = table.get(b)
+            if spec is not None and spec.kind is not None:
+                raise self._refuse(
+                    "interlock",
+                    f"command 0x{b:02X} at byte {i} while the firmware's state is unknown (its parser may be in the "
+                    "middle of a command, whose value these bytes could complete; its electrode count is unknown): "
+                    "resync and let the board answer first",
+                )
+
+    def _read(
+        self,
+        sh0: _Shadow,
+        data: bytes,
+        mapping: ChannelMapping | None,
+        transfer: CurrentTransfer,
+        *,
+        strict: bool,
+        how: str,
+    ) -> _Shadow:
+        """The state ``data`` leads to from ``sh0``; refuses if any limit breaks on the way.  ``strict``
+        (the nominal reading): the write must also end at a command boundary and never lock the parser."""
+        sh = sh0.copy()
+        sh.how = how
+        pos = sh.parse
+        if pos is None:
+            self._read_unknown(data)
+            return sh
+        fw = self.firmware
+        if pos.opcode is not None or pos.locked:
+            start: ParserState | None = ParserState(sh.electrode_num, pos.opcode, pos.needed, pos.got, pos.locked)
+        else:
+            start = None
+        reading = read_commands(data, sh.electrode_num, fw, start)
+        end = reading.state
+        if strict and not end.at_boundary:
+            self._refuse_open_end(reading.commands, end)
+        table = fw.by_opcode
+        when = f" (if {how})" if how else ""
+        for c in reading.commands:
+            if c.kind != COMMAND or c.opcode is None:
                 continue
-            if op < _COMMAND_BYTE_MIN:
-                # a byte that is not a command may complete whatever command was in progress on the device
-                # (it is how a resync starts): afterwards nothing about the registers can be trusted
-                sh = _Shadow()
+            spec = table[c.opcode]
+            kind = spec.kind
+            if kind is None:
                 continue
-            if op == Opcode.PATTERN:
-                num = sh.electrode_num
-                if num is None:
-                    raise self._refuse("interlock", "pattern while the firmware's electrode count is unknown (resync first)")
-                if num == 0:
-                    raise self._refuse("interlock", "pattern with electrode count 0 would lock the firmware's parser")
-                payload = data[i : i + num]
-                if len(payload) != num:
-                    raise self._refuse(
-                        "interlock", f"pattern of {len(payload)} byte(s) for electrode count {num} would desynchronise"
-                    )
-                i += num
-                sh.pattern[:num] = list(payload)
-                if any(payload):
-                    self._verify(sh, "pattern", mapping, transfer)
+            if kind == "pattern":
+                levels = c.levels
+                if levels:
+                    sh.pattern[c.start : c.start + len(levels)] = list(levels)
+                    if any(levels):
+                        self._verify(sh, "pattern" + when, mapping, transfer)
                 continue
-            size = 2 if op in (Opcode.PULSE_HEIGHT, Opcode.PULSE_WIDTH, Opcode.FREQUENCY) else 1
-            if i + size > n:
-                raise self._refuse("interlock", f"command 0x{op:02X} cut short ({n - i} of {size} payload bytes)")
-            value = data[i] if size == 1 else data[i] | data[i + 1] << 8
-            i += size
-            if op == Opcode.PULSE_HEIGHT:
-                before = sh.height_code
-                sh.height_code = min(value, 4095)
-                if value:
-                    prev_ua = transfer.to_ua(before) if before is not None else 0.0
-                    new_ua = transfer.to_ua(sh.height_code)
-                    if self.ramp_ua_per_frame is not None and new_ua > prev_ua + self.ramp_ua_per_frame + _EPS:
-                        raise self._refuse(
-                            "interlock",
-                            f"pulse height {new_ua:g} µA rises more than {self.ramp_ua_per_frame} µA above {prev_ua:g} µA",
-                        )
-                    self._verify(sh, "pulse height", mapping, transfer)
-            elif op == Opcode.SENSE_HEIGHT:
-                sh.sense_code = value << SENSE_HEIGHT_SHIFT
-                if value:
-                    self._verify(sh, "sense height", mapping, transfer)
-            elif op == Opcode.POLARITY:
-                new = 1 if value >= 1 else 0
-                if sh.polarity != new and self._current_can_flow(sh):
-                    raise self._refuse(
-                        "polarity_change",
-                        "polarity change while current can flow (pulse height and an active channel, or a sense "
-                        "current); switch everything off first",
-                    )
-                sh.polarity = new
-            elif op == Opcode.ELECTRODE_NUM:
-                sh.electrode_num = value
-                self._verify(sh, "electrode count", mapping, transfer)
-            elif op == Opcode.PULSE_WIDTH:
-                if value:
-                    sh.width_us = value
-                self._verify(sh, "pulse width", mapping, transfer)
-            elif op == Opcode.SENSE_WIDTH:
-                sh.sense_width_us = value
-                self._verify(sh, "sense width", mapping, transfer)
-            # discharge and frequency carry no current
+            if not c.complete:
+                continue
+            self._apply(sh, spec.register, c, when, mapping, transfer)
+        if end.needed < 0:
+            sh.parse = None  # a pattern whose length nobody knows: the position is lost
+        elif end.at_boundary:
+            sh.parse = _AT_BOUNDARY
+        else:
+            sh.parse = ParserState(None, end.opcode, end.needed, end.got, end.locked)
         return sh
+
+    def _refuse_open_end(self, commands: list[ReadCommand], end: ParserState) -> None:
+        last = commands[-1] if commands else None
+        name = f"0x{end.opcode:02X}" if end.opcode is not None else "?"
+        if end.locked:
+            raise self._refuse("interlock", "pattern with electrode count 0 would lock the firmware's parser")
+        if end.needed < 0:
+            raise self._refuse("interlock", "pattern while the firmware's electrode count is unknown (resync first)")
+        if end.opcode is not None and self.firmware.by_opcode[end.opcode].kind == "pattern":
+            num = end.needed // self.firmware.pattern_bytes_per_electrode
+            raise self._refuse(
+                "interlock", f"pattern of {len(end.got)} byte(s) for electrode count {num} would desynchronise"
+            )
+        got = len(last.payload) if last is not None else 0
+        raise self._refuse("interlock", f"command {name} cut short ({got} of {end.needed} payload bytes)")
+
+    def _apply(
+        self,
+        sh: _Shadow,
+        register: str | None,
+        c: ReadCommand,
+        when: str,
+        mapping: ChannelMapping | None,
+        transfer: CurrentTransfer,
+    ) -> None:
+        value = c.value
+        if register == "pulse_height":
+            assert value is not None
+            before = sh.height_code
+            sh.height_code = value
+            if value:
+                prev_ua = transfer.to_ua(before) if before is not None else 0.0
+                new_ua = transfer.to_ua(value)
+                if self.ramp_ua_per_frame is not None and new_ua > prev_ua + self.ramp_ua_per_frame + _EPS:
+                    raise self._refuse(
+                        "interlock",
+                        f"pulse height {new_ua:g} µA{when} rises more than {self.ramp_ua_per_frame} µA above {prev_ua:g} µA",
+                    )
+                self._verify(sh, "pulse height" + when, mapping, transfer)
+        elif register == "sense_pulse_height":
+            sh.sense_code = value
+            if value:
+                self._verify(sh, "sense height" + when, mapping, transfer)
+        elif register == "polarity":
+            if sh.polarity != value and self._current_can_flow(sh):
+                raise self._refuse(
+                    "polarity_change",
+                    f"polarity change{when} while current can flow (pulse height and an active channel, or a "
+                    "sense current); switch everything off first",
+                )
+            sh.polarity = value
+        elif register == "electrode_num":
+            sh.electrode_num = value
+            self._verify(sh, "electrode count" + when, mapping, transfer)
+        elif register == "pulse_width":
+            if value is not None:
+                sh.width_us = value
+            self._verify(sh, "pulse width" + when, mapping, transfer)
+        elif register == "sense_pulse_width":
+            sh.sense_width_us = value
+            self._verify(sh, "sense width" + when, mapping, transfer)
+        # discharge and frequency carry no current
 
     def _current_can_flow(self, sh: _Shadow) -> bool:
         if sh.sense_code != 0 and sh.electrode_num != 0:
@@ -663,9 +824,23 @@ class SafetyGuard:
                         channel=ch,
                     )
         if sense_ua > 0 and sh.sense_code is not None:
-            sw = sh.sense_width_us if sh.sense_width_us is not None else 255
+            sw = sh.sense_width_us if sh.sense_width_us is not None else self.firmware.value_max("sense_pulse_width")
             if sense_ua * sw / 1000.0 > self.max_charge_nc + _EPS:
                 raise self._refuse("interlock", f"{what}: sense pulse exceeds the charge limit")
+
+
+def _tail_losses(data: bytes, first: int, packet: int) -> list[tuple[tuple[int, int], bytes]]:
+    """What a full device queue can leave of ``data`` (cut by the host into ``packet``-byte USB packets)
+    when it may discard from byte ``first`` on: for each byte ``j`` from there, the rest of its packet
+    lost, or everything from ``j`` on lost (the queue stayed full).  Each entry: (lost range, bytes kept)."""
+    out: list[tuple[tuple[int, int], bytes]] = []
+    n = len(data)
+    for j in range(first, n):
+        end = min(n, (j // packet + 1) * packet)
+        out.append(((j, end), data[:j] + data[end:]))
+        if end < n:
+            out.append(((j, n), data[:j]))
+    return out
 
 
 def require_int(field_name: str, value: object) -> int:

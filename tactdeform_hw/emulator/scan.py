@@ -203,7 +203,7 @@ class ScanConfig:
         pol = check_int("polarity", polarity, 0, 1)
         sense_h = check_int("sense_height_raw", sense_height_raw, 0, U8_MAX)
         sense_w = check_int("sense_width_us", sense_width_us, 0, U8_MAX, "µs")
-        hv = check_int("hv513_num", hv513_num, 0, 255)
+        hv = check_int("hv513_num", hv513_num, 0, U8_MAX)
         ticks = fm.alarm_ticks(fm.period_us_from_rate(rate))
         return cls(n, pol, height, width, sense_h << 2, sense_w, discharge, ticks, hv, bytes(values))
 

@@ -252,6 +252,14 @@ class FirmwareSpec:
         have = sorted(c.register for c in self.commands if c.register)
         raise ConfigurationError(f"firmware {self.name} has no command setting {register!r} (it sets: {', '.join(have)})")
 
+    def value_max(self, register: str) -> int:
+        """The largest value the firmware can store in ``register`` (its clamp, or the payload's range)."""
+        c = self.command(self.opcode_of(register))
+        if c.kind == "pattern":
+            return self.pattern_level_max()
+        top = c.max_value if c.max_value is not None else (1 << (8 * KIND_SIZE[c.kind or "u8"])) - 1
+        return top << c.shift
+
     def reply_bytes(self, opcode: int, electrode_num: int) -> int:
         """How many bytes the firmware writes back for ``opcode`` (0 for commands without a reply)."""
         c = self.by_opcode.get(opcode)

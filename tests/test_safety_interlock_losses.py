@@ -1,0 +1,143 @@
+"""The interlock judges what the firmware reads when the device's full queue discards the tail of a USB
+packet: the next command's bytes become the cut command's value."""
+
+from __future__ import annotations
+
+import pytest
+
+from tactdeform_hw import protocol as p
+from tactdeform_hw.device import EtactileKitDevice, StimConfig
+from tactdeform_hw.device.safety import SafetyGuard, WireState, _tail_losses
+from tactdeform_hw.emulator import Emulator
+from tactdeform_hw.errors import SafetyError
+
+from .safety_helpers import RecordingPort
+
+ON = [1, 1, 0, 0]
+
+
+def stimulating(guard: SafetyGuard, height_ua: int = 1000) -> None:
+    """Bring the guard's picture to four channels, two of them on at ``height_ua``."""
+    for cmd in (
+        p.encode_pulse_height(0), p.encode_sense_height(0), p.encode_pulse_width(200), p.encode_electrode_num(4),
+        p.encode_pattern(ON), p.encode_pulse_height(height_ua // 10),
+    ):
+        guard.commit(guard.check_wire(cmd))
+
+
+def test_the_old_resync_order_is_refused_while_the_queue_may_be_full() -> None:
+    """256 zeros may fill the queue; `fb 00 00` may then lose its last byte (or two), and the sense height
+    that follows is read as its value: 0xF900 → 4095 (or 0x00F9 = 249), with the old pattern in force."""
+    guard = SafetyGuard(cap_ua=2000)
+    stimulating(guard)
+    guard.commit(guard.check_wire(bytes(256)))
+    assert guard.wire_state.unproven
+    guard.commit(guard.check_wire(p.encode_pulse_height(0)))  # cut or not, it cannot raise a current
+    assert len(guard.wire_state.alternatives) == 3  # `fb` alone, `fb 00`, or the whole packet lost
+    with pytest.raises(SafetyError, match=r"\(if bytes 1-2 of a 3-byte write discarded by a full device queue\): pulse height 2490 µA"):
+        guard.check_wire(p.encode_sense_height(0))
+    # with everything else known, the other reading: `fb 00` + `f9` → 0xF900, clamped to 4095
+    guard = SafetyGuard(cap_ua=5000)
+    stimulating(guard)
+    guard.commit(guard.check_wire(p.encode_pulse_height(0), room=2))
+    with pytest.raises(SafetyError, match=r"\(if bytes 2-2 of a 3-byte write discarded by a full device queue\): pulse height 40950 µA"):
+        guard.check_wire(p.encode_sense_height(0))
+    # what the interlock predicts is what the firmware does with those bytes
+    emu = Emulator()
+    emu.feed(p.encode_electrode_num(4) + p.encode_pattern(ON) + b"\xfb\x00" + p.encode_sense_height(0))
+    assert emu.state()["pulse_height"] == 4095
+
+
+def test_once_the_board_has_answered_the_same_order_is_allowed() -> None:
+    guard = SafetyGuard(cap_ua=2000)
+    stimulating(guard)
+    guard.commit(guard.check_wire(bytes(256)))
+    guard.commit(guard.check_wire(p.HV513_COUNT_REQUEST))
+    guard.note_in_step()  # its reply came: the parser read it at a boundary, nothing waits behind it
+    assert guard.wire_state == WireState(guard.wire_state.nominal) and not guard.wire_state.unproven
+    for cmd in (p.encode_pulse_height(0), p.encode_sense_height(0), p.encode_electrode_num(4), p.encode_pattern([0] * 4)):
+        guard.commit(guard.check_wire(cmd))
+    assert guard.wire_state.alternatives == ()
+
+
+def test_a_cut_height_makes_the_next_pattern_refused() -> None:
+    """With ``room`` from the caller's queue model: `fb 64 00` may keep only `fb 64`; the next pattern's
+    0xFE is then read as the high byte (0xFE64 → 4095) while two channels are on."""
+    guard = SafetyGuard(cap_ua=2000)
+    stimulating(guard)
+    guard.commit(guard.check_wire(p.encode_pulse_height(100), room=2))
+    assert {a.parse.opcode for a in guard.wire_state.alternatives if a.parse} == {0xFB}
+    with pytest.raises(SafetyError, match="40950 µA"):
+        guard.check_wire(p.encode_pattern([1, 0, 0, 0]))
+    # the same write with room for all of it leaves no doubt
+    guard = SafetyGuard(cap_ua=2000)
+    stimulating(guard)
+    guard.commit(guard.check_wire(p.encode_pulse_height(100), room=3))
+    guard.commit(guard.check_wire(p.encode_pattern([1, 0, 0, 0])))
+    assert guard.wire_state.alternatives == ()
+
+
+def test_a_cut_pattern_turns_the_next_command_into_channel_levels() -> None:
+    """v1.2 stores pattern bytes as they arrive: a pattern cut after its first level takes the next
+    command's bytes as the following channels' levels — a discharge time of 1 switches channel 2 on, at
+    the height in force, above its region's limit."""
+    guard = SafetyGuard(cap_ua=2000, regions_ua=(2000, 50), region_of=(0, 0, 1, 1))
+    stimulating(guard, 1000)
+    guard.commit(guard.check_wire(p.encode_pattern([1, 0, 0, 0]), room=2))
+    with pytest.raises(SafetyError, match="channel 2 would receive 1000 µA, above its limit of 50"):
+        guard.check_wire(p.encode_discharge(1))
+    emu = Emulator()
+    emu.feed(p.encode_electrode_num(4) + b"\xfe\x01" + p.encode_discharge(1))
+    assert emu.state()["stim_pattern"][:4] == [1, 0xF7, 1, 0]
+
+
+def test_an_unknown_parser_position_allows_only_zeros_and_requests() -> None:
+    guard = SafetyGuard()
+    guard.mark_unknown()
+    with pytest.raises(SafetyError, match="electrode count is unknown"):
+        guard.check_wire(p.encode_pulse_height(0))
+    guard.check_wire(b"\x00\x13")
+    guard.check_wire(p.HV513_COUNT_REQUEST)
+    guard.check_wire(p.MEASURE_REQUEST)
+    # fewer zeros than the longest payload cannot finish a pattern in progress
+    guard.commit(guard.check_wire(bytes(200)))
+    assert guard.wire_state.nominal.parse is None
+    guard.commit(guard.check_wire(bytes(256)))
+    assert guard.wire_state.nominal.parse is not None and guard.wire_state.unproven
+
+
+def test_tail_losses_follow_the_usb_packets() -> None:
+    data = bytes(range(130))
+    losses = dict(_tail_losses(data, 10, 64))
+    assert losses[(10, 64)] == data[:10] + data[64:]  # the rest of the first packet
+    assert losses[(10, 130)] == data[:10]  # and the queue stayed full for the later packets
+    assert losses[(70, 128)] == data[:70] + data[128:]
+    assert losses[(129, 130)] == data[:129]
+    assert min(j for j, _ in losses) == 10
+
+
+def test_a_resync_sends_no_value_until_the_board_answers() -> None:
+    port = RecordingPort()
+    dev = EtactileKitDevice(port, guard=SafetyGuard())
+    dev.configure(StimConfig(current_ua=400))
+    dev.send_pattern([1] * 32)
+    port.emulator.feed(b"\xfc\x00\xfe")  # a locked parser reads nothing, answers nothing
+    n = len(port.writes)
+    dev.resync()
+    after = [w for w in port.writes[n:] if any(w)]
+    assert after and all(w == p.HV513_COUNT_REQUEST for w in after)
+    assert dev.needs_resync
+    assert dev.hardware_reset() and not dev.needs_resync and dev.probe()
+    dev.close()
+
+
+def test_steady_frames_keep_a_single_state() -> None:
+    """Without doubt about the queue the interlock follows one state: the per-frame path stays cheap."""
+    port = RecordingPort()
+    dev = EtactileKitDevice(port, guard=SafetyGuard())
+    dev.configure(StimConfig(current_ua=400))
+    for k in range(10):
+        dev.send_pattern([1 if (i + k) % 3 == 0 else 0 for i in range(32)])
+    state = dev.guard.wire_state
+    assert state.alternatives == () and not state.unproven
+    dev.close()
