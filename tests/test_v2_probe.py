@@ -173,3 +173,11 @@ def test_cli_firmware_auto_refuses_a_v2_emulator(capsys: pytest.CaptureFixture[s
     assert "runs firmware v2" in capsys.readouterr().err
     argv[2] = "etactile://?firmware=v1.2"
     assert main(argv) == 0
+
+
+def test_the_safe_tail_means_the_same_on_both_versions() -> None:
+    from tactdeform_hw.protocol.firmware import Opcode, OpcodeV2
+
+    assert OpcodeV2.ELECTRODE_NUM == Opcode.ELECTRODE_NUM and OpcodeV2.SENSE_HEIGHT == Opcode.SENSE_HEIGHT
+    assert OpcodeV2.STIM_MODE == Opcode.PULSE_HEIGHT
+    assert V1_2.by_opcode[Opcode.PULSE_HEIGHT].kind == "u16" and V2.by_opcode[OpcodeV2.STIM_MODE].kind == "u8"

@@ -178,7 +178,8 @@ def v2_config_from_args(args: argparse.Namespace) -> Any:
     """A v2 configuration: per-electrode DAC codes, a mode, every value the firmware can hold."""
     from ..emulator.board import Board
     from ..emulator.firmware_scan import FirmwareScanConfig
-    from ..protocol.firmware import V2
+    from ..protocol.constants import U8_MAX, U16_MAX
+    from ..protocol.firmware import V2, OpcodeV2
     from ..protocol.units import check_int
 
     text = "100" if args.pattern is None else str(args.pattern).strip()
@@ -199,21 +200,21 @@ def v2_config_from_args(args: argparse.Namespace) -> Any:
         values = values * electrodes
     elif len(values) != electrodes:
         raise LimitError("--pattern length", len(values), f"exactly --electrodes = {electrodes}")
-    mode = check_int("--mode", 0 if args.mode is None else args.mode, 0, 2)
+    mode = check_int("--mode", 0 if args.mode is None else args.mode, 0, V2.command(OpcodeV2.STIM_MODE).max_value or 0)
     hv = args.hv513
     if hv is None:
         hv = Board(args.board, args.switching_boards).detect_hv513()
     return FirmwareScanConfig(
         electrode_num=electrodes,
         stim_pattern=values,
-        pulse_width=check_int("--pulse-width", args.pulse_width, 0, 0xFFFF, "us"),
-        discharge_time=check_int("--discharge", args.discharge, 0, 255, "us"),
+        pulse_width=check_int("--pulse-width", args.pulse_width, 0, U16_MAX, "us"),
+        discharge_time=check_int("--discharge", args.discharge, 0, U8_MAX, "us"),
         polarity=args.polarity,
-        hv513_num=check_int("--hv513", hv, 0, 255),
-        sense_pulse_height=check_int("--sense-height", args.sense_height, 0, 255),
-        sense_pulse_width=check_int("--sense-width", args.sense_width, 0, 255, "us"),
+        hv513_num=check_int("--hv513", hv, 0, U8_MAX),
+        sense_pulse_height=check_int("--sense-height", args.sense_height, 0, U8_MAX),
+        sense_pulse_width=check_int("--sense-width", args.sense_width, 0, U8_MAX, "us"),
         stim_mode=mode,
-        frequency_hz=check_int("--frequency", args.frequency, 1, 0xFFFF, "Hz"),
+        frequency_hz=check_int("--frequency", args.frequency, 1, U16_MAX, "Hz"),
     )
 
 

@@ -38,7 +38,9 @@ from ..protocol.firmware import V1_2, V2, FirmwareSpec, OpcodeV2
 
 #: Zeros that complete the longest payload of every modelled firmware (v2: 2 × 255 pattern bytes).
 FLUSH_ZEROS = max(f.max_electrodes * f.pattern_bytes_per_electrode for f in (V1_2, V2)) + 2
-SAFE_TAIL = bytes((0xFC, 0x00, 0xFB, 0x00, 0x00, 0xF9, 0x00))
+# electrode count 0; v1.2 pulse height 0 (v2: mode 0 and an unknown byte); sense height 0 — the same bytes
+# on both versions, as the tables show (tests hold them to it)
+SAFE_TAIL = bytes((OpcodeV2.ELECTRODE_NUM, 0, OpcodeV2.STIM_MODE, 0, 0, OpcodeV2.SENSE_HEIGHT, 0))
 SYNC_CHECK = bytes((OpcodeV2.SYNC_CHECK,))
 PROBE = bytes(FLUSH_ZEROS) + SAFE_TAIL + SYNC_CHECK
 CHUNK_BYTES = 64

@@ -225,7 +225,8 @@ class ParserV2:
         value: object
         if cmd.kind == "pattern":
             limit = cmd.max_value if cmd.max_value is not None else self.spec.dac_max_code
-            raw = [payload[2 * i] | payload[2 * i + 1] << 8 for i in range(len(payload) // 2)]
+            width = self.spec.pattern_bytes_per_electrode
+            raw = [int.from_bytes(payload[i : i + width], "little") for i in range(0, len(payload), width)]
             heights = [min(v, limit) for v in raw]
             regs.stim_pattern[: len(heights)] = heights
             over = {ch: v for ch, v in enumerate(raw) if v > limit}
@@ -233,7 +234,7 @@ class ParserV2:
                 self._hazard(HazardKind.CLAMPED, field="stim_pattern", values=over, stored=limit)
             value = heights
         else:
-            ivalue = payload[0] if len(payload) == 1 else payload[0] | payload[1] << 8
+            ivalue = int.from_bytes(payload, "little")
             value = ivalue
             self._store(cmd, ivalue)
         if self.on_command is not None:

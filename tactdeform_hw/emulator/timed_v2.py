@@ -22,6 +22,7 @@ from functools import lru_cache
 from typing import Any
 
 from ..errors import ConfigurationError, LimitError
+from ..protocol.firmware import OpcodeV2
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .board import Board
 from .core import Emulator
@@ -260,9 +261,9 @@ class TimedEmulatorV2:
 
     def _on_command(self, op: int, value: object, offset: int) -> None:
         self.applied.append((self._call_time_ns, op, value))
-        if op == 0xF5:
+        if op == OpcodeV2.HV513_COUNT:
             self._hv513_in_call = True
-        elif op == 0xF6:
+        elif op == OpcodeV2.FREQUENCY:
             # setPeriodUs: the new alarm value applies from the current counter
             self._next_alarm_ns = max(self._call_time_ns, self._last_alarm_ns() + self._period_ns())
 
@@ -336,7 +337,7 @@ def pattern_in_force_v2(
         for k, chunk in enumerate(chunks):
             emu.write(chunk, t0 + 3000.0 * k)
         emu.advance_to(t0 + 3000.0 * len(chunks) + 50_000.0)
-        applied = [t for t, op, v in emu.applied if op == 0xFE and list(v) == list(heights)]  # type: ignore[call-overload]
+        applied = [t for t, op, v in emu.applied if op == OpcodeV2.PATTERN and list(v) == list(heights)]  # type: ignore[call-overload]
         if not applied:
             raise ConfigurationError("the pattern was never applied")
         ta = applied[0]
