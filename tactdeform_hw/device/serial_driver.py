@@ -154,6 +154,8 @@ def open_port(name: str, *, timeout: float = DEFAULT_TIMEOUT_S, baudrate: int = 
 
     if is_usb_name(name):
         return usb_port_for_name(name, timeout=timeout, baudrate=baudrate)
+    if name.startswith("etactilekit://"):
+        name = _resolve_kit(name)
     register_url_handlers()
     if name in ("emulator", "emu", ""):
         name = "etactile://"
@@ -166,6 +168,32 @@ def open_port(name: str, *, timeout: float = DEFAULT_TIMEOUT_S, baudrate: int = 
     except (serial.SerialException, ValueError) as exc:
         raise TransportError(f"cannot create port {name!r}: {exc}") from exc
     return port
+
+
+def _resolve_kit(url: str) -> str:
+    """``etactilekit://ID[?discovery=HOST:PORT]`` → the ``socket://IP:PORT`` of the one kit that answers
+    UDP discovery with that id (default: the subnet broadcast on 8888)."""
+    import urllib.parse as urlparse
+
+    from ..errors import ConfigurationError
+    from .wifi_discovery import DISCOVERY_PORT, discover, resolve
+
+    parts = urlparse.urlsplit(url)
+    kit_id = (parts.netloc + parts.path).strip("/")
+    if not kit_id:
+        raise ConfigurationError(f"{url!r}: expected etactilekit://ID (the id discovery reports)")
+    query = urlparse.parse_qs(parts.query)
+    target = ("255.255.255.255", DISCOVERY_PORT)
+    if "discovery" in query:
+        host, _, port = query["discovery"][-1].rpartition(":")
+        try:
+            target = (host or "127.0.0.1", int(port))
+        except ValueError as exc:
+            raise ConfigurationError(f"{url!r}: discovery={query['discovery'][-1]!r} is not HOST:PORT") from exc
+    unknown = set(query) - {"discovery"}
+    if unknown:
+        raise ConfigurationError(f"{url!r}: unknown option(s) {', '.join(sorted(unknown))} (known: discovery)")
+    return resolve(kit_id, discover([target])).url
 
 
 def open_device(
