@@ -62,3 +62,12 @@ def test_etactilekit_url_resolves_to_pyserials_socket_handler() -> None:
         port.close()
     with pytest.raises(ConfigurationError, match="unknown option"):
         open_port("etactilekit://C0FFEE?x=1")
+
+
+def test_ports_lists_discovered_kits(capsys: pytest.CaptureFixture[str]) -> None:
+    from tactdeform_hw.cli import main
+
+    with DiscoveryResponder("ABC123", port=0, tcp_port=18083) as r:
+        assert main(["ports", "--no-usb", "--wifi", f"127.0.0.1:{r.address[1]}"]) == 0
+    out = capsys.readouterr().out
+    assert "etactilekit://ABC123" in out and "127.0.0.1:18083" in out
