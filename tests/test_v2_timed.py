@@ -138,3 +138,14 @@ def test_width_zero_still_delivers_one_exchange() -> None:
     emu.advance_to(15_000.0)
     assert [r["width_us"] for r in emu.delivered()] == [6.6]
     assert [h.kind for h in emu.hazards if h.kind is HazardKind.SHORT_PULSE_WIDTH]
+
+
+def test_timed_emulator_factory_picks_the_version() -> None:
+    from tactdeform_hw.emulator.timed import TimedEmulator, timed_emulator
+    from tactdeform_hw.errors import ConfigurationError
+
+    assert isinstance(timed_emulator(), TimedEmulator)
+    v2 = timed_emulator(firmware="v2", link="uart")
+    assert isinstance(v2, TimedEmulatorV2) and v2.link.name == "uart"
+    with pytest.raises(ConfigurationError, match="firmware='v3'"):
+        timed_emulator(firmware="v3")
