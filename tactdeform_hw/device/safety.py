@@ -59,7 +59,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 from ..errors import LimitError, SafetyError
 from ..protocol.constants import (
@@ -156,8 +156,7 @@ class _Shadow:
         )
 
 
-@dataclass(frozen=True)
-class WireState:
+class WireState(NamedTuple):
     """What :meth:`SafetyGuard.check_wire` concludes a write leads to: the firmware's state if every byte
     arrives (``nominal``), the other states lost packet tails could leave (``alternatives``), and whether
     the device's queue may be full (``unproven``: after a resync's zeros or an unknown state, until the
@@ -166,9 +165,6 @@ class WireState:
     nominal: _Shadow
     alternatives: tuple[_Shadow, ...] = ()
     unproven: bool = False
-
-    def key(self) -> tuple[Any, ...]:
-        return (self.nominal.key(), tuple(a.key() for a in self.alternatives), self.unproven)
 
 
 def worst_scan_us(electrodes: int, width_us: int, discharge_us: int, sense_width_us: int) -> float:
@@ -557,7 +553,7 @@ class SafetyGuard:
     def commit(self, state: WireState) -> bool:
         """Take ``state`` (from :meth:`check_wire`) as the firmware's once its write succeeded; True when
         it differs from the state before (a rewrite of the same registers changes nothing)."""
-        changed = state.key() != self._wire.key()
+        changed = state != self._wire
         self._wire = state
         return changed
 
@@ -621,6 +617,9 @@ class SafetyGuard:
             finally:
                 self._wire = wire
         cut_from = 0 if wire.unproven else room
+        if not wire.alternatives and (cut_from is None or cut_from >= len(data)):
+            # the per-frame path: one state, every byte certain to arrive
+            return WireState(self._read(wire.nominal, data, mapping, transfer, strict=True, how=""), (), wire.unproven)
         nominal: _Shadow | None = None
         seen: dict[tuple[Any, ...], _Shadow] = {}
         for i, state in enumerate((wire.nominal, *wire.alternatives)):
@@ -696,7 +695,7 @@ class SafetyGuard:
             if kind == "pattern":
                 levels = c.levels
                 if levels:
-                    sh.pattern[c.start : c.start + len(levels)] = list(levels)
+                    sh.pattern[c.start : c.start + len(levels)] = levels
                     if any(levels):
                         self._verify(sh, "pattern" + when, mapping, transfer)
                 continue
@@ -711,7 +710,7 @@ class SafetyGuard:
             sh.parse = ParserState(None, end.opcode, end.needed, end.got, end.locked)
         return sh
 
-    def _refuse_open_end(self, commands: list[ReadCommand], end: ParserState) -> None:
+    def _refuse_open_end(self, commands: Sequence[ReadCommand], end: ParserState) -> None:
         last = commands[-1] if commands else None
         name = f"0x{end.opcode:02X}" if end.opcode is not None else "?"
         if end.locked:

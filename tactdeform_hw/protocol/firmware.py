@@ -194,20 +194,18 @@ class FirmwareSpec:
     power_on: Mapping[str, float | int]
     timing: FirmwareTiming = field(default_factory=FirmwareTiming)
     by_opcode: Mapping[int, CommandSpec] = field(init=False, repr=False)
+    #: The lowest command byte: every byte below it is an unknown byte (ignored, one consumed).
+    command_byte_min: int = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         table = {c.opcode: c for c in self.commands}
         if len(table) != len(self.commands):
             raise ConfigurationError(f"firmware {self.name}: an opcode appears twice in its command table")
         object.__setattr__(self, "by_opcode", MappingProxyType(table))
+        object.__setattr__(self, "command_byte_min", min(table))
         object.__setattr__(self, "power_on", MappingProxyType(dict(self.power_on)))
 
     # --- the table, in the shapes callers need --------------------------------------------------------------
-
-    @property
-    def command_byte_min(self) -> int:
-        """The lowest command byte: every byte below it is an unknown byte (ignored, one consumed)."""
-        return min(self.by_opcode)
 
     @property
     def payload_kind(self) -> dict[int, str | None]:

@@ -83,6 +83,26 @@ def monophasic_us(width_us: int, timing: FirmwareTiming = V1_2.timing) -> float:
     return 2 * timing.spi_exchange_us + timing.pulse_wait_us(width_us)
 
 
+@functools.lru_cache(maxsize=256)
+def _scan_parts(
+    t: FirmwareTiming, width_us: int, discharge_us: int, sense_width_us: int, hv513: int
+) -> tuple[float, float, float, float]:
+    """Interrupt entry and chain clear; and one channel's time at pattern 1, 2 and anything else (select,
+    POL, the pulse, the discharge).  Cached: every frame's budget needs them for the same settings."""
+    gpio = t.gpio_write_us
+    mono = monophasic_us(width_us, t)
+    sense = monophasic_us(sense_width_us, t)
+    discharge = (t.spi_exchange_us if t.discharge_exchange else 0.0) + 3 * gpio + t.discharge_wait_us(discharge_us)
+    select = 5 * gpio  # LE, DIN, CLK, LE; then POL (one more write)
+    base = t.isr_entry_us + 2 * gpio * OUTPUTS_PER_HV513 * max(hv513, 1)
+    return (
+        base,
+        select + gpio + mono + discharge,
+        select + gpio + (2 * mono + 2 * gpio) + discharge,
+        select + gpio + sense + discharge,
+    )
+
+
 def estimate_scan_us(
     levels: Sequence[int],
     width_us: int,
@@ -98,19 +118,8 @@ def estimate_scan_us(
 
     This is the host's budget (the device layer paces and refuses frames with it); the emulator's scan
     engine times the same sequence event by event from the same constants."""
-    t = firmware.timing
-    gpio = t.gpio_write_us
-    mono = monophasic_us(width_us, t)
-    sense = monophasic_us(sense_width_us, t)
-    discharge = (t.spi_exchange_us if t.discharge_exchange else 0.0) + 3 * gpio + t.discharge_wait_us(discharge_us)
-    select = 5 * gpio
-    total = t.isr_entry_us + 2 * gpio * OUTPUTS_PER_HV513 * max(hv513, 1)
+    base, mono, bi, sense = _scan_parts(firmware.timing, width_us, discharge_us, sense_width_us, hv513)
+    total = base
     for v in levels:
-        if v == PATTERN_MONOPHASIC:
-            pulse = mono
-        elif v == PATTERN_BIPHASIC:
-            pulse = 2 * mono + 2 * gpio
-        else:
-            pulse = sense
-        total += select + gpio + pulse + discharge
+        total += mono if v == PATTERN_MONOPHASIC else bi if v == PATTERN_BIPHASIC else sense
     return total * 1.005 + 2.0

@@ -15,18 +15,20 @@ would leave, and it says where it ends (:attr:`Reading.state`).
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator
-from dataclasses import dataclass
+from typing import NamedTuple
 
 from .firmware import DEFAULT_FIRMWARE, KIND_SIZE, CommandSpec, FirmwareSpec
+
+_SIZES = dict(KIND_SIZE)  # a plain dict: read for every command of every frame
 
 COMMAND = "command"
 UNKNOWN = "unknown"
 UNREAD = "unread"
 
 
-@dataclass(frozen=True, slots=True)
-class ParserState:
+class ParserState(NamedTuple):
     """Where the firmware's parser stands between two reads.
 
     ``electrode_num`` is the count in force (None: not known to the host).  ``opcode`` is the command in
@@ -46,8 +48,7 @@ class ParserState:
         return self.opcode is None and not self.locked
 
 
-@dataclass(frozen=True, slots=True)
-class ReadCommand:
+class ReadCommand(NamedTuple):
     """One thing the firmware reads: a command (complete or not), a run of unknown bytes, or bytes a
     locked parser never reads.
 
@@ -57,7 +58,8 @@ class ReadCommand:
     (after its clamp and shift; None when it ignores the value, e.g. a pulse width of 0 on v1.2, or when the
     payload is incomplete).  For patterns ``levels`` are the element values the firmware has stored, on
     channels from ``start`` on: v1.2 stores each byte as it arrives, so an incomplete pattern has levels;
-    v2 stores the clamped u16 elements only when the payload is complete.
+    v2 stores the clamped u16 elements only when the payload is complete.  (A named tuple: the interlock
+    reads every frame through this, and tuples are the cheapest records Python builds.)
     """
 
     offset: int
@@ -79,11 +81,10 @@ class ReadCommand:
         return len(self.raw) if self.kind == UNKNOWN else 0
 
 
-@dataclass(frozen=True, slots=True)
-class Reading:
+class Reading(NamedTuple):
     """Everything read from one stream, and where the parser stands afterwards."""
 
-    commands: list[ReadCommand]
+    commands: tuple[ReadCommand, ...]
     state: ParserState
 
 
@@ -109,6 +110,11 @@ def _pattern_levels(c: CommandSpec, fw: FirmwareSpec, payload: bytes) -> tuple[i
     return tuple(out)
 
 
+#: Writes up to this size are remembered: a session repeats the same frames and heights over and over, and
+#: the reading is a pure function of the bytes, the parser's state and the firmware.
+_CACHED_BYTES = 600
+
+
 def read_commands(
     data: bytes,
     electrode_num: int | None = 0,
@@ -119,18 +125,30 @@ def read_commands(
 ) -> Reading:
     """Read ``data`` as ``firmware``'s parser does, from ``state`` (default: a command boundary with
     ``electrode_num`` in force); ``offset`` is the absolute offset of ``data[0]``."""
-    fw = firmware
-    table = fw.by_opcode
+    if type(data) is not bytes:
+        data = bytes(data)
     if state is None:
         state = ParserState(electrode_num)
+    if len(data) <= _CACHED_BYTES:
+        return _read_cached(data, firmware, state, offset)
+    return _read(data, firmware, state, offset)
+
+
+@functools.lru_cache(maxsize=1024)
+def _read_cached(data: bytes, fw: FirmwareSpec, state: ParserState, offset: int) -> Reading:
+    return _read(data, fw, state, offset)
+
+
+def _read(data: bytes, fw: FirmwareSpec, state: ParserState, offset: int) -> Reading:
+    table = fw.by_opcode
+    bpe = fw.pattern_bytes_per_electrode
     num = state.electrode_num
     out: list[ReadCommand] = []
     n = len(data)
-    data = bytes(data)
     if state.locked or (state.opcode is not None and state.needed < 0):
         if n:
             out.append(ReadCommand(offset, None, data, complete=False, locked=state.locked, kind=UNREAD))
-        return Reading(out, state)
+        return Reading(tuple(out), state)
     i = 0
     if state.opcode is not None:
         op = state.opcode
@@ -158,7 +176,7 @@ def read_commands(
         else:
             out.append(ReadCommand(offset, op, chunk, chunk, complete=False, resumed=True))
         if not done:
-            return Reading(out, ParserState(num, op, state.needed, whole))
+            return Reading(tuple(out), ParserState(num, op, state.needed, whole))
     while i < n:
         b = data[i]
         spec = table.get(b)
@@ -180,37 +198,40 @@ def read_commands(
                 out.append(ReadCommand(offset + i, b, data[i : i + 1], complete=False))
                 if i + 1 < n:
                     out.append(ReadCommand(offset + i + 1, None, data[i + 1 :], complete=False, kind=UNREAD))
-                return Reading(out, ParserState(None, b, -1))
-            need = num * fw.pattern_bytes_per_electrode
+                return Reading(tuple(out), ParserState(None, b, -1))
+            need = num * bpe
             if need == 0 and fw.zero_pattern_locks:
                 out.append(ReadCommand(offset + i, b, data[i : i + 1], complete=False, locked=True))
                 if i + 1 < n:
                     out.append(ReadCommand(offset + i + 1, None, data[i + 1 :], complete=False, locked=True, kind=UNREAD))
-                return Reading(out, ParserState(num, b, 0, b"", locked=True))
+                return Reading(tuple(out), ParserState(num, b, 0, b"", locked=True))
             end = i + 1 + need
             payload = data[i + 1 : end]
             done = len(payload) == need
-            if done or fw.partial_payload_applied:
+            if bpe == 1:
+                levels = tuple(payload) if done or fw.partial_payload_applied else None
+            elif done or fw.partial_payload_applied:
                 levels = _pattern_levels(spec, fw, payload)
             else:
                 levels = None
             out.append(ReadCommand(offset + i, b, data[i:end], payload, None, None, levels, 0, done))
             if not done:
-                return Reading(out, ParserState(num, b, need, payload))
+                return Reading(tuple(out), ParserState(num, b, need, payload))
             i = end
             continue
-        need = KIND_SIZE[kind]
+        need = _SIZES[kind]
         end = i + 1 + need
         payload = data[i + 1 : end]
         if len(payload) < need:
             out.append(ReadCommand(offset + i, b, data[i:end], payload, complete=False))
-            return Reading(out, ParserState(num, b, need, payload))
-        rv, sv = _value(spec, payload)
+            return Reading(tuple(out), ParserState(num, b, need, payload))
+        rv = payload[0] if need == 1 else u16_at(payload, 0)
+        sv = spec.stored(rv)
         out.append(ReadCommand(offset + i, b, data[i:end], payload, sv, rv))
         if spec.register == "electrode_num" and sv is not None:
             num = sv
         i = end
-    return Reading(out, ParserState(num))
+    return Reading(tuple(out), ParserState(num))
 
 
 def iter_commands(
