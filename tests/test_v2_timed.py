@@ -149,3 +149,23 @@ def test_timed_emulator_factory_picks_the_version() -> None:
     assert isinstance(v2, TimedEmulatorV2) and v2.link.name == "uart"
     with pytest.raises(ConfigurationError, match="firmware='v3'"):
         timed_emulator(firmware="v3")
+
+
+def test_a_scan_that_preempts_the_pattern_copy_is_torn_and_recorded() -> None:
+    """v2 copies a complete pattern in one parser call; an alarm inside that call scans the channels
+    already copied at their new heights and the rest at their old ones."""
+    n = 255
+    emu = TimedEmulatorV2(link="uart")
+    emu.write(c.encode_electrode_num(n) + c.encode_pulse_width(20) + c.encode_discharge(10) + c.encode_frequency(30)
+              + c.encode_pattern([10] * n), 0.0)
+    # 511 bytes at 10.85 us each end about 32.5 ms; the parser copies them (about 0.5 ms) from its 33 ms
+    # tick, and the 30 Hz alarm comes at 33.333 ms, in the middle of the copy
+    emu.write(c.encode_pattern([200] * n), 26_955.0)
+    emu.advance_to(80_000.0)
+    torn = [h for h in emu.hazards if h.kind is HazardKind.TORN_PATTERN]
+    first = emu.scans[0]
+    assert first.start_ns == 33_333_000 and len(torn) == 1
+    k = torn[0].detail["new_channels"]
+    assert 0 < k < n and first.heights == (200,) * k + (10,) * (n - k)
+    assert emu.scans[1].heights == (200,) * n  # the next scan has all of it
+    assert [t for t, op, _ in emu.applied if op == 0xFE][-1] == 33_000_000

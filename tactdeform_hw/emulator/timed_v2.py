@@ -5,9 +5,10 @@ a call that made no progress (:class:`~.parser_v2.ParserV2`), the parser reads T
 command timeout, 0xF5 disables the stimulation alarm while it senses the stack (a scan due meanwhile
 fires when the alarm is re-enabled), and each scan is the v2 interrupt of :mod:`.firmware_scan`:
 parameters snapshotted at its start, a DAC code per channel, the mode choosing the waveform, no DAC
-write in the discharge.  The interrupt pre-empts the parser, never the reverse.  A payload is applied
-in one go between scans: v2 copies a complete pattern in microseconds, and the torn-pattern window of
-that copy is not modelled (see the protocol notes).
+write in the discharge.  The interrupt pre-empts the parser, never the reverse: a parser call costs
+its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm inside the
+call that copies a pattern scans the elements copied so far at their new heights and the rest at their
+old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer).
 
 Every scan is recorded (:class:`ScanRecordV2`) with the parameters it ran and when each channel's
 current started, so safety can be judged on the pulses delivered; mode 2 with a zero pattern that
@@ -138,6 +139,7 @@ class TimedEmulatorV2:
         self._chain_pos = 0
         self._call_time_ns = 0
         self._hv513_in_call = False
+        self._applied_in_call: int | None = None
         self.emulator.parser.on_command = self._on_command
 
     # --- the host side ---------------------------------------------------------------------------------
@@ -234,12 +236,19 @@ class TimedEmulatorV2:
                 rec.start_ns / 1000))
         self._last_sense_hazard = live_zero
 
+    _SCAN_FIELDS = ("electrode_num", "polarity", "stim_mode", "pulse_width", "sense_pulse_height",
+                    "sense_pulse_width", "discharge_time")
+
     def _main_call(self, t: int) -> None:
         parser = self.emulator.parser
+        regs = self.emulator.registers
         while self._deliveries and self._deliveries[0][0] <= t:
             _, _, d = heapq.heappop(self._deliveries)
             parser.receive(d.data)
         self._call_time_ns = t
+        self._applied_in_call = None
+        before = {f: getattr(regs, f) for f in self._SCAN_FIELDS}
+        old_pattern = list(regs.stim_pattern)
         out = parser.call(t // 1000)
         m = self.model
         cost = m.call_ns + out.consumed * m.byte_ns
@@ -248,6 +257,10 @@ class TimedEmulatorV2:
             cost += m.hv513_detect_ns
         self._hv513_in_call = False
         end = t + cost
+        alarm = self._next_alarm_ns
+        applied = self._applied_in_call
+        if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
+            end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
         tx = parser.take_tx()
         if tx:
             self._tx.append((end, tx))
@@ -259,8 +272,38 @@ class TimedEmulatorV2:
         else:
             self._next_call_ns = end
 
+    def _preempt(self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]) -> int:
+        """The scan interrupt fires while this call applies a command: the scan sees the registers as
+        the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
+        old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
+        regs = self.emulator.registers
+        m = self.model
+        after = {f: getattr(regs, f) for f in self._SCAN_FIELDS}
+        new = list(regs.stim_pattern)
+        if op == OpcodeV2.PATTERN:
+            n = regs.electrode_num
+            width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
+            start = t + m.call_ns + max(0, consumed - 2 * n) * m.byte_ns
+            k = max(0, min(n, (alarm - start) // width)) if width else n
+            regs.stim_pattern[:] = new[:k] + old[k:]
+            if 0 < k < n and new[k:n] != old[k:n]:
+                self.hazards.append(Hazard(
+                    HazardKind.TORN_PATTERN, -1,
+                    {"scan": len(self.scans), "new_channels": k, "channels": n,
+                     "old_rest": old[k:n] != new[k:n]}, alarm / 1000))
+        else:
+            for f, v in before.items():
+                setattr(regs, f, v)
+        self._scan(alarm)
+        duration = self.scans[-1].duration_ns
+        for f, v in after.items():
+            setattr(regs, f, v)
+        regs.stim_pattern[:] = new
+        return duration
+
     def _on_command(self, op: int, value: object, offset: int) -> None:
         self.applied.append((self._call_time_ns, op, value))
+        self._applied_in_call = op
         if op == OpcodeV2.HV513_COUNT:
             self._hv513_in_call = True
         elif op == OpcodeV2.FREQUENCY:
