@@ -37,8 +37,8 @@ def test_mode_2_with_a_zero_pattern_still_stimulates_and_is_a_hazard() -> None:
     emu.advance_to(40_000.0)
     last = emu.scans[-1]
     assert last.heights == (0, 0, 0, 0) and last.live_channels() == [0, 1, 2, 3] and last.codes == (10,) * 4
-    hz = [h for h in emu.hazards if h.kind is HazardKind.MODE_SENSE_ALL]
-    assert len(hz) == 1 and hz[0].detail["channels"] == [0, 1, 2, 3]
+    hz = [h for h in emu.hazards if h.kind is HazardKind.MODE_SENSE_ALL and "scan" in h.detail]
+    assert len(hz) == 1 and hz[0].detail["channels"] == [0, 1, 2, 3]  # the first scan that delivered it
     emu.write(c.encode_stim_mode(0))
     emu.advance_to(80_000.0)
     assert emu.scans[-1].live_channels() == []  # mode 0: a zero pattern is off

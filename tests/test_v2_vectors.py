@@ -143,3 +143,14 @@ def test_unknown_firmware_is_refused() -> None:
 
     with pytest.raises(ConfigurationError, match="firmware='v3'"):
         Emulator(firmware="v3")
+
+
+def test_mode_2_with_zero_heights_is_recorded_when_it_starts() -> None:
+    emu = Emulator(firmware="v2")
+    emu.feed(bytes.fromhex("fc02" "fe00000000" "f90a"))
+    assert HazardKind.MODE_SENSE_ALL not in _hazard_kinds(emu)
+    emu.feed(bytes.fromhex("fb02"))
+    hz = [h for h in emu.hazards if h.kind is HazardKind.MODE_SENSE_ALL]
+    assert len(hz) == 1 and hz[0].detail["channels"] == [0, 1] and hz[0].detail["sense_code"] == 10
+    emu.feed(bytes.fromhex("f90b"))
+    assert len([h for h in emu.hazards if h.kind is HazardKind.MODE_SENSE_ALL]) == 1  # still the same state

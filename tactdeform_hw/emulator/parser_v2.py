@@ -79,6 +79,7 @@ class ParserV2:
         self.command_start_us = 0
         self._unknown_start = -1
         self._unknown_len = 0
+        self._sense_all = False
 
     # --- the receive queue -----------------------------------------------------------------------------
 
@@ -237,8 +238,21 @@ class ParserV2:
             ivalue = int.from_bytes(payload, "little")
             value = ivalue
             self._store(cmd, ivalue)
+        self._check_sense_all()
         if self.on_command is not None:
             self.on_command(cmd.opcode, value, self.command_offset)
+
+    def _check_sense_all(self) -> None:
+        """Mode 2 gives every scanned channel the sense pulse: with a non-zero sense height, channels whose
+        height is 0 still carry current.  Recorded when the registers enter that state."""
+        regs = self.regs
+        n = regs.electrode_num
+        zeros = [ch for ch in range(n) if regs.stim_pattern[ch] == 0]
+        live = regs.stim_mode == 2 and regs.sense_pulse_height > 0 and bool(zeros)
+        if live and not self._sense_all:
+            self._hazard(HazardKind.MODE_SENSE_ALL, channels=zeros, sense_code=regs.sense_pulse_height,
+                         sense_width_us=regs.sense_pulse_width)
+        self._sense_all = live
 
     def _store(self, cmd: CommandSpec, value: int) -> None:
         regs = self.regs
