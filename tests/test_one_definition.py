@@ -23,7 +23,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "tactdeform_hw"
 
 #: Decimal literals that are the firmware's own (DAC clamp, u8 range, busy-wait and exchange constants)
 #: and hex literals of the command bytes 0xF4-0xFE.  0xFF stays allowed: it is also the byte mask.
-_FIRMWARE_NUMBERS = {4095, 255, 6.6, 5.4, 3.3}
+_FIRMWARE_NUMBERS = {4095, 255, 1020, 6.6, 5.4, 3.3}
 _OPCODE_HEX = re.compile(r"0[xX][fF][4-9a-eA-E]$")
 #: Literals of the same value that mean something else (file, literal, why).
 _ALLOWED = {
@@ -48,8 +48,9 @@ def _firmware_literals(path: Path) -> list[str]:
                     hit = False
             if hit:
                 out.append(f"{tok.start[0]}: {tok.string}")
-        elif tok.type == tokenize.OP and tok.string == "<<" and i + 1 < len(toks) and toks[i + 1].string == "8":
-            out.append(f"{tok.start[0]}: << 8 (u16 decoding)")
+        elif tok.type == tokenize.OP and tok.string == "<<" and i + 1 < len(toks) and toks[i + 1].string in ("8", "2"):
+            what = "u16 decoding" if toks[i + 1].string == "8" else "the sense height's shift"
+            out.append(f"{tok.start[0]}: << {toks[i + 1].string} ({what})")
     return out
 
 
@@ -68,8 +69,10 @@ def test_no_copy_of_the_firmware_numbers_outside_protocol() -> None:
 def test_the_scanner_finds_what_it_looks_for(tmp_path: Path) -> None:
     """The literal scan above must be able to fail."""
     bad = tmp_path / "bad.py"
-    bad.write_text('x = min(v, 4095)\ny = lo | hi << 8\nz = 0xFB\nw = int(us * 2.0 - 5.4)\ns = "4095 in a string"  # 255\n')
-    assert [h.split(": ")[1] for h in _firmware_literals(bad)] == ["4095", "<< 8 (u16 decoding)", "0xFB", "5.4"]
+    bad.write_text('x = min(v, 4095)\ny = lo | hi << 8\nz = 0xFB\nw = int(us * 2.0 - 5.4)\ns = "4095 in a string"  # 255\nh = v << 2\n')
+    assert [h.split(": ")[1] for h in _firmware_literals(bad)] == [
+        "4095", "<< 8 (u16 decoding)", "0xFB", "5.4", "<< 2 (the sense height's shift)",
+    ]
 
 
 def test_no_payload_size_table_outside_protocol() -> None:

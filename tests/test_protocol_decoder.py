@@ -53,3 +53,16 @@ def test_streaming_equals_one_shot() -> None:
 
 def test_parse_hex_accepts_common_spellings() -> None:
     assert parse_hex("0xfc,0x20:FE\n01") == b"\xfc\x20\xfe\x01"
+
+
+def test_cli_decodes_with_the_named_firmware(capsys) -> None:  # type: ignore[no-untyped-def]
+    from tactdeform_hw.cli import main
+
+    assert main(["decode", "fc 02 fe 01 21 e8 03 fb 05 f4", "--firmware", "v2"]) == 0
+    out = capsys.readouterr().out
+    assert "levels=[4095,1000]" in out and "STIM_MODE stim_mode=5 (stored as 2)" in out and "SYNC_CHECK" in out
+    assert main(["decode", "fb 00 f9"]) == 0
+    assert "pulse_height=63744 (stored as 4095)" in capsys.readouterr().out
+    assert main(["decode", "fb 00", "--firmware", "v3"]) != 0
+    err = capsys.readouterr().err
+    assert "--firmware='v3'" in err and "v1.2, v2" in err and "Traceback" not in err

@@ -34,8 +34,8 @@ def test_decoded_commands_rebuild_the_firmware_state(vector: dict) -> None:
             continue
         spec = V2.by_opcode[item.opcode]
         if spec.kind == "pattern":
-            assert item.levels is not None
-            pattern[: len(item.levels)] = item.levels
+            assert isinstance(item.value, tuple)
+            pattern[: len(item.value)] = item.value
         elif spec.register and item.stored is not None and spec.register != "frequency":
             state[spec.register] = item.stored
     expect = vector["expect"]
@@ -53,7 +53,7 @@ def test_cli_decodes_v2(capsys: pytest.CaptureFixture[str]) -> None:
     parser = argparse.ArgumentParser()
     cli.register(parser.add_subparsers())
     for argv, want in (
-        (["--firmware", "v2", "fc 02 fe 64 00 ff 0f fb 01 f4"], ["heights=[100,4095]", "STIM_MODE stim_mode=1", "SYNC_CHECK"]),
+        (["--firmware", "v2", "fc 02 fe 64 00 ff 0f fb 01 f4"], ["levels=[100,4095]", "STIM_MODE stim_mode=1", "SYNC_CHECK"]),
         (["fc 02 fe 64 00 ff 0f fb 01 f4"], ["levels=[100,0]", "MEASURE", "PULSE_HEIGHT"]),
     ):
         args = parser.parse_args(["decode", *argv])

@@ -24,10 +24,10 @@ def register(sub: Any) -> None:
     src.add_argument("--file", type=Path, help="capture file: raw bytes, or hex text with --hex-file")
     p.add_argument("--hex-file", action="store_true", help="the --file holds hex text, not raw bytes")
     p.add_argument("--electrodes", type=int, default=0, help="electrode_num in force when the capture starts (default 0, power-on)")
-    p.add_argument("--firmware", choices=("v1.2", "v2"), default="v1.2",
-                   help="the firmware that reads the capture (default v1.2); v2 reads 0xFB as the stimulation "
-                   "mode, one u16 per electrode in a pattern and 0xF4 as the sync check (without arrival times, "
-                   "its 2 s timeout is not applied)")
+    p.add_argument("--firmware", default="v1.2",
+                   help="the firmware whose parser reads the capture: v1.2 (default) or v2; v2 reads 0xFB as the "
+                   "stimulation mode, one u16 per electrode in a pattern and 0xF4 as the sync check (without "
+                   "arrival times, its 2 s timeout is not applied)")
     p.add_argument("--json", action="store_true", help="print a JSON list instead of lines")
     p.set_defaults(func=run)
 
@@ -36,6 +36,8 @@ def run(args: argparse.Namespace) -> int:
     from ..protocol.decoder import OK, decode, parse_hex
     from ..protocol.firmware import get_firmware
     from ..protocol.units import check_int
+
+    firmware = get_firmware(args.firmware, "--firmware")
 
     try:
         if args.file is not None:
@@ -47,7 +49,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigurationError(f"cannot read the capture as {'hex' if args.hex_file or args.file is None else 'bytes'}: {exc}") from exc
     except OSError as exc:
         raise ConfigurationError(f"cannot read {args.file}: {exc}") from exc
-    firmware = get_firmware(args.firmware, "--firmware")
     electrodes = check_int("--electrodes", args.electrodes, 0, firmware.max_electrodes)
     items = decode(data, electrodes, firmware)
     if args.json:

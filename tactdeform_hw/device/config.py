@@ -6,7 +6,7 @@ from dataclasses import dataclass, replace
 from typing import Literal
 
 from ..errors import LimitError
-from ..protocol.constants import MAX_ELECTRODES, U8_MAX, U16_MAX
+from ..protocol.constants import MAX_ELECTRODES, SENSE_HEIGHT_SHIFT, U8_MAX, U16_MAX
 from ..protocol.units import CurrentTransfer, check_int
 
 Polarity = Literal["anodic", "cathodic"]
@@ -52,10 +52,11 @@ def sense_code(sense_current_ua: int, transfer: CurrentTransfer) -> int:
     """The 0xF9 byte for a sense current: the firmware stores ``byte << 2`` as the DAC code, so only
     every fourth code is reachable."""
     code = transfer.to_code(sense_current_ua, "sense_current_ua")
-    if code % 4 or code // 4 > U8_MAX:
+    step = 1 << SENSE_HEIGHT_SHIFT
+    if code % step or code // step > U8_MAX:
         raise LimitError(
             "sense_current_ua",
             sense_current_ua,
-            f"a current whose DAC code is a multiple of 4 up to 1020 (this one is code {code})",
+            f"a current whose DAC code is a multiple of {step} up to {U8_MAX * step} (this one is code {code})",
         )
-    return code // 4
+    return code // step

@@ -49,6 +49,7 @@ from ..protocol.constants import (
     OUTPUTS_PER_HV513,
     PATTERN_BIPHASIC,
     PATTERN_MONOPHASIC,
+    SENSE_HEIGHT_SHIFT,
     U8_MAX,
     U16_MAX,
 )
@@ -205,7 +206,7 @@ class ScanConfig:
         sense_w = check_int("sense_width_us", sense_width_us, 0, U8_MAX, "µs")
         hv = check_int("hv513_num", hv513_num, 0, U8_MAX)
         ticks = fm.alarm_ticks(fm.period_us_from_rate(rate))
-        return cls(n, pol, height, width, sense_h << 2, sense_w, discharge, ticks, hv, bytes(values))
+        return cls(n, pol, height, width, sense_h << SENSE_HEIGHT_SHIFT, sense_w, discharge, ticks, hv, bytes(values))
 
     def kinds(self) -> np.ndarray:
         """Per channel: 0 monophasic, 1 biphasic, 2 sense."""

@@ -23,7 +23,7 @@ from functools import cached_property
 from typing import Any
 
 from ..errors import ConfigurationError, LimitError
-from ..protocol.firmware import V1_2, FirmwareSpec, busy_wait_ticks
+from ..protocol.firmware import V1_2, FirmwareSpec, busy_wait_ticks, discharge_wait_arg, pulse_wait_arg
 
 _FW = V1_2.timing  # the defaults: the v1.2 firmware's constants (protocol.firmware holds each version's)
 
@@ -211,15 +211,13 @@ class TimingModel:
 
     def pulse_wait_ns(self, width_us: int) -> int:
         """The busy-wait inside a monophasic pulse of ``width_us`` (none below the offset)."""
-        if width_us >= self.pulse_wait_offset_us:
-            return self.delay_ns(width_us - self.pulse_wait_offset_us)
-        return 0
+        arg = pulse_wait_arg(width_us, self.pulse_wait_offset_us)
+        return 0 if arg is None else self.delay_ns(arg)
 
     def discharge_wait_ns(self, discharge_us: int) -> int:
         """The busy-wait with BL low during the discharge (only above the offset)."""
-        if discharge_us > self.discharge_wait_offset_us:
-            return self.delay_ns(discharge_us - self.discharge_wait_offset_us)
-        return 0
+        arg = discharge_wait_arg(discharge_us, self.discharge_wait_offset_us)
+        return 0 if arg is None else self.delay_ns(arg)
 
     def pulse_width_ns(self, width_us: int) -> int:
         """Time the current flows in one monophasic pulse: DAC change to DAC change.

@@ -30,13 +30,12 @@ class DecodedCommand:
     raw: bytes
     opcode: int | None
     name: str
-    value: int | bytes | None
+    #: u8/u16: the value sent; pattern: its levels (the bytes on v1.2, the stored u16 heights on v2)
+    value: int | bytes | tuple[int, ...] | None
     status: str = OK
     note: str = ""
     #: What the firmware stores for a u8/u16 value (after its clamp and shift; None: ignored or no value).
     stored: int | None = None
-    #: A pattern's stored elements when they are not its bytes (v2: one clamped u16 per electrode).
-    levels: tuple[int, ...] | None = None
 
     def describe(self) -> str:
         """One readable line: offset, bytes, what the firmware made of them."""
@@ -49,9 +48,7 @@ class DecodedCommand:
             text = f"UNREAD ×{len(self.raw)}: the parser is locked and never reads these"
         else:
             text = self.name
-            if self.levels is not None:
-                text += f" heights=[{','.join(str(v) for v in self.levels)}]"
-            elif isinstance(self.value, bytes):
+            if isinstance(self.value, (bytes, tuple)):
                 text += f" levels=[{','.join(str(b) for b in self.value)}]"
             elif self.value is not None:
                 field = self.name.lower()
@@ -67,7 +64,7 @@ class DecodedCommand:
         return f"{self.offset:06d}  {hexbytes:<47}  {text}"
 
     def to_dict(self) -> dict[str, object]:
-        value: object = list(self.value) if isinstance(self.value, bytes) else self.value
+        value: object = list(self.value) if isinstance(self.value, (bytes, tuple)) else self.value
         return {
             "offset": self.offset,
             "raw": self.raw.hex(),
@@ -77,7 +74,6 @@ class DecodedCommand:
             "status": self.status,
             "note": self.note,
             "stored": self.stored,
-            **({"levels": list(self.levels)} if self.levels is not None else {}),
         }
 
 
@@ -117,20 +113,20 @@ class StreamDecoder:
             else:
                 spec = by_op[c.opcode]
                 note = ""
-                value: int | bytes | None
-                levels = None
-                if spec.kind == "pattern" and self.firmware.pattern_bytes_per_electrode > 1:
-                    value = c.payload
-                    levels = c.levels
-                    if levels and levels != _elements(c.payload, self.firmware.pattern_bytes_per_electrode):
-                        note = "pattern holds a height above the firmware's clamp: an earlier command was probably cut short"
-                elif spec.kind == "pattern":
-                    value = c.payload
-                    if c.payload and max(c.payload) >= self._cmin:
+                value: int | bytes | tuple[int, ...] | None
+                if spec.kind == "pattern":
+                    width = self.firmware.pattern_bytes_per_electrode
+                    value = c.payload if width == 1 else c.levels
+                    if width > 1:
+                        # v2: any byte is a valid half of a height; a height above the clamp is the sign
+                        raw = tuple(int.from_bytes(c.payload[i : i + width], "little") for i in range(0, len(c.payload), width))
+                        if c.levels is not None and raw != tuple(c.levels):
+                            note = "pattern holds a height above the firmware's clamp: an earlier command was probably cut short"
+                    elif c.payload and max(c.payload) >= self._cmin:
                         note = "pattern holds a command byte: an earlier command was probably cut short"
                 else:
                     value = c.read_value
-                out.append(DecodedCommand(c.offset, c.raw, c.opcode, spec.name, value, OK, note, c.value, levels))
+                out.append(DecodedCommand(c.offset, c.raw, c.opcode, spec.name, value, OK, note, c.value))
             consumed += len(c.raw)
         if not self._locked:
             self.electrode_num = _num_after(self.electrode_num, out, self.firmware)
@@ -152,10 +148,6 @@ class StreamDecoder:
         self._offset += len(self._buf)
         self._buf.clear()
         return out
-
-
-def _elements(payload: bytes, width: int) -> tuple[int, ...]:
-    return tuple(int.from_bytes(payload[i : i + width], "little") for i in range(0, len(payload), width))
 
 
 def _num_after(num: int, items: list[DecodedCommand], fw: FirmwareSpec) -> int:

@@ -112,6 +112,16 @@ def busy_wait_ticks(us: int, min_us: int, ticks_per_us: float, offset_ticks: flo
     return max(0, int(us * ticks_per_us - offset_ticks))
 
 
+def pulse_wait_arg(width_us: int, offset_us: int) -> int | None:
+    """``monophasic(h, w)`` busy-waits ``delay(w - 7)`` only when ``w >= 7`` (None: no wait)."""
+    return width_us - offset_us if width_us >= offset_us else None
+
+
+def discharge_wait_arg(discharge_us: int, offset_us: int) -> int | None:
+    """The discharge busy-waits ``delay(d - 7)`` only when ``d > 7`` (None: no wait)."""
+    return discharge_us - offset_us if discharge_us > offset_us else None
+
+
 @dataclass(frozen=True)
 class FirmwareTiming:
     """The scan's timing constants and the busy-wait rule, as the firmware's code and comments give them.
@@ -153,15 +163,13 @@ class FirmwareTiming:
 
     def pulse_wait_us(self, width_us: int) -> float:
         """The busy-wait inside a monophasic pulse of ``width_us`` (none below the offset)."""
-        if width_us >= self.pulse_wait_offset_us:
-            return self.busy_wait_us(width_us - self.pulse_wait_offset_us)
-        return 0.0
+        arg = pulse_wait_arg(width_us, self.pulse_wait_offset_us)
+        return 0.0 if arg is None else self.busy_wait_us(arg)
 
     def discharge_wait_us(self, discharge_us: int) -> float:
         """The busy-wait with BL low during the discharge (only above the offset)."""
-        if discharge_us > self.discharge_wait_offset_us:
-            return self.busy_wait_us(discharge_us - self.discharge_wait_offset_us)
-        return 0.0
+        arg = discharge_wait_arg(discharge_us, self.discharge_wait_offset_us)
+        return 0.0 if arg is None else self.busy_wait_us(arg)
 
 
 @dataclass(frozen=True, eq=False)
