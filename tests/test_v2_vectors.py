@@ -154,3 +154,18 @@ def test_mode_2_with_zero_heights_is_recorded_when_it_starts() -> None:
     assert len(hz) == 1 and hz[0].detail["channels"] == [0, 1] and hz[0].detail["sense_code"] == 10
     emu.feed(bytes.fromhex("f90b"))
     assert len([h for h in emu.hazards if h.kind is HazardKind.MODE_SENSE_ALL]) == 1  # still the same state
+
+
+def test_a_new_client_inherits_a_cut_command_within_2_s() -> None:
+    """Wi-Fi build: nothing resets the parser on reconnect.  A cut 0xFE (2 electrodes) followed within
+    2 s by a new client's setup stores 0x20FC as a height, clamped to 4095 — recorded."""
+    emu = Emulator(firmware="v2")
+    emu.feed(bytes.fromhex("fc02fe"), at_us=0)
+    assert emu.feed(bytes.fromhex("fc20fb00f4"), at_us=1_500_000) == b"\x02"  # the count is still 2
+    assert emu.state()["stim_pattern"][:2] == [4095, 0x00FB]
+    clamped = [h for h in emu.hazards if h.kind is HazardKind.CLAMPED and h.detail.get("field") == "stim_pattern"]
+    assert clamped and clamped[0].detail["values"][0] == 0x20FC
+    # after 2 s the same bytes would have found the parser free
+    late = Emulator(firmware="v2")
+    late.feed(bytes.fromhex("fc02fe"), at_us=0)
+    assert late.feed(bytes.fromhex("fc20fb00f4"), at_us=2_100_000) == b"\x20"
