@@ -19,6 +19,7 @@ from typing import Any
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
 from tactdeform_hw.device.failsafe import FailSafe
+from tactdeform_hw.device.pacing import PacingPolicy
 from tactdeform_hw.device.profiles import ParticipantProfile
 from tactdeform_hw.device.safety import SafetyGuard
 from tactdeform_hw.emulator.faults import Fault, FaultKind, Intent, TimedPort, check_deliveries
@@ -167,6 +168,17 @@ def build_session(sc: Scenario) -> tuple[TimedPort, EtactileKitDevice, FailSafe]
     return port, dev, fs
 
 
+SCAN_RATE_HZ = 125  # the stimulation rate the sessions configure (StimConfig's default)
+
+
+def frame_settle_s(sc: Scenario) -> float:
+    """The longest a frame legitimately takes to reach the scans: its height and pattern commands paced a
+    command interval apart (two copies of each under robust encoding), the USB frame, the parser's tick,
+    and the whole scan in progress when the pattern arrives just after it started."""
+    copies = 2 if sc.robust_encoding else 1
+    return 2 * copies * PacingPolicy().command_interval_s + 0.001 + 0.001 + 1.0 / SCAN_RATE_HZ
+
+
 def run(sc: Scenario) -> ScenarioResult:
     wall0 = time.perf_counter()
     port, dev, fs = build_session(sc)
@@ -198,8 +210,9 @@ def run(sc: Scenario) -> ScenarioResult:
         port.advance(min(fs.poll_s, end - port.now_s))
     emu = port.emulator
     mapping = {ch: ch for ch in range(32)}
-    chk = check_deliveries(emu, intents, limits, mapping)
-    bound = fs.recovery_bound_s(scan_period_s=1.0 / 125) + 0.012  # + the frame's own settle time
+    settle = frame_settle_s(sc)
+    chk = check_deliveries(emu, intents, limits, mapping, settle_s=settle)
+    bound = fs.recovery_bound_s(scan_period_s=1.0 / SCAN_RATE_HZ) + settle  # + the frame's own settle time
     injected = port.all_injected
     events = [{"kind": e.kind, "t_s": e.t, **e.detail} for e in fs.events]
     notice_times = [e["t_s"] for e in events if e["kind"] in ("error", "recover", "recover_step_failed")]
