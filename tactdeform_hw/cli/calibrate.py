@@ -187,7 +187,7 @@ def run(args: argparse.Namespace) -> int:
     audit = DeliveryLog(args.audit_log, mapping=mapping, region_map=rmap, command="calibrate", participant=pid,
                         device=args.device, array=args.array)
     hold_s = (args.hold_ms or 0.0) / 1000.0
-    dev = open_device(args.device, timeout=args.timeout, mapping=mapping, guard=guard, audit=audit)
+    dev = open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=mapping, guard=guard, audit=audit)
     steps = 0
     peak = 0
     with dev:  # the command's stop session watches it (see common.run_command); closing switches all off

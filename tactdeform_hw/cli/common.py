@@ -20,6 +20,9 @@ def add_device_arg(parser: argparse.ArgumentParser) -> None:
 
     add_option(parser, "--timeout-s", old=("--timeout",), dest="timeout", type=positive("s"), default=0.5,
                help="read/write timeout in seconds (default 0.5)")
+    parser.add_argument("--firmware", choices=("v1.2", "auto"), default="v1.2",
+                        help="the board's firmware: v1.2 (default) drives it without asking; auto first turns every "
+                        "current off and asks (the v2 sync check), and refuses a board that does not run v1.2")
 
 
 def print_json(obj: Any) -> None:
@@ -34,9 +37,10 @@ def progress(msg: str) -> None:
 # --- participant safety (every command that can stimulate) ------------------------------------------------
 
 PARTICIPANT_HELP = (
-    "participant profile (.json or .toml, see 'tactdeform-hw calibrate'): its cap, regional amplitudes, "
-    "charge and ramp limits, pulse width and polarity bound every current this command sends; a malformed "
-    "file is refused before the device is opened"
+    "participant profile (.json or .toml, see 'tactdeform-hw calibrate'), or an eTactileKit calibration "
+    "profile (.json, format etactilekit_calibration_profile, regions at their lowest electrode): its cap, "
+    "regional amplitudes, charge and ramp limits, pulse width and polarity bound every current this command "
+    "sends; a malformed file is refused before the device is opened"
 )
 
 
@@ -51,15 +55,20 @@ def add_participant_arg(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def profile_from_args(args: argparse.Namespace) -> Any:
+def profile_from_args(args: argparse.Namespace, region_of: Any = None) -> Any:
     """The participant profile named by ``--participant`` (None without one); raises
-    :class:`~tactdeform_hw.errors.ProfileError` naming the field for a bad file."""
+    :class:`~tactdeform_hw.errors.ProfileError` naming the field for a bad file.  An upstream calibration
+    profile is converted through ``region_of`` (default: the TactDeform array's regions)."""
     path = getattr(args, "participant", None)
     if not path:
         return None
-    from ..device.profiles import load_profile
+    from ..formats.calibration_profile import load_participant_or_calibration
 
-    return load_profile(path)
+    if region_of is None:
+        from ..render.array import ElectrodeArray
+
+        region_of = ElectrodeArray.tactdeform().regions
+    return load_participant_or_calibration(path, region_of)
 
 
 def guard_from_args(args: argparse.Namespace, *, region_of: Any = None) -> Any:
@@ -67,7 +76,7 @@ def guard_from_args(args: argparse.Namespace, *, region_of: Any = None) -> Any:
     hardware ceiling without.  Call it before opening the device, so a bad profile sends nothing."""
     from ..device.safety import SafetyGuard
 
-    profile = profile_from_args(args)
+    profile = profile_from_args(args, region_of)
     if profile is None:
         return SafetyGuard()
     return SafetyGuard.from_profile(profile, region_of=region_of)

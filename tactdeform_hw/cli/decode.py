@@ -25,7 +25,10 @@ def register(sub: Any) -> None:
     p.add_argument("--hex-file", action="store_true", help="the --file holds hex text, not raw bytes")
     p.add_argument("--electrodes", type=int, default=0,
                    help="electrode_num in force when the capture starts, 0-255 (default 0, power-on)")
-    p.add_argument("--firmware", default="v1.2", help="the firmware whose parser reads the capture: v1.2 (default) or v2")
+    p.add_argument("--firmware", default="v1.2",
+                   help="the firmware whose parser reads the capture: v1.2 (default) or v2; v2 reads 0xFB as the "
+                   "stimulation mode, one u16 per electrode in a pattern and 0xF4 as the sync check (without "
+                   "arrival times, its 2 s timeout is not applied)")
     p.add_argument("--json", action="store_true", help="print a JSON list instead of lines")
     p.set_defaults(func=run)
 
@@ -86,5 +89,9 @@ def run(args: argparse.Namespace) -> int:
         for c in items:
             print(c.describe())
         bad = sum(1 for c in items if c.status != OK)
-        print(f"# {len(data)} bytes, {len(items)} item(s), {bad} marked", file=sys.stderr)
+        if firmware.command_timeout_us is not None and any(c.status == "truncated" for c in items):
+            print(f"# firmware {firmware.name}: a cut command is completed by the bytes sent within "
+                  f"{firmware.command_timeout_us / 1e6:g} s of its command byte, else discarded with everything "
+                  "queued then", file=sys.stderr)
+        print(f"# firmware {firmware.name}: {len(data)} bytes, {len(items)} item(s), {bad} marked", file=sys.stderr)
     return 0

@@ -313,7 +313,7 @@ def run(
         participant_file=args.participant,
         array=args.array,
     )
-    with log, open_device(args.device, timeout=args.timeout, mapping=mapping, guard=guard, audit=log) as dev:
+    with log, open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=mapping, guard=guard, audit=log) as dev:
         try:
             chips = dev.hv513_count()
             summary["hv513_count"] = chips

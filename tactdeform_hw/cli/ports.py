@@ -32,7 +32,36 @@ def register(sub: Any) -> None:
         help="search the emulated USB bus (one emulated board) instead of the system's: shows what a "
         "board looks like without hardware",
     )
+    p.add_argument(
+        "--wifi",
+        metavar="HOST:PORT",
+        nargs="?",
+        const="255.255.255.255:8888",
+        default=None,
+        help="also ask Wi-Fi boards (firmware v2) by UDP discovery: ETK? to HOST:PORT (default the subnet "
+        "broadcast on 8888; 127.0.0.1:PORT for an emulated kit); DEVICE is etactilekit://ID, or "
+        "socket://IP:PORT when two kits share an id",
+    )
     p.set_defaults(func=run)
+
+
+def wifi_kits(target: str) -> list[dict[str, Any]]:
+    """Kits that answer UDP discovery at ``target`` (HOST:PORT), with what ``--device`` takes for each."""
+    from ..device.wifi_discovery import discover
+    from ..errors import LimitError
+
+    host, _, port = target.rpartition(":")
+    try:
+        addr = (host or "127.0.0.1", int(port))
+    except ValueError as exc:
+        raise LimitError("--wifi", target, "HOST:PORT") from exc
+    kits = discover([addr])
+    ids = [k.id for k in kits]
+    return [
+        {"device": k.url if ids.count(k.id) > 1 else f"etactilekit://{k.id}", "id": k.id, "name": k.name,
+         "ip": k.ip, "port": k.port, "mode": k.mode, "fw": k.fw, "id_shared": ids.count(k.id) > 1}
+        for k in kits
+    ]
 
 
 def serial_candidates() -> list[dict[str, Any]]:
@@ -51,9 +80,16 @@ def run(args: argparse.Namespace) -> int:
 
         backend = EmulatedUsbBackend()
     result = discover(usb=not args.no_usb, usb_backend=backend, include_all=args.all)
+    kits = wifi_kits(args.wifi) if args.wifi else []
     if args.json:
-        print_json(result.to_dict())
+        out = result.to_dict()
+        if args.wifi:
+            out["wifi"] = kits
+        print_json(out)
         return 0
+    for k in kits:
+        shared = "  (id shared with another kit: use the socket:// address)" if k["id_shared"] else ""
+        print(f"{'wifi':<7} {k['device']:<36} {'':<9}  {k['name']} {k['ip']}:{k['port']} {k['mode']} fw={k['fw']}{shared}")
     if not result.candidates:
         print("no candidate boards found (the emulator is always available as --device emulator)")
     else:

@@ -162,7 +162,7 @@ def run(args: argparse.Namespace) -> int:
             from ..clock import SimulatedClock
 
             offline_clock = SimulatedClock()
-        with open_device(args.device, timeout=args.timeout, mapping=array.channel_mapping(), guard=guard,
+        with open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=array.channel_mapping(), guard=guard,
                          audit=audit, offline_clock=offline_clock) as dev:
             port = getattr(dev, "port", None)  # an instant port holds its pattern the moment it is sent
             verify = bool(getattr(port, "instant", False)) and getattr(port, "emulator", None) is not None

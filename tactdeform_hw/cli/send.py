@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
         participant_file=args.participant,
         participant=profile.participant if profile else None,
     )
-    dev = open_device(args.device, timeout=args.timeout, mapping=mapping, guard=guard, audit=log)
+    dev = open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=mapping, guard=guard, audit=log)
     try:
         with dev:  # the command's stop session watches it (see common.run_command); closing switches all off
             dev.configure(config)

@@ -32,12 +32,23 @@ def register(sub: Any) -> None:
         f"{EXIT_OVERRUN} when it OVERRUNs it, {EXIT_WATCHDOG} when it trips the interrupt WATCHDOG (the board "
         "resets); 1 for a refused value, 2 for a usage error.",
     )
+    p.add_argument("--firmware", choices=("v1.2", "v2"), default="v1.2",
+                   help="firmware version (default v1.2). v2: --pattern holds DAC codes and --mode picks the waveform")
+    p.add_argument("--mode", type=int, default=None,
+                   help="v2 stimulation mode: 0 monophasic (default), 1 biphasic, 2 impedance only (sense pulse on "
+                   "every channel)")
+    p.add_argument("--cs-writes", choices=("inside", "costed"), default="inside",
+                   help="whether the 6.6 us DAC/ADC exchange includes its chip-select writes (inside, the default) "
+                   "or they cost one GPIO write each on top (costed, the firmware's host build)")
+    p.add_argument("--dac-load", choices=("mid_exchange", "cs_rise"), default="mid_exchange",
+                   help="when the DAC output changes: 3.3 us into the exchange (default, the firmware comment) or "
+                   "when DA_CS rises (the converter's load moment)")
     p.add_argument("--electrodes", type=int, default=None, help="electrode_num, 0-255 (default 32, or the pattern's length)")
-    p.add_argument("--pattern", default="1",
-                   help="one value for every channel (1 monophasic, 2 biphasic, other: sense pulse) or a comma "
-                   "list, one per channel (default 1)")
+    p.add_argument("--pattern", default=None,
+                   help="v1.2: one value for every channel (1 monophasic, 2 biphasic, other: sense pulse) or a comma "
+                   "list, one per channel (default 1); v2: DAC codes 0-4095, one for all or h1,h2,... (default 100)")
     add_option(p, "--pulse-width-us", old=("--pulse-width",), dest="pulse_width", type=int, default=200,
-               help="stimulation pulse width in µs, 1-65535 (default 200)")
+               help="stimulation pulse width in µs, 1-65535 (v2: 0-65535) (default 200)")
     add_option(p, "--current-ua", type=int, default=None,
                help="pulse current in µA, 10 µA steps, ≤ 10000 (default 1000 = DAC code 100)")
     p.add_argument("--pulse-height", type=int, default=100, help=argparse.SUPPRESS, action=DeprecatedAlias,
@@ -133,7 +144,7 @@ def config_from_args(args: argparse.Namespace) -> Any:
     from ..emulator.board import Board
     from ..emulator.scan import ScanConfig
 
-    text = str(args.pattern).strip()
+    text = "1" if args.pattern is None else str(args.pattern).strip()
     pattern: int | list[int]
     if "," in text:
         try:
@@ -185,18 +196,132 @@ def trace_scans(cfg: Any, model: Any, cycles: int, sinks: list[Any], board: str 
     return emu
 
 
+def conventions_from_args(args: argparse.Namespace) -> Any:
+    from ..emulator.firmware_scan import ScanConventions
+
+    return ScanConventions(cs_writes_costed=args.cs_writes == "costed", dac_load=args.dac_load)
+
+
+def _convention_rows(conv: Any) -> list[dict[str, Any]]:
+    return [
+        {"name": "chip_select_writes", "value": "costed" if conv.cs_writes_costed else "inside", "unit": "",
+         "source": "option",
+         "doc": "whether the 6.6 us exchange includes the chip-select writes (v1.2: 4, v2: 2 per exchange); "
+                "default inside (the firmware comment's reading); --cs-writes costed adds one GPIO write each"},
+        {"name": "dac_load", "value": conv.dac_load, "unit": "", "source": "option",
+         "doc": "when the DAC output changes: mid_exchange (3.3 us in, default) or cs_rise (when DA_CS rises, "
+                "about 6.6 us in); pulse widths do not change, every DAC edge moves"},
+    ]
+
+
+def v2_config_from_args(args: argparse.Namespace) -> Any:
+    """A v2 configuration: per-electrode DAC codes, a mode, every value the firmware can hold."""
+    from ..emulator.board import Board
+    from ..emulator.firmware_scan import FirmwareScanConfig
+    from ..protocol.constants import U8_MAX, U16_MAX
+    from ..protocol.firmware import V2, OpcodeV2
+    from ..protocol.units import check_int
+
+    text = "100" if args.pattern is None else str(args.pattern).strip()
+    limit = V2.dac_max_code
+    try:
+        values = [int(v) for v in text.split(",") if v.strip() != ""]
+    except ValueError as exc:
+        raise LimitError("--pattern", text, f"DAC codes 0-{limit}, one or a comma list") from exc
+    if not values:
+        raise LimitError("--pattern", text, f"DAC codes 0-{limit}, one or a comma list")
+    for i, v in enumerate(values):
+        check_int("--pattern" if len(values) == 1 else f"--pattern[{i}]", v, 0, limit)
+    electrodes = args.electrodes
+    if electrodes is None:
+        electrodes = len(values) if len(values) > 1 else 32
+    electrodes = check_int("--electrodes", electrodes, 0, V2.max_electrodes)
+    if len(values) == 1:
+        values = values * electrodes
+    elif len(values) != electrodes:
+        raise LimitError("--pattern length", len(values), f"exactly --electrodes = {electrodes}")
+    mode = check_int("--mode", 0 if args.mode is None else args.mode, 0, V2.command(OpcodeV2.STIM_MODE).max_value or 0)
+    hv = args.hv513
+    if hv is None:
+        hv = Board(args.board, args.switching_boards).detect_hv513()
+    return FirmwareScanConfig(
+        electrode_num=electrodes,
+        stim_pattern=values,
+        pulse_width=check_int("--pulse-width", args.pulse_width, 0, U16_MAX, "us"),
+        discharge_time=check_int("--discharge", args.discharge, 0, U8_MAX, "us"),
+        polarity=args.polarity,
+        hv513_num=check_int("--hv513", hv, 0, U8_MAX),
+        sense_pulse_height=check_int("--sense-height", args.sense_height, 0, U8_MAX),
+        sense_pulse_width=check_int("--sense-width", args.sense_width, 0, U8_MAX, "us"),
+        stim_mode=mode,
+        frequency_hz=check_int("--frequency", args.frequency, 1, U16_MAX, "Hz"),
+    )
+
+
+def _run_walker(args: argparse.Namespace) -> int:
+    """v2, or either version under the chip-select / DAC-load options: the statement walker's budget."""
+    from ..emulator.firmware_scan import FirmwareScanConfig, budget, trace_scan
+
+    conv = conventions_from_args(args)
+    if args.firmware == "v2":
+        cfg = v2_config_from_args(args)
+    else:
+        v12 = config_from_args(args)
+        cfg = FirmwareScanConfig(
+            electrode_num=v12.electrode_num, stim_pattern=list(v12.pattern), pulse_width=v12.pulse_width,
+            discharge_time=v12.discharge_time, polarity=v12.polarity, hv513_num=v12.hv513_num,
+            sense_pulse_height=v12.sense_pulse_height, sense_pulse_width=v12.sense_pulse_width,
+            pulse_height=v12.pulse_height, frequency_hz=args.frequency,
+        )
+    for flag in ("latency", "vcd", "png"):
+        if getattr(args, flag):
+            raise ConfigurationError(f"--{flag} models v1.2 with the timing model's defaults; it does not take "
+                                     f"--firmware v2, --cs-writes costed or --dac-load cs_rise")
+    b = budget(cfg, args.firmware, conv)
+    result = b.to_dict()
+    if args.events:
+        fmt = _events_format(args.events)
+        tr = trace_scan(cfg, args.firmware, conv)
+        _write_walker_events(Path(args.events), fmt, tr.events)
+        result["traces"] = [args.events]
+    if args.json:
+        print_json(result)
+        return 0
+    print(b.table())
+    if args.events:
+        print(f"wrote {args.events}")
+    return 0
+
+
+def _write_walker_events(path: Path, fmt: str, events: list[list[Any]]) -> None:
+    import json
+
+    try:
+        if fmt == "json":
+            path.write_text(json.dumps(events) + "\n")
+        else:
+            path.write_text("time_us,kind,pin,value\n" + "".join(f"{t},{k},{p},{v}\n" for t, k, p, v in events))
+    except OSError as exc:
+        raise ConfigurationError(f"--events {str(path)!r}: cannot write: {exc}") from exc
+
+
 def run(args: argparse.Namespace) -> int:
     from ..emulator.reports import Budget
 
     model = model_from_args(args)
     if args.list_model:
-        rows = model.describe()
+        rows = model.describe() + _convention_rows(conventions_from_args(args))
         if args.json:
             print_json(rows)
         else:
             for r in rows:
                 print(f"{r['name']:<26}{r['value']!s:>12} {r['unit']:<8} {r['source']:<17} {r['doc']}")
         return 0
+    if args.firmware == "v2" or args.cs_writes == "costed" or args.dac_load != "mid_exchange":
+        return _run_walker(args)
+    if args.mode is not None:
+        raise ConfigurationError(f"--mode {args.mode}: v1.2 has no stimulation mode (the pattern byte picks the "
+                                 "waveform); use --firmware v2")
     cfg = config_from_args(args)
     if args.events:
         _events_format(args.events)  # a bad file name is refused before any work

@@ -357,6 +357,8 @@ def open_port(name: str, *, timeout: float = DEFAULT_TIMEOUT_S, baudrate: int = 
 
     if is_usb_name(name):
         return usb_port_for_name(name, timeout=timeout, baudrate=baudrate)
+    if name.startswith("etactilekit://"):
+        name = _resolve_kit(name)
     register_url_handlers()
     if name in ("emulator", "emu", ""):
         name = "etactile://?timed=0"  # the in-process emulator answers at once
@@ -371,6 +373,32 @@ def open_port(name: str, *, timeout: float = DEFAULT_TIMEOUT_S, baudrate: int = 
     return port
 
 
+def _resolve_kit(url: str) -> str:
+    """``etactilekit://ID[?discovery=HOST:PORT]`` → the ``socket://IP:PORT`` of the one kit that answers
+    UDP discovery with that id (default: the subnet broadcast on 8888)."""
+    import urllib.parse as urlparse
+
+    from ..errors import ConfigurationError
+    from .wifi_discovery import DISCOVERY_PORT, discover, resolve
+
+    parts = urlparse.urlsplit(url)
+    kit_id = (parts.netloc + parts.path).strip("/")
+    if not kit_id:
+        raise ConfigurationError(f"{url!r}: expected etactilekit://ID (the id discovery reports)")
+    query = urlparse.parse_qs(parts.query)
+    target = ("255.255.255.255", DISCOVERY_PORT)
+    if "discovery" in query:
+        host, _, port = query["discovery"][-1].rpartition(":")
+        try:
+            target = (host or "127.0.0.1", int(port))
+        except ValueError as exc:
+            raise ConfigurationError(f"{url!r}: discovery={query['discovery'][-1]!r} is not HOST:PORT") from exc
+    unknown = set(query) - {"discovery"}
+    if unknown:
+        raise ConfigurationError(f"{url!r}: unknown option(s) {', '.join(sorted(unknown))} (known: discovery)")
+    return resolve(kit_id, discover([target])).url
+
+
 def open_device(
     name: str = "emulator",
     *,
@@ -382,6 +410,7 @@ def open_device(
     audit: AuditLog | None = None,
     guardian: bool | None = None,
     offline_clock: Clock | None = None,
+    firmware: str = "v1.2",
 ) -> EtactileKitDevice:
     """Open a device by name: a serial port path, a pyserial URL, ``usb:VID:PID[:SERIAL]``,
     ``usb-emulator``, or ``emulator`` (the default).  ``pacer`` defaults to what the port needs (see
@@ -389,8 +418,42 @@ def open_device(
     port path is locked for this program alone (:class:`~tactdeform_hw.errors.DeviceBusyError` if another
     holds it) and gets a guardian process (``guardian=False`` to do without).  ``offline_clock``: when the
     port declares itself ``instant`` (it answers every byte at once), pace on this clock instead of the wall
-    clock, so an offline run keeps session time."""
+    clock, so an offline run keeps session time.
+
+    ``firmware``: "v1.2" drives the board without asking; "auto" first runs the version probe
+    (:mod:`.firmware_probe`: every current off, then the sync check) and refuses a board that does not
+    run v1.2, the only version this driver's commands are written for, before any stimulating byte."""
+    if firmware not in ("v1.2", "auto"):
+        from ..errors import ConfigurationError
+
+        raise ConfigurationError(f"firmware={firmware!r}: the device layer drives 'v1.2' (or 'auto' to detect "
+                                 "and refuse any other version)")
+    port = open_port(name, timeout=timeout)
+    if firmware == "auto":
+        _probe(port)
     return EtactileKitDevice(
-        open_port(name, timeout=timeout), mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit,
-        guardian=guardian, offline_clock=offline_clock,
+        port, mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit, guardian=guardian,
+        offline_clock=offline_clock,
     )
+
+def _probe(port: Any) -> None:
+    """Open ``port`` (lines low) and refuse it unless the board runs v1.2; close it on refusal without
+    sending anything more."""
+    from .firmware_probe import check_firmware, detect_firmware
+
+    errors = _serial_error_types()
+    if not port.is_open:
+        _lower_lines(port)
+        try:
+            port.open()
+        except errors as exc:
+            raise TransportError(f"cannot open {getattr(port, 'port', port)!s}: {exc}") from exc
+    try:
+        det = detect_firmware(port.write, port.read, port.reset_input_buffer, sleep=default_pacer(port).clock.sleep)
+        check_firmware("v1.2", det)
+    except BaseException:
+        try:
+            port.close()
+        except errors:
+            pass
+        raise

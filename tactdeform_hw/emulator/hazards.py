@@ -31,6 +31,11 @@ class HazardKind(str, Enum):
     WATCHDOG_RESET = "watchdog_reset"  # the interrupt ran > 300 ms: reboot to power-on state
     SENSE_CURRENT = "sense_current"  # channels off in the pattern still get a non-zero sense pulse
     U16_COMPLETED_LATE = "u16_completed_late"  # a u16's second byte came long after its first
+    # Firmware v2:
+    COMMAND_TIMEOUT = "command_timeout"  # a cut command timed out: every queued byte was discarded
+    COMMAND_PENDING = "command_pending"  # a cut command waits: the next bytes sent become its payload
+    SHORT_PULSE_WIDTH = "short_pulse_width"  # width 0-6 µs: the pulse is still one SPI exchange long
+    MODE_SENSE_ALL = "mode_sense_all"  # mode 2: every channel gets the sense pulse, a zero pattern included
 
 
 @dataclass(frozen=True)

@@ -55,3 +55,53 @@ class Registers:
             "hv513_num": self.hv513_num,
             "stim_pattern": list(self.stim_pattern),
         }
+
+
+class RegistersV2:
+    """The v2 firmware's globals (``etk.cpp:3-22``): per-electrode u16 heights, a stimulation mode and
+    no global pulse height."""
+
+    __slots__ = (
+        "electrode_num",
+        "polarity",
+        "stim_mode",
+        "pulse_width",
+        "sense_pulse_height",
+        "sense_pulse_width",
+        "discharge_time",
+        "period_us",
+        "timer_alarm_ticks",
+        "hv513_num",
+        "stim_pattern",
+        "voltage",
+    )
+
+    def __init__(self, hv513_num: int = 0) -> None:
+        self.electrode_num = 0
+        self.polarity = POWER_ON_POLARITY
+        self.stim_mode = 0
+        self.pulse_width = 0
+        self.sense_pulse_height = 0
+        self.sense_pulse_width = 0
+        self.discharge_time = 0
+        self.period_us = POWER_ON_PERIOD_US
+        self.timer_alarm_ticks = fm.alarm_ticks(POWER_ON_PERIOD_US)
+        self.hv513_num = hv513_num
+        self.stim_pattern = [0] * PATTERN_BUFFER_SIZE
+        # voltage[ch]: the u16 the scan stored for the channel (the second phase's reading when biphasic).
+        self.voltage = [0] * PATTERN_BUFFER_SIZE
+
+    def snapshot(self) -> dict[str, Any]:
+        return {
+            "electrode_num": self.electrode_num,
+            "polarity": self.polarity,
+            "stim_mode": self.stim_mode,
+            "pulse_width": self.pulse_width,
+            "sense_pulse_height": self.sense_pulse_height,
+            "sense_pulse_width": self.sense_pulse_width,
+            "discharge_time": self.discharge_time,
+            "period_us": self.period_us,
+            "timer_alarm_ticks": self.timer_alarm_ticks,
+            "hv513_num": self.hv513_num,
+            "stim_pattern": list(self.stim_pattern),
+        }

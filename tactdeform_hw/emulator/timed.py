@@ -216,7 +216,7 @@ class TimedEmulator:
         return len(self._host_rx)
 
     def state(self) -> dict[str, Any]:
-        snap = self.emulator.registers.snapshot()
+        snap: dict[str, Any] = self.emulator.registers.snapshot()
         snap["rx_pending"] = len(self.queue)
         return snap
 
@@ -1131,3 +1131,17 @@ def pattern_latency(
         **{k: stats(k) for k in ("wire_us", "loop_wait_us", "scan_wait_us", "first_channel_us", "last_channel_us")},
         "runs": rows,
     }
+
+
+def timed_emulator(
+    board: str | Board = "compact", switching_boards: int = 1, *, firmware: str = "v1.2", **kwargs: Any
+) -> Any:
+    """The timed model of ``firmware``: :class:`TimedEmulator` for v1.2,
+    :class:`~.timed_v2.TimedEmulatorV2` for v2 (its own scan walker, parser and reports)."""
+    if firmware == "v1.2":
+        return TimedEmulator(board, switching_boards, **kwargs)
+    if firmware == "v2":
+        from .timed_v2 import TimedEmulatorV2
+
+        return TimedEmulatorV2(board, switching_boards, **kwargs)
+    raise ConfigurationError(f"firmware={firmware!r} is not one of v1.2, v2")

@@ -115,8 +115,14 @@ class StreamDecoder:
                 note = ""
                 value: int | bytes | tuple[int, ...] | None
                 if spec.kind == "pattern":
-                    value = c.payload if self.firmware.pattern_bytes_per_electrode == 1 else c.levels
-                    if c.payload and max(c.payload) >= self._cmin:
+                    width = self.firmware.pattern_bytes_per_electrode
+                    value = c.payload if width == 1 else c.levels
+                    if width > 1:
+                        # v2: any byte is a valid half of a height; a height above the clamp is the sign
+                        raw = tuple(int.from_bytes(c.payload[i : i + width], "little") for i in range(0, len(c.payload), width))
+                        if c.levels is not None and raw != tuple(c.levels):
+                            note = "pattern holds a height above the firmware's clamp: an earlier command was probably cut short"
+                    elif c.payload and max(c.payload) >= self._cmin:
                         note = "pattern holds a command byte: an earlier command was probably cut short"
                 else:
                     value = c.read_value

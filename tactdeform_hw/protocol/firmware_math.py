@@ -29,6 +29,11 @@ def period_us_from_rate(rate_hz: int) -> float:
     return float(np.float32(np.float32(1_000_000.0) / np.float32(rate_hz)))
 
 
+def period_us_from_rate_double(rate_hz: int) -> float:
+    """v2's ``StimulationTimePeriod = 1000000.0 / v``: a double division stored into a float32."""
+    return float(np.float32(1_000_000.0 / rate_hz))
+
+
 def alarm_ticks(period_us: float) -> int:
     """``uint32(period_us) * 2``: the truncated period in 0.5 µs timer ticks."""
     return (int(period_us) & 0xFFFFFFFF) * TIMER_TICKS_PER_US

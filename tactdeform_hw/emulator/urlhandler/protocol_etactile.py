@@ -1,4 +1,4 @@
-"""``etactile://[NAME][?board=compact|large&switching_boards=N&stack_reading=R&timed=1|0&link=usb|uart&spy=1]``
+"""``etactile://[NAME][?board=compact|large&switching_boards=N&stack_reading=R&timed=1|0&link=usb|uart&firmware=v1.2|v2&spy=1]``
 
 The emulated eTactileKit as a pyserial port, so ``serial.serial_for_url("etactile://")`` gives the same
 object type, exceptions and calls as a real board on ``/dev/ttyACM0``.
@@ -35,10 +35,11 @@ from typing import Any
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException, Timeout
 
 from ...clock import InstantClock, MonotonicClock
+from ...errors import ConfigurationError
 from ..core import Emulator
 from ..realtime import BUILD_RULES, RealtimeEmulator, UsbSerialJtagLines, reset_untimed
 
-_OPTIONS = ("board", "switching_boards", "stack_reading", "spy", "timed", "link")
+_OPTIONS = ("board", "switching_boards", "stack_reading", "spy", "timed", "link", "firmware")
 _shared: dict[str, Any] = {}
 _shared_lock = threading.Lock()
 _FALSE = ("0", "", "false", "no", "off")
@@ -136,16 +137,20 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
             board = opts.get("board", "compact")
             switching = int(opts.get("switching_boards", "1"))
             reading = float(opts["stack_reading"]) if "stack_reading" in opts else None
+            firmware = opts.get("firmware", "v1.2")
         except ValueError as exc:
             raise SerialException(f"bad option value in {url!r}: {exc}") from exc
         self._spy = opts.get("spy", "0").lower() not in _FALSE
-        timed = opts.get("timed", "1").lower() not in _FALSE
+        # the real-time model is v1.2's; a v2 board is served untimed (its timed model runs offline)
+        timed = opts.get("timed", "1" if firmware == "v1.2" else "0").lower() not in _FALSE
+        if timed and firmware != "v1.2":
+            raise SerialException(f"{url!r}: firmware={firmware} is served untimed only (timed=0)")
         rules = BUILD_RULES["serial" if opts.get("link", "usb") == "usb" else "serial-uart"]
 
         def make() -> Any:
             if timed:
                 return RealtimeEmulator(board, switching, rules=rules, stack_reading=reading)
-            return Emulator(board, switching, stack_reading=reading)
+            return Emulator(board, switching, stack_reading=reading, firmware=firmware)
 
         try:
             if not name:
@@ -158,7 +163,7 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
                     have = "timed" if isinstance(emu, RealtimeEmulator) else "untimed"
                     raise SerialException(f"{url!r}: the board {name!r} is already open {have} (timed={int(not timed)})")
                 return emu
-        except ValueError as exc:
+        except (ValueError, ConfigurationError) as exc:
             raise SerialException(str(exc)) from exc
 
     def _reconfigure_port(self) -> None:

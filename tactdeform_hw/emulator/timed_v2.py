@@ -1,0 +1,399 @@
+"""Firmware v2 in time: its parser on the command timer, its scans on the stimulation timer, a link.
+
+The same pieces as the v1.2 timed model, with v2's rules: the main loop sleeps one RTOS tick only after
+a call that made no progress (:class:`~.parser_v2.ParserV2`), the parser reads Timer2 (µs) for the 2 s
+command timeout, 0xF5 disables the stimulation alarm while it senses the stack (a scan due meanwhile
+fires when the alarm is re-enabled), and each scan is the v2 interrupt of :mod:`.firmware_scan`:
+parameters snapshotted at its start, a DAC code per channel, the mode choosing the waveform, no DAC
+write in the discharge.  The interrupt pre-empts the parser, never the reverse: a parser call costs
+its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm inside the
+call that copies a pattern scans the elements copied so far at their new heights and the rest at their
+old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer).
+
+Every scan is recorded (:class:`ScanRecordV2`) with the parameters it ran and when each channel's
+current started, so safety can be judged on the pulses delivered; mode 2 with a zero pattern that
+still drives the sense current is a :data:`~.hazards.HazardKind.MODE_SENSE_ALL` hazard.
+"""
+
+from __future__ import annotations
+
+import heapq
+from dataclasses import dataclass
+from functools import lru_cache
+from typing import Any
+
+from ..errors import ConfigurationError, LimitError
+from ..protocol.firmware import OpcodeV2
+from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
+from .board import Board
+from .core import Emulator
+from .firmware_scan import DEFAULT_CONVENTIONS, FirmwareScanConfig, ScanConventions, trace_scan
+from .hazards import Hazard, HazardKind
+from .link import Delivery, LinkModel, make_link
+from .timing import DEFAULT_MODEL, TimingModel
+
+
+@dataclass(frozen=True)
+class ScanRecordV2:
+    """One v2 scan: when it ran, what it snapshotted, and each channel's current onset."""
+
+    index: int
+    start_ns: int
+    duration_ns: int
+    electrode_num: int
+    stim_mode: int
+    polarity: int
+    pulse_width: int
+    sense_pulse_height: int
+    sense_pulse_width: int
+    heights: tuple[int, ...]  # the pattern as read per channel (mode 2: ignored)
+    onset_ns: tuple[int, ...]  # per channel, relative to start_ns: the first DAC edge
+    codes: tuple[int, ...]  # per channel, the DAC code of its (first) pulse
+    pulses: tuple[PulseRow, ...] = ()  # every non-zero current: (channel, onset ns, code, width ns, POL)
+
+    @property
+    def end_ns(self) -> int:
+        return self.start_ns + self.duration_ns
+
+    def live_channels(self) -> list[int]:
+        """Channels that received a non-zero current in this scan."""
+        return [ch for ch, code in enumerate(self.codes) if code]
+
+
+#: One delivered pulse of a scan: (channel, onset ns after the alarm, DAC code, width ns, POL level).
+PulseRow = tuple[int, int, int, int, int]
+
+
+def _pulse_rows(events: list[list[Any]], starts: list[float]) -> tuple[PulseRow, ...]:
+    """Every non-zero DAC level of a scan, from its edge to the next DAC edge, with the POL level then."""
+    rows: list[PulseRow] = []
+    pol = 1
+    ch = -1
+    open_: tuple[int, int, int, int] | None = None
+    for t, kind, pin, value in events:
+        while ch + 1 < len(starts) and t >= starts[ch + 1]:
+            ch += 1
+        if kind == "GPIO" and pin == 3:
+            pol = value
+        elif kind == "DAC":
+            t_ns = round(t * 1000)
+            if open_ is not None:
+                c0, t0, code, p0 = open_
+                rows.append((c0, t0, code, t_ns - t0, p0))
+                open_ = None
+            if value:
+                open_ = (ch, t_ns, value, pol)
+    return tuple(rows)
+
+
+@lru_cache(maxsize=1024)
+def _shape(
+    cfg: FirmwareScanConfig, conv: ScanConventions
+) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]:
+    """(duration, onsets, codes, voltages, pulses) of one scan, from the statement walker."""
+    tr = trace_scan(cfg, "v2", conv)
+    starts = tr.channel_start_us
+    dacs = [(e[0], e[3]) for e in tr.events if e[1] == "DAC"]
+    onsets: list[int] = []
+    codes: list[int] = []
+    k = 0
+    for s in starts:
+        while k < len(dacs) and dacs[k][0] < s:
+            k += 1
+        onsets.append(round(dacs[k][0] * 1000) if k < len(dacs) else 0)
+        codes.append(dacs[k][1] if k < len(dacs) else 0)
+    return round(tr.isr_return_us * 1000), tuple(onsets), tuple(codes), tuple(tr.voltage), _pulse_rows(tr.events, starts)
+
+
+class TimedEmulatorV2:
+    """The v2 board in simulated time.  ``write(data, at_us)`` hands bytes to the link; ``advance_to``
+    runs the firmware until then; ``read_tx`` returns what reached the host."""
+
+    firmware = "v2"
+
+    def __init__(
+        self,
+        board: str | Board = "compact",
+        switching_boards: int = 1,
+        *,
+        link: str | LinkModel = "usb",
+        model: TimingModel = DEFAULT_MODEL,
+        conventions: ScanConventions = DEFAULT_CONVENTIONS,
+    ) -> None:
+        self.emulator = Emulator(board, switching_boards, firmware="v2")
+        self.model = model
+        self.conventions = conventions
+        self.link = make_link(link)
+        self.now_ns = 0
+        self.hazards: list[Hazard] = self.emulator.hazards
+        self.scans: list[ScanRecordV2] = []
+        self.applied: list[tuple[int, int, object]] = []  # (time ns, opcode, value) when a command took effect
+        self._deliveries: list[tuple[int, int, Delivery]] = []
+        self._seq = 0
+        self._tx: list[tuple[int, bytes]] = []
+        self._next_call_ns = 0
+        self._next_alarm_ns = self._period_ns()
+        self._busy_until_ns = 0
+        self._host_offset = 0
+        self._last_sense_hazard = False
+        self._chain_pos = 0
+        self._call_time_ns = 0
+        self._hv513_in_call = False
+        self._applied_in_call: int | None = None
+        self.emulator.parser.on_command = self._on_command
+
+    # --- the host side ---------------------------------------------------------------------------------
+
+    @property
+    def registers(self) -> Any:
+        return self.emulator.registers
+
+    @property
+    def now_us(self) -> float:
+        return self.now_ns / 1000
+
+    def state(self) -> dict[str, Any]:
+        return self.emulator.state()
+
+    def write(self, data: bytes, at_us: float | None = None) -> int:
+        t = self.now_ns if at_us is None else round(at_us * 1000)
+        if t < self.now_ns:
+            raise ConfigurationError(f"at_us={at_us} is before the emulator's clock ({self.now_us} us)")
+        self.advance_to(t / 1000)
+        for d in self.link.schedule(bytes(data), t, self._host_offset):
+            heapq.heappush(self._deliveries, (d.t_ns, self._seq, d))
+            self._seq += 1
+        self._host_offset += len(data)
+        return len(data)
+
+    def read_tx(self) -> bytes:
+        out = b"".join(b for t, b in self._tx if t <= self.now_ns)
+        self._tx = [(t, b) for t, b in self._tx if t > self.now_ns]
+        return out
+
+    def advance_to(self, t_us: float) -> None:
+        target = round(t_us * 1000)
+        if target < self.now_ns:
+            return
+        self._run(target)
+        self.now_ns = target
+
+    # --- the firmware ----------------------------------------------------------------------------------
+
+    def _period_ns(self) -> int:
+        return int(self.emulator.registers.timer_alarm_ticks) * self.conventions.timer_tick_ns
+
+    def _run(self, target: int) -> None:
+        while True:
+            call, alarm = self._next_call_ns, self._next_alarm_ns
+            if min(call, alarm) > target:
+                return
+            if alarm <= call:
+                self._scan(alarm)
+            else:
+                self._main_call(call)
+
+    def _scan(self, t: int) -> None:
+        regs = self.emulator.registers
+        n = regs.electrode_num
+        cfg = FirmwareScanConfig(
+            electrode_num=n,
+            stim_pattern=tuple(regs.stim_pattern[:n]),
+            pulse_width=regs.pulse_width,
+            discharge_time=regs.discharge_time,
+            polarity=regs.polarity,
+            hv513_num=regs.hv513_num,
+            sense_pulse_height=regs.sense_pulse_height,
+            sense_pulse_width=regs.sense_pulse_width,
+            stim_mode=regs.stim_mode,
+            prior_scans=0,
+        )
+        duration, onsets, codes, volts, pulses = _shape(cfg, self.conventions)
+        rec = ScanRecordV2(len(self.scans), t, duration, n, regs.stim_mode, regs.polarity, regs.pulse_width,
+                           regs.sense_pulse_height, regs.sense_pulse_width, tuple(cfg.stim_pattern), onsets, codes,
+                           pulses)
+        self.scans.append(rec)
+        regs.voltage[:n] = list(volts)
+        end = t + duration
+        self._check_sense(rec)
+        period = self._period_ns()
+        if duration > period:
+            self.hazards.append(Hazard(HazardKind.OVERRUN, -1, {"scan_us": duration / 1000, "period_us": period / 1000},
+                                       t / 1000))
+            self._next_alarm_ns = end
+        else:
+            self._next_alarm_ns = t + period
+        if self._next_call_ns < end:
+            self._next_call_ns = end  # the interrupt pre-empts the main loop
+
+    def _check_sense(self, rec: ScanRecordV2) -> None:
+        live_zero = rec.stim_mode == 2 and rec.sense_pulse_height > 0 and any(h == 0 for h in rec.heights)
+        if live_zero and not self._last_sense_hazard:
+            self.hazards.append(Hazard(
+                HazardKind.MODE_SENSE_ALL, -1,
+                {"scan": rec.index, "channels": [ch for ch, h in enumerate(rec.heights) if h == 0],
+                 "sense_code": rec.sense_pulse_height, "sense_width_us": rec.sense_pulse_width},
+                rec.start_ns / 1000))
+        self._last_sense_hazard = live_zero
+
+    _SCAN_FIELDS = ("electrode_num", "polarity", "stim_mode", "pulse_width", "sense_pulse_height",
+                    "sense_pulse_width", "discharge_time")
+
+    def _main_call(self, t: int) -> None:
+        parser = self.emulator.parser
+        regs = self.emulator.registers
+        while self._deliveries and self._deliveries[0][0] <= t:
+            _, _, d = heapq.heappop(self._deliveries)
+            parser.receive(d.data)
+        self._call_time_ns = t
+        self._applied_in_call = None
+        before = {f: getattr(regs, f) for f in self._SCAN_FIELDS}
+        old_pattern = list(regs.stim_pattern)
+        out = parser.call(t // 1000)
+        m = self.model
+        cost = m.call_ns + out.consumed * m.byte_ns
+        paused = self._hv513_in_call
+        if paused:
+            cost += m.hv513_detect_ns
+        self._hv513_in_call = False
+        end = t + cost
+        alarm = self._next_alarm_ns
+        applied = self._applied_in_call
+        if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
+            end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
+        tx = parser.take_tx()
+        if tx:
+            self._tx.append((end, tx))
+        if paused and self._next_alarm_ns < end:
+            self._next_alarm_ns = end  # the alarm was disabled; a passed alarm fires on re-enable
+        if out.slept:
+            tick = m.rtos_tick_ns
+            self._next_call_ns = (end // tick + 1) * tick
+        else:
+            self._next_call_ns = end
+
+    def _preempt(self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]) -> int:
+        """The scan interrupt fires while this call applies a command: the scan sees the registers as
+        the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
+        old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
+        regs = self.emulator.registers
+        m = self.model
+        after = {f: getattr(regs, f) for f in self._SCAN_FIELDS}
+        new = list(regs.stim_pattern)
+        if op == OpcodeV2.PATTERN:
+            n = regs.electrode_num
+            width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
+            start = t + m.call_ns + max(0, consumed - 2 * n) * m.byte_ns
+            k = max(0, min(n, (alarm - start) // width)) if width else n
+            regs.stim_pattern[:] = new[:k] + old[k:]
+            if 0 < k < n and new[k:n] != old[k:n]:
+                self.hazards.append(Hazard(
+                    HazardKind.TORN_PATTERN, -1,
+                    {"scan": len(self.scans), "new_channels": k, "channels": n,
+                     "old_rest": old[k:n] != new[k:n]}, alarm / 1000))
+        else:
+            for f, v in before.items():
+                setattr(regs, f, v)
+        self._scan(alarm)
+        duration = self.scans[-1].duration_ns
+        for f, v in after.items():
+            setattr(regs, f, v)
+        regs.stim_pattern[:] = new
+        return duration
+
+    def _on_command(self, op: int, value: object, offset: int) -> None:
+        self.applied.append((self._call_time_ns, op, value))
+        self._applied_in_call = op
+        if op == OpcodeV2.HV513_COUNT:
+            self._hv513_in_call = True
+        elif op == OpcodeV2.FREQUENCY:
+            # setPeriodUs: the new alarm value applies from the current counter
+            self._next_alarm_ns = max(self._call_time_ns, self._last_alarm_ns() + self._period_ns())
+
+    def _last_alarm_ns(self) -> int:
+        return self.scans[-1].start_ns if self.scans else 0
+
+    # --- reports: what the board delivered --------------------------------------------------------------
+
+    def delivered(self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0) -> list[dict[str, Any]]:
+        """Every pulse the scans delivered from ``since_us`` on: time, channel, DAC code, current, width,
+        charge, polarity (anodic / cathodic)."""
+        out: list[dict[str, Any]] = []
+        since = round(since_us * 1000)
+        for s in self.scans:
+            if s.start_ns < since:
+                continue
+            for ch, onset, code, width, pol in s.pulses:
+                ua = transfer.to_ua(code)
+                out.append({"scan": s.index, "t_us": (s.start_ns + onset) / 1000, "channel": ch, "code": code,
+                            "current_ua": ua, "width_us": width / 1000, "charge_nc": ua * width / 1e6,
+                            "polarity": "anodic" if pol else "cathodic"})
+        return out
+
+    def peak_current_ua(self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0) -> dict[int, float]:
+        """The highest current each channel received (channels that received none are absent)."""
+        peak: dict[int, float] = {}
+        for row in self.delivered(transfer, since_us):
+            peak[row["channel"]] = max(peak.get(row["channel"], 0.0), row["current_ua"])
+        return peak
+
+
+def pattern_in_force_v2(
+    heights: list[int],
+    *,
+    link: str = "usb",
+    pulse_width_us: int = 200,
+    discharge_us: int = 45,
+    rate_hz: int = 125,
+    phases: int = 16,
+    chunking: str = "whole",
+) -> dict[str, Any]:
+    """Host write → the first scan using a new pattern, on v2, over ``phases`` write moments.
+
+    ``chunking`` "whole" writes the 0xFE command at once; "upstream" as the upstream Python and Unity
+    APIs do (8-byte chunks, 3 ms apart).  Returns min / mean / max of: applied (the parser stored it),
+    first channel (its first pulse at the new height), last channel, in µs."""
+    from ..protocol.commands_v2 import (
+        encode_discharge,
+        encode_electrode_num,
+        encode_frequency,
+        encode_pattern,
+        encode_pulse_width,
+        encode_stim_mode,
+    )
+
+    if chunking not in ("whole", "upstream"):
+        raise LimitError("chunking", chunking, "whole or upstream")
+    n = len(heights)
+    if n == 0:
+        raise ConfigurationError("pattern_in_force_v2 needs at least one electrode")
+    setup = (encode_electrode_num(n) + encode_stim_mode(0) + encode_pulse_width(pulse_width_us)
+             + encode_discharge(discharge_us) + encode_frequency(rate_hz) + encode_pattern([0] * n))
+    new = encode_pattern(heights)
+    rows: list[dict[str, float]] = []
+    for i in range(phases):
+        emu = TimedEmulatorV2(link=link)
+        emu.write(setup, 0.0)
+        t0 = 50_000.0 + round(8000.0 * ((i * 0.6180339887498949) % 1.0), 3)
+        emu.advance_to(t0)
+        chunks = [new] if chunking == "whole" else [new[k : k + 8] for k in range(0, len(new), 8)]
+        for k, chunk in enumerate(chunks):
+            emu.write(chunk, t0 + 3000.0 * k)
+        emu.advance_to(t0 + 3000.0 * len(chunks) + 50_000.0)
+        applied = [t for t, op, v in emu.applied if op == OpcodeV2.PATTERN and list(v) == list(heights)]  # type: ignore[call-overload]
+        if not applied:
+            raise ConfigurationError("the pattern was never applied")
+        ta = applied[0]
+        scan = next(s for s in emu.scans if s.start_ns >= ta)
+        rows.append({
+            "applied_us": (ta - t0 * 1000) / 1000,
+            "first_channel_us": (scan.start_ns + scan.onset_ns[0] - t0 * 1000) / 1000,
+            "last_channel_us": (scan.start_ns + scan.onset_ns[-1] - t0 * 1000) / 1000,
+        })
+
+    def stats(key: str) -> dict[str, float]:
+        vals = [r[key] for r in rows]
+        return {"min": min(vals), "mean": sum(vals) / len(vals), "max": max(vals)}
+
+    return {"firmware": "v2", "link": link, "chunking": chunking, "phases": phases, "electrodes": n,
+            **{k: stats(k) for k in ("applied_us", "first_channel_us", "last_channel_us")}}
