@@ -57,17 +57,19 @@ def test_configure_then_pattern_reaches_the_firmware(dev: EtactileKitDevice, por
     assert s["electrode_num"] == 32 and s["pulse_height"] == 150 and s["pulse_width"] == 200
     assert s["discharge_time"] == 45 and s["period_us"] == 8000.0 and s["polarity"] == 1
     assert s["stim_pattern"][:32] == [1] * 16 + [0] * 15 + [2]
-    assert port.emulator.hazards == []  # the driver triggers no defect
-    # one write per command, each a whole command
-    for w in port.writes:
+    assert safety_helpers.defects(port.emulator.hazards) == []  # the driver triggers no defect
+    # after the opening proof (zeros, 0xF5, heights 0 with their padding): one write per command, whole
+    for w in port.writes[safety_helpers.opening_writes(port.writes):]:
         assert all(i.status == OK for i in decode(w, 32))
     assert port.writes[-1] == bytes([0xFE] + [1] * 16 + [0] * 15 + [2])
 
 
 def test_configure_order_never_stimulates_half_set(dev: EtactileKitDevice, port: RecordingPort) -> None:
     dev.configure(StimConfig(current_ua=1000))
-    names = [decode(w, 32)[0].name for w in port.writes]
-    assert names[0] == "PULSE_HEIGHT" and port.writes[0] == b"\xfb\x00\x00"
+    k = safety_helpers.opening_writes(port.writes)
+    assert port.writes[0] == b"\x00\x00\x00\x00\xf5"  # a board just opened proves its parser in step first
+    names = [decode(w, 32)[0].name for w in port.writes[k:]]
+    assert names[0] == "PULSE_HEIGHT" and port.writes[k] == b"\xfb\x00\x00"
     assert names.index("ELECTRODE_NUM") + 1 == names.index("PATTERN")
     assert names[-1] == "PULSE_HEIGHT"
 
@@ -78,7 +80,7 @@ def test_reconfiguring_clears_stale_channels(dev: EtactileKitDevice, port: Recor
     dev.configure(StimConfig(electrode_count=4, current_ua=100))
     dev.configure(StimConfig(electrode_count=8, current_ua=100))
     assert port.emulator.state()["stim_pattern"][:8] == [0] * 8
-    assert port.emulator.hazards == []
+    assert safety_helpers.defects(port.emulator.hazards) == []
 
 
 @pytest.mark.parametrize(
@@ -190,12 +192,31 @@ class SilentPort(RecordingPort):
 
 
 def test_short_reply_is_typed() -> None:
-    dev = EtactileKitDevice(SilentPort())
+    port = SilentPort()
+    dev = EtactileKitDevice(port)
+    # a board that never answers never proves its parser in step: nothing but zeros and 0xF5 is written
+    with pytest.raises(ShortReplyError, match="0xF5"):
+        dev.configure(StimConfig(electrode_count=4))
+    assert set(b"".join(port.writes)) <= {0x00, 0xF5} and dev.needs_resync
+    with pytest.raises(ShortReplyError):
+        dev.hv513_count()
+
+
+class ShortMeasurePort(RecordingPort):
+    """Answers 0xF5, but every longer reply comes back one byte long."""
+
+    def read(self, size: int = 1) -> bytes:
+        return super().read(min(size, 1))
+
+
+def test_short_measure_reply_is_typed_and_marks_a_resync() -> None:
+    dev = EtactileKitDevice(ShortMeasurePort())
     dev.configure(StimConfig(electrode_count=4))
     with pytest.raises(ShortReplyError, match="expected a 8-byte reply, got 1"):
         dev.measure()
-    with pytest.raises(ShortReplyError):
-        dev.hv513_count()
+    assert dev.needs_resync  # a short reply proves nothing: the next command is preceded by a resync
+    with pytest.raises(ShortReplyError, match="measure after resync"):
+        dev.hv513_count()  # the resync's 0xFF check cannot pass either
 
 
 class BrokenPort(RecordingPort):

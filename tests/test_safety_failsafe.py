@@ -17,6 +17,7 @@ from tactdeform_hw.device.failsafe import FailSafe, Readback, refresh
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.pty_server import PtyServer
 from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.errors import ShortReplyError
 
 from .safety_helpers import RecordingPort
 
@@ -212,8 +213,9 @@ def test_reconnect_and_hardware_reset_resync_before_any_pattern() -> None:
     dev.send_pattern(ALL)
     port.emulator.feed(b"\xfc\x00\xfe")  # something locked the parser
     assert not dev.probe()
-    dev.resync()
-    assert not dev.probe()  # a resync cannot reach a locked parser
+    with pytest.raises(ShortReplyError, match="locked or hung"):
+        dev.resync()  # a resync cannot reach a locked parser: 0xF5 is never answered, and it says so
+    assert not dev.probe() and dev.link_state.value == "failed"
     assert dev.hardware_reset() and dev.probe()
     assert port.emulator.state()["stim_pattern"][:32] == [0] * 32
     dev.close()

@@ -179,6 +179,9 @@ def test_polarity_changes_only_while_everything_is_off() -> None:
 
 def test_interlock_refuses_unsafe_bytes_whatever_sends_them() -> None:
     dev, port = device()
+    with pytest.raises(ProtocolMisuseError, match="not proved in step"):
+        dev._send(p.encode_pattern([1] * 32))  # a board just opened: nothing before the parser is proved
+    dev.resync()  # proved in step, heights 0; the electrode count is still unknown
     with pytest.raises(SafetyError, match="electrode count is unknown"):
         dev._send(p.encode_pattern([1] * 32))
     with pytest.raises(SafetyError, match="pulse width is unknown"):
@@ -230,6 +233,9 @@ COVERED = {
     "target_ua": "property",
     "audit": "property",
     "needs_resync": "property",
+    "link_state": "property",
+    "boot_s": "a wait before the first byte after a reset",
+    "unknown_reply_s": "a wait for a reply",
     "suspended": "property",
     "stimulating": "property",
     "closed": "property",
@@ -277,10 +283,16 @@ def test_resync_follows_the_protocol_reference_order() -> None:
     port.emulator.feed(b"\xfb\xdc")  # and a half pulse height (0xDC would become 220 = 2.2 mA)
     n = len(port.writes)
     dev.resync()
-    names = [decode(w, 32)[0].name if w[0] >= 0xF5 else "ZEROS" for w in port.writes[n:]]
-    assert b"".join(port.writes[n : n + names.count("ZEROS")]) == bytes(256)
-    rest = [x for x in names if x != "ZEROS"]
-    assert rest[:4] == ["PULSE_HEIGHT", "SENSE_HEIGHT", "ELECTRODE_NUM", "PATTERN"]
+    writes = port.writes[n:]
+    probes = [w for w in writes if w[0] == 0]  # zeros, each run ending with 0xF5 (the proof request)
+    assert all(w[-1] == 0xF5 and not any(w[:-1]) for w in probes)
+    assert writes[: len(probes)] == probes  # nothing before a reply proved a command boundary
+    assert sum(len(w) - 1 for w in probes) >= 20  # enough zeros to finish the cut pattern
+    # 0xF5 went into the cut pattern (no reply) until the zeros had finished it
+    states = [t[1] for t in dev.transitions]
+    assert states[-5:] == ["syncing", "flushing", "safe", "verifying", "in_step"]
+    rest = [decode(w, 32)[0].name for w in writes[len(probes) :]]
+    assert rest[:5] == ["PULSE_HEIGHT", "SENSE_HEIGHT", "ELECTRODE_NUM", "MEASURE", "PATTERN"]
     assert "PATTERN" not in rest[-1:] and rest[-1] == "PULSE_HEIGHT"
     s = port.emulator.state()
     assert s["rx_pending"] == 0 and s["electrode_num"] == 32 and s["pulse_height"] == 30

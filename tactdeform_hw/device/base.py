@@ -20,15 +20,18 @@ from __future__ import annotations
 
 import functools
 import threading
+from collections import deque
 import warnings
 from abc import ABC, abstractmethod
+from enum import Enum
 from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import Concatenate, ParamSpec, TypeVar
 
 from .. import protocol as p
-from ..clock import MonotonicClock
+from ..clock import InstantClock, MonotonicClock
 from ..errors import (
+    DeviceTimeoutError,
     LimitError,
     PortNotOpenError,
     ProtocolMisuseError,
@@ -42,6 +45,7 @@ from ..protocol.constants import (
     PATTERN_MONOPHASIC,
     PATTERN_SENSE,
     RX_QUEUE_SIZE,
+    USB_PACKET_SIZE,
 )
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
@@ -54,6 +58,7 @@ from .pacing import (
     command_like_payload,
     estimate_scan_us,
     firmware_period_us,
+    padding_for,
 )
 from .safety import SafetyGuard
 
@@ -65,6 +70,52 @@ _STATE_OPCODES = frozenset(
     {p.Opcode.PATTERN, p.Opcode.PULSE_HEIGHT, p.Opcode.PULSE_WIDTH, p.Opcode.SENSE_HEIGHT, p.Opcode.SENSE_WIDTH,
      p.Opcode.ELECTRODE_NUM, p.Opcode.POLARITY, p.Opcode.FREQUENCY}
 )
+
+
+class LinkState(str, Enum):
+    """What the driver has proved about the firmware's parser and receive queue (see ``docs/safety.md``).
+
+    Only in ``IN_STEP`` may a multi-byte value, an electrode count or a pattern be written.  Every other
+    state writes only bytes that no parser state can turn into a current — zeros, 0xF5, 0xFF, each behind
+    zeros that complete whatever command could be in progress — or heights of 0 once a reply has proved a
+    command boundary.
+    """
+
+    IN_STEP = "in_step"  # the parser reads our commands at their boundaries; the queue model runs
+    SUSPECT = "suspect"  # fresh open, failed write, short or late reply, reopened port, reset: nothing known
+    SYNCING = "syncing"  # zeros then 0xF5 written: waiting for the one-byte reply that proves a boundary
+    FLUSHING = "flushing"  # 0xF5 unanswered (swallowed by a pattern, or a slow parser): zeros in chunks
+    SAFE = "safe"  # boundary proved and queue drained: pulse height 0, sense height 0, electrode count
+    VERIFYING = "verifying"  # 0xFF written: the reply must be exactly 2 x electrode count bytes long
+    DRAINING = "draining"  # before the reset line: the last bytes read (proved) and none left on the link
+    RESETTING = "resetting"  # the reset line is pulsed
+    BOOTING = "booting"  # the firmware boots; nothing is written
+    FAILED = "failed"  # no proof within the attempts: a locked or hung parser (only the reset line helps)
+
+
+#: Which state may follow which (the recovery state machine; tests walk every edge).
+TRANSITIONS: dict[LinkState, frozenset[LinkState]] = {
+    LinkState.IN_STEP: frozenset({LinkState.SUSPECT, LinkState.DRAINING}),
+    LinkState.SUSPECT: frozenset({LinkState.SYNCING, LinkState.DRAINING, LinkState.SUSPECT}),
+    LinkState.SYNCING: frozenset({LinkState.SAFE, LinkState.FLUSHING, LinkState.SUSPECT}),
+    LinkState.FLUSHING: frozenset({LinkState.SAFE, LinkState.FAILED, LinkState.SUSPECT}),
+    LinkState.SAFE: frozenset({LinkState.VERIFYING, LinkState.IN_STEP, LinkState.SUSPECT}),
+    LinkState.VERIFYING: frozenset({LinkState.IN_STEP, LinkState.SUSPECT, LinkState.FAILED}),
+    LinkState.DRAINING: frozenset({LinkState.RESETTING, LinkState.SUSPECT}),
+    LinkState.RESETTING: frozenset({LinkState.BOOTING, LinkState.SUSPECT}),
+    LinkState.BOOTING: frozenset({LinkState.SUSPECT}),
+    LinkState.FAILED: frozenset({LinkState.SUSPECT, LinkState.DRAINING}),
+}
+
+#: Zeros in front of every probe byte: they complete a u8 or u16 command in progress (a zero height, a
+#: zero width or rate — which the firmware ignores), so the probe byte itself is read as a command; only a
+#: pattern in progress can take it, as one more level (a sense pulse at the sense height already in force).
+PROBE_LEAD_ZEROS = 4
+#: Zeros per chunk while flushing an unanswered parser (each chunk ends with 0xF5).
+FLUSH_CHUNK_ZEROS = 60
+#: Verification rounds (sync, safe, verify) before the recovery gives up.
+RECOVERY_ATTEMPTS = 2
+
 
 _D = TypeVar("_D", bound="Device")
 _P = ParamSpec("_P")
@@ -97,6 +148,12 @@ class Device(ABC):
     (wall-clock pacing by default); ``audit`` records every command sent.
     """
 
+    #: The firmware's boot after the reset line, during which nothing is written (an ESP32-S3 starts its
+    #: application well within this; bytes arriving earlier would be lost).
+    boot_s: float = 0.3
+    #: Extra wait for a reply while the alarm period is unknown (a board opened in an unknown state).
+    unknown_reply_s: float = 0.25
+
     def __init__(
         self,
         *,
@@ -120,7 +177,10 @@ class Device(ABC):
         self._last_pattern: bytes | None = None  # hardware order, as on the firmware
         self._requested: list[int] | None = None  # the caller's last frame, application order
         self._suspended = False
-        self._needs_resync = False
+        # nothing is known about a board just opened: the first write proves a command boundary first
+        self._link = LinkState.SUSPECT
+        self.transitions: deque[tuple[str, str, str]] = deque(maxlen=512)  # (from, to, why), the latest
+        self._recovery_write = False
         self.frames_sent = 0
         self.last_frame_time: float | None = None
         self.last_state_write: float | None = None  # the last write that changed what the scans deliver
@@ -153,6 +213,10 @@ class Device(ABC):
         """Pulse the board's reset line; False when the transport has none."""
         return False
 
+    def _can_reset(self) -> bool:
+        """Whether the transport has a reset line (asked before draining for a reset)."""
+        return False
+
     # --- state ---------------------------------------------------------------------------------------------
 
     @property
@@ -183,8 +247,24 @@ class Device(ABC):
 
     @property
     def needs_resync(self) -> bool:
-        """True after a failed write: the next frame is preceded by a resync."""
-        return self._needs_resync
+        """True until the device has proved its parser in step (after opening, a failed write, a short or
+        late reply, a reopened port or a reset): the next command is preceded by a closed-loop resync."""
+        return self._link is not LinkState.IN_STEP
+
+    @property
+    def link_state(self) -> LinkState:
+        """Where the recovery state machine stands (see :class:`LinkState`)."""
+        return self._link
+
+    @property
+    def _needs_resync(self) -> bool:
+        return self._link is not LinkState.IN_STEP
+
+    @_needs_resync.setter
+    def _needs_resync(self, value: bool) -> None:
+        # a fail-safe (or a signal handler) that saw a timeout, a bad readback or a cut write says so here
+        if value:
+            self._suspect("marked for resync")
 
     @property
     def suspended(self) -> bool:
@@ -245,29 +325,48 @@ class Device(ABC):
         if self.pacer.robust:
             self._check_robust(config)
         n = config.electrode_count
+        if self._needs_resync:
+            self._flush_parser()
         old = self._config
         new_period = firmware_period_us(config.rate_hz)
         idle_scan = self._scan_of(config, bytes(n))
-        if old is None or self._scan_us is None:
-            self.pacer.set_timing(max(new_period, 10_000.0) / 1e6, None if old is None else self._worst_scan_s(old))
-        else:
-            self.pacer.set_timing(firmware_period_us(old.rate_hz) / 1e6, max(self._scan_us, idle_scan) / 1e6)
-        if self._needs_resync:
-            self._flush_parser()
-        self._send(p.encode_pulse_height(0))
+        # until the new rate and widths are read, the old ones run: pace for the slower of the two
+        timings = [(new_period, idle_scan)]
+        if old is not None:
+            before = self._scan_us if self._scan_us is not None else self._worst_scan_s(old) * 1e6
+            timings.append((firmware_period_us(old.rate_hz), max(before, self._scan_of(old, bytes(old.electrode_count)))))
+        elif self.pacer.period_s is not None and self.pacer.scan_s is not None:
+            timings.append((self.pacer.period_s * 1e6, self.pacer.scan_s * 1e6))  # from the resync
+        # nothing known of the firmware's timing (a board just opened): every command is proved read
+        # before the next, until the new rate is in force
+        lockstep = old is None and (self.pacer.period_s is None or self.pacer.scan_s is None)
+        self._pace_for(timings)
+
+        def send(data: bytes) -> None:
+            self._send(data)
+            if lockstep:
+                self._prove()
+
+        send(p.encode_pulse_height(0))
         self._current_ua = 0
         if self._config is not None:
-            self._send(p.encode_pattern(bytes(self._config.electrode_count)))
-        self._send(p.encode_sense_height(0))
-        self._send(p.encode_electrode_num(n))
-        self._send(p.encode_pattern(bytes(n)))
+            send(p.encode_pattern(bytes(self._config.electrode_count)))
+        send(p.encode_sense_height(0))
+        send(p.encode_electrode_num(n))
+        send(p.encode_pattern(bytes(n)))
         self._last_pattern = bytes(n)
-        self._send(p.encode_polarity(POLARITY_CODE[config.polarity]))
-        self._send(p.encode_pulse_width(config.pulse_width_us))
-        self._send(p.encode_sense_width(config.sense_width_us))
-        self._send(p.encode_discharge(config.discharge_us))
-        self._send(p.encode_frequency(config.rate_hz))
-        self._send(p.encode_sense_height(sense_code(config.sense_current_ua, self.transfer)))
+        # a longer period goes first and a shorter one last, so no scan of the new widths meets the old,
+        # shorter period (the board's own period is unknown after opening or a reset: 10 ms at power-on)
+        longer = old is None or new_period >= firmware_period_us(old.rate_hz)
+        if longer:
+            send(p.encode_frequency(config.rate_hz))
+        send(p.encode_polarity(POLARITY_CODE[config.polarity]))
+        send(p.encode_pulse_width(config.pulse_width_us))
+        send(p.encode_sense_width(config.sense_width_us))
+        send(p.encode_discharge(config.discharge_us))
+        if not longer:
+            send(p.encode_frequency(config.rate_hz))
+        send(p.encode_sense_height(sense_code(config.sense_current_ua, self.transfer)))
         height = self._encodable(
             self.guard.frame_height(None, config.current_ua, 0, config.pulse_width_us, raise_when_idle=True)
         )
@@ -278,6 +377,8 @@ class Device(ABC):
         self._requested = None
         self._suspended = False
         self._scan_us = idle_scan
+        # the new timing is the pacer's only once the device proves it has read every command above
+        self._prove()
         self.pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
 
     @_locked
@@ -372,7 +473,7 @@ class Device(ABC):
             return
         n = self._config.electrode_count
         if self._needs_resync:
-            self._flush_parser()
+            self._flush_parser()  # closed loop: heights 0 and every channel off once the device proves it
         self._send_critical(p.encode_pattern(bytes(n)))
         self._send_critical(p.encode_pulse_height(0))
         self._last_pattern = bytes(n)
@@ -389,25 +490,36 @@ class Device(ABC):
 
     @_locked
     def measure(self) -> list[int]:
-        """ADC codes (``raw >> 2``) of each hardware channel's last pulse, in hardware channel order."""
+        """ADC codes (``raw >> 2``) of each hardware channel's last pulse, in hardware channel order.  A
+        reply of the right length proves the parser read everything written before the request."""
         cfg = self._require_config("measure")
         n = cfg.electrode_count
+        if self._needs_resync:
+            self._flush_parser()
         self._discard_input()
-        self._send(p.MEASURE_REQUEST)
-        data = self._read_exact(2 * n, "measure")
+        mark = self._send_marked(p.MEASURE_REQUEST)
+        data = self._await_reply(2 * n)
+        if len(data) != 2 * n:
+            self._suspect("short reply to 0xFF")
+            raise ShortReplyError("measure", 2 * n, data)
+        self.pacer.proven(mark)
         return p.parse_measure_reply(data, n)
 
     @_locked
     def probe(self) -> bool:
         """Is the firmware's parser in step?  A measure request must be answered with exactly two bytes
         per channel; a parser that swallowed it as payload, a locked one, or one rebooted to electrode
-        count 0 does not.  A failed probe marks the device for a resync (and returns False)."""
+        count 0 does not.  A failed probe (or a device not yet proved in step) marks the device for a
+        resync and returns False."""
+        self._check_open()
+        if self._needs_resync:
+            return False
         if self._config is None:
             return True
         try:
             self.measure()
-        except (ShortReplyError, LimitError):
-            self._needs_resync = True
+        except (ShortReplyError, LimitError, DeviceTimeoutError):
+            self._suspect("probe failed")
             return False
         return True
 
@@ -415,23 +527,30 @@ class Device(ABC):
     def hv513_count(self) -> int:
         """Ask the board how many HV513 chips it detects (this re-initialises their outputs)."""
         self._check_open()
+        if self._needs_resync:
+            self._flush_parser()
         self._discard_input()
-        self._send(p.HV513_COUNT_REQUEST)
-        return p.parse_hv513_reply(self._read_exact(1, "hv513_count"))
+        mark = self._send_marked(p.HV513_COUNT_REQUEST)
+        data = self._await_reply(1)
+        if len(data) != 1:
+            self._suspect("short reply to 0xF5")
+            raise ShortReplyError("hv513_count", 1, data)
+        self.pacer.proven(mark)
+        return p.parse_hv513_reply(data)
 
     @_locked
     def resync(self) -> None:
-        """Bring a parser of unknown state back in step, in the order the protocol reference gives:
-        256 zeros finish any command in progress; then pulse height 0 and the sense height 0 (a zero may
-        have landed as the high byte of a half-received u16, so the height could be anything) and an
-        all-off pattern — preceded by the electrode count, because a zero may have landed as electrode
-        count 0 and a pattern then would lock the parser; then the whole configuration again.  No pattern
-        follows: the caller's next frame (or keepalive) brings it back, ramped from 0.
+        """Bring a parser of unknown state back in step, closed loop (see :meth:`_flush_parser`): the
+        device proves a command boundary and an empty queue, pulse height and sense height go to 0, the
+        electrode count is written and proved by the length of a measure reply, every channel goes off;
+        then the whole configuration again.  No pattern follows: the caller's next frame (or keepalive)
+        brings it back, ramped from 0.
 
         Without a configuration (a fresh session on a board in unknown state) the electrode count is
         unknown, so no pattern can be sent safely; pulse height 0 and sense height 0 already stop every
         current the firmware can deliver."""
         self._check_open()
+        self._suspect("resync")
         self._flush_parser()
         cfg = self._config
         if cfg is not None:
@@ -441,71 +560,150 @@ class Device(ABC):
                 self.configure(cfg.with_current(self._target_ua))
             except BaseException:
                 self._config = cfg  # still the session's configuration: the next resync tries again
-                self._needs_resync = True
+                self._suspect("configure after resync failed")
                 raise
             self._requested = requested
             self._suspended = requested is not None
-        self._needs_resync = False
 
     def _flush_parser(self) -> None:
-        self._needs_resync = True
+        """The closed-loop recovery: SUSPECT → SYNCING (→ FLUSHING) → SAFE → VERIFYING → IN_STEP.
+
+        * SYNCING: zeros then 0xF5.  The one-byte reply proves the parser read 0xF5 as a command — so it was
+          at a command boundary — and read every byte written before it: the queue model is proved empty.
+        * FLUSHING: no reply (a pattern in progress took 0xF5 as a level, or the parser is slow or
+          locked): chunks of zeros, each ending with 0xF5, until one is answered or a whole pattern's worth
+          of zeros went unanswered (FAILED: a locked or hung parser; only the reset line helps).
+        * SAFE: pulse height 0, sense height 0 and the electrode count, each with the loss-tolerant
+          padding so that one lost byte still cannot make a current.
+        * VERIFYING: 0xFF must be answered with exactly 2 × electrode count bytes — the count is in force,
+          so a pattern now cannot lock the parser; then an all-off pattern.
+
+        Time alone never proves anything here: each deadline only decides when to stop waiting for a
+        proof.
+        """
         cfg = self._config
-        # pace for the last pattern known to be in force (a fault on the link rarely lengthens the scan, and
-        # pacing too fast here costs only skipped zeros and a failed probe); unknown: every channel active
+        n = cfg.electrode_count if cfg is not None else 0
         if cfg is not None:
-            last = self._scan_us / 1e6 if self._scan_us is not None else self._worst_scan_s(cfg)
-            self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, last)
+            self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, self._worst_scan_s(cfg))
         else:
             self.pacer.set_timing(None, None)
-        self._send(bytes(RX_QUEUE_SIZE))
-        self._send(p.encode_pulse_height(0))
-        self._current_ua = 0
-        self._send(p.encode_sense_height(0))
-        cfg = self._config
-        self._last_pattern = None
-        if cfg is not None:
-            n = cfg.electrode_count
-            self._send(p.encode_electrode_num(n))
-            self._send(p.encode_pattern(bytes(n)))
-            self._last_pattern = bytes(n)
-            self._scan_us = self._scan_of(cfg, bytes(n))
-            self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, self._scan_us / 1e6)
-        self._needs_resync = False
+        for attempt in range(1, RECOVERY_ATTEMPTS + 1):
+            if self._link is not LinkState.SUSPECT:
+                self._enter(LinkState.SUSPECT, f"recovery attempt {attempt}")
+            self._discard_input()
+            self._sync()
+            self._enter(LinkState.SAFE, "0xF5 answered: command boundary, queue drained")
+            self._recovery_send(p.encode_pulse_height(0))
+            self._current_ua = 0
+            self._recovery_send(p.encode_sense_height(0))
+            self._last_pattern = None
+            if cfg is None:
+                self._enter(LinkState.IN_STEP, "heights 0; no electrode count to prove")
+                return
+            self._recovery_send(p.encode_electrode_num(n))
+            self._enter(LinkState.VERIFYING, f"electrode count {n} written")
+            self._discard_input()
+            mark = self._recovery_send(p.MEASURE_REQUEST)  # the padding above ends every command before it
+            reply = self._await_reply(2 * n)
+            if len(reply) == 2 * n:
+                self.pacer.proven(mark)
+                self._enter(LinkState.IN_STEP, f"0xFF answered with {2 * n} bytes")
+                break
+            if attempt == RECOVERY_ATTEMPTS:
+                self._enter(LinkState.FAILED, f"0xFF answered with {len(reply)} of {2 * n} bytes")
+                raise ShortReplyError("measure after resync", 2 * n, reply)
+            self._enter(LinkState.SUSPECT, f"0xFF answered with {len(reply)} of {2 * n} bytes")
+        assert cfg is not None
+        self._send(p.encode_pattern(bytes(n)))
+        self._last_pattern = bytes(n)
+        self._scan_us = self._scan_of(cfg, bytes(n))
+        self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, self._scan_us / 1e6)
+
+    def _sync(self) -> None:
+        """SYNCING, then FLUSHING if need be; returns in SAFE's entry condition or raises (FAILED)."""
+        self._enter(LinkState.SYNCING, "zeros and 0xF5")
+        first = self._recovery_send(bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST)
+        if self._await_reply(1):
+            self.pacer.proven(first)
+            return
+        self._enter(LinkState.FLUSHING, "0xF5 unanswered")
+        zeros = 0
+        while zeros < RX_QUEUE_SIZE + FLUSH_CHUNK_ZEROS:
+            self._recovery_send(bytes(FLUSH_CHUNK_ZEROS) + p.HV513_COUNT_REQUEST)
+            zeros += FLUSH_CHUNK_ZEROS
+            if self._await_reply(1):
+                # some 0xF5 of this recovery was read as a command, so every byte before the first one was
+                # read; later ones may still answer (stale bytes the next request discards)
+                self.pacer.proven(first)
+                return
+        self._enter(LinkState.FAILED, f"0xF5 unanswered after {zeros + PROBE_LEAD_ZEROS} zeros")
+        raise ShortReplyError("0xF5 after resync zeros (parser locked or hung: reset the board)", 1, b"")
 
     @_locked
     def reconnect(self) -> None:
         """Reopen the link after it failed, then resynchronise before any pattern (the firmware may still
-        hold a half-received command from before the failure)."""
+        hold a half-received command from before the failure, and the bytes written before it may still
+        be in its queue: they are not assumed gone)."""
         self._check_open()
+        self._suspect("reconnect")
         self._reopen_transport()
         self.guard.mark_unknown()
-        self.pacer.reset()
         self._scan_us = None
-        self._needs_resync = True
         self.resync()
 
     @_locked
     def hardware_reset(self) -> bool:
         """Reset the board through its reset line — the only way to reach a locked parser — and bring it
-        back to the configuration.  False when the transport has no reset line."""
+        back to the configuration: DRAINING (a reply proves the queue read, if the parser answers; and
+        nothing of ours is left on the link, so no pattern lands on the freshly reset firmware whose
+        electrode count is 0), RESETTING, BOOTING (``boot_s``, nothing written), then the closed-loop
+        resync.  False when the transport has no reset line."""
         self._check_open()
+        if not self._can_reset():
+            return False
+        in_step = self._link is LinkState.IN_STEP
+        self._enter(LinkState.DRAINING, "hardware_reset")
+        self._drain(in_step)
+        self._enter(LinkState.RESETTING, "nothing left on the link")
         if not self._reset_transport():
+            self._enter(LinkState.SUSPECT, "no reset line after all")
             return False
         self.guard.mark_unknown()
-        self.pacer.reset()
+        self._current_ua = 0
+        self._last_pattern = None
         self._scan_us = 0.0  # power-on: electrode count 0, nothing to scan
-        self._needs_resync = True
+        self._enter(LinkState.BOOTING, "reset line pulsed")
+        self.pacer.wait_until(self.pacer.clock.now() + self.boot_s)
+        self._enter(LinkState.SUSPECT, f"booted ({self.boot_s * 1e3:g} ms)")
         self.resync()
         return True
 
+    def _drain(self, in_step: bool) -> None:
+        if in_step:
+            # in step: 0xF5 alone is read as a command; its reply proves the queue read
+            try:
+                self._discard_input()
+                mark = self._recovery_send(p.HV513_COUNT_REQUEST)
+                if self._await_reply(1):
+                    self.pacer.proven(mark)
+            except TransportError:
+                pass  # a port that failed: the reset is the remedy
+        self.pacer.wait_until(self.pacer.arrived_by() + self.pacer.policy.link_latency_s)
+
     @_locked
     def close(self) -> None:
-        """All channels off, then release the port.  Safe to call twice."""
+        """All channels off, then — if the parser is in step — a reply that proves the queue read (so the
+        next program to open the board finds it empty), then release the port.  Safe to call twice."""
         if self._closed:
             return
         try:
             if self._config is not None:
                 self.all_off()
+            if self._link is LinkState.IN_STEP:
+                self._discard_input()
+                mark = self._send_marked(p.HV513_COUNT_REQUEST)
+                if self._await_reply(1):
+                    self.pacer.proven(mark)
         finally:
             self._closed = True
             self._close_transport()
@@ -527,13 +725,19 @@ class Device(ABC):
 
     # --- helpers -------------------------------------------------------------------------------------------
 
-    def _send(self, data: bytes) -> None:
-        """The one exit for bytes: interlock, pacing, transport, audit.  A failed write leaves the
-        firmware's state unknown, so the interlock forgets it and the next frame resyncs first."""
+    def _send(self, data: bytes, *, pad: bool | None = None) -> None:
+        """The one exit for bytes: gate, interlock, pacing, transport, audit.  Outside the recovery's own
+        writes nothing leaves unless the parser is proved in step (:class:`LinkState`).  A failed write
+        leaves the firmware's state unknown, so the interlock forgets it and the next frame resyncs first."""
         self._check_open()
         data = bytes(data)
         if not data:
             return
+        if self._link is not LinkState.IN_STEP and not self._recovery_write:
+            raise ProtocolMisuseError(
+                f"0x{data[0]:02X} while the firmware's parser is not proved in step ({self._link.value}): "
+                "resync first"
+            )
         shadow = self.guard.check_wire(data, mapping=self.mapping, transfer=self.transfer)
         audit = self._audit
         op = self._op or ""
@@ -553,14 +757,88 @@ class Device(ABC):
                 audit.tx(chunk, t=self.pacer.clock.now(), op=op, logical=logical)
 
         try:
-            self.pacer.write(write, data)
+            self.pacer.write(write, data, pad=pad)
         except BaseException:
             self.guard.mark_unknown()
-            self._needs_resync = True
+            self._suspect("write failed")
             raise
         changed = self.guard.commit(shadow)
         if changed and (data[0] in _STATE_OPCODES or data[0] < COMMAND_BYTE_MIN):
             self.last_state_write = self.pacer.clock.now()  # a rewrite of the same state does not count
+
+    def _enter(self, state: LinkState, why: str) -> None:
+        """One transition of the recovery state machine (only those in :data:`TRANSITIONS`)."""
+        old = self._link
+        if state not in TRANSITIONS[old]:
+            raise ProtocolMisuseError(f"recovery: no transition from {old.value} to {state.value} ({why})")
+        if state is LinkState.SUSPECT:
+            self.pacer.suspect()
+        self._link = state
+        self.transitions.append((old.value, state.value, why))
+
+    def _suspect(self, why: str) -> None:
+        """Whatever the state, nothing is proved any more (the queue model freezes too)."""
+        self.pacer.suspect()
+        if self._link is not LinkState.SUSPECT:
+            self._enter(LinkState.SUSPECT, why)
+
+    def _recovery_send(self, data: bytes) -> int:
+        """A write of the recovery itself (always with the loss-tolerant padding); the written offset just
+        past it, for :meth:`Pacer.proven`."""
+        self._recovery_write = True
+        try:
+            self._send(data, pad=True)
+        finally:
+            self._recovery_write = False
+        return self.pacer.offset
+
+    def _prove(self) -> None:
+        """In step: 0xF5, whose reply proves every byte written before it read (and empties the queue
+        model).  No reply: the device is marked for a resync and :class:`ShortReplyError` raised."""
+        self._discard_input()
+        mark = self._send_marked(p.HV513_COUNT_REQUEST)
+        reply = self._await_reply(1)
+        if len(reply) != 1:
+            self._suspect("0xF5 unanswered")
+            raise ShortReplyError("hv513 count (proof that the queue was read)", 1, reply)
+        self.pacer.proven(mark)
+
+    def _pace_for(self, timings: Sequence[tuple[float, float]]) -> None:
+        """Pace for the slowest of several (period µs, scan µs) that may be in force."""
+
+        def cost(t: tuple[float, float]) -> tuple[float, float]:
+            self.pacer.set_timing(t[0] / 1e6, t[1] / 1e6)
+            return (self.pacer.payload_interval_s(), self.pacer.skip_s(USB_PACKET_SIZE))
+
+        period_us, scan_us = max(timings, key=cost)
+        self.pacer.set_timing(period_us / 1e6, scan_us / 1e6)
+
+    def _send_marked(self, data: bytes) -> int:
+        self._send(data)
+        return self.pacer.offset
+
+    def _reply_slack_s(self, size: int) -> float:
+        """How long after the queue model's worst drain time a reply of ``size`` bytes may still come:
+        its transfer, two alarm periods (a scan may hold the parser just as it gets to the request), and
+        more when the period is unknown."""
+        period = self.pacer.period_s
+        extra = 2 * period if period is not None else self.unknown_reply_s
+        return 0.005 + size * self.pacer.policy.byte_s + extra
+
+    def _await_reply(self, size: int) -> bytes:
+        """Read up to ``size`` bytes until the reply's deadline (the worst case, not the typical)."""
+        if size <= 0:
+            return b""
+        clock = self.pacer.clock
+        deadline = self.pacer.drained_by() + self._reply_slack_s(size)
+        got = bytearray()
+        while True:
+            chunk = self._read(size - len(got))
+            got += chunk
+            if len(got) >= size or isinstance(clock, InstantClock) or clock.now() >= deadline:
+                return bytes(got)
+            if not chunk:
+                clock.sleep(0.001)
 
     def _frame(self, levels: Sequence[int], *, force_pattern: bool) -> None:
         """Put one application-order frame on the firmware: height down first, pattern, height up last."""
@@ -593,10 +871,10 @@ class Device(ABC):
         return estimate_scan_us(hw, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us)
 
     def _worst_scan_s(self, cfg: StimConfig) -> float:
-        """The longest scan a frame the guard allows can have (every channel active, just within the
+        """The longest scan a frame the guard allows can have (every channel biphasic, just within the
         period): what to pace for when the firmware's pattern is unknown."""
         period = firmware_period_us(cfg.rate_hz)
-        full = self._scan_of(cfg, bytes([1]) * cfg.electrode_count)
+        full = self._scan_of(cfg, bytes([PATTERN_BIPHASIC]) * cfg.electrode_count)  # two phases: the longest
         return min(full, period - SCAN_GAP_MIN_US) / 1e6
 
     def _send_critical(self, data: bytes) -> None:

@@ -109,6 +109,14 @@ class EtactileKitDevice(Device):
         except self._errors as exc:
             raise DeviceGoneError(f"cannot reopen {getattr(self.port, 'port', self.port)!s}: {exc}") from exc
 
+    def _can_reset(self) -> bool:
+        if callable(getattr(self.port, "pulse_reset", None)):
+            return True
+        emulator = getattr(self.port, "emulator", None)
+        if emulator is not None and callable(getattr(emulator, "reset", None)):
+            return True
+        return hasattr(self.port, "rts") and hasattr(self.port, "dtr")
+
     def _reset_transport(self) -> bool:
         """A port that models the reset line offers ``pulse_reset``; the in-process emulator is reset
         directly; a real ESP32-S3 on its USB Serial/JTAG port is held in reset while RTS is asserted with
