@@ -236,6 +236,8 @@ COVERED = {
     "link_state": "property",
     "boot_s": "a wait before the first byte after a reset",
     "unknown_reply_s": "a wait for a reply",
+    "resync_bound_s": "arithmetic, no bytes",
+    "unproved_spans": "a record, no bytes",
     "suspended": "property",
     "stimulating": "property",
     "closed": "property",
@@ -284,16 +286,17 @@ def test_resync_follows_the_protocol_reference_order() -> None:
     n = len(port.writes)
     dev.resync()
     writes = port.writes[n:]
-    probes = [w for w in writes if w[0] == 0]  # zeros, each run ending with 0xF5 (the proof request)
-    assert all(w[-1] == 0xF5 and not any(w[:-1]) for w in probes)
-    assert writes[: len(probes)] == probes  # nothing before a reply proved a command boundary
-    assert sum(len(w) - 1 for w in probes) >= 20  # enough zeros to finish the cut pattern
-    # 0xF5 went into the cut pattern (no reply) until the zeros had finished it
-    states = [t[1] for t in dev.transitions]
+    k = next(i for i, w in enumerate(writes) if w[0] == 0xFB)
+    probes = b"".join(writes[:k])  # nothing but zeros and requests before a reply proved a boundary
+    assert set(probes) <= {0x00, 0xF5, 0xFF} and probes[-1] in (0xF5, 0xFF) and probes[0] == 0
+    assert probes.count(0) >= 20  # enough zeros to finish the cut pattern
+    # the request went into the cut pattern (no reply) until the zeros had finished it
+    states = [t[2] for t in dev.transitions]
     assert states[-5:] == ["syncing", "flushing", "safe", "verifying", "in_step"]
-    rest = [decode(w, 32)[0].name for w in writes[len(probes) :]]
+    rest = [decode(w, 32)[0].name for w in writes[k:]]
     assert rest[:5] == ["PULSE_HEIGHT", "SENSE_HEIGHT", "ELECTRODE_NUM", "MEASURE", "PATTERN"]
-    assert "PATTERN" not in rest[-1:] and rest[-1] == "PULSE_HEIGHT"
+    assert rest[-1] == "MEASURE"  # the configuration proved read
+    assert [x for x in rest if x != "MEASURE"][-1] == "PULSE_HEIGHT"  # no pattern after the configuration
     s = port.emulator.state()
     assert s["rx_pending"] == 0 and s["electrode_num"] == 32 and s["pulse_height"] == 30
     assert s["stim_pattern"][:32] == [0] * 32  # no pattern until the caller's next frame

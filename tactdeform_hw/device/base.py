@@ -29,7 +29,7 @@ from types import TracebackType
 from typing import Concatenate, ParamSpec, TypeVar
 
 from .. import protocol as p
-from ..clock import InstantClock, MonotonicClock
+from ..clock import InstantClock, MonotonicClock, SimulatedClock
 from ..errors import (
     DeviceTimeoutError,
     LimitError,
@@ -54,6 +54,7 @@ from .mapping import ChannelMapping
 from .pacing import (
     COMMAND_BYTE_MIN,
     SCAN_GAP_MIN_US,
+    HV513_DETECT_US,
     Pacer,
     command_like_payload,
     estimate_scan_us,
@@ -111,8 +112,11 @@ TRANSITIONS: dict[LinkState, frozenset[LinkState]] = {
 #: zero width or rate — which the firmware ignores), so the probe byte itself is read as a command; only a
 #: pattern in progress can take it, as one more level (a sense pulse at the sense height already in force).
 PROBE_LEAD_ZEROS = 4
-#: Zeros per chunk while flushing an unanswered parser (each chunk ends with 0xF5).
-FLUSH_CHUNK_ZEROS = 60
+#: Commands of one frame under robust encoding (height, pattern, pattern again): what may still be in
+#: flight when a recovery starts.
+FRAME_COMMANDS = 3
+#: How often a reply is polled while its deadline runs.
+REPLY_POLL_S = 0.0005
 #: Verification rounds (sync, safe, verify) before the recovery gives up.
 RECOVERY_ATTEMPTS = 2
 
@@ -179,8 +183,11 @@ class Device(ABC):
         self._suspended = False
         # nothing is known about a board just opened: the first write proves a command boundary first
         self._link = LinkState.SUSPECT
-        self.transitions: deque[tuple[str, str, str]] = deque(maxlen=512)  # (from, to, why), the latest
+        # (time s, from, to, why) of the latest transitions: the driver's own record of when it knew the
+        # firmware's state and when it did not
+        self.transitions: deque[tuple[float, str, str, str]] = deque(maxlen=4096)
         self._recovery_write = False
+        self._after_reset = False  # the reset line was pulsed: the firmware's electrode count is 0
         self.frames_sent = 0
         self.last_frame_time: float | None = None
         self.last_state_write: float | None = None  # the last write that changed what the scans deliver
@@ -201,6 +208,11 @@ class Device(ABC):
     @abstractmethod
     def _close_transport(self) -> None:
         """Release the port."""
+
+    def _waiting(self) -> int | None:
+        """Bytes from the device waiting to be read, if the transport can tell (then replies are polled
+        to their deadline instead of read with the port's own timeout)."""
+        return None
 
     def _discard_input(self) -> None:  # noqa: B027 - optional hook, a no-op by default
         """Drop stale bytes waiting from the device (optional for transports)."""
@@ -342,10 +354,14 @@ class Device(ABC):
         lockstep = old is None and (self.pacer.period_s is None or self.pacer.scan_s is None)
         self._pace_for(timings)
 
+        in_force = [self._config.electrode_count if self._config is not None else 0]
+
         def send(data: bytes) -> None:
             self._send(data)
-            if lockstep:
-                self._prove()
+            if data[0] == p.Opcode.ELECTRODE_NUM:
+                in_force[0] = data[1]
+            elif lockstep:  # never between the count and its all-off pattern (stale channels)
+                self._prove(in_force[0])
 
         send(p.encode_pulse_height(0))
         self._current_ua = 0
@@ -378,7 +394,7 @@ class Device(ABC):
         self._suspended = False
         self._scan_us = idle_scan
         # the new timing is the pacer's only once the device proves it has read every command above
-        self._prove()
+        self._prove(n)
         self.pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
 
     @_locked
@@ -583,16 +599,14 @@ class Device(ABC):
         """
         cfg = self._config
         n = cfg.electrode_count if cfg is not None else 0
-        if cfg is not None:
-            self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, self._worst_scan_s(cfg))
-        else:
-            self.pacer.set_timing(None, None)
+        self.pacer.set_timing(*self._recovery_timing())
         for attempt in range(1, RECOVERY_ATTEMPTS + 1):
             if self._link is not LinkState.SUSPECT:
                 self._enter(LinkState.SUSPECT, f"recovery attempt {attempt}")
             self._discard_input()
-            self._sync()
-            self._enter(LinkState.SAFE, "0xF5 answered: command boundary, queue drained")
+            self._sync(0 if self._after_reset else n)
+            self._after_reset = False
+            self._enter(LinkState.SAFE, "answered: command boundary, queue drained")
             self._recovery_send(p.encode_pulse_height(0))
             self._current_ua = 0
             self._recovery_send(p.encode_sense_height(0))
@@ -619,25 +633,88 @@ class Device(ABC):
         self._scan_us = self._scan_of(cfg, bytes(n))
         self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, self._scan_us / 1e6)
 
-    def _sync(self) -> None:
-        """SYNCING, then FLUSHING if need be; returns in SAFE's entry condition or raises (FAILED)."""
-        self._enter(LinkState.SYNCING, "zeros and 0xF5")
-        first = self._recovery_send(bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST)
-        if self._await_reply(1):
-            self.pacer.proven(first)
-            return
-        self._enter(LinkState.FLUSHING, "0xF5 unanswered")
-        zeros = 0
-        while zeros < RX_QUEUE_SIZE + FLUSH_CHUNK_ZEROS:
-            self._recovery_send(bytes(FLUSH_CHUNK_ZEROS) + p.HV513_COUNT_REQUEST)
-            zeros += FLUSH_CHUNK_ZEROS
-            if self._await_reply(1):
-                # some 0xF5 of this recovery was read as a command, so every byte before the first one was
-                # read; later ones may still answer (stale bytes the next request discards)
+    def _sync(self, electrodes: int) -> None:
+        """SYNCING, then FLUSHING if need be; returns in SAFE's entry condition or raises (FAILED).
+
+        When the firmware should hold ``electrodes`` >= 1, the request behind the zeros is 0xFF: a reply of
+        exactly 2 × ``electrodes`` bytes proves a command boundary and the queue read, cheaply.  Otherwise
+        (and after a reset, whose electrode count is 0) it is 0xF5, which always answers one byte but
+        costs the board a millisecond of detection.  Unanswered: 256 zeros finish any pattern in
+        progress, and the same request again must be answered (0xFF answered with another length proves
+        a boundary too; 0xFF unanswered is followed by 0xF5, as a zero may have set the count to 0)."""
+        self._enter(LinkState.SYNCING, "zeros and a request")
+        if electrodes >= 1:
+            first = self._recovery_send(bytes(PROBE_LEAD_ZEROS) + p.MEASURE_REQUEST)
+            if len(self._await_reply(2 * electrodes)) == 2 * electrodes:
                 self.pacer.proven(first)
                 return
-        self._enter(LinkState.FAILED, f"0xF5 unanswered after {zeros + PROBE_LEAD_ZEROS} zeros")
+            self._discard_input()
+            why = "0xFF unanswered or answered short"
+        else:
+            first = self._recovery_send(bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST)
+            if self._await_reply(1):
+                self.pacer.proven(first)
+                return
+            why = "0xF5 unanswered"
+        self._enter(LinkState.FLUSHING, why)
+        if electrodes >= 1:
+            # 0xFF again: cheap, and its length proves the count
+            self._recovery_send(bytes(RX_QUEUE_SIZE) + p.MEASURE_REQUEST)
+            reply = self._await_reply(2 * electrodes)
+            if len(reply) == 2 * electrodes:
+                self.pacer.proven(first)
+                return
+            if reply:  # answered, but not for this electrode count: SAFE writes the count, VERIFY checks it
+                self.pacer.proven(first)
+                self._discard_input()
+                return
+            # silence: a hung or locked parser — or a zero that landed as electrode count 0 (0xFF then
+            # answers nothing): only 0xF5 tells them apart
+            lead = PROBE_LEAD_ZEROS
+        else:
+            lead = RX_QUEUE_SIZE
+        self._recovery_send(bytes(lead) + p.HV513_COUNT_REQUEST)
+        if self._await_reply(1):
+            # some 0xF5 of this recovery was read as a command, so every byte before the first one was
+            # read; the other may still answer (a stale byte the next request discards)
+            self.pacer.proven(first)
+            return
+        self._enter(LinkState.FAILED, f"unanswered after {RX_QUEUE_SIZE + PROBE_LEAD_ZEROS} zeros")
         raise ShortReplyError("0xF5 after resync zeros (parser locked or hung: reset the board)", 1, b"")
+
+    def _recovery_timing(self) -> tuple[float | None, float | None]:
+        """(period s, scan s) to pace and time the recovery for: the scan of the pattern last sent (a
+        pattern the host does not know — after a reset, a reconnect, or before any — counts as every
+        channel biphasic).  Should a fault have left a longer scan in force, zeros and 0xF5 may be lost:
+        the proof then fails and the reset line follows — the safe direction."""
+        cfg = self._config
+        if cfg is None:
+            return None, None
+        scan = self._scan_us / 1e6 if self._scan_us is not None else self._worst_scan_s(cfg)
+        return firmware_period_us(cfg.rate_hz) / 1e6, scan
+
+    def resync_bound_s(self) -> float:
+        """The longest a resync that fails waits for its proofs at the configuration
+        in force: the request behind the zeros, then 256 zeros and the request again (and 0xF5 after
+        0xFF), each until its deadline, behind one frame still in flight.  What a fail-safe adds to its recovery time before it
+        reaches for the reset line."""
+        cfg = self._config
+        n = cfg.electrode_count if cfg is not None else 0
+        clock = SimulatedClock()
+        scratch = Pacer(clock=clock, policy=self.pacer.policy)
+        scratch.set_timing(*self._recovery_timing())
+        request, reply = (p.MEASURE_REQUEST, 2 * n) if n else (p.HV513_COUNT_REQUEST, 1)
+        for _ in range(FRAME_COMMANDS):  # a frame still in flight ahead of the recovery
+            scratch.write(lambda _chunk: None, p.encode_pulse_height(0))
+        steps = [(bytes(PROBE_LEAD_ZEROS) + request, reply), (bytes(RX_QUEUE_SIZE) + request, reply)]
+        if n:
+            steps.append((bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST, 1))
+        for data, reply in steps:
+            scratch.write(lambda _chunk: None, data)
+            period = scratch.period_s if scratch.period_s is not None else self.unknown_reply_s
+            deadline = scratch.drained_by() + 0.003 + reply * scratch.policy.byte_s + period
+            clock.advance(deadline - clock.now() + REPLY_POLL_S)
+        return clock.now()
 
     @_locked
     def reconnect(self) -> None:
@@ -672,6 +749,7 @@ class Device(ABC):
         self._current_ua = 0
         self._last_pattern = None
         self._scan_us = 0.0  # power-on: electrode count 0, nothing to scan
+        self._after_reset = True
         self._enter(LinkState.BOOTING, "reset line pulsed")
         self.pacer.wait_until(self.pacer.clock.now() + self.boot_s)
         self._enter(LinkState.SUSPECT, f"booted ({self.boot_s * 1e3:g} ms)")
@@ -680,14 +758,16 @@ class Device(ABC):
 
     def _drain(self, in_step: bool) -> None:
         if in_step:
-            # in step: 0xF5 alone is read as a command; its reply proves the queue read
+            # in step: a request alone is read as a command; its reply proves the queue read
+            self._recovery_write = True
             try:
-                self._discard_input()
-                mark = self._recovery_send(p.HV513_COUNT_REQUEST)
-                if self._await_reply(1):
-                    self.pacer.proven(mark)
-            except TransportError:
-                pass  # a port that failed: the reset is the remedy
+                self._prove(self._config.electrode_count if self._config is not None else 0)
+            except (TransportError, ShortReplyError):
+                # no proof: the reset is the remedy, after the link has surely delivered everything
+                if self._link is not LinkState.DRAINING:
+                    self._enter(LinkState.DRAINING, "no proof: reset anyway")
+            finally:
+                self._recovery_write = False
         self.pacer.wait_until(self.pacer.arrived_by() + self.pacer.policy.link_latency_s)
 
     @_locked
@@ -700,10 +780,10 @@ class Device(ABC):
             if self._config is not None:
                 self.all_off()
             if self._link is LinkState.IN_STEP:
-                self._discard_input()
-                mark = self._send_marked(p.HV513_COUNT_REQUEST)
-                if self._await_reply(1):
-                    self.pacer.proven(mark)
+                try:
+                    self._prove(self._config.electrode_count if self._config is not None else 0)
+                except ShortReplyError:
+                    pass  # the port is released anyway; the next owner starts with its own proof
         finally:
             self._closed = True
             self._close_transport()
@@ -774,7 +854,24 @@ class Device(ABC):
         if state is LinkState.SUSPECT:
             self.pacer.suspect()
         self._link = state
-        self.transitions.append((old.value, state.value, why))
+        self.transitions.append((self.pacer.clock.now(), old.value, state.value, why))
+
+    def unproved_spans(self) -> list[tuple[float, float | None]]:
+        """(start, end) of every span the driver spent without proof that the parser was in step (end None:
+        still open), from :attr:`transitions`: what the host knew it did not know."""
+        spans: list[tuple[float, float | None]] = []
+        start: float | None = None
+        for t, old, new, _ in self.transitions:
+            if old != LinkState.IN_STEP.value and start is None and not spans:
+                start = t  # unproved since the device was opened
+            if old == LinkState.IN_STEP.value and start is None:
+                start = t
+            if new == LinkState.IN_STEP.value and start is not None:
+                spans.append((start, t))
+                start = None
+        if start is not None:
+            spans.append((start, None))
+        return spans
 
     def _suspect(self, why: str) -> None:
         """Whatever the state, nothing is proved any more (the queue model freezes too)."""
@@ -792,15 +889,21 @@ class Device(ABC):
             self._recovery_write = False
         return self.pacer.offset
 
-    def _prove(self) -> None:
-        """In step: 0xF5, whose reply proves every byte written before it read (and empties the queue
-        model).  No reply: the device is marked for a resync and :class:`ShortReplyError` raised."""
+    def _prove(self, electrodes: int) -> None:
+        """In step: a request whose reply proves every byte written before it read (and empties the queue
+        model) — 0xFF when the firmware's electrode count is ``electrodes`` >= 1 (cheap, and its length
+        proves the count too), else 0xF5 (about a millisecond of board detection).  No whole reply: the
+        device is marked for a resync and :class:`ShortReplyError` raised."""
         self._discard_input()
-        mark = self._send_marked(p.HV513_COUNT_REQUEST)
-        reply = self._await_reply(1)
-        if len(reply) != 1:
-            self._suspect("0xF5 unanswered")
-            raise ShortReplyError("hv513 count (proof that the queue was read)", 1, reply)
+        if electrodes >= 1:
+            request, size, what = p.MEASURE_REQUEST, 2 * electrodes, "measure"
+        else:
+            request, size, what = p.HV513_COUNT_REQUEST, 1, "hv513 count"
+        mark = self._send_marked(request)
+        reply = self._await_reply(size)
+        if len(reply) != size:
+            self._suspect(f"short reply to 0x{request[0]:02X}")
+            raise ShortReplyError(f"{what} (proof that the queue was read)", size, reply)
         self.pacer.proven(mark)
 
     def _pace_for(self, timings: Sequence[tuple[float, float]]) -> None:
@@ -819,11 +922,10 @@ class Device(ABC):
 
     def _reply_slack_s(self, size: int) -> float:
         """How long after the queue model's worst drain time a reply of ``size`` bytes may still come:
-        its transfer, two alarm periods (a scan may hold the parser just as it gets to the request), and
-        more when the period is unknown."""
+        its transfer (a USB frame), one alarm period of margin, and more when the period is unknown."""
         period = self.pacer.period_s
-        extra = 2 * period if period is not None else self.unknown_reply_s
-        return 0.005 + size * self.pacer.policy.byte_s + extra
+        extra = period if period is not None else self.unknown_reply_s
+        return 0.003 + size * self.pacer.policy.byte_s + extra
 
     def _await_reply(self, size: int) -> bytes:
         """Read up to ``size`` bytes until the reply's deadline (the worst case, not the typical)."""
@@ -833,12 +935,15 @@ class Device(ABC):
         deadline = self.pacer.drained_by() + self._reply_slack_s(size)
         got = bytearray()
         while True:
-            chunk = self._read(size - len(got))
-            got += chunk
+            waiting = self._waiting()
+            if waiting is None or waiting >= size - len(got):
+                got += self._read(size - len(got))
+            elif clock.now() >= deadline:
+                if waiting:
+                    got += self._read(waiting)
             if len(got) >= size or isinstance(clock, InstantClock) or clock.now() >= deadline:
                 return bytes(got)
-            if not chunk:
-                clock.sleep(0.001)
+            clock.sleep(min(REPLY_POLL_S, max(0.0, deadline - clock.now())))
 
     def _frame(self, levels: Sequence[int], *, force_pattern: bool) -> None:
         """Put one application-order frame on the firmware: height down first, pattern, height up last."""

@@ -62,6 +62,7 @@ from ..clock import Clock, InstantClock, MonotonicClock
 from ..protocol.constants import PAYLOAD_KIND, RX_QUEUE_SIZE, USB_PACKET_SIZE, Opcode
 
 COMMAND_BYTE_MIN = min(Opcode)
+HV513_COUNT_BYTE = int(Opcode.HV513_COUNT)
 
 # The firmware's scan, as the protocol reference gives it (µs).  The SPI exchange is the firmware's own
 # figure; the GPIO write, interrupt entry and the parser's cost per unknown byte are assumptions.
@@ -69,6 +70,9 @@ SPI_EXCHANGE_US = 6.6
 GPIO_WRITE_US = 0.05
 ISR_ENTRY_US = 2.0
 PARSER_BYTE_US = 4.0  # one parser call plus one byte read, rounded up
+#: 0xF5 re-detects the stacked boards before it answers: 50 analog readings, about 1 ms of main-loop time
+#: (the reference's own estimate), rounded up.
+HV513_DETECT_US = 1200.0
 #: Frames whose estimated scan leaves less than this before the next alarm are refused by the guard.
 SCAN_GAP_MIN_US = 50.0
 
@@ -230,7 +234,19 @@ class Pacer:
             return self.policy.tick_s * max(1, nbytes / 64)
         gap_us = max(1.0, (self.period_s - self.scan_s) * 1e6)
         per_period = max(1.0, gap_us / PARSER_BYTE_US)
-        return self.period_s * math.ceil(nbytes / per_period) * 1.1 + self.policy.tick_s
+        # the first gap's worth is read right after the scan the queue model already waits for
+        whole = math.ceil(nbytes / per_period) - 1
+        return self.period_s * whole * 1.1 + min(gap_us, nbytes * PARSER_BYTE_US) / 1e6 + self.policy.tick_s
+
+    def busy_s(self, cpu_us: float) -> float:
+        """How long ``cpu_us`` of main-loop work takes at worst when it runs only in the gaps between scans
+        (0xF5's board detection: one gap when the gaps are long, several periods when they are short)."""
+        if self.period_s is None or self.scan_s is None:
+            return cpu_us / 1e6 + self.policy.tick_s
+        gap_us = max(1.0, (self.period_s - self.scan_s) * 1e6)
+        if gap_us >= cpu_us:
+            return cpu_us / 1e6
+        return self.period_s * math.ceil(cpu_us / gap_us) * 1.1
 
     @property
     def robust(self) -> bool:
@@ -330,7 +346,8 @@ class Pacer:
                 chunk = data[i : i + step]
                 self._fit(len(chunk))
                 write(chunk)
-                self._account(len(chunk), self.skip_s(len(chunk)))
+                detect = chunk.count(HV513_COUNT_BYTE) * self.busy_s(HV513_DETECT_US)  # a probe's 0xF5
+                self._account(len(chunk), self.skip_s(len(chunk)) + detect)
                 self.stats.bytes_written += len(chunk)
             return
         payload = has_payload(data)
@@ -345,7 +362,11 @@ class Pacer:
             self._last_payload_write = self.clock.now()
             self.stats.payload_commands += 1
         parts = max(1, math.ceil(len(out) / max(1, self.policy.chunk_bytes)))  # a long pattern: several reads
-        self._account(len(out), interval * parts if payload else self.skip_s(len(out)))
+        if payload:
+            duration = interval * parts
+        else:
+            duration = self.skip_s(len(out)) + (self.busy_s(HV513_DETECT_US) if out[0] == HV513_COUNT_BYTE else 0.0)
+        self._account(len(out), duration)
         self.stats.commands += 1
         self.stats.bytes_written += len(out)
         self.stats.padding_bytes += len(out) - len(data)

@@ -92,6 +92,13 @@ class EtactileKitDevice(Device):
         except self._errors as exc:
             raise DeviceGoneError(f"read failed: {exc}") from exc
 
+    def _waiting(self) -> int | None:
+        try:
+            waiting = getattr(self.port, "in_waiting", None)
+        except self._errors as exc:
+            raise DeviceGoneError(f"cannot poll input: {exc}") from exc
+        return waiting if isinstance(waiting, int) else None
+
     def _discard_input(self) -> None:
         try:
             self.port.reset_input_buffer()
