@@ -154,6 +154,7 @@ class _Session:
         emu = TimedEmulator("compact", boards, link=self.link)
         self.port = TimedPort(emu, link=self.link, faults=plan, seed=seed, robust_encoding=self.robust)
         self.dev = EtactileKitDevice(self.port)
+        self.devices = [self.dev]  # every device opened on the port in this session
         self.failsafe: Any = None
         if faults:
             self._start_failsafe()
@@ -262,6 +263,7 @@ class _Session:
             self.res.calls.append("reopen")
             try:
                 self.dev = EtactileKitDevice(self.port)
+                self.devices.append(self.dev)
             except TactDeformError as exc:
                 self.res.errors.append(f"reopen: {exc}"[:160])
                 return
@@ -365,9 +367,11 @@ class _Session:
                 res.unexplained += 1
                 bad_faults.add(before[-1])
         emu = self.port.emulator
+        # a loss while the driver had no proof that the parser was in step is one the host knew of
+        spans = [(a, b if b is not None else float("inf")) for d in self.devices for a, b in d.unproved_spans()]
         for lo in emu.losses:
             t = lo.time_us / 1e6
-            if not any(t - bound <= nt <= t + bound for nt in notices):
+            if not any(t - bound <= nt <= t + bound for nt in notices) and not any(a <= t <= b for a, b in spans):
                 res.unreported_lost_bytes += lo.count
                 before = [i for i, f in enumerate(injected) if f.t_s <= t + 1e-6]
                 if before:
@@ -376,7 +380,8 @@ class _Session:
 
     def recovery_bound_s(self) -> float:
         period = firmware_period_us(self.cfg.rate_hz) / 1e6
-        return float(self.failsafe.recovery_bound_s(scan_period_s=period)) + SETTLE_S
+        resync = max(d.resync_bound_s() for d in self.devices)
+        return float(self.failsafe.recovery_bound_s(scan_period_s=period, resync_s=resync)) + SETTLE_S
 
 
 def run_session(index: int, seed: int = 0, faults: bool = False) -> SessionResult:

@@ -37,6 +37,7 @@ from ..errors import (
     ProtocolMisuseError,
     SafetyError,
     ShortReplyError,
+    TactDeformError,
     TransportError,
 )
 from ..protocol.constants import (
@@ -188,6 +189,7 @@ class Device(ABC):
         self.transitions: deque[tuple[float, str, str, str]] = deque(maxlen=4096)
         self._recovery_write = False
         self._after_reset = False  # the reset line was pulsed: the firmware's electrode count is 0
+        self._resetting = False
         self.frames_sent = 0
         self.last_frame_time: float | None = None
         self.last_state_write: float | None = None  # the last write that changed what the scans deliver
@@ -338,7 +340,7 @@ class Device(ABC):
             self._check_robust(config)
         n = config.electrode_count
         if self._needs_resync:
-            self._flush_parser()
+            self._recover()
         old = self._config
         new_period = firmware_period_us(config.rate_hz)
         idle_scan = self._scan_of(config, bytes(n))
@@ -349,19 +351,20 @@ class Device(ABC):
             timings.append((firmware_period_us(old.rate_hz), max(before, self._scan_of(old, bytes(old.electrode_count)))))
         elif self.pacer.period_s is not None and self.pacer.scan_s is not None:
             timings.append((self.pacer.period_s * 1e6, self.pacer.scan_s * 1e6))  # from the resync
-        # nothing known of the firmware's timing (a board just opened): every command is proved read
-        # before the next, until the new rate is in force
-        lockstep = old is None and (self.pacer.period_s is None or self.pacer.scan_s is None)
+        # nothing known of the firmware's timing (a board just opened): the queue was proved empty and the
+        # configuration fits it (a long pattern waits for a proof first); the new rate is proved in force
+        # before anything else is paced by it
+        unknown_timing = old is None and (self.pacer.period_s is None or self.pacer.scan_s is None)
         self._pace_for(timings)
 
         in_force = [self._config.electrode_count if self._config is not None else 0]
 
         def send(data: bytes) -> None:
+            if unknown_timing and data[0] == p.Opcode.PATTERN and self.pacer.queue_estimate() + len(data) + 4 > self.pacer.limit_bytes:
+                self._prove(in_force[0])  # a long pattern goes into a queue proved empty
             self._send(data)
             if data[0] == p.Opcode.ELECTRODE_NUM:
                 in_force[0] = data[1]
-            elif lockstep:  # never between the count and its all-off pattern (stale channels)
-                self._prove(in_force[0])
 
         send(p.encode_pulse_height(0))
         self._current_ua = 0
@@ -393,9 +396,13 @@ class Device(ABC):
         self._requested = None
         self._suspended = False
         self._scan_us = idle_scan
-        # the new timing is the pacer's only once the device proves it has read every command above
-        self._prove(n)
+        # a faster pace for the new timing only once the device proves it has read every command above
+        slower = self.pacer.payload_interval_s(), self.pacer.period_s, self.pacer.scan_s
         self.pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
+        if unknown_timing or self.pacer.payload_interval_s() < slower[0]:
+            self.pacer.set_timing(slower[1], slower[2])
+            self._prove(n)
+            self.pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
 
     @_locked
     def set_current(self, current_ua: int) -> None:
@@ -489,7 +496,7 @@ class Device(ABC):
             return
         n = self._config.electrode_count
         if self._needs_resync:
-            self._flush_parser()  # closed loop: heights 0 and every channel off once the device proves it
+            self._recover()  # closed loop: heights 0 and every channel off once the device proves it
         self._send_critical(p.encode_pattern(bytes(n)))
         self._send_critical(p.encode_pulse_height(0))
         self._last_pattern = bytes(n)
@@ -504,6 +511,15 @@ class Device(ABC):
             self._suspended = False
             self._config = self._config.with_current(0)
 
+    def _open_proof(self) -> None:
+        """Right after opening, prove the parser in step (best effort: a board that does not answer yet is
+        proved by the first command, which raises if it still cannot be)."""
+        with self._lock:
+            try:
+                self._flush_parser()
+            except TactDeformError:
+                self._suspect("no proof at open")
+
     @_locked
     def measure(self) -> list[int]:
         """ADC codes (``raw >> 2``) of each hardware channel's last pulse, in hardware channel order.  A
@@ -511,7 +527,7 @@ class Device(ABC):
         cfg = self._require_config("measure")
         n = cfg.electrode_count
         if self._needs_resync:
-            self._flush_parser()
+            self._recover()
         self._discard_input()
         mark = self._send_marked(p.MEASURE_REQUEST)
         data = self._await_reply(2 * n)
@@ -544,7 +560,7 @@ class Device(ABC):
         """Ask the board how many HV513 chips it detects (this re-initialises their outputs)."""
         self._check_open()
         if self._needs_resync:
-            self._flush_parser()
+            self._recover()
         self._discard_input()
         mark = self._send_marked(p.HV513_COUNT_REQUEST)
         data = self._await_reply(1)
@@ -567,7 +583,7 @@ class Device(ABC):
         current the firmware can deliver."""
         self._check_open()
         self._suspect("resync")
-        self._flush_parser()
+        self._recover()
         cfg = self._config
         if cfg is not None:
             requested = self._requested
@@ -580,6 +596,16 @@ class Device(ABC):
                 raise
             self._requested = requested
             self._suspended = requested is not None
+
+    def _recover(self) -> None:
+        """The closed-loop recovery, and when it ends in FAILED (a locked or hung parser, which no byte
+        can reach, while the board may go on stimulating) the reset line at once, if there is one."""
+        try:
+            self._flush_parser()
+        except ShortReplyError:
+            if self._link is not LinkState.FAILED or self._resetting or not self._can_reset():
+                raise
+            self.hardware_reset()  # its own resync proves the board in step again, or raises
 
     def _flush_parser(self) -> None:
         """The closed-loop recovery: SUSPECT → SYNCING (→ FLUSHING) → SAFE → VERIFYING → IN_STEP.
@@ -739,12 +765,20 @@ class Device(ABC):
         if not self._can_reset():
             return False
         in_step = self._link is LinkState.IN_STEP
+        self._resetting = True
+        try:
+            self._hardware_reset(in_step)
+        finally:
+            self._resetting = False
+        return True
+
+    def _hardware_reset(self, in_step: bool) -> None:
         self._enter(LinkState.DRAINING, "hardware_reset")
         self._drain(in_step)
         self._enter(LinkState.RESETTING, "nothing left on the link")
         if not self._reset_transport():
             self._enter(LinkState.SUSPECT, "no reset line after all")
-            return False
+            raise TransportError(f"{type(self).__name__}: the reset line could not be pulsed")
         self.guard.mark_unknown()
         self._current_ua = 0
         self._last_pattern = None
@@ -754,7 +788,6 @@ class Device(ABC):
         self.pacer.wait_until(self.pacer.clock.now() + self.boot_s)
         self._enter(LinkState.SUSPECT, f"booted ({self.boot_s * 1e3:g} ms)")
         self.resync()
-        return True
 
     def _drain(self, in_step: bool) -> None:
         if in_step:
@@ -778,7 +811,16 @@ class Device(ABC):
             return
         try:
             if self._config is not None:
-                self.all_off()
+                try:
+                    self.all_off()
+                except TransportError as failed:
+                    # the link failed (unplugged, a hub reset): nothing after close could stop the board,
+                    # so reopen it and stop it now, closed loop; if that fails too, the first error says why
+                    try:
+                        self.reconnect()
+                        self.all_off()
+                    except TactDeformError:
+                        raise failed from None
             if self._link is LinkState.IN_STEP:
                 try:
                     self._prove(self._config.electrode_count if self._config is not None else 0)

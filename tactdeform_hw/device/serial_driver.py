@@ -75,6 +75,7 @@ class EtactileKitDevice(Device):
                 raise
         if pacer is None:  # what a port needs is known only once it is open (a URL builds its device then)
             self.pacer = default_pacer(port)
+        self._open_proof()  # a board in an unknown state: nothing is sent before it proves its parser
 
     def _write(self, data: bytes) -> None:
         try:
