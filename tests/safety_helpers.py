@@ -16,12 +16,6 @@ def defects(hazards: list[Hazard]) -> list[Hazard]:
     return [h for h in hazards if h.kind not in PROBE_RECORDS]
 
 
-def opening_writes(writes: list[bytes]) -> int:
-    """How many writes a device spent proving the parser in step when it was opened (zeros and 0xF5, the
-    reply, then pulse height 0 and sense height 0): the index just past the sense height."""
-    return next(i for i, w in enumerate(writes) if w[:1] == b"\xf9") + 1
-
-
 class RecordingPort(EmulatorPort):
     """An in-process port that keeps every write, so a test can check what reached the wire as well as
     what the emulator made of it."""

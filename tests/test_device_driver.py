@@ -42,7 +42,9 @@ def port() -> RecordingPort:
 
 @pytest.fixture
 def dev(port: RecordingPort) -> EtactileKitDevice:
-    return EtactileKitDevice(port)
+    d = EtactileKitDevice(port)
+    port.writes.clear()  # the proof at open (zeros, 0xF5, heights 0): the tests look at what follows
+    return d
 
 
 def test_lines_are_low_before_open(port: RecordingPort) -> None:
@@ -58,19 +60,17 @@ def test_configure_then_pattern_reaches_the_firmware(dev: EtactileKitDevice, por
     assert s["discharge_time"] == 45 and s["period_us"] == 8000.0 and s["polarity"] == 1
     assert s["stim_pattern"][:32] == [1] * 16 + [0] * 15 + [2]
     assert safety_helpers.defects(port.emulator.hazards) == []  # the driver triggers no defect
-    # after the opening proof (zeros, 0xF5, heights 0 with their padding): one write per command, whole
-    for w in port.writes[safety_helpers.opening_writes(port.writes):]:
+    # one write per command, each a whole command
+    for w in port.writes:
         assert all(i.status == OK for i in decode(w, 32))
     assert port.writes[-1] == bytes([0xFE] + [1] * 16 + [0] * 15 + [2])
 
 
 def test_configure_order_never_stimulates_half_set(dev: EtactileKitDevice, port: RecordingPort) -> None:
     dev.configure(StimConfig(current_ua=1000))
-    k = safety_helpers.opening_writes(port.writes)
-    assert port.writes[0] == b"\x00\x00\x00\x00\xf5"  # a board just opened proves its parser in step first
-    # the board's timing is unknown until the new rate is in force: each command is proved read (0xFF,
-    # 0xF5) before the next, except between the electrode count and its all-off pattern
-    writes = [w for w in port.writes[k:] if w not in (b"\xff", b"\xf5")]
+    # the board's timing was unknown: the new rate is proved in force (0xFF) before anything is paced by it
+    assert port.writes[-1] == b"\xff"
+    writes = [w for w in port.writes if w not in (b"\xff", b"\xf5")]
     names = [decode(w, 32)[0].name for w in writes]
     assert names[0] == "PULSE_HEIGHT" and writes[0] == b"\xfb\x00\x00"
     assert names.index("ELECTRODE_NUM") + 1 == names.index("PATTERN")
@@ -134,6 +134,7 @@ def test_current_above_cap_is_refused_and_nothing_written(port: RecordingPort) -
     from tactdeform_hw.device import SafetyGuard
 
     dev = EtactileKitDevice(port, guard=SafetyGuard(cap_ua=2000))
+    port.writes.clear()  # the proof at open
     with pytest.raises(SafetyError):
         dev.configure(StimConfig(current_ua=2500))
     assert port.writes == []

@@ -65,6 +65,8 @@ DEFECTS = frozenset({"parser_locked", "unread_while_locked", "pattern_holds_comm
                      "channels_beyond_hv513", "commands_out_of_step"})
 # ("u16_waiting" is not among them: on a UART the second byte of a u16 follows 10.85 µs after the first, and
 # the parser may meet the gap; a lost byte shows up as a loss and as commands out of step.)
+#: Transitions the caller asked for (not a fault the driver noticed).
+CALLER_REASONS = frozenset({"resync", "reconnect", "hardware_reset"})
 #: Simulated time a fault session keeps the fail-safe running after its last call.
 _FAULT_TAIL_S = 0.4
 
@@ -163,6 +165,7 @@ class _Session:
         self.intents: list[tuple[float, tuple[int, ...], float]] = [(0.0, (0,) * self.cfg.electrode_count, 0.0)]
         self.sent: tuple[int, ...] | None = None  # the caller's frame a keepalive brings back
         self.notices: list[float] = []
+        self.longest_call_s = 0.0  # the fail-safe cannot act while one of the owner's calls runs
 
     def _start_failsafe(self) -> None:
         from tactdeform_hw.device.failsafe import FailSafe
@@ -202,12 +205,15 @@ class _Session:
         self.res.calls.append(name)
         t0 = self.port.now_s
         try:
-            fn()
+            try:
+                fn()
+            finally:
+                self.longest_call_s = max(self.longest_call_s, self.port.now_s - t0)
         except TactDeformError as exc:
             self.notices.append(self.port.now_s)
             self.res.errors.append(f"{name}: {type(exc).__name__}: {exc}"[:160])
-            if intent is not None and not any(intent):
-                self.intents.append((t0, intent, self.port.now_s))  # the host still means it off
+            if intent is not None:  # what the call asked for may be in force in part: still the host's intent
+                self.intents.append((t0, intent, self.port.now_s))
             return False
         if intent is not None:
             self.intents.append((t0, intent, self._effective_s()))
@@ -355,6 +361,9 @@ class _Session:
         res.recovery_bound_s = bound
         notices = list(self.notices)
         notices += [e.t for e in fs.events if e.kind in ("error", "recover", "recover_step_failed", "watchdog")]
+        # the driver's own notices: a proof that failed (not a resync the caller asked for)
+        notices += [t for d in self.devices for t, _, new, why in d.transitions
+                    if new in ("suspect", "failed") and why not in CALLER_REASONS]
         bad_faults: set[int] = set()
         for w in wrong:
             before = [i for i, f in enumerate(injected) if f.t_s <= w["t_s"] + 1e-6]
@@ -381,7 +390,8 @@ class _Session:
     def recovery_bound_s(self) -> float:
         period = firmware_period_us(self.cfg.rate_hz) / 1e6
         resync = max(d.resync_bound_s() for d in self.devices)
-        return float(self.failsafe.recovery_bound_s(scan_period_s=period, resync_s=resync)) + SETTLE_S
+        bound = float(self.failsafe.recovery_bound_s(scan_period_s=period, resync_s=resync))
+        return bound + self.longest_call_s + SETTLE_S
 
 
 def run_session(index: int, seed: int = 0, faults: bool = False) -> SessionResult:

@@ -516,7 +516,7 @@ class Device(ABC):
         proved by the first command, which raises if it still cannot be)."""
         with self._lock:
             try:
-                self._flush_parser()
+                self._recover()  # a locked or hung board (perhaps still stimulating) gets the reset line
             except TactDeformError:
                 self._suspect("no proof at open")
 
@@ -825,7 +825,11 @@ class Device(ABC):
                 try:
                     self._prove(self._config.electrode_count if self._config is not None else 0)
                 except ShortReplyError:
-                    pass  # the port is released anyway; the next owner starts with its own proof
+                    # the all-off is not proved read (a board that rebooted or hung under it): recover,
+                    # with the reset line if need be, and switch off again
+                    self._recover()
+                    if self._config is not None:
+                        self.all_off()
         finally:
             self._closed = True
             self._close_transport()
