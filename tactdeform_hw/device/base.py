@@ -98,7 +98,7 @@ class LinkState(str, Enum):
 #: Which state may follow which (the recovery state machine; tests walk every edge).
 TRANSITIONS: dict[LinkState, frozenset[LinkState]] = {
     LinkState.IN_STEP: frozenset({LinkState.SUSPECT, LinkState.DRAINING}),
-    LinkState.SUSPECT: frozenset({LinkState.SYNCING, LinkState.DRAINING, LinkState.SUSPECT}),
+    LinkState.SUSPECT: frozenset({LinkState.SYNCING, LinkState.DRAINING}),
     LinkState.SYNCING: frozenset({LinkState.SAFE, LinkState.FLUSHING, LinkState.SUSPECT}),
     LinkState.FLUSHING: frozenset({LinkState.SAFE, LinkState.FAILED, LinkState.SUSPECT}),
     LinkState.SAFE: frozenset({LinkState.VERIFYING, LinkState.IN_STEP, LinkState.SUSPECT}),
@@ -776,8 +776,13 @@ class Device(ABC):
         self._enter(LinkState.DRAINING, "hardware_reset")
         self._drain(in_step)
         self._enter(LinkState.RESETTING, "nothing left on the link")
-        if not self._reset_transport():
-            self._enter(LinkState.SUSPECT, "no reset line after all")
+        try:
+            pulsed = self._reset_transport()
+        except BaseException:
+            self._suspect("the reset line failed")
+            raise
+        if not pulsed:
+            self._suspect("no reset line after all")
             raise TransportError(f"{type(self).__name__}: the reset line could not be pulsed")
         self.guard.mark_unknown()
         self._current_ua = 0

@@ -131,7 +131,10 @@ class EtactileKitDevice(Device):
         DTR released (the sequence esptool uses), so the pulse is RTS high for 100 ms."""
         pulse = getattr(self.port, "pulse_reset", None)
         if callable(pulse):
-            pulse()
+            try:
+                pulse()
+            except self._errors as exc:
+                raise DeviceGoneError(f"cannot pulse the reset line: {exc}") from exc
             return True
         emulator = getattr(self.port, "emulator", None)
         if emulator is not None and callable(getattr(emulator, "reset", None)):
