@@ -34,9 +34,9 @@ import os
 import random
 import sys
 import time
-from pathlib import Path
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -81,6 +81,7 @@ class SessionResult:
     calls: list[str]
     allowed_stim_ua: int
     allowed_sense_ua: int
+    biphasic: bool = False
     pulses: int = 0
     max_stim_ua: float = 0.0
     over_limit: int = 0
@@ -160,7 +161,8 @@ class _Session:
         self.failsafe: Any = None
         if faults:
             self._start_failsafe()
-        self.res = SessionResult(index, seed, self.link, self.robust, self.cfg.electrode_count, [], 0, 0)
+        self.res = SessionResult(index, seed, self.link, self.robust, self.cfg.electrode_count, [], 0, 0,
+                                 biphasic=self.biphasic)
         # (call time, the electrodes the host means from then on, when an "off" is surely in force)
         self.intents: list[tuple[float, tuple[int, ...], float]] = [(0.0, (0,) * self.cfg.electrode_count, 0.0)]
         self.sent: tuple[int, ...] | None = None  # the caller's frame a keepalive brings back
@@ -455,6 +457,8 @@ def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
         "failed_indices": [r.index for r in failed[:20]],
         "links": {k: sum(1 for r in results if r.link == k) for k in ("usb", "uart")},
         "robust_encoding": sum(1 for r in results if r.robust),
+        "biphasic": sum(1 for r in results if r.biphasic),
+        "sense_current": sum(1 for r in results if r.allowed_sense_ua),
         "electrodes_min_max": [min((r.electrodes for r in results), default=0), max((r.electrodes for r in results), default=0)],
         "calls": dict(sorted(calls.items())),
         "pulses": sum(r.pulses for r in results),

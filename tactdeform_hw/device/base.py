@@ -20,11 +20,11 @@ from __future__ import annotations
 
 import functools
 import threading
-from collections import deque
 import warnings
 from abc import ABC, abstractmethod
-from enum import Enum
+from collections import deque
 from collections.abc import Callable, Sequence
+from enum import Enum
 from types import TracebackType
 from typing import Concatenate, ParamSpec, TypeVar
 
@@ -55,12 +55,10 @@ from .mapping import ChannelMapping
 from .pacing import (
     COMMAND_BYTE_MIN,
     SCAN_GAP_MIN_US,
-    HV513_DETECT_US,
     Pacer,
     command_like_payload,
     estimate_scan_us,
     firmware_period_us,
-    padding_for,
 )
 from .safety import SafetyGuard
 
