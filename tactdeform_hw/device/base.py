@@ -9,6 +9,12 @@ Every byte leaves through :meth:`Device._send`, which passes it through the safe
 session's audit log (:mod:`.audit`).  Public methods hold one lock, so a fail-safe thread's all-off can
 never interleave with a half-written frame.
 
+Nothing that carries a value — a height, a width, an electrode count, a pattern — is written unless the
+device has proved its parser at a command boundary with room in its queue: at open, after a failed or cut
+write, a short or late reply, a reconnect or a reset, the closed-loop recovery (:class:`LinkState`,
+:meth:`Device._flush_parser`) gets a reply of the expected length first.  Its states and transitions are
+drawn in ``docs/safety.md``.
+
 Two currents are kept apart: the *target* (what the caller asked for with ``configure`` or
 ``set_current``) and the *height in force* (what the firmware's pulse-height register holds).  The height
 of each frame is the target lowered to the frame's lowest limit (see :mod:`.safety`); when it goes down it
@@ -608,18 +614,22 @@ class Device(ABC):
     def _flush_parser(self) -> None:
         """The closed-loop recovery: SUSPECT → SYNCING (→ FLUSHING) → SAFE → VERIFYING → IN_STEP.
 
-        * SYNCING: zeros then 0xF5.  The one-byte reply proves the parser read 0xF5 as a command — so it was
-          at a command boundary — and read every byte written before it: the queue model is proved empty.
-        * FLUSHING: no reply (a pattern in progress took 0xF5 as a level, or the parser is slow or
-          locked): chunks of zeros, each ending with 0xF5, until one is answered or a whole pattern's worth
-          of zeros went unanswered (FAILED: a locked or hung parser; only the reset line helps).
+        * SYNCING: four zeros (they complete any u8 or u16 in progress, so the request after them is read
+          as a command, or — by a pattern in progress — as one more level), then 0xFF when the firmware
+          should hold the configuration's electrode count, else 0xF5.  A reply of the expected length
+          proves the parser read the request as a command — so it was at a command boundary — and read
+          every byte written before it: the queue model is proved empty (:meth:`_sync`).
+        * FLUSHING: no such reply: 256 zeros finish any pattern in progress, then the request again (and
+          0xF5 after a silent 0xFF, as a zero may have set the count to 0).  Still silent: FAILED, a locked
+          or hung parser that only the reset line reaches (:meth:`_recover` takes it).
         * SAFE: pulse height 0, sense height 0 and the electrode count, each with the loss-tolerant
           padding so that one lost byte still cannot make a current.
         * VERIFYING: 0xFF must be answered with exactly 2 × electrode count bytes — the count is in force,
-          so a pattern now cannot lock the parser; then an all-off pattern.
+          so a pattern now cannot lock the parser; then an all-off pattern.  Otherwise one more round,
+          then FAILED.
 
-        Time alone never proves anything here: each deadline only decides when to stop waiting for a
-        proof.
+        Time alone never proves anything here: each deadline (the queue model's worst case plus one
+        period) only decides when to stop waiting for a proof.
         """
         cfg = self._config
         n = cfg.electrode_count if cfg is not None else 0

@@ -9,13 +9,16 @@ loses bytes and desynchronises the parser.  :class:`Pacer` prevents both:
 * it spaces commands that carry a payload at least ``command_interval_s`` apart (default 1.2 ms: one
   tick plus margin for the tick's phase and the USB frame) — and further apart when the scans leave the
   parser less room (below), and
-* it keeps a conservative model of the device's queue — every byte written is counted as occupying the
-  queue until ``link_latency_s`` plus one tick after the parser could have started on it — and waits
-  until a write fits whole.
+* it keeps a worst-case model of the device's queue — every byte written is counted as occupying the
+  queue until it has crossed the link, a whole scan may have held the parser off right then, and the
+  parser has worked through everything before it — and waits until a write fits whole below a margin
+  (``queue_margin_bytes``), never to the brim.  The timer in that model holds only while the parser is
+  known to read: after a reset, a reconnect, a timeout or a short reply the model freezes
+  (:meth:`Pacer.suspect`) and only a reply from the device (:meth:`Pacer.proven`) empties it.
 
-Bytes that are not commands (the 256 zeros of a resync) are written in 64-byte chunks, each counted as
-taking as long as the parser needs to skip them, so even a queue holding a half-read command never
-overflows.
+Bytes that are not commands (the zeros of a resync) are written in 64-byte chunks, each counted as taking
+as long as the parser needs to skip them in the gaps between scans; 0xF5 counts its millisecond of board
+detection, which at a short gap spreads over many periods.
 
 **The scans decide the parser's pace.**  The stimulation interrupt pre-empts the main loop, so the parser
 runs only in the gap between the end of one scan and the next alarm.  A command with a payload ends with
