@@ -17,10 +17,11 @@ Judged on the scans the emulated board actually ran (``TimedEmulator.reports.pul
   delivered current both count), no stimulation pulse on an electrode the host had switched off longer
   than the frame settle time, no byte lost in the device's receive queue, no firmware defect hit;
 * **fault sessions** (``--faults``: the fault kinds of :mod:`tactdeform_hw.emulator.faults`, with the
-  fail-safe probing as an application runs it) — every byte the device lost is followed by something the
-  host noticed (a raised error, a failed probe, a recovery) within the documented recovery bound, and
-  every wrong delivery (above the limit, or on an electrode meant off) starts within that bound of a
-  fault.
+  fail-safe probing and reading back as an application runs it) — every byte the device lost is lost
+  while the driver is without proof of the parser's state, or followed within the documented recovery
+  bound by something the host noticed (a raised error, a failed proof or probe, a recovery) — or, counted
+  apart, by a resync the caller asked for that rewrote the whole state; and every wrong delivery (above
+  the limit, or on an electrode meant off) starts within that bound of a fault.
 """
 
 from __future__ import annotations
@@ -95,6 +96,7 @@ class SessionResult:
     wrong_after_fault_s: float = 0.0
     unexplained: int = 0
     unreported_lost_bytes: int = 0
+    repaired_lost_bytes: int = 0  # not noticed, but a resync the caller asked for rewrote the state in time
     recovery_bound_s: float = 0.0
     sim_s: float = 0.0
     wall_s: float = 0.0
@@ -172,7 +174,7 @@ class _Session:
     def _start_failsafe(self) -> None:
         from tactdeform_hw.device.failsafe import FailSafe
 
-        fs = FailSafe(self.dev, watchdog_s=0.1, probe_interval_s=0.02, refresh_interval_s=0.05,
+        fs = FailSafe(self.dev, watchdog_s=0.1, probe_interval_s=0.02, refresh_interval_s=0.05, verify_readback=True,
                       thread=False, signals=False, at_exit=False)
         last = [-1.0]
 
@@ -380,9 +382,16 @@ class _Session:
         emu = self.port.emulator
         # a loss while the driver had no proof that the parser was in step is one the host knew of
         spans = [(a, b if b is not None else float("inf")) for d in self.devices for a, b in d.unproved_spans()]
+        # a resync completed after the loss rewrote everything it could have changed (the caller's own)
+        repairs = [t for d in self.devices for t, old, new, _ in d.transitions
+                   if new == "in_step" and old in ("verifying", "safe")]
         for lo in emu.losses:
             t = lo.time_us / 1e6
-            if not any(t - bound <= nt <= t + bound for nt in notices) and not any(a <= t <= b for a, b in spans):
+            if any(t - bound <= nt <= t + bound for nt in notices) or any(a <= t <= b for a, b in spans):
+                continue
+            if any(t <= rt <= t + bound for rt in repairs):
+                res.repaired_lost_bytes += lo.count
+            else:
                 res.unreported_lost_bytes += lo.count
                 before = [i for i, f in enumerate(injected) if f.t_s <= t + 1e-6]
                 if before:
@@ -482,6 +491,7 @@ def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
             "recovery_bound_s": round(max((r.recovery_bound_s for r in results), default=0.0), 6),
             "unexplained_wrong_deliveries": sum(r.unexplained for r in results),
             "bytes_lost_unreported": sum(r.unreported_lost_bytes for r in results),
+            "bytes_lost_unnoticed_but_repaired": sum(r.repaired_lost_bytes for r in results),
         })
     return summary
 

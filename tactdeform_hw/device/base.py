@@ -182,6 +182,7 @@ class Device(ABC):
         self.audit = audit
         self._config: StimConfig | None = None
         self._current_ua = 0  # pulse height in force on the firmware
+        self._sense_byte: int | None = None  # the 0xF9 byte in force (None: unknown)
         self._target_ua = 0  # what the caller asked for
         self._last_pattern: bytes | None = None  # hardware order, as on the firmware
         self._requested: list[int] | None = None  # the caller's last frame, application order
@@ -375,6 +376,7 @@ class Device(ABC):
         if self._config is not None:
             send(p.encode_pattern(bytes(self._config.electrode_count)))
         send(p.encode_sense_height(0))
+        self._sense_byte = 0
         send(p.encode_electrode_num(n))
         send(p.encode_pattern(bytes(n)))
         self._last_pattern = bytes(n)
@@ -390,6 +392,7 @@ class Device(ABC):
         if not longer:
             send(p.encode_frequency(config.rate_hz))
         send(p.encode_sense_height(sense_code(config.sense_current_ua, self.transfer)))
+        self._sense_byte = sense_code(config.sense_current_ua, self.transfer)
         height = self._encodable(
             self.guard.frame_height(None, config.current_ua, 0, config.pulse_width_us, raise_when_idle=True)
         )
@@ -505,6 +508,9 @@ class Device(ABC):
         self._send_critical(p.encode_pulse_height(0))
         self._last_pattern = bytes(n)
         self._current_ua = 0
+        # the sense pulse is a current too, and a fault may have set it whatever the host believes
+        self._send_critical(p.encode_sense_height(0))
+        self._sense_byte = 0
         self._scan_us = self._scan_of(self._config, bytes(n))
         self.pacer.set_timing(firmware_period_us(self._config.rate_hz) / 1e6, self._scan_us / 1e6)
         if keep_target:
@@ -644,6 +650,7 @@ class Device(ABC):
             self._recovery_send(p.encode_pulse_height(0))
             self._current_ua = 0
             self._recovery_send(p.encode_sense_height(0))
+            self._sense_byte = 0
             self._last_pattern = None
             if cfg is None:
                 self._enter(LinkState.IN_STEP, "heights 0; no electrode count to prove")
@@ -794,6 +801,7 @@ class Device(ABC):
             raise TransportError(f"{type(self).__name__}: the reset line could not be pulsed")
         self.guard.mark_unknown()
         self._current_ua = 0
+        self._sense_byte = None
         self._last_pattern = None
         self._scan_us = 0.0  # power-on: electrode count 0, nothing to scan
         self._after_reset = True
@@ -818,34 +826,37 @@ class Device(ABC):
 
     @_locked
     def close(self) -> None:
-        """All channels off, then — if the parser is in step — a reply that proves the queue read (so the
-        next program to open the board finds it empty), then release the port.  Safe to call twice."""
+        """All channels off, proved read (so the next program to open the board finds its queue empty),
+        then release the port.  Safe to call twice.  A board that does not prove the all-off read is
+        recovered (with the reset line if need be) and switched off again; a link that failed is reopened
+        first: nothing after close could stop the board."""
         if self._closed:
             return
         try:
-            if self._config is not None:
+            try:
+                self._stop_and_prove()
+            except TransportError as failed:
                 try:
-                    self.all_off()
-                except TransportError as failed:
-                    # the link failed (unplugged, a hub reset): nothing after close could stop the board,
-                    # so reopen it and stop it now, closed loop; if that fails too, the first error says why
-                    try:
-                        self.reconnect()
-                        self.all_off()
-                    except TactDeformError:
-                        raise failed from None
-            if self._link is LinkState.IN_STEP:
-                try:
-                    self._prove(self._config.electrode_count if self._config is not None else 0)
-                except ShortReplyError:
-                    # the all-off is not proved read (a board that rebooted or hung under it): recover,
-                    # with the reset line if need be, and switch off again
-                    self._recover()
-                    if self._config is not None:
-                        self.all_off()
+                    self.reconnect()
+                    self._stop_and_prove()
+                except TactDeformError:
+                    raise failed from None
         finally:
             self._closed = True
             self._close_transport()
+
+    def _stop_and_prove(self) -> None:
+        if self._config is not None:
+            self.all_off()
+        if self._link is LinkState.IN_STEP:
+            try:
+                self._prove(self._config.electrode_count if self._config is not None else 0)
+            except ShortReplyError:
+                # the all-off is not proved read (a board that rebooted or hung under it): recover,
+                # with the reset line if need be, and switch off again
+                self._recover()
+                if self._config is not None:
+                    self.all_off()
 
     def __enter__(self) -> Device:
         return self
@@ -1017,6 +1028,10 @@ class Device(ABC):
         self.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
         before = self._scan_us if self._scan_us is not None else self._worst_scan_s(cfg) * 1e6
         self.pacer.set_timing(period / 1e6, max(before, scan) / 1e6)
+        sense = sense_code(cfg.sense_current_ua, self.transfer)  # an all-off stop set it to 0
+        if self._sense_byte is None or sense < self._sense_byte:
+            self._send_critical(p.encode_sense_height(sense))
+            self._sense_byte = sense
         if height < self._current_ua:
             self._send_critical(p.encode_pulse_height(self.transfer.to_code(height)))
             self._current_ua = height
@@ -1027,6 +1042,9 @@ class Device(ABC):
         if height > self._current_ua:
             self._send_critical(p.encode_pulse_height(self.transfer.to_code(height)))
             self._current_ua = height
+        if sense > self._sense_byte:
+            self._send_critical(p.encode_sense_height(sense))
+            self._sense_byte = sense
         self._suspended = False
         self._scan_us = scan
         self.pacer.set_timing(period / 1e6, scan / 1e6)
