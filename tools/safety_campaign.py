@@ -20,8 +20,10 @@ Judged on the scans the emulated board actually ran (``TimedEmulator.reports.pul
   fail-safe probing and reading back as an application runs it) — every byte the device lost is lost
   while the driver is without proof of the parser's state, or followed within the documented recovery
   bound by something the host noticed (a raised error, a failed proof or probe, a recovery) — or, counted
-  apart, by a resync the caller asked for that rewrote the whole state; and every wrong delivery (above
-  the limit, or on an electrode meant off) starts within that bound of a fault.
+  apart, by a resync the caller asked for that rewrote the whole state, or by a proof (with the
+  fail-safe's readback) that found the firmware as meant (a loss without effect, such as a queue cleared
+  by a silent reboot just before the driver wrote everything again); and every wrong delivery (above the
+  limit, or on an electrode meant off) starts within that bound of a fault.
 """
 
 from __future__ import annotations
@@ -97,6 +99,7 @@ class SessionResult:
     unexplained: int = 0
     unreported_lost_bytes: int = 0
     repaired_lost_bytes: int = 0  # not noticed, but a resync the caller asked for rewrote the state in time
+    absorbed_lost_bytes: int = 0  # not noticed: a later proof and readback found the firmware as meant
     recovery_bound_s: float = 0.0
     sim_s: float = 0.0
     wall_s: float = 0.0
@@ -385,12 +388,17 @@ class _Session:
         # a resync completed after the loss rewrote everything it could have changed (the caller's own)
         repairs = [t for d in self.devices for t, old, new, _ in d.transitions
                    if new == "in_step" and old in ("verifying", "safe")]
+        # a proof after the loss (a reply of the right length; the fail-safe's also reads back the voltages)
+        # found the firmware in step: the loss had no effect the host could see
+        proofs = [t for d in self.devices for t in d.proofs]
         for lo in emu.losses:
             t = lo.time_us / 1e6
             if any(t - bound <= nt <= t + bound for nt in notices) or any(a <= t <= b for a, b in spans):
                 continue
             if any(t <= rt <= t + bound for rt in repairs):
                 res.repaired_lost_bytes += lo.count
+            elif any(t < pt <= t + bound for pt in proofs):
+                res.absorbed_lost_bytes += lo.count
             else:
                 res.unreported_lost_bytes += lo.count
                 before = [i for i, f in enumerate(injected) if f.t_s <= t + 1e-6]
@@ -492,6 +500,7 @@ def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
             "unexplained_wrong_deliveries": sum(r.unexplained for r in results),
             "bytes_lost_unreported": sum(r.unreported_lost_bytes for r in results),
             "bytes_lost_unnoticed_but_repaired": sum(r.repaired_lost_bytes for r in results),
+            "bytes_lost_unnoticed_absorbed": sum(r.absorbed_lost_bytes for r in results),
         })
     return summary
 

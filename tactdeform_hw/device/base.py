@@ -122,6 +122,8 @@ PROBE_LEAD_ZEROS = 4
 FRAME_COMMANDS = 3
 #: How often a reply is polled while its deadline runs.
 REPLY_POLL_S = 0.0005
+#: Times ``close`` reopens a link that failed under its all-off before it gives up and says so.
+CLOSE_RECONNECTS = 3
 #: Verification rounds (sync, safe, verify) before the recovery gives up.
 RECOVERY_ATTEMPTS = 2
 
@@ -192,6 +194,7 @@ class Device(ABC):
         # (time s, from, to, why) of the latest transitions: the driver's own record of when it knew the
         # firmware's state and when it did not
         self.transitions: deque[tuple[float, str, str, str]] = deque(maxlen=4096)
+        self.proofs: deque[float] = deque(maxlen=4096)  # when a reply last proved the parser in step
         self._recovery_write = False
         self._after_reset = False  # the reset line was pulsed: the firmware's electrode count is 0
         self._resetting = False
@@ -544,7 +547,7 @@ class Device(ABC):
         if len(data) != 2 * n:
             self._suspect("short reply to 0xFF")
             raise ShortReplyError("measure", 2 * n, data)
-        self.pacer.proven(mark)
+        self._proved(mark)
         return p.parse_measure_reply(data, n)
 
     @_locked
@@ -577,7 +580,7 @@ class Device(ABC):
         if len(data) != 1:
             self._suspect("short reply to 0xF5")
             raise ShortReplyError("hv513_count", 1, data)
-        self.pacer.proven(mark)
+        self._proved(mark)
         return p.parse_hv513_reply(data)
 
     @_locked
@@ -661,7 +664,7 @@ class Device(ABC):
             mark = self._recovery_send(p.MEASURE_REQUEST)  # the padding above ends every command before it
             reply = self._await_reply(2 * n)
             if len(reply) == 2 * n:
-                self.pacer.proven(mark)
+                self._proved(mark)
                 self._enter(LinkState.IN_STEP, f"0xFF answered with {2 * n} bytes")
                 break
             if attempt == RECOVERY_ATTEMPTS:
@@ -687,14 +690,14 @@ class Device(ABC):
         if electrodes >= 1:
             first = self._recovery_send(bytes(PROBE_LEAD_ZEROS) + p.MEASURE_REQUEST)
             if len(self._await_reply(2 * electrodes)) == 2 * electrodes:
-                self.pacer.proven(first)
+                self._proved(first)
                 return
             self._discard_input()
             why = "0xFF unanswered or answered short"
         else:
             first = self._recovery_send(bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST)
             if self._await_reply(1):
-                self.pacer.proven(first)
+                self._proved(first)
                 return
             why = "0xF5 unanswered"
         self._enter(LinkState.FLUSHING, why)
@@ -703,10 +706,10 @@ class Device(ABC):
             self._recovery_send(bytes(RX_QUEUE_SIZE) + p.MEASURE_REQUEST)
             reply = self._await_reply(2 * electrodes)
             if len(reply) == 2 * electrodes:
-                self.pacer.proven(first)
+                self._proved(first)
                 return
             if reply:  # answered, but not for this electrode count: SAFE writes the count, VERIFY checks it
-                self.pacer.proven(first)
+                self._proved(first)
                 self._discard_input()
                 return
             # silence: a hung or locked parser — or a zero that landed as electrode count 0 (0xFF then
@@ -718,7 +721,7 @@ class Device(ABC):
         if self._await_reply(1):
             # some 0xF5 of this recovery was read as a command, so every byte before the first one was
             # read; the other may still answer (a stale byte the next request discards)
-            self.pacer.proven(first)
+            self._proved(first)
             return
         self._enter(LinkState.FAILED, f"unanswered after {RX_QUEUE_SIZE + PROBE_LEAD_ZEROS} zeros")
         raise ShortReplyError("0xF5 after resync zeros (parser locked or hung: reset the board)", 1, b"")
@@ -836,11 +839,16 @@ class Device(ABC):
             try:
                 self._stop_and_prove()
             except TransportError as failed:
-                try:
-                    self.reconnect()
-                    self._stop_and_prove()
-                except TactDeformError:
-                    raise failed from None
+                for attempt in range(CLOSE_RECONNECTS):
+                    try:
+                        self.reconnect()
+                        self._stop_and_prove()
+                        break
+                    except TransportError:
+                        if attempt == CLOSE_RECONNECTS - 1:
+                            raise failed from None
+                    except TactDeformError:
+                        raise failed from None
         finally:
             self._closed = True
             self._close_transport()
@@ -959,6 +967,11 @@ class Device(ABC):
             self._recovery_write = False
         return self.pacer.offset
 
+    def _proved(self, mark: int) -> None:
+        """A reply proved every byte before ``mark`` read, the parser at a command boundary."""
+        self.pacer.proven(mark)
+        self.proofs.append(self.pacer.clock.now())
+
     def _prove(self, electrodes: int) -> None:
         """In step: a request whose reply proves every byte written before it read (and empties the queue
         model) — 0xFF when the firmware's electrode count is ``electrodes`` >= 1 (cheap, and its length
@@ -974,7 +987,7 @@ class Device(ABC):
         if len(reply) != size:
             self._suspect(f"short reply to 0x{request[0]:02X}")
             raise ShortReplyError(f"{what} (proof that the queue was read)", size, reply)
-        self.pacer.proven(mark)
+        self._proved(mark)
 
     def _pace_for(self, timings: Sequence[tuple[float, float]]) -> None:
         """Pace for the slowest of several (period µs, scan µs) that may be in force."""
