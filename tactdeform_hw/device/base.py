@@ -368,7 +368,8 @@ class Device(ABC):
         in_force = [self._config.electrode_count if self._config is not None else 0]
 
         def send(data: bytes) -> None:
-            if unknown_timing and data[0] == p.Opcode.PATTERN and self.pacer.queue_estimate() + len(data) + 4 > self.pacer.limit_bytes:
+            long = data[0] == p.Opcode.PATTERN and self.pacer.queue_estimate() + len(data) + 4 > self.pacer.limit_bytes
+            if unknown_timing and long:
                 self._prove(in_force[0])  # a long pattern goes into a queue proved empty
             self._send(data)
             if data[0] == p.Opcode.ELECTRODE_NUM:
@@ -1113,12 +1114,6 @@ class Device(ABC):
                 )
                 self.guard.note_refusal(exc)
                 raise exc
-
-    def _read_exact(self, size: int, what: str) -> bytes:
-        data = self._read(size)
-        if len(data) != size:
-            raise ShortReplyError(what, size, data)
-        return data
 
     def _check_open(self) -> None:
         if self._closed:
