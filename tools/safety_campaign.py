@@ -68,6 +68,8 @@ DEFECTS = frozenset({"parser_locked", "unread_while_locked", "pattern_holds_comm
                      "channels_beyond_hv513", "commands_out_of_step"})
 # ("u16_waiting" is not among them: on a UART the second byte of a u16 follows 10.85 µs after the first, and
 # the parser may meet the gap; a lost byte shows up as a loss and as commands out of step.)
+#: Errors that refuse a frame (the driver keeps the caller's previous frame) rather than fail to send it.
+REFUSALS = ("SafetyError", "LimitError", "ProtocolMisuseError", "ConfigurationError")
 #: Transitions the caller asked for (not a fault the driver noticed).
 CALLER_REASONS = frozenset({"resync", "reconnect", "hardware_reset"})
 #: Simulated time a fault session keeps the fail-safe running after its last call.
@@ -249,8 +251,10 @@ class _Session:
         r = rng.random()
         if r < 0.30:
             pat = _pattern(rng, n, self.biphasic)
-            if self._call("send_pattern", lambda: dev.send_pattern(pat), pat):
-                self.sent = pat
+            refused = len(self.res.errors)
+            if self._call("send_pattern", lambda: dev.send_pattern(pat), pat) or not any(
+                    k in e for e in self.res.errors[refused:] for k in REFUSALS):
+                self.sent = pat  # the caller's frame, even when the link failed under it: keepalive resumes it
         elif r < 0.40:
             ua = rng.choice((0, 200, 600, 1000, 1800, 3000))
             self.res.allowed_stim_ua = max(self.res.allowed_stim_ua, ua)

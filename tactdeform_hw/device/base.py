@@ -347,6 +347,10 @@ class Device(ABC):
         if self.pacer.robust:
             self._check_robust(config)
         n = config.electrode_count
+        # the caller's frame is superseded now, whether or not the writes below get through: no keepalive
+        # after a failed configure brings the old frame back
+        self._requested = None
+        self._suspended = False
         if self._needs_resync:
             self._recover()
         old = self._config
@@ -505,6 +509,12 @@ class Device(ABC):
         self._check_open()
         if self._config is None:
             return
+        if not keep_target:
+            # the caller's stop holds even if the writes below fail: no later keepalive resumes the frame
+            self._target_ua = 0
+            self._requested = None
+            self._suspended = False
+            self._config = self._config.with_current(0)
         n = self._config.electrode_count
         if self._needs_resync:
             self._recover()  # closed loop: heights 0 and every channel off once the device proves it
@@ -519,11 +529,6 @@ class Device(ABC):
         self.pacer.set_timing(firmware_period_us(self._config.rate_hz) / 1e6, self._scan_us / 1e6)
         if keep_target:
             self._suspended = self._requested is not None
-        else:
-            self._target_ua = 0
-            self._requested = None
-            self._suspended = False
-            self._config = self._config.with_current(0)
 
     def _open_proof(self) -> None:
         """Right after opening, prove the parser in step (best effort: a board that does not answer yet is
