@@ -198,6 +198,7 @@ class Device(ABC):
         self._recovery_write = False
         self._after_reset = False  # the reset line was pulsed: the firmware's electrode count is 0
         self._resetting = False
+        self._bound_seen_s = 0.0  # the largest failing-resync bound at the start of any recovery
         self.frames_sent = 0
         self.last_frame_time: float | None = None
         self.last_state_write: float | None = None  # the last write that changed what the scans deliver
@@ -648,6 +649,8 @@ class Device(ABC):
         """
         cfg = self._config
         n = cfg.electrode_count if cfg is not None else 0
+        if cfg is not None:  # (before a configuration the wait is the unknown board's, ``unknown_reply_s``)
+            self._bound_seen_s = max(self._bound_seen_s, self._resync_bound_now_s())
         self.pacer.set_timing(*self._recovery_timing())
         for attempt in range(1, RECOVERY_ATTEMPTS + 1):
             if self._link is not LinkState.SUSPECT:
@@ -719,7 +722,13 @@ class Device(ABC):
                 self._discard_input()
                 return
             # silence: a hung or locked parser — or a zero that landed as electrode count 0 (0xFF then
-            # answers nothing): only 0xF5 tells them apart
+            # answers nothing; nothing is scanned either).  Only 0xF5 tells them apart, at a millisecond
+            # of board detection spread over the gaps between scans; with a reset line at hand, the
+            # reset comes first instead (a hung board may be stimulating)
+            if self._can_reset() and not self._resetting:
+                self._enter(LinkState.FAILED, f"0xFF unanswered after {RX_QUEUE_SIZE + PROBE_LEAD_ZEROS} zeros")
+                raise ShortReplyError("0xFF after resync zeros (parser locked or hung: reset the board)",
+                                      2 * electrodes, b"")
             lead = PROBE_LEAD_ZEROS
         else:
             lead = RX_QUEUE_SIZE
@@ -744,6 +753,11 @@ class Device(ABC):
         return firmware_period_us(cfg.rate_hz) / 1e6, scan
 
     def resync_bound_s(self) -> float:
+        """The longest a failing resync of this session waited, or would wait now, for its proofs before
+        the reset line (the larger; configured recoveries only): see :meth:`_resync_bound_now_s`."""
+        return max(self._bound_seen_s, self._resync_bound_now_s())
+
+    def _resync_bound_now_s(self) -> float:
         """The longest a resync that fails waits for its proofs at the configuration
         in force: the request behind the zeros, then 256 zeros and the request again (and 0xF5 after
         0xFF), each until its deadline, behind one frame still in flight.  What a fail-safe adds to its recovery time before it
@@ -757,7 +771,7 @@ class Device(ABC):
         for _ in range(FRAME_COMMANDS):  # a frame still in flight ahead of the recovery
             scratch.write(lambda _chunk: None, p.encode_pulse_height(0))
         steps = [(bytes(PROBE_LEAD_ZEROS) + request, reply), (bytes(RX_QUEUE_SIZE) + request, reply)]
-        if n:
+        if n and not self._can_reset():
             steps.append((bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST, 1))
         for data, reply in steps:
             scratch.write(lambda _chunk: None, data)
