@@ -3,7 +3,17 @@
 from __future__ import annotations
 
 from tactdeform_hw.emulator import Emulator
+from tactdeform_hw.emulator.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.transport import EmulatorPort
+
+#: What the closed-loop proof of a command boundary leaves in the emulator's records: the zeros in front
+#: of 0xF5 and the padding after the recovery's commands (unknown bytes), and 0xF5's re-detection.
+PROBE_RECORDS = frozenset({HazardKind.UNKNOWN_BYTES, HazardKind.HV513_REINIT})
+
+
+def defects(hazards: list[Hazard]) -> list[Hazard]:
+    """The hazards that are firmware defects, not the records of a probe."""
+    return [h for h in hazards if h.kind not in PROBE_RECORDS]
 
 
 class RecordingPort(EmulatorPort):

@@ -42,7 +42,9 @@ def port() -> RecordingPort:
 
 @pytest.fixture
 def dev(port: RecordingPort) -> EtactileKitDevice:
-    return EtactileKitDevice(port)
+    d = EtactileKitDevice(port)
+    port.writes.clear()  # the proof at open (zeros, 0xF5, heights 0): the tests look at what follows
+    return d
 
 
 def test_lines_are_low_before_open(port: RecordingPort) -> None:
@@ -57,7 +59,7 @@ def test_configure_then_pattern_reaches_the_firmware(dev: EtactileKitDevice, por
     assert s["electrode_num"] == 32 and s["pulse_height"] == 150 and s["pulse_width"] == 200
     assert s["discharge_time"] == 45 and s["period_us"] == 8000.0 and s["polarity"] == 1
     assert s["stim_pattern"][:32] == [1] * 16 + [0] * 15 + [2]
-    assert port.emulator.hazards == []  # the driver triggers no defect
+    assert safety_helpers.defects(port.emulator.hazards) == []  # the driver triggers no defect
     # one write per command, each a whole command
     for w in port.writes:
         assert all(i.status == OK for i in decode(w, 32))
@@ -66,8 +68,11 @@ def test_configure_then_pattern_reaches_the_firmware(dev: EtactileKitDevice, por
 
 def test_configure_order_never_stimulates_half_set(dev: EtactileKitDevice, port: RecordingPort) -> None:
     dev.configure(StimConfig(current_ua=1000))
-    names = [decode(w, 32)[0].name for w in port.writes]
-    assert names[0] == "PULSE_HEIGHT" and port.writes[0] == b"\xfb\x00\x00"
+    # the board's timing was unknown: the new rate is proved in force (0xFF) before anything is paced by it
+    assert port.writes[-1] == b"\xff"
+    writes = [w for w in port.writes if w not in (b"\xff", b"\xf5")]
+    names = [decode(w, 32)[0].name for w in writes]
+    assert names[0] == "PULSE_HEIGHT" and writes[0] == b"\xfb\x00\x00"
     assert names.index("ELECTRODE_NUM") + 1 == names.index("PATTERN")
     assert names[-1] == "PULSE_HEIGHT"
 
@@ -78,7 +83,7 @@ def test_reconfiguring_clears_stale_channels(dev: EtactileKitDevice, port: Recor
     dev.configure(StimConfig(electrode_count=4, current_ua=100))
     dev.configure(StimConfig(electrode_count=8, current_ua=100))
     assert port.emulator.state()["stim_pattern"][:8] == [0] * 8
-    assert port.emulator.hazards == []
+    assert safety_helpers.defects(port.emulator.hazards) == []
 
 
 @pytest.mark.parametrize(
@@ -129,6 +134,7 @@ def test_current_above_cap_is_refused_and_nothing_written(port: RecordingPort) -
     from tactdeform_hw.device import SafetyGuard
 
     dev = EtactileKitDevice(port, guard=SafetyGuard(cap_ua=2000))
+    port.writes.clear()  # the proof at open
     with pytest.raises(SafetyError):
         dev.configure(StimConfig(current_ua=2500))
     assert port.writes == []
@@ -190,12 +196,35 @@ class SilentPort(RecordingPort):
 
 
 def test_short_reply_is_typed() -> None:
-    dev = EtactileKitDevice(SilentPort())
-    dev.configure(StimConfig(electrode_count=4))
-    with pytest.raises(ShortReplyError, match="expected a 8-byte reply, got 1"):
-        dev.measure()
+    port = SilentPort()
+    dev = EtactileKitDevice(port)
+    # a board that never answers never proves its parser in step: nothing but zeros and 0xF5 is written
+    with pytest.raises(ShortReplyError, match="0xF5"):
+        dev.configure(StimConfig(electrode_count=4))
+    assert set(b"".join(port.writes)) <= {0x00, 0xF5} and dev.needs_resync
     with pytest.raises(ShortReplyError):
         dev.hv513_count()
+
+
+class ShortMeasurePort(RecordingPort):
+    """Once ``short`` is set, every reply comes back at most one byte long."""
+
+    short = False
+
+    def read(self, size: int = 1) -> bytes:
+        return super().read(min(size, 1) if self.short else size)
+
+
+def test_short_measure_reply_is_typed_and_marks_a_resync() -> None:
+    port = ShortMeasurePort()
+    dev = EtactileKitDevice(port)
+    dev.configure(StimConfig(electrode_count=4))
+    port.short = True
+    with pytest.raises(ShortReplyError, match="expected a 8-byte reply, got 1"):
+        dev.measure()
+    assert dev.needs_resync  # a short reply proves nothing: the next command is preceded by a resync
+    with pytest.raises(ShortReplyError, match="after resync"):
+        dev.hv513_count()  # the resync's 0xFF check cannot pass either
 
 
 class BrokenPort(RecordingPort):

@@ -212,8 +212,10 @@ def test_reconnect_and_hardware_reset_resync_before_any_pattern() -> None:
     dev.send_pattern(ALL)
     port.emulator.feed(b"\xfc\x00\xfe")  # something locked the parser
     assert not dev.probe()
-    dev.resync()
-    assert not dev.probe()  # a resync cannot reach a locked parser
+    dev.resync()  # no byte reaches a locked parser: the proof fails, and the driver takes the reset line
+    assert [t[2] for t in dev.transitions if t[2] in ("failed", "resetting", "in_step")][-3:] == [
+        "failed", "resetting", "in_step"]
+    assert dev.probe()
     assert dev.hardware_reset() and dev.probe()
     assert port.emulator.state()["stim_pattern"][:32] == [0] * 32
     dev.close()

@@ -29,7 +29,10 @@ ALL = [1] * 32
 
 def device(guard: SafetyGuard | None = None, **kw: object) -> tuple[EtactileKitDevice, RecordingPort]:
     port = RecordingPort()
-    return EtactileKitDevice(port, guard=guard or SafetyGuard.from_profile(PROFILE), **kw), port  # type: ignore[arg-type]
+    dev = EtactileKitDevice(port, guard=guard or SafetyGuard.from_profile(PROFILE), **kw)  # type: ignore[arg-type]
+    port.opening = list(port.writes)  # the proof at open (zeros, 0xF5, heights 0)
+    port.writes.clear()  # the tests look at what follows
+    return dev, port
 
 
 def height(port: RecordingPort) -> int:
@@ -179,6 +182,10 @@ def test_polarity_changes_only_while_everything_is_off() -> None:
 
 def test_interlock_refuses_unsafe_bytes_whatever_sends_them() -> None:
     dev, port = device()
+    dev._needs_resync = True  # as after a failed write: nothing is proved
+    with pytest.raises(ProtocolMisuseError, match="not proved in step"):
+        dev._send(p.encode_pattern([1] * 32))
+    dev.resync()  # proved in step, heights 0; the electrode count is still unknown
     with pytest.raises(SafetyError, match="electrode count is unknown"):
         dev._send(p.encode_pattern([1] * 32))
     with pytest.raises(SafetyError, match="pulse width is unknown"):
@@ -230,6 +237,11 @@ COVERED = {
     "target_ua": "property",
     "audit": "property",
     "needs_resync": "property",
+    "link_state": "property",
+    "boot_s": "a wait before the first byte after a reset",
+    "unknown_reply_s": "a wait for a reply",
+    "resync_bound_s": "arithmetic, no bytes",
+    "unproved_spans": "a record, no bytes",
     "suspended": "property",
     "stimulating": "property",
     "closed": "property",
@@ -282,12 +294,17 @@ def test_resync_follows_the_protocol_reference_order() -> None:
     port.emulator.feed(b"\xfb\xdc")  # and a half pulse height (0xDC would become 220 = 2.2 mA)
     n = len(port.writes)
     dev.resync()
-    names = [decode(w, 32)[0].name if w[0] >= 0xF5 else "ZEROS" for w in port.writes[n:]]
-    assert b"".join(port.writes[n : n + names.count("ZEROS")]) == bytes(256)
-    rest = [x for x in names if x != "ZEROS"]
-    # the board answers a request before any value follows the zeros (they may still fill its queue)
-    assert rest[:5] == ["HV513_COUNT", "PULSE_HEIGHT", "SENSE_HEIGHT", "ELECTRODE_NUM", "PATTERN"]
-    assert "PATTERN" not in rest[-1:] and rest[-1] == "PULSE_HEIGHT"
+    writes = port.writes[n:]
+    k = next(i for i, w in enumerate(writes) if w[0] == 0xFB)
+    probes = b"".join(writes[:k])  # nothing but zeros and requests before a reply proved a boundary
+    assert set(probes) <= {0x00, 0xF5, 0xFF} and probes[-1] in (0xF5, 0xFF) and probes[0] == 0
+    assert probes.count(0) >= 20  # enough zeros to finish the cut pattern
+    # the request went into the cut pattern (no reply) until the zeros had finished it
+    states = [t[2] for t in dev.transitions]
+    assert states[-5:] == ["syncing", "flushing", "safe", "verifying", "in_step"]
+    rest = [decode(w, 32)[0].name for w in writes[k:]]
+    assert rest[:5] == ["PULSE_HEIGHT", "SENSE_HEIGHT", "ELECTRODE_NUM", "MEASURE", "PATTERN"]
+    assert [x for x in rest if x != "MEASURE"][-1] == "PULSE_HEIGHT"  # no pattern after the configuration
     s = port.emulator.state()
     assert s["rx_pending"] == 0 and s["electrode_num"] == 32 and s["pulse_height"] == 30
     assert s["stim_pattern"][:32] == [0] * 32  # no pattern until the caller's next frame
@@ -332,8 +349,9 @@ def test_guard_events_reach_the_audit_log(tmp_path) -> None:  # type: ignore[no-
     recs = [json.loads(x) for x in path.read_text().splitlines()]
     assert recs[0]["type"] == "session" and recs[0]["participant"] == "P01"
     tx = [r for r in recs if r["type"] == "tx"]
-    assert sum(len(bytes.fromhex(r["hex"])) for r in tx) == sum(len(w) for w in port.writes)
-    assert [r["hex"] for r in tx] == [w.hex() for w in port.writes]
+    writes = port.opening + port.writes
+    assert sum(len(bytes.fromhex(r["hex"])) for r in tx) == sum(len(w) for w in writes)
+    assert [r["hex"] for r in tx] == [w.hex() for w in writes]
     assert all(r["ok"] and r["t"] >= 0 for r in tx) and [r["t"] for r in tx] == sorted(r["t"] for r in tx)
     safety = [r for r in recs if r["type"] == "safety"]
     assert {s["event"] for s in safety} == {"clipped", "refused"}

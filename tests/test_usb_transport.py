@@ -301,7 +301,7 @@ def test_unplug_during_a_blocking_read(backend: EmulatedUsbBackend) -> None:
 
 def test_unplug_mid_write(backend: EmulatedUsbBackend) -> None:
     dev = EtactileKitDevice(port_on(backend))
-    backend.device.unplug_after(out_bytes=100)  # the second packet of the resync never leaves
+    backend.device.unplug_after(out_bytes=3)  # the resync's first request never leaves whole
     with pytest.raises(DeviceGoneError):
         dev.resync()
     try:

@@ -210,9 +210,9 @@ def run(sc: Scenario) -> ScenarioResult:
         port.advance(min(fs.poll_s, end - port.now_s))
     emu = port.emulator
     mapping = {ch: ch for ch in range(32)}
-    settle = frame_settle_s(sc)
-    chk = check_deliveries(emu, intents, limits, mapping, settle_s=settle)
-    bound = fs.recovery_bound_s(scan_period_s=1.0 / SCAN_RATE_HZ) + settle  # + the frame's own settle time
+    chk = check_deliveries(emu, intents, limits, mapping)
+    # + the frame's own settle time; the resync's own proofs wait as long as the driver says they may
+    bound = fs.recovery_bound_s(scan_period_s=1.0 / 125, resync_s=dev.resync_bound_s()) + 0.012
     injected = port.all_injected
     events = [{"kind": e.kind, "t_s": e.t, **e.detail} for e in fs.events]
     notice_times = [e["t_s"] for e in events if e["kind"] in ("error", "recover", "recover_step_failed")]
@@ -234,7 +234,10 @@ def run(sc: Scenario) -> ScenarioResult:
         {"t_s": lo.time_us / 1e6, "count": lo.count, "reason": lo.reason, "parser": lo.parser_state}
         for lo in emu.losses
     ]
-    unreported = [lo for lo in losses if not any(lo["t_s"] - bound <= nt <= lo["t_s"] + bound for nt in notice_times)]
+    # a loss while the driver itself had no proof of the parser's state is one it knew of
+    spans = [(a, b if b is not None else float("inf")) for a, b in dev.unproved_spans()]
+    unreported = [lo for lo in losses if not any(lo["t_s"] - bound <= nt <= lo["t_s"] + bound for nt in notice_times)
+                  and not any(a <= lo["t_s"] <= b for a, b in spans)]
     owner_on = None
     if sc.owner_stops_at_s is not None:
         table = emu.reports.pulse_table(stop_t * 1e6, None)

@@ -9,6 +9,12 @@ Every byte leaves through :meth:`Device._send`, which passes it through the safe
 session's audit log (:mod:`.audit`).  Public methods hold one lock, so a fail-safe thread's all-off can
 never interleave with a half-written frame.
 
+Nothing that carries a value — a height, a width, an electrode count, a pattern — is written unless the
+device has proved its parser at a command boundary with room in its queue: at open, after a failed or cut
+write, a short or late reply, a reconnect or a reset, the closed-loop recovery (:class:`LinkState`,
+:meth:`Device._flush_parser`) gets a reply of the expected length first.  Its states and transitions are
+drawn in ``docs/safety.md``.
+
 Two currents are kept apart: the *target* (what the caller asked for with ``configure`` or
 ``set_current``) and the *height in force* (what the firmware's pulse-height register holds).  The height
 of each frame is the target lowered to the frame's lowest limit (see :mod:`.safety`); when it goes down it
@@ -22,18 +28,22 @@ import functools
 import threading
 import warnings
 from abc import ABC, abstractmethod
+from collections import deque
 from collections.abc import Callable, Sequence
+from enum import Enum
 from types import TracebackType
 from typing import Concatenate, ParamSpec, TypeVar
 
 from .. import protocol as p
-from ..clock import MonotonicClock
+from ..clock import InstantClock, MonotonicClock, SimulatedClock
 from ..errors import (
+    DeviceTimeoutError,
     LimitError,
     PortNotOpenError,
     ProtocolMisuseError,
     SafetyError,
     ShortReplyError,
+    TactDeformError,
     TransportError,
 )
 from ..protocol.constants import (
@@ -42,6 +52,7 @@ from ..protocol.constants import (
     PATTERN_MONOPHASIC,
     PATTERN_SENSE,
     RX_QUEUE_SIZE,
+    USB_PACKET_SIZE,
 )
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
@@ -61,12 +72,62 @@ from .safety import SafetyGuard
 ALLOWED_LEVELS = frozenset({PATTERN_SENSE, PATTERN_MONOPHASIC, PATTERN_BIPHASIC})
 _ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
 #: Requests sent after a resync's zeros before the board counts as not answering.
-_PROOF_ATTEMPTS = 2
 #: Commands that change what the scans deliver (a measure right after one reads the old pulses).
 _STATE_OPCODES = frozenset(
     {p.Opcode.PATTERN, p.Opcode.PULSE_HEIGHT, p.Opcode.PULSE_WIDTH, p.Opcode.SENSE_HEIGHT, p.Opcode.SENSE_WIDTH,
      p.Opcode.ELECTRODE_NUM, p.Opcode.POLARITY, p.Opcode.FREQUENCY}
 )
+
+
+class LinkState(str, Enum):
+    """What the driver has proved about the firmware's parser and receive queue (see ``docs/safety.md``).
+
+    Only in ``IN_STEP`` may a multi-byte value, an electrode count or a pattern be written.  Every other
+    state writes only bytes that no parser state can turn into a current — zeros, 0xF5, 0xFF, each behind
+    zeros that complete whatever command could be in progress — or heights of 0 once a reply has proved a
+    command boundary.
+    """
+
+    IN_STEP = "in_step"  # the parser reads our commands at their boundaries; the queue model runs
+    SUSPECT = "suspect"  # fresh open, failed write, short or late reply, reopened port, reset: nothing known
+    SYNCING = "syncing"  # zeros then 0xF5 written: waiting for the one-byte reply that proves a boundary
+    FLUSHING = "flushing"  # 0xF5 unanswered (swallowed by a pattern, or a slow parser): zeros in chunks
+    SAFE = "safe"  # boundary proved and queue drained: pulse height 0, sense height 0, electrode count
+    VERIFYING = "verifying"  # 0xFF written: the reply must be exactly 2 x electrode count bytes long
+    DRAINING = "draining"  # before the reset line: the last bytes read (proved) and none left on the link
+    RESETTING = "resetting"  # the reset line is pulsed
+    BOOTING = "booting"  # the firmware boots; nothing is written
+    FAILED = "failed"  # no proof within the attempts: a locked or hung parser (only the reset line helps)
+
+
+#: Which state may follow which (the recovery state machine; tests walk every edge).
+TRANSITIONS: dict[LinkState, frozenset[LinkState]] = {
+    LinkState.IN_STEP: frozenset({LinkState.SUSPECT, LinkState.DRAINING}),
+    LinkState.SUSPECT: frozenset({LinkState.SYNCING, LinkState.DRAINING}),
+    LinkState.SYNCING: frozenset({LinkState.SAFE, LinkState.FLUSHING, LinkState.SUSPECT}),
+    LinkState.FLUSHING: frozenset({LinkState.SAFE, LinkState.FAILED, LinkState.SUSPECT}),
+    LinkState.SAFE: frozenset({LinkState.VERIFYING, LinkState.IN_STEP, LinkState.SUSPECT}),
+    LinkState.VERIFYING: frozenset({LinkState.IN_STEP, LinkState.SUSPECT, LinkState.FAILED}),
+    LinkState.DRAINING: frozenset({LinkState.RESETTING, LinkState.SUSPECT}),
+    LinkState.RESETTING: frozenset({LinkState.BOOTING, LinkState.SUSPECT}),
+    LinkState.BOOTING: frozenset({LinkState.SUSPECT}),
+    LinkState.FAILED: frozenset({LinkState.SUSPECT, LinkState.DRAINING}),
+}
+
+#: Zeros in front of every probe byte: they complete a u8 or u16 command in progress (a zero height, a
+#: zero width or rate — which the firmware ignores), so the probe byte itself is read as a command; only a
+#: pattern in progress can take it, as one more level (a sense pulse at the sense height already in force).
+PROBE_LEAD_ZEROS = 4
+#: Commands of one frame under robust encoding (height, pattern, pattern again): what may still be in
+#: flight when a recovery starts.
+FRAME_COMMANDS = 3
+#: How often a reply is polled while its deadline runs.
+REPLY_POLL_S = 0.0005
+#: Times ``close`` reopens a link that failed under its all-off before it gives up and says so.
+CLOSE_RECONNECTS = 3
+#: Verification rounds (sync, safe, verify) before the recovery gives up.
+RECOVERY_ATTEMPTS = 2
+
 
 _D = TypeVar("_D", bound="Device")
 _P = ParamSpec("_P")
@@ -99,6 +160,12 @@ class Device(ABC):
     (wall-clock pacing by default); ``audit`` records every command sent.
     """
 
+    #: The firmware's boot after the reset line, during which nothing is written (an ESP32-S3 starts its
+    #: application well within this; bytes arriving earlier would be lost).
+    boot_s: float = 0.3
+    #: Extra wait for a reply while the alarm period is unknown (a board opened in an unknown state).
+    unknown_reply_s: float = 0.25
+
     def __init__(
         self,
         *,
@@ -118,11 +185,21 @@ class Device(ABC):
         self.audit = audit
         self._config: StimConfig | None = None
         self._current_ua = 0  # pulse height in force on the firmware
+        self._sense_byte: int | None = None  # the 0xF9 byte in force (None: unknown)
         self._target_ua = 0  # what the caller asked for
         self._last_pattern: bytes | None = None  # hardware order, as on the firmware
         self._requested: list[int] | None = None  # the caller's last frame, application order
         self._suspended = False
-        self._needs_resync = False
+        # nothing is known about a board just opened: the first write proves a command boundary first
+        self._link = LinkState.SUSPECT
+        # (time s, from, to, why) of the latest transitions: the driver's own record of when it knew the
+        # firmware's state and when it did not
+        self.transitions: deque[tuple[float, str, str, str]] = deque(maxlen=4096)
+        self.proofs: deque[float] = deque(maxlen=4096)  # when a reply last proved the parser in step
+        self._recovery_write = False
+        self._after_reset = False  # the reset line was pulsed: the firmware's electrode count is 0
+        self._resetting = False
+        self._bound_seen_s = 0.0  # the largest failing-resync bound at the start of any recovery
         self.frames_sent = 0
         self.last_frame_time: float | None = None
         self.last_state_write: float | None = None  # the last write that changed what the scans deliver
@@ -144,6 +221,11 @@ class Device(ABC):
     def _close_transport(self) -> None:
         """Release the port."""
 
+    def _waiting(self) -> int | None:
+        """Bytes from the device waiting to be read, if the transport can tell (then replies are polled
+        to their deadline instead of read with the port's own timeout)."""
+        return None
+
     def _discard_input(self) -> None:  # noqa: B027 - optional hook, a no-op by default
         """Drop stale bytes waiting from the device (optional for transports)."""
 
@@ -153,6 +235,10 @@ class Device(ABC):
 
     def _reset_transport(self) -> bool:
         """Pulse the board's reset line; False when the transport has none."""
+        return False
+
+    def _can_reset(self) -> bool:
+        """Whether the transport has a reset line (asked before draining for a reset)."""
         return False
 
     # --- state ---------------------------------------------------------------------------------------------
@@ -185,8 +271,24 @@ class Device(ABC):
 
     @property
     def needs_resync(self) -> bool:
-        """True after a failed write: the next frame is preceded by a resync."""
-        return self._needs_resync
+        """True until the device has proved its parser in step (after opening, a failed write, a short or
+        late reply, a reopened port or a reset): the next command is preceded by a closed-loop resync."""
+        return self._link is not LinkState.IN_STEP
+
+    @property
+    def link_state(self) -> LinkState:
+        """Where the recovery state machine stands (see :class:`LinkState`)."""
+        return self._link
+
+    @property
+    def _needs_resync(self) -> bool:
+        return self._link is not LinkState.IN_STEP
+
+    @_needs_resync.setter
+    def _needs_resync(self, value: bool) -> None:
+        # a fail-safe (or a signal handler) that saw a timeout, a bad readback or a cut write says so here
+        if value:
+            self._suspect("marked for resync")
 
     @property
     def last_pattern(self) -> bytes | None:
@@ -280,30 +382,60 @@ class Device(ABC):
         if self.pacer.robust:
             self._check_robust(config)
         n = config.electrode_count
+        # the caller's frame is superseded now, whether or not the writes below get through: no keepalive
+        # after a failed configure brings the old frame back
+        self._requested = None
+        self._suspended = False
+        if self._needs_resync:
+            self._recover()
         old = self._config
         new_period = firmware_period_us(config.rate_hz)
         idle_scan = self._scan_of(config, bytes(n))
-        if old is None or self._scan_us is None:
-            self.pacer.set_timing(max(new_period, 10_000.0) / 1e6, None if old is None else self._worst_scan_s(old))
-        else:
-            self.pacer.set_timing(firmware_period_us(old.rate_hz) / 1e6, max(self._scan_us, idle_scan) / 1e6)
-        if self._needs_resync:
-            self._flush_parser()
-            self._require_answer()
-        self._send(p.encode_pulse_height(0))
+        # until the new rate and widths are read, the old ones run: pace for the slower of the two
+        timings = [(new_period, idle_scan)]
+        if old is not None:
+            before = self._scan_us if self._scan_us is not None else self._worst_scan_s(old) * 1e6
+            timings.append((firmware_period_us(old.rate_hz), max(before, self._scan_of(old, bytes(old.electrode_count)))))
+        elif self.pacer.period_s is not None and self.pacer.scan_s is not None:
+            timings.append((self.pacer.period_s * 1e6, self.pacer.scan_s * 1e6))  # from the resync
+        # nothing known of the firmware's timing (a board just opened): the queue was proved empty and the
+        # configuration fits it (a long pattern waits for a proof first); the new rate is proved in force
+        # before anything else is paced by it
+        unknown_timing = old is None and (self.pacer.period_s is None or self.pacer.scan_s is None)
+        self._pace_for(timings)
+
+        in_force = [self._config.electrode_count if self._config is not None else 0]
+
+        def send(data: bytes) -> None:
+            long = data[0] == p.Opcode.PATTERN and self.pacer.queue_estimate() + len(data) + 4 > self.pacer.limit_bytes
+            if unknown_timing and long:
+                self._prove(in_force[0])  # a long pattern goes into a queue proved empty
+            self._send(data)
+            if data[0] == p.Opcode.ELECTRODE_NUM:
+                in_force[0] = data[1]
+
+        send(p.encode_pulse_height(0))
         self._current_ua = 0
         if self._config is not None:
-            self._send(p.encode_pattern(bytes(self._config.electrode_count)))
-        self._send(p.encode_sense_height(0))
-        self._send(p.encode_electrode_num(n))
-        self._send(p.encode_pattern(bytes(n)))
+            send(p.encode_pattern(bytes(self._config.electrode_count)))
+        send(p.encode_sense_height(0))
+        self._sense_byte = 0
+        send(p.encode_electrode_num(n))
+        send(p.encode_pattern(bytes(n)))
         self._last_pattern = bytes(n)
-        self._send(p.encode_polarity(POLARITY_CODE[config.polarity]))
-        self._send(p.encode_pulse_width(config.pulse_width_us))
-        self._send(p.encode_sense_width(config.sense_width_us))
-        self._send(p.encode_discharge(config.discharge_us))
-        self._send(p.encode_frequency(config.rate_hz))
-        self._send(p.encode_sense_height(sense_code(config.sense_current_ua, self.transfer)))
+        # a longer period goes first and a shorter one last, so no scan of the new widths meets the old,
+        # shorter period (the board's own period is unknown after opening or a reset: 10 ms at power-on)
+        longer = old is None or new_period >= firmware_period_us(old.rate_hz)
+        if longer:
+            send(p.encode_frequency(config.rate_hz))
+        send(p.encode_polarity(POLARITY_CODE[config.polarity]))
+        send(p.encode_pulse_width(config.pulse_width_us))
+        send(p.encode_sense_width(config.sense_width_us))
+        send(p.encode_discharge(config.discharge_us))
+        if not longer:
+            send(p.encode_frequency(config.rate_hz))
+        send(p.encode_sense_height(sense_code(config.sense_current_ua, self.transfer)))
+        self._sense_byte = sense_code(config.sense_current_ua, self.transfer)
         height = self._encodable(
             self.guard.frame_height(None, config.current_ua, 0, config.pulse_width_us, raise_when_idle=True)
         )
@@ -314,7 +446,13 @@ class Device(ABC):
         self._requested = None
         self._suspended = False
         self._scan_us = idle_scan
+        # a faster pace for the new timing only once the device proves it has read every command above
+        slower = self.pacer.payload_interval_s(), self.pacer.period_s, self.pacer.scan_s
         self.pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
+        if unknown_timing or self.pacer.payload_interval_s() < slower[0]:
+            self.pacer.set_timing(slower[1], slower[2])
+            self._prove(n)
+            self.pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
 
     @_locked
     def set_current(self, current_ua: int) -> None:
@@ -406,45 +544,68 @@ class Device(ABC):
         self._check_open()
         if self._config is None:
             return
-        n = self._config.electrode_count
-        if self._needs_resync:
-            self._flush_parser()
-            self._require_answer()
-        self._send_critical(p.encode_pattern(bytes(n)))
-        self._send_critical(p.encode_pulse_height(0))
-        self._last_pattern = bytes(n)
-        self._current_ua = 0
-        self._scan_us = self._scan_of(self._config, bytes(n))
-        self.pacer.set_timing(firmware_period_us(self._config.rate_hz) / 1e6, self._scan_us / 1e6)
-        if keep_target:
-            self._suspended = self._requested is not None
-        else:
+        if not keep_target:
+            # the caller's stop holds even if the writes below fail: no later keepalive resumes the frame
             self._target_ua = 0
             self._requested = None
             self._suspended = False
             self._config = self._config.with_current(0)
+        n = self._config.electrode_count
+        if self._needs_resync:
+            self._recover()  # closed loop: heights 0 and every channel off once the device proves it
+        self._send_critical(p.encode_pattern(bytes(n)))
+        self._send_critical(p.encode_pulse_height(0))
+        self._last_pattern = bytes(n)
+        self._current_ua = 0
+        # the sense pulse is a current too, and a fault may have set it whatever the host believes
+        self._send_critical(p.encode_sense_height(0))
+        self._sense_byte = 0
+        self._scan_us = self._scan_of(self._config, bytes(n))
+        self.pacer.set_timing(firmware_period_us(self._config.rate_hz) / 1e6, self._scan_us / 1e6)
+        if keep_target:
+            self._suspended = self._requested is not None
+
+    def _open_proof(self) -> None:
+        """Right after opening, prove the parser in step (best effort: a board that does not answer yet is
+        proved by the first command, which raises if it still cannot be)."""
+        with self._lock:
+            try:
+                self._recover()  # a locked or hung board (perhaps still stimulating) gets the reset line
+            except TactDeformError:
+                self._suspect("no proof at open")
 
     @_locked
     def measure(self) -> list[int]:
-        """ADC codes (``raw >> 2``) of each hardware channel's last pulse, in hardware channel order."""
+        """ADC codes (``raw >> 2``) of each hardware channel's last pulse, in hardware channel order.  A
+        reply of the right length proves the parser read everything written before the request."""
         cfg = self._require_config("measure")
         n = cfg.electrode_count
+        if self._needs_resync:
+            self._recover()
         self._discard_input()
-        self._send(p.MEASURE_REQUEST)
-        data = self._read_exact(2 * n, "measure")
+        mark = self._send_marked(p.MEASURE_REQUEST)
+        data = self._await_reply(2 * n)
+        if len(data) != 2 * n:
+            self._suspect("short reply to 0xFF")
+            raise ShortReplyError("measure", 2 * n, data)
+        self._proved(mark)
         return p.parse_measure_reply(data, n)
 
     @_locked
     def probe(self) -> bool:
         """Is the firmware's parser in step?  A measure request must be answered with exactly two bytes
         per channel; a parser that swallowed it as payload, a locked one, or one rebooted to electrode
-        count 0 does not.  A failed probe marks the device for a resync (and returns False)."""
+        count 0 does not.  A failed probe (or a device not yet proved in step) marks the device for a
+        resync and returns False."""
+        self._check_open()
+        if self._needs_resync:
+            return False
         if self._config is None:
             return True
         try:
             self.measure()
-        except (ShortReplyError, LimitError):
-            self._needs_resync = True
+        except (ShortReplyError, LimitError, DeviceTimeoutError):
+            self._suspect("probe failed")
             return False
         return True
 
@@ -452,28 +613,31 @@ class Device(ABC):
     def hv513_count(self) -> int:
         """Ask the board how many HV513 chips it detects (this re-initialises their outputs)."""
         self._check_open()
+        if self._needs_resync:
+            self._recover()
         self._discard_input()
-        self._send(p.HV513_COUNT_REQUEST)
-        return p.parse_hv513_reply(self._read_exact(1, "hv513_count"))
+        mark = self._send_marked(p.HV513_COUNT_REQUEST)
+        data = self._await_reply(1)
+        if len(data) != 1:
+            self._suspect("short reply to 0xF5")
+            raise ShortReplyError("hv513_count", 1, data)
+        self._proved(mark)
+        return p.parse_hv513_reply(data)
 
     @_locked
     def resync(self) -> None:
-        """Bring a parser of unknown state back in step, in the order the protocol reference gives:
-        256 zeros finish any command in progress; the board must then answer 0xF5 (until it has, the zeros
-        may still fill its queue and cut the next command; without an answer nothing more is sent and the
-        device stays marked for a resync); then pulse height 0 and the sense height 0 (a zero may
-        have landed as the high byte of a half-received u16, so the height could be anything) and an
-        all-off pattern — preceded by the electrode count, because a zero may have landed as electrode
-        count 0 and a pattern then would lock the parser; then the whole configuration again.  No pattern
-        follows: the caller's next frame (or keepalive) brings it back, ramped from 0.
+        """Bring a parser of unknown state back in step, closed loop (see :meth:`_flush_parser`): the
+        device proves a command boundary and an empty queue, pulse height and sense height go to 0, the
+        electrode count is written and proved by the length of a measure reply, every channel goes off;
+        then the whole configuration again.  No pattern follows: the caller's next frame (or keepalive)
+        brings it back, ramped from 0.
 
         Without a configuration (a fresh session on a board in unknown state) the electrode count is
         unknown, so no pattern can be sent safely; pulse height 0 and sense height 0 already stop every
         current the firmware can deliver."""
         self._check_open()
-        self._flush_parser()
-        if self._needs_resync:
-            return  # the board did not answer after the zeros
+        self._suspect("resync")
+        self._recover()
         cfg = self._config
         if cfg is not None:
             requested = self._requested
@@ -482,94 +646,279 @@ class Device(ABC):
                 self.configure(cfg.with_current(self._target_ua))
             except BaseException:
                 self._config = cfg  # still the session's configuration: the next resync tries again
-                self._needs_resync = True
+                self._suspect("configure after resync failed")
                 raise
             self._requested = requested
             self._suspended = requested is not None
-        self._needs_resync = False
+
+    def _recover(self) -> None:
+        """The closed-loop recovery, and when it ends in FAILED (a locked or hung parser, which no byte
+        can reach, while the board may go on stimulating) the reset line at once, if there is one."""
+        try:
+            self._flush_parser()
+        except ShortReplyError:
+            if self._link is not LinkState.FAILED or self._resetting or not self._can_reset():
+                raise
+            self.hardware_reset()  # its own resync proves the board in step again, or raises
 
     def _flush_parser(self) -> None:
-        self._needs_resync = True
-        cfg = self._config
-        # pace for the last pattern known to be in force (a fault on the link rarely lengthens the scan, and
-        # pacing too fast here costs only skipped zeros and a failed probe); unknown: every channel active
-        if cfg is not None:
-            last = self._scan_us / 1e6 if self._scan_us is not None else self._worst_scan_s(cfg)
-            self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, last)
-        else:
-            self.pacer.set_timing(None, None)
-        self._send(bytes(RX_QUEUE_SIZE))
-        if not self._prove_in_step():
-            return  # no answer (a locked parser, a dead link): nothing may follow; still needs a resync
-        self._send(p.encode_pulse_height(0))
-        self._current_ua = 0
-        self._send(p.encode_sense_height(0))
-        cfg = self._config
-        self._last_pattern = None
-        if cfg is not None:
-            n = cfg.electrode_count
-            self._send(p.encode_electrode_num(n))
-            self._send(p.encode_pattern(bytes(n)))
-            self._last_pattern = bytes(n)
-            self._scan_us = self._scan_of(cfg, bytes(n))
-            self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, self._scan_us / 1e6)
-        self._needs_resync = False
+        """The closed-loop recovery: SUSPECT → SYNCING (→ FLUSHING) → SAFE → VERIFYING → IN_STEP.
 
-    def _prove_in_step(self) -> bool:
-        """After the zeros the board must answer a request before any value follows: until it has, its
-        queue may still be full of zeros, and a command whose packet lost its tail there would take the next
-        command's bytes as its value (pulse height 0 then a sense height reads as 0xF900 → 4095).  A request
-        lost to that full queue changes nothing, so it is asked again (the read's timeout lets the parser
-        drain the zeros meanwhile)."""
-        for _ in range(_PROOF_ATTEMPTS):
+        * SYNCING: four zeros (they complete any u8 or u16 in progress, so the request after them is read
+          as a command, or — by a pattern in progress — as one more level), then 0xFF when the firmware
+          should hold the configuration's electrode count, else 0xF5.  A reply of the expected length
+          proves the parser read the request as a command — so it was at a command boundary — and read
+          every byte written before it: the queue model is proved empty (:meth:`_sync`).
+        * FLUSHING: no such reply: 256 zeros finish any pattern in progress, then the request again (and
+          0xF5 after a silent 0xFF, as a zero may have set the count to 0).  Still silent: FAILED, a locked
+          or hung parser that only the reset line reaches (:meth:`_recover` takes it).
+        * SAFE: pulse height 0, sense height 0 and the electrode count, each with the loss-tolerant
+          padding so that one lost byte still cannot make a current.
+        * VERIFYING: 0xFF must be answered with exactly 2 × electrode count bytes — the count is in force,
+          so a pattern now cannot lock the parser; then an all-off pattern.  Otherwise one more round,
+          then FAILED.
+
+        Time alone never proves anything here: each deadline (the queue model's worst case plus one
+        period) only decides when to stop waiting for a proof.
+        """
+        cfg = self._config
+        n = cfg.electrode_count if cfg is not None else 0
+        if cfg is not None:  # (before a configuration the wait is the unknown board's, ``unknown_reply_s``)
+            self._bound_seen_s = max(self._bound_seen_s, self._resync_bound_now_s())
+        self.pacer.set_timing(*self._recovery_timing())
+        for attempt in range(1, RECOVERY_ATTEMPTS + 1):
+            if self._link is not LinkState.SUSPECT:
+                self._enter(LinkState.SUSPECT, f"recovery attempt {attempt}")
             self._discard_input()
-            self._send(p.HV513_COUNT_REQUEST)
-            if len(self._read(1)) == 1:
-                self.guard.note_in_step()
-                return True
-        return False
+            self._sync(0 if self._after_reset else n)
+            self._after_reset = False
+            self._enter(LinkState.SAFE, "answered: command boundary, queue drained")
+            self._recovery_send(p.encode_pulse_height(0))
+            self._current_ua = 0
+            self._recovery_send(p.encode_sense_height(0))
+            self._sense_byte = 0
+            self._last_pattern = None
+            if cfg is None:
+                self._enter(LinkState.IN_STEP, "heights 0; no electrode count to prove")
+                return
+            self._recovery_send(p.encode_electrode_num(n))
+            self._enter(LinkState.VERIFYING, f"electrode count {n} written")
+            self._discard_input()
+            mark = self._recovery_send(p.MEASURE_REQUEST)  # the padding above ends every command before it
+            reply = self._await_reply(2 * n)
+            if len(reply) == 2 * n:
+                self._proved(mark)
+                self._enter(LinkState.IN_STEP, f"0xFF answered with {2 * n} bytes")
+                break
+            if attempt == RECOVERY_ATTEMPTS:
+                self._enter(LinkState.FAILED, f"0xFF answered with {len(reply)} of {2 * n} bytes")
+                raise ShortReplyError("measure after resync", 2 * n, reply)
+            self._enter(LinkState.SUSPECT, f"0xFF answered with {len(reply)} of {2 * n} bytes")
+        assert cfg is not None
+        self._send(p.encode_pattern(bytes(n)))
+        self._last_pattern = bytes(n)
+        self._scan_us = self._scan_of(cfg, bytes(n))
+        self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, self._scan_us / 1e6)
 
-    def _require_answer(self) -> None:
-        if self._needs_resync:
-            raise ShortReplyError("0xF5 after the resync zeros (nothing more was sent)", 1, b"")
+    def _sync(self, electrodes: int) -> None:
+        """SYNCING, then FLUSHING if need be; returns in SAFE's entry condition or raises (FAILED).
+
+        When the firmware should hold ``electrodes`` >= 1, the request behind the zeros is 0xFF: a reply of
+        exactly 2 × ``electrodes`` bytes proves a command boundary and the queue read, cheaply.  Otherwise
+        (and after a reset, whose electrode count is 0) it is 0xF5, which always answers one byte but
+        costs the board a millisecond of detection.  Unanswered: 256 zeros finish any pattern in
+        progress, and the same request again must be answered (0xFF answered with another length proves
+        a boundary too; 0xFF unanswered is followed by 0xF5, as a zero may have set the count to 0)."""
+        self._enter(LinkState.SYNCING, "zeros and a request")
+        if electrodes >= 1:
+            first = self._recovery_send(bytes(PROBE_LEAD_ZEROS) + p.MEASURE_REQUEST)
+            if len(self._await_reply(2 * electrodes)) == 2 * electrodes:
+                self._proved(first)
+                return
+            self._discard_input()
+            why = "0xFF unanswered or answered short"
+        else:
+            first = self._recovery_send(bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST)
+            if self._await_reply(1):
+                self._proved(first)
+                return
+            why = "0xF5 unanswered"
+        self._enter(LinkState.FLUSHING, why)
+        if electrodes >= 1:
+            # 0xFF again: cheap, and its length proves the count
+            self._recovery_send(bytes(RX_QUEUE_SIZE) + p.MEASURE_REQUEST)
+            reply = self._await_reply(2 * electrodes)
+            if len(reply) == 2 * electrodes:
+                self._proved(first)
+                return
+            if reply:  # answered, but not for this electrode count: SAFE writes the count, VERIFY checks it
+                self._proved(first)
+                self._discard_input()
+                return
+            # silence: a hung or locked parser — or a zero that landed as electrode count 0 (0xFF then
+            # answers nothing; nothing is scanned either).  Only 0xF5 tells them apart, at a millisecond
+            # of board detection spread over the gaps between scans; with a reset line at hand, the
+            # reset comes first instead (a hung board may be stimulating)
+            if self._can_reset() and not self._resetting:
+                self._enter(LinkState.FAILED, f"0xFF unanswered after {RX_QUEUE_SIZE + PROBE_LEAD_ZEROS} zeros")
+                raise ShortReplyError("0xFF after resync zeros (parser locked or hung: reset the board)",
+                                      2 * electrodes, b"")
+            lead = PROBE_LEAD_ZEROS
+        else:
+            lead = RX_QUEUE_SIZE
+        self._recovery_send(bytes(lead) + p.HV513_COUNT_REQUEST)
+        if self._await_reply(1):
+            # some 0xF5 of this recovery was read as a command, so every byte before the first one was
+            # read; the other may still answer (a stale byte the next request discards)
+            self._proved(first)
+            return
+        self._enter(LinkState.FAILED, f"unanswered after {RX_QUEUE_SIZE + PROBE_LEAD_ZEROS} zeros")
+        raise ShortReplyError("0xF5 after resync zeros (parser locked or hung: reset the board)", 1, b"")
+
+    def _recovery_timing(self) -> tuple[float | None, float | None]:
+        """(period s, scan s) to pace and time the recovery for: the scan of the pattern last sent (a
+        pattern the host does not know — after a reset, a reconnect, or before any — counts as every
+        channel biphasic).  Should a fault have left a longer scan in force, zeros and 0xF5 may be lost:
+        the proof then fails and the reset line follows — the safe direction."""
+        cfg = self._config
+        if cfg is None:
+            return None, None
+        scan = self._scan_us / 1e6 if self._scan_us is not None else self._worst_scan_s(cfg)
+        return firmware_period_us(cfg.rate_hz) / 1e6, scan
+
+    def resync_bound_s(self) -> float:
+        """The longest a failing resync of this session waited, or would wait now, for its proofs before
+        the reset line (the larger; configured recoveries only): see :meth:`_resync_bound_now_s`."""
+        return max(self._bound_seen_s, self._resync_bound_now_s())
+
+    def _resync_bound_now_s(self) -> float:
+        """The longest a resync that fails waits for its proofs at the configuration
+        in force: the request behind the zeros, then 256 zeros and the request again (and 0xF5 after
+        0xFF), each until its deadline, behind one frame still in flight.  What a fail-safe adds to its recovery time before it
+        reaches for the reset line."""
+        cfg = self._config
+        n = cfg.electrode_count if cfg is not None else 0
+        clock = SimulatedClock()
+        scratch = Pacer(clock=clock, policy=self.pacer.policy)
+        scratch.set_timing(*self._recovery_timing())
+        request, reply = (p.MEASURE_REQUEST, 2 * n) if n else (p.HV513_COUNT_REQUEST, 1)
+        for _ in range(FRAME_COMMANDS):  # a frame still in flight ahead of the recovery
+            scratch.write(lambda _chunk: None, p.encode_pulse_height(0))
+        steps = [(bytes(PROBE_LEAD_ZEROS) + request, reply), (bytes(RX_QUEUE_SIZE) + request, reply)]
+        if n and not self._can_reset():
+            steps.append((bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST, 1))
+        for data, reply in steps:
+            scratch.write(lambda _chunk: None, data)
+            period = scratch.period_s if scratch.period_s is not None else self.unknown_reply_s
+            deadline = scratch.drained_by() + 0.003 + reply * scratch.policy.byte_s + period
+            clock.advance(deadline - clock.now() + REPLY_POLL_S)
+        return clock.now()
 
     @_locked
     def reconnect(self) -> None:
         """Reopen the link after it failed, then resynchronise before any pattern (the firmware may still
-        hold a half-received command from before the failure)."""
+        hold a half-received command from before the failure, and the bytes written before it may still
+        be in its queue: they are not assumed gone)."""
         self._check_open()
+        self._suspect("reconnect")
         self._reopen_transport()
         self.guard.mark_unknown()
-        self.pacer.reset()
         self._scan_us = None
-        self._needs_resync = True
         self.resync()
 
     @_locked
     def hardware_reset(self) -> bool:
         """Reset the board through its reset line — the only way to reach a locked parser — and bring it
-        back to the configuration.  False when the transport has no reset line."""
+        back to the configuration: DRAINING (a reply proves the queue read, if the parser answers; and
+        nothing of ours is left on the link, so no pattern lands on the freshly reset firmware whose
+        electrode count is 0), RESETTING, BOOTING (``boot_s``, nothing written), then the closed-loop
+        resync.  False when the transport has no reset line."""
         self._check_open()
-        if not self._reset_transport():
+        if not self._can_reset():
             return False
-        self.guard.mark_unknown()
-        self.pacer.reset()
-        self._scan_us = 0.0  # power-on: electrode count 0, nothing to scan
-        self._needs_resync = True
-        self.resync()
+        in_step = self._link is LinkState.IN_STEP
+        self._resetting = True
+        try:
+            self._hardware_reset(in_step)
+        finally:
+            self._resetting = False
         return True
+
+    def _hardware_reset(self, in_step: bool) -> None:
+        self._enter(LinkState.DRAINING, "hardware_reset")
+        self._drain(in_step)
+        self._enter(LinkState.RESETTING, "nothing left on the link")
+        try:
+            pulsed = self._reset_transport()
+        except BaseException:
+            self._suspect("the reset line failed")
+            raise
+        if not pulsed:
+            self._suspect("no reset line after all")
+            raise TransportError(f"{type(self).__name__}: the reset line could not be pulsed")
+        self.guard.mark_unknown()
+        self._current_ua = 0
+        self._sense_byte = None
+        self._last_pattern = None
+        self._scan_us = 0.0  # power-on: electrode count 0, nothing to scan
+        self._after_reset = True
+        self._enter(LinkState.BOOTING, "reset line pulsed")
+        self.pacer.wait_until(self.pacer.clock.now() + self.boot_s)
+        self._enter(LinkState.SUSPECT, f"booted ({self.boot_s * 1e3:g} ms)")
+        self.resync()
+
+    def _drain(self, in_step: bool) -> None:
+        if in_step:
+            # in step: a request alone is read as a command; its reply proves the queue read
+            self._recovery_write = True
+            try:
+                self._prove(self._config.electrode_count if self._config is not None else 0)
+            except (TransportError, ShortReplyError):
+                # no proof: the reset is the remedy, after the link has surely delivered everything
+                if self._link is not LinkState.DRAINING:
+                    self._enter(LinkState.DRAINING, "no proof: reset anyway")
+            finally:
+                self._recovery_write = False
+        self.pacer.wait_until(self.pacer.arrived_by() + self.pacer.policy.link_latency_s)
 
     @_locked
     def close(self) -> None:
-        """All channels off, then release the port.  Safe to call twice."""
+        """All channels off, proved read (so the next program to open the board finds its queue empty),
+        then release the port.  Safe to call twice.  A board that does not prove the all-off read is
+        recovered (with the reset line if need be) and switched off again; a link that failed is reopened
+        first: nothing after close could stop the board."""
         if self._closed:
             return
         try:
-            if self._config is not None:
-                self.all_off()
+            try:
+                self._stop_and_prove()
+            except TransportError as failed:
+                for attempt in range(CLOSE_RECONNECTS):
+                    try:
+                        self.reconnect()
+                        self._stop_and_prove()
+                        break
+                    except TransportError:
+                        if attempt == CLOSE_RECONNECTS - 1:
+                            raise failed from None
+                    except TactDeformError:
+                        raise failed from None
         finally:
             self._closed = True
             self._close_transport()
+
+    def _stop_and_prove(self) -> None:
+        if self._config is not None:
+            self.all_off()
+        if self._link is LinkState.IN_STEP:
+            try:
+                self._prove(self._config.electrode_count if self._config is not None else 0)
+            except ShortReplyError:
+                # the all-off is not proved read (a board that rebooted or hung under it): recover,
+                # with the reset line if need be, and switch off again
+                self._recover()
+                if self._config is not None:
+                    self.all_off()
 
     def __enter__(self) -> Device:
         return self
@@ -588,13 +937,19 @@ class Device(ABC):
 
     # --- helpers -------------------------------------------------------------------------------------------
 
-    def _send(self, data: bytes) -> None:
-        """The one exit for bytes: interlock, pacing, transport, audit.  A failed write leaves the
-        firmware's state unknown, so the interlock forgets it and the next frame resyncs first."""
+    def _send(self, data: bytes, *, pad: bool | None = None) -> None:
+        """The one exit for bytes: gate, interlock, pacing, transport, audit.  Outside the recovery's own
+        writes nothing leaves unless the parser is proved in step (:class:`LinkState`).  A failed write
+        leaves the firmware's state unknown, so the interlock forgets it and the next frame resyncs first."""
         self._check_open()
         data = bytes(data)
         if not data:
             return
+        if self._link is not LinkState.IN_STEP and not self._recovery_write:
+            raise ProtocolMisuseError(
+                f"0x{data[0]:02X} while the firmware's parser is not proved in step ({self._link.value}): "
+                "resync first"
+            )
         shadow = self.guard.check_wire(data, mapping=self.mapping, transfer=self.transfer)
         audit = self._audit
         op = self._op or ""
@@ -614,14 +969,119 @@ class Device(ABC):
                 audit.tx(chunk, t=self.pacer.clock.now(), op=op, logical=logical)
 
         try:
-            self.pacer.write(write, data)
+            self.pacer.write(write, data, pad=pad)
         except BaseException:
             self.guard.mark_unknown()
-            self._needs_resync = True
+            self._suspect("write failed")
             raise
         changed = self.guard.commit(shadow)
         if changed and (data[0] in _STATE_OPCODES or data[0] < COMMAND_BYTE_MIN):
             self.last_state_write = self.pacer.clock.now()  # a rewrite of the same state does not count
+
+    def _enter(self, state: LinkState, why: str) -> None:
+        """One transition of the recovery state machine (only those in :data:`TRANSITIONS`)."""
+        old = self._link
+        if state not in TRANSITIONS[old]:
+            raise ProtocolMisuseError(f"recovery: no transition from {old.value} to {state.value} ({why})")
+        if state is LinkState.SUSPECT:
+            self.pacer.suspect()
+        self._link = state
+        self.transitions.append((self.pacer.clock.now(), old.value, state.value, why))
+
+    def unproved_spans(self) -> list[tuple[float, float | None]]:
+        """(start, end) of every span the driver spent without proof that the parser was in step (end None:
+        still open), from :attr:`transitions`: what the host knew it did not know."""
+        spans: list[tuple[float, float | None]] = []
+        start: float | None = None
+        for t, old, new, _ in self.transitions:
+            if old != LinkState.IN_STEP.value and start is None and not spans:
+                start = t  # unproved since the device was opened
+            if old == LinkState.IN_STEP.value and start is None:
+                start = t
+            if new == LinkState.IN_STEP.value and start is not None:
+                spans.append((start, t))
+                start = None
+        if start is not None:
+            spans.append((start, None))
+        return spans
+
+    def _suspect(self, why: str) -> None:
+        """Whatever the state, nothing is proved any more (the queue model freezes too)."""
+        self.pacer.suspect()
+        if self._link is not LinkState.SUSPECT:
+            self._enter(LinkState.SUSPECT, why)
+
+    def _recovery_send(self, data: bytes) -> int:
+        """A write of the recovery itself (always with the loss-tolerant padding); the written offset just
+        past it, for :meth:`Pacer.proven`."""
+        self._recovery_write = True
+        try:
+            self._send(data, pad=True)
+        finally:
+            self._recovery_write = False
+        return self.pacer.offset
+
+    def _proved(self, mark: int) -> None:
+        """A reply proved every byte before ``mark`` read, the parser at a command boundary."""
+        self.pacer.proven(mark)
+        self.guard.note_in_step()  # the interlock stops assuming a full queue could cut this write's packets
+        self.proofs.append(self.pacer.clock.now())
+
+    def _prove(self, electrodes: int) -> None:
+        """In step: a request whose reply proves every byte written before it read (and empties the queue
+        model) — 0xFF when the firmware's electrode count is ``electrodes`` >= 1 (cheap, and its length
+        proves the count too), else 0xF5 (about a millisecond of board detection).  No whole reply: the
+        device is marked for a resync and :class:`ShortReplyError` raised."""
+        self._discard_input()
+        if electrodes >= 1:
+            request, size, what = p.MEASURE_REQUEST, 2 * electrodes, "measure"
+        else:
+            request, size, what = p.HV513_COUNT_REQUEST, 1, "hv513 count"
+        mark = self._send_marked(request)
+        reply = self._await_reply(size)
+        if len(reply) != size:
+            self._suspect(f"short reply to 0x{request[0]:02X}")
+            raise ShortReplyError(f"{what} (proof that the queue was read)", size, reply)
+        self._proved(mark)
+
+    def _pace_for(self, timings: Sequence[tuple[float, float]]) -> None:
+        """Pace for the slowest of several (period µs, scan µs) that may be in force."""
+
+        def cost(t: tuple[float, float]) -> tuple[float, float]:
+            self.pacer.set_timing(t[0] / 1e6, t[1] / 1e6)
+            return (self.pacer.payload_interval_s(), self.pacer.skip_s(USB_PACKET_SIZE))
+
+        period_us, scan_us = max(timings, key=cost)
+        self.pacer.set_timing(period_us / 1e6, scan_us / 1e6)
+
+    def _send_marked(self, data: bytes) -> int:
+        self._send(data)
+        return self.pacer.offset
+
+    def _reply_slack_s(self, size: int) -> float:
+        """How long after the queue model's worst drain time a reply of ``size`` bytes may still come:
+        its transfer (a USB frame), one alarm period of margin, and more when the period is unknown."""
+        period = self.pacer.period_s
+        extra = period if period is not None else self.unknown_reply_s
+        return 0.003 + size * self.pacer.policy.byte_s + extra
+
+    def _await_reply(self, size: int) -> bytes:
+        """Read up to ``size`` bytes until the reply's deadline (the worst case, not the typical)."""
+        if size <= 0:
+            return b""
+        clock = self.pacer.clock
+        deadline = self.pacer.drained_by() + self._reply_slack_s(size)
+        got = bytearray()
+        while True:
+            waiting = self._waiting()
+            if waiting is None or waiting >= size - len(got):
+                got += self._read(size - len(got))
+            elif clock.now() >= deadline:
+                if waiting:
+                    got += self._read(waiting)
+            if len(got) >= size or isinstance(clock, InstantClock) or clock.now() >= deadline:
+                return bytes(got)
+            clock.sleep(min(REPLY_POLL_S, max(0.0, deadline - clock.now())))
 
     def _frame(self, levels: Sequence[int], *, force_pattern: bool) -> None:
         """Put one application-order frame on the firmware: height down first, pattern, height up last."""
@@ -636,6 +1096,10 @@ class Device(ABC):
         self.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
         before = self._scan_us if self._scan_us is not None else self._worst_scan_s(cfg) * 1e6
         self.pacer.set_timing(period / 1e6, max(before, scan) / 1e6)
+        sense = sense_code(cfg.sense_current_ua, self.transfer)  # an all-off stop set it to 0
+        if self._sense_byte is None or sense < self._sense_byte:
+            self._send_critical(p.encode_sense_height(sense))
+            self._sense_byte = sense
         if height < self._current_ua:
             self._send_critical(p.encode_pulse_height(self.transfer.to_code(height)))
             self._current_ua = height
@@ -646,6 +1110,9 @@ class Device(ABC):
         if height > self._current_ua:
             self._send_critical(p.encode_pulse_height(self.transfer.to_code(height)))
             self._current_ua = height
+        if sense > self._sense_byte:
+            self._send_critical(p.encode_sense_height(sense))
+            self._sense_byte = sense
         self._suspended = False
         self._scan_us = scan
         self.pacer.set_timing(period / 1e6, scan / 1e6)
@@ -654,10 +1121,10 @@ class Device(ABC):
         return estimate_scan_us(hw, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us)
 
     def _worst_scan_s(self, cfg: StimConfig) -> float:
-        """The longest scan a frame the guard allows can have (every channel active, just within the
+        """The longest scan a frame the guard allows can have (every channel biphasic, just within the
         period): what to pace for when the firmware's pattern is unknown."""
         period = firmware_period_us(cfg.rate_hz)
-        full = self._scan_of(cfg, bytes([1]) * cfg.electrode_count)
+        full = self._scan_of(cfg, bytes([PATTERN_BIPHASIC]) * cfg.electrode_count)  # two phases: the longest
         return min(full, period - SCAN_GAP_MIN_US) / 1e6
 
     def _send_critical(self, data: bytes) -> None:
@@ -701,12 +1168,6 @@ class Device(ABC):
                 )
                 self.guard.note_refusal(exc)
                 raise exc
-
-    def _read_exact(self, size: int, what: str) -> bytes:
-        data = self._read(size)
-        if len(data) != size:
-            raise ShortReplyError(what, size, data)
-        return data
 
     def _check_open(self) -> None:
         if self._closed:

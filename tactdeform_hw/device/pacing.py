@@ -9,13 +9,16 @@ loses bytes and desynchronises the parser.  :class:`Pacer` prevents both:
 * it spaces commands that carry a payload at least ``command_interval_s`` apart (default 1.2 ms: one
   tick plus margin for the tick's phase and the USB frame) — and further apart when the scans leave the
   parser less room (below), and
-* it keeps a conservative model of the device's queue — every byte written is counted as occupying the
-  queue until ``link_latency_s`` plus one tick after the parser could have started on it — and waits
-  until a write fits whole.
+* it keeps a worst-case model of the device's queue — every byte written is counted as occupying the
+  queue until it has crossed the link, a whole scan may have held the parser off right then, and the
+  parser has worked through everything before it — and waits until a write fits whole below a margin
+  (``queue_margin_bytes``), never to the brim.  The timer in that model holds only while the parser is
+  known to read: after a reset, a reconnect, a timeout or a short reply the model freezes
+  (:meth:`Pacer.suspect`) and only a reply from the device (:meth:`Pacer.proven`) empties it.
 
-Bytes that are not commands (the 256 zeros of a resync) are written in 64-byte chunks, each counted as
-taking as long as the parser needs to skip them, so even a queue holding a half-read command never
-overflows.
+Bytes that are not commands (the zeros of a resync) are written in 64-byte chunks, each counted as taking
+as long as the parser needs to skip them in the gaps between scans; 0xF5 counts its millisecond of board
+detection, which at a short gap spreads over many periods.
 
 **The scans decide the parser's pace.**  The stimulation interrupt pre-empts the main loop, so the parser
 runs only in the gap between the end of one scan and the next alarm.  A command with a payload ends with
@@ -51,13 +54,14 @@ per command, which the firmware skips without sleeping.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 from ..clock import Clock, InstantClock, MonotonicClock
-from ..protocol.constants import RX_QUEUE_SIZE, USB_PACKET_SIZE
+from ..protocol.constants import RX_QUEUE_SIZE, USB_PACKET_SIZE, Opcode
 from ..protocol.firmware import DEFAULT_FIRMWARE, FirmwareSpec
 from ..protocol.firmware_math import estimate_scan_us as estimate_scan_us
 from ..protocol.firmware_math import firmware_period_us as firmware_period_us
@@ -70,18 +74,28 @@ SPI_EXCHANGE_US = DEFAULT_FIRMWARE.timing.spi_exchange_us
 GPIO_WRITE_US = DEFAULT_FIRMWARE.timing.gpio_write_us
 ISR_ENTRY_US = DEFAULT_FIRMWARE.timing.isr_entry_us
 PARSER_BYTE_US = 4.0
+HV513_COUNT_BYTE = int(Opcode.HV513_COUNT)
+#: 0xF5 re-detects the stacked boards before it answers: 50 analog readings, about 1 ms of main-loop time
+#: (the reference's own estimate), rounded up.
+HV513_DETECT_US = 1200.0
 #: Frames whose estimated scan leaves less than this before the next alarm are refused by the guard.
 SCAN_GAP_MIN_US = 50.0
 
 
 @dataclass(frozen=True)
 class PacingPolicy:
+    """``queue_margin_bytes`` of the 256-byte queue are never planned for (a probe of a few bytes always
+    fits, even behind a queue the model only bounds); ``byte_s`` is the slowest a byte crosses the link
+    (a USB full-speed frame carries 64 bytes per ms, a 921600-baud UART one byte per 10.85 µs)."""
+
     queue_bytes: int = RX_QUEUE_SIZE
     command_interval_s: float = 0.0012
     tick_s: float = 0.001
     link_latency_s: float = 0.001
     chunk_bytes: int = USB_PACKET_SIZE
     robust_encoding: bool = False
+    queue_margin_bytes: int = 32
+    byte_s: float = 16e-6
 
 
 @dataclass
@@ -131,21 +145,36 @@ def command_like_payload(data: bytes, firmware: FirmwareSpec = DEFAULT_FIRMWARE)
 
 @dataclass
 class Pacer:
-    """Spaces and sizes writes to what the firmware can take (see the module docstring)."""
+    """Spaces and sizes writes to what the firmware can take (see the module docstring).
+
+    The queue model is an upper bound on the device's receive queue, kept in written-byte offsets: every
+    write stays *in flight* until its worst-case consumption time — the bytes' arrival, plus a whole scan
+    that may block the parser just then (biphasic channels included: the caller gives the worst scan), plus
+    one parser call per payload command or the skip time of unknown bytes, plus a tick.  That timer is
+    valid only while the parser is known to read: :meth:`suspect` (a reset, a reconnect, a timeout, a short
+    reply, a failed write) freezes the model — nothing in flight is assumed consumed by the passing of time
+    until :meth:`proven` records a reply from the device, which proves every byte written before the
+    request consumed.  Writes fill the queue to ``queue_bytes - queue_margin_bytes``, not to the brim; a
+    larger single write waits until the model is empty.
+    """
 
     clock: Clock = field(default_factory=MonotonicClock)
     policy: PacingPolicy = field(default_factory=PacingPolicy)
     stats: PacingStats = field(default_factory=PacingStats)
 
     def __post_init__(self) -> None:
-        self._inflight: deque[tuple[float, int]] = deque()  # (time the bytes are surely consumed, count)
+        # (time the bytes are surely consumed, count, written offset just past them)
+        self._inflight: deque[tuple[float, int, int]] = deque()
         self._last_done = -1e18
         self._last_payload_write = -1e18
+        self._arrived_by = -1e18  # when every byte written so far has surely crossed the link
+        self.offset = 0  # bytes written so far (the queue model's clock of positions)
+        self.frozen = False  # True while the parser is not known to read (see :meth:`suspect`)
         self.period_s: float | None = None
         self.scan_s: float | None = None
 
     def set_timing(self, period_s: float | None, scan_s: float | None) -> None:
-        """The firmware's alarm period and the (estimated) scan in force; None: unknown (1 ms pace)."""
+        """The firmware's alarm period and the worst scan that may be in force; None: unknown (1 ms pace)."""
         self.period_s = period_s
         self.scan_s = scan_s
 
@@ -164,27 +193,68 @@ class Pacer:
         return max(base, self.period_s / per_period * 1.05 + 0.0002)
 
     def skip_s(self, nbytes: int) -> float:
-        """How long the parser needs to skip ``nbytes`` unknown bytes."""
+        """How long the parser needs, at worst, to skip ``nbytes`` unknown bytes: it reads only in the gaps
+        between scans, so they take whole periods."""
         if self.period_s is None or self.scan_s is None:
             return self.policy.tick_s * max(1, nbytes / 64)
         gap_us = max(1.0, (self.period_s - self.scan_s) * 1e6)
         per_period = max(1.0, gap_us / PARSER_BYTE_US)
-        return self.period_s * (nbytes / per_period) * 1.1 + self.policy.tick_s
+        # the first gap's worth is read right after the scan the queue model already waits for
+        whole = math.ceil(nbytes / per_period) - 1
+        return self.period_s * whole * 1.1 + min(gap_us, nbytes * PARSER_BYTE_US) / 1e6 + self.policy.tick_s
+
+    def busy_s(self, cpu_us: float) -> float:
+        """How long ``cpu_us`` of main-loop work takes at worst when it runs only in the gaps between scans
+        (0xF5's board detection: one gap when the gaps are long, several periods when they are short)."""
+        if self.period_s is None or self.scan_s is None:
+            return cpu_us / 1e6 + self.policy.tick_s
+        gap_us = max(1.0, (self.period_s - self.scan_s) * 1e6)
+        if gap_us >= cpu_us:
+            return cpu_us / 1e6
+        return self.period_s * math.ceil(cpu_us / gap_us) * 1.1
 
     @property
     def robust(self) -> bool:
         return self.policy.robust_encoding
 
+    @property
+    def limit_bytes(self) -> int:
+        """What the model fills the queue to."""
+        return max(1, self.policy.queue_bytes - max(0, self.policy.queue_margin_bytes))
+
+    def suspect(self) -> None:
+        """The parser may not be reading (a reset, a reconnect, a timeout, a short reply, a failed write):
+        from now on nothing in flight is assumed consumed until :meth:`proven`."""
+        self.frozen = True
+
     def reset(self) -> None:
-        """Forget the queue model (after a reconnect or a device reset the queue is empty)."""
-        self._inflight.clear()
-        self._last_done = -1e18
+        """Kept for callers of the open-loop model: the queue is *not* assumed empty; see :meth:`suspect`."""
+        self.suspect()
+
+    def proven(self, offset: int) -> None:
+        """The device answered a request written just before ``offset``: every byte before it has been
+        read.  Unfreezes the model (the parser reads, and was at a command boundary there)."""
+        while self._inflight and self._inflight[0][2] <= offset:
+            self._inflight.popleft()
+        self.frozen = False
+        if not self._inflight:
+            self._last_done = min(self._last_done, self.clock.now())
 
     def queue_estimate(self, now: float | None = None) -> int:
-        t = self.clock.now() if now is None else now
-        while self._inflight and self._inflight[0][0] <= t:
-            self._inflight.popleft()
-        return sum(n for _, n in self._inflight)
+        """Bytes the device's queue may hold (an upper bound)."""
+        if not self.frozen:
+            t = self.clock.now() if now is None else now
+            while self._inflight and self._inflight[0][0] <= t:
+                self._inflight.popleft()
+        return sum(n for _, n, _ in self._inflight)
+
+    def drained_by(self) -> float:
+        """When everything written so far is surely consumed, if the parser reads."""
+        return max([self.clock.now()] + [d for d, _, _ in self._inflight])
+
+    def arrived_by(self) -> float:
+        """When everything written so far has surely crossed the link (and reached the queue)."""
+        return max(self.clock.now(), self._arrived_by)
 
     def _wait_until(self, t: float) -> None:
         now = self.clock.now()
@@ -193,34 +263,46 @@ class Pacer:
             self.stats.waited_s += t - now
             self.clock.sleep(t - now)
 
+    def wait_until(self, t: float) -> None:
+        """Let time pass until ``t`` (the pacer's clock: simulated, instant or wall)."""
+        self._wait_until(t)
+
     def _fit(self, size: int) -> None:
-        """Wait until ``size`` bytes fit in the modelled queue."""
-        limit = self.policy.queue_bytes
+        """Wait until ``size`` bytes fit in the modelled queue below its margin (or the model is empty).
+        While frozen the same waits apply — they decide when to write, the bytes stay counted."""
+        limit = self.limit_bytes
         while True:
             now = self.clock.now()
             occupied = self.queue_estimate(now)
-            if occupied + size <= limit or not self._inflight:
+            pending = [e for e in self._inflight if e[0] > now] if self.frozen else list(self._inflight)
+            expected = sum(n for _, n, _ in pending)
+            if not pending or (expected + size <= limit and (self.frozen or occupied + size <= limit)):
                 return
-            # the queue frees in order: wait for the first entry that makes room
-            need = occupied + size - limit
+            need = expected + size - limit
             freed = 0
-            for done, n in self._inflight:
-                freed += n
-                if freed >= need:
-                    self._wait_until(done)
-                    break
+            target = pending[-1][0]
+            if size <= limit:
+                for done, n, _ in pending:
+                    freed += n
+                    if freed >= need:
+                        target = done
+                        break
+            self._wait_until(target)
 
     def _account(self, size: int, duration_s: float) -> None:
         now = self.clock.now()
-        arrival = now + self.policy.link_latency_s
-        start = max(arrival, self._last_done)
+        arrival = now + self.policy.link_latency_s + size * self.policy.byte_s
+        self._arrived_by = max(self._arrived_by, arrival)
+        start = max(arrival + (self.scan_s or 0.0), self._last_done)
         done = start + duration_s
         self._last_done = done
-        self._inflight.append((done + self.policy.tick_s, size))
+        self.offset += size
+        self._inflight.append((done + self.policy.tick_s, size, self.offset))
         self.stats.max_queue_estimate = max(self.stats.max_queue_estimate, self.queue_estimate(now))
 
-    def write(self, write: Callable[[bytes], None], data: bytes) -> None:
-        """Write one command (or a run of non-command bytes) through ``write``, paced."""
+    def write(self, write: Callable[[bytes], None], data: bytes, *, pad: bool | None = None) -> None:
+        """Write one command (or a run of non-command bytes) through ``write``, paced.  ``pad``: None pads
+        under robust encoding, True always (the recovery's own commands), False never."""
         if not data:
             return
         if data[0] < COMMAND_BYTE_MIN:
@@ -229,11 +311,13 @@ class Pacer:
                 chunk = data[i : i + step]
                 self._fit(len(chunk))
                 write(chunk)
-                self._account(len(chunk), self.skip_s(len(chunk)))
+                detect = chunk.count(HV513_COUNT_BYTE) * self.busy_s(HV513_DETECT_US)  # a probe's 0xF5
+                self._account(len(chunk), self.skip_s(len(chunk)) + detect)
                 self.stats.bytes_written += len(chunk)
             return
         payload = has_payload(data)
-        out = data + padding_for(data) if self.policy.robust_encoding else data
+        padded = self.policy.robust_encoding if pad is None else pad
+        out = data + padding_for(data) if padded else data
         self._fit(len(out))
         interval = self.payload_interval_s()
         if payload:
@@ -242,7 +326,12 @@ class Pacer:
         if payload:
             self._last_payload_write = self.clock.now()
             self.stats.payload_commands += 1
-        self._account(len(out), interval if payload else self.skip_s(len(out) - 1))
+        parts = max(1, math.ceil(len(out) / max(1, self.policy.chunk_bytes)))  # a long pattern: several reads
+        if payload:
+            duration = interval * parts
+        else:
+            duration = self.skip_s(len(out)) + (self.busy_s(HV513_DETECT_US) if out[0] == HV513_COUNT_BYTE else 0.0)
+        self._account(len(out), duration)
         self.stats.commands += 1
         self.stats.bytes_written += len(out)
         self.stats.padding_bytes += len(out) - len(data)

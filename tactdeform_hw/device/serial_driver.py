@@ -205,6 +205,7 @@ class EtactileKitDevice(Device):
                 self._closed = True
                 self._close_transport()
                 raise
+        self._open_proof()  # a board in an unknown state: nothing is sent before it proves its parser
         from .failsafe import adopt
 
         adopt(self)  # a command's stop session watches every device opened under it
@@ -288,6 +289,13 @@ class EtactileKitDevice(Device):
         except self._errors as exc:
             raise DeviceGoneError(f"read failed: {exc}") from exc
 
+    def _waiting(self) -> int | None:
+        try:
+            waiting = getattr(self.port, "in_waiting", None)
+        except self._errors as exc:
+            raise DeviceGoneError(f"cannot poll input: {exc}") from exc
+        return waiting if isinstance(waiting, int) else None
+
     def _discard_input(self) -> None:
         try:
             self.port.reset_input_buffer()
@@ -312,13 +320,24 @@ class EtactileKitDevice(Device):
         if self._want_guardian:
             self._start_guardian()
 
+    def _can_reset(self) -> bool:
+        if callable(getattr(self.port, "pulse_reset", None)):
+            return True
+        emulator = getattr(self.port, "emulator", None)
+        if emulator is not None and callable(getattr(emulator, "reset", None)):
+            return True
+        return hasattr(self.port, "rts") and hasattr(self.port, "dtr")
+
     def _reset_transport(self) -> bool:
         """A port that models the reset line offers ``pulse_reset``; the in-process emulator is reset
         directly; a real ESP32-S3 on its USB Serial/JTAG port is held in reset while RTS is asserted with
         DTR released (the sequence esptool uses), so the pulse is RTS high for 100 ms."""
         pulse = getattr(self.port, "pulse_reset", None)
         if callable(pulse):
-            pulse()
+            try:
+                pulse()
+            except self._errors as exc:
+                raise DeviceGoneError(f"cannot pulse the reset line: {exc}") from exc
             return True
         emulator = getattr(self.port, "emulator", None)
         if emulator is not None and callable(getattr(emulator, "reset", None)):

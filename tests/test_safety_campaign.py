@@ -1,0 +1,85 @@
+"""The safety campaign: random sessions of public ``Device`` calls on the timed emulator, judged on the
+pulses the emulated board delivered (``tools/safety_campaign.py``)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import safety_campaign as sc  # noqa: E402
+
+#: Fault-free sessions run by the suite (about 20 s on one core).
+SESSIONS = 2000
+
+
+@pytest.fixture(scope="module")
+def fault_free() -> list[sc.SessionResult]:
+    return sc.run_campaign(SESSIONS, seed=0)
+
+
+def test_fault_free_campaign_delivers_nothing_above_its_own_limits(fault_free: list[sc.SessionResult]) -> None:
+    summary = sc.summarize(fault_free, faults=False)
+    assert summary["sessions"] == SESSIONS
+    assert summary["over_limit_pulses"] == 0
+    assert summary["bytes_lost"] == 0
+    assert summary["meant_off_pulses"] == 0
+    assert summary["defects_hit"] == []
+    assert summary["failed_sessions"] == 0, [r.index for r in fault_free if not r.ok][:10]
+    assert summary["pulses"] > 100_000  # the sessions stimulate: the verdict is about real pulses
+
+
+def test_fault_free_campaign_covers_what_it_claims(fault_free: list[sc.SessionResult]) -> None:
+    summary = sc.summarize(fault_free, faults=False)
+    for call in ("configure", "send_pattern", "set_current", "keepalive", "all_off", "suspend", "probe", "resync",
+                 "reconnect", "hardware_reset", "close", "reopen", "wait"):
+        assert summary["calls"].get(call, 0) >= 100, call
+    assert summary["links"]["usb"] > 500 and summary["links"]["uart"] > 500
+    assert 500 < summary["robust_encoding"] < SESSIONS - 500
+    assert summary["electrodes_min_max"] == [1, 255]
+    assert summary["biphasic"] > 500 and summary["sense_current"] > 100
+
+
+def test_the_judge_sees_a_pulse_above_the_limit_and_a_lost_byte() -> None:
+    """The control: a session that writes around the driver is caught by the same verdict."""
+    s = sc._Session(3, 3, False)
+    s.run()
+    s.port.is_open = True
+    s.port.write(b"\xfc\x01\xfe\x01\xfb\xff\x0f")  # one channel on at 4095, past the driver
+    s.port.advance(0.05)
+    s.port.write(bytes(600))  # more than the queue takes at once
+    s.port.advance(0.05)
+    res = s.judge()
+    assert res.over_limit > 0 and res.lost_bytes > 0 and not res.ok
+
+
+def test_campaign_is_deterministic_per_seed_whatever_the_jobs() -> None:
+    a = sc.run_campaign(12, seed=7)
+    b = sc.run_campaign(12, seed=7, jobs=2)
+    assert [(r.index, r.calls, r.pulses, r.max_stim_ua, r.lost_bytes) for r in a] == [
+        (r.index, r.calls, r.pulses, r.max_stim_ua, r.lost_bytes) for r in b]
+    c = sc.run_campaign(12, seed=8)
+    assert [r.calls for r in a] != [r.calls for r in c]
+
+
+def test_fault_campaign_reports_every_loss_and_bounds_every_wrong_delivery() -> None:
+    results = sc.run_campaign(120, seed=0, faults=True)
+    summary = sc.summarize(results, faults=True)
+    assert summary["faults_injected"] >= 120
+    assert summary["bytes_lost"] > 0  # the faults do lose bytes ...
+    assert summary["bytes_lost_unreported"] == 0  # ... and the host knows of every one
+    assert summary["unexplained_wrong_deliveries"] == 0
+    assert summary["faults_survived"] == summary["faults_injected"]
+    assert summary["longest_wrong_delivery_s"] <= summary["recovery_bound_s"]
+
+
+def test_cli_json_and_refusals(capsys: pytest.CaptureFixture[str]) -> None:
+    assert sc.main(["--sessions", "4", "--jobs", "1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["sessions"] == 4 and out["over_limit_pulses"] == 0
+    with pytest.raises(SystemExit):
+        sc.main(["--sessions", "0"])
+    assert "--sessions must be at least 1 (got 0)" in capsys.readouterr().err

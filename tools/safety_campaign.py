@@ -1,0 +1,549 @@
+"""Random sessions of public ``Device`` calls on the timed emulator, judged on the pulses it delivered.
+
+    python tools/safety_campaign.py --sessions 2000 [--faults] [--jobs J] [--seed S] [--json]
+
+Each session is drawn from its own seed (``seed * 1_000_003 + index``), so a run is deterministic for a
+seed and any session can be replayed alone (``--only INDEX``).  A session picks a link (USB full speed or
+a UART), the loss-tolerant encoding or not, and a configuration (1–255 electrodes, monophasic and
+biphasic frames, a sense current or none), then calls the driver's public methods in random order —
+``configure``, ``send_pattern``, ``set_current``, ``keepalive``, ``all_off``, ``suspend``, ``probe``,
+``measure``, ``resync``, ``reconnect``, ``hardware_reset``, ``close`` followed by a new device on the
+same port, and time passing — as an application would.
+
+Judged on the scans the emulated board actually ran (``TimedEmulator.reports.pulse_table``):
+
+* **fault-free sessions** — no pulse above the session's own largest allowed current (the largest
+  stimulation current and the largest sense current any call of the session asked for; DAC code and
+  delivered current both count), no stimulation pulse on an electrode the host had switched off longer
+  than the frame settle time, no byte lost in the device's receive queue, no firmware defect hit;
+* **fault sessions** (``--faults``: the fault kinds of :mod:`tactdeform_hw.emulator.faults`, with the
+  fail-safe probing and reading back as an application runs it) — every byte the device lost is lost
+  while the driver is without proof of the parser's state, or followed within the documented recovery
+  bound by something the host noticed (a raised error, a failed proof or probe, a recovery) — or, counted
+  apart, by a resync the caller asked for that rewrote the whole state, or by a proof (with the
+  fail-safe's readback) that found the firmware as meant (a loss without effect, such as a queue cleared
+  by a silent reboot just before the driver wrote everything again); and every wrong delivery (above the
+  limit, or on an electrode meant off) starts within that bound of a fault.
+"""
+
+from __future__ import annotations
+
+import argparse
+import bisect
+import json
+import logging
+import multiprocessing as mp
+import os
+import random
+import sys
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the package beside this tool, not an installed one
+
+from tactdeform_hw.device import EtactileKitDevice, StimConfig  # noqa: E402
+from tactdeform_hw.device.pacing import estimate_scan_us, firmware_period_us  # noqa: E402
+from tactdeform_hw.emulator.faults import FaultKind, TimedPort, random_plan  # noqa: E402
+from tactdeform_hw.emulator.scan import PulseKind  # noqa: E402
+from tactdeform_hw.emulator.timed import TimedEmulator  # noqa: E402
+from tactdeform_hw.errors import TactDeformError  # noqa: E402
+from tactdeform_hw.protocol.units import DEFAULT_TRANSFER  # noqa: E402
+
+#: A pulse on an electrode switched off earlier than this is a wrong delivery (a frame's own latency:
+#: pacing, the USB frame, the parser's tick, the scan in progress).
+SETTLE_S = 0.012
+_STIM_KINDS = (int(PulseKind.MONO), int(PulseKind.BI_ANODIC), int(PulseKind.BI_CATHODIC))
+_USB_FAULTS = (FaultKind.CUT, FaultKind.CRC_ERROR, FaultKind.RESET, FaultKind.STOP_READING,
+               FaultKind.WATCHDOG_REBOOT, FaultKind.DELAY)
+_UART_FAULTS = tuple(FaultKind)
+#: Firmware defects the driver must never trigger (the others — torn patterns, unknown padding bytes,
+#: sense pulses, the 0xF5 re-initialisation — are the firmware working as designed).
+DEFECTS = frozenset({"parser_locked", "unread_while_locked", "pattern_holds_command_byte", "stale_channels",
+                     "clamped", "ignored_zero", "queue_overflow", "overrun", "watchdog_reset",
+                     "channels_beyond_hv513", "commands_out_of_step"})
+# ("u16_waiting" is not among them: on a UART the second byte of a u16 follows 10.85 µs after the first, and
+# the parser may meet the gap; a lost byte shows up as a loss and as commands out of step.)
+#: Errors that refuse a frame (the driver keeps the caller's previous frame) rather than fail to send it.
+REFUSALS = ("SafetyError", "LimitError", "ProtocolMisuseError", "ConfigurationError")
+#: Transitions the caller asked for (not a fault the driver noticed).
+CALLER_REASONS = frozenset({"resync", "reconnect", "hardware_reset"})
+#: Simulated time a fault session keeps the fail-safe running after its last call.
+_FAULT_TAIL_S = 0.4
+
+
+@dataclass
+class SessionResult:
+    index: int
+    seed: int
+    link: str
+    robust: bool
+    electrodes: int
+    calls: list[str]
+    allowed_stim_ua: int
+    allowed_sense_ua: int
+    biphasic: bool = False
+    pulses: int = 0
+    max_stim_ua: float = 0.0
+    over_limit: int = 0
+    meant_off: int = 0
+    lost_bytes: int = 0
+    losses: int = 0
+    hazards: list[str] = field(default_factory=list)
+    errors: list[str] = field(default_factory=list)
+    faults: list[str] = field(default_factory=list)
+    faults_survived: int = 0
+    wrong_after_fault_s: float = 0.0
+    unexplained: int = 0
+    unreported_lost_bytes: int = 0
+    repaired_lost_bytes: int = 0  # not noticed, but a resync the caller asked for rewrote the state in time
+    absorbed_lost_bytes: int = 0  # not noticed: a later proof and readback found the firmware as meant
+    recovery_bound_s: float = 0.0
+    sim_s: float = 0.0
+    wall_s: float = 0.0
+    first_violation: dict[str, Any] | None = None
+
+    @property
+    def ok(self) -> bool:
+        if self.faults:
+            return self.unexplained == 0 and self.unreported_lost_bytes == 0
+        return self.over_limit == 0 and self.meant_off == 0 and self.lost_bytes == 0 and not self.defects
+
+    @property
+    def defects(self) -> list[str]:
+        return [h for h in self.hazards if h in DEFECTS or h == "driver_crash"]
+
+
+def _config(rng: random.Random, robust: bool) -> StimConfig:
+    """A configuration whose every frame fits its period (the guard refuses the rest anyway)."""
+    n = rng.choice((1, 2, 3, 4, 8, 16, 32, 32, 32, 64, 100, 128, 200, 244 if robust else 255))
+    width = rng.choice((20, 50, 100, 200))
+    discharge = rng.choice((0, 10, 45))
+    sense_ua = rng.choice((0, 0, 0, 40, 120)) if rng.random() < 0.5 else 0
+    sense_w = rng.choice((0, 5, 20)) if sense_ua else 0
+    worst = estimate_scan_us(bytes([2]) * n, width, discharge, sense_w)
+    top = int(1e6 / (worst * 1.25 + 1500))
+    rate = max(1, min(top, rng.choice((60, 100, 125, 200, 250))))
+    if robust:  # a value whose low byte looks like a command byte is refused under robust encoding
+        while rate & 0xFF >= 0xF5 or (rate >> 8) >= 0xF5:
+            rate -= 1
+    current = rng.choice((0, 400, 800, 1000, 1500, 2000, 2500))
+    return StimConfig(electrode_count=n, current_ua=current, pulse_width_us=width, discharge_us=discharge,
+                      rate_hz=rate, polarity=rng.choice(("anodic", "anodic", "cathodic")),
+                      sense_current_ua=sense_ua, sense_width_us=sense_w)
+
+
+def _pattern(rng: random.Random, n: int, biphasic: bool) -> tuple[int, ...]:
+    dens = rng.choice((0.0, 0.1, 0.3, 0.6, 1.0))
+    levels = [1 if rng.random() < dens else 0 for _ in range(n)]
+    if biphasic:
+        levels = [2 if v and rng.random() < 0.7 else v for v in levels]
+    return tuple(levels)
+
+
+class _Session:
+    """One session: the port, the device, the calls, and what the host meant at every moment."""
+
+    def __init__(self, index: int, seed: int, faults: bool) -> None:
+        self.rng = random.Random(seed)
+        rng = self.rng
+        self.link = rng.choice(("usb", "uart"))
+        self.robust = rng.random() < 0.5
+        self.cfg = _config(rng, self.robust)
+        self.biphasic = rng.random() < 0.5
+        plan = []
+        self.n_calls = rng.randint(4, 14)
+        if faults:
+            kinds = _USB_FAULTS if self.link == "usb" else _UART_FAULTS
+            plan = random_plan(seed, kinds, rng.randint(1, 3), 0.02, 0.25)
+        boards = (self.cfg.electrode_count + 31) // 32  # 4 HV513 (32 outputs) per switching board
+        emu = TimedEmulator("compact", boards, link=self.link)
+        self.port = TimedPort(emu, link=self.link, faults=plan, seed=seed, robust_encoding=self.robust)
+        self.dev = EtactileKitDevice(self.port)
+        self.devices = [self.dev]  # every device opened on the port in this session
+        self.failsafe: Any = None
+        if faults:
+            self._start_failsafe()
+        self.res = SessionResult(index, seed, self.link, self.robust, self.cfg.electrode_count, [], 0, 0,
+                                 biphasic=self.biphasic)
+        # (call time, the electrodes the host means from then on, when an "off" is surely in force)
+        self.intents: list[tuple[float, tuple[int, ...], float]] = [(0.0, (0,) * self.cfg.electrode_count, 0.0)]
+        self.sent: tuple[int, ...] | None = None  # the caller's frame a keepalive brings back
+        self.notices: list[float] = []
+        self.longest_call_s = 0.0  # the fail-safe cannot act while one of the owner's calls runs
+
+    def _start_failsafe(self) -> None:
+        from tactdeform_hw.device.failsafe import FailSafe
+
+        fs = FailSafe(self.dev, watchdog_s=0.1, probe_interval_s=0.02, refresh_interval_s=0.05, verify_readback=True,
+                      thread=False, signals=False, at_exit=False)
+        last = [-1.0]
+
+        def hook(t: float) -> None:
+            if t - last[0] >= fs.poll_s:
+                last[0] = t
+                try:
+                    fs.poll(t)
+                except TactDeformError:
+                    pass
+
+        if self.failsafe is not None:
+            self.port.hooks.clear()
+        self.port.hooks.append(hook)
+        self.failsafe = fs
+
+    # --- the host's intent ------------------------------------------------------------------------------
+
+    def _effective_s(self) -> float:
+        """When what was just written is surely in force: the driver's own worst case for the device to
+        have read it, plus a whole scan (biphasic) that had started before."""
+        dev, cfg = self.dev, self.cfg
+        period = firmware_period_us(cfg.rate_hz) / 1e6
+        scan = estimate_scan_us(bytes([2]) * cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us,
+                                cfg.sense_width_us) / 1e6
+        return max(self.port.now_s, dev.pacer.drained_by()) + min(scan, period)
+
+    # --- calls ------------------------------------------------------------------------------------------
+
+    def _call(self, name: str, fn: Callable[[], Any], intent: tuple[int, ...] | None = None) -> bool:
+        """Call ``fn``; ``intent``: the electrodes the host means from this call on (None: unchanged)."""
+        self.res.calls.append(name)
+        t0 = self.port.now_s
+        try:
+            try:
+                fn()
+            finally:
+                self.longest_call_s = max(self.longest_call_s, self.port.now_s - t0)
+        except TactDeformError as exc:
+            self.notices.append(self.port.now_s)
+            self.res.errors.append(f"{name}: {type(exc).__name__}: {exc}"[:160])
+            if intent is not None:  # what the call asked for may be in force in part: still the host's intent
+                self.intents.append((t0, intent, self.port.now_s))
+            return False
+        if intent is not None:
+            self.intents.append((t0, intent, self._effective_s()))
+        return True
+
+    def run(self) -> None:
+        rng, dev, cfg = self.rng, self.dev, self.cfg
+        res = self.res
+        res.allowed_stim_ua = cfg.current_ua
+        res.allowed_sense_ua = cfg.sense_current_ua
+        off = (0,) * cfg.electrode_count
+        if rng.random() < 0.2:  # a session that starts with a resync on a board of unknown state
+            self._call("resync", dev.resync, off)
+        self._call("configure", lambda: dev.configure(cfg), off)
+        self.sent = None
+        for _ in range(self.n_calls):
+            self.step()
+        self._call("close", self.dev.close, off)
+        tail = _FAULT_TAIL_S if self.failsafe is not None else 0.03
+        self.port.advance(tail)
+
+    def step(self) -> None:
+        rng, dev, cfg = self.rng, self.dev, self.cfg
+        n = cfg.electrode_count
+        off = (0,) * n
+        r = rng.random()
+        if r < 0.30:
+            pat = _pattern(rng, n, self.biphasic)
+            refused = len(self.res.errors)
+            if self._call("send_pattern", lambda: dev.send_pattern(pat), pat) or not any(
+                    k in e for e in self.res.errors[refused:] for k in REFUSALS):
+                self.sent = pat  # the caller's frame, even when the link failed under it: keepalive resumes it
+        elif r < 0.40:
+            ua = rng.choice((0, 200, 600, 1000, 1800, 3000))
+            self.res.allowed_stim_ua = max(self.res.allowed_stim_ua, ua)
+            self._call("set_current", lambda: dev.set_current(ua))
+        elif r < 0.48:
+            self._call("keepalive", dev.keepalive, self.sent)
+        elif r < 0.52:
+            if self._call("all_off", dev.all_off, off):
+                self.sent = None
+        elif r < 0.55:
+            self._call("suspend", dev.suspend, off)
+        elif r < 0.60:
+            self._call("probe", dev.probe)
+        elif r < 0.64:
+            self._call("resync", dev.resync, off)
+        elif r < 0.68:
+            self._call("reconnect", dev.reconnect, off)
+        elif r < 0.72:
+            self._call("hardware_reset", dev.hardware_reset, off)
+        elif r < 0.75:
+            self._call("close", dev.close, off)
+            self.sent = None
+            self.res.calls.append("reopen")
+            try:
+                self.dev = EtactileKitDevice(self.port)
+                self.devices.append(self.dev)
+            except TactDeformError as exc:
+                self.res.errors.append(f"reopen: {exc}"[:160])
+                return
+            if self.failsafe is not None:
+                self._start_failsafe()
+            if rng.random() < 0.5:
+                self._call("resync", self.dev.resync, off)
+            self._call("configure", lambda: self.dev.configure(cfg), off)
+        elif r < 0.78:
+            new = StimConfig(**{**asdict(cfg), "current_ua": rng.choice((0, 500, 1200))})
+            self.res.allowed_stim_ua = max(self.res.allowed_stim_ua, new.current_ua)
+            self.sent = None
+            self._call("configure", lambda: dev.configure(new), off)
+        else:
+            dt = rng.choice((0.0005, 0.002, 0.008, 0.02, 0.05))
+            self.res.calls.append(f"wait {dt * 1e3:g} ms")
+            self.port.advance(dt)
+
+    # --- the verdict ------------------------------------------------------------------------------------
+
+    def judge(self) -> SessionResult:
+        res = self.res
+        emu = self.port.emulator
+        res.sim_s = self.port.now_s
+        table = emu.reports.pulse_table()
+        code = table["code"]
+        kind = table["kind"]
+        cur = np.maximum(table["current_ua"], code * DEFAULT_TRANSFER.step_ua) if code.size else code
+        live = np.nonzero(cur > 0)[0]
+        res.pulses = int(live.size)
+        stim = np.isin(kind, _STIM_KINDS)
+        wrong: list[dict[str, Any]] = []
+        if live.size:
+            res.max_stim_ua = float(cur[live][stim[live]].max()) if stim[live].any() else 0.0
+            limit = np.where(stim, res.allowed_stim_ua, res.allowed_sense_ua)
+            over = live[cur[live] > limit[live] + 1e-6]
+            res.over_limit = int(over.size)
+            for k in over[:1]:
+                wrong.append(self._pulse(table, int(k), cur, "over_limit"))
+            wrong += self._meant_off(table, live[stim[live]], cur)
+            if self.failsafe is None:
+                res.meant_off = sum(1 for w in wrong if w["why"] == "meant_off")
+            else:
+                for k in over:
+                    wrong.append(self._pulse(table, int(k), cur, "over_limit"))
+        res.losses = len(emu.losses)
+        res.lost_bytes = sum(lo.count for lo in emu.losses)
+        res.hazards = sorted({h.kind.value for h in emu.hazards})
+        if any(not c.in_sync for c in emu.commands):
+            res.hazards.append("commands_out_of_step")
+        if wrong and res.first_violation is None:
+            res.first_violation = min(wrong, key=lambda w: w["t_s"])
+        if self.failsafe is not None:
+            self._judge_faults(wrong)
+        return res
+
+    def _pulse(self, table: dict[str, np.ndarray], k: int, cur: np.ndarray, why: str) -> dict[str, Any]:
+        return {"t_s": float(table["start_us"][k]) / 1e6, "channel": int(table["channel"][k]),
+                "kind": int(table["kind"][k]), "code": int(table["code"][k]), "current_ua": float(cur[k]),
+                "why": why}
+
+    def _meant_off(self, table: dict[str, np.ndarray], idx: Iterable[int], cur: np.ndarray) -> list[dict[str, Any]]:
+        """Stimulation pulses on an electrode the host had switched off, later than ``SETTLE_S`` after the
+        driver's own worst case for the switch-off to be in force."""
+        times = [t for t, _, _ in self.intents]
+        since: list[list[float | None]] = []  # per intent, per electrode: off since (None: meant on)
+        prev: list[float | None] = [0.0] * 256
+        for _, lv, eff in self.intents:
+            row = [None if (e < len(lv) and lv[e] in (1, 2)) else (prev[e] if prev[e] is not None else eff)
+                   for e in range(256)]
+            since.append(row)
+            prev = row
+        out = []
+        for k in idx:
+            t = float(table["start_us"][k]) / 1e6
+            ch = int(table["channel"][k])
+            i = bisect.bisect_right(times, t) - 1
+            off = since[i][ch] if i >= 0 else 0.0
+            if off is not None and t - off > SETTLE_S:
+                out.append(self._pulse(table, int(k), cur, "meant_off"))
+        return out
+
+    def _judge_faults(self, wrong: list[dict[str, Any]]) -> None:
+        res = self.res
+        fs = self.failsafe
+        injected = self.port.all_injected
+        res.faults = [f.kind.value for f in injected]
+        bound = self.recovery_bound_s()
+        res.recovery_bound_s = bound
+        notices = list(self.notices)
+        notices += [e.t for e in fs.events if e.kind in ("error", "recover", "recover_step_failed", "watchdog")]
+        # the driver's own notices: a proof that failed (not a resync the caller asked for)
+        notices += [t for d in self.devices for t, _, new, why in d.transitions
+                    if new in ("suspect", "failed") and why not in CALLER_REASONS]
+        bad_faults: set[int] = set()
+        for w in wrong:
+            before = [i for i, f in enumerate(injected) if f.t_s <= w["t_s"] + 1e-6]
+            if not before:
+                res.unexplained += 1
+                continue
+            dt = w["t_s"] - injected[before[-1]].t_s
+            res.wrong_after_fault_s = max(res.wrong_after_fault_s, dt)
+            if dt > bound:
+                res.unexplained += 1
+                bad_faults.add(before[-1])
+        emu = self.port.emulator
+        # a loss while the driver had no proof that the parser was in step is one the host knew of
+        spans = [(a, b if b is not None else float("inf")) for d in self.devices for a, b in d.unproved_spans()]
+        # a resync completed after the loss rewrote everything it could have changed (the caller's own)
+        repairs = [t for d in self.devices for t, old, new, _ in d.transitions
+                   if new == "in_step" and old in ("verifying", "safe")]
+        # a proof after the loss (a reply of the right length; the fail-safe's also reads back the voltages)
+        # found the firmware in step: the loss had no effect the host could see
+        proofs = [t for d in self.devices for t in d.proofs]
+        for lo in emu.losses:
+            t = lo.time_us / 1e6
+            if any(t - bound <= nt <= t + bound for nt in notices) or any(a <= t <= b for a, b in spans):
+                continue
+            if any(t <= rt <= t + bound for rt in repairs):
+                res.repaired_lost_bytes += lo.count
+            elif any(t < pt <= t + bound for pt in proofs):
+                res.absorbed_lost_bytes += lo.count
+            else:
+                res.unreported_lost_bytes += lo.count
+                before = [i for i, f in enumerate(injected) if f.t_s <= t + 1e-6]
+                if before:
+                    bad_faults.add(before[-1])
+        res.faults_survived = len(injected) - len(bad_faults) if not (res.unexplained or res.unreported_lost_bytes) else 0
+
+    def recovery_bound_s(self) -> float:
+        period = firmware_period_us(self.cfg.rate_hz) / 1e6
+        resync = max(d.resync_bound_s() for d in self.devices)
+        bound = float(self.failsafe.recovery_bound_s(scan_period_s=period, resync_s=resync))
+        return bound + self.longest_call_s + SETTLE_S
+
+
+def run_session(index: int, seed: int = 0, faults: bool = False) -> SessionResult:
+    """Run one session and judge it."""
+    wall = time.perf_counter()
+    s = _Session(index, seed * 1_000_003 + index, faults)
+    try:
+        s.run()
+    except Exception as exc:  # noqa: BLE001 - a crash of the driver is a finding, reported with the session
+        s.res.errors.append(f"CRASH {type(exc).__name__}: {exc}"[:200])
+        s.res.hazards.append("driver_crash")
+    res = s.judge()
+    if any(e.startswith("CRASH") for e in res.errors) and "driver_crash" not in res.hazards:
+        res.hazards.append("driver_crash")
+    res.wall_s = time.perf_counter() - wall
+    return res
+
+
+def _worker(args: tuple[int, int, bool]) -> SessionResult:
+    return run_session(*args)
+
+
+def run_campaign(sessions: int, *, seed: int = 0, faults: bool = False, jobs: int = 1,
+                 progress: bool = False, first: int = 0) -> list[SessionResult]:
+    """Sessions ``first .. first + sessions - 1``; the same list for the same arguments, whatever ``jobs``."""
+    tasks = [(first + i, seed, faults) for i in range(sessions)]
+    out: list[SessionResult] = []
+    t0 = time.perf_counter()
+
+    def tick(done: int) -> None:
+        if progress and (done % max(1, sessions // 50) == 0 or done == sessions):
+            rate = done / max(1e-9, time.perf_counter() - t0)
+            print(f"\r{done}/{sessions} sessions ({rate:.0f}/s)", end="", file=sys.stderr, flush=True)
+
+    if jobs <= 1:
+        for t in tasks:
+            out.append(_worker(t))
+            tick(len(out))
+    else:
+        with mp.get_context("fork" if sys.platform != "win32" else "spawn").Pool(jobs) as pool:
+            for r in pool.imap(_worker, tasks, chunksize=max(1, min(64, sessions // (jobs * 8) or 1))):
+                out.append(r)
+                tick(len(out))
+    if progress:
+        print(file=sys.stderr)
+    return out
+
+
+def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
+    wall = sum(r.wall_s for r in results)
+    calls: dict[str, int] = {}
+    for r in results:
+        for c in r.calls:
+            key = "wait" if c.startswith("wait") else c
+            calls[key] = calls.get(key, 0) + 1
+    failed = [r for r in results if not r.ok]
+    summary: dict[str, Any] = {
+        "sessions": len(results),
+        "faults": faults,
+        "failed_sessions": len(failed),
+        "failed_indices": [r.index for r in failed[:20]],
+        "links": {k: sum(1 for r in results if r.link == k) for k in ("usb", "uart")},
+        "robust_encoding": sum(1 for r in results if r.robust),
+        "biphasic": sum(1 for r in results if r.biphasic),
+        "sense_current": sum(1 for r in results if r.allowed_sense_ua),
+        "electrodes_min_max": [min((r.electrodes for r in results), default=0), max((r.electrodes for r in results), default=0)],
+        "calls": dict(sorted(calls.items())),
+        "pulses": sum(r.pulses for r in results),
+        "over_limit_pulses": sum(r.over_limit for r in results),
+        "meant_off_pulses": sum(r.meant_off for r in results),
+        "bytes_lost": sum(r.lost_bytes for r in results),
+        "defects_hit": sorted({h for r in results for h in r.defects}),
+        "hazards": sorted({h for r in results for h in r.hazards}),
+        "caller_errors": sum(len(r.errors) for r in results),
+        "simulated_s": round(sum(r.sim_s for r in results), 3),
+        "session_s": round(wall, 3),  # the sessions' own run times, summed over workers
+        "ms_per_session": round(1e3 * wall / max(1, len(results)), 3),
+    }
+    if faults:
+        injected = sum(len(r.faults) for r in results)
+        summary.update({
+            "faults_injected": injected,
+            "faults_survived": sum(r.faults_survived for r in results),
+            "fault_kinds": sorted({k for r in results for k in r.faults}),
+            "longest_wrong_delivery_s": round(max((r.wrong_after_fault_s for r in results), default=0.0), 6),
+            "recovery_bound_s": round(max((r.recovery_bound_s for r in results), default=0.0), 6),
+            "unexplained_wrong_deliveries": sum(r.unexplained for r in results),
+            "bytes_lost_unreported": sum(r.unreported_lost_bytes for r in results),
+            "bytes_lost_unnoticed_but_repaired": sum(r.repaired_lost_bytes for r in results),
+            "bytes_lost_unnoticed_absorbed": sum(r.absorbed_lost_bytes for r in results),
+        })
+    return summary
+
+
+def _table(summary: dict[str, Any]) -> str:
+    rows = [(k, v) for k, v in summary.items() if k not in ("calls", "failed_indices")]
+    rows.append(("calls", ", ".join(f"{k} {v}" for k, v in summary["calls"].items())))
+    if summary["failed_indices"]:
+        rows.append(("first failed sessions", " ".join(map(str, summary["failed_indices"]))))
+    width = max(len(k) for k, _ in rows)
+    return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--sessions", type=int, default=1000, help="number of sessions (default 1000)")
+    ap.add_argument("--faults", action="store_true", help="inject the emulator's faults into every session")
+    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: every core)")
+    ap.add_argument("--seed", type=int, default=0, help="campaign seed (default 0)")
+    ap.add_argument("--first", type=int, default=0, help="index of the first session")
+    ap.add_argument("--only", type=int, default=None, help="run one session and print it whole")
+    ap.add_argument("--json", action="store_true", help="print the summary as JSON")
+    a = ap.parse_args(argv)
+    logging.disable(logging.WARNING)  # the guard logs each refusal; the summary counts them
+    if a.sessions < 1:
+        ap.error(f"--sessions must be at least 1 (got {a.sessions})")
+    if a.jobs < 1:
+        ap.error(f"--jobs must be at least 1 (got {a.jobs})")
+    if a.only is not None:
+        r = run_session(a.only, a.seed, a.faults)
+        print(json.dumps({**asdict(r), "ok": r.ok}, indent=1, default=str))
+        return 0 if r.ok else 1
+    t0 = time.perf_counter()
+    results = run_campaign(a.sessions, seed=a.seed, faults=a.faults, jobs=a.jobs, progress=True, first=a.first)
+    summary = summarize(results, faults=a.faults)
+    summary.update({"seed": a.seed, "jobs": a.jobs, "wall_s": round(time.perf_counter() - t0, 3)})
+    print(json.dumps(summary, indent=1) if a.json else _table(summary))
+    return 0 if summary["failed_sessions"] == 0 else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
