@@ -88,10 +88,15 @@ def test_a_second_program_is_refused_with_the_holder_named(board: tuple[PtyServe
 
 def test_a_script_with_its_own_pyserial_port_is_locked_out_too(board: tuple[PtyServer, BoardWatch]) -> None:
     server, watch = board
-    with open_device(server.path):
+    with open_device(server.path) as owner:
         port = serial.Serial(None, 921600, timeout=0.5)
         port.port = server.path
+        written = owner.pacer.stats.bytes_written
+        end = time.monotonic() + 30.0  # the server reads the owner's last bytes in its own thread
+        while watch.bytes_in < written and time.monotonic() < end:
+            time.sleep(0.005)
         before = watch.bytes_in
+        assert before == written
         with pytest.raises(DeviceBusyError):
             EtactileKitDevice(port)
         assert watch.bytes_in == before

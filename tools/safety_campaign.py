@@ -49,6 +49,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the package besi
 from tactdeform_hw.device import EtactileKitDevice, StimConfig  # noqa: E402
 from tactdeform_hw.device.pacing import estimate_scan_us, firmware_period_us  # noqa: E402
 from tactdeform_hw.emulator.faults import FaultKind, TimedPort, random_plan  # noqa: E402
+from tactdeform_hw.emulator.hazards import Hazard, HazardKind  # noqa: E402
 from tactdeform_hw.emulator.scan import PulseKind  # noqa: E402
 from tactdeform_hw.emulator.timed import TimedEmulator  # noqa: E402
 from tactdeform_hw.errors import TactDeformError  # noqa: E402
@@ -63,11 +64,22 @@ _USB_FAULTS = (FaultKind.CUT, FaultKind.CRC_ERROR, FaultKind.RESET, FaultKind.ST
 _UART_FAULTS = tuple(FaultKind)
 #: Firmware defects the driver must never trigger (the others — torn patterns, unknown padding bytes,
 #: sense pulses, the 0xF5 re-initialisation — are the firmware working as designed).
-DEFECTS = frozenset({"parser_locked", "unread_while_locked", "pattern_holds_command_byte", "stale_channels",
+DEFECTS = frozenset({"parser_locked", "unread_while_locked", "pattern_holds_command_byte",
+                     "payload_holds_command_byte", "stale_channels",
                      "clamped", "ignored_zero", "queue_overflow", "overrun", "watchdog_reset",
                      "channels_beyond_hv513", "commands_out_of_step"})
 # ("u16_waiting" is not among them: on a UART the second byte of a u16 follows 10.85 µs after the first, and
 # the parser may meet the gap; a lost byte shows up as a loss and as commands out of step.)
+
+
+def _hazard_name(h: Hazard) -> str:
+    """A hazard's kind; a value byte >= 0xF5 that the host meant as a value (electrode count 255) is
+    recorded apart from a command byte read as payload, which is a desynchronisation."""
+    if h.kind is HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE and h.detail.get("meant_as_command") is False:
+        return "value_byte_like_a_command"
+    return str(h.kind.value)
+
+
 #: Errors that refuse a frame (the driver keeps the caller's previous frame) rather than fail to send it.
 REFUSALS = ("SafetyError", "LimitError", "ProtocolMisuseError", "ConfigurationError")
 #: Transitions the caller asked for (not a fault the driver noticed).
@@ -328,7 +340,7 @@ class _Session:
                     wrong.append(self._pulse(table, int(k), cur, "over_limit"))
         res.losses = len(emu.losses)
         res.lost_bytes = sum(lo.count for lo in emu.losses)
-        res.hazards = sorted({h.kind.value for h in emu.hazards})
+        res.hazards = sorted({_hazard_name(h) for h in emu.hazards})
         if any(not c.in_sync for c in emu.commands):
             res.hazards.append("commands_out_of_step")
         if wrong and res.first_violation is None:

@@ -1074,14 +1074,16 @@ class Device(ABC):
         got = bytearray()
         while True:
             waiting = self._waiting()
+            had = len(got)
             if waiting is None or waiting >= size - len(got):
                 got += self._read(size - len(got))
-            elif clock.now() >= deadline:
-                if waiting:
-                    got += self._read(waiting)
+            elif waiting:
+                # what has arrived (a socket says only "readable": at least one byte); the rest follows
+                got += self._read(waiting)
             if len(got) >= size or isinstance(clock, InstantClock) or clock.now() >= deadline:
                 return bytes(got)
-            clock.sleep(min(REPLY_POLL_S, max(0.0, deadline - clock.now())))
+            if len(got) == had:
+                clock.sleep(min(REPLY_POLL_S, max(0.0, deadline - clock.now())))
 
     def _frame(self, levels: Sequence[int], *, force_pattern: bool) -> None:
         """Put one application-order frame on the firmware: height down first, pattern, height up last."""

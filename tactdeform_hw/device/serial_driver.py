@@ -226,6 +226,7 @@ class EtactileKitDevice(Device):
         except TactDeformError:
             self._closed = True
             raise
+        _no_delay(port)
 
     @property
     def guardian(self) -> Guardian | None:
@@ -363,6 +364,21 @@ class EtactileKitDevice(Device):
     def __repr__(self) -> str:
         name = getattr(self.port, "port", None) or getattr(self.port, "name", None) or type(self.port).__name__
         return f"EtactileKitDevice({name!s}, closed={self._closed})"
+
+
+def _no_delay(port: Any) -> None:
+    """pyserial's ``socket://`` leaves Nagle's algorithm on: a one-byte request written after a small
+    command then waits for the board's delayed acknowledgement (about 40 ms), longer than any reply's
+    deadline.  The board's TCP server sets no delay too; so does the kit's own host library."""
+    sock = getattr(port, "_socket", None)
+    if sock is None:
+        return
+    import socket
+
+    try:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    except OSError:  # not a TCP socket
+        pass
 
 
 def open_port(name: str, *, timeout: float = DEFAULT_TIMEOUT_S, baudrate: int = BAUD_RATE) -> Any:

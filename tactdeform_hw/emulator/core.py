@@ -43,6 +43,8 @@ class Emulator:
         self.board = board if isinstance(board, Board) else Board(board, switching_boards, stack_reading)
         self.hazards: list[Hazard] = []
         self.scan: Callable[[Emulator], None] | None = None
+        #: handed to every parser this emulator makes (see ``Parser.meant_as_command``)
+        self.meant_as_command: Callable[[int], bool] | None = None
         self._power_on()
 
     def _power_on(self) -> None:
@@ -56,6 +58,13 @@ class Emulator:
         else:
             self.registers = Registers(hv513_num=self.board.detect_hv513())
             self.parser = Parser(self.registers, self.hazards, self.board.detect_hv513)
+            self._arrival_start = -1
+            # without a host's own intent, a byte that starts an arrival is taken as meant for a command (a
+            # driver writes whole commands; a value byte >= 0xF5 inside one is the value it meant)
+            self.parser.meant_as_command = self.meant_as_command or self._starts_arrival
+
+    def _starts_arrival(self, offset: int) -> bool:
+        return offset == self._arrival_start
 
     def reset(self) -> None:
         """Power cycle: registers, pattern buffer, receive buffer and parser back to power-on.
@@ -80,8 +89,10 @@ class Emulator:
             self.parser.run(self.now_us)
             self._note_pending()
         else:
-            self.parser.receive(bytes(data))
-            self.parser.run()
+            p = self.parser
+            self._arrival_start = p.base + len(p.rx)  # where this arrival starts in the byte stream
+            p.receive(bytes(data))
+            p.run()
         out: bytes = tx + self.parser.take_tx()
         return out
 

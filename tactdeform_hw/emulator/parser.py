@@ -101,6 +101,11 @@ class Parser:
         self.hv513_detect = hv513_detect
         self.on_hv513_reinit = on_hv513_reinit
         self.on_command = on_command
+        #: Optional: was the byte at this offset meant as a command?  A host whose intent is known (the timed
+        #: emulator decodes what the host wrote) says so in each command-byte-as-payload record
+        #: (``meant_as_command``): a legitimate value byte >= 0xF5 (electrode count 255, width 250 µs) is
+        #: recorded with False, a desynchronisation with True; None where the intent is unknown.
+        self.meant_as_command: Callable[[int], bool] | None = None
         self.rx = bytearray()
         self.pos = 0  # index of the next unread byte in rx
         self.base = 0  # absolute offset of rx[0]
@@ -315,6 +320,7 @@ class Parser:
         value (``fb`` then ``fc 08`` sets pulse height 0x08FC = 2300)."""
         first = self.pos - size
         i = next(k for k in range(size) if self.rx[first + k] >= _COMMAND_BYTE_MIN)
+        meant = None if self.meant_as_command is None else self.meant_as_command(self.base + first + i)
         field, stored = register_after(op, self.regs)
         value = self.rx[first] if size == 1 else u16_at(self.rx, first)
         self._hazard(
@@ -327,6 +333,7 @@ class Parser:
             value=value,
             register=field,
             stored=stored,
+            meant_as_command=meant,
         )
 
     def _complete(self, op: int, value: int | None) -> None:

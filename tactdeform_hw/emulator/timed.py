@@ -134,6 +134,8 @@ class TimedEmulator:
         self.model = model if model is not None else DEFAULT_MODEL
         self.skin = skin if skin is not None else DEFAULT_SKIN
         self.emulator = Emulator(board, switching_boards, stack_reading=stack_reading)
+        self.emulator.meant_as_command = self._meant_as_command
+        self.emulator.parser.meant_as_command = self._meant_as_command
         self.board = self.emulator.board
         self.hazards: list[Hazard] = self.emulator.hazards
         self.link = make_link(link)
@@ -533,6 +535,12 @@ class TimedEmulator:
                                                     "bytes_before_loss": 0, "length": end - start}
         return {"name": Opcode(op).name, "host_offset": start, "bytes_before_loss": host_offset - start,
                 "length": end - start}
+
+    def _meant_as_command(self, parser_offset: int) -> bool:
+        """Whether the host wrote a command byte at this parser offset (a byte that did not come from the
+        host counts as meant: nothing says otherwise)."""
+        host = self._host_of(self._parser_base + parser_offset)
+        return host < 0 or host in self._intended
 
     def _host_of(self, dev_offset: int) -> int:
         """Host-stream offset of a device-stream byte (-1 if it did not come from the host)."""
