@@ -76,7 +76,7 @@ def _tcp_address(args: argparse.Namespace) -> tuple[str, int]:
     except ValueError:
         raise LimitError("--tcp", args.tcp, "[HOST:]PORT with PORT a number 0..65535") from None
     if not 0 <= number <= 65535:
-        raise LimitError("--tcp", args.tcp, "a TCP port 0..65535")
+        raise LimitError("--tcp", number, "a TCP port 0..65535")
     return (host.strip("[]") if sep and host else args.host), number
 
 
