@@ -384,7 +384,7 @@ def test_upstream_style_client_over_the_pty_reaches_the_vectors_state() -> None:
         with PtyServer(RealtimeEmulator(rules=SERIAL_USB, firmware="v2")) as server:
             with serial.Serial(server.path, 921600, timeout=0.5) as port:
                 _upstream_write(port.write, stream)
-                assert _wait(lambda: server.bytes_in == len(stream))
+                assert _wait(lambda: server.bytes_in == len(stream))  # noqa: B023 (waited for at once)
                 n = len(vec["expect"]["tx"]) // 2
                 replies = port.read(n) if n else b""
                 _check_against_vector(server.board, vec, replies)
@@ -396,7 +396,7 @@ def test_upstream_style_client_over_tcp_reaches_the_vectors_state() -> None:
         with _v2_tcp() as server, socket.create_connection(server.address, timeout=2) as sock:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             _upstream_write(sock.sendall, stream)
-            assert _wait(lambda: server.bytes_in == len(stream))
+            assert _wait(lambda: server.bytes_in == len(stream))  # noqa: B023 (waited for at once)
             replies = _recv(sock, len(vec["expect"]["tx"]) // 2, timeout=1.0)
             _check_against_vector(server.board, vec, replies)
 

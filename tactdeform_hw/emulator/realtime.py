@@ -39,6 +39,7 @@ from .hazards import Hazard, HazardKind
 from .link import Delivery, LinkModel
 from .skin import SkinModel
 from .timed import TimedEmulator
+from .timed_v2 import TimedEmulatorV2
 from .timing import DEFAULT_MODEL, TimingModel
 
 #: how late a wake-up may come before it counts as falling behind the wall clock
@@ -278,10 +279,8 @@ class RealtimeEmulator:
     ) -> None:
         self.rules = rules
         self.firmware = firmware
-        self.timed: Any
+        self.timed: TimedEmulator | TimedEmulatorV2
         if firmware == "v2":
-            from .timed_v2 import TimedEmulatorV2
-
             if skin is not None:
                 raise ConfigurationError("skin: the v2 timed model reads back the DAC codes, not a skin model")
             self.timed = TimedEmulatorV2(board, switching_boards, link=rules.make_link(),
@@ -409,7 +408,7 @@ class RealtimeEmulator:
         as its payload (see :meth:`~.timed_v2.TimedEmulatorV2.new_client`)."""
         with self.lock:
             self._advance()
-            if self.firmware == "v2":
+            if isinstance(self.timed, TimedEmulatorV2):
                 self.timed.new_client(name)
 
     # --- reset ---------------------------------------------------------------------------------------
