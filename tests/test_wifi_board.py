@@ -95,6 +95,30 @@ def test_realtime_v2_reports_a_mode_2_board_as_all_channels_on() -> None:
     assert any(h.kind is HazardKind.MODE_SENSE_ALL for h in board.hazards)
 
 
+def test_v2_model_sleeps_through_idle_polls_and_never_reports_an_event_in_the_past() -> None:
+    """What a wall-clock runner waits for: bytes that landed are due at the parser's next call, and an
+    idle board's next event is its next scan, not its next 1 ms poll."""
+    from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
+
+    from tactdeform_hw.emulator.realtime import TcpLink
+
+    emu = TimedEmulatorV2(link=TcpLink(), tx_link=TcpLink())
+    emu.write(SETUP, 0.0)
+    emu.advance_to(50_000.0)
+    assert emu.next_event_us() > 50_000.0
+    assert emu.next_event_us(scans=False) == float("inf")  # idle: no poll changes anything
+    emu.write(v2.encode_pattern([5] * N), 50_000.5)  # lands at once, read by the parser's next call
+    emu.advance_to(50_700.0)
+    due = emu.next_event_us(scans=False)
+    assert due > 50_700.0 and emu.state()["stim_pattern"][0] == 0
+    emu.advance_to(due)
+    assert emu.state()["stim_pattern"][:N] == [5] * N
+    emu.write(b"\xfe", emu.now_us)  # a cut pattern: the next event without scans is its timeout
+    emu.advance_to(emu.now_us + 5000)
+    assert emu.parser.processing
+    assert emu.next_event_us(scans=False) >= emu.parser.command_start_us + 2_000_000
+
+
 @pytest.mark.parametrize("mode", [0, 1, 2])
 def test_scan_shape_fills_heights_into_one_walk_exactly(mode: int) -> None:
     rng = random.Random(mode)
@@ -400,3 +424,21 @@ def test_upstream_style_client_over_tcp_reaches_the_vectors_state() -> None:
             replies = _recv(sock, len(vec["expect"]["tx"]) // 2, timeout=1.0)
             _check_against_vector(server.board, vec, replies)
 
+
+
+def test_wifi_board_tool_reports_lag_cpu_and_latency_on_both_transports() -> None:
+    proc = subprocess.run([sys.executable, "tools/wifi_board.py", "--idle", "0.2", "--stream", "0.5", "--json"],
+                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout)
+    for transport in ("pty", "tcp"):
+        r = out[transport]
+        assert r["configured"]
+        for name in ("idle", "stream"):
+            ph = r[name]
+            assert ph["wakeups"] > 0 and ph["lag_max_ms"] >= ph["lag_p99_ms"] >= ph["lag_median_ms"] >= 0
+        lat = r["latency"]
+        assert lat["applied"] >= 0.8 * lat["writes"] > 0  # frames are stored, none lost
+        assert 0 < lat["applied_us"]["min_us"] <= lat["first_pulse_us"]["min_us"]  # causal, and stored first
+        p = r["prediction"]["first_channel_us"]
+        assert 0 < p["min"] <= p["mean"] <= p["max"]

@@ -251,8 +251,9 @@ class TimedEmulatorV2:
         sleeps through them and the model runs them when it catches up."""
         inf = float("inf")
         p = self.parser
-        t = min(self._deliveries[0][0] if self._deliveries else inf, self._tx[0][0] if self._tx else inf,
-                self._next_alarm_ns if scans else inf)
+        # bytes that landed are read by the parser's next call, not before
+        t = min(max(self._deliveries[0][0], self._next_call_ns) if self._deliveries else inf,
+                self._tx[0][0] if self._tx else inf, self._next_alarm_ns if scans else inf)
         if p.processing:
             if p.pending >= p.required:
                 t = min(t, self._next_call_ns)
