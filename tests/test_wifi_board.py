@@ -24,10 +24,10 @@ from tactdeform_hw.clock import MonotonicClock
 from tactdeform_hw.device.firmware_probe import FirmwareMismatchError
 from tactdeform_hw.device.serial_driver import open_device
 from tactdeform_hw.emulator import Emulator, HazardKind
-from tactdeform_hw.emulator.firmware_scan import FirmwareScanConfig
-from tactdeform_hw.emulator.realtime import SERIAL_USB, WIFI_TCP, RealtimeEmulator, settle
+from tactdeform_hw.emulator.firmware_scan import DEFAULT_CONVENTIONS, FirmwareScanConfig
+from tactdeform_hw.emulator.realtime import SERIAL_USB, WIFI_TCP, RealtimeEmulator, TcpLink, settle
 from tactdeform_hw.emulator.tcp_server import TcpServer
-from tactdeform_hw.emulator.timed_v2 import _scan_shape, _shape
+from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2, _scan_shape, _shape
 from tactdeform_hw.emulator.udp_discovery import DiscoveryResponder
 from tactdeform_hw.protocol import commands_v2 as v2
 
@@ -98,10 +98,6 @@ def test_realtime_v2_reports_a_mode_2_board_as_all_channels_on() -> None:
 def test_v2_model_sleeps_through_idle_polls_and_never_reports_an_event_in_the_past() -> None:
     """What a wall-clock runner waits for: bytes that landed are due at the parser's next call, and an
     idle board's next event is its next scan, not its next 1 ms poll."""
-    from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
-
-    from tactdeform_hw.emulator.realtime import TcpLink
-
     emu = TimedEmulatorV2(link=TcpLink(), tx_link=TcpLink())
     emu.write(SETUP, 0.0)
     emu.advance_to(50_000.0)
@@ -128,9 +124,7 @@ def test_scan_shape_fills_heights_into_one_walk_exactly(mode: int) -> None:
                                      pulse_width=rng.choice([0, 5, 200]), discharge_time=rng.choice([0, 45]),
                                      polarity=rng.randint(0, 1), hv513_num=4, sense_pulse_height=rng.choice([0, 30]),
                                      sense_pulse_width=rng.choice([0, 20]), stim_mode=mode, prior_scans=0)
-            from tactdeform_hw.emulator.firmware_scan import DEFAULT_CONVENTIONS as conv
-
-            assert _scan_shape(cfg, conv) == _shape(cfg, conv)
+            assert _scan_shape(cfg, DEFAULT_CONVENTIONS) == _shape(cfg, DEFAULT_CONVENTIONS)
 
 
 def test_url_handler_serves_v2_timed_by_default_and_untimed_on_request() -> None:
