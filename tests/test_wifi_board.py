@@ -191,6 +191,22 @@ def test_v2_tcp_replies_go_only_to_the_connected_client() -> None:
             b.close()
 
 
+def test_v2_tcp_flow_control_holds_the_host_back_where_the_serial_queue_drops() -> None:
+    """20 000 bytes during 125 Hz scans of 32 channels (each holds the parser off for ~7.6 ms): the TCP
+    build loses none and answers the sync check behind them; the serial build's 1024-byte queue drops."""
+    flood = SETUP + v2.encode_pattern([9] * N) + bytes(20_000) + b"\xf4"
+    with _v2_tcp() as server, socket.create_connection(server.address, timeout=5) as sock:
+        sock.sendall(flood)
+        assert _recv(sock, 1, timeout=10) == bytes([N])
+        assert server.board.state()["rx_dropped"] == 0
+        assert not any(h.kind is HazardKind.QUEUE_OVERFLOW for h in server.board.hazards)
+    with TcpServer(RealtimeEmulator(rules=SERIAL_USB, firmware="v2"), port=0, rules=SERIAL_USB) as server, \
+            socket.create_connection(server.address, timeout=5) as sock:
+        sock.sendall(flood)
+        assert _wait(lambda: server.board.state()["rx_dropped"] > 0, 10)
+        assert any(h.kind is HazardKind.QUEUE_OVERFLOW for h in server.board.hazards)
+
+
 def _cut_then_new_client(server: TcpServer, gap_s: float) -> socket.socket:
     a = socket.create_connection(server.address, timeout=2)
     a.sendall(v2.encode_electrode_num(N) + b"\xf4")
