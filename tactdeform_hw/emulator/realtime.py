@@ -22,6 +22,10 @@ is served at a time.
 
 A reset (:meth:`RealtimeEmulator.reset`: DTR/RTS, SIGUSR1, a new client) power-cycles the model at the
 current wall time and returns a :class:`ResetRecord` naming the state it discarded.
+
+``firmware="v2"`` serves :class:`~.timed_v2.TimedEmulatorV2` the same way (its 1024-byte queue, whole
+payloads, the 2 s command timeout); a new client is told to it (:meth:`RealtimeEmulator.client_opened`),
+because on v2 a command the previous client cut takes the new client's first bytes within 2 s.
 """
 
 from __future__ import annotations
@@ -451,7 +455,7 @@ class RealtimeEmulator:
 
 def _scan_rate(t: Any, at_us: float) -> tuple[int, float]:
     """Scans since power-up and the current scan rate (0 when the scans stopped)."""
-    if getattr(t, "firmware", "v1.2") == "v2":
+    if isinstance(t, TimedEmulatorV2):
         s = t.scans
         if len(s) >= 2:
             stride = s[-1].start_ns - s[-2].start_ns

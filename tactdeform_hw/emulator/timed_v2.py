@@ -10,6 +10,12 @@ its overhead plus one byte time per byte read (the timing model's assumptions), 
 call that copies a pattern scans the elements copied so far at their new heights and the rest at their
 old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer).
 
+Served on the wall clock (:class:`~.realtime.RealtimeEmulator` with ``firmware="v2"``) it tells the
+runner when it next does something a host could notice (:meth:`TimedEmulatorV2.next_event_us`: not the
+idle polls, which change nothing), resets, and records a command a new host connection inherits
+(:meth:`TimedEmulatorV2.new_client`).  Scan shapes are walked once per configuration: on v2 a channel's
+timing does not depend on its height (:func:`_scan_shape`).
+
 Every scan is recorded (:class:`ScanRecordV2`) with the parameters it ran and when each channel's
 current started, so safety can be judged on the pulses delivered; mode 2 with a zero pattern that
 still drives the sense current is a :data:`~.hazards.HazardKind.MODE_SENSE_ALL` hazard.
