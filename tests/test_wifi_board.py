@@ -207,6 +207,20 @@ def test_v2_tcp_flow_control_holds_the_host_back_where_the_serial_queue_drops() 
         assert any(h.kind is HazardKind.QUEUE_OVERFLOW for h in server.board.hazards)
 
 
+def test_replies_to_a_host_that_has_gone_are_not_sent_to_the_next() -> None:
+    """The old host's 0xF4 is still read (it reached the receive path) but its answer is not the new
+    host's; the new host's own 0xF4 is answered."""
+    emu = TimedEmulatorV2(link=TcpLink(), tx_link=TcpLink())
+    emu.new_client("a")
+    emu.write(v2.encode_electrode_num(3) + b"\xf4", 1000.0)
+    emu.new_client("b")  # before the parser read them
+    emu.advance_to(20_000.0)
+    assert emu.read_tx() == b"" and emu.replies_dropped == 1 and emu.state()["electrode_num"] == 3
+    emu.write(b"\xf4", 20_000.0)
+    emu.advance_to(40_000.0)
+    assert emu.read_tx() == b"\x03"
+
+
 def _cut_then_new_client(server: TcpServer, gap_s: float) -> socket.socket:
     a = socket.create_connection(server.address, timeout=2)
     a.sendall(v2.encode_electrode_num(N) + b"\xf4")

@@ -407,13 +407,16 @@ class RealtimeEmulator:
             self._advance()
             return max(0, self.timed.queue.free - self.timed.in_flight)
 
-    def client_opened(self, name: str) -> None:
-        """A new host connection: on v2 a command the previous host cut can take this host's first bytes
-        as its payload (see :meth:`~.timed_v2.TimedEmulatorV2.new_client`)."""
+    def client_opened(self, name: str) -> bytes:
+        """A new host connection.  Returns the replies written before it (no host read them: they are
+        not the new host's).  On v2 a command the previous host cut can take this host's first bytes as
+        its payload (see :meth:`~.timed_v2.TimedEmulatorV2.new_client`)."""
         with self.lock:
             self._advance()
+            stale = self.timed.read_tx()
             if isinstance(self.timed, TimedEmulatorV2):
                 self.timed.new_client(name)
+            return stale
 
     # --- reset ---------------------------------------------------------------------------------------
 
@@ -593,11 +596,12 @@ class BoardServer:
         return float(self.board.wait_s(self.poll_s))
 
     def _client_opened(self) -> None:
-        self.connected = True
         self.clients += 1
         if self.timed:
             peer = getattr(self, "peer", None)
-            self.board.client_opened(f"client {self.clients}" + (f" ({peer[0]}:{peer[1]})" if peer else ""))
+            name = f"client {self.clients}" + (f" ({peer[0]}:{peer[1]})" if peer else "")
+            self.bytes_dropped += len(self.board.client_opened(name))  # written while no client was there
+        self.connected = True
         if self.reset_on_open:
             self.reset("a client opened the port (--reset-on-open)")
 

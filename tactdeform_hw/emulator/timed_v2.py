@@ -174,6 +174,8 @@ class TimedEmulatorV2:
         self.applied: list[tuple[int, int, object]] = []  # (time ns, opcode, value) when a command took effect
         self.queue = _QueueView(self)
         self.reboots = 0
+        self.replies_dropped = 0  # reply bytes to commands of a host that had gone (see new_client)
+        self._reply_offset: int | None = None
         self._deliveries: list[tuple[int, int, Delivery]] = []
         self._seq = 0
         self._tx: list[tuple[int, bytes]] = []
@@ -308,7 +310,13 @@ class TimedEmulatorV2:
         """A new host connection starts here: its bytes follow the ones already taken.  Nothing in the
         firmware resets the parser on a new connection, so a command the previous host cut takes the new
         host's first bytes as its payload if they complete it within 2 s of its command byte — an
-        :data:`~.hazards.HazardKind.INHERITED_COMMAND` hazard naming both hosts' bytes."""
+        :data:`~.hazards.HazardKind.INHERITED_COMMAND` hazard naming both hosts' bytes.
+
+        The firmware reads and writes through the one current connection.  Here the bytes the previous
+        host got into the receive path before it went are still read (in order, before the new host's:
+        the emulator's reading of a connection that closes with bytes unread), but replies to its
+        requests are dropped (counted in :attr:`replies_dropped`): that host is gone, and the new one gets
+        answers only to what it asked."""
         p = self.parser
         self._clients.append((p.offset + p.pending + self.in_flight, name))
         del self._clients[:-2]
@@ -404,6 +412,7 @@ class TimedEmulatorV2:
                 parser.receive(d.data)
         self._call_time_ns = t
         self._applied_in_call = None
+        self._reply_offset = None
         before = {f: getattr(regs, f) for f in self._SCAN_FIELDS}
         old_pattern = list(regs.stim_pattern)
         out = parser.call(t // 1000)
@@ -419,6 +428,9 @@ class TimedEmulatorV2:
         if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
             end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
         tx = parser.take_tx()
+        if tx and self._reply_offset is not None and self._clients and self._reply_offset < self._clients[-1][0]:
+            self.replies_dropped += len(tx)  # asked by a host that has gone: the firmware writes to the new one's
+            tx = b""                          # socket only what the new one asked (see new_client)
         if tx:
             if self.tx_link is None:
                 self._tx.append((end, tx))
@@ -466,6 +478,8 @@ class TimedEmulatorV2:
         if self._clients:
             self._check_inherited(op, value, offset)
         self._applied_in_call = op
+        if value is None:  # a reply command (0xFF, 0xF5, 0xF4)
+            self._reply_offset = offset
         if op == OpcodeV2.HV513_COUNT:
             self._hv513_in_call = True
         elif op == OpcodeV2.FREQUENCY:
