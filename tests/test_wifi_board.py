@@ -254,6 +254,15 @@ def test_new_client_inherits_a_cut_command_within_2_s_and_it_is_reported() -> No
             assert d["stored"][:2] == [4095, 0x00FB]
             assert any(h.kind is HazardKind.CLAMPED and h.detail["stored"] == 4095 for h in server.board.hazards)
             assert "inherited_command" in str(inherited[0])
+
+            def delivered_4095() -> bool:  # judged on the pulses the board delivered, not on the bytes
+                board = server.board
+                with board.lock:
+                    board.state()
+                    timed: Any = board.timed
+                    return any(r["channel"] == 0 and r["code"] == 4095 for r in timed.delivered())
+
+            assert _wait(delivered_4095)
         finally:
             b.close()
 
