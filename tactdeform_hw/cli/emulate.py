@@ -17,10 +17,13 @@ def register(sub: Any) -> None:
         "emulate",
         help="serve the emulated board on a pseudo-terminal or a TCP port any program can open",
         description="Serve the emulated eTactileKit on a pseudo-terminal (--pty: the device path, e.g. "
-        "/dev/pts/7, is the first line of stdout) or on a TCP port (--tcp PORT: host:port is the first line; "
-        "one client at a time, as the firmware's Wi-Fi build). The board is the timed model locked to the "
-        "wall clock: bytes enter the link and the 256-byte receive queue as they arrive, the parser reads one "
-        "command with a payload per 1 ms tick, replies leave when the model delivers them, scans run. "
+        "/dev/pts/7, is the first line of stdout) or on a TCP port (--tcp [HOST:]PORT: host:port is the first "
+        "line; one client at a time, as the firmware's Wi-Fi build; with --firmware v2 it also answers UDP "
+        "discovery, ETK? on port 8888). The board is the timed model of the chosen firmware (--firmware v1.2, "
+        "the default, or v2) locked to the wall clock: bytes enter the link and the receive queue as they "
+        "arrive, the parser reads them on its own rhythm (v1.2: one command with a payload per 1 ms tick; "
+        "v2: whole payloads, a cut command discarded after 2 s), replies leave when the model delivers them, "
+        "scans run. "
         "--untimed answers every write at once instead. Point the eTactileKit GUI, its Python library, a "
         "Unity app or a terminal at it. Once a second, when something changed, stderr shows the registers in "
         "force, the queue depth, scans per second, overruns and hazards. SIGUSR1 power-cycles the board. "
@@ -28,14 +31,23 @@ def register(sub: Any) -> None:
     )
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal")
-    where.add_argument("--tcp", type=int, metavar="PORT", help="serve on TCP PORT (0: any free port)")
+    where.add_argument("--tcp", metavar="[HOST:]PORT",
+                       help="serve on TCP PORT (0: any free port) at HOST (default --host, 127.0.0.1: loopback only)")
     p.add_argument("--host", default="127.0.0.1", help="address --tcp listens on (default 127.0.0.1, loopback only)")
+    p.add_argument("--firmware", choices=("v1.2", "v2"), default="v1.2",
+                   help="the firmware the board runs (default v1.2; v2 is upstream's current firmware)")
+    p.add_argument("--discovery-port", type=int, default=None, metavar="PORT",
+                   help="with --tcp and --firmware v2: answer UDP discovery (ETK?) on PORT at the --tcp host "
+                   "(default 8888, as the firmware; 0: do not answer)")
+    p.add_argument("--kit-id", default=None, metavar="ID",
+                   help="the 6-hex-digit id discovery reports (default: the id the firmware derives from an "
+                   "Espressif MAC, F93030)")
     p.add_argument(
         "--build",
         choices=("serial", "serial-uart", "wifi"),
         default=None,
-        help="the firmware build's receive rules: serial (USB link, 256-byte queue that drops what does not "
-        "fit; the default for --pty), serial-uart (the same behind a 921600-baud UART) or wifi (TCP flow "
+        help="the firmware build's receive rules: serial (USB link, a receive queue that drops what does not "
+        "fit, 256 bytes on v1.2 and 1024 on v2; the default for --pty), serial-uart (the same behind a 921600-baud UART) or wifi (TCP flow "
         "control holds the host back; the default for --tcp)",
     )
     p.add_argument("--untimed", action="store_true", help="answer every write at once (no link, queue, tick or scans)")
@@ -53,11 +65,41 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
+#: the MAC the emulated Wi-Fi board reports its id from (Espressif's OUI 30:30:F9)
+EMULATED_MAC = bytes.fromhex("3030f9a1b2c3")
+
+
+def _tcp_address(args: argparse.Namespace) -> tuple[str, int]:
+    host, sep, port = str(args.tcp).rpartition(":")
+    try:
+        number = int(port)
+    except ValueError:
+        raise LimitError("--tcp", args.tcp, "[HOST:]PORT with PORT a number 0..65535") from None
+    if not 0 <= number <= 65535:
+        raise LimitError("--tcp", number, "a TCP port 0..65535")
+    return (host.strip("[]") if sep and host else args.host), number
+
+
 def _check(args: argparse.Namespace) -> None:
-    if args.tcp is not None and not 0 <= args.tcp <= 65535:
-        raise LimitError("--tcp", args.tcp, "a TCP port 0..65535")
+    if args.tcp is not None:
+        args.tcp_address = _tcp_address(args)
+    if args.discovery_port is not None:
+        if args.tcp is None or args.firmware != "v2":
+            raise ConfigurationError("--discovery-port: only the v2 Wi-Fi build answers discovery; use it with "
+                                     "--tcp and --firmware v2")
+        if not 0 <= args.discovery_port <= 65535:
+            raise LimitError("--discovery-port", args.discovery_port, "a UDP port 1..65535, or 0 for none")
+    if args.kit_id is not None:
+        if args.tcp is None or args.firmware != "v2":
+            raise ConfigurationError("--kit-id: only the v2 Wi-Fi build answers discovery; use it with --tcp and "
+                                     "--firmware v2")
+        if len(args.kit_id) != 6 or any(ch not in "0123456789ABCDEFabcdef" for ch in args.kit_id):
+            raise LimitError("--kit-id", args.kit_id, "6 hexadecimal digits, as the firmware reports")
     if not 1 <= args.switching_boards <= 16:
         raise LimitError("--switching-boards", args.switching_boards, "1..16")
+    if args.trace and args.firmware == "v2":
+        raise ConfigurationError("--trace records the v1.2 timed model's waveform; it is not available with "
+                                 "--firmware v2")
     if args.untimed and args.trace:
         raise ConfigurationError("--trace records the timed model that answers the client; drop --untimed to use it")
     if args.untimed and args.build:
@@ -72,9 +114,9 @@ def run(args: argparse.Namespace) -> int:
     rules = BUILD_RULES[args.build or ("wifi" if args.tcp is not None else "serial")]
     board: Any
     if args.untimed:
-        board = Emulator(args.board, args.switching_boards)
+        board = Emulator(args.board, args.switching_boards, firmware=args.firmware)
     else:
-        board = RealtimeEmulator(args.board, args.switching_boards, rules=rules)
+        board = RealtimeEmulator(args.board, args.switching_boards, rules=rules, firmware=args.firmware)
 
     behind: list[FallBehind] = []
     resets: list[ResetRecord] = []
@@ -98,7 +140,8 @@ def run(args: argparse.Namespace) -> int:
     if args.tcp is not None:
         from ..emulator.tcp_server import TcpServer
 
-        server = TcpServer(board, host=args.host, port=args.tcp, rules=rules, **opts)
+        host, port = args.tcp_address
+        server = TcpServer(board, host=host, port=port, rules=rules, **opts)
         where = f"{server.address[0]}:{server.address[1]}"
     else:
         from ..emulator.pty_server import PtyServer
@@ -106,6 +149,19 @@ def run(args: argparse.Namespace) -> int:
         server = PtyServer(board, **opts)
         where = server.path
     mode = "untimed (instant)" if args.untimed else f"in real time, {rules.name} build rules"
+    mode += f", firmware {args.firmware}"
+    responder = None
+    if args.tcp is not None and args.firmware == "v2" and args.discovery_port != 0:
+        from ..emulator.udp_discovery import DISCOVERY_PORT, DiscoveryResponder, device_id_from_mac
+
+        kit_id = (args.kit_id or device_id_from_mac(EMULATED_MAC)).upper()
+        try:
+            responder = DiscoveryResponder(kit_id, host=server.address[0],
+                                           port=DISCOVERY_PORT if args.discovery_port is None else args.discovery_port,
+                                           tcp_port=server.address[1])
+        except BaseException:
+            server.stop()
+            raise
 
     reset_requested: list[str] = []
 
@@ -125,6 +181,10 @@ def run(args: argparse.Namespace) -> int:
         print(where, flush=True)
         progress(f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {where}, "
                  f"{mode}; SIGUSR1 resets it")
+        if responder is not None:
+            progress(f"answering discovery on UDP {responder.address[0]}:{responder.address[1]} as "
+                     f"etactilekit-{responder.device_id} (etactilekit://{responder.device_id}?discovery="
+                     f"{responder.address[0]}:{responder.address[1]})")
         while True:
             time.sleep(0.05)
             while reset_requested:
@@ -149,6 +209,8 @@ def run(args: argparse.Namespace) -> int:
         pass
     finally:
         server.stop()
+        if responder is not None:
+            responder.close()
         summary = f"stopped: {server.bytes_in} bytes in, {server.bytes_out} bytes out, {len(server.emulator.hazards)} hazard(s)"
         if not args.untimed:
             st = board.lag.stats()

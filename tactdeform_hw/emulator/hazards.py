@@ -34,6 +34,7 @@ class HazardKind(str, Enum):
     # Firmware v2:
     COMMAND_TIMEOUT = "command_timeout"  # a cut command timed out: every queued byte was discarded
     COMMAND_PENDING = "command_pending"  # a cut command waits: the next bytes sent become its payload
+    INHERITED_COMMAND = "inherited_command"  # a new host's first bytes completed a command the previous one cut
     SHORT_PULSE_WIDTH = "short_pulse_width"  # width 0-6 µs: the pulse is still one SPI exchange long
     MODE_SENSE_ALL = "mode_sense_all"  # mode 2: every channel gets the sense pulse, a zero pattern included
 

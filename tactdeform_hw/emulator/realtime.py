@@ -22,6 +22,10 @@ is served at a time.
 
 A reset (:meth:`RealtimeEmulator.reset`: DTR/RTS, SIGUSR1, a new client) power-cycles the model at the
 current wall time and returns a :class:`ResetRecord` naming the state it discarded.
+
+``firmware="v2"`` serves :class:`~.timed_v2.TimedEmulatorV2` the same way (its 1024-byte queue, whole
+payloads, the 2 s command timeout); a new client is told to it (:meth:`RealtimeEmulator.client_opened`),
+because on v2 a command the previous client cut takes the new client's first bytes within 2 s.
 """
 
 from __future__ import annotations
@@ -39,6 +43,7 @@ from .hazards import Hazard, HazardKind
 from .link import Delivery, LinkModel
 from .skin import SkinModel
 from .timed import TimedEmulator
+from .timed_v2 import TimedEmulatorV2
 from .timing import DEFAULT_MODEL, TimingModel
 
 #: how late a wake-up may come before it counts as falling behind the wall clock
@@ -163,8 +168,20 @@ class ResetRecord:
                 f"parser {d.get('parser', '?')}")
 
 
-_SHOWN = ("electrode_num", "polarity", "pulse_height", "pulse_width", "sense_pulse_height", "sense_pulse_width",
-          "discharge_time", "period_us")
+_SHOWN = ("electrode_num", "polarity", "stim_mode", "pulse_height", "pulse_width", "sense_pulse_height",
+          "sense_pulse_width", "discharge_time", "period_us")
+
+
+def _channels_on(regs: dict[str, Any]) -> list[int]:
+    """Channels the scans give current: v1.2 pattern values 1 and 2; v2 a non-zero height (mode 0/1) or,
+    in mode 2, every channel (the sense pulse) when the sense height is not 0."""
+    n = regs["electrode_num"]
+    pattern = regs["stim_pattern"][:n]
+    if "stim_mode" not in regs:
+        return [i for i, v in enumerate(pattern) if v in (1, 2)]
+    if regs["stim_mode"] == 2:
+        return list(range(n)) if regs["sense_pulse_height"] else []
+    return [i for i, v in enumerate(pattern) if v]
 
 
 def _ranges(chs: list[int]) -> str:
@@ -206,10 +223,11 @@ class LiveStatus:
 
     def lines(self) -> list[str]:
         r = self.registers
-        pattern = r.get("pattern", [])
-        on = [i for i, v in enumerate(pattern) if v in (1, 2)]
+        on = list(r.get("on", ()))
+        drive = (f"mode={r['stim_mode']} max height={max(r.get('pattern', ()), default=0)}" if "stim_mode" in r
+                 else f"height={r.get('pulse_height')}")
         head = (f"t={self.time_us / 1e6:.1f}s electrodes={r.get('electrode_num')} polarity={r.get('polarity')} "
-                f"height={r.get('pulse_height')} width={r.get('pulse_width')}us sense={r.get('sense_pulse_height')}/"
+                f"{drive} width={r.get('pulse_width')}us sense={r.get('sense_pulse_height')}/"
                 f"{r.get('sense_pulse_width')}us discharge={r.get('discharge_time')}us period={r.get('period_us'):.2f}us "
                 f"on={len(on)}{_ranges(on)}")
         body = (f"  queue={self.queue_depth}B scans/s={self.scans_per_s:.1f} overruns={self.overrun_cycles} "
@@ -261,11 +279,23 @@ class RealtimeEmulator:
         behind_limit_us: float = BEHIND_LIMIT_US,
         follow_scans: bool = True,
         history_us: float = HISTORY_US,
+        firmware: str = "v1.2",
     ) -> None:
         self.rules = rules
-        self.timed = TimedEmulator(board, switching_boards, link=rules.make_link(),
-                                   tx_link=TcpLink() if rules.link == "tcp" else None,
-                                   model=rules.timing(model), skin=skin, stack_reading=stack_reading)
+        self.firmware = firmware
+        self.timed: TimedEmulator | TimedEmulatorV2
+        if firmware == "v2":
+            if skin is not None:
+                raise ConfigurationError("skin: the v2 timed model reads back the DAC codes, not a skin model")
+            self.timed = TimedEmulatorV2(board, switching_boards, link=rules.make_link(),
+                                         tx_link=TcpLink() if rules.link == "tcp" else rules.link,
+                                         model=rules.timing(model), stack_reading=stack_reading)
+        elif firmware == "v1.2":
+            self.timed = TimedEmulator(board, switching_boards, link=rules.make_link(),
+                                       tx_link=TcpLink() if rules.link == "tcp" else None,
+                                       model=rules.timing(model), skin=skin, stack_reading=stack_reading)
+        else:
+            raise ConfigurationError(f"firmware={firmware!r}: the real-time board runs 'v1.2' or 'v2'")
         self.lock = threading.RLock()
         self._clock = clock
         self._t0 = clock()  # wall-clock time of device time 0
@@ -377,6 +407,17 @@ class RealtimeEmulator:
             self._advance()
             return max(0, self.timed.queue.free - self.timed.in_flight)
 
+    def client_opened(self, name: str) -> bytes:
+        """A new host connection.  Returns the replies written before it (no host read them: they are
+        not the new host's).  On v2 a command the previous host cut can take this host's first bytes as
+        its payload (see :meth:`~.timed_v2.TimedEmulatorV2.new_client`)."""
+        with self.lock:
+            self._advance()
+            stale = self.timed.read_tx()
+            if isinstance(self.timed, TimedEmulatorV2):
+                self.timed.new_client(name)
+            return stale
+
     # --- reset ---------------------------------------------------------------------------------------
 
     def reset(self, reason: str) -> ResetRecord:
@@ -384,9 +425,8 @@ class RealtimeEmulator:
         with self.lock:
             at = self._advance()
             regs = self.timed.state()
-            n = regs["electrode_num"]
-            discarded = {k: regs[k] for k in _SHOWN}
-            discarded["channels_on"] = [i for i, v in enumerate(regs["stim_pattern"][:n]) if v in (1, 2)]
+            discarded = {k: regs[k] for k in _SHOWN if k in regs}
+            discarded["channels_on"] = _channels_on(regs)
             discarded["queue_bytes"] = len(self.timed.queue)
             discarded["parser"] = self.timed.parser_status()
             discarded["replies_unread"] = len(self.timed.read_tx())
@@ -403,14 +443,10 @@ class RealtimeEmulator:
             t = self.timed
             regs = t.state()
             n = regs["electrode_num"]
-            shown = {k: regs[k] for k in _SHOWN}
+            shown = {k: regs[k] for k in _SHOWN if k in regs}
             shown["pattern"] = tuple(regs["stim_pattern"][:n])
-            scans = t._scan_index
-            rate = 0.0
-            if t.runs:
-                last = t.runs[-1]
-                if last.end_ns >= at * 1000 - 2 * last.stride_ns and last.stride_ns > 0:
-                    rate = 1e9 / last.stride_ns
+            shown["on"] = tuple(_channels_on(regs))
+            scans, rate = _scan_rate(t, at)
             hz = t.hazards
             new = hz[self._status_seen:]
             self._status_seen = len(hz)
@@ -418,6 +454,22 @@ class RealtimeEmulator:
             lost = sum(int(h.detail.get("bytes_lost", 0)) for h in hz if h.kind is HazardKind.QUEUE_OVERFLOW)
             return LiveStatus(at, shown, len(t.queue), scans, rate, overruns, len(hz), lost, len(self.resets),
                               self.lag.behind_count, list(new))
+
+
+def _scan_rate(t: Any, at_us: float) -> tuple[int, float]:
+    """Scans since power-up and the current scan rate (0 when the scans stopped)."""
+    if isinstance(t, TimedEmulatorV2):
+        s = t.scans
+        if len(s) >= 2:
+            stride = s[-1].start_ns - s[-2].start_ns
+            if stride > 0 and s[-1].start_ns >= at_us * 1000 - 2 * stride:
+                return t.scan_count, 1e9 / stride
+        return t.scan_count, 0.0
+    if t.runs:
+        last = t.runs[-1]
+        if last.end_ns >= at_us * 1000 - 2 * last.stride_ns and last.stride_ns > 0:
+            return t._scan_index, 1e9 / last.stride_ns
+    return t._scan_index, 0.0
 
 
 # --- serving a board on a byte stream ------------------------------------------------------------------
@@ -428,11 +480,11 @@ ByteHook = Callable[[str, bytes, float], None]
 def reset_untimed(emulator: Any, reason: str) -> ResetRecord:
     """Power-cycle an untimed :class:`~.core.Emulator` and say what it discarded (no clock: time 0)."""
     regs = emulator.state()
-    n = regs["electrode_num"]
-    discarded = {k: regs[k] for k in _SHOWN}
-    discarded["channels_on"] = [i for i, v in enumerate(regs["stim_pattern"][:n]) if v in (1, 2)]
+    discarded = {k: regs[k] for k in _SHOWN if k in regs}
+    discarded["channels_on"] = _channels_on(regs)
     discarded["queue_bytes"] = regs["rx_pending"]
-    discarded["parser"] = "locked" if emulator.locked else "between commands" if emulator.parser.cmd is None else "mid-command"
+    pending = regs.get("command_in_progress", getattr(emulator.parser, "cmd", None) is not None)
+    discarded["parser"] = "locked" if emulator.locked else "mid-command" if pending else "between commands"
     emulator.reset()
     return ResetRecord(reason, 0.0, discarded)
 
@@ -544,8 +596,12 @@ class BoardServer:
         return float(self.board.wait_s(self.poll_s))
 
     def _client_opened(self) -> None:
-        self.connected = True
         self.clients += 1
+        if self.timed:
+            peer = getattr(self, "peer", None)
+            name = f"client {self.clients}" + (f" ({peer[0]}:{peer[1]})" if peer else "")
+            self.bytes_dropped += len(self.board.client_opened(name))  # written while no client was there
+        self.connected = True
         if self.reset_on_open:
             self.reset("a client opened the port (--reset-on-open)")
 

@@ -10,6 +10,12 @@ its overhead plus one byte time per byte read (the timing model's assumptions), 
 call that copies a pattern scans the elements copied so far at their new heights and the rest at their
 old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer).
 
+Served on the wall clock (:class:`~.realtime.RealtimeEmulator` with ``firmware="v2"``) it tells the
+runner when it next does something a host could notice (:meth:`TimedEmulatorV2.next_event_us`: not the
+idle polls, which change nothing), resets, and records a command a new host connection inherits
+(:meth:`TimedEmulatorV2.new_client`).  Scan shapes are walked once per configuration: on v2 a channel's
+timing does not depend on its height (:func:`_scan_shape`).
+
 Every scan is recorded (:class:`ScanRecordV2`) with the parameters it ran and when each channel's
 current started, so safety can be judged on the pulses delivered; mode 2 with a zero pattern that
 still drives the sense current is a :data:`~.hazards.HazardKind.MODE_SENSE_ALL` hazard.
@@ -18,7 +24,7 @@ still drives the sense current is a :data:`~.hazards.HazardKind.MODE_SENSE_ALL` 
 from __future__ import annotations
 
 import heapq
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any
 
@@ -105,6 +111,39 @@ def _shape(
     return round(tr.isr_return_us * 1000), tuple(onsets), tuple(codes), tuple(tr.voltage), _pulse_rows(tr.events, starts)
 
 
+def _scan_shape(
+    cfg: FirmwareScanConfig, conv: ScanConventions
+) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]:
+    """:func:`_shape` without walking the statements again for every new pattern.
+
+    On v2 a channel's timing does not depend on its height (a height of 0 is still a DAC write of 0 for
+    the pulse width), so the walk of a pattern of ones gives every edge; the heights only fill in the DAC
+    codes (the ADC reading is the code held when the second exchange starts: the height again), and a
+    height of 0 delivers no pulse.  Mode 2 ignores the pattern.  Equal to :func:`_shape` for every
+    pattern (tested)."""
+    n = cfg.electrode_num
+    if cfg.stim_mode not in (0, 1):
+        return _shape(replace(cfg, stim_pattern=(0,) * n), conv)
+    heights = cfg.stim_pattern
+    duration, onsets, _, _, rows = _shape(replace(cfg, stim_pattern=(1,) * n), conv)
+    pulses = tuple((ch, t0, heights[ch], w, pol) for ch, t0, _, w, pol in rows if heights[ch])
+    return duration, onsets, tuple(heights), tuple(heights), pulses
+
+
+class _QueueView:
+    """The receive path as a real-time server sees it: bytes waiting (``len``) and room (``free``)."""
+
+    def __init__(self, owner: TimedEmulatorV2) -> None:
+        self._owner = owner
+
+    def __len__(self) -> int:
+        return int(self._owner.emulator.parser.pending)
+
+    @property
+    def free(self) -> int:
+        return int(self._owner.emulator.parser.spec.rx_queue_bytes) - len(self)
+
+
 class TimedEmulatorV2:
     """The v2 board in simulated time.  ``write(data, at_us)`` hands bytes to the link; ``advance_to``
     runs the firmware until then; ``read_tx`` returns what reached the host."""
@@ -117,27 +156,44 @@ class TimedEmulatorV2:
         switching_boards: int = 1,
         *,
         link: str | LinkModel = "usb",
+        tx_link: str | LinkModel | None = None,
         model: TimingModel = DEFAULT_MODEL,
         conventions: ScanConventions = DEFAULT_CONVENTIONS,
+        stack_reading: float | None = None,
     ) -> None:
-        self.emulator = Emulator(board, switching_boards, firmware="v2")
+        self.emulator = Emulator(board, switching_boards, firmware="v2", stack_reading=stack_reading)
+        self.board = self.emulator.board
         self.model = model
         self.conventions = conventions
         self.link = make_link(link)
+        self.tx_link = make_link(tx_link) if tx_link is not None else None
         self.now_ns = 0
         self.hazards: list[Hazard] = self.emulator.hazards
         self.scans: list[ScanRecordV2] = []
+        self.scan_count = 0  # scans since power-up (``scans`` may have been trimmed)
         self.applied: list[tuple[int, int, object]] = []  # (time ns, opcode, value) when a command took effect
+        self.queue = _QueueView(self)
+        self.reboots = 0
+        self.replies_dropped = 0  # reply bytes to commands of a host that had gone (see new_client)
+        self._reply_offset: int | None = None
         self._deliveries: list[tuple[int, int, Delivery]] = []
         self._seq = 0
         self._tx: list[tuple[int, bytes]] = []
-        self._next_call_ns = 0
-        self._next_alarm_ns = self._period_ns()
-        self._busy_until_ns = 0
+        self._host_rx = bytearray()
         self._host_offset = 0
+        self._clients: list[tuple[int, str]] = []  # (device offset where a client's bytes start, its name)
+        self._boot(0)
+
+    def _boot(self, t: int, boot_delay: bool = False) -> None:
+        start = t + (self.model.boot_ns if boot_delay else 0)
+        self._booting_until = start
+        self._next_call_ns = start
+        self._next_alarm_ns = start + self._period_ns()
+        self._busy_until_ns = 0
         self._last_sense_hazard = False
         self._chain_pos = 0
-        self._call_time_ns = 0
+        self._call_time_ns = start
+        self._last_alarm = start
         self._hv513_in_call = False
         self._applied_in_call: int | None = None
         self.emulator.parser.on_command = self._on_command
@@ -147,6 +203,10 @@ class TimedEmulatorV2:
     @property
     def registers(self) -> Any:
         return self.emulator.registers
+
+    @property
+    def parser(self) -> Any:
+        return self.emulator.parser
 
     @property
     def now_us(self) -> float:
@@ -166,10 +226,112 @@ class TimedEmulatorV2:
         self._host_offset += len(data)
         return len(data)
 
-    def read_tx(self) -> bytes:
-        out = b"".join(b for t, b in self._tx if t <= self.now_ns)
-        self._tx = [(t, b) for t, b in self._tx if t > self.now_ns]
+    def _collect_tx(self) -> None:
+        if self._tx and self._tx[0][0] <= self.now_ns:
+            self._host_rx += b"".join(b for t, b in self._tx if t <= self.now_ns)
+            self._tx = [(t, b) for t, b in self._tx if t > self.now_ns]
+
+    def read_tx(self, size: int | None = None) -> bytes:
+        """Reply bytes that have reached the host by now (all, or at most ``size``)."""
+        self._collect_tx()
+        n = len(self._host_rx) if size is None else min(size, len(self._host_rx))
+        out = bytes(self._host_rx[:n])
+        del self._host_rx[:n]
         return out
+
+    @property
+    def in_waiting(self) -> int:
+        """Reply bytes that have reached the host and were not read yet."""
+        self._collect_tx()
+        return len(self._host_rx)
+
+    @property
+    def in_flight(self) -> int:
+        """Bytes written by the host that the firmware's receive queue has not taken yet."""
+        return sum(len(d[2].data) for d in self._deliveries)
+
+    # --- what a real-time server needs ---------------------------------------------------------------
+
+    def next_event_us(self, scans: bool = True) -> float:
+        """When the board next does something the host could notice: a delivery lands, the parser has
+        bytes to read, a cut command's 2 s run out, a reply reaches the host, and with ``scans`` an alarm
+        fires.  Idle polls (one per tick, changing nothing) are not events: a runner on the wall clock
+        sleeps through them and the model runs them when it catches up."""
+        inf = float("inf")
+        p = self.parser
+        # bytes that landed are read by the parser's next call, not before
+        t = min(max(self._deliveries[0][0], self._next_call_ns) if self._deliveries else inf,
+                self._tx[0][0] if self._tx else inf, self._next_alarm_ns if scans else inf)
+        if p.processing:
+            if p.pending >= p.required:
+                t = min(t, self._next_call_ns)
+            else:  # the first poll after the timeout discards it
+                t = min(t, max(self._next_call_ns, (p.command_start_us + self._timeout_us() + 1) * 1000))
+        elif p.pending:
+            t = min(t, self._next_call_ns)
+        return t / 1000
+
+    def _timeout_us(self) -> int:
+        return int(self.parser.spec.command_timeout_us)
+
+    def run_until_idle(self, limit_us: float = 60e6, step_us: float = 1000.0) -> bool:
+        """Advance until every delivery has landed and the parser has read all it can (a cut command may
+        stay pending), or ``limit_us`` of device time passed.  Returns whether it got idle."""
+        end = self.now_ns + round(limit_us * 1000)
+        while True:
+            p = self.parser
+            if not self._deliveries and (p.pending == 0 or (p.processing and p.pending < p.required)):
+                return True
+            if self.now_ns >= end:
+                return False
+            self.advance_to(min(end, self.now_ns + round(step_us * 1000)) / 1000)
+
+    def parser_status(self) -> str:
+        """What the parser is doing, in words."""
+        p = self.parser
+        if not p.processing:
+            return "between commands"
+        name = p.spec.command(p.command).name
+        return (f"reading {name} payload {min(p.pending, p.required)}/{p.required} (discarded if not complete "
+                f"at t={(p.command_start_us + self._timeout_us()) / 1e6:.3f} s)")
+
+    def reset(self, reason: str = "reset") -> None:
+        """Power-cycle the board now (registers, queue, parser to power-on; replies and bytes in flight
+        are lost); it boots for the timing model's boot time."""
+        self.reboots += 1
+        self._deliveries.clear()
+        self._tx.clear()
+        self._host_rx.clear()
+        self.emulator.reset()
+        self._clients.clear()
+        self._boot(self.now_ns, boot_delay=True)
+
+    def new_client(self, name: str) -> None:
+        """A new host connection starts here: its bytes follow the ones already taken.  Nothing in the
+        firmware resets the parser on a new connection, so a command the previous host cut takes the new
+        host's first bytes as its payload if they complete it within 2 s of its command byte — an
+        :data:`~.hazards.HazardKind.INHERITED_COMMAND` hazard naming both hosts' bytes.
+
+        The firmware reads and writes through the one current connection.  Here the bytes the previous
+        host got into the receive path before it went are still read (in order, before the new host's:
+        the emulator's reading of a connection that closes with bytes unread), but replies to its
+        requests are dropped (counted in :attr:`replies_dropped`): that host is gone, and the new one gets
+        answers only to what it asked."""
+        p = self.parser
+        self._clients.append((p.offset + p.pending + self.in_flight, name))
+        del self._clients[:-2]
+
+    def attach(self, sink: Any) -> None:
+        raise ConfigurationError("waveform traces record the v1.2 timed model; firmware v2 has none yet")
+
+    detach = attach
+
+    def discard_history(self, before_us: float) -> None:
+        """Forget scans and applied-command records older than ``before_us`` (a board served for hours
+        keeps a bounded memory)."""
+        t = round(before_us * 1000)
+        self.scans = [s for s in self.scans if s.end_ns >= t]
+        self.applied = [a for a in self.applied if a[0] >= t]
 
     def advance_to(self, t_us: float) -> None:
         target = round(t_us * 1000)
@@ -208,11 +370,13 @@ class TimedEmulatorV2:
             stim_mode=regs.stim_mode,
             prior_scans=0,
         )
-        duration, onsets, codes, volts, pulses = _shape(cfg, self.conventions)
-        rec = ScanRecordV2(len(self.scans), t, duration, n, regs.stim_mode, regs.polarity, regs.pulse_width,
+        duration, onsets, codes, volts, pulses = _scan_shape(cfg, self.conventions)
+        rec = ScanRecordV2(self.scan_count, t, duration, n, regs.stim_mode, regs.polarity, regs.pulse_width,
                            regs.sense_pulse_height, regs.sense_pulse_width, tuple(cfg.stim_pattern), onsets, codes,
                            pulses)
         self.scans.append(rec)
+        self.scan_count += 1
+        self._last_alarm = t
         regs.voltage[:n] = list(volts)
         end = t + duration
         self._check_sense(rec)
@@ -244,9 +408,11 @@ class TimedEmulatorV2:
         regs = self.emulator.registers
         while self._deliveries and self._deliveries[0][0] <= t:
             _, _, d = heapq.heappop(self._deliveries)
-            parser.receive(d.data)
+            if d.t_ns >= self._booting_until:  # bytes that came while the board booted are lost
+                parser.receive(d.data)
         self._call_time_ns = t
         self._applied_in_call = None
+        self._reply_offset = None
         before = {f: getattr(regs, f) for f in self._SCAN_FIELDS}
         old_pattern = list(regs.stim_pattern)
         out = parser.call(t // 1000)
@@ -262,8 +428,14 @@ class TimedEmulatorV2:
         if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
             end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
         tx = parser.take_tx()
+        if tx and self._reply_offset is not None and self._clients and self._reply_offset < self._clients[-1][0]:
+            self.replies_dropped += len(tx)  # asked by a host that has gone: the firmware writes to the new one's
+            tx = b""                          # socket only what the new one asked (see new_client)
         if tx:
-            self._tx.append((end, tx))
+            if self.tx_link is None:
+                self._tx.append((end, tx))
+            else:
+                self._tx += [(d.t_ns, d.data) for d in self.tx_link.schedule(tx, end)]
         if paused and self._next_alarm_ns < end:
             self._next_alarm_ns = end  # the alarm was disabled; a passed alarm fires on re-enable
         if out.slept:
@@ -303,7 +475,11 @@ class TimedEmulatorV2:
 
     def _on_command(self, op: int, value: object, offset: int) -> None:
         self.applied.append((self._call_time_ns, op, value))
+        if self._clients:
+            self._check_inherited(op, value, offset)
         self._applied_in_call = op
+        if value is None:  # a reply command (0xFF, 0xF5, 0xF4)
+            self._reply_offset = offset
         if op == OpcodeV2.HV513_COUNT:
             self._hv513_in_call = True
         elif op == OpcodeV2.FREQUENCY:
@@ -311,7 +487,24 @@ class TimedEmulatorV2:
             self._next_alarm_ns = max(self._call_time_ns, self._last_alarm_ns() + self._period_ns())
 
     def _last_alarm_ns(self) -> int:
-        return self.scans[-1].start_ns if self.scans else 0
+        return self._last_alarm
+
+    def _check_inherited(self, op: int, value: object, offset: int) -> None:
+        """A command whose byte came from one host and whose payload ended in the next one's bytes."""
+        p = self.parser
+        end = p.offset
+        for k, (start, name) in enumerate(self._clients):
+            if offset < start < end:
+                rx, base = p.rx, p.base
+                old = bytes((op,)) + bytes(rx[max(offset + 1, base) - base : start - base])
+                new = bytes(rx[start - base : end - base])
+                previous = self._clients[k - 1][1] if k else "the previous host"
+                self.hazards.append(Hazard(
+                    HazardKind.INHERITED_COMMAND, offset,
+                    {"command": p.spec.command(op).name, "cut_by": previous, "cut_bytes": old.hex(" "),
+                     "completed_by": name, "completing_bytes": new.hex(" "), "stored": value},
+                    self._call_time_ns / 1000))
+                return
 
     # --- reports: what the board delivered --------------------------------------------------------------
 

@@ -5,9 +5,11 @@ object type, exceptions and calls as a real board on ``/dev/ttyACM0``.
 
 By default (``timed=1``) the board is the timed model locked to the wall clock
 (:class:`~tactdeform_hw.emulator.realtime.RealtimeEmulator`): a write enters the USB link (``link=uart``:
-a 921600-baud UART) and the 256-byte receive queue at the moment it is made, the parser reads one
-command with a payload per RTOS tick, replies become readable when the model delivers them, scans run
-(0xFF answers with the skin model's voltages).  The port is lazy: each call first brings the model up to
+a 921600-baud UART) and the receive queue at the moment it is made, the parser reads on the firmware's
+rhythm (``firmware=v1.2``, the default: 256-byte queue, one command with a payload per RTOS tick;
+``firmware=v2``: 1024-byte queue, whole payloads, a cut command discarded 2 s after its command byte),
+replies become readable when the model delivers them, scans run (0xFF answers with the skin model's
+voltages on v1.2, with the DAC codes the scan last read back on v2).  The port is lazy: each call first brings the model up to
 the wall clock.  It declares ``pacing_clock`` (wall time) so a driver paces its writes as for a board.
 ``timed=0`` serves the untimed emulator: every write is parsed at once and replies are readable when
 ``write`` returns (``pacing_clock`` then never waits).
@@ -141,15 +143,14 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
         except ValueError as exc:
             raise SerialException(f"bad option value in {url!r}: {exc}") from exc
         self._spy = opts.get("spy", "0").lower() not in _FALSE
-        # the real-time model is v1.2's; a v2 board is served untimed (its timed model runs offline)
-        timed = opts.get("timed", "1" if firmware == "v1.2" else "0").lower() not in _FALSE
-        if timed and firmware != "v1.2":
-            raise SerialException(f"{url!r}: firmware={firmware} is served untimed only (timed=0)")
+        if firmware not in ("v1.2", "v2"):
+            raise SerialException(f"option firmware={firmware!r} in {url!r}: use v1.2 (the default) or v2")
+        timed = opts.get("timed", "1").lower() not in _FALSE
         rules = BUILD_RULES["serial" if opts.get("link", "usb") == "usb" else "serial-uart"]
 
         def make() -> Any:
             if timed:
-                return RealtimeEmulator(board, switching, rules=rules, stack_reading=reading)
+                return RealtimeEmulator(board, switching, rules=rules, stack_reading=reading, firmware=firmware)
             return Emulator(board, switching, stack_reading=reading, firmware=firmware)
 
         try:
@@ -159,9 +160,10 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
                 emu = _shared.get(name)
                 if emu is None:
                     emu = _shared[name] = make()
-                elif isinstance(emu, RealtimeEmulator) != timed:
+                elif isinstance(emu, RealtimeEmulator) != timed or getattr(emu, "firmware", "v1.2") != firmware:
                     have = "timed" if isinstance(emu, RealtimeEmulator) else "untimed"
-                    raise SerialException(f"{url!r}: the board {name!r} is already open {have} (timed={int(not timed)})")
+                    raise SerialException(f"{url!r}: the board {name!r} is already open {have} with firmware "
+                                          f"{getattr(emu, 'firmware', 'v1.2')}")
                 return emu
         except (ValueError, ConfigurationError) as exc:
             raise SerialException(str(exc)) from exc
