@@ -192,6 +192,7 @@ class EtactileKitDevice(Device):
         self._guardian: Guardian | None = None
         if not port.is_open:
             self._open_port()
+        _no_delay(port)
         if pacer is None:  # what a port needs is known only once it is open (a URL builds its device then)
             self.pacer = default_pacer(port)
             if offline_clock is not None and getattr(port, "instant", False):
@@ -226,7 +227,6 @@ class EtactileKitDevice(Device):
         except TactDeformError:
             self._closed = True
             raise
-        _no_delay(port)
 
     @property
     def guardian(self) -> Guardian | None:
