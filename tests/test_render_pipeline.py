@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from tactdeform_hw.device import StimConfig, open_device
+from tactdeform_hw.device.readback import pattern_readback
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.render.array import ElectrodeArray
 from tactdeform_hw.render.baselines import ContactAreaMapping, UniformActivation
@@ -83,16 +84,34 @@ def test_a_device_without_the_arrays_mapping_is_refused() -> None:
 
 
 def test_the_verification_can_fail() -> None:
-    class Liar:
-        def state(self) -> dict:
-            return {"stim_pattern": [1] * 256}
+    def liar() -> tuple[int, ...]:
+        return (1,) * 32
 
     with open_device("emulator") as dev:
-        r = Renderer(FakeFloor(), dev, verify=True)
-        r.start()
-        r._emulator = Liar()
+        r = Renderer(FakeFloor(), dev, verify=liar)
         r.run(line_poses(0.0, (0, 0, 2.0), (0, 0, -2.5), 20.0, 72.0))
         assert r.summary.mismatches > 0 and r.summary.first_mismatch is not None
+
+
+def test_verification_is_the_callback_it_is_given() -> None:
+    seen: list[tuple[int, ...]] = []
+    with open_device("emulator") as dev:
+        held = pattern_readback(dev)
+        assert held is not None
+
+        def spy() -> tuple[int, ...]:
+            seen.append(held())
+            return seen[-1]
+
+        s = Renderer(FakeFloor(), dev, verify=spy).run(line_poses(0.0, (0, 0, 2.0), (0, 0, -2.5), 20.0, 72.0))
+    assert s.frames_sent > 0 and len(seen) == s.frames_sent and s.mismatches == 0
+
+
+def test_a_port_that_cannot_show_its_pattern_gives_no_readback() -> None:
+    class Board:
+        port = object()  # declares nothing, as a real serial port
+
+    assert pattern_readback(Board()) is None
 
 
 def test_uniform_activation_is_all_or_nothing() -> None:

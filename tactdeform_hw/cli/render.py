@@ -78,7 +78,9 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..device import open_device
+    from ..device.readback import pattern_readback
     from ..errors import LimitError
+    from ..ports import is_instant
     from ..render.array import ElectrodeArray
     from ..render.pipeline import FrameRecord, Renderer
     from ..render.scene import RenderOptions, load_scene
@@ -164,8 +166,8 @@ def run(args: argparse.Namespace) -> int:
             offline_clock = SimulatedClock()
         with open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=array.channel_mapping(), guard=guard,
                          audit=audit, offline_clock=offline_clock) as dev:
-            port = getattr(dev, "port", None)  # an instant port holds its pattern the moment it is sent
-            verify = bool(getattr(port, "instant", False)) and getattr(port, "emulator", None) is not None
+            # an instant port holds its pattern the moment it is sent: read it back when the port can show it
+            verify = pattern_readback(dev, array.channel_mapping()) if is_instant(getattr(dev, "port", None)) else None
             renderer = Renderer(
                 scene,
                 dev,
