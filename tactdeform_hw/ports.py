@@ -85,7 +85,8 @@ class PortBase:
         self._check_open()
 
     def __enter__(self) -> Any:
-        self.open()  # type: ignore[attr-defined]
+        if not self.is_open:
+            self.open()  # type: ignore[attr-defined]
         return self
 
     def __exit__(self, *exc: object) -> None:
