@@ -311,6 +311,8 @@ def check_pose(
 class PatternManager:
     """State machine + stability filters + event-driven output for one finger on one array."""
 
+    name = "tactdeform"
+
     def __init__(
         self,
         array: ElectrodeArray | None = None,
@@ -391,9 +393,10 @@ class PatternManager:
             return 0
         return self._ns if (self._ns is not None and self._ns_k == k) else self.slide.whole // k
 
-    def update(self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any) -> ManagerOutput:
+    def update(self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None) -> ManagerOutput:
         """Advance by one tracking sample.  ``query`` is the scene's
-        :class:`~tactdeform_hw.render.geometry.SurfaceQuery` for the pad centre, or None (no object)."""
+        :class:`~tactdeform_hw.render.geometry.SurfaceQuery` for the pad centre, or None (no object);
+        ``scene`` is unused (the query holds all TactDeform needs; the baselines' CAM asks the scene)."""
         self.stats.updates += 1
         # --- validate everything before any state changes ------------------------------------------------
         checked = check_pose(t_s, position_mm, orientation_wxyz, self._t, self.config.quat_norm_tolerance)

@@ -32,11 +32,11 @@ from ..device.base import Device
 from ..device.config import StimConfig
 from ..device.readback import pattern_readback
 from ..errors import ConfigurationError, LimitError
+from .approach import Approach, make_approach
 from .array import ElectrodeArray
-from .baselines import make_baseline
 from .contexts import TEXTURE_NAMES
-from .manager import ManagerConfig, ManagerOutput, PatternManager
-from .patterns import Pattern, PatternParams, PatternSet
+from .manager import ManagerConfig, ManagerOutput
+from .patterns import Pattern, PatternParams
 
 #: Time without a valid tracking sample after which the renderer goes Idle (all off): 80 ms, so that
 #: with the next sample (14 ms later at 72 Hz) the all-off is sent before the device's 100 ms no-frame
@@ -191,13 +191,9 @@ class Renderer:
 
             cfg = replace(cfg, **overrides)
         self.config = cfg
-        self.renderers: dict[str, Any] = {}
-        for a in set(self.approach_map.values()):
-            if a == "tactdeform":
-                self.renderers[a] = PatternManager(self.array, cfg, patterns=PatternSet(self.array, pattern_params))
-            else:
-                level = pattern_params.on_level if pattern_params is not None else 1
-                self.renderers[a] = make_baseline(a, self.array, on_level=level)
+        self.renderers: dict[str, Approach] = {
+            a: make_approach(a, self.array, cfg, pattern_params) for a in set(self.approach_map.values())
+        }
         self.current_ua = current_ua
         self.stim_config = stim_config
         self.current_hook = current_hook
@@ -276,10 +272,7 @@ class Renderer:
         active = self.approach_for(query)
         out: ManagerOutput | None = None
         for name, r in self.renderers.items():
-            if name == "tactdeform":
-                o = r.update(t_s, pos, quat, query)
-            else:
-                o = r.update(t_s, pos, quat, query, self.scene)
+            o = r.update(t_s, pos, quat, query, self.scene)
             if name == active:
                 out = o
         assert out is not None
