@@ -1102,11 +1102,6 @@ class TriangleMesh(_PlacedSolid):
         self._topo = _topology(f, len(v))
         return self._topo
 
-    @classmethod
-    def from_file(cls, name: str, path: str | os.PathLike[str], **kwargs: Any) -> TriangleMesh:
-        data = read_mesh(path)
-        return cls(name, data.vertices, data.faces, source=data.source, **kwargs)
-
     # -- what is built ------------------------------------------------------------------------------
 
     @property
