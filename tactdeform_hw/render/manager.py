@@ -308,6 +308,15 @@ def check_pose(
     return t, p, q, renormed
 
 
+def count_drop(stats: ManagerStats, t: Any, reason: str) -> float:
+    """Count a dropped sample under ``reason``; its time as a float (NaN when it is not a number)."""
+    stats.dropped[reason] = stats.dropped.get(reason, 0) + 1
+    try:
+        return float(t)
+    except (TypeError, ValueError):
+        return math.nan
+
+
 class PatternManager:
     """State machine + stability filters + event-driven output for one finger on one array."""
 
@@ -498,12 +507,7 @@ class PatternManager:
     # --- internals -----------------------------------------------------------------------------------------
 
     def _drop(self, t: Any, reason: str) -> ManagerOutput:
-        d = self.stats.dropped
-        d[reason] = d.get(reason, 0) + 1
-        try:
-            tf = float(t)
-        except (TypeError, ValueError):
-            tf = math.nan
+        tf = count_drop(self.stats, t, reason)
         return ManagerOutput(tf, self.state, self.feature.value, self._orient_value_name(), self.texture.value,
                              self.context, self.pattern, [], reason)
 
