@@ -245,16 +245,6 @@ def _cli(argv: list[str]) -> int:
     return main(argv)
 
 
-def _scene_module_ready() -> bool:
-    import importlib.util
-
-    return all(importlib.util.find_spec(f"tactdeform_hw.render.{m}") is not None for m in ("scene", "trajectories"))
-
-
-needs_scenes = pytest.mark.skipif(not _scene_module_ready(), reason="scene and trajectory modules are not importable")
-
-
-@needs_scenes
 @pytest.mark.parametrize(
     ("scene", "trajectory", "approach"),
     [
@@ -282,7 +272,6 @@ def test_render_command_writes_frames_and_checks_the_emulator(tmp_path: Path, sc
     assert ts == sorted(ts)
 
 
-@needs_scenes
 def test_the_study_trajectories_select_what_they_were_built_for() -> None:
     """On the real scene and trajectory modules: each Task 1 edge approach shows its line, each Task 2
     contact its θ level, each Task 3 stroke slides rightward (E) and shifts at v / (d k)."""
@@ -319,7 +308,6 @@ def test_the_study_trajectories_select_what_they_were_built_for() -> None:
         assert (len(sliding_t) - 1) / span == pytest.approx(20.0 / (2.0 * k), rel=0.15)
 
 
-@needs_scenes
 def test_the_renderer_builds_only_what_the_scene_needs() -> None:
     from tactdeform_hw.render.scene import RenderOptions, load_scene
 
