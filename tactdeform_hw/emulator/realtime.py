@@ -405,7 +405,7 @@ class RealtimeEmulator:
             n = regs["electrode_num"]
             shown = {k: regs[k] for k in _SHOWN}
             shown["pattern"] = tuple(regs["stim_pattern"][:n])
-            scans = t._scan_index
+            scans = t.scans
             rate = 0.0
             if t.runs:
                 last = t.runs[-1]
