@@ -35,7 +35,13 @@ def reference_scan(
     ev: list[tuple[int, int, int]] = []
     pulses: list[tuple[Any, ...]] = []
     volts: dict[int, int] = {}
-    st = {"t": model.isr_entry_ns, "bits": chain.bits, "latched": chain.latched, "pos": chain.position, "din": 0}
+    st = {
+        "t": model.isr_entry_ns,
+        "bits": chain.bits,
+        "latched": chain.latched,
+        "pos": chain.position,
+        "din": 0,
+    }
 
     def gpio(sig: Signal, val: int) -> None:
         st["t"] += g
@@ -85,8 +91,20 @@ def reference_scan(
         st["t"] = t1 + s
         width_ns = end - onset
         pulses.append(
-            (ch, int(kind), onset, width_ns, code, pol, o.current_ua, o.current_ua * width_ns / 1e6,
-             o.voltage_code, sample, o.compliance_limited, outs)
+            (
+                ch,
+                int(kind),
+                onset,
+                width_ns,
+                code,
+                pol,
+                o.current_ua,
+                o.current_ua * width_ns / 1e6,
+                o.voltage_code,
+                sample,
+                o.compliance_limited,
+                outs,
+            )
         )
         volts[ch] = o.voltage_code
 

@@ -53,8 +53,13 @@ def test_importing_the_package_only_registers_the_url_handler() -> None:
         "added = [p for p in serial.protocol_handler_packages if p not in handlers]\n"
         "print(new, added, threading.active_count(), 'numpy' in sys.modules)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         cwd=Path(__file__).resolve().parents[1]).stdout.strip()
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(__file__).resolve().parents[1],
+    ).stdout.strip()
     assert out == "['tactdeform_hw'] ['tactdeform_hw.emulator.urlhandler'] 1 False"
 
 

@@ -68,7 +68,9 @@ def make_approach(
     if factory is None:
         names = [repr(n) for n in APPROACH_FACTORIES]
         raise LimitError("approach", name, ", ".join(names[:-1]) + " or " + names[-1])
-    return factory(array if array is not None else ElectrodeArray.tactdeform(), config or ManagerConfig(), pattern_params)
+    return factory(
+        array if array is not None else ElectrodeArray.tactdeform(), config or ManagerConfig(), pattern_params
+    )
 
 
 __all__ = ["APPROACH_FACTORIES", "Approach", "ApproachFactory", "make_approach"]
