@@ -83,3 +83,49 @@ def test_the_device_layer_does_not_import_the_emulator() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+# --- what each port declares ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["etactile://?timed=0", "etactile://?timed=1"])
+def test_the_emulators_port_resets_through_its_reset_line(name: str) -> None:
+    from tactdeform_hw.protocol.commands import encode_electrode_num
+
+    port = open_port(name)
+    port.open()
+    try:
+        port.write(encode_electrode_num(8))
+        assert _eventually(lambda: port.board_state()["electrode_num"] == 8)
+        port.pulse_reset()
+        assert port.board_state()["electrode_num"] == 0 and len(port.resets) == 1
+        assert port.board_hazards == port.emulator.hazards
+    finally:
+        port.close()
+
+
+def _eventually(check, timeout_s: float = 2.0) -> bool:  # type: ignore[no-untyped-def]
+    import time
+
+    end = time.monotonic() + timeout_s
+    while not check():
+        if time.monotonic() > end:
+            return False
+        time.sleep(0.002)
+    return True
+
+
+def test_capabilities_by_port() -> None:
+    from tactdeform_hw.clock import InstantClock, MonotonicClock
+    from tactdeform_hw.ports import board_state, is_instant, pacing_clock
+
+    instant, timed, path = open_port("emulator"), open_port("etactile://"), open_port("/dev/ttyACM9")
+    assert is_instant(instant) and isinstance(pacing_clock(instant), InstantClock)
+    assert not is_instant(timed) and isinstance(pacing_clock(timed), MonotonicClock)
+    assert not is_instant(path) and pacing_clock(path) is None and path.guardable
+    assert board_state(path) is None  # a board cannot show its registers
+    port = EmulatorPort()
+    with port:
+        assert is_instant(port) and board_state(port)["electrode_num"] == 0 and port.board_hazards == []
+    with pytest.raises(TransportError, match="not open"):
+        port.out_waiting  # noqa: B018 - the property is the check
