@@ -272,6 +272,15 @@ def test_render_command_writes_frames_and_checks_the_emulator(tmp_path: Path, sc
     assert ts == sorted(ts)
 
 
+@pytest.mark.parametrize(("device", "verified"), [("emulator", True), ("etactile://render-rt", False)])
+def test_render_reports_whether_it_verified(capsys: pytest.CaptureFixture[str], device: str, verified: bool) -> None:
+    """On an instant port (offline) every frame is read back; a real-time port is driven as a board."""
+    args = ["render", "--scene", "cube", "--trajectory", "approach-face", "--device", device, "--json"]
+    assert _cli(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["verified"] is verified and report["mismatches"] == 0 and report["frames_sent"] > 0
+
+
 def test_the_study_trajectories_select_what_they_were_built_for() -> None:
     """On the real scene and trajectory modules: each Task 1 edge approach shows its line, each Task 2
     contact its θ level, each Task 3 stroke slides rightward (E) and shifts at v / (d k)."""

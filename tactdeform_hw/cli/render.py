@@ -198,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
             audit.close()
     result = summary.as_dict()
     result["delivered"] = audit.report()
-    result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": None if recorded else args.rate, "verified": verify,
+    result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": None if recorded else args.rate, "verified": verify is not None,
                    "device": args.device, "frames_file": args.frames, "approach": scene.options.approach,
                    "contact_mode": scene.options.contact_mode})
     if gif_records is not None and args.gif:
@@ -216,14 +216,14 @@ def run(args: argparse.Namespace) -> int:
         print_json(result)
     else:
         states = ", ".join(f"{k} {v}" for k, v in sorted(result["states"].items()))
-        check = f", {summary.mismatches} mismatch(es) against the emulator" if verify else ""
+        check = f", {summary.mismatches} mismatch(es) against the emulator" if verify is not None else ""
         print(f"{result['poses']} poses ({states}); {result['frames_sent']} frames sent "
               f"({result['interpolated']} interpolated){check}; median {result['step_us_median']} µs per pose")
         if result["dropped"]:
             print(f"dropped samples: {result['dropped']}")
         for line in delivered_lines(result["delivered"]):
             print(line)
-    if verify and summary.mismatches:
+    if verify is not None and summary.mismatches:
         print(f"render: emulator pattern buffer differs from a sent frame: {summary.first_mismatch}", file=sys.stderr)
         return 1
     return 0
