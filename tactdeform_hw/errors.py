@@ -95,6 +95,15 @@ class DeviceTimeoutError(TransportError, TimeoutError):
     """A read or write did not complete in time."""
 
 
+class TransportUnavailableError(TransportError):
+    """A device name's transport cannot be loaded (its module, or a package it needs, is missing)."""
+
+    def __init__(self, scheme: str, target: str, cause: BaseException) -> None:
+        super().__init__(f"the {scheme!r} transport ({target}) cannot be loaded: {cause}")
+        self.scheme = scheme
+        self.target = target
+
+
 class DeviceGoneError(TransportError):
     """The device disappeared mid-session (unplugged, reset, or its link was cut)."""
 

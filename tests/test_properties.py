@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from tactdeform_hw.emulator import Emulator
@@ -85,3 +85,26 @@ def test_pattern_round_trip(levels: list[int]) -> None:
 def test_polarity_round_trip(polarity: int) -> None:
     (item,) = decode(c.encode_polarity(polarity))
     assert item.value == polarity
+
+
+@settings(max_examples=300, deadline=None)
+@given(prefix=streams, waiting=streams)
+def test_the_parsers_plan_is_what_its_call_does(prefix: bytes, waiting: bytes) -> None:
+    """From any state (reached by ``prefix``), ``plan(waiting)`` says how many waiting bytes the next
+    call reads and how it ends: the call on all of them ends so and reads that many, and the call on
+    exactly those bytes (what the timed model hands over) ends the same, a spin on a half u16 aside."""
+    from copy import deepcopy
+
+    from tactdeform_hw.emulator import CallResult
+
+    emu = Emulator()
+    emu.feed(prefix)
+    assume(emu.parser.pending == 0 or emu.parser.locked)  # the plan's premise: what waits is not yet handed over
+    n, outcome = emu.parser.plan(waiting)
+    whole, part = deepcopy(emu.parser), deepcopy(emu.parser)
+    whole.receive(waiting)
+    before = whole.offset
+    assert whole.call() is outcome and whole.offset - before == n
+    part.receive(waiting[:n])
+    assert part.call() is (CallResult.PROGRESS if outcome is CallResult.STUCK_U16 else outcome)
+    assert part.pending == 0 or part.locked

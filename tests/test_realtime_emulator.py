@@ -170,7 +170,7 @@ def test_history_is_trimmed_while_serving() -> None:
     clock.t += 0.05
     rt.catch_up()
     t = rt.timed
-    assert len(t.commands) < 150 and len(t.runs) < 400 and len(t._writes) < 150 and len(t._intended) < 150
+    assert len(t.commands) < 150 and len(t.runs) < 400 and len(t.host.writes) < 150 and len(t.host.intended) < 150
     assert t.commands[-1].name == "PATTERN" and t.commands[-1].in_sync and t.commands[-1].first_pulse_us is not None
     assert rt.lag.stats()["wakeups"] > 0 and not t.losses
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from tactdeform_hw.errors import LimitError
+from tactdeform_hw.render import geometry
 from tactdeform_hw.render.contexts import ApproachState, FrameAccumulator, contact_angle_deg
 from tactdeform_hw.render.geometry import SurfaceQuery
 from tactdeform_hw.render.manager import (
@@ -198,7 +199,6 @@ def test_theta_near_a_boundary_does_not_flicker() -> None:
 
 
 def test_contact_angle_matches_the_geometry_module() -> None:
-    geometry = pytest.importorskip("tactdeform_hw.render.geometry")
     rng = np.random.default_rng(7)
     for _ in range(300):
         q = rng.normal(size=4)
@@ -224,7 +224,6 @@ def test_edge_orientation_picks_the_line(edge_world: tuple[float, float, float],
     outs = run(m, scene, press(2.0, -5.0, 20.0, 72.0))
     assert outs[-1].feature == "edge" and outs[-1].orientation == orientation
     assert outs[-1].pattern in m.patterns.frames("edge", orientation)
-    geometry = pytest.importorskip("tactdeform_hw.render.geometry")
     X, Y, Z = quat_axes(*PAD_DOWN)
     ang = geometry.edge_angle_in_finger_deg(np.column_stack([X, Y, Z]), e)
     assert EDGE_ORIENTATIONS[int(math.floor(ang / 45.0 + 0.5)) % 4] == orientation

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from tactdeform_hw.device import StimConfig, open_device
+from tactdeform_hw.device.readback import pattern_readback
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.render.array import ElectrodeArray
 from tactdeform_hw.render.baselines import ContactAreaMapping, UniformActivation
@@ -83,16 +84,34 @@ def test_a_device_without_the_arrays_mapping_is_refused() -> None:
 
 
 def test_the_verification_can_fail() -> None:
-    class Liar:
-        def state(self) -> dict:
-            return {"stim_pattern": [1] * 256}
+    def liar() -> tuple[int, ...]:
+        return (1,) * 32
 
     with open_device("emulator") as dev:
-        r = Renderer(FakeFloor(), dev, verify=True)
-        r.start()
-        r._emulator = Liar()
+        r = Renderer(FakeFloor(), dev, verify=liar)
         r.run(line_poses(0.0, (0, 0, 2.0), (0, 0, -2.5), 20.0, 72.0))
         assert r.summary.mismatches > 0 and r.summary.first_mismatch is not None
+
+
+def test_verification_is_the_callback_it_is_given() -> None:
+    seen: list[tuple[int, ...]] = []
+    with open_device("emulator") as dev:
+        held = pattern_readback(dev)
+        assert held is not None
+
+        def spy() -> tuple[int, ...]:
+            seen.append(held())
+            return seen[-1]
+
+        s = Renderer(FakeFloor(), dev, verify=spy).run(line_poses(0.0, (0, 0, 2.0), (0, 0, -2.5), 20.0, 72.0))
+    assert s.frames_sent > 0 and len(seen) == s.frames_sent and s.mismatches == 0
+
+
+def test_a_port_that_cannot_show_its_pattern_gives_no_readback() -> None:
+    class Board:
+        port = object()  # declares nothing, as a real serial port
+
+    assert pattern_readback(Board()) is None
 
 
 def test_uniform_activation_is_all_or_nothing() -> None:
@@ -226,16 +245,6 @@ def _cli(argv: list[str]) -> int:
     return main(argv)
 
 
-def _scene_module_ready() -> bool:
-    import importlib.util
-
-    return all(importlib.util.find_spec(f"tactdeform_hw.render.{m}") is not None for m in ("scene", "trajectories"))
-
-
-needs_scenes = pytest.mark.skipif(not _scene_module_ready(), reason="scene and trajectory modules are not importable")
-
-
-@needs_scenes
 @pytest.mark.parametrize(
     ("scene", "trajectory", "approach"),
     [
@@ -263,7 +272,15 @@ def test_render_command_writes_frames_and_checks_the_emulator(tmp_path: Path, sc
     assert ts == sorted(ts)
 
 
-@needs_scenes
+@pytest.mark.parametrize(("device", "verified"), [("emulator", True), ("etactile://render-rt", False)])
+def test_render_reports_whether_it_verified(capsys: pytest.CaptureFixture[str], device: str, verified: bool) -> None:
+    """On an instant port (offline) every frame is read back; a real-time port is driven as a board."""
+    args = ["render", "--scene", "cube", "--trajectory", "approach-face", "--device", device, "--json"]
+    assert _cli(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["verified"] is verified and report["mismatches"] == 0 and report["frames_sent"] > 0
+
+
 def test_the_study_trajectories_select_what_they_were_built_for() -> None:
     """On the real scene and trajectory modules: each Task 1 edge approach shows its line, each Task 2
     contact its θ level, each Task 3 stroke slides rightward (E) and shifts at v / (d k)."""
@@ -300,7 +317,6 @@ def test_the_study_trajectories_select_what_they_were_built_for() -> None:
         assert (len(sliding_t) - 1) / span == pytest.approx(20.0 / (2.0 * k), rel=0.15)
 
 
-@needs_scenes
 def test_the_renderer_builds_only_what_the_scene_needs() -> None:
     from tactdeform_hw.render.scene import RenderOptions, load_scene
 

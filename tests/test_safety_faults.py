@@ -118,11 +118,11 @@ def test_fault_plan_is_seeded_and_validated() -> None:
 
 def test_renderer_pipeline_through_a_fault() -> None:
     """The real renderer (scene, trajectory, pattern manager) on the faulty timed emulator."""
-    render = pytest.importorskip("tactdeform_hw.render.pipeline")
     from tactdeform_hw.device import EtactileKitDevice, StimConfig
     from tactdeform_hw.device.failsafe import FailSafe
     from tactdeform_hw.device.safety import SafetyGuard
     from tactdeform_hw.emulator.faults import Intent, check_deliveries
+    from tactdeform_hw.render import pipeline as render
     from tactdeform_hw.render.array import ElectrodeArray
     from tactdeform_hw.render.scene import load_scene
     from tactdeform_hw.render.trajectories import make_trajectory

@@ -17,12 +17,13 @@ from tactdeform_hw.emulator.scan import (
     ScanEngine,
     Signal,
     channel_offsets_ns,
-    reference_scan,
     scan_duration_ns,
 )
 from tactdeform_hw.emulator.skin import SkinModel
 from tactdeform_hw.emulator.timing import TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
+
+from .scan_reference import reference_scan
 
 MODEL = TimingModel()
 

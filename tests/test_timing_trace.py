@@ -10,11 +10,13 @@ from pathlib import Path
 
 import pytest
 
-from tactdeform_hw.emulator.scan import ScanConfig, Signal, reference_scan
+from tactdeform_hw.emulator.scan import ScanConfig, Signal
 from tactdeform_hw.emulator.timed import TimedEmulator
 from tactdeform_hw.emulator.trace import CsvSink, JsonSink, LiveTrace, MemorySink, VcdSink, open_trace
 from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
 from tactdeform_hw.protocol import commands as c
+
+from .scan_reference import reference_scan
 
 CFG = ScanConfig.make(4, [1, 2, 0, 1], sense_height_raw=2, sense_width_us=20, rate_hz=500)
 

@@ -275,11 +275,12 @@ def test_unplug_mid_session(backend: EmulatedUsbBackend) -> None:
     assert ei.value.code == errno.ENODEV
     with pytest.raises(DeviceGoneError):  # every later call says the same, without touching libusb
         dev.measure()
-    try:
-        dev.close()  # all-off cannot reach a board that is gone; the port is still released
-    except DeviceGoneError:
-        pass
+    # close() on a configured device whose board is gone: the all-off cannot be confirmed, so it raises,
+    # having released the port; a second close() is silent
+    with pytest.raises(DeviceGoneError, match="is gone"):
+        dev.close()
     assert dev.closed and not dev.port.is_open and dev.port.usb_device is None
+    dev.close()
     # plugged back in: a powered-up board on a new address, cdc_acm bound again, opens as new
     backend.replug()
     assert d.kernel_bound == {0, 1}
@@ -304,11 +305,22 @@ def test_unplug_mid_write(backend: EmulatedUsbBackend) -> None:
     backend.device.unplug_after(out_bytes=3)  # the resync's first request never leaves whole
     with pytest.raises(DeviceGoneError):
         dev.resync()
-    try:
-        dev.close()
-    except DeviceGoneError:
-        pass
-    assert not dev.port.is_open
+    dev.close()  # never configured: there is no all-off to send, so closing a gone board is silent
+    assert dev.closed and not dev.port.is_open and dev.port.usb_device is None
+
+
+def test_port_close_after_an_unplug_never_raises_and_releases(backend: EmulatedUsbBackend) -> None:
+    d = backend.device
+    port = port_on(backend)
+    port.open()
+    backend.unplug()
+    port.close()  # nothing to reach: released all the same
+    assert not port.is_open and port.usb_device is None
+    port.close()
+    with pytest.raises(PortNotOpenError):
+        port.write(b"\xff")
+    backend.replug()
+    assert d.kernel_bound == {0, 1}  # the kernel's driver is bound to the new device
 
 
 # --- stalled endpoints ---------------------------------------------------------------------------------

@@ -118,7 +118,9 @@ def test_v2_biphasic_first_phase_follows_polarity() -> None:
 def test_the_v12_scan_engine_agrees_with_the_golden_traces() -> None:
     """The timed model's step-through (which does not log chip selects and counts them inside the
     exchange, the package's default reading) gives the golden order and values, pins for pins."""
-    from tactdeform_hw.emulator.scan import POWER_ON_CHAIN, ScanConfig, Signal, reference_scan
+    from tactdeform_hw.emulator.scan import POWER_ON_CHAIN, ScanConfig, Signal
+
+    from .scan_reference import reference_scan
 
     pins = {Signal.BL: 1, Signal.LE: 2, Signal.POL: 3, Signal.CLK: 4, Signal.DIN: 5}
     inside = ScanConventions(cs_writes_costed=False)

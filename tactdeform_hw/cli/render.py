@@ -78,7 +78,9 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..device import open_device
+    from ..device.readback import pattern_readback
     from ..errors import LimitError
+    from ..ports import is_instant
     from ..render.array import ElectrodeArray
     from ..render.pipeline import FrameRecord, Renderer
     from ..render.scene import RenderOptions, load_scene
@@ -164,8 +166,8 @@ def run(args: argparse.Namespace) -> int:
             offline_clock = SimulatedClock()
         with open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=array.channel_mapping(), guard=guard,
                          audit=audit, offline_clock=offline_clock) as dev:
-            port = getattr(dev, "port", None)  # an instant port holds its pattern the moment it is sent
-            verify = bool(getattr(port, "instant", False)) and getattr(port, "emulator", None) is not None
+            # an instant port holds its pattern the moment it is sent: read it back when the port can show it
+            verify = pattern_readback(dev, array.channel_mapping()) if is_instant(getattr(dev, "port", None)) else None
             renderer = Renderer(
                 scene,
                 dev,
@@ -196,7 +198,7 @@ def run(args: argparse.Namespace) -> int:
             audit.close()
     result = summary.as_dict()
     result["delivered"] = audit.report()
-    result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": None if recorded else args.rate, "verified": verify,
+    result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": None if recorded else args.rate, "verified": verify is not None,
                    "device": args.device, "frames_file": args.frames, "approach": scene.options.approach,
                    "contact_mode": scene.options.contact_mode})
     if gif_records is not None and args.gif:
@@ -214,14 +216,14 @@ def run(args: argparse.Namespace) -> int:
         print_json(result)
     else:
         states = ", ".join(f"{k} {v}" for k, v in sorted(result["states"].items()))
-        check = f", {summary.mismatches} mismatch(es) against the emulator" if verify else ""
+        check = f", {summary.mismatches} mismatch(es) against the emulator" if verify is not None else ""
         print(f"{result['poses']} poses ({states}); {result['frames_sent']} frames sent "
               f"({result['interpolated']} interpolated){check}; median {result['step_us_median']} µs per pose")
         if result["dropped"]:
             print(f"dropped samples: {result['dropped']}")
         for line in delivered_lines(result["delivered"]):
             print(line)
-    if verify and summary.mismatches:
+    if verify is not None and summary.mismatches:
         print(f"render: emulator pattern buffer differs from a sent frame: {summary.first_mismatch}", file=sys.stderr)
         return 1
     return 0

@@ -80,6 +80,7 @@ def _pattern_levels(text: str, electrodes: int) -> list[int]:
 def run(args: argparse.Namespace) -> int:
     from ..device import StimConfig, open_device
     from ..formats import read_array_file
+    from ..ports import board_state
     from ..protocol.units import DEFAULT_TRANSFER
     from .delivered import DeliveryLog, delivered_lines, session_region_map
 
@@ -126,8 +127,7 @@ def run(args: argparse.Namespace) -> int:
         with dev:  # the command's stop session watches it (see common.run_command); closing switches all off
             dev.configure(config)
             dev.send_pattern(levels)
-            emu = getattr(getattr(dev, "port", None), "emulator", None)
-            state = emu.state() if emu is not None else None
+            state = board_state(dev.port)  # what an emulated board holds; a real one cannot show it
             if args.hold > 0:
                 hold(dev, args.hold)
     finally:

@@ -340,17 +340,16 @@ class Pacer:
 def default_pacer(port: Any) -> Pacer:
     """The pacer a port needs.
 
-    * A port that offers ``pacing_clock`` (a timed emulator) is paced in its simulated time.
+    * A port that declares ``pacing_clock`` (a timed emulator) is paced in that clock.
     * A port whose ``robust_encoding`` is true gets the loss-tolerant encoding.
-    * The untimed in-process emulator (a port holding an ``Emulator`` that parses every byte as it is
-      written) needs no waiting: its pacer only keeps the books, on a simulated clock.
+    * A port that declares itself ``instant`` (every byte consumed as it is written) needs no waiting:
+      its pacer only keeps the books.
     * Anything else — a real board, a pty — is paced in wall time.
     """
     policy = PacingPolicy(robust_encoding=bool(getattr(port, "robust_encoding", False)))
     clock = getattr(port, "pacing_clock", None)
     if clock is not None:
         return Pacer(clock=clock, policy=policy)
-    emulator = getattr(port, "emulator", None)
-    if emulator is not None and callable(getattr(emulator, "feed", None)) and not hasattr(emulator, "clock"):
+    if getattr(port, "instant", False) is True:
         return Pacer(clock=InstantClock())
     return Pacer(clock=MonotonicClock())

@@ -554,17 +554,6 @@ class SafetyGuard:
                 period_us=period_us,
             )
 
-    # Compatibility with the original two-method guard.
-
-    def check_current(self, current_ua: int, levels: Sequence[int] | None = None) -> int:
-        """Refuse above the cap; return the height a frame of ``levels`` may carry (no ramp applied)."""
-        self.request(current_ua)
-        limit, _ = self.frame_limit(levels, 0)
-        return min(current_ua, limit)
-
-    def check_pattern(self, levels: Sequence[int], current_ua: int) -> None:
-        self.request(current_ua)
-
     # --- the interlock: every command as it is written ----------------------------------------------------------
 
     @property
@@ -890,10 +879,3 @@ def _tail_losses(data: bytes, first: int, packet: int) -> list[tuple[tuple[int, 
         if end < n:
             out.append(((j, n), data[:j]))
     return out
-
-
-def require_int(field_name: str, value: object) -> int:
-    """An integer (bools, floats, NaN refused) for the guard's own inputs."""
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise LimitError(field_name, value, "an integer")
-    return value

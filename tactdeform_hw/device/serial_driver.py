@@ -383,29 +383,31 @@ def _no_delay(port: Any) -> None:
 
 def open_port(name: str, *, timeout: float = DEFAULT_TIMEOUT_S, baudrate: int = BAUD_RATE) -> Any:
     """An unopened pyserial port for a path, a URL, or ``emulator`` (the in-process emulator); or a
-    pyserial-compatible USB port for ``usb:VID:PID[:SERIAL]`` (pyusb, no serial driver) and
-    ``usb-emulator`` (the emulated board behind an emulated USB bus)."""
+    pyserial-compatible USB port for ``usb://VID:PID[:SERIAL]`` (pyusb, no serial driver) and
+    ``usb-emulator`` (the emulated board behind an emulated USB bus).  The scheme picks the transport
+    from :mod:`tactdeform_hw.transports`, which other packages extend."""
+    from ..transports import port_for_name
+
+    return port_for_name(name, timeout=timeout, baudrate=baudrate)
+
+
+def open_serial_path(name: str, *, timeout: float | None, baudrate: int) -> Any:
+    """A serial port path as an unopened :func:`exclusive_port_class` port (locked on open, guardable)."""
     import serial
 
-    from .. import register_url_handlers
-    from .usb_transport import is_usb_name, usb_port_for_name
-
-    if is_usb_name(name):
-        return usb_port_for_name(name, timeout=timeout, baudrate=baudrate)
-    if name.startswith("etactilekit://"):
-        name = _resolve_kit(name)
-    register_url_handlers()
-    if name in ("emulator", "emu", ""):
-        name = "etactile://?timed=0"  # the in-process emulator answers at once
     try:
-        if "://" in name:
-            port = serial.serial_for_url(name, do_not_open=True, baudrate=baudrate, timeout=timeout)
-        else:
-            port = exclusive_port_class()(port=None, baudrate=baudrate, timeout=timeout, write_timeout=timeout)
-            port.port = name
+        port = exclusive_port_class()(port=None, baudrate=baudrate, timeout=timeout, write_timeout=timeout)
+        port.port = name
     except (serial.SerialException, ValueError) as exc:
         raise TransportError(f"cannot create port {name!r}: {exc}") from exc
     return port
+
+
+def open_kit_url(name: str, *, timeout: float | None, baudrate: int) -> Any:
+    """``etactilekit://ID[?discovery=HOST:PORT]``: the ``socket://`` port of the kit discovery finds."""
+    from ..transports import open_pyserial_url
+
+    return open_pyserial_url(_resolve_kit(name), timeout=timeout, baudrate=baudrate)
 
 
 def _resolve_kit(url: str) -> str:

@@ -37,7 +37,7 @@ import math
 import struct
 import time
 from dataclasses import dataclass
-from types import ModuleType, TracebackType
+from types import ModuleType
 from typing import Any
 
 from ..errors import (
@@ -47,7 +47,8 @@ from ..errors import (
     PortNotOpenError,
     TransportError,
 )
-from ..protocol.constants import BAUD_RATE, ESP32S3_USB_JTAG_PID, ESPRESSIF_VID
+from ..ports import PortBase
+from ..protocol.constants import BAUD_RATE, ESPRESSIF_VID
 
 CLASS_CDC_COMM = 0x02
 CLASS_CDC_DATA = 0x0A
@@ -166,21 +167,19 @@ class UsbDeviceSpec:
 
 
 def is_usb_name(name: str) -> bool:
-    """Whether ``open_port`` should hand ``name`` to this module."""
+    """Whether ``name`` opens a USB transport (``usb:…``, ``usb://…`` or ``usb-emulator``)."""
     return name.startswith(USB_PREFIX) or name == USB_EMULATOR or name.startswith(USB_EMULATOR + "?")
 
 
 def usb_port_for_name(name: str, *, timeout: float | None = 0.5, baudrate: int = BAUD_RATE) -> UsbCdcPort:
-    """An unopened :class:`UsbCdcPort` for ``usb:VID:PID[:SERIAL]`` or ``usb-emulator[?options]`` (an
-    emulated ESP32-S3 on an emulated bus, through pyusb's own code)."""
+    """An unopened :class:`UsbCdcPort` for ``usb://VID:PID[:SERIAL]`` (or ``usb:VID:PID[:SERIAL]``).  The
+    emulated bus (``usb-emulator``) is reached through :mod:`tactdeform_hw.transports`."""
     if name == USB_EMULATOR or name.startswith(USB_EMULATOR + "?"):
-        from ..emulator.usb_backend import backend_from_name
+        from ..transports import port_for_name
 
-        backend = backend_from_name(name)
-        return UsbCdcPort(
-            ESPRESSIF_VID, ESP32S3_USB_JTAG_PID, backend=backend, timeout=timeout, write_timeout=timeout,
-            baudrate=baudrate, name=name,
-        )  # fmt: skip
+        return port_for_name(name, timeout=timeout, baudrate=baudrate)  # type: ignore[no-any-return]
+    if name.startswith(USB_PREFIX + "//"):
+        name = USB_PREFIX + name[len(USB_PREFIX) + 2 :]
     spec = UsbDeviceSpec.parse(name)
     return UsbCdcPort(
         spec.vid, spec.pid, spec.serial_number, timeout=timeout, write_timeout=timeout, baudrate=baudrate,
@@ -202,7 +201,7 @@ def _errno_of(exc: BaseException) -> int | None:
 # --- the port -------------------------------------------------------------------------------------------
 
 
-class UsbCdcPort:
+class UsbCdcPort(PortBase):
     """A pyserial-compatible port over a board's USB CDC-ACM interface, through pyusb.
 
     ``backend`` is any pyusb backend (default: the system's libusb); the emulated board in
@@ -609,12 +608,6 @@ class UsbCdcPort:
         self._rx += self._read_packet(dev, _POLL_MS)
         return len(self._rx)
 
-    @property
-    def out_waiting(self) -> int:
-        """Always 0: a write returns only once the device has accepted every packet."""
-        self._check_open()
-        return 0
-
     def reset_input_buffer(self) -> None:
         """Drop received bytes, including packets the device had already queued for the host."""
         dev = self._check_open()
@@ -622,12 +615,6 @@ class UsbCdcPort:
         for _ in range(64):
             if not self._read_packet(dev, _POLL_MS):
                 break
-
-    def reset_output_buffer(self) -> None:
-        self._check_open()
-
-    def flush(self) -> None:
-        self._check_open()
 
     # --- errors ---------------------------------------------------------------------------------------
 
@@ -650,19 +637,6 @@ class UsbCdcPort:
         return TransportError(f"USB device {what}: {action} failed: {exc}", code=err)
 
     # --- context manager and description ----------------------------------------------------------------
-
-    def __enter__(self) -> UsbCdcPort:
-        if not self.is_open:
-            self.open()
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def info(self) -> dict[str, Any]:
         """What was found and set up (for logs and ``--json`` output)."""

@@ -143,6 +143,63 @@ class Parser:
         self.tx.clear()
         return out
 
+    # --- what the next call will do --------------------------------------------------------------------------
+
+    def is_command(self, byte: int) -> bool:
+        """Whether the firmware reads ``byte`` as a command it knows (else it skips it)."""
+        return byte in _SIZE
+
+    def plan(self, waiting: bytes | bytearray) -> tuple[int, CallResult]:
+        """What :meth:`call` would do if ``waiting`` (bytes not yet handed to the parser) were in its
+        buffer: how many of them it reads, and how it ends.  The timed model asks this before a call, to
+        time each byte read and to find where a scan interrupts the call; :meth:`call` on exactly those
+        bytes then does it (``STUCK_U16`` becomes ``PROGRESS``: the half u16 stays waiting).  The premise
+        is the timed model's: the parser holds no byte it has not read (bytes wait in the receive queue
+        until a call reads them)."""
+        avail = len(waiting)
+        if self.cmd is None:
+            if avail == 0:
+                return 0, CallResult.IDLE
+            size = _SIZE.get(waiting[0])
+            if size is None:
+                return 1, CallResult.IGNORED
+            if size == 0:
+                return 1, CallResult.REPLIED
+            if size < 0:
+                size = self.regs.electrode_num
+                if size == 0:
+                    return 1, CallResult.LOCKED
+                take = min(avail - 1, size)
+                return 1 + take, CallResult.COMPLETED if take == size else CallResult.PROGRESS
+            if size == 1:
+                return (2, CallResult.COMPLETED) if avail >= 2 else (1, CallResult.PROGRESS)
+            if avail >= 3:
+                return 3, CallResult.COMPLETED
+            return 1, CallResult.STUCK_U16 if avail == 2 else CallResult.PROGRESS
+        if self.locked:
+            return 0, CallResult.LOCKED
+        if self.cmd == _PATTERN:
+            take = min(avail, self.needed - self.count)
+            if take == 0:
+                return 0, CallResult.PROGRESS
+            return take, CallResult.COMPLETED if self.count + take == self.needed else CallResult.PROGRESS
+        if self.needed == 1:
+            return (1, CallResult.COMPLETED) if avail else (0, CallResult.PROGRESS)
+        if avail >= 2:
+            return 2, CallResult.COMPLETED
+        return 0, CallResult.STUCK_U16 if avail == 1 else CallResult.PROGRESS
+
+    def read_before_interrupt(self, waiting: bytes | bytearray, j: int) -> int:
+        """Of the bytes a call reads from ``waiting``, how many it has taken when an interrupt comes after
+        its ``j``-th byte time: a u16 is read only when both bytes wait, so it is taken whole or not at
+        all."""
+        if self.cmd is None:
+            if j == 2 and _SIZE.get(waiting[0]) == 2:
+                return 1
+        elif self.cmd != _PATTERN and self.needed == 2 and j == 1:
+            return 0
+        return j
+
     # --- one firmware call ---------------------------------------------------------------------------------
 
     def call(self) -> CallResult:

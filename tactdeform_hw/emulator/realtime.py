@@ -468,8 +468,8 @@ def _scan_rate(t: Any, at_us: float) -> tuple[int, float]:
     if t.runs:
         last = t.runs[-1]
         if last.end_ns >= at_us * 1000 - 2 * last.stride_ns and last.stride_ns > 0:
-            return t._scan_index, 1e9 / last.stride_ns
-    return t._scan_index, 0.0
+            return t.scans, 1e9 / last.stride_ns
+    return t.scans, 0.0
 
 
 # --- serving a board on a byte stream ------------------------------------------------------------------

@@ -45,17 +45,17 @@ import copy
 import heapq
 import math
 from bisect import bisect_right
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from ..protocol.constants import Opcode
 from ..protocol.decoder import StreamDecoder
-from ..protocol.firmware import V1_2
 from .board import Board
 from .core import Emulator
 from .hazards import Hazard, HazardKind
 from .link import Delivery, LinkModel, ReceiveQueue, UartLink, UsbFsLink, make_link
+from .parser import CallResult
 from .reports import (
     ChannelLatency,
     CommandReport,
@@ -81,7 +81,6 @@ _INF = math.inf
 U16_LATE_US = 2000.0
 _PATTERN = int(Opcode.PATTERN)
 _HV513 = int(Opcode.HV513_COUNT)
-_SIZE = V1_2.size_table()
 
 # which pulses a command affects (None: any pulse)
 _AFFECTS: dict[int, tuple[int, ...] | None] = {
@@ -96,8 +95,6 @@ _AFFECTS: dict[int, tuple[int, ...] | None] = {
     Opcode.HV513_COUNT: None,
 }
 
-# plan outcomes
-_IDLE, _IGNORED, _REPLIED, _PROGRESS, _COMPLETED, _STUCK, _LOCKED = range(7)
 _WAIT_TICK, _WAIT_STUCK, _WAIT_LOCKED = "tick", "stuck", "locked"
 
 
@@ -109,6 +106,70 @@ class _Pending:
     kinds: tuple[int, ...] | None
     after_ns: int
     channels: dict[int, ChannelLatency] | None = None  # patterns: unresolved channels
+
+
+@dataclass
+class _MainLoop:
+    """The firmware's main loop and timer bookkeeping, as the board holds it (reset at every boot)."""
+
+    parser_base: int = 0  # device-stream offset of the parser's byte 0 since the last boot
+    booting_until: int = 0  # bytes arriving before this are lost
+    tick_base: int = 0  # RTOS tick 0
+    last_reload: int = 0  # when the timer last reloaded
+    main_next: float | None = None  # when the main loop next calls the parser
+    main_wait: str | None = None  # what it waits for otherwise (_WAIT_*)
+    call: tuple[int, int] | None = None  # (cpu ns spent, bytes read) of an interrupted call
+    busy_from: int = -1  # the scan in progress: the main loop does not run inside it
+    busy_until: int = -1
+    stuck_reported: bool = False  # spinning on a half u16: reported once, from stuck_at
+    stuck_at: int | None = None
+    call_end_ns: int = 0  # when the call being fed ends, and the device offset of its last byte
+    call_dev_last: int = 0
+
+
+@dataclass
+class _HostLedger:
+    """What the host wrote and what reached the device: the books that map device bytes back to the
+    host's stream and its send times (not firmware state: a reboot keeps them)."""
+
+    decoder: StreamDecoder
+    offset: int = 0  # bytes the host has written
+    last_write_ns: int = 0
+    writes: list[tuple[int, int, int]] = field(default_factory=list)  # (host offset, length, sent ns)
+    write_starts: list[int] = field(default_factory=list)
+    intended: dict[int, tuple[int, int]] = field(default_factory=dict)  # host offset -> (opcode, end offset)
+    intended_starts: list[int] = field(default_factory=list)
+    deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)  # heap: bytes on their way in
+    seq: int = 0
+    tx_deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)  # heap: replies on their way out
+    rx: bytearray = field(default_factory=bytearray)  # replies that reached the host, unread
+    dev_total: int = 0  # device stream: accepted bytes, session-wide offsets
+    seg_dev: list[int] = field(default_factory=list)
+    segments: list[tuple[int, int, int, int]] = field(default_factory=list)  # (dev start, host start, length, delivered ns)
+
+
+@dataclass
+class _Records:
+    """What the reports are made of: scan runs, command and loss reports, the reply log, trace sinks."""
+
+    runs: list[ScanRun] = field(default_factory=list)
+    commands: list[CommandReport] = field(default_factory=list)
+    losses: list[LossReport] = field(default_factory=list)
+    open_losses: list[LossReport] = field(default_factory=list)  # not followed by a command in step yet
+    awaiting: list[_Pending] = field(default_factory=list)
+    sinks: list[Any] = field(default_factory=list)
+    tx_log: list[tuple[float, bytes]] = field(default_factory=list)  # (device write µs, bytes)
+    scan_index: int = 0
+    sense_key: tuple[Any, ...] | None = None
+    # per stretch kind: (index in hazards, what must stay the same) of the record a stretch extends
+    stretch: dict[HazardKind, tuple[int, tuple[Any, ...]]] = field(default_factory=dict)
+    reboots: int = 0
+    interrupted_calls: int = 0  # parser calls an alarm interrupted mid-read
+    cur: CommandReport | None = None  # the command being read, and for a pattern its channels' times
+    cur_written: dict[int, int] = field(default_factory=dict)
+    cur_first: dict[int, int] = field(default_factory=dict)  # channels a scan used while still being read
+    cur_old: bytes = b""
+    last_rep: CommandReport | None = None
 
 
 def _ns(us: float) -> int:
@@ -148,41 +209,10 @@ class TimedEmulator:
         self.queue = ReceiveQueue(self.model.rx_queue_bytes)
         self.engine = ScanEngine(self.model, self.skin, physical_outputs(self.board.kind, self.board.switching_boards))
         self.now_ns = 0
-        # host side
-        self._host_offset = 0
-        self._last_write_ns = 0
-        self._writes: list[tuple[int, int, int]] = []  # (host offset, length, sent ns)
-        self._write_starts: list[int] = []
-        self._host_decoder = StreamDecoder(self.emulator.registers.electrode_num)
-        self._intended: dict[int, tuple[int, int]] = {}  # host offset -> (opcode, end offset)
-        self._intended_starts: list[int] = []
-        self._deliveries: list[tuple[int, int, Delivery]] = []
-        self._seq = 0
-        self._tx_deliveries: list[tuple[int, int, Delivery]] = []
-        self._host_rx = bytearray()
-        self.tx_log: list[tuple[float, bytes]] = []  # (device write µs, bytes)
-        # device stream: accepted bytes, session-wide offsets
-        self._dev_total = 0
-        self._seg_dev: list[int] = []
-        self._segments: list[tuple[int, int, int, int]] = []  # (dev start, host start, length, delivered ns)
-        # records
-        self.runs: list[ScanRun] = []
-        self.commands: list[CommandReport] = []
-        self._losses: list[LossReport] = []
-        self._open_losses: list[LossReport] = []
-        self._awaiting: list[_Pending] = []
-        self._sinks: list[Any] = []
-        self._scan_index = 0
-        self._sense_key: tuple[Any, ...] | None = None
-        # per stretch kind: (index in hazards, what must stay the same) of the record a stretch extends
-        self._stretch: dict[HazardKind, tuple[int, tuple[Any, ...]]] = {}
-        self.reboots = 0
-        self.interrupted_calls = 0  # parser calls an alarm interrupted mid-read
-        # main loop and timer state (set by _boot)
-        self.next_alarm: float = _INF
-        self._main_next: float | None = None
-        self._main_wait: str | None = None
-        self._call: tuple[int, int] | None = None  # (cpu ns spent, bytes read) of an interrupted call
+        self.host = _HostLedger(decoder=StreamDecoder(self.emulator.registers.electrode_num))
+        self.rec = _Records()
+        self.next_alarm: float = _INF  # the timer (set by _boot, with the main loop's state)
+        self.fw = _MainLoop()
         self._boot(0, first=True)
 
     # --- public API -----------------------------------------------------------------------------------------
@@ -194,6 +224,42 @@ class TimedEmulator:
     @property
     def registers(self) -> Any:
         return self.emulator.registers
+
+    # --- the records, by their public names ---
+
+    @property
+    def runs(self) -> list[ScanRun]:
+        """Every stretch of scans simulated (kept since the last :meth:`discard_history`)."""
+        return self.rec.runs
+
+    @property
+    def commands(self) -> list[CommandReport]:
+        """A report per command the parser read: when it arrived, took effect and was first felt."""
+        return self.rec.commands
+
+    @property
+    def tx_log(self) -> list[tuple[float, bytes]]:
+        """Every reply the firmware wrote: (device time µs, bytes)."""
+        return self.rec.tx_log
+
+    @property
+    def reboots(self) -> int:
+        return self.rec.reboots
+
+    @property
+    def interrupted_calls(self) -> int:
+        """Parser calls an alarm interrupted mid-read."""
+        return self.rec.interrupted_calls
+
+    @property
+    def scans(self) -> int:
+        """Scans the timer has run in this session (reboots included)."""
+        return self.rec.scan_index
+
+    # the main loop's state under the names the fault layer reaches it by
+    _main_next = property(lambda self: self.fw.main_next, lambda self, v: setattr(self.fw, "main_next", v))
+    _main_wait = property(lambda self: self.fw.main_wait, lambda self, v: setattr(self.fw, "main_wait", v))
+    _host_offset = property(lambda self: self.host.offset)
 
     @property
     def parser(self) -> Any:
@@ -207,15 +273,15 @@ class TimedEmulator:
     def losses(self) -> list[LossReport]:
         """Every loss so far; those not followed by a command in step yet say what the parser does now."""
         now = self.parser_status() + f" at {self.now_us:.1f} us"
-        for lo in self._open_losses:
+        for lo in self.rec.open_losses:
             lo.parser_now = now
-        return self._losses
+        return self.rec.losses
 
     @property
     def in_waiting(self) -> int:
         """Reply bytes that have reached the host and were not read yet."""
         self._collect_tx()
-        return len(self._host_rx)
+        return len(self.host.rx)
 
     def state(self) -> dict[str, Any]:
         snap: dict[str, Any] = self.emulator.registers.snapshot()
@@ -229,19 +295,19 @@ class TimedEmulator:
         t = self.now_ns if at_us is None else _ns(at_us)
         if t < self.now_ns:
             raise LimitError("at_us", at_us, f">= now ({self.now_us} us)")
-        if t < self._last_write_ns:
-            raise LimitError("at_us", at_us, f">= the previous write ({self._last_write_ns / 1000} us)")
-        self._last_write_ns = t
+        if t < self.host.last_write_ns:
+            raise LimitError("at_us", at_us, f">= the previous write ({self.host.last_write_ns / 1000} us)")
+        self.host.last_write_ns = t
         if not data:
             return 0
-        off = self._host_offset
-        self._writes.append((off, len(data), t))
-        self._write_starts.append(off)
-        for c in self._host_decoder.feed(data):
+        off = self.host.offset
+        self.host.writes.append((off, len(data), t))
+        self.host.write_starts.append(off)
+        for c in self.host.decoder.feed(data):
             if c.opcode is not None:
-                self._intended[c.offset] = (c.opcode, c.offset + len(c.raw))
-                self._intended_starts.append(c.offset)
-        self._host_offset += len(data)
+                self.host.intended[c.offset] = (c.opcode, c.offset + len(c.raw))
+                self.host.intended_starts.append(c.offset)
+        self.host.offset += len(data)
         for d in self.link.schedule(data, t, off):
             self._push_delivery(d)
         return len(data)
@@ -274,7 +340,7 @@ class TimedEmulator:
         ``limit_us`` of device time passed).  Returns whether it got idle."""
         end = self.now_ns + _ns(limit_us)
         while True:
-            if not self._deliveries and self._main_wait is not None:
+            if not self.host.deliveries and self.fw.main_wait is not None:
                 return True
             if self.now_ns >= end:
                 return False
@@ -284,77 +350,77 @@ class TimedEmulator:
         """When the device next does something (a delivery lands, the main loop calls the parser, a reply
         reaches the host, and with ``scans`` an alarm fires); ``inf`` when nothing is scheduled.  A
         runner locked to the wall clock sleeps until then."""
-        t = min(self._deliveries[0][0] if self._deliveries else _INF,
-                self._tx_deliveries[0][0] if self._tx_deliveries else _INF,
-                self._main_next if self._main_next is not None else _INF,
+        t = min(self.host.deliveries[0][0] if self.host.deliveries else _INF,
+                self.host.tx_deliveries[0][0] if self.host.tx_deliveries else _INF,
+                self.fw.main_next if self.fw.main_next is not None else _INF,
                 self.next_alarm if scans else _INF)
         return t / 1000.0
 
     @property
     def in_flight(self) -> int:
         """Bytes written by the host that have not reached the receive queue yet."""
-        return sum(len(d[2].data) for d in self._deliveries)
+        return sum(len(d[2].data) for d in self.host.deliveries)
 
     def discard_history(self, before_us: float) -> None:
         """Forget records older than ``before_us`` that nothing pending refers to (scan runs, command
         and loss reports, reply log, write and arrival books), so a device served for hours keeps a
         bounded memory.  Reports afterwards cover the time kept."""
         t = _ns(before_us)
-        self.runs = [r for r in self.runs if r.end_ns >= t]
-        pending = {id(p.report) for p in self._awaiting}
-        self.commands = [c for c in self.commands if id(c) in pending or c.effect_us is None or c.effect_us * 1000 >= t]
-        self.tx_log = [e for e in self.tx_log if e[0] * 1000 >= t]
-        opened = {id(lo) for lo in self._open_losses}
-        self._losses = [lo for lo in self._losses if id(lo) in opened or lo.time_us * 1000 >= t]
+        self.rec.runs = [r for r in self.rec.runs if r.end_ns >= t]
+        pending = {id(p.report) for p in self.rec.awaiting}
+        self.rec.commands = [c for c in self.rec.commands if id(c) in pending or c.effect_us is None or c.effect_us * 1000 >= t]
+        self.rec.tx_log = [e for e in self.rec.tx_log if e[0] * 1000 >= t]
+        opened = {id(lo) for lo in self.rec.open_losses}
+        self.rec.losses = [lo for lo in self.rec.losses if id(lo) in opened or lo.time_us * 1000 >= t]
         p = self.parser
-        dev_keep = self._parser_base + (p.cmd_offset if p.cmd is not None else p.offset)
-        keep_seg = [i for i, seg in enumerate(self._segments) if seg[0] + seg[2] > dev_keep or seg[3] >= t]
+        dev_keep = self.fw.parser_base + (p.cmd_offset if p.cmd is not None else p.offset)
+        keep_seg = [i for i, seg in enumerate(self.host.segments) if seg[0] + seg[2] > dev_keep or seg[3] >= t]
         if keep_seg and keep_seg[0] > 0:
             first = keep_seg[0]
-            self._segments = self._segments[first:]
-            self._seg_dev = self._seg_dev[first:]
+            self.host.segments = self.host.segments[first:]
+            self.host.seg_dev = self.host.seg_dev[first:]
         elif not keep_seg:
-            self._segments, self._seg_dev = [], []
-        hosts = [seg[1] for seg in self._segments if seg[1] >= 0]
-        hosts += [d[2].host_offset for d in self._deliveries if d[2].host_offset >= 0]
-        hosts += [lo.host_offset for lo in self._open_losses if lo.host_offset >= 0]
-        if self._cur is not None and self._cur.host_offset >= 0:
-            hosts.append(self._cur.host_offset)
-        host_keep = min(hosts, default=self._host_offset)
-        i = bisect_right(self._intended_starts, host_keep) - 1
+            self.host.segments, self.host.seg_dev = [], []
+        hosts = [seg[1] for seg in self.host.segments if seg[1] >= 0]
+        hosts += [d[2].host_offset for d in self.host.deliveries if d[2].host_offset >= 0]
+        hosts += [lo.host_offset for lo in self.rec.open_losses if lo.host_offset >= 0]
+        if self.rec.cur is not None and self.rec.cur.host_offset >= 0:
+            hosts.append(self.rec.cur.host_offset)
+        host_keep = min(hosts, default=self.host.offset)
+        i = bisect_right(self.host.intended_starts, host_keep) - 1
         if i > 0:
-            for off in self._intended_starts[:i]:
-                self._intended.pop(off, None)
-            self._intended_starts = self._intended_starts[i:]
-        j = bisect_right(self._write_starts, host_keep) - 1
+            for off in self.host.intended_starts[:i]:
+                self.host.intended.pop(off, None)
+            self.host.intended_starts = self.host.intended_starts[i:]
+        j = bisect_right(self.host.write_starts, host_keep) - 1
         if j > 0:
-            self._writes = self._writes[j:]
-            self._write_starts = self._write_starts[j:]
+            self.host.writes = self.host.writes[j:]
+            self.host.write_starts = self.host.write_starts[j:]
 
     def read_tx(self, size: int | None = None) -> bytes:
         """Reply bytes that have reached the host by now (all, or at most ``size``)."""
         self._collect_tx()
-        n = len(self._host_rx) if size is None else min(size, len(self._host_rx))
-        out = bytes(self._host_rx[:n])
-        del self._host_rx[:n]
+        n = len(self.host.rx) if size is None else min(size, len(self.host.rx))
+        out = bytes(self.host.rx[:n])
+        del self.host.rx[:n]
         return out
 
     def arrival_us(self, host_offset: int) -> float | None:
         """When the host's byte at ``host_offset`` reached the receive queue (``None``: lost, or not yet
         arrived) — whether or not the parser ever reads it."""
-        for _, host, length, t in reversed(self._segments):
+        for _, host, length, t in reversed(self.host.segments):
             if host >= 0 and host <= host_offset < host + length:
                 return t / 1000
         return None
 
     def intended_offsets(self) -> list[int]:
         """Host offsets of the commands the host's byte stream holds (decoded the way the firmware reads)."""
-        return list(self._intended_starts)
+        return list(self.host.intended_starts)
 
     @property
     def host_offset(self) -> int:
         """Bytes the host has written so far (the offset its next byte will have)."""
-        return self._host_offset
+        return self.host.offset
 
     def configure(self, cfg: ScanConfig) -> None:
         """Set the scan registers directly, as if a host had configured the device without link or parser
@@ -370,7 +436,7 @@ class TimedEmulator:
         regs.discharge_time = cfg.discharge_time
         regs.stim_pattern[: cfg.electrode_num] = cfg.pattern
         regs.hv513_num = cfg.hv513_num
-        self._host_decoder.electrode_num = cfg.electrode_num
+        self.host.decoder.electrode_num = cfg.electrode_num
         if regs.timer_alarm_ticks != cfg.alarm_ticks:
             regs.timer_alarm_ticks = cfg.alarm_ticks
             regs.period_us = cfg.alarm_ticks * self.model.timer_tick_us
@@ -378,9 +444,9 @@ class TimedEmulator:
 
     def stop_reading(self) -> None:
         """The main loop hangs: nothing is read any more (the queue fills, the scans go on) until a reset."""
-        self._call = None
-        self._main_next = None
-        self._main_wait = _WAIT_LOCKED
+        self.fw.call = None
+        self.fw.main_next = None
+        self.fw.main_wait = _WAIT_LOCKED
 
     def reset(self, reason: str = "reset") -> None:
         """Power-cycle the device now (registers, queue, parser to power-on; the links stay)."""
@@ -388,13 +454,13 @@ class TimedEmulator:
 
     def attach(self, sink: Any) -> None:
         """Send every scan run and marker from now on to ``sink`` (see :mod:`.trace`)."""
-        self._sinks.append(sink)
+        self.rec.sinks.append(sink)
         if hasattr(sink, "begin"):
             sink.begin(self.now_ns)
 
     def detach(self, sink: Any) -> None:
-        if sink in self._sinks:
-            self._sinks.remove(sink)
+        if sink in self.rec.sinks:
+            self.rec.sinks.remove(sink)
 
     # --- boot -----------------------------------------------------------------------------------------------
 
@@ -404,48 +470,36 @@ class TimedEmulator:
         p = self.emulator.parser
         p.on_command = self._on_command
         p.on_hv513_reinit = self._on_hv513_reinit
-        self._parser_base = self._dev_total
         self.chain: ChainState = POWER_ON_CHAIN
         start = t + (self.model.boot_ns if boot_delay else 0)
-        self._booting_until = start
-        self._tick_base = start
         regs = self.emulator.registers
-        self._last_reload = start + self.model.timer_start_ns
-        self.next_alarm = self._last_reload + self.model.alarm_period_ns(regs.timer_alarm_ticks)
+        last_reload = start + self.model.timer_start_ns
+        self.next_alarm = last_reload + self.model.alarm_period_ns(regs.timer_alarm_ticks)
         if not self.stimulation:
             self.next_alarm = _INF
-        self._main_next = start
-        self._main_wait = None
-        self._call = None
-        self._busy_from = -1
-        self._busy_until = -1
-        self._cur: CommandReport | None = None
-        self._cur_written: dict[int, int] = {}
-        self._cur_first: dict[int, int] = {}  # channels of a pattern still being read that a scan already used
-        self._cur_old: bytes = b""
-        self._stuck_reported = False
-        self._stuck_at: int | None = None
-        self._call_end_ns = start
-        self._call_dev_last = self._dev_total
-        self._last_rep: CommandReport | None = None
+        self.fw = _MainLoop(parser_base=self.host.dev_total, booting_until=start, tick_base=start,
+                            last_reload=last_reload, main_next=start, call_end_ns=start,
+                            call_dev_last=self.host.dev_total)
+        rec = self.rec
+        rec.cur, rec.cur_written, rec.cur_first, rec.cur_old, rec.last_rep = None, {}, {}, b"", None
 
     def _reboot(self, t: int, reason: str, boot_delay: bool = True) -> None:
-        self.reboots += 1
+        self.rec.reboots += 1
         left = self.queue.clear()
         if left:
-            self._loss(t, left, self._host_of(self._parser_base + self.parser.offset), "reboot")
-        for pend in self._awaiting:
+            self._loss(t, left, self._host_of(self.fw.parser_base + self.parser.offset), "reboot")
+        for pend in self.rec.awaiting:
             pend.report.note = (pend.report.note + "; " if pend.report.note else "") + f"not felt: {reason} at {t / 1000:.1f} us"
             if pend.channels:
                 for cl in pend.channels.values():
                     cl.note = reason
-        self._awaiting.clear()
-        if self._cur is not None:
-            self._cur.note = f"incomplete at {reason}"
-        for lo in self._open_losses:
+        self.rec.awaiting.clear()
+        if self.rec.cur is not None:
+            self.rec.cur.note = f"incomplete at {reason}"
+        for lo in self.rec.open_losses:
             lo.followed.append({"name": reason.upper(), "value": None, "host_offset": -1, "in_sync": False,
                                 "time_us": t / 1000})
-        self._open_losses.clear()
+        self.rec.open_losses.clear()
         self._mark(t, "reset", {"reason": reason})
         self._boot(t, boot_delay=boot_delay)
 
@@ -454,15 +508,15 @@ class TimedEmulator:
     def _push_delivery(self, d: Delivery) -> None:
         if d.t_ns < self.now_ns:
             d = Delivery(self.now_ns, d.data, d.host_offset, d.sent_ns)
-        self._seq += 1
-        heapq.heappush(self._deliveries, (d.t_ns, self._seq, d))
+        self.host.seq += 1
+        heapq.heappush(self.host.deliveries, (d.t_ns, self.host.seq, d))
 
     def _run(self, target: int) -> None:
-        dq = self._deliveries
+        dq = self.host.deliveries
         while True:
             td = dq[0][0] if dq else _INF
             ta = self.next_alarm
-            tm = self._main_next if self._main_next is not None else _INF
+            tm = self.fw.main_next if self.fw.main_next is not None else _INF
             t = min(td, ta, tm)
             if t > target:
                 return
@@ -477,29 +531,29 @@ class TimedEmulator:
 
     def _deliver(self, d: Delivery) -> None:
         t = d.t_ns
-        if t < self._booting_until:
+        if t < self.fw.booting_until:
             self._loss(t, d.data, d.host_offset, "rebooting")
             return
         took = self.queue.offer(d.data)
         if took:
             host = d.host_offset
-            self._seg_dev.append(self._dev_total)
-            self._segments.append((self._dev_total, host, took, t))
-            self._dev_total += took
+            self.host.seg_dev.append(self.host.dev_total)
+            self.host.segments.append((self.host.dev_total, host, took, t))
+            self.host.dev_total += took
             if self.parser.locked:
-                self.hazards.append(Hazard(HazardKind.UNREAD_WHILE_LOCKED, self._dev_total - took - self._parser_base,
+                self.hazards.append(Hazard(HazardKind.UNREAD_WHILE_LOCKED, self.host.dev_total - took - self.fw.parser_base,
                                            {"bytes": took, "pending": len(self.queue)}, t / 1000))
         if took < len(d.data):
             self._loss(t, d.data[took:], d.host_offset + took if d.host_offset >= 0 else -1, "queue_full")
-        if took and self._main_wait is not None and self._main_wait != _WAIT_LOCKED:
-            if self._main_wait == _WAIT_TICK:
+        if took and self.fw.main_wait is not None and self.fw.main_wait != _WAIT_LOCKED:
+            if self.fw.main_wait == _WAIT_TICK:
                 nxt = self._tick_at_or_after(t)
             else:  # spinning on a u16: reads as soon as the byte is there
                 nxt = t
-            if self._busy_from <= nxt < self._busy_until:
-                nxt = self._busy_until
-            self._main_next = nxt
-            self._main_wait = None
+            if self.fw.busy_from <= nxt < self.fw.busy_until:
+                nxt = self.fw.busy_until
+            self.fw.main_next = nxt
+            self.fw.main_wait = None
 
     def parser_status(self) -> str:
         """What the parser is doing, in words."""
@@ -514,22 +568,22 @@ class TimedEmulator:
         state = self.parser_status()
         rep = LossReport(t / 1000, host_offset, len(data), bytes(data), reason, len(self.queue), state,
                          self._cut_command(host_offset))
-        self._losses.append(rep)
+        self.rec.losses.append(rep)
         if reason == "queue_full":
-            self.hazards.append(Hazard(HazardKind.QUEUE_OVERFLOW, self._dev_total - self._parser_base,
+            self.hazards.append(Hazard(HazardKind.QUEUE_OVERFLOW, self.host.dev_total - self.fw.parser_base,
                                        {"bytes_lost": len(data), "host_offset": host_offset, "parser": state},
                                        t / 1000))
-            self._open_losses.append(rep)
+            self.rec.open_losses.append(rep)
         self._mark(t, "loss", {"bytes": len(data), "host_offset": host_offset, "reason": reason})
 
     def _cut_command(self, host_offset: int) -> dict[str, Any] | None:
         if host_offset < 0:
             return None
-        i = bisect_right(self._intended_starts, host_offset) - 1
+        i = bisect_right(self.host.intended_starts, host_offset) - 1
         if i < 0:
             return None
-        start = self._intended_starts[i]
-        op, end = self._intended[start]
+        start = self.host.intended_starts[i]
+        op, end = self.host.intended[start]
         if host_offset >= end or host_offset == start:
             return None if host_offset >= end else {"name": Opcode(op).name, "host_offset": start,
                                                     "bytes_before_loss": 0, "length": end - start}
@@ -539,33 +593,33 @@ class TimedEmulator:
     def _meant_as_command(self, parser_offset: int) -> bool:
         """Whether the host wrote a command byte at this parser offset (a byte that did not come from the
         host counts as meant: nothing says otherwise)."""
-        host = self._host_of(self._parser_base + parser_offset)
-        return host < 0 or host in self._intended
+        host = self._host_of(self.fw.parser_base + parser_offset)
+        return host < 0 or host in self.host.intended
 
     def _host_of(self, dev_offset: int) -> int:
         """Host-stream offset of a device-stream byte (-1 if it did not come from the host)."""
-        i = bisect_right(self._seg_dev, dev_offset) - 1
+        i = bisect_right(self.host.seg_dev, dev_offset) - 1
         if i < 0:
             return -1
-        start, host, length, _ = self._segments[i]
+        start, host, length, _ = self.host.segments[i]
         if host < 0 or dev_offset >= start + length:
             return -1
         return host + dev_offset - start
 
     def _delivered_at(self, dev_offset: int) -> int | None:
-        i = bisect_right(self._seg_dev, dev_offset) - 1
-        return None if i < 0 else self._segments[i][3]
+        i = bisect_right(self.host.seg_dev, dev_offset) - 1
+        return None if i < 0 else self.host.segments[i][3]
 
     def _sent_at(self, host_offset: int) -> int | None:
         if host_offset < 0:
             return None
-        i = bisect_right(self._write_starts, host_offset) - 1
-        return None if i < 0 else self._writes[i][2]
+        i = bisect_right(self.host.write_starts, host_offset) - 1
+        return None if i < 0 else self.host.writes[i][2]
 
     # --- RTOS ticks -------------------------------------------------------------------------------------------
 
     def _tick_at_or_after(self, t: int) -> int:
-        base = self._tick_base + self.model.tick_phase_ns
+        base = self.fw.tick_base + self.model.tick_phase_ns
         if t <= base:
             return base
         tick = self.model.rtos_tick_ns
@@ -576,164 +630,116 @@ class TimedEmulator:
 
     # --- the main loop ----------------------------------------------------------------------------------------
 
-    def _plan(self) -> tuple[int, int]:
-        """(bytes the next parser call reads from what is waiting, how that call ends)."""
-        q = self.queue.buf
-        avail = len(q)
-        p = self.parser
-        if p.cmd is None:
-            if avail == 0:
-                return 0, _IDLE
-            op = q[0]
-            size = _SIZE.get(op)
-            if size is None:
-                return 1, _IGNORED
-            if size == 0:
-                return 1, _REPLIED
-            if size < 0:
-                size = self.emulator.registers.electrode_num
-                if size == 0:
-                    return 1, _LOCKED
-                take = min(avail - 1, size)
-                return 1 + take, _COMPLETED if take == size else _PROGRESS
-            if size == 1:
-                return (2, _COMPLETED) if avail >= 2 else (1, _PROGRESS)
-            if avail >= 3:
-                return 3, _COMPLETED
-            return 1, _STUCK if avail == 2 else _PROGRESS
-        if p.locked:
-            return 0, _LOCKED
-        if p.cmd == _PATTERN:
-            take = min(avail, p.needed - p.count)
-            if take == 0:
-                return 0, _PROGRESS
-            return take, _COMPLETED if p.count + take == p.needed else _PROGRESS
-        if p.needed == 1:
-            return (1, _COMPLETED) if avail else (0, _PROGRESS)
-        if avail >= 2:
-            return 2, _COMPLETED
-        return 0, _STUCK if avail == 1 else _PROGRESS
-
     def _main_call(self, tc: int) -> None:
         m = self.model
-        cpu0, k0 = self._call if self._call is not None else (0, 0)
-        n, outcome = self._plan()
+        cpu0, k0 = self.fw.call if self.fw.call is not None else (0, 0)
+        n, outcome = self.parser.plan(self.queue.buf)
         if n == 0:
-            self._call = None
-            self._main_next = None
-            if outcome == _LOCKED:
-                self._main_wait = _WAIT_LOCKED
-            elif outcome == _STUCK:
+            self.fw.call = None
+            self.fw.main_next = None
+            if outcome is CallResult.LOCKED:
+                self.fw.main_wait = _WAIT_LOCKED
+            elif outcome is CallResult.STUCK_U16:
                 self._enter_stuck(tc, max(cpu0, m.call_ns + k0 * m.byte_ns), k0)
             else:
-                self._main_wait = _WAIT_TICK
+                self.fw.main_wait = _WAIT_TICK
             return
         extra = m.hv513_detect_ns if (self.parser.cmd is None and self.queue.buf[0] == _HV513) else 0
         base = tc + m.call_ns + extra - cpu0
         ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
         ta = self.next_alarm
         if ta < ends[-1]:
-            j = sum(1 for e in ends if e < ta)
-            # a u16 is read only when both bytes wait: the alarm finds it read whole or not at all
-            p = self.parser
-            if p.cmd is None:
-                if j == 2 and _SIZE.get(self.queue.buf[0]) == 2:
-                    j = 1
-            elif p.cmd != _PATTERN and p.needed == 2 and j == 1:
-                j = 0
+            j = self.parser.read_before_interrupt(self.queue.buf, sum(1 for e in ends if e < ta))
             if j:
                 self._feed(j, ends[:j], None)
-            self.interrupted_calls += 1
-            self._call = (cpu0 + int(ta) - tc, k0 + j)
-            self._main_next = ta  # the scan at ta pushes this to its end
-            self._main_wait = None
+            self.rec.interrupted_calls += 1
+            self.fw.call = (cpu0 + int(ta) - tc, k0 + j)
+            self.fw.main_next = ta  # the scan at ta pushes this to its end
+            self.fw.main_wait = None
             return
         self._feed(n, ends, outcome)
-        self._call = None
+        self.fw.call = None
         end = ends[-1]
-        if outcome in (_IGNORED, _REPLIED):
-            self._main_next = end
-        elif outcome == _STUCK:
+        if outcome is CallResult.IGNORED or outcome is CallResult.REPLIED:
+            self.fw.main_next = end
+        elif outcome is CallResult.STUCK_U16:
             self._enter_stuck(end, m.call_ns + (k0 + n) * m.byte_ns, k0 + n)
-        elif outcome == _LOCKED:
-            self._main_next = None
-            self._main_wait = _WAIT_LOCKED
-            if self._cur is not None:
-                self._cur.note = "locks the parser: pattern command with electrode_num 0"
-                self._cur.arrival_us = _us(self._delivered_at(self._call_dev_last))
-                self.commands.append(self._cur)
-                self._cur = None
+        elif outcome is CallResult.LOCKED:
+            self.fw.main_next = None
+            self.fw.main_wait = _WAIT_LOCKED
+            if self.rec.cur is not None:
+                self.rec.cur.note = "locks the parser: pattern command with electrode_num 0"
+                self.rec.cur.arrival_us = _us(self._delivered_at(self.fw.call_dev_last))
+                self.rec.commands.append(self.rec.cur)
+                self.rec.cur = None
         else:
-            self._main_next = self._tick_after(end)
+            self.fw.main_next = self._tick_after(end)
 
     def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
-        self._call = (cpu, k)
-        self._main_next = None
-        self._main_wait = _WAIT_STUCK
-        if not self._stuck_reported:
-            self._stuck_reported = True
-            self._stuck_at = t
+        self.fw.call = (cpu, k)
+        self.fw.main_next = None
+        self.fw.main_wait = _WAIT_STUCK
+        if not self.fw.stuck_reported:
+            self.fw.stuck_reported = True
+            self.fw.stuck_at = t
             p = self.parser
             self.hazards.append(Hazard(HazardKind.U16_WAITING, p.offset,
                                        {"command": Opcode(p.cmd).name if p.cmd is not None else None,
                                         "low_byte": self.queue.buf[0] if self.queue.buf else None}, t / 1000))
 
-    def _feed(self, j: int, ends: list[int], outcome: int | None) -> None:
+    def _feed(self, j: int, ends: list[int], outcome: CallResult | None) -> None:
         """Hand ``j`` bytes to the parser and run one call over them (times: ``ends``)."""
         p = self.parser
         data = self.queue.take(j)
-        dev0 = self._parser_base + p.offset
+        dev0 = self.fw.parser_base + p.offset
         if p.cmd is None:
             op = data[0]
-            if op in _SIZE:
+            if p.is_command(op):
                 host = self._host_of(dev0)
                 rep = CommandReport(dev0, host, op, Opcode(op).name, sent_us=_us(self._sent_at(host)))
-                self._cur = rep
-                self._stuck_reported = False
-                self._stuck_at = None
+                self.rec.cur = rep
+                self.fw.stuck_reported = False
+                self.fw.stuck_at = None
                 if op == _PATTERN:
                     regs = self.emulator.registers
-                    self._cur_old = bytes(regs.stim_pattern[: regs.electrode_num])
-                    self._cur_written = {}
-                    self._cur_first = {}
+                    self.rec.cur_old = bytes(regs.stim_pattern[: regs.electrode_num])
+                    self.rec.cur_written = {}
+                    self.rec.cur_first = {}
                 first_ch, skip = 0, 1
             else:
                 first_ch, skip = 0, j
         else:
             first_ch, skip = p.count, 0
-        if self._cur is not None and self._cur.opcode == _PATTERN and (p.cmd == _PATTERN or (p.cmd is None and data[0] == _PATTERN)):
+        if self.rec.cur is not None and self.rec.cur.opcode == _PATTERN and (p.cmd == _PATTERN or (p.cmd is None and data[0] == _PATTERN)):
             for i in range(skip, j):
-                self._cur_written[first_ch + i - skip] = ends[i]
-        self._call_end_ns = ends[-1]
-        self._call_dev_last = dev0 + j - 1
+                self.rec.cur_written[first_ch + i - skip] = ends[i]
+        self.fw.call_end_ns = ends[-1]
+        self.fw.call_dev_last = dev0 + j - 1
         p.receive(data)
         r = p.call()
         if p.pending and not p.locked:  # pragma: no cover - the plan hands over whole units only
             raise AssertionError(f"parser left {p.pending} byte(s) unread")
-        if outcome is not None:
-            expect = {_IGNORED: "ignored", _REPLIED: "replied", _PROGRESS: "progress", _COMPLETED: "completed",
-                      _STUCK: "progress", _LOCKED: "locked"}[outcome]
-            if r.value[0] != expect:  # pragma: no cover - the plan mirrors the parser
-                raise AssertionError(f"parser call {r} does not match the plan {expect}")
+        if outcome is not None and r is not (CallResult.PROGRESS if outcome is CallResult.STUCK_U16 else outcome):
+            raise AssertionError(f"parser call {r} does not match its plan {outcome}")  # pragma: no cover
         tx = p.take_tx()
         if tx:
             self._send_tx(tx, ends[-1])
 
     def _send_tx(self, data: bytes, t: int) -> None:
-        self.tx_log.append((t / 1000, data))
+        self.rec.tx_log.append((t / 1000, data))
         last = 0
         for d in self.tx_link.schedule(data, t, -1):
-            self._seq += 1
-            heapq.heappush(self._tx_deliveries, (d.t_ns, self._seq, d))
+            self.host.seq += 1
+            heapq.heappush(self.host.tx_deliveries, (d.t_ns, self.host.seq, d))
             last = max(last, d.t_ns)
-        rep = self._last_rep
+        rep = self.rec.last_rep
         if rep is not None and rep.opcode in (Opcode.MEASURE, Opcode.HV513_COUNT) and rep.reply_us is None:
             rep.reply_us = last / 1000
 
     def _collect_tx(self) -> None:
-        q = self._tx_deliveries
+        q = self.host.tx_deliveries
         while q and q[0][0] <= self.now_ns:
-            self._host_rx += heapq.heappop(q)[2].data
+            self.host.rx += heapq.heappop(q)[2].data
 
     # --- parser hooks -----------------------------------------------------------------------------------------
 
@@ -741,29 +747,29 @@ class TimedEmulator:
         self.chain = ChainState(self.chain.position, 0, 0)
 
     def _on_command(self, op: int, value: object, offset: int) -> None:
-        t = self._call_end_ns
-        rep = self._cur
+        t = self.fw.call_end_ns
+        rep = self.rec.cur
         if rep is None or rep.opcode != op:  # pragma: no cover - every completion was started by _feed
-            host = self._host_of(self._parser_base + offset)
-            rep = CommandReport(self._parser_base + offset, host, op, Opcode(op).name)
-        self._cur = None
-        self._last_rep = rep
+            host = self._host_of(self.fw.parser_base + offset)
+            rep = CommandReport(self.fw.parser_base + offset, host, op, Opcode(op).name)
+        self.rec.cur = None
+        self.rec.last_rep = rep
         rep.effect_us = t / 1000
         regs = self.emulator.registers
         if op == _PATTERN:
-            rep.value = bytes(regs.stim_pattern[: len(self._cur_written)])
+            rep.value = bytes(regs.stim_pattern[: len(self.rec.cur_written)])
         else:
             rep.value = value
-        last_dev = self._call_dev_last
+        last_dev = self.fw.call_dev_last
         arr = self._delivered_at(last_dev)
         rep.arrival_us = _us(arr)
         # in step with the host?  same opcode at the same host offset, ending where the host's ended
-        intended = self._intended.get(rep.host_offset)
+        intended = self.host.intended.get(rep.host_offset)
         last_host = self._host_of(last_dev)
         rep.host_end = last_host + 1 if last_host >= 0 else -1
         rep.in_sync = bool(intended and intended[0] == op and intended[1] == last_host + 1)
-        self.commands.append(rep)
-        if self._stuck_at is not None:
+        self.rec.commands.append(rep)
+        if self.fw.stuck_at is not None:
             self._late_u16(op, t)
         self._mark(t, "command", {"name": rep.name, "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
                                   "host_offset": rep.host_offset, "in_sync": rep.in_sync})
@@ -771,13 +777,13 @@ class TimedEmulator:
         if op == Opcode.FREQUENCY and value:
             self._retime_alarm(t)
         if op == _PATTERN:
-            chans = {ch: ChannelLatency(ch, wt / 1000) for ch, wt in self._cur_written.items()}
-            felt = {ch: chans.pop(ch) for ch in list(chans) if ch in self._cur_first}
+            chans = {ch: ChannelLatency(ch, wt / 1000) for ch, wt in self.rec.cur_written.items()}
+            felt = {ch: chans.pop(ch) for ch in list(chans) if ch in self.rec.cur_first}
             for ch, cl in felt.items():
-                cl.first_pulse_us = self._cur_first[ch] / 1000
-            self._cur_first = {}
+                cl.first_pulse_us = self.rec.cur_first[ch] / 1000
+            self.rec.cur_first = {}
             # an older pattern still waiting for these channels will never be felt there
-            for pend in self._awaiting:
+            for pend in self.rec.awaiting:
                 if pend.channels:
                     for ch in chans:
                         if ch in pend.channels:
@@ -785,37 +791,37 @@ class TimedEmulator:
             rep.channels = sorted([*chans.values(), *felt.values()], key=lambda cl: cl.channel)
             if felt:
                 rep.first_pulse_us = min(cl.first_pulse_us for cl in felt.values() if cl.first_pulse_us is not None)
-            self._awaiting.append(_Pending(rep, None, t, chans))
+            self.rec.awaiting.append(_Pending(rep, None, t, chans))
         elif op in _AFFECTS:
-            for pend in self._awaiting:
+            for pend in self.rec.awaiting:
                 if pend.channels is None and pend.report.opcode == op:
                     pend.report.note = "superseded before it was felt"
-            self._awaiting = [a for a in self._awaiting if not (a.channels is None and a.report.opcode == op)]
-            self._awaiting.append(_Pending(rep, _AFFECTS[op], t))
-        self._cur_written = {}
+            self.rec.awaiting = [a for a in self.rec.awaiting if not (a.channels is None and a.report.opcode == op)]
+            self.rec.awaiting.append(_Pending(rep, _AFFECTS[op], t))
+        self.rec.cur_written = {}
 
     def _late_u16(self, op: int, t: int) -> None:
         """A u16 whose first byte waited longer than ``U16_LATE_US`` for its second: whatever the host
         meant, the main loop spun meanwhile and the value is made of bytes written far apart."""
-        gap = t - self._stuck_at if self._stuck_at is not None else 0
-        self._stuck_at = None
+        gap = t - self.fw.stuck_at if self.fw.stuck_at is not None else 0
+        self.fw.stuck_at = None
         if gap <= _ns(U16_LATE_US):
             return
         from .parser import register_after
 
         field, stored = register_after(op, self.emulator.registers)
-        rep = self._last_rep
-        self.hazards.append(Hazard(HazardKind.U16_COMPLETED_LATE, rep.device_offset - self._parser_base if rep else -1,
+        rep = self.rec.last_rep
+        self.hazards.append(Hazard(HazardKind.U16_COMPLETED_LATE, rep.device_offset - self.fw.parser_base if rep else -1,
                                    {"command": Opcode(op).name, "value": rep.value if rep else None,
                                     "gap_us": gap / 1000, "register": field, "stored": stored}, t / 1000))
 
     def _follow_losses(self, rep: CommandReport) -> None:
-        if not self._open_losses:
+        if not self.rec.open_losses:
             return
         entry = {"name": rep.name, "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
                  "host_offset": rep.host_offset, "in_sync": rep.in_sync, "time_us": rep.effect_us}
         still = []
-        for lo in self._open_losses:
+        for lo in self.rec.open_losses:
             if lo.host_offset >= 0 and 0 <= rep.host_end <= lo.host_offset:
                 still.append(lo)  # read from bytes sent before the loss: not a consequence of it
                 continue
@@ -826,28 +832,28 @@ class TimedEmulator:
             lo.followed.append(entry)
             if len(lo.followed) < 16:
                 still.append(lo)
-        self._open_losses = still
+        self.rec.open_losses = still
 
     def _retime_alarm(self, t: int) -> None:
         """The parser wrote a new alarm value: an alarm the running counter has passed fires at once."""
         period = self.model.alarm_period_ns(self.emulator.registers.timer_alarm_ticks)
         if not self.stimulation:
             return
-        if t - self._last_reload >= period:
+        if t - self.fw.last_reload >= period:
             self.next_alarm = t
         else:
-            self.next_alarm = self._last_reload + period
+            self.next_alarm = self.fw.last_reload + period
 
     # --- scans ------------------------------------------------------------------------------------------------
 
     def _torn_info(self, n: int) -> TornInfo | None:
         p = self.parser
-        if p.cmd != _PATTERN or p.locked or not (0 < p.count < p.needed) or self._cur is None:
+        if p.cmd != _PATTERN or p.locked or not (0 < p.count < p.needed) or self.rec.cur is None:
             return None
         regs = self.emulator.registers
         k = min(p.count, n)
-        changed = sum(1 for i in range(k) if regs.stim_pattern[i] != (self._cur_old[i] if i < len(self._cur_old) else 0))
-        return TornInfo(self._cur.device_offset, self._cur.host_offset, p.count, n, changed)
+        changed = sum(1 for i in range(k) if regs.stim_pattern[i] != (self.rec.cur_old[i] if i < len(self.rec.cur_old) else 0))
+        return TornInfo(self.rec.cur.device_offset, self.rec.cur.host_offset, p.count, n, changed)
 
     def _scan(self, ta: int, target: int) -> None:
         m = self.model
@@ -860,7 +866,7 @@ class TimedEmulator:
         torn = self._torn_info(cfg.electrode_num)
         self._check_sense(cfg)
         if wd is not None and dur > wd:
-            run = ScanRun(self._scan_index, ta, dur, 1, tmpl, period, dur > period, False, torn, wd)
+            run = ScanRun(self.rec.scan_index, ta, dur, 1, tmpl, period, dur > period, False, torn, wd)
             self._record(run)
             self._torn_hazard(run)
             self._resolve(ta, tmpl, cut=wd)
@@ -884,13 +890,13 @@ class TimedEmulator:
         count = 1
         if tmpl.steady:
             limit = target + 1  # scans starting at or before target
-            if self._deliveries:
-                limit = min(limit, self._deliveries[0][0])  # a delivery comes first on a tie
-            if self._main_next is not None and not starved:
-                limit = min(limit, int(self._main_next) + 1)
+            if self.host.deliveries:
+                limit = min(limit, self.host.deliveries[0][0])  # a delivery comes first on a tie
+            if self.fw.main_next is not None and not starved:
+                limit = min(limit, int(self.fw.main_next) + 1)
             if limit > ta + stride:
                 count = max(1, (limit - ta - 1) // stride + 1)
-        run = ScanRun(self._scan_index, ta, stride, count, tmpl, period, overrun, starved, torn)
+        run = ScanRun(self.rec.scan_index, ta, stride, count, tmpl, period, overrun, starved, torn)
         self._record(run)
         self._torn_hazard(run)
         if overrun:
@@ -902,19 +908,19 @@ class TimedEmulator:
             v[ch] = int(tmpl.voltages[ch])
         self.chain = tmpl.chain_end
         last = ta + (count - 1) * stride
-        self._last_reload = last
-        self._busy_from = last
-        self._busy_until = last + dur
+        self.fw.last_reload = last
+        self.fw.busy_from = last
+        self.fw.busy_until = last + dur
         self.next_alarm = last + stride
-        if self._main_next is not None and self._main_next < self._busy_until:
-            self._main_next = self._busy_until
+        if self.fw.main_next is not None and self.fw.main_next < self.fw.busy_until:
+            self.fw.main_next = self.fw.busy_until
 
     def _stretch_hazard(self, hazard: Hazard, same: tuple[Any, ...]) -> None:
         """Record ``hazard`` (its detail has ``first_cycle`` and ``cycles``), or extend the record of the
         same kind it continues: the next cycles, with ``same`` unchanged.  One record per stretch keeps the
         list short when the condition lasts (a starved main loop never ends it)."""
         hz = self.hazards
-        last = self._stretch.get(hazard.kind)
+        last = self.rec.stretch.get(hazard.kind)
         if last is not None and last[0] < len(hz) and last[1] == same:
             prev = hz[last[0]]
             if (prev.kind == hazard.kind
@@ -923,7 +929,7 @@ class TimedEmulator:
                                      {**prev.detail, "cycles": prev.detail["cycles"] + hazard.detail["cycles"]},
                                      prev.time_us)
                 return
-        self._stretch[hazard.kind] = (len(hz), same)
+        self.rec.stretch[hazard.kind] = (len(hz), same)
         hz.append(hazard)
 
     def _torn_hazard(self, run: ScanRun) -> None:
@@ -931,14 +937,14 @@ class TimedEmulator:
         being read, and the values that changed there (``[channel, old, new]``).  The rest kept their old
         values (the new ones have not arrived)."""
         torn = run.torn
-        if torn is None or self._cur is None:
+        if torn is None or self.rec.cur is None:
             return
         new = self.emulator.registers.stim_pattern
-        old = self._cur_old
+        old = self.rec.cur_old
         k = min(torn.new_channels, torn.electrode_num)
         changed = [[ch, old[ch] if ch < len(old) else 0, new[ch]] for ch in range(k)
                    if new[ch] != (old[ch] if ch < len(old) else 0)]
-        offset = torn.command_device_offset - self._parser_base
+        offset = torn.command_device_offset - self.fw.parser_base
         detail = {"first_cycle": run.first_index, "cycles": run.count, "cycle_start_us": run.start_ns / 1000,
                   "command_host_offset": torn.command_host_offset, "new_channels": k,
                   "old_channels": torn.electrode_num - k, "changed": changed}
@@ -946,19 +952,19 @@ class TimedEmulator:
                              (offset, k, torn.electrode_num))
 
     def _record(self, run: ScanRun) -> None:
-        self.runs.append(run)
-        self._scan_index += run.count
-        for s in self._sinks:
+        self.rec.runs.append(run)
+        self.rec.scan_index += run.count
+        for s in self.rec.sinks:
             s.scan_run(run)
 
     def _check_sense(self, cfg: ScanConfig) -> None:
         if not cfg.sense_pulse_height or not cfg.electrode_num:
-            self._sense_key = None
+            self.rec.sense_key = None
             return
         chans = tuple(i for i, v in enumerate(cfg.pattern) if v not in (1, 2))
         key = (cfg.sense_pulse_height, cfg.sense_pulse_width, chans)
-        if chans and key != self._sense_key:
-            self._sense_key = key
+        if chans and key != self.rec.sense_key:
+            self.rec.sense_key = key
             self.hazards.append(Hazard(HazardKind.SENSE_CURRENT, self.parser.offset,
                                        {"channels": list(chans), "sense_pulse_height": cfg.sense_pulse_height,
                                         "sense_pulse_width": cfg.sense_pulse_width}, self.next_alarm / 1000))
@@ -967,16 +973,16 @@ class TimedEmulator:
         """First pulses: every command waiting to be felt that this scan makes felt (and the channels of a
         pattern still being read that this scan already uses)."""
         n = tmpl.config.electrode_num
-        if self._cur_written and self._cur is not None and self._cur.opcode == _PATTERN:
-            for ch in self._cur_written:
-                if ch < n and ch not in self._cur_first:
+        if self.rec.cur_written and self.rec.cur is not None and self.rec.cur.opcode == _PATTERN:
+            for ch in self.rec.cur_written:
+                if ch < n and ch not in self.rec.cur_first:
                     t = int(tmpl.first_pulse_ns[ch])
                     if cut is None or t < cut:
-                        self._cur_first[ch] = ta + t
-        if not self._awaiting:
+                        self.rec.cur_first[ch] = ta + t
+        if not self.rec.awaiting:
             return
         keep: list[_Pending] = []
-        for pend in self._awaiting:
+        for pend in self.rec.awaiting:
             if pend.after_ns > ta:
                 keep.append(pend)
                 continue
@@ -1004,12 +1010,12 @@ class TimedEmulator:
                     pend.report.note = pend.report.note or f"first scan at {ta / 1000:.1f} us has no pulse"
                 else:
                     keep.append(pend)
-        self._awaiting = keep
+        self.rec.awaiting = keep
 
     # --- traces -----------------------------------------------------------------------------------------------
 
     def _mark(self, t: int, kind: str, detail: dict[str, Any]) -> None:
-        for s in self._sinks:
+        for s in self.rec.sinks:
             s.marker(t, kind, detail)
 
 

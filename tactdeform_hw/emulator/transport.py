@@ -5,7 +5,8 @@ It has the parts of pyserial's ``Serial`` the driver uses (``open``, ``close``, 
 run without pyserial's machinery.  Replies are available as soon as ``write`` returns; a read asks for
 more than the device wrote returns what there is at once (in-process, waiting could not bring more).
 The port declares that (``instant``, and ``pacing_clock``: a clock that never waits), so a driver paces
-it without sleeping.
+it without sleeping; it also declares ``pulse_reset()``, ``board_state()`` and ``board_hazards`` (see
+:mod:`tactdeform_hw.ports`).
 An optional ``spy`` callable sees every byte both ways with a timestamp.
 """
 
@@ -14,15 +15,17 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 from ..clock import InstantClock
-from ..errors import PortNotOpenError
+from ..ports import PortBase
 from .core import Emulator
+from .hazards import Hazard
 
 SpyFn = Callable[[str, bytes, float], None]
 
 
-class EmulatorPort:
+class EmulatorPort(PortBase):
     instant = True  # every byte is parsed the moment it is written
 
     def __init__(self, emulator: Emulator | None = None, *, timeout: float | None = 0.5, spy: SpyFn | None = None) -> None:
@@ -45,12 +48,21 @@ class EmulatorPort:
     def close(self) -> None:
         self.is_open = False
 
-    def _check(self) -> None:
-        if not self.is_open:
-            raise PortNotOpenError("emulator port is not open")
+    # --- what the port declares (tactdeform_hw.ports) -----------------------------------------------------
+
+    def pulse_reset(self) -> None:
+        """Power-cycle the board: its registers return to power-on, the parser to between commands."""
+        self.emulator.reset()
+
+    def board_state(self) -> dict[str, Any]:
+        return self.emulator.state()
+
+    @property
+    def board_hazards(self) -> list[Hazard]:
+        return self.emulator.hazards
 
     def write(self, data: bytes) -> int:
-        self._check()
+        self._check_open()
         data = bytes(data)
         with self._lock:
             if self.spy:
@@ -64,7 +76,7 @@ class EmulatorPort:
         return len(data)
 
     def read(self, size: int = 1) -> bytes:
-        self._check()
+        self._check_open()
         with self._lock:
             out = bytes(self._rx[:size])
             del self._rx[:size]
@@ -74,23 +86,7 @@ class EmulatorPort:
     def in_waiting(self) -> int:
         return len(self._rx)
 
-    @property
-    def out_waiting(self) -> int:
-        return 0
-
     def reset_input_buffer(self) -> None:
-        self._check()
+        self._check_open()
         self._rx.clear()
 
-    def reset_output_buffer(self) -> None:
-        self._check()
-
-    def flush(self) -> None:
-        self._check()
-
-    def __enter__(self) -> EmulatorPort:
-        self.open()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()

@@ -36,11 +36,11 @@ import copy
 import errno
 import struct
 import threading
-import time
 import urllib.parse as urlparse
 from dataclasses import dataclass, field
-from typing import Any, Protocol, TypedDict
+from typing import Any, TypedDict
 
+from ..clock import Clock, MonotonicClock, SimulatedClock
 from ..errors import ConfigurationError, MissingDependencyError
 from ..protocol.constants import (
     ESP32S3_USB_JTAG_PID,
@@ -90,41 +90,11 @@ _LIBUSB_ERRORS: dict[str, tuple[int, int, str]] = {
 # --- clocks ---------------------------------------------------------------------------------------------
 
 
-class Clock(Protocol):
-    def now(self) -> float: ...
-    def sleep(self, seconds: float) -> None: ...
-
-
-class RealClock:
-    """Wall time: the emulated board answers with a real board's latencies."""
-
-    def now(self) -> float:
-        return time.monotonic()
-
-    def sleep(self, seconds: float) -> None:
-        if seconds > 0:
-            time.sleep(seconds)
-
-
-class VirtualClock:
-    """Simulated time: ``sleep`` moves the clock on at once, so timed scenarios run fast and repeat
-    exactly.  ``advance`` lets a test move time by hand."""
-
-    def __init__(self, start: float = 0.0) -> None:
-        self._t = start
-        self._lock = threading.Lock()
-
-    def now(self) -> float:
-        with self._lock:
-            return self._t
-
-    def sleep(self, seconds: float) -> None:
-        self.advance(seconds)
-
-    def advance(self, seconds: float) -> None:
-        if seconds > 0:
-            with self._lock:
-                self._t += seconds
+#: The bus runs on a clock from :mod:`tactdeform_hw.clock`: wall time by default (the emulated board
+#: answers with a real board's latencies), or simulated time (``sleep`` moves it on at once, so timed
+#: scenarios run fast and repeat exactly; ``advance`` moves it by hand).
+RealClock = MonotonicClock
+VirtualClock = SimulatedClock
 
 
 # --- descriptors ----------------------------------------------------------------------------------------

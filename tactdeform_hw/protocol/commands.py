@@ -21,7 +21,6 @@ from construct import this
 from ..errors import DecodeError, LimitError
 from .constants import (
     MAX_ELECTRODES,
-    PATTERN_BUFFER_SIZE,
     U8_MAX,
     U16_MAX,
     Opcode,
@@ -165,11 +164,6 @@ def build_measure_reply(adc: Sequence[int]) -> bytes:
     return bytes(MeasureReply.build({"adc": list(adc)}, electrode_num=len(adc)))
 
 
-def build_hv513_reply(count: int) -> bytes:
-    """The byte the firmware writes for an HV513 count request (used by the emulator)."""
-    return bytes(Hv513CountReply.build({"hv513_count": count}))
-
-
 # --- fast path ---------------------------------------------------------------------------------------------
 
 _PATTERN_PREFIX = bytes([Opcode.PATTERN])
@@ -241,10 +235,6 @@ def encode_discharge(discharge_us: int) -> bytes:
 def encode_frequency(rate_hz: int) -> bytes:
     """Stimulation rate in Hz; 0 is refused because the firmware ignores it."""
     return encode_u16(Opcode.FREQUENCY, rate_hz, "rate_hz", 1, U16_MAX)
-
-
-#: The pattern buffer size is re-exported for callers that check channel counts.
-PATTERN_CHANNELS = PATTERN_BUFFER_SIZE
 
 
 def encode_measure_reply(adc: Sequence[int]) -> bytes:

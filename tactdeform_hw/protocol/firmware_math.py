@@ -8,7 +8,6 @@ must use these numbers, not ``1e6 / rate``.
 from __future__ import annotations
 
 import functools
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -37,11 +36,6 @@ def period_us_from_rate_double(rate_hz: int) -> float:
 def alarm_ticks(period_us: float) -> int:
     """``uint32(period_us) * 2``: the truncated period in 0.5 µs timer ticks."""
     return (int(period_us) & 0xFFFFFFFF) * TIMER_TICKS_PER_US
-
-
-def effective_rate_hz(alarm_ticks_value: int) -> float:
-    """The scan rate the timer really produces when scans fit the period."""
-    return TIMER_TICKS_PER_US * 1e6 / alarm_ticks_value if alarm_ticks_value else math.inf
 
 
 def stack_count_from_reading(reading: float) -> int:

@@ -11,13 +11,12 @@ changes), so the three approaches are compared on the same footing.
 
 from __future__ import annotations
 
-import math
 from typing import Any, Protocol
 
 import numpy as np
 
 from .array import ElectrodeArray
-from .manager import IDLE, INTERACTING, ManagerOutput, ManagerStats, check_pose, quat_axes
+from .manager import IDLE, INTERACTING, ManagerOutput, ManagerStats, check_pose, count_drop, quat_axes
 from .patterns import Pattern
 from .scene import APPROACHES as APPROACHES
 from .tracking import QUAT_NORM_TOLERANCE
@@ -49,12 +48,7 @@ class _Baseline:
         self.last_sent: Pattern | None = None
 
     def _drop(self, t: Any, reason: str) -> ManagerOutput:
-        d = self.stats.dropped
-        d[reason] = d.get(reason, 0) + 1
-        try:
-            tf = float(t)
-        except (TypeError, ValueError):
-            tf = math.nan
+        tf = count_drop(self.stats, t, reason)
         return ManagerOutput(tf, self.state, None, None, None, self.name, self.pattern, [], reason)
 
     def update(self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None) -> ManagerOutput:

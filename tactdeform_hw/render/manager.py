@@ -308,8 +308,19 @@ def check_pose(
     return t, p, q, renormed
 
 
+def count_drop(stats: ManagerStats, t: Any, reason: str) -> float:
+    """Count a dropped sample under ``reason``; its time as a float (NaN when it is not a number)."""
+    stats.dropped[reason] = stats.dropped.get(reason, 0) + 1
+    try:
+        return float(t)
+    except (TypeError, ValueError):
+        return math.nan
+
+
 class PatternManager:
     """State machine + stability filters + event-driven output for one finger on one array."""
+
+    name = "tactdeform"
 
     def __init__(
         self,
@@ -391,9 +402,10 @@ class PatternManager:
             return 0
         return self._ns if (self._ns is not None and self._ns_k == k) else self.slide.whole // k
 
-    def update(self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any) -> ManagerOutput:
+    def update(self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None) -> ManagerOutput:
         """Advance by one tracking sample.  ``query`` is the scene's
-        :class:`~tactdeform_hw.render.geometry.SurfaceQuery` for the pad centre, or None (no object)."""
+        :class:`~tactdeform_hw.render.geometry.SurfaceQuery` for the pad centre, or None (no object);
+        ``scene`` is unused (the query holds all TactDeform needs; the baselines' CAM asks the scene)."""
         self.stats.updates += 1
         # --- validate everything before any state changes ------------------------------------------------
         checked = check_pose(t_s, position_mm, orientation_wxyz, self._t, self.config.quat_norm_tolerance)
@@ -495,12 +507,7 @@ class PatternManager:
     # --- internals -----------------------------------------------------------------------------------------
 
     def _drop(self, t: Any, reason: str) -> ManagerOutput:
-        d = self.stats.dropped
-        d[reason] = d.get(reason, 0) + 1
-        try:
-            tf = float(t)
-        except (TypeError, ValueError):
-            tf = math.nan
+        tf = count_drop(self.stats, t, reason)
         return ManagerOutput(tf, self.state, self.feature.value, self._orient_value_name(), self.texture.value,
                              self.context, self.pattern, [], reason)
 
@@ -605,43 +612,63 @@ class PatternManager:
 
     def _in_contact(self, t: float, p: tuple[float, ...], p_prev: tuple[float, ...], q: tuple[float, ...], sd: float,
                     normal: tuple[float, ...], feat: str, query: Any) -> list[Pattern]:
-        cfg = self.config
         v = self._velocity()
         if self.state == APPROACHING:
-            # Eq. 3's travel: displacement along the direction latched at contact; feature and
-            # orientation stay as they were at contact, however deep the finger goes.
-            n0 = self._n_onset
-            self.approach.advance(-((p[0] - p_prev[0]) * n0[0] + (p[1] - p_prev[1]) * n0[1] + (p[2] - p_prev[2]) * n0[2]))
-            self.texture.update(self._texture_of(query), t)
-            # Stopped advancing: the tremor-filtered position has not gone ``advance_mm`` deeper than its
-            # deepest point for ``settle_hold_s`` (any approach faster than advance_mm / settle_hold_s,
-            # 0.6 mm/s by default, keeps expanding) and is not withdrawing fast.
-            m = self._mhist[-1]
-            mo = self._m_onset
-            depth = -((m[1] - mo[0]) * n0[0] + (m[2] - mo[1]) * n0[1] + (m[3] - mo[2]) * n0[2])
-            if depth >= self._peak_mm + cfg.advance_mm:
-                self._peak_mm = depth
-                self._advanced_t = t
-            # Not withdrawing fast either: judged on the recent window, which a turn at the bottom of a
-            # press-and-withdraw leaves quickly (the long window reads such a turn as still).
-            vn = self._recent_normal_speed(n0)
-            if (
-                t - self._advanced_t >= cfg.settle_hold_s
-                and t - self._onset_t >= cfg.sustain_s
-                and abs(vn) <= cfg.settle_speed_mm_s
-            ):
-                self.state = INTERACTING
-                self._family = None
-                self.theta.force(None)
-                self.direction.force(None)
-                self.sliding = False
-                self._slide_change_t = None
-                self._anchor = self._mhist[-1]
-            else:
-                self.context = APPROACHING
-                return self._approach_seq()
+            seq = self._approaching(t, p, p_prev, query)
+            if seq is not None:
+                return seq
+        self._hold_parameters(t, feat, q, query)
+        # Stationary contact or sliding.
+        if v is None and self.sliding:
+            # No time has passed since the window's start (repeated timestamps): keep sliding as is.
+            self.context = "sliding"
+            return self._sliding_seq()
+        vt, speed = self._judge_sliding(t, v, normal)
+        if self.sliding and vt is not None and speed > 0.0:
+            return self._slide(t, q, vt, speed, normal)
+        return self._contact(t, q, normal)
 
-        # Interacting: parameters change only after holding for their stability windows.
+    def _approaching(self, t: float, p: tuple[float, ...], p_prev: tuple[float, ...], query: Any) -> list[Pattern] | None:
+        """One sample while Approaching: the expansion's frames, or None once the finger has settled
+        (the state is then Interacting and the sample is rendered as contact)."""
+        cfg = self.config
+        # Eq. 3's travel: displacement along the direction latched at contact; feature and
+        # orientation stay as they were at contact, however deep the finger goes.
+        n0 = self._n_onset
+        self.approach.advance(-((p[0] - p_prev[0]) * n0[0] + (p[1] - p_prev[1]) * n0[1] + (p[2] - p_prev[2]) * n0[2]))
+        self.texture.update(self._texture_of(query), t)
+        # Stopped advancing: the tremor-filtered position has not gone ``advance_mm`` deeper than its
+        # deepest point for ``settle_hold_s`` (any approach faster than advance_mm / settle_hold_s,
+        # 0.6 mm/s by default, keeps expanding) and is not withdrawing fast.
+        m = self._mhist[-1]
+        mo = self._m_onset
+        depth = -((m[1] - mo[0]) * n0[0] + (m[2] - mo[1]) * n0[1] + (m[3] - mo[2]) * n0[2])
+        if depth >= self._peak_mm + cfg.advance_mm:
+            self._peak_mm = depth
+            self._advanced_t = t
+        # Not withdrawing fast either: judged on the recent window, which a turn at the bottom of a
+        # press-and-withdraw leaves quickly (the long window reads such a turn as still).
+        vn = self._recent_normal_speed(n0)
+        if (
+            t - self._advanced_t >= cfg.settle_hold_s
+            and t - self._onset_t >= cfg.sustain_s
+            and abs(vn) <= cfg.settle_speed_mm_s
+        ):
+            self.state = INTERACTING
+            self._family = None
+            self.theta.force(None)
+            self.direction.force(None)
+            self.sliding = False
+            self._slide_change_t = None
+            self._anchor = self._mhist[-1]
+        else:
+            self.context = APPROACHING
+            return self._approach_seq()
+        return None
+
+    def _hold_parameters(self, t: float, feat: str, q: tuple[float, ...], query: Any) -> None:
+        """Interacting: feature, edge orientation and texture change only after holding for their
+        stability windows."""
         self.feature.update(feat, t)
         if self.feature.value == "edge":
             cur = self.orientation.value
@@ -653,11 +680,12 @@ class PatternManager:
             else:
                 self.orientation.update(cand, t)
         self.texture.update(self._texture_of(query), t)
-        # Stationary contact or sliding.
-        if v is None and self.sliding:
-            # No time has passed since the window's start (repeated timestamps): keep sliding as is.
-            self.context = "sliding"
-            return self._sliding_seq()
+
+    def _judge_sliding(
+        self, t: float, v: tuple[float, float, float] | None, normal: tuple[float, ...]
+    ) -> tuple[tuple[float, float, float] | None, float]:
+        """Whether the pad slides (``self.sliding``); returns its tangential velocity and speed."""
+        cfg = self.config
         vt = None
         speed = 0.0
         if v is not None:
@@ -702,37 +730,46 @@ class PatternManager:
                 if want and since is not None and t - since >= cfg.slide_window_s:
                     self.sliding = True
                     self._slide_change_t = None
-        X, Y, Z = quat_axes(*q)
+        return vt, speed
+
+    def _slide(self, t: float, q: tuple[float, ...], vt: tuple[float, float, float], speed: float,
+               normal: tuple[float, ...]) -> list[Pattern]:
+        """A sliding sample: the direction (held for its window) and the texture travel."""
+        cfg = self.config
+        X, Y, _ = quat_axes(*q)
         m = self._mhist[-1]
-        if self.sliding and vt is not None and speed > 0.0:
-            ux, uy, uz = vt[0] / speed, vt[1] / speed, vt[2] / speed
-            a = math.degrees(math.atan2(ux * Y[0] + uy * Y[1] + uz * Y[2], ux * X[0] + uy * X[1] + uz * X[2]))
-            cur = self.direction.value
-            cand = quantise_angle(a, 8, 360.0, cur, cfg.direction_margin_deg)
-            if cur is None:
-                self.direction.force(cand)
-            else:
-                self.direction.update(cand, t)
-            # Texture travel (eq. 7's ∫ v_slide): the stroke in straight segments, one per sliding
-            # direction, each measured as the tangential distance of the filtered position from the
-            # segment's start.  Within a segment the sum telescopes, so tremor and tracking noise add a
-            # bounded error, never a drift (a per-sample projection on a noisy direction would add
-            # their correlated part at every sample); a stroke's first segment starts where the pad
-            # rested, so the travel before sliding was recognised counts too.
-            seg = self._seg
-            if seg is None or self.direction.value != self._seg_dir:
-                anc = self._anchor
-                self._seg = seg = (anc[1], anc[2], anc[3]) if (seg is None and anc is not None) else (m[1], m[2], m[3])
-                self._seg_dir = self.direction.value
-                self._seg_len = 0.0
-            dx, dy, dz = m[1] - seg[0], m[2] - seg[1], m[3] - seg[2]
-            dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
-            length = math.sqrt(max(0.0, dx * dx + dy * dy + dz * dz - dn * dn))
-            if self._k():
-                self.slide.add(length - self._seg_len)
-            self._seg_len = length
-            self.context = "sliding"
-            return self._sliding_seq()
+        ux, uy, uz = vt[0] / speed, vt[1] / speed, vt[2] / speed
+        a = math.degrees(math.atan2(ux * Y[0] + uy * Y[1] + uz * Y[2], ux * X[0] + uy * X[1] + uz * X[2]))
+        cur = self.direction.value
+        cand = quantise_angle(a, 8, 360.0, cur, cfg.direction_margin_deg)
+        if cur is None:
+            self.direction.force(cand)
+        else:
+            self.direction.update(cand, t)
+        # Texture travel (eq. 7's ∫ v_slide): the stroke in straight segments, one per sliding
+        # direction, each measured as the tangential distance of the filtered position from the
+        # segment's start.  Within a segment the sum telescopes, so tremor and tracking noise add a
+        # bounded error, never a drift (a per-sample projection on a noisy direction would add
+        # their correlated part at every sample); a stroke's first segment starts where the pad
+        # rested, so the travel before sliding was recognised counts too.
+        seg = self._seg
+        if seg is None or self.direction.value != self._seg_dir:
+            anc = self._anchor
+            self._seg = seg = (anc[1], anc[2], anc[3]) if (seg is None and anc is not None) else (m[1], m[2], m[3])
+            self._seg_dir = self.direction.value
+            self._seg_len = 0.0
+        dx, dy, dz = m[1] - seg[0], m[2] - seg[1], m[3] - seg[2]
+        dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
+        length = math.sqrt(max(0.0, dx * dx + dy * dy + dz * dz - dn * dn))
+        if self._k():
+            self.slide.add(length - self._seg_len)
+        self._seg_len = length
+        self.context = "sliding"
+        return self._sliding_seq()
+
+    def _contact(self, t: float, q: tuple[float, ...], normal: tuple[float, ...]) -> list[Pattern]:
+        """A stationary contact sample: the feature's static or contact-angle pattern."""
+        cfg = self.config
         self._seg = None
         self.context = "contact"
         if not cfg.render_contact:
@@ -743,6 +780,7 @@ class PatternManager:
         self._family = None
         if cfg.contact_mode == "uniform":
             return [self.patterns.static(feat_v, orient)]
+        X, _, Z = quat_axes(*q)
         th = contact_angle_deg(normal, X, Z, plane=cfg.theta_plane, up=cfg.up_axis)
         self.theta_deg = th
         cur = self.theta.value

@@ -452,6 +452,132 @@ _R_PD = 15  # signed distance of p to the plane
 _N_ROWS = 16
 
 
+def _sign_method_for(topo: _Topology, sign_method: str) -> str:
+    """``auto`` → pseudonormals on a closed mesh, the winding number otherwise; refuse what cannot work."""
+    if sign_method == "auto":
+        sign_method = "pseudonormal" if topo.watertight else "winding"
+    if sign_method not in ("pseudonormal", "winding"):
+        raise ConfigurationError(
+            f"sign_method={sign_method!r} must be 'auto', 'pseudonormal' or 'winding'"
+        )
+    if sign_method == "pseudonormal" and not topo.watertight:
+        raise ConfigurationError(
+            "sign_method='pseudonormal' needs a closed, consistently oriented mesh; use 'winding' or 'auto'"
+        )
+    return sign_method
+
+
+def _sample_spacing(vertices: np.ndarray, topo: _Topology, sample_spacing_mm: float | None) -> float:
+    """The longest edge the index keeps (longer ones are split): twice the median edge unless given."""
+    if sample_spacing_mm is None:
+        edge_len = np.linalg.norm(vertices[topo.edges[:, 0]] - vertices[topo.edges[:, 1]], axis=1)
+        return 2.0 * float(np.median(edge_len))
+    spacing = float(sample_spacing_mm)
+    if not math.isfinite(spacing) or spacing <= 0:
+        raise ConfigurationError(f"sample_spacing_mm={sample_spacing_mm!r} must be a positive length")
+    return spacing
+
+
+def _kernel_rows(a: np.ndarray, b: np.ndarray, c: np.ndarray, face_normals: np.ndarray) -> np.ndarray:
+    """The distance kernel's rows per triangle (see ``_R_*``): every quantity but the clamping is linear
+    in the query point.  One extra sentinel triangle, far away, pads the vertex-to-triangle table."""
+    n_faces = len(a)
+    e1, e2 = b - a, c - a
+    starts = np.stack((a, b, c), axis=1)  # (F, 3, 3)
+    dirs = np.stack((b - a, c - b, a - c), axis=1)
+    l2 = np.einsum("fkj,fkj->fk", dirs, dirs)
+    rows = np.zeros((n_faces + 1, _N_ROWS, 4))  # the last row is the sentinel
+    g = rows[:n_faces]
+    g[:, _R_SQ, 0:3] = -2.0 * starts
+    g[:, _R_SQ, 3] = np.einsum("fkj,fkj->fk", starts, starts)
+    g[:, _R_T, 0:3] = dirs / l2[:, :, None]
+    g[:, _R_T, 3] = -np.einsum("fkj,fkj->fk", starts, dirs) / l2
+    g[:, _R_S2, 0:3] = 2.0 * dirs
+    g[:, _R_S2, 3] = -2.0 * np.einsum("fkj,fkj->fk", starts, dirs)
+    g[:, _R_L2, 3] = l2
+    g11 = np.einsum("ij,ij->i", e1, e1)
+    g12 = np.einsum("ij,ij->i", e1, e2)
+    g22 = np.einsum("ij,ij->i", e2, e2)
+    det = g11 * g22 - g12 * g12
+    mu = (g22[:, None] * e1 - g12[:, None] * e2) / det[:, None]
+    mv = (g11[:, None] * e2 - g12[:, None] * e1) / det[:, None]
+    g[:, 12, 0:3], g[:, 12, 3] = mu, -np.einsum("ij,ij->i", mu, a)
+    g[:, 13, 0:3], g[:, 13, 3] = mv, -np.einsum("ij,ij->i", mv, a)
+    g[:, 14, 0:3] = -(mu + mv)
+    g[:, 14, 3] = 1.0 - g[:, 12, 3] - g[:, 13, 3]
+    g[:, _R_PD, 0:3] = face_normals
+    g[:, _R_PD, 3] = -np.einsum("ij,ij->i", face_normals, a)
+    rows[n_faces, _R_SQ, 3] = _SENTINEL_COORD
+    rows[n_faces, _R_L2, 3] = 1.0
+    rows[n_faces, _R_BARY, 3] = -1.0
+    return rows
+
+
+def _triangle_bounds(
+    a: np.ndarray, b: np.ndarray, c: np.ndarray, cross: np.ndarray, face_normals: np.ndarray
+) -> tuple[float, np.ndarray]:
+    """The largest vertex-covering radius, and per triangle (plus the sentinel) its bounding sphere and
+    plane, for pruning candidate pairs in batched tests: columns centre (3), radius, normal (3), offset."""
+    # Every point of a triangle lies within its vertex-covering radius (circumradius when acute,
+    # half the longest edge otherwise) of one of its vertices.
+    dirs = np.stack((b - a, c - b, a - c), axis=1)
+    l2 = np.einsum("fkj,fkj->fk", dirs, dirs)  # as the kernel rows compute it, to the last bit
+    la, lb, lc = (np.sqrt(l2[:, k]) for k in range(3))
+    area2 = np.linalg.norm(cross, axis=1)
+    circum = la * lb * lc / np.maximum(2.0 * area2, 1e-300)
+    longest = np.maximum(np.maximum(la, lb), lc)
+    obtuse = 2.0 * longest**2 >= la**2 + lb**2 + lc**2
+    cover = np.where(obtuse, longest / 2.0, circum)
+    centre = (a + b + c) / 3.0
+    radius = np.sqrt(
+        np.maximum(np.maximum(((a - centre) ** 2).sum(1), ((b - centre) ** 2).sum(1)), ((c - centre) ** 2).sum(1))
+    )
+    far = np.zeros((1, 8))
+    far[0, 0:3] = _SENTINEL_COORD  # the sentinel triangle: never within reach
+    own = np.concatenate(
+        (centre, radius[:, None], face_normals, np.einsum("ij,ij->i", face_normals, a)[:, None]), axis=1
+    )
+    return float(cover.max()), np.concatenate((own, far))
+
+
+def _vertex_samples(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The samples and their triangle table: the vertices, each standing for its incident triangles
+    (vertices with many get several samples so that the table stays narrow); padding is the sentinel."""
+    n_faces = len(f)
+    corner_vertex = f.ravel()
+    corner_face = np.repeat(np.arange(n_faces), 3)
+    order = np.argsort(corner_vertex, kind="stable")
+    counts = np.bincount(corner_vertex, minlength=len(v))
+    width = int(min(max(int(np.percentile(counts, 99)), 4), 16))
+    rows_per_vertex = np.maximum(1, -(-counts // width))
+    sample_vertex = np.repeat(np.arange(len(v)), rows_per_vertex)
+    table = np.full((len(sample_vertex), width), n_faces, dtype=np.int64)
+    first_row = np.concatenate(([0], np.cumsum(rows_per_vertex)[:-1]))
+    vstart = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    rank = np.arange(len(corner_vertex)) - vstart[corner_vertex[order]]
+    table_row = first_row[corner_vertex[order]] + rank // width
+    table[table_row, rank % width] = corner_face[order]
+    return table, v[sample_vertex]
+
+
+def _pseudonormals(
+    v: np.ndarray, f: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, face_normals: np.ndarray,
+    topo: _Topology,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Edge and angle-weighted vertex pseudonormals (the sign of a closed mesh), and each face's edges."""
+    ef = topo.edge_faces
+    edge_pn = face_normals[ef[:, 0]] + face_normals[ef[:, 1]]
+    angles = np.empty((len(f), 3))
+    for k, (u, w) in enumerate(((b - a, c - a), (c - b, a - b), (a - c, b - c))):
+        cosang = np.einsum("ij,ij->i", u, w) / (np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1))
+        angles[:, k] = np.arccos(np.clip(cosang, -1.0, 1.0))
+    vpn = np.zeros((len(v), 3))
+    for k in range(3):
+        for axis in range(3):
+            vpn[:, axis] += np.bincount(f[:, k], weights=angles[:, k] * face_normals[:, axis], minlength=len(v))
+    return edge_pn, topo.face_edges, vpn
+
+
 class _Index:
     """Everything a closest-triangle query needs, built once per mesh (in coordinates centred on the
     mesh, so the expanded squared distances keep their precision)."""
@@ -465,139 +591,28 @@ class _Index:
         sign_method: str,
     ) -> None:
         spatial = _scipy_spatial()
-        if sign_method == "auto":
-            sign_method = "pseudonormal" if topo.watertight else "winding"
-        if sign_method not in ("pseudonormal", "winding"):
-            raise ConfigurationError(
-                f"sign_method={sign_method!r} must be 'auto', 'pseudonormal' or 'winding'"
-            )
-        if sign_method == "pseudonormal" and not topo.watertight:
-            raise ConfigurationError(
-                "sign_method='pseudonormal' needs a closed, consistently oriented mesh; use 'winding' or 'auto'"
-            )
-        self.sign_method = sign_method
+        self.sign_method = sign_method = _sign_method_for(topo, sign_method)
         self.origin = (vertices.min(axis=0) + vertices.max(axis=0)) / 2.0
-        edge_len = np.linalg.norm(vertices[topo.edges[:, 0]] - vertices[topo.edges[:, 1]], axis=1)
-        if sample_spacing_mm is None:
-            spacing = 2.0 * float(np.median(edge_len))
-        else:
-            spacing = float(sample_spacing_mm)
-            if not math.isfinite(spacing) or spacing <= 0:
-                raise ConfigurationError(f"sample_spacing_mm={sample_spacing_mm!r} must be a positive length")
-        self.spacing_mm = spacing
+        self.spacing_mm = spacing = _sample_spacing(vertices, topo, sample_spacing_mm)
         v, f = _refine_long_edges(vertices - self.origin, faces, spacing)
         self.vertices = v  # local (centred) coordinates
         self.faces = f
         self.original_triangles = len(faces)
         n_faces = len(f)
         a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-        e1, e2 = b - a, c - a
-        cross = np.cross(e1, e2)
+        cross = np.cross(b - a, c - a)
         self.face_normals = cross / np.linalg.norm(cross, axis=1)[:, None]
-
-        # Distance kernel rows (see _R_*): every quantity but the clamping is linear in p.
-        starts = np.stack((a, b, c), axis=1)  # (F, 3, 3)
-        dirs = np.stack((b - a, c - b, a - c), axis=1)
-        l2 = np.einsum("fkj,fkj->fk", dirs, dirs)
-        rows = np.zeros((n_faces + 1, _N_ROWS, 4))  # the last row is the sentinel
-        g = rows[:n_faces]
-        g[:, _R_SQ, 0:3] = -2.0 * starts
-        g[:, _R_SQ, 3] = np.einsum("fkj,fkj->fk", starts, starts)
-        g[:, _R_T, 0:3] = dirs / l2[:, :, None]
-        g[:, _R_T, 3] = -np.einsum("fkj,fkj->fk", starts, dirs) / l2
-        g[:, _R_S2, 0:3] = 2.0 * dirs
-        g[:, _R_S2, 3] = -2.0 * np.einsum("fkj,fkj->fk", starts, dirs)
-        g[:, _R_L2, 3] = l2
-        g11 = np.einsum("ij,ij->i", e1, e1)
-        g12 = np.einsum("ij,ij->i", e1, e2)
-        g22 = np.einsum("ij,ij->i", e2, e2)
-        det = g11 * g22 - g12 * g12
-        mu = (g22[:, None] * e1 - g12[:, None] * e2) / det[:, None]
-        mv = (g11[:, None] * e2 - g12[:, None] * e1) / det[:, None]
-        g[:, 12, 0:3], g[:, 12, 3] = mu, -np.einsum("ij,ij->i", mu, a)
-        g[:, 13, 0:3], g[:, 13, 3] = mv, -np.einsum("ij,ij->i", mv, a)
-        g[:, 14, 0:3] = -(mu + mv)
-        g[:, 14, 3] = 1.0 - g[:, 12, 3] - g[:, 13, 3]
-        g[:, _R_PD, 0:3] = self.face_normals
-        g[:, _R_PD, 3] = -np.einsum("ij,ij->i", self.face_normals, a)
-        # A sentinel triangle far away pads the vertex-to-triangle table.
-        rows[n_faces, _R_SQ, 3] = _SENTINEL_COORD
-        rows[n_faces, _R_L2, 3] = 1.0
-        rows[n_faces, _R_BARY, 3] = -1.0
-        self.rows = rows
+        self.rows = _kernel_rows(a, b, c, self.face_normals)
         self.sentinel = n_faces
         self._stamp = np.zeros(n_faces + 1, dtype=np.int32)
-
-        # Every point of a triangle lies within its vertex-covering radius (circumradius when acute,
-        # half the longest edge otherwise) of one of its vertices.
-        la, lb, lc = (np.sqrt(l2[:, k]) for k in range(3))
-        area2 = np.linalg.norm(cross, axis=1)
-        circum = la * lb * lc / np.maximum(2.0 * area2, 1e-300)
-        longest = np.maximum(np.maximum(la, lb), lc)
-        obtuse = 2.0 * longest**2 >= la**2 + lb**2 + lc**2
-        cover = np.where(obtuse, longest / 2.0, circum)
-        self.cover_mm = float(cover.max())
-        # Bounding spheres and planes of the triangles, for pruning candidate pairs in batched tests:
-        # columns centre (3), radius, normal (3), plane offset.
-        centre = (a + b + c) / 3.0
-        radius = np.sqrt(
-            np.maximum(
-                np.maximum(((a - centre) ** 2).sum(1), ((b - centre) ** 2).sum(1)), ((c - centre) ** 2).sum(1)
-            )
-        )
-        far = np.zeros((1, 8))
-        far[0, 0:3] = _SENTINEL_COORD  # the sentinel triangle: never within reach
-        self.tri_bounds = np.concatenate(
-            (
-                np.concatenate(
-                    (
-                        centre,
-                        radius[:, None],
-                        self.face_normals,
-                        np.einsum("ij,ij->i", self.face_normals, a)[:, None],
-                    ),
-                    axis=1,
-                ),
-                far,
-            )
-        )
-
-        # Samples: the vertices, each standing for its incident triangles (vertices with many get
-        # several samples so that the table stays narrow).
-        corner_vertex = f.ravel()
-        corner_face = np.repeat(np.arange(n_faces), 3)
-        order = np.argsort(corner_vertex, kind="stable")
-        counts = np.bincount(corner_vertex, minlength=len(v))
-        width = int(min(max(int(np.percentile(counts, 99)), 4), 16))
-        rows_per_vertex = np.maximum(1, -(-counts // width))
-        sample_vertex = np.repeat(np.arange(len(v)), rows_per_vertex)
-        table = np.full((len(sample_vertex), width), n_faces, dtype=np.int64)
-        first_row = np.concatenate(([0], np.cumsum(rows_per_vertex)[:-1]))
-        vstart = np.concatenate(([0], np.cumsum(counts)[:-1]))
-        rank = np.arange(len(corner_vertex)) - vstart[corner_vertex[order]]
-        table_row = first_row[corner_vertex[order]] + rank // width
-        table[table_row, rank % width] = corner_face[order]
-        self.table = table
-        self.samples = v[sample_vertex]
+        self.cover_mm, self.tri_bounds = _triangle_bounds(a, b, c, cross, self.face_normals)
+        self.table, self.samples = _vertex_samples(v, f)
         self.tree = spatial.cKDTree(self.samples)
 
         self.winding: _WindingNumber | None = None
         self.topology = rtopo = _topology(f, len(v))
         if sign_method == "pseudonormal":
-            ef = rtopo.edge_faces
-            self.edge_pn = self.face_normals[ef[:, 0]] + self.face_normals[ef[:, 1]]
-            self.face_edges = rtopo.face_edges
-            angles = np.empty((n_faces, 3))
-            for k, (u, w) in enumerate(((b - a, c - a), (c - b, a - b), (a - c, b - c))):
-                cosang = np.einsum("ij,ij->i", u, w) / (np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1))
-                angles[:, k] = np.arccos(np.clip(cosang, -1.0, 1.0))
-            vpn = np.zeros((len(v), 3))
-            for k in range(3):
-                for axis in range(3):
-                    vpn[:, axis] += np.bincount(
-                        f[:, k], weights=angles[:, k] * self.face_normals[:, axis], minlength=len(v)
-                    )
-            self.vertex_pn = vpn
+            self.edge_pn, self.face_edges, self.vertex_pn = _pseudonormals(v, f, a, b, c, self.face_normals, rtopo)
         else:
             self.winding = _WindingNumber(v, f)
         # Vertices on the border of a hole (open meshes only): near them inside and outside are the
@@ -1101,11 +1116,6 @@ class TriangleMesh(_PlacedSolid):
     def _topology_of(self, v: np.ndarray, f: np.ndarray) -> _Topology:
         self._topo = _topology(f, len(v))
         return self._topo
-
-    @classmethod
-    def from_file(cls, name: str, path: str | os.PathLike[str], **kwargs: Any) -> TriangleMesh:
-        data = read_mesh(path)
-        return cls(name, data.vertices, data.faces, source=data.source, **kwargs)
 
     # -- what is built ------------------------------------------------------------------------------
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -30,12 +30,13 @@ import numpy as np
 
 from ..device.base import Device
 from ..device.config import StimConfig
+from ..device.readback import pattern_readback
 from ..errors import ConfigurationError, LimitError
+from .approach import Approach, make_approach
 from .array import ElectrodeArray
-from .baselines import make_baseline
 from .contexts import TEXTURE_NAMES
-from .manager import ManagerConfig, ManagerOutput, PatternManager
-from .patterns import Pattern, PatternParams, PatternSet
+from .manager import ManagerConfig, ManagerOutput
+from .patterns import Pattern, PatternParams
 
 #: Time without a valid tracking sample after which the renderer goes Idle (all off): 80 ms, so that
 #: with the next sample (14 ms later at 72 Hz) the all-off is sent before the device's 100 ms no-frame
@@ -129,8 +130,11 @@ class Renderer:
     scene's (its options' approach and any per-object overrides; TactDeform for a bare object).  ``contact_mode`` (the
     participant's choice in Task 2) overrides the scene's render option; ``current_ua`` is the
     participant's calibrated level, set by ``configure``; ``current_hook`` may change it per frame.
-    With ``verify`` and an emulator behind the device, every sent frame is compared with the
-    emulator's pattern buffer (mapped back to application order) and mismatches are counted.
+    ``verify`` is a callback returning the pattern the device holds, in application order (for example
+    :func:`~tactdeform_hw.device.readback.pattern_readback`); after every sent frame its answer is
+    compared with the frame and mismatches are counted.  ``verify=True`` asks the device's port for that
+    read-back (a port that declares ``board_state()``, such as the emulator's) and verifies nothing on a
+    port that cannot show its pattern.
     """
 
     def __init__(
@@ -146,7 +150,7 @@ class Renderer:
         current_ua: int = 0,
         stim_config: StimConfig | None = None,
         current_hook: CurrentHook | None = None,
-        verify: bool = False,
+        verify: bool | Callable[[], Sequence[int]] | None = False,
         lost_tracking_s: float = LOST_TRACKING_S,
     ) -> None:
         if not (math.isfinite(lost_tracking_s) and lost_tracking_s > 0.0):
@@ -187,13 +191,9 @@ class Renderer:
 
             cfg = replace(cfg, **overrides)
         self.config = cfg
-        self.renderers: dict[str, Any] = {}
-        for a in set(self.approach_map.values()):
-            if a == "tactdeform":
-                self.renderers[a] = PatternManager(self.array, cfg, patterns=PatternSet(self.array, pattern_params))
-            else:
-                level = pattern_params.on_level if pattern_params is not None else 1
-                self.renderers[a] = make_baseline(a, self.array, on_level=level)
+        self.renderers: dict[str, Approach] = {
+            a: make_approach(a, self.array, cfg, pattern_params) for a in set(self.approach_map.values())
+        }
         self.current_ua = current_ua
         self.stim_config = stim_config
         self.current_hook = current_hook
@@ -201,7 +201,7 @@ class Renderer:
         self.summary = RunSummary()
         self._device_pattern: Pattern | None = None
         self._mapping = self.array.channel_mapping()
-        self._emulator: Any = None
+        self._readback: Callable[[], Sequence[int]] | None = None
         self._started = False
         self._dwell_s = 0.0
 
@@ -228,8 +228,10 @@ class Renderer:
         cfg = self.stim_config or StimConfig(electrode_count=self._mapping.hw_channels, current_ua=self.current_ua)
         dev.configure(cfg)
         self._device_pattern = (0,) * self.array.count
-        if self.verify:
-            self._emulator = getattr(getattr(dev, "port", None), "emulator", None)
+        if callable(self.verify):
+            self._readback = self.verify
+        elif self.verify:
+            self._readback = pattern_readback(dev, self._mapping)
 
     def close(self) -> None:
         if self.device is not None and not self.device.closed:
@@ -270,10 +272,7 @@ class Renderer:
         active = self.approach_for(query)
         out: ManagerOutput | None = None
         for name, r in self.renderers.items():
-            if name == "tactdeform":
-                o = r.update(t_s, pos, quat, query)
-            else:
-                o = r.update(t_s, pos, quat, query, self.scene)
+            o = r.update(t_s, pos, quat, query, self.scene)
             if name == active:
                 out = o
         assert out is not None
@@ -379,10 +378,8 @@ class Renderer:
         self._device_pattern = rec.electrodes
         self.summary.frames_sent += 1
         self.summary.interpolated += int(rec.interpolated)
-        emu = self._emulator
-        if emu is not None:
-            hw = emu.state()["stim_pattern"][: self._mapping.hw_channels]
-            got = tuple(self._mapping.to_application(hw))
+        if self._readback is not None:
+            got = tuple(self._readback())
             if got != tuple(rec.electrodes):
                 self.summary.mismatches += 1
                 if self.summary.first_mismatch is None:

@@ -323,15 +323,6 @@ class Scene:
             "trimesh_imported": "trimesh" in sys.modules,
         }
 
-    def texture_levels(self) -> set[int]:
-        """Texture levels present on the scene's surfaces."""
-        out: set[int] = set()
-        for o in self.objects:
-            out.add(int(getattr(o, "texture_level", 0)))
-            for r in getattr(o, "texture_regions", ()):
-                out.add(r.level)
-        return out
-
     @property
     def bounds_mm(self) -> tuple[np.ndarray, np.ndarray]:
         lo = np.min([b[0] for b in self._bounds], axis=0)
@@ -377,10 +368,6 @@ class Scene:
                 best = q
         assert best is not None
         return best
-
-    def query_all(self, point_mm: np.ndarray) -> list[SurfaceQuery]:
-        p = as_point(point_mm)
-        return [o.query(p) for o in self.objects]
 
     @property
     def is_single_object(self) -> bool:

@@ -20,7 +20,6 @@ normalised; one farther off is not a rotation and is refused.
 from __future__ import annotations
 
 import csv
-import io
 import math
 import os
 from collections import Counter
@@ -191,11 +190,6 @@ class Pose:
         object.__setattr__(self, "t_s", t)
         object.__setattr__(self, "position_mm", p)
         object.__setattr__(self, "orientation", q)
-
-    @classmethod
-    def from_rotation(cls, t_s: float, position_mm: Sequence[float], rotation: np.ndarray) -> Pose:
-        """A pose from a world-from-finger rotation matrix."""
-        return cls(t_s, np.asarray(position_mm, dtype=float), matrix_to_quat(rotation))
 
     @cached_property
     def rotation(self) -> np.ndarray:
@@ -434,9 +428,3 @@ def write_pose_csv(target: str | os.PathLike[str] | IO[str], poses: Iterable[Pos
         )
         n += 1
     return n
-
-
-def poses_to_csv_text(poses: Iterable[Pose]) -> str:
-    buf = io.StringIO()
-    write_pose_csv(buf, poses)
-    return buf.getvalue()

@@ -282,8 +282,9 @@ def trial_poses(
 # --- the run -------------------------------------------------------------------------------------------
 
 
-def _emulator_of(device: Any) -> Any:
-    return getattr(getattr(device, "port", None), "emulator", None)
+def _inspectable(device: Any) -> bool:
+    """Whether the device's port declares that it can show its board's registers (an emulated board)."""
+    return callable(getattr(getattr(device, "port", None), "board_state", None))
 
 
 def run_study(
@@ -311,7 +312,9 @@ def run_study(
     session clock (a real device then shows each trial at its real speed); otherwise the run goes as fast
     as it can, which changes nothing the checks look at: the timed replay restores the session's timing."""
     from ..device import StimConfig, open_device
+    from ..device.readback import pattern_readback
     from ..device.safety import SafetyGuard
+    from ..ports import board_hazards, board_state
 
     say = progress or (lambda _msg: None)
     wall0 = time.perf_counter()
@@ -353,7 +356,7 @@ def run_study(
             current, source = int(current_ua), "--current-ua"
         elif profile is not None:
             current, source = int(profile.stimulation_ua), f"participant {profile.participant}"
-        elif _emulator_of(dev) is not None:
+        elif _inspectable(dev):
             current, source = NOMINAL_EMULATOR_UA, "nominal emulator current"
         else:
             current, source = 0, "none given: patterns only"
@@ -377,12 +380,13 @@ def run_study(
             run.poses = [Pose(p.t_s + offset, p.position_mm, p.orientation) for p in poses]
             run.segment_spans = spans
             run.t0_s = offset
-            emu = _emulator_of(dev)
-            run.verified = emu is not None and sim_clock is not None  # an instant port, offline
-            hazards_before = len(emu.hazards) if emu is not None else 0
+            inspectable = _inspectable(dev)
+            readback = pattern_readback(dev, mapping) if sim_clock is not None else None  # an instant port, offline
+            run.verified = readback is not None
+            hazards_before = len(board_hazards(dev.port) or ())
             renderer = Renderer(scene, dev, array=array, approach=trial.approach, config=cfg,
                                 contact_mode=trial.contact_mode, current_ua=current, stim_config=stim,
-                                verify=run.verified)
+                                verify=readback)
             tap.mark(t_s=offset, trial=trial.index, phase="configure")
             renderer.start()
             tap.mark(phase="render")
@@ -407,9 +411,9 @@ def run_study(
             run.summary = renderer.summary.as_dict()
             run.tracking_drops = dict(validator.drops)
             run.t1_s = run.poses[-1].t_s if run.poses else offset
-            if emu is not None:
-                run.hazards = [h.to_dict() for h in emu.hazards[hazards_before:]]
-                hw = emu.state()["stim_pattern"][: mapping.hw_channels]
+            if inspectable:
+                run.hazards = [h.to_dict() for h in (board_hazards(dev.port) or [])[hazards_before:]]
+                hw = (board_state(dev.port) or {})["stim_pattern"][: mapping.hw_channels]
                 run.end_pattern = list(mapping.to_application(hw))
             run.writes = [w for w in tap.writes if w.trial == trial.index]
             run.wall_s = time.perf_counter() - t_wall

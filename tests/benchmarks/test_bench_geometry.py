@@ -41,6 +41,13 @@ class Cycle:
         return self.fn(p)
 
 
+def _check_queries(scene: Scene, points: list[np.ndarray], last) -> None:  # type: ignore[no-untyped-def]
+    """What was timed answered: finite distances, and the paths reach the surface."""
+    assert np.isfinite(last.signed_distance_mm)
+    answers = [scene.query(p).signed_distance_mm for p in points]
+    assert all(np.isfinite(answers)) and min(answers) <= 0.0 < max(answers)
+
+
 def _note(benchmark, budget_us: float) -> None:  # type: ignore[no-untyped-def]
     benchmark.extra_info["frame_budget_us"] = budget_us
     stats = getattr(benchmark, "stats", None)
@@ -51,7 +58,8 @@ def _note(benchmark, budget_us: float) -> None:  # type: ignore[no-untyped-def]
 @pytest.mark.parametrize("name", ["sphere", "cube", "task2", "task3"])
 def test_query_primitives(benchmark, name: str) -> None:  # type: ignore[no-untyped-def]
     scene = load_scene(name)
-    benchmark(Cycle(scene.query, path_points(scene)))
+    points = path_points(scene)
+    _check_queries(scene, points, benchmark(Cycle(scene.query, points)))
     _note(benchmark, 50.0)
 
 
@@ -59,7 +67,8 @@ def test_query_teapot(benchmark) -> None:  # type: ignore[no-untyped-def]
     pytest.importorskip("scipy", reason="the teapot's mesh index needs scipy (extra 'mesh')")
     scene = load_scene("teapot")
     scene.prepare()
-    benchmark(Cycle(scene.query, path_points(scene)))
+    points = path_points(scene)
+    _check_queries(scene, points, benchmark(Cycle(scene.query, points)))
     _note(benchmark, 250.0)
 
 
@@ -74,7 +83,8 @@ def bunny() -> Scene:
 
 
 def test_query_bunny(benchmark, bunny: Scene) -> None:  # type: ignore[no-untyped-def]
-    benchmark(Cycle(bunny.query, path_points(bunny)))
+    points = path_points(bunny)
+    _check_queries(bunny, points, benchmark(Cycle(bunny.query, points)))
     _note(benchmark, 250.0)
 
 
@@ -91,13 +101,21 @@ def _electrode_clouds(scene: Scene) -> list[np.ndarray]:
     return clouds
 
 
+def _check_contains(scene: Scene, clouds: list[np.ndarray], last: np.ndarray) -> None:
+    """What was timed answered one flag per electrode, and some clouds lie partly inside."""
+    assert np.asarray(last).shape == (32,)
+    assert any(bool(np.any(scene.contains(c))) for c in clouds)
+
+
 def test_contains_32_cube(benchmark) -> None:  # type: ignore[no-untyped-def]
     scene = load_scene("cube")
-    benchmark(Cycle(scene.contains, _electrode_clouds(scene)))
+    clouds = _electrode_clouds(scene)
+    _check_contains(scene, clouds, benchmark(Cycle(scene.contains, clouds)))
 
 
 def test_contains_32_bunny(benchmark, bunny: Scene) -> None:  # type: ignore[no-untyped-def]
-    benchmark(Cycle(bunny.contains, _electrode_clouds(bunny)))
+    clouds = _electrode_clouds(bunny)
+    _check_contains(bunny, clouds, benchmark(Cycle(bunny.contains, clouds)))
 
 
 def _pad_calls(scene: Scene) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, object]]:
@@ -131,5 +149,12 @@ def test_contains_on_pad_meshes(benchmark, name: str, request) -> None:  # type:
         state["i"] += 1
         return scene.contains_on_pad(c, x, y, offsets, q)
 
-    benchmark(one)
+    last = benchmark(one)
+    assert np.asarray(last).shape == (len(offsets),)
+    # the plane's cross-section answers as the points one by one do, over every call timed (a point on
+    # the surface itself, to rounding, may go either way)
+    for c, x, y, q in calls:
+        points = c + offsets[:, :1] * x + offsets[:, 1:] * y
+        differ = np.asarray(scene.contains_on_pad(c, x, y, offsets, q)) != scene.contains(points)
+        assert all(abs(scene.query(p).signed_distance_mm) < 1e-9 for p in points[differ])
     _note(benchmark, 250.0)

@@ -27,11 +27,13 @@ def test_encode_pattern_fast(benchmark) -> None:  # type: ignore[no-untyped-def]
 
 
 def test_encode_pattern_construct_compiled(benchmark) -> None:  # type: ignore[no-untyped-def]
-    benchmark(c.build, Opcode.PATTERN, LEVELS, use_compiled=True)
+    out = benchmark(c.build, Opcode.PATTERN, LEVELS, use_compiled=True)
+    assert out == c.encode_pattern(LEVELS, electrode_num=32)
 
 
 def test_encode_pattern_construct_plain(benchmark) -> None:  # type: ignore[no-untyped-def]
-    benchmark(c.build, Opcode.PATTERN, LEVELS)
+    out = benchmark(c.build, Opcode.PATTERN, LEVELS)
+    assert out == c.encode_pattern(LEVELS, electrode_num=32)
 
 
 def mixed_stream(n_bytes: int = 1_000_000, seed: int = 7) -> bytes:
@@ -105,6 +107,7 @@ def test_pattern_round_trip_over_pty(benchmark, pty_device) -> None:  # type: ig
                 raise AssertionError("pattern never reached the emulator")
 
     benchmark.pedantic(round_trip, rounds=300, warmup_rounds=10)
+    assert list(regs.stim_pattern[:32]) == [flip[0]] * 32  # the last pattern sent is the one the board holds
 
 
 def test_pattern_round_trip_over_pty_transport_only(benchmark, pty_device) -> None:  # type: ignore[no-untyped-def]
@@ -126,3 +129,4 @@ def test_pattern_round_trip_over_pty_transport_only(benchmark, pty_device) -> No
                 raise AssertionError("pattern never reached the emulator")
 
     benchmark.pedantic(round_trip, rounds=300, warmup_rounds=10)
+    assert list(regs.stim_pattern[:32]) == [flip[0]] * 32  # the last pattern sent is the one the board holds

@@ -97,7 +97,11 @@ def test_pose_to_pattern_baselines_on_the_cube(benchmark, approach: str) -> None
     scene = load_scene("cube")
     r = Renderer(scene, None, approach=approach)
     stream = Stream(r.step, surface_path(scene))
-    benchmark(stream)
+    recs = benchmark(stream)
+    assert recs and len(recs[-1].electrodes) == 32 and recs[-1].approach == approach
+    for _ in stream.poses:  # one more whole lap: the path touches the cube
+        stream()
+    assert r.summary.dropped == {} and r.summary.states.get("interacting", 0) > 0
     _record(benchmark, 50.0)
 
 
@@ -118,7 +122,11 @@ def test_manager_alone(benchmark) -> None:  # type: ignore[no-untyped-def]
         t, p, q, qq = items[i % n]
         return m.update(t + (i // n) * period, p, q, qq)
 
-    benchmark(one)
+    out = benchmark(one)
+    assert out.dropped is None and len(out.pattern) == 32
+    for _ in range(n):  # one more whole lap: the path enters and leaves contact
+        one()
+    assert m.stats.dropped_total == 0 and m.stats.transitions > 0
     _record(benchmark, 50.0)
 
 
@@ -130,7 +138,7 @@ def bunny():  # type: ignore[no-untyped-def]
     try:
         scene = load_scene("bunny")
     except ConfigurationError as exc:
-        pytest.skip(f"the bunny mesh is not available: {exc}")
+        pytest.skip(f"../shared/meshes/stanford_bunny.obj is not available: {exc}")
     scene.prepare()
     return scene
 

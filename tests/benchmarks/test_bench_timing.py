@@ -12,10 +12,12 @@ from __future__ import annotations
 import random
 
 from tactdeform_hw.emulator.analytic import Scenario, run_analytic
-from tactdeform_hw.emulator.scan import POWER_ON_CHAIN, ScanConfig, reference_scan
+from tactdeform_hw.emulator.scan import POWER_ON_CHAIN, ScanConfig
 from tactdeform_hw.emulator.timed import TimedEmulator, configuration_bytes
 from tactdeform_hw.emulator.trace import MemorySink
 from tactdeform_hw.protocol import encode_pattern
+
+from ..scan_reference import reference_scan
 
 CFG = ScanConfig.make(32, 1, pulse_width_us=200, discharge_us=45, rate_hz=125)
 DEVICE_S = 10.0

@@ -10,7 +10,9 @@ rhythm (``firmware=v1.2``, the default: 256-byte queue, one command with a paylo
 ``firmware=v2``: 1024-byte queue, whole payloads, a cut command discarded 2 s after its command byte),
 replies become readable when the model delivers them, scans run (0xFF answers with the skin model's
 voltages on v1.2, with the DAC codes the scan last read back on v2).  The port is lazy: each call first brings the model up to
-the wall clock.  It declares ``pacing_clock`` (wall time) so a driver paces its writes as for a board.
+the wall clock.  It declares ``pacing_clock`` (wall time) so a driver paces its writes as for a board, and the other
+capabilities of :mod:`tactdeform_hw.ports`: ``instant``, ``pulse_reset()`` (the reset line pulsed),
+``board_state()`` and ``board_hazards``.
 ``timed=0`` serves the untimed emulator: every write is parsed at once and replies are readable when
 ``write`` returns (``pacing_clock`` then never waits).
 
@@ -38,6 +40,7 @@ from serial.serialutil import PortNotOpenError, SerialBase, SerialException, Tim
 
 from ...clock import InstantClock, MonotonicClock
 from ...errors import ConfigurationError
+from ...ports import PortBase
 from ..core import Emulator
 from ..realtime import BUILD_RULES, RealtimeEmulator, UsbSerialJtagLines, reset_untimed
 
@@ -80,10 +83,13 @@ def _parse(url: str) -> tuple[str, dict[str, str]]:
     return (parts.netloc + parts.path).strip("/"), opts
 
 
-class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type information: SerialBase is Any
+class Serial(SerialBase, PortBase):  # type: ignore[misc]  # pyserial ships no type information: SerialBase is Any
     """pyserial port backed by an in-process emulated board (see the module documentation)."""
 
     is_open: bool  # set by SerialBase.__init__; declared so the checker knows its type
+
+    def _not_open_error(self) -> Exception:
+        return PortNotOpenError()  # type: ignore[no-any-return]
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self.emulator: Any = None
@@ -116,6 +122,24 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
     @property
     def timed(self) -> bool:
         return isinstance(self.emulator, RealtimeEmulator)
+
+    def pulse_reset(self) -> None:
+        """Pulse the reset line as a driver does on a board (RTS asserted with DTR released, then
+        released): the board is power-cycled and the firmware boots again."""
+        self.dtr = False
+        self.rts = True
+        self.rts = False
+
+    def board_state(self) -> dict[str, Any]:
+        """The firmware's registers as the board holds them now."""
+        self._check_open()
+        return self.emulator.state()  # type: ignore[no-any-return]
+
+    @property
+    def board_hazards(self) -> list[Any]:
+        """Every firmware defect the board behind this port has hit."""
+        self._check_open()
+        return self.emulator.hazards  # type: ignore[no-any-return]
 
     # --- open / close ---------------------------------------------------------------------------------
 
@@ -183,23 +207,15 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
 
     @property
     def in_waiting(self) -> int:
-        if not self.is_open:
-            raise PortNotOpenError()
+        self._check_open()
         if self.timed and self.lines.running:
             return int(self.emulator.in_waiting)
         return len(self._rx)
 
-    @property
-    def out_waiting(self) -> int:
-        if not self.is_open:
-            raise PortNotOpenError()
-        return 0
-
     def read(self, size: int = 1) -> bytes:
         """Untimed: replies exist as soon as the write that caused them returned, so a short read returns
         at once.  Timed: waits (up to ``timeout``) for replies the model has yet to deliver."""
-        if not self.is_open:
-            raise PortNotOpenError()
+        self._check_open()
         if not self.timed:
             with self._lock:
                 got = bytes(self._rx[:size])
@@ -223,8 +239,7 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
         return bytes(out)
 
     def write(self, data: bytes) -> int:
-        if not self.is_open:
-            raise PortNotOpenError()
+        self._check_open()
         data = bytes(data)
         self._dump("host->dev", data)
         if not self.lines.running:
@@ -239,20 +254,14 @@ class Serial(SerialBase):  # type: ignore[misc]  # pyserial ships no type inform
         return len(data)
 
     def reset_input_buffer(self) -> None:
-        if not self.is_open:
-            raise PortNotOpenError()
+        self._check_open()
         with self._lock:
             self._rx.clear()
         if self.timed:
             self.emulator.read()
 
-    def reset_output_buffer(self) -> None:
-        if not self.is_open:
-            raise PortNotOpenError()
-
     def _update_break_state(self) -> None:
-        if not self.is_open:
-            raise PortNotOpenError()
+        self._check_open()
 
     # --- DTR / RTS: the USB Serial/JTAG reset ------------------------------------------------------------
 

@@ -1,0 +1,38 @@
+"""Reading back what the board holds, where its port can show it.
+
+An emulated board declares ``board_state()`` (see :mod:`tactdeform_hw.ports`); a real board cannot be
+asked for its pattern buffer.  The renderer and the study take the function this module builds as their
+``verify`` callback, so neither ever looks for an emulator behind a device.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+from ..ports import board_state
+from .mapping import ChannelMapping
+
+PatternReadback = Callable[[], tuple[int, ...]]
+
+
+def pattern_readback(device: Any, mapping: ChannelMapping | None = None) -> PatternReadback | None:
+    """A function returning the pattern the board behind ``device`` holds, in application order
+    (through ``mapping``, default the device's), or None when its port cannot show it."""
+    port = getattr(device, "port", None)
+    if not callable(getattr(port, "board_state", None)):
+        return None
+    m = mapping if mapping is not None else getattr(device, "mapping", None)
+
+    def read() -> tuple[int, ...]:
+        state = board_state(port)
+        assert state is not None  # the port declared board_state()
+        pattern = [int(v) for v in state["stim_pattern"]]
+        if m is None:
+            return tuple(pattern[: int(state["electrode_num"])])
+        return tuple(m.to_application(pattern[: m.hw_channels]))
+
+    return read
+
+
+__all__ = ["PatternReadback", "pattern_readback"]

@@ -1,0 +1,96 @@
+"""What a port may declare, and the base the package's own port classes share.
+
+The driver talks to a pyserial-compatible object and never looks inside it: whatever it needs to treat a
+board and an emulator differently, the port says about itself.  A port that declares nothing is treated as
+a real board (paced in wall time, reset through RTS, never inspected).  The capabilities:
+
+================  ==========================================================================================
+``instant``       ``True`` when every byte is consumed the moment it is written (no waiting can bring more)
+``pacing_clock``  the clock (``now``/``sleep``) writes must be paced in: wall time, a clock that never
+                  waits, or a simulation's time
+``pulse_reset()`` power-cycle the board the way its reset line would
+``guardable``     ``True`` when a guardian process may hold the port's file descriptor
+``board_state()`` the firmware's registers as the board holds them (``stim_pattern``, ``electrode_num``,
+                  …): what an emulated board can show and a real one cannot
+``board_hazards`` the firmware defects the board has hit, as :class:`~.emulator.hazards.Hazard` records
+================  ==========================================================================================
+
+This module sits at the package root because the device layer reads these capabilities and the emulator's
+ports declare them, and neither may import the other.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, runtime_checkable
+
+
+@runtime_checkable
+class InspectablePort(Protocol):
+    """A port whose board can show its registers (an emulated board)."""
+
+    def board_state(self) -> dict[str, Any]: ...
+
+
+def is_instant(port: Any) -> bool:
+    """Whether ``port`` declares that it consumes every byte at once."""
+    return bool(getattr(port, "instant", False))
+
+
+def pacing_clock(port: Any) -> Any:
+    """The clock ``port`` declares for pacing, or None (then: wall time)."""
+    return getattr(port, "pacing_clock", None)
+
+
+def board_state(port: Any) -> dict[str, Any] | None:
+    """The registers of the board behind ``port`` when it declares ``board_state()``, else None."""
+    fn = getattr(port, "board_state", None)
+    return fn() if callable(fn) else None
+
+
+def board_hazards(port: Any) -> list[Any] | None:
+    """The defect records of the board behind ``port`` when it declares ``board_hazards``, else None."""
+    hazards = getattr(port, "board_hazards", None)
+    return hazards if isinstance(hazards, list) else None
+
+
+class PortBase:
+    """The parts of pyserial's ``Serial`` every in-package port has alike: the open check, an output side
+    that holds nothing (a write returns once the bytes are taken), and the context manager.
+
+    A port built on pyserial's ``SerialBase`` lists it first (its context manager opens only a closed
+    port) and overrides :meth:`_not_open_error` to raise pyserial's ``PortNotOpenError``."""
+
+    is_open: bool
+
+    def _not_open_error(self) -> Exception:
+        from .errors import PortNotOpenError
+
+        return PortNotOpenError(f"{type(self).__name__}: the port is not open")
+
+    def _check_open(self) -> Any:
+        if not self.is_open:
+            raise self._not_open_error()
+        return None
+
+    @property
+    def out_waiting(self) -> int:
+        """Always 0: a write returns only once the other side has taken every byte."""
+        self._check_open()
+        return 0
+
+    def reset_output_buffer(self) -> None:
+        self._check_open()
+
+    def flush(self) -> None:
+        self._check_open()
+
+    def __enter__(self) -> Any:
+        if not self.is_open:
+            self.open()  # type: ignore[attr-defined]
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()  # type: ignore[attr-defined]
+
+
+__all__ = ["InspectablePort", "PortBase", "board_hazards", "board_state", "is_instant", "pacing_clock"]

@@ -1,0 +1,166 @@
+"""Which port a device name opens: one table from URL scheme to the callable that makes the port.
+
+=====================================  ===============================================================
+name                                   port
+=====================================  ===============================================================
+``/dev/ttyACM0``, ``COM3`` (a path)    pyserial's ``Serial``, locked for this program and guardable
+``emulator`` (or ``emu``, empty)       the in-process emulator, answering at once (``etactile://?timed=0``)
+``etactile://[NAME][?options]``        the emulator's pyserial URL handler
+``socket://HOST:PORT``                 pyserial's TCP port (an eTactileKit over Wi-Fi, ``emulate --tcp``)
+``etactilekit://ID``                   the kit that answers UDP discovery with that id, over ``socket://``
+``usb://303a:1001``, ``usb:303a:1001``  the pyusb CDC-ACM transport (extra ``[usb]``)
+``usb-emulator[?options]``             that transport over an emulated USB bus
+other ``SCHEME://…``                    pyserial's own URL handlers (``loop://``, ``rfc2217://``, …)
+=====================================  ===============================================================
+
+Each entry is ``"module:callable"``, imported only when a name with that scheme is opened, so an optional
+dependency is needed only by the transport that uses it.  The callable takes ``(name, *, timeout,
+baudrate)`` and returns an unopened pyserial-compatible port.  Other packages add schemes through the
+``tactdeform_hw.transports`` entry-point group (python-can style)::
+
+    [project.entry-points."tactdeform_hw.transports"]
+    ble = "mypackage.ble:open_ble_port"
+
+or at run time with :func:`register_transport`.  The table names the emulator's entries by string, which
+is how the emulated USB device is reached without the device layer importing the emulator.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from typing import Any
+
+from .errors import MissingDependencyError, TransportError, TransportUnavailableError
+
+ENTRY_POINT_GROUP = "tactdeform_hw.transports"
+
+PortFactory = Callable[..., Any]
+
+#: The schemes the package provides.
+BUILTIN_TRANSPORTS: dict[str, str] = {
+    "path": "tactdeform_hw.device.serial_driver:open_serial_path",
+    "etactile": "tactdeform_hw.transports:open_pyserial_url",
+    "socket": "tactdeform_hw.transports:open_pyserial_url",
+    "etactilekit": "tactdeform_hw.device.serial_driver:open_kit_url",
+    "usb": "tactdeform_hw.device.usb_transport:usb_port_for_name",
+    "usb-emulator": "tactdeform_hw.transports:open_usb_emulator",
+}
+
+#: The in-process emulator's short names.
+EMULATOR_NAMES = ("emulator", "emu", "")
+EMULATOR_URL = "etactile://?timed=0"
+
+_registered: dict[str, str | PortFactory] = {}
+_entry_points: dict[str, str] | None = None
+
+
+def register_transport(scheme: str, target: str | PortFactory) -> None:
+    """Make names with ``scheme`` open through ``target`` (a callable, or ``"module:callable"``
+    imported when first used); a registration here takes precedence over the table and entry points."""
+    _registered[scheme] = target
+
+
+def _plugin_transports() -> dict[str, str]:
+    global _entry_points
+    if _entry_points is None:
+        from importlib.metadata import entry_points
+
+        _entry_points = {ep.name: ep.value for ep in entry_points(group=ENTRY_POINT_GROUP)}
+    return _entry_points
+
+
+def scheme_of(name: str) -> str:
+    """The transport scheme a device name selects (``"path"`` for a serial port path)."""
+    if name == "usb-emulator" or name.startswith("usb-emulator?"):
+        return "usb-emulator"
+    if name.startswith("usb:"):
+        return "usb"
+    if "://" in name:
+        return name.split("://", 1)[0]
+    return "path"
+
+
+def available_transports() -> dict[str, str]:
+    """Every scheme that can be opened, with where its factory lives."""
+    out = dict(BUILTIN_TRANSPORTS)
+    for scheme, target in _plugin_transports().items():
+        out.setdefault(scheme, target)
+    for scheme, given in _registered.items():
+        out[scheme] = given if isinstance(given, str) else f"{given.__module__}:{given.__qualname__}"
+    return out
+
+
+def _load(scheme: str, target: str) -> PortFactory:
+    module_name, _, attr = target.partition(":")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        if isinstance(exc, MissingDependencyError):
+            raise
+        raise TransportUnavailableError(scheme, target, exc) from exc
+    try:
+        factory: PortFactory = getattr(module, attr)
+    except AttributeError as exc:
+        raise TransportUnavailableError(scheme, target, exc) from exc
+    return factory
+
+
+def factory_for(scheme: str) -> PortFactory | None:
+    """The callable that opens ``scheme``, or None when nothing provides it."""
+    target: str | PortFactory | None = _registered.get(scheme)
+    if target is None:
+        target = BUILTIN_TRANSPORTS.get(scheme)
+    if target is None:
+        target = _plugin_transports().get(scheme)
+    if target is None:
+        return None
+    return _load(scheme, target) if isinstance(target, str) else target
+
+
+def port_for_name(name: str, *, timeout: float | None, baudrate: int) -> Any:
+    """An unopened port for a device name (see the module documentation)."""
+    if name in EMULATOR_NAMES:
+        name = EMULATOR_URL  # the in-process emulator answers at once
+    scheme = scheme_of(name)
+    factory = factory_for(scheme)
+    if factory is None:
+        factory = open_pyserial_url  # pyserial's own handlers, or its error naming the scheme
+    return factory(name, timeout=timeout, baudrate=baudrate)
+
+
+def open_pyserial_url(name: str, *, timeout: float | None, baudrate: int) -> Any:
+    """A pyserial URL (``etactile://``, ``socket://``, ``loop://``, …) as an unopened port."""
+    import serial
+
+    from . import register_url_handlers
+
+    register_url_handlers()
+    try:
+        return serial.serial_for_url(name, do_not_open=True, baudrate=baudrate, timeout=timeout)
+    except (serial.SerialException, ValueError) as exc:
+        raise TransportError(f"cannot create port {name!r}: {exc}") from exc
+
+
+def open_usb_emulator(name: str, *, timeout: float | None, baudrate: int) -> Any:
+    """``usb-emulator[?options]``: the pyusb transport (device layer) over an emulated bus (emulator); it
+    sits here because neither layer may import the other."""
+    from .device.usb_transport import UsbCdcPort
+    from .emulator.usb_backend import backend_from_name
+    from .protocol.constants import ESP32S3_USB_JTAG_PID, ESPRESSIF_VID
+
+    return UsbCdcPort(
+        ESPRESSIF_VID, ESP32S3_USB_JTAG_PID, backend=backend_from_name(name), timeout=timeout,
+        write_timeout=timeout, baudrate=baudrate, name=name,
+    )  # fmt: skip
+
+
+__all__ = [
+    "BUILTIN_TRANSPORTS",
+    "ENTRY_POINT_GROUP",
+    "available_transports",
+    "factory_for",
+    "port_for_name",
+    "register_transport",
+    "scheme_of",
+]
