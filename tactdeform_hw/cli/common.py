@@ -102,11 +102,11 @@ def hold(device: Any, seconds: float, *, interval_s: float = 0.02) -> None:
 
     end = time.monotonic() + max(0.0, seconds)
     while True:
-        device.keepalive()
         left = end - time.monotonic()
         if left <= 0:
             return
         time.sleep(min(interval_s, left))
+        device.keepalive()  # after the wait: each ramp step (one per frame) is held for a whole interval
 
 
 # --- the stop (every command) -------------------------------------------------------------------------------
