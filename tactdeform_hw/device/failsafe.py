@@ -227,7 +227,10 @@ def _on_stop_signal(signum: int, frame: FrameType | None) -> None:
     done = _thread.allocate_lock()  # held while the stop runs: a plain thread start takes threading's locks
     done.acquire()
     try:
-        _thread.start_new_thread(_backstop, (signum, done, STOP_DEADLINE_S))
+        try:
+            _thread.start_new_thread(_backstop, (signum, done, STOP_DEADLINE_S))
+        except RuntimeError:  # the interpreter is shutting down: no new thread, but the stop itself runs
+            logger.debug("no stop deadline: cannot start a thread")
         record = _stop_all(signum)
     finally:
         done.release()
