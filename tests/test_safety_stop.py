@@ -217,6 +217,32 @@ def test_a_stop_that_cannot_finish_ends_the_process_and_the_guardian_switches_of
     assert board.wait_free(), board.holders()
 
 
+def test_a_stop_never_glues_its_line_onto_an_unfinished_progress_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stop handler raises wherever the signal caught the main thread: here, right after the first
+    write of a progress line (a ``print`` writes the text and its newline separately)."""
+    import io
+
+    from tactdeform_hw.cli import common
+
+    class Stderr(io.StringIO):
+        signal_due = True
+
+        def write(self, s: str) -> int:
+            n = super().write(s)
+            if self.signal_due:
+                self.signal_due = False
+                raise KeyboardInterrupt  # what the stop handler raises for SIGINT
+            return n
+
+    err = Stderr()
+    monkeypatch.setattr(sys, "stderr", err)
+    with pytest.raises(KeyboardInterrupt):
+        common.progress("centre: raise until uncomfortable, then accept  [10 µA]")
+    common._report_stop("calibrate", signal.SIGINT, 1, True)
+    assert err.getvalue().splitlines() == ["centre: raise until uncomfortable, then accept  [10 µA]",
+                                           "tactdeform-hw calibrate: stopped by SIGINT; every channel off"]
+
+
 # --- an owner that runs no code: the guardian ------------------------------------------------------------------
 
 
