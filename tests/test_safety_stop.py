@@ -139,6 +139,110 @@ def test_every_stimulating_command_switches_off_on_every_stop_signal(
     assert board.wait_free(), board.holders()  # the guardian saw the clean close and left
 
 
+# The stop handler runs wherever the signal caught the main thread.  A command's owner writes an audit line for
+# every command it sends, so the signal that comes the moment the board goes on (as in the test above) can land
+# while that line is being written, with the audit log's lock held; the handler's own all-off then writes there
+# too.  This owner's audit stream raises the signal itself from inside that write, every time.
+SIGNAL_INSIDE_AUDIT = """
+import os, signal, sys
+from argparse import Namespace
+from tactdeform_hw.cli.common import hold, run_command
+from tactdeform_hw.cli.delivered import DeliveryLog
+from tactdeform_hw.device import StimConfig, open_device
+from tactdeform_hw.device import failsafe
+
+path, sig, how, record = sys.argv[1], int(sys.argv[2]), sys.argv[3], sys.argv[4]
+
+class Stream:
+    armed = False
+    def __init__(self):
+        self.out = open(record, "w")
+    def write(self, text):
+        self.out.write(text)
+        if self.armed:
+            self.armed = False
+            os.kill(os.getpid(), sig)  # its handler runs here, inside the audit log's write
+    def flush(self):
+        self.out.flush()
+
+def command(args):
+    stream = Stream()
+    log = DeliveryLog(stream, command="send")
+    dev = open_device(path, audit=log)
+    dev.configure(StimConfig(current_ua=600))
+    if how == "stuck":  # an all-off that cannot finish: the deadline ends the process
+        failsafe.STOP_DEADLINE_S = 0.5
+        def stuck(lock=__import__("threading").Lock()):
+            lock.acquire()
+            lock.acquire()
+        dev.close = stuck
+    stream.armed = True  # the next line is the audit of the frame that switches the board on
+    dev.send_pattern([1] * 32)
+    hold(dev, 120)
+    return 0
+
+sys.exit(run_command(command, Namespace(command="send")))
+"""
+
+
+@pytest.mark.parametrize("sig", SIGNALS, ids=lambda s: signal.Signals(s).name)
+def test_a_stop_signal_inside_the_audit_logs_own_write_switches_off(board: Board, tmp_path: Path, sig: int) -> None:
+    record = tmp_path / "audit.jsonl"
+    proc = board.run([sys.executable, "-c", SIGNAL_INSIDE_AUDIT, board.path, str(sig), "lock", str(record)])
+    _, err = proc.communicate(timeout=WAIT_S)
+    name = signal.Signals(sig).name
+    assert proc.returncode == 128 + sig, err
+    assert "Traceback" not in err, err
+    assert err.strip().splitlines()[-1] == f"tactdeform-hw send: stopped by {name}; every channel off", err
+    assert board_is_off(board.watch.state()), board.watch.state()
+    assert board.wait_free(), board.holders()
+    # the frame was written before the stop (its bytes and the all-off's may reach the board in one read)
+    lines = [json.loads(line) for line in record.read_text().splitlines()]
+    after = lines[[i for i, r in enumerate(lines) if r.get("cmd") == "PATTERN" and 1 in r["value"]][0] + 1:]
+    assert [(r["cmd"], r["value"]) for r in after if r["type"] == "tx"][-1] == ("PULSE_HEIGHT", 0), after
+    assert any(r["type"] == "event" and r["event"] == "signal" and r["signal"] == name for r in after), after
+
+
+def test_a_stop_that_cannot_finish_ends_the_process_and_the_guardian_switches_off(board: Board, tmp_path: Path) -> None:
+    """Whatever blocks the handler's all-off for good, the process does not outlive the stop deadline: it
+    exits, and its guardian switches the board off."""
+    proc = board.run([sys.executable, "-c", SIGNAL_INSIDE_AUDIT, board.path, str(int(signal.SIGTERM)), "stuck",
+                      str(tmp_path / "audit.jsonl")])
+    _, err = proc.communicate(timeout=WAIT_S)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "the all-off did not finish within 0.5 s" in err, err
+    assert "gone: all-off sent (heights 0 proved" in err, err
+    assert board.watch.on_since is not None
+    assert board_is_off(board.watch.state()), board.watch.state()
+    assert board.wait_free(), board.holders()
+
+
+def test_a_stop_never_glues_its_line_onto_an_unfinished_progress_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The stop handler raises wherever the signal caught the main thread: here, right after the first
+    write of a progress line (a ``print`` writes the text and its newline separately)."""
+    import io
+
+    from tactdeform_hw.cli import common
+
+    class Stderr(io.StringIO):
+        signal_due = True
+
+        def write(self, s: str) -> int:
+            n = super().write(s)
+            if self.signal_due:
+                self.signal_due = False
+                raise KeyboardInterrupt  # what the stop handler raises for SIGINT
+            return n
+
+    err = Stderr()
+    monkeypatch.setattr(sys, "stderr", err)
+    with pytest.raises(KeyboardInterrupt):
+        common.progress("centre: raise until uncomfortable, then accept  [10 µA]")
+    common._report_stop("calibrate", signal.SIGINT, 1, True)
+    assert err.getvalue().splitlines() == ["centre: raise until uncomfortable, then accept  [10 µA]",
+                                           "tactdeform-hw calibrate: stopped by SIGINT; every channel off"]
+
+
 # --- an owner that runs no code: the guardian ------------------------------------------------------------------
 
 

@@ -161,7 +161,9 @@ class _ConsoleHandler(logging.Handler):
                 and record.args[0] == "refused":  # type: ignore[index]
             return
         try:
-            print(f"{self.prog}: warning: {record.getMessage()}", file=sys.stderr, flush=True)
+            from .common import progress
+
+            progress(f"{self.prog}: warning: {record.getMessage()}")  # one write: a stop cannot cut it
         except Exception:  # pragma: no cover - a closed stderr must not end the command
             pass
 

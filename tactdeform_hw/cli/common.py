@@ -31,7 +31,14 @@ def print_json(obj: Any) -> None:
 
 
 def progress(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+    _line_to_stderr(msg)
+
+
+def _line_to_stderr(msg: str) -> None:
+    """One write for the text and its newline: a stop signal's handler raises between a ``print``'s two
+    writes, which would leave the line unfinished and glue the stop's own line onto it."""
+    sys.stderr.write(msg + "\n")
+    sys.stderr.flush()
 
 
 # --- participant safety (every command that can stimulate) ------------------------------------------------
@@ -147,4 +154,4 @@ def _report_stop(name: str, signum: int, devices: int, all_off: bool) -> None:
         tail = "every channel off"
     else:
         tail = "all-off FAILED: the board may still be stimulating, unplug it"
-    print(f"tactdeform-hw {name}: stopped by {what}; {tail}", file=sys.stderr, flush=True)
+    _line_to_stderr(f"tactdeform-hw {name}: stopped by {what}; {tail}")

@@ -65,7 +65,10 @@ class AuditLog:
             self.path = None
             self._fh = path
             self._owns = False
-        self._lock = threading.Lock()
+        # Reentrant: the stop handler (:mod:`.failsafe`) runs on the main thread wherever a signal caught
+        # it — inside this log's own write, too — and logs its all-off here; a plain lock would make that
+        # stop wait for itself forever, with the board still stimulating.
+        self._lock = threading.RLock()
         self._seq = 0
         self._t0: float | None = None
         self.closed = False
@@ -78,10 +81,11 @@ class AuditLog:
         self._line(header)
 
     def _line(self, obj: dict[str, Any]) -> None:
+        text = json.dumps(obj, default=str, separators=(",", ":")) + "\n"  # whole before the lock: one write a line
         with self._lock:
             if self.closed:
                 return
-            self._fh.write(json.dumps(obj, default=str, separators=(",", ":")) + "\n")
+            self._fh.write(text)
             self._fh.flush()
 
     def rel(self, t: float) -> float:

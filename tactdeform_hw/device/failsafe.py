@@ -10,7 +10,10 @@ forever.  So the host must switch everything off whenever its owner stops, for w
   (if the signal arrived in the middle of a write, it starts with the resync zeros, because the firmware
   may hold half a command), then raises ``KeyboardInterrupt`` (SIGINT) or :class:`SignalStop`, a
   ``SystemExit`` with status 128 + the signal, so the program unwinds and exits with the status a shell
-  expects.  A second signal while the first one's all-off is on the wire is ignored;
+  expects.  A second signal while the first one's all-off is on the wire is ignored.  The handler runs
+  wherever the signal caught the main thread — in the middle of a device operation, of an audit line —
+  so every lock on the way to the wire is reentrant; and should the all-off still not finish within
+  :data:`STOP_DEADLINE_S`, the process exits and the guardian switches the board off;
 * **interpreter exit** — an ``atexit`` hook closes every device still open;
 * **a stalled renderer** — a watchdog thread sends all-off when no frame (``send_pattern``, ``set_current``
   or ``keepalive``) came for ``watchdog_s`` (default 100 ms): it acts early enough (one poll and the link's
@@ -51,8 +54,10 @@ height until the next refresh or probe.
 
 from __future__ import annotations
 
+import _thread
 import atexit
 import logging
+import os
 import signal
 import threading
 import weakref
@@ -81,6 +86,11 @@ LINK_MARGIN_S = 0.002
 
 #: The signals that stop a watched device: Ctrl-C, ``kill``, a closed terminal, Ctrl-\.
 STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
+#: The longest the stop handler may take to switch every device off.  Past it the process exits at once
+#: (status 128 + the signal) and each device's guardian, seeing its owner gone, switches the board off: a
+#: stop that blocks for good (on a lock the code it interrupted holds) must not leave a process that never
+#: ends in front of a board that goes on stimulating.
+STOP_DEADLINE_S = 10.0
 
 _open_devices: weakref.WeakSet[Device] = weakref.WeakSet()
 _atexit_installed = False
@@ -134,7 +144,7 @@ class StopRecord:
 
 #: Every started :class:`FailSafe`; the stop handler switches all of their devices off.
 _active: list[FailSafe] = []
-_active_lock = threading.Lock()
+_active_lock = threading.RLock()  # the stop handler takes it, maybe while the code it interrupted holds it
 _handlers_users = 0
 _old_handlers: dict[int, Any] = {}
 _stopping = False
@@ -194,14 +204,36 @@ def _raise_for(signum: int, record: StopRecord) -> None:
     raise SignalStop(signum, record.all_off, record.devices)
 
 
+def _backstop(signum: int, done: Any, deadline_s: float) -> None:
+    """Exit the process when the stop has not finished within ``deadline_s`` (see :data:`STOP_DEADLINE_S`).
+    Raw ``_thread`` primitives and ``os.write`` only: it must not need a lock the stuck stop might hold."""
+    if done.acquire(True, deadline_s):
+        done.release()
+        return
+    msg = (f"tactdeform-hw: stopped by {signal.Signals(signum).name}; the all-off did not finish within "
+           f"{deadline_s:g} s: exiting, so the guardian of every guarded port switches its board off "
+           "(a board on any other port may still be stimulating: unplug it)\n")
+    try:
+        os.write(2, msg.encode("utf-8", "replace"))
+    finally:
+        os._exit(128 + signum)
+
+
 def _on_stop_signal(signum: int, frame: FrameType | None) -> None:
     global _stopping
     if _stopping:  # the first signal's all-off is on the wire: let it finish
         return
     _stopping = True
+    done = _thread.allocate_lock()  # held while the stop runs: a plain thread start takes threading's locks
+    done.acquire()
     try:
+        try:
+            _thread.start_new_thread(_backstop, (signum, done, STOP_DEADLINE_S))
+        except RuntimeError:  # the interpreter is shutting down: no new thread, but the stop itself runs
+            logger.debug("no stop deadline: cannot start a thread")
         record = _stop_all(signum)
     finally:
+        done.release()
         _stopping = False
     _raise_for(signum, record)
 
