@@ -67,6 +67,7 @@ from .pacing import (
     firmware_period_us,
 )
 from .safety import SafetyGuard
+from .v2 import V2Dialect
 
 #: Pattern levels a host may send: off (a sense pulse, 0 µA while sense current is 0), mono, biphasic.
 ALLOWED_LEVELS = frozenset({PATTERN_SENSE, PATTERN_MONOPHASIC, PATTERN_BIPHASIC})
@@ -206,6 +207,8 @@ class Device(ABC):
         self._writing = False  # True while bytes are being handed to the transport
         self._scan_us: float | None = None  # estimated scan of the pattern in force (None: unknown)
         self._closed = False
+        #: How this board's firmware differs from v1.2 (None: v1.2); see :mod:`.v2`.
+        self._dialect: V2Dialect | None = None
 
     # --- transport (implemented by subclasses) --------------------------------------------------------------
 
@@ -319,6 +322,9 @@ class Device(ABC):
         cfg = self._config
         if cfg is None or self._closed:
             return
+        if self._dialect is not None:
+            self._dialect.refresh(self)
+            return
         pattern = self._last_pattern if self._last_pattern is not None else bytes(cfg.electrode_count)
         self._send(p.encode_pulse_height(self.transfer.to_code(self._current_ua)))
         self._send(p.encode_pattern(pattern, electrode_num=cfg.electrode_count))
@@ -386,6 +392,9 @@ class Device(ABC):
         # after a failed configure brings the old frame back
         self._requested = None
         self._suspended = False
+        if self._dialect is not None:
+            self._dialect.configure(self, config)
+            return
         if self._needs_resync:
             self._recover()
         old = self._config
@@ -466,6 +475,9 @@ class Device(ABC):
         if self._needs_resync:
             self.resync()
             return
+        if self._dialect is not None:
+            self._dialect.set_current(self)
+            return
         levels = None if self._suspended else self._application_levels()
         height = self._encodable(
             self.guard.frame_height(levels, target, self._current_ua, cfg.pulse_width_us, raise_when_idle=True)
@@ -514,6 +526,8 @@ class Device(ABC):
         for i, v in enumerate(levels):
             if isinstance(v, bool) or not isinstance(v, int) or v not in ALLOWED_LEVELS:
                 raise LimitError(f"pattern[{i}]", v, "0 (off), 1 (monophasic) or 2 (biphasic)")
+        if self._dialect is not None:
+            self._dialect.check_levels(levels)
 
     @_locked
     def keepalive(self) -> None:
@@ -553,6 +567,10 @@ class Device(ABC):
         n = self._config.electrode_count
         if self._needs_resync:
             self._recover()  # closed loop: heights 0 and every channel off once the device proves it
+        if self._dialect is not None:
+            self._dialect.off(self)
+            self._suspended = keep_target and self._requested is not None
+            return
         self._send_critical(p.encode_pattern(bytes(n)))
         self._send_critical(p.encode_pulse_height(0))
         self._last_pattern = bytes(n)
@@ -681,6 +699,9 @@ class Device(ABC):
         Time alone never proves anything here: each deadline (the queue model's worst case plus one
         period) only decides when to stop waiting for a proof.
         """
+        if self._dialect is not None:
+            self._dialect.flush_parser(self)
+            return
         cfg = self._config
         n = cfg.electrode_count if cfg is not None else 0
         if cfg is not None:  # (before a configuration the wait is the unknown board's, ``unknown_reply_s``)
@@ -1032,6 +1053,9 @@ class Device(ABC):
         model) — 0xFF when the firmware's electrode count is ``electrodes`` >= 1 (cheap, and its length
         proves the count too), else 0xF5 (about a millisecond of board detection).  No whole reply: the
         device is marked for a resync and :class:`ShortReplyError` raised."""
+        if self._dialect is not None:
+            self._dialect.prove(self, electrodes)
+            return
         self._discard_input()
         if electrodes >= 1:
             request, size, what = p.MEASURE_REQUEST, 2 * electrodes, "measure"
@@ -1089,6 +1113,9 @@ class Device(ABC):
         """Put one application-order frame on the firmware: height down first, pattern, height up last."""
         cfg = self._config
         assert cfg is not None
+        if self._dialect is not None:
+            self._dialect.frame(self, levels, force_pattern=force_pattern)
+            return
         height = self._encodable(
             self.guard.frame_height(levels, self._target_ua, self._current_ua, cfg.pulse_width_us, raise_when_idle=False)
         )
