@@ -57,6 +57,7 @@ from ..protocol.constants import (
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
 from .config import POLARITY_CODE, StimConfig, sense_code
+from .firmware_probe import FirmwareMismatchError
 from .mapping import ChannelMapping
 from .pacing import (
     COMMAND_BYTE_MIN,
@@ -369,7 +370,7 @@ class Device(ABC):
         """
         self._check_open()
         try:
-            config = config.validated(self.transfer)
+            config = config.validated(self.transfer) if self._dialect is None else self._dialect.validated(config, self.transfer)
         except LimitError as exc:
             self.guard.note_refusal(exc)
             raise
@@ -589,6 +590,8 @@ class Device(ABC):
         with self._lock:
             try:
                 self._recover()  # a locked or hung board (perhaps still stimulating) gets the reset line
+            except FirmwareMismatchError:
+                raise  # another firmware than the one this device speaks: refused, never driven
             except TactDeformError:
                 self._suspect("no proof at open")
 

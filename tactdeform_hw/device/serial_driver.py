@@ -31,6 +31,7 @@ from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
 from .base import Device
 from .config import StimConfig
+from .firmware_probe import FirmwareMismatchError
 from .guardian import Guardian, GuardianError, off_packet, pace_for
 from .mapping import ChannelMapping
 from .pacing import Pacer, default_pacer
@@ -210,7 +211,15 @@ class EtactileKitDevice(Device):
             from .v2 import V2Dialect
 
             V2Dialect().attach(self)
-        self._open_proof()  # a board in an unknown state: nothing is sent before it proves its parser
+        try:
+            self._open_proof()
+        except FirmwareMismatchError:
+            self._closed = True  # the board answered as another firmware: stopped, refused, released
+            g, self._guardian = self._guardian, None
+            if g is not None:
+                g.release()
+            self._close_transport()
+            raise  # a board in an unknown state: nothing is sent before it proves its parser
         from .failsafe import adopt
 
         adopt(self)  # a command's stop session watches every device opened under it

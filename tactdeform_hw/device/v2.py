@@ -20,10 +20,11 @@ this module provides (``Device._dialect``; None is v1.2).  The safety contract i
   either version, the safe tail (count 0, mode 0, sense 0), then 0xF4: its one-byte reply (the count, 0)
   proves a command boundary and every byte before it read.  No reply means a command was pending (its
   2 s timeout may have discarded the probe): wait until every byte has arrived plus the 2 s timeout, then
-  the safe tail and 0xF4 again.  Still silent: the board does not answer as v2 must —
+  the whole probe again.  Still silent: the board does not answer as v2 must —
   :class:`~tactdeform_hw.device.firmware_probe.FirmwareMismatchError`, after bytes that stop current on both
   versions.  Then the electrode count is written and proved by the sync reply's value before any pattern.
-* **Pacing for the 1024-byte queue** (the pacer's policy is widened when the dialect attaches).
+* **Pacing for the 1024-byte queue**, once the board has answered the sync check (until then the pacer
+  keeps v1.2's 256 bytes: a board that turns out to run v1.2 still reads every byte of the probe).
 
 The interlock (:class:`~tactdeform_hw.device.safety.SafetyGuard`, ``firmware = V2``) reads every write with
 the v2 table and checks each channel's own height (:func:`verify_channels`).
@@ -42,13 +43,13 @@ from ..protocol.constants import CURRENT_STEP_UA, PATTERN_BIPHASIC, PATTERN_MONO
 from ..protocol.firmware import V2
 from ..protocol.firmware_math import estimate_scan_us, firmware_period_us
 from .config import POLARITY_CODE, StimConfig
-from .firmware_probe import PROBE, SAFE_TAIL, SYNC_CHECK, FirmwareMismatchError
+from .firmware_probe import PROBE, SYNC_CHECK, FirmwareMismatchError
 
 if TYPE_CHECKING:
+    from ..protocol.units import CurrentTransfer
     from .base import Device
     from .mapping import ChannelMapping
     from .safety import SafetyGuard, _Shadow
-    from ..protocol.units import CurrentTransfer
 
 #: Margin past the firmware's 2 s command timeout before a pending command is taken as discarded.
 TIMEOUT_MARGIN_S = 0.1
@@ -88,7 +89,6 @@ class V2Dialect:
         dev._dialect = self
         dev.guard.firmware = V2
         dev.guard.mark_unknown()
-        dev.pacer.policy = replace(dev.pacer.policy, queue_bytes=V2.rx_queue_bytes)
 
     # --- small helpers ----------------------------------------------------------------------------------------
 
@@ -169,7 +169,7 @@ class V2Dialect:
                 dev._enter(LinkState.FLUSHING, "no sync reply: a command was pending (2 s timeout)")
                 dev.pacer.wait_until(dev.pacer.arrived_by() + V2.command_timeout_us / 1e6 + TIMEOUT_MARGIN_S)
                 dev._discard_input()
-                mark = self._rsend(dev, SAFE_TAIL + SYNC_CHECK)
+                mark = self._rsend(dev, PROBE)  # nothing is pending now; the whole probe again, as at first
                 reply = dev._await_reply(1)
                 if not reply:
                     dev._enter(LinkState.FAILED, "the sync check unanswered after the 2 s timeout")
@@ -187,6 +187,9 @@ class V2Dialect:
                 )
             dev._proved(mark)
             dev.guard.note_in_step(0)
+            # v2 answered: from now on pace for its 1024-byte queue (until then, for v1.2's 256 bytes: a
+            # board that turns out to run v1.2 must still read every byte of the probe)
+            dev.pacer.policy = replace(dev.pacer.policy, queue_bytes=V2.rx_queue_bytes)
             dev._enter(LinkState.SAFE, "sync answered 00: command boundary, count 0, mode 0, sense 0")
             dev._current_ua = 0
             dev._sense_byte = 0
@@ -218,16 +221,21 @@ class V2Dialect:
 
     # --- configuration -------------------------------------------------------------------------------------------
 
+    def validated(self, config: StimConfig, transfer: CurrentTransfer) -> StimConfig:
+        """v1.2's checks, except the sense current: v2 stores 0xF9 unshifted, so any DAC code up to 255."""
+        replace(config, sense_current_ua=0).validated(transfer)
+        code = transfer.to_code(config.sense_current_ua, "sense_current_ua")
+        top = V2.value_max("sense_pulse_height")
+        if code > top:
+            raise LimitError("sense_current_ua", config.sense_current_ua,
+                             f"a DAC code of at most {top} on firmware v2 (0xF9 is stored unshifted; this one is {code})")
+        return config
+
     def configure(self, dev: Device, config: StimConfig) -> None:
         """Everything off first (zero pattern), the count raised without stale channels, mode 0, polarity
         while all is off, widths and rate, then a proof by the sync check."""
         n = config.electrode_count
         sense = dev.transfer.to_code(config.sense_current_ua, "sense_current_ua")
-        if sense > V2.value_max("sense_pulse_height"):
-            exc = LimitError("sense_current_ua", config.sense_current_ua,
-                             f"a DAC code of at most {V2.value_max('sense_pulse_height')} (firmware v2 stores 0xF9 unshifted)")
-            dev.guard.note_refusal(exc)
-            raise exc
         if dev._needs_resync:
             dev._recover()
         old = dev._config

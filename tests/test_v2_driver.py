@@ -1,0 +1,371 @@
+"""The device layer on firmware v2: configure, frames with per-electrode heights, all-off, close, recovery
+by the sync check and the 2 s timeout, version detection and refusals — judged on what the emulated board
+holds (untimed) and on the pulses it delivered (the timed v2 model)."""
+
+from __future__ import annotations
+
+import pytest
+
+from tactdeform_hw.device import serial_driver
+from tactdeform_hw.device.base import LinkState
+from tactdeform_hw.device.config import StimConfig
+from tactdeform_hw.device.firmware_probe import FirmwareMismatchError
+from tactdeform_hw.device.safety import SafetyGuard
+from tactdeform_hw.device.serial_driver import EtactileKitDevice, open_device
+from tactdeform_hw.device.v2 import V2Dialect, off_packet
+from tactdeform_hw.emulator import Emulator
+from tactdeform_hw.emulator.faults import TimedPort
+from tactdeform_hw.emulator.timed import TimedEmulator
+from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
+from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.errors import LimitError, SafetyError
+from tactdeform_hw.protocol import commands as c12
+from tactdeform_hw.protocol import commands_v2 as c2
+from tactdeform_hw.protocol.firmware import V1_2, V2
+from tactdeform_hw.protocol.reader import iter_commands
+
+REGIONS = [400, 800, 1200, 1600, 2000, 2000, 2000, 2000, 2000]
+
+
+class V2Board(TimedEmulatorV2):
+    """The timed v2 model with the host-side reply buffer :class:`TimedPort` reads from."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._host_rx = bytearray()
+        self.drop_replies = 0  # replies lost on the way to the host (the first ``drop_replies`` bytes)
+
+    def read_tx(self, size: int | None = None) -> bytes:  # type: ignore[override]
+        got = super().read_tx()
+        while got and self.drop_replies:
+            got = got[1:]
+            self.drop_replies -= 1
+        self._host_rx += got
+        n = len(self._host_rx) if size is None else min(size, len(self._host_rx))
+        out = bytes(self._host_rx[:n])
+        del self._host_rx[:n]
+        return out
+
+    @property
+    def in_waiting(self) -> int:
+        self._host_rx += self.read_tx()
+        return len(self._host_rx)
+
+    def reset(self, why: str = "reset") -> None:
+        self.emulator.reset()
+
+
+def _timed_v2(guard: SafetyGuard | None = None) -> tuple[EtactileKitDevice, TimedPort, V2Board]:
+    board = V2Board()
+    port = TimedPort(board, robust_encoding=False)  # type: ignore[arg-type]
+    dev = EtactileKitDevice(port, firmware="v2", guard=guard)
+    return dev, port, board
+
+
+def _untimed(fw: str) -> tuple[EmulatorPort, Emulator]:
+    emu = Emulator(firmware=fw)
+    return EmulatorPort(emu), emu
+
+
+def _no_live_hazards(emu: Emulator) -> None:
+    """Only the probe's zeros (unknown bytes) and the count raised over channels an earlier pattern left,
+    which the driver does in mode 2 with sense height 0: every pulse of those scans has height 0."""
+    assert [h.kind.value for h in emu.hazards if h.kind.value not in ("unknown_bytes", "stale_channels")] == []
+
+
+# --- configure, frames, all-off, close ---------------------------------------------------------------------
+
+
+def test_configure_send_all_off_close_on_the_untimed_v2_url() -> None:
+    dev = open_device("etactile://?firmware=v2&timed=0", firmware="v2")
+    emu = dev.port.emulator  # type: ignore[attr-defined]
+    assert isinstance(dev._dialect, V2Dialect) and dev.link_state is LinkState.IN_STEP
+    dev.configure(StimConfig(electrode_count=4, current_ua=1000, pulse_width_us=150, discharge_us=40, rate_hz=200,
+                             polarity="cathodic"))
+    s = emu.state()
+    assert (s["electrode_num"], s["stim_mode"], s["pulse_width"], s["discharge_time"], s["polarity"]) == (4, 0, 150, 40, 0)
+    assert s["stim_pattern"][:4] == [0, 0, 0, 0]
+    dev.send_pattern([1, 0, 1, 0])
+    assert emu.state()["stim_pattern"][:4] == [100, 0, 100, 0] and emu.state()["stim_mode"] == 0
+    dev.send_pattern([0, 2, 2, 0])
+    assert emu.state()["stim_pattern"][:4] == [0, 100, 100, 0] and emu.state()["stim_mode"] == 1
+    dev.all_off()
+    s = emu.state()
+    assert s["stim_pattern"][:4] == [0, 0, 0, 0] and s["stim_mode"] in (0, 1)
+    dev.close()
+    assert emu.state()["stim_pattern"][:4] == [0, 0, 0, 0] and emu.state()["stim_mode"] != 2
+    _no_live_hazards(emu)
+
+
+def test_every_byte_the_v2_driver_writes_reads_as_v2_commands_and_never_mode_2_with_a_sense_height() -> None:
+    port, emu = _untimed("v2")
+    dev = EtactileKitDevice(port, firmware="v2")
+    dev.configure(StimConfig(electrode_count=8, current_ua=500, sense_current_ua=100, sense_width_us=20))
+    dev.send_pattern([1] * 8)
+    dev.set_current(700)
+    dev.send_pattern([2] * 8)
+    dev.resync()
+    dev.send_pattern([1, 0] * 4)
+    dev.close()
+    stream = bytes(emu.parser.rx) if hasattr(emu.parser, "rx") else b""
+    sense, mode = 0, 0
+    for c in iter_commands(stream, 0, firmware=V2):
+        if c.opcode == c2.OpcodeV2.SENSE_HEIGHT and c.complete:
+            sense = c.value or 0
+        if c.opcode == c2.OpcodeV2.STIM_MODE and c.complete:
+            mode = c.value or 0
+            assert mode != 2 or sense == 0
+        assert c.opcode != c2.OpcodeV2.PULSE_WIDTH or c.read_value != 0  # 0 is stored on v2: never sent
+    assert stream and emu.state()["stim_mode"] != 2
+    _no_live_hazards(emu)
+
+
+def test_mixed_mono_and_biphasic_frame_is_refused_before_any_byte() -> None:
+    port, emu = _untimed("v2")
+    dev = EtactileKitDevice(port, firmware="v2")
+    dev.configure(StimConfig(electrode_count=4, current_ua=500))
+    before = len(emu.parser.rx)
+    with pytest.raises(LimitError, match="one waveform per frame"):
+        dev.send_pattern([1, 2, 0, 0])
+    assert len(emu.parser.rx) == before
+    dev.close()
+
+
+def test_per_electrode_limits_are_exact_on_the_timed_v2_model() -> None:
+    guard = SafetyGuard(2000, regions_ua=REGIONS)
+    dev, port, board = _timed_v2(guard)
+    dev.configure(StimConfig(electrode_count=32, current_ua=1500))
+    t = port.now_s
+    dev.send_pattern([1] * 32)
+    port.advance(0.05)
+    peak = board.peak_current_ua(since_us=t * 1e6)
+    limits = guard.electrode_limits(32)
+    assert peak == {ch: float(min(1500, limits[ch])) for ch in range(32)}
+    assert len(set(peak.values())) > 2  # regional, not the frame's lowest limit
+    dev.all_off()
+    t_off = port.now_s
+    port.advance(0.05)
+    assert board.peak_current_ua(since_us=(t_off + 0.02) * 1e6) == {}
+    dev.close()
+    _no_live_hazards(board.emulator)
+
+
+def test_each_electrode_ramps_from_its_own_height() -> None:
+    guard = SafetyGuard(2000, ramp_ua_per_frame=300)
+    dev, port, board = _timed_v2(guard)
+    dev.configure(StimConfig(electrode_count=4, current_ua=1000))
+    seen = []
+    for _ in range(5):
+        dev.send_pattern([1, 1, 0, 0])
+        port.advance(0.01)
+        seen.append(board.state()["stim_pattern"][:4])
+    assert [s[0] for s in seen] == [30, 60, 90, 100, 100]
+    dev.send_pattern([1, 1, 1, 0])  # electrode 2 starts soft while 0 and 1 stay
+    port.advance(0.01)
+    assert board.state()["stim_pattern"][:4] == [100, 100, 30, 0]
+    t = port.now_s
+    port.advance(0.05)
+    assert max(board.peak_current_ua(since_us=t * 1e6).values()) <= 1000
+    dev.close()
+
+
+def test_the_interlock_refuses_a_height_above_an_electrodes_own_limit() -> None:
+    port, emu = _untimed("v2")
+    guard = SafetyGuard(2000, regions_ua=REGIONS)
+    dev = EtactileKitDevice(port, firmware="v2", guard=guard)
+    dev.configure(StimConfig(electrode_count=32, current_ua=0))
+    before = len(emu.parser.rx)
+    heights = [0] * 32
+    heights[0] = 50  # 500 µA on electrode 0, whose region allows 400
+    with pytest.raises(SafetyError, match="channel 0 would receive 500"):
+        dev._send(c2.encode_pattern(heights))
+    heights[0] = 40
+    heights[12] = 200  # 2000 µA where 2000 is allowed (no ramp): passes
+    dev._send(c2.encode_pattern(heights))
+    with pytest.raises(SafetyError, match="mode 2"):
+        dev._send(c2.encode_sense_height(10))
+        dev._send(c2.encode_stim_mode(2))
+    assert len(emu.parser.rx) - before == len(c2.encode_pattern(heights)) + 2
+    dev.close()
+
+
+def test_refresh_and_keepalive_rewrite_the_heights_in_force() -> None:
+    port, emu = _untimed("v2")
+    dev = EtactileKitDevice(port, firmware="v2")
+    dev.configure(StimConfig(electrode_count=3, current_ua=300))
+    dev.send_pattern([1, 1, 0])
+    emu.feed(c2.encode_pattern([0, 0, 0]))  # something else changed the board
+    dev.refresh()
+    assert emu.state()["stim_pattern"][:3] == [30, 30, 0]
+    dev.suspend()
+    assert emu.state()["stim_pattern"][:3] == [0, 0, 0]
+    dev.keepalive()
+    assert emu.state()["stim_pattern"][:3] == [30, 30, 0]
+    dev.close()
+
+
+def test_the_guardians_stop_on_v2_stops_current_from_any_parser_state() -> None:
+    pkt = off_packet(32)
+    for prefix in (b"", bytes([0xFE]), c2.encode_electrode_num(255) + bytes([0xFE, 1]), bytes([0xFA, 7])):
+        emu = Emulator(firmware="v2")
+        emu.feed(c2.encode_electrode_num(32) + c2.encode_pattern([100] * 32) + prefix)
+        emu.feed(pkt)
+        s = emu.state()
+        assert s["electrode_num"] == 0 and s["stim_mode"] == 0 and not s["command_in_progress"]
+
+
+# --- detection and refusals -----------------------------------------------------------------------------------
+
+
+def _states(fw: str) -> list[bytes]:
+    """Byte prefixes that leave ``fw``'s parser in every kind of state: at a boundary, after every command
+    byte with every partial payload, a partial pattern of several counts (v1.2: a locked one too)."""
+    spec = V2 if fw == "v2" else V1_2
+    out = [b"", bytes([0x00])]
+    for op, c in spec.by_opcode.items():
+        if c.kind == "u8":
+            out.append(bytes([op]))
+        elif c.kind == "u16":
+            out += [bytes([op]), bytes([op, 0x10])]
+        elif c.kind == "pattern":
+            for n in (1, 32, 255):
+                per = spec.pattern_bytes_per_electrode
+                head = bytes([spec.opcode_of("electrode_num"), n, op])
+                out += [head, head + bytes([1]) * (per * n - 1)]
+    return out
+
+
+@pytest.mark.parametrize("fw", ["v1.2", "v2"])
+def test_auto_detects_the_version_from_every_parser_state_before_any_stimulating_byte(
+    fw: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    for prefix in _states(fw):
+        port, emu = _untimed(fw)
+        emu.feed(prefix)
+        mark = len(emu.parser.rx)
+        monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
+        dev = open_device("emulator", firmware="auto")
+        assert (dev._dialect is not None) == (fw == "v2"), prefix.hex()
+        # the probe (zeros, the safe tail, the sync check) came first: no command that carries a current
+        first = bytes(emu.parser.rx)[mark : mark + 520]
+        assert set(first) <= {0x00, 0xFC, 0xFB, 0xF9, 0xF4}, prefix.hex()
+        assert dev.link_state is LinkState.IN_STEP, prefix.hex()
+        dev.configure(StimConfig(electrode_count=4, current_ua=200))
+        dev.send_pattern([1, 1, 0, 0])
+        want = [20, 20, 0, 0] if fw == "v2" else [1, 1, 0, 0]
+        assert emu.state()["stim_pattern"][:4] == want, prefix.hex()
+        dev.close()
+
+
+def test_a_v12_driver_is_refused_on_a_v2_board(monkeypatch: pytest.MonkeyPatch) -> None:
+    port, emu = _untimed("v2")
+    emu.feed(c2.encode_electrode_num(4) + c2.encode_pattern([150] * 4))  # a v2 board left stimulating
+    monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
+    with pytest.raises(FirmwareMismatchError, match="runs firmware v2"):
+        open_device("emulator", firmware="v1.2")
+    assert emu.state()["electrode_num"] == 0  # nothing scanned any more
+    assert not port.is_open
+
+
+def test_a_v2_driver_is_refused_on_a_v12_board_and_stops_it() -> None:
+    """A v1.2 board left stimulating by a v1.2 session, then a driver forced to v2: the sync check stays
+    unanswered twice (the second time past the 2 s timeout), the board is stopped by bytes both versions
+    read as less current, and the refusal is typed."""
+    board = TimedEmulator()
+    port = TimedPort(board, robust_encoding=False)
+    v12 = EtactileKitDevice(port)
+    v12.configure(StimConfig(electrode_count=8, current_ua=800))
+    v12.send_pattern([1] * 8)
+    port.advance(0.03)
+    t = port.now_s
+    assert _peak_v12(board, (t - 0.02) * 1e6) == 800
+    v12._closed = True  # the session ends without its all-off (killed)
+    with pytest.raises(FirmwareMismatchError, match="does not answer the sync check"):
+        EtactileKitDevice(port, firmware="v2")
+    assert not port.is_open
+    t = port.now_s
+    port.advance(0.05)
+    assert _peak_v12(board, t * 1e6) == 0
+    s = board.state()
+    assert s["electrode_num"] == 0 and s["pulse_height"] == 0
+
+
+def _peak_v12(board: TimedEmulator, since_us: float) -> float:
+    table = board.reports.pulse_table(since_us)
+    return float(table["current_ua"].max()) if table["code"].size else 0.0
+
+
+def test_a_v2_driver_refused_on_a_v12_url(monkeypatch: pytest.MonkeyPatch) -> None:
+    port, emu = _untimed("v1.2")
+    monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
+    emu.feed(c12.encode_electrode_num(4) + c12.encode_pulse_height(50) + c12.encode_pattern(bytes([1] * 4)))
+    with pytest.raises(FirmwareMismatchError, match="does not answer the sync check"):
+        open_device("emulator", firmware="v2")
+    assert not port.is_open
+    assert emu.state()["electrode_num"] == 0 and emu.state()["pulse_height"] == 0
+    # nothing but zeros, the safe tail (the same bytes on both versions) and sync checks reached the board
+    assert set(bytes(emu.parser.rx)[30:]) <= {0x00, 0xFC, 0xFB, 0xF9, 0xF4}
+
+
+# --- recovery ---------------------------------------------------------------------------------------------------
+
+
+def test_recovery_after_a_cut_pattern_on_v2_delivers_nothing_above_the_limits() -> None:
+    guard = SafetyGuard(2000, regions_ua=REGIONS)
+    dev, port, board = _timed_v2(guard)
+    dev.configure(StimConfig(electrode_count=32, current_ua=1500))
+    dev.send_pattern([1] * 32)
+    assert dev._dialect is not None and dev._dialect.codes is not None
+    cut = c2.encode_pattern(dev._dialect.codes)[:41]  # the driver's own write, cut inside a height
+    board.write(cut)
+    dev.mark_unknown()
+    t = port.now_s
+    dev.send_pattern([1] * 32)
+    assert dev.link_state is LinkState.IN_STEP
+    port.advance(0.05)
+    peak = board.peak_current_ua(since_us=t * 1e6)
+    limits = guard.electrode_limits(32)
+    assert all(peak.get(ch, 0) <= limits[ch] for ch in range(32))
+    assert board.state()["stim_pattern"][:32] == [dev.transfer.to_code(min(1500, lim)) for lim in limits[:32]]
+    dev.close()
+
+
+def test_a_missing_sync_reply_waits_past_the_2s_timeout_then_proves_again() -> None:
+    dev, port, board = _timed_v2()
+    dev.configure(StimConfig(electrode_count=8, current_ua=600))
+    dev.send_pattern([1] * 8)
+    board.write(bytes([0xFA]))  # a cut command pending on the board
+    board.drop_replies = 1  # and the probe's sync reply lost
+    dev.mark_unknown()
+    t0 = port.now_s
+    dev.send_pattern([1] * 8)
+    flushing = [t for t, _, new, _ in dev.transitions if new == LinkState.FLUSHING.value and t >= t0]
+    proved = [t for t, _, new, _ in dev.transitions if new == LinkState.SAFE.value and t >= t0]
+    assert flushing and proved and proved[-1] - flushing[0] > 2.0
+    port.advance(0.01)
+    assert board.state()["stim_pattern"][:8] == [60] * 8 and not board.state()["command_in_progress"]
+    t = port.now_s
+    port.advance(0.05)
+    assert max(board.peak_current_ua(since_us=t * 1e6).values()) == 600
+    dev.close()
+
+
+def test_close_on_v2_leaves_everything_off_on_the_timed_model() -> None:
+    dev, port, board = _timed_v2()
+    dev.configure(StimConfig(electrode_count=16, current_ua=900))
+    dev.send_pattern([2] * 16)
+    dev.close()
+    t = port.now_s
+    port.advance(0.05)
+    assert board.peak_current_ua(since_us=t * 1e6) == {}
+
+
+def test_v12_bytes_never_reach_the_v2_dialect() -> None:
+    assert c12.encode_pulse_height(100)[0] == c2.OpcodeV2.STIM_MODE  # the same byte, another meaning
+    port, emu = _untimed("v2")
+    dev = EtactileKitDevice(port, firmware="v2")
+    dev.configure(StimConfig(electrode_count=2, current_ua=100))
+    dev.send_pattern([1, 1])
+    dev.close()
+    modes = [c.value for c in iter_commands(bytes(emu.parser.rx), 0, firmware=V2) if c.opcode == 0xFB]
+    assert modes and set(modes) <= {0, 1, 2}
