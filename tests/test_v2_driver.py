@@ -369,3 +369,22 @@ def test_v12_bytes_never_reach_the_v2_dialect() -> None:
     dev.close()
     modes = [c.value for c in iter_commands(bytes(emu.parser.rx), 0, firmware=V2) if c.opcode == 0xFB]
     assert modes and set(modes) <= {0, 1, 2}
+
+
+def test_cli_send_drives_a_v2_board_with_auto_and_reports_per_electrode_heights(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    import json
+
+    from tactdeform_hw.cli import main
+
+    argv = ["send", "--device", "etactile://?firmware=v2&timed=0", "--firmware", "auto", "--pattern", "1,1,0,1",
+            "--electrodes", "4", "--current-ua", "300", "--hold-ms", "0", "--json"]
+    assert main(argv) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["emulator_pattern"] == [30, 30, 0, 30] and out["emulator_state"]["stim_mode"] == 0
+    assert out["delivered"]["max_delivered_ua"] == 300
+    assert [e["electrode"] for e in out["delivered"]["electrodes"]] == [0, 1, 3]
+    argv[2], argv[4] = "etactile://?firmware=v1.2&timed=0", "v2"
+    assert main(argv) != 0
+    assert "does not answer the sync check" in capsys.readouterr().err

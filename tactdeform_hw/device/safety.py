@@ -75,8 +75,8 @@ from ..protocol.firmware import DEFAULT_FIRMWARE, V2, FirmwareSpec
 from ..protocol.firmware_math import estimate_scan_us
 from ..protocol.reader import COMMAND, ParserState, ReadCommand, read_commands
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
-from .config import POLARITY_CODE, StimConfig
 from . import v2
+from .config import POLARITY_CODE, StimConfig
 from .regions import RegionMap, tactdeform_region_map
 
 if TYPE_CHECKING:

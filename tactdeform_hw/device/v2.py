@@ -53,6 +53,8 @@ if TYPE_CHECKING:
 
 #: Margin past the firmware's 2 s command timeout before a pending command is taken as discarded.
 TIMEOUT_MARGIN_S = 0.1
+#: The firmware's command timeout (v2 discards a command not complete this long after its byte was read).
+COMMAND_TIMEOUT_S = (V2.command_timeout_us or 0) / 1e6
 _EPS = 1e-6
 _ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
 
@@ -89,6 +91,9 @@ class V2Dialect:
         dev._dialect = self
         dev.guard.firmware = V2
         dev.guard.mark_unknown()
+        if dev.audit is not None:
+            dev.audit.firmware = V2
+            dev.audit.event("firmware", firmware=V2.name)
 
     # --- small helpers ----------------------------------------------------------------------------------------
 
@@ -167,7 +172,7 @@ class V2Dialect:
             reply = dev._await_reply(1)
             if not reply:
                 dev._enter(LinkState.FLUSHING, "no sync reply: a command was pending (2 s timeout)")
-                dev.pacer.wait_until(dev.pacer.arrived_by() + V2.command_timeout_us / 1e6 + TIMEOUT_MARGIN_S)
+                dev.pacer.wait_until(dev.pacer.arrived_by() + COMMAND_TIMEOUT_S + TIMEOUT_MARGIN_S)
                 dev._discard_input()
                 mark = self._rsend(dev, PROBE)  # nothing is pending now; the whole probe again, as at first
                 reply = dev._await_reply(1)
