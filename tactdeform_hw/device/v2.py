@@ -44,6 +44,7 @@ from ..protocol.firmware import V2
 from ..protocol.firmware_math import estimate_scan_us, firmware_period_us
 from .config import POLARITY_CODE, StimConfig
 from .firmware_probe import PROBE, SYNC_CHECK, FirmwareMismatchError
+from .pacing import SCAN_GAP_MIN_US
 
 if TYPE_CHECKING:
     from ..protocol.units import CurrentTransfer
@@ -94,6 +95,11 @@ class V2Dialect:
         if dev.audit is not None:
             dev.audit.firmware = V2
             dev.audit.event("firmware", firmware=V2.name)
+        guardian = getattr(dev, "guardian", None)
+        if guardian is not None:
+            # v1.2's stop (a few zeros, then 0xFB 00 00 …) would complete a v2 pattern in progress with
+            # 0xFB as a height's high byte (4095): the guardian stops a v2 board with the probe's bytes
+            guardian.set_stop(off_packet(0))
 
     # --- small helpers ----------------------------------------------------------------------------------------
 
@@ -306,6 +312,7 @@ class V2Dialect:
         ramp = guard.ramp_ua_per_frame
         out: list[int] = []
         clipped: list[tuple[int, int]] = []
+        ramped: list[tuple[int, int]] = []
         for i in range(n):
             if not active[i]:
                 out.append(0)
@@ -316,17 +323,19 @@ class V2Dialect:
                 clipped.append((i, h))
             if ramp is not None and h > prev[i] + ramp:
                 h = prev[i] + ramp
+                ramped.append((i, h))
             if dev.pacer.robust:
                 while h > 0 and (dev.transfer.to_code(h) & 0xFF) >= V2.command_byte_min:
                     h -= CURRENT_STEP_UA
             out.append(max(0, h))
-        if clipped:
-            guard._record(
-                "clipped", "region",
-                f"{len(clipped)} electrode(s) lowered from {target} µA to their own limits "
-                f"({', '.join(f'{i}: {h}' for i, h in clipped[:8])}{' …' if len(clipped) > 8 else ''} µA)",
-                requested_ua=target, sent_ua=[h for _, h in clipped],
-            )
+        for rule, rows, why in (("electrode_limit", clipped, "their own limits"), ("ramp", ramped, f"the ramp of {ramp} µA per frame")):
+            if rows:
+                guard._record(
+                    "clipped", rule,
+                    f"{len(rows)} electrode(s) lowered from {target} µA to {why} "
+                    f"({', '.join(f'{i}: {h}' for i, h in rows[:8])}{' …' if len(rows) > 8 else ''} µA)",
+                    requested_ua=target, sent_ua=max(h for _, h in rows), electrodes=[i for i, _ in rows],
+                )
         return out
 
     def frame(self, dev: Device, levels: Sequence[int], *, force_pattern: bool) -> None:
@@ -346,7 +355,7 @@ class V2Dialect:
                 codes[ch] = dev.transfer.to_code(heights[i])
         period = firmware_period_us(cfg.rate_hz)
         scan = self._scan_us(cfg, mode)
-        dev.guard.check_scan(scan, period, 50.0)
+        dev.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
         before = dev._scan_us if dev._scan_us is not None else self._scan_us(cfg, None)
         dev.pacer.set_timing(period / 1e6, max(before, scan) / 1e6)
         if mode != self.mode:
