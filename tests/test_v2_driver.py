@@ -388,3 +388,24 @@ def test_cli_send_drives_a_v2_board_with_auto_and_reports_per_electrode_heights(
     argv[2], argv[4] = "etactile://?firmware=v1.2&timed=0", "v2"
     assert main(argv) != 0
     assert "does not answer the sync check" in capsys.readouterr().err
+
+
+def test_a_guardian_is_given_the_v2_stop() -> None:
+    class _Guardian:
+        stops: list[bytes] = []
+
+        def set_stop(self, packet: bytes) -> bool:
+            self.stops.append(packet)
+            return True
+
+    port, emu = _untimed("v2")
+    dev = EtactileKitDevice(port)
+    g = _Guardian()
+    dev._guardian = g  # type: ignore[assignment]
+    V2Dialect().attach(dev)
+    assert g.stops == [off_packet(0)]
+    dev._guardian = None
+    dev._closed = True
+    # the stop leaves a v2 pattern in progress complete with zeros, and no height above 0
+    emu.feed(c2.encode_electrode_num(8) + bytes([0xFE, 0x20]) + g.stops[0])
+    assert emu.state()["stim_pattern"][:8] == [0x20] + [0] * 7 and emu.state()["electrode_num"] == 0

@@ -15,6 +15,10 @@ write, a short or late reply, a reconnect or a reset, the closed-loop recovery (
 :meth:`Device._flush_parser`) gets a reply of the expected length first.  Its states and transitions are
 drawn in ``docs/safety.md``.
 
+Firmware v2 speaks other bytes for the same API (one height per electrode, a global waveform mode, the
+sync check): where the versions differ, the device consults its dialect (``_dialect``, :mod:`.v2`; None
+is v1.2).
+
 Two currents are kept apart: the *target* (what the caller asked for with ``configure`` or
 ``set_current``) and the *height in force* (what the firmware's pulse-height register holds).  The height
 of each frame is the target lowered to the frame's lowest limit (see :mod:`.safety`); when it goes down it
