@@ -409,3 +409,74 @@ def test_a_guardian_is_given_the_v2_stop() -> None:
     # the stop leaves a v2 pattern in progress complete with zeros, and no height above 0
     emu.feed(c2.encode_electrode_num(8) + bytes([0xFE, 0x20]) + g.stops[0])
     assert emu.state()["stim_pattern"][:8] == [0x20] + [0] * 7 and emu.state()["electrode_num"] == 0
+
+
+@pytest.mark.parametrize("seed", range(60))
+def test_random_sessions_on_the_timed_v2_model_never_exceed_an_electrodes_limit(seed: int) -> None:
+    """Random public calls (configure, frames mono and biphasic, set_current, keepalive, suspend, all_off,
+    resync, refresh, time passing) on the timed v2 model, judged on every pulse it delivered: none above
+    its own electrode's limit or the charge limit, and no firmware defect hit but the probe's unknown bytes
+    and stale channels raised in mode 2 at sense height 0."""
+    import random
+
+    rng = random.Random(seed)
+    n = rng.choice([4, 16, 32, 32])  # the compact board drives 32 outputs
+    regions = n == 32 and rng.random() < 0.7
+    cap = rng.choice([800, 1500, 3000])
+    guard = SafetyGuard(cap, regions_ua=[min(cap, r) for r in REGIONS] if regions else None,
+                        ramp_ua_per_frame=rng.choice([None, 200, 500]))
+    dev, port, board = _timed_v2(guard)
+    limits = guard.electrode_limits(n)
+    cfg = StimConfig(electrode_count=n, current_ua=rng.randrange(0, cap + 1, 10),
+                     pulse_width_us=rng.choice([50, 100, 200]), rate_hz=rng.choice([60, 125, 200]))
+    try:
+        dev.configure(cfg)
+    except SafetyError as exc:  # every channel is pulsed each scan on v2: the scan must fit the period
+        assert "scan" in str(exc)
+        cfg = StimConfig(electrode_count=n, current_ua=cfg.current_ua, pulse_width_us=50, rate_hz=60)
+        dev.configure(cfg)
+    for _ in range(40):
+        op = rng.random()
+        if op < 0.45:
+            kind = rng.choice([1, 2])
+            try:
+                dev.send_pattern([kind if rng.random() < 0.5 else 0 for _ in range(n)])
+            except SafetyError as exc:  # v2 pulses every channel: a biphasic scan may not fit the period
+                assert "scan" in str(exc)
+        elif op < 0.55:
+            dev.set_current(rng.randrange(0, cap + 1, 10))
+        elif op < 0.62:
+            dev.keepalive()
+        elif op < 0.68:
+            dev.suspend()
+        elif op < 0.74:
+            dev.all_off()
+            dev.set_current(rng.randrange(0, cap + 1, 10))
+        elif op < 0.78:
+            dev.resync()
+        elif op < 0.82:
+            dev.refresh()
+        else:
+            port.advance(rng.uniform(0.0, 0.03))
+    dev.close()
+    port.advance(0.05)
+    charge_ua = guard.charge_limit_ua(cfg.pulse_width_us)
+    worst = {}
+    for row in board.delivered():
+        ch = row["channel"]
+        assert row["current_ua"] <= min(limits[ch], charge_ua) + 1e-6, row
+        worst[ch] = max(worst.get(ch, 0.0), row["current_ua"])
+    assert [h.kind.value for h in board.hazards if h.kind.value not in ("unknown_bytes", "stale_channels")] == []
+    assert board.peak_current_ua(since_us=(port.now_s - 0.03) * 1e6) == {}  # closed: nothing any more
+
+
+def test_a_configuration_whose_idle_scan_fills_the_period_is_refused_on_v2() -> None:
+    """v2 pulses every channel each scan (an off one at height 0): 32 channels at 200 µs do not fit 5 ms."""
+    port, emu = _untimed("v2")
+    dev = EtactileKitDevice(port, firmware="v2")
+    before = len(emu.parser.rx)
+    with pytest.raises(SafetyError, match="scan takes about"):
+        dev.configure(StimConfig(electrode_count=32, current_ua=400, pulse_width_us=200, rate_hz=200))
+    assert len(emu.parser.rx) == before
+    dev.configure(StimConfig(electrode_count=32, current_ua=400, pulse_width_us=200, rate_hz=100))
+    dev.close()

@@ -247,6 +247,10 @@ class V2Dialect:
         while all is off, widths and rate, then a proof by the sync check."""
         n = config.electrode_count
         sense = dev.transfer.to_code(config.sense_current_ua, "sense_current_ua")
+        # v2 pulses every channel in every scan (an off one at height 0): a configuration whose monophasic
+        # scan fills the period starves the parser whatever the pattern, so it is refused before any byte
+        dev.guard.check_scan(self._scan_us(config, c2.STIM_MODE_MONOPHASIC), firmware_period_us(config.rate_hz),
+                             SCAN_GAP_MIN_US)
         if dev._needs_resync:
             dev._recover()
         old = dev._config
