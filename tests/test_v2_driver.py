@@ -480,3 +480,12 @@ def test_a_configuration_whose_idle_scan_fills_the_period_is_refused_on_v2() -> 
     assert len(emu.parser.rx) == before
     dev.configure(StimConfig(electrode_count=32, current_ua=400, pulse_width_us=200, rate_hz=100))
     dev.close()
+
+
+def test_cli_render_drives_a_v2_board_and_its_check_reads_heights(capsys: pytest.CaptureFixture[str]) -> None:
+    from tactdeform_hw.cli import main
+
+    rc = main(["render", "--scene", "cube", "--trajectory", "approach-face", "--device",
+               "etactile://?firmware=v2&timed=0", "--firmware", "auto", "--current-ua", "1000", "--quiet"])
+    assert rc == 0, capsys.readouterr().err
+    assert "0 mismatch(es) against the emulator" in capsys.readouterr().out

@@ -355,6 +355,14 @@ class Device(ABC):
         return self._closed
 
     @property
+    def heights_in_force(self) -> list[int] | None:
+        """Firmware v2: each application electrode's DAC code the firmware's pattern buffer should hold
+        (None on v1.2, whose buffer holds the levels themselves)."""
+        if self._dialect is None:
+            return None
+        return self._dialect.app_codes(self)
+
+    @property
     def electrodes(self) -> int:
         """Application electrodes a pattern must have (0 until configured)."""
         if self._config is None:

@@ -291,6 +291,14 @@ class V2Dialect:
 
     # --- frames ---------------------------------------------------------------------------------------------------
 
+    def app_codes(self, dev: Device) -> list[int] | None:
+        """The DAC codes in force in application order (None: unknown)."""
+        if self.codes is None:
+            return None
+        if dev.mapping is None:
+            return list(self.codes)
+        return [self.codes[ch] if ch < len(self.codes) else 0 for ch in dev.mapping.app_to_hw]
+
     def check_levels(self, levels: Sequence[int]) -> None:
         active = {v for v in levels if v in _ACTIVE}
         if len(active) > 1:

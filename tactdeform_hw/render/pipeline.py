@@ -383,7 +383,8 @@ class Renderer:
         if emu is not None:
             hw = emu.state()["stim_pattern"][: self._mapping.hw_channels]
             got = tuple(self._mapping.to_application(hw))
-            if got != tuple(rec.electrodes):
+            heights = getattr(dev, "heights_in_force", None)  # firmware v2: the buffer holds each height
+            if got != (tuple(heights) if heights is not None else tuple(rec.electrodes)):
                 self.summary.mismatches += 1
                 if self.summary.first_mismatch is None:
                     self.summary.first_mismatch = {"t": rec.t_s, "sent": list(rec.electrodes), "emulator": list(got)}
