@@ -150,7 +150,11 @@ class V2Dialect:
         dev._sense_byte = 0
         send(c2.encode_sense_width(0))
         send(c2.encode_stim_mode(c2.STIM_MODE_IMPEDANCE))
-        send(c2.encode_electrode_num(n))
+        if send is dev._send or send is dev._send_critical:
+            # never v1.2's loss-tolerant echo of the count: a count of 0xF4 would echo a sync check
+            dev._send(c2.encode_electrode_num(n), pad=False)
+        else:
+            send(c2.encode_electrode_num(n))
         send(c2.encode_pattern([0] * n, electrode_num=n))
         send(c2.encode_stim_mode(c2.STIM_MODE_MONOPHASIC))
         self.mode = c2.STIM_MODE_MONOPHASIC
