@@ -489,3 +489,19 @@ def test_cli_render_drives_a_v2_board_and_its_check_reads_heights(capsys: pytest
                "etactile://?firmware=v2&timed=0", "--firmware", "auto", "--current-ua", "1000", "--quiet"])
     assert rc == 0, capsys.readouterr().err
     assert "0 mismatch(es) against the emulator" in capsys.readouterr().out
+
+
+def test_a_hung_v2_board_gets_the_reset_line_and_comes_back() -> None:
+    dev, port, board = _timed_v2()
+    dev.configure(StimConfig(electrode_count=8, current_ua=500))
+    dev.send_pattern([1] * 8)
+    board.drop_replies = 10**6  # the board stops answering (hung, as far as the host can tell)
+    dev.mark_unknown()
+    resets = []
+    real_reset = board.reset
+    board.reset = lambda why="reset": (resets.append(why), setattr(board, "drop_replies", 0), real_reset(why))  # type: ignore[method-assign]
+    dev.send_pattern([1] * 8)
+    assert resets and dev.link_state is LinkState.IN_STEP
+    port.advance(0.02)
+    assert board.state()["stim_pattern"][:8] == [50] * 8
+    dev.close()

@@ -85,6 +85,7 @@ class V2Dialect:
         self.mode: int | None = None  # the stimulation mode in force (None: unknown)
         self.codes: list[int] | None = None  # DAC code per hardware channel in force (None: unknown)
         self.heights_ua: list[int] = []  # height per application electrode in force
+        self.answered = False  # the board has answered a sync check in this session (it runs v2)
 
     # --- attaching --------------------------------------------------------------------------------------------
 
@@ -189,6 +190,10 @@ class V2Dialect:
                 if not reply:
                     dev._enter(LinkState.FAILED, "the sync check unanswered after the 2 s timeout")
                     dev.guard.mark_unknown()
+                    if self.answered and dev._can_reset() and not dev._resetting:
+                        # a board that answered as v2 before and is silent now is hung (perhaps still
+                        # stimulating): the reset line, as on v1.2 (``Device._recover``)
+                        raise ShortReplyError("sync check after the 2 s timeout (parser hung: reset the board)", 1, b"")
                     raise FirmwareMismatchError(
                         "the board does not answer the sync check 0xF4 as firmware v2 must (twice, the second "
                         "time more than 2 s after any command could have started): it runs v1.2, or its parser "
@@ -202,6 +207,7 @@ class V2Dialect:
                 )
             dev._proved(mark)
             dev.guard.note_in_step(0)
+            self.answered = True
             # v2 answered: from now on pace for its 1024-byte queue (until then, for v1.2's 256 bytes: a
             # board that turns out to run v1.2 must still read every byte of the probe)
             dev.pacer.policy = replace(dev.pacer.policy, queue_bytes=V2.rx_queue_bytes)
