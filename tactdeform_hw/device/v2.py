@@ -33,7 +33,7 @@ the v2 table and checks each channel's own height (:func:`verify_channels`).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
@@ -424,6 +424,18 @@ class V2Dialect:
         levels = None if dev._suspended else dev._application_levels()
         if levels is not None:
             self.frame(dev, levels, force_pattern=False)
+
+
+def buffer_levels(state: Mapping[str, Any]) -> list[int]:
+    """The levels a board's pattern buffer stands for, from its register snapshot: v1.2 holds the levels
+    themselves; v2 (a snapshot with ``stim_mode``) holds heights, read back as 0 (no current) or the
+    waveform its mode gives every other channel (1 monophasic, 2 biphasic)."""
+    pattern = [int(v) for v in state["stim_pattern"]]
+    mode = state.get("stim_mode")
+    if mode is None:
+        return pattern
+    level = PATTERN_BIPHASIC if mode == c2.STIM_MODE_BIPHASIC else PATTERN_MONOPHASIC
+    return [level if v else 0 for v in pattern]
 
 
 # --- the interlock's reading of v2 registers -----------------------------------------------------------------------

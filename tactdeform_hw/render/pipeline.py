@@ -30,6 +30,7 @@ import numpy as np
 
 from ..device.base import Device
 from ..device.config import StimConfig
+from ..device.v2 import buffer_levels
 from ..errors import ConfigurationError, LimitError
 from .array import ElectrodeArray
 from .baselines import make_baseline
@@ -381,10 +382,9 @@ class Renderer:
         self.summary.interpolated += int(rec.interpolated)
         emu = self._emulator
         if emu is not None:
-            hw = emu.state()["stim_pattern"][: self._mapping.hw_channels]
+            hw = buffer_levels(emu.state())[: self._mapping.hw_channels]
             got = tuple(self._mapping.to_application(hw))
-            heights = getattr(dev, "heights_in_force", None)  # firmware v2: the buffer holds each height
-            if got != (tuple(heights) if heights is not None else tuple(rec.electrodes)):
+            if got != tuple(rec.electrodes):
                 self.summary.mismatches += 1
                 if self.summary.first_mismatch is None:
                     self.summary.first_mismatch = {"t": rec.t_s, "sent": list(rec.electrodes), "emulator": list(got)}
