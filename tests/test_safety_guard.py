@@ -228,6 +228,7 @@ COVERED = {
     "measure": "no current command",
     "probe": "a measure",
     "hv513_count": "no current command",
+    "heights_in_force": "read-only: the v2 heights the firmware should hold",
     "resync": "resync tests: configuration again through configure",
     "reconnect": "resync",
     "hardware_reset": "resync",

@@ -38,3 +38,12 @@ def test_safety_report_quick() -> None:
     assert isinstance(out, dict)
     assert out["faults_injected"] > 0 and out["faults_survived"] == out["faults_injected"]
     assert out["bytes_lost_unreported"] == 0
+
+
+def test_driver_latency_measures_both_versions_through_the_driver() -> None:
+    out = run_tool("tools/driver_latency.py", "--frames", "4", "--json")
+    assert isinstance(out, list) and [r["firmware"] for r in out] == ["v1.2", "v2"]
+    for r in out:
+        # within two periods of 8 ms plus the link: the frame is really put in force
+        assert 0 < r["in_force_ms"]["min"] <= r["in_force_ms"]["max"] < 20
+        assert r["last_channel_ms"]["max"] < 25

@@ -1,5 +1,5 @@
 """Firmware detection: the probe brings either firmware, from every parser state, to a command boundary
-with every current off, and tells them apart; ``open_device(firmware="auto")`` refuses a v2 board."""
+with every current off, and tells them apart; ``open_device(firmware="v1.2")`` refuses a v2 board."""
 
 from __future__ import annotations
 
@@ -127,7 +127,7 @@ def test_only_zero_or_less_current_bytes_in_the_probe() -> None:
     assert all(b == 0 for b, nxt in itertools.pairwise(PROBE) if b in (0xFC, 0xFB, 0xF9) for b in [nxt])
 
 
-def test_open_device_auto_refuses_a_v2_board_and_accepts_v12(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_open_device_v12_refuses_a_v2_board_and_accepts_v12(monkeypatch: pytest.MonkeyPatch) -> None:
     from tactdeform_hw.device import serial_driver
 
     for fw, ok in (("v1.2", True), ("v2", False)):
@@ -135,12 +135,12 @@ def test_open_device_auto_refuses_a_v2_board_and_accepts_v12(monkeypatch: pytest
         port = EmulatorPort(emu)
         monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
         if ok:
-            dev = serial_driver.open_device("emulator", firmware="auto")
+            dev = serial_driver.open_device("emulator", firmware="v1.2")
             dev.close()
         else:
             before = len(emu.parser.rx)
             with pytest.raises(FirmwareMismatchError, match="runs firmware v2"):
-                serial_driver.open_device("emulator", firmware="auto")
+                serial_driver.open_device("emulator", firmware="v1.2")
             assert len(emu.parser.rx) - before == len(PROBE)  # nothing after the probe
             assert not port.is_open
             assert emu.state()["electrode_num"] == 0
@@ -164,10 +164,10 @@ def test_open_device_refuses_an_unknown_firmware_name() -> None:
         open_device("emulator", firmware="v3")
 
 
-def test_cli_firmware_auto_refuses_a_v2_emulator(capsys: pytest.CaptureFixture[str]) -> None:
+def test_cli_firmware_v12_refuses_a_v2_emulator(capsys: pytest.CaptureFixture[str]) -> None:
     from tactdeform_hw.cli import main
 
-    argv = ["send", "--device", "etactile://?firmware=v2", "--firmware", "auto", "--pattern", "1", "--electrodes", "1",
+    argv = ["send", "--device", "etactile://?firmware=v2", "--firmware", "v1.2", "--pattern", "1", "--electrodes", "1",
             "--current-ua", "100", "--hold", "0"]
     assert main(argv) != 0
     assert "runs firmware v2" in capsys.readouterr().err

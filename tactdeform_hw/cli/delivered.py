@@ -93,7 +93,10 @@ class DeliveryLog(AuditLog):
         super().tx(data, t=t, ok=ok, op=op, logical=logical)
         if not ok:
             return
-        name, value = describe_command(logical if logical is not None else data)
+        name, value = describe_command(logical if logical is not None else data, self.firmware)
+        if self.firmware is not V1_2:
+            self._tx_heights(name, value)
+            return
         if name == "PULSE_HEIGHT" and isinstance(value, int):
             ua = int(round(self.transfer.to_ua(min(value, V1_2.dac_max_code))))
             if ua != self._height:
@@ -110,6 +113,23 @@ class DeliveryLog(AuditLog):
             for ch, level in enumerate(self._pattern):
                 if level in _ACTIVE and self.channel_max_ua.get(ch, 0) < self._height:
                     self.channel_max_ua[ch] = self._height
+
+    def _tx_heights(self, name: str, value: Any) -> None:
+        """Firmware v2: each pattern element is its channel's height (a DAC code, clamped at 4095)."""
+        if name != "PATTERN" or not isinstance(value, list):
+            return
+        top = self.firmware.dac_max_code
+        uas = [int(round(self.transfer.to_ua(min(int(v), top)))) for v in value]
+        height = max(uas, default=0)
+        if height != self._height:
+            self.height_changes += 1
+            if height and len(self.heights_ua) < HEIGHTS_SHOWN and (not self.heights_ua or self.heights_ua[-1] != height):
+                self.heights_ua.append(height)
+        self._height = height
+        self.max_ua = max(self.max_ua, height)
+        for ch, ua in enumerate(uas):
+            if ua and self.channel_max_ua.get(ch, 0) < ua:
+                self.channel_max_ua[ch] = ua
 
     def safety(self, entry: dict[str, Any]) -> None:
         super().safety(entry)

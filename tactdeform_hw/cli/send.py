@@ -139,7 +139,8 @@ def run(args: argparse.Namespace) -> int:
         result["mapping"] = list(mapping.app_to_hw) if mapping is not None else None
     result["requested_current_ua"] = args.current_ua
     result["delivered"] = delivered
-    result["sent_current_ua"] = DEFAULT_TRANSFER.to_ua(state["pulse_height"]) if state is not None else None
+    sent_code = None if state is None else state.get("pulse_height", max(state["stim_pattern"][: config.electrode_count]))
+    result["sent_current_ua"] = DEFAULT_TRANSFER.to_ua(sent_code) if sent_code is not None else None
     result["safety"] = list(guard.log)
     if state is not None:
         result["emulator_state"] = {k: v for k, v in state.items() if k != "stim_pattern"}

@@ -120,6 +120,7 @@ def run(args: argparse.Namespace) -> int:
             tremor_mm=args.tremor_mm,
             progress=say,
             realtime=args.realtime,
+            firmware=getattr(args, "firmware", None),
         )
     finally:
         audit.close()

@@ -53,6 +53,9 @@ def describe_command(data: bytes, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> 
 class AuditLog:
     """Append-only JSON-lines log.  ``path`` may be a file path or an open text stream."""
 
+    #: The firmware whose reading names the commands (the device sets v2 when it speaks v2).
+    firmware: FirmwareSpec = DEFAULT_FIRMWARE
+
     def __init__(self, path: str | os.PathLike[str] | IO[str], **session: Any) -> None:
         if isinstance(path, (str, os.PathLike)):
             self.path: Path | None = Path(path)
@@ -94,7 +97,7 @@ class AuditLog:
         return t - self._t0
 
     def tx(self, data: bytes, *, t: float, ok: bool = True, op: str = "", logical: bytes | None = None) -> None:
-        name, value = describe_command(logical if logical is not None else data)
+        name, value = describe_command(logical if logical is not None else data, self.firmware)
         self._seq += 1
         self._line(
             {

@@ -15,6 +15,10 @@ write, a short or late reply, a reconnect or a reset, the closed-loop recovery (
 :meth:`Device._flush_parser`) gets a reply of the expected length first.  Its states and transitions are
 drawn in ``docs/safety.md``.
 
+Firmware v2 speaks other bytes for the same API (one height per electrode, a global waveform mode, the
+sync check): where the versions differ, the device consults its dialect (``_dialect``, :mod:`.v2`; None
+is v1.2).
+
 Two currents are kept apart: the *target* (what the caller asked for with ``configure`` or
 ``set_current``) and the *height in force* (what the firmware's pulse-height register holds).  The height
 of each frame is the target lowered to the frame's lowest limit (see :mod:`.safety`); when it goes down it
@@ -57,6 +61,7 @@ from ..protocol.constants import (
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
 from .config import POLARITY_CODE, StimConfig, sense_code
+from .firmware_probe import FirmwareMismatchError
 from .mapping import ChannelMapping
 from .pacing import (
     COMMAND_BYTE_MIN,
@@ -67,6 +72,7 @@ from .pacing import (
     firmware_period_us,
 )
 from .safety import SafetyGuard
+from .v2 import V2Dialect
 
 #: Pattern levels a host may send: off (a sense pulse, 0 µA while sense current is 0), mono, biphasic.
 ALLOWED_LEVELS = frozenset({PATTERN_SENSE, PATTERN_MONOPHASIC, PATTERN_BIPHASIC})
@@ -206,6 +212,8 @@ class Device(ABC):
         self._writing = False  # True while bytes are being handed to the transport
         self._scan_us: float | None = None  # estimated scan of the pattern in force (None: unknown)
         self._closed = False
+        #: How this board's firmware differs from v1.2 (None: v1.2); see :mod:`.v2`.
+        self._dialect: V2Dialect | None = None
 
     # --- transport (implemented by subclasses) --------------------------------------------------------------
 
@@ -319,6 +327,9 @@ class Device(ABC):
         cfg = self._config
         if cfg is None or self._closed:
             return
+        if self._dialect is not None:
+            self._dialect.refresh(self)
+            return
         pattern = self._last_pattern if self._last_pattern is not None else bytes(cfg.electrode_count)
         self._send(p.encode_pulse_height(self.transfer.to_code(self._current_ua)))
         self._send(p.encode_pattern(pattern, electrode_num=cfg.electrode_count))
@@ -344,6 +355,14 @@ class Device(ABC):
         return self._closed
 
     @property
+    def heights_in_force(self) -> list[int] | None:
+        """Firmware v2: each application electrode's DAC code the firmware's pattern buffer should hold
+        (None on v1.2, whose buffer holds the levels themselves)."""
+        if self._dialect is None:
+            return None
+        return self._dialect.app_codes(self)
+
+    @property
     def electrodes(self) -> int:
         """Application electrodes a pattern must have (0 until configured)."""
         if self._config is None:
@@ -363,7 +382,7 @@ class Device(ABC):
         """
         self._check_open()
         try:
-            config = config.validated(self.transfer)
+            config = config.validated(self.transfer) if self._dialect is None else self._dialect.validated(config, self.transfer)
         except LimitError as exc:
             self.guard.note_refusal(exc)
             raise
@@ -386,6 +405,9 @@ class Device(ABC):
         # after a failed configure brings the old frame back
         self._requested = None
         self._suspended = False
+        if self._dialect is not None:
+            self._dialect.configure(self, config)
+            return
         if self._needs_resync:
             self._recover()
         old = self._config
@@ -466,6 +488,9 @@ class Device(ABC):
         if self._needs_resync:
             self.resync()
             return
+        if self._dialect is not None:
+            self._dialect.set_current(self)
+            return
         levels = None if self._suspended else self._application_levels()
         height = self._encodable(
             self.guard.frame_height(levels, target, self._current_ua, cfg.pulse_width_us, raise_when_idle=True)
@@ -514,6 +539,8 @@ class Device(ABC):
         for i, v in enumerate(levels):
             if isinstance(v, bool) or not isinstance(v, int) or v not in ALLOWED_LEVELS:
                 raise LimitError(f"pattern[{i}]", v, "0 (off), 1 (monophasic) or 2 (biphasic)")
+        if self._dialect is not None:
+            self._dialect.check_levels(levels)
 
     @_locked
     def keepalive(self) -> None:
@@ -553,6 +580,10 @@ class Device(ABC):
         n = self._config.electrode_count
         if self._needs_resync:
             self._recover()  # closed loop: heights 0 and every channel off once the device proves it
+        if self._dialect is not None:
+            self._dialect.off(self)
+            self._suspended = keep_target and self._requested is not None
+            return
         self._send_critical(p.encode_pattern(bytes(n)))
         self._send_critical(p.encode_pulse_height(0))
         self._last_pattern = bytes(n)
@@ -571,6 +602,8 @@ class Device(ABC):
         with self._lock:
             try:
                 self._recover()  # a locked or hung board (perhaps still stimulating) gets the reset line
+            except FirmwareMismatchError:
+                raise  # another firmware than the one this device speaks: refused, never driven
             except TactDeformError:
                 self._suspect("no proof at open")
 
@@ -681,6 +714,9 @@ class Device(ABC):
         Time alone never proves anything here: each deadline (the queue model's worst case plus one
         period) only decides when to stop waiting for a proof.
         """
+        if self._dialect is not None:
+            self._dialect.flush_parser(self)
+            return
         cfg = self._config
         n = cfg.electrode_count if cfg is not None else 0
         if cfg is not None:  # (before a configuration the wait is the unknown board's, ``unknown_reply_s``)
@@ -1032,6 +1068,9 @@ class Device(ABC):
         model) — 0xFF when the firmware's electrode count is ``electrodes`` >= 1 (cheap, and its length
         proves the count too), else 0xF5 (about a millisecond of board detection).  No whole reply: the
         device is marked for a resync and :class:`ShortReplyError` raised."""
+        if self._dialect is not None:
+            self._dialect.prove(self, electrodes)
+            return
         self._discard_input()
         if electrodes >= 1:
             request, size, what = p.MEASURE_REQUEST, 2 * electrodes, "measure"
@@ -1089,6 +1128,9 @@ class Device(ABC):
         """Put one application-order frame on the firmware: height down first, pattern, height up last."""
         cfg = self._config
         assert cfg is not None
+        if self._dialect is not None:
+            self._dialect.frame(self, levels, force_pattern=force_pattern)
+            return
         height = self._encodable(
             self.guard.frame_height(levels, self._target_ua, self._current_ua, cfg.pulse_width_us, raise_when_idle=False)
         )

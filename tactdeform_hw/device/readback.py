@@ -12,6 +12,7 @@ from typing import Any
 
 from ..ports import board_state
 from .mapping import ChannelMapping
+from .v2 import buffer_levels
 
 PatternReadback = Callable[[], tuple[int, ...]]
 
@@ -27,7 +28,7 @@ def pattern_readback(device: Any, mapping: ChannelMapping | None = None) -> Patt
     def read() -> tuple[int, ...]:
         state = board_state(port)
         assert state is not None  # the port declared board_state()
-        pattern = [int(v) for v in state["stim_pattern"]]
+        pattern = [int(v) for v in buffer_levels(state)]  # v2 holds heights: an active channel reads 1 or 2
         if m is None:
             return tuple(pattern[: int(state["electrode_num"])])
         return tuple(m.to_application(pattern[: m.hw_channels]))

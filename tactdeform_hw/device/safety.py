@@ -71,10 +71,11 @@ from ..protocol.constants import (
     PATTERN_BUFFER_SIZE,
     PATTERN_MONOPHASIC,
 )
-from ..protocol.firmware import DEFAULT_FIRMWARE, FirmwareSpec
+from ..protocol.firmware import DEFAULT_FIRMWARE, V2, FirmwareSpec
 from ..protocol.firmware_math import estimate_scan_us
 from ..protocol.reader import COMMAND, ParserState, ReadCommand, read_commands
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
+from . import v2
 from .config import POLARITY_CODE, StimConfig
 from .regions import RegionMap, tactdeform_region_map
 
@@ -138,6 +139,8 @@ class _Shadow:
     parse: ParserState | None = _AT_BOUNDARY
     #: How this state could come about when it is not the nominal one (for refusal messages).
     how: str = field(default="", compare=False)
+    #: Firmware v2's stimulation mode (v1.2 has none; None: unknown).
+    stim_mode: int | None = None
 
     def copy(self) -> _Shadow:
         return _Shadow(
@@ -150,12 +153,13 @@ class _Shadow:
             list(self.pattern),
             self.parse,
             self.how,
+            self.stim_mode,
         )
 
     def key(self) -> tuple[Any, ...]:
         return (
             self.electrode_num, self.height_code, self.sense_code, self.polarity, self.width_us,
-            self.sense_width_us, tuple(self.pattern), self.parse,
+            self.sense_width_us, tuple(self.pattern), self.parse, self.stim_mode,
         )
 
 
@@ -579,7 +583,7 @@ class SafetyGuard:
         states = (self._wire.nominal, *self._wire.alternatives)
         merged = states[0].copy()
         for other in states[1:]:
-            for name in ("electrode_num", "height_code", "sense_code", "polarity", "width_us", "sense_width_us"):
+            for name in ("electrode_num", "height_code", "sense_code", "polarity", "width_us", "sense_width_us", "stim_mode"):
                 if getattr(other, name) != getattr(merged, name):
                     setattr(merged, name, None)
             merged.pattern = [a if a == b else None for a, b in zip(merged.pattern, other.pattern)]
@@ -733,6 +737,8 @@ class SafetyGuard:
                 continue
             if kind == "pattern":
                 levels = c.levels
+                if levels and fw is V2:
+                    v2.check_ramp(self, sh.pattern, levels, c.start, "pattern" + when, transfer)
                 if levels:
                     sh.pattern[c.start : c.start + len(levels)] = levels
                     if any(levels):
@@ -787,6 +793,9 @@ class SafetyGuard:
                         f"pulse height {new_ua:g} µA{when} rises more than {self.ramp_ua_per_frame} µA above {prev_ua:g} µA",
                     )
                 self._verify(sh, "pulse height" + when, mapping, transfer)
+        elif register == "stim_mode":
+            sh.stim_mode = value
+            self._verify(sh, "stimulation mode" + when, mapping, transfer)
         elif register == "sense_pulse_height":
             sh.sense_code = value
             if value:
@@ -812,6 +821,8 @@ class SafetyGuard:
         # discharge and frequency carry no current
 
     def _current_can_flow(self, sh: _Shadow) -> bool:
+        if self.firmware is V2:
+            return v2.current_can_flow(sh)
         if sh.sense_code != 0 and sh.electrode_num != 0:
             return True
         if sh.height_code == 0:
@@ -823,6 +834,9 @@ class SafetyGuard:
 
     def _verify(self, sh: _Shadow, what: str, mapping: ChannelMapping | None, transfer: CurrentTransfer) -> None:
         """Every channel the firmware scans receives at most its limit; unknowns count as their worst."""
+        if self.firmware is V2:
+            v2.verify_channels(self, sh, what, mapping, transfer)
+            return
         num = sh.electrode_num
         height_ua = transfer.to_ua(sh.height_code) if sh.height_code is not None else math.inf
         if height_ua > self.cap_ua + _EPS:

@@ -31,6 +31,7 @@ from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
 from .base import Device
 from .config import StimConfig
+from .firmware_probe import FirmwareMismatchError
 from .guardian import Guardian, GuardianError, off_packet, pace_for
 from .mapping import ChannelMapping
 from .pacing import Pacer, default_pacer
@@ -185,6 +186,7 @@ class EtactileKitDevice(Device):
         audit: AuditLog | None = None,
         guardian: bool | None = None,
         offline_clock: Clock | None = None,
+        firmware: str = "v1.2",
     ) -> None:
         super().__init__(mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit)
         self.port = port
@@ -206,7 +208,19 @@ class EtactileKitDevice(Device):
                 self._closed = True
                 self._close_transport()
                 raise
-        self._open_proof()  # a board in an unknown state: nothing is sent before it proves its parser
+        if firmware == "v2":
+            from .v2 import V2Dialect
+
+            V2Dialect().attach(self)
+        try:
+            self._open_proof()
+        except FirmwareMismatchError:
+            self._closed = True  # the board answered as another firmware: stopped, refused, released
+            g, self._guardian = self._guardian, None
+            if g is not None:
+                g.release()
+            self._close_transport()
+            raise  # a board in an unknown state: nothing is sent before it proves its parser
         from .failsafe import adopt
 
         adopt(self)  # a command's stop session watches every device opened under it
@@ -253,6 +267,11 @@ class EtactileKitDevice(Device):
             return
         drain_s, zeros_s = pace_for(cfg.rate_hz, cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us,
                                     cfg.sense_width_us)
+        if self._dialect is not None:
+            from .v2 import off_packet as off_packet_v2
+
+            g.configure(off_packet_v2(cfg.electrode_count), drain_s, zeros_s)
+            return
         g.configure(off_packet(cfg.electrode_count), drain_s, zeros_s)
 
     def configure(self, config: StimConfig) -> None:
@@ -447,7 +466,7 @@ def open_device(
     audit: AuditLog | None = None,
     guardian: bool | None = None,
     offline_clock: Clock | None = None,
-    firmware: str = "v1.2",
+    firmware: str | None = None,
 ) -> EtactileKitDevice:
     """Open a device by name: a serial port path, a pyserial URL, ``usb:VID:PID[:SERIAL]``,
     ``usb-emulator``, or ``emulator`` (the default).  ``pacer`` defaults to what the port needs (see
@@ -457,25 +476,30 @@ def open_device(
     port declares itself ``instant`` (it answers every byte at once), pace on this clock instead of the wall
     clock, so an offline run keeps session time.
 
-    ``firmware``: "v1.2" drives the board without asking; "auto" first runs the version probe
-    (:mod:`.firmware_probe`: every current off, then the sync check) and refuses a board that does not
-    run v1.2, the only version this driver's commands are written for, before any stimulating byte."""
-    if firmware not in ("v1.2", "auto"):
+    ``firmware``: "auto" runs the version probe first (:mod:`.firmware_probe`: every current off, then
+    the sync check) and drives the board in the version it answers as; "v1.2" runs the same probe and
+    refuses a board that answers as v2; "v2" drives v2 at once — its own closed-loop recovery is the sync
+    check, and a board that does not answer it as v2 must is refused after bytes that stop current on both
+    versions.  None (the default) drives v1.2 without asking, for callers that know their board.  Every
+    refusal is a :class:`~tactdeform_hw.device.firmware_probe.FirmwareMismatchError`, raised before any
+    stimulating byte."""
+    if firmware not in (None, "v1.2", "v2", "auto"):
         from ..errors import ConfigurationError
 
-        raise ConfigurationError(f"firmware={firmware!r}: the device layer drives 'v1.2' (or 'auto' to detect "
-                                 "and refuse any other version)")
+        raise ConfigurationError(f"firmware={firmware!r}: the device layer drives 'v1.2' or 'v2' (or 'auto' to "
+                                 "detect which)")
     port = open_port(name, timeout=timeout)
-    if firmware == "auto":
-        _probe(port)
+    speak = firmware or "v1.2"
+    if firmware in ("auto", "v1.2"):
+        speak = _probe(port, None if firmware == "auto" else firmware)
     return EtactileKitDevice(
         port, mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit, guardian=guardian,
-        offline_clock=offline_clock,
+        offline_clock=offline_clock, firmware=speak,
     )
 
-def _probe(port: Any) -> None:
-    """Open ``port`` (lines low) and refuse it unless the board runs v1.2; close it on refusal without
-    sending anything more."""
+def _probe(port: Any, expected: str | None) -> str:
+    """Open ``port`` (lines low), detect its firmware and refuse it unless it is ``expected`` (None: any);
+    close it on refusal without sending anything more.  The detected version's name."""
     from .firmware_probe import check_firmware, detect_firmware
 
     errors = _serial_error_types()
@@ -487,10 +511,12 @@ def _probe(port: Any) -> None:
             raise TransportError(f"cannot open {getattr(port, 'port', port)!s}: {exc}") from exc
     try:
         det = detect_firmware(port.write, port.read, port.reset_input_buffer, sleep=default_pacer(port).clock.sleep)
-        check_firmware("v1.2", det)
+        if expected is not None:
+            check_firmware(expected, det)
     except BaseException:
         try:
             port.close()
         except errors:
             pass
         raise
+    return det.name

@@ -302,6 +302,7 @@ def run_study(
     mesh_dirs: Sequence[str] = (),
     progress: ProgressFn | None = None,
     realtime: bool = False,
+    firmware: str | None = None,
 ) -> StudyRun:
     """Run every trial of ``study`` on one device session; return the raw results (see :mod:`.checks`
     and :mod:`.report` for what is made of them).
@@ -345,7 +346,13 @@ def run_study(
     from ..clock import SimulatedClock
 
     dev = open_device(device, timeout=timeout, mapping=mapping, guard=guard, audit=audit,
-                      offline_clock=None if realtime else SimulatedClock())
+                      offline_clock=None if realtime else SimulatedClock(), firmware=firmware)
+    if dev._dialect is not None:
+        dev.close()
+        raise ConfigurationError(
+            f"--firmware {firmware}: the board runs firmware v2, and the study's checks replay the session on "
+            "the timed model of firmware v1.2; run the study on a v1.2 board"
+        )
     sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
     tap = WireTap(dev.port)
     dev.port = tap
