@@ -314,7 +314,7 @@ def test_emulate_tcp_v2_answers_discovery_and_ports_and_the_driver_find_it(capsy
         out = capsys.readouterr().out
         assert "etactilekit://F93030" in out and f"127.0.0.1:{tcp}" in out and "fw=1.0" in out
         with pytest.raises(FirmwareMismatchError):  # a v1.2 driver finds a v2 board and sends it nothing more
-            open_device(f"etactilekit://F93030?discovery=127.0.0.1:{udp}", firmware="auto", timeout=0.3)
+            open_device(f"etactilekit://F93030?discovery=127.0.0.1:{udp}", firmware="v1.2", timeout=0.3)
         with socket.create_connection(("127.0.0.1", int(tcp)), timeout=2) as sock:
             sock.sendall(b"\xf4")
             assert _recv(sock, 1) == b"\x00"  # the probe left the count at 0 and the parser in step
@@ -388,10 +388,10 @@ def test_socket_url_opens_through_pyserials_handler_paced_on_the_wall_clock() ->
 def test_v12_driver_refused_on_the_v2_tcp_board_by_socket_and_by_discovery() -> None:
     with _v2_tcp() as server, DiscoveryResponder("C0FFEE", port=0, tcp_port=server.address[1]) as responder:
         with pytest.raises(FirmwareMismatchError):
-            open_device(server.url, firmware="auto", timeout=0.3)
+            open_device(server.url, firmware="v1.2", timeout=0.3)
         assert _wait(lambda: not server.connected)
         with pytest.raises(FirmwareMismatchError):
-            open_device(f"etactilekit://C0FFEE?discovery=127.0.0.1:{responder.address[1]}", firmware="auto", timeout=0.3)
+            open_device(f"etactilekit://C0FFEE?discovery=127.0.0.1:{responder.address[1]}", firmware="v1.2", timeout=0.3)
         assert server.clients == 2
         st = server.board.state()
         assert st["electrode_num"] == 0 and st["stim_mode"] == 0 and not st["command_in_progress"]
