@@ -47,7 +47,9 @@ class FakeFloor:
         return np.asarray(points_mm, dtype=float)[:, 2] <= 0.0
 
 
-def quat_from_axes(x_axis: np.ndarray, y_axis: np.ndarray, z_axis: np.ndarray) -> tuple[float, float, float, float]:
+def quat_from_axes(
+    x_axis: np.ndarray, y_axis: np.ndarray, z_axis: np.ndarray
+) -> tuple[float, float, float, float]:
     """Unit quaternion (w, x, y, z) of the rotation whose columns are the finger axes."""
     m = np.column_stack([x_axis, y_axis, z_axis]).astype(float)
     tr = m[0, 0] + m[1, 1] + m[2, 2]
@@ -103,7 +105,11 @@ def line_poses(
 
 
 def hold_poses(
-    t0: float, at: tuple[float, float, float], duration_s: float, rate_hz: float, q: tuple[float, float, float, float] = PAD_DOWN
+    t0: float,
+    at: tuple[float, float, float],
+    duration_s: float,
+    rate_hz: float,
+    q: tuple[float, float, float, float] = PAD_DOWN,
 ) -> list[tuple[float, np.ndarray, tuple[float, float, float, float]]]:
     n = int(round(duration_s * rate_hz))
     p = np.array(at, dtype=float)

@@ -14,8 +14,14 @@ PROBE_RECORDS = frozenset({HazardKind.UNKNOWN_BYTES, HazardKind.HV513_REINIT})
 def defects(hazards: list[Hazard]) -> list[Hazard]:
     """The hazards that are firmware defects, not the records of a probe nor a value byte >= 0xF5 the
     host meant as a value (electrode count 255)."""
-    return [h for h in hazards if h.kind not in PROBE_RECORDS
-            and not (h.kind is HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE and h.detail.get("meant_as_command") is False)]
+    return [
+        h
+        for h in hazards
+        if h.kind not in PROBE_RECORDS
+        and not (
+            h.kind is HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE and h.detail.get("meant_as_command") is False
+        )
+    ]
 
 
 class RecordingPort(EmulatorPort):

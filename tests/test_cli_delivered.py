@@ -39,8 +39,12 @@ def profile(tmp_path: Path) -> Path:
     return p
 
 
-def test_send_console_shows_request_lowerings_and_delivered(profile: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    rc = main(["send", "--participant", str(profile), "--current-ua", "1600", "--pattern", CENTRE, "--hold", "0.1"])
+def test_send_console_shows_request_lowerings_and_delivered(
+    profile: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    rc = main(
+        ["send", "--participant", str(profile), "--current-ua", "1600", "--pattern", CENTRE, "--hold", "0.1"]
+    )
     assert rc == 0
     out = capsys.readouterr().out
     assert "at 1600 µA" not in out  # the request is never reported as what was sent
@@ -56,18 +60,36 @@ def test_send_json_delivered_matches_the_boards_pulses(
     profile: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     log = tmp_path / "send.jsonl"
-    rc = main(["send", "--participant", str(profile), "--current-ua", "1600", "--pattern", CENTRE, "--hold", "0.1",
-               "--audit-log", str(log), "--json"])
+    rc = main(
+        [
+            "send",
+            "--participant",
+            str(profile),
+            "--current-ua",
+            "1600",
+            "--pattern",
+            CENTRE,
+            "--hold",
+            "0.1",
+            "--audit-log",
+            str(log),
+            "--json",
+        ]
+    )
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
     d = out["delivered"]
     assert out["requested_current_ua"] == 1600 and d["requested_ua"] == 1600
     assert d["max_delivered_ua"] == 1200 and d["pulse_heights_ua"] == [400, 800, 1200]
     region = [e for e in d["lowered"] if e["rule"] == "region"]
-    assert region and region[0]["region"] == 4 and region[0]["limit_ua"] == 1200 and region[0]["sent_ua"] == 1200
+    assert (
+        region and region[0]["region"] == 4 and region[0]["limit_ua"] == 1200 and region[0]["sent_ua"] == 1200
+    )
     assert region[0]["electrodes"] == [CENTRE_ELECTRODES[0]]
     assert any(e["rule"] == "ramp" and e["sent_ua"] == 800 for e in d["lowered"])
-    assert [(e["electrode"], e["max_ua"], e["region"]) for e in d["electrodes"]] == [(i, 1200, 4) for i in CENTRE_ELECTRODES]
+    assert [(e["electrode"], e["max_ua"], e["region"]) for e in d["electrodes"]] == [
+        (i, 1200, 4) for i in CENTRE_ELECTRODES
+    ]
     # the board's scans, replayed on the timed emulator, agree: the centre channels, up to 1200 µA, ramped
     rep = replay(str(log))
     table = rep.pop("_table")
@@ -82,11 +104,29 @@ def test_send_json_delivered_matches_the_boards_pulses(
     assert lines[0]["positions_mm"] and lines[0]["mapping"] == list(range(32))
 
 
-def test_play_json_reports_the_delivered_currents(profile: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    seq = {"Execution": True, "Simulation": True, "Pattern_Data": [
-        [{"delay": {"ON": 30, "OFF": 0}, "pattern": [int(v) for v in CENTRE.split(",")], "params": {"frequency": 125, "stim_mode": 1}}],
-        [{"delay": {"ON": 30, "OFF": 0}, "pattern": [1 if r == 0 else 0 for r in TACTDEFORM_REGION_OF], "params": {"frequency": 125, "stim_mode": 1}}],
-    ]}
+def test_play_json_reports_the_delivered_currents(
+    profile: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    seq = {
+        "Execution": True,
+        "Simulation": True,
+        "Pattern_Data": [
+            [
+                {
+                    "delay": {"ON": 30, "OFF": 0},
+                    "pattern": [int(v) for v in CENTRE.split(",")],
+                    "params": {"frequency": 125, "stim_mode": 1},
+                }
+            ],
+            [
+                {
+                    "delay": {"ON": 30, "OFF": 0},
+                    "pattern": [1 if r == 0 else 0 for r in TACTDEFORM_REGION_OF],
+                    "params": {"frequency": 125, "stim_mode": 1},
+                }
+            ],
+        ],
+    }
     pat = tmp_path / "two.json"
     pat.write_text(json.dumps(seq))
     rc = main(["play", str(pat), "--participant", str(profile), "--current-ua", "1600", "--quiet", "--json"])
@@ -103,8 +143,19 @@ def test_play_json_reports_the_delivered_currents(profile: Path, tmp_path: Path,
 
 
 def test_render_reports_what_was_delivered(profile: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    rc = main(["render", "--scene", "cube", "--trajectory", "approach-face", "--participant", str(profile),
-               "--quiet", "--json"])
+    rc = main(
+        [
+            "render",
+            "--scene",
+            "cube",
+            "--trajectory",
+            "approach-face",
+            "--participant",
+            str(profile),
+            "--quiet",
+            "--json",
+        ]
+    )
     assert rc == 0
     d = json.loads(capsys.readouterr().out)["delivered"]
     assert d["requested_ua"] == 1200  # the participant's highest region
@@ -117,8 +168,20 @@ def test_study_reports_what_was_sent_and_it_matches_the_timed_replay(
     profile: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out_dir = tmp_path / "run"
-    rc = main(["study", "task1", "--quick", "--out", str(out_dir), "--participant", str(profile), "--quiet",
-               "--no-pictures", "--json"])
+    rc = main(
+        [
+            "study",
+            "task1",
+            "--quick",
+            "--out",
+            str(out_dir),
+            "--participant",
+            str(profile),
+            "--quiet",
+            "--no-pictures",
+            "--json",
+        ]
+    )
     assert rc == 0
     d = json.loads(capsys.readouterr().out)["delivered"]
     report = json.loads((out_dir / "report.json").read_text())

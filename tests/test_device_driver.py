@@ -104,7 +104,9 @@ def test_reconfiguring_clears_stale_channels(dev: EtactileKitDevice, port: Recor
         (lambda d: d.configure(StimConfig(pulse_width_us=float("nan"))), LimitError),  # type: ignore[arg-type]
     ],
 )
-def test_refusals_before_configure_write_nothing(dev: EtactileKitDevice, port: RecordingPort, call, error) -> None:  # type: ignore[no-untyped-def]
+def test_refusals_before_configure_write_nothing(
+    dev: EtactileKitDevice, port: RecordingPort, call, error
+) -> None:  # type: ignore[no-untyped-def]
     with pytest.raises(error):
         call(dev)
     assert port.writes == []
@@ -122,7 +124,9 @@ def test_refusals_before_configure_write_nothing(dev: EtactileKitDevice, port: R
         (None, LimitError, "pattern"),
     ],
 )
-def test_pattern_refusals_write_nothing(dev: EtactileKitDevice, port: RecordingPort, levels, error, match: str) -> None:  # type: ignore[no-untyped-def]
+def test_pattern_refusals_write_nothing(
+    dev: EtactileKitDevice, port: RecordingPort, levels, error, match: str
+) -> None:  # type: ignore[no-untyped-def]
     dev.configure(StimConfig(current_ua=100))
     before = list(port.writes)
     with pytest.raises(error, match=match):

@@ -15,7 +15,9 @@ from tactdeform_hw.device.discovery import discover, serial_candidates
 BOARD_SERIAL = "F4:12:FA:C0:FF:EE"
 
 
-def comport(device: str, vid: int | None, pid: int | None, serial: str | None = None, product: str | None = None) -> SimpleNamespace:
+def comport(
+    device: str, vid: int | None, pid: int | None, serial: str | None = None, product: str | None = None
+) -> SimpleNamespace:
     """A record shaped like pyserial's ``ListPortInfo``."""
     return SimpleNamespace(
         device=device, vid=vid, pid=pid, serial_number=serial, product=product, manufacturer=None,
@@ -55,14 +57,19 @@ def test_discover_lists_both_routes_and_links_the_same_board() -> None:
     assert any("CDC-ACM" in r for r in u.reasons) and any("JTAG" in r for r in u.reasons)
     assert u.location and u.location.startswith("bus 1 address")
     assert {c.device for c in result.likely} == {"/dev/ttyACM0", u.device}
-    assert discover(usb_backend=EmulatedUsbBackend(), serial_ports=PORTS, include_all=True).candidates[2].device == "/dev/ttyS0"
+    assert (
+        discover(usb_backend=EmulatedUsbBackend(), serial_ports=PORTS, include_all=True).candidates[2].device
+        == "/dev/ttyS0"
+    )
 
 
 def test_unreadable_strings_are_a_note_not_an_error() -> None:
     pytest.importorskip("usb.core")
     from tactdeform_hw.emulator.usb_backend import EmulatedUsbBackend, EmulatedUsbDevice
 
-    result = discover(usb_backend=EmulatedUsbBackend([EmulatedUsbDevice(access_denied=True)]), serial_ports=[])
+    result = discover(
+        usb_backend=EmulatedUsbBackend([EmulatedUsbDevice(access_denied=True)]), serial_ports=[]
+    )
     (u,) = result.candidates
     assert u.likely and u.device == "usb:303a:1001" and u.serial_number is None
     assert any("no permission" in n and "udev" in n for n in u.notes)
@@ -86,9 +93,13 @@ def test_no_pyusb_still_lists_serial_ports(monkeypatch: pytest.MonkeyPatch) -> N
     assert any("tactdeform_hw[usb]" in n for n in result.notes)
 
 
-def test_ports_command_json_with_the_emulated_bus(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+def test_ports_command_json_with_the_emulated_bus(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     pytest.importorskip("usb.core")
-    monkeypatch.setattr(discovery, "serial_candidates", lambda ports=None, include_all=True: serial_candidates(PORTS))
+    monkeypatch.setattr(
+        discovery, "serial_candidates", lambda ports=None, include_all=True: serial_candidates(PORTS)
+    )
     assert main(["ports", "--json", "--usb-emulator"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["usb_available"] is True
@@ -96,10 +107,14 @@ def test_ports_command_json_with_the_emulated_bus(monkeypatch: pytest.MonkeyPatc
     assert usb[0]["vid"] == "303a" and usb[0]["likely"] and usb[0]["same_board_as"] == "/dev/ttyACM0"
 
 
-def test_ports_command_text_without_libusb(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+def test_ports_command_text_without_libusb(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     pytest.importorskip("usb.core")
     monkeypatch.setattr(usb_transport, "default_backend", lambda: None)
-    monkeypatch.setattr(discovery, "serial_candidates", lambda ports=None, include_all=True: serial_candidates(PORTS))
+    monkeypatch.setattr(
+        discovery, "serial_candidates", lambda ports=None, include_all=True: serial_candidates(PORTS)
+    )
     assert main(["ports"]) == 0
     out = capsys.readouterr().out
     assert "serial  /dev/ttyACM0" in out and "likely an eTactileKit controller" in out

@@ -99,7 +99,14 @@ def test_period_is_float32_and_ticks_truncate(rate: int) -> None:
 
 @pytest.mark.parametrize(
     ("kind", "boards", "expected"),
-    [("compact", 0, 0), ("compact", 1, 4), ("compact", 2, 8), ("large", 0, 1), ("large", 1, 8), ("large", 3, 24)],
+    [
+        ("compact", 0, 0),
+        ("compact", 1, 4),
+        ("compact", 2, 8),
+        ("large", 0, 1),
+        ("large", 1, 8),
+        ("large", 3, 24),
+    ],
 )
 def test_hv513_count_by_board(kind: str, boards: int, expected: int) -> None:
     emu = Emulator(kind, boards)
@@ -132,7 +139,13 @@ def test_one_call_at_a_time_matches_the_fast_path() -> None:
     assert slow.parser.take_tx() == fast_tx == bytes(8) + b"\x04"
     # the rhythm: one command with a payload per call, each ending in the 1 ms sleep
     assert [r.name for r in results] == [
-        "COMPLETED", "COMPLETED", "REPLIED", "IGNORED", "COMPLETED", "REPLIED", "IDLE",
+        "COMPLETED",
+        "COMPLETED",
+        "REPLIED",
+        "IGNORED",
+        "COMPLETED",
+        "REPLIED",
+        "IDLE",
     ]
     assert [r.slept for r in results] == [True, True, False, False, True, False, True]
 

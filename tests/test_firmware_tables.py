@@ -24,7 +24,17 @@ def test_registry_and_lookup() -> None:
 
 def test_v12_table() -> None:
     assert {op: V1_2.size_of(op, 32) for op in V1_2.by_opcode} == {
-        0xFF: 0, 0xFE: 32, 0xFD: 1, 0xFC: 1, 0xFB: 2, 0xFA: 2, 0xF9: 1, 0xF8: 1, 0xF7: 1, 0xF6: 2, 0xF5: 0,
+        0xFF: 0,
+        0xFE: 32,
+        0xFD: 1,
+        0xFC: 1,
+        0xFB: 2,
+        0xFA: 2,
+        0xF9: 1,
+        0xF8: 1,
+        0xF7: 1,
+        0xF6: 2,
+        0xF5: 0,
     }
     assert V1_2.size_of(0xF4, 32) is None and V1_2.command_byte_min == 0xF5
     assert V1_2.command(Opcode.PULSE_HEIGHT).stored(0xF900) == 4095
@@ -32,10 +42,18 @@ def test_v12_table() -> None:
     assert V1_2.command(Opcode.SENSE_HEIGHT).stored(255) == 1020
     assert V1_2.command(Opcode.PULSE_WIDTH).stored(0) is None
     assert V1_2.command(Opcode.FREQUENCY).stored(0) is None
-    assert V1_2.reply_bytes(0xFF, 32) == 64 and V1_2.reply_bytes(0xF5, 32) == 1 and V1_2.reply_bytes(0xFB, 32) == 0
+    assert (
+        V1_2.reply_bytes(0xFF, 32) == 64
+        and V1_2.reply_bytes(0xF5, 32) == 1
+        and V1_2.reply_bytes(0xFB, 32) == 0
+    )
     assert V1_2.rx_queue_bytes == 256 and V1_2.usb_packet_bytes == 64
     assert V1_2.zero_pattern_locks and V1_2.partial_payload_applied and V1_2.command_timeout_us is None
-    assert V1_2.sleeps_after(0xFB, True) and not V1_2.sleeps_after(0xFF, True) and not V1_2.sleeps_after(0x00, True)
+    assert (
+        V1_2.sleeps_after(0xFB, True)
+        and not V1_2.sleeps_after(0xFF, True)
+        and not V1_2.sleeps_after(0x00, True)
+    )
     assert V1_2.sleeps_after(None, False) and V1_2.sleeps_after(0xFE, False)  # idle; waiting for a payload
     assert V1_2.timing.discharge_exchange and V1_2.pattern_level_max() == 255
     assert V1_2.power_on["polarity"] == 1 and V1_2.power_on["period_us"] == 10_000.0
@@ -74,7 +92,11 @@ def test_constants_read_the_v12_table() -> None:
 
 
 @settings(max_examples=150, deadline=None)
-@given(data=st.lists(st.one_of(st.integers(0xF5, 0xFF), st.integers(0, 3), st.integers(0, 255)), max_size=120).map(bytes))
+@given(
+    data=st.lists(
+        st.one_of(st.integers(0xF5, 0xFF), st.integers(0, 3), st.integers(0, 255)), max_size=120
+    ).map(bytes)
+)
 def test_the_yield_rule_is_the_emulator_parsers(data: bytes) -> None:
     """Call by call, the v1.2 table's yield rule says when the emulator's parser sleeps a tick."""
     emu = Emulator()

@@ -422,11 +422,18 @@ def test_export_last_step_default_is_what_the_help_says(tmp_path: Path, capsys) 
         main(["export", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "median step" not in text
-    assert "--last-ms LAST_MS how long the last step lasts (default: to the end of the record plus one frame " \
-           "interval, the median time between frames)" in text
+    assert (
+        "--last-ms LAST_MS how long the last step lasts (default: to the end of the record plus one frame "
+        "interval, the median time between frames)" in text
+    )
     # steps of 100, 100 ms; the last sent frame at 0.2 s, the record ends at 0.25 s; frames 100, 100, 50 ms apart
     levels = [[1 if i == k else 0 for i in range(32)] for k in range(4)]
-    frames = [_frame(0.0, levels[0]), _frame(0.1, levels[1]), _frame(0.2, levels[2]), _frame(0.25, levels[3], sent=False)]
+    frames = [
+        _frame(0.0, levels[0]),
+        _frame(0.1, levels[1]),
+        _frame(0.2, levels[2]),
+        _frame(0.25, levels[3], sent=False),
+    ]
     src, out = _frames_file(tmp_path / "run.jsonl", frames), tmp_path / "run_pattern.json"
     assert main(["export", str(src), "-o", str(out), "--json"]) == 0
     capsys.readouterr()

@@ -11,7 +11,9 @@ from tactdeform_hw.emulator import Emulator
 
 from .conftest import DATA
 
-VECTORS = [json.loads(line) for line in (DATA / "protocol_vectors.jsonl").read_text().splitlines() if line.strip()]
+VECTORS = [
+    json.loads(line) for line in (DATA / "protocol_vectors.jsonl").read_text().splitlines() if line.strip()
+]
 
 
 def test_all_vectors_present() -> None:

@@ -48,7 +48,12 @@ def _firmware_literals(path: Path) -> list[str]:
                     hit = False
             if hit:
                 out.append(f"{tok.start[0]}: {tok.string}")
-        elif tok.type == tokenize.OP and tok.string == "<<" and i + 1 < len(toks) and toks[i + 1].string in ("8", "2"):
+        elif (
+            tok.type == tokenize.OP
+            and tok.string == "<<"
+            and i + 1 < len(toks)
+            and toks[i + 1].string in ("8", "2")
+        ):
             what = "u16 decoding" if toks[i + 1].string == "8" else "the sense height's shift"
             out.append(f"{tok.start[0]}: << {toks[i + 1].string} ({what})")
     return out
@@ -63,22 +68,33 @@ def test_no_copy_of_the_firmware_numbers_outside_protocol() -> None:
         hits = [h for h in _firmware_literals(path) if (rel, h.split(": ", 1)[1]) not in _ALLOWED]
         if hits:
             found[rel] = hits
-    assert found == {}, "firmware numbers repeated outside protocol/ (read them from protocol.firmware): " + repr(found)
+    assert found == {}, (
+        "firmware numbers repeated outside protocol/ (read them from protocol.firmware): " + repr(found)
+    )
 
 
 def test_the_scanner_finds_what_it_looks_for(tmp_path: Path) -> None:
     """The literal scan above must be able to fail."""
     bad = tmp_path / "bad.py"
-    bad.write_text('x = min(v, 4095)\ny = lo | hi << 8\nz = 0xFB\nw = int(us * 2.0 - 5.4)\ns = "4095 in a string"  # 255\nh = v << 2\n')
+    bad.write_text(
+        'x = min(v, 4095)\ny = lo | hi << 8\nz = 0xFB\nw = int(us * 2.0 - 5.4)\ns = "4095 in a string"  # 255\nh = v << 2\n'
+    )
     assert [h.split(": ")[1] for h in _firmware_literals(bad)] == [
-        "4095", "<< 8 (u16 decoding)", "0xFB", "5.4", "<< 2 (the sense height's shift)",
+        "4095",
+        "<< 8 (u16 decoding)",
+        "0xFB",
+        "5.4",
+        "<< 2 (the sense height's shift)",
     ]
 
 
 def test_no_payload_size_table_outside_protocol() -> None:
     size_table = re.compile(r"""["']u16["']\s*:\s*2""")
-    copies = [p.relative_to(PACKAGE).as_posix() for p in PACKAGE.rglob("*.py")
-              if "protocol" not in p.parts and size_table.search(p.read_text(encoding="utf-8"))]
+    copies = [
+        p.relative_to(PACKAGE).as_posix()
+        for p in PACKAGE.rglob("*.py")
+        if "protocol" not in p.parts and size_table.search(p.read_text(encoding="utf-8"))
+    ]
     assert copies == []
 
 
@@ -90,7 +106,9 @@ def test_the_former_copies_are_the_protocol_definitions() -> None:
     assert not hasattr(timed, "_SIZE")  # the timed model asks the parser (Parser.plan), holding no copy
     assert TimingModel.for_firmware(V1_2) == DEFAULT_MODEL
     for us in range(0, 300):
-        assert DEFAULT_MODEL.delay_ticks(us) == V1_2.timing.delay_ticks(us) == busy_wait_ticks(us, 3, 2.0, 5.4)
+        assert (
+            DEFAULT_MODEL.delay_ticks(us) == V1_2.timing.delay_ticks(us) == busy_wait_ticks(us, 3, 2.0, 5.4)
+        )
 
 
 def test_the_scan_budget_follows_the_firmware_table() -> None:
@@ -109,7 +127,8 @@ def test_every_reader_follows_a_changed_table() -> None:
         name="v1.2-lowclamp",
         commands=tuple(
             CommandSpec(c.opcode, c.name, c.kind, c.register, 1000, c.shift, c.zero_ignored, c.reply)
-            if c.register == "pulse_height" else c
+            if c.register == "pulse_height"
+            else c
             for c in V1_2.commands
         ),
     )

@@ -80,7 +80,11 @@ def test_fast_encoders_match_construct_on_random_inputs() -> None:
     for _ in range(500):
         n = rng.randint(1, 255)
         levels = [rng.randint(0, 255) for _ in range(n)]
-        assert c.encode_pattern(levels) == c.build(Opcode.PATTERN, levels) == c.build(Opcode.PATTERN, levels, use_compiled=True)
+        assert (
+            c.encode_pattern(levels)
+            == c.build(Opcode.PATTERN, levels)
+            == c.build(Opcode.PATTERN, levels, use_compiled=True)
+        )
     for _ in range(100):
         adc = [rng.randint(0, 65535) for _ in range(rng.randint(0, 64))]
         assert c.encode_measure_reply(adc) == c.build_measure_reply(adc)

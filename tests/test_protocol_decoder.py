@@ -60,7 +60,9 @@ def test_cli_decodes_with_the_named_firmware(capsys) -> None:  # type: ignore[no
 
     assert main(["decode", "fc 02 fe 01 21 e8 03 fb 05 f4", "--firmware", "v2"]) == 0
     out = capsys.readouterr().out
-    assert "levels=[4095,1000]" in out and "STIM_MODE stim_mode=5 (stored as 2)" in out and "SYNC_CHECK" in out
+    assert (
+        "levels=[4095,1000]" in out and "STIM_MODE stim_mode=5 (stored as 2)" in out and "SYNC_CHECK" in out
+    )
     assert main(["decode", "fb 00 f9"]) == 0
     assert "pulse_height=63744 (stored as 4095)" in capsys.readouterr().out
     assert main(["decode", "fb 00", "--firmware", "v3"]) != 0

@@ -25,14 +25,18 @@ from tactdeform_hw.protocol.reader import (
 
 from .conftest import DATA, shared_path
 
-VECTORS = [json.loads(line) for line in (DATA / "protocol_vectors.jsonl").read_text().splitlines() if line.strip()]
+VECTORS = [
+    json.loads(line) for line in (DATA / "protocol_vectors.jsonl").read_text().splitlines() if line.strip()
+]
 HV513_ONE_BOARD = 4  # the compact board with one switching board reports 4 chips
 
 byte = st.one_of(st.integers(0xF5, 0xFF), st.integers(0, 3), st.integers(0, 255))
 streams = st.lists(byte, max_size=400).map(bytes)
 
 
-def registers_after(data: bytes, firmware: FirmwareSpec = V1_2, hv513: int = HV513_ONE_BOARD) -> dict[str, Any]:
+def registers_after(
+    data: bytes, firmware: FirmwareSpec = V1_2, hv513: int = HV513_ONE_BOARD
+) -> dict[str, Any]:
     """The firmware's variables after reading ``data`` from power-on, built only from the reader's items."""
     regs: dict[str, Any] = dict(firmware.power_on)
     regs["timer_alarm_ticks"] = fm.alarm_ticks(float(regs["period_us"]))
@@ -65,11 +69,17 @@ def registers_after(data: bytes, firmware: FirmwareSpec = V1_2, hv513: int = HV5
     end = reading.state
     if end.locked:
         pending = sum(len(c.raw) for c in reading.commands if c.kind == UNREAD)
-    elif end.opcode is not None and (not firmware.partial_payload_applied or firmware.command(end.opcode).kind == "u16"):
-        pending = len(end.got)  # v2 reads a payload only when it is whole; v1.2 a u16 only when both bytes wait
+    elif end.opcode is not None and (
+        not firmware.partial_payload_applied or firmware.command(end.opcode).kind == "u16"
+    ):
+        pending = len(
+            end.got
+        )  # v2 reads a payload only when it is whole; v1.2 a u16 only when both bytes wait
     else:
         pending = 0
-    regs.update(stim_pattern=pattern, tx=tx.hex(), rx_pending=pending, command_in_progress=not end.at_boundary)
+    regs.update(
+        stim_pattern=pattern, tx=tx.hex(), rx_pending=pending, command_in_progress=not end.at_boundary
+    )
     return regs
 
 
@@ -89,7 +99,11 @@ def _v2_vectors() -> list[dict[str, Any]]:
     vectors = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     # the reader is untimed and has no queue: the vectors with arrival times, a 2 s timeout or a queue
     # overflow belong to the emulator's tests
-    return [v for v in vectors if "arrivals" not in v and "final_time_us" not in v and not v["expect"]["rx_dropped"]]
+    return [
+        v
+        for v in vectors
+        if "arrivals" not in v and "final_time_us" not in v and not v["expect"]["rx_dropped"]
+    ]
 
 
 def test_reader_reaches_every_untimed_v2_golden_state() -> None:
@@ -120,8 +134,19 @@ def test_reader_agrees_with_the_emulator_parser(data: bytes) -> None:
     assert list(iter_commands(data)) == list(read_commands(data).commands)
     mine = registers_after(data)
     emu = _emulator_state(data)
-    for key in ("electrode_num", "polarity", "pulse_height", "pulse_width", "sense_pulse_height",
-                "sense_pulse_width", "discharge_time", "timer_alarm_ticks", "stim_pattern", "tx", "rx_pending"):
+    for key in (
+        "electrode_num",
+        "polarity",
+        "pulse_height",
+        "pulse_width",
+        "sense_pulse_height",
+        "sense_pulse_width",
+        "discharge_time",
+        "timer_alarm_ticks",
+        "stim_pattern",
+        "tx",
+        "rx_pending",
+    ):
         assert mine[key] == emu[key], key
     assert np.float32(mine["period_us"]) == np.float32(emu["period_us"])
 
@@ -153,7 +178,11 @@ def test_a_reading_resumes_where_it_stopped(data: bytes, cut: int) -> None:
 def test_items_name_offsets_values_and_clamps() -> None:
     items = list(iter_commands(bytes.fromhex("00 13 fc 02 fe 01 02 fb 00 f9 fd 05")))
     assert [(c.kind, c.opcode, c.offset) for c in items] == [
-        (UNKNOWN, None, 0), (COMMAND, 0xFC, 2), (COMMAND, 0xFE, 4), (COMMAND, 0xFB, 7), (COMMAND, 0xFD, 10),
+        (UNKNOWN, None, 0),
+        (COMMAND, 0xFC, 2),
+        (COMMAND, 0xFE, 4),
+        (COMMAND, 0xFB, 7),
+        (COMMAND, 0xFD, 10),
     ]
     assert items[0].unknown == 2 and items[1].value == 2 and items[2].levels == (1, 2)
     assert items[3].read_value == 0xF900 and items[3].value == 4095  # `fb 00` + `f9`: the clamp

@@ -24,11 +24,27 @@ from tactdeform_hw.emulator.tcp_server import TcpServer
 from tactdeform_hw.emulator.timed import TimedEmulator
 from tactdeform_hw.protocol import commands as c
 
-CONFIG = c.encode_electrode_num(32) + c.encode_pulse_height(100) + c.encode_pulse_width(200) + c.encode_discharge(45)
+CONFIG = (
+    c.encode_electrode_num(32)
+    + c.encode_pulse_height(100)
+    + c.encode_pulse_width(200)
+    + c.encode_discharge(45)
+)
 CONFIG += c.encode_frequency(125)
 PATTERN = c.encode_pattern([1, 2, 0, 1] * 8)
-REGISTERS = ("electrode_num", "polarity", "pulse_height", "pulse_width", "sense_pulse_height", "sense_pulse_width",
-             "discharge_time", "period_us", "timer_alarm_ticks", "stim_pattern", "rx_pending")
+REGISTERS = (
+    "electrode_num",
+    "polarity",
+    "pulse_height",
+    "pulse_width",
+    "sense_pulse_height",
+    "sense_pulse_width",
+    "discharge_time",
+    "period_us",
+    "timer_alarm_ticks",
+    "stim_pattern",
+    "rx_pending",
+)
 
 
 def _registers(state: dict) -> dict:  # type: ignore[type-arg]
@@ -67,9 +83,16 @@ def test_frequency_swallowing_an_hv513_request_is_reported_with_the_period_store
         ("f7 f6", "DISCHARGE", "FREQUENCY", "discharge_time", 0xF6),
     ],
 )
-def test_any_command_swallowing_a_command_byte_is_reported(stream: str, command: str, swallowed: str, register: str, stored: int) -> None:
+def test_any_command_swallowing_a_command_byte_is_reported(
+    stream: str, command: str, swallowed: str, register: str, stored: int
+) -> None:
     (h,) = _swallowed(stream)
-    assert (h.detail["command"], h.detail["swallowed"], h.detail["register"], h.detail["stored"]) == (command, swallowed, register, stored)
+    assert (h.detail["command"], h.detail["swallowed"], h.detail["register"], h.detail["stored"]) == (
+        command,
+        swallowed,
+        register,
+        stored,
+    )
 
 
 def test_in_step_commands_raise_no_desynchronisation_hazard() -> None:
@@ -80,7 +103,11 @@ def test_pattern_swallowing_a_command_names_both_commands() -> None:
     emu = Emulator()
     emu.feed(bytes.fromhex("fc 02 fe 01 f7"))
     (h,) = [h for h in emu.hazards if h.kind is HazardKind.PATTERN_HOLDS_COMMAND_BYTE]
-    assert h.detail["command"] == "PATTERN" and h.detail["swallowed"] == "DISCHARGE" and h.detail["stored"] == 0xF7
+    assert (
+        h.detail["command"] == "PATTERN"
+        and h.detail["swallowed"] == "DISCHARGE"
+        and h.detail["stored"] == 0xF7
+    )
 
 
 def test_a_u16_completed_across_a_long_gap_is_reported_and_a_split_packet_is_not() -> None:
@@ -170,8 +197,17 @@ def test_history_is_trimmed_while_serving() -> None:
     clock.t += 0.05
     rt.catch_up()
     t = rt.timed
-    assert len(t.commands) < 150 and len(t.runs) < 400 and len(t.host.writes) < 150 and len(t.host.intended) < 150
-    assert t.commands[-1].name == "PATTERN" and t.commands[-1].in_sync and t.commands[-1].first_pulse_us is not None
+    assert (
+        len(t.commands) < 150
+        and len(t.runs) < 400
+        and len(t.host.writes) < 150
+        and len(t.host.intended) < 150
+    )
+    assert (
+        t.commands[-1].name == "PATTERN"
+        and t.commands[-1].in_sync
+        and t.commands[-1].first_pulse_us is not None
+    )
     assert rt.lag.stats()["wakeups"] > 0 and not t.losses
 
 
@@ -262,7 +298,12 @@ def test_download_mode_answers_nothing_until_the_next_reset() -> None:
     s = serial.serial_for_url("etactile://", timeout=0.1)
     try:
         s.dtr, s.rts = False, False
-        for dtr, rts in ((True, False), (True, True), (False, True), (False, False)):  # esptool's USB-JTAG reset
+        for dtr, rts in (
+            (True, False),
+            (True, True),
+            (False, True),
+            (False, False),
+        ):  # esptool's USB-JTAG reset
             s.dtr, s.rts = dtr, rts
         assert s.lines.download_mode
         s.write(b"\xf5")
@@ -427,8 +468,13 @@ def test_realtime_lag_tool_reports_lag_cpu_and_pattern_latency() -> None:
 
     from .conftest import REPO
 
-    proc = subprocess.run([sys.executable, "tools/realtime_lag.py", "--idle", "0.3", "--stream", "0.6", "--json"],
-                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "tools/realtime_lag.py", "--idle", "0.3", "--stream", "0.6", "--json"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout)
     assert out["configured"]

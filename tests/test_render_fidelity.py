@@ -40,8 +40,23 @@ def test_recorded_trajectory_replays_over_a_scene(tmp_path: Path, capsys: pytest
     pytest.importorskip("matplotlib", reason="the strip picture needs the plot extra")
     csv_path = press_csv(tmp_path / "press.csv")
     frames, strip = tmp_path / "f.jsonl", tmp_path / "strip.png"
-    code = cli(["render", "--scene", "cube", "--trajectory", str(csv_path), "--device", "emulator",
-                "--frames", str(frames), "--strip", str(strip), "--json", "--quiet"])
+    code = cli(
+        [
+            "render",
+            "--scene",
+            "cube",
+            "--trajectory",
+            str(csv_path),
+            "--device",
+            "emulator",
+            "--frames",
+            str(frames),
+            "--strip",
+            str(strip),
+            "--json",
+            "--quiet",
+        ]
+    )
     assert code == 0
     out = json.loads(capsys.readouterr().out)
     lines = [json.loads(s) for s in frames.read_text().splitlines()]
@@ -64,7 +79,9 @@ def test_recorded_trajectory_replays_over_a_scene(tmp_path: Path, capsys: pytest
         ("0.0,0,0,450,1,0,0,0", r"line 3, row 2, column 't_s'"),
     ],
 )
-def test_a_bad_row_names_its_line_and_column(tmp_path: Path, capsys: pytest.CaptureFixture[str], row: str, message: str) -> None:
+def test_a_bad_row_names_its_line_and_column(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], row: str, message: str
+) -> None:
     import re
 
     bad = tmp_path / "bad.csv"
@@ -75,7 +92,9 @@ def test_a_bad_row_names_its_line_and_column(tmp_path: Path, capsys: pytest.Capt
     assert "Traceback" not in err
 
 
-def test_recorded_trajectory_refuses_synthetic_options(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_recorded_trajectory_refuses_synthetic_options(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     csv_path = press_csv(tmp_path / "p.csv")
     assert cli(["render", "--scene", "cube", "--trajectory", str(csv_path), "--speed", "20", "--quiet"]) != 0
     assert "--speed" in capsys.readouterr().err
@@ -88,19 +107,44 @@ def test_gif_holds_each_frame_long_enough_with_its_real_time(tmp_path: Path) -> 
     from tactdeform_hw.render.array import ElectrodeArray
     from tactdeform_hw.viz.array_picture import MIN_DISPLAY_MS, draw_frames_gif
 
-    recs = [{"t": k / 72.0, "state": "approaching", "feature": "face", "texture": "smooth",
-             "electrodes": [1 if i == k else 0 for i in range(32)], "sent": True} for k in range(5)]
+    recs = [
+        {
+            "t": k / 72.0,
+            "state": "approaching",
+            "feature": "face",
+            "texture": "smooth",
+            "electrodes": [1 if i == k else 0 for i in range(32)],
+            "sent": True,
+        }
+        for k in range(5)
+    ]
     info = draw_frames_gif(ElectrodeArray.tactdeform(), recs, tmp_path / "a.gif", size_px=(320, 300))
     assert info.frames == 5 and min(info.durations_ms) >= MIN_DISPLAY_MS >= 200
     assert any("250 ms" in n for n in info.notes)
 
 
 def test_fidelity_report_quick() -> None:
-    proc = subprocess.run([sys.executable, "tools/render_fidelity.py", "--quick", "--json"], cwd=REPO,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "tools/render_fidelity.py", "--quick", "--json"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:] + proc.stdout[-2000:]
     out = json.loads(proc.stdout)
     names = " ".join(r["requirement"] for r in out["rows"])
-    for req in ("eq. 1–3", "eq. 4", "eq. 5", "eq. 7", "8 directions", "onset", "Interacting", "lost tracking", "UA", "CAM"):
+    for req in (
+        "eq. 1–3",
+        "eq. 4",
+        "eq. 5",
+        "eq. 7",
+        "8 directions",
+        "onset",
+        "Interacting",
+        "lost tracking",
+        "UA",
+        "CAM",
+    ):
         assert req in names
     assert out["passed"] == out["total"]

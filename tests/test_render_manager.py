@@ -29,11 +29,21 @@ def run(m: PatternManager, scene: FakeFloor, poses: list) -> list:
     return [m.update(t, p, q, scene.query(p)) for t, p, q in poses]
 
 
-def ring_of(m: PatternManager, pattern: tuple[int, ...], feature: str = "face", orientation: str | None = None) -> int:
+def ring_of(
+    m: PatternManager, pattern: tuple[int, ...], feature: str = "face", orientation: str | None = None
+) -> int:
     return m.patterns.frames(feature, orientation).index(pattern)
 
 
-def press(start_z: float, end_z: float, speed: float, rate: float, t0: float = 0.0, xy: tuple[float, float] = (0.0, 0.0), q=PAD_DOWN) -> list:
+def press(
+    start_z: float,
+    end_z: float,
+    speed: float,
+    rate: float,
+    t0: float = 0.0,
+    xy: tuple[float, float] = (0.0, 0.0),
+    q=PAD_DOWN,
+) -> list:
     return line_poses(t0, (xy[0], xy[1], start_z), (xy[0], xy[1], end_z), speed, rate, q)
 
 
@@ -191,7 +201,13 @@ def test_theta_near_a_boundary_does_not_flicker() -> None:
     t = poses[-1][0]
     for _ in range(360):
         t += 1 / 72
-        poses.append((t, np.array([0, 0, -2.0]), pad_down(roll_deg=30.0 + 3.0 * math.sin(2 * math.pi * 10 * t) + rng.normal(0, 0.5))))
+        poses.append(
+            (
+                t,
+                np.array([0, 0, -2.0]),
+                pad_down(roll_deg=30.0 + 3.0 * math.sin(2 * math.pi * 10 * t) + rng.normal(0, 0.5)),
+            )
+        )
     outs = run(m, scene, poses)
     levels = [m_ for m_ in outs if m_.state == INTERACTING]
     assert levels and m.theta.value in (2, 3)
@@ -215,7 +231,13 @@ def test_contact_angle_matches_the_geometry_module() -> None:
 
 @pytest.mark.parametrize(
     ("edge_world", "orientation"),
-    [((1.0, 0.0, 0.0), "h"), ((0.0, -1.0, 0.0), "v"), ((1.0, -1.0, 0.0), "d1"), ((-1.0, -1.0, 0.0), "d2"), ((1.0, 0.2, 0.0), "h")],
+    [
+        ((1.0, 0.0, 0.0), "h"),
+        ((0.0, -1.0, 0.0), "v"),
+        ((1.0, -1.0, 0.0), "d1"),
+        ((-1.0, -1.0, 0.0), "d2"),
+        ((1.0, 0.2, 0.0), "h"),
+    ],
 )
 def test_edge_orientation_picks_the_line(edge_world: tuple[float, float, float], orientation: str) -> None:
     e = np.array(edge_world) / np.linalg.norm(edge_world)
@@ -246,7 +268,9 @@ def test_feature_flicker_shorter_than_the_window_is_ignored() -> None:
     # A real change (held longer than the window) does switch.
     steady = FakeFloor(feature=lambda p: "corner" if p[0] > 5 else "face")
     m2 = PatternManager()
-    poses2 = press(2.0, -1.0, 20.0, 72.0) + [(1.0 + i / 72, np.array([10.0, 0, -1.0]), PAD_DOWN) for i in range(30)]
+    poses2 = press(2.0, -1.0, 20.0, 72.0) + [
+        (1.0 + i / 72, np.array([10.0, 0, -1.0]), PAD_DOWN) for i in range(30)
+    ]
     outs2 = run(m2, steady, poses2)
     assert outs2[-1].feature == "corner"
 
@@ -254,7 +278,15 @@ def test_feature_flicker_shorter_than_the_window_is_ignored() -> None:
 # --- sliding (eq. 5–7) --------------------------------------------------------------------------------------------
 
 
-def slide_run(texture: int, direction_deg: float = 0.0, speed: float = 20.0, duration: float = 3.0, rate: float = 72.0, config: ManagerConfig | None = None, tremor_mm: float = 0.0):
+def slide_run(
+    texture: int,
+    direction_deg: float = 0.0,
+    speed: float = 20.0,
+    duration: float = 3.0,
+    rate: float = 72.0,
+    config: ManagerConfig | None = None,
+    tremor_mm: float = 0.0,
+):
     scene = FakeFloor(texture_level=texture)
     m = PatternManager(config=config)
     poses = press(2.0, -1.0, 20.0, rate)
@@ -268,7 +300,13 @@ def slide_run(texture: int, direction_deg: float = 0.0, speed: float = 20.0, dur
         t = t0 + i / rate
         p = np.array([0.0, 0.0, -1.0]) + u * speed * (t - t0)
         if tremor_mm:
-            p = p + tremor_mm * np.array([math.sin(2 * math.pi * 9.0 * t), math.sin(2 * math.pi * 11.0 * t + 1.0), 0.3 * math.sin(2 * math.pi * 10.0 * t)])
+            p = p + tremor_mm * np.array(
+                [
+                    math.sin(2 * math.pi * 9.0 * t),
+                    math.sin(2 * math.pi * 11.0 * t + 1.0),
+                    0.3 * math.sin(2 * math.pi * 10.0 * t),
+                ]
+            )
         poses.append((t, p, PAD_DOWN))
     outs = run(m, scene, poses)
     return m, outs, t0
@@ -308,7 +346,9 @@ def test_slide_direction_is_quantised_to_8(d: int) -> None:
     m, outs, _ = slide_run(1, direction_deg=45.0 * d + 12.0)
     assert m.direction.value == d
     assert outs[-1].context == "sliding"
-    assert outs[-1].pattern in {m.patterns.sliding("face", None, d, 1, ph) for ph in range(m.patterns.mask_period(1))}
+    assert outs[-1].pattern in {
+        m.patterns.sliding("face", None, d, 1, ph) for ph in range(m.patterns.mask_period(1))
+    }
 
 
 def test_direction_on_a_bin_boundary_with_tremor_does_not_flicker() -> None:
@@ -322,7 +362,13 @@ def test_direction_on_a_bin_boundary_with_tremor_does_not_flicker() -> None:
     u = np.array([math.cos(a), -math.sin(a), 0.0])
     for i in range(1, int(3.0 * rate)):
         t = t0 + i / rate
-        tremor = np.array([math.sin(2 * math.pi * 9.0 * t), math.sin(2 * math.pi * 11.0 * t + 1.0), 0.3 * math.sin(2 * math.pi * 10.0 * t)])
+        tremor = np.array(
+            [
+                math.sin(2 * math.pi * 9.0 * t),
+                math.sin(2 * math.pi * 11.0 * t + 1.0),
+                0.3 * math.sin(2 * math.pi * 10.0 * t),
+            ]
+        )
         poses.append((t, np.array([0.0, 0.0, -1.0]) + u * 20.0 * (t - t0) + tremor, PAD_DOWN))
     dirs, ctx = [], []
     for t, p, q in poses:

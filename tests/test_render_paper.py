@@ -26,7 +26,9 @@ PAD = ElectrodeArray.tactdeform()
 D_MM = 2.0  # d_electrode
 
 
-def quat_facing(normal: np.ndarray, y_hint: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> tuple[float, ...]:
+def quat_facing(
+    normal: np.ndarray, y_hint: tuple[float, float, float] = (0.0, 0.0, 1.0)
+) -> tuple[float, ...]:
     """A pad pressing against a surface of outward normal ``normal``: its z axis (out of the pad) is -n."""
     r = frame_from_z_y(-np.asarray(normal, dtype=float), y_hint)
     return tuple(float(v) for v in matrix_to_quat(r))
@@ -36,7 +38,9 @@ def run(m: PatternManager, scene: Any, poses: list) -> list:
     return [m.update(t, p, q, scene.query(np.asarray(p, dtype=float))) for t, p, q in poses]
 
 
-def sliding_stroke(k: int, speed: float, duration: float, *, beta: float = 1.0, rate: float = 72.0) -> tuple[PatternManager, list, float]:
+def sliding_stroke(
+    k: int, speed: float, duration: float, *, beta: float = 1.0, rate: float = 72.0
+) -> tuple[PatternManager, list, float]:
     """Press 1 mm into a floor of texture level k, rest, then slide rightward (finger +x) at ``speed``."""
     m = PatternManager(config=ManagerConfig(beta=beta))
     scene = FakeFloor(texture_level=k)
@@ -86,7 +90,9 @@ def test_a_two_state_mask_is_refused() -> None:
 # --- finding 2: eq. 4 shifts the feature's whole base pattern ----------------------------------------------
 
 
-@pytest.mark.parametrize(("feature", "orientation"), [("face", None), ("corner", None)] + [("edge", o) for o in EDGE_ORIENTATIONS])
+@pytest.mark.parametrize(
+    ("feature", "orientation"), [("face", None), ("corner", None)] + [("edge", o) for o in EDGE_ORIENTATIONS]
+)
 def test_contact_pattern_is_the_whole_base_pattern_shifted(feature: str, orientation: str | None) -> None:
     ps = PatternSet(PAD)
     base = ps.static(feature, orientation)
@@ -111,7 +117,9 @@ def test_contact_pattern_is_the_whole_base_pattern_shifted(feature: str, orienta
 CUBE = Box("cube", 50.0, (0.0, 0.0, 0.0))
 
 
-def bisector_approach(corner: bool, depth_mm: float, speed: float = 20.0, rate: float = 72.0, yaw_turn_deg: float = 0.0) -> tuple[PatternManager, list, np.ndarray, np.ndarray]:
+def bisector_approach(
+    corner: bool, depth_mm: float, speed: float = 20.0, rate: float = 72.0, yaw_turn_deg: float = 0.0
+) -> tuple[PatternManager, list, np.ndarray, np.ndarray]:
     """Approach the cube's top-front edge (or top-front-right corner) along its bisector."""
     tip = np.array([25.0 if corner else 0.0, 25.0, 25.0])
     n = np.array([1.0 if corner else 0.0, 1.0, 1.0])
@@ -158,7 +166,9 @@ def test_corner_trial_at_3mm_shows_the_corner_pattern() -> None:
 
 def test_first_frames_tell_the_features_apart() -> None:
     ps = PatternSet(PAD)
-    firsts = [ps.frames("face")[0], ps.frames("corner")[0]] + [ps.frames("edge", o)[0] for o in EDGE_ORIENTATIONS]
+    firsts = [ps.frames("face")[0], ps.frames("corner")[0]] + [
+        ps.frames("edge", o)[0] for o in EDGE_ORIENTATIONS
+    ]
     assert len(set(firsts)) == len(firsts)
     # Face: a ring about the centre; edge: its whole line; corner: centre plus its falloff.
     assert ps.frames("edge", "v")[0] == ps.static("edge", "v")
@@ -196,7 +206,9 @@ def test_slow_approach_reaches_frame_15_at_30mm(speed: float) -> None:
 # --- finding 6: slow slides get their texture ------------------------------------------------------------------
 
 
-@pytest.mark.parametrize(("speed", "k", "hz"), [(5.0, 1, 2.5), (5.0, 2, 1.25), (2.0, 1, 1.0), (20.0, 1, 10.0)])
+@pytest.mark.parametrize(
+    ("speed", "k", "hz"), [(5.0, 1, 2.5), (5.0, 2, 1.25), (2.0, 1, 1.0), (20.0, 1, 10.0)]
+)
 def test_slide_shift_rate_is_v_over_d_k_down_to_2mm_s(speed: float, k: int, hz: float) -> None:
     m, outs, t0 = sliding_stroke(k, speed, 6.0)
     changes = [tf for o in outs if o.context == "sliding" for tf, _ in o.frames]
@@ -208,7 +220,9 @@ def test_slide_shift_rate_is_v_over_d_k_down_to_2mm_s(speed: float, k: int, hz: 
 # --- finding 7: contact onset is stability-filtered ------------------------------------------------------------
 
 
-def hover_fraction(height_mm: float, noise_mm: float, seconds: float = 60.0, rate: float = 72.0, seed: int = 1) -> float:
+def hover_fraction(
+    height_mm: float, noise_mm: float, seconds: float = 60.0, rate: float = 72.0, seed: int = 1
+) -> float:
     rng = np.random.default_rng(seed)
     m = PatternManager()
     scene = FakeFloor()
@@ -244,12 +258,16 @@ def test_theta_of_30_degrees_from_a_pose_is_steep_right() -> None:
     m = PatternManager()
     scene = FakeFloor()
     q = pad_down(roll_deg=30.0)
-    poses = line_poses(0.0, (0, 0, 2.0), (0, 0, -1.0), 20.0, 72.0, q) + hold_poses(0.15, (0, 0, -1.0), 1.0, 72.0, q)
+    poses = line_poses(0.0, (0, 0, 2.0), (0, 0, -1.0), 20.0, 72.0, q) + hold_poses(
+        0.15, (0, 0, -1.0), 1.0, 72.0, q
+    )
     outs = run(m, scene, poses)
     assert outs[-1].state == INTERACTING and outs[-1].context == "contact"
     assert m.theta_deg == pytest.approx(30.0, abs=1e-9)
     assert outs[-1].pattern == m.patterns.contact("face", None, 3)
-    assert theta_level(30.0 - THETA_TOLERANCE_DEG / 2) == 3 and theta_level(-30.0 - THETA_TOLERANCE_DEG / 2) == 1
+    assert (
+        theta_level(30.0 - THETA_TOLERANCE_DEG / 2) == 3 and theta_level(-30.0 - THETA_TOLERANCE_DEG / 2) == 1
+    )
     assert theta_level(29.999) == 2 and theta_level(-30.001) == 0
 
 
@@ -370,7 +388,11 @@ def test_teapot_spout_tip_is_a_corner_and_its_rim_an_edge(teapot: Any) -> None:
     assert teapot.query(tip + np.array([3.0, 0.0, 0.0])).feature == "corner"
     # The body's rim is a long, gently curving crease: an edge, never a corner.
     lo, hi = obj.bounds_mm
-    rim = [q for q in (teapot.query(p) for p in obj.features.seg_a + obj.index.origin) if q.closest_point_mm[1] > hi[1] - 30.0]
+    rim = [
+        q
+        for q in (teapot.query(p) for p in obj.features.seg_a + obj.index.origin)
+        if q.closest_point_mm[1] > hi[1] - 30.0
+    ]
     assert rim and any(q.feature == "edge" for q in rim)
 
 

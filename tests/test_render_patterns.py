@@ -83,7 +83,9 @@ def test_face_is_a_ring_diverging_one_spacing_per_frame(pad: ElectrodeArray, ps:
 
 
 @pytest.mark.parametrize("orientation", EDGE_ORIENTATIONS)
-def test_edge_is_a_line_through_the_centre_in_its_orientation(pad: ElectrodeArray, ps: PatternSet, orientation: str) -> None:
+def test_edge_is_a_line_through_the_centre_in_its_orientation(
+    pad: ElectrodeArray, ps: PatternSet, orientation: str
+) -> None:
     angle = {"h": 0.0, "d1": 45.0, "v": 90.0, "d2": 135.0}[orientation]
     static = on(ps.static("edge", orientation))
     rel = pad.positions_mm - pad.centre_mm
@@ -105,6 +107,7 @@ def test_edge_is_a_line_through_the_centre_in_its_orientation(pad: ElectrodeArra
     for a_, b_ in zip(frames, frames[1:]):
         assert np.abs(across[b_]).mean() - np.abs(across[a_]).mean() == pytest.approx(pad.pitch_mm, rel=0.3)
         assert {tuple(p) for p in rel[b_]} == {(-x, -y) for x, y in rel[b_]}
+
 
 def test_the_four_edge_orientations_are_distinct(ps: PatternSet) -> None:
     statics = {o: ps.static("edge", o) for o in EDGE_ORIENTATIONS}
@@ -135,11 +138,16 @@ def test_corner_is_concentrated_with_a_parametric_falloff(pad: ElectrodeArray, p
     assert sizes == sorted(sizes) and sizes[0] == 4 and sizes[-1] > 12
     assert active(PatternSet(pad, PatternParams(corner_falloff_mm=0.0)).static("corner")) == 4
 
+
 # --- contact (eq. 4) ---------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("feature,orientation", [("face", None), ("corner", None), ("edge", "v"), ("edge", "h")])
-def test_contact_levels_shift_left_to_right_only(pad: ElectrodeArray, ps: PatternSet, feature: str, orientation: str | None) -> None:
+@pytest.mark.parametrize(
+    "feature,orientation", [("face", None), ("corner", None), ("edge", "v"), ("edge", "h")]
+)
+def test_contact_levels_shift_left_to_right_only(
+    pad: ElectrodeArray, ps: PatternSet, feature: str, orientation: str | None
+) -> None:
     pos = pad.positions_mm
     centroids = []
     for level, c in enumerate((-4.0, -2.0, 2.0, 4.0)):
@@ -153,13 +161,17 @@ def test_contact_levels_shift_left_to_right_only(pad: ElectrodeArray, ps: Patter
     assert centroids == sorted(centroids)
     assert ps.contact_centres_mm == (-4.0, -2.0, 2.0, 4.0)
 
-def test_contact_levels_land_in_the_leftmost_to_rightmost_regions(pad: ElectrodeArray, ps: PatternSet) -> None:
+
+def test_contact_levels_land_in_the_leftmost_to_rightmost_regions(
+    pad: ElectrodeArray, ps: PatternSet
+) -> None:
     # The vertical line (two columns) lands on the leftmost, left-centre, right-centre, rightmost columns.
     cols = [set(pad.positions_mm[on(ps.contact("edge", "v", level)), 0]) for level in range(4)]
     assert cols == [{-5.0, -3.0}, {-3.0, -1.0}, {1.0, 3.0}, {3.0, 5.0}]
     col = pad.regions % 3
     assert set(col[on(ps.contact("edge", "v", 0))]) == {0}
     assert set(col[on(ps.contact("edge", "v", 3))]) == {2}
+
 
 # --- texture masks (eq. 5–7) -------------------------------------------------------------------------------------
 
@@ -171,7 +183,9 @@ def test_mask_k0_is_ones_and_never_divides(ps: PatternSet) -> None:
 
 
 @pytest.mark.parametrize("k", [1, 2])
-def test_mask_has_period_3k_and_moves_k_spacings_per_count(pad: ElectrodeArray, ps: PatternSet, k: int) -> None:
+def test_mask_has_period_3k_and_moves_k_spacings_per_count(
+    pad: ElectrodeArray, ps: PatternSet, k: int
+) -> None:
     x = pad.positions_mm[:, 0]
     m0 = ps.mask(DIRECTIONS.index("E"), k, 0)
     # Stripes across the motion (constant along y), k columns on, 2k off.
@@ -189,7 +203,10 @@ def test_mask_has_period_3k_and_moves_k_spacings_per_count(pad: ElectrodeArray, 
     assert np.array_equal(ps.mask(0, k, mask_phase(3, k)), m0)
     assert ps.mask_period(k) == 3 * k
 
-def test_mask_moves_opposite_to_the_finger_for_a_one_spacing_step(pad: ElectrodeArray, ps: PatternSet) -> None:
+
+def test_mask_moves_opposite_to_the_finger_for_a_one_spacing_step(
+    pad: ElectrodeArray, ps: PatternSet
+) -> None:
     # With a step of one spacing (k = 2), a rightward (E) finger sees the stripes move left.
     x = pad.positions_mm[:, 0]
     row = pad.positions_mm[:, 1] == 1.0
@@ -346,7 +363,9 @@ def test_patterns_build_on_other_layouts() -> None:
     assert all(active(big.contact("face", None, lv)) > 0 for lv in range(4))
     odd = PatternSet(ElectrodeArray.grid(5, 5, pitch_mm=2.0, radius_mm=0.7))
     assert active(odd.frames("face")[0]) == 1  # an odd grid has a centre electrode
-    board = ElectrodeArray(np.array([(-5, 15), (5, 15), (-10, 5), (0, 5), (10, 5), (-10, -5), (0, -5), (10, -5)], float), 1.0)
+    board = ElectrodeArray(
+        np.array([(-5, 15), (5, 15), (-10, 5), (0, 5), (10, 5), (-10, -5), (0, -5), (10, -5)], float), 1.0
+    )
     bs = PatternSet(board)
     assert sum(active(f) for f in bs.frames("face")) == 8
     for o in EDGE_ORIENTATIONS:

@@ -48,7 +48,9 @@ def test_session_on_the_emulator_sends_only_changes_and_matches_the_buffer() -> 
         dev.send_pattern = lambda lv: (sends.append(tuple(lv)), real_send(lv))[1]  # type: ignore[method-assign]
         r = Renderer(scene, dev, array=array, current_ua=1200, verify=True)
         summary = r.run(session(), on_record=records.append)
-        assert len(configures) == 1 and configures[0].electrode_count == 32 and configures[0].current_ua == 1200
+        assert (
+            len(configures) == 1 and configures[0].electrode_count == 32 and configures[0].current_ua == 1200
+        )
         assert summary.mismatches == 0
         sent = [rec.electrodes for rec in records if rec.sent]
         assert sent == sends and summary.frames_sent == len(sends)
@@ -117,7 +119,10 @@ def test_a_port_that_cannot_show_its_pattern_gives_no_readback() -> None:
 def test_uniform_activation_is_all_or_nothing() -> None:
     ua = UniformActivation()
     scene = FakeFloor()
-    outs = [ua.update(t, p, q, scene.query(p), scene) for t, p, q in line_poses(0.0, (0, 0, 3.0), (0, 0, -3.0), 20.0, 72.0)]
+    outs = [
+        ua.update(t, p, q, scene.query(p), scene)
+        for t, p, q in line_poses(0.0, (0, 0, 3.0), (0, 0, -3.0), 20.0, 72.0)
+    ]
     for o in outs:
         inside = o.t_s >= 0.15 - 1e-9  # z ≤ 0 from t = 0.15 s
         assert o.pattern == ((1,) * 32 if inside else (0,) * 32)
@@ -168,10 +173,20 @@ def test_approach_per_object() -> None:
         def query(self, point_mm):  # type: ignore[no-untyped-def]
             q = super().query(point_mm)
             name = "left" if point_mm[0] < 0 else "right"
-            return type(q)(name, q.signed_distance_mm, q.closest_point_mm, q.normal, q.feature, q.edge_direction, q.texture_level)
+            return type(q)(
+                name,
+                q.signed_distance_mm,
+                q.closest_point_mm,
+                q.normal,
+                q.feature,
+                q.edge_direction,
+                q.texture_level,
+            )
 
     r = Renderer(TwoFloors(), None, approach={"left": "ua", "right": "tactdeform"})
-    left = [rec for pose in line_poses(0.0, (-20, 0, 2.0), (-20, 0, -1.0), 20.0, 72.0) for rec in r.step(pose)]
+    left = [
+        rec for pose in line_poses(0.0, (-20, 0, 2.0), (-20, 0, -1.0), 20.0, 72.0) for rec in r.step(pose)
+    ]
     assert left[-1].approach == "ua" and left[-1].electrodes == (1,) * 32
     right = [rec for pose in line_poses(1.0, (20, 0, 2.0), (20, 0, -1.0), 20.0, 72.0) for rec in r.step(pose)]
     assert right[-1].approach == "tactdeform" and right[-1].electrodes != (1,) * 32
@@ -195,7 +210,9 @@ def test_current_hook_sets_the_current_before_a_frame() -> None:
 
 def test_contact_mode_is_selectable_per_participant() -> None:
     q = pad_down(roll_deg=60.0)
-    poses = line_poses(0.0, (0, 0, 2.0), (0, 0, -2.0), 20.0, 72.0, q) + hold_poses(0.2, (0, 0, -2.0), 1.0, 72.0, q)
+    poses = line_poses(0.0, (0, 0, 2.0), (0, 0, -2.0), 20.0, 72.0, q) + hold_poses(
+        0.2, (0, 0, -2.0), 1.0, 72.0, q
+    )
     orient = Renderer(FakeFloor(), None, contact_mode="orientation")
     uniform = Renderer(FakeFloor(), None, contact_mode="uniform")
     a = [rec for p in poses for rec in orient.step(p)][-1]
@@ -231,7 +248,9 @@ def test_frame_record_json_has_the_contract_fields() -> None:
 
 def test_stim_config_can_be_given_whole() -> None:
     with open_device("emulator") as dev:
-        r = Renderer(FakeFloor(), dev, stim_config=StimConfig(electrode_count=32, current_ua=300, rate_hz=100))
+        r = Renderer(
+            FakeFloor(), dev, stim_config=StimConfig(electrode_count=32, current_ua=300, rate_hz=100)
+        )
         r.start()
         assert dev.config is not None and dev.config.rate_hz == 100 and dev.current_ua == 300
 
@@ -256,9 +275,25 @@ def _cli(argv: list[str]) -> int:
         ("sphere", "explore", "ua"),
     ],
 )
-def test_render_command_writes_frames_and_checks_the_emulator(tmp_path: Path, scene: str, trajectory: str, approach: str) -> None:
+def test_render_command_writes_frames_and_checks_the_emulator(
+    tmp_path: Path, scene: str, trajectory: str, approach: str
+) -> None:
     out = tmp_path / "frames.jsonl"
-    code = _cli(["render", "--scene", scene, "--trajectory", trajectory, "--approach", approach, "--device", "emulator", "--frames", str(out)])
+    code = _cli(
+        [
+            "render",
+            "--scene",
+            scene,
+            "--trajectory",
+            trajectory,
+            "--approach",
+            approach,
+            "--device",
+            "emulator",
+            "--frames",
+            str(out),
+        ]
+    )
     assert code == 0
     lines = [json.loads(s) for s in out.read_text().splitlines()]
     assert lines
@@ -273,7 +308,9 @@ def test_render_command_writes_frames_and_checks_the_emulator(tmp_path: Path, sc
 
 
 @pytest.mark.parametrize(("device", "verified"), [("emulator", True), ("etactile://render-rt", False)])
-def test_render_reports_whether_it_verified(capsys: pytest.CaptureFixture[str], device: str, verified: bool) -> None:
+def test_render_reports_whether_it_verified(
+    capsys: pytest.CaptureFixture[str], device: str, verified: bool
+) -> None:
     """On an instant port (offline) every frame is read back; a real-time port is driven as a board."""
     args = ["render", "--scene", "cube", "--trajectory", "approach-face", "--device", device, "--json"]
     assert _cli(args) == 0
@@ -329,8 +366,12 @@ def test_the_renderer_builds_only_what_the_scene_needs() -> None:
     from tactdeform_hw.render.tracking import frame_from_z_y, matrix_to_quat
 
     m = uniform.renderers["tactdeform"]
-    q = tuple(matrix_to_quat(frame_from_z_y((0.3, -1.0, 0.0), (0.0, 0.0, 1.0))))  # pad down on the top, rolled
-    for pose in line_poses(0.0, (0, -97.0, 450.0), (0, -102.0, 450.0), 20.0, 72.0, q) + hold_poses(0.3, (0, -102.0, 450.0), 1.0, 72.0, q):
+    q = tuple(
+        matrix_to_quat(frame_from_z_y((0.3, -1.0, 0.0), (0.0, 0.0, 1.0)))
+    )  # pad down on the top, rolled
+    for pose in line_poses(0.0, (0, -97.0, 450.0), (0, -102.0, 450.0), 20.0, 72.0, q) + hold_poses(
+        0.3, (0, -102.0, 450.0), 1.0, 72.0, q
+    ):
         uniform.step(pose)
     assert m.state == INTERACTING and m.context == "contact"
     assert m.theta_deg is None  # θ (eq. 4) never computed in uniform mode
@@ -345,9 +386,30 @@ def test_offline_render_audit_log_runs_on_the_trajectory_clock(tmp_path) -> None
     from tactdeform_hw.cli import main
 
     audit = tmp_path / "audit.jsonl"
-    assert main(["render", "--scene", "cube", "--trajectory", "approach-face", "--frames", str(tmp_path / "f.jsonl"),
-                 "--current-ua", "500", "--audit-log", str(audit), "--quiet"]) == 0
-    times = [json.loads(line)["t"] for line in audit.read_text().splitlines() if '"type":"tx"' in line.replace(" ", "")]
+    assert (
+        main(
+            [
+                "render",
+                "--scene",
+                "cube",
+                "--trajectory",
+                "approach-face",
+                "--frames",
+                str(tmp_path / "f.jsonl"),
+                "--current-ua",
+                "500",
+                "--audit-log",
+                str(audit),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    times = [
+        json.loads(line)["t"]
+        for line in audit.read_text().splitlines()
+        if '"type":"tx"' in line.replace(" ", "")
+    ]
     poses = [json.loads(line)["t"] for line in (tmp_path / "f.jsonl").read_text().splitlines()]
     assert times and max(times) >= 0.9 * (poses[-1] - poses[0])
 
@@ -359,14 +421,35 @@ def test_cli_option_overrides_only_its_own_field_of_the_scene_file(tmp_path, cap
     from tactdeform_hw.cli import main
 
     scene = tmp_path / "bar.json"
-    scene.write_text(json.dumps({
-        "name": "bar", "options": {"contact_mode": "uniform", "approach": "cam"},
-        "objects": [{"type": "box", "name": "bar", "size_mm": [200, 50, 50], "center_mm": [0, -200, 400]}],
-    }))
-    for extra, field, want in ((["--contact-mode", "orientation"], "approach", "cam"),
-                               (["--approach", "tactdeform"], "contact_mode", "uniform")):
-        rc = main(["render", "--scene", str(scene), "--trajectory", "approach-face", "--frames",
-                   str(tmp_path / "f.jsonl"), "--quiet", "--json", *extra])
+    scene.write_text(
+        json.dumps(
+            {
+                "name": "bar",
+                "options": {"contact_mode": "uniform", "approach": "cam"},
+                "objects": [
+                    {"type": "box", "name": "bar", "size_mm": [200, 50, 50], "center_mm": [0, -200, 400]}
+                ],
+            }
+        )
+    )
+    for extra, field, want in (
+        (["--contact-mode", "orientation"], "approach", "cam"),
+        (["--approach", "tactdeform"], "contact_mode", "uniform"),
+    ):
+        rc = main(
+            [
+                "render",
+                "--scene",
+                str(scene),
+                "--trajectory",
+                "approach-face",
+                "--frames",
+                str(tmp_path / "f.jsonl"),
+                "--quiet",
+                "--json",
+                *extra,
+            ]
+        )
         assert rc == 0
         summary = json.loads(capsys.readouterr().out)
         assert summary[field] == want
@@ -383,15 +466,23 @@ def test_scene_cost_tool_reads_a_scene_file_relative_to_the_callers_directory(tm
     assert spec is not None and spec.loader is not None
     tool = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(tool)
-    (tmp_path / "two-bars.json").write_text(json.dumps({
-        "name": "two-bars",
-        "objects": [{"type": "box", "name": "left", "size_mm": [200, 50, 50], "center_mm": [-200, -200, 400]},
-                    {"type": "box", "name": "right", "size_mm": [200, 50, 50], "center_mm": [200, -200, 400]}],
-    }))
+    (tmp_path / "two-bars.json").write_text(
+        json.dumps(
+            {
+                "name": "two-bars",
+                "objects": [
+                    {"type": "box", "name": "left", "size_mm": [200, 50, 50], "center_mm": [-200, -200, 400]},
+                    {"type": "box", "name": "right", "size_mm": [200, 50, 50], "center_mm": [200, -200, 400]},
+                ],
+            }
+        )
+    )
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(tool, "CONFIGS", (("tactdeform", "orientation"),))
     (row,) = tool.measure(["two-bars.json"])
     assert "error" not in row, row
-    assert row["scene"] == "two-bars.json" and row["objects"] == 2 and row["build_ms"] >= 0 and "peak_mib" in row
+    assert (
+        row["scene"] == "two-bars.json" and row["objects"] == 2 and row["build_ms"] >= 0 and "peak_mib" in row
+    )
     assert tool.scene_argument("cube", tmp_path) == "cube"  # built-in names go through unchanged
     assert tool.scene_argument("sub/x.toml", tmp_path) == str(tmp_path / "sub" / "x.toml")

@@ -64,7 +64,9 @@ def stroke(
     poses += hold_poses(poses[-1][0], (0.0, 0.0, -DEPTH_MM), 0.5, rate)
     t0 = poses[-1][0]
     n = int(round(STROKE_MM / SPEED_MM_S * rate))
-    poses += [(t0 + i / rate, np.array([SPEED_MM_S * i / rate, 0.0, -DEPTH_MM]), PAD_DOWN) for i in range(1, n + 1)]
+    poses += [
+        (t0 + i / rate, np.array([SPEED_MM_S * i / rate, 0.0, -DEPTH_MM]), PAD_DOWN) for i in range(1, n + 1)
+    ]
     end = (STROKE_MM, 0.0, -DEPTH_MM)
     poses += hold_poses(poses[-1][0], end, 0.3, rate)
     poses += line_poses(poses[-1][0] + 1.0 / rate, end, (STROKE_MM, 0.0, 100.0), 100.0, rate)

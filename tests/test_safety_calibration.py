@@ -23,7 +23,12 @@ def test_procedure_from_zero_in_10ua_steps() -> None:
     seen = [cal.press("+").current_ua for _ in range(25)]
     assert seen[:3] == [10, 20, 30] and seen[-1] == 250
     lv = cal.stimulus().levels()
-    assert sum(lv) == 4 and [i for i, v in enumerate(lv) if v] == [12, 13, 18, 19]  # the centre's 4 electrodes
+    assert sum(lv) == 4 and [i for i, v in enumerate(lv) if v] == [
+        12,
+        13,
+        18,
+        19,
+    ]  # the centre's 4 electrodes
     s = cal.press("a")  # discomfort at 250 µA
     assert s.phase is Phase.CENTRE_DOWN and s.current_ua == 240 and cal.cap_ua == 240
     assert cal.press("+").current_ua == 240  # never back above the step below discomfort
@@ -79,8 +84,20 @@ def test_cli_writes_the_profile_from_a_key_script(tmp_path: Path, capsys: pytest
     keys.write_text(KEYS)
     out = tmp_path / "P09.toml"
     audit = tmp_path / "cal.jsonl"
-    rc = main(["calibrate", "--participant", str(out), "--keys", str(keys), "--max-ua", "300",
-               "--audit-log", str(audit), "--json"])
+    rc = main(
+        [
+            "calibrate",
+            "--participant",
+            str(out),
+            "--keys",
+            str(keys),
+            "--max-ua",
+            "300",
+            "--audit-log",
+            str(audit),
+            "--json",
+        ]
+    )
     assert rc == 0
     res = json.loads(capsys.readouterr().out)
     prof = load_profile(out)
@@ -95,7 +112,9 @@ def test_cli_writes_the_profile_from_a_key_script(tmp_path: Path, capsys: pytest
     assert rep["max_current_ua"] <= 200 and rep["final_state"]["pulse_height"] == 0
 
 
-def test_cli_reads_keys_from_stdin_and_quits_without_profile(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_cli_reads_keys_from_stdin_and_quits_without_profile(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     monkeypatch.setattr("sys.stdin", io.StringIO("+++ q"))
     monkeypatch.chdir(tmp_path)
     assert main(["calibrate", "--participant", "P10", "--keys", "-"]) == 1
@@ -106,8 +125,21 @@ def test_cli_reads_keys_from_stdin_and_quits_without_profile(tmp_path: Path, mon
 
 def test_audit_log_and_replay_of_a_send_session(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     audit = tmp_path / "send.jsonl"
-    rc = main(["send", "--pattern", "1,0,1,0", "--electrodes", "4", "--current-ua", "800", "--hold", "0.05",
-               "--audit-log", str(audit)])
+    rc = main(
+        [
+            "send",
+            "--pattern",
+            "1,0,1,0",
+            "--electrodes",
+            "4",
+            "--current-ua",
+            "800",
+            "--hold",
+            "0.05",
+            "--audit-log",
+            str(audit),
+        ]
+    )
     assert rc == 0
     capsys.readouterr()
     rep = replay(str(audit))
@@ -116,9 +148,20 @@ def test_audit_log_and_replay_of_a_send_session(tmp_path: Path, capsys: pytest.C
     assert ch["max_charge_nc"] == pytest.approx(800 * 196.6 / 1000, rel=0.02)  # the firmware's 196.6 µs pulse
     assert rep["losses"] == [] and rep["final_state"]["pulse_height"] == 0
     prof = tmp_path / "p.json"
-    prof.write_text(json.dumps({"version": 1, "participant": "P11", "cap_ua": 500, "regions_ua": [500] * 9,
-                                "pulse_width_us": 200, "polarity": "anodic", "contact_mode": "uniform",
-                                "calibrated_on": "2024-05-01"}))
+    prof.write_text(
+        json.dumps(
+            {
+                "version": 1,
+                "participant": "P11",
+                "cap_ua": 500,
+                "regions_ua": [500] * 9,
+                "pulse_width_us": 200,
+                "polarity": "anodic",
+                "contact_mode": "uniform",
+                "calibrated_on": "2024-05-01",
+            }
+        )
+    )
     assert main(["replay-log", str(audit), "--participant", str(prof), "--json"]) == 3  # 800 µA > 500 µA cap
     out = json.loads(capsys.readouterr().out)
     assert out["above_limit_count"] > 0 and out["above_limit"][0]["limit_ua"] == 500
@@ -139,7 +182,9 @@ def test_audit_log_format_errors(tmp_path: Path) -> None:
         replay(str(empty))
 
 
-def test_cli_guard_names_the_participant_being_calibrated(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_cli_guard_names_the_participant_being_calibrated(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import tactdeform_hw.device as device_pkg
 
     guards = []

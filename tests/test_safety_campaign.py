@@ -21,7 +21,9 @@ def fault_free() -> list[sc.SessionResult]:
     return sc.run_campaign(SESSIONS, seed=0)
 
 
-def test_fault_free_campaign_delivers_nothing_above_its_own_limits(fault_free: list[sc.SessionResult]) -> None:
+def test_fault_free_campaign_delivers_nothing_above_its_own_limits(
+    fault_free: list[sc.SessionResult],
+) -> None:
     summary = sc.summarize(fault_free, faults=False)
     assert summary["sessions"] == SESSIONS
     assert summary["over_limit_pulses"] == 0
@@ -34,8 +36,21 @@ def test_fault_free_campaign_delivers_nothing_above_its_own_limits(fault_free: l
 
 def test_fault_free_campaign_covers_what_it_claims(fault_free: list[sc.SessionResult]) -> None:
     summary = sc.summarize(fault_free, faults=False)
-    for call in ("configure", "send_pattern", "set_current", "keepalive", "all_off", "suspend", "probe", "resync",
-                 "reconnect", "hardware_reset", "close", "reopen", "wait"):
+    for call in (
+        "configure",
+        "send_pattern",
+        "set_current",
+        "keepalive",
+        "all_off",
+        "suspend",
+        "probe",
+        "resync",
+        "reconnect",
+        "hardware_reset",
+        "close",
+        "reopen",
+        "wait",
+    ):
         assert summary["calls"].get(call, 0) >= 100, call
     assert summary["links"]["usb"] > 500 and summary["links"]["uart"] > 500
     assert 500 < summary["robust_encoding"] < SESSIONS - 500
@@ -60,7 +75,8 @@ def test_campaign_is_deterministic_per_seed_whatever_the_jobs() -> None:
     a = sc.run_campaign(12, seed=7)
     b = sc.run_campaign(12, seed=7, jobs=2)
     assert [(r.index, r.calls, r.pulses, r.max_stim_ua, r.lost_bytes) for r in a] == [
-        (r.index, r.calls, r.pulses, r.max_stim_ua, r.lost_bytes) for r in b]
+        (r.index, r.calls, r.pulses, r.max_stim_ua, r.lost_bytes) for r in b
+    ]
     c = sc.run_campaign(12, seed=8)
     assert [r.calls for r in a] != [r.calls for r in c]
 

@@ -128,8 +128,13 @@ def pty():  # type: ignore[no-untyped-def]
 
 def _child(mode: str, path: str) -> subprocess.Popen[str]:
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, "-c", CHILD, mode, path], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", CHILD, mode, path],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     line = proc.stdout.readline()  # type: ignore[union-attr]
     assert line.strip() == "ready", proc.stderr.read() if proc.stderr else line  # type: ignore[union-attr]
     return proc
@@ -214,7 +219,10 @@ def test_reconnect_and_hardware_reset_resync_before_any_pattern() -> None:
     assert not dev.probe()
     dev.resync()  # no byte reaches a locked parser: the proof fails, and the driver takes the reset line
     assert [t[2] for t in dev.transitions if t[2] in ("failed", "resetting", "in_step")][-3:] == [
-        "failed", "resetting", "in_step"]
+        "failed",
+        "resetting",
+        "in_step",
+    ]
     assert dev.probe()
     assert dev.hardware_reset() and dev.probe()
     assert port.emulator.state()["stim_pattern"][:32] == [0] * 32

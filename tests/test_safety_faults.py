@@ -28,7 +28,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import safety_scenarios as ss  # noqa: E402
 
 SEEDS = (0, 1, 2)
-REPORTED = {FaultKind.CUT, FaultKind.CRC_ERROR, FaultKind.RESET, FaultKind.STOP_READING, FaultKind.WATCHDOG_REBOOT}
+REPORTED = {
+    FaultKind.CUT,
+    FaultKind.CRC_ERROR,
+    FaultKind.RESET,
+    FaultKind.STOP_READING,
+    FaultKind.WATCHDOG_REBOOT,
+}
 
 
 def scenario(kind: FaultKind, seed: int) -> ss.Scenario:
@@ -100,9 +106,20 @@ def test_without_recovery_a_locked_parser_stimulates_on() -> None:
 def test_scan_estimate_matches_the_timed_emulator() -> None:
     from tactdeform_hw.emulator.scan import ScanConfig, scan_duration_ns
 
-    for levels, width, discharge in [([1] * 32, 200, 45), ([1] * 32, 200, 50), ([1, 0, 2, 0] * 8, 100, 20), ([0] * 32, 200, 45)]:
-        cfg = ScanConfig(electrode_num=len(levels), pulse_width=width, discharge_time=discharge, hv513_num=4,
-                         pattern=bytes(levels), pulse_height=100)
+    for levels, width, discharge in [
+        ([1] * 32, 200, 45),
+        ([1] * 32, 200, 50),
+        ([1, 0, 2, 0] * 8, 100, 20),
+        ([0] * 32, 200, 45),
+    ]:
+        cfg = ScanConfig(
+            electrode_num=len(levels),
+            pulse_width=width,
+            discharge_time=discharge,
+            hv513_num=4,
+            pattern=bytes(levels),
+            pulse_height=100,
+        )
         exact = scan_duration_ns(cfg) / 1000
         est = estimate_scan_us(levels, width, discharge)
         assert exact <= est <= exact * 1.01 + 5, (levels[:4], exact, est)
@@ -134,12 +151,27 @@ def test_renderer_pipeline_through_a_fault() -> None:
     array = ElectrodeArray.tactdeform()
     mapping = array.channel_mapping()
     t_fault = poses[len(poses) // 2].t_s
-    port = TimedPort(link="usb", faults=[Fault(FaultKind.STOP_READING, t_fault), Fault(FaultKind.CRC_ERROR, t_fault + 0.2)])
+    port = TimedPort(
+        link="usb", faults=[Fault(FaultKind.STOP_READING, t_fault), Fault(FaultKind.CRC_ERROR, t_fault + 0.2)]
+    )
     dev = EtactileKitDevice(port, guard=SafetyGuard.from_profile(prof, region_of=None), mapping=mapping)
-    fs = FailSafe(dev, probe_interval_s=0.02, refresh_interval_s=0.05, verify_readback=True, thread=False, signals=False, at_exit=False)
+    fs = FailSafe(
+        dev,
+        probe_interval_s=0.02,
+        refresh_interval_s=0.05,
+        verify_readback=True,
+        thread=False,
+        signals=False,
+        at_exit=False,
+    )
     port.hooks.append(lambda t: fs.poll(t))
-    renderer = render.Renderer(scene, dev, array=array, current_ua=prof.stimulation_ua,
-                               stim_config=StimConfig(electrode_count=mapping.hw_channels, current_ua=prof.stimulation_ua))
+    renderer = render.Renderer(
+        scene,
+        dev,
+        array=array,
+        current_ua=prof.stimulation_ua,
+        stim_config=StimConfig(electrode_count=mapping.hw_channels, current_ua=prof.stimulation_ua),
+    )
     intents = [Intent(0.0, (0,) * 32)]
     errors = 0
     t0 = 0.05

@@ -26,7 +26,9 @@ from tactdeform_hw.protocol.decoder import StreamDecoder, decode
 from .safety_helpers import RecordingPort, defects
 
 CASES: Counter[str] = Counter()
-PROFILE = ParticipantProfile("FZ01", 2000, (1500, 1400, 1500, 1300, 1200, 1300, 1500, 1400, 1500), dt.date(2024, 5, 1))
+PROFILE = ParticipantProfile(
+    "FZ01", 2000, (1500, 1400, 1500, 1300, 1200, 1300, 1500, 1400, 1500), dt.date(2024, 5, 1)
+)
 LIMITS = SafetyGuard.from_profile(PROFILE).electrode_limits(32)
 FAST = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -93,7 +95,11 @@ def test_emulator_takes_any_stream(chunks: list[bytes], reset_at: int) -> None:
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(data=st.lists(command_bytes, max_size=120).map(bytes), gap_us=st.floats(0, 3000), link=st.sampled_from(["usb", "uart"]))
+@given(
+    data=st.lists(command_bytes, max_size=120).map(bytes),
+    gap_us=st.floats(0, 3000),
+    link=st.sampled_from(["usb", "uart"]),
+)
 def test_timed_emulator_takes_any_stream(data: bytes, gap_us: float, link: str) -> None:
     CASES["timed_emulator"] += 1
     emu = TimedEmulator(link=link)
@@ -110,8 +116,22 @@ def test_timed_emulator_takes_any_stream(data: bytes, gap_us: float, link: str) 
 # --- profiles ----------------------------------------------------------------------------------------------
 
 profile_values = st.dictionaries(
-    st.sampled_from(["version", "participant", "cap_ua", "regions_ua", "pulse_width_us", "polarity",
-                     "contact_mode", "calibrated_on", "max_charge_nc", "ramp_ua_per_frame", "notes", "extra"]),
+    st.sampled_from(
+        [
+            "version",
+            "participant",
+            "cap_ua",
+            "regions_ua",
+            "pulse_width_us",
+            "polarity",
+            "contact_mode",
+            "calibrated_on",
+            "max_charge_nc",
+            "ramp_ua_per_frame",
+            "notes",
+            "extra",
+        ]
+    ),
     anything,
     max_size=12,
 )
@@ -158,7 +178,11 @@ def test_set_current_with_anything(value: Any) -> None:
 
 
 @FAST
-@given(levels=st.one_of(st.lists(anything, max_size=40), st.lists(st.integers(-2, 4), min_size=30, max_size=34), anything))
+@given(
+    levels=st.one_of(
+        st.lists(anything, max_size=40), st.lists(st.integers(-2, 4), min_size=30, max_size=34), anything
+    )
+)
 def test_send_pattern_with_anything(levels: Any) -> None:
     CASES["send_pattern"] += 1
     dev, port = configured()

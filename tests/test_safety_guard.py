@@ -114,10 +114,26 @@ def test_every_intermediate_firmware_state_is_within_the_limits() -> None:
 def test_charge_pulse_width_polarity_sense_and_scan_refusals_write_nothing() -> None:
     cases = [
         (SafetyGuard(), StimConfig(current_ua=10_000, pulse_width_us=400), "charge"),
-        (SafetyGuard.from_profile(PROFILE), StimConfig(current_ua=1000, pulse_width_us=250), "wider than the calibrated"),
-        (SafetyGuard.from_profile(PROFILE), StimConfig(current_ua=1000, polarity="cathodic"), "calibrated 'anodic'"),
-        (SafetyGuard.from_profile(PROFILE), StimConfig(current_ua=0, sense_current_ua=1240, sense_width_us=10), "lowest electrode limit"),
-        (SafetyGuard(max_charge_nc=10.0), StimConfig(current_ua=0, sense_current_ua=40, sense_width_us=255), "sense pulse"),
+        (
+            SafetyGuard.from_profile(PROFILE),
+            StimConfig(current_ua=1000, pulse_width_us=250),
+            "wider than the calibrated",
+        ),
+        (
+            SafetyGuard.from_profile(PROFILE),
+            StimConfig(current_ua=1000, polarity="cathodic"),
+            "calibrated 'anodic'",
+        ),
+        (
+            SafetyGuard.from_profile(PROFILE),
+            StimConfig(current_ua=0, sense_current_ua=1240, sense_width_us=10),
+            "lowest electrode limit",
+        ),
+        (
+            SafetyGuard(max_charge_nc=10.0),
+            StimConfig(current_ua=0, sense_current_ua=40, sense_width_us=255),
+            "sense pulse",
+        ),
         (SafetyGuard(), StimConfig(electrode_count=255, current_ua=0, pulse_width_us=65535), "watchdog"),
         (SafetyGuard.from_profile(PROFILE), StimConfig(current_ua=2010), "exceeds the cap of 2000"),
     ]
@@ -257,7 +273,9 @@ COVERED = {
 
 def test_no_public_method_is_unreviewed() -> None:
     public = {n for n, _ in inspect.getmembers(Device) if not n.startswith("_")}
-    assert public <= set(COVERED), f"new public Device member(s) {public - set(COVERED)}: add them to the guard tests"
+    assert public <= set(COVERED), (
+        f"new public Device member(s) {public - set(COVERED)}: add them to the guard tests"
+    )
 
 
 @pytest.mark.parametrize(
@@ -326,8 +344,13 @@ def test_resync_survives_a_zero_landing_as_electrode_count() -> None:
 
 def test_resync_without_configuration_stops_every_current() -> None:
     emu = Emulator()
-    emu.feed(p.encode_electrode_num(8) + p.encode_pattern([1] * 8) + p.encode_pulse_width(200)
-             + p.encode_pulse_height(500) + p.encode_sense_height(10))  # a previous session left this running
+    emu.feed(
+        p.encode_electrode_num(8)
+        + p.encode_pattern([1] * 8)
+        + p.encode_pulse_width(200)
+        + p.encode_pulse_height(500)
+        + p.encode_sense_height(10)
+    )  # a previous session left this running
     port = RecordingPort()
     port.emulator = emu
     dev = EtactileKitDevice(port)
@@ -367,7 +390,9 @@ def test_raw_port_is_outside_the_driver() -> None:
     from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
 
     forget_shared()
-    dev = EtactileKitDevice(serial.serial_for_url("etactile://bench-raw?timed=0", do_not_open=True), guard=SafetyGuard(cap_ua=500))
+    dev = EtactileKitDevice(
+        serial.serial_for_url("etactile://bench-raw?timed=0", do_not_open=True), guard=SafetyGuard(cap_ua=500)
+    )
     dev.configure(StimConfig(current_ua=500))
     raw = serial.serial_for_url("etactile://bench-raw?timed=0")
     raw.write(p.encode_pulse_height(900))
@@ -380,8 +405,13 @@ def test_raw_port_is_outside_the_driver() -> None:
 
 def _two_channel_frame(height_ua: int, pattern: list[int]) -> bytes:
     return (
-        p.encode_pulse_height(0) + p.encode_sense_height(0) + p.encode_pulse_width(100)
-        + p.encode_electrode_num(2) + p.encode_pattern([0, 0]) + p.encode_pulse_height(height_ua // 10) + p.encode_pattern(pattern)
+        p.encode_pulse_height(0)
+        + p.encode_sense_height(0)
+        + p.encode_pulse_width(100)
+        + p.encode_electrode_num(2)
+        + p.encode_pattern([0, 0])
+        + p.encode_pulse_height(height_ua // 10)
+        + p.encode_pattern(pattern)
     )
 
 

@@ -22,8 +22,12 @@ ON = [1, 1, 0, 0]
 def stimulating(guard: SafetyGuard, height_ua: int = 1000) -> None:
     """Bring the guard's picture to four channels, two of them on at ``height_ua``."""
     for cmd in (
-        p.encode_pulse_height(0), p.encode_sense_height(0), p.encode_pulse_width(200), p.encode_electrode_num(4),
-        p.encode_pattern(ON), p.encode_pulse_height(height_ua // 10),
+        p.encode_pulse_height(0),
+        p.encode_sense_height(0),
+        p.encode_pulse_width(200),
+        p.encode_electrode_num(4),
+        p.encode_pattern(ON),
+        p.encode_pulse_height(height_ua // 10),
     ):
         guard.commit(guard.check_wire(cmd))
 
@@ -37,13 +41,19 @@ def test_the_old_resync_order_is_refused_while_the_queue_may_be_full() -> None:
     assert guard.wire_state.unproven
     guard.commit(guard.check_wire(p.encode_pulse_height(0)))  # cut or not, it cannot raise a current
     assert len(guard.wire_state.alternatives) == 3  # `fb` alone, `fb 00`, or the whole packet lost
-    with pytest.raises(SafetyError, match=r"\(if bytes 1-2 of a 3-byte write discarded by a full device queue\): pulse height 2490 µA"):
+    with pytest.raises(
+        SafetyError,
+        match=r"\(if bytes 1-2 of a 3-byte write discarded by a full device queue\): pulse height 2490 µA",
+    ):
         guard.check_wire(p.encode_sense_height(0))
     # with everything else known, the other reading: `fb 00` + `f9` → 0xF900, clamped to 4095
     guard = SafetyGuard(cap_ua=5000)
     stimulating(guard)
     guard.commit(guard.check_wire(p.encode_pulse_height(0), room=2))
-    with pytest.raises(SafetyError, match=r"\(if bytes 2-2 of a 3-byte write discarded by a full device queue\): pulse height 40950 µA"):
+    with pytest.raises(
+        SafetyError,
+        match=r"\(if bytes 2-2 of a 3-byte write discarded by a full device queue\): pulse height 40950 µA",
+    ):
         guard.check_wire(p.encode_sense_height(0))
     # what the interlock predicts is what the firmware does with those bytes
     emu = Emulator()
@@ -58,7 +68,12 @@ def test_once_the_board_has_answered_the_same_order_is_allowed() -> None:
     guard.commit(guard.check_wire(p.HV513_COUNT_REQUEST))
     guard.note_in_step()  # its reply came: the parser read it at a boundary, nothing waits behind it
     assert guard.wire_state == WireState(guard.wire_state.nominal) and not guard.wire_state.unproven
-    for cmd in (p.encode_pulse_height(0), p.encode_sense_height(0), p.encode_electrode_num(4), p.encode_pattern([0] * 4)):
+    for cmd in (
+        p.encode_pulse_height(0),
+        p.encode_sense_height(0),
+        p.encode_electrode_num(4),
+        p.encode_pattern([0] * 4),
+    ):
         guard.commit(guard.check_wire(cmd))
     assert guard.wire_state.alternatives == ()
 
@@ -181,9 +196,12 @@ def _matches(s: _Shadow, emu: Emulator) -> bool:
     """The firmware's registers agree with every register the interlock's state claims to know."""
     regs = emu.state()
     pairs = [
-        (s.electrode_num, regs["electrode_num"]), (s.height_code, regs["pulse_height"]),
-        (s.sense_code, regs["sense_pulse_height"]), (s.width_us, regs["pulse_width"]),
-        (s.sense_width_us, regs["sense_pulse_width"]), (s.polarity, regs["polarity"]),
+        (s.electrode_num, regs["electrode_num"]),
+        (s.height_code, regs["pulse_height"]),
+        (s.sense_code, regs["sense_pulse_height"]),
+        (s.width_us, regs["pulse_width"]),
+        (s.sense_width_us, regs["sense_pulse_width"]),
+        (s.polarity, regs["polarity"]),
     ]
     if any(mine is not None and mine != theirs for mine, theirs in pairs):
         return False
@@ -201,8 +219,13 @@ def test_every_state_a_lost_tail_leaves_is_foreseen(data: st.DataObject) -> None
     emu = Emulator()
     count = data.draw(st.sampled_from([8, 70]))  # 70: a pattern of two USB packets
     setup = (
-        p.encode_pulse_height(0), p.encode_sense_height(0), p.encode_polarity(1), p.encode_pulse_width(100),
-        p.encode_sense_width(50), p.encode_electrode_num(count), p.encode_pattern(([1, 0, 2, 0, 0, 1, 0, 0] * 9)[:count]),
+        p.encode_pulse_height(0),
+        p.encode_sense_height(0),
+        p.encode_polarity(1),
+        p.encode_pulse_width(100),
+        p.encode_sense_width(50),
+        p.encode_electrode_num(count),
+        p.encode_pattern(([1, 0, 2, 0, 0, 1, 0, 0] * 9)[:count]),
         p.encode_pulse_height(100),
     )
     for cmd in setup:

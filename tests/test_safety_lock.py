@@ -46,7 +46,9 @@ def _exclusive_flag(path: str) -> int:
         os.close(fd)
 
 
-def test_a_second_open_in_the_same_program_is_refused_and_writes_nothing(board: tuple[PtyServer, BoardWatch]) -> None:
+def test_a_second_open_in_the_same_program_is_refused_and_writes_nothing(
+    board: tuple[PtyServer, BoardWatch],
+) -> None:
     server, watch = board
     with open_device(server.path) as dev:
         dev.configure(StimConfig(current_ua=600))
@@ -74,13 +76,29 @@ def test_a_second_program_is_refused_with_the_holder_named(board: tuple[PtyServe
         assert watch.wait(True, WAIT_S)
         before, state = watch.bytes_in, watch.state()
         proc = subprocess.run(
-            [sys.executable, "-m", "tactdeform_hw.cli", "send", "--device", server.path, "--pattern", "all:1",
-             "--current-ua", "2000"],
-            capture_output=True, text=True, env=ENV, cwd=str(REPO), timeout=WAIT_S,
+            [
+                sys.executable,
+                "-m",
+                "tactdeform_hw.cli",
+                "send",
+                "--device",
+                server.path,
+                "--pattern",
+                "all:1",
+                "--current-ua",
+                "2000",
+            ],
+            capture_output=True,
+            text=True,
+            env=ENV,
+            cwd=str(REPO),
+            timeout=WAIT_S,
         )
         assert proc.returncode == 1, proc.stderr
         line = proc.stderr.strip()
-        assert line.startswith(f"tactdeform-hw send: error: {server.path} is in use by another program: pid {os.getpid()} (")
+        assert line.startswith(
+            f"tactdeform-hw send: error: {server.path} is in use by another program: pid {os.getpid()} ("
+        )
         assert "nothing was written" in line and "Traceback" not in proc.stderr
         time.sleep(0.05)
         assert watch.bytes_in == before and watch.state() == state
@@ -108,7 +126,9 @@ def test_a_script_with_its_own_pyserial_port_is_locked_out_too(board: tuple[PtyS
     dev.close()
 
 
-def test_the_terminal_is_exclusive_while_owned_and_released_after(board: tuple[PtyServer, BoardWatch]) -> None:
+def test_the_terminal_is_exclusive_while_owned_and_released_after(
+    board: tuple[PtyServer, BoardWatch],
+) -> None:
     server, _ = board
     assert _exclusive_flag(server.path) == 0
     with open_device(server.path, guardian=False):
@@ -127,12 +147,20 @@ time.sleep(600)
 """
 
 
-def test_nobody_takes_the_board_before_the_guardian_switched_it_off(board: tuple[PtyServer, BoardWatch]) -> None:
+def test_nobody_takes_the_board_before_the_guardian_switched_it_off(
+    board: tuple[PtyServer, BoardWatch],
+) -> None:
     """The guardian shares the owner's open file description, so the lock outlives a SIGKILLed owner
     until the all-off is on the wire: a program that opens the board then finds it off."""
     server, watch = board
-    proc = subprocess.Popen([sys.executable, "-c", OWNER, server.path], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=ENV, start_new_session=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", OWNER, server.path],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=ENV,
+        start_new_session=True,
+    )
     try:
         assert proc.stdout is not None and proc.stdout.readline().strip() == "ready"
         assert watch.wait(True, WAIT_S)
@@ -155,7 +183,9 @@ def test_nobody_takes_the_board_before_the_guardian_switched_it_off(board: tuple
         proc.communicate(timeout=WAIT_S)
 
 
-def test_reconnect_keeps_one_owner_and_a_guardian_on_the_new_descriptor(board: tuple[PtyServer, BoardWatch]) -> None:
+def test_reconnect_keeps_one_owner_and_a_guardian_on_the_new_descriptor(
+    board: tuple[PtyServer, BoardWatch],
+) -> None:
     server, watch = board
     with open_device(server.path) as dev:
         dev.configure(StimConfig(current_ua=600))

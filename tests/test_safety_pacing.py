@@ -66,7 +66,9 @@ def test_zero_losses_at_the_renderers_highest_rate(link: str, robust: bool) -> N
     assert_nothing_lost(port)
     patterns = [c for c in port.emulator.commands if c.name == "PATTERN"]
     copies = 2 if robust else 1
-    assert len(patterns) >= sent * copies  # every frame reached the parser (all-off patterns of configure too)
+    assert (
+        len(patterns) >= sent * copies
+    )  # every frame reached the parser (all-off patterns of configure too)
     assert patterns[-1].value == bytes(frames(int(RATE_HZ * 1.0))[-1])
     # the frames kept to the renderer's schedule: pacing never pushed a frame past the next one
     assert port.now_s < 0.05 + sent / RATE_HZ + 0.02
@@ -78,7 +80,9 @@ def test_zero_losses_on_full_reconfigurations_and_resyncs(link: str) -> None:
     port, dev = session(link, True, SafetyGuard())
     for i in range(6):  # back to back: nothing waits between them but the pacer
         n = 32 if i % 2 else 64  # 64 channels at 245 µs need a longer period: 60 Hz
-        dev.configure(StimConfig(electrode_count=n, current_ua=500 + 100 * i, rate_hz=125 - i if n == 32 else 60))
+        dev.configure(
+            StimConfig(electrode_count=n, current_ua=500 + 100 * i, rate_hz=125 - i if n == 32 else 60)
+        )
         dev.send_pattern([1] * dev.electrodes)
         dev.all_off()
         dev.resync()
@@ -91,7 +95,9 @@ def test_zero_losses_on_full_reconfigurations_and_resyncs(link: str) -> None:
 def test_zero_losses_with_whole_queue_patterns() -> None:
     """255 electrodes: each pattern command is 256 bytes, the whole queue."""
     port, dev = session("usb", False, SafetyGuard())
-    dev.configure(StimConfig(electrode_count=255, current_ua=100, pulse_width_us=20, discharge_us=10, rate_hz=100))
+    dev.configure(
+        StimConfig(electrode_count=255, current_ua=100, pulse_width_us=20, discharge_us=10, rate_hz=100)
+    )
     for i, levels in enumerate(frames(40, 255)):
         port.advance_to(0.02 + i * 0.004)
         dev.send_pattern(levels)
@@ -102,9 +108,14 @@ def test_zero_losses_with_whole_queue_patterns() -> None:
 def test_without_pacing_the_same_traffic_loses_bytes() -> None:
     """The control: the checks above can fail.  An unpaced burst overflows the queue."""
     port, _ = session("usb", False, SafetyGuard())
-    unpaced = Pacer(clock=port.pacing_clock, policy=PacingPolicy(command_interval_s=0, queue_bytes=10**9, link_latency_s=0, tick_s=0))
+    unpaced = Pacer(
+        clock=port.pacing_clock,
+        policy=PacingPolicy(command_interval_s=0, queue_bytes=10**9, link_latency_s=0, tick_s=0),
+    )
     dev = EtactileKitDevice(port, guard=SafetyGuard(), pacer=unpaced)
-    for call in [lambda: dev.configure(StimConfig(current_ua=500))] + [lambda lv=lv: dev.send_pattern(lv) for lv in frames(12)]:
+    for call in [lambda: dev.configure(StimConfig(current_ua=500))] + [
+        lambda lv=lv: dev.send_pattern(lv) for lv in frames(12)
+    ]:
         try:
             call()
         except ShortReplyError:

@@ -49,7 +49,9 @@ def test_json_and_toml_round_trip(tmp_path: Path) -> None:
 
 
 def test_optional_keys(tmp_path: Path) -> None:
-    prof = load_profile(write_json(tmp_path, {**GOOD, "max_charge_nc": 250.5, "ramp_ua_per_frame": 300, "notes": "x"}))
+    prof = load_profile(
+        write_json(tmp_path, {**GOOD, "max_charge_nc": 250.5, "ramp_ua_per_frame": 300, "notes": "x"})
+    )
     assert prof.charge_limit_nc == 250.5 and prof.ramp_ua_per_frame == 300 and prof.notes == "x"
 
 
@@ -127,7 +129,9 @@ def test_toml_native_date_and_datetime_refused(tmp_path: Path) -> None:
 
 def test_toml_infinity_is_refused_by_field(tmp_path: Path) -> None:
     path = tmp_path / "p.toml"
-    path.write_text(dumps_profile(profile_from_dict(GOOD), "toml") + "max_charge_nc = inf\n", encoding="utf-8")
+    path.write_text(
+        dumps_profile(profile_from_dict(GOOD), "toml") + "max_charge_nc = inf\n", encoding="utf-8"
+    )
     with pytest.raises(ProfileError) as err:
         load_profile(path)
     assert err.value.field == "max_charge_nc"
@@ -140,7 +144,9 @@ def test_constructor_validates_too() -> None:
 
 
 @pytest.mark.parametrize("command", ["send", "calibrate", "render", "play"])
-def test_cli_refuses_bad_profile_before_opening_the_device(tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str) -> None:
+def test_cli_refuses_bad_profile_before_opening_the_device(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
+) -> None:
     from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
 
     forget_shared()
@@ -149,9 +155,17 @@ def test_cli_refuses_bad_profile_before_opening_the_device(tmp_path: Path, capsy
         if command == "render":
             argv = ["render", "--scene", "cube", "--trajectory", "approach-face", "--quiet"]
         else:
-            pattern = Path(__file__).resolve().parents[1] / ".." / "shared" / "etactilekit-formats" / "test_pattern.json"
+            pattern = (
+                Path(__file__).resolve().parents[1]
+                / ".."
+                / "shared"
+                / "etactilekit-formats"
+                / "test_pattern.json"
+            )
             if not pattern.exists():
-                pytest.skip(f"{pattern} is not available (the shared reference data sits beside the repository)")
+                pytest.skip(
+                    f"{pattern} is not available (the shared reference data sits beside the repository)"
+                )
             argv = ["play", str(pattern), "--quiet"]
         rc = main([*argv, "--device", "etactile://bad-profile", "--participant", str(bad)])
         assert rc == 1 and "cap_ua" in capsys.readouterr().err
@@ -163,13 +177,31 @@ def test_cli_refuses_bad_profile_before_opening_the_device(tmp_path: Path, capsy
             rc = main([*argv, "--device", "etactile://no-array?timed=0", "--participant", good])
             assert rc == 1 and "cannot be determined" in capsys.readouterr().err
             argv += ["--array", str(pattern.parent / "electrode_array_main_board.json")]
-        rc = main([*argv, "--device", "etactile://good-profile?timed=0", "--participant", str(write_json(tmp_path, GOOD, "g.json"))])
+        rc = main(
+            [
+                *argv,
+                "--device",
+                "etactile://good-profile?timed=0",
+                "--participant",
+                str(write_json(tmp_path, GOOD, "g.json")),
+            ]
+        )
         assert rc == 0
         capsys.readouterr()
         forget_shared()
         return
     if command == "send":
-        argv = ["send", "--device", "etactile://bad-profile", "--participant", str(bad), "--pattern", "all:1", "--current-ua", "100"]
+        argv = [
+            "send",
+            "--device",
+            "etactile://bad-profile",
+            "--participant",
+            str(bad),
+            "--pattern",
+            "all:1",
+            "--current-ua",
+            "100",
+        ]
         rc = main(argv)
         assert rc == 1
         assert "cap_ua" in capsys.readouterr().err
@@ -177,14 +209,26 @@ def test_cli_refuses_bad_profile_before_opening_the_device(tmp_path: Path, capsy
     else:
         keys = tmp_path / "k.txt"
         keys.write_text("q")
-        rc = main(["calibrate", "--device", "etactile://bad-profile", "--participant", str(tmp_path / "x.yaml"), "--keys", str(keys)])
+        rc = main(
+            [
+                "calibrate",
+                "--device",
+                "etactile://bad-profile",
+                "--participant",
+                str(tmp_path / "x.yaml"),
+                "--keys",
+                str(keys),
+            ]
+        )
         assert rc == 1
         assert ".json or .toml" in capsys.readouterr().err
         assert shared_emulator("bad-profile") is None
     forget_shared()
 
 
-def test_send_with_profile_clips_to_region_and_refuses_above_cap(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_send_with_profile_clips_to_region_and_refuses_above_cap(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared
 
     forget_shared()
@@ -192,7 +236,9 @@ def test_send_with_profile_clips_to_region_and_refuses_above_cap(tmp_path: Path,
     rc = main(["send", "--participant", str(prof), "--pattern", "all:1", "--current-ua", "1800", "--json"])
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["sent_current_ua"] == 1200  # every region is active: the frame's height is the lowest, the centre's
+    assert (
+        out["sent_current_ua"] == 1200
+    )  # every region is active: the frame's height is the lowest, the centre's
     assert any(e["rule"] == "region" for e in out["safety"])
     rc = main(["send", "--participant", str(prof), "--pattern", "all:1", "--current-ua", "2010"])
     assert rc == 1 and "exceeds the cap of 2000" in capsys.readouterr().err

@@ -47,7 +47,9 @@ def big_config(robust: bool, current_ua: int = 400) -> StimConfig:
     """The whole queue in one pattern (255 electrodes; 244 under robust encoding, whose payload bytes must
     stay below 0xF5), with a scan long enough to hold the parser off for tens of milliseconds."""
     n = 244 if robust else 255
-    return StimConfig(electrode_count=n, current_ua=current_ua, pulse_width_us=200, discharge_us=10, rate_hz=7)
+    return StimConfig(
+        electrode_count=n, current_ua=current_ua, pulse_width_us=200, discharge_us=10, rate_hz=7
+    )
 
 
 def max_delivered_ua(emu: TimedEmulator) -> float:
@@ -64,8 +66,11 @@ def assert_clean(port: TimedPort, limit_ua: float) -> None:
     port.advance(0.05)
     assert max_delivered_ua(emu) <= limit_ua + 1e-6
     assert emu.losses == [], [lo.describe() for lo in emu.losses[:3]]
-    assert not [h for h in defects(emu.hazards) if h.kind not in (HazardKind.TORN_PATTERN, HazardKind.SENSE_CURRENT,
-                                                                 HazardKind.U16_WAITING)]
+    assert not [
+        h
+        for h in defects(emu.hazards)
+        if h.kind not in (HazardKind.TORN_PATTERN, HazardKind.SENSE_CURRENT, HazardKind.U16_WAITING)
+    ]
     assert all(c.in_sync for c in emu.commands)
 
 
@@ -81,7 +86,9 @@ def test_control_a_height_cut_by_a_full_queue_becomes_4095() -> None:
     parser off, a write fills the queue; of "pulse height 0" only ``fb 00`` fits and the rest of the packet
     is discarded; the next command's byte ``f9`` then completes the height as 0xF900, clamped to 4095."""
     emu = TimedEmulator("compact", 8, link="usb")
-    cfg = b"\xfc\xff" + b"\xfe" + bytes([1]) + bytes(254) + b"\xfa\xc8\x00" + b"\xf6\x07\x00" + b"\xfb\x28\x00"
+    cfg = (
+        b"\xfc\xff" + b"\xfe" + bytes([1]) + bytes(254) + b"\xfa\xc8\x00" + b"\xf6\x07\x00" + b"\xfb\x28\x00"
+    )
     for i in range(0, len(cfg), 3):
         emu.write(cfg[i : i + 3])
         emu.advance(2000)
@@ -165,7 +172,9 @@ def test_worst_case_scan_counts_biphasic_channels() -> None:
     dev.configure(cfg)
     mono = estimate_scan_us([1] * 32, 100, 10) / 1e6
     bi = estimate_scan_us([2] * 32, 100, 10) / 1e6
-    assert bi > mono and dev._worst_scan_s(cfg) == pytest.approx(min(bi, firmware_period_us(60) / 1e6 - 50e-6))
+    assert bi > mono and dev._worst_scan_s(cfg) == pytest.approx(
+        min(bi, firmware_period_us(60) / 1e6 - 50e-6)
+    )
 
 
 @pytest.mark.parametrize(("link", "robust"), BOTH, ids=IDS)
@@ -411,8 +420,9 @@ def test_closed_loop_proof_over_a_pty(pty_server: PtyServer) -> None:
         time.sleep(0.05)
         s = emu.state()
         assert s["electrode_num"] == 32 and s["pulse_height"] == 50 and s["stim_pattern"][:32] == [0] * 32
-        assert not emu.locked and defects(emu.hazards) == [h for h in defects(emu.hazards)
-                                                            if h.kind is HazardKind.PATTERN_HOLDS_COMMAND_BYTE]
+        assert not emu.locked and defects(emu.hazards) == [
+            h for h in defects(emu.hazards) if h.kind is HazardKind.PATTERN_HOLDS_COMMAND_BYTE
+        ]
         dev.keepalive()
         time.sleep(0.05)
         assert emu.state()["stim_pattern"][:32] == [1] * 32

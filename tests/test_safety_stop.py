@@ -43,8 +43,15 @@ class Board:
         self.procs: list[subprocess.Popen[str]] = []
 
     def run(self, argv: list[str]) -> subprocess.Popen[str]:
-        proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
-                                cwd=str(REPO), start_new_session=True)
+        proc = subprocess.Popen(
+            argv,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=ENV,
+            cwd=str(REPO),
+            start_new_session=True,
+        )
         self.procs.append(proc)
         return proc
 
@@ -87,8 +94,12 @@ def board() -> Iterator[Board]:
 
 def board_is_off(state: dict[str, Any]) -> bool:
     n = state["electrode_num"]
-    return (not delivering(state) and state["pulse_height"] == 0 and state["sense_pulse_height"] == 0
-            and state["stim_pattern"][:n] == [0] * n)
+    return (
+        not delivering(state)
+        and state["pulse_height"] == 0
+        and state["sense_pulse_height"] == 0
+        and state["stim_pattern"][:n] == [0] * n
+    )
 
 
 # --- every stimulating command × every stop signal -------------------------------------------------------------
@@ -99,19 +110,53 @@ def _command(name: str, tmp: Path) -> list[str]:
         return ["send", "--pattern", "all:1", "--current-ua", "500", "--hold", "120"]
     if name == "play":
         pattern = tmp / "hold.json"
-        step = {"delay": {"ON": 120000, "OFF": 0}, "pattern": [1, 0] * 16, "params": {"frequency": 125, "stim_mode": 1}}
+        step = {
+            "delay": {"ON": 120000, "OFF": 0},
+            "pattern": [1, 0] * 16,
+            "params": {"frequency": 125, "stim_mode": 1},
+        }
         pattern.write_text(json.dumps({"Execution": True, "Simulation": True, "Pattern_Data": [[step]]}))
         return ["play", str(pattern), "--current-ua", "500", "--quiet"]
     if name == "render":
-        return ["render", "--scene", "cube", "--trajectory", "explore", "--realtime", "--current-ua", "500", "--quiet"]
+        return [
+            "render",
+            "--scene",
+            "cube",
+            "--trajectory",
+            "explore",
+            "--realtime",
+            "--current-ua",
+            "500",
+            "--quiet",
+        ]
     if name == "study":
-        return ["study", "task1", "--quick", "--realtime", "--current-ua", "500", "--out", str(tmp / "study"),
-                "--no-timed", "--no-pictures", "--quiet"]
+        return [
+            "study",
+            "task1",
+            "--quick",
+            "--realtime",
+            "--current-ua",
+            "500",
+            "--out",
+            str(tmp / "study"),
+            "--no-timed",
+            "--no-pictures",
+            "--quiet",
+        ]
     if name == "calibrate":
         keys = tmp / "keys.txt"
         keys.write_text("+ + + + +\n")
-        return ["calibrate", "--participant", "P01", "--out", str(tmp / "P01.json"), "--keys", str(keys),
-                "--hold-ms", "120000"]
+        return [
+            "calibrate",
+            "--participant",
+            "P01",
+            "--out",
+            str(tmp / "P01.json"),
+            "--keys",
+            str(keys),
+            "--hold-ms",
+            "120000",
+        ]
     raise AssertionError(name)
 
 
@@ -132,7 +177,9 @@ def test_every_stimulating_command_switches_off_on_every_stop_signal(
     name = signal.Signals(sig).name
     assert proc.returncode == (130 if sig == signal.SIGINT else 128 + sig), err
     assert "Traceback" not in err, err
-    assert err.strip().splitlines()[-1] == f"tactdeform-hw {command}: stopped by {name}; every channel off", err
+    assert err.strip().splitlines()[-1] == f"tactdeform-hw {command}: stopped by {name}; every channel off", (
+        err
+    )
     state = board.watch.state()
     assert board_is_off(state), state
     assert not board.watch.emulator.locked
@@ -186,7 +233,9 @@ sys.exit(run_command(command, Namespace(command="send")))
 
 
 @pytest.mark.parametrize("sig", SIGNALS, ids=lambda s: signal.Signals(s).name)
-def test_a_stop_signal_inside_the_audit_logs_own_write_switches_off(board: Board, tmp_path: Path, sig: int) -> None:
+def test_a_stop_signal_inside_the_audit_logs_own_write_switches_off(
+    board: Board, tmp_path: Path, sig: int
+) -> None:
     record = tmp_path / "audit.jsonl"
     proc = board.run([sys.executable, "-c", SIGNAL_INSIDE_AUDIT, board.path, str(sig), "lock", str(record)])
     _, err = proc.communicate(timeout=WAIT_S)
@@ -198,17 +247,28 @@ def test_a_stop_signal_inside_the_audit_logs_own_write_switches_off(board: Board
     assert board.wait_free(), board.holders()
     # the frame was written before the stop (its bytes and the all-off's may reach the board in one read)
     lines = [json.loads(line) for line in record.read_text().splitlines()]
-    after = lines[[i for i, r in enumerate(lines) if r.get("cmd") == "PATTERN" and 1 in r["value"]][0] + 1:]
+    after = lines[[i for i, r in enumerate(lines) if r.get("cmd") == "PATTERN" and 1 in r["value"]][0] + 1 :]
     # the last height written is 0 (the all-off may end with a request whose reply proves it was read)
     assert [r["value"] for r in after if r["type"] == "tx" and r["cmd"] == "PULSE_HEIGHT"][-1:] == [0], after
     assert any(r["type"] == "event" and r["event"] == "signal" and r["signal"] == name for r in after), after
 
 
-def test_a_stop_that_cannot_finish_ends_the_process_and_the_guardian_switches_off(board: Board, tmp_path: Path) -> None:
+def test_a_stop_that_cannot_finish_ends_the_process_and_the_guardian_switches_off(
+    board: Board, tmp_path: Path
+) -> None:
     """Whatever blocks the handler's all-off for good, the process does not outlive the stop deadline: it
     exits, and its guardian switches the board off."""
-    proc = board.run([sys.executable, "-c", SIGNAL_INSIDE_AUDIT, board.path, str(int(signal.SIGTERM)), "stuck",
-                      str(tmp_path / "audit.jsonl")])
+    proc = board.run(
+        [
+            sys.executable,
+            "-c",
+            SIGNAL_INSIDE_AUDIT,
+            board.path,
+            str(int(signal.SIGTERM)),
+            "stuck",
+            str(tmp_path / "audit.jsonl"),
+        ]
+    )
     _, err = proc.communicate(timeout=WAIT_S)
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert "the all-off did not finish within 0.5 s" in err, err
@@ -218,7 +278,9 @@ def test_a_stop_that_cannot_finish_ends_the_process_and_the_guardian_switches_of
     assert board.wait_free(), board.holders()
 
 
-def test_a_stop_never_glues_its_line_onto_an_unfinished_progress_line(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_stop_never_glues_its_line_onto_an_unfinished_progress_line(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
     """The stop handler raises wherever the signal caught the main thread: here, right after the first
     write of a progress line (a ``print`` writes the text and its newline separately)."""
     import io
@@ -240,8 +302,10 @@ def test_a_stop_never_glues_its_line_onto_an_unfinished_progress_line(monkeypatc
     with pytest.raises(KeyboardInterrupt):
         common.progress("centre: raise until uncomfortable, then accept  [10 µA]")
     common._report_stop("calibrate", signal.SIGINT, 1, True)
-    assert err.getvalue().splitlines() == ["centre: raise until uncomfortable, then accept  [10 µA]",
-                                           "tactdeform-hw calibrate: stopped by SIGINT; every channel off"]
+    assert err.getvalue().splitlines() == [
+        "centre: raise until uncomfortable, then accept  [10 µA]",
+        "tactdeform-hw calibrate: stopped by SIGINT; every channel off",
+    ]
 
 
 # --- an owner that runs no code: the guardian ------------------------------------------------------------------
@@ -334,11 +398,21 @@ def _stimulating_emulator() -> Emulator:
 
 WATCHED = ("pulse_height", "sense_pulse_height", "electrode_num", "pulse_width", "sense_pulse_width")
 # What the owner may have left half-received: every command with a payload, cut after each payload byte.
-PARTIALS = [b""] + [bytes([op]) + payload[:k]
-                    for op, payload in ((0xFB, b"\x34\x00"), (0xFA, b"\xc8\x00"), (0xF6, b"\x7d\x00"), (0xF9, b"\x00"),
-                                        (0xF8, b"\x00"), (0xF7, b"\x2d"), (0xFD, b"\x01"), (0xFC, b"\x20"),
-                                        (0xFE, bytes([1, 2] * 16)))
-                    for k in range(len(payload))]
+PARTIALS = [b""] + [
+    bytes([op]) + payload[:k]
+    for op, payload in (
+        (0xFB, b"\x34\x00"),
+        (0xFA, b"\xc8\x00"),
+        (0xF6, b"\x7d\x00"),
+        (0xF9, b"\x00"),
+        (0xF8, b"\x00"),
+        (0xF7, b"\x2d"),
+        (0xFD, b"\x01"),
+        (0xFC, b"\x20"),
+        (0xFE, bytes([1, 2] * 16)),
+    )
+    for k in range(len(payload))
+]
 
 
 def _peaks(emu: Emulator, data: bytes) -> dict[str, int]:
@@ -352,7 +426,9 @@ def _peaks(emu: Emulator, data: bytes) -> dict[str, int]:
 
 
 @pytest.mark.parametrize("partial", PARTIALS, ids=lambda b: b.hex() or "boundary")
-def test_stop_packet_never_raises_a_value_whatever_it_lands_on_and_whatever_tail_is_lost(partial: bytes) -> None:
+def test_stop_packet_never_raises_a_value_whatever_it_lands_on_and_whatever_tail_is_lost(
+    partial: bytes,
+) -> None:
     stop = stop_packet()
     assert stop[:LEAD_ZEROS] == bytes(LEAD_ZEROS) and len(stop) <= 64
     # the bound: what the owner's half command becomes when finished with zeros (the owner's own bytes)
@@ -397,9 +473,15 @@ def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> 
 
     emu = TimedEmulator(link=link)
     t = 0.0
-    for cmd in (p.encode_electrode_num(32), p.encode_pattern(bytes(32)), p.encode_pulse_width(200),
-                p.encode_discharge(45), p.encode_frequency(125), p.encode_pulse_height(50),
-                p.encode_pattern(bytes([1, 0] * 16), electrode_num=32)):
+    for cmd in (
+        p.encode_electrode_num(32),
+        p.encode_pattern(bytes(32)),
+        p.encode_pulse_width(200),
+        p.encode_discharge(45),
+        p.encode_frequency(125),
+        p.encode_pulse_height(50),
+        p.encode_pattern(bytes([1, 0] * 16), electrode_num=32),
+    ):
         emu.write(cmd, at_us=t)
         t += 12_000
     emu.advance_to(t)
@@ -409,7 +491,9 @@ def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> 
     g = death + offset_us
     stop = stop_packet()
     emu.write(stop, at_us=g)
-    for k in range(1, 4):  # no proof came: 256 zeros a packet at a time, let them be skipped, the packet again
+    for k in range(
+        1, 4
+    ):  # no proof came: 256 zeros a packet at a time, let them be skipped, the packet again
         tk = g + k * 40_000
         for i in range(RESYNC_ZEROS // 64):
             emu.write(bytes(64), at_us=tk + i * 1200)
@@ -419,8 +503,11 @@ def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> 
     table = emu.reports.pulse_table(death)
     current = table["current_ua"]
     done = table["start_us"] > g + 200_000
-    return (float(current.max()) if current.size else 0.0, float(current[done].max()) if done.any() else 0.0,
-            emu.state()["pulse_height"])
+    return (
+        float(current.max()) if current.size else 0.0,
+        float(current[done].max()) if done.any() else 0.0,
+        emu.state()["pulse_height"],
+    )
 
 
 @pytest.mark.parametrize("link", ["usb", "uart"])

@@ -38,15 +38,30 @@ def test_task1_design_is_the_papers():
     study = build_study("task1", seed=0)
     feats = Counter(t.segments[0].expect["feature"] for t in study.trials)
     assert feats == {"face": 7, "edge": 7, "corner": 7}
-    edges = Counter(t.segments[0].expect["orientation"] for t in study.trials if t.segments[0].expect["feature"] == "edge")
+    edges = Counter(
+        t.segments[0].expect["orientation"] for t in study.trials if t.segments[0].expect["feature"] == "edge"
+    )
     assert sorted(edges.values()) == [1, 2, 2, 2] and set(edges) == {"h", "v", "d1", "d2"}
     # the seed picks the orientation shown once and the order; the same seed gives the same list
-    once = {s: next(o for o, n in Counter(
-        t.segments[0].expect["orientation"] for t in build_study("task1", seed=s).trials if t.condition.startswith("edge")
-    ).items() if n == 1) for s in range(12)}
+    once = {
+        s: next(
+            o
+            for o, n in Counter(
+                t.segments[0].expect["orientation"]
+                for t in build_study("task1", seed=s).trials
+                if t.condition.startswith("edge")
+            ).items()
+            if n == 1
+        )
+        for s in range(12)
+    }
     assert len(set(once.values())) > 1
-    assert [t.condition for t in build_study("task1", seed=5).trials] == [t.condition for t in build_study("task1", seed=5).trials]
-    assert [t.condition for t in build_study("task1", seed=5).trials] != [t.condition for t in build_study("task1", seed=6).trials]
+    assert [t.condition for t in build_study("task1", seed=5).trials] == [
+        t.condition for t in build_study("task1", seed=5).trials
+    ]
+    assert [t.condition for t in build_study("task1", seed=5).trials] != [
+        t.condition for t in build_study("task1", seed=6).trials
+    ]
 
 
 def test_other_designs():
@@ -57,7 +72,9 @@ def test_other_designs():
     t3 = build_study("task3")
     pairs = Counter(tuple(sorted(lv for _, lv in t.textures)) for t in t3.trials)
     assert len(t3.trials) == 24 and len(pairs) == 6 and set(pairs.values()) == {4}
-    assert all(len(t.segments) == 2 and [s.plan_object for s in t.segments] == ["upper", "lower"] for t in t3.trials)
+    assert all(
+        len(t.segments) == 2 and [s.plan_object for s in t.segments] == ["upper", "lower"] for t in t3.trials
+    )
     p2 = build_study("phase2")
     assert Counter(t.scene for t in p2.trials) == {"sphere": 3, "cube": 3, "teapot": 3, "bunny": 3}
     assert {t.approach for t in p2.trials} == {"ua", "cam", "tactdeform"}
@@ -84,8 +101,22 @@ def test_select_trials():
 
 def test_task1_subset_cli_end_to_end(tmp_path, capsys):
     out = tmp_path / "t1"
-    code = main(["study", "task1", "--device", "emulator", "--trials", "face,edge-h,corner", "--out", str(out),
-                 "--json", "--quiet", "--seed", "3"])
+    code = main(
+        [
+            "study",
+            "task1",
+            "--device",
+            "emulator",
+            "--trials",
+            "face,edge-h,corner",
+            "--out",
+            str(out),
+            "--json",
+            "--quiet",
+            "--seed",
+            "3",
+        ]
+    )
     captured = capsys.readouterr()
     assert code == 0, captured.out
     summary = json.loads(captured.out)
@@ -110,8 +141,13 @@ def test_task1_subset_cli_end_to_end(tmp_path, capsys):
         assert {i for i, n in enumerate(d["per_electrode"]["pulses"]) if n} == on
         assert t["emulator_hazards"] == [] and t["timing_hazards"] == []
         names = {c["name"] for c in t["checks"]}
-        assert {"pattern_buffer_matched_every_sent_frame", "feature_rendered_matches", "approach_frames_expand",
-                "scans_delivered_each_frame", "started_and_ended_beyond_8cm"} <= names
+        assert {
+            "pattern_buffer_matched_every_sent_frame",
+            "feature_rendered_matches",
+            "approach_frames_expand",
+            "scans_delivered_each_frame",
+            "started_and_ended_beyond_8cm",
+        } <= names
         frames = [json.loads(x) for x in (out / t["frames_file"]).read_text().splitlines()]
         assert sum(f["sent"] for f in frames) == t["frames"]["sent"] and frames[0]["t"] == 0.0
     assert (out / "summary.md").read_text().startswith("# Task 1")
@@ -143,8 +179,11 @@ def test_task3_subset_textures_and_shift_rates():
     counts = {}
     for k, seg in enumerate(rr.trial.segments):
         a, b = rr.segment_spans[k]
-        counts[seg.expect["texture"]] = sum(1 for i, r in enumerate(rr.records)
-                                            if r.sent and r.context == "sliding" and a <= rr.record_pose[i] < b)
+        counts[seg.expect["texture"]] = sum(
+            1
+            for i, r in enumerate(rr.records)
+            if r.sent and r.context == "sliding" and a <= rr.record_pose[i] < b
+        )
     assert counts[1] > 1.6 * counts[2]
 
 
@@ -216,14 +255,18 @@ def test_wrong_feature_and_wrong_frame_fail(task1_result):
     try:
         k = next(i for i, r in enumerate(run.records) if r.state == "interacting")
         r = run.records[k]
-        run.records[k] = FrameRecord(r.t_s, r.state, "corner", r.texture, r.electrodes, r.sent, r.approach, r.context)
+        run.records[k] = FrameRecord(
+            r.t_s, r.state, "corner", r.texture, r.electrodes, r.sent, r.approach, r.context
+        )
         check_trial(run, task1_result)
         assert _check(run, "feature_rendered_matches").passed is False
         assert "corner×1" in _check(run, "feature_rendered_matches").detail
         assert run.passed is False
         run.records[:] = saved
         # a sent approach frame that is not the next ring of the face pattern
-        k = next(i for i, r in enumerate(run.records) if r.sent and r.state == "approaching" and any(r.electrodes))
+        k = next(
+            i for i, r in enumerate(run.records) if r.sent and r.state == "approaching" and any(r.electrodes)
+        )
         r = run.records[k]
         wrong = tuple(1 - v for v in r.electrodes)
         run.records[k] = FrameRecord(r.t_s, r.state, r.feature, r.texture, wrong, True, r.approach, r.context)
@@ -258,7 +301,10 @@ def test_torn_scans_count_once_in_the_timing_hazards(task1_result):
     # timed emulator records both in its scan runs and as a torn_pattern hazard — a trial lists it once
     try:
         replay_timed(task1_result, link="uart")
-        torn = [[h["time_us"] for h in r.timed_hazards if h["kind"] == "torn_pattern"] for r in task1_result.trials]
+        torn = [
+            [h["time_us"] for h in r.timed_hazards if h["kind"] == "torn_pattern"]
+            for r in task1_result.trials
+        ]
         assert sum(map(len, torn)) > 0
         assert all(len(set(times)) == len(times) for times in torn), torn
     finally:
@@ -273,8 +319,9 @@ def test_summary_names_an_unchecked_design_without_a_doubled_dash(task1_result):
 
     report = report_json(task1_result, design_checks(task1_result))
     lines = [line for line in markdown(report).splitlines() if line.startswith("Design:")]
-    assert lines == ["Design: not checked — trials face,edge-v only: "
-                     f"{len(task1_result.trials)} trial(s)"], lines
+    assert lines == [f"Design: not checked — trials face,edge-v only: {len(task1_result.trials)} trial(s)"], (
+        lines
+    )
     report["design_checks"] = [{**report["design_checks"][0], "passed": True}]
     assert "Design: ok — trials face,edge-v only" in markdown(report)
 
@@ -296,7 +343,9 @@ def test_missing_bunny_is_skipped_with_a_note(tmp_path, monkeypatch):
 
     monkeypatch.setattr(runner, "find_mesh_file", absent)
     out = tmp_path / "p2"
-    code = main(["study", "phase2", "--trials", "sphere-ua,bunny-ua", "--out", str(out), "--quiet", "--no-pictures"])
+    code = main(
+        ["study", "phase2", "--trials", "sphere-ua,bunny-ua", "--out", str(out), "--quiet", "--no-pictures"]
+    )
     assert code == 0
     report = json.loads((out / "report.json").read_text())
     by = {t["condition"]: t for t in report["trials"]}
@@ -308,14 +357,36 @@ def test_missing_bunny_is_skipped_with_a_note(tmp_path, monkeypatch):
 
 
 def test_participant_profile_sets_current_and_limits(tmp_path):
-    profile = {"version": 1, "participant": "P07", "cap_ua": 2000, "regions_ua": [1500, 1600, 1500, 1700, 1800, 1700,
-               1500, 1600, 1500], "pulse_width_us": 200, "polarity": "anodic", "contact_mode": "uniform",
-               "calibrated_on": "2025-05-01"}
+    profile = {
+        "version": 1,
+        "participant": "P07",
+        "cap_ua": 2000,
+        "regions_ua": [1500, 1600, 1500, 1700, 1800, 1700, 1500, 1600, 1500],
+        "pulse_width_us": 200,
+        "polarity": "anodic",
+        "contact_mode": "uniform",
+        "calibrated_on": "2025-05-01",
+    }
     path = tmp_path / "p07.json"
     path.write_text(json.dumps(profile))
     out = tmp_path / "p"
-    assert main(["study", "task1", "--trials", "face", "--out", str(out), "--participant", str(path), "--quiet",
-                 "--no-pictures"]) == 0
+    assert (
+        main(
+            [
+                "study",
+                "task1",
+                "--trials",
+                "face",
+                "--out",
+                str(out),
+                "--participant",
+                str(path),
+                "--quiet",
+                "--no-pictures",
+            ]
+        )
+        == 0
+    )
     report = json.loads((out / "report.json").read_text())
     assert report["participant"] == "P07" and report["current_ua"] == 1800
     limits = report["limits_ua"]
@@ -326,7 +397,9 @@ def test_participant_profile_sets_current_and_limits(tmp_path):
         assert max(per) <= 1800 and min(v for v in per if v) < 1800  # the regional limits lowered frames
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"version": 1, "participant": "P07", "cap_ua": 2000}))
-    assert main(["study", "task1", "--out", str(tmp_path / "never"), "--participant", str(bad), "--quiet"]) == 1
+    assert (
+        main(["study", "task1", "--out", str(tmp_path / "never"), "--participant", str(bad), "--quiet"]) == 1
+    )
     assert not (tmp_path / "never").exists()
 
 
@@ -358,7 +431,10 @@ def test_bad_options_are_refused(tmp_path):
 
 def test_report_paths_are_relative(tmp_path):
     out = tmp_path / "rel"
-    assert main(["study", "task2", "--quick", "--trials", "1", "--out", str(out), "--quiet", "--no-pictures"]) == 0
+    assert (
+        main(["study", "task2", "--quick", "--trials", "1", "--out", str(out), "--quiet", "--no-pictures"])
+        == 0
+    )
     report = json.loads((out / "report.json").read_text())
     assert not Path(report["trials"][0]["frames_file"]).is_absolute()
     assert report["trials"][0]["scenario"]["segments"][0]["trajectory"].startswith("contact-")

@@ -32,8 +32,18 @@ def test_closed_form_duration_is_the_templates_for_random_configurations() -> No
     eng = ScanEngine(model)
     for _ in range(200):
         n = rng.randint(0, 255)
-        cfg = ScanConfig(n, 1, 100, rng.randint(1, 3000), 8, rng.randint(0, 255), rng.randint(0, 255), 16000,
-                         rng.choice([0, 4]), bytes(rng.choice([0, 1, 2, 7]) for _ in range(n)))
+        cfg = ScanConfig(
+            n,
+            1,
+            100,
+            rng.randint(1, 3000),
+            8,
+            rng.randint(0, 255),
+            rng.randint(0, 255),
+            16000,
+            rng.choice([0, 4]),
+            bytes(rng.choice([0, 1, 2, 7]) for _ in range(n)),
+        )
         assert scan_duration_ns(cfg, model, 32) == eng.template(cfg).duration_ns or n == 0
 
 

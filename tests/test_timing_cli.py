@@ -33,7 +33,9 @@ def test_budget_table_for_the_tactdeform_setting(capsys: pytest.CaptureFixture[s
 
 
 @pytest.mark.parametrize(("discharge", "overrun"), [(45, False), (50, True)])
-def test_json_has_the_required_keys(discharge: int, overrun: bool, capsys: pytest.CaptureFixture[str]) -> None:
+def test_json_has_the_required_keys(
+    discharge: int, overrun: bool, capsys: pytest.CaptureFixture[str]
+) -> None:
     code, out, _ = run_cli([*TACTDEFORM, "--discharge", str(discharge), "--json"], capsys)
     d = json.loads(out)
     assert code == (timing.EXIT_OVERRUN if overrun else 0)
@@ -49,7 +51,9 @@ def test_json_has_the_required_keys(discharge: int, overrun: bool, capsys: pytes
 def test_vcd_and_event_list(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     pytest.importorskip("vcd")
     vcd, ev = tmp_path / "s.vcd", tmp_path / "s.json"
-    code, out, _ = run_cli(["--pattern", "1,2,0,1", "--vcd", str(vcd), "--events", str(ev), "--cycles", "3"], capsys)
+    code, out, _ = run_cli(
+        ["--pattern", "1,2,0,1", "--vcd", str(vcd), "--events", str(ev), "--cycles", "3"], capsys
+    )
     assert code == 0 and f"wrote {vcd}" in out
     events = json.loads(ev.read_text())
     le_rises = [e for e in events if e["name"] == "LE" and e["value"] == 1 and e["t_ns"] > 0]
@@ -68,7 +72,9 @@ def test_latency_section(capsys: pytest.CaptureFixture[str]) -> None:
 def test_model_overrides_and_listing(capsys: pytest.CaptureFixture[str]) -> None:
     _, out, _ = run_cli([*TACTDEFORM, "--set", "gpio_write_us=0.1", "--json"], capsys)
     d = json.loads(out)
-    assert d["model"]["gpio_write_us"] == 0.1 and d["scan_us"] == pytest.approx(7850.25 + (32 * 9 + 5) * 0.05)  # 9 GPIO writes a channel, 5 in the clear
+    assert d["model"]["gpio_write_us"] == 0.1 and d["scan_us"] == pytest.approx(
+        7850.25 + (32 * 9 + 5) * 0.05
+    )  # 9 GPIO writes a channel, 5 in the clear
     _, out, _ = run_cli(["--list-model"], capsys)
     assert "spi_exchange_us" in out and "assumption" in out and "firmware comment" in out
 
@@ -112,7 +118,9 @@ def test_latency_on_a_starved_main_loop_still_reports_the_wire(capsys: pytest.Ca
     assert sum(r[-1] == "never" for r in rows) == 8  # loop tick, scan wait, first and last channel, per link
 
 
-def test_events_with_an_unknown_suffix_names_the_option_and_the_suffixes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_events_with_an_unknown_suffix_names_the_option_and_the_suffixes(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     from tactdeform_hw.cli import main
 
     vcd, ev = tmp_path / "s.vcd", tmp_path / "ev.txt"
@@ -136,8 +144,14 @@ def test_output_into_a_closed_pipe_ends_quietly() -> None:
     read_fd, write_fd = os.pipe()
     os.close(read_fd)  # the reader is gone before the command writes a byte
     try:
-        proc = subprocess.run([sys.executable, "-m", "tactdeform_hw.cli", "timing", "--json"], stdout=write_fd,
-                              stderr=subprocess.PIPE, text=True, timeout=120, cwd=Path(__file__).resolve().parents[1])
+        proc = subprocess.run(
+            [sys.executable, "-m", "tactdeform_hw.cli", "timing", "--json"],
+            stdout=write_fd,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=120,
+            cwd=Path(__file__).resolve().parents[1],
+        )
     finally:
         os.close(write_fd)
     assert proc.stderr == ""

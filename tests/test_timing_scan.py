@@ -28,7 +28,9 @@ from .scan_reference import reference_scan
 MODEL = TimingModel()
 
 
-def events_of(cfg: ScanConfig, chain: ChainState = POWER_ON_CHAIN, outputs: int = 32) -> list[tuple[int, int, int]]:
+def events_of(
+    cfg: ScanConfig, chain: ChainState = POWER_ON_CHAIN, outputs: int = 32
+) -> list[tuple[int, int, int]]:
     T, S, V = ScanEngine(outputs=outputs).template(cfg, chain).events()
     return list(zip(T.tolist(), S.tolist(), V.tolist()))
 
@@ -45,7 +47,9 @@ def test_busy_wait_is_int_of_us_times_2_minus_5_4_with_a_3us_floor(us: int, tick
     assert MODEL.delay_ns(us) == ticks * 500
 
 
-@pytest.mark.parametrize(("width", "effective_us"), [(1, 6.6), (6, 6.6), (7, 6.6), (10, 6.6), (11, 7.6), (200, 196.6)])
+@pytest.mark.parametrize(
+    ("width", "effective_us"), [(1, 6.6), (6, 6.6), (7, 6.6), (10, 6.6), (11, 7.6), (200, 196.6)]
+)
 def test_pulse_never_shorter_than_one_exchange(width: int, effective_us: float) -> None:
     assert MODEL.pulse_width_ns(width) == round(effective_us * 1000)
     cfg = ScanConfig.make(1, 1, pulse_width_us=width)
@@ -55,7 +59,9 @@ def test_pulse_never_shorter_than_one_exchange(width: int, effective_us: float) 
 
 def test_model_documents_every_constant_and_labels_assumptions() -> None:
     rows = MODEL.describe()
-    assert all(r["source"] in ("firmware", "firmware comment", "platform", "assumption") and r["doc"] for r in rows)
+    assert all(
+        r["source"] in ("firmware", "firmware comment", "platform", "assumption") and r["doc"] for r in rows
+    )
     assert {"gpio_write_us", "isr_entry_us", "parser_byte_us"} <= set(MODEL.assumptions())
     assert "spi_exchange_us" not in MODEL.assumptions()
     assert MODEL.with_(gpio_write_us=0.1).gpio_ns == 100
@@ -107,12 +113,14 @@ def test_skip_policy_overrun_with_less_than_a_tick_left_names_the_stride() -> No
     assert b.actual_rate_hz == pytest.approx(500.0)
     limit = [n for n in b.notes if "payload" in n]
     assert len(limit) == 1 and limit[0].endswith(
-        " µs outside the scan every 2 periods: the parser reads at most one command with a payload per 2 periods"), b.notes
+        " µs outside the scan every 2 periods: the parser reads at most one command with a payload per 2 periods"
+    ), b.notes
     assert float(limit[0].split()[1]) == pytest.approx(gap, abs=0.06)
     # the same configuration fitting its period keeps the per-period wording
     fits = Budget.of(ScanConfig.make(32, 1, pulse_width_us=200, discharge_us=45, rate_hz=125), MODEL, 125)
     assert [n for n in fits.notes if "payload" in n] == [
-        "only 149.8 µs per period outside the scan: the parser reads at most one command with a payload per period"]
+        "only 149.8 µs per period outside the scan: the parser reads at most one command with a payload per period"
+    ]
 
 
 # --- acceptance: one small scan, event by event -----------------------------------------------------------
@@ -120,14 +128,26 @@ def test_skip_policy_overrun_with_less_than_a_tick_left_names_the_stride() -> No
 
 def test_four_electrode_scan_gives_the_specified_dac_and_clk_sequence() -> None:
     # pattern 1, 2, 0, 1 on a compact board with one switching board (4 HV513 = 32 outputs)
-    cfg = ScanConfig.make(4, [1, 2, 0, 1], pulse_height=100, sense_height_raw=2, sense_width_us=20, hv513_num=4)
+    cfg = ScanConfig.make(
+        4, [1, 2, 0, 1], pulse_height=100, sense_height_raw=2, sense_width_us=20, hv513_num=4
+    )
     for ev in (events_of(cfg), reference_scan(cfg).events):
         dac = [v for _, s, v in ev if s == Signal.DAC]
         assert dac == [
-            100, 0, 0,  # ch0 monophasic: on, off, discharge
-            100, 0, 100, 0, 0,  # ch1 biphasic: anodic phase, cathodic phase, discharge
-            8, 0, 0,  # ch2 sense pulse (2 << 2 = 8), discharge
-            100, 0, 0,  # ch3 monophasic
+            100,
+            0,
+            0,  # ch0 monophasic: on, off, discharge
+            100,
+            0,
+            100,
+            0,
+            0,  # ch1 biphasic: anodic phase, cathodic phase, discharge
+            8,
+            0,
+            0,  # ch2 sense pulse (2 << 2 = 8), discharge
+            100,
+            0,
+            0,  # ch3 monophasic
         ]
         # CLK pulses between LE low and LE high, with the DIN level they shift in
         groups: list[tuple[int, int]] = []
@@ -157,9 +177,20 @@ def test_four_electrode_scan_gives_the_specified_dac_and_clk_sequence() -> None:
 def _rows(t: object) -> list[tuple[object, ...]]:
     p = t.pulses  # type: ignore[attr-defined]
     return [
-        (int(p.channel[i]), int(p.kind[i]), int(p.start_ns[i]), int(p.width_ns[i]), int(p.code[i]), int(p.pol[i]),
-         float(p.current_ua[i]), float(p.charge_nc[i]), int(p.voltage_code[i]), int(p.adc_ns[i]), bool(p.limited[i]),
-         t.pulse_outputs[i])  # type: ignore[attr-defined]
+        (
+            int(p.channel[i]),
+            int(p.kind[i]),
+            int(p.start_ns[i]),
+            int(p.width_ns[i]),
+            int(p.code[i]),
+            int(p.pol[i]),
+            float(p.current_ua[i]),
+            float(p.charge_nc[i]),
+            int(p.voltage_code[i]),
+            int(p.adc_ns[i]),
+            bool(p.limited[i]),
+            t.pulse_outputs[i],
+        )  # type: ignore[attr-defined]
         for i in range(p.channel.size)
     ]
 
@@ -171,8 +202,15 @@ def test_templates_are_identical_to_the_step_through_over_random_configurations(
         outputs = rng.choice([0, 8, 32, 64])
         mask = (1 << outputs) - 1
         cfg = ScanConfig(
-            n, rng.randint(0, 1), rng.randint(0, 4095), rng.choice([1, 6, 7, 8, 11, 200, rng.randint(1, 65535)]),
-            rng.randint(0, 255) << 2, rng.randint(0, 255), rng.randint(0, 255), 16000, rng.choice([0, 1, 4, 8]),
+            n,
+            rng.randint(0, 1),
+            rng.randint(0, 4095),
+            rng.choice([1, 6, 7, 8, 11, 200, rng.randint(1, 65535)]),
+            rng.randint(0, 255) << 2,
+            rng.randint(0, 255),
+            rng.randint(0, 255),
+            16000,
+            rng.choice([0, 1, 4, 8]),
             bytes(rng.choice([0, 1, 2, 3, 255]) for _ in range(n)),
         )
         chain = ChainState(rng.randint(0, 40), rng.getrandbits(64) & mask, rng.getrandbits(64) & mask)
@@ -196,7 +234,9 @@ def test_a_run_of_scans_equals_stepping_each_scan_from_the_previous_chain_state(
     from tactdeform_hw.emulator.trace import MemorySink
 
     for hv in (4, 0):
-        cfg = ScanConfig.make(5, [1, 2, 0, 1, 3], sense_height_raw=3, sense_width_us=12, rate_hz=500, hv513_num=hv)
+        cfg = ScanConfig.make(
+            5, [1, 2, 0, 1, 3], sense_height_raw=3, sense_width_us=12, rate_hz=500, hv513_num=hv
+        )
         emu = TimedEmulator()
         sink = MemorySink()
         emu.attach(sink)
@@ -225,7 +265,13 @@ def test_hv513_count_zero_clear_loads_a_one_and_leaves_output_0_selected() -> No
     assert le_groups[-1] == 0  # the "clear" selects output 0
     clear = ref.events[-6:]
     assert [(Signal(s).name, v) for _, s, v in clear] == [
-        ("LE", 0), ("DIN", 1), ("CLK", 1), ("CLK", 0), ("LE", 1), ("SEL", 0)]
+        ("LE", 0),
+        ("DIN", 1),
+        ("CLK", 1),
+        ("CLK", 0),
+        ("LE", 1),
+        ("SEL", 0),
+    ]
     # with a real chain behind a count of 0, the ones accumulate: the next scan lights several outputs
     second = ScanEngine(outputs=32).template(cfg, ref.chain_end)
     assert second.pulse_outputs[0] == (0, 1, 5)
@@ -286,7 +332,12 @@ def test_untimed_emulator_scan_seam_fills_measure_replies() -> None:
     from tactdeform_hw.protocol import commands as c
 
     plain = Emulator()
-    setup = c.encode_electrode_num(3) + c.encode_pulse_height(100) + c.encode_pulse_width(200) + c.encode_pattern([1, 1, 1])
+    setup = (
+        c.encode_electrode_num(3)
+        + c.encode_pulse_height(100)
+        + c.encode_pulse_width(200)
+        + c.encode_pattern([1, 1, 1])
+    )
     plain.feed(setup)
     assert plain.feed(c.MEASURE_REQUEST) == bytes(6)  # no scan seam: nothing measured
     emu = Emulator()

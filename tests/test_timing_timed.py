@@ -25,7 +25,9 @@ def kinds(emu: TimedEmulator) -> list[HazardKind]:
     return [h.kind for h in emu.hazards]
 
 
-def configured(cfg: ScanConfig, rate: int, link: str = "usb", spacing_us: float = 20_000.0, **kw: object) -> TimedEmulator:
+def configured(
+    cfg: ScanConfig, rate: int, link: str = "usb", spacing_us: float = 20_000.0, **kw: object
+) -> TimedEmulator:
     """A device configured the way a careful host does it: commands in separate writes, well apart."""
     emu = TimedEmulator(link=link, **kw)  # type: ignore[arg-type]
     data = configuration_bytes(cfg, rate)
@@ -110,7 +112,9 @@ def test_replies_are_immediate_and_travel_back_over_the_link() -> None:
     assert reply == c.encode_measure_reply(emu.registers.voltage[:4])
     assert all(v > 0 for v in emu.registers.voltage[:4])
     rep = emu.commands[-1]
-    assert rep.name == "MEASURE" and rep.reply_us == pytest.approx(rep.effect_us + 8 * 10 * 1e6 / 921600 / 1, abs=0.01)
+    assert rep.name == "MEASURE" and rep.reply_us == pytest.approx(
+        rep.effect_us + 8 * 10 * 1e6 / 921600 / 1, abs=0.01
+    )
     assert emu.read_tx() == b"" and emu.in_waiting == 0
 
 
@@ -169,14 +173,21 @@ def test_ten_patterns_at_once_over_usb_overflow_the_queue_and_desynchronise() ->
     first = losses[0]
     assert first.host_offset == start + 256  # the queue was empty: byte 256 is the first lost
     assert first.data == burst[256 : 256 + first.count] and t0 + 1000 < first.time_us < t0 + 2000
-    assert first.cut_command == {"name": "PATTERN", "host_offset": start + 231, "bytes_before_loss": 25, "length": 33}
+    assert first.cut_command == {
+        "name": "PATTERN",
+        "host_offset": start + 231,
+        "bytes_before_loss": 25,
+        "length": 33,
+    }
     assert HazardKind.QUEUE_OVERFLOW in kinds(emu)
     # seven whole patterns were read; the eighth waits for 8 more payload bytes ...
     assert sum(1 for cmd in emu.commands if cmd.opcode == Opcode.PATTERN and cmd.host_offset >= start) == 7
     assert emu.parser.cmd == Opcode.PATTERN and emu.parser.count == 24
     assert "not back in step yet; parser now reading PATTERN payload 24/32" in emu.losses[0].describe()
     # ... so the host's next commands become pattern payload: the parser is out of step
-    sent = c.encode_pulse_height(50) + c.encode_discharge(45) + c.encode_polarity(1) + c.encode_pulse_width(200)
+    sent = (
+        c.encode_pulse_height(50) + c.encode_discharge(45) + c.encode_polarity(1) + c.encode_pulse_width(200)
+    )
     emu.write(sent, t0 + 140_000)
     emu.advance_to(t0 + 240_000)
     after = emu.losses[0]
@@ -211,7 +222,9 @@ def test_first_pulse_per_channel_after_a_pattern_update() -> None:
     from tactdeform_hw.emulator.scan import channel_offsets_ns
 
     offs = channel_offsets_ns(ScanConfig.make(32, new), emu.model)[1]
-    assert [ch.first_pulse_us for ch in rep.channels] == pytest.approx([scan.start_us + o / 1000 for o in offs])
+    assert [ch.first_pulse_us for ch in rep.channels] == pytest.approx(
+        [scan.start_us + o / 1000 for o in offs]
+    )
     assert rep.first_pulse_us == pytest.approx(scan.start_us + offs[0] / 1000)
 
 
@@ -221,7 +234,9 @@ def test_latency_of_a_32_electrode_pattern_is_wire_plus_tick_plus_scan(link: str
     lat = pattern_latency(cfg, link, phases=8)
     assert lat["felt"] == 8
     for run in lat["runs"]:
-        assert run["wire_us"] + run["loop_wait_us"] + run["scan_wait_us"] == pytest.approx(run["first_channel_us"])
+        assert run["wire_us"] + run["loop_wait_us"] + run["scan_wait_us"] == pytest.approx(
+            run["first_channel_us"]
+        )
         assert run["last_channel_us"] > run["first_channel_us"]
     if link == "uart":
         assert lat["wire_us"]["min"] == pytest.approx(33 * 10 * 1e6 / 921600, abs=0.01)
@@ -290,8 +305,13 @@ def test_a_torn_scan_is_recorded_as_a_torn_pattern_hazard() -> None:
     k = t.new_channels
     assert 55 < k < 200  # only channels the new pattern leaves unchanged were read before the scan
     assert h.detail == {
-        "first_cycle": t.cycle, "cycles": 1, "cycle_start_us": 100_000.0, "command_host_offset": -1,
-        "new_channels": k, "old_channels": 255 - k, "changed": [],
+        "first_cycle": t.cycle,
+        "cycles": 1,
+        "cycle_start_us": 100_000.0,
+        "command_host_offset": -1,
+        "new_channels": k,
+        "old_channels": 255 - k,
+        "changed": [],
     }
     # once the pattern is whole, nothing more is torn
     assert all(cy.torn is (cy.index == t.cycle) for cy in emu.reports.cycles())
@@ -310,7 +330,12 @@ def test_a_pattern_trickling_in_over_several_scans_gives_one_hazard_per_torn_cyc
     assert len(torn) > 3 and len(hz) == len(torn) == emu.reports.summary()["torn_scans"]
     for h, t in zip(hz, torn):
         d = h.detail
-        assert (d["first_cycle"], d["cycles"], d["cycle_start_us"], h.time_us) == (t.cycle, 1, t.time_us, t.time_us)
+        assert (d["first_cycle"], d["cycles"], d["cycle_start_us"], h.time_us) == (
+            t.cycle,
+            1,
+            t.time_us,
+            t.time_us,
+        )
         assert h.offset == 0 and d["command_host_offset"] == 0 == t.command_host_offset
         assert (d["new_channels"], d["old_channels"]) == (t.new_channels, t.old_channels)
         k = d["new_channels"]

@@ -28,7 +28,9 @@ def test_frame_error_displacement_beats_velocity_integration() -> None:
 
 
 def test_timing_error_reports_every_engine() -> None:
-    out = run_tool("tools/timing_error.py", "--durations", "1", "--scenarios", "steady-usb", "--no-plot", "--json")
+    out = run_tool(
+        "tools/timing_error.py", "--durations", "1", "--scenarios", "steady-usb", "--no-plot", "--json"
+    )
     engines = {row["engine"] for row in out}  # type: ignore[union-attr]
     assert {"event-exact", "analytic"} <= engines
 

@@ -33,9 +33,16 @@ def bus() -> tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device]:
     return clock, be, dev
 
 
-def test_pyusb_sees_an_esp32s3_usb_serial_jtag(bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device]) -> None:
+def test_pyusb_sees_an_esp32s3_usb_serial_jtag(
+    bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device],
+) -> None:
     _, _, dev = bus
-    assert (dev.idVendor, dev.idProduct, dev.bDeviceClass, dev.speed) == (0x303A, 0x1001, 0xEF, usb.util.SPEED_FULL)
+    assert (dev.idVendor, dev.idProduct, dev.bDeviceClass, dev.speed) == (
+        0x303A,
+        0x1001,
+        0xEF,
+        usb.util.SPEED_FULL,
+    )
     assert (dev.manufacturer, dev.product, dev.serial_number) == (
         "Espressif",
         "USB JTAG/serial debug unit",
@@ -43,7 +50,11 @@ def test_pyusb_sees_an_esp32s3_usb_serial_jtag(bus: tuple[VirtualClock, Emulated
     )
     cfg = dev.get_active_configuration()
     layout = [
-        (i.bInterfaceNumber, i.bInterfaceClass, [(e.bEndpointAddress, usb.util.endpoint_type(e.bmAttributes)) for e in i])
+        (
+            i.bInterfaceNumber,
+            i.bInterfaceClass,
+            [(e.bEndpointAddress, usb.util.endpoint_type(e.bmAttributes)) for e in i],
+        )
         for i in cfg
     ]
     assert layout == [
@@ -54,7 +65,9 @@ def test_pyusb_sees_an_esp32s3_usb_serial_jtag(bus: tuple[VirtualClock, Emulated
     assert cfg.wTotalLength == 9 + 3 * 9 + 5 * 7 + 19  # configuration, interfaces, endpoints, CDC functional
 
 
-def test_cdc_class_requests_and_unsupported_ones_stall(bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device]) -> None:
+def test_cdc_class_requests_and_unsupported_ones_stall(
+    bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device],
+) -> None:
     _, be, dev = bus
     coding = bytes.fromhex("00100e00000008")  # 921600, 1 stop bit, no parity, 8 bits
     assert dev.ctrl_transfer(0x21, 0x20, 0, 0, coding) == 7
@@ -81,7 +94,9 @@ def test_claim_needs_the_kernel_driver_detached() -> None:
     assert be.device.kernel_bound == {0, 1}
 
 
-def test_measure_round_trip_is_frames_plus_the_tick_wait(bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device]) -> None:
+def test_measure_round_trip_is_frames_plus_the_tick_wait(
+    bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device],
+) -> None:
     clock, be, dev = bus
     d = be.device
     tick_phase_us = d.timed.model.tick_phase_us
@@ -99,7 +114,9 @@ def test_measure_round_trip_is_frames_plus_the_tick_wait(bus: tuple[VirtualClock
     assert 2000 < t_host - t_write < 3250
 
 
-def test_one_command_with_a_payload_per_tick(bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device]) -> None:
+def test_one_command_with_a_payload_per_tick(
+    bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device],
+) -> None:
     clock, be, dev = bus
     d = be.device
     dev.write(0x01, b"\xfc\x04")
@@ -130,7 +147,9 @@ def test_unknown_bytes_cost_no_tick(bus: tuple[VirtualClock, EmulatedUsbBackend,
     assert measure.reply_us - t_write < 3500
 
 
-def test_half_received_u16_spins_until_the_second_byte(bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device]) -> None:
+def test_half_received_u16_spins_until_the_second_byte(
+    bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device],
+) -> None:
     clock, be, dev = bus
     d = be.device
     dev.write(0x01, b"\xfb\x10")  # pulse height, low byte only
@@ -171,7 +190,9 @@ def test_packets_per_frame_cap_spreads_a_burst() -> None:
     assert d.timed.losses == [] and d.state()["rx_pending"] == 0
 
 
-def test_locked_parser_fills_the_queue_then_loses_everything(bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device]) -> None:
+def test_locked_parser_fills_the_queue_then_loses_everything(
+    bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device],
+) -> None:
     _, be, dev = bus
     d = be.device
     dev.write(0x01, b"\xfe")  # pattern with electrode_num 0: the parser never reads again

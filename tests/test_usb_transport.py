@@ -55,7 +55,9 @@ def port_on(backend: EmulatedUsbBackend, **kw: object) -> UsbCdcPort:
 # --- configuration ----------------------------------------------------------------------------------
 
 
-def test_open_detaches_claims_sets_line_coding_and_keeps_the_chip_out_of_reset(backend: EmulatedUsbBackend) -> None:
+def test_open_detaches_claims_sets_line_coding_and_keeps_the_chip_out_of_reset(
+    backend: EmulatedUsbBackend,
+) -> None:
     d = backend.device
     assert d.kernel_bound == {0, 1}  # cdc_acm holds the CDC interfaces, as on Linux
     port = port_on(backend)
@@ -101,10 +103,17 @@ def test_driver_runs_unchanged_configure_patterns_measure(backend: EmulatedUsbBa
     dev = EtactileKitDevice(port_on(backend))
     try:
         assert dev.hv513_count() == 4
-        dev.configure(StimConfig(electrode_count=32, current_ua=500, pulse_width_us=180, discharge_us=40, rate_hz=100))
+        dev.configure(
+            StimConfig(electrode_count=32, current_ua=500, pulse_width_us=180, discharge_us=40, rate_hz=100)
+        )
         assert d.settle()
         st = d.state()
-        assert (st["electrode_num"], st["pulse_height"], st["pulse_width"], st["discharge_time"]) == (32, 50, 180, 40)
+        assert (st["electrode_num"], st["pulse_height"], st["pulse_width"], st["discharge_time"]) == (
+            32,
+            50,
+            180,
+            40,
+        )
         assert st["period_us"] == 10_000.0 and st["rx_pending"] == 0
         levels = [(i % 3) for i in range(32)]
         dev.send_pattern(levels)
@@ -174,12 +183,16 @@ def test_selecting_a_board_by_serial_number() -> None:
     a = EmulatedUsbDevice(serial_number="AA:00:00:00:00:01")
     b = EmulatedUsbDevice("large", 2, serial_number="AA:00:00:00:00:02")
     be = EmulatedUsbBackend([a, b])
-    with pytest.raises(ConfigurationError, match="2 USB devices match 303a:1001.*AA:00:00:00:00:01.*AA:00:00:00:00:02"):
+    with pytest.raises(
+        ConfigurationError, match="2 USB devices match 303a:1001.*AA:00:00:00:00:01.*AA:00:00:00:00:02"
+    ):
         port_on(be).open()
     with UsbCdcPort(0x303A, 0x1001, "AA:00:00:00:00:02", backend=be, timeout=0.5) as port:
         port.write(b"\xf5")
         assert port.read(1) == b"\x10"  # the large board with two switching boards: 16 chips
-    with pytest.raises(TransportError, match="serial numbers present: AA:00:00:00:00:01, AA:00:00:00:00:02") as ei:
+    with pytest.raises(
+        TransportError, match="serial numbers present: AA:00:00:00:00:01, AA:00:00:00:00:02"
+    ) as ei:
         UsbCdcPort(0x303A, 0x1001, "BB", backend=be).open()
     assert ei.value.code == errno.ENODEV
 
@@ -426,7 +439,9 @@ def test_data_endpoints_must_be_bulk() -> None:
     interfaces = esp32s3_interfaces()
     interfaces[1].endpoints[1].bmAttributes = EP_INTERRUPT
     be = EmulatedUsbBackend([EmulatedUsbDevice(interfaces=interfaces)])
-    with pytest.raises(TransportError, match="endpoint 0x81 of the CDC data interface 1 is interrupt, not bulk"):
+    with pytest.raises(
+        TransportError, match="endpoint 0x81 of the CDC data interface 1 is interrupt, not bulk"
+    ):
         port_on(be).open()
     assert be.device.kernel_bound == {0, 1} and be.device.claims == {}  # a failed open gives everything back
 

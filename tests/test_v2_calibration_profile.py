@@ -27,7 +27,12 @@ def upstream(count: int = 32, intensity: int = 300) -> dict[str, Any]:
         "created_at": "2026-06-29T22:48:24",
         "layout": {"name": "Finger pad", "slug": "finger-pad", "electrode_count": count},
         "electrodes": [
-            {"id": i, "label": f"E{i}", "mapping": (i * 5) % count if count % 5 else i, "intensity": intensity}
+            {
+                "id": i,
+                "label": f"E{i}",
+                "mapping": (i * 5) % count if count % 5 else i,
+                "intensity": intensity,
+            }
             for i in range(count)
         ],
     }
@@ -75,15 +80,35 @@ def _mutate(path: str, value: Any) -> dict[str, Any]:
         # upstream's Validate
         ("layout.electrode_count", 0, "layout.electrode_count", "no layout / electrode_count"),
         ("layout", None, "layout", "no layout / electrode_count"),
-        ("layout.electrode_count", 5, "electrodes", r"electrodes array length \(4\) does not match electrode_count \(5\)"),
+        (
+            "layout.electrode_count",
+            5,
+            "electrodes",
+            r"electrodes array length \(4\) does not match electrode_count \(5\)",
+        ),
         ("electrodes.1.id", 4, "electrodes[1].id", r"Electrode id 4 is out of range \[0, 3\]"),
         ("electrodes.1.id", -1, "electrodes[1].id", "out of range"),
-        ("electrodes.2.mapping", 9, "electrodes[2].mapping", r"Electrode 2 mapping 9 is out of range \[0, 3\]"),
-        ("electrodes.2.mapping", 1, "electrodes[2].mapping", "Duplicate hardware mapping 1; mapping must be a permutation"),
+        (
+            "electrodes.2.mapping",
+            9,
+            "electrodes[2].mapping",
+            r"Electrode 2 mapping 9 is out of range \[0, 3\]",
+        ),
+        (
+            "electrodes.2.mapping",
+            1,
+            "electrodes[2].mapping",
+            "Duplicate hardware mapping 1; mapping must be a permutation",
+        ),
         # this package's limits
         ("electrodes.2.id", 1, "electrodes[2].id", "ids must be unique"),
         ("electrodes.0.intensity", -1, "electrodes[0].intensity", "0 to 1000"),
-        ("electrodes.0.intensity", 1001, "electrodes[0].intensity", r"1001 is out of range: 0 to 1000 \(DAC code; the 10000 µA ceiling"),
+        (
+            "electrodes.0.intensity",
+            1001,
+            "electrodes[0].intensity",
+            r"1001 is out of range: 0 to 1000 \(DAC code; the 10000 µA ceiling",
+        ),
         ("electrodes.0.intensity", 1.5, "electrodes[0].intensity", "not an integer"),
         ("electrodes.0.intensity", KeyError, "electrodes[0].intensity", "missing"),
         ("electrodes.0.intensty", 5, "electrodes[0].intensty", "unknown key"),
@@ -153,7 +178,10 @@ def test_a_bad_calibration_file_is_refused_before_anything_is_sent(tmp_path: Pat
     bad["electrodes"][5]["mapping"] = 0
     path = tmp_path / "bad.json"
     path.write_text(json.dumps(bad))
-    with pytest.raises(ProfileError, match=r"bad.json: electrodes\[5\].mapping: Duplicate hardware mapping 0.*nothing was sent"):
+    with pytest.raises(
+        ProfileError,
+        match=r"bad.json: electrodes\[5\].mapping: Duplicate hardware mapping 0.*nothing was sent",
+    ):
         profile_from_args(_args(path))
     path.write_text('{"format": "etactilekit_calibration_profile", "format": "x"}')
     with pytest.raises(ProfileError, match="duplicate key"):

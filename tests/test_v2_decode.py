@@ -11,8 +11,14 @@ from tactdeform_hw.protocol.firmware import V2
 
 from .conftest import DATA
 
-VECTORS = [json.loads(line) for line in (DATA / "protocol_vectors_v2.jsonl").read_text().splitlines() if line.strip()]
-UNTIMED = [v for v in VECTORS if "arrivals" not in v and "final_time_us" not in v and not v["category"].startswith("overflow")]
+VECTORS = [
+    json.loads(line) for line in (DATA / "protocol_vectors_v2.jsonl").read_text().splitlines() if line.strip()
+]
+UNTIMED = [
+    v
+    for v in VECTORS
+    if "arrivals" not in v and "final_time_us" not in v and not v["category"].startswith("overflow")
+]
 
 
 def test_untimed_set_is_large() -> None:
@@ -39,7 +45,15 @@ def test_decoded_commands_rebuild_the_firmware_state(vector: dict) -> None:
         elif spec.register and item.stored is not None and spec.register != "frequency":
             state[spec.register] = item.stored
     expect = vector["expect"]
-    for key in ("electrode_num", "polarity", "stim_mode", "pulse_width", "sense_pulse_height", "sense_pulse_width", "discharge_time"):
+    for key in (
+        "electrode_num",
+        "polarity",
+        "stim_mode",
+        "pulse_width",
+        "sense_pulse_height",
+        "sense_pulse_width",
+        "discharge_time",
+    ):
         assert state[key] == expect[key], key
     assert pattern == expect["stim_pattern"]
     assert pending == expect["command_in_progress"]
@@ -53,7 +67,10 @@ def test_cli_decodes_v2(capsys: pytest.CaptureFixture[str]) -> None:
     parser = argparse.ArgumentParser()
     cli.register(parser.add_subparsers())
     for argv, want in (
-        (["--firmware", "v2", "fc 02 fe 64 00 ff 0f fb 01 f4"], ["levels=[100,4095]", "STIM_MODE stim_mode=1", "SYNC_CHECK"]),
+        (
+            ["--firmware", "v2", "fc 02 fe 64 00 ff 0f fb 01 f4"],
+            ["levels=[100,4095]", "STIM_MODE stim_mode=1", "SYNC_CHECK"],
+        ),
         (["fc 02 fe 64 00 ff 0f fb 01 f4"], ["levels=[100,0]", "MEASURE", "PULSE_HEIGHT"]),
     ):
         args = parser.parse_args(["decode", *argv])

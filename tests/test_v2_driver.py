@@ -55,7 +55,9 @@ class V2Board(TimedEmulatorV2):
         self.emulator.reset()
 
 
-def _timed_v2(guard: SafetyGuard | None = None, *, robust: bool = False) -> tuple[EtactileKitDevice, TimedPort, V2Board]:
+def _timed_v2(
+    guard: SafetyGuard | None = None, *, robust: bool = False
+) -> tuple[EtactileKitDevice, TimedPort, V2Board]:
     board = V2Board()
     port = TimedPort(board, robust_encoding=robust)  # type: ignore[arg-type]
     dev = EtactileKitDevice(port, firmware="v2", guard=guard)
@@ -70,7 +72,9 @@ def _untimed(fw: str) -> tuple[EmulatorPort, Emulator]:
 def _no_live_hazards(emu: Emulator) -> None:
     """Only the probe's zeros (unknown bytes) and the count raised over channels an earlier pattern left,
     which the driver does in mode 2 with sense height 0: every pulse of those scans has height 0."""
-    assert [h.kind.value for h in emu.hazards if h.kind.value not in ("unknown_bytes", "stale_channels")] == []
+    assert [
+        h.kind.value for h in emu.hazards if h.kind.value not in ("unknown_bytes", "stale_channels")
+    ] == []
 
 
 # --- configure, frames, all-off, close ---------------------------------------------------------------------
@@ -80,10 +84,24 @@ def test_configure_send_all_off_close_on_the_untimed_v2_url() -> None:
     dev = open_device("etactile://?firmware=v2&timed=0", firmware="v2")
     emu = dev.port.emulator  # type: ignore[attr-defined]
     assert isinstance(dev._dialect, V2Dialect) and dev.link_state is LinkState.IN_STEP
-    dev.configure(StimConfig(electrode_count=4, current_ua=1000, pulse_width_us=150, discharge_us=40, rate_hz=200,
-                             polarity="cathodic"))
+    dev.configure(
+        StimConfig(
+            electrode_count=4,
+            current_ua=1000,
+            pulse_width_us=150,
+            discharge_us=40,
+            rate_hz=200,
+            polarity="cathodic",
+        )
+    )
     s = emu.state()
-    assert (s["electrode_num"], s["stim_mode"], s["pulse_width"], s["discharge_time"], s["polarity"]) == (4, 0, 150, 40, 0)
+    assert (s["electrode_num"], s["stim_mode"], s["pulse_width"], s["discharge_time"], s["polarity"]) == (
+        4,
+        0,
+        150,
+        40,
+        0,
+    )
     assert s["stim_pattern"][:4] == [0, 0, 0, 0]
     dev.send_pattern([1, 0, 1, 0])
     assert emu.state()["stim_pattern"][:4] == [100, 0, 100, 0] and emu.state()["stim_mode"] == 0
@@ -378,8 +396,22 @@ def test_cli_send_drives_a_v2_board_with_auto_and_reports_per_electrode_heights(
 
     from tactdeform_hw.cli import main
 
-    argv = ["send", "--device", "etactile://?firmware=v2&timed=0", "--firmware", "auto", "--pattern", "1,1,0,1",
-            "--electrodes", "4", "--current-ua", "300", "--hold-ms", "0", "--json"]
+    argv = [
+        "send",
+        "--device",
+        "etactile://?firmware=v2&timed=0",
+        "--firmware",
+        "auto",
+        "--pattern",
+        "1,1,0,1",
+        "--electrodes",
+        "4",
+        "--current-ua",
+        "300",
+        "--hold-ms",
+        "0",
+        "--json",
+    ]
     assert main(argv) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["emulator_pattern"] == [30, 30, 0, 30] and out["emulator_state"]["stim_mode"] == 0
@@ -423,12 +455,19 @@ def test_random_sessions_on_the_timed_v2_model_never_exceed_an_electrodes_limit(
     n = rng.choice([4, 16, 32, 32])  # the compact board drives 32 outputs
     regions = n == 32 and rng.random() < 0.7
     cap = rng.choice([800, 1500, 3000])
-    guard = SafetyGuard(cap, regions_ua=[min(cap, r) for r in REGIONS] if regions else None,
-                        ramp_ua_per_frame=rng.choice([None, 200, 500]))
+    guard = SafetyGuard(
+        cap,
+        regions_ua=[min(cap, r) for r in REGIONS] if regions else None,
+        ramp_ua_per_frame=rng.choice([None, 200, 500]),
+    )
     dev, port, board = _timed_v2(guard, robust=seed % 2 == 1)  # odd seeds: the loss-tolerant encoding
     limits = guard.electrode_limits(n)
-    cfg = StimConfig(electrode_count=n, current_ua=rng.randrange(0, cap + 1, 10),
-                     pulse_width_us=rng.choice([50, 100, 200]), rate_hz=rng.choice([60, 125, 200]))
+    cfg = StimConfig(
+        electrode_count=n,
+        current_ua=rng.randrange(0, cap + 1, 10),
+        pulse_width_us=rng.choice([50, 100, 200]),
+        rate_hz=rng.choice([60, 125, 200]),
+    )
     try:
         dev.configure(cfg)
     except SafetyError as exc:  # every channel is pulsed each scan on v2: the scan must fit the period
@@ -466,7 +505,9 @@ def test_random_sessions_on_the_timed_v2_model_never_exceed_an_electrodes_limit(
         ch = row["channel"]
         assert row["current_ua"] <= min(limits[ch], charge_ua) + 1e-6, row
         worst[ch] = max(worst.get(ch, 0.0), row["current_ua"])
-    assert [h.kind.value for h in board.hazards if h.kind.value not in ("unknown_bytes", "stale_channels")] == []
+    assert [
+        h.kind.value for h in board.hazards if h.kind.value not in ("unknown_bytes", "stale_channels")
+    ] == []
     assert board.peak_current_ua(since_us=(port.now_s - 0.03) * 1e6) == {}  # closed: nothing any more
 
 
@@ -485,8 +526,22 @@ def test_a_configuration_whose_idle_scan_fills_the_period_is_refused_on_v2() -> 
 def test_cli_render_drives_a_v2_board_and_its_check_reads_heights(capsys: pytest.CaptureFixture[str]) -> None:
     from tactdeform_hw.cli import main
 
-    rc = main(["render", "--scene", "cube", "--trajectory", "approach-face", "--device",
-               "etactile://?firmware=v2&timed=0", "--firmware", "auto", "--current-ua", "1000", "--quiet"])
+    rc = main(
+        [
+            "render",
+            "--scene",
+            "cube",
+            "--trajectory",
+            "approach-face",
+            "--device",
+            "etactile://?firmware=v2&timed=0",
+            "--firmware",
+            "auto",
+            "--current-ua",
+            "1000",
+            "--quiet",
+        ]
+    )
     assert rc == 0, capsys.readouterr().err
     assert "0 mismatch(es) against the emulator" in capsys.readouterr().out
 

@@ -14,10 +14,22 @@ from tactdeform_hw.protocol import commands as c12
 from tactdeform_hw.protocol import commands_v2 as c2
 from tactdeform_hw.protocol.firmware import V1_2, V2
 
-STIM_V12 = (c12.encode_electrode_num(32) + c12.encode_pulse_height(1000) + c12.encode_pulse_width(200)
-            + c12.encode_sense_height(200) + c12.encode_pattern(bytes([1] * 32)))
-STIM_V2 = (c2.encode_electrode_num(32) + c2.encode_stim_mode(2) + c2.encode_sense_height(255) + c2.encode_sense_width(50)
-           + c2.encode_pulse_width(200) + c2.encode_pattern([4095] * 32) + c2.encode_stim_mode(0))
+STIM_V12 = (
+    c12.encode_electrode_num(32)
+    + c12.encode_pulse_height(1000)
+    + c12.encode_pulse_width(200)
+    + c12.encode_sense_height(200)
+    + c12.encode_pattern(bytes([1] * 32))
+)
+STIM_V2 = (
+    c2.encode_electrode_num(32)
+    + c2.encode_stim_mode(2)
+    + c2.encode_sense_height(255)
+    + c2.encode_sense_width(50)
+    + c2.encode_pulse_width(200)
+    + c2.encode_pattern([4095] * 32)
+    + c2.encode_stim_mode(0)
+)
 
 
 def _prefixes(spec, electrode_counts: tuple[int, ...]) -> list[tuple[str, bytes]]:
@@ -167,8 +179,21 @@ def test_open_device_refuses_an_unknown_firmware_name() -> None:
 def test_cli_firmware_v12_refuses_a_v2_emulator(capsys: pytest.CaptureFixture[str]) -> None:
     from tactdeform_hw.cli import main
 
-    argv = ["send", "--device", "etactile://?firmware=v2", "--firmware", "v1.2", "--pattern", "1", "--electrodes", "1",
-            "--current-ua", "100", "--hold", "0"]
+    argv = [
+        "send",
+        "--device",
+        "etactile://?firmware=v2",
+        "--firmware",
+        "v1.2",
+        "--pattern",
+        "1",
+        "--electrodes",
+        "1",
+        "--current-ua",
+        "100",
+        "--hold",
+        "0",
+    ]
     assert main(argv) != 0
     assert "runs firmware v2" in capsys.readouterr().err
     argv[2] = "etactile://?firmware=v1.2"

@@ -14,7 +14,14 @@ from tactdeform_hw.protocol.firmware import V2, OpcodeV2
 
 from .conftest import DATA
 
-U8 = [OpcodeV2.POLARITY, OpcodeV2.ELECTRODE_NUM, OpcodeV2.STIM_MODE, OpcodeV2.SENSE_HEIGHT, OpcodeV2.SENSE_WIDTH, OpcodeV2.DISCHARGE]
+U8 = [
+    OpcodeV2.POLARITY,
+    OpcodeV2.ELECTRODE_NUM,
+    OpcodeV2.STIM_MODE,
+    OpcodeV2.SENSE_HEIGHT,
+    OpcodeV2.SENSE_WIDTH,
+    OpcodeV2.DISCHARGE,
+]
 U16 = [OpcodeV2.PULSE_WIDTH, OpcodeV2.FREQUENCY]
 NO_PAYLOAD = [OpcodeV2.MEASURE, OpcodeV2.HV513_COUNT, OpcodeV2.SYNC_CHECK]
 
@@ -50,7 +57,7 @@ def test_requests(op: OpcodeV2, use_compiled: bool) -> None:
 def test_pattern_is_one_u16_per_electrode(use_compiled: bool) -> None:
     fmt = c.compiled(OpcodeV2.PATTERN) if use_compiled else c.PatternCommand
     data = fmt.build({"heights": [1, 300, 4095]}, electrode_num=3)
-    assert data == bytes.fromhex("fe" "0100" "2c01" "ff0f")
+    assert data == bytes.fromhex("fe01002c01ff0f")
     assert list(fmt.parse(data, electrode_num=3).heights) == [1, 300, 4095]
     assert fmt.sizeof(electrode_num=32) == 65
 
@@ -91,8 +98,12 @@ def test_encoders_refuse_naming_field_value_and_limit() -> None:
 def test_what_the_encoders_send_is_what_v2_stores() -> None:
     emu = Emulator(firmware="v2")
     emu.feed(
-        c.encode_electrode_num(3) + c.encode_stim_mode(1) + c.encode_pulse_width(0) + c.encode_sense_height(200)
-        + c.encode_pattern([5, 4095, 0]) + c.encode_frequency(125)
+        c.encode_electrode_num(3)
+        + c.encode_stim_mode(1)
+        + c.encode_pulse_width(0)
+        + c.encode_sense_height(200)
+        + c.encode_pattern([5, 4095, 0])
+        + c.encode_frequency(125)
     )
     s = emu.state()
     assert (s["electrode_num"], s["stim_mode"], s["pulse_width"], s["sense_pulse_height"]) == (3, 1, 0, 200)
@@ -121,7 +132,9 @@ def test_golden_streams_parse_with_the_generic_format() -> None:
         data = bytes.fromhex(vector["stream"])
         emu = Emulator(firmware="v2")
         seen: list[tuple[int, object, int, int]] = []
-        emu.parser.on_command = lambda op, value, off, s=seen, e=emu: s.append((op, value, off, e.registers.electrode_num))
+        emu.parser.on_command = lambda op, value, off, s=seen, e=emu: s.append(
+            (op, value, off, e.registers.electrode_num)
+        )
         emu.feed(data)
         for op, value, off, _n in seen:
             size = V2.size_of(op, 0)

@@ -41,7 +41,9 @@ def _conventions(golden: dict) -> ScanConventions:
     )
 
 
-@pytest.mark.parametrize(("firmware", "index"), CASES, ids=[f"{fw}-{TRACES[fw][i]['name']}" for fw, i in CASES])
+@pytest.mark.parametrize(
+    ("firmware", "index"), CASES, ids=[f"{fw}-{TRACES[fw][i]['name']}" for fw, i in CASES]
+)
 def test_scan_trace_matches_the_firmware(firmware: str, index: int) -> None:
     """Every event in order and value, the return time, the voltages, the timer operations."""
     golden = TRACES[firmware][index]
@@ -127,15 +129,25 @@ def test_the_v12_scan_engine_agrees_with_the_golden_traces() -> None:
     for golden in TRACES["v1.2"]:
         c = golden["config"]
         cfg = ScanConfig(
-            c["electrode_num"], c["polarity"], c["pulse_height"], c["pulse_width"], c["sense_pulse_height"],
-            c["sense_pulse_width"], c["discharge_time"], golden["alarm_ticks"], c["hv513_num"], bytes(c["stim_pattern"]),
+            c["electrode_num"],
+            c["polarity"],
+            c["pulse_height"],
+            c["pulse_width"],
+            c["sense_pulse_height"],
+            c["sense_pulse_width"],
+            c["discharge_time"],
+            golden["alarm_ticks"],
+            c["hv513_num"],
+            bytes(c["stim_pattern"]),
         )
         chain = POWER_ON_CHAIN
         for _ in range(c["prior_scans"]):
             chain = reference_scan(cfg, chain).chain_end
         res = reference_scan(cfg, chain)
         ours = [
-            [round(t / 1000, 3), "DAC", "DAC", v] if sig == Signal.DAC else [round(t / 1000, 3), "GPIO", pins[Signal(sig)], v]
+            [round(t / 1000, 3), "DAC", "DAC", v]
+            if sig == Signal.DAC
+            else [round(t / 1000, 3), "GPIO", pins[Signal(sig)], v]
             for t, sig, v in res.events
             if sig in pins or sig == Signal.DAC
         ]
@@ -155,4 +167,6 @@ def test_budget_widths_match_the_traces() -> None:
         b = budget(FirmwareScanConfig.from_dict(golden["config"]), firmware, HOST_BUILD)
         assert b.effective_width_us == round(dac[1] - dac[0], 3)
         assert b.scan_us == golden["isr_return_us"] and b.verdict == "fits"
-        assert len(b.per_channel_us) == 32 and sum(b.per_channel_us) + b.isr_entry_us + b.clear_us == pytest.approx(b.scan_us)
+        assert len(b.per_channel_us) == 32 and sum(
+            b.per_channel_us
+        ) + b.isr_entry_us + b.clear_us == pytest.approx(b.scan_us)

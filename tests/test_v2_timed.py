@@ -13,8 +13,14 @@ from tactdeform_hw.protocol import commands_v2 as c
 
 from .conftest import DATA
 
-SETUP = (c.encode_electrode_num(32) + c.encode_stim_mode(0) + c.encode_pulse_width(200) + c.encode_discharge(45)
-         + c.encode_frequency(125) + c.encode_pattern([100] * 32))
+SETUP = (
+    c.encode_electrode_num(32)
+    + c.encode_stim_mode(0)
+    + c.encode_pulse_width(200)
+    + c.encode_discharge(45)
+    + c.encode_frequency(125)
+    + c.encode_pattern([100] * 32)
+)
 
 
 def test_tactdeform_scans_run_every_period_at_the_budgeted_length() -> None:
@@ -32,8 +38,14 @@ def test_tactdeform_scans_run_every_period_at_the_budgeted_length() -> None:
 
 def test_mode_2_with_a_zero_pattern_still_stimulates_and_is_a_hazard() -> None:
     emu = TimedEmulatorV2()
-    emu.write(c.encode_electrode_num(4) + c.encode_sense_height(10) + c.encode_sense_width(10) + c.encode_stim_mode(2)
-              + c.encode_pattern([0] * 4), 0.0)
+    emu.write(
+        c.encode_electrode_num(4)
+        + c.encode_sense_height(10)
+        + c.encode_sense_width(10)
+        + c.encode_stim_mode(2)
+        + c.encode_pattern([0] * 4),
+        0.0,
+    )
     emu.advance_to(40_000.0)
     last = emu.scans[-1]
     assert last.heights == (0, 0, 0, 0) and last.live_channels() == [0, 1, 2, 3] and last.codes == (10,) * 4
@@ -70,7 +82,9 @@ def test_a_cut_command_times_out_and_later_commands_apply() -> None:
     assert emu.read_tx() == b"\x02" and emu.state()["pulse_width"] == 150
 
 
-VECTORS = [json.loads(line) for line in (DATA / "protocol_vectors_v2.jsonl").read_text().splitlines() if line.strip()]
+VECTORS = [
+    json.loads(line) for line in (DATA / "protocol_vectors_v2.jsonl").read_text().splitlines() if line.strip()
+]
 
 
 def _slow_enough(vector: dict) -> bool:
@@ -79,12 +93,20 @@ def _slow_enough(vector: dict) -> bool:
     from tactdeform_hw.protocol.decoder import decode
     from tactdeform_hw.protocol.firmware import V2
 
-    return all(not (d.opcode == 0xF6 and isinstance(d.value, int) and d.value > 1000)
-               for d in decode(bytes.fromhex(vector["stream"]), 0, V2))
+    return all(
+        not (d.opcode == 0xF6 and isinstance(d.value, int) and d.value > 1000)
+        for d in decode(bytes.fromhex(vector["stream"]), 0, V2)
+    )
 
 
-UPSTREAM = [v for v in VECTORS if "arrivals" not in v and "final_time_us" not in v
-            and not v["category"].startswith("overflow") and _slow_enough(v)]
+UPSTREAM = [
+    v
+    for v in VECTORS
+    if "arrivals" not in v
+    and "final_time_us" not in v
+    and not v["category"].startswith("overflow")
+    and _slow_enough(v)
+]
 
 
 @pytest.mark.parametrize("vector", UPSTREAM[::12], ids=[v["id"] for v in UPSTREAM[::12]])
@@ -98,8 +120,20 @@ def test_upstream_paced_client_gets_the_predicted_state(vector: dict) -> None:
     emu.advance_to(3000.0 * len(chunks) + 20_000.0)
     state = emu.state()
     expect = vector["expect"]
-    for key in ("electrode_num", "polarity", "stim_mode", "pulse_width", "sense_pulse_height", "sense_pulse_width",
-                "discharge_time", "timer_alarm_ticks", "hv513_num", "stim_pattern", "rx_pending", "command_in_progress"):
+    for key in (
+        "electrode_num",
+        "polarity",
+        "stim_mode",
+        "pulse_width",
+        "sense_pulse_height",
+        "sense_pulse_width",
+        "discharge_time",
+        "timer_alarm_ticks",
+        "hv513_num",
+        "stim_pattern",
+        "rx_pending",
+        "command_in_progress",
+    ):
         assert state[key] == expect[key], key
     tx = emu.read_tx().hex()
     if "ff" not in vector["stream"]:
@@ -121,12 +155,22 @@ def test_delivered_pulses_follow_each_electrode_and_the_biphasic_polarity() -> N
     """Safety reads what the board delivered: per-electrode heights, both phases, the configured
     polarity first (v2), widths as the scan really made them."""
     emu = TimedEmulatorV2()
-    emu.write(c.encode_electrode_num(3) + c.encode_stim_mode(1) + c.encode_polarity(0) + c.encode_pulse_width(200)
-              + c.encode_pattern([100, 0, 250]), 0.0)
+    emu.write(
+        c.encode_electrode_num(3)
+        + c.encode_stim_mode(1)
+        + c.encode_polarity(0)
+        + c.encode_pulse_width(200)
+        + c.encode_pattern([100, 0, 250]),
+        0.0,
+    )
     emu.advance_to(15_000.0)
     rows = emu.delivered()
     assert [(r["channel"], r["code"], r["polarity"]) for r in rows] == [
-        (0, 100, "cathodic"), (0, 100, "anodic"), (2, 250, "cathodic"), (2, 250, "anodic")]
+        (0, 100, "cathodic"),
+        (0, 100, "anodic"),
+        (2, 250, "cathodic"),
+        (2, 250, "anodic"),
+    ]
     assert {r["width_us"] for r in rows} == {196.6}
     assert emu.peak_current_ua() == {0: 1000.0, 2: 2500.0}
     assert rows[0]["charge_nc"] == pytest.approx(1000.0 * 196.6 / 1000)
@@ -156,8 +200,14 @@ def test_a_scan_that_preempts_the_pattern_copy_is_torn_and_recorded() -> None:
     already copied at their new heights and the rest at their old ones."""
     n = 255
     emu = TimedEmulatorV2(link="uart")
-    emu.write(c.encode_electrode_num(n) + c.encode_pulse_width(20) + c.encode_discharge(10) + c.encode_frequency(30)
-              + c.encode_pattern([10] * n), 0.0)
+    emu.write(
+        c.encode_electrode_num(n)
+        + c.encode_pulse_width(20)
+        + c.encode_discharge(10)
+        + c.encode_frequency(30)
+        + c.encode_pattern([10] * n),
+        0.0,
+    )
     # 511 bytes at 10.85 us each end about 32.5 ms; the parser copies them (about 0.5 ms) from its 33 ms
     # tick, and the 30 Hz alarm comes at 33.333 ms, in the middle of the copy
     emu.write(c.encode_pattern([200] * n), 26_955.0)

@@ -36,17 +36,51 @@ def test_discharge_50_fits_on_v2(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_modes_and_per_electrode_codes(capsys: pytest.CaptureFixture[str]) -> None:
     mono = _json(["--firmware", "v2", "--pattern", "100,200,0,4095", "--discharge", "45"], capsys)
-    bi = _json(["--firmware", "v2", "--mode", "1", "--pattern", "100,200,0,4095", "--discharge", "45"], capsys)
-    imp = _json(["--firmware", "v2", "--mode", "2", "--pattern", "0,0,0,0", "--sense-height", "10",
-                 "--sense-width", "10", "--discharge", "45"], capsys)
+    bi = _json(
+        ["--firmware", "v2", "--mode", "1", "--pattern", "100,200,0,4095", "--discharge", "45"], capsys
+    )
+    imp = _json(
+        [
+            "--firmware",
+            "v2",
+            "--mode",
+            "2",
+            "--pattern",
+            "0,0,0,0",
+            "--sense-height",
+            "10",
+            "--sense-width",
+            "10",
+            "--discharge",
+            "45",
+        ],
+        capsys,
+    )
     assert mono["scan_us"] == 959.65  # the golden trace (960.45) less 2 exchanges x 2 CS writes x 4 channels
     assert bi["scan_us"] > mono["scan_us"] and imp["electrodes"] == 4
     assert any("zero pattern does not stop current" in n for n in imp["notes"])
 
 
 def test_every_value_v2_holds_is_accepted(capsys: pytest.CaptureFixture[str]) -> None:
-    d = _json(["--firmware", "v2", "--pulse-width", "0", "--pattern", "4095", "--electrodes", "255",
-               "--sense-height", "255", "--discharge", "255", "--frequency", "65535"], capsys)
+    d = _json(
+        [
+            "--firmware",
+            "v2",
+            "--pulse-width",
+            "0",
+            "--pattern",
+            "4095",
+            "--electrodes",
+            "255",
+            "--sense-height",
+            "255",
+            "--discharge",
+            "255",
+            "--frequency",
+            "65535",
+        ],
+        capsys,
+    )
     assert d["effective_width_us"] == 6.6 and d["electrodes"] == 255
     assert any("one SPI exchange" in n for n in d["notes"])
     assert _json(["--firmware", "v2", "--electrodes", "0"], capsys)["electrodes"] == 0
@@ -76,7 +110,10 @@ def test_mode_is_refused_on_v12(capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_list_model_says_which_chip_select_reading_is_default(capsys: pytest.CaptureFixture[str]) -> None:
     rows = {r["name"]: r for r in json.loads(run_cli(["--list-model", "--json"], capsys)[1])}
-    assert rows["chip_select_writes"]["value"] == "inside" and "default inside" in rows["chip_select_writes"]["doc"]
+    assert (
+        rows["chip_select_writes"]["value"] == "inside"
+        and "default inside" in rows["chip_select_writes"]["doc"]
+    )
     assert rows["dac_load"]["value"] == "mid_exchange"
     _, out, _ = run_cli(["--list-model", "--cs-writes", "costed"], capsys)
     assert "chip_select_writes" in out and "costed" in out
@@ -84,7 +121,9 @@ def test_list_model_says_which_chip_select_reading_is_default(capsys: pytest.Cap
 
 def test_events_of_a_v2_scan(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "v2.json"
-    code, out, _ = run_cli(["--firmware", "v2", "--pattern", "100,0", "--cs-writes", "costed", "--events", str(path)], capsys)
+    code, out, _ = run_cli(
+        ["--firmware", "v2", "--pattern", "100,0", "--cs-writes", "costed", "--events", str(path)], capsys
+    )
     assert code == 0 and f"wrote {path}" in out
     events = json.loads(path.read_text())
     assert [e[3] for e in events if e[1] == "DAC"] == [100, 0, 0, 0]

@@ -11,7 +11,9 @@ from tactdeform_hw.emulator import Emulator, HazardKind
 
 from .conftest import DATA
 
-VECTORS = [json.loads(line) for line in (DATA / "protocol_vectors_v2.jsonl").read_text().splitlines() if line.strip()]
+VECTORS = [
+    json.loads(line) for line in (DATA / "protocol_vectors_v2.jsonl").read_text().splitlines() if line.strip()
+]
 TIMEOUT_US = 2_000_000
 
 
@@ -25,9 +27,13 @@ def _arrivals(vector: dict) -> list[tuple[int, bytes]]:
     return [(0, bytes.fromhex(vector["stream"]))]
 
 
-def _drive(vector: dict, arrivals: list[tuple[int, bytes]], final_time_us: int | None) -> tuple[Emulator, bytes]:
+def _drive(
+    vector: dict, arrivals: list[tuple[int, bytes]], final_time_us: int | None
+) -> tuple[Emulator, bytes]:
     board = vector["board"]
-    emu = Emulator(board["kind"], board["switching_boards"], stack_reading=board.get("stack_reading"), firmware="v2")
+    emu = Emulator(
+        board["kind"], board["switching_boards"], stack_reading=board.get("stack_reading"), firmware="v2"
+    )
     tx = b"".join(emu.feed(data, at_us=t) for t, data in arrivals)
     if final_time_us is not None:
         tx += emu.advance(final_time_us)
@@ -79,7 +85,9 @@ def test_one_arrival_covers_the_set() -> None:
     assert sum(1 for i in ONE_ARRIVAL if "arrivals" in VECTORS[i]) >= 20
 
 
-UPSTREAM = [i for i, v in enumerate(VECTORS) if _split_is_harmless(v) and not v["category"].startswith("overflow")]
+UPSTREAM = [
+    i for i, v in enumerate(VECTORS) if _split_is_harmless(v) and not v["category"].startswith("overflow")
+]
 
 
 @pytest.mark.parametrize("index", UPSTREAM[::7])
@@ -147,7 +155,7 @@ def test_unknown_firmware_is_refused() -> None:
 
 def test_mode_2_with_zero_heights_is_recorded_when_it_starts() -> None:
     emu = Emulator(firmware="v2")
-    emu.feed(bytes.fromhex("fc02" "fe00000000" "f90a"))
+    emu.feed(bytes.fromhex("fc02fe00000000f90a"))
     assert HazardKind.MODE_SENSE_ALL not in _hazard_kinds(emu)
     emu.feed(bytes.fromhex("fb02"))
     hz = [h for h in emu.hazards if h.kind is HazardKind.MODE_SENSE_ALL]
@@ -163,7 +171,9 @@ def test_a_new_client_inherits_a_cut_command_within_2_s() -> None:
     emu.feed(bytes.fromhex("fc02fe"), at_us=0)
     assert emu.feed(bytes.fromhex("fc20fb00f4"), at_us=1_500_000) == b"\x02"  # the count is still 2
     assert emu.state()["stim_pattern"][:2] == [4095, 0x00FB]
-    clamped = [h for h in emu.hazards if h.kind is HazardKind.CLAMPED and h.detail.get("field") == "stim_pattern"]
+    clamped = [
+        h for h in emu.hazards if h.kind is HazardKind.CLAMPED and h.detail.get("field") == "stim_pattern"
+    ]
     assert clamped and clamped[0].detail["values"][0] == 0x20FC
     # after 2 s the same bytes would have found the parser free
     late = Emulator(firmware="v2")

@@ -37,7 +37,10 @@ def test_discovery_on_loopback_answers_only_etk_queries() -> None:
 
 def test_colliding_ids_are_refused_not_guessed() -> None:
     shared = device_id_from_mac(bytes.fromhex("dc5475c1a2b3"))
-    with DiscoveryResponder(shared, port=0, tcp_port=18081) as r1, DiscoveryResponder(shared, port=0, tcp_port=18082) as r2:
+    with (
+        DiscoveryResponder(shared, port=0, tcp_port=18081) as r1,
+        DiscoveryResponder(shared, port=0, tcp_port=18082) as r2,
+    ):
         kits = discover([r1.address, r2.address], listen_s=0.2, bursts=1)
         assert len(kits) == 2
         with pytest.raises(ConfigurationError, match="2 kits answer to id '7554DC'"):

@@ -24,11 +24,27 @@ from tactdeform_hw.protocol import firmware_math as fm
 
 from .safety_helpers import defects
 
-CONFIG = c.encode_electrode_num(32) + c.encode_pulse_height(100) + c.encode_pulse_width(200) + c.encode_discharge(45)
+CONFIG = (
+    c.encode_electrode_num(32)
+    + c.encode_pulse_height(100)
+    + c.encode_pulse_width(200)
+    + c.encode_discharge(45)
+)
 CONFIG += c.encode_frequency(125)
 LEVELS = [1, 2, 0, 1] * 8
-REGISTERS = ("electrode_num", "polarity", "pulse_height", "pulse_width", "sense_pulse_height", "sense_pulse_width",
-             "discharge_time", "period_us", "timer_alarm_ticks", "stim_pattern", "rx_pending")
+REGISTERS = (
+    "electrode_num",
+    "polarity",
+    "pulse_height",
+    "pulse_width",
+    "sense_pulse_height",
+    "sense_pulse_width",
+    "discharge_time",
+    "period_us",
+    "timer_alarm_ticks",
+    "stim_pattern",
+    "rx_pending",
+)
 
 
 @pytest.fixture
@@ -73,7 +89,9 @@ def test_pty_measure_reply_length(pty_server: PtyServer) -> None:
 
 def test_pty_no_reply_to_other_commands(pty_server: PtyServer) -> None:
     with open_pty(pty_server.path, timeout=0.3) as s:
-        s.write(b"\xfc\x04\xfe\x01\x01\x00\x02\xfb\x10\x00\xfa\xc8\x00\xf9\x01\xf8\x02\xf7\x2d\xf6\x7d\x00\xfd\x01\x00")
+        s.write(
+            b"\xfc\x04\xfe\x01\x01\x00\x02\xfb\x10\x00\xfa\xc8\x00\xf9\x01\xf8\x02\xf7\x2d\xf6\x7d\x00\xfd\x01\x00"
+        )
         assert s.read(1) == b""
     time.sleep(0.05)
     st = pty_server.emulator.state()
@@ -97,7 +115,10 @@ def test_driver_over_pty(pty_server: PtyServer) -> None:
         assert dev.hv513_count() == 4
         assert len(dev.measure()) == 32
         deadline = time.monotonic() + 2
-        while pty_server.emulator.state()["stim_pattern"][:32] != [1, 2, 0, 0] * 8 and time.monotonic() < deadline:
+        while (
+            pty_server.emulator.state()["stim_pattern"][:32] != [1, 2, 0, 0] * 8
+            and time.monotonic() < deadline
+        ):
             time.sleep(0.005)
     deadline = time.monotonic() + 2
     while pty_server.emulator.state()["stim_pattern"][:32] != [0] * 32 and time.monotonic() < deadline:
@@ -196,8 +217,12 @@ def test_pty_one_byte_per_write_gives_the_same_registers_as_whole_commands() -> 
 
 
 def _emulate(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "tactdeform_hw.cli", "emulate", *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "tactdeform_hw.cli", "emulate", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def _stop(proc: subprocess.Popen[str]) -> str:
@@ -251,8 +276,21 @@ def test_emulate_cli_resets_on_open_and_refuses_a_trace_of_the_untimed_board(tmp
         err = _stop(proc)
     resets = [line for line in err.splitlines() if line.startswith("reset (a client opened the port")]
     assert len(resets) == 2 and "electrode_num=5" in resets[1]
-    bad = subprocess.run([sys.executable, "-m", "tactdeform_hw.cli", "emulate", "--pty", "--untimed", "--trace",
-                          str(tmp_path / "t.csv")], capture_output=True, text=True, timeout=60)
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "tactdeform_hw.cli",
+            "emulate",
+            "--pty",
+            "--untimed",
+            "--trace",
+            str(tmp_path / "t.csv"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert bad.returncode == 1 and "--trace" in bad.stderr and "Traceback" not in bad.stderr
 
 

@@ -35,8 +35,13 @@ from .conftest import REPO
 
 VECTORS = [json.loads(line) for line in (Path(__file__).parent / "data" / "protocol_vectors_v2.jsonl").open()]
 N = 32
-SETUP = (v2.encode_electrode_num(N) + v2.encode_stim_mode(0) + v2.encode_pulse_width(200) + v2.encode_discharge(45)
-         + v2.encode_frequency(125))
+SETUP = (
+    v2.encode_electrode_num(N)
+    + v2.encode_stim_mode(0)
+    + v2.encode_pulse_width(200)
+    + v2.encode_discharge(45)
+    + v2.encode_frequency(125)
+)
 
 
 def _recv(sock: socket.socket, n: int, timeout: float = 2.0) -> bytes:
@@ -120,10 +125,18 @@ def test_scan_shape_fills_heights_into_one_walk_exactly(mode: int) -> None:
     rng = random.Random(mode)
     for n in (1, 7, 32):
         for _ in range(3):
-            cfg = FirmwareScanConfig(electrode_num=n, stim_pattern=tuple(rng.choice([0, 1, 900, 4095]) for _ in range(n)),
-                                     pulse_width=rng.choice([0, 5, 200]), discharge_time=rng.choice([0, 45]),
-                                     polarity=rng.randint(0, 1), hv513_num=4, sense_pulse_height=rng.choice([0, 30]),
-                                     sense_pulse_width=rng.choice([0, 20]), stim_mode=mode, prior_scans=0)
+            cfg = FirmwareScanConfig(
+                electrode_num=n,
+                stim_pattern=tuple(rng.choice([0, 1, 900, 4095]) for _ in range(n)),
+                pulse_width=rng.choice([0, 5, 200]),
+                discharge_time=rng.choice([0, 45]),
+                polarity=rng.randint(0, 1),
+                hv513_num=4,
+                sense_pulse_height=rng.choice([0, 30]),
+                sense_pulse_width=rng.choice([0, 20]),
+                stim_mode=mode,
+                prior_scans=0,
+            )
             assert _scan_shape(cfg, DEFAULT_CONVENTIONS) == _shape(cfg, DEFAULT_CONVENTIONS)
 
 
@@ -200,8 +213,10 @@ def test_v2_tcp_flow_control_holds_the_host_back_where_the_serial_queue_drops() 
         assert _recv(sock, 1, timeout=10) == bytes([N])
         assert server.board.state()["rx_dropped"] == 0
         assert not any(h.kind is HazardKind.QUEUE_OVERFLOW for h in server.board.hazards)
-    with TcpServer(RealtimeEmulator(rules=SERIAL_USB, firmware="v2"), port=0, rules=SERIAL_USB) as server, \
-            socket.create_connection(server.address, timeout=5) as sock:
+    with (
+        TcpServer(RealtimeEmulator(rules=SERIAL_USB, firmware="v2"), port=0, rules=SERIAL_USB) as server,
+        socket.create_connection(server.address, timeout=5) as sock,
+    ):
         sock.sendall(flood)
         assert _wait(lambda: server.board.state()["rx_dropped"] > 0, 10)
         assert any(h.kind is HazardKind.QUEUE_OVERFLOW for h in server.board.hazards)
@@ -252,7 +267,9 @@ def test_new_client_inherits_a_cut_command_within_2_s_and_it_is_reported() -> No
             assert d["completing_bytes"].startswith("fc 20 fb 00 fe 00")
             assert d["cut_by"].startswith("client 1") and d["completed_by"].startswith("client 2")
             assert d["stored"][:2] == [4095, 0x00FB]
-            assert any(h.kind is HazardKind.CLAMPED and h.detail["stored"] == 4095 for h in server.board.hazards)
+            assert any(
+                h.kind is HazardKind.CLAMPED and h.detail["stored"] == 4095 for h in server.board.hazards
+            )
             assert "inherited_command" in str(inherited[0])
 
             def delivered_4095() -> bool:  # judged on the pulses the board delivered, not on the bytes
@@ -296,20 +313,40 @@ def _ask(port: int) -> bytes:
         return s.recvfrom(2048)[0]
 
 
-def test_emulate_tcp_v2_answers_discovery_and_ports_and_the_driver_find_it(capsys: pytest.CaptureFixture[str]) -> None:
+def test_emulate_tcp_v2_answers_discovery_and_ports_and_the_driver_find_it(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
     from tactdeform_hw.cli import main
 
     udp = _free_udp_port()
-    proc = subprocess.Popen([sys.executable, "-m", "tactdeform_hw.cli", "emulate", "--tcp", "127.0.0.1:0", "--firmware",
-                             "v2", "--discovery-port", str(udp), "--quiet"], cwd=REPO, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "tactdeform_hw.cli",
+            "emulate",
+            "--tcp",
+            "127.0.0.1:0",
+            "--firmware",
+            "v2",
+            "--discovery-port",
+            str(udp),
+            "--quiet",
+        ],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert proc.stdout is not None
         host, _, tcp = proc.stdout.readline().strip().rpartition(":")
         assert host == "127.0.0.1", proc.stderr.read() if proc.stderr else ""
         assert _wait(lambda: _answers(udp), 10)
         reply = _ask(udp).decode()
-        assert re.fullmatch(rf"ETK!;id=F93030;name=etactilekit-F93030;ip=127\.0\.0\.1;port={tcp};mode=AP;fw=1\.0", reply)
+        assert re.fullmatch(
+            rf"ETK!;id=F93030;name=etactilekit-F93030;ip=127\.0\.0\.1;port={tcp};mode=AP;fw=1\.0", reply
+        )
         assert main(["ports", "--no-usb", "--wifi", f"127.0.0.1:{udp}"]) == 0
         out = capsys.readouterr().out
         assert "etactilekit://F93030" in out and f"127.0.0.1:{tcp}" in out and "fw=1.0" in out
@@ -334,8 +371,13 @@ def _answers(port: int) -> bool:
 
 
 def test_emulate_pty_v2_serves_the_timed_v2_board() -> None:
-    proc = subprocess.Popen([sys.executable, "-m", "tactdeform_hw.cli", "emulate", "--pty", "--firmware", "v2",
-                             "--quiet"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tactdeform_hw.cli", "emulate", "--pty", "--firmware", "v2", "--quiet"],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert proc.stdout is not None
         path = proc.stdout.readline().strip()
@@ -349,17 +391,25 @@ def test_emulate_pty_v2_serves_the_timed_v2_board() -> None:
     assert "in real time, serial build rules, firmware v2" in err
 
 
-@pytest.mark.parametrize(("argv", "flag", "value"), [
-    (["--tcp", "0", "--discovery-port", "9"], "--discovery-port", "--firmware v2"),  # v1.2 has no discovery
-    (["--pty", "--firmware", "v2", "--kit-id", "ABC123"], "--kit-id", "--tcp"),
-    (["--tcp", "0", "--firmware", "v2", "--kit-id", "XYZ"], "--kit-id", "XYZ"),
-    (["--tcp", "host:port"], "--tcp", "host:port"),
-    (["--tcp", "70000"], "--tcp", "70000"),
-    (["--tcp", "0", "--firmware", "v2", "--discovery-port", "70000"], "--discovery-port", "70000"),
-    (["--pty", "--firmware", "v2", "--trace", "t.csv"], "--trace", "--firmware v2"),
-])
-def test_emulate_refuses_bad_wifi_options_naming_them(argv: list[str], flag: str, value: str,
-                                                       capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize(
+    ("argv", "flag", "value"),
+    [
+        (
+            ["--tcp", "0", "--discovery-port", "9"],
+            "--discovery-port",
+            "--firmware v2",
+        ),  # v1.2 has no discovery
+        (["--pty", "--firmware", "v2", "--kit-id", "ABC123"], "--kit-id", "--tcp"),
+        (["--tcp", "0", "--firmware", "v2", "--kit-id", "XYZ"], "--kit-id", "XYZ"),
+        (["--tcp", "host:port"], "--tcp", "host:port"),
+        (["--tcp", "70000"], "--tcp", "70000"),
+        (["--tcp", "0", "--firmware", "v2", "--discovery-port", "70000"], "--discovery-port", "70000"),
+        (["--pty", "--firmware", "v2", "--trace", "t.csv"], "--trace", "--firmware v2"),
+    ],
+)
+def test_emulate_refuses_bad_wifi_options_naming_them(
+    argv: list[str], flag: str, value: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     from tactdeform_hw.cli import main
 
     assert main(["emulate", *argv]) != 0
@@ -391,7 +441,11 @@ def test_v12_driver_refused_on_the_v2_tcp_board_by_socket_and_by_discovery() -> 
             open_device(server.url, firmware="v1.2", timeout=0.3)
         assert _wait(lambda: not server.connected)
         with pytest.raises(FirmwareMismatchError):
-            open_device(f"etactilekit://C0FFEE?discovery=127.0.0.1:{responder.address[1]}", firmware="v1.2", timeout=0.3)
+            open_device(
+                f"etactilekit://C0FFEE?discovery=127.0.0.1:{responder.address[1]}",
+                firmware="v1.2",
+                timeout=0.3,
+            )
         assert server.clients == 2
         st = server.board.state()
         assert st["electrode_num"] == 0 and st["stim_mode"] == 0 and not st["command_in_progress"]
@@ -403,14 +457,40 @@ def test_v12_driver_refused_on_the_v2_tcp_board_by_socket_and_by_discovery() -> 
 #: vectors whose final state does not depend on time: one arrival, no timeout, no overflow (and no random
 #: bytes: some set a rate whose scans overrun the period, and then the scans starve the parser, as on the
 #: board — the vectors run no scans)
-PLAIN = [v for v in VECTORS if "arrivals" not in v and "final_time_us" not in v and not v["category"].startswith("overflow")]
+PLAIN = [
+    v
+    for v in VECTORS
+    if "arrivals" not in v and "final_time_us" not in v and not v["category"].startswith("overflow")
+]
 CHOSEN = [v for v in PLAIN if v["category"] == "burst/python_api_setup"]
-CHOSEN += [next(v for v in PLAIN if v["category"] == cat) for cat in (
-    "pattern/complete", "burst/config", "pattern/stale_channels", "pattern/truncated_pending", "unknown/run_then_command",
-    "replies/burst", "truncated/pending", "single/sync_check")]
-COMPARED = ("electrode_num", "polarity", "stim_mode", "pulse_width", "sense_pulse_height", "sense_pulse_width",
-            "discharge_time", "timer_alarm_ticks", "hv513_num", "stim_pattern", "rx_pending", "rx_dropped",
-            "command_in_progress")
+CHOSEN += [
+    next(v for v in PLAIN if v["category"] == cat)
+    for cat in (
+        "pattern/complete",
+        "burst/config",
+        "pattern/stale_channels",
+        "pattern/truncated_pending",
+        "unknown/run_then_command",
+        "replies/burst",
+        "truncated/pending",
+        "single/sync_check",
+    )
+]
+COMPARED = (
+    "electrode_num",
+    "polarity",
+    "stim_mode",
+    "pulse_width",
+    "sense_pulse_height",
+    "sense_pulse_width",
+    "discharge_time",
+    "timer_alarm_ticks",
+    "hv513_num",
+    "stim_pattern",
+    "rx_pending",
+    "rx_dropped",
+    "command_in_progress",
+)
 
 
 def _upstream_write(write: Any, data: bytes) -> None:
@@ -458,10 +538,14 @@ def test_upstream_style_client_over_tcp_reaches_the_vectors_state() -> None:
             _check_against_vector(server.board, vec, replies)
 
 
-
 def test_wifi_board_tool_reports_lag_cpu_and_latency_on_both_transports() -> None:
-    proc = subprocess.run([sys.executable, "tools/wifi_board.py", "--idle", "0.2", "--stream", "0.5", "--json"],
-                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "tools/wifi_board.py", "--idle", "0.2", "--stream", "0.5", "--json"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout)
     for transport in ("pty", "tcp"):

@@ -112,8 +112,13 @@ def measure(firmware: str, frames: int) -> dict[str, Any]:
     def stats(v: list[float]) -> dict[str, float]:
         return {"min": round(min(v), 3), "median": round(statistics.median(v), 3), "max": round(max(v), 3)}
 
-    return {"firmware": firmware, "frames": frames, "host_call_ms": stats(host), "in_force_ms": stats(in_force),
-            "last_channel_ms": stats(last)}
+    return {
+        "firmware": firmware,
+        "frames": frames,
+        "host_call_ms": stats(host),
+        "in_force_ms": stats(in_force),
+        "last_channel_ms": stats(last),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -127,11 +132,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps(rows, indent=2))
         return 0
-    print(f"host write -> 32-electrode frame in force through the driver ({args.frames} frames, USB, 125 Hz, ms)")
-    print(f"{'firmware':<9} {'call min/med/max':>22} {'in force min/med/max':>24} {'last channel min/med/max':>28}")
+    print(
+        f"host write -> 32-electrode frame in force through the driver ({args.frames} frames, USB, 125 Hz, ms)"
+    )
+    print(
+        f"{'firmware':<9} {'call min/med/max':>22} {'in force min/med/max':>24} {'last channel min/med/max':>28}"
+    )
     for r in rows:
+
         def f(k: str, r: dict[str, Any] = r) -> str:
             return f"{r[k]['min']:.2f}/{r[k]['median']:.2f}/{r[k]['max']:.2f}"
+
         print(f"{r['firmware']:<9} {f('host_call_ms'):>22} {f('in_force_ms'):>24} {f('last_channel_ms'):>28}")
     return 0
 

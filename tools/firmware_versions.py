@@ -35,9 +35,12 @@ def vectors_matched() -> dict[str, int]:
         if v.get("final_time_us") is not None:
             tx += emu.advance(int(v["final_time_us"]))
         state = emu.state()
-        ok = tx.hex() == v["expect"]["tx"] and all(
-            state[k] == val for k, val in v["expect"].items() if k not in ("tx", "period_us")
-        ) and abs(state["period_us"] - v["expect"]["period_us"]) <= 1e-6 * max(1.0, v["expect"]["period_us"])
+        ok = (
+            tx.hex() == v["expect"]["tx"]
+            and all(state[k] == val for k, val in v["expect"].items() if k not in ("tx", "period_us"))
+            and abs(state["period_us"] - v["expect"]["period_us"])
+            <= 1e-6 * max(1.0, v["expect"]["period_us"])
+        )
         matched += ok
     return {"matched": matched, "total": total}
 
@@ -48,7 +51,11 @@ def budgets() -> dict[str, dict[str, float]]:
         for reading, conv in (("cs inside", None), ("cs costed", HOST_BUILD)):
             cfg = FirmwareScanConfig(32, pattern, 200, 45, frequency_hz=125, **extra)  # type: ignore[arg-type]
             b = budget(cfg, fw) if conv is None else budget(cfg, fw, conv)
-            out[f"{fw} {reading}"] = {"scan_us": b.scan_us, "per_channel_us": b.per_channel_us[0], "margin_us": b.margin_us}
+            out[f"{fw} {reading}"] = {
+                "scan_us": b.scan_us,
+                "per_channel_us": b.per_channel_us[0],
+                "margin_us": b.margin_us,
+            }
     return out
 
 
@@ -56,21 +63,38 @@ def latencies(phases: int) -> dict[str, dict[str, dict[str, float]]]:
     def trim(d: dict[str, float | None]) -> dict[str, float]:
         return {k: round(float(v), 1) for k, v in d.items() if v is not None}
 
-    v12 = pattern_latency(ScanConfig.make(32, 1, pulse_width_us=200, pulse_height=100, discharge_us=45, rate_hz=125),
-                          "usb", phases=phases)
-    out = {"v1.2 usb": {"first_channel_us": trim(v12["first_channel_us"]), "last_channel_us": trim(v12["last_channel_us"])}}
+    v12 = pattern_latency(
+        ScanConfig.make(32, 1, pulse_width_us=200, pulse_height=100, discharge_us=45, rate_hz=125),
+        "usb",
+        phases=phases,
+    )
+    out = {
+        "v1.2 usb": {
+            "first_channel_us": trim(v12["first_channel_us"]),
+            "last_channel_us": trim(v12["last_channel_us"]),
+        }
+    }
     for chunking in ("whole", "upstream"):
         r = pattern_in_force_v2([100] * 32, phases=phases, chunking=chunking)
-        out[f"v2 usb {chunking}"] = {"first_channel_us": trim(r["first_channel_us"]), "last_channel_us": trim(r["last_channel_us"])}
+        out[f"v2 usb {chunking}"] = {
+            "first_channel_us": trim(r["first_channel_us"]),
+            "last_channel_us": trim(r["last_channel_us"]),
+        }
     return out
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--phases", type=int, default=16, help="write moments spread over one period (default 16)")
+    ap.add_argument(
+        "--phases", type=int, default=16, help="write moments spread over one period (default 16)"
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
-    result = {"v2_vectors": vectors_matched(), "budget_tactdeform": budgets(), "pattern_in_force": latencies(args.phases)}
+    result = {
+        "v2_vectors": vectors_matched(),
+        "budget_tactdeform": budgets(),
+        "pattern_in_force": latencies(args.phases),
+    }
     if args.json:
         print(json.dumps(result, indent=2))
         return 0
@@ -78,12 +102,16 @@ def main() -> int:
     print(f"v2 golden vectors matched: {v['matched']} / {v['total']}")
     print("TactDeform setting (32 electrodes, 200 us, discharge 45 us, 125 Hz):")
     for k, b in result["budget_tactdeform"].items():
-        print(f"  {k:<16} scan {b['scan_us']:8.2f} us  per channel {b['per_channel_us']:7.2f} us  margin {b['margin_us']:7.2f} us")
+        print(
+            f"  {k:<16} scan {b['scan_us']:8.2f} us  per channel {b['per_channel_us']:7.2f} us  margin {b['margin_us']:7.2f} us"
+        )
     print("host write -> pattern in force, one frame of 32 per-electrode intensities (min / mean / max, us):")
     for k, d in result["pattern_in_force"].items():
         f, last = d["first_channel_us"], d["last_channel_us"]
-        print(f"  {k:<18} first channel {f['min']:.0f} / {f['mean']:.0f} / {f['max']:.0f}   "
-              f"last channel {last['min']:.0f} / {last['mean']:.0f} / {last['max']:.0f}")
+        print(
+            f"  {k:<18} first channel {f['min']:.0f} / {f['mean']:.0f} / {f['max']:.0f}   "
+            f"last channel {last['min']:.0f} / {last['mean']:.0f} / {last['max']:.0f}"
+        )
     return 0
 
 

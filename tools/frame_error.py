@@ -139,7 +139,11 @@ def integrate(method: str, s: dict[str, np.ndarray], rate_hz: float) -> np.ndarr
 
 
 def frame_errors(
-    duration_s: float, rate_hz: float, seed: int, methods: tuple[str, ...], progress: Callable[[str], None] | None = None
+    duration_s: float,
+    rate_hz: float,
+    seed: int,
+    methods: tuple[str, ...],
+    progress: Callable[[str], None] | None = None,
 ) -> dict[str, dict[str, list[float]]]:
     """Per method: mean |error|, max |error| and fraction of time wrong, per run-time bin."""
     rng = np.random.default_rng(seed)
@@ -239,7 +243,9 @@ def plot(results: dict[float, dict[str, dict[str, list[float]]]], path: Path) ->
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--duration", type=float, default=8 * 3600.0, help="simulated run time in s (default 8 h)")
+    ap.add_argument(
+        "--duration", type=float, default=8 * 3600.0, help="simulated run time in s (default 8 h)"
+    )
     ap.add_argument("--rates", default=",".join(f"{r:g}" for r in RATES_HZ), help="tracking rates in Hz")
     ap.add_argument("--methods", default=",".join(METHODS), help="integration methods to compare")
     ap.add_argument("--seed", type=int, default=0)

@@ -42,11 +42,21 @@ from tactdeform_hw.protocol import firmware_math as fm  # noqa: E402
 from tactdeform_hw.protocol.decoder import decode  # noqa: E402
 
 
-def tactdeform_config(electrodes: int, width_us: int, discharge_us: int, rate_hz: int, height: int) -> ScanConfig:
-    return ScanConfig(electrode_num=electrodes, polarity=1, pulse_height=height, pulse_width=width_us,
-                      sense_pulse_height=0, sense_pulse_width=0, discharge_time=discharge_us,
-                      alarm_ticks=fm.alarm_ticks(fm.period_us_from_rate(rate_hz)), pattern=bytes([1] * electrodes),
-                      hv513_num=4)
+def tactdeform_config(
+    electrodes: int, width_us: int, discharge_us: int, rate_hz: int, height: int
+) -> ScanConfig:
+    return ScanConfig(
+        electrode_num=electrodes,
+        polarity=1,
+        pulse_height=height,
+        pulse_width=width_us,
+        sense_pulse_height=0,
+        sense_pulse_width=0,
+        discharge_time=discharge_us,
+        alarm_ticks=fm.alarm_ticks(fm.period_us_from_rate(rate_hz)),
+        pattern=bytes([1] * electrodes),
+        hv513_num=4,
+    )
 
 
 def configure(port: Any, cfg: ScanConfig, rate_hz: int) -> None:
@@ -77,13 +87,25 @@ def phase(server: Any, seconds: float, stream: tuple[Any, bytes, float] | None) 
         time.sleep(0.1)
     wall = time.monotonic() - wall0
     st = board.lag.stats()
-    return {"seconds": wall, "lag_median_ms": st["median_us"] / 1000, "lag_p99_ms": st["p99_us"] / 1000,
-            "lag_max_ms": st["max_us"] / 1000, "wakeups": st["wakeups"], "fell_behind": st["behind"],
-            "cpu_percent": 100 * (server.cpu_s - cpu0) / wall, "writes": writes}
+    return {
+        "seconds": wall,
+        "lag_median_ms": st["median_us"] / 1000,
+        "lag_p99_ms": st["p99_us"] / 1000,
+        "lag_max_ms": st["max_us"] / 1000,
+        "wakeups": st["wakeups"],
+        "fell_behind": st["behind"],
+        "cpu_percent": 100 * (server.cpu_s - cpu0) / wall,
+        "writes": writes,
+    }
 
 
 def _stats(xs: list[float]) -> dict[str, float]:
-    return {"min_us": min(xs), "median_us": statistics.median(xs), "mean_us": statistics.fmean(xs), "max_us": max(xs)}
+    return {
+        "min_us": min(xs),
+        "median_us": statistics.median(xs),
+        "mean_us": statistics.fmean(xs),
+        "max_us": max(xs),
+    }
 
 
 def measured_latency(board: RealtimeEmulator, writes: list[float]) -> dict[str, Any]:
@@ -101,8 +123,13 @@ def measured_latency(board: RealtimeEmulator, writes: list[float]) -> dict[str, 
             model.append(r.first_pulse_us - r.sent_us)
     if not total:
         return {"n": 0, "writes": len(writes)}
-    return {"n": len(total), "writes": len(writes), **_stats(total),
-            "transport": _stats(transport), "model": _stats(model)}
+    return {
+        "n": len(total),
+        "writes": len(writes),
+        **_stats(total),
+        "transport": _stats(transport),
+        "model": _stats(model),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -138,11 +165,16 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         server.stop()
     pred = pattern_latency(cfg, "usb", phases=64)["first_channel_us"]
-    out = {"config": {"electrodes": args.electrodes, "frequency_hz": args.frequency, "stream_hz": args.rate},
-           "idle": idle, "stream": stream, "pattern_latency_pty": latency,
-           "pattern_latency_model": {k: pred[k] for k in ("min", "mean", "max")},
-           "hazards": len(server.board.hazards), "configured": state["electrode_num"] == args.electrodes,
-           "hazard_kinds": dict(Counter(h.kind.value for h in server.board.hazards))}
+    out = {
+        "config": {"electrodes": args.electrodes, "frequency_hz": args.frequency, "stream_hz": args.rate},
+        "idle": idle,
+        "stream": stream,
+        "pattern_latency_pty": latency,
+        "pattern_latency_model": {k: pred[k] for k in ("min", "mean", "max")},
+        "hazards": len(server.board.hazards),
+        "configured": state["electrode_num"] == args.electrodes,
+        "hazard_kinds": dict(Counter(h.kind.value for h in server.board.hazards)),
+    }
     if args.json:
         json.dump(out, sys.stdout, indent=2)
         sys.stdout.write("\n")
@@ -150,17 +182,28 @@ def main(argv: list[str] | None = None) -> int:
     print(f"real-time emulator on a pty: {args.electrodes} electrodes at {args.frequency} Hz")
     print(f"{'phase':<8} {'lag median':>11} {'p99':>9} {'max':>9} {'wake-ups':>9} {'> 1 ms':>7} {'CPU':>7}")
     for name, ph in (("idle", idle), (f"{args.rate:g} Hz", stream)):
-        print(f"{name:<8} {ph['lag_median_ms']:>8.3f} ms {ph['lag_p99_ms']:>6.3f} ms {ph['lag_max_ms']:>6.3f} ms "
-              f"{ph['wakeups']:>9} {ph['fell_behind']:>7} {ph['cpu_percent']:>6.1f}%")
+        print(
+            f"{name:<8} {ph['lag_median_ms']:>8.3f} ms {ph['lag_p99_ms']:>6.3f} ms {ph['lag_max_ms']:>6.3f} ms "
+            f"{ph['wakeups']:>9} {ph['fell_behind']:>7} {ph['cpu_percent']:>6.1f}%"
+        )
     if latency.get("n"):
-        print(f"write → first pulse with the new pattern ({latency['n']} of {latency['writes']} writes), "
-              "min / median / max:")
-        for label, st in (("through the pty", latency), ("  the pty and the loop's wake-up", latency["transport"]),
-                          ("  the timed model (arrival → pulse)", latency["model"])):
-            print(f"  {label:<38} {st['min_us'] / 1000:6.2f} / {st['median_us'] / 1000:6.2f} / "
-                  f"{st['max_us'] / 1000:6.2f} ms")
-    print(f"  {'prediction (pattern_latency, USB, 64 phases)':<40} {pred['min'] / 1000:6.2f} / "
-          f"{pred['mean'] / 1000:6.2f} (mean) / {pred['max'] / 1000:6.2f} ms")
+        print(
+            f"write → first pulse with the new pattern ({latency['n']} of {latency['writes']} writes), "
+            "min / median / max:"
+        )
+        for label, st in (
+            ("through the pty", latency),
+            ("  the pty and the loop's wake-up", latency["transport"]),
+            ("  the timed model (arrival → pulse)", latency["model"]),
+        ):
+            print(
+                f"  {label:<38} {st['min_us'] / 1000:6.2f} / {st['median_us'] / 1000:6.2f} / "
+                f"{st['max_us'] / 1000:6.2f} ms"
+            )
+    print(
+        f"  {'prediction (pattern_latency, USB, 64 phases)':<40} {pred['min'] / 1000:6.2f} / "
+        f"{pred['mean'] / 1000:6.2f} (mean) / {pred['max'] / 1000:6.2f} ms"
+    )
     kinds = ", ".join(f"{k} {n}" for k, n in out["hazard_kinds"].items())
     print(f"hazards recorded: {out['hazards']}" + (f" ({kinds})" if kinds else ""))
     return 0

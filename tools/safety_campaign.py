@@ -44,7 +44,9 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the package beside this tool, not an installed one
+sys.path.insert(
+    0, str(Path(__file__).resolve().parents[1])
+)  # the package beside this tool, not an installed one
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig  # noqa: E402
 from tactdeform_hw.device.pacing import estimate_scan_us, firmware_period_us  # noqa: E402
@@ -59,15 +61,33 @@ from tactdeform_hw.protocol.units import DEFAULT_TRANSFER  # noqa: E402
 #: pacing, the USB frame, the parser's tick, the scan in progress).
 SETTLE_S = 0.012
 _STIM_KINDS = (int(PulseKind.MONO), int(PulseKind.BI_ANODIC), int(PulseKind.BI_CATHODIC))
-_USB_FAULTS = (FaultKind.CUT, FaultKind.CRC_ERROR, FaultKind.RESET, FaultKind.STOP_READING,
-               FaultKind.WATCHDOG_REBOOT, FaultKind.DELAY)
+_USB_FAULTS = (
+    FaultKind.CUT,
+    FaultKind.CRC_ERROR,
+    FaultKind.RESET,
+    FaultKind.STOP_READING,
+    FaultKind.WATCHDOG_REBOOT,
+    FaultKind.DELAY,
+)
 _UART_FAULTS = tuple(FaultKind)
 #: Firmware defects the driver must never trigger (the others — torn patterns, unknown padding bytes,
 #: sense pulses, the 0xF5 re-initialisation — are the firmware working as designed).
-DEFECTS = frozenset({"parser_locked", "unread_while_locked", "pattern_holds_command_byte",
-                     "payload_holds_command_byte", "stale_channels",
-                     "clamped", "ignored_zero", "queue_overflow", "overrun", "watchdog_reset",
-                     "channels_beyond_hv513", "commands_out_of_step"})
+DEFECTS = frozenset(
+    {
+        "parser_locked",
+        "unread_while_locked",
+        "pattern_holds_command_byte",
+        "payload_holds_command_byte",
+        "stale_channels",
+        "clamped",
+        "ignored_zero",
+        "queue_overflow",
+        "overrun",
+        "watchdog_reset",
+        "channels_beyond_hv513",
+        "commands_out_of_step",
+    }
+)
 # ("u16_waiting" is not among them: on a UART the second byte of a u16 follows 10.85 µs after the first, and
 # the parser may meet the gap; a lost byte shows up as a loss and as commands out of step.)
 
@@ -144,9 +164,16 @@ def _config(rng: random.Random, robust: bool) -> StimConfig:
         while rate & 0xFF >= 0xF5 or (rate >> 8) >= 0xF5:
             rate -= 1
     current = rng.choice((0, 400, 800, 1000, 1500, 2000, 2500))
-    return StimConfig(electrode_count=n, current_ua=current, pulse_width_us=width, discharge_us=discharge,
-                      rate_hz=rate, polarity=rng.choice(("anodic", "anodic", "cathodic")),
-                      sense_current_ua=sense_ua, sense_width_us=sense_w)
+    return StimConfig(
+        electrode_count=n,
+        current_ua=current,
+        pulse_width_us=width,
+        discharge_us=discharge,
+        rate_hz=rate,
+        polarity=rng.choice(("anodic", "anodic", "cathodic")),
+        sense_current_ua=sense_ua,
+        sense_width_us=sense_w,
+    )
 
 
 def _pattern(rng: random.Random, n: int, biphasic: bool) -> tuple[int, ...]:
@@ -180,10 +207,13 @@ class _Session:
         self.failsafe: Any = None
         if faults:
             self._start_failsafe()
-        self.res = SessionResult(index, seed, self.link, self.robust, self.cfg.electrode_count, [], 0, 0,
-                                 biphasic=self.biphasic)
+        self.res = SessionResult(
+            index, seed, self.link, self.robust, self.cfg.electrode_count, [], 0, 0, biphasic=self.biphasic
+        )
         # (call time, the electrodes the host means from then on, when an "off" is surely in force)
-        self.intents: list[tuple[float, tuple[int, ...], float]] = [(0.0, (0,) * self.cfg.electrode_count, 0.0)]
+        self.intents: list[tuple[float, tuple[int, ...], float]] = [
+            (0.0, (0,) * self.cfg.electrode_count, 0.0)
+        ]
         self.sent: tuple[int, ...] | None = None  # the caller's frame a keepalive brings back
         self.notices: list[float] = []
         self.longest_call_s = 0.0  # the fail-safe cannot act while one of the owner's calls runs
@@ -191,8 +221,16 @@ class _Session:
     def _start_failsafe(self) -> None:
         from tactdeform_hw.device.failsafe import FailSafe
 
-        fs = FailSafe(self.dev, watchdog_s=0.1, probe_interval_s=0.02, refresh_interval_s=0.05, verify_readback=True,
-                      thread=False, signals=False, at_exit=False)
+        fs = FailSafe(
+            self.dev,
+            watchdog_s=0.1,
+            probe_interval_s=0.02,
+            refresh_interval_s=0.05,
+            verify_readback=True,
+            thread=False,
+            signals=False,
+            at_exit=False,
+        )
         last = [-1.0]
 
         def hook(t: float) -> None:
@@ -215,8 +253,12 @@ class _Session:
         have read it, plus a whole scan (biphasic) that had started before."""
         dev, cfg = self.dev, self.cfg
         period = firmware_period_us(cfg.rate_hz) / 1e6
-        scan = estimate_scan_us(bytes([2]) * cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us,
-                                cfg.sense_width_us) / 1e6
+        scan = (
+            estimate_scan_us(
+                bytes([2]) * cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us
+            )
+            / 1e6
+        )
         return max(self.port.now_s, dev.pacer.drained_by()) + min(scan, period)
 
     # --- calls ------------------------------------------------------------------------------------------
@@ -265,8 +307,11 @@ class _Session:
             pat = _pattern(rng, n, self.biphasic)
             refused = len(self.res.errors)
             if self._call("send_pattern", lambda: dev.send_pattern(pat), pat) or not any(
-                    k in e for e in self.res.errors[refused:] for k in REFUSALS):
-                self.sent = pat  # the caller's frame, even when the link failed under it: keepalive resumes it
+                k in e for e in self.res.errors[refused:] for k in REFUSALS
+            ):
+                self.sent = (
+                    pat  # the caller's frame, even when the link failed under it: keepalive resumes it
+                )
         elif r < 0.40:
             ua = rng.choice((0, 200, 600, 1000, 1800, 3000))
             self.res.allowed_stim_ua = max(self.res.allowed_stim_ua, ua)
@@ -350,19 +395,28 @@ class _Session:
         return res
 
     def _pulse(self, table: dict[str, np.ndarray], k: int, cur: np.ndarray, why: str) -> dict[str, Any]:
-        return {"t_s": float(table["start_us"][k]) / 1e6, "channel": int(table["channel"][k]),
-                "kind": int(table["kind"][k]), "code": int(table["code"][k]), "current_ua": float(cur[k]),
-                "why": why}
+        return {
+            "t_s": float(table["start_us"][k]) / 1e6,
+            "channel": int(table["channel"][k]),
+            "kind": int(table["kind"][k]),
+            "code": int(table["code"][k]),
+            "current_ua": float(cur[k]),
+            "why": why,
+        }
 
-    def _meant_off(self, table: dict[str, np.ndarray], idx: Iterable[int], cur: np.ndarray) -> list[dict[str, Any]]:
+    def _meant_off(
+        self, table: dict[str, np.ndarray], idx: Iterable[int], cur: np.ndarray
+    ) -> list[dict[str, Any]]:
         """Stimulation pulses on an electrode the host had switched off, later than ``SETTLE_S`` after the
         driver's own worst case for the switch-off to be in force."""
         times = [t for t, _, _ in self.intents]
         since: list[list[float | None]] = []  # per intent, per electrode: off since (None: meant on)
         prev: list[float | None] = [0.0] * 256
         for _, lv, eff in self.intents:
-            row = [None if (e < len(lv) and lv[e] in (1, 2)) else (prev[e] if prev[e] is not None else eff)
-                   for e in range(256)]
+            row = [
+                None if (e < len(lv) and lv[e] in (1, 2)) else (prev[e] if prev[e] is not None else eff)
+                for e in range(256)
+            ]
             since.append(row)
             prev = row
         out = []
@@ -383,10 +437,16 @@ class _Session:
         bound = self.recovery_bound_s()
         res.recovery_bound_s = bound
         notices = list(self.notices)
-        notices += [e.t for e in fs.events if e.kind in ("error", "recover", "recover_step_failed", "watchdog")]
+        notices += [
+            e.t for e in fs.events if e.kind in ("error", "recover", "recover_step_failed", "watchdog")
+        ]
         # the driver's own notices: a proof that failed (not a resync the caller asked for)
-        notices += [t for d in self.devices for t, _, new, why in d.transitions
-                    if new in ("suspect", "failed") and why not in CALLER_REASONS]
+        notices += [
+            t
+            for d in self.devices
+            for t, _, new, why in d.transitions
+            if new in ("suspect", "failed") and why not in CALLER_REASONS
+        ]
         bad_faults: set[int] = set()
         for w in wrong:
             before = [i for i, f in enumerate(injected) if f.t_s <= w["t_s"] + 1e-6]
@@ -400,10 +460,16 @@ class _Session:
                 bad_faults.add(before[-1])
         emu = self.port.emulator
         # a loss while the driver had no proof that the parser was in step is one the host knew of
-        spans = [(a, b if b is not None else float("inf")) for d in self.devices for a, b in d.unproved_spans()]
+        spans = [
+            (a, b if b is not None else float("inf")) for d in self.devices for a, b in d.unproved_spans()
+        ]
         # a resync completed after the loss rewrote everything it could have changed (the caller's own)
-        repairs = [t for d in self.devices for t, old, new, _ in d.transitions
-                   if new == "in_step" and old in ("verifying", "safe")]
+        repairs = [
+            t
+            for d in self.devices
+            for t, old, new, _ in d.transitions
+            if new == "in_step" and old in ("verifying", "safe")
+        ]
         # a proof after the loss (a reply of the right length; the fail-safe's also reads back the voltages)
         # found the firmware in step: the loss had no effect the host could see
         proofs = [t for d in self.devices for t in d.proofs]
@@ -420,7 +486,9 @@ class _Session:
                 before = [i for i, f in enumerate(injected) if f.t_s <= t + 1e-6]
                 if before:
                     bad_faults.add(before[-1])
-        res.faults_survived = len(injected) - len(bad_faults) if not (res.unexplained or res.unreported_lost_bytes) else 0
+        res.faults_survived = (
+            len(injected) - len(bad_faults) if not (res.unexplained or res.unreported_lost_bytes) else 0
+        )
 
     def recovery_bound_s(self) -> float:
         period = firmware_period_us(self.cfg.rate_hz) / 1e6
@@ -449,8 +517,15 @@ def _worker(args: tuple[int, int, bool]) -> SessionResult:
     return run_session(*args)
 
 
-def run_campaign(sessions: int, *, seed: int = 0, faults: bool = False, jobs: int = 1,
-                 progress: bool = False, first: int = 0) -> list[SessionResult]:
+def run_campaign(
+    sessions: int,
+    *,
+    seed: int = 0,
+    faults: bool = False,
+    jobs: int = 1,
+    progress: bool = False,
+    first: int = 0,
+) -> list[SessionResult]:
     """Sessions ``first .. first + sessions - 1``; the same list for the same arguments, whatever ``jobs``."""
     tasks = [(first + i, seed, faults) for i in range(sessions)]
     out: list[SessionResult] = []
@@ -492,7 +567,10 @@ def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
         "robust_encoding": sum(1 for r in results if r.robust),
         "biphasic": sum(1 for r in results if r.biphasic),
         "sense_current": sum(1 for r in results if r.allowed_sense_ua),
-        "electrodes_min_max": [min((r.electrodes for r in results), default=0), max((r.electrodes for r in results), default=0)],
+        "electrodes_min_max": [
+            min((r.electrodes for r in results), default=0),
+            max((r.electrodes for r in results), default=0),
+        ],
         "calls": dict(sorted(calls.items())),
         "pulses": sum(r.pulses for r in results),
         "over_limit_pulses": sum(r.over_limit for r in results),
@@ -507,17 +585,21 @@ def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
     }
     if faults:
         injected = sum(len(r.faults) for r in results)
-        summary.update({
-            "faults_injected": injected,
-            "faults_survived": sum(r.faults_survived for r in results),
-            "fault_kinds": sorted({k for r in results for k in r.faults}),
-            "longest_wrong_delivery_s": round(max((r.wrong_after_fault_s for r in results), default=0.0), 6),
-            "recovery_bound_s": round(max((r.recovery_bound_s for r in results), default=0.0), 6),
-            "unexplained_wrong_deliveries": sum(r.unexplained for r in results),
-            "bytes_lost_unreported": sum(r.unreported_lost_bytes for r in results),
-            "bytes_lost_unnoticed_but_repaired": sum(r.repaired_lost_bytes for r in results),
-            "bytes_lost_unnoticed_absorbed": sum(r.absorbed_lost_bytes for r in results),
-        })
+        summary.update(
+            {
+                "faults_injected": injected,
+                "faults_survived": sum(r.faults_survived for r in results),
+                "fault_kinds": sorted({k for r in results for k in r.faults}),
+                "longest_wrong_delivery_s": round(
+                    max((r.wrong_after_fault_s for r in results), default=0.0), 6
+                ),
+                "recovery_bound_s": round(max((r.recovery_bound_s for r in results), default=0.0), 6),
+                "unexplained_wrong_deliveries": sum(r.unexplained for r in results),
+                "bytes_lost_unreported": sum(r.unreported_lost_bytes for r in results),
+                "bytes_lost_unnoticed_but_repaired": sum(r.repaired_lost_bytes for r in results),
+                "bytes_lost_unnoticed_absorbed": sum(r.absorbed_lost_bytes for r in results),
+            }
+        )
     return summary
 
 
@@ -531,10 +613,14 @@ def _table(summary: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--sessions", type=int, default=1000, help="number of sessions (default 1000)")
     ap.add_argument("--faults", action="store_true", help="inject the emulator's faults into every session")
-    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: every core)")
+    ap.add_argument(
+        "--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: every core)"
+    )
     ap.add_argument("--seed", type=int, default=0, help="campaign seed (default 0)")
     ap.add_argument("--first", type=int, default=0, help="index of the first session")
     ap.add_argument("--only", type=int, default=None, help="run one session and print it whole")
@@ -550,7 +636,9 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps({**asdict(r), "ok": r.ok}, indent=1, default=str))
         return 0 if r.ok else 1
     t0 = time.perf_counter()
-    results = run_campaign(a.sessions, seed=a.seed, faults=a.faults, jobs=a.jobs, progress=True, first=a.first)
+    results = run_campaign(
+        a.sessions, seed=a.seed, faults=a.faults, jobs=a.jobs, progress=True, first=a.first
+    )
     summary = summarize(results, faults=a.faults)
     summary.update({"seed": a.seed, "jobs": a.jobs, "wall_s": round(time.perf_counter() - t0, 3)})
     print(json.dumps(summary, indent=1) if a.json else _table(summary))

@@ -31,8 +31,16 @@ def fault_sweep(seeds: int) -> dict[str, Any]:
     per_kind: dict[str, dict[str, Any]] = {}
     results = []
     for kind in FaultKind:
-        row = {"injected": 0, "survived": 0, "noticed": 0, "no_effect": 0, "repaired_silently": 0,
-               "longest_effect_s": 0.0, "above_cap": 0, "max_current_ua": 0.0}
+        row = {
+            "injected": 0,
+            "survived": 0,
+            "noticed": 0,
+            "no_effect": 0,
+            "repaired_silently": 0,
+            "longest_effect_s": 0.0,
+            "above_cap": 0,
+            "max_current_ua": 0.0,
+        }
         for seed in range(seeds):
             sc = ss.single_fault(kind, seed, at_s=0.25 + 0.6 * seed / max(1, seeds))
             if kind in LINK_FAULTS:
@@ -48,8 +56,16 @@ def fault_sweep(seeds: int) -> dict[str, Any]:
             plan = random_plan(100 + seed, kinds, 8, 0.1, 2.2)
             res = ss.run(ss.Scenario(faults=plan, seed=100 + seed, link=link, duration_s=2.4))
             results.append(res)
-            row = {"injected": 0, "survived": 0, "noticed": 0, "no_effect": 0, "repaired_silently": 0,
-                   "longest_effect_s": 0.0, "above_cap": 0, "max_current_ua": 0.0}
+            row = {
+                "injected": 0,
+                "survived": 0,
+                "noticed": 0,
+                "no_effect": 0,
+                "repaired_silently": 0,
+                "longest_effect_s": 0.0,
+                "above_cap": 0,
+                "max_current_ua": 0.0,
+            }
             _tally(row, res)
             mixed.append({"link": link, "seed": 100 + seed, **row})
     return {"per_kind": per_kind, "mixed": mixed, "results": results}
@@ -79,8 +95,13 @@ def owner_stops(count: int) -> dict[str, Any]:
         worst = max(worst, on)
         runs.append(round(on, 4))
     limit = 0.1 + 1 / 125
-    return {"runs": count, "longest_on_after_stop_s": round(worst, 4), "limit_s": limit, "within": worst <= limit,
-            "per_run_s": runs}
+    return {
+        "runs": count,
+        "longest_on_after_stop_s": round(worst, 4),
+        "limit_s": limit,
+        "within": worst <= limit,
+        "per_run_s": runs,
+    }
 
 
 def pacing_check() -> dict[str, Any]:
@@ -152,9 +173,13 @@ def main(argv: list[str] | None = None) -> int:
         "recovery_bound_s": bounds,
         "longest_effect_after_fault_s": round(max(r.longest_after_fault_s for r in results), 4),
         "sessions_above_cap": [
-            {"faults": [f["kind"] for f in r.injected], "max_current_ua": round(r.max_current_ua, 1),
-             "longest_effect_s": round(r.longest_after_fault_s, 4)}
-            for r in results if r.max_current_ua > r.limit_cap_ua
+            {
+                "faults": [f["kind"] for f in r.injected],
+                "max_current_ua": round(r.max_current_ua, 1),
+                "longest_effect_s": round(r.longest_after_fault_s, 4),
+            }
+            for r in results
+            if r.max_current_ua > r.limit_cap_ua
         ],
         "bytes_lost_in_fault_runs": lost,
         "bytes_lost_unreported": unreported + sum(v["bytes_lost"] for v in pacing.values()),
@@ -170,20 +195,36 @@ def main(argv: list[str] | None = None) -> int:
         json.dump(report, sys.stdout, indent=2, default=str)
         print()
         return 0
-    print(f"faults injected {injected}, survived {survived} (noticed {report['faults_noticed']}) in {len(results)} sessions")
-    print(f"  recovery bound {bounds} s; longest wrong delivery after a fault {report['longest_effect_after_fault_s']} s")
-    print(f"  {'kind':16} {'inj':>4} {'surv':>4} {'noticed':>7} {'no eff.':>7} {'repaired':>8} {'longest s':>9} {'>cap':>4}")
+    print(
+        f"faults injected {injected}, survived {survived} (noticed {report['faults_noticed']}) in {len(results)} sessions"
+    )
+    print(
+        f"  recovery bound {bounds} s; longest wrong delivery after a fault {report['longest_effect_after_fault_s']} s"
+    )
+    print(
+        f"  {'kind':16} {'inj':>4} {'surv':>4} {'noticed':>7} {'no eff.':>7} {'repaired':>8} {'longest s':>9} {'>cap':>4}"
+    )
     for k, row in report["per_kind"].items():
-        print(f"  {k:16} {row['injected']:4d} {row['survived']:4d} {row['noticed']:7d} {row['no_effect']:7d} "
-              f"{row['repaired_silently']:8d} {row['longest_effect_s']:9.4f} {row['above_cap']:4d}")
+        print(
+            f"  {k:16} {row['injected']:4d} {row['survived']:4d} {row['noticed']:7d} {row['no_effect']:7d} "
+            f"{row['repaired_silently']:8d} {row['longest_effect_s']:9.4f} {row['above_cap']:4d}"
+        )
     for m in report["mixed"]:
-        print(f"  mixed {m['link']:4} seed {m['seed']}: {m['injected']} faults, {m['survived']} survived, {m['noticed']} noticed")
+        print(
+            f"  mixed {m['link']:4} seed {m['seed']}: {m['injected']} faults, {m['survived']} survived, {m['noticed']} noticed"
+        )
     if report["sessions_above_cap"]:
-        print(f"  above the participant's cap (silent corruption/duplication on a UART, bounded): {report['sessions_above_cap']}")
-    print(f"longest a channel stayed on after its owner stopped: {stops['longest_on_after_stop_s']} s "
-          f"(limit: watchdog 0.1 s + one scan period = {stops['limit_s']} s) over {stops['runs']} runs")
-    print(f"bytes lost without being reported: {report['bytes_lost_unreported']} "
-          f"(lost in fault runs, all reported: {lost}); pacing: {json.dumps(pacing)}")
+        print(
+            f"  above the participant's cap (silent corruption/duplication on a UART, bounded): {report['sessions_above_cap']}"
+        )
+    print(
+        f"longest a channel stayed on after its owner stopped: {stops['longest_on_after_stop_s']} s "
+        f"(limit: watchdog 0.1 s + one scan period = {stops['limit_s']} s) over {stops['runs']} runs"
+    )
+    print(
+        f"bytes lost without being reported: {report['bytes_lost_unreported']} "
+        f"(lost in fault runs, all reported: {lost}); pacing: {json.dumps(pacing)}"
+    )
     print(f"fuzz cases run: {fuzz['total']} {fuzz.get('per_property', '')}")
     print(f"({report['wall_s']} s)")
     return 0

@@ -54,7 +54,9 @@ def column(c0: int) -> tuple[int, ...]:
     return tuple(1 if c == c0 else 0 for r, c in grid())
 
 
-def frame_stream(duration_s: float, rate_hz: float = RENDERER_MAX_RATE_HZ, start_s: float = 0.02) -> list[tuple[float, tuple[int, ...] | None]]:
+def frame_stream(
+    duration_s: float, rate_hz: float = RENDERER_MAX_RATE_HZ, start_s: float = 0.02
+) -> list[tuple[float, tuple[int, ...] | None]]:
     """Renderer-shaped frames: every tick either a new pattern or None (unchanged: keepalive).
 
     A 600 ms cycle: approach (rings 0, 1, 2, 30 ms apart), contact held at ring 2 for 200 ms, a line
@@ -121,7 +123,11 @@ class ScenarioResult:
 
     @property
     def survived(self) -> bool:
-        return not self.unexplained and not self.unreported_losses and self.max_current_ua <= self.limit_cap_ua + 1e-6
+        return (
+            not self.unexplained
+            and not self.unreported_losses
+            and self.max_current_ua <= self.limit_cap_ua + 1e-6
+        )
 
     def summary(self) -> dict[str, Any]:
         return {
@@ -193,7 +199,14 @@ def run(sc: Scenario) -> ScenarioResult:
         except TactDeformError as exc:  # the renderer reports the error and goes on with the next frame
             errors.append({"t_s": port.now_s, "error": f"{type(exc).__name__}: {exc}"})
 
-    attempt(0.0, lambda: dev.configure(StimConfig(current_ua=prof.stimulation_ua, pulse_width_us=prof.pulse_width_us, polarity=prof.polarity)))
+    attempt(
+        0.0,
+        lambda: dev.configure(
+            StimConfig(
+                current_ua=prof.stimulation_ua, pulse_width_us=prof.pulse_width_us, polarity=prof.polarity
+            )
+        ),
+    )
     frames = frame_stream(sc.duration_s, sc.rate_hz)
     for t, pat in frames:
         if sc.owner_stops_at_s is not None and t >= sc.owner_stops_at_s:
@@ -236,8 +249,12 @@ def run(sc: Scenario) -> ScenarioResult:
     ]
     # a loss while the driver itself had no proof of the parser's state is one it knew of
     spans = [(a, b if b is not None else float("inf")) for a, b in dev.unproved_spans()]
-    unreported = [lo for lo in losses if not any(lo["t_s"] - bound <= nt <= lo["t_s"] + bound for nt in notice_times)
-                  and not any(a <= lo["t_s"] <= b for a, b in spans)]
+    unreported = [
+        lo
+        for lo in losses
+        if not any(lo["t_s"] - bound <= nt <= lo["t_s"] + bound for nt in notice_times)
+        and not any(a <= lo["t_s"] <= b for a, b in spans)
+    ]
     owner_on = None
     if sc.owner_stops_at_s is not None:
         table = emu.reports.pulse_table(stop_t * 1e6, None)

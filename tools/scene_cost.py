@@ -154,7 +154,12 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(_child(*args[1:5])))
         return 0
     parser = argparse.ArgumentParser(description="Build time and memory of scenes, and what each leaves out.")
-    parser.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES), help="built-in names or scene/mesh files (relative to the current directory)")
+    parser.add_argument(
+        "--scenes",
+        nargs="+",
+        default=list(DEFAULT_SCENES),
+        help="built-in names or scene/mesh files (relative to the current directory)",
+    )
     parser.add_argument("--json", action="store_true", help="print JSON rows instead of a table")
     ns = parser.parse_args(args)
     rows = measure(ns.scenes)

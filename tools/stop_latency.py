@@ -119,8 +119,14 @@ with StopSession(watchdog_s=None):  # only the signal may stop it: what is measu
 
 def spawn_owner(path: str) -> subprocess.Popen[str]:
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.Popen([sys.executable, "-c", OWNER, path], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=env, start_new_session=True)
+    return subprocess.Popen(
+        [sys.executable, "-c", OWNER, path],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
 
 
 def one_trial(server: PtyServer, watch: BoardWatch, sig: int, timeout: float = 30.0) -> float:
@@ -136,7 +142,9 @@ def one_trial(server: PtyServer, watch: BoardWatch, sig: int, timeout: float = 3
         t0 = time.monotonic()
         os.kill(proc.pid, sig)
         if not watch.wait(False, timeout):
-            raise RuntimeError(f"the board still delivers current {timeout} s after {signal.Signals(sig).name}")
+            raise RuntimeError(
+                f"the board still delivers current {timeout} s after {signal.Signals(sig).name}"
+            )
         if watch.safe_since is None or watch.safe_since < t0:
             raise RuntimeError("the board went off before the signal: nothing to measure")
         dt = watch.safe_since - t0
@@ -168,8 +176,13 @@ def _wait_port_free(path: str, timeout: float) -> None:
 def summary(samples: list[float]) -> dict[str, float]:
     ms = sorted(1000 * s for s in samples)
     p95 = ms[min(len(ms) - 1, int(round(0.95 * (len(ms) - 1))))]
-    return {"trials": len(ms), "median_ms": round(statistics.median(ms), 2), "p95_ms": round(p95, 2),
-            "max_ms": round(ms[-1], 2), "min_ms": round(ms[0], 2)}
+    return {
+        "trials": len(ms),
+        "median_ms": round(statistics.median(ms), 2),
+        "p95_ms": round(p95, 2),
+        "max_ms": round(ms[-1], 2),
+        "min_ms": round(ms[0], 2),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -182,7 +195,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--trials={a.trials}: at least 1")
     watch = BoardWatch()
     server = PtyServer(watch).start()  # type: ignore[arg-type]  # any object with feed() and state()
-    results: dict[str, Any] = {"board": "emulator on a pty (untimed firmware model)", "python": sys.version.split()[0]}
+    results: dict[str, Any] = {
+        "board": "emulator on a pty (untimed firmware model)",
+        "python": sys.version.split()[0],
+    }
     try:
         for name in a.signals.split(","):
             sig = getattr(signal, "SIG" + name.strip().upper())
@@ -190,8 +206,11 @@ def main(argv: list[str] | None = None) -> int:
             results["SIG" + name.strip().upper()] = summary(samples)
             if not a.json:
                 s = results["SIG" + name.strip().upper()]
-                print(f"SIG{name.upper():4s} → all-off parsed: median {s['median_ms']} ms, p95 {s['p95_ms']} ms, "
-                      f"max {s['max_ms']} ms over {s['trials']} trials", flush=True)
+                print(
+                    f"SIG{name.upper():4s} → all-off parsed: median {s['median_ms']} ms, p95 {s['p95_ms']} ms, "
+                    f"max {s['max_ms']} ms over {s['trials']} trials",
+                    flush=True,
+                )
     finally:
         server.stop()
     if a.json:

@@ -44,9 +44,20 @@ from tactdeform_hw.errors import MissingDependencyError  # noqa: E402
 from tactdeform_hw.protocol import encode_pattern  # noqa: E402
 
 
-def _updates(name: str, link: str, duration_s: float, *, n: int = 32, rate: int = 125, width: int = 200,
-             discharge: int = 45, update_hz: float = 0.0, values: tuple[int, ...] = (0, 1), burst: int = 1,
-             seed: int = 1) -> Scenario:
+def _updates(
+    name: str,
+    link: str,
+    duration_s: float,
+    *,
+    n: int = 32,
+    rate: int = 125,
+    width: int = 200,
+    discharge: int = 45,
+    update_hz: float = 0.0,
+    values: tuple[int, ...] = (0, 1),
+    burst: int = 1,
+    seed: int = 1,
+) -> Scenario:
     cfg = ScanConfig.make(n, 1, pulse_width_us=width, discharge_us=discharge, rate_hz=rate)
     writes: list[tuple[float, bytes]] = [(0.0, configuration_bytes(cfg, rate))]
     rng = random.Random(seed)
@@ -63,7 +74,9 @@ SCENARIOS: dict[str, Callable[[float], Scenario]] = {
     "steady-usb": lambda d: _updates("steady-usb", "usb", d),
     "render60-usb": lambda d: _updates("render60-usb", "usb", d, update_hz=60),
     "render60-uart": lambda d: _updates("render60-uart", "uart", d, update_hz=60),
-    "8el-500hz-uart": lambda d: _updates("8el-500hz-uart", "uart", d, n=8, rate=500, width=100, update_hz=100),
+    "8el-500hz-uart": lambda d: _updates(
+        "8el-500hz-uart", "uart", d, n=8, rate=500, width=100, update_hz=100
+    ),
     "burst10-usb": lambda d: _updates("burst10-usb", "usb", d, update_hz=2, burst=10),
     "overrun-d50-usb": lambda d: _updates("overrun-d50-usb", "usb", d, discharge=50, update_hz=60),
 }
@@ -76,32 +89,59 @@ def measure(durations: list[float], names: list[str]) -> list[dict[str, Any]]:
             sc = SCENARIOS[name](d)
             ref, emu = run_event_exact(sc)
             summary = emu.reports.summary()
-            rows.append({"scenario": name, "duration_s": d, "engine": "event-exact", "wall_s": ref.wall_s,
-                         "speed": d / ref.wall_s if ref.wall_s else float("inf"), "scan_start_max_us": 0.0,
-                         "effect_max_us": 0.0, "first_pulse_max_us": 0.0, "unmatched": 0,
-                         "scans": int(ref.scan_start_ns.size), "bytes_lost": summary["bytes_lost"],
-                         "torn_scans": summary["torn_scans"], "overruns": summary["overruns"]})
+            rows.append(
+                {
+                    "scenario": name,
+                    "duration_s": d,
+                    "engine": "event-exact",
+                    "wall_s": ref.wall_s,
+                    "speed": d / ref.wall_s if ref.wall_s else float("inf"),
+                    "scan_start_max_us": 0.0,
+                    "effect_max_us": 0.0,
+                    "first_pulse_max_us": 0.0,
+                    "unmatched": 0,
+                    "scans": int(ref.scan_start_ns.size),
+                    "bytes_lost": summary["bytes_lost"],
+                    "torn_scans": summary["torn_scans"],
+                    "overruns": summary["overruns"],
+                }
+            )
             for runner in (run_analytic, run_nominal):
                 tl = runner(sc)
                 err = tl.compare(ref)
-                rows.append({"scenario": name, "duration_s": d, "engine": tl.engine, "wall_s": tl.wall_s,
-                             "speed": d / tl.wall_s if tl.wall_s else float("inf"),
-                             "scan_start_max_us": err["scan_start_max_us"], "scan_start_mean_us": err["scan_start_mean_us"],
-                             "effect_max_us": err["effect_max_us"], "effect_mean_us": err["effect_mean_us"],
-                             "first_pulse_max_us": err["first_pulse_max_us"],
-                             "first_pulse_mean_us": err["first_pulse_mean_us"],
-                             "unmatched": err["unmatched"], "scans": err["scans"], "notes": tl.notes})
+                rows.append(
+                    {
+                        "scenario": name,
+                        "duration_s": d,
+                        "engine": tl.engine,
+                        "wall_s": tl.wall_s,
+                        "speed": d / tl.wall_s if tl.wall_s else float("inf"),
+                        "scan_start_max_us": err["scan_start_max_us"],
+                        "scan_start_mean_us": err["scan_start_mean_us"],
+                        "effect_max_us": err["effect_max_us"],
+                        "effect_mean_us": err["effect_mean_us"],
+                        "first_pulse_max_us": err["first_pulse_max_us"],
+                        "first_pulse_mean_us": err["first_pulse_mean_us"],
+                        "unmatched": err["unmatched"],
+                        "scans": err["scans"],
+                        "notes": tl.notes,
+                    }
+                )
     return rows
 
 
 def table(rows: list[dict[str, Any]]) -> str:
-    head = (f"{'scenario':<17}{'dur s':>6} {'engine':<12}{'wall s':>9}{'x real':>10}"
-            f"{'scan max':>11}{'effect max':>12}{'1st pulse max':>15}{'unmatched':>10}")
+    head = (
+        f"{'scenario':<17}{'dur s':>6} {'engine':<12}{'wall s':>9}{'x real':>10}"
+        f"{'scan max':>11}{'effect max':>12}{'1st pulse max':>15}{'unmatched':>10}"
+    )
     lines = [head, "-" * len(head)]
     for r in rows:
-        lines.append(f"{r['scenario']:<17}{r['duration_s']:>6g} {r['engine']:<12}{r['wall_s']:>9.4f}{r['speed']:>10.0f}"
-                     f"{r['scan_start_max_us']:>11.1f}{r['effect_max_us']:>12.1f}{r['first_pulse_max_us']:>15.1f}"
-                     f"{r['unmatched']:>10d}")
+        lines.append(
+            f"{r['scenario']:<17}{r['duration_s']:>6g} {r['engine']:<12}{r['wall_s']:>9.4f}{r['speed']:>10.0f}"
+            f"{r['scan_start_max_us']:>11.1f}{r['effect_max_us']:>12.1f}{r['first_pulse_max_us']:>15.1f}"
+            f"{r['unmatched']:>10d}"
+        )
     lines.append("errors in us against the event-exact engine; 'x real' = simulated time / wall time")
     return "\n".join(lines)
 
@@ -121,8 +161,11 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
         err = [max(r["scan_start_max_us"], r["effect_max_us"], r["first_pulse_max_us"]) for r in sel]
         ax1.scatter([r["wall_s"] for r in sel], [max(e, 0.01) for e in err], c=col, label=eng, alpha=0.8)
         for scen in sorted({r["scenario"] for r in sel}):
-            pts = sorted((r["duration_s"], max(r["scan_start_max_us"], r["effect_max_us"], r["first_pulse_max_us"]))
-                         for r in sel if r["scenario"] == scen)
+            pts = sorted(
+                (r["duration_s"], max(r["scan_start_max_us"], r["effect_max_us"], r["first_pulse_max_us"]))
+                for r in sel
+                if r["scenario"] == scen
+            )
             ax2.plot([p[0] for p in pts], [max(p[1], 0.01) for p in pts], "o-", c=col, alpha=0.6)
     ax1.set_xscale("log")
     ax1.set_yscale("log")
@@ -142,9 +185,13 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--durations", type=float, nargs="+", default=[1.0, 10.0], help="simulated seconds per run")
+    ap.add_argument(
+        "--durations", type=float, nargs="+", default=[1.0, 10.0], help="simulated seconds per run"
+    )
     ap.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=list(SCENARIOS))
-    ap.add_argument("--png", type=Path, default=Path("timing_error.png"), help="plot file (default timing_error.png)")
+    ap.add_argument(
+        "--png", type=Path, default=Path("timing_error.png"), help="plot file (default timing_error.png)"
+    )
     ap.add_argument("--no-plot", action="store_true")
     ap.add_argument("--json", action="store_true", help="print the rows as JSON instead of the table")
     args = ap.parse_args(argv)

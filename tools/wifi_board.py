@@ -98,7 +98,12 @@ class Client:
 
 
 def _stats(xs: list[float]) -> dict[str, float]:
-    return {"min_us": min(xs), "median_us": statistics.median(xs), "mean_us": statistics.fmean(xs), "max_us": max(xs)}
+    return {
+        "min_us": min(xs),
+        "median_us": statistics.median(xs),
+        "mean_us": statistics.fmean(xs),
+        "max_us": max(xs),
+    }
 
 
 def phase(server: Any, client: Client | None, seconds: float, rate: float, n: int) -> dict[str, Any]:
@@ -121,10 +126,17 @@ def phase(server: Any, client: Client | None, seconds: float, rate: float, n: in
         time.sleep(0.1)
     wall = time.monotonic() - wall0
     st = board.lag.stats()
-    return {"seconds": wall, "lag_median_ms": st["median_us"] / 1000, "lag_p99_ms": st["p99_us"] / 1000,
-            "lag_max_ms": st["max_us"] / 1000, "wakeups": st["wakeups"], "fell_behind": st["behind"],
-            "cpu_percent": 100 * (server.cpu_s - cpu0) / wall, "writes": writes,
-            "achieved_hz": len(writes) / seconds if writes else 0.0}
+    return {
+        "seconds": wall,
+        "lag_median_ms": st["median_us"] / 1000,
+        "lag_p99_ms": st["p99_us"] / 1000,
+        "lag_max_ms": st["max_us"] / 1000,
+        "wakeups": st["wakeups"],
+        "fell_behind": st["behind"],
+        "cpu_percent": 100 * (server.cpu_s - cpu0) / wall,
+        "writes": writes,
+        "achieved_hz": len(writes) / seconds if writes else 0.0,
+    }
 
 
 def in_force(board: RealtimeEmulator, writes: list[float], n: int) -> dict[str, Any]:
@@ -169,8 +181,14 @@ def run_transport(transport: str, args: argparse.Namespace) -> dict[str, Any]:
         where = server.address
     try:
         client = Client(transport, where, args.chunking)
-        setup = (v2.encode_electrode_num(n) + v2.encode_stim_mode(0) + v2.encode_pulse_width(200)
-                 + v2.encode_discharge(45) + v2.encode_frequency(args.frequency) + v2.encode_pattern([0] * n))
+        setup = (
+            v2.encode_electrode_num(n)
+            + v2.encode_stim_mode(0)
+            + v2.encode_pulse_width(200)
+            + v2.encode_discharge(45)
+            + v2.encode_frequency(args.frequency)
+            + v2.encode_pattern([0] * n)
+        )
         client.write(setup + b"\xf4")
         configured = client.read(1) == bytes([n])
         idle = phase(server, None, args.idle, args.rate, n)
@@ -182,9 +200,17 @@ def run_transport(transport: str, args: argparse.Namespace) -> dict[str, Any]:
     finally:
         server.stop()
     link: Any = "usb" if transport == "pty" else TcpLink()
-    pred = pattern_in_force_v2(frame(1, n), link=link, rate_hz=args.frequency, chunking=args.chunking, phases=32)
-    return {"configured": configured, "idle": idle, "stream": stream, "latency": latency,
-            "prediction": {k: pred[k] for k in ("applied_us", "first_channel_us")}, "hazards": hazards}
+    pred = pattern_in_force_v2(
+        frame(1, n), link=link, rate_hz=args.frequency, chunking=args.chunking, phases=32
+    )
+    return {
+        "configured": configured,
+        "idle": idle,
+        "stream": stream,
+        "latency": latency,
+        "prediction": {k: pred[k] for k in ("applied_us", "first_channel_us")},
+        "hazards": hazards,
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -195,8 +221,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--electrodes", type=int, default=32)
     ap.add_argument("--frequency", type=int, default=125, help="stimulation rate, Hz (default 125)")
     ap.add_argument("--transport", choices=("pty", "tcp", "both"), default="both")
-    ap.add_argument("--chunking", choices=("whole", "upstream"), default="whole",
-                    help="whole frames, or upstream's 8-byte chunks 3 ms apart")
+    ap.add_argument(
+        "--chunking",
+        choices=("whole", "upstream"),
+        default="whole",
+        help="whole frames, or upstream's 8-byte chunks 3 ms apart",
+    )
     ap.add_argument("--json", action="store_true", help="print the figures as JSON")
     args = ap.parse_args(argv)
     for name in ("idle", "stream", "rate"):
@@ -205,35 +235,51 @@ def main(argv: list[str] | None = None) -> int:
     if not 1 <= args.electrodes <= 255:
         ap.error(f"--electrodes must be 1..255, not {args.electrodes}")
     transports = ("pty", "tcp") if args.transport == "both" else (args.transport,)
-    out = {"config": {"electrodes": args.electrodes, "frequency_hz": args.frequency, "stream_hz": args.rate,
-                      "chunking": args.chunking},
-           **{t: run_transport(t, args) for t in transports}}
+    out = {
+        "config": {
+            "electrodes": args.electrodes,
+            "frequency_hz": args.frequency,
+            "stream_hz": args.rate,
+            "chunking": args.chunking,
+        },
+        **{t: run_transport(t, args) for t in transports},
+    }
     if args.json:
         json.dump(out, sys.stdout, indent=2)
         sys.stdout.write("\n")
         return 0
-    print(f"real-time v2 board: {args.electrodes} electrodes at {args.frequency} Hz, frames at {args.rate:g} Hz "
-          f"({args.chunking} writes)")
-    print(f"{'transport':<10} {'phase':<8} {'lag median':>11} {'p99':>9} {'max':>9} {'wake-ups':>9} {'> 1 ms':>7} "
-          f"{'CPU':>7}")
+    print(
+        f"real-time v2 board: {args.electrodes} electrodes at {args.frequency} Hz, frames at {args.rate:g} Hz "
+        f"({args.chunking} writes)"
+    )
+    print(
+        f"{'transport':<10} {'phase':<8} {'lag median':>11} {'p99':>9} {'max':>9} {'wake-ups':>9} {'> 1 ms':>7} "
+        f"{'CPU':>7}"
+    )
     for t in transports:
         r = out[t]
         for name in ("idle", "stream"):
             ph = r[name]
             label = name if name == "idle" else f"{ph['achieved_hz']:.0f} Hz"
-            print(f"{t:<10} {label:<8} {ph['lag_median_ms']:>8.3f} ms {ph['lag_p99_ms']:>6.3f} ms "
-                  f"{ph['lag_max_ms']:>6.3f} ms {ph['wakeups']:>9} {ph['fell_behind']:>7} {ph['cpu_percent']:>6.1f}%")
+            print(
+                f"{t:<10} {label:<8} {ph['lag_median_ms']:>8.3f} ms {ph['lag_p99_ms']:>6.3f} ms "
+                f"{ph['lag_max_ms']:>6.3f} ms {ph['wakeups']:>9} {ph['fell_behind']:>7} {ph['cpu_percent']:>6.1f}%"
+            )
     print("host write → pattern in force (ms, min / median / max; prediction min / mean / max):")
     for t in transports:
         r = out[t]
         lat, pred = r["latency"], r["prediction"]
-        for key, pkey, what in (("applied_us", "applied_us", "stored"), ("first_pulse_us", "first_channel_us",
-                                                                          "first pulse")):
+        for key, pkey, what in (
+            ("applied_us", "applied_us", "stored"),
+            ("first_pulse_us", "first_channel_us", "first pulse"),
+        ):
             if key in lat:
                 s, p = lat[key], pred[pkey]
-                print(f"  {t:<4} {what:<12} {s['min_us'] / 1000:6.2f} / {s['median_us'] / 1000:6.2f} / "
-                      f"{s['max_us'] / 1000:6.2f}   model {p['min'] / 1000:6.2f} / {p['mean'] / 1000:6.2f} / "
-                      f"{p['max'] / 1000:6.2f}  ({lat['applied']} of {lat['writes']} frames)")
+                print(
+                    f"  {t:<4} {what:<12} {s['min_us'] / 1000:6.2f} / {s['median_us'] / 1000:6.2f} / "
+                    f"{s['max_us'] / 1000:6.2f}   model {p['min'] / 1000:6.2f} / {p['mean'] / 1000:6.2f} / "
+                    f"{p['max'] / 1000:6.2f}  ({lat['applied']} of {lat['writes']} frames)"
+                )
         kinds = ", ".join(f"{k} {n}" for k, n in r["hazards"].items())
         print(f"  {t:<4} configured: {r['configured']}; hazards: {kinds or 'none'}")
     return 0

@@ -58,9 +58,12 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
-    parser.add_argument("--debug", action="store_true",
-                        help="on an error, also print the Python traceback (for a bug report); may also "
-                        "follow the command's own options")
+    parser.add_argument(
+        "--debug",
+        action="store_true",
+        help="on an error, also print the Python traceback (for a bug report); may also "
+        "follow the command's own options",
+    )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f".{name}", __name__).register(sub)
@@ -103,7 +106,8 @@ def _main(argv: Sequence[str] | None) -> int:
     if extra:  # said by the command's own parser, so the line names the command and shows its usage
         commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
         (commands.get(getattr(args, "command", None) or "") or parser).error(
-            f"unrecognized arguments: {' '.join(extra)}")
+            f"unrecognized arguments: {' '.join(extra)}"
+        )
     args.debug = debug
     if not getattr(args, "func", None):
         parser.print_help()
@@ -157,8 +161,12 @@ class _ConsoleHandler(logging.Handler):
         self.prog = prog
 
     def emit(self, record: logging.LogRecord) -> None:
-        if record.name == "tactdeform_hw.safety" and str(record.msg).startswith("%s (%s)") and record.args \
-                and record.args[0] == "refused":  # type: ignore[index]
+        if (
+            record.name == "tactdeform_hw.safety"
+            and str(record.msg).startswith("%s (%s)")
+            and record.args
+            and record.args[0] == "refused"  # type: ignore[index]
+        ):
             return
         try:
             from .common import progress

@@ -41,17 +41,38 @@ def register(sub: Any) -> None:
         "write (.json or .toml)",
     )
     p.add_argument("--out", metavar="FILE", help="profile file to write (.json or .toml; default: ID.json)")
-    p.add_argument("--keys", metavar="FILE", help="read keys from FILE ('-' for standard input) instead of the keyboard")
-    p.add_argument("--max-ua", type=int, default=5000, help="calibration ceiling in µA, ≤ 10000 (default 5000)")
-    add_option(p, "--pulse-width-us", old=("--pulse-width",), dest="pulse_width", type=int, default=200,
-               help="pulse width in µs (default 200, TactDeform)")
+    p.add_argument(
+        "--keys", metavar="FILE", help="read keys from FILE ('-' for standard input) instead of the keyboard"
+    )
+    p.add_argument(
+        "--max-ua", type=int, default=5000, help="calibration ceiling in µA, ≤ 10000 (default 5000)"
+    )
+    add_option(
+        p,
+        "--pulse-width-us",
+        old=("--pulse-width",),
+        dest="pulse_width",
+        type=int,
+        default=200,
+        help="pulse width in µs (default 200, TactDeform)",
+    )
     p.add_argument("--polarity", choices=("anodic", "cathodic"), default="anodic")
-    p.add_argument("--contact-mode", choices=("orientation", "uniform"), default="orientation",
-                   help="the participant's preferred contact rendering (TactDeform task 2)")
-    p.add_argument("--ramp-ua", type=int, default=None, help="ramp limit to store in the profile (µA per frame)")
+    p.add_argument(
+        "--contact-mode",
+        choices=("orientation", "uniform"),
+        default="orientation",
+        help="the participant's preferred contact rendering (TactDeform task 2)",
+    )
+    p.add_argument(
+        "--ramp-ua", type=int, default=None, help="ramp limit to store in the profile (µA per frame)"
+    )
     add_finisher(p, range_check("ramp_ua", "--ramp-ua", 10, 10000, "µA", step=10))
-    p.add_argument("--hold-ms", type=duration("ms"), default=None,
-                   help="with a key script: hold each step this long (default 0; interactive: until the next key)")
+    p.add_argument(
+        "--hold-ms",
+        type=duration("ms"),
+        default=None,
+        help="with a key script: hold each step this long (default 0; interactive: until the next key)",
+    )
     p.add_argument("--audit-log", metavar="FILE", help="append every command sent to FILE as JSON lines")
     p.add_argument(
         "--array",
@@ -69,7 +90,9 @@ _ID_RE = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
 
 def _targets(args: argparse.Namespace) -> tuple[str, Path]:
     part = args.participant
-    looks_like_file = "/" in part or "\\" in part or Path(part).suffix.lower() in (".yaml", ".yml", ".txt", ".ini", ".cfg")
+    looks_like_file = (
+        "/" in part or "\\" in part or Path(part).suffix.lower() in (".yaml", ".yml", ".txt", ".ini", ".cfg")
+    )
     if looks_like_file and Path(part).suffix.lower() not in (".json", ".toml"):
         raise ConfigurationError(f"--participant {part}: a profile is written as .json or .toml")
     if Path(part).suffix.lower() in (".json", ".toml"):
@@ -184,10 +207,24 @@ def run(args: argparse.Namespace) -> int:
     config.validated(DEFAULT_TRANSFER)
     guard.check_config(config)
     keys = _script_keys(args)
-    audit = DeliveryLog(args.audit_log, mapping=mapping, region_map=rmap, command="calibrate", participant=pid,
-                        device=args.device, array=args.array)
+    audit = DeliveryLog(
+        args.audit_log,
+        mapping=mapping,
+        region_map=rmap,
+        command="calibrate",
+        participant=pid,
+        device=args.device,
+        array=args.array,
+    )
     hold_s = (args.hold_ms or 0.0) / 1000.0
-    dev = open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=mapping, guard=guard, audit=audit)
+    dev = open_device(
+        args.device,
+        timeout=args.timeout,
+        firmware=getattr(args, "firmware", "v1.2"),
+        mapping=mapping,
+        guard=guard,
+        audit=audit,
+    )
     steps = 0
     peak = 0
     with dev:  # the command's stop session watches it (see common.run_command); closing switches all off
@@ -209,8 +246,14 @@ def run(args: argparse.Namespace) -> int:
     audit.close()
     delivered = audit.report()
     delivered["requested_ua"] = peak  # the highest step asked for
-    result: dict[str, Any] = {"participant": pid, "phase": cal.phase.value, "keys": steps, "peak_ua": peak,
-                              "array": args.array, "delivered": delivered}
+    result: dict[str, Any] = {
+        "participant": pid,
+        "phase": cal.phase.value,
+        "keys": steps,
+        "peak_ua": peak,
+        "array": args.array,
+        "delivered": delivered,
+    }
     if cal.phase is not Phase.DONE:
         result["profile"] = None
         if args.json:

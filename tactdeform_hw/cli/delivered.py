@@ -65,7 +65,9 @@ class DeliveryLog(AuditLog):
             session.setdefault("hw_channels", mapping.hw_channels)
         if region_map is not None:
             session.setdefault("positions_mm", [list(p) for p in region_map.positions_mm])
-            session.setdefault("mapping", list(range(region_map.electrodes)))  # no mapping: electrode i on channel i
+            session.setdefault(
+                "mapping", list(range(region_map.electrodes))
+            )  # no mapping: electrode i on channel i
             if region_of is None:
                 region_of = region_map.resolve(None)
         super().__init__(stream, **session)
@@ -89,7 +91,9 @@ class DeliveryLog(AuditLog):
 
     # --- what the device wrote ---------------------------------------------------------------------------
 
-    def tx(self, data: bytes, *, t: float, ok: bool = True, op: str = "", logical: bytes | None = None) -> None:
+    def tx(
+        self, data: bytes, *, t: float, ok: bool = True, op: str = "", logical: bytes | None = None
+    ) -> None:
         super().tx(data, t=t, ok=ok, op=op, logical=logical)
         if not ok:
             return
@@ -101,7 +105,11 @@ class DeliveryLog(AuditLog):
             ua = int(round(self.transfer.to_ua(min(value, V1_2.dac_max_code))))
             if ua != self._height:
                 self.height_changes += 1
-                if ua and len(self.heights_ua) < HEIGHTS_SHOWN and (not self.heights_ua or self.heights_ua[-1] != ua):
+                if (
+                    ua
+                    and len(self.heights_ua) < HEIGHTS_SHOWN
+                    and (not self.heights_ua or self.heights_ua[-1] != ua)
+                ):
                     self.heights_ua.append(ua)
             self._height = ua
             self.max_ua = max(self.max_ua, ua)
@@ -123,7 +131,11 @@ class DeliveryLog(AuditLog):
         height = max(uas, default=0)
         if height != self._height:
             self.height_changes += 1
-            if height and len(self.heights_ua) < HEIGHTS_SHOWN and (not self.heights_ua or self.heights_ua[-1] != height):
+            if (
+                height
+                and len(self.heights_ua) < HEIGHTS_SHOWN
+                and (not self.heights_ua or self.heights_ua[-1] != height)
+            ):
                 self.heights_ua.append(height)
         self._height = height
         self.max_ua = max(self.max_ua, height)

@@ -31,17 +31,35 @@ def register(sub: Any) -> None:
     )
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal")
-    where.add_argument("--tcp", metavar="[HOST:]PORT",
-                       help="serve on TCP PORT (0: any free port) at HOST (default --host, 127.0.0.1: loopback only)")
-    p.add_argument("--host", default="127.0.0.1", help="address --tcp listens on (default 127.0.0.1, loopback only)")
-    p.add_argument("--firmware", choices=("v1.2", "v2"), default="v1.2",
-                   help="the firmware the board runs (default v1.2; v2 is upstream's current firmware)")
-    p.add_argument("--discovery-port", type=int, default=None, metavar="PORT",
-                   help="with --tcp and --firmware v2: answer UDP discovery (ETK?) on PORT at the --tcp host "
-                   "(default 8888, as the firmware; 0: do not answer)")
-    p.add_argument("--kit-id", default=None, metavar="ID",
-                   help="the 6-hex-digit id discovery reports (default: the id the firmware derives from an "
-                   "Espressif MAC, F93030)")
+    where.add_argument(
+        "--tcp",
+        metavar="[HOST:]PORT",
+        help="serve on TCP PORT (0: any free port) at HOST (default --host, 127.0.0.1: loopback only)",
+    )
+    p.add_argument(
+        "--host", default="127.0.0.1", help="address --tcp listens on (default 127.0.0.1, loopback only)"
+    )
+    p.add_argument(
+        "--firmware",
+        choices=("v1.2", "v2"),
+        default="v1.2",
+        help="the firmware the board runs (default v1.2; v2 is upstream's current firmware)",
+    )
+    p.add_argument(
+        "--discovery-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="with --tcp and --firmware v2: answer UDP discovery (ETK?) on PORT at the --tcp host "
+        "(default 8888, as the firmware; 0: do not answer)",
+    )
+    p.add_argument(
+        "--kit-id",
+        default=None,
+        metavar="ID",
+        help="the 6-hex-digit id discovery reports (default: the id the firmware derives from an "
+        "Espressif MAC, F93030)",
+    )
     p.add_argument(
         "--build",
         choices=("serial", "serial-uart", "wifi"),
@@ -50,12 +68,22 @@ def register(sub: Any) -> None:
         "fit, 256 bytes on v1.2 and 1024 on v2; the default for --pty), serial-uart (the same behind a 921600-baud UART) or wifi (TCP flow "
         "control holds the host back; the default for --tcp)",
     )
-    p.add_argument("--untimed", action="store_true", help="answer every write at once (no link, queue, tick or scans)")
-    p.add_argument("--board", choices=("compact", "large"), default="compact", help="board kind (default compact)")
+    p.add_argument(
+        "--untimed", action="store_true", help="answer every write at once (no link, queue, tick or scans)"
+    )
+    p.add_argument(
+        "--board", choices=("compact", "large"), default="compact", help="board kind (default compact)"
+    )
     p.add_argument("--switching-boards", type=int, default=1, help="stacked switching boards (default 1)")
-    p.add_argument("--reset-on-open", action="store_true", help="power-cycle the board whenever a client opens the port")
-    p.add_argument("--spy", action="store_true", help="hex-dump every byte both ways with timestamps to stderr")
-    p.add_argument("--quiet", action="store_true", help="no live view (resets, fall-behinds and the summary still print)")
+    p.add_argument(
+        "--reset-on-open", action="store_true", help="power-cycle the board whenever a client opens the port"
+    )
+    p.add_argument(
+        "--spy", action="store_true", help="hex-dump every byte both ways with timestamps to stderr"
+    )
+    p.add_argument(
+        "--quiet", action="store_true", help="no live view (resets, fall-behinds and the summary still print)"
+    )
     p.add_argument(
         "--trace",
         metavar="FILE",
@@ -85,25 +113,33 @@ def _check(args: argparse.Namespace) -> None:
         args.tcp_address = _tcp_address(args)
     if args.discovery_port is not None:
         if args.tcp is None or args.firmware != "v2":
-            raise ConfigurationError("--discovery-port: only the v2 Wi-Fi build answers discovery; use it with "
-                                     "--tcp and --firmware v2")
+            raise ConfigurationError(
+                "--discovery-port: only the v2 Wi-Fi build answers discovery; use it with "
+                "--tcp and --firmware v2"
+            )
         if not 0 <= args.discovery_port <= 65535:
             raise LimitError("--discovery-port", args.discovery_port, "a UDP port 1..65535, or 0 for none")
     if args.kit_id is not None:
         if args.tcp is None or args.firmware != "v2":
-            raise ConfigurationError("--kit-id: only the v2 Wi-Fi build answers discovery; use it with --tcp and "
-                                     "--firmware v2")
+            raise ConfigurationError(
+                "--kit-id: only the v2 Wi-Fi build answers discovery; use it with --tcp and --firmware v2"
+            )
         if len(args.kit_id) != 6 or any(ch not in "0123456789ABCDEFabcdef" for ch in args.kit_id):
             raise LimitError("--kit-id", args.kit_id, "6 hexadecimal digits, as the firmware reports")
     if not 1 <= args.switching_boards <= 16:
         raise LimitError("--switching-boards", args.switching_boards, "1..16")
     if args.trace and args.firmware == "v2":
-        raise ConfigurationError("--trace records the v1.2 timed model's waveform; it is not available with "
-                                 "--firmware v2")
+        raise ConfigurationError(
+            "--trace records the v1.2 timed model's waveform; it is not available with --firmware v2"
+        )
     if args.untimed and args.trace:
-        raise ConfigurationError("--trace records the timed model that answers the client; drop --untimed to use it")
+        raise ConfigurationError(
+            "--trace records the timed model that answers the client; drop --untimed to use it"
+        )
     if args.untimed and args.build:
-        raise ConfigurationError(f"--build {args.build} sets the timed model's receive rules; drop --untimed to use it")
+        raise ConfigurationError(
+            f"--build {args.build} sets the timed model's receive rules; drop --untimed to use it"
+        )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -134,8 +170,11 @@ def run(args: argparse.Namespace) -> int:
             board.timed.attach(sink)
     if not args.untimed:
         board.on_behind = behind.append
-    opts: dict[str, Any] = {"hook": spy if args.spy else None, "reset_on_open": args.reset_on_open,
-                            "on_reset": resets.append}
+    opts: dict[str, Any] = {
+        "hook": spy if args.spy else None,
+        "reset_on_open": args.reset_on_open,
+        "on_reset": resets.append,
+    }
     server: Any
     if args.tcp is not None:
         from ..emulator.tcp_server import TcpServer
@@ -156,9 +195,12 @@ def run(args: argparse.Namespace) -> int:
 
         kit_id = (args.kit_id or device_id_from_mac(EMULATED_MAC)).upper()
         try:
-            responder = DiscoveryResponder(kit_id, host=server.address[0],
-                                           port=DISCOVERY_PORT if args.discovery_port is None else args.discovery_port,
-                                           tcp_port=server.address[1])
+            responder = DiscoveryResponder(
+                kit_id,
+                host=server.address[0],
+                port=DISCOVERY_PORT if args.discovery_port is None else args.discovery_port,
+                tcp_port=server.address[1],
+            )
         except BaseException:
             server.stop()
             raise
@@ -169,7 +211,9 @@ def run(args: argparse.Namespace) -> int:
         raise KeyboardInterrupt
 
     def _usr1(signum: int, frame: object) -> None:
-        reset_requested.append("SIGUSR1")  # applied by the loop below: a handler must not take the board's lock
+        reset_requested.append(
+            "SIGUSR1"
+        )  # applied by the loop below: a handler must not take the board's lock
 
     seen_hazards = 0
     view = LiveView()
@@ -179,12 +223,16 @@ def run(args: argparse.Namespace) -> int:
             signal.signal(signal.SIGUSR1, _usr1)
         server.start()
         print(where, flush=True)
-        progress(f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {where}, "
-                 f"{mode}; SIGUSR1 resets it")
+        progress(
+            f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {where}, "
+            f"{mode}; SIGUSR1 resets it"
+        )
         if responder is not None:
-            progress(f"answering discovery on UDP {responder.address[0]}:{responder.address[1]} as "
-                     f"etactilekit-{responder.device_id} (etactilekit://{responder.device_id}?discovery="
-                     f"{responder.address[0]}:{responder.address[1]})")
+            progress(
+                f"answering discovery on UDP {responder.address[0]}:{responder.address[1]} as "
+                f"etactilekit-{responder.device_id} (etactilekit://{responder.device_id}?discovery="
+                f"{responder.address[0]}:{responder.address[1]})"
+            )
         while True:
             time.sleep(0.05)
             while reset_requested:
@@ -196,7 +244,9 @@ def run(args: argparse.Namespace) -> int:
                 for fb in behind[:3]:
                     progress(str(fb))
                 if n > 3:
-                    progress(f"fell behind the wall clock {n - 3} more time(s) (worst {max(b.lag_us for b in behind) / 1000:.2f} ms)")
+                    progress(
+                        f"fell behind the wall clock {n - 3} more time(s) (worst {max(b.lag_us for b in behind) / 1000:.2f} ms)"
+                    )
                 del behind[:n]
             if args.untimed:
                 while seen_hazards < len(board.hazards):
@@ -214,10 +264,12 @@ def run(args: argparse.Namespace) -> int:
         summary = f"stopped: {server.bytes_in} bytes in, {server.bytes_out} bytes out, {len(server.emulator.hazards)} hazard(s)"
         if not args.untimed:
             st = board.lag.stats()
-            summary += (f", {len(server.resets)} reset(s); lag median {st['median_us'] / 1000:.3f} ms, p99 "
-                        f"{st['p99_us'] / 1000:.3f} ms, max {st['max_us'] / 1000:.3f} ms over {st['wakeups']} wake-up(s), "
-                        f"{st['behind']} fall-behind(s) > {board.lag.limit_us / 1000:g} ms; serving thread CPU "
-                        f"{server.cpu_s:.2f} s")
+            summary += (
+                f", {len(server.resets)} reset(s); lag median {st['median_us'] / 1000:.3f} ms, p99 "
+                f"{st['p99_us'] / 1000:.3f} ms, max {st['max_us'] / 1000:.3f} ms over {st['wakeups']} wake-up(s), "
+                f"{st['behind']} fall-behind(s) > {board.lag.limit_us / 1000:g} ms; serving thread CPU "
+                f"{server.cpu_s:.2f} s"
+            )
         if sink is not None:
             with board.lock:
                 board.catch_up(record_lag=False)

@@ -30,14 +30,30 @@ def register(sub: Any) -> None:
     )
     p.add_argument("frames", help="frames record written by 'tactdeform-hw render --frames'")
     p.add_argument("-o", "--out", required=True, help="pattern file to write (.json)")
-    add_option(p, "--frequency-hz", old=("--frequency",), dest="frequency", type=int, default=125,
-               help="params.frequency in Hz for every step (default 125)")
+    add_option(
+        p,
+        "--frequency-hz",
+        old=("--frequency",),
+        dest="frequency",
+        type=int,
+        default=125,
+        help="params.frequency in Hz for every step (default 125)",
+    )
     add_finisher(p, range_check("frequency", "--frequency-hz", 1, 65535, "Hz"))
-    add_option(p, "--polarity", old=("--stim-mode",), old_type=int, old_choices=(0, 1), dest="stim_mode",
-               type=polarity_code, default=1, metavar="{anodic,cathodic}",
-               old_note="--stim-mode 1 is --polarity anodic, 0 is cathodic",
-               help="the polarity the GUI sends, written as params.stim_mode (anodic = 1, cathodic = 0): "
-               "anodic (default, TactDeform) or cathodic")
+    add_option(
+        p,
+        "--polarity",
+        old=("--stim-mode",),
+        old_type=int,
+        old_choices=(0, 1),
+        dest="stim_mode",
+        type=polarity_code,
+        default=1,
+        metavar="{anodic,cathodic}",
+        old_note="--stim-mode 1 is --polarity anodic, 0 is cathodic",
+        help="the polarity the GUI sends, written as params.stim_mode (anodic = 1, cathodic = 0): "
+        "anodic (default, TactDeform) or cathodic",
+    )
     p.add_argument(
         "--last-ms",
         type=duration("ms"),

@@ -51,19 +51,36 @@ def _remember(namespace: argparse.Namespace, canonical: str, typed: str) -> None
 class DeprecatedAlias(argparse.Action):
     """An earlier spelling of an option: warns, converts to the new unit, stores under the new dest."""
 
-    def __init__(self, option_strings: Sequence[str], dest: str, *, canonical: str, scale: float | None = None,
-                 convert: Callable[[Any], Any] | None = None, note: str = "", **kwargs: Any) -> None:
+    def __init__(
+        self,
+        option_strings: Sequence[str],
+        dest: str,
+        *,
+        canonical: str,
+        scale: float | None = None,
+        convert: Callable[[Any], Any] | None = None,
+        note: str = "",
+        **kwargs: Any,
+    ) -> None:
         super().__init__(option_strings, dest, **kwargs)
         self.canonical = canonical
         self.scale = scale
         self.convert = convert
         self.note = note
 
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
-                 option_string: str | None = None) -> None:
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
         typed = option_string or self.option_strings[0]
-        warn(parser.prog, f"{typed} is deprecated and will be removed in the next release; use {self.canonical}"
-             + (f" ({self.note})" if self.note else ""))
+        warn(
+            parser.prog,
+            f"{typed} is deprecated and will be removed in the next release; use {self.canonical}"
+            + (f" ({self.note})" if self.note else ""),
+        )
         if self.convert is not None:
             values = self.convert(values)
         elif self.scale is not None:
@@ -75,9 +92,18 @@ class DeprecatedAlias(argparse.Action):
 _UNIT_SUFFIXES = ("us", "ms", "s", "hz", "ua", "mm")
 
 
-def add_option(parser: argparse.ArgumentParser, flag: str, *, old: Sequence[str] = (), old_scale: float | None = None,
-               old_convert: Callable[[Any], Any] | None = None, old_note: str = "", old_type: Any = None,
-               old_choices: Sequence[Any] | None = None, **kwargs: Any) -> argparse.Action:
+def add_option(
+    parser: argparse.ArgumentParser,
+    flag: str,
+    *,
+    old: Sequence[str] = (),
+    old_scale: float | None = None,
+    old_convert: Callable[[Any], Any] | None = None,
+    old_note: str = "",
+    old_type: Any = None,
+    old_choices: Sequence[Any] | None = None,
+    **kwargs: Any,
+) -> argparse.Action:
     """``parser.add_argument(flag, **kwargs)`` plus hidden, warning aliases for its earlier spellings.
 
     ``old_scale`` multiplies an alias's value into the new unit (``--hold`` s → ``--hold-ms``: 1000);
@@ -85,7 +111,9 @@ def add_option(parser: argparse.ArgumentParser, flag: str, *, old: Sequence[str]
     the command's body reads one attribute whichever spelling was typed."""
     if "metavar" not in kwargs and kwargs.get("action") in (None, "store") and kwargs.get("choices") is None:
         unit = flag.rsplit("-", 1)[-1]
-        kwargs["metavar"] = unit.upper() if unit in _UNIT_SUFFIXES else flag.lstrip("-").upper().replace("-", "_")
+        kwargs["metavar"] = (
+            unit.upper() if unit in _UNIT_SUFFIXES else flag.lstrip("-").upper().replace("-", "_")
+        )
     action = parser.add_argument(flag, **kwargs)
     alias_type = old_type if old_type is not None else kwargs.get("type")
     for alias in old:
@@ -164,13 +192,21 @@ class PolarityCode(argparse.Action):
     """``--polarity anodic|cathodic`` stored as the firmware's code; the earlier ``1``/``0`` still work,
     with a warning."""
 
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
-                 option_string: str | None = None) -> None:
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
         text = str(values).strip()
         if text in ("0", "1"):
             name = "anodic" if text == "1" else "cathodic"
-            warn(parser.prog, f"{option_string} {text} is deprecated and will be removed in the next release; "
-                 f"use {option_string} {name}")
+            warn(
+                parser.prog,
+                f"{option_string} {text} is deprecated and will be removed in the next release; "
+                f"use {option_string} {name}",
+            )
             setattr(namespace, self.dest, int(text))
             return
         try:
@@ -214,8 +250,13 @@ FIELD_FLAGS: dict[str, dict[str, str]] = {
     },
     "render": {"current_ua": "--current-ua", "--rate": "--rate-hz", "--speed": "--speed-mm-s"},
     "study": {"current_ua": "--current-ua", "--rate": "--rate-hz"},
-    "calibrate": {"pulse_width_us": "--pulse-width-us", "polarity": "--polarity", "cap_ua": "--max-ua",
-                  "participant": "--participant", "max_ua": "--max-ua"},
+    "calibrate": {
+        "pulse_width_us": "--pulse-width-us",
+        "polarity": "--polarity",
+        "cap_ua": "--max-ua",
+        "participant": "--participant",
+        "max_ua": "--max-ua",
+    },
 }
 
 _FIELD_EQ = r"(?<![\w.\-\[]){field}="
@@ -259,8 +300,11 @@ def user_message(exc: BaseException, command: str | None, args: argparse.Namespa
     text = str(exc)
     if isinstance(exc, TactDeformError):
         # a check written with the flag (``--repeat=0``) reads like the rest: ``--repeat 0``
-        text = re.sub(r"(?<![\w-])(--[a-z][a-z0-9-]*)=(?=\S)",
-                      lambda m: (typed_flag(args, m.group(1)) if args is not None else m.group(1)) + " ", text)
+        text = re.sub(
+            r"(?<![\w-])(--[a-z][a-z0-9-]*)=(?=\S)",
+            lambda m: (typed_flag(args, m.group(1)) if args is not None else m.group(1)) + " ",
+            text,
+        )
         for field in FIELD_FLAGS.get(command or "", {}):
             if field.startswith("--"):
                 continue
@@ -270,8 +314,9 @@ def user_message(exc: BaseException, command: str | None, args: argparse.Namespa
     return text
 
 
-def range_check(dest: str, flag: str, lo: float, hi: float, unit: str = "", *,
-                step: int | None = None) -> Callable[[argparse.Namespace], None]:
+def range_check(
+    dest: str, flag: str, lo: float, hi: float, unit: str = "", *, step: int | None = None
+) -> Callable[[argparse.Namespace], None]:
     """A finisher refusing ``args.<dest>`` outside ``[lo, hi]`` (or off ``step``) before the command runs,
     for a value the command would otherwise only meet deep inside (a file writer, a saved profile)."""
 

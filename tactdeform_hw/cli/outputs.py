@@ -75,7 +75,9 @@ def check_output(path: str, flag: str, kind: str = FILE) -> None:
     if kind == DIR:
         if p.exists():
             if not p.is_dir():
-                raise ConfigurationError(f"{where}: is a file, not a directory; give a directory for the report")
+                raise ConfigurationError(
+                    f"{where}: is a file, not a directory; give a directory for the report"
+                )
             if not os.access(p, os.W_OK | os.X_OK):
                 raise ConfigurationError(f"{where}: the directory is not writable")
             return
@@ -115,7 +117,9 @@ def _probe_dir(base: Path, where: str) -> None:
     try:
         made = tempfile.mkdtemp(prefix=".tactdeform-probe-", dir=base)
     except OSError as exc:
-        raise ConfigurationError(f"{where}: cannot create a directory in {base} ({exc.strerror or exc})") from exc
+        raise ConfigurationError(
+            f"{where}: cannot create a directory in {base} ({exc.strerror or exc})"
+        ) from exc
     os.rmdir(made)
 
 
@@ -144,8 +148,10 @@ def check_extras(args: argparse.Namespace, outputs: list[tuple[str, str, str]]) 
     warnings: list[str] = []
     if getattr(args, "command", None) == "study" and not getattr(args, "no_pictures", False):
         if not (have("matplotlib") and have("PIL")):
-            warnings.append("the report will have no pictures: they need matplotlib and Pillow, "
-                            "pip install 'tactdeform_hw[plot]' (or pass --no-pictures)")
+            warnings.append(
+                "the report will have no pictures: they need matplotlib and Pillow, "
+                "pip install 'tactdeform_hw[plot]' (or pass --no-pictures)"
+            )
     return warnings
 
 
@@ -164,14 +170,24 @@ def check_device(args: argparse.Namespace) -> None:
     try:
         mode = os.stat(name).st_mode
     except FileNotFoundError:
-        raise ConfigurationError(f"--device {name}: no such device; 'tactdeform-hw ports' lists the boards "
-                                 "it can see, and --device emulator needs none") from None
+        raise ConfigurationError(
+            f"--device {name}: no such device; 'tactdeform-hw ports' lists the boards "
+            "it can see, and --device emulator needs none"
+        ) from None
     except OSError as exc:
         raise ConfigurationError(f"--device {name}: cannot be examined ({exc.strerror or exc})") from exc
     if not stat.S_ISCHR(mode):
-        what = "a directory" if stat.S_ISDIR(mode) else "a regular file" if stat.S_ISREG(mode) else "not a device"
-        raise ConfigurationError(f"--device {name} is not a serial port ({what}); 'tactdeform-hw ports' lists "
-                                 "the boards it can see")
+        what = (
+            "a directory"
+            if stat.S_ISDIR(mode)
+            else "a regular file"
+            if stat.S_ISREG(mode)
+            else "not a device"
+        )
+        raise ConfigurationError(
+            f"--device {name} is not a serial port ({what}); 'tactdeform-hw ports' lists "
+            "the boards it can see"
+        )
 
 
 def preflight(args: argparse.Namespace, warn: Callable[[str], Any] | None = None) -> None:

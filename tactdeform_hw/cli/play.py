@@ -90,10 +90,24 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)"
     )
-    add_option(p, "--pulse-width-us", old=("--pulse-width",), dest="pulse_width", type=int, default=200,
-               help="pulse width in µs (default 200)")
-    add_option(p, "--discharge-us", old=("--discharge",), dest="discharge", type=int, default=45,
-               help="discharge time in µs (default 45)")
+    add_option(
+        p,
+        "--pulse-width-us",
+        old=("--pulse-width",),
+        dest="pulse_width",
+        type=int,
+        default=200,
+        help="pulse width in µs (default 200)",
+    )
+    add_option(
+        p,
+        "--discharge-us",
+        old=("--discharge",),
+        dest="discharge",
+        type=int,
+        default=45,
+        help="discharge time in µs (default 45)",
+    )
     p.add_argument("--repeat", type=int, default=1, help="play the file this many times (default 1)")
     p.add_argument("--dry-run", action="store_true", help="check the file and print the plan; open no device")
     p.add_argument(
@@ -313,7 +327,17 @@ def run(
         participant_file=args.participant,
         array=args.array,
     )
-    with log, open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=mapping, guard=guard, audit=log) as dev:
+    with (
+        log,
+        open_device(
+            args.device,
+            timeout=args.timeout,
+            firmware=getattr(args, "firmware", "v1.2"),
+            mapping=mapping,
+            guard=guard,
+            audit=log,
+        ) as dev,
+    ):
         try:
             chips = dev.hv513_count()
             summary["hv513_count"] = chips

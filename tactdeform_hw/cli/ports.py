@@ -19,7 +19,9 @@ def register(sub: Any) -> None:
         "Nothing is opened and no byte is sent. Without pyusb or libusb the serial ports are still "
         "listed and a note says why USB devices are not.",
     )
-    p.add_argument("--json", action="store_true", help="print one JSON object: candidates, usb_available, notes")
+    p.add_argument(
+        "--json", action="store_true", help="print one JSON object: candidates, usb_available, notes"
+    )
     p.add_argument("--no-usb", action="store_true", help="list serial ports only (skip pyusb)")
     p.add_argument(
         "--all",
@@ -58,8 +60,16 @@ def wifi_kits(target: str) -> list[dict[str, Any]]:
     kits = discover([addr])
     ids = [k.id for k in kits]
     return [
-        {"device": k.url if ids.count(k.id) > 1 else f"etactilekit://{k.id}", "id": k.id, "name": k.name,
-         "ip": k.ip, "port": k.port, "mode": k.mode, "fw": k.fw, "id_shared": ids.count(k.id) > 1}
+        {
+            "device": k.url if ids.count(k.id) > 1 else f"etactilekit://{k.id}",
+            "id": k.id,
+            "name": k.name,
+            "ip": k.ip,
+            "port": k.port,
+            "mode": k.mode,
+            "fw": k.fw,
+            "id_shared": ids.count(k.id) > 1,
+        }
         for k in kits
     ]
 
@@ -89,20 +99,26 @@ def run(args: argparse.Namespace) -> int:
         return 0
     for k in kits:
         shared = "  (id shared with another kit: use the socket:// address)" if k["id_shared"] else ""
-        print(f"{'wifi':<7} {k['device']:<36} {'':<9}  {k['name']} {k['ip']}:{k['port']} {k['mode']} fw={k['fw']}{shared}")
+        print(
+            f"{'wifi':<7} {k['device']:<36} {'':<9}  {k['name']} {k['ip']}:{k['port']} {k['mode']} fw={k['fw']}{shared}"
+        )
     if not result.candidates:
         print("no candidate boards found (the emulator is always available as --device emulator)")
     else:
         print(f"{'ROUTE':<7} {'DEVICE':<36} {'VID:PID':<9}  DESCRIPTION")
     for c in result.candidates:
-        desc = " ".join(x for x in (c.product, f"[{c.location}]" if c.location and c.transport == "usb" else None) if x)
+        desc = " ".join(
+            x for x in (c.product, f"[{c.location}]" if c.location and c.transport == "usb" else None) if x
+        )
         print(f"{c.transport:<7} {c.device:<36} {c.ids:<9}  {desc}")
         if c.likely:
             print(f"{'':<7} likely an eTactileKit controller: {'; '.join(c.reasons)}")
         elif c.reasons:
             print(f"{'':<7} {'; '.join(c.reasons)}")
         if c.same_board_as:
-            print(f"{'':<7} the same board as {c.same_board_as} (opening it over USB detaches that serial port)")
+            print(
+                f"{'':<7} the same board as {c.same_board_as} (opening it over USB detaches that serial port)"
+            )
         for note in c.notes:
             print(f"{'':<7} note: {note}")
     for note in result.notes:

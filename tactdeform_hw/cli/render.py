@@ -46,15 +46,39 @@ def register(sub: Any) -> None:
         help="sphere, cube, teapot, bunny, task1, task2, task3, a mesh file (OBJ/STL/PLY) or a scene "
         "description (.toml/.json)",
     )
-    p.add_argument("--trajectory", required=True, metavar="NAME|FILE.csv",
-                   help="a synthetic trajectory (" + ", ".join(TRAJECTORIES) + ") or a recorded one: a CSV with the "
-                   "header t_s,x_mm,y_mm,z_mm,qw,qx,qy,qz (world mm; the quaternion turns the pad frame — x right, "
-                   "y toward the fingertip, z out of the pad — into the world)")
-    add_option(p, "--speed-mm-s", old=("--speed",), dest="speed", metavar="MM_S", type=float, default=None,
-               help="finger speed in mm/s (default: the trajectory's own; synthetic only)")
-    add_option(p, "--rate-hz", old=("--rate",), dest="rate", type=float, default=None,
-               help="tracking rate in Hz (default 72, the VR loop; synthetic only)")
-    p.add_argument("--approach", choices=APPROACHES, default=None, help="rendering approach (default: the scene's, tactdeform)")
+    p.add_argument(
+        "--trajectory",
+        required=True,
+        metavar="NAME|FILE.csv",
+        help="a synthetic trajectory (" + ", ".join(TRAJECTORIES) + ") or a recorded one: a CSV with the "
+        "header t_s,x_mm,y_mm,z_mm,qw,qx,qy,qz (world mm; the quaternion turns the pad frame — x right, "
+        "y toward the fingertip, z out of the pad — into the world)",
+    )
+    add_option(
+        p,
+        "--speed-mm-s",
+        old=("--speed",),
+        dest="speed",
+        metavar="MM_S",
+        type=float,
+        default=None,
+        help="finger speed in mm/s (default: the trajectory's own; synthetic only)",
+    )
+    add_option(
+        p,
+        "--rate-hz",
+        old=("--rate",),
+        dest="rate",
+        type=float,
+        default=None,
+        help="tracking rate in Hz (default 72, the VR loop; synthetic only)",
+    )
+    p.add_argument(
+        "--approach",
+        choices=APPROACHES,
+        default=None,
+        help="rendering approach (default: the scene's, tactdeform)",
+    )
     p.add_argument(
         "--contact-mode",
         choices=CONTACT_MODES,
@@ -64,11 +88,25 @@ def register(sub: Any) -> None:
     add_device_arg(p)
     add_participant_arg(p)
     p.add_argument("--frames", metavar="FILE", default=None, help="write the frames as JSON lines to FILE")
-    p.add_argument("--gif", metavar="OUT.gif", default=None, help="also draw the held patterns on the array as an animated GIF, "
-                   "each frame shown at least 250 ms with its real time on it (needs the plot extra)")
-    p.add_argument("--strip", metavar="OUT.png", default=None, help="also draw the sent frames side by side in a PNG (needs the plot extra)")
-    p.add_argument("--current-ua", type=int, default=None,
-                   help="participant current in µA (default: the highest calibrated region with --participant, else 0: patterns only)")
+    p.add_argument(
+        "--gif",
+        metavar="OUT.gif",
+        default=None,
+        help="also draw the held patterns on the array as an animated GIF, "
+        "each frame shown at least 250 ms with its real time on it (needs the plot extra)",
+    )
+    p.add_argument(
+        "--strip",
+        metavar="OUT.png",
+        default=None,
+        help="also draw the sent frames side by side in a PNG (needs the plot extra)",
+    )
+    p.add_argument(
+        "--current-ua",
+        type=int,
+        default=None,
+        help="participant current in µA (default: the highest calibrated region with --participant, else 0: patterns only)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the trajectory's random parts (default 0)")
     p.add_argument("--realtime", action="store_true", help="pace the run to the trajectory's clock")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
@@ -88,10 +126,15 @@ def run(args: argparse.Namespace) -> int:
 
     recorded = args.trajectory not in TRAJECTORIES
     if recorded and not args.trajectory.lower().endswith(".csv"):
-        raise LimitError("--trajectory", args.trajectory, "one of " + ", ".join(TRAJECTORIES) + " or a recorded FILE.csv")
+        raise LimitError(
+            "--trajectory", args.trajectory, "one of " + ", ".join(TRAJECTORIES) + " or a recorded FILE.csv"
+        )
     if recorded and (args.speed is not None or args.rate is not None):
-        raise LimitError("--speed" if args.speed is not None else "--rate", args.speed if args.speed is not None else args.rate,
-                         "not applicable to a recorded trajectory (it has its own clock and speed)")
+        raise LimitError(
+            "--speed" if args.speed is not None else "--rate",
+            args.speed if args.speed is not None else args.rate,
+            "not applicable to a recorded trajectory (it has its own clock and speed)",
+        )
     args.rate = 72.0 if args.rate is None else args.rate
     if not args.rate > 0 or args.rate != args.rate:
         raise LimitError("--rate", args.rate, "> 0 Hz")
@@ -113,13 +156,17 @@ def run(args: argparse.Namespace) -> int:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
     from ..protocol.units import DEFAULT_TRANSFER
 
-    guard.request(guard.validate_current(args.current_ua, DEFAULT_TRANSFER))  # above the cap: refused before opening
+    guard.request(
+        guard.validate_current(args.current_ua, DEFAULT_TRANSFER)
+    )  # above the cap: refused before opening
     scene = load_scene(args.scene)
     if args.approach is not None or args.contact_mode is not None:
         # an option given on the command line replaces only its own field of the scene's options
         own = scene.options
         scene = scene.with_options(
-            RenderOptions(contact_mode=args.contact_mode or own.contact_mode, approach=args.approach or own.approach)
+            RenderOptions(
+                contact_mode=args.contact_mode or own.contact_mode, approach=args.approach or own.approach
+            )
         )
     # A slide needs a surface of its texture level; the trajectory module gives a scene that has one.
     scene = scene if recorded else scene_for_trajectory(args.trajectory, scene)
@@ -127,7 +174,9 @@ def run(args: argparse.Namespace) -> int:
     # approach renders it (the baselines' scenes do not classify features).
     plan = scene
     if scene.options.approach != "tactdeform":
-        plan = scene.with_options(RenderOptions(contact_mode=scene.options.contact_mode, approach="tactdeform"))
+        plan = scene.with_options(
+            RenderOptions(contact_mode=scene.options.contact_mode, approach="tactdeform")
+        )
     kw: dict[str, Any] = {"rate_hz": args.rate, "seed": args.seed}
     if args.speed is not None:
         kw["speed_mm_s"] = args.speed
@@ -143,8 +192,10 @@ def run(args: argparse.Namespace) -> int:
     total = len(poses)
     quiet = args.quiet
     if not quiet:
-        progress(f"render: {args.trajectory} over {args.scene}{'' if recorded else f' at {args.rate:g} Hz'}, {total} poses, approach "
-                 f"{args.approach or scene.options.approach}, device {args.device}")
+        progress(
+            f"render: {args.trajectory} over {args.scene}{'' if recorded else f' at {args.rate:g} Hz'}, {total} poses, approach "
+            f"{args.approach or scene.options.approach}, device {args.device}"
+        )
     out = open(args.frames, "w", encoding="utf-8") if args.frames else None  # noqa: SIM115
     gif_records: list[dict[str, Any]] | None = [] if (args.gif or args.strip) else None
     try:
@@ -152,22 +203,44 @@ def run(args: argparse.Namespace) -> int:
         if profile is not None:  # the calibrated pulse; the guard refuses anything else
             from ..device import StimConfig
 
-            stim_config = StimConfig(electrode_count=array.channel_mapping().hw_channels, current_ua=args.current_ua,
-                                     pulse_width_us=profile.pulse_width_us, polarity=profile.polarity)
-        audit = DeliveryLog(args.audit_log, requested_ua=args.current_ua, mapping=array.channel_mapping(),
-                            region_map=region_map, region_of=guard.region_of, command="render", device=args.device,
-                            participant_file=args.participant,
-                            participant=profile.participant if profile is not None else None)
+            stim_config = StimConfig(
+                electrode_count=array.channel_mapping().hw_channels,
+                current_ua=args.current_ua,
+                pulse_width_us=profile.pulse_width_us,
+                polarity=profile.polarity,
+            )
+        audit = DeliveryLog(
+            args.audit_log,
+            requested_ua=args.current_ua,
+            mapping=array.channel_mapping(),
+            region_map=region_map,
+            region_of=guard.region_of,
+            command="render",
+            device=args.device,
+            participant_file=args.participant,
+            participant=profile.participant if profile is not None else None,
+        )
         offline_clock = None
         if not args.realtime:
             # on a port that answers at once (the in-process emulator) the session runs on the trajectory's clock
             from ..clock import SimulatedClock
 
             offline_clock = SimulatedClock()
-        with open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=array.channel_mapping(), guard=guard,
-                         audit=audit, offline_clock=offline_clock) as dev:
+        with open_device(
+            args.device,
+            timeout=args.timeout,
+            firmware=getattr(args, "firmware", "v1.2"),
+            mapping=array.channel_mapping(),
+            guard=guard,
+            audit=audit,
+            offline_clock=offline_clock,
+        ) as dev:
             # an instant port holds its pattern the moment it is sent: read it back when the port can show it
-            verify = pattern_readback(dev, array.channel_mapping()) if is_instant(getattr(dev, "port", None)) else None
+            verify = (
+                pattern_readback(dev, array.channel_mapping())
+                if is_instant(getattr(dev, "port", None))
+                else None
+            )
             renderer = Renderer(
                 scene,
                 dev,
@@ -187,10 +260,14 @@ def run(args: argparse.Namespace) -> int:
 
             def report(i: int, s: Any) -> None:
                 if not quiet:
-                    progress(f"render: {i}/{total} poses, {s.frames_sent} frames sent, {s.mismatches} mismatches")
+                    progress(
+                        f"render: {i}/{total} poses, {s.frames_sent} frames sent, {s.mismatches} mismatches"
+                    )
 
             every = max(1, total // 10) if total > 2000 else total + 1
-            summary = renderer.run(poses, on_record=write, progress=report, progress_every=every, realtime=args.realtime)
+            summary = renderer.run(
+                poses, on_record=write, progress=report, progress_every=every, realtime=args.realtime
+            )
     finally:
         if out is not None:
             out.close()
@@ -198,32 +275,53 @@ def run(args: argparse.Namespace) -> int:
             audit.close()
     result = summary.as_dict()
     result["delivered"] = audit.report()
-    result.update({"scene": args.scene, "trajectory": args.trajectory, "rate_hz": None if recorded else args.rate, "verified": verify is not None,
-                   "device": args.device, "frames_file": args.frames, "approach": scene.options.approach,
-                   "contact_mode": scene.options.contact_mode})
+    result.update(
+        {
+            "scene": args.scene,
+            "trajectory": args.trajectory,
+            "rate_hz": None if recorded else args.rate,
+            "verified": verify is not None,
+            "device": args.device,
+            "frames_file": args.frames,
+            "approach": scene.options.approach,
+            "contact_mode": scene.options.contact_mode,
+        }
+    )
     if gif_records is not None and args.gif:
         from ..viz.array_picture import draw_frames_gif
 
-        gif = draw_frames_gif(array, gif_records, args.gif, current_ua=args.current_ua or None,
-                              title=f"{args.trajectory} over {args.scene}")
+        gif = draw_frames_gif(
+            array,
+            gif_records,
+            args.gif,
+            current_ua=args.current_ua or None,
+            title=f"{args.trajectory} over {args.scene}",
+        )
         result["gif"] = {"path": str(gif.path), "frames": gif.frames, "notes": list(gif.notes)}
     if gif_records is not None and args.strip:
         from ..viz.strip import draw_frames_strip
 
-        strip = draw_frames_strip(array, gif_records, args.strip, title=f"{args.trajectory} over {args.scene}")
+        strip = draw_frames_strip(
+            array, gif_records, args.strip, title=f"{args.trajectory} over {args.scene}"
+        )
         result["strip"] = {"path": str(strip.path), "panels": strip.panels, "left_out": strip.left_out}
     if args.json:
         print_json(result)
     else:
         states = ", ".join(f"{k} {v}" for k, v in sorted(result["states"].items()))
         check = f", {summary.mismatches} mismatch(es) against the emulator" if verify is not None else ""
-        print(f"{result['poses']} poses ({states}); {result['frames_sent']} frames sent "
-              f"({result['interpolated']} interpolated){check}; median {result['step_us_median']} µs per pose")
+        print(
+            f"{result['poses']} poses ({states}); {result['frames_sent']} frames sent "
+            f"({result['interpolated']} interpolated){check}; median {result['step_us_median']} µs per pose"
+        )
         if result["dropped"]:
             print(f"dropped samples: {result['dropped']}")
         for line in delivered_lines(result["delivered"]):
             print(line)
     if verify is not None and summary.mismatches:
-        print(f"render: emulator pattern buffer differs from a sent frame: {summary.first_mismatch}", file=sys.stderr)
+        print(
+            f"render: emulator pattern buffer differs from a sent frame: {summary.first_mismatch}",
+            file=sys.stderr,
+        )
         return 1
     return 0

@@ -27,7 +27,9 @@ def register(sub: Any) -> None:
         "pulses above the participant's limits are listed and the exit code is 3.",
     )
     p.add_argument("file", help="audit log (JSON lines)")
-    p.add_argument("--link", choices=("usb", "uart"), default="usb", help="link model for the replay (default usb)")
+    p.add_argument(
+        "--link", choices=("usb", "uart"), default="usb", help="link model for the replay (default usb)"
+    )
     p.add_argument("--participant", metavar="FILE", help="profile to check the delivered currents against")
     p.add_argument(
         "--array",
@@ -36,7 +38,12 @@ def register(sub: Any) -> None:
         "channels 0-31): each channel's limit follows the position of the electrode on it. Default: the map "
         "the log's session line records",
     )
-    p.add_argument("--tail-ms", type=duration("ms"), default=50.0, help="emulated time after the last command (default 50)")
+    p.add_argument(
+        "--tail-ms",
+        type=duration("ms"),
+        default=50.0,
+        help="emulated time after the last command (default 50)",
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
 
@@ -102,7 +109,9 @@ def channel_regions(
     if array is not None:
         if array.lower() == "tactdeform":
             tactdeform = tactdeform_region_map().resolve(None)
-            return {i: (i, r) for i, r in enumerate(tactdeform)}, "the TactDeform 32-electrode array (--array)"
+            return {
+                i: (i, r) for i, r in enumerate(tactdeform)
+            }, "the TactDeform 32-electrode array (--array)"
         from ..formats import read_array_file
 
         af = read_array_file(array)
@@ -118,12 +127,12 @@ def channel_regions(
     from ..device.regions import region_map_from_positions
 
     region_of = region_map_from_positions(positions, f"the session line of {path}").resolve(regions_ua)
-    return {int(ch): (i, region_of[i]) for i, ch in enumerate(mapping)}, "the positions the log's session line records"
+    return {
+        int(ch): (i, region_of[i]) for i, ch in enumerate(mapping)
+    }, "the positions the log's session line records"
 
 
-def judge(
-    table: dict[str, Any], hw: dict[int, tuple[int, int]] | None, guard: Any
-) -> list[dict[str, Any]]:
+def judge(table: dict[str, Any], hw: dict[int, tuple[int, int]] | None, guard: Any) -> list[dict[str, Any]]:
     """Every pulse above the limit of the channel it reached: the regional limit of the electrode on it
     (lowered to the cap), 0 on a channel no electrode maps to, and the charge limit per pulse.  ``hw`` None
     (no map) is only for limits that are the same in every region: every channel then has that limit."""
@@ -151,17 +160,20 @@ def judge(
         r: int | None = None
         if ch in hw:
             e, r = hw[ch]
-        out.append({
-            "t_s": round(float(table["start_us"][i]) / 1e6, 6),
-            "channel": ch,
-            "electrode": e,
-            "region": r,
-            "current_ua": round(float(cur[i]), 1),
-            "limit_ua": float(limit[i]),
-            "charge_nc": round(float(table["charge_nc"][i]), 3),
-            "rule": ("region" if r is not None else "cap" if not limit_of[ch] == 0 else "unmapped")
-            if over_current[i] else "charge",
-        })
+        out.append(
+            {
+                "t_s": round(float(table["start_us"][i]) / 1e6, 6),
+                "channel": ch,
+                "electrode": e,
+                "region": r,
+                "current_ua": round(float(cur[i]), 1),
+                "limit_ua": float(limit[i]),
+                "charge_nc": round(float(table["charge_nc"][i]), 3),
+                "rule": ("region" if r is not None else "cap" if not limit_of[ch] == 0 else "unmapped")
+                if over_current[i]
+                else "charge",
+            }
+        )
     return out
 
 
@@ -185,14 +197,26 @@ def run(args: argparse.Namespace) -> int:
         over = judge(table, hw, guard)
         rep["judged_by"] = source
         if hw is not None:
-            rep["channel_regions"] = {str(ch): {"electrode": e, "region": r} for ch, (e, r) in sorted(hw.items())}
+            rep["channel_regions"] = {
+                str(ch): {"electrode": e, "region": r} for ch, (e, r) in sorted(hw.items())
+            }
         rep["above_limit"] = over
         rep["above_limit_count"] = len(over)
         by: dict[int, dict[str, Any]] = {}
         for o in over:
-            b = by.setdefault(o["channel"], {"channel": o["channel"], "electrode": o["electrode"], "region": o["region"],
-                                             "limit_ua": o["limit_ua"], "pulses": 0, "max_current_ua": 0.0,
-                                             "first_s": o["t_s"], "last_s": o["t_s"]})
+            b = by.setdefault(
+                o["channel"],
+                {
+                    "channel": o["channel"],
+                    "electrode": o["electrode"],
+                    "region": o["region"],
+                    "limit_ua": o["limit_ua"],
+                    "pulses": 0,
+                    "max_current_ua": 0.0,
+                    "first_s": o["t_s"],
+                    "last_s": o["t_s"],
+                },
+            )
             b["pulses"] += 1
             b["max_current_ua"] = max(b["max_current_ua"], o["current_ua"])
             b["last_s"] = o["t_s"]
@@ -201,20 +225,33 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(rep)
     else:
-        print(f"{rep['commands']} command(s) over {rep['duration_s']:.3f} s: {rep['pulses']} pulse(s), "
-              f"max {rep['max_current_ua']} µA, max {rep['max_charge_nc']} nC per pulse, "
-              f"{rep['total_charge_nc']} nC in all")
+        print(
+            f"{rep['commands']} command(s) over {rep['duration_s']:.3f} s: {rep['pulses']} pulse(s), "
+            f"max {rep['max_current_ua']} µA, max {rep['max_charge_nc']} nC per pulse, "
+            f"{rep['total_charge_nc']} nC in all"
+        )
         for ch, c in rep["channels"].items():
-            print(f"  channel {ch:3d}: {c['pulses']:6d} pulses, max {c['max_current_ua']:8.1f} µA, "
-                  f"{c['total_charge_nc']:10.1f} nC")
+            print(
+                f"  channel {ch:3d}: {c['pulses']:6d} pulses, max {c['max_current_ua']:8.1f} µA, "
+                f"{c['total_charge_nc']:10.1f} nC"
+            )
         if rep["losses"]:
             print(f"  {len(rep['losses'])} loss(es) in the replay")
         if "above_limit_count" in rep:
-            print(f"  {rep['above_limit_count']} pulse(s) above the participant's limits (regions from "
-                  f"{rep['judged_by']})")
+            print(
+                f"  {rep['above_limit_count']} pulse(s) above the participant's limits (regions from "
+                f"{rep['judged_by']})"
+            )
             for b in rep["above_limit_by_channel"]:
-                where = (f"electrode {b['electrode']} in region {b['region']}" if b["electrode"] is not None
-                         else "no electrode mapped" if b["limit_ua"] == 0 else "electrode unknown")
-                print(f"  EXCESS channel {b['channel']} ({where}, limit {b['limit_ua']:g} µA): {b['pulses']} "
-                      f"pulse(s) up to {b['max_current_ua']:g} µA, {b['first_s']:.6f}-{b['last_s']:.6f} s")
+                where = (
+                    f"electrode {b['electrode']} in region {b['region']}"
+                    if b["electrode"] is not None
+                    else "no electrode mapped"
+                    if b["limit_ua"] == 0
+                    else "electrode unknown"
+                )
+                print(
+                    f"  EXCESS channel {b['channel']} ({where}, limit {b['limit_ua']:g} µA): {b['pulses']} "
+                    f"pulse(s) up to {b['max_current_ua']:g} µA, {b['first_s']:.6f}-{b['last_s']:.6f} s"
+                )
     return code

@@ -27,9 +27,17 @@ def register(sub: Any) -> None:
     )
     add_device_arg(p)
     add_participant_arg(p)
-    p.add_argument("--pattern", required=True, help="comma-separated levels in application order: 0 off, 1 mono, 2 biphasic; or 'all:1'")
-    p.add_argument("--electrodes", type=int, default=None,
-                   help="electrode count (default 32, the TactDeform array; with --array, the file's)")
+    p.add_argument(
+        "--pattern",
+        required=True,
+        help="comma-separated levels in application order: 0 off, 1 mono, 2 biphasic; or 'all:1'",
+    )
+    p.add_argument(
+        "--electrodes",
+        type=int,
+        default=None,
+        help="electrode count (default 32, the TactDeform array; with --array, the file's)",
+    )
     p.add_argument(
         "--array",
         metavar="ARRAY.json",
@@ -37,17 +45,53 @@ def register(sub: Any) -> None:
         "channels and its coordinates give each electrode's calibration region (the participant's limits "
         "follow positions, never list order)",
     )
-    p.add_argument("--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)")
-    add_option(p, "--pulse-width-us", old=("--pulse-width",), dest="pulse_width", type=int, default=None,
-               help="pulse width in µs (default: the participant's, else 200)")
-    add_option(p, "--discharge-us", old=("--discharge",), dest="discharge", type=int, default=45,
-               help="discharge time in µs (default 45)")
-    add_option(p, "--frequency-hz", old=("--frequency",), dest="frequency", type=int, default=125,
-               help="stimulation rate in Hz (default 125)")
-    p.add_argument("--polarity", choices=("anodic", "cathodic"), default=None, help="default: the participant's, else anodic")
-    add_option(p, "--hold-ms", old=("--hold",), old_type=duration("s"), dest="hold", type=duration("ms", to_s=True),
-               default=0.0, old_note="--hold took seconds, --hold-ms takes milliseconds",
-               help="hold the pattern this many ms before all-off (default 0)")
+    p.add_argument(
+        "--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)"
+    )
+    add_option(
+        p,
+        "--pulse-width-us",
+        old=("--pulse-width",),
+        dest="pulse_width",
+        type=int,
+        default=None,
+        help="pulse width in µs (default: the participant's, else 200)",
+    )
+    add_option(
+        p,
+        "--discharge-us",
+        old=("--discharge",),
+        dest="discharge",
+        type=int,
+        default=45,
+        help="discharge time in µs (default 45)",
+    )
+    add_option(
+        p,
+        "--frequency-hz",
+        old=("--frequency",),
+        dest="frequency",
+        type=int,
+        default=125,
+        help="stimulation rate in Hz (default 125)",
+    )
+    p.add_argument(
+        "--polarity",
+        choices=("anodic", "cathodic"),
+        default=None,
+        help="default: the participant's, else anodic",
+    )
+    add_option(
+        p,
+        "--hold-ms",
+        old=("--hold",),
+        old_type=duration("s"),
+        dest="hold",
+        type=duration("ms", to_s=True),
+        default=0.0,
+        old_note="--hold took seconds, --hold-ms takes milliseconds",
+        help="hold the pattern this many ms before all-off (default 0)",
+    )
     p.add_argument("--json", action="store_true", help="print what was sent and the device's state as JSON")
     p.set_defaults(func=run)
 
@@ -59,8 +103,10 @@ def parse_pattern(text: str, electrodes: int) -> list[int]:
         if v not in (0, 1, 2):
             raise LimitError(f"pattern[{i}]", v, "0 (off), 1 (monophasic) or 2 (biphasic)")
     if len(levels) != electrodes:
-        raise ConfigurationError(f"--pattern has {len(levels)} level(s) but --electrodes is {electrodes}; give one "
-                                 "level per electrode, or all:LEVEL")
+        raise ConfigurationError(
+            f"--pattern has {len(levels)} level(s) but --electrodes is {electrodes}; give one "
+            "level per electrode, or all:LEVEL"
+        )
     return levels
 
 
@@ -101,7 +147,9 @@ def run(args: argparse.Namespace) -> int:
     config = StimConfig(
         electrode_count=mapping.hw_channels if mapping is not None else electrodes,
         current_ua=args.current_ua,
-        pulse_width_us=args.pulse_width if args.pulse_width is not None else (profile.pulse_width_us if profile else 200),
+        pulse_width_us=args.pulse_width
+        if args.pulse_width is not None
+        else (profile.pulse_width_us if profile else 200),
         discharge_us=args.discharge,
         rate_hz=args.frequency,
         polarity=args.polarity or (profile.polarity if profile else "anodic"),
@@ -122,7 +170,14 @@ def run(args: argparse.Namespace) -> int:
         participant_file=args.participant,
         participant=profile.participant if profile else None,
     )
-    dev = open_device(args.device, timeout=args.timeout, firmware=getattr(args, "firmware", "v1.2"), mapping=mapping, guard=guard, audit=log)
+    dev = open_device(
+        args.device,
+        timeout=args.timeout,
+        firmware=getattr(args, "firmware", "v1.2"),
+        mapping=mapping,
+        guard=guard,
+        audit=log,
+    )
     try:
         with dev:  # the command's stop session watches it (see common.run_command); closing switches all off
             dev.configure(config)
@@ -139,7 +194,11 @@ def run(args: argparse.Namespace) -> int:
         result["mapping"] = list(mapping.app_to_hw) if mapping is not None else None
     result["requested_current_ua"] = args.current_ua
     result["delivered"] = delivered
-    sent_code = None if state is None else state.get("pulse_height", max(state["stim_pattern"][: config.electrode_count]))
+    sent_code = (
+        None
+        if state is None
+        else state.get("pulse_height", max(state["stim_pattern"][: config.electrode_count]))
+    )
     result["sent_current_ua"] = DEFAULT_TRANSFER.to_ua(sent_code) if sent_code is not None else None
     result["safety"] = list(guard.log)
     if state is not None:

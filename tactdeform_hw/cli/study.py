@@ -48,23 +48,54 @@ def register(sub: Any) -> None:
     add_device_arg(p)
     add_participant_arg(p)
     p.add_argument("--out", required=True, metavar="DIR", help="directory for the report (created if needed)")
-    p.add_argument("--seed", type=int, default=0,
-                   help="seed of the trial order and of the seeded choices of the design (default 0)")
-    p.add_argument("--quick", action="store_true",
-                   help="one trial per condition (and faster strokes for task3 and phase2): a setup check in seconds")
-    p.add_argument("--trials", metavar="LIST", default=None,
-                   help="run only these trials: numbers and ranges (1-3,8) or conditions (face,edge-h)")
-    p.add_argument("--current-ua", type=int, default=None,
-                   help="stimulation current in µA (default: the participant's; without one, 1000 µA on the "
-                   "emulator so delivered charges are reported, 0 — patterns only — on a real device)")
-    add_option(p, "--rate-hz", old=("--rate",), dest="rate", type=float, default=72.0,
-               help="tracking rate in Hz (default 72, the VR loop)")
-    p.add_argument("--tremor-mm", type=float, default=0.0,
-                   help="add physiological tremor of this amplitude to every trajectory (default 0: none)")
-    p.add_argument("--realtime", action="store_true",
-                   help="pace the run to the session clock, so a real device shows every trial at its real speed "
-                   "(default: as fast as possible; the timed replay restores the timing for the checks)")
-    p.add_argument("--no-timed", action="store_true", help="skip the timed-emulator replay (no delivered currents)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="seed of the trial order and of the seeded choices of the design (default 0)",
+    )
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="one trial per condition (and faster strokes for task3 and phase2): a setup check in seconds",
+    )
+    p.add_argument(
+        "--trials",
+        metavar="LIST",
+        default=None,
+        help="run only these trials: numbers and ranges (1-3,8) or conditions (face,edge-h)",
+    )
+    p.add_argument(
+        "--current-ua",
+        type=int,
+        default=None,
+        help="stimulation current in µA (default: the participant's; without one, 1000 µA on the "
+        "emulator so delivered charges are reported, 0 — patterns only — on a real device)",
+    )
+    add_option(
+        p,
+        "--rate-hz",
+        old=("--rate",),
+        dest="rate",
+        type=float,
+        default=72.0,
+        help="tracking rate in Hz (default 72, the VR loop)",
+    )
+    p.add_argument(
+        "--tremor-mm",
+        type=float,
+        default=0.0,
+        help="add physiological tremor of this amplitude to every trajectory (default 0: none)",
+    )
+    p.add_argument(
+        "--realtime",
+        action="store_true",
+        help="pace the run to the session clock, so a real device shows every trial at its real speed "
+        "(default: as fast as possible; the timed replay restores the timing for the checks)",
+    )
+    p.add_argument(
+        "--no-timed", action="store_true", help="skip the timed-emulator replay (no delivered currents)"
+    )
     p.add_argument("--no-pictures", action="store_true", help="write the JSON and Markdown only")
     p.add_argument("--gif", action="store_true", help="also draw every trial as an animated GIF (slower)")
     p.add_argument("--json", action="store_true", help="print the report's summary as JSON on stdout")
@@ -96,16 +127,30 @@ def run(args: argparse.Namespace) -> int:
     region_map = region_map_from_positions(array.positions_mm.tolist(), f"the {array.name} array")
     guard = guard_from_args(args, region_of=region_map)
     mode = profile.contact_mode if profile is not None else "orientation"
-    study = select_trials(build_study(args.study, seed=args.seed, quick=args.quick, contact_mode=mode), args.trials)
+    study = select_trials(
+        build_study(args.study, seed=args.seed, quick=args.quick, contact_mode=mode), args.trials
+    )
     if args.current_ua is not None:
-        guard.request(guard.validate_current(args.current_ua, _transfer()))  # above the cap: refused before opening
-    audit = DeliveryLog(args.audit_log, requested_ua=args.current_ua, mapping=array.channel_mapping(),
-                        region_map=region_map, region_of=guard.region_of, command="study", device=args.device,
-                        participant_file=args.participant, participant=profile.participant if profile else None,
-                        study=args.study)
+        guard.request(
+            guard.validate_current(args.current_ua, _transfer())
+        )  # above the cap: refused before opening
+    audit = DeliveryLog(
+        args.audit_log,
+        requested_ua=args.current_ua,
+        mapping=array.channel_mapping(),
+        region_map=region_map,
+        region_of=guard.region_of,
+        command="study",
+        device=args.device,
+        participant_file=args.participant,
+        participant=profile.participant if profile else None,
+        study=args.study,
+    )
     say = (lambda _m: None) if args.quiet else progress
-    say(f"study {study.name}: {len(study.trials)} trial(s){' (quick)' if study.quick else ''}, device {args.device}, "
-        f"seed {args.seed}")
+    say(
+        f"study {study.name}: {len(study.trials)} trial(s){' (quick)' if study.quick else ''}, device {args.device}, "
+        f"seed {args.seed}"
+    )
     try:
         result = run_study(
             study,
@@ -131,30 +176,42 @@ def run(args: argparse.Namespace) -> int:
     report = write_report(result, design, args.out, pictures=not args.no_pictures, gif=args.gif)
     s = report["summary"]
     if args.json:
-        print_json({
-            "study": study.name,
-            "out": args.out,
-            "summary": s,
-            "design_checks": report["design_checks"],
-            "delivered": result.sent,
-            "pictures": report.get("pictures"),
-            "trials": [
-                {"id": t["id"], "passed": t["passed"], "skipped": t["skipped"], "failed_checks": t.get("failed_checks", [])}
-                for t in report["trials"]
-            ],
-        })
+        print_json(
+            {
+                "study": study.name,
+                "out": args.out,
+                "summary": s,
+                "design_checks": report["design_checks"],
+                "delivered": result.sent,
+                "pictures": report.get("pictures"),
+                "trials": [
+                    {
+                        "id": t["id"],
+                        "passed": t["passed"],
+                        "skipped": t["skipped"],
+                        "failed_checks": t.get("failed_checks", []),
+                    }
+                    for t in report["trials"]
+                ],
+            }
+        )
     else:
         verdict = "all checks passed" if s["all_passed"] else f"{s['failed']} trial(s) FAILED"
-        print(f"{study.name}: {s['passed']}/{s['run']} trial(s) passed"
-              + (f", {s['skipped']} skipped" if s["skipped"] else "")
-              + f" — {verdict}; report in {args.out}/report.json and {args.out}/summary.md")
+        print(
+            f"{study.name}: {s['passed']}/{s['run']} trial(s) passed"
+            + (f", {s['skipped']} skipped" if s["skipped"] else "")
+            + f" — {verdict}; report in {args.out}/report.json and {args.out}/summary.md"
+        )
         for name, n in s["failed_checks"].items():
             print(f"  failed: {name} ({n} trial(s))")
         for line in delivered_lines(result.sent):
             print(line)
     if not s["all_passed"]:
         if not args.quiet:
-            print(f"study {study.name}: checks failed: {', '.join(s['failed_checks']) or 'design'}", file=sys.stderr)
+            print(
+                f"study {study.name}: checks failed: {', '.join(s['failed_checks']) or 'design'}",
+                file=sys.stderr,
+            )
         return EXIT_CHECK_FAILED
     return 0
 

@@ -32,61 +32,175 @@ def register(sub: Any) -> None:
         f"{EXIT_OVERRUN} when it OVERRUNs it, {EXIT_WATCHDOG} when it trips the interrupt WATCHDOG (the board "
         "resets); 1 for a refused value, 2 for a usage error.",
     )
-    p.add_argument("--firmware", choices=("v1.2", "v2"), default="v1.2",
-                   help="firmware version (default v1.2). v2: --pattern holds DAC codes and --mode picks the waveform")
-    p.add_argument("--mode", type=int, default=None,
-                   help="v2 stimulation mode: 0 monophasic (default), 1 biphasic, 2 impedance only (sense pulse on "
-                   "every channel)")
-    p.add_argument("--cs-writes", choices=("inside", "costed"), default="inside",
-                   help="whether the 6.6 us DAC/ADC exchange includes its chip-select writes (inside, the default) "
-                   "or they cost one GPIO write each on top (costed, the firmware's host build)")
-    p.add_argument("--dac-load", choices=("mid_exchange", "cs_rise"), default="mid_exchange",
-                   help="when the DAC output changes: 3.3 us into the exchange (default, the firmware comment) or "
-                   "when DA_CS rises (the converter's load moment)")
-    p.add_argument("--electrodes", type=int, default=None, help="electrode_num, 0-255 (default 32, or the pattern's length)")
-    p.add_argument("--pattern", default=None,
-                   help="v1.2: one value for every channel (1 monophasic, 2 biphasic, other: sense pulse) or a comma "
-                   "list, one per channel (default 1); v2: DAC codes 0-4095, one for all or h1,h2,... (default 100)")
-    add_option(p, "--pulse-width-us", old=("--pulse-width",), dest="pulse_width", type=int, default=200,
-               help="stimulation pulse width in µs, 1-65535 (v2: 0-65535) (default 200)")
-    add_option(p, "--current-ua", type=int, default=None,
-               help="pulse current in µA, 10 µA steps, ≤ 10000 (default 1000 = DAC code 100)")
-    p.add_argument("--pulse-height", type=int, default=100, help=argparse.SUPPRESS, action=DeprecatedAlias,
-                   canonical="--current-ua", note="--pulse-height took a DAC code; --current-ua takes µA, 10 µA per code")
-    add_option(p, "--discharge-us", old=("--discharge",), dest="discharge", type=int, default=45,
-               help="channel discharge time in µs, 0-255 (default 45)")
-    add_option(p, "--frequency-hz", old=("--frequency",), dest="frequency", type=int, default=125,
-               help="stimulation rate in Hz, 1-65535 (default 125)")
-    p.add_argument("--polarity", action=PolarityCode, default=1, metavar="{anodic,cathodic}",
-                   help="pulse polarity (default anodic)")
-    add_option(p, "--sense-current-ua", type=int, default=None,
-               help="sense pulse current in µA: the firmware stores the byte sent << 2, so 40 µA steps, ≤ 10200 "
-               "(default 0)")
-    p.add_argument("--sense-height", type=int, default=0, help=argparse.SUPPRESS, action=DeprecatedAlias,
-                   canonical="--sense-current-ua", note="--sense-height took the byte sent; --sense-current-ua takes µA")
-    add_option(p, "--sense-width-us", old=("--sense-width",), dest="sense_width", type=int, default=0,
-                help="sense pulse width in µs, 0-255")
+    p.add_argument(
+        "--firmware",
+        choices=("v1.2", "v2"),
+        default="v1.2",
+        help="firmware version (default v1.2). v2: --pattern holds DAC codes and --mode picks the waveform",
+    )
+    p.add_argument(
+        "--mode",
+        type=int,
+        default=None,
+        help="v2 stimulation mode: 0 monophasic (default), 1 biphasic, 2 impedance only (sense pulse on "
+        "every channel)",
+    )
+    p.add_argument(
+        "--cs-writes",
+        choices=("inside", "costed"),
+        default="inside",
+        help="whether the 6.6 us DAC/ADC exchange includes its chip-select writes (inside, the default) "
+        "or they cost one GPIO write each on top (costed, the firmware's host build)",
+    )
+    p.add_argument(
+        "--dac-load",
+        choices=("mid_exchange", "cs_rise"),
+        default="mid_exchange",
+        help="when the DAC output changes: 3.3 us into the exchange (default, the firmware comment) or "
+        "when DA_CS rises (the converter's load moment)",
+    )
+    p.add_argument(
+        "--electrodes",
+        type=int,
+        default=None,
+        help="electrode_num, 0-255 (default 32, or the pattern's length)",
+    )
+    p.add_argument(
+        "--pattern",
+        default=None,
+        help="v1.2: one value for every channel (1 monophasic, 2 biphasic, other: sense pulse) or a comma "
+        "list, one per channel (default 1); v2: DAC codes 0-4095, one for all or h1,h2,... (default 100)",
+    )
+    add_option(
+        p,
+        "--pulse-width-us",
+        old=("--pulse-width",),
+        dest="pulse_width",
+        type=int,
+        default=200,
+        help="stimulation pulse width in µs, 1-65535 (v2: 0-65535) (default 200)",
+    )
+    add_option(
+        p,
+        "--current-ua",
+        type=int,
+        default=None,
+        help="pulse current in µA, 10 µA steps, ≤ 10000 (default 1000 = DAC code 100)",
+    )
+    p.add_argument(
+        "--pulse-height",
+        type=int,
+        default=100,
+        help=argparse.SUPPRESS,
+        action=DeprecatedAlias,
+        canonical="--current-ua",
+        note="--pulse-height took a DAC code; --current-ua takes µA, 10 µA per code",
+    )
+    add_option(
+        p,
+        "--discharge-us",
+        old=("--discharge",),
+        dest="discharge",
+        type=int,
+        default=45,
+        help="channel discharge time in µs, 0-255 (default 45)",
+    )
+    add_option(
+        p,
+        "--frequency-hz",
+        old=("--frequency",),
+        dest="frequency",
+        type=int,
+        default=125,
+        help="stimulation rate in Hz, 1-65535 (default 125)",
+    )
+    p.add_argument(
+        "--polarity",
+        action=PolarityCode,
+        default=1,
+        metavar="{anodic,cathodic}",
+        help="pulse polarity (default anodic)",
+    )
+    add_option(
+        p,
+        "--sense-current-ua",
+        type=int,
+        default=None,
+        help="sense pulse current in µA: the firmware stores the byte sent << 2, so 40 µA steps, ≤ 10200 "
+        "(default 0)",
+    )
+    p.add_argument(
+        "--sense-height",
+        type=int,
+        default=0,
+        help=argparse.SUPPRESS,
+        action=DeprecatedAlias,
+        canonical="--sense-current-ua",
+        note="--sense-height took the byte sent; --sense-current-ua takes µA",
+    )
+    add_option(
+        p,
+        "--sense-width-us",
+        old=("--sense-width",),
+        dest="sense_width",
+        type=int,
+        default=0,
+        help="sense pulse width in µs, 0-255",
+    )
     add_finisher(p, currents_from_ua)
-    p.add_argument("--board", choices=("compact", "large"), default="compact", help="board kind (default compact)")
+    p.add_argument(
+        "--board", choices=("compact", "large"), default="compact", help="board kind (default compact)"
+    )
     p.add_argument("--switching-boards", type=int, default=1, help="stacked switching boards (default 1)")
-    p.add_argument("--hv513", type=int, default=None,
-                   help="HV513 count the firmware believes in (default: what the board's detection returns)")
-    p.add_argument("--overrun-policy", choices=("immediate", "skip"), default=None,
-                   help="what follows a scan longer than the period (default immediate: the chip's behaviour)")
-    p.add_argument("--set", dest="model_set", action="append", default=[], metavar="NAME=VALUE",
-                   help="change a timing-model constant, e.g. --set gpio_write_us=0.1 (repeatable; "
-                   "--list-model shows them all)")
-    p.add_argument("--list-model", action="store_true", help="print every timing constant with its source and exit")
-    p.add_argument("--latency", action="store_true",
-                   help="also measure the latency of a pattern update over USB and UART (wire + loop tick + scan)")
-    p.add_argument("--phases", type=int, default=16, help="update moments spread over one period for --latency")
-    p.add_argument("--vcd", metavar="FILE", default=None,
-                   help="write BL, LE, POL, CLK, DIN, DAC, SEL (and ADC) of --cycles scans as a VCD (needs pyvcd)")
-    p.add_argument("--events", metavar="FILE", default=None, help="write the same scans as an event list (.csv or .json)")
+    p.add_argument(
+        "--hv513",
+        type=int,
+        default=None,
+        help="HV513 count the firmware believes in (default: what the board's detection returns)",
+    )
+    p.add_argument(
+        "--overrun-policy",
+        choices=("immediate", "skip"),
+        default=None,
+        help="what follows a scan longer than the period (default immediate: the chip's behaviour)",
+    )
+    p.add_argument(
+        "--set",
+        dest="model_set",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="change a timing-model constant, e.g. --set gpio_write_us=0.1 (repeatable; "
+        "--list-model shows them all)",
+    )
+    p.add_argument(
+        "--list-model", action="store_true", help="print every timing constant with its source and exit"
+    )
+    p.add_argument(
+        "--latency",
+        action="store_true",
+        help="also measure the latency of a pattern update over USB and UART (wire + loop tick + scan)",
+    )
+    p.add_argument(
+        "--phases", type=int, default=16, help="update moments spread over one period for --latency"
+    )
+    p.add_argument(
+        "--vcd",
+        metavar="FILE",
+        default=None,
+        help="write BL, LE, POL, CLK, DIN, DAC, SEL (and ADC) of --cycles scans as a VCD (needs pyvcd)",
+    )
+    p.add_argument(
+        "--events", metavar="FILE", default=None, help="write the same scans as an event list (.csv or .json)"
+    )
     p.add_argument("--cycles", type=int, default=2, help="scans to trace for --vcd/--events (default 2)")
-    p.add_argument("--png", metavar="FILE", default=None,
-                   help="draw a timing diagram of --cycles scans as a PNG: pulses per channel against time, the "
-                   "period and any overrun marked (needs the plot extra)")
+    p.add_argument(
+        "--png",
+        metavar="FILE",
+        default=None,
+        help="draw a timing diagram of --cycles scans as a PNG: pulses per channel against time, the "
+        "period and any overrun marked (needs the plot extra)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     p.set_defaults(func=run)
 
@@ -176,7 +290,9 @@ def config_from_args(args: argparse.Namespace) -> Any:
     )
 
 
-def trace_scans(cfg: Any, model: Any, cycles: int, sinks: list[Any], board: str = "compact", switching_boards: int = 1) -> Any:
+def trace_scans(
+    cfg: Any, model: Any, cycles: int, sinks: list[Any], board: str = "compact", switching_boards: int = 1
+) -> Any:
     """Run ``cycles`` scans of ``cfg`` from power-on (registers set directly) into ``sinks``."""
     from ..emulator.timed import TimedEmulator
 
@@ -204,13 +320,22 @@ def conventions_from_args(args: argparse.Namespace) -> Any:
 
 def _convention_rows(conv: Any) -> list[dict[str, Any]]:
     return [
-        {"name": "chip_select_writes", "value": "costed" if conv.cs_writes_costed else "inside", "unit": "",
-         "source": "option",
-         "doc": "whether the 6.6 us exchange includes the chip-select writes (v1.2: 4, v2: 2 per exchange); "
-                "default inside (the firmware comment's reading); --cs-writes costed adds one GPIO write each"},
-        {"name": "dac_load", "value": conv.dac_load, "unit": "", "source": "option",
-         "doc": "when the DAC output changes: mid_exchange (3.3 us in, default) or cs_rise (when DA_CS rises, "
-                "about 6.6 us in); pulse widths do not change, every DAC edge moves"},
+        {
+            "name": "chip_select_writes",
+            "value": "costed" if conv.cs_writes_costed else "inside",
+            "unit": "",
+            "source": "option",
+            "doc": "whether the 6.6 us exchange includes the chip-select writes (v1.2: 4, v2: 2 per exchange); "
+            "default inside (the firmware comment's reading); --cs-writes costed adds one GPIO write each",
+        },
+        {
+            "name": "dac_load",
+            "value": conv.dac_load,
+            "unit": "",
+            "source": "option",
+            "doc": "when the DAC output changes: mid_exchange (3.3 us in, default) or cs_rise (when DA_CS rises, "
+            "about 6.6 us in); pulse widths do not change, every DAC edge moves",
+        },
     ]
 
 
@@ -240,7 +365,9 @@ def v2_config_from_args(args: argparse.Namespace) -> Any:
         values = values * electrodes
     elif len(values) != electrodes:
         raise LimitError("--pattern length", len(values), f"exactly --electrodes = {electrodes}")
-    mode = check_int("--mode", 0 if args.mode is None else args.mode, 0, V2.command(OpcodeV2.STIM_MODE).max_value or 0)
+    mode = check_int(
+        "--mode", 0 if args.mode is None else args.mode, 0, V2.command(OpcodeV2.STIM_MODE).max_value or 0
+    )
     hv = args.hv513
     if hv is None:
         hv = Board(args.board, args.switching_boards).detect_hv513()
@@ -268,15 +395,23 @@ def _run_walker(args: argparse.Namespace) -> int:
     else:
         v12 = config_from_args(args)
         cfg = FirmwareScanConfig(
-            electrode_num=v12.electrode_num, stim_pattern=list(v12.pattern), pulse_width=v12.pulse_width,
-            discharge_time=v12.discharge_time, polarity=v12.polarity, hv513_num=v12.hv513_num,
-            sense_pulse_height=v12.sense_pulse_height, sense_pulse_width=v12.sense_pulse_width,
-            pulse_height=v12.pulse_height, frequency_hz=args.frequency,
+            electrode_num=v12.electrode_num,
+            stim_pattern=list(v12.pattern),
+            pulse_width=v12.pulse_width,
+            discharge_time=v12.discharge_time,
+            polarity=v12.polarity,
+            hv513_num=v12.hv513_num,
+            sense_pulse_height=v12.sense_pulse_height,
+            sense_pulse_width=v12.sense_pulse_width,
+            pulse_height=v12.pulse_height,
+            frequency_hz=args.frequency,
         )
     for flag in ("latency", "vcd", "png"):
         if getattr(args, flag):
-            raise ConfigurationError(f"--{flag} models v1.2 with the timing model's defaults; it does not take "
-                                     f"--firmware v2, --cs-writes costed or --dac-load cs_rise")
+            raise ConfigurationError(
+                f"--{flag} models v1.2 with the timing model's defaults; it does not take "
+                f"--firmware v2, --cs-writes costed or --dac-load cs_rise"
+            )
     b = budget(cfg, args.firmware, conv)
     result = b.to_dict()
     if args.events:
@@ -300,7 +435,9 @@ def _write_walker_events(path: Path, fmt: str, events: list[list[Any]]) -> None:
         if fmt == "json":
             path.write_text(json.dumps(events) + "\n")
         else:
-            path.write_text("time_us,kind,pin,value\n" + "".join(f"{t},{k},{p},{v}\n" for t, k, p, v in events))
+            path.write_text(
+                "time_us,kind,pin,value\n" + "".join(f"{t},{k},{p},{v}\n" for t, k, p, v in events)
+            )
     except OSError as exc:
         raise ConfigurationError(f"--events {str(path)!r}: cannot write: {exc}") from exc
 
@@ -320,8 +457,10 @@ def run(args: argparse.Namespace) -> int:
     if args.firmware == "v2" or args.cs_writes == "costed" or args.dac_load != "mid_exchange":
         return _run_walker(args)
     if args.mode is not None:
-        raise ConfigurationError(f"--mode {args.mode}: v1.2 has no stimulation mode (the pattern byte picks the "
-                                 "waveform); use --firmware v2")
+        raise ConfigurationError(
+            f"--mode {args.mode}: v1.2 has no stimulation mode (the pattern byte picks the "
+            "waveform); use --firmware v2"
+        )
     cfg = config_from_args(args)
     if args.events:
         _events_format(args.events)  # a bad file name is refused before any work
@@ -337,8 +476,14 @@ def run(args: argparse.Namespace) -> int:
 
         result["latency"] = {}
         for link in ("usb", "uart"):
-            lat = pattern_latency(cfg, link, model=model, phases=args.phases, board=args.board,
-                                  switching_boards=args.switching_boards)
+            lat = pattern_latency(
+                cfg,
+                link,
+                model=model,
+                phases=args.phases,
+                board=args.board,
+                switching_boards=args.switching_boards,
+            )
             lat.pop("runs")
             result["latency"][link] = lat
 
@@ -366,11 +511,17 @@ def _draw_png(args: argparse.Namespace, cfg: Any, model: Any) -> dict[str, Any]:
     from ..viz.timing_diagram import draw_reports_png
 
     emu = trace_scans(cfg, model, args.cycles, [], args.board, args.switching_boards)
-    title = (f"{cfg.electrode_num} electrodes, {args.pulse_width} µs pulses, {args.discharge} µs discharge, "
-             f"{args.frequency} Hz")
+    title = (
+        f"{cfg.electrode_num} electrodes, {args.pulse_width} µs pulses, {args.discharge} µs discharge, "
+        f"{args.frequency} Hz"
+    )
     info = draw_reports_png(emu.reports, args.png, first_cycle=0, max_cycles=args.cycles, title=title)
-    return {"path": str(info.path), "cycles": info.cycles_drawn, "overruns": info.overruns_drawn,
-            "size_px": list(info.size_px)}
+    return {
+        "path": str(info.path),
+        "cycles": info.cycles_drawn,
+        "overruns": info.overruns_drawn,
+        "size_px": list(info.size_px),
+    }
 
 
 EVENT_SUFFIXES = (".csv", ".json")
@@ -380,8 +531,9 @@ def _events_format(path: str) -> str:
     """``csv`` or ``json``, from the ``--events`` file's suffix (the only thing that says which)."""
     suffix = Path(path).suffix
     if suffix.lower() not in EVENT_SUFFIXES:
-        raise ConfigurationError(f"--events {path!r}: unknown file suffix {suffix!r}; use "
-                                 f"{' or '.join(EVENT_SUFFIXES)}")
+        raise ConfigurationError(
+            f"--events {path!r}: unknown file suffix {suffix!r}; use {' or '.join(EVENT_SUFFIXES)}"
+        )
     return suffix.lower()[1:]
 
 
@@ -403,10 +555,17 @@ def _write_traces(args: argparse.Namespace, cfg: Any, model: Any) -> list[str]:
 
 
 def _latency_table(lat: dict[str, Any]) -> str:
-    lines = ["Pattern update latency (same pattern, written at moments spread over one period), µs:",
-             f"{'link':<6}{'':<14}{'min':>10}{'mean':>10}{'max':>10}"]
-    labels = (("wire_us", "wire"), ("loop_wait_us", "loop tick"), ("scan_wait_us", "scan wait"),
-              ("first_channel_us", "first channel"), ("last_channel_us", "last channel"))
+    lines = [
+        "Pattern update latency (same pattern, written at moments spread over one period), µs:",
+        f"{'link':<6}{'':<14}{'min':>10}{'mean':>10}{'max':>10}",
+    ]
+    labels = (
+        ("wire_us", "wire"),
+        ("loop_wait_us", "loop tick"),
+        ("scan_wait_us", "scan wait"),
+        ("first_channel_us", "first channel"),
+        ("last_channel_us", "last channel"),
+    )
     for link, d in lat.items():
         for key, label in labels:
             s = d[key]

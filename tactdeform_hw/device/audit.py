@@ -84,7 +84,9 @@ class AuditLog:
         self._line(header)
 
     def _line(self, obj: dict[str, Any]) -> None:
-        text = json.dumps(obj, default=str, separators=(",", ":")) + "\n"  # whole before the lock: one write a line
+        text = (
+            json.dumps(obj, default=str, separators=(",", ":")) + "\n"
+        )  # whole before the lock: one write a line
         with self._lock:
             if self.closed:
                 return
@@ -96,7 +98,9 @@ class AuditLog:
             self._t0 = t
         return t - self._t0
 
-    def tx(self, data: bytes, *, t: float, ok: bool = True, op: str = "", logical: bytes | None = None) -> None:
+    def tx(
+        self, data: bytes, *, t: float, ok: bool = True, op: str = "", logical: bytes | None = None
+    ) -> None:
         name, value = describe_command(logical if logical is not None else data, self.firmware)
         self._seq += 1
         self._line(

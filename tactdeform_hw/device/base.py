@@ -80,8 +80,16 @@ _ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
 #: Requests sent after a resync's zeros before the board counts as not answering.
 #: Commands that change what the scans deliver (a measure right after one reads the old pulses).
 _STATE_OPCODES = frozenset(
-    {p.Opcode.PATTERN, p.Opcode.PULSE_HEIGHT, p.Opcode.PULSE_WIDTH, p.Opcode.SENSE_HEIGHT, p.Opcode.SENSE_WIDTH,
-     p.Opcode.ELECTRODE_NUM, p.Opcode.POLARITY, p.Opcode.FREQUENCY}
+    {
+        p.Opcode.PATTERN,
+        p.Opcode.PULSE_HEIGHT,
+        p.Opcode.PULSE_WIDTH,
+        p.Opcode.SENSE_HEIGHT,
+        p.Opcode.SENSE_WIDTH,
+        p.Opcode.ELECTRODE_NUM,
+        p.Opcode.POLARITY,
+        p.Opcode.FREQUENCY,
+    }
 )
 
 
@@ -346,8 +354,10 @@ class Device(ABC):
             return False
         if self._config.sense_current_ua:
             return True
-        return bool(self._current_ua) and self._last_pattern is not None and any(
-            v in _ACTIVE for v in self._last_pattern
+        return (
+            bool(self._current_ua)
+            and self._last_pattern is not None
+            and any(v in _ACTIVE for v in self._last_pattern)
         )
 
     @property
@@ -382,7 +392,11 @@ class Device(ABC):
         """
         self._check_open()
         try:
-            config = config.validated(self.transfer) if self._dialect is None else self._dialect.validated(config, self.transfer)
+            config = (
+                config.validated(self.transfer)
+                if self._dialect is None
+                else self._dialect.validated(config, self.transfer)
+            )
         except LimitError as exc:
             self.guard.note_refusal(exc)
             raise
@@ -417,7 +431,9 @@ class Device(ABC):
         timings = [(new_period, idle_scan)]
         if old is not None:
             before = self._scan_us if self._scan_us is not None else self._worst_scan_s(old) * 1e6
-            timings.append((firmware_period_us(old.rate_hz), max(before, self._scan_of(old, bytes(old.electrode_count)))))
+            timings.append(
+                (firmware_period_us(old.rate_hz), max(before, self._scan_of(old, bytes(old.electrode_count))))
+            )
         elif self.pacer.period_s is not None and self.pacer.scan_s is not None:
             timings.append((self.pacer.period_s * 1e6, self.pacer.scan_s * 1e6))  # from the resync
         # nothing known of the firmware's timing (a board just opened): the queue was proved empty and the
@@ -429,7 +445,10 @@ class Device(ABC):
         in_force = [self._config.electrode_count if self._config is not None else 0]
 
         def send(data: bytes) -> None:
-            long = data[0] == p.Opcode.PATTERN and self.pacer.queue_estimate() + len(data) + 4 > self.pacer.limit_bytes
+            long = (
+                data[0] == p.Opcode.PATTERN
+                and self.pacer.queue_estimate() + len(data) + 4 > self.pacer.limit_bytes
+            )
             if unknown_timing and long:
                 self._prove(in_force[0])  # a long pattern goes into a queue proved empty
             self._send(data)
@@ -493,7 +512,9 @@ class Device(ABC):
             return
         levels = None if self._suspended else self._application_levels()
         height = self._encodable(
-            self.guard.frame_height(levels, target, self._current_ua, cfg.pulse_width_us, raise_when_idle=True)
+            self.guard.frame_height(
+                levels, target, self._current_ua, cfg.pulse_width_us, raise_when_idle=True
+            )
         )
         if height != self._current_ua:
             self._send_critical(p.encode_pulse_height(self.transfer.to_code(height)))
@@ -796,9 +817,12 @@ class Device(ABC):
             # of board detection spread over the gaps between scans; with a reset line at hand, the
             # reset comes first instead (a hung board may be stimulating)
             if self._can_reset() and not self._resetting:
-                self._enter(LinkState.FAILED, f"0xFF unanswered after {RX_QUEUE_SIZE + PROBE_LEAD_ZEROS} zeros")
-                raise ShortReplyError("0xFF after resync zeros (parser locked or hung: reset the board)",
-                                      2 * electrodes, b"")
+                self._enter(
+                    LinkState.FAILED, f"0xFF unanswered after {RX_QUEUE_SIZE + PROBE_LEAD_ZEROS} zeros"
+                )
+                raise ShortReplyError(
+                    "0xFF after resync zeros (parser locked or hung: reset the board)", 2 * electrodes, b""
+                )
             lead = PROBE_LEAD_ZEROS
         else:
             lead = RX_QUEUE_SIZE
@@ -1132,7 +1156,9 @@ class Device(ABC):
             self._dialect.frame(self, levels, force_pattern=force_pattern)
             return
         height = self._encodable(
-            self.guard.frame_height(levels, self._target_ua, self._current_ua, cfg.pulse_width_us, raise_when_idle=False)
+            self.guard.frame_height(
+                levels, self._target_ua, self._current_ua, cfg.pulse_width_us, raise_when_idle=False
+            )
         )
         hw = self.mapping.to_hardware(levels) if self.mapping is not None else bytes(levels)
         period = firmware_period_us(cfg.rate_hz)
@@ -1190,7 +1216,9 @@ class Device(ABC):
         while h > 0 and (self.transfer.to_code(h) & 0xFF) >= COMMAND_BYTE_MIN:
             h -= CURRENT_STEP_UA
         if h != height_ua:
-            self.guard.note_clip("encoding", height_ua, h, "pulse-height code whose low byte looks like a command byte")
+            self.guard.note_clip(
+                "encoding", height_ua, h, "pulse-height code whose low byte looks like a command byte"
+            )
         return h
 
     def _check_robust(self, config: StimConfig) -> None:

@@ -88,7 +88,11 @@ class Calibration:
     history: list[tuple[str, str, int]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        if isinstance(self.max_ua, bool) or not isinstance(self.max_ua, int) or not 0 < self.max_ua <= MAX_CURRENT_UA:
+        if (
+            isinstance(self.max_ua, bool)
+            or not isinstance(self.max_ua, int)
+            or not 0 < self.max_ua <= MAX_CURRENT_UA
+        ):
             raise LimitError("max_ua", self.max_ua, f"1 to {MAX_CURRENT_UA} µA")
         if self.max_ua % self.step_ua:
             raise LimitError("max_ua", self.max_ua, f"a multiple of {self.step_ua} µA")
@@ -119,16 +123,32 @@ class Calibration:
     def stimulus(self) -> Stimulus:
         p = self.phase
         if p is Phase.CENTRE_UP:
-            return Stimulus((CENTRE_REGION,), self.current_ua, p, "centre: raise until uncomfortable, then accept")
+            return Stimulus(
+                (CENTRE_REGION,), self.current_ua, p, "centre: raise until uncomfortable, then accept"
+            )
         if p is Phase.CENTRE_DOWN:
-            return Stimulus((CENTRE_REGION,), self.current_ua, p, "centre: lower until clear and pain-free, then accept")
+            return Stimulus(
+                (CENTRE_REGION,), self.current_ua, p, "centre: lower until clear and pain-free, then accept"
+            )
         if p is Phase.MATCH:
             r = MATCH_ORDER[self.match_index]
             if self.comparing:
-                return Stimulus((CENTRE_REGION,), self.regions_ua[CENTRE_REGION], p, "centre for comparison (c to go back)")
-            return Stimulus((r,), self.current_ua, p, f"region {r}: match the centre's intensity, then accept")
+                return Stimulus(
+                    (CENTRE_REGION,),
+                    self.regions_ua[CENTRE_REGION],
+                    p,
+                    "centre for comparison (c to go back)",
+                )
+            return Stimulus(
+                (r,), self.current_ua, p, f"region {r}: match the centre's intensity, then accept"
+            )
         if p is Phase.GLOBAL:
-            return Stimulus(tuple(range(REGION_COUNT)), min(self.regions_ua), p, "all regions: adjust together, then accept")
+            return Stimulus(
+                tuple(range(REGION_COUNT)),
+                min(self.regions_ua),
+                p,
+                "all regions: adjust together, then accept",
+            )
         return Stimulus((), 0, p, "finished" if p is Phase.DONE else "aborted")
 
     def _step(self, value: int, delta: int, hi: int) -> int:
@@ -138,7 +158,9 @@ class Calibration:
         """Apply one key; unknown keys are refused (a script with a typo must not run on)."""
         action = KEYS.get(key)
         if action is None:
-            raise ConfigurationError(f"key {key!r} is not a calibration key ({', '.join(sorted(set(KEYS) - {chr(13)}))})")
+            raise ConfigurationError(
+                f"key {key!r} is not a calibration key ({', '.join(sorted(set(KEYS) - {chr(13)}))})"
+            )
         if self.finished:
             raise ConfigurationError(f"calibration is {self.phase.value}; key {key!r} has nothing to act on")
         self.history.append((self.phase.value, action, self.current_ua))

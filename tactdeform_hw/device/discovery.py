@@ -44,7 +44,9 @@ class Candidate:
 
     @property
     def ids(self) -> str:
-        return f"{self.vid:04x}:{self.pid:04x}" if self.vid is not None and self.pid is not None else "----:----"
+        return (
+            f"{self.vid:04x}:{self.pid:04x}" if self.vid is not None and self.pid is not None else "----:----"
+        )
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -80,7 +82,9 @@ def _id_reasons(vid: int | None, pid: int | None, product: str | None) -> list[s
     if vid == ESPRESSIF_VID:
         reasons.append("Espressif vendor id 0x303A")
         if pid == ESP32S3_USB_JTAG_PID:
-            reasons.append("product id 0x1001: the ESP32-S3 USB Serial/JTAG controller (the XIAO ESP32S3's Serial)")
+            reasons.append(
+                "product id 0x1001: the ESP32-S3 USB Serial/JTAG controller (the XIAO ESP32S3's Serial)"
+            )
     if product and _JTAG_PRODUCT_HINT in product.lower():
         reasons.append(f"product string {product!r}")
     return reasons
@@ -163,7 +167,11 @@ def _usb_candidate(dev: Any, core: Any, util: Any, include_all: bool) -> Candida
         return None
     notes: list[str] = []
     strings: dict[str, str | None] = {}
-    for key, index in (("serial", dev.iSerialNumber), ("manufacturer", dev.iManufacturer), ("product", dev.iProduct)):
+    for key, index in (
+        ("serial", dev.iSerialNumber),
+        ("manufacturer", dev.iManufacturer),
+        ("product", dev.iProduct),
+    ):
         try:
             strings[key] = util.get_string(dev, index) if index else None
         except (core.USBError, ValueError, NotImplementedError):
@@ -175,7 +183,9 @@ def _usb_candidate(dev: Any, core: Any, util: Any, include_all: bool) -> Candida
                 )
     reasons = _id_reasons(vid, pid, strings["product"])
     if cdc:
-        reasons.append("CDC-ACM function (communication interface 0x02 + data interface 0x0A) for the serial link")
+        reasons.append(
+            "CDC-ACM function (communication interface 0x02 + data interface 0x0A) for the serial link"
+        )
     if _CLASS_VENDOR in classes and vid == ESPRESSIF_VID:
         reasons.append("vendor-specific JTAG interface beside it, as on the USB Serial/JTAG controller")
     likely = vid == ESPRESSIF_VID and cdc

@@ -210,9 +210,11 @@ def _backstop(signum: int, done: Any, deadline_s: float) -> None:
     if done.acquire(True, deadline_s):
         done.release()
         return
-    msg = (f"tactdeform-hw: stopped by {signal.Signals(signum).name}; the all-off did not finish within "
-           f"{deadline_s:g} s: exiting, so the guardian of every guarded port switches its board off "
-           "(a board on any other port may still be stimulating: unplug it)\n")
+    msg = (
+        f"tactdeform-hw: stopped by {signal.Signals(signum).name}; the all-off did not finish within "
+        f"{deadline_s:g} s: exiting, so the guardian of every guarded port switches its board off "
+        "(a board on any other port may still be stimulating: unplug it)\n"
+    )
     try:
         os.write(2, msg.encode("utf-8", "replace"))
     finally:
@@ -330,7 +332,11 @@ class FailSafe:
         clock: Clock | None = None,
         on_event: Callable[[FailSafeEvent], None] | None = None,
     ) -> None:
-        for name, value in (("watchdog_s", watchdog_s), ("probe_interval_s", probe_interval_s), ("refresh_interval_s", refresh_interval_s)):
+        for name, value in (
+            ("watchdog_s", watchdog_s),
+            ("probe_interval_s", probe_interval_s),
+            ("refresh_interval_s", refresh_interval_s),
+        ):
             if value is not None and not (isinstance(value, (int, float)) and value > 0 and value == value):
                 raise TactDeformError(f"{name}={value!r} must be a positive number of seconds or None")
         self.device = device
@@ -340,7 +346,9 @@ class FailSafe:
         self.poll_s = poll_s
         #: The all-off must reach the firmware within ``watchdog_s`` of the last frame: act that much
         #: earlier than the deadline (one poll, the USB frame and a packet's wire time).
-        self.watchdog_trigger_s = max(0.0, watchdog_s - poll_s - LINK_MARGIN_S) if watchdog_s is not None else None
+        self.watchdog_trigger_s = (
+            max(0.0, watchdog_s - poll_s - LINK_MARGIN_S) if watchdog_s is not None else None
+        )
         self.verify_readback = verify_readback
         self.readback = Readback()
         self.clock: Clock = clock if clock is not None else device.pacer.clock
@@ -477,7 +485,9 @@ class FailSafe:
         if dev.needs_resync:
             self.recover("a write failed", transport=self._transport_failed)
             return
-        if self.probe_interval_s is not None and (self._last_probe is None or now - self._last_probe >= self.probe_interval_s):
+        if self.probe_interval_s is not None and (
+            self._last_probe is None or now - self._last_probe >= self.probe_interval_s
+        ):
             self._last_probe = now
             if not self._guarded(lambda: self._probe(now)):
                 self.recover(self._probe_failure or "probe unanswered")
@@ -560,7 +570,9 @@ class FailSafe:
                 self._event("recover_step_failed", step=name, error=f"{type(exc).__name__}: {exc}")
                 if isinstance(exc, TransportError) and "reconnect" not in tried:
                     # the port itself failed: reopen it before anything else
-                    steps = [s for s in steps if s[0] == "reconnect"] + [s for s in steps if s[0] != "reconnect"]
+                    steps = [s for s in steps if s[0] == "reconnect"] + [
+                        s for s in steps if s[0] != "reconnect"
+                    ]
         self._event("unrecoverable", reason=reason)
         raise DeviceGoneError(
             f"the firmware does not answer after resync, reconnect and reset ({reason}); it may still be "
@@ -572,7 +584,9 @@ class FailSafe:
         noticed by the next probe (or overwritten by the next refresh), the probe's reply times out, a
         resync is tried and probed again, and the reset that follows stops everything at once; the
         scan in progress finishes.  Infinite without probing or refreshing."""
-        interval = min(x for x in (self.probe_interval_s, self.refresh_interval_s, float("inf")) if x is not None)
+        interval = min(
+            x for x in (self.probe_interval_s, self.refresh_interval_s, float("inf")) if x is not None
+        )
         if interval == float("inf"):
             return float("inf")
         timeout = float(getattr(getattr(self.device, "port", None), "timeout", None) or 0.0)
@@ -593,7 +607,9 @@ class Readback:
     still bounded by the refresh.
     """
 
-    def __init__(self, *, off_codes: int = 2, min_ua: int = 200, rise: float = 1.3, slack_codes: int = 3) -> None:
+    def __init__(
+        self, *, off_codes: int = 2, min_ua: int = 200, rise: float = 1.3, slack_codes: int = 3
+    ) -> None:
         self.off_codes = off_codes
         self.min_ua = min_ua
         self.rise = rise

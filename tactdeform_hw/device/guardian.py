@@ -101,13 +101,19 @@ def off_packet(electrode_count: int) -> bytes:
     count = p.encode_electrode_num(n)
     echo = bytes([n]) if n < COMMAND_BYTE_MIN else b"\x00"
     return (
-        bytes(LEAD_ZEROS) + count + echo + bytes(GAP_ZEROS) + p.encode_pattern(bytes(n), electrode_num=n)
-        + bytes(GAP_ZEROS) + p.HV513_COUNT_REQUEST
+        bytes(LEAD_ZEROS)
+        + count
+        + echo
+        + bytes(GAP_ZEROS)
+        + p.encode_pattern(bytes(n), electrode_num=n)
+        + bytes(GAP_ZEROS)
+        + p.HV513_COUNT_REQUEST
     )
 
 
-def pace_for(rate_hz: int, electrode_count: int, pulse_width_us: int, discharge_us: int,
-             sense_width_us: int) -> tuple[float, float]:
+def pace_for(
+    rate_hz: int, electrode_count: int, pulse_width_us: int, discharge_us: int, sense_width_us: int
+) -> tuple[float, float]:
     """``(drain_s, zeros_s)`` for a configuration: how long the firmware may need to read what the owner's
     pacer left in flight (four payload commands at the pace of the longest scan the guard allows), and to
     skip 256 zeros at that scan."""
@@ -145,21 +151,48 @@ class Guardian:
         return int(self.proc.pid)
 
     @classmethod
-    def start(cls, port_fd: int, name: str, *, stop: bytes | None = None, reset_line: bool = False,
-              ready_timeout_s: float = 10.0) -> Guardian:
+    def start(
+        cls,
+        port_fd: int,
+        name: str,
+        *,
+        stop: bytes | None = None,
+        reset_line: bool = False,
+        ready_timeout_s: float = 10.0,
+    ) -> Guardian:
         """Spawn the guardian on ``port_fd`` (the owner's open port) and wait until it is watching."""
         import subprocess
 
         stop = stop_packet() if stop is None else stop
 
         r, w = os.pipe()  # both ends close-on-exec: only the guardian gets the read end, nobody the write end
-        cmd = [sys.executable, "-I", "-S", os.path.abspath(__file__), "--port-fd", str(port_fd), "--owner-fd", str(r),
-               "--owner-pid", str(os.getpid()), "--name", name, "--stop", stop.hex()]
+        cmd = [
+            sys.executable,
+            "-I",
+            "-S",
+            os.path.abspath(__file__),
+            "--port-fd",
+            str(port_fd),
+            "--owner-fd",
+            str(r),
+            "--owner-pid",
+            str(os.getpid()),
+            "--name",
+            name,
+            "--stop",
+            stop.hex(),
+        ]
         if reset_line:
             cmd.append("--reset-line")
         try:
-            proc = subprocess.Popen(cmd, pass_fds=(port_fd, r), stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
-                                    start_new_session=True, close_fds=True)
+            proc = subprocess.Popen(
+                cmd,
+                pass_fds=(port_fd, r),
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.PIPE,
+                start_new_session=True,
+                close_fds=True,
+            )
         except OSError as exc:
             os.close(r)
             os.close(w)
@@ -191,7 +224,9 @@ class Guardian:
     def set_stop(self, packet: bytes) -> bool:
         return self.tell("stop", packet.hex())
 
-    def configure(self, off: bytes | None, drain_s: float | None = None, zeros_s: float | None = None) -> bool:
+    def configure(
+        self, off: bytes | None, drain_s: float | None = None, zeros_s: float | None = None
+    ) -> bool:
         """The all-off pattern for the configuration in force (None: unknown, heights only), and how
         long the firmware may need to read what the owner left in its queue, and to skip 256 zeros."""
         ok = self.tell("off", off.hex() if off else "-")
@@ -313,8 +348,17 @@ def _pulse_reset(fd: int) -> bool:
     return True
 
 
-def switch_off(fd: int, stop: bytes, off: bytes | None, *, reset_line: bool = False, budget_s: float = BUDGET_S,
-               drain_s: float = DEFAULT_DRAIN_S, zeros_s: float = DEFAULT_ZEROS_S, name: str = "") -> str:
+def switch_off(
+    fd: int,
+    stop: bytes,
+    off: bytes | None,
+    *,
+    reset_line: bool = False,
+    budget_s: float = BUDGET_S,
+    drain_s: float = DEFAULT_DRAIN_S,
+    zeros_s: float = DEFAULT_ZEROS_S,
+    name: str = "",
+) -> str:
     """Stop every current on the board behind ``fd``; returns how it was proved (for the message)."""
     import termios
 
@@ -407,7 +451,9 @@ def main(argv: list[str]) -> int:
     if stop is None:
         _say(a.name, f"owner (pid {a.owner_pid}) gone before it said what stops the board; nothing sent")
         return 1
-    how = switch_off(a.port_fd, stop, off, reset_line=a.reset_line, drain_s=drain_s, zeros_s=zeros_s, name=a.name)
+    how = switch_off(
+        a.port_fd, stop, off, reset_line=a.reset_line, drain_s=drain_s, zeros_s=zeros_s, name=a.name
+    )
     _say(a.name, f"owner (pid {a.owner_pid}) gone: all-off sent ({how})")
     return 0 if not how.startswith(("NO PROOF", "gave up")) else 2
 

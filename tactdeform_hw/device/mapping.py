@@ -30,7 +30,9 @@ class ChannelMapping:
             if isinstance(ch, bool) or not isinstance(ch, int) or not 0 <= ch < self.hw_channels:
                 raise LimitError(f"mapping[{i}]", ch, f"a hardware channel from 0 to {self.hw_channels - 1}")
             if ch in seen:
-                raise ConfigurationError(f"mapping[{i}]={ch} maps a second electrode to hardware channel {ch}")
+                raise ConfigurationError(
+                    f"mapping[{i}]={ch} maps a second electrode to hardware channel {ch}"
+                )
             seen.add(ch)
 
     @classmethod

@@ -330,7 +330,9 @@ class Pacer:
         if payload:
             duration = interval * parts
         else:
-            duration = self.skip_s(len(out)) + (self.busy_s(HV513_DETECT_US) if out[0] == HV513_COUNT_BYTE else 0.0)
+            duration = self.skip_s(len(out)) + (
+                self.busy_s(HV513_DETECT_US) if out[0] == HV513_COUNT_BYTE else 0.0
+            )
         self._account(len(out), duration)
         self.stats.commands += 1
         self.stats.bytes_written += len(out)

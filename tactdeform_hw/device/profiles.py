@@ -173,7 +173,9 @@ def _validate(data: Mapping[str, Any], source: str) -> dict[str, Any]:
     if isinstance(version, bool) or not isinstance(version, int):
         raise _fail(source, "version", f"{version!r} is not an integer version number")
     if version != PROFILE_VERSION:
-        raise _fail(source, "version", f"unknown version {version}: this package reads version {PROFILE_VERSION} only")
+        raise _fail(
+            source, "version", f"unknown version {version}: this package reads version {PROFILE_VERSION} only"
+        )
     for key in data:
         if key not in REQUIRED_KEYS and key not in OPTIONAL_KEYS:
             raise _fail(source, str(key), f"unknown key (known: {', '.join(REQUIRED_KEYS + OPTIONAL_KEYS)})")
@@ -191,7 +193,11 @@ def _validate(data: Mapping[str, Any], source: str) -> dict[str, Any]:
     if isinstance(regions, (str, bytes)) or not isinstance(regions, Sequence):
         raise _fail(source, "regions_ua", f"{regions!r} is not a list of {REGION_COUNT} currents")
     if len(regions) != REGION_COUNT:
-        raise _fail(source, "regions_ua", f"has {len(regions)} value(s); expected {REGION_COUNT} (3 x 3 regions, centre = index 4)")
+        raise _fail(
+            source,
+            "regions_ua",
+            f"has {len(regions)} value(s); expected {REGION_COUNT} (3 x 3 regions, centre = index 4)",
+        )
     out["regions_ua"] = tuple(
         _int(source, f"regions_ua[{i}]", v, 0, cap, CURRENT_STEP_UA, "µA (the participant's cap_ua)")
         for i, v in enumerate(regions)
@@ -271,7 +277,9 @@ def _toml_loads(text: str, source: str) -> dict[str, Any]:
         try:
             import tomli as tomllib  # type: ignore[no-redef,import-not-found,unused-ignore]
         except ModuleNotFoundError as exc:
-            raise ProfileError(source, "file", "reading TOML on Python 3.10 needs the 'tomli' package") from exc
+            raise ProfileError(
+                source, "file", "reading TOML on Python 3.10 needs the 'tomli' package"
+            ) from exc
     data: dict[str, Any] = tomllib.loads(text)
     return data
 

@@ -33,7 +33,12 @@ TACTDEFORM_PITCH_MM = 2.0
 
 
 def _tactdeform_positions() -> tuple[tuple[float, float], ...]:
-    corners = {(0, 0), (0, TACTDEFORM_COLS - 1), (TACTDEFORM_ROWS - 1, 0), (TACTDEFORM_ROWS - 1, TACTDEFORM_COLS - 1)}
+    corners = {
+        (0, 0),
+        (0, TACTDEFORM_COLS - 1),
+        (TACTDEFORM_ROWS - 1, 0),
+        (TACTDEFORM_ROWS - 1, TACTDEFORM_COLS - 1),
+    }
     out: list[tuple[float, float]] = []
     for r in range(TACTDEFORM_ROWS):
         y = ((TACTDEFORM_ROWS - 1) / 2.0 - r) * TACTDEFORM_PITCH_MM
@@ -117,7 +122,9 @@ class RegionMap:
         return tuple(out)
 
 
-def region_map_from_positions(positions_mm: Sequence[Sequence[float]], source: str = "the array") -> RegionMap:
+def region_map_from_positions(
+    positions_mm: Sequence[Sequence[float]], source: str = "the array"
+) -> RegionMap:
     """The 3 × 3 regions of electrode centres (x to the right, y toward the fingertip, mm).
 
     A centre that is not two finite numbers is refused with :class:`~tactdeform_hw.errors.SafetyError`

@@ -158,8 +158,15 @@ class _Shadow:
 
     def key(self) -> tuple[Any, ...]:
         return (
-            self.electrode_num, self.height_code, self.sense_code, self.polarity, self.width_us,
-            self.sense_width_us, tuple(self.pattern), self.parse, self.stim_mode,
+            self.electrode_num,
+            self.height_code,
+            self.sense_code,
+            self.polarity,
+            self.width_us,
+            self.sense_width_us,
+            tuple(self.pattern),
+            self.parse,
+            self.stim_mode,
         )
 
 
@@ -177,7 +184,9 @@ class WireState(NamedTuple):
 def worst_scan_us(electrodes: int, width_us: int, discharge_us: int, sense_width_us: int) -> float:
     """One scan with every channel biphasic — the longest a configuration can make — by the pacer's
     firmware-order estimate (which errs long).  Only used to keep scans far from the 300 ms watchdog."""
-    return estimate_scan_us([2] * electrodes, width_us, discharge_us, sense_width_us, hv513=max(4, -(-electrodes // 8)))
+    return estimate_scan_us(
+        [2] * electrodes, width_us, discharge_us, sense_width_us, hv513=max(4, -(-electrodes // 8))
+    )
 
 
 class SafetyGuard:
@@ -213,14 +222,18 @@ class SafetyGuard:
     ) -> None:
         if isinstance(cap_ua, bool) or not isinstance(cap_ua, int) or not 0 <= cap_ua <= MAX_CURRENT_UA:
             raise SafetyError(f"cap_ua={cap_ua!r} is out of range: 0 to {MAX_CURRENT_UA} µA")
-        if not (isinstance(max_charge_nc, (int, float)) and math.isfinite(max_charge_nc) and max_charge_nc >= 0):
+        if not (
+            isinstance(max_charge_nc, (int, float)) and math.isfinite(max_charge_nc) and max_charge_nc >= 0
+        ):
             raise SafetyError(f"max_charge_nc={max_charge_nc!r} must be a finite number >= 0")
         if ramp_ua_per_frame is not None and (
             isinstance(ramp_ua_per_frame, bool)
             or not isinstance(ramp_ua_per_frame, int)
             or ramp_ua_per_frame < CURRENT_STEP_UA
         ):
-            raise SafetyError(f"ramp_ua_per_frame={ramp_ua_per_frame!r} must be an integer >= {CURRENT_STEP_UA} µA")
+            raise SafetyError(
+                f"ramp_ua_per_frame={ramp_ua_per_frame!r} must be an integer >= {CURRENT_STEP_UA} µA"
+            )
         if polarity is not None and polarity not in POLARITY_CODE:
             raise SafetyError(f"polarity={polarity!r} is not 'anodic' or 'cathodic'")
         self.cap_ua = cap_ua
@@ -242,7 +255,9 @@ class SafetyGuard:
         if self.region_of is not None and self.regions_ua is not None:
             for i, r in enumerate(self.region_of):
                 if not 0 <= r < len(self.regions_ua):
-                    raise SafetyError(f"region_of[{i}]={r!r} names no region (0 to {len(self.regions_ua) - 1})")
+                    raise SafetyError(
+                        f"region_of[{i}]={r!r} names no region (0 to {len(self.regions_ua) - 1})"
+                    )
         self.max_charge_nc = float(max_charge_nc)
         self.ramp_ua_per_frame = ramp_ua_per_frame
         self.polarity = polarity
@@ -290,7 +305,9 @@ class SafetyGuard:
         key = f"{event}:{rule}"
         self.counts[key] = self.counts.get(key, 0) + 1
         # a refusal is a caller's error; a clip is the documented rule doing its job, frame after frame
-        logger.log(logging.WARNING if event == "refused" else logging.INFO, "%s (%s): %s", event, rule, message)
+        logger.log(
+            logging.WARNING if event == "refused" else logging.INFO, "%s (%s): %s", event, rule, message
+        )
         if self.sink is not None:
             try:
                 self.sink(entry)
@@ -307,8 +324,11 @@ class SafetyGuard:
 
     def note_clip(self, rule: str, requested_ua: int, sent_ua: int, why: str) -> None:
         self._record(
-            "clipped", rule, f"pulse height lowered from {requested_ua} to {sent_ua} µA: {why}",
-            requested_ua=requested_ua, sent_ua=sent_ua,
+            "clipped",
+            rule,
+            f"pulse height lowered from {requested_ua} to {sent_ua} µA: {why}",
+            requested_ua=requested_ua,
+            sent_ua=sent_ua,
         )
 
     def _refuse(self, rule: str, message: str, **detail: Any) -> SafetyError:
@@ -412,7 +432,9 @@ class SafetyGuard:
 
     # --- the guard: what may be sent -------------------------------------------------------------------------
 
-    def validate_current(self, value: object, transfer: CurrentTransfer, field_name: str = "current_ua") -> int:
+    def validate_current(
+        self, value: object, transfer: CurrentTransfer, field_name: str = "current_ua"
+    ) -> int:
         """A wire-valid current (integer, 10 µA steps, within the ceiling) or a logged :class:`LimitError`."""
         try:
             return transfer.check_current(value, field_name)
@@ -483,7 +505,9 @@ class SafetyGuard:
                     f"sense pulse of {sense_charge:g} nC exceeds the charge limit of {self.max_charge_nc:g} nC",
                     charge_nc=sense_charge,
                 )
-        scan = worst_scan_us(config.electrode_count, config.pulse_width_us, config.discharge_us, config.sense_width_us)
+        scan = worst_scan_us(
+            config.electrode_count, config.pulse_width_us, config.discharge_us, config.sense_width_us
+        )
         if scan > SCAN_LIMIT_US:
             raise self._refuse(
                 "scan_time",
@@ -522,7 +546,11 @@ class SafetyGuard:
                 "clipped",
                 why["rule"],
                 f"frame height lowered from {target_ua} to {height} µA ({why['rule']} limit"
-                + (f", electrode {why['electrode']} in region {why.get('region')}" if "electrode" in why else "")
+                + (
+                    f", electrode {why['electrode']} in region {why.get('region')}"
+                    if "electrode" in why
+                    else ""
+                )
                 + ")",
                 requested_ua=target_ua,
                 sent_ua=height,
@@ -583,7 +611,15 @@ class SafetyGuard:
         states = (self._wire.nominal, *self._wire.alternatives)
         merged = states[0].copy()
         for other in states[1:]:
-            for name in ("electrode_num", "height_code", "sense_code", "polarity", "width_us", "sense_width_us", "stim_mode"):
+            for name in (
+                "electrode_num",
+                "height_code",
+                "sense_code",
+                "polarity",
+                "width_us",
+                "sense_width_us",
+                "stim_mode",
+            ):
                 if getattr(other, name) != getattr(merged, name):
                     setattr(merged, name, None)
             merged.pattern = [a if a == b else None for a, b in zip(merged.pattern, other.pattern)]
@@ -656,13 +692,19 @@ class SafetyGuard:
             longest = self.firmware.max_electrodes * self.firmware.pattern_bytes_per_electrode
             self._wire = WireState(_Shadow(parse=_AT_BOUNDARY if run >= longest else None), (), True)
             try:
-                return self.check_wire(data[run:], mapping=mapping, transfer=transfer, room=room) if run < len(data) else self._wire
+                return (
+                    self.check_wire(data[run:], mapping=mapping, transfer=transfer, room=room)
+                    if run < len(data)
+                    else self._wire
+                )
             finally:
                 self._wire = wire
         cut_from = 0 if wire.unproven else room
         if not wire.alternatives and (cut_from is None or cut_from >= len(data)):
             # the per-frame path: one state, every byte certain to arrive
-            return WireState(self._read(wire.nominal, data, mapping, transfer, strict=True, how=""), (), wire.unproven)
+            return WireState(
+                self._read(wire.nominal, data, mapping, transfer, strict=True, how=""), (), wire.unproven
+            )
         nominal: _Shadow | None = None
         seen: dict[tuple[Any, ...], _Shadow] = {}
         for i, state in enumerate((wire.nominal, *wire.alternatives)):
@@ -719,7 +761,9 @@ class SafetyGuard:
             return sh
         fw = self.firmware
         if pos.opcode is not None or pos.locked:
-            start: ParserState | None = ParserState(sh.electrode_num, pos.opcode, pos.needed, pos.got, pos.locked)
+            start: ParserState | None = ParserState(
+                sh.electrode_num, pos.opcode, pos.needed, pos.got, pos.locked
+            )
         else:
             start = None
         reading = read_commands(data, sh.electrode_num, fw, start)
@@ -761,11 +805,14 @@ class SafetyGuard:
         if end.locked:
             raise self._refuse("interlock", "pattern with electrode count 0 would lock the firmware's parser")
         if end.needed < 0:
-            raise self._refuse("interlock", "pattern while the firmware's electrode count is unknown (resync first)")
+            raise self._refuse(
+                "interlock", "pattern while the firmware's electrode count is unknown (resync first)"
+            )
         if end.opcode is not None and self.firmware.by_opcode[end.opcode].kind == "pattern":
             num = end.needed // self.firmware.pattern_bytes_per_electrode
             raise self._refuse(
-                "interlock", f"pattern of {len(end.got)} byte(s) for electrode count {num} would desynchronise"
+                "interlock",
+                f"pattern of {len(end.got)} byte(s) for electrode count {num} would desynchronise",
             )
         got = len(last.payload) if last is not None else 0
         raise self._refuse("interlock", f"command {name} cut short ({got} of {end.needed} payload bytes)")
@@ -832,7 +879,9 @@ class SafetyGuard:
             return True
         return any(v is None or v in _ACTIVE for v in sh.pattern[:num])
 
-    def _verify(self, sh: _Shadow, what: str, mapping: ChannelMapping | None, transfer: CurrentTransfer) -> None:
+    def _verify(
+        self, sh: _Shadow, what: str, mapping: ChannelMapping | None, transfer: CurrentTransfer
+    ) -> None:
         """Every channel the firmware scans receives at most its limit; unknowns count as their worst."""
         if self.firmware is V2:
             v2.verify_channels(self, sh, what, mapping, transfer)
@@ -840,11 +889,15 @@ class SafetyGuard:
         num = sh.electrode_num
         height_ua = transfer.to_ua(sh.height_code) if sh.height_code is not None else math.inf
         if height_ua > self.cap_ua + _EPS:
-            raise self._refuse("interlock", f"{what}: pulse height {height_ua:g} µA above the cap of {self.cap_ua} µA")
+            raise self._refuse(
+                "interlock", f"{what}: pulse height {height_ua:g} µA above the cap of {self.cap_ua} µA"
+            )
         if height_ua > 0 and sh.height_code is not None:
             width = sh.width_us
             if width is None:
-                raise self._refuse("interlock", f"{what}: non-zero pulse height while the pulse width is unknown")
+                raise self._refuse(
+                    "interlock", f"{what}: non-zero pulse height while the pulse width is unknown"
+                )
             if height_ua * width / 1000.0 > self.max_charge_nc + _EPS:
                 raise self._refuse(
                     "interlock",
@@ -854,7 +907,9 @@ class SafetyGuard:
         if num is None:
             # any channel may be scanned, at either the pulse height or the sense height
             if height_ua > 0 or sense_ua > 0:
-                raise self._refuse("interlock", f"{what}: current possible while the electrode count is unknown")
+                raise self._refuse(
+                    "interlock", f"{what}: current possible while the electrode count is unknown"
+                )
             return
         limits, low = self._hw_limits(mapping, num)
         # within the lowest channel limit, no channel can be over its own: skip the per-channel search
@@ -876,7 +931,11 @@ class SafetyGuard:
                         channel=ch,
                     )
         if sense_ua > 0 and sh.sense_code is not None:
-            sw = sh.sense_width_us if sh.sense_width_us is not None else self.firmware.value_max("sense_pulse_width")
+            sw = (
+                sh.sense_width_us
+                if sh.sense_width_us is not None
+                else self.firmware.value_max("sense_pulse_width")
+            )
             if sense_ua * sw / 1000.0 > self.max_charge_nc + _EPS:
                 raise self._refuse("interlock", f"{what}: sense pulse exceeds the charge limit")
 

@@ -249,7 +249,9 @@ class EtactileKitDevice(Device):
 
     def _start_guardian(self) -> None:
         if not getattr(self.port, "guardable", False):
-            raise TransportError(f"{self!r}: the port cannot be guarded (it declares no guardable file descriptor)")
+            raise TransportError(
+                f"{self!r}: the port cannot be guarded (it declares no guardable file descriptor)"
+            )
         try:
             fd = int(self.port.fileno())  # type: ignore[attr-defined]
         except (AttributeError, OSError, ValueError, TypeError) as exc:
@@ -265,8 +267,9 @@ class EtactileKitDevice(Device):
         g, cfg = self._guardian, self.config
         if g is None or cfg is None:
             return
-        drain_s, zeros_s = pace_for(cfg.rate_hz, cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us,
-                                    cfg.sense_width_us)
+        drain_s, zeros_s = pace_for(
+            cfg.rate_hz, cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us
+        )
         if self._dialect is not None:
             from .v2 import off_packet as off_packet_v2
 
@@ -381,7 +384,9 @@ class EtactileKitDevice(Device):
             pass
 
     def __repr__(self) -> str:
-        name = getattr(self.port, "port", None) or getattr(self.port, "name", None) or type(self.port).__name__
+        name = (
+            getattr(self.port, "port", None) or getattr(self.port, "name", None) or type(self.port).__name__
+        )
         return f"EtactileKitDevice({name!s}, closed={self._closed})"
 
 
@@ -448,10 +453,14 @@ def _resolve_kit(url: str) -> str:
         try:
             target = (host or "127.0.0.1", int(port))
         except ValueError as exc:
-            raise ConfigurationError(f"{url!r}: discovery={query['discovery'][-1]!r} is not HOST:PORT") from exc
+            raise ConfigurationError(
+                f"{url!r}: discovery={query['discovery'][-1]!r} is not HOST:PORT"
+            ) from exc
     unknown = set(query) - {"discovery"}
     if unknown:
-        raise ConfigurationError(f"{url!r}: unknown option(s) {', '.join(sorted(unknown))} (known: discovery)")
+        raise ConfigurationError(
+            f"{url!r}: unknown option(s) {', '.join(sorted(unknown))} (known: discovery)"
+        )
     return resolve(kit_id, discover([target])).url
 
 
@@ -486,16 +495,25 @@ def open_device(
     if firmware not in (None, "v1.2", "v2", "auto"):
         from ..errors import ConfigurationError
 
-        raise ConfigurationError(f"firmware={firmware!r}: the device layer drives 'v1.2' or 'v2' (or 'auto' to "
-                                 "detect which)")
+        raise ConfigurationError(
+            f"firmware={firmware!r}: the device layer drives 'v1.2' or 'v2' (or 'auto' to detect which)"
+        )
     port = open_port(name, timeout=timeout)
     speak = firmware or "v1.2"
     if firmware in ("auto", "v1.2"):
         speak = _probe(port, None if firmware == "auto" else firmware)
     return EtactileKitDevice(
-        port, mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit, guardian=guardian,
-        offline_clock=offline_clock, firmware=speak,
+        port,
+        mapping=mapping,
+        transfer=transfer,
+        guard=guard,
+        pacer=pacer,
+        audit=audit,
+        guardian=guardian,
+        offline_clock=offline_clock,
+        firmware=speak,
     )
+
 
 def _probe(port: Any, expected: str | None) -> str:
     """Open ``port`` (lines low), detect its firmware and refuse it unless it is ``expected`` (None: any);
@@ -510,7 +528,9 @@ def _probe(port: Any, expected: str | None) -> str:
         except errors as exc:
             raise TransportError(f"cannot open {getattr(port, 'port', port)!s}: {exc}") from exc
     try:
-        det = detect_firmware(port.write, port.read, port.reset_input_buffer, sleep=default_pacer(port).clock.sleep)
+        det = detect_firmware(
+            port.write, port.read, port.reset_input_buffer, sleep=default_pacer(port).clock.sleep
+        )
         if expected is not None:
             check_firmware(expected, det)
     except BaseException:

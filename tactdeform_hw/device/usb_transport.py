@@ -156,7 +156,11 @@ class UsbDeviceSpec:
 
     @property
     def name(self) -> str:
-        text = f"{USB_PREFIX}{self.vid:04x}:{self.pid:04x}" if self.pid is not None else f"{USB_PREFIX}{self.vid:04x}"
+        text = (
+            f"{USB_PREFIX}{self.vid:04x}:{self.pid:04x}"
+            if self.pid is not None
+            else f"{USB_PREFIX}{self.vid:04x}"
+        )
         if self.serial_number:
             text += f"{'' if self.pid is not None else ':*'}:{self.serial_number}"
         return text
@@ -195,7 +199,11 @@ def _errno_of(exc: BaseException) -> int | None:
     if isinstance(err, int):
         return err
     code = getattr(exc, "backend_error_code", None)
-    return {-1: errno.EIO, -3: errno.EACCES, -4: errno.ENODEV, -6: errno.EBUSY, -9: errno.EPIPE}.get(code) if isinstance(code, int) else None
+    return (
+        {-1: errno.EIO, -3: errno.EACCES, -4: errno.ENODEV, -6: errno.EBUSY, -9: errno.EPIPE}.get(code)
+        if isinstance(code, int)
+        else None
+    )
 
 
 # --- the port -------------------------------------------------------------------------------------------
@@ -386,7 +394,10 @@ class UsbCdcPort(PortBase):
                     sn = util.get_string(d, d.iSerialNumber) if d.iSerialNumber else None
                 except (core.USBError, ValueError):
                     sn = None
-                listing.append(f"{d.idVendor:04x}:{d.idProduct:04x} bus {d.bus} address {d.address}" + (f" serial {sn}" if sn else ""))
+                listing.append(
+                    f"{d.idVendor:04x}:{d.idProduct:04x} bus {d.bus} address {d.address}"
+                    + (f" serial {sn}" if sn else "")
+                )
             raise ConfigurationError(
                 f"{len(devices)} USB devices match {what}: name one by serial number "
                 f"(usb:VID:PID:SERIAL). Found: {'; '.join(listing)}"
@@ -471,7 +482,12 @@ class UsbCdcPort(PortBase):
         coding = struct.pack("<IBBB", self._baudrate, 0, 0, 8)  # rate, 1 stop bit, no parity, 8 data bits
         try:
             self.usb_device.ctrl_transfer(
-                _REQ_OUT_CLASS_INTERFACE, _SET_LINE_CODING, 0, self.comm_interface, coding, self._ctrl_timeout_ms()
+                _REQ_OUT_CLASS_INTERFACE,
+                _SET_LINE_CODING,
+                0,
+                self.comm_interface,
+                coding,
+                self._ctrl_timeout_ms(),
             )
             self.line_coding_accepted = True
         except self._core.USBError as exc:
@@ -485,7 +501,12 @@ class UsbCdcPort(PortBase):
         value = (1 if self._dtr else 0) | (2 if self._rts else 0)
         try:
             self.usb_device.ctrl_transfer(
-                _REQ_OUT_CLASS_INTERFACE, _SET_CONTROL_LINE_STATE, value, self.comm_interface, None, self._ctrl_timeout_ms()
+                _REQ_OUT_CLASS_INTERFACE,
+                _SET_CONTROL_LINE_STATE,
+                value,
+                self.comm_interface,
+                None,
+                self._ctrl_timeout_ms(),
             )
         except self._core.USBError as exc:
             raise self._error(exc, "SET_CONTROL_LINE_STATE") from exc
@@ -644,7 +665,9 @@ class UsbCdcPort(PortBase):
         return {
             "port": self.port,
             "vid": f"{self.spec.vid:04x}",
-            "pid": f"{dev.idProduct:04x}" if dev is not None else (f"{self.spec.pid:04x}" if self.spec.pid is not None else None),
+            "pid": f"{dev.idProduct:04x}"
+            if dev is not None
+            else (f"{self.spec.pid:04x}" if self.spec.pid is not None else None),
             "bus": getattr(dev, "bus", None),
             "address": getattr(dev, "address", None),
             "comm_interface": self.comm_interface,

@@ -120,7 +120,9 @@ class V2Dialect:
         """v1.2's firmware-order estimate of a scan with every channel pulsed in ``mode`` (v2 pulses every
         channel, at height 0 when off; its discharge is shorter, so the estimate errs long)."""
         level = PATTERN_BIPHASIC if mode in (None, c2.STIM_MODE_BIPHASIC) else PATTERN_MONOPHASIC
-        return estimate_scan_us([level] * cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us)
+        return estimate_scan_us(
+            [level] * cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us
+        )
 
     def _sync(self, dev: Device, expected: int) -> bool:
         """0xF4 alone at a proved boundary; True when answered with ``expected`` (the count)."""
@@ -193,7 +195,9 @@ class V2Dialect:
                     if self.answered and dev._can_reset() and not dev._resetting:
                         # a board that answered as v2 before and is silent now is hung (perhaps still
                         # stimulating): the reset line, as on v1.2 (``Device._recover``)
-                        raise ShortReplyError("sync check after the 2 s timeout (parser hung: reset the board)", 1, b"")
+                        raise ShortReplyError(
+                            "sync check after the 2 s timeout (parser hung: reset the board)", 1, b""
+                        )
                     raise FirmwareMismatchError(
                         "the board does not answer the sync check 0xF4 as firmware v2 must (twice, the second "
                         "time more than 2 s after any command could have started): it runs v1.2, or its parser "
@@ -248,8 +252,11 @@ class V2Dialect:
         code = transfer.to_code(config.sense_current_ua, "sense_current_ua")
         top = V2.value_max("sense_pulse_height")
         if code > top:
-            raise LimitError("sense_current_ua", config.sense_current_ua,
-                             f"a DAC code of at most {top} on firmware v2 (0xF9 is stored unshifted; this one is {code})")
+            raise LimitError(
+                "sense_current_ua",
+                config.sense_current_ua,
+                f"a DAC code of at most {top} on firmware v2 (0xF9 is stored unshifted; this one is {code})",
+            )
         return config
 
     def configure(self, dev: Device, config: StimConfig) -> None:
@@ -259,8 +266,11 @@ class V2Dialect:
         sense = dev.transfer.to_code(config.sense_current_ua, "sense_current_ua")
         # v2 pulses every channel in every scan (an off one at height 0): a configuration whose monophasic
         # scan fills the period starves the parser whatever the pattern, so it is refused before any byte
-        dev.guard.check_scan(self._scan_us(config, c2.STIM_MODE_MONOPHASIC), firmware_period_us(config.rate_hz),
-                             SCAN_GAP_MIN_US)
+        dev.guard.check_scan(
+            self._scan_us(config, c2.STIM_MODE_MONOPHASIC),
+            firmware_period_us(config.rate_hz),
+            SCAN_GAP_MIN_US,
+        )
         if dev._needs_resync:
             dev._recover()
         old = dev._config
@@ -271,7 +281,9 @@ class V2Dialect:
         elif dev.pacer.period_s is not None and dev.pacer.scan_s is not None:
             timings.append((dev.pacer.period_s * 1e6, dev.pacer.scan_s * 1e6))
         dev._pace_for(timings)
-        in_force = old.electrode_count if old is not None else (len(self.codes) if self.codes is not None else 0)
+        in_force = (
+            old.electrode_count if old is not None else (len(self.codes) if self.codes is not None else 0)
+        )
         if in_force and any(self.codes or [1]):
             dev._send(c2.encode_pattern([0] * in_force, electrode_num=in_force))
             dev._prove(in_force)  # a long pattern: proved read before the next one
@@ -313,7 +325,8 @@ class V2Dialect:
         active = {v for v in levels if v in _ACTIVE}
         if len(active) > 1:
             raise LimitError(
-                "pattern", list(levels),
+                "pattern",
+                list(levels),
                 "one waveform per frame on firmware v2 (its mode is global): every active electrode 1 "
                 "(monophasic) or every one 2 (biphasic)",
             )
@@ -350,13 +363,19 @@ class V2Dialect:
                 while h > 0 and (dev.transfer.to_code(h) & 0xFF) >= V2.command_byte_min:
                     h -= CURRENT_STEP_UA
             out.append(max(0, h))
-        for rule, rows, why in (("electrode_limit", clipped, "their own limits"), ("ramp", ramped, f"the ramp of {ramp} µA per frame")):
+        for rule, rows, why in (
+            ("electrode_limit", clipped, "their own limits"),
+            ("ramp", ramped, f"the ramp of {ramp} µA per frame"),
+        ):
             if rows:
                 guard._record(
-                    "clipped", rule,
+                    "clipped",
+                    rule,
                     f"{len(rows)} electrode(s) lowered from {target} µA to {why} "
                     f"({', '.join(f'{i}: {h}' for i, h in rows[:8])}{' …' if len(rows) > 8 else ''} µA)",
-                    requested_ua=target, sent_ua=max(h for _, h in rows), electrodes=[i for i, _ in rows],
+                    requested_ua=target,
+                    sent_ua=max(h for _, h in rows),
+                    electrodes=[i for i, _ in rows],
                 )
         return out
 
@@ -460,7 +479,9 @@ def verify_channels(
             return
     if num is None:
         if any(v is None or v for v in sh.pattern):
-            raise guard._refuse("interlock", f"{what}: a height possible while the electrode count is unknown")
+            raise guard._refuse(
+                "interlock", f"{what}: a height possible while the electrode count is unknown"
+            )
         return
     limits, _ = guard._hw_limits(mapping, num)
     width = sh.width_us
@@ -471,20 +492,29 @@ def verify_channels(
             continue
         if ua > min(limits[ch], guard.cap_ua) + _EPS:
             raise guard._refuse(
-                "interlock", f"{what}: channel {ch} would receive {ua:g} µA, above its limit of {limits[ch]} µA",
+                "interlock",
+                f"{what}: channel {ch} would receive {ua:g} µA, above its limit of {limits[ch]} µA",
                 channel=ch,
             )
         if width is None:
-            raise guard._refuse("interlock", f"{what}: channel {ch} has a height while the pulse width is unknown")
+            raise guard._refuse(
+                "interlock", f"{what}: channel {ch} has a height while the pulse width is unknown"
+            )
         if ua * max(width, 7) / 1000.0 > guard.max_charge_nc + _EPS:
             raise guard._refuse(
-                "interlock", f"{what}: channel {ch}: {ua:g} µA × {width} µs exceeds the charge limit of "
-                f"{guard.max_charge_nc:g} nC", channel=ch,
+                "interlock",
+                f"{what}: channel {ch}: {ua:g} µA × {width} µs exceeds the charge limit of "
+                f"{guard.max_charge_nc:g} nC",
+                channel=ch,
             )
 
 
 def check_ramp(
-    guard: SafetyGuard, before: Sequence[int | None], after: Sequence[int], start: int, what: str,
+    guard: SafetyGuard,
+    before: Sequence[int | None],
+    after: Sequence[int],
+    start: int,
+    what: str,
     transfer: CurrentTransfer,
 ) -> None:
     """Each channel's height rises by at most the ramp step per pattern (an unknown one counts as 0)."""
@@ -497,8 +527,10 @@ def check_ramp(
         new = transfer.to_ua(code)
         if new > prev + ramp + _EPS:
             raise guard._refuse(
-                "interlock", f"{what}: channel {start + k} rises from {prev:g} to {new:g} µA, more than the ramp of "
-                f"{ramp} µA", channel=start + k,
+                "interlock",
+                f"{what}: channel {start + k} rises from {prev:g} to {new:g} µA, more than the ramp of "
+                f"{ramp} µA",
+                channel=start + k,
             )
 
 

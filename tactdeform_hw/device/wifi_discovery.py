@@ -48,8 +48,15 @@ def parse_reply(data: bytes, sender: tuple[str, int] = ("", 0)) -> Kit | None:
             k, v = token.split("=", 1)
             fields[k.strip()] = v.strip()
     try:
-        return Kit(fields["id"], fields.get("name", ""), fields.get("ip", sender[0]), int(fields.get("port", "8080")),
-                   fields.get("mode", ""), fields.get("fw", ""), sender)
+        return Kit(
+            fields["id"],
+            fields.get("name", ""),
+            fields.get("ip", sender[0]),
+            int(fields.get("port", "8080")),
+            fields.get("mode", ""),
+            fields.get("fw", ""),
+            sender,
+        )
     except (KeyError, ValueError):
         return None
 

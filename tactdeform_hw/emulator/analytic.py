@@ -57,7 +57,9 @@ class Scenario:
         last = -1.0
         for t, _ in self.writes:
             if t < last:
-                raise ConfigurationError(f"scenario {self.name!r}: writes must be in time order ({t} after {last})")
+                raise ConfigurationError(
+                    f"scenario {self.name!r}: writes must be in time order ({t} after {last})"
+                )
             last = t
         if not self.duration_us > 0:
             raise ConfigurationError(f"scenario {self.name!r}: duration_us must be > 0")
@@ -105,15 +107,23 @@ class _Analytic:
         if not self.nominal:
             return scan_duration_ns(cfg, self.m, position)
         k = cfg.kinds()
-        per = np.array([cfg.pulse_width, 2 * cfg.pulse_width, cfg.sense_pulse_width], dtype=np.int64) + cfg.discharge_time
+        per = (
+            np.array([cfg.pulse_width, 2 * cfg.pulse_width, cfg.sense_pulse_width], dtype=np.int64)
+            + cfg.discharge_time
+        )
         return int(per[k].sum()) * 1000 if k.size else 0
 
     def _offsets(self, cfg: ScanConfig) -> np.ndarray:
         if not self.nominal:
             return channel_offsets_ns(cfg, self.m)[1]
         k = cfg.kinds()
-        per = np.array([cfg.pulse_width, 2 * cfg.pulse_width, cfg.sense_pulse_width], dtype=np.int64) + cfg.discharge_time
-        return (np.concatenate(([0], np.cumsum(per[k])[:-1])) * 1000) if k.size else np.zeros(0, dtype=np.int64)
+        per = (
+            np.array([cfg.pulse_width, 2 * cfg.pulse_width, cfg.sense_pulse_width], dtype=np.int64)
+            + cfg.discharge_time
+        )
+        return (
+            (np.concatenate(([0], np.cumsum(per[k])[:-1])) * 1000) if k.size else np.zeros(0, dtype=np.int64)
+        )
 
     def _reconfigure(self, first: bool = False) -> None:
         regs = self.emu.registers
@@ -127,7 +137,9 @@ class _Analytic:
             self.last_end = -1
         wd = self.m.watchdog_ns
         if wd is not None and self.d_steady > wd and "watchdog" not in " ".join(self.notes):
-            self.notes.append("a scan exceeds the interrupt watchdog: the analytic engine does not simulate the reboot")
+            self.notes.append(
+                "a scan exceeds the interrupt watchdog: the analytic engine does not simulate the reboot"
+            )
 
     def _stride(self, d: int) -> int:
         if self.m.overrun_policy == "immediate" or self.period == 0:
@@ -141,7 +153,12 @@ class _Analytic:
                 self.firsts[off] = dict(enumerate((start + offs[:nch]).tolist()))
             self.pending.clear()
         runs = self.runs
-        if runs and runs[-1].stride == stride and runs[-1].duration == d and runs[-1].start + runs[-1].count * stride == start:
+        if (
+            runs
+            and runs[-1].stride == stride
+            and runs[-1].duration == d
+            and runs[-1].start + runs[-1].count * stride == start
+        ):
             runs[-1].count += count
         else:
             runs.append(_Run(start, stride, count, d))
@@ -218,7 +235,11 @@ class _Analytic:
                         effects[c.offset] = None
                         self.notes.append("scans run back to back: later commands are never read")
                         continue
-                    cost = m.call_ns + len(c.raw) * m.byte_ns + (m.hv513_detect_ns if c.opcode == Opcode.HV513_COUNT else 0)
+                    cost = (
+                        m.call_ns
+                        + len(c.raw) * m.byte_ns
+                        + (m.hv513_detect_ns if c.opcode == Opcode.HV513_COUNT else 0)
+                    )
                     eff = placed + cost
                     if self.next_alarm < eff:
                         self.scans_until(self.next_alarm)
@@ -230,13 +251,19 @@ class _Analytic:
                 self.emu.feed(c.raw)
                 self._reconfigure()
                 if c.opcode == Opcode.FREQUENCY and c.value:
-                    self.next_alarm = eff if eff - self.last_reload >= self.period else self.last_reload + self.period
+                    self.next_alarm = (
+                        eff if eff - self.last_reload >= self.period else self.last_reload + self.period
+                    )
                 effects[c.offset] = eff
                 if c.opcode == Opcode.PATTERN:
                     # felt at the next scan, whatever configuration it runs (an older pattern is overwritten)
                     self.pending = [(c.offset, len(c.raw) - 1)]
                 if not self.nominal:
-                    ready = eff if c.opcode in (Opcode.MEASURE, Opcode.HV513_COUNT) else self.tick_at_or_after(eff + 1)
+                    ready = (
+                        eff
+                        if c.opcode in (Opcode.MEASURE, Opcode.HV513_COUNT)
+                        else self.tick_at_or_after(eff + 1)
+                    )
         self.scans_until(duration)
         # keep only scans that started by the end of the run
         starts, durs = [], []
@@ -247,8 +274,15 @@ class _Analytic:
             durs.append(np.full(int(keep.sum()), r.duration, dtype=np.int64))
         st = np.concatenate(starts) if starts else np.zeros(0, dtype=np.int64)
         du = np.concatenate(durs) if durs else np.zeros(0, dtype=np.int64)
-        return Timeline("nominal" if self.nominal else "analytic", st, du, effects, self.firsts, duration,
-                        notes=sorted(set(self.notes)))
+        return Timeline(
+            "nominal" if self.nominal else "analytic",
+            st,
+            du,
+            effects,
+            self.firsts,
+            duration,
+            notes=sorted(set(self.notes)),
+        )
 
 
 def run_analytic(scenario: Scenario) -> Timeline:
@@ -265,4 +299,3 @@ def run_nominal(scenario: Scenario) -> Timeline:
     tl = _Analytic(scenario, nominal=True).run()
     tl.wall_s = time.perf_counter() - t0
     return tl
-

@@ -22,7 +22,11 @@ class Board:
     def __post_init__(self) -> None:
         if self.kind not in BOARD_KINDS:
             raise ConfigurationError(f"board={self.kind!r} is not one of {', '.join(BOARD_KINDS)}")
-        if isinstance(self.switching_boards, bool) or not isinstance(self.switching_boards, int) or not 0 <= self.switching_boards <= 16:
+        if (
+            isinstance(self.switching_boards, bool)
+            or not isinstance(self.switching_boards, int)
+            or not 0 <= self.switching_boards <= 16
+        ):
             raise ConfigurationError(f"switching_boards={self.switching_boards!r} is out of range: 0 to 16")
 
     def reading(self) -> float:

@@ -119,19 +119,29 @@ class Emulator:
         p = self.parser
         if p.processing:
             at = p.command_offset
-            if not self.hazards or self.hazards[-1].kind is not HazardKind.COMMAND_PENDING or self.hazards[-1].offset != at:
+            if (
+                not self.hazards
+                or self.hazards[-1].kind is not HazardKind.COMMAND_PENDING
+                or self.hazards[-1].offset != at
+            ):
                 self.hazards.append(
                     Hazard(
                         HazardKind.COMMAND_PENDING,
                         at,
-                        {"command": p.spec.command(p.command).name, "needed": p.required, "queued": p.pending},
+                        {
+                            "command": p.spec.command(p.command).name,
+                            "needed": p.required,
+                            "queued": p.pending,
+                        },
                         float(self.now_us),
                     )
                 )
 
     def call(self) -> CallResult | CallOutcome:
         """Run exactly one firmware parser call (for timed models); v2's at the current clock."""
-        result: CallResult | CallOutcome = self.parser.call(self.now_us) if self.firmware == "v2" else self.parser.call()
+        result: CallResult | CallOutcome = (
+            self.parser.call(self.now_us) if self.firmware == "v2" else self.parser.call()
+        )
         return result
 
     def state(self) -> dict[str, Any]:

@@ -112,7 +112,10 @@ def random_plan(
     """``count`` faults of the given kinds at seeded random times in ``[start_s, end_s)``."""
     rng = random.Random(seed)
     ks = [FaultKind(k) for k in kinds]
-    out = [Fault(rng.choice(ks), rng.uniform(start_s, end_s), count=rng.choice((1, 1, 1, 2))) for _ in range(count)]
+    out = [
+        Fault(rng.choice(ks), rng.uniform(start_s, end_s), count=rng.choice((1, 1, 1, 2)))
+        for _ in range(count)
+    ]
     return sorted(out, key=lambda f: f.at_s)
 
 
@@ -128,7 +131,9 @@ class FaultyLink(LinkFilter):
 
     def add(self, fault: Fault) -> None:
         if fault.kind not in LINK_FAULTS:
-            raise LimitError("kind", fault.kind.value, f"a link fault ({', '.join(sorted(k.value for k in LINK_FAULTS))})")
+            raise LimitError(
+                "kind", fault.kind.value, f"a link fault ({', '.join(sorted(k.value for k in LINK_FAULTS))})"
+            )
         self.pending.append(fault)
         self.pending.sort(key=lambda f: f.at_s)
 
@@ -254,7 +259,11 @@ class TimedPort:
         now = self.now_s
         keep = []
         for f in self.port_faults:
-            if f.at_s > now or f.kind not in (FaultKind.RESET, FaultKind.STOP_READING, FaultKind.WATCHDOG_REBOOT):
+            if f.at_s > now or f.kind not in (
+                FaultKind.RESET,
+                FaultKind.STOP_READING,
+                FaultKind.WATCHDOG_REBOOT,
+            ):
                 keep.append(f)
                 continue
             self._record(f.kind, {"state": self._state_brief()})
@@ -280,7 +289,10 @@ class TimedPort:
     def _state_brief(self) -> dict[str, Any]:
         s = self.emulator.state()
         n = s["electrode_num"]
-        return {"pulse_height": s["pulse_height"], "active": sum(1 for v in s["stim_pattern"][:n] if v in (1, 2))}
+        return {
+            "pulse_height": s["pulse_height"],
+            "active": sum(1 for v in s["stim_pattern"][:n] if v in (1, 2)),
+        }
 
     def _record(self, kind: FaultKind, detail: dict[str, Any], host_offset: int = -1) -> None:
         self.injected.append(InjectedFault(kind, self.now_s, host_offset, detail))

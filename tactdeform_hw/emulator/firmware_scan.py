@@ -246,7 +246,10 @@ def trace_scan(
         events=w.ev,
         isr_return_us=w._us(end),
         voltage=volts,
-        timer_ops=[[w._us(conventions.isr_entry_ns), 1, "alarm_disable", 0], [w._us(end), 1, "alarm_enable", 0]],
+        timer_ops=[
+            [w._us(conventions.isr_entry_ns), 1, "alarm_disable", 0],
+            [w._us(end), 1, "alarm_enable", 0],
+        ],
         alarm_ticks=alarm_ticks_for(spec.name, cfg.frequency_hz),
         chain_position=w.pos,
         channel_start_us=[w._us(t) for t in w.marks[:-1]],
@@ -298,7 +301,11 @@ def _isr(w: _Walker, cfg: FirmwareScanConfig, spec: FirmwareSpec) -> list[int]:
     return volts
 
 
-def scan_duration_us(cfg: FirmwareScanConfig, firmware: str | FirmwareSpec = "v2", conventions: ScanConventions = DEFAULT_CONVENTIONS) -> float:
+def scan_duration_us(
+    cfg: FirmwareScanConfig,
+    firmware: str | FirmwareSpec = "v2",
+    conventions: ScanConventions = DEFAULT_CONVENTIONS,
+) -> float:
     """From the alarm to the handler's return (events not logged)."""
     return trace_scan(cfg, firmware, conventions, log=False).isr_return_us
 
@@ -347,7 +354,9 @@ class FirmwareBudget:
         distinct = sorted(set(self.per_channel_us))
         for cost in distinct:
             count = self.per_channel_us.count(cost)
-            lines.append(f"{'channels':<24}{count:>9}  {'per channel':>12}{cost:>11.2f}{'subtotal':>10}{count * cost:>11.2f}")
+            lines.append(
+                f"{'channels':<24}{count:>9}  {'per channel':>12}{cost:>11.2f}{'subtotal':>10}{count * cost:>11.2f}"
+            )
         lines += [
             f"{'interrupt entry':<66}{self.isr_entry_us:>11.2f}",
             f"{'chain clear':<66}{self.clear_us:>11.2f}",
@@ -356,9 +365,14 @@ class FirmwareBudget:
             f"{'margin':<66}{self.margin_us:>11.2f}",
             f"verdict: {self.verdict.upper()}; actual rate {self.actual_rate_hz:.2f} Hz; effective pulse width "
             f"{self.effective_width_us:.2f} us (all times in us)",
-            "chip-select writes " + ("costed apart from" if self.conventions["cs_writes_costed"] else "inside")
+            "chip-select writes "
+            + ("costed apart from" if self.conventions["cs_writes_costed"] else "inside")
             + f" the {self.conventions['spi_exchange_us']} us exchange; DAC loads "
-            + ("3.3 us into the exchange" if self.conventions["dac_load"] == "mid_exchange" else "when DA_CS rises"),
+            + (
+                "3.3 us into the exchange"
+                if self.conventions["dac_load"] == "mid_exchange"
+                else "when DA_CS rises"
+            ),
         ]
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
@@ -384,23 +398,40 @@ def budget(
     stride = max(scan, period)
     moded = "stim_mode" in spec.power_on
     width = cfg.sense_pulse_width if moded and cfg.stim_mode == 2 else cfg.pulse_width
-    wait = spec.timing.delay_ticks(width - spec.timing.pulse_wait_offset_us) * conventions.timer_tick_ns / 1000 \
-        if width >= spec.timing.pulse_wait_offset_us else 0.0
-    cs_extra = spec.timing.chip_select_writes_per_exchange * conventions.gpio_write_ns / 1000 \
-        if conventions.cs_writes_costed else 0.0
+    wait = (
+        spec.timing.delay_ticks(width - spec.timing.pulse_wait_offset_us) * conventions.timer_tick_ns / 1000
+        if width >= spec.timing.pulse_wait_offset_us
+        else 0.0
+    )
+    cs_extra = (
+        spec.timing.chip_select_writes_per_exchange * conventions.gpio_write_ns / 1000
+        if conventions.cs_writes_costed
+        else 0.0
+    )
     notes: list[str] = []
     if watchdog:
-        notes.append(f"the scan exceeds the {spec.timing.watchdog_us:.0f} us interrupt watchdog: the board reboots")
+        notes.append(
+            f"the scan exceeds the {spec.timing.watchdog_us:.0f} us interrupt watchdog: the board reboots"
+        )
     elif scan > period:
         notes.append(f"overrun by {scan - period:.2f} us: the next scan follows at once")
     if moded and cfg.stim_mode == 2 and cfg.electrode_num:
-        notes.append(f"mode 2: every channel gets the sense pulse (code {cfg.sense_pulse_height}, "
-                     f"{cfg.sense_pulse_width} us) whatever the pattern; a zero pattern does not stop current")
-    if moded and cfg.stim_mode != 2 and width < spec.timing.pulse_wait_offset_us and any(cfg.stim_pattern[: cfg.electrode_num]):
+        notes.append(
+            f"mode 2: every channel gets the sense pulse (code {cfg.sense_pulse_height}, "
+            f"{cfg.sense_pulse_width} us) whatever the pattern; a zero pattern does not stop current"
+        )
+    if (
+        moded
+        and cfg.stim_mode != 2
+        and width < spec.timing.pulse_wait_offset_us
+        and any(cfg.stim_pattern[: cfg.electrode_num])
+    ):
         notes.append(f"pulse width {width} us: the pulse is still one SPI exchange long")
     driven = OUTPUTS_PER_HV513 * cfg.hv513_num
     if cfg.electrode_num > driven:
-        notes.append(f"channels {driven}..{cfg.electrode_num - 1} lie beyond the {cfg.hv513_num} HV513 chip(s)")
+        notes.append(
+            f"channels {driven}..{cfg.electrode_num - 1} lie beyond the {cfg.hv513_num} HV513 chip(s)"
+        )
     return FirmwareBudget(
         firmware=spec.name,
         electrodes=cfg.electrode_num,

@@ -98,7 +98,12 @@ class UartLink(LinkModel):
     def schedule(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Delivery]:
         start = max(t_ns, self._busy_until_ns)
         out = [
-            Delivery(start + self._offset_ns(i + 1), data[i : i + 1], host_offset + i if host_offset >= 0 else -1, t_ns)
+            Delivery(
+                start + self._offset_ns(i + 1),
+                data[i : i + 1],
+                host_offset + i if host_offset >= 0 else -1,
+                t_ns,
+            )
             for i in range(len(data))
         ]
         if data:
@@ -110,7 +115,9 @@ class UartLink(LinkModel):
         n = len(data)
         if n:
             self._busy_until_ns = start + self._offset_ns(n)
-        return start + (np.arange(1, n + 1, dtype=np.int64) * (self.bits_per_byte * 1_000_000_000)) // self.baud
+        return (
+            start + (np.arange(1, n + 1, dtype=np.int64) * (self.bits_per_byte * 1_000_000_000)) // self.baud
+        )
 
     def reset(self) -> None:
         self._busy_until_ns = 0
@@ -119,8 +126,12 @@ class UartLink(LinkModel):
         return self._offset_ns(nbytes)
 
     def describe(self) -> dict[str, Any]:
-        return {"name": self.name, "baud": self.baud, "bits_per_byte": self.bits_per_byte,
-                "byte_us": self._offset_ns(1000) / 1e6}
+        return {
+            "name": self.name,
+            "baud": self.baud,
+            "bits_per_byte": self.bits_per_byte,
+            "byte_us": self._offset_ns(1000) / 1e6,
+        }
 
 
 @dataclass
@@ -170,8 +181,14 @@ class UsbFsLink(LinkModel):
                 self._frame, self._count, self._used_ns = self._frame + 1, 0, 0
             self._used_ns += self._packet_ns(len(chunk))
             self._count += 1
-            out.append(Delivery(self._frame * frame_ns + self._used_ns, bytes(chunk),
-                                host_offset + i if host_offset >= 0 else -1, t_ns))
+            out.append(
+                Delivery(
+                    self._frame * frame_ns + self._used_ns,
+                    bytes(chunk),
+                    host_offset + i if host_offset >= 0 else -1,
+                    t_ns,
+                )
+            )
         return out
 
     def reset(self) -> None:
@@ -182,10 +199,15 @@ class UsbFsLink(LinkModel):
         return full * self._packet_ns(self.packet_size) + (self._packet_ns(rest) if rest else 0)
 
     def describe(self) -> dict[str, Any]:
-        return {"name": self.name, "packet_size": self.packet_size, "frame_us": self.frame_us,
-                "max_packets_per_frame": self.max_packets_per_frame, "bit_rate_hz": self.bit_rate_hz,
-                "packet_overhead_bytes": self.packet_overhead_bytes,
-                "packet_us": self._packet_ns(self.packet_size) / 1000}
+        return {
+            "name": self.name,
+            "packet_size": self.packet_size,
+            "frame_us": self.frame_us,
+            "max_packets_per_frame": self.max_packets_per_frame,
+            "bit_rate_hz": self.bit_rate_hz,
+            "packet_overhead_bytes": self.packet_overhead_bytes,
+            "packet_us": self._packet_ns(self.packet_size) / 1000,
+        }
 
 
 class LinkFilter(LinkModel):

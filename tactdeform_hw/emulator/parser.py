@@ -368,7 +368,9 @@ class Parser:
             self.pos += 2
         cmd_offset = self.cmd_offset
         self._complete(op, value)
-        if rx[self.pos - 1] >= _COMMAND_BYTE_MIN or (self.needed == 2 and rx[self.pos - 2] >= _COMMAND_BYTE_MIN):
+        if rx[self.pos - 1] >= _COMMAND_BYTE_MIN or (
+            self.needed == 2 and rx[self.pos - 2] >= _COMMAND_BYTE_MIN
+        ):
             self._swallowed(op, cmd_offset, self.needed)
         return CallResult.COMPLETED
 
@@ -423,7 +425,9 @@ class Parser:
         elif op == Opcode.PULSE_HEIGHT:
             regs.pulse_height = _stored(op, value)
             if value > regs.pulse_height:
-                self._hazard(HazardKind.CLAMPED, offset, field="pulse_height", value=value, stored=regs.pulse_height)
+                self._hazard(
+                    HazardKind.CLAMPED, offset, field="pulse_height", value=value, stored=regs.pulse_height
+                )
         elif op == Opcode.PULSE_WIDTH:
             if _SPEC[op].stored(value) is not None:
                 regs.pulse_width = value

@@ -111,7 +111,11 @@ class ParserV2:
             cut = len(chunk) - max(free, 0)
             lost += cut
             self.hazards.append(
-                Hazard(HazardKind.QUEUE_OVERFLOW, self.base + len(self.rx), {"dropped": cut, "queue_size": capacity})
+                Hazard(
+                    HazardKind.QUEUE_OVERFLOW,
+                    self.base + len(self.rx),
+                    {"dropped": cut, "queue_size": capacity},
+                )
             )
         self.dropped += lost
         return lost
@@ -189,7 +193,9 @@ class ParserV2:
 
     def _flush_unknown(self) -> None:
         if self._unknown_len:
-            self.hazards.append(Hazard(HazardKind.UNKNOWN_BYTES, self._unknown_start, {"count": self._unknown_len}))
+            self.hazards.append(
+                Hazard(HazardKind.UNKNOWN_BYTES, self._unknown_start, {"count": self._unknown_len})
+            )
             self._unknown_len = 0
 
     def _reply(self, spec: CommandSpec, offset: int) -> None:
@@ -250,8 +256,12 @@ class ParserV2:
         zeros = [ch for ch in range(n) if regs.stim_pattern[ch] == 0]
         live = regs.stim_mode == 2 and regs.sense_pulse_height > 0 and bool(zeros)
         if live and not self._sense_all:
-            self._hazard(HazardKind.MODE_SENSE_ALL, channels=zeros, sense_code=regs.sense_pulse_height,
-                         sense_width_us=regs.sense_pulse_width)
+            self._hazard(
+                HazardKind.MODE_SENSE_ALL,
+                channels=zeros,
+                sense_code=regs.sense_pulse_height,
+                sense_width_us=regs.sense_pulse_width,
+            )
         self._sense_all = live
 
     def _store(self, cmd: CommandSpec, value: int) -> None:
@@ -275,7 +285,10 @@ class ParserV2:
             driven = regs.hv513_num * OUTPUTS_PER_HV513
             if stored > driven:
                 self._hazard(
-                    HazardKind.CHANNELS_BEYOND_HV513, electrode_num=stored, hv513_num=regs.hv513_num, channels_driven=driven
+                    HazardKind.CHANNELS_BEYOND_HV513,
+                    electrode_num=stored,
+                    hv513_num=regs.hv513_num,
+                    channels_driven=driven,
                 )
         elif cmd.register == "pulse_width" and stored < self.spec.timing.pulse_wait_offset_us:
             self._hazard(HazardKind.SHORT_PULSE_WIDTH, field="pulse_width", value=stored)

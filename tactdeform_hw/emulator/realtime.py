@@ -147,8 +147,13 @@ class LagRecorder:
         xs = sorted(self.samples)
         if not xs:
             return {"median_us": 0.0, "p99_us": 0.0, "max_us": 0.0, "wakeups": 0, "behind": 0}
-        return {"median_us": xs[len(xs) // 2], "p99_us": xs[min(len(xs) - 1, int(len(xs) * 0.99))],
-                "max_us": self.max_us, "wakeups": self.count, "behind": self.behind_count}
+        return {
+            "median_us": xs[len(xs) // 2],
+            "p99_us": xs[min(len(xs) - 1, int(len(xs) * 0.99))],
+            "max_us": self.max_us,
+            "wakeups": self.count,
+            "behind": self.behind_count,
+        }
 
 
 @dataclass(frozen=True)
@@ -163,13 +168,24 @@ class ResetRecord:
         d = self.discarded
         regs = ", ".join(f"{k}={d[k]}" for k in _SHOWN if k in d)
         on = d.get("channels_on", [])
-        return (f"reset ({self.reason}) at t={self.time_us / 1e6:.3f} s, discarded: {regs}; "
-                f"{len(on)} channel(s) on {_ranges(on)}; {d.get('queue_bytes', 0)} byte(s) in the queue; "
-                f"parser {d.get('parser', '?')}")
+        return (
+            f"reset ({self.reason}) at t={self.time_us / 1e6:.3f} s, discarded: {regs}; "
+            f"{len(on)} channel(s) on {_ranges(on)}; {d.get('queue_bytes', 0)} byte(s) in the queue; "
+            f"parser {d.get('parser', '?')}"
+        )
 
 
-_SHOWN = ("electrode_num", "polarity", "stim_mode", "pulse_height", "pulse_width", "sense_pulse_height",
-          "sense_pulse_width", "discharge_time", "period_us")
+_SHOWN = (
+    "electrode_num",
+    "polarity",
+    "stim_mode",
+    "pulse_height",
+    "pulse_width",
+    "sense_pulse_height",
+    "sense_pulse_width",
+    "discharge_time",
+    "period_us",
+)
 
 
 def _channels_on(regs: dict[str, Any]) -> list[int]:
@@ -218,20 +234,35 @@ class LiveStatus:
 
     def key(self) -> tuple[Any, ...]:
         """What must change for the view to be printed again (not the clock, not the scan count)."""
-        return (tuple(sorted(self.registers.items())), self.queue_depth, round(self.scans_per_s, 1),
-                self.overrun_cycles, self.hazards, self.lost_bytes, self.resets, self.behind)
+        return (
+            tuple(sorted(self.registers.items())),
+            self.queue_depth,
+            round(self.scans_per_s, 1),
+            self.overrun_cycles,
+            self.hazards,
+            self.lost_bytes,
+            self.resets,
+            self.behind,
+        )
 
     def lines(self) -> list[str]:
         r = self.registers
         on = list(r.get("on", ()))
-        drive = (f"mode={r['stim_mode']} max height={max(r.get('pattern', ()), default=0)}" if "stim_mode" in r
-                 else f"height={r.get('pulse_height')}")
-        head = (f"t={self.time_us / 1e6:.1f}s electrodes={r.get('electrode_num')} polarity={r.get('polarity')} "
-                f"{drive} width={r.get('pulse_width')}us sense={r.get('sense_pulse_height')}/"
-                f"{r.get('sense_pulse_width')}us discharge={r.get('discharge_time')}us period={r.get('period_us'):.2f}us "
-                f"on={len(on)}{_ranges(on)}")
-        body = (f"  queue={self.queue_depth}B scans/s={self.scans_per_s:.1f} overruns={self.overrun_cycles} "
-                f"hazards={self.hazards} lost={self.lost_bytes}B resets={self.resets} behind={self.behind}")
+        drive = (
+            f"mode={r['stim_mode']} max height={max(r.get('pattern', ()), default=0)}"
+            if "stim_mode" in r
+            else f"height={r.get('pulse_height')}"
+        )
+        head = (
+            f"t={self.time_us / 1e6:.1f}s electrodes={r.get('electrode_num')} polarity={r.get('polarity')} "
+            f"{drive} width={r.get('pulse_width')}us sense={r.get('sense_pulse_height')}/"
+            f"{r.get('sense_pulse_width')}us discharge={r.get('discharge_time')}us period={r.get('period_us'):.2f}us "
+            f"on={len(on)}{_ranges(on)}"
+        )
+        body = (
+            f"  queue={self.queue_depth}B scans/s={self.scans_per_s:.1f} overruns={self.overrun_cycles} "
+            f"hazards={self.hazards} lost={self.lost_bytes}B resets={self.resets} behind={self.behind}"
+        )
         out = [head, body]
         shown = self.new_hazards[:5]
         out += [f"  hazard: {h}" for h in shown]
@@ -286,14 +317,27 @@ class RealtimeEmulator:
         self.timed: TimedEmulator | TimedEmulatorV2
         if firmware == "v2":
             if skin is not None:
-                raise ConfigurationError("skin: the v2 timed model reads back the DAC codes, not a skin model")
-            self.timed = TimedEmulatorV2(board, switching_boards, link=rules.make_link(),
-                                         tx_link=TcpLink() if rules.link == "tcp" else rules.link,
-                                         model=rules.timing(model), stack_reading=stack_reading)
+                raise ConfigurationError(
+                    "skin: the v2 timed model reads back the DAC codes, not a skin model"
+                )
+            self.timed = TimedEmulatorV2(
+                board,
+                switching_boards,
+                link=rules.make_link(),
+                tx_link=TcpLink() if rules.link == "tcp" else rules.link,
+                model=rules.timing(model),
+                stack_reading=stack_reading,
+            )
         elif firmware == "v1.2":
-            self.timed = TimedEmulator(board, switching_boards, link=rules.make_link(),
-                                       tx_link=TcpLink() if rules.link == "tcp" else None,
-                                       model=rules.timing(model), skin=skin, stack_reading=stack_reading)
+            self.timed = TimedEmulator(
+                board,
+                switching_boards,
+                link=rules.make_link(),
+                tx_link=TcpLink() if rules.link == "tcp" else None,
+                model=rules.timing(model),
+                skin=skin,
+                stack_reading=stack_reading,
+            )
         else:
             raise ConfigurationError(f"firmware={firmware!r}: the real-time board runs 'v1.2' or 'v2'")
         self.lock = threading.RLock()
@@ -448,12 +492,23 @@ class RealtimeEmulator:
             shown["on"] = tuple(_channels_on(regs))
             scans, rate = _scan_rate(t, at)
             hz = t.hazards
-            new = hz[self._status_seen:]
+            new = hz[self._status_seen :]
             self._status_seen = len(hz)
             overruns = sum(int(h.detail.get("cycles", 1)) for h in hz if h.kind is HazardKind.OVERRUN)
             lost = sum(int(h.detail.get("bytes_lost", 0)) for h in hz if h.kind is HazardKind.QUEUE_OVERFLOW)
-            return LiveStatus(at, shown, len(t.queue), scans, rate, overruns, len(hz), lost, len(self.resets),
-                              self.lag.behind_count, list(new))
+            return LiveStatus(
+                at,
+                shown,
+                len(t.queue),
+                scans,
+                rate,
+                overruns,
+                len(hz),
+                lost,
+                len(self.resets),
+                self.lag.behind_count,
+                list(new),
+            )
 
 
 def _scan_rate(t: Any, at_us: float) -> tuple[int, float]:

@@ -148,8 +148,12 @@ class CommandReport:
         d = asdict(self)
         if isinstance(self.value, (bytes, bytearray)):
             d["value"] = list(self.value)
-        d.update(wire_us=self.wire_us, loop_wait_us=self.loop_wait_us, scan_wait_us=self.scan_wait_us,
-                 latency_us=self.latency_us)
+        d.update(
+            wire_us=self.wire_us,
+            loop_wait_us=self.loop_wait_us,
+            scan_wait_us=self.scan_wait_us,
+            latency_us=self.latency_us,
+        )
         return d
 
 
@@ -182,18 +186,24 @@ class LossReport:
         return d
 
     def describe(self) -> str:
-        head = (f"t={self.time_us:.1f}us lost {self.count} byte(s) at host offset {self.host_offset} "
-                f"({self.reason}; queue {self.queue_bytes} B; parser {self.parser_state})")
+        head = (
+            f"t={self.time_us:.1f}us lost {self.count} byte(s) at host offset {self.host_offset} "
+            f"({self.reason}; queue {self.queue_bytes} B; parser {self.parser_state})"
+        )
         lines = [head]
         cc = self.cut_command
         if cc is not None:
-            lines.append(f"  first lost byte is byte {cc['bytes_before_loss']} of the {cc['length']}-byte {cc['name']} "
-                         f"sent at host offset {cc['host_offset']}")
+            lines.append(
+                f"  first lost byte is byte {cc['bytes_before_loss']} of the {cc['length']}-byte {cc['name']} "
+                f"sent at host offset {cc['host_offset']}"
+            )
         for f in self.followed:
             mark = "ok " if f["in_sync"] else "BAD"
             lines.append(f"  {mark} host@{f['host_offset']} {f['name']} {f['value']}")
         if self.resync_host_offset is not None:
-            lines.append(f"  back in step at host offset {self.resync_host_offset} (t={self.resync_us:.1f}us)")
+            lines.append(
+                f"  back in step at host offset {self.resync_host_offset} (t={self.resync_us:.1f}us)"
+            )
         elif self.parser_now:
             lines.append(f"  not back in step yet; parser now {self.parser_now}")
         return "\n".join(lines)
@@ -292,7 +302,9 @@ class Budget:
         return "overrun" if self.overrun else "fits"
 
     @classmethod
-    def of(cls, cfg: ScanConfig, model: TimingModel = DEFAULT_MODEL, requested_rate_hz: float | None = None) -> Budget:
+    def of(
+        cls, cfg: ScanConfig, model: TimingModel = DEFAULT_MODEL, requested_rate_hz: float | None = None
+    ) -> Budget:
         costs = channel_costs(cfg, model)
         kinds = cfg.kinds()
         counts = np.bincount(kinds, minlength=3) if kinds.size else np.zeros(3, dtype=np.int64)
@@ -301,9 +313,17 @@ class Budget:
             if counts[k] == 0:
                 continue
             per = costs.channel_ns(k)
-            rows.append(BudgetRow(_KIND_LABEL[k], int(counts[k]), (costs.select_ns + costs.pol_ns) / 1000,
-                                  costs.pulse_ns[k] / 1000, costs.discharge_ns / 1000, per / 1000,
-                                  int(counts[k]) * per / 1000))
+            rows.append(
+                BudgetRow(
+                    _KIND_LABEL[k],
+                    int(counts[k]),
+                    (costs.select_ns + costs.pol_ns) / 1000,
+                    costs.pulse_ns[k] / 1000,
+                    costs.discharge_ns / 1000,
+                    per / 1000,
+                    int(counts[k]) * per / 1000,
+                )
+            )
         pos = cfg.electrode_num - 1 if cfg.electrode_num else OUTPUTS_PER_HV513 * cfg.hv513_num
         clk = clear_clk_pulses(cfg, pos)
         scan = scan_duration_ns(cfg, model, pos)
@@ -323,26 +343,37 @@ class Budget:
         free = stride - scan
         periods = stride // period if period else 1
         if watchdog:
-            notes.append(f"the scan ({scan / 1000:.1f} µs) exceeds the {model.watchdog_us:.0f} µs interrupt watchdog: "
-                         "the device reboots to its power-on state part-way through the first scan")
+            notes.append(
+                f"the scan ({scan / 1000:.1f} µs) exceeds the {model.watchdog_us:.0f} µs interrupt watchdog: "
+                "the device reboots to its power-on state part-way through the first scan"
+            )
         elif overrun:
-            notes.append(f"overrun by {(scan - period) / 1000:.2f} µs: the next scan follows at once"
-                         if model.overrun_policy == "immediate" else
-                         f"overrun by {(scan - period) / 1000:.2f} µs: the missed alarm is skipped, so a scan starts "
-                         f"every {periods} periods and leaves {free / 1000:.2f} µs to the main loop")
+            notes.append(
+                f"overrun by {(scan - period) / 1000:.2f} µs: the next scan follows at once"
+                if model.overrun_policy == "immediate"
+                else f"overrun by {(scan - period) / 1000:.2f} µs: the missed alarm is skipped, so a scan starts "
+                f"every {periods} periods and leaves {free / 1000:.2f} µs to the main loop"
+            )
         if starved and not watchdog:
             notes.append("scans run back to back: the main loop never runs, so no later command is read")
         elif not watchdog and free < model.rtos_tick_ns:
-            notes.append(f"only {free / 1000:.1f} µs per period outside the scan: the parser reads at most one "
-                         "command with a payload per period" if periods == 1 else
-                         f"only {free / 1000:.1f} µs outside the scan every {periods} periods: the parser reads at "
-                         f"most one command with a payload per {periods} periods")
+            notes.append(
+                f"only {free / 1000:.1f} µs per period outside the scan: the parser reads at most one "
+                "command with a payload per period"
+                if periods == 1
+                else f"only {free / 1000:.1f} µs outside the scan every {periods} periods: the parser reads at "
+                f"most one command with a payload per {periods} periods"
+            )
         if counts[ChannelKind.SENSE] and cfg.sense_pulse_height:
-            notes.append(f"{int(counts[ChannelKind.SENSE])} channel(s) off in the pattern still get a sense pulse "
-                         f"of code {cfg.sense_pulse_height}")
+            notes.append(
+                f"{int(counts[ChannelKind.SENSE])} channel(s) off in the pattern still get a sense pulse "
+                f"of code {cfg.sense_pulse_height}"
+            )
         driven = OUTPUTS_PER_HV513 * cfg.hv513_num
         if cfg.electrode_num > driven:
-            notes.append(f"channels {driven}..{cfg.electrode_num - 1} lie beyond the {cfg.hv513_num} HV513 chip(s)")
+            notes.append(
+                f"channels {driven}..{cfg.electrode_num - 1} lie beyond the {cfg.hv513_num} HV513 chip(s)"
+            )
         if cfg.hv513_num == 0 and cfg.electrode_num:
             notes.append("HV513 count 0: the clear loads a 1 and leaves output 0 selected")
         return cls(
@@ -378,8 +409,10 @@ class Budget:
             f"{'kind':<24}{'channels':>9}{'select+POL':>12}{'pulse':>11}{'discharge':>11}{'per channel':>13}{'subtotal':>12}",
         ]
         for r in self.rows:
-            lines.append(f"{r.kind:<24}{r.channels:>9}{r.select_pol_us:>12.2f}{r.pulse_us:>11.2f}"
-                         f"{r.discharge_us:>11.2f}{r.per_channel_us:>13.2f}{r.subtotal_us:>12.2f}")
+            lines.append(
+                f"{r.kind:<24}{r.channels:>9}{r.select_pol_us:>12.2f}{r.pulse_us:>11.2f}"
+                f"{r.discharge_us:>11.2f}{r.per_channel_us:>13.2f}{r.subtotal_us:>12.2f}"
+            )
         w = 24 + 9 + 12 + 11 + 11 + 13
         lines += [
             f"{'interrupt entry + exit':<{w}}{self.isr_us:>12.2f}",
@@ -495,13 +528,25 @@ class TimingReports:
                     s = int(starts[i])
                     interval = int(nxt[i]) - s if nxt[i] >= 0 else None
                     cut = r.cut_ns is not None
-                    out.append(CycleReport(
-                        i, s / 1000, r.duration_ns / 1000, (s + r.duration_ns) / 1000, r.period_ns / 1000,
-                        r.overrun, None if interval is None else interval / 1000,
-                        None if not interval else 1e9 / interval, r.template.config.electrode_num,
-                        int(r.template.pulses.channel.size) if not cut else int(np.sum(r.template.pulses.start_ns < r.cut_ns)),
-                        r.torn is not None, cut, r.starved,
-                    ))
+                    out.append(
+                        CycleReport(
+                            i,
+                            s / 1000,
+                            r.duration_ns / 1000,
+                            (s + r.duration_ns) / 1000,
+                            r.period_ns / 1000,
+                            r.overrun,
+                            None if interval is None else interval / 1000,
+                            None if not interval else 1e9 / interval,
+                            r.template.config.electrode_num,
+                            int(r.template.pulses.channel.size)
+                            if not cut
+                            else int(np.sum(r.template.pulses.start_ns < r.cut_ns)),
+                            r.torn is not None,
+                            cut,
+                            r.starved,
+                        )
+                    )
                 i += 1
                 if i >= last:
                     return out
@@ -510,9 +555,24 @@ class TimingReports:
     def pulse_table(self, t0_us: float | None = None, t1_us: float | None = None) -> dict[str, np.ndarray]:
         """Every pulse as numpy columns (``cycle, channel, kind, start_us, width_us, code, pol, current_ua,
         charge_nc, voltage_code, n_outputs, output, limited``), optionally within ``[t0_us, t1_us)``."""
-        cols: dict[str, list[np.ndarray]] = {k: [] for k in (
-            "cycle", "channel", "kind", "start_ns", "width_ns", "code", "pol", "current_ua", "charge_nc",
-            "voltage_code", "n_outputs", "output", "limited")}
+        cols: dict[str, list[np.ndarray]] = {
+            k: []
+            for k in (
+                "cycle",
+                "channel",
+                "kind",
+                "start_ns",
+                "width_ns",
+                "code",
+                "pol",
+                "current_ua",
+                "charge_nc",
+                "voltage_code",
+                "n_outputs",
+                "output",
+                "limited",
+            )
+        }
         lo = None if t0_us is None else int(round(t0_us * 1000))
         hi = None if t1_us is None else int(round(t1_us * 1000))
         for r in self.runs:
@@ -538,9 +598,17 @@ class TimingReports:
             cycle = np.repeat(r.first_index + np.arange(reps), sel.size)
             cols["cycle"].append(cycle[mask])
             cols["start_ns"].append(abs_start[mask])
-            for name, arr in (("channel", p.channel), ("kind", p.kind), ("code", p.code), ("pol", p.pol),
-                              ("current_ua", p.current_ua), ("voltage_code", p.voltage_code),
-                              ("n_outputs", p.n_outputs), ("output", p.output), ("limited", p.limited)):
+            for name, arr in (
+                ("channel", p.channel),
+                ("kind", p.kind),
+                ("code", p.code),
+                ("pol", p.pol),
+                ("current_ua", p.current_ua),
+                ("voltage_code", p.voltage_code),
+                ("n_outputs", p.n_outputs),
+                ("output", p.output),
+                ("limited", p.limited),
+            ):
                 cols[name].append(np.tile(arr[sel], reps)[mask])
             w = np.tile(width[sel], reps)[mask]
             cols["width_ns"].append(w)
@@ -552,19 +620,32 @@ class TimingReports:
         out["width_us"] = out.pop("width_ns") / 1000.0
         return out
 
-    def pulses(self, t0_us: float | None = None, t1_us: float | None = None, limit: int | None = None) -> list[PulseReport]:
+    def pulses(
+        self, t0_us: float | None = None, t1_us: float | None = None, limit: int | None = None
+    ) -> list[PulseReport]:
         t = self.pulse_table(t0_us, t1_us)
         n = t["channel"].size if limit is None else min(limit, t["channel"].size)
         out = []
         outputs_of = self._outputs_lookup()
         for i in range(n):
-            out.append(PulseReport(
-                int(t["cycle"][i]), int(t["channel"][i]), PULSE_KIND_NAMES[PulseKind(int(t["kind"][i]))],
-                float(t["start_us"][i]), float(t["width_us"][i]), int(t["code"][i]), float(t["current_ua"][i]),
-                float(t["charge_nc"][i]), "anodic" if t["pol"][i] else "cathodic", int(t["voltage_code"][i]),
-                outputs_of(int(t["cycle"][i]), int(t["channel"][i]), int(t["output"][i]), int(t["n_outputs"][i])),
-                bool(t["limited"][i]),
-            ))
+            out.append(
+                PulseReport(
+                    int(t["cycle"][i]),
+                    int(t["channel"][i]),
+                    PULSE_KIND_NAMES[PulseKind(int(t["kind"][i]))],
+                    float(t["start_us"][i]),
+                    float(t["width_us"][i]),
+                    int(t["code"][i]),
+                    float(t["current_ua"][i]),
+                    float(t["charge_nc"][i]),
+                    "anodic" if t["pol"][i] else "cathodic",
+                    int(t["voltage_code"][i]),
+                    outputs_of(
+                        int(t["cycle"][i]), int(t["channel"][i]), int(t["output"][i]), int(t["n_outputs"][i])
+                    ),
+                    bool(t["limited"][i]),
+                )
+            )
         return out
 
     def _outputs_lookup(self) -> Any:
@@ -588,8 +669,16 @@ class TimingReports:
                 continue
             for j in range(r.count):
                 t = r.torn
-                out.append(TornReport(r.first_index + j, (r.start_ns + j * r.stride_ns) / 1000, t.command_host_offset,
-                                      t.new_channels, t.electrode_num - t.new_channels, t.changed_channels))
+                out.append(
+                    TornReport(
+                        r.first_index + j,
+                        (r.start_ns + j * r.stride_ns) / 1000,
+                        t.command_host_offset,
+                        t.new_channels,
+                        t.electrode_num - t.new_channels,
+                        t.changed_channels,
+                    )
+                )
         return out
 
     def overruns(self) -> list[CycleReport]:
@@ -599,9 +688,15 @@ class TimingReports:
         starts = self._starts()
         n = int(starts.size)
         over = sum(r.count for r in self.runs if r.overrun)
-        pulses = sum(r.count * int(r.template.pulses.channel.size) if r.cut_ns is None
-                     else int(np.sum(r.template.pulses.start_ns < r.cut_ns)) for r in self.runs)
-        durations = np.concatenate([np.full(r.count, r.duration_ns) for r in self.runs]) if self.runs else np.zeros(0)
+        pulses = sum(
+            r.count * int(r.template.pulses.channel.size)
+            if r.cut_ns is None
+            else int(np.sum(r.template.pulses.start_ns < r.cut_ns))
+            for r in self.runs
+        )
+        durations = (
+            np.concatenate([np.full(r.count, r.duration_ns) for r in self.runs]) if self.runs else np.zeros(0)
+        )
         lat = [c.latency_us for c in self.commands if c.latency_us is not None]
         return {
             "now_us": self._emu.now_us,
@@ -611,7 +706,9 @@ class TimingReports:
             "torn_scans": sum(r.count for r in self.runs if r.torn is not None),
             "watchdog_resets": sum(1 for r in self.runs if r.cut_ns is not None),
             "scan_us_max": float(durations.max() / 1000) if n else None,
-            "mean_rate_hz": float((n - 1) * 1e9 / (starts[-1] - starts[0])) if n > 1 and starts[-1] > starts[0] else None,
+            "mean_rate_hz": float((n - 1) * 1e9 / (starts[-1] - starts[0]))
+            if n > 1 and starts[-1] > starts[0]
+            else None,
             "commands": len(self.commands),
             "commands_out_of_step": sum(1 for c in self.commands if not c.in_sync),
             "bytes_lost": sum(lo.count for lo in self.losses),
@@ -623,7 +720,11 @@ class TimingReports:
 
     def timeline(self, engine: str = "event-exact") -> Timeline:
         starts = self._starts()
-        durs = np.concatenate([np.full(r.count, r.duration_ns, dtype=np.int64) for r in self.runs]) if self.runs else np.zeros(0, dtype=np.int64)
+        durs = (
+            np.concatenate([np.full(r.count, r.duration_ns, dtype=np.int64) for r in self.runs])
+            if self.runs
+            else np.zeros(0, dtype=np.int64)
+        )
         # every command the host meant, None until the device applied it in step
         effects: dict[int, int | None] = {off: None for off in self._emu.intended_offsets()}
         firsts: dict[int, dict[int, int]] = {}
@@ -632,8 +733,11 @@ class TimingReports:
                 continue
             effects[c.host_offset] = None if c.effect_us is None else int(round(c.effect_us * 1000))
             if c.opcode == Opcode.PATTERN:
-                firsts[c.host_offset] = {ch.channel: int(round(ch.first_pulse_us * 1000)) for ch in c.channels
-                                         if ch.first_pulse_us is not None}
+                firsts[c.host_offset] = {
+                    ch.channel: int(round(ch.first_pulse_us * 1000))
+                    for ch in c.channels
+                    if ch.first_pulse_us is not None
+                }
         return Timeline(engine, starts, durs, effects, firsts, self._emu.now_ns)
 
     def to_dict(self, pulses_limit: int = 0) -> dict[str, Any]:
@@ -647,4 +751,3 @@ class TimingReports:
         if pulses_limit:
             d["pulses"] = [asdict(p) for p in self.pulses(limit=pulses_limit)]
         return d
-

@@ -199,7 +199,9 @@ class ScanConfig:
         sense_w = check_int("sense_width_us", sense_width_us, 0, U8_MAX, "µs")
         hv = check_int("hv513_num", hv513_num, 0, U8_MAX)
         ticks = fm.alarm_ticks(fm.period_us_from_rate(rate))
-        return cls(n, pol, height, width, sense_h << SENSE_HEIGHT_SHIFT, sense_w, discharge, ticks, hv, bytes(values))
+        return cls(
+            n, pol, height, width, sense_h << SENSE_HEIGHT_SHIFT, sense_w, discharge, ticks, hv, bytes(values)
+        )
 
     def kinds(self) -> np.ndarray:
         """Per channel: 0 monophasic, 1 biphasic, 2 sense."""
@@ -255,7 +257,9 @@ def clear_clk_pulses(cfg: ScanConfig, position_before: int) -> int:
     return max(0, target - position_before)
 
 
-def scan_duration_ns(cfg: ScanConfig, model: TimingModel = DEFAULT_MODEL, position_before: int | None = None) -> int:
+def scan_duration_ns(
+    cfg: ScanConfig, model: TimingModel = DEFAULT_MODEL, position_before: int | None = None
+) -> int:
     """From the alarm to the handler's return, in closed form (identical to the step-through)."""
     costs = channel_costs(cfg, model)
     n = cfg.electrode_num
@@ -263,7 +267,11 @@ def scan_duration_ns(cfg: ScanConfig, model: TimingModel = DEFAULT_MODEL, positi
         p = cfg.pattern
         c_mono = p.count(PATTERN_MONOPHASIC)
         c_bi = p.count(PATTERN_BIPHASIC)
-        body = c_mono * costs.channel_ns(0) + c_bi * costs.channel_ns(1) + (n - c_mono - c_bi) * costs.channel_ns(2)
+        body = (
+            c_mono * costs.channel_ns(0)
+            + c_bi * costs.channel_ns(1)
+            + (n - c_mono - c_bi) * costs.channel_ns(2)
+        )
     else:
         body = 0
     pos = (n - 1) if n else (position_before or 0)
@@ -280,7 +288,12 @@ def channel_offsets_ns(cfg: ScanConfig, model: TimingModel = DEFAULT_MODEL) -> t
         return empty, empty
     cost = per[kinds]
     starts = costs.entry_ns + np.concatenate(([0], np.cumsum(cost)[:-1]))
-    lead = costs.select_ns + costs.pol_ns + model.dac_at_ns + np.where(kinds == ChannelKind.BIPHASIC, model.gpio_ns, 0)
+    lead = (
+        costs.select_ns
+        + costs.pol_ns
+        + model.dac_at_ns
+        + np.where(kinds == ChannelKind.BIPHASIC, model.gpio_ns, 0)
+    )
     return starts, starts + lead
 
 
@@ -310,7 +323,9 @@ class ScanResult:
     """One scan as the reference step-through produces it."""
 
     events: list[tuple[int, int, int]]
-    pulses: list[tuple[Any, ...]]  # rows in PulseArrays column order (outputs as a tuple in place of n/lowest)
+    pulses: list[
+        tuple[Any, ...]
+    ]  # rows in PulseArrays column order (outputs as a tuple in place of n/lowest)
     duration_ns: int
     chain_end: ChainState
     voltages: dict[int, int]
@@ -341,7 +356,9 @@ def _outputs(bits: int) -> tuple[int, ...]:
 _PH_DIN, _PH_SEL, _PH_ADC1, _PH_ADC2 = -101, -102, -103, -104
 
 
-def _block(kind: ChannelKind, cfg: ScanConfig, model: TimingModel) -> tuple[list[tuple[int, int, int]], list[tuple[int, int, int, int, int, int]], int]:
+def _block(
+    kind: ChannelKind, cfg: ScanConfig, model: TimingModel
+) -> tuple[list[tuple[int, int, int]], list[tuple[int, int, int, int, int, int]], int]:
     """One channel's events relative to its start, with placeholders for the per-channel values, its
     pulses as (phase index, kind, onset, width, code, pol, sample time) and its duration."""
     g, s, a, c = model.gpio_ns, model.spi_ns, model.dac_at_ns, model.adc_at_ns
@@ -463,7 +480,14 @@ class ScanEngine:
     # --- building ---------------------------------------------------------------------------------------
 
     def _blocks_for(self, cfg: ScanConfig) -> Any:
-        key = (cfg.polarity, cfg.pulse_height, cfg.pulse_width, cfg.sense_pulse_height, cfg.sense_pulse_width, cfg.discharge_time)
+        key = (
+            cfg.polarity,
+            cfg.pulse_height,
+            cfg.pulse_width,
+            cfg.sense_pulse_height,
+            cfg.sense_pulse_width,
+            cfg.discharge_time,
+        )
         b = self._blocks.get(key)
         if b is None:
             b = [_block(ChannelKind(k), cfg, self.model) for k in range(3)]
@@ -499,7 +523,11 @@ class ScanEngine:
         blocks = self._blocks_for(cfg)
         kinds = cfg.kinds()
         block_len = np.array([b[2] for b in blocks], dtype=np.int64)
-        starts = model.isr_entry_ns + np.concatenate(([0], np.cumsum(block_len[kinds])[:-1])) if n else np.zeros(0, dtype=np.int64)
+        starts = (
+            model.isr_entry_ns + np.concatenate(([0], np.cumsum(block_len[kinds])[:-1]))
+            if n
+            else np.zeros(0, dtype=np.int64)
+        )
         latched, chain_end, clear = self._chain_walk(cfg, chain)
         body_end = model.isr_entry_ns + int(block_len[kinds].sum()) if n else model.isr_entry_ns
         g = model.gpio_ns
@@ -531,7 +559,20 @@ class ScanEngine:
                         cache.clear()
                     cache[key] = o
                 outs, oc = o
-                rows.append((ch, pk, st + on, w, code, pol, oc.voltage_code, st + sample, len(outs), outs[0] if outs else -1))
+                rows.append(
+                    (
+                        ch,
+                        pk,
+                        st + on,
+                        w,
+                        code,
+                        pol,
+                        oc.voltage_code,
+                        st + sample,
+                        len(outs),
+                        outs[0] if outs else -1,
+                    )
+                )
                 flo.append(oc.current_ua)
                 outs_list.append(outs)
                 raws.append(oc.adc_raw)
@@ -544,11 +585,26 @@ class ScanEngine:
         a = np.array(rows, dtype=np.int64).reshape(m, 10)
         cur = np.array(flo, dtype=np.float64)
         raw = np.array(raws, dtype=np.int64)
-        pulses = PulseArrays(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4], a[:, 5], cur, cur * a[:, 3] / 1e6,
-                             a[:, 6], a[:, 7], np.array(limited, dtype=bool), a[:, 8], a[:, 9])
+        pulses = PulseArrays(
+            a[:, 0],
+            a[:, 1],
+            a[:, 2],
+            a[:, 3],
+            a[:, 4],
+            a[:, 5],
+            cur,
+            cur * a[:, 3] / 1e6,
+            a[:, 6],
+            a[:, 7],
+            np.array(limited, dtype=bool),
+            a[:, 8],
+            a[:, 9],
+        )
         tmpl = ScanTemplate(cfg, chain, chain_end, int(duration), pulses, outs_list, first, voltages, v_at)
-        tmpl._builder = lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _clear=clear, _blocks=blocks: self._events(
-            t, _raw, _latched, _starts, _kinds, _clear, _blocks
+        tmpl._builder = (
+            lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _clear=clear, _blocks=blocks: (
+                self._events(t, _raw, _latched, _starts, _kinds, _clear, _blocks)
+            )
         )
         return tmpl
 
@@ -633,7 +689,9 @@ class ScanVoltages:
     def __call__(self, emulator: Any) -> None:
         if self._engine is None:
             board = emulator.board
-            self._engine = ScanEngine(self.model, self.skin, physical_outputs(board.kind, board.switching_boards))
+            self._engine = ScanEngine(
+                self.model, self.skin, physical_outputs(board.kind, board.switching_boards)
+            )
         regs = emulator.registers
         t = self._engine.template(ScanConfig.from_registers(regs), self._chain)
         self._chain = t.chain_end

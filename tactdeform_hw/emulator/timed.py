@@ -141,11 +141,15 @@ class _HostLedger:
     intended_starts: list[int] = field(default_factory=list)
     deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)  # heap: bytes on their way in
     seq: int = 0
-    tx_deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)  # heap: replies on their way out
+    tx_deliveries: list[tuple[int, int, Delivery]] = field(
+        default_factory=list
+    )  # heap: replies on their way out
     rx: bytearray = field(default_factory=bytearray)  # replies that reached the host, unread
     dev_total: int = 0  # device stream: accepted bytes, session-wide offsets
     seg_dev: list[int] = field(default_factory=list)
-    segments: list[tuple[int, int, int, int]] = field(default_factory=list)  # (dev start, host start, length, delivered ns)
+    segments: list[tuple[int, int, int, int]] = field(
+        default_factory=list
+    )  # (dev start, host start, length, delivered ns)
 
 
 @dataclass
@@ -204,10 +208,14 @@ class TimedEmulator:
             inner = self.link
             while hasattr(inner, "inner"):
                 inner = inner.inner
-            tx_link = UartLink(inner.baud, inner.bits_per_byte) if isinstance(inner, UartLink) else UsbFsLink()
+            tx_link = (
+                UartLink(inner.baud, inner.bits_per_byte) if isinstance(inner, UartLink) else UsbFsLink()
+            )
         self.tx_link = make_link(tx_link)
         self.queue = ReceiveQueue(self.model.rx_queue_bytes)
-        self.engine = ScanEngine(self.model, self.skin, physical_outputs(self.board.kind, self.board.switching_boards))
+        self.engine = ScanEngine(
+            self.model, self.skin, physical_outputs(self.board.kind, self.board.switching_boards)
+        )
         self.now_ns = 0
         self.host = _HostLedger(decoder=StreamDecoder(self.emulator.registers.electrode_num))
         self.rec = _Records()
@@ -350,10 +358,12 @@ class TimedEmulator:
         """When the device next does something (a delivery lands, the main loop calls the parser, a reply
         reaches the host, and with ``scans`` an alarm fires); ``inf`` when nothing is scheduled.  A
         runner locked to the wall clock sleeps until then."""
-        t = min(self.host.deliveries[0][0] if self.host.deliveries else _INF,
-                self.host.tx_deliveries[0][0] if self.host.tx_deliveries else _INF,
-                self.fw.main_next if self.fw.main_next is not None else _INF,
-                self.next_alarm if scans else _INF)
+        t = min(
+            self.host.deliveries[0][0] if self.host.deliveries else _INF,
+            self.host.tx_deliveries[0][0] if self.host.tx_deliveries else _INF,
+            self.fw.main_next if self.fw.main_next is not None else _INF,
+            self.next_alarm if scans else _INF,
+        )
         return t / 1000.0
 
     @property
@@ -368,13 +378,17 @@ class TimedEmulator:
         t = _ns(before_us)
         self.rec.runs = [r for r in self.rec.runs if r.end_ns >= t]
         pending = {id(p.report) for p in self.rec.awaiting}
-        self.rec.commands = [c for c in self.rec.commands if id(c) in pending or c.effect_us is None or c.effect_us * 1000 >= t]
+        self.rec.commands = [
+            c for c in self.rec.commands if id(c) in pending or c.effect_us is None or c.effect_us * 1000 >= t
+        ]
         self.rec.tx_log = [e for e in self.rec.tx_log if e[0] * 1000 >= t]
         opened = {id(lo) for lo in self.rec.open_losses}
         self.rec.losses = [lo for lo in self.rec.losses if id(lo) in opened or lo.time_us * 1000 >= t]
         p = self.parser
         dev_keep = self.fw.parser_base + (p.cmd_offset if p.cmd is not None else p.offset)
-        keep_seg = [i for i, seg in enumerate(self.host.segments) if seg[0] + seg[2] > dev_keep or seg[3] >= t]
+        keep_seg = [
+            i for i, seg in enumerate(self.host.segments) if seg[0] + seg[2] > dev_keep or seg[3] >= t
+        ]
         if keep_seg and keep_seg[0] > 0:
             first = keep_seg[0]
             self.host.segments = self.host.segments[first:]
@@ -477,9 +491,15 @@ class TimedEmulator:
         self.next_alarm = last_reload + self.model.alarm_period_ns(regs.timer_alarm_ticks)
         if not self.stimulation:
             self.next_alarm = _INF
-        self.fw = _MainLoop(parser_base=self.host.dev_total, booting_until=start, tick_base=start,
-                            last_reload=last_reload, main_next=start, call_end_ns=start,
-                            call_dev_last=self.host.dev_total)
+        self.fw = _MainLoop(
+            parser_base=self.host.dev_total,
+            booting_until=start,
+            tick_base=start,
+            last_reload=last_reload,
+            main_next=start,
+            call_end_ns=start,
+            call_dev_last=self.host.dev_total,
+        )
         rec = self.rec
         rec.cur, rec.cur_written, rec.cur_first, rec.cur_old, rec.last_rep = None, {}, {}, b"", None
 
@@ -489,7 +509,9 @@ class TimedEmulator:
         if left:
             self._loss(t, left, self._host_of(self.fw.parser_base + self.parser.offset), "reboot")
         for pend in self.rec.awaiting:
-            pend.report.note = (pend.report.note + "; " if pend.report.note else "") + f"not felt: {reason} at {t / 1000:.1f} us"
+            pend.report.note = (
+                pend.report.note + "; " if pend.report.note else ""
+            ) + f"not felt: {reason} at {t / 1000:.1f} us"
             if pend.channels:
                 for cl in pend.channels.values():
                     cl.note = reason
@@ -497,8 +519,15 @@ class TimedEmulator:
         if self.rec.cur is not None:
             self.rec.cur.note = f"incomplete at {reason}"
         for lo in self.rec.open_losses:
-            lo.followed.append({"name": reason.upper(), "value": None, "host_offset": -1, "in_sync": False,
-                                "time_us": t / 1000})
+            lo.followed.append(
+                {
+                    "name": reason.upper(),
+                    "value": None,
+                    "host_offset": -1,
+                    "in_sync": False,
+                    "time_us": t / 1000,
+                }
+            )
         self.rec.open_losses.clear()
         self._mark(t, "reset", {"reason": reason})
         self._boot(t, boot_delay=boot_delay)
@@ -541,8 +570,14 @@ class TimedEmulator:
             self.host.segments.append((self.host.dev_total, host, took, t))
             self.host.dev_total += took
             if self.parser.locked:
-                self.hazards.append(Hazard(HazardKind.UNREAD_WHILE_LOCKED, self.host.dev_total - took - self.fw.parser_base,
-                                           {"bytes": took, "pending": len(self.queue)}, t / 1000))
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.UNREAD_WHILE_LOCKED,
+                        self.host.dev_total - took - self.fw.parser_base,
+                        {"bytes": took, "pending": len(self.queue)},
+                        t / 1000,
+                    )
+                )
         if took < len(d.data):
             self._loss(t, d.data[took:], d.host_offset + took if d.host_offset >= 0 else -1, "queue_full")
         if took and self.fw.main_wait is not None and self.fw.main_wait != _WAIT_LOCKED:
@@ -566,13 +601,26 @@ class TimedEmulator:
 
     def _loss(self, t: int, data: bytes, host_offset: int, reason: str) -> None:
         state = self.parser_status()
-        rep = LossReport(t / 1000, host_offset, len(data), bytes(data), reason, len(self.queue), state,
-                         self._cut_command(host_offset))
+        rep = LossReport(
+            t / 1000,
+            host_offset,
+            len(data),
+            bytes(data),
+            reason,
+            len(self.queue),
+            state,
+            self._cut_command(host_offset),
+        )
         self.rec.losses.append(rep)
         if reason == "queue_full":
-            self.hazards.append(Hazard(HazardKind.QUEUE_OVERFLOW, self.host.dev_total - self.fw.parser_base,
-                                       {"bytes_lost": len(data), "host_offset": host_offset, "parser": state},
-                                       t / 1000))
+            self.hazards.append(
+                Hazard(
+                    HazardKind.QUEUE_OVERFLOW,
+                    self.host.dev_total - self.fw.parser_base,
+                    {"bytes_lost": len(data), "host_offset": host_offset, "parser": state},
+                    t / 1000,
+                )
+            )
             self.rec.open_losses.append(rep)
         self._mark(t, "loss", {"bytes": len(data), "host_offset": host_offset, "reason": reason})
 
@@ -585,10 +633,22 @@ class TimedEmulator:
         start = self.host.intended_starts[i]
         op, end = self.host.intended[start]
         if host_offset >= end or host_offset == start:
-            return None if host_offset >= end else {"name": Opcode(op).name, "host_offset": start,
-                                                    "bytes_before_loss": 0, "length": end - start}
-        return {"name": Opcode(op).name, "host_offset": start, "bytes_before_loss": host_offset - start,
-                "length": end - start}
+            return (
+                None
+                if host_offset >= end
+                else {
+                    "name": Opcode(op).name,
+                    "host_offset": start,
+                    "bytes_before_loss": 0,
+                    "length": end - start,
+                }
+            )
+        return {
+            "name": Opcode(op).name,
+            "host_offset": start,
+            "bytes_before_loss": host_offset - start,
+            "length": end - start,
+        }
 
     def _meant_as_command(self, parser_offset: int) -> bool:
         """Whether the host wrote a command byte at this parser offset (a byte that did not come from the
@@ -683,9 +743,17 @@ class TimedEmulator:
             self.fw.stuck_reported = True
             self.fw.stuck_at = t
             p = self.parser
-            self.hazards.append(Hazard(HazardKind.U16_WAITING, p.offset,
-                                       {"command": Opcode(p.cmd).name if p.cmd is not None else None,
-                                        "low_byte": self.queue.buf[0] if self.queue.buf else None}, t / 1000))
+            self.hazards.append(
+                Hazard(
+                    HazardKind.U16_WAITING,
+                    p.offset,
+                    {
+                        "command": Opcode(p.cmd).name if p.cmd is not None else None,
+                        "low_byte": self.queue.buf[0] if self.queue.buf else None,
+                    },
+                    t / 1000,
+                )
+            )
 
     def _feed(self, j: int, ends: list[int], outcome: CallResult | None) -> None:
         """Hand ``j`` bytes to the parser and run one call over them (times: ``ends``)."""
@@ -710,7 +778,11 @@ class TimedEmulator:
                 first_ch, skip = 0, j
         else:
             first_ch, skip = p.count, 0
-        if self.rec.cur is not None and self.rec.cur.opcode == _PATTERN and (p.cmd == _PATTERN or (p.cmd is None and data[0] == _PATTERN)):
+        if (
+            self.rec.cur is not None
+            and self.rec.cur.opcode == _PATTERN
+            and (p.cmd == _PATTERN or (p.cmd is None and data[0] == _PATTERN))
+        ):
             for i in range(skip, j):
                 self.rec.cur_written[first_ch + i - skip] = ends[i]
         self.fw.call_end_ns = ends[-1]
@@ -719,7 +791,9 @@ class TimedEmulator:
         r = p.call()
         if p.pending and not p.locked:  # pragma: no cover - the plan hands over whole units only
             raise AssertionError(f"parser left {p.pending} byte(s) unread")
-        if outcome is not None and r is not (CallResult.PROGRESS if outcome is CallResult.STUCK_U16 else outcome):
+        if outcome is not None and r is not (
+            CallResult.PROGRESS if outcome is CallResult.STUCK_U16 else outcome
+        ):
             raise AssertionError(f"parser call {r} does not match its plan {outcome}")  # pragma: no cover
         tx = p.take_tx()
         if tx:
@@ -771,8 +845,16 @@ class TimedEmulator:
         self.rec.commands.append(rep)
         if self.fw.stuck_at is not None:
             self._late_u16(op, t)
-        self._mark(t, "command", {"name": rep.name, "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
-                                  "host_offset": rep.host_offset, "in_sync": rep.in_sync})
+        self._mark(
+            t,
+            "command",
+            {
+                "name": rep.name,
+                "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
+                "host_offset": rep.host_offset,
+                "in_sync": rep.in_sync,
+            },
+        )
         self._follow_losses(rep)
         if op == Opcode.FREQUENCY and value:
             self._retime_alarm(t)
@@ -790,13 +872,17 @@ class TimedEmulator:
                             pend.channels.pop(ch).note = "overwritten before its next pulse"
             rep.channels = sorted([*chans.values(), *felt.values()], key=lambda cl: cl.channel)
             if felt:
-                rep.first_pulse_us = min(cl.first_pulse_us for cl in felt.values() if cl.first_pulse_us is not None)
+                rep.first_pulse_us = min(
+                    cl.first_pulse_us for cl in felt.values() if cl.first_pulse_us is not None
+                )
             self.rec.awaiting.append(_Pending(rep, None, t, chans))
         elif op in _AFFECTS:
             for pend in self.rec.awaiting:
                 if pend.channels is None and pend.report.opcode == op:
                     pend.report.note = "superseded before it was felt"
-            self.rec.awaiting = [a for a in self.rec.awaiting if not (a.channels is None and a.report.opcode == op)]
+            self.rec.awaiting = [
+                a for a in self.rec.awaiting if not (a.channels is None and a.report.opcode == op)
+            ]
             self.rec.awaiting.append(_Pending(rep, _AFFECTS[op], t))
         self.rec.cur_written = {}
 
@@ -811,15 +897,31 @@ class TimedEmulator:
 
         field, stored = register_after(op, self.emulator.registers)
         rep = self.rec.last_rep
-        self.hazards.append(Hazard(HazardKind.U16_COMPLETED_LATE, rep.device_offset - self.fw.parser_base if rep else -1,
-                                   {"command": Opcode(op).name, "value": rep.value if rep else None,
-                                    "gap_us": gap / 1000, "register": field, "stored": stored}, t / 1000))
+        self.hazards.append(
+            Hazard(
+                HazardKind.U16_COMPLETED_LATE,
+                rep.device_offset - self.fw.parser_base if rep else -1,
+                {
+                    "command": Opcode(op).name,
+                    "value": rep.value if rep else None,
+                    "gap_us": gap / 1000,
+                    "register": field,
+                    "stored": stored,
+                },
+                t / 1000,
+            )
+        )
 
     def _follow_losses(self, rep: CommandReport) -> None:
         if not self.rec.open_losses:
             return
-        entry = {"name": rep.name, "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
-                 "host_offset": rep.host_offset, "in_sync": rep.in_sync, "time_us": rep.effect_us}
+        entry = {
+            "name": rep.name,
+            "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
+            "host_offset": rep.host_offset,
+            "in_sync": rep.in_sync,
+            "time_us": rep.effect_us,
+        }
         still = []
         for lo in self.rec.open_losses:
             if lo.host_offset >= 0 and 0 <= rep.host_end <= lo.host_offset:
@@ -852,7 +954,11 @@ class TimedEmulator:
             return None
         regs = self.emulator.registers
         k = min(p.count, n)
-        changed = sum(1 for i in range(k) if regs.stim_pattern[i] != (self.rec.cur_old[i] if i < len(self.rec.cur_old) else 0))
+        changed = sum(
+            1
+            for i in range(k)
+            if regs.stim_pattern[i] != (self.rec.cur_old[i] if i < len(self.rec.cur_old) else 0)
+        )
         return TornInfo(self.rec.cur.device_offset, self.rec.cur.host_offset, p.count, n, changed)
 
     def _scan(self, ta: int, target: int) -> None:
@@ -874,10 +980,19 @@ class TimedEmulator:
             for ch in range(cfg.electrode_num):
                 if tmpl.voltage_at_ns[ch] < wd:
                     v[ch] = int(tmpl.voltages[ch])
-            self.hazards.append(Hazard(HazardKind.WATCHDOG_RESET, self.parser.offset,
-                                       {"scan_us": dur / 1000, "watchdog_us": m.watchdog_us,
-                                        "electrode_num": cfg.electrode_num, "pulse_width": cfg.pulse_width},
-                                       (ta + wd) / 1000))
+            self.hazards.append(
+                Hazard(
+                    HazardKind.WATCHDOG_RESET,
+                    self.parser.offset,
+                    {
+                        "scan_us": dur / 1000,
+                        "watchdog_us": m.watchdog_us,
+                        "electrode_num": cfg.electrode_num,
+                        "pulse_width": cfg.pulse_width,
+                    },
+                    (ta + wd) / 1000,
+                )
+            )
             self._reboot(ta + wd, "watchdog", boot_delay=True)
             return
         overrun = dur > period
@@ -900,9 +1015,17 @@ class TimedEmulator:
         self._record(run)
         self._torn_hazard(run)
         if overrun:
-            detail = {"cycles": count, "first_cycle": run.first_index, "scan_us": dur / 1000,
-                      "period_us": period / 1000, "policy": m.overrun_policy, "main_loop_starved": starved}
-            self._stretch_hazard(Hazard(HazardKind.OVERRUN, self.parser.offset, detail, ta / 1000), (dur, period))
+            detail = {
+                "cycles": count,
+                "first_cycle": run.first_index,
+                "scan_us": dur / 1000,
+                "period_us": period / 1000,
+                "policy": m.overrun_policy,
+                "main_loop_starved": starved,
+            }
+            self._stretch_hazard(
+                Hazard(HazardKind.OVERRUN, self.parser.offset, detail, ta / 1000), (dur, period)
+            )
         v = regs.voltage
         for ch in range(cfg.electrode_num):
             v[ch] = int(tmpl.voltages[ch])
@@ -923,11 +1046,16 @@ class TimedEmulator:
         last = self.rec.stretch.get(hazard.kind)
         if last is not None and last[0] < len(hz) and last[1] == same:
             prev = hz[last[0]]
-            if (prev.kind == hazard.kind
-                    and prev.detail["first_cycle"] + prev.detail["cycles"] == hazard.detail["first_cycle"]):
-                hz[last[0]] = Hazard(prev.kind, prev.offset,
-                                     {**prev.detail, "cycles": prev.detail["cycles"] + hazard.detail["cycles"]},
-                                     prev.time_us)
+            if (
+                prev.kind == hazard.kind
+                and prev.detail["first_cycle"] + prev.detail["cycles"] == hazard.detail["first_cycle"]
+            ):
+                hz[last[0]] = Hazard(
+                    prev.kind,
+                    prev.offset,
+                    {**prev.detail, "cycles": prev.detail["cycles"] + hazard.detail["cycles"]},
+                    prev.time_us,
+                )
                 return
         self.rec.stretch[hazard.kind] = (len(hz), same)
         hz.append(hazard)
@@ -942,14 +1070,25 @@ class TimedEmulator:
         new = self.emulator.registers.stim_pattern
         old = self.rec.cur_old
         k = min(torn.new_channels, torn.electrode_num)
-        changed = [[ch, old[ch] if ch < len(old) else 0, new[ch]] for ch in range(k)
-                   if new[ch] != (old[ch] if ch < len(old) else 0)]
+        changed = [
+            [ch, old[ch] if ch < len(old) else 0, new[ch]]
+            for ch in range(k)
+            if new[ch] != (old[ch] if ch < len(old) else 0)
+        ]
         offset = torn.command_device_offset - self.fw.parser_base
-        detail = {"first_cycle": run.first_index, "cycles": run.count, "cycle_start_us": run.start_ns / 1000,
-                  "command_host_offset": torn.command_host_offset, "new_channels": k,
-                  "old_channels": torn.electrode_num - k, "changed": changed}
-        self._stretch_hazard(Hazard(HazardKind.TORN_PATTERN, offset, detail, run.start_ns / 1000),
-                             (offset, k, torn.electrode_num))
+        detail = {
+            "first_cycle": run.first_index,
+            "cycles": run.count,
+            "cycle_start_us": run.start_ns / 1000,
+            "command_host_offset": torn.command_host_offset,
+            "new_channels": k,
+            "old_channels": torn.electrode_num - k,
+            "changed": changed,
+        }
+        self._stretch_hazard(
+            Hazard(HazardKind.TORN_PATTERN, offset, detail, run.start_ns / 1000),
+            (offset, k, torn.electrode_num),
+        )
 
     def _record(self, run: ScanRun) -> None:
         self.rec.runs.append(run)
@@ -965,9 +1104,18 @@ class TimedEmulator:
         key = (cfg.sense_pulse_height, cfg.sense_pulse_width, chans)
         if chans and key != self.rec.sense_key:
             self.rec.sense_key = key
-            self.hazards.append(Hazard(HazardKind.SENSE_CURRENT, self.parser.offset,
-                                       {"channels": list(chans), "sense_pulse_height": cfg.sense_pulse_height,
-                                        "sense_pulse_width": cfg.sense_pulse_width}, self.next_alarm / 1000))
+            self.hazards.append(
+                Hazard(
+                    HazardKind.SENSE_CURRENT,
+                    self.parser.offset,
+                    {
+                        "channels": list(chans),
+                        "sense_pulse_height": cfg.sense_pulse_height,
+                        "sense_pulse_width": cfg.sense_pulse_width,
+                    },
+                    self.next_alarm / 1000,
+                )
+            )
 
     def _resolve(self, ta: int, tmpl: ScanTemplate, cut: int | None = None) -> None:
         """First pulses: every command waiting to be felt that this scan makes felt (and the channels of a
@@ -1005,7 +1153,10 @@ class TimedEmulator:
                 first = tmpl.first_of(pend.kinds)
                 if first is not None and (cut is None or first < cut):
                     pend.report.first_pulse_us = (ta + first) / 1000
-                elif pend.report.opcode in (Opcode.FREQUENCY, Opcode.ELECTRODE_NUM, Opcode.HV513_COUNT) and first is None:
+                elif (
+                    pend.report.opcode in (Opcode.FREQUENCY, Opcode.ELECTRODE_NUM, Opcode.HV513_COUNT)
+                    and first is None
+                ):
                     pend.report.first_pulse_us = None
                     pend.report.note = pend.report.note or f"first scan at {ta / 1000:.1f} us has no pulse"
                 else:
@@ -1070,7 +1221,6 @@ def _rate_for_ticks(ticks: int) -> int:
     raise ConfigurationError(f"no rate gives alarm_ticks={ticks}")
 
 
-
 def pattern_latency(
     cfg: ScanConfig,
     link: str | LinkModel = "usb",
@@ -1115,19 +1265,29 @@ def pattern_latency(
         if not reps:
             # never read (a starved main loop): the bytes still crossed the wire unless they were lost
             arrived = emu.arrival_us(first + len(data) - 1)
-            rows.append({"sent_us": t, "wire_us": None if arrived is None else arrived - t, "loop_wait_us": None,
-                         "scan_wait_us": None, "first_channel_us": None, "last_channel_us": None})
+            rows.append(
+                {
+                    "sent_us": t,
+                    "wire_us": None if arrived is None else arrived - t,
+                    "loop_wait_us": None,
+                    "scan_wait_us": None,
+                    "first_channel_us": None,
+                    "last_channel_us": None,
+                }
+            )
             continue
         r = reps[-1]
         last = r.last_channel_us
-        rows.append({
-            "sent_us": t,
-            "wire_us": r.wire_us,
-            "loop_wait_us": r.loop_wait_us,
-            "scan_wait_us": r.scan_wait_us,
-            "first_channel_us": r.latency_us,
-            "last_channel_us": None if last is None or r.sent_us is None else last - r.sent_us,
-        })
+        rows.append(
+            {
+                "sent_us": t,
+                "wire_us": r.wire_us,
+                "loop_wait_us": r.loop_wait_us,
+                "scan_wait_us": r.scan_wait_us,
+                "first_channel_us": r.latency_us,
+                "last_channel_us": None if last is None or r.sent_us is None else last - r.sent_us,
+            }
+        )
 
     def stats(key: str) -> dict[str, float | None]:
         vals: list[float] = [v for row in rows if (v := row[key]) is not None]
@@ -1142,7 +1302,10 @@ def pattern_latency(
         "period_us": period_us,
         "phases": phases,
         "felt": sum(1 for row in rows if row["first_channel_us"] is not None),
-        **{k: stats(k) for k in ("wire_us", "loop_wait_us", "scan_wait_us", "first_channel_us", "last_channel_us")},
+        **{
+            k: stats(k)
+            for k in ("wire_us", "loop_wait_us", "scan_wait_us", "first_channel_us", "last_channel_us")
+        },
         "runs": rows,
     }
 

@@ -108,7 +108,13 @@ def _shape(
             k += 1
         onsets.append(round(dacs[k][0] * 1000) if k < len(dacs) else 0)
         codes.append(dacs[k][1] if k < len(dacs) else 0)
-    return round(tr.isr_return_us * 1000), tuple(onsets), tuple(codes), tuple(tr.voltage), _pulse_rows(tr.events, starts)
+    return (
+        round(tr.isr_return_us * 1000),
+        tuple(onsets),
+        tuple(codes),
+        tuple(tr.voltage),
+        _pulse_rows(tr.events, starts),
+    )
 
 
 def _scan_shape(
@@ -171,7 +177,9 @@ class TimedEmulatorV2:
         self.hazards: list[Hazard] = self.emulator.hazards
         self.scans: list[ScanRecordV2] = []
         self.scan_count = 0  # scans since power-up (``scans`` may have been trimmed)
-        self.applied: list[tuple[int, int, object]] = []  # (time ns, opcode, value) when a command took effect
+        self.applied: list[
+            tuple[int, int, object]
+        ] = []  # (time ns, opcode, value) when a command took effect
         self.queue = _QueueView(self)
         self.reboots = 0
         self.replies_dropped = 0  # reply bytes to commands of a host that had gone (see new_client)
@@ -260,8 +268,11 @@ class TimedEmulatorV2:
         inf = float("inf")
         p = self.parser
         # bytes that landed are read by the parser's next call, not before
-        t = min(max(self._deliveries[0][0], self._next_call_ns) if self._deliveries else inf,
-                self._tx[0][0] if self._tx else inf, self._next_alarm_ns if scans else inf)
+        t = min(
+            max(self._deliveries[0][0], self._next_call_ns) if self._deliveries else inf,
+            self._tx[0][0] if self._tx else inf,
+            self._next_alarm_ns if scans else inf,
+        )
         if p.processing:
             if p.pending >= p.required:
                 t = min(t, self._next_call_ns)
@@ -292,8 +303,10 @@ class TimedEmulatorV2:
         if not p.processing:
             return "between commands"
         name = p.spec.command(p.command).name
-        return (f"reading {name} payload {min(p.pending, p.required)}/{p.required} (discarded if not complete "
-                f"at t={(p.command_start_us + self._timeout_us()) / 1e6:.3f} s)")
+        return (
+            f"reading {name} payload {min(p.pending, p.required)}/{p.required} (discarded if not complete "
+            f"at t={(p.command_start_us + self._timeout_us()) / 1e6:.3f} s)"
+        )
 
     def reset(self, reason: str = "reset") -> None:
         """Power-cycle the board now (registers, queue, parser to power-on; replies and bytes in flight
@@ -371,9 +384,21 @@ class TimedEmulatorV2:
             prior_scans=0,
         )
         duration, onsets, codes, volts, pulses = _scan_shape(cfg, self.conventions)
-        rec = ScanRecordV2(self.scan_count, t, duration, n, regs.stim_mode, regs.polarity, regs.pulse_width,
-                           regs.sense_pulse_height, regs.sense_pulse_width, tuple(cfg.stim_pattern), onsets, codes,
-                           pulses)
+        rec = ScanRecordV2(
+            self.scan_count,
+            t,
+            duration,
+            n,
+            regs.stim_mode,
+            regs.polarity,
+            regs.pulse_width,
+            regs.sense_pulse_height,
+            regs.sense_pulse_width,
+            tuple(cfg.stim_pattern),
+            onsets,
+            codes,
+            pulses,
+        )
         self.scans.append(rec)
         self.scan_count += 1
         self._last_alarm = t
@@ -382,8 +407,11 @@ class TimedEmulatorV2:
         self._check_sense(rec)
         period = self._period_ns()
         if duration > period:
-            self.hazards.append(Hazard(HazardKind.OVERRUN, -1, {"scan_us": duration / 1000, "period_us": period / 1000},
-                                       t / 1000))
+            self.hazards.append(
+                Hazard(
+                    HazardKind.OVERRUN, -1, {"scan_us": duration / 1000, "period_us": period / 1000}, t / 1000
+                )
+            )
             self._next_alarm_ns = end
         else:
             self._next_alarm_ns = t + period
@@ -393,15 +421,30 @@ class TimedEmulatorV2:
     def _check_sense(self, rec: ScanRecordV2) -> None:
         live_zero = rec.stim_mode == 2 and rec.sense_pulse_height > 0 and any(h == 0 for h in rec.heights)
         if live_zero and not self._last_sense_hazard:
-            self.hazards.append(Hazard(
-                HazardKind.MODE_SENSE_ALL, -1,
-                {"scan": rec.index, "channels": [ch for ch, h in enumerate(rec.heights) if h == 0],
-                 "sense_code": rec.sense_pulse_height, "sense_width_us": rec.sense_pulse_width},
-                rec.start_ns / 1000))
+            self.hazards.append(
+                Hazard(
+                    HazardKind.MODE_SENSE_ALL,
+                    -1,
+                    {
+                        "scan": rec.index,
+                        "channels": [ch for ch, h in enumerate(rec.heights) if h == 0],
+                        "sense_code": rec.sense_pulse_height,
+                        "sense_width_us": rec.sense_pulse_width,
+                    },
+                    rec.start_ns / 1000,
+                )
+            )
         self._last_sense_hazard = live_zero
 
-    _SCAN_FIELDS = ("electrode_num", "polarity", "stim_mode", "pulse_width", "sense_pulse_height",
-                    "sense_pulse_width", "discharge_time")
+    _SCAN_FIELDS = (
+        "electrode_num",
+        "polarity",
+        "stim_mode",
+        "pulse_width",
+        "sense_pulse_height",
+        "sense_pulse_width",
+        "discharge_time",
+    )
 
     def _main_call(self, t: int) -> None:
         parser = self.emulator.parser
@@ -428,9 +471,16 @@ class TimedEmulatorV2:
         if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
             end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
         tx = parser.take_tx()
-        if tx and self._reply_offset is not None and self._clients and self._reply_offset < self._clients[-1][0]:
-            self.replies_dropped += len(tx)  # asked by a host that has gone: the firmware writes to the new one's
-            tx = b""                          # socket only what the new one asked (see new_client)
+        if (
+            tx
+            and self._reply_offset is not None
+            and self._clients
+            and self._reply_offset < self._clients[-1][0]
+        ):
+            self.replies_dropped += len(
+                tx
+            )  # asked by a host that has gone: the firmware writes to the new one's
+            tx = b""  # socket only what the new one asked (see new_client)
         if tx:
             if self.tx_link is None:
                 self._tx.append((end, tx))
@@ -444,7 +494,9 @@ class TimedEmulatorV2:
         else:
             self._next_call_ns = end
 
-    def _preempt(self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]) -> int:
+    def _preempt(
+        self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
+    ) -> int:
         """The scan interrupt fires while this call applies a command: the scan sees the registers as
         the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
         old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
@@ -459,10 +511,19 @@ class TimedEmulatorV2:
             k = max(0, min(n, (alarm - start) // width)) if width else n
             regs.stim_pattern[:] = new[:k] + old[k:]
             if 0 < k < n and new[k:n] != old[k:n]:
-                self.hazards.append(Hazard(
-                    HazardKind.TORN_PATTERN, -1,
-                    {"scan": len(self.scans), "new_channels": k, "channels": n,
-                     "old_rest": old[k:n] != new[k:n]}, alarm / 1000))
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.TORN_PATTERN,
+                        -1,
+                        {
+                            "scan": len(self.scans),
+                            "new_channels": k,
+                            "channels": n,
+                            "old_rest": old[k:n] != new[k:n],
+                        },
+                        alarm / 1000,
+                    )
+                )
         else:
             for f, v in before.items():
                 setattr(regs, f, v)
@@ -499,16 +560,28 @@ class TimedEmulatorV2:
                 old = bytes((op,)) + bytes(rx[max(offset + 1, base) - base : start - base])
                 new = bytes(rx[start - base : end - base])
                 previous = self._clients[k - 1][1] if k else "the previous host"
-                self.hazards.append(Hazard(
-                    HazardKind.INHERITED_COMMAND, offset,
-                    {"command": p.spec.command(op).name, "cut_by": previous, "cut_bytes": old.hex(" "),
-                     "completed_by": name, "completing_bytes": new.hex(" "), "stored": value},
-                    self._call_time_ns / 1000))
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.INHERITED_COMMAND,
+                        offset,
+                        {
+                            "command": p.spec.command(op).name,
+                            "cut_by": previous,
+                            "cut_bytes": old.hex(" "),
+                            "completed_by": name,
+                            "completing_bytes": new.hex(" "),
+                            "stored": value,
+                        },
+                        self._call_time_ns / 1000,
+                    )
+                )
                 return
 
     # --- reports: what the board delivered --------------------------------------------------------------
 
-    def delivered(self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0) -> list[dict[str, Any]]:
+    def delivered(
+        self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0
+    ) -> list[dict[str, Any]]:
         """Every pulse the scans delivered from ``since_us`` on: time, channel, DAC code, current, width,
         charge, polarity (anodic / cathodic)."""
         out: list[dict[str, Any]] = []
@@ -518,12 +591,23 @@ class TimedEmulatorV2:
                 continue
             for ch, onset, code, width, pol in s.pulses:
                 ua = transfer.to_ua(code)
-                out.append({"scan": s.index, "t_us": (s.start_ns + onset) / 1000, "channel": ch, "code": code,
-                            "current_ua": ua, "width_us": width / 1000, "charge_nc": ua * width / 1e6,
-                            "polarity": "anodic" if pol else "cathodic"})
+                out.append(
+                    {
+                        "scan": s.index,
+                        "t_us": (s.start_ns + onset) / 1000,
+                        "channel": ch,
+                        "code": code,
+                        "current_ua": ua,
+                        "width_us": width / 1000,
+                        "charge_nc": ua * width / 1e6,
+                        "polarity": "anodic" if pol else "cathodic",
+                    }
+                )
         return out
 
-    def peak_current_ua(self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0) -> dict[int, float]:
+    def peak_current_ua(
+        self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0
+    ) -> dict[int, float]:
         """The highest current each channel received (channels that received none are absent)."""
         peak: dict[int, float] = {}
         for row in self.delivered(transfer, since_us):
@@ -560,8 +644,14 @@ def pattern_in_force_v2(
     n = len(heights)
     if n == 0:
         raise ConfigurationError("pattern_in_force_v2 needs at least one electrode")
-    setup = (encode_electrode_num(n) + encode_stim_mode(0) + encode_pulse_width(pulse_width_us)
-             + encode_discharge(discharge_us) + encode_frequency(rate_hz) + encode_pattern([0] * n))
+    setup = (
+        encode_electrode_num(n)
+        + encode_stim_mode(0)
+        + encode_pulse_width(pulse_width_us)
+        + encode_discharge(discharge_us)
+        + encode_frequency(rate_hz)
+        + encode_pattern([0] * n)
+    )
     new = encode_pattern(heights)
     rows: list[dict[str, float]] = []
     for i in range(phases):
@@ -578,15 +668,23 @@ def pattern_in_force_v2(
             raise ConfigurationError("the pattern was never applied")
         ta = applied[0]
         scan = next(s for s in emu.scans if s.start_ns >= ta)
-        rows.append({
-            "applied_us": (ta - t0 * 1000) / 1000,
-            "first_channel_us": (scan.start_ns + scan.onset_ns[0] - t0 * 1000) / 1000,
-            "last_channel_us": (scan.start_ns + scan.onset_ns[-1] - t0 * 1000) / 1000,
-        })
+        rows.append(
+            {
+                "applied_us": (ta - t0 * 1000) / 1000,
+                "first_channel_us": (scan.start_ns + scan.onset_ns[0] - t0 * 1000) / 1000,
+                "last_channel_us": (scan.start_ns + scan.onset_ns[-1] - t0 * 1000) / 1000,
+            }
+        )
 
     def stats(key: str) -> dict[str, float]:
         vals = [r[key] for r in rows]
         return {"min": min(vals), "mean": sum(vals) / len(vals), "max": max(vals)}
 
-    return {"firmware": "v2", "link": link, "chunking": chunking, "phases": phases, "electrodes": n,
-            **{k: stats(k) for k in ("applied_us", "first_channel_us", "last_channel_us")}}
+    return {
+        "firmware": "v2",
+        "link": link,
+        "chunking": chunking,
+        "phases": phases,
+        "electrodes": n,
+        **{k: stats(k) for k in ("applied_us", "first_channel_us", "last_channel_us")},
+    }

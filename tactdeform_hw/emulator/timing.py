@@ -52,18 +52,34 @@ class TimingModel:
 
     # --- the scan interrupt -------------------------------------------------------------------------------
     spi_exchange_us: float = _f(_FW.spi_exchange_us, "µs", "firmware comment", "one DAC/ADC SPI exchange")
-    dac_change_at_us: float = _f(_FW.dac_change_at_us, "µs", "firmware comment", "when the DAC output changes within an exchange")
+    dac_change_at_us: float = _f(
+        _FW.dac_change_at_us, "µs", "firmware comment", "when the DAC output changes within an exchange"
+    )
     adc_sample_at_us: float = _f(
         0.0, "µs", "assumption", "when the ADC samples within the exchange that returns the reading"
     )
-    gpio_write_us: float = _f(_FW.gpio_write_us, "µs", "assumption", "one fast GPIO write (LE, DIN, CLK, POL, BL)")
-    isr_entry_us: float = _f(_FW.isr_entry_us, "µs", "assumption", "from the timer alarm to the first statement of the handler")
-    isr_exit_us: float = _f(0.0, "µs", "assumption", "from the handler's last statement to the alarm re-enable")
-    pulse_wait_offset_us: int = _f(_FW.pulse_wait_offset_us, "µs", "firmware", "monophasic: busy-wait w - 7 µs only if w >= 7")
-    discharge_wait_offset_us: int = _f(_FW.discharge_wait_offset_us, "µs", "firmware", "discharge: busy-wait d - 7 µs only if d > 7")
+    gpio_write_us: float = _f(
+        _FW.gpio_write_us, "µs", "assumption", "one fast GPIO write (LE, DIN, CLK, POL, BL)"
+    )
+    isr_entry_us: float = _f(
+        _FW.isr_entry_us, "µs", "assumption", "from the timer alarm to the first statement of the handler"
+    )
+    isr_exit_us: float = _f(
+        0.0, "µs", "assumption", "from the handler's last statement to the alarm re-enable"
+    )
+    pulse_wait_offset_us: int = _f(
+        _FW.pulse_wait_offset_us, "µs", "firmware", "monophasic: busy-wait w - 7 µs only if w >= 7"
+    )
+    discharge_wait_offset_us: int = _f(
+        _FW.discharge_wait_offset_us, "µs", "firmware", "discharge: busy-wait d - 7 µs only if d > 7"
+    )
     delay_min_us: int = _f(_FW.delay_min_us, "µs", "firmware", "delay(us) raises us below this to this")
-    delay_ticks_per_us: float = _f(_FW.delay_ticks_per_us, "ticks/µs", "firmware", "delay target = int(us * this - offset)")
-    delay_offset_ticks: float = _f(_FW.delay_offset_ticks, "ticks", "firmware", "delay target = int(us * scale - this)")
+    delay_ticks_per_us: float = _f(
+        _FW.delay_ticks_per_us, "ticks/µs", "firmware", "delay target = int(us * this - offset)"
+    )
+    delay_offset_ticks: float = _f(
+        _FW.delay_offset_ticks, "ticks", "firmware", "delay target = int(us * scale - this)"
+    )
     timer_tick_us: float = _f(
         _FW.timer_tick_us, "µs", "platform", "stimulation timer tick: 80 MHz APB / 40 = 2 MHz"
     )
@@ -75,12 +91,22 @@ class TimingModel:
     timer_start_us: float = _f(0.0, "µs", "assumption", "from boot to the stimulation timer's start")
 
     # --- the main loop and the parser ---------------------------------------------------------------------
-    rtos_tick_us: float = _f(_FW.rtos_tick_us, "µs", "platform", "FreeRTOS tick (1 kHz); vTaskDelay(1) waits for the next")
+    rtos_tick_us: float = _f(
+        _FW.rtos_tick_us, "µs", "platform", "FreeRTOS tick (1 kHz); vTaskDelay(1) waits for the next"
+    )
     tick_phase_us: float = _f(0.0, "µs", "assumption", "first RTOS tick after boot, modulo the tick period")
-    parser_call_us: float = _f(_FW.parser_call_us, "µs", "assumption", "one parser call's overhead (Serial.available() and the loop)")
-    parser_byte_us: float = _f(_FW.parser_byte_us, "µs", "assumption", "reading one byte from the receive queue")
-    hv513_detect_us: float = _f(_FW.hv513_detect_us, "µs", "assumption", "0xF5: 50 analogRead() calls to count the boards")
-    rx_queue_bytes: int = _f(V1_2.rx_queue_bytes, "bytes", "firmware", "receive queue; the rest of a packet is discarded")
+    parser_call_us: float = _f(
+        _FW.parser_call_us, "µs", "assumption", "one parser call's overhead (Serial.available() and the loop)"
+    )
+    parser_byte_us: float = _f(
+        _FW.parser_byte_us, "µs", "assumption", "reading one byte from the receive queue"
+    )
+    hv513_detect_us: float = _f(
+        _FW.hv513_detect_us, "µs", "assumption", "0xF5: 50 analogRead() calls to count the boards"
+    )
+    rx_queue_bytes: int = _f(
+        V1_2.rx_queue_bytes, "bytes", "firmware", "receive queue; the rest of a packet is discarded"
+    )
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -91,7 +117,12 @@ class TimingModel:
                 continue
             if f.name == "watchdog_us" and value is None:
                 continue
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, (int, float))
+                or not math.isfinite(value)
+                or value < 0
+            ):
                 raise LimitError(f.name, value, "a finite number >= 0")
         if self.timer_tick_us <= 0:
             raise LimitError("timer_tick_us", self.timer_tick_us, "a positive number")

@@ -147,7 +147,9 @@ class CsvSink(TraceSink):
         self._w.writerow([t_ns, f"{t_ns / 1000:.3f}", "signal", SIGNAL_NAMES[Signal(sig)], value])
 
     def _marker(self, t_ns: int, kind: str, detail: dict[str, Any]) -> None:
-        self._w.writerow([t_ns, f"{t_ns / 1000:.3f}", kind, detail.get("name", ""), json.dumps(detail, default=str)])
+        self._w.writerow(
+            [t_ns, f"{t_ns / 1000:.3f}", kind, detail.get("name", ""), json.dumps(detail, default=str)]
+        )
 
     def _finish(self) -> None:
         if self._own:
@@ -170,10 +172,20 @@ class JsonSink(TraceSink):
         self._first = False
 
     def _signal(self, t_ns: int, sig: int, value: int) -> None:
-        self._write({"t_ns": t_ns, "t_us": t_ns / 1000, "kind": "signal", "name": SIGNAL_NAMES[Signal(sig)], "value": value})
+        self._write(
+            {
+                "t_ns": t_ns,
+                "t_us": t_ns / 1000,
+                "kind": "signal",
+                "name": SIGNAL_NAMES[Signal(sig)],
+                "value": value,
+            }
+        )
 
     def _marker(self, t_ns: int, kind: str, detail: dict[str, Any]) -> None:
-        self._write({"t_ns": t_ns, "t_us": t_ns / 1000, "kind": kind, "name": detail.get("name", ""), "value": detail})
+        self._write(
+            {"t_ns": t_ns, "t_us": t_ns / 1000, "kind": kind, "name": detail.get("name", ""), "value": detail}
+        )
 
     def _finish(self) -> None:
         self._f.write("\n]\n")
@@ -231,7 +243,9 @@ def open_trace(path: str | Path) -> TraceSink:
     suffix = Path(path).suffix.lower()
     cls = TRACE_FORMATS.get(suffix)
     if cls is None:
-        raise ConfigurationError(f"trace file {str(path)!r}: unknown suffix {suffix!r}; use .vcd, .csv or .json")
+        raise ConfigurationError(
+            f"trace file {str(path)!r}: unknown suffix {suffix!r}; use .vcd, .csv or .json"
+        )
     return cls(path)
 
 

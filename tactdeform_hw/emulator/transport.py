@@ -28,7 +28,9 @@ SpyFn = Callable[[str, bytes, float], None]
 class EmulatorPort(PortBase):
     instant = True  # every byte is parsed the moment it is written
 
-    def __init__(self, emulator: Emulator | None = None, *, timeout: float | None = 0.5, spy: SpyFn | None = None) -> None:
+    def __init__(
+        self, emulator: Emulator | None = None, *, timeout: float | None = 0.5, spy: SpyFn | None = None
+    ) -> None:
         self.emulator = emulator if emulator is not None else Emulator()
         self.timeout = timeout
         self.write_timeout: float | None = None
@@ -89,4 +91,3 @@ class EmulatorPort(PortBase):
     def reset_input_buffer(self) -> None:
         self._check_open()
         self._rx.clear()
-

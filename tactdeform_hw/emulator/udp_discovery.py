@@ -35,8 +35,10 @@ def device_id_from_mac(mac: bytes) -> str:
 def reply_for(device_id: str, ip: str, *, tcp_port: int = TCP_PORT, mode: str = "AP") -> bytes:
     if mode not in ("STA", "AP"):
         raise ConfigurationError(f"mode={mode!r} is not STA or AP")
-    return (f"ETK!;id={device_id};name=etactilekit-{device_id};ip={ip};port={tcp_port};mode={mode};"
-            f"fw={FIRMWARE_FIELD}").encode("ascii")
+    return (
+        f"ETK!;id={device_id};name=etactilekit-{device_id};ip={ip};port={tcp_port};mode={mode};"
+        f"fw={FIRMWARE_FIELD}"
+    ).encode("ascii")
 
 
 class DiscoveryResponder:

@@ -262,7 +262,11 @@ class EmulatedUsbDevice:
         self.kernel_driver_supported = kernel_driver is not None
         self.access_denied = access_denied
         self._start_configured = configured
-        cdc = [i.bInterfaceNumber for i in self.interfaces if i.bInterfaceClass in (CLASS_CDC_COMM, CLASS_CDC_DATA)]
+        cdc = [
+            i.bInterfaceNumber
+            for i in self.interfaces
+            if i.bInterfaceClass in (CLASS_CDC_COMM, CLASS_CDC_DATA)
+        ]
         self._kernel_default = set(cdc) if kernel_driver else set()
         # bus state (set when plugged)
         self.backend: EmulatedUsbBackend | None = None
@@ -551,7 +555,9 @@ class EmulatedUsbBackend:
             raise IndexError(f"Invalid configuration index {config}")
         return dev.configuration_descriptor()
 
-    def get_interface_descriptor(self, dev: EmulatedUsbDevice, intf: int, alt: int, config: int) -> InterfaceDescriptor:
+    def get_interface_descriptor(
+        self, dev: EmulatedUsbDevice, intf: int, alt: int, config: int
+    ) -> InterfaceDescriptor:
         cfg = self.get_configuration_descriptor(dev, config)
         numbers = sorted({i.bInterfaceNumber for i in cfg.interfaces})
         if not 0 <= intf < len(numbers):
@@ -561,7 +567,9 @@ class EmulatedUsbBackend:
             raise IndexError(f"Invalid alternate setting index {alt}")
         return alts[alt]
 
-    def get_endpoint_descriptor(self, dev: EmulatedUsbDevice, ep: int, intf: int, alt: int, config: int) -> EndpointDescriptor:
+    def get_endpoint_descriptor(
+        self, dev: EmulatedUsbDevice, ep: int, intf: int, alt: int, config: int
+    ) -> EndpointDescriptor:
         i = self.get_interface_descriptor(dev, intf, alt, config)
         if not 0 <= ep < len(i.endpoints):
             raise IndexError(f"Invalid endpoint index {ep}")
@@ -767,7 +775,9 @@ class EmulatedUsbBackend:
             d.control_log.append((bmRequestType, bRequest, wValue, wIndex, payload))
             if bmRequestType == 0x80 and bRequest == REQ_GET_DESCRIPTOR and wValue >> 8 == DESC_STRING:
                 return self._string(d, wValue & 0xFF, data)
-            comm = next((i.bInterfaceNumber for i in d.interfaces if i.bInterfaceClass == CLASS_CDC_COMM), None)
+            comm = next(
+                (i.bInterfaceNumber for i in d.interfaces if i.bInterfaceClass == CLASS_CDC_COMM), None
+            )
             if bmRequestType in (0x21, 0xA1) and wIndex == comm:
                 if bmRequestType == 0x21 and bRequest == CDC_SET_LINE_CODING and len(payload) == 7:
                     d.line_coding = payload
@@ -812,7 +822,9 @@ def backend_from_name(name: str) -> EmulatedUsbBackend:
     opts: dict[str, str] = {}
     for option, values in urlparse.parse_qs(query, keep_blank_values=True).items():
         if option not in _OPTIONS:
-            raise ConfigurationError(f"device={name!r}: unknown option {option!r} (known: {', '.join(_OPTIONS)})")
+            raise ConfigurationError(
+                f"device={name!r}: unknown option {option!r} (known: {', '.join(_OPTIONS)})"
+            )
         opts[option] = values[-1]
     try:
         switching = int(opts.get("switching_boards", "1"))
@@ -820,7 +832,10 @@ def backend_from_name(name: str) -> EmulatedUsbBackend:
         raise ConfigurationError(f"device={name!r}: switching_boards must be an integer") from exc
     kernel = opts.get("kernel_driver", "1") not in ("0", "no", "false")
     device = EmulatedUsbDevice(
-        opts.get("board", "compact"), switching, serial_number=opts.get("serial", "F4:12:FA:C0:FF:EE"), kernel_driver=kernel
+        opts.get("board", "compact"),
+        switching,
+        serial_number=opts.get("serial", "F4:12:FA:C0:FF:EE"),
+        kernel_driver=kernel,
     )
     return EmulatedUsbBackend([device])
 

@@ -91,9 +91,14 @@ class CalibrationProfile:
         d: dict[str, Any] = {"format": FORMAT, "version": VERSION}
         if self.created_at is not None:
             d["created_at"] = self.created_at
-        d["layout"] = {"name": self.layout_name, "slug": self.layout_slug, "electrode_count": self.electrode_count}
+        d["layout"] = {
+            "name": self.layout_name,
+            "slug": self.layout_slug,
+            "electrode_count": self.electrode_count,
+        }
         d["electrodes"] = [
-            {"id": e.id, "label": e.label, "mapping": e.mapping, "intensity": e.intensity} for e in self._by_id()
+            {"id": e.id, "label": e.label, "mapping": e.mapping, "intensity": e.intensity}
+            for e in self._by_id()
         ]
         return d
 
@@ -143,7 +148,9 @@ def calibration_from_dict(
     if data.get("format") != FORMAT:
         raise _fail(source, "format", f"{data.get('format')!r} is not {FORMAT!r}")
     if data.get("version") != VERSION:
-        raise _fail(source, "version", f"{data.get('version')!r}: this package reads version {VERSION!r} only")
+        raise _fail(
+            source, "version", f"{data.get('version')!r}: this package reads version {VERSION!r} only"
+        )
     _keys(source, "", data, _TOP_KEYS)
     created = data.get("created_at")
     if created is not None:
@@ -156,13 +163,21 @@ def calibration_from_dict(
     if isinstance(count, bool) or not isinstance(count, int) or count <= 0:
         raise _fail(source, "layout.electrode_count", f"{count!r}: Profile has no layout / electrode_count.")
     if count > MAX_ELECTRODES:
-        raise _fail(source, "layout.electrode_count", f"{count} is out of range: 1 to {MAX_ELECTRODES} (the wire's count)")
+        raise _fail(
+            source,
+            "layout.electrode_count",
+            f"{count} is out of range: 1 to {MAX_ELECTRODES} (the wire's count)",
+        )
     name = _text(source, "layout.name", layout.get("name"), required=False)
     slug = _text(source, "layout.slug", layout.get("slug"), required=False)
     items = data.get("electrodes")
     if not isinstance(items, list) or len(items) != count:
         have = len(items) if isinstance(items, list) else 0
-        raise _fail(source, "electrodes", f"electrodes array length ({have}) does not match electrode_count ({count}).")
+        raise _fail(
+            source,
+            "electrodes",
+            f"electrodes array length ({have}) does not match electrode_count ({count}).",
+        )
     limit = _code_limit(transfer)
     seen_mapping = [False] * count
     seen_id: dict[int, int] = {}
@@ -180,17 +195,33 @@ def calibration_from_dict(
             raise _fail(source, f"{where}.id", f"Electrode id {eid} is out of range [0, {count - 1}].")
         mapping = _int(source, f"{where}.mapping", item["mapping"])
         if not 0 <= mapping < count:
-            raise _fail(source, f"{where}.mapping", f"Electrode {eid} mapping {mapping} is out of range [0, {count - 1}].")
+            raise _fail(
+                source,
+                f"{where}.mapping",
+                f"Electrode {eid} mapping {mapping} is out of range [0, {count - 1}].",
+            )
         if seen_mapping[mapping]:
-            raise _fail(source, f"{where}.mapping", f"Duplicate hardware mapping {mapping}; mapping must be a permutation.")
+            raise _fail(
+                source,
+                f"{where}.mapping",
+                f"Duplicate hardware mapping {mapping}; mapping must be a permutation.",
+            )
         seen_mapping[mapping] = True
         if eid in seen_id:
-            raise _fail(source, f"{where}.id", f"electrode id {eid} also at electrodes[{seen_id[eid]}]; ids must be unique")
+            raise _fail(
+                source,
+                f"{where}.id",
+                f"electrode id {eid} also at electrodes[{seen_id[eid]}]; ids must be unique",
+            )
         seen_id[eid] = k
         intensity = _int(source, f"{where}.intensity", item["intensity"])
         if not 0 <= intensity <= limit:
-            raise _fail(source, f"{where}.intensity", f"{intensity} is out of range: 0 to {limit} "
-                        f"(DAC code; the {transfer.max_current_ua} µA ceiling under the board's transfer)")
+            raise _fail(
+                source,
+                f"{where}.intensity",
+                f"{intensity} is out of range: 0 to {limit} "
+                f"(DAC code; the {transfer.max_current_ua} µA ceiling under the board's transfer)",
+            )
         label = _text(source, f"{where}.label", item.get("label"), required=False)
         out.append(CalibrationElectrode(eid, label, mapping, intensity))
     return CalibrationProfile(name, slug, tuple(out), created, source)
@@ -259,8 +290,11 @@ def save_calibration_profile(profile: CalibrationProfile, path: str | os.PathLik
 def _check_regions(region_of: Sequence[int], count: int, source: str) -> list[int]:
     regions = [int(r) for r in region_of]
     if len(regions) != count:
-        raise _fail(source, "layout.electrode_count",
-                    f"{count} electrodes, but the array has {len(regions)}: the profile is for another layout")
+        raise _fail(
+            source,
+            "layout.electrode_count",
+            f"{count} electrodes, but the array has {len(regions)}: the profile is for another layout",
+        )
     for i, r in enumerate(regions):
         if not 0 <= r < REGION_COUNT:
             raise LimitError(f"region_of[{i}]", r, f"0 to {REGION_COUNT - 1}")
@@ -291,7 +325,9 @@ def to_participant(
     regions_ua = tuple(min(v) if v else 0 for v in per_region)
     if calibrated_on is None:
         calibrated_on = _date_of(profile.created_at) or _dt.date.today()
-    name = participant or (_SLUG_RE.sub("-", profile.layout_slug or profile.layout_name).strip("-")[:64] or "etactilekit")
+    name = participant or (
+        _SLUG_RE.sub("-", profile.layout_slug or profile.layout_name).strip("-")[:64] or "etactilekit"
+    )
     return ParticipantProfile(
         participant=name,
         cap_ua=max(currents) if currents else 0,
@@ -331,7 +367,12 @@ def from_participant(
     regions = _check_regions(region_of, count, profile.source)
     chans = list(range(count)) if mapping is None else [int(c) for c in mapping]
     electrodes = tuple(
-        CalibrationElectrode(i, f"E{i}", chans[i], transfer.to_code(profile.regions_ua[regions[i]], f"regions_ua[{regions[i]}]"))
+        CalibrationElectrode(
+            i,
+            f"E{i}",
+            chans[i],
+            transfer.to_code(profile.regions_ua[regions[i]], f"regions_ua[{regions[i]}]"),
+        )
         for i in range(count)
     )
     if created_at is None:
@@ -351,5 +392,7 @@ def load_participant_or_calibration(
     if p.suffix.lower() == ".json":
         data = read_json_file(p)
         if is_calibration_profile(data):
-            return to_participant(calibration_from_dict(data, str(p), transfer=transfer), region_of, transfer=transfer)
+            return to_participant(
+                calibration_from_dict(data, str(p), transfer=transfer), region_of, transfer=transfer
+            )
     return load_profile(p)

@@ -198,12 +198,15 @@ class ArrayFile:
         from ..device.regions import region_map_from_positions
 
         return region_map_from_positions(
-            [(float(x), float(y)) for x, y in self.array.positions_mm], f"array file {self.source or self.array.name}"
+            [(float(x), float(y)) for x, y in self.array.positions_mm],
+            f"array file {self.source or self.array.name}",
         )
 
     def hardware_regions(self, region_of: Sequence[int]) -> dict[int, tuple[int, int]]:
         """Hardware channel → (electrode, region) for the regions ``region_of`` gives each electrode."""
-        return {int(ch): (i, int(region_of[i])) for i, ch in enumerate(self.array.channel_mapping().app_to_hw)}
+        return {
+            int(ch): (i, int(region_of[i])) for i, ch in enumerate(self.array.channel_mapping().app_to_hw)
+        }
 
     def levels_for(self, pattern: Sequence[int], where: str = "pattern") -> tuple[int, ...]:
         """This array's levels out of one step of a pattern file.

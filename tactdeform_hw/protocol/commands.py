@@ -120,7 +120,9 @@ def compiled(opcode: int) -> cs.Construct:
     return fmt
 
 
-def build(opcode: int, value: Any = None, *, electrode_num: int | None = None, use_compiled: bool = False) -> bytes:
+def build(
+    opcode: int, value: Any = None, *, electrode_num: int | None = None, use_compiled: bool = False
+) -> bytes:
     """Build one command with construct (the reference encoder; the ``encode_*`` functions are faster)."""
     op = Opcode(opcode)
     fmt = compiled(op) if use_compiled else FORMATS[op]

@@ -124,7 +124,9 @@ def compiled(opcode: int) -> cs.Construct:
     return fmt
 
 
-def build(opcode: int, value: Any = None, *, electrode_num: int | None = None, use_compiled: bool = False) -> bytes:
+def build(
+    opcode: int, value: Any = None, *, electrode_num: int | None = None, use_compiled: bool = False
+) -> bytes:
     """Build one v2 command with construct (the reference the ``encode_*`` functions are held to)."""
     op = OpcodeV2(opcode)
     fmt = compiled(op) if use_compiled else FORMATS[op]

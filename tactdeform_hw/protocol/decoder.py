@@ -96,7 +96,12 @@ class StreamDecoder:
             self._buf += data
             return []
         self._buf += data
-        reading = read_commands(bytes(self._buf), firmware=self.firmware, state=ParserState(self.electrode_num), offset=self._offset)
+        reading = read_commands(
+            bytes(self._buf),
+            firmware=self.firmware,
+            state=ParserState(self.electrode_num),
+            offset=self._offset,
+        )
         out: list[DecodedCommand] = []
         consumed = 0
         by_op = self.firmware.by_opcode
@@ -119,7 +124,10 @@ class StreamDecoder:
                     value = c.payload if width == 1 else c.levels
                     if width > 1:
                         # v2: any byte is a valid half of a height; a height above the clamp is the sign
-                        raw = tuple(int.from_bytes(c.payload[i : i + width], "little") for i in range(0, len(c.payload), width))
+                        raw = tuple(
+                            int.from_bytes(c.payload[i : i + width], "little")
+                            for i in range(0, len(c.payload), width)
+                        )
                         if c.levels is not None and raw != tuple(c.levels):
                             note = "pattern holds a height above the firmware's clamp: an earlier command was probably cut short"
                     elif c.payload and max(c.payload) >= self._cmin:
@@ -153,12 +161,18 @@ class StreamDecoder:
 def _num_after(num: int, items: list[DecodedCommand], fw: FirmwareSpec) -> int:
     """The electrode count in force after ``items`` (the last complete electrode-count command)."""
     for item in reversed(items):
-        if item.opcode is not None and item.status == OK and fw.by_opcode[item.opcode].register == "electrode_num":
+        if (
+            item.opcode is not None
+            and item.status == OK
+            and fw.by_opcode[item.opcode].register == "electrode_num"
+        ):
             return item.stored if item.stored is not None else num
     return num
 
 
-def decode(data: bytes, electrode_num: int = 0, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> list[DecodedCommand]:
+def decode(
+    data: bytes, electrode_num: int = 0, firmware: FirmwareSpec = DEFAULT_FIRMWARE
+) -> list[DecodedCommand]:
     """Decode a whole capture, the open end included."""
     dec = StreamDecoder(electrode_num, firmware)
     return dec.feed(data) + dec.finish()

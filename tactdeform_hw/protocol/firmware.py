@@ -223,7 +223,11 @@ class FirmwareSpec:
     @property
     def payload_size(self) -> dict[int, int]:
         """opcode → fixed payload bytes (patterns, whose size depends on the electrode count, absent)."""
-        return {op: KIND_SIZE.get(c.kind, 0) if c.kind else 0 for op, c in self.by_opcode.items() if c.kind != "pattern"}
+        return {
+            op: KIND_SIZE.get(c.kind, 0) if c.kind else 0
+            for op, c in self.by_opcode.items()
+            if c.kind != "pattern"
+        }
 
     def size_of(self, opcode: int, electrode_num: int) -> int | None:
         """Payload bytes the firmware reads after ``opcode`` with ``electrode_num`` in force (None: unknown byte)."""
@@ -239,7 +243,10 @@ class FirmwareSpec:
     def size_table(self) -> dict[int, int]:
         """opcode → payload bytes, -1 for the pattern (its size is the electrode count's, taken when 0xFE
         is read): the shape the emulators' parser loops index."""
-        return {op: -1 if c.kind == "pattern" else KIND_SIZE.get(c.kind, 0) if c.kind else 0 for op, c in self.by_opcode.items()}
+        return {
+            op: -1 if c.kind == "pattern" else KIND_SIZE.get(c.kind, 0) if c.kind else 0
+            for op, c in self.by_opcode.items()
+        }
 
     def command(self, opcode: int) -> CommandSpec:
         try:
@@ -256,7 +263,9 @@ class FirmwareSpec:
             if c.register == register:
                 return c.opcode
         have = sorted(c.register for c in self.commands if c.register)
-        raise ConfigurationError(f"firmware {self.name} has no command setting {register!r} (it sets: {', '.join(have)})")
+        raise ConfigurationError(
+            f"firmware {self.name} has no command setting {register!r} (it sets: {', '.join(have)})"
+        )
 
     def value_max(self, register: str) -> int:
         """The largest value the firmware can store in ``register`` (its clamp, or the payload's range)."""
@@ -392,5 +401,7 @@ def get_firmware(name: str | FirmwareSpec, field_name: str = "firmware") -> Firm
         return name
     spec = FIRMWARES.get(name) if isinstance(name, str) else None
     if spec is None:
-        raise ConfigurationError(f"{field_name}={name!r} is not a known firmware version (choices: {', '.join(FIRMWARES)})")
+        raise ConfigurationError(
+            f"{field_name}={name!r} is not a known firmware version (choices: {', '.join(FIRMWARES)})"
+        )
     return spec

@@ -86,7 +86,9 @@ def _scan_parts(
     gpio = t.gpio_write_us
     mono = monophasic_us(width_us, t)
     sense = monophasic_us(sense_width_us, t)
-    discharge = (t.spi_exchange_us if t.discharge_exchange else 0.0) + 3 * gpio + t.discharge_wait_us(discharge_us)
+    discharge = (
+        (t.spi_exchange_us if t.discharge_exchange else 0.0) + 3 * gpio + t.discharge_wait_us(discharge_us)
+    )
     select = 5 * gpio  # LE, DIN, CLK, LE; then POL (one more write)
     base = t.isr_entry_us + 2 * gpio * OUTPUTS_PER_HV513 * max(hv513, 1)
     return (

@@ -203,7 +203,11 @@ def _read(data: bytes, fw: FirmwareSpec, state: ParserState, offset: int) -> Rea
             if need == 0 and fw.zero_pattern_locks:
                 out.append(ReadCommand(offset + i, b, data[i : i + 1], complete=False, locked=True))
                 if i + 1 < n:
-                    out.append(ReadCommand(offset + i + 1, None, data[i + 1 :], complete=False, locked=True, kind=UNREAD))
+                    out.append(
+                        ReadCommand(
+                            offset + i + 1, None, data[i + 1 :], complete=False, locked=True, kind=UNREAD
+                        )
+                    )
                 return Reading(tuple(out), ParserState(num, b, 0, b"", locked=True))
             end = i + 1 + need
             payload = data[i + 1 : end]
@@ -252,7 +256,9 @@ def payload_size(opcode: int, electrode_num: int, firmware: FirmwareSpec = DEFAU
     return firmware.size_of(opcode, electrode_num)
 
 
-def first_command(data: bytes, electrode_num: int | None = None, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> ReadCommand | None:
+def first_command(
+    data: bytes, electrode_num: int | None = None, firmware: FirmwareSpec = DEFAULT_FIRMWARE
+) -> ReadCommand | None:
     """The first item the firmware reads from ``data`` (None for no bytes).  A pattern's size is taken
     from ``electrode_num`` or, when that is None, from the bytes given."""
     if not data:

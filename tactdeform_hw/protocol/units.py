@@ -70,7 +70,9 @@ class CurrentTransfer:
             return 0
         code = round((value - self.offset_ua) / self.ua_per_code)
         if code < 0 or code > DAC_MAX_CODE:
-            raise LimitError(field, current_ua, f"a DAC code from 0 to {DAC_MAX_CODE} (this transfer gives {code})")
+            raise LimitError(
+                field, current_ua, f"a DAC code from 0 to {DAC_MAX_CODE} (this transfer gives {code})"
+            )
         return code
 
     def to_ua(self, code: int) -> float:

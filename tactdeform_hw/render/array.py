@@ -86,7 +86,9 @@ class ElectrodeArray:
         else:
             chans = tuple(int(c) for c in mapping)
             if len(chans) != n:
-                raise LimitError("mapping", f"{len(chans)} channel(s)", f"one hardware channel per electrode ({n})")
+                raise LimitError(
+                    "mapping", f"{len(chans)} channel(s)", f"one hardware channel per electrode ({n})"
+                )
         hw = hw_channels if hw_channels is not None else (max(chans) + 1)
         # Validate through the device's own type so the errors read the same everywhere.
         ChannelMapping(chans, hw)

@@ -31,7 +31,13 @@ class _Baseline:
 
     name = "baseline"
 
-    def __init__(self, array: ElectrodeArray | None = None, *, on_level: int = 1, quat_norm_tolerance: float = QUAT_NORM_TOLERANCE) -> None:
+    def __init__(
+        self,
+        array: ElectrodeArray | None = None,
+        *,
+        on_level: int = 1,
+        quat_norm_tolerance: float = QUAT_NORM_TOLERANCE,
+    ) -> None:
         self.array = array if array is not None else ElectrodeArray.tactdeform()
         self.on_level = on_level
         self.quat_norm_tolerance = quat_norm_tolerance
@@ -51,7 +57,9 @@ class _Baseline:
         tf = count_drop(self.stats, t, reason)
         return ManagerOutput(tf, self.state, None, None, None, self.name, self.pattern, [], reason)
 
-    def update(self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None) -> ManagerOutput:
+    def update(
+        self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None
+    ) -> ManagerOutput:
         self.stats.updates += 1
         checked = check_pose(t_s, position_mm, orientation_wxyz, self._t, self.quat_norm_tolerance)
         if isinstance(checked, str):
@@ -83,7 +91,14 @@ class _Baseline:
         texture = getattr(query, "texture_level", None) if state == INTERACTING else None
         return ManagerOutput(t, state, feature, None, texture, self.name, pat, frames)
 
-    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any, query: Any = None) -> Pattern:
+    def _pattern(
+        self,
+        p: tuple[float, float, float],
+        q: tuple[float, ...],
+        sd: float | None,
+        scene: Any,
+        query: Any = None,
+    ) -> Pattern:
         raise NotImplementedError
 
 
@@ -92,7 +107,14 @@ class UniformActivation(_Baseline):
 
     name = "ua"
 
-    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any, query: Any = None) -> Pattern:
+    def _pattern(
+        self,
+        p: tuple[float, float, float],
+        q: tuple[float, ...],
+        sd: float | None,
+        scene: Any,
+        query: Any = None,
+    ) -> Pattern:
         return self.all_on if (sd is not None and sd <= 0.0) else self.off
 
 
@@ -108,7 +130,13 @@ class ContactAreaMapping(_Baseline):
 
     name = "cam"
 
-    def __init__(self, array: ElectrodeArray | None = None, *, on_level: int = 1, quat_norm_tolerance: float = QUAT_NORM_TOLERANCE) -> None:
+    def __init__(
+        self,
+        array: ElectrodeArray | None = None,
+        *,
+        on_level: int = 1,
+        quat_norm_tolerance: float = QUAT_NORM_TOLERANCE,
+    ) -> None:
         super().__init__(array, on_level=on_level, quat_norm_tolerance=quat_norm_tolerance)
         rel = self.array.world_offsets()
         self._rel = np.ascontiguousarray(rel, dtype=float)
@@ -133,7 +161,14 @@ class ContactAreaMapping(_Baseline):
         world: np.ndarray = np.asarray(p) + self._rel @ basis
         return world
 
-    def _pattern(self, p: tuple[float, float, float], q: tuple[float, ...], sd: float | None, scene: Any, query: Any = None) -> Pattern:
+    def _pattern(
+        self,
+        p: tuple[float, float, float],
+        q: tuple[float, ...],
+        sd: float | None,
+        scene: Any,
+        query: Any = None,
+    ) -> Pattern:
         if sd is None or sd > self.reach_mm or scene is None:
             return self.off
         if sd < -self.reach_mm and getattr(scene, "is_single_object", False):
@@ -144,7 +179,9 @@ class ContactAreaMapping(_Baseline):
         on_pad = getattr(scene, "contains_on_pad", None) if self._plane_test(scene) else None
         if on_pad is not None:
             X, Y, _ = quat_axes(*q)
-            inside = np.asarray(on_pad(np.asarray(p), np.asarray(X), np.asarray(Y), self._offsets, query), dtype=bool)
+            inside = np.asarray(
+                on_pad(np.asarray(p), np.asarray(X), np.asarray(Y), self._offsets, query), dtype=bool
+            )
         else:
             inside = np.asarray(scene.contains(self.electrode_positions(p, q)), dtype=bool)
         pat: Pattern = tuple(self._levels[inside.astype(np.int64)].tolist())

@@ -31,12 +31,16 @@ TEXTURE_NAMES: tuple[str, ...] = ("smooth", "rough", "rougher")  # k_texture 0, 
 # --- eq. 1–3 and 5–7 ---------------------------------------------------------------------------------------
 
 
-def expansion_rate(v_approach_mm_s: float, alpha: float = ALPHA, d_electrode_mm: float = D_ELECTRODE_MM) -> float:
+def expansion_rate(
+    v_approach_mm_s: float, alpha: float = ALPHA, d_electrode_mm: float = D_ELECTRODE_MM
+) -> float:
     """Eq. 1: r = α · v / d, in electrode spacings per second (negative while the finger withdraws)."""
     return alpha * v_approach_mm_s / d_electrode_mm
 
 
-def frame_interval_s(v_approach_mm_s: float, d_electrode_mm: float = D_ELECTRODE_MM, alpha: float = ALPHA) -> float:
+def frame_interval_s(
+    v_approach_mm_s: float, d_electrode_mm: float = D_ELECTRODE_MM, alpha: float = ALPHA
+) -> float:
     """Eq. 2: Δt = d / (α v); ``inf`` when the finger is not moving toward the surface."""
     v = alpha * v_approach_mm_s
     if not v > 0.0:
@@ -49,7 +53,9 @@ def frame_index(travel_mm: float, alpha: float = ALPHA, d_electrode_mm: float = 
     return math.floor(alpha * travel_mm / d_electrode_mm)
 
 
-def shift_rate(v_slide_mm_s: float, k_texture: int, d_electrode_mm: float = D_ELECTRODE_MM, beta: float = BETA) -> float:
+def shift_rate(
+    v_slide_mm_s: float, k_texture: int, d_electrode_mm: float = D_ELECTRODE_MM, beta: float = BETA
+) -> float:
     """Eq. 5: s = β · v / (d · k) shifts per second; 0 for a smooth surface (k = 0: no shift at any speed)."""
     if k_texture == 0:
         return 0.0
@@ -70,7 +76,9 @@ def shift_count(slide_travel_mm: float, k_texture: int, d_electrode_mm: float = 
     return math.floor(slide_travel_mm / (d_electrode_mm * k_texture))
 
 
-def mask_phase(count: int, k_texture: int, period_factor: int = 3, step_spacings: int | None = None, beta: float = BETA) -> int:
+def mask_phase(
+    count: int, k_texture: int, period_factor: int = 3, step_spacings: int | None = None, beta: float = BETA
+) -> int:
     """Where the texture mask stands after ``count`` shifts, in spacings modulo its period.
 
     The spec's interpretation: the mask (period ``period_factor · k``) moves ``k`` spacings per count,
@@ -165,7 +173,9 @@ class ApproachState:
 
     __slots__ = ("acc", "mode", "release_mm", "frame")
 
-    def __init__(self, unit_mm: float, *, mode: Literal["net", "forward"] = "net", release_mm: float = 1.25) -> None:
+    def __init__(
+        self, unit_mm: float, *, mode: Literal["net", "forward"] = "net", release_mm: float = 1.25
+    ) -> None:
         if mode not in ("net", "forward"):
             raise LimitError("approach_travel", mode, "'net' or 'forward'")
         if not (math.isfinite(release_mm) and 0.0 <= release_mm < unit_mm):
@@ -322,7 +332,9 @@ def theta_level(theta_deg: float, current: int | None = None, margin_deg: float 
 # --- angular quantisers (edge orientation, sliding direction) -------------------------------------------------
 
 
-def quantise_angle(angle_deg: float, bins: int, period_deg: float, current: int | None = None, margin_deg: float = 0.0) -> int:
+def quantise_angle(
+    angle_deg: float, bins: int, period_deg: float, current: int | None = None, margin_deg: float = 0.0
+) -> int:
     """Nearest of ``bins`` centres spaced evenly from 0° over ``period_deg`` (180° for an undirected
     edge, 360° for a direction), keeping ``current`` while the angle is within half a bin plus
     ``margin_deg`` of its centre."""

@@ -163,12 +163,32 @@ class ManagerConfig:
             if isinstance(v, float) and not math.isfinite(v):
                 raise LimitError(f.name, v, "a finite number")
         nonneg = (
-            "contact_release_mm", "contact_loss_window_s", "contact_loss_far_mm", "sustain_s", "settle_speed_mm_s", "settle_hold_s",
-            "onset_confirm_s", "onset_deep_mm", "recent_outside_s", "advance_mm", "slide_start_mm", "stop_window_s",
-            "stop_fraction", "slide_window_s",
-            "slide_off_mm_s", "feature_window_s", "orientation_window_s", "orientation_margin_deg",
-            "theta_window_s", "theta_margin_deg", "direction_window_s", "direction_margin_deg",
-            "texture_window_s", "teleport_min_mm", "frame_release_mm", "slide_smoothing_s",
+            "contact_release_mm",
+            "contact_loss_window_s",
+            "contact_loss_far_mm",
+            "sustain_s",
+            "settle_speed_mm_s",
+            "settle_hold_s",
+            "onset_confirm_s",
+            "onset_deep_mm",
+            "recent_outside_s",
+            "advance_mm",
+            "slide_start_mm",
+            "stop_window_s",
+            "stop_fraction",
+            "slide_window_s",
+            "slide_off_mm_s",
+            "feature_window_s",
+            "orientation_window_s",
+            "orientation_margin_deg",
+            "theta_window_s",
+            "theta_margin_deg",
+            "direction_window_s",
+            "direction_margin_deg",
+            "texture_window_s",
+            "teleport_min_mm",
+            "frame_release_mm",
+            "slide_smoothing_s",
         )
         for name in nonneg:
             if getattr(self, name) < 0:
@@ -182,11 +202,17 @@ class ManagerConfig:
         if not self.motion_window_s > 0:
             raise LimitError("motion_window_s", self.motion_window_s, "> 0 s")
         if self.slide_smoothing_s > self.motion_window_s:
-            raise LimitError("slide_smoothing_s", self.slide_smoothing_s, f"≤ motion_window_s ({self.motion_window_s})")
+            raise LimitError(
+                "slide_smoothing_s", self.slide_smoothing_s, f"≤ motion_window_s ({self.motion_window_s})"
+            )
         if self.slide_on_mm_s < self.slide_off_mm_s:
             raise LimitError("slide_on_mm_s", self.slide_on_mm_s, f"≥ slide_off_mm_s ({self.slide_off_mm_s})")
         if self.contact_release_mm > self.contact_loss_far_mm:
-            raise LimitError("contact_release_mm", self.contact_release_mm, f"≤ contact_loss_far_mm ({self.contact_loss_far_mm})")
+            raise LimitError(
+                "contact_release_mm",
+                self.contact_release_mm,
+                f"≤ contact_loss_far_mm ({self.contact_loss_far_mm})",
+            )
         if self.contact_mode not in ("orientation", "uniform"):
             raise LimitError("contact_mode", self.contact_mode, "'orientation' or 'uniform'")
         if self.approach_overflow not in ("cycle", "hold"):
@@ -330,17 +356,25 @@ class PatternManager:
         patterns: PatternSet | None = None,
         pattern_params: PatternParams | None = None,
     ) -> None:
-        self.array = array if array is not None else (patterns.array if patterns is not None else ElectrodeArray.tactdeform())
+        self.array = (
+            array
+            if array is not None
+            else (patterns.array if patterns is not None else ElectrodeArray.tactdeform())
+        )
         self.config = config or ManagerConfig()
         self.patterns = patterns if patterns is not None else PatternSet(self.array, pattern_params)
         cfg = self.config
         self.d_mm = cfg.d_electrode_mm if cfg.d_electrode_mm is not None else self.array.pitch_mm
         self.frame_unit_mm = self.d_mm / cfg.alpha
         if cfg.frame_release_mm >= self.frame_unit_mm:
-            raise LimitError("frame_release_mm", cfg.frame_release_mm, f"< one frame ({self.frame_unit_mm:g} mm)")
+            raise LimitError(
+                "frame_release_mm", cfg.frame_release_mm, f"< one frame ({self.frame_unit_mm:g} mm)"
+            )
         self.stats = ManagerStats()
         self._allowed_dirs = (
-            None if cfg.slide_directions is None else frozenset(DIRECTIONS.index(d) for d in cfg.slide_directions)
+            None
+            if cfg.slide_directions is None
+            else frozenset(DIRECTIONS.index(d) for d in cfg.slide_directions)
         )
         self.reset()
 
@@ -362,7 +396,9 @@ class PatternManager:
         self._in_since: float | None = None  # Idle: first of the consecutive samples in contact
         self._sd_hist: deque[tuple[float, float]] = deque()  # (t, signed distance) since onset
         self._sd_sum = 0.0
-        self._outside: tuple[float, tuple[float, float, float], tuple[float, float, float], float] | None = None
+        self._outside: tuple[float, tuple[float, float, float], tuple[float, float, float], float] | None = (
+            None
+        )
         self._n_onset: tuple[float, float, float] = (0.0, 0.0, 1.0)
         self._m_onset: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._peak_mm = 0.0
@@ -372,7 +408,9 @@ class PatternManager:
         self.texture = Debounced(cfg.texture_window_s)
         self.theta = Debounced(cfg.theta_window_s)
         self.direction = Debounced(cfg.direction_window_s)
-        self.approach = ApproachState(self.frame_unit_mm, mode=cfg.approach_travel, release_mm=cfg.frame_release_mm)
+        self.approach = ApproachState(
+            self.frame_unit_mm, mode=cfg.approach_travel, release_mm=cfg.frame_release_mm
+        )
         self.slide = FrameAccumulator(self.d_mm)
         self._seg: tuple[float, float, float] | None = None
         self._slide_change_t: float | None = None
@@ -402,7 +440,9 @@ class PatternManager:
             return 0
         return self._ns if (self._ns is not None and self._ns_k == k) else self.slide.whole // k
 
-    def update(self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None) -> ManagerOutput:
+    def update(
+        self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None
+    ) -> ManagerOutput:
         """Advance by one tracking sample.  ``query`` is the scene's
         :class:`~tactdeform_hw.render.geometry.SurfaceQuery` for the pad centre, or None (no object);
         ``scene`` is unused (the query holds all TactDeform needs; the baselines' CAM asks the scene)."""
@@ -486,8 +526,13 @@ class PatternManager:
                 self._in_since = None
             elif self._in_since is None:
                 self._in_since = t
-            if inside and self._in_since is not None and (
-                t - self._in_since >= cfg.onset_confirm_s - 1e-9 or sd <= cfg.contact_enter_mm - cfg.onset_deep_mm
+            if (
+                inside
+                and self._in_since is not None
+                and (
+                    t - self._in_since >= cfg.onset_confirm_s - 1e-9
+                    or sd <= cfg.contact_enter_mm - cfg.onset_deep_mm
+                )
             ):
                 assert feat is not None and normal is not None  # a normal is only kept with a checked feature
                 seq = self._onset(t, p, q, sd, normal, feat, query)
@@ -508,8 +553,17 @@ class PatternManager:
 
     def _drop(self, t: Any, reason: str) -> ManagerOutput:
         tf = count_drop(self.stats, t, reason)
-        return ManagerOutput(tf, self.state, self.feature.value, self._orient_value_name(), self.texture.value,
-                             self.context, self.pattern, [], reason)
+        return ManagerOutput(
+            tf,
+            self.state,
+            self.feature.value,
+            self._orient_value_name(),
+            self.texture.value,
+            self.context,
+            self.pattern,
+            [],
+            reason,
+        )
 
     def _to_idle(self) -> None:
         self.state = IDLE
@@ -553,7 +607,16 @@ class PatternManager:
             return 0
         return k if 0 <= k <= 8 else 0
 
-    def _onset(self, t: float, p: tuple[float, ...], q: tuple[float, ...], sd: float, normal: tuple[float, ...], feat: str, query: Any) -> list[Pattern]:
+    def _onset(
+        self,
+        t: float,
+        p: tuple[float, ...],
+        q: tuple[float, ...],
+        sd: float,
+        normal: tuple[float, ...],
+        feat: str,
+        query: Any,
+    ) -> list[Pattern]:
         cfg = self.config
         self.state = APPROACHING
         self.context = APPROACHING
@@ -572,7 +635,9 @@ class PatternManager:
         if out is not None and t - out[0] <= cfg.recent_outside_s:
             n0 = out[2]
             po = out[1]
-            travel = -((p[0] - po[0]) * n0[0] + (p[1] - po[1]) * n0[1] + (p[2] - po[2]) * n0[2]) - (out[3] - cfg.contact_enter_mm)
+            travel = -((p[0] - po[0]) * n0[0] + (p[1] - po[1]) * n0[1] + (p[2] - po[2]) * n0[2]) - (
+                out[3] - cfg.contact_enter_mm
+            )
         else:
             n0 = normal
             travel = cfg.contact_enter_mm - sd
@@ -610,8 +675,17 @@ class PatternManager:
         ov = self.config.approach_overflow
         return [frames[displayed_frame(c, nf, ov)] for c in counts]
 
-    def _in_contact(self, t: float, p: tuple[float, ...], p_prev: tuple[float, ...], q: tuple[float, ...], sd: float,
-                    normal: tuple[float, ...], feat: str, query: Any) -> list[Pattern]:
+    def _in_contact(
+        self,
+        t: float,
+        p: tuple[float, ...],
+        p_prev: tuple[float, ...],
+        q: tuple[float, ...],
+        sd: float,
+        normal: tuple[float, ...],
+        feat: str,
+        query: Any,
+    ) -> list[Pattern]:
         v = self._velocity()
         if self.state == APPROACHING:
             seq = self._approaching(t, p, p_prev, query)
@@ -628,14 +702,18 @@ class PatternManager:
             return self._slide(t, q, vt, speed, normal)
         return self._contact(t, q, normal)
 
-    def _approaching(self, t: float, p: tuple[float, ...], p_prev: tuple[float, ...], query: Any) -> list[Pattern] | None:
+    def _approaching(
+        self, t: float, p: tuple[float, ...], p_prev: tuple[float, ...], query: Any
+    ) -> list[Pattern] | None:
         """One sample while Approaching: the expansion's frames, or None once the finger has settled
         (the state is then Interacting and the sample is rendered as contact)."""
         cfg = self.config
         # Eq. 3's travel: displacement along the direction latched at contact; feature and
         # orientation stay as they were at contact, however deep the finger goes.
         n0 = self._n_onset
-        self.approach.advance(-((p[0] - p_prev[0]) * n0[0] + (p[1] - p_prev[1]) * n0[1] + (p[2] - p_prev[2]) * n0[2]))
+        self.approach.advance(
+            -((p[0] - p_prev[0]) * n0[0] + (p[1] - p_prev[1]) * n0[1] + (p[2] - p_prev[2]) * n0[2])
+        )
         self.texture.update(self._texture_of(query), t)
         # Stopped advancing: the tremor-filtered position has not gone ``advance_mm`` deeper than its
         # deepest point for ``settle_hold_s`` (any approach faster than advance_mm / settle_hold_s,
@@ -720,7 +798,7 @@ class PatternManager:
                 else:
                     dx, dy, dz = m[1] - anc[1], m[2] - anc[2], m[3] - anc[3]
                     dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
-                    far = dx * dx + dy * dy + dz * dz - dn * dn >= cfg.slide_start_mm ** 2
+                    far = dx * dx + dy * dy + dz * dz - dn * dn >= cfg.slide_start_mm**2
                 want = speed >= cfg.slide_on_mm_s and far and not stopped
                 if not want:
                     self._slide_change_t = None
@@ -732,8 +810,14 @@ class PatternManager:
                     self._slide_change_t = None
         return vt, speed
 
-    def _slide(self, t: float, q: tuple[float, ...], vt: tuple[float, float, float], speed: float,
-               normal: tuple[float, ...]) -> list[Pattern]:
+    def _slide(
+        self,
+        t: float,
+        q: tuple[float, ...],
+        vt: tuple[float, float, float],
+        speed: float,
+        normal: tuple[float, ...],
+    ) -> list[Pattern]:
         """A sliding sample: the direction (held for its window) and the texture travel."""
         cfg = self.config
         X, Y, _ = quat_axes(*q)
@@ -755,7 +839,9 @@ class PatternManager:
         seg = self._seg
         if seg is None or self.direction.value != self._seg_dir:
             anc = self._anchor
-            self._seg = seg = (anc[1], anc[2], anc[3]) if (seg is None and anc is not None) else (m[1], m[2], m[3])
+            self._seg = seg = (
+                (anc[1], anc[2], anc[3]) if (seg is None and anc is not None) else (m[1], m[2], m[3])
+            )
             self._seg_dir = self.direction.value
             self._seg_len = 0.0
         dx, dy, dz = m[1] - seg[0], m[2] - seg[1], m[3] - seg[2]
@@ -813,7 +899,9 @@ class PatternManager:
         span = sh[-1][0] - sh[0][0]
         if not span > 1e-9:
             return 0.0
-        return ((sh[-1][1] - sh[0][1]) * n0[0] + (sh[-1][2] - sh[0][2]) * n0[1] + (sh[-1][3] - sh[0][3]) * n0[2]) / span
+        return (
+            (sh[-1][1] - sh[0][1]) * n0[0] + (sh[-1][2] - sh[0][2]) * n0[1] + (sh[-1][3] - sh[0][3]) * n0[2]
+        ) / span
 
     def _recent_speed(self, normal: tuple[float, ...]) -> float:
         """Tangential speed of the filtered position over the last ``stop_window_s``."""
@@ -883,7 +971,10 @@ class PatternManager:
         self._family = fam
         self._count = count
         pf = ps.params.mask_period_factor
-        return [ps.sliding(feat, orient, direction, k, mask_phase(c, k, pf, cfg.mask_step_spacings, cfg.beta)) for c in counts]
+        return [
+            ps.sliding(feat, orient, direction, k, mask_phase(c, k, pf, cfg.mask_step_spacings, cfg.beta))
+            for c in counts
+        ]
 
     def _emit(self, t: float, t_prev: float | None, seq: list[Pattern]) -> ManagerOutput:
         last = self.last_sent
@@ -904,8 +995,16 @@ class PatternManager:
             self.stats.interpolated += m - 1
         if seq:
             self.pattern = seq[-1]
-        return ManagerOutput(t, self.state, self.feature.value, self._orient_value_name(), self.texture.value,
-                             self.context, self.pattern, frames)
+        return ManagerOutput(
+            t,
+            self.state,
+            self.feature.value,
+            self._orient_value_name(),
+            self.texture.value,
+            self.context,
+            self.pattern,
+            frames,
+        )
 
     def _orient_value_name(self) -> str | None:
         if self.feature.value != "edge" or self.orientation.value is None:

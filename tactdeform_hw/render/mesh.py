@@ -457,9 +457,7 @@ def _sign_method_for(topo: _Topology, sign_method: str) -> str:
     if sign_method == "auto":
         sign_method = "pseudonormal" if topo.watertight else "winding"
     if sign_method not in ("pseudonormal", "winding"):
-        raise ConfigurationError(
-            f"sign_method={sign_method!r} must be 'auto', 'pseudonormal' or 'winding'"
-        )
+        raise ConfigurationError(f"sign_method={sign_method!r} must be 'auto', 'pseudonormal' or 'winding'")
     if sign_method == "pseudonormal" and not topo.watertight:
         raise ConfigurationError(
             "sign_method='pseudonormal' needs a closed, consistently oriented mesh; use 'winding' or 'auto'"
@@ -530,7 +528,9 @@ def _triangle_bounds(
     cover = np.where(obtuse, longest / 2.0, circum)
     centre = (a + b + c) / 3.0
     radius = np.sqrt(
-        np.maximum(np.maximum(((a - centre) ** 2).sum(1), ((b - centre) ** 2).sum(1)), ((c - centre) ** 2).sum(1))
+        np.maximum(
+            np.maximum(((a - centre) ** 2).sum(1), ((b - centre) ** 2).sum(1)), ((c - centre) ** 2).sum(1)
+        )
     )
     far = np.zeros((1, 8))
     far[0, 0:3] = _SENTINEL_COORD  # the sentinel triangle: never within reach
@@ -561,7 +561,12 @@ def _vertex_samples(v: np.ndarray, f: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 def _pseudonormals(
-    v: np.ndarray, f: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray, face_normals: np.ndarray,
+    v: np.ndarray,
+    f: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    c: np.ndarray,
+    face_normals: np.ndarray,
     topo: _Topology,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Edge and angle-weighted vertex pseudonormals (the sign of a closed mesh), and each face's edges."""
@@ -574,7 +579,9 @@ def _pseudonormals(
     vpn = np.zeros((len(v), 3))
     for k in range(3):
         for axis in range(3):
-            vpn[:, axis] += np.bincount(f[:, k], weights=angles[:, k] * face_normals[:, axis], minlength=len(v))
+            vpn[:, axis] += np.bincount(
+                f[:, k], weights=angles[:, k] * face_normals[:, axis], minlength=len(v)
+            )
     return edge_pn, topo.face_edges, vpn
 
 
@@ -612,7 +619,9 @@ class _Index:
         self.winding: _WindingNumber | None = None
         self.topology = rtopo = _topology(f, len(v))
         if sign_method == "pseudonormal":
-            self.edge_pn, self.face_edges, self.vertex_pn = _pseudonormals(v, f, a, b, c, self.face_normals, rtopo)
+            self.edge_pn, self.face_edges, self.vertex_pn = _pseudonormals(
+                v, f, a, b, c, self.face_normals, rtopo
+            )
         else:
             self.winding = _WindingNumber(v, f)
         # Vertices on the border of a hole (open meshes only): near them inside and outside are the
@@ -1232,7 +1241,9 @@ class TriangleMesh(_PlacedSolid):
             centre_inside = self.query(c).signed_distance_mm <= 0.0
         x0, x1, x2 = (float(v) for v in x_axis)
         y0, y1, y2 = (float(v) for v in y_axis)
-        frame = np.array(((x0, y0, x1 * y2 - x2 * y1), (x1, y1, x2 * y0 - x0 * y2), (x2, y2, x0 * y1 - x1 * y0)))
+        frame = np.array(
+            ((x0, y0, x1 * y2 - x2 * y1), (x1, y1, x2 * y0 - x0 * y2), (x2, y2, x0 * y1 - x1 * y0))
+        )
         local = c - index.origin
         reach = self._pad_reach.get(id(off))
         if reach is None or reach[0] is not off:

@@ -44,7 +44,16 @@ EDGE_ANGLE_DEG: dict[str, float] = {"h": 0.0, "d1": 45.0, "v": 90.0, "d2": 135.0
 #: E = right, N = toward the fingertip, W = left, S = toward the palm.
 DIRECTIONS: tuple[str, ...] = ("E", "NE", "N", "NW", "W", "SW", "S", "SE")
 #: Each direction as a step on the grid (dx, dy in {-1, 0, 1}); texture stripes run across it.
-DIRECTION_STEPS: tuple[tuple[int, int], ...] = ((1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1), (0, -1), (1, -1))
+DIRECTION_STEPS: tuple[tuple[int, int], ...] = (
+    (1, 0),
+    (1, 1),
+    (0, 1),
+    (-1, 1),
+    (-1, 0),
+    (-1, -1),
+    (0, -1),
+    (1, -1),
+)
 
 #: Contact-orientation levels (eq. 4), left to right on the pad.
 THETA_LEVELS: tuple[str, ...] = ("steep-left", "shallow-left", "shallow-right", "steep-right")
@@ -99,10 +108,17 @@ class PatternParams:
         if self.contact_centres_mm is not None:
             c = tuple(float(v) for v in self.contact_centres_mm)
             if len(c) != 4 or not all(math.isfinite(v) for v in c):
-                raise LimitError("contact_centres_mm", self.contact_centres_mm, "four finite x positions in mm")
-        if isinstance(self.mask_period_factor, bool) or not isinstance(self.mask_period_factor, int) or self.mask_period_factor < 3:
+                raise LimitError(
+                    "contact_centres_mm", self.contact_centres_mm, "four finite x positions in mm"
+                )
+        if (
+            isinstance(self.mask_period_factor, bool)
+            or not isinstance(self.mask_period_factor, int)
+            or self.mask_period_factor < 3
+        ):
             raise LimitError(
-                "mask_period_factor", self.mask_period_factor,
+                "mask_period_factor",
+                self.mask_period_factor,
                 "an integer ≥ 3 (a period of 2 steps only toggles two states: the texture would have no direction)",
             )
         if self.on_level not in (1, 2):
@@ -170,7 +186,12 @@ class PatternSet:
         self._shift_index: list[np.ndarray] = []
         for c in centres:
             # src[i]: the electrode whose base value electrode i shows, or -1 (nothing there).
-            src = np.array([array.index_at(float(x) + array.centre_mm[0] - c, float(y) + array.centre_mm[1]) for x, y in rel])
+            src = np.array(
+                [
+                    array.index_at(float(x) + array.centre_mm[0] - c, float(y) + array.centre_mm[1])
+                    for x, y in rel
+                ]
+            )
             self._shift_index.append(src)
 
         # Texture masks: coordinate across each direction in electrode spacings, starting at 0.
@@ -277,7 +298,10 @@ class PatternSet:
         out: dict[str, object] = {}
         for (f, o), frames in self._frames.items():
             name = f if o is None else f"{f}-{o}"
-            out[name] = {"frames": [sum(1 for v in fr if v) for fr in frames], "static": int(self._static[(f, o)].sum())}
+            out[name] = {
+                "frames": [sum(1 for v in fr if v) for fr in frames],
+                "static": int(self._static[(f, o)].sum()),
+            }
         out["contact_centres_mm"] = list(self.contact_centres_mm)
         return out
 

@@ -67,7 +67,9 @@ class FrameRecord:
             "t": self.t_s if math.isfinite(self.t_s) else None,
             "state": self.state,
             "feature": self.feature,
-            "texture": None if tex is None else (TEXTURE_NAMES[tex] if 0 <= tex < len(TEXTURE_NAMES) else tex),
+            "texture": None
+            if tex is None
+            else (TEXTURE_NAMES[tex] if 0 <= tex < len(TEXTURE_NAMES) else tex),
             "electrodes": [1 if v else 0 for v in self.electrodes],
             "sent": self.sent,
         }
@@ -225,7 +227,9 @@ class Renderer:
                 f"array {self.array.name!r} maps electrodes to hardware channels {self._mapping.app_to_hw} but the "
                 "device has no mapping; open the device with mapping=array.channel_mapping()"
             )
-        cfg = self.stim_config or StimConfig(electrode_count=self._mapping.hw_channels, current_ua=self.current_ua)
+        cfg = self.stim_config or StimConfig(
+            electrode_count=self._mapping.hw_channels, current_ua=self.current_ua
+        )
         dev.configure(cfg)
         self._device_pattern = (0,) * self.array.count
         if callable(self.verify):
@@ -318,10 +322,24 @@ class Renderer:
         t = out.t_s
         if last is not None and math.isfinite(t) and t >= last:
             gone = max(gone, t - last)
-        rec = FrameRecord(out.t_s, out.state, out.feature, out.texture, out.pattern, False, approach,
-                          out.context, out.orientation, False, out.dropped)
-        if gone < self.lost_tracking_s or (self._device_pattern is not None and not any(self._device_pattern)
-                                           and all(r.state == "idle" for r in self.renderers.values())):
+        rec = FrameRecord(
+            out.t_s,
+            out.state,
+            out.feature,
+            out.texture,
+            out.pattern,
+            False,
+            approach,
+            out.context,
+            out.orientation,
+            False,
+            out.dropped,
+        )
+        if gone < self.lost_tracking_s or (
+            self._device_pattern is not None
+            and not any(self._device_pattern)
+            and all(r.state == "idle" for r in self.renderers.values())
+        ):
             return [rec]
         # Tracking lost: forget the finger everywhere and switch everything off.
         self.lost_tracking_events += 1
@@ -329,7 +347,9 @@ class Renderer:
             r.reset()
         self._last_valid_t = None
         off = (0,) * self.array.count
-        rec = FrameRecord(out.t_s, "idle", None, None, off, True, approach, None, None, False, "lost-tracking")
+        rec = FrameRecord(
+            out.t_s, "idle", None, None, off, True, approach, None, None, False, "lost-tracking"
+        )
         if off == self._device_pattern:
             rec.sent = False
         else:
@@ -343,8 +363,21 @@ class Renderer:
             frames = [(out.t_s, out.pattern)]
         records: list[FrameRecord] = []
         if not frames:
-            records.append(FrameRecord(out.t_s, out.state, out.feature, out.texture, out.pattern, False, approach,
-                                       out.context, out.orientation, False, out.dropped))
+            records.append(
+                FrameRecord(
+                    out.t_s,
+                    out.state,
+                    out.feature,
+                    out.texture,
+                    out.pattern,
+                    False,
+                    approach,
+                    out.context,
+                    out.orientation,
+                    False,
+                    out.dropped,
+                )
+            )
             if self.device is not None:
                 # Nothing changed, but the renderer is alive: feed the device's fail-safe watchdog so a
                 # held contact is not switched off, while a dead renderer still is.
@@ -352,8 +385,19 @@ class Renderer:
             return records
         last = len(frames) - 1
         for i, (tf, pat) in enumerate(frames):
-            rec = FrameRecord(tf, out.state, out.feature, out.texture, pat, True, approach, out.context,
-                              out.orientation, i < last, out.dropped)
+            rec = FrameRecord(
+                tf,
+                out.state,
+                out.feature,
+                out.texture,
+                pat,
+                True,
+                approach,
+                out.context,
+                out.orientation,
+                i < last,
+                out.dropped,
+            )
             if pat == self._device_pattern:
                 rec.sent = False
             else:
@@ -383,7 +427,11 @@ class Renderer:
             if got != tuple(rec.electrodes):
                 self.summary.mismatches += 1
                 if self.summary.first_mismatch is None:
-                    self.summary.first_mismatch = {"t": rec.t_s, "sent": list(rec.electrodes), "emulator": list(got)}
+                    self.summary.first_mismatch = {
+                        "t": rec.t_s,
+                        "sent": list(rec.electrodes),
+                        "emulator": list(got),
+                    }
 
     # --- whole runs ---------------------------------------------------------------------------------------------
 

@@ -379,7 +379,12 @@ class Scene:
         return any(hasattr(o, "contains_on_pad") for o in self.objects)
 
     def contains_on_pad(
-        self, centre_mm: np.ndarray, x_axis: np.ndarray, y_axis: np.ndarray, offsets_mm: np.ndarray, query: Any = None
+        self,
+        centre_mm: np.ndarray,
+        x_axis: np.ndarray,
+        y_axis: np.ndarray,
+        offsets_mm: np.ndarray,
+        query: Any = None,
     ) -> np.ndarray:
         """(N,) inside any object, for points ``centre + u·x_axis + v·y_axis`` of one plane (the pad's
         electrodes, offsets (u, v) in mm).  Objects that can answer for a plane at once (meshes) do;

@@ -345,7 +345,11 @@ def iter_pose_csv(
     stream, name, owned = _open_text(source)
     try:
         # Keep each row's line number in the file, so an error points at the line a text editor shows.
-        numbered = [(n, line) for n, line in enumerate(stream, start=1) if line.strip() and not line.lstrip().startswith("#")]
+        numbered = [
+            (n, line)
+            for n, line in enumerate(stream, start=1)
+            if line.strip() and not line.lstrip().startswith("#")
+        ]
         line_of = [n for n, _ in numbered]
         reader = csv.reader(line for _, line in numbered)
         header = next(reader, None)

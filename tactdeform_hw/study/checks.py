@@ -115,8 +115,13 @@ def common_checks(run: TrialRun, result: StudyRun) -> list[Check]:
     drops = dict(run.tracking_drops)
     for k, v in (run.summary.get("dropped") or {}).items():
         drops[f"renderer:{k}"] = v
-    out.append(Check("tracking_accepted_every_sample", not drops,
-                     f"{len(run.poses)} samples" + (f", dropped: {drops}" if drops else ", none dropped")))
+    out.append(
+        Check(
+            "tracking_accepted_every_sample",
+            not drops,
+            f"{len(run.poses)} samples" + (f", dropped: {drops}" if drops else ", none dropped"),
+        )
+    )
     tele = int(run.summary.get("teleports", 0))
     out.append(Check("no_tracking_teleports", tele == 0, f"{tele} teleport(s)"))
     sent = [r for r in run.records if r.sent]
@@ -131,11 +136,20 @@ def common_checks(run: TrialRun, result: StudyRun) -> list[Check]:
     wire = [p for _, p, phase in frame_intents(run, result.array) if phase == "render"]
     want = [tuple(r.electrodes) for r in sent]
     if wire == want:
-        out.append(Check("wire_carried_every_sent_frame", True, f"{len(wire)} pattern command(s) on the wire, in order"))
+        out.append(
+            Check(
+                "wire_carried_every_sent_frame", True, f"{len(wire)} pattern command(s) on the wire, in order"
+            )
+        )
     else:
         first = next((i for i, (a, b) in enumerate(zip(wire, want)) if a != b), min(len(wire), len(want)))
-        out.append(Check("wire_carried_every_sent_frame", False,
-                         f"{len(wire)} pattern command(s) on the wire for {len(want)} sent frame(s); first difference at frame {first}"))
+        out.append(
+            Check(
+                "wire_carried_every_sent_frame",
+                False,
+                f"{len(wire)} pattern command(s) on the wire for {len(want)} sent frame(s); first difference at frame {first}",
+            )
+        )
     if run.verified:
         kinds = [h.get("kind") for h in run.hazards]
         out.append(Check("no_emulator_hazards", not kinds, "none" if not kinds else _fmt_set(kinds)))
@@ -153,8 +167,13 @@ def common_checks(run: TrialRun, result: StudyRun) -> list[Check]:
         for a, b in run.segment_spans:
             for i in (a, b - 1):
                 dists.append(float(run.scene.query(np.asarray(run.poses[i].position_mm)).signed_distance_mm))
-        out.append(Check("started_and_ended_beyond_8cm", min(dists) >= WITHDRAW_MM,
-                         f"nearest surface at segment starts/ends: {min(dists):.1f} mm (needs ≥ {WITHDRAW_MM:g})"))
+        out.append(
+            Check(
+                "started_and_ended_beyond_8cm",
+                min(dists) >= WITHDRAW_MM,
+                f"nearest surface at segment starts/ends: {min(dists):.1f} mm (needs ≥ {WITHDRAW_MM:g})",
+            )
+        )
     out.extend(timed_checks(run, result))
     return out
 
@@ -191,11 +210,17 @@ def timed_checks(run: TrialRun, result: StudyRun) -> list[Check]:
             checked_full += 1
             missing = meant - got
             if missing:
-                problems.append(f"frame at {t_us / 1e6:.3f} s: electrodes {sorted(missing)} meant on but never pulsed")
-    detail = (f"{checked_subset} frame(s) checked for pulses on electrodes meant off, {checked_full} held long "
-              f"enough (≥ {1000 * (SETTLE_S + FULL_SCAN_S):.0f} ms) to check every electrode meant on was pulsed")
+                problems.append(
+                    f"frame at {t_us / 1e6:.3f} s: electrodes {sorted(missing)} meant on but never pulsed"
+                )
+    detail = (
+        f"{checked_subset} frame(s) checked for pulses on electrodes meant off, {checked_full} held long "
+        f"enough (≥ {1000 * (SETTLE_S + FULL_SCAN_S):.0f} ms) to check every electrode meant on was pulsed"
+    )
     if problems:
-        detail += "; " + "; ".join(problems[:3]) + (f" (+{len(problems) - 3} more)" if len(problems) > 3 else "")
+        detail += (
+            "; " + "; ".join(problems[:3]) + (f" (+{len(problems) - 3} more)" if len(problems) > 3 else "")
+        )
     if checked_subset == 0:
         out = [Check("scans_delivered_each_frame", None, "no frame held long enough to be checked")]
     else:
@@ -209,9 +234,11 @@ def timed_checks(run: TrialRun, result: StudyRun) -> list[Check]:
         if ua > cap + 1e-6:
             over.append((app, ua, cap))
     bad = over or d["sense_pulses_with_current"] or d["pulses_on_unmapped_channels"]
-    detail = (f"max {d['max_current_ua']} µA (asked {result.current_ua} µA), "
-              f"max {d['max_charge_per_pulse_nc']} nC per pulse; {len(over)} pulse(s) above the limit, "
-              f"{d['sense_pulses_with_current']} sense pulse(s) with current, {d['pulses_on_unmapped_channels']} on unmapped channels")
+    detail = (
+        f"max {d['max_current_ua']} µA (asked {result.current_ua} µA), "
+        f"max {d['max_charge_per_pulse_nc']} nC per pulse; {len(over)} pulse(s) above the limit, "
+        f"{d['sense_pulses_with_current']} sense pulse(s) with current, {d['pulses_on_unmapped_channels']} on unmapped channels"
+    )
     out.append(Check("currents_within_limits", not bad, detail))
     kinds = [h.get("kind") for h in run.timed_hazards]
     out.append(Check("no_timing_hazards", not kinds, "none" if not kinds else _fmt_set(kinds)))
@@ -223,8 +250,11 @@ def timed_checks(run: TrialRun, result: StudyRun) -> list[Check]:
 
 def _contact_records(run: TrialRun, seg: int | None = None) -> list[tuple[int, Any]]:
     segs = _segment_of(run)
-    return [(i, r) for i, r in enumerate(run.records)
-            if r.state in CONTACT_STATES and (seg is None or segs[i] == seg)]
+    return [
+        (i, r)
+        for i, r in enumerate(run.records)
+        if r.state in CONTACT_STATES and (seg is None or segs[i] == seg)
+    ]
 
 
 def feature_check(run: TrialRun, expected: str) -> Check:
@@ -232,7 +262,9 @@ def feature_check(run: TrialRun, expected: str) -> Check:
     if not seen:
         return Check("feature_rendered_matches", False, f"no contact: expected {expected}")
     wrong = [f for f in seen if f != expected]
-    return Check("feature_rendered_matches", not wrong, f"expected {expected}; seen in contact: {_fmt_set(seen)}")
+    return Check(
+        "feature_rendered_matches", not wrong, f"expected {expected}; seen in contact: {_fmt_set(seen)}"
+    )
 
 
 def task1_checks(run: TrialRun, result: StudyRun) -> list[Check]:
@@ -244,8 +276,13 @@ def task1_checks(run: TrialRun, result: StudyRun) -> list[Check]:
     if feature == "edge":
         seen = [r.orientation for _, r in contact if r.feature == "edge"]
         wrong = [o for o in seen if o != orientation]
-        out.append(Check("edge_orientation_matches", bool(seen) and not wrong,
-                         f"expected {orientation}; seen: {_fmt_set(seen)}"))
+        out.append(
+            Check(
+                "edge_orientation_matches",
+                bool(seen) and not wrong,
+                f"expected {orientation}; seen: {_fmt_set(seen)}",
+            )
+        )
     frames = ps.frames(feature, orientation)
     shown = [r.electrodes for _, r in contact if r.sent and r.state == "approaching"]
     idx = [frames.index(p) if p in frames else -1 for p in shown]
@@ -253,14 +290,24 @@ def task1_checks(run: TrialRun, result: StudyRun) -> list[Check]:
     ok = bool(idx) and -1 not in idx and idx[0] == 0 and len(set(idx)) >= min(2, n)
     if ok:
         ok = all((b - a) % n in (1, n - 1) for a, b in zip(idx, idx[1:]))  # neighbours: one spacing apart
-    out.append(Check("approach_frames_expand", ok,
-                     f"frames shown while approaching (index into the {n} {feature} frames): "
-                     f"{['?' if i < 0 else i for i in idx]}"))
+    out.append(
+        Check(
+            "approach_frames_expand",
+            ok,
+            f"frames shown while approaching (index into the {n} {feature} frames): "
+            f"{['?' if i < 0 else i for i in idx]}",
+        )
+    )
     held = [r.electrodes for _, r in contact if r.sent and r.state == "interacting"]
     family = {ps.contact(feature, orientation, lv) for lv in range(4)} | {ps.static(feature, orientation)}
     wrong_held = [p for p in held if p not in family]
-    out.append(Check("contact_pattern_of_feature", bool(held) and not wrong_held,
-                     f"{len(held)} sustained-contact frame(s), {len(wrong_held)} not a {feature} contact pattern"))
+    out.append(
+        Check(
+            "contact_pattern_of_feature",
+            bool(held) and not wrong_held,
+            f"{len(held)} sustained-contact frame(s), {len(wrong_held)} not a {feature} contact pattern",
+        )
+    )
     return out
 
 
@@ -287,9 +334,14 @@ def task2_checks(run: TrialRun, result: StudyRun) -> list[Check]:
         hit = [lv for lv in range(4) if ps.contact("face", None, lv) == p]
         levels_seen.append(hit[0] if hit else ("uniform" if p == ps.static("face") else "other"))
     ok = bool(held) and all(p == want for p in held)
-    out.append(Check("contact_pattern_matches_theta", ok,
-                     f"expected {what} (centroid x {_centroid_x(ps, want)} mm); held: {levels_seen}, "
-                     f"centroid x {[_centroid_x(ps, p) for p in held]} mm"))
+    out.append(
+        Check(
+            "contact_pattern_matches_theta",
+            ok,
+            f"expected {what} (centroid x {_centroid_x(ps, want)} mm); held: {levels_seen}, "
+            f"centroid x {[_centroid_x(ps, p) for p in held]} mm",
+        )
+    )
     sliding = [r for r in run.records if r.context == "sliding" and r.sent and any(r.electrodes)]
     out.append(Check("stationary_only", not sliding, f"{len(sliding)} frame(s) sent while sliding"))
     return out
@@ -317,8 +369,13 @@ def task3_checks(run: TrialRun, result: StudyRun) -> list[Check]:
             out.append(Check(f"texture_rendered_matches{tag}", False, "no sliding contact on this surface"))
             continue
         seen = [r.texture for _, r in sliding]
-        out.append(Check(f"texture_rendered_matches{tag}", all(t == level for t in seen),
-                         f"expected {TEXTURE_NAMES[level]}; seen while sliding: {_fmt_set(_texture(t) for t in seen)}"))
+        out.append(
+            Check(
+                f"texture_rendered_matches{tag}",
+                all(t == level for t in seen),
+                f"expected {TEXTURE_NAMES[level]}; seen while sliding: {_fmt_set(_texture(t) for t in seen)}",
+            )
+        )
         sent = [r.electrodes for _, r in sliding if r.sent]
         changes = max(0, len(sent) - 1)
         travel, dur = _stroke_travel(run, sliding)
@@ -331,19 +388,33 @@ def task3_checks(run: TrialRun, result: StudyRun) -> list[Check]:
             ok = abs(changes - expected) <= tol
             rate = changes / dur if dur > 0 else math.nan
             v = travel / dur if dur > 0 else math.nan
-            detail = (f"{changes} shift(s) over {travel:.1f} mm in {dur:.2f} s ({rate:.1f} Hz); eq. 7 expects "
-                      f"{expected:.1f} ± {tol:.1f} ({v / (d_mm * level):.1f} Hz at {v:.1f} mm/s)")
+            detail = (
+                f"{changes} shift(s) over {travel:.1f} mm in {dur:.2f} s ({rate:.1f} Hz); eq. 7 expects "
+                f"{expected:.1f} ± {tol:.1f} ({v / (d_mm * level):.1f} Hz at {v:.1f} mm/s)"
+            )
         out.append(Check(f"texture_shift_count{tag}", ok, detail))
         if level == 0:
             family = {ps.static("face")}
         else:
             family = {ps.sliding("face", None, east, level, ph) for ph in range(ps.mask_period(level))}
         wrong = [p for p in sent if p not in family]
-        out.append(Check(f"sliding_patterns_are_rightward_texture{tag}", bool(sent) and not wrong,
-                         f"{len(sent)} sliding frame(s), {len(wrong)} not a rightward {TEXTURE_NAMES[level]} pattern"))
-        still = [r for _, r in recs if r.state == "interacting" and r.context == "contact" and any(r.electrodes)]
-        out.append(Check(f"silent_while_stationary{tag}", not still,
-                         f"{len(still)} record(s) with electrodes on while in stationary contact"))
+        out.append(
+            Check(
+                f"sliding_patterns_are_rightward_texture{tag}",
+                bool(sent) and not wrong,
+                f"{len(sent)} sliding frame(s), {len(wrong)} not a rightward {TEXTURE_NAMES[level]} pattern",
+            )
+        )
+        still = [
+            r for _, r in recs if r.state == "interacting" and r.context == "contact" and any(r.electrodes)
+        ]
+        out.append(
+            Check(
+                f"silent_while_stationary{tag}",
+                not still,
+                f"{len(still)} record(s) with electrodes on while in stationary contact",
+            )
+        )
     return out
 
 
@@ -359,11 +430,20 @@ def phase2_checks(run: TrialRun, result: StudyRun) -> list[Check]:
         wrong = 0
         for i, r in enumerate(run.records):
             pose = run.poses[run.record_pose[i]]
-            inside = scene.query(np.asarray(pose.position_mm)).signed_distance_mm <= 0.0 if scene is not None else False
+            inside = (
+                scene.query(np.asarray(pose.position_mm)).signed_distance_mm <= 0.0
+                if scene is not None
+                else False
+            )
             if bool(all(r.electrodes)) != bool(inside):
                 wrong += 1
-        out.append(Check("ua_on_exactly_inside", wrong == 0,
-                         f"{len(run.records)} record(s) compared with the pad centre's inside test, {wrong} differ"))
+        out.append(
+            Check(
+                "ua_on_exactly_inside",
+                wrong == 0,
+                f"{len(run.records)} record(s) compared with the pad centre's inside test, {wrong} differ",
+            )
+        )
     elif approach == "cam":
         arr = result.array
         rel = arr.world_offsets()
@@ -378,27 +458,45 @@ def phase2_checks(run: TrialRun, result: StudyRun) -> list[Check]:
             if tuple(int(v) for v in inside_el) != tuple(1 if v else 0 for v in r.electrodes):
                 wrong += 1
         partial = sum(1 for r in run.records if r.sent and any(r.electrodes) and not all(r.electrodes))
-        out.append(Check("cam_matches_contact_area", checked > 0 and wrong == 0,
-                         f"{checked} record(s) compared with the electrodes' own inside test, {wrong} differ; "
-                         f"{partial} partial-contact frame(s) sent"))
+        out.append(
+            Check(
+                "cam_matches_contact_area",
+                checked > 0 and wrong == 0,
+                f"{checked} record(s) compared with the electrodes' own inside test, {wrong} differ; "
+                f"{partial} partial-contact frame(s) sent",
+            )
+        )
     else:
         allowed = set(exp.get("features", ("face", "edge", "corner")))
         seen = [r.feature for _, r in _contact_records(run)]
-        out.append(Check("features_expected", bool(seen) and set(seen) <= allowed,
-                         f"allowed {sorted(allowed)}; seen in contact: {_fmt_set(seen)}"))
+        out.append(
+            Check(
+                "features_expected",
+                bool(seen) and set(seen) <= allowed,
+                f"allowed {sorted(allowed)}; seen in contact: {_fmt_set(seen)}",
+            )
+        )
         want = int(exp.get("texture", 0))
         tex = [r.texture for r in run.records if r.state == "interacting" and r.context == "sliding"]
         ok = bool(tex) and all(t == want for t in tex)
-        out.append(Check("texture_rendered_matches", ok,
-                         f"expected {TEXTURE_NAMES[want]}; seen while sliding: {_fmt_set(_texture(t) for t in tex)}"))
+        out.append(
+            Check(
+                "texture_rendered_matches",
+                ok,
+                f"expected {TEXTURE_NAMES[want]}; seen while sliding: {_fmt_set(_texture(t) for t in tex)}",
+            )
+        )
     return out
 
 
 def tactdeform_pattern_check(run: TrialRun, known: set[Pattern]) -> Check:
     sent = [r.electrodes for r in run.records if r.sent]
     wrong = [p for p in sent if tuple(p) not in known]
-    return Check("frames_are_tactdeform_patterns", bool(sent) and not wrong,
-                 f"{len(sent)} sent frame(s), {len(wrong)} not a TactDeform pattern of this array")
+    return Check(
+        "frames_are_tactdeform_patterns",
+        bool(sent) and not wrong,
+        f"{len(sent)} sent frame(s), {len(wrong)} not a TactDeform pattern of this array",
+    )
 
 
 _STUDY_CHECKS = {"task1": task1_checks, "task2": task2_checks, "task3": task3_checks, "phase2": phase2_checks}
@@ -412,7 +510,9 @@ def check_trial(run: TrialRun, result: StudyRun, known: set[Pattern] | None = No
     checks = common_checks(run, result)
     checks.extend(_STUDY_CHECKS[result.study.name](run, result))
     if run.trial.approach == "tactdeform":
-        checks.append(tactdeform_pattern_check(run, known if known is not None else universe(result.patterns)))
+        checks.append(
+            tactdeform_pattern_check(run, known if known is not None else universe(result.patterns))
+        )
     run.checks = checks
     return checks
 
@@ -434,22 +534,47 @@ def design_checks(result: StudyRun) -> list[Check]:
         out.append(Check("design", None, f"trials {study.selection} only: {len(trials)} trial(s)"))
         return out
     if study.quick:
-        out.append(Check("design", None, f"quick run: {len(trials)} trial(s), one per condition ({_fmt_set(t.condition for t in trials)})"))
+        out.append(
+            Check(
+                "design",
+                None,
+                f"quick run: {len(trials)} trial(s), one per condition ({_fmt_set(t.condition for t in trials)})",
+            )
+        )
         return out
     if study.name == "task1":
         feats = Counter(t.segments[0].expect["feature"] for t in trials)
         edges = sorted(n for c, n in conds.items() if c.startswith("edge-"))
-        ok = len(trials) == 21 and feats == Counter({"face": 7, "edge": 7, "corner": 7}) and edges == [1, 2, 2, 2]
-        out.append(Check("design", ok, f"{len(trials)} trials: {_fmt_set(t.segments[0].expect['feature'] for t in trials)}; "
-                         f"edges {_fmt_set(c for c in (t.condition for t in trials) if c.startswith('edge-'))}"))
+        ok = (
+            len(trials) == 21
+            and feats == Counter({"face": 7, "edge": 7, "corner": 7})
+            and edges == [1, 2, 2, 2]
+        )
+        out.append(
+            Check(
+                "design",
+                ok,
+                f"{len(trials)} trials: {_fmt_set(t.segments[0].expect['feature'] for t in trials)}; "
+                f"edges {_fmt_set(c for c in (t.condition for t in trials) if c.startswith('edge-'))}",
+            )
+        )
     elif study.name == "task2":
         ok = len(trials) == 16 and all(n == 1 for n in conds.values())
-        out.append(Check("design", ok, f"{len(trials)} trials, {len(conds)} distinct (2 modes × 2 bars × 4 θ levels)"))
+        out.append(
+            Check(
+                "design", ok, f"{len(trials)} trials, {len(conds)} distinct (2 modes × 2 bars × 4 θ levels)"
+            )
+        )
     elif study.name == "task3":
         pairs = Counter(tuple(sorted(lv for _, lv in t.textures)) for t in trials)
         ok = len(trials) == 24 and len(pairs) == 6 and all(n == 4 for n in pairs.values())
-        out.append(Check("design", ok, f"{len(trials)} trials over {len(pairs)} level pairs, "
-                         f"{sorted(set(pairs.values()))} each"))
+        out.append(
+            Check(
+                "design",
+                ok,
+                f"{len(trials)} trials over {len(pairs)} level pairs, {sorted(set(pairs.values()))} each",
+            )
+        )
     else:
         ok = len(trials) == 12 and len(conds) == 12
         out.append(Check("design", ok, f"{len(trials)} trials: 4 objects × UA, CAM, TactDeform"))

@@ -72,7 +72,10 @@ def electrode_on_time(run: TrialRun, count: int) -> list[float]:
 
 
 def _seen(values: list[Any]) -> dict[str, int]:
-    return {str(k): n for k, n in sorted(Counter(v for v in values if v is not None).items(), key=lambda kv: str(kv[0]))}
+    return {
+        str(k): n
+        for k, n in sorted(Counter(v for v in values if v is not None).items(), key=lambda kv: str(kv[0]))
+    }
 
 
 def trial_json(run: TrialRun, result: StudyRun) -> dict[str, Any]:
@@ -110,18 +113,30 @@ def trial_json(run: TrialRun, result: StudyRun) -> dict[str, Any]:
             "frames_sent_by_context": _seen([r.context or r.state for r in sent if any(r.electrodes)]),
             "features_seen": _seen([r.feature for r in contact]),
             "orientations_seen": _seen([r.orientation for r in contact]),
-            "textures_seen": _seen([TEXTURE_NAMES.get(r.texture, r.texture) if r.texture is not None else None
-                                    for r in contact]),
+            "textures_seen": _seen(
+                [TEXTURE_NAMES.get(r.texture, r.texture) if r.texture is not None else None for r in contact]
+            ),
             "electrodes_activated": sorted({i for r in sent for i, v in enumerate(r.electrodes) if v}),
             "electrode_on_time_s": electrode_on_time(run, result.array.count),
             "commands_sent": dict(sorted(commands.items())),
             "bytes_sent": sum(len(w.data) for w in run.writes),
-            "delivered": None if run.delivered is None else {k: v for k, v in run.delivered.items() if not k.startswith("_")},
+            "delivered": None
+            if run.delivered is None
+            else {k: v for k, v in run.delivered.items() if not k.startswith("_")},
             "delivered_note": None if run.delivered is not None else (result.timed_note or "no timed replay"),
             "emulator_hazards": list(run.hazards) if run.verified else None,
             "timing_hazards": list(run.timed_hazards) if run.delivered is not None else None,
-            "renderer": {k: run.summary.get(k) for k in ("teleports", "dropped", "mismatches", "first_mismatch",
-                                                          "step_us_median", "step_us_p99")},
+            "renderer": {
+                k: run.summary.get(k)
+                for k in (
+                    "teleports",
+                    "dropped",
+                    "mismatches",
+                    "first_mismatch",
+                    "step_us_median",
+                    "step_us_p99",
+                )
+            },
             "tracking_drops": dict(run.tracking_drops),
             "checks": [c.to_json() for c in run.checks],
             "failed_checks": [c.name for c in run.checks if c.passed is False],
@@ -188,8 +203,12 @@ def report_json(result: StudyRun, design: list[Check]) -> dict[str, Any]:
         "limits_ua": list(result.limits_ua),
         "sent": result.sent,
         "rate_hz": result.rate_hz,
-        "array": {"name": arr.name, "electrodes": arr.count, "pitch_mm": arr.pitch_mm,
-                  "mapping": list(arr.channel_mapping().app_to_hw)},
+        "array": {
+            "name": arr.name,
+            "electrodes": arr.count,
+            "pitch_mm": arr.pitch_mm,
+            "mapping": list(arr.channel_mapping().app_to_hw),
+        },
         "design_checks": [c.to_json() for c in design],
         "summary": summary_json(result, design),
         "timed": {"available": result.timed, "note": result.timed_note, "summary": result.timed_summary},
@@ -220,8 +239,11 @@ def markdown(report: dict[str, Any]) -> str:
     for c in report["design_checks"]:
         mark = {True: "ok", False: "FAILED", None: "not checked"}[c["passed"]]  # a subset or quick run
         lines.append(f"Design: {mark} — {c['detail']}")
-    lines += ["", "| # | trial | result | frames sent | features | textures | max µA | charge nC | failed checks |",
-              "|---|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| # | trial | result | frames sent | features | textures | max µA | charge nC | failed checks |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for t in report["trials"]:
         if t["skipped"]:
             lines.append(f"| {t['index']} | {t['id']} | skipped | | | | | | {t['skipped']} |")
@@ -230,10 +252,14 @@ def markdown(report: dict[str, Any]) -> str:
         feats = ", ".join(f"{k}×{v}" for k, v in t["features_seen"].items()) or "—"
         tex = ", ".join(f"{k}×{v}" for k, v in t["textures_seen"].items()) or "—"
         res = "pass" if t["passed"] else "**FAIL**"
-        lines.append(f"| {t['index']} | {t['id']} | {res} | {t['frames']['sent']} | {feats} | {tex} | "
-                     f"{d.get('max_current_ua', '—')} | {d.get('total_charge_nc', '—')} | "
-                     f"{', '.join(t['failed_checks']) or ''} |")
-    failures = [(t, c) for t in report["trials"] if not t["skipped"] for c in t["checks"] if c["passed"] is False]
+        lines.append(
+            f"| {t['index']} | {t['id']} | {res} | {t['frames']['sent']} | {feats} | {tex} | "
+            f"{d.get('max_current_ua', '—')} | {d.get('total_charge_nc', '—')} | "
+            f"{', '.join(t['failed_checks']) or ''} |"
+        )
+    failures = [
+        (t, c) for t in report["trials"] if not t["skipped"] for c in t["checks"] if c["passed"] is False
+    ]
     if failures:
         lines += ["", "## Failed checks", ""]
         for t, c in failures:
@@ -339,17 +365,32 @@ def draw_overview(result: StudyRun, path: Path) -> dict[str, Any]:
         if run.skipped is not None:
             continue
         frames, total = _key_frames(run, MAX_FRAMES)
-        trials.append(OverviewTrial(
-            title=run.trial.id,
-            passed=bool(run.passed),
-            frames=tuple(OverviewFrame(tuple(int(v) for v in rec.electrodes),
-                                       f"{rec.t_s - run.t0_s:.2f} s {_STATE_SHORT.get(rec.state, rec.state)}")
-                         for rec in frames),
-        ))
-    info = draw_study_overview(result.array.positions_mm, result.array.radius_mm, trials, path,
-                               title=f"{result.study.name}: {len(trials)} trial(s)")
-    return {"path": info.path, "size_px": list(info.size_px), "grid": [info.columns, info.rows],
-            "min_font_pt": info.min_font_pt}
+        trials.append(
+            OverviewTrial(
+                title=run.trial.id,
+                passed=bool(run.passed),
+                frames=tuple(
+                    OverviewFrame(
+                        tuple(int(v) for v in rec.electrodes),
+                        f"{rec.t_s - run.t0_s:.2f} s {_STATE_SHORT.get(rec.state, rec.state)}",
+                    )
+                    for rec in frames
+                ),
+            )
+        )
+    info = draw_study_overview(
+        result.array.positions_mm,
+        result.array.radius_mm,
+        trials,
+        path,
+        title=f"{result.study.name}: {len(trials)} trial(s)",
+    )
+    return {
+        "path": info.path,
+        "size_px": list(info.size_px),
+        "grid": [info.columns, info.rows],
+        "min_font_pt": info.min_font_pt,
+    }
 
 
 _STATE_SHORT = {"approaching": "appr.", "interacting": "contact", "idle": "idle"}
@@ -375,8 +416,11 @@ def draw_pictures(result: StudyRun, out: Path, *, gif: bool = False) -> dict[str
                 continue
             info = draw_trial_strip(run, tiles, pics / f"{run.trial.id}.png")
             strips.append(info["path"])
-            entry: dict[str, Any] = {"strip": str(info["path"].relative_to(out)), "tiles": info["tiles"],
-                                     "distinct_frames": info["distinct_frames"]}
+            entry: dict[str, Any] = {
+                "strip": str(info["path"].relative_to(out)),
+                "tiles": info["tiles"],
+                "distinct_frames": info["distinct_frames"],
+            }
             if gif:
                 entry.update(_trial_gif(run, result, pics / f"{run.trial.id}.gif", out))
             drawn["trials"][run.trial.id] = entry
@@ -393,8 +437,14 @@ def _trial_gif(run: TrialRun, result: StudyRun, path: Path, out: Path) -> dict[s
 
     lines = [json.loads(s) for s in frames_lines(run)]
     try:
-        info = draw_frames_gif(result.array, lines, path, current_ua=result.current_ua or None,
-                               title=run.trial.id, size_px=(360, 340))
+        info = draw_frames_gif(
+            result.array,
+            lines,
+            path,
+            current_ua=result.current_ua or None,
+            title=run.trial.id,
+            size_px=(360, 340),
+        )
     except ConfigurationError as exc:
         return {"gif_note": str(exc)}
     return {"gif": str(info.path.relative_to(out)), "gif_frames": info.frames, "gif_notes": list(info.notes)}
@@ -416,7 +466,9 @@ def write_report(
     try:
         root.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise ConfigurationError(f"--out {str(root)!r}: cannot create the directory ({exc.strerror or exc})") from exc
+        raise ConfigurationError(
+            f"--out {str(root)!r}: cannot create the directory ({exc.strerror or exc})"
+        ) from exc
     report = report_json(result, design)
     frames_dir = root / "frames"
     frames_dir.mkdir(exist_ok=True)
@@ -435,8 +487,9 @@ def write_report(
     else:
         report["pictures"] = {"note": "pictures not drawn (--no-pictures)"}
     report = dict(_clean(report))
-    (root / "report.json").write_text(json.dumps(report, indent=1, default=_json_default, allow_nan=False) + "\n",
-                                      encoding="utf-8")
+    (root / "report.json").write_text(
+        json.dumps(report, indent=1, default=_json_default, allow_nan=False) + "\n", encoding="utf-8"
+    )
     (root / "summary.md").write_text(markdown(report), encoding="utf-8")
     return report
 

@@ -195,8 +195,11 @@ class _Scenes:
         base_key = (trial.scene, approach, trial.contact_mode, ())
         scene = self._cache.get(base_key)
         if scene is None:
-            scene = load_scene(trial.scene, options=RenderOptions(contact_mode=trial.contact_mode, approach=approach),
-                               mesh_dirs=self.mesh_dirs)
+            scene = load_scene(
+                trial.scene,
+                options=RenderOptions(contact_mode=trial.contact_mode, approach=approach),
+                mesh_dirs=self.mesh_dirs,
+            )
             self._cache[base_key] = scene
         for obj, level in trial.textures:
             scene = scene.with_texture_level(level, objects=[obj])
@@ -215,8 +218,12 @@ class _Scenes:
             return hit
         specs = [s for s in (scene.specs or ()) if s.name == segment.plan_object]
         if not specs:
-            raise ConfigurationError(f"scene {trial.scene!r} has no object {segment.plan_object!r} to plan on")
-        plan = Scene.from_specs(f"{scene.name}:{segment.plan_object}", specs, scene.options, mesh_dirs=self.mesh_dirs)
+            raise ConfigurationError(
+                f"scene {trial.scene!r} has no object {segment.plan_object!r} to plan on"
+            )
+        plan = Scene.from_specs(
+            f"{scene.name}:{segment.plan_object}", specs, scene.options, mesh_dirs=self.mesh_dirs
+        )
         self._cache[key] = plan
         return plan
 
@@ -239,7 +246,9 @@ def _transit(a: Pose, b: Pose, scene: Scene, rate_hz: float, t0_s: float) -> lis
         p = ways[k] + u * (ways[k + 1] - ways[k])
         q = slerp(a.orientation, b.orientation, i / n)
         if scene.query(p).signed_distance_mm < 20.0:
-            raise ConfigurationError(f"the move between two segments passes within 20 mm of a surface at {p.round(1).tolist()}")
+            raise ConfigurationError(
+                f"the move between two segments passes within 20 mm of a surface at {p.round(1).tolist()}"
+            )
         out.append(Pose(t0_s + i / rate_hz, p, q))
     return out
 
@@ -345,8 +354,15 @@ def run_study(
     # session time
     from ..clock import SimulatedClock
 
-    dev = open_device(device, timeout=timeout, mapping=mapping, guard=guard, audit=audit,
-                      offline_clock=None if realtime else SimulatedClock(), firmware=firmware)
+    dev = open_device(
+        device,
+        timeout=timeout,
+        mapping=mapping,
+        guard=guard,
+        audit=audit,
+        offline_clock=None if realtime else SimulatedClock(),
+        firmware=firmware,
+    )
     if dev._dialect is not None:
         dev.close()
         raise ConfigurationError(
@@ -376,7 +392,9 @@ def run_study(
         for run in runs:
             trial = run.trial
             if run.skipped is not None:
-                say(f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: skipped ({run.skipped})")
+                say(
+                    f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: skipped ({run.skipped})"
+                )
                 continue
             t_wall = time.perf_counter()
             scene = scenes.get(trial)
@@ -388,12 +406,22 @@ def run_study(
             run.segment_spans = spans
             run.t0_s = offset
             inspectable = _inspectable(dev)
-            readback = pattern_readback(dev, mapping) if sim_clock is not None else None  # an instant port, offline
+            readback = (
+                pattern_readback(dev, mapping) if sim_clock is not None else None
+            )  # an instant port, offline
             run.verified = readback is not None
             hazards_before = len(board_hazards(dev.port) or ())
-            renderer = Renderer(scene, dev, array=array, approach=trial.approach, config=cfg,
-                                contact_mode=trial.contact_mode, current_ua=current, stim_config=stim,
-                                verify=readback)
+            renderer = Renderer(
+                scene,
+                dev,
+                array=array,
+                approach=trial.approach,
+                config=cfg,
+                contact_mode=trial.contact_mode,
+                current_ua=current,
+                stim_config=stim,
+                verify=readback,
+            )
             tap.mark(t_s=offset, trial=trial.index, phase="configure")
             renderer.start()
             tap.mark(phase="render")
@@ -426,16 +454,29 @@ def run_study(
             run.wall_s = time.perf_counter() - t_wall
             session_t = run.t1_s + INTER_TRIAL_S
             ok = run.summary.get("mismatches", 0) == 0
-            say(f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: {len(run.poses)} poses, "
-                f"{run.summary.get('frames_sent', 0)} frames sent{'' if ok else ', MISMATCH'} ({run.wall_s:.2f} s)")
+            say(
+                f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: {len(run.poses)} poses, "
+                f"{run.summary.get('frames_sent', 0)} frames sent{'' if ok else ', MISMATCH'} ({run.wall_s:.2f} s)"
+            )
         tap.mark(t_s=session_t, trial=0, phase="session")
         if not dev.closed and dev.config is not None:
             dev.all_off()
     finally:
         dev.close()
-    result = StudyRun(study, device, current, source, float(rate_hz), array, patterns, runs,
-                      list(guard.electrode_limits(array.count)), getattr(profile, "participant", None),
-                      notes=notes, writes=list(tap.writes))
+    result = StudyRun(
+        study,
+        device,
+        current,
+        source,
+        float(rate_hz),
+        array,
+        patterns,
+        runs,
+        list(guard.electrode_limits(array.count)),
+        getattr(profile, "participant", None),
+        notes=notes,
+        writes=list(tap.writes),
+    )
     if timed:
         try:
             say(f"study {study.name}: replaying {len(tap.writes)} writes into the timed emulator")
@@ -510,7 +551,9 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         per_pulses = [0] * result.array.count
         per_max = [0.0] * result.array.count
         unmapped = 0
-        for ch, ua, q in zip(sel["channel"][stim].tolist(), sel["current_ua"][stim].tolist(), sel["charge_nc"][stim].tolist()):
+        for ch, ua, q in zip(
+            sel["channel"][stim].tolist(), sel["current_ua"][stim].tolist(), sel["charge_nc"][stim].tolist()
+        ):
             app = hw_to_app.get(int(ch))
             if app is None:
                 unmapped += 1

@@ -187,14 +187,26 @@ def task1(seed: int = 0, quick: bool = False, contact_mode: str = "orientation")
     rng.shuffle(conditions)
     trials = []
     for feature, orientation in conditions:
-        name = "approach-face" if feature == "face" else "approach-corner" if feature == "corner" else f"approach-edge-{orientation}"
+        name = (
+            "approach-face"
+            if feature == "face"
+            else "approach-corner"
+            if feature == "corner"
+            else f"approach-edge-{orientation}"
+        )
         cond = feature if orientation is None else f"edge-{orientation}"
         expect: dict[str, Any] = {"feature": feature, "orientation": orientation, "object": "cube"}
         if orientation is not None:
             expect["edge_angle_deg"] = APPROACH_EDGE_ANGLES_DEG[orientation]
         seg = Segment(name, None, None, TASK1_PENETRATION_MM[feature], expect)
-        desc = f"approach {'an' if feature == 'edge' else 'a'} {feature}" + (f" shown {orientation} on the pad" if orientation else "")
-        trials.append(Trial(0, "", "task1", "task1", (seg,), contact_mode=contact_mode, condition=cond, description=desc))
+        desc = f"approach {'an' if feature == 'edge' else 'a'} {feature}" + (
+            f" shown {orientation} on the pad" if orientation else ""
+        )
+        trials.append(
+            Trial(
+                0, "", "task1", "task1", (seg,), contact_mode=contact_mode, condition=cond, description=desc
+            )
+        )
     counts = {o: sum(1 for f, oo in conditions if oo == o) for o in EDGE_ORIENTATIONS}
     notes = [f"edge orientations shown: {', '.join(f'{o}×{n}' for o, n in counts.items())} (seed {seed})"]
     return Study("task1", STUDY_TITLES["task1"], _number(trials, "task1"), {}, quick, seed, tuple(notes))
@@ -219,16 +231,41 @@ def task2(seed: int = 0, quick: bool = False, contact_mode: str = "orientation")
         rng.shuffle(cells)
         for obj, level in cells:
             name = THETA_LEVEL_NAMES[level]
-            expect = {"feature": "face", "object": obj, "theta_level": level, "theta_name": name,
-                      "theta_deg": CONTACT_THETA_DEG[name], "contact_mode": mode}
+            expect = {
+                "feature": "face",
+                "object": obj,
+                "theta_level": level,
+                "theta_name": name,
+                "theta_deg": CONTACT_THETA_DEG[name],
+                "contact_mode": mode,
+            }
             seg = Segment(f"contact-{name}", obj, None, 3.0, expect)
             trials.append(
-                Trial(0, "", "task2", "task2", (seg,), contact_mode=mode, block=mode, condition=f"{mode}-{obj}-{name}",
-                      description=f"press the {obj} bar with θ {CONTACT_THETA_DEG[name]:+.0f}° ({name}), {mode} contact")
+                Trial(
+                    0,
+                    "",
+                    "task2",
+                    "task2",
+                    (seg,),
+                    contact_mode=mode,
+                    block=mode,
+                    condition=f"{mode}-{obj}-{name}",
+                    description=f"press the {obj} bar with θ {CONTACT_THETA_DEG[name]:+.0f}° ({name}), {mode} contact",
+                )
             )
-    notes = [f"block order: {' then '.join(blocks)} (seed {seed})", "stimulation only while the pad is stationary"]
-    return Study("task2", STUDY_TITLES["task2"], _number(trials, "task2"), {"render_sliding": False}, quick, seed,
-                 tuple(notes))
+    notes = [
+        f"block order: {' then '.join(blocks)} (seed {seed})",
+        "stimulation only while the pad is stationary",
+    ]
+    return Study(
+        "task2",
+        STUDY_TITLES["task2"],
+        _number(trials, "task2"),
+        {"render_sliding": False},
+        quick,
+        seed,
+        tuple(notes),
+    )
 
 
 # --- task 3 --------------------------------------------------------------------------------------------------
@@ -251,14 +288,27 @@ def task3(seed: int = 0, quick: bool = False, contact_mode: str = "orientation")
     trials = []
     for upper, lower in cells:
         segs = tuple(
-            Segment(f"slide-{TEXTURE_NAMES[level]}", surface, speed, 3.0,
-                    {"feature": "face", "object": surface, "texture": level, "direction": "E"})
+            Segment(
+                f"slide-{TEXTURE_NAMES[level]}",
+                surface,
+                speed,
+                3.0,
+                {"feature": "face", "object": surface, "texture": level, "direction": "E"},
+            )
             for surface, level in zip(TASK3_SURFACES, (upper, lower))
         )
         cond = f"{TEXTURE_NAMES[upper]}-{TEXTURE_NAMES[lower]}"
         trials.append(
-            Trial(0, "", "task3", "task3", segs, textures=(("upper", upper), ("lower", lower)), condition=cond,
-                  description=f"stroke the upper ({TEXTURE_NAMES[upper]}) then the lower ({TEXTURE_NAMES[lower]}) surface rightward")
+            Trial(
+                0,
+                "",
+                "task3",
+                "task3",
+                segs,
+                textures=(("upper", upper), ("lower", lower)),
+                condition=cond,
+                description=f"stroke the upper ({TEXTURE_NAMES[upper]}) then the lower ({TEXTURE_NAMES[lower]}) surface rightward",
+            )
         )
     notes = [
         f"strokes at {speed:g} mm/s, rightward; texture patterns rendered only while sliding rightward, nothing "
@@ -288,9 +338,18 @@ def phase2(seed: int = 0, quick: bool = False, contact_mode: str = "orientation"
                 expect["texture"] = 1 if obj == "bunny" else 0
             seg = Segment("explore", None, speed, 3.0, expect)
             trials.append(
-                Trial(0, "", "phase2", obj, (seg,), approach=approach, contact_mode=contact_mode, block=obj,
-                      condition=f"{obj}-{approach}",
-                      description=f"explore the {obj} under {approach.upper() if approach != 'tactdeform' else 'TactDeform'}")
+                Trial(
+                    0,
+                    "",
+                    "phase2",
+                    obj,
+                    (seg,),
+                    approach=approach,
+                    contact_mode=contact_mode,
+                    block=obj,
+                    condition=f"{obj}-{approach}",
+                    description=f"explore the {obj} under {approach.upper() if approach != 'tactdeform' else 'TactDeform'}",
+                )
             )
     notes = [f"exploration strokes at {speed:g} mm/s", "the bunny is the textured object (rough)"]
     return Study("phase2", STUDY_TITLES["phase2"], _number(trials, "phase2"), {}, quick, seed, tuple(notes))
@@ -335,7 +394,11 @@ def select_trials(study: Study, spec: str | None) -> Study:
         hits = {t.index for t in study.trials if t.condition == item or t.id == item}
         if not hits:
             known = ", ".join(sorted({t.condition for t in study.trials}))
-            raise ConfigurationError(f"--trials {item!r} names no trial of {study.name} (conditions: {known})")
+            raise ConfigurationError(
+                f"--trials {item!r} names no trial of {study.name} (conditions: {known})"
+            )
         chosen.update(hits)
     trials = tuple(t for t in study.trials if t.index in chosen)
-    return Study(study.name, study.title, trials, study.manager, study.quick, study.seed, study.notes, spec.strip())
+    return Study(
+        study.name, study.title, trials, study.manager, study.quick, study.seed, study.notes, spec.strip()
+    )

@@ -349,7 +349,9 @@ def draw_array_gif(
         if d < min_frame_ms:
             stretched += 1
             real = f"real {f.duration_ms:.0f} ms, shown {min_frame_ms:.0f} ms"
-            seq[i] = PictureFrame(f.levels, f.duration_ms, f"{f.label} · {real}" if f.label else real, f.current_ua)
+            seq[i] = PictureFrame(
+                f.levels, f.duration_ms, f"{f.label} · {real}" if f.label else real, f.current_ua
+            )
             d = min_frame_ms
         durations.append(int(round(d)))
     if stretched:

@@ -32,7 +32,9 @@ class StripInfo:
     left_out: int
 
 
-def strip_panels(records: Iterable[Any], *, sent_only: bool = True, states: Iterable[str] | None = None) -> list[dict[str, Any]]:
+def strip_panels(
+    records: Iterable[Any], *, sent_only: bool = True, states: Iterable[str] | None = None
+) -> list[dict[str, Any]]:
     """The frames a strip shows: frames-file lines (dicts as ``render --frames`` writes them) that were
     sent (or all of them), optionally only in some states, with consecutive repeats of one pattern
     dropped."""
@@ -117,10 +119,23 @@ def draw_frames_strip(
         words = [str(w) for w in (rec.get("state"), rec.get("feature")) if w]
         if rec.get("texture") not in (None, "smooth"):
             words.append(str(rec["texture"]))
-        fig.text(left + 0.5 * panel_px / w_px, bottom - 6 / h_px, f"{i}: t = {rec['t']:.3f} s",
-                 ha="center", va="top", fontsize=8)
-        fig.text(left + 0.5 * panel_px / w_px, bottom - 19 / h_px, " ".join(words),
-                 ha="center", va="top", fontsize=7, color="#444444")
+        fig.text(
+            left + 0.5 * panel_px / w_px,
+            bottom - 6 / h_px,
+            f"{i}: t = {rec['t']:.3f} s",
+            ha="center",
+            va="top",
+            fontsize=8,
+        )
+        fig.text(
+            left + 0.5 * panel_px / w_px,
+            bottom - 19 / h_px,
+            " ".join(words),
+            ha="center",
+            va="top",
+            fontsize=7,
+            color="#444444",
+        )
     rgb = canvas_rgb(canvas)
     p = Path(path)
     Image.fromarray(rgb).save(p, format="PNG")

@@ -109,7 +109,9 @@ def draw_study_overview(
         text(x, _HEADER_PX / 2, title, 12, weight="bold")
         x += 12 * 0.62 * len(title) * DPI / 72 + 24
     for level, name in ((0, "off"), (1, "monophasic"), (2, "biphasic")):
-        ax.scatter([x + 7], [_HEADER_PX / 2], s=110, color=colours[level], edgecolors="#333333", linewidths=0.6)
+        ax.scatter(
+            [x + 7], [_HEADER_PX / 2], s=110, color=colours[level], edgecolors="#333333", linewidths=0.6
+        )
         text(x + 20, _HEADER_PX / 2, name)
         x += 20 + 10 * 0.62 * len(name) * DPI / 72 + 24
 
@@ -118,13 +120,31 @@ def draw_study_overview(
     for k, trial in enumerate(trials):
         cx, cy = (k % cols) * cell_w, _HEADER_PX + (k // cols) * cell_h
         ax.add_patch(_rect(cx + 3, cy + 2, cell_w - 6, cell_h - 4, "#f6f6f6" if trial.passed else "#fbeaea"))
-        text(cx + _PAD, cy + _TITLE_PX / 2 + 2, trial.title, MIN_FONT_PT, weight="bold",
-             color="#222222" if trial.passed else "#aa0000")
-        text(cx + cell_w - _PAD, cy + _TITLE_PX / 2 + 2, "pass" if trial.passed else "FAIL", MIN_FONT_PT,
-             ha="right", weight="bold", color="#226622" if trial.passed else "#aa0000")
+        text(
+            cx + _PAD,
+            cy + _TITLE_PX / 2 + 2,
+            trial.title,
+            MIN_FONT_PT,
+            weight="bold",
+            color="#222222" if trial.passed else "#aa0000",
+        )
+        text(
+            cx + cell_w - _PAD,
+            cy + _TITLE_PX / 2 + 2,
+            "pass" if trial.passed else "FAIL",
+            MIN_FONT_PT,
+            ha="right",
+            weight="bold",
+            color="#226622" if trial.passed else "#aa0000",
+        )
         if not trial.frames:
-            text(cx + _PAD, cy + _TITLE_PX + thumb / 2, trial.note or "no electrode was switched on", MIN_FONT_PT,
-                 color="#aa0000")
+            text(
+                cx + _PAD,
+                cy + _TITLE_PX + thumb / 2,
+                trial.note or "no electrode was switched on",
+                MIN_FONT_PT,
+                color="#aa0000",
+            )
             continue
         for j, frame in enumerate(trial.frames):
             ox = cx + _PAD + j * (thumb + _GAP) + 4
@@ -133,8 +153,14 @@ def draw_study_overview(
             py = oy + (hi[1] - pos[:, 1]) * scale + (span - (hi[1] - lo[1])) * scale / 2
             cs = [colours[int(v) if int(v) in (1, 2) else 0] for v in frame.levels[: len(pos)]]
             ax.scatter(px, py, s=disc_pt**2, c=cs, edgecolors="#333333", linewidths=0.4)
-            text(ox + (thumb - 8) / 2, oy + thumb + _CAPTION_PX / 2 - 4, frame.caption, MIN_FONT_PT,
-                 ha="center", color="#222222")
+            text(
+                ox + (thumb - 8) / 2,
+                oy + thumb + _CAPTION_PX / 2 - 4,
+                frame.caption,
+                MIN_FONT_PT,
+                ha="center",
+                color="#222222",
+            )
     out = Path(path)
     fig.savefig(out, format="png", dpi=DPI)
     return OverviewInfo(out, (width, height), cols, rows, thumb, min(fonts) if fonts else MIN_FONT_PT)

@@ -16,8 +16,13 @@ from tactdeform_hw.emulator.realtime import SERIAL_USB, WIFI_TCP, RealtimeEmulat
 from tactdeform_hw.protocol import commands_v2 as v2
 
 N = 32
-SETUP = (v2.encode_electrode_num(N) + v2.encode_stim_mode(0) + v2.encode_pulse_width(200) + v2.encode_discharge(45)
-         + v2.encode_frequency(125))
+SETUP = (
+    v2.encode_electrode_num(N)
+    + v2.encode_stim_mode(0)
+    + v2.encode_pulse_width(200)
+    + v2.encode_discharge(45)
+    + v2.encode_frequency(125)
+)
 
 
 class _Clock:

@@ -15,7 +15,9 @@ from tactdeform_hw.device.profiles import ParticipantProfile
 from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF, SafetyGuard
 from tactdeform_hw.emulator.transport import EmulatorPort
 
-PROFILE = ParticipantProfile("B01", 2000, (1500, 1400, 1500, 1300, 1200, 1300, 1500, 1400, 1500), dt.date(2024, 5, 1))
+PROFILE = ParticipantProfile(
+    "B01", 2000, (1500, 1400, 1500, 1300, 1200, 1300, 1500, 1400, 1500), dt.date(2024, 5, 1)
+)
 FRAMES = [[1 if r == region else 0 for r in TACTDEFORM_REGION_OF] for region in (4, 0, 3, 8, 1)]
 
 

@@ -192,7 +192,9 @@ def _tcp_target(name: str) -> Target:
     def make_port() -> Any:
         import serial
 
-        port = serial.serial_for_url(server.url, do_not_open=True, timeout=REPLY_TIMEOUT_S, write_timeout=REPLY_TIMEOUT_S)
+        port = serial.serial_for_url(
+            server.url, do_not_open=True, timeout=REPLY_TIMEOUT_S, write_timeout=REPLY_TIMEOUT_S
+        )
         return _CountingPort(port, written)
 
     t = Target(
@@ -210,7 +212,9 @@ def _tcp_target(name: str) -> Target:
 
 
 def _usb_emulator_target(name: str) -> Target:
-    pytest.importorskip("usb.core", reason="the usb-emulator target needs pyusb (pip install 'tactdeform_hw[usb]')")
+    pytest.importorskip(
+        "usb.core", reason="the usb-emulator target needs pyusb (pip install 'tactdeform_hw[usb]')"
+    )
     from tactdeform_hw.device.usb_transport import UsbCdcPort
     from tactdeform_hw.emulator.usb_backend import backend_from_name
 
@@ -218,7 +222,9 @@ def _usb_emulator_target(name: str) -> Target:
     dev = backend.device
 
     def make_port() -> Any:
-        return UsbCdcPort(0x303A, 0x1001, backend=backend, timeout=REPLY_TIMEOUT_S, write_timeout=REPLY_TIMEOUT_S, name=name)
+        return UsbCdcPort(
+            0x303A, 0x1001, backend=backend, timeout=REPLY_TIMEOUT_S, write_timeout=REPLY_TIMEOUT_S, name=name
+        )
 
     return Target(
         name=name,

@@ -101,7 +101,9 @@ def test_hv513_reply(probe: Probe, target: Target, report: Report) -> None:
     assert len(reply) == 1, "no reply to the HV513 count request (0xF5)"
     assert probe.quiet() == b"", "more than one byte came back for 0xF5"
     count = reply[0]
-    assert count % 4 == 0 or count == 1, f"HV513 count {count}: neither the compact ((n-1)*4) nor the large board formula"
+    assert count % 4 == 0 or count == 1, (
+        f"HV513 count {count}: neither the compact ((n-1)*4) nor the large board formula"
+    )
     again, _ = probe.request(b"\xf5", 1)
     assert again == reply, "the HV513 count changed between two requests"
     if target.hv513_expected is not None:
@@ -152,7 +154,10 @@ def test_measure_reply_timing(probe: Probe, target: Target, report: Report) -> N
         latencies.append(latency)
         time.sleep(0.003)
     median = statistics.median(latencies)
-    report("0xFF round trip (min / median / max)", " / ".join(_ms(x) for x in (min(latencies), median, max(latencies))))
+    report(
+        "0xFF round trip (min / median / max)",
+        " / ".join(_ms(x) for x in (min(latencies), median, max(latencies))),
+    )
     assert median <= target.reply_budget_s, (
         f"median measure round trip {_ms(median)} exceeds the budget {_ms(target.reply_budget_s)}"
     )
@@ -196,7 +201,9 @@ def test_silence_after_other_commands(probe: Probe, target: Target, command: str
 # --- resynchronisation -----------------------------------------------------------------------------------
 
 
-def test_truncated_pattern_swallows_the_next_command_and_zeros_resynchronise(probe: Probe, target: Target) -> None:
+def test_truncated_pattern_swallows_the_next_command_and_zeros_resynchronise(
+    probe: Probe, target: Target
+) -> None:
     """A pattern cut short takes the next bytes as its payload (here an 0xF5, which then gets no reply);
     256 zeros finish it; pulse height 0 and an all-off pattern make the state known again."""
     probe.baseline(32)
@@ -284,7 +291,10 @@ def test_one_command_per_millisecond(probe: Probe, target: Target, report: Repor
     behind_unknown = best(bytes(200) + b"\xff")
     extra = behind_commands - alone
     report("0xFF alone", _ms(alone))
-    report(f"0xFF behind {k} commands", f"{_ms(behind_commands)} (+{extra * 1000:.2f} ms, {extra * 1000 / k:.3f} ms/command)")
+    report(
+        f"0xFF behind {k} commands",
+        f"{_ms(behind_commands)} (+{extra * 1000:.2f} ms, {extra * 1000 / k:.3f} ms/command)",
+    )
     report("0xFF behind 200 unknown bytes", _ms(behind_unknown))
     assert extra >= (k - 2) * 1e-3, (
         f"{k} commands delayed the reply by only {extra * 1000:.2f} ms: the firmware reads more than one "
@@ -294,7 +304,9 @@ def test_one_command_per_millisecond(probe: Probe, target: Target, report: Repor
         f"{k} commands delayed the reply by {extra * 1000:.2f} ms: more than one tick per command (is the "
         "RTOS tick 1 kHz?)"
     )
-    assert behind_unknown - alone < extra / 2, "unknown bytes cost the parser time: each should be skipped at once"
+    assert behind_unknown - alone < extra / 2, (
+        "unknown bytes cost the parser time: each should be skipped at once"
+    )
 
 
 # --- the fail-safe ---------------------------------------------------------------------------------------
@@ -331,7 +343,9 @@ def _last_state(commands: list[Any], electrodes: int) -> tuple[bytes | None, int
 def _check_all_off(target: Target, written: bytes, mark: int, electrodes: int) -> None:
     tail = decode(written[mark:], electrode_num=electrodes)
     pattern, height = _last_state(tail, electrodes)
-    assert pattern == bytes(electrodes), f"no all-off pattern was sent on close: {[c.describe() for c in tail]}"
+    assert pattern == bytes(electrodes), (
+        f"no all-off pattern was sent on close: {[c.describe() for c in tail]}"
+    )
     assert height == 0, "the pulse height was not set to 0 on close"
     if target.state is not None:
         target.settle(2)

@@ -37,7 +37,9 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
     elif "firmware=v2" in chosen:
         names = [pytest.param(chosen, id=chosen)]
     else:
-        names = [pytest.param(chosen, id=chosen, marks=[pytest.mark.skip(reason=f"{chosen} serves firmware v1.2")])]
+        names = [
+            pytest.param(chosen, id=chosen, marks=[pytest.mark.skip(reason=f"{chosen} serves firmware v1.2")])
+        ]
     metafunc.parametrize("v2_target_name", names)
 
 

@@ -76,7 +76,9 @@ def _parse(url: str) -> tuple[str, dict[str, str]]:
         opts[option] = values[-1]
     timed = opts.get("timed", "1").lower()
     if timed not in ("0", "1", "true", "false", "yes", "no", "on", "off"):
-        raise SerialException(f"option timed={opts['timed']!r} in {url!r}: use 1 (real time, the default) or 0 (instant)")
+        raise SerialException(
+            f"option timed={opts['timed']!r} in {url!r}: use 1 (real time, the default) or 0 (instant)"
+        )
     link = opts.get("link", "usb")
     if link not in ("usb", "uart"):
         raise SerialException(f"option link={link!r} in {url!r}: use usb (the default) or uart")
@@ -174,7 +176,9 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]  # pyserial ships no t
 
         def make() -> Any:
             if timed:
-                return RealtimeEmulator(board, switching, rules=rules, stack_reading=reading, firmware=firmware)
+                return RealtimeEmulator(
+                    board, switching, rules=rules, stack_reading=reading, firmware=firmware
+                )
             return Emulator(board, switching, stack_reading=reading, firmware=firmware)
 
         try:
@@ -184,10 +188,14 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]  # pyserial ships no t
                 emu = _shared.get(name)
                 if emu is None:
                     emu = _shared[name] = make()
-                elif isinstance(emu, RealtimeEmulator) != timed or getattr(emu, "firmware", "v1.2") != firmware:
+                elif (
+                    isinstance(emu, RealtimeEmulator) != timed or getattr(emu, "firmware", "v1.2") != firmware
+                ):
                     have = "timed" if isinstance(emu, RealtimeEmulator) else "untimed"
-                    raise SerialException(f"{url!r}: the board {name!r} is already open {have} with firmware "
-                                          f"{getattr(emu, 'firmware', 'v1.2')}")
+                    raise SerialException(
+                        f"{url!r}: the board {name!r} is already open {have} with firmware "
+                        f"{getattr(emu, 'firmware', 'v1.2')}"
+                    )
                 return emu
         except (ValueError, ConfigurationError) as exc:
             raise SerialException(str(exc)) from exc
@@ -281,8 +289,14 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]  # pyserial ships no t
                     self.emulator._advance()
                     self.emulator.timed.reset("USB Serial/JTAG reset released")  # boots from this moment
                     self.emulator.timed.read_tx()
-            self._note("reset released: " + ("ROM download mode (the application does not run)"
-                                             if self.lines.download_mode else "the firmware boots"))
+            self._note(
+                "reset released: "
+                + (
+                    "ROM download mode (the application does not run)"
+                    if self.lines.download_mode
+                    else "the firmware boots"
+                )
+            )
 
     @property
     def resets(self) -> list[Any]:
