@@ -255,7 +255,7 @@ def test_stim_config_can_be_given_whole() -> None:
         assert dev.config is not None and dev.config.rate_hz == 100 and dev.current_ua == 300
 
 
-# --- the command ----------------------------------------------------------------------------------------------
+# --- the command --------------------------------------------------------------------------------------------
 
 
 def _cli(argv: list[str]) -> int:

@@ -168,7 +168,7 @@ def test_url_handler_serves_v2_timed_by_default_and_untimed_on_request() -> None
         instant.close()
 
 
-# --- the TCP board -------------------------------------------------------------------------------------------
+# --- the TCP board ------------------------------------------------------------------------------------------
 
 
 def test_v2_tcp_serves_one_client_at_a_time() -> None:

@@ -82,8 +82,8 @@ def detect_firmware(
         if reply:
             if reply != b"\x00":
                 raise FirmwareMismatchError(
-                    f"the sync check after the electrode count 0 was answered {reply.hex()}, not 00: the board "
-                    "did not read the probe as sent; nothing stimulating was sent"
+                    f"the sync check after the electrode count 0 was answered {reply.hex()}, not 00: the "
+                    "board did not read the probe as sent; nothing stimulating was sent"
                 )
             return Detection(V2, attempts, reply)
     return Detection(V1_2, attempts, b"")
@@ -93,6 +93,7 @@ def check_firmware(expected: str, detection: Detection) -> None:
     """Refuse a board whose firmware is not the one the driver was told to speak."""
     if detection.name != expected:
         raise FirmwareMismatchError(
-            f"the board runs firmware {detection.name} (sync check {'answered' if detection.reply else 'unanswered'}), "
-            f"but firmware={expected!r} was asked for; nothing stimulating was sent"
+            f"the board runs firmware {detection.name} (sync check "
+            f"{'answered' if detection.reply else 'unanswered'}), but firmware={expected!r} was asked for; "
+            "nothing stimulating was sent"
         )

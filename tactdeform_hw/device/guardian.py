@@ -75,7 +75,7 @@ DEFAULT_DRAIN_S = 0.045
 DEFAULT_ZEROS_S = 0.2
 
 
-# --- the bytes (owner side: built with the protocol module) --------------------------------------------------
+# --- the bytes (owner side: built with the protocol module) -------------------------------------------------
 
 
 def stop_packet() -> bytes:

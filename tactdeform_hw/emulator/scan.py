@@ -351,7 +351,7 @@ def _outputs(bits: int) -> tuple[int, ...]:
     return tuple(out)
 
 
-# --- the fast path: per-configuration templates --------------------------------------------------------------
+# --- the fast path: per-configuration templates -------------------------------------------------------------
 
 _PH_DIN, _PH_SEL, _PH_ADC1, _PH_ADC2 = -101, -102, -103, -104
 

@@ -378,7 +378,7 @@ class PatternManager:
         )
         self.reset()
 
-    # --- lifecycle ---------------------------------------------------------------------------------------------
+    # --- lifecycle ------------------------------------------------------------------------------------------
 
     def reset(self) -> None:
         """Forget the finger: Idle, nothing shown, no history (statistics are kept)."""
@@ -425,7 +425,7 @@ class PatternManager:
         self.pattern: Pattern = self.patterns.off
         self.last_sent: Pattern | None = None
 
-    # --- public --------------------------------------------------------------------------------------------------
+    # --- public ---------------------------------------------------------------------------------------------
 
     @property
     def frame(self) -> int:
@@ -502,7 +502,7 @@ class PatternManager:
         while len(shist) > 2 and shist[1][0] <= w1:
             shist.popleft()
 
-        # --- contact ------------------------------------------------------------------------------------------
+        # --- contact ----------------------------------------------------------------------------------------
         old_state = self.state
         if self.state != IDLE:
             lost = teleport or normal is None or sd > cfg.contact_loss_far_mm

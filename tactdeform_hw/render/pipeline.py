@@ -207,7 +207,7 @@ class Renderer:
         self._started = False
         self._dwell_s = 0.0
 
-    # --- device ------------------------------------------------------------------------------------------------
+    # --- device ---------------------------------------------------------------------------------------------
 
     def start(self) -> None:
         """Configure the device once (electrode count, pulse shape, current) — all channels off."""
@@ -224,8 +224,8 @@ class Renderer:
             )
         if dev.mapping is None and self._mapping.app_to_hw != tuple(range(self._mapping.hw_channels)):
             raise ConfigurationError(
-                f"array {self.array.name!r} maps electrodes to hardware channels {self._mapping.app_to_hw} but the "
-                "device has no mapping; open the device with mapping=array.channel_mapping()"
+                f"array {self.array.name!r} maps electrodes to hardware channels {self._mapping.app_to_hw} "
+                "but the device has no mapping; open the device with mapping=array.channel_mapping()"
             )
         cfg = self.stim_config or StimConfig(
             electrode_count=self._mapping.hw_channels, current_ua=self.current_ua
@@ -248,7 +248,7 @@ class Renderer:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # --- per sample -------------------------------------------------------------------------------------------
+    # --- per sample -----------------------------------------------------------------------------------------
 
     def approach_for(self, query: Any) -> str:
         name = getattr(query, "object_name", None)
@@ -433,7 +433,7 @@ class Renderer:
                         "emulator": list(got),
                     }
 
-    # --- whole runs ---------------------------------------------------------------------------------------------
+    # --- whole runs -----------------------------------------------------------------------------------------
 
     def run(
         self,
