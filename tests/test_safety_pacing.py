@@ -1,4 +1,5 @@
-"""Pacing: the driver never overflows the firmware's 256-byte queue nor outruns its 1 ms-per-command parser."""
+"""Pacing: the driver never overflows the firmware's 256-byte queue nor outruns its 1 ms-per-command
+parser."""
 
 from __future__ import annotations
 

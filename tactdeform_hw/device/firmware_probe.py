@@ -18,9 +18,9 @@ with every current off, using only bytes that mean "less current" wherever eithe
 Every suffix of this sequence, read from a command boundary, also ends at a boundary with the count at
 0; that matters on v2, whose 2 s timeout may discard part of it when it arrives just as a stale command
 times out.  Such a discard can swallow the whole probe, sync check included, so a missing reply is
-checked once more with the whole probe (by then no command can be pending); a second silence means v1.2 (or a v1.2 parser locked before the session,
-which reads nothing until reset).  A reply other than 0 means the bytes were not read as sent: the
-board is reported, never driven.
+checked once more with the whole probe (by then no command can be pending); a second silence means v1.2 (or a
+v1.2 parser locked before the session, which reads nothing until reset).  A reply other than 0 means the bytes
+were not read as sent: the board is reported, never driven.
 
 The bytes go out in 64-byte writes with a gap between them, slow enough for v1.2's 256-byte queue even
 while it scans; the sequence ends with the electrode count at 0, so the caller configures the board

@@ -11,10 +11,10 @@ skip them:
    the firmware's registers.  It refuses a command whose effect would break a limit whatever code path
    produced it, so a future method that forgets the guard is stopped at the wire.  It judges the
    firmware's reading of the bytes (:mod:`tactdeform_hw.protocol.reader`, from where the parser stands),
-   and where the device's queue may be full, every reading a discarded USB packet tail could cause.  Only writing to the
-   port object directly (``device.port.write`` or ``serial.serial_for_url(...).write``) bypasses it:
-   that is not the driver, it is the raw transport, and no Python-level check can stop a caller who
-   opens the port themselves.
+   and where the device's queue may be full, every reading a discarded USB packet tail could cause.  Only
+   writing to the port object directly (``device.port.write`` or ``serial.serial_for_url(...).write``)
+   bypasses it: that is not the driver, it is the raw transport, and no Python-level check can stop a caller
+   who opens the port themselves.
 
 Limits (µA unless noted):
 

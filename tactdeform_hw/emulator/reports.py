@@ -406,7 +406,8 @@ class Budget:
         lines = [
             f"Scan budget: {self.electrodes} electrodes, {rate}timer alarm {self.alarm_ticks} ticks = "
             f"{self.period_us:.2f} µs, overrun policy {self.overrun_policy}",
-            f"{'kind':<24}{'channels':>9}{'select+POL':>12}{'pulse':>11}{'discharge':>11}{'per channel':>13}{'subtotal':>12}",
+            f"{'kind':<24}{'channels':>9}{'select+POL':>12}{'pulse':>11}{'discharge':>11}"
+            f"{'per channel':>13}{'subtotal':>12}",
         ]
         for r in self.rows:
             lines.append(

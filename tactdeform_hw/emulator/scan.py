@@ -602,8 +602,8 @@ class ScanEngine:
         )
         tmpl = ScanTemplate(cfg, chain, chain_end, int(duration), pulses, outs_list, first, voltages, v_at)
         tmpl._builder = (
-            lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _clear=clear, _blocks=blocks: (
-                self._events(t, _raw, _latched, _starts, _kinds, _clear, _blocks)
+            lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _c=clear, _b=blocks: (
+                self._events(t, _raw, _latched, _starts, _kinds, _c, _b)
             )
         )
         return tmpl

@@ -19,9 +19,9 @@ Electrode-array file (one JSON object)::
 Coordinates and the radius are millimetres on the skin side of the array, x to the right and y up (the
 GUI draws ``screen_y = 900 - (10·y + 500)``, i.e. 10 px per mm with y flipped onto the screen).  The
 coordinates also decide which of a participant's 9 calibrated regions each electrode belongs to
-(:meth:`ArrayFile.region_map`): regional limits follow positions, never the order of ``electrodes``.  Electrodes
-may also carry ``radius`` (used when ``electrode_radius`` is absent) and ``number`` (ignored, as the GUI
-ignores it); a non-zero ``z`` marks the 3-D GUI's curved arrays, which the planar renderer cannot use.
+(:meth:`ArrayFile.region_map`): regional limits follow positions, never the order of ``electrodes``.
+Electrodes may also carry ``radius`` (used when ``electrode_radius`` is absent) and ``number`` (ignored, as
+the GUI ignores it); a non-zero ``z`` marks the 3-D GUI's curved arrays, which the planar renderer cannot use.
 The GUI refuses a file without ``outline``, ``electrode_radius`` or ``Mapping_func``; here ``outline`` may
 be absent and ``Mapping_func`` defaults to the identity, and the writer always writes all of them.
 

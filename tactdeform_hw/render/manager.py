@@ -39,8 +39,8 @@ the state or the pattern, without giving lengths.  Physiological tremor is 8–1
   left its resting place by ``slide_start_mm`` = 0.75 mm, off below ``slide_off_mm_s`` = 1 mm/s or as
   soon as the last ``stop_window_s`` moved less than ``stop_fraction`` = 1/4 of the window's mean speed
   (a stroke that stops is seen within about 0.2 s).  A start or end the speed alone asks for must hold
-  ``slide_window_s`` = 0.1 s (tracking noise around the thresholds).  Tremor around a rest moves the averaged position
-  less than 0.45 mm, under both thresholds.
+  ``slide_window_s`` = 0.1 s (tracking noise around the thresholds).  Tremor around a rest moves the averaged
+  position less than 0.45 mm, under both thresholds.
 * Edge orientation, θ level, sliding direction, texture level (and, while Interacting, the feature) each
   change only after their new value has held for 0.1 s, and the angular ones also have a margin past the
   bin boundary (7.5°, 5° and 10°); θ bins have a boundary tolerance of 1e-6°

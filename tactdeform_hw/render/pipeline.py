@@ -129,9 +129,9 @@ class Renderer:
 
     ``approach`` is ``"tactdeform"``, ``"ua"`` or ``"cam"`` for the whole run, a mapping from object
     name to one of them (``"*"`` the default) to compare approaches per object, or None to take the
-    scene's (its options' approach and any per-object overrides; TactDeform for a bare object).  ``contact_mode`` (the
-    participant's choice in Task 2) overrides the scene's render option; ``current_ua`` is the
-    participant's calibrated level, set by ``configure``; ``current_hook`` may change it per frame.
+    scene's (its options' approach and any per-object overrides; TactDeform for a bare object).
+    ``contact_mode`` (the participant's choice in Task 2) overrides the scene's render option; ``current_ua``
+    is the participant's calibrated level, set by ``configure``; ``current_hook`` may change it per frame.
     ``verify`` is a callback returning the pattern the device holds, in application order (for example
     :func:`~tactdeform_hw.device.readback.pattern_readback`); after every sent frame its answer is
     compared with the frame and mismatches are counted.  ``verify=True`` asks the device's port for that

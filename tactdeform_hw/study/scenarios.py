@@ -250,8 +250,9 @@ def task2(seed: int = 0, quick: bool = False, contact_mode: str = "orientation")
                     contact_mode=mode,
                     block=mode,
                     condition=f"{mode}-{obj}-{name}",
-                    description=f"press the {obj} bar with θ {CONTACT_THETA_DEG[name]:+.0f}° ({name}), {mode} "
-                    "contact",
+                    description=(
+                        f"press the {obj} bar with θ {CONTACT_THETA_DEG[name]:+.0f}° ({name}), {mode} contact"
+                    ),
                 )
             )
     notes = [
@@ -308,8 +309,10 @@ def task3(seed: int = 0, quick: bool = False, contact_mode: str = "orientation")
                 segs,
                 textures=(("upper", upper), ("lower", lower)),
                 condition=cond,
-                description=f"stroke the upper ({TEXTURE_NAMES[upper]}) then the lower ({TEXTURE_NAMES[lower]}) "
-                "surface rightward",
+                description=(
+                    f"stroke the upper ({TEXTURE_NAMES[upper]}) then the lower ({TEXTURE_NAMES[lower]}) "
+                    "surface rightward"
+                ),
             )
         )
     notes = [
