@@ -140,9 +140,8 @@ def test_outputs_are_checked_before_the_device_is_opened(
     suffix = {"--png": ".png", "--gif": ".gif", "--vcd": ".vcd", "--events": ".csv", "--trace": ".csv"}.get(
         flag, ".json"
     )
-    if (
-        bad == "missing-dir" and flag == "--out" and command == "study"
-    ):  # created with its parents: a file in the way
+    # created with its parents: a file in the way
+    if bad == "missing-dir" and flag == "--out" and command == "study":
         (tmp_path / "a-file").write_text("")
         path, expect = (
             str(tmp_path / "a-file" / "report"),

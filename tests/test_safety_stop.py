@@ -494,9 +494,8 @@ def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> 
     g = death + offset_us
     stop = stop_packet()
     emu.write(stop, at_us=g)
-    for k in range(
-        1, 4
-    ):  # no proof came: 256 zeros a packet at a time, let them be skipped, the packet again
+    # no proof came: 256 zeros a packet at a time, let them be skipped, the packet again
+    for k in range(1, 4):
         tk = g + k * 40_000
         for i in range(RESYNC_ZEROS // 64):
             emu.write(bytes(64), at_us=tk + i * 1200)

@@ -394,11 +394,8 @@ def test_emulate_pty_v2_serves_the_timed_v2_board() -> None:
 @pytest.mark.parametrize(
     ("argv", "flag", "value"),
     [
-        (
-            ["--tcp", "0", "--discovery-port", "9"],
-            "--discovery-port",
-            "--firmware v2",
-        ),  # v1.2 has no discovery
+        # v1.2 has no discovery
+        (["--tcp", "0", "--discovery-port", "9"], "--discovery-port", "--firmware v2"),
         (["--pty", "--firmware", "v2", "--kit-id", "ABC123"], "--kit-id", "--tcp"),
         (["--tcp", "0", "--firmware", "v2", "--kit-id", "XYZ"], "--kit-id", "XYZ"),
         (["--tcp", "host:port"], "--tcp", "host:port"),

@@ -44,9 +44,8 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(
-    0, str(Path(__file__).resolve().parents[1])
-)  # the package beside this tool, not an installed one
+# the package beside this tool, not an installed one
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig  # noqa: E402
 from tactdeform_hw.device.pacing import estimate_scan_us, firmware_period_us  # noqa: E402

@@ -211,9 +211,8 @@ def run(args: argparse.Namespace) -> int:
         raise KeyboardInterrupt
 
     def _usr1(signum: int, frame: object) -> None:
-        reset_requested.append(
-            "SIGUSR1"
-        )  # applied by the loop below: a handler must not take the board's lock
+        # applied by the loop below: a handler must not take the board's lock
+        reset_requested.append("SIGUSR1")
 
     seen_hazards = 0
     view = LiveView()

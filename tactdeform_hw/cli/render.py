@@ -158,9 +158,8 @@ def run(args: argparse.Namespace) -> int:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
     from ..protocol.units import DEFAULT_TRANSFER
 
-    guard.request(
-        guard.validate_current(args.current_ua, DEFAULT_TRANSFER)
-    )  # above the cap: refused before opening
+    # above the cap: refused before opening
+    guard.request(guard.validate_current(args.current_ua, DEFAULT_TRANSFER))
     scene = load_scene(args.scene)
     if args.approach is not None or args.contact_mode is not None:
         # an option given on the command line replaces only its own field of the scene's options

@@ -132,9 +132,8 @@ def run(args: argparse.Namespace) -> int:
         build_study(args.study, seed=args.seed, quick=args.quick, contact_mode=mode), args.trials
     )
     if args.current_ua is not None:
-        guard.request(
-            guard.validate_current(args.current_ua, _transfer())
-        )  # above the cap: refused before opening
+        # above the cap: refused before opening
+        guard.request(guard.validate_current(args.current_ua, _transfer()))
     audit = DeliveryLog(
         args.audit_log,
         requested_ua=args.current_ua,

@@ -323,9 +323,8 @@ class ScanResult:
     """One scan as the reference step-through produces it."""
 
     events: list[tuple[int, int, int]]
-    pulses: list[
-        tuple[Any, ...]
-    ]  # rows in PulseArrays column order (outputs as a tuple in place of n/lowest)
+    # rows in PulseArrays column order (outputs as a tuple in place of n/lowest)
+    pulses: list[tuple[Any, ...]]
     duration_ns: int
     chain_end: ChainState
     voltages: dict[int, int]

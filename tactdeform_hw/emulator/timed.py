@@ -141,15 +141,13 @@ class _HostLedger:
     intended_starts: list[int] = field(default_factory=list)
     deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)  # heap: bytes on their way in
     seq: int = 0
-    tx_deliveries: list[tuple[int, int, Delivery]] = field(
-        default_factory=list
-    )  # heap: replies on their way out
+    # heap: replies on their way out
+    tx_deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)
     rx: bytearray = field(default_factory=bytearray)  # replies that reached the host, unread
     dev_total: int = 0  # device stream: accepted bytes, session-wide offsets
     seg_dev: list[int] = field(default_factory=list)
-    segments: list[tuple[int, int, int, int]] = field(
-        default_factory=list
-    )  # (dev start, host start, length, delivered ns)
+    # (dev start, host start, length, delivered ns)
+    segments: list[tuple[int, int, int, int]] = field(default_factory=list)
 
 
 @dataclass

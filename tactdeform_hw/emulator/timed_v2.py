@@ -477,10 +477,10 @@ class TimedEmulatorV2:
             and self._clients
             and self._reply_offset < self._clients[-1][0]
         ):
-            self.replies_dropped += len(
-                tx
-            )  # asked by a host that has gone: the firmware writes to the new one's
-            tx = b""  # socket only what the new one asked (see new_client)
+            # asked by a host that has gone: the firmware writes to the new one's
+            # socket only what the new one asked (see new_client)
+            self.replies_dropped += len(tx)
+            tx = b""
         if tx:
             if self.tx_link is None:
                 self._tx.append((end, tx))

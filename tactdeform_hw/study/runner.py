@@ -407,9 +407,8 @@ def run_study(
             run.segment_spans = spans
             run.t0_s = offset
             inspectable = _inspectable(dev)
-            readback = (
-                pattern_readback(dev, mapping) if sim_clock is not None else None
-            )  # an instant port, offline
+            # an instant port, offline
+            readback = pattern_readback(dev, mapping) if sim_clock is not None else None
             run.verified = readback is not None
             hazards_before = len(board_hazards(dev.port) or ())
             renderer = Renderer(
