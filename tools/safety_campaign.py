@@ -308,9 +308,8 @@ class _Session:
             if self._call("send_pattern", lambda: dev.send_pattern(pat), pat) or not any(
                 k in e for e in self.res.errors[refused:] for k in REFUSALS
             ):
-                self.sent = (
-                    pat  # the caller's frame, even when the link failed under it: keepalive resumes it
-                )
+                # the caller's frame, even when the link failed under it: keepalive resumes it
+                self.sent = pat
         elif r < 0.40:
             ua = rng.choice((0, 200, 600, 1000, 1800, 3000))
             self.res.allowed_stim_ua = max(self.res.allowed_stim_ua, ua)

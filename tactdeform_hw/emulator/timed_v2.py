@@ -177,9 +177,8 @@ class TimedEmulatorV2:
         self.hazards: list[Hazard] = self.emulator.hazards
         self.scans: list[ScanRecordV2] = []
         self.scan_count = 0  # scans since power-up (``scans`` may have been trimmed)
-        self.applied: list[
-            tuple[int, int, object]
-        ] = []  # (time ns, opcode, value) when a command took effect
+        # (time ns, opcode, value) when a command took effect
+        self.applied: list[tuple[int, int, object]] = []
         self.queue = _QueueView(self)
         self.reboots = 0
         self.replies_dropped = 0  # reply bytes to commands of a host that had gone (see new_client)

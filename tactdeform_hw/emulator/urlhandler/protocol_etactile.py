@@ -85,7 +85,8 @@ def _parse(url: str) -> tuple[str, dict[str, str]]:
     return (parts.netloc + parts.path).strip("/"), opts
 
 
-class Serial(SerialBase, PortBase):  # type: ignore[misc]  # pyserial ships no type information: SerialBase is Any
+# pyserial ships no type information: SerialBase is Any
+class Serial(SerialBase, PortBase):  # type: ignore[misc]
     """pyserial port backed by an in-process emulated board (see the module documentation)."""
 
     is_open: bool  # set by SerialBase.__init__; declared so the checker knows its type
