@@ -427,8 +427,8 @@ def test_export_last_step_default_is_what_the_help_says(tmp_path: Path, capsys) 
         "--last-ms LAST_MS how long the last step lasts (default: to the end of the record plus one frame "
         "interval, the median time between frames)" in text
     )
-    # steps of 100, 100 ms; the last sent frame at 0.2 s, the record ends at 0.25 s; frames 100, 100, 50 ms
-    # apart
+    # steps of 100, 100 ms; the last sent frame at 0.2 s, the record ends at 0.25 s;
+    # frames 100, 100, 50 ms apart
     levels = [[1 if i == k else 0 for i in range(32)] for k in range(4)]
     frames = [
         _frame(0.0, levels[0]),

@@ -187,12 +187,9 @@ def test_every_stimulating_command_switches_off_on_every_stop_signal(
 
 
 # The stop handler runs wherever the signal caught the main thread.  A command's owner writes an audit line
-# for
-# every command it sends, so the signal that comes the moment the board goes on (as in the test above) can
-# land
-# while that line is being written, with the audit log's lock held; the handler's own all-off then writes
-# there
-# too.  This owner's audit stream raises the signal itself from inside that write, every time.
+# for every command it sends, so the signal that comes the moment the board goes on (as in the test above) can
+# land while that line is being written, with the audit log's lock held; the handler's own all-off then writes
+# there too.  This owner's audit stream raises the signal itself from inside that write, every time.
 SIGNAL_INSIDE_AUDIT = """
 import os, signal, sys
 from argparse import Namespace

@@ -223,8 +223,8 @@ def run(args: argparse.Namespace) -> int:
         )
         offline_clock = None
         if not args.realtime:
-            # on a port that answers at once (the in-process emulator) the session runs on the trajectory's
-            # clock
+            # on a port that answers at once (the in-process emulator) the session runs on the
+            # trajectory's clock
             from ..clock import SimulatedClock
 
             offline_clock = SimulatedClock()
