@@ -140,9 +140,8 @@ def test_outputs_are_checked_before_the_device_is_opened(
     suffix = {"--png": ".png", "--gif": ".gif", "--vcd": ".vcd", "--events": ".csv", "--trace": ".csv"}.get(
         flag, ".json"
     )
-    if (
-        bad == "missing-dir" and flag == "--out" and command == "study"
-    ):  # created with its parents: a file in the way
+    # created with its parents: a file in the way
+    if bad == "missing-dir" and flag == "--out" and command == "study":
         (tmp_path / "a-file").write_text("")
         path, expect = (
             str(tmp_path / "a-file" / "report"),
@@ -360,7 +359,8 @@ def test_an_unexpected_error_is_one_line_and_debug_shows_the_traceback(capsys, m
         ),
         (
             ["timing", "--sense-current-ua", "50"],
-            "--sense-current-ua 50 is out of range: a current whose DAC code is a multiple of 4 up to 1020 (this one is code 5)",
+            "--sense-current-ua 50 is out of range: a current whose DAC code is a multiple of 4 up to "
+            "1020 (this one is code 5)",
         ),
         (
             ["calibrate", "--participant", "P01", "--max-ua", "20000", "--keys", os.devnull],

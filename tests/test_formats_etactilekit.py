@@ -64,7 +64,7 @@ class FakeClock:
         self.now += seconds
 
 
-# --- the shipped samples --------------------------------------------------------------------------------------
+# --- the shipped samples ------------------------------------------------------------------------------------
 
 
 def test_sample_array_64_matches_file() -> None:
@@ -159,7 +159,8 @@ def _pattern_with(tmp_path: Path, mutate) -> Path:
         ),
         (
             lambda d: d["Pattern_Data"][0][0]["params"].__setitem__("frequency", 0),
-            "Pattern_Data[0][0].params.frequency: expected a stimulation frequency in Hz from 1 to 65535, got 0",
+            "Pattern_Data[0][0].params.frequency: expected a stimulation frequency in Hz from 1 to "
+            "65535, got 0",
         ),
         (
             lambda d: d["Pattern_Data"][2][0]["params"].__setitem__("stim_mode", 2),
@@ -245,7 +246,7 @@ def test_tolerant_json_rules(tmp_path: Path) -> None:
     assert len(af.outline_mm) == 3 and af.notes
 
 
-# --- malformed array files -------------------------------------------------------------------------------------
+# --- malformed array files ----------------------------------------------------------------------------------
 
 
 def _array_doc() -> dict:
@@ -327,7 +328,7 @@ def test_array_defaults_and_round_trip(tmp_path: Path) -> None:
     assert again.channel_mapping() == board.channel_mapping()
 
 
-# --- frames → pattern ------------------------------------------------------------------------------------------
+# --- frames → pattern ---------------------------------------------------------------------------------------
 
 
 def _frames_file(path: Path, frames: list[dict]) -> Path:
@@ -426,7 +427,8 @@ def test_export_last_step_default_is_what_the_help_says(tmp_path: Path, capsys) 
         "--last-ms LAST_MS how long the last step lasts (default: to the end of the record plus one frame "
         "interval, the median time between frames)" in text
     )
-    # steps of 100, 100 ms; the last sent frame at 0.2 s, the record ends at 0.25 s; frames 100, 100, 50 ms apart
+    # steps of 100, 100 ms; the last sent frame at 0.2 s, the record ends at 0.25 s;
+    # frames 100, 100, 50 ms apart
     levels = [[1 if i == k else 0 for i in range(32)] for k in range(4)]
     frames = [
         _frame(0.0, levels[0]),
@@ -442,7 +444,7 @@ def test_export_last_step_default_is_what_the_help_says(tmp_path: Path, capsys) 
     assert [s.on_ms for s in read_pattern_file(out).steps] == [100.0, 100.0, 20.0]
 
 
-# --- play ------------------------------------------------------------------------------------------------------
+# --- play ---------------------------------------------------------------------------------------------------
 
 
 def _pattern_file(tmp_path: Path, steps: list, name: str = "p.json", **top) -> Path:

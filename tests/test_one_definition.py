@@ -77,7 +77,8 @@ def test_the_scanner_finds_what_it_looks_for(tmp_path: Path) -> None:
     """The literal scan above must be able to fail."""
     bad = tmp_path / "bad.py"
     bad.write_text(
-        'x = min(v, 4095)\ny = lo | hi << 8\nz = 0xFB\nw = int(us * 2.0 - 5.4)\ns = "4095 in a string"  # 255\nh = v << 2\n'
+        'x = min(v, 4095)\ny = lo | hi << 8\nz = 0xFB\nw = int(us * 2.0 - 5.4)\ns = "4095 in a string"  '
+        "# 255\nh = v << 2\n"
     )
     assert [h.split(": ")[1] for h in _firmware_literals(bad)] == [
         "4095",

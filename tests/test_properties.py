@@ -99,9 +99,8 @@ def test_the_parsers_plan_is_what_its_call_does(prefix: bytes, waiting: bytes) -
 
     emu = Emulator()
     emu.feed(prefix)
-    assume(
-        emu.parser.pending == 0 or emu.parser.locked
-    )  # the plan's premise: what waits is not yet handed over
+    # the plan's premise: what waits is not yet handed over
+    assume(emu.parser.pending == 0 or emu.parser.locked)
     n, outcome = emu.parser.plan(waiting)
     whole, part = deepcopy(emu.parser), deepcopy(emu.parser)
     whole.receive(waiting)

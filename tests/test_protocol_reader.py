@@ -72,9 +72,8 @@ def registers_after(
     elif end.opcode is not None and (
         not firmware.partial_payload_applied or firmware.command(end.opcode).kind == "u16"
     ):
-        pending = len(
-            end.got
-        )  # v2 reads a payload only when it is whole; v1.2 a u16 only when both bytes wait
+        # v2 reads a payload only when it is whole; v1.2 a u16 only when both bytes wait
+        pending = len(end.got)
     else:
         pending = 0
     regs.update(

@@ -298,12 +298,8 @@ def test_download_mode_answers_nothing_until_the_next_reset() -> None:
     s = serial.serial_for_url("etactile://", timeout=0.1)
     try:
         s.dtr, s.rts = False, False
-        for dtr, rts in (
-            (True, False),
-            (True, True),
-            (False, True),
-            (False, False),
-        ):  # esptool's USB-JTAG reset
+        # esptool's USB-JTAG reset
+        for dtr, rts in ((True, False), (True, True), (False, True), (False, False)):
             s.dtr, s.rts = dtr, rts
         assert s.lines.download_mode
         s.write(b"\xf5")

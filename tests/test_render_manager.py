@@ -226,7 +226,7 @@ def test_contact_angle_matches_the_geometry_module() -> None:
         assert contact_angle_deg(n, X, Z) == pytest.approx(geometry.contact_theta_deg(R, n), abs=1e-9)
 
 
-# --- edges ------------------------------------------------------------------------------------------------------
+# --- edges --------------------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize(
@@ -275,7 +275,7 @@ def test_feature_flicker_shorter_than_the_window_is_ignored() -> None:
     assert outs2[-1].feature == "corner"
 
 
-# --- sliding (eq. 5–7) --------------------------------------------------------------------------------------------
+# --- sliding (eq. 5–7) --------------------------------------------------------------------------------------
 
 
 def slide_run(
@@ -394,7 +394,7 @@ def test_texture_disabled_renders_every_surface_smooth() -> None:
     assert {o.pattern for o in outs if o.context == "sliding"} == {m.patterns.static("face")}
 
 
-# --- numerical stability ----------------------------------------------------------------------------------------
+# --- numerical stability ------------------------------------------------------------------------------------
 
 
 def test_zero_velocity_zero_dt_and_infinite_gap() -> None:

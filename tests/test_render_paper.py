@@ -111,7 +111,7 @@ def test_contact_pattern_is_the_whole_base_pattern_shifted(feature: str, orienta
             assert set(on[:, 1]) == {-1.0, 1.0} and len(set(on[:, 0])) >= 4
 
 
-# --- findings 3 and 5: latched features, one frame per 2 mm along the bisector, corners from frame 0 ---------
+# --- findings 3 and 5: latched features, one frame per 2 mm along the bisector, corners from frame 0 --------
 
 
 CUBE = Box("cube", 50.0, (0.0, 0.0, 0.0))
@@ -184,7 +184,7 @@ def test_edge_orientation_is_latched_through_a_turning_approach() -> None:
     assert {o.orientation for o in turned if o.state == APPROACHING} == {first}
 
 
-# --- finding 4: slow approaches expand, Interacting comes when the finger stops ---------------------------------
+# --- finding 4: slow approaches expand, Interacting comes when the finger stops -----------------------------
 
 
 @pytest.mark.parametrize("speed", [1.0, 2.0, 4.0, 7.0])
@@ -203,7 +203,7 @@ def test_slow_approach_reaches_frame_15_at_30mm(speed: float) -> None:
     assert t_int < 0.6
 
 
-# --- finding 6: slow slides get their texture ------------------------------------------------------------------
+# --- finding 6: slow slides get their texture ---------------------------------------------------------------
 
 
 @pytest.mark.parametrize(
@@ -217,7 +217,7 @@ def test_slide_shift_rate_is_v_over_d_k_down_to_2mm_s(speed: float, k: int, hz: 
     assert len(window) == pytest.approx(4.0 * hz, abs=1.5)
 
 
-# --- finding 7: contact onset is stability-filtered ------------------------------------------------------------
+# --- finding 7: contact onset is stability-filtered ---------------------------------------------------------
 
 
 def hover_fraction(
@@ -251,7 +251,7 @@ def test_a_real_press_starts_within_one_72hz_frame(rate: float) -> None:
     assert t_on - t_touch <= max(1.0 / 72.0, 1.0 / rate) + 1e-9
 
 
-# --- finding 8: θ on a bin boundary ----------------------------------------------------------------------------
+# --- finding 8: θ on a bin boundary -------------------------------------------------------------------------
 
 
 def test_theta_of_30_degrees_from_a_pose_is_steep_right() -> None:
@@ -271,7 +271,7 @@ def test_theta_of_30_degrees_from_a_pose_is_steep_right() -> None:
     assert theta_level(29.999) == 2 and theta_level(-30.001) == 0
 
 
-# --- finding 11: lost tracking -----------------------------------------------------------------------------------
+# --- finding 11: lost tracking ------------------------------------------------------------------------------
 
 
 class RecordingDevice:
@@ -351,7 +351,7 @@ def test_valid_samples_still_feed_the_watchdog() -> None:
     assert dev.calls[mark:] == [("keepalive", None)]
 
 
-# --- extremes ------------------------------------------------------------------------------------------------
+# --- extremes -----------------------------------------------------------------------------------------------
 
 
 def test_ten_metres_per_second_at_1000hz_and_at_rest() -> None:
@@ -368,7 +368,7 @@ def test_directions_are_the_eight_bins() -> None:
     assert len(DIRECTIONS) == 8
 
 
-# --- finding 9: tips of meshes are corners --------------------------------------------------------------------
+# --- finding 9: tips of meshes are corners ------------------------------------------------------------------
 
 
 @pytest.fixture(scope="module")
@@ -396,7 +396,7 @@ def test_teapot_spout_tip_is_a_corner_and_its_rim_an_edge(teapot: Any) -> None:
     assert rim and any(q.feature == "edge" for q in rim)
 
 
-# --- finding 10: CAM through the mesh index --------------------------------------------------------------------
+# --- finding 10: CAM through the mesh index -----------------------------------------------------------------
 
 
 def cam_poses(scene: Any, n: int = 40, seed: int = 0) -> list[tuple[np.ndarray, tuple[float, ...]]]:

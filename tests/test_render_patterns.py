@@ -173,7 +173,7 @@ def test_contact_levels_land_in_the_leftmost_to_rightmost_regions(
     assert set(col[on(ps.contact("edge", "v", 3))]) == {2}
 
 
-# --- texture masks (eq. 5–7) -------------------------------------------------------------------------------------
+# --- texture masks (eq. 5–7) --------------------------------------------------------------------------------
 
 
 def test_mask_k0_is_ones_and_never_divides(ps: PatternSet) -> None:
@@ -238,7 +238,7 @@ def test_sliding_pattern_is_base_times_mask(ps: PatternSet) -> None:
             assert np.array_equal(pat, on(ps.static("edge", o)) & ps.mask(d, 1, 0))
 
 
-# --- equations --------------------------------------------------------------------------------------------------
+# --- equations ----------------------------------------------------------------------------------------------
 
 
 def test_equations_1_to_3() -> None:
@@ -349,7 +349,7 @@ def test_contact_angle_is_the_pad_roll_against_the_surface() -> None:
     assert contact_angle_deg(n, (1.0, 0.0, 0.0), (0.0, -1.0, 0.0), plane="horizontal") == pytest.approx(0.0)
 
 
-# --- other arrays ----------------------------------------------------------------------------------------------
+# --- other arrays -------------------------------------------------------------------------------------------
 
 
 def test_patterns_build_on_other_layouts() -> None:

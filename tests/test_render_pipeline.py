@@ -255,7 +255,7 @@ def test_stim_config_can_be_given_whole() -> None:
         assert dev.config is not None and dev.config.rate_hz == 100 and dev.current_ua == 300
 
 
-# --- the command ----------------------------------------------------------------------------------------------
+# --- the command --------------------------------------------------------------------------------------------
 
 
 def _cli(argv: list[str]) -> int:
@@ -366,9 +366,8 @@ def test_the_renderer_builds_only_what_the_scene_needs() -> None:
     from tactdeform_hw.render.tracking import frame_from_z_y, matrix_to_quat
 
     m = uniform.renderers["tactdeform"]
-    q = tuple(
-        matrix_to_quat(frame_from_z_y((0.3, -1.0, 0.0), (0.0, 0.0, 1.0)))
-    )  # pad down on the top, rolled
+    # pad down on the top, rolled
+    q = tuple(matrix_to_quat(frame_from_z_y((0.3, -1.0, 0.0), (0.0, 0.0, 1.0))))
     for pose in line_poses(0.0, (0, -97.0, 450.0), (0, -102.0, 450.0), 20.0, 72.0, q) + hold_poses(
         0.3, (0, -102.0, 450.0), 1.0, 72.0, q
     ):

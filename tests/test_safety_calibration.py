@@ -23,12 +23,8 @@ def test_procedure_from_zero_in_10ua_steps() -> None:
     seen = [cal.press("+").current_ua for _ in range(25)]
     assert seen[:3] == [10, 20, 30] and seen[-1] == 250
     lv = cal.stimulus().levels()
-    assert sum(lv) == 4 and [i for i, v in enumerate(lv) if v] == [
-        12,
-        13,
-        18,
-        19,
-    ]  # the centre's 4 electrodes
+    # the centre's 4 electrodes
+    assert sum(lv) == 4 and [i for i, v in enumerate(lv) if v] == [12, 13, 18, 19]
     s = cal.press("a")  # discomfort at 250 µA
     assert s.phase is Phase.CENTRE_DOWN and s.current_ua == 240 and cal.cap_ua == 240
     assert cal.press("+").current_ua == 240  # never back above the step below discomfort

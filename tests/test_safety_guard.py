@@ -344,13 +344,14 @@ def test_resync_survives_a_zero_landing_as_electrode_count() -> None:
 
 def test_resync_without_configuration_stops_every_current() -> None:
     emu = Emulator()
+    # a previous session left this running
     emu.feed(
         p.encode_electrode_num(8)
         + p.encode_pattern([1] * 8)
         + p.encode_pulse_width(200)
         + p.encode_pulse_height(500)
         + p.encode_sense_height(10)
-    )  # a previous session left this running
+    )
     port = RecordingPort()
     port.emulator = emu
     dev = EtactileKitDevice(port)

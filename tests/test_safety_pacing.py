@@ -1,4 +1,5 @@
-"""Pacing: the driver never overflows the firmware's 256-byte queue nor outruns its 1 ms-per-command parser."""
+"""Pacing: the driver never overflows the firmware's 256-byte queue nor outruns its 1 ms-per-command
+parser."""
 
 from __future__ import annotations
 
@@ -66,9 +67,8 @@ def test_zero_losses_at_the_renderers_highest_rate(link: str, robust: bool) -> N
     assert_nothing_lost(port)
     patterns = [c for c in port.emulator.commands if c.name == "PATTERN"]
     copies = 2 if robust else 1
-    assert (
-        len(patterns) >= sent * copies
-    )  # every frame reached the parser (all-off patterns of configure too)
+    # every frame reached the parser (all-off patterns of configure too)
+    assert len(patterns) >= sent * copies
     assert patterns[-1].value == bytes(frames(int(RATE_HZ * 1.0))[-1])
     # the frames kept to the renderer's schedule: pacing never pushed a frame past the next one
     assert port.now_s < 0.05 + sent / RATE_HZ + 0.02

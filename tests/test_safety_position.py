@@ -362,9 +362,7 @@ def test_region_map_of_the_kits_own_array_files() -> None:
     on_board = read_array_file(board)
     # (-5, 15) and (5, 15) on the top row, three per row below: no electrode on a border
     assert on_board.region_map().resolve(PROFILE["regions_ua"]) == (0, 2, 3, 4, 5, 6, 7, 8)
-    assert on_board.hardware_regions(on_board.region_map().resolve(None))[24] == (
-        0,
-        0,
-    )  # channel 24 + Mapping_func
+    # channel 24 + Mapping_func
+    assert on_board.hardware_regions(on_board.region_map().resolve(None))[24] == (0, 0)
     sixty_four = read_array_file(grid).region_map()
     assert sixty_four.ambiguous == () and sorted(set(sixty_four.resolve(None))) == list(range(9))

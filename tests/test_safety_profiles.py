@@ -236,9 +236,8 @@ def test_send_with_profile_clips_to_region_and_refuses_above_cap(
     rc = main(["send", "--participant", str(prof), "--pattern", "all:1", "--current-ua", "1800", "--json"])
     assert rc == 0
     out = json.loads(capsys.readouterr().out)
-    assert (
-        out["sent_current_ua"] == 1200
-    )  # every region is active: the frame's height is the lowest, the centre's
+    # every region is active: the frame's height is the lowest, the centre's
+    assert out["sent_current_ua"] == 1200
     assert any(e["rule"] == "region" for e in out["safety"])
     rc = main(["send", "--participant", str(prof), "--pattern", "all:1", "--current-ua", "2010"])
     assert rc == 1 and "exceeds the cap of 2000" in capsys.readouterr().err

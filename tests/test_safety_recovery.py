@@ -78,7 +78,7 @@ def states(dev: EtactileKitDevice, since: int = 0) -> list[str]:
     return [t[2] for t in list(dev.transitions)[since:]]
 
 
-# --- the control: what an open-loop resync into a full queue does on this firmware ---------------------------
+# --- the control: what an open-loop resync into a full queue does on this firmware --------------------------
 
 
 def test_control_a_height_cut_by_a_full_queue_becomes_4095() -> None:

@@ -102,7 +102,7 @@ def board_is_off(state: dict[str, Any]) -> bool:
     )
 
 
-# --- every stimulating command × every stop signal -------------------------------------------------------------
+# --- every stimulating command × every stop signal ----------------------------------------------------------
 
 
 def _command(name: str, tmp: Path) -> list[str]:
@@ -186,10 +186,10 @@ def test_every_stimulating_command_switches_off_on_every_stop_signal(
     assert board.wait_free(), board.holders()  # the guardian saw the clean close and left
 
 
-# The stop handler runs wherever the signal caught the main thread.  A command's owner writes an audit line for
-# every command it sends, so the signal that comes the moment the board goes on (as in the test above) can land
-# while that line is being written, with the audit log's lock held; the handler's own all-off then writes there
-# too.  This owner's audit stream raises the signal itself from inside that write, every time.
+# The stop handler runs wherever the signal caught the main thread.  A command's owner writes an audit line
+# for every command it sends, so the signal that comes the moment the board goes on (as in the test above) can
+# land while that line is being written, with the audit log's lock held; the handler's own all-off then writes
+# there too.  This owner's audit stream raises the signal itself from inside that write, every time.
 SIGNAL_INSIDE_AUDIT = """
 import os, signal, sys
 from argparse import Namespace
@@ -308,7 +308,7 @@ def test_a_stop_never_glues_its_line_onto_an_unfinished_progress_line(
     ]
 
 
-# --- an owner that runs no code: the guardian ------------------------------------------------------------------
+# --- an owner that runs no code: the guardian ---------------------------------------------------------------
 
 
 OWNER = """
@@ -384,7 +384,7 @@ def test_in_process_emulator_declares_nothing_to_guard() -> None:
         assert not getattr(dev.port, "guardable", False)
 
 
-# --- the stop packets: safe at every entry point, under every tail loss ---------------------------------------
+# --- the stop packets: safe at every entry point, under every tail loss -------------------------------------
 
 
 def _stimulating_emulator() -> Emulator:
@@ -491,9 +491,8 @@ def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> 
     g = death + offset_us
     stop = stop_packet()
     emu.write(stop, at_us=g)
-    for k in range(
-        1, 4
-    ):  # no proof came: 256 zeros a packet at a time, let them be skipped, the packet again
+    # no proof came: 256 zeros a packet at a time, let them be skipped, the packet again
+    for k in range(1, 4):
         tk = g + k * 40_000
         for i in range(RESYNC_ZEROS // 64):
             emu.write(bytes(64), at_us=tk + i * 1200)
@@ -526,7 +525,7 @@ def test_guardian_bytes_on_the_timed_board_never_deliver_more_than_the_owner_lef
         assert peak <= 500.0 + 1e-6 and after == 0.0 and height == 0, (tail.hex(), off, peak, after, height)
 
 
-# --- exceptions and a blocked main thread ---------------------------------------------------------------------
+# --- exceptions and a blocked main thread -------------------------------------------------------------------
 
 
 def test_an_exception_anywhere_in_a_command_switches_off(board: Board) -> None:

@@ -72,9 +72,8 @@ def test_latency_section(capsys: pytest.CaptureFixture[str]) -> None:
 def test_model_overrides_and_listing(capsys: pytest.CaptureFixture[str]) -> None:
     _, out, _ = run_cli([*TACTDEFORM, "--set", "gpio_write_us=0.1", "--json"], capsys)
     d = json.loads(out)
-    assert d["model"]["gpio_write_us"] == 0.1 and d["scan_us"] == pytest.approx(
-        7850.25 + (32 * 9 + 5) * 0.05
-    )  # 9 GPIO writes a channel, 5 in the clear
+    # 9 GPIO writes a channel, 5 in the clear
+    assert d["model"]["gpio_write_us"] == 0.1 and d["scan_us"] == pytest.approx(7850.25 + (32 * 9 + 5) * 0.05)
     _, out, _ = run_cli(["--list-model"], capsys)
     assert "spi_exchange_us" in out and "assumption" in out and "firmware comment" in out
 

@@ -113,13 +113,15 @@ def test_skip_policy_overrun_with_less_than_a_tick_left_names_the_stride() -> No
     assert b.actual_rate_hz == pytest.approx(500.0)
     limit = [n for n in b.notes if "payload" in n]
     assert len(limit) == 1 and limit[0].endswith(
-        " µs outside the scan every 2 periods: the parser reads at most one command with a payload per 2 periods"
+        " µs outside the scan every 2 periods: the parser reads at most one command with a payload per 2 "
+        "periods"
     ), b.notes
     assert float(limit[0].split()[1]) == pytest.approx(gap, abs=0.06)
     # the same configuration fitting its period keeps the per-period wording
     fits = Budget.of(ScanConfig.make(32, 1, pulse_width_us=200, discharge_us=45, rate_hz=125), MODEL, 125)
     assert [n for n in fits.notes if "payload" in n] == [
-        "only 149.8 µs per period outside the scan: the parser reads at most one command with a payload per period"
+        "only 149.8 µs per period outside the scan: the parser reads at most one command with a payload "
+        "per period"
     ]
 
 
@@ -171,7 +173,7 @@ def test_four_electrode_scan_gives_the_specified_dac_and_clk_sequence() -> None:
     assert first_dac[:2] == [5_600, 5_600 + 196_600]
 
 
-# --- the template cache against the step-through -------------------------------------------------------------
+# --- the template cache against the step-through ------------------------------------------------------------
 
 
 def _rows(t: object) -> list[tuple[object, ...]]:
@@ -255,7 +257,7 @@ def test_a_run_of_scans_equals_stepping_each_scan_from_the_previous_chain_state(
         assert got == expect
 
 
-# --- the HV513 chain -----------------------------------------------------------------------------------------
+# --- the HV513 chain ----------------------------------------------------------------------------------------
 
 
 def test_hv513_count_zero_clear_loads_a_one_and_leaves_output_0_selected() -> None:

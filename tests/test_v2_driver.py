@@ -232,7 +232,7 @@ def test_the_guardians_stop_on_v2_stops_current_from_any_parser_state() -> None:
         assert s["electrode_num"] == 0 and s["stim_mode"] == 0 and not s["command_in_progress"]
 
 
-# --- detection and refusals -----------------------------------------------------------------------------------
+# --- detection and refusals ---------------------------------------------------------------------------------
 
 
 def _states(fw: str) -> list[bytes]:
@@ -325,7 +325,7 @@ def test_a_v2_driver_refused_on_a_v12_url(monkeypatch: pytest.MonkeyPatch) -> No
     assert set(bytes(emu.parser.rx)[30:]) <= {0x00, 0xFC, 0xFB, 0xF9, 0xF4}
 
 
-# --- recovery ---------------------------------------------------------------------------------------------------
+# --- recovery -----------------------------------------------------------------------------------------------
 
 
 def test_recovery_after_a_cut_pattern_on_v2_delivers_nothing_above_the_limits() -> None:

@@ -90,7 +90,8 @@ def test_pty_measure_reply_length(pty_server: PtyServer) -> None:
 def test_pty_no_reply_to_other_commands(pty_server: PtyServer) -> None:
     with open_pty(pty_server.path, timeout=0.3) as s:
         s.write(
-            b"\xfc\x04\xfe\x01\x01\x00\x02\xfb\x10\x00\xfa\xc8\x00\xf9\x01\xf8\x02\xf7\x2d\xf6\x7d\x00\xfd\x01\x00"
+            b"\xfc\x04\xfe\x01\x01\x00\x02\xfb\x10\x00\xfa\xc8\x00\xf9\x01\xf8\x02"
+            b"\xf7\x2d\xf6\x7d\x00\xfd\x01\x00"
         )
         assert s.read(1) == b""
     time.sleep(0.05)

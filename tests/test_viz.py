@@ -158,7 +158,7 @@ def test_missing_matplotlib_names_the_extra(pad: ElectrodeArray, tmp_path: Path,
         draw_timing_png([{"channel": 0, "start_us": 0, "width_us": 10}], [], tmp_path / "t.png")
 
 
-# --- timing diagrams -------------------------------------------------------------------------------------------
+# --- timing diagrams ----------------------------------------------------------------------------------------
 
 
 def synthetic_trace(per_channel_us: float, period_us: float = 8000.0, cycles: int = 3, channels: int = 32):
@@ -223,7 +223,7 @@ def test_timing_window_and_units(tmp_path: Path) -> None:
         draw_timing_png([{"start_us": 0, "width_us": 1}], [], tmp_path / "e.png")
 
 
-# --- real emulator traces and the command-line hooks ----------------------------------------------------------
+# --- real emulator traces and the command-line hooks --------------------------------------------------------
 
 
 def test_timing_from_the_timed_emulator_reports(tmp_path: Path) -> None:

@@ -168,7 +168,7 @@ def test_url_handler_serves_v2_timed_by_default_and_untimed_on_request() -> None
         instant.close()
 
 
-# --- the TCP board -------------------------------------------------------------------------------------------
+# --- the TCP board ------------------------------------------------------------------------------------------
 
 
 def test_v2_tcp_serves_one_client_at_a_time() -> None:
@@ -394,11 +394,8 @@ def test_emulate_pty_v2_serves_the_timed_v2_board() -> None:
 @pytest.mark.parametrize(
     ("argv", "flag", "value"),
     [
-        (
-            ["--tcp", "0", "--discovery-port", "9"],
-            "--discovery-port",
-            "--firmware v2",
-        ),  # v1.2 has no discovery
+        # v1.2 has no discovery
+        (["--tcp", "0", "--discovery-port", "9"], "--discovery-port", "--firmware v2"),
         (["--pty", "--firmware", "v2", "--kit-id", "ABC123"], "--kit-id", "--tcp"),
         (["--tcp", "0", "--firmware", "v2", "--kit-id", "XYZ"], "--kit-id", "XYZ"),
         (["--tcp", "host:port"], "--tcp", "host:port"),

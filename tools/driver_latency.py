@@ -133,10 +133,12 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(rows, indent=2))
         return 0
     print(
-        f"host write -> 32-electrode frame in force through the driver ({args.frames} frames, USB, 125 Hz, ms)"
+        f"host write -> 32-electrode frame in force through the driver ({args.frames} frames, USB, 125 "
+        "Hz, ms)"
     )
     print(
-        f"{'firmware':<9} {'call min/med/max':>22} {'in force min/med/max':>24} {'last channel min/med/max':>28}"
+        f"{'firmware':<9} {'call min/med/max':>22} {'in force min/med/max':>24} "
+        f"{'last channel min/med/max':>28}"
     )
     for r in rows:
 

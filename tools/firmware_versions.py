@@ -103,7 +103,8 @@ def main() -> int:
     print("TactDeform setting (32 electrodes, 200 us, discharge 45 us, 125 Hz):")
     for k, b in result["budget_tactdeform"].items():
         print(
-            f"  {k:<16} scan {b['scan_us']:8.2f} us  per channel {b['per_channel_us']:7.2f} us  margin {b['margin_us']:7.2f} us"
+            f"  {k:<16} scan {b['scan_us']:8.2f} us  per channel {b['per_channel_us']:7.2f} us  margin "
+            f"{b['margin_us']:7.2f} us"
         )
     print("host write -> pattern in force, one frame of 32 per-electrode intensities (min / mean / max, us):")
     for k, d in result["pattern_in_force"].items():

@@ -183,8 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{'phase':<8} {'lag median':>11} {'p99':>9} {'max':>9} {'wake-ups':>9} {'> 1 ms':>7} {'CPU':>7}")
     for name, ph in (("idle", idle), (f"{args.rate:g} Hz", stream)):
         print(
-            f"{name:<8} {ph['lag_median_ms']:>8.3f} ms {ph['lag_p99_ms']:>6.3f} ms {ph['lag_max_ms']:>6.3f} ms "
-            f"{ph['wakeups']:>9} {ph['fell_behind']:>7} {ph['cpu_percent']:>6.1f}%"
+            f"{name:<8} {ph['lag_median_ms']:>8.3f} ms {ph['lag_p99_ms']:>6.3f} ms {ph['lag_max_ms']:>6.3f} "
+            f"ms {ph['wakeups']:>9} {ph['fell_behind']:>7} {ph['cpu_percent']:>6.1f}%"
         )
     if latency.get("n"):
         print(

@@ -220,7 +220,7 @@ def feature_rows(rates: list[float]) -> list[Row]:
     ]
 
 
-# --- eq. 4 -----------------------------------------------------------------------------------------------------
+# --- eq. 4 --------------------------------------------------------------------------------------------------
 
 
 def roll_quat(deg: float) -> tuple[float, ...]:
@@ -284,7 +284,7 @@ def theta_rows(noises: list[float]) -> list[Row]:
     ]
 
 
-# --- eq. 5–7 and the 8 directions --------------------------------------------------------------------------------
+# --- eq. 5–7 and the 8 directions ---------------------------------------------------------------------------
 
 
 def stroke(
@@ -435,7 +435,7 @@ def sliding_rows(
     ]
 
 
-# --- the state machine -------------------------------------------------------------------------------------------
+# --- the state machine --------------------------------------------------------------------------------------
 
 
 def state_rows(rates: list[float], noises: list[float], tremors: list[float], hover_s: float) -> list[Row]:
@@ -525,7 +525,7 @@ def state_rows(rates: list[float], noises: list[float], tremors: list[float], ho
     ]
 
 
-# --- baselines -----------------------------------------------------------------------------------------------------
+# --- baselines ----------------------------------------------------------------------------------------------
 
 
 def baseline_rows(n_poses: int) -> list[Row]:
@@ -568,7 +568,7 @@ def baseline_rows(n_poses: int) -> list[Row]:
     ]
 
 
-# --- main -----------------------------------------------------------------------------------------------------------
+# --- main ---------------------------------------------------------------------------------------------------
 
 
 def run(quick: bool) -> dict[str, Any]:
@@ -610,7 +610,8 @@ def print_table(result: dict[str, Any]) -> None:
     print("-" * len(head))
     for r in rows:
         print(
-            f"{r['requirement']:<{w[0]}}  {r['paper']:<{w[1]}}  {r['measured']:<{w[2]}}  {'yes' if r['ok'] else 'NO ':<3} {r['sweep']}"
+            f"{r['requirement']:<{w[0]}}  {r['paper']:<{w[1]}}  {r['measured']:<{w[2]}}  "
+            f"{'yes' if r['ok'] else 'NO ':<3} {r['sweep']}"
         )
     print(f"\n{result['passed']}/{result['total']} requirements hold ({result['seconds']} s)")
 

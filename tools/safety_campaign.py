@@ -44,9 +44,8 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(
-    0, str(Path(__file__).resolve().parents[1])
-)  # the package beside this tool, not an installed one
+# the package beside this tool, not an installed one
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig  # noqa: E402
 from tactdeform_hw.device.pacing import estimate_scan_us, firmware_period_us  # noqa: E402
@@ -309,9 +308,8 @@ class _Session:
             if self._call("send_pattern", lambda: dev.send_pattern(pat), pat) or not any(
                 k in e for e in self.res.errors[refused:] for k in REFUSALS
             ):
-                self.sent = (
-                    pat  # the caller's frame, even when the link failed under it: keepalive resumes it
-                )
+                # the caller's frame, even when the link failed under it: keepalive resumes it
+                self.sent = pat
         elif r < 0.40:
             ua = rng.choice((0, 200, 600, 1000, 1800, 3000))
             self.res.allowed_stim_ua = max(self.res.allowed_stim_ua, ua)

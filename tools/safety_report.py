@@ -196,13 +196,16 @@ def main(argv: list[str] | None = None) -> int:
         print()
         return 0
     print(
-        f"faults injected {injected}, survived {survived} (noticed {report['faults_noticed']}) in {len(results)} sessions"
+        f"faults injected {injected}, survived {survived} (noticed {report['faults_noticed']}) in "
+        f"{len(results)} sessions"
     )
     print(
-        f"  recovery bound {bounds} s; longest wrong delivery after a fault {report['longest_effect_after_fault_s']} s"
+        f"  recovery bound {bounds} s; longest wrong delivery after a fault "
+        f"{report['longest_effect_after_fault_s']} s"
     )
     print(
-        f"  {'kind':16} {'inj':>4} {'surv':>4} {'noticed':>7} {'no eff.':>7} {'repaired':>8} {'longest s':>9} {'>cap':>4}"
+        f"  {'kind':16} {'inj':>4} {'surv':>4} {'noticed':>7} {'no eff.':>7} {'repaired':>8} "
+        f"{'longest s':>9} {'>cap':>4}"
     )
     for k, row in report["per_kind"].items():
         print(
@@ -211,11 +214,13 @@ def main(argv: list[str] | None = None) -> int:
         )
     for m in report["mixed"]:
         print(
-            f"  mixed {m['link']:4} seed {m['seed']}: {m['injected']} faults, {m['survived']} survived, {m['noticed']} noticed"
+            f"  mixed {m['link']:4} seed {m['seed']}: {m['injected']} faults, {m['survived']} survived, "
+            f"{m['noticed']} noticed"
         )
     if report["sessions_above_cap"]:
         print(
-            f"  above the participant's cap (silent corruption/duplication on a UART, bounded): {report['sessions_above_cap']}"
+            "  above the participant's cap (silent corruption/duplication on a UART, bounded): "
+            f"{report['sessions_above_cap']}"
         )
     print(
         f"longest a channel stayed on after its owner stopped: {stops['longest_on_after_stop_s']} s "

@@ -127,8 +127,8 @@ def _flags(row: dict[str, Any]) -> str:
 
 def print_table(rows: list[dict[str, Any]]) -> None:
     head = (
-        f"{'scene':8} {'approach':10} {'contact':11} {'needs':6} {'build ms':>9} {'peak MiB':>9} {'held MiB':>9} "
-        f"{'index':>5} {'feat':>5} {'class':>5} {'tex':>4} {'scipy':>5}"
+        f"{'scene':8} {'approach':10} {'contact':11} {'needs':6} {'build ms':>9} {'peak MiB':>9} "
+        f"{'held MiB':>9} {'index':>5} {'feat':>5} {'class':>5} {'tex':>4} {'scipy':>5}"
     )
     print(head)
     print("-" * len(head))
@@ -139,8 +139,9 @@ def print_table(rows: list[dict[str, Any]]) -> None:
         b = row["built"]
         print(
             f"{row['scene']:8} {row['approach']:10} {row['contact_mode']:11} {_flags(row):6} "
-            f"{row['build_ms']:9.1f} {row.get('peak_mib', float('nan')):9.2f} {row.get('held_mib', float('nan')):9.2f} "
-            f"{len(b['mesh_index']):5d} {len(b['mesh_features']):5d} {len(b['feature_classification']):5d} "
+            f"{row['build_ms']:9.1f} {row.get('peak_mib', float('nan')):9.2f} "
+            f"{row.get('held_mib', float('nan')):9.2f} {len(b['mesh_index']):5d} "
+            f"{len(b['mesh_features']):5d} {len(b['feature_classification']):5d} "
             f"{len(b['texture_lookup']):4d} {('yes' if b['scipy_imported'] else 'no'):>5}"
         )
     print("\nneeds: M mesh index, F feature classification, T texture, O orientation (θ), C inside tests")

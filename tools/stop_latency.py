@@ -207,8 +207,8 @@ def main(argv: list[str] | None = None) -> int:
             if not a.json:
                 s = results["SIG" + name.strip().upper()]
                 print(
-                    f"SIG{name.upper():4s} → all-off parsed: median {s['median_ms']} ms, p95 {s['p95_ms']} ms, "
-                    f"max {s['max_ms']} ms over {s['trials']} trials",
+                    f"SIG{name.upper():4s} → all-off parsed: median {s['median_ms']} ms, p95 {s['p95_ms']} "
+                    f"ms, max {s['max_ms']} ms over {s['trials']} trials",
                     flush=True,
                 )
     finally:

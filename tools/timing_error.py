@@ -138,9 +138,9 @@ def table(rows: list[dict[str, Any]]) -> str:
     lines = [head, "-" * len(head)]
     for r in rows:
         lines.append(
-            f"{r['scenario']:<17}{r['duration_s']:>6g} {r['engine']:<12}{r['wall_s']:>9.4f}{r['speed']:>10.0f}"
-            f"{r['scan_start_max_us']:>11.1f}{r['effect_max_us']:>12.1f}{r['first_pulse_max_us']:>15.1f}"
-            f"{r['unmatched']:>10d}"
+            f"{r['scenario']:<17}{r['duration_s']:>6g} "
+            f"{r['engine']:<12}{r['wall_s']:>9.4f}{r['speed']:>10.0f}{r['scan_start_max_us']:>11.1f}"
+            f"{r['effect_max_us']:>12.1f}{r['first_pulse_max_us']:>15.1f}{r['unmatched']:>10d}"
         )
     lines.append("errors in us against the event-exact engine; 'x real' = simulated time / wall time")
     return "\n".join(lines)

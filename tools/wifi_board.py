@@ -249,12 +249,12 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.write("\n")
         return 0
     print(
-        f"real-time v2 board: {args.electrodes} electrodes at {args.frequency} Hz, frames at {args.rate:g} Hz "
-        f"({args.chunking} writes)"
+        f"real-time v2 board: {args.electrodes} electrodes at {args.frequency} Hz, frames at {args.rate:g} "
+        f"Hz ({args.chunking} writes)"
     )
     print(
-        f"{'transport':<10} {'phase':<8} {'lag median':>11} {'p99':>9} {'max':>9} {'wake-ups':>9} {'> 1 ms':>7} "
-        f"{'CPU':>7}"
+        f"{'transport':<10} {'phase':<8} {'lag median':>11} {'p99':>9} {'max':>9} {'wake-ups':>9} "
+        f"{'> 1 ms':>7} {'CPU':>7}"
     )
     for t in transports:
         r = out[t]
@@ -263,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
             label = name if name == "idle" else f"{ph['achieved_hz']:.0f} Hz"
             print(
                 f"{t:<10} {label:<8} {ph['lag_median_ms']:>8.3f} ms {ph['lag_p99_ms']:>6.3f} ms "
-                f"{ph['lag_max_ms']:>6.3f} ms {ph['wakeups']:>9} {ph['fell_behind']:>7} {ph['cpu_percent']:>6.1f}%"
+                f"{ph['lag_max_ms']:>6.3f} ms {ph['wakeups']:>9} {ph['fell_behind']:>7} "
+                f"{ph['cpu_percent']:>6.1f}%"
             )
     print("host write → pattern in force (ms, min / median / max; prediction min / mean / max):")
     for t in transports:

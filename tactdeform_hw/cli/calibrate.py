@@ -25,12 +25,13 @@ def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "calibrate",
         help="calibrate a participant's regional amplitudes and write their profile",
-        description="The TactDeform calibration: the centre region rises from 0 µA in 10 µA steps until "
-        "the participant reports discomfort (accept), is lowered until clear and pain-free (accept); each "
-        "other region is matched to the centre's intensity from 0 µA (accept each); all regions are then "
-        "adjusted together (accept). The profile is written only when every phase was accepted. Keys: + raise, "
-        "- lower, > / < ten steps, a accept, c compare with the centre, q quit. Every current passes the "
-        "safety guard (never above --max-ua) and all channels go off on exit.",
+        description="The TactDeform calibration: the centre region rises from 0 µA in 10 µA steps until the "
+        "participant reports discomfort (accept), is lowered until clear and pain-free (accept); "
+        "each other region is matched to the centre's intensity from 0 µA (accept each); all "
+        "regions are then adjusted together (accept). The profile is written only when every "
+        "phase was accepted. Keys: + raise, - lower, > / < ten steps, a accept, c compare with "
+        "the centre, q quit. Every current passes the safety guard (never above --max-ua) and "
+        "all channels go off on exit.",
     )
     add_device_arg(p)
     p.add_argument(
@@ -78,8 +79,8 @@ def register(sub: Any) -> None:
         "--array",
         metavar="ARRAY.json",
         help="eTactileKit electrode-array file of the pad (default: the TactDeform 32-electrode array): each "
-        "region's stimulus lights the electrodes whose coordinates lie in it, on the hardware channels of its "
-        "Mapping_func",
+        "region's stimulus lights the electrodes whose coordinates lie in it, on the hardware channels "
+        "of its Mapping_func",
     )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=run)
@@ -188,8 +189,9 @@ def run(args: argparse.Namespace) -> int:
     if rmap.ambiguous:
         i = rmap.ambiguous[0]
         raise SafetyError(
-            f"--array: {rmap.describe(i)} sits on the border of regions {', '.join(map(str, rmap.candidates[i]))}: "
-            "a region's stimulus must light only electrodes that lie in it; nothing was sent"
+            f"--array: {rmap.describe(i)} sits on the border of regions "
+            f"{', '.join(map(str, rmap.candidates[i]))}: a region's stimulus must light only electrodes that "
+            "lie in it; nothing was sent"
         )
     region_of = rmap.resolve(None)
     missing = sorted(set(range(9)) - set(region_of))

@@ -71,7 +71,8 @@ def add_participant_arg(parser: argparse.ArgumentParser) -> None:
         "--audit-log",
         metavar="FILE",
         default=None,
-        help="append every command sent (with its time) and every safety refusal or clip to FILE as JSON lines",
+        help="append every command sent (with its time) and every safety refusal or clip to FILE as JSON "
+        "lines",
     )
 
 

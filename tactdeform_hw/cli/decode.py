@@ -103,8 +103,8 @@ def run(args: argparse.Namespace) -> int:
         if firmware.command_timeout_us is not None and any(c.status == "truncated" for c in items):
             print(
                 f"# firmware {firmware.name}: a cut command is completed by the bytes sent within "
-                f"{firmware.command_timeout_us / 1e6:g} s of its command byte, else discarded with everything "
-                "queued then",
+                f"{firmware.command_timeout_us / 1e6:g} s of its command byte, else discarded with "
+                "everything queued then",
                 file=sys.stderr,
             )
         print(

@@ -65,9 +65,8 @@ class DeliveryLog(AuditLog):
             session.setdefault("hw_channels", mapping.hw_channels)
         if region_map is not None:
             session.setdefault("positions_mm", [list(p) for p in region_map.positions_mm])
-            session.setdefault(
-                "mapping", list(range(region_map.electrodes))
-            )  # no mapping: electrode i on channel i
+            # no mapping: electrode i on channel i
+            session.setdefault("mapping", list(range(region_map.electrodes)))
             if region_of is None:
                 region_of = region_map.resolve(None)
         super().__init__(stream, **session)

@@ -17,17 +17,17 @@ def register(sub: Any) -> None:
         "emulate",
         help="serve the emulated board on a pseudo-terminal or a TCP port any program can open",
         description="Serve the emulated eTactileKit on a pseudo-terminal (--pty: the device path, e.g. "
-        "/dev/pts/7, is the first line of stdout) or on a TCP port (--tcp [HOST:]PORT: host:port is the first "
-        "line; one client at a time, as the firmware's Wi-Fi build; with --firmware v2 it also answers UDP "
-        "discovery, ETK? on port 8888). The board is the timed model of the chosen firmware (--firmware v1.2, "
-        "the default, or v2) locked to the wall clock: bytes enter the link and the receive queue as they "
-        "arrive, the parser reads them on its own rhythm (v1.2: one command with a payload per 1 ms tick; "
-        "v2: whole payloads, a cut command discarded after 2 s), replies leave when the model delivers them, "
-        "scans run. "
-        "--untimed answers every write at once instead. Point the eTactileKit GUI, its Python library, a "
-        "Unity app or a terminal at it. Once a second, when something changed, stderr shows the registers in "
-        "force, the queue depth, scans per second, overruns and hazards. SIGUSR1 power-cycles the board. "
-        "Serves until interrupted (Ctrl-C or SIGTERM).",
+        "/dev/pts/7, is the first line of stdout) or on a TCP port (--tcp [HOST:]PORT: host:port "
+        "is the first line; one client at a time, as the firmware's Wi-Fi build; with --firmware "
+        "v2 it also answers UDP discovery, ETK? on port 8888). The board is the timed model of "
+        "the chosen firmware (--firmware v1.2, the default, or v2) locked to the wall clock: "
+        "bytes enter the link and the receive queue as they arrive, the parser reads them on its "
+        "own rhythm (v1.2: one command with a payload per 1 ms tick; v2: whole payloads, a cut "
+        "command discarded after 2 s), replies leave when the model delivers them, scans run. "
+        "--untimed answers every write at once instead. Point the eTactileKit GUI, its Python "
+        "library, a Unity app or a terminal at it. Once a second, when something changed, stderr "
+        "shows the registers in force, the queue depth, scans per second, overruns and hazards. "
+        "SIGUSR1 power-cycles the board. Serves until interrupted (Ctrl-C or SIGTERM).",
     )
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal")
@@ -65,8 +65,8 @@ def register(sub: Any) -> None:
         choices=("serial", "serial-uart", "wifi"),
         default=None,
         help="the firmware build's receive rules: serial (USB link, a receive queue that drops what does not "
-        "fit, 256 bytes on v1.2 and 1024 on v2; the default for --pty), serial-uart (the same behind a 921600-baud UART) or wifi (TCP flow "
-        "control holds the host back; the default for --tcp)",
+        "fit, 256 bytes on v1.2 and 1024 on v2; the default for --pty), serial-uart (the same behind a "
+        "921600-baud UART) or wifi (TCP flow control holds the host back; the default for --tcp)",
     )
     p.add_argument(
         "--untimed", action="store_true", help="answer every write at once (no link, queue, tick or scans)"
@@ -211,9 +211,8 @@ def run(args: argparse.Namespace) -> int:
         raise KeyboardInterrupt
 
     def _usr1(signum: int, frame: object) -> None:
-        reset_requested.append(
-            "SIGUSR1"
-        )  # applied by the loop below: a handler must not take the board's lock
+        # applied by the loop below: a handler must not take the board's lock
+        reset_requested.append("SIGUSR1")
 
     seen_hazards = 0
     view = LiveView()
@@ -245,7 +244,8 @@ def run(args: argparse.Namespace) -> int:
                     progress(str(fb))
                 if n > 3:
                     progress(
-                        f"fell behind the wall clock {n - 3} more time(s) (worst {max(b.lag_us for b in behind) / 1000:.2f} ms)"
+                        f"fell behind the wall clock {n - 3} more time(s) (worst "
+                        f"{max(b.lag_us for b in behind) / 1000:.2f} ms)"
                     )
                 del behind[:n]
             if args.untimed:
@@ -261,14 +261,17 @@ def run(args: argparse.Namespace) -> int:
         server.stop()
         if responder is not None:
             responder.close()
-        summary = f"stopped: {server.bytes_in} bytes in, {server.bytes_out} bytes out, {len(server.emulator.hazards)} hazard(s)"
+        summary = (
+            f"stopped: {server.bytes_in} bytes in, {server.bytes_out} bytes out, "
+            f"{len(server.emulator.hazards)} hazard(s)"
+        )
         if not args.untimed:
             st = board.lag.stats()
             summary += (
                 f", {len(server.resets)} reset(s); lag median {st['median_us'] / 1000:.3f} ms, p99 "
-                f"{st['p99_us'] / 1000:.3f} ms, max {st['max_us'] / 1000:.3f} ms over {st['wakeups']} wake-up(s), "
-                f"{st['behind']} fall-behind(s) > {board.lag.limit_us / 1000:g} ms; serving thread CPU "
-                f"{server.cpu_s:.2f} s"
+                f"{st['p99_us'] / 1000:.3f} ms, max {st['max_us'] / 1000:.3f} ms over {st['wakeups']} "
+                f"wake-up(s), {st['behind']} fall-behind(s) > {board.lag.limit_us / 1000:g} ms; serving "
+                f"thread CPU {server.cpu_s:.2f} s"
             )
         if sink is not None:
             with board.lock:

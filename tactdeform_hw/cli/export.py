@@ -143,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
         print_json(summary)
     else:
         print(
-            f"wrote {out}: {len(seq.steps)} step(s) from {len(frames)} frame(s), {seq.duration_ms / 1000:.3f} s, "
-            f"{seq.electrodes} electrodes, {args.frequency} Hz, stim_mode {args.stim_mode}"
+            f"wrote {out}: {len(seq.steps)} step(s) from {len(frames)} frame(s), "
+            f"{seq.duration_ms / 1000:.3f} s, {seq.electrodes} electrodes, {args.frequency} Hz, stim_mode "
+            f"{args.stim_mode}"
         )
     return 0

@@ -211,8 +211,8 @@ def _draw_gif(seq: Any, array_file: Any | None, path: str, current_ua: int) -> d
         array, outline = ElectrodeArray.tactdeform(), None
     else:
         raise ConfigurationError(
-            f"--gif: {seq.source} has {seq.electrodes} electrodes; give --array with its electrode-array file "
-            "so the picture has their positions"
+            f"--gif: {seq.source} has {seq.electrodes} electrodes; give --array with its electrode-array "
+            "file so the picture has their positions"
         )
     info = draw_array_gif(
         array,
@@ -244,14 +244,15 @@ def run(
     if args.electrodes is not None and args.electrodes != n:
         if array_file is None:
             raise ConfigurationError(
-                f"{seq.source}: every step has {seq.electrodes} value(s) but --electrodes is {args.electrodes}; "
-                f"use --electrodes {seq.electrodes}, or --array with the electrode-array file the pattern was "
-                "made for so its Mapping_func places the electrodes on hardware channels"
+                f"{seq.source}: every step has {seq.electrodes} value(s) but --electrodes is "
+                f"{args.electrodes}; use --electrodes {seq.electrodes}, or --array with the electrode-array "
+                "file the pattern was made for so its Mapping_func places the electrodes on hardware "
+                "channels"
             )
         if args.electrodes < n:
             raise ConfigurationError(
-                f"--electrodes={args.electrodes} is too few: {array_file.source}'s Mapping_func uses hardware "
-                f"channels up to {n - 1}"
+                f"--electrodes={args.electrodes} is too few: {array_file.source}'s Mapping_func uses "
+                f"hardware channels up to {n - 1}"
             )
         mapping = ChannelMapping(array_file.channel_mapping().app_to_hw, args.electrodes)
         n = args.electrodes
@@ -343,8 +344,8 @@ def run(
             summary["hv513_count"] = chips
             if chips * 8 < n:
                 progress(
-                    f"warning: the board reports {chips} HV513 switch chip(s) = {chips * 8} outputs, fewer than "
-                    f"the {n} channels scanned; electrodes beyond them will not be stimulated"
+                    f"warning: the board reports {chips} HV513 switch chip(s) = {chips * 8} outputs, fewer "
+                    f"than the {n} channels scanned; electrodes beyond them will not be stimulated"
                 )
         except TactDeformError as exc:
             progress(f"note: could not ask the board for its HV513 count ({exc})")

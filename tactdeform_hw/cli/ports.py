@@ -100,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
     for k in kits:
         shared = "  (id shared with another kit: use the socket:// address)" if k["id_shared"] else ""
         print(
-            f"{'wifi':<7} {k['device']:<36} {'':<9}  {k['name']} {k['ip']}:{k['port']} {k['mode']} fw={k['fw']}{shared}"
+            f"{'wifi':<7} {k['device']:<36} {'':<9}  {k['name']} {k['ip']}:{k['port']} {k['mode']} "
+            f"fw={k['fw']}{shared}"
         )
     if not result.candidates:
         print("no candidate boards found (the emulator is always available as --device emulator)")

@@ -83,7 +83,8 @@ def register(sub: Any) -> None:
         "--contact-mode",
         choices=CONTACT_MODES,
         default=None,
-        help="stationary contact: orientation-specific shift (eq. 4) or uniform (default: the scene's, orientation)",
+        help="stationary contact: orientation-specific shift (eq. 4) or uniform (default: the scene's, "
+        "orientation)",
     )
     add_device_arg(p)
     add_participant_arg(p)
@@ -105,7 +106,8 @@ def register(sub: Any) -> None:
         "--current-ua",
         type=int,
         default=None,
-        help="participant current in µA (default: the highest calibrated region with --participant, else 0: patterns only)",
+        help="participant current in µA (default: the highest calibrated region with --participant, else 0: "
+        "patterns only)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the trajectory's random parts (default 0)")
     p.add_argument("--realtime", action="store_true", help="pace the run to the trajectory's clock")
@@ -156,9 +158,8 @@ def run(args: argparse.Namespace) -> int:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
     from ..protocol.units import DEFAULT_TRANSFER
 
-    guard.request(
-        guard.validate_current(args.current_ua, DEFAULT_TRANSFER)
-    )  # above the cap: refused before opening
+    # above the cap: refused before opening
+    guard.request(guard.validate_current(args.current_ua, DEFAULT_TRANSFER))
     scene = load_scene(args.scene)
     if args.approach is not None or args.contact_mode is not None:
         # an option given on the command line replaces only its own field of the scene's options
@@ -193,8 +194,8 @@ def run(args: argparse.Namespace) -> int:
     quiet = args.quiet
     if not quiet:
         progress(
-            f"render: {args.trajectory} over {args.scene}{'' if recorded else f' at {args.rate:g} Hz'}, {total} poses, approach "
-            f"{args.approach or scene.options.approach}, device {args.device}"
+            f"render: {args.trajectory} over {args.scene}{'' if recorded else f' at {args.rate:g} Hz'}, "
+            f"{total} poses, approach {args.approach or scene.options.approach}, device {args.device}"
         )
     out = open(args.frames, "w", encoding="utf-8") if args.frames else None  # noqa: SIM115
     gif_records: list[dict[str, Any]] | None = [] if (args.gif or args.strip) else None
@@ -222,7 +223,8 @@ def run(args: argparse.Namespace) -> int:
         )
         offline_clock = None
         if not args.realtime:
-            # on a port that answers at once (the in-process emulator) the session runs on the trajectory's clock
+            # on a port that answers at once (the in-process emulator) the session runs on the
+            # trajectory's clock
             from ..clock import SimulatedClock
 
             offline_clock = SimulatedClock()

@@ -120,9 +120,10 @@ def channel_regions(
     positions, mapping = header.get("positions_mm"), header.get("mapping")
     if not isinstance(positions, list) or not isinstance(mapping, list) or len(positions) != len(mapping):
         raise ConfigurationError(
-            f"audit log {path}: its session line records no electrode positions (positions_mm and mapping), so "
-            "the region of the electrode on each channel cannot be determined; give --array with the session's "
-            "electrode-array file (or --array tactdeform for the TactDeform array on channels 0-31)"
+            f"audit log {path}: its session line records no electrode positions (positions_mm and mapping), "
+            "so the region of the electrode on each channel cannot be determined; give --array with the "
+            "session's electrode-array file (or --array tactdeform for the TactDeform array on channels "
+            "0-31)"
         )
     from ..device.regions import region_map_from_positions
 

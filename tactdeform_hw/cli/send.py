@@ -137,8 +137,8 @@ def run(args: argparse.Namespace) -> int:
     if array_file is not None:
         if electrodes is not None and electrodes != array_file.electrodes:
             raise ConfigurationError(
-                f"--electrodes={electrodes} but {array_file.source} has {array_file.electrodes} electrode(s); "
-                "leave --electrodes out with --array"
+                f"--electrodes={electrodes} but {array_file.source} has {array_file.electrodes} "
+                "electrode(s); leave --electrodes out with --array"
             )
         electrodes = array_file.electrodes
     elif electrodes is None:

@@ -37,10 +37,11 @@ def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "study",
         help="run a study's trials (task1, task2, task3, phase2) end to end and report what each delivered",
-        description="Run the trials of one TactDeform study through tracking, the renderer, the driver and the "
-        "device (the emulator by default), check what every trial delivered (the feature and texture rendered, "
-        "the frames on the wire and in the emulator's pattern buffer, the pulses the scans delivered, hazards) "
-        "and write a report to --out: report.json, summary.md, frames/ and pictures/. "
+        description="Run the trials of one TactDeform study through tracking, the renderer, the driver and "
+        "the device (the emulator by default), check what every trial delivered (the feature and "
+        "texture rendered, the frames on the wire and in the emulator's pattern buffer, the "
+        "pulses the scans delivered, hazards) and write a report to --out: report.json, "
+        "summary.md, frames/ and pictures/. "
         + " ".join(f"{k}: {v.split(': ', 1)[-1]}." for k, v in STUDY_TITLES.items())
         + " Exit status 0 when every check passed, 3 when one failed.",
     )
@@ -131,9 +132,8 @@ def run(args: argparse.Namespace) -> int:
         build_study(args.study, seed=args.seed, quick=args.quick, contact_mode=mode), args.trials
     )
     if args.current_ua is not None:
-        guard.request(
-            guard.validate_current(args.current_ua, _transfer())
-        )  # above the cap: refused before opening
+        # above the cap: refused before opening
+        guard.request(guard.validate_current(args.current_ua, _transfer()))
     audit = DeliveryLog(
         args.audit_log,
         requested_ua=args.current_ua,
@@ -148,8 +148,8 @@ def run(args: argparse.Namespace) -> int:
     )
     say = (lambda _m: None) if args.quiet else progress
     say(
-        f"study {study.name}: {len(study.trials)} trial(s){' (quick)' if study.quick else ''}, device {args.device}, "
-        f"seed {args.seed}"
+        f"study {study.name}: {len(study.trials)} trial(s){' (quick)' if study.quick else ''}, device "
+        f"{args.device}, seed {args.seed}"
     )
     try:
         result = run_study(

@@ -26,11 +26,11 @@ def register(sub: Any) -> None:
         "timing",
         help="scan budget, overruns, update latency and waveform traces of a configuration",
         description="Emulate the stimulation scan of a configuration with the timing model and print its "
-        "budget: per-channel cost, scan time, timer period, margin and verdict (fits / overrun / watchdog "
-        "reset). Example (the TactDeform setting): --electrodes 32 --pulse-width-us 200 --discharge-us 45 "
-        "--frequency-hz 125. Exit status: 0 when the scan fits its period, "
-        f"{EXIT_OVERRUN} when it OVERRUNs it, {EXIT_WATCHDOG} when it trips the interrupt WATCHDOG (the board "
-        "resets); 1 for a refused value, 2 for a usage error.",
+        "budget: per-channel cost, scan time, timer period, margin and verdict (fits / overrun "
+        "/ watchdog reset). Example (the TactDeform setting): --electrodes 32 --pulse-width-us "
+        "200 --discharge-us 45 --frequency-hz 125. Exit status: 0 when the scan fits its "
+        f"period, {EXIT_OVERRUN} when it OVERRUNs it, {EXIT_WATCHDOG} when it trips the "
+        "interrupt WATCHDOG (the board resets); 1 for a refused value, 2 for a usage error.",
     )
     p.add_argument(
         "--firmware",
@@ -325,16 +325,17 @@ def _convention_rows(conv: Any) -> list[dict[str, Any]]:
             "value": "costed" if conv.cs_writes_costed else "inside",
             "unit": "",
             "source": "option",
-            "doc": "whether the 6.6 us exchange includes the chip-select writes (v1.2: 4, v2: 2 per exchange); "
-            "default inside (the firmware comment's reading); --cs-writes costed adds one GPIO write each",
+            "doc": "whether the 6.6 us exchange includes the chip-select writes (v1.2: 4, v2: 2 per "
+            "exchange); default inside (the firmware comment's reading); --cs-writes costed adds one "
+            "GPIO write each",
         },
         {
             "name": "dac_load",
             "value": conv.dac_load,
             "unit": "",
             "source": "option",
-            "doc": "when the DAC output changes: mid_exchange (3.3 us in, default) or cs_rise (when DA_CS rises, "
-            "about 6.6 us in); pulse widths do not change, every DAC edge moves",
+            "doc": "when the DAC output changes: mid_exchange (3.3 us in, default) or cs_rise (when DA_CS "
+            "rises, about 6.6 us in); pulse widths do not change, every DAC edge moves",
         },
     ]
 

@@ -84,9 +84,8 @@ class AuditLog:
         self._line(header)
 
     def _line(self, obj: dict[str, Any]) -> None:
-        text = (
-            json.dumps(obj, default=str, separators=(",", ":")) + "\n"
-        )  # whole before the lock: one write a line
+        # whole before the lock: one write a line
+        text = json.dumps(obj, default=str, separators=(",", ":")) + "\n"
         with self._lock:
             if self.closed:
                 return

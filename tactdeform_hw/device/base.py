@@ -854,8 +854,8 @@ class Device(ABC):
     def _resync_bound_now_s(self) -> float:
         """The longest a resync that fails waits for its proofs at the configuration
         in force: the request behind the zeros, then 256 zeros and the request again (and 0xF5 after
-        0xFF), each until its deadline, behind one frame still in flight.  What a fail-safe adds to its recovery time before it
-        reaches for the reset line."""
+        0xFF), each until its deadline, behind one frame still in flight.  What a fail-safe adds to its
+        recovery time before it reaches for the reset line."""
         cfg = self._config
         n = cfg.electrode_count if cfg is not None else 0
         clock = SimulatedClock()

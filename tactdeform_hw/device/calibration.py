@@ -245,7 +245,8 @@ class Calibration:
             polarity=polarity,
             contact_mode=contact_mode,
             ramp_ua_per_frame=ramp_ua_per_frame,
-            notes=f"discomfort reported at {self.discomfort_ua} µA on the centre region; {len(self.history)} key(s)",
+            notes=f"discomfort reported at {self.discomfort_ua} µA on the centre region; {len(self.history)} "
+            "key(s)",
             source=source,
         )
 

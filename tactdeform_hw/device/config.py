@@ -57,6 +57,7 @@ def sense_code(sense_current_ua: int, transfer: CurrentTransfer) -> int:
         raise LimitError(
             "sense_current_ua",
             sense_current_ua,
-            f"a current whose DAC code is a multiple of {step} up to {U8_MAX * step} (this one is code {code})",
+            f"a current whose DAC code is a multiple of {step} up to {U8_MAX * step} (this one is code "
+            f"{code})",
         )
     return code // step

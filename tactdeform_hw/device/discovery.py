@@ -179,7 +179,8 @@ def _usb_candidate(dev: Any, core: Any, util: Any, include_all: bool) -> Candida
             if "no permission" not in " ".join(notes):
                 notes.append(
                     "string descriptors unreadable (no permission to open the device: on Linux add a udev "
-                    'rule for ATTR{idVendor}=="303a" with GROUP="plugdev" — see docs/firmware-guide-conformance.md)'
+                    'rule for ATTR{idVendor}=="303a" with GROUP="plugdev" — see '
+                    "docs/firmware-guide-conformance.md)"
                 )
     reasons = _id_reasons(vid, pid, strings["product"])
     if cdc:

@@ -18,9 +18,9 @@ with every current off, using only bytes that mean "less current" wherever eithe
 Every suffix of this sequence, read from a command boundary, also ends at a boundary with the count at
 0; that matters on v2, whose 2 s timeout may discard part of it when it arrives just as a stale command
 times out.  Such a discard can swallow the whole probe, sync check included, so a missing reply is
-checked once more with the whole probe (by then no command can be pending); a second silence means v1.2 (or a v1.2 parser locked before the session,
-which reads nothing until reset).  A reply other than 0 means the bytes were not read as sent: the
-board is reported, never driven.
+checked once more with the whole probe (by then no command can be pending); a second silence means v1.2 (or a
+v1.2 parser locked before the session, which reads nothing until reset).  A reply other than 0 means the bytes
+were not read as sent: the board is reported, never driven.
 
 The bytes go out in 64-byte writes with a gap between them, slow enough for v1.2's 256-byte queue even
 while it scans; the sequence ends with the electrode count at 0, so the caller configures the board
@@ -82,8 +82,8 @@ def detect_firmware(
         if reply:
             if reply != b"\x00":
                 raise FirmwareMismatchError(
-                    f"the sync check after the electrode count 0 was answered {reply.hex()}, not 00: the board "
-                    "did not read the probe as sent; nothing stimulating was sent"
+                    f"the sync check after the electrode count 0 was answered {reply.hex()}, not 00: the "
+                    "board did not read the probe as sent; nothing stimulating was sent"
                 )
             return Detection(V2, attempts, reply)
     return Detection(V1_2, attempts, b"")
@@ -93,6 +93,7 @@ def check_firmware(expected: str, detection: Detection) -> None:
     """Refuse a board whose firmware is not the one the driver was told to speak."""
     if detection.name != expected:
         raise FirmwareMismatchError(
-            f"the board runs firmware {detection.name} (sync check {'answered' if detection.reply else 'unanswered'}), "
-            f"but firmware={expected!r} was asked for; nothing stimulating was sent"
+            f"the board runs firmware {detection.name} (sync check "
+            f"{'answered' if detection.reply else 'unanswered'}), but firmware={expected!r} was asked for; "
+            "nothing stimulating was sent"
         )

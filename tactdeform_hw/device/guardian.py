@@ -39,12 +39,12 @@ few are ever in flight; the owner tells the guardian that bound for its configur
 packet is safe even into a full queue (above); over a UART, where a full queue drops single bytes and
 keeps later ones, no byte sequence but zeros is safe, so there the wait is what keeps every byte in.
 Without the proof the guardian sends 256 zeros (in 64-byte packets), waits until the parser has surely
-skipped them (``zeros_s``, also from the owner), and sends the packet again, for up to :data:`BUDGET_S`; with the proof it sends the all-off pattern
-(electrode count, then the pattern, then another proof).  Pulse height 0 and sense height 0 already stop
-every current the firmware can deliver, whatever pattern it holds; the pattern is there so that a later
-height cannot reach an old pattern.  If no proof ever comes (a locked parser answers nothing) and the
-owner said the port has a reset line, the guardian pulses it (RTS, as the driver does), which brings the
-firmware back to its power-on state: every height 0.
+skipped them (``zeros_s``, also from the owner), and sends the packet again, for up to :data:`BUDGET_S`; with
+the proof it sends the all-off pattern (electrode count, then the pattern, then another proof).  Pulse height
+0 and sense height 0 already stop every current the firmware can deliver, whatever pattern it holds; the
+pattern is there so that a later height cannot reach an old pattern.  If no proof ever comes (a locked parser
+answers nothing) and the owner said the port has a reset line, the guardian pulses it (RTS, as the driver
+does), which brings the firmware back to its power-on state: every height 0.
 
 The guardian is started with ``python -I -S`` on this very file: it imports nothing but the standard
 library, so it is ready in tens of milliseconds, and nothing it imports can fail.
@@ -75,7 +75,7 @@ DEFAULT_DRAIN_S = 0.045
 DEFAULT_ZEROS_S = 0.2
 
 
-# --- the bytes (owner side: built with the protocol module) --------------------------------------------------
+# --- the bytes (owner side: built with the protocol module) -------------------------------------------------
 
 
 def stop_packet() -> bytes:

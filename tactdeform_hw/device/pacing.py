@@ -113,7 +113,8 @@ class PacingStats:
 
 
 def has_payload(data: bytes, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> bool:
-    """Whether the command starting ``data`` carries a payload (on v1.2: the parser sleeps a tick after it)."""
+    """Whether the command starting ``data`` carries a payload (on v1.2: the parser sleeps a tick after
+    it)."""
     if not data:
         return False
     c = firmware.by_opcode.get(data[0])

@@ -140,8 +140,8 @@ def region_map_from_positions(
             ) from exc
         if not (math.isfinite(x) and math.isfinite(y)):
             raise SafetyError(
-                f"electrode {i} of {source} has no finite position ({x!r}, {y!r}); its region, and so its limit, "
-                "cannot be determined; nothing was sent"
+                f"electrode {i} of {source} has no finite position ({x!r}, {y!r}); its region, and so its "
+                "limit, cannot be determined; nothing was sent"
             )
         pts.append((x, y))
     if not pts:

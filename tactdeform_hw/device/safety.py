@@ -11,10 +11,10 @@ skip them:
    the firmware's registers.  It refuses a command whose effect would break a limit whatever code path
    produced it, so a future method that forgets the guard is stopped at the wire.  It judges the
    firmware's reading of the bytes (:mod:`tactdeform_hw.protocol.reader`, from where the parser stands),
-   and where the device's queue may be full, every reading a discarded USB packet tail could cause.  Only writing to the
-   port object directly (``device.port.write`` or ``serial.serial_for_url(...).write``) bypasses it:
-   that is not the driver, it is the raw transport, and no Python-level check can stop a caller who
-   opens the port themselves.
+   and where the device's queue may be full, every reading a discarded USB packet tail could cause.  Only
+   writing to the port object directly (``device.port.write`` or ``serial.serial_for_url(...).write``)
+   bypasses it: that is not the driver, it is the raw transport, and no Python-level check can stop a caller
+   who opens the port themselves.
 
 Limits (µA unless noted):
 
@@ -295,7 +295,7 @@ class SafetyGuard:
             sink=sink,
         )
 
-    # --- logging ---------------------------------------------------------------------------------------------
+    # --- logging --------------------------------------------------------------------------------------------
 
     def _record(self, event: str, rule: str, message: str, **detail: Any) -> dict[str, Any]:
         entry: dict[str, Any] = {"t": time.time(), "event": event, "rule": rule, "message": message, **detail}
@@ -335,7 +335,7 @@ class SafetyGuard:
         self._record("refused", rule, message, **detail)
         return SafetyError(f"{message}; nothing was sent")
 
-    # --- limits ----------------------------------------------------------------------------------------------
+    # --- limits ---------------------------------------------------------------------------------------------
 
     def _region_map(self, electrodes: int) -> tuple[int, ...] | None:
         if self.regions_ua is None:
@@ -430,7 +430,7 @@ class SafetyGuard:
                     why["region"] = rmap[i]
         return limit, why
 
-    # --- the guard: what may be sent -------------------------------------------------------------------------
+    # --- the guard: what may be sent ------------------------------------------------------------------------
 
     def validate_current(
         self, value: object, transfer: CurrentTransfer, field_name: str = "current_ua"
@@ -473,8 +473,8 @@ class SafetyGuard:
         if self.max_pulse_width_us is not None and config.pulse_width_us > self.max_pulse_width_us:
             raise self._refuse(
                 "pulse_width",
-                f"pulse_width_us={config.pulse_width_us} is wider than the calibrated {self.max_pulse_width_us} µs "
-                "(the calibrated amplitudes would feel stronger)",
+                f"pulse_width_us={config.pulse_width_us} is wider than the calibrated "
+                f"{self.max_pulse_width_us} µs (the calibrated amplitudes would feel stronger)",
                 requested=config.pulse_width_us,
                 limit=self.max_pulse_width_us,
             )
@@ -482,8 +482,8 @@ class SafetyGuard:
         if charge > self.max_charge_nc + _EPS:
             raise self._refuse(
                 "charge",
-                f"current_ua={config.current_ua} × pulse_width_us={config.pulse_width_us} = {charge:g} nC per pulse "
-                f"exceeds the charge limit of {self.max_charge_nc:g} nC",
+                f"current_ua={config.current_ua} × pulse_width_us={config.pulse_width_us} = {charge:g} nC "
+                f"per pulse exceeds the charge limit of {self.max_charge_nc:g} nC",
                 charge_nc=charge,
                 limit_nc=self.max_charge_nc,
             )
@@ -493,8 +493,8 @@ class SafetyGuard:
             if sense_ua > low + _EPS:
                 raise self._refuse(
                     "sense",
-                    f"sense_current_ua={config.sense_current_ua} reaches every channel that is off and exceeds "
-                    f"the lowest electrode limit of {low} µA",
+                    f"sense_current_ua={config.sense_current_ua} reaches every channel that is off and "
+                    f"exceeds the lowest electrode limit of {low} µA",
                     requested_ua=config.sense_current_ua,
                     limit_ua=low,
                 )
@@ -502,7 +502,8 @@ class SafetyGuard:
             if sense_charge > self.max_charge_nc + _EPS:
                 raise self._refuse(
                     "sense_charge",
-                    f"sense pulse of {sense_charge:g} nC exceeds the charge limit of {self.max_charge_nc:g} nC",
+                    f"sense pulse of {sense_charge:g} nC exceeds the charge limit of "
+                    f"{self.max_charge_nc:g} nC",
                     charge_nc=sense_charge,
                 )
         scan = worst_scan_us(
@@ -512,7 +513,8 @@ class SafetyGuard:
             raise self._refuse(
                 "scan_time",
                 f"a scan of {config.electrode_count} electrodes at {config.pulse_width_us} µs could take "
-                f"{scan / 1000:.0f} ms; the firmware reboots (interrupt watchdog) past {INTERRUPT_WATCHDOG_US / 1000:.0f} ms",
+                f"{scan / 1000:.0f} ms; the firmware reboots (interrupt watchdog) past "
+                f"{INTERRUPT_WATCHDOG_US / 1000:.0f} ms",
                 scan_us=scan,
             )
         if stimulating and polarity_in_force is not None and config.polarity != polarity_in_force:
@@ -578,15 +580,15 @@ class SafetyGuard:
         if scan_us > period_us - gap_min_us:
             raise self._refuse(
                 "scan_overrun",
-                f"this frame's scan takes about {scan_us:.0f} µs of the {period_us:.0f} µs period; with less than "
-                f"{gap_min_us:.0f} µs between scans the firmware's parser cannot run and the host could not "
-                "switch the frame off (fewer active electrodes, biphasic → monophasic, a shorter pulse or "
-                "discharge, or a lower rate fixes it)",
+                f"this frame's scan takes about {scan_us:.0f} µs of the {period_us:.0f} µs period; with less "
+                f"than {gap_min_us:.0f} µs between scans the firmware's parser cannot run and the host could "
+                "not switch the frame off (fewer active electrodes, biphasic → monophasic, a shorter pulse "
+                "or discharge, or a lower rate fixes it)",
                 scan_us=round(scan_us, 1),
                 period_us=period_us,
             )
 
-    # --- the interlock: every command as it is written ----------------------------------------------------------
+    # --- the interlock: every command as it is written ------------------------------------------------------
 
     @property
     def shadow(self) -> _Shadow:
@@ -715,7 +717,10 @@ class SafetyGuard:
                 seen.setdefault(result.key(), result)
             if cut_from is not None and cut_from < len(data):
                 for lost, kept in _tail_losses(data, max(0, cut_from), self.firmware.usb_packet_bytes):
-                    how = f"bytes {lost[0]}-{lost[1] - 1} of a {len(data)}-byte write discarded by a full device queue"
+                    how = (
+                        f"bytes {lost[0]}-{lost[1] - 1} of a {len(data)}-byte write discarded by a full "
+                        "device queue"
+                    )
                     if state.how:
                         how = f"{state.how}; then {how}"
                     alt = self._read(state, kept, mapping, transfer, strict=False, how=how)
@@ -736,9 +741,9 @@ class SafetyGuard:
             if spec is not None and spec.kind is not None:
                 raise self._refuse(
                     "interlock",
-                    f"command 0x{b:02X} at byte {i} while the firmware's state is unknown (its parser may be in the "
-                    "middle of a command, whose value these bytes could complete; its electrode count is unknown): "
-                    "resync and let the board answer first",
+                    f"command 0x{b:02X} at byte {i} while the firmware's state is unknown (its parser may be "
+                    "in the middle of a command, whose value these bytes could complete; its electrode "
+                    "count is unknown): resync and let the board answer first",
                 )
 
     def _read(
@@ -837,7 +842,8 @@ class SafetyGuard:
                 if self.ramp_ua_per_frame is not None and new_ua > prev_ua + self.ramp_ua_per_frame + _EPS:
                     raise self._refuse(
                         "interlock",
-                        f"pulse height {new_ua:g} µA{when} rises more than {self.ramp_ua_per_frame} µA above {prev_ua:g} µA",
+                        f"pulse height {new_ua:g} µA{when} rises more than {self.ramp_ua_per_frame} µA "
+                        f"above {prev_ua:g} µA",
                     )
                 self._verify(sh, "pulse height" + when, mapping, transfer)
         elif register == "stim_mode":
@@ -901,7 +907,8 @@ class SafetyGuard:
             if height_ua * width / 1000.0 > self.max_charge_nc + _EPS:
                 raise self._refuse(
                     "interlock",
-                    f"{what}: {height_ua:g} µA × {width} µs exceeds the charge limit of {self.max_charge_nc:g} nC",
+                    f"{what}: {height_ua:g} µA × {width} µs exceeds the charge limit of "
+                    f"{self.max_charge_nc:g} nC",
                 )
         sense_ua = transfer.to_ua(sh.sense_code) if sh.sense_code is not None else math.inf
         if num is None:
@@ -920,14 +927,16 @@ class SafetyGuard:
                 if height_ua > limits[ch] + _EPS:
                     raise self._refuse(
                         "interlock",
-                        f"{what}: channel {ch} would receive {height_ua:g} µA, above its limit of {limits[ch]} µA",
+                        f"{what}: channel {ch} would receive {height_ua:g} µA, above its limit of "
+                        f"{limits[ch]} µA",
                         channel=ch,
                     )
             if level is None or level not in _ACTIVE:
                 if sense_ua > limits[ch] + _EPS:
                     raise self._refuse(
                         "interlock",
-                        f"{what}: channel {ch} would receive a sense current of {sense_ua:g} µA, above {limits[ch]} µA",
+                        f"{what}: channel {ch} would receive a sense current of {sense_ua:g} µA, above "
+                        f"{limits[ch]} µA",
                         channel=ch,
                     )
         if sense_ua > 0 and sh.sense_code is not None:

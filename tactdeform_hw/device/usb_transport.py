@@ -551,9 +551,10 @@ class UsbCdcPort(PortBase):
                     continue
                 if _errno_of(exc) == errno.EPIPE:
                     raise TransportError(
-                        f"bulk OUT endpoint 0x{self.ep_out:02x} of {self.port} stalled again after its halt was "
-                        f"cleared; {done} of {total} byte(s) were delivered, so the device may hold part of a "
-                        "command: close and reopen the device, then resync() before sending anything else",
+                        f"bulk OUT endpoint 0x{self.ep_out:02x} of {self.port} stalled again after its halt "
+                        f"was cleared; {done} of {total} byte(s) were delivered, so the device may hold part "
+                        "of a command: close and reopen the device, then resync() before sending anything "
+                        "else",
                         code=errno.EPIPE,
                     ) from exc
                 raise self._error(exc, "bulk OUT") from exc
@@ -601,8 +602,8 @@ class UsbCdcPort(PortBase):
                     continue
                 if _errno_of(exc) == errno.EPIPE:
                     raise TransportError(
-                        f"bulk IN endpoint 0x{self.ep_in:02x} of {self.port} stalled again after its halt was "
-                        "cleared: the device is not sending; reset or replug the board",
+                        f"bulk IN endpoint 0x{self.ep_in:02x} of {self.port} stalled again after its halt "
+                        "was cleared: the device is not sending; reset or replug the board",
                         code=errno.EPIPE,
                     ) from exc
                 raise self._error(exc, "bulk IN") from exc

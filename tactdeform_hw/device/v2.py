@@ -87,7 +87,7 @@ class V2Dialect:
         self.heights_ua: list[int] = []  # height per application electrode in force
         self.answered = False  # the board has answered a sync check in this session (it runs v2)
 
-    # --- attaching --------------------------------------------------------------------------------------------
+    # --- attaching ------------------------------------------------------------------------------------------
 
     def attach(self, dev: Device) -> None:
         dev._dialect = self
@@ -102,7 +102,7 @@ class V2Dialect:
             # 0xFB as a height's high byte (4095): the guardian stops a v2 board with the probe's bytes
             guardian.set_stop(off_packet(0))
 
-    # --- small helpers ----------------------------------------------------------------------------------------
+    # --- small helpers --------------------------------------------------------------------------------------
 
     @staticmethod
     def _rsend(dev: Device, data: bytes) -> int:
@@ -165,7 +165,7 @@ class V2Dialect:
         dev._last_pattern = bytes(n)
         dev._current_ua = 0
 
-    # --- recovery ---------------------------------------------------------------------------------------------
+    # --- recovery -------------------------------------------------------------------------------------------
 
     def flush_parser(self, dev: Device) -> None:
         """SUSPECT → SYNCING (→ FLUSHING after the 2 s timeout) → SAFE → VERIFYING → IN_STEP, on v2."""
@@ -199,15 +199,15 @@ class V2Dialect:
                             "sync check after the 2 s timeout (parser hung: reset the board)", 1, b""
                         )
                     raise FirmwareMismatchError(
-                        "the board does not answer the sync check 0xF4 as firmware v2 must (twice, the second "
-                        "time more than 2 s after any command could have started): it runs v1.2, or its parser "
-                        "is hung; only bytes that stop current on both versions were sent"
+                        "the board does not answer the sync check 0xF4 as firmware v2 must (twice, the "
+                        "second time more than 2 s after any command could have started): it runs v1.2, or "
+                        "its parser is hung; only bytes that stop current on both versions were sent"
                     )
             if reply != b"\x00":
                 dev._enter(LinkState.FAILED, f"sync check answered {reply.hex()}, not 00")
                 raise FirmwareMismatchError(
-                    f"the sync check after electrode count 0 was answered {reply.hex()}, not 00: the board did not "
-                    "read the bytes as firmware v2 does"
+                    f"the sync check after electrode count 0 was answered {reply.hex()}, not 00: the board "
+                    "did not read the bytes as firmware v2 does"
                 )
             dev._proved(mark)
             dev.guard.note_in_step(0)
@@ -244,7 +244,7 @@ class V2Dialect:
             dev._suspect("the sync check did not answer the count")
             raise ShortReplyError("sync check (proof that the queue was read)", 1, b"")
 
-    # --- configuration -------------------------------------------------------------------------------------------
+    # --- configuration --------------------------------------------------------------------------------------
 
     def validated(self, config: StimConfig, transfer: CurrentTransfer) -> StimConfig:
         """v1.2's checks, except the sense current: v2 stores 0xF9 unshifted, so any DAC code up to 255."""
@@ -311,7 +311,7 @@ class V2Dialect:
         dev._prove(n)
         dev.pacer.set_timing(new_period / 1e6, dev._scan_us / 1e6)
 
-    # --- frames ---------------------------------------------------------------------------------------------------
+    # --- frames ---------------------------------------------------------------------------------------------
 
     def app_codes(self, dev: Device) -> list[int] | None:
         """The DAC codes in force in application order (None: unknown)."""
@@ -457,7 +457,7 @@ def buffer_levels(state: Mapping[str, Any]) -> list[int]:
     return [level if v else 0 for v in pattern]
 
 
-# --- the interlock's reading of v2 registers -----------------------------------------------------------------------
+# --- the interlock's reading of v2 registers ----------------------------------------------------------------
 
 
 def verify_channels(
@@ -472,8 +472,9 @@ def verify_channels(
         if sense_ua > 0 and num != 0:
             raise guard._refuse(
                 "interlock",
-                f"{what}: stimulation mode {'unknown' if mode is None else mode} with a sense height that may be "
-                "non-zero (mode 2 gives every channel the sense pulse, a zero pattern does not stop it)",
+                f"{what}: stimulation mode {'unknown' if mode is None else mode} with a sense height that "
+                "may be non-zero (mode 2 gives every channel the sense pulse, a zero pattern does not stop "
+                "it)",
             )
         if mode is not None:
             return

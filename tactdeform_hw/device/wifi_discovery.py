@@ -104,7 +104,8 @@ def resolve(kit_id: str, kits: Iterable[Kit]) -> Kit:
     if len(matches) > 1:
         where = ", ".join(f"{k.ip}:{k.port}" for k in matches)
         raise ConfigurationError(
-            f"etactilekit://{kit_id}: {len(matches)} kits answer to id {kit_id!r} ({where}); the firmware derives "
-            "the id from the MAC's manufacturer bytes, so boards can share it — connect with socket://IP:PORT"
+            f"etactilekit://{kit_id}: {len(matches)} kits answer to id {kit_id!r} ({where}); the firmware "
+            "derives the id from the MAC's manufacturer bytes, so boards can share it — connect with "
+            "socket://IP:PORT"
         )
     return matches[0]

@@ -253,7 +253,7 @@ class TimedPort:
             self.port_faults.append(fault)
             self.port_faults.sort(key=lambda f: f.at_s)
 
-    # --- faults of the board: they strike at their time, whether or not the host writes -----------------------
+    # --- faults of the board: they strike at their time, whether or not the host writes ---------------------
 
     def _strike_board_faults(self) -> None:
         now = self.now_s
@@ -301,7 +301,7 @@ class TimedPort:
     def all_injected(self) -> list[InjectedFault]:
         return sorted(self.injected + self.faulty_link.injected, key=lambda f: f.t_s)
 
-    # --- pyserial face ---------------------------------------------------------------------------------------
+    # --- pyserial face --------------------------------------------------------------------------------------
 
     def open(self) -> None:
         if self.is_open:

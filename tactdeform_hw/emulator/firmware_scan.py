@@ -355,7 +355,8 @@ class FirmwareBudget:
         for cost in distinct:
             count = self.per_channel_us.count(cost)
             lines.append(
-                f"{'channels':<24}{count:>9}  {'per channel':>12}{cost:>11.2f}{'subtotal':>10}{count * cost:>11.2f}"
+                f"{'channels':<24}{count:>9}  "
+                f"{'per channel':>12}{cost:>11.2f}{'subtotal':>10}{count * cost:>11.2f}"
             )
         lines += [
             f"{'interrupt entry':<66}{self.isr_entry_us:>11.2f}",
@@ -363,8 +364,8 @@ class FirmwareBudget:
             f"{'scan':<66}{self.scan_us:>11.2f}",
             f"{'period':<66}{self.period_us:>11.2f}",
             f"{'margin':<66}{self.margin_us:>11.2f}",
-            f"verdict: {self.verdict.upper()}; actual rate {self.actual_rate_hz:.2f} Hz; effective pulse width "
-            f"{self.effective_width_us:.2f} us (all times in us)",
+            f"verdict: {self.verdict.upper()}; actual rate {self.actual_rate_hz:.2f} Hz; effective pulse "
+            f"width {self.effective_width_us:.2f} us (all times in us)",
             "chip-select writes "
             + ("costed apart from" if self.conventions["cs_writes_costed"] else "inside")
             + f" the {self.conventions['spi_exchange_us']} us exchange; DAC loads "

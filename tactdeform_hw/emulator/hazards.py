@@ -26,9 +26,8 @@ class HazardKind(str, Enum):
     HV513_REINIT = "hv513_reinit"  # 0xF5 re-detects the stack and clears every HV513 output
     # Timing and link hazards (recorded by the timed model):
     QUEUE_OVERFLOW = "queue_overflow"  # receive queue full: the rest of a USB packet was discarded
-    TORN_PATTERN = (
-        "torn_pattern"  # a scan used part old, part new pattern (a stretch of like ones: one record)
-    )
+    # a scan used part old, part new pattern (a stretch of like ones: one record)
+    TORN_PATTERN = "torn_pattern"
     OVERRUN = "overrun"  # a scan took longer than the period
     WATCHDOG_RESET = "watchdog_reset"  # the interrupt ran > 300 ms: reboot to power-on state
     SENSE_CURRENT = "sense_current"  # channels off in the pattern still get a non-zero sense pulse
@@ -36,9 +35,8 @@ class HazardKind(str, Enum):
     # Firmware v2:
     COMMAND_TIMEOUT = "command_timeout"  # a cut command timed out: every queued byte was discarded
     COMMAND_PENDING = "command_pending"  # a cut command waits: the next bytes sent become its payload
-    INHERITED_COMMAND = (
-        "inherited_command"  # a new host's first bytes completed a command the previous one cut
-    )
+    # a new host's first bytes completed a command the previous one cut
+    INHERITED_COMMAND = "inherited_command"
     SHORT_PULSE_WIDTH = "short_pulse_width"  # width 0-6 µs: the pulse is still one SPI exchange long
     MODE_SENSE_ALL = "mode_sense_all"  # mode 2: every channel gets the sense pulse, a zero pattern included
 

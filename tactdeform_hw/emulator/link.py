@@ -161,8 +161,8 @@ class UsbFsLink(LinkModel):
             raise LimitError("packet_overhead_bytes", self.packet_overhead_bytes, "an integer >= 0")
         if self.max_packets_per_frame * self._packet_ns(self.packet_size) > self.frame_us * 1000:
             raise ConfigurationError(
-                f"max_packets_per_frame={self.max_packets_per_frame} packets of {self.packet_size} bytes do not "
-                f"fit a {self.frame_us} µs frame at {self.bit_rate_hz} bit/s"
+                f"max_packets_per_frame={self.max_packets_per_frame} packets of {self.packet_size} bytes do "
+                f"not fit a {self.frame_us} µs frame at {self.bit_rate_hz} bit/s"
             )
 
     def _packet_ns(self, nbytes: int) -> int:

@@ -143,7 +143,7 @@ class Parser:
         self.tx.clear()
         return out
 
-    # --- what the next call will do --------------------------------------------------------------------------
+    # --- what the next call will do -------------------------------------------------------------------------
 
     def is_command(self, byte: int) -> bool:
         """Whether the firmware reads ``byte`` as a command it knows (else it skips it)."""

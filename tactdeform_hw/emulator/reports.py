@@ -41,7 +41,7 @@ def _us(ns: int | None) -> float | None:
     return None if ns is None else ns / 1000.0
 
 
-# --- raw records kept by the emulator ------------------------------------------------------------------------
+# --- raw records kept by the emulator -----------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
@@ -194,8 +194,8 @@ class LossReport:
         cc = self.cut_command
         if cc is not None:
             lines.append(
-                f"  first lost byte is byte {cc['bytes_before_loss']} of the {cc['length']}-byte {cc['name']} "
-                f"sent at host offset {cc['host_offset']}"
+                f"  first lost byte is byte {cc['bytes_before_loss']} of the {cc['length']}-byte "
+                f"{cc['name']} sent at host offset {cc['host_offset']}"
             )
         for f in self.followed:
             mark = "ok " if f["in_sync"] else "BAD"
@@ -351,8 +351,8 @@ class Budget:
             notes.append(
                 f"overrun by {(scan - period) / 1000:.2f} µs: the next scan follows at once"
                 if model.overrun_policy == "immediate"
-                else f"overrun by {(scan - period) / 1000:.2f} µs: the missed alarm is skipped, so a scan starts "
-                f"every {periods} periods and leaves {free / 1000:.2f} µs to the main loop"
+                else f"overrun by {(scan - period) / 1000:.2f} µs: the missed alarm is skipped, so a scan "
+                f"starts every {periods} periods and leaves {free / 1000:.2f} µs to the main loop"
             )
         if starved and not watchdog:
             notes.append("scans run back to back: the main loop never runs, so no later command is read")
@@ -361,8 +361,8 @@ class Budget:
                 f"only {free / 1000:.1f} µs per period outside the scan: the parser reads at most one "
                 "command with a payload per period"
                 if periods == 1
-                else f"only {free / 1000:.1f} µs outside the scan every {periods} periods: the parser reads at "
-                f"most one command with a payload per {periods} periods"
+                else f"only {free / 1000:.1f} µs outside the scan every {periods} periods: the parser reads "
+                f"at most one command with a payload per {periods} periods"
             )
         if counts[ChannelKind.SENSE] and cfg.sense_pulse_height:
             notes.append(
@@ -406,7 +406,8 @@ class Budget:
         lines = [
             f"Scan budget: {self.electrodes} electrodes, {rate}timer alarm {self.alarm_ticks} ticks = "
             f"{self.period_us:.2f} µs, overrun policy {self.overrun_policy}",
-            f"{'kind':<24}{'channels':>9}{'select+POL':>12}{'pulse':>11}{'discharge':>11}{'per channel':>13}{'subtotal':>12}",
+            f"{'kind':<24}{'channels':>9}{'select+POL':>12}{'pulse':>11}{'discharge':>11}"
+            f"{'per channel':>13}{'subtotal':>12}",
         ]
         for r in self.rows:
             lines.append(

@@ -323,9 +323,8 @@ class ScanResult:
     """One scan as the reference step-through produces it."""
 
     events: list[tuple[int, int, int]]
-    pulses: list[
-        tuple[Any, ...]
-    ]  # rows in PulseArrays column order (outputs as a tuple in place of n/lowest)
+    # rows in PulseArrays column order (outputs as a tuple in place of n/lowest)
+    pulses: list[tuple[Any, ...]]
     duration_ns: int
     chain_end: ChainState
     voltages: dict[int, int]
@@ -351,7 +350,7 @@ def _outputs(bits: int) -> tuple[int, ...]:
     return tuple(out)
 
 
-# --- the fast path: per-configuration templates --------------------------------------------------------------
+# --- the fast path: per-configuration templates -------------------------------------------------------------
 
 _PH_DIN, _PH_SEL, _PH_ADC1, _PH_ADC2 = -101, -102, -103, -104
 
@@ -602,8 +601,8 @@ class ScanEngine:
         )
         tmpl = ScanTemplate(cfg, chain, chain_end, int(duration), pulses, outs_list, first, voltages, v_at)
         tmpl._builder = (
-            lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _clear=clear, _blocks=blocks: (
-                self._events(t, _raw, _latched, _starts, _kinds, _clear, _blocks)
+            lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _c=clear, _b=blocks: (
+                self._events(t, _raw, _latched, _starts, _kinds, _c, _b)
             )
         )
         return tmpl

@@ -12,8 +12,8 @@ and deterministic rather than faithful to any one participant:
 * **Per-electrode spread** — every electrode's contact differs by a factor ``k`` in
   ``[1 - spread, 1 + spread]`` drawn from a fixed integer hash of the electrode index (different per
   electrode, identical on every run and every machine), read as 1 / relative contact area: both
-  resistances are multiplied by ``k`` and the capacitance divided by it.  ``impedances`` overrides single electrodes and
-  ``open_electrodes`` lifts electrodes off the skin entirely.
+  resistances are multiplied by ``k`` and the capacitance divided by it.  ``impedances`` overrides single
+  electrodes and ``open_electrodes`` lifts electrodes off the skin entirely.
 * **Compliance** — the current source cannot drive the electrode above ``compliance_v``.  When the
   voltage the set current needs at the end of the pulse exceeds it, the delivered current is taken as
   ``compliance_v / Z(t_end)`` for the whole pulse (a conservative estimate of the charge: the real source

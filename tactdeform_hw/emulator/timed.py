@@ -141,15 +141,13 @@ class _HostLedger:
     intended_starts: list[int] = field(default_factory=list)
     deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)  # heap: bytes on their way in
     seq: int = 0
-    tx_deliveries: list[tuple[int, int, Delivery]] = field(
-        default_factory=list
-    )  # heap: replies on their way out
+    # heap: replies on their way out
+    tx_deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)
     rx: bytearray = field(default_factory=bytearray)  # replies that reached the host, unread
     dev_total: int = 0  # device stream: accepted bytes, session-wide offsets
     seg_dev: list[int] = field(default_factory=list)
-    segments: list[tuple[int, int, int, int]] = field(
-        default_factory=list
-    )  # (dev start, host start, length, delivered ns)
+    # (dev start, host start, length, delivered ns)
+    segments: list[tuple[int, int, int, int]] = field(default_factory=list)
 
 
 @dataclass
@@ -676,7 +674,7 @@ class TimedEmulator:
         i = bisect_right(self.host.write_starts, host_offset) - 1
         return None if i < 0 else self.host.writes[i][2]
 
-    # --- RTOS ticks -------------------------------------------------------------------------------------------
+    # --- RTOS ticks -----------------------------------------------------------------------------------------
 
     def _tick_at_or_after(self, t: int) -> int:
         base = self.fw.tick_base + self.model.tick_phase_ns
@@ -688,7 +686,7 @@ class TimedEmulator:
     def _tick_after(self, t: int) -> int:
         return self._tick_at_or_after(t + 1)
 
-    # --- the main loop ----------------------------------------------------------------------------------------
+    # --- the main loop --------------------------------------------------------------------------------------
 
     def _main_call(self, tc: int) -> None:
         m = self.model
@@ -815,7 +813,7 @@ class TimedEmulator:
         while q and q[0][0] <= self.now_ns:
             self.host.rx += heapq.heappop(q)[2].data
 
-    # --- parser hooks -----------------------------------------------------------------------------------------
+    # --- parser hooks ---------------------------------------------------------------------------------------
 
     def _on_hv513_reinit(self) -> None:
         self.chain = ChainState(self.chain.position, 0, 0)
@@ -946,7 +944,7 @@ class TimedEmulator:
         else:
             self.next_alarm = self.fw.last_reload + period
 
-    # --- scans ------------------------------------------------------------------------------------------------
+    # --- scans ----------------------------------------------------------------------------------------------
 
     def _torn_info(self, n: int) -> TornInfo | None:
         p = self.parser
@@ -1163,7 +1161,7 @@ class TimedEmulator:
                     keep.append(pend)
         self.rec.awaiting = keep
 
-    # --- traces -----------------------------------------------------------------------------------------------
+    # --- traces ---------------------------------------------------------------------------------------------
 
     def _mark(self, t: int, kind: str, detail: dict[str, Any]) -> None:
         for s in self.rec.sinks:

@@ -177,9 +177,8 @@ class TimedEmulatorV2:
         self.hazards: list[Hazard] = self.emulator.hazards
         self.scans: list[ScanRecordV2] = []
         self.scan_count = 0  # scans since power-up (``scans`` may have been trimmed)
-        self.applied: list[
-            tuple[int, int, object]
-        ] = []  # (time ns, opcode, value) when a command took effect
+        # (time ns, opcode, value) when a command took effect
+        self.applied: list[tuple[int, int, object]] = []
         self.queue = _QueueView(self)
         self.reboots = 0
         self.replies_dropped = 0  # reply bytes to commands of a host that had gone (see new_client)
@@ -477,10 +476,10 @@ class TimedEmulatorV2:
             and self._clients
             and self._reply_offset < self._clients[-1][0]
         ):
-            self.replies_dropped += len(
-                tx
-            )  # asked by a host that has gone: the firmware writes to the new one's
-            tx = b""  # socket only what the new one asked (see new_client)
+            # asked by a host that has gone: the firmware writes to the new one's
+            # socket only what the new one asked (see new_client)
+            self.replies_dropped += len(tx)
+            tx = b""
         if tx:
             if self.tx_link is None:
                 self._tx.append((end, tx))

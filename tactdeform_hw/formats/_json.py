@@ -71,7 +71,7 @@ class _Lenient:
         self._skip()
         return self.text[self.pos] if self.pos < len(self.text) else ""
 
-    # --- grammar ---------------------------------------------------------------------------------------------
+    # --- grammar --------------------------------------------------------------------------------------------
 
     def _value(self) -> Any:
         ch = self._peek()

@@ -19,9 +19,9 @@ Electrode-array file (one JSON object)::
 Coordinates and the radius are millimetres on the skin side of the array, x to the right and y up (the
 GUI draws ``screen_y = 900 - (10·y + 500)``, i.e. 10 px per mm with y flipped onto the screen).  The
 coordinates also decide which of a participant's 9 calibrated regions each electrode belongs to
-(:meth:`ArrayFile.region_map`): regional limits follow positions, never the order of ``electrodes``.  Electrodes
-may also carry ``radius`` (used when ``electrode_radius`` is absent) and ``number`` (ignored, as the GUI
-ignores it); a non-zero ``z`` marks the 3-D GUI's curved arrays, which the planar renderer cannot use.
+(:meth:`ArrayFile.region_map`): regional limits follow positions, never the order of ``electrodes``.
+Electrodes may also carry ``radius`` (used when ``electrode_radius`` is absent) and ``number`` (ignored, as
+the GUI ignores it); a non-zero ``z`` marks the 3-D GUI's curved arrays, which the planar renderer cannot use.
 The GUI refuses a file without ``outline``, ``electrode_radius`` or ``Mapping_func``; here ``outline`` may
 be absent and ``Mapping_func`` defaults to the identity, and the writer always writes all of them.
 
@@ -274,7 +274,8 @@ def parse_array(data: Any, source: str = "<array>", name: str | None = None) -> 
             ch = _integer(source, f"Mapping_func[{i}]", v, 0, 254, "a hardware channel from 0 to 254")
             if ch in seen:
                 raise ConfigurationError(
-                    f"{source}: Mapping_func[{i}]: hardware channel {ch} is already used by electrode {seen[ch]}"
+                    f"{source}: Mapping_func[{i}]: hardware channel {ch} is already used by electrode "
+                    f"{seen[ch]}"
                 )
             seen[ch] = i
             chans.append(ch)
@@ -403,7 +404,8 @@ class PatternSequence:
         for i, s in enumerate(self.steps):
             if len(s.levels) != n:
                 raise ConfigurationError(
-                    f"step {i} has {len(s.levels)} level(s) but step 0 has {n}; every step covers every electrode"
+                    f"step {i} has {len(s.levels)} level(s) but step 0 has {n}; every step covers every "
+                    "electrode"
                 )
             for j, v in enumerate(s.levels):
                 if v not in PATTERN_LEVELS or isinstance(v, bool):
@@ -458,8 +460,8 @@ def parse_pattern(data: Any, source: str = "<pattern>") -> PatternSequence:
         group = _list(source, where, group)
         if len(group) > 1:
             notes.append(
-                f"{where} holds {len(group)} entries; the eTactileKit GUI and Python API play only the first, "
-                "and so does this reader"
+                f"{where} holds {len(group)} entries; the eTactileKit GUI and Python API play only the "
+                "first, and so does this reader"
             )
         where = f"{where}[0]"
         step = _object(source, where, group[0])

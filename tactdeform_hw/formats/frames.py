@@ -109,7 +109,8 @@ def iter_frames(path: str | Path) -> Iterator[Frame]:
                 width = len(frame.electrodes)
             elif len(frame.electrodes) != width:
                 raise ConfigurationError(
-                    f"{where}: electrodes: has {len(frame.electrodes)} level(s) but the first frame has {width}"
+                    f"{where}: electrodes: has {len(frame.electrodes)} level(s) but the first frame has "
+                    f"{width}"
                 )
             if frame.t_s < last_t:
                 raise ConfigurationError(

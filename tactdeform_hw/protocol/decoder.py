@@ -129,7 +129,10 @@ class StreamDecoder:
                             for i in range(0, len(c.payload), width)
                         )
                         if c.levels is not None and raw != tuple(c.levels):
-                            note = "pattern holds a height above the firmware's clamp: an earlier command was probably cut short"
+                            note = (
+                                "pattern holds a height above the firmware's clamp: an earlier command was "
+                                "probably cut short"
+                            )
                     elif c.payload and max(c.payload) >= self._cmin:
                         note = "pattern holds a command byte: an earlier command was probably cut short"
                 else:

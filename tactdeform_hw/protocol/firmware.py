@@ -39,7 +39,8 @@ YieldRule = Literal["after_payload", "when_idle"]
 
 
 class Opcode(IntEnum):
-    """Command bytes of v1.2, host to device.  Any other byte is ignored by the firmware (one byte consumed)."""
+    """Command bytes of v1.2, host to device.  Any other byte is ignored by the firmware (one byte
+    consumed)."""
 
     MEASURE = 0xFF
     PATTERN = 0xFE
@@ -230,7 +231,8 @@ class FirmwareSpec:
         }
 
     def size_of(self, opcode: int, electrode_num: int) -> int | None:
-        """Payload bytes the firmware reads after ``opcode`` with ``electrode_num`` in force (None: unknown byte)."""
+        """Payload bytes the firmware reads after ``opcode`` with ``electrode_num`` in force (None: unknown
+        byte)."""
         c = self.by_opcode.get(opcode)
         if c is None:
             return None

@@ -95,7 +95,7 @@ def mask_phase(
     return (sign * step * count) % period
 
 
-# --- accumulation without drift ------------------------------------------------------------------------------
+# --- accumulation without drift -----------------------------------------------------------------------------
 
 
 #: Travel within this of a frame (or shift) boundary counts as on it: far below any tracker's
@@ -155,7 +155,7 @@ class FrameAccumulator:
         return self.whole * self.unit_mm + self.rem
 
 
-# --- approaching (eq. 1–3) --------------------------------------------------------------------------------------
+# --- approaching (eq. 1–3) ----------------------------------------------------------------------------------
 
 Overflow = Literal["cycle", "hold"]
 
@@ -241,7 +241,7 @@ def counts_to_show(n_from: int | None, n_to: int, distinct: int) -> list[int]:
     return [n_to - step * (m - 1 - i) for i in range(m)]
 
 
-# --- contact (eq. 4) ------------------------------------------------------------------------------------------
+# --- contact (eq. 4) ----------------------------------------------------------------------------------------
 
 ThetaPlane = Literal["finger", "horizontal"]
 
@@ -329,7 +329,7 @@ def theta_level(theta_deg: float, current: int | None = None, margin_deg: float 
     return 3
 
 
-# --- angular quantisers (edge orientation, sliding direction) -------------------------------------------------
+# --- angular quantisers (edge orientation, sliding direction) -----------------------------------------------
 
 
 def quantise_angle(
@@ -346,7 +346,7 @@ def quantise_angle(
     return int(math.floor((angle_deg % period_deg) / width + 0.5)) % bins
 
 
-# --- time-window debouncing ------------------------------------------------------------------------------------
+# --- time-window debouncing ---------------------------------------------------------------------------------
 
 
 class Debounced:

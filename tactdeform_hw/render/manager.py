@@ -39,8 +39,8 @@ the state or the pattern, without giving lengths.  Physiological tremor is 8–1
   left its resting place by ``slide_start_mm`` = 0.75 mm, off below ``slide_off_mm_s`` = 1 mm/s or as
   soon as the last ``stop_window_s`` moved less than ``stop_fraction`` = 1/4 of the window's mean speed
   (a stroke that stops is seen within about 0.2 s).  A start or end the speed alone asks for must hold
-  ``slide_window_s`` = 0.1 s (tracking noise around the thresholds).  Tremor around a rest moves the averaged position
-  less than 0.45 mm, under both thresholds.
+  ``slide_window_s`` = 0.1 s (tracking noise around the thresholds).  Tremor around a rest moves the averaged
+  position less than 0.45 mm, under both thresholds.
 * Edge orientation, θ level, sliding direction, texture level (and, while Interacting, the feature) each
   change only after their new value has held for 0.1 s, and the angular ones also have a margin past the
   bin boundary (7.5°, 5° and 10°); θ bins have a boundary tolerance of 1e-6°
@@ -378,7 +378,7 @@ class PatternManager:
         )
         self.reset()
 
-    # --- lifecycle ---------------------------------------------------------------------------------------------
+    # --- lifecycle ------------------------------------------------------------------------------------------
 
     def reset(self) -> None:
         """Forget the finger: Idle, nothing shown, no history (statistics are kept)."""
@@ -425,7 +425,7 @@ class PatternManager:
         self.pattern: Pattern = self.patterns.off
         self.last_sent: Pattern | None = None
 
-    # --- public --------------------------------------------------------------------------------------------------
+    # --- public ---------------------------------------------------------------------------------------------
 
     @property
     def frame(self) -> int:
@@ -502,7 +502,7 @@ class PatternManager:
         while len(shist) > 2 and shist[1][0] <= w1:
             shist.popleft()
 
-        # --- contact ------------------------------------------------------------------------------------------
+        # --- contact ----------------------------------------------------------------------------------------
         old_state = self.state
         if self.state != IDLE:
             lost = teleport or normal is None or sd > cfg.contact_loss_far_mm

@@ -119,7 +119,8 @@ class PatternParams:
             raise LimitError(
                 "mask_period_factor",
                 self.mask_period_factor,
-                "an integer ≥ 3 (a period of 2 steps only toggles two states: the texture would have no direction)",
+                "an integer ≥ 3 (a period of 2 steps only toggles two states: the texture would have no "
+                "direction)",
             )
         if self.on_level not in (1, 2):
             raise LimitError("on_level", self.on_level, "1 (monophasic) or 2 (biphasic)")
@@ -158,7 +159,8 @@ class PatternSet:
             band = perp <= half + _TOL
             if not band.any():
                 raise ConfigurationError(
-                    f"edge_half_width_mm={half:g} leaves the {o!r} edge line without electrodes on {array.name}"
+                    f"edge_half_width_mm={half:g} leaves the {o!r} edge line without electrodes on "
+                    f"{array.name}"
                 )
             self._static[("edge", o)] = band
             # Diverging lines: line index 0 is the band itself, index m the electrodes m spacings beyond it.
@@ -214,7 +216,7 @@ class PatternSet:
                     for phase in range(self.mask_period(k)):
                         self.sliding(feature, orientation, direction, k, phase)
 
-    # --- building --------------------------------------------------------------------------------------------
+    # --- building -------------------------------------------------------------------------------------------
 
     def _pat(self, mask: np.ndarray) -> Pattern:
         lvl = self.on_level
@@ -230,7 +232,7 @@ class PatternSet:
             raise LimitError("feature", feature, f"one of {', '.join(FEATURES)}")
         return (feature, None)
 
-    # --- lookups ---------------------------------------------------------------------------------------------
+    # --- lookups --------------------------------------------------------------------------------------------
 
     def frames(self, feature: str, orientation: str | None = None) -> tuple[Pattern, ...]:
         """The expansion frames of a feature's base pattern, frame 0 first."""

@@ -129,9 +129,9 @@ class Renderer:
 
     ``approach`` is ``"tactdeform"``, ``"ua"`` or ``"cam"`` for the whole run, a mapping from object
     name to one of them (``"*"`` the default) to compare approaches per object, or None to take the
-    scene's (its options' approach and any per-object overrides; TactDeform for a bare object).  ``contact_mode`` (the
-    participant's choice in Task 2) overrides the scene's render option; ``current_ua`` is the
-    participant's calibrated level, set by ``configure``; ``current_hook`` may change it per frame.
+    scene's (its options' approach and any per-object overrides; TactDeform for a bare object).
+    ``contact_mode`` (the participant's choice in Task 2) overrides the scene's render option; ``current_ua``
+    is the participant's calibrated level, set by ``configure``; ``current_hook`` may change it per frame.
     ``verify`` is a callback returning the pattern the device holds, in application order (for example
     :func:`~tactdeform_hw.device.readback.pattern_readback`); after every sent frame its answer is
     compared with the frame and mismatches are counted.  ``verify=True`` asks the device's port for that
@@ -207,7 +207,7 @@ class Renderer:
         self._started = False
         self._dwell_s = 0.0
 
-    # --- device ------------------------------------------------------------------------------------------------
+    # --- device ---------------------------------------------------------------------------------------------
 
     def start(self) -> None:
         """Configure the device once (electrode count, pulse shape, current) — all channels off."""
@@ -224,8 +224,8 @@ class Renderer:
             )
         if dev.mapping is None and self._mapping.app_to_hw != tuple(range(self._mapping.hw_channels)):
             raise ConfigurationError(
-                f"array {self.array.name!r} maps electrodes to hardware channels {self._mapping.app_to_hw} but the "
-                "device has no mapping; open the device with mapping=array.channel_mapping()"
+                f"array {self.array.name!r} maps electrodes to hardware channels {self._mapping.app_to_hw} "
+                "but the device has no mapping; open the device with mapping=array.channel_mapping()"
             )
         cfg = self.stim_config or StimConfig(
             electrode_count=self._mapping.hw_channels, current_ua=self.current_ua
@@ -248,7 +248,7 @@ class Renderer:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    # --- per sample -------------------------------------------------------------------------------------------
+    # --- per sample -----------------------------------------------------------------------------------------
 
     def approach_for(self, query: Any) -> str:
         name = getattr(query, "object_name", None)
@@ -433,7 +433,7 @@ class Renderer:
                         "emulator": list(got),
                     }
 
-    # --- whole runs ---------------------------------------------------------------------------------------------
+    # --- whole runs -----------------------------------------------------------------------------------------
 
     def run(
         self,

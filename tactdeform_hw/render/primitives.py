@@ -286,7 +286,8 @@ class Box(_PlacedSolid):
         return inside
 
     def sites(self, feature: str, toward: np.ndarray | None = None) -> list[SurfaceSite]:
-        """Face centres (and quarter centres), edge midpoints (normal along the bisector) or corners, in world coordinates."""
+        """Face centres (and quarter centres), edge midpoints (normal along the bisector) or corners, in world
+        coordinates."""
         h = np.array(self._h)
         rot = self.rotation if self.rotation is not None else np.eye(3)
         out: list[SurfaceSite] = []

@@ -297,7 +297,8 @@ class PoseValidator:
         if abs(norm - 1.0) > self.norm_tolerance:
             self._drop(
                 "quaternion_norm",
-                f"pose sample at t_s={t!r}: quaternion norm {norm:.6g} is not within 1 ± {self.norm_tolerance}",
+                f"pose sample at t_s={t!r}: quaternion norm {norm:.6g} is not within 1 ± "
+                f"{self.norm_tolerance}",
             )
             return None
         if self._last_t is not None and t <= self._last_t:

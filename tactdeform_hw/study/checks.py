@@ -147,7 +147,8 @@ def common_checks(run: TrialRun, result: StudyRun) -> list[Check]:
             Check(
                 "wire_carried_every_sent_frame",
                 False,
-                f"{len(wire)} pattern command(s) on the wire for {len(want)} sent frame(s); first difference at frame {first}",
+                f"{len(wire)} pattern command(s) on the wire for {len(want)} sent frame(s); first "
+                f"difference at frame {first}",
             )
         )
     if run.verified:
@@ -235,9 +236,9 @@ def timed_checks(run: TrialRun, result: StudyRun) -> list[Check]:
             over.append((app, ua, cap))
     bad = over or d["sense_pulses_with_current"] or d["pulses_on_unmapped_channels"]
     detail = (
-        f"max {d['max_current_ua']} µA (asked {result.current_ua} µA), "
-        f"max {d['max_charge_per_pulse_nc']} nC per pulse; {len(over)} pulse(s) above the limit, "
-        f"{d['sense_pulses_with_current']} sense pulse(s) with current, {d['pulses_on_unmapped_channels']} on unmapped channels"
+        f"max {d['max_current_ua']} µA (asked {result.current_ua} µA), max {d['max_charge_per_pulse_nc']} nC "
+        f"per pulse; {len(over)} pulse(s) above the limit, {d['sense_pulses_with_current']} sense pulse(s) "
+        f"with current, {d['pulses_on_unmapped_channels']} on unmapped channels"
     )
     out.append(Check("currents_within_limits", not bad, detail))
     kinds = [h.get("kind") for h in run.timed_hazards]
@@ -538,7 +539,8 @@ def design_checks(result: StudyRun) -> list[Check]:
             Check(
                 "design",
                 None,
-                f"quick run: {len(trials)} trial(s), one per condition ({_fmt_set(t.condition for t in trials)})",
+                f"quick run: {len(trials)} trial(s), one per condition "
+                f"({_fmt_set(t.condition for t in trials)})",
             )
         )
         return out

@@ -230,10 +230,11 @@ def markdown(report: dict[str, Any]) -> str:
         + (f" · participant {report['participant']}" if report["participant"] else "")
         + f" · seed {study['seed']}{' · quick' if study['quick'] else ''}",
         "",
-        f"{s['poses']} poses at {report['rate_hz']:g} Hz ({s['session_s']:.1f} s of session), {s['frames_sent']} frames "
-        f"sent, {s['pattern_buffer_mismatches']} pattern-buffer mismatch(es), {s['emulator_hazards']} emulator "
-        f"hazard(s), {s['timing_hazards']} timing hazard(s); max {s['max_current_ua']} µA, "
-        f"{s['total_charge_nc']} nC delivered in all; {s['wall_s']:.1f} s wall time.",
+        f"{s['poses']} poses at {report['rate_hz']:g} Hz ({s['session_s']:.1f} s of session), "
+        f"{s['frames_sent']} frames sent, {s['pattern_buffer_mismatches']} pattern-buffer mismatch(es), "
+        f"{s['emulator_hazards']} emulator hazard(s), {s['timing_hazards']} timing hazard(s); max "
+        f"{s['max_current_ua']} µA, {s['total_charge_nc']} nC delivered in all; {s['wall_s']:.1f} s wall "
+        "time.",
         "",
     ]
     for c in report["design_checks"]:

@@ -366,8 +366,8 @@ def run_study(
     if dev._dialect is not None:
         dev.close()
         raise ConfigurationError(
-            f"--firmware {firmware}: the board runs firmware v2, and the study's checks replay the session on "
-            "the timed model of firmware v1.2; run the study on a v1.2 board"
+            f"--firmware {firmware}: the board runs firmware v2, and the study's checks replay the session "
+            "on the timed model of firmware v1.2; run the study on a v1.2 board"
         )
     sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
     tap = WireTap(dev.port)
@@ -393,7 +393,8 @@ def run_study(
             trial = run.trial
             if run.skipped is not None:
                 say(
-                    f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: skipped ({run.skipped})"
+                    f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: skipped "
+                    f"({run.skipped})"
                 )
                 continue
             t_wall = time.perf_counter()
@@ -406,9 +407,8 @@ def run_study(
             run.segment_spans = spans
             run.t0_s = offset
             inspectable = _inspectable(dev)
-            readback = (
-                pattern_readback(dev, mapping) if sim_clock is not None else None
-            )  # an instant port, offline
+            # an instant port, offline
+            readback = pattern_readback(dev, mapping) if sim_clock is not None else None
             run.verified = readback is not None
             hazards_before = len(board_hazards(dev.port) or ())
             renderer = Renderer(
@@ -455,8 +455,9 @@ def run_study(
             session_t = run.t1_s + INTER_TRIAL_S
             ok = run.summary.get("mismatches", 0) == 0
             say(
-                f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: {len(run.poses)} poses, "
-                f"{run.summary.get('frames_sent', 0)} frames sent{'' if ok else ', MISMATCH'} ({run.wall_s:.2f} s)"
+                f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: {len(run.poses)} "
+                f"poses, {run.summary.get('frames_sent', 0)} frames sent{'' if ok else ', MISMATCH'} "
+                f"({run.wall_s:.2f} s)"
             )
         tap.mark(t_s=session_t, trial=0, phase="session")
         if not dev.closed and dev.config is not None:

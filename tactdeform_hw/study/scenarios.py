@@ -172,7 +172,7 @@ def _number(trials: list[Trial], study: str) -> tuple[Trial, ...]:
     return tuple(out)
 
 
-# --- task 1 --------------------------------------------------------------------------------------------------
+# --- task 1 -------------------------------------------------------------------------------------------------
 
 
 def task1(seed: int = 0, quick: bool = False, contact_mode: str = "orientation") -> Study:
@@ -212,7 +212,7 @@ def task1(seed: int = 0, quick: bool = False, contact_mode: str = "orientation")
     return Study("task1", STUDY_TITLES["task1"], _number(trials, "task1"), {}, quick, seed, tuple(notes))
 
 
-# --- task 2 --------------------------------------------------------------------------------------------------
+# --- task 2 -------------------------------------------------------------------------------------------------
 
 
 def task2(seed: int = 0, quick: bool = False, contact_mode: str = "orientation") -> Study:
@@ -250,7 +250,9 @@ def task2(seed: int = 0, quick: bool = False, contact_mode: str = "orientation")
                     contact_mode=mode,
                     block=mode,
                     condition=f"{mode}-{obj}-{name}",
-                    description=f"press the {obj} bar with θ {CONTACT_THETA_DEG[name]:+.0f}° ({name}), {mode} contact",
+                    description=(
+                        f"press the {obj} bar with θ {CONTACT_THETA_DEG[name]:+.0f}° ({name}), {mode} contact"
+                    ),
                 )
             )
     notes = [
@@ -268,7 +270,7 @@ def task2(seed: int = 0, quick: bool = False, contact_mode: str = "orientation")
     )
 
 
-# --- task 3 --------------------------------------------------------------------------------------------------
+# --- task 3 -------------------------------------------------------------------------------------------------
 
 TASK3_SURFACES: tuple[str, str] = ("upper", "lower")
 
@@ -307,12 +309,15 @@ def task3(seed: int = 0, quick: bool = False, contact_mode: str = "orientation")
                 segs,
                 textures=(("upper", upper), ("lower", lower)),
                 condition=cond,
-                description=f"stroke the upper ({TEXTURE_NAMES[upper]}) then the lower ({TEXTURE_NAMES[lower]}) surface rightward",
+                description=(
+                    f"stroke the upper ({TEXTURE_NAMES[upper]}) then the lower ({TEXTURE_NAMES[lower]}) "
+                    "surface rightward"
+                ),
             )
         )
     notes = [
-        f"strokes at {speed:g} mm/s, rightward; texture patterns rendered only while sliding rightward, nothing "
-        "in stationary contact",
+        f"strokes at {speed:g} mm/s, rightward; texture patterns rendered only while sliding rightward, "
+        "nothing in stationary contact",
         "the touchdown before each stroke still shows the approach expansion (frames_sent_by_context: "
         "approaching): the renderer's settings switch off stationary contact and other sliding directions, "
         "not the approach",
@@ -321,7 +326,7 @@ def task3(seed: int = 0, quick: bool = False, contact_mode: str = "orientation")
     return Study("task3", STUDY_TITLES["task3"], _number(trials, "task3"), manager, quick, seed, tuple(notes))
 
 
-# --- phase 2 -------------------------------------------------------------------------------------------------
+# --- phase 2 ------------------------------------------------------------------------------------------------
 
 
 def phase2(seed: int = 0, quick: bool = False, contact_mode: str = "orientation") -> Study:
@@ -348,7 +353,8 @@ def phase2(seed: int = 0, quick: bool = False, contact_mode: str = "orientation"
                     contact_mode=contact_mode,
                     block=obj,
                     condition=f"{obj}-{approach}",
-                    description=f"explore the {obj} under {approach.upper() if approach != 'tactdeform' else 'TactDeform'}",
+                    description=f"explore the {obj} under "
+                    f"{approach.upper() if approach != 'tactdeform' else 'TactDeform'}",
                 )
             )
     notes = [f"exploration strokes at {speed:g} mm/s", "the bunny is the textured object (rough)"]

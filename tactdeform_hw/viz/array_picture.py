@@ -60,7 +60,7 @@ class PictureInfo:
     notes: tuple[str, ...] = field(default_factory=tuple)
 
 
-# --- inputs --------------------------------------------------------------------------------------------------
+# --- inputs -------------------------------------------------------------------------------------------------
 
 
 def frames_from_sequence(
@@ -129,7 +129,7 @@ def resample(frames: Sequence[PictureFrame], frame_ms: float) -> list[PictureFra
     return merge_runs(out)
 
 
-# --- drawing -------------------------------------------------------------------------------------------------
+# --- drawing ------------------------------------------------------------------------------------------------
 
 
 def _colour(level: int, current_ua: float | None, full_scale_ua: float) -> tuple[float, float, float, float]:
@@ -249,7 +249,8 @@ class _Scene:
     def render(self, frame: PictureFrame) -> np.ndarray:
         if len(frame.levels) != len(self.discs):
             raise ConfigurationError(
-                f"a pattern of {len(frame.levels)} level(s) cannot be drawn on an array of {len(self.discs)} electrode(s)"
+                f"a pattern of {len(frame.levels)} level(s) cannot be drawn on an array of "
+                f"{len(self.discs)} electrode(s)"
             )
         if frame.current_ua is not None and not (np.isfinite(frame.current_ua) and frame.current_ua >= 0):
             raise ConfigurationError(
