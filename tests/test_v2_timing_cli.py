@@ -92,7 +92,7 @@ def test_every_value_v2_holds_is_accepted(capsys: pytest.CaptureFixture[str]) ->
         (["--pattern", "1,4096"], r"--pattern\[1\]=4096.*0 to 4095"),
         (["--mode", "3"], r"--mode=3.*0 to 2"),
         (["--pattern", "1,2,3", "--electrodes", "4"], "exactly --electrodes = 4"),
-        (["--pulse-width", "65536"], "--pulse-width=65536"),
+        (["--pulse-width-us", "65536"], "--pulse-width-us=65536"),
         (["--pattern", "a"], "--pattern"),
     ],
 )

@@ -49,14 +49,14 @@ def register(sub: Any) -> None:
         "--cs-writes",
         choices=("inside", "costed"),
         default="inside",
-        help="whether the 6.6 us DAC/ADC exchange includes its chip-select writes (inside, the default) "
+        help="whether the 6.6 µs DAC/ADC exchange includes its chip-select writes (inside, the default) "
         "or they cost one GPIO write each on top (costed, the firmware's host build)",
     )
     p.add_argument(
         "--dac-load",
         choices=("mid_exchange", "cs_rise"),
         default="mid_exchange",
-        help="when the DAC output changes: 3.3 us into the exchange (default, the firmware comment) or "
+        help="when the DAC output changes: 3.3 µs into the exchange (default, the firmware comment) or "
         "when DA_CS rises (the converter's load moment)",
     )
     p.add_argument(
@@ -325,7 +325,7 @@ def _convention_rows(conv: Any) -> list[dict[str, Any]]:
             "value": "costed" if conv.cs_writes_costed else "inside",
             "unit": "",
             "source": "option",
-            "doc": "whether the 6.6 us exchange includes the chip-select writes (v1.2: 4, v2: 2 per "
+            "doc": "whether the 6.6 µs exchange includes the chip-select writes (v1.2: 4, v2: 2 per "
             "exchange); default inside (the firmware comment's reading); --cs-writes costed adds one "
             "GPIO write each",
         },
@@ -334,8 +334,8 @@ def _convention_rows(conv: Any) -> list[dict[str, Any]]:
             "value": conv.dac_load,
             "unit": "",
             "source": "option",
-            "doc": "when the DAC output changes: mid_exchange (3.3 us in, default) or cs_rise (when DA_CS "
-            "rises, about 6.6 us in); pulse widths do not change, every DAC edge moves",
+            "doc": "when the DAC output changes: mid_exchange (3.3 µs in, default) or cs_rise (when DA_CS "
+            "rises, about 6.6 µs in); pulse widths do not change, every DAC edge moves",
         },
     ]
 
@@ -375,12 +375,12 @@ def v2_config_from_args(args: argparse.Namespace) -> Any:
     return FirmwareScanConfig(
         electrode_num=electrodes,
         stim_pattern=values,
-        pulse_width=check_int("--pulse-width", args.pulse_width, 0, U16_MAX, "us"),
-        discharge_time=check_int("--discharge", args.discharge, 0, U8_MAX, "us"),
+        pulse_width=check_int("--pulse-width-us", args.pulse_width, 0, U16_MAX, "µs"),
+        discharge_time=check_int("--discharge-us", args.discharge, 0, U8_MAX, "µs"),
         polarity=args.polarity,
         hv513_num=check_int("--hv513", hv, 0, U8_MAX),
         sense_pulse_height=check_int("--sense-height", args.sense_height, 0, U8_MAX),
-        sense_pulse_width=check_int("--sense-width", args.sense_width, 0, U8_MAX, "us"),
+        sense_pulse_width=check_int("--sense-width-us", args.sense_width, 0, U8_MAX, "µs"),
         stim_mode=mode,
         frequency_hz=check_int("--frequency", args.frequency, 1, U16_MAX, "Hz"),
     )

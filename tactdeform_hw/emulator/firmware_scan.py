@@ -349,7 +349,7 @@ class FirmwareBudget:
         mode = "" if self.stim_mode is None else f", mode {self.stim_mode} ({MODE_NAMES[self.stim_mode]})"
         lines = [
             f"Scan budget, firmware {self.firmware}: {self.electrodes} electrodes{mode}, timer alarm "
-            f"{self.alarm_ticks} ticks = {self.period_us:.2f} us",
+            f"{self.alarm_ticks} ticks = {self.period_us:.2f} µs",
         ]
         distinct = sorted(set(self.per_channel_us))
         for cost in distinct:
@@ -365,12 +365,12 @@ class FirmwareBudget:
             f"{'period':<66}{self.period_us:>11.2f}",
             f"{'margin':<66}{self.margin_us:>11.2f}",
             f"verdict: {self.verdict.upper()}; actual rate {self.actual_rate_hz:.2f} Hz; effective pulse "
-            f"width {self.effective_width_us:.2f} us (all times in us)",
+            f"width {self.effective_width_us:.2f} µs (all times in µs)",
             "chip-select writes "
             + ("costed apart from" if self.conventions["cs_writes_costed"] else "inside")
-            + f" the {self.conventions['spi_exchange_us']} us exchange; DAC loads "
+            + f" the {self.conventions['spi_exchange_us']} µs exchange; DAC loads "
             + (
-                "3.3 us into the exchange"
+                "3.3 µs into the exchange"
                 if self.conventions["dac_load"] == "mid_exchange"
                 else "when DA_CS rises"
             ),
@@ -412,14 +412,14 @@ def budget(
     notes: list[str] = []
     if watchdog:
         notes.append(
-            f"the scan exceeds the {spec.timing.watchdog_us:.0f} us interrupt watchdog: the board reboots"
+            f"the scan exceeds the {spec.timing.watchdog_us:.0f} µs interrupt watchdog: the board reboots"
         )
     elif scan > period:
-        notes.append(f"overrun by {scan - period:.2f} us: the next scan follows at once")
+        notes.append(f"overrun by {scan - period:.2f} µs: the next scan follows at once")
     if moded and cfg.stim_mode == 2 and cfg.electrode_num:
         notes.append(
             f"mode 2: every channel gets the sense pulse (code {cfg.sense_pulse_height}, "
-            f"{cfg.sense_pulse_width} us) whatever the pattern; a zero pattern does not stop current"
+            f"{cfg.sense_pulse_width} µs) whatever the pattern; a zero pattern does not stop current"
         )
     if (
         moded
@@ -427,7 +427,7 @@ def budget(
         and width < spec.timing.pulse_wait_offset_us
         and any(cfg.stim_pattern[: cfg.electrode_num])
     ):
-        notes.append(f"pulse width {width} us: the pulse is still one SPI exchange long")
+        notes.append(f"pulse width {width} µs: the pulse is still one SPI exchange long")
     driven = OUTPUTS_PER_HV513 * cfg.hv513_num
     if cfg.electrode_num > driven:
         notes.append(
