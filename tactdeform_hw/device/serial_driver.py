@@ -346,25 +346,18 @@ class EtactileKitDevice(Device):
     def _can_reset(self) -> bool:
         if callable(getattr(self.port, "pulse_reset", None)):
             return True
-        emulator = getattr(self.port, "emulator", None)
-        if emulator is not None and callable(getattr(emulator, "reset", None)):
-            return True
         return hasattr(self.port, "rts") and hasattr(self.port, "dtr")
 
     def _reset_transport(self) -> bool:
-        """A port that models the reset line offers ``pulse_reset``; the in-process emulator is reset
-        directly; a real ESP32-S3 on its USB Serial/JTAG port is held in reset while RTS is asserted with
-        DTR released (the sequence esptool uses), so the pulse is RTS high for 100 ms."""
+        """A port that models the reset line declares ``pulse_reset`` (every emulated board does); a
+        real ESP32-S3 on its USB Serial/JTAG port is held in reset while RTS is asserted with DTR released
+        (the sequence esptool uses), so the pulse is RTS high for 100 ms."""
         pulse = getattr(self.port, "pulse_reset", None)
         if callable(pulse):
             try:
                 pulse()
             except self._errors as exc:
                 raise DeviceGoneError(f"cannot pulse the reset line: {exc}") from exc
-            return True
-        emulator = getattr(self.port, "emulator", None)
-        if emulator is not None and callable(getattr(emulator, "reset", None)):
-            emulator.reset()
             return True
         if not (hasattr(self.port, "rts") and hasattr(self.port, "dtr")):
             return False
