@@ -255,9 +255,9 @@ class LiveStatus:
         )
         head = (
             f"t={self.time_us / 1e6:.1f}s electrodes={r.get('electrode_num')} polarity={r.get('polarity')} "
-            f"{drive} width={r.get('pulse_width')}us "
-            f"sense={r.get('sense_pulse_height')}/{r.get('sense_pulse_width')}us "
-            f"discharge={r.get('discharge_time')}us period={r.get('period_us'):.2f}us "
+            f"{drive} width={r.get('pulse_width')}µs "
+            f"sense={r.get('sense_pulse_height')}/{r.get('sense_pulse_width')}µs "
+            f"discharge={r.get('discharge_time')}µs period={r.get('period_us'):.2f}µs "
             f"on={len(on)}{_ranges(on)}"
         )
         body = (
