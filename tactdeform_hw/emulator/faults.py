@@ -48,6 +48,7 @@ from serial.serialutil import PortNotOpenError, SerialException
 
 from ..clock import SimulatedClock
 from ..errors import LimitError
+from ..ports import PortBase
 from .link import Delivery, LinkFilter, LinkModel, make_link
 from .timed import TimedEmulator
 
@@ -183,7 +184,7 @@ class FaultyLink(LinkFilter):
 SimClock = SimulatedClock
 
 
-class TimedPort:
+class TimedPort(PortBase):
     """A pyserial-like port over a :class:`TimedEmulator`, in simulated time, with injectable faults.
 
     ``pacing_clock`` is the simulated clock (seconds) the driver's pacer must use (the driver picks it up
@@ -319,6 +320,17 @@ class TimedPort:
         if self.gone:
             raise SerialException("device disconnected (the port must be reopened)")
 
+    def _check_open(self) -> None:
+        self._check()  # a vanished device fails like a closed port: the port must be reopened
+
+    def board_state(self) -> dict[str, Any]:
+        """The registers the emulated firmware holds (see :mod:`tactdeform_hw.ports`)."""
+        return self.emulator.state()
+
+    @property
+    def board_hazards(self) -> list[Any]:
+        return self.emulator.hazards
+
     def write(self, data: bytes) -> int:
         self._check()
         data = bytes(data)
@@ -363,19 +375,9 @@ class TimedPort:
         self._check()
         return self.emulator.in_waiting
 
-    @property
-    def out_waiting(self) -> int:
-        return 0
-
     def reset_input_buffer(self) -> None:
         self._check()
         self.emulator.read_tx()
-
-    def reset_output_buffer(self) -> None:
-        self._check()
-
-    def flush(self) -> None:
-        self._check()
 
     def pulse_reset(self) -> None:
         """The board's reset line: the chip restarts at its power-on state (a hung main loop too)."""
