@@ -2,9 +2,9 @@
 device layer driving per-electrode heights.
 
 Emulated v2 targets: the pyserial URL handler serving the untimed v2 emulator
-(``etactile://?firmware=v2&timed=0``; the wall-clock model of the other transports is v1.2's).  ``--device``
-with a real v2 board (a serial port or ``usb:``) runs the same checks on it; ``--device`` naming a v1.2
-emulated target skips this file.
+(``etactile://?firmware=v2&timed=0``) and the timed v2 board on the wall clock
+(``etactile://?firmware=v2``).  ``--device`` with a real v2 board (a serial port or ``usb:``) runs the
+same checks on it; ``--device`` naming a v1.2 emulated target skips this file.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from tactdeform_hw.protocol.firmware import V2
 
 from .conftest import REPLY_TIMEOUT_S, Target, _is_board_name, build_target
 
-V2_TARGETS = ("etactile://?firmware=v2&timed=0",)
+V2_TARGETS = ("etactile://?firmware=v2&timed=0", "etactile://?firmware=v2")
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
@@ -129,6 +129,7 @@ def test_v2_driver_round_trip_with_per_electrode_heights(v2_target: Target) -> N
             want = [dev.transfer.to_code(min(1000, lim)) for lim in guard.electrode_limits(32)]
             assert v2_target.state()["stim_pattern"][:32] == want
         dev.all_off()
+        v2_target.settle(12)  # a timed board reads the all-off after the link and its queue
         if v2_target.state is not None:
             assert v2_target.state()["stim_pattern"][:32] == [0] * 32
             assert v2_target.state()["stim_mode"] in (0, 1)
