@@ -31,6 +31,13 @@ def test_the_quick_start_runs_as_written() -> None:
     assert "prints `4 frames sent, 0 mismatches`" in QUICKSTART.read_text(encoding="utf-8")
 
 
+def test_the_readme_shows_the_same_quick_start() -> None:
+    readme = (QUICKSTART.parents[1] / "README.md").read_text(encoding="utf-8")
+    block = re.search(r"## In Python\n\n```python\n(.*?)```", readme, re.S)
+    assert block is not None and block.group(1) == _code()
+    assert "It prints `4 frames sent, 0 mismatches`" in readme
+
+
 def test_the_front_door_names() -> None:
     from tactdeform_hw.device import StimConfig, open_device
     from tactdeform_hw.errors import LimitError, TactDeformError
