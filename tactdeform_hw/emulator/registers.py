@@ -8,6 +8,13 @@ from ..protocol import firmware_math as fm
 from ..protocol.constants import PATTERN_BUFFER_SIZE, POWER_ON_PERIOD_US, POWER_ON_POLARITY
 
 
+def _snapshot(regs: Registers | RegistersV2) -> dict[str, Any]:
+    """Every register but the voltages (read only by a measure request), the pattern as a copy."""
+    out = {name: getattr(regs, name) for name in regs.__slots__ if name != "voltage"}
+    out["stim_pattern"] = list(regs.stim_pattern)
+    return out
+
+
 class Registers:
     """Plain attributes (the parser's hot loop touches them); ``snapshot`` hands out copies."""
 
@@ -42,19 +49,7 @@ class Registers:
         self.voltage = [0] * PATTERN_BUFFER_SIZE
 
     def snapshot(self) -> dict[str, Any]:
-        return {
-            "electrode_num": self.electrode_num,
-            "polarity": self.polarity,
-            "pulse_height": self.pulse_height,
-            "pulse_width": self.pulse_width,
-            "sense_pulse_height": self.sense_pulse_height,
-            "sense_pulse_width": self.sense_pulse_width,
-            "discharge_time": self.discharge_time,
-            "period_us": self.period_us,
-            "timer_alarm_ticks": self.timer_alarm_ticks,
-            "hv513_num": self.hv513_num,
-            "stim_pattern": list(self.stim_pattern),
-        }
+        return _snapshot(self)
 
 
 class RegistersV2:
@@ -92,16 +87,4 @@ class RegistersV2:
         self.voltage = [0] * PATTERN_BUFFER_SIZE
 
     def snapshot(self) -> dict[str, Any]:
-        return {
-            "electrode_num": self.electrode_num,
-            "polarity": self.polarity,
-            "stim_mode": self.stim_mode,
-            "pulse_width": self.pulse_width,
-            "sense_pulse_height": self.sense_pulse_height,
-            "sense_pulse_width": self.sense_pulse_width,
-            "discharge_time": self.discharge_time,
-            "period_us": self.period_us,
-            "timer_alarm_ticks": self.timer_alarm_ticks,
-            "hv513_num": self.hv513_num,
-            "stim_pattern": list(self.stim_pattern),
-        }
+        return _snapshot(self)

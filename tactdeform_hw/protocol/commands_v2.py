@@ -18,6 +18,7 @@ import construct as cs
 from construct import this
 
 from ..errors import DecodeError, LimitError
+from .commands import _u8_command, _u16_command
 from .constants import U8_MAX, U16_MAX
 from .firmware import V2, OpcodeV2
 from .units import check_int
@@ -29,14 +30,6 @@ STIM_MODE_MONOPHASIC = 0
 STIM_MODE_BIPHASIC = 1
 STIM_MODE_IMPEDANCE = 2
 STIM_MODES = {"mono": STIM_MODE_MONOPHASIC, "bi": STIM_MODE_BIPHASIC, "impedance": STIM_MODE_IMPEDANCE}
-
-
-def _u8_command(opcode: int, field: str) -> cs.Struct:
-    return cs.Struct("opcode" / cs.Const(bytes([opcode])), field / cs.Int8ul)
-
-
-def _u16_command(opcode: int, field: str) -> cs.Struct:
-    return cs.Struct("opcode" / cs.Const(bytes([opcode])), field / cs.Int16ul)
 
 
 MeasureRequest = cs.Struct("opcode" / cs.Const(bytes([OpcodeV2.MEASURE])))
