@@ -57,3 +57,25 @@ class Hazard:
     def __str__(self) -> str:
         at = f" t={self.time_us:.1f}us" if self.time_us is not None else ""
         return f"{self.kind.value} @byte {self.offset}{at}: {self.detail}"
+
+
+class UnknownRuns:
+    """A parser's record of unknown command bytes: one ``UNKNOWN_BYTES`` hazard per run of them, not one
+    per byte (a resync's 256 zeros are one record).  The parser sets ``hazards``, ``_unknown_start``
+    (-1) and ``_unknown_len`` (0)."""
+
+    hazards: list[Hazard]
+    _unknown_start: int
+    _unknown_len: int
+
+    def _note_unknown(self, offset: int) -> None:
+        if self._unknown_len == 0:
+            self._unknown_start = offset
+        self._unknown_len += 1
+
+    def _flush_unknown(self) -> None:
+        if self._unknown_len:
+            self.hazards.append(
+                Hazard(HazardKind.UNKNOWN_BYTES, self._unknown_start, {"count": self._unknown_len})
+            )
+            self._unknown_len = 0

@@ -25,7 +25,7 @@ from ..protocol.commands import encode_measure_reply
 from ..protocol.constants import OUTPUTS_PER_HV513, Opcode
 from ..protocol.firmware import V1_2
 from ..protocol.reader import u16_at
-from .hazards import Hazard, HazardKind
+from .hazards import Hazard, HazardKind, UnknownRuns
 from .registers import Registers
 
 _FIRMWARE = V1_2
@@ -80,7 +80,7 @@ class CallResult(Enum):
         return self.value[1]
 
 
-class Parser:
+class Parser(UnknownRuns):
     """Receive buffer + command state + the effects on :class:`Registers`.
 
     ``hv513_detect`` is the board's detection (called on 0xF5); ``on_hv513_reinit`` lets the scan engine
@@ -279,18 +279,6 @@ class Parser:
                 Hazard(HazardKind.UNREAD_WHILE_LOCKED, start, {"bytes": end - start, "pending": self.pending})
             )
             self._unread_reported_to = end
-
-    def _note_unknown(self, offset: int) -> None:
-        if self._unknown_len == 0:
-            self._unknown_start = offset
-        self._unknown_len += 1
-
-    def _flush_unknown(self) -> None:
-        if self._unknown_len:
-            self.hazards.append(
-                Hazard(HazardKind.UNKNOWN_BYTES, self._unknown_start, {"count": self._unknown_len})
-            )
-            self._unknown_len = 0
 
     def _reply(self, op: int, offset: int) -> None:
         regs = self.regs

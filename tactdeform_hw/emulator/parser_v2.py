@@ -21,7 +21,7 @@ from ..protocol import firmware_math as fm
 from ..protocol.commands import encode_measure_reply
 from ..protocol.constants import OUTPUTS_PER_HV513
 from ..protocol.firmware import V2, CommandSpec, FirmwareSpec
-from .hazards import Hazard, HazardKind
+from .hazards import Hazard, HazardKind, UnknownRuns
 from .registers import RegistersV2
 
 
@@ -40,7 +40,7 @@ class CallOutcome:
         return self.consumed == 0 and self.wrote == 0
 
 
-class ParserV2:
+class ParserV2(UnknownRuns):
     """Receive queue + the parser's static state + the effects on :class:`RegistersV2`.
 
     ``hv513_detect`` is the board's stack sensing (0xF5); ``on_hv513_reinit`` tells a scan model that
@@ -185,18 +185,6 @@ class ParserV2:
         self._flush_unknown()
 
     # --- pieces ----------------------------------------------------------------------------------------
-
-    def _note_unknown(self, offset: int) -> None:
-        if self._unknown_len == 0:
-            self._unknown_start = offset
-        self._unknown_len += 1
-
-    def _flush_unknown(self) -> None:
-        if self._unknown_len:
-            self.hazards.append(
-                Hazard(HazardKind.UNKNOWN_BYTES, self._unknown_start, {"count": self._unknown_len})
-            )
-            self._unknown_len = 0
 
     def _reply(self, spec: CommandSpec, offset: int) -> None:
         regs = self.regs
