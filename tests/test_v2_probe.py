@@ -206,3 +206,49 @@ def test_the_safe_tail_means_the_same_on_both_versions() -> None:
     assert OpcodeV2.ELECTRODE_NUM == Opcode.ELECTRODE_NUM and OpcodeV2.SENSE_HEIGHT == Opcode.SENSE_HEIGHT
     assert OpcodeV2.STIM_MODE == Opcode.PULSE_HEIGHT
     assert V1_2.by_opcode[Opcode.PULSE_HEIGHT].kind == "u16" and V2.by_opcode[OpcodeV2.STIM_MODE].kind == "u8"
+
+
+@pytest.mark.parametrize("fw", ["v1.2", "v2"])
+def test_open_device_detects_by_default_and_counts_the_probe_as_its_own(
+    fw: str, tmp_path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No ``firmware`` argument: the board is asked before anything stimulating is written, the driver
+    speaks what it answered, and the probe's bytes are in the device's byte count and its audit log."""
+    import json
+
+    from tactdeform_hw.device.audit import AuditLog
+    from tactdeform_hw.device.serial_driver import open_device
+    from tactdeform_hw.emulator.urlhandler import protocol_etactile
+
+    wire = bytearray()
+    write = protocol_etactile.Serial.write
+
+    def counted(self, data):  # type: ignore[no-untyped-def]
+        wire.extend(data)
+        return write(self, data)
+
+    monkeypatch.setattr(protocol_etactile.Serial, "write", counted)
+    log = tmp_path / "audit.jsonl"
+    dev = open_device(f"etactile://?firmware={fw}&timed=0", audit=AuditLog(log))
+    try:
+        assert (dev._dialect is not None) == (fw == "v2")
+        assert wire.startswith(PROBE[:-1]) and dev.pacer.stats.bytes_written == len(wire)
+    finally:
+        dev.close()
+    events = [json.loads(line) for line in log.read_text().splitlines()]
+    probe = [e for e in events if e.get("event") == "firmware_probe"]
+    assert probe and probe[0]["firmware"] == fw and probe[0]["bytes"] == probe[0]["attempts"] * len(PROBE)
+    first_command = next(i for i, e in enumerate(events) if "hex" in e)
+    assert events.index(probe[0]) < first_command
+
+
+def test_every_command_detects_by_default(capsys: pytest.CaptureFixture[str]) -> None:
+    """``send`` without ``--firmware`` on a v2 board drives v2 (per-electrode heights, mode 0)."""
+    import json
+
+    from tactdeform_hw.cli import main
+
+    argv = ["send", "--device", "etactile://?firmware=v2&timed=0", "--pattern", "1,0,1", "--electrodes", "3"]
+    assert main([*argv, "--current-ua", "200", "--hold-ms", "0", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["emulator_pattern"] == [20, 0, 20] and out["emulator_state"]["stim_mode"] == 0

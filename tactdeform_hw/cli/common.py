@@ -30,11 +30,10 @@ def add_device_arg(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--firmware",
         choices=("v1.2", "v2", "auto"),
-        default=None,
-        help="the board's firmware. Default: v1.2, driven without asking. auto: first turn every "
-        "current off and ask (the v2 sync check), then drive the version that answered; v1.2: ask "
-        "the same way and refuse a v2 board; v2: drive v2, refusing a board that does not answer its "
-        "sync check",
+        default="auto",
+        help="the board's firmware. auto (the default): first turn every current off and ask (the v2 "
+        "sync check), then drive the version that answered; v1.2: ask the same way and refuse a v2 "
+        "board; v2: drive v2, refusing a board that does not answer its sync check",
     )
 
 

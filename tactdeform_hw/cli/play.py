@@ -333,7 +333,7 @@ def run(
         open_device(
             args.device,
             timeout=args.timeout,
-            firmware=getattr(args, "firmware", "v1.2"),
+            firmware=getattr(args, "firmware", "auto"),
             mapping=mapping,
             guard=guard,
             audit=log,

@@ -231,7 +231,7 @@ def run(args: argparse.Namespace) -> int:
         with open_device(
             args.device,
             timeout=args.timeout,
-            firmware=getattr(args, "firmware", "v1.2"),
+            firmware=getattr(args, "firmware", "auto"),
             mapping=array.channel_mapping(),
             guard=guard,
             audit=audit,

@@ -173,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
     dev = open_device(
         args.device,
         timeout=args.timeout,
-        firmware=getattr(args, "firmware", "v1.2"),
+        firmware=getattr(args, "firmware", "auto"),
         mapping=mapping,
         guard=guard,
         audit=log,

@@ -52,9 +52,12 @@ class FirmwareMismatchError(ProtocolError):
 
 @dataclass(frozen=True)
 class Detection:
+    """What the probe found, and the bytes it cost (the device counts them as its own writes)."""
+
     firmware: FirmwareSpec
     attempts: int
     reply: bytes
+    bytes_sent: int = 0
 
     @property
     def name(self) -> str:
@@ -85,8 +88,8 @@ def detect_firmware(
                     f"the sync check after the electrode count 0 was answered {reply.hex()}, not 00: the "
                     "board did not read the probe as sent; nothing stimulating was sent"
                 )
-            return Detection(V2, attempts, reply)
-    return Detection(V1_2, attempts, b"")
+            return Detection(V2, attempts, reply, attempts * len(PROBE))
+    return Detection(V1_2, attempts, b"", attempts * len(PROBE))
 
 
 def check_firmware(expected: str, detection: Detection) -> None:

@@ -31,7 +31,7 @@ from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
 from .base import Device
 from .config import StimConfig
-from .firmware_probe import FirmwareMismatchError
+from .firmware_probe import Detection, FirmwareMismatchError
 from .guardian import Guardian, GuardianError, off_packet, pace_for
 from .mapping import ChannelMapping
 from .pacing import Pacer, default_pacer
@@ -187,6 +187,7 @@ class EtactileKitDevice(Device):
         guardian: bool | None = None,
         offline_clock: Clock | None = None,
         firmware: str = "v1.2",
+        probe: Detection | None = None,
     ) -> None:
         super().__init__(mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit)
         self.port = port
@@ -200,6 +201,12 @@ class EtactileKitDevice(Device):
             if offline_clock is not None and getattr(port, "instant", False):
                 # a port that answers at once (the in-process emulator) runs the session on the caller's clock
                 self.pacer = Pacer(clock=offline_clock, policy=self.pacer.policy)
+        if probe is not None:  # the version probe wrote before this device existed: its bytes are ours
+            self.pacer.stats.bytes_written += probe.bytes_sent
+            if self.audit is not None:
+                self.audit.event(
+                    "firmware_probe", firmware=probe.name, attempts=probe.attempts, bytes=probe.bytes_sent
+                )
         self._want_guardian = bool(getattr(port, "guardable", False)) if guardian is None else guardian
         if self._want_guardian:
             try:
@@ -468,7 +475,7 @@ def open_device(
     audit: AuditLog | None = None,
     guardian: bool | None = None,
     offline_clock: Clock | None = None,
-    firmware: str | None = None,
+    firmware: str | None = "auto",
 ) -> EtactileKitDevice:
     """Open a device by name: a serial port path, a pyserial URL, ``usb:VID:PID[:SERIAL]``,
     ``usb-emulator``, or ``emulator`` (the default).  ``pacer`` defaults to what the port needs (see
@@ -478,13 +485,14 @@ def open_device(
     port declares itself ``instant`` (it answers every byte at once), pace on this clock instead of the wall
     clock, so an offline run keeps session time.
 
-    ``firmware``: "auto" runs the version probe first (:mod:`.firmware_probe`: every current off, then
-    the sync check) and drives the board in the version it answers as; "v1.2" runs the same probe and
-    refuses a board that answers as v2; "v2" drives v2 at once — its own closed-loop recovery is the sync
-    check, and a board that does not answer it as v2 must is refused after bytes that stop current on both
-    versions.  None (the default) drives v1.2 without asking, for callers that know their board.  Every
-    refusal is a :class:`~tactdeform_hw.device.firmware_probe.FirmwareMismatchError`, raised before any
-    stimulating byte."""
+    ``firmware``: "auto" (the default) runs the version probe first (:mod:`.firmware_probe`: every
+    current off, then the sync check) and drives the board in the version it answers as, so a driver never
+    sends one version's bytes to the other; "v1.2" runs the same probe and refuses a board that answers as
+    v2; "v2" drives v2 at once — its own closed-loop recovery is the sync check, and a board that does not
+    answer it as v2 must is refused after bytes that stop current on both versions.  None drives v1.2
+    without asking, for callers that have already identified their board (the probe costs a v1.2 board two
+    reply timeouts).  Every refusal is a :class:`~tactdeform_hw.device.firmware_probe.FirmwareMismatchError`,
+    raised before any stimulating byte."""
     if firmware not in (None, "v1.2", "v2", "auto"):
         from ..errors import ConfigurationError
 
@@ -492,9 +500,9 @@ def open_device(
             f"firmware={firmware!r}: the device layer drives 'v1.2' or 'v2' (or 'auto' to detect which)"
         )
     port = open_port(name, timeout=timeout)
-    speak = firmware or "v1.2"
+    detection = None
     if firmware in ("auto", "v1.2"):
-        speak = _probe(port, None if firmware == "auto" else firmware)
+        detection = _probe(port, None if firmware == "auto" else firmware)
     return EtactileKitDevice(
         port,
         mapping=mapping,
@@ -504,13 +512,14 @@ def open_device(
         audit=audit,
         guardian=guardian,
         offline_clock=offline_clock,
-        firmware=speak,
+        firmware=detection.name if detection is not None else firmware or "v1.2",
+        probe=detection,
     )
 
 
-def _probe(port: Any, expected: str | None) -> str:
+def _probe(port: Any, expected: str | None) -> Detection:
     """Open ``port`` (lines low), detect its firmware and refuse it unless it is ``expected`` (None: any);
-    close it on refusal without sending anything more.  The detected version's name."""
+    close it on refusal without sending anything more."""
     from .firmware_probe import check_firmware, detect_firmware
 
     errors = _serial_error_types()
@@ -532,4 +541,4 @@ def _probe(port: Any, expected: str | None) -> str:
         except errors:
             pass
         raise
-    return det.name
+    return det
