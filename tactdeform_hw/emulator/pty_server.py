@@ -1,7 +1,8 @@
 """The emulated board on a real pseudo-terminal, so any program that opens a serial port can talk to it.
 
 By default the board is the timed model on the wall clock (:class:`~.realtime.RealtimeEmulator`, USB
-link, 256-byte queue): bytes are stamped as the server reads them from the pty, replies are written
+link, 256-byte queue; ``firmware="v2"``: the v2 model, its 1024-byte queue and 2 s command timeout): bytes
+are stamped as the server reads them from the pty, replies are written
 when the model delivers them, scans run.  An untimed :class:`~.core.Emulator` (``--untimed``) answers
 every write at once instead.
 
@@ -21,8 +22,8 @@ import time
 import tty
 from typing import Any
 
-from ..errors import TransportError
-from .realtime import BoardServer
+from ..errors import ConfigurationError, TransportError
+from .realtime import BoardServer, RealtimeEmulator
 
 if sys.platform == "win32":  # pragma: no cover - pty is POSIX only
     raise ImportError("the pty server needs a POSIX system")
@@ -30,14 +31,27 @@ if sys.platform == "win32":  # pragma: no cover - pty is POSIX only
 _HUP = select.POLLHUP | select.POLLERR
 
 
+def _check_firmware(board: Any, firmware: str | None) -> None:
+    """Refuse a ``firmware`` that contradicts the board given (a server must not claim a version it does
+    not serve)."""
+    served = getattr(board, "firmware", "v1.2")
+    if firmware is not None and firmware != served:
+        raise ConfigurationError(f"firmware={firmware!r}, but the board given runs {served!r}")
+
+
 class PtyServer(BoardServer):
-    """Serve ``board`` (default: a :class:`~.realtime.RealtimeEmulator`) on a new pty; ``path`` is the
-    device a client opens.  See :class:`~.realtime.BoardServer` for the options."""
+    """Serve ``board`` (default: a :class:`~.realtime.RealtimeEmulator` running ``firmware``, ``"v1.2"``
+    or ``"v2"``) on a new pty; ``path`` is the device a client opens.  See :class:`~.realtime.BoardServer`
+    for the options.  ``firmware`` names the default board's version, so a caller that wants a v2 board
+    on a pty need not build one; with an explicit ``board`` it must agree with the board's own."""
 
     thread_name = "etactile-pty"
 
-    def __init__(self, board: Any = None, **kwargs: Any) -> None:
-        super().__init__(board, **kwargs)
+    def __init__(self, board: Any = None, *, firmware: str | None = None, **kwargs: Any) -> None:
+        super().__init__(
+            board if board is not None else RealtimeEmulator(firmware=firmware or "v1.2"), **kwargs
+        )
+        _check_firmware(self.board, firmware)
         try:
             self._master, slave = os.openpty()
         except OSError as exc:

@@ -8,6 +8,8 @@ bytes.  :class:`TcpServer` does the same on loopback (by default): with flow-con
 room, so a fast host blocks in ``send`` instead of losing bytes; replies are written only while a client
 is connected.  The build's rules are a parameter: ``rules=SERIAL_USB`` serves the serial build's link and
 256-byte queue over TCP instead (every byte taken at once, the queue discards what does not fit).
+``firmware="v2"`` serves the v2 model under the same rules (the v2 Wi-Fi build is the one that also answers
+UDP discovery, :mod:`.udp_discovery`).
 """
 
 from __future__ import annotations
@@ -17,13 +19,15 @@ import socket
 import time
 from typing import Any
 
-from ..errors import TransportError
+from ..errors import ConfigurationError, TransportError
 from .realtime import WIFI_TCP, BoardServer, BuildRules, RealtimeEmulator
 
 
 class TcpServer(BoardServer):
-    """Serve ``board`` (default: a :class:`~.realtime.RealtimeEmulator` under ``rules``) on
-    ``host:port`` (port 0: any free port; :attr:`address` says which)."""
+    """Serve ``board`` (default: a :class:`~.realtime.RealtimeEmulator` under ``rules`` running
+    ``firmware``, ``"v1.2"`` or ``"v2"``) on ``host:port`` (port 0: any free port; :attr:`address` says
+    which).  ``firmware`` names the default board's version; with an explicit ``board`` it must agree
+    with the board's own, so a server never claims a version it does not serve."""
 
     thread_name = "etactile-tcp"
 
@@ -35,9 +39,15 @@ class TcpServer(BoardServer):
         port: int = 8080,
         rules: BuildRules = WIFI_TCP,
         backlog: int = 4,
+        firmware: str | None = None,
         **kwargs: Any,
     ) -> None:
-        super().__init__(board if board is not None else RealtimeEmulator(rules=rules), **kwargs)
+        if board is None:
+            board = RealtimeEmulator(rules=rules, firmware=firmware or "v1.2")
+        served = getattr(board, "firmware", "v1.2")
+        if firmware is not None and firmware != served:
+            raise ConfigurationError(f"firmware={firmware!r}, but the board given runs {served!r}")
+        super().__init__(board, **kwargs)
         self.rules = rules
         try:
             self._listen = socket.create_server((host, port), backlog=backlog)

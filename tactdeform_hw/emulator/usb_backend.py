@@ -51,7 +51,8 @@ from .core import Emulator
 from .link import LinkModel
 from .skin import SkinModel
 from .timed import TimedEmulator
-from .timing import TimingModel
+from .timed_v2 import TimedEmulatorV2
+from .timing import DEFAULT_MODEL, TimingModel
 
 # --- USB constants ------------------------------------------------------------------------------------
 
@@ -221,6 +222,10 @@ class _TimedOptions(TypedDict):
     stack_reading: float | None
 
 
+#: the firmware versions an emulated device can run
+FIRMWARES = ("v1.2", "v2")
+
+
 class EmulatedUsbDevice:
     """One emulated board on the bus: a :class:`~tactdeform_hw.emulator.timed.TimedEmulator` (the
     firmware in time — link, receive queue, parser rhythm, scans, watchdog) behind USB descriptors,
@@ -228,7 +233,10 @@ class EmulatedUsbDevice:
 
     ``link`` / ``tx_link`` are the host→device and device→host link models (USB full speed by default;
     a :class:`~tactdeform_hw.emulator.link.LinkFilter` here injects byte-level faults); each power-up gets
-    fresh copies.  ``kernel_driver``: True — Linux with ``cdc_acm`` bound to the CDC interfaces (the
+    fresh copies.  ``firmware``: the version the board runs — ``"v1.2"`` (:class:`TimedEmulator`) or
+    ``"v2"`` (:class:`~tactdeform_hw.emulator.timed_v2.TimedEmulatorV2`: its 1024-byte queue, whole
+    payloads, the 2 s command timeout; it reads back DAC codes, so it takes no ``skin``).
+    ``kernel_driver``: True — Linux with ``cdc_acm`` bound to the CDC interfaces (the
     transport must detach it and re-attach on close); False — nothing bound; None — the platform cannot
     tell (pyusb raises ``NotImplementedError``, as on Windows and macOS).
     """
@@ -252,7 +260,13 @@ class EmulatedUsbDevice:
         tx_link: str | LinkModel | None = None,
         skin: SkinModel | None = None,
         stack_reading: float | None = None,
+        firmware: str = "v1.2",
     ) -> None:
+        if firmware not in FIRMWARES:
+            raise ConfigurationError(f"firmware={firmware!r}: the emulated USB board runs 'v1.2' or 'v2'")
+        if firmware == "v2" and skin is not None:
+            raise ConfigurationError("skin: the v2 timed model reads back the DAC codes, not a skin model")
+        self.firmware = firmware
         self._make = _TimedOptions(board=board, switching_boards=switching_boards, link=link, tx_link=tx_link,
                                    model=timing, skin=skin, stack_reading=stack_reading)  # fmt: skip
         self.timed = self._new_timed()  # raises ConfigurationError for a bad board or model
@@ -290,12 +304,22 @@ class EmulatedUsbDevice:
         self._unplug_after_out: int | None = None
         self.nak_out = False  # the device NAKs every OUT packet (firmware no longer servicing USB)
 
-    def _new_timed(self) -> TimedEmulator:
+    def _new_timed(self) -> TimedEmulator | TimedEmulatorV2:
         opts = self._make.copy()
         if isinstance(opts["link"], LinkModel):
             opts["link"] = copy.deepcopy(opts["link"])
         if isinstance(opts["tx_link"], LinkModel):
             opts["tx_link"] = copy.deepcopy(opts["tx_link"])
+        if self.firmware == "v2":
+            model = opts["model"]
+            return TimedEmulatorV2(
+                opts["board"],
+                opts["switching_boards"],
+                link=opts["link"],
+                tx_link=opts["tx_link"] if opts["tx_link"] is not None else "usb",
+                model=model if model is not None else DEFAULT_MODEL,
+                stack_reading=opts["stack_reading"],
+            )
         return TimedEmulator(**opts)
 
     # --- identity --------------------------------------------------------------------------------------
@@ -810,12 +834,12 @@ class EmulatedUsbBackend:
 # --- names ---------------------------------------------------------------------------------------------
 
 EMULATOR_NAME = "usb-emulator"
-_OPTIONS = ("board", "switching_boards", "serial", "kernel_driver")
+_OPTIONS = ("board", "switching_boards", "serial", "kernel_driver", "firmware")
 
 
 def backend_from_name(name: str) -> EmulatedUsbBackend:
-    """``usb-emulator[?board=compact|large&switching_boards=N&serial=S&kernel_driver=0|1]``: a fresh
-    emulated bus with one board.  Unknown options are refused."""
+    """``usb-emulator[?board=compact|large&switching_boards=N&serial=S&kernel_driver=0|1&firmware=v1.2|v2]``:
+    a fresh emulated bus with one board (firmware v1.2 unless named).  Unknown options are refused."""
     base, _, query = name.partition("?")
     if base != EMULATOR_NAME:
         raise ConfigurationError(f"device={name!r}: expected {EMULATOR_NAME}[?options]")
@@ -836,6 +860,7 @@ def backend_from_name(name: str) -> EmulatedUsbBackend:
         switching,
         serial_number=opts.get("serial", "F4:12:FA:C0:FF:EE"),
         kernel_driver=kernel,
+        firmware=opts.get("firmware", "v1.2"),
     )
     return EmulatedUsbBackend([device])
 
@@ -848,6 +873,7 @@ __all__ = [
     "EmulatedUsbBackend",
     "EmulatedUsbDevice",
     "EndpointDescriptor",
+    "FIRMWARES",
     "InterfaceDescriptor",
     "RealClock",
     "VirtualClock",

@@ -3,10 +3,14 @@
 ``pytest tests/conformance`` runs every check on the four emulated targets — the pyserial URL handler
 (``etactile://``), a real pseudo-terminal (``pty``), a TCP port served with the Wi-Fi build's rules
 (``tcp``) and the emulated USB device through pyusb (``usb-emulator``).  Each serves the timed model on
-the wall clock, so the rhythm checks run on all of them.  ``--device`` picks one target instead:
+the wall clock, so the rhythm checks run on all of them.  The v2 checks run on the same transports
+serving firmware v2 (:data:`V2_TARGETS`: ``etactile://?firmware=v2[&timed=0]``, ``pty?firmware=v2``,
+``tcp?firmware=v2``, ``usb-emulator?firmware=v2``); a target name's ``firmware=`` decides which file's
+checks it gets, the other file's are skipped with the reason.  ``--device`` picks one target instead:
 
-* ``etactile://[?options]``, ``emulator``, ``pty``, ``tcp``, ``usb-emulator[?options]`` — an emulated
-  board (``etactile://?timed=0`` and ``emulator``: the untimed one, which has no rhythm to check);
+* ``etactile://[?options]``, ``emulator``, ``pty[?firmware=v2]``, ``tcp[?firmware=v2]``,
+  ``usb-emulator[?options]`` — an emulated board (``etactile://?timed=0`` and ``emulator``: the untimed
+  one, which has no rhythm to check);
 * a serial port (``/dev/ttyACM0``, ``COM3``) or ``usb:303a:1001[:SERIAL]`` — a real board.  Skipped, with
   the reason, when the board is not attached or (for ``usb:``) pyusb or libusb is missing.
 
@@ -25,6 +29,7 @@ import errno
 import os
 import sys
 import time
+import urllib.parse as urlparse
 import uuid
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -36,6 +41,15 @@ from tactdeform_hw.device import open_port
 from tactdeform_hw.errors import MissingDependencyError, TransportError
 
 EMULATED_TARGETS = ("etactile://", "pty", "tcp", "usb-emulator")
+#: the same transports serving firmware v2 (the suite in ``test_conformance_v2.py``)
+V2_TARGETS = (
+    "etactile://?firmware=v2&timed=0",
+    "etactile://?firmware=v2",
+    "pty?firmware=v2",
+    "tcp?firmware=v2",
+    "usb-emulator?firmware=v2",
+)
+FIRMWARES = ("v1.2", "v2")
 REPLY_TIMEOUT_S = 0.5
 
 
@@ -55,7 +69,8 @@ class Target:
 
     ``timed``: host-observable timing is the firmware's (a board, or an emulated board on the wall
     clock); only ``etactile://?timed=0`` serves the untimed emulator, which answers at once and has no
-    tick.  ``state``: the firmware's registers (emulated targets only).
+    tick.  ``state``: the firmware's registers (emulated targets only).  ``firmware``: the version an
+    emulated target serves (``None`` for a board: the suite does not assume it).
     """
 
     name: str
@@ -67,6 +82,7 @@ class Target:
     hv513_expected: int | None = None
     settle_fn: Callable[[int], None] | None = None
     cleanup: list[Callable[[], None]] = field(default_factory=list)
+    firmware: str | None = "v1.2"
 
     @property
     def is_board(self) -> bool:
@@ -98,6 +114,25 @@ class Target:
 
 
 # --- building targets ----------------------------------------------------------------------------------
+
+
+def name_firmware(name: str) -> str | None:
+    """The firmware an emulated target name asks for (``firmware=v2`` in its query; v1.2 otherwise);
+    ``None`` for a board, whose version the name does not tell."""
+    if _is_board_name(name):
+        return None
+    fw = urlparse.parse_qs(name.partition("?")[2]).get("firmware", ["v1.2"])[-1]
+    if fw not in FIRMWARES:
+        raise pytest.UsageError(f"--device {name}: firmware={fw!r} is not one of {', '.join(FIRMWARES)}")
+    return fw
+
+
+def _server_firmware(name: str) -> str:
+    """``pty[?firmware=v1.2|v2]`` and ``tcp[?firmware=...]`` take that option only."""
+    unknown = set(urlparse.parse_qs(name.partition("?")[2])) - {"firmware"}
+    if unknown:
+        raise pytest.UsageError(f"--device {name}: unknown option(s) {sorted(unknown)}; only firmware=")
+    return name_firmware(name) or "v1.2"
 
 
 def _settle_on(board: Any, server: Any = None, written: list[int] | None = None) -> Callable[[int], None]:
@@ -157,6 +192,7 @@ def _url_target(name: str) -> Target:
         state=emu.state,
         hv513_expected=emu.board.detect_hv513(),
         settle_fn=_settle_on(emu) if timed else (lambda n: None),
+        firmware=emu.firmware,
     )
     t.cleanup += [first.close, lambda: forget_shared(shared)]
     return t
@@ -167,7 +203,8 @@ def _pty_target(name: str) -> Target:
         pytest.skip("the pty target needs a POSIX pseudo-terminal")
     from tactdeform_hw.emulator.pty_server import PtyServer
 
-    server = PtyServer().start()  # the timed board on the wall clock
+    firmware = _server_firmware(name)
+    server = PtyServer(firmware=firmware).start()  # the timed board on the wall clock
     written = [0]
     t = Target(
         name=name,
@@ -178,6 +215,7 @@ def _pty_target(name: str) -> Target:
         state=server.state,
         hv513_expected=server.board.board.detect_hv513(),
         settle_fn=_settle_on(server.board, server, written),
+        firmware=firmware,
     )
     t.cleanup.append(server.stop)
     return t
@@ -186,7 +224,9 @@ def _pty_target(name: str) -> Target:
 def _tcp_target(name: str) -> Target:
     from tactdeform_hw.emulator.tcp_server import TcpServer
 
-    server = TcpServer(port=0).start()  # the Wi-Fi build's rules: one client at a time, TCP flow control
+    firmware = _server_firmware(name)
+    # the Wi-Fi build's rules: one client at a time, TCP flow control
+    server = TcpServer(port=0, firmware=firmware).start()
     written = [0]
 
     def make_port() -> Any:
@@ -206,6 +246,7 @@ def _tcp_target(name: str) -> Target:
         state=server.state,
         hv513_expected=server.board.board.detect_hv513(),
         settle_fn=_settle_on(server.board, server, written),
+        firmware=firmware,
     )
     t.cleanup.append(server.stop)
     return t
@@ -235,6 +276,7 @@ def _usb_emulator_target(name: str) -> Target:
         state=dev.state,
         hv513_expected=dev.emulator.board.detect_hv513(),
         settle_fn=lambda n: dev.settle(),
+        firmware=dev.firmware,
     )
 
 
@@ -251,7 +293,7 @@ def _serial_board_target(name: str) -> Target:
     except Exception as exc:  # noqa: BLE001 - any failure to open means no usable board here
         pytest.skip(f"cannot open {name} ({exc}); is the board attached and the port free?")
     probe.close()
-    return Target(name=name, kind="board", route="serial", timed=True,
+    return Target(name=name, kind="board", route="serial", timed=True, firmware=None,
                   make_port=lambda: open_port(name, timeout=REPLY_TIMEOUT_S))  # fmt: skip
 
 
@@ -268,7 +310,7 @@ def _usb_board_target(name: str) -> Target:
             pytest.skip(str(exc))
         raise  # attached but unusable (permissions, busy): the message says what to fix
     probe.close()
-    return Target(name=name, kind="board", route="usb", timed=True,
+    return Target(name=name, kind="board", route="usb", timed=True, firmware=None,
                   make_port=lambda: usb_port_for_name(name, timeout=REPLY_TIMEOUT_S))  # fmt: skip
 
 
@@ -289,9 +331,9 @@ def build_target(name: str) -> Target:
 def _build_target(name: str) -> Target:
     if name in ("emulator", "emu", "") or name.startswith("etactile://"):
         return _url_target(name or "etactile://")
-    if name == "pty":
+    if name == "pty" or name.startswith("pty?"):
         return _pty_target(name)
-    if name == "tcp":
+    if name == "tcp" or name.startswith("tcp?"):
         return _tcp_target(name)
     if name == "usb-emulator" or name.startswith("usb-emulator?"):
         return _usb_emulator_target(name)
@@ -303,7 +345,10 @@ def _build_target(name: str) -> Target:
 
 
 def _is_board_name(name: str) -> bool:
-    return not (name in ("emulator", "emu", "pty", "tcp") or name.startswith(("etactile://", "usb-emulator")))
+    return not (
+        name in ("emulator", "emu", "pty", "tcp")
+        or name.startswith(("etactile://", "usb-emulator", "pty?", "tcp?"))
+    )
 
 
 # --- pytest plumbing ---------------------------------------------------------------------------------------
@@ -314,7 +359,12 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         return
     chosen = metafunc.config.getoption("--device", default=None)
     names = [chosen] if chosen else list(EMULATED_TARGETS)
-    params = [pytest.param(n, id=n, marks=[pytest.mark.hardware] if _is_board_name(n) else []) for n in names]
+    params = []
+    for n in names:
+        marks: list[Any] = [pytest.mark.hardware] if _is_board_name(n) else []
+        if name_firmware(n) == "v2":
+            marks.append(pytest.mark.skip(reason=f"{n} serves firmware v2: these are the v1.2 checks"))
+        params.append(pytest.param(n, id=n, marks=marks))
     metafunc.parametrize("target_name", params)
 
 

@@ -1,16 +1,23 @@
-"""Conformance of a firmware v2 target: the sync check, the measure reply, version detection and the
-device layer driving per-electrode heights.
+"""Conformance of a firmware v2 target: the sync check, the measure reply, version detection, the
+device layer driving per-electrode heights, the 2 s command timeout, and an upstream-style host (8-byte
+chunks, 3 ms apart) reaching the state the golden vectors predict.
 
-Emulated v2 targets: the pyserial URL handler serving the untimed v2 emulator
-(``etactile://?firmware=v2&timed=0``) and the timed v2 board on the wall clock
-(``etactile://?firmware=v2``).  ``--device`` with a real v2 board (a serial port or ``usb:``) runs the
-same checks on it; ``--device`` naming a v1.2 emulated target skips this file.
+Emulated v2 targets (:data:`~.conftest.V2_TARGETS`), each transport the v1.2 suite runs on, serving v2:
+the pyserial URL handler with the untimed v2 emulator (``etactile://?firmware=v2&timed=0``) and with the
+timed v2 board on the wall clock (``etactile://?firmware=v2``), a pseudo-terminal (``pty?firmware=v2``),
+a TCP port with the Wi-Fi build's rules (``tcp?firmware=v2``) and the emulated USB device through pyusb
+(``usb-emulator?firmware=v2``).  ``--device`` with a real v2 board (a serial port or ``usb:``) runs the
+same checks on it, except the vector replay, which sets non-zero heights; ``--device`` naming a v1.2
+emulated target skips this file.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -21,9 +28,11 @@ from tactdeform_hw.device.v2 import V2Dialect
 from tactdeform_hw.protocol import commands_v2 as c2
 from tactdeform_hw.protocol.firmware import V2
 
-from .conftest import REPLY_TIMEOUT_S, Target, _is_board_name, build_target
+from .conftest import REPLY_TIMEOUT_S, V2_TARGETS, Target, _is_board_name, build_target, name_firmware
 
-V2_TARGETS = ("etactile://?firmware=v2&timed=0", "etactile://?firmware=v2")
+#: the wall-clock target that waits out the 2 s command timeout in the default run (one is enough to show
+#: the timeout runs on a served board; every timed target runs it when named with ``--device``)
+TIMEOUT_TARGET = "pty?firmware=v2"
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
@@ -34,7 +43,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         names = [pytest.param(n, id=n) for n in V2_TARGETS]
     elif _is_board_name(chosen):
         names = [pytest.param(chosen, id=chosen, marks=[pytest.mark.hardware])]
-    elif "firmware=v2" in chosen:
+    elif name_firmware(chosen) == "v2":
         names = [pytest.param(chosen, id=chosen)]
     else:
         names = [
@@ -137,9 +146,15 @@ def test_v2_driver_round_trip_with_per_electrode_heights(v2_target: Target) -> N
         dev.close()
 
 
-def test_v2_cut_command_is_discarded_after_two_seconds(v2_target: Target) -> None:
+def test_v2_cut_command_is_discarded_after_two_seconds(
+    v2_target: Target, request: pytest.FixtureRequest
+) -> None:
     if not v2_target.timed:
         pytest.skip("the untimed emulator has no clock: the 2 s timeout needs a timed target")
+    if not request.config.getoption("--device", default=None) and v2_target.name != TIMEOUT_TARGET:
+        pytest.skip(
+            f"waits 2 s: checked on {TIMEOUT_TARGET} only (name this target with --device to check it)"
+        )
     port = v2_target.open()
     try:
         _boundary(port)
@@ -149,5 +164,82 @@ def test_v2_cut_command_is_discarded_after_two_seconds(v2_target: Target) -> Non
         time.sleep(2.2)
         port.write(c2.SYNC_CHECK)
         assert _read(port, 1) == b"\x00"
+    finally:
+        port.close()
+
+
+# --- an upstream-style host: 8-byte chunks, 3 ms apart -----------------------------------------------------
+
+VECTORS_FILE = Path(__file__).resolve().parents[1] / "data" / "protocol_vectors_v2.jsonl"
+#: golden streams a host could send from power-up, covering the upstream API's configuration burst
+#: (v2-0065), a configuration burst (v2-0002), complete patterns (v2-0001; v2-0027 leaves stale channels
+#: past the count), a pattern still waiting for its payload (v2-0009), unknown bytes before a command
+#: (v2-0246), the sync check (v2-0072) and measure requests between sync checks (v2-0041).  All arrive in
+#: one piece in the vectors and end within the 2 s timeout, so the split cannot change the final state.
+UPSTREAM_VECTORS = ("v2-0065", "v2-0002", "v2-0001", "v2-0027", "v2-0009", "v2-0246", "v2-0072", "v2-0041")
+#: what the upstream Python ``write_byte_array`` and Unity ``SerialHandler.Write`` do: 8 bytes, then 3 ms
+CHUNK_BYTES = 8
+CHUNK_GAP_S = 0.003
+#: the registers a vector predicts (``period_us`` is compared as float32, as the firmware stores it)
+COMPARED = (
+    "electrode_num",
+    "polarity",
+    "stim_mode",
+    "pulse_width",
+    "sense_pulse_height",
+    "sense_pulse_width",
+    "discharge_time",
+    "timer_alarm_ticks",
+    "hv513_num",
+    "stim_pattern",
+    "command_in_progress",
+)
+
+
+def _vectors() -> dict[str, dict[str, Any]]:
+    wanted = set(UPSTREAM_VECTORS)
+    out: dict[str, dict[str, Any]] = {}
+    for line in VECTORS_FILE.read_text().splitlines():
+        if line.strip():
+            vec = json.loads(line)
+            if vec["id"] in wanted:
+                out[vec["id"]] = vec
+    return out
+
+
+VECTORS = _vectors()
+
+
+@pytest.mark.parametrize("vector_id", UPSTREAM_VECTORS)
+def test_v2_upstream_host_in_8_byte_chunks_reaches_the_vectors_state(
+    v2_target: Target, vector_id: str
+) -> None:
+    """The upstream APIs pace every write (8 bytes, 3 ms); through the transport, the board must end in
+    the state the firmware's own parser gives for the stream in one piece, and answer the same bytes."""
+    if v2_target.is_board:
+        pytest.skip("the vectors set non-zero heights with channels on: replayed on emulated targets only")
+    vec = VECTORS[vector_id]
+    assert "arrivals" not in vec and "final_time_us" not in vec, "the replay needs a one-arrival vector"
+    board = vec["board"]
+    assert (board["kind"], board["switching_boards"]) == ("compact", 1), "the targets serve one compact board"
+    stream = bytes.fromhex(vec["stream"])
+    expect = vec["expect"]
+    want_tx = bytes.fromhex(expect["tx"])
+    port = v2_target.open()  # a fresh target: the board is at its power-on state, as the vectors assume
+    try:
+        for i in range(0, len(stream), CHUNK_BYTES):
+            port.write(stream[i : i + CHUNK_BYTES])
+            time.sleep(CHUNK_GAP_S)
+        replies = _read(port, len(want_tx)) if want_tx else b""
+        v2_target.settle(len(stream))
+        port.timeout = v2_target.quiet_s
+        extra = bytes(port.read(1))
+        assert replies == want_tx, f"{vector_id}: replies {replies.hex()} instead of {want_tx.hex()}"
+        assert extra == b"", f"{vector_id}: a reply byte {extra.hex()} the vector does not predict"
+        if v2_target.state is not None:
+            state = v2_target.state()
+            for key in COMPARED:
+                assert state[key] == expect[key], f"{vector_id}: {key}"
+            assert float(state["period_us"]) == pytest.approx(expect["period_us"], rel=1e-6)
     finally:
         port.close()
