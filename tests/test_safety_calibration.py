@@ -195,3 +195,47 @@ def test_cli_guard_names_the_participant_being_calibrated(
     monkeypatch.chdir(tmp_path)
     assert main(["calibrate", "--participant", "P11", "--keys", "-", "--max-ua", "300"]) == 1
     assert len(guards) == 1 and guards[0].participant == "P11" and guards[0].cap_ua == 300
+
+
+def test_replay_log_uses_the_firmware_the_log_was_written_for(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    send = ["send", "--pattern", "1,0,1,0", "--electrodes", "4", "--current-ua", "800", "--hold-ms", "50"]
+    v2_log, v12_log = tmp_path / "v2.jsonl", tmp_path / "v12.jsonl"
+    assert (
+        main(
+            [
+                *send,
+                "--device",
+                "etactile://?firmware=v2&timed=0",
+                "--firmware",
+                "v2",
+                "--audit-log",
+                str(v2_log),
+            ]
+        )
+        == 0
+    )
+    assert main([*send, "--device", "emulator", "--firmware", "v1.2", "--audit-log", str(v12_log)]) == 0
+    capsys.readouterr()
+    # a v2 log on the v2 model: its u16 heights read as heights, the pulses delivered
+    rep = replay(str(v2_log))
+    assert rep["firmware"] == "v2" and rep["max_current_ua"] == 800.0 and set(rep["channels"]) == {0, 2}
+    assert rep["channels"][0]["heights_ua"] == [800.0] and rep["final_state"]["stim_mode"] in (0, 1)
+    assert replay(str(v2_log), firmware="v2")["channels"][2]["pulses"] == rep["channels"][2]["pulses"]
+    # a v1.2 log still on the v1.2 model
+    old = replay(str(v12_log), firmware="v1.2")
+    assert old["firmware"] == "v1.2" and old["max_current_ua"] == 800.0 and set(old["channels"]) == {0, 2}
+    assert "heights_ua" not in old["channels"][0] and old["final_state"]["pulse_height"] == 0
+    # a log replayed as another firmware than it records: one line naming the option and both versions
+    for log, asked, written in ((v2_log, "v1.2", "v2"), (v12_log, "v2", "v1.2")):
+        assert main(["replay-log", str(log), "--firmware", asked]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"tactdeform-hw replay-log: error: --firmware {asked}:")
+        assert f"written for firmware {written}" in err[0]
+    # a firmware this package does not know: refused, never replayed on a model of another
+    odd = tmp_path / "v3.jsonl"
+    odd.write_text(v2_log.read_text().replace('"firmware":"v2"', '"firmware":"v3"'))
+    assert main(["replay-log", str(odd)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "firmware 'v3' is not a known firmware version" in err[0]

@@ -366,3 +366,39 @@ def test_region_map_of_the_kits_own_array_files() -> None:
     assert on_board.hardware_regions(on_board.region_map().resolve(None))[24] == (0, 0)
     sixty_four = read_array_file(grid).region_map()
     assert sixty_four.ambiguous == () and sorted(set(sixty_four.resolve(None))) == list(range(9))
+
+
+def test_replay_log_of_a_v2_session_reports_each_electrode_by_its_own_height(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # On firmware v2 every electrode has its own height: played under a profile allowing 1000 µA in
+    # region 0, electrode 31 (fingertip-left) gets 1000 µA while electrode 0 gets the 2000 µA asked for.
+    f = _files(tmp_path)
+    seq = json.loads(f["pattern"].read_text())
+    seq["Pattern_Data"][0][0]["pattern"][0] = 1
+    f["pattern"].write_text(json.dumps(seq))
+    loose = tmp_path / "loose.json"
+    loose.write_text(json.dumps({**PROFILE, "regions_ua": [1000] + [2000] * 8}))
+    log = tmp_path / "v2.jsonl"
+    argv = ["play", str(f["pattern"]), "--array", str(f["array"]), "--current-ua", "2000", "--quiet"]
+    v2 = ["--device", "etactile://?firmware=v2&timed=0", "--firmware", "v2"]
+    assert main([*argv, *v2, "--participant", str(loose), "--audit-log", str(log)]) == 0
+    capsys.readouterr()
+    # judged against the stricter profile (400 µA in region 0): only electrode 31 is above its limit
+    assert main(["replay-log", str(log), "--participant", str(f["profile"]), "--json"]) == 3
+    out = json.loads(capsys.readouterr().out)
+    assert out["firmware"] == "v2" and out["firmware_source"] == "the log's firmware record"
+    channels = {int(k): v for k, v in out["channels"].items()}
+    assert channels[31]["heights_ua"] == [1000.0] and channels[0]["heights_ua"] == [2000.0]
+    assert out["above_limit_count"] == channels[31]["pulses"] > 3  # every pulse of it, none of electrode 0
+    assert [
+        (b["channel"], b["electrode"], b["region"], b["limit_ua"], b["max_current_ua"])
+        for b in out["above_limit_by_channel"]
+    ] == [(31, 31, 0, 400.0, 1000.0)]
+    assert main(["replay-log", str(log), "--participant", str(f["profile"])]) == 3
+    text = capsys.readouterr().out
+    assert "replayed on the firmware v2 model" in text
+    assert (
+        "EXCESS channel 31 (electrode 31 in region 0, limit 400 µA)" in text
+        and "EXCESS channel 0 " not in text
+    )

@@ -438,3 +438,124 @@ def test_report_paths_are_relative(tmp_path):
     report = json.loads((out / "report.json").read_text())
     assert not Path(report["trials"][0]["frames_file"]).is_absolute()
     assert report["trials"][0]["scenario"]["segments"][0]["trajectory"].startswith("contact-")
+
+
+# --- firmware v2 --------------------------------------------------------------------------------------------
+
+V2_URL = "etactile://?firmware=v2&timed=0"
+
+
+@pytest.mark.parametrize("firmware", ["v2", "auto"])
+def test_v2_study_cli_end_to_end(tmp_path, capsys, firmware):
+    out = tmp_path / f"v2-{firmware}"
+    argv = [
+        "study",
+        "task1",
+        "--device",
+        V2_URL,
+        "--firmware",
+        firmware,
+        "--trials",
+        "1-3" if firmware == "v2" else "1",
+    ]
+    code = main([*argv, "--out", str(out), "--json", "--quiet", "--no-pictures"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.out
+    summary = json.loads(captured.out)
+    assert summary["summary"]["all_passed"]
+    # the delivered section says which firmware ran and each electrode's heights
+    delivered = summary["delivered"]
+    assert delivered["firmware"] == "v2"
+    heights = delivered["electrode_heights_ua"]
+    assert len(heights) == 32 and {h for hs in heights for h in hs} == {1000.0}
+    report = json.loads((out / "report.json").read_text())
+    assert report["firmware"] == "v2" and report["sent"]["firmware"] == "v2"
+    assert report["timed"]["summary"]["firmware"] == "v2"
+    assert "firmware v2" in (out / "summary.md").read_text()
+    for t in report["trials"]:
+        assert t["passed"] is True and t["failed_checks"] == []
+        verdicts = {c["name"]: c["passed"] for c in t["checks"]}
+        # every check was made on v2: none left unchecked
+        assert None not in verdicts.values(), verdicts
+        assert verdicts["heights_matched_every_sent_frame"] and verdicts["heights_delivered_each_frame"]
+        assert (
+            t["heights_readback"]["frames"] == t["frames"]["sent"]
+            and t["heights_readback"]["mismatches"] == 0
+        )
+        assert t["commands_sent"]["PATTERN"] >= t["frames"]["sent"] and "SYNC_CHECK" in t["commands_sent"]
+        d = t["delivered"]
+        on = set(t["electrodes_activated"])
+        assert {i for i, hs in enumerate(d["per_electrode"]["heights_ua"]) if hs} == on
+        assert d["max_current_ua"] == 1000.0
+
+
+def test_v2_altered_height_on_the_port_fails_the_heights_check(tmp_path, monkeypatch):
+    from tactdeform_hw.emulator.urlhandler import protocol_etactile
+
+    real_write = protocol_etactile.Serial.write
+    seen = {"patterns": 0}
+
+    def altering_write(self, data):
+        data = bytes(data)
+        if data[:1] == b"\xfe" and any(data[1:]):  # a v2 frame with heights
+            seen["patterns"] += 1
+            if seen["patterns"] == 2:
+                k = next(i for i in range(1, len(data) - 1, 2) if data[i] or data[i + 1])
+                data = data[:k] + bytes(((data[k] - 1) & 0xFF,)) + data[k + 1 :]  # one height one code lower
+        return real_write(self, data)
+
+    monkeypatch.setattr(protocol_etactile.Serial, "write", altering_write)
+    out = tmp_path / "bad-v2"
+    argv = ["study", "task1", "--device", V2_URL, "--firmware", "v2", "--trials", "1", "--no-pictures"]
+    assert main([*argv, "--out", str(out), "--json", "--quiet"]) == 3
+    t = json.loads((out / "report.json").read_text())["trials"][0]
+    assert t["passed"] is False
+    assert t["failed_checks"] == ["heights_matched_every_sent_frame"]  # on and off were right
+    assert t["heights_readback"]["mismatches"] >= 1
+    first = t["heights_readback"]["first_mismatch"]
+    assert first["frame"] == 2 and first["board_codes"] != first["driver_codes"]
+
+
+@pytest.fixture(scope="module")
+def v2_result() -> StudyRun:
+    result = run_study(select_trials(build_study("task1", seed=0), "edge-v"), device=V2_URL, firmware="v2")
+    check_study(result)
+    assert result.firmware == "v2" and all(r.passed for r in result.trials)
+    return result
+
+
+def test_v2_wrong_delivered_height_fails_the_timed_check(v2_result):
+    run = v2_result.trials[0]
+    table = run.delivered["_table"]
+    live = (table["current_ua"] > 0).nonzero()[0]
+    i = int(live[len(live) // 2])
+    saved = table["current_ua"].copy()
+    table["current_ua"][i] = saved[i] - 10.0  # one pulse below its electrode's height
+    try:
+        check_trial(run, v2_result)
+        c = _check(run, "heights_delivered_each_frame")
+        assert c.passed is False and "meant 1000" in c.detail
+        # above the height asked for: the limit check sees it too
+        table["current_ua"][i] = saved[i] + 10.0
+        check_trial(run, v2_result)
+        assert _check(run, "currents_within_limits").passed is False
+    finally:
+        table["current_ua"][:] = saved
+        check_trial(run, v2_result)
+    assert run.passed
+
+
+def test_v2_missing_pulses_fail_the_delivery_check(v2_result):
+    run = v2_result.trials[0]
+    table = run.delivered["_table"]
+    on = sorted({i for r in run.records if r.sent for i, v in enumerate(r.electrodes) if v})
+    channel = v2_result.array.channel_mapping().app_to_hw[on[0]]
+    keep = table["channel"] != channel
+    run.delivered["_table"] = {k: v[keep] for k, v in table.items()}
+    try:
+        check_trial(run, v2_result)
+        assert _check(run, "scans_delivered_each_frame").passed is False
+    finally:
+        run.delivered["_table"] = table
+        check_trial(run, v2_result)
+    assert run.passed

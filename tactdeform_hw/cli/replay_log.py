@@ -4,6 +4,12 @@ The audit log holds every byte a session wrote and when (see :mod:`tactdeform_hw
 them again, at the same relative times, into the timed emulator reproduces what the firmware's scans did
 with them — which channels received which current, and how much charge — so a session can be checked
 after the fact, e.g. against the participant's profile (``--participant``).
+
+A log is replayed on the model of the firmware it was written for: the device records a ``firmware`` event
+when it speaks v2 (each pattern element a u16 height, the stimulation mode, the sync check), so such a log
+goes to the v2 timed model and its bytes are read with the v2 command table; a log without that record was
+written for v1.2 (the audit log's default reading).  A log naming a firmware this package does not know, or
+naming two, is refused, as is a log whose firmware is not the one ``--firmware`` asks for.
 """
 
 from __future__ import annotations
@@ -13,6 +19,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from ..errors import ConfigurationError
+from ..protocol.firmware import FIRMWARES, V1_2, V2
 from .common import print_json
 from .options import duration
 
@@ -24,9 +31,17 @@ def register(sub: Any) -> None:
         description="Replay the commands of an audit log (--audit-log of send, render, play, study, "
         "calibrate) into the timed emulator at their recorded times and report, per channel, the pulses, "
         "the largest current and the charge actually delivered by the emulated scans. With --participant, "
-        "pulses above the participant's limits are listed and the exit code is 3.",
+        "pulses above the participant's limits are listed and the exit code is 3. A log is replayed on the "
+        "model of the firmware it records (v1.2 or v2).",
     )
     p.add_argument("file", help="audit log (JSON lines)")
+    p.add_argument(
+        "--firmware",
+        choices=tuple(FIRMWARES),
+        default=None,
+        help="the firmware the log must have been written for (default: the one the log records); a log "
+        "written for another is refused",
+    )
     p.add_argument(
         "--link", choices=("usb", "uart"), default="usb", help="link model for the replay (default usb)"
     )
@@ -48,17 +63,64 @@ def register(sub: Any) -> None:
     p.set_defaults(func=run)
 
 
-def replay(path: str, *, link: str = "usb", tail_s: float = 0.05) -> dict[str, Any]:
-    """Replay a log; return the delivery report (also used by tests and tools)."""
+def log_firmware(path: str, asked: str | None = None) -> tuple[str, str]:
+    """The firmware ``path`` was written for and where that comes from: its ``firmware`` record (an event,
+    or a field of the session line), else v1.2.  Refused (one line each): a firmware this package does not
+    know, two different ones in one log, and a log not written for ``asked`` (``--firmware``)."""
+    from ..device.audit import read_log
+
+    named: list[tuple[int, str]] = []
+    for n, rec in enumerate(read_log(path), start=1):
+        if rec.get("type") == "session" and "firmware" in rec:
+            named.append((n, str(rec["firmware"])))
+        elif rec.get("type") == "event" and rec.get("event") == "firmware":
+            named.append((n, str(rec.get("firmware"))))
+    names = sorted({name for _, name in named})
+    for name in names:
+        if name not in FIRMWARES:
+            line = next(n for n, v in named if v == name)
+            raise ConfigurationError(
+                f"audit log {path} line {line}: firmware {name!r} is not a known firmware version "
+                f"(choices: {', '.join(FIRMWARES)}); its bytes cannot be replayed on a model of another"
+            )
+    if len(names) > 1:
+        raise ConfigurationError(
+            f"audit log {path}: records firmware {' and '.join(names)}; one log is one session on one board, "
+            "replay each session's log on its own"
+        )
+    if names:
+        firmware, source = names[0], "the log's firmware record"
+    else:
+        firmware, source = V1_2.name, "no firmware record in the log: written for v1.2"
+    if asked is not None and asked != firmware:
+        raise ConfigurationError(
+            f"--firmware {asked}: audit log {path} was written for firmware {firmware} ({source}); replay it "
+            f"with --firmware {firmware}, or without --firmware"
+        )
+    return firmware, source
+
+
+def replay(
+    path: str, *, link: str = "usb", tail_s: float = 0.05, firmware: str | None = None
+) -> dict[str, Any]:
+    """Replay a log on the timed model of the firmware it was written for (``firmware``: the one it must
+    have been written for, refused otherwise); return the delivery report (also used by tests and tools)."""
     import numpy as np
 
     from ..device.audit import read_log
     from ..emulator.timed import TimedEmulator
 
+    ran, source = log_firmware(path, firmware)
     records = [r for r in read_log(path) if r["type"] == "tx" and r.get("ok", True)]
     if not records:
         raise ConfigurationError(f"audit log {path}: no commands to replay")
-    emu = TimedEmulator(link=link)
+    v2 = ran == V2.name
+    if v2:
+        from ..emulator.timed_v2 import TimedEmulatorV2
+
+        emu: Any = TimedEmulatorV2(link=link)
+    else:
+        emu = TimedEmulator(link=link)
     t_last = 0.0
     for r in records:
         t = max(float(r["t"]), t_last)  # writes must come in time order
@@ -66,7 +128,12 @@ def replay(path: str, *, link: str = "usb", tail_s: float = 0.05) -> dict[str, A
         emu.advance_to(t * 1e6)
         emu.write(bytes.fromhex(r["hex"]))
     emu.advance_to((t_last + tail_s) * 1e6)
-    table = emu.reports.pulse_table()
+    if v2:
+        from ..study.runner import v2_pulse_table
+
+        table = v2_pulse_table(emu)
+    else:
+        table = emu.reports.pulse_table()
     cur = table["current_ua"]
     live = cur > 0
     channels: dict[int, dict[str, Any]] = {}
@@ -80,8 +147,14 @@ def replay(path: str, *, link: str = "usb", tail_s: float = 0.05) -> dict[str, A
             "first_s": round(float(table["start_us"][sel].min()) / 1e6, 6),
             "last_s": round(float(table["start_us"][sel].max()) / 1e6, 6),
         }
+        if v2:
+            # every v2 channel has its own height: the heights it was pulsed at
+            channels[ch]["heights_ua"] = sorted({round(float(v), 1) for v in cur[sel].tolist()})
+    losses = list(getattr(emu, "losses", ()))  # bytes that never took effect, where the model reports them
     return {
         "file": str(path),
+        "firmware": ran,
+        "firmware_source": source,
         "commands": len(records),
         "duration_s": round(t_last, 6),
         "pulses": int(live.sum()),
@@ -89,7 +162,7 @@ def replay(path: str, *, link: str = "usb", tail_s: float = 0.05) -> dict[str, A
         "max_charge_nc": round(float(table["charge_nc"][live].max()), 2) if live.any() else 0.0,
         "total_charge_nc": round(float(np.sum(table["charge_nc"][live])), 1),
         "channels": channels,
-        "losses": [lo.to_dict() for lo in emu.losses],
+        "losses": [lo.to_dict() for lo in losses],
         "hazards": sorted({h.kind.value for h in emu.hazards}),
         "final_state": {k: v for k, v in emu.state().items() if k != "stim_pattern"},
         "_table": table,
@@ -179,7 +252,7 @@ def judge(table: dict[str, Any], hw: dict[int, tuple[int, int]] | None, guard: A
 
 
 def run(args: argparse.Namespace) -> int:
-    rep = replay(args.file, link=args.link, tail_s=args.tail_ms / 1000.0)
+    rep = replay(args.file, link=args.link, tail_s=args.tail_ms / 1000.0, firmware=args.firmware)
     table = rep.pop("_table")
     code = 0
     if args.participant:
@@ -226,15 +299,18 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(rep)
     else:
+        print(f"replayed on the firmware {rep['firmware']} model ({rep['firmware_source']})")
         print(
             f"{rep['commands']} command(s) over {rep['duration_s']:.3f} s: {rep['pulses']} pulse(s), "
             f"max {rep['max_current_ua']} µA, max {rep['max_charge_nc']} nC per pulse, "
             f"{rep['total_charge_nc']} nC in all"
         )
         for ch, c in rep["channels"].items():
+            heights = c.get("heights_ua")
             print(
                 f"  channel {ch:3d}: {c['pulses']:6d} pulses, max {c['max_current_ua']:8.1f} µA, "
                 f"{c['total_charge_nc']:10.1f} nC"
+                + (f", heights {', '.join(f'{h:g}' for h in heights)} µA" if heights else "")
             )
         if rep["losses"]:
             print(f"  {len(rep['losses'])} loss(es) in the replay")

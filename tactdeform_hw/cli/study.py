@@ -9,6 +9,10 @@ emulator behind the virtual serial port by default); the bytes written are repla
 emulator for the currents and charges the scans delivered.  ``--out`` receives ``report.json``,
 ``summary.md``, the frames of every trial and pictures of the array.  Exit status: 0 when every check
 passed, 3 when a check failed, 1 on an error (bad option, bad profile, no device).
+
+Both firmware versions run it: the report names the one that ran, and on v2 (one height per electrode)
+the checks also read every electrode's height back and the ``delivered`` section lists the heights each
+electrode was pulsed at.
 """
 
 from __future__ import annotations
@@ -165,12 +169,15 @@ def run(args: argparse.Namespace) -> int:
             tremor_mm=args.tremor_mm,
             progress=say,
             realtime=args.realtime,
-            firmware=getattr(args, "firmware", None),
+            firmware=getattr(args, "firmware", "auto"),
         )
     finally:
         audit.close()
     result.sent = audit.report()
     result.sent["requested_ua"] = result.current_ua
+    result.sent["firmware"] = result.firmware
+    if result.firmware == "v2":
+        result.sent["electrode_heights_ua"] = electrode_heights(result)
     design = check_study(result)
     say(f"study {study.name}: writing the report to {args.out}")
     report = write_report(result, design, args.out, pictures=not args.no_pictures, gif=args.gif)
@@ -206,6 +213,8 @@ def run(args: argparse.Namespace) -> int:
             print(f"  failed: {name} ({n} trial(s))")
         for line in delivered_lines(result.sent):
             print(line)
+        if "electrode_heights_ua" in result.sent:
+            print(heights_line(result.sent["electrode_heights_ua"]))
     if not s["all_passed"]:
         if not args.quiet:
             print(
@@ -214,6 +223,41 @@ def run(args: argparse.Namespace) -> int:
             )
         return EXIT_CHECK_FAILED
     return 0
+
+
+def electrode_heights(result: Any) -> list[list[float]] | None:
+    """Firmware v2: the heights (µA) each electrode was pulsed at over the study, in application order,
+    from the timed replay (None without it).  On v2 every electrode has its own height, so one maximum
+    for the session would hide an electrode held lower (or higher) than the rest."""
+    per: list[set[float]] = [set() for _ in range(result.array.count)]
+    seen = False
+    for run in result.trials:
+        d = run.delivered
+        if d is None or "heights_ua" not in d["per_electrode"]:
+            continue
+        seen = True
+        for i, hs in enumerate(d["per_electrode"]["heights_ua"]):
+            per[i].update(hs)
+    return [sorted(h) for h in per] if seen else None
+
+
+def heights_line(heights: list[list[float]] | None) -> str:
+    """The console's line for the per-electrode heights on v2 (electrodes grouped by equal heights)."""
+    from .delivered import _span
+
+    if heights is None:
+        return "firmware v2: per-electrode heights not known (no timed replay)"
+    groups: dict[tuple[float, ...], list[int]] = {}
+    for i, hs in enumerate(heights):
+        if hs:
+            groups.setdefault(tuple(hs), []).append(i)
+    if not groups:
+        return "firmware v2: no electrode was pulsed"
+    parts = [
+        f"{', '.join(f'{h:g}' for h in hs)} µA on electrode(s) {_span(es)}"
+        for hs, es in sorted(groups.items())
+    ]
+    return "firmware v2: heights delivered per electrode: " + "; ".join(parts)
 
 
 def _transfer() -> Any:

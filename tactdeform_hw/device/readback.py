@@ -36,4 +36,28 @@ def pattern_readback(device: Any, mapping: ChannelMapping | None = None) -> Patt
     return read
 
 
-__all__ = ["PatternReadback", "pattern_readback"]
+def heights_readback(device: Any, mapping: ChannelMapping | None = None) -> PatternReadback | None:
+    """A function returning the pulse height (DAC code) each electrode has in the pattern buffer of a
+    firmware-v2 board, in application order; None when the port cannot show its board or the board holds
+    levels (v1.2), where :func:`pattern_readback` already shows everything the buffer holds.  On v2 a
+    level readback only says which electrodes are on; a wrong height needs the codes themselves."""
+    port = getattr(device, "port", None)
+    if not callable(getattr(port, "board_state", None)):
+        return None
+    state = board_state(port)
+    if state is None or state.get("stim_mode") is None:
+        return None
+    m = mapping if mapping is not None else getattr(device, "mapping", None)
+
+    def read() -> tuple[int, ...]:
+        now = board_state(port)
+        assert now is not None  # the port declared board_state()
+        codes = [int(v) for v in now["stim_pattern"]]
+        if m is None:
+            return tuple(codes[: int(now["electrode_num"])])
+        return tuple(m.to_application(codes[: m.hw_channels]))
+
+    return read
+
+
+__all__ = ["PatternReadback", "heights_readback", "pattern_readback"]

@@ -15,6 +15,12 @@ Checks on every trial
     every surface, the withdrawal the study asked for between approaches),
     and from the timed replay ``scans_delivered_each_frame`` (the channels pulsed while a frame was held
     are the frame's electrodes), ``currents_within_limits`` and ``no_timing_hazards``.
+Firmware v2 (every trial, besides the above)
+    ``heights_matched_every_sent_frame`` (each electrode's height in the board's pattern buffer after each
+    sent frame, against the height the driver put in force: the level readback only sees on and off) and,
+    from the timed replay, ``heights_delivered_each_frame`` (every pulse on an electrode while a frame was
+    held has the height the frame's bytes gave that electrode).  Every check above applies on v2 as well:
+    the wire and the pulses are read with the v2 command table and the v2 timed model.
 Task 1
     ``feature_rendered_matches`` (the feature under the finger is the trial's), ``edge_orientation_matches``,
     ``approach_frames_expand`` (each approach frame is one of the feature's expansion frames, starting at
@@ -45,7 +51,7 @@ import numpy as np
 
 from ..render.geometry import TEXTURE_NAMES
 from ..render.patterns import DIRECTIONS, EDGE_ORIENTATIONS, Pattern, PatternSet
-from .runner import StudyRun, TrialRun, frame_intents
+from .runner import StudyRun, TrialRun, frame_heights, frame_intents
 
 #: Latency allowed between a frame's write and its effect on every scan (pacing, the USB frame, the
 #: parser's tick and the scan in progress) before the scans must show it.
@@ -133,6 +139,8 @@ def common_checks(run: TrialRun, result: StudyRun) -> list[Check]:
         out.append(Check("pattern_buffer_matched_every_sent_frame", mism == 0, detail))
     else:
         out.append(Check("pattern_buffer_matched_every_sent_frame", None, "no emulator behind the port"))
+    if result.firmware == "v2":
+        out.append(heights_readback_check(run))
     wire = [p for _, p, phase in frame_intents(run, result.array) if phase == "render"]
     want = [tuple(r.electrodes) for r in sent]
     if wire == want:
@@ -243,7 +251,80 @@ def timed_checks(run: TrialRun, result: StudyRun) -> list[Check]:
     out.append(Check("currents_within_limits", not bad, detail))
     kinds = [h.get("kind") for h in run.timed_hazards]
     out.append(Check("no_timing_hazards", not kinds, "none" if not kinds else _fmt_set(kinds)))
+    if result.firmware == "v2":
+        out.append(heights_delivered_check(run, result))
     return out
+
+
+def heights_readback_check(run: TrialRun) -> Check:
+    """Firmware v2: the board's per-electrode heights after every sent frame were the driver's."""
+    name = "heights_matched_every_sent_frame"
+    if run.heights_checked is None:
+        return Check(name, None, "no emulator behind the port: the board's heights cannot be read back")
+    detail = (
+        f"{run.heights_checked} sent frame(s): every electrode's height in the board's pattern buffer "
+        f"compared with the driver's, {run.height_mismatches} mismatch(es)"
+    )
+    first = run.first_height_mismatch
+    if first is not None:
+        meant, got = first.get("driver_codes"), first.get("board_codes") or []
+        diff = (
+            [i for i, (a, b) in enumerate(zip(meant, got)) if a != b]
+            if meant is not None
+            else "driver unknown"
+        )
+        detail += f"; first at frame {first.get('frame')}, electrodes {diff}"
+    return Check(name, run.height_mismatches == 0 and run.heights_checked > 0, detail)
+
+
+def heights_delivered_check(run: TrialRun, result: StudyRun) -> Check:
+    """Firmware v2, timed replay: while a frame was held (after settling), every pulse on an electrode had
+    the height the frame's bytes gave that electrode."""
+    name = "heights_delivered_each_frame"
+    d = run.delivered
+    if d is None:
+        return Check(name, None, result.timed_note or "timed replay not available")
+    table = d["_table"]
+    mapping = result.array.channel_mapping()
+    hw_to_app = {ch: i for i, ch in enumerate(mapping.app_to_hw)}
+    stim = np.isin(table["kind"], (0, 1, 2)) & (table["current_ua"] > 0)
+    starts = table["start_us"][stim]
+    chans = table["channel"][stim].astype(int)
+    cur = table["current_ua"][stim]
+    frames = frame_heights(run, result.array)
+    end_us = d["window_s"][1] * 1e6
+    checked = pulses = 0
+    problems: list[str] = []
+    for k, (t_us, _levels, heights, _phase) in enumerate(frames):
+        nxt = frames[k + 1][0] if k + 1 < len(frames) else end_us
+        lo = t_us + SETTLE_S * 1e6
+        if nxt <= lo:
+            continue
+        sel = (starts >= lo) & (starts < nxt)
+        checked += 1
+        wrong: dict[int, set[float]] = {}
+        for ch, ua in zip(chans[sel].tolist(), cur[sel].tolist()):
+            pulses += 1
+            app = hw_to_app.get(int(ch))
+            want = heights[app] if app is not None else 0.0
+            if abs(float(ua) - want) > 1e-6:
+                wrong.setdefault(-1 if app is None else app, set()).add(round(float(ua), 1))
+        if wrong:
+            problems.append(
+                f"frame at {t_us / 1e6:.3f} s: "
+                + ", ".join(
+                    f"electrode {e} pulsed at {sorted(v)} µA, meant {heights[e] if e >= 0 else 0:g}"
+                    for e, v in sorted(wrong.items())[:3]
+                )
+            )
+    if checked == 0:
+        return Check(name, None, "no frame held long enough to be checked")
+    detail = f"{checked} frame(s), {pulses} pulse(s) compared with each electrode's height on the wire"
+    if problems:
+        detail += (
+            "; " + "; ".join(problems[:3]) + (f" (+{len(problems) - 3} more)" if len(problems) > 3 else "")
+        )
+    return Check(name, not problems, detail)
 
 
 # --- per study -------------------------------------------------------------------------------------------

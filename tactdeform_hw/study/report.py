@@ -125,6 +125,19 @@ def trial_json(run: TrialRun, result: StudyRun) -> dict[str, Any]:
             else {k: v for k, v in run.delivered.items() if not k.startswith("_")},
             "delivered_note": None if run.delivered is not None else (result.timed_note or "no timed replay"),
             "emulator_hazards": list(run.hazards) if run.verified else None,
+            **(
+                {
+                    "heights_readback": None
+                    if run.heights_checked is None
+                    else {
+                        "frames": run.heights_checked,
+                        "mismatches": run.height_mismatches,
+                        "first_mismatch": run.first_height_mismatch,
+                    }
+                }
+                if result.firmware == "v2"
+                else {}
+            ),
             "timing_hazards": list(run.timed_hazards) if run.delivered is not None else None,
             "renderer": {
                 k: run.summary.get(k)
@@ -197,6 +210,7 @@ def report_json(result: StudyRun, design: list[Check]) -> dict[str, Any]:
         "generated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         "study": result.study.to_json(),
         "device": result.device,
+        "firmware": result.firmware,
         "participant": result.participant,
         "current_ua": result.current_ua,
         "current_source": result.current_source,
@@ -226,7 +240,8 @@ def markdown(report: dict[str, Any]) -> str:
         "",
         f"**{verdict}**: {s['passed']} of {s['run']} trial(s) passed"
         + (f", {s['skipped']} skipped" if s["skipped"] else "")
-        + f" · device `{report['device']}` · current {report['current_ua']} µA ({report['current_source']})"
+        + f" · device `{report['device']}` · firmware {report['firmware']}"
+        + f" · current {report['current_ua']} µA ({report['current_source']})"
         + (f" · participant {report['participant']}" if report["participant"] else "")
         + f" · seed {study['seed']}{' · quick' if study['quick'] else ''}",
         "",

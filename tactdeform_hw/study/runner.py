@@ -15,6 +15,11 @@ channels were pulsed, at what current and with how much charge.  The replay spac
 at the moment the renderer produced them.
 
 Session time runs on: trial *k + 1* starts :data:`INTER_TRIAL_S` after trial *k* ended.
+
+Both firmware versions run the same study.  The firmware the device found (v1.2, or v2 where each
+electrode's pattern element is its own pulse height) decides how the captured bytes are read, which timed
+model replays them (:func:`~tactdeform_hw.emulator.timed.timed_emulator`), and, on v2, the extra readback of
+every electrode's height after each frame (the level readback alone would not see a wrong height).
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from __future__ import annotations
 import math
 import time
 from bisect import bisect_right
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -30,6 +36,7 @@ import numpy as np
 
 from ..errors import ConfigurationError, TactDeformError
 from ..protocol.constants import Opcode
+from ..protocol.firmware import V2, OpcodeV2
 from ..render.array import ElectrodeArray
 from ..render.manager import ManagerConfig
 from ..render.patterns import PatternSet
@@ -60,22 +67,28 @@ ProgressFn = Callable[[str], None]
 @dataclass(frozen=True)
 class WireWrite:
     """One write on the port: when (session time of the pose being rendered), in which trial (0 outside
-    any), in which phase (``configure`` / ``render`` / ``session``), and the bytes."""
+    any), in which phase (``configure`` / ``render`` / ``session``), the bytes, and the firmware whose
+    command table reads them (v2 has the sync check 0xF4 and the stimulation mode where v1.2 has the
+    pulse height)."""
 
     t_s: float
     trial: int
     phase: str
     data: bytes
+    firmware: str = "v1.2"
 
     @property
     def opcode(self) -> int | None:
-        return self.data[0] if self.data and self.data[0] >= min(Opcode) else None
+        low = min(OpcodeV2) if self.firmware == V2.name else min(Opcode)
+        return self.data[0] if self.data and self.data[0] >= low else None
 
     @property
     def name(self) -> str:
         op = self.opcode
         if op is None:
             return "ZEROS" if not any(self.data) else "UNKNOWN"
+        if self.firmware == V2.name:
+            return OpcodeV2(op).name
         return Opcode(op).name
 
 
@@ -83,18 +96,22 @@ class WireTap:
     """A transparent proxy around a pyserial-like port that records every write.
 
     Attribute reads and writes go to the wrapped port (``emulator``, ``is_open``, ``dtr`` …), so the driver
-    and the renderer's verification see the port they expect."""
+    and the renderer's verification see the port they expect.  ``firmware`` names the command table the
+    writes are read with (set once the device knows the board's version)."""
 
-    def __init__(self, port: Any) -> None:
+    def __init__(self, port: Any, firmware: str = "v1.2") -> None:
         object.__setattr__(self, "_port", port)
         object.__setattr__(self, "writes", [])
         object.__setattr__(self, "t_s", 0.0)
         object.__setattr__(self, "trial", 0)
         object.__setattr__(self, "phase", "session")
+        object.__setattr__(self, "firmware", firmware)
 
     def write(self, data: bytes) -> Any:
         n = self._port.write(data)
-        self.writes.append(WireWrite(float(self.t_s), int(self.trial), str(self.phase), bytes(data)))
+        self.writes.append(
+            WireWrite(float(self.t_s), int(self.trial), str(self.phase), bytes(data), str(self.firmware))
+        )
         return n
 
     def mark(self, *, t_s: float | None = None, trial: int | None = None, phase: str | None = None) -> None:
@@ -109,7 +126,7 @@ class WireTap:
         return getattr(self._port, name)
 
     def __setattr__(self, name: str, value: Any) -> None:
-        if name in ("t_s", "trial", "phase"):
+        if name in ("t_s", "trial", "phase", "firmware"):
             object.__setattr__(self, name, value)
         else:
             setattr(self._port, name, value)
@@ -142,6 +159,11 @@ class TrialRun:
     timed_hazards: list[dict[str, Any]] = field(default_factory=list)
     checks: list[Any] = field(default_factory=list)
     wall_s: float = 0.0
+    #: Firmware v2: sent frames whose per-electrode heights were read back from the board, how many
+    #: differed from the heights the driver put in force, and the first difference (None: not read back).
+    heights_checked: int | None = None
+    height_mismatches: int = 0
+    first_height_mismatch: dict[str, Any] | None = None
 
     @property
     def passed(self) -> bool | None:
@@ -174,6 +196,8 @@ class StudyRun:
     #: What the session sent, from the device's own records (pulse heights written, each electrode's highest,
     #: the guard's clips and refusals): see :mod:`tactdeform_hw.cli.delivered`.
     sent: dict[str, Any] | None = None
+    #: The firmware the board ran (``v1.2`` or ``v2``), as the device found it.
+    firmware: str = "v1.2"
 
 
 # --- scenes and poses ----------------------------------------------------------------------------------
@@ -322,7 +346,7 @@ def run_study(
     session clock (a real device then shows each trial at its real speed); otherwise the run goes as fast
     as it can, which changes nothing the checks look at: the timed replay restores the session's timing."""
     from ..device import StimConfig, open_device
-    from ..device.readback import pattern_readback
+    from ..device.readback import heights_readback, pattern_readback
     from ..device.safety import SafetyGuard
     from ..ports import board_hazards, board_state
 
@@ -363,14 +387,9 @@ def run_study(
         offline_clock=None if realtime else SimulatedClock(),
         firmware=firmware,
     )
-    if dev._dialect is not None:
-        dev.close()
-        raise ConfigurationError(
-            f"--firmware {firmware}: the board runs firmware v2, and the study's checks replay the session "
-            "on the timed model of firmware v1.2; run the study on a v1.2 board"
-        )
+    ran = dev._dialect.firmware.name if dev._dialect is not None else "v1.2"
     sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
-    tap = WireTap(dev.port)
+    tap = WireTap(dev.port, ran)
     dev.port = tap
     session_t = 0.0
     wall_start: float | None = None  # wall clock minus session time, for realtime pacing
@@ -410,6 +429,9 @@ def run_study(
             # an instant port, offline
             readback = pattern_readback(dev, mapping) if sim_clock is not None else None
             run.verified = readback is not None
+            heights = heights_readback(dev, mapping) if readback is not None else None
+            if readback is not None and heights is not None:
+                readback = _with_heights(readback, heights, dev, run)
             hazards_before = len(board_hazards(dev.port) or ())
             renderer = Renderer(
                 scene,
@@ -477,6 +499,7 @@ def run_study(
         getattr(profile, "participant", None),
         notes=notes,
         writes=list(tap.writes),
+        firmware=ran,
     )
     if timed:
         try:
@@ -490,6 +513,31 @@ def run_study(
     return result
 
 
+def _with_heights(
+    levels: Callable[[], tuple[int, ...]], heights: Callable[[], tuple[int, ...]], dev: Any, run: TrialRun
+) -> Callable[[], tuple[int, ...]]:
+    """The renderer's readback on a v2 board: the levels it compares, and beside them every electrode's
+    height on the board against the height the driver put in force (counted on ``run``)."""
+    run.heights_checked = 0
+
+    def read() -> tuple[int, ...]:
+        got = heights()
+        meant = dev.heights_in_force
+        assert run.heights_checked is not None
+        run.heights_checked += 1
+        if meant is None or tuple(meant) != got:
+            run.height_mismatches += 1
+            if run.first_height_mismatch is None:
+                run.first_height_mismatch = {
+                    "frame": run.heights_checked,
+                    "driver_codes": None if meant is None else list(meant),
+                    "board_codes": list(got),
+                }
+        return levels()
+
+    return read
+
+
 # --- what the scans delivered --------------------------------------------------------------------------
 
 _STIM_KINDS = (0, 1, 2)  # PulseKind.MONO, BI_ANODIC, BI_CATHODIC
@@ -497,9 +545,9 @@ _PULSE_COLUMNS = ("start_us", "channel", "kind", "current_ua", "charge_nc")
 
 
 def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
-    """Replay the session's writes into the timed emulator and attach, per trial, the pulses delivered
-    (per electrode: pulses, largest current, charge), the timing hazards in the trial's window and the
-    replay time of each write."""
+    """Replay the session's writes into the timed model of the firmware that ran and attach, per trial,
+    the pulses delivered (per electrode: pulses, largest current, charge; on v2 also the heights each
+    electrode was pulsed at), the timing hazards in the trial's window and the replay time of each write."""
     from ..emulator.hazards import HazardKind
     from ..emulator.timed import TimedEmulator
 
@@ -507,7 +555,13 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     if not writes:
         result.timed_note = "nothing was written"
         return
-    emu = TimedEmulator(link=link)
+    v2 = result.firmware == V2.name
+    if v2:
+        from ..emulator.timed_v2 import TimedEmulatorV2
+
+        emu: Any = TimedEmulatorV2(link=link)
+    else:
+        emu = TimedEmulator(link=link)
     at: dict[int, float] = {}
     last = -math.inf
     for w in writes:
@@ -520,22 +574,43 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     offsets = [0]
     for w in writes[:-1]:
         offsets.append(offsets[-1] + len(w.data))
-    reports = emu.reports
     mapping = result.array.channel_mapping()
     hw_to_app = {ch: i for i, ch in enumerate(mapping.app_to_hw)}
-    # Overruns, queue overflows and watchdog resets are in the hazard list; torn scans and lost bytes are
-    # taken from the scan runs and the loss reports (per-cycle reports would be tens of thousands): a
-    # torn_pattern record covers a stretch of cycles, each trial gets the torn scans inside its window.
-    torn_runs = [r.starts_ns() / 1000.0 for r in reports.runs if r.torn is not None]
-    losses = list(emu.losses)
-    hazards = [h for h in emu.hazards if h.kind is not HazardKind.TORN_PATTERN]
-    result.timed = True
-    summary = reports.summary()
-    # The model's assumptions are the timing command's business; a pattern's "latency" to its first
-    # pulse is unbounded for an all-off frame, so the maximum says nothing about the session here.
-    for key in ("model_assumptions", "latency_us_max", "now_us"):
-        summary.pop(key, None)
-    result.timed_summary = summary
+    if v2:
+        # v2 records every scan (a torn pattern is one hazard per scan it tore, with its time): the
+        # hazard list and the model's loss reports, where it keeps them, are the whole account
+        pulses = v2_pulse_table(emu)
+        torn_runs: list[Any] = []
+        losses: list[Any] = list(getattr(emu, "losses", ()))
+        hazards = list(emu.hazards)
+        result.timed = True
+        result.timed_summary = {
+            "firmware": V2.name,
+            "scans": int(emu.scan_count),
+            "pulses": int(pulses["channel"].size),
+            "hazards": dict(sorted(Counter(h.kind.value for h in hazards).items())),
+        }
+
+        def pulse_table(lo_us: float, hi_us: float) -> dict[str, np.ndarray]:
+            sel = (pulses["start_us"] >= lo_us) & (pulses["start_us"] < hi_us)
+            return {k: v[sel] for k, v in pulses.items()}
+    else:
+        reports = emu.reports
+        # Overruns, queue overflows and watchdog resets are in the hazard list; torn scans and lost bytes
+        # are taken from the scan runs and the loss reports (per-cycle reports would be tens of
+        # thousands): a torn_pattern record covers a stretch of cycles, each trial gets the torn scans
+        # inside its window.
+        torn_runs = [r.starts_ns() / 1000.0 for r in reports.runs if r.torn is not None]
+        losses = list(emu.losses)
+        hazards = [h for h in emu.hazards if h.kind is not HazardKind.TORN_PATTERN]
+        result.timed = True
+        summary = reports.summary()
+        # The model's assumptions are the timing command's business; a pattern's "latency" to its first
+        # pulse is unbounded for an all-off frame, so the maximum says nothing about the session here.
+        for key in ("model_assumptions", "latency_us_max", "now_us"):
+            summary.pop(key, None)
+        result.timed_summary = summary
+        pulse_table = reports.pulse_table
     for run in result.trials:
         if run.skipped is not None or not run.writes:
             continue
@@ -543,7 +618,7 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         lo_us = run.replay_us[0]
         hi_us = max(run.t1_s * 1e6, run.replay_us[-1]) + 20_000.0
         # One window per trial, and only the columns the checks use: a study is millions of pulses.
-        window = reports.pulse_table(lo_us, hi_us)
+        window = pulse_table(lo_us, hi_us)
         sel = {k: window[k] for k in _PULSE_COLUMNS}
         del window
         stim = np.isin(sel["kind"], _STIM_KINDS)
@@ -551,6 +626,7 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         per_charge = [0.0] * result.array.count
         per_pulses = [0] * result.array.count
         per_max = [0.0] * result.array.count
+        per_heights: list[set[float]] = [set() for _ in range(result.array.count)]
         unmapped = 0
         for ch, ua, q in zip(
             sel["channel"][stim].tolist(), sel["current_ua"][stim].tolist(), sel["charge_nc"][stim].tolist()
@@ -562,7 +638,17 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
             per_pulses[app] += 1
             per_charge[app] += float(q)
             per_max[app] = max(per_max[app], float(ua))
+            if v2 and ua > 0:
+                per_heights[app].add(round(float(ua), 1))
         sense_live = int(np.sum(~stim & (sel["current_ua"] > 0)))
+        per_electrode: dict[str, Any] = {
+            "pulses": per_pulses,
+            "charge_nc": [round(v, 1) for v in per_charge],
+            "max_current_ua": [round(v, 1) for v in per_max],
+        }
+        if v2:
+            # each electrode's own pulse heights: on v2 every pattern element is a height
+            per_electrode["heights_ua"] = [sorted(h) for h in per_heights]
         run.delivered = {
             "window_s": [round(lo_us / 1e6, 6), round(hi_us / 1e6, 6)],
             "stimulation_pulses": int(stim.sum()),
@@ -572,11 +658,7 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
             "max_current_ua": round(float(sel["current_ua"][stim].max()), 1) if stim.any() else 0.0,
             "max_charge_per_pulse_nc": round(float(sel["charge_nc"][stim].max()), 3) if stim.any() else 0.0,
             "total_charge_nc": round(float(sel["charge_nc"][stim].sum()), 1),
-            "per_electrode": {
-                "pulses": per_pulses,
-                "charge_nc": [round(v, 1) for v in per_charge],
-                "max_current_ua": [round(v, 1) for v in per_max],
-            },
+            "per_electrode": per_electrode,
             "_table": sel,
         }
         found: list[dict[str, Any]] = []
@@ -597,9 +679,73 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         run.timed_hazards = found
 
 
+def v2_pulse_table(emu: Any) -> dict[str, np.ndarray]:
+    """Every pulse the v2 model's scans delivered, in the columns the checks read (``start_us``,
+    ``channel``, ``kind`` as v1.2's pulse kinds, ``current_ua``, ``charge_nc``, ``code``): modes 0 and 1
+    are stimulation (monophasic; biphasic by the POL level), mode 2 gives every channel the sense pulse."""
+    from ..protocol.units import DEFAULT_TRANSFER
+
+    rows: list[tuple[float, int, int, int, float]] = []
+    for scan in emu.scans:
+        for ch, onset, code, width_ns, pol in scan.pulses:
+            if scan.stim_mode == 2:
+                kind = 3
+            elif scan.stim_mode == 1:
+                kind = 1 if pol else 2
+            else:
+                kind = 0
+            rows.append(((scan.start_ns + onset) / 1000.0, ch, kind, code, width_ns / 1000.0))
+    ua_of = {code: float(DEFAULT_TRANSFER.to_ua(code)) for code in {r[3] for r in rows}}
+    current = np.array([ua_of[r[3]] for r in rows], dtype=float)
+    width = np.array([r[4] for r in rows], dtype=float)
+    return {
+        "start_us": np.array([r[0] for r in rows], dtype=float),
+        "channel": np.array([r[1] for r in rows], dtype=int),
+        "kind": np.array([r[2] for r in rows], dtype=int),
+        "current_ua": current,
+        "charge_nc": current * width / 1000.0,
+        "code": np.array([r[3] for r in rows], dtype=int),
+    }
+
+
+def frame_heights(
+    run: TrialRun, array: ElectrodeArray
+) -> list[tuple[float, tuple[int, ...], tuple[float, ...], str]]:
+    """Firmware v2: the frames the host put on the wire during a trial, decoded from the captured writes
+    with the v2 table — replay time (µs), levels (0 off, else the waveform of the mode in force: 1
+    monophasic, 2 biphasic), each electrode's height in µA, phase — in application order.  The all-zero
+    pattern the driver writes just before a change of mode is part of that change, not a frame."""
+    from ..device.audit import describe_command
+    from ..protocol.units import DEFAULT_TRANSFER
+
+    mapping = array.channel_mapping()
+    times = run.replay_us or [w.t_s * 1e6 for w in run.writes]
+    mode = 0
+    out: list[tuple[float, tuple[int, ...], tuple[float, ...], str]] = []
+    for k, (w, t_us) in enumerate(zip(run.writes, times)):
+        name, value = describe_command(w.data, V2)
+        if name == "STIM_MODE" and isinstance(value, int):
+            mode = value
+            continue
+        if name != "PATTERN" or not isinstance(value, list) or len(value) < mapping.hw_channels:
+            continue
+        nxt = run.writes[k + 1] if k + 1 < len(run.writes) else None
+        if not any(value) and nxt is not None and describe_command(nxt.data, V2)[0] == "STIM_MODE":
+            continue
+        codes = mapping.to_application(value[: mapping.hw_channels])
+        on = 2 if mode == 1 else 1
+        levels = tuple(on if c else 0 for c in codes)
+        top = V2.dac_max_code
+        heights = tuple(float(DEFAULT_TRANSFER.to_ua(min(int(c), top))) for c in codes)
+        out.append((t_us, levels, heights, w.phase))
+    return out
+
+
 def frame_intents(run: TrialRun, array: ElectrodeArray) -> list[tuple[float, tuple[int, ...], str]]:
     """The patterns the host put on the wire during a trial, in application order, with their replay
-    time (µs) and phase, decoded from the captured writes."""
+    time (µs) and phase, decoded from the captured writes (with the table of the firmware that ran)."""
+    if run.writes and run.writes[0].firmware == V2.name:
+        return [(t, levels, phase) for t, levels, _h, phase in frame_heights(run, array)]
     mapping = array.channel_mapping()
     out = []
     for w, t_us in zip(run.writes, run.replay_us or [w.t_s * 1e6 for w in run.writes]):
@@ -618,8 +764,10 @@ __all__ = [
     "TrialRun",
     "WireTap",
     "WireWrite",
+    "frame_heights",
     "frame_intents",
     "replay_timed",
     "run_study",
     "trial_poses",
+    "v2_pulse_table",
 ]
