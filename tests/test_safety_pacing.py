@@ -175,3 +175,44 @@ def test_default_pacers() -> None:
         is_open = True
 
     assert isinstance(default_pacer(RealLike()).clock, MonotonicClock)
+
+
+def _burst_then_pattern(firmware_name: str) -> tuple[float, float]:
+    """(time the eight configuration commands took to write, the pattern's wait after them), paced for the
+    TactDeform setting's scans on ``firmware_name``."""
+    from tactdeform_hw.protocol import commands_v2 as c2
+    from tactdeform_hw.protocol.firmware import V1_2, V2
+
+    fw = V2 if firmware_name == "v2" else V1_2
+    clock = SimulatedClock()
+    pacer = Pacer(clock=clock, policy=PacingPolicy(firmware=fw, queue_bytes=fw.rx_queue_bytes))
+    pacer.set_timing(0.008, 0.00785)
+    burst = [
+        c2.encode_electrode_num(32),
+        c2.encode_stim_mode(0),
+        c2.encode_polarity(1),
+        c2.encode_pulse_width(200),
+        c2.encode_sense_height(0),
+        c2.encode_sense_width(0),
+        c2.encode_discharge(45),
+        c2.encode_frequency(125),
+    ]
+    for data in burst:
+        pacer.write(lambda _b: None, data)
+    burst_s = clock.now()
+    pacer.write(lambda _b: None, c2.encode_pattern([100] * 32, electrode_num=32))
+    return burst_s, clock.now() - burst_s
+
+
+def test_v2_reads_a_configuration_burst_back_to_back_but_a_pattern_waits_its_own_gap() -> None:
+    """v2's parser sleeps only when idle: a configuration burst is written at once.  A pattern still waits
+    a whole interval after the last command, so it is the first thing read after a scan and its copy ends
+    before the next scan (no torn pattern); v1.2 spaces every command with a payload."""
+    v2_burst, v2_wait = _burst_then_pattern("v2")
+    v12_burst, v12_wait = _burst_then_pattern("v1.2")
+    interval = Pacer(clock=SimulatedClock())
+    interval.set_timing(0.008, 0.00785)
+    assert v2_burst == 0.0
+    assert v12_burst >= 7 * interval.payload_interval_s()
+    need = interval.payload_interval_s() - 1e-9  # the waits are differences of clock readings
+    assert v2_wait >= need and v12_wait >= need

@@ -86,8 +86,11 @@ SCAN_GAP_MIN_US = 50.0
 class PacingPolicy:
     """``queue_margin_bytes`` of the 256-byte queue are never planned for (a probe of a few bytes always
     fits, even behind a queue the model only bounds); ``byte_s`` is the slowest a byte crosses the link
-    (a USB full-speed frame carries 64 bytes per ms, a 921600-baud UART one byte per 10.85 µs)."""
+    (a USB full-speed frame carries 64 bytes per ms, a 921600-baud UART one byte per 10.85 µs).
+    ``firmware`` is the table of the parser being paced: which bytes carry a payload, and whether it
+    sleeps a tick after each (v1.2) or reads complete commands back to back (v2)."""
 
+    firmware: FirmwareSpec = DEFAULT_FIRMWARE
     queue_bytes: int = RX_QUEUE_SIZE
     command_interval_s: float = 0.0012
     tick_s: float = 0.001
@@ -179,8 +182,25 @@ class Pacer:
         self.period_s = period_s
         self.scan_s = scan_s
 
+    @property
+    def yields_per_command(self) -> bool:
+        """Whether the parser sleeps a tick after every command with a payload (v1.2); v2 sleeps only
+        when a call made no progress, so complete commands are read back to back in one gap."""
+        return self.policy.firmware.yield_rule == "after_payload"
+
+    def spaced(self, data: bytes) -> bool:
+        """Whether the command starting ``data`` waits :meth:`payload_interval_s` after the previous
+        command with a payload.  v1.2: every such command (its parser sleeps a tick after each).  v2 reads
+        complete commands back to back, so only a pattern waits: written alone, it is the first thing the
+        parser reads when it wakes after a scan, and its copy into the pattern buffer ends before the next
+        scan; queued behind other commands it could start late in a short gap and be torn by that scan."""
+        fw = self.policy.firmware
+        if not has_payload(data, fw):
+            return False
+        return self.yields_per_command or fw.by_opcode[data[0]].kind == "pattern"
+
     def payload_interval_s(self) -> float:
-        """How far apart commands with a payload must be for the parser to keep up."""
+        """How far apart commands with a payload must be for the parser to keep up (see :meth:`spaced`)."""
         base = self.policy.command_interval_s
         if self.period_s is None or self.scan_s is None:
             return base
@@ -316,20 +336,26 @@ class Pacer:
                 self._account(len(chunk), self.skip_s(len(chunk)) + detect)
                 self.stats.bytes_written += len(chunk)
             return
-        payload = has_payload(data)
+        fw = self.policy.firmware
+        payload = has_payload(data, fw)
         padded = self.policy.robust_encoding if pad is None else pad
-        out = data + padding_for(data) if padded else data
+        out = data + padding_for(data, fw) if padded else data
         self._fit(len(out))
         interval = self.payload_interval_s()
-        if payload:
+        spaced = self.spaced(data)
+        if spaced:
             self._wait_until(self._last_payload_write + interval)
         write(out)
         if payload:
             self._last_payload_write = self.clock.now()
             self.stats.payload_commands += 1
         parts = max(1, math.ceil(len(out) / max(1, self.policy.chunk_bytes)))  # a long pattern: several reads
-        if payload:
+        if spaced:
             duration = interval * parts
+        elif payload:
+            # read whole once complete, in the gaps between scans; a payload still crossing the link costs
+            # a one-tick sleep per waiting call, which the in-flight entry's tick covers once per part
+            duration = self.skip_s(len(out)) + self.policy.tick_s * (parts - 1)
         else:
             duration = self.skip_s(len(out)) + (
                 self.busy_s(HV513_DETECT_US) if out[0] == HV513_COUNT_BYTE else 0.0

@@ -219,6 +219,8 @@ class EtactileKitDevice(Device):
             from .v2 import V2Dialect
 
             V2Dialect().attach(self)
+        elif self.audit is not None:  # the log says which firmware its bytes were written for, as on v2
+            self.audit.event("firmware", firmware=firmware)
         try:
             self._open_proof()
         except FirmwareMismatchError:
