@@ -1,6 +1,7 @@
 """Random sessions of public ``Device`` calls on the timed emulator, judged on the pulses it delivered.
 
-    python tools/safety_campaign.py --sessions 2000 [--faults] [--jobs J] [--seed S] [--json]
+    python tools/safety_campaign.py --sessions 2000 [--firmware v1.2|v2|both] [--faults] [--jobs J] [--seed S]
+        [--json]
 
 Each session is drawn from its own seed (``seed * 1_000_003 + index``), so a run is deterministic for a
 seed and any session can be replayed alone (``--only INDEX``).  A session picks a link (USB full speed or
@@ -9,6 +10,13 @@ biphasic frames, a sense current or none), then calls the driver's public method
 ``configure``, ``send_pattern``, ``set_current``, ``keepalive``, ``all_off``, ``suspend``, ``probe``,
 ``measure``, ``resync``, ``reconnect``, ``hardware_reset``, ``close`` followed by a new device on the
 same port, and time passing — as an application would.
+
+``--firmware v2`` runs the same sessions on the timed v2 model (:class:`TimedEmulatorV2`, one height per
+electrode, the mode global) with a driver that speaks v2: frames are all monophasic or all biphasic (v2
+refuses a mix), ``measure`` is called beside ``probe``, and half the sessions guard each electrode with its
+own regional limit (a participant's map).  Every pulse is judged against its own electrode's limit: the
+largest current the session asked for, lowered to that electrode's regional and charge limit.  ``both``
+runs the two firmware versions, one after the other, with the same seeds.
 
 Judged on the scans the emulated board actually ran (``TimedEmulator.reports.pulse_table``):
 
@@ -49,10 +57,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig  # noqa: E402
 from tactdeform_hw.device.pacing import estimate_scan_us, firmware_period_us  # noqa: E402
+from tactdeform_hw.device.safety import SafetyGuard  # noqa: E402
 from tactdeform_hw.emulator.faults import FaultKind, TimedPort, random_plan  # noqa: E402
 from tactdeform_hw.emulator.hazards import Hazard, HazardKind  # noqa: E402
 from tactdeform_hw.emulator.scan import PulseKind  # noqa: E402
 from tactdeform_hw.emulator.timed import TimedEmulator  # noqa: E402
+from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2  # noqa: E402
 from tactdeform_hw.errors import TactDeformError  # noqa: E402
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER  # noqa: E402
 
@@ -69,6 +79,21 @@ _USB_FAULTS = (
     FaultKind.DELAY,
 )
 _UART_FAULTS = tuple(FaultKind)
+#: Firmware versions a campaign can run (``both``: each in turn).
+FIRMWARES = ("v1.2", "v2")
+#: Regional limits (µA) of a participant's map, as the v2 driver tests use them.
+REGIONS_UA = (400, 800, 1200, 1600, 2000, 2000, 2000, 2000, 2000)
+#: Defects that only v2 can hit: a command its 2 s timeout discarded, a new host's bytes completing a
+#: command the previous one cut, mode 2 scanning a zero pattern at a sense height.
+DEFECTS_V2 = frozenset({"command_timeout", "inherited_command", "mode_sense_all"})
+#: Defects of v1.2 the v2 driver meets by design: it raises the electrode count in mode 2 at sense height
+#: and width 0, so the stale channels v2 keeps are scanned at height 0 until the zero pattern of the new
+#: length is read.  A stale height that carried current would still be judged as a pulse (over its
+#: electrode's limit, or on an electrode meant off).
+NOT_DEFECTS_V2 = frozenset({"stale_channels"})
+#: Simulated time a v2 fault session keeps the fail-safe running after its last call: its recovery may
+#: wait out the firmware's 2 s command timeout.
+_FAULT_TAIL_V2_S = 2.6
 #: Firmware defects the driver must never trigger (the others — torn patterns, unknown padding bytes,
 #: sense pulses, the 0xF5 re-initialisation — are the firmware working as designed).
 DEFECTS = frozenset(
@@ -118,6 +143,9 @@ class SessionResult:
     allowed_stim_ua: int
     allowed_sense_ua: int
     biphasic: bool = False
+    firmware: str = "v1.2"
+    regions: bool = False  # per-electrode (regional) limits guarded
+    cap_ua: int | None = None  # a participant's cap guarded (v2 sessions without regions)
     pulses: int = 0
     max_stim_ua: float = 0.0
     over_limit: int = 0
@@ -146,7 +174,11 @@ class SessionResult:
 
     @property
     def defects(self) -> list[str]:
-        return [h for h in self.hazards if h in DEFECTS or h == "driver_crash"]
+        if self.firmware == "v2":
+            named = (DEFECTS - NOT_DEFECTS_V2) | DEFECTS_V2
+        else:
+            named = DEFECTS
+        return [h for h in self.hazards if h in named or h == "driver_crash"]
 
 
 def _config(rng: random.Random, robust: bool) -> StimConfig:
@@ -175,39 +207,72 @@ def _config(rng: random.Random, robust: bool) -> StimConfig:
     )
 
 
-def _pattern(rng: random.Random, n: int, biphasic: bool) -> tuple[int, ...]:
+def _pattern(rng: random.Random, n: int, biphasic: bool, mixed: bool = True) -> tuple[int, ...]:
+    """Levels of one frame; ``mixed`` False: a biphasic frame has every active electrode biphasic (v2's
+    mode is global: its driver refuses a mix)."""
     dens = rng.choice((0.0, 0.1, 0.3, 0.6, 1.0))
     levels = [1 if rng.random() < dens else 0 for _ in range(n)]
     if biphasic:
-        levels = [2 if v and rng.random() < 0.7 else v for v in levels]
+        levels = [2 if v and (not mixed or rng.random() < 0.7) else v for v in levels]
     return tuple(levels)
 
 
 class _Session:
     """One session: the port, the device, the calls, and what the host meant at every moment."""
 
-    def __init__(self, index: int, seed: int, faults: bool) -> None:
+    def __init__(self, index: int, seed: int, faults: bool, firmware: str = "v1.2") -> None:
+        if firmware not in FIRMWARES:
+            raise ValueError(f"firmware {firmware!r}: one of {', '.join(FIRMWARES)}")
+        self.firmware = firmware
         self.rng = random.Random(seed)
         rng = self.rng
         self.link = rng.choice(("usb", "uart"))
         self.robust = rng.random() < 0.5
         self.cfg = _config(rng, self.robust)
         self.biphasic = rng.random() < 0.5
+        # v2: a participant's guard — regional limits on the 32-electrode array (the regions of other
+        # counts need an array file's positions), else a lower cap in half the sessions
+        self.regions = False
+        self.cap_ua: int | None = None
+        if firmware == "v2":
+            draw = rng.random()
+            self.regions = self.cfg.electrode_count == 32 and draw < 0.8
+            if not self.regions and draw < 0.5:
+                self.cap_ua = rng.choice((800, 1500))
+                # the participant's cap is the configuration's ceiling (set_current may still ask more)
+                self.cfg = StimConfig(
+                    **{**asdict(self.cfg), "current_ua": min(self.cfg.current_ua, self.cap_ua)}
+                )
         plan = []
         self.n_calls = rng.randint(4, 14)
         if faults:
             kinds = _USB_FAULTS if self.link == "usb" else _UART_FAULTS
             plan = random_plan(seed, kinds, rng.randint(1, 3), 0.02, 0.25)
         boards = (self.cfg.electrode_count + 31) // 32  # 4 HV513 (32 outputs) per switching board
-        emu = TimedEmulator("compact", boards, link=self.link)
+        emu: TimedEmulator | TimedEmulatorV2
+        if firmware == "v2":
+            emu = TimedEmulatorV2("compact", boards, link=self.link)
+        else:
+            emu = TimedEmulator("compact", boards, link=self.link)
         self.port = TimedPort(emu, link=self.link, faults=plan, seed=seed, robust_encoding=self.robust)
-        self.dev = EtactileKitDevice(self.port)
+        self.dev = self._new_device()
         self.devices = [self.dev]  # every device opened on the port in this session
         self.failsafe: Any = None
         if faults:
             self._start_failsafe()
         self.res = SessionResult(
-            index, seed, self.link, self.robust, self.cfg.electrode_count, [], 0, 0, biphasic=self.biphasic
+            index,
+            seed,
+            self.link,
+            self.robust,
+            self.cfg.electrode_count,
+            [],
+            0,
+            0,
+            biphasic=self.biphasic,
+            firmware=firmware,
+            regions=self.regions,
+            cap_ua=self.cap_ua,
         )
         # (call time, the electrodes the host means from then on, when an "off" is surely in force)
         self.intents: list[tuple[float, tuple[int, ...], float]] = [
@@ -216,6 +281,29 @@ class _Session:
         self.sent: tuple[int, ...] | None = None  # the caller's frame a keepalive brings back
         self.notices: list[float] = []
         self.longest_call_s = 0.0  # the fail-safe cannot act while one of the owner's calls runs
+
+    def _guard(self) -> SafetyGuard | None:
+        """v2: a participant's map guards each electrode with its own limit, or a participant's cap."""
+        if self.regions:
+            return SafetyGuard(regions_ua=REGIONS_UA)
+        return SafetyGuard(self.cap_ua) if self.cap_ua is not None else None
+
+    def _new_device(self) -> EtactileKitDevice:
+        if self.firmware == "v2":
+            return EtactileKitDevice(self.port, firmware="v2", guard=self._guard())
+        return EtactileKitDevice(self.port)
+
+    def electrode_limits_ua(self) -> list[float]:
+        """Each hardware channel's own stimulation limit (no mapping: channel = electrode): on v2 what
+        the session asked for, lowered to the guard's limit for that electrode (region, cap, charge);
+        on v1.2 the frame's height is global, so every channel gets the session's largest request."""
+        top = float(self.res.allowed_stim_ua)
+        if self.firmware != "v2":
+            return [top] * 256
+        guard = self.dev.guard
+        base = guard.base_limit_ua(self.cfg.pulse_width_us)
+        own = guard.electrode_limits(self.cfg.electrode_count)
+        return [min(top, base, own[ch]) if ch < len(own) else 0.0 for ch in range(256)]
 
     def _start_failsafe(self) -> None:
         from tactdeform_hw.device.failsafe import FailSafe
@@ -294,7 +382,9 @@ class _Session:
         for _ in range(self.n_calls):
             self.step()
         self._call("close", self.dev.close, off)
-        tail = _FAULT_TAIL_S if self.failsafe is not None else 0.03
+        tail = 0.03
+        if self.failsafe is not None:
+            tail = _FAULT_TAIL_V2_S if self.firmware == "v2" else _FAULT_TAIL_S
         self.port.advance(tail)
 
     def step(self) -> None:
@@ -303,7 +393,7 @@ class _Session:
         off = (0,) * n
         r = rng.random()
         if r < 0.30:
-            pat = _pattern(rng, n, self.biphasic)
+            pat = _pattern(rng, n, self.biphasic, mixed=self.firmware != "v2")
             refused = len(self.res.errors)
             if self._call("send_pattern", lambda: dev.send_pattern(pat), pat) or not any(
                 k in e for e in self.res.errors[refused:] for k in REFUSALS
@@ -322,7 +412,10 @@ class _Session:
         elif r < 0.55:
             self._call("suspend", dev.suspend, off)
         elif r < 0.60:
-            self._call("probe", dev.probe)
+            if self.firmware == "v2" and rng.random() < 0.5:
+                self._call("measure", dev.measure)
+            else:
+                self._call("probe", dev.probe)
         elif r < 0.64:
             self._call("resync", dev.resync, off)
         elif r < 0.68:
@@ -334,7 +427,7 @@ class _Session:
             self.sent = None
             self.res.calls.append("reopen")
             try:
-                self.dev = EtactileKitDevice(self.port)
+                self.dev = self._new_device()
                 self.devices.append(self.dev)
             except TactDeformError as exc:
                 self.res.errors.append(f"reopen: {exc}"[:160])
@@ -370,7 +463,8 @@ class _Session:
         wrong: list[dict[str, Any]] = []
         if live.size:
             res.max_stim_ua = float(cur[live][stim[live]].max()) if stim[live].any() else 0.0
-            limit = np.where(stim, res.allowed_stim_ua, res.allowed_sense_ua)
+            own = np.asarray(self.electrode_limits_ua())[table["channel"]]
+            limit = np.where(stim, own, res.allowed_sense_ua)
             over = live[cur[live] > limit[live] + 1e-6]
             res.over_limit = int(over.size)
             for k in over[:1]:
@@ -495,10 +589,10 @@ class _Session:
         return bound + self.longest_call_s + SETTLE_S
 
 
-def run_session(index: int, seed: int = 0, faults: bool = False) -> SessionResult:
+def run_session(index: int, seed: int = 0, faults: bool = False, firmware: str = "v1.2") -> SessionResult:
     """Run one session and judge it."""
     wall = time.perf_counter()
-    s = _Session(index, seed * 1_000_003 + index, faults)
+    s = _Session(index, seed * 1_000_003 + index, faults, firmware)
     try:
         s.run()
     except Exception as exc:  # noqa: BLE001 - a crash of the driver is a finding, reported with the session
@@ -511,7 +605,7 @@ def run_session(index: int, seed: int = 0, faults: bool = False) -> SessionResul
     return res
 
 
-def _worker(args: tuple[int, int, bool]) -> SessionResult:
+def _worker(args: tuple[int, int, bool, str]) -> SessionResult:
     return run_session(*args)
 
 
@@ -523,9 +617,12 @@ def run_campaign(
     jobs: int = 1,
     progress: bool = False,
     first: int = 0,
+    firmware: str = "v1.2",
 ) -> list[SessionResult]:
     """Sessions ``first .. first + sessions - 1``; the same list for the same arguments, whatever ``jobs``."""
-    tasks = [(first + i, seed, faults) for i in range(sessions)]
+    if firmware not in FIRMWARES:
+        raise ValueError(f"firmware {firmware!r}: one of {', '.join(FIRMWARES)}")
+    tasks = [(first + i, seed, faults, firmware) for i in range(sessions)]
     out: list[SessionResult] = []
     t0 = time.perf_counter()
 
@@ -557,6 +654,7 @@ def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
             calls[key] = calls.get(key, 0) + 1
     failed = [r for r in results if not r.ok]
     summary: dict[str, Any] = {
+        "firmware": "+".join(sorted({r.firmware for r in results})) or "none",
         "sessions": len(results),
         "faults": faults,
         "failed_sessions": len(failed),
@@ -564,6 +662,8 @@ def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
         "links": {k: sum(1 for r in results if r.link == k) for k in ("usb", "uart")},
         "robust_encoding": sum(1 for r in results if r.robust),
         "biphasic": sum(1 for r in results if r.biphasic),
+        "regional_limits": sum(1 for r in results if r.regions),
+        "participant_cap": sum(1 for r in results if r.cap_ua is not None),
         "sense_current": sum(1 for r in results if r.allowed_sense_ua),
         "electrodes_min_max": [
             min((r.electrodes for r in results), default=0),
@@ -617,6 +717,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sessions", type=int, default=1000, help="number of sessions (default 1000)")
     ap.add_argument("--faults", action="store_true", help="inject the emulator's faults into every session")
     ap.add_argument(
+        "--firmware",
+        choices=(*FIRMWARES, "both"),
+        default="v1.2",
+        help="firmware the emulated board runs and the driver speaks (default v1.2; both: each in turn)",
+    )
+    ap.add_argument(
         "--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: every core)"
     )
     ap.add_argument("--seed", type=int, default=0, help="campaign seed (default 0)")
@@ -629,18 +735,26 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--sessions must be at least 1 (got {a.sessions})")
     if a.jobs < 1:
         ap.error(f"--jobs must be at least 1 (got {a.jobs})")
+    firmwares = FIRMWARES if a.firmware == "both" else (a.firmware,)
     if a.only is not None:
-        r = run_session(a.only, a.seed, a.faults)
-        print(json.dumps({**asdict(r), "ok": r.ok}, indent=1, default=str))
-        return 0 if r.ok else 1
-    t0 = time.perf_counter()
-    results = run_campaign(
-        a.sessions, seed=a.seed, faults=a.faults, jobs=a.jobs, progress=True, first=a.first
-    )
-    summary = summarize(results, faults=a.faults)
-    summary.update({"seed": a.seed, "jobs": a.jobs, "wall_s": round(time.perf_counter() - t0, 3)})
-    print(json.dumps(summary, indent=1) if a.json else _table(summary))
-    return 0 if summary["failed_sessions"] == 0 else 1
+        rows = [run_session(a.only, a.seed, a.faults, fw) for fw in firmwares]
+        out = [{**asdict(r), "ok": r.ok} for r in rows]
+        print(json.dumps(out[0] if len(out) == 1 else out, indent=1, default=str))
+        return 0 if all(r.ok for r in rows) else 1
+    summaries: list[dict[str, Any]] = []
+    for fw in firmwares:
+        t0 = time.perf_counter()
+        results = run_campaign(
+            a.sessions, seed=a.seed, faults=a.faults, jobs=a.jobs, progress=True, first=a.first, firmware=fw
+        )
+        summary = summarize(results, faults=a.faults)
+        summary.update({"seed": a.seed, "jobs": a.jobs, "wall_s": round(time.perf_counter() - t0, 3)})
+        summaries.append(summary)
+    if a.json:
+        print(json.dumps(summaries[0] if len(summaries) == 1 else summaries, indent=1))
+    else:
+        print("\n\n".join(_table(s) for s in summaries))
+    return 0 if all(s["failed_sessions"] == 0 for s in summaries) else 1
 
 
 if __name__ == "__main__":

@@ -848,14 +848,19 @@ class Device(ABC):
 
     def resync_bound_s(self) -> float:
         """The longest a failing resync of this session waited, or would wait now, for its proofs before
-        the reset line (the larger; configured recoveries only): see :meth:`_resync_bound_now_s`."""
+        the reset line (the larger; configured recoveries only): see :meth:`_resync_bound_now_s`.  On
+        firmware v2 that includes the 2 s command timeout its recovery waits out."""
         return max(self._bound_seen_s, self._resync_bound_now_s())
 
     def _resync_bound_now_s(self) -> float:
         """The longest a resync that fails waits for its proofs at the configuration
         in force: the request behind the zeros, then 256 zeros and the request again (and 0xF5 after
         0xFF), each until its deadline, behind one frame still in flight.  What a fail-safe adds to its
-        recovery time before it reaches for the reset line."""
+        recovery time before it reaches for the reset line.  Firmware v2 recovers otherwise (the sync check,
+        then the 2 s command timeout): its dialect computes the bound
+        (:meth:`~tactdeform_hw.device.v2.V2Dialect.resync_bound_now_s`)."""
+        if self._dialect is not None:
+            return self._dialect.resync_bound_now_s(self)
         cfg = self._config
         n = cfg.electrode_count if cfg is not None else 0
         clock = SimulatedClock()

@@ -83,6 +83,9 @@ logger = logging.getLogger("tactdeform_hw.failsafe")
 DEFAULT_WATCHDOG_S = 0.100
 DEFAULT_POLL_S = 0.002
 LINK_MARGIN_S = 0.002
+#: The resync time :meth:`FailSafe.recovery_bound_s` assumes for a device that does not report its own
+#: (``resync_bound_s``): a v1.2 resync of a small configuration.
+DEFAULT_RESYNC_S = 0.035
 
 #: The signals that stop a watched device: Ctrl-C, ``kill``, a closed terminal, Ctrl-\.
 STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
@@ -579,11 +582,18 @@ class FailSafe:
             "stimulating: unplug the board"
         )
 
-    def recovery_bound_s(self, scan_period_s: float = 0.008, resync_s: float = 0.035) -> float:
+    def recovery_bound_s(self, scan_period_s: float = 0.008, resync_s: float | None = None) -> float:
         """The longest a fault the link does not report can affect stimulation with these settings: it is
         noticed by the next probe (or overwritten by the next refresh), the probe's reply times out, a
         resync is tried and probed again, and the reset that follows stops everything at once; the
-        scan in progress finishes.  Infinite without probing or refreshing."""
+        scan in progress finishes.  Infinite without probing or refreshing.
+
+        ``resync_s`` (the longest a failing resync waits before the reset line) defaults to the device's
+        own :meth:`~tactdeform_hw.device.base.Device.resync_bound_s`, which knows its firmware (v2 waits
+        out a 2 s command timeout); :data:`DEFAULT_RESYNC_S` for a device that cannot say."""
+        if resync_s is None:
+            bound = getattr(self.device, "resync_bound_s", None)
+            resync_s = float(bound()) if callable(bound) else DEFAULT_RESYNC_S
         interval = min(
             x for x in (self.probe_interval_s, self.refresh_interval_s, float("inf")) if x is not None
         )

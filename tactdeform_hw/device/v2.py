@@ -167,12 +167,52 @@ class V2Dialect:
 
     # --- recovery -------------------------------------------------------------------------------------------
 
+    def resync_bound_now_s(self, dev: Device) -> float:
+        """The longest a failing v2 resync waits at the configuration in force before the reset line (or the
+        refusal), computed like v1.2's on a simulated clock with a scratch pacer: behind a frame still in
+        flight (a zero pattern, a mode change, a pattern), the probe and its sync reply's deadline, then
+        the wait until every byte has arrived plus the firmware's 2 s command timeout and the margin, then
+        the probe and its deadline again.  A probe answered in between proves count 0, mode 0 and sense 0
+        in force (no current), so no slower failing path leaves the board stimulating longer."""
+        from ..clock import SimulatedClock
+        from .base import REPLY_POLL_S
+        from .pacing import Pacer
+
+        cfg = dev._config
+        n = cfg.electrode_count if cfg is not None else 0
+        clock = SimulatedClock()
+        scratch = Pacer(clock=clock, policy=dev.pacer.policy)
+        scratch.set_timing(*dev._recovery_timing())
+
+        def written(data: bytes) -> None:
+            scratch.write(lambda _chunk: None, data, pad=False)
+
+        def await_reply() -> None:
+            period = scratch.period_s if scratch.period_s is not None else dev.unknown_reply_s
+            deadline = scratch.drained_by() + 0.003 + scratch.policy.byte_s + period
+            clock.advance(max(0.0, deadline - clock.now()) + REPLY_POLL_S)
+
+        for data in (
+            c2.encode_pattern([0] * n, electrode_num=n),
+            c2.encode_stim_mode(c2.STIM_MODE_BIPHASIC),
+            c2.encode_pattern([0] * n, electrode_num=n),
+        ):
+            written(data)
+        written(PROBE)
+        await_reply()
+        clock.advance(max(0.0, scratch.arrived_by() + COMMAND_TIMEOUT_S + TIMEOUT_MARGIN_S - clock.now()))
+        written(PROBE)
+        await_reply()
+        return clock.now()
+
     def flush_parser(self, dev: Device) -> None:
         """SUSPECT → SYNCING (→ FLUSHING after the 2 s timeout) → SAFE → VERIFYING → IN_STEP, on v2."""
         from .base import LinkState
 
         cfg = dev._config
         n = cfg.electrode_count if cfg is not None else 0
+        if cfg is not None:  # (before a configuration the wait is the unknown board's, ``unknown_reply_s``)
+            dev._bound_seen_s = max(dev._bound_seen_s, self.resync_bound_now_s(dev))
         timing = dev._recovery_timing()
         dev.pacer.set_timing(timing[0], timing[1])
         self.mode = self.codes = None
@@ -212,9 +252,9 @@ class V2Dialect:
             dev._proved(mark)
             dev.guard.note_in_step(0)
             self.answered = True
-            # v2 answered: from now on pace for its 1024-byte queue (until then, for v1.2's 256 bytes: a
-            # board that turns out to run v1.2 must still read every byte of the probe)
-            dev.pacer.policy = replace(dev.pacer.policy, queue_bytes=V2.rx_queue_bytes)
+            # v2 answered: from now on pace for its parser and 1024-byte queue (until then, for v1.2's
+            # 256 bytes and tick per command: a board that turns out to run v1.2 must read the whole probe)
+            dev.pacer.policy = replace(dev.pacer.policy, firmware=V2, queue_bytes=V2.rx_queue_bytes)
             dev._enter(LinkState.SAFE, "sync answered 00: command boundary, count 0, mode 0, sense 0")
             dev._current_ua = 0
             dev._sense_byte = 0

@@ -51,6 +51,7 @@ from ..errors import LimitError
 from ..ports import PortBase
 from .link import Delivery, LinkFilter, LinkModel, make_link
 from .timed import TimedEmulator
+from .timed_v2 import TimedEmulatorV2
 
 
 class FaultKind(str, Enum):
@@ -185,7 +186,8 @@ SimClock = SimulatedClock
 
 
 class TimedPort(PortBase):
-    """A pyserial-like port over a :class:`TimedEmulator`, in simulated time, with injectable faults.
+    """A pyserial-like port over a :class:`TimedEmulator` (or the v2 model,
+    :class:`~.timed_v2.TimedEmulatorV2`), in simulated time, with injectable faults.
 
     ``pacing_clock`` is the simulated clock (seconds) the driver's pacer must use (the driver picks it up
     by itself through :func:`~tactdeform_hw.device.pacing.default_pacer`); every wait advances the
@@ -195,7 +197,7 @@ class TimedPort(PortBase):
 
     def __init__(
         self,
-        emulator: TimedEmulator | None = None,
+        emulator: TimedEmulator | TimedEmulatorV2 | None = None,
         *,
         link: str | LinkModel = "usb",
         faults: Sequence[Fault] = (),
@@ -283,13 +285,18 @@ class TimedPort(PortBase):
         """The main loop stops reading: the timed model's main loop waits forever (as on a locked parser)
         while deliveries keep filling the queue and the interrupt keeps scanning."""
         emu = self.emulator
-        emu._main_next = None
-        emu._main_wait = "locked"
+        if isinstance(emu, TimedEmulatorV2):
+            emu.stop_reading()  # v2's queue is filled by arrivals at their time, not by the main loop
+        else:
+            emu._main_next = None
+            emu._main_wait = "locked"
         self.frozen = True
 
     def _state_brief(self) -> dict[str, Any]:
         s = self.emulator.state()
         n = s["electrode_num"]
+        if "stim_mode" in s:  # v2: a height per channel, the waveform by the mode
+            return {"stim_mode": s["stim_mode"], "active": sum(1 for v in s["stim_pattern"][:n] if v)}
         return {
             "pulse_height": s["pulse_height"],
             "active": sum(1 for v in s["stim_pattern"][:n] if v in (1, 2)),

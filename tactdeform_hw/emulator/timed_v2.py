@@ -18,25 +18,38 @@ timing does not depend on its height (:func:`_scan_shape`).
 
 Every scan is recorded (:class:`ScanRecordV2`) with the parameters it ran and when each channel's
 current started, so safety can be judged on the pulses delivered; mode 2 with a zero pattern that
-still drives the sense current is a :data:`~.hazards.HazardKind.MODE_SENSE_ALL` hazard.
+still drives the sense current is a :data:`~.hazards.HazardKind.MODE_SENSE_ALL` hazard.  The same
+judgement as on v1.2 needs the same books, kept here in v1.2's shapes: ``reports.pulse_table()`` (every
+pulse as numpy columns), ``losses`` (:class:`~.reports.LossReport`: bytes that never took effect — a full
+queue, a reboot, a command the 2 s timeout discarded) and ``commands`` (each command applied, with
+whether it is the command the host wrote at that offset: the host's stream is read with the v2 table as
+it is written).
 """
 
 from __future__ import annotations
 
 import heapq
+from bisect import bisect_right
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any
 
+import numpy as np
+
 from ..errors import ConfigurationError, LimitError
-from ..protocol.firmware import OpcodeV2
+from ..protocol.firmware import V2, OpcodeV2
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .board import Board
 from .core import Emulator
 from .firmware_scan import DEFAULT_CONVENTIONS, FirmwareScanConfig, ScanConventions, trace_scan
 from .hazards import Hazard, HazardKind
 from .link import Delivery, LinkModel, make_link
+from .reports import LossReport
+from .scan import PulseKind
 from .timing import DEFAULT_MODEL, TimingModel
+
+#: A time the main loop never reaches (it hangs: :meth:`TimedEmulatorV2.stop_reading`).
+_NEVER = 1 << 62
 
 
 @dataclass(frozen=True)
@@ -136,6 +149,101 @@ def _scan_shape(
     return duration, onsets, tuple(heights), tuple(heights), pulses
 
 
+@dataclass(frozen=True)
+class CommandRecordV2:
+    """A command the v2 parser applied: when, which, where in the host's stream, and whether the host
+    wrote that command there (``in_sync``; False for a payload that swallowed a command byte, a command
+    byte read out of a payload, bytes of no known host offset)."""
+
+    time_us: float
+    opcode: int
+    host_offset: int
+    in_sync: bool
+
+
+class ReportsV2:
+    """The v2 model's delivered pulses in the columns of the v1.2 reports (``pulse_table``)."""
+
+    def __init__(self, owner: TimedEmulatorV2) -> None:
+        self._owner = owner
+
+    def pulse_table(
+        self,
+        t0_us: float | None = None,
+        t1_us: float | None = None,
+        transfer: CurrentTransfer = DEFAULT_TRANSFER,
+    ) -> dict[str, np.ndarray]:
+        """Every non-zero pulse as numpy columns (``cycle, channel, kind, start_us, width_us, code, pol,
+        current_ua, charge_nc``), optionally starting within ``[t0_us, t1_us)``.  ``kind`` is v1.2's
+        :class:`~.scan.PulseKind`: mode 0 monophasic, mode 1 the phase by its POL level, mode 2 sense."""
+        lo = None if t0_us is None else round(t0_us * 1000)
+        hi = None if t1_us is None else round(t1_us * 1000)
+        rows: list[tuple[int, int, int, int, int, int, int]] = []
+        for s in self._owner.scans:
+            for ch, onset, code, width, pol in s.pulses:
+                t = s.start_ns + onset
+                if (lo is not None and t < lo) or (hi is not None and t >= hi):
+                    continue
+                if s.stim_mode == 0:
+                    kind = PulseKind.MONO
+                elif s.stim_mode == 1:
+                    kind = PulseKind.BI_ANODIC if pol else PulseKind.BI_CATHODIC
+                else:
+                    kind = PulseKind.SENSE
+                rows.append((s.index, ch, int(kind), t, width, code, pol))
+        a = np.array(rows, dtype=np.int64).reshape(-1, 7)
+        codes = a[:, 5]
+        ua = np.array([transfer.to_ua(int(c)) for c in codes], dtype=np.float64)
+        return {
+            "cycle": a[:, 0],
+            "channel": a[:, 1],
+            "kind": a[:, 2],
+            "start_us": a[:, 3] / 1000.0,
+            "width_us": a[:, 4] / 1000.0,
+            "code": codes,
+            "pol": a[:, 6],
+            "current_ua": ua,
+            "charge_nc": ua * a[:, 4].astype(np.float64) / 1e6,
+        }
+
+
+class _HostStream:
+    """The host's bytes read with the v2 table as they are written: where each command starts (host
+    offset → opcode), so a command the parser applies can be told in step or not.  The host's electrode
+    count is the last 0xFC it wrote (its pattern length)."""
+
+    def __init__(self) -> None:
+        self.starts: dict[int, int] = {}
+        self._need = 0  # payload bytes of the host's current command still to come
+        self._op = 0
+        self._payload = bytearray()
+        self._num = 0
+
+    def feed(self, data: bytes, offset: int) -> None:
+        i, n = 0, len(data)
+        while i < n:
+            if self._need:
+                take = min(self._need, n - i)
+                if self._op == OpcodeV2.ELECTRODE_NUM:
+                    self._payload += data[i : i + take]
+                self._need -= take
+                i += take
+                if not self._need and self._op == OpcodeV2.ELECTRODE_NUM:
+                    self._num = int.from_bytes(self._payload, "little")
+                continue
+            op = data[i]
+            size = V2.size_of(op, self._num)
+            if size is not None:
+                self.starts[offset + i] = op
+                self._op, self._need = op, size
+                self._payload = bytearray()
+            i += 1
+
+    def forget_before(self, offset: int) -> None:
+        if len(self.starts) > 65536:
+            self.starts = {k: v for k, v in self.starts.items() if k >= offset}
+
+
 class _QueueView:
     """The receive path as a real-time server sees it: bytes waiting (``len``) and room (``free``)."""
 
@@ -189,6 +297,12 @@ class TimedEmulatorV2:
         self._host_rx = bytearray()
         self._host_offset = 0
         self._clients: list[tuple[int, str]] = []  # (device offset where a client's bytes start, its name)
+        self.losses: list[LossReport] = []
+        self.commands: list[CommandRecordV2] = []
+        self.reports = ReportsV2(self)
+        self._host_stream = _HostStream()
+        # (device offset, host offset, length) of each arrival taken into the queue since power-on
+        self._segments: list[tuple[int, int, int]] = []
         self._boot(0)
 
     def _boot(self, t: int, boot_delay: bool = False) -> None:
@@ -203,6 +317,8 @@ class TimedEmulatorV2:
         self._last_alarm = start
         self._hv513_in_call = False
         self._applied_in_call: int | None = None
+        self._frozen = False
+        self._segments = []
         self.emulator.parser.on_command = self._on_command
 
     # --- the host side ---------------------------------------------------------------------------------
@@ -227,6 +343,7 @@ class TimedEmulatorV2:
         if t < self.now_ns:
             raise ConfigurationError(f"at_us={at_us} is before the emulator's clock ({self.now_us} us)")
         self.advance_to(t / 1000)
+        self._host_stream.feed(bytes(data), self._host_offset)
         for d in self.link.schedule(bytes(data), t, self._host_offset):
             heapq.heappush(self._deliveries, (d.t_ns, self._seq, d))
             self._seq += 1
@@ -311,12 +428,54 @@ class TimedEmulatorV2:
         """Power-cycle the board now (registers, queue, parser to power-on; replies and bytes in flight
         are lost); it boots for the timing model's boot time."""
         self.reboots += 1
+        p = self.parser
+        if p.pending:
+            self._loss(self.now_ns, p.pending, self._host_of(p.offset), "reboot")
+        for _, _, d in sorted(self._deliveries):
+            self._loss(self.now_ns, len(d.data), d.host_offset, "reboot")
         self._deliveries.clear()
         self._tx.clear()
         self._host_rx.clear()
         self.emulator.reset()
         self._clients.clear()
         self._boot(self.now_ns, boot_delay=True)
+
+    def stop_reading(self) -> None:
+        """The main loop hangs: nothing is read any more until a reset, while arrivals keep filling the
+        receive queue (the USB stack's interrupt stores them; the rest is lost) and the scans go on."""
+        self._frozen = True
+        self._next_call_ns = _NEVER
+
+    def _loss(self, t: int, count: int, host_offset: int, reason: str) -> None:
+        p = self.parser
+        self.losses.append(
+            LossReport(t / 1000, host_offset, count, b"", reason, p.pending, self.parser_status())
+        )
+
+    def _host_of(self, dev_offset: int) -> int:
+        """The host offset of a byte the queue took (-1: unknown, e.g. after a byte fault changed a chunk's
+        length)."""
+        k = bisect_right(self._segments, (dev_offset, float("inf"), 0)) - 1
+        if k < 0:
+            return -1
+        dev, host, length = self._segments[k]
+        return host + dev_offset - dev if dev_offset < dev + length else -1
+
+    def _land(self, t: int) -> None:
+        """Arrivals up to ``t`` into the receive queue (lost while the board boots or the queue is full)."""
+        parser = self.parser
+        while self._deliveries and self._deliveries[0][0] <= t:
+            _, _, d = heapq.heappop(self._deliveries)
+            if d.t_ns < self._booting_until:  # bytes that came while the board booted are lost
+                self._loss(d.t_ns, len(d.data), d.host_offset, "rebooting")
+                continue
+            start = parser.offset + parser.pending
+            lost = parser.receive(d.data)
+            if d.host_offset >= 0 and len(d.data) > lost:
+                self._segments.append((start, d.host_offset, len(d.data) - lost))
+            if lost:
+                host = d.host_offset + len(d.data) - lost if d.host_offset >= 0 else -1
+                self._loss(d.t_ns, lost, host, "queue_full")
 
     def new_client(self, name: str) -> None:
         """A new host connection starts here: its bytes follow the ones already taken.  Nothing in the
@@ -339,11 +498,16 @@ class TimedEmulatorV2:
     detach = attach
 
     def discard_history(self, before_us: float) -> None:
-        """Forget scans and applied-command records older than ``before_us`` (a board served for hours
-        keeps a bounded memory)."""
+        """Forget scans, applied-command, command and loss records older than ``before_us`` (a board
+        served for hours keeps a bounded memory)."""
         t = round(before_us * 1000)
         self.scans = [s for s in self.scans if s.end_ns >= t]
         self.applied = [a for a in self.applied if a[0] >= t]
+        self.commands = [c for c in self.commands if c.time_us * 1000 >= t]
+        self.losses = [lo for lo in self.losses if lo.time_us * 1000 >= t]
+        if self._segments:
+            keep = self.parser.offset
+            self._segments = [sg for sg in self._segments[:-1] if sg[0] + sg[2] > keep] + self._segments[-1:]
 
     def advance_to(self, t_us: float) -> None:
         target = round(t_us * 1000)
@@ -360,6 +524,8 @@ class TimedEmulatorV2:
     def _run(self, target: int) -> None:
         while True:
             call, alarm = self._next_call_ns, self._next_alarm_ns
+            if self._frozen:
+                self._land(min(alarm, target))
             if min(call, alarm) > target:
                 return
             if alarm <= call:
@@ -448,16 +614,18 @@ class TimedEmulatorV2:
     def _main_call(self, t: int) -> None:
         parser = self.emulator.parser
         regs = self.emulator.registers
-        while self._deliveries and self._deliveries[0][0] <= t:
-            _, _, d = heapq.heappop(self._deliveries)
-            if d.t_ns >= self._booting_until:  # bytes that came while the board booted are lost
-                parser.receive(d.data)
+        self._land(t)
+        hazards_before = len(self.hazards)
         self._call_time_ns = t
         self._applied_in_call = None
         self._reply_offset = None
         before = {f: getattr(regs, f) for f in self._SCAN_FIELDS}
         old_pattern = list(regs.stim_pattern)
         out = parser.call(t // 1000)
+        for h in self.hazards[hazards_before:]:
+            if h.kind is HazardKind.COMMAND_TIMEOUT:
+                # the cut command and every byte queued behind it never take effect
+                self._loss(t, 1 + int(h.detail["discarded"]), self._host_of(h.offset), "command_timeout")
         m = self.model
         cost = m.call_ns + out.consumed * m.byte_ns
         paused = self._hv513_in_call
@@ -535,6 +703,17 @@ class TimedEmulatorV2:
 
     def _on_command(self, op: int, value: object, offset: int) -> None:
         self.applied.append((self._call_time_ns, op, value))
+        host = self._host_of(offset)
+        in_sync = host >= 0 and self._host_stream.starts.get(host) == op
+        self.commands.append(CommandRecordV2(self._call_time_ns / 1000, op, host, in_sync))
+        self._host_stream.forget_before(host)
+        for k in range(len(self.hazards) - 1, max(-1, len(self.hazards) - 4), -1):
+            h = self.hazards[k]
+            if h.kind is HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE and h.offset == offset:
+                # a value byte like a command byte is the host's own value when the command is the host's
+                # (the hazard comes just before the command's own, e.g. stale channels of a raised count)
+                self.hazards[k] = replace(h, detail={**h.detail, "meant_as_command": not in_sync})
+                break
         if self._clients:
             self._check_inherited(op, value, offset)
         self._applied_in_call = op

@@ -1,0 +1,178 @@
+"""The safety campaign on firmware v2 (``tools/safety_campaign.py --firmware v2``): random sessions of
+public ``Device`` calls on the timed v2 model, judged per electrode on the pulses it delivered, and the v2
+recovery bound (the sync check, then the firmware's 2 s command timeout) the fault verdict rests on."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+from tactdeform_hw.device.base import LinkState
+from tactdeform_hw.device.config import StimConfig
+from tactdeform_hw.device.failsafe import FailSafe
+from tactdeform_hw.device.v2 import COMMAND_TIMEOUT_S
+from tactdeform_hw.errors import TactDeformError
+from tactdeform_hw.protocol import commands_v2 as c2
+
+from .test_v2_driver import _timed_v2
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import safety_campaign as sc  # noqa: E402
+
+#: Sessions the suite runs (a few seconds on one core).
+SESSIONS = 150
+FAULT_SESSIONS = 40
+
+
+@pytest.fixture(scope="module")
+def fault_free() -> list[sc.SessionResult]:
+    return sc.run_campaign(SESSIONS, seed=0, firmware="v2")
+
+
+def test_fault_free_v2_campaign_delivers_nothing_above_any_electrodes_limit(
+    fault_free: list[sc.SessionResult],
+) -> None:
+    summary = sc.summarize(fault_free, faults=False)
+    assert summary["firmware"] == "v2" and summary["sessions"] == SESSIONS
+    assert summary["over_limit_pulses"] == 0
+    assert summary["meant_off_pulses"] == 0
+    assert summary["bytes_lost"] == 0
+    assert summary["defects_hit"] == []
+    assert summary["failed_sessions"] == 0, [r.index for r in fault_free if not r.ok][:10]
+    assert summary["pulses"] > 5000  # the sessions stimulate: the verdict is about real pulses
+
+
+def test_fault_free_v2_campaign_covers_what_it_claims(fault_free: list[sc.SessionResult]) -> None:
+    summary = sc.summarize(fault_free, faults=False)
+    for call in (
+        "configure",
+        "send_pattern",
+        "set_current",
+        "keepalive",
+        "all_off",
+        "suspend",
+        "probe",
+        "measure",
+        "resync",
+        "reconnect",
+        "hardware_reset",
+        "close",
+        "reopen",
+        "wait",
+    ):
+        assert summary["calls"].get(call, 0) >= 10, call
+    assert summary["links"]["usb"] > 30 and summary["links"]["uart"] > 30
+    assert 30 < summary["robust_encoding"] < SESSIONS - 30
+    assert summary["electrodes_min_max"] == [1, 255]
+    assert summary["biphasic"] > 30 and summary["regional_limits"] > 10 and summary["participant_cap"] > 10
+    # the per-electrode limits were met by clipping, not only by refusals: regional sessions stimulated
+    assert sum(r.pulses for r in fault_free if r.regions) > 500
+
+
+def test_v2_fault_campaign_reports_every_loss_and_bounds_every_wrong_delivery() -> None:
+    results = sc.run_campaign(FAULT_SESSIONS, seed=0, faults=True, firmware="v2")
+    summary = sc.summarize(results, faults=True)
+    assert summary["firmware"] == "v2"
+    assert summary["faults_injected"] >= FAULT_SESSIONS
+    assert summary["bytes_lost"] > 0
+    assert summary["bytes_lost_unreported"] == 0
+    assert summary["unexplained_wrong_deliveries"] == 0
+    assert summary["faults_survived"] == summary["faults_injected"]
+    assert summary["longest_wrong_delivery_s"] <= summary["recovery_bound_s"]
+    assert summary["recovery_bound_s"] > COMMAND_TIMEOUT_S  # v2's recovery waits out the 2 s timeout
+
+
+def test_the_v2_judge_sees_a_pulse_above_an_electrodes_limit_and_a_lost_byte() -> None:
+    """The control: bytes written around the driver (count 1, mode 0, height 4095) and a hung main loop
+    whose queue overflows are caught by the same verdict."""
+    s = sc._Session(3, 3, False, "v2")
+    s.run()
+    clean = s.judge()
+    assert clean.ok and clean.over_limit == 0
+    s = sc._Session(3, 3, False, "v2")
+    s.run()
+    s.port.is_open = True
+    s.port.write(c2.encode_electrode_num(1) + c2.encode_stim_mode(0) + c2.encode_pattern([4095]))
+    s.port.advance(0.05)
+    s.port.emulator.stop_reading()
+    s.port.write(bytes(2000))  # more than the 1024-byte queue takes
+    s.port.advance(0.05)
+    res = s.judge()
+    assert res.over_limit > 0 and res.lost_bytes > 0 and not res.ok
+    assert res.first_violation is not None and res.first_violation["channel"] == 0
+
+
+def test_the_v2_judge_holds_each_electrode_to_its_own_regional_limit() -> None:
+    """A height that the session's largest request allows but the electrode's region does not."""
+    seed = next(
+        i for i in range(200) if sc._Session(i, i, False, "v2").regions
+    )  # a 32-electrode session guarded by regions
+    s = sc._Session(seed, seed, False, "v2")
+    s.run()
+    limits = s.electrode_limits_ua()
+    assert limits[0] < max(limits[:32])  # electrode 0's region is the lowest
+    over = int(limits[0]) + 100
+    s.res.allowed_stim_ua = max(s.res.allowed_stim_ua, over)
+    s.port.is_open = True
+    code = over // 10
+    s.port.write(c2.encode_electrode_num(1) + c2.encode_stim_mode(0) + c2.encode_pattern([code]))
+    s.port.advance(0.05)
+    res = s.judge()
+    assert res.over_limit > 0 and not res.ok
+
+
+def test_cli_names_the_firmware(capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    assert sc.main(["--sessions", "3", "--jobs", "1", "--json", "--firmware", "both"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [s["firmware"] for s in out] == ["v1.2", "v2"]
+    assert sc.main(["--sessions", "3", "--jobs", "1", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["firmware"] == "v1.2"
+
+
+# --- v2's recovery bound ------------------------------------------------------------------------------------
+
+
+def test_the_v2_resync_bound_includes_the_2s_command_timeout() -> None:
+    dev, port, board = _timed_v2()
+    assert dev.resync_bound_s() > COMMAND_TIMEOUT_S  # before a configuration too
+    dev.configure(StimConfig(electrode_count=32, current_ua=800))
+    bound = dev.resync_bound_s()
+    assert bound > COMMAND_TIMEOUT_S
+    fs = FailSafe(dev, probe_interval_s=0.02, thread=False, signals=False, at_exit=False)
+    assert fs.recovery_bound_s() > bound  # the fail-safe's default is the device's own bound
+    assert fs.recovery_bound_s(resync_s=0.035) < 1.0  # an explicit figure still counts
+    dev.close()
+
+
+def test_a_failing_v2_resync_reaches_the_reset_line_within_its_bound() -> None:
+    """The board stops answering (hung): the resync sends the probe, waits out the 2 s timeout, probes
+    again, and pulls the reset line — within :meth:`Device.resync_bound_s`."""
+    dev, port, board = _timed_v2()
+    dev.configure(StimConfig(electrode_count=32, current_ua=800))
+    dev.send_pattern([1] * 32)
+    bound = dev.resync_bound_s()
+    board.drop_replies = 10**6
+    resets: list[float] = []
+    real_reset = board.reset
+
+    def reset(why: str = "reset") -> None:
+        resets.append(port.now_s)
+        board.drop_replies = 0
+        real_reset(why)
+
+    board.reset = reset  # type: ignore[method-assign]
+    t0 = port.now_s
+    try:
+        dev.resync()
+    except TactDeformError:
+        pass
+    assert resets, "the reset line was never pulled"
+    assert COMMAND_TIMEOUT_S < resets[0] - t0 <= bound
+    assert dev.resync_bound_s() >= bound
+    port.advance(0.02)
+    if dev.link_state is LinkState.IN_STEP:
+        dev.close()
