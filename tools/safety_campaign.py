@@ -362,7 +362,9 @@ class _Session:
         except TactDeformError as exc:
             self.notices.append(self.port.now_s)
             self.res.errors.append(f"{name}: {type(exc).__name__}: {exc}"[:160])
-            if intent is not None:  # what the call asked for may be in force in part: still the host's intent
+            # what a failed call asked for may be in force in part: still the host's intent; a refusal sent
+            # nothing, so the frame before it is still the one the host means (and the board runs)
+            if intent is not None and type(exc).__name__ not in REFUSALS:
                 self.intents.append((t0, intent, self.port.now_s))
             return False
         if intent is not None:
@@ -440,8 +442,13 @@ class _Session:
         elif r < 0.78:
             new = StimConfig(**{**asdict(cfg), "current_ua": rng.choice((0, 500, 1200))})
             self.res.allowed_stim_ua = max(self.res.allowed_stim_ua, new.current_ua)
-            self.sent = None
-            self._call("configure", lambda: dev.configure(new), off)
+            refused = len(self.res.errors)
+            if self._call("configure", lambda: dev.configure(new), off) or not any(
+                k in e for e in self.res.errors[refused:] for k in REFUSALS
+            ):
+                self.sent = (
+                    None  # a configuration the driver wrote ends the caller's frame; a refusal does not
+                )
         else:
             dt = rng.choice((0.0005, 0.002, 0.008, 0.02, 0.05))
             self.res.calls.append(f"wait {dt * 1e3:g} ms")
