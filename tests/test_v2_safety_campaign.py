@@ -176,3 +176,23 @@ def test_a_failing_v2_resync_reaches_the_reset_line_within_its_bound() -> None:
     port.advance(0.02)
     if dev.link_state is LinkState.IN_STEP:
         dev.close()
+
+
+def test_close_is_proved_by_count_0_when_its_all_off_pattern_byte_is_corrupted() -> None:
+    """Campaign seed 7, fault session 612: a UART corrupts the command byte of ``close``'s all-off pattern
+    (0xFE → 0x55), so the zeros after it are unknown bytes and the old heights go on.  A sync reply to the
+    count in force would prove only that the bytes were read; ``close`` on v2 ends at electrode count 0
+    and needs the sync reply 00, so the corruption is noticed, recovered from, and nothing is delivered
+    on an electrode meant off."""
+    res = sc.run_session(612, seed=7, faults=True, firmware="v2")
+    assert [f for f in res.faults] == ["corrupt"]
+    assert res.ok, res.first_violation
+    assert res.meant_off == 0 and res.unexplained == 0
+
+
+def test_close_on_v2_leaves_the_electrode_count_at_0() -> None:
+    dev, port, board = _timed_v2()
+    dev.configure(StimConfig(electrode_count=8, current_ua=300, pulse_width_us=200))
+    dev.send_pattern([1] * 8)
+    dev.close()
+    assert board.emulator.state()["electrode_num"] == 0

@@ -977,7 +977,10 @@ class Device(ABC):
             self.all_off()
         if self._link is LinkState.IN_STEP:
             try:
-                self._prove(self._config.electrode_count if self._config is not None else 0)
+                if self._dialect is not None:
+                    self._dialect.prove_stopped(self)  # v2: count 0, proved by the sync reply's value
+                else:
+                    self._prove(self._config.electrode_count if self._config is not None else 0)
             except ShortReplyError:
                 # the all-off is not proved read (a board that rebooted or hung under it): recover,
                 # with the reset line if need be, and switch off again

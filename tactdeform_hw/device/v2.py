@@ -471,6 +471,17 @@ class V2Dialect:
         dev._scan_us = self._scan_us(cfg, self.mode)
         dev.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, dev._scan_us / 1e6)
 
+    def prove_stopped(self, dev: Device) -> None:
+        """``close``'s proof on v2: electrode count 0, then the sync check must answer 00.  The sync reply
+        to the count in force proves only that every byte was read — a corrupted pattern command byte
+        turns the all-off into unknown bytes and the old heights go on — while the value 00 proves that
+        nothing is scanned at all, whatever became of the pattern."""
+        self._rsend(dev, c2.encode_electrode_num(0))
+        if not self._sync(dev, 0):
+            dev._suspect("the sync check did not answer count 0 after the all-off")
+            raise ShortReplyError("sync check after the close's electrode count 0", 1, b"")
+        self.codes = []
+
     def refresh(self, dev: Device) -> None:
         cfg = dev._config
         assert cfg is not None
