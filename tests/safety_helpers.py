@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.transport import EmulatorPort
@@ -35,3 +37,15 @@ class RecordingPort(EmulatorPort):
     def write(self, data: bytes) -> int:
         self.writes.append(bytes(data))
         return super().write(data)
+
+
+def assert_fault_free(summary: dict[str, Any], failed: list[int], *, sessions: int, min_pulses: int) -> None:
+    """A fault-free campaign's verdict, judged on delivered pulses: nothing above a limit, nothing on an
+    electrode meant off, no byte lost, no defect, no failed session — over enough pulses to mean it."""
+    assert summary["sessions"] == sessions
+    assert summary["over_limit_pulses"] == 0
+    assert summary["meant_off_pulses"] == 0
+    assert summary["bytes_lost"] == 0
+    assert summary["defects_hit"] == []
+    assert summary["failed_sessions"] == 0, failed[:10]
+    assert summary["pulses"] > min_pulses  # the sessions stimulate: the verdict is about real pulses

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from .safety_helpers import assert_fault_free
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import safety_campaign as sc  # noqa: E402
 
@@ -25,13 +27,8 @@ def test_fault_free_campaign_delivers_nothing_above_its_own_limits(
     fault_free: list[sc.SessionResult],
 ) -> None:
     summary = sc.summarize(fault_free, faults=False)
-    assert summary["sessions"] == SESSIONS
-    assert summary["over_limit_pulses"] == 0
-    assert summary["bytes_lost"] == 0
-    assert summary["meant_off_pulses"] == 0
-    assert summary["defects_hit"] == []
-    assert summary["failed_sessions"] == 0, [r.index for r in fault_free if not r.ok][:10]
-    assert summary["pulses"] > 100_000  # the sessions stimulate: the verdict is about real pulses
+    failed = [r.index for r in fault_free if not r.ok]
+    assert_fault_free(summary, failed, sessions=SESSIONS, min_pulses=100_000)
 
 
 def test_fault_free_campaign_covers_what_it_claims(fault_free: list[sc.SessionResult]) -> None:

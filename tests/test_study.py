@@ -198,22 +198,31 @@ def task1_result() -> StudyRun:
     return result
 
 
-def test_corrupted_frame_on_the_port_fails_the_pattern_buffer_check(tmp_path, monkeypatch, capsys):
+def _alter_second_frame(monkeypatch, alter) -> None:
+    """The emulated port changes the second pattern with something on (``alter(bytes) -> bytes``) on its
+    way to the board: the board does what the host did not send."""
     from tactdeform_hw.emulator.urlhandler import protocol_etactile
 
     real_write = protocol_etactile.Serial.write
     seen = {"patterns": 0}
 
-    def corrupting_write(self, data):
+    def altering_write(self, data):
         data = bytes(data)
-        if data[:1] == b"\xfe" and any(data[1:]):  # a frame with electrodes on
+        if data[:1] == b"\xfe" and any(data[1:]):
             seen["patterns"] += 1
             if seen["patterns"] == 2:
-                i = data.index(0, 1)  # switch on one electrode the renderer left off
-                data = data[:i] + b"\x01" + data[i + 1 :]
+                data = alter(data)
         return real_write(self, data)
 
-    monkeypatch.setattr(protocol_etactile.Serial, "write", corrupting_write)
+    monkeypatch.setattr(protocol_etactile.Serial, "write", altering_write)
+
+
+def test_corrupted_frame_on_the_port_fails_the_pattern_buffer_check(tmp_path, monkeypatch, capsys):
+    def switch_one_on(data: bytes) -> bytes:  # an electrode the renderer left off
+        i = data.index(0, 1)
+        return data[:i] + b"\x01" + data[i + 1 :]
+
+    _alter_second_frame(monkeypatch, switch_one_on)
     out = tmp_path / "bad"
     code = main(["study", "task1", "--trials", "1", "--out", str(out), "--json", "--quiet", "--no-pictures"])
     assert code == 3
@@ -490,21 +499,11 @@ def test_v2_study_cli_end_to_end(tmp_path, capsys, firmware):
 
 
 def test_v2_altered_height_on_the_port_fails_the_heights_check(tmp_path, monkeypatch):
-    from tactdeform_hw.emulator.urlhandler import protocol_etactile
+    def one_height_one_code_lower(data: bytes) -> bytes:
+        k = next(i for i in range(1, len(data) - 1, 2) if data[i] or data[i + 1])
+        return data[:k] + bytes(((data[k] - 1) & 0xFF,)) + data[k + 1 :]
 
-    real_write = protocol_etactile.Serial.write
-    seen = {"patterns": 0}
-
-    def altering_write(self, data):
-        data = bytes(data)
-        if data[:1] == b"\xfe" and any(data[1:]):  # a v2 frame with heights
-            seen["patterns"] += 1
-            if seen["patterns"] == 2:
-                k = next(i for i in range(1, len(data) - 1, 2) if data[i] or data[i + 1])
-                data = data[:k] + bytes(((data[k] - 1) & 0xFF,)) + data[k + 1 :]  # one height one code lower
-        return real_write(self, data)
-
-    monkeypatch.setattr(protocol_etactile.Serial, "write", altering_write)
+    _alter_second_frame(monkeypatch, one_height_one_code_lower)
     out = tmp_path / "bad-v2"
     argv = ["study", "task1", "--device", V2_URL, "--firmware", "v2", "--trials", "1", "--no-pictures"]
     assert main([*argv, "--out", str(out), "--json", "--quiet"]) == 3

@@ -128,12 +128,7 @@ def replay(
         emu.advance_to(t * 1e6)
         emu.write(bytes.fromhex(r["hex"]))
     emu.advance_to((t_last + tail_s) * 1e6)
-    if v2:
-        from ..study.runner import v2_pulse_table
-
-        table = v2_pulse_table(emu)
-    else:
-        table = emu.reports.pulse_table()
+    table = emu.reports.pulse_table()
     cur = table["current_ua"]
     live = cur > 0
     channels: dict[int, dict[str, Any]] = {}

@@ -579,7 +579,7 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     if v2:
         # v2 records every scan (a torn pattern is one hazard per scan it tore, with its time): the
         # hazard list and the model's loss reports, where it keeps them, are the whole account
-        pulses = v2_pulse_table(emu)
+        pulses = emu.reports.pulse_table()  # once; each trial takes its window of it below
         torn_runs: list[Any] = []
         losses: list[Any] = list(getattr(emu, "losses", ()))
         hazards = list(emu.hazards)
@@ -679,35 +679,6 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         run.timed_hazards = found
 
 
-def v2_pulse_table(emu: Any) -> dict[str, np.ndarray]:
-    """Every pulse the v2 model's scans delivered, in the columns the checks read (``start_us``,
-    ``channel``, ``kind`` as v1.2's pulse kinds, ``current_ua``, ``charge_nc``, ``code``): modes 0 and 1
-    are stimulation (monophasic; biphasic by the POL level), mode 2 gives every channel the sense pulse."""
-    from ..protocol.units import DEFAULT_TRANSFER
-
-    rows: list[tuple[float, int, int, int, float]] = []
-    for scan in emu.scans:
-        for ch, onset, code, width_ns, pol in scan.pulses:
-            if scan.stim_mode == 2:
-                kind = 3
-            elif scan.stim_mode == 1:
-                kind = 1 if pol else 2
-            else:
-                kind = 0
-            rows.append(((scan.start_ns + onset) / 1000.0, ch, kind, code, width_ns / 1000.0))
-    ua_of = {code: float(DEFAULT_TRANSFER.to_ua(code)) for code in {r[3] for r in rows}}
-    current = np.array([ua_of[r[3]] for r in rows], dtype=float)
-    width = np.array([r[4] for r in rows], dtype=float)
-    return {
-        "start_us": np.array([r[0] for r in rows], dtype=float),
-        "channel": np.array([r[1] for r in rows], dtype=int),
-        "kind": np.array([r[2] for r in rows], dtype=int),
-        "current_ua": current,
-        "charge_nc": current * width / 1000.0,
-        "code": np.array([r[3] for r in rows], dtype=int),
-    }
-
-
 def frame_heights(
     run: TrialRun, array: ElectrodeArray
 ) -> list[tuple[float, tuple[int, ...], tuple[float, ...], str]]:
@@ -769,5 +740,4 @@ __all__ = [
     "replay_timed",
     "run_study",
     "trial_poses",
-    "v2_pulse_table",
 ]
