@@ -231,7 +231,7 @@ def test_open_device_detects_by_default_and_counts_the_probe_as_its_own(
     log = tmp_path / "audit.jsonl"
     dev = open_device(f"etactile://?firmware={fw}&timed=0", audit=AuditLog(log))
     try:
-        assert (dev._dialect is not None) == (fw == "v2")
+        assert dev.firmware == fw
         assert wire.startswith(PROBE[:-1]) and dev.pacer.stats.bytes_written == len(wire)
     finally:
         dev.close()

@@ -63,7 +63,12 @@ from tactdeform_hw.emulator.hazards import Hazard, HazardKind  # noqa: E402
 from tactdeform_hw.emulator.scan import PulseKind  # noqa: E402
 from tactdeform_hw.emulator.timed import TimedEmulator  # noqa: E402
 from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2  # noqa: E402
-from tactdeform_hw.errors import TactDeformError  # noqa: E402
+from tactdeform_hw.errors import (  # noqa: E402
+    ConfigurationError,
+    ProtocolMisuseError,
+    SafetyError,
+    TactDeformError,
+)
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER  # noqa: E402
 
 #: A pulse on an electrode switched off earlier than this is a wrong delivery (a frame's own latency:
@@ -125,7 +130,7 @@ def _hazard_name(h: Hazard) -> str:
 
 
 #: Errors that refuse a frame (the driver keeps the caller's previous frame) rather than fail to send it.
-REFUSALS = ("SafetyError", "LimitError", "ProtocolMisuseError", "ConfigurationError")
+REFUSALS = (SafetyError, ConfigurationError, ProtocolMisuseError)
 #: Transitions the caller asked for (not a fault the driver noticed).
 CALLER_REASONS = frozenset({"resync", "reconnect", "hardware_reset"})
 #: Simulated time a fault session keeps the fail-safe running after its last call.
@@ -281,6 +286,7 @@ class _Session:
         self.sent: tuple[int, ...] | None = None  # the caller's frame a keepalive brings back
         self.notices: list[float] = []
         self.longest_call_s = 0.0  # the fail-safe cannot act while one of the owner's calls runs
+        self.refused = False  # the last call was refused before anything was sent
 
     def _guard(self) -> SafetyGuard | None:
         """v2: a participant's map guards each electrode with its own limit, or a participant's cap."""
@@ -353,6 +359,7 @@ class _Session:
     def _call(self, name: str, fn: Callable[[], Any], intent: tuple[int, ...] | None = None) -> bool:
         """Call ``fn``; ``intent``: the electrodes the host means from this call on (None: unchanged)."""
         self.res.calls.append(name)
+        self.refused = False
         t0 = self.port.now_s
         try:
             try:
@@ -364,7 +371,8 @@ class _Session:
             self.res.errors.append(f"{name}: {type(exc).__name__}: {exc}"[:160])
             # what a failed call asked for may be in force in part: still the host's intent; a refusal sent
             # nothing, so the frame before it is still the one the host means (and the board runs)
-            if intent is not None and type(exc).__name__ not in REFUSALS:
+            self.refused = isinstance(exc, REFUSALS)
+            if intent is not None and not self.refused:
                 self.intents.append((t0, intent, self.port.now_s))
             return False
         if intent is not None:
@@ -396,10 +404,7 @@ class _Session:
         r = rng.random()
         if r < 0.30:
             pat = _pattern(rng, n, self.biphasic, mixed=self.firmware != "v2")
-            refused = len(self.res.errors)
-            if self._call("send_pattern", lambda: dev.send_pattern(pat), pat) or not any(
-                k in e for e in self.res.errors[refused:] for k in REFUSALS
-            ):
+            if self._call("send_pattern", lambda: dev.send_pattern(pat), pat) or not self.refused:
                 # the caller's frame, even when the link failed under it: keepalive resumes it
                 self.sent = pat
         elif r < 0.40:
@@ -442,13 +447,9 @@ class _Session:
         elif r < 0.78:
             new = StimConfig(**{**asdict(cfg), "current_ua": rng.choice((0, 500, 1200))})
             self.res.allowed_stim_ua = max(self.res.allowed_stim_ua, new.current_ua)
-            refused = len(self.res.errors)
-            if self._call("configure", lambda: dev.configure(new), off) or not any(
-                k in e for e in self.res.errors[refused:] for k in REFUSALS
-            ):
-                self.sent = (
-                    None  # a configuration the driver wrote ends the caller's frame; a refusal does not
-                )
+            # a configuration the driver wrote ends the caller's frame; a refusal does not
+            if self._call("configure", lambda: dev.configure(new), off) or not self.refused:
+                self.sent = None
         else:
             dt = rng.choice((0.0005, 0.002, 0.008, 0.02, 0.05))
             self.res.calls.append(f"wait {dt * 1e3:g} ms")

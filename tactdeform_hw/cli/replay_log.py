@@ -6,10 +6,11 @@ with them — which channels received which current, and how much charge — so 
 after the fact, e.g. against the participant's profile (``--participant``).
 
 A log is replayed on the model of the firmware it was written for: the device records a ``firmware`` event
-when it speaks v2 (each pattern element a u16 height, the stimulation mode, the sync check), so such a log
-goes to the v2 timed model and its bytes are read with the v2 command table; a log without that record was
-written for v1.2 (the audit log's default reading).  A log naming a firmware this package does not know, or
-naming two, is refused, as is a log whose firmware is not the one ``--firmware`` asks for.
+with the version it speaks, so a v2 log (each pattern element a u16 height, the stimulation mode, the sync
+check) goes to the v2 timed model and its bytes are read with the v2 command table; a log without that
+record (written before the device recorded it) was written for v1.2.  A log naming a firmware this
+package does not know, or naming two, is refused, as is a log whose firmware is not the one ``--firmware``
+asks for.
 """
 
 from __future__ import annotations
@@ -145,7 +146,7 @@ def replay(
         if v2:
             # every v2 channel has its own height: the heights it was pulsed at
             channels[ch]["heights_ua"] = sorted({round(float(v), 1) for v in cur[sel].tolist()})
-    losses = list(getattr(emu, "losses", ()))  # bytes that never took effect, where the model reports them
+    losses = list(emu.losses)  # bytes that never took effect
     return {
         "file": str(path),
         "firmware": ran,

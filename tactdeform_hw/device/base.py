@@ -58,6 +58,7 @@ from ..protocol.constants import (
     RX_QUEUE_SIZE,
     USB_PACKET_SIZE,
 )
+from ..protocol.firmware import V1_2
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
 from .config import POLARITY_CODE, StimConfig, sense_code
@@ -363,6 +364,11 @@ class Device(ABC):
     @property
     def closed(self) -> bool:
         return self._closed
+
+    @property
+    def firmware(self) -> str:
+        """The firmware version this device speaks to its board (``"v1.2"`` or ``"v2"``)."""
+        return self._dialect.firmware.name if self._dialect is not None else V1_2.name
 
     @property
     def heights_in_force(self) -> list[int] | None:

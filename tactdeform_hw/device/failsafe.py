@@ -83,9 +83,6 @@ logger = logging.getLogger("tactdeform_hw.failsafe")
 DEFAULT_WATCHDOG_S = 0.100
 DEFAULT_POLL_S = 0.002
 LINK_MARGIN_S = 0.002
-#: The resync time :meth:`FailSafe.recovery_bound_s` assumes for a device that does not report its own
-#: (``resync_bound_s``): a v1.2 resync of a small configuration.
-DEFAULT_RESYNC_S = 0.035
 
 #: The signals that stop a watched device: Ctrl-C, ``kill``, a closed terminal, Ctrl-\.
 STOP_SIGNALS: tuple[signal.Signals, ...] = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP, signal.SIGQUIT)
@@ -590,10 +587,9 @@ class FailSafe:
 
         ``resync_s`` (the longest a failing resync waits before the reset line) defaults to the device's
         own :meth:`~tactdeform_hw.device.base.Device.resync_bound_s`, which knows its firmware (v2 waits
-        out a 2 s command timeout); :data:`DEFAULT_RESYNC_S` for a device that cannot say."""
+        out a 2 s command timeout)."""
         if resync_s is None:
-            bound = getattr(self.device, "resync_bound_s", None)
-            resync_s = float(bound()) if callable(bound) else DEFAULT_RESYNC_S
+            resync_s = self.device.resync_bound_s()
         interval = min(
             x for x in (self.probe_interval_s, self.refresh_interval_s, float("inf")) if x is not None
         )

@@ -22,21 +22,13 @@ import time
 import tty
 from typing import Any
 
-from ..errors import ConfigurationError, TransportError
-from .realtime import BoardServer, RealtimeEmulator
+from ..errors import TransportError
+from .realtime import BoardServer, RealtimeEmulator, check_served_firmware
 
 if sys.platform == "win32":  # pragma: no cover - pty is POSIX only
     raise ImportError("the pty server needs a POSIX system")
 
 _HUP = select.POLLHUP | select.POLLERR
-
-
-def _check_firmware(board: Any, firmware: str | None) -> None:
-    """Refuse a ``firmware`` that contradicts the board given (a server must not claim a version it does
-    not serve)."""
-    served = getattr(board, "firmware", "v1.2")
-    if firmware is not None and firmware != served:
-        raise ConfigurationError(f"firmware={firmware!r}, but the board given runs {served!r}")
 
 
 class PtyServer(BoardServer):
@@ -51,7 +43,7 @@ class PtyServer(BoardServer):
         super().__init__(
             board if board is not None else RealtimeEmulator(firmware=firmware or "v1.2"), **kwargs
         )
-        _check_firmware(self.board, firmware)
+        check_served_firmware(self.board, firmware)
         try:
             self._master, slave = os.openpty()
         except OSError as exc:

@@ -545,6 +545,14 @@ def reset_untimed(emulator: Any, reason: str) -> ResetRecord:
     return ResetRecord(reason, 0.0, discarded)
 
 
+def check_served_firmware(board: Any, firmware: str | None) -> None:
+    """Refuse a server's ``firmware`` that contradicts the board it was given: a server never claims a
+    version it does not serve (None: whatever the board runs)."""
+    served = getattr(board, "firmware", "v1.2")
+    if firmware is not None and firmware != served:
+        raise ConfigurationError(f"firmware={firmware!r}, but the board given runs {served!r}")
+
+
 class BoardServer:
     """What the pty and TCP servers share: the board (a :class:`RealtimeEmulator`, or an untimed
     :class:`~.core.Emulator` that answers at once), a loop thread, resets from any thread, the bytes a

@@ -19,8 +19,8 @@ import socket
 import time
 from typing import Any
 
-from ..errors import ConfigurationError, TransportError
-from .realtime import WIFI_TCP, BoardServer, BuildRules, RealtimeEmulator
+from ..errors import TransportError
+from .realtime import WIFI_TCP, BoardServer, BuildRules, RealtimeEmulator, check_served_firmware
 
 
 class TcpServer(BoardServer):
@@ -44,9 +44,7 @@ class TcpServer(BoardServer):
     ) -> None:
         if board is None:
             board = RealtimeEmulator(rules=rules, firmware=firmware or "v1.2")
-        served = getattr(board, "firmware", "v1.2")
-        if firmware is not None and firmware != served:
-            raise ConfigurationError(f"firmware={firmware!r}, but the board given runs {served!r}")
+        check_served_firmware(board, firmware)
         super().__init__(board, **kwargs)
         self.rules = rules
         try:

@@ -47,6 +47,7 @@ from ..protocol.constants import (
     ESPRESSIF_VID,
     USB_PACKET_SIZE,
 )
+from ..protocol.firmware import FIRMWARES
 from .core import Emulator
 from .link import LinkModel
 from .skin import SkinModel
@@ -220,10 +221,6 @@ class _TimedOptions(TypedDict):
     model: TimingModel | None
     skin: SkinModel | None
     stack_reading: float | None
-
-
-#: the firmware versions an emulated device can run
-FIRMWARES = ("v1.2", "v2")
 
 
 class EmulatedUsbDevice:
@@ -873,7 +870,6 @@ __all__ = [
     "EmulatedUsbBackend",
     "EmulatedUsbDevice",
     "EndpointDescriptor",
-    "FIRMWARES",
     "InterfaceDescriptor",
     "RealClock",
     "VirtualClock",

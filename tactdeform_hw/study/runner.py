@@ -387,7 +387,7 @@ def run_study(
         offline_clock=None if realtime else SimulatedClock(),
         firmware=firmware,
     )
-    ran = dev._dialect.firmware.name if dev._dialect is not None else "v1.2"
+    ran = dev.firmware
     sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
     tap = WireTap(dev.port, ran)
     dev.port = tap
@@ -578,10 +578,10 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     hw_to_app = {ch: i for i, ch in enumerate(mapping.app_to_hw)}
     if v2:
         # v2 records every scan (a torn pattern is one hazard per scan it tore, with its time): the
-        # hazard list and the model's loss reports, where it keeps them, are the whole account
+        # hazard list and the model's loss reports are the whole account
         pulses = emu.reports.pulse_table()  # once; each trial takes its window of it below
         torn_runs: list[Any] = []
-        losses: list[Any] = list(getattr(emu, "losses", ()))
+        losses: list[Any] = list(emu.losses)
         hazards = list(emu.hazards)
         result.timed = True
         result.timed_summary = {

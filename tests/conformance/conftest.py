@@ -39,6 +39,7 @@ import pytest
 
 from tactdeform_hw.device import open_port
 from tactdeform_hw.errors import MissingDependencyError, TransportError
+from tactdeform_hw.protocol.firmware import FIRMWARES
 
 EMULATED_TARGETS = ("etactile://", "pty", "tcp", "usb-emulator")
 #: the same transports serving firmware v2 (the suite in ``test_conformance_v2.py``)
@@ -49,7 +50,6 @@ V2_TARGETS = (
     "tcp?firmware=v2",
     "usb-emulator?firmware=v2",
 )
-FIRMWARES = ("v1.2", "v2")
 REPLY_TIMEOUT_S = 0.5
 
 
