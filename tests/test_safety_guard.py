@@ -245,6 +245,7 @@ COVERED = {
     "probe": "a measure",
     "hv513_count": "no current command",
     "heights_in_force": "read-only: the v2 heights the firmware should hold",
+    "firmware": "read-only: the version the device speaks",
     "resync": "resync tests: configuration again through configure",
     "reconnect": "resync",
     "hardware_reset": "resync",
