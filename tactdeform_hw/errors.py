@@ -76,6 +76,11 @@ class ShortReplyError(ProtocolError):
         self.received = received
 
 
+class NotStoppedError(ProtocolError):
+    """The board answered after an all-off, and the answer shows current still flowing (a corrupted or
+    duplicated byte changed what the all-off set): the driver recovers and switches off again."""
+
+
 class ProtocolMisuseError(ProtocolError):
     """A command sequence that would trigger a known firmware defect; refused before anything is written."""
 

@@ -163,7 +163,7 @@ def test_renderer_pipeline_through_a_fault() -> None:
         thread=False,
         signals=False,
         at_exit=False,
-    )
+    ).start()
     port.hooks.append(lambda t: fs.poll(t))
     renderer = render.Renderer(
         scene,
@@ -189,6 +189,7 @@ def test_renderer_pipeline_through_a_fault() -> None:
         if not sent:
             dev.keepalive()
     port.advance(0.2)
+    fs.stop()
     limits = SafetyGuard.from_profile(prof).electrode_limits(32)
     hw_to_app = {hw: app for app, hw in enumerate(mapping.app_to_hw)}
     chk = check_deliveries(port.emulator, intents, limits, hw_to_app)

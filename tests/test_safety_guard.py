@@ -259,6 +259,7 @@ COVERED = {
     "boot_s": "a wait before the first byte after a reset",
     "unknown_reply_s": "a wait for a reply",
     "resync_bound_s": "arithmetic, no bytes",
+    "probe_bound_s": "arithmetic, no bytes",
     "unproved_spans": "a record, no bytes",
     "suspended": "property",
     "stimulating": "property",

@@ -28,6 +28,7 @@ from tactdeform_hw.emulator.hazards import HazardKind
 from tactdeform_hw.emulator.pty_server import PtyServer
 from tactdeform_hw.emulator.timed import TimedEmulator
 from tactdeform_hw.errors import ShortReplyError, TactDeformError
+from tactdeform_hw.protocol import commands as p
 
 from .safety_helpers import defects
 
@@ -474,3 +475,60 @@ def test_a_hung_board_reaches_the_reset_line_within_the_resync_bound(link: str) 
     # after the scan the reset caught, nothing until the configuration is back and a frame asks for it
     after = port.emulator.reports.pulse_table((reset_at + 0.0085) * 1e6)
     assert not (after["current_ua"] > 0).any()
+
+
+# --- close proves that nothing stimulates, not only that its bytes were read ------------------------------
+
+
+class DuplicatingPort(TimedPort):
+    """Duplicates the command byte of the next ``armed`` sense-height writes (``F9 00`` → ``F9 F9 00``: a
+    sense height of 0xF9, about 10 mA on every channel the pattern has off) — a UART's duplicated byte,
+    in each copy the loss-tolerant encoding writes."""
+
+    armed = 0
+
+    def write(self, data: bytes) -> int:
+        if self.armed and data[:1] == p.encode_sense_height(0)[:1]:
+            self.armed -= 1
+            super().write(data[:1])
+        return super().write(data)
+
+
+@pytest.mark.parametrize("robust", [False, True])
+def test_close_notices_a_duplicated_sense_height_byte_and_switches_off_again(robust: bool) -> None:
+    """Campaign seed 9, fault session 155 (v1.2): the reply to close's proof has the right length, but the
+    sense pulse goes on at 9.96 mA.  Close reads each channel back a scan later, sees the current, recovers
+    and switches off again; nothing is delivered after close returns."""
+    port = DuplicatingPort(link="uart", robust_encoding=robust)
+    dev = EtactileKitDevice(port)
+    dev.configure(StimConfig(electrode_count=32, current_ua=400, pulse_width_us=50, rate_hz=164))
+    dev.send_pattern([1] * 8 + [0] * 24)
+    port.advance(0.02)
+    port.armed = 2 if robust else 1
+    dev.close()
+    assert not port.armed, "the sense height was never written"
+    assert dev.link_state is LinkState.IN_STEP or dev.closed
+    transitions = [why for _, _, _, why in dev.transitions]
+    assert "a channel reads current after the all-off" in transitions
+    closed_at = port.now_s
+    port.is_open = True
+    port.advance(0.05)
+    emu = port.emulator
+    assert emu.state()["sense_pulse_height"] == 0
+    table = emu.reports.pulse_table()
+    after = table["start_us"] / 1e6 > closed_at
+    assert after.any()  # the scans go on (count unchanged), at height 0
+    assert not (table["current_ua"][after] > 0).any()
+    assert not (table["code"][after] > 0).any()
+
+
+def test_sessions_campaign_seed_9_session_155_holds() -> None:
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    import safety_campaign as sc
+
+    res = sc.run_session(155, seed=9, faults=True, firmware="v1.2")
+    assert "duplicate" in res.faults
+    assert res.ok and res.unexplained == 0, res.first_violation

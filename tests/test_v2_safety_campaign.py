@@ -193,3 +193,14 @@ def test_close_on_v2_leaves_the_electrode_count_at_0() -> None:
     dev.send_pattern([1] * 8)
     dev.close()
     assert board.emulator.state()["electrode_num"] == 0
+
+
+def test_a_hung_255_electrode_board_is_reset_within_the_recovery_bound() -> None:
+    """Campaign seed 8, fault session 1691: 255 electrodes at 7 Hz on a UART, the board's main loop hangs
+    while the owner writes frames back to back.  The probe now runs before the owner's next frame (a busy
+    owner cannot starve it), and the bound counts the probe's own wait behind a full queue
+    (:meth:`Device.probe_bound_s`): the wrong deliveries end within it."""
+    res = sc.run_session(1691, seed=8, faults=True, firmware="v2")
+    assert "stop_reading" in res.faults and res.electrodes == 255
+    assert res.ok, res.first_violation
+    assert res.unexplained == 0 and 0 < res.wrong_after_fault_s <= res.recovery_bound_s

@@ -335,9 +335,10 @@ class _Session:
                     pass
 
         if self.failsafe is not None:
+            self.failsafe.stop()
             self.port.hooks.clear()
         self.port.hooks.append(hook)
-        self.failsafe = fs
+        self.failsafe = fs.start()  # (no thread: the port's clock drives it)
 
     # --- the host's intent ------------------------------------------------------------------------------
 
@@ -361,11 +362,16 @@ class _Session:
         self.res.calls.append(name)
         self.refused = False
         t0 = self.port.now_s
+        fs = self.failsafe
+        waited = fs.owner_wait_s if fs is not None else 0.0
         try:
             try:
                 fn()
             finally:
-                self.longest_call_s = max(self.longest_call_s, self.port.now_s - t0)
+                # the owner's own time: a probe the fail-safe ran first is the fail-safe's, in the bound
+                if fs is not None:
+                    waited = fs.owner_wait_s - waited
+                self.longest_call_s = max(self.longest_call_s, self.port.now_s - t0 - waited)
         except TactDeformError as exc:
             self.notices.append(self.port.now_s)
             self.res.errors.append(f"{name}: {type(exc).__name__}: {exc}"[:160])
@@ -396,6 +402,8 @@ class _Session:
         if self.failsafe is not None:
             tail = _FAULT_TAIL_V2_S if self.firmware == "v2" else _FAULT_TAIL_S
         self.port.advance(tail)
+        if self.failsafe is not None:
+            self.failsafe.stop()
 
     def step(self) -> None:
         rng, dev, cfg = self.rng, self.dev, self.cfg
@@ -593,7 +601,8 @@ class _Session:
     def recovery_bound_s(self) -> float:
         period = firmware_period_us(self.cfg.rate_hz) / 1e6
         resync = max(d.resync_bound_s() for d in self.devices)
-        bound = float(self.failsafe.recovery_bound_s(scan_period_s=period, resync_s=resync))
+        probe = max(d.probe_bound_s() for d in self.devices)
+        bound = float(self.failsafe.recovery_bound_s(scan_period_s=period, resync_s=resync, probe_s=probe))
         return bound + self.longest_call_s + SETTLE_S
 
 

@@ -159,7 +159,7 @@ def build_session(sc: Scenario) -> tuple[TimedPort, EtactileKitDevice, FailSafe]
         thread=False,
         signals=False,
         at_exit=False,
-    )
+    ).start()  # (no thread: the port's clock drives it)
     last_poll = [-1.0]
 
     def hook(t: float) -> None:
@@ -221,6 +221,7 @@ def run(sc: Scenario) -> ScenarioResult:
     end = max(stop_t, frames[-1][0] if frames else 0.0) + sc.tail_s
     while port.now_s < end:
         port.advance(min(fs.poll_s, end - port.now_s))
+    fs.stop()
     emu = port.emulator
     mapping = {ch: ch for ch in range(32)}
     chk = check_deliveries(emu, intents, limits, mapping)

@@ -43,6 +43,7 @@ from ..clock import InstantClock, MonotonicClock, SimulatedClock
 from ..errors import (
     DeviceTimeoutError,
     LimitError,
+    NotStoppedError,
     PortNotOpenError,
     ProtocolMisuseError,
     SafetyError,
@@ -72,6 +73,7 @@ from .pacing import (
     estimate_scan_us,
     firmware_period_us,
 )
+from .readback import OFF_READING_CODES
 from .safety import SafetyGuard
 from .v2 import V2Dialect
 
@@ -133,9 +135,6 @@ TRANSITIONS: dict[LinkState, frozenset[LinkState]] = {
 #: zero width or rate — which the firmware ignores), so the probe byte itself is read as a command; only a
 #: pattern in progress can take it, as one more level (a sense pulse at the sense height already in force).
 PROBE_LEAD_ZEROS = 4
-#: Commands of one frame under robust encoding (height, pattern, pattern again): what may still be in
-#: flight when a recovery starts.
-FRAME_COMMANDS = 3
 #: How often a reply is polled while its deadline runs.
 REPLY_POLL_S = 0.0005
 #: Times ``close`` reopens a link that failed under its all-off before it gives up and says so.
@@ -149,13 +148,24 @@ _P = ParamSpec("_P")
 _R = TypeVar("_R")
 
 
+#: The public operations that keep the board stimulating without proving that its parser reads: before
+#: each, a watcher's due check runs (:attr:`Device.before_stimulating`).  The others stop current
+#: (``all_off``, ``suspend``, ``close``), prove the link themselves (``measure``, ``probe``,
+#: ``hv513_count``) or rebuild it (``resync``, ``reconnect``, ``hardware_reset``).
+STIMULATING_OPS = frozenset({"configure", "set_current", "send_pattern", "keepalive", "refresh"})
+
+
 def _locked(fn: Callable[Concatenate[_D, _P], _R]) -> Callable[Concatenate[_D, _P], _R]:
     """Run a public method under the device lock, and name it as the origin of the bytes it sends."""
+    stimulating = fn.__name__ in STIMULATING_OPS
 
     @functools.wraps(fn)
     def wrapper(self: _D, /, *args: _P.args, **kwargs: _P.kwargs) -> _R:
         with self._lock:
             outer = self._op is None
+            if outer and stimulating and self.before_stimulating is not None:
+                # before ``_op`` is set: the watcher's own operations are outer ones, named as theirs
+                self.before_stimulating()
             if outer:
                 self._op = fn.__name__
             try:
@@ -192,6 +202,9 @@ class Device(ABC):
     ) -> None:
         self._lock = threading.RLock()
         self._op: str | None = None
+        #: Called under the device lock before each operation in :data:`STIMULATING_OPS`: a fail-safe's
+        #: probe that is due runs there, so an owner that calls without a pause cannot starve it.
+        self.before_stimulating: Callable[[], None] | None = None
         self.mapping = mapping
         self.transfer = transfer
         self.guard = guard if guard is not None else SafetyGuard()
@@ -873,8 +886,8 @@ class Device(ABC):
         scratch = Pacer(clock=clock, policy=self.pacer.policy)
         scratch.set_timing(*self._recovery_timing())
         request, reply = (p.MEASURE_REQUEST, 2 * n) if n else (p.HV513_COUNT_REQUEST, 1)
-        for _ in range(FRAME_COMMANDS):  # a frame still in flight ahead of the recovery
-            scratch.write(lambda _chunk: None, p.encode_pulse_height(0))
+        for data in self._frame_commands(n):  # a frame still in flight ahead of the recovery
+            scratch.write(lambda _chunk: None, data)
         steps = [(bytes(PROBE_LEAD_ZEROS) + request, reply), (bytes(RX_QUEUE_SIZE) + request, reply)]
         if n and not self._can_reset():
             steps.append((bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST, 1))
@@ -884,6 +897,50 @@ class Device(ABC):
             deadline = scratch.drained_by() + 0.003 + reply * scratch.policy.byte_s + period
             clock.advance(deadline - clock.now() + REPLY_POLL_S)
         return clock.now()
+
+    def _frame_commands(self, n: int) -> list[bytes]:
+        """The longest frame this driver writes at electrode count ``n``, command by command (under the
+        loss-tolerant encoding each critical command goes twice): what may still be in flight."""
+        if self._dialect is not None:
+            cmds = self._dialect.frame_commands(n)
+        else:
+            height = p.encode_pulse_height(0)
+            cmds = [height, p.encode_pattern(bytes(n), electrode_num=n), height]
+        copies = 2 if self.pacer.robust else 1
+        return [c for c in cmds for _ in range(copies)]
+
+    def probe_bound_s(self) -> float:
+        """The longest a probe (a measure request: the fail-safe's) waits for its reply at the configuration
+        in force before it counts as unanswered — computed, like :meth:`resync_bound_s`, on a simulated
+        clock with a scratch pacer: behind as many frames as the pacer lets into the queue (it never plans
+        more, so the backlog a probe can meet is at most that), the request, then its reply's deadline.
+        0 before a configuration (the fail-safe does not probe then)."""
+        cfg = self._config
+        if cfg is None:
+            return 0.0
+        n = cfg.electrode_count
+        timing = (firmware_period_us(cfg.rate_hz) / 1e6, self._worst_scan_s(cfg))
+
+        def scratch() -> Pacer:
+            pacer = Pacer(clock=SimulatedClock(), policy=self.pacer.policy)
+            pacer.set_timing(*timing)
+            return pacer
+
+        # the backlog: the most the queue model holds after any of the frames' writes (the probe may come
+        # right after any of them); the request waits at most that long to fit, then is read on its own
+        filled = scratch()
+        frame = self._frame_commands(n)
+        frames = filled.limit_bytes // max(1, sum(len(c) for c in frame)) + 2
+        backlog = 0.0
+        for _ in range(frames):
+            for data in frame:
+                filled.write(lambda _chunk: None, data)
+                backlog = max(backlog, filled.drained_by() - filled.clock.now())
+        alone = scratch()
+        alone.write(lambda _chunk: None, p.MEASURE_REQUEST)
+        own = alone.drained_by() - alone.clock.now()  # its crossing, a scan, its read, a tick
+        slack = 0.003 + 2 * n * alone.policy.byte_s + timing[0]  # as :meth:`_reply_slack_s`
+        return backlog + own + slack + REPLY_POLL_S
 
     @_locked
     def reconnect(self) -> None:
@@ -979,20 +1036,51 @@ class Device(ABC):
             self._close_transport()
 
     def _stop_and_prove(self) -> None:
-        if self._config is not None:
-            self.all_off()
-        if self._link is LinkState.IN_STEP:
+        """All off, and proof that nothing stimulates.  A proof that fails (a board that rebooted or hung
+        under the all-off, or one whose answer shows current still flowing) is followed by a recovery —
+        with the reset line if need be — and the all-off and its proof again."""
+        for attempt in range(1, RECOVERY_ATTEMPTS + 2):
+            if self._config is not None:
+                self.all_off()
+            if self._link is not LinkState.IN_STEP:
+                return
             try:
                 if self._dialect is not None:
                     self._dialect.prove_stopped(self)  # v2: count 0, proved by the sync reply's value
                 else:
-                    self._prove(self._config.electrode_count if self._config is not None else 0)
-            except ShortReplyError:
-                # the all-off is not proved read (a board that rebooted or hung under it): recover,
-                # with the reset line if need be, and switch off again
+                    self._prove_off()
+                return
+            except (ShortReplyError, NotStoppedError):
+                if attempt > RECOVERY_ATTEMPTS:
+                    raise
                 self._recover()
-                if self._config is not None:
-                    self.all_off()
+
+    def _prove_off(self) -> None:
+        """v1.2: every byte read (the proof), then — a whole period and scan later, when every channel's
+        last pulse is the all-off's — each channel's reading at (almost) 0.  The reply's length proves
+        only that the bytes were read: a duplicated 0xF9 turns ``F9 00`` into a sense height of 0xF9
+        (about 10 mA on every channel), and nothing but the readings shows it."""
+        cfg = self._config
+        n = cfg.electrode_count if cfg is not None else 0
+        self._prove(n)
+        if cfg is None or n == 0:
+            return
+        scan_s = self._scan_us / 1e6 if self._scan_us is not None else self._worst_scan_s(cfg)
+        self.pacer.wait_until(self.pacer.drained_by() + firmware_period_us(cfg.rate_hz) / 1e6 + scan_s)
+        self._discard_input()
+        mark = self._send_marked(p.MEASURE_REQUEST)
+        data = self._await_reply(2 * n)
+        if len(data) != 2 * n:
+            self._suspect("short reply to 0xFF after the all-off")
+            raise ShortReplyError("measure (the all-off's readings)", 2 * n, data)
+        self._proved(mark)
+        live = [ch for ch, v in enumerate(p.parse_measure_reply(data, n)) if v > OFF_READING_CODES]
+        if live:
+            self._suspect("a channel reads current after the all-off")
+            raise NotStoppedError(
+                f"after the all-off, channel(s) {', '.join(map(str, live[:8]))}"
+                f"{' …' if len(live) > 8 else ''} still read current (above {OFF_READING_CODES} ADC codes)"
+            )
 
     def __enter__(self) -> Device:
         return self

@@ -39,10 +39,14 @@ forget it.  The watchdog thread runs in wall time; a device paced on a simulated
 in-process emulator, whose board dies with the process) is watched for signals and exceptions only.
 
 **Recovery time.**  With probing and refreshing every ``T`` seconds, a fault that the link does not report
-is overwritten or detected within ``T`` plus the time of one poll; recovery (resync) then takes about
-20 payload commands (≈ 25 ms at the paced rate), and the firmware applies the all-off within one parser
-tick and one scan period.  :meth:`FailSafe.recovery_bound_s` returns that bound for the settings in use;
-the fault-injection tests hold every injected fault to it.
+is overwritten or detected within ``T`` plus the time of one poll — the probe that falls due while the owner
+is calling runs before the owner's next write (:attr:`Device.before_stimulating`), so an owner that never
+pauses cannot starve it — plus the probe's own wait for its reply behind as full a queue as the pacer
+allows (:meth:`Device.probe_bound_s`); recovery (resync) then takes about 20 payload commands (≈ 25 ms at
+the paced rate; on firmware v2 a board whose parser waits for a command's end adds its 2 s timeout), and
+the firmware applies the all-off within one parser tick and one scan period.
+:meth:`FailSafe.recovery_bound_s` returns that bound for the settings in use; the fault-injection tests
+hold every injected fault to it.
 
 **When the owner runs no code.**  A process killed with SIGKILL, or one that crashes in native code, runs
 no handler: its guardian process (:mod:`.guardian`), started with every device on a port that can be
@@ -77,6 +81,7 @@ from ..errors import (
     TransportError,
 )
 from .base import Device
+from .readback import OFF_READING_CODES
 
 logger = logging.getLogger("tactdeform_hw.failsafe")
 
@@ -356,6 +361,8 @@ class FailSafe:
         self.events: list[FailSafeEvent] = []
         self.watchdog_trips = 0
         self.recoveries = 0
+        #: Time the owner's calls spent waiting for probes (and recoveries) run before their writes.
+        self.owner_wait_s = 0.0
         self._want_signals = signals
         self._want_atexit = at_exit
         self._want_thread = thread
@@ -364,7 +371,7 @@ class FailSafe:
         self._handlers = False
         self._last_probe: float | None = None
         self._last_refresh: float | None = None
-        self._polling = False
+        self._turn = threading.Lock()  # held while a look at the device runs (a poll, or before a write)
         self._probe_failure: str | None = None
         self._transport_failed = False
 
@@ -378,6 +385,8 @@ class FailSafe:
                 _active.append(self)
         if self._want_signals and not self._handlers:
             self._handlers = _install_handlers()
+        if self.device.before_stimulating is None:
+            self.device.before_stimulating = self._before_stimulating
         if self._want_thread and self._thread is None:
             self._stop.clear()
             self._thread = threading.Thread(target=self._run, name="tactdeform-failsafe", daemon=True)
@@ -389,6 +398,8 @@ class FailSafe:
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=2.0)
         self._thread = None
+        if self.device.before_stimulating == self._before_stimulating:
+            self.device.before_stimulating = None
         with _active_lock:
             if self in _active:
                 _active.remove(self)
@@ -462,15 +473,46 @@ class FailSafe:
 
     def poll(self, now: float | None = None) -> None:
         """One look at the device: watchdog, then probe and refresh when due.  Re-entrant calls (a poll
-        whose own writes advance a simulated clock) are ignored."""
-        if self._polling or self.device.closed or self.device.busy:
+        whose own writes advance a simulated clock) and calls while another look runs are ignored."""
+        if self.device.closed or self.device.busy:
             # never in the middle of the owner's own operation: a frame is written whole or not at all
             return
-        self._polling = True
+        if not self._turn.acquire(blocking=False):
+            return
         try:
             self._poll(self.clock.now() if now is None else now)
         finally:
-            self._polling = False
+            self._turn.release()
+
+    def _before_stimulating(self) -> None:
+        """The owner is about to write (a frame, a height, a configuration): a probe that is due runs
+        first.  Between back-to-back calls the poll never finds the device free, and a frame proves
+        nothing (on a link without replies the bytes may go nowhere), so without this an owner that never
+        pauses would keep a stalled or desynchronised parser from ever being noticed.  A failed probe
+        recovers before the owner's call goes on (:meth:`recover`)."""
+        if self.probe_interval_s is None or self.device.closed:
+            return
+        if not self._turn.acquire(blocking=False):
+            return  # the fail-safe is looking already (its own refresh, or its thread waiting its turn)
+        now = self.clock.now()
+        try:
+            if self.device.config is not None and self._probe_due(now):
+                self._probe_now(now)
+        finally:
+            self.owner_wait_s += self.clock.now() - now
+            self._turn.release()
+
+    def _probe_due(self, now: float) -> bool:
+        interval = self.probe_interval_s
+        return interval is not None and (self._last_probe is None or now - self._last_probe >= interval)
+
+    def _probe_now(self, now: float) -> bool:
+        """Probe; on failure recover (True when the probe passed)."""
+        self._last_probe = now
+        if not self._guarded(lambda: self._probe(now)):
+            self.recover(self._probe_failure or "probe unanswered")
+            return False
+        return True
 
     def _poll(self, now: float) -> None:
         dev = self.device
@@ -485,13 +527,8 @@ class FailSafe:
         if dev.needs_resync:
             self.recover("a write failed", transport=self._transport_failed)
             return
-        if self.probe_interval_s is not None and (
-            self._last_probe is None or now - self._last_probe >= self.probe_interval_s
-        ):
-            self._last_probe = now
-            if not self._guarded(lambda: self._probe(now)):
-                self.recover(self._probe_failure or "probe unanswered")
-                return
+        if self._probe_due(now) and not self._probe_now(now):
+            return
         if self.refresh_interval_s is not None and (
             self._last_refresh is None or now - self._last_refresh >= self.refresh_interval_s
         ):
@@ -579,24 +616,33 @@ class FailSafe:
             "stimulating: unplug the board"
         )
 
-    def recovery_bound_s(self, scan_period_s: float = 0.008, resync_s: float | None = None) -> float:
+    def recovery_bound_s(
+        self, scan_period_s: float = 0.008, resync_s: float | None = None, probe_s: float | None = None
+    ) -> float:
         """The longest a fault the link does not report can affect stimulation with these settings: it is
-        noticed by the next probe (or overwritten by the next refresh), the probe's reply times out, a
-        resync is tried and probed again, and the reset that follows stops everything at once; the
-        scan in progress finishes.  Infinite without probing or refreshing.
+        noticed by the next probe (or overwritten by the next refresh) — due within one interval and one
+        poll, and run before the owner's next write even when the owner never pauses — the probe waits for
+        its reply until its deadline, a resync is tried and probed again, and the reset that follows stops
+        everything at once; the scan in progress finishes.  Infinite without probing or refreshing.  The
+        owner's operation that is running when the probe falls due comes on top (the fail-safe never cuts
+        into it).
 
-        ``resync_s`` (the longest a failing resync waits before the reset line) defaults to the device's
-        own :meth:`~tactdeform_hw.device.base.Device.resync_bound_s`, which knows its firmware (v2 waits
-        out a 2 s command timeout)."""
+        ``probe_s`` (the longest the probe waits, behind as full a queue as the pacer allows) and
+        ``resync_s`` (the longest a failing resync waits before the reset line) default to the device's
+        own :meth:`~tactdeform_hw.device.base.Device.probe_bound_s` and
+        :meth:`~tactdeform_hw.device.base.Device.resync_bound_s`, which know its firmware (v2 waits out a
+        2 s command timeout).  A read that blocks for the port's timeout past a deadline counts twice."""
         if resync_s is None:
             resync_s = self.device.resync_bound_s()
+        if probe_s is None:
+            probe_s = self.device.probe_bound_s()
         interval = min(
             x for x in (self.probe_interval_s, self.refresh_interval_s, float("inf")) if x is not None
         )
         if interval == float("inf"):
             return float("inf")
         timeout = float(getattr(getattr(self.device, "port", None), "timeout", None) or 0.0)
-        return interval + self.poll_s + 2 * timeout + resync_s + scan_period_s + 0.002
+        return interval + self.poll_s + probe_s + 2 * timeout + resync_s + scan_period_s + 0.002
 
 
 class Readback:
@@ -614,7 +660,12 @@ class Readback:
     """
 
     def __init__(
-        self, *, off_codes: int = 2, min_ua: int = 200, rise: float = 1.3, slack_codes: int = 3
+        self,
+        *,
+        off_codes: int = OFF_READING_CODES,
+        min_ua: int = 200,
+        rise: float = 1.3,
+        slack_codes: int = 3,
     ) -> None:
         self.off_codes = off_codes
         self.min_ua = min_ua

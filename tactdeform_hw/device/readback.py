@@ -16,6 +16,10 @@ from .v2 import buffer_levels
 
 PatternReadback = Callable[[], tuple[int, ...]]
 
+#: A measure reading (ADC code, ``raw >> 2``) above this on a channel pulsed at height 0 means current
+#: reaches it: the converter's noise stays below.
+OFF_READING_CODES = 2
+
 
 def pattern_readback(device: Any, mapping: ChannelMapping | None = None) -> PatternReadback | None:
     """A function returning the pattern the board behind ``device`` holds, in application order
@@ -60,4 +64,4 @@ def heights_readback(device: Any, mapping: ChannelMapping | None = None) -> Patt
     return read
 
 
-__all__ = ["PatternReadback", "heights_readback", "pattern_readback"]
+__all__ = ["OFF_READING_CODES", "PatternReadback", "heights_readback", "pattern_readback"]

@@ -167,6 +167,15 @@ class V2Dialect:
 
     # --- recovery -------------------------------------------------------------------------------------------
 
+    @staticmethod
+    def frame_commands(n: int) -> list[bytes]:
+        """The longest frame (:meth:`frame`): a mode change's zero pattern, the mode, the pattern."""
+        return [
+            c2.encode_pattern([0] * n, electrode_num=n),
+            c2.encode_stim_mode(c2.STIM_MODE_BIPHASIC),
+            c2.encode_pattern([0] * n, electrode_num=n),
+        ]
+
     def resync_bound_now_s(self, dev: Device) -> float:
         """The longest a failing v2 resync waits at the configuration in force before the reset line (or the
         refusal), computed like v1.2's on a simulated clock with a scratch pacer: behind a frame still in
@@ -192,11 +201,7 @@ class V2Dialect:
             deadline = scratch.drained_by() + 0.003 + scratch.policy.byte_s + period
             clock.advance(max(0.0, deadline - clock.now()) + REPLY_POLL_S)
 
-        for data in (
-            c2.encode_pattern([0] * n, electrode_num=n),
-            c2.encode_stim_mode(c2.STIM_MODE_BIPHASIC),
-            c2.encode_pattern([0] * n, electrode_num=n),
-        ):
+        for data in dev._frame_commands(n):
             written(data)
         written(PROBE)
         await_reply()
