@@ -27,6 +27,7 @@ from tactdeform_hw.emulator.faults import TimedPort
 from tactdeform_hw.emulator.hazards import HazardKind
 from tactdeform_hw.emulator.pty_server import PtyServer
 from tactdeform_hw.emulator.timed import TimedEmulator
+from tactdeform_hw.emulator.transport import EmulatorPort
 from tactdeform_hw.errors import ShortReplyError, TactDeformError
 from tactdeform_hw.protocol import commands as p
 
@@ -532,3 +533,18 @@ def test_sessions_campaign_seed_9_session_155_holds() -> None:
     res = sc.run_session(155, seed=9, faults=True, firmware="v1.2")
     assert "duplicate" in res.faults
     assert res.ok and res.unexplained == 0, res.first_violation
+
+
+def test_refresh_rewrites_the_sense_height_on_v12() -> None:
+    """A sense height the host did not set (a duplicated ``f9``) is a current on every channel the pattern
+    has off; the fail-safe's refresh writes it back with the height and the pattern."""
+    emu = Emulator()
+    dev = EtactileKitDevice(EmulatorPort(emu))
+    dev.configure(StimConfig(electrode_count=8, current_ua=500, sense_current_ua=40))
+    dev.send_pattern([1, 0, 0, 0, 0, 0, 0, 1])
+    set_by_host = emu.state()["sense_pulse_height"]
+    emu.feed(p.encode_sense_height(0xF9))
+    assert emu.state()["sense_pulse_height"] == 0xF9 << 2 != set_by_host
+    dev.refresh()
+    assert emu.state()["sense_pulse_height"] == set_by_host
+    dev.close()

@@ -215,6 +215,9 @@ def test_refresh_and_keepalive_rewrite_the_heights_in_force() -> None:
     emu.feed(c2.encode_pattern([0, 0, 0]))  # something else changed the board
     dev.refresh()
     assert emu.state()["stim_pattern"][:3] == [30, 30, 0]
+    emu.feed(c2.encode_stim_mode(2))  # a mode byte mis-read: the sense pulse on every channel
+    dev.refresh()
+    assert emu.state()["stim_mode"] == c2.STIM_MODE_MONOPHASIC
     dev.suspend()
     assert emu.state()["stim_pattern"][:3] == [0, 0, 0]
     dev.keepalive()
@@ -559,4 +562,18 @@ def test_a_hung_v2_board_gets_the_reset_line_and_comes_back() -> None:
     assert resets and dev.link_state is LinkState.IN_STEP
     port.advance(0.02)
     assert board.state()["stim_pattern"][:8] == [50] * 8
+    dev.close()
+
+
+def test_a_configuration_whose_all_off_scan_fills_the_period_is_refused_on_v12() -> None:
+    """v1.2 gives each off channel a sense pulse and a discharge: 255 channels with the 45 µs discharge
+    take about 14.2 ms, more than 72 Hz's 13.9 ms period.  Refused before a byte, instead of a board whose
+    parser then never answers."""
+    port, emu = _untimed("v1.2")
+    dev = EtactileKitDevice(port)
+    before = len(emu.parser.rx)
+    with pytest.raises(SafetyError, match="scan takes about 14"):
+        dev.configure(StimConfig(electrode_count=255, current_ua=400, rate_hz=72))
+    assert len(emu.parser.rx) == before
+    dev.configure(StimConfig(electrode_count=255, current_ua=400, rate_hz=60))
     dev.close()

@@ -344,8 +344,11 @@ class Device(ABC):
 
     @_locked
     def refresh(self) -> None:
-        """Write again the height and the pattern the firmware should hold: the same bytes as before, so
-        a firmware in step sees no change, and one that lost or mis-read a byte is put right."""
+        """Write again what the scans deliver — the sense height, the pulse height and the pattern the
+        firmware should hold (v2: the mode and the pattern of heights): the same bytes as before, so a
+        firmware in step sees no change, and one that lost or mis-read a byte is put right.  The sense
+        height is a current on every channel the pattern has off: a duplicated ``f9`` can set it to
+        about 10 mA."""
         cfg = self._config
         if cfg is None or self._closed:
             return
@@ -353,6 +356,8 @@ class Device(ABC):
             self._dialect.refresh(self)
             return
         pattern = self._last_pattern if self._last_pattern is not None else bytes(cfg.electrode_count)
+        if self._sense_byte is not None:
+            self._send(p.encode_sense_height(self._sense_byte))
         self._send(p.encode_pulse_height(self.transfer.to_code(self._current_ua)))
         self._send(p.encode_pattern(pattern, electrode_num=cfg.electrode_count))
 
@@ -434,6 +439,13 @@ class Device(ABC):
         if self.pacer.robust:
             self._check_robust(config)
         n = config.electrode_count
+        if self._dialect is None:
+            # v1.2 gives every channel the pattern has off a sense pulse and a discharge: a configuration
+            # whose all-off scan fills the period starves the parser (it could not even read an all-off),
+            # so it is refused before any byte
+            self.guard.check_scan(
+                self._scan_of(config, bytes(n)), firmware_period_us(config.rate_hz), SCAN_GAP_MIN_US
+            )
         # the caller's frame is superseded now, whether or not the writes below get through: no keepalive
         # after a failed configure brings the old frame back
         self._requested = None

@@ -492,6 +492,9 @@ class V2Dialect:
         assert cfg is not None
         n = cfg.electrode_count
         codes = self.codes if self.codes is not None and len(self.codes) == n else [0] * n
+        if self.mode is not None:
+            # a mode byte mis-read as 2 gives every channel the sense pulse, whatever the pattern
+            dev._send(c2.encode_stim_mode(self.mode))
         dev._send(c2.encode_pattern(codes, electrode_num=n))
 
     def set_current(self, dev: Device) -> None:
