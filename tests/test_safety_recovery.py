@@ -548,3 +548,27 @@ def test_refresh_rewrites_the_sense_height_on_v12() -> None:
     dev.refresh()
     assert emu.state()["sense_pulse_height"] == set_by_host
     dev.close()
+
+
+@pytest.mark.parametrize(
+    ("readback", "sense_ua", "rewritten"),
+    [(True, 0, False), (True, 40, True), (False, 0, True)],
+)
+def test_the_failsafes_refresh_leaves_the_sense_height_to_its_readback_only_where_that_watches_it(
+    readback: bool, sense_ua: int, rewritten: bool
+) -> None:
+    """Each ``f9`` written is one more byte a duplicate can turn into 10 mA: the refresh writes the sense
+    height unless the readback already sees a sense current on the off channels (none configured)."""
+    from tactdeform_hw.device.failsafe import FailSafe
+
+    emu = Emulator()
+    dev = EtactileKitDevice(EmulatorPort(emu))
+    dev.configure(StimConfig(electrode_count=8, current_ua=500, sense_current_ua=sense_ua))
+    dev.send_pattern([1, 0, 0, 0, 0, 0, 0, 1])
+    fs = FailSafe(
+        dev, watchdog_s=None, refresh_interval_s=0.05, verify_readback=readback, thread=False, signals=False
+    )
+    emu.feed(p.encode_sense_height(0xF9))
+    fs.poll(0.0)
+    assert (emu.state()["sense_pulse_height"] != 0xF9 << 2) is rewritten
+    dev.close()

@@ -343,12 +343,15 @@ class Device(ABC):
             self._needs_resync = True
 
     @_locked
-    def refresh(self) -> None:
-        """Write again what the scans deliver — the sense height, the pulse height and the pattern the
-        firmware should hold (v2: the mode and the pattern of heights): the same bytes as before, so a
-        firmware in step sees no change, and one that lost or mis-read a byte is put right.  The sense
-        height is a current on every channel the pattern has off: a duplicated ``f9`` can set it to
-        about 10 mA."""
+    def refresh(self, *, sense: bool = True) -> None:
+        """Write again what the scans deliver — the pulse height and the pattern the firmware should hold,
+        and with ``sense`` the sense height (v2: the mode and the pattern of heights): the same bytes as
+        before, so a firmware in step sees no change, and one that lost or mis-read a byte is put right.
+
+        The v1.2 sense height is a current on every channel the pattern has off, and a duplicated ``f9``
+        sets it to about 10 mA — including the duplicate of the ``f9`` a refresh writes.  So a caller
+        whose readback already watches the off channels (sense current 0) passes ``sense=False`` and
+        leaves the wire fewer bytes to turn into that current."""
         cfg = self._config
         if cfg is None or self._closed:
             return
@@ -356,7 +359,7 @@ class Device(ABC):
             self._dialect.refresh(self)
             return
         pattern = self._last_pattern if self._last_pattern is not None else bytes(cfg.electrode_count)
-        if self._sense_byte is not None:
+        if sense and self._sense_byte is not None:
             self._send(p.encode_sense_height(self._sense_byte))
         self._send(p.encode_pulse_height(self.transfer.to_code(self._current_ua)))
         self._send(p.encode_pattern(pattern, electrode_num=cfg.electrode_count))

@@ -533,7 +533,11 @@ class FailSafe:
             self._last_refresh is None or now - self._last_refresh >= self.refresh_interval_s
         ):
             self._last_refresh = now
-            self._guarded(dev.refresh)
+            cfg = dev.config
+            # the readback sees a sense current on the off channels when none is configured: there the
+            # sense height is left out (each write of it is one more byte a duplicate can raise)
+            watched = self.verify_readback and cfg is not None and not cfg.sense_current_ua
+            self._guarded(lambda: dev.refresh(sense=not watched))
 
     def _probe(self, now: float) -> bool:
         """A measure must come back whole; with ``verify_readback`` its voltages must also fit what the
