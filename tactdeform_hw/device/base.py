@@ -670,12 +670,17 @@ class Device(ABC):
         n = cfg.electrode_count
         if self._needs_resync:
             self._recover()
+        return self._measured(n, "measure")
+
+    def _measured(self, n: int, what: str) -> list[int]:
+        """0xFF and its whole reply, which proves every byte before it read; a short one marks the device
+        for a resync and raises (``what`` names the request in the error)."""
         self._discard_input()
         mark = self._send_marked(p.MEASURE_REQUEST)
         data = self._await_reply(2 * n)
         if len(data) != 2 * n:
             self._suspect("short reply to 0xFF")
-            raise ShortReplyError("measure", 2 * n, data)
+            raise ShortReplyError(what, 2 * n, data)
         self._proved(mark)
         return p.parse_measure_reply(data, n)
 
@@ -1082,14 +1087,8 @@ class Device(ABC):
             return
         scan_s = self._scan_us / 1e6 if self._scan_us is not None else self._worst_scan_s(cfg)
         self.pacer.wait_until(self.pacer.drained_by() + firmware_period_us(cfg.rate_hz) / 1e6 + scan_s)
-        self._discard_input()
-        mark = self._send_marked(p.MEASURE_REQUEST)
-        data = self._await_reply(2 * n)
-        if len(data) != 2 * n:
-            self._suspect("short reply to 0xFF after the all-off")
-            raise ShortReplyError("measure (the all-off's readings)", 2 * n, data)
-        self._proved(mark)
-        live = [ch for ch, v in enumerate(p.parse_measure_reply(data, n)) if v > OFF_READING_CODES]
+        volts = self._measured(n, "measure (the all-off's readings)")
+        live = [ch for ch, v in enumerate(volts) if v > OFF_READING_CODES]
         if live:
             self._suspect("a channel reads current after the all-off")
             raise NotStoppedError(
