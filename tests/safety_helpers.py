@@ -39,6 +39,25 @@ class RecordingPort(EmulatorPort):
         return super().write(data)
 
 
+#: The public calls (and the reopen and wait steps) every firmware's safety campaign must exercise; the v2
+#: campaign adds ``measure``.
+CAMPAIGN_CALLS = (
+    "configure",
+    "send_pattern",
+    "set_current",
+    "keepalive",
+    "all_off",
+    "suspend",
+    "probe",
+    "resync",
+    "reconnect",
+    "hardware_reset",
+    "close",
+    "reopen",
+    "wait",
+)
+
+
 def assert_fault_free(summary: dict[str, Any], failed: list[int], *, sessions: int, min_pulses: int) -> None:
     """A fault-free campaign's verdict, judged on delivered pulses: nothing above a limit, nothing on an
     electrode meant off, no byte lost, no defect, no failed session — over enough pulses to mean it."""

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from .safety_helpers import assert_fault_free
+from .safety_helpers import CAMPAIGN_CALLS, assert_fault_free
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import safety_campaign as sc  # noqa: E402
@@ -33,21 +33,7 @@ def test_fault_free_campaign_delivers_nothing_above_its_own_limits(
 
 def test_fault_free_campaign_covers_what_it_claims(fault_free: list[sc.SessionResult]) -> None:
     summary = sc.summarize(fault_free, faults=False)
-    for call in (
-        "configure",
-        "send_pattern",
-        "set_current",
-        "keepalive",
-        "all_off",
-        "suspend",
-        "probe",
-        "resync",
-        "reconnect",
-        "hardware_reset",
-        "close",
-        "reopen",
-        "wait",
-    ):
+    for call in CAMPAIGN_CALLS:
         assert summary["calls"].get(call, 0) >= 100, call
     assert summary["links"]["usb"] > 500 and summary["links"]["uart"] > 500
     assert 500 < summary["robust_encoding"] < SESSIONS - 500

@@ -6,6 +6,7 @@ import json
 
 import pytest
 
+from tactdeform_hw.emulator.registers import V2_SCAN_REGISTERS
 from tactdeform_hw.protocol.decoder import OK, TRUNCATED, decode
 from tactdeform_hw.protocol.firmware import V2
 
@@ -45,15 +46,7 @@ def test_decoded_commands_rebuild_the_firmware_state(vector: dict) -> None:
         elif spec.register and item.stored is not None and spec.register != "frequency":
             state[spec.register] = item.stored
     expect = vector["expect"]
-    for key in (
-        "electrode_num",
-        "polarity",
-        "stim_mode",
-        "pulse_width",
-        "sense_pulse_height",
-        "sense_pulse_width",
-        "discharge_time",
-    ):
+    for key in V2_SCAN_REGISTERS:
         assert state[key] == expect[key], key
     assert pattern == expect["stim_pattern"]
     assert pending == expect["command_in_progress"]

@@ -16,7 +16,7 @@ from tactdeform_hw.device.v2 import COMMAND_TIMEOUT_S
 from tactdeform_hw.errors import TactDeformError
 from tactdeform_hw.protocol import commands_v2 as c2
 
-from .safety_helpers import assert_fault_free
+from .safety_helpers import CAMPAIGN_CALLS, assert_fault_free
 from .test_v2_driver import _timed_v2
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
@@ -43,22 +43,7 @@ def test_fault_free_v2_campaign_delivers_nothing_above_any_electrodes_limit(
 
 def test_fault_free_v2_campaign_covers_what_it_claims(fault_free: list[sc.SessionResult]) -> None:
     summary = sc.summarize(fault_free, faults=False)
-    for call in (
-        "configure",
-        "send_pattern",
-        "set_current",
-        "keepalive",
-        "all_off",
-        "suspend",
-        "probe",
-        "measure",
-        "resync",
-        "reconnect",
-        "hardware_reset",
-        "close",
-        "reopen",
-        "wait",
-    ):
+    for call in (*CAMPAIGN_CALLS, "measure"):
         assert summary["calls"].get(call, 0) >= 10, call
     assert summary["links"]["usb"] > 30 and summary["links"]["uart"] > 30
     assert 30 < summary["robust_encoding"] < SESSIONS - 30

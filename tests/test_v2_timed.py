@@ -8,6 +8,7 @@ import pytest
 
 from tactdeform_hw.emulator import HazardKind
 from tactdeform_hw.emulator.firmware_scan import FirmwareScanConfig, scan_duration_us
+from tactdeform_hw.emulator.registers import V2_SCAN_REGISTERS
 from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2, pattern_in_force_v2
 from tactdeform_hw.protocol import commands_v2 as c
 
@@ -121,13 +122,7 @@ def test_upstream_paced_client_gets_the_predicted_state(vector: dict) -> None:
     state = emu.state()
     expect = vector["expect"]
     for key in (
-        "electrode_num",
-        "polarity",
-        "stim_mode",
-        "pulse_width",
-        "sense_pulse_height",
-        "sense_pulse_width",
-        "discharge_time",
+        *V2_SCAN_REGISTERS,
         "timer_alarm_ticks",
         "hv513_num",
         "stim_pattern",

@@ -26,6 +26,7 @@ from tactdeform_hw.device.serial_driver import open_device
 from tactdeform_hw.emulator import Emulator, HazardKind
 from tactdeform_hw.emulator.firmware_scan import DEFAULT_CONVENTIONS, FirmwareScanConfig
 from tactdeform_hw.emulator.realtime import SERIAL_USB, WIFI_TCP, RealtimeEmulator, TcpLink, settle
+from tactdeform_hw.emulator.registers import V2_SCAN_REGISTERS
 from tactdeform_hw.emulator.tcp_server import TcpServer
 from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2, _scan_shape, _shape
 from tactdeform_hw.emulator.udp_discovery import DiscoveryResponder
@@ -474,13 +475,7 @@ CHOSEN += [
     )
 ]
 COMPARED = (
-    "electrode_num",
-    "polarity",
-    "stim_mode",
-    "pulse_width",
-    "sense_pulse_height",
-    "sense_pulse_width",
-    "discharge_time",
+    *V2_SCAN_REGISTERS,
     "timer_alarm_ticks",
     "hv513_num",
     "stim_pattern",

@@ -52,6 +52,19 @@ class Registers:
         return _snapshot(self)
 
 
+#: The v2 registers a scan reads once, at its start (``etk.cpp:110-116``): what the timed model snapshots
+#: per scan, and the parameters a v2 golden vector's ``expect`` names first.
+V2_SCAN_REGISTERS = (
+    "electrode_num",
+    "polarity",
+    "stim_mode",
+    "pulse_width",
+    "sense_pulse_height",
+    "sense_pulse_width",
+    "discharge_time",
+)
+
+
 class RegistersV2:
     """The v2 firmware's globals (``etk.cpp:3-22``): per-electrode u16 heights, a stimulation mode and
     no global pulse height."""

@@ -44,6 +44,7 @@ from .core import Emulator
 from .firmware_scan import DEFAULT_CONVENTIONS, FirmwareScanConfig, ScanConventions, trace_scan
 from .hazards import Hazard, HazardKind
 from .link import Delivery, LinkModel, make_link
+from .registers import V2_SCAN_REGISTERS
 from .reports import LossReport
 from .scan import PulseKind
 from .timing import DEFAULT_MODEL, TimingModel
@@ -601,16 +602,6 @@ class TimedEmulatorV2:
             )
         self._last_sense_hazard = live_zero
 
-    _SCAN_FIELDS = (
-        "electrode_num",
-        "polarity",
-        "stim_mode",
-        "pulse_width",
-        "sense_pulse_height",
-        "sense_pulse_width",
-        "discharge_time",
-    )
-
     def _main_call(self, t: int) -> None:
         parser = self.emulator.parser
         regs = self.emulator.registers
@@ -619,7 +610,7 @@ class TimedEmulatorV2:
         self._call_time_ns = t
         self._applied_in_call = None
         self._reply_offset = None
-        before = {f: getattr(regs, f) for f in self._SCAN_FIELDS}
+        before = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
         old_pattern = list(regs.stim_pattern)
         out = parser.call(t // 1000)
         for h in self.hazards[hazards_before:]:
@@ -669,7 +660,7 @@ class TimedEmulatorV2:
         old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
         regs = self.emulator.registers
         m = self.model
-        after = {f: getattr(regs, f) for f in self._SCAN_FIELDS}
+        after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
         new = list(regs.stim_pattern)
         if op == OpcodeV2.PATTERN:
             n = regs.electrode_num

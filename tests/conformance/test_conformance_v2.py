@@ -25,6 +25,7 @@ from tactdeform_hw.device.config import StimConfig
 from tactdeform_hw.device.firmware_probe import detect_firmware
 from tactdeform_hw.device.serial_driver import EtactileKitDevice
 from tactdeform_hw.device.v2 import V2Dialect
+from tactdeform_hw.emulator.registers import V2_SCAN_REGISTERS
 from tactdeform_hw.protocol import commands_v2 as c2
 from tactdeform_hw.protocol.firmware import V2
 
@@ -182,13 +183,7 @@ CHUNK_BYTES = 8
 CHUNK_GAP_S = 0.003
 #: the registers a vector predicts (``period_us`` is compared as float32, as the firmware stores it)
 COMPARED = (
-    "electrode_num",
-    "polarity",
-    "stim_mode",
-    "pulse_width",
-    "sense_pulse_height",
-    "sense_pulse_width",
-    "discharge_time",
+    *V2_SCAN_REGISTERS,
     "timer_alarm_ticks",
     "hv513_num",
     "stim_pattern",
