@@ -70,13 +70,7 @@ class RegistersV2:
     no global pulse height."""
 
     __slots__ = (
-        "electrode_num",
-        "polarity",
-        "stim_mode",
-        "pulse_width",
-        "sense_pulse_height",
-        "sense_pulse_width",
-        "discharge_time",
+        *V2_SCAN_REGISTERS,
         "period_us",
         "timer_alarm_ticks",
         "hv513_num",
