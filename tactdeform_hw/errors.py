@@ -129,6 +129,23 @@ class DeviceBusyError(TransportError):
         )
 
 
+class BoardBusyError(DeviceBusyError):
+    """A board that serves one client at a time (the Wi-Fi board) did not answer the identification:
+    another program holds it.  Unlike :class:`DeviceBusyError` some bytes were written — only bytes that
+    stop current on both firmware versions, which the board reads once the other program has left."""
+
+    def __init__(self, device: str, waited_s: float) -> None:
+        self.device = device
+        self.holders = []
+        self.waited_s = waited_s
+        TransportError.__init__(
+            self,
+            f"{device} did not answer the firmware identification within {waited_s:.1f} s: the board serves "
+            "one client at a time and another program holds it (or nothing answers there); it was not "
+            "driven, and the only bytes written were ones that stop current",
+        )
+
+
 # --- the person ----------------------------------------------------------------------------------------
 
 

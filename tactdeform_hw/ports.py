@@ -10,6 +10,11 @@ a real board (paced in wall time, reset through RTS, never inspected).  The capa
                   waits, or a simulation's time
 ``pulse_reset()`` power-cycle the board the way its reset line would
 ``guardable``     ``True`` when a guardian process may hold the port's file descriptor
+``board_untouched`` ``True`` while the board behind the port has received no byte since power-on (an
+                  in-process emulator just made): no earlier program can have left a command in its parser,
+                  so the firmware identification need not wait out v2's command timeout first
+``serves_one_client`` ``True`` when the board serves one connection at a time and later ones wait unanswered
+                  (the Wi-Fi board): silence to the identification then means "busy"
 ``board_state()`` the firmware's registers as the board holds them (``stim_pattern``, ``electrode_num``,
                   …): what an emulated board can show and a real one cannot
 ``board_hazards`` the firmware defects the board has hit, as :class:`~.emulator.hazards.Hazard` records
@@ -39,6 +44,16 @@ def is_instant(port: Any) -> bool:
 def pacing_clock(port: Any) -> Any:
     """The clock ``port`` declares for pacing, or None (then: wall time)."""
     return getattr(port, "pacing_clock", None)
+
+
+def board_untouched(port: Any) -> bool:
+    """Whether ``port`` declares that its board has received no byte since power-on."""
+    return bool(getattr(port, "board_untouched", False))
+
+
+def serves_one_client(port: Any) -> bool:
+    """Whether ``port`` declares a board that serves one connection at a time (the Wi-Fi board)."""
+    return bool(getattr(port, "serves_one_client", False))
 
 
 def board_state(port: Any) -> dict[str, Any] | None:
@@ -93,4 +108,13 @@ class PortBase:
         self.close()  # type: ignore[attr-defined]
 
 
-__all__ = ["InspectablePort", "PortBase", "board_hazards", "board_state", "is_instant", "pacing_clock"]
+__all__ = [
+    "InspectablePort",
+    "PortBase",
+    "board_hazards",
+    "board_state",
+    "board_untouched",
+    "is_instant",
+    "pacing_clock",
+    "serves_one_client",
+]

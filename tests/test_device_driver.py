@@ -5,6 +5,7 @@ from __future__ import annotations
 import pytest
 
 from tactdeform_hw.device import ChannelMapping, EtactileKitDevice, StimConfig, open_device
+from tactdeform_hw.device.firmware_probe import UnidentifiedBoardError
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.errors import (
     ConfigurationError,
@@ -195,19 +196,34 @@ def test_measure_and_hv513(dev: EtactileKitDevice) -> None:
 
 
 class SilentPort(RecordingPort):
+    """Answers one byte where more were asked for and nothing to a one-byte request, once ``silent``."""
+
+    silent = True
+
     def read(self, size: int = 1) -> bytes:
+        if not self.silent:
+            return super().read(size)
         return b"\x01"[: min(size, 1)] if size > 1 else b""
+
+
+def test_a_board_that_never_answers_as_a_firmware_is_refused_at_open() -> None:
+    port = SilentPort()
+    with pytest.raises(UnidentifiedBoardError, match="answered 01"):
+        EtactileKitDevice(port)
+    # nothing but the identification's off bytes was written, and the port was let go
+    assert set(b"".join(port.writes)) <= {0x00, 0xFC, 0xFB, 0xF9, 0xF5, 0xF4} and not port.is_open
 
 
 def test_short_reply_is_typed() -> None:
     port = SilentPort()
+    port.silent = False
     dev = EtactileKitDevice(port)
-    # a board that never answers never proves its parser in step: nothing but zeros and 0xF5 is written
-    with pytest.raises(ShortReplyError, match="0xF5"):
-        dev.configure(StimConfig(electrode_count=4))
-    assert set(b"".join(port.writes)) <= {0x00, 0xF5} and dev.needs_resync
-    with pytest.raises(ShortReplyError):
+    port.silent = True
+    with pytest.raises(ShortReplyError, match="hv513_count: expected a 1-byte reply, got 0"):
         dev.hv513_count()
+    assert dev.needs_resync
+    with pytest.raises(ShortReplyError):
+        dev.configure(StimConfig(electrode_count=4))
 
 
 class ShortMeasurePort(RecordingPort):
@@ -237,10 +253,10 @@ class BrokenPort(RecordingPort):
 
 
 def test_transport_failures_are_typed() -> None:
-    dev = EtactileKitDevice(BrokenPort())
+    port = BrokenPort()
     with pytest.raises(DeviceGoneError) as err:
-        dev.configure(StimConfig())
-    assert isinstance(err.value.__cause__, OSError)
+        EtactileKitDevice(port)
+    assert isinstance(err.value.__cause__, OSError) and not port.is_open
 
 
 def test_resync_recovers_a_desynchronised_parser(dev: EtactileKitDevice, port: RecordingPort) -> None:

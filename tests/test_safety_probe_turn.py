@@ -19,7 +19,7 @@ def _device(fw: str, n: int, *, robust: bool = False) -> tuple[EtactileKitDevice
     boards = (n + 31) // 32
     emu = TimedEmulatorV2("compact", boards, link="uart") if fw == "v2" else TimedEmulator("compact", boards)
     port = TimedPort(emu, link="uart", robust_encoding=robust)
-    dev = EtactileKitDevice(port, firmware="v2" if fw == "v2" else None)
+    dev = EtactileKitDevice(port, firmware=fw)
     return dev, port
 
 

@@ -20,6 +20,7 @@ import serial
 from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
 from tactdeform_hw.device.base import TRANSITIONS, LinkState
+from tactdeform_hw.device.firmware_probe import UnidentifiedBoardError
 from tactdeform_hw.device.pacing import Pacer, estimate_scan_us, firmware_period_us
 from tactdeform_hw.device.safety import SafetyGuard
 from tactdeform_hw.emulator import Emulator
@@ -28,7 +29,7 @@ from tactdeform_hw.emulator.hazards import HazardKind
 from tactdeform_hw.emulator.pty_server import PtyServer
 from tactdeform_hw.emulator.timed import TimedEmulator
 from tactdeform_hw.emulator.transport import EmulatorPort
-from tactdeform_hw.errors import ShortReplyError, TactDeformError
+from tactdeform_hw.errors import TactDeformError
 from tactdeform_hw.protocol import commands as p
 
 from .safety_helpers import defects
@@ -432,10 +433,17 @@ def test_closed_loop_proof_over_a_pty(pty_server: PtyServer) -> None:
         dev.close()
 
 
-def test_a_board_that_never_answers_gets_nothing_but_zeros_and_requests() -> None:
-    """A port whose board never replies (no reset line either): the driver writes no value at all."""
+def test_a_board_that_never_answers_is_refused_with_nothing_but_off_bytes_written() -> None:
+    """A port whose board never replies: it is never identified, so it is refused at open; what reached
+    it were the identification's bytes, which stop current on both firmware versions, and no value."""
 
     class Mute(TimedPort):
+        sent = bytearray()
+
+        def write(self, data: bytes) -> int:
+            self.sent.extend(data)
+            return super().write(data)
+
         def read(self, size: int = 1) -> bytes:
             super().read(size)
             return b""
@@ -445,18 +453,11 @@ def test_a_board_that_never_answers_gets_nothing_but_zeros_and_requests() -> Non
             return 0
 
     port = Mute(link="usb")
-    dev = EtactileKitDevice(port)  # its proof at open fails, the reset line is tried: still nothing
-    sent = bytearray()
-    real = port.write
-
-    def spy(data: bytes) -> int:
-        sent.extend(data)
-        return real(data)
-
-    port.write = spy  # type: ignore[method-assign]
-    with pytest.raises(ShortReplyError):
-        dev.configure(StimConfig(current_ua=500))
-    assert sent and set(sent) <= {0x00, 0xF5}
+    with pytest.raises(UnidentifiedBoardError, match="did not answer"):
+        EtactileKitDevice(port)
+    assert port.sent and set(port.sent) <= {0x00, 0xFC, 0xFB, 0xF9, 0xF5, 0xF4}
+    assert all(nxt == 0 for b, nxt in zip(port.sent, port.sent[1:], strict=False) if b in (0xFC, 0xFB, 0xF9))
+    assert not port.is_open
 
 
 @pytest.mark.parametrize("link", LINKS)

@@ -24,6 +24,8 @@ from tactdeform_hw.protocol import commands_v2 as c2
 from tactdeform_hw.protocol.firmware import V1_2, V2
 from tactdeform_hw.protocol.reader import iter_commands
 
+from .safety_helpers import defects
+
 REGIONS = [400, 800, 1200, 1600, 2000, 2000, 2000, 2000, 2000]
 
 
@@ -72,9 +74,7 @@ def _untimed(fw: str) -> tuple[EmulatorPort, Emulator]:
 def _no_live_hazards(emu: Emulator) -> None:
     """Only the probe's zeros (unknown bytes) and the count raised over channels an earlier pattern left,
     which the driver does in mode 2 with sense height 0: every pulse of those scans has height 0."""
-    assert [
-        h.kind.value for h in emu.hazards if h.kind.value not in ("unknown_bytes", "stale_channels")
-    ] == []
+    assert [h.kind.value for h in defects(emu.hazards) if h.kind.value != "stale_channels"] == []
 
 
 # --- configure, frames, all-off, close ---------------------------------------------------------------------
@@ -289,9 +289,9 @@ def test_a_v12_driver_is_refused_on_a_v2_board(monkeypatch: pytest.MonkeyPatch) 
 
 
 def test_a_v2_driver_is_refused_on_a_v12_board_and_stops_it() -> None:
-    """A v1.2 board left stimulating by a v1.2 session, then a driver forced to v2: the sync check stays
-    unanswered twice (the second time past the 2 s timeout), the board is stopped by bytes both versions
-    read as less current, and the refusal is typed."""
+    """A v1.2 board left stimulating by a v1.2 session, then a driver forced to v2: the identification
+    proves v1.2, the board is stopped by bytes both versions read as less current, and the refusal is
+    typed."""
     board = TimedEmulator()
     port = TimedPort(board, robust_encoding=False)
     v12 = EtactileKitDevice(port)
@@ -301,7 +301,7 @@ def test_a_v2_driver_is_refused_on_a_v12_board_and_stops_it() -> None:
     t = port.now_s
     assert _peak_v12(board, (t - 0.02) * 1e6) == 800
     v12._closed = True  # the session ends without its all-off (killed)
-    with pytest.raises(FirmwareMismatchError, match="does not answer the sync check"):
+    with pytest.raises(FirmwareMismatchError, match="runs firmware v1.2.*firmware='v2'"):
         EtactileKitDevice(port, firmware="v2")
     assert not port.is_open
     t = port.now_s
@@ -320,12 +320,12 @@ def test_a_v2_driver_refused_on_a_v12_url(monkeypatch: pytest.MonkeyPatch) -> No
     port, emu = _untimed("v1.2")
     monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
     emu.feed(c12.encode_electrode_num(4) + c12.encode_pulse_height(50) + c12.encode_pattern(bytes([1] * 4)))
-    with pytest.raises(FirmwareMismatchError, match="does not answer the sync check"):
+    with pytest.raises(FirmwareMismatchError, match="runs firmware v1.2.*firmware='v2'"):
         open_device("emulator", firmware="v2")
     assert not port.is_open
     assert emu.state()["electrode_num"] == 0 and emu.state()["pulse_height"] == 0
-    # nothing but zeros, the safe tail (the same bytes on both versions) and sync checks reached the board
-    assert set(bytes(emu.parser.rx)[30:]) <= {0x00, 0xFC, 0xFB, 0xF9, 0xF4}
+    # nothing but the identification's off bytes reached the board
+    assert set(bytes(emu.parser.rx)[30:]) <= {0x00, 0xFC, 0xFB, 0xF9, 0xF4, 0xF5}
 
 
 # --- recovery -----------------------------------------------------------------------------------------------
@@ -422,7 +422,7 @@ def test_cli_send_drives_a_v2_board_with_auto_and_reports_per_electrode_heights(
     assert [e["electrode"] for e in out["delivered"]["electrodes"]] == [0, 1, 3]
     argv[2], argv[4] = "etactile://?firmware=v1.2&timed=0", "v2"
     assert main(argv) != 0
-    assert "does not answer the sync check" in capsys.readouterr().err
+    assert "runs firmware v1.2" in capsys.readouterr().err
 
 
 def test_a_guardian_is_given_the_v2_stop() -> None:
@@ -508,9 +508,7 @@ def test_random_sessions_on_the_timed_v2_model_never_exceed_an_electrodes_limit(
         ch = row["channel"]
         assert row["current_ua"] <= min(limits[ch], charge_ua) + 1e-6, row
         worst[ch] = max(worst.get(ch, 0.0), row["current_ua"])
-    assert [
-        h.kind.value for h in board.hazards if h.kind.value not in ("unknown_bytes", "stale_channels")
-    ] == []
+    assert [h.kind.value for h in defects(board.hazards) if h.kind.value != "stale_channels"] == []
     assert board.peak_current_ua(since_us=(port.now_s - 0.03) * 1e6) == {}  # closed: nothing any more
 
 

@@ -31,9 +31,10 @@ def add_device_arg(parser: argparse.ArgumentParser) -> None:
         "--firmware",
         choices=("v1.2", "v2", "auto"),
         default="auto",
-        help="the board's firmware. auto (the default): first turn every current off and ask (the v2 "
-        "sync check), then drive the version that answered; v1.2: ask the same way and refuse a v2 "
-        "board; v2: drive v2, refusing a board that does not answer its sync check",
+        help="the board's firmware. The board is always identified first (v2's 2 s command timeout "
+        "waited out, every current off, then a reply only one version gives); auto (the default) drives "
+        "the version it proved, v1.2 or v2 refuses a board that proved the other; a board that proves "
+        "neither is refused",
     )
 
 

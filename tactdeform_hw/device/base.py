@@ -59,11 +59,11 @@ from ..protocol.constants import (
     RX_QUEUE_SIZE,
     USB_PACKET_SIZE,
 )
-from ..protocol.firmware import V1_2
+from ..protocol.firmware import V1_2, V2
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
 from .config import POLARITY_CODE, StimConfig, sense_code
-from .firmware_probe import FirmwareMismatchError
+from .firmware_probe import IDENT_OFF, SIGNATURE, FirmwareMismatchError, classify, needs_third_byte
 from .mapping import ChannelMapping
 from .pacing import (
     COMMAND_BYTE_MIN,
@@ -731,6 +731,10 @@ class Device(ABC):
         self._check_open()
         self._suspect("resync")
         self._recover()
+        self._reconfigure()
+
+    def _reconfigure(self) -> None:
+        """After a recovery: the whole configuration again (no pattern; see :meth:`resync`)."""
         cfg = self._config
         if cfg is not None:
             requested = self._requested
@@ -972,7 +976,46 @@ class Device(ABC):
         self._reopen_transport()
         self.guard.mark_unknown()
         self._scan_us = None
-        self.resync()
+        self._recover()
+        # the link was lost: the board at its end is asked again which firmware it runs before any pattern
+        self.verify_firmware()
+        self._reconfigure()
+
+    def verify_firmware(self) -> None:
+        """At a proved command boundary, ask again which firmware answers (the identification's signature
+        alone: count and heights are the session's own, so nothing is waited out).  A board that now
+        answers as another version, or as none, is stopped with bytes that stop current on both versions
+        and refused: :class:`~.firmware_probe.FirmwareMismatchError`."""
+        cfg = self.config
+        count = cfg.electrode_count if cfg is not None and self._dialect is not None else 0
+        self._discard_input()
+        self._recovery_write = True
+        try:
+            self._send(SIGNATURE, pad=False)
+        finally:
+            self._recovery_write = False
+        mark = self.pacer.offset
+        got = self._await_reply(2)
+        if needs_third_byte(got, count=count):
+            got += self._await_reply(1)
+        found = classify(got, count=count)
+        if found is not None and found.name == self.firmware:
+            self._proved(mark)  # both 0xF5 were read as commands: every byte before them was read
+            if found is V2:
+                self.guard.note_in_step(count)  # and 0xF4 answered the count in force
+            return
+        self._suspect("the firmware check answered otherwise")
+        self._recovery_write = True
+        try:
+            self._send(IDENT_OFF, pad=False)  # stops current wherever either firmware's parser stands
+        finally:
+            self._recovery_write = False
+        raise FirmwareMismatchError(
+            f"{self!r}: the board was driven as firmware {self.firmware}, but now answers the "
+            f"firmware check {got.hex(' ') or 'with silence'}"
+            + (f" (firmware {found.name})" if found is not None else "")
+            + "; every current was switched off with bytes both versions read as off, and it is not driven"
+        )
 
     @_locked
     def hardware_reset(self) -> bool:

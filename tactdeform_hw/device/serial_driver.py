@@ -27,11 +27,19 @@ from typing import Any, Protocol
 from ..clock import Clock
 from ..errors import DeviceBusyError, DeviceGoneError, DeviceTimeoutError, TactDeformError, TransportError
 from ..protocol.constants import BAUD_RATE
+from ..protocol.firmware import V2
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 from .audit import AuditLog
 from .base import Device
 from .config import StimConfig
-from .firmware_probe import Detection, FirmwareMismatchError
+from .firmware_probe import (
+    SETTLE_S,
+    Detection,
+    FirmwareMismatchError,
+    UnidentifiedBoardError,
+    check_firmware,
+    detect_firmware,
+)
 from .guardian import Guardian, GuardianError, off_packet, pace_for
 from .mapping import ChannelMapping
 from .pacing import Pacer, default_pacer
@@ -169,8 +177,33 @@ def exclusive_port_class() -> type:
     return ExclusivePort
 
 
+#: What ``firmware=`` accepts: "auto" drives the version the board proves; a version drives only that one.
+FIRMWARE_CHOICES = ("auto", "v1.2", "v2")
+
+
+def check_firmware_choice(firmware: object) -> str:
+    """``firmware`` as given, or :class:`~tactdeform_hw.errors.ConfigurationError` naming the choices."""
+    if not isinstance(firmware, str) or firmware not in FIRMWARE_CHOICES:
+        from ..errors import ConfigurationError
+
+        raise ConfigurationError(
+            f"firmware={firmware!r}: use 'auto' (drive the version the board proves) or 'v1.2' or 'v2' "
+            "(drive that version only, after the board has proved it); a board is never driven in a "
+            "version it has not proved"
+        )
+    return firmware
+
+
 class EtactileKitDevice(Device):
     """``port`` may be opened or not; an unopened one gets DTR/RTS low before it is opened.
+
+    The board is driven only in the firmware version it has proved by a reply only that version gives
+    (:mod:`.firmware_probe`): the constructor identifies it first, unless ``probe`` already holds that
+    proof for this port.  ``firmware``: "auto" drives whichever version answered; "v1.2" or "v2" refuses a
+    board that proved the other (:class:`~.firmware_probe.FirmwareMismatchError`); a board that proves
+    neither is refused (:class:`~.firmware_probe.UnidentifiedBoardError`, or
+    :class:`~tactdeform_hw.errors.BoardBusyError` on a port that serves one client at a time) after only
+    bytes that stop current on both versions.
 
     ``guardian`` starts a guardian process with the device (default: when the port declares itself
     ``guardable``); a port that cannot be guarded with ``guardian=True`` is refused."""
@@ -186,9 +219,12 @@ class EtactileKitDevice(Device):
         audit: AuditLog | None = None,
         guardian: bool | None = None,
         offline_clock: Clock | None = None,
-        firmware: str = "v1.2",
+        firmware: str = "auto",
         probe: Detection | None = None,
+        settle_s: float | None = None,
     ) -> None:
+        check_firmware_choice(firmware)
+        self._settle_s = settle_s
         super().__init__(mapping=mapping, transfer=transfer, guard=guard, pacer=pacer, audit=audit)
         self.port = port
         self._errors = _serial_error_types()
@@ -201,12 +237,23 @@ class EtactileKitDevice(Device):
             if offline_clock is not None and getattr(port, "instant", False):
                 # a port that answers at once (the in-process emulator) runs the session on the caller's clock
                 self.pacer = Pacer(clock=offline_clock, policy=self.pacer.policy)
-        if probe is not None:  # the version probe wrote before this device existed: its bytes are ours
-            self.pacer.stats.bytes_written += probe.bytes_sent
-            if self.audit is not None:
-                self.audit.event(
-                    "firmware_probe", firmware=probe.name, attempts=probe.attempts, bytes=probe.bytes_sent
-                )
+        if probe is None:
+            probe = self._identify()
+        # the identification wrote before anything else: its bytes are this device's own
+        self.pacer.stats.bytes_written += probe.bytes_sent
+        if self.audit is not None:
+            self.audit.event(
+                "firmware_probe",
+                firmware=probe.name,
+                attempts=probe.attempts,
+                bytes=probe.bytes_sent,
+                reply=probe.reply.hex(),
+                settle_s=probe.settle_s,
+            )
+        self.identification = probe
+        if firmware != "auto" and probe.name != firmware:
+            self._refuse()
+            check_firmware(firmware, probe, self._port_name())
         self._want_guardian = bool(getattr(port, "guardable", False)) if guardian is None else guardian
         if self._want_guardian:
             try:
@@ -215,12 +262,12 @@ class EtactileKitDevice(Device):
                 self._closed = True
                 self._close_transport()
                 raise
-        if firmware == "v2":
+        if probe.firmware is V2:
             from .v2 import V2Dialect
 
             V2Dialect().attach(self)
         elif self.audit is not None:  # the log says which firmware its bytes were written for, as on v2
-            self.audit.event("firmware", firmware=firmware)
+            self.audit.event("firmware", firmware=probe.name)
         try:
             self._open_proof()
         except FirmwareMismatchError:
@@ -233,6 +280,43 @@ class EtactileKitDevice(Device):
         from .failsafe import adopt
 
         adopt(self)  # a command's stop session watches every device opened under it
+
+    def _refuse(self) -> None:
+        """Give up a board before driving it: the port is closed, nothing more is written."""
+        self._closed = True
+        self._close_transport()
+
+    def _identify(self) -> Detection:
+        """Prove which firmware runs the board (see :mod:`.firmware_probe`); refuse it otherwise."""
+        from ..errors import BoardBusyError
+        from ..ports import board_untouched, serves_one_client
+
+        name = self._port_name()
+        settle_s = self._settle_s
+        if settle_s is None:
+            settle_s = 0.0 if board_untouched(self.port) else SETTLE_S
+        try:
+            return detect_firmware(
+                self._write,
+                self._read,
+                self._discard_input,
+                device=name,
+                settle_s=settle_s,
+                sleep=self.pacer.clock.sleep,
+            )
+        except UnidentifiedBoardError as exc:
+            self._refuse()
+            if serves_one_client(self.port) and not exc.reply:
+                waited = settle_s + 2 * (float(getattr(self.port, "timeout", None) or 0.0) + 0.1)
+                raise BoardBusyError(name, waited) from exc
+            raise
+        except BaseException:
+            self._refuse()
+            raise
+
+    def _port_name(self) -> str:
+        port = self.port
+        return str(getattr(port, "port", None) or getattr(port, "name", None) or type(port).__name__)
 
     def _open_port(self) -> None:
         port = self.port
@@ -477,7 +561,8 @@ def open_device(
     audit: AuditLog | None = None,
     guardian: bool | None = None,
     offline_clock: Clock | None = None,
-    firmware: str | None = "auto",
+    firmware: str = "auto",
+    settle_s: float | None = None,
 ) -> EtactileKitDevice:
     """Open a device by name: a serial port path, a pyserial URL, ``usb:VID:PID[:SERIAL]``,
     ``usb-emulator``, or ``emulator`` (the default).  ``pacer`` defaults to what the port needs (see
@@ -487,24 +572,22 @@ def open_device(
     port declares itself ``instant`` (it answers every byte at once), pace on this clock instead of the wall
     clock, so an offline run keeps session time.
 
-    ``firmware``: "auto" (the default) runs the version probe first (:mod:`.firmware_probe`: every
-    current off, then the sync check) and drives the board in the version it answers as, so a driver never
-    sends one version's bytes to the other; "v1.2" runs the same probe and refuses a board that answers as
-    v2; "v2" drives v2 at once — its own closed-loop recovery is the sync check, and a board that does not
-    answer it as v2 must is refused after bytes that stop current on both versions.  None drives v1.2
-    without asking, for callers that have already identified their board (the probe costs a v1.2 board two
-    reply timeouts).  Every refusal is a :class:`~tactdeform_hw.device.firmware_probe.FirmwareMismatchError`,
-    raised before any stimulating byte."""
-    if firmware not in (None, "v1.2", "v2", "auto"):
-        from ..errors import ConfigurationError
+    ``firmware``: "auto" (the default) drives the version the board proves; "v1.2" or "v2" drives only
+    that version and refuses a board that proves the other.  Either way the board is identified first
+    (:mod:`.firmware_probe`: v2's command timeout waited out, every current off, then a reply only one
+    version gives); silence, a busy board or an answer neither version gives is a refusal naming the
+    device, never a default.  Every refusal is a
+    :class:`~tactdeform_hw.device.firmware_probe.FirmwareMismatchError` (or, on a board that serves one
+    client at a time, :class:`~tactdeform_hw.errors.BoardBusyError`), raised after only bytes that stop
+    current on both versions.
 
-        raise ConfigurationError(
-            f"firmware={firmware!r}: the device layer drives 'v1.2' or 'v2' (or 'auto' to detect which)"
-        )
+    ``settle_s``: how long nothing is written before the identification (default:
+    :data:`~.firmware_probe.SETTLE_S`, v2's command timeout and a margin, or 0 on a port that declares its
+    board untouched since power-on).  Shorter is safe only when no other program can have written to the
+    board since its power-on or since a session that ended with a proved ``close``: a v2 pattern an
+    earlier program left cut would otherwise be completed, its heights with it."""
+    check_firmware_choice(firmware)
     port = open_port(name, timeout=timeout)
-    detection = None
-    if firmware in ("auto", "v1.2"):
-        detection = _probe(port, None if firmware == "auto" else firmware)
     return EtactileKitDevice(
         port,
         mapping=mapping,
@@ -514,33 +597,6 @@ def open_device(
         audit=audit,
         guardian=guardian,
         offline_clock=offline_clock,
-        firmware=detection.name if detection is not None else firmware or "v1.2",
-        probe=detection,
+        firmware=firmware,
+        settle_s=settle_s,
     )
-
-
-def _probe(port: Any, expected: str | None) -> Detection:
-    """Open ``port`` (lines low), detect its firmware and refuse it unless it is ``expected`` (None: any);
-    close it on refusal without sending anything more."""
-    from .firmware_probe import check_firmware, detect_firmware
-
-    errors = _serial_error_types()
-    if not port.is_open:
-        _lower_lines(port)
-        try:
-            port.open()
-        except errors as exc:
-            raise TransportError(f"cannot open {getattr(port, 'port', port)!s}: {exc}") from exc
-    try:
-        det = detect_firmware(
-            port.write, port.read, port.reset_input_buffer, sleep=default_pacer(port).clock.sleep
-        )
-        if expected is not None:
-            check_firmware(expected, det)
-    except BaseException:
-        try:
-            port.close()
-        except errors:
-            pass
-        raise
-    return det

@@ -50,6 +50,8 @@ class Emulator:
     def _power_on(self) -> None:
         #: v2's command timer (Timer2, µs) at the last event; v1.2 keeps it only for the API's sake.
         self.now_us = 0
+        #: Bytes that reached the board since power-on (0: no program can have left a command in its parser).
+        self.received_bytes = 0
         self.registers: Any
         self.parser: Any
         if self.firmware == "v2":
@@ -82,6 +84,7 @@ class Emulator:
         parser is called until a call neither consumes nor writes a byte.  v1.2 has no timer in its
         parser: the time only moves the clock."""
         tx = self._advance_clock(at_us)
+        self.received_bytes += len(data)
         if self.scan is not None:
             self.scan(self)
         if self.firmware == "v2":

@@ -229,6 +229,11 @@ class TimedPort(PortBase):
         self.write_errors = 0
         self.line_resets = 0
 
+    @property
+    def board_untouched(self) -> bool:
+        """No byte has reached the board since its power-on (see :mod:`tactdeform_hw.ports`)."""
+        return self.emulator.received_bytes == 0 and not self.gone
+
     # --- the clock ------------------------------------------------------------------------------------------
 
     @property

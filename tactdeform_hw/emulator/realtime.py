@@ -425,6 +425,12 @@ class RealtimeEmulator:
 
     # --- host traffic ----------------------------------------------------------------------------------
 
+    @property
+    def received_bytes(self) -> int:
+        """Bytes that reached the board since power-on (see :attr:`TimedEmulator.received_bytes`)."""
+        with self.lock:
+            return int(self.timed.received_bytes)
+
     def write(self, data: bytes, t: float | None = None) -> int:
         """Host bytes arriving at wall-clock time ``t`` (default now) enter the link model then."""
         with self.lock:

@@ -194,6 +194,8 @@ class TimedEmulator:
         stimulation: bool = True,
     ) -> None:
         self.stimulation = stimulation
+        #: Bytes written to the board since power-on (0: no program can have left a command in its parser).
+        self.received_bytes = 0
         self.model = model if model is not None else DEFAULT_MODEL
         self.skin = skin if skin is not None else DEFAULT_SKIN
         self.emulator = Emulator(board, switching_boards, stack_reading=stack_reading)
@@ -298,6 +300,7 @@ class TimedEmulator:
         """The host writes ``data`` at ``at_us`` (default: now).  Writes must come in time order; a write
         in the future is scheduled and happens as the clock gets there.  Returns the byte count."""
         data = bytes(data)
+        self.received_bytes += len(data)
         t = self.now_ns if at_us is None else _ns(at_us)
         if t < self.now_ns:
             raise LimitError("at_us", at_us, f">= now ({self.now_us} us)")
@@ -503,6 +506,7 @@ class TimedEmulator:
 
     def _reboot(self, t: int, reason: str, boot_delay: bool = True) -> None:
         self.rec.reboots += 1
+        self.received_bytes = 0  # power-on: no command can be pending
         left = self.queue.clear()
         if left:
             self._loss(t, left, self._host_of(self.fw.parser_base + self.parser.offset), "reboot")

@@ -290,6 +290,8 @@ class TimedEmulatorV2:
         self.applied: list[tuple[int, int, object]] = []
         self.queue = _QueueView(self)
         self.reboots = 0
+        #: Bytes written to the board since power-on (0: no program can have left a command in its parser).
+        self.received_bytes = 0
         self.replies_dropped = 0  # reply bytes to commands of a host that had gone (see new_client)
         self._reply_offset: int | None = None
         self._deliveries: list[tuple[int, int, Delivery]] = []
@@ -340,6 +342,7 @@ class TimedEmulatorV2:
         return self.emulator.state()
 
     def write(self, data: bytes, at_us: float | None = None) -> int:
+        self.received_bytes += len(data)
         t = self.now_ns if at_us is None else round(at_us * 1000)
         if t < self.now_ns:
             raise ConfigurationError(f"at_us={at_us} is before the emulator's clock ({self.now_us} us)")
@@ -429,6 +432,7 @@ class TimedEmulatorV2:
         """Power-cycle the board now (registers, queue, parser to power-on; replies and bytes in flight
         are lost); it boots for the timing model's boot time."""
         self.reboots += 1
+        self.received_bytes = 0  # power-on: no command can be pending
         p = self.parser
         if p.pending:
             self._loss(self.now_ns, p.pending, self._host_of(p.offset), "reboot")

@@ -60,6 +60,11 @@ class EmulatorPort(PortBase):
         return self.emulator.state()
 
     @property
+    def board_untouched(self) -> bool:
+        """No byte has reached the board since its power-on (see :mod:`tactdeform_hw.ports`)."""
+        return self.emulator.received_bytes == 0
+
+    @property
     def board_hazards(self) -> list[Hazard]:
         return self.emulator.hazards
 
@@ -69,7 +74,9 @@ class EmulatorPort(PortBase):
         with self._lock:
             if self.spy:
                 self.spy("tx", data, time.monotonic())
-            reply = self.emulator.feed(data)
+            # the waits the pacer skipped are the board's time: a v2 command cut before a wait times out
+            at_us = int(self.pacing_clock.skipped_s * 1e6)
+            reply = self.emulator.feed(data, at_us=at_us or None)
             self.bytes_written += len(data)
             if reply:
                 if self.spy:

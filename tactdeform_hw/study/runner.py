@@ -335,7 +335,7 @@ def run_study(
     mesh_dirs: Sequence[str] = (),
     progress: ProgressFn | None = None,
     realtime: bool = False,
-    firmware: str | None = None,
+    firmware: str = "auto",
 ) -> StudyRun:
     """Run every trial of ``study`` on one device session; return the raw results (see :mod:`.checks`
     and :mod:`.report` for what is made of them).

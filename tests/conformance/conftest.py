@@ -83,6 +83,9 @@ class Target:
     settle_fn: Callable[[int], None] | None = None
     cleanup: list[Callable[[], None]] = field(default_factory=list)
     firmware: str | None = "v1.2"
+    #: The identification's wait before its first byte: 0 for an emulated board made for this one test
+    #: (no earlier program wrote to it), the driver's default for a board on the bench.
+    settle_s: float | None = None
 
     @property
     def is_board(self) -> bool:
@@ -184,6 +187,7 @@ def _url_target(name: str) -> Target:
     assert emu is not None
     timed = isinstance(emu, RealtimeEmulator)
     t = Target(
+        settle_s=0.0,
         name=name,
         kind="emulator",
         route="url",
@@ -207,6 +211,7 @@ def _pty_target(name: str) -> Target:
     server = PtyServer(firmware=firmware).start()  # the timed board on the wall clock
     written = [0]
     t = Target(
+        settle_s=0.0,
         name=name,
         kind="emulator",
         route="pty",
@@ -238,6 +243,7 @@ def _tcp_target(name: str) -> Target:
         return _CountingPort(port, written)
 
     t = Target(
+        settle_s=0.0,
         name=name,
         kind="emulator",
         route="tcp",
@@ -268,6 +274,7 @@ def _usb_emulator_target(name: str) -> Target:
         )
 
     return Target(
+        settle_s=0.0,
         name=name,
         kind="emulator",
         route="usb",

@@ -361,7 +361,7 @@ def _current(target: Target) -> int:
 def test_fail_safe_on_close(target: Target) -> None:
     """Closing the driver leaves every channel off and the pulse height 0, and the board in step."""
     port = RecordingPort(target.make_port())
-    dev = EtactileKitDevice(port)
+    dev = EtactileKitDevice(port, settle_s=target.settle_s)
     dev.resync()
     dev.configure(StimConfig(electrode_count=8, current_ua=_current(target)))
     target.settle(12)
@@ -386,7 +386,7 @@ def test_fail_safe_on_exception(target: Target) -> None:
     port = RecordingPort(target.make_port())
     mark = 0
     with pytest.raises(RuntimeError, match="renderer crashed"):
-        with EtactileKitDevice(port) as dev:
+        with EtactileKitDevice(port, settle_s=target.settle_s) as dev:
             dev.resync()
             dev.configure(StimConfig(electrode_count=8, current_ua=_current(target)))
             target.settle(12)

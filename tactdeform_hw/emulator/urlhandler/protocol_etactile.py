@@ -123,6 +123,12 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         return self._instant_clock if self.instant else MonotonicClock()
 
     @property
+    def board_untouched(self) -> bool:
+        """No byte has reached the board since its power-on (a board named in the URL may be shared with
+        another port, which the count sees too)."""
+        return self.emulator is not None and self.emulator.received_bytes == 0
+
+    @property
     def timed(self) -> bool:
         return isinstance(self.emulator, RealtimeEmulator)
 
