@@ -231,7 +231,8 @@ def test_bad_poses_give_unsent_records_with_null_time() -> None:
     r = Renderer(FakeFloor(), None)
     r.step((0.0, np.array([0, 0, -1.0]), PAD_DOWN))
     recs = r.step((math.nan, np.array([0, 0, -1.0]), PAD_DOWN))
-    recs += r.step((0.1, np.array([math.nan, 0, -1.0]), PAD_DOWN))
+    # 50 ms after the last valid sample: still within the lost-tracking time (80 ms)
+    recs += r.step((0.05, np.array([math.nan, 0, -1.0]), PAD_DOWN))
     assert [rec.dropped for rec in recs] == ["time", "position"]
     assert all(not rec.sent for rec in recs)
     line = recs[0].to_json()

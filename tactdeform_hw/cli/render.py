@@ -54,6 +54,16 @@ def register(sub: Any) -> None:
         "header t_s,x_mm,y_mm,z_mm,qw,qx,qy,qz (world mm; the quaternion turns the pad frame — x right, "
         "y toward the fingertip, z out of the pad — into the world)",
     )
+    p.add_argument(
+        "--invalid-rows",
+        choices=("error", "replay"),
+        default=None,
+        help="a recorded trajectory's rows that are no valid pose (NaN or infinite values, a quaternion that "
+        "is not a rotation, a time that does not advance): 'error' (default) stops before anything is sent, "
+        "naming the row; 'replay' hands every row to the renderer as the tracker delivered it, so its "
+        "lost-tracking rules decide (dropped rows never keep stimulation on; after lost tracking it resumes "
+        "only after a run of valid samples) and the summary counts them",
+    )
     add_option(
         p,
         "--speed-mm-s",
@@ -137,6 +147,10 @@ def run(args: argparse.Namespace) -> int:
             args.speed if args.speed is not None else args.rate,
             "not applicable to a recorded trajectory (it has its own clock and speed)",
         )
+    if not recorded and args.invalid_rows is not None:
+        raise LimitError(
+            "--invalid-rows", args.invalid_rows, "a recorded FILE.csv trajectory (a synthetic one has none)"
+        )
     args.rate = 72.0 if args.rate is None else args.rate
     if not args.rate > 0 or args.rate != args.rate:
         raise LimitError("--rate", args.rate, "> 0 Hz")
@@ -181,10 +195,14 @@ def run(args: argparse.Namespace) -> int:
     kw: dict[str, Any] = {"rate_hz": args.rate, "seed": args.seed}
     if args.speed is not None:
         kw["speed_mm_s"] = args.speed
+    poses: list[Any]
     if recorded:
-        from ..render.tracking import read_pose_csv
+        from ..render.tracking import read_pose_csv, read_pose_rows
 
-        poses = read_pose_csv(args.trajectory)  # a bad row is an error naming its line and column
+        if args.invalid_rows == "replay":
+            poses = list(read_pose_rows(args.trajectory))  # only a cell that is no number is an error
+        else:
+            poses = list(read_pose_csv(args.trajectory))  # a bad row is an error naming its line and column
         if not poses:
             raise LimitError("--trajectory", args.trajectory, "a CSV with at least one pose row")
     else:
@@ -318,6 +336,11 @@ def run(args: argparse.Namespace) -> int:
         )
         if result["dropped"]:
             print(f"dropped samples: {result['dropped']}")
+        if result["lost_tracking"]:
+            print(
+                f"tracking lost {result['lost_tracking']} time(s): all off; {result['held_resuming']} valid "
+                "sample(s) held back before stimulation resumed"
+            )
         for line in delivered_lines(result["delivered"]):
             print(line)
     if verify is not None and summary.mismatches:

@@ -2,7 +2,8 @@
 
 Every approach turns one tracking sample (time, pad position, pad orientation, the scene's surface query
 for the pad centre, the scene itself) into a :class:`~.manager.ManagerOutput`, keeps
-:class:`~.manager.ManagerStats`, and can forget the finger.  The renderer holds approaches only through
+:class:`~.manager.ManagerStats`, counts a sample the renderer judged unusable without looking at it, and can
+forget the finger.  The renderer holds approaches only through
 this protocol; the names users type (``--approach``, a scene's ``approach`` key) pick a factory from
 :data:`APPROACH_FACTORIES`.
 """
@@ -29,6 +30,10 @@ class Approach(Protocol):
     def update(
         self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None
     ) -> ManagerOutput: ...
+
+    def drop(self, t_s: Any, reason: str) -> ManagerOutput:
+        """Count a sample the renderer judged unusable (``reason``); change nothing, report what is held."""
+        ...
 
     def reset(self) -> None: ...
 

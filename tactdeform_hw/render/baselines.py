@@ -57,6 +57,11 @@ class _Baseline:
         tf = count_drop(self.stats, t, reason)
         return ManagerOutput(tf, self.state, None, None, None, self.name, self.pattern, [], reason)
 
+    def drop(self, t_s: Any, reason: str) -> ManagerOutput:
+        """Count a sample its stream judged unusable (``reason``) without looking at it (see
+        :meth:`~.manager.PatternManager.drop`)."""
+        return self._drop(t_s, reason)
+
     def update(
         self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None
     ) -> ManagerOutput:

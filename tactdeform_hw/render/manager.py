@@ -549,6 +549,12 @@ class PatternManager:
             self._outside = (t, p, normal, sd)
         return self._emit(t, t_prev, seq)
 
+    def drop(self, t_s: Any, reason: str) -> ManagerOutput:
+        """Count a sample its stream judged unusable (``reason``) without looking at it: nothing changes,
+        the output holds what is shown.  The renderer judges time order against every sample received,
+        which an approach reset at lost tracking no longer remembers."""
+        return self._drop(t_s, reason)
+
     # --- internals -----------------------------------------------------------------------------------------
 
     def _drop(self, t: Any, reason: str) -> ManagerOutput:

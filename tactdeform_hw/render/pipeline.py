@@ -8,13 +8,23 @@ Every tracking sample yields at least one :class:`FrameRecord`; a sample whose u
 expansion or texture frames yields one record per frame (each sent), so the records are exactly the
 device's pattern history.
 
-Lost tracking.  A dropped sample (NaN or infinite pose, a clock stepping back, a garbage quaternion) is
-recorded but is not a frame: it changes nothing and does *not* feed the device's fail-safe watchdog, so a
-tracker that only delivers garbage lets the watchdog switch stimulation off.  After ``lost_tracking_s``
-(default :data:`LOST_TRACKING_S`, 80 ms) without a valid sample the renderer itself goes Idle: every
-approach is reset (a clock that stepped back is accepted again as a new start) and all electrodes are
-switched off.  The time is read from the dropped samples' own clock when it is usable (finite and not
-behind the last valid sample), otherwise counted as dropped samples times the tracking period seen so far.
+Lost tracking.  A dropped sample (NaN or infinite pose, a time that does not advance, a garbage
+quaternion) is recorded but is not a frame: it changes nothing and does *not* feed the device's fail-safe
+watchdog, so a tracker that only delivers garbage lets the watchdog switch stimulation off.  A sample's
+time is judged against the last sample *received*, dropped ones included, and that time is never
+forgotten: a clock that keeps running backwards, or stands still, never yields a valid sample again.
+
+Tracking is lost when no valid sample came for ``lost_tracking_s`` (default :data:`LOST_TRACKING_S`,
+80 ms; the time is read from the dropped samples' own clock when it is usable — finite and not behind the
+last valid sample — otherwise counted as dropped samples times the tracking period seen so far), or at
+once when the clock has stepped back: a sample later than the one before it but not later than the last
+one rendered belongs to another clock, and the finger's history cannot be continued.  Then every approach
+is reset and all electrodes are switched off, and stimulation resumes only after
+``resume_after_valid_samples`` (default :data:`RESUME_AFTER_VALID_SAMPLES`) consecutive valid samples,
+each later than the one before: the last of them is the first rendered, by approaches that start afresh.
+The samples held back meanwhile are recorded (all off, not sent) and never feed the watchdog.  The run is
+asked for only after a loss: a stream's first sample is rendered at once, as before (the device starts
+all off and the pattern manager confirms a contact before it stimulates).
 """
 
 from __future__ import annotations
@@ -35,13 +45,21 @@ from ..errors import ConfigurationError, LimitError
 from .approach import Approach, make_approach
 from .array import ElectrodeArray
 from .contexts import TEXTURE_NAMES
-from .manager import ManagerConfig, ManagerOutput
+from .manager import ManagerConfig, ManagerOutput, check_pose
 from .patterns import Pattern, PatternParams
 
 #: Time without a valid tracking sample after which the renderer goes Idle (all off): 80 ms, so that
 #: with the next sample (14 ms later at 72 Hz) the all-off is sent before the device's 100 ms no-frame
 #: watchdog would switch stimulation off by itself (which it does anyway: dropped samples send nothing).
 LOST_TRACKING_S = 0.08
+
+#: Consecutive valid samples, each later than the one before, that a lost stream must deliver before
+#: stimulation resumes; the last of them is the first rendered.  Counted in samples, not read from the
+#: samples' clock: the clock of a stream that just failed is the thing on trial, and one sample stamped far
+#: ahead would satisfy any duration.  6 samples are 69 ms of steady tracking at 72 Hz (83 ms with the sample
+#: that ends it), as long as it took to declare the loss; a stream that fails once in every 6 samples or
+#: more often never resumes.  At 1 kHz the run is 6 ms: a fast tracker proves itself faster.
+RESUME_AFTER_VALID_SAMPLES = 6
 
 
 @dataclass(slots=True)
@@ -82,6 +100,11 @@ CurrentHook = Callable[[FrameRecord], "int | None"]
 
 @dataclass
 class RunSummary:
+    """What a run did.  ``dropped`` counts invalid samples by reason (``time``, ``time-backwards``,
+    ``time-repeated``, ``position``, ``orientation``, ``orientation-norm``, ``query``); ``lost_tracking``
+    the times tracking was lost (all off, approaches reset); ``held_resuming`` the valid samples held back
+    after a loss before stimulation resumed."""
+
     poses: int = 0
     records: int = 0
     frames_sent: int = 0
@@ -91,6 +114,8 @@ class RunSummary:
     states: dict[str, int] = field(default_factory=dict)
     mismatches: int = 0
     first_mismatch: dict[str, Any] | None = None
+    lost_tracking: int = 0
+    held_resuming: int = 0
     step_us: list[float] = field(default_factory=list, repr=False)
 
     def as_dict(self) -> dict[str, Any]:
@@ -105,6 +130,8 @@ class RunSummary:
             "states": dict(self.states),
             "mismatches": self.mismatches,
             "first_mismatch": self.first_mismatch,
+            "lost_tracking": self.lost_tracking,
+            "held_resuming": self.held_resuming,
             "step_us_median": round(statistics.median(us), 2) if us else None,
             "step_us_p99": round(us[min(len(us) - 1, int(0.99 * len(us)))], 2) if us else None,
         }
@@ -137,6 +164,9 @@ class Renderer:
     compared with the frame and mismatches are counted.  ``verify=True`` asks the device's port for that
     read-back (a port that declares ``board_state()``, such as the emulator's) and verifies nothing on a
     port that cannot show its pattern.
+    ``lost_tracking_s`` and ``resume_after_valid_samples`` are the lost-tracking rules (see the module
+    docstring): how long without a valid sample before all is switched off, and how many consecutive valid
+    samples a lost stream must then deliver before stimulation resumes.
     """
 
     def __init__(
@@ -154,11 +184,26 @@ class Renderer:
         current_hook: CurrentHook | None = None,
         verify: bool | Callable[[], Sequence[int]] | None = False,
         lost_tracking_s: float = LOST_TRACKING_S,
+        resume_after_valid_samples: int = RESUME_AFTER_VALID_SAMPLES,
     ) -> None:
         if not (math.isfinite(lost_tracking_s) and lost_tracking_s > 0.0):
             raise LimitError("lost_tracking_s", lost_tracking_s, "a finite time > 0 s")
+        if (
+            isinstance(resume_after_valid_samples, bool)
+            or not isinstance(resume_after_valid_samples, int)
+            or resume_after_valid_samples < 1
+        ):
+            raise LimitError(
+                "resume_after_valid_samples", resume_after_valid_samples, "a whole number of samples ≥ 1"
+            )
         self.lost_tracking_s = lost_tracking_s
+        self.resume_after_valid_samples = resume_after_valid_samples
         self._last_valid_t: float | None = None
+        # The time of the last sample received, dropped ones included; never reset, so a clock that keeps
+        # going back or stands still is judged against what it said last, however long ago tracking was lost.
+        self._last_received_t: float | None = None
+        self._lost = False  # tracking lost: nothing is rendered until the run of valid samples
+        self._resume_run = 0
         self._period_s = 1.0 / 72.0
         self._invalid_run = 0
         self.lost_tracking_events = 0
@@ -274,25 +319,85 @@ class Renderer:
             t_s, pos, quat = pose.t_s, pose.position_mm, pose.orientation
         query = self._query(pos)
         active = self.approach_for(query)
+        records: list[FrameRecord] = []
+        reason = self._judge_time(t_s)
+        if reason is None and self._last_valid_t is not None and float(t_s) <= self._last_valid_t:
+            # Later than the sample before (which went back), not later than the last one rendered: the
+            # clock has stepped back, and the finger's history belongs to another clock.
+            records.append(self._lose(float(t_s), active))
+        if reason is None and self._lost:
+            reason = self._resuming(t_s, pos, quat)
         out: ManagerOutput | None = None
-        for name, r in self.renderers.items():
-            o = r.update(t_s, pos, quat, query, self.scene)
-            if name == active:
-                out = o
-        assert out is not None
-        if out.dropped:
-            records = self._lost(out, active)
-        else:
-            self._valid(out.t_s)
-            records = self._send(out, active)
-        self.summary.step_us.append((time.perf_counter() - t0) * 1e6)
+        if reason is None:
+            for name, r in self.renderers.items():
+                o = r.update(t_s, pos, quat, query, self.scene)
+                if name == active:
+                    out = o
+        elif reason != "resuming":
+            # Judged here, never shown to the approaches: after a reset they would take it as a new start.
+            for name, r in self.renderers.items():
+                o = r.drop(t_s, reason)
+                if name == active:
+                    out = o
         s = self.summary
+        if out is None:
+            records.append(
+                FrameRecord(
+                    float(t_s),
+                    "idle",
+                    None,
+                    None,
+                    (0,) * self.array.count,
+                    False,
+                    approach=active,
+                    dropped="resuming",
+                )
+            )
+            s.held_resuming += 1
+            state = "idle"
+        else:
+            if out.dropped:
+                records += self._dropped(out, active)
+            else:
+                self._valid(out.t_s)
+                records += self._send(out, active)
+            state = out.state
+            if out.dropped:
+                s.dropped[out.dropped] = s.dropped.get(out.dropped, 0) + 1
+        s.step_us.append((time.perf_counter() - t0) * 1e6)
         s.poses += 1
         s.records += len(records)
-        s.states[out.state] = s.states.get(out.state, 0) + 1
-        if out.dropped:
-            s.dropped[out.dropped] = s.dropped.get(out.dropped, 0) + 1
+        s.states[state] = s.states.get(state, 0) + 1
         return records
+
+    def _judge_time(self, t_s: Any) -> str | None:
+        """Why the sample's time is unusable (``time``, ``time-backwards``, ``time-repeated``), or None.
+        Judged against the last sample received, dropped ones included, whose time is then this one's."""
+        try:
+            t = float(t_s)
+        except (TypeError, ValueError):
+            return "time"
+        if not math.isfinite(t):
+            return "time"
+        last = self._last_received_t
+        self._last_received_t = t
+        if last is None or t > last:
+            return None
+        return "time-backwards" if t < last else "time-repeated"
+
+    def _resuming(self, t_s: Any, pos: Any, quat: Any) -> str | None:
+        """Tracking is lost and the sample's time advances: the reason it is invalid, ``"resuming"`` while
+        the run of valid samples is still short, or None for the sample that completes it (rendered, by
+        approaches that were reset at the loss)."""
+        checked = check_pose(t_s, pos, quat, None, self.config.quat_norm_tolerance)
+        if isinstance(checked, str):
+            return checked
+        self._resume_run += 1
+        if self._resume_run < self.resume_after_valid_samples:
+            return "resuming"
+        self._lost = False
+        self._resume_run = 0
+        return None
 
     def _query(self, pos: Any) -> Any:
         try:
@@ -313,15 +418,9 @@ class Renderer:
         self._last_valid_t = t
         self._invalid_run = 0
 
-    def _lost(self, out: ManagerOutput, approach: str) -> list[FrameRecord]:
-        """A dropped sample: recorded, never sent, never a keepalive; Idle once tracking has been lost
-        for ``lost_tracking_s``."""
-        self._invalid_run += 1
-        gone = self._invalid_run * self._period_s
-        last = self._last_valid_t
-        t = out.t_s
-        if last is not None and math.isfinite(t) and t >= last:
-            gone = max(gone, t - last)
+    def _dropped(self, out: ManagerOutput, approach: str) -> list[FrameRecord]:
+        """A dropped sample: recorded, never sent, never a keepalive; tracking is lost once no valid sample
+        came for ``lost_tracking_s``, and a lost stream's run of valid samples starts again."""
         rec = FrameRecord(
             out.t_s,
             out.state,
@@ -335,26 +434,37 @@ class Renderer:
             False,
             out.dropped,
         )
-        if gone < self.lost_tracking_s or (
-            self._device_pattern is not None
-            and not any(self._device_pattern)
-            and all(r.state == "idle" for r in self.renderers.values())
-        ):
+        if self._lost:
+            self._resume_run = 0
             return [rec]
-        # Tracking lost: forget the finger everywhere and switch everything off.
+        self._invalid_run += 1
+        gone = self._invalid_run * self._period_s
+        last = self._last_valid_t
+        t = out.t_s
+        if last is not None and math.isfinite(t) and t >= last:
+            gone = max(gone, t - last)
+        if gone < self.lost_tracking_s:
+            return [rec]
+        return [self._lose(out.t_s, approach)]
+
+    def _lose(self, t_s: float, approach: str) -> FrameRecord:
+        """Tracking lost: forget the finger everywhere, switch everything off, and hold stimulation back
+        until ``resume_after_valid_samples`` valid samples in a row."""
         self.lost_tracking_events += 1
+        self.summary.lost_tracking += 1
         for r in self.renderers.values():
             r.reset()
         self._last_valid_t = None
+        self._invalid_run = 0
+        self._lost = True
+        self._resume_run = 0
         off = (0,) * self.array.count
-        rec = FrameRecord(
-            out.t_s, "idle", None, None, off, True, approach, None, None, False, "lost-tracking"
-        )
+        rec = FrameRecord(t_s, "idle", None, None, off, True, approach, None, None, False, "lost-tracking")
         if off == self._device_pattern:
             rec.sent = False
         else:
             self._deliver(rec)
-        return [rec]
+        return rec
 
     def _send(self, out: ManagerOutput, approach: str) -> list[FrameRecord]:
         frames = out.frames
@@ -452,24 +562,25 @@ class Renderer:
         before the next; otherwise the stream runs as fast as it can (CI, offline studies)."""
         self.start()
         self._dwell_s = min_dwell_s if realtime else 0.0
-        wall0: float | None = None
-        t_first: float | None = None
+        wall0 = time.perf_counter()
         # An offline run on a device whose pacing clock is simulated follows the trajectory's clock, so
         # the audit log and the fail-safe watchdog see session time, not how fast the host computed.
         clock = getattr(getattr(self.device, "pacer", None), "clock", None)
         session_clock = None if realtime or not callable(getattr(clock, "advance", None)) else clock
         clock0 = session_clock.now() if session_clock is not None else 0.0
+        arrival = _Arrival()
         for i, pose in enumerate(poses):
             t = pose[0] if isinstance(pose, tuple) else pose.t_s
-            if t_first is None and math.isfinite(t):
-                t_first, wall0 = t, time.perf_counter()
-            if t_first is not None and wall0 is not None and math.isfinite(t):
+            due = arrival.due(t, self._period_s)
+            if due is not None and arrival.first:
+                wall0 = time.perf_counter()
+            if due is not None:
                 if realtime:
-                    delay = (t - t_first) - (time.perf_counter() - wall0)
+                    delay = due - (time.perf_counter() - wall0)
                     if delay > 0:
                         time.sleep(delay)
                 elif session_clock is not None:
-                    ahead = clock0 + (t - t_first) - session_clock.now()
+                    ahead = clock0 + due - session_clock.now()
                     if ahead > 0:
                         session_clock.advance(ahead)
             for rec in self.step(pose):
@@ -479,3 +590,41 @@ class Renderer:
                 progress(i + 1, self.summary)
         self.summary.teleports = sum(r.stats.teleports for r in self.renderers.values())
         return self.summary
+
+
+class _Arrival:
+    """When each sample of a replayed stream arrives, in seconds after the first sample with a usable time:
+    on its own clock while that advances, one tracking period after the sample before when it does not (a
+    clock that stands still or runs backwards still delivers at the tracker's rate, and the watchdog must
+    see that time pass).  Samples before the first usable time are not paced."""
+
+    def __init__(self) -> None:
+        self.first = False
+        self._anchor_t: float | None = None
+        self._anchor_due = 0.0
+        self._due = 0.0
+        self._last_t: float | None = None
+
+    def due(self, t_s: Any, period_s: float) -> float | None:
+        try:
+            t = float(t_s)
+        except (TypeError, ValueError):
+            t = math.nan
+        finite = math.isfinite(t)
+        self.first = False
+        if self._anchor_t is None or self._last_t is None:
+            if not finite:
+                return None
+            self.first = True
+            self._anchor_t = self._last_t = t
+            return 0.0
+        if finite and t > self._last_t:
+            due = self._anchor_due + (t - self._anchor_t)
+        else:
+            due = self._due + period_s
+            if finite:  # its clock goes on from here
+                self._anchor_t, self._anchor_due = t, due
+        if finite:
+            self._last_t = t
+        self._due = max(self._due, due)
+        return due

@@ -327,22 +327,10 @@ def _open_text(source: str | os.PathLike[str] | IO[str]) -> tuple[IO[str], str, 
     return source, getattr(source, "name", "<stream>"), False
 
 
-def iter_pose_csv(
-    source: str | os.PathLike[str] | IO[str],
-    *,
-    invalid: str = "error",
-    validator: PoseValidator | None = None,
-) -> Iterator[Pose]:
-    """Poses of a replay file, one per data row (``t_s,x_mm,y_mm,z_mm,qw,qx,qy,qz``; extra columns ignored,
-    blank lines and lines starting with ``#`` skipped).
-
-    A cell that is not a number is always an error naming the row and the column.  A row that parses but
-    is not a valid pose (NaN, non-unit quaternion, time going backwards) raises with ``invalid="error"``
-    and is counted in ``validator.drops`` and skipped with ``invalid="drop"``.
-    """
-    if invalid not in ("error", "drop"):
-        raise ConfigurationError(f"invalid={invalid!r} must be 'error' or 'drop'")
-    check = validator if validator is not None else PoseValidator(on_invalid="drop")
+def _csv_rows(source: str | os.PathLike[str] | IO[str]) -> Iterator[tuple[str, str, list[float]]]:
+    """(file name, where, the eight numbers) of each data row of a replay file, in the header's order of
+    :data:`POSE_CSV_COLUMNS`; a missing or non-numeric cell raises, naming the line, the row and the column.
+    NaN and infinities are numbers here: judging them is the caller's business."""
     stream, name, owned = _open_text(source)
     try:
         # Keep each row's line number in the file, so an error points at the line a text editor shows.
@@ -378,14 +366,48 @@ def iter_pose_csv(
                     raise ConfigurationError(
                         f"{name}: {where}, column {column!r}: {cell!r} is not a number"
                     ) from None
-            if invalid == "error":
-                _check_row(name, where, values, check)
-            pose = check.check(values[0], values[1:4], values[4:8])
-            if pose is not None:
-                yield pose
+            yield name, where, values
     finally:
         if owned:
             stream.close()
+
+
+def iter_pose_csv(
+    source: str | os.PathLike[str] | IO[str],
+    *,
+    invalid: str = "error",
+    validator: PoseValidator | None = None,
+) -> Iterator[Pose]:
+    """Poses of a replay file, one per data row (``t_s,x_mm,y_mm,z_mm,qw,qx,qy,qz``; extra columns ignored,
+    blank lines and lines starting with ``#`` skipped).
+
+    A cell that is not a number is always an error naming the row and the column.  A row that parses but
+    is not a valid pose (NaN, non-unit quaternion, time going backwards) raises with ``invalid="error"``
+    and is counted in ``validator.drops`` and skipped with ``invalid="drop"``.  To hand every row to the
+    renderer as a tracker delivered it, bad ones included, use :func:`read_pose_rows`.
+    """
+    if invalid not in ("error", "drop"):
+        raise ConfigurationError(f"invalid={invalid!r} must be 'error' or 'drop'")
+    check = validator if validator is not None else PoseValidator(on_invalid="drop")
+    for name, where, values in _csv_rows(source):
+        if invalid == "error":
+            _check_row(name, where, values, check)
+        pose = check.check(values[0], values[1:4], values[4:8])
+        if pose is not None:
+            yield pose
+
+
+#: One replayed tracking sample as the tracker delivered it: time, position (3), quaternion (w, x, y, z).
+PoseRow = tuple[float, np.ndarray, np.ndarray]
+
+
+def read_pose_rows(source: str | os.PathLike[str] | IO[str]) -> list[PoseRow]:
+    """Every data row of a replay file as a ``(t_s, position_mm, orientation)`` sample, unjudged: NaN,
+    infinities, a quaternion that is not a rotation and a time that does not advance are kept, so that
+    :meth:`~tactdeform_hw.render.pipeline.Renderer.run` meets them as it would from a live tracker and
+    its lost-tracking rules decide.  A cell that is not a number is still an error naming its line, row
+    and column (a tracker cannot deliver one)."""
+    return [(v[0], np.array(v[1:4]), np.array(v[4:8])) for _, _, v in _csv_rows(source)]
 
 
 def _check_row(name: str, where: str, values: list[float], validator: PoseValidator) -> None:
