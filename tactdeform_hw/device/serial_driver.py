@@ -501,6 +501,10 @@ def open_device(
         raise ConfigurationError(
             f"firmware={firmware!r}: the device layer drives 'v1.2' or 'v2' (or 'auto' to detect which)"
         )
+    if guard is not None:
+        # calibrated limits bind hardware channels: a mapping that wires an electrode elsewhere is refused
+        # before the port is opened
+        guard.check_wiring(mapping)
     port = open_port(name, timeout=timeout)
     detection = None
     if firmware in ("auto", "v1.2"):
