@@ -120,23 +120,34 @@ def guard_from_args(
     from hardware channel 24).  An eTactileKit calibration profile's intensities bind the hardware
     channels its ``mapping`` names, and a profile whose mapping disagrees with ``mapping`` is refused
     here, before the device is opened."""
+    from ..device.regions import RegionMap
     from ..device.safety import SafetyGuard
-    from ..formats.calibration_profile import calibrated_channels
+    from ..formats.calibration_profile import calibration_guard
 
     profile, calibration = _participant_file(args, region_of)
     if profile is None:
         return SafetyGuard()
-    channels = None
-    if calibration is not None:
-        if against is None:
-            against = (
-                "the identity mapping (electrode i on channel i; no --array)"
-                if mapping is None
-                else "the device's channel mapping"
-            )
-        channels = calibrated_channels(calibration, channel_offset=channel_offset)
-        channels.check_wiring(mapping, against)
-    return SafetyGuard.from_profile(profile, region_of=region_of, channels=channels)
+    if calibration is None:
+        return SafetyGuard.from_profile(profile, region_of=region_of)
+    if against is None:
+        against = (
+            "the identity mapping (electrode i on channel i; no --array)"
+            if mapping is None
+            else "the device's channel mapping"
+        )
+    by_id = region_of.resolve(None) if isinstance(region_of, RegionMap) else region_of
+    if by_id is None:
+        from ..render.array import ElectrodeArray
+
+        by_id = tuple(int(r) for r in ElectrodeArray.tactdeform().regions)
+    return calibration_guard(
+        calibration,
+        by_id,
+        region_map=region_of,
+        mapping=mapping,
+        against=against,
+        channel_offset=channel_offset,
+    )
 
 
 def audit_from_args(args: argparse.Namespace, **session: Any) -> Any:

@@ -271,17 +271,18 @@ def run(args: argparse.Namespace) -> int:
     code = 0
     if args.participant:
         from ..device.safety import SafetyGuard
-        from ..formats.calibration_profile import calibrated_channels, read_participant_file
+        from ..formats.calibration_profile import calibration_guard, read_participant_file
 
         region_of, offset = _calibration_layout(args.array)
         prof, calibration = read_participant_file(args.participant, region_of)
-        # an eTactileKit calibration profile: each channel is also held to the electrode calibrated on it
-        guard = SafetyGuard.from_profile(
-            prof,
-            channels=calibrated_channels(calibration, channel_offset=offset)
-            if calibration is not None
-            else None,
-        )
+        if calibration is None:
+            guard = SafetyGuard.from_profile(prof)
+        else:
+            # an eTactileKit calibration profile: each channel is held to the electrode calibrated on it
+            wiring = [offset + ch for ch in calibration.mapping()]
+            guard = calibration_guard(
+                calibration, region_of, mapping=wiring, against="its own", channel_offset=offset
+            )
         hw: dict[int, tuple[int, int]] | None = None
         try:
             hw, source = channel_regions(args.file, args.array, prof.regions_ua)

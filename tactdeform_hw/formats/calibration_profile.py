@@ -406,20 +406,27 @@ def calibration_guard(
     with ``mapping`` (a ``ChannelMapping``, a list of channels by electrode, or None for the identity).
 
     Refuses first a ``mapping`` that disagrees with the profile's (see :func:`check_mapping`).  The guard
-    holds the participant profile of :func:`to_participant` (cap, regions through ``region_of``, one region
-    per electrode by id; ``region_map`` — the electrode positions as a
-    :class:`~tactdeform_hw.device.regions.RegionMap` — places those regions when given) and every
-    electrode's own calibrated current on the hardware channel it is wired to, for the interlock and the
-    guard alike.  Pass ``ChannelMapping(profile.mapping(), profile.electrode_count)`` as ``mapping`` to
-    both this and ``open_device`` to drive the profile's own wiring."""
-    from ..device.safety import SafetyGuard
+    holds every electrode's own calibrated current on the hardware channel it is wired to, for the
+    interlock and the guard alike, in place of the regional view of :func:`to_participant` (each region at
+    its lowest electrode, which would hold most electrodes below their calibration); the rest comes from
+    that participant profile: the cap (the highest electrode), the charge limit, pulse width and polarity.
+    ``region_of`` (one region per electrode by id) is what the conversion needs; ``region_map`` (the
+    electrode positions, a :class:`~tactdeform_hw.device.regions.RegionMap`) names each electrode's region
+    in reports.  Pass ``ChannelMapping(profile.mapping(), profile.electrode_count)`` as ``mapping`` to both
+    this and ``open_device`` to drive the profile's own wiring."""
+    from ..device.safety import DEFAULT_MAX_CHARGE_NC, SafetyGuard
 
     channels = calibrated_channels(profile, transfer=transfer, channel_offset=channel_offset)
     channels.check_wiring(mapping, against)
     person = to_participant(profile, region_of, participant=participant, transfer=transfer)
-    return SafetyGuard.from_profile(
-        person,
+    return SafetyGuard(
+        person.cap_ua,
         region_of=region_map if region_map is not None else tuple(region_of),
+        max_charge_nc=min(person.charge_limit_nc, DEFAULT_MAX_CHARGE_NC),
+        ramp_ua_per_frame=person.ramp_ua_per_frame,
+        polarity=person.polarity,
+        max_pulse_width_us=person.pulse_width_us,
+        participant=person.participant,
         sink=sink,
         channels=channels,
     )
