@@ -11,8 +11,9 @@ from typing import Any
 
 import pytest
 
+from tactdeform_hw.device.mapping import ChannelMapping
 from tactdeform_hw.device.profiles import ParticipantProfile, save_profile
-from tactdeform_hw.errors import ProfileError
+from tactdeform_hw.errors import ProfileError, SafetyError
 from tactdeform_hw.formats import calibration_profile as cp
 from tactdeform_hw.protocol.units import CurrentTransfer
 from tactdeform_hw.render.array import ElectrodeArray
@@ -168,7 +169,11 @@ def test_participant_flag_takes_either_format(tmp_path: Path) -> None:
     from_cal = profile_from_args(_args(cal_path))
     assert from_cal.cap_ua == 2500 and from_cal.regions_ua == (2500,) * 9
     assert profile_from_args(_args(own_path)) == own
-    assert guard_from_args(_args(cal_path)).cap_ua == 2500
+    # the profile wires electrode i to channel 5i mod 32: the guard is for a device wired the same way
+    wired = ChannelMapping(tuple((i * 5) % 32 for i in range(32)), 32)
+    assert guard_from_args(_args(cal_path), mapping=wired).cap_ua == 2500
+    with pytest.raises(SafetyError, match="electrode 1 is calibrated on hardware channel 5"):
+        guard_from_args(_args(cal_path))  # the identity wires it elsewhere
 
 
 def test_a_bad_calibration_file_is_refused_before_anything_is_sent(tmp_path: Path) -> None:

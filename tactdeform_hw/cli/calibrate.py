@@ -43,6 +43,13 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--out", metavar="FILE", help="profile file to write (.json or .toml; default: ID.json)")
     p.add_argument(
+        "--calibration-out",
+        metavar="FILE.json",
+        help="also write the result as an eTactileKit calibration profile: each electrode at its region's "
+        "current, its mapping the hardware channel --array's Mapping_func wires it to (the identity "
+        "without --array), so the profile limits the channels it was calibrated on",
+    )
+    p.add_argument(
         "--keys", metavar="FILE", help="read keys from FILE ('-' for standard input) instead of the keyboard"
     )
     p.add_argument(
@@ -171,6 +178,23 @@ def _interactive_keys(dev: Any) -> Any:
         termios.tcsetattr(fd, termios.TCSADRAIN, old)
 
 
+def _calibration_wiring(args: argparse.Namespace, array_file: Any, electrodes: int) -> list[int] | None:
+    """The mapping ``--calibration-out`` will record (None without it): electrode i's channel in the array
+    file's ``Mapping_func`` (the identity without ``--array``).  Checked before the device is opened: an
+    eTactileKit calibration profile holds only a permutation of channels 0 to count - 1."""
+    if not getattr(args, "calibration_out", None):
+        return None
+    if Path(args.calibration_out).suffix.lower() != ".json":
+        raise ConfigurationError(f"--calibration-out {args.calibration_out}: a calibration profile is .json")
+    chans = list(array_file.mapping_func) if array_file is not None else list(range(electrodes))
+    if sorted(chans) != list(range(len(chans))):
+        raise ConfigurationError(
+            f"--calibration-out: {array_file.source}'s Mapping_func {chans} is not a permutation of "
+            f"channels 0 to {len(chans) - 1}, which an eTactileKit calibration profile needs"
+        )
+    return chans
+
+
 def run(args: argparse.Namespace) -> int:
     from ..device import StimConfig, open_device
     from ..device.calibration import Calibration, Phase
@@ -197,6 +221,7 @@ def run(args: argparse.Namespace) -> int:
     missing = sorted(set(range(9)) - set(region_of))
     if missing:
         raise ConfigurationError(f"--array: no electrode of {rmap.source} lies in region(s) {missing}")
+    wiring = _calibration_wiring(args, array_file, len(region_of))
     config = StimConfig(
         electrode_count=mapping.hw_channels if mapping is not None else 32,
         current_ua=0,
@@ -275,11 +300,21 @@ def run(args: argparse.Namespace) -> int:
     )
     save_profile(profile, out)
     result["profile"] = str(out)
+    if wiring is not None:
+        from ..formats.calibration_profile import from_participant, save_calibration_profile
+
+        name = Path(args.array).stem if args.array else "TactDeform finger pad"
+        etk = from_participant(
+            profile, region_of, mapping=wiring, layout_name=name, layout_slug=name.lower().replace(" ", "-")
+        )
+        result["calibration_profile"] = str(save_calibration_profile(etk, args.calibration_out))
     result.update(profile.to_dict())
     if args.json:
         print_json(result)
     else:
         print(f"wrote {out}: cap {profile.cap_ua} µA, regions {list(profile.regions_ua)} µA")
+        if wiring is not None:
+            print(f"wrote {args.calibration_out}: eTactileKit calibration profile, mapping {wiring}")
         for line in delivered_lines(delivered):
             print(line)
     return 0

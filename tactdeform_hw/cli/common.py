@@ -58,9 +58,11 @@ def _line_to_stderr(msg: str) -> None:
 
 PARTICIPANT_HELP = (
     "participant profile (.json or .toml, see 'tactdeform-hw calibrate'), or an eTactileKit calibration "
-    "profile (.json, format etactilekit_calibration_profile, regions at their lowest electrode): its cap, "
-    "regional amplitudes, charge and ramp limits, pulse width and polarity bound every current this command "
-    "sends; a malformed file is refused before the device is opened"
+    "profile (.json, format etactilekit_calibration_profile: each electrode's intensity limits the hardware "
+    "channel its mapping names, and a mapping that disagrees with --array's Mapping_func, or with the "
+    "identity without --array, is refused): its cap, regional amplitudes, charge and ramp limits, pulse "
+    "width and polarity bound every current this command sends; a malformed file is refused before the "
+    "device is opened"
 )
 
 
@@ -76,31 +78,77 @@ def add_participant_arg(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def profile_from_args(args: argparse.Namespace, region_of: Any = None) -> Any:
-    """The participant profile named by ``--participant`` (None without one); raises
-    :class:`~tactdeform_hw.errors.ProfileError` naming the field for a bad file.  An upstream calibration
-    profile is converted through ``region_of`` (default: the TactDeform array's regions)."""
+def _participant_file(args: argparse.Namespace, region_of: Any = None) -> tuple[Any, Any]:
+    """``--participant``'s participant profile and, for an eTactileKit calibration profile, the calibration
+    profile itself ((None, None) without the option).  ``region_of`` (one region per electrode, or a
+    :class:`~tactdeform_hw.device.regions.RegionMap` of the electrode positions) converts a calibration
+    profile's intensities to regions; default: the TactDeform array's regions."""
     path = getattr(args, "participant", None)
     if not path:
-        return None
-    from ..formats.calibration_profile import load_participant_or_calibration
+        return None, None
+    from ..device.regions import RegionMap
+    from ..formats.calibration_profile import read_participant_file
 
+    if isinstance(region_of, RegionMap):
+        region_of = region_of.resolve(None)
     if region_of is None:
         from ..render.array import ElectrodeArray
 
         region_of = ElectrodeArray.tactdeform().regions
-    return load_participant_or_calibration(path, region_of)
+    return read_participant_file(path, region_of)
 
 
-def guard_from_args(args: argparse.Namespace, *, region_of: Any = None) -> Any:
+def profile_from_args(args: argparse.Namespace, region_of: Any = None) -> Any:
+    """The participant profile named by ``--participant`` (None without one); raises
+    :class:`~tactdeform_hw.errors.ProfileError` naming the field for a bad file.  An upstream calibration
+    profile is converted through ``region_of`` (default: the TactDeform array's regions)."""
+    return _participant_file(args, region_of)[0]
+
+
+def guard_from_args(
+    args: argparse.Namespace,
+    *,
+    region_of: Any = None,
+    mapping: Any = None,
+    against: str | None = None,
+    channel_offset: int = 0,
+) -> Any:
     """The safety guard for this command: the participant's limits with ``--participant``, the 10 mA
-    hardware ceiling without.  Call it before opening the device, so a bad profile sends nothing."""
-    from ..device.safety import SafetyGuard
+    hardware ceiling without.  Call it before opening the device, so a bad profile sends nothing.
 
-    profile = profile_from_args(args, region_of)
+    ``mapping`` is the channel mapping the command will open the device with (None: the identity) and
+    ``against`` names it for errors; ``channel_offset`` is an on-board array's (its ``Mapping_func`` counts
+    from hardware channel 24).  An eTactileKit calibration profile's intensities bind the hardware
+    channels its ``mapping`` names, and a profile whose mapping disagrees with ``mapping`` is refused
+    here, before the device is opened."""
+    from ..device.regions import RegionMap
+    from ..device.safety import SafetyGuard
+    from ..formats.calibration_profile import calibration_guard
+
+    profile, calibration = _participant_file(args, region_of)
     if profile is None:
         return SafetyGuard()
-    return SafetyGuard.from_profile(profile, region_of=region_of)
+    if calibration is None:
+        return SafetyGuard.from_profile(profile, region_of=region_of)
+    if against is None:
+        against = (
+            "the identity mapping (electrode i on channel i; no --array)"
+            if mapping is None
+            else "the device's channel mapping"
+        )
+    by_id = region_of.resolve(None) if isinstance(region_of, RegionMap) else region_of
+    if by_id is None:
+        from ..render.array import ElectrodeArray
+
+        by_id = tuple(int(r) for r in ElectrodeArray.tactdeform().regions)
+    return calibration_guard(
+        calibration,
+        by_id,
+        region_map=region_of,
+        mapping=mapping,
+        against=against,
+        channel_offset=channel_offset,
+    )
 
 
 def audit_from_args(args: argparse.Namespace, **session: Any) -> Any:

@@ -220,6 +220,9 @@ def describe_lowering(e: dict[str, Any]) -> str:
         limit = f" limit {e['limit_ua']} µA" if "limit_ua" in e else ""
         on = f" on electrode{'s' if len(named) > 1 else ''} {_span(named)}" if named else ""
         why = f"by {where}{limit}{on}"
+    elif rule == "electrode_limit" and "electrode" in e:
+        limit = f" {e['limit_ua']} µA" if "limit_ua" in e else ""
+        why = f"by electrode {e['electrode']}'s calibrated limit{limit}"
     elif rule == "ramp":
         why = "by ramp"
     elif rule in ("cap", "charge"):

@@ -49,7 +49,10 @@ def _calibrate_outputs(args: argparse.Namespace) -> list[tuple[str, str, str]]:
 
     _pid, out = _targets(args)
     flag = "--out" if getattr(args, "out", None) else "--participant"
-    return [(str(out), flag, FILE)]
+    found = [(str(out), flag, FILE)]
+    if getattr(args, "calibration_out", None):
+        found.append((str(args.calibration_out), "--calibration-out", FILE))
+    return found
 
 
 def planned_outputs(args: argparse.Namespace) -> list[tuple[str, str, str]]:

@@ -163,7 +163,12 @@ def run(args: argparse.Namespace) -> int:
     array = ElectrodeArray.tactdeform()
     # regional limits follow the positions of the array the renderer draws on
     region_map = region_map_from_positions(array.positions_mm.tolist(), f"the {array.name} array")
-    guard = guard_from_args(args, region_of=region_map)
+    guard = guard_from_args(
+        args,
+        region_of=region_map,
+        mapping=array.channel_mapping(),
+        against=f"the {array.name} array's channel mapping",
+    )
     if profile is not None:
         args.current_ua = profile.stimulation_ua if args.current_ua is None else args.current_ua
         args.contact_mode = args.contact_mode or profile.contact_mode

@@ -202,6 +202,20 @@ def channel_regions(
     }, "the positions the log's session line records"
 
 
+def _calibration_layout(array: str | None) -> tuple[Sequence[int], int]:
+    """The region of each electrode by id (to read a calibration profile's intensities as regions) and the
+    first hardware channel of its ``Mapping_func``: the array file's with ``--array``, else the TactDeform
+    array's."""
+    if array is not None and array.lower() != "tactdeform":
+        from ..formats import read_array_file
+
+        af = read_array_file(array)
+        return af.region_map().resolve(None), af.pattern_offset
+    from ..render.array import ElectrodeArray
+
+    return tuple(int(r) for r in ElectrodeArray.tactdeform().regions), 0
+
+
 def judge(table: dict[str, Any], hw: dict[int, tuple[int, int]] | None, guard: Any) -> list[dict[str, Any]]:
     """Every pulse above the limit of the channel it reached: the regional limit of the electrode on it
     (lowered to the cap), 0 on a channel no electrode maps to, and the charge limit per pulse.  ``hw`` None
@@ -220,6 +234,10 @@ def judge(table: dict[str, Any], hw: dict[int, tuple[int, int]] | None, guard: A
     for ch, (_e, region) in hw.items():
         if ch < limit_of.size:
             limit_of[ch] = min(regions[region], guard.cap_ua)
+    calibrated = guard.channels  # a calibration profile's limits belong to the channel each electrode is on
+    if calibrated is not None:
+        for ch in range(limit_of.size):
+            limit_of[ch] = min(limit_of[ch], calibrated.channel_limit_ua(ch))
     limit = limit_of[chans] if chans.size else np.zeros(0)
     over_current = (cur > 0) & (cur > limit + 1e-6)
     over_charge = (cur > 0) & (table["charge_nc"] > guard.max_charge_nc + 1e-6)
@@ -252,11 +270,19 @@ def run(args: argparse.Namespace) -> int:
     table = rep.pop("_table")
     code = 0
     if args.participant:
-        from ..device.profiles import load_profile
         from ..device.safety import SafetyGuard
+        from ..formats.calibration_profile import calibration_guard, read_participant_file
 
-        prof = load_profile(args.participant)
-        guard = SafetyGuard.from_profile(prof)
+        region_of, offset = _calibration_layout(args.array)
+        prof, calibration = read_participant_file(args.participant, region_of)
+        if calibration is None:
+            guard = SafetyGuard.from_profile(prof)
+        else:
+            # an eTactileKit calibration profile: each channel is held to the electrode calibrated on it
+            wiring = [offset + ch for ch in calibration.mapping()]
+            guard = calibration_guard(
+                calibration, region_of, mapping=wiring, against="its own", channel_offset=offset
+            )
         hw: dict[int, tuple[int, int]] | None = None
         try:
             hw, source = channel_regions(args.file, args.array, prof.regions_ua)

@@ -130,8 +130,10 @@ def run(args: argparse.Namespace) -> int:
     from ..protocol.units import DEFAULT_TRANSFER
     from .delivered import DeliveryLog, delivered_lines, session_region_map
 
-    profile = profile_from_args(args)  # a bad profile is refused before anything is opened
     array_file = read_array_file(args.array) if args.array else None
+    # a bad profile is refused before anything is opened; a calibration profile's electrodes are read
+    # through the array's positions
+    profile = profile_from_args(args, array_file.region_map() if array_file is not None else None)
     mapping = array_file.channel_mapping() if array_file is not None else None
     electrodes = args.electrodes
     if array_file is not None:
@@ -143,7 +145,13 @@ def run(args: argparse.Namespace) -> int:
         electrodes = array_file.electrodes
     elif electrodes is None:
         electrodes = 32
-    guard = guard_from_args(args, region_of=array_file.region_map() if array_file is not None else None)
+    guard = guard_from_args(
+        args,
+        region_of=array_file.region_map() if array_file is not None else None,
+        mapping=mapping,
+        against=f"--array {array_file.source}'s Mapping_func" if array_file is not None else None,
+        channel_offset=array_file.pattern_offset if array_file is not None else 0,
+    )
     config = StimConfig(
         electrode_count=mapping.hw_channels if mapping is not None else electrodes,
         current_ua=args.current_ua,

@@ -130,7 +130,12 @@ def run(args: argparse.Namespace) -> int:
 
     # regional limits follow the positions of the array the renderer draws on
     region_map = region_map_from_positions(array.positions_mm.tolist(), f"the {array.name} array")
-    guard = guard_from_args(args, region_of=region_map)
+    guard = guard_from_args(
+        args,
+        region_of=region_map,
+        mapping=array.channel_mapping(),
+        against=f"the {array.name} array's channel mapping",
+    )
     mode = profile.contact_mode if profile is not None else "orientation"
     study = select_trials(
         build_study(args.study, seed=args.seed, quick=args.quick, contact_mode=mode), args.trials

@@ -205,6 +205,9 @@ class Device(ABC):
         #: Called under the device lock before each operation in :data:`STIMULATING_OPS`: a fail-safe's
         #: probe that is due runs there, so an owner that calls without a pause cannot starve it.
         self.before_stimulating: Callable[[], None] | None = None
+        if guard is not None:
+            # before anything is written: the calibrated channels must be the wired ones
+            guard.check_wiring(mapping)
         self.mapping = mapping
         self.transfer = transfer
         self.guard = guard if guard is not None else SafetyGuard()

@@ -80,7 +80,7 @@ from .config import POLARITY_CODE, StimConfig
 from .regions import RegionMap, tactdeform_region_map
 
 if TYPE_CHECKING:
-    from .mapping import ChannelMapping
+    from .mapping import CalibratedChannels, ChannelMapping
     from .profiles import ParticipantProfile
 
 logger = logging.getLogger("tactdeform_hw.safety")
@@ -205,6 +205,13 @@ class SafetyGuard:
     electrode on a border between regions of different amplitude — never a map by index.  (The interlock,
     which only sees hardware channels, still counts an electrode of unknown region at the lowest regional
     amplitude: the safe direction for a backstop.)
+
+    ``channels`` adds per-electrode calibrated limits bound to **hardware channels**
+    (:class:`~tactdeform_hw.device.mapping.CalibratedChannels`, from an eTactileKit calibration profile's
+    ``mapping`` and ``intensity``): the interlock holds every channel to the limit of the electrode
+    calibrated on it, whatever the device's mapping, and the guard lowers each application electrode to the
+    limit of the channel it was calibrated on.  A device whose mapping wires an electrode elsewhere is
+    refused before its port opens (:meth:`check_wiring`).
     """
 
     def __init__(
@@ -219,6 +226,7 @@ class SafetyGuard:
         max_pulse_width_us: int | None = None,
         participant: str | None = None,
         sink: Callable[[dict[str, Any]], None] | None = None,
+        channels: CalibratedChannels | None = None,
     ) -> None:
         if isinstance(cap_ua, bool) or not isinstance(cap_ua, int) or not 0 <= cap_ua <= MAX_CURRENT_UA:
             raise SafetyError(f"cap_ua={cap_ua!r} is out of range: 0 to {MAX_CURRENT_UA} µA")
@@ -264,6 +272,8 @@ class SafetyGuard:
         self.max_pulse_width_us = max_pulse_width_us
         self.participant = participant
         self.sink = sink
+        #: Per-electrode calibrated limits by hardware channel (None: regional limits only).
+        self.channels = channels
         #: The most recent refusals and clips (bounded: a long session clips every frame of some patterns);
         #: :attr:`counts` keeps the totals and the audit log keeps every one.
         self.log: deque[dict[str, Any]] = deque(maxlen=LOG_LIMIT)
@@ -282,6 +292,7 @@ class SafetyGuard:
         *,
         region_of: Sequence[int] | RegionMap | None = None,
         sink: Callable[[dict[str, Any]], None] | None = None,
+        channels: CalibratedChannels | None = None,
     ) -> SafetyGuard:
         return cls(
             profile.cap_ua,
@@ -293,7 +304,15 @@ class SafetyGuard:
             max_pulse_width_us=profile.pulse_width_us,
             participant=profile.participant,
             sink=sink,
+            channels=channels,
         )
+
+    def check_wiring(self, mapping: ChannelMapping | None, against: str | None = None) -> None:
+        """Refuse a device mapping (None: the identity) that wires an electrode to another hardware channel
+        than the one its calibrated limit belongs to; nothing to check without calibrated channels.  The
+        device layer calls it before a port is opened."""
+        if self.channels is not None:
+            self.channels.check_wiring(mapping, against)
 
     # --- logging --------------------------------------------------------------------------------------------
 
@@ -386,7 +405,7 @@ class SafetyGuard:
     def _limits(self, electrodes: int) -> tuple[tuple[int, ...], tuple[int, ...] | None]:
         """:meth:`electrode_limits` and the region map, computed once per electrode count and set of limits
         (every frame needs them; the key holds the public attributes, so changing one takes effect)."""
-        key = (electrodes, self.cap_ua, self.regions_ua, self.region_of)
+        key = (electrodes, self.cap_ua, self.regions_ua, self.region_of, self.channels)
         cached = self._limits_cache
         if cached is not None and cached[0] == key:
             return cached[1], cached[2]
@@ -397,6 +416,9 @@ class SafetyGuard:
             limits = (min(min(self.regions_ua), self.cap_ua),) * electrodes
         else:
             limits = tuple(min(self.regions_ua[r], self.cap_ua) for r in rmap)
+        if self.channels is not None:
+            own = self.channels.application_limits(electrodes)
+            limits = tuple(min(a, b) for a, b in zip(limits, own))
         self._limits_cache = (key, limits, rmap)
         return limits, rmap
 
@@ -422,9 +444,21 @@ class SafetyGuard:
         limits, rmap = self._limits(len(levels))
         if rmap is None and self.positions_matter and any(v in _ACTIVE for v in levels):
             self.require_positions(len(levels))
+        own = self.channels.application_limits(len(levels)) if self.channels is not None else None
         for i, v in enumerate(levels):
             if v in _ACTIVE and limits[i] < limit:
                 limit = limits[i]
+                if (
+                    own is not None
+                    and own[i] == limit
+                    and (
+                        self.regions_ua is None
+                        or rmap is None
+                        or (min(self.regions_ua[rmap[i]], self.cap_ua) > limit)
+                    )
+                ):
+                    why = {"rule": "electrode_limit", "electrode": i, "limit_ua": limit}
+                    continue
                 why = {"rule": "region", "electrode": i, "limit_ua": limit}
                 if rmap is not None:
                     why["region"] = rmap[i]
@@ -549,7 +583,8 @@ class SafetyGuard:
                 why["rule"],
                 f"frame height lowered from {target_ua} to {height} µA ({why['rule']} limit"
                 + (
-                    f", electrode {why['electrode']} in region {why.get('region')}"
+                    f", electrode {why['electrode']}"
+                    + (f" in region {why['region']}" if "region" in why else "")
                     if "electrode" in why
                     else ""
                 )
@@ -641,7 +676,7 @@ class SafetyGuard:
     def _hw_limits(self, mapping: ChannelMapping | None, num: int) -> tuple[tuple[int, ...], int]:
         """Each hardware channel's limit, and the lowest of them."""
         # the key holds the mapping itself (compared by value), never its id: an id can be reused
-        key = (mapping, num, self.cap_ua, self.regions_ua, self.region_of)
+        key = (mapping, num, self.cap_ua, self.regions_ua, self.region_of, self.channels)
         cached = self._hw_limits_cache
         if cached is not None and cached[0] == key:
             return cached[1], cached[2]
@@ -654,6 +689,11 @@ class SafetyGuard:
                 if ch < num:
                     hw[ch] = app[i]
             limits = tuple(hw)
+        if self.channels is not None:
+            # the calibrated limit belongs to the hardware channel the electrode was calibrated on: bound each
+            # channel by it directly, whatever mapping the bytes were built with
+            cal = self.channels
+            limits = tuple(min(v, cal.channel_limit_ua(ch)) for ch, v in enumerate(limits))
         low = min(limits, default=0)
         self._hw_limits_cache = (key, limits, low)
         return limits, low

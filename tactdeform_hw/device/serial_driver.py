@@ -587,6 +587,10 @@ def open_device(
     board since its power-on or since a session that ended with a proved ``close``: a v2 pattern an
     earlier program left cut would otherwise be completed, its heights with it."""
     check_firmware_choice(firmware)
+    if guard is not None:
+        # calibrated limits bind hardware channels: a mapping that wires an electrode elsewhere is refused
+        # before the port is opened
+        guard.check_wiring(mapping)
     port = open_port(name, timeout=timeout)
     return EtactileKitDevice(
         port,

@@ -22,6 +22,12 @@ intensity among its electrodes (a per-region profile cannot hold more without le
 exceed its own calibration), so the conversion is exact only when a region's electrodes agree; the
 per-electrode currents stay available (:meth:`CalibrationProfile.currents_ua`) for firmware that takes a
 height per electrode.
+
+Each electrode's intensity was calibrated on the hardware channel its ``mapping`` names, so that is the
+channel it limits: :func:`calibrated_channels` binds each intensity to its channel for the safety guard,
+and :func:`calibration_guard` builds the guard after refusing a device mapping (an array file's
+``Mapping_func``, or the identity without one) that wires any electrode elsewhere.  Everything that writes a
+profile keeps the mapping.
 """
 
 from __future__ import annotations
@@ -86,6 +92,14 @@ class CalibrationProfile:
     def currents_ua(self, transfer: CurrentTransfer = DEFAULT_TRANSFER) -> tuple[int, ...]:
         """Each electrode's calibrated current, rounded down to the package's 10 µA step."""
         return tuple(_floor_step(transfer.to_ua(code)) for code in self.intensities())
+
+    def channel_currents_ua(self, transfer: CurrentTransfer = DEFAULT_TRANSFER) -> tuple[int, ...]:
+        """The calibrated current of each **hardware channel** (indexed by channel): the current of the
+        electrode whose ``mapping`` names it."""
+        out = [0] * self.electrode_count
+        for ch, ua in zip(self.mapping(), self.currents_ua(transfer)):
+            out[ch] = ua
+        return tuple(out)
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"format": FORMAT, "version": VERSION}
@@ -342,6 +356,82 @@ def to_participant(
     )
 
 
+def calibrated_channels(
+    profile: CalibrationProfile, *, transfer: CurrentTransfer = DEFAULT_TRANSFER, channel_offset: int = 0
+) -> Any:
+    """The profile's limits bound to hardware channels
+    (:class:`~tactdeform_hw.device.mapping.CalibratedChannels`): each electrode's calibrated current on
+    the channel its ``mapping`` names, plus ``channel_offset`` (24 for an on-board array, which the kit
+    drives as the last 8 of 32 channels)."""
+    from ..device.mapping import CalibratedChannels
+
+    return CalibratedChannels(
+        tuple(channel_offset + ch for ch in profile.mapping()),
+        profile.currents_ua(transfer),
+        f"calibration profile {profile.source}",
+    )
+
+
+def check_mapping(
+    profile: CalibrationProfile,
+    mapping: Any = None,
+    *,
+    against: str | None = None,
+    transfer: CurrentTransfer = DEFAULT_TRANSFER,
+    channel_offset: int = 0,
+) -> None:
+    """Refuse (:class:`~tactdeform_hw.errors.SafetyError`, one line naming the file, the electrode id, the
+    profile's channel and the other channel) a device mapping that disagrees with the profile's:
+    ``mapping`` is a :class:`~tactdeform_hw.device.mapping.ChannelMapping`, a list of channels by
+    electrode, or None for the identity; ``against`` names it (e.g. "array file grid.json's
+    Mapping_func")."""
+    calibrated_channels(profile, transfer=transfer, channel_offset=channel_offset).check_wiring(
+        mapping, against
+    )
+
+
+def calibration_guard(
+    profile: CalibrationProfile,
+    region_of: Sequence[int],
+    *,
+    region_map: Any = None,
+    mapping: Any = None,
+    against: str | None = None,
+    transfer: CurrentTransfer = DEFAULT_TRANSFER,
+    participant: str | None = None,
+    sink: Any = None,
+    channel_offset: int = 0,
+) -> Any:
+    """The :class:`~tactdeform_hw.device.safety.SafetyGuard` of a calibration profile, for a device driven
+    with ``mapping`` (a ``ChannelMapping``, a list of channels by electrode, or None for the identity).
+
+    Refuses first a ``mapping`` that disagrees with the profile's (see :func:`check_mapping`).  The guard
+    holds every electrode's own calibrated current on the hardware channel it is wired to, for the
+    interlock and the guard alike, in place of the regional view of :func:`to_participant` (each region at
+    its lowest electrode, which would hold most electrodes below their calibration); the rest comes from
+    that participant profile: the cap (the highest electrode), the charge limit, pulse width and polarity.
+    ``region_of`` (one region per electrode by id) is what the conversion needs; ``region_map`` (the
+    electrode positions, a :class:`~tactdeform_hw.device.regions.RegionMap`) names each electrode's region
+    in reports.  Pass ``ChannelMapping(profile.mapping(), profile.electrode_count)`` as ``mapping`` to both
+    this and ``open_device`` to drive the profile's own wiring."""
+    from ..device.safety import DEFAULT_MAX_CHARGE_NC, SafetyGuard
+
+    channels = calibrated_channels(profile, transfer=transfer, channel_offset=channel_offset)
+    channels.check_wiring(mapping, against)
+    person = to_participant(profile, region_of, participant=participant, transfer=transfer)
+    return SafetyGuard(
+        person.cap_ua,
+        region_of=region_map if region_map is not None else tuple(region_of),
+        max_charge_nc=min(person.charge_limit_nc, DEFAULT_MAX_CHARGE_NC),
+        ramp_ua_per_frame=person.ramp_ua_per_frame,
+        polarity=person.polarity,
+        max_pulse_width_us=person.pulse_width_us,
+        participant=person.participant,
+        sink=sink,
+        channels=channels,
+    )
+
+
 def _date_of(created_at: str | None) -> _dt.date | None:
     if not created_at:
         return None
@@ -381,18 +471,26 @@ def from_participant(
     return calibration_from_dict(data, profile.source, transfer=transfer)
 
 
-def load_participant_or_calibration(
+def read_participant_file(
     path: str | os.PathLike[str], region_of: Sequence[int], *, transfer: CurrentTransfer = DEFAULT_TRANSFER
-) -> Any:
+) -> tuple[Any, CalibrationProfile | None]:
     """``--participant FILE``: a participant profile (.json/.toml) or an upstream calibration profile
-    (.json whose ``format`` says so), the latter converted through ``region_of``."""
+    (.json whose ``format`` says so), the latter converted through ``region_of`` and returned too (its
+    per-electrode limits and mapping bind hardware channels: :func:`calibrated_channels`)."""
     from ..device.profiles import load_profile
 
     p = Path(path)
     if p.suffix.lower() == ".json":
         data = read_json_file(p)
         if is_calibration_profile(data):
-            return to_participant(
-                calibration_from_dict(data, str(p), transfer=transfer), region_of, transfer=transfer
-            )
-    return load_profile(p)
+            cal = calibration_from_dict(data, str(p), transfer=transfer)
+            return to_participant(cal, region_of, transfer=transfer), cal
+    return load_profile(p), None
+
+
+def load_participant_or_calibration(
+    path: str | os.PathLike[str], region_of: Sequence[int], *, transfer: CurrentTransfer = DEFAULT_TRANSFER
+) -> Any:
+    """The participant profile of :func:`read_participant_file` (a calibration profile's regional view
+    only: use :func:`read_participant_file` and :func:`calibration_guard` to keep its channel limits)."""
+    return read_participant_file(path, region_of, transfer=transfer)[0]
