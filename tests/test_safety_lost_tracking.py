@@ -51,9 +51,7 @@ class Bench:
         self.emu = emu
         self.port = TimedPort(emu, link="usb")
         array = ElectrodeArray.tactdeform()
-        self.dev = EtactileKitDevice(
-            self.port, firmware="v2" if fw == "v2" else None, mapping=array.channel_mapping()
-        )
+        self.dev = EtactileKitDevice(self.port, firmware=fw, mapping=array.channel_mapping())
         self.fs = FailSafe(self.dev, thread=False, signals=False, at_exit=False).start()
         self.port.hooks.append(lambda t: self.fs.poll(t))
         self.renderer = Renderer(
