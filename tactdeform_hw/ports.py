@@ -9,7 +9,8 @@ a real board (paced in wall time, reset through RTS, never inspected).  The capa
 ``pacing_clock``  the clock (``now``/``sleep``) writes must be paced in: wall time, a clock that never
                   waits, or a simulation's time
 ``pulse_reset()`` power-cycle the board the way its reset line would
-``guardable``     ``True`` when a guardian process may hold the port's file descriptor
+``guardable``     ``True`` when a guardian process may hold the port's file descriptor (``fileno()``)
+``reset_line``    ``False`` when the port has no reset line a guardian could pulse (TCP); default: RTS
 ``board_state()`` the firmware's registers as the board holds them (``stim_pattern``, ``electrode_num``,
                   …): what an emulated board can show and a real one cannot
 ``board_hazards`` the firmware defects the board has hit, as :class:`~.emulator.hazards.Hazard` records

@@ -267,7 +267,9 @@ class EtactileKitDevice(Device):
             raise TransportError(f"{self!r}: no file descriptor to share with a guardian: {exc}") from exc
         name = str(getattr(self.port, "port", None) or getattr(self.port, "name", None) or fd)
         try:
-            self._guardian = Guardian.start(fd, name, reset_line=True)
+            # a port without a reset line says so (TCP); one that says nothing is a terminal with RTS
+            reset_line = bool(getattr(self.port, "reset_line", True))
+            self._guardian = Guardian.start(fd, name, reset_line=reset_line)
         except GuardianError as exc:
             raise TransportError(str(exc)) from exc
         self._tell_guardian()
