@@ -278,3 +278,16 @@ def test_on_a_socket_the_stop_goes_at_once_and_stale_replies_are_no_proof() -> N
     assert how.startswith("NO PROOF"), how
     assert got.startswith(stop + stop)  # at once, then the first attempt of the proof loop
     assert got.count(stop) >= 3 and off_packet(32) not in got  # retried; no all-off without a proof
+
+
+def test_the_stop_latency_tool_measures_the_guardian_on_tcp(capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    sys.path.insert(0, str(REPO / "tools"))
+    import stop_latency
+
+    args = ["--transport", "tcp", "--firmware", "v2", "--signals", "KILL", "--trials", "1", "--json"]
+    assert stop_latency.main(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["transport"] == "tcp" and "socket://" in out["board"]
+    assert out["SIGKILL"]["trials"] == 1 and 0 <= out["SIGKILL"]["max_ms"] <= STOP_BOUND_MS
