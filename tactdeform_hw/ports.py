@@ -9,7 +9,8 @@ a real board (paced in wall time, reset through RTS, never inspected).  The capa
 ``pacing_clock``  the clock (``now``/``sleep``) writes must be paced in: wall time, a clock that never
                   waits, or a simulation's time
 ``pulse_reset()`` power-cycle the board the way its reset line would
-``guardable``     ``True`` when a guardian process may hold the port's file descriptor
+``guardable``     ``True`` when a guardian process may hold the port's file descriptor (``fileno()``)
+``reset_line``    ``False`` when the port has no reset line a guardian could pulse (TCP); default: RTS
 ``board_untouched`` ``True`` while the board behind the port has received no byte since power-on (an
                   in-process emulator just made): no earlier program can have left a command in its parser,
                   so the firmware identification need not wait out v2's command timeout first

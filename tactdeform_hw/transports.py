@@ -6,7 +6,7 @@ name                                   port
 ``/dev/ttyACM0``, ``COM3`` (a path)    pyserial's ``Serial``, locked for this program and guardable
 ``emulator`` (or ``emu``, empty)       the in-process emulator, answering at once (``etactile://?timed=0``)
 ``etactile://[NAME][?options]``        the emulator's pyserial URL handler
-``socket://HOST:PORT``                 pyserial's TCP port (an eTactileKit over Wi-Fi, ``emulate --tcp``)
+``socket://HOST:PORT``                 pyserial's TCP port, guardable (a kit over Wi-Fi, ``emulate --tcp``)
 ``etactilekit://ID``                   the kit that answers UDP discovery with that id, over ``socket://``
 ``usb://303a:1001``, ``usb:303a:1001``  the pyusb CDC-ACM transport (extra ``[usb]``)
 ``usb-emulator[?options]``             that transport over an emulated USB bus
@@ -41,7 +41,7 @@ PortFactory = Callable[..., Any]
 BUILTIN_TRANSPORTS: dict[str, str] = {
     "path": "tactdeform_hw.device.serial_driver:open_serial_path",
     "etactile": "tactdeform_hw.transports:open_pyserial_url",
-    "socket": "tactdeform_hw.transports:open_pyserial_url",
+    "socket": "tactdeform_hw.transports:open_socket_port",
     "etactilekit": "tactdeform_hw.device.serial_driver:open_kit_url",
     "usb": "tactdeform_hw.device.usb_transport:usb_port_for_name",
     "usb-emulator": "tactdeform_hw.transports:open_usb_emulator",
@@ -130,16 +130,64 @@ def port_for_name(name: str, *, timeout: float | None, baudrate: int) -> Any:
 
 
 def open_pyserial_url(name: str, *, timeout: float | None, baudrate: int) -> Any:
-    """A pyserial URL (``etactile://``, ``socket://``, ``loop://``, …) as an unopened port."""
+    """A pyserial URL (``etactile://``, ``socket://``, ``loop://``, …) as an unopened port; a
+    ``socket://`` URL (also the one a kit's discovery resolves to) gets :func:`open_socket_port`'s port."""
     import serial
 
     from . import register_url_handlers
+
+    if scheme_of(name) == "socket":
+        return open_socket_port(name, timeout=timeout, baudrate=baudrate)
 
     register_url_handlers()
     try:
         return serial.serial_for_url(name, do_not_open=True, baudrate=baudrate, timeout=timeout)
     except (serial.SerialException, ValueError) as exc:
         raise TransportError(f"cannot create port {name!r}: {exc}") from exc
+
+
+_socket_port_class: type | None = None
+
+
+def socket_port_class() -> type:
+    """:class:`SocketPort`: pyserial's ``socket://`` port declaring itself guardable (built on first use:
+    pyserial is imported lazily)."""
+    global _socket_port_class
+    if _socket_port_class is not None:
+        return _socket_port_class
+    from serial.urlhandler import protocol_socket
+
+    class SocketPort(protocol_socket.Serial):  # type: ignore[misc]  # pyserial ships no type information
+        """A board's TCP connection (its Wi-Fi build).  A guardian process can share it: it inherits the
+        socket's file descriptor, so the connection stays open until both the owner and the guardian have
+        closed it — the board, which serves one client at a time, is nobody else's meanwhile.  It has no
+        reset line: RTS and DTR do not travel over TCP."""
+
+        guardable = True
+        reset_line = False
+        #: the board serves one connection at a time; a later one waits in its backlog unanswered
+        serves_one_client = True
+
+        def fileno(self) -> int:
+            """The socket's file descriptor (what a guardian inherits)."""
+            if not self.is_open or self._socket is None:
+                raise protocol_socket.PortNotOpenError()
+            return int(self._socket.fileno())
+
+    _socket_port_class = SocketPort
+    return SocketPort
+
+
+def open_socket_port(name: str, *, timeout: float | None, baudrate: int) -> Any:
+    """``socket://HOST:PORT`` as an unopened :func:`socket_port_class` port (guardable)."""
+    import serial
+
+    try:
+        port = socket_port_class()(None, baudrate=baudrate, timeout=timeout, write_timeout=timeout)
+        port.port = name
+    except (serial.SerialException, ValueError) as exc:
+        raise TransportError(f"cannot create port {name!r}: {exc}") from exc
+    return port
 
 
 def open_usb_emulator(name: str, *, timeout: float | None, baudrate: int) -> Any:
@@ -160,6 +208,7 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "available_transports",
     "factory_for",
+    "open_socket_port",
     "port_for_name",
     "register_transport",
     "scheme_of",

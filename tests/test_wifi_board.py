@@ -19,6 +19,7 @@ from typing import Any
 
 import pytest
 import serial
+import serial.urlhandler.protocol_socket
 
 from tactdeform_hw.clock import MonotonicClock
 from tactdeform_hw.device.firmware_probe import FirmwareMismatchError
@@ -416,16 +417,18 @@ def test_emulate_refuses_bad_wifi_options_naming_them(
 
 
 def test_socket_url_opens_through_pyserials_handler_paced_on_the_wall_clock() -> None:
-    """A v1.2 Wi-Fi board behind ``socket://``: opened by pyserial's own handler, paced in wall time, not
-    guardable (no terminal to share with a guardian), driven after the version probe."""
+    """A v1.2 Wi-Fi board behind ``socket://``: opened by pyserial's own handler (wrapped to declare
+    itself guardable: a guardian shares the connection), paced in wall time, driven after the version
+    probe."""
     from tactdeform_hw.device.config import StimConfig
 
     with TcpServer(RealtimeEmulator(rules=WIFI_TCP), port=0) as server:
         dev = open_device(server.url, firmware="auto", timeout=1.0)
         try:
-            assert type(dev.port).__module__ == "serial.urlhandler.protocol_socket"
+            assert isinstance(dev.port, serial.urlhandler.protocol_socket.Serial)
             assert isinstance(dev.pacer.clock, MonotonicClock)
-            assert not getattr(dev.port, "guardable", False) and dev.guardian is None
+            assert dev.port.guardable and not dev.port.reset_line
+            assert dev.guardian is not None and dev.guardian.alive
             dev.configure(StimConfig(electrode_count=8))
             dev.send_pattern([1, 0, 0, 0, 0, 0, 0, 1])
             assert _wait(lambda: server.board.state()["stim_pattern"][:8] == [1, 0, 0, 0, 0, 0, 0, 1])

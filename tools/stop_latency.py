@@ -1,14 +1,25 @@
 """How long from the owner's death to all-off on the wire.
 
     python tools/stop_latency.py --trials 50 [--json]
+    python tools/stop_latency.py --transport tcp --firmware v1.2,v2 --trials 50 [--json]
 
-The emulated board is served on a real pseudo-terminal in this process; an owner process opens it by
-path (exclusive lock, guardian process, fail-safe), configures it, drives a pattern at 1 mA and keeps it
-fed.  Each trial kills the owner — with SIGTERM (its stop handler switches off) or with SIGKILL (its
-guardian does) — and measures, on the board's side of the pty, the time from the signal to the moment
-the emulated firmware had parsed the bytes that make it safe: no channel receives current any more (pulse
-height 0 or no active channel, and sense height 0).  Prints the median, 95th percentile and maximum of
-each.  :class:`BoardWatch` is also what the stop tests judge with.
+``--transport`` selects how the board is served and how the owner names it:
+
+* ``pty`` (the default): the emulated board (the untimed firmware model, v1.2) on a real pseudo-terminal in
+  this process; the owner opens it by path (exclusive lock, guardian process, fail-safe).  The figure is
+  the time from the signal to the moment the firmware model had parsed the bytes that make it safe: no
+  channel receives current any more (pulse height 0 or no active channel, and sense height 0).
+* ``tcp``: the real-time Wi-Fi board (the timed model of ``--firmware``, TCP flow control, one client at
+  a time) on a loopback TCP port in this process; the owner opens ``socket://127.0.0.1:PORT`` (guardian
+  process sharing the connection, fail-safe).  The figure is judged on the pulses the board delivered:
+  from the signal to the end of the last pulse that carried current (0 when none started after the
+  signal), so it moves in steps of the scans (8 ms at 125 Hz).
+
+The owner configures the board, drives a pattern at 1 mA and keeps it fed, its watchdog off so that only
+the stop itself is timed.  Each trial kills it — with SIGTERM (its stop handler switches off) or with
+SIGKILL (its guardian does).  Prints the median, 95th percentile and maximum of each; with one firmware
+the JSON has one object per signal (``SIGTERM``, ``SIGKILL``), with several one such object per firmware.
+:class:`BoardWatch` is also what the stop tests judge with.
 """
 
 from __future__ import annotations
@@ -31,6 +42,8 @@ if str(REPO) not in sys.path:
 
 from tactdeform_hw.emulator import Emulator  # noqa: E402
 from tactdeform_hw.emulator.pty_server import PtyServer  # noqa: E402
+from tactdeform_hw.emulator.realtime import WIFI_TCP, RealtimeEmulator  # noqa: E402
+from tactdeform_hw.emulator.tcp_server import TcpServer  # noqa: E402
 from tactdeform_hw.protocol.constants import PATTERN_BIPHASIC, PATTERN_MONOPHASIC  # noqa: E402
 
 
@@ -107,7 +120,7 @@ import sys, time
 from tactdeform_hw.device import StimConfig, open_device
 from tactdeform_hw.device.failsafe import StopSession
 with StopSession(watchdog_s=None):  # only the signal may stop it: what is measured is the stop itself
-    dev = open_device(sys.argv[1])
+    dev = open_device(sys.argv[1], **({"firmware": sys.argv[2]} if len(sys.argv) > 2 else {}))
     dev.configure(StimConfig(current_ua=1000))
     dev.send_pattern([1, 0] * 16)
     print("ready", flush=True)
@@ -117,10 +130,10 @@ with StopSession(watchdog_s=None):  # only the signal may stop it: what is measu
 """
 
 
-def spawn_owner(path: str) -> subprocess.Popen[str]:
+def spawn_owner(path: str, firmware: str | None = None) -> subprocess.Popen[str]:
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     return subprocess.Popen(
-        [sys.executable, "-c", OWNER, path],
+        [sys.executable, "-c", OWNER, path, *([firmware] if firmware else [])],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -161,6 +174,107 @@ def one_trial(server: PtyServer, watch: BoardWatch, sig: int, timeout: float = 3
     return dt
 
 
+def _await_ready(proc: subprocess.Popen[str]) -> None:
+    line = proc.stdout.readline() if proc.stdout else ""
+    if line.strip() != "ready":
+        raise RuntimeError(f"owner did not start: {line!r} {proc.stderr.read() if proc.stderr else ''}")
+
+
+def _end(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait()
+    if proc.stdout:
+        proc.stdout.close()
+    if proc.stderr:
+        proc.stderr.close()
+
+
+def _until(cond: Any, timeout: float, what: str) -> None:
+    end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > end:
+            raise RuntimeError(what)
+        time.sleep(0.002)
+
+
+def current_pulse_ends_us(board: RealtimeEmulator, since_us: float) -> list[float]:
+    """End times (device µs) of the pulses the real-time board delivered with current from ``since_us``."""
+    with board.lock:
+        board.state()  # the model brought up to the wall clock
+        table = board.timed.reports.pulse_table(since_us)
+    on = table["current_ua"] > 0
+    return [float(t) for t in (table["start_us"] + table["width_us"])[on]]
+
+
+def tcp_trial(server: TcpServer, sig: int, timeout: float = 30.0) -> float:
+    """Seconds from ``sig`` to the end of the last pulse with current, on the real-time Wi-Fi board."""
+    board = server.board
+    start_us = board.device_us()
+    proc = spawn_owner(server.url, board.firmware)
+    try:
+        _await_ready(proc)
+        _until(lambda: bool(current_pulse_ends_us(board, start_us)), timeout, "the board never delivered")
+        time.sleep(0.05)
+        t0 = time.monotonic()
+        os.kill(proc.pid, sig)
+        kill_us = board.device_us(t0)
+        proc.wait(timeout=timeout)
+        # owner and guardian gone: the connection closes, the board serves the next client
+        _until(
+            lambda: not server.connected,
+            timeout,
+            f"the connection stays open after {signal.Signals(sig).name}",
+        )
+        time.sleep(0.1)  # scans go on: a board still on would deliver here
+        ends = current_pulse_ends_us(board, kill_us - 20_000)
+    finally:
+        _end(proc)
+    last = max(ends, default=kill_us)
+    if current_pulse_ends_us(board, board.device_us() - 50_000):
+        raise RuntimeError(f"the board still delivers current after {signal.Signals(sig).name}")
+    return float(max(0.0, last - kill_us) / 1e6)
+
+
+class PtyBench:
+    """The untimed v1.2 firmware model on a pseudo-terminal, judged on the parsed state."""
+
+    firmwares = ("v1.2",)
+
+    def __init__(self, firmware: str) -> None:
+        self.watch = BoardWatch()
+        self.server = PtyServer(self.watch)  # any object with feed() and state()
+        self.server.start()
+        self.board = "emulator on a pty (untimed firmware model)"
+
+    def trial(self, sig: int) -> float:
+        return one_trial(self.server, self.watch, sig)
+
+    def stop(self) -> None:
+        self.server.stop()
+
+
+class TcpBench:
+    """The real-time Wi-Fi board on loopback TCP, judged on the delivered pulses."""
+
+    firmwares = ("v1.2", "v2")
+
+    def __init__(self, firmware: str) -> None:
+        self.server = TcpServer(RealtimeEmulator(rules=WIFI_TCP, firmware=firmware), port=0, rules=WIFI_TCP)
+        self.server.start()
+        self.board = f"real-time Wi-Fi board, firmware {firmware}, on loopback TCP (socket://)"
+
+    def trial(self, sig: int) -> float:
+        return tcp_trial(self.server, sig)
+
+    def stop(self) -> None:
+        self.server.stop()
+
+
+#: How the board is served and named, by transport name.
+TRANSPORTS: dict[str, Any] = {"pty": PtyBench, "tcp": TcpBench}
+
+
 def _wait_port_free(path: str, timeout: float) -> None:
     """The guardian holds the port (and its lock) until it is done: wait for it, so the next owner opens."""
     from tactdeform_hw.device.serial_driver import find_holders
@@ -189,30 +303,53 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--trials", type=int, default=50, help="trials per signal (default 50)")
     ap.add_argument("--signals", default="TERM,KILL", help="comma-separated signal names (default TERM,KILL)")
+    ap.add_argument(
+        "--transport",
+        choices=sorted(TRANSPORTS),
+        default="pty",
+        help="how the board is served and named (default pty: a pseudo-terminal opened by path; tcp: the "
+        "Wi-Fi board on a loopback port, opened as socket://)",
+    )
+    ap.add_argument(
+        "--firmware",
+        default=None,
+        help="comma-separated firmwares to measure (default: every one the transport's board runs: pty "
+        "v1.2; tcp v1.2,v2)",
+    )
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     if a.trials < 1:
         ap.error(f"--trials={a.trials}: at least 1")
-    watch = BoardWatch()
-    server = PtyServer(watch).start()  # type: ignore[arg-type]  # any object with feed() and state()
-    results: dict[str, Any] = {
-        "board": "emulator on a pty (untimed firmware model)",
-        "python": sys.version.split()[0],
-    }
-    try:
-        for name in a.signals.split(","):
-            sig = getattr(signal, "SIG" + name.strip().upper())
-            samples = [one_trial(server, watch, sig) for _ in range(a.trials)]
-            results["SIG" + name.strip().upper()] = summary(samples)
-            if not a.json:
-                s = results["SIG" + name.strip().upper()]
-                print(
-                    f"SIG{name.upper():4s} → all-off parsed: median {s['median_ms']} ms, p95 {s['p95_ms']} "
-                    f"ms, max {s['max_ms']} ms over {s['trials']} trials",
-                    flush=True,
-                )
-    finally:
-        server.stop()
+    bench_type = TRANSPORTS[a.transport]
+    firmwares = [f.strip() for f in a.firmware.split(",")] if a.firmware else list(bench_type.firmwares)
+    for fw in firmwares:
+        if fw not in bench_type.firmwares:
+            ap.error(f"--firmware={fw}: the {a.transport} board runs {', '.join(bench_type.firmwares)}")
+    signals = []
+    for name in a.signals.split(","):
+        sig = getattr(signal, "SIG" + name.strip().upper(), None)
+        if not isinstance(sig, signal.Signals):
+            ap.error(f"--signals={a.signals}: {name.strip()!r} is not a signal name (e.g. TERM, KILL)")
+        signals.append(sig)
+    results: dict[str, Any] = {"transport": a.transport, "python": sys.version.split()[0]}
+    for fw in firmwares:
+        bench = bench_type(fw)
+        out: dict[str, Any] = {"board": bench.board}
+        try:
+            for sig in signals:
+                s = out[sig.name] = summary([bench.trial(sig) for _ in range(a.trials)])
+                if not a.json:
+                    print(
+                        f"{a.transport} {fw} {sig.name:7s} → all-off: median {s['median_ms']} ms, p95 "
+                        f"{s['p95_ms']} ms, max {s['max_ms']} ms over {s['trials']} trials",
+                        flush=True,
+                    )
+        finally:
+            bench.stop()
+        if len(firmwares) == 1:
+            results.update(out)
+        else:
+            results[fw] = out
     if a.json:
         print(json.dumps(results, indent=2))
     return 0

@@ -2,12 +2,15 @@
 
 The firmware scans its last pattern at its last height until told otherwise, and a process killed with
 SIGKILL, or one that crashes in native code, runs no handler, no ``finally`` and no ``atexit``.  So every
-device opened on a port that can be guarded (``port.guardable``: a serial port the host opens by path)
-starts a guardian with it:
+device opened on a port that can be guarded (``port.guardable``)
+starts a guardian with it — a serial port opened by path, and a board's TCP connection (``socket://``,
+the Wi-Fi build):
 
 * it **shares the port**: it inherits the owner's open file descriptor, so it holds the same open file
   description — and therefore the same ``flock`` — as the owner.  No other program can take the board
-  between the owner's death and the guardian's all-off, and the lock is released only when both are done;
+  between the owner's death and the guardian's all-off, and the lock is released only when both are done.
+  On TCP the shared socket keeps the connection open the same way: the board serves one client at a time,
+  so a later client waits in its listen backlog until the guardian has switched the board off and left;
 * it runs **in its own session** (``setsid``) and ignores SIGINT, SIGHUP and SIGQUIT, so a terminal's
   Ctrl-C or hang-up, delivered to the owner's whole process group, cannot stop it first;
 * it **watches its owner through a pipe**: the owner holds the only write end, so end-of-file on the pipe
@@ -46,6 +49,24 @@ pattern is there so that a later height cannot reach an old pattern.  If no proo
 answers nothing) and the owner said the port has a reset line, the guardian pulses it (RTS, as the driver
 does), which brings the firmware back to its power-on state: every height 0.
 
+**On a socket** (TCP) the guardian finds a socket behind its descriptor and adapts what is terminal-only:
+
+* what the owner left in the kernel's send queue **cannot be recalled** (there is no ``TCOFLUSH``): it
+  reaches the board whole and in order, a command the owner cut included, ahead of anything the guardian
+  sends.  So the stop packet goes **at once**, right behind it: it is built to be safe wherever the parser
+  enters it, and TCP loses no tail (the Wi-Fi build reads the stream under flow control), so it can only
+  finish the owner's cut command with zeros and command bytes (pattern values that are off) and then stop
+  the currents — or, when a long cut pattern swallows it, be followed by the proof loop's copies;
+* the **drain wait** is then not needed to keep bytes in (nothing is dropped) but to keep the owner's
+  stale replies from being taken as the proof: the guardian waits until its send queue is empty
+  (``SIOCOUTQ``: the board's stack has acknowledged every byte), then ``drain_s`` for the board to read
+  them, then reads and drops what is waiting (there is no ``TCIFLUSH``), and sends the stop again for the
+  proof.  A late reply to the first copy proves what matters as well: the parser was at a command
+  boundary before the second copy, which is already on its way and cannot be lost, so its heights 0 are
+  read next, before anything the guardian sends after the proof;
+* there is **no reset line** on TCP (RTS and DTR do not travel): the port declares ``reset_line = False``
+  and the guardian never tries.
+
 The guardian is started with ``python -I -S`` on this very file: it imports nothing but the standard
 library, so it is ready in tens of milliseconds, and nothing it imports can fail.
 """
@@ -55,6 +76,7 @@ from __future__ import annotations
 import os
 import select
 import signal
+import stat
 import sys
 import time
 from typing import Any
@@ -348,6 +370,46 @@ def _pulse_reset(fd: int) -> bool:
     return True
 
 
+def _is_socket(fd: int) -> bool:
+    try:
+        return stat.S_ISSOCK(os.fstat(fd).st_mode)
+    except OSError:
+        return False
+
+
+def _discard_input(fd: int) -> None:
+    """Read and drop what a socket holds (a socket has no ``tcflush``)."""
+    while True:
+        try:
+            ready, _, _ = select.select([fd], [], [], 0)
+            if not ready or not os.read(fd, 65536):
+                return
+        except (BlockingIOError, InterruptedError):
+            return
+        except (OSError, ValueError):
+            return
+
+
+def _wait_sent(fd: int, deadline: float) -> None:
+    """Wait until the socket's send queue is empty (``SIOCOUTQ``: bytes not yet acknowledged by the
+    board's TCP stack), or the deadline.  Where the query is not available, return at once."""
+    import fcntl
+    import struct
+    import termios
+
+    request = getattr(termios, "TIOCOUTQ", None)  # Linux: the same request as SIOCOUTQ on a socket
+    if request is None:
+        return
+    while time.monotonic() < deadline:
+        try:
+            (left,) = struct.unpack("i", fcntl.ioctl(fd, request, struct.pack("i", 0)))
+        except OSError:
+            return
+        if left <= 0:
+            return
+        time.sleep(0.002)
+
+
 def switch_off(
     fd: int,
     stop: bytes,
@@ -362,11 +424,23 @@ def switch_off(
     """Stop every current on the board behind ``fd``; returns how it was proved (for the message)."""
     import termios
 
-    _flush(fd, termios.TCOFLUSH)  # what the dead owner left unsent never reaches the board
     t0 = time.monotonic()
     end = t0 + max(budget_s, drain_s + zeros_s + 0.1)
+    on_socket = _is_socket(fd)
+    if on_socket:
+        # TCP (see the module docstring): what the owner left in the send queue cannot be recalled and
+        # will reach the board whole and in order; the stop goes at once, right behind it, and the
+        # drain wait below only keeps the owner's stale replies from being taken as the proof
+        if not _write_all(fd, stop, end):
+            return "gave up: the connection does not take bytes"
+        _wait_sent(fd, end)
+    else:
+        _flush(fd, termios.TCOFLUSH)  # what the dead owner left unsent never reaches the board
     time.sleep(drain_s)  # what the owner left in the device's queue is read first (see the docstring)
-    _flush(fd, termios.TCIFLUSH)  # its replies are stale
+    if on_socket:
+        _discard_input(fd)  # the owner's replies are stale; a reply to the stop sent above is not
+    else:
+        _flush(fd, termios.TCIFLUSH)  # its replies are stale
     wait_s = max(0.02, drain_s)
     attempt = 0
     while time.monotonic() < end:
@@ -387,7 +461,7 @@ def switch_off(
             break
         wait_s = min(wait_s * 2, 0.2)
     else:
-        if reset_line and _pulse_reset(fd):
+        if reset_line and not on_socket and _pulse_reset(fd):
             return "no answer from the firmware; its reset line was pulsed (power-on state: every height 0)"
         return "NO PROOF: the firmware did not answer; it may still be stimulating: unplug the board"
     how = f"heights 0 proved after {attempt} attempt(s) in {1000 * (time.monotonic() - t0):.1f} ms"

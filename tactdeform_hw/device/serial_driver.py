@@ -351,7 +351,9 @@ class EtactileKitDevice(Device):
             raise TransportError(f"{self!r}: no file descriptor to share with a guardian: {exc}") from exc
         name = str(getattr(self.port, "port", None) or getattr(self.port, "name", None) or fd)
         try:
-            self._guardian = Guardian.start(fd, name, reset_line=True)
+            # a port without a reset line says so (TCP); one that says nothing is a terminal with RTS
+            reset_line = bool(getattr(self.port, "reset_line", True))
+            self._guardian = Guardian.start(fd, name, reset_line=reset_line)
         except GuardianError as exc:
             raise TransportError(str(exc)) from exc
         self._tell_guardian()
@@ -437,6 +439,8 @@ class EtactileKitDevice(Device):
             self._start_guardian()
 
     def _can_reset(self) -> bool:
+        if not getattr(self.port, "reset_line", True):  # the port says it has none (TCP)
+            return False
         if callable(getattr(self.port, "pulse_reset", None)):
             return True
         return hasattr(self.port, "rts") and hasattr(self.port, "dtr")
@@ -445,6 +449,8 @@ class EtactileKitDevice(Device):
         """A port that models the reset line declares ``pulse_reset`` (every emulated board does); a
         real ESP32-S3 on its USB Serial/JTAG port is held in reset while RTS is asserted with DTR released
         (the sequence esptool uses), so the pulse is RTS high for 100 ms."""
+        if not self._can_reset():
+            return False
         pulse = getattr(self.port, "pulse_reset", None)
         if callable(pulse):
             try:
