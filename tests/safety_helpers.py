@@ -58,13 +58,43 @@ CAMPAIGN_CALLS = (
 )
 
 
+#: Defects the campaigns count and report that the driver does not prevent yet: a scan that starts while the
+#: firmware applies a pattern (v2: its copy loop; v1.2: the pattern's transfer) uses part new, part old
+#: heights.  The firmware reads a pattern at the first wake-up of its parser after the pattern arrived — on
+#: its own 1 ms tick wherever a tick falls between two scans — and no reply tells the host when the scans
+#: run, so the timing of the writes cannot keep the copy clear of the next scan (docs/firmware-v2.md,
+#: "Torn scans").
+OPEN_DEFECTS = frozenset({"torn_pattern"})
+
+
 def assert_fault_free(summary: dict[str, Any], failed: list[int], *, sessions: int, min_pulses: int) -> None:
     """A fault-free campaign's verdict, judged on delivered pulses: nothing above a limit, nothing on an
-    electrode meant off, no byte lost, no defect, no failed session — over enough pulses to mean it."""
+    electrode meant off, no byte lost, no defect of any kind, no failed session — over enough pulses to
+    mean it."""
     assert summary["sessions"] == sessions
     assert summary["over_limit_pulses"] == 0
     assert summary["meant_off_pulses"] == 0
     assert summary["bytes_lost"] == 0
+    assert summary["defects_by_kind"] == {}
     assert summary["defects_hit"] == []
-    assert summary["failed_sessions"] == 0, failed[:10]
+    assert summary["failed_sessions"] == 0, (failed[:10], summary["failures"][:5])
     assert summary["pulses"] > min_pulses  # the sessions stimulate: the verdict is about real pulses
+
+
+def assert_fault_free_but_for(
+    summary: dict[str, Any], results: list[Any], kinds: frozenset[str], *, sessions: int, min_pulses: int
+) -> None:
+    """:func:`assert_fault_free` with the defects of ``kinds`` set apart — counted and reported by the
+    campaign, not yet prevented by the driver: every session fails for nothing else."""
+    assert summary["sessions"] == sessions
+    assert summary["over_limit_pulses"] == 0
+    assert summary["meant_off_pulses"] == 0
+    assert summary["bytes_lost"] == 0
+    assert set(summary["defects_by_kind"]) <= kinds, summary["defects_by_kind"]
+    other = [
+        r.reproduce()
+        for r in results
+        if r.over_limit or r.meant_off or r.lost_bytes or set(r.defects) - kinds
+    ]
+    assert other == [], other[:5]
+    assert summary["pulses"] > min_pulses

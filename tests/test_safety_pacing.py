@@ -216,3 +216,44 @@ def test_v2_reads_a_configuration_burst_back_to_back_but_a_pattern_waits_its_own
     assert v12_burst >= 7 * interval.payload_interval_s()
     need = interval.payload_interval_s() - 1e-9  # the waits are differences of clock readings
     assert v2_wait >= need and v12_wait >= need
+
+
+def test_v2_a_pattern_written_alone_is_torn_when_the_parsers_tick_falls_just_before_a_scan() -> None:
+    """Why pacing cannot prevent torn scans on v2.  16 electrodes at 222 Hz: a 3.8 ms scan in a 4.5 ms
+    period, a gap shorter than a tick, yet the period is no whole number of ticks, so now and then the idle
+    parser's tick falls in the gap just before an alarm.  A pattern written alone — nothing else written
+    for 40 ms, so nothing queued before it — that arrives before such a tick is read on it, and the scan
+    pre-empts its copy: the first channels new, the rest old.  The write's moment only chooses the tick
+    when the host knows where the alarms are, and no reply tells it."""
+    from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
+    from tactdeform_hw.protocol import commands_v2 as c2
+    from tactdeform_hw.protocol.firmware import OpcodeV2
+
+    n = 16
+    emu = TimedEmulatorV2(link="uart")
+    setup = (
+        c2.encode_electrode_num(n)
+        + c2.encode_stim_mode(c2.STIM_MODE_MONOPHASIC)
+        + c2.encode_pulse_width(200)
+        + c2.encode_discharge(45)
+        + c2.encode_frequency(222)
+        + c2.encode_pattern([0] * n, electrode_num=n)
+    )
+    emu.write(setup, 0.0)
+    emu.advance_to(40_000.0)
+    last, before = emu.scans[-1], emu.scans[-2]
+    period_ns = last.start_ns - before.start_ns
+    assert period_ns - last.duration_ns < emu.model.rtos_tick_ns  # the gap is shorter than a tick
+    tick = emu.model.rtos_tick_ns
+    alarm = next(
+        last.start_ns + j * period_ns
+        for j in range(5, 1000)
+        if 0 < (last.start_ns + j * period_ns) % tick < 20_000
+    )
+    wake = alarm - alarm % tick  # the parser's tick, less than 20 µs before the alarm
+    emu.write(c2.encode_pattern([100] * n, electrode_num=n), (wake - 500_000) / 1000)  # arrives 120 µs before
+    emu.advance_to(alarm / 1000 + 10_000)
+    assert [(t, op) for t, op, _ in emu.applied if t > last.start_ns] == [(wake, OpcodeV2.PATTERN)]
+    torn = [h for h in emu.hazards if h.kind is HazardKind.TORN_PATTERN]
+    assert len(torn) == 1 and torn[0].time_us == alarm / 1000
+    assert 0 < torn[0].detail["new_channels"] < n

@@ -23,7 +23,8 @@ Judged on the scans the emulated board actually ran (``TimedEmulator.reports.pul
 * **fault-free sessions** — no pulse above the session's own largest allowed current (the largest
   stimulation current and the largest sense current any call of the session asked for; DAC code and
   delivered current both count), no stimulation pulse on an electrode the host had switched off longer
-  than the frame settle time, no byte lost in the device's receive queue, no firmware defect hit;
+  than the frame settle time, no byte lost in the device's receive queue, no firmware defect hit (every
+  hazard the emulated board records but those in :data:`DESIGNED`; torn patterns count), counted per kind;
 * **fault sessions** (``--faults``: the fault kinds of :mod:`tactdeform_hw.emulator.faults`, with the
   fail-safe probing and reading back as an application runs it) — every byte the device lost is lost
   while the driver is without proof of the parser's state, or followed within the documented recovery
@@ -32,6 +33,9 @@ Judged on the scans the emulated board actually ran (``TimedEmulator.reports.pul
   fail-safe's readback) that found the firmware as meant (a loss without effect, such as a queue cleared
   by a silent reboot just before the driver wrote everything again); and every wrong delivery (above the
   limit, or on an electrode meant off) starts within that bound of a fault.
+
+Each failed session is printed on stderr with why and the command that replays it alone, and the run
+exits 1.
 """
 
 from __future__ import annotations
@@ -88,37 +92,35 @@ _UART_FAULTS = tuple(FaultKind)
 FIRMWARES = ("v1.2", "v2")
 #: Regional limits (µA) of a participant's map, as the v2 driver tests use them.
 REGIONS_UA = (400, 800, 1200, 1600, 2000, 2000, 2000, 2000, 2000)
-#: Defects that only v2 can hit: a command its 2 s timeout discarded, a new host's bytes completing a
-#: command the previous one cut, mode 2 scanning a zero pattern at a sense height.
-DEFECTS_V2 = frozenset({"command_timeout", "inherited_command", "mode_sense_all"})
-#: Defects of v1.2 the v2 driver meets by design: it raises the electrode count in mode 2 at sense height
-#: and width 0, so the stale channels v2 keeps are scanned at height 0 until the zero pattern of the new
-#: length is read.  A stale height that carried current would still be judged as a pulse (over its
-#: electrode's limit, or on an electrode meant off).
-NOT_DEFECTS_V2 = frozenset({"stale_channels"})
+#: Hazards the emulated board records that are the firmware doing what the driver asks of it on purpose,
+#: with the reason; every other kind it records — torn patterns included, and any kind the emulator learns
+#: later — is a defect the driver must never trigger in a fault-free session.
+DESIGNED: dict[str, str] = {
+    "unknown_bytes": "the resync's zeros and the loss-tolerant encoding's padding: bytes the parser skips",
+    "hv513_reinit": "v1.2's proof of a command boundary is 0xF5, whose stack detection re-initialises "
+    "the HV513s",
+    "sense_current": "the sense current the session configured (v1.2 gives it to the channels off in the "
+    "pattern too), judged against the session's sense limit",
+    "u16_waiting": "on a UART the second byte of a u16 follows 10.85 µs after the first and the parser may "
+    "meet the gap; a lost byte shows up as a loss and as commands out of step",
+    "value_byte_like_a_command": "a value byte >= 0xF5 the host meant as a value (electrode count 255)",
+}
+#: v2 adds one: the driver raises the electrode count in mode 2 at sense height and width 0, so the stale
+#: channels v2 keeps are scanned at height 0 until the zero pattern of the new length is read.  A stale
+#: height that carried current would still be judged as a pulse (over its electrode's limit, or on an
+#: electrode meant off).
+DESIGNED_V2: dict[str, str] = {
+    **DESIGNED,
+    "stale_channels": "raised in mode 2 at sense height 0: the stale heights carry no current",
+}
 #: Simulated time a v2 fault session keeps the fail-safe running after its last call: its recovery may
 #: wait out the firmware's 2 s command timeout.
 _FAULT_TAIL_V2_S = 2.6
-#: Firmware defects the driver must never trigger (the others — torn patterns, unknown padding bytes,
-#: sense pulses, the 0xF5 re-initialisation — are the firmware working as designed).
-DEFECTS = frozenset(
-    {
-        "parser_locked",
-        "unread_while_locked",
-        "pattern_holds_command_byte",
-        "payload_holds_command_byte",
-        "stale_channels",
-        "clamped",
-        "ignored_zero",
-        "queue_overflow",
-        "overrun",
-        "watchdog_reset",
-        "channels_beyond_hv513",
-        "commands_out_of_step",
-    }
-)
-# ("u16_waiting" is not among them: on a UART the second byte of a u16 follows 10.85 µs after the first, and
-# the parser may meet the gap; a lost byte shows up as a loss and as commands out of step.)
+
+
+def designed(firmware: str) -> dict[str, str]:
+    """The hazard kinds that are not defects on ``firmware`` (see :data:`DESIGNED`)."""
+    return DESIGNED_V2 if firmware == "v2" else DESIGNED
 
 
 def _hazard_name(h: Hazard) -> str:
@@ -158,6 +160,7 @@ class SessionResult:
     lost_bytes: int = 0
     losses: int = 0
     hazards: list[str] = field(default_factory=list)
+    hazard_counts: dict[str, int] = field(default_factory=dict)  # records per kind
     errors: list[str] = field(default_factory=list)
     faults: list[str] = field(default_factory=list)
     faults_survived: int = 0
@@ -170,6 +173,8 @@ class SessionResult:
     sim_s: float = 0.0
     wall_s: float = 0.0
     first_violation: dict[str, Any] | None = None
+    campaign_seed: int = 0  # with ``index``, what replays the session (``--seed S --only I``)
+    fault_session: bool = False
 
     @property
     def ok(self) -> bool:
@@ -179,11 +184,43 @@ class SessionResult:
 
     @property
     def defects(self) -> list[str]:
-        if self.firmware == "v2":
-            named = (DEFECTS - NOT_DEFECTS_V2) | DEFECTS_V2
+        """The kinds of defect the session hit (every hazard kind not designed, a crash of the driver)."""
+        ok = designed(self.firmware)
+        return [h for h in self.hazards if h not in ok]
+
+    @property
+    def defect_counts(self) -> dict[str, int]:
+        """Records per kind of defect."""
+        return {h: self.hazard_counts.get(h, 1) for h in self.defects}
+
+    def failure(self) -> str:
+        """Why the session failed, in one line ("" when it did not)."""
+        if self.ok:
+            return ""
+        why: list[str] = []
+        if self.faults:
+            if self.unexplained:
+                why.append(f"{self.unexplained} wrong deliveries past the recovery bound")
+            if self.unreported_lost_bytes:
+                why.append(f"{self.unreported_lost_bytes} bytes lost unreported")
         else:
-            named = DEFECTS
-        return [h for h in self.hazards if h in named or h == "driver_crash"]
+            if self.over_limit:
+                why.append(f"{self.over_limit} pulses above the limit")
+            if self.meant_off:
+                why.append(f"{self.meant_off} pulses on electrodes meant off")
+            if self.lost_bytes:
+                why.append(f"{self.lost_bytes} bytes lost")
+            if self.defects:
+                why.append("defects " + ", ".join(f"{k} x{n}" for k, n in self.defect_counts.items()))
+        return "; ".join(why)
+
+    def reproduce(self) -> str:
+        """The command that replays this session alone."""
+        faults = " --faults" if self.fault_session else ""
+        return (
+            f"python tools/safety_campaign.py --firmware {self.firmware} --seed {self.campaign_seed}"
+            f"{faults} --only {self.index}"
+        )
 
 
 def _config(rng: random.Random, robust: bool) -> StimConfig:
@@ -493,9 +530,15 @@ class _Session:
                     wrong.append(self._pulse(table, int(k), cur, "over_limit"))
         res.losses = len(emu.losses)
         res.lost_bytes = sum(lo.count for lo in emu.losses)
-        res.hazards = sorted({_hazard_name(h) for h in emu.hazards})
-        if any(not c.in_sync for c in emu.commands):
-            res.hazards.append("commands_out_of_step")
+        counts: dict[str, int] = {}
+        for h in emu.hazards:
+            name = _hazard_name(h)
+            counts[name] = counts.get(name, 0) + 1
+        out_of_step = sum(1 for c in emu.commands if not c.in_sync)
+        if out_of_step:
+            counts["commands_out_of_step"] = out_of_step
+        res.hazard_counts = dict(sorted(counts.items()))
+        res.hazards = sorted(counts)
         if wrong and res.first_violation is None:
             res.first_violation = min(wrong, key=lambda w: w["t_s"])
         if self.failsafe is not None:
@@ -618,6 +661,9 @@ def run_session(index: int, seed: int = 0, faults: bool = False, firmware: str =
     res = s.judge()
     if any(e.startswith("CRASH") for e in res.errors) and "driver_crash" not in res.hazards:
         res.hazards.append("driver_crash")
+        res.hazard_counts["driver_crash"] = 1
+    res.campaign_seed = seed
+    res.fault_session = faults
     res.wall_s = time.perf_counter() - wall
     return res
 
@@ -662,6 +708,16 @@ def run_campaign(
     return out
 
 
+def _defects_by_kind(results: list[SessionResult]) -> dict[str, int]:
+    """Records of each kind of defect over the sessions (in a fault run, what the faults caused: those
+    sessions are judged on their recovery instead)."""
+    out: dict[str, int] = {}
+    for r in results:
+        for kind, n in r.defect_counts.items():
+            out[kind] = out.get(kind, 0) + n
+    return dict(sorted(out.items()))
+
+
 def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
     wall = sum(r.wall_s for r in results)
     calls: dict[str, int] = {}
@@ -692,12 +748,18 @@ def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
         "meant_off_pulses": sum(r.meant_off for r in results),
         "bytes_lost": sum(r.lost_bytes for r in results),
         "defects_hit": sorted({h for r in results for h in r.defects}),
+        "defects_by_kind": _defects_by_kind(results),
+        "defect_sessions": sum(1 for r in results if r.defects),
         "hazards": sorted({h for r in results for h in r.hazards}),
         "caller_errors": sum(len(r.errors) for r in results),
         "simulated_s": round(sum(r.sim_s for r in results), 3),
         "session_s": round(wall, 3),  # the sessions' own run times, summed over workers
         "ms_per_session": round(1e3 * wall / max(1, len(results)), 3),
     }
+    summary["failures"] = [
+        {"index": r.index, "seed": r.campaign_seed, "why": r.failure(), "reproduce": r.reproduce()}
+        for r in failed[:20]
+    ]
     if faults:
         injected = sum(len(r.faults) for r in results)
         summary.update(
@@ -719,12 +781,21 @@ def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
 
 
 def _table(summary: dict[str, Any]) -> str:
-    rows = [(k, v) for k, v in summary.items() if k not in ("calls", "failed_indices")]
+    rows = [(k, v) for k, v in summary.items() if k not in ("calls", "failed_indices", "failures")]
     rows.append(("calls", ", ".join(f"{k} {v}" for k, v in summary["calls"].items())))
     if summary["failed_indices"]:
         rows.append(("first failed sessions", " ".join(map(str, summary["failed_indices"]))))
     width = max(len(k) for k, _ in rows)
     return "\n".join(f"{k:<{width}}  {v}" for k, v in rows)
+
+
+def _report_failures(failures: list[dict[str, Any]], total: int | None = None, firmware: str = "") -> None:
+    """Each failed session on stderr, one line each: why, and the command that replays it alone."""
+    for f in failures:
+        print(f"FAILED session {f['index']}: {f['why']} -- reproduce: {f['reproduce']}", file=sys.stderr)
+    shown = len(failures)
+    if total is not None and total > shown:
+        print(f"... and {total - shown} more failed {firmware} sessions", file=sys.stderr)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -755,8 +826,11 @@ def main(argv: list[str] | None = None) -> int:
     firmwares = FIRMWARES if a.firmware == "both" else (a.firmware,)
     if a.only is not None:
         rows = [run_session(a.only, a.seed, a.faults, fw) for fw in firmwares]
-        out = [{**asdict(r), "ok": r.ok} for r in rows]
+        out = [{**asdict(r), "ok": r.ok, "defect_counts": r.defect_counts} for r in rows]
         print(json.dumps(out[0] if len(out) == 1 else out, indent=1, default=str))
+        _report_failures(
+            [{"index": r.index, "why": r.failure(), "reproduce": r.reproduce()} for r in rows if not r.ok]
+        )
         return 0 if all(r.ok for r in rows) else 1
     summaries: list[dict[str, Any]] = []
     for fw in firmwares:
@@ -771,6 +845,8 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(summaries[0] if len(summaries) == 1 else summaries, indent=1))
     else:
         print("\n\n".join(_table(s) for s in summaries))
+    for s in summaries:
+        _report_failures(s["failures"], s["failed_sessions"], s["firmware"])
     return 0 if all(s["failed_sessions"] == 0 for s in summaries) else 1
 
 

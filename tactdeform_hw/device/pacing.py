@@ -28,7 +28,10 @@ period**, not per millisecond.  Unknown bytes cost one call each (a few µs) and
 tells the pacer the period and its estimate of the scan (:func:`estimate_scan_us`, the firmware's own
 sequence of SPI exchanges and busy-waits) through :meth:`Pacer.set_timing`, and the guard refuses frames
 whose scan would leave no gap at all (back-to-back scans starve the parser: the host could not even
-switch them off).
+switch them off).  The same pre-emption can tear a pattern: a scan that starts
+while the firmware applies one (v2: its copy loop; v1.2: the pattern's transfer) uses part new, part old
+heights.  Pacing keeps a v2 pattern from waiting behind other commands (:meth:`Pacer.spaced`) but cannot
+place its copy in a gap: the parser's tick and the scan's alarm run on clocks the host does not see.
 
 Time comes from a :class:`Clock`.  :class:`MonotonicClock` sleeps for real (serial ports, the pty
 emulator); :class:`InstantClock` reads wall time but never waits, for the untimed in-process emulator whose
@@ -191,9 +194,16 @@ class Pacer:
     def spaced(self, data: bytes) -> bool:
         """Whether the command starting ``data`` waits :meth:`payload_interval_s` after the previous
         command with a payload.  v1.2: every such command (its parser sleeps a tick after each).  v2 reads
-        complete commands back to back, so only a pattern waits: written alone, it is the first thing the
-        parser reads when it wakes after a scan, and its copy into the pattern buffer ends before the next
-        scan; queued behind other commands it could start late in a short gap and be torn by that scan."""
+        complete commands back to back, so only a pattern waits: written alone, nothing queued before it
+        delays its copy into the pattern buffer.
+
+        What the spacing cannot do is keep that copy clear of the next scan.  The parser copies the pattern
+        at its first wake-up after the pattern arrived: the end of a scan, or its own 1 ms tick wherever a
+        tick falls between two scans.  Unless the period is a whole number of ticks and no tick falls in
+        the gap, some wake-ups come just before an alarm, and a pattern read there is torn by the scan (the
+        first channels new, the rest old) whatever was written before it.  No reply tells the host when the
+        scans run, so the moment of a write cannot choose the wake-up; tests/test_safety_pacing.py shows one
+        such pattern, written alone."""
         fw = self.policy.firmware
         if not has_payload(data, fw):
             return False
