@@ -337,7 +337,9 @@ def test_open_device_identifies_by_default_and_counts_the_identification_as_its_
     probe = [e for e in events if e.get("event") == "firmware_probe"]
     assert probe and probe[0]["firmware"] == fw
     assert probe[0]["bytes"] == probe[0]["attempts"] * (len(IDENT_OFF) + len(SIGNATURE))
-    first_command = next(i for i, e in enumerate(events) if "hex" in e)
+    ident = [e for e in events if e.get("op") == "identify"]
+    assert bytes.fromhex("".join(e["hex"] for e in ident)) == IDENT_OFF + SIGNATURE
+    first_command = next(i for i, e in enumerate(events) if "hex" in e and e.get("op") != "identify")
     assert events.index(probe[0]) < first_command
 
 

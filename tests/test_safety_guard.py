@@ -248,6 +248,7 @@ COVERED = {
     "firmware": "read-only: the version the device speaks",
     "resync": "resync tests: configuration again through configure",
     "reconnect": "resync",
+    "verify_firmware": "the identification's signature and off bytes only (tests/test_identification.py)",
     "hardware_reset": "resync",
     "close": "all-off",
     "config": "property",

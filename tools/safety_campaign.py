@@ -95,9 +95,12 @@ REGIONS_UA = (400, 800, 1200, 1600, 2000, 2000, 2000, 2000, 2000)
 #: Hazards the emulated board records that are the firmware doing what the driver asks of it on purpose,
 #: with the reason; every other kind it records — torn patterns included, and any kind the emulator learns
 #: later — is a defect the driver must never trigger in a fault-free session.
+#: How often a session opens the board again after an open a fault spoiled.
+OPEN_ATTEMPTS = 10
+
 DESIGNED: dict[str, str] = {
     "unknown_bytes": "the resync's zeros and the loss-tolerant encoding's padding: bytes the parser skips",
-    "hv513_reinit": "v1.2's proof of a command boundary is 0xF5, whose stack detection re-initialises "
+    "hv513_reinit": "0xF5 (the identification on both versions, v1.2's proof of a boundary) re-initialises "
     "the HV513s",
     "sense_current": "the sense current the session configured (v1.2 gives it to the channels off in the "
     "pattern too), judged against the session's sense limit",
@@ -332,9 +335,18 @@ class _Session:
         return SafetyGuard(self.cap_ua) if self.cap_ua is not None else None
 
     def _new_device(self) -> EtactileKitDevice:
-        if self.firmware == "v2":
-            return EtactileKitDevice(self.port, firmware="v2", guard=self._guard())
-        return EtactileKitDevice(self.port)
+        """Open the board as a program does: identified first; an open that a fault spoils (the link cut
+        or the board reset during the identification) is refused, and the program opens it again."""
+        for attempt in range(1, OPEN_ATTEMPTS + 1):
+            try:
+                if self.firmware == "v2":
+                    return EtactileKitDevice(self.port, firmware="v2", guard=self._guard())
+                return EtactileKitDevice(self.port, firmware="v1.2")
+            except TactDeformError:
+                if attempt == OPEN_ATTEMPTS:
+                    raise
+                self.port.advance(0.1)
+        raise AssertionError("unreachable")
 
     def electrode_limits_ua(self) -> list[float]:
         """Each hardware channel's own stimulation limit (no mapping: channel = electrode): on v2 what

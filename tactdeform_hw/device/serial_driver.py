@@ -292,18 +292,39 @@ class EtactileKitDevice(Device):
         from ..ports import board_untouched, serves_one_client
 
         name = self._port_name()
+        audit = self.audit
+
+        def write(data: bytes) -> None:  # the identification's bytes are in the audit log like any other
+            self._write(data)
+            if audit is not None:
+                audit.tx(data, t=self.pacer.clock.now(), op="identify", logical=data)
+
         settle_s = self._settle_s
         if settle_s is None:
             settle_s = 0.0 if board_untouched(self.port) else SETTLE_S
-        try:
+
+        def identify(wait_s: float) -> Detection:
             return detect_firmware(
-                self._write,
+                write,
                 self._read,
                 self._discard_input,
                 device=name,
-                settle_s=settle_s,
+                settle_s=wait_s,
                 sleep=self.pacer.clock.sleep,
             )
+
+        try:
+            try:
+                return identify(settle_s)
+            except UnidentifiedBoardError as silent:
+                # a hung or locked board answers nothing and may still be stimulating: the reset line brings
+                # it to its power-on state (every height 0, no command pending), and it is asked again
+                if silent.reply or not self._can_reset() or not self._reset_transport():
+                    raise
+                if audit is not None:
+                    audit.event("identification_reset", why="no answer to the identification")
+                self.pacer.clock.sleep(self.boot_s)
+                return identify(0.0)
         except UnidentifiedBoardError as exc:
             self._refuse()
             if serves_one_client(self.port) and not exc.reply:
