@@ -76,7 +76,7 @@ def test_campaign_is_deterministic_per_seed_whatever_the_jobs() -> None:
 
 @pytest.mark.xfail(
     strict=True,
-    reason="the identification at every open (v2's 2 s timeout waited out, the reset line on silence) is not yet counted in the fault sessions' recovery bounds",
+    reason="the identification at every open (v2's 2 s timeout waited out, the reset line on silence) is not yet counted in the fault sessions' recovery bounds",  # noqa: E501
 )
 def test_fault_campaign_reports_every_loss_and_bounds_every_wrong_delivery() -> None:
     results = sc.run_campaign(120, seed=0, faults=True)
@@ -91,7 +91,7 @@ def test_fault_campaign_reports_every_loss_and_bounds_every_wrong_delivery() -> 
 
 @pytest.mark.xfail(
     strict=True,
-    reason="torn scans: the sessions' timeline moved with the identification and session 1 now tears a pattern (no pacing avoids it)",
+    reason="torn scans: the sessions' timeline moved with the identification and session 1 now tears a pattern (no pacing avoids it)",  # noqa: E501
 )
 def test_cli_json_and_refusals(capsys: pytest.CaptureFixture[str]) -> None:
     assert sc.main(["--sessions", "3", "--jobs", "1", "--json"]) == 0  # (session 3 tears a pattern)

@@ -53,7 +53,7 @@ def test_fault_free_v2_campaign_triggers_no_firmware_defect(fault_free: list[sc.
 
 @pytest.mark.xfail(
     strict=True,
-    reason="fixed-seed regression: the identification moved session 1784's timeline, so it no longer tears a pattern; another session must be chosen",
+    reason="fixed-seed regression: the identification moved session 1784's timeline, so it no longer tears a pattern; another session must be chosen",  # noqa: E501
 )
 def test_a_defect_fails_the_campaign_with_the_command_that_replays_it(
     capsys: pytest.CaptureFixture[str],
@@ -89,7 +89,7 @@ def test_fault_free_v2_campaign_covers_what_it_claims(fault_free: list[sc.Sessio
 
 @pytest.mark.xfail(
     strict=True,
-    reason="the identification at every open (v2's 2 s timeout waited out, the reset line on silence) is not yet counted in the fault sessions' recovery bounds",
+    reason="the identification at every open (v2's 2 s timeout waited out, the reset line on silence) is not yet counted in the fault sessions' recovery bounds",  # noqa: E501
 )
 def test_v2_fault_campaign_reports_every_loss_and_bounds_every_wrong_delivery() -> None:
     results = sc.run_campaign(FAULT_SESSIONS, seed=0, faults=True, firmware="v2")
@@ -145,7 +145,7 @@ def test_the_v2_judge_holds_each_electrode_to_its_own_regional_limit() -> None:
 
 @pytest.mark.xfail(
     strict=True,
-    reason="torn scans: the sessions' timeline moved with the identification and a session now tears a pattern (no pacing avoids it)",
+    reason="torn scans: the sessions' timeline moved with the identification and a session now tears a pattern (no pacing avoids it)",  # noqa: E501
 )
 def test_cli_names_the_firmware(capsys: pytest.CaptureFixture[str]) -> None:
     import json
@@ -204,7 +204,7 @@ def test_a_failing_v2_resync_reaches_the_reset_line_within_its_bound() -> None:
 
 @pytest.mark.xfail(
     strict=True,
-    reason="fixed-seed regression: the identification moved session 612's faults (a duplicate now strikes too); another session must be chosen",
+    reason="fixed-seed regression: the identification moved session 612's faults (a duplicate now strikes too); another session must be chosen",  # noqa: E501
 )
 def test_close_is_proved_by_count_0_when_its_all_off_pattern_byte_is_corrupted() -> None:
     """Campaign seed 7, fault session 612: a UART corrupts the command byte of ``close``'s all-off pattern
