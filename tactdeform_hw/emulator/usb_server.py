@@ -33,6 +33,7 @@ import math
 import os
 import select
 import socket
+import struct
 import tempfile
 import threading
 import time
@@ -72,6 +73,18 @@ def _client_gone(conn: socket.socket) -> bool:
         return conn.recv(1, socket.MSG_PEEK) == b""
     except OSError:
         return True
+
+
+def _peer_pid(conn: socket.socket) -> int | None:
+    """The connecting process's pid (Linux ``SO_PEERCRED``), or None where the system does not say."""
+    option = getattr(socket, "SO_PEERCRED", None)
+    if option is None:
+        return None
+    try:
+        pid, _, _ = struct.unpack("3i", conn.getsockopt(socket.SOL_SOCKET, option, struct.calcsize("3i")))
+    except OSError:
+        return None
+    return int(pid)
 
 
 class UsbServer(BoardServer):
@@ -116,6 +129,9 @@ class UsbServer(BoardServer):
             raise TransportError(f"cannot serve the emulated USB board on {self.path}: {exc}") from exc
         self._conns: set[socket.socket] = set()
         self._conns_lock = threading.Lock()
+        #: every connection so far: its client number, the peer's pid (Linux), the bytes it wrote to the
+        #: board and whether it ever claimed the data interface (what a test proves "refused" with)
+        self.client_log: list[dict[str, Any]] = []
 
     @property
     def name(self) -> str:
@@ -143,6 +159,10 @@ class UsbServer(BoardServer):
                 self.clients += 1
                 with self._conns_lock:
                     self._conns.add(conn)
+                    self.client_log.append(
+                        {"client": self.clients, "pid": _peer_pid(conn), "bytes_in": 0, "claimed": False}
+                    )
+                    del self.client_log[:-1000]
                 threading.Thread(
                     target=self._serve_client, args=(conn, self.clients), name=f"{self.thread_name}-client",
                     daemon=True,
@@ -231,6 +251,7 @@ class UsbServer(BoardServer):
             held = h.device.claims.get(intf) is h
             b.claim_interface(h, intf)
             if not held and self._is_data_interface(intf):
+                self._log(number)["claimed"] = True
                 self._claimed_by(number)
             return None
         if op == "release_interface":
@@ -248,6 +269,7 @@ class UsbServer(BoardServer):
         if op == "bulk_write":
             data = bytes.fromhex(req["data"])
             n = b.bulk_write(h, int(req["ep"]), int(req["intf"]), data, int(req["timeout"]))
+            self._log(number)["bytes_in"] += n
             self._seen("host->dev", data)
             return n
         if op == "bulk_read":
@@ -301,6 +323,13 @@ class UsbServer(BoardServer):
         code, err, text = LIBUSB_ERRORS["timeout"]
         return text, code, err
 
+    def _log(self, number: int) -> dict[str, Any]:
+        with self._conns_lock:
+            for entry in reversed(self.client_log):
+                if entry["client"] == number:
+                    return entry
+        return {"client": number, "pid": None, "bytes_in": 0, "claimed": False}  # aged out of the log
+
     def _is_data_interface(self, intf: int) -> bool:
         return any(
             i.bInterfaceNumber == intf and i.bInterfaceClass == CLASS_CDC_DATA for i in self.device.interfaces
@@ -339,6 +368,8 @@ class UsbServer(BoardServer):
 
     def board_status(self, since_us: float = 0.0) -> dict[str, Any]:
         """See :meth:`.usb_client.EmulatorClientBackend.board_status`."""
+        with self._conns_lock:
+            clients = [dict(entry) for entry in self.client_log]
         with self.board.lock:
             self.board.state()
             timed = self.board.timed
@@ -349,6 +380,7 @@ class UsbServer(BoardServer):
                 "last_current_pulse_us": last,
                 "current_pulses": count,
                 "firmware": self.board.firmware,
+                "clients": clients,
             }
 
 
