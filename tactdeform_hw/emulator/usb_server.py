@@ -327,7 +327,8 @@ class UsbServer(BoardServer):
         with self._conns_lock:
             for entry in reversed(self.client_log):
                 if entry["client"] == number:
-                    return entry
+                    found: dict[str, Any] = entry
+                    return found
         return {"client": number, "pid": None, "bytes_in": 0, "claimed": False}  # aged out of the log
 
     def _is_data_interface(self, intf: int) -> bool:
