@@ -1,14 +1,21 @@
 """How long from the owner's death to all-off on the wire.
 
     python tools/stop_latency.py --trials 50 [--json]
+    python tools/stop_latency.py --transport usb --signals KILL --trials 50 [--firmware v1.2|v2|both]
 
-The emulated board is served on a real pseudo-terminal in this process; an owner process opens it by
-path (exclusive lock, guardian process, fail-safe), configures it, drives a pattern at 1 mA and keeps it
-fed.  Each trial kills the owner — with SIGTERM (its stop handler switches off) or with SIGKILL (its
-guardian does) — and measures, on the board's side of the pty, the time from the signal to the moment
-the emulated firmware had parsed the bytes that make it safe: no channel receives current any more (pulse
-height 0 or no active channel, and sense height 0).  Prints the median, 95th percentile and maximum of
-each.  :class:`BoardWatch` is also what the stop tests judge with.
+``--transport pty`` (the default): the emulated board is served on a real pseudo-terminal in this
+process; an owner process opens it by path (exclusive lock, guardian process, fail-safe), configures it,
+drives a pattern at 1 mA and keeps it fed.  Each trial kills the owner — with SIGTERM (its stop handler
+switches off) or with SIGKILL (its guardian does) — and measures, on the board's side of the pty, the
+time from the signal to the moment the emulated firmware had parsed the bytes that make it safe: no
+channel receives current any more (pulse height 0 or no active channel, and sense height 0).  Prints the
+median, 95th percentile and maximum of each.  :class:`BoardWatch` is also what the stop tests judge with.
+
+``--transport usb``: the timed board of each firmware is served as its USB device (the server of
+``emulate --usb``, in a thread of this process); the owner opens it through pyusb (``usb-emulator://PATH``,
+a claim of its own, a USB guardian).  The figure is taken from the board's delivered-pulse record: the
+time from the signal to the last pulse that carried current (the guardian can only act once the dead
+owner's claim is released, then waits out the owner's queue, as over a pty).
 """
 
 from __future__ import annotations
@@ -173,6 +180,73 @@ def _wait_port_free(path: str, timeout: float) -> None:
         time.sleep(0.01)
 
 
+def usb_trial(server: Any, sig: int, timeout: float = 30.0, after_s: float = 0.5) -> float:
+    """Seconds from ``sig`` to the last pulse with current, on a board served as a USB device."""
+    proc = spawn_owner(server.name)
+    try:
+        line = proc.stdout.readline() if proc.stdout else ""
+        if line.strip() != "ready":
+            raise RuntimeError(f"owner did not start: {line!r} {proc.stderr.read() if proc.stderr else ''}")
+        end = time.monotonic() + timeout
+        while True:
+            st = server.board_status()
+            if st["last_current_pulse_us"] is not None and st["now_us"] - st["last_current_pulse_us"] < 20e3:
+                break
+            if time.monotonic() > end:
+                raise RuntimeError("the board never delivered current")
+            time.sleep(0.01)
+        time.sleep(0.05)
+        t0 = time.monotonic()
+        os.kill(proc.pid, sig)
+        kill_us = (t0 - st["t0"]) * 1e6
+        proc.wait(timeout=timeout)
+        while server.device.claims or server.board_status()["now_us"] < kill_us + after_s * 1e6:
+            if time.monotonic() > end + timeout:
+                raise RuntimeError(f"the board is still claimed {timeout} s after {signal.Signals(sig).name}")
+            time.sleep(0.01)
+        last = server.board_status(kill_us - 20e3)["last_current_pulse_us"]
+        if last is None:
+            raise RuntimeError("the board went off before the signal: nothing to measure")
+        if last > kill_us + after_s * 1e6 - 20e3:
+            raise RuntimeError(
+                f"the board still delivers current {after_s} s after {signal.Signals(sig).name}"
+            )
+        return max(0.0, (last - kill_us) / 1e6)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stdout:
+            proc.stdout.close()
+        if proc.stderr:
+            proc.stderr.close()
+
+
+def run_usb(
+    firmwares: list[str], signals: list[str], trials: int, results: dict[str, Any], quiet: bool
+) -> None:
+    from tactdeform_hw.emulator.usb_server import UsbServer
+
+    results["board"] = "timed emulator served as a USB device (emulate --usb), owner through pyusb"
+    for fw in firmwares:
+        server = UsbServer(firmware=fw).start()
+        try:
+            for name in signals:
+                sig = getattr(signal, "SIG" + name)
+                samples = [usb_trial(server, sig) for _ in range(trials)]
+                key = f"{fw} SIG{name}"
+                results[key] = summary(samples)
+                if not quiet:
+                    s = results[key]
+                    print(
+                        f"{fw:4s} SIG{name:4s} → last pulse with current: median {s['median_ms']} ms, p95 "
+                        f"{s['p95_ms']} ms, max {s['max_ms']} ms over {s['trials']} trials",
+                        flush=True,
+                    )
+        finally:
+            server.stop()
+
+
 def summary(samples: list[float]) -> dict[str, float]:
     ms = sorted(1000 * s for s in samples)
     p95 = ms[min(len(ms) - 1, int(round(0.95 * (len(ms) - 1))))]
@@ -190,9 +264,31 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trials", type=int, default=50, help="trials per signal (default 50)")
     ap.add_argument("--signals", default="TERM,KILL", help="comma-separated signal names (default TERM,KILL)")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument(
+        "--transport",
+        choices=("pty", "usb"),
+        default="pty",
+        help="how the owner reaches the board (default pty)",
+    )
+    ap.add_argument(
+        "--firmware",
+        choices=("v1.2", "v2", "both"),
+        default="both",
+        help="with --transport usb: the firmware the board runs (default both)",
+    )
     a = ap.parse_args(argv)
     if a.trials < 1:
         ap.error(f"--trials={a.trials}: at least 1")
+    if a.transport == "usb":
+        usb_results: dict[str, Any] = {"python": sys.version.split()[0]}
+        firmwares = ["v1.2", "v2"] if a.firmware == "both" else [a.firmware]
+        signals = [n.strip().upper() for n in a.signals.split(",")]
+        run_usb(firmwares, signals, a.trials, usb_results, a.json)
+        if a.json:
+            print(json.dumps(usb_results, indent=2))
+        return 0
+    if a.firmware != "both":
+        ap.error("--firmware: the pty board runs the untimed v1.2 model; use it with --transport usb")
     watch = BoardWatch()
     server = PtyServer(watch).start()  # type: ignore[arg-type]  # any object with feed() and state()
     results: dict[str, Any] = {
