@@ -188,8 +188,9 @@ def usb_trial(server: Any, sig: int, timeout: float = 30.0, after_s: float = 0.5
         if line.strip() != "ready":
             raise RuntimeError(f"owner did not start: {line!r} {proc.stderr.read() if proc.stderr else ''}")
         end = time.monotonic() + timeout
-        while True:
-            st = server.board_status()
+        t0_board = server.board_status(float("inf"))["t0"]
+        while True:  # only the last 50 ms of the record: polling must not load the server it measures
+            st = server.board_status((time.monotonic() - t0_board) * 1e6 - 50e3)
             if st["last_current_pulse_us"] is not None and st["now_us"] - st["last_current_pulse_us"] < 20e3:
                 break
             if time.monotonic() > end:
@@ -200,7 +201,7 @@ def usb_trial(server: Any, sig: int, timeout: float = 30.0, after_s: float = 0.5
         os.kill(proc.pid, sig)
         kill_us = (t0 - st["t0"]) * 1e6
         proc.wait(timeout=timeout)
-        while server.device.claims or server.board_status()["now_us"] < kill_us + after_s * 1e6:
+        while server.device.claims or server.board_status(float("inf"))["now_us"] < kill_us + after_s * 1e6:
             if time.monotonic() > end + timeout:
                 raise RuntimeError(f"the board is still claimed {timeout} s after {signal.Signals(sig).name}")
             time.sleep(0.01)

@@ -56,6 +56,8 @@ def last_current_pulse_us(timed: Any, since_us: float = 0.0) -> tuple[float | No
     """The start of the last pulse since ``since_us`` that carried current, and how many did, from the
     firmware model's delivered-pulse record (v1.2 scan runs or v2 scans)."""
     now_us = timed.now_us  # the record also holds the scans the model has already planned: not yet run
+    if since_us >= now_us:
+        return None, 0
     if isinstance(timed, TimedEmulatorV2):
         rows = timed.delivered(since_us=since_us)
         times = [row["t_us"] for row in rows if row["current_ua"] > 0 and row["t_us"] <= now_us]
