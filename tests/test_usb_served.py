@@ -202,3 +202,20 @@ def test_usb_open_detaches_the_serial_driver_when_nobody_holds_the_tty(tmp_path:
 def test_only_a_board_that_outlives_its_owner_gets_a_usb_guardian() -> None:
     assert port_for_name("usb:303a:1001", timeout=0.1, baudrate=921600).guardable  # the system's libusb
     assert not port_for_name("usb-emulator", timeout=0.1, baudrate=921600).guardable  # dies with us
+
+
+@pytest.mark.parametrize(
+    ("extra", "says"),
+    [
+        (["--untimed"], "--usb serves the timed firmware model"),
+        (["--build", "wifi"], "--build wifi: a board on USB runs the serial build"),
+    ],
+)
+def test_emulate_usb_refuses_what_a_usb_board_is_not(
+    extra: list[str], says: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from tactdeform_hw.cli import main
+
+    assert main(["emulate", "--usb", *extra]) != 0
+    err = capsys.readouterr().err
+    assert says in err and "Traceback" not in err
