@@ -9,7 +9,8 @@ name                                   port
 ``socket://HOST:PORT``                 pyserial's TCP port, guardable (a kit over Wi-Fi, ``emulate --tcp``)
 ``etactilekit://ID``                   the kit that answers UDP discovery with that id, over ``socket://``
 ``usb://303a:1001``, ``usb:303a:1001``  the pyusb CDC-ACM transport (extra ``[usb]``)
-``usb-emulator[?options]``             that transport over an emulated USB bus
+``usb-emulator[?options]``             that transport over an emulated bus in this process
+``usb-emulator://PATH``                 that transport to the board ``emulate --usb`` serves on socket PATH
 other ``SCHEME://…``                    pyserial's own URL handlers (``loop://``, ``rfc2217://``, …)
 =====================================  ===============================================================
 
@@ -191,15 +192,32 @@ def open_socket_port(name: str, *, timeout: float | None, baudrate: int) -> Any:
 
 
 def open_usb_emulator(name: str, *, timeout: float | None, baudrate: int) -> Any:
-    """``usb-emulator[?options]``: the pyusb transport (device layer) over an emulated bus (emulator); it
-    sits here because neither layer may import the other."""
+    """``usb-emulator[?options]``: the pyusb transport (device layer) over an emulated bus in this process
+    (the board dies with it); ``usb-emulator://PATH``: over a connection to the board that ``emulate --usb``
+    serves on the Unix socket PATH (a board with a life of its own, shared as a real one is).  It sits here
+    because neither layer may import the other."""
     from .device.usb_transport import UsbCdcPort
-    from .emulator.usb_backend import backend_from_name
     from .protocol.constants import ESP32S3_USB_JTAG_PID, ESPRESSIF_VID
 
+    backend: Any
+    if name.startswith("usb-emulator://"):
+        from .emulator.usb_client import EmulatorClientBackend
+
+        path = name[len("usb-emulator://") :]
+        try:
+            backend = EmulatorClientBackend(path)
+        except OSError as exc:
+            raise TransportError(
+                f"device={name!r}: no emulated USB board answers on {path} ({exc}); start one with "
+                "`tactdeform-hw emulate --usb` and use the name it prints"
+            ) from exc
+    else:
+        from .emulator.usb_backend import backend_from_name
+
+        backend = backend_from_name(name)
     return UsbCdcPort(
-        ESPRESSIF_VID, ESP32S3_USB_JTAG_PID, backend=backend_from_name(name), timeout=timeout,
-        write_timeout=timeout, baudrate=baudrate, name=name,
+        ESPRESSIF_VID, ESP32S3_USB_JTAG_PID, backend=backend, timeout=timeout, write_timeout=timeout,
+        baudrate=baudrate, name=name,
     )  # fmt: skip
 
 

@@ -30,6 +30,7 @@ from tactdeform_hw.emulator.usb_backend import (  # noqa: E402
 )
 from tactdeform_hw.errors import (  # noqa: E402
     ConfigurationError,
+    DeviceBusyError,
     DeviceGoneError,
     DeviceTimeoutError,
     MissingDependencyError,
@@ -428,9 +429,12 @@ def test_access_denied_says_which_permission() -> None:
 
 def test_interface_held_by_another_program(backend: EmulatedUsbBackend) -> None:
     with port_on(backend) as first:
-        with pytest.raises(TransportError, match="is busy .*another program holds it") as ei:
+        with pytest.raises(
+            DeviceBusyError, match="in use by another program.*another program holds it"
+        ) as ei:
             port_on(backend).open()
         assert ei.value.code == errno.EBUSY
+        assert str(ei.value).endswith("nothing was written to it")
         first.write(b"\xf5")  # the first session is untouched
         assert first.read(1) == b"\x04"
 

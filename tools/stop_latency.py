@@ -2,6 +2,7 @@
 
     python tools/stop_latency.py --trials 50 [--json]
     python tools/stop_latency.py --transport tcp --firmware v1.2,v2 --trials 50 [--json]
+    python tools/stop_latency.py --transport usb --signals KILL --trials 50 [--json]
 
 ``--transport`` selects how the board is served and how the owner names it:
 
@@ -14,6 +15,10 @@
   process sharing the connection, fail-safe).  The figure is judged on the pulses the board delivered:
   from the signal to the end of the last pulse that carried current (0 when none started after the
   signal), so it moves in steps of the scans (8 ms at 125 Hz).
+* ``usb``: the timed board of ``--firmware`` served as its USB device (the server of ``emulate --usb``, in
+  a thread of this process); the owner opens it through pyusb (``usb-emulator://PATH``, a claim of its
+  own, a USB guardian).  Judged on the delivered pulses as over TCP (the guardian can act only once the
+  dead owner's claim is released, then waits out the owner's queue).
 
 The owner configures the board, drives a pattern at 1 mA and keeps it fed, its watchdog off so that only
 the stop itself is timed.  Each trial kills it — with SIGTERM (its stop handler switches off) or with
@@ -271,8 +276,28 @@ class TcpBench:
         self.server.stop()
 
 
+class UsbBench:
+    """The timed board served as its USB device (``emulate --usb``), judged on the delivered pulses."""
+
+    firmwares = ("v1.2", "v2")
+
+    def __init__(self, firmware: str) -> None:
+        from tactdeform_hw.emulator.usb_server import UsbServer
+
+        self.server = UsbServer(firmware=firmware).start()
+        self.board = (
+            f"timed board, firmware {firmware}, served as a USB device (emulate --usb), owner through pyusb"
+        )
+
+    def trial(self, sig: int) -> float:
+        return usb_trial(self.server, sig)
+
+    def stop(self) -> None:
+        self.server.stop()
+
+
 #: How the board is served and named, by transport name.
-TRANSPORTS: dict[str, Any] = {"pty": PtyBench, "tcp": TcpBench}
+TRANSPORTS: dict[str, Any] = {"pty": PtyBench, "tcp": TcpBench, "usb": UsbBench}
 
 
 def _wait_port_free(path: str, timeout: float) -> None:
@@ -285,6 +310,49 @@ def _wait_port_free(path: str, timeout: float) -> None:
         if not [pid for pid, _ in find_holders(path) if pid != me]:
             return
         time.sleep(0.01)
+
+
+def usb_trial(server: Any, sig: int, timeout: float = 30.0, after_s: float = 0.5) -> float:
+    """Seconds from ``sig`` to the last pulse with current, on a board served as a USB device."""
+    proc = spawn_owner(server.name)
+    try:
+        line = proc.stdout.readline() if proc.stdout else ""
+        if line.strip() != "ready":
+            raise RuntimeError(f"owner did not start: {line!r} {proc.stderr.read() if proc.stderr else ''}")
+        end = time.monotonic() + timeout
+        t0_board = server.board_status(float("inf"))["t0"]
+        while True:  # only the last 50 ms of the record: polling must not load the server it measures
+            st = server.board_status((time.monotonic() - t0_board) * 1e6 - 50e3)
+            if st["last_current_pulse_us"] is not None and st["now_us"] - st["last_current_pulse_us"] < 20e3:
+                break
+            if time.monotonic() > end:
+                raise RuntimeError("the board never delivered current")
+            time.sleep(0.01)
+        time.sleep(0.05)
+        t0 = time.monotonic()
+        os.kill(proc.pid, sig)
+        kill_us = (t0 - st["t0"]) * 1e6
+        proc.wait(timeout=timeout)
+        while server.device.claims or server.board_status(float("inf"))["now_us"] < kill_us + after_s * 1e6:
+            if time.monotonic() > end + timeout:
+                raise RuntimeError(f"the board is still claimed {timeout} s after {signal.Signals(sig).name}")
+            time.sleep(0.01)
+        last = server.board_status(kill_us - 20e3)["last_current_pulse_us"]
+        if last is None:
+            raise RuntimeError("the board went off before the signal: nothing to measure")
+        if last > kill_us + after_s * 1e6 - 20e3:
+            raise RuntimeError(
+                f"the board still delivers current {after_s} s after {signal.Signals(sig).name}"
+            )
+        return max(0.0, (last - kill_us) / 1e6)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stdout:
+            proc.stdout.close()
+        if proc.stderr:
+            proc.stderr.close()
 
 
 def summary(samples: list[float]) -> dict[str, float]:
@@ -308,13 +376,14 @@ def main(argv: list[str] | None = None) -> int:
         choices=sorted(TRANSPORTS),
         default="pty",
         help="how the board is served and named (default pty: a pseudo-terminal opened by path; tcp: the "
-        "Wi-Fi board on a loopback port, opened as socket://)",
+        "Wi-Fi board on a loopback port, opened as socket://; usb: the board served as a USB device, "
+        "opened through pyusb)",
     )
     ap.add_argument(
         "--firmware",
         default=None,
         help="comma-separated firmwares to measure (default: every one the transport's board runs: pty "
-        "v1.2; tcp v1.2,v2)",
+        "v1.2; tcp and usb v1.2,v2)",
     )
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)

@@ -15,11 +15,14 @@ from .common import progress
 def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "emulate",
-        help="serve the emulated board on a pseudo-terminal or a TCP port any program can open",
+        help="serve the emulated board on a pseudo-terminal, a TCP port or as a USB device",
         description="Serve the emulated eTactileKit on a pseudo-terminal (--pty: the device path, e.g. "
-        "/dev/pts/7, is the first line of stdout) or on a TCP port (--tcp [HOST:]PORT: host:port "
+        "/dev/pts/7, is the first line of stdout), on a TCP port (--tcp [HOST:]PORT: host:port "
         "is the first line; one client at a time, as the firmware's Wi-Fi build; with --firmware "
-        "v2 it also answers UDP discovery, ETK? on port 8888). The board is the timed model of "
+        "v2 it also answers UDP discovery, ETK? on port 8888) or as its USB device (--usb: the "
+        "device name, usb-emulator:///PATH, is the first line; programs open it with --device "
+        "NAME through pyusb, one claim of the interface at a time, released when the claiming "
+        "process ends, however it ends). The board is the timed model of "
         "the chosen firmware (--firmware v1.2, the default, or v2) locked to the wall clock: "
         "bytes enter the link and the receive queue as they arrive, the parser reads them on its "
         "own rhythm (v1.2: one command with a payload per 1 ms tick; v2: whole payloads, a cut "
@@ -31,6 +34,11 @@ def register(sub: Any) -> None:
     )
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal")
+    where.add_argument(
+        "--usb",
+        action="store_true",
+        help="serve the board's USB device (CDC-ACM, 303a:1001) on a Unix socket; needs the 'usb' extra",
+    )
     where.add_argument(
         "--tcp",
         metavar="[HOST:]PORT",
@@ -126,6 +134,12 @@ def _check(args: argparse.Namespace) -> None:
             )
         if len(args.kit_id) != 6 or any(ch not in "0123456789ABCDEFabcdef" for ch in args.kit_id):
             raise LimitError("--kit-id", args.kit_id, "6 hexadecimal digits, as the firmware reports")
+    if args.usb and args.untimed:
+        raise ConfigurationError(
+            "--usb serves the timed firmware model behind its USB device; drop --untimed"
+        )
+    if args.usb and args.build not in (None, "serial"):
+        raise ConfigurationError(f"--build {args.build}: a board on USB runs the serial build; drop --build")
     if not 1 <= args.switching_boards <= 16:
         raise LimitError("--switching-boards", args.switching_boards, "1..16")
     if args.trace and args.firmware == "v2":
@@ -182,6 +196,11 @@ def run(args: argparse.Namespace) -> int:
         host, port = args.tcp_address
         server = TcpServer(board, host=host, port=port, rules=rules, **opts)
         where = f"{server.address[0]}:{server.address[1]}"
+    elif args.usb:
+        from ..emulator.usb_server import UsbServer
+
+        server = UsbServer(board, **opts)
+        where = server.name
     else:
         from ..emulator.pty_server import PtyServer
 

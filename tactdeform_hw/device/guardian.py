@@ -79,7 +79,8 @@ import signal
 import stat
 import sys
 import time
-from typing import Any
+from collections.abc import Callable
+from typing import Any, Protocol
 
 #: How long the guardian keeps trying to get a proof before it gives up (or pulses the reset line).
 BUDGET_S = 1.0
@@ -163,10 +164,15 @@ class Guardian:
     lets it go without writing; :meth:`abandon` closes the pipe without ``bye``, as a dead owner would,
     so the guardian switches the board off."""
 
-    def __init__(self, proc: Any, pipe_w: int, name: str) -> None:
+    def __init__(
+        self, proc: Any, pipe_w: int, name: str, release_owner: Callable[[], None] | None = None
+    ) -> None:
         self.proc = proc
         self._pipe_w: int | None = pipe_w
         self.name = name
+        #: what the owner lets go of before it abandons the board to the guardian (a USB claim, which
+        #: cannot be shared: the guardian can take the board only once the owner released it)
+        self._release_owner = release_owner
 
     @property
     def pid(self) -> int:
@@ -183,33 +189,31 @@ class Guardian:
         ready_timeout_s: float = 10.0,
     ) -> Guardian:
         """Spawn the guardian on ``port_fd`` (the owner's open port) and wait until it is watching."""
+        stop = stop_packet() if stop is None else stop
+        cmd = [sys.executable, "-I", "-S", os.path.abspath(__file__), "--port-fd", str(port_fd)]
+        cmd += ["--name", name, "--stop", stop.hex()] + (["--reset-line"] if reset_line else [])
+        return cls.spawn(cmd, name, pass_fds=(port_fd,), ready_timeout_s=ready_timeout_s)
+
+    @classmethod
+    def spawn(
+        cls,
+        cmd: list[str],
+        name: str,
+        *,
+        pass_fds: tuple[int, ...] = (),
+        ready_timeout_s: float = 10.0,
+        release_owner: Callable[[], None] | None = None,
+    ) -> Guardian:
+        """Start a guardian process ``cmd`` (given ``--owner-fd`` and ``--owner-pid``) in its own session
+        and wait until it says ``ready``: what every kind of guardian shares."""
         import subprocess
 
-        stop = stop_packet() if stop is None else stop
-
         r, w = os.pipe()  # both ends close-on-exec: only the guardian gets the read end, nobody the write end
-        cmd = [
-            sys.executable,
-            "-I",
-            "-S",
-            os.path.abspath(__file__),
-            "--port-fd",
-            str(port_fd),
-            "--owner-fd",
-            str(r),
-            "--owner-pid",
-            str(os.getpid()),
-            "--name",
-            name,
-            "--stop",
-            stop.hex(),
-        ]
-        if reset_line:
-            cmd.append("--reset-line")
+        cmd = [*cmd, "--owner-fd", str(r), "--owner-pid", str(os.getpid())]
         try:
             proc = subprocess.Popen(
                 cmd,
-                pass_fds=(port_fd, r),
+                pass_fds=(*pass_fds, r),
                 stdin=subprocess.DEVNULL,
                 stdout=subprocess.PIPE,
                 start_new_session=True,
@@ -220,7 +224,7 @@ class Guardian:
             os.close(w)
             raise GuardianError(f"cannot start the guardian for {name}: {exc}") from exc
         os.close(r)
-        g = cls(proc, w, name)
+        g = cls(proc, w, name, release_owner)
         out = proc.stdout
         assert out is not None
         ready, _, _ = select.select([out], [], [], ready_timeout_s)
@@ -269,6 +273,9 @@ class Guardian:
     def abandon(self, timeout_s: float = 5.0) -> None:
         """The owner could not switch off (or does not know): the guardian does it, and the call waits for
         it, so the port is free when this returns."""
+        release, self._release_owner = self._release_owner, None
+        if release is not None and self._pipe_w is not None:
+            release()
         self._close_pipe()
         self._wait(timeout_s)
 
@@ -292,7 +299,7 @@ class Guardian:
 # --- guardian side (stdlib only) ---------------------------------------------------------------------------
 
 
-def _say(name: str, msg: str) -> None:
+def say(name: str, msg: str) -> None:
     try:
         sys.stderr.write(f"tactdeform-hw guardian [{name}]: {msg}\n")
         sys.stderr.flush()
@@ -410,8 +417,75 @@ def _wait_sent(fd: int, deadline: float) -> None:
         time.sleep(0.002)
 
 
-def switch_off(
-    fd: int,
+class GuardianLink(Protocol):
+    """What :func:`switch_off_on` needs of the board's link: a serial port's descriptor
+    (:class:`FdLink`) or a USB interface the guardian claimed (:mod:`.usb_guardian`)."""
+
+    def discard_output(self) -> bool: ...
+    def wait_sent(self, deadline: float) -> None: ...
+    def discard_input(self) -> None: ...
+    def write(self, data: bytes, deadline: float) -> bool: ...
+    def read_reply(self, timeout_s: float) -> bytes: ...
+    def pulse_reset(self) -> bool: ...
+
+
+class FdLink:
+    """The owner's serial port, through the descriptor the guardian inherited."""
+
+    def __init__(self, fd: int) -> None:
+        self.fd = fd
+
+    def discard_output(self) -> bool:
+        """Drop what the dead owner left unsent; False where that cannot be done (a socket)."""
+        import termios
+
+        _flush(self.fd, termios.TCOFLUSH)
+        return True
+
+    def wait_sent(self, deadline: float) -> None:
+        return None  # a terminal's output was dropped, not sent
+
+    def discard_input(self) -> None:
+        import termios
+
+        _flush(self.fd, termios.TCIFLUSH)
+
+    def write(self, data: bytes, deadline: float) -> bool:
+        return _write_all(self.fd, data, deadline)
+
+    def read_reply(self, timeout_s: float) -> bytes:
+        return _read_reply(self.fd, timeout_s)
+
+    def pulse_reset(self) -> bool:
+        return _pulse_reset(self.fd)
+
+
+class SocketLink(FdLink):
+    """The owner's TCP connection to the Wi-Fi board (see the module docstring): what the owner left in
+    the send queue cannot be recalled and reaches the board whole and in order, so the stop follows it at
+    once; there is no reset line and no ``tcflush``."""
+
+    def discard_output(self) -> bool:
+        return False
+
+    def wait_sent(self, deadline: float) -> None:
+        _wait_sent(self.fd, deadline)
+
+    def discard_input(self) -> None:
+        _discard_input(self.fd)
+
+    def pulse_reset(self) -> bool:
+        return False
+
+
+def switch_off(fd: int, stop: bytes, off: bytes | None, **kwargs: Any) -> str:
+    """Stop every current on the board behind ``fd``, a terminal or a socket (see :func:`switch_off_on`)."""
+    link = SocketLink(fd) if _is_socket(fd) else FdLink(fd)
+    return switch_off_on(link, stop, off, **kwargs)
+
+
+def switch_off_on(
+    link: GuardianLink,
     stop: bytes,
     off: bytes | None,
     *,
@@ -421,26 +495,18 @@ def switch_off(
     zeros_s: float = DEFAULT_ZEROS_S,
     name: str = "",
 ) -> str:
-    """Stop every current on the board behind ``fd``; returns how it was proved (for the message)."""
-    import termios
-
+    """Stop every current on the board behind ``link``; returns how it was proved (for the message)."""
     t0 = time.monotonic()
     end = t0 + max(budget_s, drain_s + zeros_s + 0.1)
-    on_socket = _is_socket(fd)
-    if on_socket:
-        # TCP (see the module docstring): what the owner left in the send queue cannot be recalled and
-        # will reach the board whole and in order; the stop goes at once, right behind it, and the
-        # drain wait below only keeps the owner's stale replies from being taken as the proof
-        if not _write_all(fd, stop, end):
+    if not link.discard_output():
+        # what the owner left unsent cannot be recalled (TCP) and will reach the board whole and in
+        # order: the stop goes at once, right behind it, and the drain wait below only keeps the owner's
+        # stale replies from being taken as the proof
+        if not link.write(stop, end):
             return "gave up: the connection does not take bytes"
-        _wait_sent(fd, end)
-    else:
-        _flush(fd, termios.TCOFLUSH)  # what the dead owner left unsent never reaches the board
+        link.wait_sent(end)
     time.sleep(drain_s)  # what the owner left in the device's queue is read first (see the docstring)
-    if on_socket:
-        _discard_input(fd)  # the owner's replies are stale; a reply to the stop sent above is not
-    else:
-        _flush(fd, termios.TCIFLUSH)  # its replies are stale
+    link.discard_input()  # its replies are stale
     wait_s = max(0.02, drain_s)
     attempt = 0
     while time.monotonic() < end:
@@ -449,28 +515,85 @@ def switch_off(
             # finish whatever is in progress with zeros, a packet at a time, let the parser skip them, and
             # try again
             for _ in range(RESYNC_ZEROS // PACKET_BYTES):
-                if not _write_all(fd, bytes(PACKET_BYTES), end):
+                if not link.write(bytes(PACKET_BYTES), end):
                     return "gave up: the port does not take bytes"
                 time.sleep(0.0012)
             time.sleep(zeros_s)
         attempt += 1
-        if not _write_all(fd, stop, end):
+        if not link.write(stop, end):
             return "gave up: the port does not take bytes"
-        reply = _read_reply(fd, min(wait_s, max(0.0, end - time.monotonic())))
+        reply = link.read_reply(min(wait_s, max(0.0, end - time.monotonic())))
         if reply:
             break
         wait_s = min(wait_s * 2, 0.2)
     else:
-        if reset_line and not on_socket and _pulse_reset(fd):
+        if reset_line and link.pulse_reset():
             return "no answer from the firmware; its reset line was pulsed (power-on state: every height 0)"
         return "NO PROOF: the firmware did not answer; it may still be stimulating: unplug the board"
     how = f"heights 0 proved after {attempt} attempt(s) in {1000 * (time.monotonic() - t0):.1f} ms"
     if off:
-        if _write_all(fd, off, time.monotonic() + 0.5) and _read_reply(fd, 0.2):
+        if link.write(off, time.monotonic() + 0.5) and link.read_reply(0.2):
             how += ", all-off pattern proved"
         else:
             how += ", all-off pattern not proved"
     return how
+
+
+class Orders:
+    """What the owner told its guardian before it went: the bytes to send and how to pace them."""
+
+    def __init__(self, stop: bytes) -> None:
+        self.stop = stop
+        self.off: bytes | None = None
+        self.drain_s = DEFAULT_DRAIN_S
+        self.zeros_s = DEFAULT_ZEROS_S
+
+
+def ignore_terminal_signals() -> None:
+    """A terminal's Ctrl-C, hang-up or stop keys reach the owner's process group, never the guardian."""
+    for sig in (signal.SIGINT, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP, signal.SIGTTOU, signal.SIGTTIN):
+        signal.signal(sig, signal.SIG_IGN)
+    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+    try:
+        os.chdir("/")  # hold no directory of the owner's
+    except OSError:
+        pass
+
+
+def say_ready() -> None:
+    sys.stdout.write("ready\n")
+    sys.stdout.flush()
+    sys.stdout.close()
+
+
+def watch_owner(owner_fd: int, stop: bytes) -> Orders | None:
+    """Read the owner's lines (``stop``, ``off``, ``pace``) until it says ``bye`` (None: nothing to do)
+    or its end of the pipe closes — it is gone, however it went: the orders to carry out."""
+    orders = Orders(stop)
+    buf = b""
+    while True:
+        try:
+            chunk = os.read(owner_fd, 4096)
+        except InterruptedError:
+            continue
+        except OSError:
+            chunk = b""
+        if not chunk:
+            return orders  # the owner is gone without saying bye
+        buf += chunk
+        while b"\n" in buf:
+            line, buf = buf.split(b"\n", 1)
+            words = line.decode("ascii", "replace").split()
+            if not words:
+                continue
+            if words[0] == "bye":
+                return None
+            if words[0] == "stop" and len(words) == 2:
+                orders.stop = bytes.fromhex(words[1])
+            elif words[0] == "off" and len(words) == 2:
+                orders.off = None if words[1] == "-" else bytes.fromhex(words[1])
+            elif words[0] == "pace" and len(words) == 3:
+                orders.drain_s, orders.zeros_s = min(float(words[1]), 0.5), min(float(words[2]), 0.5)
 
 
 def main(argv: list[str]) -> int:
@@ -484,51 +607,21 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--reset-line", action="store_true")
     ap.add_argument("--stop", required=True, help="hex bytes that stop every current")
     a = ap.parse_args(argv)
-    for sig in (signal.SIGINT, signal.SIGHUP, signal.SIGQUIT, signal.SIGTSTP, signal.SIGTTOU, signal.SIGTTIN):
-        signal.signal(sig, signal.SIG_IGN)
-    signal.signal(signal.SIGPIPE, signal.SIG_IGN)
-    try:
-        os.chdir("/")  # hold no directory of the owner's
-    except OSError:
-        pass
-    stop: bytes | None = bytes.fromhex(a.stop)
-    off: bytes | None = None
-    drain_s, zeros_s = DEFAULT_DRAIN_S, DEFAULT_ZEROS_S
-    sys.stdout.write("ready\n")
-    sys.stdout.flush()
-    sys.stdout.close()
-    buf = b""
-    owner = a.owner_fd
-    while True:
-        try:
-            chunk = os.read(owner, 4096)
-        except InterruptedError:
-            continue
-        except OSError:
-            chunk = b""
-        if not chunk:
-            break  # the owner is gone without saying bye
-        buf += chunk
-        while b"\n" in buf:
-            line, buf = buf.split(b"\n", 1)
-            words = line.decode("ascii", "replace").split()
-            if not words:
-                continue
-            if words[0] == "bye":
-                return 0
-            if words[0] == "stop" and len(words) == 2:
-                stop = bytes.fromhex(words[1])
-            elif words[0] == "off" and len(words) == 2:
-                off = None if words[1] == "-" else bytes.fromhex(words[1])
-            elif words[0] == "pace" and len(words) == 3:
-                drain_s, zeros_s = min(float(words[1]), 0.5), min(float(words[2]), 0.5)
-    if stop is None:
-        _say(a.name, f"owner (pid {a.owner_pid}) gone before it said what stops the board; nothing sent")
-        return 1
+    ignore_terminal_signals()
+    say_ready()
+    orders = watch_owner(a.owner_fd, bytes.fromhex(a.stop))
+    if orders is None:
+        return 0
     how = switch_off(
-        a.port_fd, stop, off, reset_line=a.reset_line, drain_s=drain_s, zeros_s=zeros_s, name=a.name
+        a.port_fd,
+        orders.stop,
+        orders.off,
+        reset_line=a.reset_line,
+        drain_s=orders.drain_s,
+        zeros_s=orders.zeros_s,
+        name=a.name,
     )
-    _say(a.name, f"owner (pid {a.owner_pid}) gone: all-off sent ({how})")
+    say(a.name, f"owner (pid {a.owner_pid}) gone: all-off sent ({how})")
     return 0 if not how.startswith(("NO PROOF", "gave up")) else 2
 
 

@@ -362,19 +362,28 @@ class EtactileKitDevice(Device):
         return self._guardian
 
     def _start_guardian(self) -> None:
+        """A port that provides a guardian factory (``start_guardian(name)``: a USB port, whose claim
+        cannot be shared) starts its own; any other guardable port shares its file descriptor with
+        :meth:`Guardian.start`."""
         if not getattr(self.port, "guardable", False):
             raise TransportError(
                 f"{self!r}: the port cannot be guarded (it declares no guardable file descriptor)"
             )
+        factory = getattr(self.port, "start_guardian", None)
+        name = str(getattr(self.port, "port", None) or getattr(self.port, "name", None) or self.port)
         try:
-            fd = int(self.port.fileno())  # type: ignore[attr-defined]
-        except (AttributeError, OSError, ValueError, TypeError) as exc:
-            raise TransportError(f"{self!r}: no file descriptor to share with a guardian: {exc}") from exc
-        name = str(getattr(self.port, "port", None) or getattr(self.port, "name", None) or fd)
-        try:
-            # a port without a reset line says so (TCP); one that says nothing is a terminal with RTS
-            reset_line = bool(getattr(self.port, "reset_line", True))
-            self._guardian = Guardian.start(fd, name, reset_line=reset_line)
+            if callable(factory):
+                self._guardian = factory(name)
+            else:
+                try:
+                    fd = int(self.port.fileno())  # type: ignore[attr-defined]
+                except (AttributeError, OSError, ValueError, TypeError) as exc:
+                    raise TransportError(
+                        f"{self!r}: no file descriptor to share with a guardian: {exc}"
+                    ) from exc
+                # a port without a reset line says so (TCP); one that says nothing is a terminal with RTS
+                reset_line = bool(getattr(self.port, "reset_line", True))
+                self._guardian = Guardian.start(fd, name, reset_line=reset_line)
         except GuardianError as exc:
             raise TransportError(str(exc)) from exc
         self._tell_guardian()

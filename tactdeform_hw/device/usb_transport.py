@@ -34,14 +34,17 @@ from __future__ import annotations
 
 import errno
 import math
+import os
 import struct
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from ..errors import (
     ConfigurationError,
+    DeviceBusyError,
     DeviceGoneError,
     MissingDependencyError,
     PortNotOpenError,
@@ -49,6 +52,12 @@ from ..errors import (
 )
 from ..ports import PortBase
 from ..protocol.constants import BAUD_RATE, ESPRESSIF_VID
+
+if TYPE_CHECKING:
+    from .guardian import Guardian
+
+#: Who holds a path open: ``(pid, command line)`` each (the serial driver's :func:`find_holders`).
+HolderFinder = Callable[[str], list[tuple[int, str]]]
 
 CLASS_CDC_COMM = 0x02
 CLASS_CDC_DATA = 0x0A
@@ -171,14 +180,19 @@ class UsbDeviceSpec:
 
 
 def is_usb_name(name: str) -> bool:
-    """Whether ``name`` opens a USB transport (``usb:…``, ``usb://…`` or ``usb-emulator``)."""
-    return name.startswith(USB_PREFIX) or name == USB_EMULATOR or name.startswith(USB_EMULATOR + "?")
+    """Whether ``name`` opens a USB transport (``usb:…``, ``usb://…``, ``usb-emulator[?…]`` or
+    ``usb-emulator://PATH``)."""
+    return (
+        name.startswith(USB_PREFIX)
+        or name == USB_EMULATOR
+        or name.startswith((USB_EMULATOR + "?", USB_EMULATOR + "://"))
+    )
 
 
 def usb_port_for_name(name: str, *, timeout: float | None = 0.5, baudrate: int = BAUD_RATE) -> UsbCdcPort:
     """An unopened :class:`UsbCdcPort` for ``usb://VID:PID[:SERIAL]`` (or ``usb:VID:PID[:SERIAL]``).  The
     emulated bus (``usb-emulator``) is reached through :mod:`tactdeform_hw.transports`."""
-    if name == USB_EMULATOR or name.startswith(USB_EMULATOR + "?"):
+    if name == USB_EMULATOR or name.startswith((USB_EMULATOR + "?", USB_EMULATOR + "://")):
         from ..transports import port_for_name
 
         return port_for_name(name, timeout=timeout, baudrate=baudrate)  # type: ignore[no-any-return]
@@ -215,6 +229,15 @@ class UsbCdcPort(PortBase):
     ``backend`` is any pyusb backend (default: the system's libusb); the emulated board in
     :mod:`tactdeform_hw.emulator.usb_backend` is one.  ``timeout`` and ``write_timeout`` are in seconds
     as in pyserial (None blocks, 0 polls once).
+
+    ``sysfs_root``, ``dev_root`` and ``holders`` are where the port looks before it detaches the kernel's
+    serial driver (``/sys``, ``/dev`` and the serial driver's ``find_holders``; tests inject a fake
+    tree): a board whose ``/dev/ttyACM*`` another program holds open is refused, never cut off.
+
+    A port on the system's libusb, or on a board served by another process (``emulate --usb``), is
+    guardable: :meth:`start_guardian` starts the process that switches the board off if the owner dies
+    without running code (:mod:`.usb_guardian`).  A board on an emulated bus in this process dies with
+    it, so that port is not.
     """
 
     bytesize = 8
@@ -232,8 +255,14 @@ class UsbCdcPort(PortBase):
         write_timeout: float | None = 1.0,
         baudrate: int = BAUD_RATE,
         name: str | None = None,
+        sysfs_root: str = "/sys",
+        dev_root: str = "/dev",
+        holders: HolderFinder | None = None,
     ) -> None:
         self._core, self._util = _import_usb()
+        self.sysfs_root = sysfs_root
+        self.dev_root = dev_root
+        self._holders = holders
         self.spec = UsbDeviceSpec(vid, pid, serial_number)
         self.port = name or self.spec.name
         self.timeout = timeout
@@ -259,6 +288,46 @@ class UsbCdcPort(PortBase):
     @property
     def name(self) -> str:
         return self.port
+
+    # --- the guardian -------------------------------------------------------------------------------------
+
+    @property
+    def guardable(self) -> bool:
+        """Whether a guardian process can reach this board once the owner is gone: the system's libusb,
+        or a backend that says how (``guardian_backend()``: a board served by another process)."""
+        return self.backend is None or callable(getattr(self.backend, "guardian_backend", None))
+
+    def start_guardian(self, name: str, *, stop: bytes | None = None) -> Guardian:
+        """The guardian factory the device layer calls: a process that waits for this owner's end, then
+        claims the interfaces once the owner's claim is gone and sends the stop bytes it was told (see
+        :mod:`.usb_guardian`).  The port must be open."""
+        from .usb_guardian import start_usb_guardian
+
+        dev = self._check_open()
+        how = self.backend.guardian_backend() if self.backend is not None else "libusb"
+        return start_usb_guardian(
+            name,
+            backend=how,
+            bus=int(dev.bus),
+            address=int(dev.address),
+            vid=int(dev.idVendor),
+            pid=int(dev.idProduct),
+            comm_interface=self.comm_interface,
+            data_interface=int(self.data_interface if self.data_interface is not None else -1),
+            ep_out=int(self.ep_out if self.ep_out is not None else -1),
+            ep_in=int(self.ep_in if self.ep_in is not None else -1),
+            packet_size=self.packet_size,
+            give_back=list(self.detached),
+            stop=stop,
+            release_owner=self.release_for_guardian,
+        )
+
+    def release_for_guardian(self) -> None:
+        """Let go of the interfaces without giving them to the kernel driver, so the guardian can claim
+        them at once (an owner that abandons the board to its guardian while still alive)."""
+        self.is_open = False
+        if self.usb_device is not None:
+            self._release(reattach=False)
 
     # --- line settings ------------------------------------------------------------------------------
 
@@ -431,6 +500,13 @@ class UsbCdcPort(PortBase):
             try:
                 util.claim_interface(dev, n)
             except core.USBError as exc:
+                if _errno_of(exc) == errno.EBUSY:
+                    usbfs = f"{self.dev_root}/bus/usb/{dev.bus:03d}/{dev.address:03d}"
+                    busy = DeviceBusyError(
+                        self.port, self._find_holders(usbfs), f"interface {n} is claimed: {BUSY_HELP}"
+                    )
+                    busy.code = errno.EBUSY
+                    raise busy from exc
                 raise self._error(exc, f"claiming interface {n}") from exc
             self._claimed.append(n)
         self.ep_out, self.ep_in, self.packet_size = self._bulk_endpoints(data)
@@ -448,11 +524,53 @@ class UsbCdcPort(PortBase):
         except core.USBError as exc:
             raise self._error(exc, f"checking the kernel driver on interface {n}") from exc
         if active:
+            self._refuse_if_tty_held(dev, n)
             try:
                 dev.detach_kernel_driver(n)
             except core.USBError as exc:
                 raise self._error(exc, f"detaching the kernel driver (cdc_acm) from interface {n}") from exc
             self.detached.append(n)
+
+    def _find_holders(self, path: str) -> list[tuple[int, str]]:
+        if self._holders is not None:
+            return self._holders(path)
+        from .serial_driver import find_holders
+
+        return find_holders(path)
+
+    def interface_ttys(self, dev: Any, n: int) -> list[str]:
+        """The serial devices the kernel made of interface ``n`` (``/dev/ttyACM0``, from sysfs:
+        ``/sys/bus/usb/devices/BUS-PORTS:CONFIG.N/tty/``); empty where there is no such tree."""
+        try:
+            ports = ".".join(str(p) for p in dev.port_numbers or ())
+            config = int(dev.get_active_configuration().bConfigurationValue)
+        except (self._core.USBError, NotImplementedError, AttributeError, TypeError):
+            return []
+        if not ports:
+            return []
+        base = os.path.join(
+            self.sysfs_root, "bus", "usb", "devices", f"{dev.bus}-{ports}:{config}.{n}", "tty"
+        )
+        try:
+            names = sorted(os.listdir(base))
+        except OSError:
+            return []
+        return [os.path.join(self.dev_root, tty) for tty in names]
+
+    def _refuse_if_tty_held(self, dev: Any, n: int) -> None:
+        """Detaching ``cdc_acm`` takes the board from whoever has its tty open — another program, a
+        serial owner and its guardian: refuse instead, naming them, before a byte is written."""
+        for tty in self.interface_ttys(dev, n):
+            holders = self._find_holders(tty)
+            if holders:
+                busy = DeviceBusyError(
+                    self.port,
+                    holders,
+                    f"its serial device {tty} (interface {n}, kernel driver cdc_acm) is open; detaching "
+                    "the driver would cut that program off",
+                )
+                busy.code = errno.EBUSY
+                raise busy
 
     def _bulk_endpoints(self, data: Any) -> tuple[int, int, int]:
         util = self._util

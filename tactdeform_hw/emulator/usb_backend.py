@@ -33,7 +33,6 @@ pyusb is imported only when a backend is created (it supplies the exception type
 from __future__ import annotations
 
 import copy
-import errno
 import struct
 import threading
 import urllib.parse as urlparse
@@ -54,6 +53,7 @@ from .skin import SkinModel
 from .timed import TimedEmulator
 from .timed_v2 import TimedEmulatorV2
 from .timing import DEFAULT_MODEL, TimingModel
+from .usb_client import LIBUSB_ERRORS
 
 # --- USB constants ------------------------------------------------------------------------------------
 
@@ -75,18 +75,9 @@ CDC_SEND_BREAK = 0x23
 LANGID_EN_US = 0x0409
 SPEED_FULL = 2  # usb.util.SPEED_FULL
 
-# libusb error codes with the errno pyusb's libusb1 backend attaches and its message text
-_LIBUSB_ERRORS: dict[str, tuple[int, int, str]] = {
-    "io": (-1, errno.EIO, "Input/output error"),
-    "invalid": (-2, errno.EINVAL, "Invalid parameter"),
-    "access": (-3, errno.EACCES, "Access denied (insufficient permissions)"),
-    "no_device": (-4, errno.ENODEV, "No such device (it may have been disconnected)"),
-    "not_found": (-5, errno.ENOENT, "Entity not found"),
-    "busy": (-6, errno.EBUSY, "Resource busy"),
-    "timeout": (-7, errno.ETIMEDOUT, "Operation timed out"),
-    "overflow": (-8, errno.EOVERFLOW, "Overflow"),
-    "pipe": (-9, errno.EPIPE, "Pipe error"),
-}
+# libusb error codes with the errno pyusb's libusb1 backend attaches and its message text (one table,
+# shared with the client backend of a served board)
+_LIBUSB_ERRORS = LIBUSB_ERRORS
 
 
 # --- clocks ---------------------------------------------------------------------------------------------
@@ -474,6 +465,16 @@ class EmulatedUsbDevice:
             self.timed.reset("USB Serial/JTAG reset released")
             self.timed.read_tx()
 
+    def run_firmware(self, timed: TimedEmulator | TimedEmulatorV2, t0: float) -> None:
+        """Put ``timed`` (a real-time board's model, whose device time 0 is ``t0`` on the bus clock)
+        behind this device's endpoints: the board served by ``emulate --usb`` is then one model, seen
+        by the USB endpoints and by the live view alike."""
+        runs = "v2" if isinstance(timed, TimedEmulatorV2) else "v1.2"
+        if runs != self.firmware:
+            raise ConfigurationError(f"firmware={runs!r}: this device runs {self.firmware!r}")
+        self.timed = timed
+        self.t0 = t0
+
     def __repr__(self) -> str:
         state = f"bus {self.bus} address {self.address}" if self.plugged else "unplugged"
         return f"EmulatedUsbDevice({self.vid:04x}:{self.pid:04x}, {state})"
@@ -495,7 +496,13 @@ class EmulatedUsbBackend:
     Pass it to ``usb.core.find(backend=...)`` or to :class:`tactdeform_hw.device.usb_transport.UsbCdcPort`.
     """
 
-    def __init__(self, devices: list[EmulatedUsbDevice] | None = None, *, clock: Clock | None = None) -> None:
+    def __init__(
+        self,
+        devices: list[EmulatedUsbDevice] | None = None,
+        *,
+        clock: Clock | None = None,
+        lock: threading.RLock | None = None,
+    ) -> None:
         try:
             import usb.core
         except ImportError as exc:
@@ -503,11 +510,22 @@ class EmulatedUsbBackend:
         self._usb_error: type[Exception] = usb.core.USBError
         self._usb_timeout: type[Exception] = usb.core.USBTimeoutError
         self.clock: Clock = clock if clock is not None else RealClock()
-        self.lock = threading.RLock()
+        # a served board shares its real-time model's lock (see :mod:`.usb_server`)
+        self.lock = lock if lock is not None else threading.RLock()
         self.devices: list[EmulatedUsbDevice] = []
         self._next_address = 1
         for d in devices if devices is not None else [EmulatedUsbDevice()]:
             self.plug(d)
+
+    @property
+    def usb_error(self) -> type[Exception]:
+        """pyusb's ``USBError``: what every failed request on this bus raises."""
+        return self._usb_error
+
+    @property
+    def usb_timeout(self) -> type[Exception]:
+        """pyusb's ``USBTimeoutError``: a transfer that timed out."""
+        return self._usb_timeout
 
     @property
     def device(self) -> EmulatedUsbDevice:
