@@ -300,6 +300,8 @@ class _Session:
         else:
             emu = TimedEmulator("compact", boards, link=self.link)
         self.port = TimedPort(emu, link=self.link, faults=plan, seed=seed, robust_encoding=self.robust)
+        self.notices: list[float] = []  # when the host noticed something (a raised error, a refused open)
+        self.refused_spans: list[tuple[float, float]] = []  # opens refused, from their first byte
         self.dev = self._new_device()
         self.devices = [self.dev]  # every device opened on the port in this session
         self.failsafe: Any = None
@@ -324,7 +326,6 @@ class _Session:
             (0.0, (0,) * self.cfg.electrode_count, 0.0)
         ]
         self.sent: tuple[int, ...] | None = None  # the caller's frame a keepalive brings back
-        self.notices: list[float] = []
         self.longest_call_s = 0.0  # the fail-safe cannot act while one of the owner's calls runs
         self.refused = False  # the last call was refused before anything was sent
 
@@ -338,11 +339,15 @@ class _Session:
         """Open the board as a program does: identified first; an open that a fault spoils (the link cut
         or the board reset during the identification) is refused, and the program opens it again."""
         for attempt in range(1, OPEN_ATTEMPTS + 1):
+            began = self.port.now_s
             try:
                 if self.firmware == "v2":
                     return EtactileKitDevice(self.port, firmware="v2", guard=self._guard())
                 return EtactileKitDevice(self.port, firmware="v1.2")
             except TactDeformError:
+                # the open was refused: the program knows, and it never had a proof while it wrote
+                self.notices.append(self.port.now_s)
+                self.refused_spans.append((began, self.port.now_s))
                 if attempt == OPEN_ATTEMPTS:
                     raise
                 self.port.advance(0.1)
@@ -625,7 +630,7 @@ class _Session:
         # a loss while the driver had no proof that the parser was in step is one the host knew of
         spans = [
             (a, b if b is not None else float("inf")) for d in self.devices for a, b in d.unproved_spans()
-        ]
+        ] + self.refused_spans
         # a resync completed after the loss rewrote everything it could have changed (the caller's own)
         repairs = [
             t

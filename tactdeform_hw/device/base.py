@@ -237,6 +237,8 @@ class Device(ABC):
         self._writing = False  # True while bytes are being handed to the transport
         self._scan_us: float | None = None  # estimated scan of the pattern in force (None: unknown)
         self._closed = False
+        #: When this device began writing without proof (its identification); None until then
+        self._unproved_since: float | None = None
         #: How this board's firmware differs from v1.2 (None: v1.2); see :mod:`.v2`.
         self._dialect: V2Dialect | None = None
 
@@ -1214,7 +1216,7 @@ class Device(ABC):
         """(start, end) of every span the driver spent without proof that the parser was in step (end None:
         still open), from :attr:`transitions`: what the host knew it did not know."""
         spans: list[tuple[float, float | None]] = []
-        start: float | None = None
+        start: float | None = self._unproved_since  # the identification wrote before any transition
         for t, old, new, _ in self.transitions:
             if old != LinkState.IN_STEP.value and start is None and not spans:
                 start = t  # unproved since the device was opened

@@ -293,6 +293,7 @@ class EtactileKitDevice(Device):
 
         name = self._port_name()
         audit = self.audit
+        self._unproved_since = self.pacer.clock.now()
 
         def write(data: bytes) -> None:  # the identification's bytes are in the audit log like any other
             self._write(data)
