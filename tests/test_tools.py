@@ -49,3 +49,14 @@ def test_driver_latency_measures_both_versions_through_the_driver() -> None:
         # within two periods of 8 ms plus the link: the frame is really put in force
         assert 0 < r["in_force_ms"]["min"] <= r["in_force_ms"]["max"] < 20
         assert r["last_channel_ms"]["max"] < 25
+
+
+def test_identification_cost_reports_each_firmware_and_what_it_waited() -> None:
+    out = run_tool("tools/identification_cost.py", "--transports", "url,pty", "--trials", "1", "--json")
+    assert isinstance(out, dict)
+    assert set(out) == {"url v1.2", "url v2", "pty v1.2", "pty v2"}
+    assert (
+        out["url v1.2"]["settle_s"] == 0.0 and out["pty v2"]["settle_s"] == 2.2
+    )  # a board just made: no wait
+    assert all(r["attempts_max"] == 1 and r["bytes"] == 527 for r in out.values())
+    assert out["pty v1.2"]["open_median_s"] >= 2.2
