@@ -815,6 +815,13 @@ class WifiCampaignSession(sc._Session):
         self.dev = self._new_device()
         self.devices = [self.dev]
 
+    def _call(self, name: str, fn: Callable[[], Any], intent: tuple[int, ...] | None = None) -> bool:
+        """As the campaign's, but TCP has no reset line: ``hardware_reset`` returns False and the board runs
+        the frame it had, which is still what the host means."""
+        if name == "hardware_reset" and not getattr(self.port, "reset_line", True):
+            intent = None
+        return bool(super()._call(name, fn, intent))
+
 
 def run_session(index: int, seed: int = 0) -> SeamResult:
     """Run one seam session and judge it."""
