@@ -394,7 +394,7 @@ class Program:
 
     def channel_limits(self) -> np.ndarray:
         if self.limits is not None:
-            return np.minimum(self.limits, self.allowed_ua)
+            return np.asarray(np.minimum(self.limits, self.allowed_ua), dtype=float)
         out = np.zeros(256)
         out[: self.electrodes] = self.allowed_ua
         return out
@@ -445,11 +445,11 @@ def _drive(
         r = rng.random()
         if r < 0.45:
             pat = sc._pattern(rng, n, biphasic, mixed=False)
-            call("send_pattern", lambda pat=pat: dev.send_pattern(pat))
+            call("send_pattern", lambda frame=pat: dev.send_pattern(frame))  # type: ignore[misc]
         elif r < 0.55:
             ua = rng.choice((0, 300, 700, 1200, 1800))
             prog.allowed_ua = max(prog.allowed_ua, ua)
-            call("set_current", lambda ua=ua: dev.set_current(ua))
+            call("set_current", lambda amps=ua: dev.set_current(amps))  # type: ignore[misc]
         elif r < 0.62:
             call("keepalive", dev.keepalive)
         elif r < 0.67:
@@ -698,7 +698,7 @@ class SeamSession:
         }
         prof = calibration_from_dict(doc, "random.json")
         wired = ChannelMapping(prof.mapping(), prof.electrode_count)
-        guard = calibration_guard(prof, ElectrodeArray.tactdeform().regions, mapping=wired)
+        guard = calibration_guard(prof, [int(r) for r in ElectrodeArray.tactdeform().regions], mapping=wired)
         # the truth, from the document: the electrode wired to each channel, and its calibrated current
         truth = np.zeros(256)
         for i, ua in enumerate(prof.currents_ua()):
