@@ -834,12 +834,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--first", type=int, default=0, help="index of the first session")
     ap.add_argument("--only", type=int, default=None, help="run one session and print it whole")
     ap.add_argument("--json", action="store_true", help="print the summary as JSON")
+    ap.add_argument(
+        "--seams",
+        action="store_true",
+        help="sessions at the seams between programs, firmware versions, links and calibration files "
+        "(tools/seam_sessions.py); --firmware and --faults do not apply",
+    )
     a = ap.parse_args(argv)
     logging.disable(logging.WARNING)  # the guard logs each refusal; the summary counts them
     if a.sessions < 1:
         ap.error(f"--sessions must be at least 1 (got {a.sessions})")
     if a.jobs < 1:
         ap.error(f"--jobs must be at least 1 (got {a.jobs})")
+    if a.seams:
+        import seam_sessions
+
+        return seam_sessions.main(a)
     firmwares = FIRMWARES if a.firmware == "both" else (a.firmware,)
     if a.only is not None:
         rows = [run_session(a.only, a.seed, a.faults, fw) for fw in firmwares]
