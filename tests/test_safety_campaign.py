@@ -53,7 +53,7 @@ def test_fault_free_campaign_covers_what_it_claims(fault_free: list[sc.SessionRe
 
 def test_the_judge_sees_a_pulse_above_the_limit_and_a_lost_byte() -> None:
     """The control: a session that writes around the driver is caught by the same verdict."""
-    s = sc._Session(3, 3, False)
+    s = sc.Session(3, 3, False)
     s.run()
     s.port.is_open = True
     s.port.write(b"\xfc\x01\xfe\x01\xfb\xff\x0f")  # one channel on at 4095, past the driver

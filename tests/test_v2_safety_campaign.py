@@ -103,11 +103,11 @@ def test_v2_fault_campaign_reports_every_loss_and_bounds_every_wrong_delivery() 
 def test_the_v2_judge_sees_a_pulse_above_an_electrodes_limit_and_a_lost_byte() -> None:
     """The control: bytes written around the driver (count 1, mode 0, height 4095) and a hung main loop
     whose queue overflows are caught by the same verdict."""
-    s = sc._Session(3, 3, False, "v2")
+    s = sc.Session(3, 3, False, "v2")
     s.run()
     clean = s.judge()
     assert clean.ok and clean.over_limit == 0
-    s = sc._Session(3, 3, False, "v2")
+    s = sc.Session(3, 3, False, "v2")
     s.run()
     s.port.is_open = True
     s.port.write(c2.encode_electrode_num(1) + c2.encode_stim_mode(0) + c2.encode_pattern([4095]))
@@ -123,9 +123,9 @@ def test_the_v2_judge_sees_a_pulse_above_an_electrodes_limit_and_a_lost_byte() -
 def test_the_v2_judge_holds_each_electrode_to_its_own_regional_limit() -> None:
     """A height that the session's largest request allows but the electrode's region does not."""
     seed = next(
-        i for i in range(200) if sc._Session(i, i, False, "v2").regions
+        i for i in range(200) if sc.Session(i, i, False, "v2").regions
     )  # a 32-electrode session guarded by regions
-    s = sc._Session(seed, seed, False, "v2")
+    s = sc.Session(seed, seed, False, "v2")
     s.run()
     limits = s.electrode_limits_ua()
     assert limits[0] < max(limits[:32])  # electrode 0's region is the lowest

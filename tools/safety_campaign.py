@@ -126,7 +126,7 @@ def designed(firmware: str) -> dict[str, str]:
     return DESIGNED_V2 if firmware == "v2" else DESIGNED
 
 
-def _hazard_name(h: Hazard) -> str:
+def hazard_name(h: Hazard) -> str:
     """A hazard's kind; a value byte >= 0xF5 that the host meant as a value (electrode count 255) is
     recorded apart from a command byte read as payload, which is a desynchronisation."""
     if h.kind is HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE and h.detail.get("meant_as_command") is False:
@@ -252,7 +252,7 @@ def _config(rng: random.Random, robust: bool) -> StimConfig:
     )
 
 
-def _pattern(rng: random.Random, n: int, biphasic: bool, mixed: bool = True) -> tuple[int, ...]:
+def random_pattern(rng: random.Random, n: int, biphasic: bool, mixed: bool = True) -> tuple[int, ...]:
     """Levels of one frame; ``mixed`` False: a biphasic frame has every active electrode biphasic (v2's
     mode is global: its driver refuses a mix)."""
     dens = rng.choice((0.0, 0.1, 0.3, 0.6, 1.0))
@@ -262,7 +262,7 @@ def _pattern(rng: random.Random, n: int, biphasic: bool, mixed: bool = True) -> 
     return tuple(levels)
 
 
-class _Session:
+class Session:
     """One session: the port, the device, the calls, and what the host meant at every moment."""
 
     def __init__(self, index: int, seed: int, faults: bool, firmware: str = "v1.2") -> None:
@@ -465,7 +465,7 @@ class _Session:
         off = (0,) * n
         r = rng.random()
         if r < 0.30:
-            pat = _pattern(rng, n, self.biphasic, mixed=self.firmware != "v2")
+            pat = random_pattern(rng, n, self.biphasic, mixed=self.firmware != "v2")
             if self._call("send_pattern", lambda: dev.send_pattern(pat), pat) or not self.refused:
                 # the caller's frame, even when the link failed under it: keepalive resumes it
                 self.sent = pat
@@ -549,7 +549,7 @@ class _Session:
         res.lost_bytes = sum(lo.count for lo in emu.losses)
         counts: dict[str, int] = {}
         for h in emu.hazards:
-            name = _hazard_name(h)
+            name = hazard_name(h)
             counts[name] = counts.get(name, 0) + 1
         out_of_step = sum(1 for c in emu.commands if not c.in_sync)
         if out_of_step:
@@ -669,7 +669,7 @@ class _Session:
 def run_session(index: int, seed: int = 0, faults: bool = False, firmware: str = "v1.2") -> SessionResult:
     """Run one session and judge it."""
     wall = time.perf_counter()
-    s = _Session(index, seed * 1_000_003 + index, faults, firmware)
+    s = Session(index, seed * 1_000_003 + index, faults, firmware)
     try:
         s.run()
     except Exception as exc:  # noqa: BLE001 - a crash of the driver is a finding, reported with the session

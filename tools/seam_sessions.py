@@ -444,7 +444,7 @@ def _drive(
     for _ in range(calls):
         r = rng.random()
         if r < 0.45:
-            pat = sc._pattern(rng, n, biphasic, mixed=False)
+            pat = sc.random_pattern(rng, n, biphasic, mixed=False)
             call("send_pattern", lambda frame=pat: dev.send_pattern(frame))  # type: ignore[misc]
         elif r < 0.55:
             ua = rng.choice((0, 300, 700, 1200, 1800))
@@ -578,7 +578,7 @@ class SeamSession:
             for i in range(40):  # frames until the cut
                 if in_frame and i == cut_frame:
                     pa.arm(rng.randint(1, frame_bytes))
-                pat = sc._pattern(rng, cfg.electrode_count, biphasic, mixed=False)
+                pat = sc.random_pattern(rng, cfg.electrode_count, biphasic, mixed=False)
                 try:
                     dev.send_pattern(pat)
                 except TactDeformError:
@@ -725,7 +725,7 @@ class SeamSession:
     def _hazards(self) -> dict[str, int]:
         counts: dict[str, int] = {}
         for h in self.emulator.hazards:
-            name = sc._hazard_name(h)
+            name = sc.hazard_name(h)
             counts[name] = counts.get(name, 0) + 1
         return counts
 
@@ -763,7 +763,7 @@ class SeamSession:
         counts: dict[str, int] = {}
         leftovers: dict[str, int] = {}
         for h in emu.hazards:
-            name = sc._hazard_name(h)
+            name = sc.hazard_name(h)
             origin = int(h.detail.get("command_offset", h.detail.get("command_host_offset", h.offset)))
             if 0 <= origin < first and name not in NEVER_LEFTOVER:
                 leftovers[name] = leftovers.get(name, 0) + 1
@@ -801,7 +801,7 @@ def _wifi_session(index: int, seed: int, campaign_seed: int, firmware: str) -> S
     return out
 
 
-class WifiCampaignSession(sc._Session):
+class WifiCampaignSession(sc.Session):
     """The campaign's session with its port on a :class:`SimWifiBoard`."""
 
     def __init__(self, index: int, seed: int, firmware: str) -> None:
