@@ -111,6 +111,29 @@ def test_sigkill_of_a_tcp_owner_switches_the_board_off_within_150_ms(wifi: TcpSe
             proc.communicate()
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT, signal.SIGHUP])
+def test_a_stop_signal_to_a_tcp_owner_switches_the_board_off(wifi: TcpServer, sig: signal.Signals) -> None:
+    """The owner's own stop session on the Wi-Fi board: every channel off before it exits, judged on the
+    delivered pulses (the same 150 ms bound as the guardian's)."""
+    proc = _owner(wifi)
+    try:
+        assert _wait(lambda: bool(_current_pulses_us(wifi.board, 0.0)) or proc.poll() is not None)
+        assert proc.poll() is None, proc.communicate()[1]
+        time.sleep(0.05)
+        t_sig = time.monotonic()
+        sig_us = wifi.board.device_us(t_sig)
+        os.killpg(proc.pid, sig)  # as a terminal delivers it: to the whole process group
+        stderr = proc.communicate(timeout=WAIT_S)[1]
+        assert f"stopped by {sig.name}; every channel off" in stderr and "Traceback" not in stderr
+        time.sleep(0.3)
+        late = [t for t in _current_pulses_us(wifi.board, sig_us) if t > sig_us + 1000 * STOP_BOUND_MS]
+        assert not late, f"{len(late)} pulses with current after {sig.name}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
 def test_a_clean_close_on_tcp_releases_the_guardian_without_it_writing(
     wifi: TcpServer, capfd: pytest.CaptureFixture[str]
 ) -> None:

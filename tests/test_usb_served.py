@@ -140,6 +140,23 @@ def test_killed_owner_leaves_the_board_off_within_150_ms(board: ServedBoard) -> 
     assert again.returncode == 0, err
 
 
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_a_stop_signal_to_a_usb_owner_switches_the_board_off(board: ServedBoard, sig: signal.Signals) -> None:
+    owner = board.cli(*HOLD)
+    board.wait_stimulating()
+    time.sleep(0.1)
+    t_sig = time.monotonic()
+    os.kill(owner.pid, sig)
+    sig_us = board.device_us(t_sig)
+    _, err = owner.communicate(timeout=WAIT_S)
+    assert f"stopped by {sig.name}; every channel off" in err and "Traceback" not in err
+    end = time.monotonic() + WAIT_S
+    while board.status(float("inf"))["now_us"] < sig_us + 0.5e6 and time.monotonic() < end:
+        time.sleep(0.05)
+    last = board.status(sig_us)["last_current_pulse_us"]
+    assert last is None or last - sig_us < OFF_WITHIN_US, (last, sig_us)
+
+
 def test_a_second_program_is_refused_and_writes_nothing(board: ServedBoard) -> None:
     owner = board.cli(*HOLD)
     board.wait_stimulating()
