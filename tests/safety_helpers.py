@@ -58,12 +58,11 @@ CAMPAIGN_CALLS = (
 )
 
 
-#: Defects the campaigns count and report that the driver does not prevent yet: a scan that starts while the
-#: firmware applies a pattern (v2: its copy loop; v1.2: the pattern's transfer) uses part new, part old
-#: heights.  The firmware reads a pattern at the first wake-up of its parser after the pattern arrived — on
-#: its own 1 ms tick wherever a tick falls between two scans — and no reply tells the host when the scans
-#: run, so the timing of the writes cannot keep the copy clear of the next scan (docs/firmware-v2.md,
-#: "Torn scans").
+#: Defects the campaigns count and report that the driver does not prevent yet: on v1.2, a scan that starts
+#: while a pattern crosses the link uses part new, part old levels; no reply tells the host when the scans
+#: run, and a scan at height 0 still reads the pattern, so neither pacing nor a height-0 cover closes it.
+#: (v2 copies each new pattern under a mode-2 cover and has no open defect: docs/firmware-v2.md, "Torn
+#: scans".)
 OPEN_DEFECTS = frozenset({"torn_pattern"})
 
 

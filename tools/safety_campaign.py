@@ -126,6 +126,29 @@ def designed(firmware: str) -> dict[str, str]:
     return DESIGNED_V2 if firmware == "v2" else DESIGNED
 
 
+def dropouts(scans: Iterable[Any]) -> int:
+    """Scans without current that replaced stimulation: runs of v2 scans in mode 2 at sense height 0 (the
+    cover the driver writes around a pattern, so that no scan uses part of an old and part of a new one)
+    next to a scan that delivered stimulation, before or after the run.  The price of the cover, counted so
+    that it stays visible; mode-2 scans between scans without current (an electrode count raised behind a
+    zero pattern) replace nothing and do not count."""
+    out = 0
+    run = 0
+    stimulated_before = False
+    for s in scans:
+        if s.stim_mode == 2 and s.sense_pulse_height == 0 and s.electrode_num > 0:
+            run += 1
+            continue
+        stimulates = s.stim_mode in (0, 1) and any(s.codes)
+        if run and (stimulated_before or stimulates):
+            out += run
+        run = 0
+        stimulated_before = stimulates
+    if run and stimulated_before:
+        out += run
+    return out
+
+
 def hazard_name(h: Hazard) -> str:
     """A hazard's kind; a value byte >= 0xF5 that the host meant as a value (electrode count 255) is
     recorded apart from a command byte read as payload, which is a desynchronisation."""
@@ -162,6 +185,7 @@ class SessionResult:
     meant_off: int = 0
     lost_bytes: int = 0
     losses: int = 0
+    dropouts: int = 0  # scans the mode-2 cover of a pattern write left without current (v2)
     hazards: list[str] = field(default_factory=list)
     hazard_counts: dict[str, int] = field(default_factory=dict)  # records per kind
     errors: list[str] = field(default_factory=list)
@@ -545,6 +569,8 @@ class Session:
             else:
                 for k in over:
                     wrong.append(self._pulse(table, int(k), cur, "over_limit"))
+        if isinstance(emu, TimedEmulatorV2):  # (v1.2 writes no cover: a scan at height 0 still reads it)
+            res.dropouts = dropouts(emu.scans)
         res.losses = len(emu.losses)
         res.lost_bytes = sum(lo.count for lo in emu.losses)
         counts: dict[str, int] = {}
@@ -761,6 +787,7 @@ def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
         ],
         "calls": dict(sorted(calls.items())),
         "pulses": sum(r.pulses for r in results),
+        "dropouts": sum(r.dropouts for r in results),
         "over_limit_pulses": sum(r.over_limit for r in results),
         "meant_off_pulses": sum(r.meant_off for r in results),
         "bytes_lost": sum(r.lost_bytes for r in results),

@@ -72,6 +72,7 @@ from .pacing import (
     command_like_payload,
     estimate_scan_us,
     firmware_period_us,
+    padding_for,
 )
 from .readback import OFF_READING_CODES
 from .safety import SafetyGuard
@@ -1165,8 +1166,18 @@ class Device(ABC):
         """The one exit for bytes: gate, interlock, pacing, transport, audit.  Outside the recovery's own
         writes nothing leaves unless the parser is proved in step (:class:`LinkState`).  A failed write
         leaves the firmware's state unknown, so the interlock forgets it and the next frame resyncs first."""
+        self._send_paced(bytes(data), None, pad)
+
+    def _send_commands(self, commands: Sequence[bytes], *, pad: bool | None = None) -> None:
+        """Whole commands in one write (:meth:`Pacer.write_commands`): they reach the device's queue
+        together, so v2's parser applies them back to back.  Gated, checked and audited as :meth:`_send`
+        does a single command (the interlock reads the commands in order, every state between them
+        included)."""
+        cmds = [bytes(c) for c in commands if c]
+        self._send_paced(b"".join(cmds), cmds, pad)
+
+    def _send_paced(self, data: bytes, commands: list[bytes] | None, pad: bool | None) -> None:
         self._check_open()
-        data = bytes(data)
         if not data:
             return
         if self._link is not LinkState.IN_STEP and not self._recovery_write:
@@ -1188,12 +1199,27 @@ class Device(ABC):
                 raise
             finally:
                 self._writing = False
-            if audit is not None:
-                logical = data if chunk[:1] == data[:1] and chunk[0] >= COMMAND_BYTE_MIN else chunk
-                audit.tx(chunk, t=self.pacer.clock.now(), op=op, logical=logical)
+            if audit is None:
+                return
+            now = self.pacer.clock.now()
+            if commands is not None:
+                # one write of several commands: one record per command (its padding with it), so a
+                # reader of the log sees every command as the firmware reads it
+                padded = self.pacer.policy.robust_encoding if pad is None else pad
+                pos = 0
+                for c in commands:
+                    size = len(c) + (len(padding_for(c, self.pacer.policy.firmware)) if padded else 0)
+                    audit.tx(chunk[pos : pos + size], t=now, op=op, logical=c)
+                    pos += size
+                return
+            logical = data if chunk[:1] == data[:1] and chunk[0] >= COMMAND_BYTE_MIN else chunk
+            audit.tx(chunk, t=now, op=op, logical=logical)
 
         try:
-            self.pacer.write(write, data, pad=pad)
+            if commands is None:
+                self.pacer.write(write, data, pad=pad)
+            else:
+                self.pacer.write_commands(write, commands, pad=pad)
         except BaseException:
             self.guard.mark_unknown()
             self._suspect("write failed")
@@ -1368,6 +1394,12 @@ class Device(ABC):
         self._send(data)
         if self.pacer.robust:
             self._send(data)
+
+    def _send_critical_commands(self, commands: Sequence[bytes]) -> None:
+        """:meth:`_send_commands` with :meth:`_send_critical`'s second copy under robust encoding."""
+        self._send_commands(commands)
+        if self.pacer.robust:
+            self._send_commands(commands)
 
     def _mark_frame(self) -> None:
         self.last_frame_time = self.pacer.clock.now()

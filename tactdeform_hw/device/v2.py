@@ -9,8 +9,13 @@ this module provides (``Device._dialect``; None is v1.2).  The safety contract i
   host: the firmware's only clamp is 4095 (40.95 mA).
 * **One waveform per frame.**  v2 chooses monophasic or biphasic for the whole scan (0xFB mode 0 or 1), so
   a frame that mixes levels 1 and 2 is refused (:class:`~tactdeform_hw.errors.LimitError` on ``pattern``)
-  rather than silently turning monophasic electrodes biphasic.  A change of mode between frames is written
-  behind an all-zero pattern: no scan combines the new mode with the old heights.
+  rather than silently turning monophasic electrodes biphasic.
+* **No torn scan: every new pattern is copied under a cover.**  A scan that pre-empts the firmware's copy
+  loop would mix old and new heights, and no pacing can keep the copy clear of the scans (the host does not
+  see them).  So a pattern that may differ from the one in force goes in one write between ``FB 02`` and
+  ``FB mode`` at sense height 0 (:func:`covered_pattern`): a scan that starts inside delivers no current
+  (a dropout), every other one runs the old pattern in the old mode or the new one in the new mode.  A
+  change of mode is the same write: no scan combines the new mode with the old heights.
 * **Off is a zero pattern in mode 0 or 1.**  Mode 2 gives every channel the sense pulse, so a zero pattern
   would not stop current there.  The driver writes mode 2 only while the sense height is 0 and the sense
   width 0 are proved in force (every pulse then has height 0): when the electrode count rises, the channels
@@ -68,6 +73,43 @@ def mode_for(levels: Sequence[int]) -> int | None:
     return c2.STIM_MODE_BIPHASIC if PATTERN_BIPHASIC in active else c2.STIM_MODE_MONOPHASIC
 
 
+def covered_pattern(
+    codes: Sequence[int], mode: int, *, sense_code: int | None, sense_width_us: int | None = None
+) -> list[bytes]:
+    """The commands that write the pattern ``codes`` under the cover: mode 2 while the firmware copies it,
+    at sense height 0, so a scan that pre-empts the copy delivers no current instead of a torn pattern.
+
+    ``[F9 00]``, ``[F8 00]``, ``FB 02``, ``FE codes``, ``FB mode``, ``[F8 width]``, ``[F9 sense]``, written
+    as one write (:meth:`~tactdeform_hw.device.pacing.Pacer.write_commands`).  v2 reads complete commands
+    back to back, so mode 2 lasts from the parser reading ``FB 02`` to its reading ``FB mode``: the copy,
+    plus whatever part of the write is still crossing the link.  Every scan snapshots its mode when it
+    starts and, in mode 2, gives every channel the sense pulse whatever the pattern holds: a scan that
+    starts in that window is one without current (a dropout); any other scan runs the old pattern in the
+    old mode or the new pattern in the new one, whole.
+
+    Mode 2 is only ever in force at sense height 0 (``sense_code``: the height in force, None unknown): a
+    sense height that is not proved 0 is set to 0 before ``FB 02`` and, when it was known, restored after
+    ``FB mode`` — modes 0 and 1 never use it.  ``sense_width_us`` (given when the mode-2 scan at the
+    configured sense width would be longer than the frame's scan, which the pacing and the scan-gap check
+    were computed for) zeroes the sense width the same way and restores it after."""
+    pre: list[bytes] = []
+    post: list[bytes] = []
+    if sense_code != 0:
+        pre.append(c2.encode_sense_height(0))
+        if sense_code:
+            post.append(c2.encode_sense_height(sense_code))
+    if sense_width_us:
+        pre.append(c2.encode_sense_width(0))
+        post.insert(0, c2.encode_sense_width(sense_width_us))
+    return [
+        *pre,
+        c2.encode_stim_mode(c2.STIM_MODE_IMPEDANCE),
+        c2.encode_pattern(codes, electrode_num=len(codes)),
+        c2.encode_stim_mode(mode),
+        *post,
+    ]
+
+
 def off_packet(electrode_count: int) -> bytes:
     """The guardian's stop on v2: bytes that stop current wherever either firmware's parser stands
     (:data:`~tactdeform_hw.device.firmware_probe.PROBE` without its sync check), then 0xF5 for the proof
@@ -86,6 +128,7 @@ class V2Dialect:
         self.codes: list[int] | None = None  # DAC code per hardware channel in force (None: unknown)
         self.heights_ua: list[int] = []  # height per application electrode in force
         self.answered = False  # the board has answered a sync check in this session (it runs v2)
+        self.covers = 0  # patterns written under the mode-2 cover (:func:`covered_pattern`)
 
     # --- attaching ------------------------------------------------------------------------------------------
 
@@ -139,20 +182,26 @@ class V2Dialect:
         data = c2.encode_pattern([0] * n, electrode_num=n)
         if recovery:
             self._rsend(dev, data)
+        elif self.codes is not None and len(self.codes) == n and not any(self.codes):
+            dev._send_critical(data)  # the same zeros again: no scan can mix two patterns
         else:
-            dev._send_critical(data)
+            mode = self.mode if self.mode in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC) else 0
+            self._write_covered(dev, [0] * n, mode)
         self.codes = [0] * n
         self.heights_ua = [0] * (dev.mapping.electrodes if dev.mapping is not None else n)
         dev._current_ua = 0
         dev._last_pattern = bytes(n)
 
     def _raise_count(self, dev: Device, n: int, send: Any) -> None:
-        """Electrode count ``n`` with no stale channel scanned: sense height and width 0, mode 2 (every
-        pulse at the sense height, 0), the count, its zero pattern, mode 0."""
+        """Electrode count ``n`` with no stale channel scanned: sense height 0, mode 2 (every pulse at the
+        sense height, 0), sense width 0, the count, its zero pattern, mode 0.  Mode 2 comes right after the
+        sense height: from there on no pattern height is scanned at all, so every later command is safe
+        whatever the interlock could not know of the registers (after a write it reads as a resync, such
+        as the firmware check's zeros, the heights and the mode are unknown to it)."""
         send(c2.encode_sense_height(0))
         dev._sense_byte = 0
-        send(c2.encode_sense_width(0))
         send(c2.encode_stim_mode(c2.STIM_MODE_IMPEDANCE))
+        send(c2.encode_sense_width(0))
         if send is dev._send or send is dev._send_critical:
             # never v1.2's loss-tolerant echo of the count: a count of 0xF4 would echo a sync check
             dev._send(c2.encode_electrode_num(n), pad=False)
@@ -165,15 +214,35 @@ class V2Dialect:
         dev._last_pattern = bytes(n)
         dev._current_ua = 0
 
+    def _write_covered(self, dev: Device, codes: Sequence[int], mode: int) -> None:
+        """``codes`` and then ``mode`` in force, written under the cover of :func:`covered_pattern` (the
+        frame path's only way of changing a pattern that may differ from the one in force)."""
+        cfg = dev._config
+        wide: int | None = None
+        if cfg is not None and cfg.sense_width_us:
+            n = len(codes)
+            sense_scan = estimate_scan_us(bytes(n), cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us)
+            if sense_scan > (dev.pacer.scan_s or 0.0) * 1e6:
+                wide = cfg.sense_width_us  # a sense pulse longer than the frame's: mode 2 at width 0
+        dev._send_critical_commands(
+            covered_pattern(codes, mode, sense_code=dev._sense_byte, sense_width_us=wide)
+        )
+        if dev._sense_byte is None:
+            dev._sense_byte = 0  # not restored: the cover proved it 0 and nothing wrote it since
+        self.codes = list(codes)
+        self.mode = mode
+        self.covers += 1
+
     # --- recovery -------------------------------------------------------------------------------------------
 
     @staticmethod
     def frame_commands(n: int) -> list[bytes]:
-        """The longest frame (:meth:`frame`): a mode change's zero pattern, the mode, the pattern."""
+        """More than the longest frame (:meth:`frame`, :meth:`off`): a zero pattern, then a pattern under
+        a cover that also zeroes and restores the sense height and width (an upper bound for the bytes a
+        frame can leave in flight)."""
         return [
             c2.encode_pattern([0] * n, electrode_num=n),
-            c2.encode_stim_mode(c2.STIM_MODE_BIPHASIC),
-            c2.encode_pattern([0] * n, electrode_num=n),
+            *covered_pattern([0] * n, c2.STIM_MODE_BIPHASIC, sense_code=0xF4, sense_width_us=0xF4),
         ]
 
     def resync_bound_now_s(self, dev: Device) -> float:
@@ -330,7 +399,8 @@ class V2Dialect:
             old.electrode_count if old is not None else (len(self.codes) if self.codes is not None else 0)
         )
         if in_force and any(self.codes or [1]):
-            dev._send(c2.encode_pattern([0] * in_force, electrode_num=in_force))
+            mode = self.mode if self.mode in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC) else 0
+            self._write_covered(dev, [0] * in_force, mode)
             dev._prove(in_force)  # a long pattern: proved read before the next one
         self._raise_count(dev, n, dev._send)
         dev._prove(n)
@@ -431,7 +501,7 @@ class V2Dialect:
         want = mode_for(levels)
         mode = self.mode if want is None and self.mode in (0, 1) else (want if want is not None else 0)
         if mode != self.mode:
-            self.heights_ua = []  # behind the zero pattern of a mode change the ramp starts from 0
+            self.heights_ua = []  # after a mode change the ramp starts from 0
         heights = self.heights_for(dev, levels)
         n = cfg.electrode_count
         codes = [0] * n
@@ -444,15 +514,13 @@ class V2Dialect:
         dev.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
         before = dev._scan_us if dev._scan_us is not None else self._scan_us(cfg, None)
         dev.pacer.set_timing(period / 1e6, max(before, scan) / 1e6)
-        if mode != self.mode:
-            if self.codes is None or any(self.codes):
-                dev._send_critical(c2.encode_pattern([0] * n, electrode_num=n))
-                self.codes = [0] * n
-            dev._send_critical(c2.encode_stim_mode(mode))
-            self.mode = mode
-        if force_pattern or codes != self.codes:
-            dev._send_critical(c2.encode_pattern(codes, electrode_num=n))
-            self.codes = codes
+        if mode != self.mode or codes != self.codes:
+            # a scan that pre-empts the copy would mix the two patterns (or run the new heights in the old
+            # mode): mode 2 at sense height 0 covers the copy, and the new mode follows it
+            self._write_covered(dev, codes, mode)
+            dev.frames_sent += 1
+        elif force_pattern:
+            dev._send_critical(c2.encode_pattern(codes, electrode_num=n))  # the same heights again
             dev.frames_sent += 1
         self.heights_ua = heights
         hw_levels = dev.mapping.to_hardware(levels) if dev.mapping is not None else bytes(levels)

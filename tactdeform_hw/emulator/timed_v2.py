@@ -8,7 +8,8 @@ parameters snapshotted at its start, a DAC code per channel, the mode choosing t
 write in the discharge.  The interrupt pre-empts the parser, never the reverse: a parser call costs
 its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm inside the
 call that copies a pattern scans the elements copied so far at their new heights and the rest at their
-old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer).
+old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer — and
+only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).
 
 Served on the wall clock (:class:`~.realtime.RealtimeEmulator` with ``firmware="v2"``) it tells the
 runner when it next does something a host could notice (:meth:`TimedEmulatorV2.next_event_us`: not the
@@ -49,6 +50,8 @@ from .reports import LossReport
 from .scan import PulseKind
 from .timing import DEFAULT_MODEL, TimingModel
 
+#: StimulationMode 2 (impedance only): every channel gets the sense pulse, the pattern's heights unused.
+_MODE_IMPEDANCE = 2
 #: A time the main loop never reaches (it hangs: :meth:`TimedEmulatorV2.stop_reading`).
 _NEVER = 1 << 62
 
@@ -672,7 +675,11 @@ class TimedEmulatorV2:
             start = t + m.call_ns + max(0, consumed - 2 * n) * m.byte_ns
             k = max(0, min(n, (alarm - start) // width)) if width else n
             regs.stim_pattern[:] = new[:k] + old[k:]
-            if 0 < k < n and new[k:n] != old[k:n]:
+            # in mode 2 the scan gives every channel the sense pulse and discards the height it reads
+            # (spec "Stimulation scan", 3c): its pulses are the same whatever the buffer holds, so no scan
+            # in mode 2 uses part of an old and part of a new pattern
+            reads_pattern = regs.stim_mode < _MODE_IMPEDANCE
+            if reads_pattern and 0 < k < n and new[k:n] != old[k:n]:
                 self.hazards.append(
                     Hazard(
                         HazardKind.TORN_PATTERN,
