@@ -10,6 +10,8 @@ import pytest
 
 from tactdeform_hw.cli import main
 from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
+from tactdeform_hw.protocol.firmware import V2
+from tactdeform_hw.protocol.reader import iter_commands
 from tactdeform_hw.render.pipeline import FrameRecord
 from tactdeform_hw.study import build_study, select_trials
 from tactdeform_hw.study.checks import check_study, check_trial, universe
@@ -206,12 +208,24 @@ def _alter_second_frame(monkeypatch, alter) -> None:
     real_write = protocol_etactile.Serial.write
     seen = {"patterns": 0}
 
+    def pattern_span(data: bytes) -> tuple[int, int] | None:
+        """Where the pattern command sits in a write: at its start, or (v2) inside the driver's cover."""
+        if data[:1] == b"\xfe":
+            return 0, len(data)
+        if data[:1] in (b"\xf9", b"\xfb"):
+            for c in iter_commands(data, 32, V2):
+                if c.opcode == 0xFE:
+                    return c.offset, c.offset + len(c.raw)
+        return None
+
     def altering_write(self, data):
         data = bytes(data)
-        if data[:1] == b"\xfe" and any(data[1:]):
+        span = pattern_span(data)
+        if span is not None and any(data[span[0] + 1 : span[1]]):
             seen["patterns"] += 1
             if seen["patterns"] == 2:
-                data = alter(data)
+                a, b = span
+                data = data[:a] + alter(data[a:b]) + data[b:]
         return real_write(self, data)
 
     monkeypatch.setattr(protocol_etactile.Serial, "write", altering_write)

@@ -242,7 +242,8 @@ class V2Dialect:
         frame can leave in flight)."""
         return [
             c2.encode_pattern([0] * n, electrode_num=n),
-            *covered_pattern([0] * n, c2.STIM_MODE_BIPHASIC, sense_code=0xF4, sense_width_us=0xF4),
+            # any sense height and width other than 0: the cover zeroes and restores both (the most bytes)
+            *covered_pattern([0] * n, c2.STIM_MODE_BIPHASIC, sense_code=1, sense_width_us=1),
         ]
 
     def resync_bound_now_s(self, dev: Device) -> float:

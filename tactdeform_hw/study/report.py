@@ -94,7 +94,8 @@ def trial_json(run: TrialRun, result: StudyRun) -> dict[str, Any]:
         return d
     sent = [r for r in run.records if r.sent]
     contact = [r for r in run.records if r.state in ("approaching", "interacting")]
-    commands = Counter(w.name for w in run.writes)
+    n = result.array.channel_mapping().hw_channels
+    commands = Counter(name for w in run.writes for name in w.command_names(n))
     d.update(
         {
             "time_s": [_r(run.t0_s), _r(run.t1_s)],

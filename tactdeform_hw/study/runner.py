@@ -36,7 +36,7 @@ import numpy as np
 
 from ..errors import ConfigurationError, TactDeformError
 from ..protocol.constants import Opcode
-from ..protocol.firmware import V2, OpcodeV2
+from ..protocol.firmware import V1_2, V2, OpcodeV2
 from ..render.array import ElectrodeArray
 from ..render.manager import ManagerConfig
 from ..render.patterns import PatternSet
@@ -90,6 +90,17 @@ class WireWrite:
         if self.firmware == V2.name:
             return OpcodeV2(op).name
         return Opcode(op).name
+
+    def command_names(self, electrode_num: int) -> list[str]:
+        """The name of every command the firmware reads in this write (a write may carry several: the
+        v2 driver's cover writes the mode, the pattern and the mode again at once)."""
+        from ..protocol.reader import iter_commands
+
+        spec = V2 if self.firmware == V2.name else V1_2
+        names = [
+            spec.command(c.opcode).name for c in iter_commands(self.data, electrode_num, spec) if c.opcode
+        ]
+        return names or [self.name]
 
 
 class WireTap:
@@ -683,32 +694,43 @@ def frame_heights(
     run: TrialRun, array: ElectrodeArray
 ) -> list[tuple[float, tuple[int, ...], tuple[float, ...], str]]:
     """Firmware v2: the frames the host put on the wire during a trial, decoded from the captured writes
-    with the v2 table — replay time (µs), levels (0 off, else the waveform of the mode in force: 1
-    monophasic, 2 biphasic), each electrode's height in µA, phase — in application order.  The all-zero
-    pattern the driver writes just before a change of mode is part of that change, not a frame."""
-    from ..device.audit import describe_command
+    with the v2 table — replay time (µs), levels (0 off, else the waveform of the mode the frame runs in: 1
+    monophasic, 2 biphasic), each electrode's height in µA, phase — in application order.  A pattern
+    written under the driver's cover (mode 2 before it, the frame's mode right after it in the same write)
+    runs in the mode that follows it; an all-zero pattern written just before a change of mode is part of
+    that change, not a frame."""
+    from ..protocol.reader import iter_commands
     from ..protocol.units import DEFAULT_TRANSFER
 
     mapping = array.channel_mapping()
     times = run.replay_us or [w.t_s * 1e6 for w in run.writes]
+    n = mapping.hw_channels
+    reads = [
+        [c for c in iter_commands(w.data, n, V2) if c.opcode is not None] for w in run.writes
+    ]  # every command of every write, as the firmware reads them
     mode = 0
     out: list[tuple[float, tuple[int, ...], tuple[float, ...], str]] = []
-    for k, (w, t_us) in enumerate(zip(run.writes, times)):
-        name, value = describe_command(w.data, V2)
-        if name == "STIM_MODE" and isinstance(value, int):
-            mode = value
-            continue
-        if name != "PATTERN" or not isinstance(value, list) or len(value) < mapping.hw_channels:
-            continue
-        nxt = run.writes[k + 1] if k + 1 < len(run.writes) else None
-        if not any(value) and nxt is not None and describe_command(nxt.data, V2)[0] == "STIM_MODE":
-            continue
-        codes = mapping.to_application(value[: mapping.hw_channels])
-        on = 2 if mode == 1 else 1
-        levels = tuple(on if c else 0 for c in codes)
-        top = V2.dac_max_code
-        heights = tuple(float(DEFAULT_TRANSFER.to_ua(min(int(c), top))) for c in codes)
-        out.append((t_us, levels, heights, w.phase))
+    for k, (w, t_us, cmds) in enumerate(zip(run.writes, times, reads)):
+        for i, c in enumerate(cmds):
+            if c.opcode == OpcodeV2.STIM_MODE and c.value is not None:
+                mode = c.value
+                continue
+            if c.opcode != OpcodeV2.PATTERN or c.levels is None or len(c.levels) < n:
+                continue
+            frame_mode = mode
+            if i + 1 < len(cmds):  # under the cover: the frame runs in the mode written right after it
+                nxt = cmds[i + 1]
+                if nxt.opcode == OpcodeV2.STIM_MODE and nxt.value is not None:
+                    frame_mode = nxt.value
+            elif not any(c.levels) and k + 1 < len(reads) and reads[k + 1]:
+                if reads[k + 1][0].opcode == OpcodeV2.STIM_MODE:
+                    continue  # the zero pattern before a change of mode, in a write of its own
+            codes = mapping.to_application(list(c.levels[:n]))
+            on = 2 if frame_mode == 1 else 1
+            levels = tuple(on if code else 0 for code in codes)
+            top = V2.dac_max_code
+            heights = tuple(float(DEFAULT_TRANSFER.to_ua(min(int(code), top))) for code in codes)
+            out.append((t_us, levels, heights, w.phase))
     return out
 
 
