@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from typing import Any
 
 from tactdeform_hw.emulator import Emulator
@@ -97,3 +99,51 @@ def assert_fault_free_but_for(
     ]
     assert other == [], other[:5]
     assert summary["pulses"] > min_pulses
+
+
+def wait_until(cond: Callable[[], object], timeout_s: float = 5.0, step_s: float = 0.005) -> bool:
+    """Poll ``cond`` until it is true or ``timeout_s`` has passed (wall clock); whether it came true."""
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(step_s)
+    return True
+
+
+def delivered_pulses(board: Any, since_us: float = 0.0) -> list[tuple[float, int, float]]:
+    """``(start µs, channel, current µA)`` of every pulse a real-time board delivered from ``since_us`` on
+    (either firmware's timed model), the model first brought up to the wall clock."""
+    with board.lock:
+        board.state()
+        table = board.timed.reports.pulse_table(since_us)
+    return [
+        (float(t), int(ch), float(ua))
+        for t, ch, ua in zip(table["start_us"], table["channel"], table["current_ua"], strict=True)
+    ]
+
+
+def current_pulses_us(board: Any, since_us: float = 0.0) -> list[float]:
+    """Start times (µs) of the pulses that carried current, from ``since_us`` on (see
+    :func:`delivered_pulses`)."""
+    return [t for t, _, ua in delivered_pulses(board, since_us) if ua > 0]
+
+
+def configure_v12_tactdeform(emu: Any) -> float:
+    """The TactDeform setting on a timed v1.2 board, one command every 12 ms, ending with 16 of 32
+    electrodes on at height 50; returns the time (µs) after the last command."""
+    from tactdeform_hw import protocol as p
+
+    t = 0.0
+    for cmd in (
+        p.encode_electrode_num(32),
+        p.encode_pattern(bytes(32)),
+        p.encode_pulse_width(200),
+        p.encode_discharge(45),
+        p.encode_frequency(125),
+        p.encode_pulse_height(50),
+        p.encode_pattern(bytes([1, 0] * 16), electrode_num=32),
+    ):
+        emu.write(cmd, at_us=t)
+        t += 12_000
+    return t

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import socket
 import time
-from typing import Any
 
 import pytest
 
@@ -18,34 +17,13 @@ from tactdeform_hw.emulator.realtime import WIFI_TCP, RealtimeEmulator
 from tactdeform_hw.emulator.tcp_server import TcpServer
 from tactdeform_hw.errors import BoardBusyError
 
+from .safety_helpers import delivered_pulses, wait_until
+
 FIRMWARES = ("v1.2", "v2")
 
 
 def _tcp(fw: str) -> TcpServer:
     return TcpServer(RealtimeEmulator(rules=WIFI_TCP, firmware=fw), port=0, rules=WIFI_TCP)
-
-
-def _wait(cond: Any, timeout: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
-
-
-def pulses(board: RealtimeEmulator, since_us: float = 0.0) -> list[tuple[float, int, float]]:
-    """``(time µs, channel, current µA)`` of every pulse the board delivered from ``since_us`` on."""
-    with board.lock:
-        board.state()  # brings the model up to the wall clock
-        timed: Any = board.timed
-        if board.firmware == "v2":
-            return [(r["t_us"], r["channel"], r["current_ua"]) for r in timed.delivered(since_us=since_us)]
-        table = timed.reports.pulse_table(since_us)
-        return [
-            (float(t), int(ch), float(ua))
-            for t, ch, ua in zip(table["start_us"], table["channel"], table["current_ua"], strict=True)
-        ]
 
 
 def _now_us(board: RealtimeEmulator) -> float:
@@ -69,7 +47,7 @@ def test_a_second_program_on_a_busy_wifi_board_is_refused_and_nothing_it_wrote_b
         first.close()  # the second program's bytes are read now, behind the first's all-off
         left_us = _now_us(server.board)
         time.sleep(0.4)
-        seen = pulses(server.board)
+        seen = delivered_pulses(server.board)
         assert seen and max(ua for _, _, ua in seen) <= 500 + 1e-6
         assert [p for p in seen if p[0] > left_us + 20_000 and p[2] > 0] == []
         st = server.board.state()
@@ -85,9 +63,9 @@ def test_a_command_cut_by_an_earlier_client_never_becomes_current(fw: str) -> No
     with _tcp(fw) as server:
         a = socket.create_connection(server.address, timeout=2)
         a.sendall(bytes.fromhex("fc20fefc20fb"))
-        assert _wait(lambda: server.board.state()["electrode_num"] == 0x20)
+        assert wait_until(lambda: server.board.state()["electrode_num"] == 0x20)
         a.close()
-        assert _wait(lambda: not server.connected)
+        assert wait_until(lambda: not server.connected)
         time.sleep(0.05)
         dev = open_device(server.url, timeout=0.3)
         try:
@@ -96,7 +74,7 @@ def test_a_command_cut_by_an_earlier_client_never_becomes_current(fw: str) -> No
             time.sleep(0.3)
         finally:
             dev.close()
-        seen = pulses(server.board)
+        seen = delivered_pulses(server.board)
         assert seen and max(ua for _, _, ua in seen) <= 500 + 1e-6
         assert {ch for _, ch, ua in seen if ua > 0} <= set(range(8))
         kinds = {h.kind for h in server.board.hazards}
@@ -109,7 +87,10 @@ def test_a_v12_driver_is_refused_on_the_v2_wifi_board_and_leaves_it_off() -> Non
     with _tcp("v2") as server:
         with pytest.raises(FirmwareMismatchError, match="runs firmware v2"):
             open_device(server.url, firmware="v1.2", timeout=0.3)
-        assert _wait(lambda: not server.connected)
+        assert wait_until(lambda: not server.connected)
         st = server.board.state()
         assert st["electrode_num"] == 0 and st["stim_mode"] == 0 and not st["command_in_progress"]
-        assert pulses(server.board) == [] or max(ua for _, _, ua in pulses(server.board)) == 0
+        assert (
+            delivered_pulses(server.board) == []
+            or max(ua for _, _, ua in delivered_pulses(server.board)) == 0
+        )

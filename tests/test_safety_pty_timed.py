@@ -14,9 +14,9 @@ import pytest
 
 from tactdeform_hw.device.firmware_probe import IDENT_OFF
 from tactdeform_hw.emulator.pty_server import PtyServer
-from tactdeform_hw.emulator.realtime import RealtimeEmulator
 
 from .conftest import REPO
+from .safety_helpers import current_pulses_us
 
 ENV = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 WAIT_S = 60.0  # generous: only the 150 ms stop bound is a timing assertion, on the board's own clock
@@ -32,13 +32,6 @@ def served(request: pytest.FixtureRequest) -> Iterator[PtyServer]:
         server.stop()
 
 
-def _current_pulses_us(board: RealtimeEmulator, since_us: float) -> list[float]:
-    with board.lock:
-        board.state()  # the model brought up to the wall clock
-        table = board.timed.reports.pulse_table(since_us)
-    return [float(t) for t in table["start_us"][table["current_ua"] > 0]]
-
-
 def _send(path: str, *extra: str) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "tactdeform_hw.cli", "send", "--device", path, *extra],
@@ -50,7 +43,7 @@ def _stimulating_owner(served: PtyServer) -> subprocess.Popen[str]:
     proc = _send(served.path, "--pattern", "all:1", "--electrodes", "16", "--current-ua", "500",
                  "--hold-ms", "20000")  # fmt: skip
     end = time.monotonic() + WAIT_S
-    while not _current_pulses_us(served.board, 0.0):
+    while not current_pulses_us(served.board, 0.0):
         assert proc.poll() is None, proc.communicate()[1]
         assert time.monotonic() < end, "the owner never stimulated"
         time.sleep(0.01)
@@ -68,7 +61,7 @@ def test_the_owner_stopped_or_killed_leaves_the_board_off_within_150_ms(served: 
         assert "Traceback" not in err
         assert ("guardian" in err) if sig == signal.SIGKILL else ("every channel off" in err)
         time.sleep(0.3)  # scans go on: a board still on would deliver here
-        late = [t for t in _current_pulses_us(served.board, sig_us) if t > sig_us + STOP_BOUND_US]
+        late = [t for t in current_pulses_us(served.board, sig_us) if t > sig_us + STOP_BOUND_US]
         assert not late, f"{len(late)} pulses with current more than 150 ms after the signal"
     finally:
         if proc.poll() is None:

@@ -468,22 +468,12 @@ def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> 
     bytes follow as it sends them when no proof comes back (the worst case: every retry).  Returns the
     largest current delivered from the owner's death on, the largest once the guardian is done, and the
     final pulse height."""
-    from tactdeform_hw import protocol as p
     from tactdeform_hw.emulator.timed import TimedEmulator
 
+    from .safety_helpers import configure_v12_tactdeform
+
     emu = TimedEmulator(link=link)
-    t = 0.0
-    for cmd in (
-        p.encode_electrode_num(32),
-        p.encode_pattern(bytes(32)),
-        p.encode_pulse_width(200),
-        p.encode_discharge(45),
-        p.encode_frequency(125),
-        p.encode_pulse_height(50),
-        p.encode_pattern(bytes([1, 0] * 16), electrode_num=32),
-    ):
-        emu.write(cmd, at_us=t)
-        t += 12_000
+    t = configure_v12_tactdeform(emu)
     emu.advance_to(t)
     death = t + 100
     if owner_tail:

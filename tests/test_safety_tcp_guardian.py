@@ -18,7 +18,6 @@ import subprocess
 import sys
 import time
 from collections.abc import Iterator
-from typing import Any
 
 import pytest
 
@@ -33,6 +32,7 @@ from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
 from tactdeform_hw.protocol import commands_v2 as v2
 
 from .conftest import REPO
+from .safety_helpers import configure_v12_tactdeform, current_pulses_us, wait_until
 
 ENV = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 WAIT_S = 60.0  # generous: the machine may be busy; nothing here but the stop bound is a timing assertion
@@ -48,24 +48,6 @@ def wifi(request: pytest.FixtureRequest) -> Iterator[TcpServer]:
         yield server
     finally:
         server.stop()
-
-
-def _current_pulses_us(board: RealtimeEmulator, since_us: float) -> list[float]:
-    """Start times (device µs) of the delivered pulses that carried current, from ``since_us`` on."""
-    with board.lock:
-        board.state()  # the model brought up to the wall clock
-        table = board.timed.reports.pulse_table(since_us)
-    on = table["current_ua"] > 0
-    return [float(t) for t in table["start_us"][on]]
-
-
-def _wait(cond: Any, timeout: float = WAIT_S) -> bool:
-    end = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > end:
-            return False
-        time.sleep(0.002)
-    return True
 
 
 def _owner(server: TcpServer) -> subprocess.Popen[str]:
@@ -84,7 +66,9 @@ def _owner(server: TcpServer) -> subprocess.Popen[str]:
 def _kill_stimulating_owner(server: TcpServer) -> tuple[subprocess.Popen[str], float, float]:
     """Start an owner, wait until the board delivers its pulses, SIGKILL it; (owner, wall, device µs)."""
     proc = _owner(server)
-    assert _wait(lambda: bool(_current_pulses_us(server.board, 0.0)) or proc.poll() is not None)
+    assert wait_until(
+        lambda: bool(current_pulses_us(server.board, 0.0)) or proc.poll() is not None, timeout_s=WAIT_S
+    )
     assert proc.poll() is None, proc.communicate()[1]
     time.sleep(0.05)
     t_kill = time.monotonic()
@@ -98,9 +82,11 @@ def test_sigkill_of_a_tcp_owner_switches_the_board_off_within_150_ms(wifi: TcpSe
     proc, _, kill_us = _kill_stimulating_owner(wifi)
     try:
         assert proc.wait(timeout=WAIT_S) == -signal.SIGKILL
-        assert _wait(lambda: not wifi.connected)  # the guardian leaves once the board is off
+        assert wait_until(
+            lambda: not wifi.connected, timeout_s=WAIT_S
+        )  # the guardian leaves once the board is off
         time.sleep(0.3)  # scans keep running: a board still on would deliver here
-        late = [t for t in _current_pulses_us(wifi.board, kill_us) if t > kill_us + 1000 * STOP_BOUND_MS]
+        late = [t for t in current_pulses_us(wifi.board, kill_us) if t > kill_us + 1000 * STOP_BOUND_MS]
         assert not late, f"{len(late)} pulses with current, last {(late[-1] - kill_us) / 1000:.1f} ms after"
         stderr = proc.communicate(timeout=WAIT_S)[1]
         assert "guardian" in stderr and "heights 0 proved" in stderr and "all-off pattern proved" in stderr
@@ -117,7 +103,9 @@ def test_a_stop_signal_to_a_tcp_owner_switches_the_board_off(wifi: TcpServer, si
     delivered pulses (the same 150 ms bound as the guardian's)."""
     proc = _owner(wifi)
     try:
-        assert _wait(lambda: bool(_current_pulses_us(wifi.board, 0.0)) or proc.poll() is not None)
+        assert wait_until(
+            lambda: bool(current_pulses_us(wifi.board, 0.0)) or proc.poll() is not None, timeout_s=WAIT_S
+        )
         assert proc.poll() is None, proc.communicate()[1]
         time.sleep(0.05)
         t_sig = time.monotonic()
@@ -126,7 +114,7 @@ def test_a_stop_signal_to_a_tcp_owner_switches_the_board_off(wifi: TcpServer, si
         stderr = proc.communicate(timeout=WAIT_S)[1]
         assert f"stopped by {sig.name}; every channel off" in stderr and "Traceback" not in stderr
         time.sleep(0.3)
-        late = [t for t in _current_pulses_us(wifi.board, sig_us) if t > sig_us + 1000 * STOP_BOUND_MS]
+        late = [t for t in current_pulses_us(wifi.board, sig_us) if t > sig_us + 1000 * STOP_BOUND_MS]
         assert not late, f"{len(late)} pulses with current after {sig.name}"
     finally:
         if proc.poll() is None:
@@ -142,10 +130,10 @@ def test_a_clean_close_on_tcp_releases_the_guardian_without_it_writing(
     assert guardian is not None and guardian.alive and getattr(dev.port, "guardable", False)
     dev.configure(StimConfig(current_ua=500))
     dev.send_pattern([1, 0] * 16)
-    assert _wait(lambda: bool(_current_pulses_us(wifi.board, 0.0)))
+    assert wait_until(lambda: bool(current_pulses_us(wifi.board, 0.0)), timeout_s=WAIT_S)
     dev.close()
     assert guardian.proc.returncode == 0  # released: close() waited for it
-    assert _wait(lambda: not wifi.connected)
+    assert wait_until(lambda: not wifi.connected, timeout_s=WAIT_S)
     written = wifi.board.bytes_in
     assert written == dev.pacer.stats.bytes_written  # every byte the board read was the owner's
     time.sleep(0.2)
@@ -160,10 +148,10 @@ def test_a_client_waiting_in_the_backlog_gets_the_board_only_after_the_all_off(w
     waiting = socket.create_connection(wifi.address, timeout=5)  # in the backlog: not served yet
     try:
         assert wifi.clients == 1
-        assert _wait(lambda: wifi.clients == 2, timeout=WAIT_S)
+        assert wait_until(lambda: wifi.clients == 2, timeout_s=WAIT_S)
         served_us = wifi.board.device_us()  # at or after the moment it was accepted
         time.sleep(0.3)
-        after = _current_pulses_us(wifi.board, served_us)
+        after = current_pulses_us(wifi.board, served_us)
         assert not after, f"{len(after)} pulses with current after the next client got the board"
     finally:
         waiting.close()
@@ -180,18 +168,7 @@ DRAIN_US = 36_400.0  # the drain wait at this setting (125 Hz, 32 channels)
 
 def _v12_board() -> tuple[TimedEmulator, bytes, float]:
     emu = TimedEmulator(link=TcpLink(), tx_link=TcpLink(), model=WIFI_TCP.timing(None))
-    t = 0.0
-    for cmd in (
-        p.encode_electrode_num(32),
-        p.encode_pattern(bytes(32)),
-        p.encode_pulse_width(200),
-        p.encode_discharge(45),
-        p.encode_frequency(125),
-        p.encode_pulse_height(50),
-        p.encode_pattern(bytes([1, 0] * 16), electrode_num=32),
-    ):
-        emu.write(cmd, at_us=t)
-        t += 12_000
+    t = configure_v12_tactdeform(emu)
     frame = p.encode_pattern(bytes([1, 0] * 16), electrode_num=32) + p.encode_pulse_height(50)
     return emu, frame, t
 

@@ -34,6 +34,7 @@ from tactdeform_hw.emulator.udp_discovery import DiscoveryResponder
 from tactdeform_hw.protocol import commands_v2 as v2
 
 from .conftest import REPO
+from .safety_helpers import wait_until
 
 VECTORS = [json.loads(line) for line in (Path(__file__).parent / "data" / "protocol_vectors_v2.jsonl").open()]
 N = 32
@@ -60,15 +61,6 @@ def _recv(sock: socket.socket, n: int, timeout: float = 2.0) -> bytes:
     return out
 
 
-def _wait(cond: Any, timeout: float = 5.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while not cond():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.005)
-    return True
-
-
 def _v2_tcp(**kw: Any) -> TcpServer:
     return TcpServer(RealtimeEmulator(rules=WIFI_TCP, firmware="v2"), port=0, rules=WIFI_TCP, **kw)
 
@@ -80,9 +72,9 @@ def test_realtime_v2_answers_on_the_firmwares_rhythm_and_scans() -> None:
     board = RealtimeEmulator(firmware="v2")
     board.write(SETUP + v2.encode_pattern([100 + i for i in range(N)]) + b"\xf4")
     assert board.read() == b""  # nothing is parsed before the next tick and the USB link
-    assert _wait(lambda: board.in_waiting == 1, 2.0)
+    assert wait_until(lambda: board.in_waiting == 1, 2.0)
     assert board.read() == bytes([N])
-    assert _wait(lambda: board.status().scans >= 2, 2.0)  # 125 Hz scans run on the wall clock
+    assert wait_until(lambda: board.status().scans >= 2, 2.0)  # 125 Hz scans run on the wall clock
     state = board.state()
     assert state["stim_pattern"][:N] == [100 + i for i in range(N)] and state["stim_mode"] == 0
     status = board.status()
@@ -152,7 +144,7 @@ def test_url_handler_serves_v2_timed_by_default_and_untimed_on_request() -> None
         port.write(v2.encode_electrode_num(5) + b"\xf4")
         assert port.read(1) == b"\x05"
         port.write(b"\xfe")  # a cut pattern: the USB Serial/JTAG reset discards it with the registers
-        assert _wait(lambda: port.emulator.state()["command_in_progress"], 1.0)
+        assert wait_until(lambda: port.emulator.state()["command_in_progress"], 1.0)
         port.dtr, port.rts = False, True
         port.rts = False
         assert "reading PATTERN payload 0/10" in port.resets[-1].discarded["parser"]
@@ -195,7 +187,7 @@ def test_v2_tcp_replies_go_only_to_the_connected_client() -> None:
         a = socket.create_connection(server.address, timeout=2)
         a.sendall(bytes(3000) + b"\xf4")  # the reply comes after 3000 unknown bytes have been read
         a.close()
-        assert _wait(lambda: server.clients == 1 and not server.connected)
+        assert wait_until(lambda: server.clients == 1 and not server.connected)
         b = socket.create_connection(server.address, timeout=2)
         try:
             assert _recv(b, 1, timeout=0.3) == b""
@@ -220,7 +212,7 @@ def test_v2_tcp_flow_control_holds_the_host_back_where_the_serial_queue_drops() 
         socket.create_connection(server.address, timeout=5) as sock,
     ):
         sock.sendall(flood)
-        assert _wait(lambda: server.board.state()["rx_dropped"] > 0, 10)
+        assert wait_until(lambda: server.board.state()["rx_dropped"] > 0, 10)
         assert any(h.kind is HazardKind.QUEUE_OVERFLOW for h in server.board.hazards)
 
 
@@ -243,12 +235,12 @@ def _cut_then_new_client(server: TcpServer, gap_s: float) -> socket.socket:
     a.sendall(v2.encode_electrode_num(N) + b"\xf4")
     assert _recv(a, 1) == bytes([N])
     a.sendall(b"\xfe")  # a pattern cut after its command byte
-    assert _wait(lambda: server.board.state()["command_in_progress"])
+    assert wait_until(lambda: server.board.state()["command_in_progress"])
     a.close()
-    assert _wait(lambda: not server.connected)
+    assert wait_until(lambda: not server.connected)
     time.sleep(gap_s)
     b = socket.create_connection(server.address, timeout=2)
-    assert _wait(lambda: server.connected and server.clients == 2)
+    assert wait_until(lambda: server.connected and server.clients == 2)
     b.sendall(v2.encode_electrode_num(0x20) + v2.encode_stim_mode(0) + v2.encode_pattern([0] * N) + b"\xf4")
     return b
 
@@ -259,7 +251,7 @@ def test_new_client_inherits_a_cut_command_within_2_s_and_it_is_reported() -> No
     with _v2_tcp() as server:
         b = _cut_then_new_client(server, 0.0)
         try:
-            assert _wait(lambda: server.board.state()["stim_pattern"][0] == 4095)
+            assert wait_until(lambda: server.board.state()["stim_pattern"][0] == 4095)
             st = server.board.state()
             assert st["stim_pattern"][:2] == [4095, 0x00FB]
             inherited = [h for h in server.board.hazards if h.kind is HazardKind.INHERITED_COMMAND]
@@ -281,7 +273,7 @@ def test_new_client_inherits_a_cut_command_within_2_s_and_it_is_reported() -> No
                     timed: Any = board.timed
                     return any(r["channel"] == 0 and r["code"] == 4095 for r in timed.delivered())
 
-            assert _wait(delivered_4095)
+            assert wait_until(delivered_4095)
         finally:
             b.close()
 
@@ -344,7 +336,7 @@ def test_emulate_tcp_v2_answers_discovery_and_ports_and_the_driver_find_it(
         assert proc.stdout is not None
         host, _, tcp = proc.stdout.readline().strip().rpartition(":")
         assert host == "127.0.0.1", proc.stderr.read() if proc.stderr else ""
-        assert _wait(lambda: _answers(udp), 10)
+        assert wait_until(lambda: _answers(udp), 10)
         reply = _ask(udp).decode()
         assert re.fullmatch(
             rf"ETK!;id=F93030;name=etactilekit-F93030;ip=127\.0\.0\.1;port={tcp};mode=AP;fw=1\.0", reply
@@ -431,7 +423,7 @@ def test_socket_url_opens_through_pyserials_handler_paced_on_the_wall_clock() ->
             assert dev.guardian is not None and dev.guardian.alive
             dev.configure(StimConfig(electrode_count=8))
             dev.send_pattern([1, 0, 0, 0, 0, 0, 0, 1])
-            assert _wait(lambda: server.board.state()["stim_pattern"][:8] == [1, 0, 0, 0, 0, 0, 0, 1])
+            assert wait_until(lambda: server.board.state()["stim_pattern"][:8] == [1, 0, 0, 0, 0, 0, 0, 1])
         finally:
             dev.close()
 
@@ -440,7 +432,7 @@ def test_v12_driver_refused_on_the_v2_tcp_board_by_socket_and_by_discovery() -> 
     with _v2_tcp() as server, DiscoveryResponder("C0FFEE", port=0, tcp_port=server.address[1]) as responder:
         with pytest.raises(FirmwareMismatchError):
             open_device(server.url, firmware="v1.2", timeout=0.3)
-        assert _wait(lambda: not server.connected)
+        assert wait_until(lambda: not server.connected)
         with pytest.raises(FirmwareMismatchError):
             open_device(
                 f"etactilekit://C0FFEE?discovery=127.0.0.1:{responder.address[1]}",
@@ -516,7 +508,7 @@ def test_upstream_style_client_over_the_pty_reaches_the_vectors_state() -> None:
         with PtyServer(RealtimeEmulator(rules=SERIAL_USB, firmware="v2")) as server:
             with serial.Serial(server.path, 921600, timeout=0.5) as port:
                 _upstream_write(port.write, stream)
-                assert _wait(lambda: server.bytes_in == len(stream))  # noqa: B023 (waited for at once)
+                assert wait_until(lambda: server.bytes_in == len(stream))  # noqa: B023 (waited for at once)
                 n = len(vec["expect"]["tx"]) // 2
                 replies = port.read(n) if n else b""
                 _check_against_vector(server.board, vec, replies)
@@ -528,7 +520,7 @@ def test_upstream_style_client_over_tcp_reaches_the_vectors_state() -> None:
         with _v2_tcp() as server, socket.create_connection(server.address, timeout=2) as sock:
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             _upstream_write(sock.sendall, stream)
-            assert _wait(lambda: server.bytes_in == len(stream))  # noqa: B023 (waited for at once)
+            assert wait_until(lambda: server.bytes_in == len(stream))  # noqa: B023 (waited for at once)
             replies = _recv(sock, len(vec["expect"]["tx"]) // 2, timeout=1.0)
             _check_against_vector(server.board, vec, replies)
 

@@ -105,6 +105,21 @@ def profile_from_args(args: argparse.Namespace, region_of: Any = None) -> Any:
     return _participant_file(args, region_of)[0]
 
 
+def guard_with_array(args: argparse.Namespace, array_file: Any, mapping: Any) -> Any:
+    """:func:`guard_from_args` for a command that may take ``--array``: regional limits by the array
+    file's positions, and a calibration profile checked against its ``Mapping_func`` (an on-board
+    array's counts from hardware channel 24)."""
+    if array_file is None:
+        return guard_from_args(args, mapping=mapping)
+    return guard_from_args(
+        args,
+        region_of=array_file.region_map(),
+        mapping=mapping,
+        against=f"--array {array_file.source}'s Mapping_func",
+        channel_offset=array_file.pattern_offset,
+    )
+
+
 def guard_from_args(
     args: argparse.Namespace,
     *,

@@ -29,7 +29,7 @@ from ..errors import ConfigurationError, TactDeformError
 from .common import (
     add_device_arg,
     add_participant_arg,
-    guard_from_args,
+    guard_with_array,
     hold,
     print_json,
     progress,
@@ -269,13 +269,7 @@ def run(
 
     # Refuse every configuration before the port is opened (a bad participant profile too).  The regional
     # limits follow each electrode's position in the array file, whatever order it lists them in.
-    guard = guard_from_args(
-        args,
-        region_of=array_file.region_map() if array_file is not None else None,
-        mapping=mapping,
-        against=f"--array {array_file.source}'s Mapping_func" if array_file is not None else None,
-        channel_offset=array_file.pattern_offset if array_file is not None else 0,
-    )
+    guard = guard_with_array(args, array_file, mapping)
     for key in {(s.frequency_hz, s.polarity) for s in steps}:
         guard.check_config(make_config(*key).validated(DEFAULT_TRANSFER))
     app_electrodes = len(steps[0].levels) if steps else seq.electrodes

@@ -9,7 +9,7 @@ from ..errors import ConfigurationError, LimitError
 from .common import (
     add_device_arg,
     add_participant_arg,
-    guard_from_args,
+    guard_with_array,
     hold,
     print_json,
     profile_from_args,
@@ -145,13 +145,7 @@ def run(args: argparse.Namespace) -> int:
         electrodes = array_file.electrodes
     elif electrodes is None:
         electrodes = 32
-    guard = guard_from_args(
-        args,
-        region_of=array_file.region_map() if array_file is not None else None,
-        mapping=mapping,
-        against=f"--array {array_file.source}'s Mapping_func" if array_file is not None else None,
-        channel_offset=array_file.pattern_offset if array_file is not None else 0,
-    )
+    guard = guard_with_array(args, array_file, mapping)
     config = StimConfig(
         electrode_count=mapping.hw_channels if mapping is not None else electrodes,
         current_ua=args.current_ua,
