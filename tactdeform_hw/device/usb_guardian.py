@@ -116,10 +116,10 @@ def _guardian() -> ModuleType:
     return module if module is not None else _load(os.path.join(_HERE, "guardian.py"), "_etk_guardian")
 
 
-def _backend(how: str) -> Any:
-    if how.startswith("emulator:"):
-        client = _load(os.path.join(os.path.dirname(_HERE), "emulator", "usb_client.py"), "_etk_usb_client")
-        return client.EmulatorClientBackend(how[len("emulator:") :])
+def libusb1_backend() -> Any:
+    """pyusb's libusb 1.0 backend, else the one of the DLL shipped by the ``libusb-package`` wheel (pyusb
+    does not look there by itself); None when there is neither.  The owner's transport
+    (:func:`~.usb_transport.default_backend`) and its guardian look the bus up this same way."""
     import usb.backend.libusb1 as libusb1
 
     backend = libusb1.get_backend()
@@ -131,6 +131,13 @@ def _backend(how: str) -> Any:
         except (ImportError, OSError, AttributeError):
             backend = None
     return backend
+
+
+def _backend(how: str) -> Any:
+    if how.startswith("emulator:"):
+        client = _load(os.path.join(os.path.dirname(_HERE), "emulator", "usb_client.py"), "_etk_usb_client")
+        return client.EmulatorClientBackend(how[len("emulator:") :])
+    return libusb1_backend()
 
 
 class UsbLink:
