@@ -123,6 +123,7 @@ def test_killed_owner_leaves_the_board_off_within_150_ms(board: ServedBoard) -> 
     os.kill(owner.pid, signal.SIGKILL)
     kill_us = board.device_us(t_kill)
     _, err = owner.communicate(timeout=WAIT_S)
+    assert "gone: all-off sent (heights 0 proved" in err, err  # the guardian read the firmware's answer
     # the guardian takes the released claim and switches off; give it (generously) time to finish
     end = time.monotonic() + WAIT_S
     while time.monotonic() < end:

@@ -38,15 +38,15 @@ def _url(fw: str) -> Iterator[str]:
     yield f"etactile://?firmware={fw}"
 
 
+# each board server starts on entering its ``with`` and stops on leaving it
+
+
 @contextmanager
 def _pty(fw: str) -> Iterator[str]:
     from tactdeform_hw.emulator.pty_server import PtyServer
 
-    server = PtyServer(firmware=fw).start()
-    try:
+    with PtyServer(firmware=fw) as server:
         yield server.path
-    finally:
-        server.stop()
 
 
 @contextmanager
@@ -54,23 +54,16 @@ def _tcp(fw: str) -> Iterator[str]:
     from tactdeform_hw.emulator.realtime import WIFI_TCP, RealtimeEmulator
     from tactdeform_hw.emulator.tcp_server import TcpServer
 
-    server = TcpServer(RealtimeEmulator(rules=WIFI_TCP, firmware=fw), port=0, rules=WIFI_TCP)
-    server.start()
-    try:
+    with TcpServer(RealtimeEmulator(rules=WIFI_TCP, firmware=fw), port=0, rules=WIFI_TCP) as server:
         yield server.url
-    finally:
-        server.stop()
 
 
 @contextmanager
 def _usb(fw: str) -> Iterator[str]:
     from tactdeform_hw.emulator.usb_server import UsbServer
 
-    server = UsbServer(firmware=fw).start()
-    try:
+    with UsbServer(firmware=fw) as server:
         yield server.name
-    finally:
-        server.stop()
 
 
 TRANSPORTS: dict[str, Callable[[str], Any]] = {"url": _url, "pty": _pty, "tcp": _tcp, "usb": _usb}

@@ -38,6 +38,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -147,13 +149,30 @@ def spawn_owner(path: str, firmware: str | None = None) -> subprocess.Popen[str]
     )
 
 
-def one_trial(server: PtyServer, watch: BoardWatch, sig: int, timeout: float = 30.0) -> float:
-    """Seconds from ``sig`` to the board safe."""
-    proc = spawn_owner(server.path)
+@contextmanager
+def running_owner(path: str, firmware: str | None = None) -> Iterator[subprocess.Popen[str]]:
+    """An owner of ``path`` that has opened the board and drives it (it printed ``ready``); on leaving,
+    whatever the trial did, it is killed if still alive and its pipes are closed, so no trial leaves a
+    process holding the board for the next one."""
+    proc = spawn_owner(path, firmware)
     try:
         line = proc.stdout.readline() if proc.stdout else ""
         if line.strip() != "ready":
             raise RuntimeError(f"owner did not start: {line!r} {proc.stderr.read() if proc.stderr else ''}")
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stdout:
+            proc.stdout.close()
+        if proc.stderr:
+            proc.stderr.close()
+
+
+def one_trial(server: PtyServer, watch: BoardWatch, sig: int, timeout: float = 30.0) -> float:
+    """Seconds from ``sig`` to the board safe."""
+    with running_owner(server.path) as proc:
         if not watch.wait(True, timeout):
             raise RuntimeError("the board never delivered current")
         time.sleep(0.05)
@@ -167,32 +186,8 @@ def one_trial(server: PtyServer, watch: BoardWatch, sig: int, timeout: float = 3
             raise RuntimeError("the board went off before the signal: nothing to measure")
         dt = watch.safe_since - t0
         proc.wait(timeout=timeout)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        if proc.stdout:
-            proc.stdout.close()
-        if proc.stderr:
-            proc.stderr.close()
     _wait_port_free(server.path, timeout)
     return dt
-
-
-def _await_ready(proc: subprocess.Popen[str]) -> None:
-    line = proc.stdout.readline() if proc.stdout else ""
-    if line.strip() != "ready":
-        raise RuntimeError(f"owner did not start: {line!r} {proc.stderr.read() if proc.stderr else ''}")
-
-
-def _end(proc: subprocess.Popen[str]) -> None:
-    if proc.poll() is None:
-        proc.kill()
-        proc.wait()
-    if proc.stdout:
-        proc.stdout.close()
-    if proc.stderr:
-        proc.stderr.close()
 
 
 def _until(cond: Any, timeout: float, what: str) -> None:
@@ -216,9 +211,7 @@ def tcp_trial(server: TcpServer, sig: int, timeout: float = 30.0) -> float:
     """Seconds from ``sig`` to the end of the last pulse with current, on the real-time Wi-Fi board."""
     board = server.board
     start_us = board.device_us()
-    proc = spawn_owner(server.url, board.firmware)
-    try:
-        _await_ready(proc)
+    with running_owner(server.url, board.firmware) as proc:
         _until(lambda: bool(current_pulse_ends_us(board, start_us)), timeout, "the board never delivered")
         time.sleep(0.05)
         t0 = time.monotonic()
@@ -233,8 +226,6 @@ def tcp_trial(server: TcpServer, sig: int, timeout: float = 30.0) -> float:
         )
         time.sleep(0.1)  # scans go on: a board still on would deliver here
         ends = current_pulse_ends_us(board, kill_us - 20_000)
-    finally:
-        _end(proc)
     last = max(ends, default=kill_us)
     if current_pulse_ends_us(board, board.device_us() - 50_000):
         raise RuntimeError(f"the board still delivers current after {signal.Signals(sig).name}")
@@ -314,11 +305,7 @@ def _wait_port_free(path: str, timeout: float) -> None:
 
 def usb_trial(server: Any, sig: int, timeout: float = 30.0, after_s: float = 0.5) -> float:
     """Seconds from ``sig`` to the last pulse with current, on a board served as a USB device."""
-    proc = spawn_owner(server.name)
-    try:
-        line = proc.stdout.readline() if proc.stdout else ""
-        if line.strip() != "ready":
-            raise RuntimeError(f"owner did not start: {line!r} {proc.stderr.read() if proc.stderr else ''}")
+    with running_owner(server.name) as proc:
         end = time.monotonic() + timeout
         t0_board = server.board_status(float("inf"))["t0"]
         while True:  # only the last 50 ms of the record: polling must not load the server it measures
@@ -345,14 +332,6 @@ def usb_trial(server: Any, sig: int, timeout: float = 30.0, after_s: float = 0.5
                 f"the board still delivers current {after_s} s after {signal.Signals(sig).name}"
             )
         return max(0.0, (last - kill_us) / 1e6)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-        if proc.stdout:
-            proc.stdout.close()
-        if proc.stderr:
-            proc.stderr.close()
 
 
 def summary(samples: list[float]) -> dict[str, float]:

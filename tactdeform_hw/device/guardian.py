@@ -80,7 +80,10 @@ import stat
 import sys
 import time
 from collections.abc import Callable
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
+
+if TYPE_CHECKING:
+    import argparse
 
 #: How long the guardian keeps trying to get a proof before it gives up (or pulses the reset line).
 BUDGET_S = 1.0
@@ -326,8 +329,11 @@ def _write_all(fd: int, data: bytes, deadline: float) -> bool:
     return True
 
 
-def _read_reply(fd: int, timeout_s: float) -> bytes:
-    """What the board answers within ``timeout_s``, read until it has been quiet for 3 ms."""
+def read_until_quiet(read: Callable[[float], bytes | None], timeout_s: float) -> bytes:
+    """What the board answers within ``timeout_s``, read until it has been quiet for 3 ms: the one rule
+    every link's ``read_reply`` follows.  ``read(left_s)`` returns what arrived within ``left_s`` (``b""``
+    if nothing did) or None when the link is gone; a spurious wake-up (``BlockingIOError``,
+    ``InterruptedError``) from it is retried."""
     got = b""
     deadline = time.monotonic() + timeout_s
     while True:
@@ -337,19 +343,34 @@ def _read_reply(fd: int, timeout_s: float) -> bytes:
         if left <= 0:
             return got
         try:
-            ready, _, _ = select.select([fd], [], [], left)
-            if not ready:
-                if got:
-                    return got
-                continue
-            chunk = os.read(fd, 4096)
+            chunk = read(left)
         except (BlockingIOError, InterruptedError):
             continue
-        except (OSError, ValueError):
+        if chunk is None:
             return got
         if not chunk:
-            return got
+            if got:
+                return got
+            continue
         got += chunk
+
+
+def _read_within(fd: int, timeout_s: float) -> bytes | None:
+    """What ``fd`` holds within ``timeout_s`` (``b""``: nothing came); None once the port is gone."""
+    try:
+        ready, _, _ = select.select([fd], [], [], timeout_s)
+        if not ready:
+            return b""
+        return os.read(fd, 4096) or None
+    except (BlockingIOError, InterruptedError):
+        raise  # a wake-up with nothing to read: the caller tries again
+    except (OSError, ValueError):
+        return None
+
+
+def _read_reply(fd: int, timeout_s: float) -> bytes:
+    """What the board answers within ``timeout_s``, read until it has been quiet for 3 ms."""
+    return read_until_quiet(lambda left_s: _read_within(fd, left_s), timeout_s)
 
 
 def _flush(fd: int, which: int) -> None:
@@ -478,10 +499,14 @@ class SocketLink(FdLink):
         return False
 
 
+def fd_link(fd: int) -> FdLink:
+    """The link behind ``fd``: a socket (the Wi-Fi board's TCP connection) or a terminal."""
+    return SocketLink(fd) if _is_socket(fd) else FdLink(fd)
+
+
 def switch_off(fd: int, stop: bytes, off: bytes | None, **kwargs: Any) -> str:
     """Stop every current on the board behind ``fd``, a terminal or a socket (see :func:`switch_off_on`)."""
-    link = SocketLink(fd) if _is_socket(fd) else FdLink(fd)
-    return switch_off_on(link, stop, off, **kwargs)
+    return switch_off_on(fd_link(fd), stop, off, **kwargs)
 
 
 def switch_off_on(
@@ -548,6 +573,19 @@ class Orders:
         self.drain_s = DEFAULT_DRAIN_S
         self.zeros_s = DEFAULT_ZEROS_S
 
+    def carry_out(self, link: GuardianLink, *, reset_line: bool, name: str) -> str:
+        """Stop every current on the board behind ``link`` with these bytes and this pacing
+        (:func:`switch_off_on`); returns how it was proved."""
+        return switch_off_on(
+            link,
+            self.stop,
+            self.off,
+            reset_line=reset_line,
+            drain_s=self.drain_s,
+            zeros_s=self.zeros_s,
+            name=name,
+        )
+
 
 def ignore_terminal_signals() -> None:
     """A terminal's Ctrl-C, hang-up or stop keys reach the owner's process group, never the guardian."""
@@ -596,33 +634,37 @@ def watch_owner(owner_fd: int, stop: bytes) -> Orders | None:
                 orders.drain_s, orders.zeros_s = min(float(words[1]), 0.5), min(float(words[2]), 0.5)
 
 
-def main(argv: list[str]) -> int:
-    import argparse
-
-    ap = argparse.ArgumentParser(prog="tactdeform-hw-guardian")
-    ap.add_argument("--port-fd", type=int, required=True)
+def add_owner_arguments(ap: argparse.ArgumentParser) -> None:
+    """The options every kind of guardian is started with (see :meth:`Guardian.spawn`): the owner's pipe
+    and pid, the board's name for messages, whether it has a reset line, and the first stop bytes."""
     ap.add_argument("--owner-fd", type=int, required=True)
     ap.add_argument("--owner-pid", type=int, default=0)
     ap.add_argument("--name", default="")
     ap.add_argument("--reset-line", action="store_true")
     ap.add_argument("--stop", required=True, help="hex bytes that stop every current")
+
+
+def report_gone(name: str, owner_pid: int, how: str) -> int:
+    """Say what was done for an owner gone without ``bye``; the exit status: 2 when the board was not
+    proved off (the message then says to unplug it), else 0."""
+    say(name, f"owner (pid {owner_pid}) gone: all-off sent ({how})")
+    return 0 if not how.startswith(("NO PROOF", "gave up")) else 2
+
+
+def main(argv: list[str]) -> int:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="tactdeform-hw-guardian")
+    ap.add_argument("--port-fd", type=int, required=True)
+    add_owner_arguments(ap)
     a = ap.parse_args(argv)
     ignore_terminal_signals()
     say_ready()
     orders = watch_owner(a.owner_fd, bytes.fromhex(a.stop))
     if orders is None:
         return 0
-    how = switch_off(
-        a.port_fd,
-        orders.stop,
-        orders.off,
-        reset_line=a.reset_line,
-        drain_s=orders.drain_s,
-        zeros_s=orders.zeros_s,
-        name=a.name,
-    )
-    say(a.name, f"owner (pid {a.owner_pid}) gone: all-off sent ({how})")
-    return 0 if not how.startswith(("NO PROOF", "gave up")) else 2
+    how = orders.carry_out(fd_link(a.port_fd), reset_line=a.reset_line, name=a.name)
+    return report_gone(a.name, a.owner_pid, how)
 
 
 if __name__ == "__main__":

@@ -109,10 +109,17 @@ def _load(filename: str, module_name: str) -> ModuleType:
     return module
 
 
-def _backend(how: str) -> Any:
-    if how.startswith("emulator:"):
-        client = _load(os.path.join(os.path.dirname(_HERE), "emulator", "usb_client.py"), "_etk_usb_client")
-        return client.EmulatorClientBackend(how[len("emulator:") :])
+def _guardian() -> ModuleType:
+    """The serial guardian's stdlib-only logic (``guardian.py``), loaded by path once: this file runs as a
+    script, outside the package, and shares with it how replies are read and how orders are carried out."""
+    module = sys.modules.get("_etk_guardian")
+    return module if module is not None else _load(os.path.join(_HERE, "guardian.py"), "_etk_guardian")
+
+
+def libusb1_backend() -> Any:
+    """pyusb's libusb 1.0 backend, else the one of the DLL shipped by the ``libusb-package`` wheel (pyusb
+    does not look there by itself); None when there is neither.  The owner's transport
+    (:func:`~.usb_transport.default_backend`) and its guardian look the bus up this same way."""
     import usb.backend.libusb1 as libusb1
 
     backend = libusb1.get_backend()
@@ -124,6 +131,13 @@ def _backend(how: str) -> Any:
         except (ImportError, OSError, AttributeError):
             backend = None
     return backend
+
+
+def _backend(how: str) -> Any:
+    if how.startswith("emulator:"):
+        client = _load(os.path.join(os.path.dirname(_HERE), "emulator", "usb_client.py"), "_etk_usb_client")
+        return client.EmulatorClientBackend(how[len("emulator:") :])
+    return libusb1_backend()
 
 
 class UsbLink:
@@ -187,18 +201,10 @@ class UsbLink:
 
     def read_reply(self, timeout_s: float) -> bytes:
         """What the board answers within ``timeout_s``, read until it has been quiet for 3 ms."""
-        got = b""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            left = deadline - time.monotonic()
-            if got:
-                left = min(left, 0.003)
-            if left <= 0:
-                return got
-            chunk = self._read_packet(int(left * 1000) or 1)
-            if not chunk and got:
-                return got
-            got += chunk
+        got: bytes = _guardian().read_until_quiet(
+            lambda left_s: self._read_packet(int(left_s * 1000) or 1), timeout_s
+        )
+        return got
 
     def pulse_reset(self) -> bool:
         """RTS without DTR for 100 ms: the USB Serial/JTAG controller holds the chip in reset."""
@@ -279,15 +285,11 @@ def main(argv: list[str]) -> int:
         ap.add_argument(option, type=int, required=True)
     ap.add_argument("--comm", type=int, default=None)
     ap.add_argument("--give-back", default="")
-    ap.add_argument("--owner-fd", type=int, required=True)
-    ap.add_argument("--owner-pid", type=int, default=0)
-    ap.add_argument("--name", default="")
-    ap.add_argument("--reset-line", action="store_true")
-    ap.add_argument("--stop", required=True, help="hex bytes that stop every current")
+    g = _guardian()
+    g.add_owner_arguments(ap)
     a = ap.parse_args(argv)
     if a.sys_path:
         sys.path.insert(0, a.sys_path)
-    g = _load(os.path.join(_HERE, "guardian.py"), "_etk_guardian")
     g.ignore_terminal_signals()
     try:
         import usb.core
@@ -319,18 +321,9 @@ def main(argv: list[str]) -> int:
         g.say(a.name, f"owner (pid {a.owner_pid}) gone, but NOTHING SENT: {why}; unplug the board")
         return 2
     link = UsbLink(dev, a.ep_out, a.ep_in, a.comm, a.packet)
-    how = g.switch_off_on(
-        link,
-        orders.stop,
-        orders.off,
-        reset_line=a.reset_line,
-        drain_s=orders.drain_s,
-        zeros_s=orders.zeros_s,
-        name=a.name,
-    )
+    how: str = orders.carry_out(link, reset_line=a.reset_line, name=a.name)
     _give_back(dev, interfaces, give_back)
-    g.say(a.name, f"owner (pid {a.owner_pid}) gone: all-off sent ({how})")
-    return 0 if not how.startswith(("NO PROOF", "gave up")) else 2
+    return int(g.report_gone(a.name, a.owner_pid, how))
 
 
 if __name__ == "__main__":

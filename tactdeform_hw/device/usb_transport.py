@@ -109,16 +109,9 @@ def default_backend() -> Any:
     by itself), then OpenUSB and libusb 0.1.
     """
     _import_usb()
-    import usb.backend.libusb1 as libusb1
+    from .usb_guardian import libusb1_backend
 
-    backend = libusb1.get_backend()
-    if backend is None:
-        try:
-            import libusb_package
-
-            backend = libusb_package.get_libusb1_backend()
-        except (ImportError, OSError, AttributeError):
-            backend = None
+    backend = libusb1_backend()
     if backend is None:
         import usb.backend.libusb0 as libusb0
         import usb.backend.openusb as openusb

@@ -53,7 +53,7 @@ from .skin import SkinModel
 from .timed import TimedEmulator
 from .timed_v2 import TimedEmulatorV2
 from .timing import DEFAULT_MODEL, TimingModel
-from .usb_client import LIBUSB_ERRORS
+from .usb_client import EmulatedBoardBackend
 
 # --- USB constants ------------------------------------------------------------------------------------
 
@@ -74,10 +74,6 @@ CDC_SEND_BREAK = 0x23
 
 LANGID_EN_US = 0x0409
 SPEED_FULL = 2  # usb.util.SPEED_FULL
-
-# libusb error codes with the errno pyusb's libusb1 backend attaches and its message text (one table,
-# shared with the client backend of a served board)
-_LIBUSB_ERRORS = LIBUSB_ERRORS
 
 
 # --- clocks ---------------------------------------------------------------------------------------------
@@ -490,7 +486,7 @@ class _Handle:
 # --- the backend ----------------------------------------------------------------------------------------
 
 
-class EmulatedUsbBackend:
+class EmulatedUsbBackend(EmulatedBoardBackend):
     """A pyusb backend whose bus holds emulated boards.  ``EmulatedUsbBackend()`` has one ESP32-S3.
 
     Pass it to ``usb.core.find(backend=...)`` or to :class:`tactdeform_hw.device.usb_transport.UsbCdcPort`.
@@ -556,12 +552,7 @@ class EmulatedUsbBackend:
             d._unplug()
             return self.plug(d)
 
-    # --- errors ----------------------------------------------------------------------------------------
-
-    def _error(self, kind: str) -> Exception:
-        code, err, text = _LIBUSB_ERRORS[kind]
-        cls = self._usb_timeout if kind == "timeout" else self._usb_error
-        return cls(text, code, err)
+    # --- errors (raised as pyusb raises libusb's: :class:`~.usb_client.EmulatedBoardBackend`) -----------
 
     def _live(self, handle: _Handle) -> EmulatedUsbDevice:
         d = handle.device
@@ -772,9 +763,6 @@ class EmulatedUsbBackend:
                 raise self._error("timeout")
             self.clock.sleep(_POLL_S if deadline is None else min(_POLL_S, deadline - now))
 
-    def intr_write(self, dev_handle: _Handle, ep: int, intf: int, data: Any, timeout: int) -> int:
-        raise self._error("not_found")
-
     def intr_read(self, dev_handle: _Handle, ep: int, intf: int, buff: Any, timeout: int) -> int:
         """The CDC notification endpoint: the USB Serial/JTAG controller never sends serial-state
         notifications, so a read waits out its timeout."""
@@ -782,12 +770,6 @@ class EmulatedUsbBackend:
             self._check_transfer(dev_handle, ep, intf, direction_in=True)
         self.clock.sleep((timeout or 1) / 1000.0)
         raise self._error("timeout")
-
-    def iso_write(self, dev_handle: _Handle, ep: int, intf: int, data: Any, timeout: int) -> int:
-        raise self._error("not_found")  # the device has no isochronous endpoint
-
-    def iso_read(self, dev_handle: _Handle, ep: int, intf: int, buff: Any, timeout: int) -> int:
-        raise self._error("not_found")
 
     @staticmethod
     def _cdc_endpoint(d: EmulatedUsbDevice, direction_in: bool) -> int | None:

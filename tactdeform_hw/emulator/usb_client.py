@@ -97,7 +97,32 @@ class _RemoteHandle:
         self.id = handle_id
 
 
-class EmulatorClientBackend:
+class EmulatedBoardBackend:
+    """What the two pyusb backends of the emulated board share (the bus in this process,
+    :class:`~.usb_backend.EmulatedUsbBackend`, and the connection to a served one,
+    :class:`EmulatorClientBackend`): a failure raised as pyusb raises libusb's, with libusb's code and
+    errno, so that the transport and the guardian see the same error on both; and the endpoints the
+    ESP32-S3 does not have (no isochronous endpoint, no interrupt OUT) answer "not found" on both."""
+
+    _usb_error: type[Exception]
+    _usb_timeout: type[Exception]
+
+    def _error(self, kind: str) -> Exception:
+        code, err, text = LIBUSB_ERRORS.get(kind, LIBUSB_ERRORS["io"])
+        cls = self._usb_timeout if kind == "timeout" else self._usb_error
+        return cls(text, code, err)
+
+    def intr_write(self, dev_handle: Any, ep: int, intf: int, data: Any, timeout: int) -> int:
+        raise self._error("not_found")
+
+    def iso_write(self, dev_handle: Any, ep: int, intf: int, data: Any, timeout: int) -> int:
+        raise self._error("not_found")
+
+    def iso_read(self, dev_handle: Any, ep: int, intf: int, buff: Any, timeout: int) -> int:
+        raise self._error("not_found")
+
+
+class EmulatorClientBackend(EmulatedBoardBackend):
     """A pyusb backend over a connection to ``emulate --usb``'s socket at ``path`` (connected at once:
     an ``OSError`` says nobody serves there)."""
 
@@ -148,11 +173,6 @@ class EmulatorClientBackend:
         if "notimpl" in reply:
             raise NotImplementedError(reply["notimpl"])
         raise self._error(str(reply.get("err", "io")))
-
-    def _error(self, kind: str) -> Exception:
-        code, err, text = LIBUSB_ERRORS.get(kind, LIBUSB_ERRORS["io"])
-        cls = self._usb_timeout if kind == "timeout" else self._usb_error
-        return cls(text, code, err)
 
     # --- IBackend: enumeration and descriptors --------------------------------------------------------
 
@@ -250,18 +270,9 @@ class EmulatorClientBackend:
         buff[: len(data)] = type(buff)(buff.typecode, data)
         return len(data)
 
-    def intr_write(self, dev_handle: _RemoteHandle, ep: int, intf: int, data: Any, timeout: int) -> int:
-        raise self._error("not_found")
-
     def intr_read(self, dev_handle: _RemoteHandle, ep: int, intf: int, buff: Any, timeout: int) -> int:
         self._call("intr_read", h=dev_handle.id, ep=ep, intf=intf, timeout=timeout)
         return 0  # pragma: no cover - the server always answers a timeout
-
-    def iso_write(self, dev_handle: _RemoteHandle, ep: int, intf: int, data: Any, timeout: int) -> int:
-        raise self._error("not_found")
-
-    def iso_read(self, dev_handle: _RemoteHandle, ep: int, intf: int, buff: Any, timeout: int) -> int:
-        raise self._error("not_found")
 
     def ctrl_transfer(
         self,
@@ -292,4 +303,11 @@ class EmulatorClientBackend:
         return result
 
 
-__all__ = ["EmulatorClientBackend", "LIBUSB_ERRORS", "SERVED_PREFIX", "recv_message", "send_message"]
+__all__ = [
+    "EmulatedBoardBackend",
+    "EmulatorClientBackend",
+    "LIBUSB_ERRORS",
+    "SERVED_PREFIX",
+    "recv_message",
+    "send_message",
+]
