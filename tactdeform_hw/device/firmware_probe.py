@@ -143,12 +143,11 @@ def detect_firmware(
     settle_s: float = SETTLE_S,
     gap_s: float = 0.01,
     sleep: Callable[[float], object] = time.sleep,
-    busy_hint: str = "",
 ) -> Detection:
     """Identify the firmware behind ``write``/``read`` (``read(n)`` returns what came within the port's
     timeout, b"" when nothing did) by a reply only one version gives; raise :class:`UnidentifiedBoardError`
     after two attempts without one.  ``settle_s`` is step 1's wait (0 for a board that has received no
-    byte since power-on); ``busy_hint`` is added to a silent board's error."""
+    byte since power-on)."""
     if settle_s > 0:
         sleep(settle_s)
     reply = b""
@@ -170,15 +169,8 @@ def detect_firmware(
                 settle_s=settle_s,
             )
         discard()
-    raise UnidentifiedBoardError(
-        device,
-        reply,
-        busy_hint
-        if not reply and busy_hint
-        else "a locked v1.2 parser answers nothing until the board is reset or power-cycled"
-        if not reply
-        else "",
-    )
+    silent = "a locked v1.2 parser answers nothing until the board is reset or power-cycled"
+    raise UnidentifiedBoardError(device, reply, "" if reply else silent)
 
 
 def check_firmware(expected: str, detection: Detection, device: str = "the board") -> None:
