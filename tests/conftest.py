@@ -37,3 +37,47 @@ def shared() -> type:
         path = staticmethod(shared_path)
 
     return _Shared
+
+
+#: What ``-m slow`` selects (and the README's test command leaves to CI's own step): the tests that run on
+#: the wall clock — real-time boards behind a pty, TCP or USB, owners and guardians in processes of their
+#: own, stop signals — the campaign runs, the tools run end to end, and the benchmarks.
+SLOW = frozenset(
+    {
+        "benchmarks",
+        "conformance",
+        "test_identification_seams.py",
+        "test_safety_campaign.py",
+        "test_safety_failsafe.py",
+        "test_safety_lock.py",
+        "test_safety_pty_timed.py",
+        "test_safety_stop.py",
+        "test_safety_tcp_guardian.py",
+        "test_tools.py",
+        "test_usb_served.py",
+        "test_usb_transport.py",
+        "test_v2_safety_campaign.py",
+        "test_virtual_serial.py",
+        "test_wifi_board.py",
+    }
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Mark :data:`SLOW`; leave it out of a run given neither paths nor ``-m`` (the README's test command),
+    so that naming a file or folder (``pytest tests/conformance --device …``) or ``-m slow`` runs it."""
+    tests = REPO / "tests"
+    slow: list[pytest.Item] = []
+    for item in items:
+        try:
+            first = Path(str(item.fspath)).resolve().relative_to(tests).parts[0]
+        except ValueError:
+            continue
+        if first in SLOW:
+            item.add_marker(pytest.mark.slow)
+            slow.append(item)
+    chosen = config.option.markexpr or config.args_source is not pytest.Config.ArgsSource.TESTPATHS
+    if slow and not chosen:
+        config.hook.pytest_deselected(items=slow)
+        left = set(map(id, slow))
+        items[:] = [item for item in items if id(item) not in left]
