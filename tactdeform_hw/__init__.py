@@ -25,16 +25,16 @@ from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
 
-URL_HANDLER_PACKAGE = "tactdeform_hw.emulator.urlhandler"
+URL_HANDLER_PACKAGE = "tactdeform_hw.emulator.serving.urlhandler"
 
 #: Public name → the module that defines it, imported on first use.
 _LAZY = {
-    "open_device": "tactdeform_hw.device.serial_driver",
-    "open_port": "tactdeform_hw.device.serial_driver",
-    "StimConfig": "tactdeform_hw.device.config",
-    "Device": "tactdeform_hw.device.base",
-    "SafetyGuard": "tactdeform_hw.device.safety",
-    "ChannelMapping": "tactdeform_hw.device.mapping",
+    "open_device": "tactdeform_hw.device.driver.serial_driver",
+    "open_port": "tactdeform_hw.device.driver.serial_driver",
+    "StimConfig": "tactdeform_hw.device.driver.config",
+    "Device": "tactdeform_hw.device.driver.base",
+    "SafetyGuard": "tactdeform_hw.device.safety.guard",
+    "ChannelMapping": "tactdeform_hw.device.participant.mapping",
     "Renderer": "tactdeform_hw.render.pipeline",
     "load_scene": "tactdeform_hw.render.scene",
     "ElectrodeArray": "tactdeform_hw.render.array",
@@ -63,12 +63,13 @@ _ERRORS = (
 )
 
 if TYPE_CHECKING:
-    from .device.base import Device as Device
-    from .device.config import StimConfig as StimConfig
-    from .device.mapping import ChannelMapping as ChannelMapping
-    from .device.safety import SafetyGuard as SafetyGuard
-    from .device.serial_driver import open_device as open_device
-    from .device.serial_driver import open_port as open_port
+    from tactdeform_hw.device.driver.base import Device as Device
+    from tactdeform_hw.device.driver.config import StimConfig as StimConfig
+    from tactdeform_hw.device.driver.serial_driver import open_device as open_device
+    from tactdeform_hw.device.driver.serial_driver import open_port as open_port
+    from tactdeform_hw.device.participant.mapping import ChannelMapping as ChannelMapping
+    from tactdeform_hw.device.safety.guard import SafetyGuard as SafetyGuard
+
     from .errors import ConfigurationError as ConfigurationError
     from .errors import DecodeError as DecodeError
     from .errors import DeviceBusyError as DeviceBusyError

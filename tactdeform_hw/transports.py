@@ -40,11 +40,11 @@ PortFactory = Callable[..., Any]
 
 #: The schemes the package provides.
 BUILTIN_TRANSPORTS: dict[str, str] = {
-    "path": "tactdeform_hw.device.serial_driver:open_serial_path",
+    "path": "tactdeform_hw.device.driver.serial_driver:open_serial_path",
     "etactile": "tactdeform_hw.transports:open_pyserial_url",
     "socket": "tactdeform_hw.transports:open_socket_port",
-    "etactilekit": "tactdeform_hw.device.serial_driver:open_kit_url",
-    "usb": "tactdeform_hw.device.usb_transport:usb_port_for_name",
+    "etactilekit": "tactdeform_hw.device.driver.serial_driver:open_kit_url",
+    "usb": "tactdeform_hw.device.driver.usb_transport:usb_port_for_name",
     "usb-emulator": "tactdeform_hw.transports:open_usb_emulator",
 }
 
@@ -196,12 +196,13 @@ def open_usb_emulator(name: str, *, timeout: float | None, baudrate: int) -> Any
     (the board dies with it); ``usb-emulator://PATH``: over a connection to the board that ``emulate --usb``
     serves on the Unix socket PATH (a board with a life of its own, shared as a real one is).  It sits here
     because neither layer may import the other."""
-    from .device.usb_transport import UsbCdcPort
+    from tactdeform_hw.device.driver.usb_transport import UsbCdcPort
+
     from .protocol.constants import ESP32S3_USB_JTAG_PID, ESPRESSIF_VID
 
     backend: Any
     if name.startswith("usb-emulator://"):
-        from .emulator.usb_client import EmulatorClientBackend
+        from tactdeform_hw.emulator.serving.usb_client import EmulatorClientBackend
 
         path = name[len("usb-emulator://") :]
         try:
@@ -212,7 +213,7 @@ def open_usb_emulator(name: str, *, timeout: float | None, baudrate: int) -> Any
                 "`tactdeform-hw emulate --usb` and use the name it prints"
             ) from exc
     else:
-        from .emulator.usb_backend import backend_from_name
+        from tactdeform_hw.emulator.serving.usb_backend import backend_from_name
 
         backend = backend_from_name(name)
     return UsbCdcPort(

@@ -7,8 +7,8 @@ from collections.abc import Callable
 from typing import Any
 
 from tactdeform_hw.emulator import Emulator
-from tactdeform_hw.emulator.hazards import Hazard, HazardKind
-from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
+from tactdeform_hw.emulator.serving.in_process import EmulatorPort
 
 #: What the closed-loop proof of a command boundary leaves in the emulator's records: the zeros in front
 #: of 0xF5 and the padding after the recovery's commands (unknown bytes), and 0xF5's re-detection.

@@ -1,5 +1,6 @@
-"""The test oracle for :mod:`tactdeform_hw.emulator.scan`: the firmware's timer interrupt stepped through
-statement by statement — slow, obviously right.  :class:`~tactdeform_hw.emulator.scan.ScanEngine`'s
+"""The test oracle for :mod:`tactdeform_hw.emulator.firmware.scan`: the firmware's timer interrupt stepped
+through
+statement by statement — slow, obviously right.  :class:`~tactdeform_hw.emulator.firmware.scan.ScanEngine`'s
 templates are held to it event for event (``test_timing_scan.py``, the trace and v2 scan-trace tests, and
 the timing benchmarks' baseline)."""
 
@@ -7,7 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from tactdeform_hw.emulator.scan import (
+from tactdeform_hw.emulator.firmware.scan import (
     POWER_ON_CHAIN,
     ChainState,
     PulseKind,
@@ -17,8 +18,8 @@ from tactdeform_hw.emulator.scan import (
     _lowest,
     _outputs,
 )
-from tactdeform_hw.emulator.skin import DEFAULT_SKIN, SkinModel
-from tactdeform_hw.emulator.timing import DEFAULT_MODEL, TimingModel
+from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
+from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513, PATTERN_BIPHASIC, PATTERN_MONOPHASIC
 
 

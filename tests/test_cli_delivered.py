@@ -16,7 +16,7 @@ import pytest
 
 from tactdeform_hw.cli import main
 from tactdeform_hw.cli.replay_log import replay
-from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF
+from tactdeform_hw.device.safety.guard import TACTDEFORM_REGION_OF
 
 PROFILE = """version = 1
 participant = "P07"

@@ -18,7 +18,7 @@ import pytest
 
 from tactdeform_hw.cli import EXIT_STATUS_HELP, build_parser, main
 from tactdeform_hw.cli import timing as timing_cli
-from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
+from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
 from tactdeform_hw.formats import PatternSequence, PatternStep, write_pattern_file
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from tactdeform_hw.device import ChannelMapping, EtactileKitDevice, StimConfig, open_device
-from tactdeform_hw.device.firmware_probe import UnidentifiedBoardError
+from tactdeform_hw.device.driver.firmware_probe import UnidentifiedBoardError
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.errors import (
     ConfigurationError,

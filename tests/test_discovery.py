@@ -9,8 +9,8 @@ from types import SimpleNamespace
 import pytest
 
 from tactdeform_hw.cli import main
-from tactdeform_hw.device import discovery, usb_transport
-from tactdeform_hw.device.discovery import discover, serial_candidates
+from tactdeform_hw.device.driver import discovery, usb_transport
+from tactdeform_hw.device.driver.discovery import discover, serial_candidates
 
 BOARD_SERIAL = "F4:12:FA:C0:FF:EE"
 
@@ -43,7 +43,7 @@ def test_serial_candidates_mark_espressif_with_reasons() -> None:
 
 def test_discover_lists_both_routes_and_links_the_same_board() -> None:
     pytest.importorskip("usb.core")
-    from tactdeform_hw.emulator.usb_backend import EmulatedUsbBackend
+    from tactdeform_hw.emulator.serving.usb_backend import EmulatedUsbBackend
 
     result = discover(usb_backend=EmulatedUsbBackend(), serial_ports=PORTS)
     assert result.usb_available and result.notes == []
@@ -65,7 +65,7 @@ def test_discover_lists_both_routes_and_links_the_same_board() -> None:
 
 def test_unreadable_strings_are_a_note_not_an_error() -> None:
     pytest.importorskip("usb.core")
-    from tactdeform_hw.emulator.usb_backend import EmulatedUsbBackend, EmulatedUsbDevice
+    from tactdeform_hw.emulator.serving.usb_backend import EmulatedUsbBackend, EmulatedUsbDevice
 
     result = discover(
         usb_backend=EmulatedUsbBackend([EmulatedUsbDevice(access_denied=True)]), serial_ports=[]

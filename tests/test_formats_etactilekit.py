@@ -457,7 +457,7 @@ def _play(argv: list[str], fake: FakeClock, record: list | None = None, monkeypa
 
 
 def test_play_follows_the_schedule_on_the_emulator(tmp_path: Path, monkeypatch, capsys) -> None:
-    from tactdeform_hw.device.base import Device
+    from tactdeform_hw.device.driver.base import Device
 
     steps = [step_doc([1, 0, 0, 0], 200, 0), step_doc([0, 2, 0, 0], 100, 50), step_doc([0, 0, 1, 1], 300, 0)]
     path = _pattern_file(tmp_path, steps)
@@ -501,7 +501,7 @@ def test_play_reconfigures_when_rate_or_polarity_changes(tmp_path: Path, capsys)
 
 
 def test_play_maps_through_the_array_file(tmp_path: Path, monkeypatch, capsys) -> None:
-    from tactdeform_hw.device.base import Device
+    from tactdeform_hw.device.driver.base import Device
 
     arr = write_json(tmp_path / "a.json", {**_array_doc(), "board": "on_board"})
     path = _pattern_file(tmp_path, [step_doc([0] * 24 + [1, 0, 2, 0] + [0] * 4, 20)])

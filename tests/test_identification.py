@@ -9,7 +9,7 @@ import itertools
 
 import pytest
 
-from tactdeform_hw.device.firmware_probe import (
+from tactdeform_hw.device.driver.firmware_probe import (
     IDENT_OFF,
     SETTLE_S,
     SIGNATURE,
@@ -20,7 +20,7 @@ from tactdeform_hw.device.firmware_probe import (
     detect_firmware,
 )
 from tactdeform_hw.emulator import Emulator
-from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.emulator.serving.in_process import EmulatorPort
 from tactdeform_hw.protocol import commands as c12
 from tactdeform_hw.protocol import commands_v2 as c2
 from tactdeform_hw.protocol.firmware import V1_2, V2
@@ -204,7 +204,7 @@ class _Echo(EmulatorPort):
 
 @pytest.mark.parametrize("port_cls", [_Silent, _Echo])
 def test_silence_and_an_echo_are_refused_before_any_stimulating_byte(port_cls: type) -> None:
-    from tactdeform_hw.device.serial_driver import EtactileKitDevice
+    from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice
 
     port = port_cls(Emulator())
     with pytest.raises(UnidentifiedBoardError, match="neither eTactileKit firmware"):
@@ -213,7 +213,7 @@ def test_silence_and_an_echo_are_refused_before_any_stimulating_byte(port_cls: t
 
 
 def test_open_device_v12_refuses_a_v2_board_and_accepts_v12(monkeypatch: pytest.MonkeyPatch) -> None:
-    from tactdeform_hw.device import serial_driver
+    from tactdeform_hw.device.driver import serial_driver
 
     for fw, ok in (("v1.2", True), ("v2", False)):
         emu = Emulator(firmware=fw)
@@ -243,7 +243,7 @@ def test_a_v12_expectation_on_a_v2_answer_and_the_reverse_are_refused() -> None:
 @pytest.mark.parametrize("bad", ["v3", None, ""])
 def test_open_device_and_the_constructor_refuse_an_unproved_choice(bad: object) -> None:
     """``firmware=None`` once drove v1.2 without asking; no value skips the identification now."""
-    from tactdeform_hw.device.serial_driver import EtactileKitDevice, open_device
+    from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice, open_device
     from tactdeform_hw.errors import ConfigurationError
 
     with pytest.raises(
@@ -259,8 +259,8 @@ def test_open_device_and_the_constructor_refuse_an_unproved_choice(bad: object) 
 def test_the_constructor_identifies_a_v2_board_and_drives_it_in_v2() -> None:
     """``EtactileKitDevice(port)`` built directly once drove v1.2 without asking; a v1.2 pattern on a v2
     board is read as heights 0x0101 and clamped 4095."""
-    from tactdeform_hw.device.config import StimConfig
-    from tactdeform_hw.device.serial_driver import EtactileKitDevice
+    from tactdeform_hw.device.driver.config import StimConfig
+    from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice
 
     emu = Emulator(firmware="v2")
     dev = EtactileKitDevice(EmulatorPort(emu))
@@ -313,9 +313,9 @@ def test_open_device_identifies_by_default_and_counts_the_identification_as_its_
     driver speaks it, and the identification's bytes are in the device's byte count and its audit log."""
     import json
 
-    from tactdeform_hw.device.audit import AuditLog
-    from tactdeform_hw.device.serial_driver import open_device
-    from tactdeform_hw.emulator.urlhandler import protocol_etactile
+    from tactdeform_hw.device.driver.audit import AuditLog
+    from tactdeform_hw.device.driver.serial_driver import open_device
+    from tactdeform_hw.emulator.serving.urlhandler import protocol_etactile
 
     wire = bytearray()
     write = protocol_etactile.Serial.write

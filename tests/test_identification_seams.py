@@ -9,12 +9,12 @@ import time
 
 import pytest
 
-from tactdeform_hw.device.config import StimConfig
-from tactdeform_hw.device.firmware_probe import FirmwareMismatchError
-from tactdeform_hw.device.serial_driver import open_device
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError
+from tactdeform_hw.device.driver.serial_driver import open_device
 from tactdeform_hw.emulator import HazardKind
-from tactdeform_hw.emulator.realtime import WIFI_TCP, RealtimeEmulator
-from tactdeform_hw.emulator.tcp_server import TcpServer
+from tactdeform_hw.emulator.serving.realtime import WIFI_TCP, RealtimeEmulator
+from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 from tactdeform_hw.errors import BoardBusyError
 
 from .safety_helpers import delivered_pulses, wait_until

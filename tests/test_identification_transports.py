@@ -8,16 +8,16 @@ from contextlib import AbstractContextManager, contextmanager
 
 import pytest
 
-from tactdeform_hw.device.config import StimConfig
-from tactdeform_hw.device.firmware_probe import FirmwareMismatchError
-from tactdeform_hw.device.serial_driver import open_device
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError
+from tactdeform_hw.device.driver.serial_driver import open_device
 
 
 @contextmanager
 def _url(fw: str) -> Iterator[tuple[str, Callable[[], dict]]]:
     import uuid
 
-    from tactdeform_hw.emulator.urlhandler.protocol_etactile import shared_emulator
+    from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import shared_emulator
 
     name = f"ident-{uuid.uuid4().hex}"  # a board of this test's own, shared by its opens
     yield f"etactile://{name}?firmware={fw}", lambda: shared_emulator(name).state()
@@ -25,7 +25,7 @@ def _url(fw: str) -> Iterator[tuple[str, Callable[[], dict]]]:
 
 @contextmanager
 def _pty(fw: str) -> Iterator[tuple[str, Callable[[], dict]]]:
-    from tactdeform_hw.emulator.pty_server import PtyServer
+    from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
     server = PtyServer(firmware=fw).start()
     try:
@@ -36,8 +36,8 @@ def _pty(fw: str) -> Iterator[tuple[str, Callable[[], dict]]]:
 
 @contextmanager
 def _tcp(fw: str) -> Iterator[tuple[str, Callable[[], dict]]]:
-    from tactdeform_hw.emulator.realtime import WIFI_TCP, RealtimeEmulator
-    from tactdeform_hw.emulator.tcp_server import TcpServer
+    from tactdeform_hw.emulator.serving.realtime import WIFI_TCP, RealtimeEmulator
+    from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 
     server = TcpServer(RealtimeEmulator(rules=WIFI_TCP, firmware=fw), port=0, rules=WIFI_TCP)
     server.start()
@@ -50,7 +50,7 @@ def _tcp(fw: str) -> Iterator[tuple[str, Callable[[], dict]]]:
 @contextmanager
 def _usb(fw: str) -> Iterator[tuple[str, Callable[[], dict]]]:
     pytest.importorskip("usb", reason="the [usb] extra (pyusb) serves the emulated USB device")
-    from tactdeform_hw.emulator.usb_server import UsbServer
+    from tactdeform_hw.emulator.serving.usb_server import UsbServer
 
     server = UsbServer(firmware=fw).start()
     try:

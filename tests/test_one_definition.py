@@ -11,10 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from tactdeform_hw.device import audit, pacing
-from tactdeform_hw.emulator import parser as emu_parser
-from tactdeform_hw.emulator import timed
-from tactdeform_hw.emulator.timing import DEFAULT_MODEL, TimingModel
+from tactdeform_hw.device.driver import audit, pacing
+from tactdeform_hw.emulator.firmware import parser as emu_parser
+from tactdeform_hw.emulator.timed import model_v1_2 as timed
+from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.protocol import firmware_math as fm
 from tactdeform_hw.protocol.decoder import decode
 from tactdeform_hw.protocol.firmware import V1_2, V2, CommandSpec, Opcode, busy_wait_ticks
@@ -27,7 +27,7 @@ _FIRMWARE_NUMBERS = {4095, 255, 1020, 6.6, 5.4, 3.3}
 _OPCODE_HEX = re.compile(r"0[xX][fF][4-9a-eA-E]$")
 #: Literals of the same value that mean something else (file, literal, why).
 _ALLOWED = {
-    ("emulator/skin.py", "4095"),  # the board ADC's 12-bit full scale, not the firmware's DAC clamp
+    ("emulator/firmware/skin.py", "4095"),  # the board ADC's 12-bit full scale, not the firmware's DAC clamp
     ("viz/array_picture.py", "255"),  # a GIF palette size
 }
 

@@ -67,7 +67,7 @@ def test_importing_the_package_only_registers_the_url_handler() -> None:
         check=True,
         cwd=Path(__file__).resolve().parents[1],
     ).stdout.strip()
-    assert out == "['tactdeform_hw'] ['tactdeform_hw.emulator.urlhandler'] 1 False"
+    assert out == "['tactdeform_hw'] ['tactdeform_hw.emulator.serving.urlhandler'] 1 False"
 
 
 def test_the_approaches_share_one_protocol() -> None:

@@ -11,7 +11,7 @@ import pytest
 import serial
 
 from tactdeform_hw.emulator import Emulator, HazardKind
-from tactdeform_hw.emulator.realtime import (
+from tactdeform_hw.emulator.serving.realtime import (
     SERIAL_USB,
     WIFI_TCP,
     LagRecorder,
@@ -20,8 +20,8 @@ from tactdeform_hw.emulator.realtime import (
     UsbSerialJtagLines,
     settle,
 )
-from tactdeform_hw.emulator.tcp_server import TcpServer
-from tactdeform_hw.emulator.timed import TimedEmulator
+from tactdeform_hw.emulator.serving.tcp_server import TcpServer
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.protocol import commands as c
 
 CONFIG = (
@@ -334,7 +334,7 @@ def test_url_reply_waits_for_the_parser_rhythm() -> None:
 
 def test_url_port_declares_how_to_pace_it() -> None:
     from tactdeform_hw.clock import InstantClock, MonotonicClock
-    from tactdeform_hw.device.pacing import default_pacer
+    from tactdeform_hw.device.driver.pacing import default_pacer
 
     timed = serial.serial_for_url("etactile://", do_not_open=True)
     instant = serial.serial_for_url("etactile://?timed=0", do_not_open=True)

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from tactdeform_hw.device import StimConfig, open_device
-from tactdeform_hw.device.readback import pattern_readback
+from tactdeform_hw.device.driver.readback import pattern_readback
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.render.array import ElectrodeArray
 from tactdeform_hw.render.baselines import ContactAreaMapping, UniformActivation

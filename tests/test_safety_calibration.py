@@ -10,9 +10,9 @@ import pytest
 
 from tactdeform_hw.cli import main
 from tactdeform_hw.cli.replay_log import replay
-from tactdeform_hw.device.audit import AuditLog, read_log
-from tactdeform_hw.device.calibration import MATCH_ORDER, Calibration, Phase, parse_key_script
-from tactdeform_hw.device.profiles import load_profile
+from tactdeform_hw.device.driver.audit import AuditLog, read_log
+from tactdeform_hw.device.participant.calibration import MATCH_ORDER, Calibration, Phase, parse_key_script
+from tactdeform_hw.device.participant.profiles import load_profile
 from tactdeform_hw.errors import ConfigurationError
 
 

@@ -21,14 +21,14 @@ import pytest
 
 from tactdeform_hw.cli import main
 from tactdeform_hw.cli.replay_log import replay
-from tactdeform_hw.device.config import StimConfig
-from tactdeform_hw.device.mapping import ChannelMapping
-from tactdeform_hw.device.regions import TACTDEFORM_POSITIONS_MM
-from tactdeform_hw.device.safety import SafetyGuard
-from tactdeform_hw.device.serial_driver import EtactileKitDevice, open_device
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice, open_device
+from tactdeform_hw.device.participant.mapping import ChannelMapping
+from tactdeform_hw.device.participant.regions import TACTDEFORM_POSITIONS_MM
+from tactdeform_hw.device.safety.guard import SafetyGuard
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.faults import TimedPort
-from tactdeform_hw.emulator.timed import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.errors import SafetyError
 from tactdeform_hw.formats import calibration_profile as cp
 from tactdeform_hw.protocol import commands as p1
@@ -195,7 +195,7 @@ def no_port(monkeypatch: pytest.MonkeyPatch) -> list[RecordingPort]:
         opened.append(port)
         return port
 
-    monkeypatch.setattr("tactdeform_hw.device.serial_driver.open_port", fake_open_port)
+    monkeypatch.setattr("tactdeform_hw.device.driver.serial_driver.open_port", fake_open_port)
     return opened
 
 

@@ -13,10 +13,10 @@ from pathlib import Path
 import pytest
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig, open_device
-from tactdeform_hw.device.failsafe import FailSafe, Readback, refresh
+from tactdeform_hw.device.safety.failsafe import FailSafe, Readback, refresh
 from tactdeform_hw.emulator import Emulator
-from tactdeform_hw.emulator.pty_server import PtyServer
-from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.emulator.serving.in_process import EmulatorPort
+from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
 from .safety_helpers import RecordingPort
 
@@ -95,7 +95,7 @@ CHILD = textwrap.dedent(
     import sys, time
     import serial
     from tactdeform_hw.device import EtactileKitDevice, StimConfig
-    from tactdeform_hw.device.failsafe import FailSafe, register_at_exit
+    from tactdeform_hw.device.safety.failsafe import FailSafe, register_at_exit
     mode, path = sys.argv[1], sys.argv[2]
     port = serial.Serial(None, 921600, timeout=0.5)
     port.port = path

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from tactdeform_hw.device.pacing import estimate_scan_us
+from tactdeform_hw.device.driver.pacing import estimate_scan_us
 from tactdeform_hw.emulator.faults import LINK_FAULTS, Fault, FaultKind, TimedPort, random_plan
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
@@ -104,7 +104,7 @@ def test_without_recovery_a_locked_parser_stimulates_on() -> None:
 
 
 def test_scan_estimate_matches_the_timed_emulator() -> None:
-    from tactdeform_hw.emulator.scan import ScanConfig, scan_duration_ns
+    from tactdeform_hw.emulator.firmware.scan import ScanConfig, scan_duration_ns
 
     for levels, width, discharge in [
         ([1] * 32, 200, 45),
@@ -136,8 +136,8 @@ def test_fault_plan_is_seeded_and_validated() -> None:
 def test_renderer_pipeline_through_a_fault() -> None:
     """The real renderer (scene, trajectory, pattern manager) on the faulty timed emulator."""
     from tactdeform_hw.device import EtactileKitDevice, StimConfig
-    from tactdeform_hw.device.failsafe import FailSafe
-    from tactdeform_hw.device.safety import SafetyGuard
+    from tactdeform_hw.device.safety.failsafe import FailSafe
+    from tactdeform_hw.device.safety.guard import SafetyGuard
     from tactdeform_hw.emulator.faults import Intent, check_deliveries
     from tactdeform_hw.render import pipeline as render
     from tactdeform_hw.render.array import ElectrodeArray

@@ -16,10 +16,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
-from tactdeform_hw.device.profiles import ParticipantProfile, profile_from_dict
-from tactdeform_hw.device.safety import SafetyGuard
+from tactdeform_hw.device.participant.profiles import ParticipantProfile, profile_from_dict
+from tactdeform_hw.device.safety.guard import SafetyGuard
 from tactdeform_hw.emulator import Emulator
-from tactdeform_hw.emulator.timed import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.errors import TactDeformError
 from tactdeform_hw.protocol.decoder import StreamDecoder, decode
 

@@ -11,9 +11,9 @@ import pytest
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.device import ChannelMapping, Device, EtactileKitDevice, StimConfig
-from tactdeform_hw.device.audit import AuditLog
-from tactdeform_hw.device.profiles import ParticipantProfile
-from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF, SafetyGuard, grid_regions
+from tactdeform_hw.device.driver.audit import AuditLog
+from tactdeform_hw.device.participant.profiles import ParticipantProfile
+from tactdeform_hw.device.safety.guard import TACTDEFORM_REGION_OF, SafetyGuard, grid_regions
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.errors import LimitError, ProtocolMisuseError, SafetyError
 from tactdeform_hw.protocol.decoder import decode
@@ -391,7 +391,7 @@ def test_raw_port_is_outside_the_driver() -> None:
     The guard protects the driver's API; whoever opens the port themselves has left it."""
     import serial
 
-    from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
+    from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
 
     forget_shared()
     dev = EtactileKitDevice(
@@ -449,7 +449,7 @@ def test_interlock_limits_follow_each_mapping_and_every_change_of_the_limits() -
 
 def test_a_rewrite_of_the_same_state_is_not_a_state_write() -> None:
     from tactdeform_hw.clock import SimulatedClock
-    from tactdeform_hw.device.pacing import Pacer
+    from tactdeform_hw.device.driver.pacing import Pacer
 
     clock = SimulatedClock()
     dev = EtactileKitDevice(RecordingPort(), guard=SafetyGuard(), pacer=Pacer(clock=clock))

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
-from tactdeform_hw.device.safety import SafetyGuard, WireState, _Shadow, _tail_losses
+from tactdeform_hw.device.safety.guard import SafetyGuard, WireState, _Shadow, _tail_losses
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.errors import SafetyError
 from tactdeform_hw.protocol.units import CurrentTransfer

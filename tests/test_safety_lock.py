@@ -16,7 +16,7 @@ import pytest
 import serial
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig, open_device
-from tactdeform_hw.emulator.pty_server import PtyServer
+from tactdeform_hw.emulator.serving.pty_server import PtyServer
 from tactdeform_hw.errors import DeviceBusyError, TransportError
 
 REPO = Path(__file__).resolve().parents[1]

@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
-from tactdeform_hw.device.failsafe import DEFAULT_WATCHDOG_S, FailSafe
+from tactdeform_hw.device.safety.failsafe import DEFAULT_WATCHDOG_S, FailSafe
 from tactdeform_hw.emulator.faults import TimedPort
-from tactdeform_hw.emulator.timed import TimedEmulator
-from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.errors import LimitError
 from tactdeform_hw.protocol.firmware_math import firmware_period_us
 from tactdeform_hw.render.array import ElectrodeArray

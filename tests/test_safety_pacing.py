@@ -10,11 +10,11 @@ import pytest
 
 from tactdeform_hw.clock import InstantClock, MonotonicClock, SimulatedClock
 from tactdeform_hw.device import EtactileKitDevice, StimConfig, open_device
-from tactdeform_hw.device.pacing import Pacer, PacingPolicy, default_pacer, padding_for
-from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF, SafetyGuard
+from tactdeform_hw.device.driver.pacing import Pacer, PacingPolicy, default_pacer, padding_for
+from tactdeform_hw.device.safety.guard import TACTDEFORM_REGION_OF, SafetyGuard
 from tactdeform_hw.emulator.faults import TimedPort
-from tactdeform_hw.emulator.hazards import HazardKind
-from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.emulator.firmware.hazards import HazardKind
+from tactdeform_hw.emulator.serving.in_process import EmulatorPort
 from tactdeform_hw.errors import ShortReplyError
 from tactdeform_hw.protocol.constants import PAYLOAD_KIND
 
@@ -225,7 +225,7 @@ def test_v2_a_pattern_written_alone_is_torn_when_the_parsers_tick_falls_just_bef
     for 40 ms, so nothing queued before it — that arrives before such a tick is read on it, and the scan
     pre-empts its copy: the first channels new, the rest old.  The write's moment only chooses the tick
     when the host knows where the alarms are, and no reply tells it."""
-    from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
+    from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
     from tactdeform_hw.protocol import commands_v2 as c2
     from tactdeform_hw.protocol.firmware import OpcodeV2
 

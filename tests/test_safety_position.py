@@ -15,12 +15,12 @@ import pytest
 
 from tactdeform_hw.cli import main
 from tactdeform_hw.cli.replay_log import replay
-from tactdeform_hw.device.regions import (
+from tactdeform_hw.device.participant.regions import (
     TACTDEFORM_POSITIONS_MM,
     region_map_from_positions,
     tactdeform_region_map,
 )
-from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF, SafetyGuard, grid_regions
+from tactdeform_hw.device.safety.guard import TACTDEFORM_REGION_OF, SafetyGuard, grid_regions
 from tactdeform_hw.errors import SafetyError
 
 #: Region 0 (fingertip-left) is the most sensitive: 400 µA; every other region 2000 µA.
@@ -82,7 +82,7 @@ def test_tactdeform_regions_come_from_positions() -> None:
 
 
 def test_guard_limits_follow_positions_not_list_order() -> None:
-    from tactdeform_hw.device.profiles import profile_from_dict
+    from tactdeform_hw.device.participant.profiles import profile_from_dict
 
     prof = profile_from_dict(PROFILE)
     by_position = SafetyGuard.from_profile(
@@ -120,7 +120,7 @@ def test_border_electrode_is_refused_only_when_its_regions_differ() -> None:
 
 def test_no_position_means_refusal_never_a_map_by_index() -> None:
     from tactdeform_hw.device import EtactileKitDevice
-    from tactdeform_hw.device.config import StimConfig
+    from tactdeform_hw.device.driver.config import StimConfig
 
     from .safety_helpers import RecordingPort
 
@@ -251,7 +251,7 @@ def test_replay_log_without_positions_is_refused_when_regions_differ(
 def test_play_refuses_an_array_with_an_electrode_on_a_border(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
+    from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
 
     forget_shared()
     f = _files(tmp_path)

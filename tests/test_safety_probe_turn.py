@@ -8,10 +8,10 @@ from __future__ import annotations
 import pytest
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
-from tactdeform_hw.device.failsafe import FailSafe
+from tactdeform_hw.device.safety.failsafe import FailSafe
 from tactdeform_hw.emulator.faults import TimedPort
-from tactdeform_hw.emulator.timed import TimedEmulator
-from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.errors import ShortReplyError, TactDeformError
 
 

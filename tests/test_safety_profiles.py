@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from tactdeform_hw.cli import main
-from tactdeform_hw.device.profiles import (
+from tactdeform_hw.device.participant.profiles import (
     ParticipantProfile,
     dumps_profile,
     load_profile,
@@ -147,7 +147,7 @@ def test_constructor_validates_too() -> None:
 def test_cli_refuses_bad_profile_before_opening_the_device(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], command: str
 ) -> None:
-    from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
+    from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
 
     forget_shared()
     bad = write_json(tmp_path, {**GOOD, "cap_ua": 12_000})
@@ -229,7 +229,7 @@ def test_cli_refuses_bad_profile_before_opening_the_device(
 def test_send_with_profile_clips_to_region_and_refuses_above_cap(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared
+    from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared
 
     forget_shared()
     prof = write_json(tmp_path, GOOD)

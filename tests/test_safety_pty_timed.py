@@ -12,8 +12,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from tactdeform_hw.device.firmware_probe import IDENT_OFF
-from tactdeform_hw.emulator.pty_server import PtyServer
+from tactdeform_hw.device.driver.firmware_probe import IDENT_OFF
+from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
 from .conftest import REPO
 from .safety_helpers import current_pulses_us

@@ -19,16 +19,16 @@ import serial
 
 from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
-from tactdeform_hw.device.base import TRANSITIONS, LinkState
-from tactdeform_hw.device.firmware_probe import UnidentifiedBoardError
-from tactdeform_hw.device.pacing import Pacer, estimate_scan_us, firmware_period_us
-from tactdeform_hw.device.safety import SafetyGuard
+from tactdeform_hw.device.driver.base import TRANSITIONS, LinkState
+from tactdeform_hw.device.driver.firmware_probe import UnidentifiedBoardError
+from tactdeform_hw.device.driver.pacing import Pacer, estimate_scan_us, firmware_period_us
+from tactdeform_hw.device.safety.guard import SafetyGuard
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.faults import TimedPort
-from tactdeform_hw.emulator.hazards import HazardKind
-from tactdeform_hw.emulator.pty_server import PtyServer
-from tactdeform_hw.emulator.timed import TimedEmulator
-from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.emulator.firmware.hazards import HazardKind
+from tactdeform_hw.emulator.serving.in_process import EmulatorPort
+from tactdeform_hw.emulator.serving.pty_server import PtyServer
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.errors import TactDeformError
 from tactdeform_hw.protocol import commands as p
 
@@ -560,7 +560,7 @@ def test_the_failsafes_refresh_leaves_the_sense_height_to_its_readback_only_wher
 ) -> None:
     """Each ``f9`` written is one more byte a duplicate can turn into 10 mA: the refresh writes the sense
     height unless the readback already sees a sense current on the off channels (none configured)."""
-    from tactdeform_hw.device.failsafe import FailSafe
+    from tactdeform_hw.device.safety.failsafe import FailSafe
 
     emu = Emulator()
     dev = EtactileKitDevice(EmulatorPort(emu))

@@ -21,11 +21,11 @@ from typing import Any
 import pytest
 
 from tactdeform_hw.device import StimConfig, open_device
-from tactdeform_hw.device import failsafe as fs_mod
-from tactdeform_hw.device.guardian import LEAD_ZEROS, RESYNC_ZEROS, off_packet, stop_packet
-from tactdeform_hw.device.serial_driver import find_holders
+from tactdeform_hw.device.driver.serial_driver import find_holders
+from tactdeform_hw.device.safety import failsafe as fs_mod
+from tactdeform_hw.device.safety.guardian import LEAD_ZEROS, RESYNC_ZEROS, off_packet, stop_packet
 from tactdeform_hw.emulator import Emulator
-from tactdeform_hw.emulator.pty_server import PtyServer
+from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tools"))
@@ -468,7 +468,7 @@ def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> 
     bytes follow as it sends them when no proof comes back (the worst case: every retry).  Returns the
     largest current delivered from the owner's death on, the largest once the guardian is done, and the
     final pulse height."""
-    from tactdeform_hw.emulator.timed import TimedEmulator
+    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
     from .safety_helpers import configure_v12_tactdeform
 

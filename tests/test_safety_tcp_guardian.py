@@ -23,12 +23,12 @@ import pytest
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.device import StimConfig, open_device
-from tactdeform_hw.device.guardian import RESYNC_ZEROS, off_packet, stop_packet
-from tactdeform_hw.device.v2 import off_packet as off_packet_v2
-from tactdeform_hw.emulator.realtime import WIFI_TCP, RealtimeEmulator, TcpLink
-from tactdeform_hw.emulator.tcp_server import TcpServer
-from tactdeform_hw.emulator.timed import TimedEmulator
-from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
+from tactdeform_hw.device.driver.v2 import off_packet as off_packet_v2
+from tactdeform_hw.device.safety.guardian import RESYNC_ZEROS, off_packet, stop_packet
+from tactdeform_hw.emulator.serving.realtime import WIFI_TCP, RealtimeEmulator, TcpLink
+from tactdeform_hw.emulator.serving.tcp_server import TcpServer
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.protocol import commands_v2 as v2
 
 from .conftest import REPO
@@ -253,7 +253,7 @@ def test_on_a_socket_the_stop_goes_at_once_and_stale_replies_are_no_proof() -> N
     """A board that never answers, with the owner's stale reply already waiting in the connection: the
     guardian sends its stop at once (behind what the owner left), discards the stale byte instead of
     taking it as the proof, retries, and reports no proof — it pulses no reset line on TCP."""
-    from tactdeform_hw.device.guardian import switch_off
+    from tactdeform_hw.device.safety.guardian import switch_off
 
     with socket.create_server(("127.0.0.1", 0)) as listener:
         guardian_end = socket.create_connection(listener.getsockname()[:2])

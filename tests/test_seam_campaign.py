@@ -15,9 +15,9 @@ from .safety_helpers import OPEN_DEFECTS
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import seam_sessions as ss  # noqa: E402
 
-from tactdeform_hw.device import serial_driver  # noqa: E402
-from tactdeform_hw.device.firmware_probe import Detection  # noqa: E402
-from tactdeform_hw.device.safety import SafetyGuard  # noqa: E402
+from tactdeform_hw.device.driver import serial_driver  # noqa: E402
+from tactdeform_hw.device.driver.firmware_probe import Detection  # noqa: E402
+from tactdeform_hw.device.safety.guard import SafetyGuard  # noqa: E402
 from tactdeform_hw.protocol.firmware import V1_2, V2  # noqa: E402
 
 #: Open findings at the seams: v1.2 keeps the pattern values of a program cut in the middle of a frame

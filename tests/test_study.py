@@ -203,7 +203,7 @@ def task1_result() -> StudyRun:
 def _alter_second_frame(monkeypatch, alter) -> None:
     """The emulated port changes the second pattern with something on (``alter(bytes) -> bytes``) on its
     way to the board: the board does what the host did not send."""
-    from tactdeform_hw.emulator.urlhandler import protocol_etactile
+    from tactdeform_hw.emulator.serving.urlhandler import protocol_etactile
 
     real_write = protocol_etactile.Serial.write
     seen = {"patterns": 0}

@@ -7,10 +7,10 @@ import random
 import numpy as np
 import pytest
 
-from tactdeform_hw.emulator.analytic import Scenario, run_analytic, run_event_exact, run_nominal
-from tactdeform_hw.emulator.scan import ScanConfig, ScanEngine, scan_duration_ns
-from tactdeform_hw.emulator.timed import configuration_bytes
-from tactdeform_hw.emulator.timing import TimingModel
+from tactdeform_hw.emulator.firmware.scan import ScanConfig, ScanEngine, scan_duration_ns
+from tactdeform_hw.emulator.timed.analytic import Scenario, run_analytic, run_event_exact, run_nominal
+from tactdeform_hw.emulator.timed.model_v1_2 import configuration_bytes
+from tactdeform_hw.emulator.timed.timing import TimingModel
 from tactdeform_hw.errors import ConfigurationError
 from tactdeform_hw.protocol import encode_pattern
 

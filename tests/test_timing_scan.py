@@ -8,8 +8,7 @@ import random
 import numpy as np
 import pytest
 
-from tactdeform_hw.emulator.reports import Budget
-from tactdeform_hw.emulator.scan import (
+from tactdeform_hw.emulator.firmware.scan import (
     POWER_ON_CHAIN,
     ChainState,
     PulseKind,
@@ -19,8 +18,9 @@ from tactdeform_hw.emulator.scan import (
     channel_offsets_ns,
     scan_duration_ns,
 )
-from tactdeform_hw.emulator.skin import SkinModel
-from tactdeform_hw.emulator.timing import TimingModel
+from tactdeform_hw.emulator.firmware.skin import SkinModel
+from tactdeform_hw.emulator.records.reports import Budget
+from tactdeform_hw.emulator.timed.timing import TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 
 from .scan_reference import reference_scan
@@ -232,8 +232,8 @@ def test_templates_are_identical_to_the_step_through_over_random_configurations(
 def test_a_run_of_scans_equals_stepping_each_scan_from_the_previous_chain_state() -> None:
     """What the timed emulator replays (cached templates shifted in time) against the reference scan by
     scan — including the HV513-count-0 quirk, where the chain state changes every scan."""
-    from tactdeform_hw.emulator.timed import TimedEmulator
-    from tactdeform_hw.emulator.trace import MemorySink
+    from tactdeform_hw.emulator.records.trace import MemorySink
+    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
     for hv in (4, 0):
         cfg = ScanConfig.make(
@@ -330,7 +330,7 @@ def test_biphasic_channels_give_an_anodic_then_a_cathodic_phase() -> None:
 
 def test_untimed_emulator_scan_seam_fills_measure_replies() -> None:
     from tactdeform_hw.emulator import Emulator
-    from tactdeform_hw.emulator.scan import ScanVoltages
+    from tactdeform_hw.emulator.firmware.scan import ScanVoltages
     from tactdeform_hw.protocol import commands as c
 
     plain = Emulator()

@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 
-from tactdeform_hw.emulator.hazards import HazardKind
-from tactdeform_hw.emulator.link import Delivery, LinkFilter, UartLink, UsbFsLink
-from tactdeform_hw.emulator.scan import ScanConfig
-from tactdeform_hw.emulator.timed import TimedEmulator, configuration_bytes, pattern_latency
-from tactdeform_hw.emulator.timing import TimingModel
+from tactdeform_hw.emulator.firmware.hazards import HazardKind
+from tactdeform_hw.emulator.firmware.scan import ScanConfig
+from tactdeform_hw.emulator.timed.link import Delivery, LinkFilter, UartLink, UsbFsLink
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator, configuration_bytes, pattern_latency
+from tactdeform_hw.emulator.timed.timing import TimingModel
 from tactdeform_hw.errors import LimitError
 from tactdeform_hw.protocol import commands as c
 from tactdeform_hw.protocol.constants import Opcode
@@ -219,7 +219,7 @@ def test_first_pulse_per_channel_after_a_pattern_update() -> None:
     assert rep.wire_us + rep.loop_wait_us + rep.scan_wait_us == pytest.approx(rep.latency_us)
     # the first scan after the effect, each channel at its own offset within the scan
     scan = next(cy for cy in emu.reports.cycles() if cy.start_us > rep.effect_us)
-    from tactdeform_hw.emulator.scan import channel_offsets_ns
+    from tactdeform_hw.emulator.firmware.scan import channel_offsets_ns
 
     offs = channel_offsets_ns(ScanConfig.make(32, new), emu.model)[1]
     assert [ch.first_pulse_us for ch in rep.channels] == pytest.approx(
@@ -411,7 +411,7 @@ def test_extreme_configurations_run_with_honest_reports(name: str, cfg: ScanConf
     s = emu.reports.summary()
     assert s["scans"] > 0 and s["bytes_lost"] == 0
     assert all(cmd.in_sync for cmd in emu.commands)
-    from tactdeform_hw.emulator.reports import Budget
+    from tactdeform_hw.emulator.records.reports import Budget
 
     b = Budget.of(cfg, emu.model, rate)
     steady = settled(emu)

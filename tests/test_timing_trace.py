@@ -10,9 +10,9 @@ from pathlib import Path
 
 import pytest
 
-from tactdeform_hw.emulator.scan import ScanConfig, Signal
-from tactdeform_hw.emulator.timed import TimedEmulator
-from tactdeform_hw.emulator.trace import CsvSink, JsonSink, LiveTrace, MemorySink, VcdSink, open_trace
+from tactdeform_hw.emulator.firmware.scan import ScanConfig, Signal
+from tactdeform_hw.emulator.records.trace import CsvSink, JsonSink, LiveTrace, MemorySink, VcdSink, open_trace
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
 from tactdeform_hw.protocol import commands as c
 
@@ -121,7 +121,7 @@ def test_live_trace_as_a_pty_server_hook(tmp_path: Path) -> None:
     import serial
 
     from tactdeform_hw.emulator import Emulator
-    from tactdeform_hw.emulator.pty_server import PtyServer
+    from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
     path = tmp_path / "served.vcd"
     live = LiveTrace(path, link="usb")

@@ -9,7 +9,7 @@ import pytest
 
 from tactdeform_hw import transports
 from tactdeform_hw.device import open_device, open_port
-from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.emulator.serving.in_process import EmulatorPort
 from tactdeform_hw.errors import TransportError, TransportUnavailableError
 
 
@@ -77,7 +77,8 @@ def test_an_unknown_scheme_is_refused_naming_it() -> None:
 
 def test_the_device_layer_does_not_import_the_emulator() -> None:
     code = (
-        "import sys, tactdeform_hw.device, tactdeform_hw.device.usb_transport, tactdeform_hw.transports;"
+        "import sys, tactdeform_hw.device, tactdeform_hw.device.driver.usb_transport, "
+        "tactdeform_hw.transports;"
         "print(sorted(m for m in sys.modules if m.startswith('tactdeform_hw.emulator')"
         " and m != 'tactdeform_hw.emulator'))"
     )

@@ -11,14 +11,14 @@ usb_core = pytest.importorskip("usb.core", reason="the emulated USB device needs
 import usb.util  # noqa: E402
 
 from tactdeform_hw.emulator import HazardKind  # noqa: E402
-from tactdeform_hw.emulator.link import UsbFsLink  # noqa: E402
-from tactdeform_hw.emulator.timing import TimingModel  # noqa: E402
-from tactdeform_hw.emulator.usb_backend import (  # noqa: E402
+from tactdeform_hw.emulator.serving.usb_backend import (  # noqa: E402
     EmulatedUsbBackend,
     EmulatedUsbDevice,
     VirtualClock,
     backend_from_name,
 )
+from tactdeform_hw.emulator.timed.link import UsbFsLink  # noqa: E402
+from tactdeform_hw.emulator.timed.timing import TimingModel  # noqa: E402
 from tactdeform_hw.errors import ConfigurationError  # noqa: E402
 
 

@@ -23,9 +23,9 @@ import pytest
 
 pytest.importorskip("usb.core")
 
-from tactdeform_hw.device.usb_transport import UsbCdcPort  # noqa: E402
-from tactdeform_hw.emulator.usb_backend import EmulatedUsbBackend, EmulatedUsbDevice  # noqa: E402
-from tactdeform_hw.emulator.usb_client import SERVED_PREFIX, EmulatorClientBackend  # noqa: E402
+from tactdeform_hw.device.driver.usb_transport import UsbCdcPort  # noqa: E402
+from tactdeform_hw.emulator.serving.usb_backend import EmulatedUsbBackend, EmulatedUsbDevice  # noqa: E402
+from tactdeform_hw.emulator.serving.usb_client import SERVED_PREFIX, EmulatorClientBackend  # noqa: E402
 from tactdeform_hw.errors import DeviceBusyError  # noqa: E402
 from tactdeform_hw.transports import port_for_name  # noqa: E402
 

@@ -14,15 +14,10 @@ pytest.importorskip("usb.core", reason="the USB transport needs pyusb (pip insta
 
 import serial  # noqa: E402
 
-from tactdeform_hw.device import (  # noqa: E402
-    EtactileKitDevice,
-    StimConfig,
-    open_device,
-    open_port,
-    usb_transport,
-)
-from tactdeform_hw.device.usb_transport import UsbCdcPort, UsbDeviceSpec  # noqa: E402
-from tactdeform_hw.emulator.usb_backend import (  # noqa: E402
+from tactdeform_hw.device import EtactileKitDevice, StimConfig, open_device, open_port
+from tactdeform_hw.device.driver import usb_transport
+from tactdeform_hw.device.driver.usb_transport import UsbCdcPort, UsbDeviceSpec  # noqa: E402
+from tactdeform_hw.emulator.serving.usb_backend import (  # noqa: E402
     EP_INTERRUPT,
     EmulatedUsbBackend,
     EmulatedUsbDevice,

@@ -11,8 +11,8 @@ from typing import Any
 
 import pytest
 
-from tactdeform_hw.device.mapping import ChannelMapping
-from tactdeform_hw.device.profiles import ParticipantProfile, save_profile
+from tactdeform_hw.device.participant.mapping import ChannelMapping
+from tactdeform_hw.device.participant.profiles import ParticipantProfile, save_profile
 from tactdeform_hw.errors import ProfileError, SafetyError
 from tactdeform_hw.formats import calibration_profile as cp
 from tactdeform_hw.protocol.units import CurrentTransfer

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from tactdeform_hw.emulator.registers import V2_SCAN_REGISTERS
+from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS
 from tactdeform_hw.protocol.decoder import OK, TRUNCATED, decode
 from tactdeform_hw.protocol.firmware import V2
 

@@ -6,18 +6,18 @@ from __future__ import annotations
 
 import pytest
 
-from tactdeform_hw.device import serial_driver
-from tactdeform_hw.device.base import LinkState
-from tactdeform_hw.device.config import StimConfig
-from tactdeform_hw.device.firmware_probe import FirmwareMismatchError
-from tactdeform_hw.device.safety import SafetyGuard
-from tactdeform_hw.device.serial_driver import EtactileKitDevice, open_device
-from tactdeform_hw.device.v2 import V2Dialect, off_packet
+from tactdeform_hw.device.driver import serial_driver
+from tactdeform_hw.device.driver.base import LinkState
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError
+from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice, open_device
+from tactdeform_hw.device.driver.v2 import V2Dialect, off_packet
+from tactdeform_hw.device.safety.guard import SafetyGuard
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.faults import TimedPort
-from tactdeform_hw.emulator.timed import TimedEmulator
-from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
-from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.emulator.serving.in_process import EmulatorPort
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.errors import LimitError, SafetyError
 from tactdeform_hw.protocol import commands as c12
 from tactdeform_hw.protocol import commands_v2 as c2

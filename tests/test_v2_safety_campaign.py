@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from tactdeform_hw.device.base import LinkState
-from tactdeform_hw.device.config import StimConfig
-from tactdeform_hw.device.failsafe import FailSafe
-from tactdeform_hw.device.v2 import COMMAND_TIMEOUT_S
+from tactdeform_hw.device.driver.base import LinkState
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.v2 import COMMAND_TIMEOUT_S
+from tactdeform_hw.device.safety.failsafe import FailSafe
 from tactdeform_hw.errors import TactDeformError
 from tactdeform_hw.protocol import commands_v2 as c2
 
@@ -175,9 +175,9 @@ def test_close_is_proved_by_count_0_when_its_all_off_write_is_corrupted() -> Non
     reply to the count in force would prove only that the bytes were read; ``close`` on v2 ends at
     electrode count 0 and needs the sync reply 00, so nothing is scanned any more whatever the buffer
     holds."""
-    from tactdeform_hw.device.serial_driver import EtactileKitDevice
+    from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice
     from tactdeform_hw.emulator.faults import Fault, TimedPort
-    from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
+    from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 
     def session(faults: list[Fault]) -> tuple[float, TimedPort, TimedEmulatorV2]:
         board = TimedEmulatorV2("compact", 1, link="uart")

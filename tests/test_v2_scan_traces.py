@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from tactdeform_hw.emulator.firmware_scan import (
+from tactdeform_hw.emulator.firmware.firmware_scan import (
     DA_CS,
     DEFAULT_CONVENTIONS,
     HOST_BUILD,
@@ -120,7 +120,7 @@ def test_v2_biphasic_first_phase_follows_polarity() -> None:
 def test_the_v12_scan_engine_agrees_with_the_golden_traces() -> None:
     """The timed model's step-through (which does not log chip selects and counts them inside the
     exchange, the package's default reading) gives the golden order and values, pins for pins."""
-    from tactdeform_hw.emulator.scan import POWER_ON_CHAIN, ScanConfig, Signal
+    from tactdeform_hw.emulator.firmware.scan import POWER_ON_CHAIN, ScanConfig, Signal
 
     from .scan_reference import reference_scan
 
@@ -159,7 +159,7 @@ def test_the_v12_scan_engine_agrees_with_the_golden_traces() -> None:
 
 def test_budget_widths_match_the_traces() -> None:
     """The budget's effective width is DAC edge to DAC edge in the golden trace, on both versions."""
-    from tactdeform_hw.emulator.firmware_scan import budget
+    from tactdeform_hw.emulator.firmware.firmware_scan import budget
 
     for firmware in ("v1.2", "v2"):
         golden = TRACES[firmware][0]

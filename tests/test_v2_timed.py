@@ -7,9 +7,9 @@ import json
 import pytest
 
 from tactdeform_hw.emulator import HazardKind
-from tactdeform_hw.emulator.firmware_scan import FirmwareScanConfig, scan_duration_us
-from tactdeform_hw.emulator.registers import V2_SCAN_REGISTERS
-from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2, pattern_in_force_v2
+from tactdeform_hw.emulator.firmware.firmware_scan import FirmwareScanConfig, scan_duration_us
+from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2, pattern_in_force_v2
 from tactdeform_hw.protocol import commands_v2 as c
 
 from .conftest import DATA
@@ -180,7 +180,7 @@ def test_width_zero_still_delivers_one_exchange() -> None:
 
 
 def test_timed_emulator_factory_picks_the_version() -> None:
-    from tactdeform_hw.emulator.timed import TimedEmulator, timed_emulator
+    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator, timed_emulator
     from tactdeform_hw.errors import ConfigurationError
 
     assert isinstance(timed_emulator(), TimedEmulator)

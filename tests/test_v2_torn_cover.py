@@ -10,11 +10,11 @@ from pathlib import Path
 import pytest
 
 from tactdeform_hw.clock import SimulatedClock
-from tactdeform_hw.device.config import StimConfig
-from tactdeform_hw.device.pacing import Pacer, PacingPolicy
-from tactdeform_hw.device.v2 import covered_pattern
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.pacing import Pacer, PacingPolicy
+from tactdeform_hw.device.driver.v2 import covered_pattern
 from tactdeform_hw.emulator import HazardKind
-from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.protocol import commands_v2 as c2
 from tactdeform_hw.protocol.firmware import V2, OpcodeV2
 

@@ -6,8 +6,8 @@ import socket
 
 import pytest
 
-from tactdeform_hw.device.wifi_discovery import discover, parse_reply, resolve
-from tactdeform_hw.emulator.udp_discovery import DiscoveryResponder, device_id_from_mac, reply_for
+from tactdeform_hw.device.driver.wifi_discovery import discover, parse_reply, resolve
+from tactdeform_hw.emulator.serving.udp_discovery import DiscoveryResponder, device_id_from_mac, reply_for
 from tactdeform_hw.errors import ConfigurationError
 
 
@@ -50,7 +50,7 @@ def test_colliding_ids_are_refused_not_guessed() -> None:
 
 
 def test_etactilekit_url_resolves_to_pyserials_socket_handler() -> None:
-    from tactdeform_hw.device.serial_driver import open_port
+    from tactdeform_hw.device.driver.serial_driver import open_port
 
     listener = socket.create_server(("127.0.0.1", 0))
     tcp_port = listener.getsockname()[1]

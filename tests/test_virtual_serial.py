@@ -14,11 +14,11 @@ import serial
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
 from tactdeform_hw.emulator import Emulator, HazardKind
-from tactdeform_hw.emulator.pty_server import PtyServer
-from tactdeform_hw.emulator.realtime import RealtimeEmulator, settle
-from tactdeform_hw.emulator.scan import ScanConfig
-from tactdeform_hw.emulator.timed import TimedEmulator
-from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
+from tactdeform_hw.emulator.firmware.scan import ScanConfig
+from tactdeform_hw.emulator.serving.pty_server import PtyServer
+from tactdeform_hw.emulator.serving.realtime import RealtimeEmulator, settle
+from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.protocol import commands as c
 from tactdeform_hw.protocol import firmware_math as fm
 

@@ -228,7 +228,7 @@ def test_timing_window_and_units(tmp_path: Path) -> None:
 
 def test_timing_from_the_timed_emulator_reports(tmp_path: Path) -> None:
     from tactdeform_hw import protocol as p
-    from tactdeform_hw.emulator.timed import TimedEmulator
+    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
     from tactdeform_hw.viz.timing_diagram import draw_reports_png
 
     emu = TimedEmulator()

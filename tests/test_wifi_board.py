@@ -22,15 +22,15 @@ import serial
 import serial.urlhandler.protocol_socket
 
 from tactdeform_hw.clock import MonotonicClock
-from tactdeform_hw.device.firmware_probe import FirmwareMismatchError
-from tactdeform_hw.device.serial_driver import open_device
+from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError
+from tactdeform_hw.device.driver.serial_driver import open_device
 from tactdeform_hw.emulator import Emulator, HazardKind
-from tactdeform_hw.emulator.firmware_scan import DEFAULT_CONVENTIONS, FirmwareScanConfig
-from tactdeform_hw.emulator.realtime import SERIAL_USB, WIFI_TCP, RealtimeEmulator, TcpLink, settle
-from tactdeform_hw.emulator.registers import V2_SCAN_REGISTERS
-from tactdeform_hw.emulator.tcp_server import TcpServer
-from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2, _scan_shape, _shape
-from tactdeform_hw.emulator.udp_discovery import DiscoveryResponder
+from tactdeform_hw.emulator.firmware.firmware_scan import DEFAULT_CONVENTIONS, FirmwareScanConfig
+from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS
+from tactdeform_hw.emulator.serving.realtime import SERIAL_USB, WIFI_TCP, RealtimeEmulator, TcpLink, settle
+from tactdeform_hw.emulator.serving.tcp_server import TcpServer
+from tactdeform_hw.emulator.serving.udp_discovery import DiscoveryResponder
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2, _scan_shape, _shape
 from tactdeform_hw.protocol import commands_v2 as v2
 
 from .conftest import REPO
@@ -412,7 +412,7 @@ def test_socket_url_opens_through_pyserials_handler_paced_on_the_wall_clock() ->
     """A v1.2 Wi-Fi board behind ``socket://``: opened by pyserial's own handler (wrapped to declare
     itself guardable: a guardian shares the connection), paced in wall time, driven after the version
     probe."""
-    from tactdeform_hw.device.config import StimConfig
+    from tactdeform_hw.device.driver.config import StimConfig
 
     with TcpServer(RealtimeEmulator(rules=WIFI_TCP), port=0) as server:
         dev = open_device(server.url, firmware="auto", timeout=1.0)
@@ -501,7 +501,7 @@ def _check_against_vector(board: RealtimeEmulator, vec: dict[str, Any], replies:
 
 
 def test_upstream_style_client_over_the_pty_reaches_the_vectors_state() -> None:
-    from tactdeform_hw.emulator.pty_server import PtyServer
+    from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
     for vec in CHOSEN:
         stream = bytes.fromhex(vec["stream"])

@@ -21,11 +21,11 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tactdeform_hw.device.config import StimConfig  # noqa: E402
-from tactdeform_hw.device.serial_driver import EtactileKitDevice  # noqa: E402
+from tactdeform_hw.device.driver.config import StimConfig  # noqa: E402
+from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice  # noqa: E402
 from tactdeform_hw.emulator.faults import TimedPort  # noqa: E402
-from tactdeform_hw.emulator.timed import TimedEmulator  # noqa: E402
-from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2  # noqa: E402
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator  # noqa: E402
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2  # noqa: E402
 
 N = 32
 CURRENT_UA = 1000

@@ -15,10 +15,10 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tactdeform_hw.emulator import Emulator  # noqa: E402
-from tactdeform_hw.emulator.firmware_scan import HOST_BUILD, FirmwareScanConfig, budget  # noqa: E402
-from tactdeform_hw.emulator.scan import ScanConfig  # noqa: E402
-from tactdeform_hw.emulator.timed import pattern_latency  # noqa: E402
-from tactdeform_hw.emulator.timed_v2 import pattern_in_force_v2  # noqa: E402
+from tactdeform_hw.emulator.firmware.firmware_scan import HOST_BUILD, FirmwareScanConfig, budget  # noqa: E402
+from tactdeform_hw.emulator.firmware.scan import ScanConfig  # noqa: E402
+from tactdeform_hw.emulator.timed.model_v1_2 import pattern_latency  # noqa: E402
+from tactdeform_hw.emulator.timed.model_v2 import pattern_in_force_v2  # noqa: E402
 
 GOLDEN = Path(__file__).resolve().parents[1] / "tests" / "data" / "protocol_vectors_v2.jsonl"
 

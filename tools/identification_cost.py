@@ -28,7 +28,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tactdeform_hw.device.serial_driver import open_device  # noqa: E402
+from tactdeform_hw.device.driver.serial_driver import open_device  # noqa: E402
 
 FIRMWARES = ("v1.2", "v2")
 
@@ -43,7 +43,7 @@ def _url(fw: str) -> Iterator[str]:
 
 @contextmanager
 def _pty(fw: str) -> Iterator[str]:
-    from tactdeform_hw.emulator.pty_server import PtyServer
+    from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
     with PtyServer(firmware=fw) as server:
         yield server.path
@@ -51,8 +51,8 @@ def _pty(fw: str) -> Iterator[str]:
 
 @contextmanager
 def _tcp(fw: str) -> Iterator[str]:
-    from tactdeform_hw.emulator.realtime import WIFI_TCP, RealtimeEmulator
-    from tactdeform_hw.emulator.tcp_server import TcpServer
+    from tactdeform_hw.emulator.serving.realtime import WIFI_TCP, RealtimeEmulator
+    from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 
     with TcpServer(RealtimeEmulator(rules=WIFI_TCP, firmware=fw), port=0, rules=WIFI_TCP) as server:
         yield server.url
@@ -60,7 +60,7 @@ def _tcp(fw: str) -> Iterator[str]:
 
 @contextmanager
 def _usb(fw: str) -> Iterator[str]:
-    from tactdeform_hw.emulator.usb_server import UsbServer
+    from tactdeform_hw.emulator.serving.usb_server import UsbServer
 
     with UsbServer(firmware=fw) as server:
         yield server.name

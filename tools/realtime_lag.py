@@ -1,7 +1,8 @@
 """How well the real-time emulator keeps up with the wall clock, and what a pattern costs through a pty.
 
-Serves the timed board on a real pseudo-terminal (:class:`tactdeform_hw.emulator.pty_server.PtyServer`
-with a :class:`tactdeform_hw.emulator.realtime.RealtimeEmulator`), configures it over the pty the way a
+Serves the timed board on a real pseudo-terminal (:class:`tactdeform_hw.emulator.serving.pty_server.PtyServer`
+with a :class:`tactdeform_hw.emulator.serving.realtime.RealtimeEmulator`), configures it over the pty the way
+a
 host does (the TactDeform setting by default: 32 electrodes, 200 µs pulses, 45 µs discharge, 125 Hz),
 then measures two phases:
 
@@ -13,7 +14,7 @@ For each phase: the lag of the loop's wake-ups behind the events they were for (
 how often it fell behind by more than 1 ms, and the serving thread's CPU time per second of wall time.
 For the stream: the latency from each host write (the client's clock) to the first pulse with the new
 pattern (the model's report of that command, on the same clock), against the timed model's prediction
-for the same configuration and link (:func:`tactdeform_hw.emulator.timed.pattern_latency`, no pty).
+for the same configuration and link (:func:`tactdeform_hw.emulator.timed.model_v1_2.pattern_latency`, no pty).
 
 Usage::
 
@@ -34,9 +35,9 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tactdeform_hw.emulator.realtime import LagRecorder, RealtimeEmulator  # noqa: E402
-from tactdeform_hw.emulator.scan import ScanConfig  # noqa: E402
-from tactdeform_hw.emulator.timed import configuration_bytes, pattern_latency  # noqa: E402
+from tactdeform_hw.emulator.firmware.scan import ScanConfig  # noqa: E402
+from tactdeform_hw.emulator.serving.realtime import LagRecorder, RealtimeEmulator  # noqa: E402
+from tactdeform_hw.emulator.timed.model_v1_2 import configuration_bytes, pattern_latency  # noqa: E402
 from tactdeform_hw.protocol import commands as c  # noqa: E402
 from tactdeform_hw.protocol import firmware_math as fm  # noqa: E402
 from tactdeform_hw.protocol.decoder import decode  # noqa: E402
@@ -148,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--electrodes must be 1..255, not {args.electrodes}")
     import serial
 
-    from tactdeform_hw.emulator.pty_server import PtyServer
+    from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
     cfg = tactdeform_config(args.electrodes, 200, 45, args.frequency, 100)
     server = PtyServer(RealtimeEmulator()).start()

@@ -60,13 +60,13 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig  # noqa: E402
-from tactdeform_hw.device.pacing import estimate_scan_us, firmware_period_us  # noqa: E402
-from tactdeform_hw.device.safety import SafetyGuard  # noqa: E402
+from tactdeform_hw.device.driver.pacing import estimate_scan_us, firmware_period_us  # noqa: E402
+from tactdeform_hw.device.safety.guard import SafetyGuard  # noqa: E402
 from tactdeform_hw.emulator.faults import FaultKind, TimedPort, random_plan  # noqa: E402
-from tactdeform_hw.emulator.hazards import Hazard, HazardKind  # noqa: E402
-from tactdeform_hw.emulator.scan import PulseKind  # noqa: E402
-from tactdeform_hw.emulator.timed import TimedEmulator  # noqa: E402
-from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2  # noqa: E402
+from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind  # noqa: E402
+from tactdeform_hw.emulator.firmware.scan import PulseKind  # noqa: E402
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator  # noqa: E402
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2  # noqa: E402
 from tactdeform_hw.errors import (  # noqa: E402
     ConfigurationError,
     ProtocolMisuseError,
@@ -390,7 +390,7 @@ class Session:
         return [min(top, base, own[ch]) if ch < len(own) else 0.0 for ch in range(256)]
 
     def _start_failsafe(self) -> None:
-        from tactdeform_hw.device.failsafe import FailSafe
+        from tactdeform_hw.device.safety.failsafe import FailSafe
 
         fs = FailSafe(
             self.dev,

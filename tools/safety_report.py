@@ -107,7 +107,7 @@ def owner_stops(count: int) -> dict[str, Any]:
 def pacing_check() -> dict[str, Any]:
     """A loss-free session at the renderer's highest rate, every frame different, plus reconfigurations."""
     from tactdeform_hw.device import EtactileKitDevice, StimConfig
-    from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF, SafetyGuard
+    from tactdeform_hw.device.safety.guard import TACTDEFORM_REGION_OF, SafetyGuard
     from tactdeform_hw.emulator.faults import TimedPort
 
     out = {}

@@ -3,7 +3,7 @@
 Used by ``tests/test_safety_faults.py``, ``tests/test_safety_pacing.py`` and ``tools/safety_report.py``.
 A scenario builds a :class:`~tactdeform_hw.emulator.faults.TimedPort` (timed emulator, seeded faults), an
 :class:`~tactdeform_hw.device.EtactileKitDevice` with a participant's guard on it, and a
-:class:`~tactdeform_hw.device.failsafe.FailSafe` polled from the simulated clock; it plays a frame
+:class:`~tactdeform_hw.device.safety.failsafe.FailSafe` polled from the simulated clock; it plays a frame
 stream shaped like the renderer's (approach rings, a held contact, a sliding line, idle gaps — sent only
 when the pattern changes, with a keepalive otherwise), then checks every emulated pulse against what the
 host meant.  Everything is deterministic for a given seed.
@@ -18,10 +18,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
-from tactdeform_hw.device.failsafe import FailSafe
-from tactdeform_hw.device.pacing import PacingPolicy
-from tactdeform_hw.device.profiles import ParticipantProfile
-from tactdeform_hw.device.safety import SafetyGuard
+from tactdeform_hw.device.driver.pacing import PacingPolicy
+from tactdeform_hw.device.participant.profiles import ParticipantProfile
+from tactdeform_hw.device.safety.failsafe import FailSafe
+from tactdeform_hw.device.safety.guard import SafetyGuard
 from tactdeform_hw.emulator.faults import Fault, FaultKind, Intent, TimedPort, check_deliveries
 from tactdeform_hw.errors import TactDeformError
 

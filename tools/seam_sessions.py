@@ -63,12 +63,12 @@ import safety_campaign as sc  # noqa: E402
 
 from tactdeform_hw.clock import SimulatedClock  # noqa: E402
 from tactdeform_hw.device import EtactileKitDevice, StimConfig  # noqa: E402
-from tactdeform_hw.device.firmware_probe import FirmwareMismatchError  # noqa: E402
-from tactdeform_hw.device.mapping import ChannelMapping  # noqa: E402
+from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError  # noqa: E402
+from tactdeform_hw.device.participant.mapping import ChannelMapping  # noqa: E402
 from tactdeform_hw.emulator.faults import TimedPort  # noqa: E402
-from tactdeform_hw.emulator.realtime import WIFI_TCP, TcpLink  # noqa: E402
-from tactdeform_hw.emulator.timed import TimedEmulator  # noqa: E402
-from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2  # noqa: E402
+from tactdeform_hw.emulator.serving.realtime import WIFI_TCP, TcpLink  # noqa: E402
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator  # noqa: E402
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2  # noqa: E402
 from tactdeform_hw.errors import BoardBusyError, TactDeformError  # noqa: E402
 from tactdeform_hw.formats.calibration_profile import calibration_from_dict, calibration_guard  # noqa: E402
 from tactdeform_hw.ports import PortBase  # noqa: E402
@@ -91,9 +91,11 @@ OFF_AFTER_CLOSE_S = sc.SETTLE_S
 
 
 class SimWifiBoard:
-    """The Wi-Fi board (:data:`~tactdeform_hw.emulator.realtime.WIFI_TCP`) in simulated time: one timed
+    """The Wi-Fi board (:data:`~tactdeform_hw.emulator.serving.realtime.WIFI_TCP`) in simulated time: one
+    timed
     model with a TCP link both ways and the TCP window as its receive path, serving one connection at a
-    time as :class:`~tactdeform_hw.emulator.tcp_server.TcpServer` does.  A later connection waits in the
+    time as :class:`~tactdeform_hw.emulator.serving.tcp_server.TcpServer` does.  A later connection waits in
+    the
     backlog: its bytes are read, in order, once every earlier connection has gone (even if it closed
     meanwhile), and it is answered only from then on; the model hears of each new client
     (``TimedEmulatorV2.new_client``), so a command an earlier client cut can take its bytes."""

@@ -48,9 +48,9 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 from tactdeform_hw.emulator import Emulator  # noqa: E402
-from tactdeform_hw.emulator.pty_server import PtyServer  # noqa: E402
-from tactdeform_hw.emulator.realtime import WIFI_TCP, RealtimeEmulator  # noqa: E402
-from tactdeform_hw.emulator.tcp_server import TcpServer  # noqa: E402
+from tactdeform_hw.emulator.serving.pty_server import PtyServer  # noqa: E402
+from tactdeform_hw.emulator.serving.realtime import WIFI_TCP, RealtimeEmulator  # noqa: E402
+from tactdeform_hw.emulator.serving.tcp_server import TcpServer  # noqa: E402
 from tactdeform_hw.protocol.constants import PATTERN_BIPHASIC, PATTERN_MONOPHASIC  # noqa: E402
 
 
@@ -125,7 +125,7 @@ class BoardWatch:
 OWNER = """
 import sys, time
 from tactdeform_hw.device import StimConfig, open_device
-from tactdeform_hw.device.failsafe import StopSession
+from tactdeform_hw.device.safety.failsafe import StopSession
 with StopSession(watchdog_s=None):  # only the signal may stop it: what is measured is the stop itself
     dev = open_device(sys.argv[1], **({"firmware": sys.argv[2]} if len(sys.argv) > 2 else {}))
     dev.configure(StimConfig(current_ua=1000))
@@ -273,7 +273,7 @@ class UsbBench:
     firmwares = ("v1.2", "v2")
 
     def __init__(self, firmware: str) -> None:
-        from tactdeform_hw.emulator.usb_server import UsbServer
+        from tactdeform_hw.emulator.serving.usb_server import UsbServer
 
         self.server = UsbServer(firmware=firmware).start()
         self.board = (
@@ -293,7 +293,7 @@ TRANSPORTS: dict[str, Any] = {"pty": PtyBench, "tcp": TcpBench, "usb": UsbBench}
 
 def _wait_port_free(path: str, timeout: float) -> None:
     """The guardian holds the port (and its lock) until it is done: wait for it, so the next owner opens."""
-    from tactdeform_hw.device.serial_driver import find_holders
+    from tactdeform_hw.device.driver.serial_driver import find_holders
 
     end = time.monotonic() + timeout
     me = os.getpid()

@@ -2,11 +2,13 @@
 
 Three fidelities run the same host scenarios (writes at given times over USB or UART):
 
-* ``event-exact`` — :class:`tactdeform_hw.emulator.timed.TimedEmulator`: every byte, parser call, scan
+* ``event-exact`` — :class:`tactdeform_hw.emulator.timed.model_v1_2.TimedEmulator`: every byte, parser call,
+scan
   and watchdog; the reference (error 0 by definition);
-* ``analytic`` — :func:`tactdeform_hw.emulator.analytic.run_analytic`: closed-form scans and a command
+* ``analytic`` — :func:`tactdeform_hw.emulator.timed.analytic.run_analytic`: closed-form scans and a command
   model without the receive queue, torn reads or the u16 spin;
-* ``nominal`` — :func:`tactdeform_hw.emulator.analytic.run_nominal`: "pulse width + discharge per channel,
+* ``nominal`` — :func:`tactdeform_hw.emulator.timed.analytic.run_nominal`: "pulse width + discharge per
+channel,
   commands effective on arrival", the arithmetic a paper does by hand.
 
 For every scenario and simulated duration it reports the wall time, the speed (device time / wall time)
@@ -37,9 +39,9 @@ REPO = Path(__file__).resolve().parents[1]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
-from tactdeform_hw.emulator.analytic import Scenario, run_analytic, run_event_exact, run_nominal  # noqa: E402
-from tactdeform_hw.emulator.scan import ScanConfig  # noqa: E402
-from tactdeform_hw.emulator.timed import configuration_bytes  # noqa: E402
+from tactdeform_hw.emulator.firmware.scan import ScanConfig  # noqa: E402
+from tactdeform_hw.emulator.timed.analytic import Scenario, run_analytic, run_event_exact, run_nominal  # noqa: E402
+from tactdeform_hw.emulator.timed.model_v1_2 import configuration_bytes  # noqa: E402
 from tactdeform_hw.errors import MissingDependencyError  # noqa: E402
 from tactdeform_hw.protocol import encode_pattern  # noqa: E402
 

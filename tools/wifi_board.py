@@ -1,6 +1,6 @@
 """The v2 board in real time over a pty and over TCP: how well it keeps up, and what a pattern costs.
 
-Serves the timed v2 model (:class:`tactdeform_hw.emulator.realtime.RealtimeEmulator` with
+Serves the timed v2 model (:class:`tactdeform_hw.emulator.serving.realtime.RealtimeEmulator` with
 ``firmware="v2"``) on a real pseudo-terminal (the serial build: USB link, 1024-byte queue) and on a
 loopback TCP port (the Wi-Fi build: TCP flow control), configures it the way the upstream hosts do (the
 TactDeform setting by default: 32 electrodes, mode 0, 200 µs pulses, 45 µs discharge, 125 Hz), then
@@ -15,7 +15,7 @@ For each phase: the lag of the loop's wake-ups behind the events they were for (
 often it fell behind by more than 1 ms, and the serving thread's CPU per second of wall time.  For the
 stream: per frame, host write (the client's clock, before its first byte) → the parser stored it
 ("applied") and → the first pulse at the new heights ("in force"), against the offline model's prediction
-for the same link and chunking (:func:`tactdeform_hw.emulator.timed_v2.pattern_in_force_v2`).
+for the same link and chunking (:func:`tactdeform_hw.emulator.timed.model_v2.pattern_in_force_v2`).
 
 Usage::
 
@@ -37,14 +37,14 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tactdeform_hw.emulator.realtime import (  # noqa: E402
+from tactdeform_hw.emulator.serving.realtime import (  # noqa: E402
     SERIAL_USB,
     WIFI_TCP,
     LagRecorder,
     RealtimeEmulator,
     TcpLink,
 )
-from tactdeform_hw.emulator.timed_v2 import pattern_in_force_v2  # noqa: E402
+from tactdeform_hw.emulator.timed.model_v2 import pattern_in_force_v2  # noqa: E402
 from tactdeform_hw.protocol import commands_v2 as v2  # noqa: E402
 from tactdeform_hw.protocol.firmware import OpcodeV2  # noqa: E402
 
@@ -170,12 +170,12 @@ def run_transport(transport: str, args: argparse.Namespace) -> dict[str, Any]:
     board = RealtimeEmulator(rules=rules, firmware="v2", history_us=600e6)
     server: Any
     if transport == "pty":
-        from tactdeform_hw.emulator.pty_server import PtyServer
+        from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
         server = PtyServer(board).start()
         where: Any = server.path
     else:
-        from tactdeform_hw.emulator.tcp_server import TcpServer
+        from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 
         server = TcpServer(board, port=0, rules=rules).start()
         where = server.address

@@ -119,7 +119,7 @@ def _targets(args: argparse.Namespace) -> tuple[str, Path]:
 
 
 def _script_keys(args: argparse.Namespace) -> list[str] | None:
-    from ..device.calibration import parse_key_script
+    from tactdeform_hw.device.participant.calibration import parse_key_script
 
     if args.keys == "-" or (args.keys is None and not sys.stdin.isatty()):
         return parse_key_script(sys.stdin.read())
@@ -196,11 +196,12 @@ def _calibration_wiring(args: argparse.Namespace, array_file: Any, electrodes: i
 
 
 def run(args: argparse.Namespace) -> int:
+    from tactdeform_hw.device.participant.calibration import Calibration, Phase
+    from tactdeform_hw.device.participant.profiles import save_profile
+    from tactdeform_hw.device.participant.regions import tactdeform_region_map
+    from tactdeform_hw.device.safety.guard import SafetyGuard
+
     from ..device import StimConfig, open_device
-    from ..device.calibration import Calibration, Phase
-    from ..device.profiles import save_profile
-    from ..device.regions import tactdeform_region_map
-    from ..device.safety import SafetyGuard
     from ..errors import SafetyError
     from ..formats import read_array_file
     from .delivered import DeliveryLog, delivered_lines

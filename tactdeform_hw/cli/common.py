@@ -81,12 +81,14 @@ def add_participant_arg(parser: argparse.ArgumentParser) -> None:
 def _participant_file(args: argparse.Namespace, region_of: Any = None) -> tuple[Any, Any]:
     """``--participant``'s participant profile and, for an eTactileKit calibration profile, the calibration
     profile itself ((None, None) without the option).  ``region_of`` (one region per electrode, or a
-    :class:`~tactdeform_hw.device.regions.RegionMap` of the electrode positions) converts a calibration
+    :class:`~tactdeform_hw.device.participant.regions.RegionMap` of the electrode positions) converts a
+    calibration
     profile's intensities to regions; default: the TactDeform array's regions."""
     path = getattr(args, "participant", None)
     if not path:
         return None, None
-    from ..device.regions import RegionMap
+    from tactdeform_hw.device.participant.regions import RegionMap
+
     from ..formats.calibration_profile import read_participant_file
 
     if isinstance(region_of, RegionMap):
@@ -136,8 +138,9 @@ def guard_from_args(
     from hardware channel 24).  An eTactileKit calibration profile's intensities bind the hardware
     channels its ``mapping`` names, and a profile whose mapping disagrees with ``mapping`` is refused
     here, before the device is opened."""
-    from ..device.regions import RegionMap
-    from ..device.safety import SafetyGuard
+    from tactdeform_hw.device.participant.regions import RegionMap
+    from tactdeform_hw.device.safety.guard import SafetyGuard
+
     from ..formats.calibration_profile import calibration_guard
 
     profile, calibration = _participant_file(args, region_of)
@@ -167,11 +170,11 @@ def guard_from_args(
 
 
 def audit_from_args(args: argparse.Namespace, **session: Any) -> Any:
-    """An :class:`~tactdeform_hw.device.audit.AuditLog` for ``--audit-log`` (None without one)."""
+    """An :class:`~tactdeform_hw.device.driver.audit.AuditLog` for ``--audit-log`` (None without one)."""
     path = getattr(args, "audit_log", None)
     if not path:
         return None
-    from ..device.audit import AuditLog
+    from tactdeform_hw.device.driver.audit import AuditLog
 
     session.setdefault("command", getattr(args, "command", None))
     session.setdefault("device", getattr(args, "device", None))
@@ -197,13 +200,13 @@ def hold(device: Any, seconds: float, *, interval_s: float = 0.02) -> None:
 
 
 def run_command(func: Any, args: argparse.Namespace) -> int:
-    """Run one subcommand under a :class:`~tactdeform_hw.device.failsafe.StopSession`: every device it
+    """Run one subcommand under a :class:`~tactdeform_hw.device.safety.failsafe.StopSession`: every device it
     opens — directly or through the study runner, the renderer or anything added later — is watched by the
     fail-safe (the no-frame watchdog in its own thread), an exception anywhere closes it (every channel
     off), and SIGINT, SIGTERM, SIGHUP or SIGQUIT switch it off before the command ends with 128 + the
     signal (130 for Ctrl-C) and one line on stderr, never a traceback.  The command-line entry point runs
     every command through here, so no command can forget it."""
-    from ..device import failsafe
+    from tactdeform_hw.device.safety import failsafe
 
     name = getattr(args, "command", None) or "command"
     try:

@@ -15,8 +15,9 @@ import os
 from collections.abc import Sequence
 from typing import IO, Any
 
-from ..device.audit import AuditLog, describe_command
-from ..device.regions import RegionMap, tactdeform_region_map
+from tactdeform_hw.device.driver.audit import AuditLog, describe_command
+from tactdeform_hw.device.participant.regions import RegionMap, tactdeform_region_map
+
 from ..protocol.firmware import V1_2
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 

@@ -157,8 +157,15 @@ def _check(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tactdeform_hw.emulator.serving.realtime import (
+        BUILD_RULES,
+        FallBehind,
+        LiveView,
+        RealtimeEmulator,
+        ResetRecord,
+    )
+
     from ..emulator import Emulator
-    from ..emulator.realtime import BUILD_RULES, FallBehind, LiveView, RealtimeEmulator, ResetRecord
 
     _check(args)
     rules = BUILD_RULES[args.build or ("wifi" if args.tcp is not None else "serial")]
@@ -176,8 +183,8 @@ def run(args: argparse.Namespace) -> int:
 
     sink = None
     if args.trace:
-        from ..emulator.realtime import BackgroundSink
-        from ..emulator.trace import open_trace
+        from tactdeform_hw.emulator.records.trace import open_trace
+        from tactdeform_hw.emulator.serving.realtime import BackgroundSink
 
         sink = BackgroundSink(open_trace(args.trace))
         with board.lock:
@@ -191,18 +198,18 @@ def run(args: argparse.Namespace) -> int:
     }
     server: Any
     if args.tcp is not None:
-        from ..emulator.tcp_server import TcpServer
+        from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 
         host, port = args.tcp_address
         server = TcpServer(board, host=host, port=port, rules=rules, **opts)
         where = f"{server.address[0]}:{server.address[1]}"
     elif args.usb:
-        from ..emulator.usb_server import UsbServer
+        from tactdeform_hw.emulator.serving.usb_server import UsbServer
 
         server = UsbServer(board, **opts)
         where = server.name
     else:
-        from ..emulator.pty_server import PtyServer
+        from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
         server = PtyServer(board, **opts)
         where = server.path
@@ -210,7 +217,11 @@ def run(args: argparse.Namespace) -> int:
     mode += f", firmware {args.firmware}"
     responder = None
     if args.tcp is not None and args.firmware == "v2" and args.discovery_port != 0:
-        from ..emulator.udp_discovery import DISCOVERY_PORT, DiscoveryResponder, device_id_from_mac
+        from tactdeform_hw.emulator.serving.udp_discovery import (
+            DISCOVERY_PORT,
+            DiscoveryResponder,
+            device_id_from_mac,
+        )
 
         kit_id = (args.kit_id or device_id_from_mac(EMULATED_MAC)).upper()
         try:

@@ -265,7 +265,7 @@ _FIELD_EQ = r"(?<![\w.\-\[]){field}="
 def _timing_constants() -> frozenset[str]:
     from dataclasses import fields
 
-    from ..emulator.timing import TimingModel
+    from tactdeform_hw.emulator.timed.timing import TimingModel
 
     return frozenset(f.name for f in fields(TimingModel))
 

@@ -37,7 +37,7 @@ from .common import (
 from .options import add_option
 
 if TYPE_CHECKING:
-    from ..device.config import Polarity
+    from tactdeform_hw.device.driver.config import Polarity
 
 
 @dataclass(frozen=True)

@@ -49,7 +49,8 @@ def register(sub: Any) -> None:
 
 def wifi_kits(target: str) -> list[dict[str, Any]]:
     """Kits that answer UDP discovery at ``target`` (HOST:PORT), with what ``--device`` takes for each."""
-    from ..device.wifi_discovery import discover
+    from tactdeform_hw.device.driver.wifi_discovery import discover
+
     from ..errors import LimitError
 
     host, _, port = target.rpartition(":")
@@ -76,17 +77,17 @@ def wifi_kits(target: str) -> list[dict[str, Any]]:
 
 def serial_candidates() -> list[dict[str, Any]]:
     """Serial ports as plain records (kept for callers of the earlier API)."""
-    from ..device.discovery import serial_candidates as _serial
+    from tactdeform_hw.device.driver.discovery import serial_candidates as _serial
 
     return [c.to_dict() for c in _serial()]
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..device.discovery import discover
+    from tactdeform_hw.device.driver.discovery import discover
 
     backend = None
     if args.usb_emulator:
-        from ..emulator.usb_backend import EmulatedUsbBackend
+        from tactdeform_hw.emulator.serving.usb_backend import EmulatedUsbBackend
 
         backend = EmulatedUsbBackend()
     result = discover(usb=not args.no_usb, usb_backend=backend, include_all=args.all)

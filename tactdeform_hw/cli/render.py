@@ -127,8 +127,9 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from tactdeform_hw.device.driver.readback import pattern_readback
+
     from ..device import open_device
-    from ..device.readback import pattern_readback
     from ..errors import LimitError
     from ..ports import is_instant
     from ..render.array import ElectrodeArray
@@ -156,7 +157,8 @@ def run(args: argparse.Namespace) -> int:
         raise LimitError("--rate", args.rate, "> 0 Hz")
     if args.speed is not None and (not args.speed > 0 or args.speed == float("inf")):
         raise LimitError("--speed", args.speed, "a finite speed > 0 mm/s")
-    from ..device.regions import region_map_from_positions
+    from tactdeform_hw.device.participant.regions import region_map_from_positions
+
     from .delivered import DeliveryLog, delivered_lines
 
     profile = profile_from_args(args)  # a bad profile is refused before anything is opened

@@ -1,6 +1,7 @@
 """``tactdeform-hw replay-log FILE``: re-run an audit log on the timed emulator and report what was delivered.
 
-The audit log holds every byte a session wrote and when (see :mod:`tactdeform_hw.device.audit`).  Writing
+The audit log holds every byte a session wrote and when (see :mod:`tactdeform_hw.device.driver.audit`).
+Writing
 them again, at the same relative times, into the timed emulator reproduces what the firmware's scans did
 with them — which channels received which current, and how much charge — so a session can be checked
 after the fact, e.g. against the participant's profile (``--participant``).
@@ -68,7 +69,7 @@ def log_firmware(path: str, asked: str | None = None) -> tuple[str, str]:
     """The firmware ``path`` was written for and where that comes from: its ``firmware`` record (an event,
     or a field of the session line), else v1.2.  Refused (one line each): a firmware this package does not
     know, two different ones in one log, and a log not written for ``asked`` (``--firmware``)."""
-    from ..device.audit import read_log
+    from tactdeform_hw.device.driver.audit import read_log
 
     named: list[tuple[int, str]] = []
     for n, rec in enumerate(read_log(path), start=1):
@@ -108,8 +109,8 @@ def replay(
     have been written for, refused otherwise); return the delivery report (also used by tests and tools)."""
     import numpy as np
 
-    from ..device.audit import read_log
-    from ..emulator.timed import TimedEmulator
+    from tactdeform_hw.device.driver.audit import read_log
+    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
     ran, source = log_firmware(path, firmware)
     records = [r for r in read_log(path) if r["type"] == "tx" and r.get("ok", True)]
@@ -117,7 +118,7 @@ def replay(
         raise ConfigurationError(f"audit log {path}: no commands to replay")
     v2 = ran == V2.name
     if v2:
-        from ..emulator.timed_v2 import TimedEmulatorV2
+        from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 
         emu: Any = TimedEmulatorV2(link=link)
     else:
@@ -172,8 +173,8 @@ def channel_regions(
     (an array file, or ``tactdeform``), else the map the log's session line records.  A channel's region
     comes from the position of the electrode on it, never from the channel number; a log without a map
     (and no ``--array``) is refused, naming what is missing."""
-    from ..device.audit import read_log
-    from ..device.regions import tactdeform_region_map
+    from tactdeform_hw.device.driver.audit import read_log
+    from tactdeform_hw.device.participant.regions import tactdeform_region_map
 
     if array is not None:
         if array.lower() == "tactdeform":
@@ -194,7 +195,7 @@ def channel_regions(
             "session's electrode-array file (or --array tactdeform for the TactDeform array on channels "
             "0-31)"
         )
-    from ..device.regions import region_map_from_positions
+    from tactdeform_hw.device.participant.regions import region_map_from_positions
 
     region_of = region_map_from_positions(positions, f"the session line of {path}").resolve(regions_ua)
     return {
@@ -270,7 +271,8 @@ def run(args: argparse.Namespace) -> int:
     table = rep.pop("_table")
     code = 0
     if args.participant:
-        from ..device.safety import SafetyGuard
+        from tactdeform_hw.device.safety.guard import SafetyGuard
+
         from ..formats.calibration_profile import calibration_guard, read_participant_file
 
         region_of, offset = _calibration_layout(args.array)

@@ -125,7 +125,8 @@ def run(args: argparse.Namespace) -> int:
     # A bad profile, study or trial list is refused before the device is opened.
     profile = profile_from_args(args)
     array = ElectrodeArray.tactdeform()
-    from ..device.regions import region_map_from_positions
+    from tactdeform_hw.device.participant.regions import region_map_from_positions
+
     from .delivered import DeliveryLog, delivered_lines
 
     # regional limits follow the positions of the array the renderer draws on

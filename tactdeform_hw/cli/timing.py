@@ -1,7 +1,7 @@
 """``tactdeform-hw timing``: the scan budget of a configuration, pattern-update latency, waveform traces.
 
 Computed from the firmware's own arithmetic and the named timing model
-(:class:`~tactdeform_hw.emulator.timing.TimingModel`), so a firmware developer can check a configuration
+(:class:`~tactdeform_hw.emulator.timed.timing.TimingModel`), so a firmware developer can check a configuration
 before flashing a board: per-channel cost, scan time, period, margin, verdict and the rate really reached.
 """
 
@@ -207,7 +207,8 @@ def register(sub: Any) -> None:
 
 def currents_from_ua(args: argparse.Namespace) -> None:
     """``--current-ua`` and ``--sense-current-ua`` (µA) as the codes the scan model takes."""
-    from ..device.config import sense_code
+    from tactdeform_hw.device.driver.config import sense_code
+
     from ..protocol.units import DEFAULT_TRANSFER
 
     typed = getattr(args, "_typed_flags", None) or {}
@@ -241,7 +242,7 @@ def _parse_value(text: str) -> Any:
 
 
 def model_from_args(args: argparse.Namespace) -> Any:
-    from ..emulator.timing import TimingModel
+    from tactdeform_hw.emulator.timed.timing import TimingModel
 
     changes: dict[str, Any] = {}
     for item in args.model_set:
@@ -255,8 +256,8 @@ def model_from_args(args: argparse.Namespace) -> Any:
 
 
 def config_from_args(args: argparse.Namespace) -> Any:
-    from ..emulator.board import Board
-    from ..emulator.scan import ScanConfig
+    from tactdeform_hw.emulator.firmware.board import Board
+    from tactdeform_hw.emulator.firmware.scan import ScanConfig
 
     text = "1" if args.pattern is None else str(args.pattern).strip()
     pattern: int | list[int]
@@ -294,7 +295,7 @@ def trace_scans(
     cfg: Any, model: Any, cycles: int, sinks: list[Any], board: str = "compact", switching_boards: int = 1
 ) -> Any:
     """Run ``cycles`` scans of ``cfg`` from power-on (registers set directly) into ``sinks``."""
-    from ..emulator.timed import TimedEmulator
+    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
     if not isinstance(cycles, int) or cycles < 1:
         raise LimitError("--cycles", cycles, "an integer >= 1")
@@ -313,7 +314,7 @@ def trace_scans(
 
 
 def conventions_from_args(args: argparse.Namespace) -> Any:
-    from ..emulator.firmware_scan import ScanConventions
+    from tactdeform_hw.emulator.firmware.firmware_scan import ScanConventions
 
     return ScanConventions(cs_writes_costed=args.cs_writes == "costed", dac_load=args.dac_load)
 
@@ -342,8 +343,9 @@ def _convention_rows(conv: Any) -> list[dict[str, Any]]:
 
 def v2_config_from_args(args: argparse.Namespace) -> Any:
     """A v2 configuration: per-electrode DAC codes, a mode, every value the firmware can hold."""
-    from ..emulator.board import Board
-    from ..emulator.firmware_scan import FirmwareScanConfig
+    from tactdeform_hw.emulator.firmware.board import Board
+    from tactdeform_hw.emulator.firmware.firmware_scan import FirmwareScanConfig
+
     from ..protocol.constants import U8_MAX, U16_MAX
     from ..protocol.firmware import V2, OpcodeV2
     from ..protocol.units import check_int
@@ -388,7 +390,7 @@ def v2_config_from_args(args: argparse.Namespace) -> Any:
 
 def _run_walker(args: argparse.Namespace) -> int:
     """v2, or either version under the chip-select / DAC-load options: the statement walker's budget."""
-    from ..emulator.firmware_scan import FirmwareScanConfig, budget, trace_scan
+    from tactdeform_hw.emulator.firmware.firmware_scan import FirmwareScanConfig, budget, trace_scan
 
     conv = conventions_from_args(args)
     if args.firmware == "v2":
@@ -444,7 +446,7 @@ def _write_walker_events(path: Path, fmt: str, events: list[list[Any]]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..emulator.reports import Budget
+    from tactdeform_hw.emulator.records.reports import Budget
 
     model = model_from_args(args)
     if args.list_model:
@@ -473,7 +475,7 @@ def run(args: argparse.Namespace) -> int:
     if args.latency:
         if cfg.electrode_num == 0:
             raise ConfigurationError("--latency needs at least one electrode")
-        from ..emulator.timed import pattern_latency
+        from tactdeform_hw.emulator.timed.model_v1_2 import pattern_latency
 
         result["latency"] = {}
         for link in ("usb", "uart"):
@@ -541,7 +543,7 @@ def _events_format(path: str) -> str:
 def _write_traces(args: argparse.Namespace, cfg: Any, model: Any) -> list[str]:
     if not args.vcd and not args.events:
         return []
-    from ..emulator.trace import CsvSink, JsonSink, VcdSink
+    from tactdeform_hw.emulator.records.trace import CsvSink, JsonSink, VcdSink
 
     sinks: list[Any] = []
     paths: list[str] = []

@@ -5,12 +5,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from tactdeform_hw.emulator.firmware.board import Board
+from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
+from tactdeform_hw.emulator.firmware.parser import CallResult, Parser
+from tactdeform_hw.emulator.firmware.parser_v2 import CallOutcome, ParserV2
+from tactdeform_hw.emulator.firmware.registers import Registers, RegistersV2
+
 from ..errors import ConfigurationError
-from .board import Board
-from .hazards import Hazard, HazardKind
-from .parser import CallResult, Parser
-from .parser_v2 import CallOutcome, ParserV2
-from .registers import Registers, RegistersV2
 
 #: Firmware versions the emulator runs; v1.2 stays the default.
 FIRMWARE_VERSIONS = ("v1.2", "v2")
@@ -24,7 +25,8 @@ class Emulator:
     depends on it; time enters through ``feed(..., at_us=)`` and :meth:`advance`).
 
     The 256-byte receive queue, its losses and all timing belong to the timed model
-    (:mod:`tactdeform_hw.emulator.timed`), which drives the same :class:`Parser` one firmware call at a
+    (:mod:`tactdeform_hw.emulator.timed.model_v1_2`), which drives the same :class:`Parser` one firmware call
+    at a
     time.  ``scan`` is the seam for the stimulation scan: when set, it is called with this emulator to
     refresh ``registers.voltage`` before a measure reply is written.
     """

@@ -2,12 +2,13 @@
 
 Two layers, both seeded (the same seed gives the same faults, byte for byte):
 
-* :class:`FaultyLink` — a :class:`~tactdeform_hw.emulator.link.LinkFilter` between the host's writes and
+* :class:`FaultyLink` — a :class:`~tactdeform_hw.emulator.timed.link.LinkFilter` between the host's writes and
   the device's receive queue, applying **silent** byte faults: ``drop``, ``corrupt``, ``duplicate`` and
   ``delay``.  Nobody tells the host.  These are the faults of a link without a checksum (a UART) or of a
   host stack that loses data; on USB full speed the bus's CRC and retries make them reported errors
   instead (``crc_error`` below).
-* :class:`TimedPort` — a pyserial-like port over a :class:`~tactdeform_hw.emulator.timed.TimedEmulator`
+* :class:`TimedPort` — a pyserial-like port over a
+:class:`~tactdeform_hw.emulator.timed.model_v1_2.TimedEmulator`
   that the driver uses unchanged, adding the faults the **host notices** or the **board** causes:
 
   ``cut``
@@ -46,12 +47,13 @@ from typing import Any
 import numpy as np
 from serial.serialutil import PortNotOpenError, SerialException
 
+from tactdeform_hw.emulator.timed.link import Delivery, LinkFilter, LinkModel, make_link
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
+
 from ..clock import SimulatedClock
 from ..errors import LimitError
 from ..ports import PortBase
-from .link import Delivery, LinkFilter, LinkModel, make_link
-from .timed import TimedEmulator
-from .timed_v2 import TimedEmulatorV2
 
 
 class FaultKind(str, Enum):
@@ -190,9 +192,9 @@ class TimedPort(PortBase):
     :class:`~.timed_v2.TimedEmulatorV2`), in simulated time, with injectable faults.
 
     ``pacing_clock`` is the simulated clock (seconds) the driver's pacer must use (the driver picks it up
-    by itself through :func:`~tactdeform_hw.device.pacing.default_pacer`); every wait advances the
+    by itself through :func:`~tactdeform_hw.device.driver.pacing.default_pacer`); every wait advances the
     emulator, and ``hooks`` (e.g. a fail-safe's ``poll``) run after each advance.  ``robust_encoding``
-    asks the driver for the loss-tolerant command encoding (see :mod:`tactdeform_hw.device.pacing`).
+    asks the driver for the loss-tolerant command encoding (see :mod:`tactdeform_hw.device.driver.pacing`).
     """
 
     def __init__(

@@ -326,9 +326,10 @@ def to_participant(
     contact_mode: str = "orientation",
     calibrated_on: _dt.date | None = None,
 ) -> Any:
-    """A :class:`~tactdeform_hw.device.profiles.ParticipantProfile`: each region at the lowest current
+    """A :class:`~tactdeform_hw.device.participant.profiles.ParticipantProfile`: each region at the lowest
+    current
     among its electrodes (empty regions 0), the cap at the highest electrode current."""
-    from ..device.profiles import ParticipantProfile
+    from tactdeform_hw.device.participant.profiles import ParticipantProfile
 
     source = profile.source
     regions = _check_regions(region_of, profile.electrode_count, source)
@@ -360,10 +361,11 @@ def calibrated_channels(
     profile: CalibrationProfile, *, transfer: CurrentTransfer = DEFAULT_TRANSFER, channel_offset: int = 0
 ) -> Any:
     """The profile's limits bound to hardware channels
-    (:class:`~tactdeform_hw.device.mapping.CalibratedChannels`): each electrode's calibrated current on
+    (:class:`~tactdeform_hw.device.participant.mapping.CalibratedChannels`): each electrode's calibrated
+    current on
     the channel its ``mapping`` names, plus ``channel_offset`` (24 for an on-board array, which the kit
     drives as the last 8 of 32 channels)."""
-    from ..device.mapping import CalibratedChannels
+    from tactdeform_hw.device.participant.mapping import CalibratedChannels
 
     return CalibratedChannels(
         tuple(channel_offset + ch for ch in profile.mapping()),
@@ -382,7 +384,7 @@ def check_mapping(
 ) -> None:
     """Refuse (:class:`~tactdeform_hw.errors.SafetyError`, one line naming the file, the electrode id, the
     profile's channel and the other channel) a device mapping that disagrees with the profile's:
-    ``mapping`` is a :class:`~tactdeform_hw.device.mapping.ChannelMapping`, a list of channels by
+    ``mapping`` is a :class:`~tactdeform_hw.device.participant.mapping.ChannelMapping`, a list of channels by
     electrode, or None for the identity; ``against`` names it (e.g. "array file grid.json's
     Mapping_func")."""
     calibrated_channels(profile, transfer=transfer, channel_offset=channel_offset).check_wiring(
@@ -402,7 +404,8 @@ def calibration_guard(
     sink: Any = None,
     channel_offset: int = 0,
 ) -> Any:
-    """The :class:`~tactdeform_hw.device.safety.SafetyGuard` of a calibration profile, for a device driven
+    """The :class:`~tactdeform_hw.device.safety.guard.SafetyGuard` of a calibration profile, for a device
+    driven
     with ``mapping`` (a ``ChannelMapping``, a list of channels by electrode, or None for the identity).
 
     Refuses first a ``mapping`` that disagrees with the profile's (see :func:`check_mapping`).  The guard
@@ -411,10 +414,11 @@ def calibration_guard(
     its lowest electrode, which would hold most electrodes below their calibration); the rest comes from
     that participant profile: the cap (the highest electrode), the charge limit, pulse width and polarity.
     ``region_of`` (one region per electrode by id) is what the conversion needs; ``region_map`` (the
-    electrode positions, a :class:`~tactdeform_hw.device.regions.RegionMap`) names each electrode's region
+    electrode positions, a :class:`~tactdeform_hw.device.participant.regions.RegionMap`) names each
+    electrode's region
     in reports.  Pass ``ChannelMapping(profile.mapping(), profile.electrode_count)`` as ``mapping`` to both
     this and ``open_device`` to drive the profile's own wiring."""
-    from ..device.safety import DEFAULT_MAX_CHARGE_NC, SafetyGuard
+    from tactdeform_hw.device.safety.guard import DEFAULT_MAX_CHARGE_NC, SafetyGuard
 
     channels = calibrated_channels(profile, transfer=transfer, channel_offset=channel_offset)
     channels.check_wiring(mapping, against)
@@ -477,7 +481,7 @@ def read_participant_file(
     """``--participant FILE``: a participant profile (.json/.toml) or an upstream calibration profile
     (.json whose ``format`` says so), the latter converted through ``region_of`` and returned too (its
     per-electrode limits and mapping bind hardware channels: :func:`calibrated_channels`)."""
-    from ..device.profiles import load_profile
+    from tactdeform_hw.device.participant.profiles import load_profile
 
     p = Path(path)
     if p.suffix.lower() == ".json":

@@ -62,9 +62,10 @@ from ..errors import ConfigurationError
 from ._json import load_text
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..device.config import Polarity
-    from ..device.mapping import ChannelMapping
-    from ..device.regions import RegionMap
+    from tactdeform_hw.device.driver.config import Polarity
+    from tactdeform_hw.device.participant.mapping import ChannelMapping
+    from tactdeform_hw.device.participant.regions import RegionMap
+
     from ..render.array import ElectrodeArray
     from .frames import Frame
 
@@ -195,7 +196,7 @@ class ArrayFile:
         """The calibration region(s) of each electrode, from its coordinates in this file (application
         order, the order of ``electrodes``): what a participant's regional limits follow, whatever order
         the file lists its electrodes in."""
-        from ..device.regions import region_map_from_positions
+        from tactdeform_hw.device.participant.regions import region_map_from_positions
 
         return region_map_from_positions(
             [(float(x), float(y)) for x, y in self.array.positions_mm],

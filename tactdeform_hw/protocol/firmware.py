@@ -128,7 +128,8 @@ class FirmwareTiming:
     """The scan's timing constants and the busy-wait rule, as the firmware's code and comments give them.
 
     ``spi_exchange_us`` is the firmware's own comment; ``gpio_write_us``, ``isr_entry_us`` and the parser
-    costs are assumptions (the emulator's :class:`~tactdeform_hw.emulator.timing.TimingModel` lets a user
+    costs are assumptions (the emulator's :class:`~tactdeform_hw.emulator.timed.timing.TimingModel` lets a
+    user
     change them).  ``discharge_exchange``: whether the discharge starts with ``DAAD(0)`` (one exchange).
     """
 

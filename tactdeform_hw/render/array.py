@@ -13,7 +13,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..device.mapping import ChannelMapping
+from tactdeform_hw.device.participant.mapping import ChannelMapping
+
 from ..errors import ConfigurationError, LimitError
 from ..protocol.constants import MAX_ELECTRODES
 

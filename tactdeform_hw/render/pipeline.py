@@ -2,7 +2,7 @@
 
 The renderer configures the device once, then sends a pattern only when it differs from the one the
 device holds, so a finger resting on an object costs no serial traffic.  It speaks only the
-:class:`~tactdeform_hw.device.base.Device` interface — application-order levels — and never bytes.
+:class:`~tactdeform_hw.device.driver.base.Device` interface — application-order levels — and never bytes.
 
 Every tracking sample yields at least one :class:`FrameRecord`; a sample whose update passed several
 expansion or texture frames yields one record per frame (each sent), so the records are exactly the
@@ -38,9 +38,10 @@ from typing import Any
 
 import numpy as np
 
-from ..device.base import Device
-from ..device.config import StimConfig
-from ..device.readback import pattern_readback
+from tactdeform_hw.device.driver.base import Device
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.readback import pattern_readback
+
 from ..errors import ConfigurationError, LimitError
 from .approach import Approach, make_approach
 from .array import ElectrodeArray
@@ -160,7 +161,7 @@ class Renderer:
     ``contact_mode`` (the participant's choice in Task 2) overrides the scene's render option; ``current_ua``
     is the participant's calibrated level, set by ``configure``; ``current_hook`` may change it per frame.
     ``verify`` is a callback returning the pattern the device holds, in application order (for example
-    :func:`~tactdeform_hw.device.readback.pattern_readback`); after every sent frame its answer is
+    :func:`~tactdeform_hw.device.driver.readback.pattern_readback`); after every sent frame its answer is
     compared with the frame and mismatches are counted.  ``verify=True`` asks the device's port for that
     read-back (a port that declares ``board_state()``, such as the emulator's) and verifies nothing on a
     port that cannot show its pattern.

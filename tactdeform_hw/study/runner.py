@@ -9,7 +9,8 @@ renderer, which configures the device (all off) before its first pose, as a new 
 
 The port is wrapped by a :class:`WireTap` that keeps every write with the session time of the pose being
 rendered, so after the run the exact byte stream can be replayed into the timed emulator
-(:class:`~tactdeform_hw.emulator.timed.TimedEmulator`) to see what the firmware's scans delivered: which
+(:class:`~tactdeform_hw.emulator.timed.model_v1_2.TimedEmulator`) to see what the firmware's scans delivered:
+which
 channels were pulsed, at what current and with how much charge.  The replay spaces commands at least
 :data:`PACE_S` apart (the driver's pacing rule: one command with a payload per firmware tick), starting
 at the moment the renderer produced them.
@@ -18,7 +19,8 @@ Session time runs on: trial *k + 1* starts :data:`INTER_TRIAL_S` after trial *k*
 
 Both firmware versions run the same study.  The firmware the device found (v1.2, or v2 where each
 electrode's pattern element is its own pulse height) decides how the captured bytes are read, which timed
-model replays them (:func:`~tactdeform_hw.emulator.timed.timed_emulator`), and, on v2, the extra readback of
+model replays them (:func:`~tactdeform_hw.emulator.timed.model_v1_2.timed_emulator`), and, on v2, the extra
+readback of
 every electrode's height after each frame (the level readback alone would not see a wrong height).
 """
 
@@ -356,9 +358,10 @@ def run_study(
     safety guard the device enforces (a participant's limits).  ``realtime`` paces every pose to the
     session clock (a real device then shows each trial at its real speed); otherwise the run goes as fast
     as it can, which changes nothing the checks look at: the timed replay restores the session's timing."""
+    from tactdeform_hw.device.driver.readback import heights_readback, pattern_readback
+    from tactdeform_hw.device.safety.guard import SafetyGuard
+
     from ..device import StimConfig, open_device
-    from ..device.readback import heights_readback, pattern_readback
-    from ..device.safety import SafetyGuard
     from ..ports import board_hazards, board_state
 
     say = progress or (lambda _msg: None)
@@ -559,8 +562,8 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     """Replay the session's writes into the timed model of the firmware that ran and attach, per trial,
     the pulses delivered (per electrode: pulses, largest current, charge; on v2 also the heights each
     electrode was pulsed at), the timing hazards in the trial's window and the replay time of each write."""
-    from ..emulator.hazards import HazardKind
-    from ..emulator.timed import TimedEmulator
+    from tactdeform_hw.emulator.firmware.hazards import HazardKind
+    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
     writes = result.writes
     if not writes:
@@ -568,7 +571,7 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         return
     v2 = result.firmware == V2.name
     if v2:
-        from ..emulator.timed_v2 import TimedEmulatorV2
+        from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 
         emu: Any = TimedEmulatorV2(link=link)
     else:

@@ -14,7 +14,7 @@ import serial
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
 from tactdeform_hw.emulator import Emulator
-from tactdeform_hw.emulator.pty_server import PtyServer
+from tactdeform_hw.emulator.serving.pty_server import PtyServer
 from tactdeform_hw.protocol import commands as c
 from tactdeform_hw.protocol.constants import BAUD_RATE, UART_BITS_PER_BYTE, Opcode
 

@@ -19,9 +19,9 @@ from typing import Any
 
 import pytest
 
-from tactdeform_hw.emulator.realtime import RealtimeEmulator
-from tactdeform_hw.emulator.scan import ScanConfig
-from tactdeform_hw.emulator.timed import configuration_bytes
+from tactdeform_hw.emulator.firmware.scan import ScanConfig
+from tactdeform_hw.emulator.serving.realtime import RealtimeEmulator
+from tactdeform_hw.emulator.timed.model_v1_2 import configuration_bytes
 from tactdeform_hw.protocol import encode_pattern
 
 CFG = ScanConfig.make(32, 1, pulse_width_us=200, discharge_us=45, rate_hz=125)
@@ -40,7 +40,7 @@ def _tool() -> Any:
 def _session(stream_hz: float | None, seconds: float) -> dict[str, Any]:
     import serial
 
-    from tactdeform_hw.emulator.pty_server import PtyServer
+    from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
     tool = _tool()
     server = PtyServer(RealtimeEmulator()).start()

@@ -11,9 +11,9 @@ import datetime as dt
 import pytest
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
-from tactdeform_hw.device.profiles import ParticipantProfile
-from tactdeform_hw.device.safety import TACTDEFORM_REGION_OF, SafetyGuard
-from tactdeform_hw.emulator.transport import EmulatorPort
+from tactdeform_hw.device.participant.profiles import ParticipantProfile
+from tactdeform_hw.device.safety.guard import TACTDEFORM_REGION_OF, SafetyGuard
+from tactdeform_hw.emulator.serving.in_process import EmulatorPort
 
 PROFILE = ParticipantProfile(
     "B01", 2000, (1500, 1400, 1500, 1300, 1200, 1300, 1500, 1400, 1500), dt.date(2024, 5, 1)

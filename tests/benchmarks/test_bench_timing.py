@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import random
 
-from tactdeform_hw.emulator.analytic import Scenario, run_analytic
-from tactdeform_hw.emulator.scan import POWER_ON_CHAIN, ScanConfig
-from tactdeform_hw.emulator.timed import TimedEmulator, configuration_bytes
-from tactdeform_hw.emulator.trace import MemorySink
+from tactdeform_hw.emulator.firmware.scan import POWER_ON_CHAIN, ScanConfig
+from tactdeform_hw.emulator.records.trace import MemorySink
+from tactdeform_hw.emulator.timed.analytic import Scenario, run_analytic
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator, configuration_bytes
 from tactdeform_hw.protocol import encode_pattern
 
 from ..scan_reference import reference_scan

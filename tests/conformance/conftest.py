@@ -141,7 +141,7 @@ def _server_firmware(name: str) -> str:
 def _settle_on(board: Any, server: Any = None, written: list[int] | None = None) -> Callable[[int], None]:
     """Wait until a real-time board's parser has read everything sent (generous: the machine may be
     loaded).  Behind a server, first until the server has received every byte the ports wrote."""
-    from tactdeform_hw.emulator.realtime import settle
+    from tactdeform_hw.emulator.serving.realtime import settle
 
     def wait(commands: int) -> None:
         deadline = time.monotonic() + 5.0
@@ -175,8 +175,8 @@ class _CountingPort:
 
 
 def _url_target(name: str) -> Target:
-    from tactdeform_hw.emulator.realtime import RealtimeEmulator
-    from tactdeform_hw.emulator.urlhandler.protocol_etactile import forget_shared, shared_emulator
+    from tactdeform_hw.emulator.serving.realtime import RealtimeEmulator
+    from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
 
     query = name.partition("?")[2] if name.startswith("etactile://") else ""
     shared = f"conformance-{uuid.uuid4().hex[:8]}"
@@ -205,7 +205,7 @@ def _url_target(name: str) -> Target:
 def _pty_target(name: str) -> Target:
     if sys.platform == "win32":
         pytest.skip("the pty target needs a POSIX pseudo-terminal")
-    from tactdeform_hw.emulator.pty_server import PtyServer
+    from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
     firmware = _server_firmware(name)
     server = PtyServer(firmware=firmware).start()  # the timed board on the wall clock
@@ -227,7 +227,7 @@ def _pty_target(name: str) -> Target:
 
 
 def _tcp_target(name: str) -> Target:
-    from tactdeform_hw.emulator.tcp_server import TcpServer
+    from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 
     firmware = _server_firmware(name)
     # the Wi-Fi build's rules: one client at a time, TCP flow control
@@ -262,8 +262,8 @@ def _usb_emulator_target(name: str) -> Target:
     pytest.importorskip(
         "usb.core", reason="the usb-emulator target needs pyusb (pip install 'tactdeform_hw[usb]')"
     )
-    from tactdeform_hw.device.usb_transport import UsbCdcPort
-    from tactdeform_hw.emulator.usb_backend import backend_from_name
+    from tactdeform_hw.device.driver.usb_transport import UsbCdcPort
+    from tactdeform_hw.emulator.serving.usb_backend import backend_from_name
 
     backend = backend_from_name(name)
     dev = backend.device
@@ -306,7 +306,7 @@ def _serial_board_target(name: str) -> Target:
 
 def _usb_board_target(name: str) -> Target:
     try:
-        from tactdeform_hw.device.usb_transport import usb_port_for_name
+        from tactdeform_hw.device.driver.usb_transport import usb_port_for_name
 
         probe = usb_port_for_name(name, timeout=REPLY_TIMEOUT_S)
         probe.open()

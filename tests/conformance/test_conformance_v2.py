@@ -21,11 +21,11 @@ from typing import Any
 
 import pytest
 
-from tactdeform_hw.device.config import StimConfig
-from tactdeform_hw.device.firmware_probe import detect_firmware
-from tactdeform_hw.device.serial_driver import EtactileKitDevice
-from tactdeform_hw.device.v2 import V2Dialect
-from tactdeform_hw.emulator.registers import V2_SCAN_REGISTERS
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.firmware_probe import detect_firmware
+from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice
+from tactdeform_hw.device.driver.v2 import V2Dialect
+from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS
 from tactdeform_hw.protocol import commands_v2 as c2
 from tactdeform_hw.protocol.firmware import V2
 
@@ -125,7 +125,7 @@ def test_v2_is_detected_before_any_stimulating_byte(v2_target: Target) -> None:
 
 
 def test_v2_driver_round_trip_with_per_electrode_heights(v2_target: Target) -> None:
-    from tactdeform_hw.device.safety import SafetyGuard
+    from tactdeform_hw.device.safety.guard import SafetyGuard
 
     port = v2_target.open()
     guard = SafetyGuard(2000, regions_ua=[400, 800, 1200, 1600, 2000, 2000, 2000, 2000, 2000])

@@ -8,10 +8,10 @@ import sys
 
 import pytest
 
-from tactdeform_hw.emulator.realtime import RealtimeEmulator
-from tactdeform_hw.emulator.tcp_server import TcpServer
-from tactdeform_hw.emulator.timed import TimedEmulator
-from tactdeform_hw.emulator.timed_v2 import TimedEmulatorV2
+from tactdeform_hw.emulator.serving.realtime import RealtimeEmulator
+from tactdeform_hw.emulator.serving.tcp_server import TcpServer
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.errors import ConfigurationError
 
 from .conftest import EMULATED_TARGETS, V2_TARGETS, name_firmware
@@ -43,7 +43,7 @@ def test_tcp_server_serves_the_named_firmware() -> None:
 
 @pytest.mark.skipif(sys.platform == "win32", reason="the pty server needs a POSIX pseudo-terminal")
 def test_pty_server_serves_the_named_firmware() -> None:
-    from tactdeform_hw.emulator.pty_server import PtyServer
+    from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
     server = PtyServer(firmware="v2")
     try:
@@ -58,7 +58,7 @@ def test_pty_server_serves_the_named_firmware() -> None:
 
 def test_usb_emulator_serves_the_named_firmware_across_a_replug() -> None:
     pytest.importorskip("usb.core", reason="the usb-emulator needs pyusb")
-    from tactdeform_hw.emulator.usb_backend import EmulatedUsbDevice, backend_from_name
+    from tactdeform_hw.emulator.serving.usb_backend import EmulatedUsbDevice, backend_from_name
 
     backend = backend_from_name("usb-emulator?firmware=v2")
     assert backend.device.firmware == "v2" and isinstance(backend.device.timed, TimedEmulatorV2)

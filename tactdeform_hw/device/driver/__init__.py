@@ -1,0 +1,2 @@
+"""The driver: the device interface, its transports (pyserial, pyusb, TCP), firmware identification,
+pacing, the audit log, and discovery of attached boards."""

@@ -1,0 +1,63 @@
+"""Stimulation settings in physical units, checked against the wire and the hardware before any write."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Literal
+
+from tactdeform_hw.errors import LimitError
+from tactdeform_hw.protocol.constants import MAX_ELECTRODES, SENSE_HEIGHT_SHIFT, U8_MAX, U16_MAX
+from tactdeform_hw.protocol.units import CurrentTransfer, check_int
+
+Polarity = Literal["anodic", "cathodic"]
+POLARITY_CODE: dict[str, int] = {"anodic": 1, "cathodic": 0}
+
+
+@dataclass(frozen=True)
+class StimConfig:
+    """Everything ``configure`` sends.  Defaults are the TactDeform setting: 32 electrodes, 200 µs
+    anodic pulses, 45 µs discharge, 125 Hz, and a current of 0 until a participant's level is set.
+
+    ``sense_current_ua`` is the small pulse the firmware delivers on every channel whose pattern value is
+    neither 1 nor 2 — an "off" channel is only truly off while it is 0, so it defaults to 0.
+    """
+
+    electrode_count: int = 32
+    current_ua: int = 0
+    pulse_width_us: int = 200
+    discharge_us: int = 45
+    rate_hz: int = 125
+    polarity: Polarity = "anodic"
+    sense_current_ua: int = 0
+    sense_width_us: int = 0
+
+    def validated(self, transfer: CurrentTransfer) -> StimConfig:
+        """Return self after checking every field (raises :class:`LimitError` naming the field)."""
+        check_int("electrode_count", self.electrode_count, 1, MAX_ELECTRODES)
+        transfer.check_current(self.current_ua, "current_ua")
+        check_int("pulse_width_us", self.pulse_width_us, 1, U16_MAX, "µs")
+        check_int("discharge_us", self.discharge_us, 0, U8_MAX, "µs")
+        check_int("rate_hz", self.rate_hz, 1, U16_MAX, "Hz")
+        if not isinstance(self.polarity, str) or self.polarity not in POLARITY_CODE:
+            raise LimitError("polarity", self.polarity, "'anodic' or 'cathodic'")
+        sense_code(self.sense_current_ua, transfer)
+        check_int("sense_width_us", self.sense_width_us, 0, U8_MAX, "µs")
+        return self
+
+    def with_current(self, current_ua: int) -> StimConfig:
+        return replace(self, current_ua=current_ua)
+
+
+def sense_code(sense_current_ua: int, transfer: CurrentTransfer) -> int:
+    """The 0xF9 byte for a sense current: the firmware stores ``byte << 2`` as the DAC code, so only
+    every fourth code is reachable."""
+    code = transfer.to_code(sense_current_ua, "sense_current_ua")
+    step = 1 << SENSE_HEIGHT_SHIFT
+    if code % step or code // step > U8_MAX:
+        raise LimitError(
+            "sense_current_ua",
+            sense_current_ua,
+            f"a current whose DAC code is a multiple of {step} up to {U8_MAX * step} (this one is code "
+            f"{code})",
+        )
+    return code // step

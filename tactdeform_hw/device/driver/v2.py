@@ -1,0 +1,681 @@
+"""How the device layer speaks firmware v2: one height per electrode, a global waveform mode, the sync check.
+
+:class:`~tactdeform_hw.device.driver.base.Device` is written once; where v2 differs it consults the dialect
+object
+this module provides (``Device._dialect``; None is v1.2).  The safety contract is v1.2's, translated:
+
+* **Per-electrode heights.**  ``send_pattern`` still takes levels (0 off, 1 monophasic, 2 biphasic); on v2
+  each active electrode's height is the target lowered to *its own* limit (cap, charge, its region) and to
+  its own ramp from the height it had — no "lowest limit over the frame".  Every height is clipped on the
+  host: the firmware's only clamp is 4095 (40.95 mA).
+* **One waveform per frame.**  v2 chooses monophasic or biphasic for the whole scan (0xFB mode 0 or 1), so
+  a frame that mixes levels 1 and 2 is refused (:class:`~tactdeform_hw.errors.LimitError` on ``pattern``)
+  rather than silently turning monophasic electrodes biphasic.
+* **No torn scan: every new pattern is copied under a cover.**  A scan that pre-empts the firmware's copy
+  loop would mix old and new heights, and no pacing can keep the copy clear of the scans (the host does not
+  see them).  So a pattern that may differ from the one in force goes in one write between ``FB 02`` and
+  ``FB mode`` at sense height 0 (:func:`covered_pattern`): a scan that starts inside delivers no current
+  (a dropout), every other one runs the old pattern in the old mode or the new one in the new mode.  A
+  change of mode is the same write: no scan combines the new mode with the old heights.
+* **Off is a zero pattern in mode 0 or 1.**  Mode 2 gives every channel the sense pulse, so a zero pattern
+  would not stop current there.  The driver writes mode 2 only while the sense height is 0 and the sense
+  width 0 are proved in force (every pulse then has height 0): when the electrode count rises, the channels
+  above the old count would otherwise scan the heights an earlier pattern left there (v2 keeps stale
+  channels), so mode 2 covers them until the zero pattern of the new length is read, then mode 0 returns.
+* **Recovery by the sync check and the 2 s timeout.**  Zeros that complete any command in progress on
+  either version, the safe tail (count 0, mode 0, sense 0), then 0xF4: its one-byte reply (the count, 0)
+  proves a command boundary and every byte before it read.  No reply means a command was pending (its
+  2 s timeout may have discarded the probe): wait until every byte has arrived plus the 2 s timeout, then
+  the whole probe again.  Still silent: the board does not answer as v2 must —
+  :class:`~tactdeform_hw.device.driver.firmware_probe.FirmwareMismatchError`, after bytes that stop current
+  on both
+  versions.  Then the electrode count is written and proved by the sync reply's value before any pattern.
+* **Pacing for the 1024-byte queue**, once the board has answered the sync check (until then the pacer
+  keeps v1.2's 256 bytes: a board that turns out to run v1.2 still reads every byte of the probe).
+
+The interlock (:class:`~tactdeform_hw.device.safety.guard.SafetyGuard`, ``firmware = V2``) reads every write
+with
+the v2 table and checks each channel's own height (:func:`verify_channels`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import replace
+from typing import TYPE_CHECKING, Any
+
+from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig
+from tactdeform_hw.device.driver.firmware_probe import PROBE, SYNC_CHECK, FirmwareMismatchError
+from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US
+from tactdeform_hw.errors import LimitError, ShortReplyError
+from tactdeform_hw.protocol import commands_v2 as c2
+from tactdeform_hw.protocol.constants import CURRENT_STEP_UA, PATTERN_BIPHASIC, PATTERN_MONOPHASIC
+from tactdeform_hw.protocol.firmware import V2
+from tactdeform_hw.protocol.firmware_math import estimate_scan_us, firmware_period_us
+
+if TYPE_CHECKING:
+    from tactdeform_hw.device.driver.base import Device
+    from tactdeform_hw.device.participant.mapping import ChannelMapping
+    from tactdeform_hw.device.safety.guard import SafetyGuard, _Shadow
+    from tactdeform_hw.protocol.units import CurrentTransfer
+
+#: Margin past the firmware's 2 s command timeout before a pending command is taken as discarded.
+TIMEOUT_MARGIN_S = 0.1
+#: The firmware's command timeout (v2 discards a command not complete this long after its byte was read).
+COMMAND_TIMEOUT_S = (V2.command_timeout_us or 0) / 1e6
+_EPS = 1e-6
+_ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
+
+
+def mode_for(levels: Sequence[int]) -> int | None:
+    """The stimulation mode a frame of levels needs (None: no active electrode)."""
+    active = {v for v in levels if v in _ACTIVE}
+    if not active:
+        return None
+    return c2.STIM_MODE_BIPHASIC if PATTERN_BIPHASIC in active else c2.STIM_MODE_MONOPHASIC
+
+
+def covered_pattern(
+    codes: Sequence[int], mode: int, *, sense_code: int | None, sense_width_us: int | None = None
+) -> list[bytes]:
+    """The commands that write the pattern ``codes`` under the cover: mode 2 while the firmware copies it,
+    at sense height 0, so a scan that pre-empts the copy delivers no current instead of a torn pattern.
+
+    ``[F9 00]``, ``[F8 00]``, ``FB 02``, ``FE codes``, ``FB mode``, ``[F8 width]``, ``[F9 sense]``, written
+    as one write (:meth:`~tactdeform_hw.device.driver.pacing.Pacer.write_commands`).  v2 reads complete
+    commands
+    back to back, so mode 2 lasts from the parser reading ``FB 02`` to its reading ``FB mode``: the copy,
+    plus whatever part of the write is still crossing the link.  Every scan snapshots its mode when it
+    starts and, in mode 2, gives every channel the sense pulse whatever the pattern holds: a scan that
+    starts in that window is one without current (a dropout); any other scan runs the old pattern in the
+    old mode or the new pattern in the new one, whole.
+
+    Mode 2 is only ever in force at sense height 0 (``sense_code``: the height in force, None unknown): a
+    sense height that is not proved 0 is set to 0 before ``FB 02`` and, when it was known, restored after
+    ``FB mode`` — modes 0 and 1 never use it.  ``sense_width_us`` (given when the mode-2 scan at the
+    configured sense width would be longer than the frame's scan, which the pacing and the scan-gap check
+    were computed for) zeroes the sense width the same way and restores it after."""
+    pre: list[bytes] = []
+    post: list[bytes] = []
+    if sense_code != 0:
+        pre.append(c2.encode_sense_height(0))
+        if sense_code:
+            post.append(c2.encode_sense_height(sense_code))
+    if sense_width_us:
+        pre.append(c2.encode_sense_width(0))
+        post.insert(0, c2.encode_sense_width(sense_width_us))
+    return [
+        *pre,
+        c2.encode_stim_mode(c2.STIM_MODE_IMPEDANCE),
+        c2.encode_pattern(codes, electrode_num=len(codes)),
+        c2.encode_stim_mode(mode),
+        *post,
+    ]
+
+
+def off_packet(electrode_count: int) -> bytes:
+    """The guardian's stop on v2: bytes that stop current wherever either firmware's parser stands
+    (:data:`~tactdeform_hw.device.driver.firmware_probe.PROBE` without its sync check), then 0xF5 for the
+    proof
+    the guardian reads (one byte on both versions)."""
+    del electrode_count  # the count goes to 0: nothing is scanned at all
+    return PROBE[:-1] + c2.HV513_COUNT_REQUEST
+
+
+class V2Dialect:
+    """The v2 side of a :class:`~tactdeform_hw.device.driver.base.Device` (see the module docstring)."""
+
+    firmware = V2
+
+    def __init__(self) -> None:
+        self.mode: int | None = None  # the stimulation mode in force (None: unknown)
+        self.codes: list[int] | None = None  # DAC code per hardware channel in force (None: unknown)
+        self.heights_ua: list[int] = []  # height per application electrode in force
+        self.answered = False  # the board has answered a sync check in this session (it runs v2)
+        self.covers = 0  # patterns written under the mode-2 cover (:func:`covered_pattern`)
+
+    # --- attaching ------------------------------------------------------------------------------------------
+
+    def attach(self, dev: Device) -> None:
+        dev._dialect = self
+        dev.guard.firmware = V2
+        dev.guard.mark_unknown()
+        if dev.audit is not None:
+            dev.audit.firmware = V2
+            dev.audit.event("firmware", firmware=V2.name)
+        guardian = getattr(dev, "guardian", None)
+        if guardian is not None:
+            # v1.2's stop (a few zeros, then 0xFB 00 00 …) would complete a v2 pattern in progress with
+            # 0xFB as a height's high byte (4095): the guardian stops a v2 board with the probe's bytes
+            guardian.set_stop(off_packet(0))
+
+    # --- small helpers --------------------------------------------------------------------------------------
+
+    @staticmethod
+    def _rsend(dev: Device, data: bytes) -> int:
+        """A write of the recovery itself (allowed before the proof; never padded: a v1.2 padding byte
+        could be a v2 command); the written offset just past it."""
+        dev._recovery_write = True
+        try:
+            dev._send(data, pad=False)
+        finally:
+            dev._recovery_write = False
+        return dev.pacer.offset
+
+    @staticmethod
+    def _scan_us(cfg: StimConfig, mode: int | None) -> float:
+        """v1.2's firmware-order estimate of a scan with every channel pulsed in ``mode`` (v2 pulses every
+        channel, at height 0 when off; its discharge is shorter, so the estimate errs long)."""
+        level = PATTERN_BIPHASIC if mode in (None, c2.STIM_MODE_BIPHASIC) else PATTERN_MONOPHASIC
+        return estimate_scan_us(
+            [level] * cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us
+        )
+
+    def _sync(self, dev: Device, expected: int) -> bool:
+        """0xF4 alone at a proved boundary; True when answered with ``expected`` (the count)."""
+        dev._discard_input()
+        mark = self._rsend(dev, SYNC_CHECK)
+        reply = dev._await_reply(1)
+        if reply == bytes((expected & 0xFF,)):
+            dev._proved(mark)
+            dev.guard.note_in_step(expected)  # the reply is the count in force
+            return True
+        return False
+
+    def _zero_pattern(self, dev: Device, n: int, *, recovery: bool = False) -> None:
+        data = c2.encode_pattern([0] * n, electrode_num=n)
+        if recovery:
+            self._rsend(dev, data)
+        elif self.codes is not None and len(self.codes) == n and not any(self.codes):
+            dev._send_critical(data)  # the same zeros again: no scan can mix two patterns
+        else:
+            mode = self.mode if self.mode in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC) else 0
+            self._write_covered(dev, [0] * n, mode)
+        self.codes = [0] * n
+        self.heights_ua = [0] * (dev.mapping.electrodes if dev.mapping is not None else n)
+        dev._current_ua = 0
+        dev._last_pattern = bytes(n)
+
+    def _raise_count(self, dev: Device, n: int, send: Any) -> None:
+        """Electrode count ``n`` with no stale channel scanned: sense height 0, mode 2 (every pulse at the
+        sense height, 0), sense width 0, the count, its zero pattern, mode 0.  Mode 2 comes right after the
+        sense height: from there on no pattern height is scanned at all, so every later command is safe
+        whatever the interlock could not know of the registers (after a write it reads as a resync, such
+        as the firmware check's zeros, the heights and the mode are unknown to it)."""
+        send(c2.encode_sense_height(0))
+        dev._sense_byte = 0
+        send(c2.encode_stim_mode(c2.STIM_MODE_IMPEDANCE))
+        send(c2.encode_sense_width(0))
+        if send is dev._send or send is dev._send_critical:
+            # never v1.2's loss-tolerant echo of the count: a count of 0xF4 would echo a sync check
+            dev._send(c2.encode_electrode_num(n), pad=False)
+        else:
+            send(c2.encode_electrode_num(n))
+        send(c2.encode_pattern([0] * n, electrode_num=n))
+        send(c2.encode_stim_mode(c2.STIM_MODE_MONOPHASIC))
+        self.mode = c2.STIM_MODE_MONOPHASIC
+        self.codes = [0] * n
+        dev._last_pattern = bytes(n)
+        dev._current_ua = 0
+
+    def _write_covered(self, dev: Device, codes: Sequence[int], mode: int) -> None:
+        """``codes`` and then ``mode`` in force, written under the cover of :func:`covered_pattern` (the
+        frame path's only way of changing a pattern that may differ from the one in force)."""
+        cfg = dev._config
+        wide: int | None = None
+        if cfg is not None and cfg.sense_width_us:
+            n = len(codes)
+            sense_scan = estimate_scan_us(bytes(n), cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us)
+            if sense_scan > (dev.pacer.scan_s or 0.0) * 1e6:
+                wide = cfg.sense_width_us  # a sense pulse longer than the frame's: mode 2 at width 0
+        dev._send_critical_commands(
+            covered_pattern(codes, mode, sense_code=dev._sense_byte, sense_width_us=wide)
+        )
+        if dev._sense_byte is None:
+            dev._sense_byte = 0  # not restored: the cover proved it 0 and nothing wrote it since
+        self.codes = list(codes)
+        self.mode = mode
+        self.covers += 1
+
+    # --- recovery -------------------------------------------------------------------------------------------
+
+    @staticmethod
+    def frame_commands(n: int) -> list[bytes]:
+        """More than the longest frame (:meth:`frame`, :meth:`off`): a zero pattern, then a pattern under
+        a cover that also zeroes and restores the sense height and width (an upper bound for the bytes a
+        frame can leave in flight)."""
+        return [
+            c2.encode_pattern([0] * n, electrode_num=n),
+            # any sense height and width other than 0: the cover zeroes and restores both (the most bytes)
+            *covered_pattern([0] * n, c2.STIM_MODE_BIPHASIC, sense_code=1, sense_width_us=1),
+        ]
+
+    def resync_bound_now_s(self, dev: Device) -> float:
+        """The longest a failing v2 resync waits at the configuration in force before the reset line (or the
+        refusal), computed like v1.2's on a simulated clock with a scratch pacer: behind a frame still in
+        flight (a zero pattern, a mode change, a pattern), the probe and its sync reply's deadline, then
+        the wait until every byte has arrived plus the firmware's 2 s command timeout and the margin, then
+        the probe and its deadline again.  A probe answered in between proves count 0, mode 0 and sense 0
+        in force (no current), so no slower failing path leaves the board stimulating longer."""
+        from tactdeform_hw.clock import SimulatedClock
+        from tactdeform_hw.device.driver.base import REPLY_POLL_S
+        from tactdeform_hw.device.driver.pacing import Pacer
+
+        cfg = dev._config
+        n = cfg.electrode_count if cfg is not None else 0
+        clock = SimulatedClock()
+        scratch = Pacer(clock=clock, policy=dev.pacer.policy)
+        scratch.set_timing(*dev._recovery_timing())
+
+        def written(data: bytes) -> None:
+            scratch.write(lambda _chunk: None, data, pad=False)
+
+        def await_reply() -> None:
+            period = scratch.period_s if scratch.period_s is not None else dev.unknown_reply_s
+            deadline = scratch.drained_by() + 0.003 + scratch.policy.byte_s + period
+            clock.advance(max(0.0, deadline - clock.now()) + REPLY_POLL_S)
+
+        for data in dev._frame_commands(n):
+            written(data)
+        written(PROBE)
+        await_reply()
+        clock.advance(max(0.0, scratch.arrived_by() + COMMAND_TIMEOUT_S + TIMEOUT_MARGIN_S - clock.now()))
+        written(PROBE)
+        await_reply()
+        return clock.now()
+
+    def flush_parser(self, dev: Device) -> None:
+        """SUSPECT → SYNCING (→ FLUSHING after the 2 s timeout) → SAFE → VERIFYING → IN_STEP, on v2."""
+        from tactdeform_hw.device.driver.base import LinkState
+
+        cfg = dev._config
+        n = cfg.electrode_count if cfg is not None else 0
+        if cfg is not None:  # (before a configuration the wait is the unknown board's, ``unknown_reply_s``)
+            dev._bound_seen_s = max(dev._bound_seen_s, self.resync_bound_now_s(dev))
+        timing = dev._recovery_timing()
+        dev.pacer.set_timing(timing[0], timing[1])
+        self.mode = self.codes = None
+        for attempt in (1, 2):
+            if dev._link is not LinkState.SUSPECT:
+                dev._enter(LinkState.SUSPECT, f"recovery attempt {attempt}")
+            dev._discard_input()
+            dev._enter(LinkState.SYNCING, "zeros, the safe tail and the sync check")
+            mark = self._rsend(dev, PROBE)
+            reply = dev._await_reply(1)
+            if not reply:
+                dev._enter(LinkState.FLUSHING, "no sync reply: a command was pending (2 s timeout)")
+                dev.pacer.wait_until(dev.pacer.arrived_by() + COMMAND_TIMEOUT_S + TIMEOUT_MARGIN_S)
+                dev._discard_input()
+                mark = self._rsend(dev, PROBE)  # nothing is pending now; the whole probe again, as at first
+                reply = dev._await_reply(1)
+                if not reply:
+                    dev._enter(LinkState.FAILED, "the sync check unanswered after the 2 s timeout")
+                    dev.guard.mark_unknown()
+                    if self.answered and dev._can_reset() and not dev._resetting:
+                        # a board that answered as v2 before and is silent now is hung (perhaps still
+                        # stimulating): the reset line, as on v1.2 (``Device._recover``)
+                        raise ShortReplyError(
+                            "sync check after the 2 s timeout (parser hung: reset the board)", 1, b""
+                        )
+                    raise FirmwareMismatchError(
+                        "the board does not answer the sync check 0xF4 as firmware v2 must (twice, the "
+                        "second time more than 2 s after any command could have started): it runs v1.2, or "
+                        "its parser is hung; only bytes that stop current on both versions were sent"
+                    )
+            if reply != b"\x00":
+                dev._enter(LinkState.FAILED, f"sync check answered {reply.hex()}, not 00")
+                raise FirmwareMismatchError(
+                    f"the sync check after electrode count 0 was answered {reply.hex()}, not 00: the board "
+                    "did not read the bytes as firmware v2 does"
+                )
+            dev._proved(mark)
+            dev.guard.note_in_step(0)
+            self.answered = True
+            # v2 answered: from now on pace for its parser and 1024-byte queue (until then, for v1.2's
+            # 256 bytes and tick per command: a board that turns out to run v1.2 must read the whole probe)
+            dev.pacer.policy = replace(dev.pacer.policy, firmware=V2, queue_bytes=V2.rx_queue_bytes)
+            dev._enter(LinkState.SAFE, "sync answered 00: command boundary, count 0, mode 0, sense 0")
+            dev._current_ua = 0
+            dev._sense_byte = 0
+            dev._last_pattern = None
+            self.mode = c2.STIM_MODE_MONOPHASIC
+            self.codes = []
+            if cfg is None:
+                dev._enter(LinkState.IN_STEP, "count 0; no electrode count to prove")
+                return
+            self._raise_count(dev, n, lambda data: self._rsend(dev, data))
+            dev._enter(LinkState.VERIFYING, f"electrode count {n} written")
+            if self._sync(dev, n):
+                dev._enter(LinkState.IN_STEP, f"sync check answered the count {n}")
+                break
+            if attempt == 2:
+                dev._enter(LinkState.FAILED, f"sync check did not answer the count {n}")
+                raise ShortReplyError("sync check after resync", 1, b"")
+            dev._enter(LinkState.SUSPECT, f"sync check did not answer the count {n}")
+        assert cfg is not None
+        self.heights_ua = [0] * (dev.mapping.electrodes if dev.mapping is not None else n)
+        dev._scan_us = self._scan_us(cfg, self.mode)
+        dev.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, dev._scan_us / 1e6)
+
+    def prove(self, dev: Device, electrodes: int) -> None:
+        """In step: the sync check; its reply must be the count (one byte): every byte before it read."""
+        if not self._sync(dev, electrodes):
+            dev._suspect("the sync check did not answer the count")
+            raise ShortReplyError("sync check (proof that the queue was read)", 1, b"")
+
+    # --- configuration --------------------------------------------------------------------------------------
+
+    def validated(self, config: StimConfig, transfer: CurrentTransfer) -> StimConfig:
+        """v1.2's checks, except the sense current: v2 stores 0xF9 unshifted, so any DAC code up to 255."""
+        replace(config, sense_current_ua=0).validated(transfer)
+        code = transfer.to_code(config.sense_current_ua, "sense_current_ua")
+        top = V2.value_max("sense_pulse_height")
+        if code > top:
+            raise LimitError(
+                "sense_current_ua",
+                config.sense_current_ua,
+                f"a DAC code of at most {top} on firmware v2 (0xF9 is stored unshifted; this one is {code})",
+            )
+        return config
+
+    def configure(self, dev: Device, config: StimConfig) -> None:
+        """Everything off first (zero pattern), the count raised without stale channels, mode 0, polarity
+        while all is off, widths and rate, then a proof by the sync check."""
+        n = config.electrode_count
+        sense = dev.transfer.to_code(config.sense_current_ua, "sense_current_ua")
+        # v2 pulses every channel in every scan (an off one at height 0): a configuration whose monophasic
+        # scan fills the period starves the parser whatever the pattern, so it is refused before any byte
+        dev.guard.check_scan(
+            self._scan_us(config, c2.STIM_MODE_MONOPHASIC),
+            firmware_period_us(config.rate_hz),
+            SCAN_GAP_MIN_US,
+        )
+        if dev._needs_resync:
+            dev._recover()
+        old = dev._config
+        new_period = firmware_period_us(config.rate_hz)
+        timings = [(new_period, self._scan_us(config, None))]
+        if old is not None:
+            timings.append((firmware_period_us(old.rate_hz), self._scan_us(old, None)))
+        elif dev.pacer.period_s is not None and dev.pacer.scan_s is not None:
+            timings.append((dev.pacer.period_s * 1e6, dev.pacer.scan_s * 1e6))
+        dev._pace_for(timings)
+        in_force = (
+            old.electrode_count if old is not None else (len(self.codes) if self.codes is not None else 0)
+        )
+        if in_force and any(self.codes or [1]):
+            mode = self.mode if self.mode in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC) else 0
+            self._write_covered(dev, [0] * in_force, mode)
+            dev._prove(in_force)  # a long pattern: proved read before the next one
+        self._raise_count(dev, n, dev._send)
+        dev._prove(n)
+        longer = old is None or new_period >= firmware_period_us(old.rate_hz)
+        if longer:
+            dev._send(c2.encode_frequency(config.rate_hz))
+        dev._send(c2.encode_polarity(POLARITY_CODE[config.polarity]))
+        dev._send(c2.encode_pulse_width(config.pulse_width_us))  # >= 1: a width of 0 would still pulse
+        dev._send(c2.encode_sense_width(config.sense_width_us))
+        dev._send(c2.encode_discharge(config.discharge_us))
+        if not longer:
+            dev._send(c2.encode_frequency(config.rate_hz))
+        dev._send(c2.encode_sense_height(sense))  # used only in mode 2, which never runs with heights
+        dev._sense_byte = sense
+        dev._config = config
+        dev._target_ua = config.current_ua
+        dev._current_ua = 0
+        self.heights_ua = [0] * (dev.mapping.electrodes if dev.mapping is not None else n)
+        dev._requested = None
+        dev._suspended = False
+        dev._scan_us = self._scan_us(config, None)
+        dev.pacer.set_timing(timings[-1][0] / 1e6, max(t[1] for t in timings) / 1e6)
+        dev._prove(n)
+        dev.pacer.set_timing(new_period / 1e6, dev._scan_us / 1e6)
+
+    # --- frames ---------------------------------------------------------------------------------------------
+
+    def app_codes(self, dev: Device) -> list[int] | None:
+        """The DAC codes in force in application order (None: unknown)."""
+        if self.codes is None:
+            return None
+        if dev.mapping is None:
+            return list(self.codes)
+        return [self.codes[ch] if ch < len(self.codes) else 0 for ch in dev.mapping.app_to_hw]
+
+    def check_levels(self, levels: Sequence[int]) -> None:
+        active = {v for v in levels if v in _ACTIVE}
+        if len(active) > 1:
+            raise LimitError(
+                "pattern",
+                list(levels),
+                "one waveform per frame on firmware v2 (its mode is global): every active electrode 1 "
+                "(monophasic) or every one 2 (biphasic)",
+            )
+
+    def heights_for(self, dev: Device, levels: Sequence[int]) -> list[int]:
+        """Each application electrode's height (µA): the target lowered to its own limit and ramp."""
+        cfg = dev._config
+        assert cfg is not None
+        guard = dev.guard
+        n = len(levels)
+        active = [v in _ACTIVE for v in levels]
+        if any(active) and guard.positions_matter:
+            guard.require_positions(n)
+        base = guard.base_limit_ua(cfg.pulse_width_us)
+        limits = guard.electrode_limits(n)
+        prev = self.heights_ua if len(self.heights_ua) == n else [0] * n
+        target = dev._target_ua
+        ramp = guard.ramp_ua_per_frame
+        out: list[int] = []
+        clipped: list[tuple[int, int]] = []
+        ramped: list[tuple[int, int]] = []
+        for i in range(n):
+            if not active[i]:
+                out.append(0)
+                continue
+            h = min(target, base, limits[i])
+            h -= h % CURRENT_STEP_UA
+            if h < target:
+                clipped.append((i, h))
+            if ramp is not None and h > prev[i] + ramp:
+                h = prev[i] + ramp
+                ramped.append((i, h))
+            if dev.pacer.robust:
+                while h > 0 and (dev.transfer.to_code(h) & 0xFF) >= V2.command_byte_min:
+                    h -= CURRENT_STEP_UA
+            out.append(max(0, h))
+        for rule, rows, why in (
+            ("electrode_limit", clipped, "their own limits"),
+            ("ramp", ramped, f"the ramp of {ramp} µA per frame"),
+        ):
+            if rows:
+                guard._record(
+                    "clipped",
+                    rule,
+                    f"{len(rows)} electrode(s) lowered from {target} µA to {why} "
+                    f"({', '.join(f'{i}: {h}' for i, h in rows[:8])}{' …' if len(rows) > 8 else ''} µA)",
+                    requested_ua=target,
+                    sent_ua=max(h for _, h in rows),
+                    electrodes=[i for i, _ in rows],
+                )
+        return out
+
+    def frame(self, dev: Device, levels: Sequence[int], *, force_pattern: bool) -> None:
+        cfg = dev._config
+        assert cfg is not None
+        self.check_levels(levels)
+        want = mode_for(levels)
+        mode = self.mode if want is None and self.mode in (0, 1) else (want if want is not None else 0)
+        if mode != self.mode:
+            self.heights_ua = []  # after a mode change the ramp starts from 0
+        heights = self.heights_for(dev, levels)
+        n = cfg.electrode_count
+        codes = [0] * n
+        app_to_hw = dev.mapping.app_to_hw if dev.mapping is not None else range(n)
+        for i, ch in enumerate(app_to_hw):
+            if ch < n:
+                codes[ch] = dev.transfer.to_code(heights[i])
+        period = firmware_period_us(cfg.rate_hz)
+        scan = self._scan_us(cfg, mode)
+        dev.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
+        before = dev._scan_us if dev._scan_us is not None else self._scan_us(cfg, None)
+        dev.pacer.set_timing(period / 1e6, max(before, scan) / 1e6)
+        if mode != self.mode or codes != self.codes:
+            # a scan that pre-empts the copy would mix the two patterns (or run the new heights in the old
+            # mode): mode 2 at sense height 0 covers the copy, and the new mode follows it
+            self._write_covered(dev, codes, mode)
+            dev.frames_sent += 1
+        elif force_pattern:
+            dev._send_critical(c2.encode_pattern(codes, electrode_num=n))  # the same heights again
+            dev.frames_sent += 1
+        self.heights_ua = heights
+        hw_levels = dev.mapping.to_hardware(levels) if dev.mapping is not None else bytes(levels)
+        dev._last_pattern = hw_levels
+        dev._current_ua = max(heights, default=0)
+        dev._suspended = False
+        dev._scan_us = scan
+        dev.pacer.set_timing(period / 1e6, scan / 1e6)
+
+    def off(self, dev: Device) -> None:
+        """Every height 0 (mode 0 or 1 stays: a zero pattern there is no current)."""
+        cfg = dev._config
+        assert cfg is not None
+        n = cfg.electrode_count
+        if self.mode not in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC):
+            dev._send_critical(c2.encode_electrode_num(0))  # mode unknown: nothing scanned at all
+            dev._send_critical(c2.encode_stim_mode(c2.STIM_MODE_MONOPHASIC))
+            self.mode = c2.STIM_MODE_MONOPHASIC
+            self._raise_count(dev, n, dev._send_critical)
+        self._zero_pattern(dev, n)
+        dev._scan_us = self._scan_us(cfg, self.mode)
+        dev.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, dev._scan_us / 1e6)
+
+    def prove_stopped(self, dev: Device) -> None:
+        """``close``'s proof on v2: electrode count 0, then the sync check must answer 00.  The sync reply
+        to the count in force proves only that every byte was read — a corrupted pattern command byte
+        turns the all-off into unknown bytes and the old heights go on — while the value 00 proves that
+        nothing is scanned at all, whatever became of the pattern."""
+        self._rsend(dev, c2.encode_electrode_num(0))
+        if not self._sync(dev, 0):
+            dev._suspect("the sync check did not answer count 0 after the all-off")
+            raise ShortReplyError("sync check after the close's electrode count 0", 1, b"")
+        self.codes = []
+
+    def refresh(self, dev: Device) -> None:
+        cfg = dev._config
+        assert cfg is not None
+        n = cfg.electrode_count
+        codes = self.codes if self.codes is not None and len(self.codes) == n else [0] * n
+        if self.mode is not None:
+            # a mode byte mis-read as 2 gives every channel the sense pulse, whatever the pattern
+            dev._send(c2.encode_stim_mode(self.mode))
+        dev._send(c2.encode_pattern(codes, electrode_num=n))
+
+    def set_current(self, dev: Device) -> None:
+        """The target changed: the frame in force follows (each electrode to its own limit and ramp)."""
+        levels = None if dev._suspended else dev._application_levels()
+        if levels is not None:
+            self.frame(dev, levels, force_pattern=False)
+
+
+def buffer_levels(state: Mapping[str, Any]) -> list[int]:
+    """The levels a board's pattern buffer stands for, from its register snapshot: v1.2 holds the levels
+    themselves; v2 (a snapshot with ``stim_mode``) holds heights, read back as 0 (no current) or the
+    waveform its mode gives every other channel (1 monophasic, 2 biphasic)."""
+    pattern = [int(v) for v in state["stim_pattern"]]
+    mode = state.get("stim_mode")
+    if mode is None:
+        return pattern
+    level = PATTERN_BIPHASIC if mode == c2.STIM_MODE_BIPHASIC else PATTERN_MONOPHASIC
+    return [level if v else 0 for v in pattern]
+
+
+# --- the interlock's reading of v2 registers ----------------------------------------------------------------
+
+
+def verify_channels(
+    guard: SafetyGuard, sh: _Shadow, what: str, mapping: ChannelMapping | None, transfer: CurrentTransfer
+) -> None:
+    """Every channel v2 scans receives at most its own limit: in mode 0/1 its own pattern height, in mode 2
+    the sense height (then never above 0); unknown values count as their worst."""
+    num = sh.electrode_num
+    mode = sh.stim_mode
+    sense_ua = transfer.to_ua(sh.sense_code) if sh.sense_code is not None else math.inf
+    if mode is None or mode >= c2.STIM_MODE_IMPEDANCE:
+        if sense_ua > 0 and num != 0:
+            raise guard._refuse(
+                "interlock",
+                f"{what}: stimulation mode {'unknown' if mode is None else mode} with a sense height that "
+                "may be non-zero (mode 2 gives every channel the sense pulse, a zero pattern does not stop "
+                "it)",
+            )
+        if mode is not None:
+            return
+    if num is None:
+        if any(v is None or v for v in sh.pattern):
+            raise guard._refuse(
+                "interlock", f"{what}: a height possible while the electrode count is unknown"
+            )
+        return
+    limits, _ = guard._hw_limits(mapping, num)
+    width = sh.width_us
+    for ch in range(num):
+        code = sh.pattern[ch]
+        ua = transfer.to_ua(code) if code is not None else math.inf
+        if ua <= 0:
+            continue
+        if ua > min(limits[ch], guard.cap_ua) + _EPS:
+            raise guard._refuse(
+                "interlock",
+                f"{what}: channel {ch} would receive {ua:g} µA, above its limit of {limits[ch]} µA",
+                channel=ch,
+            )
+        if width is None:
+            raise guard._refuse(
+                "interlock", f"{what}: channel {ch} has a height while the pulse width is unknown"
+            )
+        if ua * max(width, 7) / 1000.0 > guard.max_charge_nc + _EPS:
+            raise guard._refuse(
+                "interlock",
+                f"{what}: channel {ch}: {ua:g} µA × {width} µs exceeds the charge limit of "
+                f"{guard.max_charge_nc:g} nC",
+                channel=ch,
+            )
+
+
+def check_ramp(
+    guard: SafetyGuard,
+    before: Sequence[int | None],
+    after: Sequence[int],
+    start: int,
+    what: str,
+    transfer: CurrentTransfer,
+) -> None:
+    """Each channel's height rises by at most the ramp step per pattern (an unknown one counts as 0)."""
+    ramp = guard.ramp_ua_per_frame
+    if ramp is None:
+        return
+    for k, code in enumerate(after):
+        old = before[start + k]
+        prev = transfer.to_ua(old) if old is not None else 0.0
+        new = transfer.to_ua(code)
+        if new > prev + ramp + _EPS:
+            raise guard._refuse(
+                "interlock",
+                f"{what}: channel {start + k} rises from {prev:g} to {new:g} µA, more than the ramp of "
+                f"{ramp} µA",
+                channel=start + k,
+            )
+
+
+def current_can_flow(sh: _Shadow) -> bool:
+    """v2: a height on a scanned channel (modes 0/1), or a sense height (mode 2 or unknown)."""
+    if sh.electrode_num == 0:
+        return False
+    if sh.stim_mode is None or sh.stim_mode >= c2.STIM_MODE_IMPEDANCE:
+        if sh.sense_code != 0:
+            return True
+        if sh.stim_mode is not None:
+            return False
+    num = sh.electrode_num if sh.electrode_num is not None else len(sh.pattern)
+    return any(v is None or v for v in sh.pattern[:num])

@@ -1,0 +1,288 @@
+"""The v2 firmware's command parser (upstream 71adee21), byte-exact, defects included.
+
+v2 parses a command only when its whole payload is queued, so a cut command never changes anything; it
+stays pending and swallows whatever is sent next (the desynchronisation of v1.2, now bounded): if the
+payload has not completed 2 s after the command byte was read, the next poll discards *every* queued
+byte and the parser is free again.  The loop sleeps one RTOS tick only when a call made no progress.
+
+Time is the firmware's command timer (Timer2, 1 µs ticks) and enters through :meth:`ParserV2.call`'s
+``now_us``: the parser reads it when a payload command starts and while one is pending, nowhere else.
+
+The receive queue is the ESP32-S3 HWCDC one: 1024 bytes, each USB packet (≤ 64 bytes) copied byte by
+byte, the rest of a packet dropped silently at the first byte that does not fit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind, UnknownRuns
+from tactdeform_hw.emulator.firmware.registers import RegistersV2
+from tactdeform_hw.protocol import firmware_math as fm
+from tactdeform_hw.protocol.commands import encode_measure_reply
+from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
+from tactdeform_hw.protocol.firmware import V2, CommandSpec, FirmwareSpec
+
+
+@dataclass(frozen=True)
+class CallOutcome:
+    """What one ``runEtactileKit()`` call did: bytes read from the queue, bytes written, whether it
+    ended with the one-tick sleep (``madeProgress`` false)."""
+
+    consumed: int
+    wrote: int
+    slept: bool
+
+    @property
+    def quiet(self) -> bool:
+        """Neither consumed nor wrote a byte: the driving loop stops here."""
+        return self.consumed == 0 and self.wrote == 0
+
+
+class ParserV2(UnknownRuns):
+    """Receive queue + the parser's static state + the effects on :class:`RegistersV2`.
+
+    ``hv513_detect`` is the board's stack sensing (0xF5); ``on_hv513_reinit`` tells a scan model that
+    ``hv513Init`` re-clocked the chain; ``on_command`` is told ``(opcode, value, offset)`` when a
+    command takes effect (value: the int payload, the clamped height list for 0xFE, None for replies).
+    """
+
+    def __init__(
+        self,
+        regs: RegistersV2,
+        hazards: list[Hazard],
+        hv513_detect: Callable[[], int],
+        *,
+        spec: FirmwareSpec = V2,
+        on_hv513_reinit: Callable[[], None] | None = None,
+        on_command: Callable[[int, object, int], None] | None = None,
+    ) -> None:
+        self.regs = regs
+        self.hazards = hazards
+        self.hv513_detect = hv513_detect
+        self.spec = spec
+        if spec.command_timeout_us is None:
+            raise ValueError(f"firmware {spec.name} has no command timeout: it is not parsed by ParserV2")
+        self._timeout_us: int = spec.command_timeout_us
+        self.on_hv513_reinit = on_hv513_reinit
+        self.on_command = on_command
+        self.rx = bytearray()
+        self.pos = 0
+        self.base = 0  # absolute offset (bytes accepted since power-on) of rx[0]
+        self.tx = bytearray()
+        self.dropped = 0
+        self.processing = False
+        self.required = 0
+        self.command = 0
+        self.command_offset = 0
+        self.command_start_us = 0
+        self._unknown_start = -1
+        self._unknown_len = 0
+        self._sense_all = False
+
+    # --- the receive queue -----------------------------------------------------------------------------
+
+    @property
+    def pending(self) -> int:
+        return len(self.rx) - self.pos
+
+    @property
+    def offset(self) -> int:
+        return self.base + self.pos
+
+    def receive(self, data: bytes) -> int:
+        """Queue one arrival packet by packet; return the bytes dropped because the queue was full."""
+        if self.pos > 4096 and self.pos * 2 > len(self.rx):
+            del self.rx[: self.pos]
+            self.base += self.pos
+            self.pos = 0
+        capacity = self.spec.rx_queue_bytes
+        packet = self.spec.usb_packet_bytes
+        lost = 0
+        for start in range(0, len(data), packet):
+            chunk = data[start : start + packet]
+            free = capacity - self.pending
+            if free >= len(chunk):
+                self.rx += chunk
+                continue
+            if free > 0:
+                self.rx += chunk[:free]
+            cut = len(chunk) - max(free, 0)
+            lost += cut
+            self.hazards.append(
+                Hazard(
+                    HazardKind.QUEUE_OVERFLOW,
+                    self.base + len(self.rx),
+                    {"dropped": cut, "queue_size": capacity},
+                )
+            )
+        self.dropped += lost
+        return lost
+
+    def take_tx(self) -> bytes:
+        out = bytes(self.tx)
+        self.tx.clear()
+        return out
+
+    # --- one main-loop call ----------------------------------------------------------------------------
+
+    def call(self, now_us: int) -> CallOutcome:
+        """Exactly one ``runEtactileKit()`` call at command-timer time ``now_us``."""
+        consumed = 0
+        wrote_before = len(self.tx)
+        made_progress = False
+        if not self.processing and self.pending > 0:
+            op = self.rx[self.pos]
+            at = self.offset
+            self.pos += 1
+            consumed = 1
+            made_progress = True
+            spec = self.spec.by_opcode.get(op)
+            if spec is None or spec.kind is None:
+                if spec is None:
+                    self._note_unknown(at)
+                else:
+                    self._flush_unknown()
+                    self._reply(spec, at)
+                return CallOutcome(consumed, len(self.tx) - wrote_before, False)
+            self._flush_unknown()
+            self.command = op
+            self.command_offset = at
+            self.required = self.spec.size_of(op, self.regs.electrode_num) or 0
+            self.processing = True
+            self.command_start_us = now_us
+        if self.processing:
+            if self.pending >= self.required:
+                consumed += self.required
+                self._apply()
+                made_progress = True
+            elif now_us - self.command_start_us > self._timeout_us:
+                discarded = self.pending
+                consumed += discarded
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.COMMAND_TIMEOUT,
+                        self.command_offset,
+                        {
+                            "command": self.spec.command(self.command).name,
+                            "needed": self.required,
+                            "discarded": discarded,
+                            "discarded_hex": bytes(self.rx[self.pos :]).hex(),
+                        },
+                        float(now_us),
+                    )
+                )
+                self.pos = len(self.rx)
+                self.processing = False
+                self.command = 0
+        return CallOutcome(consumed, len(self.tx) - wrote_before, not made_progress)
+
+    def run(self, now_us: int) -> None:
+        """Call until a call neither consumes nor writes a byte (the golden vectors' driving rule)."""
+        while not self.call(now_us).quiet:
+            pass
+        self._flush_unknown()
+
+    # --- pieces ----------------------------------------------------------------------------------------
+
+    def _reply(self, spec: CommandSpec, offset: int) -> None:
+        regs = self.regs
+        op = spec.opcode
+        if spec.reply == "measure":
+            self.tx += encode_measure_reply(regs.voltage[: regs.electrode_num])
+        elif spec.reply == "hv513":
+            regs.hv513_num = self.hv513_detect()
+            self.tx.append(regs.hv513_num & 0xFF)
+            self.hazards.append(
+                Hazard(HazardKind.HV513_REINIT, offset, {"hv513_num": regs.hv513_num, "timer_paused": True})
+            )
+            if self.on_hv513_reinit is not None:
+                self.on_hv513_reinit()
+        else:  # sync check
+            self.tx.append(regs.electrode_num & 0xFF)
+        if self.on_command is not None:
+            self.on_command(op, None, offset)
+
+    def _hazard(self, kind: HazardKind, **detail: object) -> None:
+        self.hazards.append(Hazard(kind, self.command_offset, dict(detail)))
+
+    def _apply(self) -> None:
+        """The whole payload is queued: read it, apply it by the table, end the command."""
+        regs = self.regs
+        cmd = self.spec.command(self.command)
+        payload = bytes(self.rx[self.pos : self.pos + self.required])
+        self.pos += self.required
+        self.processing = False
+        self.command = 0
+        if payload and cmd.kind != "pattern" and max(payload) >= self.spec.command_byte_min:
+            self._hazard(HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE, command=cmd.name, payload=payload.hex())
+        value: object
+        if cmd.kind == "pattern":
+            limit = cmd.max_value if cmd.max_value is not None else self.spec.dac_max_code
+            width = self.spec.pattern_bytes_per_electrode
+            raw = [int.from_bytes(payload[i : i + width], "little") for i in range(0, len(payload), width)]
+            heights = [min(v, limit) for v in raw]
+            regs.stim_pattern[: len(heights)] = heights
+            over = {ch: v for ch, v in enumerate(raw) if v > limit}
+            if over:
+                self._hazard(HazardKind.CLAMPED, field="stim_pattern", values=over, stored=limit)
+            value = heights
+        else:
+            ivalue = int.from_bytes(payload, "little")
+            value = ivalue
+            self._store(cmd, ivalue)
+        self._check_sense_all()
+        if self.on_command is not None:
+            self.on_command(cmd.opcode, value, self.command_offset)
+
+    def _check_sense_all(self) -> None:
+        """Mode 2 gives every scanned channel the sense pulse: with a non-zero sense height, channels whose
+        height is 0 still carry current.  Recorded when the registers enter that state."""
+        regs = self.regs
+        n = regs.electrode_num
+        zeros = [ch for ch in range(n) if regs.stim_pattern[ch] == 0]
+        live = regs.stim_mode == 2 and regs.sense_pulse_height > 0 and bool(zeros)
+        if live and not self._sense_all:
+            self._hazard(
+                HazardKind.MODE_SENSE_ALL,
+                channels=zeros,
+                sense_code=regs.sense_pulse_height,
+                sense_width_us=regs.sense_pulse_width,
+            )
+        self._sense_all = live
+
+    def _store(self, cmd: CommandSpec, value: int) -> None:
+        regs = self.regs
+        stored = cmd.stored(value)
+        if stored is None:
+            self._hazard(HazardKind.IGNORED_ZERO, field=cmd.register)
+            return
+        if stored != value << cmd.shift:
+            self._hazard(HazardKind.CLAMPED, field=cmd.register, value=value, stored=stored)
+        if cmd.register == "frequency":
+            regs.period_us = fm.period_us_from_rate_double(value)
+            regs.timer_alarm_ticks = fm.alarm_ticks(regs.period_us)
+            return
+        if cmd.register == "electrode_num":
+            old = regs.electrode_num
+            if stored > old:
+                stale = {ch: regs.stim_pattern[ch] for ch in range(old, stored) if regs.stim_pattern[ch]}
+                if stale:
+                    self._hazard(HazardKind.STALE_CHANNELS, old=old, new=stored, channels=stale)
+            driven = regs.hv513_num * OUTPUTS_PER_HV513
+            if stored > driven:
+                self._hazard(
+                    HazardKind.CHANNELS_BEYOND_HV513,
+                    electrode_num=stored,
+                    hv513_num=regs.hv513_num,
+                    channels_driven=driven,
+                )
+        elif cmd.register == "pulse_width" and stored < self.spec.timing.pulse_wait_offset_us:
+            self._hazard(HazardKind.SHORT_PULSE_WIDTH, field="pulse_width", value=stored)
+        assert cmd.register is not None
+        setattr(regs, cmd.register, stored)
+
+    @property
+    def command_in_progress(self) -> bool:
+        return self.processing

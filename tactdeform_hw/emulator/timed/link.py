@@ -1,0 +1,294 @@
+"""Host ↔ device link models and the device's 256-byte receive queue.
+
+A link model turns "the host wrote these bytes at time t" into :class:`Delivery` chunks: the bytes the
+device's receive path moves into its queue together, and when.  Two models matter for the eTactileKit:
+
+* :class:`UartLink` — 921600 baud 8N1: ten bit times per byte (10.85 µs), bytes back to back, each
+  delivered on its own as its stop bit ends.
+* :class:`UsbFsLink` — USB full-speed CDC bulk: a write is cut into packets of at most 64 bytes; the host
+  controller starts them at the next 1 ms frame (SOF) and sends them back to back inside the frame, each
+  taking its wire time at 12 Mbit/s plus protocol overhead, at most ``max_packets_per_frame`` per frame.
+  A whole packet reaches the device at once.
+
+Both keep state (a link is busy until its last byte is out), so writes must come in time order.
+
+**Fault injection hook.**  Everything between the host's ``write`` and the device's queue goes through
+:meth:`LinkModel.schedule`.  :class:`LinkFilter` wraps any model and passes its deliveries through
+:meth:`LinkFilter.transform`; a fault layer subclasses it and drops, corrupts, duplicates, delays or
+withholds chunks there (``Delivery.host_offset`` keeps each chunk tied to the host's byte stream, so loss
+reports still line up).  The same hook exists on the device-to-host side (``tx_link``).
+
+**The receive queue** (:class:`ReceiveQueue`) is the firmware's: 256 bytes; a chunk is moved in byte by
+byte and, at the first byte that does not fit, the rest of that chunk is discarded — the host is neither
+held back nor told.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from tactdeform_hw.errors import ConfigurationError, LimitError
+from tactdeform_hw.protocol.constants import (
+    BAUD_RATE,
+    RX_QUEUE_SIZE,
+    UART_BITS_PER_BYTE,
+    USB_FRAME_US,
+    USB_PACKET_SIZE,
+)
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """Bytes that reach the device's receive path together, at ``t_ns``.
+
+    ``host_offset`` is the offset of ``data[0]`` in the host's byte stream (-1 for bytes that did not
+    come from it, e.g. injected noise); ``sent_ns`` is when the host wrote them."""
+
+    t_ns: int
+    data: bytes
+    host_offset: int
+    sent_ns: int
+
+
+class LinkModel:
+    """Base class: ``schedule`` turns one host write into deliveries (and advances the link's state)."""
+
+    name = "link"
+
+    def schedule(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Delivery]:
+        raise NotImplementedError
+
+    def arrival_times(self, data: bytes, t_ns: int) -> np.ndarray:
+        """Per-byte delivery times of one write (advances the link's state like :meth:`schedule`)."""
+        out = np.zeros(len(data), dtype=np.int64)
+        i = 0
+        for d in self.schedule(data, t_ns, 0):
+            out[i : i + len(d.data)] = d.t_ns
+            i += len(d.data)
+        return out[:i]
+
+    def reset(self) -> None:
+        """Forget the link's state (idle, nothing in flight)."""
+
+    def wire_ns(self, nbytes: int) -> int:
+        """Nominal time for ``nbytes`` on an idle link, from the write to the last byte's delivery,
+        excluding any wait for a frame boundary."""
+        raise NotImplementedError
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name}
+
+
+@dataclass
+class UartLink(LinkModel):
+    """A UART: ``bits_per_byte`` bit times per byte (8N1 → 10), bytes delivered one by one."""
+
+    baud: int = BAUD_RATE
+    bits_per_byte: int = UART_BITS_PER_BYTE
+    _busy_until_ns: int = field(default=0, repr=False)
+    name = "uart"
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.baud, int) or self.baud <= 0:
+            raise LimitError("baud", self.baud, "a positive integer")
+        if not isinstance(self.bits_per_byte, int) or self.bits_per_byte <= 0:
+            raise LimitError("bits_per_byte", self.bits_per_byte, "a positive integer")
+
+    def _offset_ns(self, nbytes: int) -> int:
+        # exact integer arithmetic from the start of the write: no drift over long bursts
+        return (nbytes * self.bits_per_byte * 1_000_000_000) // self.baud
+
+    def schedule(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Delivery]:
+        start = max(t_ns, self._busy_until_ns)
+        out = [
+            Delivery(
+                start + self._offset_ns(i + 1),
+                data[i : i + 1],
+                host_offset + i if host_offset >= 0 else -1,
+                t_ns,
+            )
+            for i in range(len(data))
+        ]
+        if data:
+            self._busy_until_ns = start + self._offset_ns(len(data))
+        return out
+
+    def arrival_times(self, data: bytes, t_ns: int) -> np.ndarray:
+        start = max(t_ns, self._busy_until_ns)
+        n = len(data)
+        if n:
+            self._busy_until_ns = start + self._offset_ns(n)
+        return (
+            start + (np.arange(1, n + 1, dtype=np.int64) * (self.bits_per_byte * 1_000_000_000)) // self.baud
+        )
+
+    def reset(self) -> None:
+        self._busy_until_ns = 0
+
+    def wire_ns(self, nbytes: int) -> int:
+        return self._offset_ns(nbytes)
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "baud": self.baud,
+            "bits_per_byte": self.bits_per_byte,
+            "byte_us": self._offset_ns(1000) / 1e6,
+        }
+
+
+@dataclass
+class UsbFsLink(LinkModel):
+    """USB full-speed CDC bulk OUT: 64-byte packets scheduled from the next 1 ms frame.
+
+    ``packet_overhead_bytes`` (token, sync, PID, CRC, handshake, gaps; an assumption) and the 12 Mbit/s
+    bus give a 64-byte packet about 51 µs; ``max_packets_per_frame`` (19, the full-speed bulk ceiling) caps
+    one frame.  SOFs fall on multiples of ``frame_us`` from time 0 (assumption)."""
+
+    packet_size: int = USB_PACKET_SIZE
+    frame_us: int = USB_FRAME_US
+    max_packets_per_frame: int = 19
+    bit_rate_hz: int = 12_000_000
+    packet_overhead_bytes: int = 13
+    _frame: int = field(default=-1, repr=False)
+    _count: int = field(default=0, repr=False)
+    _used_ns: int = field(default=0, repr=False)
+    name = "usb"
+
+    def __post_init__(self) -> None:
+        for name in ("packet_size", "frame_us", "max_packets_per_frame", "bit_rate_hz"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v <= 0:
+                raise LimitError(name, v, "a positive integer")
+        if not isinstance(self.packet_overhead_bytes, int) or self.packet_overhead_bytes < 0:
+            raise LimitError("packet_overhead_bytes", self.packet_overhead_bytes, "an integer >= 0")
+        if self.max_packets_per_frame * self._packet_ns(self.packet_size) > self.frame_us * 1000:
+            raise ConfigurationError(
+                f"max_packets_per_frame={self.max_packets_per_frame} packets of {self.packet_size} bytes do "
+                f"not fit a {self.frame_us} µs frame at {self.bit_rate_hz} bit/s"
+            )
+
+    def _packet_ns(self, nbytes: int) -> int:
+        bits = (nbytes + self.packet_overhead_bytes) * 8
+        return -(-bits * 1_000_000_000 // self.bit_rate_hz)
+
+    def schedule(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Delivery]:
+        frame_ns = self.frame_us * 1000
+        first = t_ns // frame_ns + 1
+        if first > self._frame:
+            self._frame, self._count, self._used_ns = first, 0, 0
+        out: list[Delivery] = []
+        for i in range(0, len(data), self.packet_size):
+            chunk = data[i : i + self.packet_size]
+            if self._count >= self.max_packets_per_frame:
+                self._frame, self._count, self._used_ns = self._frame + 1, 0, 0
+            self._used_ns += self._packet_ns(len(chunk))
+            self._count += 1
+            out.append(
+                Delivery(
+                    self._frame * frame_ns + self._used_ns,
+                    bytes(chunk),
+                    host_offset + i if host_offset >= 0 else -1,
+                    t_ns,
+                )
+            )
+        return out
+
+    def reset(self) -> None:
+        self._frame, self._count, self._used_ns = -1, 0, 0
+
+    def wire_ns(self, nbytes: int) -> int:
+        full, rest = divmod(nbytes, self.packet_size)
+        return full * self._packet_ns(self.packet_size) + (self._packet_ns(rest) if rest else 0)
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "packet_size": self.packet_size,
+            "frame_us": self.frame_us,
+            "max_packets_per_frame": self.max_packets_per_frame,
+            "bit_rate_hz": self.bit_rate_hz,
+            "packet_overhead_bytes": self.packet_overhead_bytes,
+            "packet_us": self._packet_ns(self.packet_size) / 1000,
+        }
+
+
+class LinkFilter(LinkModel):
+    """Wraps a link model; override :meth:`transform` to alter what reaches the device.
+
+    This is the hook point for fault injection: ``transform`` sees every :class:`Delivery` the wrapped
+    link produced for one write and returns the deliveries that really happen (fewer, altered, more,
+    later).  Deliveries may come back in any order; the emulator sorts them by time."""
+
+    def __init__(self, inner: LinkModel) -> None:
+        self.inner = inner
+        self.name = f"{type(self).__name__}({inner.name})"
+
+    def schedule(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Delivery]:
+        return self.transform(self.inner.schedule(data, t_ns, host_offset))
+
+    def transform(self, deliveries: list[Delivery]) -> list[Delivery]:
+        return deliveries
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def wire_ns(self, nbytes: int) -> int:
+        return self.inner.wire_ns(nbytes)
+
+    def describe(self) -> dict[str, Any]:
+        return {"name": self.name, "inner": self.inner.describe()}
+
+
+LINK_NAMES = ("usb", "uart")
+
+
+def make_link(link: str | LinkModel) -> LinkModel:
+    """A link model by name (``usb`` / ``uart``) or the model itself."""
+    if isinstance(link, LinkModel):
+        return link
+    if link == "usb":
+        return UsbFsLink()
+    if link == "uart":
+        return UartLink()
+    raise LimitError("link", link, " or ".join(LINK_NAMES))
+
+
+class ReceiveQueue:
+    """The firmware's receive queue: bytes delivered and not yet read by the parser."""
+
+    def __init__(self, capacity: int = RX_QUEUE_SIZE) -> None:
+        if not isinstance(capacity, int) or capacity < 1:
+            raise LimitError("capacity", capacity, "an integer >= 1")
+        self.capacity = capacity
+        self.buf = bytearray()
+        self.high_water = 0
+
+    def __len__(self) -> int:
+        return len(self.buf)
+
+    @property
+    def free(self) -> int:
+        return self.capacity - len(self.buf)
+
+    def offer(self, data: bytes) -> int:
+        """Move a chunk in byte by byte; return how many bytes fitted (the rest is discarded)."""
+        take = min(len(data), self.capacity - len(self.buf))
+        if take > 0:
+            self.buf += data[:take]
+            if len(self.buf) > self.high_water:
+                self.high_water = len(self.buf)
+        return max(take, 0)
+
+    def take(self, n: int) -> bytes:
+        out = bytes(self.buf[:n])
+        del self.buf[:n]
+        return out
+
+    def clear(self) -> bytes:
+        out = bytes(self.buf)
+        self.buf.clear()
+        return out

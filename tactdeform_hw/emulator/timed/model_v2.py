@@ -1,0 +1,875 @@
+"""Firmware v2 in time: its parser on the command timer, its scans on the stimulation timer, a link.
+
+The same pieces as the v1.2 timed model, with v2's rules: the main loop sleeps one RTOS tick only after
+a call that made no progress (:class:`~.parser_v2.ParserV2`), the parser reads Timer2 (µs) for the 2 s
+command timeout, 0xF5 disables the stimulation alarm while it senses the stack (a scan due meanwhile
+fires when the alarm is re-enabled), and each scan is the v2 interrupt of :mod:`.firmware_scan`:
+parameters snapshotted at its start, a DAC code per channel, the mode choosing the waveform, no DAC
+write in the discharge.  The interrupt pre-empts the parser, never the reverse: a parser call costs
+its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm inside the
+call that copies a pattern scans the elements copied so far at their new heights and the rest at their
+old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer — and
+only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).
+
+Served on the wall clock (:class:`~.realtime.RealtimeEmulator` with ``firmware="v2"``) it tells the
+runner when it next does something a host could notice (:meth:`TimedEmulatorV2.next_event_us`: not the
+idle polls, which change nothing), resets, and records a command a new host connection inherits
+(:meth:`TimedEmulatorV2.new_client`).  Scan shapes are walked once per configuration: on v2 a channel's
+timing does not depend on its height (:func:`_scan_shape`).
+
+Every scan is recorded (:class:`ScanRecordV2`) with the parameters it ran and when each channel's
+current started, so safety can be judged on the pulses delivered; mode 2 with a zero pattern that
+still drives the sense current is a :data:`~.hazards.HazardKind.MODE_SENSE_ALL` hazard.  The same
+judgement as on v1.2 needs the same books, kept here in v1.2's shapes: ``reports.pulse_table()`` (every
+pulse as numpy columns), ``losses`` (:class:`~.reports.LossReport`: bytes that never took effect — a full
+queue, a reboot, a command the 2 s timeout discarded) and ``commands`` (each command applied, with
+whether it is the command the host wrote at that offset: the host's stream is read with the v2 table as
+it is written).
+"""
+
+from __future__ import annotations
+
+import heapq
+from bisect import bisect_right
+from dataclasses import dataclass, replace
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+
+from tactdeform_hw.emulator.core import Emulator
+from tactdeform_hw.emulator.firmware.board import Board
+from tactdeform_hw.emulator.firmware.firmware_scan import (
+    DEFAULT_CONVENTIONS,
+    FirmwareScanConfig,
+    ScanConventions,
+    trace_scan,
+)
+from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
+from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS
+from tactdeform_hw.emulator.firmware.scan import PulseKind
+from tactdeform_hw.emulator.records.reports import LossReport
+from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link
+from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
+from tactdeform_hw.errors import ConfigurationError, LimitError
+from tactdeform_hw.protocol.firmware import V2, OpcodeV2
+from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
+
+#: StimulationMode 2 (impedance only): every channel gets the sense pulse, the pattern's heights unused.
+_MODE_IMPEDANCE = 2
+#: A time the main loop never reaches (it hangs: :meth:`TimedEmulatorV2.stop_reading`).
+_NEVER = 1 << 62
+
+
+@dataclass(frozen=True)
+class ScanRecordV2:
+    """One v2 scan: when it ran, what it snapshotted, and each channel's current onset."""
+
+    index: int
+    start_ns: int
+    duration_ns: int
+    electrode_num: int
+    stim_mode: int
+    polarity: int
+    pulse_width: int
+    sense_pulse_height: int
+    sense_pulse_width: int
+    heights: tuple[int, ...]  # the pattern as read per channel (mode 2: ignored)
+    onset_ns: tuple[int, ...]  # per channel, relative to start_ns: the first DAC edge
+    codes: tuple[int, ...]  # per channel, the DAC code of its (first) pulse
+    pulses: tuple[PulseRow, ...] = ()  # every non-zero current: (channel, onset ns, code, width ns, POL)
+
+    @property
+    def end_ns(self) -> int:
+        return self.start_ns + self.duration_ns
+
+    def live_channels(self) -> list[int]:
+        """Channels that received a non-zero current in this scan."""
+        return [ch for ch, code in enumerate(self.codes) if code]
+
+
+#: One delivered pulse of a scan: (channel, onset ns after the alarm, DAC code, width ns, POL level).
+PulseRow = tuple[int, int, int, int, int]
+
+
+def _pulse_rows(events: list[list[Any]], starts: list[float]) -> tuple[PulseRow, ...]:
+    """Every non-zero DAC level of a scan, from its edge to the next DAC edge, with the POL level then."""
+    rows: list[PulseRow] = []
+    pol = 1
+    ch = -1
+    open_: tuple[int, int, int, int] | None = None
+    for t, kind, pin, value in events:
+        while ch + 1 < len(starts) and t >= starts[ch + 1]:
+            ch += 1
+        if kind == "GPIO" and pin == 3:
+            pol = value
+        elif kind == "DAC":
+            t_ns = round(t * 1000)
+            if open_ is not None:
+                c0, t0, code, p0 = open_
+                rows.append((c0, t0, code, t_ns - t0, p0))
+                open_ = None
+            if value:
+                open_ = (ch, t_ns, value, pol)
+    return tuple(rows)
+
+
+@lru_cache(maxsize=1024)
+def _shape(
+    cfg: FirmwareScanConfig, conv: ScanConventions
+) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]:
+    """(duration, onsets, codes, voltages, pulses) of one scan, from the statement walker."""
+    tr = trace_scan(cfg, "v2", conv)
+    starts = tr.channel_start_us
+    dacs = [(e[0], e[3]) for e in tr.events if e[1] == "DAC"]
+    onsets: list[int] = []
+    codes: list[int] = []
+    k = 0
+    for s in starts:
+        while k < len(dacs) and dacs[k][0] < s:
+            k += 1
+        onsets.append(round(dacs[k][0] * 1000) if k < len(dacs) else 0)
+        codes.append(dacs[k][1] if k < len(dacs) else 0)
+    return (
+        round(tr.isr_return_us * 1000),
+        tuple(onsets),
+        tuple(codes),
+        tuple(tr.voltage),
+        _pulse_rows(tr.events, starts),
+    )
+
+
+def _scan_shape(
+    cfg: FirmwareScanConfig, conv: ScanConventions
+) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]:
+    """:func:`_shape` without walking the statements again for every new pattern.
+
+    On v2 a channel's timing does not depend on its height (a height of 0 is still a DAC write of 0 for
+    the pulse width), so the walk of a pattern of ones gives every edge; the heights only fill in the DAC
+    codes (the ADC reading is the code held when the second exchange starts: the height again), and a
+    height of 0 delivers no pulse.  Mode 2 ignores the pattern.  Equal to :func:`_shape` for every
+    pattern (tested)."""
+    n = cfg.electrode_num
+    if cfg.stim_mode not in (0, 1):
+        return _shape(replace(cfg, stim_pattern=(0,) * n), conv)
+    heights = cfg.stim_pattern
+    duration, onsets, _, _, rows = _shape(replace(cfg, stim_pattern=(1,) * n), conv)
+    pulses = tuple((ch, t0, heights[ch], w, pol) for ch, t0, _, w, pol in rows if heights[ch])
+    return duration, onsets, tuple(heights), tuple(heights), pulses
+
+
+@dataclass(frozen=True)
+class CommandRecordV2:
+    """A command the v2 parser applied: when, which, where in the host's stream, and whether the host
+    wrote that command there (``in_sync``; False for a payload that swallowed a command byte, a command
+    byte read out of a payload, bytes of no known host offset)."""
+
+    time_us: float
+    opcode: int
+    host_offset: int
+    in_sync: bool
+
+
+class ReportsV2:
+    """The v2 model's delivered pulses in the columns of the v1.2 reports (``pulse_table``)."""
+
+    def __init__(self, owner: TimedEmulatorV2) -> None:
+        self._owner = owner
+
+    def pulse_table(
+        self,
+        t0_us: float | None = None,
+        t1_us: float | None = None,
+        transfer: CurrentTransfer = DEFAULT_TRANSFER,
+    ) -> dict[str, np.ndarray]:
+        """Every non-zero pulse as numpy columns (``cycle, channel, kind, start_us, width_us, code, pol,
+        current_ua, charge_nc``), optionally starting within ``[t0_us, t1_us)``.  ``kind`` is v1.2's
+        :class:`~.scan.PulseKind`: mode 0 monophasic, mode 1 the phase by its POL level, mode 2 sense."""
+        lo = None if t0_us is None else round(t0_us * 1000)
+        hi = None if t1_us is None else round(t1_us * 1000)
+        rows: list[tuple[int, int, int, int, int, int, int]] = []
+        for s in self._owner.scans:
+            for ch, onset, code, width, pol in s.pulses:
+                t = s.start_ns + onset
+                if (lo is not None and t < lo) or (hi is not None and t >= hi):
+                    continue
+                if s.stim_mode == 0:
+                    kind = PulseKind.MONO
+                elif s.stim_mode == 1:
+                    kind = PulseKind.BI_ANODIC if pol else PulseKind.BI_CATHODIC
+                else:
+                    kind = PulseKind.SENSE
+                rows.append((s.index, ch, int(kind), t, width, code, pol))
+        a = np.array(rows, dtype=np.int64).reshape(-1, 7)
+        codes = a[:, 5]
+        ua = np.array([transfer.to_ua(int(c)) for c in codes], dtype=np.float64)
+        return {
+            "cycle": a[:, 0],
+            "channel": a[:, 1],
+            "kind": a[:, 2],
+            "start_us": a[:, 3] / 1000.0,
+            "width_us": a[:, 4] / 1000.0,
+            "code": codes,
+            "pol": a[:, 6],
+            "current_ua": ua,
+            "charge_nc": ua * a[:, 4].astype(np.float64) / 1e6,
+        }
+
+
+class _HostStream:
+    """The host's bytes read with the v2 table as they are written: where each command starts (host
+    offset → opcode), so a command the parser applies can be told in step or not.  The host's electrode
+    count is the last 0xFC it wrote (its pattern length)."""
+
+    def __init__(self) -> None:
+        self.starts: dict[int, int] = {}
+        self._need = 0  # payload bytes of the host's current command still to come
+        self._op = 0
+        self._payload = bytearray()
+        self._num = 0
+
+    def feed(self, data: bytes, offset: int) -> None:
+        i, n = 0, len(data)
+        while i < n:
+            if self._need:
+                take = min(self._need, n - i)
+                if self._op == OpcodeV2.ELECTRODE_NUM:
+                    self._payload += data[i : i + take]
+                self._need -= take
+                i += take
+                if not self._need and self._op == OpcodeV2.ELECTRODE_NUM:
+                    self._num = int.from_bytes(self._payload, "little")
+                continue
+            op = data[i]
+            size = V2.size_of(op, self._num)
+            if size is not None:
+                self.starts[offset + i] = op
+                self._op, self._need = op, size
+                self._payload = bytearray()
+            i += 1
+
+    def forget_before(self, offset: int) -> None:
+        if len(self.starts) > 65536:
+            self.starts = {k: v for k, v in self.starts.items() if k >= offset}
+
+
+class _QueueView:
+    """The receive path as a real-time server sees it: bytes waiting (``len``) and room (``free``)."""
+
+    def __init__(self, owner: TimedEmulatorV2) -> None:
+        self._owner = owner
+
+    def __len__(self) -> int:
+        return int(self._owner.emulator.parser.pending)
+
+    @property
+    def free(self) -> int:
+        return int(self._owner.emulator.parser.spec.rx_queue_bytes) - len(self)
+
+
+class TimedEmulatorV2:
+    """The v2 board in simulated time.  ``write(data, at_us)`` hands bytes to the link; ``advance_to``
+    runs the firmware until then; ``read_tx`` returns what reached the host."""
+
+    firmware = "v2"
+
+    def __init__(
+        self,
+        board: str | Board = "compact",
+        switching_boards: int = 1,
+        *,
+        link: str | LinkModel = "usb",
+        tx_link: str | LinkModel | None = None,
+        model: TimingModel = DEFAULT_MODEL,
+        conventions: ScanConventions = DEFAULT_CONVENTIONS,
+        stack_reading: float | None = None,
+    ) -> None:
+        self.emulator = Emulator(board, switching_boards, firmware="v2", stack_reading=stack_reading)
+        self.board = self.emulator.board
+        self.model = model
+        self.conventions = conventions
+        self.link = make_link(link)
+        self.tx_link = make_link(tx_link) if tx_link is not None else None
+        self.now_ns = 0
+        self.hazards: list[Hazard] = self.emulator.hazards
+        self.scans: list[ScanRecordV2] = []
+        self.scan_count = 0  # scans since power-up (``scans`` may have been trimmed)
+        # (time ns, opcode, value) when a command took effect
+        self.applied: list[tuple[int, int, object]] = []
+        self.queue = _QueueView(self)
+        self.reboots = 0
+        #: Bytes written to the board since power-on (0: no program can have left a command in its parser).
+        self.received_bytes = 0
+        self.replies_dropped = 0  # reply bytes to commands of a host that had gone (see new_client)
+        self._reply_offset: int | None = None
+        self._deliveries: list[tuple[int, int, Delivery]] = []
+        self._seq = 0
+        self._tx: list[tuple[int, bytes]] = []
+        self._host_rx = bytearray()
+        self._host_offset = 0
+        self._clients: list[tuple[int, str]] = []  # (device offset where a client's bytes start, its name)
+        self.losses: list[LossReport] = []
+        self.commands: list[CommandRecordV2] = []
+        self.reports = ReportsV2(self)
+        self._host_stream = _HostStream()
+        # (device offset, host offset, length) of each arrival taken into the queue since power-on
+        self._segments: list[tuple[int, int, int]] = []
+        self._boot(0)
+
+    def _boot(self, t: int, boot_delay: bool = False) -> None:
+        start = t + (self.model.boot_ns if boot_delay else 0)
+        self._booting_until = start
+        self._next_call_ns = start
+        self._next_alarm_ns = start + self._period_ns()
+        self._busy_until_ns = 0
+        self._last_sense_hazard = False
+        self._chain_pos = 0
+        self._call_time_ns = start
+        self._last_alarm = start
+        self._hv513_in_call = False
+        self._applied_in_call: int | None = None
+        self._frozen = False
+        self._segments = []
+        self.emulator.parser.on_command = self._on_command
+
+    # --- the host side ---------------------------------------------------------------------------------
+
+    @property
+    def registers(self) -> Any:
+        return self.emulator.registers
+
+    @property
+    def parser(self) -> Any:
+        return self.emulator.parser
+
+    @property
+    def now_us(self) -> float:
+        return self.now_ns / 1000
+
+    def state(self) -> dict[str, Any]:
+        return self.emulator.state()
+
+    def write(self, data: bytes, at_us: float | None = None) -> int:
+        self.received_bytes += len(data)
+        t = self.now_ns if at_us is None else round(at_us * 1000)
+        if t < self.now_ns:
+            raise ConfigurationError(f"at_us={at_us} is before the emulator's clock ({self.now_us} us)")
+        self.advance_to(t / 1000)
+        self._host_stream.feed(bytes(data), self._host_offset)
+        for d in self.link.schedule(bytes(data), t, self._host_offset):
+            heapq.heappush(self._deliveries, (d.t_ns, self._seq, d))
+            self._seq += 1
+        self._host_offset += len(data)
+        return len(data)
+
+    def _collect_tx(self) -> None:
+        if self._tx and self._tx[0][0] <= self.now_ns:
+            self._host_rx += b"".join(b for t, b in self._tx if t <= self.now_ns)
+            self._tx = [(t, b) for t, b in self._tx if t > self.now_ns]
+
+    def read_tx(self, size: int | None = None) -> bytes:
+        """Reply bytes that have reached the host by now (all, or at most ``size``)."""
+        self._collect_tx()
+        n = len(self._host_rx) if size is None else min(size, len(self._host_rx))
+        out = bytes(self._host_rx[:n])
+        del self._host_rx[:n]
+        return out
+
+    @property
+    def in_waiting(self) -> int:
+        """Reply bytes that have reached the host and were not read yet."""
+        self._collect_tx()
+        return len(self._host_rx)
+
+    @property
+    def in_flight(self) -> int:
+        """Bytes written by the host that the firmware's receive queue has not taken yet."""
+        return sum(len(d[2].data) for d in self._deliveries)
+
+    # --- what a real-time server needs ---------------------------------------------------------------
+
+    def next_event_us(self, scans: bool = True) -> float:
+        """When the board next does something the host could notice: a delivery lands, the parser has
+        bytes to read, a cut command's 2 s run out, a reply reaches the host, and with ``scans`` an alarm
+        fires.  Idle polls (one per tick, changing nothing) are not events: a runner on the wall clock
+        sleeps through them and the model runs them when it catches up."""
+        inf = float("inf")
+        p = self.parser
+        # bytes that landed are read by the parser's next call, not before
+        t = min(
+            max(self._deliveries[0][0], self._next_call_ns) if self._deliveries else inf,
+            self._tx[0][0] if self._tx else inf,
+            self._next_alarm_ns if scans else inf,
+        )
+        if p.processing:
+            if p.pending >= p.required:
+                t = min(t, self._next_call_ns)
+            else:  # the first poll after the timeout discards it
+                t = min(t, max(self._next_call_ns, (p.command_start_us + self._timeout_us() + 1) * 1000))
+        elif p.pending:
+            t = min(t, self._next_call_ns)
+        return t / 1000
+
+    def _timeout_us(self) -> int:
+        return int(self.parser.spec.command_timeout_us)
+
+    def run_until_idle(self, limit_us: float = 60e6, step_us: float = 1000.0) -> bool:
+        """Advance until every delivery has landed and the parser has read all it can (a cut command may
+        stay pending), or ``limit_us`` of device time passed.  Returns whether it got idle."""
+        end = self.now_ns + round(limit_us * 1000)
+        while True:
+            p = self.parser
+            if not self._deliveries and (p.pending == 0 or (p.processing and p.pending < p.required)):
+                return True
+            if self.now_ns >= end:
+                return False
+            self.advance_to(min(end, self.now_ns + round(step_us * 1000)) / 1000)
+
+    def parser_status(self) -> str:
+        """What the parser is doing, in words."""
+        p = self.parser
+        if not p.processing:
+            return "between commands"
+        name = p.spec.command(p.command).name
+        return (
+            f"reading {name} payload {min(p.pending, p.required)}/{p.required} (discarded if not complete "
+            f"at t={(p.command_start_us + self._timeout_us()) / 1e6:.3f} s)"
+        )
+
+    def reset(self, reason: str = "reset") -> None:
+        """Power-cycle the board now (registers, queue, parser to power-on; replies and bytes in flight
+        are lost); it boots for the timing model's boot time."""
+        self.reboots += 1
+        self.received_bytes = 0  # power-on: no command can be pending
+        p = self.parser
+        if p.pending:
+            self._loss(self.now_ns, p.pending, self._host_of(p.offset), "reboot")
+        for _, _, d in sorted(self._deliveries):
+            self._loss(self.now_ns, len(d.data), d.host_offset, "reboot")
+        self._deliveries.clear()
+        self._tx.clear()
+        self._host_rx.clear()
+        self.emulator.reset()
+        self._clients.clear()
+        self._boot(self.now_ns, boot_delay=True)
+
+    def stop_reading(self) -> None:
+        """The main loop hangs: nothing is read any more until a reset, while arrivals keep filling the
+        receive queue (the USB stack's interrupt stores them; the rest is lost) and the scans go on."""
+        self._frozen = True
+        self._next_call_ns = _NEVER
+
+    def _loss(self, t: int, count: int, host_offset: int, reason: str) -> None:
+        p = self.parser
+        self.losses.append(
+            LossReport(t / 1000, host_offset, count, b"", reason, p.pending, self.parser_status())
+        )
+
+    def _host_of(self, dev_offset: int) -> int:
+        """The host offset of a byte the queue took (-1: unknown, e.g. after a byte fault changed a chunk's
+        length)."""
+        k = bisect_right(self._segments, (dev_offset, float("inf"), 0)) - 1
+        if k < 0:
+            return -1
+        dev, host, length = self._segments[k]
+        return host + dev_offset - dev if dev_offset < dev + length else -1
+
+    def _land(self, t: int) -> None:
+        """Arrivals up to ``t`` into the receive queue (lost while the board boots or the queue is full)."""
+        parser = self.parser
+        while self._deliveries and self._deliveries[0][0] <= t:
+            _, _, d = heapq.heappop(self._deliveries)
+            if d.t_ns < self._booting_until:  # bytes that came while the board booted are lost
+                self._loss(d.t_ns, len(d.data), d.host_offset, "rebooting")
+                continue
+            start = parser.offset + parser.pending
+            lost = parser.receive(d.data)
+            if d.host_offset >= 0 and len(d.data) > lost:
+                self._segments.append((start, d.host_offset, len(d.data) - lost))
+            if lost:
+                host = d.host_offset + len(d.data) - lost if d.host_offset >= 0 else -1
+                self._loss(d.t_ns, lost, host, "queue_full")
+
+    def new_client(self, name: str) -> None:
+        """A new host connection starts here: its bytes follow the ones already taken.  Nothing in the
+        firmware resets the parser on a new connection, so a command the previous host cut takes the new
+        host's first bytes as its payload if they complete it within 2 s of its command byte — an
+        :data:`~.hazards.HazardKind.INHERITED_COMMAND` hazard naming both hosts' bytes.
+
+        The firmware reads and writes through the one current connection.  Here the bytes the previous
+        host got into the receive path before it went are still read (in order, before the new host's:
+        the emulator's reading of a connection that closes with bytes unread), but replies to its
+        requests are dropped (counted in :attr:`replies_dropped`): that host is gone, and the new one gets
+        answers only to what it asked."""
+        p = self.parser
+        self._clients.append((p.offset + p.pending + self.in_flight, name))
+        del self._clients[:-2]
+
+    def attach(self, sink: Any) -> None:
+        raise ConfigurationError("waveform traces record the v1.2 timed model; firmware v2 has none yet")
+
+    detach = attach
+
+    def discard_history(self, before_us: float) -> None:
+        """Forget scans, applied-command, command and loss records older than ``before_us`` (a board
+        served for hours keeps a bounded memory)."""
+        t = round(before_us * 1000)
+        self.scans = [s for s in self.scans if s.end_ns >= t]
+        self.applied = [a for a in self.applied if a[0] >= t]
+        self.commands = [c for c in self.commands if c.time_us * 1000 >= t]
+        self.losses = [lo for lo in self.losses if lo.time_us * 1000 >= t]
+        if self._segments:
+            keep = self.parser.offset
+            self._segments = [sg for sg in self._segments[:-1] if sg[0] + sg[2] > keep] + self._segments[-1:]
+
+    def advance_to(self, t_us: float) -> None:
+        target = round(t_us * 1000)
+        if target < self.now_ns:
+            return
+        self._run(target)
+        self.now_ns = target
+
+    # --- the firmware ----------------------------------------------------------------------------------
+
+    def _period_ns(self) -> int:
+        return int(self.emulator.registers.timer_alarm_ticks) * self.conventions.timer_tick_ns
+
+    def _run(self, target: int) -> None:
+        while True:
+            call, alarm = self._next_call_ns, self._next_alarm_ns
+            if self._frozen:
+                self._land(min(alarm, target))
+            if min(call, alarm) > target:
+                return
+            if alarm <= call:
+                self._scan(alarm)
+            else:
+                self._main_call(call)
+
+    def _scan(self, t: int) -> None:
+        regs = self.emulator.registers
+        n = regs.electrode_num
+        cfg = FirmwareScanConfig(
+            electrode_num=n,
+            stim_pattern=tuple(regs.stim_pattern[:n]),
+            pulse_width=regs.pulse_width,
+            discharge_time=regs.discharge_time,
+            polarity=regs.polarity,
+            hv513_num=regs.hv513_num,
+            sense_pulse_height=regs.sense_pulse_height,
+            sense_pulse_width=regs.sense_pulse_width,
+            stim_mode=regs.stim_mode,
+            prior_scans=0,
+        )
+        duration, onsets, codes, volts, pulses = _scan_shape(cfg, self.conventions)
+        rec = ScanRecordV2(
+            self.scan_count,
+            t,
+            duration,
+            n,
+            regs.stim_mode,
+            regs.polarity,
+            regs.pulse_width,
+            regs.sense_pulse_height,
+            regs.sense_pulse_width,
+            tuple(cfg.stim_pattern),
+            onsets,
+            codes,
+            pulses,
+        )
+        self.scans.append(rec)
+        self.scan_count += 1
+        self._last_alarm = t
+        regs.voltage[:n] = list(volts)
+        end = t + duration
+        self._check_sense(rec)
+        period = self._period_ns()
+        if duration > period:
+            self.hazards.append(
+                Hazard(
+                    HazardKind.OVERRUN, -1, {"scan_us": duration / 1000, "period_us": period / 1000}, t / 1000
+                )
+            )
+            self._next_alarm_ns = end
+        else:
+            self._next_alarm_ns = t + period
+        if self._next_call_ns < end:
+            self._next_call_ns = end  # the interrupt pre-empts the main loop
+
+    def _check_sense(self, rec: ScanRecordV2) -> None:
+        live_zero = rec.stim_mode == 2 and rec.sense_pulse_height > 0 and any(h == 0 for h in rec.heights)
+        if live_zero and not self._last_sense_hazard:
+            self.hazards.append(
+                Hazard(
+                    HazardKind.MODE_SENSE_ALL,
+                    -1,
+                    {
+                        "scan": rec.index,
+                        "channels": [ch for ch, h in enumerate(rec.heights) if h == 0],
+                        "sense_code": rec.sense_pulse_height,
+                        "sense_width_us": rec.sense_pulse_width,
+                    },
+                    rec.start_ns / 1000,
+                )
+            )
+        self._last_sense_hazard = live_zero
+
+    def _main_call(self, t: int) -> None:
+        parser = self.emulator.parser
+        regs = self.emulator.registers
+        self._land(t)
+        hazards_before = len(self.hazards)
+        self._call_time_ns = t
+        self._applied_in_call = None
+        self._reply_offset = None
+        before = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
+        old_pattern = list(regs.stim_pattern)
+        out = parser.call(t // 1000)
+        for h in self.hazards[hazards_before:]:
+            if h.kind is HazardKind.COMMAND_TIMEOUT:
+                # the cut command and every byte queued behind it never take effect
+                self._loss(t, 1 + int(h.detail["discarded"]), self._host_of(h.offset), "command_timeout")
+        m = self.model
+        cost = m.call_ns + out.consumed * m.byte_ns
+        paused = self._hv513_in_call
+        if paused:
+            cost += m.hv513_detect_ns
+        self._hv513_in_call = False
+        end = t + cost
+        alarm = self._next_alarm_ns
+        applied = self._applied_in_call
+        if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
+            end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
+        tx = parser.take_tx()
+        if (
+            tx
+            and self._reply_offset is not None
+            and self._clients
+            and self._reply_offset < self._clients[-1][0]
+        ):
+            # asked by a host that has gone: the firmware writes to the new one's
+            # socket only what the new one asked (see new_client)
+            self.replies_dropped += len(tx)
+            tx = b""
+        if tx:
+            if self.tx_link is None:
+                self._tx.append((end, tx))
+            else:
+                self._tx += [(d.t_ns, d.data) for d in self.tx_link.schedule(tx, end)]
+        if paused and self._next_alarm_ns < end:
+            self._next_alarm_ns = end  # the alarm was disabled; a passed alarm fires on re-enable
+        if out.slept:
+            tick = m.rtos_tick_ns
+            self._next_call_ns = (end // tick + 1) * tick
+        else:
+            self._next_call_ns = end
+
+    def _preempt(
+        self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
+    ) -> int:
+        """The scan interrupt fires while this call applies a command: the scan sees the registers as
+        the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
+        old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
+        regs = self.emulator.registers
+        m = self.model
+        after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
+        new = list(regs.stim_pattern)
+        if op == OpcodeV2.PATTERN:
+            n = regs.electrode_num
+            width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
+            start = t + m.call_ns + max(0, consumed - 2 * n) * m.byte_ns
+            k = max(0, min(n, (alarm - start) // width)) if width else n
+            regs.stim_pattern[:] = new[:k] + old[k:]
+            # in mode 2 the scan gives every channel the sense pulse and discards the height it reads
+            # (spec "Stimulation scan", 3c): its pulses are the same whatever the buffer holds, so no scan
+            # in mode 2 uses part of an old and part of a new pattern
+            reads_pattern = regs.stim_mode < _MODE_IMPEDANCE
+            if reads_pattern and 0 < k < n and new[k:n] != old[k:n]:
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.TORN_PATTERN,
+                        -1,
+                        {
+                            "scan": len(self.scans),
+                            "new_channels": k,
+                            "channels": n,
+                            "old_rest": old[k:n] != new[k:n],
+                        },
+                        alarm / 1000,
+                    )
+                )
+        else:
+            for f, v in before.items():
+                setattr(regs, f, v)
+        self._scan(alarm)
+        duration = self.scans[-1].duration_ns
+        for f, v in after.items():
+            setattr(regs, f, v)
+        regs.stim_pattern[:] = new
+        return duration
+
+    def _on_command(self, op: int, value: object, offset: int) -> None:
+        self.applied.append((self._call_time_ns, op, value))
+        host = self._host_of(offset)
+        in_sync = host >= 0 and self._host_stream.starts.get(host) == op
+        self.commands.append(CommandRecordV2(self._call_time_ns / 1000, op, host, in_sync))
+        self._host_stream.forget_before(host)
+        for k in range(len(self.hazards) - 1, max(-1, len(self.hazards) - 4), -1):
+            h = self.hazards[k]
+            if h.kind is HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE and h.offset == offset:
+                # a value byte like a command byte is the host's own value when the command is the host's
+                # (the hazard comes just before the command's own, e.g. stale channels of a raised count)
+                self.hazards[k] = replace(h, detail={**h.detail, "meant_as_command": not in_sync})
+                break
+        if self._clients:
+            self._check_inherited(op, value, offset)
+        self._applied_in_call = op
+        if value is None:  # a reply command (0xFF, 0xF5, 0xF4)
+            self._reply_offset = offset
+        if op == OpcodeV2.HV513_COUNT:
+            self._hv513_in_call = True
+        elif op == OpcodeV2.FREQUENCY:
+            # setPeriodUs: the new alarm value applies from the current counter
+            self._next_alarm_ns = max(self._call_time_ns, self._last_alarm_ns() + self._period_ns())
+
+    def _last_alarm_ns(self) -> int:
+        return self._last_alarm
+
+    def _check_inherited(self, op: int, value: object, offset: int) -> None:
+        """A command whose byte came from one host and whose payload ended in the next one's bytes."""
+        p = self.parser
+        end = p.offset
+        for k, (start, name) in enumerate(self._clients):
+            if offset < start < end:
+                rx, base = p.rx, p.base
+                old = bytes((op,)) + bytes(rx[max(offset + 1, base) - base : start - base])
+                new = bytes(rx[start - base : end - base])
+                previous = self._clients[k - 1][1] if k else "the previous host"
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.INHERITED_COMMAND,
+                        offset,
+                        {
+                            "command": p.spec.command(op).name,
+                            "cut_by": previous,
+                            "cut_bytes": old.hex(" "),
+                            "completed_by": name,
+                            "completing_bytes": new.hex(" "),
+                            "stored": value,
+                        },
+                        self._call_time_ns / 1000,
+                    )
+                )
+                return
+
+    # --- reports: what the board delivered --------------------------------------------------------------
+
+    def delivered(
+        self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0
+    ) -> list[dict[str, Any]]:
+        """Every pulse the scans delivered from ``since_us`` on: time, channel, DAC code, current, width,
+        charge, polarity (anodic / cathodic)."""
+        out: list[dict[str, Any]] = []
+        since = round(since_us * 1000)
+        for s in self.scans:
+            if s.start_ns < since:
+                continue
+            for ch, onset, code, width, pol in s.pulses:
+                ua = transfer.to_ua(code)
+                out.append(
+                    {
+                        "scan": s.index,
+                        "t_us": (s.start_ns + onset) / 1000,
+                        "channel": ch,
+                        "code": code,
+                        "current_ua": ua,
+                        "width_us": width / 1000,
+                        "charge_nc": ua * width / 1e6,
+                        "polarity": "anodic" if pol else "cathodic",
+                    }
+                )
+        return out
+
+    def peak_current_ua(
+        self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0
+    ) -> dict[int, float]:
+        """The highest current each channel received (channels that received none are absent)."""
+        peak: dict[int, float] = {}
+        for row in self.delivered(transfer, since_us):
+            peak[row["channel"]] = max(peak.get(row["channel"], 0.0), row["current_ua"])
+        return peak
+
+
+def pattern_in_force_v2(
+    heights: list[int],
+    *,
+    link: str = "usb",
+    pulse_width_us: int = 200,
+    discharge_us: int = 45,
+    rate_hz: int = 125,
+    phases: int = 16,
+    chunking: str = "whole",
+) -> dict[str, Any]:
+    """Host write → the first scan using a new pattern, on v2, over ``phases`` write moments.
+
+    ``chunking`` "whole" writes the 0xFE command at once; "upstream" as the upstream Python and Unity
+    APIs do (8-byte chunks, 3 ms apart).  Returns min / mean / max of: applied (the parser stored it),
+    first channel (its first pulse at the new height), last channel, in µs."""
+    from tactdeform_hw.protocol.commands_v2 import (
+        encode_discharge,
+        encode_electrode_num,
+        encode_frequency,
+        encode_pattern,
+        encode_pulse_width,
+        encode_stim_mode,
+    )
+
+    if chunking not in ("whole", "upstream"):
+        raise LimitError("chunking", chunking, "whole or upstream")
+    n = len(heights)
+    if n == 0:
+        raise ConfigurationError("pattern_in_force_v2 needs at least one electrode")
+    setup = (
+        encode_electrode_num(n)
+        + encode_stim_mode(0)
+        + encode_pulse_width(pulse_width_us)
+        + encode_discharge(discharge_us)
+        + encode_frequency(rate_hz)
+        + encode_pattern([0] * n)
+    )
+    new = encode_pattern(heights)
+    rows: list[dict[str, float]] = []
+    for i in range(phases):
+        emu = TimedEmulatorV2(link=link)
+        emu.write(setup, 0.0)
+        t0 = 50_000.0 + round(8000.0 * ((i * 0.6180339887498949) % 1.0), 3)
+        emu.advance_to(t0)
+        chunks = [new] if chunking == "whole" else [new[k : k + 8] for k in range(0, len(new), 8)]
+        for k, chunk in enumerate(chunks):
+            emu.write(chunk, t0 + 3000.0 * k)
+        emu.advance_to(t0 + 3000.0 * len(chunks) + 50_000.0)
+        applied = [t for t, op, v in emu.applied if op == OpcodeV2.PATTERN and list(v) == list(heights)]  # type: ignore[call-overload]
+        if not applied:
+            raise ConfigurationError("the pattern was never applied")
+        ta = applied[0]
+        scan = next(s for s in emu.scans if s.start_ns >= ta)
+        rows.append(
+            {
+                "applied_us": (ta - t0 * 1000) / 1000,
+                "first_channel_us": (scan.start_ns + scan.onset_ns[0] - t0 * 1000) / 1000,
+                "last_channel_us": (scan.start_ns + scan.onset_ns[-1] - t0 * 1000) / 1000,
+            }
+        )
+
+    def stats(key: str) -> dict[str, float]:
+        vals = [r[key] for r in rows]
+        return {"min": min(vals), "mean": sum(vals) / len(vals), "max": max(vals)}
+
+    return {
+        "firmware": "v2",
+        "link": link,
+        "chunking": chunking,
+        "phases": phases,
+        "electrodes": n,
+        **{k: stats(k) for k in ("applied_us", "first_channel_us", "last_channel_us")},
+    }
