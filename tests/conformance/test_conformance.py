@@ -277,28 +277,32 @@ def test_one_command_per_millisecond(probe: Probe, target: Target, report: Repor
     k = 20
     probe.baseline(4)
 
-    def best(data: bytes) -> float:
+    def samples(data: bytes, n: int = 3) -> list[float]:
         out = []
-        for _ in range(3):
+        for _ in range(n):
             reply, latency = probe.request(data, 8)
             assert len(reply) == 8
             out.append(latency)
             time.sleep(0.002)
-        return min(out)
+        return out
 
-    alone = best(b"\xff")
-    behind_commands = best(b"\xf7\x00" * k + b"\xff")  # discharge 0: no pulse gets longer
-    behind_unknown = best(bytes(200) + b"\xff")
+    alone_samples = samples(b"\xff", 5)
+    alone = min(alone_samples)
+    behind_commands = min(samples(b"\xf7\x00" * k + b"\xff"))  # discharge 0: no pulse gets longer
+    behind_unknown = min(samples(bytes(200) + b"\xff"))
     extra = behind_commands - alone
+    # The round trip's own jitter (a busy host delays when bytes are read and replies written) widens the
+    # lower bound, by at most 5 ms: a parser reading two commands per tick (extra about 10 ms) still fails.
+    jitter = min(max(alone_samples) - alone, 5e-3)
     report("0xFF alone", _ms(alone))
     report(
         f"0xFF behind {k} commands",
         f"{_ms(behind_commands)} (+{extra * 1000:.2f} ms, {extra * 1000 / k:.3f} ms/command)",
     )
     report("0xFF behind 200 unknown bytes", _ms(behind_unknown))
-    assert extra >= (k - 2) * 1e-3, (
-        f"{k} commands delayed the reply by only {extra * 1000:.2f} ms: the firmware reads more than one "
-        "command per millisecond"
+    assert extra >= (k - 2) * 1e-3 - jitter, (
+        f"{k} commands delayed the reply by only {extra * 1000:.2f} ms (round-trip jitter "
+        f"{jitter * 1000:.2f} ms): the firmware reads more than one command per millisecond"
     )
     assert extra <= k * 2.5e-3 + 0.020, (
         f"{k} commands delayed the reply by {extra * 1000:.2f} ms: more than one tick per command (is the "
