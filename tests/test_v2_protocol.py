@@ -9,7 +9,7 @@ import pytest
 
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.errors import DecodeError, LimitError
-from tactdeform_hw.protocol import commands_v2 as c
+from tactdeform_hw.protocol.commands import V2_COMMANDS as c
 from tactdeform_hw.protocol.firmware import V2, OpcodeV2
 
 from .conftest import DATA

@@ -94,6 +94,7 @@ class CommandSpec:
     shift: int = 0
     zero_ignored: bool = False
     reply: ReplyKind | None = None
+    field: str | None = None
 
     def stored(self, value: int) -> int | None:
         """What the firmware stores for a complete payload ``value`` (None: the value is ignored)."""
@@ -190,7 +191,6 @@ class FirmwareSpec:
     dac_max_code: int
     rx_queue_bytes: int
     usb_packet_bytes: int
-    ble_queue_bytes: int
     #: v1.2 stores pattern bytes as they arrive; v2 applies a payload only when it is complete.
     partial_payload_applied: bool
     #: v1.2: 0xFE with electrode_num 0 never completes (the parser locks); v2: it completes at once.
@@ -201,11 +201,16 @@ class FirmwareSpec:
     command_timeout_us: int | None
     #: v2: 0xF5 disables the stimulation timer while it senses the stack and replies.
     hv513_pauses_timer: bool
+    #: v1.2 derives the period from a rate in float32 (``1e6f / v``); v2 divides in double, then stores
+    #: the float32 (:func:`~.firmware_math.period_us_for`).
+    period_in_double: bool
     power_on: Mapping[str, float | int]
     timing: FirmwareTiming = field(default_factory=FirmwareTiming)
     by_opcode: Mapping[int, CommandSpec] = field(init=False, repr=False)
     #: The lowest command byte: every byte below it is an unknown byte (ignored, one consumed).
     command_byte_min: int = field(init=False, repr=False)
+    #: The command that carries the pattern (the one of kind "pattern").
+    pattern_command: CommandSpec = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         table = {c.opcode: c for c in self.commands}
@@ -213,6 +218,12 @@ class FirmwareSpec:
             raise ConfigurationError(f"firmware {self.name}: an opcode appears twice in its command table")
         object.__setattr__(self, "by_opcode", MappingProxyType(table))
         object.__setattr__(self, "command_byte_min", min(table))
+        patterns = [c for c in self.commands if c.kind == "pattern"]
+        if len(patterns) != 1:
+            raise ConfigurationError(
+                f"firmware {self.name}: its command table has {len(patterns)} pattern commands (it needs one)"
+            )
+        object.__setattr__(self, "pattern_command", patterns[0])
         object.__setattr__(self, "power_on", MappingProxyType(dict(self.power_on)))
 
     # --- the table, in the shapes callers need --------------------------------------------------------------
@@ -299,9 +310,32 @@ class FirmwareSpec:
         c = self.by_opcode.get(opcode)
         return c is not None and c.kind is not None
 
+    def has_register(self, register: str) -> bool:
+        """Whether a command of this version sets ``register`` (v1.2 has "pulse_height", v2 "stim_mode"):
+        what other layers ask instead of comparing version names."""
+        return any(c.register == register for c in self.commands)
+
+    def opcode_replying(self, reply: ReplyKind) -> int | None:
+        """The command whose answer is ``reply`` ("measure", "hv513", "sync"; None: this version has none)."""
+        for c in self.commands:
+            if c.reply == reply:
+                return c.opcode
+        return None
+
+    @property
+    def answers_sync_check(self) -> bool:
+        """Whether a command answers the electrode count in force (v2's 0xF4)."""
+        return self.opcode_replying("sync") is not None
+
+    @property
+    def pattern_holds_heights(self) -> bool:
+        """Whether each pattern element is that channel's DAC code (v2) rather than a level with one global
+        pulse height (v1.2): the table has no pulse-height register."""
+        return not self.has_register("pulse_height")
+
     def pattern_level_max(self) -> int:
         """The largest value one pattern element can hold."""
-        c = self.by_opcode[Opcode.PATTERN]
+        c = self.pattern_command
         if c.max_value is not None:
             return c.max_value
         return (1 << (8 * self.pattern_bytes_per_electrode)) - 1
@@ -332,12 +366,12 @@ V1_2 = FirmwareSpec(
     dac_max_code=_DAC_MAX,
     rx_queue_bytes=256,
     usb_packet_bytes=64,
-    ble_queue_bytes=511,
     partial_payload_applied=True,
     zero_pattern_locks=True,
     yield_rule="after_payload",
     command_timeout_us=None,
     hv513_pauses_timer=False,
+    period_in_double=False,
     power_on={
         "electrode_num": 0,
         "polarity": 1,
@@ -356,7 +390,14 @@ V2 = FirmwareSpec(
     commit="71adee21",
     commands=(
         CommandSpec(OpcodeV2.MEASURE, "MEASURE", None, reply="measure"),
-        CommandSpec(OpcodeV2.PATTERN, "PATTERN", "pattern", register="stim_pattern", max_value=_DAC_MAX),
+        CommandSpec(
+            OpcodeV2.PATTERN,
+            "PATTERN",
+            "pattern",
+            register="stim_pattern",
+            max_value=_DAC_MAX,
+            field="heights",
+        ),
         CommandSpec(OpcodeV2.POLARITY, "POLARITY", "u8", register="polarity", max_value=1),
         CommandSpec(OpcodeV2.ELECTRODE_NUM, "ELECTRODE_NUM", "u8", register="electrode_num", max_value=256),
         CommandSpec(OpcodeV2.STIM_MODE, "STIM_MODE", "u8", register="stim_mode", max_value=2),
@@ -374,12 +415,12 @@ V2 = FirmwareSpec(
     dac_max_code=_DAC_MAX,
     rx_queue_bytes=1024,
     usb_packet_bytes=64,
-    ble_queue_bytes=1023,
     partial_payload_applied=False,
     zero_pattern_locks=False,
     yield_rule="when_idle",
     command_timeout_us=2_000_000,
     hv513_pauses_timer=True,
+    period_in_double=True,
     power_on={
         "electrode_num": 0,
         "polarity": 1,

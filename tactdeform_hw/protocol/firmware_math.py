@@ -20,7 +20,7 @@ from .constants import (
     STACK_SENSE_OFFSET,
     TIMER_TICKS_PER_US,
 )
-from .firmware import V1_2, FirmwareSpec, FirmwareTiming
+from .firmware import DEFAULT_FIRMWARE, FirmwareSpec, FirmwareTiming
 
 
 def period_us_from_rate(rate_hz: int) -> float:
@@ -31,6 +31,12 @@ def period_us_from_rate(rate_hz: int) -> float:
 def period_us_from_rate_double(rate_hz: int) -> float:
     """v2's ``StimulationTimePeriod = 1000000.0 / v``: a double division stored into a float32."""
     return float(np.float32(1_000_000.0 / rate_hz))
+
+
+def period_us_for(rate_hz: int, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> float:
+    """The period ``firmware`` stores for a rate: its table says whether it divides in float32 (v1.2) or in
+    double (v2), so a caller need not know which version it talks to."""
+    return period_us_from_rate_double(rate_hz) if firmware.period_in_double else period_us_from_rate(rate_hz)
 
 
 def alarm_ticks(period_us: float) -> int:
@@ -72,7 +78,7 @@ def firmware_period_us(rate_hz: int) -> float:
     return float(int(period_us_from_rate(rate_hz)))
 
 
-def monophasic_us(width_us: int, timing: FirmwareTiming = V1_2.timing) -> float:
+def monophasic_us(width_us: int, timing: FirmwareTiming = DEFAULT_FIRMWARE.timing) -> float:
     """``monophasic(h, w)``: the DAC exchange, the busy-wait (only for ``w >= 7``), the exchange back to 0."""
     return 2 * timing.spi_exchange_us + timing.pulse_wait_us(width_us)
 
@@ -105,7 +111,7 @@ def estimate_scan_us(
     discharge_us: int,
     sense_width_us: int = 0,
     hv513: int = 4,
-    firmware: FirmwareSpec = V1_2,
+    firmware: FirmwareSpec = DEFAULT_FIRMWARE,
 ) -> float:
     """One scan of ``levels`` (hardware order, one per channel the firmware scans), from the firmware's
     order of operations: select (LE, DIN, CLK), POL, the pulse (1: monophasic, 2: two phases, anything
