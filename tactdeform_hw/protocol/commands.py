@@ -238,13 +238,13 @@ class FirmwareCommands:
 
     def request(self, reply: str) -> bytes:
         """The one-byte request answered by ``reply`` ("measure", "hv513", "sync")."""
-        try:
-            return self._requests[reply]
-        except KeyError:
+        request = self._requests.get(reply)
+        if request is None:
+            have = ", ".join(sorted(self._requests))
             raise ConfigurationError(
-                f"firmware {self.firmware.name} has no command answering {reply!r} "
-                f"(it answers: {', '.join(sorted(self._requests))})"
-            ) from None
+                f"firmware {self.firmware.name} has no command answering {reply!r} ({have})"
+            )
+        return request
 
     @property
     def MEASURE_REQUEST(self) -> bytes:  # the name callers know from the module level

@@ -175,22 +175,28 @@ class FirmwareTiming:
         return 0.0 if arg is None else self.busy_wait_us(arg)
 
 
-@dataclass(frozen=True, eq=False)
+_U8_MAX = 255  # electrode_num is a u8
+_DAC_MAX = 4095  # 12-bit current DAC
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
 class FirmwareSpec:
     """One firmware version: its command table, parser rules, link, power-on state and timing.
 
-    Instances are compared and hashed by identity: each version is one module-level value.
+    Instances are compared and hashed by identity: each version is one module-level value.  The fields
+    with defaults are the board's and the chip's (pattern buffer, u8 electrode count, 12-bit DAC, USB
+    packet): every version so far shares them, and a version that differs states its own.
     """
 
     name: str
     commit: str
     commands: tuple[CommandSpec, ...]
     pattern_bytes_per_electrode: int
-    pattern_buffer_size: int
-    max_electrodes: int
-    dac_max_code: int
     rx_queue_bytes: int
-    usb_packet_bytes: int
+    pattern_buffer_size: int = 256
+    max_electrodes: int = _U8_MAX
+    dac_max_code: int = _DAC_MAX
+    usb_packet_bytes: int = 64
     #: v1.2 stores pattern bytes as they arrive; v2 applies a payload only when it is complete.
     partial_payload_applied: bool
     #: v1.2: 0xFE with electrode_num 0 never completes (the parser locks); v2: it completes at once.
@@ -201,9 +207,6 @@ class FirmwareSpec:
     command_timeout_us: int | None
     #: v2: 0xF5 disables the stimulation timer while it senses the stack and replies.
     hv513_pauses_timer: bool
-    #: v1.2 derives the period from a rate in float32 (``1e6f / v``); v2 divides in double, then stores
-    #: the float32 (:func:`~.firmware_math.period_us_for`).
-    period_in_double: bool
     power_on: Mapping[str, float | int]
     timing: FirmwareTiming = field(default_factory=FirmwareTiming)
     by_opcode: Mapping[int, CommandSpec] = field(init=False, repr=False)
@@ -341,8 +344,18 @@ class FirmwareSpec:
         return (1 << (8 * self.pattern_bytes_per_electrode)) - 1
 
 
-_U8_MAX = 255  # electrode_num is a u8
-_DAC_MAX = 4095  # 12-bit current DAC
+#: The power-on registers both versions initialise alike (each adds the register only it has).
+_POWER_ON: Mapping[str, float | int] = MappingProxyType(
+    {
+        "electrode_num": 0,
+        "polarity": 1,
+        "pulse_width": 0,
+        "sense_pulse_height": 0,
+        "sense_pulse_width": 0,
+        "discharge_time": 0,
+        "period_us": 10_000.0,
+    }
+)
 
 V1_2 = FirmwareSpec(
     name="v1.2",
@@ -361,27 +374,13 @@ V1_2 = FirmwareSpec(
         CommandSpec(Opcode.HV513_COUNT, "HV513_COUNT", None, reply="hv513"),
     ),
     pattern_bytes_per_electrode=1,
-    pattern_buffer_size=256,
-    max_electrodes=_U8_MAX,
-    dac_max_code=_DAC_MAX,
     rx_queue_bytes=256,
-    usb_packet_bytes=64,
     partial_payload_applied=True,
     zero_pattern_locks=True,
     yield_rule="after_payload",
     command_timeout_us=None,
     hv513_pauses_timer=False,
-    period_in_double=False,
-    power_on={
-        "electrode_num": 0,
-        "polarity": 1,
-        "pulse_height": 0,
-        "pulse_width": 0,
-        "sense_pulse_height": 0,
-        "sense_pulse_width": 0,
-        "discharge_time": 0,
-        "period_us": 10_000.0,
-    },
+    power_on={**_POWER_ON, "pulse_height": 0},
     timing=FirmwareTiming(discharge_exchange=True, chip_select_writes_per_exchange=4),
 )
 
@@ -410,27 +409,13 @@ V2 = FirmwareSpec(
         CommandSpec(OpcodeV2.SYNC_CHECK, "SYNC_CHECK", None, reply="sync"),
     ),
     pattern_bytes_per_electrode=2,
-    pattern_buffer_size=256,
-    max_electrodes=_U8_MAX,
-    dac_max_code=_DAC_MAX,
     rx_queue_bytes=1024,
-    usb_packet_bytes=64,
     partial_payload_applied=False,
     zero_pattern_locks=False,
     yield_rule="when_idle",
     command_timeout_us=2_000_000,
     hv513_pauses_timer=True,
-    period_in_double=True,
-    power_on={
-        "electrode_num": 0,
-        "polarity": 1,
-        "stim_mode": 0,
-        "pulse_width": 0,
-        "sense_pulse_height": 0,
-        "sense_pulse_width": 0,
-        "discharge_time": 0,
-        "period_us": 10_000.0,
-    },
+    power_on={**_POWER_ON, "stim_mode": 0},
     timing=FirmwareTiming(discharge_exchange=False, chip_select_writes_per_exchange=2),
 )
 

@@ -33,12 +33,6 @@ def period_us_from_rate_double(rate_hz: int) -> float:
     return float(np.float32(1_000_000.0 / rate_hz))
 
 
-def period_us_for(rate_hz: int, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> float:
-    """The period ``firmware`` stores for a rate: its table says whether it divides in float32 (v1.2) or in
-    double (v2), so a caller need not know which version it talks to."""
-    return period_us_from_rate_double(rate_hz) if firmware.period_in_double else period_us_from_rate(rate_hz)
-
-
 def alarm_ticks(period_us: float) -> int:
     """``uint32(period_us) * 2``: the truncated period in 0.5 µs timer ticks."""
     return (int(period_us) & 0xFFFFFFFF) * TIMER_TICKS_PER_US

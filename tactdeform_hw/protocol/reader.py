@@ -239,16 +239,11 @@ def _read(data: bytes, fw: FirmwareSpec, state: ParserState, offset: int) -> Rea
 
 
 def iter_commands(
-    data: bytes,
-    electrode_num: int | None = 0,
-    firmware: FirmwareSpec = DEFAULT_FIRMWARE,
-    state: ParserState | None = None,
-    *,
-    offset: int = 0,
+    data: bytes, electrode_num: int | None = 0, firmware: FirmwareSpec = DEFAULT_FIRMWARE
 ) -> Iterator[ReadCommand]:
-    """Each command, unknown-byte run and unread run the firmware reads from ``data`` (see
-    :func:`read_commands`, which also returns where the parser ends)."""
-    return iter(read_commands(data, electrode_num, firmware, state, offset=offset).commands)
+    """Each command, unknown-byte run and unread run the firmware reads from ``data``, from a command
+    boundary (:func:`read_commands` also starts mid-command and returns where the parser ends)."""
+    return iter(read_commands(data, electrode_num, firmware).commands)
 
 
 def payload_size(opcode: int, electrode_num: int, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> int | None:
