@@ -22,7 +22,7 @@ from tactdeform_hw.device.driver.firmware_probe import (
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.serving.in_process import EmulatorPort
 from tactdeform_hw.protocol import commands as c12
-from tactdeform_hw.protocol import commands_v2 as c2
+from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
 from tactdeform_hw.protocol.firmware import V1_2, V2
 
 STIM_V12 = (

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.protocol import firmware_math as fm
-from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec
+from tactdeform_hw.protocol.firmware import FIRMWARES, V1_2, V2, FirmwareSpec
 from tactdeform_hw.protocol.reader import (
     COMMAND,
     UNKNOWN,
@@ -29,6 +29,7 @@ VECTORS = [
     json.loads(line) for line in (DATA / "protocol_vectors.jsonl").read_text().splitlines() if line.strip()
 ]
 HV513_ONE_BOARD = 4  # the compact board with one switching board reports 4 chips
+ALL = pytest.mark.parametrize("fw", list(FIRMWARES.values()), ids=list(FIRMWARES))
 
 byte = st.one_of(st.integers(0xF5, 0xFF), st.integers(0, 3), st.integers(0, 255))
 streams = st.lists(byte, max_size=400).map(bytes)
@@ -119,45 +120,37 @@ def test_reader_reaches_every_untimed_v2_golden_state() -> None:
                 assert got[key] == value, (vector["id"], key)
 
 
-def _emulator_state(data: bytes) -> dict[str, Any]:
-    emu = Emulator()
+def _emulator_state(data: bytes, firmware: FirmwareSpec) -> dict[str, Any]:
+    emu = Emulator(firmware=firmware.name)
     tx = emu.feed(data)
     state = emu.state()
     state["tx"] = tx.hex()
     return state
 
 
+@ALL
 @settings(max_examples=300, deadline=None)
 @given(data=streams)
-def test_reader_agrees_with_the_emulator_parser(data: bytes) -> None:
-    assert list(iter_commands(data)) == list(read_commands(data).commands)
-    mine = registers_after(data)
-    emu = _emulator_state(data)
-    for key in (
-        "electrode_num",
-        "polarity",
-        "pulse_height",
-        "pulse_width",
-        "sense_pulse_height",
-        "sense_pulse_width",
-        "discharge_time",
-        "timer_alarm_ticks",
-        "stim_pattern",
-        "tx",
-        "rx_pending",
-    ):
+def test_reader_agrees_with_the_emulator_parser(fw: FirmwareSpec, data: bytes) -> None:
+    assert list(iter_commands(data, 0, fw)) == list(read_commands(data, 0, fw).commands)
+    mine = registers_after(data, fw)
+    emu = _emulator_state(data, fw)
+    registers = [k for k in fw.power_on if k != "period_us"]
+    assert len(registers) == 7
+    for key in (*registers, "timer_alarm_ticks", "stim_pattern", "tx", "rx_pending"):
         assert mine[key] == emu[key], key
     assert np.float32(mine["period_us"]) == np.float32(emu["period_us"])
 
 
+@ALL
 @settings(max_examples=300, deadline=None)
 @given(data=streams, cut=st.integers(0, 400))
-def test_a_reading_resumes_where_it_stopped(data: bytes, cut: int) -> None:
+def test_a_reading_resumes_where_it_stopped(fw: FirmwareSpec, data: bytes, cut: int) -> None:
     """Reading in two pieces, the second from the state the first ended in, stores what one reading does."""
     cut = min(cut, len(data))
-    whole = read_commands(data, 0)
-    first = read_commands(data[:cut], 0)
-    second = read_commands(data[cut:], state=first.state, offset=cut)
+    whole = read_commands(data, 0, fw)
+    first = read_commands(data[:cut], 0, fw)
+    second = read_commands(data[cut:], firmware=fw, state=first.state, offset=cut)
     assert second.state == whole.state
 
     def effects(items: list[Any]) -> tuple[list[Any], list[Any]]:

@@ -180,7 +180,7 @@ def test_default_pacers() -> None:
 def _burst_then_pattern(firmware_name: str) -> tuple[float, float]:
     """(time the eight configuration commands took to write, the pattern's wait after them), paced for the
     TactDeform setting's scans on ``firmware_name``."""
-    from tactdeform_hw.protocol import commands_v2 as c2
+    from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
     from tactdeform_hw.protocol.firmware import V1_2, V2
 
     fw = V2 if firmware_name == "v2" else V1_2
@@ -226,7 +226,7 @@ def test_v2_a_pattern_written_alone_is_torn_when_the_parsers_tick_falls_just_bef
     pre-empts its copy: the first channels new, the rest old.  The write's moment only chooses the tick
     when the host knows where the alarms are, and no reply tells it."""
     from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
-    from tactdeform_hw.protocol import commands_v2 as c2
+    from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
     from tactdeform_hw.protocol.firmware import OpcodeV2
 
     n = 16

@@ -29,7 +29,7 @@ from tactdeform_hw.emulator.serving.realtime import WIFI_TCP, RealtimeEmulator, 
 from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
-from tactdeform_hw.protocol import commands_v2 as v2
+from tactdeform_hw.protocol.commands import V2_COMMANDS as v2
 
 from .conftest import REPO
 from .safety_helpers import configure_v12_tactdeform, current_pulses_us, wait_until

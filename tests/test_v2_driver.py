@@ -20,8 +20,8 @@ from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.errors import LimitError, SafetyError
 from tactdeform_hw.protocol import commands as c12
-from tactdeform_hw.protocol import commands_v2 as c2
-from tactdeform_hw.protocol.firmware import V1_2, V2
+from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
+from tactdeform_hw.protocol.firmware import V1_2, V2, OpcodeV2
 from tactdeform_hw.protocol.reader import iter_commands
 
 from .safety_helpers import defects
@@ -128,12 +128,12 @@ def test_every_byte_the_v2_driver_writes_reads_as_v2_commands_and_never_mode_2_w
     stream = bytes(emu.parser.rx) if hasattr(emu.parser, "rx") else b""
     sense, mode = 0, 0
     for c in iter_commands(stream, 0, firmware=V2):
-        if c.opcode == c2.OpcodeV2.SENSE_HEIGHT and c.complete:
+        if c.opcode == OpcodeV2.SENSE_HEIGHT and c.complete:
             sense = c.value or 0
-        if c.opcode == c2.OpcodeV2.STIM_MODE and c.complete:
+        if c.opcode == OpcodeV2.STIM_MODE and c.complete:
             mode = c.value or 0
             assert mode != 2 or sense == 0
-        assert c.opcode != c2.OpcodeV2.PULSE_WIDTH or c.read_value != 0  # 0 is stored on v2: never sent
+        assert c.opcode != OpcodeV2.PULSE_WIDTH or c.read_value != 0  # 0 is stored on v2: never sent
     assert stream and emu.state()["stim_mode"] != 2
     _no_live_hazards(emu)
 
@@ -382,7 +382,7 @@ def test_close_on_v2_leaves_everything_off_on_the_timed_model() -> None:
 
 
 def test_v12_bytes_never_reach_the_v2_dialect() -> None:
-    assert c12.encode_pulse_height(100)[0] == c2.OpcodeV2.STIM_MODE  # the same byte, another meaning
+    assert c12.encode_pulse_height(100)[0] == OpcodeV2.STIM_MODE  # the same byte, another meaning
     port, emu = _untimed("v2")
     dev = EtactileKitDevice(port, firmware="v2")
     dev.configure(StimConfig(electrode_count=2, current_ua=100))

@@ -14,7 +14,7 @@ from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.v2 import COMMAND_TIMEOUT_S
 from tactdeform_hw.device.safety.failsafe import FailSafe
 from tactdeform_hw.errors import TactDeformError
-from tactdeform_hw.protocol import commands_v2 as c2
+from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
 
 from .safety_helpers import CAMPAIGN_CALLS, OPEN_DEFECTS, assert_fault_free, assert_fault_free_but_for
 from .test_v2_driver import _timed_v2

@@ -10,7 +10,7 @@ from tactdeform_hw.emulator import HazardKind
 from tactdeform_hw.emulator.firmware.firmware_scan import FirmwareScanConfig, scan_duration_us
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2, pattern_in_force_v2
-from tactdeform_hw.protocol import commands_v2 as c
+from tactdeform_hw.protocol.commands import V2_COMMANDS as c
 
 from .conftest import DATA
 

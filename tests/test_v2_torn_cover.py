@@ -15,7 +15,7 @@ from tactdeform_hw.device.driver.pacing import Pacer, PacingPolicy
 from tactdeform_hw.device.driver.v2 import covered_pattern
 from tactdeform_hw.emulator import HazardKind
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
-from tactdeform_hw.protocol import commands_v2 as c2
+from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
 from tactdeform_hw.protocol.firmware import V2, OpcodeV2
 
 from .test_v2_driver import _timed_v2

@@ -31,7 +31,7 @@ from tactdeform_hw.emulator.serving.realtime import SERIAL_USB, WIFI_TCP, Realti
 from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 from tactdeform_hw.emulator.serving.udp_discovery import DiscoveryResponder
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2, _scan_shape, _shape
-from tactdeform_hw.protocol import commands_v2 as v2
+from tactdeform_hw.protocol.commands import V2_COMMANDS as v2
 
 from .conftest import REPO
 from .safety_helpers import wait_until

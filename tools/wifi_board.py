@@ -45,7 +45,7 @@ from tactdeform_hw.emulator.serving.realtime import (  # noqa: E402
     TcpLink,
 )
 from tactdeform_hw.emulator.timed.model_v2 import pattern_in_force_v2  # noqa: E402
-from tactdeform_hw.protocol import commands_v2 as v2  # noqa: E402
+from tactdeform_hw.protocol.commands import V2_COMMANDS as v2  # noqa: E402
 from tactdeform_hw.protocol.firmware import OpcodeV2  # noqa: E402
 
 CHUNK_BYTES, CHUNK_GAP_S = 8, 0.003  # upstream's write_byte_array / SerialHandler.Write

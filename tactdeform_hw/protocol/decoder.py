@@ -81,7 +81,8 @@ class StreamDecoder:
     """Incremental decoder; ``feed`` returns what completed, ``finish`` what the capture left open.
 
     A command still waiting for payload bytes is held back and reported whole once they arrive, so a
-    capture fed in pieces decodes exactly as fed at once."""
+    capture fed in pieces decodes as fed at once; only a run of unknown bytes split between two feeds is
+    reported as two runs (the bytes and what the firmware does with them are the same)."""
 
     def __init__(self, electrode_num: int = 0, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> None:
         self.electrode_num = electrode_num

@@ -94,6 +94,7 @@ class CommandSpec:
     shift: int = 0
     zero_ignored: bool = False
     reply: ReplyKind | None = None
+    field: str | None = None
 
     def stored(self, value: int) -> int | None:
         """What the firmware stores for a complete payload ``value`` (None: the value is ignored)."""
@@ -174,23 +175,28 @@ class FirmwareTiming:
         return 0.0 if arg is None else self.busy_wait_us(arg)
 
 
-@dataclass(frozen=True, eq=False)
+_U8_MAX = 255  # electrode_num is a u8
+_DAC_MAX = 4095  # 12-bit current DAC
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
 class FirmwareSpec:
     """One firmware version: its command table, parser rules, link, power-on state and timing.
 
-    Instances are compared and hashed by identity: each version is one module-level value.
+    Instances are compared and hashed by identity: each version is one module-level value.  The fields
+    with defaults are the board's and the chip's (pattern buffer, u8 electrode count, 12-bit DAC, USB
+    packet): every version so far shares them, and a version that differs states its own.
     """
 
     name: str
     commit: str
     commands: tuple[CommandSpec, ...]
     pattern_bytes_per_electrode: int
-    pattern_buffer_size: int
-    max_electrodes: int
-    dac_max_code: int
     rx_queue_bytes: int
-    usb_packet_bytes: int
-    ble_queue_bytes: int
+    pattern_buffer_size: int = 256
+    max_electrodes: int = _U8_MAX
+    dac_max_code: int = _DAC_MAX
+    usb_packet_bytes: int = 64
     #: v1.2 stores pattern bytes as they arrive; v2 applies a payload only when it is complete.
     partial_payload_applied: bool
     #: v1.2: 0xFE with electrode_num 0 never completes (the parser locks); v2: it completes at once.
@@ -206,6 +212,8 @@ class FirmwareSpec:
     by_opcode: Mapping[int, CommandSpec] = field(init=False, repr=False)
     #: The lowest command byte: every byte below it is an unknown byte (ignored, one consumed).
     command_byte_min: int = field(init=False, repr=False)
+    #: The command that carries the pattern (the one of kind "pattern").
+    pattern_command: CommandSpec = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         table = {c.opcode: c for c in self.commands}
@@ -213,6 +221,12 @@ class FirmwareSpec:
             raise ConfigurationError(f"firmware {self.name}: an opcode appears twice in its command table")
         object.__setattr__(self, "by_opcode", MappingProxyType(table))
         object.__setattr__(self, "command_byte_min", min(table))
+        patterns = [c for c in self.commands if c.kind == "pattern"]
+        if len(patterns) != 1:
+            raise ConfigurationError(
+                f"firmware {self.name}: its command table has {len(patterns)} pattern commands (it needs one)"
+            )
+        object.__setattr__(self, "pattern_command", patterns[0])
         object.__setattr__(self, "power_on", MappingProxyType(dict(self.power_on)))
 
     # --- the table, in the shapes callers need --------------------------------------------------------------
@@ -299,16 +313,49 @@ class FirmwareSpec:
         c = self.by_opcode.get(opcode)
         return c is not None and c.kind is not None
 
+    def has_register(self, register: str) -> bool:
+        """Whether a command of this version sets ``register`` (v1.2 has "pulse_height", v2 "stim_mode"):
+        what other layers ask instead of comparing version names."""
+        return any(c.register == register for c in self.commands)
+
+    def opcode_replying(self, reply: ReplyKind) -> int | None:
+        """The command whose answer is ``reply`` ("measure", "hv513", "sync"; None: this version has none)."""
+        for c in self.commands:
+            if c.reply == reply:
+                return c.opcode
+        return None
+
+    @property
+    def answers_sync_check(self) -> bool:
+        """Whether a command answers the electrode count in force (v2's 0xF4)."""
+        return self.opcode_replying("sync") is not None
+
+    @property
+    def pattern_holds_heights(self) -> bool:
+        """Whether each pattern element is that channel's DAC code (v2) rather than a level with one global
+        pulse height (v1.2): the table has no pulse-height register."""
+        return not self.has_register("pulse_height")
+
     def pattern_level_max(self) -> int:
         """The largest value one pattern element can hold."""
-        c = self.by_opcode[Opcode.PATTERN]
+        c = self.pattern_command
         if c.max_value is not None:
             return c.max_value
         return (1 << (8 * self.pattern_bytes_per_electrode)) - 1
 
 
-_U8_MAX = 255  # electrode_num is a u8
-_DAC_MAX = 4095  # 12-bit current DAC
+#: The power-on registers both versions initialise alike (each adds the register only it has).
+_POWER_ON: Mapping[str, float | int] = MappingProxyType(
+    {
+        "electrode_num": 0,
+        "polarity": 1,
+        "pulse_width": 0,
+        "sense_pulse_height": 0,
+        "sense_pulse_width": 0,
+        "discharge_time": 0,
+        "period_us": 10_000.0,
+    }
+)
 
 V1_2 = FirmwareSpec(
     name="v1.2",
@@ -327,27 +374,13 @@ V1_2 = FirmwareSpec(
         CommandSpec(Opcode.HV513_COUNT, "HV513_COUNT", None, reply="hv513"),
     ),
     pattern_bytes_per_electrode=1,
-    pattern_buffer_size=256,
-    max_electrodes=_U8_MAX,
-    dac_max_code=_DAC_MAX,
     rx_queue_bytes=256,
-    usb_packet_bytes=64,
-    ble_queue_bytes=511,
     partial_payload_applied=True,
     zero_pattern_locks=True,
     yield_rule="after_payload",
     command_timeout_us=None,
     hv513_pauses_timer=False,
-    power_on={
-        "electrode_num": 0,
-        "polarity": 1,
-        "pulse_height": 0,
-        "pulse_width": 0,
-        "sense_pulse_height": 0,
-        "sense_pulse_width": 0,
-        "discharge_time": 0,
-        "period_us": 10_000.0,
-    },
+    power_on={**_POWER_ON, "pulse_height": 0},
     timing=FirmwareTiming(discharge_exchange=True, chip_select_writes_per_exchange=4),
 )
 
@@ -356,7 +389,14 @@ V2 = FirmwareSpec(
     commit="71adee21",
     commands=(
         CommandSpec(OpcodeV2.MEASURE, "MEASURE", None, reply="measure"),
-        CommandSpec(OpcodeV2.PATTERN, "PATTERN", "pattern", register="stim_pattern", max_value=_DAC_MAX),
+        CommandSpec(
+            OpcodeV2.PATTERN,
+            "PATTERN",
+            "pattern",
+            register="stim_pattern",
+            max_value=_DAC_MAX,
+            field="heights",
+        ),
         CommandSpec(OpcodeV2.POLARITY, "POLARITY", "u8", register="polarity", max_value=1),
         CommandSpec(OpcodeV2.ELECTRODE_NUM, "ELECTRODE_NUM", "u8", register="electrode_num", max_value=256),
         CommandSpec(OpcodeV2.STIM_MODE, "STIM_MODE", "u8", register="stim_mode", max_value=2),
@@ -369,27 +409,13 @@ V2 = FirmwareSpec(
         CommandSpec(OpcodeV2.SYNC_CHECK, "SYNC_CHECK", None, reply="sync"),
     ),
     pattern_bytes_per_electrode=2,
-    pattern_buffer_size=256,
-    max_electrodes=_U8_MAX,
-    dac_max_code=_DAC_MAX,
     rx_queue_bytes=1024,
-    usb_packet_bytes=64,
-    ble_queue_bytes=1023,
     partial_payload_applied=False,
     zero_pattern_locks=False,
     yield_rule="when_idle",
     command_timeout_us=2_000_000,
     hv513_pauses_timer=True,
-    power_on={
-        "electrode_num": 0,
-        "polarity": 1,
-        "stim_mode": 0,
-        "pulse_width": 0,
-        "sense_pulse_height": 0,
-        "sense_pulse_width": 0,
-        "discharge_time": 0,
-        "period_us": 10_000.0,
-    },
+    power_on={**_POWER_ON, "stim_mode": 0},
     timing=FirmwareTiming(discharge_exchange=False, chip_select_writes_per_exchange=2),
 )
 

@@ -20,7 +20,7 @@ from .constants import (
     STACK_SENSE_OFFSET,
     TIMER_TICKS_PER_US,
 )
-from .firmware import V1_2, FirmwareSpec, FirmwareTiming
+from .firmware import DEFAULT_FIRMWARE, FirmwareSpec, FirmwareTiming
 
 
 def period_us_from_rate(rate_hz: int) -> float:
@@ -72,7 +72,7 @@ def firmware_period_us(rate_hz: int) -> float:
     return float(int(period_us_from_rate(rate_hz)))
 
 
-def monophasic_us(width_us: int, timing: FirmwareTiming = V1_2.timing) -> float:
+def monophasic_us(width_us: int, timing: FirmwareTiming = DEFAULT_FIRMWARE.timing) -> float:
     """``monophasic(h, w)``: the DAC exchange, the busy-wait (only for ``w >= 7``), the exchange back to 0."""
     return 2 * timing.spi_exchange_us + timing.pulse_wait_us(width_us)
 
@@ -105,7 +105,7 @@ def estimate_scan_us(
     discharge_us: int,
     sense_width_us: int = 0,
     hv513: int = 4,
-    firmware: FirmwareSpec = V1_2,
+    firmware: FirmwareSpec = DEFAULT_FIRMWARE,
 ) -> float:
     """One scan of ``levels`` (hardware order, one per channel the firmware scans), from the firmware's
     order of operations: select (LE, DIN, CLK), POL, the pulse (1: monophasic, 2: two phases, anything

@@ -139,6 +139,35 @@ def _read_cached(data: bytes, fw: FirmwareSpec, state: ParserState, offset: int)
     return _read(data, fw, state, offset)
 
 
+def _resume(
+    data: bytes, fw: FirmwareSpec, op: int, state: ParserState, offset: int
+) -> tuple[ReadCommand, ParserState]:
+    """The rest of command ``op``, which ``state`` holds in progress, from the head of ``data``: the item
+    read and the parser's state after it (at a command boundary when the payload is complete)."""
+    c = fw.by_opcode[op]
+    num = state.electrode_num
+    got = state.got
+    chunk = data[: state.needed - len(got)]
+    whole = got + chunk
+    done = len(whole) == state.needed
+    if c.kind == "pattern":
+        if fw.partial_payload_applied:
+            levels: tuple[int, ...] | None = _pattern_levels(c, fw, chunk)
+            start = len(got) // fw.pattern_bytes_per_electrode
+        else:
+            levels = _pattern_levels(c, fw, whole) if done else None
+            start = 0
+        item = ReadCommand(offset, op, chunk, chunk, None, None, levels, start, done, resumed=True)
+    elif done:
+        rv, sv = _value(c, whole)
+        item = ReadCommand(offset, op, chunk, chunk, sv, rv, complete=True, resumed=True)
+        if c.register == "electrode_num" and sv is not None:
+            num = sv
+    else:
+        item = ReadCommand(offset, op, chunk, chunk, complete=False, resumed=True)
+    return item, (ParserState(num) if done else ParserState(num, op, state.needed, whole))
+
+
 def _read(data: bytes, fw: FirmwareSpec, state: ParserState, offset: int) -> Reading:
     table = fw.by_opcode
     bpe = fw.pattern_bytes_per_electrode
@@ -151,32 +180,12 @@ def _read(data: bytes, fw: FirmwareSpec, state: ParserState, offset: int) -> Rea
         return Reading(tuple(out), state)
     i = 0
     if state.opcode is not None:
-        op = state.opcode
-        c = table[op]
-        got = state.got
-        take = min(state.needed - len(got), n)
-        chunk = data[:take]
-        whole = got + chunk
-        i = take
-        done = len(whole) == state.needed
-        if c.kind == "pattern":
-            bpe = fw.pattern_bytes_per_electrode
-            if fw.partial_payload_applied:
-                levels: tuple[int, ...] | None = _pattern_levels(c, fw, chunk)
-                start = len(got) // bpe
-            else:
-                levels = _pattern_levels(c, fw, whole) if done else None
-                start = 0
-            out.append(ReadCommand(offset, op, chunk, chunk, None, None, levels, start, done, resumed=True))
-        elif done:
-            rv, sv = _value(c, whole)
-            out.append(ReadCommand(offset, op, chunk, chunk, sv, rv, complete=True, resumed=True))
-            if c.register == "electrode_num" and sv is not None:
-                num = sv
-        else:
-            out.append(ReadCommand(offset, op, chunk, chunk, complete=False, resumed=True))
-        if not done:
-            return Reading(tuple(out), ParserState(num, op, state.needed, whole))
+        item, state = _resume(data, fw, state.opcode, state, offset)
+        out.append(item)
+        if not state.at_boundary:
+            return Reading(tuple(out), state)
+        i = len(item.raw)
+        num = state.electrode_num
     while i < n:
         b = data[i]
         spec = table.get(b)
@@ -239,16 +248,11 @@ def _read(data: bytes, fw: FirmwareSpec, state: ParserState, offset: int) -> Rea
 
 
 def iter_commands(
-    data: bytes,
-    electrode_num: int | None = 0,
-    firmware: FirmwareSpec = DEFAULT_FIRMWARE,
-    state: ParserState | None = None,
-    *,
-    offset: int = 0,
+    data: bytes, electrode_num: int | None = 0, firmware: FirmwareSpec = DEFAULT_FIRMWARE
 ) -> Iterator[ReadCommand]:
-    """Each command, unknown-byte run and unread run the firmware reads from ``data`` (see
-    :func:`read_commands`, which also returns where the parser ends)."""
-    return iter(read_commands(data, electrode_num, firmware, state, offset=offset).commands)
+    """Each command, unknown-byte run and unread run the firmware reads from ``data``, from a command
+    boundary (:func:`read_commands` also starts mid-command and returns where the parser ends)."""
+    return iter(read_commands(data, electrode_num, firmware).commands)
 
 
 def payload_size(opcode: int, electrode_num: int, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> int | None:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import pytest
 
 from tactdeform_hw.emulator.serving.realtime import SERIAL_USB, WIFI_TCP, RealtimeEmulator
-from tactdeform_hw.protocol import commands_v2 as v2
+from tactdeform_hw.protocol.commands import V2_COMMANDS as v2
 
 N = 32
 SETUP = (

@@ -26,7 +26,7 @@ from tactdeform_hw.device.driver.firmware_probe import detect_firmware
 from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice
 from tactdeform_hw.device.driver.v2 import V2Dialect
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS
-from tactdeform_hw.protocol import commands_v2 as c2
+from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
 from tactdeform_hw.protocol.firmware import V2
 
 from .conftest import REPLY_TIMEOUT_S, V2_TARGETS, Target, _is_board_name, build_target, name_firmware

@@ -49,7 +49,7 @@ from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig
 from tactdeform_hw.device.driver.firmware_probe import PROBE, SYNC_CHECK, FirmwareMismatchError
 from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US
 from tactdeform_hw.errors import LimitError, ShortReplyError
-from tactdeform_hw.protocol import commands_v2 as c2
+from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
 from tactdeform_hw.protocol.constants import CURRENT_STEP_UA, PATTERN_BIPHASIC, PATTERN_MONOPHASIC
 from tactdeform_hw.protocol.firmware import V2
 from tactdeform_hw.protocol.firmware_math import estimate_scan_us, firmware_period_us

@@ -815,14 +815,9 @@ def pattern_in_force_v2(
     ``chunking`` "whole" writes the 0xFE command at once; "upstream" as the upstream Python and Unity
     APIs do (8-byte chunks, 3 ms apart).  Returns min / mean / max of: applied (the parser stored it),
     first channel (its first pulse at the new height), last channel, in µs."""
-    from tactdeform_hw.protocol.commands_v2 import (
-        encode_discharge,
-        encode_electrode_num,
-        encode_frequency,
-        encode_pattern,
-        encode_pulse_width,
-        encode_stim_mode,
-    )
+    from tactdeform_hw.protocol.commands import commands_for
+
+    c2 = commands_for(V2)
 
     if chunking not in ("whole", "upstream"):
         raise LimitError("chunking", chunking, "whole or upstream")
@@ -830,14 +825,14 @@ def pattern_in_force_v2(
     if n == 0:
         raise ConfigurationError("pattern_in_force_v2 needs at least one electrode")
     setup = (
-        encode_electrode_num(n)
-        + encode_stim_mode(0)
-        + encode_pulse_width(pulse_width_us)
-        + encode_discharge(discharge_us)
-        + encode_frequency(rate_hz)
-        + encode_pattern([0] * n)
+        c2.encode_electrode_num(n)
+        + c2.encode_stim_mode(0)
+        + c2.encode_pulse_width(pulse_width_us)
+        + c2.encode_discharge(discharge_us)
+        + c2.encode_frequency(rate_hz)
+        + c2.encode_pattern([0] * n)
     )
-    new = encode_pattern(heights)
+    new = c2.encode_pattern(heights)
     rows: list[dict[str, float]] = []
     for i in range(phases):
         emu = TimedEmulatorV2(link=link)
