@@ -183,8 +183,8 @@ def build(
     parts = [(str(p.relative_to(root)), p.read_bytes()) for p in _tree_files(root)]
     parts += [("shim/" + str(p.relative_to(SHIM_DIR)), p.read_bytes()) for p in sorted(SHIM_DIR.rglob("*")) if p.is_file()]
     parts += [("compiler", ident.encode()), ("flags", "\0".join(flags).encode())]
-    if accessor is not None:
-        parts.append(("accessor", accessor[0].encode()))
+    if state_map is not None:  # the accessor as the tree names it: the same tree elsewhere is the same build
+        parts.append(("accessor", state_map.accessor_source(Path(state_map.unit))[0].encode()))
     key = _digest(parts)
     where = Path(cache) if cache is not None else cache_dir()
     lib_path = where / f"{key}.so"
@@ -204,6 +204,7 @@ def build(
             acc_file.write_text(accessor[0], encoding="utf-8")
             units.append(str(acc_file))
         out = work / "firmware.so"
+        runtime = _runtime_object(cxx, ident, flags, where)
         cmd = [
             cxx,
             *flags,
@@ -211,7 +212,7 @@ def build(
             f"-I{overlay}",
             *(f"-I{d}" for d in _include_dirs(root)),
             *units,
-            str(RUNTIME_SOURCE),
+            str(runtime),
             "-o",
             str(out),
         ]
@@ -224,6 +225,24 @@ def build(
     meta = {"tree": str(root), "compiler": ident, "flags": flags, "built_s": time.perf_counter() - t0}
     (where / f"{key}.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
     return BuildResult(lib_path, key, False, time.perf_counter() - t0, cxx, registers)
+
+
+def _runtime_object(cxx: str, ident: str, flags: list[str], where: Path) -> Path:
+    """The shim's runtime, compiled once per shim, compiler and flags (the bulk of a cold build)."""
+    cflags = [f for f in flags if f != "-shared" and not f.startswith("-Wl,")]
+    parts = [("shim/" + str(p.relative_to(SHIM_DIR)), p.read_bytes()) for p in sorted(SHIM_DIR.rglob("*")) if p.is_file()]
+    parts += [("compiler", ident.encode()), ("flags", "\0".join(cflags).encode())]
+    obj = where / f"runtime-{_digest(parts)}.o"
+    if obj.is_file():
+        return obj
+    tmp = where / f".{obj.name}.{os.getpid()}.tmp.o"
+    proc = subprocess.run(
+        [cxx, *cflags, f"-I{SHIM_DIR}", "-c", str(RUNTIME_SOURCE), "-o", str(tmp)], capture_output=True, text=True
+    )
+    if proc.returncode != 0:
+        raise FirmwareBuildError(f"the shim's runtime does not compile with {cxx}:\n{_tail(proc.stderr)}")
+    os.replace(tmp, obj)
+    return obj
 
 
 def _build_error(stderr: str, root: Path, acc_file: Path, acc_lines: dict[int, str]) -> FirmwareBuildError:

@@ -80,7 +80,7 @@ def stack_reading_for(hv513_count: int) -> int:
     return int(9368.8636 / (stack_count + 1.51))
 
 
-def _costs(model: TimingModel, rx_buffer_bytes: int | None) -> list[int]:
+def _costs(model: TimingModel, rx_buffer_bytes: int | None, stall_calls: int) -> list[int]:
     """The shim's cost table (``hostbuild_runtime.cpp``'s Cost order) from a timing model."""
     apb_ps = int(round(model.timer_tick_us * 1e6 / 40))  # the firmware's timers divide the 80 MHz APB by 40
     return [
@@ -95,7 +95,7 @@ def _costs(model: TimingModel, rx_buffer_bytes: int | None) -> list[int]:
         model.tick_phase_ns,
         apb_ps,
         rx_buffer_bytes if rx_buffer_bytes is not None else model.rx_queue_bytes,
-        STALL_CALLS,
+        stall_calls,
     ]
 
 
@@ -107,7 +107,10 @@ class HostBuildEmulator:
     ``rx_buffer_bytes`` replaces the receive queue's default size (the timing model's
     ``rx_queue_bytes``) until the firmware sets its own with ``Serial.setRxBufferSize``.
     ``interrupts=False`` never runs the timer interrupt (the parser alone, as the golden vectors
-    record it).
+    record it).  ``defines`` replaces the default build defines (:data:`..build.DEFAULT_DEFINES`);
+    ``cache`` the build cache folder.  ``stall_calls``: shim calls in a row without virtual time passing
+    after which the firmware is declared stuck (a loop polling a call that costs nothing would otherwise
+    never return to Python).
     """
 
     def __init__(
@@ -122,16 +125,23 @@ class HostBuildEmulator:
         interrupts: bool = True,
         defines: dict[str, str] | None = None,
         compiler: str | None = None,
+        cache: str | os.PathLike[str] | None = None,
+        stall_calls: int = STALL_CALLS,
     ) -> None:
         self.timing = timing if timing is not None else DEFAULT_MODEL
         tree = Path(firmware_src)
         self.state_map = state_map if state_map is not None else detect(tree)
-        self.built: BuildResult = build(tree, state_map=self.state_map, defines=defines, compiler=compiler)
+        self.built: BuildResult = build(
+            tree, state_map=self.state_map, defines=defines, compiler=compiler, cache=cache
+        )
         if rx_buffer_bytes is not None and rx_buffer_bytes < 1:
             raise LimitError("rx_buffer_bytes", rx_buffer_bytes, "an integer >= 1")
+        if stall_calls < 1:
+            raise LimitError("stall_calls", stall_calls, "an integer >= 1")
+        self.stall_calls = stall_calls
         self._lib = _load_private_copy(self.built.library)
         self._bind()
-        costs = _costs(self.timing, rx_buffer_bytes)
+        costs = _costs(self.timing, rx_buffer_bytes, stall_calls)
         arr = (ctypes.c_int64 * len(costs))(*costs)
         if self._lib.hb_configure(arr, len(costs)) != 0:
             raise FirmwareBuildError("the built library's shim does not match this package (cost table); rebuild")
@@ -182,7 +192,7 @@ class HostBuildEmulator:
     def _run(self, target_ns: int) -> None:
         if self._lib.hb_run_until(target_ns) != 0:
             raise FirmwareBuildError(
-                f"the firmware made {STALL_CALLS} shim calls at virtual time {self._lib.hb_now() / 1000} us "
+                f"the firmware made {self.stall_calls} shim calls at virtual time {self._lib.hb_now() / 1000} us "
                 "without time passing (a loop polling a call that costs nothing): it cannot be run further"
             )
         self._drain()
