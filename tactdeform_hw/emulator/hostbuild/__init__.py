@@ -7,6 +7,6 @@ time, virtual time advanced, replies, GPIO/DAC events and the firmware's variabl
 """
 
 from tactdeform_hw.emulator.hostbuild.build import BuildResult, build, cache_dir, find_compiler
-from tactdeform_hw.emulator.hostbuild.statemap import UPSTREAM_V1_2, StateMap
+from tactdeform_hw.emulator.hostbuild.statemap import UPSTREAM_V1_2, UPSTREAM_V2, StateMap
 
-__all__ = ["BuildResult", "StateMap", "UPSTREAM_V1_2", "build", "cache_dir", "find_compiler"]
+__all__ = ["BuildResult", "StateMap", "UPSTREAM_V1_2", "UPSTREAM_V2", "build", "cache_dir", "find_compiler"]

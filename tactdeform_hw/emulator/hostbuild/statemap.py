@@ -114,7 +114,26 @@ UPSTREAM_V1_2 = StateMap(
     },
 )
 
-KNOWN_MAPS: tuple[StateMap, ...] = (UPSTREAM_V1_2,)
+UPSTREAM_V2 = StateMap(
+    name="eTactileKit v2 (71adee21)",
+    unit="lib/EtactileKit/etactilekit.cpp",
+    registers={
+        "electrode_num": "ElectrodeNum",
+        "polarity": "Polarity",
+        "stim_mode": "StimulationMode",
+        "pulse_width": "PulseWidth",
+        "sense_pulse_height": "SensePulseHeight",
+        "sense_pulse_width": "SensePulseWidth",
+        "discharge_time": "ChannelDischargeTime",
+        "period_us": "StimulationTimePeriod",
+        "hv513_num": "HV513Num",
+        "stim_pattern": "stim_pattern[256]",
+        "voltage_bytes": "voltage[512]",
+    },
+)
+"""v2 keeps the parser's progress in function-local statics (``processingCommand``): no map reaches them."""
+
+KNOWN_MAPS: tuple[StateMap, ...] = (UPSTREAM_V1_2, UPSTREAM_V2)
 
 
 def detect(tree: Path) -> StateMap | None:
