@@ -90,8 +90,11 @@ def test_undefined_function_is_a_build_error_naming_it(cache: Path, tmp_path: Pa
     tree = tmp_path / "fw"
     shutil.copytree(TINY, tree)
     main = tree / "src" / "main.cpp"
-    main.write_text(main.read_text().replace("tinyPoll();", "tinyPoll();\n    notDefinedAnywhere();")
-                    .replace('#include "tiny.h"', '#include "tiny.h"\nvoid notDefinedAnywhere();'))
+    main.write_text(
+        main.read_text()
+        .replace("tinyPoll();", "tinyPoll();\n    notDefinedAnywhere();")
+        .replace('#include "tiny.h"', '#include "tiny.h"\nvoid notDefinedAnywhere();')
+    )
     with pytest.raises(FirmwareBuildError, match="undefined symbol.*notDefinedAnywhere"):
         build(tree, state_map=MAP, cache=cache)
 
@@ -105,7 +108,9 @@ def test_state_map_naming_no_variable_names_the_register(cache: Path) -> None:
 def test_missing_compiler_says_what_to_install(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     monkeypatch.setenv("PATH", str(tmp_path))
     monkeypatch.delenv("CXX", raising=False)
-    with pytest.raises(FirmwareBuildError, match="needs a C\\+\\+ compiler.*c\\+\\+, g\\+\\+, clang\\+\\+") as info:
+    with pytest.raises(
+        FirmwareBuildError, match="needs a C\\+\\+ compiler.*c\\+\\+, g\\+\\+, clang\\+\\+"
+    ) as info:
         find_compiler()
     assert "apt install g++" in str(info.value) or "xcode-select" in str(info.value)
 

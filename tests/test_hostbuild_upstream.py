@@ -40,7 +40,9 @@ def _tree(var: str) -> Path:
         pytest.skip(f"no C++ compiler: {NO_CXX}")
     raw = os.environ.get(var)
     if not raw:
-        pytest.skip(f"{var} is not set (a checkout of aid-lab-org/eTactileKit's 2_Firmware/platform_io_project)")
+        pytest.skip(
+            f"{var} is not set (a checkout of aid-lab-org/eTactileKit's 2_Firmware/platform_io_project)"
+        )
     path = Path(raw)
     if (path / "2_Firmware" / "platform_io_project").is_dir():
         path = path / "2_Firmware" / "platform_io_project"
@@ -78,7 +80,9 @@ def test_v1_2_golden_vectors_through_the_host_build() -> None:
     for i, v in enumerate(vectors):
         stream = bytes.fromhex(v["stream"])
         # all bytes arrive before the parser runs: a queue large enough to hold them
-        emu = HostBuildEmulator(tree, state_map=UPSTREAM_V1_2, interrupts=False, rx_buffer_bytes=max(256, len(stream)))
+        emu = HostBuildEmulator(
+            tree, state_map=UPSTREAM_V1_2, interrupts=False, rx_buffer_bytes=max(256, len(stream))
+        )
         emu.write(stream, at_us=0)
         emu.advance_to((len(stream) + 20) * 1000.0)  # at least one byte per 1 ms loop pass
         bad = _diff(emu, v["expect"])

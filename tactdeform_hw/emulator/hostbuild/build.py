@@ -26,8 +26,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError
 from tactdeform_hw.emulator.hostbuild.statemap import Register, StateMap
+from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError
 
 SHIM_DIR = Path(__file__).resolve().parent / "shim"
 RUNTIME_SOURCE = SHIM_DIR / "hostbuild_runtime.cpp"
@@ -51,7 +51,7 @@ def cache_dir() -> Path:
 
 
 def find_compiler(preferred: str | None = None) -> str:
-    """The C++ compiler to use: ``preferred`` (which must exist), else ``$CXX``, ``c++``, ``g++``, ``clang++``."""
+    """The C++ compiler: ``preferred`` (which must exist), else ``$CXX``, ``c++``, ``g++``, ``clang++``."""
     if preferred is not None:
         found = shutil.which(preferred)
         if not found:
@@ -156,7 +156,9 @@ def build(
     t0 = time.perf_counter()
     root = Path(tree).resolve()
     if not (root / "src").is_dir():
-        raise ConfigurationError(f"firmware_src={str(tree)!r} is not a PlatformIO tree: it has no src/ folder")
+        raise ConfigurationError(
+            f"firmware_src={str(tree)!r} is not a PlatformIO tree: it has no src/ folder"
+        )
     sources = _sources(root)
     if not sources:
         raise ConfigurationError(f"firmware_src={str(tree)!r}: no C/C++ source in src/ or lib/*/")
@@ -181,7 +183,11 @@ def build(
         accessor = state_map.accessor_source(unit)
 
     parts = [(str(p.relative_to(root)), p.read_bytes()) for p in _tree_files(root)]
-    parts += [("shim/" + str(p.relative_to(SHIM_DIR)), p.read_bytes()) for p in sorted(SHIM_DIR.rglob("*")) if p.is_file()]
+    parts += [
+        ("shim/" + str(p.relative_to(SHIM_DIR)), p.read_bytes())
+        for p in sorted(SHIM_DIR.rglob("*"))
+        if p.is_file()
+    ]
     parts += [("compiler", ident.encode()), ("flags", "\0".join(flags).encode())]
     if state_map is not None:  # the accessor as the tree names it: the same tree elsewhere is the same build
         parts.append(("accessor", state_map.accessor_source(Path(state_map.unit))[0].encode()))
@@ -230,14 +236,20 @@ def build(
 def _runtime_object(cxx: str, ident: str, flags: list[str], where: Path) -> Path:
     """The shim's runtime, compiled once per shim, compiler and flags (the bulk of a cold build)."""
     cflags = [f for f in flags if f != "-shared" and not f.startswith("-Wl,")]
-    parts = [("shim/" + str(p.relative_to(SHIM_DIR)), p.read_bytes()) for p in sorted(SHIM_DIR.rglob("*")) if p.is_file()]
+    parts = [
+        ("shim/" + str(p.relative_to(SHIM_DIR)), p.read_bytes())
+        for p in sorted(SHIM_DIR.rglob("*"))
+        if p.is_file()
+    ]
     parts += [("compiler", ident.encode()), ("flags", "\0".join(cflags).encode())]
     obj = where / f"runtime-{_digest(parts)}.o"
     if obj.is_file():
         return obj
     tmp = where / f".{obj.name}.{os.getpid()}.tmp.o"
     proc = subprocess.run(
-        [cxx, *cflags, f"-I{SHIM_DIR}", "-c", str(RUNTIME_SOURCE), "-o", str(tmp)], capture_output=True, text=True
+        [cxx, *cflags, f"-I{SHIM_DIR}", "-c", str(RUNTIME_SOURCE), "-o", str(tmp)],
+        capture_output=True,
+        text=True,
     )
     if proc.returncode != 0:
         raise FirmwareBuildError(f"the shim's runtime does not compile with {cxx}:\n{_tail(proc.stderr)}")

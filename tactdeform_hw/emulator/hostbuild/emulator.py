@@ -34,8 +34,18 @@ queue loses its rest (the USB Serial/JTAG receive interrupt's behaviour, protoco
 STALL_CALLS = 50_000_000
 """Shim calls in a row without virtual time passing after which the firmware is declared stuck."""
 
-_KIND = {1: "GPIO", 2: "SPI", 3: "ISR_ENTER", 4: "ISR_RETURN", 5: "ALARM_ENABLE", 6: "ALARM_DISABLE", 7: "TX",
-         8: "RX_DROP", 9: "ALARM_WRITE", 10: "TIMER_RESTART"}
+_KIND = {
+    1: "GPIO",
+    2: "SPI",
+    3: "ISR_ENTER",
+    4: "ISR_RETURN",
+    5: "ALARM_ENABLE",
+    6: "ALARM_DISABLE",
+    7: "TX",
+    8: "RX_DROP",
+    9: "ALARM_WRITE",
+    10: "TIMER_RESTART",
+}
 
 
 class _Event(ctypes.Structure):
@@ -144,7 +154,9 @@ class HostBuildEmulator:
         costs = _costs(self.timing, rx_buffer_bytes, stall_calls)
         arr = (ctypes.c_int64 * len(costs))(*costs)
         if self._lib.hb_configure(arr, len(costs)) != 0:
-            raise FirmwareBuildError("the built library's shim does not match this package (cost table); rebuild")
+            raise FirmwareBuildError(
+                "the built library's shim does not match this package (cost table); rebuild"
+            )
         reading = stack_reading if stack_reading is not None else stack_reading_for(hv513_count)
         self._lib.hb_set_analog(STACK_SENSE_PIN, reading)
         self._lib.hb_set_interrupts(1 if interrupts else 0)
@@ -192,8 +204,9 @@ class HostBuildEmulator:
     def _run(self, target_ns: int) -> None:
         if self._lib.hb_run_until(target_ns) != 0:
             raise FirmwareBuildError(
-                f"the firmware made {self.stall_calls} shim calls at virtual time {self._lib.hb_now() / 1000} us "
-                "without time passing (a loop polling a call that costs nothing): it cannot be run further"
+                f"the firmware made {self.stall_calls} shim calls at virtual time "
+                f"{self._lib.hb_now() / 1000} us without time passing "
+                "(a loop polling a call that costs nothing): it cannot be run further"
             )
         self._drain()
 
@@ -229,7 +242,7 @@ class HostBuildEmulator:
     def firmware_now_us(self) -> float:
         """Where the firmware's own clock stands: at or past :attr:`now_us` by at most one shim call's cost
         (the firmware is suspended inside the call that crossed the target)."""
-        return self._lib.hb_now() / 1000.0
+        return float(self._lib.hb_now()) / 1000.0
 
     def write(self, data: bytes, at_us: float | None = None) -> int:
         """The host's bytes reach the firmware's receive queue at ``at_us`` (default: now), in packets of

@@ -48,7 +48,9 @@ class StateMap:
         out: list[Register] = []
         for reg, spec in self.registers.items():
             if not _NAME.match(reg):
-                raise ConfigurationError(f"state map {self.name or self.unit}: register name {reg!r} is not a C identifier")
+                raise ConfigurationError(
+                    f"state map {self.name or self.unit}: register name {reg!r} is not a C identifier"
+                )
             m = _ARRAY.match(spec)
             if m:
                 n = int(m.group("n"))
@@ -69,9 +71,8 @@ class StateMap:
         for reg in self.parsed():
             index = "[i]" if reg.length is not None else ""
             where[len(lines) + 1] = reg.name
-            lines.append(
-                f'extern "C" double hb_reg_{reg.name}(int i) {{ (void)i; return (double)(({reg.expr}){index}); }}'
-            )
+            body = f"(void)i; return (double)(({reg.expr}){index});"
+            lines.append(f'extern "C" double hb_reg_{reg.name}(int i) {{ {body} }}')
         return "\n".join(lines) + "\n", where
 
     @classmethod
@@ -87,10 +88,12 @@ class StateMap:
         unit = data.get("unit")
         regs = data.get("registers")
         if not isinstance(unit, str) or not isinstance(regs, dict):
-            raise ConfigurationError(f"state map {path}: needs unit = \"<file>\" and a [registers] table")
+            raise ConfigurationError(f'state map {path}: needs unit = "<file>" and a [registers] table')
         bad = [k for k, v in regs.items() if not isinstance(v, str)]
         if bad:
-            raise ConfigurationError(f"state map {path}: register(s) {', '.join(bad)} must name a variable (a string)")
+            raise ConfigurationError(
+                f"state map {path}: register(s) {', '.join(bad)} must name a variable (a string)"
+            )
         return cls(unit=unit, registers=dict(regs), name=str(path))
 
 
