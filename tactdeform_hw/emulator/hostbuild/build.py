@@ -142,6 +142,78 @@ def _digest(parts: list[tuple[str, bytes]]) -> str:
     return h.hexdigest()[:32]
 
 
+@dataclass(frozen=True)
+class _Plan:
+    """Everything a build of one tree is made of."""
+
+    root: Path
+    sources: tuple[Path, ...]
+    cxx: str
+    ident: str
+    flags: tuple[str, ...]
+    unit: Path | None
+    accessor: tuple[str, dict[int, str]] | None
+    key_accessor: str  # the accessor as the tree names its unit: the same tree elsewhere is the same build
+    registers: tuple[Register, ...]
+
+
+def _plan(
+    tree: str | os.PathLike[str],
+    state_map: StateMap | None,
+    defines: dict[str, str] | None,
+    compiler: str | None,
+    extra_flags: tuple[str, ...],
+) -> _Plan:
+    root = Path(tree).resolve()
+    if not (root / "src").is_dir():
+        raise ConfigurationError(
+            f"firmware_src={str(tree)!r} is not a PlatformIO tree: it has no src/ folder"
+        )
+    sources = tuple(_sources(root))
+    if not sources:
+        raise ConfigurationError(f"firmware_src={str(tree)!r}: no C/C++ source in src/ or lib/*/")
+    cxx = find_compiler(compiler)
+    defs = dict(DEFAULT_DEFINES if defines is None else defines)
+    flags = [*BASE_FLAGS, *(f"-D{k}={v}" for k, v in sorted(defs.items())), *extra_flags]
+    if sys.platform.startswith("linux"):
+        flags.append("-Wl,-z,defs")  # an undefined symbol is a build error, not a load error
+    if state_map is None:
+        return _Plan(root, sources, cxx, compiler_identity(cxx), tuple(flags), None, None, "", ())
+    unit = (root / state_map.unit).resolve()
+    if unit not in [s.resolve() for s in sources]:
+        raise ConfigurationError(
+            f"state map unit={state_map.unit!r} is not one of the tree's sources "
+            f"({', '.join(str(s.relative_to(root)) for s in sources)})"
+        )
+    return _Plan(
+        root,
+        sources,
+        cxx,
+        compiler_identity(cxx),
+        tuple(flags),
+        unit,
+        state_map.accessor_source(unit),
+        state_map.accessor_source(Path(state_map.unit))[0],
+        tuple(state_map.parsed()),
+    )
+
+
+def _shim_parts() -> list[tuple[str, bytes]]:
+    return [
+        ("shim/" + str(p.relative_to(SHIM_DIR)), p.read_bytes())
+        for p in sorted(SHIM_DIR.rglob("*"))
+        if p.is_file()
+    ]
+
+
+def _key(plan: _Plan) -> str:
+    parts = [(str(p.relative_to(plan.root)), p.read_bytes()) for p in _tree_files(plan.root)]
+    parts += _shim_parts()
+    parts += [("compiler", plan.ident.encode()), ("flags", "\0".join(plan.flags).encode())]
+    parts.append(("accessor", plan.key_accessor.encode()))
+    return _digest(parts)
+
+
 def build(
     tree: str | os.PathLike[str],
     *,
@@ -154,69 +226,45 @@ def build(
     """Build ``tree`` (cached).  Raises :class:`FirmwareBuildError` naming the file and line of the first
     compiler error, or the undefined symbol at link time."""
     t0 = time.perf_counter()
-    root = Path(tree).resolve()
-    if not (root / "src").is_dir():
-        raise ConfigurationError(
-            f"firmware_src={str(tree)!r} is not a PlatformIO tree: it has no src/ folder"
-        )
-    sources = _sources(root)
-    if not sources:
-        raise ConfigurationError(f"firmware_src={str(tree)!r}: no C/C++ source in src/ or lib/*/")
-    cxx = find_compiler(compiler)
-    ident = compiler_identity(cxx)
-    defs = dict(DEFAULT_DEFINES if defines is None else defines)
-    flags = [*BASE_FLAGS, *(f"-D{k}={v}" for k, v in sorted(defs.items())), *extra_flags]
-    if sys.platform.startswith("linux"):
-        flags.append("-Wl,-z,defs")  # an undefined symbol is a build error, not a load error
-
-    accessor: tuple[str, dict[int, str]] | None = None
-    unit: Path | None = None
-    registers: tuple[Register, ...] = ()
-    if state_map is not None:
-        unit = (root / state_map.unit).resolve()
-        if unit not in [s.resolve() for s in sources]:
-            raise ConfigurationError(
-                f"state map unit={state_map.unit!r} is not one of the tree's sources "
-                f"({', '.join(str(s.relative_to(root)) for s in sources)})"
-            )
-        registers = tuple(state_map.parsed())
-        accessor = state_map.accessor_source(unit)
-
-    parts = [(str(p.relative_to(root)), p.read_bytes()) for p in _tree_files(root)]
-    parts += [
-        ("shim/" + str(p.relative_to(SHIM_DIR)), p.read_bytes())
-        for p in sorted(SHIM_DIR.rglob("*"))
-        if p.is_file()
-    ]
-    parts += [("compiler", ident.encode()), ("flags", "\0".join(flags).encode())]
-    if state_map is not None:  # the accessor as the tree names it: the same tree elsewhere is the same build
-        parts.append(("accessor", state_map.accessor_source(Path(state_map.unit))[0].encode()))
-    key = _digest(parts)
+    plan = _plan(tree, state_map, defines, compiler, extra_flags)
+    key = _key(plan)
     where = Path(cache) if cache is not None else cache_dir()
     lib_path = where / f"{key}.so"
     if lib_path.is_file():
-        return BuildResult(lib_path, key, True, time.perf_counter() - t0, cxx, registers)
-
+        return BuildResult(lib_path, key, True, time.perf_counter() - t0, plan.cxx, plan.registers)
     where.mkdir(parents=True, exist_ok=True)
+    _compile(plan, where, lib_path)
+    meta = {
+        "tree": str(plan.root),
+        "compiler": plan.ident,
+        "flags": plan.flags,
+        "built_s": time.perf_counter() - t0,
+    }
+    (where / f"{key}.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
+    return BuildResult(lib_path, key, False, time.perf_counter() - t0, plan.cxx, plan.registers)
+
+
+def _compile(plan: _Plan, where: Path, lib_path: Path) -> None:
+    """Compile the tree (the accessor unit in place of the mapped one) and link it with the runtime."""
     with tempfile.TemporaryDirectory(prefix="hostbuild-") as tmp:
         work = Path(tmp)
         overlay = work / "overlay"
         overlay.mkdir()
-        for example, real in _examples(root):
+        for example, real in _examples(plan.root):
             shutil.copyfile(example, overlay / real.name)
-        units = [str(s) for s in sources if unit is None or s.resolve() != unit]
+        units = [str(s) for s in plan.sources if plan.unit is None or s.resolve() != plan.unit]
         acc_file = work / "hostbuild_state.cpp"
-        if accessor is not None:
-            acc_file.write_text(accessor[0], encoding="utf-8")
+        if plan.accessor is not None:
+            acc_file.write_text(plan.accessor[0], encoding="utf-8")
             units.append(str(acc_file))
         out = work / "firmware.so"
-        runtime = _runtime_object(cxx, ident, flags, where)
+        runtime = _runtime_object(plan.cxx, plan.ident, list(plan.flags), where)
         cmd = [
-            cxx,
-            *flags,
+            plan.cxx,
+            *plan.flags,
             f"-I{SHIM_DIR}",
             f"-I{overlay}",
-            *(f"-I{d}" for d in _include_dirs(root)),
+            *(f"-I{d}" for d in _include_dirs(plan.root)),
             *units,
             str(runtime),
             "-o",
@@ -224,24 +272,16 @@ def build(
         ]
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
-            raise _build_error(proc.stderr, root, acc_file, accessor[1] if accessor else {})
-        tmp_lib = where / f".{key}.{os.getpid()}.tmp"
+            raise _build_error(proc.stderr, plan.root, acc_file, plan.accessor[1] if plan.accessor else {})
+        tmp_lib = where / f".{lib_path.name}.{os.getpid()}.tmp"
         shutil.copyfile(out, tmp_lib)
         os.replace(tmp_lib, lib_path)
-    meta = {"tree": str(root), "compiler": ident, "flags": flags, "built_s": time.perf_counter() - t0}
-    (where / f"{key}.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
-    return BuildResult(lib_path, key, False, time.perf_counter() - t0, cxx, registers)
 
 
 def _runtime_object(cxx: str, ident: str, flags: list[str], where: Path) -> Path:
     """The shim's runtime, compiled once per shim, compiler and flags (the bulk of a cold build)."""
     cflags = [f for f in flags if f != "-shared" and not f.startswith("-Wl,")]
-    parts = [
-        ("shim/" + str(p.relative_to(SHIM_DIR)), p.read_bytes())
-        for p in sorted(SHIM_DIR.rglob("*"))
-        if p.is_file()
-    ]
-    parts += [("compiler", ident.encode()), ("flags", "\0".join(cflags).encode())]
+    parts = _shim_parts() + [("compiler", ident.encode()), ("flags", "\0".join(cflags).encode())]
     obj = where / f"runtime-{_digest(parts)}.o"
     if obj.is_file():
         return obj
