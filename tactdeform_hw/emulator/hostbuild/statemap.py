@@ -98,43 +98,32 @@ class StateMap:
 
 
 # The upstream trees' maps.  Register names are the emulator's (protocol.md); the expressions are the
-# firmware's own variable names at each version.
+# firmware's own variable names at each version.  Both versions share these:
+_UPSTREAM_COMMON = {
+    "electrode_num": "ElectrodeNum",
+    "polarity": "Polarity",
+    "pulse_width": "PulseWidth",
+    "sense_pulse_height": "SensePulseHeight",
+    "sense_pulse_width": "SensePulseWidth",
+    "discharge_time": "ChannelDischargeTime",
+    "period_us": "StimulationTimePeriod",
+    "hv513_num": "HV513Num",
+    "stim_pattern": "stim_pattern[256]",
+}
+
 UPSTREAM_V1_2 = StateMap(
     name="eTactileKit v1.2 (936c6c08)",
     unit="lib/EtactileKit/etactielkit.cpp",
-    registers={
-        "electrode_num": "ElectrodeNum",
-        "polarity": "Polarity",
-        "pulse_height": "PulseHeight",
-        "pulse_width": "PulseWidth",
-        "sense_pulse_height": "SensePulseHeight",
-        "sense_pulse_width": "SensePulseWidth",
-        "discharge_time": "ChannelDischargeTime",
-        "period_us": "StimulationTimePeriod",
-        "hv513_num": "HV513Num",
-        "stim_pattern": "stim_pattern[256]",
-        "voltage": "voltage[256]",
-    },
+    registers={**_UPSTREAM_COMMON, "pulse_height": "PulseHeight", "voltage": "voltage[256]"},
 )
 
 UPSTREAM_V2 = StateMap(
     name="eTactileKit v2 (71adee21)",
     unit="lib/EtactileKit/etactilekit.cpp",
-    registers={
-        "electrode_num": "ElectrodeNum",
-        "polarity": "Polarity",
-        "stim_mode": "StimulationMode",
-        "pulse_width": "PulseWidth",
-        "sense_pulse_height": "SensePulseHeight",
-        "sense_pulse_width": "SensePulseWidth",
-        "discharge_time": "ChannelDischargeTime",
-        "period_us": "StimulationTimePeriod",
-        "hv513_num": "HV513Num",
-        "stim_pattern": "stim_pattern[256]",
-        "voltage_bytes": "voltage[512]",
-    },
+    registers={**_UPSTREAM_COMMON, "stim_mode": "StimulationMode", "voltage_bytes": "voltage[512]"},
 )
-"""v2 keeps the parser's progress in function-local statics (``processingCommand``): no map reaches them."""
+"""v2's pattern entries are pulse heights (u16); its voltages are stored as bytes, low first.  It keeps the
+parser's progress in function-local statics (``processingCommand``): no map reaches them."""
 
 KNOWN_MAPS: tuple[StateMap, ...] = (UPSTREAM_V1_2, UPSTREAM_V2)
 
