@@ -202,7 +202,10 @@ class HostBuildEmulator:
             self._getters[reg.name] = fn
 
     def _run(self, target_ns: int) -> None:
-        if self._lib.hb_run_until(target_ns) != 0:
+        status = self._lib.hb_run_until(target_ns)
+        if status == 2:
+            raise FirmwareBuildError("no memory for the firmware's 1 MiB stack: nothing was run")
+        if status != 0:
             raise FirmwareBuildError(
                 f"the firmware made {self.stall_calls} shim calls at virtual time "
                 f"{self._lib.hb_now() / 1000} us without time passing "

@@ -51,7 +51,7 @@ static void record(int64_t t, int kind, int a, int64_t b, int64_t c) { events.pu
 static const int64_t NEVER = INT64_MAX;
 static int64_t now = 0;
 static int64_t target = 0;
-static int status = 0;  // 0 running, 1 stalled (calls without time passing)
+static int status = 0;  // 0 running, 1 stalled (calls without time passing), 2 no memory for the stack
 static bool in_isr = false;
 static bool interrupts_enabled = true;
 static int64_t stall_calls = 0;
@@ -59,7 +59,8 @@ static int64_t stall_at = -1;
 
 // --- the coroutine ------------------------------------------------------------------------------------
 static ucontext_t host_ctx, fw_ctx;
-static std::vector<char> fw_stack;
+static char* fw_stack = nullptr;  // malloc'd, not zeroed: pages the firmware never touches cost nothing
+static const size_t FW_STACK_BYTES = 1 << 20;
 static bool started = false;
 
 static void fw_main() {
@@ -478,10 +479,11 @@ int hb_run_until(int64_t t_ns) {
     target = t_ns;
     if (!started) {
         started = true;
-        fw_stack.resize(1 << 20);
+        fw_stack = static_cast<char*>(std::malloc(FW_STACK_BYTES));
+        if (!fw_stack) return 2;
         getcontext(&fw_ctx);
-        fw_ctx.uc_stack.ss_sp = fw_stack.data();
-        fw_ctx.uc_stack.ss_size = fw_stack.size();
+        fw_ctx.uc_stack.ss_sp = fw_stack;
+        fw_ctx.uc_stack.ss_size = FW_STACK_BYTES;
         fw_ctx.uc_link = &host_ctx;
         makecontext(&fw_ctx, fw_main, 0);
     }
