@@ -203,3 +203,27 @@ def test_v2_scan_traces_through_the_host_build() -> None:
     traces = _lines("scan_traces_v2.jsonl")
     wrong = {t["name"]: bad for t in traces if (bad := _scan_trace(tree, t, "v2"))}
     assert len(traces) == 21 and wrong == {}
+
+
+def test_v1_2_delivered_pulses_of_the_tactdeform_setting() -> None:
+    """What the board delivered, decoded from the host build's own pin and DAC events from boot on."""
+    tree = _tree("TACTDEFORM_HW_UPSTREAM_V1_2")
+    emu = HostBuildEmulator(tree, state_map=UPSTREAM_V1_2)
+    config = {**_TACTDEFORM, "frequency_hz": 125, "sense_pulse_height": 0, "sense_pulse_width": 0}
+    emu.write(_config_v1_2(config), at_us=0)
+    emu.advance_to(40_000)
+    (start, ret), *_ = [s for s in emu.scans() if s[0] > 10_000]  # a scan after the configuration
+    pulses = [p for p in emu.delivered_pulses() if start <= p.start_us <= ret]
+    assert [p.outputs for p in pulses] == [(ch,) for ch in range(32)]
+    assert {(p.code, p.polarity, round(p.width_us, 6)) for p in pulses} == {(100, 1, 196.8)}
+    assert emu.delivered_pulses()[0].start_us >= 9010.25  # nothing before the first scan
+
+
+_TACTDEFORM = {
+    "electrode_num": 32,
+    "stim_pattern": [1] * 32,
+    "pulse_height": 100,
+    "pulse_width": 200,
+    "discharge_time": 45,
+    "polarity": 1,
+}

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from tactdeform_hw.emulator.hostbuild.build import BuildResult, build
+from tactdeform_hw.emulator.hostbuild.delivered import ChainDecoder, DeliveredPulse
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import FirmwareBuildError, LimitError
@@ -120,7 +121,8 @@ class HostBuildEmulator:
     record it).  ``defines`` replaces the default build defines (:data:`..build.DEFAULT_DEFINES`);
     ``cache`` the build cache folder.  ``stall_calls``: shim calls in a row without virtual time passing
     after which the firmware is declared stuck (a loop polling a call that costs nothing would otherwise
-    never return to Python).
+    never return to Python).  ``chain_outputs``: the board's HV513 outputs (default ``8 * hv513_count``),
+    for :meth:`delivered_pulses`.
     """
 
     def __init__(
@@ -137,6 +139,7 @@ class HostBuildEmulator:
         compiler: str | None = None,
         cache: str | os.PathLike[str] | None = None,
         stall_calls: int = STALL_CALLS,
+        chain_outputs: int | None = None,
     ) -> None:
         self.timing = timing if timing is not None else DEFAULT_MODEL
         tree = Path(firmware_src)
@@ -167,6 +170,7 @@ class HostBuildEmulator:
         self._tx = bytearray()
         self._tx_log: list[tuple[float, bytes]] = []
         self._drops: list[RxDrop] = []
+        self._chain = ChainDecoder(8 * hv513_count if chain_outputs is None else chain_outputs)
         self._run(0)  # setup() runs up to its first shim call
 
     # --- the library --------------------------------------------------------------------------------------
@@ -224,7 +228,11 @@ class HostBuildEmulator:
             kind = _KIND.get(e.kind, str(e.kind))
             ev = ShimEvent(e.t_ns / 1000.0, kind, e.a, e.b, e.c)
             self._events.append(ev)
-            if kind == "TX":
+            if kind == "GPIO":
+                self._chain.gpio(e.t_ns, e.a, int(e.b))
+            elif kind == "SPI":
+                self._chain.dac(e.t_ns + self.timing.dac_at_ns, (e.b >> 2) & 0xFFF)
+            elif kind == "TX":
                 tx_now.append((e.t_ns, e.a))
             elif kind == "RX_DROP":
                 self._drops.append(RxDrop(e.t_ns / 1000.0, e.a, e.b, e.c))
@@ -315,6 +323,11 @@ class HostBuildEmulator:
                 out.append((t_dac, seq, [t_dac / 1000.0, "DAC", "DAC", (e.b >> 2) & 0xFFF]))
         out.sort(key=lambda x: (x[0], x[1]))
         return [ev for t, _, ev in out if t >= since_us * 1000]
+
+    def delivered_pulses(self) -> list[DeliveredPulse]:
+        """Every stretch of current the board delivered so far (a stretch still flowing is not included
+        until it ends): what safety is judged on.  See :mod:`.delivered`."""
+        return list(self._chain.pulses)
 
     def set_interrupts(self, enabled: bool) -> None:
         """Let the timer interrupt run (or hold it off).  An alarm that fell due while held off fires at the
