@@ -85,6 +85,19 @@ class ProtocolMisuseError(ProtocolError):
     """A command sequence that would trigger a known firmware defect; refused before anything is written."""
 
 
+class FirmwareBuildError(ConfigurationError):
+    """A firmware source tree that cannot be built or run on the host (emulator.hostbuild).
+
+    ``file`` and ``line`` name the first compiler error when there is one (``None`` otherwise, e.g. a
+    missing compiler or an undefined symbol at link time), so the firmware developer can go straight to it.
+    """
+
+    def __init__(self, message: str, *, file: str | None = None, line: int | None = None) -> None:
+        super().__init__(message)
+        self.file = file
+        self.line = line
+
+
 # --- the link ------------------------------------------------------------------------------------------
 
 

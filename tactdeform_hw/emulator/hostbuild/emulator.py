@@ -1,0 +1,399 @@
+"""The host-built firmware as an emulator: bytes in at a time, virtual time advanced, replies and events out.
+
+Each instance loads its own copy of the built library (copied to a unique temporary path before
+``dlopen``), so two emulators never share the firmware's globals.  Virtual time is integer nanoseconds in
+the shim; the Python side speaks microseconds like :class:`..timed.model_v1_2.TimedEmulator`.
+
+What this layer adds to the shim is the eTactileKit board: the stack-sense reading that tells the firmware
+how many HV513 chips are stacked, the DAC on the SPI bus (an exchange's outgoing word ``>> 2`` is the DAC
+code; it takes effect ``dac_change_at_us`` into the exchange), and the golden traces' event conventions.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from tactdeform_hw.emulator.hostbuild.build import BuildResult, build
+from tactdeform_hw.emulator.hostbuild.delivered import ChainDecoder, DeliveredPulse
+from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
+from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
+from tactdeform_hw.errors import FirmwareBuildError, LimitError
+
+STACK_SENSE_PIN = 6
+"""The compact board's stack-sense input (``STACK_SENSE`` in the firmware's configuration)."""
+
+USB_PACKET_BYTES = 64
+"""A host write reaches the firmware in packets of this size; a packet that does not fit the receive
+queue loses its rest (the USB Serial/JTAG receive interrupt's behaviour, protocol.md)."""
+
+STALL_CALLS = 50_000_000
+"""Shim calls in a row without virtual time passing after which the firmware is declared stuck."""
+
+_KIND = {
+    1: "GPIO",
+    2: "SPI",
+    3: "ISR_ENTER",
+    4: "ISR_RETURN",
+    5: "ALARM_ENABLE",
+    6: "ALARM_DISABLE",
+    7: "TX",
+    8: "RX_DROP",
+    9: "ALARM_WRITE",
+    10: "TIMER_RESTART",
+}
+
+
+class _Event(ctypes.Structure):
+    _fields_ = [
+        ("t_ns", ctypes.c_int64),
+        ("kind", ctypes.c_int32),
+        ("a", ctypes.c_int32),
+        ("b", ctypes.c_int64),
+        ("c", ctypes.c_int64),
+    ]
+
+
+@dataclass(frozen=True)
+class ShimEvent:
+    """One thing the firmware did, at virtual time ``t_us`` (see ``hostbuild_runtime.cpp``'s Kind)."""
+
+    t_us: float
+    kind: str
+    a: int
+    b: int
+    c: int
+
+
+@dataclass(frozen=True)
+class RxDrop:
+    """Bytes a full receive queue discarded: when, how many, and the host offset of the first."""
+
+    t_us: float
+    count: int
+    host_offset: int
+    queued: int
+
+
+def stack_reading_for(hv513_count: int) -> int:
+    """The compact board's stack-sense reading that makes the firmware count ``hv513_count`` chips.
+
+    The firmware computes ``stack_count = round(9368.8636 / r - 1.51)`` and ``(stack_count - 1) * 4``
+    chips; this inverts it at the centre of the interval (one switching board: 2669, the golden value)."""
+    if hv513_count < 0 or hv513_count % 4:
+        raise LimitError("hv513_count", hv513_count, "a multiple of 4 >= 0 (4 per compact switching board)")
+    stack_count = hv513_count // 4 + 1
+    return int(9368.8636 / (stack_count + 1.51))
+
+
+def _costs(model: TimingModel, rx_buffer_bytes: int | None, stall_calls: int) -> list[int]:
+    """The shim's cost table (``hostbuild_runtime.cpp``'s Cost order) from a timing model."""
+    apb_ps = int(round(model.timer_tick_us * 1e6 / 40))  # the firmware's timers divide the 80 MHz APB by 40
+    return [
+        model.spi_ns,
+        model.gpio_ns,
+        model.isr_entry_ns,
+        model.isr_exit_ns,
+        model.call_ns,  # Serial.available(): the parser call's overhead
+        model.byte_ns,  # one byte read from the receive queue
+        model.hv513_detect_ns // 50,  # one analogRead() of the 50 the detection takes
+        model.rtos_tick_ns,
+        model.tick_phase_ns,
+        apb_ps,
+        rx_buffer_bytes if rx_buffer_bytes is not None else model.rx_queue_bytes,
+        stall_calls,
+    ]
+
+
+class HostBuildEmulator:
+    """An eTactileKit firmware's own source, built on the host and run in virtual time.
+
+    ``firmware_src`` is a PlatformIO tree (built and cached on first use).  ``state_map`` names the
+    firmware variables :meth:`state` reads (default: the known map whose unit the tree holds).
+    ``rx_buffer_bytes`` replaces the receive queue's default size (the timing model's
+    ``rx_queue_bytes``) until the firmware sets its own with ``Serial.setRxBufferSize``.
+    ``interrupts=False`` never runs the timer interrupt (the parser alone, as the golden vectors
+    record it).  ``defines`` replaces the default build defines (:data:`..build.DEFAULT_DEFINES`);
+    ``cache`` the build cache folder.  ``stall_calls``: shim calls in a row without virtual time passing
+    after which the firmware is declared stuck (a loop polling a call that costs nothing would otherwise
+    never return to Python).  ``chain_outputs``: the board's HV513 outputs (default ``8 * hv513_count``),
+    for :meth:`delivered_pulses`.
+    """
+
+    def __init__(
+        self,
+        firmware_src: str | os.PathLike[str],
+        *,
+        hv513_count: int = 4,
+        timing: TimingModel | None = None,
+        state_map: StateMap | None = None,
+        stack_reading: int | None = None,
+        rx_buffer_bytes: int | None = None,
+        interrupts: bool = True,
+        defines: dict[str, str] | None = None,
+        compiler: str | None = None,
+        cache: str | os.PathLike[str] | None = None,
+        stall_calls: int = STALL_CALLS,
+        chain_outputs: int | None = None,
+    ) -> None:
+        self.timing = timing if timing is not None else DEFAULT_MODEL
+        tree = Path(firmware_src)
+        self.state_map = state_map if state_map is not None else detect(tree)
+        self.built: BuildResult = build(
+            tree, state_map=self.state_map, defines=defines, compiler=compiler, cache=cache
+        )
+        if rx_buffer_bytes is not None and rx_buffer_bytes < 1:
+            raise LimitError("rx_buffer_bytes", rx_buffer_bytes, "an integer >= 1")
+        if stall_calls < 1:
+            raise LimitError("stall_calls", stall_calls, "an integer >= 1")
+        self.stall_calls = stall_calls
+        self._lib = _load_private_copy(self.built.library)
+        self._bind()
+        costs = _costs(self.timing, rx_buffer_bytes, stall_calls)
+        arr = (ctypes.c_int64 * len(costs))(*costs)
+        if self._lib.hb_configure(arr, len(costs)) != 0:
+            raise FirmwareBuildError(
+                "the built library's shim does not match this package (cost table); rebuild"
+            )
+        reading = stack_reading if stack_reading is not None else stack_reading_for(hv513_count)
+        self._lib.hb_set_analog(STACK_SENSE_PIN, reading)
+        self._lib.hb_set_interrupts(1 if interrupts else 0)
+        self.now_ns = 0
+        self._last_write_ns = 0
+        self._host_offset = 0
+        self._events: list[ShimEvent] = []
+        self._tx = bytearray()
+        self._tx_log: list[tuple[float, bytes]] = []
+        self._drops: list[RxDrop] = []
+        self._chain = ChainDecoder(8 * hv513_count if chain_outputs is None else chain_outputs)
+        self._run(0)  # setup() runs up to its first shim call
+
+    # --- the library --------------------------------------------------------------------------------------
+
+    def _bind(self) -> None:
+        lib = self._lib
+        i64, i32 = ctypes.c_int64, ctypes.c_int
+        sig: dict[str, tuple[Any, list[Any]]] = {
+            "hb_configure": (i32, [ctypes.POINTER(i64), i32]),
+            "hb_set_analog": (None, [i32, i32]),
+            "hb_set_interrupts": (None, [i32]),
+            "hb_run_until": (i32, [i64]),
+            "hb_now": (i64, []),
+            "hb_rx_push": (None, [ctypes.c_char_p, i64, i64, i64]),
+            "hb_rx_queued": (i64, []),
+            "hb_rx_in_flight": (i64, []),
+            "hb_rx_capacity": (i64, []),
+            "hb_rx_dropped": (i64, []),
+            "hb_event_count": (i64, []),
+            "hb_events_take": (i64, [ctypes.POINTER(_Event), i64]),
+            "hb_timer_info": (i32, [i32, ctypes.POINTER(i64)]),
+            "hb_pin_levels": (i64, []),
+        }
+        for name, (res, args) in sig.items():
+            fn = getattr(lib, name)
+            fn.restype = res
+            fn.argtypes = args
+        self._getters: dict[str, Any] = {}
+        for reg in self.built.registers:
+            fn = getattr(lib, f"hb_reg_{reg.name}")
+            fn.restype = ctypes.c_double
+            fn.argtypes = [ctypes.c_int]
+            self._getters[reg.name] = fn
+
+    def _run(self, target_ns: int) -> None:
+        status = self._lib.hb_run_until(target_ns)
+        if status == 2:
+            raise FirmwareBuildError("no memory for the firmware's 1 MiB stack: nothing was run")
+        if status != 0:
+            raise FirmwareBuildError(
+                f"the firmware made {self.stall_calls} shim calls at virtual time "
+                f"{self._lib.hb_now() / 1000} us without time passing "
+                "(a loop polling a call that costs nothing): it cannot be run further"
+            )
+        self._drain()
+
+    def _drain(self) -> None:
+        n = self._lib.hb_event_count()
+        if n <= 0:
+            return
+        buf = (_Event * n)()
+        got = self._lib.hb_events_take(buf, n)
+        tx_now: list[tuple[int, int]] = []
+        for e in buf[:got]:
+            kind = _KIND.get(e.kind, str(e.kind))
+            ev = ShimEvent(e.t_ns / 1000.0, kind, e.a, e.b, e.c)
+            self._events.append(ev)
+            if kind == "GPIO":
+                self._chain.gpio(e.t_ns, e.a, int(e.b))
+            elif kind == "SPI":
+                self._chain.dac(e.t_ns + self.timing.dac_at_ns, (e.b >> 2) & 0xFFF)
+            elif kind == "TX":
+                tx_now.append((e.t_ns, e.a))
+            elif kind == "RX_DROP":
+                self._drops.append(RxDrop(e.t_ns / 1000.0, e.a, e.b, e.c))
+        for t_ns, byte in tx_now:
+            self._tx.append(byte)
+            if self._tx_log and self._tx_log[-1][0] == t_ns / 1000.0:
+                self._tx_log[-1] = (self._tx_log[-1][0], self._tx_log[-1][1] + bytes([byte]))
+            else:
+                self._tx_log.append((t_ns / 1000.0, bytes([byte])))
+
+    # --- the host's side ----------------------------------------------------------------------------------
+
+    @property
+    def now_us(self) -> float:
+        return self.now_ns / 1000.0
+
+    @property
+    def firmware_now_us(self) -> float:
+        """Where the firmware's own clock stands: at or past :attr:`now_us` by at most one shim call's cost
+        (the firmware is suspended inside the call that crossed the target)."""
+        return float(self._lib.hb_now()) / 1000.0
+
+    def write(self, data: bytes, at_us: float | None = None) -> int:
+        """The host's bytes reach the firmware's receive queue at ``at_us`` (default: now), in packets of
+        :data:`USB_PACKET_BYTES`.  Writes come in time order.  Returns the byte count."""
+        data = bytes(data)
+        t = self.now_ns if at_us is None else int(round(at_us * 1000))
+        if t < self.now_ns:
+            raise LimitError("at_us", at_us, f">= now ({self.now_us} us)")
+        if t < self._last_write_ns:
+            raise LimitError("at_us", at_us, f">= the previous write ({self._last_write_ns / 1000} us)")
+        self._last_write_ns = t
+        for i in range(0, len(data), USB_PACKET_BYTES):
+            chunk = data[i : i + USB_PACKET_BYTES]
+            self._lib.hb_rx_push(chunk, len(chunk), t, self._host_offset + i)
+        self._host_offset += len(data)
+        return len(data)
+
+    def advance_to(self, t_us: float) -> None:
+        """Run the firmware until virtual time ``t_us``."""
+        target = int(round(t_us * 1000))
+        if target < self.now_ns:
+            raise LimitError("t_us", t_us, f">= now ({self.now_us} us)")
+        self._run(target)
+        self.now_ns = target
+
+    def advance(self, dt_us: float) -> None:
+        if not dt_us >= 0:
+            raise LimitError("dt_us", dt_us, ">= 0")
+        self.advance_to(self.now_us + dt_us)
+
+    def read(self, size: int | None = None) -> bytes:
+        """Reply bytes the firmware wrote and the host has not read yet (all of them, or ``size``)."""
+        n = len(self._tx) if size is None else min(size, len(self._tx))
+        out = bytes(self._tx[:n])
+        del self._tx[:n]
+        return out
+
+    @property
+    def tx_log(self) -> list[tuple[float, bytes]]:
+        """Every reply write: (firmware time µs, bytes)."""
+        return self._tx_log
+
+    @property
+    def rx_drops(self) -> list[RxDrop]:
+        """Every loss at the receive queue."""
+        return self._drops
+
+    def shim_events(self) -> list[ShimEvent]:
+        """Everything recorded so far, in the shim's terms (GPIO, SPI, ISR entry/return, timer ops, TX)."""
+        return list(self._events)
+
+    def clear_events(self) -> None:
+        self._events.clear()
+
+    def events(self, since_us: float = 0.0) -> list[list[Any]]:
+        """GPIO and DAC events in the golden scan traces' conventions: ``[t_us, "GPIO", pin, level]`` when
+        the register write completes (one per pin, ascending), ``[t_us, "DAC", "DAC", code]`` at the start
+        of the exchange plus ``dac_change_at_us``; sorted by time."""
+        dac_ns = self.timing.dac_at_ns
+        out: list[tuple[int, int, list[Any]]] = []
+        for seq, e in enumerate(self._events):
+            t_ns = int(round(e.t_us * 1000))
+            if e.kind == "GPIO":
+                out.append((t_ns, seq, [t_ns / 1000.0, "GPIO", e.a, e.b]))
+            elif e.kind == "SPI":
+                t_dac = t_ns + dac_ns
+                out.append((t_dac, seq, [t_dac / 1000.0, "DAC", "DAC", (e.b >> 2) & 0xFFF]))
+        out.sort(key=lambda x: (x[0], x[1]))
+        return [ev for t, _, ev in out if t >= since_us * 1000]
+
+    def delivered_pulses(self) -> list[DeliveredPulse]:
+        """Every stretch of current the board delivered so far (a stretch still flowing is not included
+        until it ends): what safety is judged on.  See :mod:`.delivered`."""
+        return list(self._chain.pulses)
+
+    def set_interrupts(self, enabled: bool) -> None:
+        """Let the timer interrupt run (or hold it off).  An alarm that fell due while held off fires at the
+        firmware's next shim call, as a masked interrupt does when unmasked."""
+        self._lib.hb_set_interrupts(1 if enabled else 0)
+
+    def scans(self) -> list[tuple[float, float]]:
+        """Every interrupt handler run so far: (entry µs, return µs)."""
+        out: list[tuple[float, float]] = []
+        start: float | None = None
+        for e in self._events:
+            if e.kind == "ISR_ENTER":
+                start = e.t_us
+            elif e.kind == "ISR_RETURN" and start is not None:
+                out.append((start, e.t_us))
+                start = None
+        return out
+
+    def isr_returns_us(self) -> list[float]:
+        return [e.t_us for e in self._events if e.kind == "ISR_RETURN"]
+
+    def timer(self, num: int) -> dict[str, Any] | None:
+        """A hardware timer's state (``None``: the firmware never began it)."""
+        out = (ctypes.c_int64 * 7)()
+        if not self._lib.hb_timer_info(num, out):
+            return None
+        return {
+            "alarm_ticks": out[0],
+            "autoreload": bool(out[1]),
+            "alarm_enabled": bool(out[2]),
+            "has_interrupt": bool(out[3]),
+            "tick_ps": out[4],
+            "counter": out[5],
+            "next_alarm_us": None if out[6] < 0 else out[6] / 1000.0,
+        }
+
+    def state(self) -> dict[str, Any]:
+        """The mapped firmware variables, the stimulation timer's alarm and the receive queue."""
+        snap: dict[str, Any] = {}
+        for reg in self.built.registers:
+            fn = self._getters[reg.name]
+            if reg.length is None:
+                snap[reg.name] = _num(fn(0))
+            else:
+                snap[reg.name] = [_num(fn(i)) for i in range(reg.length)]
+        for num in range(4):
+            info = self.timer(num)
+            if info is not None and info["has_interrupt"]:
+                snap["timer_alarm_ticks"] = info["alarm_ticks"]
+        snap["rx_pending"] = self._lib.hb_rx_queued()
+        snap["rx_in_flight"] = self._lib.hb_rx_in_flight()
+        snap["rx_capacity"] = self._lib.hb_rx_capacity()
+        snap["rx_dropped"] = self._lib.hb_rx_dropped()
+        return snap
+
+
+def _num(v: float) -> int | float:
+    return int(v) if v.is_integer() else v
+
+
+def _load_private_copy(library: Path) -> ctypes.CDLL:
+    """dlopen a private copy, so this instance's firmware globals are its own."""
+    fd, path = tempfile.mkstemp(prefix="tactdeform-fw-", suffix=".so")
+    os.close(fd)
+    try:
+        shutil.copyfile(library, path)
+        return ctypes.CDLL(path, mode=os.RTLD_LOCAL if hasattr(os, "RTLD_LOCAL") else 0)
+    finally:
+        os.unlink(path)  # the mapping stays; nothing is left on disk

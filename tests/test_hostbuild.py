@@ -1,0 +1,240 @@
+"""Firmware in the loop: a small Arduino-style firmware (tests/data/firmware_tiny) built on the host
+against the package's shim, and driven in virtual time.
+
+Times are exact: the shim keeps integer nanoseconds and every call's cost comes from the TimingModel, so
+each expected figure below is the sum of the costs the firmware's code path incurs."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from tactdeform_hw.emulator.hostbuild import build, find_compiler
+from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator
+from tactdeform_hw.emulator.hostbuild.statemap import StateMap
+from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL
+from tactdeform_hw.errors import FirmwareBuildError
+
+TINY = Path(__file__).parent / "data" / "firmware_tiny"
+MAP = StateMap.from_toml(TINY / "hostbuild_state.toml")
+M = DEFAULT_MODEL
+
+try:
+    find_compiler()
+    HAVE_CXX = True
+except FirmwareBuildError as exc:
+    HAVE_CXX = False
+    NO_CXX = str(exc)
+
+pytestmark = pytest.mark.skipif(not HAVE_CXX, reason="no C++ compiler on PATH (c++, g++, clang++ or $CXX)")
+
+# The interrupt: entry, pin up, CS down, one SPI exchange, CS up, pin down.
+ISR_NS = M.isr_entry_ns + 4 * M.gpio_ns + M.spi_ns
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    where = tmp_path_factory.mktemp("fwcache")
+    build(TINY, state_map=MAP, cache=where)  # the one cold build of this module
+    return where
+
+
+def tiny(cache: Path, **kw: object) -> HostBuildEmulator:
+    return HostBuildEmulator(TINY, state_map=MAP, cache=cache, **kw)  # type: ignore[arg-type]
+
+
+def us(ns: int) -> float:
+    return ns / 1000.0
+
+
+# --- the build ----------------------------------------------------------------------------------------------
+
+
+def test_second_build_is_a_cache_hit(cache: Path) -> None:
+    first = build(TINY, state_map=MAP, cache=cache)
+    again = build(TINY, state_map=MAP, cache=cache)
+    assert first.cached and again.cached
+    assert again.library == first.library and again.library.is_file()
+
+
+def test_a_changed_source_is_rebuilt(cache: Path, tmp_path: Path) -> None:
+    tree = tmp_path / "fw"
+    shutil.copytree(TINY, tree)
+    before = build(tree, state_map=MAP, cache=cache)
+    assert before.cached  # same content, another folder: the same binary
+    src = tree / "lib" / "Tiny" / "tiny.cpp"
+    src.write_text(src.read_text().replace("period_us = 700", "period_us = 900"))
+    after = build(tree, state_map=MAP, cache=cache)
+    assert not after.cached and after.key != before.key
+    emu = HostBuildEmulator(tree, state_map=MAP, cache=cache)
+    emu.advance_to(1000)
+    assert [e for e, _ in emu.scans()] == [900.0]
+
+
+def test_compile_error_names_the_file_and_line(cache: Path, tmp_path: Path) -> None:
+    tree = tmp_path / "fw"
+    shutil.copytree(TINY, tree)
+    src = tree / "lib" / "Tiny" / "tiny.cpp"
+    lines = src.read_text().splitlines()
+    lines.insert(9, "int broken = ;")  # becomes line 10
+    src.write_text("\n".join(lines) + "\n")
+    with pytest.raises(FirmwareBuildError) as info:
+        build(tree, state_map=MAP, cache=cache)
+    assert info.value.file == "lib/Tiny/tiny.cpp" and info.value.line == 10
+    assert "lib/Tiny/tiny.cpp:10: error:" in str(info.value)
+
+
+def test_undefined_function_is_a_build_error_naming_it(cache: Path, tmp_path: Path) -> None:
+    tree = tmp_path / "fw"
+    shutil.copytree(TINY, tree)
+    main = tree / "src" / "main.cpp"
+    main.write_text(
+        main.read_text()
+        .replace("tinyPoll();", "tinyPoll();\n    notDefinedAnywhere();")
+        .replace('#include "tiny.h"', '#include "tiny.h"\nvoid notDefinedAnywhere();')
+    )
+    with pytest.raises(FirmwareBuildError, match="undefined symbol.*notDefinedAnywhere"):
+        build(tree, state_map=MAP, cache=cache)
+
+
+def test_state_map_naming_no_variable_names_the_register(cache: Path) -> None:
+    bad = StateMap(unit="lib/Tiny/tiny.cpp", registers={"isr_count": "isr_count", "gain": "no_such_var"})
+    with pytest.raises(FirmwareBuildError, match="register 'gain'"):
+        build(TINY, state_map=bad, cache=cache)
+
+
+def test_missing_compiler_says_what_to_install(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv("CXX", raising=False)
+    with pytest.raises(
+        FirmwareBuildError, match="needs a C\\+\\+ compiler.*c\\+\\+, g\\+\\+, clang\\+\\+"
+    ) as info:
+        find_compiler()
+    assert "apt install g++" in str(info.value) or "xcode-select" in str(info.value)
+
+
+# --- virtual time -------------------------------------------------------------------------------------------
+
+
+def test_interrupt_runs_on_its_period_and_costs_what_the_model_says(cache: Path) -> None:
+    emu = tiny(cache)
+    emu.advance_to(2500)
+    assert emu.scans() == [(t, t + us(ISR_NS)) for t in (700.0, 1400.0, 2100.0)]
+    assert emu.state()["isr_count"] == 3
+
+
+def test_costs_come_from_the_timing_model(cache: Path) -> None:
+    model = M.with_(spi_exchange_us=10.0, isr_entry_us=1.0)
+    emu = tiny(cache, timing=model)
+    emu.advance_to(800)
+    assert emu.scans() == [(700.0, 700.0 + 1.0 + 4 * 0.05 + 10.0)]
+
+
+def test_gpio_and_dac_events_in_the_golden_conventions(cache: Path) -> None:
+    emu = tiny(cache)
+    emu.write(b"V" + (1234).to_bytes(2, "little"), at_us=100)  # parsed at the 1000 µs tick
+    emu.advance_to(1500)
+    t = 1_400_000 + M.isr_entry_ns
+    g = M.gpio_ns
+    assert emu.events(since_us=1400) == [
+        [us(t + g), "GPIO", 5, 1],
+        [us(t + 2 * g), "GPIO", 40, 0],
+        [us(t + 2 * g + M.dac_at_ns), "DAC", "DAC", 1234],
+        [us(t + 3 * g + M.spi_ns), "GPIO", 40, 1],
+        [us(t + 4 * g + M.spi_ns), "GPIO", 5, 0],
+    ]
+
+
+def test_new_period_takes_effect_through_the_parser(cache: Path) -> None:
+    emu = tiny(cache)
+    emu.write(b"P" + (250).to_bytes(2, "little"), at_us=100)
+    emu.advance_to(1600)
+    # the loop reads it at 1000 µs (its first RTOS tick); the counter, restarted at 700, already passed 250
+    # ticks, so the re-enabled alarm fires at once; then every 250 µs from that reload
+    entries = [e for e, _ in emu.scans()]
+    assert emu.state()["period_us"] == 250 and emu.state()["timer_alarm_ticks"] == 250
+    t_set = 1000 + us(2 * M.call_ns + 3 * M.byte_ns)  # available, read 'P', available, read 2 bytes
+    assert entries[0] == 700.0 and entries[1] == t_set
+    assert entries[2:] == [t_set + 250.0 * k for k in (1, 2)]
+
+
+def test_reply_after_the_loop_wakes_on_its_tick(cache: Path) -> None:
+    emu = tiny(cache)
+    emu.write(b"EA", at_us=2500)
+    emu.advance_to(3500)
+    # the loop sleeps vTaskDelay(1): it wakes at 3000 µs, then available/read/available/read
+    assert emu.tx_log == [(3000 + us(2 * M.call_ns + 2 * M.byte_ns), b"B")]
+    assert emu.read() == b"B" and emu.read() == b""
+
+
+def test_busy_wait_on_timer_read_is_exact_and_preempted_by_the_interrupt(cache: Path) -> None:
+    emu = tiny(cache)
+    emu.write(b"W\xff", at_us=8500)
+    emu.advance_to(9500)
+    start = 9000 + us(2 * M.call_ns + 2 * M.byte_ns)  # timerRestart here
+    assert emu.tx_log == [(start + 255.0, b"w")]  # the counter ran on through the interrupt
+    assert (9100.0, 9100.0 + us(ISR_NS)) in emu.scans()  # which fell inside the wait
+
+
+def test_interrupt_count_reply(cache: Path) -> None:
+    emu = tiny(cache)
+    emu.write(b"C", at_us=4500)
+    emu.advance_to(5500)
+    assert emu.read() == (7).to_bytes(4, "little")  # read at the 5000 µs tick: 700, 1400 … 4900
+
+
+def test_receive_queue_overflow_drops_the_rest_of_each_packet(cache: Path) -> None:
+    emu = tiny(cache)
+    emu.advance_to(1500)  # the firmware asked for a 128-byte queue in setup()
+    assert emu.state()["rx_capacity"] == 128
+    emu.write(b"E\x01", at_us=1500)
+    emu.write(bytes(300), at_us=1500)  # 2 + 300 bytes at once: 64-byte packets
+    emu.advance_to(1500)
+    st = emu.state()
+    assert st["rx_pending"] == 128 and st["rx_dropped"] == 302 - 128
+    # packets: host bytes [0,2) and [2,66) [66,130) [130,194) [194,258) [258,302); the third breaks at 128
+    assert [(d.host_offset, d.count) for d in emu.rx_drops] == [(128, 2), (130, 64), (194, 64), (258, 44)]
+    emu.advance_to(2500)
+    assert emu.read() == b"\x02"  # what did fit is served in order
+
+
+def test_available_sees_only_bytes_that_have_arrived(cache: Path) -> None:
+    emu = tiny(cache)
+    emu.write(b"P" + (65535).to_bytes(2, "little"), at_us=100)  # no interrupt in the window below
+    emu.write(b"E", at_us=1500)
+    emu.write(b"\x10", at_us=4200.5)  # the parser spins on available() until this byte is there
+    emu.advance_to(4100)
+    assert emu.read() == b""
+    emu.advance_to(4300)
+    # at the 2000 µs tick: available, read 'E'; then available() polls every call_ns; the first poll at or
+    # after the byte's arrival sees it, one more read, the reply
+    first_poll = 2_000_000 + M.call_ns + M.byte_ns
+    polls = -(-(4_200_500 - first_poll) // M.call_ns)
+    assert emu.tx_log == [(us(first_poll + polls * M.call_ns + M.call_ns + M.byte_ns), b"\x11")]
+
+
+def test_two_instances_do_not_share_the_firmware_globals(cache: Path) -> None:
+    a = tiny(cache)
+    b = tiny(cache)
+    a.write(b"V" + (77).to_bytes(2, "little"), at_us=0)
+    a.advance_to(3000)
+    b.advance_to(1000)
+    assert a.state()["dac_code"] == 77 and b.state()["dac_code"] == 0
+    assert a.state()["isr_count"] == 4 and b.state()["isr_count"] == 1
+    assert b.now_us == 1000.0 and a.now_us == 3000.0
+
+
+def test_state_reads_static_variables_through_the_map(cache: Path) -> None:
+    emu = tiny(cache)
+    emu.write(b"C" + b"E\x05", at_us=0)
+    emu.advance_to(2500)
+    assert emu.state()["history"] == [ord("E"), ord("C"), 0, 0]
+
+
+def test_a_loop_that_lets_no_time_pass_is_reported(cache: Path) -> None:
+    emu = tiny(cache, stall_calls=10_000)
+    emu.write(b"H", at_us=0)
+    with pytest.raises(FirmwareBuildError, match="10000 shim calls.*without time passing"):
+        emu.advance_to(2000)
