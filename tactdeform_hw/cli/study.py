@@ -22,14 +22,7 @@ import math
 import sys
 from typing import Any
 
-from .common import (
-    add_device_arg,
-    add_participant_arg,
-    guard_from_args,
-    print_json,
-    profile_from_args,
-    progress,
-)
+from .common import add_device_arg, add_participant_arg, print_json, progress, session_from_args
 from .options import add_option
 
 EXIT_CHECK_FAILED = 3
@@ -110,11 +103,13 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import LimitError
-    from ..render.array import ElectrodeArray
+    from ..protocol.units import DEFAULT_TRANSFER
+    from ..session import Wiring
     from ..study.checks import check_study
     from ..study.report import write_report
     from ..study.runner import run_study
     from ..study.scenarios import build_study, select_trials
+    from .delivered import delivered_lines
 
     if not (math.isfinite(args.rate) and args.rate > 0):
         raise LimitError("--rate", args.rate, "a finite rate > 0 Hz")
@@ -122,63 +117,34 @@ def run(args: argparse.Namespace) -> int:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
     if not (math.isfinite(args.tremor_mm) and 0 <= args.tremor_mm <= 5):
         raise LimitError("--tremor-mm", args.tremor_mm, "0 to 5 mm")
-    # A bad profile, study or trial list is refused before the device is opened.
-    profile = profile_from_args(args)
-    array = ElectrodeArray.tactdeform()
-    from tactdeform_hw.device.participant.regions import region_map_from_positions
-
-    from .delivered import DeliveryLog, delivered_lines
-
-    # regional limits follow the positions of the array the renderer draws on
-    region_map = region_map_from_positions(array.positions_mm.tolist(), f"the {array.name} array")
-    guard = guard_from_args(
-        args,
-        region_of=region_map,
-        mapping=array.channel_mapping(),
-        against=f"the {array.name} array's channel mapping",
-    )
+    # A bad profile, study or trial list is refused before the device is opened; regional limits follow
+    # the positions of the array the renderer draws on.
+    session = session_from_args(args, Wiring.tactdeform())
+    profile = session.profile
     mode = profile.contact_mode if profile is not None else "orientation"
     study = select_trials(
         build_study(args.study, seed=args.seed, quick=args.quick, contact_mode=mode), args.trials
     )
     if args.current_ua is not None:
         # above the cap: refused before opening
-        guard.request(guard.validate_current(args.current_ua, _transfer()))
-    audit = DeliveryLog(
-        args.audit_log,
-        requested_ua=args.current_ua,
-        mapping=array.channel_mapping(),
-        region_map=region_map,
-        region_of=guard.region_of,
-        command="study",
-        device=args.device,
-        participant_file=args.participant,
-        participant=profile.participant if profile else None,
-        study=args.study,
-    )
+        session.guard.request(session.guard.validate_current(args.current_ua, DEFAULT_TRANSFER))
+    audit = session.delivery_log(session.header("study", study=args.study), requested_ua=args.current_ua)
     say = (lambda _m: None) if args.quiet else progress
     say(
         f"study {study.name}: {len(study.trials)} trial(s){' (quick)' if study.quick else ''}, device "
         f"{args.device}, seed {args.seed}"
     )
-    try:
+    with audit:
         result = run_study(
             study,
-            device=args.device,
-            timeout=args.timeout,
+            session=session,
             rate_hz=args.rate,
             current_ua=args.current_ua,
-            guard=guard,
-            audit=audit,
-            profile=profile,
             timed=not args.no_timed,
             tremor_mm=args.tremor_mm,
             progress=say,
             realtime=args.realtime,
-            firmware=getattr(args, "firmware", "auto"),
         )
-    finally:
-        audit.close()
     result.sent = audit.report()
     result.sent["requested_ua"] = result.current_ua
     result.sent["firmware"] = result.firmware
@@ -249,7 +215,7 @@ def electrode_heights(result: Any) -> list[list[float]] | None:
 
 def heights_line(heights: list[list[float]] | None) -> str:
     """The console's line for the per-electrode heights on v2 (electrodes grouped by equal heights)."""
-    from .delivered import _span
+    from .delivered import span
 
     if heights is None:
         return "firmware v2: per-electrode heights not known (no timed replay)"
@@ -260,13 +226,7 @@ def heights_line(heights: list[list[float]] | None) -> str:
     if not groups:
         return "firmware v2: no electrode was pulsed"
     parts = [
-        f"{', '.join(f'{h:g}' for h in hs)} µA on electrode(s) {_span(es)}"
+        f"{', '.join(f'{h:g}' for h in hs)} µA on electrode(s) {span(es)}"
         for hs, es in sorted(groups.items())
     ]
     return "firmware v2: heights delivered per electrode: " + "; ".join(parts)
-
-
-def _transfer() -> Any:
-    from ..protocol.units import DEFAULT_TRANSFER
-
-    return DEFAULT_TRANSFER

@@ -42,7 +42,7 @@ from ..protocol.firmware import V1_2, V2, OpcodeV2
 from ..render.array import ElectrodeArray
 from ..render.manager import ManagerConfig
 from ..render.patterns import PatternSet
-from ..render.pipeline import FrameRecord, Renderer
+from ..render.pipeline import FrameRecord
 from ..render.scene import BUNNY_FILE, RenderOptions, Scene, find_mesh_file, load_scene
 from ..render.tracking import Pose, PoseValidator, slerp
 from ..render.trajectories import make_trajectory, scene_for_trajectory
@@ -184,9 +184,6 @@ class TrialRun:
             return None
         return all(c.passed is not False for c in self.checks)
 
-    def sent_records(self) -> list[tuple[int, FrameRecord]]:
-        return [(i, r) for i, r in enumerate(self.records) if r.sent]
-
 
 @dataclass
 class StudyRun:
@@ -207,7 +204,7 @@ class StudyRun:
     wall_s: float = 0.0
     writes: list[WireWrite] = field(default_factory=list)
     #: What the session sent, from the device's own records (pulse heights written, each electrode's highest,
-    #: the guard's clips and refusals): see :mod:`tactdeform_hw.cli.delivered`.
+    #: the guard's clips and refusals): see :mod:`tactdeform_hw.session.delivery`.
     sent: dict[str, Any] | None = None
     #: The firmware the board ran (``v1.2`` or ``v2``), as the device found it.
     firmware: str = "v1.2"
@@ -333,6 +330,150 @@ def _inspectable(device: Any) -> bool:
     return callable(getattr(getattr(device, "port", None), "board_state", None))
 
 
+@dataclass
+class _Live:
+    """What every trial of a running study shares: the session, its open device and the tap on its port,
+    the simulated clock of an offline run, the renderer's settings, and the session time so far."""
+
+    session: Any
+    dev: Any
+    tap: WireTap
+    sim_clock: Any
+    cfg: ManagerConfig
+    current_ua: int
+    stim: Any
+    realtime: bool
+    session_t: float = 0.0
+    wall_start: float | None = None  # wall clock minus session time, for realtime pacing
+
+
+def _skip_missing_meshes(study: Study, runs: list[TrialRun], mesh_dirs: Sequence[str]) -> list[str]:
+    """A missing mesh skips its trials with a reason instead of failing the study; the study's notes."""
+    notes: list[str] = []
+    if any(t.scene == "bunny" for t in study.trials):
+        try:
+            path = find_mesh_file(BUNNY_FILE, mesh_dirs)
+            notes.append(f"bunny mesh: {path}")
+        except ConfigurationError as exc:
+            for r in runs:
+                if r.trial.scene == "bunny":
+                    r.skipped = f"Stanford bunny not available: {exc}"
+            notes.append(f"bunny trials skipped: {exc}")
+    return notes
+
+
+def _study_current(current_ua: int | None, profile: Any, dev: Any) -> tuple[int, str]:
+    """The study's current and where it came from: the option, the participant, the nominal emulator
+    current (an emulated board, so delivered charges are reported), else none (patterns only)."""
+    if current_ua is not None:
+        return int(current_ua), "--current-ua"
+    if profile is not None:
+        return int(profile.stimulation_ua), f"participant {profile.participant}"
+    if _inspectable(dev):
+        return NOMINAL_EMULATOR_UA, "nominal emulator current"
+    return 0, "none given: patterns only"
+
+
+def _trial_readback(live: _Live, run: TrialRun) -> Callable[[], tuple[int, ...]] | None:
+    """What the trial's renderer compares each sent frame with on an offline (instant) port: the levels
+    the board holds, and on v2 every electrode's height too (None on a port that cannot show them)."""
+    dev = live.dev
+    readback = live.session.readback(dev) if live.sim_clock is not None else None
+    run.verified = readback is not None
+    if readback is None:
+        return None
+    from tactdeform_hw.device.driver.readback import heights_readback
+
+    heights = heights_readback(dev, live.session.wiring.mapping)
+    return readback if heights is None else _with_heights(readback, heights, dev, run)
+
+
+def _pace(live: _Live, t_s: float) -> None:
+    """Bring the session clock to ``t_s``: wait in real time, or advance the simulated clock."""
+    if live.realtime:
+        if live.wall_start is None:
+            live.wall_start = time.perf_counter() - t_s
+        wait = t_s - (time.perf_counter() - live.wall_start)
+        if wait > 0:
+            time.sleep(wait)
+    elif live.sim_clock is not None and t_s > live.sim_clock.now():
+        live.sim_clock.advance(t_s - live.sim_clock.now())
+
+
+def _run_trial(
+    live: _Live, run: TrialRun, scenes: _Scenes, *, rate_hz: float, seed: int, tremor_mm: float
+) -> None:
+    """Render one trial's poses on the live session and keep what it produced on ``run``."""
+    from ..ports import board_hazards, board_state
+
+    trial, dev, tap = run.trial, live.dev, live.tap
+    t_wall = time.perf_counter()
+    scene = scenes.get(trial)
+    scene.prepare()
+    run.scene = scene
+    poses, spans = trial_poses(trial, scenes, rate_hz=rate_hz, seed=seed, tremor_mm=tremor_mm)
+    offset = live.session_t
+    run.poses = [Pose(p.t_s + offset, p.position_mm, p.orientation) for p in poses]
+    run.segment_spans = spans
+    run.t0_s = offset
+    inspectable = _inspectable(dev)
+    readback = _trial_readback(live, run)
+    hazards_before = len(board_hazards(dev.port) or ())
+    renderer = live.session.renderer(
+        scene,
+        dev,
+        approach=trial.approach,
+        config=live.cfg,
+        contact_mode=trial.contact_mode,
+        current_ua=live.current_ua,
+        stim_config=live.stim,
+        verify=readback,
+    )
+    tap.mark(t_s=offset, trial=trial.index, phase="configure")
+    renderer.start()
+    tap.mark(phase="render")
+    validator = PoseValidator()
+    for i, pose in enumerate(run.poses):
+        _pace(live, pose.t_s)
+        tap.mark(t_s=pose.t_s)
+        checked = validator.check_pose(pose)
+        if checked is None:
+            continue
+        for rec in renderer.step(checked):
+            run.records.append(rec)
+            run.record_pose.append(i)
+    renderer.summary.teleports = sum(r.stats.teleports for r in renderer.renderers.values())
+    run.summary = renderer.summary.as_dict()
+    run.tracking_drops = dict(validator.drops)
+    run.t1_s = run.poses[-1].t_s if run.poses else offset
+    if inspectable:
+        mapping = live.session.wiring.mapping
+        run.hazards = [h.to_dict() for h in (board_hazards(dev.port) or [])[hazards_before:]]
+        hw = (board_state(dev.port) or {})["stim_pattern"][: mapping.hw_channels]
+        run.end_pattern = list(mapping.to_application(hw))
+    run.writes = [w for w in tap.writes if w.trial == trial.index]
+    run.wall_s = time.perf_counter() - t_wall
+    live.session_t = run.t1_s + INTER_TRIAL_S
+
+
+def _study_session(device: str, timeout: float, firmware: str, guard: Any, audit: Any, profile: Any) -> Any:
+    """The session of a study run without one: the TactDeform array on ``device`` under ``guard`` (the
+    hardware ceiling without one), writing to ``audit``."""
+    from tactdeform_hw.device.safety.guard import SafetyGuard
+
+    from ..session import Session, Wiring
+
+    return Session(
+        device=device,
+        timeout_s=timeout,
+        firmware=firmware,
+        wiring=Wiring.tactdeform(),
+        guard=guard if guard is not None else SafetyGuard(),
+        profile=profile,
+        log=audit,
+    )
+
+
 def run_study(
     study: Study,
     *,
@@ -349,20 +490,21 @@ def run_study(
     progress: ProgressFn | None = None,
     realtime: bool = False,
     firmware: str = "auto",
+    session: Any = None,
 ) -> StudyRun:
     """Run every trial of ``study`` on one device session; return the raw results (see :mod:`.checks`
     and :mod:`.report` for what is made of them).
 
-    ``current_ua`` defaults to the participant's (``profile.stimulation_ua``), else to
-    :data:`NOMINAL_EMULATOR_UA` on the emulator and 0 (patterns only) on a real device.  ``guard`` is the
-    safety guard the device enforces (a participant's limits).  ``realtime`` paces every pose to the
-    session clock (a real device then shows each trial at its real speed); otherwise the run goes as fast
-    as it can, which changes nothing the checks look at: the timed replay restores the session's timing."""
-    from tactdeform_hw.device.driver.readback import heights_readback, pattern_readback
-    from tactdeform_hw.device.safety.guard import SafetyGuard
-
-    from ..device import StimConfig, open_device
-    from ..ports import board_hazards, board_state
+    ``session`` (a :class:`~tactdeform_hw.session.Session` on the TactDeform array, its delivery log made)
+    gives the device, the guard, the participant's profile and the log; without one they come from
+    ``device``, ``timeout``, ``firmware``, ``guard`` (the safety guard the device enforces, the hardware
+    ceiling without one), ``profile`` and ``audit``.  ``current_ua`` defaults to the participant's
+    (``profile.stimulation_ua``), else to :data:`NOMINAL_EMULATOR_UA` on the emulator and 0 (patterns
+    only) on a real device.  ``realtime`` paces every pose to the session clock (a real device then shows
+    each trial at its real speed); otherwise the run goes as fast as it can, which changes nothing the
+    checks look at: the timed replay restores the session's timing."""
+    from ..clock import SimulatedClock
+    from ..device import StimConfig
 
     say = progress or (lambda _msg: None)
     wall0 = time.perf_counter()
@@ -370,161 +512,78 @@ def run_study(
         from ..errors import LimitError
 
         raise LimitError("rate_hz", rate_hz, "a finite rate > 0 Hz")
-    array = ElectrodeArray.tactdeform()
+    if session is None:
+        session = _study_session(device, timeout, firmware, guard, audit, profile)
+    profile = session.profile
+    array = session.wiring.array
     patterns = PatternSet(array)
-    mapping = array.channel_mapping()
-    guard = guard if guard is not None else SafetyGuard()
     scenes = _Scenes(mesh_dirs)
     runs: list[TrialRun] = [TrialRun(t) for t in study.trials]
-    notes: list[str] = []
-    # A missing mesh skips its trials with a reason instead of failing the study.
-    if any(t.scene == "bunny" for t in study.trials):
-        try:
-            path = find_mesh_file(BUNNY_FILE, mesh_dirs)
-            notes.append(f"bunny mesh: {path}")
-        except ConfigurationError as exc:
-            for r in runs:
-                if r.trial.scene == "bunny":
-                    r.skipped = f"Stanford bunny not available: {exc}"
-            notes.append(f"bunny trials skipped: {exc}")
+    notes = _skip_missing_meshes(study, runs, mesh_dirs)
     cfg = ManagerConfig(**study.manager)
     # on a port that answers at once (the in-process emulator) the device's clock (audit log, watchdog) is
     # session time
-    from ..clock import SimulatedClock
-
-    dev = open_device(
-        device,
-        timeout=timeout,
-        mapping=mapping,
-        guard=guard,
-        audit=audit,
-        offline_clock=None if realtime else SimulatedClock(),
-        firmware=firmware,
-    )
+    dev = session.open_device(offline_clock=None if realtime else SimulatedClock())
     ran = dev.firmware
-    sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
     tap = WireTap(dev.port, ran)
     dev.port = tap
-    session_t = 0.0
-    wall_start: float | None = None  # wall clock minus session time, for realtime pacing
     try:
-        if current_ua is not None:
-            current, source = int(current_ua), "--current-ua"
-        elif profile is not None:
-            current, source = int(profile.stimulation_ua), f"participant {profile.participant}"
-        elif _inspectable(dev):
-            current, source = NOMINAL_EMULATOR_UA, "nominal emulator current"
-        else:
-            current, source = 0, "none given: patterns only"
+        current, source = _study_current(current_ua, profile, dev)
         stim = StimConfig(
-            electrode_count=mapping.hw_channels,
+            electrode_count=session.wiring.mapping.hw_channels,
             current_ua=current,
             pulse_width_us=profile.pulse_width_us if profile is not None else 200,
             polarity=profile.polarity if profile is not None else "anodic",
         )
+        sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
+        live = _Live(session, dev, tap, sim_clock, cfg, current, stim, realtime)
         for run in runs:
             trial = run.trial
+            head = f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}"
             if run.skipped is not None:
-                say(
-                    f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: skipped "
-                    f"({run.skipped})"
-                )
+                say(f"{head}: skipped ({run.skipped})")
                 continue
-            t_wall = time.perf_counter()
-            scene = scenes.get(trial)
-            scene.prepare()
-            run.scene = scene
-            poses, spans = trial_poses(trial, scenes, rate_hz=rate_hz, seed=study.seed, tremor_mm=tremor_mm)
-            offset = session_t
-            run.poses = [Pose(p.t_s + offset, p.position_mm, p.orientation) for p in poses]
-            run.segment_spans = spans
-            run.t0_s = offset
-            inspectable = _inspectable(dev)
-            # an instant port, offline
-            readback = pattern_readback(dev, mapping) if sim_clock is not None else None
-            run.verified = readback is not None
-            heights = heights_readback(dev, mapping) if readback is not None else None
-            if readback is not None and heights is not None:
-                readback = _with_heights(readback, heights, dev, run)
-            hazards_before = len(board_hazards(dev.port) or ())
-            renderer = Renderer(
-                scene,
-                dev,
-                array=array,
-                approach=trial.approach,
-                config=cfg,
-                contact_mode=trial.contact_mode,
-                current_ua=current,
-                stim_config=stim,
-                verify=readback,
-            )
-            tap.mark(t_s=offset, trial=trial.index, phase="configure")
-            renderer.start()
-            tap.mark(phase="render")
-            validator = PoseValidator()
-            for i, pose in enumerate(run.poses):
-                if realtime:
-                    if wall_start is None:
-                        wall_start = time.perf_counter() - pose.t_s
-                    wait = pose.t_s - (time.perf_counter() - wall_start)
-                    if wait > 0:
-                        time.sleep(wait)
-                elif sim_clock is not None and pose.t_s > sim_clock.now():
-                    sim_clock.advance(pose.t_s - sim_clock.now())
-                tap.mark(t_s=pose.t_s)
-                checked = validator.check_pose(pose)
-                if checked is None:
-                    continue
-                for rec in renderer.step(checked):
-                    run.records.append(rec)
-                    run.record_pose.append(i)
-            renderer.summary.teleports = sum(r.stats.teleports for r in renderer.renderers.values())
-            run.summary = renderer.summary.as_dict()
-            run.tracking_drops = dict(validator.drops)
-            run.t1_s = run.poses[-1].t_s if run.poses else offset
-            if inspectable:
-                run.hazards = [h.to_dict() for h in (board_hazards(dev.port) or [])[hazards_before:]]
-                hw = (board_state(dev.port) or {})["stim_pattern"][: mapping.hw_channels]
-                run.end_pattern = list(mapping.to_application(hw))
-            run.writes = [w for w in tap.writes if w.trial == trial.index]
-            run.wall_s = time.perf_counter() - t_wall
-            session_t = run.t1_s + INTER_TRIAL_S
+            _run_trial(live, run, scenes, rate_hz=rate_hz, seed=study.seed, tremor_mm=tremor_mm)
             ok = run.summary.get("mismatches", 0) == 0
             say(
-                f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: {len(run.poses)} "
-                f"poses, {run.summary.get('frames_sent', 0)} frames sent{'' if ok else ', MISMATCH'} "
-                f"({run.wall_s:.2f} s)"
+                f"{head}: {len(run.poses)} poses, {run.summary.get('frames_sent', 0)} frames sent"
+                f"{'' if ok else ', MISMATCH'} ({run.wall_s:.2f} s)"
             )
-        tap.mark(t_s=session_t, trial=0, phase="session")
+        tap.mark(t_s=live.session_t, trial=0, phase="session")
         if not dev.closed and dev.config is not None:
             dev.all_off()
     finally:
         dev.close()
     result = StudyRun(
         study,
-        device,
+        session.device,
         current,
         source,
         float(rate_hz),
         array,
         patterns,
         runs,
-        list(guard.electrode_limits(array.count)),
+        list(session.guard.electrode_limits(array.count)),
         getattr(profile, "participant", None),
         notes=notes,
         writes=list(tap.writes),
         firmware=ran,
     )
-    if timed:
-        try:
-            say(f"study {study.name}: replaying {len(tap.writes)} writes into the timed emulator")
-            replay_timed(result)
-        except TactDeformError as exc:  # the report says why there are no delivered currents
-            result.timed_note = f"timed replay failed: {exc}"
-    else:
-        result.timed_note = "timed replay not run (--no-timed)"
+    _replay(result, timed, say)
     result.wall_s = time.perf_counter() - wall0
     return result
+
+
+def _replay(result: StudyRun, timed: bool, say: ProgressFn) -> None:
+    """The timed replay of the study's writes, or the report's note on why there is none."""
+    if not timed:
+        result.timed_note = "timed replay not run (--no-timed)"
+        return
+    try:
+        say(f"study {result.study.name}: replaying {len(result.writes)} writes into the timed emulator")
+        replay_timed(result)
+    except TactDeformError as exc:  # the report says why there are no delivered currents
+        result.timed_note = f"timed replay failed: {exc}"
 
 
 def _with_heights(
