@@ -17,12 +17,18 @@ from typing import IO, Any
 
 from tactdeform_hw.device.driver.audit import AuditLog, describe_command
 from tactdeform_hw.device.participant.regions import RegionMap, tactdeform_region_map
-from tactdeform_hw.protocol.firmware import V1_2
+from tactdeform_hw.protocol.firmware import FirmwareSpec
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 _ACTIVE = (1, 2)
 #: At most this many successive pulse heights are listed (a long session changes height every frame).
 HEIGHTS_SHOWN = 64
+
+
+def _one_pulse_height(firmware: FirmwareSpec) -> bool:
+    """Whether the firmware has one pulse-height register for every electrode (v1.2), rather than a
+    height in each pattern element (v2)."""
+    return any(c.register == "pulse_height" for c in firmware.commands)
 
 
 class _Discard:
@@ -97,11 +103,11 @@ class DeliveryLog(AuditLog):
         if not ok:
             return
         name, value = describe_command(logical if logical is not None else data, self.firmware)
-        if self.firmware is not V1_2:
+        if not _one_pulse_height(self.firmware):  # each pattern element is its own height
             self._tx_heights(name, value)
             return
         if name == "PULSE_HEIGHT" and isinstance(value, int):
-            ua = int(round(self.transfer.to_ua(min(value, V1_2.dac_max_code))))
+            ua = int(round(self.transfer.to_ua(min(value, self.firmware.dac_max_code))))
             if ua != self._height:
                 self.height_changes += 1
                 if (
