@@ -314,7 +314,6 @@ def run(
     from ..formats import read_array_file, read_pattern_file
     from ..protocol.units import DEFAULT_TRANSFER
     from ..session import Wiring
-    from .delivered import delivered_lines
 
     seq = read_pattern_file(args.file)
     array_file = read_array_file(args.array) if args.array else None
@@ -378,10 +377,16 @@ def run(
     if args.json:
         print_json(summary)
     else:
-        print(
-            f"played {result.steps_played} step(s) of {seq.source} on {args.device} in "
-            f"{result.elapsed_ms / 1000:.3f} s (at most {result.max_late_ms:.1f} ms late); all channels off"
-        )
-        for line in delivered_lines(summary["delivered"]):
-            print(line)
+        _print_played(args, seq, result, summary)
     return 0
+
+
+def _print_played(args: argparse.Namespace, seq: Any, result: PlayResult, summary: dict[str, Any]) -> None:
+    from .delivered import delivered_lines
+
+    print(
+        f"played {result.steps_played} step(s) of {seq.source} on {args.device} in "
+        f"{result.elapsed_ms / 1000:.3f} s (at most {result.max_late_ms:.1f} ms late); all channels off"
+    )
+    for line in delivered_lines(summary["delivered"]):
+        print(line)

@@ -109,7 +109,6 @@ def run(args: argparse.Namespace) -> int:
     from ..study.report import write_report
     from ..study.runner import run_study
     from ..study.scenarios import build_study, select_trials
-    from .delivered import delivered_lines
 
     if not (math.isfinite(args.rate) and args.rate > 0):
         raise LimitError("--rate", args.rate, "a finite rate > 0 Hz")
@@ -155,38 +154,9 @@ def run(args: argparse.Namespace) -> int:
     report = write_report(result, design, args.out, pictures=not args.no_pictures, gif=args.gif)
     s = report["summary"]
     if args.json:
-        print_json(
-            {
-                "study": study.name,
-                "out": args.out,
-                "summary": s,
-                "design_checks": report["design_checks"],
-                "delivered": result.sent,
-                "pictures": report.get("pictures"),
-                "trials": [
-                    {
-                        "id": t["id"],
-                        "passed": t["passed"],
-                        "skipped": t["skipped"],
-                        "failed_checks": t.get("failed_checks", []),
-                    }
-                    for t in report["trials"]
-                ],
-            }
-        )
+        print_json(_json_summary(args, study, result, report))
     else:
-        verdict = "all checks passed" if s["all_passed"] else f"{s['failed']} trial(s) FAILED"
-        print(
-            f"{study.name}: {s['passed']}/{s['run']} trial(s) passed"
-            + (f", {s['skipped']} skipped" if s["skipped"] else "")
-            + f" — {verdict}; report in {args.out}/report.json and {args.out}/summary.md"
-        )
-        for name, n in s["failed_checks"].items():
-            print(f"  failed: {name} ({n} trial(s))")
-        for line in delivered_lines(result.sent):
-            print(line)
-        if "electrode_heights_ua" in result.sent:
-            print(heights_line(result.sent["electrode_heights_ua"]))
+        _print_summary(args, study, result, s)
     if not s["all_passed"]:
         if not args.quiet:
             print(
@@ -195,6 +165,47 @@ def run(args: argparse.Namespace) -> int:
             )
         return EXIT_CHECK_FAILED
     return 0
+
+
+def _json_summary(
+    args: argparse.Namespace, study: Any, result: Any, report: dict[str, Any]
+) -> dict[str, Any]:
+    """The ``--json`` of a study: the report's summary, what was delivered, each trial's verdict."""
+    return {
+        "study": study.name,
+        "out": args.out,
+        "summary": report["summary"],
+        "design_checks": report["design_checks"],
+        "delivered": result.sent,
+        "pictures": report.get("pictures"),
+        "trials": [
+            {
+                "id": t["id"],
+                "passed": t["passed"],
+                "skipped": t["skipped"],
+                "failed_checks": t.get("failed_checks", []),
+            }
+            for t in report["trials"]
+        ],
+    }
+
+
+def _print_summary(args: argparse.Namespace, study: Any, result: Any, s: dict[str, Any]) -> None:
+    """The console's account of a study: the verdict, the failed checks, what was delivered."""
+    from .delivered import delivered_lines
+
+    verdict = "all checks passed" if s["all_passed"] else f"{s['failed']} trial(s) FAILED"
+    print(
+        f"{study.name}: {s['passed']}/{s['run']} trial(s) passed"
+        + (f", {s['skipped']} skipped" if s["skipped"] else "")
+        + f" — {verdict}; report in {args.out}/report.json and {args.out}/summary.md"
+    )
+    for name, n in s["failed_checks"].items():
+        print(f"  failed: {name} ({n} trial(s))")
+    for line in delivered_lines(result.sent):
+        print(line)
+    if "electrode_heights_ua" in result.sent:
+        print(heights_line(result.sent["electrode_heights_ua"]))
 
 
 def electrode_heights(result: Any) -> list[list[float]] | None:

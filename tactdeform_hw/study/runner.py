@@ -456,6 +456,31 @@ def _run_trial(
     live.session_t = run.t1_s + INTER_TRIAL_S
 
 
+def _run_trials(
+    live: _Live,
+    study: Study,
+    runs: list[TrialRun],
+    scenes: _Scenes,
+    *,
+    rate_hz: float,
+    tremor_mm: float,
+    say: ProgressFn,
+) -> None:
+    """Every trial in order on the live session, saying how each went (a skipped one says why)."""
+    for run in runs:
+        trial = run.trial
+        head = f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}"
+        if run.skipped is not None:
+            say(f"{head}: skipped ({run.skipped})")
+            continue
+        _run_trial(live, run, scenes, rate_hz=rate_hz, seed=study.seed, tremor_mm=tremor_mm)
+        ok = run.summary.get("mismatches", 0) == 0
+        say(
+            f"{head}: {len(run.poses)} poses, {run.summary.get('frames_sent', 0)} frames sent"
+            f"{'' if ok else ', MISMATCH'} ({run.wall_s:.2f} s)"
+        )
+
+
 def _study_session(device: str, timeout: float, firmware: str, guard: Any, audit: Any, profile: Any) -> Any:
     """The session of a study run without one: the TactDeform array on ``device`` under ``guard`` (the
     hardware ceiling without one), writing to ``audit``."""
@@ -537,18 +562,7 @@ def run_study(
         )
         sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
         live = _Live(session, dev, tap, sim_clock, cfg, current, stim, realtime)
-        for run in runs:
-            trial = run.trial
-            head = f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}"
-            if run.skipped is not None:
-                say(f"{head}: skipped ({run.skipped})")
-                continue
-            _run_trial(live, run, scenes, rate_hz=rate_hz, seed=study.seed, tremor_mm=tremor_mm)
-            ok = run.summary.get("mismatches", 0) == 0
-            say(
-                f"{head}: {len(run.poses)} poses, {run.summary.get('frames_sent', 0)} frames sent"
-                f"{'' if ok else ', MISMATCH'} ({run.wall_s:.2f} s)"
-            )
+        _run_trials(live, study, runs, scenes, rate_hz=rate_hz, tremor_mm=tremor_mm, say=say)
         tap.mark(t_s=live.session_t, trial=0, phase="session")
         if not dev.closed and dev.config is not None:
             dev.all_off()
@@ -617,11 +631,151 @@ _STIM_KINDS = (0, 1, 2)  # PulseKind.MONO, BI_ANODIC, BI_CATHODIC
 _PULSE_COLUMNS = ("start_us", "channel", "kind", "current_ua", "charge_nc")
 
 
+def _replay_writes(emu: Any, writes: list[WireWrite]) -> dict[int, float]:
+    """Feed the writes to the timed model, each at its session time but at least :data:`PACE_S` after the
+    one before, then :data:`TAIL_S` more; the replay time (µs) of each write by its id."""
+    at: dict[int, float] = {}
+    last = -math.inf
+    for w in writes:
+        t_us = max(w.t_s * 1e6, last + PACE_S * 1e6)
+        last = t_us
+        at[id(w)] = t_us
+        emu.advance_to(max(emu.now_us, t_us))
+        emu.write(w.data, at_us=t_us)
+    emu.advance_to(last + TAIL_S * 1e6)
+    return at
+
+
+@dataclass
+class _TimedAccount:
+    """What the timed model recorded over the session: the pulse table of a time window, the scan starts
+    of torn patterns (per run of scans), the losses and the other hazards."""
+
+    pulse_table: Callable[[float, float], dict[str, np.ndarray]]
+    torn_runs: list[Any]
+    losses: list[Any]
+    hazards: list[Any]
+
+
+def _account_v2(emu: Any, result: StudyRun) -> _TimedAccount:
+    """v2 records every scan (a torn pattern is one hazard per scan it tore, with its time): the hazard
+    list and the model's loss reports are the whole account."""
+    pulses = emu.reports.pulse_table()  # once; each trial takes its window of it
+    hazards = list(emu.hazards)
+    result.timed = True
+    result.timed_summary = {
+        "firmware": V2.name,
+        "scans": int(emu.scan_count),
+        "pulses": int(pulses["channel"].size),
+        "hazards": dict(sorted(Counter(h.kind.value for h in hazards).items())),
+    }
+
+    def pulse_table(lo_us: float, hi_us: float) -> dict[str, np.ndarray]:
+        sel = (pulses["start_us"] >= lo_us) & (pulses["start_us"] < hi_us)
+        return {k: v[sel] for k, v in pulses.items()}
+
+    return _TimedAccount(pulse_table, [], list(emu.losses), hazards)
+
+
+def _account_v1_2(emu: Any, result: StudyRun) -> _TimedAccount:
+    """Overruns, queue overflows and watchdog resets are in the hazard list; torn scans and lost bytes
+    are taken from the scan runs and the loss reports (per-cycle reports would be tens of thousands): a
+    torn_pattern record covers a stretch of cycles, each trial gets the torn scans inside its window."""
+    from tactdeform_hw.emulator.firmware.hazards import HazardKind
+
+    reports = emu.reports
+    torn_runs = [r.starts_ns() / 1000.0 for r in reports.runs if r.torn is not None]
+    losses = list(emu.losses)
+    hazards = [h for h in emu.hazards if h.kind is not HazardKind.TORN_PATTERN]
+    result.timed = True
+    summary = reports.summary()
+    # The model's assumptions are the timing command's business; a pattern's "latency" to its first
+    # pulse is unbounded for an all-off frame, so the maximum says nothing about the session here.
+    for key in ("model_assumptions", "latency_us_max", "now_us"):
+        summary.pop(key, None)
+    result.timed_summary = summary
+    return _TimedAccount(reports.pulse_table, torn_runs, losses, hazards)
+
+
+def _delivered(
+    sel: dict[str, np.ndarray], hw_to_app: dict[int, int], count: int, v2: bool, lo_us: float, hi_us: float
+) -> dict[str, Any]:
+    """One trial's ``delivered`` block from the pulses of its window: per electrode the pulses, the
+    charge and the largest current (on v2 the heights too), and the session's maxima."""
+    stim = np.isin(sel["kind"], _STIM_KINDS)
+    live = stim & (sel["current_ua"] > 0)
+    per_charge = [0.0] * count
+    per_pulses = [0] * count
+    per_max = [0.0] * count
+    per_heights: list[set[float]] = [set() for _ in range(count)]
+    unmapped = 0
+    for ch, ua, q in zip(
+        sel["channel"][stim].tolist(), sel["current_ua"][stim].tolist(), sel["charge_nc"][stim].tolist()
+    ):
+        app = hw_to_app.get(int(ch))
+        if app is None:
+            unmapped += 1
+            continue
+        per_pulses[app] += 1
+        per_charge[app] += float(q)
+        per_max[app] = max(per_max[app], float(ua))
+        if v2 and ua > 0:
+            per_heights[app].add(round(float(ua), 1))
+    sense_live = int(np.sum(~stim & (sel["current_ua"] > 0)))
+    per_electrode: dict[str, Any] = {
+        "pulses": per_pulses,
+        "charge_nc": [round(v, 1) for v in per_charge],
+        "max_current_ua": [round(v, 1) for v in per_max],
+    }
+    if v2:
+        # each electrode's own pulse heights: on v2 every pattern element is a height
+        per_electrode["heights_ua"] = [sorted(h) for h in per_heights]
+    return {
+        "window_s": [round(lo_us / 1e6, 6), round(hi_us / 1e6, 6)],
+        "stimulation_pulses": int(stim.sum()),
+        "pulses_with_current": int(live.sum()),
+        "sense_pulses_with_current": sense_live,
+        "pulses_on_unmapped_channels": unmapped,
+        "max_current_ua": round(float(sel["current_ua"][stim].max()), 1) if stim.any() else 0.0,
+        "max_charge_per_pulse_nc": round(float(sel["charge_nc"][stim].max()), 3) if stim.any() else 0.0,
+        "total_charge_nc": round(float(sel["charge_nc"][stim].sum()), 1),
+        "per_electrode": per_electrode,
+        "_table": sel,
+    }
+
+
+def _hazards_in(
+    account: _TimedAccount,
+    writes: list[WireWrite],
+    offsets: list[int],
+    trial: int,
+    lo_us: float,
+    hi_us: float,
+) -> list[dict[str, Any]]:
+    """The timing hazards of one trial's window: torn scans, losses, and the model's hazards (a parser
+    hazard belongs to the trial whose write holds its byte)."""
+    found: list[dict[str, Any]] = []
+    for scan_starts in account.torn_runs:
+        for s_us in scan_starts[(scan_starts >= lo_us) & (scan_starts < hi_us)].tolist():
+            found.append({"kind": "torn_pattern", "time_us": s_us})
+    for lo in account.losses:
+        if lo_us <= lo.time_us < hi_us:
+            found.append({"kind": "loss", "time_us": lo.time_us, "count": lo.count, "reason": lo.reason})
+    for h in account.hazards:
+        if h.time_us is not None:
+            mine = lo_us <= h.time_us < hi_us
+        else:  # a parser hazard: the write that holds its byte says which trial caused it
+            k = bisect_right(offsets, h.offset) - 1
+            mine = 0 <= k < len(writes) and writes[k].trial == trial
+        if mine:
+            found.append(h.to_dict())
+    return found
+
+
 def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     """Replay the session's writes into the timed model of the firmware that ran and attach, per trial,
     the pulses delivered (per electrode: pulses, largest current, charge; on v2 also the heights each
     electrode was pulsed at), the timing hazards in the trial's window and the replay time of each write."""
-    from tactdeform_hw.emulator.firmware.hazards import HazardKind
     from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
     writes = result.writes
@@ -635,55 +789,13 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         emu: Any = TimedEmulatorV2(link=link)
     else:
         emu = TimedEmulator(link=link)
-    at: dict[int, float] = {}
-    last = -math.inf
-    for w in writes:
-        t_us = max(w.t_s * 1e6, last + PACE_S * 1e6)
-        last = t_us
-        at[id(w)] = t_us
-        emu.advance_to(max(emu.now_us, t_us))
-        emu.write(w.data, at_us=t_us)
-    emu.advance_to(last + TAIL_S * 1e6)
+    at = _replay_writes(emu, writes)
     offsets = [0]
     for w in writes[:-1]:
         offsets.append(offsets[-1] + len(w.data))
     mapping = result.array.channel_mapping()
     hw_to_app = {ch: i for i, ch in enumerate(mapping.app_to_hw)}
-    if v2:
-        # v2 records every scan (a torn pattern is one hazard per scan it tore, with its time): the
-        # hazard list and the model's loss reports are the whole account
-        pulses = emu.reports.pulse_table()  # once; each trial takes its window of it below
-        torn_runs: list[Any] = []
-        losses: list[Any] = list(emu.losses)
-        hazards = list(emu.hazards)
-        result.timed = True
-        result.timed_summary = {
-            "firmware": V2.name,
-            "scans": int(emu.scan_count),
-            "pulses": int(pulses["channel"].size),
-            "hazards": dict(sorted(Counter(h.kind.value for h in hazards).items())),
-        }
-
-        def pulse_table(lo_us: float, hi_us: float) -> dict[str, np.ndarray]:
-            sel = (pulses["start_us"] >= lo_us) & (pulses["start_us"] < hi_us)
-            return {k: v[sel] for k, v in pulses.items()}
-    else:
-        reports = emu.reports
-        # Overruns, queue overflows and watchdog resets are in the hazard list; torn scans and lost bytes
-        # are taken from the scan runs and the loss reports (per-cycle reports would be tens of
-        # thousands): a torn_pattern record covers a stretch of cycles, each trial gets the torn scans
-        # inside its window.
-        torn_runs = [r.starts_ns() / 1000.0 for r in reports.runs if r.torn is not None]
-        losses = list(emu.losses)
-        hazards = [h for h in emu.hazards if h.kind is not HazardKind.TORN_PATTERN]
-        result.timed = True
-        summary = reports.summary()
-        # The model's assumptions are the timing command's business; a pattern's "latency" to its first
-        # pulse is unbounded for an all-off frame, so the maximum says nothing about the session here.
-        for key in ("model_assumptions", "latency_us_max", "now_us"):
-            summary.pop(key, None)
-        result.timed_summary = summary
-        pulse_table = reports.pulse_table
+    account = _account_v2(emu, result) if v2 else _account_v1_2(emu, result)
     for run in result.trials:
         if run.skipped is not None or not run.writes:
             continue
@@ -691,65 +803,11 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         lo_us = run.replay_us[0]
         hi_us = max(run.t1_s * 1e6, run.replay_us[-1]) + 20_000.0
         # One window per trial, and only the columns the checks use: a study is millions of pulses.
-        window = pulse_table(lo_us, hi_us)
+        window = account.pulse_table(lo_us, hi_us)
         sel = {k: window[k] for k in _PULSE_COLUMNS}
         del window
-        stim = np.isin(sel["kind"], _STIM_KINDS)
-        live = stim & (sel["current_ua"] > 0)
-        per_charge = [0.0] * result.array.count
-        per_pulses = [0] * result.array.count
-        per_max = [0.0] * result.array.count
-        per_heights: list[set[float]] = [set() for _ in range(result.array.count)]
-        unmapped = 0
-        for ch, ua, q in zip(
-            sel["channel"][stim].tolist(), sel["current_ua"][stim].tolist(), sel["charge_nc"][stim].tolist()
-        ):
-            app = hw_to_app.get(int(ch))
-            if app is None:
-                unmapped += 1
-                continue
-            per_pulses[app] += 1
-            per_charge[app] += float(q)
-            per_max[app] = max(per_max[app], float(ua))
-            if v2 and ua > 0:
-                per_heights[app].add(round(float(ua), 1))
-        sense_live = int(np.sum(~stim & (sel["current_ua"] > 0)))
-        per_electrode: dict[str, Any] = {
-            "pulses": per_pulses,
-            "charge_nc": [round(v, 1) for v in per_charge],
-            "max_current_ua": [round(v, 1) for v in per_max],
-        }
-        if v2:
-            # each electrode's own pulse heights: on v2 every pattern element is a height
-            per_electrode["heights_ua"] = [sorted(h) for h in per_heights]
-        run.delivered = {
-            "window_s": [round(lo_us / 1e6, 6), round(hi_us / 1e6, 6)],
-            "stimulation_pulses": int(stim.sum()),
-            "pulses_with_current": int(live.sum()),
-            "sense_pulses_with_current": sense_live,
-            "pulses_on_unmapped_channels": unmapped,
-            "max_current_ua": round(float(sel["current_ua"][stim].max()), 1) if stim.any() else 0.0,
-            "max_charge_per_pulse_nc": round(float(sel["charge_nc"][stim].max()), 3) if stim.any() else 0.0,
-            "total_charge_nc": round(float(sel["charge_nc"][stim].sum()), 1),
-            "per_electrode": per_electrode,
-            "_table": sel,
-        }
-        found: list[dict[str, Any]] = []
-        for scan_starts in torn_runs:
-            for s_us in scan_starts[(scan_starts >= lo_us) & (scan_starts < hi_us)].tolist():
-                found.append({"kind": "torn_pattern", "time_us": s_us})
-        for lo in losses:
-            if lo_us <= lo.time_us < hi_us:
-                found.append({"kind": "loss", "time_us": lo.time_us, "count": lo.count, "reason": lo.reason})
-        for h in hazards:
-            if h.time_us is not None:
-                mine = lo_us <= h.time_us < hi_us
-            else:  # a parser hazard: the write that holds its byte says which trial caused it
-                k = bisect_right(offsets, h.offset) - 1
-                mine = 0 <= k < len(writes) and writes[k].trial == run.trial.index
-            if mine:
-                found.append(h.to_dict())
-        run.timed_hazards = found
+        run.delivered = _delivered(sel, hw_to_app, result.array.count, v2, lo_us, hi_us)
+        run.timed_hazards = _hazards_in(account, writes, offsets, run.trial.index, lo_us, hi_us)
 
 
 def frame_heights(
