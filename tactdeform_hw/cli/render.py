@@ -22,9 +22,6 @@ from .options import add_option
 
 
 def register(sub: Any) -> None:
-    from ..render.scene import APPROACHES, CONTACT_MODES
-    from ..render.trajectories import TRAJECTORIES
-
     p: argparse.ArgumentParser = sub.add_parser(
         "render",
         help="render a study trajectory over a scene to a device (emulator by default)",
@@ -33,6 +30,16 @@ def register(sub: Any) -> None:
         "when it changes. --frames writes one JSON line per pattern held; with the emulator every sent "
         "pattern is checked against the emulator's pattern buffer and any mismatch exits with status 1.",
     )
+    _trajectory_options(p)
+    _rendering_options(p)
+    _output_options(p)
+    p.set_defaults(func=run)
+
+
+def _trajectory_options(p: argparse.ArgumentParser) -> None:
+    """The scene and the finger's trajectory over it."""
+    from ..render.trajectories import TRAJECTORIES
+
     p.add_argument(
         "--scene",
         required=True,
@@ -76,6 +83,12 @@ def register(sub: Any) -> None:
         default=None,
         help="tracking rate in Hz (default 72, the VR loop; synthetic only)",
     )
+
+
+def _rendering_options(p: argparse.ArgumentParser) -> None:
+    """How the contact is rendered, on which device, for which participant."""
+    from ..render.scene import APPROACHES, CONTACT_MODES
+
     p.add_argument(
         "--approach",
         choices=APPROACHES,
@@ -91,6 +104,10 @@ def register(sub: Any) -> None:
     )
     add_device_arg(p)
     add_participant_arg(p)
+
+
+def _output_options(p: argparse.ArgumentParser) -> None:
+    """What the run writes and shows."""
     p.add_argument("--frames", metavar="FILE", default=None, help="write the frames as JSON lines to FILE")
     p.add_argument(
         "--gif",
@@ -116,7 +133,6 @@ def register(sub: Any) -> None:
     p.add_argument("--realtime", action="store_true", help="pace the run to the trajectory's clock")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
-    p.set_defaults(func=run)
 
 
 def _check_options(args: argparse.Namespace) -> bool:

@@ -32,6 +32,15 @@ def register(sub: Any) -> None:
         f"period, {EXIT_OVERRUN} when it OVERRUNs it, {EXIT_WATCHDOG} when it trips the "
         "interrupt WATCHDOG (the board resets); 1 for a refused value, 2 for a usage error.",
     )
+    _firmware_options(p)
+    _scan_options(p)
+    _board_options(p)
+    _output_options(p)
+    p.set_defaults(func=run)
+
+
+def _firmware_options(p: argparse.ArgumentParser) -> None:
+    """The firmware version and the timing model's reading of its exchanges."""
     p.add_argument(
         "--firmware",
         choices=("v1.2", "v2"),
@@ -59,6 +68,10 @@ def register(sub: Any) -> None:
         help="when the DAC output changes: 3.3 µs into the exchange (default, the firmware comment) or "
         "when DA_CS rises (the converter's load moment)",
     )
+
+
+def _scan_options(p: argparse.ArgumentParser) -> None:
+    """The configuration whose scan is timed: electrodes, pattern, pulse, rate, polarity, sense pulse."""
     p.add_argument(
         "--electrodes",
         type=int,
@@ -148,6 +161,10 @@ def register(sub: Any) -> None:
         help="sense pulse width in µs, 0-255",
     )
     add_finisher(p, currents_from_ua)
+
+
+def _board_options(p: argparse.ArgumentParser) -> None:
+    """The board and the timing model's constants."""
     p.add_argument(
         "--board", choices=("compact", "large"), default="compact", help="board kind (default compact)"
     )
@@ -176,6 +193,10 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--list-model", action="store_true", help="print every timing constant with its source and exit"
     )
+
+
+def _output_options(p: argparse.ArgumentParser) -> None:
+    """What is measured and written beyond the budget: latency, traces, a diagram, JSON."""
     p.add_argument(
         "--latency",
         action="store_true",
@@ -202,7 +223,6 @@ def register(sub: Any) -> None:
         "period and any overrun marked (needs the plot extra)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
-    p.set_defaults(func=run)
 
 
 def currents_from_ua(args: argparse.Namespace) -> None:
