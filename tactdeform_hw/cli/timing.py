@@ -134,6 +134,11 @@ def _scan_options(p: argparse.ArgumentParser) -> None:
         metavar="{anodic,cathodic}",
         help="pulse polarity (default anodic)",
     )
+    _sense_options(p)
+
+
+def _sense_options(p: argparse.ArgumentParser) -> None:
+    """The sense pulse, and the currents given in µA turned into the codes the firmware stores."""
     add_option(
         p,
         "--sense-current-ua",

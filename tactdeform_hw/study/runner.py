@@ -374,6 +374,20 @@ def _study_current(current_ua: int | None, profile: Any, dev: Any) -> tuple[int,
     return 0, "none given: patterns only"
 
 
+def _stim_config(session: Any, current_ua: int) -> Any:
+    """The study's stimulation on every channel of the array: the participant's pulse, else TactDeform's
+    (200 µs, anodic)."""
+    from ..device import StimConfig
+
+    profile = session.profile
+    return StimConfig(
+        electrode_count=session.wiring.mapping.hw_channels,
+        current_ua=current_ua,
+        pulse_width_us=profile.pulse_width_us if profile is not None else 200,
+        polarity=profile.polarity if profile is not None else "anodic",
+    )
+
+
 def _trial_readback(live: _Live, run: TrialRun) -> Callable[[], tuple[int, ...]] | None:
     """What the trial's renderer compares each sent frame with on an offline (instant) port: the levels
     the board holds, and on v2 every electrode's height too (None on a port that cannot show them)."""
@@ -481,6 +495,14 @@ def _run_trials(
         )
 
 
+def _check_rate(rate_hz: Any) -> None:
+    """Refuse a tracking rate that is no finite rate above 0 Hz, before any device is opened."""
+    if not (isinstance(rate_hz, (int, float)) and math.isfinite(rate_hz) and rate_hz > 0):
+        from ..errors import LimitError
+
+        raise LimitError("rate_hz", rate_hz, "a finite rate > 0 Hz")
+
+
 def _study_session(device: str, timeout: float, firmware: str, guard: Any, audit: Any, profile: Any) -> Any:
     """The session of a study run without one: the TactDeform array on ``device`` under ``guard`` (the
     hardware ceiling without one), writing to ``audit``."""
@@ -529,14 +551,10 @@ def run_study(
     each trial at its real speed); otherwise the run goes as fast as it can, which changes nothing the
     checks look at: the timed replay restores the session's timing."""
     from ..clock import SimulatedClock
-    from ..device import StimConfig
 
     say = progress or (lambda _msg: None)
     wall0 = time.perf_counter()
-    if not (isinstance(rate_hz, (int, float)) and math.isfinite(rate_hz) and rate_hz > 0):
-        from ..errors import LimitError
-
-        raise LimitError("rate_hz", rate_hz, "a finite rate > 0 Hz")
+    _check_rate(rate_hz)
     if session is None:
         session = _study_session(device, timeout, firmware, guard, audit, profile)
     profile = session.profile
@@ -554,12 +572,7 @@ def run_study(
     dev.port = tap
     try:
         current, source = _study_current(current_ua, profile, dev)
-        stim = StimConfig(
-            electrode_count=session.wiring.mapping.hw_channels,
-            current_ua=current,
-            pulse_width_us=profile.pulse_width_us if profile is not None else 200,
-            polarity=profile.polarity if profile is not None else "anodic",
-        )
+        stim = _stim_config(session, current)
         sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
         live = _Live(session, dev, tap, sim_clock, cfg, current, stim, realtime)
         _run_trials(live, study, runs, scenes, rate_hz=rate_hz, tremor_mm=tremor_mm, say=say)
