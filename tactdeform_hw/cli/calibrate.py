@@ -18,7 +18,7 @@ from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from .common import add_device_arg, print_json, progress
-from .options import add_finisher, add_option, duration, range_check
+from .options import add_finisher, add_pulse_width, duration, range_check
 
 
 def register(sub: Any) -> None:
@@ -55,15 +55,7 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--max-ua", type=int, default=5000, help="calibration ceiling in µA, ≤ 10000 (default 5000)"
     )
-    add_option(
-        p,
-        "--pulse-width-us",
-        old=("--pulse-width",),
-        dest="pulse_width",
-        type=int,
-        default=200,
-        help="pulse width in µs (default 200, TactDeform)",
-    )
+    add_pulse_width(p, default=200, help="pulse width in µs (default 200, TactDeform)")
     p.add_argument("--polarity", choices=("anodic", "cathodic"), default="anodic")
     p.add_argument(
         "--contact-mode",

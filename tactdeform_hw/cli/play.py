@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigurationError, TactDeformError
 from .common import add_device_arg, add_participant_arg, hold, print_json, progress, session_from_args
-from .options import add_option
+from .options import add_current, add_discharge, add_pulse_width
 
 if TYPE_CHECKING:
     from tactdeform_hw.device.driver.config import Polarity
@@ -80,27 +80,9 @@ def register(sub: Any) -> None:
         help="electrode count the device scans (default: the pattern's length, or what --array needs); "
         "a pattern that does not fit is refused",
     )
-    p.add_argument(
-        "--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)"
-    )
-    add_option(
-        p,
-        "--pulse-width-us",
-        old=("--pulse-width",),
-        dest="pulse_width",
-        type=int,
-        default=200,
-        help="pulse width in µs (default 200)",
-    )
-    add_option(
-        p,
-        "--discharge-us",
-        old=("--discharge",),
-        dest="discharge",
-        type=int,
-        default=45,
-        help="discharge time in µs (default 45)",
-    )
+    add_current(p)
+    add_pulse_width(p, default=200, help="pulse width in µs (default 200)")
+    add_discharge(p)
     p.add_argument("--repeat", type=int, default=1, help="play the file this many times (default 1)")
     p.add_argument("--dry-run", action="store_true", help="check the file and print the plan; open no device")
     p.add_argument(

@@ -7,7 +7,7 @@ from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from .common import add_device_arg, add_participant_arg, hold, print_json, session_from_args
-from .options import add_option, duration
+from .options import add_current, add_discharge, add_frequency, add_option, add_pulse_width, duration
 
 
 def register(sub: Any) -> None:
@@ -38,36 +38,10 @@ def register(sub: Any) -> None:
         "channels and its coordinates give each electrode's calibration region (the participant's limits "
         "follow positions, never list order)",
     )
-    p.add_argument(
-        "--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)"
-    )
-    add_option(
-        p,
-        "--pulse-width-us",
-        old=("--pulse-width",),
-        dest="pulse_width",
-        type=int,
-        default=None,
-        help="pulse width in µs (default: the participant's, else 200)",
-    )
-    add_option(
-        p,
-        "--discharge-us",
-        old=("--discharge",),
-        dest="discharge",
-        type=int,
-        default=45,
-        help="discharge time in µs (default 45)",
-    )
-    add_option(
-        p,
-        "--frequency-hz",
-        old=("--frequency",),
-        dest="frequency",
-        type=int,
-        default=125,
-        help="stimulation rate in Hz (default 125)",
-    )
+    add_current(p)
+    add_pulse_width(p, default=None, help="pulse width in µs (default: the participant's, else 200)")
+    add_discharge(p)
+    add_frequency(p)
     p.add_argument(
         "--polarity",
         choices=("anodic", "cathodic"),

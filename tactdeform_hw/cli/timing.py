@@ -14,7 +14,16 @@ from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from .common import print_json
-from .options import DeprecatedAlias, PolarityCode, add_finisher, add_option, typed_flag
+from .options import (
+    DeprecatedAlias,
+    PolarityCode,
+    add_discharge,
+    add_finisher,
+    add_frequency,
+    add_option,
+    add_pulse_width,
+    typed_flag,
+)
 
 #: Exit statuses of ``timing`` beyond 0/1/2: the verdict a script can branch on.
 EXIT_OVERRUN = 3
@@ -84,15 +93,7 @@ def _scan_options(p: argparse.ArgumentParser) -> None:
         help="v1.2: one value for every channel (1 monophasic, 2 biphasic, other: sense pulse) or a comma "
         "list, one per channel (default 1); v2: DAC codes 0-4095, one for all or h1,h2,... (default 100)",
     )
-    add_option(
-        p,
-        "--pulse-width-us",
-        old=("--pulse-width",),
-        dest="pulse_width",
-        type=int,
-        default=200,
-        help="stimulation pulse width in µs, 1-65535 (v2: 0-65535) (default 200)",
-    )
+    add_pulse_width(p, default=200, help="stimulation pulse width in µs, 1-65535 (v2: 0-65535) (default 200)")
     add_option(
         p,
         "--current-ua",
@@ -109,24 +110,8 @@ def _scan_options(p: argparse.ArgumentParser) -> None:
         canonical="--current-ua",
         note="--pulse-height took a DAC code; --current-ua takes µA, 10 µA per code",
     )
-    add_option(
-        p,
-        "--discharge-us",
-        old=("--discharge",),
-        dest="discharge",
-        type=int,
-        default=45,
-        help="channel discharge time in µs, 0-255 (default 45)",
-    )
-    add_option(
-        p,
-        "--frequency-hz",
-        old=("--frequency",),
-        dest="frequency",
-        type=int,
-        default=125,
-        help="stimulation rate in Hz, 1-65535 (default 125)",
-    )
+    add_discharge(p, help="channel discharge time in µs, 0-255 (default 45)")
+    add_frequency(p, help="stimulation rate in Hz, 1-65535 (default 125)")
     p.add_argument(
         "--polarity",
         action=PolarityCode,
