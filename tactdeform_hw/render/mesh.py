@@ -70,7 +70,7 @@ from .geometry import (
     as_point,
     as_points,
 )
-from .primitives import _PlacedSolid
+from .primitives import PlacedSolid
 
 DEFAULT_FIT_MM = 200.0
 """Largest extent of a mesh in the studies' Phase 2: every object fits a 20 × 20 × 20 cm box."""
@@ -660,7 +660,7 @@ class _Index:
         ids = self.tree.query_ball_point(p, upper + self.cover_mm)
         tris = self.table[ids].ravel()
         if len(tris) > 96:
-            tris = self._dedupe(tris)
+            tris = self.dedupe(tris)
             # Far from the surface the ball holds many triangles; drop those whose bounding sphere
             # stays beyond the upper bound before the full kernel.
             b = self.tri_bounds[tris]
@@ -676,7 +676,7 @@ class _Index:
         d2 = _where(inside, pd * pd - float(p @ p), _minimum(_minimum(d2e[:, 0], d2e[:, 1]), d2e[:, 2]))
         return int(tris[d2.argmin()])
 
-    def _dedupe(self, tris: np.ndarray) -> np.ndarray:
+    def dedupe(self, tris: np.ndarray) -> np.ndarray:
         """Distinct triangles of a candidate list (order free): scatter positions, keep the winners.
         Cheaper than np.unique's sort for the few thousand candidates of a far query."""
         stamp = self._stamp
@@ -779,7 +779,7 @@ class _Index:
         ids = self.tree.query_ball_point(centre, radius)
         if n * len(ids) > 40_000:  # a cloud spread over much of the mesh: point by point
             return self._inside_each(points)
-        shared = self._dedupe(self.table[ids].ravel())
+        shared = self.dedupe(self.table[ids].ravel())
         shared = shared[shared != self.sentinel]
         bounds = self.tri_bounds[shared]
         m, rho, nrm, off = bounds[:, 0:3], bounds[:, 3], bounds[:, 4:7], bounds[:, 7]
@@ -1075,7 +1075,7 @@ def _fit_factor(name: str, extent: float, fit_mm: float | None, scale: float) ->
     return factor
 
 
-class TriangleMesh(_PlacedSolid):
+class TriangleMesh(PlacedSolid):
     """A solid bounded by a triangle mesh, placed in the world and fitted into a box."""
 
     kind = "mesh"
@@ -1287,7 +1287,7 @@ class TriangleMesh(_PlacedSolid):
         ids = index.tree.query_ball_point(local, reach[1] + index.cover_mm + 1e-9)
         if not ids and by_winding is None:
             return out
-        tris = index._dedupe(index.table[ids].ravel()) if ids else np.empty(0, dtype=np.int64)
+        tris = index.dedupe(index.table[ids].ravel()) if ids else np.empty(0, dtype=np.int64)
         # Triangle corners in pad coordinates: (u, v, height above the pad plane).
         pc = (index.vertices[index.faces[tris[tris != index.sentinel]]] - local) @ frame
         pos = pc[:, :, 2] >= 0.0

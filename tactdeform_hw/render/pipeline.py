@@ -169,6 +169,23 @@ def _scene_option(scene: Any, name: str) -> Any:
     return None
 
 
+def _unsent(out: ManagerOutput, approach: str) -> FrameRecord:
+    """The record of an update that sent nothing: what is shown, as the approach decided it."""
+    return FrameRecord(
+        out.t_s,
+        out.state,
+        out.feature,
+        out.texture,
+        out.pattern,
+        False,
+        approach,
+        out.context,
+        out.orientation,
+        False,
+        out.dropped,
+    )
+
+
 class Renderer:
     """Drives one device from a pose stream over one scene.
 
@@ -432,19 +449,7 @@ class Renderer:
     def _dropped(self, out: ManagerOutput, approach: str) -> list[FrameRecord]:
         """A dropped sample: recorded, never sent, never a keepalive; tracking is lost once no valid sample
         came for ``lost_tracking_s``, and a lost stream's run of valid samples starts again."""
-        rec = FrameRecord(
-            out.t_s,
-            out.state,
-            out.feature,
-            out.texture,
-            out.pattern,
-            False,
-            approach,
-            out.context,
-            out.orientation,
-            False,
-            out.dropped,
-        )
+        rec = _unsent(out, approach)
         if self._lost:
             self._resume_run = 0
             return [rec]
@@ -484,21 +489,7 @@ class Renderer:
             frames = [(out.t_s, out.pattern)]
         records: list[FrameRecord] = []
         if not frames:
-            records.append(
-                FrameRecord(
-                    out.t_s,
-                    out.state,
-                    out.feature,
-                    out.texture,
-                    out.pattern,
-                    False,
-                    approach,
-                    out.context,
-                    out.orientation,
-                    False,
-                    out.dropped,
-                )
-            )
+            records.append(_unsent(out, approach))
             if self.device is not None:
                 # Nothing changed, but the renderer is alive: feed the device's fail-safe watchdog so a
                 # held contact is not switched off, while a dead renderer still is.

@@ -237,27 +237,12 @@ class _Scene:
         from matplotlib.lines import Line2D
 
         handles = [
-            Line2D([], [], ls="", marker="o", ms=8, mfc=OFF_COLOUR, mec="#333333", label="off"),
-            Line2D(
-                [],
-                [],
-                ls="",
-                marker="o",
-                ms=8,
-                mfc=level_colour(1, None, 1.0),
-                mec="#333333",
-                label="monophasic",
-            ),
-            Line2D(
-                [],
-                [],
-                ls="",
-                marker="o",
-                ms=8,
-                mfc=level_colour(2, None, 1.0),
-                mec="#333333",
-                label="biphasic",
-            ),
+            Line2D([], [], ls="", marker="o", ms=8, mfc=colour, mec="#333333", label=label)
+            for colour, label in (
+                (OFF_COLOUR, "off"),
+                (level_colour(1, None, 1.0), "monophasic"),
+                (level_colour(2, None, 1.0), "biphasic"),
+            )
         ]
         self.fig.legend(
             handles=handles, loc="lower center", bbox_to_anchor=(0.5, 0.0), ncol=3, fontsize=8, frameon=False
