@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
     result.sent = audit.report()
     result.sent["requested_ua"] = result.current_ua
     result.sent["firmware"] = result.firmware
-    if result.firmware == "v2":
+    if result.heights_per_electrode:
         result.sent["electrode_heights_ua"] = electrode_heights(result)
     design = check_study(result)
     say(f"study {study.name}: writing the report to {args.out}")

@@ -17,7 +17,7 @@ from typing import IO, Any
 
 from tactdeform_hw.device.driver.audit import AuditLog, describe_command
 from tactdeform_hw.device.participant.regions import RegionMap, tactdeform_region_map
-from tactdeform_hw.protocol.firmware import FirmwareSpec
+from tactdeform_hw.protocol.firmware import FirmwareSpec, get_firmware
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 _ACTIVE = (1, 2)
@@ -25,10 +25,12 @@ _ACTIVE = (1, 2)
 HEIGHTS_SHOWN = 64
 
 
-def _one_pulse_height(firmware: FirmwareSpec) -> bool:
-    """Whether the firmware has one pulse-height register for every electrode (v1.2), rather than a
-    height in each pattern element (v2)."""
-    return any(c.register == "pulse_height" for c in firmware.commands)
+def per_electrode_heights(firmware: FirmwareSpec | str) -> bool:
+    """Whether each electrode has its own pulse height, its pattern element (v2), rather than one
+    pulse-height register for every electrode (v1.2): the height of each must then be read back and
+    reported per electrode."""
+    spec = get_firmware(firmware)
+    return not any(c.register == "pulse_height" for c in spec.commands)
 
 
 class _Discard:
@@ -103,7 +105,7 @@ class DeliveryLog(AuditLog):
         if not ok:
             return
         name, value = describe_command(logical if logical is not None else data, self.firmware)
-        if not _one_pulse_height(self.firmware):  # each pattern element is its own height
+        if per_electrode_heights(self.firmware):  # each pattern element is its own height
             self._tx_heights(name, value)
             return
         if name == "PULSE_HEIGHT" and isinstance(value, int):

@@ -209,6 +209,14 @@ class StudyRun:
     #: The firmware the board ran (``v1.2`` or ``v2``), as the device found it.
     firmware: str = "v1.2"
 
+    @property
+    def heights_per_electrode(self) -> bool:
+        """Whether every electrode had its own pulse height (v2), so the checks read each one back and the
+        report lists the heights each was pulsed at."""
+        from ..session.delivery import per_electrode_heights
+
+        return per_electrode_heights(self.firmware)
+
 
 # --- scenes and poses ----------------------------------------------------------------------------------
 
