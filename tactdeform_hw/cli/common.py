@@ -99,33 +99,6 @@ def session_from_args(
     )
 
 
-def profile_from_args(args: argparse.Namespace, region_of: Any = None) -> Any:
-    """The participant profile named by ``--participant`` (None without one); raises
-    :class:`~tactdeform_hw.errors.ProfileError` naming the field for a bad file.  An upstream calibration
-    profile is converted through ``region_of`` (default: the TactDeform array's regions)."""
-    from ..session import read_participant
-
-    return read_participant(getattr(args, "participant", None), region_of)[0]
-
-
-def guard_from_args(
-    args: argparse.Namespace,
-    *,
-    region_of: Any = None,
-    mapping: Any = None,
-    against: str | None = None,
-    channel_offset: int = 0,
-) -> Any:
-    """The safety guard for ``--participant`` on this wiring (see :func:`tactdeform_hw.session.guard_for`):
-    the participant's limits, the 10 mA hardware ceiling without one.  Call it before opening the device,
-    so a bad profile sends nothing."""
-    from ..session import Wiring, guard_for, read_participant
-
-    wiring = Wiring(mapping=mapping, region_of=region_of, against=against, channel_offset=channel_offset)
-    profile, calibration = read_participant(getattr(args, "participant", None), region_of)
-    return guard_for(profile, calibration, wiring)
-
-
 def hold(device: Any, seconds: float, *, interval_s: float = 0.02) -> None:
     """Hold the current frame for ``seconds`` while telling the device's fail-safe watchdog that the
     owner is still there (a deliberate hold must not look like a stalled renderer)."""
