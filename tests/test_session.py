@@ -88,7 +88,8 @@ def test_the_session_opens_its_device_under_its_guard_and_log() -> None:
 
 def test_the_manager_states_are_an_enum_and_its_outputs_carry_their_text() -> None:
     assert (
-        State.IDLE == "idle"
+        State.IDLE == IDLE
+        and State("idle") is State.IDLE
         and f"{State.APPROACHING}" == "approaching"
         and str(State.INTERACTING) == "interacting"
     )
