@@ -208,6 +208,28 @@ class _Scene:
         edge = ax.transData.transform(self.pos[:1] + [self.radius, 0.0])
         self.radius_px = float(edge[0, 0] - disp[0, 0]) if len(self.pos) else 0.0
 
+    @classmethod
+    def of(
+        cls,
+        array: Any,
+        outline_mm: np.ndarray | None,
+        title: str | None,
+        size_px: tuple[int, int],
+        full_scale_ua: float | None,
+        show_current_scale: bool,
+        numbers: bool,
+    ) -> _Scene:
+        """The scene with the picture defaults: the array's name as title, the 10 mA full scale."""
+        return cls(
+            array,
+            outline_mm,
+            title or getattr(array, "name", "") or "electrode array",
+            size_px,
+            float(full_scale_ua or FULL_SCALE_UA),
+            show_current_scale,
+            numbers,
+        )
+
     def _discs(self, numbers: bool) -> list[Any]:
         """A disc per electrode at its position and radius, off; numbered when ``numbers``."""
         from matplotlib.patches import Circle
@@ -308,16 +330,7 @@ def draw_array_png(
     """A PNG of ``array`` showing ``levels`` (application order) at ``current_ua``."""
     _, _, Image = require(_PURPOSE)
     size_px = _check_size(size_px)
-    full = float(full_scale_ua or FULL_SCALE_UA)
-    scene = _Scene(
-        array,
-        outline_mm,
-        title or getattr(array, "name", "") or "electrode array",
-        size_px,
-        full,
-        current_ua is not None,
-        numbers,
-    )
+    scene = _Scene.of(array, outline_mm, title, size_px, full_scale_ua, current_ua is not None, numbers)
     rgb = scene.render(PictureFrame(tuple(int(v) for v in levels), 0.0, label, current_ua))
     p = Path(path)
     Image.fromarray(rgb).save(p, format="PNG")
@@ -376,16 +389,7 @@ def draw_array_gif(
     if stretched:
         notes.append(f"{stretched} frame(s) shorter than {min_frame_ms:g} ms were held {min_frame_ms:g} ms")
     currents = [f.current_ua for f in seq if f.current_ua is not None]
-    full = float(full_scale_ua or FULL_SCALE_UA)
-    scene = _Scene(
-        array,
-        outline_mm,
-        title or getattr(array, "name", "") or "electrode array",
-        size_px,
-        full,
-        bool(currents),
-        numbers,
-    )
+    scene = _Scene.of(array, outline_mm, title, size_px, full_scale_ua, bool(currents), numbers)
     images = [
         Image.fromarray(scene.render(f)).convert("P", palette=Image.Palette.ADAPTIVE, colors=255) for f in seq
     ]
