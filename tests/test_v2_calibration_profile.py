@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import copy
 import datetime as dt
 import json
@@ -155,29 +154,25 @@ def test_layout_mismatch_is_refused() -> None:
         cp.to_participant(cp.calibration_from_dict(upstream(16)), REGIONS)
 
 
-def _args(path: Path) -> argparse.Namespace:
-    return argparse.Namespace(participant=str(path))
-
-
 def test_participant_flag_takes_either_format(tmp_path: Path) -> None:
-    from tactdeform_hw.cli.common import guard_from_args, profile_from_args
+    from tactdeform_hw.session import Session, Wiring, read_participant
 
     cal_path = tmp_path / "cal.json"
     cal_path.write_text(json.dumps(upstream(intensity=250)))
     own = ParticipantProfile("P02", 2500, (2500,) * 9, dt.date(2026, 1, 2))
     own_path = save_profile(own, tmp_path / "p02.json")
-    from_cal = profile_from_args(_args(cal_path))
+    from_cal = read_participant(str(cal_path))[0]
     assert from_cal.cap_ua == 2500 and from_cal.regions_ua == (2500,) * 9
-    assert profile_from_args(_args(own_path)) == own
+    assert read_participant(str(own_path))[0] == own
     # the profile wires electrode i to channel 5i mod 32: the guard is for a device wired the same way
     wired = ChannelMapping(tuple((i * 5) % 32 for i in range(32)), 32)
-    assert guard_from_args(_args(cal_path), mapping=wired).cap_ua == 2500
+    assert Session(participant_file=str(cal_path), wiring=Wiring(mapping=wired)).guard.cap_ua == 2500
     with pytest.raises(SafetyError, match="electrode 1 is calibrated on hardware channel 5"):
-        guard_from_args(_args(cal_path))  # the identity wires it elsewhere
+        Session(participant_file=str(cal_path))  # the identity wires it elsewhere
 
 
 def test_a_bad_calibration_file_is_refused_before_anything_is_sent(tmp_path: Path) -> None:
-    from tactdeform_hw.cli.common import profile_from_args
+    from tactdeform_hw.session import read_participant
 
     bad = copy.deepcopy(upstream())
     bad["electrodes"][5]["mapping"] = 0
@@ -187,7 +182,7 @@ def test_a_bad_calibration_file_is_refused_before_anything_is_sent(tmp_path: Pat
         ProfileError,
         match=r"bad.json: electrodes\[5\].mapping: Duplicate hardware mapping 0.*nothing was sent",
     ):
-        profile_from_args(_args(path))
+        read_participant(str(path))
     path.write_text('{"format": "etactilekit_calibration_profile", "format": "x"}')
     with pytest.raises(ProfileError, match="duplicate key"):
-        profile_from_args(_args(path))
+        read_participant(str(path))

@@ -10,6 +10,7 @@ import sys
 import traceback
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from typing import Any
 
 from ..errors import TactDeformError
 
@@ -46,10 +47,19 @@ EXIT_STATUS_HELP = """exit status:
 Every error is one line 'tactdeform-hw COMMAND: error: ...'; --debug adds the traceback."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+class CommandLineParser(argparse.ArgumentParser):
+    """The top-level parser, knowing each command's own parser (so an error names the command and shows
+    its usage)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(**kwargs)
+        self.commands: dict[str, argparse.ArgumentParser] = {}
+
+
+def build_parser() -> CommandLineParser:
     from .. import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = CommandLineParser(
         prog="tactdeform-hw",
         description="eTactileKit protocol tools, a byte-exact firmware emulator and the TactDeform renderer. "
         "Every command that talks to a device takes --device: a serial port path, a pyserial URL, or "
@@ -67,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMANDS:
         importlib.import_module(f".{name}", __name__).register(sub)
+    parser.commands = dict(sub.choices)
     return parser
 
 
@@ -104,7 +115,7 @@ def _main(argv: Sequence[str] | None) -> int:
     debug = "--debug" in words[:end]  # accepted anywhere on the line, where a user adds it after an error
     args, extra = parser.parse_known_args([w for i, w in enumerate(words) if i >= end or w != "--debug"])
     if extra:  # said by the command's own parser, so the line names the command and shows its usage
-        commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+        commands = parser.commands
         (commands.get(getattr(args, "command", None) or "") or parser).error(
             f"unrecognized arguments: {' '.join(extra)}"
         )

@@ -18,7 +18,7 @@ from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from .common import add_device_arg, print_json, progress
-from .options import add_finisher, add_option, duration, range_check
+from .options import add_finisher, add_pulse_width, duration, range_check
 
 
 def register(sub: Any) -> None:
@@ -55,15 +55,7 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--max-ua", type=int, default=5000, help="calibration ceiling in µA, ≤ 10000 (default 5000)"
     )
-    add_option(
-        p,
-        "--pulse-width-us",
-        old=("--pulse-width",),
-        dest="pulse_width",
-        type=int,
-        default=200,
-        help="pulse width in µs (default 200, TactDeform)",
-    )
+    add_pulse_width(p, default=200, help="pulse width in µs (default 200, TactDeform)")
     p.add_argument("--polarity", choices=("anodic", "cathodic"), default="anodic")
     p.add_argument(
         "--contact-mode",
@@ -96,7 +88,7 @@ def register(sub: Any) -> None:
 _ID_RE = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
 
 
-def _targets(args: argparse.Namespace) -> tuple[str, Path]:
+def profile_targets(args: argparse.Namespace) -> tuple[str, Path]:
     part = args.participant
     looks_like_file = (
         "/" in part or "\\" in part or Path(part).suffix.lower() in (".yaml", ".yml", ".txt", ".ini", ".cfg")
@@ -195,19 +187,15 @@ def _calibration_wiring(args: argparse.Namespace, array_file: Any, electrodes: i
     return chans
 
 
-def run(args: argparse.Namespace) -> int:
-    from tactdeform_hw.device.participant.calibration import Calibration, Phase
-    from tactdeform_hw.device.participant.profiles import save_profile
+def _pad(args: argparse.Namespace) -> tuple[Any, Any, Any]:
+    """The pad under calibration: its array file (None: the TactDeform array), its channel mapping and the
+    map of its electrode positions; an electrode on a region's border, or a region without an electrode,
+    is refused (a region's stimulus must light only electrodes that lie in it)."""
     from tactdeform_hw.device.participant.regions import tactdeform_region_map
-    from tactdeform_hw.device.safety.guard import SafetyGuard
 
-    from ..device import StimConfig, open_device
     from ..errors import SafetyError
     from ..formats import read_array_file
-    from .delivered import DeliveryLog, delivered_lines
 
-    pid, out = _targets(args)
-    cal = Calibration(pid, max_ua=args.max_ua)
     array_file = read_array_file(args.array) if args.array else None
     mapping = array_file.channel_mapping() if array_file is not None else None
     rmap = array_file.region_map() if array_file is not None else tactdeform_region_map()
@@ -218,80 +206,47 @@ def run(args: argparse.Namespace) -> int:
             f"{', '.join(map(str, rmap.candidates[i]))}: a region's stimulus must light only electrodes that "
             "lie in it; nothing was sent"
         )
-    region_of = rmap.resolve(None)
-    missing = sorted(set(range(9)) - set(region_of))
+    missing = sorted(set(range(9)) - set(rmap.resolve(None)))
     if missing:
         raise ConfigurationError(f"--array: no electrode of {rmap.source} lies in region(s) {missing}")
-    wiring = _calibration_wiring(args, array_file, len(region_of))
-    config = StimConfig(
-        electrode_count=mapping.hw_channels if mapping is not None else 32,
-        current_ua=0,
-        pulse_width_us=args.pulse_width,
-        polarity=args.polarity,
-    )
-    guard = SafetyGuard(cap_ua=args.max_ua, participant=pid)  # its refusals and clips name the participant
-    from ..protocol.units import DEFAULT_TRANSFER
+    return array_file, mapping, rmap
 
-    config.validated(DEFAULT_TRANSFER)
-    guard.check_config(config)
-    keys = _script_keys(args)
-    audit = DeliveryLog(
-        args.audit_log,
-        mapping=mapping,
-        region_map=rmap,
-        command="calibrate",
-        participant=pid,
-        device=args.device,
-        array=args.array,
-    )
+
+def _procedure(
+    args: argparse.Namespace, dev: Any, cal: Any, region_of: tuple[int, ...], keys: Any
+) -> tuple[int, int]:
+    """Step the procedure through the keys on the open device; how many keys were taken and the highest
+    current asked for."""
     hold_s = (args.hold_ms or 0.0) / 1000.0
-    dev = open_device(
-        args.device,
-        timeout=args.timeout,
-        firmware=getattr(args, "firmware", "auto"),
-        mapping=mapping,
-        guard=guard,
-        audit=audit,
-    )
     steps = 0
     peak = 0
-    with dev:  # the command's stop session watches it (see common.run_command); closing switches all off
-        dev.configure(config)
-        stim = cal.stimulus()
+    stim = cal.stimulus()
+    progress(f"{stim.prompt}  [{stim.current_ua} µA]")
+    source = keys if keys is not None else _interactive_keys(dev)
+    for key in source:
+        stim = cal.press(key)
+        steps += 1
+        peak = max(peak, stim.current_ua)
+        _apply(dev, stim, region_of)
         progress(f"{stim.prompt}  [{stim.current_ua} µA]")
-        source = keys if keys is not None else _interactive_keys(dev)
-        for key in source:
-            stim = cal.press(key)
-            steps += 1
-            peak = max(peak, stim.current_ua)
-            _apply(dev, stim, region_of)
-            progress(f"{stim.prompt}  [{stim.current_ua} µA]")
-            if cal.finished:
-                break
-            if keys is not None and hold_s > 0:
-                _hold(dev, hold_s)
-        dev.all_off()
-    audit.close()
-    delivered = audit.report()
-    delivered["requested_ua"] = peak  # the highest step asked for
-    result: dict[str, Any] = {
-        "participant": pid,
-        "phase": cal.phase.value,
-        "keys": steps,
-        "peak_ua": peak,
-        "array": args.array,
-        "delivered": delivered,
-    }
-    if cal.phase is not Phase.DONE:
-        result["profile"] = None
-        if args.json:
-            print_json(result)
-        else:
-            for line in delivered_lines(delivered):
-                progress(line)
-        why = "quit" if cal.phase is Phase.ABORTED else f"the keys ended in phase {cal.phase.value}"
-        progress(f"calibration not finished ({why}); no profile written")
-        return 1
+        if cal.finished:
+            break
+        if keys is not None and hold_s > 0:
+            _hold(dev, hold_s)
+    return steps, peak
+
+
+def _write_profiles(
+    args: argparse.Namespace,
+    cal: Any,
+    out: Path,
+    region_of: tuple[int, ...],
+    wiring: list[int] | None,
+    result: dict[str, Any],
+) -> Any:
+    """Write the participant profile (and with ``--calibration-out`` the eTactileKit calibration profile)."""
+    from tactdeform_hw.device.participant.profiles import save_profile
+
     profile = cal.profile(
         pulse_width_us=args.pulse_width,
         polarity=args.polarity,
@@ -310,6 +265,78 @@ def run(args: argparse.Namespace) -> int:
         )
         result["calibration_profile"] = str(save_calibration_profile(etk, args.calibration_out))
     result.update(profile.to_dict())
+    return profile
+
+
+def _unfinished(args: argparse.Namespace, cal: Any, result: dict[str, Any]) -> int:
+    from tactdeform_hw.device.participant.calibration import Phase
+
+    from .delivered import delivered_lines
+
+    result["profile"] = None
+    if args.json:
+        print_json(result)
+    else:
+        for line in delivered_lines(result["delivered"]):
+            progress(line)
+    why = "quit" if cal.phase is Phase.ABORTED else f"the keys ended in phase {cal.phase.value}"
+    progress(f"calibration not finished ({why}); no profile written")
+    return 1
+
+
+def run(args: argparse.Namespace) -> int:
+    from tactdeform_hw.device.participant.calibration import Calibration, Phase
+    from tactdeform_hw.device.safety.guard import SafetyGuard
+
+    from ..device import StimConfig
+    from ..protocol.units import DEFAULT_TRANSFER
+    from ..session import Session, Wiring
+    from .delivered import delivered_lines
+
+    pid, out = profile_targets(args)
+    cal = Calibration(pid, max_ua=args.max_ua)
+    array_file, mapping, rmap = _pad(args)
+    region_of = rmap.resolve(None)
+    wiring = _calibration_wiring(args, array_file, len(region_of))
+    config = StimConfig(
+        electrode_count=mapping.hw_channels if mapping is not None else 32,
+        current_ua=0,
+        pulse_width_us=args.pulse_width,
+        polarity=args.polarity,
+    )
+    # its refusals and clips name the participant; the profile being made is not read
+    session = Session(
+        device=args.device,
+        timeout_s=args.timeout,
+        firmware=getattr(args, "firmware", "auto"),
+        audit_path=args.audit_log,
+        wiring=Wiring(mapping=mapping, positions=rmap),
+        guard=SafetyGuard(cap_ua=args.max_ua, participant=pid),
+    )
+    config.validated(DEFAULT_TRANSFER)
+    session.guard.check_config(config)
+    keys = _script_keys(args)
+    header = {"command": "calibrate", "participant": pid, "device": args.device, "array": args.array}
+    audit = session.delivery_log(header, guard_regions=False)
+    dev = session.open_device()
+    with dev:  # the command's stop session watches it (see common.run_command); closing switches all off
+        dev.configure(config)
+        steps, peak = _procedure(args, dev, cal, region_of, keys)
+        dev.all_off()
+    audit.close()
+    delivered = audit.report()
+    delivered["requested_ua"] = peak  # the highest step asked for
+    result: dict[str, Any] = {
+        "participant": pid,
+        "phase": cal.phase.value,
+        "keys": steps,
+        "peak_ua": peak,
+        "array": args.array,
+        "delivered": delivered,
+    }
+    if cal.phase is not Phase.DONE:
+        return _unfinished(args, cal, result)
+    profile = _write_profiles(args, cal, out, region_of, wiring, result)
     if args.json:
         print_json(result)
     else:

@@ -78,108 +78,25 @@ def add_participant_arg(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def _participant_file(args: argparse.Namespace, region_of: Any = None) -> tuple[Any, Any]:
-    """``--participant``'s participant profile and, for an eTactileKit calibration profile, the calibration
-    profile itself ((None, None) without the option).  ``region_of`` (one region per electrode, or a
-    :class:`~tactdeform_hw.device.participant.regions.RegionMap` of the electrode positions) converts a
-    calibration
-    profile's intensities to regions; default: the TactDeform array's regions."""
-    path = getattr(args, "participant", None)
-    if not path:
-        return None, None
-    from tactdeform_hw.device.participant.regions import RegionMap
-
-    from ..formats.calibration_profile import read_participant_file
-
-    if isinstance(region_of, RegionMap):
-        region_of = region_of.resolve(None)
-    if region_of is None:
-        from ..render.array import ElectrodeArray
-
-        region_of = ElectrodeArray.tactdeform().regions
-    return read_participant_file(path, region_of)
-
-
-def profile_from_args(args: argparse.Namespace, region_of: Any = None) -> Any:
-    """The participant profile named by ``--participant`` (None without one); raises
-    :class:`~tactdeform_hw.errors.ProfileError` naming the field for a bad file.  An upstream calibration
-    profile is converted through ``region_of`` (default: the TactDeform array's regions)."""
-    return _participant_file(args, region_of)[0]
-
-
-def guard_with_array(args: argparse.Namespace, array_file: Any, mapping: Any) -> Any:
-    """:func:`guard_from_args` for a command that may take ``--array``: regional limits by the array
-    file's positions, and a calibration profile checked against its ``Mapping_func`` (an on-board
-    array's counts from hardware channel 24)."""
-    if array_file is None:
-        return guard_from_args(args, mapping=mapping)
-    return guard_from_args(
-        args,
-        region_of=array_file.region_map(),
-        mapping=mapping,
-        against=f"--array {array_file.source}'s Mapping_func",
-        channel_offset=array_file.pattern_offset,
-    )
-
-
-def guard_from_args(
-    args: argparse.Namespace,
-    *,
-    region_of: Any = None,
-    mapping: Any = None,
-    against: str | None = None,
-    channel_offset: int = 0,
+def session_from_args(
+    args: argparse.Namespace, wiring: Any = None, *, guard: Any = None, guard_now: bool = True
 ) -> Any:
-    """The safety guard for this command: the participant's limits with ``--participant``, the 10 mA
-    hardware ceiling without.  Call it before opening the device, so a bad profile sends nothing.
+    """The :class:`~tactdeform_hw.session.Session` of a stimulating command: ``--device``, ``--timeout-s``,
+    ``--firmware``, ``--participant`` and ``--audit-log`` on ``wiring``.  The profile is read here (and the
+    guard built, unless ``guard_now`` is False), so call it before anything is opened: a bad profile sends
+    nothing."""
+    from ..session import Session
 
-    ``mapping`` is the channel mapping the command will open the device with (None: the identity) and
-    ``against`` names it for errors; ``channel_offset`` is an on-board array's (its ``Mapping_func`` counts
-    from hardware channel 24).  An eTactileKit calibration profile's intensities bind the hardware
-    channels its ``mapping`` names, and a profile whose mapping disagrees with ``mapping`` is refused
-    here, before the device is opened."""
-    from tactdeform_hw.device.participant.regions import RegionMap
-    from tactdeform_hw.device.safety.guard import SafetyGuard
-
-    from ..formats.calibration_profile import calibration_guard
-
-    profile, calibration = _participant_file(args, region_of)
-    if profile is None:
-        return SafetyGuard()
-    if calibration is None:
-        return SafetyGuard.from_profile(profile, region_of=region_of)
-    if against is None:
-        against = (
-            "the identity mapping (electrode i on channel i; no --array)"
-            if mapping is None
-            else "the device's channel mapping"
-        )
-    by_id = region_of.resolve(None) if isinstance(region_of, RegionMap) else region_of
-    if by_id is None:
-        from ..render.array import ElectrodeArray
-
-        by_id = tuple(int(r) for r in ElectrodeArray.tactdeform().regions)
-    return calibration_guard(
-        calibration,
-        by_id,
-        region_map=region_of,
-        mapping=mapping,
-        against=against,
-        channel_offset=channel_offset,
+    return Session(
+        device=args.device,
+        timeout_s=args.timeout,
+        firmware=getattr(args, "firmware", "auto"),
+        participant_file=getattr(args, "participant", None),
+        audit_path=getattr(args, "audit_log", None),
+        wiring=wiring,
+        guard=guard,
+        guard_now=guard_now,
     )
-
-
-def audit_from_args(args: argparse.Namespace, **session: Any) -> Any:
-    """An :class:`~tactdeform_hw.device.driver.audit.AuditLog` for ``--audit-log`` (None without one)."""
-    path = getattr(args, "audit_log", None)
-    if not path:
-        return None
-    from tactdeform_hw.device.driver.audit import AuditLog
-
-    session.setdefault("command", getattr(args, "command", None))
-    session.setdefault("device", getattr(args, "device", None))
-    session.setdefault("participant_file", getattr(args, "participant", None))
-    return AuditLog(path, **session)
 
 
 def hold(device: Any, seconds: float, *, interval_s: float = 0.02) -> None:

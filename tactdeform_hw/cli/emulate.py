@@ -32,6 +32,15 @@ def register(sub: Any) -> None:
         "shows the registers in force, the queue depth, scans per second, overruns and hazards. "
         "SIGUSR1 power-cycles the board. Serves until interrupted (Ctrl-C or SIGTERM).",
     )
+    _where_options(p)
+    _firmware_options(p)
+    _board_options(p)
+    _output_options(p)
+    p.set_defaults(func=run)
+
+
+def _where_options(p: argparse.ArgumentParser) -> None:
+    """Where the board is served: a pseudo-terminal, a TCP port or its USB device."""
     where = p.add_mutually_exclusive_group(required=True)
     where.add_argument("--pty", action="store_true", help="serve on a pseudo-terminal")
     where.add_argument(
@@ -47,6 +56,10 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--host", default="127.0.0.1", help="address --tcp listens on (default 127.0.0.1, loopback only)"
     )
+
+
+def _firmware_options(p: argparse.ArgumentParser) -> None:
+    """The firmware the board runs and the discovery its Wi-Fi build answers."""
     p.add_argument(
         "--firmware",
         choices=("v1.2", "v2"),
@@ -68,6 +81,10 @@ def register(sub: Any) -> None:
         help="the 6-hex-digit id discovery reports (default: the id the firmware derives from an "
         "Espressif MAC, F93030)",
     )
+
+
+def _board_options(p: argparse.ArgumentParser) -> None:
+    """The board: the build's receive rules, timed or not, its kind and what resets it."""
     p.add_argument(
         "--build",
         choices=("serial", "serial-uart", "wifi"),
@@ -86,6 +103,10 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--reset-on-open", action="store_true", help="power-cycle the board whenever a client opens the port"
     )
+
+
+def _output_options(p: argparse.ArgumentParser) -> None:
+    """What the command shows and records while it serves."""
     p.add_argument(
         "--spy", action="store_true", help="hex-dump every byte both ways with timestamps to stderr"
     )
@@ -98,7 +119,6 @@ def register(sub: Any) -> None:
         help="record a waveform trace of the timed model that answers the client: .vcd (GTKWave; needs the "
         "'trace' extra), .csv or .json event list",
     )
-    p.set_defaults(func=run)
 
 
 #: the MAC the emulated Wi-Fi board reports its id from (Espressif's OUI 30:30:F9)
@@ -156,39 +176,162 @@ def _check(args: argparse.Namespace) -> None:
         )
 
 
-def run(args: argparse.Namespace) -> int:
-    from tactdeform_hw.emulator.serving.realtime import (
-        BUILD_RULES,
-        FallBehind,
-        LiveView,
-        RealtimeEmulator,
-        ResetRecord,
-    )
+def _board(args: argparse.Namespace, rules: Any) -> Any:
+    """The emulated board: the firmware's timed model locked to the wall clock, or with ``--untimed`` one
+    that answers every write at once."""
+    from tactdeform_hw.emulator.serving.realtime import RealtimeEmulator
 
     from ..emulator import Emulator
 
+    if args.untimed:
+        return Emulator(args.board, args.switching_boards, firmware=args.firmware)
+    return RealtimeEmulator(args.board, args.switching_boards, rules=rules, firmware=args.firmware)
+
+
+def _trace_sink(args: argparse.Namespace, board: Any) -> Any:
+    """``--trace``: the waveform recorder attached to the board's timed model (None without it)."""
+    if not args.trace:
+        return None
+    from tactdeform_hw.emulator.records.trace import open_trace
+    from tactdeform_hw.emulator.serving.realtime import BackgroundSink
+
+    sink = BackgroundSink(open_trace(args.trace))
+    with board.lock:
+        board.timed.attach(sink)
+    return sink
+
+
+def _server(args: argparse.Namespace, board: Any, rules: Any, opts: dict[str, Any]) -> tuple[Any, str]:
+    """The server for ``--tcp``, ``--usb`` or ``--pty`` and the address a client opens."""
+    if args.tcp is not None:
+        from tactdeform_hw.emulator.serving.tcp_server import TcpServer
+
+        host, port = args.tcp_address
+        server = TcpServer(board, host=host, port=port, rules=rules, **opts)
+        return server, f"{server.address[0]}:{server.address[1]}"
+    if args.usb:
+        from tactdeform_hw.emulator.serving.usb_server import UsbServer
+
+        usb = UsbServer(board, **opts)
+        return usb, usb.name
+    from tactdeform_hw.emulator.serving.pty_server import PtyServer
+
+    pty = PtyServer(board, **opts)
+    return pty, pty.path
+
+
+def _discovery(args: argparse.Namespace, server: Any) -> Any:
+    """The v2 Wi-Fi build's UDP discovery responder (None where the board answers none); the server is
+    stopped if it cannot be made."""
+    if args.tcp is None or args.firmware != "v2" or args.discovery_port == 0:
+        return None
+    from tactdeform_hw.emulator.serving.udp_discovery import (
+        DISCOVERY_PORT,
+        DiscoveryResponder,
+        device_id_from_mac,
+    )
+
+    kit_id = (args.kit_id or device_id_from_mac(EMULATED_MAC)).upper()
+    try:
+        return DiscoveryResponder(
+            kit_id,
+            host=server.address[0],
+            port=DISCOVERY_PORT if args.discovery_port is None else args.discovery_port,
+            tcp_port=server.address[1],
+        )
+    except BaseException:
+        server.stop()
+        raise
+
+
+def _announce(args: argparse.Namespace, where: str, mode: str, responder: Any) -> None:
+    print(where, flush=True)
+    progress(
+        f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {where}, "
+        f"{mode}; SIGUSR1 resets it"
+    )
+    if responder is not None:
+        progress(
+            f"answering discovery on UDP {responder.address[0]}:{responder.address[1]} as "
+            f"etactilekit-{responder.device_id} (etactilekit://{responder.device_id}?discovery="
+            f"{responder.address[0]}:{responder.address[1]})"
+        )
+
+
+def _report_behind(behind: list[Any]) -> None:
+    """The board's fall-behinds since the last look: the first three, then how many more."""
+    n = len(behind)
+    for fb in behind[:3]:
+        progress(str(fb))
+    if n > 3:
+        progress(
+            f"fell behind the wall clock {n - 3} more time(s) (worst "
+            f"{max(b.lag_us for b in behind) / 1000:.2f} ms)"
+        )
+    del behind[:n]
+
+
+def _serve(
+    args: argparse.Namespace,
+    board: Any,
+    server: Any,
+    behind: list[Any],
+    resets: list[Any],
+    reset_requested: list[str],
+) -> None:
+    """Watch the served board until interrupted: apply resets, report resets, fall-behinds, hazards and
+    (unless ``--quiet``) the live view."""
+    from tactdeform_hw.emulator.serving.realtime import LiveView
+
+    seen_hazards = 0
+    view = LiveView()
+    while True:
+        time.sleep(0.05)
+        while reset_requested:
+            server.reset(reset_requested.pop())
+        while resets:
+            progress(str(resets.pop(0)))
+        if behind:
+            _report_behind(behind)
+        if args.untimed:
+            while seen_hazards < len(board.hazards):
+                progress(f"hazard: {board.hazards[seen_hazards]}")
+                seen_hazards += 1
+        elif not args.quiet:
+            for line in view.poll(board, time.monotonic()):
+                progress(line)
+
+
+def _stopped(args: argparse.Namespace, board: Any, server: Any) -> str:
+    """The summary line of a stopped server."""
+    summary = (
+        f"stopped: {server.bytes_in} bytes in, {server.bytes_out} bytes out, "
+        f"{len(server.emulator.hazards)} hazard(s)"
+    )
+    if not args.untimed:
+        st = board.lag.stats()
+        summary += (
+            f", {len(server.resets)} reset(s); lag median {st['median_us'] / 1000:.3f} ms, p99 "
+            f"{st['p99_us'] / 1000:.3f} ms, max {st['max_us'] / 1000:.3f} ms over {st['wakeups']} "
+            f"wake-up(s), {st['behind']} fall-behind(s) > {board.lag.limit_us / 1000:g} ms; serving "
+            f"thread CPU {server.cpu_s:.2f} s"
+        )
+    return summary
+
+
+def run(args: argparse.Namespace) -> int:
+    from tactdeform_hw.emulator.serving.realtime import BUILD_RULES, FallBehind, ResetRecord
+
     _check(args)
     rules = BUILD_RULES[args.build or ("wifi" if args.tcp is not None else "serial")]
-    board: Any
-    if args.untimed:
-        board = Emulator(args.board, args.switching_boards, firmware=args.firmware)
-    else:
-        board = RealtimeEmulator(args.board, args.switching_boards, rules=rules, firmware=args.firmware)
-
+    board = _board(args, rules)
     behind: list[FallBehind] = []
     resets: list[ResetRecord] = []
 
     def spy(direction: str, data: bytes, t: float) -> None:
         progress(f"{t:.6f} {direction} {data.hex(' ')}")
 
-    sink = None
-    if args.trace:
-        from tactdeform_hw.emulator.records.trace import open_trace
-        from tactdeform_hw.emulator.serving.realtime import BackgroundSink
-
-        sink = BackgroundSink(open_trace(args.trace))
-        with board.lock:
-            board.timed.attach(sink)
+    sink = _trace_sink(args, board)
     if not args.untimed:
         board.on_behind = behind.append
     opts: dict[str, Any] = {
@@ -196,113 +339,33 @@ def run(args: argparse.Namespace) -> int:
         "reset_on_open": args.reset_on_open,
         "on_reset": resets.append,
     }
-    server: Any
-    if args.tcp is not None:
-        from tactdeform_hw.emulator.serving.tcp_server import TcpServer
-
-        host, port = args.tcp_address
-        server = TcpServer(board, host=host, port=port, rules=rules, **opts)
-        where = f"{server.address[0]}:{server.address[1]}"
-    elif args.usb:
-        from tactdeform_hw.emulator.serving.usb_server import UsbServer
-
-        server = UsbServer(board, **opts)
-        where = server.name
-    else:
-        from tactdeform_hw.emulator.serving.pty_server import PtyServer
-
-        server = PtyServer(board, **opts)
-        where = server.path
+    server, where = _server(args, board, rules, opts)
     mode = "untimed (instant)" if args.untimed else f"in real time, {rules.name} build rules"
     mode += f", firmware {args.firmware}"
-    responder = None
-    if args.tcp is not None and args.firmware == "v2" and args.discovery_port != 0:
-        from tactdeform_hw.emulator.serving.udp_discovery import (
-            DISCOVERY_PORT,
-            DiscoveryResponder,
-            device_id_from_mac,
-        )
-
-        kit_id = (args.kit_id or device_id_from_mac(EMULATED_MAC)).upper()
-        try:
-            responder = DiscoveryResponder(
-                kit_id,
-                host=server.address[0],
-                port=DISCOVERY_PORT if args.discovery_port is None else args.discovery_port,
-                tcp_port=server.address[1],
-            )
-        except BaseException:
-            server.stop()
-            raise
-
+    responder = _discovery(args, server)
     reset_requested: list[str] = []
 
     def _term(signum: int, frame: object) -> None:
         raise KeyboardInterrupt
 
     def _usr1(signum: int, frame: object) -> None:
-        # applied by the loop below: a handler must not take the board's lock
+        # applied by the loop: a handler must not take the board's lock
         reset_requested.append("SIGUSR1")
 
-    seen_hazards = 0
-    view = LiveView()
     try:  # from here on any stop (Ctrl-C or SIGTERM as soon as the path is out) ends in the finally below
         signal.signal(signal.SIGTERM, _term)
         if hasattr(signal, "SIGUSR1"):
             signal.signal(signal.SIGUSR1, _usr1)
         server.start()
-        print(where, flush=True)
-        progress(
-            f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {where}, "
-            f"{mode}; SIGUSR1 resets it"
-        )
-        if responder is not None:
-            progress(
-                f"answering discovery on UDP {responder.address[0]}:{responder.address[1]} as "
-                f"etactilekit-{responder.device_id} (etactilekit://{responder.device_id}?discovery="
-                f"{responder.address[0]}:{responder.address[1]})"
-            )
-        while True:
-            time.sleep(0.05)
-            while reset_requested:
-                server.reset(reset_requested.pop())
-            while resets:
-                progress(str(resets.pop(0)))
-            if behind:
-                n = len(behind)
-                for fb in behind[:3]:
-                    progress(str(fb))
-                if n > 3:
-                    progress(
-                        f"fell behind the wall clock {n - 3} more time(s) (worst "
-                        f"{max(b.lag_us for b in behind) / 1000:.2f} ms)"
-                    )
-                del behind[:n]
-            if args.untimed:
-                while seen_hazards < len(board.hazards):
-                    progress(f"hazard: {board.hazards[seen_hazards]}")
-                    seen_hazards += 1
-            elif not args.quiet:
-                for line in view.poll(board, time.monotonic()):
-                    progress(line)
+        _announce(args, where, mode, responder)
+        _serve(args, board, server, behind, resets, reset_requested)
     except KeyboardInterrupt:
         pass
     finally:
         server.stop()
         if responder is not None:
             responder.close()
-        summary = (
-            f"stopped: {server.bytes_in} bytes in, {server.bytes_out} bytes out, "
-            f"{len(server.emulator.hazards)} hazard(s)"
-        )
-        if not args.untimed:
-            st = board.lag.stats()
-            summary += (
-                f", {len(server.resets)} reset(s); lag median {st['median_us'] / 1000:.3f} ms, p99 "
-                f"{st['p99_us'] / 1000:.3f} ms, max {st['max_us'] / 1000:.3f} ms over {st['wakeups']} "
-                f"wake-up(s), {st['behind']} fall-behind(s) > {board.lag.limit_us / 1000:g} ms; serving "
-                f"thread CPU {server.cpu_s:.2f} s"
-            )
+        summary = _stopped(args, board, server)
         if sink is not None:
             with board.lock:
                 board.catch_up(record_lag=False)

@@ -16,7 +16,7 @@ from typing import Any
 
 from ..errors import ConfigurationError
 from .common import print_json, progress
-from .options import add_finisher, add_option, duration, polarity_code, range_check
+from .options import add_finisher, add_frequency, add_option, duration, polarity_code, range_check
 
 
 def register(sub: Any) -> None:
@@ -30,15 +30,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("frames", help="frames record written by 'tactdeform-hw render --frames'")
     p.add_argument("-o", "--out", required=True, help="pattern file to write (.json)")
-    add_option(
-        p,
-        "--frequency-hz",
-        old=("--frequency",),
-        dest="frequency",
-        type=int,
-        default=125,
-        help="params.frequency in Hz for every step (default 125)",
-    )
+    add_frequency(p, help="params.frequency in Hz for every step (default 125)")
     add_finisher(p, range_check("frequency", "--frequency-hz", 1, 65535, "Hz"))
     add_option(
         p,

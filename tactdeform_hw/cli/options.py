@@ -134,6 +134,44 @@ def add_option(
     return action
 
 
+def add_pulse_width(parser: argparse.ArgumentParser, *, default: int | None, help: str) -> None:
+    """``--pulse-width-us`` (earlier ``--pulse-width``), read as ``args.pulse_width``."""
+    add_option(
+        parser,
+        "--pulse-width-us",
+        old=("--pulse-width",),
+        dest="pulse_width",
+        type=int,
+        default=default,
+        help=help,
+    )
+
+
+def add_discharge(
+    parser: argparse.ArgumentParser, *, help: str = "discharge time in µs (default 45)"
+) -> None:
+    """``--discharge-us`` (earlier ``--discharge``), default 45 µs, read as ``args.discharge``."""
+    add_option(
+        parser, "--discharge-us", old=("--discharge",), dest="discharge", type=int, default=45, help=help
+    )
+
+
+def add_frequency(
+    parser: argparse.ArgumentParser, *, help: str = "stimulation rate in Hz (default 125)"
+) -> None:
+    """``--frequency-hz`` (earlier ``--frequency``), default 125 Hz, read as ``args.frequency``."""
+    add_option(
+        parser, "--frequency-hz", old=("--frequency",), dest="frequency", type=int, default=125, help=help
+    )
+
+
+def add_current(parser: argparse.ArgumentParser) -> None:
+    """``--current-ua`` of a command that stimulates at one current, 0 (patterns only) by default."""
+    parser.add_argument(
+        "--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)"
+    )
+
+
 def add_finisher(parser: argparse.ArgumentParser, fn: Callable[[argparse.Namespace], None]) -> None:
     """Run ``fn(args)`` after parsing, before the command (see :func:`finish`)."""
     parser.set_defaults(**{FINISH_ATTR: [*(parser.get_default(FINISH_ATTR) or []), fn]})

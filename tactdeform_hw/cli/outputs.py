@@ -45,9 +45,9 @@ NEEDS_EXTRA: dict[str, tuple[str, str, str]] = {
 
 
 def _calibrate_outputs(args: argparse.Namespace) -> list[tuple[str, str, str]]:
-    from .calibrate import _targets
+    from .calibrate import profile_targets
 
-    _pid, out = _targets(args)
+    _pid, out = profile_targets(args)
     flag = "--out" if getattr(args, "out", None) else "--participant"
     found = [(str(out), flag, FILE)]
     if getattr(args, "calibration_out", None):

@@ -26,15 +26,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from ..errors import ConfigurationError, TactDeformError
-from .common import (
-    add_device_arg,
-    add_participant_arg,
-    guard_with_array,
-    hold,
-    print_json,
-    progress,
-)
-from .options import add_option
+from .common import add_device_arg, add_participant_arg, hold, print_json, progress, session_from_args
+from .options import add_current, add_discharge, add_pulse_width
 
 if TYPE_CHECKING:
     from tactdeform_hw.device.driver.config import Polarity
@@ -87,27 +80,9 @@ def register(sub: Any) -> None:
         help="electrode count the device scans (default: the pattern's length, or what --array needs); "
         "a pattern that does not fit is refused",
     )
-    p.add_argument(
-        "--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)"
-    )
-    add_option(
-        p,
-        "--pulse-width-us",
-        old=("--pulse-width",),
-        dest="pulse_width",
-        type=int,
-        default=200,
-        help="pulse width in µs (default 200)",
-    )
-    add_option(
-        p,
-        "--discharge-us",
-        old=("--discharge",),
-        dest="discharge",
-        type=int,
-        default=45,
-        help="discharge time in µs (default 45)",
-    )
+    add_current(p)
+    add_pulse_width(p, default=200, help="pulse width in µs (default 200)")
+    add_discharge(p)
     p.add_argument("--repeat", type=int, default=1, help="play the file this many times (default 1)")
     p.add_argument("--dry-run", action="store_true", help="check the file and print the plan; open no device")
     p.add_argument(
@@ -226,57 +201,42 @@ def _draw_gif(seq: Any, array_file: Any | None, path: str, current_ua: int) -> d
     return {"path": str(info.path), "frames": info.frames, "size_px": list(info.size_px)}
 
 
-def run(
-    args: argparse.Namespace,
-    *,
-    clock: Callable[[], float] = time.monotonic,
-    sleep: Callable[[float], None] = time.sleep,
-) -> int:
-    from ..device import ChannelMapping, StimConfig, open_device
-    from ..formats import read_array_file, read_pattern_file
-    from ..protocol.units import DEFAULT_TRANSFER
+def _device_channels(
+    args: argparse.Namespace, seq: Any, array_file: Any, n: int, mapping: Any
+) -> tuple[int, Any]:
+    """The channels the device is configured for and the mapping onto them, with ``--electrodes`` widening
+    an array file's (never narrowing it, never without an array file)."""
+    from ..device import ChannelMapping
 
-    seq = read_pattern_file(args.file)
-    array_file = read_array_file(args.array) if args.array else None
-    for note in seq.notes + (array_file.notes if array_file is not None else ()):
-        progress(f"note: {note}")
-    steps, n, mapping = plan_steps(seq, array_file, args.repeat)
-    if args.electrodes is not None and args.electrodes != n:
-        if array_file is None:
-            raise ConfigurationError(
-                f"{seq.source}: every step has {seq.electrodes} value(s) but --electrodes is "
-                f"{args.electrodes}; use --electrodes {seq.electrodes}, or --array with the electrode-array "
-                "file the pattern was made for so its Mapping_func places the electrodes on hardware "
-                "channels"
-            )
-        if args.electrodes < n:
-            raise ConfigurationError(
-                f"--electrodes={args.electrodes} is too few: {array_file.source}'s Mapping_func uses "
-                f"hardware channels up to {n - 1}"
-            )
-        mapping = ChannelMapping(array_file.channel_mapping().app_to_hw, args.electrodes)
-        n = args.electrodes
-
-    def make_config(frequency_hz: int, polarity: Polarity) -> StimConfig:
-        return StimConfig(
-            electrode_count=n,
-            current_ua=args.current_ua,
-            pulse_width_us=args.pulse_width,
-            discharge_us=args.discharge,
-            rate_hz=frequency_hz,
-            polarity=polarity,
+    if args.electrodes is None or args.electrodes == n:
+        return n, mapping
+    if array_file is None:
+        raise ConfigurationError(
+            f"{seq.source}: every step has {seq.electrodes} value(s) but --electrodes is "
+            f"{args.electrodes}; use --electrodes {seq.electrodes}, or --array with the electrode-array "
+            "file the pattern was made for so its Mapping_func places the electrodes on hardware "
+            "channels"
         )
+    if args.electrodes < n:
+        raise ConfigurationError(
+            f"--electrodes={args.electrodes} is too few: {array_file.source}'s Mapping_func uses "
+            f"hardware channels up to {n - 1}"
+        )
+    return args.electrodes, ChannelMapping(array_file.channel_mapping().app_to_hw, args.electrodes)
 
-    # Refuse every configuration before the port is opened (a bad participant profile too).  The regional
-    # limits follow each electrode's position in the array file, whatever order it lists them in.
-    guard = guard_with_array(args, array_file, mapping)
-    for key in {(s.frequency_hz, s.polarity) for s in steps}:
-        guard.check_config(make_config(*key).validated(DEFAULT_TRANSFER))
+
+def _plan_summary(
+    args: argparse.Namespace,
+    seq: Any,
+    steps: list[PlannedStep],
+    n: int,
+    mapping: Any,
+    array_file: Any,
+    guard: Any,
+) -> dict[str, Any]:
+    """The summary of what will be played, before anything is sent (the ``--json`` of a dry run)."""
     app_electrodes = len(steps[0].levels) if steps else seq.electrodes
-    if guard.positions_matter:
-        guard.require_positions(app_electrodes, f"{seq.source}: a pattern")
-
-    summary: dict[str, Any] = {
+    return {
         "file": seq.source,
         "device": None if args.dry_run else args.device,
         "dry_run": bool(args.dry_run),
@@ -293,62 +253,96 @@ def run(
         "scheduled_ms": sum(s.on_ms + s.off_ms for s in steps),
         "notes": list(seq.notes),
     }
+
+
+def _dry_run(
+    args: argparse.Namespace, seq: Any, steps: list[PlannedStep], n: int, summary: dict[str, Any]
+) -> int:
+    summary["plan"] = [
+        {"step": s.index, "active": sum(1 for v in s.levels if v), "on_ms": s.on_ms, "off_ms": s.off_ms}
+        for s in steps
+    ]
+    if args.json:
+        print_json(summary)
+    else:
+        print(
+            f"{seq.source}: {len(seq.steps)} step(s) × {args.repeat}, {summary['scheduled_ms']:g} ms, "
+            f"{seq.electrodes} electrode(s) on {n} channel(s) — dry run, nothing sent"
+        )
+    return 0
+
+
+def _report_switch_chips(dev: Any, n: int, summary: dict[str, Any]) -> None:
+    """Warn when the board's HV513 switch chips give fewer outputs than the channels scanned."""
+    try:
+        chips = dev.hv513_count()
+        summary["hv513_count"] = chips
+        if chips * 8 < n:
+            progress(
+                f"warning: the board reports {chips} HV513 switch chip(s) = {chips * 8} outputs, fewer "
+                f"than the {n} channels scanned; electrodes beyond them will not be stimulated"
+            )
+    except TactDeformError as exc:
+        progress(f"note: could not ask the board for its HV513 count ({exc})")
+
+
+def run(
+    args: argparse.Namespace,
+    *,
+    clock: Callable[[], float] = time.monotonic,
+    sleep: Callable[[float], None] = time.sleep,
+) -> int:
+    from ..device import StimConfig
+    from ..formats import read_array_file, read_pattern_file
+    from ..protocol.units import DEFAULT_TRANSFER
+    from ..session import Wiring
+
+    seq = read_pattern_file(args.file)
+    array_file = read_array_file(args.array) if args.array else None
+    for note in seq.notes + (array_file.notes if array_file is not None else ()):
+        progress(f"note: {note}")
+    steps, n, mapping = plan_steps(seq, array_file, args.repeat)
+    n, mapping = _device_channels(args, seq, array_file, n, mapping)
+
+    def make_config(frequency_hz: int, polarity: Polarity) -> StimConfig:
+        return StimConfig(
+            electrode_count=n,
+            current_ua=args.current_ua,
+            pulse_width_us=args.pulse_width,
+            discharge_us=args.discharge,
+            rate_hz=frequency_hz,
+            polarity=polarity,
+        )
+
+    # Refuse every configuration before the port is opened (a bad participant profile too).  The regional
+    # limits follow each electrode's position in the array file, whatever order it lists them in.
+    app_electrodes = len(steps[0].levels) if steps else seq.electrodes
+    session = session_from_args(args, Wiring.for_array_file(array_file, mapping, app_electrodes))
+    guard = session.guard
+    for key in {(s.frequency_hz, s.polarity) for s in steps}:
+        guard.check_config(make_config(*key).validated(DEFAULT_TRANSFER))
+    if guard.positions_matter:
+        guard.require_positions(app_electrodes, f"{seq.source}: a pattern")
+    summary = _plan_summary(args, seq, steps, n, mapping, array_file, guard)
     if args.gif:
         summary["gif"] = _draw_gif(seq, array_file, args.gif, args.current_ua)
     if args.dry_run:
-        summary["plan"] = [
-            {"step": s.index, "active": sum(1 for v in s.levels if v), "on_ms": s.on_ms, "off_ms": s.off_ms}
-            for s in steps
-        ]
-        if args.json:
-            print_json(summary)
-        else:
-            print(
-                f"{seq.source}: {len(seq.steps)} step(s) × {args.repeat}, {summary['scheduled_ms']:g} ms, "
-                f"{seq.electrodes} electrode(s) on {n} channel(s) — dry run, nothing sent"
-            )
-        return 0
-
+        return _dry_run(args, seq, steps, n, summary)
     if not seq.execution and not args.ignore_execution_flag:
         raise ConfigurationError(
             f"{seq.source}: Execution is false, so the eTactileKit GUI would only draw this file and send "
             "nothing; use --dry-run to check it, or --ignore-execution-flag to send it anyway"
         )
     report = None if args.quiet else progress
-    from .delivered import DeliveryLog, delivered_lines, session_region_map
-
-    log = DeliveryLog(
-        args.audit_log,
-        requested_ua=args.current_ua,
-        mapping=mapping,
-        region_map=session_region_map(array_file, app_electrodes),
-        region_of=guard.region_of,
-        command="play",
-        device=args.device,
-        participant_file=args.participant,
-        array=args.array,
-    )
-    with (
-        log,
-        open_device(
-            args.device,
-            timeout=args.timeout,
-            firmware=getattr(args, "firmware", "auto"),
-            mapping=mapping,
-            guard=guard,
-            audit=log,
-        ) as dev,
-    ):
-        try:
-            chips = dev.hv513_count()
-            summary["hv513_count"] = chips
-            if chips * 8 < n:
-                progress(
-                    f"warning: the board reports {chips} HV513 switch chip(s) = {chips * 8} outputs, fewer "
-                    f"than the {n} channels scanned; electrodes beyond them will not be stimulated"
-                )
-        except TactDeformError as exc:
-            progress(f"note: could not ask the board for its HV513 count ({exc})")
+    header = {
+        "command": "play",
+        "device": args.device,
+        "participant_file": args.participant,
+        "array": args.array,
+    }
+    log = session.delivery_log(header, requested_ua=args.current_ua)
+    with log, session.open_device() as dev:
+        _report_switch_chips(dev, n, summary)
         if sleep is time.sleep:  # a step held in real time feeds the fail-safe watchdog while it waits
             sleep = functools.partial(hold, dev)
         result = play_sequence(
@@ -365,10 +359,16 @@ def run(
     if args.json:
         print_json(summary)
     else:
-        print(
-            f"played {result.steps_played} step(s) of {seq.source} on {args.device} in "
-            f"{result.elapsed_ms / 1000:.3f} s (at most {result.max_late_ms:.1f} ms late); all channels off"
-        )
-        for line in delivered_lines(summary["delivered"]):
-            print(line)
+        _print_played(args, seq, result, summary)
     return 0
+
+
+def _print_played(args: argparse.Namespace, seq: Any, result: PlayResult, summary: dict[str, Any]) -> None:
+    from .delivered import delivered_lines
+
+    print(
+        f"played {result.steps_played} step(s) of {seq.source} on {args.device} in "
+        f"{result.elapsed_ms / 1000:.3f} s (at most {result.max_late_ms:.1f} ms late); all channels off"
+    )
+    for line in delivered_lines(summary["delivered"]):
+        print(line)

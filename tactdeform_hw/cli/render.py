@@ -17,21 +17,11 @@ import json
 import sys
 from typing import Any
 
-from .common import (
-    add_device_arg,
-    add_participant_arg,
-    guard_from_args,
-    print_json,
-    profile_from_args,
-    progress,
-)
+from .common import add_device_arg, add_participant_arg, print_json, progress, session_from_args
 from .options import add_option
 
 
 def register(sub: Any) -> None:
-    from ..render.scene import APPROACHES, CONTACT_MODES
-    from ..render.trajectories import TRAJECTORIES
-
     p: argparse.ArgumentParser = sub.add_parser(
         "render",
         help="render a study trajectory over a scene to a device (emulator by default)",
@@ -40,6 +30,16 @@ def register(sub: Any) -> None:
         "when it changes. --frames writes one JSON line per pattern held; with the emulator every sent "
         "pattern is checked against the emulator's pattern buffer and any mismatch exits with status 1.",
     )
+    _trajectory_options(p)
+    _rendering_options(p)
+    _output_options(p)
+    p.set_defaults(func=run)
+
+
+def _trajectory_options(p: argparse.ArgumentParser) -> None:
+    """The scene and the finger's trajectory over it."""
+    from ..render.trajectories import TRAJECTORIES
+
     p.add_argument(
         "--scene",
         required=True,
@@ -83,6 +83,12 @@ def register(sub: Any) -> None:
         default=None,
         help="tracking rate in Hz (default 72, the VR loop; synthetic only)",
     )
+
+
+def _rendering_options(p: argparse.ArgumentParser) -> None:
+    """How the contact is rendered, on which device, for which participant."""
+    from ..render.scene import APPROACHES, CONTACT_MODES
+
     p.add_argument(
         "--approach",
         choices=APPROACHES,
@@ -98,6 +104,10 @@ def register(sub: Any) -> None:
     )
     add_device_arg(p)
     add_participant_arg(p)
+
+
+def _output_options(p: argparse.ArgumentParser) -> None:
+    """What the run writes and shows."""
     p.add_argument("--frames", metavar="FILE", default=None, help="write the frames as JSON lines to FILE")
     p.add_argument(
         "--gif",
@@ -123,19 +133,12 @@ def register(sub: Any) -> None:
     p.add_argument("--realtime", action="store_true", help="pace the run to the trajectory's clock")
     p.add_argument("--json", action="store_true", help="print the run summary as JSON")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
-    p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from tactdeform_hw.device.driver.readback import pattern_readback
-
-    from ..device import open_device
+def _check_options(args: argparse.Namespace) -> bool:
+    """Refuse options that do not fit the trajectory; whether it is a recorded one (a CSV file)."""
     from ..errors import LimitError
-    from ..ports import is_instant
-    from ..render.array import ElectrodeArray
-    from ..render.pipeline import FrameRecord, Renderer
-    from ..render.scene import RenderOptions, load_scene
-    from ..render.trajectories import TRAJECTORIES, make_trajectory, scene_for_trajectory
+    from ..render.trajectories import TRAJECTORIES
 
     recorded = args.trajectory not in TRAJECTORIES
     if recorded and not args.trajectory.lower().endswith(".csv"):
@@ -157,33 +160,33 @@ def run(args: argparse.Namespace) -> int:
         raise LimitError("--rate", args.rate, "> 0 Hz")
     if args.speed is not None and (not args.speed > 0 or args.speed == float("inf")):
         raise LimitError("--speed", args.speed, "a finite speed > 0 mm/s")
-    from tactdeform_hw.device.participant.regions import region_map_from_positions
+    return recorded
 
-    from .delivered import DeliveryLog, delivered_lines
 
-    profile = profile_from_args(args)  # a bad profile is refused before anything is opened
-    array = ElectrodeArray.tactdeform()
-    # regional limits follow the positions of the array the renderer draws on
-    region_map = region_map_from_positions(array.positions_mm.tolist(), f"the {array.name} array")
-    guard = guard_from_args(
-        args,
-        region_of=region_map,
-        mapping=array.channel_mapping(),
-        against=f"the {array.name} array's channel mapping",
-    )
+def _current(args: argparse.Namespace, session: Any) -> None:
+    """The participant's current and contact mode where the command line gives none; an unsafe current is
+    refused here, before the device is opened."""
+    from ..errors import LimitError
+    from ..protocol.units import DEFAULT_TRANSFER
+
+    profile = session.profile
     if profile is not None:
         args.current_ua = profile.stimulation_ua if args.current_ua is None else args.current_ua
         args.contact_mode = args.contact_mode or profile.contact_mode
     args.current_ua = 0 if args.current_ua is None else args.current_ua
     if args.current_ua < 0:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
-    from ..protocol.units import DEFAULT_TRANSFER
+    guard = session.guard
+    guard.request(guard.validate_current(args.current_ua, DEFAULT_TRANSFER))  # above the cap: refused
 
-    # above the cap: refused before opening
-    guard.request(guard.validate_current(args.current_ua, DEFAULT_TRANSFER))
+
+def _scene(args: argparse.Namespace, recorded: bool) -> Any:
+    """The scene, with the options the command line gives replacing only their own fields."""
+    from ..render.scene import RenderOptions, load_scene
+    from ..render.trajectories import scene_for_trajectory
+
     scene = load_scene(args.scene)
     if args.approach is not None or args.contact_mode is not None:
-        # an option given on the command line replaces only its own field of the scene's options
         own = scene.options
         scene = scene.with_options(
             RenderOptions(
@@ -191,7 +194,26 @@ def run(args: argparse.Namespace) -> int:
             )
         )
     # A slide needs a surface of its texture level; the trajectory module gives a scene that has one.
-    scene = scene if recorded else scene_for_trajectory(args.trajectory, scene)
+    return scene if recorded else scene_for_trajectory(args.trajectory, scene)
+
+
+def _poses(args: argparse.Namespace, scene: Any, recorded: bool) -> list[Any]:
+    """The finger's poses: a recorded trajectory's rows, or a synthetic one planned over ``scene``."""
+    from ..errors import LimitError
+    from ..render.scene import RenderOptions
+    from ..render.trajectories import make_trajectory
+
+    if recorded:
+        from ..render.tracking import read_pose_csv, read_pose_rows
+
+        poses: list[Any]
+        if args.invalid_rows == "replay":
+            poses = list(read_pose_rows(args.trajectory))  # only a cell that is no number is an error
+        else:
+            poses = list(read_pose_csv(args.trajectory))  # a bad row is an error naming its line and column
+        if not poses:
+            raise LimitError("--trajectory", args.trajectory, "a CSV with at least one pose row")
+        return poses
     # The finger's path is geometry: plan it where faces, edges and corners are classified, whatever
     # approach renders it (the baselines' scenes do not classify features).
     plan = scene
@@ -202,103 +224,128 @@ def run(args: argparse.Namespace) -> int:
     kw: dict[str, Any] = {"rate_hz": args.rate, "seed": args.seed}
     if args.speed is not None:
         kw["speed_mm_s"] = args.speed
-    poses: list[Any]
-    if recorded:
-        from ..render.tracking import read_pose_csv, read_pose_rows
+    return list(make_trajectory(args.trajectory, plan, **kw))
 
-        if args.invalid_rows == "replay":
-            poses = list(read_pose_rows(args.trajectory))  # only a cell that is no number is an error
-        else:
-            poses = list(read_pose_csv(args.trajectory))  # a bad row is an error naming its line and column
-        if not poses:
-            raise LimitError("--trajectory", args.trajectory, "a CSV with at least one pose row")
-    else:
-        poses = make_trajectory(args.trajectory, plan, **kw)
+
+def _drive(
+    args: argparse.Namespace, session: Any, scene: Any, poses: list[Any], on_record: Any
+) -> tuple[Any, bool]:
+    """Open the device, render every pose to it; the run's summary and whether frames were read back."""
+    from ..ports import is_instant
+
+    stim_config = None
+    profile = session.profile
+    if profile is not None:  # the calibrated pulse; the guard refuses anything else
+        from ..device import StimConfig
+
+        stim_config = StimConfig(
+            electrode_count=session.wiring.mapping.hw_channels,
+            current_ua=args.current_ua,
+            pulse_width_us=profile.pulse_width_us,
+            polarity=profile.polarity,
+        )
+    offline_clock = None
+    if not args.realtime:
+        # on a port that answers at once (the in-process emulator) the session runs on the trajectory's clock
+        from ..clock import SimulatedClock
+
+        offline_clock = SimulatedClock()
+    total, quiet = len(poses), args.quiet
+
+    def report(i: int, s: Any) -> None:
+        if not quiet:
+            progress(f"render: {i}/{total} poses, {s.frames_sent} frames sent, {s.mismatches} mismatches")
+
+    with session.open_device(offline_clock=offline_clock) as dev:
+        # an instant port holds its pattern the moment it is sent: read it back when the port can show it
+        verify = session.readback(dev) if is_instant(getattr(dev, "port", None)) else None
+        renderer = session.renderer(
+            scene,
+            dev,
+            approach=args.approach,
+            contact_mode=args.contact_mode,
+            current_ua=args.current_ua,
+            stim_config=stim_config,
+            verify=verify,
+        )
+        every = max(1, total // 10) if total > 2000 else total + 1
+        summary = renderer.run(
+            poses, on_record=on_record, progress=report, progress_every=every, realtime=args.realtime
+        )
+    return summary, verify is not None
+
+
+def _pictures(
+    args: argparse.Namespace, array: Any, records: list[dict[str, Any]], result: dict[str, Any]
+) -> None:
+    """``--gif`` and ``--strip``: the held patterns drawn on the array."""
+    title = f"{args.trajectory} over {args.scene}"
+    if args.gif:
+        from ..viz.array_picture import draw_frames_gif
+
+        gif = draw_frames_gif(array, records, args.gif, current_ua=args.current_ua or None, title=title)
+        result["gif"] = {"path": str(gif.path), "frames": gif.frames, "notes": list(gif.notes)}
+    if args.strip:
+        from ..viz.strip import draw_frames_strip
+
+        strip = draw_frames_strip(array, records, args.strip, title=title)
+        result["strip"] = {"path": str(strip.path), "panels": strip.panels, "left_out": strip.left_out}
+
+
+def _print_result(result: dict[str, Any], summary: Any, verified: bool) -> None:
+    from .delivered import delivered_lines
+
+    states = ", ".join(f"{k} {v}" for k, v in sorted(result["states"].items()))
+    check = f", {summary.mismatches} mismatch(es) against the emulator" if verified else ""
+    print(
+        f"{result['poses']} poses ({states}); {result['frames_sent']} frames sent "
+        f"({result['interpolated']} interpolated){check}; median {result['step_us_median']} µs per pose"
+    )
+    if result["dropped"]:
+        print(f"dropped samples: {result['dropped']}")
+    if result["lost_tracking"]:
+        print(
+            f"tracking lost {result['lost_tracking']} time(s): all off; {result['held_resuming']} valid "
+            "sample(s) held back before stimulation resumed"
+        )
+    for line in delivered_lines(result["delivered"]):
+        print(line)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..render.pipeline import FrameRecord
+    from ..session import Wiring
+
+    recorded = _check_options(args)
+    # a bad profile is refused before anything is opened; regional limits follow the positions of the
+    # array the renderer draws on
+    session = session_from_args(args, Wiring.tactdeform())
+    _current(args, session)
+    scene = _scene(args, recorded)
+    poses = _poses(args, scene, recorded)
     scene.prepare()
-    total = len(poses)
-    quiet = args.quiet
-    if not quiet:
+    if not args.quiet:
         progress(
             f"render: {args.trajectory} over {args.scene}{'' if recorded else f' at {args.rate:g} Hz'}, "
-            f"{total} poses, approach {args.approach or scene.options.approach}, device {args.device}"
+            f"{len(poses)} poses, approach {args.approach or scene.options.approach}, device {args.device}"
         )
     out = open(args.frames, "w", encoding="utf-8") if args.frames else None  # noqa: SIM115
-    gif_records: list[dict[str, Any]] | None = [] if (args.gif or args.strip) else None
+    records: list[dict[str, Any]] | None = [] if (args.gif or args.strip) else None
+
+    def write(rec: FrameRecord) -> None:
+        if out is not None:
+            out.write(json.dumps(rec.to_json(), separators=(",", ":")) + "\n")
+        if records is not None:
+            records.append(rec.to_json())
+
+    audit = None
     try:
-        stim_config = None
-        if profile is not None:  # the calibrated pulse; the guard refuses anything else
-            from ..device import StimConfig
-
-            stim_config = StimConfig(
-                electrode_count=array.channel_mapping().hw_channels,
-                current_ua=args.current_ua,
-                pulse_width_us=profile.pulse_width_us,
-                polarity=profile.polarity,
-            )
-        audit = DeliveryLog(
-            args.audit_log,
-            requested_ua=args.current_ua,
-            mapping=array.channel_mapping(),
-            region_map=region_map,
-            region_of=guard.region_of,
-            command="render",
-            device=args.device,
-            participant_file=args.participant,
-            participant=profile.participant if profile is not None else None,
-        )
-        offline_clock = None
-        if not args.realtime:
-            # on a port that answers at once (the in-process emulator) the session runs on the
-            # trajectory's clock
-            from ..clock import SimulatedClock
-
-            offline_clock = SimulatedClock()
-        with open_device(
-            args.device,
-            timeout=args.timeout,
-            firmware=getattr(args, "firmware", "auto"),
-            mapping=array.channel_mapping(),
-            guard=guard,
-            audit=audit,
-            offline_clock=offline_clock,
-        ) as dev:
-            # an instant port holds its pattern the moment it is sent: read it back when the port can show it
-            verify = (
-                pattern_readback(dev, array.channel_mapping())
-                if is_instant(getattr(dev, "port", None))
-                else None
-            )
-            renderer = Renderer(
-                scene,
-                dev,
-                array=array,
-                approach=args.approach,
-                contact_mode=args.contact_mode,
-                current_ua=args.current_ua,
-                stim_config=stim_config,
-                verify=verify,
-            )
-
-            def write(rec: FrameRecord) -> None:
-                if out is not None:
-                    out.write(json.dumps(rec.to_json(), separators=(",", ":")) + "\n")
-                if gif_records is not None:
-                    gif_records.append(rec.to_json())
-
-            def report(i: int, s: Any) -> None:
-                if not quiet:
-                    progress(
-                        f"render: {i}/{total} poses, {s.frames_sent} frames sent, {s.mismatches} mismatches"
-                    )
-
-            every = max(1, total // 10) if total > 2000 else total + 1
-            summary = renderer.run(
-                poses, on_record=write, progress=report, progress_every=every, realtime=args.realtime
-            )
+        audit = session.delivery_log(session.header("render"), requested_ua=args.current_ua)
+        summary, verified = _drive(args, session, scene, poses, write)
     finally:
         if out is not None:
             out.close()
-        if "audit" in locals():
+        if audit is not None:
             audit.close()
     result = summary.as_dict()
     result["delivered"] = audit.report()
@@ -307,50 +354,20 @@ def run(args: argparse.Namespace) -> int:
             "scene": args.scene,
             "trajectory": args.trajectory,
             "rate_hz": None if recorded else args.rate,
-            "verified": verify is not None,
+            "verified": verified,
             "device": args.device,
             "frames_file": args.frames,
             "approach": scene.options.approach,
             "contact_mode": scene.options.contact_mode,
         }
     )
-    if gif_records is not None and args.gif:
-        from ..viz.array_picture import draw_frames_gif
-
-        gif = draw_frames_gif(
-            array,
-            gif_records,
-            args.gif,
-            current_ua=args.current_ua or None,
-            title=f"{args.trajectory} over {args.scene}",
-        )
-        result["gif"] = {"path": str(gif.path), "frames": gif.frames, "notes": list(gif.notes)}
-    if gif_records is not None and args.strip:
-        from ..viz.strip import draw_frames_strip
-
-        strip = draw_frames_strip(
-            array, gif_records, args.strip, title=f"{args.trajectory} over {args.scene}"
-        )
-        result["strip"] = {"path": str(strip.path), "panels": strip.panels, "left_out": strip.left_out}
+    if records is not None:
+        _pictures(args, session.wiring.array, records, result)
     if args.json:
         print_json(result)
     else:
-        states = ", ".join(f"{k} {v}" for k, v in sorted(result["states"].items()))
-        check = f", {summary.mismatches} mismatch(es) against the emulator" if verify is not None else ""
-        print(
-            f"{result['poses']} poses ({states}); {result['frames_sent']} frames sent "
-            f"({result['interpolated']} interpolated){check}; median {result['step_us_median']} µs per pose"
-        )
-        if result["dropped"]:
-            print(f"dropped samples: {result['dropped']}")
-        if result["lost_tracking"]:
-            print(
-                f"tracking lost {result['lost_tracking']} time(s): all off; {result['held_resuming']} valid "
-                "sample(s) held back before stimulation resumed"
-            )
-        for line in delivered_lines(result["delivered"]):
-            print(line)
-    if verify is not None and summary.mismatches:
+        _print_result(result, summary, verified)
+    if verified and summary.mismatches:
         print(
             f"render: emulator pattern buffer differs from a sent frame: {summary.first_mismatch}",
             file=sys.stderr,

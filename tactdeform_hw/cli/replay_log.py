@@ -266,93 +266,103 @@ def judge(table: dict[str, Any], hw: dict[int, tuple[int, int]] | None, guard: A
     return out
 
 
+def _participant_guard(args: argparse.Namespace) -> tuple[Any, Any]:
+    """``--participant``'s profile and the guard whose limits judge the replay: a participant profile's,
+    or an eTactileKit calibration profile's, each channel held to the electrode calibrated on it."""
+    from tactdeform_hw.device.safety.guard import SafetyGuard
+
+    from ..formats.calibration_profile import calibration_guard
+    from ..session import read_participant
+
+    region_of, offset = _calibration_layout(args.array)
+    prof, calibration = read_participant(args.participant, region_of)
+    if calibration is None:
+        return prof, SafetyGuard.from_profile(prof)
+    wiring = [offset + ch for ch in calibration.mapping()]
+    return prof, calibration_guard(
+        calibration, region_of, mapping=wiring, against="its own", channel_offset=offset
+    )
+
+
+def _judged(args: argparse.Namespace, table: Any, rep: dict[str, Any]) -> int:
+    """Judge every pulse against ``--participant``'s limits into ``rep``; 3 when one was above them."""
+    prof, guard = _participant_guard(args)
+    hw: dict[int, tuple[int, int]] | None = None
+    try:
+        hw, source = channel_regions(args.file, args.array, prof.regions_ua)
+    except ConfigurationError:
+        if guard.positions_matter:
+            raise
+        source = "no positions (the participant's limit is the same in every region)"
+    over = judge(table, hw, guard)
+    rep["judged_by"] = source
+    if hw is not None:
+        rep["channel_regions"] = {str(ch): {"electrode": e, "region": r} for ch, (e, r) in sorted(hw.items())}
+    rep["above_limit"] = over
+    rep["above_limit_count"] = len(over)
+    by: dict[int, dict[str, Any]] = {}
+    for o in over:
+        b = by.setdefault(
+            o["channel"],
+            {
+                "channel": o["channel"],
+                "electrode": o["electrode"],
+                "region": o["region"],
+                "limit_ua": o["limit_ua"],
+                "pulses": 0,
+                "max_current_ua": 0.0,
+                "first_s": o["t_s"],
+                "last_s": o["t_s"],
+            },
+        )
+        b["pulses"] += 1
+        b["max_current_ua"] = max(b["max_current_ua"], o["current_ua"])
+        b["last_s"] = o["t_s"]
+    rep["above_limit_by_channel"] = [by[k] for k in sorted(by)]
+    return 3 if over else 0
+
+
+def _print_replay(rep: dict[str, Any]) -> None:
+    print(f"replayed on the firmware {rep['firmware']} model ({rep['firmware_source']})")
+    print(
+        f"{rep['commands']} command(s) over {rep['duration_s']:.3f} s: {rep['pulses']} pulse(s), "
+        f"max {rep['max_current_ua']} µA, max {rep['max_charge_nc']} nC per pulse, "
+        f"{rep['total_charge_nc']} nC in all"
+    )
+    for ch, c in rep["channels"].items():
+        heights = c.get("heights_ua")
+        print(
+            f"  channel {ch:3d}: {c['pulses']:6d} pulses, max {c['max_current_ua']:8.1f} µA, "
+            f"{c['total_charge_nc']:10.1f} nC"
+            + (f", heights {', '.join(f'{h:g}' for h in heights)} µA" if heights else "")
+        )
+    if rep["losses"]:
+        print(f"  {len(rep['losses'])} loss(es) in the replay")
+    if "above_limit_count" in rep:
+        print(
+            f"  {rep['above_limit_count']} pulse(s) above the participant's limits (regions from "
+            f"{rep['judged_by']})"
+        )
+        for b in rep["above_limit_by_channel"]:
+            where = (
+                f"electrode {b['electrode']} in region {b['region']}"
+                if b["electrode"] is not None
+                else "no electrode mapped"
+                if b["limit_ua"] == 0
+                else "electrode unknown"
+            )
+            print(
+                f"  EXCESS channel {b['channel']} ({where}, limit {b['limit_ua']:g} µA): {b['pulses']} "
+                f"pulse(s) up to {b['max_current_ua']:g} µA, {b['first_s']:.6f}-{b['last_s']:.6f} s"
+            )
+
+
 def run(args: argparse.Namespace) -> int:
     rep = replay(args.file, link=args.link, tail_s=args.tail_ms / 1000.0, firmware=args.firmware)
     table = rep.pop("_table")
-    code = 0
-    if args.participant:
-        from tactdeform_hw.device.safety.guard import SafetyGuard
-
-        from ..formats.calibration_profile import calibration_guard, read_participant_file
-
-        region_of, offset = _calibration_layout(args.array)
-        prof, calibration = read_participant_file(args.participant, region_of)
-        if calibration is None:
-            guard = SafetyGuard.from_profile(prof)
-        else:
-            # an eTactileKit calibration profile: each channel is held to the electrode calibrated on it
-            wiring = [offset + ch for ch in calibration.mapping()]
-            guard = calibration_guard(
-                calibration, region_of, mapping=wiring, against="its own", channel_offset=offset
-            )
-        hw: dict[int, tuple[int, int]] | None = None
-        try:
-            hw, source = channel_regions(args.file, args.array, prof.regions_ua)
-        except ConfigurationError:
-            if guard.positions_matter:
-                raise
-            source = "no positions (the participant's limit is the same in every region)"
-        over = judge(table, hw, guard)
-        rep["judged_by"] = source
-        if hw is not None:
-            rep["channel_regions"] = {
-                str(ch): {"electrode": e, "region": r} for ch, (e, r) in sorted(hw.items())
-            }
-        rep["above_limit"] = over
-        rep["above_limit_count"] = len(over)
-        by: dict[int, dict[str, Any]] = {}
-        for o in over:
-            b = by.setdefault(
-                o["channel"],
-                {
-                    "channel": o["channel"],
-                    "electrode": o["electrode"],
-                    "region": o["region"],
-                    "limit_ua": o["limit_ua"],
-                    "pulses": 0,
-                    "max_current_ua": 0.0,
-                    "first_s": o["t_s"],
-                    "last_s": o["t_s"],
-                },
-            )
-            b["pulses"] += 1
-            b["max_current_ua"] = max(b["max_current_ua"], o["current_ua"])
-            b["last_s"] = o["t_s"]
-        rep["above_limit_by_channel"] = [by[k] for k in sorted(by)]
-        code = 3 if over else 0
+    code = _judged(args, table, rep) if args.participant else 0
     if args.json:
         print_json(rep)
     else:
-        print(f"replayed on the firmware {rep['firmware']} model ({rep['firmware_source']})")
-        print(
-            f"{rep['commands']} command(s) over {rep['duration_s']:.3f} s: {rep['pulses']} pulse(s), "
-            f"max {rep['max_current_ua']} µA, max {rep['max_charge_nc']} nC per pulse, "
-            f"{rep['total_charge_nc']} nC in all"
-        )
-        for ch, c in rep["channels"].items():
-            heights = c.get("heights_ua")
-            print(
-                f"  channel {ch:3d}: {c['pulses']:6d} pulses, max {c['max_current_ua']:8.1f} µA, "
-                f"{c['total_charge_nc']:10.1f} nC"
-                + (f", heights {', '.join(f'{h:g}' for h in heights)} µA" if heights else "")
-            )
-        if rep["losses"]:
-            print(f"  {len(rep['losses'])} loss(es) in the replay")
-        if "above_limit_count" in rep:
-            print(
-                f"  {rep['above_limit_count']} pulse(s) above the participant's limits (regions from "
-                f"{rep['judged_by']})"
-            )
-            for b in rep["above_limit_by_channel"]:
-                where = (
-                    f"electrode {b['electrode']} in region {b['region']}"
-                    if b["electrode"] is not None
-                    else "no electrode mapped"
-                    if b["limit_ua"] == 0
-                    else "electrode unknown"
-                )
-                print(
-                    f"  EXCESS channel {b['channel']} ({where}, limit {b['limit_ua']:g} µA): {b['pulses']} "
-                    f"pulse(s) up to {b['max_current_ua']:g} µA, {b['first_s']:.6f}-{b['last_s']:.6f} s"
-                )
+        _print_replay(rep)
     return code

@@ -6,15 +6,8 @@ import argparse
 from typing import Any
 
 from ..errors import ConfigurationError, LimitError
-from .common import (
-    add_device_arg,
-    add_participant_arg,
-    guard_with_array,
-    hold,
-    print_json,
-    profile_from_args,
-)
-from .options import add_option, duration
+from .common import add_device_arg, add_participant_arg, hold, print_json, session_from_args
+from .options import add_current, add_discharge, add_frequency, add_option, add_pulse_width, duration
 
 
 def register(sub: Any) -> None:
@@ -45,36 +38,10 @@ def register(sub: Any) -> None:
         "channels and its coordinates give each electrode's calibration region (the participant's limits "
         "follow positions, never list order)",
     )
-    p.add_argument(
-        "--current-ua", type=int, default=0, help="pulse current in µA, 10 µA steps, ≤ 10000 (default 0)"
-    )
-    add_option(
-        p,
-        "--pulse-width-us",
-        old=("--pulse-width",),
-        dest="pulse_width",
-        type=int,
-        default=None,
-        help="pulse width in µs (default: the participant's, else 200)",
-    )
-    add_option(
-        p,
-        "--discharge-us",
-        old=("--discharge",),
-        dest="discharge",
-        type=int,
-        default=45,
-        help="discharge time in µs (default 45)",
-    )
-    add_option(
-        p,
-        "--frequency-hz",
-        old=("--frequency",),
-        dest="frequency",
-        type=int,
-        default=125,
-        help="stimulation rate in Hz (default 125)",
-    )
+    add_current(p)
+    add_pulse_width(p, default=None, help="pulse width in µs (default: the participant's, else 200)")
+    add_discharge(p)
+    add_frequency(p)
     p.add_argument(
         "--polarity",
         choices=("anodic", "cathodic"),
@@ -123,31 +90,25 @@ def _pattern_levels(text: str, electrodes: int) -> list[int]:
         raise ConfigurationError(f"--pattern {text!r}: expected comma-separated integers") from exc
 
 
-def run(args: argparse.Namespace) -> int:
-    from ..device import StimConfig, open_device
-    from ..formats import read_array_file
-    from ..ports import board_state
-    from ..protocol.units import DEFAULT_TRANSFER
-    from .delivered import DeliveryLog, delivered_lines, session_region_map
+def _electrodes(args: argparse.Namespace, array_file: Any) -> int:
+    """The pattern's electrode count: the array file's (refusing a different ``--electrodes``), else
+    ``--electrodes`` (default 32)."""
+    if array_file is None:
+        return 32 if args.electrodes is None else int(args.electrodes)
+    if args.electrodes is not None and args.electrodes != array_file.electrodes:
+        raise ConfigurationError(
+            f"--electrodes={args.electrodes} but {array_file.source} has {array_file.electrodes} "
+            "electrode(s); leave --electrodes out with --array"
+        )
+    return int(array_file.electrodes)
 
-    array_file = read_array_file(args.array) if args.array else None
-    # a bad profile is refused before anything is opened; a calibration profile's electrodes are read
-    # through the array's positions
-    profile = profile_from_args(args, array_file.region_map() if array_file is not None else None)
-    mapping = array_file.channel_mapping() if array_file is not None else None
-    electrodes = args.electrodes
-    if array_file is not None:
-        if electrodes is not None and electrodes != array_file.electrodes:
-            raise ConfigurationError(
-                f"--electrodes={electrodes} but {array_file.source} has {array_file.electrodes} "
-                "electrode(s); leave --electrodes out with --array"
-            )
-        electrodes = array_file.electrodes
-    elif electrodes is None:
-        electrodes = 32
-    guard = guard_with_array(args, array_file, mapping)
-    config = StimConfig(
-        electrode_count=mapping.hw_channels if mapping is not None else electrodes,
+
+def _config(args: argparse.Namespace, profile: Any, channels: int) -> Any:
+    """The stimulation the command line asks for; the participant's pulse where it gives none."""
+    from ..device import StimConfig
+
+    return StimConfig(
+        electrode_count=channels,
         current_ua=args.current_ua,
         pulse_width_us=args.pulse_width
         if args.pulse_width is not None
@@ -156,30 +117,31 @@ def run(args: argparse.Namespace) -> int:
         rate_hz=args.frequency,
         polarity=args.polarity or (profile.polarity if profile else "anodic"),
     )
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..formats import read_array_file
+    from ..ports import board_state
+    from ..protocol.units import DEFAULT_TRANSFER
+    from ..session import Wiring
+    from .delivered import delivered_lines
+
+    array_file = read_array_file(args.array) if args.array else None
+    mapping = array_file.channel_mapping() if array_file is not None else None
+    # a bad profile is refused before anything is opened; a calibration profile's electrodes are read
+    # through the array's positions (without --array, the TactDeform array's for 32 electrodes)
+    unmapped = 32 if args.electrodes is None else args.electrodes
+    session = session_from_args(args, Wiring.for_array_file(array_file, mapping, unmapped), guard_now=False)
+    electrodes = _electrodes(args, array_file)
+    guard = session.guard
+    config = _config(args, session.profile, mapping.hw_channels if mapping is not None else electrodes)
     levels = parse_pattern(args.pattern, electrodes)
     config.validated(DEFAULT_TRANSFER)  # refuse before the port is even opened
     guard.check_config(config)
     if guard.positions_matter:
         guard.require_positions(electrodes, "--pattern")
-    log = DeliveryLog(
-        args.audit_log,
-        requested_ua=args.current_ua,
-        mapping=mapping,
-        region_map=session_region_map(array_file, electrodes),
-        region_of=guard.region_of,
-        command="send",
-        device=args.device,
-        participant_file=args.participant,
-        participant=profile.participant if profile else None,
-    )
-    dev = open_device(
-        args.device,
-        timeout=args.timeout,
-        firmware=getattr(args, "firmware", "auto"),
-        mapping=mapping,
-        guard=guard,
-        audit=log,
-    )
+    log = session.delivery_log(session.header("send"), requested_ua=args.current_ua)
+    dev = session.open_device()
     try:
         with dev:  # the command's stop session watches it (see common.run_command); closing switches all off
             dev.configure(config)

@@ -22,14 +22,7 @@ import math
 import sys
 from typing import Any
 
-from .common import (
-    add_device_arg,
-    add_participant_arg,
-    guard_from_args,
-    print_json,
-    profile_from_args,
-    progress,
-)
+from .common import add_device_arg, add_participant_arg, print_json, progress, session_from_args
 from .options import add_option
 
 EXIT_CHECK_FAILED = 3
@@ -110,7 +103,8 @@ def register(sub: Any) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import LimitError
-    from ..render.array import ElectrodeArray
+    from ..protocol.units import DEFAULT_TRANSFER
+    from ..session import Wiring
     from ..study.checks import check_study
     from ..study.report import write_report
     from ..study.runner import run_study
@@ -122,105 +116,47 @@ def run(args: argparse.Namespace) -> int:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
     if not (math.isfinite(args.tremor_mm) and 0 <= args.tremor_mm <= 5):
         raise LimitError("--tremor-mm", args.tremor_mm, "0 to 5 mm")
-    # A bad profile, study or trial list is refused before the device is opened.
-    profile = profile_from_args(args)
-    array = ElectrodeArray.tactdeform()
-    from tactdeform_hw.device.participant.regions import region_map_from_positions
-
-    from .delivered import DeliveryLog, delivered_lines
-
-    # regional limits follow the positions of the array the renderer draws on
-    region_map = region_map_from_positions(array.positions_mm.tolist(), f"the {array.name} array")
-    guard = guard_from_args(
-        args,
-        region_of=region_map,
-        mapping=array.channel_mapping(),
-        against=f"the {array.name} array's channel mapping",
-    )
+    # A bad profile, study or trial list is refused before the device is opened; regional limits follow
+    # the positions of the array the renderer draws on.
+    session = session_from_args(args, Wiring.tactdeform())
+    profile = session.profile
     mode = profile.contact_mode if profile is not None else "orientation"
     study = select_trials(
         build_study(args.study, seed=args.seed, quick=args.quick, contact_mode=mode), args.trials
     )
     if args.current_ua is not None:
         # above the cap: refused before opening
-        guard.request(guard.validate_current(args.current_ua, _transfer()))
-    audit = DeliveryLog(
-        args.audit_log,
-        requested_ua=args.current_ua,
-        mapping=array.channel_mapping(),
-        region_map=region_map,
-        region_of=guard.region_of,
-        command="study",
-        device=args.device,
-        participant_file=args.participant,
-        participant=profile.participant if profile else None,
-        study=args.study,
-    )
+        session.guard.request(session.guard.validate_current(args.current_ua, DEFAULT_TRANSFER))
+    audit = session.delivery_log(session.header("study", study=args.study), requested_ua=args.current_ua)
     say = (lambda _m: None) if args.quiet else progress
     say(
         f"study {study.name}: {len(study.trials)} trial(s){' (quick)' if study.quick else ''}, device "
         f"{args.device}, seed {args.seed}"
     )
-    try:
+    with audit:
         result = run_study(
             study,
-            device=args.device,
-            timeout=args.timeout,
+            session=session,
             rate_hz=args.rate,
             current_ua=args.current_ua,
-            guard=guard,
-            audit=audit,
-            profile=profile,
             timed=not args.no_timed,
             tremor_mm=args.tremor_mm,
             progress=say,
             realtime=args.realtime,
-            firmware=getattr(args, "firmware", "auto"),
         )
-    finally:
-        audit.close()
     result.sent = audit.report()
     result.sent["requested_ua"] = result.current_ua
     result.sent["firmware"] = result.firmware
-    if result.firmware == "v2":
+    if result.heights_per_electrode:
         result.sent["electrode_heights_ua"] = electrode_heights(result)
     design = check_study(result)
     say(f"study {study.name}: writing the report to {args.out}")
     report = write_report(result, design, args.out, pictures=not args.no_pictures, gif=args.gif)
     s = report["summary"]
     if args.json:
-        print_json(
-            {
-                "study": study.name,
-                "out": args.out,
-                "summary": s,
-                "design_checks": report["design_checks"],
-                "delivered": result.sent,
-                "pictures": report.get("pictures"),
-                "trials": [
-                    {
-                        "id": t["id"],
-                        "passed": t["passed"],
-                        "skipped": t["skipped"],
-                        "failed_checks": t.get("failed_checks", []),
-                    }
-                    for t in report["trials"]
-                ],
-            }
-        )
+        print_json(_json_summary(args, study, result, report))
     else:
-        verdict = "all checks passed" if s["all_passed"] else f"{s['failed']} trial(s) FAILED"
-        print(
-            f"{study.name}: {s['passed']}/{s['run']} trial(s) passed"
-            + (f", {s['skipped']} skipped" if s["skipped"] else "")
-            + f" — {verdict}; report in {args.out}/report.json and {args.out}/summary.md"
-        )
-        for name, n in s["failed_checks"].items():
-            print(f"  failed: {name} ({n} trial(s))")
-        for line in delivered_lines(result.sent):
-            print(line)
-        if "electrode_heights_ua" in result.sent:
-            print(heights_line(result.sent["electrode_heights_ua"]))
+        _print_summary(args, study, result, s)
     if not s["all_passed"]:
         if not args.quiet:
             print(
@@ -229,6 +165,47 @@ def run(args: argparse.Namespace) -> int:
             )
         return EXIT_CHECK_FAILED
     return 0
+
+
+def _json_summary(
+    args: argparse.Namespace, study: Any, result: Any, report: dict[str, Any]
+) -> dict[str, Any]:
+    """The ``--json`` of a study: the report's summary, what was delivered, each trial's verdict."""
+    return {
+        "study": study.name,
+        "out": args.out,
+        "summary": report["summary"],
+        "design_checks": report["design_checks"],
+        "delivered": result.sent,
+        "pictures": report.get("pictures"),
+        "trials": [
+            {
+                "id": t["id"],
+                "passed": t["passed"],
+                "skipped": t["skipped"],
+                "failed_checks": t.get("failed_checks", []),
+            }
+            for t in report["trials"]
+        ],
+    }
+
+
+def _print_summary(args: argparse.Namespace, study: Any, result: Any, s: dict[str, Any]) -> None:
+    """The console's account of a study: the verdict, the failed checks, what was delivered."""
+    from .delivered import delivered_lines
+
+    verdict = "all checks passed" if s["all_passed"] else f"{s['failed']} trial(s) FAILED"
+    print(
+        f"{study.name}: {s['passed']}/{s['run']} trial(s) passed"
+        + (f", {s['skipped']} skipped" if s["skipped"] else "")
+        + f" — {verdict}; report in {args.out}/report.json and {args.out}/summary.md"
+    )
+    for name, n in s["failed_checks"].items():
+        print(f"  failed: {name} ({n} trial(s))")
+    for line in delivered_lines(result.sent):
+        print(line)
+    if "electrode_heights_ua" in result.sent:
+        print(heights_line(result.sent["electrode_heights_ua"]))
 
 
 def electrode_heights(result: Any) -> list[list[float]] | None:
@@ -249,7 +226,7 @@ def electrode_heights(result: Any) -> list[list[float]] | None:
 
 def heights_line(heights: list[list[float]] | None) -> str:
     """The console's line for the per-electrode heights on v2 (electrodes grouped by equal heights)."""
-    from .delivered import _span
+    from .delivered import span
 
     if heights is None:
         return "firmware v2: per-electrode heights not known (no timed replay)"
@@ -260,13 +237,7 @@ def heights_line(heights: list[list[float]] | None) -> str:
     if not groups:
         return "firmware v2: no electrode was pulsed"
     parts = [
-        f"{', '.join(f'{h:g}' for h in hs)} µA on electrode(s) {_span(es)}"
+        f"{', '.join(f'{h:g}' for h in hs)} µA on electrode(s) {span(es)}"
         for hs, es in sorted(groups.items())
     ]
     return "firmware v2: heights delivered per electrode: " + "; ".join(parts)
-
-
-def _transfer() -> Any:
-    from ..protocol.units import DEFAULT_TRANSFER
-
-    return DEFAULT_TRANSFER

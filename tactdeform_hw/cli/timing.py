@@ -14,7 +14,16 @@ from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from .common import print_json
-from .options import DeprecatedAlias, PolarityCode, add_finisher, add_option, typed_flag
+from .options import (
+    DeprecatedAlias,
+    PolarityCode,
+    add_discharge,
+    add_finisher,
+    add_frequency,
+    add_option,
+    add_pulse_width,
+    typed_flag,
+)
 
 #: Exit statuses of ``timing`` beyond 0/1/2: the verdict a script can branch on.
 EXIT_OVERRUN = 3
@@ -32,6 +41,15 @@ def register(sub: Any) -> None:
         f"period, {EXIT_OVERRUN} when it OVERRUNs it, {EXIT_WATCHDOG} when it trips the "
         "interrupt WATCHDOG (the board resets); 1 for a refused value, 2 for a usage error.",
     )
+    _firmware_options(p)
+    _scan_options(p)
+    _board_options(p)
+    _output_options(p)
+    p.set_defaults(func=run)
+
+
+def _firmware_options(p: argparse.ArgumentParser) -> None:
+    """The firmware version and the timing model's reading of its exchanges."""
     p.add_argument(
         "--firmware",
         choices=("v1.2", "v2"),
@@ -59,6 +77,10 @@ def register(sub: Any) -> None:
         help="when the DAC output changes: 3.3 µs into the exchange (default, the firmware comment) or "
         "when DA_CS rises (the converter's load moment)",
     )
+
+
+def _scan_options(p: argparse.ArgumentParser) -> None:
+    """The configuration whose scan is timed: electrodes, pattern, pulse, rate, polarity, sense pulse."""
     p.add_argument(
         "--electrodes",
         type=int,
@@ -71,15 +93,7 @@ def register(sub: Any) -> None:
         help="v1.2: one value for every channel (1 monophasic, 2 biphasic, other: sense pulse) or a comma "
         "list, one per channel (default 1); v2: DAC codes 0-4095, one for all or h1,h2,... (default 100)",
     )
-    add_option(
-        p,
-        "--pulse-width-us",
-        old=("--pulse-width",),
-        dest="pulse_width",
-        type=int,
-        default=200,
-        help="stimulation pulse width in µs, 1-65535 (v2: 0-65535) (default 200)",
-    )
+    add_pulse_width(p, default=200, help="stimulation pulse width in µs, 1-65535 (v2: 0-65535) (default 200)")
     add_option(
         p,
         "--current-ua",
@@ -96,24 +110,8 @@ def register(sub: Any) -> None:
         canonical="--current-ua",
         note="--pulse-height took a DAC code; --current-ua takes µA, 10 µA per code",
     )
-    add_option(
-        p,
-        "--discharge-us",
-        old=("--discharge",),
-        dest="discharge",
-        type=int,
-        default=45,
-        help="channel discharge time in µs, 0-255 (default 45)",
-    )
-    add_option(
-        p,
-        "--frequency-hz",
-        old=("--frequency",),
-        dest="frequency",
-        type=int,
-        default=125,
-        help="stimulation rate in Hz, 1-65535 (default 125)",
-    )
+    add_discharge(p, help="channel discharge time in µs, 0-255 (default 45)")
+    add_frequency(p, help="stimulation rate in Hz, 1-65535 (default 125)")
     p.add_argument(
         "--polarity",
         action=PolarityCode,
@@ -121,6 +119,11 @@ def register(sub: Any) -> None:
         metavar="{anodic,cathodic}",
         help="pulse polarity (default anodic)",
     )
+    _sense_options(p)
+
+
+def _sense_options(p: argparse.ArgumentParser) -> None:
+    """The sense pulse, and the currents given in µA turned into the codes the firmware stores."""
     add_option(
         p,
         "--sense-current-ua",
@@ -148,6 +151,10 @@ def register(sub: Any) -> None:
         help="sense pulse width in µs, 0-255",
     )
     add_finisher(p, currents_from_ua)
+
+
+def _board_options(p: argparse.ArgumentParser) -> None:
+    """The board and the timing model's constants."""
     p.add_argument(
         "--board", choices=("compact", "large"), default="compact", help="board kind (default compact)"
     )
@@ -176,6 +183,10 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--list-model", action="store_true", help="print every timing constant with its source and exit"
     )
+
+
+def _output_options(p: argparse.ArgumentParser) -> None:
+    """What is measured and written beyond the budget: latency, traces, a diagram, JSON."""
     p.add_argument(
         "--latency",
         action="store_true",
@@ -202,7 +213,6 @@ def register(sub: Any) -> None:
         "period and any overrun marked (needs the plot extra)",
     )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
-    p.set_defaults(func=run)
 
 
 def currents_from_ua(args: argparse.Namespace) -> None:

@@ -192,7 +192,15 @@ def calibration_from_dict(
             "electrodes",
             f"electrodes array length ({have}) does not match electrode_count ({count}).",
         )
-    limit = _code_limit(transfer)
+    out = _electrodes(source, items, count, _code_limit(transfer), transfer)
+    return CalibrationProfile(name, slug, tuple(out), created, source)
+
+
+def _electrodes(
+    source: str, items: list[Any], count: int, limit: int, transfer: CurrentTransfer
+) -> list[CalibrationElectrode]:
+    """Each electrode of a profile checked: its keys, an id and a hardware mapping in range and each used
+    once (the mapping a permutation), an intensity the hardware ceiling allows (``limit``, a DAC code)."""
     seen_mapping = [False] * count
     seen_id: dict[int, int] = {}
     out: list[CalibrationElectrode] = []
@@ -238,7 +246,7 @@ def calibration_from_dict(
             )
         label = _text(source, f"{where}.label", item.get("label"), required=False)
         out.append(CalibrationElectrode(eid, label, mapping, intensity))
-    return CalibrationProfile(name, slug, tuple(out), created, source)
+    return out
 
 
 def _code_limit(transfer: CurrentTransfer) -> int:

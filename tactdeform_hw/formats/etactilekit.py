@@ -226,6 +226,30 @@ class ArrayFile:
         )
 
 
+def _mapping_func(source: str, doc: dict[str, Any], n: int) -> tuple[int, ...]:
+    """The array's ``Mapping_func``: one hardware channel (0 to 254) per electrode, none used twice; the
+    identity without one."""
+    if "Mapping_func" not in doc:
+        return tuple(range(n))
+    raw = _list(source, "Mapping_func", doc["Mapping_func"])
+    if len(raw) != n:
+        raise ConfigurationError(
+            f"{source}: Mapping_func: has {len(raw)} entr{'y' if len(raw) == 1 else 'ies'} but "
+            f"'electrodes' lists {n} position(s); it needs one hardware channel per electrode"
+        )
+    seen: dict[int, int] = {}
+    chans = []
+    for i, v in enumerate(raw):
+        ch = _integer(source, f"Mapping_func[{i}]", v, 0, 254, "a hardware channel from 0 to 254")
+        if ch in seen:
+            raise ConfigurationError(
+                f"{source}: Mapping_func[{i}]: hardware channel {ch} is already used by electrode {seen[ch]}"
+            )
+        seen[ch] = i
+        chans.append(ch)
+    return tuple(chans)
+
+
 def parse_array(data: Any, source: str = "<array>", name: str | None = None) -> ArrayFile:
     """Check a decoded electrode-array document and build the renderer's array from it."""
     from ..render.array import ElectrodeArray
@@ -261,29 +285,7 @@ def parse_array(data: Any, source: str = "<array>", name: str | None = None) -> 
                 f"{source}: Electrodes_Number: says {count} but 'electrodes' lists {n} position(s)"
             )
 
-    mapping: tuple[int, ...]
-    if "Mapping_func" in doc:
-        raw = _list(source, "Mapping_func", doc["Mapping_func"])
-        if len(raw) != n:
-            raise ConfigurationError(
-                f"{source}: Mapping_func: has {len(raw)} entr{'y' if len(raw) == 1 else 'ies'} but "
-                f"'electrodes' lists {n} position(s); it needs one hardware channel per electrode"
-            )
-        seen: dict[int, int] = {}
-        chans = []
-        for i, v in enumerate(raw):
-            ch = _integer(source, f"Mapping_func[{i}]", v, 0, 254, "a hardware channel from 0 to 254")
-            if ch in seen:
-                raise ConfigurationError(
-                    f"{source}: Mapping_func[{i}]: hardware channel {ch} is already used by electrode "
-                    f"{seen[ch]}"
-                )
-            seen[ch] = i
-            chans.append(ch)
-        mapping = tuple(chans)
-    else:
-        mapping = tuple(range(n))
-
+    mapping = _mapping_func(source, doc, n)
     outline = np.empty((0, 2), dtype=float)
     if "outline" in doc:
         pts = _list(source, "outline", doc["outline"], nonempty=False)

@@ -25,7 +25,11 @@ class Approach(Protocol):
 
     name: str
     stats: ManagerStats
-    state: str  # "idle", "approaching" or "interacting"
+
+    @property
+    def state(self) -> str:
+        """ "idle", "approaching" or "interacting" (read only: the approach alone moves it)."""
+        ...
 
     def update(
         self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None

@@ -72,8 +72,8 @@ is not counted as travel and any contact restarts from Idle.
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, field, fields
+from enum import Enum
 from typing import Any, Literal
 
 from ..errors import LimitError
@@ -89,13 +89,31 @@ from .contexts import (
     quantise_angle,
     theta_level,
 )
+from .filters import ContactFilter, MotionHistory
 from .patterns import DIRECTIONS, EDGE_ORIENTATIONS, FEATURES, Pattern, PatternParams, PatternSet
 from .tracking import QUAT_NORM_TOLERANCE
 
-IDLE = "idle"
-APPROACHING = "approaching"
-INTERACTING = "interacting"
-STATES: tuple[str, ...] = (IDLE, APPROACHING, INTERACTING)
+
+class State(str, Enum):
+    """The manager's states (paper): no contact; contact detected, the pattern expanding toward the
+    surface; sustained, stable contact.  A member equals its name as text (``State.IDLE == "idle"``)."""
+
+    IDLE = "idle"
+    APPROACHING = "approaching"
+    INTERACTING = "interacting"
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
+
+#: The states as the outputs, frame records and reports name them.
+IDLE: str = State.IDLE.value
+APPROACHING: str = State.APPROACHING.value
+INTERACTING: str = State.INTERACTING.value
+STATES: tuple[str, ...] = tuple(s.value for s in State)
 
 ContactMode = Literal["orientation", "uniform"]
 
@@ -334,6 +352,26 @@ def check_pose(
     return t, p, q, renormed
 
 
+def check_query(query: Any) -> tuple[float, tuple[float, float, float] | None, str | None] | str:
+    """The scene's answer for the pad centre as (signed distance in mm, unit normal, feature), with no
+    surface (None) as (0, None, None); ``"query"`` when the answer cannot be used (not numbers, an unknown
+    feature, a normal of no direction)."""
+    if query is None:
+        return 0.0, None, None
+    try:
+        sd = float(query.signed_distance_mm)
+        raw_normal = _floats(query.normal, 3)
+        feat = query.feature
+    except (AttributeError, TypeError, ValueError):
+        return "query"
+    if sd - sd != 0.0 or raw_normal is None or feat not in FEATURES:
+        return "query"
+    nn = math.sqrt(raw_normal[0] ** 2 + raw_normal[1] ** 2 + raw_normal[2] ** 2)
+    if not nn > 0.5:
+        return "query"
+    return sd, (raw_normal[0] / nn, raw_normal[1] / nn, raw_normal[2] / nn), feat
+
+
 def count_drop(stats: ManagerStats, t: Any, reason: str) -> float:
     """Count a dropped sample under ``reason``; its time as a float (NaN when it is not a number)."""
     stats.dropped[reason] = stats.dropped.get(reason, 0) + 1
@@ -383,19 +421,15 @@ class PatternManager:
     def reset(self) -> None:
         """Forget the finger: Idle, nothing shown, no history (statistics are kept)."""
         cfg = self.config
-        self.state = IDLE
+        self.state = State.IDLE
         self.context: str | None = None
         self._t: float | None = None
         self._p: tuple[float, float, float] | None = None
         self._n: tuple[float, float, float] | None = None
-        self._hist: deque[tuple[float, float, float, float]] = deque()
-        self._mhist: deque[tuple[float, float, float, float]] = deque()
-        self._shist: deque[tuple[float, float, float, float]] = deque()
+        self.motion = MotionHistory(cfg)
+        self.contact = ContactFilter(cfg)
         self._anchor: tuple[float, float, float, float] | None = None
         self._onset_t = 0.0
-        self._in_since: float | None = None  # Idle: first of the consecutive samples in contact
-        self._sd_hist: deque[tuple[float, float]] = deque()  # (t, signed distance) since onset
-        self._sd_sum = 0.0
         self._outside: tuple[float, tuple[float, float, float], tuple[float, float, float], float] | None = (
             None
         )
@@ -454,86 +488,21 @@ class PatternManager:
         t, p, q, renormed = checked
         if renormed:
             self.stats.normalised_quaternions += 1
-        sd = 0.0
-        normal: tuple[float, float, float] | None = None
-        feat: str | None = None
-        if query is not None:
-            try:
-                sd = float(query.signed_distance_mm)
-                raw_normal = _floats(query.normal, 3)
-                feat = query.feature
-            except (AttributeError, TypeError, ValueError):
-                return self._drop(t, "query")
-            if sd - sd != 0.0 or raw_normal is None or feat not in FEATURES:
-                return self._drop(t, "query")
-            nn = math.sqrt(raw_normal[0] ** 2 + raw_normal[1] ** 2 + raw_normal[2] ** 2)
-            if not nn > 0.5:
-                return self._drop(t, "query")
-            normal = (raw_normal[0] / nn, raw_normal[1] / nn, raw_normal[2] / nn)
-
+        surface = check_query(query)
+        if isinstance(surface, str):
+            return self._drop(t, surface)
+        sd, normal, feat = surface
         cfg = self.config
-        t_prev = self._t
-        p_prev = self._p
-        teleport = False
-        if p_prev is not None and t_prev is not None:
-            dx, dy, dz = p[0] - p_prev[0], p[1] - p_prev[1], p[2] - p_prev[2]
-            step = math.sqrt(dx * dx + dy * dy + dz * dz)
-            if step > cfg.teleport_min_mm and step > cfg.max_speed_mm_s * (t - t_prev):
-                teleport = True
-                self.stats.teleports += 1
-                self._outside = None
-                self._hist.clear()
-                self._mhist.clear()
-                self._shist.clear()
-        self._t = t
-        self._p = p
-        hist = self._hist
-        hist.append((t, p[0], p[1], p[2]))
-        w0 = t - cfg.motion_window_s
-        while len(hist) > 2 and hist[1][0] <= w0:
-            hist.popleft()
-        mhist = self._mhist
-        mhist.append((t, *self._smoothed_position(t)))
-        while len(mhist) > 2 and mhist[1][0] <= w0:
-            mhist.popleft()
-        shist = self._shist
-        shist.append(mhist[-1])
-        w1 = t - cfg.stop_window_s
-        while len(shist) > 2 and shist[1][0] <= w1:
-            shist.popleft()
-
+        t_prev, p_prev = self._t, self._p
+        teleport = self._track(t, p)
         # --- contact ----------------------------------------------------------------------------------------
         old_state = self.state
-        if self.state != IDLE:
-            lost = teleport or normal is None or sd > cfg.contact_loss_far_mm
-            if not lost:
-                # Stability filter on leaving: the mean signed distance over the loss window (samples of
-                # this contact only) must be above the release distance, and the pad outside now.  Noise
-                # around a hover averages out; tremor on a light press averages to the press.
-                h = self._sd_hist
-                h.append((t, sd))
-                self._sd_sum += sd
-                w0 = t - cfg.contact_loss_window_s
-                while len(h) > 1 and h[0][0] < w0:
-                    self._sd_sum -= h.popleft()[1]
-                lost = sd > cfg.contact_enter_mm and self._sd_sum / len(h) > cfg.contact_release_mm
-            if lost:
-                self._to_idle()
+        if self.state is not State.IDLE and (teleport or normal is None or self.contact.lost(t, sd)):
+            self._to_idle()
         seq: list[Pattern]
-        if self.state == IDLE:
+        if self.state is State.IDLE:
             inside = normal is not None and sd <= cfg.contact_enter_mm
-            if not inside:
-                self._in_since = None
-            elif self._in_since is None:
-                self._in_since = t
-            if (
-                inside
-                and self._in_since is not None
-                and (
-                    t - self._in_since >= cfg.onset_confirm_s - 1e-9
-                    or sd <= cfg.contact_enter_mm - cfg.onset_deep_mm
-                )
-            ):
+            if self.contact.onset_due(t, sd, inside):
                 assert feat is not None and normal is not None  # a normal is only kept with a checked feature
                 seq = self._onset(t, p, q, sd, normal, feat, query)
             else:
@@ -549,6 +518,25 @@ class PatternManager:
             self._outside = (t, p, normal, sd)
         return self._emit(t, t_prev, seq)
 
+    def _track(self, t: float, p: tuple[float, float, float]) -> bool:
+        """Take the sample into the motion history; whether it is a tracking teleport (a jump further than
+        ``teleport_min_mm`` faster than ``max_speed_mm_s``), which forgets the motion before it."""
+        cfg = self.config
+        t_prev, p_prev = self._t, self._p
+        teleport = False
+        if p_prev is not None and t_prev is not None:
+            dx, dy, dz = p[0] - p_prev[0], p[1] - p_prev[1], p[2] - p_prev[2]
+            step = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if step > cfg.teleport_min_mm and step > cfg.max_speed_mm_s * (t - t_prev):
+                teleport = True
+                self.stats.teleports += 1
+                self._outside = None
+                self.motion.clear()
+        self._t = t
+        self._p = p
+        self.motion.add(t, p)
+        return teleport
+
     def drop(self, t_s: Any, reason: str) -> ManagerOutput:
         """Count a sample its stream judged unusable (``reason``) without looking at it: nothing changes,
         the output holds what is shown.  The renderer judges time order against every sample received,
@@ -561,7 +549,7 @@ class PatternManager:
         tf = count_drop(self.stats, t, reason)
         return ManagerOutput(
             tf,
-            self.state,
+            self.state.value,
             self.feature.value,
             self._orient_value_name(),
             self.texture.value,
@@ -572,11 +560,9 @@ class PatternManager:
         )
 
     def _to_idle(self) -> None:
-        self.state = IDLE
+        self.state = State.IDLE
         self.context = None
-        self._in_since = None
-        self._sd_hist.clear()
-        self._sd_sum = 0.0
+        self.contact.reset()
         self.sliding = False
         self._slide_change_t = None
         self.theta_deg = None
@@ -624,13 +610,10 @@ class PatternManager:
         query: Any,
     ) -> list[Pattern]:
         cfg = self.config
-        self.state = APPROACHING
+        self.state = State.APPROACHING
         self.context = APPROACHING
         self._onset_t = t
-        self._in_since = None
-        self._sd_hist.clear()
-        self._sd_hist.append((t, sd))
-        self._sd_sum = sd
+        self.contact.begin(t, sd)
         # Latched at initial contact and kept through the approach (paper): the feature, the edge's
         # orientation and the direction "toward the surface".  That direction is the normal seen just
         # before contact (an edge's or corner's bisector, where the nearest surface point was the edge
@@ -648,7 +631,7 @@ class PatternManager:
             n0 = normal
             travel = cfg.contact_enter_mm - sd
         self._n_onset = (n0[0], n0[1], n0[2])
-        m = self._mhist[-1]
+        m = self.motion.latest
         self._m_onset = (m[1], m[2], m[3])
         self._peak_mm = 0.0
         self._advanced_t = t
@@ -692,8 +675,8 @@ class PatternManager:
         feat: str,
         query: Any,
     ) -> list[Pattern]:
-        v = self._velocity()
-        if self.state == APPROACHING:
+        v = self.motion.velocity()
+        if self.state is State.APPROACHING:
             seq = self._approaching(t, p, p_prev, query)
             if seq is not None:
                 return seq
@@ -724,7 +707,7 @@ class PatternManager:
         # Stopped advancing: the tremor-filtered position has not gone ``advance_mm`` deeper than its
         # deepest point for ``settle_hold_s`` (any approach faster than advance_mm / settle_hold_s,
         # 0.6 mm/s by default, keeps expanding) and is not withdrawing fast.
-        m = self._mhist[-1]
+        m = self.motion.latest
         mo = self._m_onset
         depth = -((m[1] - mo[0]) * n0[0] + (m[2] - mo[1]) * n0[1] + (m[3] - mo[2]) * n0[2])
         if depth >= self._peak_mm + cfg.advance_mm:
@@ -732,19 +715,19 @@ class PatternManager:
             self._advanced_t = t
         # Not withdrawing fast either: judged on the recent window, which a turn at the bottom of a
         # press-and-withdraw leaves quickly (the long window reads such a turn as still).
-        vn = self._recent_normal_speed(n0)
+        vn = self.motion.recent_normal_speed(n0)
         if (
             t - self._advanced_t >= cfg.settle_hold_s
             and t - self._onset_t >= cfg.sustain_s
             and abs(vn) <= cfg.settle_speed_mm_s
         ):
-            self.state = INTERACTING
+            self.state = State.INTERACTING
             self._family = None
             self.theta.force(None)
             self.direction.force(None)
             self.sliding = False
             self._slide_change_t = None
-            self._anchor = self._mhist[-1]
+            self._anchor = self.motion.latest
         else:
             self.context = APPROACHING
             return self._approach_seq()
@@ -783,7 +766,7 @@ class PatternManager:
             # rest move the filtered position far less).
             # A change the speed alone asks for must hold for ``slide_window_s`` (noise around the
             # thresholds); a stop is taken at once.
-            stopped = self._recent_speed(normal) < cfg.stop_fraction * speed
+            stopped = self.motion.recent_speed(normal) < cfg.stop_fraction * speed
             if self.sliding:
                 if stopped:
                     self.sliding = False
@@ -795,10 +778,10 @@ class PatternManager:
                     self.sliding = False
                 if not self.sliding:
                     self._slide_change_t = None
-                    self._anchor = self._mhist[-1]
+                    self._anchor = self.motion.latest
             else:
                 anc = self._anchor
-                m = self._mhist[-1]
+                m = self.motion.latest
                 if anc is None:
                     far = True
                 else:
@@ -827,7 +810,7 @@ class PatternManager:
         """A sliding sample: the direction (held for its window) and the texture travel."""
         cfg = self.config
         X, Y, _ = quat_axes(*q)
-        m = self._mhist[-1]
+        m = self.motion.latest
         ux, uy, uz = vt[0] / speed, vt[1] / speed, vt[2] / speed
         a = math.degrees(math.atan2(ux * Y[0] + uy * Y[1] + uz * Y[2], ux * X[0] + uy * X[1] + uz * X[2]))
         cur = self.direction.value
@@ -882,63 +865,6 @@ class PatternManager:
         else:
             self.theta.update(cand, t)
         return [self.patterns.contact(feat_v, orient, self.theta.value)]
-
-    def _velocity(self) -> tuple[float, float, float] | None:
-        """Velocity of the tremor-filtered position: its net displacement over ``motion_window_s``.
-
-        The raw position's displacement over the window keeps up to twice the tremor amplitude, which
-        at 1 mm reads as 6.7 mm/s in any direction — more than the 4 mm/s between ``slide_on_mm_s`` and
-        ``slide_off_mm_s``, and at a 20 mm/s stroke a direction error of up to 18°, enough to hold the
-        stroke in the wrong one of 8 bins.  Averaged over ``slide_smoothing_s`` first, 1 mm of 8–12 Hz
-        tremor reads as at most 1.5 mm/s (4° at 20 mm/s).  None when no time has passed over the window."""
-        mhist = self._mhist
-        t1, x1, y1, z1 = mhist[-1]
-        t0, x0, y0, z0 = mhist[0]
-        span = t1 - t0
-        if not span > 1e-9:
-            return None
-        return ((x1 - x0) / span, (y1 - y0) / span, (z1 - z0) / span)
-
-    def _recent_normal_speed(self, n0: tuple[float, ...]) -> float:
-        """Speed of the filtered position along ``n0`` over the last ``stop_window_s`` (0 with no span)."""
-        sh = self._shist
-        span = sh[-1][0] - sh[0][0]
-        if not span > 1e-9:
-            return 0.0
-        return (
-            (sh[-1][1] - sh[0][1]) * n0[0] + (sh[-1][2] - sh[0][2]) * n0[1] + (sh[-1][3] - sh[0][3]) * n0[2]
-        ) / span
-
-    def _recent_speed(self, normal: tuple[float, ...]) -> float:
-        """Tangential speed of the filtered position over the last ``stop_window_s``."""
-        sh = self._shist
-        t1, x1, y1, z1 = sh[-1]
-        t0, x0, y0, z0 = sh[0]
-        span = t1 - t0
-        if not span > 1e-9:
-            return math.inf
-        dx, dy, dz = x1 - x0, y1 - y0, z1 - z0
-        dn = dx * normal[0] + dy * normal[1] + dz * normal[2]
-        dx, dy, dz = dx - dn * normal[0], dy - dn * normal[1], dz - dn * normal[2]
-        return math.sqrt(dx * dx + dy * dy + dz * dz) / span
-
-    def _smoothed_position(self, t: float) -> tuple[float, float, float]:
-        """Mean position over the last ``slide_smoothing_s``: one 8 Hz period, which leaves at most a
-        fifth of an 8–12 Hz tremor, so a finger sliding with tremor does not rock the texture back and
-        forth, nor its speed and direction.  Recomputed from the samples each time (no running sum to
-        drift)."""
-        hist = self._hist
-        t0 = t - self.config.slide_smoothing_s
-        sx = sy = sz = 0.0
-        n = 0
-        for e in reversed(hist):
-            if e[0] < t0 and n:
-                break
-            sx += e[1]
-            sy += e[2]
-            sz += e[3]
-            n += 1
-        return (sx / n, sy / n, sz / n)
 
     def _shift_shown(self, k: int) -> int:
         """Eq. 7's n_s with the same release band as the expansion frames: the count goes down only
@@ -1003,7 +929,7 @@ class PatternManager:
             self.pattern = seq[-1]
         return ManagerOutput(
             t,
-            self.state,
+            self.state.value,
             self.feature.value,
             self._orient_value_name(),
             self.texture.value,

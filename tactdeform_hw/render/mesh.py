@@ -70,7 +70,7 @@ from .geometry import (
     as_point,
     as_points,
 )
-from .primitives import _PlacedSolid
+from .primitives import PlacedSolid
 
 DEFAULT_FIT_MM = 200.0
 """Largest extent of a mesh in the studies' Phase 2: every object fits a 20 × 20 × 20 cm box."""
@@ -660,7 +660,7 @@ class _Index:
         ids = self.tree.query_ball_point(p, upper + self.cover_mm)
         tris = self.table[ids].ravel()
         if len(tris) > 96:
-            tris = self._dedupe(tris)
+            tris = self.dedupe(tris)
             # Far from the surface the ball holds many triangles; drop those whose bounding sphere
             # stays beyond the upper bound before the full kernel.
             b = self.tri_bounds[tris]
@@ -676,7 +676,7 @@ class _Index:
         d2 = _where(inside, pd * pd - float(p @ p), _minimum(_minimum(d2e[:, 0], d2e[:, 1]), d2e[:, 2]))
         return int(tris[d2.argmin()])
 
-    def _dedupe(self, tris: np.ndarray) -> np.ndarray:
+    def dedupe(self, tris: np.ndarray) -> np.ndarray:
         """Distinct triangles of a candidate list (order free): scatter positions, keep the winners.
         Cheaper than np.unique's sort for the few thousand candidates of a far query."""
         stamp = self._stamp
@@ -779,7 +779,7 @@ class _Index:
         ids = self.tree.query_ball_point(centre, radius)
         if n * len(ids) > 40_000:  # a cloud spread over much of the mesh: point by point
             return self._inside_each(points)
-        shared = self._dedupe(self.table[ids].ravel())
+        shared = self.dedupe(self.table[ids].ravel())
         shared = shared[shared != self.sentinel]
         bounds = self.tri_bounds[shared]
         m, rho, nrm, off = bounds[:, 0:3], bounds[:, 3], bounds[:, 4:7], bounds[:, 7]
@@ -907,41 +907,55 @@ class _Features:
         corners = valence >= 3
         two_v = np.flatnonzero(valence == 2)
         if two_v.size:
-            # Turning angle where a chain of two sharp edges bends.
-            inc: dict[int, list[np.ndarray]] = {int(v): [] for v in two_v}
-            nbrs: dict[int, list[tuple[int, float]]] = {int(v): [] for v in two_v}
-            for (va, vb), dvec, ln in zip(seg.tolist(), d, length.tolist()):
-                if va in inc:
-                    inc[va].append(dvec)
-                    nbrs[va].append((vb, ln))
-                if vb in inc:
-                    inc[vb].append(-dvec)
-                    nbrs[vb].append((va, ln))
-            turns: dict[int, float] = {}
-            for v, vecs in inc.items():
-                u, w = vecs[0], vecs[1]
-                cosang = float(np.dot(u, w) / (np.linalg.norm(u) * np.linalg.norm(w)))
-                turn = 180.0 - math.degrees(math.acos(max(-1.0, min(1.0, cosang))))
-                turns[v] = turn
-                if turn >= corner_turn_deg:
-                    corners[v] = True
-            # Tips: the turning summed along the chain within half the window on each side.
-            half = tip_window_mm / 2.0
-            if half > 0:
-                for v in turns:
-                    total = turns[v]
-                    for first, step in nbrs[v]:
-                        prev, cur, dist = v, first, step
-                        while dist <= half and cur in turns and cur != v:
-                            total += turns[cur]
-                            a_, b_ = nbrs[cur]
-                            nxt, ln = a_ if a_[0] != prev else b_
-                            prev, cur, dist = cur, nxt, dist + ln
-                    if total >= corner_turn_deg:
-                        corners[v] = True
+            self._bent_corners(seg, d, length, two_v, corners, corner_turn_deg, tip_window_mm)
         self.valence = valence
         self.corner_vertices = np.flatnonzero(corners)
         self.corner_points = vertices[self.corner_vertices]
+
+    @staticmethod
+    def _bent_corners(
+        seg: np.ndarray,
+        d: np.ndarray,
+        length: np.ndarray,
+        two_v: np.ndarray,
+        corners: np.ndarray,
+        corner_turn_deg: float,
+        tip_window_mm: float,
+    ) -> None:
+        """Mark in ``corners`` the vertices where a chain of two sharp edges bends by ``corner_turn_deg``,
+        or turns that much in all within ``tip_window_mm`` along the chain (a rounded tip)."""
+        # Turning angle where a chain of two sharp edges bends.
+        inc: dict[int, list[np.ndarray]] = {int(v): [] for v in two_v}
+        nbrs: dict[int, list[tuple[int, float]]] = {int(v): [] for v in two_v}
+        for (va, vb), dvec, ln in zip(seg.tolist(), d, length.tolist()):
+            if va in inc:
+                inc[va].append(dvec)
+                nbrs[va].append((vb, ln))
+            if vb in inc:
+                inc[vb].append(-dvec)
+                nbrs[vb].append((va, ln))
+        turns: dict[int, float] = {}
+        for v, vecs in inc.items():
+            u, w = vecs[0], vecs[1]
+            cosang = float(np.dot(u, w) / (np.linalg.norm(u) * np.linalg.norm(w)))
+            turn = 180.0 - math.degrees(math.acos(max(-1.0, min(1.0, cosang))))
+            turns[v] = turn
+            if turn >= corner_turn_deg:
+                corners[v] = True
+        # Tips: the turning summed along the chain within half the window on each side.
+        half = tip_window_mm / 2.0
+        if half > 0:
+            for v in turns:
+                total = turns[v]
+                for first, step in nbrs[v]:
+                    prev, cur, dist = v, first, step
+                    while dist <= half and cur in turns and cur != v:
+                        total += turns[cur]
+                        a_, b_ = nbrs[cur]
+                        nxt, ln = a_ if a_[0] != prev else b_
+                        prev, cur, dist = cur, nxt, dist + ln
+                if total >= corner_turn_deg:
+                    corners[v] = True
 
     @staticmethod
     def _long_chains(
@@ -1034,7 +1048,34 @@ def _scipy_sparse() -> Any:
 HOLE_MARGIN_MM = 6.0
 
 
-class TriangleMesh(_PlacedSolid):
+def _mesh_arrays(name: str, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices as a finite (V, 3) float array (V ≥ 3) and the faces as an integer (F, 3) array of
+    indices into them; anything else is refused naming the mesh."""
+    v = np.asarray(vertices, dtype=float)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3 or not np.isfinite(v).all():
+        raise ConfigurationError(f"{name}: vertices must be a finite (V, 3) array with V ≥ 3")
+    if f.ndim != 2 or f.shape[1] != 3 or len(f) < 1 or not np.issubdtype(f.dtype, np.integer):
+        raise ConfigurationError(f"{name}: faces must be an integer (F, 3) array")
+    if f.min() < 0 or f.max() >= len(v):
+        raise ConfigurationError(f"{name}: face indices must lie in [0, {len(v) - 1}]")
+    return v, f
+
+
+def _fit_factor(name: str, extent: float, fit_mm: float | None, scale: float) -> float:
+    """The scale that fits the mesh's largest extent into ``fit_mm``, else ``scale``; both positive."""
+    if fit_mm is not None:
+        fit = float(fit_mm)
+        if not math.isfinite(fit) or fit <= 0:
+            raise ConfigurationError(f"{name}.fit_mm={fit_mm!r} must be a positive length")
+        return fit / extent
+    factor = float(scale)
+    if not math.isfinite(factor) or factor <= 0:
+        raise ConfigurationError(f"{name}.scale={scale!r} must be a positive number")
+    return factor
+
+
+class TriangleMesh(PlacedSolid):
     """A solid bounded by a triangle mesh, placed in the world and fitted into a box."""
 
     kind = "mesh"
@@ -1066,14 +1107,7 @@ class TriangleMesh(_PlacedSolid):
         super().__init__(
             name, center_mm, rotation, texture_level, texture_regions, feature_band_mm, classify_features
         )
-        v = np.asarray(vertices, dtype=float)
-        f = np.asarray(faces)
-        if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3 or not np.isfinite(v).all():
-            raise ConfigurationError(f"{name}: vertices must be a finite (V, 3) array with V ≥ 3")
-        if f.ndim != 2 or f.shape[1] != 3 or len(f) < 1 or not np.issubdtype(f.dtype, np.integer):
-            raise ConfigurationError(f"{name}: faces must be an integer (F, 3) array")
-        if f.min() < 0 or f.max() >= len(v):
-            raise ConfigurationError(f"{name}: face indices must lie in [0, {len(v) - 1}]")
+        v, f = _mesh_arrays(name, vertices, faces)
         if sign_method not in ("auto", "pseudonormal", "winding"):
             raise ConfigurationError(
                 f"{name}: sign_method={sign_method!r} must be 'auto', 'pseudonormal' or 'winding'"
@@ -1084,15 +1118,7 @@ class TriangleMesh(_PlacedSolid):
         extent = float((hi - lo).max())
         if extent <= 0:
             raise ConfigurationError(f"{name}: the mesh has no extent")
-        if fit_mm is not None:
-            fit = float(fit_mm)
-            if not math.isfinite(fit) or fit <= 0:
-                raise ConfigurationError(f"{name}.fit_mm={fit_mm!r} must be a positive length")
-            factor = fit / extent
-        else:
-            factor = float(scale)
-            if not math.isfinite(factor) or factor <= 0:
-                raise ConfigurationError(f"{name}.scale={scale!r} must be a positive number")
+        factor = _fit_factor(name, extent, fit_mm, scale)
         v = (v - (lo + hi) / 2.0) * factor + self.center_mm
         v, f = _clean(v, f.astype(np.int64))
         if len(f) == 0:
@@ -1261,7 +1287,7 @@ class TriangleMesh(_PlacedSolid):
         ids = index.tree.query_ball_point(local, reach[1] + index.cover_mm + 1e-9)
         if not ids and by_winding is None:
             return out
-        tris = index._dedupe(index.table[ids].ravel()) if ids else np.empty(0, dtype=np.int64)
+        tris = index.dedupe(index.table[ids].ravel()) if ids else np.empty(0, dtype=np.int64)
         # Triangle corners in pad coordinates: (u, v, height above the pad plane).
         pc = (index.vertices[index.faces[tris[tris != index.sentinel]]] - local) @ frame
         pos = pc[:, :, 2] >= 0.0

@@ -173,6 +173,27 @@ class PatternSet:
         reach = np.where(blob, 0, np.ceil((self.rho_mm - falloff) / self.step_mm - _TOL)).astype(int)
         self._frames[("corner", None)] = tuple(self._pat(reach <= m) for m in np.unique(reach))
 
+        self._contact_shifts(rel)
+
+        # Texture masks: coordinate across each direction in electrode spacings, starting at 0.
+        self._mask_coord: list[np.ndarray] = []
+        for dx, dy in DIRECTION_STEPS:
+            q = (rel[:, 0] * dx + rel[:, 1] * dy) / pitch
+            self._mask_coord.append(q - q.min())
+        self._contact_cache: dict[tuple[str, str | None, int], Pattern] = {}
+        self._static_cache: dict[tuple[str, str | None], Pattern] = {
+            key: self._pat(v) for key, v in self._static.items()
+        }
+        self._slide_cache: dict[tuple[str, str | None, int, int, int], Pattern] = {}
+        self.all_on: Pattern = self._pat(everything)
+        self._prebuild()
+
+    # --- building -------------------------------------------------------------------------------------------
+
+    def _contact_shifts(self, rel: np.ndarray) -> None:
+        """Eq. 4's shifted contact patterns: for each θ level's centre, which electrode's base value each
+        electrode shows."""
+        p, array, pitch = self.params, self.array, self.array.pitch_mm
         # Contact (eq. 4): P_contact(x, y) = P_base(x + Δx(θ), y) with Δx = -centre(θ level).
         chw = p.contact_half_width_mm if p.contact_half_width_mm is not None else pitch / 2.0
         self.contact_half_width_mm = chw
@@ -196,18 +217,8 @@ class PatternSet:
             )
             self._shift_index.append(src)
 
-        # Texture masks: coordinate across each direction in electrode spacings, starting at 0.
-        self._mask_coord: list[np.ndarray] = []
-        for dx, dy in DIRECTION_STEPS:
-            q = (rel[:, 0] * dx + rel[:, 1] * dy) / pitch
-            self._mask_coord.append(q - q.min())
-        self._contact_cache: dict[tuple[str, str | None, int], Pattern] = {}
-        self._static_cache: dict[tuple[str, str | None], Pattern] = {
-            key: self._pat(v) for key, v in self._static.items()
-        }
-        self._slide_cache: dict[tuple[str, str | None, int, int, int], Pattern] = {}
-        self.all_on: Pattern = self._pat(everything)
-        # Every pattern the paper's settings can show, built now (a few ms) so no frame pays for it.
+    def _prebuild(self) -> None:
+        """Every pattern the paper's settings can show, built now (a few ms) so no frame pays for it."""
         for feature, orientation in self._static:
             for level in range(len(THETA_LEVELS)):
                 self.contact(feature, orientation, level)
@@ -215,8 +226,6 @@ class PatternSet:
                 for direction in range(len(DIRECTIONS)):
                     for phase in range(self.mask_period(k)):
                         self.sliding(feature, orientation, direction, k, phase)
-
-    # --- building -------------------------------------------------------------------------------------------
 
     def _pat(self, mask: np.ndarray) -> Pattern:
         lvl = self.on_level

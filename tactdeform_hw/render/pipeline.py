@@ -145,11 +145,45 @@ def _scene_flag(scene: Any, name: str, default: Any) -> Any:
     return default
 
 
+def _scene_config(scene: Any, config: ManagerConfig | None, contact_mode: str | None) -> ManagerConfig:
+    """The manager's settings for ``scene``: the contact mode given (else the scene's), and no texture
+    machinery on an all-smooth scene."""
+    cfg = config or ManagerConfig()
+    mode = contact_mode if contact_mode is not None else _scene_option(scene, "contact_mode")
+    overrides: dict[str, Any] = {}
+    if mode is not None and mode != cfg.contact_mode:
+        overrides["contact_mode"] = mode
+    if not _scene_flag(scene, "needs_texture", True) and cfg.use_texture:
+        overrides["use_texture"] = False
+    if overrides:
+        from dataclasses import replace
+
+        cfg = replace(cfg, **overrides)
+    return cfg
+
+
 def _scene_option(scene: Any, name: str) -> Any:
     for holder in (getattr(scene, "options", None), getattr(scene, "render", None), scene):
         if holder is not None and hasattr(holder, name):
             return getattr(holder, name)
     return None
+
+
+def _unsent(out: ManagerOutput, approach: str) -> FrameRecord:
+    """The record of an update that sent nothing: what is shown, as the approach decided it."""
+    return FrameRecord(
+        out.t_s,
+        out.state,
+        out.feature,
+        out.texture,
+        out.pattern,
+        False,
+        approach,
+        out.context,
+        out.orientation,
+        False,
+        out.dropped,
+    )
 
 
 class Renderer:
@@ -212,33 +246,8 @@ class Renderer:
         self.device = device
         self.array = array if array is not None else ElectrodeArray.tactdeform()
         self._scene_approach: Callable[[str], str] | None = None
-        if approach is None:
-            # The scene decides, per object (a description's ``approach`` keys) or for the run.
-            default = getattr(getattr(scene, "options", None), "approach", None) or "tactdeform"
-            self.approach_map: dict[str, str] = {"*": default}
-            per_object = getattr(scene, "approach_for", None)
-            if callable(per_object):
-                self._scene_approach = per_object
-                for obj in getattr(scene, "objects", ()):
-                    self.approach_map[obj.name] = per_object(obj.name)
-        elif isinstance(approach, str):
-            self.approach_map = {"*": approach}
-        else:
-            self.approach_map = dict(approach)
-            self.approach_map.setdefault("*", "tactdeform")
-        cfg = config or ManagerConfig()
-        mode = contact_mode if contact_mode is not None else _scene_option(scene, "contact_mode")
-        overrides: dict[str, Any] = {}
-        if mode is not None and mode != cfg.contact_mode:
-            overrides["contact_mode"] = mode
-        # Leave out what the scene does not need: no texture machinery on an all-smooth scene.
-        if not _scene_flag(scene, "needs_texture", True) and cfg.use_texture:
-            overrides["use_texture"] = False
-        if overrides:
-            from dataclasses import replace
-
-            cfg = replace(cfg, **overrides)
-        self.config = cfg
+        self.approach_map: dict[str, str] = self._approaches(scene, approach)
+        self.config = cfg = _scene_config(scene, config, contact_mode)
         self.renderers: dict[str, Approach] = {
             a: make_approach(a, self.array, cfg, pattern_params) for a in set(self.approach_map.values())
         }
@@ -252,6 +261,24 @@ class Renderer:
         self._readback: Callable[[], Sequence[int]] | None = None
         self._started = False
         self._dwell_s = 0.0
+
+    def _approaches(self, scene: Any, approach: str | Mapping[str, str] | None) -> dict[str, str]:
+        """The approach of each object (``"*"``: every other): the one given, else the scene's, per object
+        (a description's ``approach`` keys) or for the run."""
+        if isinstance(approach, str):
+            return {"*": approach}
+        if approach is not None:
+            given = dict(approach)
+            given.setdefault("*", "tactdeform")
+            return given
+        default = getattr(getattr(scene, "options", None), "approach", None) or "tactdeform"
+        chosen = {"*": default}
+        per_object = getattr(scene, "approach_for", None)
+        if callable(per_object):
+            self._scene_approach = per_object
+            for obj in getattr(scene, "objects", ()):
+                chosen[obj.name] = per_object(obj.name)
+        return chosen
 
     # --- device ---------------------------------------------------------------------------------------------
 
@@ -422,19 +449,7 @@ class Renderer:
     def _dropped(self, out: ManagerOutput, approach: str) -> list[FrameRecord]:
         """A dropped sample: recorded, never sent, never a keepalive; tracking is lost once no valid sample
         came for ``lost_tracking_s``, and a lost stream's run of valid samples starts again."""
-        rec = FrameRecord(
-            out.t_s,
-            out.state,
-            out.feature,
-            out.texture,
-            out.pattern,
-            False,
-            approach,
-            out.context,
-            out.orientation,
-            False,
-            out.dropped,
-        )
+        rec = _unsent(out, approach)
         if self._lost:
             self._resume_run = 0
             return [rec]
@@ -474,21 +489,7 @@ class Renderer:
             frames = [(out.t_s, out.pattern)]
         records: list[FrameRecord] = []
         if not frames:
-            records.append(
-                FrameRecord(
-                    out.t_s,
-                    out.state,
-                    out.feature,
-                    out.texture,
-                    out.pattern,
-                    False,
-                    approach,
-                    out.context,
-                    out.orientation,
-                    False,
-                    out.dropped,
-                )
-            )
+            records.append(_unsent(out, approach))
             if self.device is not None:
                 # Nothing changed, but the renderer is alive: feed the device's fail-safe watchdog so a
                 # held contact is not switched off, while a dead renderer still is.

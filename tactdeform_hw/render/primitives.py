@@ -56,7 +56,7 @@ def _check_rotation(field: str, value: object | None) -> np.ndarray | None:
     return r
 
 
-class _PlacedSolid:
+class PlacedSolid:
     """What every object shares: a name, a pose in the world, a texture level and its regions."""
 
     def __init__(
@@ -140,7 +140,7 @@ class _PlacedSolid:
         return out
 
 
-class Sphere(_PlacedSolid):
+class Sphere(PlacedSolid):
     """A sphere: every contact is a face."""
 
     kind = "sphere"
@@ -206,7 +206,7 @@ class Sphere(_PlacedSolid):
         return out
 
 
-class Box(_PlacedSolid):
+class Box(PlacedSolid):
     """A rectangular box (the cube when all sizes are equal), optionally rotated."""
 
     kind = "box"

@@ -262,6 +262,11 @@ class PoseValidator:
     def dropped(self) -> int:
         return sum(self.drops.values())
 
+    @property
+    def last_t_s(self) -> float | None:
+        """The time of the last sample accepted (None before the first): the next must come after it."""
+        return self._last_t
+
     def reset(self) -> None:
         self.drops.clear()
         self.accepted = 0
@@ -421,7 +426,7 @@ def _check_row(name: str, where: str, values: list[float], validator: PoseValida
             f"{name}: {where}, columns 'qw'..'qz': quaternion norm {norm:.6g} is not within "
             f"1 ± {validator.norm_tolerance}"
         )
-    last = validator._last_t
+    last = validator.last_t_s
     if last is not None and values[0] <= last:
         raise ConfigurationError(
             f"{name}: {where}, column 't_s': {values[0]!r} does not follow the previous time {last!r}"

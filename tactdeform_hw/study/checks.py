@@ -139,7 +139,7 @@ def common_checks(run: TrialRun, result: StudyRun) -> list[Check]:
         out.append(Check("pattern_buffer_matched_every_sent_frame", mism == 0, detail))
     else:
         out.append(Check("pattern_buffer_matched_every_sent_frame", None, "no emulator behind the port"))
-    if result.firmware == "v2":
+    if result.heights_per_electrode:
         out.append(heights_readback_check(run))
     wire = [p for _, p, phase in frame_intents(run, result.array) if phase == "render"]
     want = [tuple(r.electrodes) for r in sent]
@@ -251,7 +251,7 @@ def timed_checks(run: TrialRun, result: StudyRun) -> list[Check]:
     out.append(Check("currents_within_limits", not bad, detail))
     kinds = [h.get("kind") for h in run.timed_hazards]
     out.append(Check("no_timing_hazards", not kinds, "none" if not kinds else _fmt_set(kinds)))
-    if result.firmware == "v2":
+    if result.heights_per_electrode:
         out.append(heights_delivered_check(run, result))
     return out
 

@@ -136,7 +136,7 @@ def trial_json(run: TrialRun, result: StudyRun) -> dict[str, Any]:
                         "first_mismatch": run.first_height_mismatch,
                     }
                 }
-                if result.firmware == "v2"
+                if result.heights_per_electrode
                 else {}
             ),
             "timing_hazards": list(run.timed_hazards) if run.delivered is not None else None,

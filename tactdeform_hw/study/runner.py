@@ -42,7 +42,7 @@ from ..protocol.firmware import V1_2, V2, OpcodeV2
 from ..render.array import ElectrodeArray
 from ..render.manager import ManagerConfig
 from ..render.patterns import PatternSet
-from ..render.pipeline import FrameRecord, Renderer
+from ..render.pipeline import FrameRecord
 from ..render.scene import BUNNY_FILE, RenderOptions, Scene, find_mesh_file, load_scene
 from ..render.tracking import Pose, PoseValidator, slerp
 from ..render.trajectories import make_trajectory, scene_for_trajectory
@@ -184,9 +184,6 @@ class TrialRun:
             return None
         return all(c.passed is not False for c in self.checks)
 
-    def sent_records(self) -> list[tuple[int, FrameRecord]]:
-        return [(i, r) for i, r in enumerate(self.records) if r.sent]
-
 
 @dataclass
 class StudyRun:
@@ -207,10 +204,18 @@ class StudyRun:
     wall_s: float = 0.0
     writes: list[WireWrite] = field(default_factory=list)
     #: What the session sent, from the device's own records (pulse heights written, each electrode's highest,
-    #: the guard's clips and refusals): see :mod:`tactdeform_hw.cli.delivered`.
+    #: the guard's clips and refusals): see :mod:`tactdeform_hw.session.delivery`.
     sent: dict[str, Any] | None = None
     #: The firmware the board ran (``v1.2`` or ``v2``), as the device found it.
     firmware: str = "v1.2"
+
+    @property
+    def heights_per_electrode(self) -> bool:
+        """Whether every electrode had its own pulse height (v2), so the checks read each one back and the
+        report lists the heights each was pulsed at."""
+        from ..session.delivery import per_electrode_heights
+
+        return per_electrode_heights(self.firmware)
 
 
 # --- scenes and poses ----------------------------------------------------------------------------------
@@ -333,6 +338,197 @@ def _inspectable(device: Any) -> bool:
     return callable(getattr(getattr(device, "port", None), "board_state", None))
 
 
+@dataclass
+class _Live:
+    """What every trial of a running study shares: the session, its open device and the tap on its port,
+    the simulated clock of an offline run, the renderer's settings, and the session time so far."""
+
+    session: Any
+    dev: Any
+    tap: WireTap
+    sim_clock: Any
+    cfg: ManagerConfig
+    current_ua: int
+    stim: Any
+    realtime: bool
+    session_t: float = 0.0
+    wall_start: float | None = None  # wall clock minus session time, for realtime pacing
+
+
+def _skip_missing_meshes(study: Study, runs: list[TrialRun], mesh_dirs: Sequence[str]) -> list[str]:
+    """A missing mesh skips its trials with a reason instead of failing the study; the study's notes."""
+    notes: list[str] = []
+    if any(t.scene == "bunny" for t in study.trials):
+        try:
+            path = find_mesh_file(BUNNY_FILE, mesh_dirs)
+            notes.append(f"bunny mesh: {path}")
+        except ConfigurationError as exc:
+            for r in runs:
+                if r.trial.scene == "bunny":
+                    r.skipped = f"Stanford bunny not available: {exc}"
+            notes.append(f"bunny trials skipped: {exc}")
+    return notes
+
+
+def _study_current(current_ua: int | None, profile: Any, dev: Any) -> tuple[int, str]:
+    """The study's current and where it came from: the option, the participant, the nominal emulator
+    current (an emulated board, so delivered charges are reported), else none (patterns only)."""
+    if current_ua is not None:
+        return int(current_ua), "--current-ua"
+    if profile is not None:
+        return int(profile.stimulation_ua), f"participant {profile.participant}"
+    if _inspectable(dev):
+        return NOMINAL_EMULATOR_UA, "nominal emulator current"
+    return 0, "none given: patterns only"
+
+
+def _stim_config(session: Any, current_ua: int) -> Any:
+    """The study's stimulation on every channel of the array: the participant's pulse, else TactDeform's
+    (200 µs, anodic)."""
+    from ..device import StimConfig
+
+    profile = session.profile
+    return StimConfig(
+        electrode_count=session.wiring.mapping.hw_channels,
+        current_ua=current_ua,
+        pulse_width_us=profile.pulse_width_us if profile is not None else 200,
+        polarity=profile.polarity if profile is not None else "anodic",
+    )
+
+
+def _trial_readback(live: _Live, run: TrialRun) -> Callable[[], tuple[int, ...]] | None:
+    """What the trial's renderer compares each sent frame with on an offline (instant) port: the levels
+    the board holds, and on v2 every electrode's height too (None on a port that cannot show them)."""
+    dev = live.dev
+    readback = live.session.readback(dev) if live.sim_clock is not None else None
+    run.verified = readback is not None
+    if readback is None:
+        return None
+    from tactdeform_hw.device.driver.readback import heights_readback
+
+    heights = heights_readback(dev, live.session.wiring.mapping)
+    return readback if heights is None else _with_heights(readback, heights, dev, run)
+
+
+def _pace(live: _Live, t_s: float) -> None:
+    """Bring the session clock to ``t_s``: wait in real time, or advance the simulated clock."""
+    if live.realtime:
+        if live.wall_start is None:
+            live.wall_start = time.perf_counter() - t_s
+        wait = t_s - (time.perf_counter() - live.wall_start)
+        if wait > 0:
+            time.sleep(wait)
+    elif live.sim_clock is not None and t_s > live.sim_clock.now():
+        live.sim_clock.advance(t_s - live.sim_clock.now())
+
+
+def _run_trial(
+    live: _Live, run: TrialRun, scenes: _Scenes, *, rate_hz: float, seed: int, tremor_mm: float
+) -> None:
+    """Render one trial's poses on the live session and keep what it produced on ``run``."""
+    from ..ports import board_hazards, board_state
+
+    trial, dev, tap = run.trial, live.dev, live.tap
+    t_wall = time.perf_counter()
+    scene = scenes.get(trial)
+    scene.prepare()
+    run.scene = scene
+    poses, spans = trial_poses(trial, scenes, rate_hz=rate_hz, seed=seed, tremor_mm=tremor_mm)
+    offset = live.session_t
+    run.poses = [Pose(p.t_s + offset, p.position_mm, p.orientation) for p in poses]
+    run.segment_spans = spans
+    run.t0_s = offset
+    inspectable = _inspectable(dev)
+    readback = _trial_readback(live, run)
+    hazards_before = len(board_hazards(dev.port) or ())
+    renderer = live.session.renderer(
+        scene,
+        dev,
+        approach=trial.approach,
+        config=live.cfg,
+        contact_mode=trial.contact_mode,
+        current_ua=live.current_ua,
+        stim_config=live.stim,
+        verify=readback,
+    )
+    tap.mark(t_s=offset, trial=trial.index, phase="configure")
+    renderer.start()
+    tap.mark(phase="render")
+    validator = PoseValidator()
+    for i, pose in enumerate(run.poses):
+        _pace(live, pose.t_s)
+        tap.mark(t_s=pose.t_s)
+        checked = validator.check_pose(pose)
+        if checked is None:
+            continue
+        for rec in renderer.step(checked):
+            run.records.append(rec)
+            run.record_pose.append(i)
+    renderer.summary.teleports = sum(r.stats.teleports for r in renderer.renderers.values())
+    run.summary = renderer.summary.as_dict()
+    run.tracking_drops = dict(validator.drops)
+    run.t1_s = run.poses[-1].t_s if run.poses else offset
+    if inspectable:
+        mapping = live.session.wiring.mapping
+        run.hazards = [h.to_dict() for h in (board_hazards(dev.port) or [])[hazards_before:]]
+        hw = (board_state(dev.port) or {})["stim_pattern"][: mapping.hw_channels]
+        run.end_pattern = list(mapping.to_application(hw))
+    run.writes = [w for w in tap.writes if w.trial == trial.index]
+    run.wall_s = time.perf_counter() - t_wall
+    live.session_t = run.t1_s + INTER_TRIAL_S
+
+
+def _run_trials(
+    live: _Live,
+    study: Study,
+    runs: list[TrialRun],
+    scenes: _Scenes,
+    *,
+    rate_hz: float,
+    tremor_mm: float,
+    say: ProgressFn,
+) -> None:
+    """Every trial in order on the live session, saying how each went (a skipped one says why)."""
+    for run in runs:
+        trial = run.trial
+        head = f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}"
+        if run.skipped is not None:
+            say(f"{head}: skipped ({run.skipped})")
+            continue
+        _run_trial(live, run, scenes, rate_hz=rate_hz, seed=study.seed, tremor_mm=tremor_mm)
+        ok = run.summary.get("mismatches", 0) == 0
+        say(
+            f"{head}: {len(run.poses)} poses, {run.summary.get('frames_sent', 0)} frames sent"
+            f"{'' if ok else ', MISMATCH'} ({run.wall_s:.2f} s)"
+        )
+
+
+def _check_rate(rate_hz: Any) -> None:
+    """Refuse a tracking rate that is no finite rate above 0 Hz, before any device is opened."""
+    if not (isinstance(rate_hz, (int, float)) and math.isfinite(rate_hz) and rate_hz > 0):
+        from ..errors import LimitError
+
+        raise LimitError("rate_hz", rate_hz, "a finite rate > 0 Hz")
+
+
+def _study_session(device: str, timeout: float, firmware: str, guard: Any, audit: Any, profile: Any) -> Any:
+    """The session of a study run without one: the TactDeform array on ``device`` under ``guard`` (the
+    hardware ceiling without one), writing to ``audit``."""
+    from tactdeform_hw.device.safety.guard import SafetyGuard
+
+    from ..session import Session, Wiring
+
+    return Session(
+        device=device,
+        timeout_s=timeout,
+        firmware=firmware,
+        wiring=Wiring.tactdeform(),
+        guard=guard if guard is not None else SafetyGuard(),
+        profile=profile,
+        log=audit,
+    )
+
+
 def run_study(
     study: Study,
     *,
@@ -349,182 +545,80 @@ def run_study(
     progress: ProgressFn | None = None,
     realtime: bool = False,
     firmware: str = "auto",
+    session: Any = None,
 ) -> StudyRun:
     """Run every trial of ``study`` on one device session; return the raw results (see :mod:`.checks`
     and :mod:`.report` for what is made of them).
 
-    ``current_ua`` defaults to the participant's (``profile.stimulation_ua``), else to
-    :data:`NOMINAL_EMULATOR_UA` on the emulator and 0 (patterns only) on a real device.  ``guard`` is the
-    safety guard the device enforces (a participant's limits).  ``realtime`` paces every pose to the
-    session clock (a real device then shows each trial at its real speed); otherwise the run goes as fast
-    as it can, which changes nothing the checks look at: the timed replay restores the session's timing."""
-    from tactdeform_hw.device.driver.readback import heights_readback, pattern_readback
-    from tactdeform_hw.device.safety.guard import SafetyGuard
-
-    from ..device import StimConfig, open_device
-    from ..ports import board_hazards, board_state
+    ``session`` (a :class:`~tactdeform_hw.session.Session` on the TactDeform array, its delivery log made)
+    gives the device, the guard, the participant's profile and the log; without one they come from
+    ``device``, ``timeout``, ``firmware``, ``guard`` (the safety guard the device enforces, the hardware
+    ceiling without one), ``profile`` and ``audit``.  ``current_ua`` defaults to the participant's
+    (``profile.stimulation_ua``), else to :data:`NOMINAL_EMULATOR_UA` on the emulator and 0 (patterns
+    only) on a real device.  ``realtime`` paces every pose to the session clock (a real device then shows
+    each trial at its real speed); otherwise the run goes as fast as it can, which changes nothing the
+    checks look at: the timed replay restores the session's timing."""
+    from ..clock import SimulatedClock
 
     say = progress or (lambda _msg: None)
     wall0 = time.perf_counter()
-    if not (isinstance(rate_hz, (int, float)) and math.isfinite(rate_hz) and rate_hz > 0):
-        from ..errors import LimitError
-
-        raise LimitError("rate_hz", rate_hz, "a finite rate > 0 Hz")
-    array = ElectrodeArray.tactdeform()
+    _check_rate(rate_hz)
+    if session is None:
+        session = _study_session(device, timeout, firmware, guard, audit, profile)
+    profile = session.profile
+    array = session.wiring.array
     patterns = PatternSet(array)
-    mapping = array.channel_mapping()
-    guard = guard if guard is not None else SafetyGuard()
     scenes = _Scenes(mesh_dirs)
     runs: list[TrialRun] = [TrialRun(t) for t in study.trials]
-    notes: list[str] = []
-    # A missing mesh skips its trials with a reason instead of failing the study.
-    if any(t.scene == "bunny" for t in study.trials):
-        try:
-            path = find_mesh_file(BUNNY_FILE, mesh_dirs)
-            notes.append(f"bunny mesh: {path}")
-        except ConfigurationError as exc:
-            for r in runs:
-                if r.trial.scene == "bunny":
-                    r.skipped = f"Stanford bunny not available: {exc}"
-            notes.append(f"bunny trials skipped: {exc}")
+    notes = _skip_missing_meshes(study, runs, mesh_dirs)
     cfg = ManagerConfig(**study.manager)
     # on a port that answers at once (the in-process emulator) the device's clock (audit log, watchdog) is
     # session time
-    from ..clock import SimulatedClock
-
-    dev = open_device(
-        device,
-        timeout=timeout,
-        mapping=mapping,
-        guard=guard,
-        audit=audit,
-        offline_clock=None if realtime else SimulatedClock(),
-        firmware=firmware,
-    )
+    dev = session.open_device(offline_clock=None if realtime else SimulatedClock())
     ran = dev.firmware
-    sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
     tap = WireTap(dev.port, ran)
     dev.port = tap
-    session_t = 0.0
-    wall_start: float | None = None  # wall clock minus session time, for realtime pacing
     try:
-        if current_ua is not None:
-            current, source = int(current_ua), "--current-ua"
-        elif profile is not None:
-            current, source = int(profile.stimulation_ua), f"participant {profile.participant}"
-        elif _inspectable(dev):
-            current, source = NOMINAL_EMULATOR_UA, "nominal emulator current"
-        else:
-            current, source = 0, "none given: patterns only"
-        stim = StimConfig(
-            electrode_count=mapping.hw_channels,
-            current_ua=current,
-            pulse_width_us=profile.pulse_width_us if profile is not None else 200,
-            polarity=profile.polarity if profile is not None else "anodic",
-        )
-        for run in runs:
-            trial = run.trial
-            if run.skipped is not None:
-                say(
-                    f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: skipped "
-                    f"({run.skipped})"
-                )
-                continue
-            t_wall = time.perf_counter()
-            scene = scenes.get(trial)
-            scene.prepare()
-            run.scene = scene
-            poses, spans = trial_poses(trial, scenes, rate_hz=rate_hz, seed=study.seed, tremor_mm=tremor_mm)
-            offset = session_t
-            run.poses = [Pose(p.t_s + offset, p.position_mm, p.orientation) for p in poses]
-            run.segment_spans = spans
-            run.t0_s = offset
-            inspectable = _inspectable(dev)
-            # an instant port, offline
-            readback = pattern_readback(dev, mapping) if sim_clock is not None else None
-            run.verified = readback is not None
-            heights = heights_readback(dev, mapping) if readback is not None else None
-            if readback is not None and heights is not None:
-                readback = _with_heights(readback, heights, dev, run)
-            hazards_before = len(board_hazards(dev.port) or ())
-            renderer = Renderer(
-                scene,
-                dev,
-                array=array,
-                approach=trial.approach,
-                config=cfg,
-                contact_mode=trial.contact_mode,
-                current_ua=current,
-                stim_config=stim,
-                verify=readback,
-            )
-            tap.mark(t_s=offset, trial=trial.index, phase="configure")
-            renderer.start()
-            tap.mark(phase="render")
-            validator = PoseValidator()
-            for i, pose in enumerate(run.poses):
-                if realtime:
-                    if wall_start is None:
-                        wall_start = time.perf_counter() - pose.t_s
-                    wait = pose.t_s - (time.perf_counter() - wall_start)
-                    if wait > 0:
-                        time.sleep(wait)
-                elif sim_clock is not None and pose.t_s > sim_clock.now():
-                    sim_clock.advance(pose.t_s - sim_clock.now())
-                tap.mark(t_s=pose.t_s)
-                checked = validator.check_pose(pose)
-                if checked is None:
-                    continue
-                for rec in renderer.step(checked):
-                    run.records.append(rec)
-                    run.record_pose.append(i)
-            renderer.summary.teleports = sum(r.stats.teleports for r in renderer.renderers.values())
-            run.summary = renderer.summary.as_dict()
-            run.tracking_drops = dict(validator.drops)
-            run.t1_s = run.poses[-1].t_s if run.poses else offset
-            if inspectable:
-                run.hazards = [h.to_dict() for h in (board_hazards(dev.port) or [])[hazards_before:]]
-                hw = (board_state(dev.port) or {})["stim_pattern"][: mapping.hw_channels]
-                run.end_pattern = list(mapping.to_application(hw))
-            run.writes = [w for w in tap.writes if w.trial == trial.index]
-            run.wall_s = time.perf_counter() - t_wall
-            session_t = run.t1_s + INTER_TRIAL_S
-            ok = run.summary.get("mismatches", 0) == 0
-            say(
-                f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}: {len(run.poses)} "
-                f"poses, {run.summary.get('frames_sent', 0)} frames sent{'' if ok else ', MISMATCH'} "
-                f"({run.wall_s:.2f} s)"
-            )
-        tap.mark(t_s=session_t, trial=0, phase="session")
+        current, source = _study_current(current_ua, profile, dev)
+        stim = _stim_config(session, current)
+        sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
+        live = _Live(session, dev, tap, sim_clock, cfg, current, stim, realtime)
+        _run_trials(live, study, runs, scenes, rate_hz=rate_hz, tremor_mm=tremor_mm, say=say)
+        tap.mark(t_s=live.session_t, trial=0, phase="session")
         if not dev.closed and dev.config is not None:
             dev.all_off()
     finally:
         dev.close()
     result = StudyRun(
         study,
-        device,
+        session.device,
         current,
         source,
         float(rate_hz),
         array,
         patterns,
         runs,
-        list(guard.electrode_limits(array.count)),
+        list(session.guard.electrode_limits(array.count)),
         getattr(profile, "participant", None),
         notes=notes,
         writes=list(tap.writes),
         firmware=ran,
     )
-    if timed:
-        try:
-            say(f"study {study.name}: replaying {len(tap.writes)} writes into the timed emulator")
-            replay_timed(result)
-        except TactDeformError as exc:  # the report says why there are no delivered currents
-            result.timed_note = f"timed replay failed: {exc}"
-    else:
-        result.timed_note = "timed replay not run (--no-timed)"
+    _replay(result, timed, say)
     result.wall_s = time.perf_counter() - wall0
     return result
+
+
+def _replay(result: StudyRun, timed: bool, say: ProgressFn) -> None:
+    """The timed replay of the study's writes, or the report's note on why there is none."""
+    if not timed:
+        result.timed_note = "timed replay not run (--no-timed)"
+        return
+    try:
+        say(f"study {result.study.name}: replaying {len(result.writes)} writes into the timed emulator")
+        replay_timed(result)
+    except TactDeformError as exc:  # the report says why there are no delivered currents
+        result.timed_note = f"timed replay failed: {exc}"
 
 
 def _with_heights(
@@ -558,11 +652,151 @@ _STIM_KINDS = (0, 1, 2)  # PulseKind.MONO, BI_ANODIC, BI_CATHODIC
 _PULSE_COLUMNS = ("start_us", "channel", "kind", "current_ua", "charge_nc")
 
 
+def _replay_writes(emu: Any, writes: list[WireWrite]) -> dict[int, float]:
+    """Feed the writes to the timed model, each at its session time but at least :data:`PACE_S` after the
+    one before, then :data:`TAIL_S` more; the replay time (µs) of each write by its id."""
+    at: dict[int, float] = {}
+    last = -math.inf
+    for w in writes:
+        t_us = max(w.t_s * 1e6, last + PACE_S * 1e6)
+        last = t_us
+        at[id(w)] = t_us
+        emu.advance_to(max(emu.now_us, t_us))
+        emu.write(w.data, at_us=t_us)
+    emu.advance_to(last + TAIL_S * 1e6)
+    return at
+
+
+@dataclass
+class _TimedAccount:
+    """What the timed model recorded over the session: the pulse table of a time window, the scan starts
+    of torn patterns (per run of scans), the losses and the other hazards."""
+
+    pulse_table: Callable[[float, float], dict[str, np.ndarray]]
+    torn_runs: list[Any]
+    losses: list[Any]
+    hazards: list[Any]
+
+
+def _account_v2(emu: Any, result: StudyRun) -> _TimedAccount:
+    """v2 records every scan (a torn pattern is one hazard per scan it tore, with its time): the hazard
+    list and the model's loss reports are the whole account."""
+    pulses = emu.reports.pulse_table()  # once; each trial takes its window of it
+    hazards = list(emu.hazards)
+    result.timed = True
+    result.timed_summary = {
+        "firmware": V2.name,
+        "scans": int(emu.scan_count),
+        "pulses": int(pulses["channel"].size),
+        "hazards": dict(sorted(Counter(h.kind.value for h in hazards).items())),
+    }
+
+    def pulse_table(lo_us: float, hi_us: float) -> dict[str, np.ndarray]:
+        sel = (pulses["start_us"] >= lo_us) & (pulses["start_us"] < hi_us)
+        return {k: v[sel] for k, v in pulses.items()}
+
+    return _TimedAccount(pulse_table, [], list(emu.losses), hazards)
+
+
+def _account_v1_2(emu: Any, result: StudyRun) -> _TimedAccount:
+    """Overruns, queue overflows and watchdog resets are in the hazard list; torn scans and lost bytes
+    are taken from the scan runs and the loss reports (per-cycle reports would be tens of thousands): a
+    torn_pattern record covers a stretch of cycles, each trial gets the torn scans inside its window."""
+    from tactdeform_hw.emulator.firmware.hazards import HazardKind
+
+    reports = emu.reports
+    torn_runs = [r.starts_ns() / 1000.0 for r in reports.runs if r.torn is not None]
+    losses = list(emu.losses)
+    hazards = [h for h in emu.hazards if h.kind is not HazardKind.TORN_PATTERN]
+    result.timed = True
+    summary = reports.summary()
+    # The model's assumptions are the timing command's business; a pattern's "latency" to its first
+    # pulse is unbounded for an all-off frame, so the maximum says nothing about the session here.
+    for key in ("model_assumptions", "latency_us_max", "now_us"):
+        summary.pop(key, None)
+    result.timed_summary = summary
+    return _TimedAccount(reports.pulse_table, torn_runs, losses, hazards)
+
+
+def _delivered(
+    sel: dict[str, np.ndarray], hw_to_app: dict[int, int], count: int, v2: bool, lo_us: float, hi_us: float
+) -> dict[str, Any]:
+    """One trial's ``delivered`` block from the pulses of its window: per electrode the pulses, the
+    charge and the largest current (on v2 the heights too), and the session's maxima."""
+    stim = np.isin(sel["kind"], _STIM_KINDS)
+    live = stim & (sel["current_ua"] > 0)
+    per_charge = [0.0] * count
+    per_pulses = [0] * count
+    per_max = [0.0] * count
+    per_heights: list[set[float]] = [set() for _ in range(count)]
+    unmapped = 0
+    for ch, ua, q in zip(
+        sel["channel"][stim].tolist(), sel["current_ua"][stim].tolist(), sel["charge_nc"][stim].tolist()
+    ):
+        app = hw_to_app.get(int(ch))
+        if app is None:
+            unmapped += 1
+            continue
+        per_pulses[app] += 1
+        per_charge[app] += float(q)
+        per_max[app] = max(per_max[app], float(ua))
+        if v2 and ua > 0:
+            per_heights[app].add(round(float(ua), 1))
+    sense_live = int(np.sum(~stim & (sel["current_ua"] > 0)))
+    per_electrode: dict[str, Any] = {
+        "pulses": per_pulses,
+        "charge_nc": [round(v, 1) for v in per_charge],
+        "max_current_ua": [round(v, 1) for v in per_max],
+    }
+    if v2:
+        # each electrode's own pulse heights: on v2 every pattern element is a height
+        per_electrode["heights_ua"] = [sorted(h) for h in per_heights]
+    return {
+        "window_s": [round(lo_us / 1e6, 6), round(hi_us / 1e6, 6)],
+        "stimulation_pulses": int(stim.sum()),
+        "pulses_with_current": int(live.sum()),
+        "sense_pulses_with_current": sense_live,
+        "pulses_on_unmapped_channels": unmapped,
+        "max_current_ua": round(float(sel["current_ua"][stim].max()), 1) if stim.any() else 0.0,
+        "max_charge_per_pulse_nc": round(float(sel["charge_nc"][stim].max()), 3) if stim.any() else 0.0,
+        "total_charge_nc": round(float(sel["charge_nc"][stim].sum()), 1),
+        "per_electrode": per_electrode,
+        "_table": sel,
+    }
+
+
+def _hazards_in(
+    account: _TimedAccount,
+    writes: list[WireWrite],
+    offsets: list[int],
+    trial: int,
+    lo_us: float,
+    hi_us: float,
+) -> list[dict[str, Any]]:
+    """The timing hazards of one trial's window: torn scans, losses, and the model's hazards (a parser
+    hazard belongs to the trial whose write holds its byte)."""
+    found: list[dict[str, Any]] = []
+    for scan_starts in account.torn_runs:
+        for s_us in scan_starts[(scan_starts >= lo_us) & (scan_starts < hi_us)].tolist():
+            found.append({"kind": "torn_pattern", "time_us": s_us})
+    for lo in account.losses:
+        if lo_us <= lo.time_us < hi_us:
+            found.append({"kind": "loss", "time_us": lo.time_us, "count": lo.count, "reason": lo.reason})
+    for h in account.hazards:
+        if h.time_us is not None:
+            mine = lo_us <= h.time_us < hi_us
+        else:  # a parser hazard: the write that holds its byte says which trial caused it
+            k = bisect_right(offsets, h.offset) - 1
+            mine = 0 <= k < len(writes) and writes[k].trial == trial
+        if mine:
+            found.append(h.to_dict())
+    return found
+
+
 def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     """Replay the session's writes into the timed model of the firmware that ran and attach, per trial,
     the pulses delivered (per electrode: pulses, largest current, charge; on v2 also the heights each
     electrode was pulsed at), the timing hazards in the trial's window and the replay time of each write."""
-    from tactdeform_hw.emulator.firmware.hazards import HazardKind
     from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
     writes = result.writes
@@ -576,55 +810,13 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         emu: Any = TimedEmulatorV2(link=link)
     else:
         emu = TimedEmulator(link=link)
-    at: dict[int, float] = {}
-    last = -math.inf
-    for w in writes:
-        t_us = max(w.t_s * 1e6, last + PACE_S * 1e6)
-        last = t_us
-        at[id(w)] = t_us
-        emu.advance_to(max(emu.now_us, t_us))
-        emu.write(w.data, at_us=t_us)
-    emu.advance_to(last + TAIL_S * 1e6)
+    at = _replay_writes(emu, writes)
     offsets = [0]
     for w in writes[:-1]:
         offsets.append(offsets[-1] + len(w.data))
     mapping = result.array.channel_mapping()
     hw_to_app = {ch: i for i, ch in enumerate(mapping.app_to_hw)}
-    if v2:
-        # v2 records every scan (a torn pattern is one hazard per scan it tore, with its time): the
-        # hazard list and the model's loss reports are the whole account
-        pulses = emu.reports.pulse_table()  # once; each trial takes its window of it below
-        torn_runs: list[Any] = []
-        losses: list[Any] = list(emu.losses)
-        hazards = list(emu.hazards)
-        result.timed = True
-        result.timed_summary = {
-            "firmware": V2.name,
-            "scans": int(emu.scan_count),
-            "pulses": int(pulses["channel"].size),
-            "hazards": dict(sorted(Counter(h.kind.value for h in hazards).items())),
-        }
-
-        def pulse_table(lo_us: float, hi_us: float) -> dict[str, np.ndarray]:
-            sel = (pulses["start_us"] >= lo_us) & (pulses["start_us"] < hi_us)
-            return {k: v[sel] for k, v in pulses.items()}
-    else:
-        reports = emu.reports
-        # Overruns, queue overflows and watchdog resets are in the hazard list; torn scans and lost bytes
-        # are taken from the scan runs and the loss reports (per-cycle reports would be tens of
-        # thousands): a torn_pattern record covers a stretch of cycles, each trial gets the torn scans
-        # inside its window.
-        torn_runs = [r.starts_ns() / 1000.0 for r in reports.runs if r.torn is not None]
-        losses = list(emu.losses)
-        hazards = [h for h in emu.hazards if h.kind is not HazardKind.TORN_PATTERN]
-        result.timed = True
-        summary = reports.summary()
-        # The model's assumptions are the timing command's business; a pattern's "latency" to its first
-        # pulse is unbounded for an all-off frame, so the maximum says nothing about the session here.
-        for key in ("model_assumptions", "latency_us_max", "now_us"):
-            summary.pop(key, None)
-        result.timed_summary = summary
-        pulse_table = reports.pulse_table
+    account = _account_v2(emu, result) if v2 else _account_v1_2(emu, result)
     for run in result.trials:
         if run.skipped is not None or not run.writes:
             continue
@@ -632,65 +824,11 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         lo_us = run.replay_us[0]
         hi_us = max(run.t1_s * 1e6, run.replay_us[-1]) + 20_000.0
         # One window per trial, and only the columns the checks use: a study is millions of pulses.
-        window = pulse_table(lo_us, hi_us)
+        window = account.pulse_table(lo_us, hi_us)
         sel = {k: window[k] for k in _PULSE_COLUMNS}
         del window
-        stim = np.isin(sel["kind"], _STIM_KINDS)
-        live = stim & (sel["current_ua"] > 0)
-        per_charge = [0.0] * result.array.count
-        per_pulses = [0] * result.array.count
-        per_max = [0.0] * result.array.count
-        per_heights: list[set[float]] = [set() for _ in range(result.array.count)]
-        unmapped = 0
-        for ch, ua, q in zip(
-            sel["channel"][stim].tolist(), sel["current_ua"][stim].tolist(), sel["charge_nc"][stim].tolist()
-        ):
-            app = hw_to_app.get(int(ch))
-            if app is None:
-                unmapped += 1
-                continue
-            per_pulses[app] += 1
-            per_charge[app] += float(q)
-            per_max[app] = max(per_max[app], float(ua))
-            if v2 and ua > 0:
-                per_heights[app].add(round(float(ua), 1))
-        sense_live = int(np.sum(~stim & (sel["current_ua"] > 0)))
-        per_electrode: dict[str, Any] = {
-            "pulses": per_pulses,
-            "charge_nc": [round(v, 1) for v in per_charge],
-            "max_current_ua": [round(v, 1) for v in per_max],
-        }
-        if v2:
-            # each electrode's own pulse heights: on v2 every pattern element is a height
-            per_electrode["heights_ua"] = [sorted(h) for h in per_heights]
-        run.delivered = {
-            "window_s": [round(lo_us / 1e6, 6), round(hi_us / 1e6, 6)],
-            "stimulation_pulses": int(stim.sum()),
-            "pulses_with_current": int(live.sum()),
-            "sense_pulses_with_current": sense_live,
-            "pulses_on_unmapped_channels": unmapped,
-            "max_current_ua": round(float(sel["current_ua"][stim].max()), 1) if stim.any() else 0.0,
-            "max_charge_per_pulse_nc": round(float(sel["charge_nc"][stim].max()), 3) if stim.any() else 0.0,
-            "total_charge_nc": round(float(sel["charge_nc"][stim].sum()), 1),
-            "per_electrode": per_electrode,
-            "_table": sel,
-        }
-        found: list[dict[str, Any]] = []
-        for scan_starts in torn_runs:
-            for s_us in scan_starts[(scan_starts >= lo_us) & (scan_starts < hi_us)].tolist():
-                found.append({"kind": "torn_pattern", "time_us": s_us})
-        for lo in losses:
-            if lo_us <= lo.time_us < hi_us:
-                found.append({"kind": "loss", "time_us": lo.time_us, "count": lo.count, "reason": lo.reason})
-        for h in hazards:
-            if h.time_us is not None:
-                mine = lo_us <= h.time_us < hi_us
-            else:  # a parser hazard: the write that holds its byte says which trial caused it
-                k = bisect_right(offsets, h.offset) - 1
-                mine = 0 <= k < len(writes) and writes[k].trial == run.trial.index
-            if mine:
-                found.append(h.to_dict())
-        run.timed_hazards = found
+        run.delivered = _delivered(sel, hw_to_app, result.array.count, v2, lo_us, hi_us)
+        run.timed_hazards = _hazards_in(account, writes, offsets, run.trial.index, lo_us, hi_us)
 
 
 def frame_heights(

@@ -132,7 +132,9 @@ def resample(frames: Sequence[PictureFrame], frame_ms: float) -> list[PictureFra
 # --- drawing ------------------------------------------------------------------------------------------------
 
 
-def _colour(level: int, current_ua: float | None, full_scale_ua: float) -> tuple[float, float, float, float]:
+def level_colour(
+    level: int, current_ua: float | None, full_scale_ua: float
+) -> tuple[float, float, float, float]:
     from matplotlib import colormaps
 
     if level not in (1, 2):
@@ -159,8 +161,7 @@ class _Scene:
         numbers: bool,
     ) -> None:
         Figure, FigureCanvasAgg, _ = require(_PURPOSE)
-        from matplotlib.lines import Line2D
-        from matplotlib.patches import Circle, Polygon
+        from matplotlib.patches import Polygon
 
         self.pos = np.asarray(array.positions_mm, dtype=float).reshape(-1, 2)
         self.radius = float(array.radius_mm)
@@ -192,11 +193,53 @@ class _Scene:
         pad = 0.06 * float(np.max(hi - lo)) + self.radius
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
-        self.discs = []
+        self.discs = self._discs(numbers)
+        self.fig.suptitle(title, fontsize=11, y=1 - 8 / h_px, va="top")
+        self.label = self.fig.text(
+            0.5, 1 - 40 / h_px, "", ha="center", va="center", fontsize=9, color="#222222"
+        )
+        self._legend()
+        if show_current_scale:
+            self._current_scale(w_px, bottom, top)
+        self.canvas.draw()
+        disp = ax.transData.transform(self.pos)
+        height = self.canvas.get_width_height()[1]
+        self.centres_px = np.column_stack([disp[:, 0], height - disp[:, 1]])
+        edge = ax.transData.transform(self.pos[:1] + [self.radius, 0.0])
+        self.radius_px = float(edge[0, 0] - disp[0, 0]) if len(self.pos) else 0.0
+
+    @classmethod
+    def of(
+        cls,
+        array: Any,
+        outline_mm: np.ndarray | None,
+        title: str | None,
+        size_px: tuple[int, int],
+        full_scale_ua: float | None,
+        show_current_scale: bool,
+        numbers: bool,
+    ) -> _Scene:
+        """The scene with the picture defaults: the array's name as title, the 10 mA full scale."""
+        return cls(
+            array,
+            outline_mm,
+            title or getattr(array, "name", "") or "electrode array",
+            size_px,
+            float(full_scale_ua or FULL_SCALE_UA),
+            show_current_scale,
+            numbers,
+        )
+
+    def _discs(self, numbers: bool) -> list[Any]:
+        """A disc per electrode at its position and radius, off; numbered when ``numbers``."""
+        from matplotlib.patches import Circle
+
+        ax = self.ax
+        discs = []
         for i, (x, y) in enumerate(self.pos):
             disc = Circle((x, y), self.radius, facecolor=OFF_COLOUR, edgecolor="#333333", lw=0.8, zorder=3)
             ax.add_patch(disc)
-            self.discs.append(disc)
+            discs.append(disc)
             if numbers:
                 ax.annotate(
                     str(i),
@@ -209,42 +252,39 @@ class _Scene:
                     color="#444444",
                     zorder=4,
                 )
-        self.fig.suptitle(title, fontsize=11, y=1 - 8 / h_px, va="top")
-        self.label = self.fig.text(
-            0.5, 1 - 40 / h_px, "", ha="center", va="center", fontsize=9, color="#222222"
-        )
+        return discs
+
+    def _legend(self) -> None:
+        """What the colours mean: off, monophasic, biphasic."""
+        from matplotlib.lines import Line2D
+
         handles = [
-            Line2D([], [], ls="", marker="o", ms=8, mfc=OFF_COLOUR, mec="#333333", label="off"),
-            Line2D(
-                [], [], ls="", marker="o", ms=8, mfc=_colour(1, None, 1.0), mec="#333333", label="monophasic"
-            ),
-            Line2D(
-                [], [], ls="", marker="o", ms=8, mfc=_colour(2, None, 1.0), mec="#333333", label="biphasic"
-            ),
+            Line2D([], [], ls="", marker="o", ms=8, mfc=colour, mec="#333333", label=label)
+            for colour, label in (
+                (OFF_COLOUR, "off"),
+                (level_colour(1, None, 1.0), "monophasic"),
+                (level_colour(2, None, 1.0), "biphasic"),
+            )
         ]
         self.fig.legend(
             handles=handles, loc="lower center", bbox_to_anchor=(0.5, 0.0), ncol=3, fontsize=8, frameon=False
         )
-        if show_current_scale:
-            from matplotlib import colormaps
-            from matplotlib.cm import ScalarMappable
-            from matplotlib.colors import LinearSegmentedColormap, Normalize
 
-            ramp = LinearSegmentedColormap.from_list(
-                "on", [colormaps["YlOrRd"](v) for v in np.linspace(0.45, 1.0, 32)]
-            )
-            cax = self.fig.add_axes(
-                (1 - 75 / w_px, bottom + 0.1 * (top - bottom), 12 / w_px, 0.8 * (top - bottom))
-            )
-            bar = self.fig.colorbar(ScalarMappable(Normalize(0, full_scale_ua / 1000.0), ramp), cax=cax)
-            bar.set_label("current (mA)", fontsize=8)
-            bar.ax.tick_params(labelsize=7)
-        self.canvas.draw()
-        disp = ax.transData.transform(self.pos)
-        height = self.canvas.get_width_height()[1]
-        self.centres_px = np.column_stack([disp[:, 0], height - disp[:, 1]])
-        edge = ax.transData.transform(self.pos[:1] + [self.radius, 0.0])
-        self.radius_px = float(edge[0, 0] - disp[0, 0]) if len(self.pos) else 0.0
+    def _current_scale(self, w_px: int, bottom: float, top: float) -> None:
+        """The colour ramp of the current, from 0 to the full scale in mA."""
+        from matplotlib import colormaps
+        from matplotlib.cm import ScalarMappable
+        from matplotlib.colors import LinearSegmentedColormap, Normalize
+
+        ramp = LinearSegmentedColormap.from_list(
+            "on", [colormaps["YlOrRd"](v) for v in np.linspace(0.45, 1.0, 32)]
+        )
+        cax = self.fig.add_axes(
+            (1 - 75 / w_px, bottom + 0.1 * (top - bottom), 12 / w_px, 0.8 * (top - bottom))
+        )
+        bar = self.fig.colorbar(ScalarMappable(Normalize(0, self.full_scale_ua / 1000.0), ramp), cax=cax)
+        bar.set_label("current (mA)", fontsize=8)
+        bar.ax.tick_params(labelsize=7)
 
     def render(self, frame: PictureFrame) -> np.ndarray:
         if len(frame.levels) != len(self.discs):
@@ -257,7 +297,7 @@ class _Scene:
                 f"current_ua={frame.current_ua!r} is out of range: a finite current ≥ 0 µA"
             )
         for disc, level in zip(self.discs, frame.levels):
-            disc.set_facecolor(_colour(int(level), frame.current_ua, self.full_scale_ua))
+            disc.set_facecolor(level_colour(int(level), frame.current_ua, self.full_scale_ua))
         active = sum(1 for v in frame.levels if v)
         parts = [frame.label] if frame.label else []
         parts.append(f"{active}/{len(frame.levels)} on")
@@ -290,16 +330,7 @@ def draw_array_png(
     """A PNG of ``array`` showing ``levels`` (application order) at ``current_ua``."""
     _, _, Image = require(_PURPOSE)
     size_px = _check_size(size_px)
-    full = float(full_scale_ua or FULL_SCALE_UA)
-    scene = _Scene(
-        array,
-        outline_mm,
-        title or getattr(array, "name", "") or "electrode array",
-        size_px,
-        full,
-        current_ua is not None,
-        numbers,
-    )
+    scene = _Scene.of(array, outline_mm, title, size_px, full_scale_ua, current_ua is not None, numbers)
     rgb = scene.render(PictureFrame(tuple(int(v) for v in levels), 0.0, label, current_ua))
     p = Path(path)
     Image.fromarray(rgb).save(p, format="PNG")
@@ -358,16 +389,7 @@ def draw_array_gif(
     if stretched:
         notes.append(f"{stretched} frame(s) shorter than {min_frame_ms:g} ms were held {min_frame_ms:g} ms")
     currents = [f.current_ua for f in seq if f.current_ua is not None]
-    full = float(full_scale_ua or FULL_SCALE_UA)
-    scene = _Scene(
-        array,
-        outline_mm,
-        title or getattr(array, "name", "") or "electrode array",
-        size_px,
-        full,
-        bool(currents),
-        numbers,
-    )
+    scene = _Scene.of(array, outline_mm, title, size_px, full_scale_ua, bool(currents), numbers)
     images = [
         Image.fromarray(scene.render(f)).convert("P", palette=Image.Palette.ADAPTIVE, colors=255) for f in seq
     ]

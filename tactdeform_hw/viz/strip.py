@@ -17,7 +17,7 @@ import numpy as np
 
 from ..errors import ConfigurationError
 from ._plot import canvas_rgb, require
-from .array_picture import OFF_COLOUR, _colour
+from .array_picture import OFF_COLOUR, level_colour
 
 _PURPOSE = "drawing a strip of electrode-array frames"
 
@@ -56,6 +56,51 @@ def strip_panels(
     return out
 
 
+def _panel(
+    fig: Any,
+    ax: Any,
+    pos: np.ndarray,
+    radius: float,
+    rec: dict[str, Any],
+    i: int,
+    at: tuple[float, float],
+    h_px: int,
+) -> None:
+    """One frame's panel: its electrodes on ``ax``, and under it (centred at ``at``, the panel's centre
+    and bottom in figure fractions) its number and time, then its state, feature and texture."""
+    from matplotlib.patches import Circle
+
+    centre_x, bottom = at
+    levels = rec["electrodes"]
+    if len(levels) != len(pos):
+        raise ConfigurationError(
+            f"a pattern of {len(levels)} level(s) cannot be drawn on an array of {len(pos)} electrode(s)"
+        )
+    for (x, y), v in zip(pos, levels):
+        colour = level_colour(int(v), None, 1.0) if v else OFF_COLOUR
+        ax.add_patch(Circle((x, y), radius, facecolor=colour, edgecolor="#333333", lw=0.6))
+    words = [str(w) for w in (rec.get("state"), rec.get("feature")) if w]
+    if rec.get("texture") not in (None, "smooth"):
+        words.append(str(rec["texture"]))
+    fig.text(
+        centre_x,
+        bottom - 6 / h_px,
+        f"{i}: t = {rec['t']:.3f} s",
+        ha="center",
+        va="top",
+        fontsize=8,
+    )
+    fig.text(
+        centre_x,
+        bottom - 19 / h_px,
+        " ".join(words),
+        ha="center",
+        va="top",
+        fontsize=7,
+        color="#444444",
+    )
+
+
 def draw_frames_strip(
     array: Any,
     records: Iterable[Any],
@@ -70,8 +115,6 @@ def draw_frames_strip(
     """A PNG with the run's sent frames side by side (``columns`` per row, at most ``max_panels``:
     the first ones; the number left out is returned and written under the title)."""
     Figure, FigureCanvasAgg, Image = require(_PURPOSE)
-    from matplotlib.patches import Circle
-
     if not (1 <= int(max_panels) <= 400):
         raise ConfigurationError(f"max_panels={max_panels!r} is out of range: 1 to 400")
     if not (1 <= int(columns) <= 40):
@@ -108,34 +151,7 @@ def draw_frames_strip(
         ax.set_xlim(lo[0], hi[0])
         ax.set_ylim(lo[1], hi[1])
         ax.axis("off")
-        levels = rec["electrodes"]
-        if len(levels) != len(pos):
-            raise ConfigurationError(
-                f"a pattern of {len(levels)} level(s) cannot be drawn on an array of {len(pos)} electrode(s)"
-            )
-        for (x, y), v in zip(pos, levels):
-            colour = _colour(int(v), None, 1.0) if v else OFF_COLOUR
-            ax.add_patch(Circle((x, y), radius, facecolor=colour, edgecolor="#333333", lw=0.6))
-        words = [str(w) for w in (rec.get("state"), rec.get("feature")) if w]
-        if rec.get("texture") not in (None, "smooth"):
-            words.append(str(rec["texture"]))
-        fig.text(
-            left + 0.5 * panel_px / w_px,
-            bottom - 6 / h_px,
-            f"{i}: t = {rec['t']:.3f} s",
-            ha="center",
-            va="top",
-            fontsize=8,
-        )
-        fig.text(
-            left + 0.5 * panel_px / w_px,
-            bottom - 19 / h_px,
-            " ".join(words),
-            ha="center",
-            va="top",
-            fontsize=7,
-            color="#444444",
-        )
+        _panel(fig, ax, pos, radius, rec, i, (left + 0.5 * panel_px / w_px, bottom), h_px)
     rgb = canvas_rgb(canvas)
     p = Path(path)
     Image.fromarray(rgb).save(p, format="PNG")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +67,99 @@ def grid_for(n: int, frames: int, screen: tuple[int, int] = SCREEN_PX) -> tuple[
     return best
 
 
+@dataclass
+class _Sheet:
+    """The figure's one axes in pixel coordinates (y down), and every font size written on it."""
+
+    ax: Any
+    fonts: list[float] = field(default_factory=list)
+
+    def text(self, x: float, y: float, s: str, size: float = MIN_FONT_PT, **kw: Any) -> None:
+        self.fonts.append(size)
+        self.ax.text(x, y, s, fontsize=size, va="center", **kw)
+
+
+@dataclass(frozen=True)
+class _Thumbs:
+    """How an array is drawn in a thumbnail of ``thumb`` pixels: positions, bounds, scale, disc size and
+    the colour of each level."""
+
+    pos: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    span: float
+    thumb: int
+    scale: float
+    disc_pt: float
+    colours: dict[int, Any]
+
+
+def _draw_header(sheet: _Sheet, title: str, colours: dict[int, Any]) -> None:
+    """The title and what each colour means."""
+    x = float(_PAD)
+    if title:
+        sheet.text(x, _HEADER_PX / 2, title, 12, weight="bold")
+        x += 12 * 0.62 * len(title) * DPI / 72 + 24
+    for level, name in ((0, "off"), (1, "monophasic"), (2, "biphasic")):
+        sheet.ax.scatter(
+            [x + 7], [_HEADER_PX / 2], s=110, color=colours[level], edgecolors="#333333", linewidths=0.6
+        )
+        sheet.text(x + 20, _HEADER_PX / 2, name)
+        x += 20 + 10 * 0.62 * len(name) * DPI / 72 + 24
+
+
+def _draw_trial(
+    sheet: _Sheet, trial: OverviewTrial, at: tuple[int, int], cell: tuple[int, int], th: _Thumbs
+) -> None:
+    """One trial's cell of size ``cell`` at ``at``: its title and verdict, then its frames with their
+    captions."""
+    (cx, cy), (cell_w, cell_h) = at, cell
+    ax, thumb = sheet.ax, th.thumb
+    ax.add_patch(_rect(cx + 3, cy + 2, cell_w - 6, cell_h - 4, "#f6f6f6" if trial.passed else "#fbeaea"))
+    sheet.text(
+        cx + _PAD,
+        cy + _TITLE_PX / 2 + 2,
+        trial.title,
+        MIN_FONT_PT,
+        weight="bold",
+        color="#222222" if trial.passed else "#aa0000",
+    )
+    sheet.text(
+        cx + cell_w - _PAD,
+        cy + _TITLE_PX / 2 + 2,
+        "pass" if trial.passed else "FAIL",
+        MIN_FONT_PT,
+        ha="right",
+        weight="bold",
+        color="#226622" if trial.passed else "#aa0000",
+    )
+    if not trial.frames:
+        sheet.text(
+            cx + _PAD,
+            cy + _TITLE_PX + thumb / 2,
+            trial.note or "no electrode was switched on",
+            MIN_FONT_PT,
+            color="#aa0000",
+        )
+        return
+    pos, lo, hi, span, scale = th.pos, th.lo, th.hi, th.span, th.scale
+    for j, frame in enumerate(trial.frames):
+        ox = cx + _PAD + j * (thumb + _GAP) + 4
+        oy = cy + _TITLE_PX + 4
+        px = ox + (pos[:, 0] - lo[0]) * scale + (span - (hi[0] - lo[0])) * scale / 2
+        py = oy + (hi[1] - pos[:, 1]) * scale + (span - (hi[1] - lo[1])) * scale / 2
+        cs = [th.colours[int(v) if int(v) in (1, 2) else 0] for v in frame.levels[: len(pos)]]
+        ax.scatter(px, py, s=th.disc_pt**2, c=cs, edgecolors="#333333", linewidths=0.4)
+        sheet.text(
+            ox + (thumb - 8) / 2,
+            oy + thumb + _CAPTION_PX / 2 - 4,
+            frame.caption,
+            MIN_FONT_PT,
+            ha="center",
+            color="#222222",
+        )
+
+
 def draw_study_overview(
     positions_mm: np.ndarray,
     radius_mm: float,
@@ -79,7 +172,7 @@ def draw_study_overview(
     """Draw ``trials`` as a grid that fits ``screen``; each cell: the trial's title and verdict, its
     frames on the array (off grey, monophasic red, biphasic purple) with a caption under each."""
     figure_cls, canvas_cls, _image = require("drawing the study overview")
-    from .array_picture import _colour
+    from .array_picture import level_colour
 
     frames = max((len(t.frames) for t in trials), default=1)
     cols, rows, thumb = grid_for(len(trials), frames, screen)
@@ -93,76 +186,21 @@ def draw_study_overview(
     ax.set_xlim(0, width)
     ax.set_ylim(height, 0)
     ax.axis("off")
-    fonts: list[float] = []
-
-    def text(x: float, y: float, s: str, size: float = MIN_FONT_PT, **kw: Any) -> None:
-        fonts.append(size)
-        ax.text(x, y, s, fontsize=size, va="center", **kw)
-
+    sheet = _Sheet(ax)
     pos = np.asarray(positions_mm, dtype=float)
     lo, hi = pos.min(axis=0) - radius_mm, pos.max(axis=0) + radius_mm
     span = float(max(hi - lo)) or 1.0
-    colours = {level: _colour(level, None, 1.0) for level in (0, 1, 2)}
-
-    x = float(_PAD)
-    if title:
-        text(x, _HEADER_PX / 2, title, 12, weight="bold")
-        x += 12 * 0.62 * len(title) * DPI / 72 + 24
-    for level, name in ((0, "off"), (1, "monophasic"), (2, "biphasic")):
-        ax.scatter(
-            [x + 7], [_HEADER_PX / 2], s=110, color=colours[level], edgecolors="#333333", linewidths=0.6
-        )
-        text(x + 20, _HEADER_PX / 2, name)
-        x += 20 + 10 * 0.62 * len(name) * DPI / 72 + 24
-
+    colours = {level: level_colour(level, None, 1.0) for level in (0, 1, 2)}
+    _draw_header(sheet, title, colours)
     scale = (thumb - 8) / span
-    disc_pt = 2 * radius_mm * scale * 72 / DPI
+    th = _Thumbs(pos, lo, hi, span, thumb, scale, 2 * radius_mm * scale * 72 / DPI, colours)
     for k, trial in enumerate(trials):
-        cx, cy = (k % cols) * cell_w, _HEADER_PX + (k // cols) * cell_h
-        ax.add_patch(_rect(cx + 3, cy + 2, cell_w - 6, cell_h - 4, "#f6f6f6" if trial.passed else "#fbeaea"))
-        text(
-            cx + _PAD,
-            cy + _TITLE_PX / 2 + 2,
-            trial.title,
-            MIN_FONT_PT,
-            weight="bold",
-            color="#222222" if trial.passed else "#aa0000",
+        _draw_trial(
+            sheet, trial, ((k % cols) * cell_w, _HEADER_PX + (k // cols) * cell_h), (cell_w, cell_h), th
         )
-        text(
-            cx + cell_w - _PAD,
-            cy + _TITLE_PX / 2 + 2,
-            "pass" if trial.passed else "FAIL",
-            MIN_FONT_PT,
-            ha="right",
-            weight="bold",
-            color="#226622" if trial.passed else "#aa0000",
-        )
-        if not trial.frames:
-            text(
-                cx + _PAD,
-                cy + _TITLE_PX + thumb / 2,
-                trial.note or "no electrode was switched on",
-                MIN_FONT_PT,
-                color="#aa0000",
-            )
-            continue
-        for j, frame in enumerate(trial.frames):
-            ox = cx + _PAD + j * (thumb + _GAP) + 4
-            oy = cy + _TITLE_PX + 4
-            px = ox + (pos[:, 0] - lo[0]) * scale + (span - (hi[0] - lo[0])) * scale / 2
-            py = oy + (hi[1] - pos[:, 1]) * scale + (span - (hi[1] - lo[1])) * scale / 2
-            cs = [colours[int(v) if int(v) in (1, 2) else 0] for v in frame.levels[: len(pos)]]
-            ax.scatter(px, py, s=disc_pt**2, c=cs, edgecolors="#333333", linewidths=0.4)
-            text(
-                ox + (thumb - 8) / 2,
-                oy + thumb + _CAPTION_PX / 2 - 4,
-                frame.caption,
-                MIN_FONT_PT,
-                ha="center",
-                color="#222222",
-            )
     out = Path(path)
     fig.savefig(out, format="png", dpi=DPI)
+    fonts = sheet.fonts
     return OverviewInfo(out, (width, height), cols, rows, thumb, min(fonts) if fonts else MIN_FONT_PT)
 
 

@@ -192,74 +192,40 @@ def to_cycles(records: Iterable[Any], period_us: float | None = None) -> list[Cy
     return out
 
 
-def draw_timing_png(
-    pulses: Iterable[Any],
-    cycles: Iterable[Any] = (),
-    path: str | Path = "timing.png",
-    *,
-    period_us: float | None = None,
-    window_us: tuple[float, float] | None = None,
-    max_cycles: int = 3,
-    title: str = "stimulation scan",
-    width_px: int = 1100,
-    full_scale_ua: float | None = None,
-) -> TimingInfo:
-    """Write the timing diagram PNG.  The window defaults to the first ``max_cycles`` cycles (all of the
-    trace when there are no cycle records)."""
-    Figure, FigureCanvasAgg, Image = require(_PURPOSE)
-    from matplotlib.patches import Patch
+def _period_of(cycles: list[Cycle]) -> float | None:
+    """The scan period when none is given: the first cycle's own, else the median spacing of the
+    cycles (None with fewer than two)."""
+    known = [c.period_us for c in cycles if c.period_us]
+    if known:
+        return known[0]
+    if len(cycles) >= 2:
+        return float(np.median(np.diff([c.start_us for c in cycles])))
+    return None
 
-    ps = to_pulses(pulses)
-    cs = to_cycles(cycles, period_us)
-    if not ps and not cs:
-        raise ConfigurationError("the trace holds no pulse and no cycle: nothing to draw")
-    if period_us is None:
-        known = [c.period_us for c in cs if c.period_us]
-        if known:
-            period_us = known[0]
-        elif len(cs) >= 2:
-            period_us = float(np.median(np.diff([c.start_us for c in cs])))
-    if window_us is None:
-        if cs:
-            shown = cs[: max(1, max_cycles)]
-            t0 = shown[0].start_us
-            t1 = max(
-                shown[-1].start_us + max(shown[-1].duration_us, period_us or 0.0),
-                *(c.start_us + c.duration_us for c in shown),
-            )
-        else:
-            t0 = min(p.start_us for p in ps)
-            t1 = max(p.start_us + p.width_us for p in ps)
-        # A little room before the first cycle; the window ends where the next cycle would begin.
-        window_us = (t0 - 0.02 * max(t1 - t0, 1.0), t1)
-    t0, t1 = (float(v) for v in window_us)
-    if not t1 > t0:
-        raise ConfigurationError(f"window_us={window_us!r}: the end must come after the start")
-    vis = [p for p in ps if p.start_us + p.width_us > t0 and p.start_us < t1]
-    vis_c = [c for c in cs if c.start_us < t1 and c.start_us + max(c.duration_us, period_us or 0) > t0]
-    channels = tuple(sorted({p.channel for p in ps})) or (0,)
-    row = {ch: k for k, ch in enumerate(channels)}
-    peak = max([p.current_ua for p in ps] + [0.0])
-    full = float(full_scale_ua or peak or 1.0)
 
-    unit, scale = ("ms", 1e-3) if (t1 - t0) >= 2000 else ("µs", 1.0)
-    height_px = int(min(2400, 210 + 17 * len(channels)))
-    dpi = 100
-    fig = Figure(figsize=(width_px / dpi, height_px / dpi), dpi=dpi)
-    canvas = FigureCanvasAgg(fig)
-    ax = fig.add_axes((0.07, 85 / height_px, 0.90, 1 - 125 / height_px))
-    ax.set_xlim(t0 * scale, t1 * scale)
-    ax.set_ylim(len(channels) - 0.4, -1.6)
-    ax.set_yticks(range(len(channels)))
-    ax.set_yticklabels([str(c) for c in channels], fontsize=7 if len(channels) > 16 else 9)
-    ax.set_ylabel("channel")
-    ax.set_xlabel(f"time ({unit})")
-    ax.set_title(title, fontsize=11)
-    ax.grid(axis="x", color="#eeeeee", lw=0.6)
-    for k in range(len(channels)):
-        ax.axhline(k + 0.4, color="#f0f0f0", lw=0.5, zorder=0)
+def _default_window(
+    ps: list[Pulse], cs: list[Cycle], period_us: float | None, max_cycles: int
+) -> tuple[float, float]:
+    """The first ``max_cycles`` cycles (the whole trace without cycle records), with a little room before
+    the first; the window ends where the next cycle would begin."""
+    if cs:
+        shown = cs[: max(1, max_cycles)]
+        t0 = shown[0].start_us
+        t1 = max(
+            shown[-1].start_us + max(shown[-1].duration_us, period_us or 0.0),
+            *(c.start_us + c.duration_us for c in shown),
+        )
+    else:
+        t0 = min(p.start_us for p in ps)
+        t1 = max(p.start_us + p.width_us for p in ps)
+    return (t0 - 0.02 * max(t1 - t0, 1.0), t1)
 
-    # Scan busy time and overruns, in the band above channel rows.
+
+def _draw_cycles(
+    ax: Any, vis_c: list[Cycle], period_us: float | None, scale: float, window: tuple[float, float]
+) -> int:
+    """Scan busy time and overruns, in the band above the channel rows; how many cycles overran."""
+    t0, t1 = window
     overruns = 0
     for c in vis_c:
         ax.axvline(c.start_us * scale, color="#4a4a4a", lw=0.8, ls="--", zorder=1)
@@ -292,8 +258,12 @@ def draw_timing_png(
                 fontweight="bold",
                 clip_on=True,
             )
-    # The period arrow sits on the first overrun cycle (its end is where the overrun begins), else on
-    # the first cycle; each cycle's own period is used, since a frequency command changes it mid-trace.
+    return overruns
+
+
+def _draw_period(ax: Any, vis_c: list[Cycle], period_us: float | None, scale: float) -> None:
+    """The period arrow, on the first overrun cycle (its end is where the overrun begins), else on the
+    first cycle; each cycle's own period is used, since a frequency command changes it mid-trace."""
     marked = next((c for c in vis_c if c.overrun_us > 0), vis_c[0] if vis_c else None)
     per_mark = (marked.period_us or period_us) if marked is not None else None
     if marked is not None and per_mark:
@@ -314,7 +284,13 @@ def draw_timing_png(
             color="#333333",
         )
 
-    kinds_seen = set()
+
+def _draw_pulses(
+    ax: Any, vis: list[Pulse], row: dict[int, int], full: float, scale: float, window: tuple[float, float]
+) -> set[str]:
+    """Every pulse in its channel's row, its height proportional to its current; the kinds drawn."""
+    t0, t1 = window
+    kinds_seen: set[str] = set()
     for p in vis:
         h = 0.15 + 0.6 * min(max(p.current_ua / full, 0.0), 1.0)
         kind = p.kind if p.kind in KIND_COLOURS else "mono"
@@ -326,6 +302,12 @@ def draw_timing_png(
                 p.start_us * scale, y + 0.35 - h, max(p.width_us * scale, (t1 - t0) * scale * 4e-4), h, colour
             )
         )
+    return kinds_seen
+
+
+def _legend(fig: Any, kinds_seen: set[str], overruns: int) -> None:
+    """What the colours mean: scan busy, each pulse kind drawn, an overrun."""
+    from matplotlib.patches import Patch
 
     handles = [Patch(color="#9ecae1", label="scan busy")]
     handles += [Patch(color=KIND_COLOURS[k], label=KIND_LABELS[k]) for k in KIND_COLOURS if k in kinds_seen]
@@ -339,6 +321,64 @@ def draw_timing_png(
         frameon=False,
         bbox_to_anchor=(0.5, 0.0),
     )
+
+
+def draw_timing_png(
+    pulses: Iterable[Any],
+    cycles: Iterable[Any] = (),
+    path: str | Path = "timing.png",
+    *,
+    period_us: float | None = None,
+    window_us: tuple[float, float] | None = None,
+    max_cycles: int = 3,
+    title: str = "stimulation scan",
+    width_px: int = 1100,
+    full_scale_ua: float | None = None,
+) -> TimingInfo:
+    """Write the timing diagram PNG.  The window defaults to the first ``max_cycles`` cycles (all of the
+    trace when there are no cycle records)."""
+    Figure, FigureCanvasAgg, Image = require(_PURPOSE)
+    ps = to_pulses(pulses)
+    cs = to_cycles(cycles, period_us)
+    if not ps and not cs:
+        raise ConfigurationError("the trace holds no pulse and no cycle: nothing to draw")
+    if period_us is None:
+        period_us = _period_of(cs)
+    if window_us is None:
+        window_us = _default_window(ps, cs, period_us, max_cycles)
+    t0, t1 = (float(v) for v in window_us)
+    if not t1 > t0:
+        raise ConfigurationError(f"window_us={window_us!r}: the end must come after the start")
+    vis = [p for p in ps if p.start_us + p.width_us > t0 and p.start_us < t1]
+    vis_c = [c for c in cs if c.start_us < t1 and c.start_us + max(c.duration_us, period_us or 0) > t0]
+    channels = tuple(sorted({p.channel for p in ps})) or (0,)
+    row = {ch: k for k, ch in enumerate(channels)}
+    peak = max([p.current_ua for p in ps] + [0.0])
+    full = float(full_scale_ua or peak or 1.0)
+
+    unit, scale = ("ms", 1e-3) if (t1 - t0) >= 2000 else ("µs", 1.0)
+    height_px = int(min(2400, 210 + 17 * len(channels)))
+    dpi = 100
+    fig = Figure(figsize=(width_px / dpi, height_px / dpi), dpi=dpi)
+    canvas = FigureCanvasAgg(fig)
+    ax = fig.add_axes((0.07, 85 / height_px, 0.90, 1 - 125 / height_px))
+    ax.set_xlim(t0 * scale, t1 * scale)
+    ax.set_ylim(len(channels) - 0.4, -1.6)
+    ax.set_yticks(range(len(channels)))
+    ax.set_yticklabels([str(c) for c in channels], fontsize=7 if len(channels) > 16 else 9)
+    ax.set_ylabel("channel")
+    ax.set_xlabel(f"time ({unit})")
+    ax.set_title(title, fontsize=11)
+    ax.grid(axis="x", color="#eeeeee", lw=0.6)
+    for k in range(len(channels)):
+        ax.axhline(k + 0.4, color="#f0f0f0", lw=0.5, zorder=0)
+
+    overruns = _draw_cycles(ax, vis_c, period_us, scale, (t0, t1))
+    _draw_period(ax, vis_c, period_us, scale)
+
+    kinds_seen = _draw_pulses(ax, vis, row, full, scale, (t0, t1))
+
+    _legend(fig, kinds_seen, overruns)
     fig.text(
         0.97,
         1 - 12 / height_px,
