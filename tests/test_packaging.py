@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import subprocess
 import sys
 
@@ -39,10 +38,8 @@ def test_the_licence_file_is_the_licence_pyproject_names() -> None:
 
 
 def _deprecated_spellings() -> set[str]:
-    parser = build_parser()
-    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
     found: set[str] = set()
-    for name, sub in commands.items():
+    for name, sub in build_parser().commands.items():
         for action in sub._actions:
             if isinstance(action, DeprecatedAlias | PolarityCode):
                 found.update(f"{name} {flag}" for flag in action.option_strings)
