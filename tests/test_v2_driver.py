@@ -83,7 +83,7 @@ def _no_live_hazards(emu: Emulator) -> None:
 def test_configure_send_all_off_close_on_the_untimed_v2_url() -> None:
     dev = open_device("etactile://?firmware=v2&timed=0", firmware="v2")
     emu = dev.port.emulator  # type: ignore[attr-defined]
-    assert isinstance(dev._dialect, V2Dialect) and dev.link_state is LinkState.IN_STEP
+    assert isinstance(dev.dialect, V2Dialect) and dev.link_state is LinkState.IN_STEP
     dev.configure(
         StimConfig(
             electrode_count=4,
@@ -266,7 +266,7 @@ def test_auto_detects_the_version_from_every_parser_state_before_any_stimulating
         mark = len(emu.parser.rx)
         monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
         dev = open_device("emulator", firmware="auto")
-        assert (dev._dialect is not None) == (fw == "v2"), prefix.hex()
+        assert isinstance(dev.dialect, V2Dialect) == (fw == "v2"), prefix.hex()
         # the probe (zeros, the safe tail, the sync check) came first: no command that carries a current
         first = bytes(emu.parser.rx)[mark : mark + 520]
         assert set(first) <= {0x00, 0xFC, 0xFB, 0xF9, 0xF4}, prefix.hex()
@@ -336,8 +336,8 @@ def test_recovery_after_a_cut_pattern_on_v2_delivers_nothing_above_the_limits() 
     dev, port, board = _timed_v2(guard)
     dev.configure(StimConfig(electrode_count=32, current_ua=1500))
     dev.send_pattern([1] * 32)
-    assert dev._dialect is not None and dev._dialect.codes is not None
-    cut = c2.encode_pattern(dev._dialect.codes)[:41]  # the driver's own write, cut inside a height
+    assert dev.state.codes is not None
+    cut = c2.encode_pattern(dev.state.codes)[:41]  # the driver's own write, cut inside a height
     board.write(cut)
     dev.mark_unknown()
     t = port.now_s
@@ -437,7 +437,7 @@ def test_a_guardian_is_given_the_v2_stop() -> None:
     dev = EtactileKitDevice(port)
     g = _Guardian()
     dev._guardian = g  # type: ignore[assignment]
-    V2Dialect().attach(dev)
+    dev.speak(V2)
     assert g.stops == [off_packet(0)]
     dev._guardian = None
     dev._closed = True

@@ -39,7 +39,7 @@ from tactdeform_hw.device.driver.firmware_probe import (
 from tactdeform_hw.device.driver.pacing import Pacer, default_pacer
 from tactdeform_hw.device.participant.mapping import ChannelMapping
 from tactdeform_hw.device.safety.guard import SafetyGuard
-from tactdeform_hw.device.safety.guardian import Guardian, GuardianError, off_packet, pace_for
+from tactdeform_hw.device.safety.guardian import Guardian, GuardianError, pace_for
 from tactdeform_hw.errors import (
     DeviceBusyError,
     DeviceGoneError,
@@ -48,7 +48,7 @@ from tactdeform_hw.errors import (
     TransportError,
 )
 from tactdeform_hw.protocol.constants import BAUD_RATE
-from tactdeform_hw.protocol.firmware import V2
+from tactdeform_hw.protocol.firmware import FirmwareSpec
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 DEFAULT_TIMEOUT_S = 0.5
@@ -268,12 +268,7 @@ class EtactileKitDevice(Device):
                 self._closed = True
                 self._close_transport()
                 raise
-        if probe.firmware is V2:
-            from tactdeform_hw.device.driver.v2 import V2Dialect
-
-            V2Dialect().attach(self)
-        elif self.audit is not None:  # the log says which firmware its bytes were written for, as on v2
-            self.audit.event("firmware", firmware=probe.name)
+        self.speak(probe.firmware)
         try:
             self._open_proof()
         except FirmwareMismatchError:
@@ -287,6 +282,14 @@ class EtactileKitDevice(Device):
 
         adopt(self)  # a command's stop session watches every device opened under it
 
+    def speak(self, firmware: FirmwareSpec) -> None:
+        """:meth:`Device.speak`, and the guardian's stop for that firmware (v1.2's own stop would complete a
+        v2 pattern in progress with 0xFB as a height's high byte)."""
+        super().speak(firmware)
+        stop = self.dialect.guardian_open_stop()
+        if stop is not None and self._guardian is not None:
+            self._guardian.set_stop(stop)
+
     def _refuse(self) -> None:
         """Give up a board before driving it: the port is closed, nothing more is written."""
         self._closed = True
@@ -299,7 +302,7 @@ class EtactileKitDevice(Device):
 
         name = self._port_name()
         audit = self.audit
-        self._unproved_since = self.pacer.clock.now()
+        self.link.unproved_since = self.pacer.clock.now()
 
         def write(data: bytes) -> None:  # the identification's bytes are in the audit log like any other
             self._write(data)
@@ -402,12 +405,7 @@ class EtactileKitDevice(Device):
         drain_s, zeros_s = pace_for(
             cfg.rate_hz, cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us
         )
-        if self._dialect is not None:
-            from tactdeform_hw.device.driver.v2 import off_packet as off_packet_v2
-
-            g.configure(off_packet_v2(cfg.electrode_count), drain_s, zeros_s)
-            return
-        g.configure(off_packet(cfg.electrode_count), drain_s, zeros_s)
+        g.configure(self.dialect.guardian_stop(cfg.electrode_count), drain_s, zeros_s)
 
     def configure(self, config: StimConfig) -> None:
         super().configure(config)

@@ -353,6 +353,10 @@ class SafetyGuard:
             sent_ua=sent_ua,
         )
 
+    def note_electrode_clips(self, rule: str, message: str, **detail: Any) -> None:
+        """Electrodes whose own heights were lowered (firmware v2: each electrode to its own limit)."""
+        self._record("clipped", rule, message, **detail)
+
     def _refuse(self, rule: str, message: str, **detail: Any) -> SafetyError:
         self._record("refused", rule, message, **detail)
         return SafetyError(f"{message}; nothing was sent")
