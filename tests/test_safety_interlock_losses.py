@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
-from tactdeform_hw.device.safety.guard import SafetyGuard, WireState, _Shadow, _tail_losses
+from tactdeform_hw.device.safety.guard import SafetyGuard
+from tactdeform_hw.device.safety.interlock import Shadow, WireState, tail_losses
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.errors import SafetyError
 from tactdeform_hw.protocol.units import CurrentTransfer
@@ -126,7 +127,7 @@ def test_an_unknown_parser_position_allows_only_zeros_and_requests() -> None:
 
 def test_tail_losses_follow_the_usb_packets() -> None:
     data = bytes(range(130))
-    losses = dict(_tail_losses(data, 10, 64))
+    losses = dict(tail_losses(data, 10, 64))
     assert losses[(10, 64)] == data[:10] + data[64:]  # the rest of the first packet
     assert losses[(10, 130)] == data[:10]  # and the queue stayed full for the later packets
     assert losses[(70, 128)] == data[:70] + data[128:]
@@ -192,7 +193,7 @@ def _command(draw: st.DrawFn, n: int) -> bytes:
     return p.encode_pattern(draw(st.lists(st.integers(0, 3), min_size=n, max_size=n)), electrode_num=n)
 
 
-def _matches(s: _Shadow, emu: Emulator) -> bool:
+def _matches(s: Shadow, emu: Emulator) -> bool:
     """The firmware's registers agree with every register the interlock's state claims to know."""
     regs = emu.state()
     pairs = [

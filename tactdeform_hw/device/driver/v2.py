@@ -40,7 +40,6 @@ the v2 table and checks each channel's own height (:func:`verify_channels`).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
@@ -59,7 +58,7 @@ from tactdeform_hw.protocol.firmware_math import estimate_scan_us, firmware_peri
 
 if TYPE_CHECKING:
     from tactdeform_hw.device.participant.mapping import ChannelMapping
-    from tactdeform_hw.device.safety.guard import SafetyGuard, _Shadow
+    from tactdeform_hw.device.safety.guard import SafetyGuard
     from tactdeform_hw.protocol.units import CurrentTransfer
 
 #: Margin past the firmware's 2 s command timeout before a pending command is taken as discarded.
@@ -587,94 +586,3 @@ def buffer_levels(state: Mapping[str, Any]) -> list[int]:
         return pattern
     level = PATTERN_BIPHASIC if mode == c2.STIM_MODE_BIPHASIC else PATTERN_MONOPHASIC
     return [level if v else 0 for v in pattern]
-
-
-# --- the interlock's reading of v2 registers ----------------------------------------------------------------
-
-
-def verify_channels(
-    guard: SafetyGuard, sh: _Shadow, what: str, mapping: ChannelMapping | None, transfer: CurrentTransfer
-) -> None:
-    """Every channel v2 scans receives at most its own limit: in mode 0/1 its own pattern height, in mode 2
-    the sense height (then never above 0); unknown values count as their worst."""
-    num = sh.electrode_num
-    mode = sh.stim_mode
-    sense_ua = transfer.to_ua(sh.sense_code) if sh.sense_code is not None else math.inf
-    if mode is None or mode >= c2.STIM_MODE_IMPEDANCE:
-        if sense_ua > 0 and num != 0:
-            raise guard._refuse(
-                "interlock",
-                f"{what}: stimulation mode {'unknown' if mode is None else mode} with a sense height that "
-                "may be non-zero (mode 2 gives every channel the sense pulse, a zero pattern does not stop "
-                "it)",
-            )
-        if mode is not None:
-            return
-    if num is None:
-        if any(v is None or v for v in sh.pattern):
-            raise guard._refuse(
-                "interlock", f"{what}: a height possible while the electrode count is unknown"
-            )
-        return
-    limits, _ = guard._hw_limits(mapping, num)
-    width = sh.width_us
-    for ch in range(num):
-        code = sh.pattern[ch]
-        ua = transfer.to_ua(code) if code is not None else math.inf
-        if ua <= 0:
-            continue
-        if ua > min(limits[ch], guard.cap_ua) + _EPS:
-            raise guard._refuse(
-                "interlock",
-                f"{what}: channel {ch} would receive {ua:g} µA, above its limit of {limits[ch]} µA",
-                channel=ch,
-            )
-        if width is None:
-            raise guard._refuse(
-                "interlock", f"{what}: channel {ch} has a height while the pulse width is unknown"
-            )
-        if ua * max(width, 7) / 1000.0 > guard.max_charge_nc + _EPS:
-            raise guard._refuse(
-                "interlock",
-                f"{what}: channel {ch}: {ua:g} µA × {width} µs exceeds the charge limit of "
-                f"{guard.max_charge_nc:g} nC",
-                channel=ch,
-            )
-
-
-def check_ramp(
-    guard: SafetyGuard,
-    before: Sequence[int | None],
-    after: Sequence[int],
-    start: int,
-    what: str,
-    transfer: CurrentTransfer,
-) -> None:
-    """Each channel's height rises by at most the ramp step per pattern (an unknown one counts as 0)."""
-    ramp = guard.ramp_ua_per_frame
-    if ramp is None:
-        return
-    for k, code in enumerate(after):
-        old = before[start + k]
-        prev = transfer.to_ua(old) if old is not None else 0.0
-        new = transfer.to_ua(code)
-        if new > prev + ramp + _EPS:
-            raise guard._refuse(
-                "interlock",
-                f"{what}: channel {start + k} rises from {prev:g} to {new:g} µA, more than the ramp of "
-                f"{ramp} µA",
-                channel=start + k,
-            )
-
-
-def current_can_flow(sh: _Shadow) -> bool:
-    """v2: a height on a scanned channel (modes 0/1), or a sense height (mode 2 or unknown)."""
-    if sh.electrode_num == 0:
-        return False
-    if sh.stim_mode is None or sh.stim_mode >= c2.STIM_MODE_IMPEDANCE:
-        if sh.sense_code != 0:
-            return True
-        if sh.stim_mode is not None:
-            return False
-    num = sh.electrode_num if sh.electrode_num is not None else len(sh.pattern)
-    return any(v is None or v for v in sh.pattern[:num])
