@@ -20,7 +20,6 @@ code.  The in-process emulator declares nothing: the board it models dies with t
 from __future__ import annotations
 
 import errno
-import os
 import sys
 from typing import Any, Protocol
 
@@ -36,6 +35,7 @@ from tactdeform_hw.device.driver.firmware_probe import (
     check_firmware,
     detect_firmware,
 )
+from tactdeform_hw.device.driver.holders import find_holders
 from tactdeform_hw.device.driver.pacing import Pacer, default_pacer
 from tactdeform_hw.device.participant.mapping import ChannelMapping
 from tactdeform_hw.device.safety.guard import SafetyGuard
@@ -81,54 +81,6 @@ def _lower_lines(port: SerialLike) -> None:
 
 
 _BUSY_ERRNOS = frozenset({errno.EWOULDBLOCK, errno.EAGAIN, errno.EBUSY, errno.EACCES})
-
-
-def _proc_cmdline(pid: int) -> str:
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            return f.read().replace(b"\0", b" ").decode("utf-8", "replace").strip()
-    except OSError:
-        return ""
-
-
-def find_holders(path: str) -> list[tuple[int, str]]:
-    """Processes holding ``path``: first the one that took its ``flock`` (``/proc/locks``), then every
-    other process with it open (``/proc/*/fd``); ``(pid, command line)`` each.
-    Empty where ``/proc`` is not there (the error then names the device only)."""
-    try:
-        st = os.stat(path)
-        real = os.path.realpath(path)
-    except OSError:
-        return []
-    key = f"{os.major(st.st_dev):02x}:{os.minor(st.st_dev):02x}:{st.st_ino}"
-    pids: list[int] = []
-    try:
-        with open("/proc/locks", encoding="ascii", errors="replace") as f:
-            for line in f:
-                parts = line.split()
-                if len(parts) >= 6 and parts[1] == "FLOCK" and parts[5] == key and parts[4].isdigit():
-                    pids.append(int(parts[4]))
-    except OSError:
-        pass
-    try:
-        entries = os.listdir("/proc")
-    except OSError:
-        entries = []
-    for entry in entries:
-        if not entry.isdigit() or int(entry) in pids:
-            continue
-        try:
-            fds = os.listdir(f"/proc/{entry}/fd")
-        except OSError:
-            continue
-        for fd in fds:
-            try:
-                if os.readlink(f"/proc/{entry}/fd/{fd}") == real:
-                    pids.append(int(entry))
-                    break
-            except OSError:
-                continue
-    return [(pid, _proc_cmdline(pid)) for pid in dict.fromkeys(pids) if os.path.exists(f"/proc/{pid}")]
 
 
 _exclusive_port_class: type | None = None
