@@ -93,7 +93,7 @@ BUSY_HELP = (
 )
 
 
-def _import_usb() -> tuple[ModuleType, ModuleType]:
+def import_usb() -> tuple[ModuleType, ModuleType]:
     try:
         import usb.core
         import usb.util
@@ -108,7 +108,7 @@ def default_backend() -> Any:
     Tries libusb 1.0, then the DLL shipped by the ``libusb-package`` wheel (pyusb does not look there
     by itself), then OpenUSB and libusb 0.1.
     """
-    _import_usb()
+    import_usb()
     from tactdeform_hw.device.safety.usb_guardian import libusb1_backend
 
     backend = libusb1_backend()
@@ -239,7 +239,7 @@ class UsbCdcPort(PortBase):
         dev_root: str = "/dev",
         holders: HolderFinder | None = None,
     ) -> None:
-        self._core, self._util = _import_usb()
+        self._core, self._util = import_usb()
         self.sysfs_root = sysfs_root
         self.dev_root = dev_root
         self._holders = holders

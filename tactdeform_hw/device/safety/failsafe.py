@@ -191,11 +191,11 @@ def _stop_all(signum: int, extra: FailSafe | None = None) -> StopRecord:
     if extra is not None and extra not in watched:
         watched.append(extra)
     for fs in watched:
-        fs._stop.set()
+        fs.halt_watch()
     ok = True
     count = 0
     for fs in watched:
-        done = fs._switch_off_for_signal(signum)
+        done = fs.switch_off_for_signal(signum)
         if done is not None:
             count += 1
             ok = ok and done
@@ -393,6 +393,11 @@ class FailSafe:
             self._thread.start()
         return self
 
+    def halt_watch(self) -> None:
+        """Tell the watcher thread to end at its next wake-up (without waiting for it: a signal handler's
+        stop switches every device off first)."""
+        self._stop.set()
+
     def stop(self) -> None:
         self._stop.set()
         if self._thread is not None and self._thread is not threading.current_thread():
@@ -438,7 +443,7 @@ class FailSafe:
             self.on_event(ev)
         return ev
 
-    def _switch_off_for_signal(self, signum: int) -> bool | None:
+    def switch_off_for_signal(self, signum: int) -> bool | None:
         """Every channel off and the port closed; True when that worked, None when already closed."""
         dev = self.device
         if dev.closed:

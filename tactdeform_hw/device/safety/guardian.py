@@ -239,7 +239,7 @@ class Guardian:
         line = out.readline() if ready else b""
         out.close()
         if line.strip() != b"ready":
-            g._close_pipe()
+            g.close_pipe()
             proc.kill()
             proc.wait()
             raise GuardianError(f"the guardian for {name} did not start (it said {line!r})")
@@ -275,7 +275,7 @@ class Guardian:
     def release(self, timeout_s: float = 5.0) -> None:
         """The owner switched everything off itself: the guardian exits without writing."""
         self.tell("bye")
-        self._close_pipe()
+        self.close_pipe()
         self._wait(timeout_s)
 
     def abandon(self, timeout_s: float = 5.0) -> None:
@@ -284,10 +284,11 @@ class Guardian:
         release, self._release_owner = self._release_owner, None
         if release is not None and self._pipe_w is not None:
             release()
-        self._close_pipe()
+        self.close_pipe()
         self._wait(timeout_s)
 
-    def _close_pipe(self) -> None:
+    def close_pipe(self) -> None:
+        """Close the owner's end of the pipe to the guardian (after "bye" it exits; without it, it acts)."""
         if self._pipe_w is not None:
             try:
                 os.close(self._pipe_w)
