@@ -38,23 +38,15 @@ from types import TracebackType
 from typing import Concatenate, ParamSpec, TypeVar
 
 from tactdeform_hw import protocol as p
-from tactdeform_hw.clock import InstantClock, MonotonicClock, SimulatedClock
+from tactdeform_hw.clock import InstantClock, MonotonicClock
 from tactdeform_hw.device.driver.audit import AuditLog
-from tactdeform_hw.device.driver.config import StimConfig, sense_code
+from tactdeform_hw.device.driver.config import StimConfig, robust_refusal
 from tactdeform_hw.device.driver.dialect import Dialect, DriverState, LinkOps, worst_scan_s
 from tactdeform_hw.device.driver.dialects import DIALECTS
-from tactdeform_hw.device.driver.firmware_probe import (
-    IDENT_OFF,
-    SIGNATURE,
-    FirmwareMismatchError,
-    classify,
-    needs_third_byte,
-)
+from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError, recheck_firmware
 from tactdeform_hw.device.driver.pacing import (
     COMMAND_BYTE_MIN,
     Pacer,
-    command_like_payload,
-    firmware_period_us,
     padding_for,
 )
 from tactdeform_hw.device.links.recovery import (
@@ -64,6 +56,7 @@ from tactdeform_hw.device.links.recovery import (
     TRANSITIONS,
     LinkRecovery,
     LinkState,
+    probe_bound_s,
 )
 from tactdeform_hw.device.participant.mapping import ChannelMapping
 from tactdeform_hw.device.safety.guard import SafetyGuard
@@ -403,8 +396,10 @@ class Device(ABC):
                 config.electrode_count,
                 f"the channel mapping's hardware channel count {self.mapping.hw_channels}",
             )
-        if self.pacer.robust:
-            self._check_robust(config)
+        refusal = robust_refusal(config, self.transfer) if self.pacer.robust else None
+        if refusal is not None:
+            self.guard.note_refusal(refusal)
+            raise refusal
         self.dialect.check_idle_scan(self.guard, config)
         # the caller's frame is superseded now, whether or not the writes below get through: no keepalive
         # after a failed configure brings the old frame back
@@ -637,36 +632,12 @@ class Device(ABC):
 
     def probe_bound_s(self) -> float:
         """The longest a probe (a measure request: the fail-safe's) waits for its reply at the configuration
-        in force before it counts as unanswered — computed, like :meth:`resync_bound_s`, on a simulated
-        clock with a scratch pacer: behind as many frames as the pacer lets into the queue (it never plans
-        more, so the backlog a probe can meet is at most that), the request, then its reply's deadline.
+        in force before it counts as unanswered (:func:`~tactdeform_hw.device.links.recovery.probe_bound_s`);
         0 before a configuration (the fail-safe does not probe then)."""
         cfg = self.state.config
         if cfg is None:
             return 0.0
-        n = cfg.electrode_count
-        timing = (firmware_period_us(cfg.rate_hz) / 1e6, self._worst_scan_s(cfg))
-
-        def scratch() -> Pacer:
-            pacer = Pacer(clock=SimulatedClock(), policy=self.pacer.policy)
-            pacer.set_timing(*timing)
-            return pacer
-
-        # the backlog: the most the queue model holds after any of the frames' writes (the probe may come
-        # right after any of them); the request waits at most that long to fit, then is read on its own
-        filled = scratch()
-        frame = self._frame_commands(n)
-        frames = filled.limit_bytes // max(1, sum(len(c) for c in frame)) + 2
-        backlog = 0.0
-        for _ in range(frames):
-            for data in frame:
-                filled.write(lambda _chunk: None, data)
-                backlog = max(backlog, filled.drained_by() - filled.clock.now())
-        alone = scratch()
-        alone.write(lambda _chunk: None, p.MEASURE_REQUEST)
-        own = alone.drained_by() - alone.clock.now()  # its crossing, a scan, its read, a tick
-        slack = 0.003 + 2 * n * alone.policy.byte_s + timing[0]  # as :meth:`_reply_slack_s`
-        return backlog + own + slack + REPLY_POLL_S
+        return probe_bound_s(self.pacer.policy, cfg, self._frame_commands(cfg.electrode_count))
 
     @_locked
     def reconnect(self) -> None:
@@ -684,40 +655,15 @@ class Device(ABC):
         self._reconfigure()
 
     def verify_firmware(self) -> None:
-        """At a proved command boundary, ask again which firmware answers (the identification's signature
-        alone: count and heights are the session's own, so nothing is waited out).  A board that now
-        answers as another version, or as none, is stopped with bytes that stop current on both versions
-        and refused: :class:`~.firmware_probe.FirmwareMismatchError`."""
+        """At a proved command boundary, ask again which firmware answers
+        (:func:`~.firmware_probe.recheck_firmware`): a board that now answers as another version, or as
+        none, is stopped with bytes that stop current on both versions and refused
+        (:class:`~.firmware_probe.FirmwareMismatchError`)."""
         cfg = self.config
-        count = cfg.electrode_count if cfg is not None and self.dialect.signature_proves_count else 0
-        self._discard_input()
-        self._recovery_write = True
-        try:
-            self._send(SIGNATURE, pad=False)
-        finally:
-            self._recovery_write = False
-        mark = self.pacer.offset
-        got = self._await_reply(2)
-        if needs_third_byte(got, count=count):
-            got += self._await_reply(1)
-        found = classify(got, count=count)
-        if found is not None and found.name == self.firmware:
-            self._proved(mark)  # both 0xF5 were read as commands: every byte before them was read
-            if self.dialect.signature_proves_count:
-                self.guard.note_in_step(count)  # and 0xF4 answered the count in force
-            return
-        self._suspect("the firmware check answered otherwise")
-        self._recovery_write = True
-        try:
-            self._send(IDENT_OFF, pad=False)  # stops current wherever either firmware's parser stands
-        finally:
-            self._recovery_write = False
-        raise FirmwareMismatchError(
-            f"{self!r}: the board was driven as firmware {self.firmware}, but now answers the "
-            f"firmware check {got.hex(' ') or 'with silence'}"
-            + (f" (firmware {found.name})" if found is not None else "")
-            + "; every current was switched off with bytes both versions read as off, and it is not driven"
-        )
+        count = None
+        if self.dialect.signature_proves_count:
+            count = cfg.electrode_count if cfg is not None else 0
+        recheck_firmware(self._ops(), self.dialect.firmware, count, repr(self))
 
     @_locked
     def hardware_reset(self) -> bool:
@@ -1030,26 +976,6 @@ class Device(ABC):
 
     def _mark_frame(self) -> None:
         self.last_frame_time = self.pacer.clock.now()
-
-    def _check_robust(self, config: StimConfig) -> None:
-        cmds = {
-            "electrode_count": p.encode_electrode_num(config.electrode_count),
-            "pulse_width_us": p.encode_pulse_width(config.pulse_width_us),
-            "discharge_us": p.encode_discharge(config.discharge_us),
-            "rate_hz": p.encode_frequency(config.rate_hz),
-            "sense_width_us": p.encode_sense_width(config.sense_width_us),
-            "sense_current_ua": p.encode_sense_height(sense_code(config.sense_current_ua, self.transfer)),
-        }
-        for name, data in cmds.items():
-            if command_like_payload(data) is not None:
-                exc = LimitError(
-                    name,
-                    getattr(config, name),
-                    "a value whose bytes are all below 0xF5 (robust encoding: a payload byte must never look "
-                    "like a command byte)",
-                )
-                self.guard.note_refusal(exc)
-                raise exc
 
     def _check_open(self) -> None:
         if self._closed:

@@ -50,9 +50,13 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from tactdeform_hw.errors import ProtocolError
 from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec, OpcodeV2
+
+if TYPE_CHECKING:
+    from tactdeform_hw.device.driver.dialect import LinkOps
 
 #: Zeros that complete the longest payload of every modelled firmware (v2: 2 × 255 pattern bytes).
 FLUSH_ZEROS = max(f.max_electrodes * f.pattern_bytes_per_electrode for f in (V1_2, V2)) + 2
@@ -171,6 +175,33 @@ def detect_firmware(
         discard()
     silent = "a locked v1.2 parser answers nothing until the board is reset or power-cycled"
     raise UnidentifiedBoardError(device, reply, "" if reply else silent)
+
+
+def recheck_firmware(ops: LinkOps, firmware: FirmwareSpec, count: int | None, device: str) -> None:
+    """At a proved command boundary, ask again which firmware answers (the identification's signature
+    alone: ``count`` — the electrode count in force where the signature answers it, None where it does
+    not (v1.2) — and the heights are the session's own, so nothing is waited out).  A board that now
+    answers as another version than ``firmware``, or as none, is stopped with bytes that stop current on
+    both versions and refused: :class:`FirmwareMismatchError`."""
+    ops.discard_input()
+    mark = ops.recovery_send(SIGNATURE, pad=False)
+    got = ops.await_reply(2)
+    if needs_third_byte(got, count=count or 0):
+        got += ops.await_reply(1)
+    found = classify(got, count=count or 0)
+    if found is not None and found.name == firmware.name:
+        ops.proved(mark)  # both 0xF5 were read as commands: every byte before them was read
+        if count is not None:
+            ops.guard.note_in_step(count)  # and 0xF4 answered the count in force
+        return
+    ops.suspect("the firmware check answered otherwise")
+    ops.recovery_send(IDENT_OFF, pad=False)  # stops current wherever either firmware's parser stands
+    raise FirmwareMismatchError(
+        f"{device}: the board was driven as firmware {firmware.name}, but now answers the "
+        f"firmware check {got.hex(' ') or 'with silence'}"
+        + (f" (firmware {found.name})" if found is not None else "")
+        + "; every current was switched off with bytes both versions read as off, and it is not driven"
+    )
 
 
 def check_firmware(expected: str, detection: Detection, device: str = "the board") -> None:

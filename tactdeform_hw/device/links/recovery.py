@@ -9,10 +9,14 @@ not.  The states and their edges are drawn in ``docs/safety.md``; tests walk eve
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from enum import Enum
 
-from tactdeform_hw.device.driver.pacing import Pacer
+from tactdeform_hw import protocol as p
+from tactdeform_hw.clock import SimulatedClock
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.dialect import worst_scan_s
+from tactdeform_hw.device.driver.pacing import Pacer, PacingPolicy, firmware_period_us
 from tactdeform_hw.errors import ProtocolMisuseError
 
 
@@ -123,7 +127,37 @@ class LinkRecovery:
         return spans
 
 
+def probe_bound_s(policy: PacingPolicy, cfg: StimConfig, frame: Sequence[bytes]) -> float:
+    """The longest a probe (a measure request) waits for its reply at ``cfg`` before it counts as
+    unanswered — computed on a simulated clock with a scratch pacer of ``policy``: behind as many frames
+    (``frame``: the longest frame's commands, as written) as the pacer lets into the queue (it never plans
+    more, so the backlog a probe can meet is at most that), the request, then its reply's deadline."""
+    n = cfg.electrode_count
+    timing = (firmware_period_us(cfg.rate_hz) / 1e6, worst_scan_s(cfg))
+
+    def scratch() -> Pacer:
+        pacer = Pacer(clock=SimulatedClock(), policy=policy)
+        pacer.set_timing(*timing)
+        return pacer
+
+    # the backlog: the most the queue model holds after any of the frames' writes (the probe may come
+    # right after any of them); the request waits at most that long to fit, then is read on its own
+    filled = scratch()
+    frames = filled.limit_bytes // max(1, sum(len(c) for c in frame)) + 2
+    backlog = 0.0
+    for _ in range(frames):
+        for data in frame:
+            filled.write(lambda _chunk: None, data)
+            backlog = max(backlog, filled.drained_by() - filled.clock.now())
+    alone = scratch()
+    alone.write(lambda _chunk: None, p.MEASURE_REQUEST)
+    own = alone.drained_by() - alone.clock.now()  # its crossing, a scan, its read, a tick
+    slack = 0.003 + 2 * n * alone.policy.byte_s + timing[0]  # as ``Device._reply_slack_s``
+    return backlog + own + slack + REPLY_POLL_S
+
+
 __all__ = [
+    "probe_bound_s",
     "PROBE_LEAD_ZEROS",
     "RECOVERY_ATTEMPTS",
     "REPLY_POLL_S",
