@@ -13,7 +13,7 @@ What a register in force means for the current a channel receives is the firmwar
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Any, NamedTuple
 
 from tactdeform_hw.device.safety.readings import EPS, READINGS
@@ -52,18 +52,7 @@ class Shadow:
     stim_mode: int | None = None
 
     def copy(self) -> Shadow:
-        return Shadow(
-            self.electrode_num,
-            self.height_code,
-            self.sense_code,
-            self.polarity,
-            self.width_us,
-            self.sense_width_us,
-            list(self.pattern),
-            self.parse,
-            self.how,
-            self.stim_mode,
-        )
+        return replace(self, pattern=list(self.pattern))
 
     def key(self) -> tuple[Any, ...]:
         return (

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING
 
 from tactdeform_hw.protocol.commands_v2 import STIM_MODE_IMPEDANCE
 from tactdeform_hw.protocol.constants import PATTERN_BIPHASIC, PATTERN_MONOPHASIC
@@ -27,8 +27,9 @@ ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
 EPS = 1e-6
 
 
-class ChannelReading(Protocol):
-    """One firmware version's reading of the registers the interlock follows."""
+class ChannelReading:
+    """One firmware version's reading of the registers the interlock follows (each version overrides
+    :meth:`verify` and :meth:`current_can_flow`)."""
 
     def verify(
         self,
@@ -39,9 +40,11 @@ class ChannelReading(Protocol):
         transfer: CurrentTransfer,
     ) -> None:
         """Refuse (``interlock.refuse``) a state in which a scanned channel could exceed its limit."""
+        raise NotImplementedError
 
     def current_can_flow(self, sh: Shadow) -> bool:
         """Whether any channel can receive current in ``sh`` (unknowns count as yes)."""
+        raise NotImplementedError
 
     def check_pattern_ramp(
         self,
@@ -52,10 +55,11 @@ class ChannelReading(Protocol):
         what: str,
         transfer: CurrentTransfer,
     ) -> None:
-        """Refuse a pattern whose values raise a channel's height faster than the ramp allows."""
+        """Refuse a pattern whose values raise a channel's height faster than the ramp allows (v1.2's
+        pattern holds levels, not heights: its ramp is the pulse height's, checked there)."""
 
 
-class V12Reading:
+class V12Reading(ChannelReading):
     """v1.2: one pulse height for every active channel, the sense height on every other one."""
 
     def verify(
@@ -133,19 +137,8 @@ class V12Reading:
             return True
         return any(v is None or v in ACTIVE for v in sh.pattern[:num])
 
-    def check_pattern_ramp(
-        self,
-        interlock: WireInterlock,
-        before: Sequence[int | None],
-        after: Sequence[int],
-        start: int,
-        what: str,
-        transfer: CurrentTransfer,
-    ) -> None:
-        """v1.2's pattern holds levels, not heights: the ramp is the pulse height's (checked there)."""
 
-
-class V2Reading:
+class V2Reading(ChannelReading):
     """v2: every channel its own height in modes 0/1; the sense height on every channel in mode 2."""
 
     def verify(
