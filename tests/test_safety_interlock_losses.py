@@ -143,13 +143,13 @@ def test_a_resync_sends_no_value_until_the_board_answers() -> None:
     port.emulator.feed(b"\xfc\x00\xfe")  # a locked parser reads nothing, answers nothing
     n = len(port.writes)
     resets: list[int] = []
-    pulse = dev._reset_transport
+    pulse = dev.port_link.reset
 
     def counted() -> bool:
         resets.append(len(port.writes))
         return pulse()
 
-    dev._reset_transport = counted  # type: ignore[method-assign]
+    dev.port_link.reset = counted  # type: ignore[method-assign]
     dev.resync()
     # until the reset line freed the parser, only zeros and requests went out: nothing that carries a value
     assert resets, "a parser that never answers gets the reset line"
@@ -262,12 +262,12 @@ def test_all_off_on_a_board_that_does_not_answer_says_so() -> None:
     dev.send_pattern([1] * 32)
     port.emulator.feed(b"\xfc\x00\xfe")  # something locked the parser
     assert not dev.probe() and dev.needs_resync
-    can_reset = dev._can_reset
-    dev._can_reset = lambda: False  # type: ignore[method-assign]  # a transport without a reset line
+    can_reset = dev.port_link.can_reset
+    dev.port_link.can_reset = lambda: False  # type: ignore[method-assign]  # a transport without a reset line
     n = len(port.writes)
     with pytest.raises(ShortReplyError, match="after resync zeros"):
         dev.all_off()
     assert set(b"".join(port.writes[n:])) <= {0, p.HV513_COUNT_REQUEST[0], p.MEASURE_REQUEST[0]}
-    dev._can_reset = can_reset  # type: ignore[method-assign]
+    dev.port_link.can_reset = can_reset  # type: ignore[method-assign]
     assert dev.hardware_reset() and dev.probe()
     dev.close()

@@ -32,23 +32,26 @@ from __future__ import annotations
 import functools
 import threading
 import warnings
-from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import Concatenate, ParamSpec, TypeVar
 
 from tactdeform_hw import protocol as p
-from tactdeform_hw.clock import InstantClock, MonotonicClock
+from tactdeform_hw.clock import Clock, InstantClock, MonotonicClock
 from tactdeform_hw.device.driver.audit import AuditLog
 from tactdeform_hw.device.driver.config import StimConfig, robust_refusal
 from tactdeform_hw.device.driver.dialect import Dialect, DriverState, LinkOps, worst_scan_s
 from tactdeform_hw.device.driver.dialects import DIALECTS
-from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError, recheck_firmware
-from tactdeform_hw.device.driver.pacing import (
-    COMMAND_BYTE_MIN,
-    Pacer,
-    padding_for,
+from tactdeform_hw.device.driver.firmware_probe import (
+    Detection,
+    FirmwareMismatchError,
+    check_firmware,
+    check_firmware_choice,
+    identify,
+    recheck_firmware,
 )
+from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, default_pacer, padding_for
+from tactdeform_hw.device.links.port import Port, PortLink, no_delay
 from tactdeform_hw.device.links.recovery import (
     PROBE_LEAD_ZEROS,
     RECOVERY_ATTEMPTS,
@@ -60,6 +63,7 @@ from tactdeform_hw.device.links.recovery import (
 )
 from tactdeform_hw.device.participant.mapping import ChannelMapping
 from tactdeform_hw.device.safety.guard import SafetyGuard
+from tactdeform_hw.device.safety.guardian import Guardian, pace_for, start_guardian
 from tactdeform_hw.errors import (
     DeviceTimeoutError,
     LimitError,
@@ -71,6 +75,7 @@ from tactdeform_hw.errors import (
     TactDeformError,
     TransportError,
 )
+from tactdeform_hw.ports import is_instant
 from tactdeform_hw.protocol.constants import (
     PATTERN_BIPHASIC,
     PATTERN_MONOPHASIC,
@@ -136,12 +141,25 @@ def _locked(fn: Callable[Concatenate[_D, _P], _R]) -> Callable[Concatenate[_D, _
     return wrapper
 
 
-class Device(ABC):
-    """An eTactileKit-compatible stimulator.
+class Device:
+    """An eTactileKit-compatible stimulator behind ``port``, any pyserial-compatible port (a path, a URL,
+    an in-process port; :class:`~tactdeform_hw.device.links.port.Port`), opened or not: an unopened one
+    gets DTR/RTS low before it is opened.
+
+    The board is driven only in the firmware version it has proved by a reply only that version gives
+    (:mod:`.firmware_probe`): the constructor identifies it first, unless ``probe`` already holds that
+    proof for this port.  ``firmware``: "auto" drives whichever version answered; "v1.2" or "v2" refuses a
+    board that proved the other (:class:`~.firmware_probe.FirmwareMismatchError`); a board that proves
+    neither is refused (:class:`~.firmware_probe.UnidentifiedBoardError`, or
+    :class:`~tactdeform_hw.errors.BoardBusyError` on a port that serves one client at a time) after only
+    bytes that stop current on both versions.
 
     ``mapping`` translates application electrode order to hardware channels (identity by default);
     ``transfer`` converts µA to DAC codes; ``guard`` enforces current limits; ``pacer`` spaces writes
-    (wall-clock pacing by default); ``audit`` records every command sent.
+    (by default what the port needs; ``offline_clock`` runs a port that answers at once on the caller's
+    clock); ``audit`` records every command sent.  ``guardian`` starts a guardian process with the device
+    (default: when the port declares itself ``guardable``); a port that cannot be guarded with
+    ``guardian=True`` is refused.
     """
 
     #: The firmware's boot after the reset line, during which nothing is written (an ESP32-S3 starts its
@@ -152,12 +170,46 @@ class Device(ABC):
 
     def __init__(
         self,
+        port: Port,
         *,
         mapping: ChannelMapping | None = None,
         transfer: CurrentTransfer = DEFAULT_TRANSFER,
         guard: SafetyGuard | None = None,
         pacer: Pacer | None = None,
         audit: AuditLog | None = None,
+        guardian: bool | None = None,
+        offline_clock: Clock | None = None,
+        firmware: str = "auto",
+        probe: Detection | None = None,
+        settle_s: float | None = None,
+    ) -> None:
+        check_firmware_choice(firmware)
+        self._init_state(mapping, transfer, guard, pacer, audit)
+        self.port = port
+        self.port_link = PortLink(port, lambda s: self.pacer.clock.sleep(s))
+        self._guardian: Guardian | None = None
+        if not port.is_open:
+            try:
+                self.port_link.open()
+            except BaseException:
+                self._closed = True
+                raise
+        no_delay(port)
+        if pacer is None:  # what a port needs is known only once it is open (a URL builds its device then)
+            self.pacer = default_pacer(port)
+            if offline_clock is not None and is_instant(port):
+                # a port that answers at once (the in-process emulator) runs the session on the caller's clock
+                self.pacer = Pacer(clock=offline_clock, policy=self.pacer.policy)
+        self.identification = probe if probe is not None else self._identify(settle_s)
+        self._open(firmware, guardian)
+
+    def _init_state(
+        self,
+        mapping: ChannelMapping | None,
+        transfer: CurrentTransfer,
+        guard: SafetyGuard | None,
+        pacer: Pacer | None,
+        audit: AuditLog | None,
     ) -> None:
         self._lock = threading.RLock()
         self._op: str | None = None
@@ -189,6 +241,42 @@ class Device(ABC):
         #: How this board's firmware expresses each operation (v1.2 until the board proves another).
         self.dialect: Dialect = DIALECTS[V1_2]
 
+    def _open(self, firmware: str, guardian: bool | None) -> None:
+        """After the identification: its bytes counted and logged, the version checked, the guardian, the
+        dialect, the proof at open, and the stop session's watch."""
+        probe = self.identification
+        # the identification wrote before anything else: its bytes are this device's own
+        self.pacer.stats.bytes_written += probe.bytes_sent
+        if self.audit is not None:
+            self.audit.event(
+                "firmware_probe",
+                firmware=probe.name,
+                attempts=probe.attempts,
+                bytes=probe.bytes_sent,
+                reply=probe.reply.hex(),
+                settle_s=probe.settle_s,
+            )
+        if firmware != "auto" and probe.name != firmware:
+            self._refuse()
+            check_firmware(firmware, probe, self.port_link.name)
+        self._want_guardian = bool(getattr(self.port, "guardable", False)) if guardian is None else guardian
+        if self._want_guardian:
+            try:
+                self._start_guardian()
+            except BaseException:
+                self._closed = True
+                self.port_link.close()
+                raise
+        self.speak(probe.firmware)
+        try:
+            self._open_proof()
+        except FirmwareMismatchError:
+            self._refuse()  # the board answered as another firmware: stopped, refused, released
+            raise  # a board in an unknown state: nothing is sent before it proves its parser
+        from tactdeform_hw.device.safety.failsafe import adopt
+
+        adopt(self)  # a command's stop session watches every device opened under it
+
     def speak(self, firmware: FirmwareSpec) -> None:
         """Drive the board in ``firmware``'s dialect (the version its identification proved): the
         interlock and the audit log read the bytes with that version's table from now on; a change of
@@ -202,40 +290,60 @@ class Device(ABC):
             # the log says which firmware its bytes were written for
             audit.firmware = firmware
             audit.event("firmware", firmware=firmware.name)
+        # v1.2's stop (a few zeros, then 0xFB 00 00 …) would complete a v2 pattern in progress with 0xFB as
+        # a height's high byte: the guardian is given the dialect's stop
+        stop = self.dialect.guardian_open_stop()
+        if stop is not None and self._guardian is not None:
+            self._guardian.set_stop(stop)
 
-    # --- transport (implemented by subclasses) --------------------------------------------------------------
+    def _identify(self, settle_s: float | None) -> Detection:
+        """Prove which firmware runs the board (:func:`~.firmware_probe.identify`); refuse it otherwise."""
+        self.link.unproved_since = self.pacer.clock.now()
+        try:
+            return identify(
+                self.port_link, self.pacer.clock, self.audit, settle_s=settle_s, boot_s=self.boot_s
+            )
+        except BaseException:
+            self._refuse()
+            raise
 
-    @abstractmethod
-    def _write(self, data: bytes) -> None:
-        """Write one whole command."""
+    def _refuse(self) -> None:
+        """Give up a board before driving it: the guardian let go, the port closed, nothing more written."""
+        self._closed = True
+        g, self._guardian = self._guardian, None
+        if g is not None:
+            g.release()
+        self.port_link.close()
 
-    @abstractmethod
-    def _read(self, size: int) -> bytes:
-        """Read up to ``size`` bytes, honouring the transport's timeout."""
+    # --- the guardian ---------------------------------------------------------------------------------------
 
-    @abstractmethod
-    def _close_transport(self) -> None:
-        """Release the port."""
+    @property
+    def guardian(self) -> Guardian | None:
+        """The guardian process watching this device's owner (None on a port that cannot be guarded)."""
+        return self._guardian
 
-    def _waiting(self) -> int | None:
-        """Bytes from the device waiting to be read, if the transport can tell (then replies are polled
-        to their deadline instead of read with the port's own timeout)."""
-        return None
+    def _start_guardian(self) -> None:
+        self._guardian = start_guardian(self.port, repr(self))
+        self._tell_guardian()
 
-    def _discard_input(self) -> None:  # noqa: B027 - optional hook, a no-op by default
-        """Drop stale bytes waiting from the device (optional for transports)."""
+    def _tell_guardian(self) -> None:
+        g, cfg = self._guardian, self.config
+        if g is None or cfg is None:
+            return
+        drain_s, zeros_s = pace_for(
+            cfg.rate_hz, cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us
+        )
+        g.configure(self.dialect.guardian_stop(cfg.electrode_count), drain_s, zeros_s)
 
     def _reopen_transport(self) -> None:
-        """Close and reopen the link (after the device vanished); transports that can, override this."""
-        raise TransportError(f"{type(self).__name__} cannot reconnect")
-
-    def _reset_transport(self) -> bool:
-        """Pulse the board's reset line; False when the transport has none."""
-        return False
-
-    def _can_reset(self) -> bool:
-        """Whether the transport has a reset line (asked before draining for a reset)."""
-        return False
+        # the guardian shares the old descriptor (and its lock): let it try to switch off through it, then
+        # start a new one on the new descriptor
+        g, self._guardian = self._guardian, None
+        if g is not None:
+            g.abandon()
+        self.port_link.reopen()
+        if self._want_guardian:
+            self._start_guardian()
 
     # --- state ---------------------------------------------------------------------------------------------
 
@@ -406,6 +514,7 @@ class Device(ABC):
         self.state.requested = None
         self.state.suspended = False
         self.dialect.configure(self._ops(), self.state, config)
+        self._tell_guardian()
 
     @_locked
     def set_current(self, current_ua: int) -> None:
@@ -529,7 +638,7 @@ class Device(ABC):
     def _measured(self, n: int, what: str) -> list[int]:
         """0xFF and its whole reply, which proves every byte before it read; a short one marks the device
         for a resync and raises (``what`` names the request in the error)."""
-        self._discard_input()
+        self.port_link.discard_input()
         mark = self._send_marked(p.MEASURE_REQUEST)
         data = self._await_reply(2 * n)
         if len(data) != 2 * n:
@@ -562,7 +671,7 @@ class Device(ABC):
         self._check_open()
         if self._needs_resync:
             self._recover()
-        self._discard_input()
+        self.port_link.discard_input()
         mark = self._send_marked(p.HV513_COUNT_REQUEST)
         data = self._await_reply(1)
         if len(data) != 1:
@@ -608,7 +717,7 @@ class Device(ABC):
         try:
             self.dialect.flush_parser(self._ops(), self.state)
         except ShortReplyError:
-            if self.link.state is not LinkState.FAILED or self._resetting or not self._can_reset():
+            if self.link.state is not LinkState.FAILED or self._resetting or not self.port_link.can_reset():
                 raise
             self.hardware_reset()  # its own resync proves the board in step again, or raises
 
@@ -673,7 +782,7 @@ class Device(ABC):
         electrode count is 0), RESETTING, BOOTING (``boot_s``, nothing written), then the closed-loop
         resync.  False when the transport has no reset line."""
         self._check_open()
-        if not self._can_reset():
+        if not self.port_link.can_reset():
             return False
         in_step = self.link.state is LinkState.IN_STEP
         self._resetting = True
@@ -688,7 +797,7 @@ class Device(ABC):
         self._drain(in_step)
         self._enter(LinkState.RESETTING, "nothing left on the link")
         try:
-            pulsed = self._reset_transport()
+            pulsed = self.port_link.reset()
         except BaseException:
             self._suspect("the reset line failed")
             raise
@@ -725,7 +834,21 @@ class Device(ABC):
         """All channels off, proved read (so the next program to open the board finds its queue empty),
         then release the port.  Safe to call twice.  A board that does not prove the all-off read is
         recovered (with the reset line if need be) and switched off again; a link that failed is reopened
-        first: nothing after close could stop the board."""
+        first: nothing after close could stop the board.  The guardian is let go only after that all-off
+        succeeded — otherwise it switches the board off itself before it exits."""
+        done = False
+        try:
+            self._close_link()
+            done = True
+        finally:
+            g, self._guardian = self._guardian, None
+            if g is not None:
+                if done:
+                    g.release()
+                else:
+                    g.abandon()
+
+    def _close_link(self) -> None:
         if self._closed:
             return
         try:
@@ -744,7 +867,7 @@ class Device(ABC):
                         raise failed from None
         finally:
             self._closed = True
-            self._close_transport()
+            self.port_link.close()
 
     def _stop_and_prove(self) -> None:
         """All off, and proof that nothing stimulates.  A proof that fails (a board that rebooted or hung
@@ -774,6 +897,9 @@ class Device(ABC):
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+    def __repr__(self) -> str:
+        return f"EtactileKitDevice({self.port_link.name}, closed={self._closed})"
 
     def __del__(self) -> None:
         if not getattr(self, "_closed", True):
@@ -811,7 +937,7 @@ class Device(ABC):
         def write(chunk: bytes) -> None:
             self._writing = True
             try:
-                self._write(chunk)
+                self.port_link.write(chunk)
             except BaseException:
                 if audit is not None:
                     audit.tx(chunk, t=self.pacer.clock.now(), ok=False, op=op, logical=data[:1] + chunk[1:])
@@ -911,13 +1037,13 @@ class Device(ABC):
         deadline = self.pacer.drained_by() + self._reply_slack_s(size)
         got = bytearray()
         while True:
-            waiting = self._waiting()
+            waiting = self.port_link.waiting()
             had = len(got)
             if waiting is None or waiting >= size - len(got):
-                got += self._read(size - len(got))
+                got += self.port_link.read(size - len(got))
             elif waiting:
                 # what has arrived (a socket says only "readable": at least one byte); the rest follows
-                got += self._read(waiting)
+                got += self.port_link.read(waiting)
             if len(got) >= size or isinstance(clock, InstantClock) or clock.now() >= deadline:
                 return bytes(got)
             if len(got) == had:
@@ -945,7 +1071,7 @@ class Device(ABC):
             send_critical=self._send_critical,
             send_critical_commands=self._send_critical_commands,
             recovery_send=self._recovery_send,
-            discard_input=self._discard_input,
+            discard_input=self.port_link.discard_input,
             await_reply=self._await_reply,
             proved=self._proved,
             suspect=self._suspect,
@@ -955,7 +1081,7 @@ class Device(ABC):
             recover=self._recover,
             measured=self._measured,
             pace_for=self._pace_for,
-            can_reset=self._can_reset,
+            can_reset=self.port_link.can_reset,
             resetting=lambda: self._resetting,
             needs_resync=lambda: self._needs_resync,
         )

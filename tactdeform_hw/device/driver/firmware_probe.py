@@ -56,7 +56,10 @@ from tactdeform_hw.errors import ProtocolError
 from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec, OpcodeV2
 
 if TYPE_CHECKING:
+    from tactdeform_hw.clock import Clock
+    from tactdeform_hw.device.driver.audit import AuditLog
     from tactdeform_hw.device.driver.dialect import LinkOps
+    from tactdeform_hw.device.links.port import PortLink
 
 #: Zeros that complete the longest payload of every modelled firmware (v2: 2 × 255 pattern bytes).
 FLUSH_ZEROS = max(f.max_electrodes * f.pattern_bytes_per_electrode for f in (V1_2, V2)) + 2
@@ -175,6 +178,67 @@ def detect_firmware(
         discard()
     silent = "a locked v1.2 parser answers nothing until the board is reset or power-cycled"
     raise UnidentifiedBoardError(device, reply, "" if reply else silent)
+
+
+#: What ``firmware=`` accepts: "auto" drives the version the board proves; a version drives only that one.
+FIRMWARE_CHOICES = ("auto", "v1.2", "v2")
+
+
+def check_firmware_choice(firmware: object) -> str:
+    """``firmware`` as given, or :class:`~tactdeform_hw.errors.ConfigurationError` naming the choices."""
+    if not isinstance(firmware, str) or firmware not in FIRMWARE_CHOICES:
+        from tactdeform_hw.errors import ConfigurationError
+
+        raise ConfigurationError(
+            f"firmware={firmware!r}: use 'auto' (drive the version the board proves) or 'v1.2' or 'v2' "
+            "(drive that version only, after the board has proved it); a board is never driven in a "
+            "version it has not proved"
+        )
+    return firmware
+
+
+def identify(
+    link: PortLink, clock: Clock, audit: AuditLog | None, *, settle_s: float | None, boot_s: float
+) -> Detection:
+    """Prove which firmware runs the board behind ``link`` (:func:`detect_firmware`), its bytes in the
+    audit log like any other.  A board that answers nothing may be hung and still stimulating: the reset
+    line (where there is one) brings it to its power-on state and it is asked again (after ``boot_s``).
+    Silence on a port that serves one client at a time is another program's connection:
+    :class:`~tactdeform_hw.errors.BoardBusyError`.  ``settle_s`` None: v2's command timeout is waited out
+    first, unless the port says its board has received nothing since power-on."""
+    from tactdeform_hw.errors import BoardBusyError
+    from tactdeform_hw.ports import board_untouched, serves_one_client
+
+    name = link.name
+
+    def write(data: bytes) -> None:
+        link.write(data)
+        if audit is not None:
+            audit.tx(data, t=clock.now(), op="identify", logical=data)
+
+    if settle_s is None:
+        settle_s = 0.0 if board_untouched(link.port) else SETTLE_S
+
+    def attempt(wait_s: float) -> Detection:
+        return detect_firmware(
+            write, link.read, link.discard_input, device=name, settle_s=wait_s, sleep=clock.sleep
+        )
+
+    try:
+        try:
+            return attempt(settle_s)
+        except UnidentifiedBoardError as silent:
+            if silent.reply or not link.can_reset() or not link.reset():
+                raise
+            if audit is not None:
+                audit.event("identification_reset", why="no answer to the identification")
+            clock.sleep(boot_s)
+            return attempt(0.0)
+    except UnidentifiedBoardError as exc:
+        if serves_one_client(link.port) and not exc.reply:
+            waited = settle_s + 2 * (float(getattr(link.port, "timeout", None) or 0.0) + 0.1)
+            raise BoardBusyError(name, waited) from exc
+        raise
 
 
 def recheck_firmware(ops: LinkOps, firmware: FirmwareSpec, count: int | None, device: str) -> None:

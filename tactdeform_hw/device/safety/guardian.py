@@ -305,6 +305,31 @@ class Guardian:
             self.proc.wait()
 
 
+def start_guardian(port: Any, who: str) -> Guardian:
+    """The guardian of a device's port (``who``: the device, in errors).  A port that provides a guardian
+    factory (``start_guardian(name)``: a USB port, whose claim cannot be shared) starts its own; any other
+    guardable port shares its file descriptor with :meth:`Guardian.start`.  A port that cannot be guarded
+    raises :class:`~tactdeform_hw.errors.TransportError`."""
+    from tactdeform_hw.errors import TransportError
+
+    if not getattr(port, "guardable", False):
+        raise TransportError(f"{who}: the port cannot be guarded (it declares no guardable file descriptor)")
+    factory = getattr(port, "start_guardian", None)
+    name = str(getattr(port, "port", None) or getattr(port, "name", None) or port)
+    try:
+        if callable(factory):
+            return factory(name)  # type: ignore[no-any-return]
+        try:
+            fd = int(port.fileno())
+        except (AttributeError, OSError, ValueError, TypeError) as exc:
+            raise TransportError(f"{who}: no file descriptor to share with a guardian: {exc}") from exc
+        # a port without a reset line says so (TCP); one that says nothing is a terminal with RTS
+        reset_line = bool(getattr(port, "reset_line", True))
+        return Guardian.start(fd, name, reset_line=reset_line)
+    except GuardianError as exc:
+        raise TransportError(str(exc)) from exc
+
+
 # --- guardian side (stdlib only) ---------------------------------------------------------------------------
 
 
