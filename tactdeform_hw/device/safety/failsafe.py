@@ -68,10 +68,9 @@ import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import FrameType, TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tactdeform_hw.clock import Clock, InstantClock, MonotonicClock
-from tactdeform_hw.device.driver.base import Device
 from tactdeform_hw.device.driver.readback import OFF_READING_CODES
 from tactdeform_hw.errors import (
     DecodeError,
@@ -82,6 +81,9 @@ from tactdeform_hw.errors import (
     TactDeformError,
     TransportError,
 )
+
+if TYPE_CHECKING:
+    from tactdeform_hw.device.driver.base import Device
 
 logger = logging.getLogger("tactdeform_hw.failsafe")
 
