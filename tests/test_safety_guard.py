@@ -249,6 +249,7 @@ COVERED = {
     "speak": "sends nothing; a change of version leaves the interlock knowing no register",
     "frames_sent": "property",
     "guardian": "property: the guardian process, which only switches off",
+    "kind": "a name for messages",
     "resync": "resync tests: configuration again through configure",
     "reconnect": "resync",
     "verify_firmware": "the identification's signature and off bytes only (tests/test_identification.py)",

@@ -167,6 +167,8 @@ class Device:
     boot_s: float = 0.3
     #: Extra wait for a reply while the alarm period is unknown (a board opened in an unknown state).
     unknown_reply_s: float = 0.25
+    #: What messages call this device (the eTactileKit driver's name, as users have read it).
+    kind: str = "EtactileKitDevice"
 
     def __init__(
         self,
@@ -803,7 +805,7 @@ class Device:
             raise
         if not pulsed:
             self._suspect("no reset line after all")
-            raise TransportError(f"{type(self).__name__}: the reset line could not be pulsed")
+            raise TransportError(f"{self.kind}: the reset line could not be pulsed")
         self.guard.mark_unknown()
         self.state.current_ua = 0
         self.state.sense_byte = None
@@ -899,11 +901,11 @@ class Device:
         self.close()
 
     def __repr__(self) -> str:
-        return f"EtactileKitDevice({self.port_link.name}, closed={self._closed})"
+        return f"{self.kind}({self.port_link.name}, closed={self._closed})"
 
     def __del__(self) -> None:
         if not getattr(self, "_closed", True):
-            warnings.warn(f"{type(self).__name__} was never closed", ResourceWarning, stacklevel=1)
+            warnings.warn(f"{self.kind} was never closed", ResourceWarning, stacklevel=1)
 
     # --- helpers -------------------------------------------------------------------------------------------
 
@@ -1105,7 +1107,7 @@ class Device:
 
     def _check_open(self) -> None:
         if self._closed:
-            raise PortNotOpenError(f"{type(self).__name__} is closed")
+            raise PortNotOpenError(f"{self.kind} is closed")
 
     def _require_config(self, what: str) -> StimConfig:
         self._check_open()
