@@ -716,12 +716,7 @@ class Device:
     def _recover(self) -> None:
         """The closed-loop recovery, and when it ends in FAILED (a locked or hung parser, which no byte
         can reach, while the board may go on stimulating) the reset line at once, if there is one."""
-        try:
-            self.dialect.flush_parser(self._ops(), self.state)
-        except ShortReplyError:
-            if self.link.state is not LinkState.FAILED or self._resetting or not self.port_link.can_reset():
-                raise
-            self.hardware_reset()  # its own resync proves the board in step again, or raises
+        self.link.recover(self.dialect, self._ops(), self.state, self.hardware_reset)
 
     def resync_bound_s(self) -> float:
         """The longest a failing resync of this session waited, or would wait now, for its proofs before
@@ -795,41 +790,23 @@ class Device:
         return True
 
     def _hardware_reset(self, in_step: bool) -> None:
-        self._enter(LinkState.DRAINING, "hardware_reset")
-        self._drain(in_step)
-        self._enter(LinkState.RESETTING, "nothing left on the link")
-        try:
-            pulsed = self.port_link.reset()
-        except BaseException:
-            self._suspect("the reset line failed")
-            raise
-        if not pulsed:
-            self._suspect("no reset line after all")
-            raise TransportError(f"{self.kind}: the reset line could not be pulsed")
-        self.guard.mark_unknown()
-        self.state.current_ua = 0
-        self.state.sense_byte = None
-        self.state.last_pattern = None
-        self.state.scan_us = 0.0  # power-on: electrode count 0, nothing to scan
-        self.state.after_reset = True
-        self._enter(LinkState.BOOTING, "reset line pulsed")
-        self.pacer.wait_until(self.pacer.clock.now() + self.boot_s)
-        self._enter(LinkState.SUSPECT, f"booted ({self.boot_s * 1e3:g} ms)")
+        self.link.reset_board(
+            self._ops(),
+            self.state,
+            in_step=in_step,
+            pulse=self.port_link.reset,
+            boot_s=self.boot_s,
+            who=self.kind,
+        )
         self.resync()
 
-    def _drain(self, in_step: bool) -> None:
-        if in_step:
-            # in step: a request alone is read as a command; its reply proves the queue read
-            self._recovery_write = True
-            try:
-                self._prove(self.state.config.electrode_count if self.state.config is not None else 0)
-            except (TransportError, ShortReplyError):
-                # no proof: the reset is the remedy, after the link has surely delivered everything
-                if self.link.state is not LinkState.DRAINING:
-                    self._enter(LinkState.DRAINING, "no proof: reset anyway")
-            finally:
-                self._recovery_write = False
-        self.pacer.wait_until(self.pacer.arrived_by() + self.pacer.policy.link_latency_s)
+    def _recovery_prove(self, electrodes: int) -> None:
+        """:meth:`_prove` as a write of the recovery itself (allowed before the proof: the drain's)."""
+        self._recovery_write = True
+        try:
+            self._prove(electrodes)
+        finally:
+            self._recovery_write = False
 
     @_locked
     def close(self) -> None:
@@ -1080,6 +1057,7 @@ class Device:
             enter=self._enter,
             link_state=lambda: self.link.state,
             prove=self._prove,
+            recovery_prove=self._recovery_prove,
             recover=self._recover,
             measured=self._measured,
             pace_for=self._pace_for,

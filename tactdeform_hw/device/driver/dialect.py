@@ -80,6 +80,8 @@ class LinkOps:
     link_state: Callable[[], LinkState]
     #: the proof of the dialect in force (a request whose reply proves the queue read)
     prove: Callable[[int], None]
+    #: the same proof as a write of the recovery itself (the drain before the reset line)
+    recovery_prove: Callable[[int], None]
     #: the closed-loop recovery (with the reset line if need be)
     recover: Callable[[], None]
     #: 0xFF and its whole reply (levels of each hardware channel's last pulse)

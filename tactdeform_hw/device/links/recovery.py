@@ -11,13 +11,17 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Callable, Sequence
 from enum import Enum
+from typing import TYPE_CHECKING
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.dialect import worst_scan_s
 from tactdeform_hw.device.driver.pacing import Pacer, PacingPolicy, firmware_period_us
-from tactdeform_hw.errors import ProtocolMisuseError
+from tactdeform_hw.errors import ProtocolMisuseError, ShortReplyError, TransportError
+
+if TYPE_CHECKING:
+    from tactdeform_hw.device.driver.dialect import Dialect, DriverState, LinkOps
 
 
 class LinkState(str, Enum):
@@ -108,6 +112,67 @@ class LinkRecovery:
         pacer = self._pacer()
         pacer.proven(mark)
         self.proofs.append(pacer.clock.now())
+
+    # --- the procedures ----------------------------------------------------------------------------------
+
+    def recover(self, dialect: Dialect, ops: LinkOps, st: DriverState, reset: Callable[[], object]) -> None:
+        """The closed-loop recovery (the dialect's: SUSPECT → … → IN_STEP), and when it ends in FAILED (a
+        locked or hung parser, which no byte can reach, while the board may go on stimulating) ``reset``
+        — the reset line and its own resync — at once, if there is a line."""
+        try:
+            dialect.flush_parser(ops, st)
+        except ShortReplyError:
+            if self.state is not LinkState.FAILED or ops.resetting() or not ops.can_reset():
+                raise
+            reset()  # its own resync proves the board in step again, or raises
+
+    def reset_board(
+        self,
+        ops: LinkOps,
+        st: DriverState,
+        *,
+        in_step: bool,
+        pulse: Callable[[], bool],
+        boot_s: float,
+        who: str,
+    ) -> None:
+        """DRAINING (:meth:`drain`), RESETTING (``pulse``: the reset line), BOOTING (``boot_s``, nothing
+        written), then SUSPECT with the state of a board at power-on: the caller's resync follows."""
+        self.enter(LinkState.DRAINING, "hardware_reset")
+        self.drain(ops, st, in_step)
+        self.enter(LinkState.RESETTING, "nothing left on the link")
+        try:
+            pulsed = pulse()
+        except BaseException:
+            self.suspect("the reset line failed")
+            raise
+        if not pulsed:
+            self.suspect("no reset line after all")
+            raise TransportError(f"{who}: the reset line could not be pulsed")
+        ops.guard.mark_unknown()
+        st.current_ua = 0
+        st.sense_byte = None
+        st.last_pattern = None
+        st.scan_us = 0.0  # power-on: electrode count 0, nothing to scan
+        st.after_reset = True
+        self.enter(LinkState.BOOTING, "reset line pulsed")
+        pacer = self._pacer()
+        pacer.wait_until(pacer.clock.now() + boot_s)
+        self.enter(LinkState.SUSPECT, f"booted ({boot_s * 1e3:g} ms)")
+
+    def drain(self, ops: LinkOps, st: DriverState, in_step: bool) -> None:
+        """Before the reset line: in step, a request alone is read as a command and its reply proves the
+        queue read; then the wait until every byte written has surely crossed the link (so no pattern
+        lands on the freshly reset firmware, whose electrode count is 0)."""
+        if in_step:
+            try:
+                ops.recovery_prove(st.config.electrode_count if st.config is not None else 0)
+            except (TransportError, ShortReplyError):
+                # no proof: the reset is the remedy, after the link has surely delivered everything
+                if self.state is not LinkState.DRAINING:
+                    self.enter(LinkState.DRAINING, "no proof: reset anyway")
+        pacer = self._pacer()
+        pacer.wait_until(pacer.arrived_by() + pacer.policy.link_latency_s)
 
     def unproved_spans(self) -> list[tuple[float, float | None]]:
         """(start, end) of every span spent without proof that the parser was in step (end None: still
