@@ -12,7 +12,7 @@ never interleave with a half-written frame.
 Nothing that carries a value — a height, a width, an electrode count, a pattern — is written unless the
 device has proved its parser at a command boundary with room in its queue: at open, after a failed or cut
 write, a short or late reply, a reconnect or a reset, the closed-loop recovery (:class:`LinkState`,
-:meth:`Device._flush_parser`) gets a reply of the expected length first.  Its states and transitions are
+the dialect's ``flush_parser``) gets a reply of the expected length first.  Its states and transitions are
 drawn in ``docs/safety.md``.
 
 Firmware v2 speaks other bytes for the same API (one height per electrode, a global waveform mode, the
@@ -684,7 +684,7 @@ class Device:
 
     @_locked
     def resync(self) -> None:
-        """Bring a parser of unknown state back in step, closed loop (see :meth:`_flush_parser`): the
+        """Bring a parser of unknown state back in step, closed loop (the dialect's ``flush_parser``): the
         device proves a command boundary and an empty queue, pulse height and sense height go to 0, the
         electrode count is written and proved by the length of a measure reply, every channel goes off;
         then the whole configuration again.  No pattern follows: the caller's next frame (or keepalive)

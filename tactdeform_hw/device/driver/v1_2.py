@@ -258,7 +258,21 @@ class V12Dialect:
         ops.proved(mark)
 
     def flush_parser(self, ops: LinkOps, st: DriverState) -> None:
-        """SUSPECT → SYNCING (→ FLUSHING) → SAFE → VERIFYING → IN_STEP (see ``Device._flush_parser``)."""
+        """SUSPECT → SYNCING (→ FLUSHING) → SAFE → VERIFYING → IN_STEP.
+
+        * SYNCING: four zeros (they complete any u8 or u16 in progress, so the request after them is read
+          as a command, or — by a pattern in progress — as one more level), then 0xFF when the firmware
+          should hold the configuration's electrode count, else 0xF5.  A reply of the expected length
+          proves the parser read the request as a command and every byte written before it.
+        * FLUSHING: no such reply: 256 zeros finish any pattern in progress, then the request again (and
+          0xF5 after a silent 0xFF, as a zero may have set the count to 0).  Still silent: FAILED, a locked
+          or hung parser that only the reset line reaches.
+        * SAFE: pulse height 0, sense height 0 and the electrode count, each with the loss-tolerant
+          padding so that one lost byte still cannot make a current.
+        * VERIFYING: 0xFF must be answered with exactly 2 × electrode count bytes; then an all-off pattern.
+          Otherwise one more round, then FAILED.
+
+        Time alone never proves anything here: each deadline only decides when to stop waiting."""
         cfg = st.config
         n = cfg.electrode_count if cfg is not None else 0
         if cfg is not None:  # (before a configuration the wait is the unknown board's, ``unknown_reply_s``)

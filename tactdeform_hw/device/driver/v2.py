@@ -1,8 +1,8 @@
 """How the device layer speaks firmware v2: one height per electrode, a global waveform mode, the sync check.
 
-:class:`~tactdeform_hw.device.driver.base.Device` is written once; where v2 differs it consults the dialect
-object
-this module provides (``Device._dialect``; None is v1.2).  The safety contract is v1.2's, translated:
+:class:`~tactdeform_hw.device.driver.base.Device` is written once; the bytes that express its operations on
+v2 are :class:`V2Dialect`'s (the registry :data:`~tactdeform_hw.device.driver.dialects.DIALECTS`; v1.2's are
+in :mod:`.v1_2`).  The safety contract is v1.2's, translated:
 
 * **Per-electrode heights.**  ``send_pattern`` still takes levels (0 off, 1 monophasic, 2 biphasic); on v2
   each active electrode's height is the target lowered to *its own* limit (cap, charge, its region) and to
@@ -33,9 +33,9 @@ this module provides (``Device._dialect``; None is v1.2).  The safety contract i
 * **Pacing for the 1024-byte queue**, once the board has answered the sync check (until then the pacer
   keeps v1.2's 256 bytes: a board that turns out to run v1.2 still reads every byte of the probe).
 
-The interlock (:class:`~tactdeform_hw.device.safety.guard.SafetyGuard`, ``firmware = V2``) reads every write
-with
-the v2 table and checks each channel's own height (:func:`verify_channels`).
+The interlock (:class:`~tactdeform_hw.device.safety.interlock.WireInterlock`, ``firmware = V2``) reads every
+write with the v2 table and checks each channel's own height
+(:class:`~tactdeform_hw.device.safety.readings.V2Reading`).
 """
 
 from __future__ import annotations
