@@ -5,8 +5,8 @@ that would trigger a known firmware defect, and only then builds bytes with :mod
 and writes them — one write per command.  ``close`` is idempotent and leaves every channel off.
 
 Every byte leaves through :meth:`Device._send`, which passes it through the safety interlock
-(:meth:`SafetyGuard.check_wire`), the pacer (:mod:`.pacing`: never faster than the firmware reads) and the
-session's audit log (:mod:`.audit`).  Public methods hold one lock, so a fail-safe thread's all-off can
+(:class:`~tactdeform_hw.device.safety.interlock.WireInterlock`), the pacer (:mod:`.pacing`: never faster
+than the firmware reads) and the session's audit log (:mod:`.audit`).  Public methods hold one lock, so a fail-safe thread's all-off can
 never interleave with a half-written frame.
 
 Nothing that carries a value — a height, a width, an electrode count, a pattern — is written unless the
@@ -909,7 +909,7 @@ class Device:
                 f"0x{data[0]:02X} while the firmware's parser is not proved in step "
                 f"({self.link.state.value}): resync first"
             )
-        shadow = self.guard.check_wire(data, mapping=self.mapping, transfer=self.transfer)
+        shadow = self.guard.interlock.check_wire(data, mapping=self.mapping, transfer=self.transfer)
         audit = self._audit
         op = self._op or ""
 

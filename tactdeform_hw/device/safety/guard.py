@@ -7,8 +7,9 @@ skip them:
 1. **The guard** (:meth:`SafetyGuard.check_config`, :meth:`SafetyGuard.request`,
    :meth:`SafetyGuard.frame_height`) decides what current may be sent.  ``configure``, ``set_current``,
    ``send_pattern``, ``keepalive`` and ``resync`` all go through it before any byte is built.
-2. **The interlock** (:meth:`SafetyGuard.check_wire`) sees every command the device layer writes — it is
-   called from ``Device._send``, the single place bytes leave for the transport — and keeps a shadow of
+2. **The interlock** (:attr:`SafetyGuard.interlock`, a
+   :class:`~tactdeform_hw.device.safety.interlock.WireInterlock`) sees every command the device layer
+   writes — it is called from ``Device._send``, the single place bytes leave for the transport — and keeps a shadow of
    the firmware's registers.  It refuses a command whose effect would break a limit whatever code path
    produced it, so a future method that forgets the guard is stopped at the wire.  It judges the
    firmware's reading of the bytes (:mod:`tactdeform_hw.protocol.reader`, from where the parser stands),
@@ -597,14 +598,3 @@ class SafetyGuard:
     def commit(self, state: WireState) -> bool:
         """See :meth:`WireInterlock.commit`."""
         return self.interlock.commit(state)
-
-    def check_wire(
-        self,
-        data: bytes,
-        *,
-        mapping: ChannelMapping | None = None,
-        transfer: CurrentTransfer = DEFAULT_TRANSFER,
-        room: int | None = None,
-    ) -> WireState:
-        """See :meth:`WireInterlock.check_wire`."""
-        return self.interlock.check_wire(data, mapping=mapping, transfer=transfer, room=room)
