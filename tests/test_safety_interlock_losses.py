@@ -40,9 +40,8 @@ def test_the_old_resync_order_is_refused_while_the_queue_may_be_full() -> None:
     stimulating(guard)
     guard.commit(guard.interlock.check_wire(bytes(256)))
     assert guard.wire_state.unproven
-    guard.commit(
-        guard.interlock.check_wire(p.encode_pulse_height(0))
-    )  # cut or not, it cannot raise a current
+    # cut or not, it cannot raise a current
+    guard.commit(guard.interlock.check_wire(p.encode_pulse_height(0)))
     assert len(guard.wire_state.alternatives) == 3  # `fb` alone, `fb 00`, or the whole packet lost
     with pytest.raises(
         SafetyError,

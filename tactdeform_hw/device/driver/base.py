@@ -6,8 +6,8 @@ and writes them — one write per command.  ``close`` is idempotent and leaves e
 
 Every byte leaves through :meth:`Device._send`, which passes it through the safety interlock
 (:class:`~tactdeform_hw.device.safety.interlock.WireInterlock`), the pacer (:mod:`.pacing`: never faster
-than the firmware reads) and the session's audit log (:mod:`.audit`).  Public methods hold one lock, so a fail-safe thread's all-off can
-never interleave with a half-written frame.
+than the firmware reads) and the session's audit log (:mod:`.audit`).  Public methods hold one lock, so a
+fail-safe thread's all-off can never interleave with a half-written frame.
 
 Nothing that carries a value — a height, a width, an electrode count, a pattern — is written unless the
 device has proved its parser at a command boundary with room in its queue: at open, after a failed or cut

@@ -9,14 +9,14 @@ skip them:
    ``send_pattern``, ``keepalive`` and ``resync`` all go through it before any byte is built.
 2. **The interlock** (:attr:`SafetyGuard.interlock`, a
    :class:`~tactdeform_hw.device.safety.interlock.WireInterlock`) sees every command the device layer
-   writes — it is called from ``Device._send``, the single place bytes leave for the transport — and keeps a shadow of
-   the firmware's registers.  It refuses a command whose effect would break a limit whatever code path
-   produced it, so a future method that forgets the guard is stopped at the wire.  It judges the
-   firmware's reading of the bytes (:mod:`tactdeform_hw.protocol.reader`, from where the parser stands),
-   and where the device's queue may be full, every reading a discarded USB packet tail could cause.  Only
-   writing to the port object directly (``device.port.write`` or ``serial.serial_for_url(...).write``)
-   bypasses it: that is not the driver, it is the raw transport, and no Python-level check can stop a caller
-   who opens the port themselves.
+   writes — it is called from ``Device._send``, the single place bytes leave for the transport — and
+   keeps a shadow of the firmware's registers.  It refuses a command whose effect would break a limit
+   whatever code path produced it, so a future method that forgets the guard is stopped at the wire.  It
+   judges the firmware's reading of the bytes (:mod:`tactdeform_hw.protocol.reader`, from where the
+   parser stands), and where the device's queue may be full, every reading a discarded USB packet tail
+   could cause.  Only writing to the port object directly (``device.port.write`` or
+   ``serial.serial_for_url(...).write``) bypasses it: that is not the driver, it is the raw transport,
+   and no Python-level check can stop a caller who opens the port themselves.
 
 Limits (µA unless noted):
 
