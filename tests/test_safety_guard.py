@@ -250,6 +250,7 @@ COVERED = {
     "frames_sent": "property",
     "guardian": "property: the guardian process, which only switches off",
     "kind": "a name for messages",
+    "port": "the port every write goes to, through the device's own send path",
     "resync": "resync tests: configuration again through configure",
     "reconnect": "resync",
     "verify_firmware": "the identification's signature and off bytes only (tests/test_identification.py)",

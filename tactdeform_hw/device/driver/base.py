@@ -187,7 +187,6 @@ class Device:
     ) -> None:
         check_firmware_choice(firmware)
         self._init_state(mapping, transfer, guard, pacer, audit)
-        self.port = port
         self.port_link = PortLink(port, lambda s: self.pacer.clock.sleep(s))
         self._guardian: Guardian | None = None
         if not port.is_open:
@@ -316,6 +315,15 @@ class Device:
         if g is not None:
             g.release()
         self.port_link.close()
+
+    @property
+    def port(self) -> Port:
+        """The port the device writes to (a caller may put a recording proxy of it in its place)."""
+        return self.port_link.port
+
+    @port.setter
+    def port(self, port: Port) -> None:
+        self.port_link.port = port
 
     # --- the guardian ---------------------------------------------------------------------------------------
 
