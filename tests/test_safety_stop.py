@@ -196,7 +196,7 @@ from argparse import Namespace
 from tactdeform_hw.cli.common import hold, run_command
 from tactdeform_hw.cli.delivered import DeliveryLog
 from tactdeform_hw.device import StimConfig, open_device
-from tactdeform_hw.device import failsafe
+from tactdeform_hw.device.safety import failsafe
 
 path, sig, how, record = sys.argv[1], int(sys.argv[2]), sys.argv[3], sys.argv[4]
 
