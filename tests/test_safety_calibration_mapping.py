@@ -178,8 +178,8 @@ def test_the_interlock_holds_each_channel_to_its_calibration_whatever_the_bytes_
 
     for mapping in (None, ChannelMapping.identity(N), ChannelMapping(REVERSED, N)):
         with pytest.raises(SafetyError, match="channel 0 would receive 2000 µA, above its limit of 100 µA"):
-            guard.check_wire(frame(200), mapping=mapping)
-        guard.check_wire(frame(10), mapping=mapping)  # 100 µA on channel 0: its calibration
+            guard.interlock.check_wire(frame(200), mapping=mapping)
+        guard.interlock.check_wire(frame(10), mapping=mapping)  # 100 µA on channel 0: its calibration
 
 
 # --- the finding: a mapping the device does not follow -------------------------------------------------

@@ -246,6 +246,11 @@ COVERED = {
     "hv513_count": "no current command",
     "heights_in_force": "read-only: the v2 heights the firmware should hold",
     "firmware": "read-only: the version the device speaks",
+    "speak": "sends nothing; a change of version leaves the interlock knowing no register",
+    "frames_sent": "property",
+    "guardian": "property: the guardian process, which only switches off",
+    "kind": "a name for messages",
+    "port": "the port every write goes to, through the device's own send path",
     "resync": "resync tests: configuration again through configure",
     "reconnect": "resync",
     "verify_firmware": "the identification's signature and off bytes only (tests/test_identification.py)",
@@ -426,25 +431,25 @@ def test_interlock_limits_follow_each_mapping_and_every_change_of_the_limits() -
     frame = _two_channel_frame(800, [1, 0])  # 800 µA on hardware channel 0
     for _ in range(20):
         # channel 0 holds electrode 0 (limit 1000): allowed
-        guard.check_wire(frame, mapping=ChannelMapping((0, 1), 2))
+        guard.interlock.check_wire(frame, mapping=ChannelMapping((0, 1), 2))
         # channel 0 holds electrode 1 (limit 500): refused, whatever the previous mapping object was
         with pytest.raises(SafetyError, match="channel 0 would receive 800"):
-            guard.check_wire(frame, mapping=ChannelMapping((1, 0), 2))
+            guard.interlock.check_wire(frame, mapping=ChannelMapping((1, 0), 2))
     identity = ChannelMapping.identity(2)
-    guard.check_wire(frame, mapping=identity)
+    guard.interlock.check_wire(frame, mapping=identity)
     guard.regions_ua = (400, 500)  # a lowered limit takes effect at once
     with pytest.raises(SafetyError, match="above its limit of 400"):
-        guard.check_wire(frame, mapping=identity)
+        guard.interlock.check_wire(frame, mapping=identity)
     assert guard.electrode_limits(2) == [400, 500]
     guard.cap_ua = 300
     assert guard.electrode_limits(2) == [300, 300]
     with pytest.raises(SafetyError):
-        guard.check_wire(_two_channel_frame(350, [0, 1]), mapping=identity)
+        guard.interlock.check_wire(_two_channel_frame(350, [0, 1]), mapping=identity)
     # a height above the lowest limit is still allowed on the channels whose own limit it fits
     guard = SafetyGuard(regions_ua=(1000, 500), region_of=(0, 1))
-    guard.check_wire(_two_channel_frame(800, [1, 0]))
+    guard.interlock.check_wire(_two_channel_frame(800, [1, 0]))
     with pytest.raises(SafetyError, match="channel 1 would receive 800"):
-        guard.check_wire(_two_channel_frame(800, [0, 1]))
+        guard.interlock.check_wire(_two_channel_frame(800, [0, 1]))
 
 
 def test_a_rewrite_of_the_same_state_is_not_a_state_write() -> None:

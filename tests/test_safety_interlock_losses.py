@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
-from tactdeform_hw.device.safety.guard import SafetyGuard, WireState, _Shadow, _tail_losses
+from tactdeform_hw.device.safety.guard import SafetyGuard
+from tactdeform_hw.device.safety.interlock import Shadow, WireState, tail_losses
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.errors import SafetyError
 from tactdeform_hw.protocol.units import CurrentTransfer
@@ -29,7 +30,7 @@ def stimulating(guard: SafetyGuard, height_ua: int = 1000) -> None:
         p.encode_pattern(ON),
         p.encode_pulse_height(height_ua // 10),
     ):
-        guard.commit(guard.check_wire(cmd))
+        guard.commit(guard.interlock.check_wire(cmd))
 
 
 def test_the_old_resync_order_is_refused_while_the_queue_may_be_full() -> None:
@@ -37,24 +38,25 @@ def test_the_old_resync_order_is_refused_while_the_queue_may_be_full() -> None:
     that follows is read as its value: 0xF900 → 4095 (or 0x00F9 = 249), with the old pattern in force."""
     guard = SafetyGuard(cap_ua=2000)
     stimulating(guard)
-    guard.commit(guard.check_wire(bytes(256)))
+    guard.commit(guard.interlock.check_wire(bytes(256)))
     assert guard.wire_state.unproven
-    guard.commit(guard.check_wire(p.encode_pulse_height(0)))  # cut or not, it cannot raise a current
+    # cut or not, it cannot raise a current
+    guard.commit(guard.interlock.check_wire(p.encode_pulse_height(0)))
     assert len(guard.wire_state.alternatives) == 3  # `fb` alone, `fb 00`, or the whole packet lost
     with pytest.raises(
         SafetyError,
         match=r"\(if bytes 1-2 of a 3-byte write discarded by a full device queue\): pulse height 2490 µA",
     ):
-        guard.check_wire(p.encode_sense_height(0))
+        guard.interlock.check_wire(p.encode_sense_height(0))
     # with everything else known, the other reading: `fb 00` + `f9` → 0xF900, clamped to 4095
     guard = SafetyGuard(cap_ua=5000)
     stimulating(guard)
-    guard.commit(guard.check_wire(p.encode_pulse_height(0), room=2))
+    guard.commit(guard.interlock.check_wire(p.encode_pulse_height(0), room=2))
     with pytest.raises(
         SafetyError,
         match=r"\(if bytes 2-2 of a 3-byte write discarded by a full device queue\): pulse height 40950 µA",
     ):
-        guard.check_wire(p.encode_sense_height(0))
+        guard.interlock.check_wire(p.encode_sense_height(0))
     # what the interlock predicts is what the firmware does with those bytes
     emu = Emulator()
     emu.feed(p.encode_electrode_num(4) + p.encode_pattern(ON) + b"\xfb\x00" + p.encode_sense_height(0))
@@ -64,8 +66,8 @@ def test_the_old_resync_order_is_refused_while_the_queue_may_be_full() -> None:
 def test_once_the_board_has_answered_the_same_order_is_allowed() -> None:
     guard = SafetyGuard(cap_ua=2000)
     stimulating(guard)
-    guard.commit(guard.check_wire(bytes(256)))
-    guard.commit(guard.check_wire(p.HV513_COUNT_REQUEST))
+    guard.commit(guard.interlock.check_wire(bytes(256)))
+    guard.commit(guard.interlock.check_wire(p.HV513_COUNT_REQUEST))
     guard.note_in_step()  # its reply came: the parser read it at a boundary, nothing waits behind it
     assert guard.wire_state == WireState(guard.wire_state.nominal) and not guard.wire_state.unproven
     for cmd in (
@@ -74,7 +76,7 @@ def test_once_the_board_has_answered_the_same_order_is_allowed() -> None:
         p.encode_electrode_num(4),
         p.encode_pattern([0] * 4),
     ):
-        guard.commit(guard.check_wire(cmd))
+        guard.commit(guard.interlock.check_wire(cmd))
     assert guard.wire_state.alternatives == ()
 
 
@@ -83,15 +85,15 @@ def test_a_cut_height_makes_the_next_pattern_refused() -> None:
     0xFE is then read as the high byte (0xFE64 → 4095) while two channels are on."""
     guard = SafetyGuard(cap_ua=2000)
     stimulating(guard)
-    guard.commit(guard.check_wire(p.encode_pulse_height(100), room=2))
+    guard.commit(guard.interlock.check_wire(p.encode_pulse_height(100), room=2))
     assert {a.parse.opcode for a in guard.wire_state.alternatives if a.parse} == {0xFB}
     with pytest.raises(SafetyError, match="40950 µA"):
-        guard.check_wire(p.encode_pattern([1, 0, 0, 0]))
+        guard.interlock.check_wire(p.encode_pattern([1, 0, 0, 0]))
     # the same write with room for all of it leaves no doubt
     guard = SafetyGuard(cap_ua=2000)
     stimulating(guard)
-    guard.commit(guard.check_wire(p.encode_pulse_height(100), room=3))
-    guard.commit(guard.check_wire(p.encode_pattern([1, 0, 0, 0])))
+    guard.commit(guard.interlock.check_wire(p.encode_pulse_height(100), room=3))
+    guard.commit(guard.interlock.check_wire(p.encode_pattern([1, 0, 0, 0])))
     assert guard.wire_state.alternatives == ()
 
 
@@ -101,9 +103,9 @@ def test_a_cut_pattern_turns_the_next_command_into_channel_levels() -> None:
     the height in force, above its region's limit."""
     guard = SafetyGuard(cap_ua=2000, regions_ua=(2000, 50), region_of=(0, 0, 1, 1))
     stimulating(guard, 1000)
-    guard.commit(guard.check_wire(p.encode_pattern([1, 0, 0, 0]), room=2))
+    guard.commit(guard.interlock.check_wire(p.encode_pattern([1, 0, 0, 0]), room=2))
     with pytest.raises(SafetyError, match="channel 2 would receive 1000 µA, above its limit of 50"):
-        guard.check_wire(p.encode_discharge(1))
+        guard.interlock.check_wire(p.encode_discharge(1))
     emu = Emulator()
     emu.feed(p.encode_electrode_num(4) + b"\xfe\x01" + p.encode_discharge(1))
     assert emu.state()["stim_pattern"][:4] == [1, 0xF7, 1, 0]
@@ -113,20 +115,20 @@ def test_an_unknown_parser_position_allows_only_zeros_and_requests() -> None:
     guard = SafetyGuard()
     guard.mark_unknown()
     with pytest.raises(SafetyError, match="electrode count is unknown"):
-        guard.check_wire(p.encode_pulse_height(0))
-    guard.check_wire(b"\x00\x13")
-    guard.check_wire(p.HV513_COUNT_REQUEST)
-    guard.check_wire(p.MEASURE_REQUEST)
+        guard.interlock.check_wire(p.encode_pulse_height(0))
+    guard.interlock.check_wire(b"\x00\x13")
+    guard.interlock.check_wire(p.HV513_COUNT_REQUEST)
+    guard.interlock.check_wire(p.MEASURE_REQUEST)
     # fewer zeros than the longest payload cannot finish a pattern in progress
-    guard.commit(guard.check_wire(bytes(200)))
+    guard.commit(guard.interlock.check_wire(bytes(200)))
     assert guard.wire_state.nominal.parse is None
-    guard.commit(guard.check_wire(bytes(256)))
+    guard.commit(guard.interlock.check_wire(bytes(256)))
     assert guard.wire_state.nominal.parse is not None and guard.wire_state.unproven
 
 
 def test_tail_losses_follow_the_usb_packets() -> None:
     data = bytes(range(130))
-    losses = dict(_tail_losses(data, 10, 64))
+    losses = dict(tail_losses(data, 10, 64))
     assert losses[(10, 64)] == data[:10] + data[64:]  # the rest of the first packet
     assert losses[(10, 130)] == data[:10]  # and the queue stayed full for the later packets
     assert losses[(70, 128)] == data[:70] + data[128:]
@@ -142,13 +144,13 @@ def test_a_resync_sends_no_value_until_the_board_answers() -> None:
     port.emulator.feed(b"\xfc\x00\xfe")  # a locked parser reads nothing, answers nothing
     n = len(port.writes)
     resets: list[int] = []
-    pulse = dev._reset_transport
+    pulse = dev.port_link.reset
 
     def counted() -> bool:
         resets.append(len(port.writes))
         return pulse()
 
-    dev._reset_transport = counted  # type: ignore[method-assign]
+    dev.port_link.reset = counted  # type: ignore[method-assign]
     dev.resync()
     # until the reset line freed the parser, only zeros and requests went out: nothing that carries a value
     assert resets, "a parser that never answers gets the reset line"
@@ -192,7 +194,7 @@ def _command(draw: st.DrawFn, n: int) -> bytes:
     return p.encode_pattern(draw(st.lists(st.integers(0, 3), min_size=n, max_size=n)), electrode_num=n)
 
 
-def _matches(s: _Shadow, emu: Emulator) -> bool:
+def _matches(s: Shadow, emu: Emulator) -> bool:
     """The firmware's registers agree with every register the interlock's state claims to know."""
     regs = emu.state()
     pairs = [
@@ -229,11 +231,11 @@ def test_every_state_a_lost_tail_leaves_is_foreseen(data: st.DataObject) -> None
         p.encode_pulse_height(100),
     )
     for cmd in setup:
-        guard.commit(guard.check_wire(cmd, transfer=ONE_UA_PER_CODE))
+        guard.commit(guard.interlock.check_wire(cmd, transfer=ONE_UA_PER_CODE))
         emu.feed(cmd)
     first = data.draw(st.composite(lambda d: _command(d, count))())
     try:
-        state = guard.check_wire(first, transfer=ONE_UA_PER_CODE, room=0)
+        state = guard.interlock.check_wire(first, transfer=ONE_UA_PER_CODE, room=0)
     except SafetyError:
         assume(False)
     guard.commit(state)
@@ -244,7 +246,7 @@ def test_every_state_a_lost_tail_leaves_is_foreseen(data: st.DataObject) -> None
     n = state.nominal.electrode_num or 1
     second = data.draw(st.composite(lambda d: _command(d, n))())
     try:
-        state = guard.check_wire(second, transfer=ONE_UA_PER_CODE)
+        state = guard.interlock.check_wire(second, transfer=ONE_UA_PER_CODE)
     except SafetyError:
         assume(False)
     guard.commit(state)
@@ -261,12 +263,12 @@ def test_all_off_on_a_board_that_does_not_answer_says_so() -> None:
     dev.send_pattern([1] * 32)
     port.emulator.feed(b"\xfc\x00\xfe")  # something locked the parser
     assert not dev.probe() and dev.needs_resync
-    can_reset = dev._can_reset
-    dev._can_reset = lambda: False  # type: ignore[method-assign]  # a transport without a reset line
+    can_reset = dev.port_link.can_reset
+    dev.port_link.can_reset = lambda: False  # type: ignore[method-assign]  # a transport without a reset line
     n = len(port.writes)
     with pytest.raises(ShortReplyError, match="after resync zeros"):
         dev.all_off()
     assert set(b"".join(port.writes[n:])) <= {0, p.HV513_COUNT_REQUEST[0], p.MEASURE_REQUEST[0]}
-    dev._can_reset = can_reset  # type: ignore[method-assign]
+    dev.port_link.can_reset = can_reset  # type: ignore[method-assign]
     assert dev.hardware_reset() and dev.probe()
     dev.close()

@@ -367,11 +367,11 @@ def walk(link: str) -> set[tuple[str, str]]:
     port.no_reset = False
     port.mute_in = {}
     dev.resync()
-    dev._can_reset = lambda: False  # type: ignore[method-assign]
+    dev.port_link.can_reset = lambda: False  # type: ignore[method-assign]
     port.write(b"\xfc\x00\xfe")  # a locked parser, and no reset line
     dev._needs_resync = True
     attempt(dev.keepalive)  # ... → FAILED, and the error says so
-    del dev._can_reset
+    del dev.port_link.can_reset
     dev.resync()  # FAILED → SUSPECT → ... → FAILED → DRAINING: the reset line
     dev.hardware_reset()  # IN_STEP → DRAINING → RESETTING → BOOTING → SUSPECT
     port.mute_in = {"draining": 10}

@@ -15,7 +15,7 @@ from .safety_helpers import OPEN_DEFECTS
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import seam_sessions as ss  # noqa: E402
 
-from tactdeform_hw.device.driver import serial_driver  # noqa: E402
+from tactdeform_hw.device.driver import base, firmware_probe, serial_driver  # noqa: E402
 from tactdeform_hw.device.driver.firmware_probe import Detection  # noqa: E402
 from tactdeform_hw.device.safety.guard import SafetyGuard  # noqa: E402
 from tactdeform_hw.protocol.firmware import V1_2, V2  # noqa: E402
@@ -61,7 +61,7 @@ def _no_identification(monkeypatch: pytest.MonkeyPatch, firmware_of: dict[str, A
     def detect(*args: Any, **kw: Any) -> Detection:
         return Detection(firmware_of["fw"], 1, b"", 0)
 
-    monkeypatch.setattr(serial_driver, "detect_firmware", detect)
+    monkeypatch.setattr(firmware_probe, "detect_firmware", detect)
 
 
 @pytest.mark.parametrize("fw", ["v1.2"])  # on v2 the open's proof refuses a board that does not answer too
@@ -78,7 +78,7 @@ def test_the_mismatch_check_fails_when_the_other_version_is_not_refused(
 ) -> None:
     indices = _sessions("mismatch", 3)
     assert all(ss.run_session(i).ok for i in indices)
-    monkeypatch.setattr(serial_driver, "check_firmware", lambda *a, **k: None)
+    monkeypatch.setattr(base, "check_firmware", lambda *a, **k: None)
     assert all("was not refused" in ss.run_session(i).failure() for i in indices)
 
 
@@ -129,7 +129,7 @@ def test_the_cut_check_fails_when_the_identification_does_not_wait_out_the_timeo
 ) -> None:
     indices = _sessions("cut", 12, "v2")
     assert not any("inherited_command" in ss.run_session(i).defect_counts for i in indices)
-    monkeypatch.setattr(serial_driver, "SETTLE_S", 0.0)
+    monkeypatch.setattr(firmware_probe, "SETTLE_S", 0.0)
     hit = [ss.run_session(i) for i in indices]
     assert sum(r.over_limit for r in hit) > 0  # the cut pattern's heights, completed by the new program
     assert any("inherited_command" in r.defect_counts for r in hit)

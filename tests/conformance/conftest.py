@@ -306,7 +306,11 @@ def _serial_board_target(name: str) -> Target:
 
 def _usb_board_target(name: str) -> Target:
     try:
-        from tactdeform_hw.device.driver.usb_transport import usb_port_for_name
+        from tactdeform_hw.protocol.constants import BAUD_RATE
+        from tactdeform_hw.transports import port_for_name
+
+        def usb_port_for_name(name: str, *, timeout: float) -> Any:  # usb:… and usb-emulator… alike
+            return port_for_name(name, timeout=timeout, baudrate=BAUD_RATE)
 
         probe = usb_port_for_name(name, timeout=REPLY_TIMEOUT_S)
         probe.open()

@@ -131,7 +131,7 @@ def test_v2_driver_round_trip_with_per_electrode_heights(v2_target: Target) -> N
     guard = SafetyGuard(2000, regions_ua=[400, 800, 1200, 1600, 2000, 2000, 2000, 2000, 2000])
     dev = EtactileKitDevice(port, firmware="v2", guard=guard, guardian=False, settle_s=v2_target.settle_s)
     try:
-        assert isinstance(dev._dialect, V2Dialect)
+        assert isinstance(dev.dialect, V2Dialect)
         dev.configure(StimConfig(electrode_count=32, current_ua=1000))
         dev.send_pattern([1] * 32)
         assert len(dev.measure()) == 32

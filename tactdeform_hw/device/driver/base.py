@@ -5,19 +5,20 @@ that would trigger a known firmware defect, and only then builds bytes with :mod
 and writes them — one write per command.  ``close`` is idempotent and leaves every channel off.
 
 Every byte leaves through :meth:`Device._send`, which passes it through the safety interlock
-(:meth:`SafetyGuard.check_wire`), the pacer (:mod:`.pacing`: never faster than the firmware reads) and the
-session's audit log (:mod:`.audit`).  Public methods hold one lock, so a fail-safe thread's all-off can
-never interleave with a half-written frame.
+(:class:`~tactdeform_hw.device.safety.interlock.WireInterlock`), the pacer (:mod:`.pacing`: never faster
+than the firmware reads) and the session's audit log (:mod:`.audit`).  Public methods hold one lock, so a
+fail-safe thread's all-off can never interleave with a half-written frame.
 
 Nothing that carries a value — a height, a width, an electrode count, a pattern — is written unless the
 device has proved its parser at a command boundary with room in its queue: at open, after a failed or cut
 write, a short or late reply, a reconnect or a reset, the closed-loop recovery (:class:`LinkState`,
-:meth:`Device._flush_parser`) gets a reply of the expected length first.  Its states and transitions are
+the dialect's ``flush_parser``) gets a reply of the expected length first.  Its states and transitions are
 drawn in ``docs/safety.md``.
 
 Firmware v2 speaks other bytes for the same API (one height per electrode, a global waveform mode, the
-sync check): where the versions differ, the device consults its dialect (``_dialect``, :mod:`.v2`; None
-is v1.2).
+sync check): the device sends, paces, audits and keeps the proofs; which bytes express an operation is its
+dialect's (:mod:`.dialect`; :data:`~.dialects.DIALECTS` holds one per firmware spec, :mod:`.v1_2` and
+:mod:`.v2`).  The recovery's states and record are :class:`~tactdeform_hw.device.links.recovery.LinkRecovery`.
 
 Two currents are kept apart: the *target* (what the caller asked for with ``configure`` or
 ``set_current``) and the *height in force* (what the firmware's pulse-height register holds).  The height
@@ -31,37 +32,38 @@ from __future__ import annotations
 import functools
 import threading
 import warnings
-from abc import ABC, abstractmethod
-from collections import deque
 from collections.abc import Callable, Sequence
-from enum import Enum
 from types import TracebackType
 from typing import Concatenate, ParamSpec, TypeVar
 
 from tactdeform_hw import protocol as p
-from tactdeform_hw.clock import InstantClock, MonotonicClock, SimulatedClock
+from tactdeform_hw.clock import Clock, InstantClock, MonotonicClock
 from tactdeform_hw.device.driver.audit import AuditLog
-from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig, sense_code
+from tactdeform_hw.device.driver.config import StimConfig, robust_refusal
+from tactdeform_hw.device.driver.dialect import Dialect, DriverState, LinkOps, worst_scan_s
+from tactdeform_hw.device.driver.dialects import DIALECTS
 from tactdeform_hw.device.driver.firmware_probe import (
-    IDENT_OFF,
-    SIGNATURE,
+    Detection,
     FirmwareMismatchError,
-    classify,
-    needs_third_byte,
+    check_firmware,
+    check_firmware_choice,
+    identify,
+    recheck_firmware,
 )
-from tactdeform_hw.device.driver.pacing import (
-    COMMAND_BYTE_MIN,
-    SCAN_GAP_MIN_US,
-    Pacer,
-    command_like_payload,
-    estimate_scan_us,
-    firmware_period_us,
-    padding_for,
+from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, default_pacer, padding_for
+from tactdeform_hw.device.links.port import Port, PortLink, no_delay
+from tactdeform_hw.device.links.recovery import (
+    PROBE_LEAD_ZEROS,
+    RECOVERY_ATTEMPTS,
+    REPLY_POLL_S,
+    TRANSITIONS,
+    LinkRecovery,
+    LinkState,
+    probe_bound_s,
 )
-from tactdeform_hw.device.driver.readback import OFF_READING_CODES
-from tactdeform_hw.device.driver.v2 import V2Dialect
 from tactdeform_hw.device.participant.mapping import ChannelMapping
 from tactdeform_hw.device.safety.guard import SafetyGuard
+from tactdeform_hw.device.safety.guardian import Guardian, pace_for, start_guardian
 from tactdeform_hw.errors import (
     DeviceTimeoutError,
     LimitError,
@@ -73,21 +75,19 @@ from tactdeform_hw.errors import (
     TactDeformError,
     TransportError,
 )
+from tactdeform_hw.ports import is_instant
 from tactdeform_hw.protocol.constants import (
-    CURRENT_STEP_UA,
     PATTERN_BIPHASIC,
     PATTERN_MONOPHASIC,
     PATTERN_SENSE,
-    RX_QUEUE_SIZE,
     USB_PACKET_SIZE,
 )
-from tactdeform_hw.protocol.firmware import V1_2, V2
+from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 #: Pattern levels a host may send: off (a sense pulse, 0 µA while sense current is 0), mono, biphasic.
 ALLOWED_LEVELS = frozenset({PATTERN_SENSE, PATTERN_MONOPHASIC, PATTERN_BIPHASIC})
 _ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
-#: Requests sent after a resync's zeros before the board counts as not answering.
 #: Commands that change what the scans deliver (a measure right after one reads the old pulses).
 _STATE_OPCODES = frozenset(
     {
@@ -103,51 +103,8 @@ _STATE_OPCODES = frozenset(
 )
 
 
-class LinkState(str, Enum):
-    """What the driver has proved about the firmware's parser and receive queue (see ``docs/safety.md``).
-
-    Only in ``IN_STEP`` may a multi-byte value, an electrode count or a pattern be written.  Every other
-    state writes only bytes that no parser state can turn into a current — zeros, 0xF5, 0xFF, each behind
-    zeros that complete whatever command could be in progress — or heights of 0 once a reply has proved a
-    command boundary.
-    """
-
-    IN_STEP = "in_step"  # the parser reads our commands at their boundaries; the queue model runs
-    SUSPECT = "suspect"  # fresh open, failed write, short or late reply, reopened port, reset: nothing known
-    SYNCING = "syncing"  # zeros then 0xF5 written: waiting for the one-byte reply that proves a boundary
-    FLUSHING = "flushing"  # 0xF5 unanswered (swallowed by a pattern, or a slow parser): zeros in chunks
-    SAFE = "safe"  # boundary proved and queue drained: pulse height 0, sense height 0, electrode count
-    VERIFYING = "verifying"  # 0xFF written: the reply must be exactly 2 x electrode count bytes long
-    DRAINING = "draining"  # before the reset line: the last bytes read (proved) and none left on the link
-    RESETTING = "resetting"  # the reset line is pulsed
-    BOOTING = "booting"  # the firmware boots; nothing is written
-    FAILED = "failed"  # no proof within the attempts: a locked or hung parser (only the reset line helps)
-
-
-#: Which state may follow which (the recovery state machine; tests walk every edge).
-TRANSITIONS: dict[LinkState, frozenset[LinkState]] = {
-    LinkState.IN_STEP: frozenset({LinkState.SUSPECT, LinkState.DRAINING}),
-    LinkState.SUSPECT: frozenset({LinkState.SYNCING, LinkState.DRAINING}),
-    LinkState.SYNCING: frozenset({LinkState.SAFE, LinkState.FLUSHING, LinkState.SUSPECT}),
-    LinkState.FLUSHING: frozenset({LinkState.SAFE, LinkState.FAILED, LinkState.SUSPECT}),
-    LinkState.SAFE: frozenset({LinkState.VERIFYING, LinkState.IN_STEP, LinkState.SUSPECT}),
-    LinkState.VERIFYING: frozenset({LinkState.IN_STEP, LinkState.SUSPECT, LinkState.FAILED}),
-    LinkState.DRAINING: frozenset({LinkState.RESETTING, LinkState.SUSPECT}),
-    LinkState.RESETTING: frozenset({LinkState.BOOTING, LinkState.SUSPECT}),
-    LinkState.BOOTING: frozenset({LinkState.SUSPECT}),
-    LinkState.FAILED: frozenset({LinkState.SUSPECT, LinkState.DRAINING}),
-}
-
-#: Zeros in front of every probe byte: they complete a u8 or u16 command in progress (a zero height, a
-#: zero width or rate — which the firmware ignores), so the probe byte itself is read as a command; only a
-#: pattern in progress can take it, as one more level (a sense pulse at the sense height already in force).
-PROBE_LEAD_ZEROS = 4
-#: How often a reply is polled while its deadline runs.
-REPLY_POLL_S = 0.0005
 #: Times ``close`` reopens a link that failed under its all-off before it gives up and says so.
 CLOSE_RECONNECTS = 3
-#: Verification rounds (sync, safe, verify) before the recovery gives up.
-RECOVERY_ATTEMPTS = 2
 
 
 _D = TypeVar("_D", bound="Device")
@@ -184,12 +141,25 @@ def _locked(fn: Callable[Concatenate[_D, _P], _R]) -> Callable[Concatenate[_D, _
     return wrapper
 
 
-class Device(ABC):
-    """An eTactileKit-compatible stimulator.
+class Device:
+    """An eTactileKit-compatible stimulator behind ``port``, any pyserial-compatible port (a path, a URL,
+    an in-process port; :class:`~tactdeform_hw.device.links.port.Port`), opened or not: an unopened one
+    gets DTR/RTS low before it is opened.
+
+    The board is driven only in the firmware version it has proved by a reply only that version gives
+    (:mod:`.firmware_probe`): the constructor identifies it first, unless ``probe`` already holds that
+    proof for this port.  ``firmware``: "auto" drives whichever version answered; "v1.2" or "v2" refuses a
+    board that proved the other (:class:`~.firmware_probe.FirmwareMismatchError`); a board that proves
+    neither is refused (:class:`~.firmware_probe.UnidentifiedBoardError`, or
+    :class:`~tactdeform_hw.errors.BoardBusyError` on a port that serves one client at a time) after only
+    bytes that stop current on both versions.
 
     ``mapping`` translates application electrode order to hardware channels (identity by default);
     ``transfer`` converts µA to DAC codes; ``guard`` enforces current limits; ``pacer`` spaces writes
-    (wall-clock pacing by default); ``audit`` records every command sent.
+    (by default what the port needs; ``offline_clock`` runs a port that answers at once on the caller's
+    clock); ``audit`` records every command sent.  ``guardian`` starts a guardian process with the device
+    (default: when the port declares itself ``guardable``); a port that cannot be guarded with
+    ``guardian=True`` is refused.
     """
 
     #: The firmware's boot after the reset line, during which nothing is written (an ESP32-S3 starts its
@@ -197,15 +167,50 @@ class Device(ABC):
     boot_s: float = 0.3
     #: Extra wait for a reply while the alarm period is unknown (a board opened in an unknown state).
     unknown_reply_s: float = 0.25
+    #: What messages call this device (the eTactileKit driver's name, as users have read it).
+    kind: str = "EtactileKitDevice"
 
     def __init__(
         self,
+        port: Port,
         *,
         mapping: ChannelMapping | None = None,
         transfer: CurrentTransfer = DEFAULT_TRANSFER,
         guard: SafetyGuard | None = None,
         pacer: Pacer | None = None,
         audit: AuditLog | None = None,
+        guardian: bool | None = None,
+        offline_clock: Clock | None = None,
+        firmware: str = "auto",
+        probe: Detection | None = None,
+        settle_s: float | None = None,
+    ) -> None:
+        check_firmware_choice(firmware)
+        self._init_state(mapping, transfer, guard, pacer, audit)
+        self.port_link = PortLink(port, lambda s: self.pacer.clock.sleep(s))
+        self._guardian: Guardian | None = None
+        if not port.is_open:
+            try:
+                self.port_link.open()
+            except BaseException:
+                self._closed = True
+                raise
+        no_delay(port)
+        if pacer is None:  # what a port needs is known only once it is open (a URL builds its device then)
+            self.pacer = default_pacer(port)
+            if offline_clock is not None and is_instant(port):
+                # a port that answers at once (the in-process emulator) runs the session on the caller's clock
+                self.pacer = Pacer(clock=offline_clock, policy=self.pacer.policy)
+        self.identification = probe if probe is not None else self._identify(settle_s)
+        self._open(firmware, guardian)
+
+    def _init_state(
+        self,
+        mapping: ChannelMapping | None,
+        transfer: CurrentTransfer,
+        guard: SafetyGuard | None,
+        pacer: Pacer | None,
+        audit: AuditLog | None,
     ) -> None:
         self._lock = threading.RLock()
         self._op: str | None = None
@@ -221,84 +226,151 @@ class Device(ABC):
         self.pacer = pacer if pacer is not None else Pacer(clock=MonotonicClock())
         self._audit: AuditLog | None = None
         self.audit = audit
-        self._config: StimConfig | None = None
-        self._current_ua = 0  # pulse height in force on the firmware
-        self._sense_byte: int | None = None  # the 0xF9 byte in force (None: unknown)
-        self._target_ua = 0  # what the caller asked for
-        self._last_pattern: bytes | None = None  # hardware order, as on the firmware
-        self._requested: list[int] | None = None  # the caller's last frame, application order
-        self._suspended = False
-        # nothing is known about a board just opened: the first write proves a command boundary first
-        self._link = LinkState.SUSPECT
-        # (time s, from, to, why) of the latest transitions: the driver's own record of when it knew the
-        # firmware's state and when it did not
-        self.transitions: deque[tuple[float, str, str, str]] = deque(maxlen=4096)
-        self.proofs: deque[float] = deque(maxlen=4096)  # when a reply last proved the parser in step
+        #: What the host believes the firmware holds, and what the caller asked for.
+        self.state = DriverState()
+        #: The recovery state machine: what is proved about the firmware's parser (see :class:`LinkState`).
+        self.link = LinkRecovery(lambda: self.pacer)
+        # (time s, from, to, why) of the latest transitions, and when a reply last proved the parser
+        self.transitions = self.link.transitions
+        self.proofs = self.link.proofs
         self._recovery_write = False
-        self._after_reset = False  # the reset line was pulsed: the firmware's electrode count is 0
         self._resetting = False
-        self._bound_seen_s = 0.0  # the largest failing-resync bound at the start of any recovery
-        self.frames_sent = 0
         self.last_frame_time: float | None = None
         self.last_state_write: float | None = None  # the last write that changed what the scans deliver
         self._writing = False  # True while bytes are being handed to the transport
-        self._scan_us: float | None = None  # estimated scan of the pattern in force (None: unknown)
         self._closed = False
-        #: When this device began writing without proof (its identification); None until then
-        self._unproved_since: float | None = None
-        #: How this board's firmware differs from v1.2 (None: v1.2); see :mod:`.v2`.
-        self._dialect: V2Dialect | None = None
+        #: How this board's firmware expresses each operation (v1.2 until the board proves another).
+        self.dialect: Dialect = DIALECTS[V1_2]
 
-    # --- transport (implemented by subclasses) --------------------------------------------------------------
+    def _open(self, firmware: str, guardian: bool | None) -> None:
+        """After the identification: its bytes counted and logged, the version checked, the guardian, the
+        dialect, the proof at open, and the stop session's watch."""
+        probe = self.identification
+        # the identification wrote before anything else: its bytes are this device's own
+        self.pacer.stats.bytes_written += probe.bytes_sent
+        if self.audit is not None:
+            self.audit.event(
+                "firmware_probe",
+                firmware=probe.name,
+                attempts=probe.attempts,
+                bytes=probe.bytes_sent,
+                reply=probe.reply.hex(),
+                settle_s=probe.settle_s,
+            )
+        if firmware != "auto" and probe.name != firmware:
+            self._refuse()
+            check_firmware(firmware, probe, self.port_link.name)
+        self._want_guardian = bool(getattr(self.port, "guardable", False)) if guardian is None else guardian
+        if self._want_guardian:
+            try:
+                self._start_guardian()
+            except BaseException:
+                self._closed = True
+                self.port_link.close()
+                raise
+        self.speak(probe.firmware)
+        try:
+            self._open_proof()
+        except FirmwareMismatchError:
+            self._refuse()  # the board answered as another firmware: stopped, refused, released
+            raise  # a board in an unknown state: nothing is sent before it proves its parser
+        from tactdeform_hw.device.safety.failsafe import adopt
 
-    @abstractmethod
-    def _write(self, data: bytes) -> None:
-        """Write one whole command."""
+        adopt(self)  # a command's stop session watches every device opened under it
 
-    @abstractmethod
-    def _read(self, size: int) -> bytes:
-        """Read up to ``size`` bytes, honouring the transport's timeout."""
+    def speak(self, firmware: FirmwareSpec) -> None:
+        """Drive the board in ``firmware``'s dialect (the version its identification proved): the
+        interlock and the audit log read the bytes with that version's table from now on; a change of
+        version leaves the interlock knowing nothing of the registers."""
+        self.dialect = DIALECTS[firmware]
+        if self.guard.firmware is not firmware:
+            self.guard.firmware = firmware
+            self.guard.mark_unknown()
+        audit = self.audit
+        if audit is not None:
+            # the log says which firmware its bytes were written for
+            audit.firmware = firmware
+            audit.event("firmware", firmware=firmware.name)
+        # v1.2's stop (a few zeros, then 0xFB 00 00 …) would complete a v2 pattern in progress with 0xFB as
+        # a height's high byte: the guardian is given the dialect's stop
+        stop = self.dialect.guardian_open_stop()
+        if stop is not None and self._guardian is not None:
+            self._guardian.set_stop(stop)
 
-    @abstractmethod
-    def _close_transport(self) -> None:
-        """Release the port."""
+    def _identify(self, settle_s: float | None) -> Detection:
+        """Prove which firmware runs the board (:func:`~.firmware_probe.identify`); refuse it otherwise."""
+        self.link.unproved_since = self.pacer.clock.now()
+        try:
+            return identify(
+                self.port_link, self.pacer.clock, self.audit, settle_s=settle_s, boot_s=self.boot_s
+            )
+        except BaseException:
+            self._refuse()
+            raise
 
-    def _waiting(self) -> int | None:
-        """Bytes from the device waiting to be read, if the transport can tell (then replies are polled
-        to their deadline instead of read with the port's own timeout)."""
-        return None
+    def _refuse(self) -> None:
+        """Give up a board before driving it: the guardian let go, the port closed, nothing more written."""
+        self._closed = True
+        g, self._guardian = self._guardian, None
+        if g is not None:
+            g.release()
+        self.port_link.close()
 
-    def _discard_input(self) -> None:  # noqa: B027 - optional hook, a no-op by default
-        """Drop stale bytes waiting from the device (optional for transports)."""
+    @property
+    def port(self) -> Port:
+        """The port the device writes to (a caller may put a recording proxy of it in its place)."""
+        return self.port_link.port
+
+    @port.setter
+    def port(self, port: Port) -> None:
+        self.port_link.port = port
+
+    # --- the guardian ---------------------------------------------------------------------------------------
+
+    @property
+    def guardian(self) -> Guardian | None:
+        """The guardian process watching this device's owner (None on a port that cannot be guarded)."""
+        return self._guardian
+
+    def _start_guardian(self) -> None:
+        self._guardian = start_guardian(self.port, repr(self))
+        self._tell_guardian()
+
+    def _tell_guardian(self) -> None:
+        g, cfg = self._guardian, self.config
+        if g is None or cfg is None:
+            return
+        drain_s, zeros_s = pace_for(
+            cfg.rate_hz, cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us
+        )
+        g.configure(self.dialect.guardian_stop(cfg.electrode_count), drain_s, zeros_s)
 
     def _reopen_transport(self) -> None:
-        """Close and reopen the link (after the device vanished); transports that can, override this."""
-        raise TransportError(f"{type(self).__name__} cannot reconnect")
-
-    def _reset_transport(self) -> bool:
-        """Pulse the board's reset line; False when the transport has none."""
-        return False
-
-    def _can_reset(self) -> bool:
-        """Whether the transport has a reset line (asked before draining for a reset)."""
-        return False
+        # the guardian shares the old descriptor (and its lock): let it try to switch off through it, then
+        # start a new one on the new descriptor
+        g, self._guardian = self._guardian, None
+        if g is not None:
+            g.abandon()
+        self.port_link.reopen()
+        if self._want_guardian:
+            self._start_guardian()
 
     # --- state ---------------------------------------------------------------------------------------------
 
     @property
     def config(self) -> StimConfig | None:
         """The configuration last sent (None until ``configure``)."""
-        return self._config
+        return self.state.config
 
     @property
     def current_ua(self) -> int:
         """The pulse height in force (µA): what an active channel receives now."""
-        return self._current_ua
+        return self.state.current_ua
 
     @property
     def target_ua(self) -> int:
         """The current the caller asked for; frames carry it lowered to their limits."""
-        return self._target_ua
+        return self.state.target_ua
 
     @property
     def audit(self) -> AuditLog | None:
@@ -315,16 +387,16 @@ class Device(ABC):
     def needs_resync(self) -> bool:
         """True until the device has proved its parser in step (after opening, a failed write, a short or
         late reply, a reopened port or a reset): the next command is preceded by a closed-loop resync."""
-        return self._link is not LinkState.IN_STEP
+        return self.link.state is not LinkState.IN_STEP
 
     @property
     def link_state(self) -> LinkState:
         """Where the recovery state machine stands (see :class:`LinkState`)."""
-        return self._link
+        return self.link.state
 
     @property
     def _needs_resync(self) -> bool:
-        return self._link is not LinkState.IN_STEP
+        return self.link.state is not LinkState.IN_STEP
 
     @_needs_resync.setter
     def _needs_resync(self, value: bool) -> None:
@@ -335,7 +407,7 @@ class Device(ABC):
     @property
     def last_pattern(self) -> bytes | None:
         """The pattern the firmware should hold, in hardware order (None: unknown, e.g. after a resync)."""
-        return self._last_pattern
+        return self.state.last_pattern
 
     @property
     def busy(self) -> bool:
@@ -364,34 +436,26 @@ class Device(ABC):
         sets it to about 10 mA — including the duplicate of the ``f9`` a refresh writes.  So a caller
         whose readback already watches the off channels (sense current 0) passes ``sense=False`` and
         leaves the wire fewer bytes to turn into that current."""
-        cfg = self._config
-        if cfg is None or self._closed:
+        if self.state.config is None or self._closed:
             return
-        if self._dialect is not None:
-            self._dialect.refresh(self)
-            return
-        pattern = self._last_pattern if self._last_pattern is not None else bytes(cfg.electrode_count)
-        if sense and self._sense_byte is not None:
-            self._send(p.encode_sense_height(self._sense_byte))
-        self._send(p.encode_pulse_height(self.transfer.to_code(self._current_ua)))
-        self._send(p.encode_pattern(pattern, electrode_num=cfg.electrode_count))
+        self.dialect.refresh(self._ops(), self.state, sense=sense)
 
     @property
     def suspended(self) -> bool:
         """True after a fail-safe stop; the next frame (or keepalive) resumes, ramped."""
-        return self._suspended
+        return self.state.suspended
 
     @property
     def stimulating(self) -> bool:
         """Whether the firmware, as far as the host knows, is delivering current to any channel."""
-        if self._config is None:
+        if self.state.config is None:
             return False
-        if self._config.sense_current_ua:
+        if self.state.config.sense_current_ua:
             return True
         return (
-            bool(self._current_ua)
-            and self._last_pattern is not None
-            and any(v in _ACTIVE for v in self._last_pattern)
+            bool(self.state.current_ua)
+            and self.state.last_pattern is not None
+            and any(v in _ACTIVE for v in self.state.last_pattern)
         )
 
     @property
@@ -401,22 +465,25 @@ class Device(ABC):
     @property
     def firmware(self) -> str:
         """The firmware version this device speaks to its board (``"v1.2"`` or ``"v2"``)."""
-        return self._dialect.firmware.name if self._dialect is not None else V1_2.name
+        return self.dialect.firmware.name
+
+    @property
+    def frames_sent(self) -> int:
+        """Patterns written (a rewrite of the same pattern by ``keepalive`` is not one)."""
+        return self.state.frames_sent
 
     @property
     def heights_in_force(self) -> list[int] | None:
         """Firmware v2: each application electrode's DAC code the firmware's pattern buffer should hold
         (None on v1.2, whose buffer holds the levels themselves)."""
-        if self._dialect is None:
-            return None
-        return self._dialect.app_codes(self)
+        return self.dialect.heights_in_force(self.state, self.mapping)
 
     @property
     def electrodes(self) -> int:
         """Application electrodes a pattern must have (0 until configured)."""
-        if self._config is None:
+        if self.state.config is None:
             return 0
-        return self.mapping.electrodes if self.mapping is not None else self._config.electrode_count
+        return self.mapping.electrodes if self.mapping is not None else self.state.config.electrode_count
 
     # --- commands ------------------------------------------------------------------------------------------
 
@@ -427,22 +494,18 @@ class Device(ABC):
         The height goes to 0 and every channel off first (so no pulse uses a mixture of old and new
         settings), the electrode count is followed at once by an all-off pattern of the new length (so no
         stale channel above the old count comes back), polarity changes while all is off, and the
-        participant's current comes last.
+        participant's current comes last.  The order and bytes are the dialect's.
         """
         self._check_open()
         try:
-            config = (
-                config.validated(self.transfer)
-                if self._dialect is None
-                else self._dialect.validated(config, self.transfer)
-            )
+            config = self.dialect.validated(config, self.transfer)
         except LimitError as exc:
             self.guard.note_refusal(exc)
             raise
         config = self.guard.check_config(
             config,
             stimulating=self.stimulating,
-            polarity_in_force=self._config.polarity if self._config is not None else None,
+            polarity_in_force=self.state.config.polarity if self.state.config is not None else None,
             transfer=self.transfer,
         )
         if self.mapping is not None and self.mapping.hw_channels != config.electrode_count:
@@ -451,95 +514,17 @@ class Device(ABC):
                 config.electrode_count,
                 f"the channel mapping's hardware channel count {self.mapping.hw_channels}",
             )
-        if self.pacer.robust:
-            self._check_robust(config)
-        n = config.electrode_count
-        if self._dialect is None:
-            # v1.2 gives every channel the pattern has off a sense pulse and a discharge: a configuration
-            # whose all-off scan fills the period starves the parser (it could not even read an all-off),
-            # so it is refused before any byte
-            self.guard.check_scan(
-                self._scan_of(config, bytes(n)), firmware_period_us(config.rate_hz), SCAN_GAP_MIN_US
-            )
+        refusal = robust_refusal(config, self.transfer) if self.pacer.robust else None
+        if refusal is not None:
+            self.guard.note_refusal(refusal)
+            raise refusal
+        self.dialect.check_idle_scan(self.guard, config)
         # the caller's frame is superseded now, whether or not the writes below get through: no keepalive
         # after a failed configure brings the old frame back
-        self._requested = None
-        self._suspended = False
-        if self._dialect is not None:
-            self._dialect.configure(self, config)
-            return
-        if self._needs_resync:
-            self._recover()
-        old = self._config
-        new_period = firmware_period_us(config.rate_hz)
-        idle_scan = self._scan_of(config, bytes(n))
-        # until the new rate and widths are read, the old ones run: pace for the slower of the two
-        timings = [(new_period, idle_scan)]
-        if old is not None:
-            before = self._scan_us if self._scan_us is not None else self._worst_scan_s(old) * 1e6
-            timings.append(
-                (firmware_period_us(old.rate_hz), max(before, self._scan_of(old, bytes(old.electrode_count))))
-            )
-        elif self.pacer.period_s is not None and self.pacer.scan_s is not None:
-            timings.append((self.pacer.period_s * 1e6, self.pacer.scan_s * 1e6))  # from the resync
-        # nothing known of the firmware's timing (a board just opened): the queue was proved empty and the
-        # configuration fits it (a long pattern waits for a proof first); the new rate is proved in force
-        # before anything else is paced by it
-        unknown_timing = old is None and (self.pacer.period_s is None or self.pacer.scan_s is None)
-        self._pace_for(timings)
-
-        in_force = [self._config.electrode_count if self._config is not None else 0]
-
-        def send(data: bytes) -> None:
-            long = (
-                data[0] == p.Opcode.PATTERN
-                and self.pacer.queue_estimate() + len(data) + 4 > self.pacer.limit_bytes
-            )
-            if unknown_timing and long:
-                self._prove(in_force[0])  # a long pattern goes into a queue proved empty
-            self._send(data)
-            if data[0] == p.Opcode.ELECTRODE_NUM:
-                in_force[0] = data[1]
-
-        send(p.encode_pulse_height(0))
-        self._current_ua = 0
-        if self._config is not None:
-            send(p.encode_pattern(bytes(self._config.electrode_count)))
-        send(p.encode_sense_height(0))
-        self._sense_byte = 0
-        send(p.encode_electrode_num(n))
-        send(p.encode_pattern(bytes(n)))
-        self._last_pattern = bytes(n)
-        # a longer period goes first and a shorter one last, so no scan of the new widths meets the old,
-        # shorter period (the board's own period is unknown after opening or a reset: 10 ms at power-on)
-        longer = old is None or new_period >= firmware_period_us(old.rate_hz)
-        if longer:
-            send(p.encode_frequency(config.rate_hz))
-        send(p.encode_polarity(POLARITY_CODE[config.polarity]))
-        send(p.encode_pulse_width(config.pulse_width_us))
-        send(p.encode_sense_width(config.sense_width_us))
-        send(p.encode_discharge(config.discharge_us))
-        if not longer:
-            send(p.encode_frequency(config.rate_hz))
-        send(p.encode_sense_height(sense_code(config.sense_current_ua, self.transfer)))
-        self._sense_byte = sense_code(config.sense_current_ua, self.transfer)
-        height = self._encodable(
-            self.guard.frame_height(None, config.current_ua, 0, config.pulse_width_us, raise_when_idle=True)
-        )
-        self._send(p.encode_pulse_height(self.transfer.to_code(height)))
-        self._config = config
-        self._current_ua = height
-        self._target_ua = config.current_ua
-        self._requested = None
-        self._suspended = False
-        self._scan_us = idle_scan
-        # a faster pace for the new timing only once the device proves it has read every command above
-        slower = self.pacer.payload_interval_s(), self.pacer.period_s, self.pacer.scan_s
-        self.pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
-        if unknown_timing or self.pacer.payload_interval_s() < slower[0]:
-            self.pacer.set_timing(slower[1], slower[2])
-            self._prove(n)
-            self.pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
+        self.state.requested = None
+        self.state.suspended = False
+        self.dialect.configure(self._ops(), self.state, config)
+        self._tell_guardian()
 
     @_locked
     def set_current(self, current_ua: int) -> None:
@@ -547,24 +532,14 @@ class Device(ABC):
         pattern in force (and to the ramp step)."""
         cfg = self._require_config("set_current")
         target = self.guard.request(self.guard.validate_current(current_ua, self.transfer))
-        self._target_ua = target
-        self._config = cfg.with_current(target)
+        self.state.target_ua = target
+        self.state.config = cfg.with_current(target)
         self._mark_frame()
         if self._needs_resync:
             self.resync()
             return
-        if self._dialect is not None:
-            self._dialect.set_current(self)
-            return
-        levels = None if self._suspended else self._application_levels()
-        height = self._encodable(
-            self.guard.frame_height(
-                levels, target, self._current_ua, cfg.pulse_width_us, raise_when_idle=True
-            )
-        )
-        if height != self._current_ua:
-            self._send_critical(p.encode_pulse_height(self.transfer.to_code(height)))
-            self._current_ua = height
+        levels = None if self.state.suspended else self._application_levels()
+        self.dialect.set_current(self._ops(), self.state, levels)
 
     @_locked
     def send_pattern(self, levels: Sequence[int]) -> None:
@@ -579,16 +554,16 @@ class Device(ABC):
         except (LimitError, ProtocolMisuseError) as exc:
             self.guard.note_refusal(exc)
             raise
-        previous = self._requested
-        self._requested = list(levels)
+        previous = self.state.requested
+        self.state.requested = list(levels)
         try:
             if self._needs_resync:
                 self.resync()
-            self._frame(self._requested, force_pattern=True)
+            self._frame(self.state.requested, force_pattern=True)
         except SafetyError:
             # A refused frame is not the caller's frame in force: keepalive must not resend it, and it
             # does not feed the fail-safe watchdog (a renderer whose every frame is refused is stopped).
-            self._requested = previous
+            self.state.requested = previous
             raise
         self._mark_frame()
 
@@ -606,8 +581,7 @@ class Device(ABC):
         for i, v in enumerate(levels):
             if isinstance(v, bool) or not isinstance(v, int) or v not in ALLOWED_LEVELS:
                 raise LimitError(f"pattern[{i}]", v, "0 (off), 1 (monophasic) or 2 (biphasic)")
-        if self._dialect is not None:
-            self._dialect.check_levels(levels)
+        self.dialect.check_levels(levels)
 
     @_locked
     def keepalive(self) -> None:
@@ -616,11 +590,11 @@ class Device(ABC):
         that frame, send what is missing (ramped)."""
         self._check_open()
         self._mark_frame()
-        if self._config is None or self._requested is None:
+        if self.state.config is None or self.state.requested is None:
             return
         if self._needs_resync:
             self.resync()
-        self._frame(self._requested, force_pattern=False)
+        self._frame(self.state.requested, force_pattern=False)
 
     @_locked
     def all_off(self) -> None:
@@ -636,32 +610,19 @@ class Device(ABC):
 
     def _off(self, *, keep_target: bool) -> None:
         self._check_open()
-        if self._config is None:
+        if self.state.config is None:
             return
         if not keep_target:
             # the caller's stop holds even if the writes below fail: no later keepalive resumes the frame
-            self._target_ua = 0
-            self._requested = None
-            self._suspended = False
-            self._config = self._config.with_current(0)
-        n = self._config.electrode_count
+            self.state.target_ua = 0
+            self.state.requested = None
+            self.state.suspended = False
+            self.state.config = self.state.config.with_current(0)
         if self._needs_resync:
             self._recover()  # closed loop: heights 0 and every channel off once the device proves it
-        if self._dialect is not None:
-            self._dialect.off(self)
-            self._suspended = keep_target and self._requested is not None
-            return
-        self._send_critical(p.encode_pattern(bytes(n)))
-        self._send_critical(p.encode_pulse_height(0))
-        self._last_pattern = bytes(n)
-        self._current_ua = 0
-        # the sense pulse is a current too, and a fault may have set it whatever the host believes
-        self._send_critical(p.encode_sense_height(0))
-        self._sense_byte = 0
-        self._scan_us = self._scan_of(self._config, bytes(n))
-        self.pacer.set_timing(firmware_period_us(self._config.rate_hz) / 1e6, self._scan_us / 1e6)
+        self.dialect.off(self._ops(), self.state)
         if keep_target:
-            self._suspended = self._requested is not None
+            self.state.suspended = self.state.requested is not None
 
     def _open_proof(self) -> None:
         """Right after opening, prove the parser in step (best effort: a board that does not answer yet is
@@ -687,7 +648,7 @@ class Device(ABC):
     def _measured(self, n: int, what: str) -> list[int]:
         """0xFF and its whole reply, which proves every byte before it read; a short one marks the device
         for a resync and raises (``what`` names the request in the error)."""
-        self._discard_input()
+        self.port_link.discard_input()
         mark = self._send_marked(p.MEASURE_REQUEST)
         data = self._await_reply(2 * n)
         if len(data) != 2 * n:
@@ -705,7 +666,7 @@ class Device(ABC):
         self._check_open()
         if self._needs_resync:
             return False
-        if self._config is None:
+        if self.state.config is None:
             return True
         try:
             self.measure()
@@ -720,7 +681,7 @@ class Device(ABC):
         self._check_open()
         if self._needs_resync:
             self._recover()
-        self._discard_input()
+        self.port_link.discard_input()
         mark = self._send_marked(p.HV513_COUNT_REQUEST)
         data = self._await_reply(1)
         if len(data) != 1:
@@ -731,7 +692,7 @@ class Device(ABC):
 
     @_locked
     def resync(self) -> None:
-        """Bring a parser of unknown state back in step, closed loop (see :meth:`_flush_parser`): the
+        """Bring a parser of unknown state back in step, closed loop (the dialect's ``flush_parser``): the
         device proves a command boundary and an empty queue, pulse height and sense height go to 0, the
         electrode count is written and proved by the length of a measure reply, every channel goes off;
         then the whole configuration again.  No pattern follows: the caller's next frame (or keepalive)
@@ -747,236 +708,50 @@ class Device(ABC):
 
     def _reconfigure(self) -> None:
         """After a recovery: the whole configuration again (no pattern; see :meth:`resync`)."""
-        cfg = self._config
+        cfg = self.state.config
         if cfg is not None:
-            requested = self._requested
-            self._config = None
+            requested = self.state.requested
+            self.state.config = None
             try:
-                self.configure(cfg.with_current(self._target_ua))
+                self.configure(cfg.with_current(self.state.target_ua))
             except BaseException:
-                self._config = cfg  # still the session's configuration: the next resync tries again
+                self.state.config = cfg  # still the session's configuration: the next resync tries again
                 self._suspect("configure after resync failed")
                 raise
-            self._requested = requested
-            self._suspended = requested is not None
+            self.state.requested = requested
+            self.state.suspended = requested is not None
 
     def _recover(self) -> None:
         """The closed-loop recovery, and when it ends in FAILED (a locked or hung parser, which no byte
         can reach, while the board may go on stimulating) the reset line at once, if there is one."""
-        try:
-            self._flush_parser()
-        except ShortReplyError:
-            if self._link is not LinkState.FAILED or self._resetting or not self._can_reset():
-                raise
-            self.hardware_reset()  # its own resync proves the board in step again, or raises
-
-    def _flush_parser(self) -> None:
-        """The closed-loop recovery: SUSPECT → SYNCING (→ FLUSHING) → SAFE → VERIFYING → IN_STEP.
-
-        * SYNCING: four zeros (they complete any u8 or u16 in progress, so the request after them is read
-          as a command, or — by a pattern in progress — as one more level), then 0xFF when the firmware
-          should hold the configuration's electrode count, else 0xF5.  A reply of the expected length
-          proves the parser read the request as a command — so it was at a command boundary — and read
-          every byte written before it: the queue model is proved empty (:meth:`_sync`).
-        * FLUSHING: no such reply: 256 zeros finish any pattern in progress, then the request again (and
-          0xF5 after a silent 0xFF, as a zero may have set the count to 0).  Still silent: FAILED, a locked
-          or hung parser that only the reset line reaches (:meth:`_recover` takes it).
-        * SAFE: pulse height 0, sense height 0 and the electrode count, each with the loss-tolerant
-          padding so that one lost byte still cannot make a current.
-        * VERIFYING: 0xFF must be answered with exactly 2 × electrode count bytes — the count is in force,
-          so a pattern now cannot lock the parser; then an all-off pattern.  Otherwise one more round,
-          then FAILED.
-
-        Time alone never proves anything here: each deadline (the queue model's worst case plus one
-        period) only decides when to stop waiting for a proof.
-        """
-        if self._dialect is not None:
-            self._dialect.flush_parser(self)
-            return
-        cfg = self._config
-        n = cfg.electrode_count if cfg is not None else 0
-        if cfg is not None:  # (before a configuration the wait is the unknown board's, ``unknown_reply_s``)
-            self._bound_seen_s = max(self._bound_seen_s, self._resync_bound_now_s())
-        self.pacer.set_timing(*self._recovery_timing())
-        for attempt in range(1, RECOVERY_ATTEMPTS + 1):
-            if self._link is not LinkState.SUSPECT:
-                self._enter(LinkState.SUSPECT, f"recovery attempt {attempt}")
-            self._discard_input()
-            self._sync(0 if self._after_reset else n)
-            self._after_reset = False
-            self._enter(LinkState.SAFE, "answered: command boundary, queue drained")
-            self._recovery_send(p.encode_pulse_height(0))
-            self._current_ua = 0
-            self._recovery_send(p.encode_sense_height(0))
-            self._sense_byte = 0
-            self._last_pattern = None
-            if cfg is None:
-                self._enter(LinkState.IN_STEP, "heights 0; no electrode count to prove")
-                return
-            self._recovery_send(p.encode_electrode_num(n))
-            self._enter(LinkState.VERIFYING, f"electrode count {n} written")
-            self._discard_input()
-            mark = self._recovery_send(p.MEASURE_REQUEST)  # the padding above ends every command before it
-            reply = self._await_reply(2 * n)
-            if len(reply) == 2 * n:
-                self._proved(mark)
-                self._enter(LinkState.IN_STEP, f"0xFF answered with {2 * n} bytes")
-                break
-            if attempt == RECOVERY_ATTEMPTS:
-                self._enter(LinkState.FAILED, f"0xFF answered with {len(reply)} of {2 * n} bytes")
-                raise ShortReplyError("measure after resync", 2 * n, reply)
-            self._enter(LinkState.SUSPECT, f"0xFF answered with {len(reply)} of {2 * n} bytes")
-        assert cfg is not None
-        self._send(p.encode_pattern(bytes(n)))
-        self._last_pattern = bytes(n)
-        self._scan_us = self._scan_of(cfg, bytes(n))
-        self.pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, self._scan_us / 1e6)
-
-    def _sync(self, electrodes: int) -> None:
-        """SYNCING, then FLUSHING if need be; returns in SAFE's entry condition or raises (FAILED).
-
-        When the firmware should hold ``electrodes`` >= 1, the request behind the zeros is 0xFF: a reply of
-        exactly 2 × ``electrodes`` bytes proves a command boundary and the queue read, cheaply.  Otherwise
-        (and after a reset, whose electrode count is 0) it is 0xF5, which always answers one byte but
-        costs the board a millisecond of detection.  Unanswered: 256 zeros finish any pattern in
-        progress, and the same request again must be answered (0xFF answered with another length proves
-        a boundary too; 0xFF unanswered is followed by 0xF5, as a zero may have set the count to 0)."""
-        self._enter(LinkState.SYNCING, "zeros and a request")
-        if electrodes >= 1:
-            first = self._recovery_send(bytes(PROBE_LEAD_ZEROS) + p.MEASURE_REQUEST)
-            if len(self._await_reply(2 * electrodes)) == 2 * electrodes:
-                self._proved(first)
-                return
-            self._discard_input()
-            why = "0xFF unanswered or answered short"
-        else:
-            first = self._recovery_send(bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST)
-            if self._await_reply(1):
-                self._proved(first)
-                return
-            why = "0xF5 unanswered"
-        self._enter(LinkState.FLUSHING, why)
-        if electrodes >= 1:
-            # 0xFF again: cheap, and its length proves the count
-            self._recovery_send(bytes(RX_QUEUE_SIZE) + p.MEASURE_REQUEST)
-            reply = self._await_reply(2 * electrodes)
-            if len(reply) == 2 * electrodes:
-                self._proved(first)
-                return
-            if reply:  # answered, but not for this electrode count: SAFE writes the count, VERIFY checks it
-                self._proved(first)
-                self._discard_input()
-                return
-            # silence: a hung or locked parser — or a zero that landed as electrode count 0 (0xFF then
-            # answers nothing; nothing is scanned either).  Only 0xF5 tells them apart, at a millisecond
-            # of board detection spread over the gaps between scans; with a reset line at hand, the
-            # reset comes first instead (a hung board may be stimulating)
-            if self._can_reset() and not self._resetting:
-                self._enter(
-                    LinkState.FAILED, f"0xFF unanswered after {RX_QUEUE_SIZE + PROBE_LEAD_ZEROS} zeros"
-                )
-                raise ShortReplyError(
-                    "0xFF after resync zeros (parser locked or hung: reset the board)", 2 * electrodes, b""
-                )
-            lead = PROBE_LEAD_ZEROS
-        else:
-            lead = RX_QUEUE_SIZE
-        self._recovery_send(bytes(lead) + p.HV513_COUNT_REQUEST)
-        if self._await_reply(1):
-            # some 0xF5 of this recovery was read as a command, so every byte before the first one was
-            # read; the other may still answer (a stale byte the next request discards)
-            self._proved(first)
-            return
-        self._enter(LinkState.FAILED, f"unanswered after {RX_QUEUE_SIZE + PROBE_LEAD_ZEROS} zeros")
-        raise ShortReplyError("0xF5 after resync zeros (parser locked or hung: reset the board)", 1, b"")
-
-    def _recovery_timing(self) -> tuple[float | None, float | None]:
-        """(period s, scan s) to pace and time the recovery for: the scan of the pattern last sent (a
-        pattern the host does not know — after a reset, a reconnect, or before any — counts as every
-        channel biphasic).  Should a fault have left a longer scan in force, zeros and 0xF5 may be lost:
-        the proof then fails and the reset line follows — the safe direction."""
-        cfg = self._config
-        if cfg is None:
-            return None, None
-        scan = self._scan_us / 1e6 if self._scan_us is not None else self._worst_scan_s(cfg)
-        return firmware_period_us(cfg.rate_hz) / 1e6, scan
+        self.link.recover(self.dialect, self._ops(), self.state, self.hardware_reset)
 
     def resync_bound_s(self) -> float:
         """The longest a failing resync of this session waited, or would wait now, for its proofs before
         the reset line (the larger; configured recoveries only): see :meth:`_resync_bound_now_s`.  On
         firmware v2 that includes the 2 s command timeout its recovery waits out."""
-        return max(self._bound_seen_s, self._resync_bound_now_s())
+        return max(self.state.bound_seen_s, self._resync_bound_now_s())
 
     def _resync_bound_now_s(self) -> float:
-        """The longest a resync that fails waits for its proofs at the configuration
-        in force: the request behind the zeros, then 256 zeros and the request again (and 0xF5 after
-        0xFF), each until its deadline, behind one frame still in flight.  What a fail-safe adds to its
-        recovery time before it reaches for the reset line.  Firmware v2 recovers otherwise (the sync check,
-        then the 2 s command timeout): its dialect computes the bound
-        (:meth:`~tactdeform_hw.device.driver.v2.V2Dialect.resync_bound_now_s`)."""
-        if self._dialect is not None:
-            return self._dialect.resync_bound_now_s(self)
-        cfg = self._config
-        n = cfg.electrode_count if cfg is not None else 0
-        clock = SimulatedClock()
-        scratch = Pacer(clock=clock, policy=self.pacer.policy)
-        scratch.set_timing(*self._recovery_timing())
-        request, reply = (p.MEASURE_REQUEST, 2 * n) if n else (p.HV513_COUNT_REQUEST, 1)
-        for data in self._frame_commands(n):  # a frame still in flight ahead of the recovery
-            scratch.write(lambda _chunk: None, data)
-        steps = [(bytes(PROBE_LEAD_ZEROS) + request, reply), (bytes(RX_QUEUE_SIZE) + request, reply)]
-        if n and not self._can_reset():
-            steps.append((bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST, 1))
-        for data, reply in steps:
-            scratch.write(lambda _chunk: None, data)
-            period = scratch.period_s if scratch.period_s is not None else self.unknown_reply_s
-            deadline = scratch.drained_by() + 0.003 + reply * scratch.policy.byte_s + period
-            clock.advance(deadline - clock.now() + REPLY_POLL_S)
-        return clock.now()
+        """The longest a resync that fails waits for its proofs at the configuration in force (the
+        dialect's recovery, behind one frame still in flight, each request until its deadline): what a
+        fail-safe adds to its recovery time before it reaches for the reset line."""
+        return self.dialect.resync_bound_now_s(self._ops(), self.state)
 
     def _frame_commands(self, n: int) -> list[bytes]:
         """The longest frame this driver writes at electrode count ``n``, command by command (under the
         loss-tolerant encoding each critical command goes twice): what may still be in flight."""
-        if self._dialect is not None:
-            cmds = self._dialect.frame_commands(n)
-        else:
-            height = p.encode_pulse_height(0)
-            cmds = [height, p.encode_pattern(bytes(n), electrode_num=n), height]
         copies = 2 if self.pacer.robust else 1
-        return [c for c in cmds for _ in range(copies)]
+        return [c for c in self.dialect.frame_commands(n) for _ in range(copies)]
 
     def probe_bound_s(self) -> float:
         """The longest a probe (a measure request: the fail-safe's) waits for its reply at the configuration
-        in force before it counts as unanswered — computed, like :meth:`resync_bound_s`, on a simulated
-        clock with a scratch pacer: behind as many frames as the pacer lets into the queue (it never plans
-        more, so the backlog a probe can meet is at most that), the request, then its reply's deadline.
+        in force before it counts as unanswered (:func:`~tactdeform_hw.device.links.recovery.probe_bound_s`);
         0 before a configuration (the fail-safe does not probe then)."""
-        cfg = self._config
+        cfg = self.state.config
         if cfg is None:
             return 0.0
-        n = cfg.electrode_count
-        timing = (firmware_period_us(cfg.rate_hz) / 1e6, self._worst_scan_s(cfg))
-
-        def scratch() -> Pacer:
-            pacer = Pacer(clock=SimulatedClock(), policy=self.pacer.policy)
-            pacer.set_timing(*timing)
-            return pacer
-
-        # the backlog: the most the queue model holds after any of the frames' writes (the probe may come
-        # right after any of them); the request waits at most that long to fit, then is read on its own
-        filled = scratch()
-        frame = self._frame_commands(n)
-        frames = filled.limit_bytes // max(1, sum(len(c) for c in frame)) + 2
-        backlog = 0.0
-        for _ in range(frames):
-            for data in frame:
-                filled.write(lambda _chunk: None, data)
-                backlog = max(backlog, filled.drained_by() - filled.clock.now())
-        alone = scratch()
-        alone.write(lambda _chunk: None, p.MEASURE_REQUEST)
-        own = alone.drained_by() - alone.clock.now()  # its crossing, a scan, its read, a tick
-        slack = 0.003 + 2 * n * alone.policy.byte_s + timing[0]  # as :meth:`_reply_slack_s`
-        return backlog + own + slack + REPLY_POLL_S
+        return probe_bound_s(self.pacer.policy, cfg, self._frame_commands(cfg.electrode_count))
 
     @_locked
     def reconnect(self) -> None:
@@ -987,47 +762,22 @@ class Device(ABC):
         self._suspect("reconnect")
         self._reopen_transport()
         self.guard.mark_unknown()
-        self._scan_us = None
+        self.state.scan_us = None
         self._recover()
         # the link was lost: the board at its end is asked again which firmware it runs before any pattern
         self.verify_firmware()
         self._reconfigure()
 
     def verify_firmware(self) -> None:
-        """At a proved command boundary, ask again which firmware answers (the identification's signature
-        alone: count and heights are the session's own, so nothing is waited out).  A board that now
-        answers as another version, or as none, is stopped with bytes that stop current on both versions
-        and refused: :class:`~.firmware_probe.FirmwareMismatchError`."""
+        """At a proved command boundary, ask again which firmware answers
+        (:func:`~.firmware_probe.recheck_firmware`): a board that now answers as another version, or as
+        none, is stopped with bytes that stop current on both versions and refused
+        (:class:`~.firmware_probe.FirmwareMismatchError`)."""
         cfg = self.config
-        count = cfg.electrode_count if cfg is not None and self._dialect is not None else 0
-        self._discard_input()
-        self._recovery_write = True
-        try:
-            self._send(SIGNATURE, pad=False)
-        finally:
-            self._recovery_write = False
-        mark = self.pacer.offset
-        got = self._await_reply(2)
-        if needs_third_byte(got, count=count):
-            got += self._await_reply(1)
-        found = classify(got, count=count)
-        if found is not None and found.name == self.firmware:
-            self._proved(mark)  # both 0xF5 were read as commands: every byte before them was read
-            if found is V2:
-                self.guard.note_in_step(count)  # and 0xF4 answered the count in force
-            return
-        self._suspect("the firmware check answered otherwise")
-        self._recovery_write = True
-        try:
-            self._send(IDENT_OFF, pad=False)  # stops current wherever either firmware's parser stands
-        finally:
-            self._recovery_write = False
-        raise FirmwareMismatchError(
-            f"{self!r}: the board was driven as firmware {self.firmware}, but now answers the "
-            f"firmware check {got.hex(' ') or 'with silence'}"
-            + (f" (firmware {found.name})" if found is not None else "")
-            + "; every current was switched off with bytes both versions read as off, and it is not driven"
-        )
+        count = None
+        if self.dialect.signature_proves_count:
+            count = cfg.electrode_count if cfg is not None else 0
+        recheck_firmware(self._ops(), self.dialect.firmware, count, repr(self))
 
     @_locked
     def hardware_reset(self) -> bool:
@@ -1037,9 +787,9 @@ class Device(ABC):
         electrode count is 0), RESETTING, BOOTING (``boot_s``, nothing written), then the closed-loop
         resync.  False when the transport has no reset line."""
         self._check_open()
-        if not self._can_reset():
+        if not self.port_link.can_reset():
             return False
-        in_step = self._link is LinkState.IN_STEP
+        in_step = self.link.state is LinkState.IN_STEP
         self._resetting = True
         try:
             self._hardware_reset(in_step)
@@ -1048,48 +798,44 @@ class Device(ABC):
         return True
 
     def _hardware_reset(self, in_step: bool) -> None:
-        self._enter(LinkState.DRAINING, "hardware_reset")
-        self._drain(in_step)
-        self._enter(LinkState.RESETTING, "nothing left on the link")
-        try:
-            pulsed = self._reset_transport()
-        except BaseException:
-            self._suspect("the reset line failed")
-            raise
-        if not pulsed:
-            self._suspect("no reset line after all")
-            raise TransportError(f"{type(self).__name__}: the reset line could not be pulsed")
-        self.guard.mark_unknown()
-        self._current_ua = 0
-        self._sense_byte = None
-        self._last_pattern = None
-        self._scan_us = 0.0  # power-on: electrode count 0, nothing to scan
-        self._after_reset = True
-        self._enter(LinkState.BOOTING, "reset line pulsed")
-        self.pacer.wait_until(self.pacer.clock.now() + self.boot_s)
-        self._enter(LinkState.SUSPECT, f"booted ({self.boot_s * 1e3:g} ms)")
+        self.link.reset_board(
+            self._ops(),
+            self.state,
+            in_step=in_step,
+            pulse=self.port_link.reset,
+            boot_s=self.boot_s,
+            who=self.kind,
+        )
         self.resync()
 
-    def _drain(self, in_step: bool) -> None:
-        if in_step:
-            # in step: a request alone is read as a command; its reply proves the queue read
-            self._recovery_write = True
-            try:
-                self._prove(self._config.electrode_count if self._config is not None else 0)
-            except (TransportError, ShortReplyError):
-                # no proof: the reset is the remedy, after the link has surely delivered everything
-                if self._link is not LinkState.DRAINING:
-                    self._enter(LinkState.DRAINING, "no proof: reset anyway")
-            finally:
-                self._recovery_write = False
-        self.pacer.wait_until(self.pacer.arrived_by() + self.pacer.policy.link_latency_s)
+    def _recovery_prove(self, electrodes: int) -> None:
+        """:meth:`_prove` as a write of the recovery itself (allowed before the proof: the drain's)."""
+        self._recovery_write = True
+        try:
+            self._prove(electrodes)
+        finally:
+            self._recovery_write = False
 
     @_locked
     def close(self) -> None:
         """All channels off, proved read (so the next program to open the board finds its queue empty),
         then release the port.  Safe to call twice.  A board that does not prove the all-off read is
         recovered (with the reset line if need be) and switched off again; a link that failed is reopened
-        first: nothing after close could stop the board."""
+        first: nothing after close could stop the board.  The guardian is let go only after that all-off
+        succeeded — otherwise it switches the board off itself before it exits."""
+        done = False
+        try:
+            self._close_link()
+            done = True
+        finally:
+            g, self._guardian = self._guardian, None
+            if g is not None:
+                if done:
+                    g.release()
+                else:
+                    g.abandon()
+
+    def _close_link(self) -> None:
         if self._closed:
             return
         try:
@@ -1108,48 +854,25 @@ class Device(ABC):
                         raise failed from None
         finally:
             self._closed = True
-            self._close_transport()
+            self.port_link.close()
 
     def _stop_and_prove(self) -> None:
         """All off, and proof that nothing stimulates.  A proof that fails (a board that rebooted or hung
         under the all-off, or one whose answer shows current still flowing) is followed by a recovery —
         with the reset line if need be — and the all-off and its proof again."""
         for attempt in range(1, RECOVERY_ATTEMPTS + 2):
-            if self._config is not None:
+            if self.state.config is not None:
                 self.all_off()
-            if self._link is not LinkState.IN_STEP:
+            if self.link.state is not LinkState.IN_STEP:
                 return
             try:
-                if self._dialect is not None:
-                    self._dialect.prove_stopped(self)  # v2: count 0, proved by the sync reply's value
-                else:
-                    self._prove_off()
+                # v1.2: the readings of the all-off; v2: count 0, proved by the sync reply's value
+                self.dialect.prove_stopped(self._ops(), self.state)
                 return
             except (ShortReplyError, NotStoppedError):
                 if attempt > RECOVERY_ATTEMPTS:
                     raise
                 self._recover()
-
-    def _prove_off(self) -> None:
-        """v1.2: every byte read (the proof), then — a whole period and scan later, when every channel's
-        last pulse is the all-off's — each channel's reading at (almost) 0.  The reply's length proves
-        only that the bytes were read: a duplicated 0xF9 turns ``F9 00`` into a sense height of 0xF9
-        (about 10 mA on every channel), and nothing but the readings shows it."""
-        cfg = self._config
-        n = cfg.electrode_count if cfg is not None else 0
-        self._prove(n)
-        if cfg is None or n == 0:
-            return
-        scan_s = self._scan_us / 1e6 if self._scan_us is not None else self._worst_scan_s(cfg)
-        self.pacer.wait_until(self.pacer.drained_by() + firmware_period_us(cfg.rate_hz) / 1e6 + scan_s)
-        volts = self._measured(n, "measure (the all-off's readings)")
-        live = [ch for ch, v in enumerate(volts) if v > OFF_READING_CODES]
-        if live:
-            self._suspect("a channel reads current after the all-off")
-            raise NotStoppedError(
-                f"after the all-off, channel(s) {', '.join(map(str, live[:8]))}"
-                f"{' …' if len(live) > 8 else ''} still read current (above {OFF_READING_CODES} ADC codes)"
-            )
 
     def __enter__(self) -> Device:
         return self
@@ -1162,9 +885,12 @@ class Device(ABC):
     ) -> None:
         self.close()
 
+    def __repr__(self) -> str:
+        return f"{self.kind}({self.port_link.name}, closed={self._closed})"
+
     def __del__(self) -> None:
         if not getattr(self, "_closed", True):
-            warnings.warn(f"{type(self).__name__} was never closed", ResourceWarning, stacklevel=1)
+            warnings.warn(f"{self.kind} was never closed", ResourceWarning, stacklevel=1)
 
     # --- helpers -------------------------------------------------------------------------------------------
 
@@ -1186,19 +912,19 @@ class Device(ABC):
         self._check_open()
         if not data:
             return
-        if self._link is not LinkState.IN_STEP and not self._recovery_write:
+        if self.link.state is not LinkState.IN_STEP and not self._recovery_write:
             raise ProtocolMisuseError(
-                f"0x{data[0]:02X} while the firmware's parser is not proved in step ({self._link.value}): "
-                "resync first"
+                f"0x{data[0]:02X} while the firmware's parser is not proved in step "
+                f"({self.link.state.value}): resync first"
             )
-        shadow = self.guard.check_wire(data, mapping=self.mapping, transfer=self.transfer)
+        shadow = self.guard.interlock.check_wire(data, mapping=self.mapping, transfer=self.transfer)
         audit = self._audit
         op = self._op or ""
 
         def write(chunk: bytes) -> None:
             self._writing = True
             try:
-                self._write(chunk)
+                self.port_link.write(chunk)
             except BaseException:
                 if audit is not None:
                     audit.tx(chunk, t=self.pacer.clock.now(), ok=False, op=op, logical=data[:1] + chunk[1:])
@@ -1236,43 +962,23 @@ class Device(ABC):
 
     def _enter(self, state: LinkState, why: str) -> None:
         """One transition of the recovery state machine (only those in :data:`TRANSITIONS`)."""
-        old = self._link
-        if state not in TRANSITIONS[old]:
-            raise ProtocolMisuseError(f"recovery: no transition from {old.value} to {state.value} ({why})")
-        if state is LinkState.SUSPECT:
-            self.pacer.suspect()
-        self._link = state
-        self.transitions.append((self.pacer.clock.now(), old.value, state.value, why))
+        self.link.enter(state, why)
 
     def unproved_spans(self) -> list[tuple[float, float | None]]:
         """(start, end) of every span the driver spent without proof that the parser was in step (end None:
         still open), from :attr:`transitions`: what the host knew it did not know."""
-        spans: list[tuple[float, float | None]] = []
-        start: float | None = self._unproved_since  # the identification wrote before any transition
-        for t, old, new, _ in self.transitions:
-            if old != LinkState.IN_STEP.value and start is None and not spans:
-                start = t  # unproved since the device was opened
-            if old == LinkState.IN_STEP.value and start is None:
-                start = t
-            if new == LinkState.IN_STEP.value and start is not None:
-                spans.append((start, t))
-                start = None
-        if start is not None:
-            spans.append((start, None))
-        return spans
+        return self.link.unproved_spans()
 
     def _suspect(self, why: str) -> None:
         """Whatever the state, nothing is proved any more (the queue model freezes too)."""
-        self.pacer.suspect()
-        if self._link is not LinkState.SUSPECT:
-            self._enter(LinkState.SUSPECT, why)
+        self.link.suspect(why)
 
-    def _recovery_send(self, data: bytes) -> int:
-        """A write of the recovery itself (always with the loss-tolerant padding); the written offset just
-        past it, for :meth:`Pacer.proven`."""
+    def _recovery_send(self, data: bytes, *, pad: bool | None = True) -> int:
+        """A write of the recovery itself (by default with the loss-tolerant padding); the written offset
+        just past it, for :meth:`Pacer.proven`."""
         self._recovery_write = True
         try:
-            self._send(data, pad=True)
+            self._send(data, pad=pad)
         finally:
             self._recovery_write = False
         return self.pacer.offset
@@ -1281,27 +987,13 @@ class Device(ABC):
         """A reply proved every byte before ``mark`` read, the parser at a command boundary."""
         self.pacer.proven(mark)
         self.guard.note_in_step()  # the interlock stops assuming a full queue could cut this write's packets
-        self.proofs.append(self.pacer.clock.now())
+        self.link.proofs.append(self.pacer.clock.now())
 
     def _prove(self, electrodes: int) -> None:
-        """In step: a request whose reply proves every byte written before it read (and empties the queue
-        model) — 0xFF when the firmware's electrode count is ``electrodes`` >= 1 (cheap, and its length
-        proves the count too), else 0xF5 (about a millisecond of board detection).  No whole reply: the
-        device is marked for a resync and :class:`ShortReplyError` raised."""
-        if self._dialect is not None:
-            self._dialect.prove(self, electrodes)
-            return
-        self._discard_input()
-        if electrodes >= 1:
-            request, size, what = p.MEASURE_REQUEST, 2 * electrodes, "measure"
-        else:
-            request, size, what = p.HV513_COUNT_REQUEST, 1, "hv513 count"
-        mark = self._send_marked(request)
-        reply = self._await_reply(size)
-        if len(reply) != size:
-            self._suspect(f"short reply to 0x{request[0]:02X}")
-            raise ShortReplyError(f"{what} (proof that the queue was read)", size, reply)
-        self._proved(mark)
+        """In step: the dialect's request whose reply proves every byte written before it read (and
+        empties the queue model).  No whole reply: the device is marked for a resync and
+        :class:`ShortReplyError` raised."""
+        self.dialect.prove(self._ops(), electrodes)
 
     def _pace_for(self, timings: Sequence[tuple[float, float]]) -> None:
         """Pace for the slowest of several (period µs, scan µs) that may be in force."""
@@ -1332,66 +1024,55 @@ class Device(ABC):
         deadline = self.pacer.drained_by() + self._reply_slack_s(size)
         got = bytearray()
         while True:
-            waiting = self._waiting()
+            waiting = self.port_link.waiting()
             had = len(got)
             if waiting is None or waiting >= size - len(got):
-                got += self._read(size - len(got))
+                got += self.port_link.read(size - len(got))
             elif waiting:
                 # what has arrived (a socket says only "readable": at least one byte); the rest follows
-                got += self._read(waiting)
+                got += self.port_link.read(waiting)
             if len(got) >= size or isinstance(clock, InstantClock) or clock.now() >= deadline:
                 return bytes(got)
             if len(got) == had:
                 clock.sleep(min(REPLY_POLL_S, max(0.0, deadline - clock.now())))
 
     def _frame(self, levels: Sequence[int], *, force_pattern: bool) -> None:
-        """Put one application-order frame on the firmware: height down first, pattern, height up last."""
-        cfg = self._config
-        assert cfg is not None
-        if self._dialect is not None:
-            self._dialect.frame(self, levels, force_pattern=force_pattern)
-            return
-        height = self._encodable(
-            self.guard.frame_height(
-                levels, self._target_ua, self._current_ua, cfg.pulse_width_us, raise_when_idle=False
-            )
-        )
-        hw = self.mapping.to_hardware(levels) if self.mapping is not None else bytes(levels)
-        period = firmware_period_us(cfg.rate_hz)
-        scan = self._scan_of(cfg, hw)
-        self.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
-        before = self._scan_us if self._scan_us is not None else self._worst_scan_s(cfg) * 1e6
-        self.pacer.set_timing(period / 1e6, max(before, scan) / 1e6)
-        sense = sense_code(cfg.sense_current_ua, self.transfer)  # an all-off stop set it to 0
-        if self._sense_byte is None or sense < self._sense_byte:
-            self._send_critical(p.encode_sense_height(sense))
-            self._sense_byte = sense
-        if height < self._current_ua:
-            self._send_critical(p.encode_pulse_height(self.transfer.to_code(height)))
-            self._current_ua = height
-        if force_pattern or hw != self._last_pattern:
-            self._send_critical(p.encode_pattern(hw, electrode_num=cfg.electrode_count))
-            self._last_pattern = hw
-            self.frames_sent += 1
-        if height > self._current_ua:
-            self._send_critical(p.encode_pulse_height(self.transfer.to_code(height)))
-            self._current_ua = height
-        if sense > self._sense_byte:
-            self._send_critical(p.encode_sense_height(sense))
-            self._sense_byte = sense
-        self._suspended = False
-        self._scan_us = scan
-        self.pacer.set_timing(period / 1e6, scan / 1e6)
-
-    def _scan_of(self, cfg: StimConfig, hw: bytes) -> float:
-        return estimate_scan_us(hw, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us)
+        """Put one application-order frame on the firmware (the dialect's order of heights and pattern)."""
+        assert self.state.config is not None
+        self.dialect.frame(self._ops(), self.state, levels, force_pattern=force_pattern)
 
     def _worst_scan_s(self, cfg: StimConfig) -> float:
-        """The longest scan a frame the guard allows can have (every channel biphasic, just within the
-        period): what to pace for when the firmware's pattern is unknown."""
-        period = firmware_period_us(cfg.rate_hz)
-        full = self._scan_of(cfg, bytes([PATTERN_BIPHASIC]) * cfg.electrode_count)  # two phases: the longest
-        return min(full, period - SCAN_GAP_MIN_US) / 1e6
+        """The longest scan a frame the guard allows can have (see :func:`.dialect.worst_scan_s`)."""
+        return worst_scan_s(cfg)
+
+    def _ops(self) -> LinkOps:
+        """The link operations a dialect is handed (bound now: a transport hook replaced on this device
+        is the one the dialect uses)."""
+        return LinkOps(
+            pacer=lambda: self.pacer,
+            guard=self.guard,
+            mapping=self.mapping,
+            transfer=self.transfer,
+            unknown_reply_s=self.unknown_reply_s,
+            send=self._send,
+            send_critical=self._send_critical,
+            send_critical_commands=self._send_critical_commands,
+            recovery_send=self._recovery_send,
+            discard_input=self.port_link.discard_input,
+            await_reply=self._await_reply,
+            proved=self._proved,
+            suspect=self._suspect,
+            enter=self._enter,
+            link_state=lambda: self.link.state,
+            prove=self._prove,
+            recovery_prove=self._recovery_prove,
+            recover=self._recover,
+            measured=self._measured,
+            pace_for=self._pace_for,
+            can_reset=self.port_link.can_reset,
+            resetting=lambda: self._resetting,
+            needs_resync=lambda: self._needs_resync,
+        )
 
     def _send_critical(self, data: bytes) -> None:
         """Heights and patterns: under robust encoding written twice, so a byte lost, corrupted or
@@ -1410,55 +1091,35 @@ class Device(ABC):
     def _mark_frame(self) -> None:
         self.last_frame_time = self.pacer.clock.now()
 
-    def _encodable(self, height_ua: int) -> int:
-        """Under robust encoding no payload byte may look like a command byte: lower such heights."""
-        if not self.pacer.robust or height_ua <= 0:
-            return height_ua
-        h = height_ua
-        while h > 0 and (self.transfer.to_code(h) & 0xFF) >= COMMAND_BYTE_MIN:
-            h -= CURRENT_STEP_UA
-        if h != height_ua:
-            self.guard.note_clip(
-                "encoding", height_ua, h, "pulse-height code whose low byte looks like a command byte"
-            )
-        return h
-
-    def _check_robust(self, config: StimConfig) -> None:
-        cmds = {
-            "electrode_count": p.encode_electrode_num(config.electrode_count),
-            "pulse_width_us": p.encode_pulse_width(config.pulse_width_us),
-            "discharge_us": p.encode_discharge(config.discharge_us),
-            "rate_hz": p.encode_frequency(config.rate_hz),
-            "sense_width_us": p.encode_sense_width(config.sense_width_us),
-            "sense_current_ua": p.encode_sense_height(sense_code(config.sense_current_ua, self.transfer)),
-        }
-        for name, data in cmds.items():
-            if command_like_payload(data) is not None:
-                exc = LimitError(
-                    name,
-                    getattr(config, name),
-                    "a value whose bytes are all below 0xF5 (robust encoding: a payload byte must never look "
-                    "like a command byte)",
-                )
-                self.guard.note_refusal(exc)
-                raise exc
-
     def _check_open(self) -> None:
         if self._closed:
-            raise PortNotOpenError(f"{type(self).__name__} is closed")
+            raise PortNotOpenError(f"{self.kind} is closed")
 
     def _require_config(self, what: str) -> StimConfig:
         self._check_open()
-        if self._config is None:
+        if self.state.config is None:
             raise ProtocolMisuseError(
                 f"{what} before configure(): the firmware's electrode count is still 0, and a pattern now "
                 "would lock its parser"
             )
-        return self._config
+        return self.state.config
 
     def _application_levels(self) -> list[int] | None:
-        if self._last_pattern is None:
+        if self.state.last_pattern is None:
             return None
         if self.mapping is not None:
-            return self.mapping.to_application(self._last_pattern)
-        return list(self._last_pattern)
+            return self.mapping.to_application(self.state.last_pattern)
+        return list(self.state.last_pattern)
+
+
+__all__ = [
+    "ALLOWED_LEVELS",
+    "CLOSE_RECONNECTS",
+    "PROBE_LEAD_ZEROS",
+    "RECOVERY_ATTEMPTS",
+    "REPLY_POLL_S",
+    "STIMULATING_OPS",
+    "TRANSITIONS",
+    "Device",
+    "LinkState",
+]

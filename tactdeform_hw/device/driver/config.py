@@ -5,6 +5,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Literal
 
+from tactdeform_hw import protocol as p
+from tactdeform_hw.device.driver.pacing import command_like_payload
 from tactdeform_hw.errors import LimitError
 from tactdeform_hw.protocol.constants import MAX_ELECTRODES, SENSE_HEIGHT_SHIFT, U8_MAX, U16_MAX
 from tactdeform_hw.protocol.units import CurrentTransfer, check_int
@@ -61,3 +63,25 @@ def sense_code(sense_current_ua: int, transfer: CurrentTransfer) -> int:
             f"{code})",
         )
     return code // step
+
+
+def robust_refusal(config: StimConfig, transfer: CurrentTransfer) -> LimitError | None:
+    """Under robust encoding no payload byte may look like a command byte: the refusal naming the first
+    field of ``config`` whose command would carry one (None when every one is clean)."""
+    cmds = {
+        "electrode_count": p.encode_electrode_num(config.electrode_count),
+        "pulse_width_us": p.encode_pulse_width(config.pulse_width_us),
+        "discharge_us": p.encode_discharge(config.discharge_us),
+        "rate_hz": p.encode_frequency(config.rate_hz),
+        "sense_width_us": p.encode_sense_width(config.sense_width_us),
+        "sense_current_ua": p.encode_sense_height(sense_code(config.sense_current_ua, transfer)),
+    }
+    for name, data in cmds.items():
+        if command_like_payload(data) is not None:
+            return LimitError(
+                name,
+                getattr(config, name),
+                "a value whose bytes are all below 0xF5 (robust encoding: a payload byte must never look "
+                "like a command byte)",
+            )
+    return None

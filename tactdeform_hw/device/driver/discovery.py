@@ -132,9 +132,9 @@ def usb_candidates(backend: Any = None, *, include_all: bool = False) -> list[Ca
     """USB devices seen through pyusb that are Espressif's or carry a CDC-ACM function (all of them
     with ``include_all``).  Raises :class:`MissingDependencyError` without pyusb and
     :class:`TransportError` without a libusb backend."""
-    from tactdeform_hw.device.driver.usb_transport import _import_usb, default_backend
+    from tactdeform_hw.device.driver.usb_transport import default_backend, import_usb
 
-    core, util = _import_usb()
+    core, util = import_usb()
     if backend is None:
         backend = default_backend()
         if backend is None:

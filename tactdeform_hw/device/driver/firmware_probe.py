@@ -50,9 +50,16 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from tactdeform_hw.errors import ProtocolError
 from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec, OpcodeV2
+
+if TYPE_CHECKING:
+    from tactdeform_hw.clock import Clock
+    from tactdeform_hw.device.driver.audit import AuditLog
+    from tactdeform_hw.device.driver.dialect import LinkOps
+    from tactdeform_hw.device.links.port import PortLink
 
 #: Zeros that complete the longest payload of every modelled firmware (v2: 2 × 255 pattern bytes).
 FLUSH_ZEROS = max(f.max_electrodes * f.pattern_bytes_per_electrode for f in (V1_2, V2)) + 2
@@ -171,6 +178,94 @@ def detect_firmware(
         discard()
     silent = "a locked v1.2 parser answers nothing until the board is reset or power-cycled"
     raise UnidentifiedBoardError(device, reply, "" if reply else silent)
+
+
+#: What ``firmware=`` accepts: "auto" drives the version the board proves; a version drives only that one.
+FIRMWARE_CHOICES = ("auto", "v1.2", "v2")
+
+
+def check_firmware_choice(firmware: object) -> str:
+    """``firmware`` as given, or :class:`~tactdeform_hw.errors.ConfigurationError` naming the choices."""
+    if not isinstance(firmware, str) or firmware not in FIRMWARE_CHOICES:
+        from tactdeform_hw.errors import ConfigurationError
+
+        raise ConfigurationError(
+            f"firmware={firmware!r}: use 'auto' (drive the version the board proves) or 'v1.2' or 'v2' "
+            "(drive that version only, after the board has proved it); a board is never driven in a "
+            "version it has not proved"
+        )
+    return firmware
+
+
+def identify(
+    link: PortLink, clock: Clock, audit: AuditLog | None, *, settle_s: float | None, boot_s: float
+) -> Detection:
+    """Prove which firmware runs the board behind ``link`` (:func:`detect_firmware`), its bytes in the
+    audit log like any other.  A board that answers nothing may be hung and still stimulating: the reset
+    line (where there is one) brings it to its power-on state and it is asked again (after ``boot_s``).
+    Silence on a port that serves one client at a time is another program's connection:
+    :class:`~tactdeform_hw.errors.BoardBusyError`.  ``settle_s`` None: v2's command timeout is waited out
+    first, unless the port says its board has received nothing since power-on."""
+    from tactdeform_hw.errors import BoardBusyError
+    from tactdeform_hw.ports import board_untouched, serves_one_client
+
+    name = link.name
+
+    def write(data: bytes) -> None:
+        link.write(data)
+        if audit is not None:
+            audit.tx(data, t=clock.now(), op="identify", logical=data)
+
+    if settle_s is None:
+        settle_s = 0.0 if board_untouched(link.port) else SETTLE_S
+
+    def attempt(wait_s: float) -> Detection:
+        return detect_firmware(
+            write, link.read, link.discard_input, device=name, settle_s=wait_s, sleep=clock.sleep
+        )
+
+    try:
+        try:
+            return attempt(settle_s)
+        except UnidentifiedBoardError as silent:
+            if silent.reply or not link.can_reset() or not link.reset():
+                raise
+            if audit is not None:
+                audit.event("identification_reset", why="no answer to the identification")
+            clock.sleep(boot_s)
+            return attempt(0.0)
+    except UnidentifiedBoardError as exc:
+        if serves_one_client(link.port) and not exc.reply:
+            waited = settle_s + 2 * (float(getattr(link.port, "timeout", None) or 0.0) + 0.1)
+            raise BoardBusyError(name, waited) from exc
+        raise
+
+
+def recheck_firmware(ops: LinkOps, firmware: FirmwareSpec, count: int | None, device: str) -> None:
+    """At a proved command boundary, ask again which firmware answers (the identification's signature
+    alone: ``count`` — the electrode count in force where the signature answers it, None where it does
+    not (v1.2) — and the heights are the session's own, so nothing is waited out).  A board that now
+    answers as another version than ``firmware``, or as none, is stopped with bytes that stop current on
+    both versions and refused: :class:`FirmwareMismatchError`."""
+    ops.discard_input()
+    mark = ops.recovery_send(SIGNATURE, pad=False)
+    got = ops.await_reply(2)
+    if needs_third_byte(got, count=count or 0):
+        got += ops.await_reply(1)
+    found = classify(got, count=count or 0)
+    if found is not None and found.name == firmware.name:
+        ops.proved(mark)  # both 0xF5 were read as commands: every byte before them was read
+        if count is not None:
+            ops.guard.note_in_step(count)  # and 0xF4 answered the count in force
+        return
+    ops.suspect("the firmware check answered otherwise")
+    ops.recovery_send(IDENT_OFF, pad=False)  # stops current wherever either firmware's parser stands
+    raise FirmwareMismatchError(
+        f"{device}: the board was driven as firmware {firmware.name}, but now answers the "
+        f"firmware check {got.hex(' ') or 'with silence'}"
+        + (f" (firmware {found.name})" if found is not None else "")
+        + "; every current was switched off with bytes both versions read as off, and it is not driven"
+    )
 
 
 def check_firmware(expected: str, detection: Detection, device: str = "the board") -> None:

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
+from tactdeform_hw.device.driver.holders import find_holders
 from tactdeform_hw.errors import (
     ConfigurationError,
     DeviceBusyError,
@@ -56,7 +57,7 @@ from tactdeform_hw.protocol.constants import BAUD_RATE, ESPRESSIF_VID
 if TYPE_CHECKING:
     from tactdeform_hw.device.safety.guardian import Guardian
 
-#: Who holds a path open: ``(pid, command line)`` each (the serial driver's :func:`find_holders`).
+#: Who holds a path open: ``(pid, command line)`` each (:func:`~.holders.find_holders`).
 HolderFinder = Callable[[str], list[tuple[int, str]]]
 
 CLASS_CDC_COMM = 0x02
@@ -67,7 +68,6 @@ _SET_CONTROL_LINE_STATE = 0x22
 _POLL_MS = 1
 
 USB_PREFIX = "usb:"
-USB_EMULATOR = "usb-emulator"
 
 NO_BACKEND_HELP = (
     "pyusb found no USB backend: the libusb-1.0 library is not installed (or not on the library path). "
@@ -93,7 +93,7 @@ BUSY_HELP = (
 )
 
 
-def _import_usb() -> tuple[ModuleType, ModuleType]:
+def import_usb() -> tuple[ModuleType, ModuleType]:
     try:
         import usb.core
         import usb.util
@@ -108,7 +108,7 @@ def default_backend() -> Any:
     Tries libusb 1.0, then the DLL shipped by the ``libusb-package`` wheel (pyusb does not look there
     by itself), then OpenUSB and libusb 0.1.
     """
-    _import_usb()
+    import_usb()
     from tactdeform_hw.device.safety.usb_guardian import libusb1_backend
 
     backend = libusb1_backend()
@@ -172,23 +172,9 @@ class UsbDeviceSpec:
         return ids + (f" with serial number {self.serial_number}" if self.serial_number else "")
 
 
-def is_usb_name(name: str) -> bool:
-    """Whether ``name`` opens a USB transport (``usb:…``, ``usb://…``, ``usb-emulator[?…]`` or
-    ``usb-emulator://PATH``)."""
-    return (
-        name.startswith(USB_PREFIX)
-        or name == USB_EMULATOR
-        or name.startswith((USB_EMULATOR + "?", USB_EMULATOR + "://"))
-    )
-
-
 def usb_port_for_name(name: str, *, timeout: float | None = 0.5, baudrate: int = BAUD_RATE) -> UsbCdcPort:
     """An unopened :class:`UsbCdcPort` for ``usb://VID:PID[:SERIAL]`` (or ``usb:VID:PID[:SERIAL]``).  The
-    emulated bus (``usb-emulator``) is reached through :mod:`tactdeform_hw.transports`."""
-    if name == USB_EMULATOR or name.startswith((USB_EMULATOR + "?", USB_EMULATOR + "://")):
-        from tactdeform_hw.transports import port_for_name
-
-        return port_for_name(name, timeout=timeout, baudrate=baudrate)  # type: ignore[no-any-return]
+    emulated bus (``usb-emulator``) is another scheme of :func:`tactdeform_hw.transports.port_for_name`."""
     if name.startswith(USB_PREFIX + "//"):
         name = USB_PREFIX + name[len(USB_PREFIX) + 2 :]
     spec = UsbDeviceSpec.parse(name)
@@ -225,7 +211,7 @@ class UsbCdcPort(PortBase):
     as in pyserial (None blocks, 0 polls once).
 
     ``sysfs_root``, ``dev_root`` and ``holders`` are where the port looks before it detaches the kernel's
-    serial driver (``/sys``, ``/dev`` and the serial driver's ``find_holders``; tests inject a fake
+    serial driver (``/sys``, ``/dev`` and :func:`~.holders.find_holders`; tests inject a fake
     tree): a board whose ``/dev/ttyACM*`` another program holds open is refused, never cut off.
 
     A port on the system's libusb, or on a board served by another process (``emulate --usb``), is
@@ -253,7 +239,7 @@ class UsbCdcPort(PortBase):
         dev_root: str = "/dev",
         holders: HolderFinder | None = None,
     ) -> None:
-        self._core, self._util = _import_usb()
+        self._core, self._util = import_usb()
         self.sysfs_root = sysfs_root
         self.dev_root = dev_root
         self._holders = holders
@@ -528,8 +514,6 @@ class UsbCdcPort(PortBase):
     def _find_holders(self, path: str) -> list[tuple[int, str]]:
         if self._holders is not None:
             return self._holders(path)
-        from tactdeform_hw.device.driver.serial_driver import find_holders
-
         return find_holders(path)
 
     def interface_ttys(self, dev: Any, n: int) -> list[str]:

@@ -68,10 +68,9 @@ import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from types import FrameType, TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tactdeform_hw.clock import Clock, InstantClock, MonotonicClock
-from tactdeform_hw.device.driver.base import Device
 from tactdeform_hw.device.driver.readback import OFF_READING_CODES
 from tactdeform_hw.errors import (
     DecodeError,
@@ -82,6 +81,9 @@ from tactdeform_hw.errors import (
     TactDeformError,
     TransportError,
 )
+
+if TYPE_CHECKING:
+    from tactdeform_hw.device.driver.base import Device
 
 logger = logging.getLogger("tactdeform_hw.failsafe")
 
@@ -191,11 +193,11 @@ def _stop_all(signum: int, extra: FailSafe | None = None) -> StopRecord:
     if extra is not None and extra not in watched:
         watched.append(extra)
     for fs in watched:
-        fs._stop.set()
+        fs.halt_watch()
     ok = True
     count = 0
     for fs in watched:
-        done = fs._switch_off_for_signal(signum)
+        done = fs.switch_off_for_signal(signum)
         if done is not None:
             count += 1
             ok = ok and done
@@ -393,6 +395,11 @@ class FailSafe:
             self._thread.start()
         return self
 
+    def halt_watch(self) -> None:
+        """Tell the watcher thread to end at its next wake-up (without waiting for it: a signal handler's
+        stop switches every device off first)."""
+        self._stop.set()
+
     def stop(self) -> None:
         self._stop.set()
         if self._thread is not None and self._thread is not threading.current_thread():
@@ -438,7 +445,7 @@ class FailSafe:
             self.on_event(ev)
         return ev
 
-    def _switch_off_for_signal(self, signum: int) -> bool | None:
+    def switch_off_for_signal(self, signum: int) -> bool | None:
         """Every channel off and the port closed; True when that worked, None when already closed."""
         dev = self.device
         if dev.closed:

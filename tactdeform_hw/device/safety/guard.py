@@ -7,15 +7,16 @@ skip them:
 1. **The guard** (:meth:`SafetyGuard.check_config`, :meth:`SafetyGuard.request`,
    :meth:`SafetyGuard.frame_height`) decides what current may be sent.  ``configure``, ``set_current``,
    ``send_pattern``, ``keepalive`` and ``resync`` all go through it before any byte is built.
-2. **The interlock** (:meth:`SafetyGuard.check_wire`) sees every command the device layer writes — it is
-   called from ``Device._send``, the single place bytes leave for the transport — and keeps a shadow of
-   the firmware's registers.  It refuses a command whose effect would break a limit whatever code path
-   produced it, so a future method that forgets the guard is stopped at the wire.  It judges the
-   firmware's reading of the bytes (:mod:`tactdeform_hw.protocol.reader`, from where the parser stands),
-   and where the device's queue may be full, every reading a discarded USB packet tail could cause.  Only
-   writing to the port object directly (``device.port.write`` or ``serial.serial_for_url(...).write``)
-   bypasses it: that is not the driver, it is the raw transport, and no Python-level check can stop a caller
-   who opens the port themselves.
+2. **The interlock** (:attr:`SafetyGuard.interlock`, a
+   :class:`~tactdeform_hw.device.safety.interlock.WireInterlock`) sees every command the device layer
+   writes — it is called from ``Device._send``, the single place bytes leave for the transport — and
+   keeps a shadow of the firmware's registers.  It refuses a command whose effect would break a limit
+   whatever code path produced it, so a future method that forgets the guard is stopped at the wire.  It
+   judges the firmware's reading of the bytes (:mod:`tactdeform_hw.protocol.reader`, from where the
+   parser stands), and where the device's queue may be full, every reading a discarded USB packet tail
+   could cause.  Only writing to the port object directly (``device.port.write`` or
+   ``serial.serial_for_url(...).write``) bypasses it: that is not the driver, it is the raw transport,
+   and no Python-level check can stop a caller who opens the port themselves.
 
 Limits (µA unless noted):
 
@@ -61,23 +62,20 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
-from tactdeform_hw.device.driver import v2
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig
 from tactdeform_hw.device.participant.regions import RegionMap, tactdeform_region_map
+from tactdeform_hw.device.safety.interlock import Shadow, WireInterlock, WireState
 from tactdeform_hw.errors import LimitError, SafetyError
 from tactdeform_hw.protocol.constants import (
     CURRENT_STEP_UA,
     MAX_CURRENT_UA,
     PATTERN_BIPHASIC,
-    PATTERN_BUFFER_SIZE,
     PATTERN_MONOPHASIC,
 )
-from tactdeform_hw.protocol.firmware import DEFAULT_FIRMWARE, V2, FirmwareSpec
+from tactdeform_hw.protocol.firmware import FirmwareSpec
 from tactdeform_hw.protocol.firmware_math import estimate_scan_us
-from tactdeform_hw.protocol.reader import COMMAND, ParserState, ReadCommand, read_commands
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 if TYPE_CHECKING:
@@ -96,10 +94,6 @@ SCAN_LIMIT_US = 250_000.0
 _ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
 _EPS = 1e-6
 LOG_LIMIT = 10_000
-#: The interlock follows at most this many states that lost packet tails could leave; beyond it the
-#: parser's position counts as unknown (only a resync and an answer from the board bring it back).
-MAX_ALTERNATIVES = 32
-_AT_BOUNDARY = ParserState(None)
 
 
 def grid_regions(
@@ -123,63 +117,6 @@ def grid_regions(
 
 #: Region of each of the 32 TactDeform electrodes, application order, from their positions on the pad.
 TACTDEFORM_REGION_OF: tuple[int, ...] = tactdeform_region_map().resolve(None)
-
-
-@dataclass
-class _Shadow:
-    """What the firmware's registers hold as far as the host can know (None: unknown), and where its
-    parser stands (``parse``: a command boundary, a command in progress; None: not known)."""
-
-    electrode_num: int | None = None
-    height_code: int | None = None
-    sense_code: int | None = None
-    polarity: int | None = None
-    width_us: int | None = None
-    sense_width_us: int | None = None
-    pattern: list[int | None] = field(default_factory=lambda: [None] * PATTERN_BUFFER_SIZE)
-    parse: ParserState | None = _AT_BOUNDARY
-    #: How this state could come about when it is not the nominal one (for refusal messages).
-    how: str = field(default="", compare=False)
-    #: Firmware v2's stimulation mode (v1.2 has none; None: unknown).
-    stim_mode: int | None = None
-
-    def copy(self) -> _Shadow:
-        return _Shadow(
-            self.electrode_num,
-            self.height_code,
-            self.sense_code,
-            self.polarity,
-            self.width_us,
-            self.sense_width_us,
-            list(self.pattern),
-            self.parse,
-            self.how,
-            self.stim_mode,
-        )
-
-    def key(self) -> tuple[Any, ...]:
-        return (
-            self.electrode_num,
-            self.height_code,
-            self.sense_code,
-            self.polarity,
-            self.width_us,
-            self.sense_width_us,
-            tuple(self.pattern),
-            self.parse,
-            self.stim_mode,
-        )
-
-
-class WireState(NamedTuple):
-    """What :meth:`SafetyGuard.check_wire` concludes a write leads to: the firmware's state if every byte
-    arrives (``nominal``), the other states lost packet tails could leave (``alternatives``), and whether
-    the device's queue may be full (``unproven``: after a resync's zeros or an unknown state, until the
-    board has answered a request)."""
-
-    nominal: _Shadow
-    alternatives: tuple[_Shadow, ...] = ()
-    unproven: bool = False
 
 
 def worst_scan_us(electrodes: int, width_us: int, discharge_us: int, sense_width_us: int) -> float:
@@ -281,12 +218,9 @@ class SafetyGuard:
         #: :attr:`counts` keeps the totals and the audit log keeps every one.
         self.log: deque[dict[str, Any]] = deque(maxlen=LOG_LIMIT)
         self.counts: dict[str, int] = {}
-        #: The firmware version whose reading of the bytes the interlock follows (its limits model v1.2's
-        #: one pulse height per scan).
-        self.firmware: FirmwareSpec = DEFAULT_FIRMWARE
-        self._wire = WireState(_Shadow())
         self._limits_cache: tuple[Any, ...] | None = None
-        self._hw_limits_cache: tuple[Any, ...] | None = None
+        #: The wire layer: every command as the firmware reads it, against these limits.
+        self.interlock = WireInterlock(self)
 
     @classmethod
     def from_profile(
@@ -353,7 +287,12 @@ class SafetyGuard:
             sent_ua=sent_ua,
         )
 
-    def _refuse(self, rule: str, message: str, **detail: Any) -> SafetyError:
+    def note_electrode_clips(self, rule: str, message: str, **detail: Any) -> None:
+        """Electrodes whose own heights were lowered (firmware v2: each electrode to its own limit)."""
+        self._record("clipped", rule, message, **detail)
+
+    def refusal(self, rule: str, message: str, **detail: Any) -> SafetyError:
+        """A refusal under ``rule``, recorded (log, logger, sink); the caller raises it."""
         self._record("refused", rule, message, **detail)
         return SafetyError(f"{message}; nothing was sent")
 
@@ -396,7 +335,7 @@ class SafetyGuard:
             why = f"{src} places {len(self.region_of)} electrode(s)"
         else:
             why = "no array file gives their positions; only the 32-electrode TactDeform array's are known"
-        raise self._refuse(
+        raise self.refusal(
             "region",
             f"{what} of {electrodes} electrode(s): the region of electrodes 0-{electrodes - 1} cannot be "
             f"determined ({why}), and the profile{' of ' + self.participant if self.participant else ''} has "
@@ -482,7 +421,7 @@ class SafetyGuard:
     def request(self, current_ua: int, field_name: str = "current_ua") -> int:
         """A current a caller asks for (already checked as a wire value): refused above the cap."""
         if current_ua > self.cap_ua:
-            raise self._refuse(
+            raise self.refusal(
                 "cap",
                 f"{field_name}={current_ua} µA exceeds the cap of {self.cap_ua} µA"
                 + (f" for participant {self.participant}" if self.participant else ""),
@@ -502,13 +441,13 @@ class SafetyGuard:
         """Refuse a configuration that breaks a limit; return it unchanged otherwise."""
         self.request(config.current_ua)
         if self.polarity is not None and config.polarity != self.polarity:
-            raise self._refuse(
+            raise self.refusal(
                 "polarity",
                 f"polarity={config.polarity!r} differs from the participant's calibrated {self.polarity!r}",
                 requested=config.polarity,
             )
         if self.max_pulse_width_us is not None and config.pulse_width_us > self.max_pulse_width_us:
-            raise self._refuse(
+            raise self.refusal(
                 "pulse_width",
                 f"pulse_width_us={config.pulse_width_us} is wider than the calibrated "
                 f"{self.max_pulse_width_us} µs (the calibrated amplitudes would feel stronger)",
@@ -517,7 +456,7 @@ class SafetyGuard:
             )
         charge = config.current_ua * config.pulse_width_us / 1000.0
         if charge > self.max_charge_nc + _EPS:
-            raise self._refuse(
+            raise self.refusal(
                 "charge",
                 f"current_ua={config.current_ua} × pulse_width_us={config.pulse_width_us} = {charge:g} nC "
                 f"per pulse exceeds the charge limit of {self.max_charge_nc:g} nC",
@@ -528,7 +467,7 @@ class SafetyGuard:
             sense_ua = transfer.to_ua(transfer.to_code(config.sense_current_ua, "sense_current_ua"))
             low = min(self.electrode_limits(config.electrode_count) or [self.cap_ua])
             if sense_ua > low + _EPS:
-                raise self._refuse(
+                raise self.refusal(
                     "sense",
                     f"sense_current_ua={config.sense_current_ua} reaches every channel that is off and "
                     f"exceeds the lowest electrode limit of {low} µA",
@@ -537,7 +476,7 @@ class SafetyGuard:
                 )
             sense_charge = sense_ua * config.sense_width_us / 1000.0
             if sense_charge > self.max_charge_nc + _EPS:
-                raise self._refuse(
+                raise self.refusal(
                     "sense_charge",
                     f"sense pulse of {sense_charge:g} nC exceeds the charge limit of "
                     f"{self.max_charge_nc:g} nC",
@@ -547,7 +486,7 @@ class SafetyGuard:
             config.electrode_count, config.pulse_width_us, config.discharge_us, config.sense_width_us
         )
         if scan > SCAN_LIMIT_US:
-            raise self._refuse(
+            raise self.refusal(
                 "scan_time",
                 f"a scan of {config.electrode_count} electrodes at {config.pulse_width_us} µs could take "
                 f"{scan / 1000:.0f} ms; the firmware reboots (interrupt watchdog) past "
@@ -555,7 +494,7 @@ class SafetyGuard:
                 scan_us=scan,
             )
         if stimulating and polarity_in_force is not None and config.polarity != polarity_in_force:
-            raise self._refuse(
+            raise self.refusal(
                 "polarity_change",
                 f"polarity change {polarity_in_force} -> {config.polarity} while channels are stimulating; "
                 "call all_off() first",
@@ -616,7 +555,7 @@ class SafetyGuard:
         """Refuse a frame whose scan would leave the parser no time before the next alarm: back-to-back
         scans starve the main loop, and then not even an all-off would be read."""
         if scan_us > period_us - gap_min_us:
-            raise self._refuse(
+            raise self.refusal(
                 "scan_overrun",
                 f"this frame's scan takes about {scan_us:.0f} µs of the {period_us:.0f} µs period; with less "
                 f"than {gap_min_us:.0f} µs between scans the firmware's parser cannot run and the host could "
@@ -627,380 +566,35 @@ class SafetyGuard:
             )
 
     # --- the interlock: every command as it is written ------------------------------------------------------
+    # (:class:`~tactdeform_hw.device.safety.interlock.WireInterlock`; these pass the device's calls on)
 
     @property
-    def shadow(self) -> _Shadow:
+    def firmware(self) -> FirmwareSpec:
+        """The firmware version whose reading of the bytes the interlock follows (its limits model v1.2's
+        one pulse height per scan)."""
+        return self.interlock.firmware
+
+    @firmware.setter
+    def firmware(self, spec: FirmwareSpec) -> None:
+        self.interlock.firmware = spec
+
+    def shadow(self) -> Shadow:
         """A copy of what the interlock believes the firmware holds (if every byte arrived)."""
-        return self._wire.nominal.copy()
+        return self.interlock.shadow()
 
     @property
     def wire_state(self) -> WireState:
         """Every state the interlock believes the firmware can be in."""
-        return self._wire
+        return self.interlock.wire_state
 
     def mark_unknown(self) -> None:
-        """The firmware's state can no longer be known (a failed write, a reconnect, a reset): registers
-        and the parser's position unknown, the device's queue possibly full, until the board answers."""
-        self._wire = WireState(_Shadow(parse=None), (), True)
+        """See :meth:`WireInterlock.mark_unknown`."""
+        self.interlock.mark_unknown()
 
     def note_in_step(self, electrode_num: int | None = None) -> None:
-        """The board answered a request (0xF5's byte, 0xFF's two bytes per channel) just after the host's
-        last write: its parser read that request at a command boundary and its queue holds nothing more.
-        Registers on which the possible states disagree become unknown; ``electrode_num`` when the answer
-        proved it (a measure reply of two bytes per channel)."""
-        states = (self._wire.nominal, *self._wire.alternatives)
-        merged = states[0].copy()
-        for other in states[1:]:
-            for name in (
-                "electrode_num",
-                "height_code",
-                "sense_code",
-                "polarity",
-                "width_us",
-                "sense_width_us",
-                "stim_mode",
-            ):
-                if getattr(other, name) != getattr(merged, name):
-                    setattr(merged, name, None)
-            merged.pattern = [a if a == b else None for a, b in zip(merged.pattern, other.pattern)]
-        if electrode_num is not None:
-            merged.electrode_num = electrode_num
-        merged.parse = _AT_BOUNDARY
-        merged.how = ""
-        self._wire = WireState(merged, (), False)
+        """See :meth:`WireInterlock.note_in_step`."""
+        self.interlock.note_in_step(electrode_num)
 
     def commit(self, state: WireState) -> bool:
-        """Take ``state`` (from :meth:`check_wire`) as the firmware's once its write succeeded; True when
-        it differs from the state before (a rewrite of the same registers changes nothing)."""
-        changed = state != self._wire
-        self._wire = state
-        return changed
-
-    def _hw_limits(self, mapping: ChannelMapping | None, num: int) -> tuple[tuple[int, ...], int]:
-        """Each hardware channel's limit, and the lowest of them."""
-        # the key holds the mapping itself (compared by value), never its id: an id can be reused
-        key = (mapping, num, self.cap_ua, self.regions_ua, self.region_of, self.channels)
-        cached = self._hw_limits_cache
-        if cached is not None and cached[0] == key:
-            return cached[1], cached[2]
-        if mapping is None:
-            limits = self._limits(num)[0]
-        else:
-            app = self._limits(mapping.electrodes)[0]
-            hw = [0] * num  # a hardware channel no electrode maps to must never stimulate
-            for i, ch in enumerate(mapping.app_to_hw):
-                if ch < num:
-                    hw[ch] = app[i]
-            limits = tuple(hw)
-        if self.channels is not None:
-            # the calibrated limit belongs to the hardware channel the electrode was calibrated on: bound each
-            # channel by it directly, whatever mapping the bytes were built with
-            cal = self.channels
-            limits = tuple(min(v, cal.channel_limit_ua(ch)) for ch, v in enumerate(limits))
-        low = min(limits, default=0)
-        self._hw_limits_cache = (key, limits, low)
-        return limits, low
-
-    def check_wire(
-        self,
-        data: bytes,
-        *,
-        mapping: ChannelMapping | None = None,
-        transfer: CurrentTransfer = DEFAULT_TRANSFER,
-        room: int | None = None,
-    ) -> WireState:
-        """Refuse a write whose effect on the firmware would break a limit; return the states it leads to
-        (commit them with :meth:`commit` once the write succeeded).
-
-        The write is judged as the firmware reads it (:func:`~tactdeform_hw.protocol.reader.read_commands`,
-        from where its parser stands), in every state the interlock follows, and — where the device's
-        queue may be full — as it would be read if a USB packet of it lost its tail.  ``room`` is how many
-        bytes of this write the caller's worst-case queue model is certain the device accepts (None: the
-        whole write); while the queue may be full (``unproven``: after a resync's zeros or an unknown state,
-        until :meth:`note_in_step`) no byte is certain.  Bytes that are not commands and requests the board
-        answers are always allowed: they are how the driver makes an unknown state safe and proves it.
-        Everything else must leave every state within every limit, unknown registers counting as their
-        worst case.
-        """
-        data = bytes(data)
-        wire = self._wire
-        cmin = self.firmware.command_byte_min
-        if data and data[0] < cmin:
-            # A resync: the host no longer trusts its picture of the firmware.  Enough non-command bytes to
-            # fill the longest payload finish any command in progress, so the parser ends at a command
-            # boundary (a locked one reads nothing more at all); the registers are unknown; and the zeros
-            # may fill the device's queue, so every later write may lose packet tails until the board has
-            # answered a request (note_in_step).
-            run = 0
-            while run < len(data) and data[run] < cmin:
-                run += 1
-            longest = self.firmware.max_electrodes * self.firmware.pattern_bytes_per_electrode
-            self._wire = WireState(_Shadow(parse=_AT_BOUNDARY if run >= longest else None), (), True)
-            try:
-                return (
-                    self.check_wire(data[run:], mapping=mapping, transfer=transfer, room=room)
-                    if run < len(data)
-                    else self._wire
-                )
-            finally:
-                self._wire = wire
-        cut_from = 0 if wire.unproven else room
-        if not wire.alternatives and (cut_from is None or cut_from >= len(data)):
-            # the per-frame path: one state, every byte certain to arrive
-            return WireState(
-                self._read(wire.nominal, data, mapping, transfer, strict=True, how=""), (), wire.unproven
-            )
-        nominal: _Shadow | None = None
-        seen: dict[tuple[Any, ...], _Shadow] = {}
-        for i, state in enumerate((wire.nominal, *wire.alternatives)):
-            result = self._read(state, data, mapping, transfer, strict=i == 0, how=state.how)
-            if i == 0:
-                nominal = result
-            else:
-                seen.setdefault(result.key(), result)
-            if cut_from is not None and cut_from < len(data):
-                for lost, kept in _tail_losses(data, max(0, cut_from), self.firmware.usb_packet_bytes):
-                    how = (
-                        f"bytes {lost[0]}-{lost[1] - 1} of a {len(data)}-byte write discarded by a full "
-                        "device queue"
-                    )
-                    if state.how:
-                        how = f"{state.how}; then {how}"
-                    alt = self._read(state, kept, mapping, transfer, strict=False, how=how)
-                    seen.setdefault(alt.key(), alt)
-        assert nominal is not None
-        seen.pop(nominal.key(), None)
-        alternatives = tuple(seen.values())
-        if len(alternatives) > MAX_ALTERNATIVES:
-            alternatives = (_Shadow(parse=None, how="too many possible losses to follow"),)
-        return WireState(nominal, alternatives, wire.unproven)
-
-    def _read_unknown(self, data: bytes) -> None:
-        """From an unknown parser position only bytes that cannot complete a current-carrying value are
-        allowed: non-command bytes and the requests the board answers (the probe that proves a resync)."""
-        table = self.firmware.by_opcode
-        for i, b in enumerate(data):
-            spec = table.get(b)
-            if spec is not None and spec.kind is not None:
-                raise self._refuse(
-                    "interlock",
-                    f"command 0x{b:02X} at byte {i} while the firmware's state is unknown (its parser may be "
-                    "in the middle of a command, whose value these bytes could complete; its electrode "
-                    "count is unknown): resync and let the board answer first",
-                )
-
-    def _read(
-        self,
-        sh0: _Shadow,
-        data: bytes,
-        mapping: ChannelMapping | None,
-        transfer: CurrentTransfer,
-        *,
-        strict: bool,
-        how: str,
-    ) -> _Shadow:
-        """The state ``data`` leads to from ``sh0``; refuses if any limit breaks on the way.  ``strict``
-        (the nominal reading): the write must also end at a command boundary and never lock the parser."""
-        sh = sh0.copy()
-        sh.how = how
-        pos = sh.parse
-        if pos is None:
-            self._read_unknown(data)
-            return sh
-        fw = self.firmware
-        if pos.opcode is not None or pos.locked:
-            start: ParserState | None = ParserState(
-                sh.electrode_num, pos.opcode, pos.needed, pos.got, pos.locked
-            )
-        else:
-            start = None
-        reading = read_commands(data, sh.electrode_num, fw, start)
-        end = reading.state
-        if strict and not end.at_boundary:
-            self._refuse_open_end(reading.commands, end)
-        table = fw.by_opcode
-        when = f" (if {how})" if how else ""
-        for c in reading.commands:
-            if c.kind != COMMAND or c.opcode is None:
-                continue
-            spec = table[c.opcode]
-            kind = spec.kind
-            if kind is None:
-                continue
-            if kind == "pattern":
-                levels = c.levels
-                if levels and fw is V2:
-                    v2.check_ramp(self, sh.pattern, levels, c.start, "pattern" + when, transfer)
-                if levels:
-                    sh.pattern[c.start : c.start + len(levels)] = levels
-                    if any(levels):
-                        self._verify(sh, "pattern" + when, mapping, transfer)
-                continue
-            if not c.complete:
-                continue
-            self._apply(sh, spec.register, c, when, mapping, transfer)
-        if end.needed < 0:
-            sh.parse = None  # a pattern whose length nobody knows: the position is lost
-        elif end.at_boundary:
-            sh.parse = _AT_BOUNDARY
-        else:
-            sh.parse = ParserState(None, end.opcode, end.needed, end.got, end.locked)
-        return sh
-
-    def _refuse_open_end(self, commands: Sequence[ReadCommand], end: ParserState) -> None:
-        last = commands[-1] if commands else None
-        name = f"0x{end.opcode:02X}" if end.opcode is not None else "?"
-        if end.locked:
-            raise self._refuse("interlock", "pattern with electrode count 0 would lock the firmware's parser")
-        if end.needed < 0:
-            raise self._refuse(
-                "interlock", "pattern while the firmware's electrode count is unknown (resync first)"
-            )
-        if end.opcode is not None and self.firmware.by_opcode[end.opcode].kind == "pattern":
-            num = end.needed // self.firmware.pattern_bytes_per_electrode
-            raise self._refuse(
-                "interlock",
-                f"pattern of {len(end.got)} byte(s) for electrode count {num} would desynchronise",
-            )
-        got = len(last.payload) if last is not None else 0
-        raise self._refuse("interlock", f"command {name} cut short ({got} of {end.needed} payload bytes)")
-
-    def _apply(
-        self,
-        sh: _Shadow,
-        register: str | None,
-        c: ReadCommand,
-        when: str,
-        mapping: ChannelMapping | None,
-        transfer: CurrentTransfer,
-    ) -> None:
-        value = c.value
-        if register == "pulse_height":
-            assert value is not None
-            before = sh.height_code
-            sh.height_code = value
-            if value:
-                prev_ua = transfer.to_ua(before) if before is not None else 0.0
-                new_ua = transfer.to_ua(value)
-                if self.ramp_ua_per_frame is not None and new_ua > prev_ua + self.ramp_ua_per_frame + _EPS:
-                    raise self._refuse(
-                        "interlock",
-                        f"pulse height {new_ua:g} µA{when} rises more than {self.ramp_ua_per_frame} µA "
-                        f"above {prev_ua:g} µA",
-                    )
-                self._verify(sh, "pulse height" + when, mapping, transfer)
-        elif register == "stim_mode":
-            sh.stim_mode = value
-            self._verify(sh, "stimulation mode" + when, mapping, transfer)
-        elif register == "sense_pulse_height":
-            sh.sense_code = value
-            if value:
-                self._verify(sh, "sense height" + when, mapping, transfer)
-        elif register == "polarity":
-            if sh.polarity != value and self._current_can_flow(sh):
-                raise self._refuse(
-                    "polarity_change",
-                    f"polarity change{when} while current can flow (pulse height and an active channel, or a "
-                    "sense current); switch everything off first",
-                )
-            sh.polarity = value
-        elif register == "electrode_num":
-            sh.electrode_num = value
-            self._verify(sh, "electrode count" + when, mapping, transfer)
-        elif register == "pulse_width":
-            if value is not None:
-                sh.width_us = value
-            self._verify(sh, "pulse width" + when, mapping, transfer)
-        elif register == "sense_pulse_width":
-            sh.sense_width_us = value
-            self._verify(sh, "sense width" + when, mapping, transfer)
-        # discharge and frequency carry no current
-
-    def _current_can_flow(self, sh: _Shadow) -> bool:
-        if self.firmware is V2:
-            return v2.current_can_flow(sh)
-        if sh.sense_code != 0 and sh.electrode_num != 0:
-            return True
-        if sh.height_code == 0:
-            return False
-        num = sh.electrode_num
-        if num is None:
-            return True
-        return any(v is None or v in _ACTIVE for v in sh.pattern[:num])
-
-    def _verify(
-        self, sh: _Shadow, what: str, mapping: ChannelMapping | None, transfer: CurrentTransfer
-    ) -> None:
-        """Every channel the firmware scans receives at most its limit; unknowns count as their worst."""
-        if self.firmware is V2:
-            v2.verify_channels(self, sh, what, mapping, transfer)
-            return
-        num = sh.electrode_num
-        height_ua = transfer.to_ua(sh.height_code) if sh.height_code is not None else math.inf
-        if height_ua > self.cap_ua + _EPS:
-            raise self._refuse(
-                "interlock", f"{what}: pulse height {height_ua:g} µA above the cap of {self.cap_ua} µA"
-            )
-        if height_ua > 0 and sh.height_code is not None:
-            width = sh.width_us
-            if width is None:
-                raise self._refuse(
-                    "interlock", f"{what}: non-zero pulse height while the pulse width is unknown"
-                )
-            if height_ua * width / 1000.0 > self.max_charge_nc + _EPS:
-                raise self._refuse(
-                    "interlock",
-                    f"{what}: {height_ua:g} µA × {width} µs exceeds the charge limit of "
-                    f"{self.max_charge_nc:g} nC",
-                )
-        sense_ua = transfer.to_ua(sh.sense_code) if sh.sense_code is not None else math.inf
-        if num is None:
-            # any channel may be scanned, at either the pulse height or the sense height
-            if height_ua > 0 or sense_ua > 0:
-                raise self._refuse(
-                    "interlock", f"{what}: current possible while the electrode count is unknown"
-                )
-            return
-        limits, low = self._hw_limits(mapping, num)
-        # within the lowest channel limit, no channel can be over its own: skip the per-channel search
-        within = height_ua <= low + _EPS and sense_ua <= low + _EPS
-        for ch in range(0 if within else num):
-            level = sh.pattern[ch]
-            if level is None or level in _ACTIVE:
-                if height_ua > limits[ch] + _EPS:
-                    raise self._refuse(
-                        "interlock",
-                        f"{what}: channel {ch} would receive {height_ua:g} µA, above its limit of "
-                        f"{limits[ch]} µA",
-                        channel=ch,
-                    )
-            if level is None or level not in _ACTIVE:
-                if sense_ua > limits[ch] + _EPS:
-                    raise self._refuse(
-                        "interlock",
-                        f"{what}: channel {ch} would receive a sense current of {sense_ua:g} µA, above "
-                        f"{limits[ch]} µA",
-                        channel=ch,
-                    )
-        if sense_ua > 0 and sh.sense_code is not None:
-            sw = (
-                sh.sense_width_us
-                if sh.sense_width_us is not None
-                else self.firmware.value_max("sense_pulse_width")
-            )
-            if sense_ua * sw / 1000.0 > self.max_charge_nc + _EPS:
-                raise self._refuse("interlock", f"{what}: sense pulse exceeds the charge limit")
-
-
-def _tail_losses(data: bytes, first: int, packet: int) -> list[tuple[tuple[int, int], bytes]]:
-    """What a full device queue can leave of ``data`` (cut by the host into ``packet``-byte USB packets)
-    when it may discard from byte ``first`` on: for each byte ``j`` from there, the rest of its packet
-    lost, or everything from ``j`` on lost (the queue stayed full).  Each entry: (lost range, bytes kept)."""
-    out: list[tuple[tuple[int, int], bytes]] = []
-    n = len(data)
-    for j in range(first, n):
-        end = min(n, (j // packet + 1) * packet)
-        out.append(((j, end), data[:j] + data[end:]))
-        if end < n:
-            out.append(((j, n), data[:j]))
-    return out
+        """See :meth:`WireInterlock.commit`."""
+        return self.interlock.commit(state)

@@ -239,7 +239,7 @@ class Guardian:
         line = out.readline() if ready else b""
         out.close()
         if line.strip() != b"ready":
-            g._close_pipe()
+            g.close_pipe()
             proc.kill()
             proc.wait()
             raise GuardianError(f"the guardian for {name} did not start (it said {line!r})")
@@ -275,7 +275,7 @@ class Guardian:
     def release(self, timeout_s: float = 5.0) -> None:
         """The owner switched everything off itself: the guardian exits without writing."""
         self.tell("bye")
-        self._close_pipe()
+        self.close_pipe()
         self._wait(timeout_s)
 
     def abandon(self, timeout_s: float = 5.0) -> None:
@@ -284,10 +284,11 @@ class Guardian:
         release, self._release_owner = self._release_owner, None
         if release is not None and self._pipe_w is not None:
             release()
-        self._close_pipe()
+        self.close_pipe()
         self._wait(timeout_s)
 
-    def _close_pipe(self) -> None:
+    def close_pipe(self) -> None:
+        """Close the owner's end of the pipe to the guardian (after "bye" it exits; without it, it acts)."""
         if self._pipe_w is not None:
             try:
                 os.close(self._pipe_w)
@@ -302,6 +303,31 @@ class Guardian:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait()
+
+
+def start_guardian(port: Any, who: str) -> Guardian:
+    """The guardian of a device's port (``who``: the device, in errors).  A port that provides a guardian
+    factory (``start_guardian(name)``: a USB port, whose claim cannot be shared) starts its own; any other
+    guardable port shares its file descriptor with :meth:`Guardian.start`.  A port that cannot be guarded
+    raises :class:`~tactdeform_hw.errors.TransportError`."""
+    from tactdeform_hw.errors import TransportError
+
+    if not getattr(port, "guardable", False):
+        raise TransportError(f"{who}: the port cannot be guarded (it declares no guardable file descriptor)")
+    factory = getattr(port, "start_guardian", None)
+    name = str(getattr(port, "port", None) or getattr(port, "name", None) or port)
+    try:
+        if callable(factory):
+            return factory(name)  # type: ignore[no-any-return]
+        try:
+            fd = int(port.fileno())
+        except (AttributeError, OSError, ValueError, TypeError) as exc:
+            raise TransportError(f"{who}: no file descriptor to share with a guardian: {exc}") from exc
+        # a port without a reset line says so (TCP); one that says nothing is a terminal with RTS
+        reset_line = bool(getattr(port, "reset_line", True))
+        return Guardian.start(fd, name, reset_line=reset_line)
+    except GuardianError as exc:
+        raise TransportError(str(exc)) from exc
 
 
 # --- guardian side (stdlib only) ---------------------------------------------------------------------------

@@ -1,0 +1,180 @@
+"""What a firmware dialect is given and what it must provide: the device's side of the v1.2/v2 split.
+
+A :class:`~tactdeform_hw.device.driver.base.Device` sends, paces, audits and keeps the link's proofs; a
+:class:`Dialect` decides which bytes express an operation on its firmware version, from the state in force
+(:class:`DriverState`) and through the narrow set of link operations it is handed (:class:`LinkOps`).  A
+dialect never sees the device: everything it may use is in those two objects, so both versions are read
+and tested against the same interface, and :data:`~tactdeform_hw.device.driver.dialects.DIALECTS` picks
+one per firmware spec.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol
+
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
+from tactdeform_hw.protocol.constants import PATTERN_BIPHASIC
+from tactdeform_hw.protocol.firmware import FirmwareSpec
+from tactdeform_hw.protocol.firmware_math import estimate_scan_us, firmware_period_us
+
+if TYPE_CHECKING:
+    from tactdeform_hw.device.links.recovery import LinkState
+    from tactdeform_hw.device.participant.mapping import ChannelMapping
+    from tactdeform_hw.device.safety.guard import SafetyGuard
+    from tactdeform_hw.protocol.units import CurrentTransfer
+
+
+@dataclass
+class DriverState:
+    """What the host believes the firmware holds, and what the caller asked for.
+
+    Two currents are kept apart: the *target* (what the caller asked for) and the *height in force* (what
+    the firmware's pulse-height register holds; on v2 the highest of the electrodes' heights)."""
+
+    config: StimConfig | None = None  # the configuration last sent
+    current_ua: int = 0  # pulse height in force on the firmware
+    sense_byte: int | None = None  # the 0xF9 byte in force (None: unknown)
+    target_ua: int = 0  # what the caller asked for
+    last_pattern: bytes | None = None  # hardware order, as on the firmware (levels)
+    requested: list[int] | None = None  # the caller's last frame, application order
+    suspended: bool = False
+    scan_us: float | None = None  # estimated scan of the pattern in force (None: unknown)
+    frames_sent: int = 0
+    after_reset: bool = False  # the reset line was pulsed: the firmware's electrode count is 0
+    bound_seen_s: float = 0.0  # the largest failing-resync bound at the start of any recovery
+    # firmware v2's registers (unused on v1.2, whose pattern buffer holds the levels themselves)
+    mode: int | None = None  # the stimulation mode in force (None: unknown)
+    codes: list[int] | None = None  # DAC code per hardware channel in force (None: unknown)
+    heights_ua: list[int] = field(default_factory=list)  # height per application electrode in force
+    answered: bool = False  # the board has answered a sync check in this session (it runs v2)
+    covers: int = 0  # patterns written under the mode-2 cover
+
+
+@dataclass(frozen=True)
+class LinkOps:
+    """The link operations a dialect may use (bound by the device): each write passes the device's gate,
+    interlock, pacer and audit; replies are read to their deadline; proofs go to the recovery record."""
+
+    pacer: Callable[[], Pacer]
+    guard: SafetyGuard
+    mapping: ChannelMapping | None
+    transfer: CurrentTransfer
+    unknown_reply_s: float
+    #: one command (``pad``: None the pacer's policy, True/False forced)
+    send: Callable[..., None]
+    #: heights and patterns: twice under robust encoding
+    send_critical: Callable[[bytes], None]
+    #: whole commands in one write, twice under robust encoding
+    send_critical_commands: Callable[[Sequence[bytes]], None]
+    #: a write of the recovery itself (allowed before the proof); the written offset just past it
+    recovery_send: Callable[..., int]
+    discard_input: Callable[[], None]
+    await_reply: Callable[[int], bytes]
+    #: a reply proved every byte before the mark read
+    proved: Callable[[int], None]
+    suspect: Callable[[str], None]
+    enter: Callable[[LinkState, str], None]
+    link_state: Callable[[], LinkState]
+    #: the proof of the dialect in force (a request whose reply proves the queue read)
+    prove: Callable[[int], None]
+    #: the same proof as a write of the recovery itself (the drain before the reset line)
+    recovery_prove: Callable[[int], None]
+    #: the closed-loop recovery (with the reset line if need be)
+    recover: Callable[[], None]
+    #: 0xFF and its whole reply (levels of each hardware channel's last pulse)
+    measured: Callable[[int, str], list[int]]
+    pace_for: Callable[[Sequence[tuple[float, float]]], None]
+    can_reset: Callable[[], bool]
+    resetting: Callable[[], bool]
+    needs_resync: Callable[[], bool]
+
+
+def scan_of(cfg: StimConfig, hw: bytes) -> float:
+    """v1.2's firmware-order estimate of a scan of the pattern ``hw`` at ``cfg``'s widths (µs)."""
+    return estimate_scan_us(hw, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us)
+
+
+def worst_scan_s(cfg: StimConfig) -> float:
+    """The longest scan a frame the guard allows can have (every channel biphasic, just within the
+    period): what to pace for when the firmware's pattern is unknown."""
+    period = firmware_period_us(cfg.rate_hz)
+    full = scan_of(cfg, bytes([PATTERN_BIPHASIC]) * cfg.electrode_count)  # two phases: the longest
+    return min(full, period - SCAN_GAP_MIN_US) / 1e6
+
+
+def recovery_timing(state: DriverState) -> tuple[float | None, float | None]:
+    """(period s, scan s) to pace and time the recovery for: the scan of the pattern last sent (a
+    pattern the host does not know — after a reset, a reconnect, or before any — counts as every channel
+    biphasic).  Should a fault have left a longer scan in force, zeros and 0xF5 may be lost: the proof
+    then fails and the reset line follows — the safe direction."""
+    cfg = state.config
+    if cfg is None:
+        return None, None
+    scan = state.scan_us / 1e6 if state.scan_us is not None else worst_scan_s(cfg)
+    return firmware_period_us(cfg.rate_hz) / 1e6, scan
+
+
+class Dialect(Protocol):
+    """How one firmware version expresses the device's operations (see :mod:`.v1_2` and :mod:`.v2`).
+
+    Every method takes the state in force and the link operations; none keeps state of its own, so one
+    instance serves every device (:data:`~tactdeform_hw.device.driver.dialects.DIALECTS`)."""
+
+    firmware: FirmwareSpec
+    #: the identification's signature answers the electrode count in force (v2's 0xF4)
+    signature_proves_count: bool
+
+    def validated(self, config: StimConfig, transfer: CurrentTransfer) -> StimConfig:
+        """``config`` checked against this firmware's encodable values (:class:`LimitError` if not)."""
+
+    def check_idle_scan(self, guard: SafetyGuard, config: StimConfig) -> None:
+        """Refuse, before any byte and before the caller's frame is superseded, a configuration whose idle
+        scan starves the parser (where the version refuses it there)."""
+
+    def check_levels(self, levels: Sequence[int]) -> None:
+        """Refuse a frame of valid levels this firmware cannot express."""
+
+    def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
+        """Send a whole configuration in an order that never stimulates with a half-set state."""
+
+    def frame(self, ops: LinkOps, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> None:
+        """Put one application-order frame on the firmware."""
+
+    def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
+        """The target changed: the frame in force (``levels``, None when suspended or unknown) follows."""
+
+    def off(self, ops: LinkOps, st: DriverState) -> None:
+        """Every channel off and every height 0 (at a proved boundary)."""
+
+    def refresh(self, ops: LinkOps, st: DriverState, *, sense: bool) -> None:
+        """The same registers again, so a firmware that lost or mis-read a byte is put right."""
+
+    def flush_parser(self, ops: LinkOps, st: DriverState) -> None:
+        """The closed-loop recovery: SUSPECT → … → IN_STEP, or raise (FAILED)."""
+
+    def prove(self, ops: LinkOps, electrodes: int) -> None:
+        """In step: a request whose reply proves every byte written before it read."""
+
+    def prove_stopped(self, ops: LinkOps, st: DriverState) -> None:
+        """``close``'s proof that nothing stimulates after the all-off."""
+
+    def resync_bound_now_s(self, ops: LinkOps, st: DriverState) -> float:
+        """The longest a resync that fails waits for its proofs at the configuration in force."""
+
+    def frame_commands(self, n: int) -> list[bytes]:
+        """The longest frame this dialect writes at electrode count ``n``, command by command."""
+
+    def heights_in_force(self, st: DriverState, mapping: ChannelMapping | None) -> list[int] | None:
+        """Each application electrode's DAC code in the pattern buffer (None where it holds levels)."""
+
+    def guardian_stop(self, electrode_count: int) -> bytes:
+        """The guardian's stop packet for this firmware at ``electrode_count``."""
+
+    def guardian_open_stop(self) -> bytes | None:
+        """The guardian's stop once the board proved this firmware (None: keep the guardian's default)."""
+
+
+__all__ = ["Dialect", "DriverState", "LinkOps", "recovery_timing", "scan_of", "worst_scan_s"]

@@ -1,0 +1,414 @@
+"""How the device layer speaks firmware v1.2: one pulse height per scan, levels in the pattern buffer.
+
+The height of each frame is the target lowered to the frame's lowest limit (see :mod:`..safety`); when it
+goes down it is written before the pattern, when it goes up after it, so no scan — not even one torn
+between the old and the new pattern — combines a pattern with a height that is too high for it.
+
+Recovery (:meth:`V12Dialect.flush_parser`): zeros that complete any u8 or u16 in progress, then a request
+whose reply of the expected length proves a command boundary and the queue read; then heights 0, the
+electrode count, and 0xFF whose reply length proves the count before any pattern.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from tactdeform_hw import protocol as p
+from tactdeform_hw.clock import SimulatedClock
+from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig, sense_code
+from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, recovery_timing, scan_of, worst_scan_s
+from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, SCAN_GAP_MIN_US, Pacer, firmware_period_us
+from tactdeform_hw.device.driver.readback import OFF_READING_CODES
+from tactdeform_hw.device.links.recovery import (
+    PROBE_LEAD_ZEROS,
+    RECOVERY_ATTEMPTS,
+    REPLY_POLL_S,
+    LinkState,
+)
+from tactdeform_hw.device.participant.mapping import ChannelMapping
+from tactdeform_hw.device.safety.guard import SafetyGuard
+from tactdeform_hw.device.safety.guardian import off_packet
+from tactdeform_hw.errors import NotStoppedError, ShortReplyError
+from tactdeform_hw.protocol.constants import CURRENT_STEP_UA, RX_QUEUE_SIZE
+from tactdeform_hw.protocol.firmware import V1_2
+from tactdeform_hw.protocol.units import CurrentTransfer
+
+
+def encodable(ops: LinkOps, height_ua: int) -> int:
+    """Under robust encoding no payload byte may look like a command byte: lower such heights."""
+    if not ops.pacer().robust or height_ua <= 0:
+        return height_ua
+    h = height_ua
+    while h > 0 and (ops.transfer.to_code(h) & 0xFF) >= COMMAND_BYTE_MIN:
+        h -= CURRENT_STEP_UA
+    if h != height_ua:
+        ops.guard.note_clip(
+            "encoding", height_ua, h, "pulse-height code whose low byte looks like a command byte"
+        )
+    return h
+
+
+class V12Dialect:
+    """Firmware v1.2 (see the module docstring)."""
+
+    firmware = V1_2
+    signature_proves_count = False
+
+    # --- configuration --------------------------------------------------------------------------------------
+
+    def validated(self, config: StimConfig, transfer: CurrentTransfer) -> StimConfig:
+        return config.validated(transfer)
+
+    def check_idle_scan(self, guard: SafetyGuard, config: StimConfig) -> None:
+        # v1.2 gives every channel the pattern has off a sense pulse and a discharge: a configuration whose
+        # all-off scan fills the period starves the parser (it could not even read an all-off), so it is
+        # refused before any byte
+        n = config.electrode_count
+        guard.check_scan(scan_of(config, bytes(n)), firmware_period_us(config.rate_hz), SCAN_GAP_MIN_US)
+
+    def check_levels(self, levels: Sequence[int]) -> None:
+        """Every valid level is expressible on v1.2."""
+
+    def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
+        """The height to 0 and every channel off first (no pulse uses a mixture of old and new settings),
+        the electrode count followed at once by an all-off pattern of the new length (no stale channel
+        above the old count comes back), polarity while all is off, the participant's current last."""
+        if ops.needs_resync():
+            ops.recover()
+        pacer = ops.pacer()
+        n = config.electrode_count
+        old = st.config
+        new_period = firmware_period_us(config.rate_hz)
+        idle_scan = scan_of(config, bytes(n))
+        # until the new rate and widths are read, the old ones run: pace for the slower of the two
+        timings = [(new_period, idle_scan)]
+        if old is not None:
+            before = st.scan_us if st.scan_us is not None else worst_scan_s(old) * 1e6
+            timings.append(
+                (firmware_period_us(old.rate_hz), max(before, scan_of(old, bytes(old.electrode_count))))
+            )
+        elif pacer.period_s is not None and pacer.scan_s is not None:
+            timings.append((pacer.period_s * 1e6, pacer.scan_s * 1e6))  # from the resync
+        # nothing known of the firmware's timing (a board just opened): the queue was proved empty and the
+        # configuration fits it (a long pattern waits for a proof first); the new rate is proved in force
+        # before anything else is paced by it
+        unknown_timing = old is None and (pacer.period_s is None or pacer.scan_s is None)
+        ops.pace_for(timings)
+        self._write_configuration(ops, st, config, unknown_timing)
+        height = encodable(
+            ops,
+            ops.guard.frame_height(None, config.current_ua, 0, config.pulse_width_us, raise_when_idle=True),
+        )
+        ops.send(p.encode_pulse_height(ops.transfer.to_code(height)))
+        st.config = config
+        st.current_ua = height
+        st.target_ua = config.current_ua
+        st.requested = None
+        st.suspended = False
+        st.scan_us = idle_scan
+        # a faster pace for the new timing only once the device proves it has read every command above
+        slower = pacer.payload_interval_s(), pacer.period_s, pacer.scan_s
+        pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
+        if unknown_timing or pacer.payload_interval_s() < slower[0]:
+            pacer.set_timing(slower[1], slower[2])
+            ops.prove(n)
+            pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
+
+    def _write_configuration(
+        self, ops: LinkOps, st: DriverState, config: StimConfig, unknown_timing: bool
+    ) -> None:
+        """Everything but the participant's current, in the order :meth:`configure` gives."""
+        pacer = ops.pacer()
+        n = config.electrode_count
+        old = st.config
+        in_force = [old.electrode_count if old is not None else 0]
+
+        def send(data: bytes) -> None:
+            long = data[0] == p.Opcode.PATTERN and pacer.queue_estimate() + len(data) + 4 > pacer.limit_bytes
+            if unknown_timing and long:
+                ops.prove(in_force[0])  # a long pattern goes into a queue proved empty
+            ops.send(data)
+            if data[0] == p.Opcode.ELECTRODE_NUM:
+                in_force[0] = data[1]
+
+        send(p.encode_pulse_height(0))
+        st.current_ua = 0
+        if old is not None:
+            send(p.encode_pattern(bytes(old.electrode_count)))
+        send(p.encode_sense_height(0))
+        st.sense_byte = 0
+        send(p.encode_electrode_num(n))
+        send(p.encode_pattern(bytes(n)))
+        st.last_pattern = bytes(n)
+        # a longer period goes first and a shorter one last, so no scan of the new widths meets the old,
+        # shorter period (the board's own period is unknown after opening or a reset: 10 ms at power-on)
+        longer = old is None or firmware_period_us(config.rate_hz) >= firmware_period_us(old.rate_hz)
+        if longer:
+            send(p.encode_frequency(config.rate_hz))
+        send(p.encode_polarity(POLARITY_CODE[config.polarity]))
+        send(p.encode_pulse_width(config.pulse_width_us))
+        send(p.encode_sense_width(config.sense_width_us))
+        send(p.encode_discharge(config.discharge_us))
+        if not longer:
+            send(p.encode_frequency(config.rate_hz))
+        send(p.encode_sense_height(sense_code(config.sense_current_ua, ops.transfer)))
+        st.sense_byte = sense_code(config.sense_current_ua, ops.transfer)
+
+    # --- frames ---------------------------------------------------------------------------------------------
+
+    def frame(self, ops: LinkOps, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> None:
+        """Height down first, pattern, height up last; the sense height likewise."""
+        cfg = st.config
+        assert cfg is not None
+        pacer = ops.pacer()
+        height = encodable(
+            ops,
+            ops.guard.frame_height(
+                levels, st.target_ua, st.current_ua, cfg.pulse_width_us, raise_when_idle=False
+            ),
+        )
+        hw = ops.mapping.to_hardware(levels) if ops.mapping is not None else bytes(levels)
+        period = firmware_period_us(cfg.rate_hz)
+        scan = scan_of(cfg, hw)
+        ops.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
+        before = st.scan_us if st.scan_us is not None else worst_scan_s(cfg) * 1e6
+        pacer.set_timing(period / 1e6, max(before, scan) / 1e6)
+        sense = sense_code(cfg.sense_current_ua, ops.transfer)  # an all-off stop set it to 0
+        if st.sense_byte is None or sense < st.sense_byte:
+            ops.send_critical(p.encode_sense_height(sense))
+            st.sense_byte = sense
+        if height < st.current_ua:
+            ops.send_critical(p.encode_pulse_height(ops.transfer.to_code(height)))
+            st.current_ua = height
+        if force_pattern or hw != st.last_pattern:
+            ops.send_critical(p.encode_pattern(hw, electrode_num=cfg.electrode_count))
+            st.last_pattern = hw
+            st.frames_sent += 1
+        if height > st.current_ua:
+            ops.send_critical(p.encode_pulse_height(ops.transfer.to_code(height)))
+            st.current_ua = height
+        if sense > st.sense_byte:
+            ops.send_critical(p.encode_sense_height(sense))
+            st.sense_byte = sense
+        st.suspended = False
+        st.scan_us = scan
+        pacer.set_timing(period / 1e6, scan / 1e6)
+
+    def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
+        cfg = st.config
+        assert cfg is not None
+        height = encodable(
+            ops,
+            ops.guard.frame_height(
+                levels, st.target_ua, st.current_ua, cfg.pulse_width_us, raise_when_idle=True
+            ),
+        )
+        if height != st.current_ua:
+            ops.send_critical(p.encode_pulse_height(ops.transfer.to_code(height)))
+            st.current_ua = height
+
+    def off(self, ops: LinkOps, st: DriverState) -> None:
+        cfg = st.config
+        assert cfg is not None
+        n = cfg.electrode_count
+        ops.send_critical(p.encode_pattern(bytes(n)))
+        ops.send_critical(p.encode_pulse_height(0))
+        st.last_pattern = bytes(n)
+        st.current_ua = 0
+        # the sense pulse is a current too, and a fault may have set it whatever the host believes
+        ops.send_critical(p.encode_sense_height(0))
+        st.sense_byte = 0
+        st.scan_us = scan_of(cfg, bytes(n))
+        ops.pacer().set_timing(firmware_period_us(cfg.rate_hz) / 1e6, st.scan_us / 1e6)
+
+    def refresh(self, ops: LinkOps, st: DriverState, *, sense: bool) -> None:
+        cfg = st.config
+        assert cfg is not None
+        pattern = st.last_pattern if st.last_pattern is not None else bytes(cfg.electrode_count)
+        if sense and st.sense_byte is not None:
+            ops.send(p.encode_sense_height(st.sense_byte))
+        ops.send(p.encode_pulse_height(ops.transfer.to_code(st.current_ua)))
+        ops.send(p.encode_pattern(pattern, electrode_num=cfg.electrode_count))
+
+    def heights_in_force(self, st: DriverState, mapping: ChannelMapping | None) -> list[int] | None:
+        return None
+
+    def guardian_stop(self, electrode_count: int) -> bytes:
+        return off_packet(electrode_count)
+
+    def guardian_open_stop(self) -> bytes | None:
+        return None  # the guardian's own default is v1.2's stop
+
+    # --- recovery -------------------------------------------------------------------------------------------
+
+    def prove(self, ops: LinkOps, electrodes: int) -> None:
+        """0xFF when the firmware's electrode count is ``electrodes`` >= 1 (cheap, and its length proves the
+        count too), else 0xF5 (about a millisecond of board detection)."""
+        ops.discard_input()
+        if electrodes >= 1:
+            request, size, what = p.MEASURE_REQUEST, 2 * electrodes, "measure"
+        else:
+            request, size, what = p.HV513_COUNT_REQUEST, 1, "hv513 count"
+        ops.send(request)
+        mark = ops.pacer().offset
+        reply = ops.await_reply(size)
+        if len(reply) != size:
+            ops.suspect(f"short reply to 0x{request[0]:02X}")
+            raise ShortReplyError(f"{what} (proof that the queue was read)", size, reply)
+        ops.proved(mark)
+
+    def flush_parser(self, ops: LinkOps, st: DriverState) -> None:
+        """SUSPECT → SYNCING (→ FLUSHING) → SAFE → VERIFYING → IN_STEP.
+
+        * SYNCING: four zeros (they complete any u8 or u16 in progress, so the request after them is read
+          as a command, or — by a pattern in progress — as one more level), then 0xFF when the firmware
+          should hold the configuration's electrode count, else 0xF5.  A reply of the expected length
+          proves the parser read the request as a command and every byte written before it.
+        * FLUSHING: no such reply: 256 zeros finish any pattern in progress, then the request again (and
+          0xF5 after a silent 0xFF, as a zero may have set the count to 0).  Still silent: FAILED, a locked
+          or hung parser that only the reset line reaches.
+        * SAFE: pulse height 0, sense height 0 and the electrode count, each with the loss-tolerant
+          padding so that one lost byte still cannot make a current.
+        * VERIFYING: 0xFF must be answered with exactly 2 × electrode count bytes; then an all-off pattern.
+          Otherwise one more round, then FAILED.
+
+        Time alone never proves anything here: each deadline only decides when to stop waiting."""
+        cfg = st.config
+        n = cfg.electrode_count if cfg is not None else 0
+        if cfg is not None:  # (before a configuration the wait is the unknown board's, ``unknown_reply_s``)
+            st.bound_seen_s = max(st.bound_seen_s, self.resync_bound_now_s(ops, st))
+        ops.pacer().set_timing(*recovery_timing(st))
+        for attempt in range(1, RECOVERY_ATTEMPTS + 1):
+            if ops.link_state() is not LinkState.SUSPECT:
+                ops.enter(LinkState.SUSPECT, f"recovery attempt {attempt}")
+            ops.discard_input()
+            self._sync(ops, 0 if st.after_reset else n)
+            st.after_reset = False
+            ops.enter(LinkState.SAFE, "answered: command boundary, queue drained")
+            ops.recovery_send(p.encode_pulse_height(0), pad=True)
+            st.current_ua = 0
+            ops.recovery_send(p.encode_sense_height(0), pad=True)
+            st.sense_byte = 0
+            st.last_pattern = None
+            if cfg is None:
+                ops.enter(LinkState.IN_STEP, "heights 0; no electrode count to prove")
+                return
+            ops.recovery_send(p.encode_electrode_num(n), pad=True)
+            ops.enter(LinkState.VERIFYING, f"electrode count {n} written")
+            ops.discard_input()
+            # the padding above ends every command before it
+            mark = ops.recovery_send(p.MEASURE_REQUEST, pad=True)
+            reply = ops.await_reply(2 * n)
+            if len(reply) == 2 * n:
+                ops.proved(mark)
+                ops.enter(LinkState.IN_STEP, f"0xFF answered with {2 * n} bytes")
+                break
+            if attempt == RECOVERY_ATTEMPTS:
+                ops.enter(LinkState.FAILED, f"0xFF answered with {len(reply)} of {2 * n} bytes")
+                raise ShortReplyError("measure after resync", 2 * n, reply)
+            ops.enter(LinkState.SUSPECT, f"0xFF answered with {len(reply)} of {2 * n} bytes")
+        assert cfg is not None
+        ops.send(p.encode_pattern(bytes(n)))
+        st.last_pattern = bytes(n)
+        st.scan_us = scan_of(cfg, bytes(n))
+        ops.pacer().set_timing(firmware_period_us(cfg.rate_hz) / 1e6, st.scan_us / 1e6)
+
+    def _sync(self, ops: LinkOps, electrodes: int) -> None:
+        """SYNCING, then FLUSHING if need be; returns in SAFE's entry condition or raises (FAILED)."""
+        ops.enter(LinkState.SYNCING, "zeros and a request")
+        if electrodes >= 1:
+            first = ops.recovery_send(bytes(PROBE_LEAD_ZEROS) + p.MEASURE_REQUEST, pad=True)
+            if len(ops.await_reply(2 * electrodes)) == 2 * electrodes:
+                ops.proved(first)
+                return
+            ops.discard_input()
+            why = "0xFF unanswered or answered short"
+        else:
+            first = ops.recovery_send(bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST, pad=True)
+            if ops.await_reply(1):
+                ops.proved(first)
+                return
+            why = "0xF5 unanswered"
+        ops.enter(LinkState.FLUSHING, why)
+        if electrodes >= 1:
+            # 0xFF again: cheap, and its length proves the count
+            ops.recovery_send(bytes(RX_QUEUE_SIZE) + p.MEASURE_REQUEST, pad=True)
+            reply = ops.await_reply(2 * electrodes)
+            if len(reply) == 2 * electrodes:
+                ops.proved(first)
+                return
+            if reply:  # answered, but not for this electrode count: SAFE writes the count, VERIFY checks it
+                ops.proved(first)
+                ops.discard_input()
+                return
+            # silence: a hung or locked parser — or a zero that landed as electrode count 0 (0xFF then
+            # answers nothing; nothing is scanned either).  Only 0xF5 tells them apart, at a millisecond
+            # of board detection spread over the gaps between scans; with a reset line at hand, the
+            # reset comes first instead (a hung board may be stimulating)
+            if ops.can_reset() and not ops.resetting():
+                ops.enter(LinkState.FAILED, f"0xFF unanswered after {RX_QUEUE_SIZE + PROBE_LEAD_ZEROS} zeros")
+                raise ShortReplyError(
+                    "0xFF after resync zeros (parser locked or hung: reset the board)", 2 * electrodes, b""
+                )
+            lead = PROBE_LEAD_ZEROS
+        else:
+            lead = RX_QUEUE_SIZE
+        ops.recovery_send(bytes(lead) + p.HV513_COUNT_REQUEST, pad=True)
+        if ops.await_reply(1):
+            # some 0xF5 of this recovery was read as a command, so every byte before the first one was
+            # read; the other may still answer (a stale byte the next request discards)
+            ops.proved(first)
+            return
+        ops.enter(LinkState.FAILED, f"unanswered after {RX_QUEUE_SIZE + PROBE_LEAD_ZEROS} zeros")
+        raise ShortReplyError("0xF5 after resync zeros (parser locked or hung: reset the board)", 1, b"")
+
+    def resync_bound_now_s(self, ops: LinkOps, st: DriverState) -> float:
+        """The request behind the zeros, then 256 zeros and the request again (and 0xF5 after 0xFF), each
+        until its deadline, behind one frame still in flight; on a simulated clock with a scratch pacer."""
+        cfg = st.config
+        n = cfg.electrode_count if cfg is not None else 0
+        clock = SimulatedClock()
+        scratch = Pacer(clock=clock, policy=ops.pacer().policy)
+        scratch.set_timing(*recovery_timing(st))
+        request, reply = (p.MEASURE_REQUEST, 2 * n) if n else (p.HV513_COUNT_REQUEST, 1)
+        copies = 2 if ops.pacer().robust else 1
+        for data in [c for c in self.frame_commands(n) for _ in range(copies)]:  # a frame still in flight
+            scratch.write(lambda _chunk: None, data)
+        steps = [(bytes(PROBE_LEAD_ZEROS) + request, reply), (bytes(RX_QUEUE_SIZE) + request, reply)]
+        if n and not ops.can_reset():
+            steps.append((bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST, 1))
+        for data, size in steps:
+            scratch.write(lambda _chunk: None, data)
+            period = scratch.period_s if scratch.period_s is not None else ops.unknown_reply_s
+            deadline = scratch.drained_by() + 0.003 + size * scratch.policy.byte_s + period
+            clock.advance(deadline - clock.now() + REPLY_POLL_S)
+        return clock.now()
+
+    def frame_commands(self, n: int) -> list[bytes]:
+        height = p.encode_pulse_height(0)
+        return [height, p.encode_pattern(bytes(n), electrode_num=n), height]
+
+    def prove_stopped(self, ops: LinkOps, st: DriverState) -> None:
+        """Every byte read (the proof), then — a whole period and scan later, when every channel's last
+        pulse is the all-off's — each channel's reading at (almost) 0.  The reply's length proves only
+        that the bytes were read: a duplicated 0xF9 turns ``F9 00`` into a sense height of 0xF9 (about
+        10 mA on every channel), and nothing but the readings shows it."""
+        cfg = st.config
+        n = cfg.electrode_count if cfg is not None else 0
+        ops.prove(n)
+        if cfg is None or n == 0:
+            return
+        pacer = ops.pacer()
+        scan_s = st.scan_us / 1e6 if st.scan_us is not None else worst_scan_s(cfg)
+        pacer.wait_until(pacer.drained_by() + firmware_period_us(cfg.rate_hz) / 1e6 + scan_s)
+        volts = ops.measured(n, "measure (the all-off's readings)")
+        live = [ch for ch, v in enumerate(volts) if v > OFF_READING_CODES]
+        if live:
+            ops.suspect("a channel reads current after the all-off")
+            raise NotStoppedError(
+                f"after the all-off, channel(s) {', '.join(map(str, live[:8]))}"
+                f"{' …' if len(live) > 8 else ''} still read current (above {OFF_READING_CODES} ADC codes)"
+            )
+
+
+__all__ = ["V12Dialect", "encodable"]

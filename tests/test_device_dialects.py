@@ -1,0 +1,203 @@
+"""What the device promises whatever firmware its board runs: every test here runs once per dialect of
+the registry (:data:`~tactdeform_hw.device.driver.dialects.DIALECTS`), on an in-process emulator of that
+version, and reads the board back through the version-independent readback."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import pytest
+
+from tactdeform_hw.device import ChannelMapping, EtactileKitDevice, SafetyGuard, StimConfig
+from tactdeform_hw.device.driver.dialects import DIALECTS
+from tactdeform_hw.device.driver.readback import pattern_readback
+from tactdeform_hw.device.driver.v2 import buffer_levels
+from tactdeform_hw.emulator import Emulator
+from tactdeform_hw.errors import LimitError, PortNotOpenError, ProtocolMisuseError, SafetyError
+from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec
+
+from .safety_helpers import RecordingPort
+
+SPECS = sorted(DIALECTS, key=lambda spec: spec.name)
+
+
+@pytest.fixture(params=SPECS, ids=lambda spec: spec.name)
+def spec(request: pytest.FixtureRequest) -> FirmwareSpec:
+    return request.param  # type: ignore[no-any-return]
+
+
+@pytest.fixture
+def port(spec: FirmwareSpec) -> RecordingPort:
+    return RecordingPort(Emulator(firmware=spec.name))
+
+
+@pytest.fixture
+def dev(port: RecordingPort) -> EtactileKitDevice:
+    d = EtactileKitDevice(port)
+    port.writes.clear()  # the identification and the proof at open: the tests look at what follows
+    return d
+
+
+def _levels(dev: EtactileKitDevice) -> tuple[int, ...]:
+    read = pattern_readback(dev)
+    assert read is not None
+    return read()
+
+
+def test_the_device_speaks_the_dialect_its_board_proved(spec: FirmwareSpec, dev: EtactileKitDevice) -> None:
+    assert dev.dialect is DIALECTS[spec] and dev.firmware == spec.name
+    assert dev.guard.firmware is spec
+
+
+@pytest.mark.parametrize(
+    ("call", "error"),
+    [
+        (lambda d: d.send_pattern([1] * 32), ProtocolMisuseError),  # before configure
+        (lambda d: d.set_current(100), ProtocolMisuseError),
+        (lambda d: d.measure(), ProtocolMisuseError),
+        (lambda d: d.configure(StimConfig(electrode_count=0)), LimitError),
+        (lambda d: d.configure(StimConfig(current_ua=10_010)), LimitError),
+        (lambda d: d.configure(StimConfig(current_ua=155)), LimitError),
+        (lambda d: d.configure(StimConfig(pulse_width_us=0)), LimitError),
+        (lambda d: d.configure(StimConfig(rate_hz=0)), LimitError),
+        (lambda d: d.configure(StimConfig(rate_hz=70_000)), LimitError),
+        (lambda d: d.configure(StimConfig(discharge_us=256)), LimitError),
+        (lambda d: d.configure(StimConfig(polarity="up")), LimitError),  # type: ignore[arg-type]
+        (lambda d: d.configure(StimConfig(pulse_width_us=float("nan"))), LimitError),  # type: ignore[arg-type]
+    ],
+)
+def test_refusals_before_configure_write_nothing(
+    dev: EtactileKitDevice,
+    port: RecordingPort,
+    call: Callable[[EtactileKitDevice], Any],
+    error: type[Exception],
+) -> None:
+    with pytest.raises(error):
+        call(dev)
+    assert port.writes == []
+
+
+@pytest.mark.parametrize(
+    ("levels", "error", "match"),
+    [
+        ([1] * 31, ProtocolMisuseError, "31 level"),
+        ([1] * 33, ProtocolMisuseError, "33 level"),
+        ([1] * 31 + [3], LimitError, r"pattern\[31\]"),
+        ([1] * 31 + [-1], LimitError, r"pattern\[31\]"),
+        ([1] * 31 + [1.0], LimitError, r"pattern\[31\]"),
+        ([1] * 31 + [True], LimitError, r"pattern\[31\]"),
+        (None, LimitError, "pattern"),
+    ],
+)
+def test_pattern_refusals_write_nothing(
+    dev: EtactileKitDevice, port: RecordingPort, levels: Any, error: type[Exception], match: str
+) -> None:
+    dev.configure(StimConfig(current_ua=100))
+    before = list(port.writes)
+    with pytest.raises(error, match=match):
+        dev.send_pattern(levels)
+    assert port.writes == before
+
+
+def test_current_above_cap_is_refused_and_nothing_written(port: RecordingPort) -> None:
+    dev = EtactileKitDevice(port, guard=SafetyGuard(cap_ua=2000))
+    port.writes.clear()
+    with pytest.raises(SafetyError):
+        dev.configure(StimConfig(current_ua=2500))
+    assert port.writes == []
+    dev.configure(StimConfig(current_ua=2000))
+    before = list(port.writes)
+    with pytest.raises(SafetyError):
+        dev.set_current(2010)
+    assert port.writes == before
+    dev.close()
+
+
+def test_a_frame_reaches_the_board_and_close_leaves_it_off(
+    dev: EtactileKitDevice, port: RecordingPort
+) -> None:
+    dev.configure(StimConfig(current_ua=1000))
+    dev.send_pattern([1] * 8 + [0] * 24)
+    assert _levels(dev) == (1,) * 8 + (0,) * 24 and dev.stimulating
+    dev.close()
+    dev.close()  # idempotent
+    assert buffer_levels(port.emulator.state())[:32] == [0] * 32 and not port.is_open
+    with pytest.raises(PortNotOpenError):
+        dev.send_pattern([0] * 32)
+
+
+def test_the_context_manager_switches_off_on_an_exception(port: RecordingPort) -> None:
+    with pytest.raises(RuntimeError):
+        with EtactileKitDevice(port) as dev:
+            dev.configure(StimConfig(current_ua=500))
+            dev.send_pattern([1] * 8 + [0] * 24)
+            raise RuntimeError("renderer crashed")
+    assert buffer_levels(port.emulator.state())[:32] == [0] * 32
+
+
+def test_a_channel_mapping_reorders_to_hardware(port: RecordingPort) -> None:
+    mapping = ChannelMapping.from_list([3, 2, 1, 0], hw_channels=4)
+    dev = EtactileKitDevice(port, mapping=mapping)
+    dev.configure(StimConfig(electrode_count=4, current_ua=100))
+    dev.send_pattern([1, 1, 0, 0])
+    assert buffer_levels(port.emulator.state())[:4] == [0, 0, 1, 1]
+    assert _levels(dev) == (1, 1, 0, 0)
+    with pytest.raises(LimitError, match="mapping"):
+        dev.configure(StimConfig(electrode_count=8))
+    dev.close()
+
+
+def test_measure_and_hv513(dev: EtactileKitDevice) -> None:
+    dev.configure(StimConfig(electrode_count=12))
+    assert dev.measure() == [0] * 12
+    assert dev.hv513_count() == 4
+    dev.close()
+
+
+def test_a_refused_frame_is_not_kept_for_keepalive(dev: EtactileKitDevice, port: RecordingPort) -> None:
+    """A frame the guard refuses (32 biphasic channels: a scan longer than the 8 ms period) leaves the
+    previous frame in force: keepalive neither resends the refused one nor raises."""
+    dev.configure(StimConfig(current_ua=500))
+    dev.send_pattern([1] * 8 + [0] * 24)
+    fed = dev.last_frame_time
+    with pytest.raises(SafetyError):
+        dev.send_pattern([2] * 32)
+    assert dev.last_frame_time == fed  # a refused frame does not feed the fail-safe watchdog
+    before = list(port.writes)
+    dev.keepalive()
+    assert port.writes == before
+    assert _levels(dev) == (1,) * 8 + (0,) * 24
+    dev.close()
+
+
+#: Per firmware: a configuration whose idle scan fills the period, the message, and one that fits.  v1.2
+#: gives each off channel a sense pulse and a discharge (255 channels with the 45 µs discharge take about
+#: 14.2 ms, more than 72 Hz's 13.9 ms); v2 pulses every channel each scan (32 at 200 µs exceed 5 ms).
+IDLE_SCAN = {
+    V1_2: (
+        StimConfig(electrode_count=255, current_ua=400, rate_hz=72),
+        "scan takes about 14",
+        StimConfig(electrode_count=255, current_ua=400, rate_hz=60),
+    ),
+    V2: (
+        StimConfig(electrode_count=32, current_ua=400, pulse_width_us=200, rate_hz=200),
+        "scan takes about",
+        StimConfig(electrode_count=32, current_ua=400, pulse_width_us=200, rate_hz=100),
+    ),
+}
+
+
+def test_every_dialect_has_an_idle_scan_case() -> None:
+    assert set(IDLE_SCAN) == set(DIALECTS)
+
+
+def test_a_configuration_whose_idle_scan_fills_the_period_is_refused_before_a_byte(
+    spec: FirmwareSpec, dev: EtactileKitDevice, port: RecordingPort
+) -> None:
+    refused, match, fits = IDLE_SCAN[spec]
+    with pytest.raises(SafetyError, match=match):
+        dev.configure(refused)
+    assert port.writes == []
+    dev.configure(fits)
+    dev.close()
