@@ -13,7 +13,7 @@ from collections.abc import Mapping, Sequence
 from types import MappingProxyType
 from typing import TYPE_CHECKING
 
-from tactdeform_hw.protocol.commands_v2 import STIM_MODE_IMPEDANCE
+from tactdeform_hw.protocol.commands import STIM_MODE_IMPEDANCE
 from tactdeform_hw.protocol.constants import PATTERN_BIPHASIC, PATTERN_MONOPHASIC
 from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec
 from tactdeform_hw.protocol.units import CurrentTransfer
