@@ -57,9 +57,9 @@ def test_configure_then_pattern_reaches_the_firmware(dev: EtactileKitDevice, por
     dev.configure(StimConfig(current_ua=1500, rate_hz=125, discharge_us=45))
     dev.send_pattern([1] * 16 + [0] * 15 + [2])
     s = port.emulator.state()
-    assert s["electrode_num"] == 32 and s["pulse_height"] == 150 and s["pulse_width"] == 200
-    assert s["discharge_time"] == 45 and s["period_us"] == 8000.0 and s["polarity"] == 1
-    assert s["stim_pattern"][:32] == [1] * 16 + [0] * 15 + [2]
+    assert s.electrode_num == 32 and s.pulse_height == 150 and s.pulse_width_us == 200
+    assert s.discharge_time_us == 45 and s.period_us == 8000.0 and s.polarity == 1
+    assert list(s.stim_pattern[:32]) == [1] * 16 + [0] * 15 + [2]
     assert safety_helpers.defects(port.emulator.hazards) == []  # the driver triggers no defect
     # one write per command, each a whole command
     for w in port.writes:
@@ -83,7 +83,7 @@ def test_reconfiguring_clears_stale_channels(dev: EtactileKitDevice, port: Recor
     dev.send_pattern([1] * 8)
     dev.configure(StimConfig(electrode_count=4, current_ua=100))
     dev.configure(StimConfig(electrode_count=8, current_ua=100))
-    assert port.emulator.state()["stim_pattern"][:8] == [0] * 8
+    assert list(port.emulator.state().stim_pattern[:8]) == [0] * 8
     assert safety_helpers.defects(port.emulator.hazards) == []
 
 
@@ -156,7 +156,7 @@ def test_close_sends_all_off_and_is_idempotent(dev: EtactileKitDevice, port: Rec
     dev.close()
     dev.close()
     s = port.emulator.state()
-    assert s["stim_pattern"][:32] == [0] * 32 and s["pulse_height"] == 0
+    assert list(s.stim_pattern[:32]) == [0] * 32 and s.pulse_height == 0
     assert not port.is_open
     with pytest.raises(PortNotOpenError):
         dev.send_pattern([0] * 32)
@@ -169,7 +169,7 @@ def test_context_manager_all_off_on_exception() -> None:
             dev.configure(StimConfig(current_ua=500))
             dev.send_pattern([2] * 8 + [0] * 24)
             raise RuntimeError("renderer crashed")
-    assert port.emulator.state()["stim_pattern"][:32] == [0] * 32
+    assert list(port.emulator.state().stim_pattern[:32]) == [0] * 32
 
 
 def test_channel_mapping_reorders_to_hardware(port: RecordingPort) -> None:
@@ -177,7 +177,7 @@ def test_channel_mapping_reorders_to_hardware(port: RecordingPort) -> None:
     dev = EtactileKitDevice(port, mapping=mapping)
     dev.configure(StimConfig(electrode_count=4, current_ua=100))
     dev.send_pattern([1, 0, 0, 2])
-    assert port.emulator.state()["stim_pattern"][:4] == [2, 0, 0, 1]
+    assert list(port.emulator.state().stim_pattern[:4]) == [2, 0, 0, 1]
     with pytest.raises(LimitError, match="mapping"):
         dev.configure(StimConfig(electrode_count=8))
 
@@ -265,10 +265,10 @@ def test_resync_recovers_a_desynchronised_parser(dev: EtactileKitDevice, port: R
     port.emulator.feed(b"\xfb\xdc")  # and a half pulse height
     dev.resync()
     s = port.emulator.state()
-    assert s["rx_pending"] == 0 and s["electrode_num"] == 32 and s["pulse_height"] == 30
-    assert s["stim_pattern"][:32] == [0] * 32
+    assert s.rx_pending == 0 and s.electrode_num == 32 and s.pulse_height == 30
+    assert list(s.stim_pattern[:32]) == [0] * 32
     dev.send_pattern([1] * 32)
-    assert port.emulator.state()["stim_pattern"][:32] == [1] * 32
+    assert list(port.emulator.state().stim_pattern[:32]) == [1] * 32
 
 
 def test_open_device_by_url_and_errors() -> None:
@@ -294,4 +294,4 @@ def test_a_refused_frame_is_not_kept_for_keepalive(dev: EtactileKitDevice, port:
     before = list(port.writes)
     dev.keepalive()
     assert port.writes == before
-    assert port.emulator.state()["stim_pattern"][:32] == [1] * 8 + [0] * 24
+    assert list(port.emulator.state().stim_pattern[:32]) == [1] * 8 + [0] * 24

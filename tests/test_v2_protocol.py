@@ -106,8 +106,8 @@ def test_what_the_encoders_send_is_what_v2_stores() -> None:
         + c.encode_frequency(125)
     )
     s = emu.state()
-    assert (s["electrode_num"], s["stim_mode"], s["pulse_width"], s["sense_pulse_height"]) == (3, 1, 0, 200)
-    assert s["stim_pattern"][:3] == [5, 4095, 0] and s["timer_alarm_ticks"] == 16000
+    assert (s.electrode_num, s.stim_mode, s.pulse_width_us, s.sense_pulse_height) == (3, 1, 0, 200)
+    assert list(s.stim_pattern[:3]) == [5, 4095, 0] and s.timer_alarm_ticks == 16000
     assert emu.feed(c.SYNC_CHECK) == c.encode_sync_reply(3)
     assert c.parse_sync_reply(emu.feed(c.SYNC_CHECK)) == 3
     assert c.parse_measure_reply(emu.feed(c.MEASURE_REQUEST), 3) == [0, 0, 0]

@@ -10,9 +10,11 @@ The firmware's main loop calls the parser over and over.  One call (see the prot
    so a command that needs 0 bytes never completes (the locked parser);
 3. sleep one RTOS tick and return.
 
-:meth:`Parser.call` is exactly one such call and tells the timed model what happened; :meth:`Parser.run`
-is the untimed fast path, equivalent to calling ``call`` until nothing changes (a property test holds the
-two together).
+:meth:`Parser.step` is exactly one such call and tells the timed model what happened in v1.2's own terms
+(:class:`CallResult`: the timed model needs to know a call spins on a half u16); :meth:`Parser.call` is the
+same call in the contract every version's parser keeps (:class:`~.contract.CallOutcome`);
+:meth:`Parser.run` is the untimed fast path, equivalent to calling ``step`` until nothing changes (a
+property test holds the two together).
 """
 
 from __future__ import annotations
@@ -20,12 +22,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from enum import Enum
 
+from tactdeform_hw.emulator.firmware.contract import CallOutcome
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind, UnknownRuns
 from tactdeform_hw.emulator.firmware.registers import Registers
 from tactdeform_hw.protocol import firmware_math as fm
 from tactdeform_hw.protocol.commands import encode_measure_reply
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513, Opcode
-from tactdeform_hw.protocol.firmware import V1_2
+from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 from tactdeform_hw.protocol.reader import u16_at
 
 _FIRMWARE = V1_2
@@ -87,6 +90,9 @@ class Parser(UnknownRuns):
     clear its chain model; ``on_command`` (optional) is told ``(opcode, value, offset)`` at completion.
     """
 
+    #: the table this parser reads (a class attribute: a parser is copied, its table never is)
+    spec: FirmwareSpec = _FIRMWARE
+
     def __init__(
         self,
         regs: Registers,
@@ -122,12 +128,26 @@ class Parser(UnknownRuns):
 
     # --- buffer -------------------------------------------------------------------------------------------
 
-    def receive(self, data: bytes) -> None:
+    def receive(self, data: bytes) -> int:
+        """Queue an arrival whole (the 256-byte queue and its losses are the timed model's); returns 0,
+        the bytes dropped."""
         if self.pos > 4096 and self.pos * 2 > len(self.rx):
             del self.rx[: self.pos]
             self.base += self.pos
             self.pos = 0
         self.rx += data
+        return 0
+
+    @property
+    def dropped(self) -> int:
+        """Always 0: this parser's buffer is unbounded; the receive queue's losses are the timed
+        model's."""
+        return 0
+
+    @property
+    def processing(self) -> bool:
+        """A command's byte was read and its payload is not complete (or never will be: locked)."""
+        return self.cmd is not None
 
     @property
     def pending(self) -> int:
@@ -202,7 +222,14 @@ class Parser(UnknownRuns):
 
     # --- one firmware call ---------------------------------------------------------------------------------
 
-    def call(self) -> CallResult:
+    def call(self, now_us: int) -> CallOutcome:
+        """One call in the contract all versions keep; v1.2's parser reads no timer (``now_us`` unused)."""
+        before, wrote = self.offset, len(self.tx)
+        result = self.step()
+        return CallOutcome(self.offset - before, len(self.tx) - wrote, result.slept)
+
+    def step(self) -> CallResult:
+        """One call, and what it did in v1.2's terms (the timed model's)."""
         rx = self.rx
         if self.cmd is None:
             if self.pos >= len(rx):
@@ -222,8 +249,16 @@ class Parser(UnknownRuns):
 
     # --- untimed fast path ---------------------------------------------------------------------------------
 
-    def run(self) -> None:
-        """Consume everything the firmware would consume from what is waiting (no timing)."""
+    def poll_until(self, to_us: int, settle: bool) -> None:
+        """Nothing: v1.2's parser has no timer, so polls without an arrival change nothing."""
+
+    def note_pending(self, now_us: int) -> None:
+        """Nothing: a v1.2 command waits for its payload forever; :meth:`run` records a half u16 and a
+        locked parser itself."""
+
+    def run(self, now_us: int = 0) -> None:
+        """Consume everything the firmware would consume from what is waiting (no timing; ``now_us``
+        unused: v1.2's parser reads no timer)."""
         rx = self.rx
         n = len(rx)
         while True:

@@ -15,29 +15,14 @@ byte, the rest of a packet dropped silently at the first byte that does not fit.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
+from tactdeform_hw.emulator.firmware.contract import CallOutcome
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind, UnknownRuns
 from tactdeform_hw.emulator.firmware.registers import RegistersV2
 from tactdeform_hw.protocol import firmware_math as fm
 from tactdeform_hw.protocol.commands import encode_measure_reply
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
 from tactdeform_hw.protocol.firmware import V2, CommandSpec, FirmwareSpec
-
-
-@dataclass(frozen=True)
-class CallOutcome:
-    """What one ``runEtactileKit()`` call did: bytes read from the queue, bytes written, whether it
-    ended with the one-tick sleep (``madeProgress`` false)."""
-
-    consumed: int
-    wrote: int
-    slept: bool
-
-    @property
-    def quiet(self) -> bool:
-        """Neither consumed nor wrote a byte: the driving loop stops here."""
-        return self.consumed == 0 and self.wrote == 0
 
 
 class ParserV2(UnknownRuns):
@@ -64,9 +49,12 @@ class ParserV2(UnknownRuns):
         self.spec = spec
         if spec.command_timeout_us is None:
             raise ValueError(f"firmware {spec.name} has no command timeout: it is not parsed by ParserV2")
-        self._timeout_us: int = spec.command_timeout_us
+        #: A command not complete this long after its byte was read is discarded (the table's value).
+        self.timeout_us: int = spec.command_timeout_us
         self.on_hv513_reinit = on_hv513_reinit
         self.on_command = on_command
+        #: v2 applies a payload whole and records it whole: no byte-by-byte intent to record.
+        self.meant_as_command: Callable[[int], bool] | None = None
         self.rx = bytearray()
         self.pos = 0
         self.base = 0  # absolute offset (bytes accepted since power-on) of rx[0]
@@ -157,7 +145,7 @@ class ParserV2(UnknownRuns):
                 consumed += self.required
                 self._apply()
                 made_progress = True
-            elif now_us - self.command_start_us > self._timeout_us:
+            elif now_us - self.command_start_us > self.timeout_us:
                 discarded = self.pending
                 consumed += discarded
                 self.hazards.append(
@@ -184,6 +172,35 @@ class ParserV2(UnknownRuns):
             pass
         self._flush_unknown()
 
+    def poll_until(self, to_us: int, settle: bool) -> None:
+        """The idle polls up to ``to_us - 1`` (so a cut command times out before an arrival at ``to_us``
+        if it would have), and with ``settle`` the poll at ``to_us``."""
+        self.run(to_us - 1)
+        if settle:
+            self.run(to_us)
+
+    def note_pending(self, now_us: int) -> None:
+        """A command left waiting for its payload is a hazard on v2: the 2 s timeout will discard it with
+        whatever the host sends meanwhile.  Recorded once per command."""
+        if not self.processing:
+            return
+        at = self.command_offset
+        last = self.hazards[-1] if self.hazards else None
+        if last is not None and last.kind is HazardKind.COMMAND_PENDING and last.offset == at:
+            return
+        self.hazards.append(
+            Hazard(
+                HazardKind.COMMAND_PENDING,
+                at,
+                {
+                    "command": self.spec.command(self.command).name,
+                    "needed": self.required,
+                    "queued": self.pending,
+                },
+                float(now_us),
+            )
+        )
+
     # --- pieces ----------------------------------------------------------------------------------------
 
     def _reply(self, spec: CommandSpec, offset: int) -> None:
@@ -195,7 +212,11 @@ class ParserV2(UnknownRuns):
             regs.hv513_num = self.hv513_detect()
             self.tx.append(regs.hv513_num & 0xFF)
             self.hazards.append(
-                Hazard(HazardKind.HV513_REINIT, offset, {"hv513_num": regs.hv513_num, "timer_paused": True})
+                Hazard(
+                    HazardKind.HV513_REINIT,
+                    offset,
+                    {"hv513_num": regs.hv513_num, "timer_paused": self.spec.hv513_pauses_timer},
+                )
             )
             if self.on_hv513_reinit is not None:
                 self.on_hv513_reinit()
@@ -286,3 +307,8 @@ class ParserV2(UnknownRuns):
     @property
     def command_in_progress(self) -> bool:
         return self.processing
+
+    @property
+    def locked(self) -> bool:
+        """Never: v2 completes a pattern with electrode_num 0 at once."""
+        return False

@@ -2,17 +2,39 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from tactdeform_hw.protocol import firmware_math as fm
 from tactdeform_hw.protocol.constants import PATTERN_BUFFER_SIZE, POWER_ON_PERIOD_US, POWER_ON_POLARITY
+from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec
+from tactdeform_hw.protocol.state import BoardState
 
 
-def _snapshot(regs: Registers | RegistersV2) -> dict[str, Any]:
-    """Every register but the voltages (read only by a measure request), the pattern as a copy."""
-    out = {name: getattr(regs, name) for name in regs.__slots__ if name != "voltage"}
-    out["stim_pattern"] = list(regs.stim_pattern)
-    return out
+def _board_state(
+    regs: Registers | RegistersV2,
+    firmware: FirmwareSpec,
+    stim_mode: int | None,
+    pulse_height: int | None,
+    rx_pending: int,
+    rx_dropped: int | None,
+    command_in_progress: bool | None,
+) -> BoardState:
+    return BoardState(
+        firmware=firmware,
+        electrode_num=regs.electrode_num,
+        polarity=regs.polarity,
+        stim_mode=stim_mode,
+        pulse_height=pulse_height,
+        pulse_width_us=regs.pulse_width,
+        sense_pulse_height=regs.sense_pulse_height,
+        sense_pulse_width_us=regs.sense_pulse_width,
+        discharge_time_us=regs.discharge_time,
+        period_us=regs.period_us,
+        timer_alarm_ticks=regs.timer_alarm_ticks,
+        hv513_num=regs.hv513_num,
+        stim_pattern=tuple(regs.stim_pattern),
+        rx_pending=rx_pending,
+        rx_dropped=rx_dropped,
+        command_in_progress=command_in_progress,
+    )
 
 
 class Registers:
@@ -48,8 +70,11 @@ class Registers:
         # voltage[ch] holds the ADC reading (raw >> 2) of the channel's last pulse; 0 until a scan runs.
         self.voltage = [0] * PATTERN_BUFFER_SIZE
 
-    def snapshot(self) -> dict[str, Any]:
-        return _snapshot(self)
+    def board_state(
+        self, rx_pending: int, rx_dropped: int | None = None, command_in_progress: bool | None = None
+    ) -> BoardState:
+        """These registers as a :class:`BoardState` (no stimulation mode on v1.2)."""
+        return _board_state(self, V1_2, None, self.pulse_height, rx_pending, rx_dropped, command_in_progress)
 
 
 #: The v2 registers a scan reads once, at its start (``etk.cpp:110-116``): what the timed model snapshots
@@ -93,5 +118,8 @@ class RegistersV2:
         # voltage[ch]: the u16 the scan stored for the channel (the second phase's reading when biphasic).
         self.voltage = [0] * PATTERN_BUFFER_SIZE
 
-    def snapshot(self) -> dict[str, Any]:
-        return _snapshot(self)
+    def board_state(
+        self, rx_pending: int, rx_dropped: int | None = None, command_in_progress: bool | None = None
+    ) -> BoardState:
+        """These registers as a :class:`BoardState` (no global pulse height on v2)."""
+        return _board_state(self, V2, self.stim_mode, None, rx_pending, rx_dropped, command_in_progress)

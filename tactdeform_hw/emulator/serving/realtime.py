@@ -38,13 +38,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from tactdeform_hw.emulator.core import Emulator
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
+from tactdeform_hw.emulator.firmware.models import model_entry
 from tactdeform_hw.emulator.firmware.skin import SkinModel
+from tactdeform_hw.emulator.timed.base import TimedModel
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel
-from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
-from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError
+from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec, get_firmware
+from tactdeform_hw.protocol.state import BoardState
 
 #: how late a wake-up may come before it counts as falling behind the wall clock
 BEHIND_LIMIT_US = 1000.0
@@ -96,13 +99,6 @@ SERIAL_USB = BuildRules("serial", "usb", flow_control=False)
 SERIAL_UART = BuildRules("serial-uart", "uart", flow_control=False)
 WIFI_TCP = BuildRules("wifi", "tcp", flow_control=True, receive_bytes=TCP_WINDOW_BYTES)
 BUILD_RULES = {r.name: r for r in (SERIAL_USB, SERIAL_UART, WIFI_TCP)}
-
-
-def build_rules(name: str) -> BuildRules:
-    try:
-        return BUILD_RULES[name]
-    except KeyError:
-        raise ConfigurationError(f"build rules {name!r}: use one of {', '.join(BUILD_RULES)}") from None
 
 
 @dataclass(frozen=True)
@@ -175,6 +171,7 @@ class ResetRecord:
         )
 
 
+#: The registers a reset record and the live view show, by the firmware's names (``BoardState.as_dict``).
 _SHOWN = (
     "electrode_num",
     "polarity",
@@ -188,15 +185,21 @@ _SHOWN = (
 )
 
 
-def _channels_on(regs: dict[str, Any]) -> list[int]:
+def _shown(state: BoardState) -> dict[str, Any]:
+    """The registers of :data:`_SHOWN` the version has."""
+    regs = state.as_dict()
+    return {k: regs[k] for k in _SHOWN if k in regs}
+
+
+def _channels_on(state: BoardState) -> list[int]:
     """Channels the scans give current: v1.2 pattern values 1 and 2; v2 a non-zero height (mode 0/1) or,
     in mode 2, every channel (the sense pulse) when the sense height is not 0."""
-    n = regs["electrode_num"]
-    pattern = regs["stim_pattern"][:n]
-    if "stim_mode" not in regs:
+    n = state.electrode_num
+    pattern = state.scanned_pattern
+    if state.stim_mode is None:  # v1.2: the pattern byte picks the waveform
         return [i for i, v in enumerate(pattern) if v in (1, 2)]
-    if regs["stim_mode"] == 2:
-        return list(range(n)) if regs["sense_pulse_height"] else []
+    if state.stim_mode == 2:
+        return list(range(n)) if state.sense_pulse_height else []
     return [i for i, v in enumerate(pattern) if v]
 
 
@@ -311,36 +314,20 @@ class RealtimeEmulator:
         behind_limit_us: float = BEHIND_LIMIT_US,
         follow_scans: bool = True,
         history_us: float = HISTORY_US,
-        firmware: str = "v1.2",
+        firmware: str | FirmwareSpec = "v1.2",
     ) -> None:
         self.rules = rules
-        self.firmware = firmware
-        self.timed: TimedEmulator | TimedEmulatorV2
-        if firmware == "v2":
-            if skin is not None:
-                raise ConfigurationError(
-                    "skin: the v2 timed model reads back the DAC codes, not a skin model"
-                )
-            self.timed = TimedEmulatorV2(
-                board,
-                switching_boards,
-                link=rules.make_link(),
-                tx_link=TcpLink() if rules.link == "tcp" else rules.link,
-                model=rules.timing(model),
-                stack_reading=stack_reading,
-            )
-        elif firmware == "v1.2":
-            self.timed = TimedEmulator(
-                board,
-                switching_boards,
-                link=rules.make_link(),
-                tx_link=TcpLink() if rules.link == "tcp" else None,
-                model=rules.timing(model),
-                skin=skin,
-                stack_reading=stack_reading,
-            )
-        else:
-            raise ConfigurationError(f"firmware={firmware!r}: the real-time board runs 'v1.2' or 'v2'")
+        entry = model_entry(firmware)
+        self.firmware: FirmwareSpec = entry.spec
+        self.timed: TimedModel = entry.timed_class().served(
+            board,
+            switching_boards,
+            link=rules.make_link(),
+            tx_link=TcpLink() if rules.link == "tcp" else None,
+            model=rules.timing(model),
+            skin=skin,
+            stack_reading=stack_reading,
+        )
         self.lock = threading.RLock()
         self._clock = clock
         self._t0 = clock()  # wall-clock time of device time 0
@@ -369,7 +356,7 @@ class RealtimeEmulator:
     def board(self) -> Any:
         return self.timed.board
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> BoardState:
         """The registers as of now (the model is brought up to the wall clock first)."""
         with self.lock:
             self._advance()
@@ -465,8 +452,7 @@ class RealtimeEmulator:
         with self.lock:
             self._advance()
             stale = self.timed.read_tx()
-            if isinstance(self.timed, TimedEmulatorV2):
-                self.timed.new_client(name)
+            self.timed.new_client(name)
             return stale
 
     # --- reset ---------------------------------------------------------------------------------------
@@ -476,7 +462,7 @@ class RealtimeEmulator:
         with self.lock:
             at = self._advance()
             regs = self.timed.state()
-            discarded = {k: regs[k] for k in _SHOWN if k in regs}
+            discarded = _shown(regs)
             discarded["channels_on"] = _channels_on(regs)
             discarded["queue_bytes"] = len(self.timed.queue)
             discarded["parser"] = self.timed.parser_status()
@@ -493,9 +479,8 @@ class RealtimeEmulator:
             at = self._advance()
             t = self.timed
             regs = t.state()
-            n = regs["electrode_num"]
-            shown = {k: regs[k] for k in _SHOWN if k in regs}
-            shown["pattern"] = tuple(regs["stim_pattern"][:n])
+            shown = _shown(regs)
+            shown["pattern"] = regs.scanned_pattern
             shown["on"] = tuple(_channels_on(regs))
             scans, rate = _scan_rate(t, at)
             hz = t.hazards
@@ -518,20 +503,9 @@ class RealtimeEmulator:
             )
 
 
-def _scan_rate(t: Any, at_us: float) -> tuple[int, float]:
+def _scan_rate(t: TimedModel, at_us: float) -> tuple[int, float]:
     """Scans since power-up and the current scan rate (0 when the scans stopped)."""
-    if isinstance(t, TimedEmulatorV2):
-        s = t.scans
-        if len(s) >= 2:
-            stride = s[-1].start_ns - s[-2].start_ns
-            if stride > 0 and s[-1].start_ns >= at_us * 1000 - 2 * stride:
-                return t.scan_count, 1e9 / stride
-        return t.scan_count, 0.0
-    if t.runs:
-        last = t.runs[-1]
-        if last.end_ns >= at_us * 1000 - 2 * last.stride_ns and last.stride_ns > 0:
-            return t.scans, 1e9 / last.stride_ns
-    return t.scans, 0.0
+    return t.scan_rate(at_us)
 
 
 # --- serving a board on a byte stream ------------------------------------------------------------------
@@ -539,24 +513,26 @@ def _scan_rate(t: Any, at_us: float) -> tuple[int, float]:
 ByteHook = Callable[[str, bytes, float], None]
 
 
-def reset_untimed(emulator: Any, reason: str) -> ResetRecord:
+def reset_untimed(emulator: Emulator, reason: str) -> ResetRecord:
     """Power-cycle an untimed :class:`~.core.Emulator` and say what it discarded (no clock: time 0)."""
     regs = emulator.state()
-    discarded = {k: regs[k] for k in _SHOWN if k in regs}
+    discarded = _shown(regs)
     discarded["channels_on"] = _channels_on(regs)
-    discarded["queue_bytes"] = regs["rx_pending"]
-    pending = regs.get("command_in_progress", getattr(emulator.parser, "cmd", None) is not None)
+    discarded["queue_bytes"] = regs.rx_pending
+    pending = emulator.parser.processing
     discarded["parser"] = "locked" if emulator.locked else "mid-command" if pending else "between commands"
     emulator.reset()
     return ResetRecord(reason, 0.0, discarded)
 
 
-def check_served_firmware(board: Any, firmware: str | None) -> None:
+def check_served_firmware(board: Any, firmware: str | FirmwareSpec | None) -> None:
     """Refuse a server's ``firmware`` that contradicts the board it was given: a server never claims a
     version it does not serve (None: whatever the board runs)."""
-    served = getattr(board, "firmware", "v1.2")
-    if firmware is not None and firmware != served:
-        raise ConfigurationError(f"firmware={firmware!r}, but the board given runs {served!r}")
+    if firmware is None:
+        return
+    served: FirmwareSpec = getattr(board, "firmware", V1_2)
+    if get_firmware(firmware) is not served:
+        raise ConfigurationError(f"firmware={firmware!r}, but the board given runs {served.name!r}")
 
 
 class BoardServer:
@@ -604,8 +580,9 @@ class BoardServer:
         """The firmware's parser and registers (``state()``, ``hazards``) whichever board is served."""
         return self.board.emulator if self.timed else self.board
 
-    def state(self) -> dict[str, Any]:
-        return self.board.state() if self.timed else dict(self.board.state())
+    def state(self) -> BoardState:
+        state: BoardState = self.board.state()
+        return state
 
     # --- control from any thread --------------------------------------------------------------------
 

@@ -42,19 +42,20 @@ from typing import Any, TypedDict
 
 from tactdeform_hw.clock import Clock, MonotonicClock, SimulatedClock
 from tactdeform_hw.emulator.core import Emulator
+from tactdeform_hw.emulator.firmware.models import model_entry
 from tactdeform_hw.emulator.firmware.skin import SkinModel
 from tactdeform_hw.emulator.serving.usb_client import EmulatedBoardBackend
+from tactdeform_hw.emulator.timed.base import TimedModel
 from tactdeform_hw.emulator.timed.link import LinkModel
-from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
-from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
-from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
+from tactdeform_hw.emulator.timed.timing import TimingModel
 from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
 from tactdeform_hw.protocol.constants import (
     ESP32S3_USB_JTAG_PID,
     ESPRESSIF_VID,
     USB_PACKET_SIZE,
 )
-from tactdeform_hw.protocol.firmware import FIRMWARES
+from tactdeform_hw.protocol.firmware import FirmwareSpec
+from tactdeform_hw.protocol.state import BoardState
 
 # --- USB constants ------------------------------------------------------------------------------------
 
@@ -246,13 +247,10 @@ class EmulatedUsbDevice:
         tx_link: str | LinkModel | None = None,
         skin: SkinModel | None = None,
         stack_reading: float | None = None,
-        firmware: str = "v1.2",
+        firmware: str | FirmwareSpec = "v1.2",
     ) -> None:
-        if firmware not in FIRMWARES:
-            raise ConfigurationError(f"firmware={firmware!r}: the emulated USB board runs 'v1.2' or 'v2'")
-        if firmware == "v2" and skin is not None:
-            raise ConfigurationError("skin: the v2 timed model reads back the DAC codes, not a skin model")
-        self.firmware = firmware
+        self._entry = model_entry(firmware)
+        self.firmware: FirmwareSpec = self._entry.spec
         self._make = _TimedOptions(board=board, switching_boards=switching_boards, link=link, tx_link=tx_link,
                                    model=timing, skin=skin, stack_reading=stack_reading)  # fmt: skip
         self.timed = self._new_timed()  # raises ConfigurationError for a bad board or model
@@ -290,23 +288,13 @@ class EmulatedUsbDevice:
         self._unplug_after_out: int | None = None
         self.nak_out = False  # the device NAKs every OUT packet (firmware no longer servicing USB)
 
-    def _new_timed(self) -> TimedEmulator | TimedEmulatorV2:
+    def _new_timed(self) -> TimedModel:
         opts = self._make.copy()
         if isinstance(opts["link"], LinkModel):
             opts["link"] = copy.deepcopy(opts["link"])
         if isinstance(opts["tx_link"], LinkModel):
             opts["tx_link"] = copy.deepcopy(opts["tx_link"])
-        if self.firmware == "v2":
-            model = opts["model"]
-            return TimedEmulatorV2(
-                opts["board"],
-                opts["switching_boards"],
-                link=opts["link"],
-                tx_link=opts["tx_link"] if opts["tx_link"] is not None else "usb",
-                model=model if model is not None else DEFAULT_MODEL,
-                stack_reading=opts["stack_reading"],
-            )
-        return TimedEmulator(**opts)
+        return self._entry.timed_class().served(**opts)
 
     # --- identity --------------------------------------------------------------------------------------
 
@@ -379,7 +367,7 @@ class EmulatedUsbDevice:
                 self.timed.advance_to(t)
             return t
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> BoardState:
         """The firmware's registers as of now (see :meth:`Emulator.state`)."""
         self.advance()
         return self.timed.state()
@@ -463,13 +451,14 @@ class EmulatedUsbDevice:
             self.timed.reset("USB Serial/JTAG reset released")
             self.timed.read_tx()
 
-    def run_firmware(self, timed: TimedEmulator | TimedEmulatorV2, t0: float) -> None:
+    def run_firmware(self, timed: TimedModel, t0: float) -> None:
         """Put ``timed`` (a real-time board's model, whose device time 0 is ``t0`` on the bus clock)
         behind this device's endpoints: the board served by ``emulate --usb`` is then one model, seen
         by the USB endpoints and by the live view alike."""
-        runs = "v2" if isinstance(timed, TimedEmulatorV2) else "v1.2"
-        if runs != self.firmware:
-            raise ConfigurationError(f"firmware={runs!r}: this device runs {self.firmware!r}")
+        if timed.firmware is not self.firmware:
+            raise ConfigurationError(
+                f"firmware={timed.firmware.name!r}: this device runs {self.firmware.name!r}"
+            )
         self.timed = timed
         self.t0 = t0
 

@@ -51,7 +51,9 @@ from typing import Any
 from tactdeform_hw.emulator.core import Emulator
 from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
-from tactdeform_hw.emulator.firmware.parser import CallResult
+from tactdeform_hw.emulator.firmware.models import model_entry
+from tactdeform_hw.emulator.firmware.parser import CallResult, Parser
+from tactdeform_hw.emulator.firmware.registers import Registers
 from tactdeform_hw.emulator.firmware.scan import (
     POWER_ON_CHAIN,
     ChainState,
@@ -70,18 +72,20 @@ from tactdeform_hw.emulator.records.reports import (
     TimingReports,
     TornInfo,
 )
+from tactdeform_hw.emulator.timed.base import TimedModel
 from tactdeform_hw.emulator.timed.link import (
     Delivery,
     LinkModel,
     ReceiveQueue,
-    UartLink,
-    UsbFsLink,
     make_link,
+    reply_link,
 )
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.constants import Opcode
 from tactdeform_hw.protocol.decoder import StreamDecoder
+from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
+from tactdeform_hw.protocol.state import BoardState
 
 _INF = math.inf
 #: a u16 completed this long after the main loop began spinning on its first byte is reported
@@ -188,6 +192,8 @@ def _ns(us: float) -> int:
 class TimedEmulator:
     """The eTactileKit controller in simulated time.  See the module documentation."""
 
+    firmware: FirmwareSpec = V1_2
+
     def __init__(
         self,
         board: str | Board = "compact",
@@ -205,26 +211,19 @@ class TimedEmulator:
         self.received_bytes = 0
         self.model = model if model is not None else DEFAULT_MODEL
         self.skin = skin if skin is not None else DEFAULT_SKIN
-        self.emulator = Emulator(board, switching_boards, stack_reading=stack_reading)
+        self.emulator = Emulator(board, switching_boards, stack_reading=stack_reading, firmware=V1_2)
         self.emulator.meant_as_command = self._meant_as_command
         self.emulator.parser.meant_as_command = self._meant_as_command
         self.board = self.emulator.board
         self.hazards: list[Hazard] = self.emulator.hazards
         self.link = make_link(link)
-        if tx_link is None:
-            inner = self.link
-            while hasattr(inner, "inner"):
-                inner = inner.inner
-            tx_link = (
-                UartLink(inner.baud, inner.bits_per_byte) if isinstance(inner, UartLink) else UsbFsLink()
-            )
-        self.tx_link = make_link(tx_link)
+        self.tx_link = make_link(tx_link) if tx_link is not None else reply_link(self.link)
         self.queue = ReceiveQueue(self.model.rx_queue_bytes)
         self.engine = ScanEngine(
             self.model, self.skin, physical_outputs(self.board.kind, self.board.switching_boards)
         )
         self.now_ns = 0
-        self.host = _HostLedger(decoder=StreamDecoder(self.emulator.registers.electrode_num))
+        self.host = _HostLedger(decoder=StreamDecoder(self.registers.electrode_num))
         self.rec = _Records()
         self.next_alarm: float = _INF  # the timer (set by _boot, with the main loop's state)
         self.fw = _MainLoop()
@@ -237,8 +236,10 @@ class TimedEmulator:
         return self.now_ns / 1000.0
 
     @property
-    def registers(self) -> Any:
-        return self.emulator.registers
+    def registers(self) -> Registers:
+        regs = self.emulator.registers
+        assert isinstance(regs, Registers)  # the v1.2 entry's registers
+        return regs
 
     # --- the records, by their public names ---
 
@@ -271,14 +272,11 @@ class TimedEmulator:
         """Scans the timer has run in this session (reboots included)."""
         return self.rec.scan_index
 
-    # the main loop's state under the names the fault layer reaches it by
-    _main_next = property(lambda self: self.fw.main_next, lambda self, v: setattr(self.fw, "main_next", v))
-    _main_wait = property(lambda self: self.fw.main_wait, lambda self, v: setattr(self.fw, "main_wait", v))
-    _host_offset = property(lambda self: self.host.offset)
-
     @property
-    def parser(self) -> Any:
-        return self.emulator.parser
+    def parser(self) -> Parser:
+        p = self.emulator.parser
+        assert isinstance(p, Parser)  # the v1.2 entry's parser
+        return p
 
     @property
     def reports(self) -> TimingReports:
@@ -298,10 +296,50 @@ class TimedEmulator:
         self._collect_tx()
         return len(self.host.rx)
 
-    def state(self) -> dict[str, Any]:
-        snap: dict[str, Any] = self.emulator.registers.snapshot()
-        snap["rx_pending"] = len(self.queue)
-        return snap
+    def state(self) -> BoardState:
+        """The registers; ``rx_pending`` counts this model's receive queue (the parser reads from it)."""
+        return self.registers.board_state(len(self.queue))
+
+    @classmethod
+    def served(
+        cls,
+        board: str | Board,
+        switching_boards: int,
+        *,
+        link: str | LinkModel,
+        tx_link: str | LinkModel | None,
+        model: TimingModel | None,
+        skin: SkinModel | None,
+        stack_reading: float | None,
+    ) -> TimedEmulator:
+        """The model a server runs (the real-time board, the emulated USB device): every server passes
+        the same options to every version's timed model."""
+        return cls(
+            board,
+            switching_boards,
+            link=link,
+            tx_link=tx_link,
+            model=model,
+            skin=skin,
+            stack_reading=stack_reading,
+        )
+
+    def scan_rate(self, at_us: float) -> tuple[int, float]:
+        """Scans since power-up and the current scan rate in Hz (0 when the scans stopped)."""
+        if self.runs:
+            last = self.runs[-1]
+            if last.end_ns >= at_us * 1000 - 2 * last.stride_ns and last.stride_ns > 0:
+                return self.scans, 1e9 / last.stride_ns
+        return self.scans, 0.0
+
+    def current_pulse_starts_us(self, since_us: float, now_us: float) -> list[float]:
+        """The start times of the delivered pulses that carried current between the two times."""
+        table = self.reports.pulse_table(since_us, now_us)
+        return [float(t) for t, ua in zip(table["start_us"], table["current_ua"], strict=True) if ua > 0]
+
+    def new_client(self, name: str) -> None:
+        """A new host connection starts: nothing changes on v1.2 (its parser has no timeout, so a cut
+        command takes the new host's bytes as payload whatever the time: recorded as any desync is)."""
 
     def write(self, data: bytes, at_us: float | None = None) -> int:
         """The host writes ``data`` at ``at_us`` (default: now).  Writes must come in time order; a write
@@ -448,7 +486,7 @@ class TimedEmulator:
         """Set the scan registers directly, as if a host had configured the device without link or parser
         time (for budgets, traces and latency experiments).  The alarm follows the new period like a
         frequency command would."""
-        regs = self.emulator.registers
+        regs = self.registers
         regs.electrode_num = cfg.electrode_num
         regs.polarity = cfg.polarity
         regs.pulse_height = cfg.pulse_height
@@ -494,7 +532,7 @@ class TimedEmulator:
         p.on_hv513_reinit = self._on_hv513_reinit
         self.chain: ChainState = POWER_ON_CHAIN
         start = t + (self.model.boot_ns if boot_delay else 0)
-        regs = self.emulator.registers
+        regs = self.registers
         last_reload = start + self.model.timer_start_ns
         self.next_alarm = last_reload + self.model.alarm_period_ns(regs.timer_alarm_ticks)
         if not self.stimulation:
@@ -778,7 +816,7 @@ class TimedEmulator:
                 self.fw.stuck_reported = False
                 self.fw.stuck_at = None
                 if op == _PATTERN:
-                    regs = self.emulator.registers
+                    regs = self.registers
                     self.rec.cur_old = bytes(regs.stim_pattern[: regs.electrode_num])
                     self.rec.cur_written = {}
                     self.rec.cur_first = {}
@@ -797,7 +835,7 @@ class TimedEmulator:
         self.fw.call_end_ns = ends[-1]
         self.fw.call_dev_last = dev0 + j - 1
         p.receive(data)
-        r = p.call()
+        r = p.step()
         if p.pending and not p.locked:  # pragma: no cover - the plan hands over whole units only
             raise AssertionError(f"parser left {p.pending} byte(s) unread")
         if outcome is not None and r is not (
@@ -838,7 +876,7 @@ class TimedEmulator:
         self.rec.cur = None
         self.rec.last_rep = rep
         rep.effect_us = t / 1000
-        regs = self.emulator.registers
+        regs = self.registers
         if op == _PATTERN:
             rep.value = bytes(regs.stim_pattern[: len(self.rec.cur_written)])
         else:
@@ -904,7 +942,7 @@ class TimedEmulator:
             return
         from tactdeform_hw.emulator.firmware.parser import register_after
 
-        field, stored = register_after(op, self.emulator.registers)
+        field, stored = register_after(op, self.registers)
         rep = self.rec.last_rep
         self.hazards.append(
             Hazard(
@@ -947,7 +985,7 @@ class TimedEmulator:
 
     def _retime_alarm(self, t: int) -> None:
         """The parser wrote a new alarm value: an alarm the running counter has passed fires at once."""
-        period = self.model.alarm_period_ns(self.emulator.registers.timer_alarm_ticks)
+        period = self.model.alarm_period_ns(self.registers.timer_alarm_ticks)
         if not self.stimulation:
             return
         if t - self.fw.last_reload >= period:
@@ -961,7 +999,7 @@ class TimedEmulator:
         p = self.parser
         if p.cmd != _PATTERN or p.locked or not (0 < p.count < p.needed) or self.rec.cur is None:
             return None
-        regs = self.emulator.registers
+        regs = self.registers
         k = min(p.count, n)
         changed = sum(
             1
@@ -972,7 +1010,7 @@ class TimedEmulator:
 
     def _scan(self, ta: int, target: int) -> None:
         m = self.model
-        regs = self.emulator.registers
+        regs = self.registers
         cfg = ScanConfig.from_registers(regs)
         tmpl = self.engine.template(cfg, self.chain)
         period = m.alarm_period_ns(regs.timer_alarm_ticks)
@@ -1076,7 +1114,7 @@ class TimedEmulator:
         torn = run.torn
         if torn is None or self.rec.cur is None:
             return
-        new = self.emulator.registers.stim_pattern
+        new = self.registers.stim_pattern
         old = self.rec.cur_old
         k = min(torn.new_channels, torn.electrode_num)
         changed = [
@@ -1320,14 +1358,12 @@ def pattern_latency(
 
 
 def timed_emulator(
-    board: str | Board = "compact", switching_boards: int = 1, *, firmware: str = "v1.2", **kwargs: Any
-) -> Any:
-    """The timed model of ``firmware``: :class:`TimedEmulator` for v1.2,
-    :class:`~.timed_v2.TimedEmulatorV2` for v2 (its own scan walker, parser and reports)."""
-    if firmware == "v1.2":
-        return TimedEmulator(board, switching_boards, **kwargs)
-    if firmware == "v2":
-        from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
-
-        return TimedEmulatorV2(board, switching_boards, **kwargs)
-    raise ConfigurationError(f"firmware={firmware!r} is not one of v1.2, v2")
+    board: str | Board = "compact",
+    switching_boards: int = 1,
+    *,
+    firmware: str | FirmwareSpec = "v1.2",
+    **kwargs: Any,
+) -> TimedModel:
+    """The timed model of ``firmware`` (its entry in :data:`~..firmware.models.MODELS`: :class:`TimedEmulator`
+    for v1.2, :class:`~.model_v2.TimedEmulatorV2` for v2, each with its own scan engine and reports)."""
+    return model_entry(firmware).timed(board, switching_boards, **kwargs)

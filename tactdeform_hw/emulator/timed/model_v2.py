@@ -46,13 +46,16 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
     trace_scan,
 )
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
-from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS
+from tactdeform_hw.emulator.firmware.parser_v2 import ParserV2
+from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
 from tactdeform_hw.emulator.firmware.scan import PulseKind
+from tactdeform_hw.emulator.firmware.skin import SkinModel
 from tactdeform_hw.emulator.records.reports import LossReport
-from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link
+from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link, reply_link
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
-from tactdeform_hw.protocol.firmware import V2, OpcodeV2
+from tactdeform_hw.protocol.firmware import V2, FirmwareSpec, OpcodeV2
+from tactdeform_hw.protocol.state import BoardState
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 #: StimulationMode 2 (impedance only): every channel gets the sense pulse, the pattern's heights unused.
@@ -271,7 +274,7 @@ class TimedEmulatorV2:
     """The v2 board in simulated time.  ``write(data, at_us)`` hands bytes to the link; ``advance_to``
     runs the firmware until then; ``read_tx`` returns what reached the host."""
 
-    firmware = "v2"
+    firmware: FirmwareSpec = V2
 
     def __init__(
         self,
@@ -284,7 +287,7 @@ class TimedEmulatorV2:
         conventions: ScanConventions = DEFAULT_CONVENTIONS,
         stack_reading: float | None = None,
     ) -> None:
-        self.emulator = Emulator(board, switching_boards, firmware="v2", stack_reading=stack_reading)
+        self.emulator = Emulator(board, switching_boards, firmware=V2, stack_reading=stack_reading)
         self.board = self.emulator.board
         self.model = model
         self.conventions = conventions
@@ -335,19 +338,63 @@ class TimedEmulatorV2:
     # --- the host side ---------------------------------------------------------------------------------
 
     @property
-    def registers(self) -> Any:
-        return self.emulator.registers
+    def registers(self) -> RegistersV2:
+        regs = self.emulator.registers
+        assert isinstance(regs, RegistersV2)  # the v2 entry's registers
+        return regs
 
     @property
-    def parser(self) -> Any:
-        return self.emulator.parser
+    def parser(self) -> ParserV2:
+        p = self.emulator.parser
+        assert isinstance(p, ParserV2)  # the v2 entry's parser
+        return p
 
     @property
     def now_us(self) -> float:
         return self.now_ns / 1000
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> BoardState:
         return self.emulator.state()
+
+    def scan_rate(self, at_us: float) -> tuple[int, float]:
+        """Scans since power-up and the current scan rate in Hz (0 when the scans stopped)."""
+        s = self.scans
+        if len(s) >= 2:
+            stride = s[-1].start_ns - s[-2].start_ns
+            if stride > 0 and s[-1].start_ns >= at_us * 1000 - 2 * stride:
+                return self.scan_count, 1e9 / stride
+        return self.scan_count, 0.0
+
+    def current_pulse_starts_us(self, since_us: float, now_us: float) -> list[float]:
+        """The start times of the delivered pulses that carried current between the two times."""
+        rows = self.delivered(since_us=since_us)
+        return [row["t_us"] for row in rows if row["current_ua"] > 0 and row["t_us"] <= now_us]
+
+    @classmethod
+    def served(
+        cls,
+        board: str | Board,
+        switching_boards: int,
+        *,
+        link: str | LinkModel,
+        tx_link: str | LinkModel | None,
+        model: TimingModel | None,
+        skin: SkinModel | None,
+        stack_reading: float | None,
+    ) -> TimedEmulatorV2:
+        """The model a server runs, from the options every server passes to every version's timed model.
+        v2 reads back DAC codes, not a skin model (``skin`` is refused); without ``tx_link`` replies
+        travel back over the same kind of link as the host's bytes (as on v1.2)."""
+        if skin is not None:
+            raise ConfigurationError("skin: the v2 timed model reads back the DAC codes, not a skin model")
+        return cls(
+            board,
+            switching_boards,
+            link=link,
+            tx_link=tx_link if tx_link is not None else reply_link(link),
+            model=model if model is not None else DEFAULT_MODEL,
+            stack_reading=stack_reading,
+        )
 
     def write(self, data: bytes, at_us: float | None = None) -> int:
         self.received_bytes += len(data)
@@ -361,6 +408,11 @@ class TimedEmulatorV2:
             self._seq += 1
         self._host_offset += len(data)
         return len(data)
+
+    @property
+    def host_offset(self) -> int:
+        """Bytes the host has written so far (the offset its next byte will have)."""
+        return self._host_offset
 
     def _collect_tx(self) -> None:
         if self._tx and self._tx[0][0] <= self.now_ns:
@@ -411,7 +463,7 @@ class TimedEmulatorV2:
         return t / 1000
 
     def _timeout_us(self) -> int:
-        return int(self.parser.spec.command_timeout_us)
+        return self.parser.timeout_us
 
     def run_until_idle(self, limit_us: float = 60e6, step_us: float = 1000.0) -> bool:
         """Advance until every delivery has landed and the parser has read all it can (a cut command may
@@ -532,7 +584,7 @@ class TimedEmulatorV2:
     # --- the firmware ----------------------------------------------------------------------------------
 
     def _period_ns(self) -> int:
-        return int(self.emulator.registers.timer_alarm_ticks) * self.conventions.timer_tick_ns
+        return int(self.registers.timer_alarm_ticks) * self.conventions.timer_tick_ns
 
     def _run(self, target: int) -> None:
         while True:
@@ -547,7 +599,7 @@ class TimedEmulatorV2:
                 self._main_call(call)
 
     def _scan(self, t: int) -> None:
-        regs = self.emulator.registers
+        regs = self.registers
         n = regs.electrode_num
         cfg = FirmwareScanConfig(
             electrode_num=n,
@@ -616,7 +668,7 @@ class TimedEmulatorV2:
 
     def _main_call(self, t: int) -> None:
         parser = self.emulator.parser
-        regs = self.emulator.registers
+        regs = self.registers
         self._land(t)
         hazards_before = len(self.hazards)
         self._call_time_ns = t
@@ -631,9 +683,12 @@ class TimedEmulatorV2:
                 self._loss(t, 1 + int(h.detail["discarded"]), self._host_of(h.offset), "command_timeout")
         m = self.model
         cost = m.call_ns + out.consumed * m.byte_ns
-        paused = self._hv513_in_call
-        if paused:
+        sensed = self._hv513_in_call
+        if sensed:
             cost += m.hv513_detect_ns
+        # while 0xF5 senses the stack the table says whether the stimulation timer is stopped (v2: it is,
+        # so no alarm interrupts that call; one due meanwhile fires when the timer is re-enabled)
+        paused = sensed and self.firmware.hv513_pauses_timer
         self._hv513_in_call = False
         end = t + cost
         alarm = self._next_alarm_ns
@@ -670,7 +725,7 @@ class TimedEmulatorV2:
         """The scan interrupt fires while this call applies a command: the scan sees the registers as
         the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
         old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
-        regs = self.emulator.registers
+        regs = self.registers
         m = self.model
         after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
         new = list(regs.stim_pattern)

@@ -42,6 +42,7 @@ from serial.serialutil import PortNotOpenError, SerialBase, SerialException, Tim
 
 from tactdeform_hw.clock import InstantClock, MonotonicClock
 from tactdeform_hw.emulator.core import Emulator
+from tactdeform_hw.emulator.firmware.models import model_entry
 from tactdeform_hw.emulator.serving.realtime import (
     BUILD_RULES,
     RealtimeEmulator,
@@ -50,9 +51,10 @@ from tactdeform_hw.emulator.serving.realtime import (
 )
 from tactdeform_hw.errors import ConfigurationError
 from tactdeform_hw.ports import PortBase
+from tactdeform_hw.protocol.state import BoardState
 
 _OPTIONS = ("board", "switching_boards", "stack_reading", "spy", "timed", "link", "firmware")
-_shared: dict[str, Any] = {}
+_shared: dict[str, Emulator | RealtimeEmulator] = {}
 _shared_lock = threading.Lock()
 _FALSE = ("0", "", "false", "no", "off")
 
@@ -146,10 +148,11 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         self.rts = True
         self.rts = False
 
-    def board_state(self) -> dict[str, Any]:
+    def board_state(self) -> BoardState:
         """The firmware's registers as the board holds them now."""
         self._check_open()
-        return self.emulator.state()  # type: ignore[no-any-return]
+        state: BoardState = self.emulator.state()
+        return state
 
     @property
     def board_hazards(self) -> list[Any]:
@@ -179,12 +182,12 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
             board = opts.get("board", "compact")
             switching = int(opts.get("switching_boards", "1"))
             reading = float(opts["stack_reading"]) if "stack_reading" in opts else None
-            firmware = opts.get("firmware", "v1.2")
+            firmware = model_entry(opts.get("firmware", "v1.2")).spec
         except ValueError as exc:
             raise SerialException(f"bad option value in {url!r}: {exc}") from exc
+        except ConfigurationError as exc:
+            raise SerialException(f"option {exc} in {url!r}") from exc
         self._spy = opts.get("spy", "0").lower() not in _FALSE
-        if firmware not in ("v1.2", "v2"):
-            raise SerialException(f"option firmware={firmware!r} in {url!r}: use v1.2 (the default) or v2")
         timed = opts.get("timed", "1").lower() not in _FALSE
         rules = BUILD_RULES["serial" if opts.get("link", "usb") == "usb" else "serial-uart"]
 
@@ -202,13 +205,11 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
                 emu = _shared.get(name)
                 if emu is None:
                     emu = _shared[name] = make()
-                elif (
-                    isinstance(emu, RealtimeEmulator) != timed or getattr(emu, "firmware", "v1.2") != firmware
-                ):
+                elif isinstance(emu, RealtimeEmulator) != timed or emu.firmware is not firmware:
                     have = "timed" if isinstance(emu, RealtimeEmulator) else "untimed"
                     raise SerialException(
-                        f"{url!r}: the board {name!r} is already open {have} with firmware "
-                        f"{getattr(emu, 'firmware', 'v1.2')}"
+                        f"{url!r}: the board {name!r} is already open {have} "
+                        f"with firmware {emu.firmware.name}"
                     )
                 return emu
         except (ValueError, ConfigurationError) as exc:

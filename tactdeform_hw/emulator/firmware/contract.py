@@ -1,0 +1,99 @@
+"""The one contract every firmware version's parser keeps, so the models above it never ask which
+version they drive.
+
+A parser is the firmware's ``runEtactileKit()`` and the receive queue it reads: bytes arrive
+(:meth:`FirmwareParser.receive`), the main loop calls it (:meth:`FirmwareParser.call` at the command
+timer's time: a version whose parser reads no timer ignores it), replies are taken
+(:meth:`FirmwareParser.take_tx`).  The untimed fast path (:meth:`FirmwareParser.run`) is equivalent to
+calling until a call neither reads nor writes; :meth:`FirmwareParser.poll_until` is the idle polling
+between arrivals (it matters only where a pending command times out).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+from tactdeform_hw.emulator.firmware.hazards import Hazard
+from tactdeform_hw.protocol.firmware import FirmwareSpec
+
+
+@dataclass(frozen=True)
+class CallOutcome:
+    """What one parser call did: bytes read from the queue, bytes written, whether it ended with the
+    one-tick sleep."""
+
+    consumed: int
+    wrote: int
+    slept: bool
+
+    @property
+    def quiet(self) -> bool:
+        """Neither consumed nor wrote a byte: the driving loop stops here."""
+        return self.consumed == 0 and self.wrote == 0
+
+
+class FirmwareParser(Protocol):
+    """The parser of one firmware version (see the module documentation)."""
+
+    spec: FirmwareSpec
+    hazards: list[Hazard]
+    on_command: Callable[[int, object, int], None] | None
+    on_hv513_reinit: Callable[[], None] | None
+    #: Was the byte at this offset meant as a command?  Recorded in command-byte-as-payload hazards where
+    #: the version reads payload bytes one by one (v1.2); unused elsewhere.
+    meant_as_command: Callable[[int], bool] | None
+
+    @property
+    def pending(self) -> int:
+        """Bytes queued and not read yet."""
+        ...
+
+    @property
+    def offset(self) -> int:
+        """Bytes read since power-on (the offset of the next byte to read)."""
+        ...
+
+    @property
+    def locked(self) -> bool:
+        """The parser will never read again (v1.2's pattern with electrode_num 0)."""
+        ...
+
+    @property
+    def processing(self) -> bool:
+        """A command's byte was read and its payload is not complete."""
+        ...
+
+    @property
+    def dropped(self) -> int:
+        """Bytes the parser's own receive queue dropped since power-on (0 where it has none)."""
+        ...
+
+    def receive(self, data: bytes) -> int:
+        """Queue one arrival; return the bytes dropped."""
+        ...
+
+    def call(self, now_us: int) -> CallOutcome:
+        """Exactly one main-loop call at command-timer time ``now_us``."""
+        ...
+
+    def run(self, now_us: int) -> None:
+        """Call until a call neither reads nor writes (the untimed fast path)."""
+        ...
+
+    def poll_until(self, to_us: int, settle: bool) -> None:
+        """The idle polls of the main loop up to just before ``to_us`` (and at ``to_us`` with
+        ``settle``): where nothing arrives only a timeout can happen."""
+        ...
+
+    def note_pending(self, now_us: int) -> None:
+        """Record a command left waiting for its payload after an arrival, where that is a hazard."""
+        ...
+
+    def take_tx(self) -> bytes:
+        """The bytes written since the last take."""
+        ...
+
+
+__all__ = ["CallOutcome", "FirmwareParser"]
