@@ -1,4 +1,4 @@
-"""The outer API every firmware version's timed model keeps.
+"""The outer API every firmware version's timed model keeps, and the part of it they share.
 
 A server (the real-time board, the emulated USB device, the pty and TCP servers), the fault layer and the
 campaigns drive a timed model without asking which version it runs: they write bytes at a time, run the
@@ -6,6 +6,9 @@ model to a time, read the replies that reached the host, reset it, and read its 
 what it delivered.  :class:`TimedModel` is that API; the timed model of each version
 (:class:`~.model_v1_2.TimedEmulator`, :class:`~.model_v2.TimedEmulatorV2`) keeps it, and the registry
 (:data:`~tactdeform_hw.emulator.firmware.models.MODELS`) names which class runs which version.
+:class:`TimedModelBase` holds what both implement alike (the clock in µs, stepping it, reading the
+replies that reached the host, running until idle, the typed state), so each model keeps only what its
+firmware does differently.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from tactdeform_hw.emulator.firmware.skin import SkinModel
 from tactdeform_hw.emulator.records.reports import LossReport
 from tactdeform_hw.emulator.timed.link import LinkModel
 from tactdeform_hw.emulator.timed.timing import TimingModel
+from tactdeform_hw.errors import LimitError
 from tactdeform_hw.protocol.firmware import FirmwareSpec
 from tactdeform_hw.protocol.state import BoardState
 
@@ -112,4 +116,89 @@ class TimedModel(Protocol):
         ...
 
 
-__all__ = ["ReceivePath", "TimedModel"]
+class TimedModelBase:
+    """What every timed model implements alike.  A subclass keeps the clock in ``now_ns`` and says where
+    its replies wait for the host (:meth:`_host_replies`, filled by :meth:`_collect_tx`), which host
+    bytes are still on the link (:meth:`_deliveries`), when nothing more will be read (:meth:`_idle`)
+    and how many bytes wait in its receive queue (:meth:`_rx_pending`)."""
+
+    firmware: FirmwareSpec
+    emulator: Emulator
+    now_ns: int
+
+    # --- what a subclass says ---------------------------------------------------------------------------
+
+    def advance_to(self, t_us: float) -> None:
+        raise NotImplementedError
+
+    def _collect_tx(self) -> None:
+        """Move the replies that have reached the host by now into :meth:`_host_replies`."""
+        raise NotImplementedError
+
+    def _host_replies(self) -> bytearray:
+        raise NotImplementedError
+
+    def _deliveries(self) -> list[tuple[int, int, Any]]:
+        """The host's bytes on their way: a heap of (arrival ns, sequence, delivery)."""
+        raise NotImplementedError
+
+    def _idle(self) -> bool:
+        """Every delivery has landed and the parser has read all it will read."""
+        raise NotImplementedError
+
+    def _rx_pending(self) -> int:
+        """Bytes waiting in the receive queue."""
+        raise NotImplementedError
+
+    # --- the shared outer API ---------------------------------------------------------------------------
+
+    @property
+    def now_us(self) -> float:
+        return self.now_ns / 1000.0
+
+    def advance(self, dt_us: float) -> None:
+        """Run the device for ``dt_us`` more µs."""
+        if not (dt_us >= 0):
+            raise LimitError("dt_us", dt_us, ">= 0")
+        self.advance_to(self.now_us + dt_us)
+
+    def read_tx(self, size: int | None = None) -> bytes:
+        """Reply bytes that have reached the host by now (all, or at most ``size``)."""
+        self._collect_tx()
+        rx = self._host_replies()
+        n = len(rx) if size is None else min(size, len(rx))
+        out = bytes(rx[:n])
+        del rx[:n]
+        return out
+
+    @property
+    def in_waiting(self) -> int:
+        """Reply bytes that have reached the host and were not read yet."""
+        self._collect_tx()
+        return len(self._host_replies())
+
+    @property
+    def in_flight(self) -> int:
+        """Bytes written by the host that have not reached the receive queue yet."""
+        return sum(len(d[2].data) for d in self._deliveries())
+
+    def run_until_idle(self, limit_us: float = 60e6, step_us: float = 1000.0) -> bool:
+        """Advance until every delivery has landed and the parser has read all it will read (a cut v2
+        command may stay pending), or ``limit_us`` of device time passed.  Returns whether it got idle."""
+        end = self.now_ns + round(limit_us * 1000.0)
+        while True:
+            if self._idle():
+                return True
+            if self.now_ns >= end:
+                return False
+            self.advance_to(min(end, self.now_ns + round(step_us * 1000.0)) / 1000.0)
+
+    def state(self) -> BoardState:
+        """The firmware's registers, and the bytes waiting in the receive queue."""
+        p = self.emulator.parser
+        if self.emulator.entry.parser_owns_queue:
+            return self.emulator.registers.board_state(p.pending, p.dropped, p.processing)
+        return self.emulator.registers.board_state(self._rx_pending())
+
+
+__all__ = ["ReceivePath", "TimedModel", "TimedModelBase"]

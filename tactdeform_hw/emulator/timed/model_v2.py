@@ -51,11 +51,11 @@ from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, Registe
 from tactdeform_hw.emulator.firmware.scan import PulseKind
 from tactdeform_hw.emulator.firmware.skin import SkinModel
 from tactdeform_hw.emulator.records.reports import LossReport
+from tactdeform_hw.emulator.timed.base import TimedModelBase
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link, reply_link
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.firmware import V2, FirmwareSpec, OpcodeV2
-from tactdeform_hw.protocol.state import BoardState
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 #: StimulationMode 2 (impedance only): every channel gets the sense pulse, the pattern's heights unused.
@@ -270,7 +270,7 @@ class _QueueView:
         return int(self._owner.emulator.parser.spec.rx_queue_bytes) - len(self)
 
 
-class TimedEmulatorV2:
+class TimedEmulatorV2(TimedModelBase):
     """The v2 board in simulated time.  ``write(data, at_us)`` hands bytes to the link; ``advance_to``
     runs the firmware until then; ``read_tx`` returns what reached the host."""
 
@@ -305,7 +305,7 @@ class TimedEmulatorV2:
         self.received_bytes = 0
         self.replies_dropped = 0  # reply bytes to commands of a host that had gone (see new_client)
         self._reply_offset: int | None = None
-        self._deliveries: list[tuple[int, int, Delivery]] = []
+        self._delivery_heap: list[tuple[int, int, Delivery]] = []
         self._seq = 0
         self._tx: list[tuple[int, bytes]] = []
         self._host_rx = bytearray()
@@ -348,13 +348,6 @@ class TimedEmulatorV2:
         p = self.emulator.parser
         assert isinstance(p, ParserV2)  # the v2 entry's parser
         return p
-
-    @property
-    def now_us(self) -> float:
-        return self.now_ns / 1000
-
-    def state(self) -> BoardState:
-        return self.emulator.state()
 
     def scan_rate(self, at_us: float) -> tuple[int, float]:
         """Scans since power-up and the current scan rate in Hz (0 when the scans stopped)."""
@@ -404,7 +397,7 @@ class TimedEmulatorV2:
         self.advance_to(t / 1000)
         self._host_stream.feed(bytes(data), self._host_offset)
         for d in self.link.schedule(bytes(data), t, self._host_offset):
-            heapq.heappush(self._deliveries, (d.t_ns, self._seq, d))
+            heapq.heappush(self._delivery_heap, (d.t_ns, self._seq, d))
             self._seq += 1
         self._host_offset += len(data)
         return len(data)
@@ -414,29 +407,23 @@ class TimedEmulatorV2:
         """Bytes the host has written so far (the offset its next byte will have)."""
         return self._host_offset
 
+    def _host_replies(self) -> bytearray:
+        return self._host_rx
+
+    def _deliveries(self) -> list[tuple[int, int, Delivery]]:
+        return self._delivery_heap
+
+    def _idle(self) -> bool:
+        p = self.parser
+        return not self._delivery_heap and (p.pending == 0 or (p.processing and p.pending < p.required))
+
+    def _rx_pending(self) -> int:
+        return self.parser.pending
+
     def _collect_tx(self) -> None:
         if self._tx and self._tx[0][0] <= self.now_ns:
             self._host_rx += b"".join(b for t, b in self._tx if t <= self.now_ns)
             self._tx = [(t, b) for t, b in self._tx if t > self.now_ns]
-
-    def read_tx(self, size: int | None = None) -> bytes:
-        """Reply bytes that have reached the host by now (all, or at most ``size``)."""
-        self._collect_tx()
-        n = len(self._host_rx) if size is None else min(size, len(self._host_rx))
-        out = bytes(self._host_rx[:n])
-        del self._host_rx[:n]
-        return out
-
-    @property
-    def in_waiting(self) -> int:
-        """Reply bytes that have reached the host and were not read yet."""
-        self._collect_tx()
-        return len(self._host_rx)
-
-    @property
-    def in_flight(self) -> int:
-        """Bytes written by the host that the firmware's receive queue has not taken yet."""
-        return sum(len(d[2].data) for d in self._deliveries)
 
     # --- what a real-time server needs ---------------------------------------------------------------
 
@@ -449,7 +436,7 @@ class TimedEmulatorV2:
         p = self.parser
         # bytes that landed are read by the parser's next call, not before
         t = min(
-            max(self._deliveries[0][0], self._next_call_ns) if self._deliveries else inf,
+            max(self._delivery_heap[0][0], self._next_call_ns) if self._delivery_heap else inf,
             self._tx[0][0] if self._tx else inf,
             self._next_alarm_ns if scans else inf,
         )
@@ -464,18 +451,6 @@ class TimedEmulatorV2:
 
     def _timeout_us(self) -> int:
         return self.parser.timeout_us
-
-    def run_until_idle(self, limit_us: float = 60e6, step_us: float = 1000.0) -> bool:
-        """Advance until every delivery has landed and the parser has read all it can (a cut command may
-        stay pending), or ``limit_us`` of device time passed.  Returns whether it got idle."""
-        end = self.now_ns + round(limit_us * 1000)
-        while True:
-            p = self.parser
-            if not self._deliveries and (p.pending == 0 or (p.processing and p.pending < p.required)):
-                return True
-            if self.now_ns >= end:
-                return False
-            self.advance_to(min(end, self.now_ns + round(step_us * 1000)) / 1000)
 
     def parser_status(self) -> str:
         """What the parser is doing, in words."""
@@ -496,9 +471,9 @@ class TimedEmulatorV2:
         p = self.parser
         if p.pending:
             self._loss(self.now_ns, p.pending, self._host_of(p.offset), "reboot")
-        for _, _, d in sorted(self._deliveries):
+        for _, _, d in sorted(self._delivery_heap):
             self._loss(self.now_ns, len(d.data), d.host_offset, "reboot")
-        self._deliveries.clear()
+        self._delivery_heap.clear()
         self._tx.clear()
         self._host_rx.clear()
         self.emulator.reset()
@@ -529,8 +504,8 @@ class TimedEmulatorV2:
     def _land(self, t: int) -> None:
         """Arrivals up to ``t`` into the receive queue (lost while the board boots or the queue is full)."""
         parser = self.parser
-        while self._deliveries and self._deliveries[0][0] <= t:
-            _, _, d = heapq.heappop(self._deliveries)
+        while self._delivery_heap and self._delivery_heap[0][0] <= t:
+            _, _, d = heapq.heappop(self._delivery_heap)
             if d.t_ns < self._booting_until:  # bytes that came while the board booted are lost
                 self._loss(d.t_ns, len(d.data), d.host_offset, "rebooting")
                 continue
