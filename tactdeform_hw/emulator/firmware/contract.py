@@ -34,6 +34,40 @@ class CallOutcome:
         return self.consumed == 0 and self.wrote == 0
 
 
+class ByteQueue:
+    """The bytes a parser has been handed and the bytes it wrote, as both versions' parsers keep them:
+    ``rx`` from absolute offset ``base``, read up to ``pos``; ``tx`` until taken."""
+
+    def __init__(self) -> None:
+        self.rx = bytearray()
+        self.pos = 0  # index of the next unread byte in rx
+        self.base = 0  # absolute offset (bytes handed over since power-on) of rx[0]
+        self.tx = bytearray()
+
+    @property
+    def pending(self) -> int:
+        """Bytes queued and not read yet."""
+        return len(self.rx) - self.pos
+
+    @property
+    def offset(self) -> int:
+        """Absolute offset of the next byte to be read."""
+        return self.base + self.pos
+
+    def take_tx(self) -> bytes:
+        """The bytes written since the last take."""
+        out = bytes(self.tx)
+        self.tx.clear()
+        return out
+
+    def _drop_read(self) -> None:
+        """Forget bytes already read once they are most of the buffer (a long session stays bounded)."""
+        if self.pos > 4096 and self.pos * 2 > len(self.rx):
+            del self.rx[: self.pos]
+            self.base += self.pos
+            self.pos = 0
+
+
 class FirmwareParser(Protocol):
     """The parser of one firmware version (see the module documentation)."""
 
@@ -96,4 +130,4 @@ class FirmwareParser(Protocol):
         ...
 
 
-__all__ = ["CallOutcome", "FirmwareParser"]
+__all__ = ["ByteQueue", "CallOutcome", "FirmwareParser"]

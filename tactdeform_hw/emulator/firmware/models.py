@@ -30,7 +30,7 @@ from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec, get_firmware
 from tactdeform_hw.protocol.state import BoardState
 
 if TYPE_CHECKING:
-    from tactdeform_hw.emulator.timed.base import TimedModel
+    from tactdeform_hw.emulator.timed.base import TimedModel, TimedModelBase
 
 #: The registers of any version (their fields differ: v1.2's ``pulse_height``, v2's ``stim_mode``).
 BoardRegisters = Registers | RegistersV2
@@ -56,21 +56,12 @@ class FirmwareModel(Protocol):
     def reset(self) -> None: ...
 
 
-def _v1_2_parts(hazards: list[Hazard], detect: Callable[[], int]) -> tuple[Registers, Parser]:
-    regs = Registers(hv513_num=detect())
-    return regs, Parser(regs, hazards, detect)
-
-
-def _v2_parts(hazards: list[Hazard], detect: Callable[[], int]) -> tuple[RegistersV2, ParserV2]:
-    regs = RegistersV2(hv513_num=detect())
-    return regs, ParserV2(regs, hazards, detect)
-
-
 @dataclass(frozen=True)
 class ModelEntry:
     """One firmware version's models.
 
-    ``parts(hazards, detect_hv513)`` makes its registers at power-on and the parser over them.
+    ``registers``: the class of its globals; ``parser``: its parser's class (called with the registers,
+    the hazard list and the board's stack detection).
     ``parser_owns_queue``: the parser holds the firmware's receive queue (v2: the 1024-byte HWCDC queue,
     whose drops and pending command are part of the board's state); otherwise the queue and its losses
     are the timed model's.  ``scan_module``: the scan engine the timed model runs (its docstring says how
@@ -79,15 +70,23 @@ class ModelEntry:
     """
 
     spec: FirmwareSpec
-    parts: Callable[[list[Hazard], Callable[[], int]], tuple[BoardRegisters, FirmwareParser]]
+    registers: type[Registers] | type[RegistersV2]
+    parser: Callable[[Any, list[Hazard], Callable[[], int]], FirmwareParser]
     parser_owns_queue: bool
     scan_module: str
     timed_model: str
 
-    def timed_class(self) -> type[TimedModel]:
+    def parts(
+        self, hazards: list[Hazard], detect_hv513: Callable[[], int]
+    ) -> tuple[BoardRegisters, FirmwareParser]:
+        """The registers at power-on (the stack sensed once) and the parser over them."""
+        regs = self.registers(hv513_num=detect_hv513())
+        return regs, self.parser(regs, hazards, detect_hv513)
+
+    def timed_class(self) -> type[TimedModelBase]:
         """The timed model's class."""
         module, name = self.timed_model.split(":")
-        cls: type[TimedModel] = getattr(importlib.import_module(module), name)
+        cls: type[TimedModelBase] = getattr(importlib.import_module(module), name)
         return cls
 
     def timed(self, board: Any = "compact", switching_boards: int = 1, **kwargs: Any) -> TimedModel:
@@ -102,14 +101,16 @@ MODELS: Mapping[FirmwareSpec, ModelEntry] = MappingProxyType(
     {
         V1_2: ModelEntry(
             spec=V1_2,
-            parts=_v1_2_parts,
+            registers=Registers,
+            parser=Parser,
             parser_owns_queue=False,
             scan_module="tactdeform_hw.emulator.firmware.scan",
             timed_model="tactdeform_hw.emulator.timed.model_v1_2:TimedEmulator",
         ),
         V2: ModelEntry(
             spec=V2,
-            parts=_v2_parts,
+            registers=RegistersV2,
+            parser=ParserV2,
             parser_owns_queue=True,
             scan_module="tactdeform_hw.emulator.firmware.firmware_scan",
             timed_model="tactdeform_hw.emulator.timed.model_v2:TimedEmulatorV2",

@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from enum import Enum
 
-from tactdeform_hw.emulator.firmware.contract import CallOutcome
+from tactdeform_hw.emulator.firmware.contract import ByteQueue, CallOutcome
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind, UnknownRuns
 from tactdeform_hw.emulator.firmware.registers import Registers
 from tactdeform_hw.protocol import firmware_math as fm
@@ -83,7 +83,7 @@ class CallResult(Enum):
         return self.value[1]
 
 
-class Parser(UnknownRuns):
+class Parser(ByteQueue, UnknownRuns):
     """Receive buffer + command state + the effects on :class:`Registers`.
 
     ``hv513_detect`` is the board's detection (called on 0xF5); ``on_hv513_reinit`` lets the scan engine
@@ -112,10 +112,7 @@ class Parser(UnknownRuns):
         #: (``meant_as_command``): a legitimate value byte >= 0xF5 (electrode count 255, width 250 µs) is
         #: recorded with False, a desynchronisation with True; None where the intent is unknown.
         self.meant_as_command: Callable[[int], bool] | None = None
-        self.rx = bytearray()
-        self.pos = 0  # index of the next unread byte in rx
-        self.base = 0  # absolute offset of rx[0]
-        self.tx = bytearray()
+        ByteQueue.__init__(self)
         self.cmd: int | None = None
         self.cmd_offset = 0
         self.needed = 0
@@ -131,10 +128,7 @@ class Parser(UnknownRuns):
     def receive(self, data: bytes) -> int:
         """Queue an arrival whole (the 256-byte queue and its losses are the timed model's); returns 0,
         the bytes dropped."""
-        if self.pos > 4096 and self.pos * 2 > len(self.rx):
-            del self.rx[: self.pos]
-            self.base += self.pos
-            self.pos = 0
+        self._drop_read()
         self.rx += data
         return 0
 
@@ -148,20 +142,6 @@ class Parser(UnknownRuns):
     def processing(self) -> bool:
         """A command's byte was read and its payload is not complete (or never will be: locked)."""
         return self.cmd is not None
-
-    @property
-    def pending(self) -> int:
-        return len(self.rx) - self.pos
-
-    @property
-    def offset(self) -> int:
-        """Absolute offset of the next byte to be read."""
-        return self.base + self.pos
-
-    def take_tx(self) -> bytes:
-        out = bytes(self.tx)
-        self.tx.clear()
-        return out
 
     # --- what the next call will do -------------------------------------------------------------------------
 

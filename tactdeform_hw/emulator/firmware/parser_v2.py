@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from tactdeform_hw.emulator.firmware.contract import CallOutcome
+from tactdeform_hw.emulator.firmware.contract import ByteQueue, CallOutcome
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind, UnknownRuns
 from tactdeform_hw.emulator.firmware.registers import RegistersV2
 from tactdeform_hw.protocol import firmware_math as fm
@@ -25,7 +25,7 @@ from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
 from tactdeform_hw.protocol.firmware import V2, CommandSpec, FirmwareSpec
 
 
-class ParserV2(UnknownRuns):
+class ParserV2(ByteQueue, UnknownRuns):
     """Receive queue + the parser's static state + the effects on :class:`RegistersV2`.
 
     ``hv513_detect`` is the board's stack sensing (0xF5); ``on_hv513_reinit`` tells a scan model that
@@ -55,10 +55,7 @@ class ParserV2(UnknownRuns):
         self.on_command = on_command
         #: v2 applies a payload whole and records it whole: no byte-by-byte intent to record.
         self.meant_as_command: Callable[[int], bool] | None = None
-        self.rx = bytearray()
-        self.pos = 0
-        self.base = 0  # absolute offset (bytes accepted since power-on) of rx[0]
-        self.tx = bytearray()
+        ByteQueue.__init__(self)
         self.dropped = 0
         self.processing = False
         self.required = 0
@@ -71,20 +68,9 @@ class ParserV2(UnknownRuns):
 
     # --- the receive queue -----------------------------------------------------------------------------
 
-    @property
-    def pending(self) -> int:
-        return len(self.rx) - self.pos
-
-    @property
-    def offset(self) -> int:
-        return self.base + self.pos
-
     def receive(self, data: bytes) -> int:
         """Queue one arrival packet by packet; return the bytes dropped because the queue was full."""
-        if self.pos > 4096 and self.pos * 2 > len(self.rx):
-            del self.rx[: self.pos]
-            self.base += self.pos
-            self.pos = 0
+        self._drop_read()
         capacity = self.spec.rx_queue_bytes
         packet = self.spec.usb_packet_bytes
         lost = 0
@@ -107,11 +93,6 @@ class ParserV2(UnknownRuns):
             )
         self.dropped += lost
         return lost
-
-    def take_tx(self) -> bytes:
-        out = bytes(self.tx)
-        self.tx.clear()
-        return out
 
     # --- one main-loop call ----------------------------------------------------------------------------
 

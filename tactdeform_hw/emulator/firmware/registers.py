@@ -37,13 +37,13 @@ def _board_state(
     )
 
 
-class Registers:
-    """Plain attributes (the parser's hot loop touches them); ``snapshot`` hands out copies."""
+class _RegisterFile:
+    """The globals every version has, at their power-on values.  Plain slotted attributes: the parser's
+    hot loop touches them."""
 
     __slots__ = (
         "electrode_num",
         "polarity",
-        "pulse_height",
         "pulse_width",
         "sense_pulse_height",
         "sense_pulse_width",
@@ -51,14 +51,12 @@ class Registers:
         "period_us",
         "timer_alarm_ticks",
         "hv513_num",
-        "stim_pattern",
         "voltage",
     )
 
-    def __init__(self, hv513_num: int = 0) -> None:
+    def __init__(self, hv513_num: int) -> None:
         self.electrode_num = 0
         self.polarity = POWER_ON_POLARITY
-        self.pulse_height = 0
         self.pulse_width = 0
         self.sense_pulse_height = 0
         self.sense_pulse_width = 0
@@ -66,9 +64,19 @@ class Registers:
         self.period_us = POWER_ON_PERIOD_US
         self.timer_alarm_ticks = fm.alarm_ticks(POWER_ON_PERIOD_US)
         self.hv513_num = hv513_num
-        self.stim_pattern = bytearray(PATTERN_BUFFER_SIZE)
-        # voltage[ch] holds the ADC reading (raw >> 2) of the channel's last pulse; 0 until a scan runs.
         self.voltage = [0] * PATTERN_BUFFER_SIZE
+
+
+class Registers(_RegisterFile):
+    """The v1.2 firmware's globals: one global pulse height, one pattern byte per electrode.
+    ``voltage[ch]`` holds the ADC reading (raw >> 2) of the channel's last pulse; 0 until a scan runs."""
+
+    __slots__ = ("pulse_height", "stim_pattern")
+
+    def __init__(self, hv513_num: int = 0) -> None:
+        super().__init__(hv513_num)
+        self.pulse_height = 0
+        self.stim_pattern = bytearray(PATTERN_BUFFER_SIZE)
 
     def board_state(
         self, rx_pending: int, rx_dropped: int | None = None, command_in_progress: bool | None = None
@@ -90,33 +98,17 @@ V2_SCAN_REGISTERS = (
 )
 
 
-class RegistersV2:
+class RegistersV2(_RegisterFile):
     """The v2 firmware's globals (``etk.cpp:3-22``): per-electrode u16 heights, a stimulation mode and
-    no global pulse height."""
+    no global pulse height.  ``voltage[ch]``: the u16 the scan stored for the channel (the second phase's
+    reading when biphasic)."""
 
-    __slots__ = (
-        *V2_SCAN_REGISTERS,
-        "period_us",
-        "timer_alarm_ticks",
-        "hv513_num",
-        "stim_pattern",
-        "voltage",
-    )
+    __slots__ = ("stim_mode", "stim_pattern")
 
     def __init__(self, hv513_num: int = 0) -> None:
-        self.electrode_num = 0
-        self.polarity = POWER_ON_POLARITY
+        super().__init__(hv513_num)
         self.stim_mode = 0
-        self.pulse_width = 0
-        self.sense_pulse_height = 0
-        self.sense_pulse_width = 0
-        self.discharge_time = 0
-        self.period_us = POWER_ON_PERIOD_US
-        self.timer_alarm_ticks = fm.alarm_ticks(POWER_ON_PERIOD_US)
-        self.hv513_num = hv513_num
         self.stim_pattern = [0] * PATTERN_BUFFER_SIZE
-        # voltage[ch]: the u16 the scan stored for the channel (the second phase's reading when biphasic).
-        self.voltage = [0] * PATTERN_BUFFER_SIZE
 
     def board_state(
         self, rx_pending: int, rx_dropped: int | None = None, command_in_progress: bool | None = None

@@ -50,21 +50,6 @@ class TimedModel(Protocol):
     received_bytes: int
     reboots: int
 
-    @classmethod
-    def served(
-        cls,
-        board: str | Board,
-        switching_boards: int,
-        *,
-        link: str | LinkModel,
-        tx_link: str | LinkModel | None,
-        model: TimingModel | None,
-        skin: SkinModel | None,
-        stack_reading: float | None,
-    ) -> TimedModel:
-        """The model a server runs, from the options every server passes to every version."""
-        ...
-
     @property
     def now_us(self) -> float: ...
 
@@ -151,6 +136,37 @@ class TimedModelBase:
         raise NotImplementedError
 
     # --- the shared outer API ---------------------------------------------------------------------------
+
+    @classmethod
+    def served(
+        cls,
+        board: str | Board,
+        switching_boards: int,
+        *,
+        link: str | LinkModel,
+        tx_link: str | LinkModel | None,
+        model: TimingModel | None,
+        skin: SkinModel | None,
+        stack_reading: float | None,
+    ) -> TimedModel:
+        """The model a server runs (the real-time board, the emulated USB device): every server passes
+        the same options to every version's timed model; :meth:`_served_options` adapts them."""
+        make: Any = cls
+        options = cls._served_options(link=link, tx_link=tx_link, model=model, skin=skin)
+        built: TimedModel = make(board, switching_boards, stack_reading=stack_reading, **options)
+        return built
+
+    @classmethod
+    def _served_options(
+        cls,
+        *,
+        link: str | LinkModel,
+        tx_link: str | LinkModel | None,
+        model: TimingModel | None,
+        skin: SkinModel | None,
+    ) -> dict[str, Any]:
+        """The model's own keyword arguments for a server's options (default: the same names)."""
+        return {"link": link, "tx_link": tx_link, "model": model, "skin": skin}
 
     @property
     def now_us(self) -> float:

@@ -193,30 +193,6 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
             lo.parser_now = now
         return self.rec.losses
 
-    @classmethod
-    def served(
-        cls,
-        board: str | Board,
-        switching_boards: int,
-        *,
-        link: str | LinkModel,
-        tx_link: str | LinkModel | None,
-        model: TimingModel | None,
-        skin: SkinModel | None,
-        stack_reading: float | None,
-    ) -> TimedEmulator:
-        """The model a server runs (the real-time board, the emulated USB device): every server passes
-        the same options to every version's timed model."""
-        return cls(
-            board,
-            switching_boards,
-            link=link,
-            tx_link=tx_link,
-            model=model,
-            skin=skin,
-            stack_reading=stack_reading,
-        )
-
     def scan_rate(self, at_us: float) -> tuple[int, float]:
         """Scans since power-up and the current scan rate in Hz (0 when the scans stopped)."""
         if self.runs:

@@ -364,30 +364,23 @@ class TimedEmulatorV2(TimedModelBase):
         return [row["t_us"] for row in rows if row["current_ua"] > 0 and row["t_us"] <= now_us]
 
     @classmethod
-    def served(
+    def _served_options(
         cls,
-        board: str | Board,
-        switching_boards: int,
         *,
         link: str | LinkModel,
         tx_link: str | LinkModel | None,
         model: TimingModel | None,
         skin: SkinModel | None,
-        stack_reading: float | None,
-    ) -> TimedEmulatorV2:
-        """The model a server runs, from the options every server passes to every version's timed model.
-        v2 reads back DAC codes, not a skin model (``skin`` is refused); without ``tx_link`` replies
+    ) -> dict[str, Any]:
+        """v2 reads back DAC codes, not a skin model (``skin`` is refused); without ``tx_link`` replies
         travel back over the same kind of link as the host's bytes (as on v1.2)."""
         if skin is not None:
             raise ConfigurationError("skin: the v2 timed model reads back the DAC codes, not a skin model")
-        return cls(
-            board,
-            switching_boards,
-            link=link,
-            tx_link=tx_link if tx_link is not None else reply_link(link),
-            model=model if model is not None else DEFAULT_MODEL,
-            stack_reading=stack_reading,
-        )
+        return {
+            "link": link,
+            "tx_link": tx_link if tx_link is not None else reply_link(link),
+            "model": model if model is not None else DEFAULT_MODEL,
+        }
 
     def write(self, data: bytes, at_us: float | None = None) -> int:
         self.received_bytes += len(data)
