@@ -152,21 +152,15 @@ class TimedModelBase:
         """The model a server runs (the real-time board, the emulated USB device): every server passes
         the same options to every version's timed model; :meth:`_served_options` adapts them."""
         make: Any = cls
-        options = cls._served_options(link=link, tx_link=tx_link, model=model, skin=skin)
+        options = cls._served_options({"link": link, "tx_link": tx_link, "model": model, "skin": skin})
         built: TimedModel = make(board, switching_boards, stack_reading=stack_reading, **options)
         return built
 
     @classmethod
-    def _served_options(
-        cls,
-        *,
-        link: str | LinkModel,
-        tx_link: str | LinkModel | None,
-        model: TimingModel | None,
-        skin: SkinModel | None,
-    ) -> dict[str, Any]:
-        """The model's own keyword arguments for a server's options (default: the same names)."""
-        return {"link": link, "tx_link": tx_link, "model": model, "skin": skin}
+    def _served_options(cls, options: dict[str, Any]) -> dict[str, Any]:
+        """The model's own keyword arguments for a server's ``link``, ``tx_link``, ``model`` and
+        ``skin`` (default: the same names)."""
+        return options
 
     @property
     def now_us(self) -> float:

@@ -49,7 +49,6 @@ from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.firmware.parser_v2 import ParserV2
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
 from tactdeform_hw.emulator.firmware.scan import PulseKind
-from tactdeform_hw.emulator.firmware.skin import SkinModel
 from tactdeform_hw.emulator.records.reports import LossReport
 from tactdeform_hw.emulator.timed.base import TimedModelBase
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link, reply_link
@@ -364,21 +363,15 @@ class TimedEmulatorV2(TimedModelBase):
         return [row["t_us"] for row in rows if row["current_ua"] > 0 and row["t_us"] <= now_us]
 
     @classmethod
-    def _served_options(
-        cls,
-        *,
-        link: str | LinkModel,
-        tx_link: str | LinkModel | None,
-        model: TimingModel | None,
-        skin: SkinModel | None,
-    ) -> dict[str, Any]:
+    def _served_options(cls, options: dict[str, Any]) -> dict[str, Any]:
         """v2 reads back DAC codes, not a skin model (``skin`` is refused); without ``tx_link`` replies
         travel back over the same kind of link as the host's bytes (as on v1.2)."""
-        if skin is not None:
+        if options["skin"] is not None:
             raise ConfigurationError("skin: the v2 timed model reads back the DAC codes, not a skin model")
+        tx_link, model = options["tx_link"], options["model"]
         return {
-            "link": link,
-            "tx_link": tx_link if tx_link is not None else reply_link(link),
+            "link": options["link"],
+            "tx_link": tx_link if tx_link is not None else reply_link(options["link"]),
             "model": model if model is not None else DEFAULT_MODEL,
         }
 

@@ -183,10 +183,8 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
             switching = int(opts.get("switching_boards", "1"))
             reading = float(opts["stack_reading"]) if "stack_reading" in opts else None
             firmware = model_entry(opts.get("firmware", "v1.2")).spec
-        except ValueError as exc:
+        except ValueError as exc:  # a ConfigurationError too: an unknown firmware names the choices
             raise SerialException(f"bad option value in {url!r}: {exc}") from exc
-        except ConfigurationError as exc:
-            raise SerialException(f"option {exc} in {url!r}") from exc
         self._spy = opts.get("spy", "0").lower() not in _FALSE
         timed = opts.get("timed", "1").lower() not in _FALSE
         rules = BUILD_RULES["serial" if opts.get("link", "usb") == "usb" else "serial-uart"]
