@@ -420,7 +420,8 @@ class ScanTemplate:
     first_pulse_ns: np.ndarray  # per channel: its first current onset
     voltages: np.ndarray  # per channel: the value stored (last reading of the channel)
     voltage_at_ns: np.ndarray  # per channel: when that reading was sampled
-    _builder: Any = field(repr=False, default=None)
+    #: makes the GPIO/DAC event arrays of this template on first demand (they are rarely needed)
+    event_builder: Any = field(repr=False, default=None)
     _events: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(repr=False, default=None)
 
     @property
@@ -441,7 +442,7 @@ class ScanTemplate:
     def events(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(time ns, Signal, value) of every GPIO write, DAC change, latch and stored ADC reading."""
         if self._events is None:
-            self._events = self._builder(self)
+            self._events = self.event_builder(self)
         return self._events
 
 
@@ -599,13 +600,22 @@ class ScanEngine:
             a[:, 8],
             a[:, 9],
         )
-        tmpl = ScanTemplate(cfg, chain, chain_end, int(duration), pulses, outs_list, first, voltages, v_at)
-        tmpl._builder = (
-            lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _c=clear, _b=blocks: (
-                self._events(t, _raw, _latched, _starts, _kinds, _c, _b)
-            )
+        return ScanTemplate(
+            cfg,
+            chain,
+            chain_end,
+            int(duration),
+            pulses,
+            outs_list,
+            first,
+            voltages,
+            v_at,
+            event_builder=(
+                lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _c=clear, _b=blocks: (
+                    self._events(t, _raw, _latched, _starts, _kinds, _c, _b)
+                )
+            ),
         )
-        return tmpl
 
     def _events(
         self,

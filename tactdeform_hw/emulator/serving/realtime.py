@@ -359,7 +359,7 @@ class RealtimeEmulator:
     def state(self) -> BoardState:
         """The registers as of now (the model is brought up to the wall clock first)."""
         with self.lock:
-            self._advance()
+            self.advance_now()
             return self.timed.state()
 
     # --- the clock -----------------------------------------------------------------------------------
@@ -381,7 +381,9 @@ class RealtimeEmulator:
         now = self._clock() if t is None else t
         return max(self.timed.now_us, (now - self._t0) * 1e6)
 
-    def _advance(self, t: float | None = None) -> float:
+    def advance_now(self, t: float | None = None) -> float:
+        """Run the model to the wall clock's now (or ``t``) and return that device time; old history is
+        trimmed on the way (a board served for hours keeps a bounded memory)."""
         at = self.device_us(t)
         self.timed.advance_to(at)
         if at - self._trimmed_at > self.history_us:
@@ -394,7 +396,7 @@ class RealtimeEmulator:
         server loop that slept until :meth:`wait_s`), how late this wake-up came is recorded."""
         with self.lock:
             due = self.timed.next_event_us(self.follow_scans)
-            at = self._advance()
+            at = self.advance_now()
             out = self.timed.read_tx()
             self.bytes_out += len(out)
         if record_lag and due <= at + 0.001:  # a wake-up for an event now due (1 ns of float rounding)
@@ -421,14 +423,14 @@ class RealtimeEmulator:
     def write(self, data: bytes, t: float | None = None) -> int:
         """Host bytes arriving at wall-clock time ``t`` (default now) enter the link model then."""
         with self.lock:
-            at = self._advance(t)
+            at = self.advance_now(t)
             self.bytes_in += len(data)
             return self.timed.write(bytes(data), at)
 
     def read(self, size: int | None = None) -> bytes:
         """Replies that have reached the host by now."""
         with self.lock:
-            self._advance()
+            self.advance_now()
             out = self.timed.read_tx(size)
             self.bytes_out += len(out)
             return out
@@ -436,13 +438,13 @@ class RealtimeEmulator:
     @property
     def in_waiting(self) -> int:
         with self.lock:
-            self._advance()
+            self.advance_now()
             return self.timed.in_waiting
 
     def room(self) -> int:
         """Bytes the receive path can take now without losing any (flow-controlled builds)."""
         with self.lock:
-            self._advance()
+            self.advance_now()
             return max(0, self.timed.queue.free - self.timed.in_flight)
 
     def client_opened(self, name: str) -> bytes:
@@ -450,7 +452,7 @@ class RealtimeEmulator:
         not the new host's).  On v2 a command the previous host cut can take this host's first bytes as
         its payload (see :meth:`~.timed_v2.TimedEmulatorV2.new_client`)."""
         with self.lock:
-            self._advance()
+            self.advance_now()
             stale = self.timed.read_tx()
             self.timed.new_client(name)
             return stale
@@ -460,7 +462,7 @@ class RealtimeEmulator:
     def reset(self, reason: str) -> ResetRecord:
         """Power-cycle the board now; the record names the state that was discarded."""
         with self.lock:
-            at = self._advance()
+            at = self.advance_now()
             regs = self.timed.state()
             discarded = _shown(regs)
             discarded["channels_on"] = _channels_on(regs)
@@ -476,7 +478,7 @@ class RealtimeEmulator:
 
     def status(self) -> LiveStatus:
         with self.lock:
-            at = self._advance()
+            at = self.advance_now()
             t = self.timed
             regs = t.state()
             shown = _shown(regs)
@@ -693,7 +695,7 @@ def settle(board: RealtimeEmulator, timeout_s: float = 2.0, step_s: float = 0.00
     deadline = time.monotonic() + timeout_s
     while True:
         with board.lock:
-            board._advance()
+            board.advance_now()
             idle = board.timed.run_until_idle(limit_us=0)
         if idle:
             return True

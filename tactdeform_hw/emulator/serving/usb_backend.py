@@ -285,7 +285,7 @@ class EmulatedUsbDevice:
         self.download_mode = False
         self.control_log: list[tuple[int, int, int, int, bytes]] = []
         self.bytes_accepted = 0  # OUT bytes handed to the firmware's link since power-up
-        self._unplug_after_out: int | None = None
+        self.unplug_after_out: int | None = None
         self.nak_out = False  # the device NAKs every OUT packet (firmware no longer servicing USB)
 
     def _new_timed(self) -> TimedModel:
@@ -349,7 +349,7 @@ class EmulatedUsbDevice:
         is pulled mid-write; a packet is delivered whole or not at all)."""
         if out_bytes < 0:
             raise ConfigurationError(f"out_bytes={out_bytes!r} must be at least 0")
-        self._unplug_after_out = out_bytes
+        self.unplug_after_out = out_bytes
 
     # --- time ------------------------------------------------------------------------------------------
 
@@ -393,13 +393,13 @@ class EmulatedUsbDevice:
 
     # --- host traffic ----------------------------------------------------------------------------------
 
-    def _host_write(self, packet: bytes) -> None:
+    def host_write(self, packet: bytes) -> None:
         t = self.advance()
         self.bytes_accepted += len(packet)
         if self.running:
             self.timed.write(packet, at_us=t)
 
-    def _host_read(self, size: int) -> bytes:
+    def host_read(self, size: int) -> bytes:
         self.advance()
         return self.timed.read_tx(size)
 
@@ -410,7 +410,7 @@ class EmulatedUsbDevice:
 
     # --- bus events ------------------------------------------------------------------------------------
 
-    def _plug(self, backend: EmulatedUsbBackend, address: int) -> None:
+    def plug_in(self, backend: EmulatedUsbBackend, address: int) -> None:
         self.backend = backend
         self.plugged = True
         self.generation += 1
@@ -424,17 +424,17 @@ class EmulatedUsbDevice:
         self.dtr = self.rts = False
         self.download_mode = False
         self.bytes_accepted = 0
-        self._unplug_after_out = None
+        self.unplug_after_out = None
         if self.generation > 1:
             self.timed = self._new_timed()  # plugging in powers the board up
 
-    def _unplug(self) -> None:
+    def unplug_now(self) -> None:
         if self.plugged:
             self.advance()
         self.plugged = False
         self.claims.clear()
 
-    def _set_lines(self, dtr: bool, rts: bool) -> None:
+    def set_lines(self, dtr: bool, rts: bool) -> None:
         """The USB Serial/JTAG controller holds the chip in reset while RTS is asserted and DTR is not;
         DTR high at the moment the reset ends selects the ROM download mode (no application runs)."""
         self.advance()
@@ -529,19 +529,19 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
             if device not in self.devices:
                 self.devices.append(device)
             self._next_address += 1
-            device._plug(self, self._next_address)
+            device.plug_in(self, self._next_address)
         return device
 
     def unplug(self, device: EmulatedUsbDevice | None = None) -> None:
         """Pull the cable: open handles fail with "no such device" from now on."""
         with self.lock:
-            (device or self.device)._unplug()
+            (device or self.device).unplug_now()
 
     def replug(self, device: EmulatedUsbDevice | None = None) -> EmulatedUsbDevice:
         """Plug a device back: a new address, a powered-up board, the kernel driver bound again."""
         with self.lock:
             d = device or self.device
-            d._unplug()
+            d.unplug_now()
             return self.plug(d)
 
     # --- errors (raised as pyusb raises libusb's: :class:`~.usb_client.EmulatedBoardBackend`) -----------
@@ -722,12 +722,12 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
                     sent = 0
                     for i in range(0, len(payload), size):
                         pkt = payload[i : i + size]
-                        if d._unplug_after_out is not None:
-                            if len(pkt) > d._unplug_after_out:
-                                d._unplug()
+                        if d.unplug_after_out is not None:
+                            if len(pkt) > d.unplug_after_out:
+                                d.unplug_now()
                                 raise self._error("no_device")
-                            d._unplug_after_out -= len(pkt)
-                        d._host_write(pkt)
+                            d.unplug_after_out -= len(pkt)
+                        d.host_write(pkt)
                         sent += len(pkt)
                     return sent
             # every packet is NAKed: the transfer waits (out its timeout) without sending a byte
@@ -744,7 +744,7 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
             with self.lock:
                 d, _ = self._check_transfer(dev_handle, ep, intf, direction_in=True)
                 if ep == self._cdc_endpoint(d, direction_in=True):
-                    data = d._host_read(len(buff) * buff.itemsize)
+                    data = d.host_read(len(buff) * buff.itemsize)
                     if data:
                         buff[: len(data)] = type(buff)(buff.typecode, data)
                         return len(data)
@@ -800,7 +800,7 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
                     data[:n] = type(data)(data.typecode, d.line_coding[:n])
                     return n
                 if bmRequestType == 0x21 and bRequest == CDC_SET_CONTROL_LINE_STATE:
-                    d._set_lines(bool(wValue & 1), bool(wValue & 2))
+                    d.set_lines(bool(wValue & 1), bool(wValue & 2))
                     return 0
                 if bmRequestType == 0x21 and bRequest == CDC_SEND_BREAK:
                     return 0

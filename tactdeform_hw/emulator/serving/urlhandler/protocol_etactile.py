@@ -299,7 +299,7 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         elif event == "released":
             if self.timed:
                 with self.emulator.lock:
-                    self.emulator._advance()
+                    self.emulator.advance_now()
                     self.emulator.timed.reset("USB Serial/JTAG reset released")  # boots from this moment
                     self.emulator.timed.read_tx()
             self._note(
