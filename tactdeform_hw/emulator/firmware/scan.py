@@ -518,7 +518,7 @@ class ScanEngine:
 
     def _build(self, cfg: ScanConfig, chain: ChainState) -> ScanTemplate:
         self.built += 1
-        model, skin = self.model, self.skin
+        model = self.model
         n = cfg.electrode_num
         blocks = self._blocks_for(cfg)
         kinds = cfg.kinds()
@@ -534,6 +534,46 @@ class ScanEngine:
         duration = body_end + (3 + 2 * clear) * g + model.isr_exit_ns
 
         # pulses, channel by channel (n <= 255; the skin outcomes are cached per outputs/code/time)
+        rows, flo, outs_list, raws, limited, (voltages, v_at, first) = self._pulse_rows(
+            n, latched, kinds, starts, blocks
+        )
+        pulses, raw = _pulse_arrays(rows, flo, raws, limited)
+        return ScanTemplate(
+            cfg,
+            chain,
+            chain_end,
+            int(duration),
+            pulses,
+            outs_list,
+            first,
+            voltages,
+            v_at,
+            event_builder=(
+                lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _c=clear, _b=blocks: (
+                    self._events(t, _raw, _latched, _starts, _kinds, _c, _b)
+                )
+            ),
+        )
+
+    def _pulse_rows(
+        self,
+        n: int,
+        latched: list[int],
+        kinds: np.ndarray,
+        starts: np.ndarray,
+        blocks: list[Any],
+    ) -> tuple[
+        list[tuple[int, ...]],
+        list[float],
+        list[tuple[int, ...]],
+        list[int],
+        list[bool],
+        tuple[np.ndarray, np.ndarray, np.ndarray],
+    ]:
+        """Each pulse of a scan as a row (channel, kind, onset, width, code, polarity, voltage code,
+        sample time, outputs), its current, outputs, ADC reading and compliance; per channel the stored
+        voltage, when it was sampled and the first onset."""
+        skin = self.skin
         cache = self._outcomes
         blocks_pulses = [b[1] for b in blocks]
         rows: list[tuple[int, ...]] = []
@@ -581,41 +621,7 @@ class ScanEngine:
                     first[ch] = st + on
                 voltages[ch] = oc.voltage_code
                 v_at[ch] = st + sample
-        m = len(rows)
-        a = np.array(rows, dtype=np.int64).reshape(m, 10)
-        cur = np.array(flo, dtype=np.float64)
-        raw = np.array(raws, dtype=np.int64)
-        pulses = PulseArrays(
-            a[:, 0],
-            a[:, 1],
-            a[:, 2],
-            a[:, 3],
-            a[:, 4],
-            a[:, 5],
-            cur,
-            cur * a[:, 3] / 1e6,
-            a[:, 6],
-            a[:, 7],
-            np.array(limited, dtype=bool),
-            a[:, 8],
-            a[:, 9],
-        )
-        return ScanTemplate(
-            cfg,
-            chain,
-            chain_end,
-            int(duration),
-            pulses,
-            outs_list,
-            first,
-            voltages,
-            v_at,
-            event_builder=(
-                lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _c=clear, _b=blocks: (
-                    self._events(t, _raw, _latched, _starts, _kinds, _c, _b)
-                )
-            ),
-        )
+        return rows, flo, outs_list, raws, limited, (voltages, v_at, first)
 
     def _events(
         self,
@@ -705,3 +711,29 @@ class ScanVoltages:
         t = self._engine.template(ScanConfig.from_registers(regs), self._chain)
         self._chain = t.chain_end
         regs.voltage[: t.voltages.size] = t.voltages.tolist()
+
+
+def _pulse_arrays(
+    rows: list[tuple[int, ...]], flo: list[float], raws: list[int], limited: list[bool]
+) -> tuple[PulseArrays, np.ndarray]:
+    """The pulse rows as the columns of :class:`PulseArrays`, and the raw ADC readings."""
+    m = len(rows)
+    a = np.array(rows, dtype=np.int64).reshape(m, 10)
+    cur = np.array(flo, dtype=np.float64)
+    raw = np.array(raws, dtype=np.int64)
+    pulses = PulseArrays(
+        a[:, 0],
+        a[:, 1],
+        a[:, 2],
+        a[:, 3],
+        a[:, 4],
+        a[:, 5],
+        cur,
+        cur * a[:, 3] / 1e6,
+        a[:, 6],
+        a[:, 7],
+        np.array(limited, dtype=bool),
+        a[:, 8],
+        a[:, 9],
+    )
+    return pulses, raw

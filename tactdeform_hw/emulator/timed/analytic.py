@@ -267,6 +267,10 @@ class _Analytic:
                         else self.tick_at_or_after(eff + 1)
                     )
         self.scans_until(duration)
+        return self._timeline(duration, effects)
+
+    def _timeline(self, duration: int, effects: dict[int, int | None]) -> Timeline:
+        """The scans that started by ``duration`` and the effects, as a :class:`Timeline`."""
         # keep only scans that started by the end of the run
         starts, durs = [], []
         for r in self.runs:

@@ -752,43 +752,7 @@ def pattern_latency(
         # a low-discrepancy spread over the period (golden ratio), so no phase lines up with the USB
         # frames or the RTOS ticks by construction
         t = 50_000.0 + round(period_us * ((i * 0.6180339887498949) % 1.0), 3)
-        emu.advance_to(t)
-        first = emu.host_offset
-        emu.write(data, t)
-        emu.advance_to(t + 4 * period_us + 4 * m.rtos_tick_us + 50_000.0)
-        reps = [c for c in emu.commands if c.opcode == Opcode.PATTERN]
-        if not reps:
-            # never read (a starved main loop): the bytes still crossed the wire unless they were lost
-            arrived = emu.arrival_us(first + len(data) - 1)
-            rows.append(
-                {
-                    "sent_us": t,
-                    "wire_us": None if arrived is None else arrived - t,
-                    "loop_wait_us": None,
-                    "scan_wait_us": None,
-                    "first_channel_us": None,
-                    "last_channel_us": None,
-                }
-            )
-            continue
-        r = reps[-1]
-        last = r.last_channel_us
-        rows.append(
-            {
-                "sent_us": t,
-                "wire_us": r.wire_us,
-                "loop_wait_us": r.loop_wait_us,
-                "scan_wait_us": r.scan_wait_us,
-                "first_channel_us": r.latency_us,
-                "last_channel_us": None if last is None or r.sent_us is None else last - r.sent_us,
-            }
-        )
-
-    def stats(key: str) -> dict[str, float | None]:
-        vals: list[float] = [v for row in rows if (v := row[key]) is not None]
-        if not vals:
-            return {"min": None, "mean": None, "max": None}
-        return {"min": min(vals), "mean": sum(vals) / len(vals), "max": max(vals)}
+        rows.append(_latency_run(emu, data, t, t + 4 * period_us + 4 * m.rtos_tick_us + 50_000.0))
 
     return {
         "link": link_name,
@@ -798,11 +762,48 @@ def pattern_latency(
         "phases": phases,
         "felt": sum(1 for row in rows if row["first_channel_us"] is not None),
         **{
-            k: stats(k)
+            k: _stats(rows, k)
             for k in ("wire_us", "loop_wait_us", "scan_wait_us", "first_channel_us", "last_channel_us")
         },
         "runs": rows,
     }
+
+
+def _latency_run(emu: TimedEmulator, data: bytes, t: float, until_us: float) -> dict[str, float | None]:
+    """Write the pattern ``data`` at ``t``, run to ``until_us`` and say when it was felt."""
+    emu.advance_to(t)
+    first = emu.host_offset
+    emu.write(data, t)
+    emu.advance_to(until_us)
+    reps = [c for c in emu.commands if c.opcode == Opcode.PATTERN]
+    if not reps:
+        # never read (a starved main loop): the bytes still crossed the wire unless they were lost
+        arrived = emu.arrival_us(first + len(data) - 1)
+        return {
+            "sent_us": t,
+            "wire_us": None if arrived is None else arrived - t,
+            "loop_wait_us": None,
+            "scan_wait_us": None,
+            "first_channel_us": None,
+            "last_channel_us": None,
+        }
+    r = reps[-1]
+    last = r.last_channel_us
+    return {
+        "sent_us": t,
+        "wire_us": r.wire_us,
+        "loop_wait_us": r.loop_wait_us,
+        "scan_wait_us": r.scan_wait_us,
+        "first_channel_us": r.latency_us,
+        "last_channel_us": None if last is None or r.sent_us is None else last - r.sent_us,
+    }
+
+
+def _stats(rows: list[dict[str, float | None]], key: str) -> dict[str, float | None]:
+    vals: list[float] = [v for row in rows if (v := row[key]) is not None]
+    if not vals:
+        return {"min": None, "mean": None, "max": None}
+    return {"min": min(vals), "mean": sum(vals) / len(vals), "max": max(vals)}
 
 
 def timed_emulator(
