@@ -17,6 +17,11 @@ Two readings the firmware's code leaves open are options of :class:`ScanConventi
 costs them, or includes them) and ``dac_load`` (the DAC output changes 3.3 µs into the exchange, the
 firmware comment, or when DA_CS rises, as the converter's datasheet has it).  Times are kept in integer
 nanoseconds and reported in µs.
+
+This walker is the scan of each version; the v2 timed model runs it (its scan shapes cached per
+configuration).  The v1.2 timed model runs :mod:`.scan`, the same interrupt compiled into cached
+templates (and the skin and physical chain added); ``tests/test_scan_engine_vs_walker.py`` holds that
+engine to this walker event for event, so this walker stays the one definition of v1.2's scan.
 """
 
 from __future__ import annotations

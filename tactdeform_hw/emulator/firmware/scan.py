@@ -14,7 +14,14 @@ The firmware's handler, in the protocol reference's exact order, for ``ch`` in `
 then the chain is cleared by "scanning to position ``8 * hv513_count``" with the same select routine —
 which, with an HV513 count of 0, is ``ch == 0``: it loads a 1 and leaves output 0 selected.
 
-Two implementations must agree to the nanosecond:
+This engine is a compiled form of the statement-by-statement walker of :mod:`.firmware_scan` (the
+conformance walker the firmware's own traces hold, v1.2 and v2): one scan engine per firmware version,
+in two forms — the walker, exact and slow, and this engine, which the v1.2 timed model runs because it
+is fast enough for hours of scans and also models the skin and the physical HV513 chain.
+``tests/test_scan_engine_vs_walker.py`` checks the engine against the walker for every configuration it
+draws (the same pin writes and DAC codes at the same nanoseconds, the same interrupt length, one scan and
+the next with the chain carried over).  Within this module, two implementations must agree to the
+nanosecond:
 
 * the step-through in ``tests/scan_reference.py`` walks the firmware's statements one by one — slow,
   obviously right, the oracle the tests hold this module to;
