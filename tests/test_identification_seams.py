@@ -51,7 +51,7 @@ def test_a_second_program_on_a_busy_wifi_board_is_refused_and_nothing_it_wrote_b
         assert seen and max(ua for _, _, ua in seen) <= 500 + 1e-6
         assert [p for p in seen if p[0] > left_us + 20_000 and p[2] > 0] == []
         st = server.board.state()
-        assert st.electrode_num == 0 and not st.get("command_in_progress", False)
+        assert st.electrode_num == 0 and not st.command_in_progress
 
 
 @pytest.mark.parametrize("fw", FIRMWARES)

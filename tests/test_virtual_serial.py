@@ -213,7 +213,7 @@ def test_pty_one_byte_per_write_gives_the_same_registers_as_whole_commands() -> 
             _received(whole, len(stream))
             _received(single, len(stream))
         sa, sb = whole.state(), single.state()
-    assert {k: sb[k] for k in REGISTERS} == {k: sa[k] for k in REGISTERS}
+    assert {k: sb.as_dict()[k] for k in REGISTERS} == {k: sa.as_dict()[k] for k in REGISTERS}
     assert list(sb.stim_pattern[:32]) == LEVELS and sb.polarity == 0
 
 

@@ -140,7 +140,7 @@ def test_url_handler_serves_v2_timed_by_default_and_untimed_on_request() -> None
     register_url_handlers()
     port = serial.serial_for_url("etactile://?firmware=v2", timeout=1.0)
     try:
-        assert isinstance(port.emulator, RealtimeEmulator) and port.emulator.firmware == "v2"
+        assert isinstance(port.emulator, RealtimeEmulator) and port.emulator.firmware.name == "v2"
         port.write(v2.encode_electrode_num(5) + b"\xf4")
         assert port.read(1) == b"\x05"
         port.write(b"\xfe")  # a cut pattern: the USB Serial/JTAG reset discards it with the registers
@@ -155,7 +155,7 @@ def test_url_handler_serves_v2_timed_by_default_and_untimed_on_request() -> None
         port.close()
     instant = serial.serial_for_url("etactile://?firmware=v2&timed=0", timeout=0.2)
     try:
-        assert isinstance(instant.emulator, Emulator) and instant.emulator.firmware == "v2"
+        assert isinstance(instant.emulator, Emulator) and instant.emulator.firmware.name == "v2"
         instant.write(b"\xfc\x03\xf4")
         assert instant.read(1) == b"\x03"
     finally:
@@ -490,14 +490,15 @@ def _upstream_write(write: Any, data: bytes) -> None:
 def _check_against_vector(board: RealtimeEmulator, vec: dict[str, Any], replies: bytes) -> None:
     assert settle(board)
     state = board.state()
+    regs = state.as_dict()
     expect = vec["expect"]
     for key in COMPARED:
-        assert state[key] == expect[key], (vec["id"], key)
+        assert regs[key] == expect[key], (vec["id"], key)
     assert float(state.period_us) == pytest.approx(expect["period_us"], rel=1e-6)
     assert len(replies) == len(expect["tx"]) // 2, vec["id"]
     untimed = Emulator(firmware="v2")
     untimed.feed(bytes.fromhex(vec["stream"]))
-    assert {k: untimed.state()[k] for k in COMPARED} == {k: state[k] for k in COMPARED}
+    assert {k: untimed.state().as_dict()[k] for k in COMPARED} == {k: regs[k] for k in COMPARED}
 
 
 def test_upstream_style_client_over_the_pty_reaches_the_vectors_state() -> None:

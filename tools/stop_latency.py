@@ -212,7 +212,7 @@ def tcp_trial(server: TcpServer, sig: int, timeout: float = 30.0) -> float:
     """Seconds from ``sig`` to the end of the last pulse with current, on the real-time Wi-Fi board."""
     board = server.board
     start_us = board.device_us()
-    with running_owner(server.url, board.firmware) as proc:
+    with running_owner(server.url, board.firmware.name) as proc:
         _until(lambda: bool(current_pulse_ends_us(board, start_us)), timeout, "the board never delivered")
         time.sleep(0.05)
         t0 = time.monotonic()
