@@ -68,6 +68,30 @@ class ByteQueue:
             self.pos = 0
 
 
+class ParserBase(ByteQueue):
+    """What both versions' parsers hold besides their registers and rules: the hazard list, the board's
+    stack sensing (0xF5), and the hooks a model sets (``on_hv513_reinit``: the chain was re-clocked;
+    ``on_command``: ``(opcode, value, offset)`` when a command takes effect; ``meant_as_command``: was
+    the byte at this offset meant as a command?  A host whose intent is known (the timed emulator decodes
+    what the host wrote) says so in each command-byte-as-payload record of v1.2, which reads payload
+    bytes one by one: a legitimate value byte >= 0xF5 (electrode count 255, width 250 µs) is recorded
+    with False, a desynchronisation with True; None where the intent is unknown)."""
+
+    def __init__(
+        self,
+        hazards: list[Hazard],
+        hv513_detect: Callable[[], int],
+        on_hv513_reinit: Callable[[], None] | None,
+        on_command: Callable[[int, object, int], None] | None,
+    ) -> None:
+        super().__init__()
+        self.hazards = hazards
+        self.hv513_detect = hv513_detect
+        self.on_hv513_reinit = on_hv513_reinit
+        self.on_command = on_command
+        self.meant_as_command: Callable[[int], bool] | None = None
+
+
 class FirmwareParser(Protocol):
     """The parser of one firmware version (see the module documentation)."""
 
@@ -130,4 +154,4 @@ class FirmwareParser(Protocol):
         ...
 
 
-__all__ = ["ByteQueue", "CallOutcome", "FirmwareParser"]
+__all__ = ["ByteQueue", "CallOutcome", "FirmwareParser", "ParserBase"]

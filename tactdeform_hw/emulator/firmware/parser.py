@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from enum import Enum
 
-from tactdeform_hw.emulator.firmware.contract import ByteQueue, CallOutcome
+from tactdeform_hw.emulator.firmware.contract import CallOutcome, ParserBase
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind, UnknownRuns
 from tactdeform_hw.emulator.firmware.registers import Registers
 from tactdeform_hw.protocol import firmware_math as fm
@@ -83,7 +83,7 @@ class CallResult(Enum):
         return self.value[1]
 
 
-class Parser(ByteQueue, UnknownRuns):
+class Parser(ParserBase, UnknownRuns):
     """Receive buffer + command state + the effects on :class:`Registers`.
 
     ``hv513_detect`` is the board's detection (called on 0xF5); ``on_hv513_reinit`` lets the scan engine
@@ -102,17 +102,8 @@ class Parser(ByteQueue, UnknownRuns):
         on_hv513_reinit: Callable[[], None] | None = None,
         on_command: Callable[[int, object, int], None] | None = None,
     ) -> None:
+        super().__init__(hazards, hv513_detect, on_hv513_reinit, on_command)
         self.regs = regs
-        self.hazards = hazards
-        self.hv513_detect = hv513_detect
-        self.on_hv513_reinit = on_hv513_reinit
-        self.on_command = on_command
-        #: Optional: was the byte at this offset meant as a command?  A host whose intent is known (the timed
-        #: emulator decodes what the host wrote) says so in each command-byte-as-payload record
-        #: (``meant_as_command``): a legitimate value byte >= 0xF5 (electrode count 255, width 250 µs) is
-        #: recorded with False, a desynchronisation with True; None where the intent is unknown.
-        self.meant_as_command: Callable[[int], bool] | None = None
-        ByteQueue.__init__(self)
         self.cmd: int | None = None
         self.cmd_offset = 0
         self.needed = 0

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from tactdeform_hw.emulator.firmware.contract import ByteQueue, CallOutcome
+from tactdeform_hw.emulator.firmware.contract import CallOutcome, ParserBase
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind, UnknownRuns
 from tactdeform_hw.emulator.firmware.registers import RegistersV2
 from tactdeform_hw.protocol import firmware_math as fm
@@ -25,7 +25,7 @@ from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
 from tactdeform_hw.protocol.firmware import V2, CommandSpec, FirmwareSpec
 
 
-class ParserV2(ByteQueue, UnknownRuns):
+class ParserV2(ParserBase, UnknownRuns):
     """Receive queue + the parser's static state + the effects on :class:`RegistersV2`.
 
     ``hv513_detect`` is the board's stack sensing (0xF5); ``on_hv513_reinit`` tells a scan model that
@@ -43,19 +43,13 @@ class ParserV2(ByteQueue, UnknownRuns):
         on_hv513_reinit: Callable[[], None] | None = None,
         on_command: Callable[[int, object, int], None] | None = None,
     ) -> None:
+        super().__init__(hazards, hv513_detect, on_hv513_reinit, on_command)
         self.regs = regs
-        self.hazards = hazards
-        self.hv513_detect = hv513_detect
         self.spec = spec
         if spec.command_timeout_us is None:
             raise ValueError(f"firmware {spec.name} has no command timeout: it is not parsed by ParserV2")
         #: A command not complete this long after its byte was read is discarded (the table's value).
         self.timeout_us: int = spec.command_timeout_us
-        self.on_hv513_reinit = on_hv513_reinit
-        self.on_command = on_command
-        #: v2 applies a payload whole and records it whole: no byte-by-byte intent to record.
-        self.meant_as_command: Callable[[int], bool] | None = None
-        ByteQueue.__init__(self)
         self.dropped = 0
         self.processing = False
         self.required = 0
