@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from tactdeform_hw.emulator.core import Emulator
+from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.firmware.models import model_entry
 from tactdeform_hw.emulator.firmware.skin import SkinModel
@@ -344,7 +345,7 @@ class RealtimeEmulator:
     # --- what the board looks like from outside ----------------------------------------------------
 
     @property
-    def emulator(self) -> Any:
+    def emulator(self) -> Emulator:
         """The firmware's parser and registers (the untimed face: ``state()``, ``hazards``)."""
         return self.timed.emulator
 
@@ -353,7 +354,7 @@ class RealtimeEmulator:
         return self.timed.hazards
 
     @property
-    def board(self) -> Any:
+    def board(self) -> Board:
         return self.timed.board
 
     def state(self) -> BoardState:

@@ -59,9 +59,9 @@ _shared_lock = threading.Lock()
 _FALSE = ("0", "", "false", "no", "off")
 
 
-def shared_emulator(name: str) -> Any:
+def shared_emulator(name: str) -> Emulator | RealtimeEmulator | None:
     """The board behind ``etactile://NAME`` if one was opened in this process (an untimed
-    :class:`Emulator` or a :class:`RealtimeEmulator`; both have ``state()`` and ``hazards``)."""
+    :class:`Emulator` or a :class:`RealtimeEmulator`; both have ``state()`` and ``hazards``), else None."""
     return _shared.get(name)
 
 
@@ -104,7 +104,7 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         return PortNotOpenError()  # type: ignore[no-any-return]
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
-        self.emulator: Any = None
+        self.emulator: Any = None  # Emulator | RealtimeEmulator once open (None while closed)
         self.lines = UsbSerialJtagLines()
         self.bytes_dropped = 0
         self._rx = bytearray()  # untimed replies not read yet
@@ -189,7 +189,7 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         timed = opts.get("timed", "1").lower() not in _FALSE
         rules = BUILD_RULES["serial" if opts.get("link", "usb") == "usb" else "serial-uart"]
 
-        def make() -> Any:
+        def make() -> Emulator | RealtimeEmulator:
             if timed:
                 return RealtimeEmulator(
                     board, switching, rules=rules, stack_reading=reading, firmware=firmware
