@@ -16,8 +16,8 @@ a real board (paced in wall time, reset through RTS, never inspected).  The capa
                   so the firmware identification need not wait out v2's command timeout first
 ``serves_one_client`` ``True`` when the board serves one connection at a time and later ones wait unanswered
                   (the Wi-Fi board): silence to the identification then means "busy"
-``board_state()`` the firmware's registers as the board holds them (``stim_pattern``, ``electrode_num``,
-                  …): what an emulated board can show and a real one cannot
+``board_state()`` the firmware's registers as the board holds them, a
+                  :class:`~.protocol.state.BoardState`: what an emulated board can show and a real one cannot
 ``board_hazards`` the firmware defects the board has hit, as :class:`~.emulator.hazards.Hazard` records
 ================  ==========================================================================================
 
@@ -29,12 +29,14 @@ from __future__ import annotations
 
 from typing import Any, Protocol, runtime_checkable
 
+from .protocol.state import BoardState
+
 
 @runtime_checkable
 class InspectablePort(Protocol):
     """A port whose board can show its registers (an emulated board)."""
 
-    def board_state(self) -> dict[str, Any]: ...
+    def board_state(self) -> BoardState: ...
 
 
 def is_instant(port: Any) -> bool:
@@ -57,10 +59,17 @@ def serves_one_client(port: Any) -> bool:
     return bool(getattr(port, "serves_one_client", False))
 
 
-def board_state(port: Any) -> dict[str, Any] | None:
+def board_state(port: Any) -> BoardState | None:
     """The registers of the board behind ``port`` when it declares ``board_state()``, else None."""
     fn = getattr(port, "board_state", None)
-    return fn() if callable(fn) else None
+    if not callable(fn):
+        return None
+    state = fn()
+    if not isinstance(state, BoardState):
+        raise TypeError(
+            f"{type(port).__name__}.board_state() returned {type(state).__name__}, not BoardState"
+        )
+    return state
 
 
 def board_hazards(port: Any) -> list[Any] | None:

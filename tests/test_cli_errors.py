@@ -171,7 +171,7 @@ def test_the_same_commands_do_open_the_device_with_good_outputs(tmp_path, patter
         ["send", "--pattern", "all:1", "--device", DEVICE, "--audit-log", str(tmp_path / "a.jsonl")], capsys
     )
     assert code == 0, err
-    assert shared_emulator("cli-errors").state()["electrode_num"] == 32
+    assert shared_emulator("cli-errors").state().electrode_num == 32
     assert (tmp_path / "a.jsonl").stat().st_size > 0
 
 

@@ -54,9 +54,9 @@ def test_configure_then_pattern_reaches_the_firmware(dev: EtactileKitDevice, por
     dev.configure(StimConfig(current_ua=1500, rate_hz=125, discharge_us=45))
     dev.send_pattern([1] * 16 + [0] * 15 + [2])
     s = port.emulator.state()
-    assert s["electrode_num"] == 32 and s["pulse_height"] == 150 and s["pulse_width"] == 200
-    assert s["discharge_time"] == 45 and s["period_us"] == 8000.0 and s["polarity"] == 1
-    assert s["stim_pattern"][:32] == [1] * 16 + [0] * 15 + [2]
+    assert s.electrode_num == 32 and s.pulse_height == 150 and s.pulse_width_us == 200
+    assert s.discharge_time_us == 45 and s.period_us == 8000.0 and s.polarity == 1
+    assert list(s.stim_pattern[:32]) == [1] * 16 + [0] * 15 + [2]
     assert safety_helpers.defects(port.emulator.hazards) == []  # the driver triggers no defect
     # one write per command, each a whole command
     for w in port.writes:
@@ -80,7 +80,7 @@ def test_reconfiguring_clears_stale_channels(dev: EtactileKitDevice, port: Recor
     dev.send_pattern([1] * 8)
     dev.configure(StimConfig(electrode_count=4, current_ua=100))
     dev.configure(StimConfig(electrode_count=8, current_ua=100))
-    assert port.emulator.state()["stim_pattern"][:8] == [0] * 8
+    assert list(port.emulator.state().stim_pattern[:8]) == [0] * 8
     assert safety_helpers.defects(port.emulator.hazards) == []
 
 
@@ -171,10 +171,10 @@ def test_resync_recovers_a_desynchronised_parser(dev: EtactileKitDevice, port: R
     port.emulator.feed(b"\xfb\xdc")  # and a half pulse height
     dev.resync()
     s = port.emulator.state()
-    assert s["rx_pending"] == 0 and s["electrode_num"] == 32 and s["pulse_height"] == 30
-    assert s["stim_pattern"][:32] == [0] * 32
+    assert s.rx_pending == 0 and s.electrode_num == 32 and s.pulse_height == 30
+    assert list(s.stim_pattern[:32]) == [0] * 32
     dev.send_pattern([1] * 32)
-    assert port.emulator.state()["stim_pattern"][:32] == [1] * 32
+    assert list(port.emulator.state().stim_pattern[:32]) == [1] * 32
 
 
 def test_open_device_by_url_and_errors() -> None:

@@ -468,7 +468,7 @@ def test_play_follows_the_schedule_on_the_emulator(tmp_path: Path, monkeypatch, 
     def send(self, levels):
         orig_send(self, levels)
         emu = self.port.emulator
-        events.append(("pattern", round(fake.now - 100.0, 6), tuple(emu.state()["stim_pattern"][:4])))
+        events.append(("pattern", round(fake.now - 100.0, 6), tuple(emu.state().stim_pattern[:4])))
 
     def off(self):
         orig_off(self)
@@ -510,7 +510,7 @@ def test_play_maps_through_the_array_file(tmp_path: Path, monkeypatch, capsys) -
 
     def send(self, levels):
         orig(self, levels)
-        seen.append(self.port.emulator.state()["stim_pattern"][:32])
+        seen.append(list(self.port.emulator.state().stim_pattern[:32]))
 
     monkeypatch.setattr(Device, "send_pattern", send)
     assert _play([str(path), "--array", str(arr), "--quiet", "--json"], FakeClock()) == 0

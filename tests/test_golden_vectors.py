@@ -27,11 +27,11 @@ def _check(vector: dict, chunks: list[bytes]) -> None:
     state = emu.state()
     expect = vector["expect"]
     assert tx.hex() == expect["tx"]
-    assert np.float32(state["period_us"]) == np.float32(expect["period_us"])
+    assert np.float32(state.period_us) == np.float32(expect["period_us"])
     for key, value in expect.items():
         if key in ("tx", "period_us"):
             continue
-        assert state[key] == value, key
+        assert state.as_dict()[key] == value, key
 
 
 @pytest.mark.parametrize("index", range(len(VECTORS)))

@@ -79,8 +79,8 @@ def test_v12_is_proved_from_every_parser_state(name: str, prefix: bytes) -> None
     assert det.firmware is V1_2 and det.attempts == 1 and det.reply == b"\x04\x04" and det.hv513_count == 4
     s = emu.state()
     assert emu.parser.cmd is None, "left mid-command"
-    assert s["electrode_num"] == 0 and s["pulse_height"] == 0 and s["sense_pulse_height"] == 0
-    assert s["rx_pending"] == 0
+    assert s.electrode_num == 0 and s.pulse_height == 0 and s.sense_pulse_height == 0
+    assert s.rx_pending == 0
 
 
 def test_a_locked_v12_parser_is_refused_not_taken_for_v12() -> None:
@@ -89,7 +89,7 @@ def test_a_locked_v12_parser_is_refused_not_taken_for_v12() -> None:
     assert emu.locked
     with pytest.raises(UnidentifiedBoardError, match="did not answer.*locked v1.2 parser"):
         _detect(emu)
-    assert emu.state()["rx_pending"] == 2 * (len(IDENT_OFF) + len(SIGNATURE))
+    assert emu.state().rx_pending == 2 * (len(IDENT_OFF) + len(SIGNATURE))
 
 
 @pytest.mark.parametrize(("name", "prefix"), V2_STATES, ids=[n for n, _ in V2_STATES])
@@ -100,13 +100,13 @@ def test_v2_is_proved_from_every_parser_state_and_no_entry_is_made_of_its_bytes(
     so the pattern buffer holds exactly what it held before (no entry from the earlier heights either)."""
     emu = Emulator(firmware="v2")
     emu.feed(STIM_V2 + prefix)
-    before = emu.state()["stim_pattern"]
+    before = emu.state().stim_pattern
     det = _detect(emu)
     assert det.firmware is V2 and det.attempts == 1 and det.reply == b"\x04\x00\x04"
     s = emu.state()
-    assert not s["command_in_progress"]
-    assert s["electrode_num"] == 0 and s["stim_mode"] == 0 and s["sense_pulse_height"] == 0
-    assert s["stim_pattern"] == before
+    assert not s.command_in_progress
+    assert s.electrode_num == 0 and s.stim_mode == 0 and s.sense_pulse_height == 0
+    assert s.stim_pattern == before
 
 
 def test_without_the_settle_wait_a_cut_v2_pattern_would_be_completed() -> None:
@@ -114,7 +114,7 @@ def test_without_the_settle_wait_a_cut_v2_pattern_would_be_completed() -> None:
     emu = Emulator(firmware="v2")
     emu.feed(c2.encode_electrode_num(2) + bytes([0xFE, 0xFF]))
     _detect(emu, settle=False)
-    assert emu.state()["stim_pattern"][0] != 0
+    assert emu.state().stim_pattern[0] != 0
 
 
 class _TimedPort:
@@ -150,8 +150,8 @@ def test_a_timeout_discarding_part_of_the_identification_still_ends_proved_and_o
     assert det.firmware is V2
     discards = [h for h in emu.hazards if h.kind.value == "command_timeout"]
     assert len(discards) == 1 and discards[0].detail["discarded"] == 192  # the chunks queued by then
-    assert emu.state()["electrode_num"] == 0 and not emu.state()["command_in_progress"]
-    assert max(emu.state()["stim_pattern"]) == 0
+    assert emu.state().electrode_num == 0 and not emu.state().command_in_progress
+    assert max(emu.state().stim_pattern) == 0
 
 
 def test_every_suffix_of_the_identification_is_safe_from_a_boundary() -> None:
@@ -163,11 +163,11 @@ def test_every_suffix_of_the_identification_is_safe_from_a_boundary() -> None:
             emu = Emulator(firmware=fw)
             emu.feed(wire[k:])
             s = emu.state()
-            busy = s["command_in_progress"] if fw == "v2" else emu.parser.cmd is not None
+            busy = s.command_in_progress if fw == "v2" else emu.parser.cmd is not None
             assert not busy, (fw, k)
-            assert max(s["stim_pattern"]) == 0, (fw, k)
+            assert max(s.stim_pattern) == 0, (fw, k)
             if k <= len(IDENT_OFF) - 7:
-                assert s["electrode_num"] == 0 and s["sense_pulse_height"] == 0, (fw, k)
+                assert s.electrode_num == 0 and s.sense_pulse_height == 0, (fw, k)
 
 
 def test_only_off_bytes_in_the_identification() -> None:
@@ -227,7 +227,7 @@ def test_open_device_v12_refuses_a_v2_board_and_accepts_v12(monkeypatch: pytest.
                 serial_driver.open_device("emulator", firmware="v1.2")
             assert emu.received_bytes == len(IDENT_OFF) + len(SIGNATURE)  # nothing after the identification
             assert not port.is_open
-            assert emu.state()["electrode_num"] == 0
+            assert emu.state().electrode_num == 0
 
 
 def test_a_v12_expectation_on_a_v2_answer_and_the_reverse_are_refused() -> None:
@@ -267,9 +267,9 @@ def test_the_constructor_identifies_a_v2_board_and_drives_it_in_v2() -> None:
     assert dev.firmware == "v2"
     dev.configure(StimConfig(electrode_count=8, current_ua=500, pulse_width_us=200))
     dev.send_pattern([1] * 8)
-    assert emu.state()["stim_pattern"][:8] == [50] * 8
+    assert list(emu.state().stim_pattern[:8]) == [50] * 8
     dev.close()
-    assert emu.state()["electrode_num"] == 0
+    assert emu.state().electrode_num == 0
 
 
 def test_cli_firmware_v12_refuses_a_v2_emulator(capsys: pytest.CaptureFixture[str]) -> None:

@@ -51,7 +51,7 @@ def test_a_second_program_on_a_busy_wifi_board_is_refused_and_nothing_it_wrote_b
         assert seen and max(ua for _, _, ua in seen) <= 500 + 1e-6
         assert [p for p in seen if p[0] > left_us + 20_000 and p[2] > 0] == []
         st = server.board.state()
-        assert st["electrode_num"] == 0 and not st.get("command_in_progress", False)
+        assert st.electrode_num == 0 and not st.command_in_progress
 
 
 @pytest.mark.parametrize("fw", FIRMWARES)
@@ -63,7 +63,7 @@ def test_a_command_cut_by_an_earlier_client_never_becomes_current(fw: str) -> No
     with _tcp(fw) as server:
         a = socket.create_connection(server.address, timeout=2)
         a.sendall(bytes.fromhex("fc20fefc20fb"))
-        assert wait_until(lambda: server.board.state()["electrode_num"] == 0x20)
+        assert wait_until(lambda: server.board.state().electrode_num == 0x20)
         a.close()
         assert wait_until(lambda: not server.connected)
         time.sleep(0.05)
@@ -89,7 +89,7 @@ def test_a_v12_driver_is_refused_on_the_v2_wifi_board_and_leaves_it_off() -> Non
             open_device(server.url, firmware="v1.2", timeout=0.3)
         assert wait_until(lambda: not server.connected)
         st = server.board.state()
-        assert st["electrode_num"] == 0 and st["stim_mode"] == 0 and not st["command_in_progress"]
+        assert st.electrode_num == 0 and st.stim_mode == 0 and not st.command_in_progress
         assert (
             delivered_pulses(server.board) == []
             or max(ua for _, _, ua in delivered_pulses(server.board)) == 0

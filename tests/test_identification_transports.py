@@ -78,7 +78,7 @@ def test_the_board_is_driven_in_the_version_it_proved_and_refused_in_the_other(
         with pytest.raises(FirmwareMismatchError, match=f"runs firmware {fw}.*firmware='{OTHER[fw]}'"):
             open_device(name, firmware=OTHER[fw], settle_s=0.0, timeout=0.3)
         s = state()
-        assert s["electrode_num"] == 0 and s["sense_pulse_height"] == 0
+        assert s.electrode_num == 0 and s.sense_pulse_height == 0
         dev = open_device(name, settle_s=0.0, timeout=0.3)
         try:
             assert dev.firmware == fw and dev.identification.firmware.name == fw
@@ -86,4 +86,4 @@ def test_the_board_is_driven_in_the_version_it_proved_and_refused_in_the_other(
             dev.send_pattern([1, 0, 1, 0])
         finally:
             dev.close()
-        assert state()["electrode_num"] == (0 if fw == "v2" else 4)
+        assert state().electrode_num == (0 if fw == "v2" else 4)

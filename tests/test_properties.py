@@ -35,7 +35,7 @@ def test_call_by_call_equals_fast_path(data: bytes) -> None:
     slow = Emulator()
     slow.parser.receive(data)
     for _ in range(len(data) + 2):
-        if slow.call().name in ("IDLE", "LOCKED", "STUCK_U16"):
+        if slow.parser.step().name in ("IDLE", "LOCKED", "STUCK_U16"):
             break
     assert slow.state() == fast.state()
     assert slow.parser.take_tx() == tx
@@ -77,7 +77,7 @@ def test_pattern_round_trip(levels: list[int]) -> None:
     assert items[1].status == OK and list(items[1].value) == levels  # type: ignore[arg-type]
     emu = Emulator()
     emu.feed(c.encode_electrode_num(len(levels)) + data)
-    assert emu.state()["stim_pattern"][: len(levels)] == levels
+    assert list(emu.state().stim_pattern[: len(levels)]) == levels
 
 
 @settings(max_examples=50, deadline=None)
@@ -105,7 +105,7 @@ def test_the_parsers_plan_is_what_its_call_does(prefix: bytes, waiting: bytes) -
     whole, part = deepcopy(emu.parser), deepcopy(emu.parser)
     whole.receive(waiting)
     before = whole.offset
-    assert whole.call() is outcome and whole.offset - before == n
+    assert whole.step() is outcome and whole.offset - before == n
     part.receive(waiting[:n])
-    assert part.call() is (CallResult.PROGRESS if outcome is CallResult.STUCK_U16 else outcome)
+    assert part.step() is (CallResult.PROGRESS if outcome is CallResult.STUCK_U16 else outcome)
     assert part.pending == 0 or part.locked

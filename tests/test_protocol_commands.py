@@ -285,10 +285,10 @@ def test_what_the_encoders_send_is_what_the_firmware_stores(fw: FirmwareSpec) ->
     levels = [1, fw.pattern_level_max(), 0]
     stream += cmds.encode_pattern(levels)
     emu.feed(stream)
-    s = emu.state()
+    s = emu.state().as_dict()
     for register in registers:
         assert s[register] == fw.command(fw.opcode_of(register)).stored(SENT[register]), register
-    assert s["stim_pattern"][:3] == levels and s["timer_alarm_ticks"] == 16000
+    assert list(s["stim_pattern"][:3]) == levels and s["timer_alarm_ticks"] == 16000
     assert c.parse_measure_reply(emu.feed(cmds.MEASURE_REQUEST), 3) == [0, 0, 0]
     assert c.parse_hv513_reply(emu.feed(cmds.HV513_COUNT_REQUEST)) == 4
     if fw.answers_sync_check:
@@ -307,8 +307,8 @@ def test_what_the_v2_encoders_send_is_what_v2_stores() -> None:
         + v2.encode_frequency(125)
     )
     s = emu.state()
-    assert (s["electrode_num"], s["stim_mode"], s["pulse_width"], s["sense_pulse_height"]) == (3, 1, 0, 200)
-    assert s["stim_pattern"][:3] == [5, 4095, 0] and s["timer_alarm_ticks"] == 16000
+    assert (s.electrode_num, s.stim_mode, s.pulse_width_us, s.sense_pulse_height) == (3, 1, 0, 200)
+    assert list(s.stim_pattern[:3]) == [5, 4095, 0] and s.timer_alarm_ticks == 16000
     assert v2.parse_sync_reply(emu.feed(v2.SYNC_CHECK)) == 3
 
 

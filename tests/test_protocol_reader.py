@@ -123,7 +123,7 @@ def test_reader_reaches_every_untimed_v2_golden_state() -> None:
 def _emulator_state(data: bytes, firmware: FirmwareSpec) -> dict[str, Any]:
     emu = Emulator(firmware=firmware.name)
     tx = emu.feed(data)
-    state = emu.state()
+    state = emu.state().as_dict()
     state["tx"] = tx.hex()
     return state
 

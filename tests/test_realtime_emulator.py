@@ -23,6 +23,7 @@ from tactdeform_hw.emulator.serving.realtime import (
 from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.protocol import commands as c
+from tactdeform_hw.protocol.state import BoardState
 
 CONFIG = (
     c.encode_electrode_num(32)
@@ -47,8 +48,9 @@ REGISTERS = (
 )
 
 
-def _registers(state: dict) -> dict:  # type: ignore[type-arg]
-    return {k: state[k] for k in REGISTERS}
+def _registers(state: BoardState) -> dict:  # type: ignore[type-arg]
+    regs = state.as_dict()
+    return {k: regs[k] for k in REGISTERS}
 
 
 # --- every desynchronisation reported ------------------------------------------------------------------
@@ -123,7 +125,7 @@ def test_a_u16_completed_across_a_long_gap_is_reported_and_a_split_packet_is_not
     quick.write(b"\x01", 100)  # the next USB packet of the same frame
     quick.advance_to(20_000)
     assert not [h for h in quick.hazards if h.kind is HazardKind.U16_COMPLETED_LATE]
-    assert quick.state()["pulse_height"] == 0x105
+    assert quick.state().pulse_height == 0x105
 
 
 # --- the runner -----------------------------------------------------------------------------------------
@@ -279,7 +281,7 @@ def test_dtr_rts_reset_restores_the_power_on_state(timed: str) -> None:
         s.write(PATTERN + b"\xfb")  # and a half-received pulse height
         if timed == "1":
             settle(s.emulator)
-        assert s.emulator.state()["pulse_height"] == 100
+        assert s.emulator.state().pulse_height == 100
         s.dtr = False
         s.rts = True  # esptool's hard reset: EN low ...
         time.sleep(0.01)
@@ -356,7 +358,7 @@ def test_url_one_byte_per_write_gives_the_same_registers_as_whole_commands() -> 
             single.write(bytes([b]))
         assert settle(whole.emulator) and settle(single.emulator)
         assert _registers(single.emulator.state()) == _registers(whole.emulator.state())
-        assert single.emulator.state()["stim_pattern"][:32] == [1, 2, 0, 1] * 8
+        assert list(single.emulator.state().stim_pattern[:32]) == [1, 2, 0, 1] * 8
     finally:
         whole.close()
         single.close()

@@ -31,7 +31,7 @@ def session(rate: float = 72.0, q=PAD_DOWN) -> list:
 
 
 def emulator_pattern(dev, array: ElectrodeArray) -> list[int]:
-    hw = dev.port.emulator.state()["stim_pattern"][: array.hw_channels]
+    hw = list(dev.port.emulator.state().stim_pattern[: array.hw_channels])
     return array.channel_mapping().to_application(hw)
 
 
@@ -74,7 +74,7 @@ def test_a_remapped_array_reaches_the_right_hardware_channels() -> None:
         r.run(line_poses(0.0, (0, 0, 2.0), (0, 0, -0.5), 20.0, 72.0), on_record=recs.append)
         assert r.summary.mismatches == 0
         app = list(recs[-1].electrodes)
-        hw = dev.port.emulator.state()["stim_pattern"][:32]
+        hw = list(dev.port.emulator.state().stim_pattern[:32])
         assert hw == app[::-1] and any(app)
 
 

@@ -26,7 +26,7 @@ ALL = [1] * 32
 
 def off(emu: Emulator) -> bool:
     s = emu.state()
-    return s["pulse_height"] == 0 and all(v == 0 for v in s["stim_pattern"][: s["electrode_num"]])
+    return s.pulse_height == 0 and all(v == 0 for v in s.stim_pattern[: s.electrode_num])
 
 
 def wait_for(cond, timeout: float = 5.0) -> bool:  # type: ignore[no-untyped-def]
@@ -63,7 +63,7 @@ def test_watchdog_thread_stops_a_silent_owner_and_resumes_when_it_returns() -> N
         assert fs.events[0].detail["idle_s"] > fs.watchdog_trigger_s  # acted before the 50 ms deadline
         assert dev.suspended and dev.target_ua == 700
         dev.keepalive()  # the owner is back
-        assert emu.state()["stim_pattern"][:32] == ALL and emu.state()["pulse_height"] == 70
+        assert list(emu.state().stim_pattern[:32]) == ALL and emu.state().pulse_height == 70
         for _ in range(10):  # an owner that keeps producing frames is never stopped
             time.sleep(0.01)
             dev.keepalive()
@@ -141,7 +141,7 @@ def _child(mode: str, path: str) -> subprocess.Popen[str]:
 
 
 def _stimulating(emu: Emulator) -> bool:
-    return emu.state()["stim_pattern"][:32] == [1, 0] * 16 and emu.state()["pulse_height"] == 90
+    return list(emu.state().stim_pattern[:32]) == [1, 0] * 16 and emu.state().pulse_height == 90
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
@@ -188,7 +188,7 @@ def test_refresh_rewrites_what_the_firmware_should_hold() -> None:
     port.emulator.feed(b"\xfe" + bytes([1, 0] * 16))
     refresh(dev)
     s = port.emulator.state()
-    assert s["pulse_height"] == 60 and s["stim_pattern"][:32] == ALL
+    assert s.pulse_height == 60 and list(s.stim_pattern[:32]) == ALL
     dev.close()
 
 
@@ -212,7 +212,7 @@ def test_reconnect_and_hardware_reset_resync_before_any_pattern() -> None:
     assert not dev.probe() and dev.needs_resync  # the driver notices: the measure comes back empty
     dev.reconnect()
     s = port.emulator.state()
-    assert s["electrode_num"] == 32 and s["pulse_height"] == 40 and s["stim_pattern"][:32] == [0] * 32
+    assert s.electrode_num == 32 and s.pulse_height == 40 and list(s.stim_pattern[:32]) == [0] * 32
     assert not port.emulator.locked and dev.probe()
     dev.send_pattern(ALL)
     port.emulator.feed(b"\xfc\x00\xfe")  # something locked the parser
@@ -225,5 +225,5 @@ def test_reconnect_and_hardware_reset_resync_before_any_pattern() -> None:
     ]
     assert dev.probe()
     assert dev.hardware_reset() and dev.probe()
-    assert port.emulator.state()["stim_pattern"][:32] == [0] * 32
+    assert list(port.emulator.state().stim_pattern[:32]) == [0] * 32
     dev.close()

@@ -48,15 +48,15 @@ anything = st.one_of(
 
 def within_limits(emu: Emulator) -> bool:
     s = emu.state()
-    h = s["pulse_height"] * 10
-    n = s["electrode_num"]
+    h = s.pulse_height * 10
+    n = s.electrode_num
     for ch in range(min(n, 32)):
-        level = s["stim_pattern"][ch]
+        level = s.stim_pattern[ch]
         if level in (1, 2) and h > LIMITS[ch]:
             return False
-        if level not in (1, 2) and s["sense_pulse_height"] * 10 > LIMITS[ch]:
+        if level not in (1, 2) and s.sense_pulse_height * 10 > LIMITS[ch]:
             return False
-    return not (n > 32 and h > 0 and any(v in (1, 2) for v in s["stim_pattern"][32:n]))
+    return not (n > 32 and h > 0 and any(v in (1, 2) for v in s.stim_pattern[32:n]))
 
 
 # --- the decoder --------------------------------------------------------------------------------------------
@@ -90,8 +90,8 @@ def test_emulator_takes_any_stream(chunks: list[bytes], reset_at: int) -> None:
             emu.reset()
         emu.feed(c)
         s = emu.state()
-        assert 0 <= s["pulse_height"] <= 4095 and s["polarity"] in (0, 1) and len(s["stim_pattern"]) == 256
-        assert 0 <= s["electrode_num"] <= 255
+        assert 0 <= s.pulse_height <= 4095 and s.polarity in (0, 1) and len(s.stim_pattern) == 256
+        assert 0 <= s.electrode_num <= 255
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -192,7 +192,7 @@ def test_send_pattern_with_anything(levels: Any) -> None:
     except TactDeformError:
         assert len(port.writes) == n
     else:
-        assert list(port.emulator.state()["stim_pattern"][:32]) == list(levels)
+        assert list(port.emulator.state().stim_pattern[:32]) == list(levels)
     assert within_limits(port.emulator)
 
 

@@ -36,7 +36,7 @@ def device(guard: SafetyGuard | None = None, **kw: object) -> tuple[EtactileKitD
 
 
 def height(port: RecordingPort) -> int:
-    return port.emulator.state()["pulse_height"] * 10
+    return port.emulator.state().pulse_height * 10
 
 
 def test_region_map_is_the_tactdeform_array() -> None:
@@ -82,9 +82,9 @@ def test_every_intermediate_firmware_state_is_within_the_limits() -> None:
     def check() -> None:
         nonlocal worst, checked
         s = emu.state()
-        h = s["pulse_height"] * 10
-        for ch in range(s["electrode_num"]):
-            if s["stim_pattern"][ch] in (1, 2):
+        h = s.pulse_height * 10
+        for ch in range(s.electrode_num):
+            if s.stim_pattern[ch] in (1, 2):
                 worst = max(worst, h / limits[ch])
                 assert h <= limits[ch], (ch, h, limits[ch])
         checked += 1
@@ -165,11 +165,11 @@ def test_ramp_limits_increases_per_frame_and_restarts_from_zero() -> None:
         seen.append(height(port))
     assert seen == [400, 800, 1200, 1500, 1500, 1500]
     dev.suspend()  # a fail-safe stop keeps the frame and the target
-    assert height(port) == 0 and port.emulator.state()["stim_pattern"][:32] == [0] * 32
+    assert height(port) == 0 and list(port.emulator.state().stim_pattern[:32]) == [0] * 32
     for expect in (400, 800):
         dev.keepalive()  # the owner is back: resume, ramped
         assert height(port) == expect
-        assert port.emulator.state()["stim_pattern"][:32] == CORNER
+        assert list(port.emulator.state().stim_pattern[:32]) == CORNER
     dev.set_current(500)  # decreases are never limited
     assert height(port) == 500
     assert any(e["rule"] == "ramp" for e in dev.guard.log)
@@ -187,7 +187,7 @@ def test_polarity_changes_only_while_everything_is_off() -> None:
         dev.configure(StimConfig(current_ua=500, polarity="cathodic"))
     dev.all_off()
     dev.configure(StimConfig(current_ua=500, polarity="cathodic"))
-    assert port.emulator.state()["polarity"] == 0
+    assert port.emulator.state().polarity == 0
     n = len(port.writes)
     dev.send_pattern(ALL)
     with pytest.raises(SafetyError, match="polarity change while current can flow"):
@@ -333,11 +333,11 @@ def test_resync_follows_the_protocol_reference_order() -> None:
     assert rest[:5] == ["PULSE_HEIGHT", "SENSE_HEIGHT", "ELECTRODE_NUM", "MEASURE", "PATTERN"]
     assert [x for x in rest if x != "MEASURE"][-1] == "PULSE_HEIGHT"  # no pattern after the configuration
     s = port.emulator.state()
-    assert s["rx_pending"] == 0 and s["electrode_num"] == 32 and s["pulse_height"] == 30
-    assert s["stim_pattern"][:32] == [0] * 32  # no pattern until the caller's next frame
+    assert s.rx_pending == 0 and s.electrode_num == 32 and s.pulse_height == 30
+    assert list(s.stim_pattern[:32]) == [0] * 32  # no pattern until the caller's next frame
     assert dev.suspended
     dev.keepalive()  # the owner's next frame brings the pattern back
-    assert port.emulator.state()["stim_pattern"][:32] == ALL
+    assert list(port.emulator.state().stim_pattern[:32]) == ALL
 
 
 def test_resync_survives_a_zero_landing_as_electrode_count() -> None:
@@ -345,9 +345,9 @@ def test_resync_survives_a_zero_landing_as_electrode_count() -> None:
     dev.configure(StimConfig(current_ua=300))
     port.emulator.feed(b"\xfc")  # an electrode-count command whose value never came: the zeros give it 0
     dev.resync()
-    assert not port.emulator.locked and port.emulator.state()["electrode_num"] == 32
+    assert not port.emulator.locked and port.emulator.state().electrode_num == 32
     dev.send_pattern(ALL)
-    assert port.emulator.state()["stim_pattern"][:32] == ALL
+    assert list(port.emulator.state().stim_pattern[:32]) == ALL
 
 
 def test_resync_without_configuration_stops_every_current() -> None:
@@ -365,7 +365,7 @@ def test_resync_without_configuration_stops_every_current() -> None:
     dev = EtactileKitDevice(port)
     dev.resync()
     s = emu.state()
-    assert s["pulse_height"] == 0 and s["sense_pulse_height"] == 0
+    assert s.pulse_height == 0 and s.sense_pulse_height == 0
     dev.close()
 
 
@@ -405,10 +405,10 @@ def test_raw_port_is_outside_the_driver() -> None:
     dev.configure(StimConfig(current_ua=500))
     raw = serial.serial_for_url("etactile://bench-raw?timed=0")
     raw.write(p.encode_pulse_height(900))
-    assert shared_emulator("bench-raw").state()["pulse_height"] == 900  # type: ignore[union-attr]
+    assert shared_emulator("bench-raw").state().pulse_height == 900  # type: ignore[union-attr]
     raw.close()
     dev.close()
-    assert shared_emulator("bench-raw").state()["pulse_height"] == 0  # type: ignore[union-attr]
+    assert shared_emulator("bench-raw").state().pulse_height == 0  # type: ignore[union-attr]
     forget_shared()
 
 
@@ -483,4 +483,4 @@ def test_interlock_refuses_a_sense_current_while_the_electrode_count_is_unknown(
     with pytest.raises(SafetyError, match="electrode count is unknown"):
         dev._send(b"\x00\xfb\x00\x00\xf9\xf5")
     assert port.writes == before
-    assert port.emulator.state()["sense_pulse_height"] == 0
+    assert port.emulator.state().sense_pulse_height == 0

@@ -60,7 +60,7 @@ def test_the_old_resync_order_is_refused_while_the_queue_may_be_full() -> None:
     # what the interlock predicts is what the firmware does with those bytes
     emu = Emulator()
     emu.feed(p.encode_electrode_num(4) + p.encode_pattern(ON) + b"\xfb\x00" + p.encode_sense_height(0))
-    assert emu.state()["pulse_height"] == 4095
+    assert emu.state().pulse_height == 4095
 
 
 def test_once_the_board_has_answered_the_same_order_is_allowed() -> None:
@@ -108,7 +108,7 @@ def test_a_cut_pattern_turns_the_next_command_into_channel_levels() -> None:
         guard.interlock.check_wire(p.encode_discharge(1))
     emu = Emulator()
     emu.feed(p.encode_electrode_num(4) + b"\xfe\x01" + p.encode_discharge(1))
-    assert emu.state()["stim_pattern"][:4] == [1, 0xF7, 1, 0]
+    assert list(emu.state().stim_pattern[:4]) == [1, 0xF7, 1, 0]
 
 
 def test_an_unknown_parser_position_allows_only_zeros_and_requests() -> None:
@@ -198,16 +198,16 @@ def _matches(s: Shadow, emu: Emulator) -> bool:
     """The firmware's registers agree with every register the interlock's state claims to know."""
     regs = emu.state()
     pairs = [
-        (s.electrode_num, regs["electrode_num"]),
-        (s.height_code, regs["pulse_height"]),
-        (s.sense_code, regs["sense_pulse_height"]),
-        (s.width_us, regs["pulse_width"]),
-        (s.sense_width_us, regs["sense_pulse_width"]),
-        (s.polarity, regs["polarity"]),
+        (s.electrode_num, regs.electrode_num),
+        (s.height_code, regs.pulse_height),
+        (s.sense_code, regs.sense_pulse_height),
+        (s.width_us, regs.pulse_width_us),
+        (s.sense_width_us, regs.sense_pulse_width_us),
+        (s.polarity, regs.polarity),
     ]
     if any(mine is not None and mine != theirs for mine, theirs in pairs):
         return False
-    if any(mine is not None and mine != theirs for mine, theirs in zip(s.pattern, regs["stim_pattern"])):
+    if any(mine is not None and mine != theirs for mine, theirs in zip(s.pattern, regs.stim_pattern)):
         return False
     return s.parse is None or s.parse.opcode == emu.parser.cmd
 

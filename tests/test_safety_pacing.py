@@ -88,7 +88,7 @@ def test_zero_losses_on_full_reconfigurations_and_resyncs(link: str) -> None:
         dev.resync()
     assert_nothing_lost(port)
     s = port.emulator.state()
-    assert s["electrode_num"] == 32 and s["pulse_height"] == 0
+    assert s.electrode_num == 32 and s.pulse_height == 0
     dev.close()
 
 

@@ -96,14 +96,14 @@ def test_control_a_height_cut_by_a_full_queue_becomes_4095() -> None:
         emu.write(cfg[i : i + 3])
         emu.advance(2000)
     emu.advance(300_000)
-    assert emu.state()["pulse_height"] == 40 and emu.state()["stim_pattern"][0] == 1
+    assert emu.state().pulse_height == 40 and emu.state().stim_pattern[0] == 1
     # at an alarm: the scan (255 channels) holds the parser off for ~100 ms
     emu.advance_to(emu.next_alarm / 1000 + 10)
     emu.write(bytes(254) + b"\xfb\x00\x00")  # a resync's zeros, then height 0: the last byte does not fit
     emu.advance(200_000)
     emu.write(b"\xf9\x00")  # sense height 0: its command byte becomes the height's high byte
     emu.advance(400_000)
-    assert emu.losses and emu.state()["pulse_height"] == 4095
+    assert emu.losses and emu.state().pulse_height == 4095
     assert max_delivered_ua(emu) >= 40_950 - 1e-6
 
 
@@ -422,13 +422,13 @@ def test_closed_loop_proof_over_a_pty(pty_server: PtyServer) -> None:
         assert states(dev, k) == ["suspect", "syncing", "flushing", "safe", "verifying", "in_step"]
         time.sleep(0.05)
         s = emu.state()
-        assert s["electrode_num"] == 32 and s["pulse_height"] == 50 and s["stim_pattern"][:32] == [0] * 32
+        assert s.electrode_num == 32 and s.pulse_height == 50 and list(s.stim_pattern[:32]) == [0] * 32
         assert not emu.locked and defects(emu.hazards) == [
             h for h in defects(emu.hazards) if h.kind is HazardKind.PATTERN_HOLDS_COMMAND_BYTE
         ]
         dev.keepalive()
         time.sleep(0.05)
-        assert emu.state()["stim_pattern"][:32] == [1] * 32
+        assert list(emu.state().stim_pattern[:32]) == [1] * 32
     finally:
         dev.close()
 
@@ -516,7 +516,7 @@ def test_close_notices_a_duplicated_sense_height_byte_and_switches_off_again(rob
     port.is_open = True
     port.advance(0.05)
     emu = port.emulator
-    assert emu.state()["sense_pulse_height"] == 0
+    assert emu.state().sense_pulse_height == 0
     table = emu.reports.pulse_table()
     after = table["start_us"] / 1e6 > closed_at
     assert after.any()  # the scans go on (count unchanged), at height 0
@@ -543,11 +543,11 @@ def test_refresh_rewrites_the_sense_height_on_v12() -> None:
     dev = EtactileKitDevice(EmulatorPort(emu))
     dev.configure(StimConfig(electrode_count=8, current_ua=500, sense_current_ua=40))
     dev.send_pattern([1, 0, 0, 0, 0, 0, 0, 1])
-    set_by_host = emu.state()["sense_pulse_height"]
+    set_by_host = emu.state().sense_pulse_height
     emu.feed(p.encode_sense_height(0xF9))
-    assert emu.state()["sense_pulse_height"] == 0xF9 << 2 != set_by_host
+    assert emu.state().sense_pulse_height == 0xF9 << 2 != set_by_host
     dev.refresh()
-    assert emu.state()["sense_pulse_height"] == set_by_host
+    assert emu.state().sense_pulse_height == set_by_host
     dev.close()
 
 
@@ -571,5 +571,5 @@ def test_the_failsafes_refresh_leaves_the_sense_height_to_its_readback_only_wher
     )
     emu.feed(p.encode_sense_height(0xF9))
     fs.poll(0.0)
-    assert (emu.state()["sense_pulse_height"] != 0xF9 << 2) is rewritten
+    assert (emu.state().sense_pulse_height != 0xF9 << 2) is rewritten
     dev.close()

@@ -26,6 +26,7 @@ from tactdeform_hw.device.safety import failsafe as fs_mod
 from tactdeform_hw.device.safety.guardian import LEAD_ZEROS, RESYNC_ZEROS, off_packet, stop_packet
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.serving.pty_server import PtyServer
+from tactdeform_hw.protocol.state import BoardState
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tools"))
@@ -92,13 +93,13 @@ def board() -> Iterator[Board]:
         b.close()
 
 
-def board_is_off(state: dict[str, Any]) -> bool:
-    n = state["electrode_num"]
+def board_is_off(state: BoardState) -> bool:
+    n = state.electrode_num
     return (
         not delivering(state)
-        and state["pulse_height"] == 0
-        and state["sense_pulse_height"] == 0
-        and state["stim_pattern"][:n] == [0] * n
+        and state.pulse_height == 0
+        and state.sense_pulse_height == 0
+        and list(state.stim_pattern[:n]) == [0] * n
     )
 
 
@@ -416,10 +417,10 @@ PARTIALS = [b""] + [
 
 
 def _peaks(emu: Emulator, data: bytes) -> dict[str, int]:
-    peak = {k: emu.state()[k] for k in WATCHED}
+    peak = {k: emu.state().as_dict()[k] for k in WATCHED}
     for b in data:
         emu.feed(bytes([b]))
-        st = emu.state()
+        st = emu.state().as_dict()
         for k in WATCHED:
             peak[k] = max(peak[k], st[k])
     return peak
@@ -443,7 +444,7 @@ def test_stop_packet_never_raises_a_value_whatever_it_lands_on_and_whatever_tail
         for k in WATCHED:
             assert peak[k] <= bound[k], (partial.hex(), cut, k, peak[k], bound[k])
         st = emu.state()
-        assert st["pulse_height"] == 0 and st["sense_pulse_height"] == 0 and not delivering(st)
+        assert st.pulse_height == 0 and st.sense_pulse_height == 0 and not delivering(st)
         assert not emu.locked
 
 
@@ -459,7 +460,7 @@ def test_off_packet_after_the_proof_never_raises_and_never_locks(n: int) -> None
     emu = _stimulating_emulator()
     emu.feed(stop_packet() + off)
     st = emu.state()
-    assert st["electrode_num"] == n and st["stim_pattern"][:n] == [0] * n
+    assert st.electrode_num == n and list(st.stim_pattern[:n]) == [0] * n
 
 
 def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> tuple[float, float, int]:
@@ -495,7 +496,7 @@ def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> 
     return (
         float(current.max()) if current.size else 0.0,
         float(current[done].max()) if done.any() else 0.0,
-        emu.state()["pulse_height"],
+        emu.state().pulse_height,
     )
 
 

@@ -56,7 +56,7 @@ def _owner(server: TcpServer) -> subprocess.Popen[str]:
         [
             sys.executable, "-m", "tactdeform_hw.cli", "send", "--pattern", ",".join(["1", "0"] * 16),
             "--current-ua", "500", "--hold-ms", "20000", "--device", server.url,
-            "--firmware", server.board.firmware,
+            "--firmware", server.board.firmware.name,
         ],
         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=ENV, cwd=str(REPO),
         start_new_session=True,
@@ -125,7 +125,7 @@ def test_a_stop_signal_to_a_tcp_owner_switches_the_board_off(wifi: TcpServer, si
 def test_a_clean_close_on_tcp_releases_the_guardian_without_it_writing(
     wifi: TcpServer, capfd: pytest.CaptureFixture[str]
 ) -> None:
-    dev = open_device(wifi.url, firmware=wifi.board.firmware)
+    dev = open_device(wifi.url, firmware=wifi.board.firmware.name)
     guardian = dev.guardian
     assert guardian is not None and guardian.alive and getattr(dev.port, "guardable", False)
     dev.configure(StimConfig(current_ua=500))

@@ -97,9 +97,9 @@ def test_the_emulators_port_resets_through_its_reset_line(name: str) -> None:
     port.open()
     try:
         port.write(encode_electrode_num(8))
-        assert _eventually(lambda: port.board_state()["electrode_num"] == 8)
+        assert _eventually(lambda: port.board_state().electrode_num == 8)
         port.pulse_reset()
-        assert port.board_state()["electrode_num"] == 0 and len(port.resets) == 1
+        assert port.board_state().electrode_num == 0 and len(port.resets) == 1
         assert port.board_hazards == port.emulator.hazards
     finally:
         port.close()
@@ -127,6 +127,6 @@ def test_capabilities_by_port() -> None:
     assert board_state(path) is None  # a board cannot show its registers
     port = EmulatorPort()
     with port:
-        assert is_instant(port) and board_state(port)["electrode_num"] == 0 and port.board_hazards == []
+        assert is_instant(port) and board_state(port).electrode_num == 0 and port.board_hazards == []
     with pytest.raises(TransportError, match="not open"):
         port.out_waiting  # noqa: B018 - the property is the check

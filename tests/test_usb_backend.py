@@ -132,7 +132,7 @@ def test_one_command_with_a_payload_per_tick(
     for i, t in enumerate(effects):
         # one RTOS tick each; a tick that falls inside a scan waits for the scan to end (< 300 µs here)
         assert first + 1000 * i <= t < first + 1000 * i + 300, (i, effects)
-    assert d.state()["discharge_time"] == 0x2D
+    assert d.state().discharge_time_us == 0x2D
 
 
 def test_unknown_bytes_cost_no_tick(bus: tuple[VirtualClock, EmulatedUsbBackend, usb_core.Device]) -> None:
@@ -154,11 +154,11 @@ def test_half_received_u16_spins_until_the_second_byte(
     d = be.device
     dev.write(0x01, b"\xfb\x10")  # pulse height, low byte only
     assert d.settle()
-    assert d.state()["rx_pending"] == 1 and d.state()["pulse_height"] == 0
+    assert d.state().rx_pending == 1 and d.state().pulse_height == 0
     clock.advance(0.0104)
     dev.write(0x01, b"\x00")
     clock.advance(0.0012)  # into the next frame: delivered, and read at once (no tick to wait for)
-    assert d.state()["pulse_height"] == 16 and d.state()["rx_pending"] == 0
+    assert d.state().pulse_height == 16 and d.state().rx_pending == 0
     height = [r for r in d.timed.commands if r.name == "PULSE_HEIGHT"][-1]
     assert 11000 <= height.arrival_us <= height.effect_us < height.arrival_us + 300
 
@@ -187,7 +187,7 @@ def test_packets_per_frame_cap_spreads_a_burst() -> None:
     dev.detach_kernel_driver(1)
     dev.write(0x01, bytes(300))  # five packets, one per frame: the parser keeps up
     assert d.settle()
-    assert d.timed.losses == [] and d.state()["rx_pending"] == 0
+    assert d.timed.losses == [] and d.state().rx_pending == 0
 
 
 def test_locked_parser_fills_the_queue_then_loses_everything(
@@ -201,7 +201,7 @@ def test_locked_parser_fills_the_queue_then_loses_everything(
     for _ in range(5):
         dev.write(0x01, b"\xf5" * 64)
     assert d.settle()
-    assert d.state()["rx_pending"] == 256
+    assert d.state().rx_pending == 256
     assert sum(lo.count for lo in d.timed.losses) == 5 * 64 - 256
     with pytest.raises(usb_core.USBTimeoutError):
         dev.read(0x81, 64, 20)  # no HV513 count ever comes back

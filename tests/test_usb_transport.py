@@ -104,17 +104,17 @@ def test_driver_runs_unchanged_configure_patterns_measure(backend: EmulatedUsbBa
         )
         assert d.settle()
         st = d.state()
-        assert (st["electrode_num"], st["pulse_height"], st["pulse_width"], st["discharge_time"]) == (
+        assert (st.electrode_num, st.pulse_height, st.pulse_width_us, st.discharge_time_us) == (
             32,
             50,
             180,
             40,
         )
-        assert st["period_us"] == 10_000.0 and st["rx_pending"] == 0
+        assert st.period_us == 10_000.0 and st.rx_pending == 0
         levels = [(i % 3) for i in range(32)]
         dev.send_pattern(levels)
         assert d.settle()
-        assert d.state()["stim_pattern"][:32] == levels
+        assert list(d.state().stim_pattern[:32]) == levels
         time.sleep(0.025)  # two stimulation periods: every channel has had a pulse with this pattern
         adc = dev.measure()  # one full 64-byte packet
         assert adc == list(d.emulator.registers.voltage[:32])  # what the scans measured
@@ -124,7 +124,7 @@ def test_driver_runs_unchanged_configure_patterns_measure(backend: EmulatedUsbBa
         dev.close()
     assert d.settle()
     st = d.state()
-    assert st["pulse_height"] == 0 and st["stim_pattern"][:32] == [0] * 32  # fail-safe reached the firmware
+    assert st.pulse_height == 0 and list(st.stim_pattern[:32]) == [0] * 32  # fail-safe reached the firmware
 
 
 def test_measure_reply_spanning_several_packets(backend: EmulatedUsbBackend) -> None:
@@ -201,11 +201,11 @@ def test_rts_without_dtr_resets_the_chip_which_is_why_both_start_low(backend: Em
     with port_on(backend) as port:
         port.write(encode_electrode_num(12) + encode_pulse_height(7))
         assert d.settle()
-        assert d.state()["electrode_num"] == 12 and d.resets == 0
+        assert d.state().electrode_num == 12 and d.resets == 0
         port.rts = True  # held in reset
         port.rts = False  # released with DTR low: the application boots again
         assert d.resets == 1 and not d.download_mode
-        assert d.state()["electrode_num"] == 0 and d.state()["pulse_height"] == 0  # power-on state
+        assert d.state().electrode_num == 0 and d.state().pulse_height == 0  # power-on state
         port.write(b"\xf5")
         assert port.read(1) == b"\x04"
 
@@ -295,7 +295,7 @@ def test_unplug_mid_session(backend: EmulatedUsbBackend) -> None:
     assert d.kernel_bound == {0, 1}
     with EtactileKitDevice(port_on(backend)) as dev2:
         assert dev2.hv513_count() == 4
-        assert d.state()["electrode_num"] == 0
+        assert d.state().electrode_num == 0
 
 
 def test_unplug_during_a_blocking_read(backend: EmulatedUsbBackend) -> None:
@@ -342,7 +342,7 @@ def test_stalled_out_endpoint_is_cleared_and_the_packet_sent_once(backend: Emula
         port.write(encode_electrode_num(5))
         assert port.stalls_cleared == 1 and 0x01 not in d.halted
         assert d.settle()
-        assert d.state()["electrode_num"] == 5 and d.bytes_accepted == 2  # neither lost nor doubled
+        assert d.state().electrode_num == 5 and d.bytes_accepted == 2  # neither lost nor doubled
 
 
 def test_stalled_in_endpoint_is_cleared_and_the_reply_read(backend: EmulatedUsbBackend) -> None:

@@ -95,23 +95,23 @@ def test_configure_send_all_off_close_on_the_untimed_v2_url() -> None:
         )
     )
     s = emu.state()
-    assert (s["electrode_num"], s["stim_mode"], s["pulse_width"], s["discharge_time"], s["polarity"]) == (
+    assert (s.electrode_num, s.stim_mode, s.pulse_width_us, s.discharge_time_us, s.polarity) == (
         4,
         0,
         150,
         40,
         0,
     )
-    assert s["stim_pattern"][:4] == [0, 0, 0, 0]
+    assert list(s.stim_pattern[:4]) == [0, 0, 0, 0]
     dev.send_pattern([1, 0, 1, 0])
-    assert emu.state()["stim_pattern"][:4] == [100, 0, 100, 0] and emu.state()["stim_mode"] == 0
+    assert list(emu.state().stim_pattern[:4]) == [100, 0, 100, 0] and emu.state().stim_mode == 0
     dev.send_pattern([0, 2, 2, 0])
-    assert emu.state()["stim_pattern"][:4] == [0, 100, 100, 0] and emu.state()["stim_mode"] == 1
+    assert list(emu.state().stim_pattern[:4]) == [0, 100, 100, 0] and emu.state().stim_mode == 1
     dev.all_off()
     s = emu.state()
-    assert s["stim_pattern"][:4] == [0, 0, 0, 0] and s["stim_mode"] in (0, 1)
+    assert list(s.stim_pattern[:4]) == [0, 0, 0, 0] and s.stim_mode in (0, 1)
     dev.close()
-    assert emu.state()["stim_pattern"][:4] == [0, 0, 0, 0] and emu.state()["stim_mode"] != 2
+    assert list(emu.state().stim_pattern[:4]) == [0, 0, 0, 0] and emu.state().stim_mode != 2
     _no_live_hazards(emu)
 
 
@@ -134,7 +134,7 @@ def test_every_byte_the_v2_driver_writes_reads_as_v2_commands_and_never_mode_2_w
             mode = c.value or 0
             assert mode != 2 or sense == 0
         assert c.opcode != OpcodeV2.PULSE_WIDTH or c.read_value != 0  # 0 is stored on v2: never sent
-    assert stream and emu.state()["stim_mode"] != 2
+    assert stream and emu.state().stim_mode != 2
     _no_live_hazards(emu)
 
 
@@ -176,11 +176,11 @@ def test_each_electrode_ramps_from_its_own_height() -> None:
     for _ in range(5):
         dev.send_pattern([1, 1, 0, 0])
         port.advance(0.01)
-        seen.append(board.state()["stim_pattern"][:4])
+        seen.append(board.state().stim_pattern[:4])
     assert [s[0] for s in seen] == [30, 60, 90, 100, 100]
     dev.send_pattern([1, 1, 1, 0])  # electrode 2 starts soft while 0 and 1 stay
     port.advance(0.01)
-    assert board.state()["stim_pattern"][:4] == [100, 100, 30, 0]
+    assert list(board.state().stim_pattern[:4]) == [100, 100, 30, 0]
     t = port.now_s
     port.advance(0.05)
     assert max(board.peak_current_ua(since_us=t * 1e6).values()) <= 1000
@@ -214,14 +214,14 @@ def test_refresh_and_keepalive_rewrite_the_heights_in_force() -> None:
     dev.send_pattern([1, 1, 0])
     emu.feed(c2.encode_pattern([0, 0, 0]))  # something else changed the board
     dev.refresh()
-    assert emu.state()["stim_pattern"][:3] == [30, 30, 0]
+    assert list(emu.state().stim_pattern[:3]) == [30, 30, 0]
     emu.feed(c2.encode_stim_mode(2))  # a mode byte mis-read: the sense pulse on every channel
     dev.refresh()
-    assert emu.state()["stim_mode"] == c2.STIM_MODE_MONOPHASIC
+    assert emu.state().stim_mode == c2.STIM_MODE_MONOPHASIC
     dev.suspend()
-    assert emu.state()["stim_pattern"][:3] == [0, 0, 0]
+    assert list(emu.state().stim_pattern[:3]) == [0, 0, 0]
     dev.keepalive()
-    assert emu.state()["stim_pattern"][:3] == [30, 30, 0]
+    assert list(emu.state().stim_pattern[:3]) == [30, 30, 0]
     dev.close()
 
 
@@ -232,7 +232,7 @@ def test_the_guardians_stop_on_v2_stops_current_from_any_parser_state() -> None:
         emu.feed(c2.encode_electrode_num(32) + c2.encode_pattern([100] * 32) + prefix)
         emu.feed(pkt)
         s = emu.state()
-        assert s["electrode_num"] == 0 and s["stim_mode"] == 0 and not s["command_in_progress"]
+        assert s.electrode_num == 0 and s.stim_mode == 0 and not s.command_in_progress
 
 
 # --- detection and refusals ---------------------------------------------------------------------------------
@@ -274,7 +274,7 @@ def test_auto_detects_the_version_from_every_parser_state_before_any_stimulating
         dev.configure(StimConfig(electrode_count=4, current_ua=200))
         dev.send_pattern([1, 1, 0, 0])
         want = [20, 20, 0, 0] if fw == "v2" else [1, 1, 0, 0]
-        assert emu.state()["stim_pattern"][:4] == want, prefix.hex()
+        assert list(emu.state().stim_pattern[:4]) == want, prefix.hex()
         dev.close()
 
 
@@ -284,7 +284,7 @@ def test_a_v12_driver_is_refused_on_a_v2_board(monkeypatch: pytest.MonkeyPatch) 
     monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
     with pytest.raises(FirmwareMismatchError, match="runs firmware v2"):
         open_device("emulator", firmware="v1.2")
-    assert emu.state()["electrode_num"] == 0  # nothing scanned any more
+    assert emu.state().electrode_num == 0  # nothing scanned any more
     assert not port.is_open
 
 
@@ -308,7 +308,7 @@ def test_a_v2_driver_is_refused_on_a_v12_board_and_stops_it() -> None:
     port.advance(0.05)
     assert _peak_v12(board, t * 1e6) == 0
     s = board.state()
-    assert s["electrode_num"] == 0 and s["pulse_height"] == 0
+    assert s.electrode_num == 0 and s.pulse_height == 0
 
 
 def _peak_v12(board: TimedEmulator, since_us: float) -> float:
@@ -323,7 +323,7 @@ def test_a_v2_driver_refused_on_a_v12_url(monkeypatch: pytest.MonkeyPatch) -> No
     with pytest.raises(FirmwareMismatchError, match="runs firmware v1.2.*firmware='v2'"):
         open_device("emulator", firmware="v2")
     assert not port.is_open
-    assert emu.state()["electrode_num"] == 0 and emu.state()["pulse_height"] == 0
+    assert emu.state().electrode_num == 0 and emu.state().pulse_height == 0
     # nothing but the identification's off bytes reached the board
     assert set(bytes(emu.parser.rx)[30:]) <= {0x00, 0xFC, 0xFB, 0xF9, 0xF4, 0xF5}
 
@@ -347,7 +347,9 @@ def test_recovery_after_a_cut_pattern_on_v2_delivers_nothing_above_the_limits() 
     peak = board.peak_current_ua(since_us=t * 1e6)
     limits = guard.electrode_limits(32)
     assert all(peak.get(ch, 0) <= limits[ch] for ch in range(32))
-    assert board.state()["stim_pattern"][:32] == [dev.transfer.to_code(min(1500, lim)) for lim in limits[:32]]
+    assert list(board.state().stim_pattern[:32]) == [
+        dev.transfer.to_code(min(1500, lim)) for lim in limits[:32]
+    ]
     dev.close()
 
 
@@ -364,7 +366,7 @@ def test_a_missing_sync_reply_waits_past_the_2s_timeout_then_proves_again() -> N
     proved = [t for t, _, new, _ in dev.transitions if new == LinkState.SAFE.value and t >= t0]
     assert flushing and proved and proved[-1] - flushing[0] > 2.0
     port.advance(0.01)
-    assert board.state()["stim_pattern"][:8] == [60] * 8 and not board.state()["command_in_progress"]
+    assert list(board.state().stim_pattern[:8]) == [60] * 8 and not board.state().command_in_progress
     t = port.now_s
     port.advance(0.05)
     assert max(board.peak_current_ua(since_us=t * 1e6).values()) == 600
@@ -443,7 +445,7 @@ def test_a_guardian_is_given_the_v2_stop() -> None:
     dev._closed = True
     # the stop leaves a v2 pattern in progress complete with zeros, and no height above 0
     emu.feed(c2.encode_electrode_num(8) + bytes([0xFE, 0x20]) + g.stops[0])
-    assert emu.state()["stim_pattern"][:8] == [0x20] + [0] * 7 and emu.state()["electrode_num"] == 0
+    assert list(emu.state().stim_pattern[:8]) == [0x20] + [0] * 7 and emu.state().electrode_num == 0
 
 
 @pytest.mark.parametrize("seed", range(60))
@@ -547,5 +549,5 @@ def test_a_hung_v2_board_gets_the_reset_line_and_comes_back() -> None:
     dev.send_pattern([1] * 8)
     assert resets and dev.link_state is LinkState.IN_STEP
     port.advance(0.02)
-    assert board.state()["stim_pattern"][:8] == [50] * 8
+    assert list(board.state().stim_pattern[:8]) == [50] * 8
     dev.close()

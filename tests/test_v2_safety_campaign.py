@@ -194,7 +194,7 @@ def test_close_is_proved_by_count_0_when_its_all_off_write_is_corrupted() -> Non
     _, port, board = session([Fault("corrupt", at_s=t_close - 1e-6)])
     hit = port.all_injected
     assert [f.kind.value for f in hit] == ["corrupt"] and hit[0].detail["before"] == "fb", hit
-    assert board.state()["electrode_num"] == 0  # nothing is scanned
+    assert board.state().electrode_num == 0  # nothing is scanned
     port.advance(0.05)
     assert board.peak_current_ua(since_us=(port.now_s - 0.04) * 1e6) == {}
 
@@ -204,7 +204,7 @@ def test_close_on_v2_leaves_the_electrode_count_at_0() -> None:
     dev.configure(StimConfig(electrode_count=8, current_ua=300, pulse_width_us=200))
     dev.send_pattern([1] * 8)
     dev.close()
-    assert board.emulator.state()["electrode_num"] == 0
+    assert board.emulator.state().electrode_num == 0
 
 
 def test_a_hung_255_electrode_board_is_reset_within_the_recovery_bound() -> None:

@@ -76,11 +76,11 @@ def test_a_cut_command_times_out_and_later_commands_apply() -> None:
     emu.write(c.encode_electrode_num(2) + b"\xfa", 0.0)
     emu.write(c.SYNC_CHECK, 100_000.0)  # eaten as the first payload byte: no reply
     emu.advance_to(2_200_000.0)
-    assert emu.read_tx() == b"" and not emu.state()["command_in_progress"]
+    assert emu.read_tx() == b"" and not emu.state().command_in_progress
     assert [h for h in emu.hazards if h.kind is HazardKind.COMMAND_TIMEOUT]
     emu.write(c.SYNC_CHECK + c.encode_pulse_width(150))
     emu.advance_to(2_300_000.0)
-    assert emu.read_tx() == b"\x02" and emu.state()["pulse_width"] == 150
+    assert emu.read_tx() == b"\x02" and emu.state().pulse_width_us == 150
 
 
 VECTORS = [
@@ -129,7 +129,7 @@ def test_upstream_paced_client_gets_the_predicted_state(vector: dict) -> None:
         "rx_pending",
         "command_in_progress",
     ):
-        assert state[key] == expect[key], key
+        assert state.as_dict()[key] == expect[key], key
     tx = emu.read_tx().hex()
     if "ff" not in vector["stream"]:
         assert tx == expect["tx"]

@@ -44,13 +44,13 @@ def _check(vector: dict, emu: Emulator, tx: bytes) -> None:
     state = emu.state()
     expect = vector["expect"]
     assert tx.hex() == expect["tx"]
-    assert np.float32(state["period_us"]) == np.float32(expect["period_us"])
-    assert state["period_us"] == float(np.float32(expect["period_us"]))
-    assert set(expect) <= set(state) | {"tx"}
+    assert np.float32(state.period_us) == np.float32(expect["period_us"])
+    assert state.period_us == float(np.float32(expect["period_us"]))
+    assert set(expect) <= set(state.as_dict()) | {"tx"}
     for key, value in expect.items():
         if key in ("tx", "period_us"):
             continue
-        assert state[key] == value, key
+        assert state.as_dict()[key] == value, key
 
 
 @pytest.mark.parametrize("index", range(len(VECTORS)), ids=[v["id"] for v in VECTORS])
@@ -117,7 +117,7 @@ def test_timeout_is_recorded_with_what_it_discarded() -> None:
 def test_pending_command_is_recorded() -> None:
     emu = Emulator(firmware="v2")
     emu.feed(bytes.fromhex("fc04fe0101"))
-    assert emu.state()["command_in_progress"]
+    assert emu.state().command_in_progress
     assert HazardKind.COMMAND_PENDING in _hazard_kinds(emu)
 
 
@@ -125,7 +125,7 @@ def test_v12_host_bytes_are_recorded_as_defects() -> None:
     """A v1.2 pulse-height command: ``FB 64 00`` sets mode 2 (clamped) and the 00 is an unknown byte."""
     emu = Emulator(firmware="v2")
     emu.feed(bytes.fromhex("fb6400"))
-    assert emu.state()["stim_mode"] == 2
+    assert emu.state().stim_mode == 2
     assert {HazardKind.CLAMPED, HazardKind.UNKNOWN_BYTES} <= _hazard_kinds(emu)
 
 
@@ -136,13 +136,13 @@ def test_desync_and_clamp_and_stale_are_recorded() -> None:
     assert HazardKind.CLAMPED in kinds and HazardKind.STALE_CHANNELS in kinds
     emu.feed(bytes.fromhex("fafd00"))
     assert HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE in _hazard_kinds(emu)
-    assert emu.state()["pulse_width"] == 0x00FD
+    assert emu.state().pulse_width_us == 0x00FD
 
 
 def test_queue_overflow_is_recorded() -> None:
     emu = Emulator(firmware="v2")
     emu.feed(bytes(1500))
-    assert emu.state()["rx_dropped"] == 1500 - 1024
+    assert emu.state().rx_dropped == 1500 - 1024
     assert HazardKind.QUEUE_OVERFLOW in _hazard_kinds(emu)
 
 
@@ -170,7 +170,7 @@ def test_a_new_client_inherits_a_cut_command_within_2_s() -> None:
     emu = Emulator(firmware="v2")
     emu.feed(bytes.fromhex("fc02fe"), at_us=0)
     assert emu.feed(bytes.fromhex("fc20fb00f4"), at_us=1_500_000) == b"\x02"  # the count is still 2
-    assert emu.state()["stim_pattern"][:2] == [4095, 0x00FB]
+    assert list(emu.state().stim_pattern[:2]) == [4095, 0x00FB]
     clamped = [
         h for h in emu.hazards if h.kind is HazardKind.CLAMPED and h.detail.get("field") == "stim_pattern"
     ]

@@ -96,7 +96,7 @@ def test_pty_no_reply_to_other_commands(pty_server: PtyServer) -> None:
         assert s.read(1) == b""
     time.sleep(0.05)
     st = pty_server.emulator.state()
-    assert st["stim_pattern"][:4] == [1, 1, 0, 2] and st["period_us"] == 8000.0
+    assert list(st.stim_pattern[:4]) == [1, 1, 0, 2] and st.period_us == 8000.0
 
 
 def test_pty_locked_parser_reproduced_and_reported(pty_server: PtyServer) -> None:
@@ -105,7 +105,7 @@ def test_pty_locked_parser_reproduced_and_reported(pty_server: PtyServer) -> Non
         s.write(b"\xf5")  # would normally answer 4
         assert s.read(1) == b""
     emu = pty_server.emulator
-    assert emu.locked and emu.state()["rx_pending"] == 1
+    assert emu.locked and emu.state().rx_pending == 1
     assert [h.kind for h in emu.hazards][:2] == [HazardKind.PARSER_LOCKED, HazardKind.UNREAD_WHILE_LOCKED]
 
 
@@ -117,14 +117,14 @@ def test_driver_over_pty(pty_server: PtyServer) -> None:
         assert len(dev.measure()) == 32
         deadline = time.monotonic() + 2
         while (
-            pty_server.emulator.state()["stim_pattern"][:32] != [1, 2, 0, 0] * 8
+            list(pty_server.emulator.state().stim_pattern[:32]) != [1, 2, 0, 0] * 8
             and time.monotonic() < deadline
         ):
             time.sleep(0.005)
     deadline = time.monotonic() + 2
-    while pty_server.emulator.state()["stim_pattern"][:32] != [0] * 32 and time.monotonic() < deadline:
+    while list(pty_server.emulator.state().stim_pattern[:32]) != [0] * 32 and time.monotonic() < deadline:
         time.sleep(0.005)
-    assert pty_server.emulator.state()["stim_pattern"][:32] == [0] * 32  # all-off on close
+    assert list(pty_server.emulator.state().stim_pattern[:32]) == [0] * 32  # all-off on close
     assert defects(pty_server.emulator.hazards) == []  # the proofs' own records only
 
 
@@ -160,7 +160,7 @@ def test_named_url_shares_one_emulator() -> None:
     a.write(b"\xfc\x07")
     assert shared_emulator("bench1") is a.emulator is b.emulator
     assert settle(b.emulator)
-    assert b.emulator.state()["electrode_num"] == 7
+    assert b.emulator.state().electrode_num == 7
     with pytest.raises(serial.SerialException, match="already open timed"):
         serial.serial_for_url("etactile://bench1?timed=0")
     forget_shared()
@@ -178,7 +178,7 @@ def test_pty_reply_after_a_configuration_burst_waits_for_the_parser(timed_pty: P
         s.write(burst + b"\xf5")
         assert s.read(1) == b"\x04"
         assert time.monotonic() - t0 >= 0.007
-    assert timed_pty.state()["pulse_height"] == 100
+    assert timed_pty.state().pulse_height == 100
 
 
 def test_pty_voltages_after_a_pattern_are_the_skin_models(timed_pty: PtyServer) -> None:
@@ -213,8 +213,8 @@ def test_pty_one_byte_per_write_gives_the_same_registers_as_whole_commands() -> 
             _received(whole, len(stream))
             _received(single, len(stream))
         sa, sb = whole.state(), single.state()
-    assert {k: sb[k] for k in REGISTERS} == {k: sa[k] for k in REGISTERS}
-    assert sb["stim_pattern"][:32] == LEVELS and sb["polarity"] == 0
+    assert {k: sb.as_dict()[k] for k in REGISTERS} == {k: sa.as_dict()[k] for k in REGISTERS}
+    assert list(sb.stim_pattern[:32]) == LEVELS and sb.polarity == 0
 
 
 def _emulate(*args: str) -> subprocess.Popen[str]:

@@ -76,14 +76,14 @@ def test_realtime_v2_answers_on_the_firmwares_rhythm_and_scans() -> None:
     assert board.read() == bytes([N])
     assert wait_until(lambda: board.status().scans >= 2, 2.0)  # 125 Hz scans run on the wall clock
     state = board.state()
-    assert state["stim_pattern"][:N] == [100 + i for i in range(N)] and state["stim_mode"] == 0
+    assert list(state.stim_pattern[:N]) == [100 + i for i in range(N)] and state.stim_mode == 0
     status = board.status()
     assert status.scans >= 2 and status.registers["on"] == tuple(range(N))
     assert "mode=0" in status.lines()[0] and f"on={N}[0-{N - 1}]" in status.lines()[0]
     rec = board.reset("test")
     assert rec.discarded["electrode_num"] == N and rec.discarded["stim_mode"] == 0
     assert rec.discarded["channels_on"] == list(range(N))
-    assert board.state()["electrode_num"] == Emulator(firmware="v2").state()["electrode_num"]
+    assert board.state().electrode_num == Emulator(firmware="v2").state().electrode_num
 
 
 def test_realtime_v2_reports_a_mode_2_board_as_all_channels_on() -> None:
@@ -105,9 +105,9 @@ def test_v2_model_sleeps_through_idle_polls_and_never_reports_an_event_in_the_pa
     emu.write(v2.encode_pattern([5] * N), 50_000.5)  # lands at once, read by the parser's next call
     emu.advance_to(50_700.0)
     due = emu.next_event_us(scans=False)
-    assert due > 50_700.0 and emu.state()["stim_pattern"][0] == 0
+    assert due > 50_700.0 and emu.state().stim_pattern[0] == 0
     emu.advance_to(due)
-    assert emu.state()["stim_pattern"][:N] == [5] * N
+    assert list(emu.state().stim_pattern[:N]) == [5] * N
     emu.write(b"\xfe", emu.now_us)  # a cut pattern: the next event without scans is its timeout
     emu.advance_to(emu.now_us + 5000)
     assert emu.parser.processing
@@ -140,11 +140,11 @@ def test_url_handler_serves_v2_timed_by_default_and_untimed_on_request() -> None
     register_url_handlers()
     port = serial.serial_for_url("etactile://?firmware=v2", timeout=1.0)
     try:
-        assert isinstance(port.emulator, RealtimeEmulator) and port.emulator.firmware == "v2"
+        assert isinstance(port.emulator, RealtimeEmulator) and port.emulator.firmware.name == "v2"
         port.write(v2.encode_electrode_num(5) + b"\xf4")
         assert port.read(1) == b"\x05"
         port.write(b"\xfe")  # a cut pattern: the USB Serial/JTAG reset discards it with the registers
-        assert wait_until(lambda: port.emulator.state()["command_in_progress"], 1.0)
+        assert wait_until(lambda: port.emulator.state().command_in_progress, 1.0)
         port.dtr, port.rts = False, True
         port.rts = False
         assert "reading PATTERN payload 0/10" in port.resets[-1].discarded["parser"]
@@ -155,7 +155,7 @@ def test_url_handler_serves_v2_timed_by_default_and_untimed_on_request() -> None
         port.close()
     instant = serial.serial_for_url("etactile://?firmware=v2&timed=0", timeout=0.2)
     try:
-        assert isinstance(instant.emulator, Emulator) and instant.emulator.firmware == "v2"
+        assert isinstance(instant.emulator, Emulator) and instant.emulator.firmware.name == "v2"
         instant.write(b"\xfc\x03\xf4")
         assert instant.read(1) == b"\x03"
     finally:
@@ -193,7 +193,7 @@ def test_v2_tcp_replies_go_only_to_the_connected_client() -> None:
             assert _recv(b, 1, timeout=0.3) == b""
             b.sendall(b"\xf4")
             assert _recv(b, 1) == b"\x00"
-            assert server.board.state()["rx_dropped"] == 0  # flow control: nothing lost
+            assert server.board.state().rx_dropped == 0  # flow control: nothing lost
         finally:
             b.close()
 
@@ -205,14 +205,14 @@ def test_v2_tcp_flow_control_holds_the_host_back_where_the_serial_queue_drops() 
     with _v2_tcp() as server, socket.create_connection(server.address, timeout=5) as sock:
         sock.sendall(flood)
         assert _recv(sock, 1, timeout=10) == bytes([N])
-        assert server.board.state()["rx_dropped"] == 0
+        assert server.board.state().rx_dropped == 0
         assert not any(h.kind is HazardKind.QUEUE_OVERFLOW for h in server.board.hazards)
     with (
         TcpServer(RealtimeEmulator(rules=SERIAL_USB, firmware="v2"), port=0, rules=SERIAL_USB) as server,
         socket.create_connection(server.address, timeout=5) as sock,
     ):
         sock.sendall(flood)
-        assert wait_until(lambda: server.board.state()["rx_dropped"] > 0, 10)
+        assert wait_until(lambda: server.board.state().rx_dropped > 0, 10)
         assert any(h.kind is HazardKind.QUEUE_OVERFLOW for h in server.board.hazards)
 
 
@@ -224,7 +224,7 @@ def test_replies_to_a_host_that_has_gone_are_not_sent_to_the_next() -> None:
     emu.write(v2.encode_electrode_num(3) + b"\xf4", 1000.0)
     emu.new_client("b")  # before the parser read them
     emu.advance_to(20_000.0)
-    assert emu.read_tx() == b"" and emu.replies_dropped == 1 and emu.state()["electrode_num"] == 3
+    assert emu.read_tx() == b"" and emu.replies_dropped == 1 and emu.state().electrode_num == 3
     emu.write(b"\xf4", 20_000.0)
     emu.advance_to(40_000.0)
     assert emu.read_tx() == b"\x03"
@@ -235,7 +235,7 @@ def _cut_then_new_client(server: TcpServer, gap_s: float) -> socket.socket:
     a.sendall(v2.encode_electrode_num(N) + b"\xf4")
     assert _recv(a, 1) == bytes([N])
     a.sendall(b"\xfe")  # a pattern cut after its command byte
-    assert wait_until(lambda: server.board.state()["command_in_progress"])
+    assert wait_until(lambda: server.board.state().command_in_progress)
     a.close()
     assert wait_until(lambda: not server.connected)
     time.sleep(gap_s)
@@ -251,9 +251,9 @@ def test_new_client_inherits_a_cut_command_within_2_s_and_it_is_reported() -> No
     with _v2_tcp() as server:
         b = _cut_then_new_client(server, 0.0)
         try:
-            assert wait_until(lambda: server.board.state()["stim_pattern"][0] == 4095)
+            assert wait_until(lambda: server.board.state().stim_pattern[0] == 4095)
             st = server.board.state()
-            assert st["stim_pattern"][:2] == [4095, 0x00FB]
+            assert list(st.stim_pattern[:2]) == [4095, 0x00FB]
             inherited = [h for h in server.board.hazards if h.kind is HazardKind.INHERITED_COMMAND]
             assert len(inherited) == 1
             d = inherited[0].detail
@@ -284,7 +284,7 @@ def test_a_cut_command_older_than_2_s_is_discarded_before_the_new_client_speaks(
         try:
             assert _recv(b, 1) == bytes([0x20])  # the new client's commands were read as sent
             st = server.board.state()
-            assert st["electrode_num"] == 0x20 and st["stim_mode"] == 0 and max(st["stim_pattern"]) == 0
+            assert st.electrode_num == 0x20 and st.stim_mode == 0 and max(st.stim_pattern) == 0
             kinds = [h.kind for h in server.board.hazards]
             assert HazardKind.COMMAND_TIMEOUT in kinds and HazardKind.INHERITED_COMMAND not in kinds
         finally:
@@ -423,7 +423,7 @@ def test_socket_url_opens_through_pyserials_handler_paced_on_the_wall_clock() ->
             assert dev.guardian is not None and dev.guardian.alive
             dev.configure(StimConfig(electrode_count=8))
             dev.send_pattern([1, 0, 0, 0, 0, 0, 0, 1])
-            assert wait_until(lambda: server.board.state()["stim_pattern"][:8] == [1, 0, 0, 0, 0, 0, 0, 1])
+            assert wait_until(lambda: list(server.board.state().stim_pattern[:8]) == [1, 0, 0, 0, 0, 0, 0, 1])
         finally:
             dev.close()
 
@@ -441,7 +441,7 @@ def test_v12_driver_refused_on_the_v2_tcp_board_by_socket_and_by_discovery() -> 
             )
         assert server.clients == 2
         st = server.board.state()
-        assert st["electrode_num"] == 0 and st["stim_mode"] == 0 and not st["command_in_progress"]
+        assert st.electrode_num == 0 and st.stim_mode == 0 and not st.command_in_progress
         assert not any(h.kind is HazardKind.INHERITED_COMMAND for h in server.board.hazards)
 
 
@@ -490,14 +490,15 @@ def _upstream_write(write: Any, data: bytes) -> None:
 def _check_against_vector(board: RealtimeEmulator, vec: dict[str, Any], replies: bytes) -> None:
     assert settle(board)
     state = board.state()
+    regs = state.as_dict()
     expect = vec["expect"]
     for key in COMPARED:
-        assert state[key] == expect[key], (vec["id"], key)
-    assert float(state["period_us"]) == pytest.approx(expect["period_us"], rel=1e-6)
+        assert regs[key] == expect[key], (vec["id"], key)
+    assert float(state.period_us) == pytest.approx(expect["period_us"], rel=1e-6)
     assert len(replies) == len(expect["tx"]) // 2, vec["id"]
     untimed = Emulator(firmware="v2")
     untimed.feed(bytes.fromhex(vec["stream"]))
-    assert {k: untimed.state()[k] for k in COMPARED} == {k: state[k] for k in COMPARED}
+    assert {k: untimed.state().as_dict()[k] for k in COMPARED} == {k: regs[k] for k in COMPARED}
 
 
 def test_upstream_style_client_over_the_pty_reaches_the_vectors_state() -> None:

@@ -35,11 +35,11 @@ def vectors_matched() -> dict[str, int]:
         if v.get("final_time_us") is not None:
             tx += emu.advance(int(v["final_time_us"]))
         state = emu.state()
+        regs = state.as_dict()
         ok = (
             tx.hex() == v["expect"]["tx"]
-            and all(state[k] == val for k, val in v["expect"].items() if k not in ("tx", "period_us"))
-            and abs(state["period_us"] - v["expect"]["period_us"])
-            <= 1e-6 * max(1.0, v["expect"]["period_us"])
+            and all(regs[k] == val for k, val in v["expect"].items() if k not in ("tx", "period_us"))
+            and abs(state.period_us - v["expect"]["period_us"]) <= 1e-6 * max(1.0, v["expect"]["period_us"])
         )
         matched += ok
     return {"matched": matched, "total": total}

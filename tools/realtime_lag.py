@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
         "pattern_latency_pty": latency,
         "pattern_latency_model": {k: pred[k] for k in ("min", "mean", "max")},
         "hazards": len(server.board.hazards),
-        "configured": state["electrode_num"] == args.electrodes,
+        "configured": state.electrode_num == args.electrodes,
         "hazard_kinds": dict(Counter(h.kind.value for h in server.board.hazards)),
     }
     if args.json:

@@ -119,6 +119,7 @@ class ScenarioResult:
     commands_out_of_step: int
     sim_s: float
     wall_s: float
+    #: the board's registers at the end, by the firmware's names (``BoardState.as_dict``: JSON)
     final_state: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -291,7 +292,7 @@ def run(sc: Scenario) -> ScenarioResult:
         commands_out_of_step=out_of_step,
         sim_s=port.now_s,
         wall_s=time.perf_counter() - wall0,
-        final_state=emu.state(),
+        final_state=emu.state().as_dict(),
     )
 
 

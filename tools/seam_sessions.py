@@ -72,6 +72,7 @@ from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2  # noqa: E402
 from tactdeform_hw.errors import BoardBusyError, TactDeformError  # noqa: E402
 from tactdeform_hw.formats.calibration_profile import calibration_from_dict, calibration_guard  # noqa: E402
 from tactdeform_hw.ports import PortBase  # noqa: E402
+from tactdeform_hw.protocol.state import BoardState  # noqa: E402
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER  # noqa: E402
 from tactdeform_hw.render.array import ElectrodeArray  # noqa: E402
 
@@ -199,7 +200,7 @@ class WifiClient(PortBase):
     def board_untouched(self) -> bool:
         return self.board.emulator.received_bytes == 0 and self.board.serving is self
 
-    def board_state(self) -> dict[str, Any]:
+    def board_state(self) -> BoardState:
         return self.board.emulator.state()
 
     @property

@@ -52,18 +52,19 @@ from tactdeform_hw.emulator.serving.pty_server import PtyServer  # noqa: E402
 from tactdeform_hw.emulator.serving.realtime import WIFI_TCP, RealtimeEmulator  # noqa: E402
 from tactdeform_hw.emulator.serving.tcp_server import TcpServer  # noqa: E402
 from tactdeform_hw.protocol.constants import PATTERN_BIPHASIC, PATTERN_MONOPHASIC  # noqa: E402
+from tactdeform_hw.protocol.state import BoardState  # noqa: E402
 
 
-def delivering(state: dict[str, Any]) -> bool:
+def delivering(state: BoardState) -> bool:
     """Whether the firmware state delivers current on any channel: a stimulation pulse (pattern value 1
     or 2 at a height above 0) or a sense pulse (any other value, at a sense height above 0)."""
-    n = int(state["electrode_num"])
+    n = state.electrode_num
     if n == 0:
         return False
-    levels = state["stim_pattern"][:n]
-    if state["sense_pulse_height"] > 0:
+    levels = state.stim_pattern[:n]
+    if state.sense_pulse_height > 0:
         return True
-    return state["pulse_height"] > 0 and any(v in (PATTERN_MONOPHASIC, PATTERN_BIPHASIC) for v in levels)
+    return (state.pulse_height or 0) > 0 and any(v in (PATTERN_MONOPHASIC, PATTERN_BIPHASIC) for v in levels)
 
 
 class BoardWatch:
@@ -92,7 +93,7 @@ class BoardWatch:
             self._cond.notify_all()
         return reply
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> BoardState:
         return self.emulator.state()
 
     @property
@@ -211,7 +212,7 @@ def tcp_trial(server: TcpServer, sig: int, timeout: float = 30.0) -> float:
     """Seconds from ``sig`` to the end of the last pulse with current, on the real-time Wi-Fi board."""
     board = server.board
     start_us = board.device_us()
-    with running_owner(server.url, board.firmware) as proc:
+    with running_owner(server.url, board.firmware.name) as proc:
         _until(lambda: bool(current_pulse_ends_us(board, start_us)), timeout, "the board never delivered")
         time.sleep(0.05)
         t0 = time.monotonic()

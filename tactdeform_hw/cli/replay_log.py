@@ -161,7 +161,7 @@ def replay(
         "channels": channels,
         "losses": [lo.to_dict() for lo in losses],
         "hazards": sorted({h.kind.value for h in emu.hazards}),
-        "final_state": {k: v for k, v in emu.state().items() if k != "stim_pattern"},
+        "final_state": {k: v for k, v in emu.state().as_dict().items() if k != "stim_pattern"},
         "_table": table,
     }
 

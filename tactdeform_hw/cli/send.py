@@ -161,13 +161,15 @@ def run(args: argparse.Namespace) -> int:
     sent_code = (
         None
         if state is None
-        else state.get("pulse_height", max(state["stim_pattern"][: config.electrode_count]))
+        else state.pulse_height
+        if state.pulse_height is not None
+        else max(state.stim_pattern[: config.electrode_count])
     )
     result["sent_current_ua"] = DEFAULT_TRANSFER.to_ua(sent_code) if sent_code is not None else None
     result["safety"] = list(guard.log)
     if state is not None:
-        result["emulator_state"] = {k: v for k, v in state.items() if k != "stim_pattern"}
-        result["emulator_pattern"] = state["stim_pattern"][: config.electrode_count]
+        result["emulator_state"] = {k: v for k, v in state.as_dict().items() if k != "stim_pattern"}
+        result["emulator_pattern"] = list(state.stim_pattern[: config.electrode_count])
     if args.json:
         print_json(result)
     else:

@@ -47,9 +47,10 @@ from typing import Any
 import numpy as np
 from serial.serialutil import PortNotOpenError, SerialException
 
+from tactdeform_hw.emulator.timed.base import TimedModel
 from tactdeform_hw.emulator.timed.link import Delivery, LinkFilter, LinkModel, make_link
 from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
-from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
+from tactdeform_hw.protocol.state import BoardState
 
 from ..clock import SimulatedClock
 from ..errors import LimitError
@@ -199,7 +200,7 @@ class TimedPort(PortBase):
 
     def __init__(
         self,
-        emulator: TimedEmulator | TimedEmulatorV2 | None = None,
+        emulator: TimedModel | None = None,
         *,
         link: str | LinkModel = "usb",
         faults: Sequence[Fault] = (),
@@ -256,15 +257,6 @@ class TimedPort(PortBase):
         if t_s > self.now_s:
             self.pacing_clock.advance(t_s - self.now_s)
 
-    def add_fault(self, fault: Fault) -> None:
-        if fault.kind in LINK_FAULTS:
-            self.faulty_link.add(fault)
-        else:
-            self.port_faults.append(fault)
-            self.port_faults.sort(key=lambda f: f.at_s)
-
-    # --- faults of the board: they strike at their time, whether or not the host writes ---------------------
-
     def _strike_board_faults(self) -> None:
         now = self.now_s
         keep = []
@@ -292,22 +284,14 @@ class TimedPort(PortBase):
         """The main loop stops reading: the timed model's main loop waits forever (as on a locked parser)
         while deliveries keep filling the queue and the interrupt keeps scanning."""
         emu = self.emulator
-        if isinstance(emu, TimedEmulatorV2):
-            emu.stop_reading()  # v2's queue is filled by arrivals at their time, not by the main loop
-        else:
-            emu._main_next = None
-            emu._main_wait = "locked"
+        emu.stop_reading()
         self.frozen = True
 
     def _state_brief(self) -> dict[str, Any]:
         s = self.emulator.state()
-        n = s["electrode_num"]
-        if "stim_mode" in s:  # v2: a height per channel, the waveform by the mode
-            return {"stim_mode": s["stim_mode"], "active": sum(1 for v in s["stim_pattern"][:n] if v)}
-        return {
-            "pulse_height": s["pulse_height"],
-            "active": sum(1 for v in s["stim_pattern"][:n] if v in (1, 2)),
-        }
+        if s.stim_mode is not None:  # v2: a height per channel, the waveform by the mode
+            return {"stim_mode": s.stim_mode, "active": sum(1 for v in s.scanned_pattern if v)}
+        return {"pulse_height": s.pulse_height, "active": sum(1 for v in s.scanned_pattern if v in (1, 2))}
 
     def _record(self, kind: FaultKind, detail: dict[str, Any], host_offset: int = -1) -> None:
         self.injected.append(InjectedFault(kind, self.now_s, host_offset, detail))
@@ -337,7 +321,7 @@ class TimedPort(PortBase):
     def _check_open(self) -> None:
         self._check()  # a vanished device fails like a closed port: the port must be reopened
 
-    def board_state(self) -> dict[str, Any]:
+    def board_state(self) -> BoardState:
         """The registers the emulated firmware holds (see :mod:`tactdeform_hw.ports`)."""
         return self.emulator.state()
 
@@ -361,7 +345,7 @@ class TimedPort(PortBase):
             else:  # a failing packet: the whole packets before it arrived
                 packet = self.rng.randrange(0, (len(data) + 63) // 64)
                 cut = packet * 64
-            host = self.emulator._host_offset
+            host = self.emulator.host_offset
             if cut:
                 self.emulator.write(data[:cut])
             self._record(f.kind, {"written": cut, "of": len(data), "lost": data[cut:].hex()}, host + cut)

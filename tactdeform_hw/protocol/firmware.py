@@ -215,6 +215,11 @@ class FirmwareSpec:
     #: The command that carries the pattern (the one of kind "pattern").
     pattern_command: CommandSpec = field(init=False, repr=False)
 
+    def __deepcopy__(self, memo: dict[int, object]) -> FirmwareSpec:
+        """Itself: a version is one module-level value, compared by identity, so a copied emulator still
+        runs the same version."""
+        return self
+
     def __post_init__(self) -> None:
         table = {c.opcode: c for c in self.commands}
         if len(table) != len(self.commands):

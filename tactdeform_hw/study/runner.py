@@ -471,7 +471,9 @@ def _run_trial(
     if inspectable:
         mapping = live.session.wiring.mapping
         run.hazards = [h.to_dict() for h in (board_hazards(dev.port) or [])[hazards_before:]]
-        hw = (board_state(dev.port) or {})["stim_pattern"][: mapping.hw_channels]
+        state = board_state(dev.port)
+        assert state is not None  # inspectable: the port declares board_state()
+        hw = state.stim_pattern[: mapping.hw_channels]
         run.end_pattern = list(mapping.to_application(hw))
     run.writes = [w for w in tap.writes if w.trial == trial.index]
     run.wall_s = time.perf_counter() - t_wall

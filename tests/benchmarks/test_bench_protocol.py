@@ -68,7 +68,7 @@ def _feed_all() -> Emulator:
 
 def test_emulator_feed_throughput(benchmark) -> None:  # type: ignore[no-untyped-def]
     emu = benchmark(_feed_all)
-    assert emu.state()["electrode_num"] == 32 and not emu.locked
+    assert emu.state().electrode_num == 32 and not emu.locked
     if benchmark.stats is None:  # --benchmark-disable: ran once as a plain test
         return
     stats = benchmark.stats.stats

@@ -126,7 +126,7 @@ def test_measure_reply_length(probe: Probe, target: Target, electrodes: int, rep
     codes = [reply[i] | reply[i + 1] << 8 for i in range(0, len(reply), 2)]
     assert max(codes) < 1024, f"ADC code {max(codes)} does not fit raw >> 2 of a 12-bit reading"
     if target.state is not None:
-        assert target.state()["electrode_num"] == electrodes
+        assert target.state().electrode_num == electrodes
     report(f"0xFF reply, {electrodes} electrodes", f"{len(reply)} bytes in {_ms(latency)}")
 
 
@@ -213,7 +213,7 @@ def test_truncated_pattern_swallows_the_next_command_and_zeros_resynchronise(
     assert probe.quiet() == b"", "0xF5 was answered although it should be pattern payload (channel 10)"
     target.settle(1)
     if target.state is not None:
-        assert target.state()["stim_pattern"][10] == 0xF5
+        assert target.state().stim_pattern[10] == 0xF5
     probe.send(bytes(RX_QUEUE_SIZE))
     target.settle(1)
     probe.send(b"\xfb\x00\x00" + b"\xfc\x20")
@@ -226,7 +226,7 @@ def test_truncated_pattern_swallows_the_next_command_and_zeros_resynchronise(
     assert len(reply) == 64
     if target.state is not None:
         st = target.state()
-        assert st["stim_pattern"][:32] == [0] * 32 and st["pulse_height"] == 0 and st["rx_pending"] == 0
+        assert list(st.stim_pattern[:32]) == [0] * 32 and st.pulse_height == 0 and st.rx_pending == 0
 
 
 def test_half_received_u16_is_completed_by_the_zeros(probe: Probe, target: Target) -> None:
@@ -238,13 +238,13 @@ def test_half_received_u16_is_completed_by_the_zeros(probe: Probe, target: Targe
     probe.send(bytes(RX_QUEUE_SIZE))
     target.settle(1)
     if target.state is not None:
-        assert target.state()["pulse_height"] == 5
+        assert target.state().pulse_height == 5
     probe.send(b"\xfb\x00\x00")
     target.settle(1)
     reply, _ = probe.request(b"\xf5", 1)
     assert len(reply) == 1
     if target.state is not None:
-        assert target.state()["pulse_height"] == 0
+        assert target.state().pulse_height == 0
 
 
 def test_zero_electrode_pattern_locks_the_parser(probe: Probe, target: Target) -> None:
@@ -260,7 +260,7 @@ def test_zero_electrode_pattern_locks_the_parser(probe: Probe, target: Target) -
     assert probe.quiet() == b"", "a locked parser answered"
     target.settle(1)
     if target.state is not None:
-        assert target.state()["rx_pending"] > 0
+        assert target.state().rx_pending > 0
 
 
 # --- the parser's rhythm ----------------------------------------------------------------------------------
@@ -354,7 +354,7 @@ def _check_all_off(target: Target, written: bytes, mark: int, electrodes: int) -
     if target.state is not None:
         target.settle(2)
         st = target.state()
-        assert st["stim_pattern"][:electrodes] == [0] * electrodes and st["pulse_height"] == 0
+        assert list(st.stim_pattern[:electrodes]) == [0] * electrodes and st.pulse_height == 0
 
 
 def _current(target: Target) -> int:
@@ -372,7 +372,7 @@ def test_fail_safe_on_close(target: Target) -> None:
     dev.send_pattern([1] * 8)
     target.settle(1)
     if target.state is not None:
-        assert target.state()["stim_pattern"][:8] == [1] * 8
+        assert list(target.state().stim_pattern[:8]) == [1] * 8
     mark = len(port.written)
     dev.close()
     _check_all_off(target, bytes(port.written), mark, 8)

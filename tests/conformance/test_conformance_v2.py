@@ -119,7 +119,7 @@ def test_v2_is_detected_before_any_stimulating_byte(v2_target: Target) -> None:
         assert det.firmware is V2
         if v2_target.state is not None:
             s = v2_target.state()
-            assert s["electrode_num"] == 0 and not s["command_in_progress"]
+            assert s.electrode_num == 0 and not s.command_in_progress
     finally:
         port.close()
 
@@ -137,12 +137,12 @@ def test_v2_driver_round_trip_with_per_electrode_heights(v2_target: Target) -> N
         assert len(dev.measure()) == 32
         if v2_target.state is not None:
             want = [dev.transfer.to_code(min(1000, lim)) for lim in guard.electrode_limits(32)]
-            assert v2_target.state()["stim_pattern"][:32] == want
+            assert list(v2_target.state().stim_pattern[:32]) == want
         dev.all_off()
         v2_target.settle(12)  # a timed board reads the all-off after the link and its queue
         if v2_target.state is not None:
-            assert v2_target.state()["stim_pattern"][:32] == [0] * 32
-            assert v2_target.state()["stim_mode"] in (0, 1)
+            assert list(v2_target.state().stim_pattern[:32]) == [0] * 32
+            assert v2_target.state().stim_mode in (0, 1)
     finally:
         dev.close()
 
@@ -234,7 +234,7 @@ def test_v2_upstream_host_in_8_byte_chunks_reaches_the_vectors_state(
         if v2_target.state is not None:
             state = v2_target.state()
             for key in COMPARED:
-                assert state[key] == expect[key], f"{vector_id}: {key}"
-            assert float(state["period_us"]) == pytest.approx(expect["period_us"], rel=1e-6)
+                assert state.as_dict()[key] == expect[key], f"{vector_id}: {key}"
+            assert float(state.period_us) == pytest.approx(expect["period_us"], rel=1e-6)
     finally:
         port.close()

@@ -61,8 +61,8 @@ def test_usb_emulator_serves_the_named_firmware_across_a_replug() -> None:
     from tactdeform_hw.emulator.serving.usb_backend import EmulatedUsbDevice, backend_from_name
 
     backend = backend_from_name("usb-emulator?firmware=v2")
-    assert backend.device.firmware == "v2" and isinstance(backend.device.timed, TimedEmulatorV2)
-    assert backend.device.state()["electrode_num"] == 0
+    assert backend.device.firmware.name == "v2" and isinstance(backend.device.timed, TimedEmulatorV2)
+    assert backend.device.state().electrode_num == 0
     dev = backend.replug()  # a power-up builds the firmware afresh: still v2
     assert isinstance(dev.timed, TimedEmulatorV2)
     assert isinstance(backend_from_name("usb-emulator").device.timed, TimedEmulator)

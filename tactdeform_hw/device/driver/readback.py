@@ -34,7 +34,7 @@ def pattern_readback(device: Any, mapping: ChannelMapping | None = None) -> Patt
         assert state is not None  # the port declared board_state()
         pattern = [int(v) for v in buffer_levels(state)]  # v2 holds heights: an active channel reads 1 or 2
         if m is None:
-            return tuple(pattern[: int(state["electrode_num"])])
+            return tuple(pattern[: state.electrode_num])
         return tuple(m.to_application(pattern[: m.hw_channels]))
 
     return read
@@ -49,16 +49,16 @@ def heights_readback(device: Any, mapping: ChannelMapping | None = None) -> Patt
     if not callable(getattr(port, "board_state", None)):
         return None
     state = board_state(port)
-    if state is None or state.get("stim_mode") is None:
+    if state is None or state.stim_mode is None:
         return None
     m = mapping if mapping is not None else getattr(device, "mapping", None)
 
     def read() -> tuple[int, ...]:
         now = board_state(port)
         assert now is not None  # the port declared board_state()
-        codes = [int(v) for v in now["stim_pattern"]]
+        codes = [int(v) for v in now.stim_pattern]
         if m is None:
-            return tuple(codes[: int(now["electrode_num"])])
+            return tuple(codes[: now.electrode_num])
         return tuple(m.to_application(codes[: m.hw_channels]))
 
     return read

@@ -40,9 +40,9 @@ write with the v2 table and checks each channel's own height
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig
@@ -55,6 +55,7 @@ from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
 from tactdeform_hw.protocol.constants import CURRENT_STEP_UA, PATTERN_BIPHASIC, PATTERN_MONOPHASIC
 from tactdeform_hw.protocol.firmware import V2
 from tactdeform_hw.protocol.firmware_math import estimate_scan_us, firmware_period_us
+from tactdeform_hw.protocol.state import BoardState
 
 if TYPE_CHECKING:
     from tactdeform_hw.device.participant.mapping import ChannelMapping
@@ -576,12 +577,12 @@ class V2Dialect:
             self.frame(ops, st, levels, force_pattern=False)
 
 
-def buffer_levels(state: Mapping[str, Any]) -> list[int]:
+def buffer_levels(state: BoardState) -> list[int]:
     """The levels a board's pattern buffer stands for, from its register snapshot: v1.2 holds the levels
-    themselves; v2 (a snapshot with ``stim_mode``) holds heights, read back as 0 (no current) or the
+    themselves; v2 (a state with ``stim_mode``) holds heights, read back as 0 (no current) or the
     waveform its mode gives every other channel (1 monophasic, 2 biphasic)."""
-    pattern = [int(v) for v in state["stim_pattern"]]
-    mode = state.get("stim_mode")
+    pattern = [int(v) for v in state.stim_pattern]
+    mode = state.stim_mode
     if mode is None:
         return pattern
     level = PATTERN_BIPHASIC if mode == c2.STIM_MODE_BIPHASIC else PATTERN_MONOPHASIC

@@ -17,6 +17,11 @@ Two readings the firmware's code leaves open are options of :class:`ScanConventi
 costs them, or includes them) and ``dac_load`` (the DAC output changes 3.3 µs into the exchange, the
 firmware comment, or when DA_CS rises, as the converter's datasheet has it).  Times are kept in integer
 nanoseconds and reported in µs.
+
+This walker is the scan of each version; the v2 timed model runs it (its scan shapes cached per
+configuration).  The v1.2 timed model runs :mod:`.scan`, the same interrupt compiled into cached
+templates (and the skin and physical chain added); ``tests/test_scan_engine_vs_walker.py`` holds that
+engine to this walker event for event, so this walker stays the one definition of v1.2's scan.
 """
 
 from __future__ import annotations
@@ -139,7 +144,7 @@ class _Walker:
         self.pos = 0
         self.marks: list[int] = []  # start of each channel, then of the chain clear
 
-    def _us(self, ns: int) -> float:
+    def us(self, ns: int) -> float:
         return round(ns / 1000, 3)
 
     def gpio(self, *pins_levels: tuple[int, int]) -> None:
@@ -147,7 +152,7 @@ class _Walker:
         self.t += self.c.gpio_write_ns
         if self.log:
             for pin, level in sorted(pins_levels):
-                self.ev.append([self._us(self.t), "GPIO", pin, level])
+                self.ev.append([self.us(self.t), "GPIO", pin, level])
 
     def _cs(self, level: int) -> None:
         if self.cs_one_write:
@@ -161,7 +166,7 @@ class _Walker:
         if self.log:
             pins = [AD_CS, DA_CS] if self.cs_one_write else [DA_CS, AD_CS]
             for pin in pins:
-                self.ev.append([self._us(self.t), "GPIO", pin, level])
+                self.ev.append([self.us(self.t), "GPIO", pin, level])
 
     def exchange(self, code: int) -> int:
         """DAAD(code): returns the ADC reading (the code held when the exchange starts)."""
@@ -174,7 +179,7 @@ class _Walker:
         t0 = self.t
         self.t = t0 + c.spi_exchange_ns
         if c.dac_load == "mid_exchange" and self.log:
-            self.ev.append([self._us(t0 + c.dac_change_at_ns), "DAC", "DAC", code])
+            self.ev.append([self.us(t0 + c.dac_change_at_ns), "DAC", "DAC", code])
         if c.cs_writes_costed:
             if c.dac_load == "cs_rise":
                 self._cs_rise_with_dac(code)
@@ -182,7 +187,7 @@ class _Walker:
                 self._cs(1)
         else:
             if c.dac_load == "cs_rise" and self.log:
-                self.ev.append([self._us(self.t), "DAC", "DAC", code])
+                self.ev.append([self.us(self.t), "DAC", "DAC", code])
             self._cs_free(1)
         self.dac = code
         return reading
@@ -191,11 +196,11 @@ class _Walker:
         if self.cs_one_write:
             self.gpio((AD_CS, 1), (DA_CS, 1))
             if self.log:
-                self.ev.append([self._us(self.t), "DAC", "DAC", code])
+                self.ev.append([self.us(self.t), "DAC", "DAC", code])
         else:
             self.gpio((DA_CS, 1))
             if self.log:
-                self.ev.append([self._us(self.t), "DAC", "DAC", code])
+                self.ev.append([self.us(self.t), "DAC", "DAC", code])
             self.gpio((AD_CS, 1))
 
     def delay(self, us: int) -> None:
@@ -244,16 +249,16 @@ def trace_scan(
     end = w.t
     return ScanTrace(
         events=w.ev,
-        isr_return_us=w._us(end),
+        isr_return_us=w.us(end),
         voltage=volts,
         timer_ops=[
-            [w._us(conventions.isr_entry_ns), 1, "alarm_disable", 0],
-            [w._us(end), 1, "alarm_enable", 0],
+            [w.us(conventions.isr_entry_ns), 1, "alarm_disable", 0],
+            [w.us(end), 1, "alarm_enable", 0],
         ],
         alarm_ticks=alarm_ticks_for(spec.name, cfg.frequency_hz),
         chain_position=w.pos,
-        channel_start_us=[w._us(t) for t in w.marks[:-1]],
-        clear_start_us=w._us(w.marks[-1]),
+        channel_start_us=[w.us(t) for t in w.marks[:-1]],
+        clear_start_us=w.us(w.marks[-1]),
     )
 
 

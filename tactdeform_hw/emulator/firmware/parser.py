@@ -10,9 +10,11 @@ The firmware's main loop calls the parser over and over.  One call (see the prot
    so a command that needs 0 bytes never completes (the locked parser);
 3. sleep one RTOS tick and return.
 
-:meth:`Parser.call` is exactly one such call and tells the timed model what happened; :meth:`Parser.run`
-is the untimed fast path, equivalent to calling ``call`` until nothing changes (a property test holds the
-two together).
+:meth:`Parser.step` is exactly one such call and tells the timed model what happened in v1.2's own terms
+(:class:`CallResult`: the timed model needs to know a call spins on a half u16); :meth:`Parser.call` is the
+same call in the contract every version's parser keeps (:class:`~.contract.CallOutcome`);
+:meth:`Parser.run` is the untimed fast path, equivalent to calling ``step`` until nothing changes (a
+property test holds the two together).
 """
 
 from __future__ import annotations
@@ -20,12 +22,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from enum import Enum
 
+from tactdeform_hw.emulator.firmware.contract import CallOutcome, ParserBase
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind, UnknownRuns
 from tactdeform_hw.emulator.firmware.registers import Registers
 from tactdeform_hw.protocol import firmware_math as fm
 from tactdeform_hw.protocol.commands import encode_measure_reply
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513, Opcode
-from tactdeform_hw.protocol.firmware import V1_2
+from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 from tactdeform_hw.protocol.reader import u16_at
 
 _FIRMWARE = V1_2
@@ -80,12 +83,15 @@ class CallResult(Enum):
         return self.value[1]
 
 
-class Parser(UnknownRuns):
+class Parser(ParserBase, UnknownRuns):
     """Receive buffer + command state + the effects on :class:`Registers`.
 
     ``hv513_detect`` is the board's detection (called on 0xF5); ``on_hv513_reinit`` lets the scan engine
     clear its chain model; ``on_command`` (optional) is told ``(opcode, value, offset)`` at completion.
     """
+
+    #: the table this parser reads (a class attribute: a parser is copied, its table never is)
+    spec: FirmwareSpec = _FIRMWARE
 
     def __init__(
         self,
@@ -96,20 +102,8 @@ class Parser(UnknownRuns):
         on_hv513_reinit: Callable[[], None] | None = None,
         on_command: Callable[[int, object, int], None] | None = None,
     ) -> None:
+        super().__init__(hazards, hv513_detect, on_hv513_reinit, on_command)
         self.regs = regs
-        self.hazards = hazards
-        self.hv513_detect = hv513_detect
-        self.on_hv513_reinit = on_hv513_reinit
-        self.on_command = on_command
-        #: Optional: was the byte at this offset meant as a command?  A host whose intent is known (the timed
-        #: emulator decodes what the host wrote) says so in each command-byte-as-payload record
-        #: (``meant_as_command``): a legitimate value byte >= 0xF5 (electrode count 255, width 250 µs) is
-        #: recorded with False, a desynchronisation with True; None where the intent is unknown.
-        self.meant_as_command: Callable[[int], bool] | None = None
-        self.rx = bytearray()
-        self.pos = 0  # index of the next unread byte in rx
-        self.base = 0  # absolute offset of rx[0]
-        self.tx = bytearray()
         self.cmd: int | None = None
         self.cmd_offset = 0
         self.needed = 0
@@ -122,26 +116,23 @@ class Parser(UnknownRuns):
 
     # --- buffer -------------------------------------------------------------------------------------------
 
-    def receive(self, data: bytes) -> None:
-        if self.pos > 4096 and self.pos * 2 > len(self.rx):
-            del self.rx[: self.pos]
-            self.base += self.pos
-            self.pos = 0
+    def receive(self, data: bytes) -> int:
+        """Queue an arrival whole (the 256-byte queue and its losses are the timed model's); returns 0,
+        the bytes dropped."""
+        self._drop_read()
         self.rx += data
+        return 0
 
     @property
-    def pending(self) -> int:
-        return len(self.rx) - self.pos
+    def dropped(self) -> int:
+        """Always 0: this parser's buffer is unbounded; the receive queue's losses are the timed
+        model's."""
+        return 0
 
     @property
-    def offset(self) -> int:
-        """Absolute offset of the next byte to be read."""
-        return self.base + self.pos
-
-    def take_tx(self) -> bytes:
-        out = bytes(self.tx)
-        self.tx.clear()
-        return out
+    def processing(self) -> bool:
+        """A command's byte was read and its payload is not complete (or never will be: locked)."""
+        return self.cmd is not None
 
     # --- what the next call will do -------------------------------------------------------------------------
 
@@ -202,7 +193,14 @@ class Parser(UnknownRuns):
 
     # --- one firmware call ---------------------------------------------------------------------------------
 
-    def call(self) -> CallResult:
+    def call(self, now_us: int) -> CallOutcome:
+        """One call in the contract all versions keep; v1.2's parser reads no timer (``now_us`` unused)."""
+        before, wrote = self.offset, len(self.tx)
+        result = self.step()
+        return CallOutcome(self.offset - before, len(self.tx) - wrote, result.slept)
+
+    def step(self) -> CallResult:
+        """One call, and what it did in v1.2's terms (the timed model's)."""
         rx = self.rx
         if self.cmd is None:
             if self.pos >= len(rx):
@@ -222,8 +220,16 @@ class Parser(UnknownRuns):
 
     # --- untimed fast path ---------------------------------------------------------------------------------
 
-    def run(self) -> None:
-        """Consume everything the firmware would consume from what is waiting (no timing)."""
+    def poll_until(self, to_us: int, settle: bool) -> None:
+        """Nothing: v1.2's parser has no timer, so polls without an arrival change nothing."""
+
+    def note_pending(self, now_us: int) -> None:
+        """Nothing: a v1.2 command waits for its payload forever; :meth:`run` records a half u16 and a
+        locked parser itself."""
+
+    def run(self, now_us: int = 0) -> None:
+        """Consume everything the firmware would consume from what is waiting (no timing; ``now_us``
+        unused: v1.2's parser reads no timer)."""
         rx = self.rx
         n = len(rx)
         while True:

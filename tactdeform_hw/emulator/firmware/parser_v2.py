@@ -15,8 +15,8 @@ byte, the rest of a packet dropped silently at the first byte that does not fit.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
 
+from tactdeform_hw.emulator.firmware.contract import CallOutcome, ParserBase
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind, UnknownRuns
 from tactdeform_hw.emulator.firmware.registers import RegistersV2
 from tactdeform_hw.protocol import firmware_math as fm
@@ -25,22 +25,7 @@ from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
 from tactdeform_hw.protocol.firmware import V2, CommandSpec, FirmwareSpec
 
 
-@dataclass(frozen=True)
-class CallOutcome:
-    """What one ``runEtactileKit()`` call did: bytes read from the queue, bytes written, whether it
-    ended with the one-tick sleep (``madeProgress`` false)."""
-
-    consumed: int
-    wrote: int
-    slept: bool
-
-    @property
-    def quiet(self) -> bool:
-        """Neither consumed nor wrote a byte: the driving loop stops here."""
-        return self.consumed == 0 and self.wrote == 0
-
-
-class ParserV2(UnknownRuns):
+class ParserV2(ParserBase, UnknownRuns):
     """Receive queue + the parser's static state + the effects on :class:`RegistersV2`.
 
     ``hv513_detect`` is the board's stack sensing (0xF5); ``on_hv513_reinit`` tells a scan model that
@@ -58,19 +43,13 @@ class ParserV2(UnknownRuns):
         on_hv513_reinit: Callable[[], None] | None = None,
         on_command: Callable[[int, object, int], None] | None = None,
     ) -> None:
+        super().__init__(hazards, hv513_detect, on_hv513_reinit, on_command)
         self.regs = regs
-        self.hazards = hazards
-        self.hv513_detect = hv513_detect
         self.spec = spec
         if spec.command_timeout_us is None:
             raise ValueError(f"firmware {spec.name} has no command timeout: it is not parsed by ParserV2")
-        self._timeout_us: int = spec.command_timeout_us
-        self.on_hv513_reinit = on_hv513_reinit
-        self.on_command = on_command
-        self.rx = bytearray()
-        self.pos = 0
-        self.base = 0  # absolute offset (bytes accepted since power-on) of rx[0]
-        self.tx = bytearray()
+        #: A command not complete this long after its byte was read is discarded (the table's value).
+        self.timeout_us: int = spec.command_timeout_us
         self.dropped = 0
         self.processing = False
         self.required = 0
@@ -83,20 +62,9 @@ class ParserV2(UnknownRuns):
 
     # --- the receive queue -----------------------------------------------------------------------------
 
-    @property
-    def pending(self) -> int:
-        return len(self.rx) - self.pos
-
-    @property
-    def offset(self) -> int:
-        return self.base + self.pos
-
     def receive(self, data: bytes) -> int:
         """Queue one arrival packet by packet; return the bytes dropped because the queue was full."""
-        if self.pos > 4096 and self.pos * 2 > len(self.rx):
-            del self.rx[: self.pos]
-            self.base += self.pos
-            self.pos = 0
+        self._drop_read()
         capacity = self.spec.rx_queue_bytes
         packet = self.spec.usb_packet_bytes
         lost = 0
@@ -119,11 +87,6 @@ class ParserV2(UnknownRuns):
             )
         self.dropped += lost
         return lost
-
-    def take_tx(self) -> bytes:
-        out = bytes(self.tx)
-        self.tx.clear()
-        return out
 
     # --- one main-loop call ----------------------------------------------------------------------------
 
@@ -157,7 +120,7 @@ class ParserV2(UnknownRuns):
                 consumed += self.required
                 self._apply()
                 made_progress = True
-            elif now_us - self.command_start_us > self._timeout_us:
+            elif now_us - self.command_start_us > self.timeout_us:
                 discarded = self.pending
                 consumed += discarded
                 self.hazards.append(
@@ -184,6 +147,35 @@ class ParserV2(UnknownRuns):
             pass
         self._flush_unknown()
 
+    def poll_until(self, to_us: int, settle: bool) -> None:
+        """The idle polls up to ``to_us - 1`` (so a cut command times out before an arrival at ``to_us``
+        if it would have), and with ``settle`` the poll at ``to_us``."""
+        self.run(to_us - 1)
+        if settle:
+            self.run(to_us)
+
+    def note_pending(self, now_us: int) -> None:
+        """A command left waiting for its payload is a hazard on v2: the 2 s timeout will discard it with
+        whatever the host sends meanwhile.  Recorded once per command."""
+        if not self.processing:
+            return
+        at = self.command_offset
+        last = self.hazards[-1] if self.hazards else None
+        if last is not None and last.kind is HazardKind.COMMAND_PENDING and last.offset == at:
+            return
+        self.hazards.append(
+            Hazard(
+                HazardKind.COMMAND_PENDING,
+                at,
+                {
+                    "command": self.spec.command(self.command).name,
+                    "needed": self.required,
+                    "queued": self.pending,
+                },
+                float(now_us),
+            )
+        )
+
     # --- pieces ----------------------------------------------------------------------------------------
 
     def _reply(self, spec: CommandSpec, offset: int) -> None:
@@ -195,7 +187,11 @@ class ParserV2(UnknownRuns):
             regs.hv513_num = self.hv513_detect()
             self.tx.append(regs.hv513_num & 0xFF)
             self.hazards.append(
-                Hazard(HazardKind.HV513_REINIT, offset, {"hv513_num": regs.hv513_num, "timer_paused": True})
+                Hazard(
+                    HazardKind.HV513_REINIT,
+                    offset,
+                    {"hv513_num": regs.hv513_num, "timer_paused": self.spec.hv513_pauses_timer},
+                )
             )
             if self.on_hv513_reinit is not None:
                 self.on_hv513_reinit()
@@ -286,3 +282,8 @@ class ParserV2(UnknownRuns):
     @property
     def command_in_progress(self) -> bool:
         return self.processing
+
+    @property
+    def locked(self) -> bool:
+        """Never: v2 completes a pattern with electrode_num 0 at once."""
+        return False

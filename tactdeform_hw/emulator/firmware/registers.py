@@ -2,26 +2,48 @@
 
 from __future__ import annotations
 
-from typing import Any
-
 from tactdeform_hw.protocol import firmware_math as fm
 from tactdeform_hw.protocol.constants import PATTERN_BUFFER_SIZE, POWER_ON_PERIOD_US, POWER_ON_POLARITY
+from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec
+from tactdeform_hw.protocol.state import BoardState
 
 
-def _snapshot(regs: Registers | RegistersV2) -> dict[str, Any]:
-    """Every register but the voltages (read only by a measure request), the pattern as a copy."""
-    out = {name: getattr(regs, name) for name in regs.__slots__ if name != "voltage"}
-    out["stim_pattern"] = list(regs.stim_pattern)
-    return out
+def _board_state(
+    regs: Registers | RegistersV2,
+    firmware: FirmwareSpec,
+    stim_mode: int | None,
+    pulse_height: int | None,
+    rx_pending: int,
+    rx_dropped: int | None,
+    command_in_progress: bool | None,
+) -> BoardState:
+    return BoardState(
+        firmware=firmware,
+        electrode_num=regs.electrode_num,
+        polarity=regs.polarity,
+        stim_mode=stim_mode,
+        pulse_height=pulse_height,
+        pulse_width_us=regs.pulse_width,
+        sense_pulse_height=regs.sense_pulse_height,
+        sense_pulse_width_us=regs.sense_pulse_width,
+        discharge_time_us=regs.discharge_time,
+        period_us=regs.period_us,
+        timer_alarm_ticks=regs.timer_alarm_ticks,
+        hv513_num=regs.hv513_num,
+        stim_pattern=tuple(regs.stim_pattern),
+        rx_pending=rx_pending,
+        rx_dropped=rx_dropped,
+        command_in_progress=command_in_progress,
+    )
 
 
-class Registers:
-    """Plain attributes (the parser's hot loop touches them); ``snapshot`` hands out copies."""
+class _RegisterFile:
+    """The globals every version has, at their power-on values.  Plain slotted attributes: the parser's
+    hot loop touches them."""
 
     __slots__ = (
         "electrode_num",
         "polarity",
-        "pulse_height",
         "pulse_width",
         "sense_pulse_height",
         "sense_pulse_width",
@@ -29,14 +51,12 @@ class Registers:
         "period_us",
         "timer_alarm_ticks",
         "hv513_num",
-        "stim_pattern",
         "voltage",
     )
 
-    def __init__(self, hv513_num: int = 0) -> None:
+    def __init__(self, hv513_num: int) -> None:
         self.electrode_num = 0
         self.polarity = POWER_ON_POLARITY
-        self.pulse_height = 0
         self.pulse_width = 0
         self.sense_pulse_height = 0
         self.sense_pulse_width = 0
@@ -44,12 +64,25 @@ class Registers:
         self.period_us = POWER_ON_PERIOD_US
         self.timer_alarm_ticks = fm.alarm_ticks(POWER_ON_PERIOD_US)
         self.hv513_num = hv513_num
-        self.stim_pattern = bytearray(PATTERN_BUFFER_SIZE)
-        # voltage[ch] holds the ADC reading (raw >> 2) of the channel's last pulse; 0 until a scan runs.
         self.voltage = [0] * PATTERN_BUFFER_SIZE
 
-    def snapshot(self) -> dict[str, Any]:
-        return _snapshot(self)
+
+class Registers(_RegisterFile):
+    """The v1.2 firmware's globals: one global pulse height, one pattern byte per electrode.
+    ``voltage[ch]`` holds the ADC reading (raw >> 2) of the channel's last pulse; 0 until a scan runs."""
+
+    __slots__ = ("pulse_height", "stim_pattern")
+
+    def __init__(self, hv513_num: int = 0) -> None:
+        super().__init__(hv513_num)
+        self.pulse_height = 0
+        self.stim_pattern = bytearray(PATTERN_BUFFER_SIZE)
+
+    def board_state(
+        self, rx_pending: int, rx_dropped: int | None = None, command_in_progress: bool | None = None
+    ) -> BoardState:
+        """These registers as a :class:`BoardState` (no stimulation mode on v1.2)."""
+        return _board_state(self, V1_2, None, self.pulse_height, rx_pending, rx_dropped, command_in_progress)
 
 
 #: The v2 registers a scan reads once, at its start (``etk.cpp:110-116``): what the timed model snapshots
@@ -65,33 +98,20 @@ V2_SCAN_REGISTERS = (
 )
 
 
-class RegistersV2:
+class RegistersV2(_RegisterFile):
     """The v2 firmware's globals (``etk.cpp:3-22``): per-electrode u16 heights, a stimulation mode and
-    no global pulse height."""
+    no global pulse height.  ``voltage[ch]``: the u16 the scan stored for the channel (the second phase's
+    reading when biphasic)."""
 
-    __slots__ = (
-        *V2_SCAN_REGISTERS,
-        "period_us",
-        "timer_alarm_ticks",
-        "hv513_num",
-        "stim_pattern",
-        "voltage",
-    )
+    __slots__ = ("stim_mode", "stim_pattern")
 
     def __init__(self, hv513_num: int = 0) -> None:
-        self.electrode_num = 0
-        self.polarity = POWER_ON_POLARITY
+        super().__init__(hv513_num)
         self.stim_mode = 0
-        self.pulse_width = 0
-        self.sense_pulse_height = 0
-        self.sense_pulse_width = 0
-        self.discharge_time = 0
-        self.period_us = POWER_ON_PERIOD_US
-        self.timer_alarm_ticks = fm.alarm_ticks(POWER_ON_PERIOD_US)
-        self.hv513_num = hv513_num
         self.stim_pattern = [0] * PATTERN_BUFFER_SIZE
-        # voltage[ch]: the u16 the scan stored for the channel (the second phase's reading when biphasic).
-        self.voltage = [0] * PATTERN_BUFFER_SIZE
 
-    def snapshot(self) -> dict[str, Any]:
-        return _snapshot(self)
+    def board_state(
+        self, rx_pending: int, rx_dropped: int | None = None, command_in_progress: bool | None = None
+    ) -> BoardState:
+        """These registers as a :class:`BoardState` (no global pulse height on v2)."""
+        return _board_state(self, V2, self.stim_mode, None, rx_pending, rx_dropped, command_in_progress)

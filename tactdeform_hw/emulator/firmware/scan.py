@@ -14,7 +14,14 @@ The firmware's handler, in the protocol reference's exact order, for ``ch`` in `
 then the chain is cleared by "scanning to position ``8 * hv513_count``" with the same select routine —
 which, with an HV513 count of 0, is ``ch == 0``: it loads a 1 and leaves output 0 selected.
 
-Two implementations must agree to the nanosecond:
+This engine is a compiled form of the statement-by-statement walker of :mod:`.firmware_scan` (the
+conformance walker the firmware's own traces hold, v1.2 and v2): one scan engine per firmware version,
+in two forms — the walker, exact and slow, and this engine, which the v1.2 timed model runs because it
+is fast enough for hours of scans and also models the skin and the physical HV513 chain.
+``tests/test_scan_engine_vs_walker.py`` checks the engine against the walker for every configuration it
+draws (the same pin writes and DAC codes at the same nanoseconds, the same interrupt length, one scan and
+the next with the chain carried over).  Within this module, two implementations must agree to the
+nanosecond:
 
 * the step-through in ``tests/scan_reference.py`` walks the firmware's statements one by one — slow,
   obviously right, the oracle the tests hold this module to;
@@ -420,7 +427,8 @@ class ScanTemplate:
     first_pulse_ns: np.ndarray  # per channel: its first current onset
     voltages: np.ndarray  # per channel: the value stored (last reading of the channel)
     voltage_at_ns: np.ndarray  # per channel: when that reading was sampled
-    _builder: Any = field(repr=False, default=None)
+    #: makes the GPIO/DAC event arrays of this template on first demand (they are rarely needed)
+    event_builder: Any = field(repr=False, default=None)
     _events: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(repr=False, default=None)
 
     @property
@@ -441,7 +449,7 @@ class ScanTemplate:
     def events(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(time ns, Signal, value) of every GPIO write, DAC change, latch and stored ADC reading."""
         if self._events is None:
-            self._events = self._builder(self)
+            self._events = self.event_builder(self)
         return self._events
 
 
@@ -517,7 +525,7 @@ class ScanEngine:
 
     def _build(self, cfg: ScanConfig, chain: ChainState) -> ScanTemplate:
         self.built += 1
-        model, skin = self.model, self.skin
+        model = self.model
         n = cfg.electrode_num
         blocks = self._blocks_for(cfg)
         kinds = cfg.kinds()
@@ -533,6 +541,46 @@ class ScanEngine:
         duration = body_end + (3 + 2 * clear) * g + model.isr_exit_ns
 
         # pulses, channel by channel (n <= 255; the skin outcomes are cached per outputs/code/time)
+        rows, flo, outs_list, raws, limited, (voltages, v_at, first) = self._pulse_rows(
+            n, latched, kinds, starts, blocks
+        )
+        pulses, raw = _pulse_arrays(rows, flo, raws, limited)
+        return ScanTemplate(
+            cfg,
+            chain,
+            chain_end,
+            int(duration),
+            pulses,
+            outs_list,
+            first,
+            voltages,
+            v_at,
+            event_builder=(
+                lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _c=clear, _b=blocks: (
+                    self._events(t, _raw, _latched, _starts, _kinds, _c, _b)
+                )
+            ),
+        )
+
+    def _pulse_rows(
+        self,
+        n: int,
+        latched: list[int],
+        kinds: np.ndarray,
+        starts: np.ndarray,
+        blocks: list[Any],
+    ) -> tuple[
+        list[tuple[int, ...]],
+        list[float],
+        list[tuple[int, ...]],
+        list[int],
+        list[bool],
+        tuple[np.ndarray, np.ndarray, np.ndarray],
+    ]:
+        """Each pulse of a scan as a row (channel, kind, onset, width, code, polarity, voltage code,
+        sample time, outputs), its current, outputs, ADC reading and compliance; per channel the stored
+        voltage, when it was sampled and the first onset."""
+        skin = self.skin
         cache = self._outcomes
         blocks_pulses = [b[1] for b in blocks]
         rows: list[tuple[int, ...]] = []
@@ -580,32 +628,7 @@ class ScanEngine:
                     first[ch] = st + on
                 voltages[ch] = oc.voltage_code
                 v_at[ch] = st + sample
-        m = len(rows)
-        a = np.array(rows, dtype=np.int64).reshape(m, 10)
-        cur = np.array(flo, dtype=np.float64)
-        raw = np.array(raws, dtype=np.int64)
-        pulses = PulseArrays(
-            a[:, 0],
-            a[:, 1],
-            a[:, 2],
-            a[:, 3],
-            a[:, 4],
-            a[:, 5],
-            cur,
-            cur * a[:, 3] / 1e6,
-            a[:, 6],
-            a[:, 7],
-            np.array(limited, dtype=bool),
-            a[:, 8],
-            a[:, 9],
-        )
-        tmpl = ScanTemplate(cfg, chain, chain_end, int(duration), pulses, outs_list, first, voltages, v_at)
-        tmpl._builder = (
-            lambda t, _raw=raw, _latched=latched, _starts=starts, _kinds=kinds, _c=clear, _b=blocks: (
-                self._events(t, _raw, _latched, _starts, _kinds, _c, _b)
-            )
-        )
-        return tmpl
+        return rows, flo, outs_list, raws, limited, (voltages, v_at, first)
 
     def _events(
         self,
@@ -695,3 +718,29 @@ class ScanVoltages:
         t = self._engine.template(ScanConfig.from_registers(regs), self._chain)
         self._chain = t.chain_end
         regs.voltage[: t.voltages.size] = t.voltages.tolist()
+
+
+def _pulse_arrays(
+    rows: list[tuple[int, ...]], flo: list[float], raws: list[int], limited: list[bool]
+) -> tuple[PulseArrays, np.ndarray]:
+    """The pulse rows as the columns of :class:`PulseArrays`, and the raw ADC readings."""
+    m = len(rows)
+    a = np.array(rows, dtype=np.int64).reshape(m, 10)
+    cur = np.array(flo, dtype=np.float64)
+    raw = np.array(raws, dtype=np.int64)
+    pulses = PulseArrays(
+        a[:, 0],
+        a[:, 1],
+        a[:, 2],
+        a[:, 3],
+        a[:, 4],
+        a[:, 5],
+        cur,
+        cur * a[:, 3] / 1e6,
+        a[:, 6],
+        a[:, 7],
+        np.array(limited, dtype=bool),
+        a[:, 8],
+        a[:, 9],
+    )
+    return pulses, raw

@@ -262,6 +262,56 @@ _KIND_LABEL = {
 }
 
 
+def _budget_notes(
+    cfg: ScanConfig, model: TimingModel, scan: int, period: int, stride: int, counts: np.ndarray
+) -> list[str]:
+    """What a scan budget means for the device, in words: a watchdog reboot, an overrun, a starved or
+    slowed parser, sense pulses on channels off in the pattern, channels beyond the HV513 chips."""
+    watchdog = model.watchdog_ns is not None and scan > model.watchdog_ns
+    overrun = scan > period
+    starved = stride <= scan
+    notes: list[str] = []
+    # The main loop runs only between scans: ``free`` ns in every ``stride``.  Under the skip policy an
+    # overrunning scan makes the stride a whole number of periods, with most of the last one free.
+    free = stride - scan
+    periods = stride // period if period else 1
+    if watchdog:
+        notes.append(
+            f"the scan ({scan / 1000:.1f} µs) exceeds the {model.watchdog_us:.0f} µs interrupt watchdog: "
+            "the device reboots to its power-on state part-way through the first scan"
+        )
+    elif overrun:
+        notes.append(
+            f"overrun by {(scan - period) / 1000:.2f} µs: the next scan follows at once"
+            if model.overrun_policy == "immediate"
+            else f"overrun by {(scan - period) / 1000:.2f} µs: the missed alarm is skipped, so a scan "
+            f"starts every {periods} periods and leaves {free / 1000:.2f} µs to the main loop"
+        )
+    if starved and not watchdog:
+        notes.append("scans run back to back: the main loop never runs, so no later command is read")
+    elif not watchdog and free < model.rtos_tick_ns:
+        notes.append(
+            f"only {free / 1000:.1f} µs per period outside the scan: the parser reads at most one "
+            "command with a payload per period"
+            if periods == 1
+            else f"only {free / 1000:.1f} µs outside the scan every {periods} periods: the parser reads "
+            f"at most one command with a payload per {periods} periods"
+        )
+    if counts[ChannelKind.SENSE] and cfg.sense_pulse_height:
+        notes.append(
+            f"{int(counts[ChannelKind.SENSE])} channel(s) off in the pattern still get a sense pulse "
+            f"of code {cfg.sense_pulse_height}"
+        )
+    driven = OUTPUTS_PER_HV513 * cfg.hv513_num
+    if cfg.electrode_num > driven:
+        notes.append(
+            f"channels {driven}..{cfg.electrode_num - 1} lie beyond the {cfg.hv513_num} HV513 chip(s)"
+        )
+    if cfg.hv513_num == 0 and cfg.electrode_num:
+        notes.append("HV513 count 0: the clear loads a 1 and leaves output 0 selected")
+    return notes
+
+
 @dataclass(frozen=True)
 class BudgetRow:
     kind: str
@@ -337,45 +387,7 @@ class Budget:
             stride = period * max(1, -(-scan // period)) if period else scan
         starved = stride <= scan
         rate = 0.0 if watchdog or stride == 0 else 1e9 / stride
-        notes: list[str] = []
-        # The main loop runs only between scans: ``free`` ns in every ``stride``.  Under the skip policy an
-        # overrunning scan makes the stride a whole number of periods, with most of the last one free.
-        free = stride - scan
-        periods = stride // period if period else 1
-        if watchdog:
-            notes.append(
-                f"the scan ({scan / 1000:.1f} µs) exceeds the {model.watchdog_us:.0f} µs interrupt watchdog: "
-                "the device reboots to its power-on state part-way through the first scan"
-            )
-        elif overrun:
-            notes.append(
-                f"overrun by {(scan - period) / 1000:.2f} µs: the next scan follows at once"
-                if model.overrun_policy == "immediate"
-                else f"overrun by {(scan - period) / 1000:.2f} µs: the missed alarm is skipped, so a scan "
-                f"starts every {periods} periods and leaves {free / 1000:.2f} µs to the main loop"
-            )
-        if starved and not watchdog:
-            notes.append("scans run back to back: the main loop never runs, so no later command is read")
-        elif not watchdog and free < model.rtos_tick_ns:
-            notes.append(
-                f"only {free / 1000:.1f} µs per period outside the scan: the parser reads at most one "
-                "command with a payload per period"
-                if periods == 1
-                else f"only {free / 1000:.1f} µs outside the scan every {periods} periods: the parser reads "
-                f"at most one command with a payload per {periods} periods"
-            )
-        if counts[ChannelKind.SENSE] and cfg.sense_pulse_height:
-            notes.append(
-                f"{int(counts[ChannelKind.SENSE])} channel(s) off in the pattern still get a sense pulse "
-                f"of code {cfg.sense_pulse_height}"
-            )
-        driven = OUTPUTS_PER_HV513 * cfg.hv513_num
-        if cfg.electrode_num > driven:
-            notes.append(
-                f"channels {driven}..{cfg.electrode_num - 1} lie beyond the {cfg.hv513_num} HV513 chip(s)"
-            )
-        if cfg.hv513_num == 0 and cfg.electrode_num:
-            notes.append("HV513 count 0: the clear loads a 1 and leaves output 0 selected")
+        notes = _budget_notes(cfg, model, scan, period, stride, counts)
         return cls(
             electrodes=cfg.electrode_num,
             rows=rows,

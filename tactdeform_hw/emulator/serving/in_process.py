@@ -15,12 +15,12 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import Any
 
 from tactdeform_hw.clock import InstantClock
 from tactdeform_hw.emulator.core import Emulator
 from tactdeform_hw.emulator.firmware.hazards import Hazard
 from tactdeform_hw.ports import PortBase
+from tactdeform_hw.protocol.state import BoardState
 
 SpyFn = Callable[[str, bytes, float], None]
 
@@ -56,7 +56,7 @@ class EmulatorPort(PortBase):
         """Power-cycle the board: its registers return to power-on, the parser to between commands."""
         self.emulator.reset()
 
-    def board_state(self) -> dict[str, Any]:
+    def board_state(self) -> BoardState:
         return self.emulator.state()
 
     @property

@@ -38,13 +38,17 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from tactdeform_hw.emulator.core import Emulator
+from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
+from tactdeform_hw.emulator.firmware.models import model_entry
 from tactdeform_hw.emulator.firmware.skin import SkinModel
+from tactdeform_hw.emulator.timed.base import TimedModel
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel
-from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
-from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError
+from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec, get_firmware
+from tactdeform_hw.protocol.state import BoardState
 
 #: how late a wake-up may come before it counts as falling behind the wall clock
 BEHIND_LIMIT_US = 1000.0
@@ -96,13 +100,6 @@ SERIAL_USB = BuildRules("serial", "usb", flow_control=False)
 SERIAL_UART = BuildRules("serial-uart", "uart", flow_control=False)
 WIFI_TCP = BuildRules("wifi", "tcp", flow_control=True, receive_bytes=TCP_WINDOW_BYTES)
 BUILD_RULES = {r.name: r for r in (SERIAL_USB, SERIAL_UART, WIFI_TCP)}
-
-
-def build_rules(name: str) -> BuildRules:
-    try:
-        return BUILD_RULES[name]
-    except KeyError:
-        raise ConfigurationError(f"build rules {name!r}: use one of {', '.join(BUILD_RULES)}") from None
 
 
 @dataclass(frozen=True)
@@ -175,6 +172,7 @@ class ResetRecord:
         )
 
 
+#: The registers a reset record and the live view show, by the firmware's names (``BoardState.as_dict``).
 _SHOWN = (
     "electrode_num",
     "polarity",
@@ -188,15 +186,21 @@ _SHOWN = (
 )
 
 
-def _channels_on(regs: dict[str, Any]) -> list[int]:
+def _shown(state: BoardState) -> dict[str, Any]:
+    """The registers of :data:`_SHOWN` the version has."""
+    regs = state.as_dict()
+    return {k: regs[k] for k in _SHOWN if k in regs}
+
+
+def _channels_on(state: BoardState) -> list[int]:
     """Channels the scans give current: v1.2 pattern values 1 and 2; v2 a non-zero height (mode 0/1) or,
     in mode 2, every channel (the sense pulse) when the sense height is not 0."""
-    n = regs["electrode_num"]
-    pattern = regs["stim_pattern"][:n]
-    if "stim_mode" not in regs:
+    n = state.electrode_num
+    pattern = state.scanned_pattern
+    if state.stim_mode is None:  # v1.2: the pattern byte picks the waveform
         return [i for i, v in enumerate(pattern) if v in (1, 2)]
-    if regs["stim_mode"] == 2:
-        return list(range(n)) if regs["sense_pulse_height"] else []
+    if state.stim_mode == 2:
+        return list(range(n)) if state.sense_pulse_height else []
     return [i for i, v in enumerate(pattern) if v]
 
 
@@ -311,36 +315,20 @@ class RealtimeEmulator:
         behind_limit_us: float = BEHIND_LIMIT_US,
         follow_scans: bool = True,
         history_us: float = HISTORY_US,
-        firmware: str = "v1.2",
+        firmware: str | FirmwareSpec = "v1.2",
     ) -> None:
         self.rules = rules
-        self.firmware = firmware
-        self.timed: TimedEmulator | TimedEmulatorV2
-        if firmware == "v2":
-            if skin is not None:
-                raise ConfigurationError(
-                    "skin: the v2 timed model reads back the DAC codes, not a skin model"
-                )
-            self.timed = TimedEmulatorV2(
-                board,
-                switching_boards,
-                link=rules.make_link(),
-                tx_link=TcpLink() if rules.link == "tcp" else rules.link,
-                model=rules.timing(model),
-                stack_reading=stack_reading,
-            )
-        elif firmware == "v1.2":
-            self.timed = TimedEmulator(
-                board,
-                switching_boards,
-                link=rules.make_link(),
-                tx_link=TcpLink() if rules.link == "tcp" else None,
-                model=rules.timing(model),
-                skin=skin,
-                stack_reading=stack_reading,
-            )
-        else:
-            raise ConfigurationError(f"firmware={firmware!r}: the real-time board runs 'v1.2' or 'v2'")
+        entry = model_entry(firmware)
+        self.firmware: FirmwareSpec = entry.spec
+        self.timed: TimedModel = entry.timed_class().served(
+            board,
+            switching_boards,
+            link=rules.make_link(),
+            tx_link=TcpLink() if rules.link == "tcp" else None,
+            model=rules.timing(model),
+            skin=skin,
+            stack_reading=stack_reading,
+        )
         self.lock = threading.RLock()
         self._clock = clock
         self._t0 = clock()  # wall-clock time of device time 0
@@ -357,7 +345,7 @@ class RealtimeEmulator:
     # --- what the board looks like from outside ----------------------------------------------------
 
     @property
-    def emulator(self) -> Any:
+    def emulator(self) -> Emulator:
         """The firmware's parser and registers (the untimed face: ``state()``, ``hazards``)."""
         return self.timed.emulator
 
@@ -366,13 +354,13 @@ class RealtimeEmulator:
         return self.timed.hazards
 
     @property
-    def board(self) -> Any:
+    def board(self) -> Board:
         return self.timed.board
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> BoardState:
         """The registers as of now (the model is brought up to the wall clock first)."""
         with self.lock:
-            self._advance()
+            self.advance_now()
             return self.timed.state()
 
     # --- the clock -----------------------------------------------------------------------------------
@@ -394,7 +382,9 @@ class RealtimeEmulator:
         now = self._clock() if t is None else t
         return max(self.timed.now_us, (now - self._t0) * 1e6)
 
-    def _advance(self, t: float | None = None) -> float:
+    def advance_now(self, t: float | None = None) -> float:
+        """Run the model to the wall clock's now (or ``t``) and return that device time; old history is
+        trimmed on the way (a board served for hours keeps a bounded memory)."""
         at = self.device_us(t)
         self.timed.advance_to(at)
         if at - self._trimmed_at > self.history_us:
@@ -407,7 +397,7 @@ class RealtimeEmulator:
         server loop that slept until :meth:`wait_s`), how late this wake-up came is recorded."""
         with self.lock:
             due = self.timed.next_event_us(self.follow_scans)
-            at = self._advance()
+            at = self.advance_now()
             out = self.timed.read_tx()
             self.bytes_out += len(out)
         if record_lag and due <= at + 0.001:  # a wake-up for an event now due (1 ns of float rounding)
@@ -434,14 +424,14 @@ class RealtimeEmulator:
     def write(self, data: bytes, t: float | None = None) -> int:
         """Host bytes arriving at wall-clock time ``t`` (default now) enter the link model then."""
         with self.lock:
-            at = self._advance(t)
+            at = self.advance_now(t)
             self.bytes_in += len(data)
             return self.timed.write(bytes(data), at)
 
     def read(self, size: int | None = None) -> bytes:
         """Replies that have reached the host by now."""
         with self.lock:
-            self._advance()
+            self.advance_now()
             out = self.timed.read_tx(size)
             self.bytes_out += len(out)
             return out
@@ -449,13 +439,13 @@ class RealtimeEmulator:
     @property
     def in_waiting(self) -> int:
         with self.lock:
-            self._advance()
+            self.advance_now()
             return self.timed.in_waiting
 
     def room(self) -> int:
         """Bytes the receive path can take now without losing any (flow-controlled builds)."""
         with self.lock:
-            self._advance()
+            self.advance_now()
             return max(0, self.timed.queue.free - self.timed.in_flight)
 
     def client_opened(self, name: str) -> bytes:
@@ -463,10 +453,9 @@ class RealtimeEmulator:
         not the new host's).  On v2 a command the previous host cut can take this host's first bytes as
         its payload (see :meth:`~.timed_v2.TimedEmulatorV2.new_client`)."""
         with self.lock:
-            self._advance()
+            self.advance_now()
             stale = self.timed.read_tx()
-            if isinstance(self.timed, TimedEmulatorV2):
-                self.timed.new_client(name)
+            self.timed.new_client(name)
             return stale
 
     # --- reset ---------------------------------------------------------------------------------------
@@ -474,9 +463,9 @@ class RealtimeEmulator:
     def reset(self, reason: str) -> ResetRecord:
         """Power-cycle the board now; the record names the state that was discarded."""
         with self.lock:
-            at = self._advance()
+            at = self.advance_now()
             regs = self.timed.state()
-            discarded = {k: regs[k] for k in _SHOWN if k in regs}
+            discarded = _shown(regs)
             discarded["channels_on"] = _channels_on(regs)
             discarded["queue_bytes"] = len(self.timed.queue)
             discarded["parser"] = self.timed.parser_status()
@@ -490,12 +479,11 @@ class RealtimeEmulator:
 
     def status(self) -> LiveStatus:
         with self.lock:
-            at = self._advance()
+            at = self.advance_now()
             t = self.timed
             regs = t.state()
-            n = regs["electrode_num"]
-            shown = {k: regs[k] for k in _SHOWN if k in regs}
-            shown["pattern"] = tuple(regs["stim_pattern"][:n])
+            shown = _shown(regs)
+            shown["pattern"] = regs.scanned_pattern
             shown["on"] = tuple(_channels_on(regs))
             scans, rate = _scan_rate(t, at)
             hz = t.hazards
@@ -518,20 +506,9 @@ class RealtimeEmulator:
             )
 
 
-def _scan_rate(t: Any, at_us: float) -> tuple[int, float]:
+def _scan_rate(t: TimedModel, at_us: float) -> tuple[int, float]:
     """Scans since power-up and the current scan rate (0 when the scans stopped)."""
-    if isinstance(t, TimedEmulatorV2):
-        s = t.scans
-        if len(s) >= 2:
-            stride = s[-1].start_ns - s[-2].start_ns
-            if stride > 0 and s[-1].start_ns >= at_us * 1000 - 2 * stride:
-                return t.scan_count, 1e9 / stride
-        return t.scan_count, 0.0
-    if t.runs:
-        last = t.runs[-1]
-        if last.end_ns >= at_us * 1000 - 2 * last.stride_ns and last.stride_ns > 0:
-            return t.scans, 1e9 / last.stride_ns
-    return t.scans, 0.0
+    return t.scan_rate(at_us)
 
 
 # --- serving a board on a byte stream ------------------------------------------------------------------
@@ -539,24 +516,26 @@ def _scan_rate(t: Any, at_us: float) -> tuple[int, float]:
 ByteHook = Callable[[str, bytes, float], None]
 
 
-def reset_untimed(emulator: Any, reason: str) -> ResetRecord:
+def reset_untimed(emulator: Emulator, reason: str) -> ResetRecord:
     """Power-cycle an untimed :class:`~.core.Emulator` and say what it discarded (no clock: time 0)."""
     regs = emulator.state()
-    discarded = {k: regs[k] for k in _SHOWN if k in regs}
+    discarded = _shown(regs)
     discarded["channels_on"] = _channels_on(regs)
-    discarded["queue_bytes"] = regs["rx_pending"]
-    pending = regs.get("command_in_progress", getattr(emulator.parser, "cmd", None) is not None)
+    discarded["queue_bytes"] = regs.rx_pending
+    pending = emulator.parser.processing
     discarded["parser"] = "locked" if emulator.locked else "mid-command" if pending else "between commands"
     emulator.reset()
     return ResetRecord(reason, 0.0, discarded)
 
 
-def check_served_firmware(board: Any, firmware: str | None) -> None:
+def check_served_firmware(board: Any, firmware: str | FirmwareSpec | None) -> None:
     """Refuse a server's ``firmware`` that contradicts the board it was given: a server never claims a
     version it does not serve (None: whatever the board runs)."""
-    served = getattr(board, "firmware", "v1.2")
-    if firmware is not None and firmware != served:
-        raise ConfigurationError(f"firmware={firmware!r}, but the board given runs {served!r}")
+    if firmware is None:
+        return
+    served: FirmwareSpec = getattr(board, "firmware", V1_2)
+    if get_firmware(firmware) is not served:
+        raise ConfigurationError(f"firmware={firmware!r}, but the board given runs {served.name!r}")
 
 
 class BoardServer:
@@ -604,8 +583,9 @@ class BoardServer:
         """The firmware's parser and registers (``state()``, ``hazards``) whichever board is served."""
         return self.board.emulator if self.timed else self.board
 
-    def state(self) -> dict[str, Any]:
-        return self.board.state() if self.timed else dict(self.board.state())
+    def state(self) -> BoardState:
+        state: BoardState = self.board.state()
+        return state
 
     # --- control from any thread --------------------------------------------------------------------
 
@@ -716,7 +696,7 @@ def settle(board: RealtimeEmulator, timeout_s: float = 2.0, step_s: float = 0.00
     deadline = time.monotonic() + timeout_s
     while True:
         with board.lock:
-            board._advance()
+            board.advance_now()
             idle = board.timed.run_until_idle(limit_us=0)
         if idle:
             return True

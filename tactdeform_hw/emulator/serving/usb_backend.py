@@ -42,19 +42,20 @@ from typing import Any, TypedDict
 
 from tactdeform_hw.clock import Clock, MonotonicClock, SimulatedClock
 from tactdeform_hw.emulator.core import Emulator
+from tactdeform_hw.emulator.firmware.models import model_entry
 from tactdeform_hw.emulator.firmware.skin import SkinModel
 from tactdeform_hw.emulator.serving.usb_client import EmulatedBoardBackend
+from tactdeform_hw.emulator.timed.base import TimedModel
 from tactdeform_hw.emulator.timed.link import LinkModel
-from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
-from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
-from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
+from tactdeform_hw.emulator.timed.timing import TimingModel
 from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
 from tactdeform_hw.protocol.constants import (
     ESP32S3_USB_JTAG_PID,
     ESPRESSIF_VID,
     USB_PACKET_SIZE,
 )
-from tactdeform_hw.protocol.firmware import FIRMWARES
+from tactdeform_hw.protocol.firmware import FirmwareSpec
+from tactdeform_hw.protocol.state import BoardState
 
 # --- USB constants ------------------------------------------------------------------------------------
 
@@ -246,13 +247,10 @@ class EmulatedUsbDevice:
         tx_link: str | LinkModel | None = None,
         skin: SkinModel | None = None,
         stack_reading: float | None = None,
-        firmware: str = "v1.2",
+        firmware: str | FirmwareSpec = "v1.2",
     ) -> None:
-        if firmware not in FIRMWARES:
-            raise ConfigurationError(f"firmware={firmware!r}: the emulated USB board runs 'v1.2' or 'v2'")
-        if firmware == "v2" and skin is not None:
-            raise ConfigurationError("skin: the v2 timed model reads back the DAC codes, not a skin model")
-        self.firmware = firmware
+        self._entry = model_entry(firmware)
+        self.firmware: FirmwareSpec = self._entry.spec
         self._make = _TimedOptions(board=board, switching_boards=switching_boards, link=link, tx_link=tx_link,
                                    model=timing, skin=skin, stack_reading=stack_reading)  # fmt: skip
         self.timed = self._new_timed()  # raises ConfigurationError for a bad board or model
@@ -287,26 +285,16 @@ class EmulatedUsbDevice:
         self.download_mode = False
         self.control_log: list[tuple[int, int, int, int, bytes]] = []
         self.bytes_accepted = 0  # OUT bytes handed to the firmware's link since power-up
-        self._unplug_after_out: int | None = None
+        self.unplug_after_out: int | None = None
         self.nak_out = False  # the device NAKs every OUT packet (firmware no longer servicing USB)
 
-    def _new_timed(self) -> TimedEmulator | TimedEmulatorV2:
+    def _new_timed(self) -> TimedModel:
         opts = self._make.copy()
         if isinstance(opts["link"], LinkModel):
             opts["link"] = copy.deepcopy(opts["link"])
         if isinstance(opts["tx_link"], LinkModel):
             opts["tx_link"] = copy.deepcopy(opts["tx_link"])
-        if self.firmware == "v2":
-            model = opts["model"]
-            return TimedEmulatorV2(
-                opts["board"],
-                opts["switching_boards"],
-                link=opts["link"],
-                tx_link=opts["tx_link"] if opts["tx_link"] is not None else "usb",
-                model=model if model is not None else DEFAULT_MODEL,
-                stack_reading=opts["stack_reading"],
-            )
-        return TimedEmulator(**opts)
+        return self._entry.timed_class().served(**opts)
 
     # --- identity --------------------------------------------------------------------------------------
 
@@ -361,7 +349,7 @@ class EmulatedUsbDevice:
         is pulled mid-write; a packet is delivered whole or not at all)."""
         if out_bytes < 0:
             raise ConfigurationError(f"out_bytes={out_bytes!r} must be at least 0")
-        self._unplug_after_out = out_bytes
+        self.unplug_after_out = out_bytes
 
     # --- time ------------------------------------------------------------------------------------------
 
@@ -379,7 +367,7 @@ class EmulatedUsbDevice:
                 self.timed.advance_to(t)
             return t
 
-    def state(self) -> dict[str, Any]:
+    def state(self) -> BoardState:
         """The firmware's registers as of now (see :meth:`Emulator.state`)."""
         self.advance()
         return self.timed.state()
@@ -405,13 +393,13 @@ class EmulatedUsbDevice:
 
     # --- host traffic ----------------------------------------------------------------------------------
 
-    def _host_write(self, packet: bytes) -> None:
+    def host_write(self, packet: bytes) -> None:
         t = self.advance()
         self.bytes_accepted += len(packet)
         if self.running:
             self.timed.write(packet, at_us=t)
 
-    def _host_read(self, size: int) -> bytes:
+    def host_read(self, size: int) -> bytes:
         self.advance()
         return self.timed.read_tx(size)
 
@@ -422,7 +410,7 @@ class EmulatedUsbDevice:
 
     # --- bus events ------------------------------------------------------------------------------------
 
-    def _plug(self, backend: EmulatedUsbBackend, address: int) -> None:
+    def plug_in(self, backend: EmulatedUsbBackend, address: int) -> None:
         self.backend = backend
         self.plugged = True
         self.generation += 1
@@ -436,17 +424,17 @@ class EmulatedUsbDevice:
         self.dtr = self.rts = False
         self.download_mode = False
         self.bytes_accepted = 0
-        self._unplug_after_out = None
+        self.unplug_after_out = None
         if self.generation > 1:
             self.timed = self._new_timed()  # plugging in powers the board up
 
-    def _unplug(self) -> None:
+    def unplug_now(self) -> None:
         if self.plugged:
             self.advance()
         self.plugged = False
         self.claims.clear()
 
-    def _set_lines(self, dtr: bool, rts: bool) -> None:
+    def set_lines(self, dtr: bool, rts: bool) -> None:
         """The USB Serial/JTAG controller holds the chip in reset while RTS is asserted and DTR is not;
         DTR high at the moment the reset ends selects the ROM download mode (no application runs)."""
         self.advance()
@@ -463,13 +451,14 @@ class EmulatedUsbDevice:
             self.timed.reset("USB Serial/JTAG reset released")
             self.timed.read_tx()
 
-    def run_firmware(self, timed: TimedEmulator | TimedEmulatorV2, t0: float) -> None:
+    def run_firmware(self, timed: TimedModel, t0: float) -> None:
         """Put ``timed`` (a real-time board's model, whose device time 0 is ``t0`` on the bus clock)
         behind this device's endpoints: the board served by ``emulate --usb`` is then one model, seen
         by the USB endpoints and by the live view alike."""
-        runs = "v2" if isinstance(timed, TimedEmulatorV2) else "v1.2"
-        if runs != self.firmware:
-            raise ConfigurationError(f"firmware={runs!r}: this device runs {self.firmware!r}")
+        if timed.firmware is not self.firmware:
+            raise ConfigurationError(
+                f"firmware={timed.firmware.name!r}: this device runs {self.firmware.name!r}"
+            )
         self.timed = timed
         self.t0 = t0
 
@@ -540,19 +529,19 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
             if device not in self.devices:
                 self.devices.append(device)
             self._next_address += 1
-            device._plug(self, self._next_address)
+            device.plug_in(self, self._next_address)
         return device
 
     def unplug(self, device: EmulatedUsbDevice | None = None) -> None:
         """Pull the cable: open handles fail with "no such device" from now on."""
         with self.lock:
-            (device or self.device)._unplug()
+            (device or self.device).unplug_now()
 
     def replug(self, device: EmulatedUsbDevice | None = None) -> EmulatedUsbDevice:
         """Plug a device back: a new address, a powered-up board, the kernel driver bound again."""
         with self.lock:
             d = device or self.device
-            d._unplug()
+            d.unplug_now()
             return self.plug(d)
 
     # --- errors (raised as pyusb raises libusb's: :class:`~.usb_client.EmulatedBoardBackend`) -----------
@@ -733,12 +722,12 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
                     sent = 0
                     for i in range(0, len(payload), size):
                         pkt = payload[i : i + size]
-                        if d._unplug_after_out is not None:
-                            if len(pkt) > d._unplug_after_out:
-                                d._unplug()
+                        if d.unplug_after_out is not None:
+                            if len(pkt) > d.unplug_after_out:
+                                d.unplug_now()
                                 raise self._error("no_device")
-                            d._unplug_after_out -= len(pkt)
-                        d._host_write(pkt)
+                            d.unplug_after_out -= len(pkt)
+                        d.host_write(pkt)
                         sent += len(pkt)
                     return sent
             # every packet is NAKed: the transfer waits (out its timeout) without sending a byte
@@ -755,7 +744,7 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
             with self.lock:
                 d, _ = self._check_transfer(dev_handle, ep, intf, direction_in=True)
                 if ep == self._cdc_endpoint(d, direction_in=True):
-                    data = d._host_read(len(buff) * buff.itemsize)
+                    data = d.host_read(len(buff) * buff.itemsize)
                     if data:
                         buff[: len(data)] = type(buff)(buff.typecode, data)
                         return len(data)
@@ -811,7 +800,7 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
                     data[:n] = type(data)(data.typecode, d.line_coding[:n])
                     return n
                 if bmRequestType == 0x21 and bRequest == CDC_SET_CONTROL_LINE_STATE:
-                    d._set_lines(bool(wValue & 1), bool(wValue & 2))
+                    d.set_lines(bool(wValue & 1), bool(wValue & 2))
                     return 0
                 if bmRequestType == 0x21 and bRequest == CDC_SEND_BREAK:
                     return 0

@@ -42,7 +42,7 @@ from typing import Any
 from tactdeform_hw.emulator.serving.realtime import BoardServer, RealtimeEmulator, check_served_firmware
 from tactdeform_hw.emulator.serving.usb_backend import CLASS_CDC_DATA, EmulatedUsbBackend, EmulatedUsbDevice
 from tactdeform_hw.emulator.serving.usb_client import ERROR_KINDS, SERVED_PREFIX, recv_message, send_message
-from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
+from tactdeform_hw.emulator.timed.base import TimedModel
 from tactdeform_hw.errors import ConfigurationError, TransportError
 
 _WATCH_MS = 2  # a waiting transfer looks at its client's socket this often (a dead client's is closed)
@@ -52,18 +52,13 @@ class _ClientGone(Exception):
     """The client's socket closed while a transfer of its waited: the kernel cancels it."""
 
 
-def last_current_pulse_us(timed: Any, since_us: float = 0.0) -> tuple[float | None, int]:
+def last_current_pulse_us(timed: TimedModel, since_us: float = 0.0) -> tuple[float | None, int]:
     """The start of the last pulse since ``since_us`` that carried current, and how many did, from the
     firmware model's delivered-pulse record (v1.2 scan runs or v2 scans)."""
     now_us = timed.now_us  # the record also holds the scans the model has already planned: not yet run
     if since_us >= now_us:
         return None, 0
-    if isinstance(timed, TimedEmulatorV2):
-        rows = timed.delivered(since_us=since_us)
-        times = [row["t_us"] for row in rows if row["current_ua"] > 0 and row["t_us"] <= now_us]
-    else:
-        table = timed.reports.pulse_table(since_us, now_us)
-        times = [float(t) for t, ua in zip(table["start_us"], table["current_ua"], strict=True) if ua > 0]
+    times = timed.current_pulse_starts_us(since_us, now_us)
     return (max(times) if times else None), len(times)
 
 
@@ -382,7 +377,7 @@ class UsbServer(BoardServer):
                 "t0": self.board.t0,
                 "last_current_pulse_us": last,
                 "current_pulses": count,
-                "firmware": self.board.firmware,
+                "firmware": self.board.firmware.name,
                 "clients": clients,
             }
 

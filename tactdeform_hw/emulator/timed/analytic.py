@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tactdeform_hw.emulator.core import Emulator
+from tactdeform_hw.emulator.firmware.registers import Registers
 from tactdeform_hw.emulator.firmware.scan import ScanConfig, channel_offsets_ns, scan_duration_ns
 from tactdeform_hw.emulator.records.reports import Timeline
 from tactdeform_hw.emulator.timed.link import LinkModel, make_link
@@ -127,6 +128,7 @@ class _Analytic:
 
     def _reconfigure(self, first: bool = False) -> None:
         regs = self.emu.registers
+        assert isinstance(regs, Registers)  # the analytic model is v1.2's
         self.cfg = ScanConfig.from_registers(regs)
         self.period = self.m.alarm_period_ns(regs.timer_alarm_ticks)
         self.target = OUTPUTS_PER_HV513 * self.cfg.hv513_num
@@ -265,6 +267,10 @@ class _Analytic:
                         else self.tick_at_or_after(eff + 1)
                     )
         self.scans_until(duration)
+        return self._timeline(duration, effects)
+
+    def _timeline(self, duration: int, effects: dict[int, int | None]) -> Timeline:
+        """The scans that started by ``duration`` and the effects, as a :class:`Timeline`."""
         # keep only scans that started by the end of the run
         starts, durs = [], []
         for r in self.runs:

@@ -257,6 +257,15 @@ def make_link(link: str | LinkModel) -> LinkModel:
     raise LimitError("link", link, " or ".join(LINK_NAMES))
 
 
+def reply_link(link: str | LinkModel) -> LinkModel:
+    """The link replies travel back over when none is named: the same kind as the host's (a UART at the
+    same baud rate and frame, else full-speed USB), looking through fault filters to the link itself."""
+    inner: LinkModel = make_link(link)
+    while hasattr(inner, "inner"):
+        inner = inner.inner
+    return UartLink(inner.baud, inner.bits_per_byte) if isinstance(inner, UartLink) else UsbFsLink()
+
+
 class ReceiveQueue:
     """The firmware's receive queue: bytes delivered and not yet read by the parser."""
 

@@ -44,149 +44,62 @@ from __future__ import annotations
 import copy
 import heapq
 import math
-from bisect import bisect_right
-from dataclasses import dataclass, field
 from typing import Any
 
 from tactdeform_hw.emulator.core import Emulator
 from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
-from tactdeform_hw.emulator.firmware.parser import CallResult
+from tactdeform_hw.emulator.firmware.models import model_entry
+from tactdeform_hw.emulator.firmware.parser import CallResult, Parser
+from tactdeform_hw.emulator.firmware.registers import Registers
 from tactdeform_hw.emulator.firmware.scan import (
     POWER_ON_CHAIN,
     ChainState,
-    PulseKind,
     ScanConfig,
     ScanEngine,
-    ScanTemplate,
     physical_outputs,
 )
 from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
 from tactdeform_hw.emulator.records.reports import (
-    ChannelLatency,
     CommandReport,
     LossReport,
     ScanRun,
     TimingReports,
-    TornInfo,
+)
+from tactdeform_hw.emulator.timed.base import TimedModel, TimedModelBase
+from tactdeform_hw.emulator.timed.books_v1_2 import (
+    CommandBooks,
+    HostLedger,
+    MainLoop,
+    Records,
+    ScanBooks,
+    ns_of,
+    us_of,
 )
 from tactdeform_hw.emulator.timed.link import (
     Delivery,
     LinkModel,
     ReceiveQueue,
-    UartLink,
-    UsbFsLink,
     make_link,
+    reply_link,
 )
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.constants import Opcode
 from tactdeform_hw.protocol.decoder import StreamDecoder
+from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 
 _INF = math.inf
-#: a u16 completed this long after the main loop began spinning on its first byte is reported
-U16_LATE_US = 2000.0
 _PATTERN = int(Opcode.PATTERN)
 _HV513 = int(Opcode.HV513_COUNT)
-
-# which pulses a command affects (None: any pulse)
-_AFFECTS: dict[int, tuple[int, ...] | None] = {
-    Opcode.PULSE_HEIGHT: (PulseKind.MONO, PulseKind.BI_ANODIC, PulseKind.BI_CATHODIC),
-    Opcode.PULSE_WIDTH: (PulseKind.MONO, PulseKind.BI_ANODIC, PulseKind.BI_CATHODIC),
-    Opcode.SENSE_HEIGHT: (PulseKind.SENSE,),
-    Opcode.SENSE_WIDTH: (PulseKind.SENSE,),
-    Opcode.POLARITY: None,
-    Opcode.DISCHARGE: None,
-    Opcode.ELECTRODE_NUM: None,
-    Opcode.FREQUENCY: None,
-    Opcode.HV513_COUNT: None,
-}
 
 _WAIT_TICK, _WAIT_STUCK, _WAIT_LOCKED = "tick", "stuck", "locked"
 
 
-@dataclass
-class _Pending:
-    """A command whose first affected pulse is still to come."""
-
-    report: CommandReport
-    kinds: tuple[int, ...] | None
-    after_ns: int
-    channels: dict[int, ChannelLatency] | None = None  # patterns: unresolved channels
-
-
-@dataclass
-class _MainLoop:
-    """The firmware's main loop and timer bookkeeping, as the board holds it (reset at every boot)."""
-
-    parser_base: int = 0  # device-stream offset of the parser's byte 0 since the last boot
-    booting_until: int = 0  # bytes arriving before this are lost
-    tick_base: int = 0  # RTOS tick 0
-    last_reload: int = 0  # when the timer last reloaded
-    main_next: float | None = None  # when the main loop next calls the parser
-    main_wait: str | None = None  # what it waits for otherwise (_WAIT_*)
-    call: tuple[int, int] | None = None  # (cpu ns spent, bytes read) of an interrupted call
-    busy_from: int = -1  # the scan in progress: the main loop does not run inside it
-    busy_until: int = -1
-    stuck_reported: bool = False  # spinning on a half u16: reported once, from stuck_at
-    stuck_at: int | None = None
-    call_end_ns: int = 0  # when the call being fed ends, and the device offset of its last byte
-    call_dev_last: int = 0
-
-
-@dataclass
-class _HostLedger:
-    """What the host wrote and what reached the device: the books that map device bytes back to the
-    host's stream and its send times (not firmware state: a reboot keeps them)."""
-
-    decoder: StreamDecoder
-    offset: int = 0  # bytes the host has written
-    last_write_ns: int = 0
-    writes: list[tuple[int, int, int]] = field(default_factory=list)  # (host offset, length, sent ns)
-    write_starts: list[int] = field(default_factory=list)
-    intended: dict[int, tuple[int, int]] = field(default_factory=dict)  # host offset -> (opcode, end offset)
-    intended_starts: list[int] = field(default_factory=list)
-    deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)  # heap: bytes on their way in
-    seq: int = 0
-    # heap: replies on their way out
-    tx_deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)
-    rx: bytearray = field(default_factory=bytearray)  # replies that reached the host, unread
-    dev_total: int = 0  # device stream: accepted bytes, session-wide offsets
-    seg_dev: list[int] = field(default_factory=list)
-    # (dev start, host start, length, delivered ns)
-    segments: list[tuple[int, int, int, int]] = field(default_factory=list)
-
-
-@dataclass
-class _Records:
-    """What the reports are made of: scan runs, command and loss reports, the reply log, trace sinks."""
-
-    runs: list[ScanRun] = field(default_factory=list)
-    commands: list[CommandReport] = field(default_factory=list)
-    losses: list[LossReport] = field(default_factory=list)
-    open_losses: list[LossReport] = field(default_factory=list)  # not followed by a command in step yet
-    awaiting: list[_Pending] = field(default_factory=list)
-    sinks: list[Any] = field(default_factory=list)
-    tx_log: list[tuple[float, bytes]] = field(default_factory=list)  # (device write µs, bytes)
-    scan_index: int = 0
-    sense_key: tuple[Any, ...] | None = None
-    # per stretch kind: (index in hazards, what must stay the same) of the record a stretch extends
-    stretch: dict[HazardKind, tuple[int, tuple[Any, ...]]] = field(default_factory=dict)
-    reboots: int = 0
-    interrupted_calls: int = 0  # parser calls an alarm interrupted mid-read
-    cur: CommandReport | None = None  # the command being read, and for a pattern its channels' times
-    cur_written: dict[int, int] = field(default_factory=dict)
-    cur_first: dict[int, int] = field(default_factory=dict)  # channels a scan used while still being read
-    cur_old: bytes = b""
-    last_rep: CommandReport | None = None
-
-
-def _ns(us: float) -> int:
-    return int(round(us * 1000.0))
-
-
-class TimedEmulator:
+class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
     """The eTactileKit controller in simulated time.  See the module documentation."""
+
+    firmware: FirmwareSpec = V1_2
 
     def __init__(
         self,
@@ -205,40 +118,31 @@ class TimedEmulator:
         self.received_bytes = 0
         self.model = model if model is not None else DEFAULT_MODEL
         self.skin = skin if skin is not None else DEFAULT_SKIN
-        self.emulator = Emulator(board, switching_boards, stack_reading=stack_reading)
+        self.emulator = Emulator(board, switching_boards, stack_reading=stack_reading, firmware=V1_2)
         self.emulator.meant_as_command = self._meant_as_command
         self.emulator.parser.meant_as_command = self._meant_as_command
         self.board = self.emulator.board
         self.hazards: list[Hazard] = self.emulator.hazards
         self.link = make_link(link)
-        if tx_link is None:
-            inner = self.link
-            while hasattr(inner, "inner"):
-                inner = inner.inner
-            tx_link = (
-                UartLink(inner.baud, inner.bits_per_byte) if isinstance(inner, UartLink) else UsbFsLink()
-            )
-        self.tx_link = make_link(tx_link)
+        self.tx_link = make_link(tx_link) if tx_link is not None else reply_link(self.link)
         self.queue = ReceiveQueue(self.model.rx_queue_bytes)
         self.engine = ScanEngine(
             self.model, self.skin, physical_outputs(self.board.kind, self.board.switching_boards)
         )
         self.now_ns = 0
-        self.host = _HostLedger(decoder=StreamDecoder(self.emulator.registers.electrode_num))
-        self.rec = _Records()
+        self.host = HostLedger(decoder=StreamDecoder(self.registers.electrode_num))
+        self.rec = Records()
         self.next_alarm: float = _INF  # the timer (set by _boot, with the main loop's state)
-        self.fw = _MainLoop()
+        self.fw = MainLoop()
         self._boot(0, first=True)
 
     # --- public API -----------------------------------------------------------------------------------------
 
     @property
-    def now_us(self) -> float:
-        return self.now_ns / 1000.0
-
-    @property
-    def registers(self) -> Any:
-        return self.emulator.registers
+    def registers(self) -> Registers:
+        regs = self.emulator.registers
+        assert isinstance(regs, Registers)  # the v1.2 entry's registers
+        return regs
 
     # --- the records, by their public names ---
 
@@ -271,14 +175,11 @@ class TimedEmulator:
         """Scans the timer has run in this session (reboots included)."""
         return self.rec.scan_index
 
-    # the main loop's state under the names the fault layer reaches it by
-    _main_next = property(lambda self: self.fw.main_next, lambda self, v: setattr(self.fw, "main_next", v))
-    _main_wait = property(lambda self: self.fw.main_wait, lambda self, v: setattr(self.fw, "main_wait", v))
-    _host_offset = property(lambda self: self.host.offset)
-
     @property
-    def parser(self) -> Any:
-        return self.emulator.parser
+    def parser(self) -> Parser:
+        p = self.emulator.parser
+        assert isinstance(p, Parser)  # the v1.2 entry's parser
+        return p
 
     @property
     def reports(self) -> TimingReports:
@@ -292,23 +193,29 @@ class TimedEmulator:
             lo.parser_now = now
         return self.rec.losses
 
-    @property
-    def in_waiting(self) -> int:
-        """Reply bytes that have reached the host and were not read yet."""
-        self._collect_tx()
-        return len(self.host.rx)
+    def scan_rate(self, at_us: float) -> tuple[int, float]:
+        """Scans since power-up and the current scan rate in Hz (0 when the scans stopped)."""
+        if self.runs:
+            last = self.runs[-1]
+            if last.end_ns >= at_us * 1000 - 2 * last.stride_ns and last.stride_ns > 0:
+                return self.scans, 1e9 / last.stride_ns
+        return self.scans, 0.0
 
-    def state(self) -> dict[str, Any]:
-        snap: dict[str, Any] = self.emulator.registers.snapshot()
-        snap["rx_pending"] = len(self.queue)
-        return snap
+    def current_pulse_starts_us(self, since_us: float, now_us: float) -> list[float]:
+        """The start times of the delivered pulses that carried current between the two times."""
+        table = self.reports.pulse_table(since_us, now_us)
+        return [float(t) for t, ua in zip(table["start_us"], table["current_ua"], strict=True) if ua > 0]
+
+    def new_client(self, name: str) -> None:
+        """A new host connection starts: nothing changes on v1.2 (its parser has no timeout, so a cut
+        command takes the new host's bytes as payload whatever the time: recorded as any desync is)."""
 
     def write(self, data: bytes, at_us: float | None = None) -> int:
         """The host writes ``data`` at ``at_us`` (default: now).  Writes must come in time order; a write
         in the future is scheduled and happens as the clock gets there.  Returns the byte count."""
         data = bytes(data)
         self.received_bytes += len(data)
-        t = self.now_ns if at_us is None else _ns(at_us)
+        t = self.now_ns if at_us is None else ns_of(at_us)
         if t < self.now_ns:
             raise LimitError("at_us", at_us, f">= now ({self.now_us} us)")
         if t < self.host.last_write_ns:
@@ -331,36 +238,20 @@ class TimedEmulator:
     def deliver(self, data: bytes, at_us: float | None = None, host_offset: int = -1) -> None:
         """Bytes that reach the device's receive path at ``at_us`` without passing the link model (noise,
         a second host, a fault layer's own traffic)."""
-        t = self.now_ns if at_us is None else _ns(at_us)
+        t = self.now_ns if at_us is None else ns_of(at_us)
         if t < self.now_ns:
             raise LimitError("at_us", at_us, f">= now ({self.now_us} us)")
         self._push_delivery(Delivery(t, bytes(data), host_offset, t))
 
     def advance_to(self, t_us: float) -> None:
         """Run the device until ``t_us``."""
-        target = _ns(t_us)
+        target = ns_of(t_us)
         if target < self.now_ns:
             raise LimitError("t_us", t_us, f">= now ({self.now_us} us)")
         self._run(target)
         self.now_ns = target
 
     run_until = advance_to
-
-    def advance(self, dt_us: float) -> None:
-        if not (dt_us >= 0):
-            raise LimitError("dt_us", dt_us, ">= 0")
-        self.advance_to(self.now_us + dt_us)
-
-    def run_until_idle(self, limit_us: float = 60e6, step_us: float = 1000.0) -> bool:
-        """Advance until every delivery has landed and the parser has read all it will read (or
-        ``limit_us`` of device time passed).  Returns whether it got idle."""
-        end = self.now_ns + _ns(limit_us)
-        while True:
-            if not self.host.deliveries and self.fw.main_wait is not None:
-                return True
-            if self.now_ns >= end:
-                return False
-            self.advance_to(min(end, self.now_ns + _ns(step_us)) / 1000.0)
 
     def next_event_us(self, scans: bool = True) -> float:
         """When the device next does something (a delivery lands, the main loop calls the parser, a reply
@@ -375,71 +266,6 @@ class TimedEmulator:
         return t / 1000.0
 
     @property
-    def in_flight(self) -> int:
-        """Bytes written by the host that have not reached the receive queue yet."""
-        return sum(len(d[2].data) for d in self.host.deliveries)
-
-    def discard_history(self, before_us: float) -> None:
-        """Forget records older than ``before_us`` that nothing pending refers to (scan runs, command
-        and loss reports, reply log, write and arrival books), so a device served for hours keeps a
-        bounded memory.  Reports afterwards cover the time kept."""
-        t = _ns(before_us)
-        self.rec.runs = [r for r in self.rec.runs if r.end_ns >= t]
-        pending = {id(p.report) for p in self.rec.awaiting}
-        self.rec.commands = [
-            c for c in self.rec.commands if id(c) in pending or c.effect_us is None or c.effect_us * 1000 >= t
-        ]
-        self.rec.tx_log = [e for e in self.rec.tx_log if e[0] * 1000 >= t]
-        opened = {id(lo) for lo in self.rec.open_losses}
-        self.rec.losses = [lo for lo in self.rec.losses if id(lo) in opened or lo.time_us * 1000 >= t]
-        p = self.parser
-        dev_keep = self.fw.parser_base + (p.cmd_offset if p.cmd is not None else p.offset)
-        keep_seg = [
-            i for i, seg in enumerate(self.host.segments) if seg[0] + seg[2] > dev_keep or seg[3] >= t
-        ]
-        if keep_seg and keep_seg[0] > 0:
-            first = keep_seg[0]
-            self.host.segments = self.host.segments[first:]
-            self.host.seg_dev = self.host.seg_dev[first:]
-        elif not keep_seg:
-            self.host.segments, self.host.seg_dev = [], []
-        hosts = [seg[1] for seg in self.host.segments if seg[1] >= 0]
-        hosts += [d[2].host_offset for d in self.host.deliveries if d[2].host_offset >= 0]
-        hosts += [lo.host_offset for lo in self.rec.open_losses if lo.host_offset >= 0]
-        if self.rec.cur is not None and self.rec.cur.host_offset >= 0:
-            hosts.append(self.rec.cur.host_offset)
-        host_keep = min(hosts, default=self.host.offset)
-        i = bisect_right(self.host.intended_starts, host_keep) - 1
-        if i > 0:
-            for off in self.host.intended_starts[:i]:
-                self.host.intended.pop(off, None)
-            self.host.intended_starts = self.host.intended_starts[i:]
-        j = bisect_right(self.host.write_starts, host_keep) - 1
-        if j > 0:
-            self.host.writes = self.host.writes[j:]
-            self.host.write_starts = self.host.write_starts[j:]
-
-    def read_tx(self, size: int | None = None) -> bytes:
-        """Reply bytes that have reached the host by now (all, or at most ``size``)."""
-        self._collect_tx()
-        n = len(self.host.rx) if size is None else min(size, len(self.host.rx))
-        out = bytes(self.host.rx[:n])
-        del self.host.rx[:n]
-        return out
-
-    def arrival_us(self, host_offset: int) -> float | None:
-        """When the host's byte at ``host_offset`` reached the receive queue (``None``: lost, or not yet
-        arrived) — whether or not the parser ever reads it."""
-        for _, host, length, t in reversed(self.host.segments):
-            if host >= 0 and host <= host_offset < host + length:
-                return t / 1000
-        return None
-
-    def intended_offsets(self) -> list[int]:
-        """Host offsets of the commands the host's byte stream holds (decoded the way the firmware reads)."""
-        return list(self.host.intended_starts)
-
-    @property
     def host_offset(self) -> int:
         """Bytes the host has written so far (the offset its next byte will have)."""
         return self.host.offset
@@ -448,7 +274,7 @@ class TimedEmulator:
         """Set the scan registers directly, as if a host had configured the device without link or parser
         time (for budgets, traces and latency experiments).  The alarm follows the new period like a
         frequency command would."""
-        regs = self.emulator.registers
+        regs = self.registers
         regs.electrode_num = cfg.electrode_num
         regs.polarity = cfg.polarity
         regs.pulse_height = cfg.pulse_height
@@ -474,16 +300,6 @@ class TimedEmulator:
         """Power-cycle the device now (registers, queue, parser to power-on; the links stay)."""
         self._reboot(self.now_ns, reason, boot_delay=True)
 
-    def attach(self, sink: Any) -> None:
-        """Send every scan run and marker from now on to ``sink`` (see :mod:`.trace`)."""
-        self.rec.sinks.append(sink)
-        if hasattr(sink, "begin"):
-            sink.begin(self.now_ns)
-
-    def detach(self, sink: Any) -> None:
-        if sink in self.rec.sinks:
-            self.rec.sinks.remove(sink)
-
     # --- boot -----------------------------------------------------------------------------------------------
 
     def _boot(self, t: int, first: bool = False, boot_delay: bool = False) -> None:
@@ -494,12 +310,12 @@ class TimedEmulator:
         p.on_hv513_reinit = self._on_hv513_reinit
         self.chain: ChainState = POWER_ON_CHAIN
         start = t + (self.model.boot_ns if boot_delay else 0)
-        regs = self.emulator.registers
+        regs = self.registers
         last_reload = start + self.model.timer_start_ns
         self.next_alarm = last_reload + self.model.alarm_period_ns(regs.timer_alarm_ticks)
         if not self.stimulation:
             self.next_alarm = _INF
-        self.fw = _MainLoop(
+        self.fw = MainLoop(
             parser_base=self.host.dev_total,
             booting_until=start,
             tick_base=start,
@@ -608,83 +424,6 @@ class TimedEmulator:
             return "between commands"
         return f"reading {Opcode(p.cmd).name} payload {p.count}/{p.needed}"
 
-    def _loss(self, t: int, data: bytes, host_offset: int, reason: str) -> None:
-        state = self.parser_status()
-        rep = LossReport(
-            t / 1000,
-            host_offset,
-            len(data),
-            bytes(data),
-            reason,
-            len(self.queue),
-            state,
-            self._cut_command(host_offset),
-        )
-        self.rec.losses.append(rep)
-        if reason == "queue_full":
-            self.hazards.append(
-                Hazard(
-                    HazardKind.QUEUE_OVERFLOW,
-                    self.host.dev_total - self.fw.parser_base,
-                    {"bytes_lost": len(data), "host_offset": host_offset, "parser": state},
-                    t / 1000,
-                )
-            )
-            self.rec.open_losses.append(rep)
-        self._mark(t, "loss", {"bytes": len(data), "host_offset": host_offset, "reason": reason})
-
-    def _cut_command(self, host_offset: int) -> dict[str, Any] | None:
-        if host_offset < 0:
-            return None
-        i = bisect_right(self.host.intended_starts, host_offset) - 1
-        if i < 0:
-            return None
-        start = self.host.intended_starts[i]
-        op, end = self.host.intended[start]
-        if host_offset >= end or host_offset == start:
-            return (
-                None
-                if host_offset >= end
-                else {
-                    "name": Opcode(op).name,
-                    "host_offset": start,
-                    "bytes_before_loss": 0,
-                    "length": end - start,
-                }
-            )
-        return {
-            "name": Opcode(op).name,
-            "host_offset": start,
-            "bytes_before_loss": host_offset - start,
-            "length": end - start,
-        }
-
-    def _meant_as_command(self, parser_offset: int) -> bool:
-        """Whether the host wrote a command byte at this parser offset (a byte that did not come from the
-        host counts as meant: nothing says otherwise)."""
-        host = self._host_of(self.fw.parser_base + parser_offset)
-        return host < 0 or host in self.host.intended
-
-    def _host_of(self, dev_offset: int) -> int:
-        """Host-stream offset of a device-stream byte (-1 if it did not come from the host)."""
-        i = bisect_right(self.host.seg_dev, dev_offset) - 1
-        if i < 0:
-            return -1
-        start, host, length, _ = self.host.segments[i]
-        if host < 0 or dev_offset >= start + length:
-            return -1
-        return host + dev_offset - start
-
-    def _delivered_at(self, dev_offset: int) -> int | None:
-        i = bisect_right(self.host.seg_dev, dev_offset) - 1
-        return None if i < 0 else self.host.segments[i][3]
-
-    def _sent_at(self, host_offset: int) -> int | None:
-        if host_offset < 0:
-            return None
-        i = bisect_right(self.host.write_starts, host_offset) - 1
-        return None if i < 0 else self.host.writes[i][2]
-
     # --- RTOS ticks -----------------------------------------------------------------------------------------
 
     def _tick_at_or_after(self, t: int) -> int:
@@ -738,7 +477,7 @@ class TimedEmulator:
             self.fw.main_wait = _WAIT_LOCKED
             if self.rec.cur is not None:
                 self.rec.cur.note = "locks the parser: pattern command with electrode_num 0"
-                self.rec.cur.arrival_us = _us(self._delivered_at(self.fw.call_dev_last))
+                self.rec.cur.arrival_us = us_of(self._delivered_at(self.fw.call_dev_last))
                 self.rec.commands.append(self.rec.cur)
                 self.rec.cur = None
         else:
@@ -773,12 +512,12 @@ class TimedEmulator:
             op = data[0]
             if p.is_command(op):
                 host = self._host_of(dev0)
-                rep = CommandReport(dev0, host, op, Opcode(op).name, sent_us=_us(self._sent_at(host)))
+                rep = CommandReport(dev0, host, op, Opcode(op).name, sent_us=us_of(self._sent_at(host)))
                 self.rec.cur = rep
                 self.fw.stuck_reported = False
                 self.fw.stuck_at = None
                 if op == _PATTERN:
-                    regs = self.emulator.registers
+                    regs = self.registers
                     self.rec.cur_old = bytes(regs.stim_pattern[: regs.electrode_num])
                     self.rec.cur_written = {}
                     self.rec.cur_first = {}
@@ -797,7 +536,7 @@ class TimedEmulator:
         self.fw.call_end_ns = ends[-1]
         self.fw.call_dev_last = dev0 + j - 1
         p.receive(data)
-        r = p.call()
+        r = p.step()
         if p.pending and not p.locked:  # pragma: no cover - the plan hands over whole units only
             raise AssertionError(f"parser left {p.pending} byte(s) unread")
         if outcome is not None and r is not (
@@ -819,6 +558,18 @@ class TimedEmulator:
         if rep is not None and rep.opcode in (Opcode.MEASURE, Opcode.HV513_COUNT) and rep.reply_us is None:
             rep.reply_us = last / 1000
 
+    def _host_replies(self) -> bytearray:
+        return self.host.rx
+
+    def _deliveries(self) -> list[tuple[int, int, Delivery]]:
+        return self.host.deliveries
+
+    def _idle(self) -> bool:
+        return not self.host.deliveries and self.fw.main_wait is not None
+
+    def _rx_pending(self) -> int:
+        return len(self.queue)
+
     def _collect_tx(self) -> None:
         q = self.host.tx_deliveries
         while q and q[0][0] <= self.now_ns:
@@ -829,125 +580,9 @@ class TimedEmulator:
     def _on_hv513_reinit(self) -> None:
         self.chain = ChainState(self.chain.position, 0, 0)
 
-    def _on_command(self, op: int, value: object, offset: int) -> None:
-        t = self.fw.call_end_ns
-        rep = self.rec.cur
-        if rep is None or rep.opcode != op:  # pragma: no cover - every completion was started by _feed
-            host = self._host_of(self.fw.parser_base + offset)
-            rep = CommandReport(self.fw.parser_base + offset, host, op, Opcode(op).name)
-        self.rec.cur = None
-        self.rec.last_rep = rep
-        rep.effect_us = t / 1000
-        regs = self.emulator.registers
-        if op == _PATTERN:
-            rep.value = bytes(regs.stim_pattern[: len(self.rec.cur_written)])
-        else:
-            rep.value = value
-        last_dev = self.fw.call_dev_last
-        arr = self._delivered_at(last_dev)
-        rep.arrival_us = _us(arr)
-        # in step with the host?  same opcode at the same host offset, ending where the host's ended
-        intended = self.host.intended.get(rep.host_offset)
-        last_host = self._host_of(last_dev)
-        rep.host_end = last_host + 1 if last_host >= 0 else -1
-        rep.in_sync = bool(intended and intended[0] == op and intended[1] == last_host + 1)
-        self.rec.commands.append(rep)
-        if self.fw.stuck_at is not None:
-            self._late_u16(op, t)
-        self._mark(
-            t,
-            "command",
-            {
-                "name": rep.name,
-                "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
-                "host_offset": rep.host_offset,
-                "in_sync": rep.in_sync,
-            },
-        )
-        self._follow_losses(rep)
-        if op == Opcode.FREQUENCY and value:
-            self._retime_alarm(t)
-        if op == _PATTERN:
-            chans = {ch: ChannelLatency(ch, wt / 1000) for ch, wt in self.rec.cur_written.items()}
-            felt = {ch: chans.pop(ch) for ch in list(chans) if ch in self.rec.cur_first}
-            for ch, cl in felt.items():
-                cl.first_pulse_us = self.rec.cur_first[ch] / 1000
-            self.rec.cur_first = {}
-            # an older pattern still waiting for these channels will never be felt there
-            for pend in self.rec.awaiting:
-                if pend.channels:
-                    for ch in chans:
-                        if ch in pend.channels:
-                            pend.channels.pop(ch).note = "overwritten before its next pulse"
-            rep.channels = sorted([*chans.values(), *felt.values()], key=lambda cl: cl.channel)
-            if felt:
-                rep.first_pulse_us = min(
-                    cl.first_pulse_us for cl in felt.values() if cl.first_pulse_us is not None
-                )
-            self.rec.awaiting.append(_Pending(rep, None, t, chans))
-        elif op in _AFFECTS:
-            for pend in self.rec.awaiting:
-                if pend.channels is None and pend.report.opcode == op:
-                    pend.report.note = "superseded before it was felt"
-            self.rec.awaiting = [
-                a for a in self.rec.awaiting if not (a.channels is None and a.report.opcode == op)
-            ]
-            self.rec.awaiting.append(_Pending(rep, _AFFECTS[op], t))
-        self.rec.cur_written = {}
-
-    def _late_u16(self, op: int, t: int) -> None:
-        """A u16 whose first byte waited longer than ``U16_LATE_US`` for its second: whatever the host
-        meant, the main loop spun meanwhile and the value is made of bytes written far apart."""
-        gap = t - self.fw.stuck_at if self.fw.stuck_at is not None else 0
-        self.fw.stuck_at = None
-        if gap <= _ns(U16_LATE_US):
-            return
-        from tactdeform_hw.emulator.firmware.parser import register_after
-
-        field, stored = register_after(op, self.emulator.registers)
-        rep = self.rec.last_rep
-        self.hazards.append(
-            Hazard(
-                HazardKind.U16_COMPLETED_LATE,
-                rep.device_offset - self.fw.parser_base if rep else -1,
-                {
-                    "command": Opcode(op).name,
-                    "value": rep.value if rep else None,
-                    "gap_us": gap / 1000,
-                    "register": field,
-                    "stored": stored,
-                },
-                t / 1000,
-            )
-        )
-
-    def _follow_losses(self, rep: CommandReport) -> None:
-        if not self.rec.open_losses:
-            return
-        entry = {
-            "name": rep.name,
-            "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
-            "host_offset": rep.host_offset,
-            "in_sync": rep.in_sync,
-            "time_us": rep.effect_us,
-        }
-        still = []
-        for lo in self.rec.open_losses:
-            if lo.host_offset >= 0 and 0 <= rep.host_end <= lo.host_offset:
-                still.append(lo)  # read from bytes sent before the loss: not a consequence of it
-                continue
-            if rep.in_sync and rep.host_offset >= lo.host_offset + lo.count:
-                lo.resync_host_offset = rep.host_offset
-                lo.resync_us = rep.effect_us
-                continue
-            lo.followed.append(entry)
-            if len(lo.followed) < 16:
-                still.append(lo)
-        self.rec.open_losses = still
-
     def _retime_alarm(self, t: int) -> None:
         """The parser wrote a new alarm value: an alarm the running counter has passed fires at once."""
-        period = self.model.alarm_period_ns(self.emulator.registers.timer_alarm_ticks)
+        period = self.model.alarm_period_ns(self.registers.timer_alarm_ticks)
         if not self.stimulation:
             return
         if t - self.fw.last_reload >= period:
@@ -957,22 +592,9 @@ class TimedEmulator:
 
     # --- scans ----------------------------------------------------------------------------------------------
 
-    def _torn_info(self, n: int) -> TornInfo | None:
-        p = self.parser
-        if p.cmd != _PATTERN or p.locked or not (0 < p.count < p.needed) or self.rec.cur is None:
-            return None
-        regs = self.emulator.registers
-        k = min(p.count, n)
-        changed = sum(
-            1
-            for i in range(k)
-            if regs.stim_pattern[i] != (self.rec.cur_old[i] if i < len(self.rec.cur_old) else 0)
-        )
-        return TornInfo(self.rec.cur.device_offset, self.rec.cur.host_offset, p.count, n, changed)
-
     def _scan(self, ta: int, target: int) -> None:
         m = self.model
-        regs = self.emulator.registers
+        regs = self.registers
         cfg = ScanConfig.from_registers(regs)
         tmpl = self.engine.template(cfg, self.chain)
         period = m.alarm_period_ns(regs.timer_alarm_ticks)
@@ -1047,143 +669,7 @@ class TimedEmulator:
         if self.fw.main_next is not None and self.fw.main_next < self.fw.busy_until:
             self.fw.main_next = self.fw.busy_until
 
-    def _stretch_hazard(self, hazard: Hazard, same: tuple[Any, ...]) -> None:
-        """Record ``hazard`` (its detail has ``first_cycle`` and ``cycles``), or extend the record of the
-        same kind it continues: the next cycles, with ``same`` unchanged.  One record per stretch keeps the
-        list short when the condition lasts (a starved main loop never ends it)."""
-        hz = self.hazards
-        last = self.rec.stretch.get(hazard.kind)
-        if last is not None and last[0] < len(hz) and last[1] == same:
-            prev = hz[last[0]]
-            if (
-                prev.kind == hazard.kind
-                and prev.detail["first_cycle"] + prev.detail["cycles"] == hazard.detail["first_cycle"]
-            ):
-                hz[last[0]] = Hazard(
-                    prev.kind,
-                    prev.offset,
-                    {**prev.detail, "cycles": prev.detail["cycles"] + hazard.detail["cycles"]},
-                    prev.time_us,
-                )
-                return
-        self.rec.stretch[hazard.kind] = (len(hz), same)
-        hz.append(hazard)
-
-    def _torn_hazard(self, run: ScanRun) -> None:
-        """A ``torn_pattern`` record for a run of torn scans: which channels the scan took from the pattern
-        being read, and the values that changed there (``[channel, old, new]``).  The rest kept their old
-        values (the new ones have not arrived)."""
-        torn = run.torn
-        if torn is None or self.rec.cur is None:
-            return
-        new = self.emulator.registers.stim_pattern
-        old = self.rec.cur_old
-        k = min(torn.new_channels, torn.electrode_num)
-        changed = [
-            [ch, old[ch] if ch < len(old) else 0, new[ch]]
-            for ch in range(k)
-            if new[ch] != (old[ch] if ch < len(old) else 0)
-        ]
-        offset = torn.command_device_offset - self.fw.parser_base
-        detail = {
-            "first_cycle": run.first_index,
-            "cycles": run.count,
-            "cycle_start_us": run.start_ns / 1000,
-            "command_host_offset": torn.command_host_offset,
-            "new_channels": k,
-            "old_channels": torn.electrode_num - k,
-            "changed": changed,
-        }
-        self._stretch_hazard(
-            Hazard(HazardKind.TORN_PATTERN, offset, detail, run.start_ns / 1000),
-            (offset, k, torn.electrode_num),
-        )
-
-    def _record(self, run: ScanRun) -> None:
-        self.rec.runs.append(run)
-        self.rec.scan_index += run.count
-        for s in self.rec.sinks:
-            s.scan_run(run)
-
-    def _check_sense(self, cfg: ScanConfig) -> None:
-        if not cfg.sense_pulse_height or not cfg.electrode_num:
-            self.rec.sense_key = None
-            return
-        chans = tuple(i for i, v in enumerate(cfg.pattern) if v not in (1, 2))
-        key = (cfg.sense_pulse_height, cfg.sense_pulse_width, chans)
-        if chans and key != self.rec.sense_key:
-            self.rec.sense_key = key
-            self.hazards.append(
-                Hazard(
-                    HazardKind.SENSE_CURRENT,
-                    self.parser.offset,
-                    {
-                        "channels": list(chans),
-                        "sense_pulse_height": cfg.sense_pulse_height,
-                        "sense_pulse_width": cfg.sense_pulse_width,
-                    },
-                    self.next_alarm / 1000,
-                )
-            )
-
-    def _resolve(self, ta: int, tmpl: ScanTemplate, cut: int | None = None) -> None:
-        """First pulses: every command waiting to be felt that this scan makes felt (and the channels of a
-        pattern still being read that this scan already uses)."""
-        n = tmpl.config.electrode_num
-        if self.rec.cur_written and self.rec.cur is not None and self.rec.cur.opcode == _PATTERN:
-            for ch in self.rec.cur_written:
-                if ch < n and ch not in self.rec.cur_first:
-                    t = int(tmpl.first_pulse_ns[ch])
-                    if cut is None or t < cut:
-                        self.rec.cur_first[ch] = ta + t
-        if not self.rec.awaiting:
-            return
-        keep: list[_Pending] = []
-        for pend in self.rec.awaiting:
-            if pend.after_ns > ta:
-                keep.append(pend)
-                continue
-            if pend.channels is not None:
-                done = []
-                for ch, cl in pend.channels.items():
-                    if ch < n:
-                        t = int(tmpl.first_pulse_ns[ch])
-                        if cut is None or t < cut:
-                            cl.first_pulse_us = (ta + t) / 1000
-                            done.append(ch)
-                for ch in done:
-                    del pend.channels[ch]
-                firsts = [c.first_pulse_us for c in pend.report.channels if c.first_pulse_us is not None]
-                if firsts:
-                    pend.report.first_pulse_us = min(firsts)
-                if pend.channels:
-                    keep.append(pend)
-            else:
-                first = tmpl.first_of(pend.kinds)
-                if first is not None and (cut is None or first < cut):
-                    pend.report.first_pulse_us = (ta + first) / 1000
-                elif (
-                    pend.report.opcode in (Opcode.FREQUENCY, Opcode.ELECTRODE_NUM, Opcode.HV513_COUNT)
-                    and first is None
-                ):
-                    pend.report.first_pulse_us = None
-                    pend.report.note = pend.report.note or f"first scan at {ta / 1000:.1f} us has no pulse"
-                else:
-                    keep.append(pend)
-        self.rec.awaiting = keep
-
     # --- traces ---------------------------------------------------------------------------------------------
-
-    def _mark(self, t: int, kind: str, detail: dict[str, Any]) -> None:
-        for s in self.rec.sinks:
-            s.marker(t, kind, detail)
-
-
-def _us(ns: int | None) -> float | None:
-    return None if ns is None else ns / 1000.0
-
-
-# --- a convenience: configure a device the way a host does -------------------------------------------------
 
 
 def configuration_bytes(cfg: ScanConfig, rate_hz: int | None = None) -> bytes:
@@ -1266,43 +752,7 @@ def pattern_latency(
         # a low-discrepancy spread over the period (golden ratio), so no phase lines up with the USB
         # frames or the RTOS ticks by construction
         t = 50_000.0 + round(period_us * ((i * 0.6180339887498949) % 1.0), 3)
-        emu.advance_to(t)
-        first = emu.host_offset
-        emu.write(data, t)
-        emu.advance_to(t + 4 * period_us + 4 * m.rtos_tick_us + 50_000.0)
-        reps = [c for c in emu.commands if c.opcode == Opcode.PATTERN]
-        if not reps:
-            # never read (a starved main loop): the bytes still crossed the wire unless they were lost
-            arrived = emu.arrival_us(first + len(data) - 1)
-            rows.append(
-                {
-                    "sent_us": t,
-                    "wire_us": None if arrived is None else arrived - t,
-                    "loop_wait_us": None,
-                    "scan_wait_us": None,
-                    "first_channel_us": None,
-                    "last_channel_us": None,
-                }
-            )
-            continue
-        r = reps[-1]
-        last = r.last_channel_us
-        rows.append(
-            {
-                "sent_us": t,
-                "wire_us": r.wire_us,
-                "loop_wait_us": r.loop_wait_us,
-                "scan_wait_us": r.scan_wait_us,
-                "first_channel_us": r.latency_us,
-                "last_channel_us": None if last is None or r.sent_us is None else last - r.sent_us,
-            }
-        )
-
-    def stats(key: str) -> dict[str, float | None]:
-        vals: list[float] = [v for row in rows if (v := row[key]) is not None]
-        if not vals:
-            return {"min": None, "mean": None, "max": None}
-        return {"min": min(vals), "mean": sum(vals) / len(vals), "max": max(vals)}
+        rows.append(_latency_run(emu, data, t, t + 4 * period_us + 4 * m.rtos_tick_us + 50_000.0))
 
     return {
         "link": link_name,
@@ -1312,22 +762,57 @@ def pattern_latency(
         "phases": phases,
         "felt": sum(1 for row in rows if row["first_channel_us"] is not None),
         **{
-            k: stats(k)
+            k: _stats(rows, k)
             for k in ("wire_us", "loop_wait_us", "scan_wait_us", "first_channel_us", "last_channel_us")
         },
         "runs": rows,
     }
 
 
-def timed_emulator(
-    board: str | Board = "compact", switching_boards: int = 1, *, firmware: str = "v1.2", **kwargs: Any
-) -> Any:
-    """The timed model of ``firmware``: :class:`TimedEmulator` for v1.2,
-    :class:`~.timed_v2.TimedEmulatorV2` for v2 (its own scan walker, parser and reports)."""
-    if firmware == "v1.2":
-        return TimedEmulator(board, switching_boards, **kwargs)
-    if firmware == "v2":
-        from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
+def _latency_run(emu: TimedEmulator, data: bytes, t: float, until_us: float) -> dict[str, float | None]:
+    """Write the pattern ``data`` at ``t``, run to ``until_us`` and say when it was felt."""
+    emu.advance_to(t)
+    first = emu.host_offset
+    emu.write(data, t)
+    emu.advance_to(until_us)
+    reps = [c for c in emu.commands if c.opcode == Opcode.PATTERN]
+    if not reps:
+        # never read (a starved main loop): the bytes still crossed the wire unless they were lost
+        arrived = emu.arrival_us(first + len(data) - 1)
+        return {
+            "sent_us": t,
+            "wire_us": None if arrived is None else arrived - t,
+            "loop_wait_us": None,
+            "scan_wait_us": None,
+            "first_channel_us": None,
+            "last_channel_us": None,
+        }
+    r = reps[-1]
+    last = r.last_channel_us
+    return {
+        "sent_us": t,
+        "wire_us": r.wire_us,
+        "loop_wait_us": r.loop_wait_us,
+        "scan_wait_us": r.scan_wait_us,
+        "first_channel_us": r.latency_us,
+        "last_channel_us": None if last is None or r.sent_us is None else last - r.sent_us,
+    }
 
-        return TimedEmulatorV2(board, switching_boards, **kwargs)
-    raise ConfigurationError(f"firmware={firmware!r} is not one of v1.2, v2")
+
+def _stats(rows: list[dict[str, float | None]], key: str) -> dict[str, float | None]:
+    vals: list[float] = [v for row in rows if (v := row[key]) is not None]
+    if not vals:
+        return {"min": None, "mean": None, "max": None}
+    return {"min": min(vals), "mean": sum(vals) / len(vals), "max": max(vals)}
+
+
+def timed_emulator(
+    board: str | Board = "compact",
+    switching_boards: int = 1,
+    *,
+    firmware: str | FirmwareSpec = "v1.2",
+    **kwargs: Any,
+) -> TimedModel:
+    """The timed model of ``firmware`` (its entry in :data:`~..firmware.models.MODELS`: :class:`TimedEmulator`
+    for v1.2, :class:`~.model_v2.TimedEmulatorV2` for v2, each with its own scan engine and reports)."""
+    return model_entry(firmware).timed(board, switching_boards, **kwargs)

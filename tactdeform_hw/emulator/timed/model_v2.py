@@ -46,13 +46,15 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
     trace_scan,
 )
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
-from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS
+from tactdeform_hw.emulator.firmware.parser_v2 import ParserV2
+from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
 from tactdeform_hw.emulator.firmware.scan import PulseKind
 from tactdeform_hw.emulator.records.reports import LossReport
-from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link
+from tactdeform_hw.emulator.timed.base import TimedModelBase
+from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link, reply_link
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
-from tactdeform_hw.protocol.firmware import V2, OpcodeV2
+from tactdeform_hw.protocol.firmware import V2, FirmwareSpec, OpcodeV2
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 #: StimulationMode 2 (impedance only): every channel gets the sense pulse, the pattern's heights unused.
@@ -267,11 +269,11 @@ class _QueueView:
         return int(self._owner.emulator.parser.spec.rx_queue_bytes) - len(self)
 
 
-class TimedEmulatorV2:
+class TimedEmulatorV2(TimedModelBase):
     """The v2 board in simulated time.  ``write(data, at_us)`` hands bytes to the link; ``advance_to``
     runs the firmware until then; ``read_tx`` returns what reached the host."""
 
-    firmware = "v2"
+    firmware: FirmwareSpec = V2
 
     def __init__(
         self,
@@ -284,7 +286,7 @@ class TimedEmulatorV2:
         conventions: ScanConventions = DEFAULT_CONVENTIONS,
         stack_reading: float | None = None,
     ) -> None:
-        self.emulator = Emulator(board, switching_boards, firmware="v2", stack_reading=stack_reading)
+        self.emulator = Emulator(board, switching_boards, firmware=V2, stack_reading=stack_reading)
         self.board = self.emulator.board
         self.model = model
         self.conventions = conventions
@@ -302,7 +304,7 @@ class TimedEmulatorV2:
         self.received_bytes = 0
         self.replies_dropped = 0  # reply bytes to commands of a host that had gone (see new_client)
         self._reply_offset: int | None = None
-        self._deliveries: list[tuple[int, int, Delivery]] = []
+        self._delivery_heap: list[tuple[int, int, Delivery]] = []
         self._seq = 0
         self._tx: list[tuple[int, bytes]] = []
         self._host_rx = bytearray()
@@ -335,19 +337,43 @@ class TimedEmulatorV2:
     # --- the host side ---------------------------------------------------------------------------------
 
     @property
-    def registers(self) -> Any:
-        return self.emulator.registers
+    def registers(self) -> RegistersV2:
+        regs = self.emulator.registers
+        assert isinstance(regs, RegistersV2)  # the v2 entry's registers
+        return regs
 
     @property
-    def parser(self) -> Any:
-        return self.emulator.parser
+    def parser(self) -> ParserV2:
+        p = self.emulator.parser
+        assert isinstance(p, ParserV2)  # the v2 entry's parser
+        return p
 
-    @property
-    def now_us(self) -> float:
-        return self.now_ns / 1000
+    def scan_rate(self, at_us: float) -> tuple[int, float]:
+        """Scans since power-up and the current scan rate in Hz (0 when the scans stopped)."""
+        s = self.scans
+        if len(s) >= 2:
+            stride = s[-1].start_ns - s[-2].start_ns
+            if stride > 0 and s[-1].start_ns >= at_us * 1000 - 2 * stride:
+                return self.scan_count, 1e9 / stride
+        return self.scan_count, 0.0
 
-    def state(self) -> dict[str, Any]:
-        return self.emulator.state()
+    def current_pulse_starts_us(self, since_us: float, now_us: float) -> list[float]:
+        """The start times of the delivered pulses that carried current between the two times."""
+        rows = self.delivered(since_us=since_us)
+        return [row["t_us"] for row in rows if row["current_ua"] > 0 and row["t_us"] <= now_us]
+
+    @classmethod
+    def _served_options(cls, options: dict[str, Any]) -> dict[str, Any]:
+        """v2 reads back DAC codes, not a skin model (``skin`` is refused); without ``tx_link`` replies
+        travel back over the same kind of link as the host's bytes (as on v1.2)."""
+        if options["skin"] is not None:
+            raise ConfigurationError("skin: the v2 timed model reads back the DAC codes, not a skin model")
+        tx_link, model = options["tx_link"], options["model"]
+        return {
+            "link": options["link"],
+            "tx_link": tx_link if tx_link is not None else reply_link(options["link"]),
+            "model": model if model is not None else DEFAULT_MODEL,
+        }
 
     def write(self, data: bytes, at_us: float | None = None) -> int:
         self.received_bytes += len(data)
@@ -357,34 +383,33 @@ class TimedEmulatorV2:
         self.advance_to(t / 1000)
         self._host_stream.feed(bytes(data), self._host_offset)
         for d in self.link.schedule(bytes(data), t, self._host_offset):
-            heapq.heappush(self._deliveries, (d.t_ns, self._seq, d))
+            heapq.heappush(self._delivery_heap, (d.t_ns, self._seq, d))
             self._seq += 1
         self._host_offset += len(data)
         return len(data)
+
+    @property
+    def host_offset(self) -> int:
+        """Bytes the host has written so far (the offset its next byte will have)."""
+        return self._host_offset
+
+    def _host_replies(self) -> bytearray:
+        return self._host_rx
+
+    def _deliveries(self) -> list[tuple[int, int, Delivery]]:
+        return self._delivery_heap
+
+    def _idle(self) -> bool:
+        p = self.parser
+        return not self._delivery_heap and (p.pending == 0 or (p.processing and p.pending < p.required))
+
+    def _rx_pending(self) -> int:
+        return self.parser.pending
 
     def _collect_tx(self) -> None:
         if self._tx and self._tx[0][0] <= self.now_ns:
             self._host_rx += b"".join(b for t, b in self._tx if t <= self.now_ns)
             self._tx = [(t, b) for t, b in self._tx if t > self.now_ns]
-
-    def read_tx(self, size: int | None = None) -> bytes:
-        """Reply bytes that have reached the host by now (all, or at most ``size``)."""
-        self._collect_tx()
-        n = len(self._host_rx) if size is None else min(size, len(self._host_rx))
-        out = bytes(self._host_rx[:n])
-        del self._host_rx[:n]
-        return out
-
-    @property
-    def in_waiting(self) -> int:
-        """Reply bytes that have reached the host and were not read yet."""
-        self._collect_tx()
-        return len(self._host_rx)
-
-    @property
-    def in_flight(self) -> int:
-        """Bytes written by the host that the firmware's receive queue has not taken yet."""
-        return sum(len(d[2].data) for d in self._deliveries)
 
     # --- what a real-time server needs ---------------------------------------------------------------
 
@@ -397,7 +422,7 @@ class TimedEmulatorV2:
         p = self.parser
         # bytes that landed are read by the parser's next call, not before
         t = min(
-            max(self._deliveries[0][0], self._next_call_ns) if self._deliveries else inf,
+            max(self._delivery_heap[0][0], self._next_call_ns) if self._delivery_heap else inf,
             self._tx[0][0] if self._tx else inf,
             self._next_alarm_ns if scans else inf,
         )
@@ -411,19 +436,7 @@ class TimedEmulatorV2:
         return t / 1000
 
     def _timeout_us(self) -> int:
-        return int(self.parser.spec.command_timeout_us)
-
-    def run_until_idle(self, limit_us: float = 60e6, step_us: float = 1000.0) -> bool:
-        """Advance until every delivery has landed and the parser has read all it can (a cut command may
-        stay pending), or ``limit_us`` of device time passed.  Returns whether it got idle."""
-        end = self.now_ns + round(limit_us * 1000)
-        while True:
-            p = self.parser
-            if not self._deliveries and (p.pending == 0 or (p.processing and p.pending < p.required)):
-                return True
-            if self.now_ns >= end:
-                return False
-            self.advance_to(min(end, self.now_ns + round(step_us * 1000)) / 1000)
+        return self.parser.timeout_us
 
     def parser_status(self) -> str:
         """What the parser is doing, in words."""
@@ -444,9 +457,9 @@ class TimedEmulatorV2:
         p = self.parser
         if p.pending:
             self._loss(self.now_ns, p.pending, self._host_of(p.offset), "reboot")
-        for _, _, d in sorted(self._deliveries):
+        for _, _, d in sorted(self._delivery_heap):
             self._loss(self.now_ns, len(d.data), d.host_offset, "reboot")
-        self._deliveries.clear()
+        self._delivery_heap.clear()
         self._tx.clear()
         self._host_rx.clear()
         self.emulator.reset()
@@ -477,8 +490,8 @@ class TimedEmulatorV2:
     def _land(self, t: int) -> None:
         """Arrivals up to ``t`` into the receive queue (lost while the board boots or the queue is full)."""
         parser = self.parser
-        while self._deliveries and self._deliveries[0][0] <= t:
-            _, _, d = heapq.heappop(self._deliveries)
+        while self._delivery_heap and self._delivery_heap[0][0] <= t:
+            _, _, d = heapq.heappop(self._delivery_heap)
             if d.t_ns < self._booting_until:  # bytes that came while the board booted are lost
                 self._loss(d.t_ns, len(d.data), d.host_offset, "rebooting")
                 continue
@@ -532,7 +545,7 @@ class TimedEmulatorV2:
     # --- the firmware ----------------------------------------------------------------------------------
 
     def _period_ns(self) -> int:
-        return int(self.emulator.registers.timer_alarm_ticks) * self.conventions.timer_tick_ns
+        return int(self.registers.timer_alarm_ticks) * self.conventions.timer_tick_ns
 
     def _run(self, target: int) -> None:
         while True:
@@ -547,7 +560,7 @@ class TimedEmulatorV2:
                 self._main_call(call)
 
     def _scan(self, t: int) -> None:
-        regs = self.emulator.registers
+        regs = self.registers
         n = regs.electrode_num
         cfg = FirmwareScanConfig(
             electrode_num=n,
@@ -616,7 +629,7 @@ class TimedEmulatorV2:
 
     def _main_call(self, t: int) -> None:
         parser = self.emulator.parser
-        regs = self.emulator.registers
+        regs = self.registers
         self._land(t)
         hazards_before = len(self.hazards)
         self._call_time_ns = t
@@ -631,9 +644,12 @@ class TimedEmulatorV2:
                 self._loss(t, 1 + int(h.detail["discarded"]), self._host_of(h.offset), "command_timeout")
         m = self.model
         cost = m.call_ns + out.consumed * m.byte_ns
-        paused = self._hv513_in_call
-        if paused:
+        sensed = self._hv513_in_call
+        if sensed:
             cost += m.hv513_detect_ns
+        # while 0xF5 senses the stack the table says whether the stimulation timer is stopped (v2: it is,
+        # so no alarm interrupts that call; one due meanwhile fires when the timer is re-enabled)
+        paused = sensed and self.firmware.hv513_pauses_timer
         self._hv513_in_call = False
         end = t + cost
         alarm = self._next_alarm_ns
@@ -670,7 +686,7 @@ class TimedEmulatorV2:
         """The scan interrupt fires while this call applies a command: the scan sees the registers as
         the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
         old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
-        regs = self.emulator.registers
+        regs = self.registers
         m = self.model
         after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
         new = list(regs.stim_pattern)

@@ -42,6 +42,7 @@ from serial.serialutil import PortNotOpenError, SerialBase, SerialException, Tim
 
 from tactdeform_hw.clock import InstantClock, MonotonicClock
 from tactdeform_hw.emulator.core import Emulator
+from tactdeform_hw.emulator.firmware.models import model_entry
 from tactdeform_hw.emulator.serving.realtime import (
     BUILD_RULES,
     RealtimeEmulator,
@@ -50,16 +51,17 @@ from tactdeform_hw.emulator.serving.realtime import (
 )
 from tactdeform_hw.errors import ConfigurationError
 from tactdeform_hw.ports import PortBase
+from tactdeform_hw.protocol.state import BoardState
 
 _OPTIONS = ("board", "switching_boards", "stack_reading", "spy", "timed", "link", "firmware")
-_shared: dict[str, Any] = {}
+_shared: dict[str, Emulator | RealtimeEmulator] = {}
 _shared_lock = threading.Lock()
 _FALSE = ("0", "", "false", "no", "off")
 
 
-def shared_emulator(name: str) -> Any:
+def shared_emulator(name: str) -> Emulator | RealtimeEmulator | None:
     """The board behind ``etactile://NAME`` if one was opened in this process (an untimed
-    :class:`Emulator` or a :class:`RealtimeEmulator`; both have ``state()`` and ``hazards``)."""
+    :class:`Emulator` or a :class:`RealtimeEmulator`; both have ``state()`` and ``hazards``), else None."""
     return _shared.get(name)
 
 
@@ -102,7 +104,7 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         return PortNotOpenError()  # type: ignore[no-any-return]
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
-        self.emulator: Any = None
+        self.emulator: Any = None  # Emulator | RealtimeEmulator once open (None while closed)
         self.lines = UsbSerialJtagLines()
         self.bytes_dropped = 0
         self._rx = bytearray()  # untimed replies not read yet
@@ -146,10 +148,11 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         self.rts = True
         self.rts = False
 
-    def board_state(self) -> dict[str, Any]:
+    def board_state(self) -> BoardState:
         """The firmware's registers as the board holds them now."""
         self._check_open()
-        return self.emulator.state()  # type: ignore[no-any-return]
+        state: BoardState = self.emulator.state()
+        return state
 
     @property
     def board_hazards(self) -> list[Any]:
@@ -179,16 +182,14 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
             board = opts.get("board", "compact")
             switching = int(opts.get("switching_boards", "1"))
             reading = float(opts["stack_reading"]) if "stack_reading" in opts else None
-            firmware = opts.get("firmware", "v1.2")
-        except ValueError as exc:
+            firmware = model_entry(opts.get("firmware", "v1.2")).spec
+        except ValueError as exc:  # a ConfigurationError too: an unknown firmware names the choices
             raise SerialException(f"bad option value in {url!r}: {exc}") from exc
         self._spy = opts.get("spy", "0").lower() not in _FALSE
-        if firmware not in ("v1.2", "v2"):
-            raise SerialException(f"option firmware={firmware!r} in {url!r}: use v1.2 (the default) or v2")
         timed = opts.get("timed", "1").lower() not in _FALSE
         rules = BUILD_RULES["serial" if opts.get("link", "usb") == "usb" else "serial-uart"]
 
-        def make() -> Any:
+        def make() -> Emulator | RealtimeEmulator:
             if timed:
                 return RealtimeEmulator(
                     board, switching, rules=rules, stack_reading=reading, firmware=firmware
@@ -202,13 +203,11 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
                 emu = _shared.get(name)
                 if emu is None:
                     emu = _shared[name] = make()
-                elif (
-                    isinstance(emu, RealtimeEmulator) != timed or getattr(emu, "firmware", "v1.2") != firmware
-                ):
+                elif isinstance(emu, RealtimeEmulator) != timed or emu.firmware is not firmware:
                     have = "timed" if isinstance(emu, RealtimeEmulator) else "untimed"
                     raise SerialException(
-                        f"{url!r}: the board {name!r} is already open {have} with firmware "
-                        f"{getattr(emu, 'firmware', 'v1.2')}"
+                        f"{url!r}: the board {name!r} is already open {have} "
+                        f"with firmware {emu.firmware.name}"
                     )
                 return emu
         except (ValueError, ConfigurationError) as exc:
@@ -300,7 +299,7 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         elif event == "released":
             if self.timed:
                 with self.emulator.lock:
-                    self.emulator._advance()
+                    self.emulator.advance_now()
                     self.emulator.timed.reset("USB Serial/JTAG reset released")  # boots from this moment
                     self.emulator.timed.read_tx()
             self._note(
