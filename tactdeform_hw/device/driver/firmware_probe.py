@@ -53,7 +53,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 from tactdeform_hw.errors import ProtocolError
-from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec, OpcodeV2
+from tactdeform_hw.protocol.firmware import FIRMWARES, V2, FirmwareSpec, OpcodeV2
 
 if TYPE_CHECKING:
     from tactdeform_hw.clock import Clock
@@ -62,7 +62,7 @@ if TYPE_CHECKING:
     from tactdeform_hw.device.links.port import PortLink
 
 #: Zeros that complete the longest payload of every modelled firmware (v2: 2 × 255 pattern bytes).
-FLUSH_ZEROS = max(f.max_electrodes * f.pattern_bytes_per_electrode for f in (V1_2, V2)) + 2
+FLUSH_ZEROS = max(f.max_electrodes * f.pattern_bytes_per_electrode for f in FIRMWARES.values()) + 2
 # electrode count 0; v1.2 pulse height 0 (v2: mode 0 and an unknown byte); sense height 0 — the same bytes
 # on both versions, as the tables show (tests hold them to it)
 SAFE_TAIL = bytes((OpcodeV2.ELECTRODE_NUM, 0, OpcodeV2.STIM_MODE, 0, 0, OpcodeV2.SENSE_HEIGHT, 0))
@@ -119,20 +119,44 @@ class Detection:
         return self.firmware.name
 
 
+def signature_reply(firmware: FirmwareSpec, hv513_count: int, count: int = 0) -> bytes:
+    """What ``firmware`` answers to :data:`SIGNATURE` read from a command boundary, from its table: the
+    HV513 count for each command that replies it, the electrode count ``count`` for a sync check, nothing
+    for a byte the version ignores.  (v2: ``h count h``; v1.2: ``h h``.)"""
+    out = bytearray()
+    for byte in SIGNATURE:
+        command = firmware.by_opcode.get(byte)
+        if command is not None and command.reply == "hv513":
+            out.append(hv513_count & 0xFF)
+        elif command is not None and command.reply == "sync":
+            out.append(count & 0xFF)
+    return bytes(out)
+
+
 def classify(reply: bytes, *, count: int = 0) -> FirmwareSpec | None:
     """The firmware a complete answer to :data:`SIGNATURE` proves, or None (see the module docstring).
-    ``count`` is the electrode count in force, which v2's 0xF4 answers (0 during the identification)."""
-    if len(reply) == 3 and reply[1] == count & 0xFF and reply[0] == reply[2]:
-        return V2
-    if len(reply) == 2 and reply[0] == reply[1]:
-        return V1_2
+    ``count`` is the electrode count in force, which v2's 0xF4 answers (0 during the identification).
+    Every version in the table registry is asked; tests hold their answers apart for every HV513 count
+    and electrode count, so at most one matches."""
+    if not reply:
+        return None
+    for firmware in FIRMWARES.values():
+        if reply == signature_reply(firmware, reply[0], count):
+            return firmware
     return None
 
 
 def needs_third_byte(first_two: bytes, *, count: int = 0) -> bool:
-    """Whether the answer's first two bytes leave v2 possible, so its third byte must be waited for
-    (``h h`` with ``h`` ≠ the count is v1.2 already: v2's second byte is the count)."""
-    return len(first_two) == 2 and not (first_two[0] == first_two[1] and first_two[1] != count & 0xFF)
+    """Whether the answer's first two bytes still leave a longer answer possible, so its third byte must
+    be waited for: only two bytes that are already one version's whole answer, and the start of no
+    other's, end the reading (``h h`` with ``h`` ≠ the count is v1.2 already: v2's second byte is the
+    count)."""
+    if len(first_two) != 2:
+        return False
+    answers = [signature_reply(firmware, first_two[0], count) for firmware in FIRMWARES.values()]
+    complete = first_two in answers
+    longer = any(len(a) > 2 and a.startswith(first_two) for a in answers)
+    return longer or not complete
 
 
 def _signature_reply(read: Callable[[int], bytes]) -> bytes:
