@@ -1,0 +1,136 @@
+"""``tactdeform-hw render --tracking URL``: the live half of ``render``.
+
+The source (and the LSL outlet) are opened before the device, so a port in use or a missing extra sends
+nothing.  The run ends with Ctrl-C or another stop signal: the stop handler has switched every channel off
+by the time it reaches here; the device is closed (all off again), the summary printed (``--json``: one
+object, latency included), and the stop passed on, so the command ends with the signal's status (130 for
+Ctrl-C) and its one line on stderr, as every stimulating command does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from typing import IO, Any
+
+from .common import print_json, progress
+
+
+def run_live(args: argparse.Namespace, session: Any, scene: Any) -> int:
+    from tactdeform_hw.device.safety.failsafe import SignalStop
+
+    from ..ports import is_instant
+    from ..render.live import LiveRun, LslPatternOutlet, SampleTiming, open_tracking
+    from ..render.pipeline import FrameRecord
+    from .render import stim_config_of
+
+    scene.prepare()
+    outlet = LslPatternOutlet(args.lsl_out, session.wiring.array.count) if args.lsl_out else None
+    source = open_tracking(args.tracking)
+    frames: IO[str] | None = None
+    report: IO[str] | None = None
+    audit = None
+    stopped: BaseException | None = None
+    try:
+        frames = open(args.frames, "w", encoding="utf-8") if args.frames else None  # noqa: SIM115
+        report = (
+            open(args.latency_report, "w", encoding="utf-8") if args.latency_report else None  # noqa: SIM115
+        )
+
+        def on_record(rec: FrameRecord) -> None:
+            if frames is not None:
+                frames.write(json.dumps(rec.to_json(), separators=(",", ":")) + "\n")
+
+        def on_timing(t: SampleTiming) -> None:
+            if report is not None:
+                report.write(json.dumps(t.to_json(), separators=(",", ":")) + "\n")
+
+        audit = session.delivery_log(session.header("render"), requested_ua=args.current_ua)
+        with session.open_device() as dev:
+            verify = session.readback(dev) if is_instant(getattr(dev, "port", None)) else None
+            renderer = session.renderer(
+                scene,
+                dev,
+                approach=args.approach,
+                contact_mode=args.contact_mode,
+                current_ua=args.current_ua,
+                stim_config=stim_config_of(args, session),
+                verify=verify,
+            )
+            live = LiveRun(
+                renderer,
+                source,
+                on_record=on_record,
+                on_status=None if args.quiet else progress,
+                on_timing=on_timing,
+                outlet=outlet,
+            )
+            if not args.quiet:
+                progress(
+                    f"render: live from {source.name} over {args.scene}, approach "
+                    f"{args.approach or scene.options.approach}, device {args.device}; Ctrl-C ends the run"
+                )
+            try:
+                live.run()
+            except (KeyboardInterrupt, SignalStop) as stop:
+                stopped = stop  # every channel is off; the device closes below
+    finally:
+        source.close()
+        for f in (frames, report):
+            if f is not None:
+                f.close()
+        if audit is not None:
+            audit.close()
+    summary = renderer.summary
+    result = summary.as_dict()
+    result["delivered"] = audit.report()
+    result["live"] = live.result.stats.as_dict()
+    result["live"]["stream_stops"] = live.result.stream_stops
+    result["latency"] = live.result.latency()
+    result.update(
+        {
+            "scene": args.scene,
+            "tracking": source.name,
+            "verified": verify is not None,
+            "device": args.device,
+            "frames_file": args.frames,
+            "latency_report": args.latency_report,
+            "lsl_out": args.lsl_out,
+            "approach": scene.options.approach,
+            "contact_mode": scene.options.contact_mode,
+        }
+    )
+    if args.json:
+        print_json(result)
+    else:
+        _print(result)
+    sys.stdout.flush()
+    if stopped is not None:
+        raise stopped
+    return 1 if verify is not None and summary.mismatches else 0
+
+
+def _print(result: dict[str, Any]) -> None:
+    from .delivered import delivered_lines
+
+    live, lat = result["live"], result["latency"]
+    states = ", ".join(f"{k} {v}" for k, v in sorted(result["states"].items())) or "none"
+    print(
+        f"{live['received']} samples received ({live['valid']} valid, {live['bad_total']} bad "
+        f"{live['bad']}), lost {live['lost']} ({live['loss_pct']} %), jitter {live['jitter_ms']} ms; "
+        f"{result['poses']} rendered ({states}); {result['frames_sent']} frames sent"
+    )
+    for stage, d in lat.items():
+        if d["n"]:
+            print(
+                f"{stage.replace('_', ' ')}: median {d['median_ms']} ms, p99 {d['p99_ms']} ms, "
+                f"max {d['max_ms']} ms ({d['n']} samples)"
+            )
+    if result["lost_tracking"]:
+        print(
+            f"tracking lost {result['lost_tracking']} time(s) ({live['stream_stops']} stream stop(s)): all "
+            f"off; {result['held_resuming']} valid sample(s) held back before stimulation resumed"
+        )
+    for line in delivered_lines(result["delivered"]):
+        print(line)
