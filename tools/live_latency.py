@@ -1,7 +1,7 @@
 """How late is a live pose?  A trajectory streamed over UDP into ``tactdeform-hw render --tracking``, against
 an emulated board on a pty, stage by stage against the paper's 14 ms.
 
-    python tools/live_latency.py                        # 72 Hz, the TactDeform setting (32 electrodes, 125 Hz)
+    python tools/live_latency.py          # 72 Hz, the TactDeform setting (32 electrodes, 125 Hz)
     python tools/live_latency.py --rate-hz 120 --drop 0.05 --json
 
 The board is the timed real-time model (v1.2 by default) served on a pty by this process
@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import resource
 import signal
 import socket
@@ -40,12 +39,12 @@ from typing import Any
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from tactdeform_hw.render.live import stage_stats  # noqa: E402
+from tactdeform_hw.render.live import send_samples, stage_stats  # noqa: E402
 
 PAPER_MS = 14.0
 
 
-def _poses(args: argparse.Namespace) -> list[tuple[float, ...]]:
+def _poses(args: argparse.Namespace) -> list[Any]:
     from tactdeform_hw import load_scene, make_trajectory
     from tactdeform_hw.render.trajectories import scene_for_trajectory
 
@@ -58,11 +57,13 @@ def _poses(args: argparse.Namespace) -> list[tuple[float, ...]]:
         rows = make_trajectory(
             args.trajectory, scene_for_trajectory(args.trajectory, scene), rate_hz=args.rate_hz
         )
-    out = [(p.t_s, *map(float, p.position_mm), *map(float, p.orientation)) for p in rows]
-    period = out[-1][0] - out[0][0] + 1.0 / args.rate_hz
+    from dataclasses import replace
+
+    out = list(rows)
+    period = out[-1].t_s - out[0].t_s + 1.0 / args.rate_hz
     laps = []
     for k in range(args.laps):  # the trajectory again, on a clock that keeps going
-        laps += [(t + k * period, *rest) for t, *rest in out]
+        laps += [replace(p, t_s=p.t_s + k * period) for p in out]
     return laps
 
 
@@ -137,7 +138,6 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
     poses = _poses(args)
-    rng = random.Random(args.seed)
     port = _free_udp_port()
     report = Path(args.report)
     server = PtyServer(firmware=args.firmware).start()
@@ -160,19 +160,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
                 break
         time.sleep(0.2)
         log.start()
-        sent = dropped = 0
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as u:
-            start = time.monotonic()
-            t_first = poses[0][0]
-            for p in poses:
-                delay = start + (p[0] - t_first) - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-                if rng.random() < args.drop:
-                    dropped += 1
-                    continue
-                u.sendto(",".join(repr(v) for v in p).encode(), ("127.0.0.1", port))
-                sent += 1
+        sent, dropped = send_samples(poses, ("127.0.0.1", port), drop=args.drop, seed=args.seed)
         time.sleep(0.3)
         proc.send_signal(signal.SIGINT)
         out, err = proc.communicate(timeout=30)
@@ -255,7 +243,8 @@ def _join(
 
 def _print(res: dict[str, Any]) -> None:
     print(
-        f"{res['samples']} samples at {res['rate_hz']:g} Hz ({res['datagrams_left_out']} datagram(s) left out), "
+        f"{res['samples']} samples at {res['rate_hz']:g} Hz "
+        f"({res['datagrams_left_out']} datagram(s) left out), "
         f"firmware {res['firmware']}, {res['patterns_matched']} patterns joined with the board's"
     )
     print(f"{'stage':<24}{'n':>6}{'median ms':>12}{'p99 ms':>10}{'max ms':>10}")

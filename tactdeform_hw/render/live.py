@@ -530,3 +530,47 @@ class LiveRun:
             self.result.timings.append(timing)
         if self.on_timing is not None:
             self.on_timing(timing)
+
+
+# --- sending ----------------------------------------------------------------------------------------------
+
+
+def sample_line(t_s: float, position_mm: Sequence[float], orientation: Sequence[float]) -> str:
+    """One sample's datagram text (``repr`` floats: nothing lost on the way)."""
+    return ",".join(repr(float(v)) for v in (t_s, *position_mm, *orientation))
+
+
+def send_samples(
+    poses: Sequence[Any],
+    address: tuple[str, int],
+    *,
+    drop: float = 0.0,
+    seed: int = 0,
+    header: bool = False,
+    speed: float = 1.0,
+) -> tuple[int, int]:
+    """Send poses (with ``t_s``, ``position_mm``, ``orientation``) over UDP at their own clock (``speed``
+    times as fast), one datagram each, leaving out a fraction ``drop`` of them (seeded); returns how many
+    were sent and left out.  What ``tools/send_tracking.py`` and ``tools/live_latency.py`` use."""
+    import random
+
+    if not 0.0 <= drop < 1.0:
+        raise LimitError("drop", drop, "a fraction in [0, 1)")
+    if not (math.isfinite(speed) and speed > 0):
+        raise LimitError("speed", speed, "a finite factor > 0")
+    rng = random.Random(seed)
+    head = ",".join(TRACKING_COLUMNS) + "\n" if header else ""
+    sent = left_out = 0
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        start = time.monotonic()
+        t_first = float(poses[0].t_s) if len(poses) else 0.0
+        for p in poses:
+            delay = start + (float(p.t_s) - t_first) / speed - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+            if drop and rng.random() < drop:
+                left_out += 1
+                continue
+            sock.sendto((head + sample_line(p.t_s, p.position_mm, p.orientation)).encode(), address)
+            sent += 1
+    return sent, left_out
