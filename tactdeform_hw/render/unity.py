@@ -23,7 +23,7 @@ import numpy as np
 from .tracking import matrix_to_quat
 
 
-def unity_vector(v: Sequence[float]) -> np.ndarray:
+def unity_vector(v: Sequence[float] | np.ndarray) -> np.ndarray:
     """A Unity direction in the package's axes (Y and Z swapped)."""
     return np.array([float(v[0]), float(v[2]), float(v[1])])
 
