@@ -52,7 +52,7 @@ def test_send_tracking_sends_a_recorded_csv_sample_by_sample(tmp_path: Path) -> 
 def test_live_latency_joins_the_board_record(tmp_path: Path) -> None:
     out = subprocess.run(
         [sys.executable, str(REPO / "tools" / "live_latency.py"), "--trajectory", "approach-face", "--json",
-         "--report", str(tmp_path / "lat.jsonl"), "--drop", "0.05"],
+         "--report", str(tmp_path / "lat.jsonl"), "--drop", "0.05", "--laps", "1"],
         capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert out.returncode in (0, 3), out.stderr

@@ -42,29 +42,33 @@ sys.path.insert(0, str(REPO))
 from tactdeform_hw.render.live import send_samples, stage_stats  # noqa: E402
 
 PAPER_MS = 14.0
+#: Approaches to a face, edges and a corner, a rough slide and a free exploration: 36 s at 72 Hz and 43
+#: pattern changes of every kind (expansion frames, contact patterns, texture shifts, all-off) per lap.
+DEFAULT_TRAJECTORIES = "approach-face,approach-edge-h,approach-corner,slide-rough,explore,approach-edge-d1"
 
 
 def _poses(args: argparse.Namespace) -> list[Any]:
-    from tactdeform_hw import load_scene, make_trajectory
-    from tactdeform_hw.render.trajectories import scene_for_trajectory
-
-    if args.trajectory.lower().endswith(".csv"):
-        from tactdeform_hw.render.tracking import read_pose_csv
-
-        rows = read_pose_csv(args.trajectory)
-    else:
-        scene = load_scene(args.scene)
-        rows = make_trajectory(
-            args.trajectory, scene_for_trajectory(args.trajectory, scene), rate_hz=args.rate_hz
-        )
+    """The trajectories named (comma-separated), one after the other, ``--laps`` times, on one clock."""
     from dataclasses import replace
 
-    out = list(rows)
-    period = out[-1].t_s - out[0].t_s + 1.0 / args.rate_hz
-    laps = []
-    for k in range(args.laps):  # the trajectory again, on a clock that keeps going
-        laps += [replace(p, t_s=p.t_s + k * period) for p in out]
-    return laps
+    from tactdeform_hw import load_scene, make_trajectory
+    from tactdeform_hw.render.tracking import read_pose_csv
+    from tactdeform_hw.render.trajectories import scene_for_trajectory
+
+    scene = load_scene(args.scene)
+    parts = []
+    for name in args.trajectory.split(","):
+        if name.lower().endswith(".csv"):
+            parts.append(list(read_pose_csv(name)))
+        else:
+            parts.append(list(make_trajectory(name, scene_for_trajectory(name, scene), rate_hz=args.rate_hz)))
+    out: list[Any] = []
+    gap = 1.0 / args.rate_hz
+    for _ in range(args.laps):
+        for rows in parts:
+            shift = 0.0 if not out else out[-1].t_s + gap - rows[0].t_s
+            out += [replace(p, t_s=p.t_s + shift) for p in rows]
+    return out
 
 
 class BoardLog:
@@ -268,9 +272,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rate-hz", type=float, default=72.0, help="tracking rate (default 72, the VR loop)")
     ap.add_argument("--drop", type=float, default=0.0, help="fraction of datagrams left out (default 0)")
-    ap.add_argument("--trajectory", default="explore", help="a synthetic trajectory or a FILE.csv (explore)")
+    ap.add_argument(
+        "--trajectory",
+        default=DEFAULT_TRAJECTORIES,
+        help="synthetic trajectories or FILE.csv, comma-separated, streamed one after the other "
+        f"(default {DEFAULT_TRAJECTORIES})",
+    )
     ap.add_argument("--scene", default="cube")
-    ap.add_argument("--laps", type=int, default=1, help="times the trajectory is streamed (default 1)")
+    ap.add_argument("--laps", type=int, default=2, help="times the trajectories are streamed (default 2)")
     ap.add_argument("--firmware", choices=("v1.2", "v2"), default="v1.2")
     ap.add_argument("--current-ua", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
