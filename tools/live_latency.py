@@ -283,14 +283,25 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--firmware", choices=("v1.2", "v2"), default="v1.2")
     ap.add_argument("--current-ua", type=int, default=1000)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--report", default="live-latency.jsonl", help="the renderer's --latency-report FILE")
+    ap.add_argument(
+        "--report",
+        default=None,
+        help="keep the renderer's --latency-report as FILE (default: a temporary file, removed)",
+    )
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     if not 0.0 <= args.drop < 1.0:
         ap.error(f"--drop {args.drop}: a fraction in [0, 1)")
     if not args.rate_hz > 0:
         ap.error(f"--rate-hz {args.rate_hz}: > 0")
-    res = measure(args)
+    if args.report is None:
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            args.report = str(Path(tmp) / "latency.jsonl")
+            res = measure(args)
+    else:
+        res = measure(args)
     if args.json:
         print(json.dumps(res, indent=2))
     else:
