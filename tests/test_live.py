@@ -322,3 +322,44 @@ def test_ctrl_c_ends_a_live_render_off_with_summary_and_130(
     assert all(np.isfinite(x["compute_ms"]) for x in lines)
     written = [json.loads(x) for x in frames.read_text().splitlines()]
     assert sum(1 for f in written if f["sent"]) == result["frames_sent"]
+
+
+@pytest.mark.parametrize(
+    ("extra", "named"),
+    [
+        ([], "--trajectory"),
+        (["--trajectory", "approach-face", "--tracking", "udp://127.0.0.1:0"], "--tracking"),
+        (["--trajectory", "approach-face", "--latency-report", "x.jsonl"], "--latency-report"),
+        (["--tracking", "udp://127.0.0.1:0", "--gif", "x.gif"], "--gif"),
+        (["--tracking", "udp://127.0.0.1:0", "--realtime"], "--realtime"),
+        (["--tracking", "tcp://127.0.0.1:9"], "--tracking"),
+    ],
+)
+def test_live_options_refused_before_anything_is_opened(
+    extra: list[str], named: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from tactdeform_hw.cli import main
+
+    code = main(["render", "--scene", "cube", "--device", "etactile://?timed=0", *extra])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err
+    assert err.startswith("tactdeform-hw render: error:") and named in err
+
+
+@pytest.mark.parametrize(
+    "extra", [["--tracking", "lsl://hand"], ["--tracking", "udp://127.0.0.1:0", "--lsl-out", "p"]]
+)
+def test_lsl_without_pylsl_is_refused_naming_the_extra(
+    extra: list[str], capsys: pytest.CaptureFixture[str]
+) -> None:
+    try:
+        import pylsl  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        pytest.skip("pylsl is installed")
+    from tactdeform_hw.cli import main
+
+    code = main(["render", "--scene", "cube", *extra])
+    err = capsys.readouterr().err
+    assert code == 1 and "pip install 'tactdeform_hw[lsl]'" in err and "Traceback" not in err
