@@ -287,26 +287,12 @@ def _poses(args: argparse.Namespace, scene: Any, recorded: bool) -> list[Any]:
     return list(make_trajectory(args.trajectory, plan, **kw))
 
 
-def stim_config_of(args: argparse.Namespace, session: Any) -> Any:
-    """The participant's calibrated pulse (the guard refuses anything else), or None without a profile."""
-    profile = session.profile
-    if profile is None:
-        return None
-    from ..device import StimConfig
-
-    return StimConfig(
-        electrode_count=session.wiring.mapping.hw_channels,
-        current_ua=args.current_ua,
-        pulse_width_us=profile.pulse_width_us,
-        polarity=profile.polarity,
-    )
-
-
 def _drive(
     args: argparse.Namespace, session: Any, scene: Any, poses: list[Any], on_record: Any
 ) -> tuple[Any, bool]:
     """Open the device, render every pose to it; the run's summary and whether frames were read back."""
     from ..ports import is_instant
+    from .render_live import stim_config_of
 
     stim_config = stim_config_of(args, session)
     offline_clock = None

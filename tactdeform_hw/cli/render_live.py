@@ -17,82 +17,72 @@ from typing import IO, Any
 from .common import print_json, progress
 
 
-def run_live(args: argparse.Namespace, session: Any, scene: Any) -> int:
-    from tactdeform_hw.device.safety.failsafe import SignalStop
+def stim_config_of(args: argparse.Namespace, session: Any) -> Any:
+    """The participant's calibrated pulse (the guard refuses anything else), or None without a profile."""
+    profile = session.profile
+    if profile is None:
+        return None
+    from ..device import StimConfig
 
-    from ..ports import is_instant
-    from ..render.live import LiveRun, LslPatternOutlet, SampleTiming, open_tracking
-    from ..render.pipeline import FrameRecord
-    from .render import stim_config_of
+    return StimConfig(
+        electrode_count=session.wiring.mapping.hw_channels,
+        current_ua=args.current_ua,
+        pulse_width_us=profile.pulse_width_us,
+        polarity=profile.polarity,
+    )
+
+
+class _Files:
+    """``--frames`` and ``--latency-report``, written line by line as the run goes."""
+
+    def __init__(self, frames: str | None, report: str | None) -> None:
+        self.frames: IO[str] | None = None
+        self.report: IO[str] | None = None
+        self.frames = open(frames, "w", encoding="utf-8") if frames else None  # noqa: SIM115
+        self.report = open(report, "w", encoding="utf-8") if report else None  # noqa: SIM115
+
+    def record(self, rec: Any) -> None:
+        if self.frames is not None:
+            self.frames.write(json.dumps(rec.to_json(), separators=(",", ":")) + "\n")
+
+    def timing(self, t: Any) -> None:
+        if self.report is not None:
+            self.report.write(json.dumps(t.to_json(), separators=(",", ":")) + "\n")
+
+    def close(self) -> None:
+        for f in (self.frames, self.report):
+            if f is not None:
+                f.close()
+
+
+def run_live(args: argparse.Namespace, session: Any, scene: Any) -> int:
+    from ..render.live import LslPatternOutlet, open_tracking
 
     scene.prepare()
     outlet = LslPatternOutlet(args.lsl_out, session.wiring.array.count) if args.lsl_out else None
     source = open_tracking(args.tracking)
-    frames: IO[str] | None = None
-    report: IO[str] | None = None
+    files: _Files | None = None
     audit = None
-    stopped: BaseException | None = None
     try:
-        frames = open(args.frames, "w", encoding="utf-8") if args.frames else None  # noqa: SIM115
-        report = (
-            open(args.latency_report, "w", encoding="utf-8") if args.latency_report else None  # noqa: SIM115
-        )
-
-        def on_record(rec: FrameRecord) -> None:
-            if frames is not None:
-                frames.write(json.dumps(rec.to_json(), separators=(",", ":")) + "\n")
-
-        def on_timing(t: SampleTiming) -> None:
-            if report is not None:
-                report.write(json.dumps(t.to_json(), separators=(",", ":")) + "\n")
-
+        files = _Files(args.frames, args.latency_report)
         audit = session.delivery_log(session.header("render"), requested_ua=args.current_ua)
-        with session.open_device() as dev:
-            verify = session.readback(dev) if is_instant(getattr(dev, "port", None)) else None
-            renderer = session.renderer(
-                scene,
-                dev,
-                approach=args.approach,
-                contact_mode=args.contact_mode,
-                current_ua=args.current_ua,
-                stim_config=stim_config_of(args, session),
-                verify=verify,
-            )
-            live = LiveRun(
-                renderer,
-                source,
-                on_record=on_record,
-                on_status=None if args.quiet else progress,
-                on_timing=on_timing,
-                outlet=outlet,
-            )
-            if not args.quiet:
-                progress(
-                    f"render: live from {source.name} over {args.scene}, approach "
-                    f"{args.approach or scene.options.approach}, device {args.device}; Ctrl-C ends the run"
-                )
-            try:
-                live.run()
-            except (KeyboardInterrupt, SignalStop) as stop:
-                stopped = stop  # every channel is off; the device closes below
+        live, verified, stopped = _drive_live(args, session, scene, source, outlet, files)
     finally:
         source.close()
-        for f in (frames, report):
-            if f is not None:
-                f.close()
+        if files is not None:
+            files.close()
         if audit is not None:
             audit.close()
-    summary = renderer.summary
+    summary = live.renderer.summary
     result = summary.as_dict()
     result["delivered"] = audit.report()
-    result["live"] = live.result.stats.as_dict()
-    result["live"]["stream_stops"] = live.result.stream_stops
+    result["live"] = dict(live.result.stats.as_dict(), stream_stops=live.result.stream_stops)
     result["latency"] = live.result.latency()
     result.update(
         {
             "scene": args.scene,
             "tracking": source.name,
-            "verified": verify is not None,
+            "verified": verified,
             "device": args.device,
             "frames_file": args.frames,
             "latency_report": args.latency_report,
@@ -108,7 +98,49 @@ def run_live(args: argparse.Namespace, session: Any, scene: Any) -> int:
     sys.stdout.flush()
     if stopped is not None:
         raise stopped
-    return 1 if verify is not None and summary.mismatches else 0
+    return 1 if verified and summary.mismatches else 0
+
+
+def _drive_live(
+    args: argparse.Namespace, session: Any, scene: Any, source: Any, outlet: Any, files: _Files
+) -> tuple[Any, bool, BaseException | None]:
+    """Open the device and render the source until a stop: the run, whether frames were read back, and the
+    stop (every channel is off by then; the device closes here, all off again)."""
+    from tactdeform_hw.device.safety.failsafe import SignalStop
+
+    from ..ports import is_instant
+    from ..render.live import LiveRun
+
+    stopped: BaseException | None = None
+    with session.open_device() as dev:
+        verify = session.readback(dev) if is_instant(getattr(dev, "port", None)) else None
+        renderer = session.renderer(
+            scene,
+            dev,
+            approach=args.approach,
+            contact_mode=args.contact_mode,
+            current_ua=args.current_ua,
+            stim_config=stim_config_of(args, session),
+            verify=verify,
+        )
+        live = LiveRun(
+            renderer,
+            source,
+            on_record=files.record,
+            on_status=None if args.quiet else progress,
+            on_timing=files.timing,
+            outlet=outlet,
+        )
+        if not args.quiet:
+            progress(
+                f"render: live from {source.name} over {args.scene}, approach "
+                f"{args.approach or scene.options.approach}, device {args.device}; Ctrl-C ends the run"
+            )
+        try:
+            live.run()
+        except (KeyboardInterrupt, SignalStop) as stop:
+            stopped = stop
+    return live, verify is not None, stopped
 
 
 def _print(result: dict[str, Any]) -> None:
