@@ -291,10 +291,8 @@ def _drive(
     args: argparse.Namespace, session: Any, scene: Any, poses: list[Any], on_record: Any
 ) -> tuple[Any, bool]:
     """Open the device, render every pose to it; the run's summary and whether frames were read back."""
-    from ..ports import is_instant
-    from .render_live import stim_config_of
+    from .render_live import renderer_of
 
-    stim_config = stim_config_of(args, session)
     offline_clock = None
     if not args.realtime:
         # on a port that answers at once (the in-process emulator) the session runs on the trajectory's clock
@@ -308,22 +306,12 @@ def _drive(
             progress(f"render: {i}/{total} poses, {s.frames_sent} frames sent, {s.mismatches} mismatches")
 
     with session.open_device(offline_clock=offline_clock) as dev:
-        # an instant port holds its pattern the moment it is sent: read it back when the port can show it
-        verify = session.readback(dev) if is_instant(getattr(dev, "port", None)) else None
-        renderer = session.renderer(
-            scene,
-            dev,
-            approach=args.approach,
-            contact_mode=args.contact_mode,
-            current_ua=args.current_ua,
-            stim_config=stim_config,
-            verify=verify,
-        )
+        renderer, verified = renderer_of(args, session, scene, dev)
         every = max(1, total // 10) if total > 2000 else total + 1
         summary = renderer.run(
             poses, on_record=on_record, progress=report, progress_every=every, realtime=args.realtime
         )
-    return summary, verify is not None
+    return summary, verified
 
 
 def _pictures(

@@ -32,6 +32,24 @@ def stim_config_of(args: argparse.Namespace, session: Any) -> Any:
     )
 
 
+def renderer_of(args: argparse.Namespace, session: Any, scene: Any, dev: Any) -> tuple[Any, bool]:
+    """The command line's renderer on ``dev``, and whether it reads each sent frame back: an instant port
+    holds its pattern the moment it is sent, so it is read back when the port can show it."""
+    from ..ports import is_instant
+
+    verify = session.readback(dev) if is_instant(getattr(dev, "port", None)) else None
+    renderer = session.renderer(
+        scene,
+        dev,
+        approach=args.approach,
+        contact_mode=args.contact_mode,
+        current_ua=args.current_ua,
+        stim_config=stim_config_of(args, session),
+        verify=verify,
+    )
+    return renderer, verify is not None
+
+
 class _Files:
     """``--frames`` and ``--latency-report``, written line by line as the run goes."""
 
@@ -108,21 +126,11 @@ def _drive_live(
     stop (every channel is off by then; the device closes here, all off again)."""
     from tactdeform_hw.device.safety.failsafe import SignalStop
 
-    from ..ports import is_instant
     from ..render.live import LiveRun
 
     stopped: BaseException | None = None
     with session.open_device() as dev:
-        verify = session.readback(dev) if is_instant(getattr(dev, "port", None)) else None
-        renderer = session.renderer(
-            scene,
-            dev,
-            approach=args.approach,
-            contact_mode=args.contact_mode,
-            current_ua=args.current_ua,
-            stim_config=stim_config_of(args, session),
-            verify=verify,
-        )
+        renderer, verified = renderer_of(args, session, scene, dev)
         live = LiveRun(
             renderer,
             source,
@@ -140,7 +148,7 @@ def _drive_live(
             live.run()
         except (KeyboardInterrupt, SignalStop) as stop:
             stopped = stop
-    return live, verify is not None, stopped
+    return live, verified, stopped
 
 
 def _print(result: dict[str, Any]) -> None:
