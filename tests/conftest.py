@@ -47,6 +47,7 @@ SLOW = frozenset(
         "benchmarks",
         "conformance",
         "test_identification_seams.py",
+        "test_live_tools.py",
         "test_safety_campaign.py",
         "test_safety_failsafe.py",
         "test_safety_lock.py",

@@ -4,6 +4,10 @@ device, and write every frame the device held.
     tactdeform-hw render --scene cube --trajectory approach-face --approach tactdeform \\
         --device emulator --frames frames.jsonl
 
+Or render a live hand tracker as its samples arrive (``--tracking udp://HOST:PORT`` or
+``lsl://STREAM_NAME``, see :mod:`tactdeform_hw.render.live`) until Ctrl-C, which switches everything off,
+prints the summary (stream figures and latency included) and exits with status 130.
+
 Each line of the frames file is one pattern: ``t`` (s), ``state`` (idle / approaching / interacting),
 ``feature``, ``texture``, ``electrodes`` (32 ints in application order, 0 off, 1 on) and ``sent``
 (whether a command went to the device).  With the emulator, every sent frame is compared with the
@@ -48,7 +52,7 @@ def _trajectory_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--trajectory",
-        required=True,
+        default=None,
         metavar="NAME|FILE.csv",
         help="a synthetic trajectory (" + ", ".join(TRAJECTORIES) + ") or a recorded one: a CSV with the "
         "header t_s,x_mm,y_mm,z_mm,qw,qx,qy,qz (world mm; the quaternion turns the pad frame — x right, "
@@ -64,6 +68,7 @@ def _trajectory_options(p: argparse.ArgumentParser) -> None:
         "lost-tracking rules decide (dropped rows never keep stimulation on; after lost tracking it resumes "
         "only after a run of valid samples) and the summary counts them",
     )
+    _live_options(p)
     add_option(
         p,
         "--speed-mm-s",
@@ -82,6 +87,33 @@ def _trajectory_options(p: argparse.ArgumentParser) -> None:
         type=float,
         default=None,
         help="tracking rate in Hz (default 72, the VR loop; synthetic only)",
+    )
+
+
+def _live_options(p: argparse.ArgumentParser) -> None:
+    """A live tracker instead of a trajectory."""
+    p.add_argument(
+        "--tracking",
+        metavar="URL",
+        default=None,
+        help="render a live tracker instead of --trajectory: udp://HOST:PORT (one sample per datagram, UTF-8 "
+        "text t_s,x_mm,y_mm,z_mm,qw,qx,qy,qz, optionally after that header line) or lsl://STREAM_NAME (eight "
+        "channels, needs the lsl extra). Bad samples are counted, never rendered; a stream that stops turns "
+        "stimulation off; runs until Ctrl-C (exit status 130 after the summary)",
+    )
+    p.add_argument(
+        "--latency-report",
+        metavar="FILE",
+        default=None,
+        help="with --tracking: one JSON line per valid sample: time.monotonic() when it was received, its "
+        "pattern computed and its bytes written, and the patterns sent",
+    )
+    p.add_argument(
+        "--lsl-out",
+        metavar="NAME",
+        default=None,
+        help="publish every pattern sent as the LSL stream NAME (t_s, state, feature, each electrode's "
+        "current in µA; needs the lsl extra)",
     )
 
 
@@ -140,6 +172,17 @@ def _check_options(args: argparse.Namespace) -> bool:
     from ..errors import LimitError
     from ..render.trajectories import TRAJECTORIES
 
+    if (args.trajectory is None) == (args.tracking is None):
+        raise LimitError(
+            "--trajectory" if args.trajectory is None else "--tracking",
+            args.trajectory if args.trajectory is not None else args.tracking,
+            "exactly one of --trajectory NAME|FILE.csv and --tracking URL",
+        )
+    if args.tracking is not None:
+        _check_live(args)
+        return True
+    if args.latency_report is not None:
+        raise LimitError("--latency-report", args.latency_report, "a live run (--tracking URL)")
     recorded = args.trajectory not in TRAJECTORIES
     if recorded and not args.trajectory.lower().endswith(".csv"):
         raise LimitError(
@@ -161,6 +204,23 @@ def _check_options(args: argparse.Namespace) -> bool:
     if args.speed is not None and (not args.speed > 0 or args.speed == float("inf")):
         raise LimitError("--speed", args.speed, "a finite speed > 0 mm/s")
     return recorded
+
+
+def _check_live(args: argparse.Namespace) -> None:
+    """Refuse the trajectory-only options with --tracking."""
+    from ..errors import LimitError
+
+    for name, value in (
+        ("--speed-mm-s", args.speed),
+        ("--rate-hz", args.rate),
+        ("--invalid-rows", args.invalid_rows),
+        ("--gif", args.gif),
+        ("--strip", args.strip),
+    ):
+        if value is not None:
+            raise LimitError(name, value, "a --trajectory run (a live tracker has its own clock and no end)")
+    if args.realtime:
+        raise LimitError("--realtime", True, "a --trajectory run (a live run is real time by nature)")
 
 
 def _current(args: argparse.Namespace, session: Any) -> None:
@@ -231,19 +291,8 @@ def _drive(
     args: argparse.Namespace, session: Any, scene: Any, poses: list[Any], on_record: Any
 ) -> tuple[Any, bool]:
     """Open the device, render every pose to it; the run's summary and whether frames were read back."""
-    from ..ports import is_instant
+    from .render_live import renderer_of
 
-    stim_config = None
-    profile = session.profile
-    if profile is not None:  # the calibrated pulse; the guard refuses anything else
-        from ..device import StimConfig
-
-        stim_config = StimConfig(
-            electrode_count=session.wiring.mapping.hw_channels,
-            current_ua=args.current_ua,
-            pulse_width_us=profile.pulse_width_us,
-            polarity=profile.polarity,
-        )
     offline_clock = None
     if not args.realtime:
         # on a port that answers at once (the in-process emulator) the session runs on the trajectory's clock
@@ -257,22 +306,12 @@ def _drive(
             progress(f"render: {i}/{total} poses, {s.frames_sent} frames sent, {s.mismatches} mismatches")
 
     with session.open_device(offline_clock=offline_clock) as dev:
-        # an instant port holds its pattern the moment it is sent: read it back when the port can show it
-        verify = session.readback(dev) if is_instant(getattr(dev, "port", None)) else None
-        renderer = session.renderer(
-            scene,
-            dev,
-            approach=args.approach,
-            contact_mode=args.contact_mode,
-            current_ua=args.current_ua,
-            stim_config=stim_config,
-            verify=verify,
-        )
+        renderer, verified = renderer_of(args, session, scene, dev)
         every = max(1, total // 10) if total > 2000 else total + 1
         summary = renderer.run(
             poses, on_record=on_record, progress=report, progress_every=every, realtime=args.realtime
         )
-    return summary, verify is not None
+    return summary, verified
 
 
 def _pictures(
@@ -321,6 +360,10 @@ def run(args: argparse.Namespace) -> int:
     # array the renderer draws on
     session = session_from_args(args, Wiring.tactdeform())
     _current(args, session)
+    if args.tracking is not None:
+        from .render_live import run_live
+
+        return run_live(args, session, _scene(args, True))
     scene = _scene(args, recorded)
     poses = _poses(args, scene, recorded)
     scene.prepare()

@@ -12,6 +12,9 @@ _LAZY = {
     "FrameRecord": "pipeline",
     "RunSummary": "pipeline",
     "LOST_TRACKING_S": "pipeline",
+    "LiveRun": "live",
+    "UdpTrackingSource": "live",
+    "open_tracking": "live",
     "Approach": "approach",
     "APPROACH_FACTORIES": "approach",
     "make_approach": "approach",
@@ -40,6 +43,9 @@ if TYPE_CHECKING:
     from .array import ElectrodeArray as ElectrodeArray
     from .baselines import ContactAreaMapping as ContactAreaMapping
     from .baselines import UniformActivation as UniformActivation
+    from .live import LiveRun as LiveRun
+    from .live import UdpTrackingSource as UdpTrackingSource
+    from .live import open_tracking as open_tracking
     from .manager import ManagerConfig as ManagerConfig
     from .manager import ManagerOutput as ManagerOutput
     from .manager import PatternManager as PatternManager

@@ -98,6 +98,10 @@ class FrameRecord:
 #: present one.  This is where participant safety profiles and calibrated regional levels plug in.
 CurrentHook = Callable[[FrameRecord], "int | None"]
 
+#: Told of every frame sent to the device, with the ``time.monotonic()`` just before the device was
+#: asked to send it and just after the bytes were written: a live run's latency stages.
+DeliverHook = Callable[[FrameRecord, float, float], None]
+
 
 @dataclass
 class RunSummary:
@@ -261,6 +265,8 @@ class Renderer:
         self._readback: Callable[[], Sequence[int]] | None = None
         self._started = False
         self._dwell_s = 0.0
+        #: see :data:`DeliverHook`; None: nothing is timed
+        self.deliver_hook: DeliverHook | None = None
 
     def _approaches(self, scene: Any, approach: str | Mapping[str, str] | None) -> dict[str, str]:
         """The approach of each object (``"*"``: every other): the one given, else the scene's, per object
@@ -482,6 +488,18 @@ class Renderer:
             self._deliver(rec)
         return rec
 
+    def lose_tracking(self) -> FrameRecord | None:
+        """The stream has stopped (a live source that heard no valid sample for ``lost_tracking_s``): the
+        same as a loss the samples show — every approach reset, all off now, and stimulation back only
+        after ``resume_after_valid_samples`` valid samples.  None when tracking is already lost (nothing to
+        switch off twice).  The all-off record carries the last time a sample was received."""
+        if not self._started:
+            self.start()
+        if self._lost:
+            return None
+        t = self._last_received_t if self._last_received_t is not None else 0.0
+        return self._lose(t, self.approach_map["*"])
+
     def _send(self, out: ManagerOutput, approach: str) -> list[FrameRecord]:
         frames = out.frames
         # A change of approach (per-object runs) or a device holding something else: send what is shown.
@@ -528,7 +546,11 @@ class Renderer:
             want = self.current_hook(rec)
             if want is not None and want != dev.current_ua:
                 dev.set_current(int(want))
+        hook = self.deliver_hook
+        before = time.monotonic() if hook is not None else 0.0
         dev.send_pattern(rec.electrodes)
+        if hook is not None:
+            hook(rec, before, time.monotonic())
         if rec.interpolated and self._dwell_s > 0.0:
             time.sleep(self._dwell_s)
         self._device_pattern = rec.electrodes
