@@ -1,0 +1,64 @@
+"""What the command line says against what it does: a refusal that says "nothing was sent" sent nothing, an
+output error names its option and file, a report counts what ran."""
+
+from __future__ import annotations
+
+import pytest
+import serial
+
+from tactdeform_hw.cli import main
+from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
+
+
+@pytest.fixture(autouse=True)
+def _fresh_emulators():
+    forget_shared()
+    yield
+    forget_shared()
+
+
+def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    code = main(argv)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def _board(name: str, firmware: str = "v1.2") -> object:
+    """A named untimed board, made before the command opens it, so its received bytes can be counted."""
+    port = serial.serial_for_url(f"etactile://{name}?timed=0&firmware={firmware}")
+    port.close()
+    return shared_emulator(name)
+
+
+@pytest.mark.parametrize(
+    ("firmware", "pattern"),
+    [
+        ("auto", "all:2"),
+        ("v1.2", "all:2"),
+        ("v2", "all:2"),
+        # on v2 every channel is pulsed: two active electrodes overrun there, not on v1.2
+        ("auto", ",".join(["1"] + ["0"] * 30 + ["2"])),
+    ],
+)
+def test_a_scan_overrun_refusal_sends_no_byte(firmware, pattern, tmp_path, capsys) -> None:
+    board_fw = "v2" if firmware == "v2" else "v1.2"
+    board = _board("overrun", board_fw)
+    audit = tmp_path / "audit.jsonl"
+    argv = ["send", "--pattern", pattern, "--current-ua", "1000", "--pulse-width-us", "300"]
+    argv += ["--firmware", firmware, "--device", f"etactile://overrun?timed=0&firmware={board_fw}"]
+    code, _, err = run([*argv, "--audit-log", str(audit)], capsys)
+    assert code == 1
+    assert "scan takes about" in err and err.rstrip().endswith("nothing was sent"), err
+    assert board.received_bytes == 0
+    assert not audit.exists()
+    if "," in pattern:
+        assert "on firmware v2, which --firmware auto may find" in err and "--firmware v1.2" in err
+
+
+def test_a_frame_that_fits_is_still_sent(tmp_path, capsys) -> None:
+    board = _board("fits")
+    pattern = ",".join(["1"] + ["0"] * 30 + ["2"])
+    argv = ["send", "--pattern", pattern, "--current-ua", "1000", "--pulse-width-us", "300"]
+    code, out, err = run([*argv, "--firmware", "v1.2", "--device", "etactile://fits?timed=0"], capsys)
+    assert code == 0, err
+    assert board.received_bytes > 0 and "sent 2 active electrode(s)" in out
