@@ -28,6 +28,16 @@ class ConfigurationError(TactDeformError, ValueError):
     """A value, file or option that cannot be used as given."""
 
 
+class OutputError(TactDeformError):
+    """An output file that could not be written while the command ran (a full disk, a quota): the
+    message names the option and the path, since the operating system's error names neither."""
+
+    def __init__(self, flag: str, path: str, problem: str) -> None:
+        super().__init__(f"{flag} {path}: cannot be written ({problem})")
+        self.flag = flag
+        self.path = path
+
+
 class LimitError(ConfigurationError):
     """A value outside what the wire, the firmware or the hardware can carry.
 

@@ -3,6 +3,8 @@ output error names its option and file, a report counts what ran."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 import serial
 
@@ -62,3 +64,50 @@ def test_a_frame_that_fits_is_still_sent(tmp_path, capsys) -> None:
     code, out, err = run([*argv, "--firmware", "v1.2", "--device", "etactile://fits?timed=0"], capsys)
     assert code == 0, err
     assert board.received_bytes > 0 and "sent 2 active electrode(s)" in out
+
+
+@pytest.fixture
+def frames_file(tmp_path: Path) -> Path:
+    path = tmp_path / "frames.jsonl"
+    assert (
+        main(["render", "--scene", "cube", "--trajectory", "approach-face", "--quiet", "--frames", str(path)])
+        == 0
+    )
+    return path
+
+
+@pytest.mark.skipif(not Path("/dev/full").exists(), reason="needs /dev/full (a file whose writes fail)")
+@pytest.mark.parametrize(
+    ("argv", "flag"),
+    [
+        (["render", "--scene", "cube", "--trajectory", "approach-face", "--quiet", "--frames"], "--frames"),
+        (
+            [
+                "render",
+                "--scene",
+                "cube",
+                "--trajectory",
+                "approach-face",
+                "--quiet",
+                "--strip",
+                "{tmp}/s.png",
+                "--frames",
+            ],
+            "--frames",
+        ),
+        (["export", "{frames}", "-o"], "--out"),
+        (["timing", "--vcd"], "--vcd"),
+        (["timing", "--png"], "--png"),
+        (["send", "--pattern", "all:1", "--audit-log"], "--audit-log"),
+    ],
+)
+def test_a_write_error_names_the_option_and_the_file(argv, flag, frames_file, tmp_path, capsys) -> None:
+    if "--png" in argv or "--strip" in argv:
+        pytest.importorskip("matplotlib")
+    if "--vcd" in argv:
+        pytest.importorskip("vcd")
+    argv = [a.format(tmp=tmp_path, frames=frames_file) for a in argv]
+    code, _, err = run([*argv, "/dev/full"], capsys)
+    assert code == 1
+    line = err.strip().splitlines()[-1]
+    assert f"{flag} /dev/full: cannot be written (No space left on device)" in line, err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import os
@@ -154,11 +155,38 @@ def _describe(exc: BaseException, args: argparse.Namespace) -> str:
     if isinstance(exc, OSError):
         name = exc.filename if exc.filename is not None else ""
         what = exc.strerror or str(exc)
-        return f"{name}: {what}" if name else what
+        if not name:
+            return _output_error(exc, args) or what
+        return f"{name}: {what}"
     if isinstance(exc, ImportError):
         return f"the Python package {exc.name!r} is not installed ({exc})" if exc.name else str(exc)
     hint = "" if getattr(args, "debug", False) else "; run 'tactdeform-hw --debug ...' for the traceback"
     return f"unexpected {type(exc).__name__}: {exc}{hint}"
+
+
+#: Errors a write to an output file ends with that carry no file name (a buffered write fails at its flush).
+_OUTPUT_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS)
+
+
+def _output_error(exc: OSError, args: argparse.Namespace) -> str | None:
+    """The line for a write error without a file name: the outputs the command writes, each with its
+    option, since a full disk or a quota says nothing of which file it stopped."""
+    if exc.errno not in _OUTPUT_ERRNOS:
+        return None
+    from .outputs import planned_outputs
+
+    try:
+        outputs = [(path, flag) for path, flag, _kind in planned_outputs(args)]
+    except Exception:  # the line must be printed whatever the arguments hold
+        outputs = []
+    what = exc.strerror or str(exc)
+    if not outputs:
+        return None
+    if len(outputs) == 1:
+        path, flag = outputs[0]
+        return f"{flag} {path}: cannot be written ({what})"
+    names = ", ".join(f"{flag} {path}" for path, flag in outputs)
+    return f"one of the outputs ({names}) cannot be written ({what})"
 
 
 class _ConsoleHandler(logging.Handler):

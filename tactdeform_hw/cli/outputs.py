@@ -13,11 +13,12 @@ import argparse
 import os
 import stat
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigurationError, MissingDependencyError
+from ..errors import ConfigurationError, MissingDependencyError, OutputError
 from .options import typed_flag
 
 FILE = "file"
@@ -42,6 +43,17 @@ NEEDS_EXTRA: dict[str, tuple[str, str, str]] = {
     "--strip": ("matplotlib", "matplotlib", "plot"),
     "--vcd": ("vcd", "pyvcd", "trace"),
 }
+
+
+@contextmanager
+def writing(flag: str, path: str | os.PathLike[str]) -> Iterator[None]:
+    """Writes to the output of ``flag``: an operating-system error while writing (a buffered write fails
+    only at its flush, with no file name) becomes an :class:`OutputError` naming the option and the
+    path."""
+    try:
+        yield
+    except OSError as exc:
+        raise OutputError(flag, str(path), exc.strerror or str(exc)) from exc
 
 
 def _calibrate_outputs(args: argparse.Namespace) -> list[tuple[str, str, str]]:

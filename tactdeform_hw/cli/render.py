@@ -19,6 +19,7 @@ from typing import Any
 
 from .common import add_device_arg, add_participant_arg, print_json, progress, session_from_args
 from .options import add_option
+from .outputs import writing
 
 
 def register(sub: Any) -> None:
@@ -334,7 +335,8 @@ def run(args: argparse.Namespace) -> int:
 
     def write(rec: FrameRecord) -> None:
         if out is not None:
-            out.write(json.dumps(rec.to_json(), separators=(",", ":")) + "\n")
+            with writing("--frames", args.frames):
+                out.write(json.dumps(rec.to_json(), separators=(",", ":")) + "\n")
         if records is not None:
             records.append(rec.to_json())
 
@@ -344,7 +346,8 @@ def run(args: argparse.Namespace) -> int:
         summary, verified = _drive(args, session, scene, poses, write)
     finally:
         if out is not None:
-            out.close()
+            with writing("--frames", args.frames):
+                out.close()
         if audit is not None:
             audit.close()
     result = summary.as_dict()
