@@ -111,3 +111,49 @@ def test_a_write_error_names_the_option_and_the_file(argv, flag, frames_file, tm
     assert code == 1
     line = err.strip().splitlines()[-1]
     assert f"{flag} /dev/full: cannot be written (No space left on device)" in line, err
+
+
+@pytest.mark.parametrize(
+    ("firmware", "ua", "byte"),
+    [("v2", 100, 10), ("v2", 2550, 255), ("v1.2", 10200, 255), ("v1.2", 40, 1), ("v1.2", 0, 0)],
+)
+def test_timing_takes_the_sense_current_each_version_stores(firmware, ua, byte) -> None:
+    from tactdeform_hw.cli import build_parser
+    from tactdeform_hw.cli.options import finish
+
+    args = build_parser().parse_args(["timing", "--firmware", firmware, "--sense-current-ua", str(ua)])
+    finish(args)
+    assert args.sense_height == byte
+
+
+@pytest.mark.parametrize(
+    ("firmware", "ua", "limit"),
+    [
+        ("v2", 2560, "a multiple of 10 µA from 0 to 2550 µA (firmware v2 stores the byte sent, unshifted)"),
+        ("v1.2", 100, "a multiple of 40 µA from 0 to 10200 µA (firmware v1.2 stores the byte sent << 2)"),
+        ("v1.2", 10240, "a multiple of 40 µA from 0 to 10200 µA (firmware v1.2 stores the byte sent << 2)"),
+    ],
+)
+def test_timing_refuses_a_sense_current_with_the_versions_rule(firmware, ua, limit, capsys) -> None:
+    code, _, err = run(["timing", "--firmware", firmware, "--sense-current-ua", str(ua)], capsys)
+    assert code == 1
+    assert f"--sense-current-ua {ua} is out of range: {limit}" in err, err
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".json"])
+def test_timing_events_have_one_format_on_both_versions(suffix, tmp_path, capsys) -> None:
+    import csv
+    import json
+
+    columns = []
+    for firmware in ("v1.2", "v2"):
+        path = tmp_path / f"{firmware}{suffix}"
+        code, _, err = run(["timing", "--firmware", firmware, "--events", str(path), "--cycles", "1"], capsys)
+        assert code == 0, err
+        if suffix == ".json":
+            rows = json.loads(path.read_text())
+            assert rows and all(isinstance(r, dict) for r in rows)
+            columns.append(set(rows[0]))
+        else:
+            columns.append(tuple(next(csv.reader(path.open()))))
+    assert columns[0] == columns[1]

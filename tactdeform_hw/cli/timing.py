@@ -24,6 +24,7 @@ from .options import (
     add_pulse_width,
     typed_flag,
 )
+from .outputs import writing
 
 #: Exit statuses of ``timing`` beyond 0/1/2: the verdict a script can branch on.
 EXIT_OVERRUN = 3
@@ -129,8 +130,8 @@ def _sense_options(p: argparse.ArgumentParser) -> None:
         "--sense-current-ua",
         type=int,
         default=None,
-        help="sense pulse current in µA: the firmware stores the byte sent << 2, so 40 µA steps, ≤ 10200 "
-        "(default 0)",
+        help="sense pulse current in µA (default 0): v1.2 stores the byte sent << 2, so 40 µA steps up to "
+        "10200; v2 stores the byte itself, so 10 µA steps up to 2550",
     )
     p.add_argument(
         "--sense-height",
@@ -202,7 +203,11 @@ def _output_options(p: argparse.ArgumentParser) -> None:
         help="write BL, LE, POL, CLK, DIN, DAC, SEL (and ADC) of --cycles scans as a VCD (needs pyvcd)",
     )
     p.add_argument(
-        "--events", metavar="FILE", default=None, help="write the same scans as an event list (.csv or .json)"
+        "--events",
+        metavar="FILE",
+        default=None,
+        help="write the same scans as an event list (.csv or .json; on either version one row per signal "
+        "change: t_ns, t_us, kind, name, value)",
     )
     p.add_argument("--cycles", type=int, default=2, help="scans to trace for --vcd/--events (default 2)")
     p.add_argument(
@@ -217,7 +222,6 @@ def _output_options(p: argparse.ArgumentParser) -> None:
 
 def currents_from_ua(args: argparse.Namespace) -> None:
     """``--current-ua`` and ``--sense-current-ua`` (µA) as the codes the scan model takes."""
-    from tactdeform_hw.device.driver.config import sense_code
 
     from ..protocol.units import DEFAULT_TRANSFER
 
@@ -228,7 +232,29 @@ def currents_from_ua(args: argparse.Namespace) -> None:
     if args.current_ua is not None:
         args.pulse_height = DEFAULT_TRANSFER.to_code(args.current_ua, "current_ua")
     if args.sense_current_ua is not None:
-        args.sense_height = sense_code(args.sense_current_ua, DEFAULT_TRANSFER)
+        args.sense_height = sense_byte(args.sense_current_ua, getattr(args, "firmware", "v1.2"))
+
+
+def sense_byte(sense_current_ua: int, firmware: str) -> int:
+    """The 0xF9 byte of a sense current on ``firmware``: v1.2 stores ``byte << 2`` as the DAC code (40 µA
+    steps up to byte 255, 10200 µA), v2 stores the byte itself (10 µA steps up to 2550 µA).  The timing
+    model holds any byte the firmware holds, so the limit is the byte's, not the 10 mA stimulation
+    ceiling (nothing is sent to a participant here)."""
+    from ..protocol.constants import U8_MAX
+    from ..protocol.firmware import V1_2, V2
+    from ..protocol.units import DEFAULT_TRANSFER, check_int
+
+    spec = V2 if firmware == "v2" else V1_2
+    step = 1 << spec.command(0xF9).shift
+    ua_per_byte = DEFAULT_TRANSFER.ua_per_code * step
+    top_ua = int(U8_MAX * ua_per_byte)
+    stored = "the byte sent << 2" if step > 1 else "the byte sent, unshifted"
+    limit = f"a multiple of {ua_per_byte:g} µA from 0 to {top_ua} µA (firmware {spec.name} stores {stored})"
+    value = check_int("--sense-current-ua", sense_current_ua, 0, 1 << 31, "µA")
+    byte = value / ua_per_byte
+    if not byte.is_integer() or value > top_ua:
+        raise LimitError("--sense-current-ua", sense_current_ua, limit)
+    return int(byte)
 
 
 def verdict_status(budget: Any) -> int:
@@ -441,18 +467,32 @@ def _run_walker(args: argparse.Namespace) -> int:
     return 0
 
 
+def walker_event_rows(events: list[list[Any]]) -> list[dict[str, Any]]:
+    """The statement walker's ``[time_us, kind, pin, value]`` events in the format ``--events`` writes
+    on both versions: ``{"t_ns", "t_us", "kind", "name", "value"}``, as the v1.2 trace's rows are (kind
+    ``gpio`` with name ``GPIO<n>``, or ``dac`` with name ``DAC``), so one reader takes either."""
+    rows = []
+    for t_us, kind, pin, value in events:
+        t_ns = round(float(t_us) * 1000)
+        name = f"GPIO{pin}" if str(kind).upper() == "GPIO" else str(pin)
+        rows.append(
+            {"t_ns": t_ns, "t_us": t_ns / 1000, "kind": str(kind).lower(), "name": name, "value": value}
+        )
+    return rows
+
+
 def _write_walker_events(path: Path, fmt: str, events: list[list[Any]]) -> None:
     import json
 
-    try:
+    rows = walker_event_rows(events)
+    with writing("--events", path):
         if fmt == "json":
-            path.write_text(json.dumps(events) + "\n")
+            path.write_text("[\n" + ",\n".join(json.dumps(r) for r in rows) + ("\n]\n" if rows else "]\n"))
         else:
             path.write_text(
-                "time_us,kind,pin,value\n" + "".join(f"{t},{k},{p},{v}\n" for t, k, p, v in events)
+                "time_ns,time_us,kind,name,value\n"
+                + "".join(f"{r['t_ns']},{r['t_us']:.3f},{r['kind']},{r['name']},{r['value']}\n" for r in rows)
             )
-    except OSError as exc:
-        raise ConfigurationError(f"--events {str(path)!r}: cannot write: {exc}") from exc
 
 
 def run(args: argparse.Namespace) -> int:
