@@ -40,7 +40,8 @@ def register(sub: Any) -> None:
         "pulses the scans delivered, hazards) and write a report to --out: report.json, "
         "summary.md, frames/ and pictures/. "
         + " ".join(f"{k}: {v.split(': ', 1)[-1]}." for k, v in STUDY_TITLES.items())
-        + " Exit status 0 when every check passed, 3 when one failed.",
+        + " Exit status 0 when every check passed, 3 when one failed or a trial was skipped (a missing "
+        "mesh: its checks did not run).",
     )
     p.add_argument("study", choices=STUDIES, help="which study to run")
     add_device_arg(p)
@@ -159,8 +160,13 @@ def run(args: argparse.Namespace) -> int:
         _print_summary(args, study, result, s)
     if not s["all_passed"]:
         if not args.quiet:
+            failed = (
+                "" if not (s["failed"] or not s["design_ok"]) else ", ".join(s["failed_checks"]) or "design"
+            )
             print(
-                f"study {study.name}: checks failed: {', '.join(s['failed_checks']) or 'design'}",
+                f"study {study.name}: "
+                + (f"checks failed: {failed}" if failed else f"{s['skipped']} trial(s) skipped")
+                + "".join(f"; {n}" for n in result.notes if not failed and "skipped" in n),
                 file=sys.stderr,
             )
         return EXIT_CHECK_FAILED
@@ -194,7 +200,13 @@ def _print_summary(args: argparse.Namespace, study: Any, result: Any, s: dict[st
     """The console's account of a study: the verdict, the failed checks, what was delivered."""
     from .delivered import delivered_lines
 
-    verdict = "all checks passed" if s["all_passed"] else f"{s['failed']} trial(s) FAILED"
+    verdict = (
+        "all checks passed"
+        if s["all_passed"]
+        else f"{s['failed']} trial(s) FAILED"
+        if s["failed"] or not s["design_ok"]
+        else f"INCOMPLETE: {s['skipped']} trial(s) not run, so not every check passed"
+    )
     print(
         f"{study.name}: {s['passed']}/{s['run']} trial(s) passed"
         + (f", {s['skipped']} skipped" if s["skipped"] else "")

@@ -190,7 +190,8 @@ def summary_json(result: StudyRun, design: list[Check]) -> dict[str, Any]:
         "failed_checks": dict(sorted(failed_checks.items())),
         "not_checked": dict(sorted(unchecked.items())),
         "design_ok": design_ok,
-        "all_passed": bool(ran) and not failed and design_ok,
+        # a skipped trial's checks never ran: the study did not pass them
+        "all_passed": bool(ran) and not failed and design_ok and len(ran) == len(result.trials),
         "poses": sum(len(r.poses) for r in ran),
         "frames_sent": sum(int(r.summary.get("frames_sent", 0)) for r in ran),
         "pattern_buffer_mismatches": sum(int(r.summary.get("mismatches", 0)) for r in ran),
@@ -235,7 +236,13 @@ def report_json(result: StudyRun, design: list[Check]) -> dict[str, Any]:
 def markdown(report: dict[str, Any]) -> str:
     s = report["summary"]
     study = report["study"]
-    verdict = "PASSED" if s["all_passed"] else "FAILED"
+    verdict = (
+        "PASSED"
+        if s["all_passed"]
+        else "INCOMPLETE"
+        if s["skipped"] and not s["failed"] and s["design_ok"]
+        else "FAILED"
+    )
     lines = [
         f"# {study['title']}",
         "",

@@ -43,7 +43,15 @@ from ..render.array import ElectrodeArray
 from ..render.manager import ManagerConfig
 from ..render.patterns import PatternSet
 from ..render.pipeline import FrameRecord
-from ..render.scene import BUNNY_FILE, RenderOptions, Scene, find_mesh_file, load_scene
+from ..render.scene import (
+    BUNNY_FILE,
+    MESH_DIR_ENV,
+    RenderOptions,
+    Scene,
+    find_mesh_file,
+    load_scene,
+    mesh_search_dirs,
+)
 from ..render.tracking import Pose, PoseValidator, slerp
 from ..render.trajectories import make_trajectory, scene_for_trajectory
 from .scenarios import START_DISTANCE_MM, Segment, Study, Trial
@@ -362,11 +370,18 @@ def _skip_missing_meshes(study: Study, runs: list[TrialRun], mesh_dirs: Sequence
         try:
             path = find_mesh_file(BUNNY_FILE, mesh_dirs)
             notes.append(f"bunny mesh: {path}")
-        except ConfigurationError as exc:
+        except ConfigurationError:
+            # the scene's own message names ``--scene``, which a study does not have: say what a study
+            # takes (the folders searched, the environment variable)
+            where = ", ".join(str(d) for d in mesh_search_dirs(mesh_dirs))
+            why = (
+                f"mesh {BUNNY_FILE!r} not found (looked in {where}); put it in one of those folders or set "
+                f"{MESH_DIR_ENV} to the folder that holds it"
+            )
             for r in runs:
                 if r.trial.scene == "bunny":
-                    r.skipped = f"Stanford bunny not available: {exc}"
-            notes.append(f"bunny trials skipped: {exc}")
+                    r.skipped = f"Stanford bunny not available: {why}"
+            notes.append(f"bunny trials skipped: {why}")
     return notes
 
 
