@@ -157,3 +157,24 @@ def test_timing_events_have_one_format_on_both_versions(suffix, tmp_path, capsys
         else:
             columns.append(tuple(next(csv.reader(path.open()))))
     assert columns[0] == columns[1]
+
+
+CALIBRATION_KEYS = "+" * 20 + " a  - - a\n" + "+" * 12 + " a " + ("+" * 14 + " a ") * 7 + " + a"
+
+
+def test_calibrate_refuses_to_replace_a_profile_without_force(tmp_path, capsys) -> None:
+    keys = tmp_path / "keys.txt"
+    keys.write_text(CALIBRATION_KEYS)
+    out = tmp_path / "P09.json"
+    old = '{"version": 1, "participant": "P09", "ramp_ua_per_frame": 50, "contact_mode": "uniform"}\n'
+    out.write_text(old)
+    board = _board("calibrate")
+    argv = ["calibrate", "--participant", str(out), "--keys", str(keys), "--max-ua", "300"]
+    code, _, err = run([*argv, "--device", "etactile://calibrate?timed=0"], capsys)
+    assert code == 1
+    assert f"--participant {out}: already exists" in err and "--force" in err, err
+    assert out.read_text() == old and board.received_bytes == 0
+    code, stdout, err = run([*argv, "--device", "etactile://calibrate?timed=0", "--force"], capsys)
+    assert code == 0, err
+    assert (tmp_path / "P09.json.bak").read_text() == old
+    assert out.read_text() != old and f"kept the previous file as {out}.bak" in stdout
