@@ -359,8 +359,8 @@ def test_an_unexpected_error_is_one_line_and_debug_shows_the_traceback(capsys, m
         ),
         (
             ["timing", "--sense-current-ua", "50"],
-            "--sense-current-ua 50 is out of range: a current whose DAC code is a multiple of 4 up to "
-            "1020 (this one is code 5)",
+            "--sense-current-ua 50 is out of range: a multiple of 40 µA from 0 to 10200 µA (firmware v1.2 "
+            "stores the byte sent << 2)",
         ),
         (
             ["calibrate", "--participant", "P01", "--max-ua", "20000", "--keys", os.devnull],
