@@ -178,3 +178,51 @@ def test_calibrate_refuses_to_replace_a_profile_without_force(tmp_path, capsys) 
     assert code == 0, err
     assert (tmp_path / "P09.json.bak").read_text() == old
     assert out.read_text() != old and f"kept the previous file as {out}.bak" in stdout
+
+
+def test_study_refuses_an_out_with_an_earlier_report_and_force_clears_it(tmp_path, capsys) -> None:
+    out = tmp_path / "r"
+    (out / "frames").mkdir(parents=True)
+    (out / "frames" / "task1-99-old.jsonl").write_text("{}\n")
+    (out / "pictures").mkdir()
+    (out / "report.json").write_text("{}\n")
+    (out / "notes.txt").write_text("mine\n")
+    argv = ["study", "task1", "--trials", "1", "--quiet", "--no-pictures", "--no-timed", "--out", str(out)]
+    board = _board("reuse")
+    code, _, err = run([*argv, "--device", "etactile://reuse?timed=0"], capsys)
+    assert code == 1
+    assert f"--out {out}: holds an earlier report (report.json, frames, pictures); give --force" in err, err
+    assert board.received_bytes == 0 and (out / "frames" / "task1-99-old.jsonl").exists()
+    code, _, err = run([*argv, "--device", "etactile://reuse?timed=0", "--force"], capsys)
+    assert code == 0, err
+    assert not (out / "frames" / "task1-99-old.jsonl").exists() and not (out / "pictures").exists()
+    assert (out / "notes.txt").read_text() == "mine\n"  # not the report's: kept
+    assert len(list((out / "frames").iterdir())) == 1
+
+
+def test_an_interrupted_study_keeps_the_trials_that_ran(tmp_path, monkeypatch, capsys) -> None:
+    import json
+
+    from tactdeform_hw.study import runner
+
+    real = runner._run_trial
+    calls = []
+
+    def stopped_on_the_third(live, run, *a, **k):
+        calls.append(run.trial.id)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real(live, run, *a, **k)
+
+    monkeypatch.setattr(runner, "_run_trial", stopped_on_the_third)
+    out = tmp_path / "r"
+    argv = ["study", "task1", "--trials", "1-4", "--quiet", "--no-pictures", "--no-timed", "--out", str(out)]
+    code, _, _ = run(argv, capsys)
+    assert code == 130
+    lines = [json.loads(x) for x in (out / "trials.jsonl").read_text().splitlines()]
+    assert [e["id"] for e in lines] == calls[:2]
+    assert all((out / e["frames_file"]).stat().st_size > 0 for e in lines)
+    report = json.loads((out / "report.json").read_text())
+    assert report["complete"] is False and report["trials_run"] == calls[:2]
+    assert len(report["trials_not_run"]) == 2 and calls[2] in report["trials_not_run"]
+    assert "**INTERRUPTED**" in (out / "summary.md").read_text()

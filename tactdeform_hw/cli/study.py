@@ -22,6 +22,7 @@ import math
 import sys
 from typing import Any
 
+from ..errors import ConfigurationError
 from .common import add_device_arg, add_participant_arg, print_json, progress, session_from_args
 from .options import add_option
 
@@ -99,6 +100,13 @@ def register(sub: Any) -> None:
     p.add_argument("--gif", action="store_true", help="also draw every trial as an animated GIF (slower)")
     p.add_argument("--json", action="store_true", help="print the report's summary as JSON on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="reuse an --out that holds an earlier report: its report.json, summary.md, trials.jsonl, "
+        "frames/ and pictures/ are removed first (other files stay). Without --force such a directory is "
+        "refused before the device is opened",
+    )
     p.set_defaults(func=run)
 
 
@@ -107,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     from ..protocol.units import DEFAULT_TRANSFER
     from ..session import Wiring
     from ..study.checks import check_study
-    from ..study.report import write_report
+    from ..study.report import TrialLog, clear_earlier_report, earlier_report, write_report
     from ..study.runner import run_study
     from ..study.scenarios import build_study, select_trials
 
@@ -117,6 +125,12 @@ def run(args: argparse.Namespace) -> int:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
     if not (math.isfinite(args.tremor_mm) and 0 <= args.tremor_mm <= 5):
         raise LimitError("--tremor-mm", args.tremor_mm, "0 to 5 mm")
+    old = earlier_report(args.out)
+    if old and not args.force:
+        raise ConfigurationError(
+            f"--out {args.out}: holds an earlier report ({', '.join(old)}); give --force to replace it or "
+            "another directory; nothing was sent"
+        )
     # A bad profile, study or trial list is refused before the device is opened; regional limits follow
     # the positions of the array the renderer draws on.
     session = session_from_args(args, Wiring.tactdeform())
@@ -134,17 +148,30 @@ def run(args: argparse.Namespace) -> int:
         f"study {study.name}: {len(study.trials)} trial(s){' (quick)' if study.quick else ''}, device "
         f"{args.device}, seed {args.seed}"
     )
-    with audit:
-        result = run_study(
-            study,
-            session=session,
-            rate_hz=args.rate,
-            current_ua=args.current_ua,
-            timed=not args.no_timed,
-            tremor_mm=args.tremor_mm,
-            progress=say,
-            realtime=args.realtime,
+    if args.force:
+        clear_earlier_report(args.out)
+    trial_log = TrialLog(args.out, study)
+    try:
+        with audit:
+            result = run_study(
+                study,
+                session=session,
+                rate_hz=args.rate,
+                current_ua=args.current_ua,
+                timed=not args.no_timed,
+                tremor_mm=args.tremor_mm,
+                progress=say,
+                realtime=args.realtime,
+                on_trial=trial_log,
+            )
+    except BaseException as exc:  # Ctrl-C, a stop signal, an error: keep what ran, say what did not
+        why = "stopped by a signal" if isinstance(exc, (KeyboardInterrupt, SystemExit)) else f"error: {exc}"
+        trial_log.interrupted(why)
+        say(
+            f"study {study.name}: {why} after {len(trial_log.done)} of {len(study.trials)} trial(s); "
+            f"partial report in {args.out}/report.json"
         )
+        raise
     result.sent = audit.report()
     result.sent["requested_ua"] = result.current_ua
     result.sent["firmware"] = result.firmware

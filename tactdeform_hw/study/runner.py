@@ -502,20 +502,24 @@ def _run_trials(
     rate_hz: float,
     tremor_mm: float,
     say: ProgressFn,
+    on_trial: Callable[[TrialRun], None] | None = None,
 ) -> None:
-    """Every trial in order on the live session, saying how each went (a skipped one says why)."""
+    """Every trial in order on the live session, saying how each went (a skipped one says why);
+    ``on_trial`` gets each trial as soon as it is done, so an interrupted study keeps what ran."""
     for run in runs:
         trial = run.trial
         head = f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}"
         if run.skipped is not None:
             say(f"{head}: skipped ({run.skipped})")
-            continue
-        _run_trial(live, run, scenes, rate_hz=rate_hz, seed=study.seed, tremor_mm=tremor_mm)
-        ok = run.summary.get("mismatches", 0) == 0
-        say(
-            f"{head}: {len(run.poses)} poses, {run.summary.get('frames_sent', 0)} frames sent"
-            f"{'' if ok else ', MISMATCH'} ({run.wall_s:.2f} s)"
-        )
+        else:
+            _run_trial(live, run, scenes, rate_hz=rate_hz, seed=study.seed, tremor_mm=tremor_mm)
+            ok = run.summary.get("mismatches", 0) == 0
+            say(
+                f"{head}: {len(run.poses)} poses, {run.summary.get('frames_sent', 0)} frames sent"
+                f"{'' if ok else ', MISMATCH'} ({run.wall_s:.2f} s)"
+            )
+        if on_trial is not None:
+            on_trial(run)
 
 
 def _check_rate(rate_hz: Any) -> None:
@@ -561,6 +565,7 @@ def run_study(
     realtime: bool = False,
     firmware: str = "auto",
     session: Any = None,
+    on_trial: Callable[[TrialRun], None] | None = None,
 ) -> StudyRun:
     """Run every trial of ``study`` on one device session; return the raw results (see :mod:`.checks`
     and :mod:`.report` for what is made of them).
@@ -572,7 +577,8 @@ def run_study(
     (``profile.stimulation_ua``), else to :data:`NOMINAL_EMULATOR_UA` on the emulator and 0 (patterns
     only) on a real device.  ``realtime`` paces every pose to the session clock (a real device then shows
     each trial at its real speed); otherwise the run goes as fast as it can, which changes nothing the
-    checks look at: the timed replay restores the session's timing."""
+    checks look at: the timed replay restores the session's timing.  ``on_trial`` is called with each
+    trial as soon as it has run (or been skipped)."""
     from ..clock import SimulatedClock
 
     say = progress or (lambda _msg: None)
@@ -598,7 +604,9 @@ def run_study(
         stim = _stim_config(session, current)
         sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
         live = _Live(session, dev, tap, sim_clock, cfg, current, stim, realtime)
-        _run_trials(live, study, runs, scenes, rate_hz=rate_hz, tremor_mm=tremor_mm, say=say)
+        _run_trials(
+            live, study, runs, scenes, rate_hz=rate_hz, tremor_mm=tremor_mm, say=say, on_trial=on_trial
+        )
         tap.mark(t_s=live.session_t, trial=0, phase="session")
         if not dev.closed and dev.config is not None:
             dev.all_off()
