@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 import serial
 
@@ -226,3 +227,23 @@ def test_an_interrupted_study_keeps_the_trials_that_ran(tmp_path, monkeypatch, c
     assert report["complete"] is False and report["trials_run"] == calls[:2]
     assert len(report["trials_not_run"]) == 2 and calls[2] in report["trials_not_run"]
     assert "**INTERRUPTED**" in (out / "summary.md").read_text()
+
+
+def _pose_csv(path: Path, scale: float) -> Path:
+    from tactdeform_hw.render.tracking import Pose, write_pose_csv
+
+    poses = [Pose(i / 72, np.array([0.0, 0.0, 40.0 - i]) * scale) for i in range(40)]
+    write_pose_csv(path, poses)
+    return path
+
+
+def test_a_trajectory_in_metres_is_refused_naming_the_file_column_and_value(tmp_path, capsys) -> None:
+    metres = _pose_csv(tmp_path / "m.csv", 0.001)
+    code, out, err = run(["render", "--scene", "cube", "--trajectory", str(metres), "--quiet"], capsys)
+    assert code == 1 and "frames sent" not in out
+    assert (
+        f"--trajectory {metres}: the positions look like metres" in err and "z_mm = 0.04 in pose row 1" in err
+    )
+    millimetres = _pose_csv(tmp_path / "mm.csv", 1.0)
+    code, out, err = run(["render", "--scene", "cube", "--trajectory", str(millimetres), "--quiet"], capsys)
+    assert code == 0, err

@@ -214,6 +214,7 @@ def _poses(args: argparse.Namespace, scene: Any, recorded: bool) -> list[Any]:
             poses = list(read_pose_csv(args.trajectory))  # a bad row is an error naming its line and column
         if not poses:
             raise LimitError("--trajectory", args.trajectory, "a CSV with at least one pose row")
+        refuse_metres(args.trajectory, poses)
         return poses
     # The finger's path is geometry: plan it where faces, edges and corners are classified, whatever
     # approach renders it (the baselines' scenes do not classify features).
@@ -226,6 +227,33 @@ def _poses(args: argparse.Namespace, scene: Any, recorded: bool) -> list[Any]:
     if args.speed is not None:
         kw["speed_mm_s"] = args.speed
     return list(make_trajectory(args.trajectory, plan, **kw))
+
+
+#: Positions whose magnitudes all stay under this (mm) while they move read as metres: a finger that
+#: never leaves a 2 mm ball around the scene's origin is no trajectory a study records.
+METRES_BOUND_MM = 2.0
+
+
+def refuse_metres(path: str, poses: list[Any]) -> None:
+    """Refuse a recorded trajectory whose positions look like metres (every coordinate under
+    :data:`METRES_BOUND_MM` in magnitude, and moving): read as millimetres it never comes near the object,
+    and the render would report idle poses and no frame without saying why."""
+    from ..errors import ConfigurationError
+
+    coords = [[float(v) for v in p.position_mm] for p in poses]
+    largest = max(abs(v) for row in coords for v in row)
+    moving = any(row != coords[0] for row in coords)
+    if not moving or largest == 0 or largest >= METRES_BOUND_MM:
+        return
+    row, col = max(
+        ((r, c) for r in range(len(coords)) for c in range(3)), key=lambda rc: abs(coords[rc[0]][rc[1]])
+    )
+    column = ("x_mm", "y_mm", "z_mm")[col]
+    raise ConfigurationError(
+        f"--trajectory {path}: the positions look like metres, not millimetres (the largest, {column} = "
+        f"{coords[row][col]:g} in pose row {row + 1}, is under {METRES_BOUND_MM:g} mm); the x_mm, y_mm, z_mm "
+        "columns take millimetres: multiply them by 1000"
+    )
 
 
 def _drive(
