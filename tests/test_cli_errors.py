@@ -19,6 +19,7 @@ import pytest
 from tactdeform_hw.cli import EXIT_STATUS_HELP, build_parser, main
 from tactdeform_hw.cli import timing as timing_cli
 from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
+from tactdeform_hw.errors import install_command
 from tactdeform_hw.formats import PatternSequence, PatternStep, write_pattern_file
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -688,7 +689,7 @@ def test_study_without_plot_says_so_on_the_console(tmp_path, capsys, monkeypatch
     assert code == 0, err
     assert (
         "tactdeform-hw study: warning: the report will have no pictures: they need matplotlib and Pillow, "
-        "pip install 'tactdeform_hw[plot]'"
+        f"{install_command('plot')}"
     ) in err
     assert "pictures skipped" in (tmp_path / "r" / "summary.md").read_text()
 

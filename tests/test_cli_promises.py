@@ -247,3 +247,49 @@ def test_a_trajectory_in_metres_is_refused_naming_the_file_column_and_value(tmp_
     millimetres = _pose_csv(tmp_path / "mm.csv", 1.0)
     code, out, err = run(["render", "--scene", "cube", "--trajectory", str(millimetres), "--quiet"], capsys)
     assert code == 0, err
+
+
+def test_the_extras_hint_installs_the_checkout_it_runs_from(monkeypatch) -> None:
+    from tactdeform_hw.errors import MissingDependencyError, install_command
+
+    root = Path(__file__).resolve().parents[1]
+    assert (root / "pyproject.toml").is_file()  # the tests run from a checkout
+    monkeypatch.chdir(root)
+    assert install_command("plot") == "pip install -e '.[plot]'"
+    assert "pip install -e '.[plot]'" in str(MissingDependencyError("matplotlib", "plot", "--png x.png"))
+    monkeypatch.chdir(root / "tests")
+    assert install_command("trace") == f"pip install -e '{root}[trace]'"
+
+
+def test_decode_reads_standard_input_and_refuses_hex_text_read_as_bytes(
+    tmp_path, monkeypatch, capsys
+) -> None:
+    import io
+
+    monkeypatch.setattr("sys.stdin", io.TextIOWrapper(io.BytesIO(bytes([0xFC, 0x02, 0xFF]))))
+    code, out, err = run(["decode", "--file", "-"], capsys)
+    assert code == 0, err
+    assert "ELECTRODE_NUM electrode_num=2" in out
+    text = tmp_path / "hex.txt"
+    text.write_text("fc 20 ff\n")
+    code, out, err = run(["decode", "--file", str(text)], capsys)
+    assert code == 1 and out == ""
+    assert f"--file {text}: holds hex text ('fc 20 ff'…), not raw bytes; give --hex-file" in err
+    code, out, _ = run(["decode", "--file", str(text), "--hex-file"], capsys)
+    assert code == 0 and "electrode_num=32" in out
+
+
+def test_device_errors_say_what_to_type(capsys) -> None:
+    code, _, err = run(["send", "--pattern", "all:1", "--firmware", "v2"], capsys)
+    assert code == 1 and "give --device 'etactile://?firmware=v2'" in err, err
+    if Path("/dev/null").exists():
+        code, _, err = run(["send", "--pattern", "all:1", "--device", "/dev/null"], capsys)
+        assert code == 1 and "--device /dev/null opens but is not a serial port" in err, err
+
+
+def test_replay_log_refuses_a_missing_array_file_without_participant(tmp_path, capsys) -> None:
+    log = tmp_path / "a.jsonl"
+    assert main(["send", "--pattern", "all:1", "--audit-log", str(log)]) == 0
+    capsys.readouterr()
+    code, _, err = run(["replay-log", str(log), "--array", str(tmp_path / "missing.json")], capsys)
+    assert code == 1 and f"--array {tmp_path / 'missing.json'}" in err, err

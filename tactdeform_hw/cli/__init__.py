@@ -151,7 +151,7 @@ def _describe(exc: BaseException, args: argparse.Namespace) -> str:
     from .options import user_message
 
     if isinstance(exc, TactDeformError):
-        return user_message(exc, args.command, args)
+        return user_message(exc, args.command, args) + _device_hint(exc, args)
     if isinstance(exc, OSError):
         name = exc.filename if exc.filename is not None else ""
         what = exc.strerror or str(exc)
@@ -162,6 +162,27 @@ def _describe(exc: BaseException, args: argparse.Namespace) -> str:
         return f"the Python package {exc.name!r} is not installed ({exc})" if exc.name else str(exc)
     hint = "" if getattr(args, "debug", False) else "; run 'tactdeform-hw --debug ...' for the traceback"
     return f"unexpected {type(exc).__name__}: {exc}{hint}"
+
+
+def _device_hint(exc: TactDeformError, args: argparse.Namespace) -> str:
+    """What to type instead, for the device errors a new user meets: the in-process emulator asked for
+    v2 (it is a v1.2 board; an emulated v2 board is a URL), a path that opens but takes no serial
+    settings (``/dev/null``: the operating system's errno alone says nothing of what to do)."""
+    from ..errors import TransportError
+
+    device = getattr(args, "device", None)
+    name = type(exc).__name__
+    if name == "FirmwareMismatchError" and device in ("emulator", "emu", "") and args.firmware == "v2":
+        return (
+            "; --device emulator is a v1.2 board: give --device 'etactile://?firmware=v2' for an emulated "
+            "v2 board"
+        )
+    if isinstance(exc, TransportError) and "Could not configure port" in str(exc):
+        return (
+            f"; --device {device} opens but is not a serial port (it takes no baud rate); "
+            "'tactdeform-hw ports' lists the boards it can see"
+        )
+    return ""
 
 
 #: Errors a write to an output file ends with that carry no file name (a buffered write fails at its flush).

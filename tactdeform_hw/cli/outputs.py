@@ -18,7 +18,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigurationError, MissingDependencyError, OutputError
+from ..errors import ConfigurationError, MissingDependencyError, OutputError, install_command
 from .options import typed_flag
 
 FILE = "file"
@@ -165,7 +165,7 @@ def check_extras(args: argparse.Namespace, outputs: list[tuple[str, str, str]]) 
         if not (have("matplotlib") and have("PIL")):
             warnings.append(
                 "the report will have no pictures: they need matplotlib and Pillow, "
-                "pip install 'tactdeform_hw[plot]' (or pass --no-pictures)"
+                f"{install_command('plot')} (or pass --no-pictures)"
             )
     return warnings
 
