@@ -293,3 +293,19 @@ def test_replay_log_refuses_a_missing_array_file_without_participant(tmp_path, c
     capsys.readouterr()
     code, _, err = run(["replay-log", str(log), "--array", str(tmp_path / "missing.json")], capsys)
     assert code == 1 and f"--array {tmp_path / 'missing.json'}" in err, err
+
+
+def test_emulates_exit_on_ctrl_c_is_the_documented_one(capsys) -> None:
+    """``emulate`` is stopped with Ctrl-C (its normal stop, exit 0, as the served-port tests check): the
+    top-level help and the guide say so instead of promising 130 for it."""
+    from tactdeform_hw.cli import EXIT_STATUS_HELP
+
+    text = " ".join(EXIT_STATUS_HELP.split())
+    assert "emulate, a server that runs until it is stopped, ends with 0 on Ctrl-C" in text
+    guide = (Path(__file__).resolve().parents[1] / "docs" / "researcher-guide.md").read_text()
+    assert "`emulate`, a server that runs until it is stopped, ends with 0 on Ctrl-C" in guide
+
+
+def test_send_quiet_prints_nothing(capsys) -> None:
+    code, out, err = run(["send", "--pattern", "all:1", "--quiet"], capsys)
+    assert code == 0 and out == "" and err == ""

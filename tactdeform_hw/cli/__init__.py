@@ -39,10 +39,11 @@ EXIT_STATUS_HELP = """exit status:
        or failed while running
   2    usage: unknown option, missing value, a value of the wrong kind (not a number,
        a negative duration, not one of the choices)
-  3    a check failed: study (a trial check), replay-log --participant (a pulse above the
-       limits), timing (the scan OVERRUNs its period)
+  3    a check failed: study (a trial check, or a trial skipped), replay-log --participant
+       (a pulse above the limits), timing (the scan OVERRUNs its period)
   4    timing: the scan trips the interrupt WATCHDOG (the board resets)
-  130  interrupted (Ctrl-C)
+  130  interrupted (Ctrl-C); emulate, a server that runs until it is stopped, ends with 0 on
+       Ctrl-C or SIGTERM (its normal stop)
   141  standard output was closed (e.g. piped into head)
 
 Every error is one line 'tactdeform-hw COMMAND: error: ...'; --debug adds the traceback."""

@@ -60,6 +60,9 @@ def register(sub: Any) -> None:
         help="hold the pattern this many ms before all-off (default 0)",
     )
     p.add_argument("--json", action="store_true", help="print what was sent and the device's state as JSON")
+    p.add_argument(
+        "--quiet", action="store_true", help="print nothing when the pattern was sent (errors still are)"
+    )
     p.set_defaults(func=run)
 
 
@@ -224,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
         result["emulator_pattern"] = state["stim_pattern"][: config.electrode_count]
     if args.json:
         print_json(result)
-    else:
+    elif not args.quiet:
         print(f"sent {sum(1 for v in levels if v)} active electrode(s) to {args.device}; all off on close")
         for line in delivered_lines(delivered):
             print(line)
