@@ -309,3 +309,41 @@ def test_emulates_exit_on_ctrl_c_is_the_documented_one(capsys) -> None:
 def test_send_quiet_prints_nothing(capsys) -> None:
     code, out, err = run(["send", "--pattern", "all:1", "--quiet"], capsys)
     assert code == 0 and out == "" and err == ""
+
+
+def test_one_pulse_height_is_shown_without_an_ellipsis() -> None:
+    from tactdeform_hw.cli.delivered import delivered_lines
+
+    rep = {
+        "requested_ua": 1000,
+        "max_delivered_ua": 1000,
+        "lowered": [],
+        "refused": [],
+        "pulse_heights_ua": [1000],
+        "pulse_height_changes": 9,  # on and off nine times: one height all along
+        "electrodes": [],
+    }
+    assert "  pulse heights sent: 1000 µA" in delivered_lines(rep)
+    rep["pulse_heights_ua"] = list(range(10, 180, 10))
+    assert any(line.endswith(", … µA") for line in delivered_lines(rep))
+
+
+def test_a_seeded_study_writes_the_same_summary_twice(tmp_path, capsys) -> None:
+    texts = []
+    for name in ("a", "b"):
+        out = tmp_path / name
+        argv = [
+            "study",
+            "task1",
+            "--trials",
+            "1",
+            "--quiet",
+            "--no-pictures",
+            "--no-timed",
+            "--out",
+            str(out),
+        ]
+        assert main(argv) == 0
+        texts.append((out / "summary.md").read_text().replace(str(out), "OUT"))
+    assert "wall" not in texts[0]
+    assert texts[0] == texts[1]
