@@ -108,10 +108,39 @@ def test_a_write_error_names_the_option_and_the_file(argv, flag, frames_file, tm
     if "--vcd" in argv:
         pytest.importorskip("vcd")
     argv = [a.format(tmp=tmp_path, frames=frames_file) for a in argv]
-    code, _, err = run([*argv, "/dev/full"], capsys)
+    # a file of the output's own suffix whose writes fail: a link to /dev/full
+    full = tmp_path / f"out{ {'--png': '.png', '--vcd': '.vcd', '--out': '.json'}.get(flag, '.jsonl') }"
+    full.symlink_to("/dev/full")
+    code, _, err = run([*argv, str(full)], capsys)
     assert code == 1
     line = err.strip().splitlines()[-1]
-    assert f"{flag} /dev/full: cannot be written (No space left on device)" in line, err
+    assert f"{flag} {full}: cannot be written (No space left on device)" in line, err
+
+
+@pytest.mark.parametrize(
+    ("argv", "flag", "written"),
+    [
+        (["timing", "--png", "{tmp}/out.jpg"], "--png", "PNG"),
+        (
+            ["render", "--scene", "cube", "--trajectory", "approach-face", "--strip", "{tmp}/s.svg"],
+            "--strip",
+            "PNG",
+        ),
+        (
+            ["render", "--scene", "cube", "--trajectory", "approach-face", "--gif", "{tmp}/a.png"],
+            "--gif",
+            "GIF",
+        ),
+    ],
+)
+def test_a_picture_whose_suffix_names_another_format_is_refused(
+    argv, flag, written, tmp_path, capsys
+) -> None:
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    code, _, err = run(argv, capsys)
+    assert code == 1
+    assert f"{flag} {argv[-1]}: writes {written}, but the suffix" in err, err
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize(
@@ -347,3 +376,22 @@ def test_a_seeded_study_writes_the_same_summary_twice(tmp_path, capsys) -> None:
         texts.append((out / "summary.md").read_text().replace(str(out), "OUT"))
     assert "wall" not in texts[0]
     assert texts[0] == texts[1]
+
+
+def test_timing_refuses_traces_above_the_limit_before_writing(tmp_path, capsys, monkeypatch) -> None:
+    from tactdeform_hw.cli import timing
+
+    monkeypatch.setattr(timing, "TRACE_LIMIT_BYTES", 50_000)  # the same rule as 100 MB, quicker to reach
+    events = tmp_path / "e.csv"
+    code, _, err = run(["timing", "--events", str(events), "--cycles", "40"], capsys)
+    assert code == 1 and "--cycles 40: the traces would take about" in err and "--force" in err, err
+    assert not events.exists()
+    code, _, err = run(["timing", "--events", str(events), "--cycles", "40", "--force"], capsys)
+    assert code == 0, err
+    assert events.stat().st_size > 50_000
+
+
+def test_timing_says_its_progress_on_a_long_trace(tmp_path, capsys) -> None:
+    code, _, err = run(["timing", "--events", str(tmp_path / "e.csv"), "--cycles", "1000"], capsys)
+    assert code == 0
+    assert "timing: tracing 1000 scans, about" in err and "timing: 1000/1000 scans traced" in err

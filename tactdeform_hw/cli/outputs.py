@@ -56,6 +56,28 @@ def writing(flag: str, path: str | os.PathLike[str]) -> Iterator[None]:
         raise OutputError(flag, str(path), exc.strerror or str(exc)) from exc
 
 
+#: The picture formats each output writes, named by the file's suffix: a mismatching suffix is refused
+#: (a viewer trusts the suffix, and PNG bytes in a .jpg are a broken file to it).
+PICTURE_SUFFIXES: dict[str, tuple[str, ...]] = {
+    "--png": (".png",),
+    "--strip": (".png",),
+    "--gif": (".gif",),
+}
+
+
+def check_suffix(path: str, flag: str) -> None:
+    """Refuse a picture output whose suffix names another format than the one written."""
+    want = PICTURE_SUFFIXES.get(flag.split("/")[0])
+    if want is None:
+        return
+    suffix = Path(path).suffix.lower()
+    if suffix not in want:
+        raise ConfigurationError(
+            f"{flag} {path}: writes {want[0][1:].upper()}, but the suffix {suffix or '(none)'} names "
+            f"another format; give a {' or '.join(want)} file"
+        )
+
+
 def _calibrate_outputs(args: argparse.Namespace) -> list[tuple[str, str, str]]:
     from .calibrate import profile_targets
 
@@ -210,6 +232,7 @@ def preflight(args: argparse.Namespace, warn: Callable[[str], Any] | None = None
     check_device(args)
     outputs = planned_outputs(args)
     for path, flag, kind in outputs:
+        check_suffix(path, flag)
         check_output(path, flag, kind)
     for message in check_extras(args, outputs):
         if warn is not None:

@@ -8,6 +8,7 @@ before flashing a board: per-channel cost, scan time, period, margin, verdict an
 from __future__ import annotations
 
 import argparse
+import io
 import math
 from pathlib import Path
 from typing import Any
@@ -217,6 +218,12 @@ def _output_options(p: argparse.ArgumentParser) -> None:
         help="draw a timing diagram of --cycles scans as a PNG: pulses per channel against time, the "
         "period and any overrun marked (needs the plot extra)",
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="write --vcd/--events traces estimated above 100 MB (refused without it, before any is "
+        "written; a long run prints its progress on stderr)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
 
@@ -328,9 +335,16 @@ def config_from_args(args: argparse.Namespace) -> Any:
 
 
 def trace_scans(
-    cfg: Any, model: Any, cycles: int, sinks: list[Any], board: str = "compact", switching_boards: int = 1
+    cfg: Any,
+    model: Any,
+    cycles: int,
+    sinks: list[Any],
+    board: str = "compact",
+    switching_boards: int = 1,
+    on_progress: Any = None,
 ) -> Any:
-    """Run ``cycles`` scans of ``cfg`` from power-on (registers set directly) into ``sinks``."""
+    """Run ``cycles`` scans of ``cfg`` from power-on (registers set directly) into ``sinks``;
+    ``on_progress(done, cycles)`` is called at every tenth of a long run (1000 scans or more)."""
     from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
     if not isinstance(cycles, int) or cycles < 1:
@@ -339,8 +353,13 @@ def trace_scans(
     for s in sinks:
         emu.attach(s)
     emu.configure(cfg)
+    step = max(1, cycles // 10) if cycles >= 1000 and on_progress is not None else 0
+    said = 0
     while emu.reports.scan_count() < cycles:
         emu.advance_to(emu.next_alarm / 1000.0 if math.isfinite(emu.next_alarm) else emu.now_us + 1e6)
+        if step and emu.reports.scan_count() >= said + step:
+            said = emu.reports.scan_count()
+            on_progress(said, cycles)
     # let the last scan finish
     emu.advance_to(max(emu.now_us, emu.runs[-1].end_ns / 1000.0))
     for s in sinks:
@@ -595,6 +614,16 @@ def _write_traces(args: argparse.Namespace, cfg: Any, model: Any) -> list[str]:
         return []
     from tactdeform_hw.emulator.records.trace import CsvSink, JsonSink, VcdSink
 
+    from .common import progress
+
+    estimate = trace_bytes(args, cfg, model)
+    if estimate > TRACE_LIMIT_BYTES and not args.force:
+        raise ConfigurationError(
+            f"--cycles {args.cycles}: the traces would take about {estimate / 1e6:.0f} MB (more than "
+            f"{TRACE_LIMIT_BYTES / 1e6:.0f} MB); give fewer --cycles, or --force to write them"
+        )
+    if args.cycles >= 1000:
+        progress(f"timing: tracing {args.cycles} scans, about {estimate / 1e6:.1f} MB")
     sinks: list[Any] = []
     paths: list[str] = []
     if args.vcd:
@@ -603,8 +632,50 @@ def _write_traces(args: argparse.Namespace, cfg: Any, model: Any) -> list[str]:
     if args.events:
         sinks.append(CsvSink(args.events) if _events_format(args.events) == "csv" else JsonSink(args.events))
         paths.append(args.events)
-    trace_scans(cfg, model, args.cycles, sinks, args.board, args.switching_boards)
+    with writing("/".join(f"--{k}" for k in ("vcd", "events") if getattr(args, k)), " ".join(paths)):
+        trace_scans(
+            cfg,
+            model,
+            args.cycles,
+            sinks,
+            args.board,
+            args.switching_boards,
+            on_progress=lambda done, total: progress(f"timing: {done}/{total} scans traced"),
+        )
     return paths
+
+
+#: Above this many bytes of traces (``--vcd`` and ``--events`` together) ``timing`` refuses unless
+#: ``--force``: a long ``--cycles`` fills a disk in minutes.
+TRACE_LIMIT_BYTES = 100_000_000
+
+
+class _Kept(io.StringIO):
+    """A text buffer the trace sinks may close without losing what they wrote."""
+
+    def close(self) -> None:
+        pass
+
+
+def trace_bytes(args: argparse.Namespace, cfg: Any, model: Any) -> int:
+    """About the size the ``--vcd`` and ``--events`` files will have (erring large): one and two scans
+    traced into memory, the second scan's bytes counted once per further scan (every scan of one
+    configuration writes the same events)."""
+    from tactdeform_hw.emulator.records.trace import CsvSink, JsonSink, VcdSink
+
+    sizes = []
+    for cycles in (1, 2):
+        bufs = [_Kept() for _ in range(2)]
+        sinks: list[Any] = []
+        if args.vcd:
+            sinks.append(VcdSink(bufs[0]))
+        if args.events:
+            kind = CsvSink if _events_format(args.events) == "csv" else JsonSink
+            sinks.append(kind(bufs[1]))
+        trace_scans(cfg, model, cycles, sinks, args.board, args.switching_boards)
+        sizes.append(sum(len(b.getvalue().encode()) for b in bufs))
+    # later scans' times have more digits: a quarter more errs on the large side
+    return int((sizes[0] + max(0, sizes[1] - sizes[0]) * (int(args.cycles) - 1)) * 1.25)
 
 
 def _latency_table(lat: dict[str, Any]) -> str:
