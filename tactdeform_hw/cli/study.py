@@ -111,26 +111,14 @@ def register(sub: Any) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..errors import LimitError
     from ..protocol.units import DEFAULT_TRANSFER
     from ..session import Wiring
     from ..study.checks import check_study
-    from ..study.report import TrialLog, clear_earlier_report, earlier_report, write_report
+    from ..study.report import TrialLog, clear_earlier_report, write_report
     from ..study.runner import run_study
     from ..study.scenarios import build_study, select_trials
 
-    if not (math.isfinite(args.rate) and args.rate > 0):
-        raise LimitError("--rate", args.rate, "a finite rate > 0 Hz")
-    if args.current_ua is not None and args.current_ua < 0:
-        raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
-    if not (math.isfinite(args.tremor_mm) and 0 <= args.tremor_mm <= 5):
-        raise LimitError("--tremor-mm", args.tremor_mm, "0 to 5 mm")
-    old = earlier_report(args.out)
-    if old and not args.force:
-        raise ConfigurationError(
-            f"--out {args.out}: holds an earlier report ({', '.join(old)}); give --force to replace it or "
-            "another directory; nothing was sent"
-        )
+    _check_options(args)
     # A bad profile, study or trial list is refused before the device is opened; regional limits follow
     # the positions of the array the renderer draws on.
     session = session_from_args(args, Wiring.tactdeform())
@@ -187,17 +175,40 @@ def run(args: argparse.Namespace) -> int:
         _print_summary(args, study, result, s)
     if not s["all_passed"]:
         if not args.quiet:
-            failed = (
-                "" if not (s["failed"] or not s["design_ok"]) else ", ".join(s["failed_checks"]) or "design"
-            )
-            print(
-                f"study {study.name}: "
-                + (f"checks failed: {failed}" if failed else f"{s['skipped']} trial(s) skipped")
-                + "".join(f"; {n}" for n in result.notes if not failed and "skipped" in n),
-                file=sys.stderr,
-            )
+            _print_not_passed(study, result, s)
         return EXIT_CHECK_FAILED
     return 0
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """The options refused before anything is read or opened, ``--out`` among them: an earlier report
+    there is refused without ``--force`` (its old frames and pictures would sit beside the new ones)."""
+    from ..errors import LimitError
+    from ..study.report import earlier_report
+
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        raise LimitError("--rate", args.rate, "a finite rate > 0 Hz")
+    if args.current_ua is not None and args.current_ua < 0:
+        raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
+    if not (math.isfinite(args.tremor_mm) and 0 <= args.tremor_mm <= 5):
+        raise LimitError("--tremor-mm", args.tremor_mm, "0 to 5 mm")
+    old = earlier_report(args.out)
+    if old and not args.force:
+        raise ConfigurationError(
+            f"--out {args.out}: holds an earlier report ({', '.join(old)}); give --force to replace it or "
+            "another directory; nothing was sent"
+        )
+
+
+def _print_not_passed(study: Any, result: Any, s: dict[str, Any]) -> None:
+    """stderr's line for a study that did not pass: the failed checks, or the trials skipped and why."""
+    failed = "" if not (s["failed"] or not s["design_ok"]) else ", ".join(s["failed_checks"]) or "design"
+    print(
+        f"study {study.name}: "
+        + (f"checks failed: {failed}" if failed else f"{s['skipped']} trial(s) skipped")
+        + "".join(f"; {n}" for n in result.notes if not failed and "skipped" in n),
+        file=sys.stderr,
+    )
 
 
 def _json_summary(

@@ -498,7 +498,6 @@ def _run_trials(
     study: Study,
     runs: list[TrialRun],
     scenes: _Scenes,
-    *,
     rate_hz: float,
     tremor_mm: float,
     say: ProgressFn,
@@ -577,8 +576,7 @@ def run_study(
     (``profile.stimulation_ua``), else to :data:`NOMINAL_EMULATOR_UA` on the emulator and 0 (patterns
     only) on a real device.  ``realtime`` paces every pose to the session clock (a real device then shows
     each trial at its real speed); otherwise the run goes as fast as it can, which changes nothing the
-    checks look at: the timed replay restores the session's timing.  ``on_trial`` is called with each
-    trial as soon as it has run (or been skipped)."""
+    checks look at: the timed replay restores the session's timing.  ``on_trial`` gets each trial done."""
     from ..clock import SimulatedClock
 
     say = progress or (lambda _msg: None)
@@ -604,9 +602,7 @@ def run_study(
         stim = _stim_config(session, current)
         sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
         live = _Live(session, dev, tap, sim_clock, cfg, current, stim, realtime)
-        _run_trials(
-            live, study, runs, scenes, rate_hz=rate_hz, tremor_mm=tremor_mm, say=say, on_trial=on_trial
-        )
+        _run_trials(live, study, runs, scenes, rate_hz, tremor_mm, say, on_trial)
         tap.mark(t_s=live.session_t, trial=0, phase="session")
         if not dev.closed and dev.config is not None:
             dev.all_off()
