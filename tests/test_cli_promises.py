@@ -273,6 +273,9 @@ def test_a_trajectory_in_metres_is_refused_naming_the_file_column_and_value(tmp_
     assert (
         f"--trajectory {metres}: the positions look like metres" in err and "z_mm = 0.04 in pose row 1" in err
     )
+    argv = ["render", "--scene", "cube", "--trajectory", str(metres), "--quiet", "--invalid-rows", "replay"]
+    code, out, err = run(argv, capsys)  # the rows replayed as a live tracker gives them: refused alike
+    assert code == 1 and "the positions look like metres" in err, err
     millimetres = _pose_csv(tmp_path / "mm.csv", 1.0)
     code, out, err = run(["render", "--scene", "cube", "--trajectory", str(millimetres), "--quiet"], capsys)
     assert code == 0, err

@@ -238,9 +238,16 @@ def refuse_metres(path: str, poses: list[Any]) -> None:
     """Refuse a recorded trajectory whose positions look like metres (every coordinate under
     :data:`METRES_BOUND_MM` in magnitude, and moving): read as millimetres it never comes near the object,
     and the render would report idle poses and no frame without saying why."""
+    import math
+
     from ..errors import ConfigurationError
 
-    coords = [[float(v) for v in p.position_mm] for p in poses]
+    # a Pose, or a replayed row ``(t_s, position_mm, orientation)`` (NaN rows kept for the lost-tracking
+    # rules: left out here)
+    rows = [p.position_mm if hasattr(p, "position_mm") else p[1] for p in poses]
+    coords = [[float(v) for v in row] for row in rows if all(math.isfinite(float(v)) for v in row)]
+    if not coords:
+        return
     largest = max(abs(v) for row in coords for v in row)
     moving = any(row != coords[0] for row in coords)
     if not moving or largest == 0 or largest >= METRES_BOUND_MM:

@@ -247,12 +247,12 @@ def sense_byte(sense_current_ua: int, firmware: str) -> int:
     steps up to byte 255, 10200 µA), v2 stores the byte itself (10 µA steps up to 2550 µA).  The timing
     model holds any byte the firmware holds, so the limit is the byte's, not the 10 mA stimulation
     ceiling (nothing is sent to a participant here)."""
-    from ..protocol.constants import U8_MAX
+    from ..protocol.constants import U8_MAX, Opcode
     from ..protocol.firmware import V1_2, V2
     from ..protocol.units import DEFAULT_TRANSFER, check_int
 
     spec = V2 if firmware == "v2" else V1_2
-    step = 1 << spec.command(0xF9).shift
+    step = 1 << spec.command(Opcode.SENSE_HEIGHT).shift
     ua_per_byte = DEFAULT_TRANSFER.ua_per_code * step
     top_ua = int(U8_MAX * ua_per_byte)
     stored = "the byte sent << 2" if step > 1 else "the byte sent, unshifted"
