@@ -28,6 +28,16 @@ class ConfigurationError(TactDeformError, ValueError):
     """A value, file or option that cannot be used as given."""
 
 
+class OutputError(TactDeformError):
+    """An output file that could not be written while the command ran (a full disk, a quota): the
+    message names the option and the path, since the operating system's error names neither."""
+
+    def __init__(self, flag: str, path: str, problem: str) -> None:
+        super().__init__(f"{flag} {path}: cannot be written ({problem})")
+        self.flag = flag
+        self.path = path
+
+
 class LimitError(ConfigurationError):
     """A value outside what the wire, the firmware or the hardware can carry.
 
@@ -42,13 +52,24 @@ class LimitError(ConfigurationError):
         self.limit = limit
 
 
+def install_command(extra: str) -> str:
+    """The command that installs ``extra`` for the package being run: from a source checkout (a
+    ``pyproject.toml`` beside the package) the editable install of that checkout, since the name on the
+    package index is another copy; else the package's name."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    if (root / "pyproject.toml").is_file():
+        where = "." if Path.cwd().resolve() == root else str(root)
+        return f"pip install -e '{where}[{extra}]'"
+    return f"pip install 'tactdeform_hw[{extra}]'"
+
+
 class MissingDependencyError(TactDeformError, ImportError):
     """An optional dependency is needed for what was asked; the message names the extra to install."""
 
     def __init__(self, package: str, extra: str, purpose: str) -> None:
-        super().__init__(
-            f"{purpose} needs the optional package {package!r}: pip install 'tactdeform_hw[{extra}]'"
-        )
+        super().__init__(f"{purpose} needs the optional package {package!r}: {install_command(extra)}")
         self.package = package
         self.extra = extra
 

@@ -19,6 +19,7 @@ import pytest
 from tactdeform_hw.cli import EXIT_STATUS_HELP, build_parser, main
 from tactdeform_hw.cli import timing as timing_cli
 from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
+from tactdeform_hw.errors import install_command
 from tactdeform_hw.formats import PatternSequence, PatternStep, write_pattern_file
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -359,8 +360,8 @@ def test_an_unexpected_error_is_one_line_and_debug_shows_the_traceback(capsys, m
         ),
         (
             ["timing", "--sense-current-ua", "50"],
-            "--sense-current-ua 50 is out of range: a current whose DAC code is a multiple of 4 up to "
-            "1020 (this one is code 5)",
+            "--sense-current-ua 50 is out of range: a multiple of 40 µA from 0 to 10200 µA (firmware v1.2 "
+            "stores the byte sent << 2)",
         ),
         (
             ["calibrate", "--participant", "P01", "--max-ua", "20000", "--keys", os.devnull],
@@ -688,7 +689,7 @@ def test_study_without_plot_says_so_on_the_console(tmp_path, capsys, monkeypatch
     assert code == 0, err
     assert (
         "tactdeform-hw study: warning: the report will have no pictures: they need matplotlib and Pillow, "
-        "pip install 'tactdeform_hw[plot]'"
+        f"{install_command('plot')}"
     ) in err
     assert "pictures skipped" in (tmp_path / "r" / "summary.md").read_text()
 

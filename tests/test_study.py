@@ -365,25 +365,30 @@ def test_universe_holds_every_frame(task1_result):
 # --- options and degraded setups ----------------------------------------------------------------------------
 
 
-def test_missing_bunny_is_skipped_with_a_note(tmp_path, monkeypatch):
+def test_missing_bunny_is_skipped_and_the_study_does_not_pass(tmp_path, monkeypatch, capsys):
+    """A skipped trial's checks did not run: the study is INCOMPLETE (exit 3), never "all checks passed",
+    and the hint names what a study takes (the mesh folders, the environment variable), not ``--scene``."""
     from tactdeform_hw.study import runner
 
     def absent(name, dirs=()):
-        raise ConfigurationError(f"mesh {name!r} not found (looked in nowhere)")
+        raise ConfigurationError(f"mesh {name!r} not found (looked in nowhere); give --scene")
 
     monkeypatch.setattr(runner, "find_mesh_file", absent)
     out = tmp_path / "p2"
-    code = main(
-        ["study", "phase2", "--trials", "sphere-ua,bunny-ua", "--out", str(out), "--quiet", "--no-pictures"]
-    )
-    assert code == 0
+    code = main(["study", "phase2", "--trials", "sphere-ua,bunny-ua", "--out", str(out), "--no-pictures"])
+    captured = capsys.readouterr()
+    assert code == 3
     report = json.loads((out / "report.json").read_text())
     by = {t["condition"]: t for t in report["trials"]}
     assert by["sphere-ua"]["passed"] is True
     assert by["bunny-ua"]["skipped"].startswith("Stanford bunny not available")
-    assert report["summary"]["skipped"] == 1 and report["summary"]["all_passed"]
+    assert report["summary"]["skipped"] == 1 and report["summary"]["all_passed"] is False
     assert any("bunny trials skipped" in n for n in report["notes"])
-    assert "skipped" in (out / "summary.md").read_text()
+    assert "--scene" not in by["bunny-ua"]["skipped"] and "TACTDEFORM_HW_MESHES" in by["bunny-ua"]["skipped"]
+    md = (out / "summary.md").read_text()
+    assert "**INCOMPLETE**" in md and "PASSED" not in md.split("\n", 3)[2]
+    assert "all checks passed" not in captured.out and "INCOMPLETE: 1 trial(s) not run" in captured.out
+    assert "1 trial(s) skipped; bunny trials skipped" in captured.err and "checks failed" not in captured.err
 
 
 def test_participant_profile_sets_current_and_limits(tmp_path):

@@ -126,5 +126,5 @@ def test_events_of_a_v2_scan(tmp_path: Path, capsys: pytest.CaptureFixture[str])
     )
     assert code == 0 and f"wrote {path}" in out
     events = json.loads(path.read_text())
-    assert [e[3] for e in events if e[1] == "DAC"] == [100, 0, 0, 0]
-    assert any(e[2] == 44 for e in events)
+    assert [e["value"] for e in events if e["kind"] == "dac"] == [100, 0, 0, 0]
+    assert any(e["name"] == "GPIO44" for e in events)

@@ -153,7 +153,7 @@ def test_missing_matplotlib_names_the_extra(pad: ElectrodeArray, tmp_path: Path,
     monkeypatch.setitem(sys.modules, "matplotlib.figure", None)
     with pytest.raises(MissingDependencyError) as err:
         draw_array_png(pad, [0] * 32, tmp_path / "x.png")
-    assert err.value.extra == "plot" and "tactdeform_hw[plot]" in str(err.value)
+    assert err.value.extra == "plot" and "[plot]'" in str(err.value)
     with pytest.raises(MissingDependencyError):
         draw_timing_png([{"channel": 0, "start_us": 0, "width_us": 10}], [], tmp_path / "t.png")
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import logging
 import os
@@ -38,10 +39,11 @@ EXIT_STATUS_HELP = """exit status:
        or failed while running
   2    usage: unknown option, missing value, a value of the wrong kind (not a number,
        a negative duration, not one of the choices)
-  3    a check failed: study (a trial check), replay-log --participant (a pulse above the
-       limits), timing (the scan OVERRUNs its period)
+  3    a check failed: study (a trial check, or a trial skipped), replay-log --participant
+       (a pulse above the limits), timing (the scan OVERRUNs its period)
   4    timing: the scan trips the interrupt WATCHDOG (the board resets)
-  130  interrupted (Ctrl-C)
+  130  interrupted (Ctrl-C); emulate, a server that runs until it is stopped, ends with 0 on
+       Ctrl-C or SIGTERM (its normal stop)
   141  standard output was closed (e.g. piped into head)
 
 Every error is one line 'tactdeform-hw COMMAND: error: ...'; --debug adds the traceback."""
@@ -150,15 +152,63 @@ def _describe(exc: BaseException, args: argparse.Namespace) -> str:
     from .options import user_message
 
     if isinstance(exc, TactDeformError):
-        return user_message(exc, args.command, args)
+        return user_message(exc, args.command, args) + _device_hint(exc, args)
     if isinstance(exc, OSError):
         name = exc.filename if exc.filename is not None else ""
         what = exc.strerror or str(exc)
-        return f"{name}: {what}" if name else what
+        if not name:
+            return _output_error(exc, args) or what
+        return f"{name}: {what}"
     if isinstance(exc, ImportError):
         return f"the Python package {exc.name!r} is not installed ({exc})" if exc.name else str(exc)
     hint = "" if getattr(args, "debug", False) else "; run 'tactdeform-hw --debug ...' for the traceback"
     return f"unexpected {type(exc).__name__}: {exc}{hint}"
+
+
+def _device_hint(exc: TactDeformError, args: argparse.Namespace) -> str:
+    """What to type instead, for the device errors a new user meets: the in-process emulator asked for
+    v2 (it is a v1.2 board; an emulated v2 board is a URL), a path that opens but takes no serial
+    settings (``/dev/null``: the operating system's errno alone says nothing of what to do)."""
+    from ..errors import TransportError
+
+    device = getattr(args, "device", None)
+    name = type(exc).__name__
+    if name == "FirmwareMismatchError" and device in ("emulator", "emu", "") and args.firmware == "v2":
+        return (
+            "; --device emulator is a v1.2 board: give --device 'etactile://?firmware=v2' for an emulated "
+            "v2 board"
+        )
+    if isinstance(exc, TransportError) and "Could not configure port" in str(exc):
+        return (
+            f"; --device {device} opens but is not a serial port (it takes no baud rate); "
+            "'tactdeform-hw ports' lists the boards it can see"
+        )
+    return ""
+
+
+#: Errors a write to an output file ends with that carry no file name (a buffered write fails at its flush).
+_OUTPUT_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS)
+
+
+def _output_error(exc: OSError, args: argparse.Namespace) -> str | None:
+    """The line for a write error without a file name: the outputs the command writes, each with its
+    option, since a full disk or a quota says nothing of which file it stopped."""
+    if exc.errno not in _OUTPUT_ERRNOS:
+        return None
+    from .outputs import planned_outputs
+
+    try:
+        outputs = [(path, flag) for path, flag, _kind in planned_outputs(args)]
+    except Exception:  # the line must be printed whatever the arguments hold
+        outputs = []
+    what = exc.strerror or str(exc)
+    if not outputs:
+        return None
+    if len(outputs) == 1:
+        path, flag = outputs[0]
+        return f"{flag} {path}: cannot be written ({what})"
+    names = ", ".join(f"{flag} {path}" for path, flag in outputs)
+    return f"one of the outputs ({names}) cannot be written ({what})"
 
 
 class _ConsoleHandler(logging.Handler):

@@ -81,8 +81,47 @@ def register(sub: Any) -> None:
         "region's stimulus lights the electrodes whose coordinates lie in it, on the hardware channels "
         "of its Mapping_func",
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing profile (and --calibration-out file); the old one is kept beside it as "
+        "FILE.bak. Without --force an existing file is refused before anything is sent",
+    )
     p.add_argument("--json", action="store_true", help="print the result as JSON")
     p.set_defaults(func=run)
+
+
+def existing_targets(args: argparse.Namespace, out: Path) -> list[tuple[str, Path]]:
+    """The files this calibration would replace, with the option that names each."""
+    flag = "--out" if getattr(args, "out", None) else "--participant"
+    found = [(flag, out)] if out.exists() else []
+    if getattr(args, "calibration_out", None) and Path(args.calibration_out).exists():
+        found.append(("--calibration-out", Path(args.calibration_out)))
+    return found
+
+
+def refuse_overwrite(args: argparse.Namespace, out: Path) -> None:
+    """A profile holds a participant's calibrated limits, ramp and contact mode: one is never replaced
+    without ``--force``, and the refusal comes before the device is opened (nothing is sent)."""
+    found = existing_targets(args, out)
+    if found and not getattr(args, "force", False):
+        names = ", ".join(f"{flag} {path}" for flag, path in found)
+        raise ConfigurationError(
+            f"{names}: already exists (a participant's calibrated limits); give --force to replace it "
+            "(the old file is kept as FILE.bak) or another file name; nothing was sent"
+        )
+
+
+def _back_up(args: argparse.Namespace, out: Path) -> list[str]:
+    """With ``--force``, each file about to be replaced copied to ``FILE.bak`` first."""
+    import shutil
+
+    kept = []
+    for _flag, path in existing_targets(args, out):
+        backup = path.with_name(path.name + ".bak")
+        shutil.copy2(path, backup)
+        kept.append(str(backup))
+    return kept
 
 
 _ID_RE = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
@@ -247,6 +286,9 @@ def _write_profiles(
     """Write the participant profile (and with ``--calibration-out`` the eTactileKit calibration profile)."""
     from tactdeform_hw.device.participant.profiles import save_profile
 
+    backups = _back_up(args, out)
+    if backups:
+        result["backups"] = backups
     profile = cal.profile(
         pulse_width_us=args.pulse_width,
         polarity=args.polarity,
@@ -294,6 +336,7 @@ def run(args: argparse.Namespace) -> int:
     from .delivered import delivered_lines
 
     pid, out = profile_targets(args)
+    refuse_overwrite(args, out)
     cal = Calibration(pid, max_ua=args.max_ua)
     array_file, mapping, rmap = _pad(args)
     region_of = rmap.resolve(None)
@@ -340,6 +383,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print_json(result)
     else:
+        for backup in result.get("backups", []):
+            print(f"kept the previous file as {backup}")
         print(f"wrote {out}: cap {profile.cap_ua} µA, regions {list(profile.regions_ua)} µA")
         if wiring is not None:
             print(f"wrote {args.calibration_out}: eTactileKit calibration profile, mapping {wiring}")

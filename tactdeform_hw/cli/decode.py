@@ -23,7 +23,12 @@ def register(sub: Any) -> None:
     src.add_argument(
         "hex", nargs="?", help="hex bytes, e.g. 'fc 20 fe 01 01 ...' (spaces, colons, 0x allowed)"
     )
-    src.add_argument("--file", type=Path, help="capture file: raw bytes, or hex text with --hex-file")
+    src.add_argument(
+        "--file",
+        type=Path,
+        help="capture file ('-' for standard input): raw bytes, or hex text with --hex-file (a file of hex "
+        "text read as raw bytes is refused: every command byte of the firmware is 0xF4 or above)",
+    )
     p.add_argument("--hex-file", action="store_true", help="the --file holds hex text, not raw bytes")
     p.add_argument(
         "--electrodes",
@@ -67,6 +72,13 @@ def read_hex(text: str) -> bytes:
     return parse_hex(text)
 
 
+def looks_like_hex_text(raw: bytes) -> bool:
+    """Raw bytes that are all hex digits, separators and ``0x``: hex text.  A real capture has command
+    bytes (0xF4 and above), which no text holds."""
+    text = raw.decode("latin-1")
+    return bool(text.strip()) and all(ch in _HEX or ch in _SEPARATORS or ch in "xX" for ch in text)
+
+
 _HEX = frozenset("0123456789abcdefABCDEF")
 _SEPARATORS = frozenset(" \t\r\n:,;-")
 
@@ -81,10 +93,17 @@ def run(args: argparse.Namespace) -> int:
     parse_hex = read_hex
     try:
         if args.file is not None:
-            raw = args.file.read_bytes()
+            raw = sys.stdin.buffer.read() if str(args.file) == "-" else args.file.read_bytes()
+            if not args.hex_file and looks_like_hex_text(raw):
+                raise ConfigurationError(
+                    f"--file {args.file}: holds hex text ({raw[:16].decode('ascii').strip()!r}…), not raw "
+                    "bytes; give --hex-file to decode it as hex"
+                )
             data = parse_hex(raw.decode("ascii")) if args.hex_file else raw
         else:
             data = parse_hex(args.hex)
+    except ConfigurationError:
+        raise
     except (ValueError, UnicodeDecodeError) as exc:
         raise ConfigurationError(
             f"cannot read the capture as {'hex' if args.hex_file or args.file is None else 'bytes'}: {exc}"

@@ -74,8 +74,10 @@ def delivered_lines(rep: dict[str, Any]) -> list[str]:
         lines.append(f"  refused ({e.get('rule')}): {e.get('message', '')}{times}")
     heights = rep["pulse_heights_ua"]
     if heights:
+        # the log keeps the successive nonzero heights (up to HEIGHTS_SHOWN); a switch to 0 and back to
+        # the same height is a change but no new height, so only a longer list has more to show
         shown = heights[:16]
-        more = ", …" if rep["pulse_height_changes"] > len(shown) + 1 else ""
+        more = ", …" if len(heights) > len(shown) or len(heights) >= HEIGHTS_SHOWN else ""
         lines.append(f"  pulse heights sent: {', '.join(str(h) for h in shown)}{more} µA")
     by_value: dict[int, list[dict[str, Any]]] = {}
     for row in rep["electrodes"]:

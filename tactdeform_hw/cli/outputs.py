@@ -13,11 +13,12 @@ import argparse
 import os
 import stat
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from ..errors import ConfigurationError, MissingDependencyError
+from ..errors import ConfigurationError, MissingDependencyError, OutputError, install_command
 from .options import typed_flag
 
 FILE = "file"
@@ -42,6 +43,39 @@ NEEDS_EXTRA: dict[str, tuple[str, str, str]] = {
     "--strip": ("matplotlib", "matplotlib", "plot"),
     "--vcd": ("vcd", "pyvcd", "trace"),
 }
+
+
+@contextmanager
+def writing(flag: str, path: str | os.PathLike[str]) -> Iterator[None]:
+    """Writes to the output of ``flag``: an operating-system error while writing (a buffered write fails
+    only at its flush, with no file name) becomes an :class:`OutputError` naming the option and the
+    path."""
+    try:
+        yield
+    except OSError as exc:
+        raise OutputError(flag, str(path), exc.strerror or str(exc)) from exc
+
+
+#: The picture formats each output writes, named by the file's suffix: a mismatching suffix is refused
+#: (a viewer trusts the suffix, and PNG bytes in a .jpg are a broken file to it).
+PICTURE_SUFFIXES: dict[str, tuple[str, ...]] = {
+    "--png": (".png",),
+    "--strip": (".png",),
+    "--gif": (".gif",),
+}
+
+
+def check_suffix(path: str, flag: str) -> None:
+    """Refuse a picture output whose suffix names another format than the one written."""
+    want = PICTURE_SUFFIXES.get(flag.split("/")[0])
+    if want is None:
+        return
+    suffix = Path(path).suffix.lower()
+    if suffix not in want:
+        raise ConfigurationError(
+            f"{flag} {path}: writes {want[0][1:].upper()}, but the suffix {suffix or '(none)'} names "
+            f"another format; give a {' or '.join(want)} file"
+        )
 
 
 def _calibrate_outputs(args: argparse.Namespace) -> list[tuple[str, str, str]]:
@@ -153,7 +187,7 @@ def check_extras(args: argparse.Namespace, outputs: list[tuple[str, str, str]]) 
         if not (have("matplotlib") and have("PIL")):
             warnings.append(
                 "the report will have no pictures: they need matplotlib and Pillow, "
-                "pip install 'tactdeform_hw[plot]' (or pass --no-pictures)"
+                f"{install_command('plot')} (or pass --no-pictures)"
             )
     return warnings
 
@@ -198,6 +232,7 @@ def preflight(args: argparse.Namespace, warn: Callable[[str], Any] | None = None
     check_device(args)
     outputs = planned_outputs(args)
     for path, flag, kind in outputs:
+        check_suffix(path, flag)
         check_output(path, flag, kind)
     for message in check_extras(args, outputs):
         if warn is not None:

@@ -23,6 +23,7 @@ from typing import Any
 
 from .common import add_device_arg, add_participant_arg, print_json, progress, session_from_args
 from .options import add_option
+from .outputs import writing
 
 
 def register(sub: Any) -> None:
@@ -273,6 +274,7 @@ def _poses(args: argparse.Namespace, scene: Any, recorded: bool) -> list[Any]:
             poses = list(read_pose_csv(args.trajectory))  # a bad row is an error naming its line and column
         if not poses:
             raise LimitError("--trajectory", args.trajectory, "a CSV with at least one pose row")
+        refuse_metres(args.trajectory, poses)
         return poses
     # The finger's path is geometry: plan it where faces, edges and corners are classified, whatever
     # approach renders it (the baselines' scenes do not classify features).
@@ -285,6 +287,40 @@ def _poses(args: argparse.Namespace, scene: Any, recorded: bool) -> list[Any]:
     if args.speed is not None:
         kw["speed_mm_s"] = args.speed
     return list(make_trajectory(args.trajectory, plan, **kw))
+
+
+#: Positions whose magnitudes all stay under this (mm) while they move read as metres: a finger that
+#: never leaves a 2 mm ball around the scene's origin is no trajectory a study records.
+METRES_BOUND_MM = 2.0
+
+
+def refuse_metres(path: str, poses: list[Any]) -> None:
+    """Refuse a recorded trajectory whose positions look like metres (every coordinate under
+    :data:`METRES_BOUND_MM` in magnitude, and moving): read as millimetres it never comes near the object,
+    and the render would report idle poses and no frame without saying why."""
+    import math
+
+    from ..errors import ConfigurationError
+
+    # a Pose, or a replayed row ``(t_s, position_mm, orientation)`` (NaN rows kept for the lost-tracking
+    # rules: left out here)
+    rows = [p.position_mm if hasattr(p, "position_mm") else p[1] for p in poses]
+    coords = [[float(v) for v in row] for row in rows if all(math.isfinite(float(v)) for v in row)]
+    if not coords:
+        return
+    largest = max(abs(v) for row in coords for v in row)
+    moving = any(row != coords[0] for row in coords)
+    if not moving or largest == 0 or largest >= METRES_BOUND_MM:
+        return
+    row, col = max(
+        ((r, c) for r in range(len(coords)) for c in range(3)), key=lambda rc: abs(coords[rc[0]][rc[1]])
+    )
+    column = ("x_mm", "y_mm", "z_mm")[col]
+    raise ConfigurationError(
+        f"--trajectory {path}: the positions look like metres, not millimetres (the largest, {column} = "
+        f"{coords[row][col]:g} in pose row {row + 1}, is under {METRES_BOUND_MM:g} mm); the x_mm, y_mm, z_mm "
+        "columns take millimetres: multiply them by 1000"
+    )
 
 
 def _drive(
@@ -377,7 +413,8 @@ def run(args: argparse.Namespace) -> int:
 
     def write(rec: FrameRecord) -> None:
         if out is not None:
-            out.write(json.dumps(rec.to_json(), separators=(",", ":")) + "\n")
+            with writing("--frames", args.frames):
+                out.write(json.dumps(rec.to_json(), separators=(",", ":")) + "\n")
         if records is not None:
             records.append(rec.to_json())
 
@@ -387,7 +424,8 @@ def run(args: argparse.Namespace) -> int:
         summary, verified = _drive(args, session, scene, poses, write)
     finally:
         if out is not None:
-            out.close()
+            with writing("--frames", args.frames):
+                out.close()
         if audit is not None:
             audit.close()
     result = summary.as_dict()

@@ -358,6 +358,20 @@ def _print_replay(rep: dict[str, Any]) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.array is not None and args.array.lower() != "tactdeform":
+        from ..formats import read_array_file
+
+        try:  # a missing or malformed file is refused whether it is used or not
+            read_array_file(args.array)
+        except ConfigurationError as exc:
+            raise ConfigurationError(f"--array {exc}") from exc
+        if not args.participant:
+            from .common import progress
+
+            progress(
+                f"tactdeform-hw replay-log: warning: --array {args.array} places the channels for judging "
+                "against --participant's limits; without --participant it changes nothing"
+            )
     rep = replay(args.file, link=args.link, tail_s=args.tail_ms / 1000.0, firmware=args.firmware)
     table = rep.pop("_table")
     code = _judged(args, table, rep) if args.participant else 0

@@ -60,6 +60,9 @@ def register(sub: Any) -> None:
         help="hold the pattern this many ms before all-off (default 0)",
     )
     p.add_argument("--json", action="store_true", help="print what was sent and the device's state as JSON")
+    p.add_argument(
+        "--quiet", action="store_true", help="print nothing when the pattern was sent (errors still are)"
+    )
     p.set_defaults(func=run)
 
 
@@ -119,6 +122,58 @@ def _config(args: argparse.Namespace, profile: Any, channels: int) -> Any:
     )
 
 
+def _scans_us(config: Any, hw_levels: bytes, version: str) -> float:
+    """The longest scan ``version``'s firmware would run for this configuration and frame, by the
+    firmware-order estimate the driver refuses frames with: v1.2 scans the pattern as given (an off
+    channel gets the sense pulse, and the configuration's all-off scan is checked too); v2 pulses every
+    channel in the frame's mode (an off one at height 0)."""
+    from ..device.driver.v2 import mode_for
+    from ..protocol.commands import V2_COMMANDS
+    from ..protocol.constants import PATTERN_BIPHASIC, PATTERN_MONOPHASIC
+    from ..protocol.firmware_math import estimate_scan_us
+
+    n = config.electrode_count
+    width, discharge, sense = config.pulse_width_us, config.discharge_us, config.sense_width_us
+    if version == "v2":
+        biphasic = mode_for(hw_levels) == V2_COMMANDS.STIM_MODE_BIPHASIC
+        level = PATTERN_BIPHASIC if biphasic else PATTERN_MONOPHASIC
+        return max(
+            estimate_scan_us([PATTERN_MONOPHASIC] * n, width, discharge, sense),
+            estimate_scan_us([level] * n, width, discharge, sense),
+        )
+    return max(
+        estimate_scan_us(bytes(n), width, discharge, sense),
+        estimate_scan_us(hw_levels, width, discharge, sense),
+    )
+
+
+def check_scans(guard: Any, config: Any, hw_levels: bytes, firmware: str) -> None:
+    """Refuse a frame whose scan leaves the firmware's parser no time, before any byte reaches the device.
+
+    The driver checks the scan of the version the board proved, but only after the identification and
+    the configuration have been written; here the check runs on every version the board may be
+    (``--firmware auto``: v1.2 and v2, the worst case), so the refusal's "nothing was sent" is true."""
+    from ..device.driver.pacing import SCAN_GAP_MIN_US
+    from ..errors import SafetyError
+    from ..protocol.firmware_math import firmware_period_us
+
+    versions = ("v1.2", "v2") if firmware == "auto" else (firmware,)
+    period_us = firmware_period_us(config.rate_hz)
+    scans = {version: _scans_us(config, hw_levels, version) for version in versions}
+    worst = max(versions, key=lambda version: scans[version])
+    try:
+        guard.check_scan(scans[worst], period_us, SCAN_GAP_MIN_US)
+    except SafetyError as exc:
+        fine = [v for v in versions if scans[v] <= period_us - SCAN_GAP_MIN_US]
+        if not fine:
+            raise
+        tail = "; nothing was sent"
+        raise SafetyError(
+            f"{str(exc).removesuffix(tail)} on firmware {worst}, which --firmware auto may find (a "
+            f"{fine[0]} board takes this frame: give --firmware {fine[0]}){tail}"
+        ) from None
+
+
 def run(args: argparse.Namespace) -> int:
     from ..formats import read_array_file
     from ..ports import board_state
@@ -138,6 +193,8 @@ def run(args: argparse.Namespace) -> int:
     levels = parse_pattern(args.pattern, electrodes)
     config.validated(DEFAULT_TRANSFER)  # refuse before the port is even opened
     guard.check_config(config)
+    hw_levels = mapping.to_hardware(levels) if mapping is not None else bytes(levels)
+    check_scans(guard, config, hw_levels, args.firmware)
     if guard.positions_matter:
         guard.require_positions(electrodes, "--pattern")
     log = session.delivery_log(session.header("send"), requested_ua=args.current_ua)
@@ -172,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
         result["emulator_pattern"] = list(state.stim_pattern[: config.electrode_count])
     if args.json:
         print_json(result)
-    else:
+    elif not args.quiet:
         print(f"sent {sum(1 for v in levels if v)} active electrode(s) to {args.device}; all off on close")
         for line in delivered_lines(delivered):
             print(line)

@@ -22,6 +22,7 @@ import math
 import sys
 from typing import Any
 
+from ..errors import ConfigurationError
 from .common import add_device_arg, add_participant_arg, print_json, progress, session_from_args
 from .options import add_option
 
@@ -40,7 +41,8 @@ def register(sub: Any) -> None:
         "pulses the scans delivered, hazards) and write a report to --out: report.json, "
         "summary.md, frames/ and pictures/. "
         + " ".join(f"{k}: {v.split(': ', 1)[-1]}." for k, v in STUDY_TITLES.items())
-        + " Exit status 0 when every check passed, 3 when one failed.",
+        + " Exit status 0 when every check passed, 3 when one failed or a trial was skipped (a missing "
+        "mesh: its checks did not run).",
     )
     p.add_argument("study", choices=STUDIES, help="which study to run")
     add_device_arg(p)
@@ -98,24 +100,25 @@ def register(sub: Any) -> None:
     p.add_argument("--gif", action="store_true", help="also draw every trial as an animated GIF (slower)")
     p.add_argument("--json", action="store_true", help="print the report's summary as JSON on stdout")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="reuse an --out that holds an earlier report: its report.json, summary.md, trials.jsonl, "
+        "frames/ and pictures/ are removed first (other files stay). Without --force such a directory is "
+        "refused before the device is opened",
+    )
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..errors import LimitError
     from ..protocol.units import DEFAULT_TRANSFER
     from ..session import Wiring
     from ..study.checks import check_study
-    from ..study.report import write_report
+    from ..study.report import TrialLog, clear_earlier_report, write_report
     from ..study.runner import run_study
     from ..study.scenarios import build_study, select_trials
 
-    if not (math.isfinite(args.rate) and args.rate > 0):
-        raise LimitError("--rate", args.rate, "a finite rate > 0 Hz")
-    if args.current_ua is not None and args.current_ua < 0:
-        raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
-    if not (math.isfinite(args.tremor_mm) and 0 <= args.tremor_mm <= 5):
-        raise LimitError("--tremor-mm", args.tremor_mm, "0 to 5 mm")
+    _check_options(args)
     # A bad profile, study or trial list is refused before the device is opened; regional limits follow
     # the positions of the array the renderer draws on.
     session = session_from_args(args, Wiring.tactdeform())
@@ -133,17 +136,30 @@ def run(args: argparse.Namespace) -> int:
         f"study {study.name}: {len(study.trials)} trial(s){' (quick)' if study.quick else ''}, device "
         f"{args.device}, seed {args.seed}"
     )
-    with audit:
-        result = run_study(
-            study,
-            session=session,
-            rate_hz=args.rate,
-            current_ua=args.current_ua,
-            timed=not args.no_timed,
-            tremor_mm=args.tremor_mm,
-            progress=say,
-            realtime=args.realtime,
+    if args.force:
+        clear_earlier_report(args.out)
+    trial_log = TrialLog(args.out, study)
+    try:
+        with audit:
+            result = run_study(
+                study,
+                session=session,
+                rate_hz=args.rate,
+                current_ua=args.current_ua,
+                timed=not args.no_timed,
+                tremor_mm=args.tremor_mm,
+                progress=say,
+                realtime=args.realtime,
+                on_trial=trial_log,
+            )
+    except BaseException as exc:  # Ctrl-C, a stop signal, an error: keep what ran, say what did not
+        why = "stopped by a signal" if isinstance(exc, (KeyboardInterrupt, SystemExit)) else f"error: {exc}"
+        trial_log.interrupted(why)
+        say(
+            f"study {study.name}: {why} after {len(trial_log.done)} of {len(study.trials)} trial(s); "
+            f"partial report in {args.out}/report.json"
         )
+        raise
     result.sent = audit.report()
     result.sent["requested_ua"] = result.current_ua
     result.sent["firmware"] = result.firmware
@@ -159,12 +175,40 @@ def run(args: argparse.Namespace) -> int:
         _print_summary(args, study, result, s)
     if not s["all_passed"]:
         if not args.quiet:
-            print(
-                f"study {study.name}: checks failed: {', '.join(s['failed_checks']) or 'design'}",
-                file=sys.stderr,
-            )
+            _print_not_passed(study, result, s)
         return EXIT_CHECK_FAILED
     return 0
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """The options refused before anything is read or opened, ``--out`` among them: an earlier report
+    there is refused without ``--force`` (its old frames and pictures would sit beside the new ones)."""
+    from ..errors import LimitError
+    from ..study.report import earlier_report
+
+    if not (math.isfinite(args.rate) and args.rate > 0):
+        raise LimitError("--rate", args.rate, "a finite rate > 0 Hz")
+    if args.current_ua is not None and args.current_ua < 0:
+        raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
+    if not (math.isfinite(args.tremor_mm) and 0 <= args.tremor_mm <= 5):
+        raise LimitError("--tremor-mm", args.tremor_mm, "0 to 5 mm")
+    old = earlier_report(args.out)
+    if old and not args.force:
+        raise ConfigurationError(
+            f"--out {args.out}: holds an earlier report ({', '.join(old)}); give --force to replace it or "
+            "another directory; nothing was sent"
+        )
+
+
+def _print_not_passed(study: Any, result: Any, s: dict[str, Any]) -> None:
+    """stderr's line for a study that did not pass: the failed checks, or the trials skipped and why."""
+    failed = "" if not (s["failed"] or not s["design_ok"]) else ", ".join(s["failed_checks"]) or "design"
+    print(
+        f"study {study.name}: "
+        + (f"checks failed: {failed}" if failed else f"{s['skipped']} trial(s) skipped")
+        + "".join(f"; {n}" for n in result.notes if not failed and "skipped" in n),
+        file=sys.stderr,
+    )
 
 
 def _json_summary(
@@ -194,7 +238,13 @@ def _print_summary(args: argparse.Namespace, study: Any, result: Any, s: dict[st
     """The console's account of a study: the verdict, the failed checks, what was delivered."""
     from .delivered import delivered_lines
 
-    verdict = "all checks passed" if s["all_passed"] else f"{s['failed']} trial(s) FAILED"
+    verdict = (
+        "all checks passed"
+        if s["all_passed"]
+        else f"{s['failed']} trial(s) FAILED"
+        if s["failed"] or not s["design_ok"]
+        else f"INCOMPLETE: {s['skipped']} trial(s) not run, so not every check passed"
+    )
     print(
         f"{study.name}: {s['passed']}/{s['run']} trial(s) passed"
         + (f", {s['skipped']} skipped" if s["skipped"] else "")

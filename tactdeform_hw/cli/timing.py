@@ -8,6 +8,7 @@ before flashing a board: per-channel cost, scan time, period, margin, verdict an
 from __future__ import annotations
 
 import argparse
+import io
 import math
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from .options import (
     add_pulse_width,
     typed_flag,
 )
+from .outputs import writing
 
 #: Exit statuses of ``timing`` beyond 0/1/2: the verdict a script can branch on.
 EXIT_OVERRUN = 3
@@ -129,8 +131,8 @@ def _sense_options(p: argparse.ArgumentParser) -> None:
         "--sense-current-ua",
         type=int,
         default=None,
-        help="sense pulse current in µA: the firmware stores the byte sent << 2, so 40 µA steps, ≤ 10200 "
-        "(default 0)",
+        help="sense pulse current in µA (default 0): v1.2 stores the byte sent << 2, so 40 µA steps up to "
+        "10200; v2 stores the byte itself, so 10 µA steps up to 2550",
     )
     p.add_argument(
         "--sense-height",
@@ -202,7 +204,11 @@ def _output_options(p: argparse.ArgumentParser) -> None:
         help="write BL, LE, POL, CLK, DIN, DAC, SEL (and ADC) of --cycles scans as a VCD (needs pyvcd)",
     )
     p.add_argument(
-        "--events", metavar="FILE", default=None, help="write the same scans as an event list (.csv or .json)"
+        "--events",
+        metavar="FILE",
+        default=None,
+        help="write the same scans as an event list (.csv or .json; on either version one row per signal "
+        "change: t_ns, t_us, kind, name, value)",
     )
     p.add_argument("--cycles", type=int, default=2, help="scans to trace for --vcd/--events (default 2)")
     p.add_argument(
@@ -212,12 +218,17 @@ def _output_options(p: argparse.ArgumentParser) -> None:
         help="draw a timing diagram of --cycles scans as a PNG: pulses per channel against time, the "
         "period and any overrun marked (needs the plot extra)",
     )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="write --vcd/--events traces estimated above 100 MB (refused without it, before any is "
+        "written; a long run prints its progress on stderr)",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
 
 
 def currents_from_ua(args: argparse.Namespace) -> None:
     """``--current-ua`` and ``--sense-current-ua`` (µA) as the codes the scan model takes."""
-    from tactdeform_hw.device.driver.config import sense_code
 
     from ..protocol.units import DEFAULT_TRANSFER
 
@@ -228,7 +239,29 @@ def currents_from_ua(args: argparse.Namespace) -> None:
     if args.current_ua is not None:
         args.pulse_height = DEFAULT_TRANSFER.to_code(args.current_ua, "current_ua")
     if args.sense_current_ua is not None:
-        args.sense_height = sense_code(args.sense_current_ua, DEFAULT_TRANSFER)
+        args.sense_height = sense_byte(args.sense_current_ua, getattr(args, "firmware", "v1.2"))
+
+
+def sense_byte(sense_current_ua: int, firmware: str) -> int:
+    """The 0xF9 byte of a sense current on ``firmware``: v1.2 stores ``byte << 2`` as the DAC code (40 µA
+    steps up to byte 255, 10200 µA), v2 stores the byte itself (10 µA steps up to 2550 µA).  The timing
+    model holds any byte the firmware holds, so the limit is the byte's, not the 10 mA stimulation
+    ceiling (nothing is sent to a participant here)."""
+    from ..protocol.constants import U8_MAX, Opcode
+    from ..protocol.firmware import V1_2, V2
+    from ..protocol.units import DEFAULT_TRANSFER, check_int
+
+    spec = V2 if firmware == "v2" else V1_2
+    step = 1 << spec.command(Opcode.SENSE_HEIGHT).shift
+    ua_per_byte = DEFAULT_TRANSFER.ua_per_code * step
+    top_ua = int(U8_MAX * ua_per_byte)
+    stored = "the byte sent << 2" if step > 1 else "the byte sent, unshifted"
+    limit = f"a multiple of {ua_per_byte:g} µA from 0 to {top_ua} µA (firmware {spec.name} stores {stored})"
+    value = check_int("--sense-current-ua", sense_current_ua, 0, 1 << 31, "µA")
+    byte = value / ua_per_byte
+    if not byte.is_integer() or value > top_ua:
+        raise LimitError("--sense-current-ua", sense_current_ua, limit)
+    return int(byte)
 
 
 def verdict_status(budget: Any) -> int:
@@ -302,9 +335,16 @@ def config_from_args(args: argparse.Namespace) -> Any:
 
 
 def trace_scans(
-    cfg: Any, model: Any, cycles: int, sinks: list[Any], board: str = "compact", switching_boards: int = 1
+    cfg: Any,
+    model: Any,
+    cycles: int,
+    sinks: list[Any],
+    board: str = "compact",
+    switching_boards: int = 1,
+    on_progress: Any = None,
 ) -> Any:
-    """Run ``cycles`` scans of ``cfg`` from power-on (registers set directly) into ``sinks``."""
+    """Run ``cycles`` scans of ``cfg`` from power-on (registers set directly) into ``sinks``;
+    ``on_progress(done, cycles)`` is called at every tenth of a long run (1000 scans or more)."""
     from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
     if not isinstance(cycles, int) or cycles < 1:
@@ -313,8 +353,13 @@ def trace_scans(
     for s in sinks:
         emu.attach(s)
     emu.configure(cfg)
+    step = max(1, cycles // 10) if cycles >= 1000 and on_progress is not None else 0
+    said = 0
     while emu.reports.scan_count() < cycles:
         emu.advance_to(emu.next_alarm / 1000.0 if math.isfinite(emu.next_alarm) else emu.now_us + 1e6)
+        if step and emu.reports.scan_count() >= said + step:
+            said = emu.reports.scan_count()
+            on_progress(said, cycles)
     # let the last scan finish
     emu.advance_to(max(emu.now_us, emu.runs[-1].end_ns / 1000.0))
     for s in sinks:
@@ -441,18 +486,32 @@ def _run_walker(args: argparse.Namespace) -> int:
     return 0
 
 
+def walker_event_rows(events: list[list[Any]]) -> list[dict[str, Any]]:
+    """The statement walker's ``[time_us, kind, pin, value]`` events in the format ``--events`` writes
+    on both versions: ``{"t_ns", "t_us", "kind", "name", "value"}``, as the v1.2 trace's rows are (kind
+    ``gpio`` with name ``GPIO<n>``, or ``dac`` with name ``DAC``), so one reader takes either."""
+    rows = []
+    for t_us, kind, pin, value in events:
+        t_ns = round(float(t_us) * 1000)
+        name = f"GPIO{pin}" if str(kind).upper() == "GPIO" else str(pin)
+        rows.append(
+            {"t_ns": t_ns, "t_us": t_ns / 1000, "kind": str(kind).lower(), "name": name, "value": value}
+        )
+    return rows
+
+
 def _write_walker_events(path: Path, fmt: str, events: list[list[Any]]) -> None:
     import json
 
-    try:
+    rows = walker_event_rows(events)
+    with writing("--events", path):
         if fmt == "json":
-            path.write_text(json.dumps(events) + "\n")
+            path.write_text("[\n" + ",\n".join(json.dumps(r) for r in rows) + ("\n]\n" if rows else "]\n"))
         else:
             path.write_text(
-                "time_us,kind,pin,value\n" + "".join(f"{t},{k},{p},{v}\n" for t, k, p, v in events)
+                "time_ns,time_us,kind,name,value\n"
+                + "".join(f"{r['t_ns']},{r['t_us']:.3f},{r['kind']},{r['name']},{r['value']}\n" for r in rows)
             )
-    except OSError as exc:
-        raise ConfigurationError(f"--events {str(path)!r}: cannot write: {exc}") from exc
 
 
 def run(args: argparse.Namespace) -> int:
@@ -555,6 +614,16 @@ def _write_traces(args: argparse.Namespace, cfg: Any, model: Any) -> list[str]:
         return []
     from tactdeform_hw.emulator.records.trace import CsvSink, JsonSink, VcdSink
 
+    from .common import progress
+
+    estimate = trace_bytes(args, cfg, model)
+    if estimate > TRACE_LIMIT_BYTES and not args.force:
+        raise ConfigurationError(
+            f"--cycles {args.cycles}: the traces would take about {estimate / 1e6:.0f} MB (more than "
+            f"{TRACE_LIMIT_BYTES / 1e6:.0f} MB); give fewer --cycles, or --force to write them"
+        )
+    if args.cycles >= 1000:
+        progress(f"timing: tracing {args.cycles} scans, about {estimate / 1e6:.1f} MB")
     sinks: list[Any] = []
     paths: list[str] = []
     if args.vcd:
@@ -563,8 +632,50 @@ def _write_traces(args: argparse.Namespace, cfg: Any, model: Any) -> list[str]:
     if args.events:
         sinks.append(CsvSink(args.events) if _events_format(args.events) == "csv" else JsonSink(args.events))
         paths.append(args.events)
-    trace_scans(cfg, model, args.cycles, sinks, args.board, args.switching_boards)
+    with writing("/".join(f"--{k}" for k in ("vcd", "events") if getattr(args, k)), " ".join(paths)):
+        trace_scans(
+            cfg,
+            model,
+            args.cycles,
+            sinks,
+            args.board,
+            args.switching_boards,
+            on_progress=lambda done, total: progress(f"timing: {done}/{total} scans traced"),
+        )
     return paths
+
+
+#: Above this many bytes of traces (``--vcd`` and ``--events`` together) ``timing`` refuses unless
+#: ``--force``: a long ``--cycles`` fills a disk in minutes.
+TRACE_LIMIT_BYTES = 100_000_000
+
+
+class _Kept(io.StringIO):
+    """A text buffer the trace sinks may close without losing what they wrote."""
+
+    def close(self) -> None:
+        pass
+
+
+def trace_bytes(args: argparse.Namespace, cfg: Any, model: Any) -> int:
+    """About the size the ``--vcd`` and ``--events`` files will have (erring large): one and two scans
+    traced into memory, the second scan's bytes counted once per further scan (every scan of one
+    configuration writes the same events)."""
+    from tactdeform_hw.emulator.records.trace import CsvSink, JsonSink, VcdSink
+
+    sizes = []
+    for cycles in (1, 2):
+        bufs = [_Kept() for _ in range(2)]
+        sinks: list[Any] = []
+        if args.vcd:
+            sinks.append(VcdSink(bufs[0]))
+        if args.events:
+            kind = CsvSink if _events_format(args.events) == "csv" else JsonSink
+            sinks.append(kind(bufs[1]))
+        trace_scans(cfg, model, cycles, sinks, args.board, args.switching_boards)
+        sizes.append(sum(len(b.getvalue().encode()) for b in bufs))
+    # later scans' times have more digits: a quarter more errs on the large side
+    return int((sizes[0] + max(0, sizes[1] - sizes[0]) * (int(args.cycles) - 1)) * 1.25)
 
 
 def _latency_table(lat: dict[str, Any]) -> str:

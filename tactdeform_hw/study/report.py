@@ -190,7 +190,8 @@ def summary_json(result: StudyRun, design: list[Check]) -> dict[str, Any]:
         "failed_checks": dict(sorted(failed_checks.items())),
         "not_checked": dict(sorted(unchecked.items())),
         "design_ok": design_ok,
-        "all_passed": bool(ran) and not failed and design_ok,
+        # a skipped trial's checks never ran: the study did not pass them
+        "all_passed": bool(ran) and not failed and design_ok and len(ran) == len(result.trials),
         "poses": sum(len(r.poses) for r in ran),
         "frames_sent": sum(int(r.summary.get("frames_sent", 0)) for r in ran),
         "pattern_buffer_mismatches": sum(int(r.summary.get("mismatches", 0)) for r in ran),
@@ -235,7 +236,13 @@ def report_json(result: StudyRun, design: list[Check]) -> dict[str, Any]:
 def markdown(report: dict[str, Any]) -> str:
     s = report["summary"]
     study = report["study"]
-    verdict = "PASSED" if s["all_passed"] else "FAILED"
+    verdict = (
+        "PASSED"
+        if s["all_passed"]
+        else "INCOMPLETE"
+        if s["skipped"] and not s["failed"] and s["design_ok"]
+        else "FAILED"
+    )
     lines = [
         f"# {study['title']}",
         "",
@@ -249,8 +256,8 @@ def markdown(report: dict[str, Any]) -> str:
         f"{s['poses']} poses at {report['rate_hz']:g} Hz ({s['session_s']:.1f} s of session), "
         f"{s['frames_sent']} frames sent, {s['pattern_buffer_mismatches']} pattern-buffer mismatch(es), "
         f"{s['emulator_hazards']} emulator hazard(s), {s['timing_hazards']} timing hazard(s); max "
-        f"{s['max_current_ua']} µA, {s['total_charge_nc']} nC delivered in all; {s['wall_s']:.1f} s wall "
-        "time.",
+        # no wall time: it differs from run to run, and the report of a seeded study must not
+        f"{s['max_current_ua']} µA, {s['total_charge_nc']} nC delivered in all.",
         "",
     ]
     for c in report["design_checks"]:
@@ -468,6 +475,104 @@ def _trial_gif(run: TrialRun, result: StudyRun, path: Path, out: Path) -> dict[s
 
 
 # --- writing ---------------------------------------------------------------------------------------------
+
+
+#: What a study writes in its ``--out`` directory (an earlier report's entries, cleared by ``--force``).
+REPORT_ENTRIES = ("report.json", "summary.md", "trials.jsonl", "frames", "pictures")
+
+
+def earlier_report(out: str | Path) -> list[str]:
+    """The entries of an earlier study's report in ``out`` (none when the directory is new or empty of
+    them)."""
+    root = Path(out)
+    return [name for name in REPORT_ENTRIES if (root / name).exists()]
+
+
+def clear_earlier_report(out: str | Path) -> list[str]:
+    """Remove an earlier report's entries from ``out`` (only those: other files stay), so the new report
+    never sits beside an old trial's frames or pictures; the names removed."""
+    import shutil
+
+    root = Path(out)
+    removed = earlier_report(root)
+    for name in removed:
+        path = root / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        else:
+            path.unlink()
+    return removed
+
+
+class TrialLog:
+    """Each trial's results written as soon as it has run: its frames in ``frames/ID.jsonl`` and one line
+    of ``trials.jsonl`` (index, id, condition, poses, frames sent, mismatches, or why it was skipped).  A
+    study stopped half-way (Ctrl-C) keeps every trial that ran, and :meth:`interrupted` writes a partial
+    ``report.json`` and ``summary.md`` saying which trials ran and which did not."""
+
+    def __init__(self, out: str | Path, study: Any) -> None:
+        self.root = Path(out)
+        self.study = study
+        self.done: list[TrialRun] = []
+        self.root.mkdir(parents=True, exist_ok=True)
+        (self.root / "frames").mkdir(exist_ok=True)
+        self._lines = self.root / "trials.jsonl"
+        self._lines.write_text("", encoding="utf-8")
+
+    def __call__(self, run: TrialRun) -> None:
+        self.done.append(run)
+        entry: dict[str, Any] = {
+            "index": run.trial.index,
+            "id": run.trial.id,
+            "condition": run.trial.condition,
+        }
+        if run.skipped is not None:
+            entry["skipped"] = run.skipped
+        else:
+            path = self.root / "frames" / f"{run.trial.id}.jsonl"
+            path.write_text("\n".join(frames_lines(run)) + "\n", encoding="utf-8")
+            entry.update(
+                {
+                    "poses": len(run.poses),
+                    "frames_sent": int(run.summary.get("frames_sent", 0)),
+                    "mismatches": int(run.summary.get("mismatches", 0)),
+                    "frames_file": str(path.relative_to(self.root)),
+                }
+            )
+        with self._lines.open("a", encoding="utf-8") as f:
+            f.write(json.dumps(entry, default=_json_default) + "\n")
+
+    def interrupted(self, why: str) -> dict[str, Any]:
+        """The partial report of a study that did not finish: which trials ran, which did not."""
+        ran = [r.trial.id for r in self.done if r.skipped is None]
+        skipped = [r.trial.id for r in self.done if r.skipped is not None]
+        done_ids = {r.trial.id for r in self.done}
+        not_run = [t.id for t in self.study.trials if t.id not in done_ids]
+        report = {
+            "format": REPORT_FORMAT,
+            "version": REPORT_VERSION,
+            "complete": False,
+            "interrupted": why,
+            "study": self.study.to_json(),
+            "trials_run": ran,
+            "trials_skipped": skipped,
+            "trials_not_run": not_run,
+            "trials_file": "trials.jsonl",
+        }
+        (self.root / "report.json").write_text(json.dumps(report, indent=1) + "\n", encoding="utf-8")
+        lines = [
+            f"# {self.study.title}",
+            "",
+            f"**INTERRUPTED** ({why}) after {len(self.done)} of {len(self.study.trials)} trial(s): no checks "
+            "were made. Each trial that ran is in `trials.jsonl` and its frames in `frames/`.",
+            "",
+            f"- ran: {', '.join(ran) or 'none'}",
+        ]
+        if skipped:
+            lines.append(f"- skipped: {', '.join(skipped)}")
+        lines.append(f"- not run: {', '.join(not_run) or 'none'}")
+        (self.root / "summary.md").write_text("\n".join(lines) + "\n", encoding="utf-8")
+        return report
 
 
 def write_report(

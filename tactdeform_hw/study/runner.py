@@ -43,7 +43,15 @@ from ..render.array import ElectrodeArray
 from ..render.manager import ManagerConfig
 from ..render.patterns import PatternSet
 from ..render.pipeline import FrameRecord
-from ..render.scene import BUNNY_FILE, RenderOptions, Scene, find_mesh_file, load_scene
+from ..render.scene import (
+    BUNNY_FILE,
+    MESH_DIR_ENV,
+    RenderOptions,
+    Scene,
+    find_mesh_file,
+    load_scene,
+    mesh_search_dirs,
+)
 from ..render.tracking import Pose, PoseValidator, slerp
 from ..render.trajectories import make_trajectory, scene_for_trajectory
 from .scenarios import START_DISTANCE_MM, Segment, Study, Trial
@@ -362,11 +370,18 @@ def _skip_missing_meshes(study: Study, runs: list[TrialRun], mesh_dirs: Sequence
         try:
             path = find_mesh_file(BUNNY_FILE, mesh_dirs)
             notes.append(f"bunny mesh: {path}")
-        except ConfigurationError as exc:
+        except ConfigurationError:
+            # the scene's own message names ``--scene``, which a study does not have: say what a study
+            # takes (the folders searched, the environment variable)
+            where = ", ".join(str(d) for d in mesh_search_dirs(mesh_dirs))
+            why = (
+                f"mesh {BUNNY_FILE!r} not found (looked in {where}); put it in one of those folders or set "
+                f"{MESH_DIR_ENV} to the folder that holds it"
+            )
             for r in runs:
                 if r.trial.scene == "bunny":
-                    r.skipped = f"Stanford bunny not available: {exc}"
-            notes.append(f"bunny trials skipped: {exc}")
+                    r.skipped = f"Stanford bunny not available: {why}"
+            notes.append(f"bunny trials skipped: {why}")
     return notes
 
 
@@ -485,24 +500,27 @@ def _run_trials(
     study: Study,
     runs: list[TrialRun],
     scenes: _Scenes,
-    *,
     rate_hz: float,
     tremor_mm: float,
     say: ProgressFn,
+    on_trial: Callable[[TrialRun], None] | None = None,
 ) -> None:
-    """Every trial in order on the live session, saying how each went (a skipped one says why)."""
+    """Every trial in order on the live session, saying how each went (a skipped one says why);
+    ``on_trial`` gets each trial as soon as it is done, so an interrupted study keeps what ran."""
     for run in runs:
         trial = run.trial
         head = f"study {study.name}: trial {trial.index}/{len(runs)} {trial.condition}"
         if run.skipped is not None:
             say(f"{head}: skipped ({run.skipped})")
-            continue
-        _run_trial(live, run, scenes, rate_hz=rate_hz, seed=study.seed, tremor_mm=tremor_mm)
-        ok = run.summary.get("mismatches", 0) == 0
-        say(
-            f"{head}: {len(run.poses)} poses, {run.summary.get('frames_sent', 0)} frames sent"
-            f"{'' if ok else ', MISMATCH'} ({run.wall_s:.2f} s)"
-        )
+        else:
+            _run_trial(live, run, scenes, rate_hz=rate_hz, seed=study.seed, tremor_mm=tremor_mm)
+            ok = run.summary.get("mismatches", 0) == 0
+            say(
+                f"{head}: {len(run.poses)} poses, {run.summary.get('frames_sent', 0)} frames sent"
+                f"{'' if ok else ', MISMATCH'} ({run.wall_s:.2f} s)"
+            )
+        if on_trial is not None:
+            on_trial(run)
 
 
 def _check_rate(rate_hz: Any) -> None:
@@ -548,6 +566,7 @@ def run_study(
     realtime: bool = False,
     firmware: str = "auto",
     session: Any = None,
+    on_trial: Callable[[TrialRun], None] | None = None,
 ) -> StudyRun:
     """Run every trial of ``study`` on one device session; return the raw results (see :mod:`.checks`
     and :mod:`.report` for what is made of them).
@@ -559,7 +578,7 @@ def run_study(
     (``profile.stimulation_ua``), else to :data:`NOMINAL_EMULATOR_UA` on the emulator and 0 (patterns
     only) on a real device.  ``realtime`` paces every pose to the session clock (a real device then shows
     each trial at its real speed); otherwise the run goes as fast as it can, which changes nothing the
-    checks look at: the timed replay restores the session's timing."""
+    checks look at: the timed replay restores the session's timing.  ``on_trial`` gets each trial done."""
     from ..clock import SimulatedClock
 
     say = progress or (lambda _msg: None)
@@ -585,7 +604,7 @@ def run_study(
         stim = _stim_config(session, current)
         sim_clock = dev.pacer.clock if isinstance(dev.pacer.clock, SimulatedClock) else None
         live = _Live(session, dev, tap, sim_clock, cfg, current, stim, realtime)
-        _run_trials(live, study, runs, scenes, rate_hz=rate_hz, tremor_mm=tremor_mm, say=say)
+        _run_trials(live, study, runs, scenes, rate_hz, tremor_mm, say, on_trial)
         tap.mark(t_s=live.session_t, trial=0, phase="session")
         if not dev.closed and dev.config is not None:
             dev.all_off()
