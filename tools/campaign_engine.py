@@ -124,8 +124,8 @@ def run_chunk(job: Job, k: int) -> tuple[int, Any]:
     """Run chunk ``k`` of ``job`` (in whatever process runs it) and return ``(k, tally)``."""
     if job.fingerprint and job.fingerprint != fingerprint():
         raise EngineError(
-            f"worker {os.getpid()} runs other code (fingerprint {fingerprint()}, the run's {job.fingerprint}):"
-            " install the same tactdeform_hw on every worker"
+            f"worker {os.getpid()} runs other code (fingerprint {fingerprint()}, the run's "
+            f"{job.fingerprint}): install the same tactdeform_hw on every worker"
         )
     first, count = job.span(k)
     fn = getattr(importlib.import_module(job.module), job.function)

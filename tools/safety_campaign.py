@@ -61,6 +61,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import campaign_engine as engine  # noqa: E402
+
 from tactdeform_hw.device import EtactileKitDevice, StimConfig  # noqa: E402
 from tactdeform_hw.device.driver.pacing import estimate_scan_us, firmware_period_us  # noqa: E402
 from tactdeform_hw.device.safety.guard import SafetyGuard  # noqa: E402
@@ -69,7 +71,6 @@ from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind  # noqa: 
 from tactdeform_hw.emulator.firmware.scan import PulseKind  # noqa: E402
 from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator  # noqa: E402
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2  # noqa: E402
-import campaign_engine as engine  # noqa: E402
 from tactdeform_hw.errors import (  # noqa: E402
     ConfigurationError,
     MissingDependencyError,
@@ -1059,7 +1060,9 @@ def _main(argv: list[str] | None = None) -> int:
     summaries: list[dict[str, Any]] = []
     for fw in firmwares:
         t0 = time.perf_counter()
-        job = campaign_job(a.sessions, seed=a.seed, faults=a.faults, first=a.first, firmware=fw, chunk=a.chunk)
+        job = campaign_job(
+            a.sessions, seed=a.seed, faults=a.faults, first=a.first, firmware=fw, chunk=a.chunk
+        )
         summary = engine.run(job, jobs=a.jobs, cluster=a.cluster, progress=True).summary()
         where = {"jobs": a.jobs} if a.cluster is None else {"cluster": a.cluster}
         summary.update({"seed": a.seed, **where, "wall_s": round(time.perf_counter() - t0, 3)})
