@@ -53,6 +53,8 @@ from tactdeform_hw.errors import ConfigurationError, MissingDependencyError, Tac
 DEFAULT_CHUNK = 50
 #: How many times a chunk whose worker died is submitted again before the run gives up.
 CHUNK_ATTEMPTS = 4
+#: How long a run waits for a remote scheduler to answer.
+CONNECT_TIMEOUT_S = 10.0
 #: Tool files a cluster's workers need beside the installed package (uploaded to them).
 TOOL_FILES = ("campaign_engine.py", "safety_campaign.py", "seam_sessions.py", "exhaustive_campaign.py")
 
@@ -258,7 +260,7 @@ def _connect(spec: str) -> tuple[Any, Any]:
         )
         return distributed.Client(cluster), cluster
     try:
-        client = distributed.Client(str(where), timeout="10s")
+        client = distributed.Client(str(where), timeout=f"{CONNECT_TIMEOUT_S}s")
     except OSError as exc:
         raise EngineError(f"--cluster {spec}: no Dask scheduler answered at {where} ({exc})") from exc
     for name in TOOL_FILES:  # the workers have the package; the tools travel with the run

@@ -1044,6 +1044,11 @@ def _main(argv: list[str] | None = None) -> int:
         ap.error(f"--jobs must be at least 1 (got {a.jobs})")
     if a.chunk < 1:
         ap.error(f"--chunk must be at least 1 (got {a.chunk})")
+    if a.cluster is not None:
+        try:
+            engine.parse_cluster(a.cluster)
+        except ConfigurationError as exc:
+            ap.error(str(exc))
     if a.seams:
         import seam_sessions
 
