@@ -1,5 +1,6 @@
-"""The campaign engine without a cluster: chunk tallies merge into the figures of one run, in any order
-and once each; progress on stderr; a missing Dask is one line naming the extra (``tools/campaign_engine.py``)."""
+"""The campaign engine without a cluster (``tools/campaign_engine.py``): chunk tallies merge into the
+figures of one run, in any order and once each; progress on stderr; a missing Dask is one line naming the
+extra."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import campaign_engine as engine  # noqa: E402
 import safety_campaign as sc  # noqa: E402
+
+from tactdeform_hw.errors import ConfigurationError  # noqa: E402
 
 #: Fields that are run times, not figures.
 TIMES = ("session_s", "ms_per_session")
@@ -89,13 +92,13 @@ def test_a_missing_dask_is_one_line_naming_the_extra(
     [("local:0", "N >= 1"), ("local:x", "N >= 1"), ("dask://nohost", "HOST:PORT"), ("tcp://a:1", "local:N")],
 )
 def test_a_malformed_cluster_is_refused_by_name(spec: str, says: str) -> None:
-    with pytest.raises(sc.ConfigurationError, match=says) as exc:
+    with pytest.raises(ConfigurationError, match=says) as exc:
         engine.parse_cluster(spec)
     assert spec in str(exc.value)
 
 
 def test_an_empty_campaign_is_refused() -> None:
-    with pytest.raises(sc.ConfigurationError, match="at least 1"):
+    with pytest.raises(ConfigurationError, match="at least 1"):
         engine.run(sc.campaign_job(0), jobs=1)
 
 
