@@ -74,6 +74,32 @@ class Tally(Protocol):
     def merge(self, other: Any) -> None: ...
 
 
+@dataclass
+class Results:
+    """A tally that keeps every item's result (a campaign whose summary needs them all, such as the seam
+    sessions): merged by concatenation, read in index order (:meth:`ordered`)."""
+
+    rows: list[Any]
+
+    @property
+    def items(self) -> int:
+        return len(self.rows)
+
+    @property
+    def pulses(self) -> int:
+        return sum(int(getattr(r, "pulses", 0)) for r in self.rows)
+
+    @property
+    def failed(self) -> int:
+        return sum(1 for r in self.rows if not r.ok)
+
+    def merge(self, other: Results) -> None:
+        self.rows.extend(other.rows)
+
+    def ordered(self) -> list[Any]:
+        return sorted(self.rows, key=lambda r: int(r.index))
+
+
 @dataclass(frozen=True)
 class Job:
     """A campaign cut into chunks: ``module.function(*args, first, count)`` runs items ``first ..
