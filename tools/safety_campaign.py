@@ -1006,8 +1006,9 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--firmware",
         choices=(*FIRMWARES, "both"),
-        default="v1.2",
-        help="firmware the emulated board runs and the driver speaks (default v1.2; both: each in turn)",
+        default=None,
+        help="firmware the emulated board runs and the driver speaks (default v1.2, --exhaustive both; "
+        "both: each in turn)",
     )
     ap.add_argument(
         "--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: every core)"
@@ -1036,6 +1037,15 @@ def _main(argv: list[str] | None = None) -> int:
         help="sessions at the seams between programs, firmware versions, links and calibration files "
         "(tools/seam_sessions.py); --firmware and --faults do not apply",
     )
+    ap.add_argument(
+        "--exhaustive",
+        action="store_true",
+        help="every sequence of up to --depth calls from a small domain, from every start state, on the "
+        "firmware(s) (tools/exhaustive_campaign.py); --sessions and --faults do not apply",
+    )
+    ap.add_argument(
+        "--depth", type=int, default=4, help="--exhaustive: the longest sequence of calls (default 4)"
+    )
     a = ap.parse_args(argv)
     logging.disable(logging.WARNING)  # the guard logs each refusal; the summary counts them
     if a.sessions < 1:
@@ -1053,6 +1063,13 @@ def _main(argv: list[str] | None = None) -> int:
         import seam_sessions
 
         return seam_sessions.main(a)
+    if a.exhaustive:
+        if a.depth < 0:
+            ap.error(f"--depth must be at least 0 (got {a.depth})")
+        import exhaustive_campaign
+
+        return exhaustive_campaign.main(a)
+    a.firmware = a.firmware or "v1.2"
     firmwares = FIRMWARES if a.firmware == "both" else (a.firmware,)
     if a.only is not None:
         rows = [run_session(a.only, a.seed, a.faults, fw) for fw in firmwares]
