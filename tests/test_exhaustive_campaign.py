@@ -86,8 +86,6 @@ def test_a_limit_raised_behind_the_guards_check_fails_the_slice(monkeypatch: pyt
     f = s["failures"][0]
     assert "pulses above the limit" in f["why"]
     assert f["sequence"].startswith("v2 from stimulating: set_current")
-        "v2 from stimulating: set_current"
-    )
     replay = "python tools/safety_campaign.py --exhaustive --depth 2 --firmware v2 --only"
     assert f["reproduce"] == f"{replay} {f['index']}"
 
