@@ -98,3 +98,14 @@ def test_an_unreachable_scheduler_is_one_line(monkeypatch: pytest.MonkeyPatch) -
     monkeypatch.setattr(engine, "CONNECT_TIMEOUT_S", 1.0)
     with pytest.raises(engine.EngineError, match="no Dask scheduler answered at tcp://127.0.0.1:9"):
         engine.run(sc.campaign_job(2, seed=0), cluster="dask://127.0.0.1:9")
+
+
+def test_the_exhaustive_enumeration_on_a_local_cluster_gives_the_figures_of_one_core(
+    worker_path: None,
+) -> None:
+    import exhaustive_campaign as ex
+
+    job = ex.job(1, ("v1.2",), chunk=8)
+    one = engine.run(job, jobs=1).summary()
+    assert one["sequences"] == 60 and one["failed_sequences"] == 0
+    assert engine.run(job, cluster="local:2").summary() == one
