@@ -277,13 +277,18 @@ def _connect(spec: str) -> tuple[Any, Any]:
         # workers are spawned processes: they find the package under test and the tools by PYTHONPATH
         path = [str(ROOT), str(TOOLS), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
         os.environ["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(path))
-        cluster = distributed.LocalCluster(
-            n_workers=int(where),
-            threads_per_worker=1,
-            processes=True,
-            dashboard_address=None,
-            silence_logs=50,
-        )
+        import dask
+
+        # the workers' statistical profiler samples the running session's stack every 10 ms, under the
+        # GIL: it doubled a session's run time; a cluster's own workers are configured by their owner
+        with dask.config.set({"distributed.worker.profile.enabled": False}):
+            cluster = distributed.LocalCluster(
+                n_workers=int(where),
+                threads_per_worker=1,
+                processes=True,
+                dashboard_address=None,
+                silence_logs=50,
+            )
         return distributed.Client(cluster), cluster
     try:
         client = distributed.Client(str(where), timeout=f"{CONNECT_TIMEOUT_S}s")
