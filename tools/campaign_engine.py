@@ -333,7 +333,10 @@ def _run_dask(job: Job, spec: str, merger: Merger, on_accept: Callable[[int, Any
             if fut.status == "error":
                 exc = fut.exception()
                 if not _lost(exc) or attempts[k] >= CHUNK_ATTEMPTS:
-                    raise EngineError(f"chunk {k} ({job.unit} {job.span(k)}) failed: {exc}") from exc
+                    first, n = job.span(k)
+                    raise EngineError(
+                        f"chunk {k} ({job.unit} {first}-{first + n - 1}) failed: {exc}"
+                    ) from exc
                 if k not in merger.accepted:
                     submit(k)  # its worker died: run it again elsewhere
                 continue
