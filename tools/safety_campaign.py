@@ -1,7 +1,13 @@
 """Random sessions of public ``Device`` calls on the timed emulator, judged on the pulses it delivered.
 
     python tools/safety_campaign.py --sessions 2000 [--firmware v1.2|v2|both] [--faults] [--jobs J] [--seed S]
-        [--json]
+        [--json] [--cluster dask://HOST:PORT|local:N] [--chunk C]
+    python tools/safety_campaign.py --exhaustive [--depth 4] [--firmware v1.2|v2|both] (exhaustive_campaign)
+    python tools/safety_campaign.py --seams --sessions 3000                            (seam_sessions)
+
+The sessions run in fixed chunks by index (``tools/campaign_engine.py``) on this process, on ``--jobs``
+worker processes or on a Dask cluster's workers (``--cluster``, the ``[cluster]`` extra); the figures are
+the same whatever runs them.
 
 Each session is drawn from its own seed (``seed * 1_000_003 + index``), so a run is deterministic for a
 seed and any session can be replayed alone (``--only INDEX``).  A session picks a link (USB full speed or
