@@ -34,8 +34,9 @@ random campaign's sessions and run on ``--jobs`` or ``--cluster`` with the same 
 The verdict, on the delivered pulses alone: no pulse above the session's limit (the cap, whatever the
 guard believes: the judge does not ask the guard), and no stimulation pulse on an electrode the host had
 switched off for longer than the settle time (``safety_campaign.SETTLE_S``).  Hazards the emulated board
-recorded are counted by kind beside the verdict (v1.2's torn patterns are the random campaign's open
-defects), not judged here.
+recorded are counted by kind beside the verdict, with the bytes lost in the device's receive queue and the
+defects (the hazards the random campaign judges: every kind not designed on that firmware, such as v1.2's
+torn patterns); they are reported, not judged here.
 """
 
 from __future__ import annotations
@@ -308,6 +309,9 @@ class ExhaustiveTally:
     errors: int = 0
     max_stim_ua: float = 0.0
     hazards: dict[str, int] = field(default_factory=dict)
+    lost_bytes: int = 0  # bytes lost in the device's receive queue (counted, not judged here)
+    defect_sequences: int = 0  # sequences that hit a hazard not designed on their firmware
+    defects: dict[str, int] = field(default_factory=dict)  # records per kind, per firmware
     failures: list[tuple[int, dict[str, Any]]] = field(default_factory=list)
 
     def add(self, r: sc.SessionResult) -> None:
@@ -319,6 +323,9 @@ class ExhaustiveTally:
         self.refusals += sum(1 for e in r.errors if e.split(": ")[1:2] and e.split(": ")[1] in _REFUSALS)
         self.max_stim_ua = max(self.max_stim_ua, r.max_stim_ua)
         sc._add_counts(self.hazards, r.hazard_counts)
+        self.lost_bytes += r.lost_bytes
+        self.defect_sequences += bool(r.defects)
+        sc._add_counts(self.defects, {f"{r.firmware} {k}": n for k, n in r.defect_counts.items()})
         if _failed(r):
             self.failed += 1
             why = r.failure() or "; ".join(e for e in r.errors if e.startswith("CRASH"))
@@ -334,8 +341,11 @@ class ExhaustiveTally:
     def merge(self, o: ExhaustiveTally) -> None:
         for name in ("items", "failed", "pulses", "over_limit", "meant_off", "refusals", "errors"):
             setattr(self, name, getattr(self, name) + getattr(o, name))
+        self.lost_bytes += o.lost_bytes
+        self.defect_sequences += o.defect_sequences
         self.max_stim_ua = max(self.max_stim_ua, o.max_stim_ua)
         sc._add_counts(self.hazards, o.hazards)
+        sc._add_counts(self.defects, o.defects)
         self.failures = sorted(self.failures + o.failures, key=lambda f: f[0])[: sc.LISTED_FAILURES]
 
     def summary(self) -> dict[str, Any]:
@@ -355,6 +365,9 @@ class ExhaustiveTally:
             "refused_calls": self.refusals,
             "caller_errors": self.errors,
             "hazards_by_kind": dict(sorted(self.hazards.items())),
+            "bytes_lost": self.lost_bytes,
+            "defect_sequences": self.defect_sequences,
+            "defects_by_firmware_and_kind": dict(sorted(self.defects.items())),
             "failures": [row for _, row in self.failures],
         }
 
