@@ -98,7 +98,7 @@ def test_a_pattern_that_reaches_electrodes_meant_off_fails_the_slice(
     def every_electrode_on(session: ex.ExhaustiveSession) -> Any:
         dev = opened(session)
         send = dev.send_pattern
-        dev.send_pattern = lambda levels: send([1 if any(levels) else 0] * len(levels))  # type: ignore[method-assign]
+        monkeypatch.setattr(dev, "send_pattern", lambda levels: send([1 if any(levels) else 0] * len(levels)))
         return dev
 
     monkeypatch.setattr(ex.ExhaustiveSession, "_new_device", every_electrode_on)
