@@ -46,6 +46,7 @@ SLOW = frozenset(
     {
         "benchmarks",
         "conformance",
+        "test_campaign_cluster.py",
         "test_identification_seams.py",
         "test_live_tools.py",
         "test_safety_campaign.py",

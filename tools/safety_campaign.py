@@ -1,7 +1,13 @@
 """Random sessions of public ``Device`` calls on the timed emulator, judged on the pulses it delivered.
 
     python tools/safety_campaign.py --sessions 2000 [--firmware v1.2|v2|both] [--faults] [--jobs J] [--seed S]
-        [--json]
+        [--json] [--cluster dask://HOST:PORT|local:N] [--chunk C]
+    python tools/safety_campaign.py --exhaustive [--depth 4] [--firmware v1.2|v2|both] (exhaustive_campaign)
+    python tools/safety_campaign.py --seams --sessions 3000                            (seam_sessions)
+
+The sessions run in fixed chunks by index (``tools/campaign_engine.py``) on this process, on ``--jobs``
+worker processes or on a Dask cluster's workers (``--cluster``, the ``[cluster]`` extra); the figures are
+the same whatever runs them.
 
 Each session is drawn from its own seed (``seed * 1_000_003 + index``), so a run is deterministic for a
 seed and any session can be replayed alone (``--only INDEX``).  A session picks a link (USB full speed or
@@ -51,13 +57,17 @@ import sys
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
+from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-# the package beside this tool, not an installed one
+# the package beside this tool, not an installed one; and the tools beside it (the campaign engine)
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import campaign_engine as engine  # noqa: E402
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig  # noqa: E402
 from tactdeform_hw.device.driver.pacing import estimate_scan_us, firmware_period_us  # noqa: E402
@@ -69,6 +79,7 @@ from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator  # noqa: E402
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2  # noqa: E402
 from tactdeform_hw.errors import (  # noqa: E402
     ConfigurationError,
+    MissingDependencyError,
     ProtocolMisuseError,
     SafetyError,
     TactDeformError,
@@ -751,77 +762,195 @@ def run_campaign(
     return out
 
 
-def _defects_by_kind(results: list[SessionResult]) -> dict[str, int]:
-    """Records of each kind of defect over the sessions (in a fault run, what the faults caused: those
-    sessions are judged on their recovery instead)."""
-    out: dict[str, int] = {}
+#: Failed sessions a summary lists (those of lowest index), with the command that replays each.
+LISTED_FAILURES = 20
+
+
+@dataclass
+class CampaignTally:
+    """Everything :func:`summarize` reports, of any set of sessions, merged exactly and in any order:
+    counts are integers, sums of seconds are exact (fractions, rounded once at the end), and the failures
+    listed are those of lowest index.  So a campaign cut into chunks — run on one core, on ``--jobs``
+    processes or on a cluster's workers, completing in any order — gives the figures of one run."""
+
+    faults: bool = False
+    items: int = 0  # sessions
+    failed: int = 0
+    failures: list[tuple[int, dict[str, Any]]] = field(default_factory=list)  # (index, row), lowest first
+    firmwares: set[str] = field(default_factory=set)
+    links: dict[str, int] = field(default_factory=lambda: {"usb": 0, "uart": 0})
+    robust: int = 0
+    biphasic: int = 0
+    regions: int = 0
+    cap: int = 0
+    sense: int = 0
+    electrodes_min: int | None = None
+    electrodes_max: int | None = None
+    calls: dict[str, int] = field(default_factory=dict)
+    pulses: int = 0
+    dropouts: int = 0
+    over_limit: int = 0
+    meant_off: int = 0
+    lost_bytes: int = 0
+    defects_hit: set[str] = field(default_factory=set)
+    defects_by_kind: dict[str, int] = field(default_factory=dict)
+    defect_sessions: int = 0
+    hazards: set[str] = field(default_factory=set)
+    caller_errors: int = 0
+    sim_s: Fraction = Fraction(0)
+    wall_s: Fraction = Fraction(0)
+    injected: int = 0
+    survived: int = 0
+    fault_kinds: set[str] = field(default_factory=set)
+    longest_wrong_s: float = 0.0
+    recovery_bound_s: float = 0.0
+    unexplained: int = 0
+    unreported: int = 0
+    repaired: int = 0
+    absorbed: int = 0
+
+    def add(self, r: SessionResult) -> None:
+        """Count one session."""
+        self.items += 1
+        if not r.ok:
+            self.failed += 1
+            row = {"index": r.index, "seed": r.campaign_seed, "why": r.failure(), "reproduce": r.reproduce()}
+            self._keep_failures([(r.index, row)])
+        self.firmwares.add(r.firmware)
+        self.links[r.link] = self.links.get(r.link, 0) + 1
+        self.robust += r.robust
+        self.biphasic += r.biphasic
+        self.regions += r.regions
+        self.cap += r.cap_ua is not None
+        self.sense += bool(r.allowed_sense_ua)
+        lo, hi = self.electrodes_min, self.electrodes_max
+        self.electrodes_min = r.electrodes if lo is None else min(lo, r.electrodes)
+        self.electrodes_max = r.electrodes if hi is None else max(hi, r.electrodes)
+        for c in r.calls:
+            key = "wait" if c.startswith("wait") else c
+            self.calls[key] = self.calls.get(key, 0) + 1
+        self.pulses += r.pulses
+        self.dropouts += r.dropouts
+        self.over_limit += r.over_limit
+        self.meant_off += r.meant_off
+        self.lost_bytes += r.lost_bytes
+        self.defects_hit.update(r.defects)
+        _add_counts(self.defects_by_kind, r.defect_counts)
+        self.defect_sessions += bool(r.defects)
+        self.hazards.update(r.hazards)
+        self.caller_errors += len(r.errors)
+        self.sim_s += Fraction(r.sim_s)
+        self.wall_s += Fraction(r.wall_s)
+        self.injected += len(r.faults)
+        self.survived += r.faults_survived
+        self.fault_kinds.update(r.faults)
+        self.longest_wrong_s = max(self.longest_wrong_s, r.wrong_after_fault_s)
+        self.recovery_bound_s = max(self.recovery_bound_s, r.recovery_bound_s)
+        self.unexplained += r.unexplained
+        self.unreported += r.unreported_lost_bytes
+        self.repaired += r.repaired_lost_bytes
+        self.absorbed += r.absorbed_lost_bytes
+
+    def _keep_failures(self, rows: list[tuple[int, dict[str, Any]]]) -> None:
+        self.failures = sorted(self.failures + rows, key=lambda f: f[0])[:LISTED_FAILURES]
+
+    def merge(self, o: CampaignTally) -> None:
+        """Add another tally (of other sessions) to this one."""
+        self.faults = self.faults or o.faults
+        self.items += o.items
+        self.failed += o.failed
+        self._keep_failures(o.failures)
+        self.firmwares |= o.firmwares
+        _add_counts(self.links, o.links)
+        for name in ("robust", "biphasic", "regions", "cap", "sense", "pulses", "dropouts", "over_limit"):
+            setattr(self, name, getattr(self, name) + getattr(o, name))
+        for name in ("meant_off", "lost_bytes", "defect_sessions", "caller_errors", "injected", "survived"):
+            setattr(self, name, getattr(self, name) + getattr(o, name))
+        for name in ("unexplained", "unreported", "repaired", "absorbed", "sim_s", "wall_s"):
+            setattr(self, name, getattr(self, name) + getattr(o, name))
+        if o.electrodes_min is not None:
+            lo, hi = self.electrodes_min, self.electrodes_max
+            self.electrodes_min = o.electrodes_min if lo is None else min(lo, o.electrodes_min)
+            self.electrodes_max = o.electrodes_max if hi is None else max(hi or 0, o.electrodes_max or 0)
+        _add_counts(self.calls, o.calls)
+        self.defects_hit |= o.defects_hit
+        _add_counts(self.defects_by_kind, o.defects_by_kind)
+        self.hazards |= o.hazards
+        self.fault_kinds |= o.fault_kinds
+        self.longest_wrong_s = max(self.longest_wrong_s, o.longest_wrong_s)
+        self.recovery_bound_s = max(self.recovery_bound_s, o.recovery_bound_s)
+
+    def summary(self) -> dict[str, Any]:
+        """The campaign's figures (the fields of ``--json``)."""
+        wall = float(self.wall_s)
+        summary: dict[str, Any] = {
+            "firmware": "+".join(sorted(self.firmwares)) or "none",
+            "sessions": self.items,
+            "faults": self.faults,
+            "failed_sessions": self.failed,
+            "failed_indices": [i for i, _ in self.failures],
+            "links": {k: self.links.get(k, 0) for k in ("usb", "uart")},
+            "robust_encoding": self.robust,
+            "biphasic": self.biphasic,
+            "regional_limits": self.regions,
+            "participant_cap": self.cap,
+            "sense_current": self.sense,
+            "electrodes_min_max": [self.electrodes_min or 0, self.electrodes_max or 0],
+            "calls": dict(sorted(self.calls.items())),
+            "pulses": self.pulses,
+            "dropouts": self.dropouts,
+            "over_limit_pulses": self.over_limit,
+            "meant_off_pulses": self.meant_off,
+            "bytes_lost": self.lost_bytes,
+            "defects_hit": sorted(self.defects_hit),
+            "defects_by_kind": dict(sorted(self.defects_by_kind.items())),
+            "defect_sessions": self.defect_sessions,
+            "hazards": sorted(self.hazards),
+            "caller_errors": self.caller_errors,
+            "simulated_s": round(float(self.sim_s), 3),
+            "session_s": round(wall, 3),  # the sessions' own run times, summed over workers
+            "ms_per_session": round(1e3 * wall / max(1, self.items), 3),
+        }
+        summary["failures"] = [row for _, row in self.failures]
+        if self.faults:
+            summary.update(
+                {
+                    "faults_injected": self.injected,
+                    "faults_survived": self.survived,
+                    "fault_kinds": sorted(self.fault_kinds),
+                    "longest_wrong_delivery_s": round(self.longest_wrong_s, 6),
+                    "recovery_bound_s": round(self.recovery_bound_s, 6),
+                    "unexplained_wrong_deliveries": self.unexplained,
+                    "bytes_lost_unreported": self.unreported,
+                    "bytes_lost_unnoticed_but_repaired": self.repaired,
+                    "bytes_lost_unnoticed_absorbed": self.absorbed,
+                }
+            )
+        return summary
+
+
+def _add_counts(into: dict[str, int], more: dict[str, int]) -> None:
+    for k, n in more.items():
+        into[k] = into.get(k, 0) + n
+
+
+def tally(results: Iterable[SessionResult], *, faults: bool) -> CampaignTally:
+    """The tally of ``results``."""
+    out = CampaignTally(faults=faults)
     for r in results:
-        for kind, n in r.defect_counts.items():
-            out[kind] = out.get(kind, 0) + n
-    return dict(sorted(out.items()))
+        out.add(r)
+    return out
+
+
+def tally_chunk(seed: int, faults: bool, firmware: str, first: int, count: int) -> CampaignTally:
+    """Run sessions ``first .. first + count - 1`` and tally them (a chunk of a distributed campaign)."""
+    logging.disable(logging.WARNING)  # the guard logs each refusal; the summary counts them
+    return tally((run_session(i, seed, faults, firmware) for i in range(first, first + count)), faults=faults)
 
 
 def summarize(results: list[SessionResult], *, faults: bool) -> dict[str, Any]:
-    wall = sum(r.wall_s for r in results)
-    calls: dict[str, int] = {}
-    for r in results:
-        for c in r.calls:
-            key = "wait" if c.startswith("wait") else c
-            calls[key] = calls.get(key, 0) + 1
-    failed = [r for r in results if not r.ok]
-    summary: dict[str, Any] = {
-        "firmware": "+".join(sorted({r.firmware for r in results})) or "none",
-        "sessions": len(results),
-        "faults": faults,
-        "failed_sessions": len(failed),
-        "failed_indices": [r.index for r in failed[:20]],
-        "links": {k: sum(1 for r in results if r.link == k) for k in ("usb", "uart")},
-        "robust_encoding": sum(1 for r in results if r.robust),
-        "biphasic": sum(1 for r in results if r.biphasic),
-        "regional_limits": sum(1 for r in results if r.regions),
-        "participant_cap": sum(1 for r in results if r.cap_ua is not None),
-        "sense_current": sum(1 for r in results if r.allowed_sense_ua),
-        "electrodes_min_max": [
-            min((r.electrodes for r in results), default=0),
-            max((r.electrodes for r in results), default=0),
-        ],
-        "calls": dict(sorted(calls.items())),
-        "pulses": sum(r.pulses for r in results),
-        "dropouts": sum(r.dropouts for r in results),
-        "over_limit_pulses": sum(r.over_limit for r in results),
-        "meant_off_pulses": sum(r.meant_off for r in results),
-        "bytes_lost": sum(r.lost_bytes for r in results),
-        "defects_hit": sorted({h for r in results for h in r.defects}),
-        "defects_by_kind": _defects_by_kind(results),
-        "defect_sessions": sum(1 for r in results if r.defects),
-        "hazards": sorted({h for r in results for h in r.hazards}),
-        "caller_errors": sum(len(r.errors) for r in results),
-        "simulated_s": round(sum(r.sim_s for r in results), 3),
-        "session_s": round(wall, 3),  # the sessions' own run times, summed over workers
-        "ms_per_session": round(1e3 * wall / max(1, len(results)), 3),
-    }
-    summary["failures"] = [
-        {"index": r.index, "seed": r.campaign_seed, "why": r.failure(), "reproduce": r.reproduce()}
-        for r in failed[:20]
-    ]
-    if faults:
-        injected = sum(len(r.faults) for r in results)
-        summary.update(
-            {
-                "faults_injected": injected,
-                "faults_survived": sum(r.faults_survived for r in results),
-                "fault_kinds": sorted({k for r in results for k in r.faults}),
-                "longest_wrong_delivery_s": round(
-                    max((r.wrong_after_fault_s for r in results), default=0.0), 6
-                ),
-                "recovery_bound_s": round(max((r.recovery_bound_s for r in results), default=0.0), 6),
-                "unexplained_wrong_deliveries": sum(r.unexplained for r in results),
-                "bytes_lost_unreported": sum(r.unreported_lost_bytes for r in results),
-                "bytes_lost_unnoticed_but_repaired": sum(r.repaired_lost_bytes for r in results),
-                "bytes_lost_unnoticed_absorbed": sum(r.absorbed_lost_bytes for r in results),
-            }
-        )
-    return summary
+    """The campaign's figures for ``results``."""
+    return tally(results, faults=faults).summary()
 
 
 def _table(summary: dict[str, Any]) -> str:
@@ -842,7 +971,39 @@ def _report_failures(failures: list[dict[str, Any]], total: int | None = None, f
         print(f"... and {total - shown} more failed {firmware} sessions", file=sys.stderr)
 
 
+def campaign_job(
+    sessions: int,
+    *,
+    seed: int = 0,
+    faults: bool = False,
+    first: int = 0,
+    firmware: str = "v1.2",
+    chunk: int = engine.DEFAULT_CHUNK,
+) -> engine.Job:
+    """Sessions ``first .. first + sessions - 1`` as chunks for :func:`campaign_engine.run`."""
+    if firmware not in FIRMWARES:
+        raise ValueError(f"firmware {firmware!r}: one of {', '.join(FIRMWARES)}")
+    return engine.Job(
+        "safety_campaign",
+        "tally_chunk",
+        (seed, faults, firmware),
+        sessions,
+        first=first,
+        chunk=chunk,
+        fingerprint=engine.fingerprint(),
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
+    """The command line; a missing engine or an unreachable cluster is one line on stderr and exit 1."""
+    try:
+        return _main(argv)
+    except (engine.EngineError, MissingDependencyError) as exc:
+        print(f"safety_campaign: {exc}", file=sys.stderr)
+        return 1
+
+
+def _main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -851,11 +1012,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--firmware",
         choices=(*FIRMWARES, "both"),
-        default="v1.2",
-        help="firmware the emulated board runs and the driver speaks (default v1.2; both: each in turn)",
+        default=None,
+        help="firmware the emulated board runs and the driver speaks (default v1.2, --exhaustive both; "
+        "both: each in turn)",
     )
     ap.add_argument(
         "--jobs", type=int, default=os.cpu_count() or 1, help="worker processes (default: every core)"
+    )
+    ap.add_argument(
+        "--cluster",
+        default=None,
+        metavar="dask://HOST:PORT|local:N",
+        help="run the chunks on a Dask cluster's workers, or on a local one of N worker processes "
+        "(pip install 'tactdeform_hw[cluster]'); the figures are those of one core",
+    )
+    ap.add_argument(
+        "--chunk",
+        type=int,
+        default=engine.DEFAULT_CHUNK,
+        help=f"sessions per chunk handed to a worker (default {engine.DEFAULT_CHUNK}; the figures do not "
+        "depend on it)",
     )
     ap.add_argument("--seed", type=int, default=0, help="campaign seed (default 0)")
     ap.add_argument("--first", type=int, default=0, help="index of the first session")
@@ -867,16 +1043,39 @@ def main(argv: list[str] | None = None) -> int:
         help="sessions at the seams between programs, firmware versions, links and calibration files "
         "(tools/seam_sessions.py); --firmware and --faults do not apply",
     )
+    ap.add_argument(
+        "--exhaustive",
+        action="store_true",
+        help="every sequence of up to --depth calls from a small domain, from every start state, on the "
+        "firmware(s) (tools/exhaustive_campaign.py); --sessions and --faults do not apply",
+    )
+    ap.add_argument(
+        "--depth", type=int, default=4, help="--exhaustive: the longest sequence of calls (default 4)"
+    )
     a = ap.parse_args(argv)
     logging.disable(logging.WARNING)  # the guard logs each refusal; the summary counts them
     if a.sessions < 1:
         ap.error(f"--sessions must be at least 1 (got {a.sessions})")
     if a.jobs < 1:
         ap.error(f"--jobs must be at least 1 (got {a.jobs})")
+    if a.chunk < 1:
+        ap.error(f"--chunk must be at least 1 (got {a.chunk})")
+    if a.cluster is not None:
+        try:
+            engine.parse_cluster(a.cluster)
+        except ConfigurationError as exc:
+            ap.error(str(exc))
     if a.seams:
         import seam_sessions
 
         return seam_sessions.main(a)
+    if a.exhaustive:
+        if a.depth < 0:
+            ap.error(f"--depth must be at least 0 (got {a.depth})")
+        import exhaustive_campaign
+
+        return exhaustive_campaign.main(a)
+    a.firmware = a.firmware or "v1.2"
     firmwares = FIRMWARES if a.firmware == "both" else (a.firmware,)
     if a.only is not None:
         rows = [run_session(a.only, a.seed, a.faults, fw) for fw in firmwares]
@@ -889,11 +1088,12 @@ def main(argv: list[str] | None = None) -> int:
     summaries: list[dict[str, Any]] = []
     for fw in firmwares:
         t0 = time.perf_counter()
-        results = run_campaign(
-            a.sessions, seed=a.seed, faults=a.faults, jobs=a.jobs, progress=True, first=a.first, firmware=fw
+        job = campaign_job(
+            a.sessions, seed=a.seed, faults=a.faults, first=a.first, firmware=fw, chunk=a.chunk
         )
-        summary = summarize(results, faults=a.faults)
-        summary.update({"seed": a.seed, "jobs": a.jobs, "wall_s": round(time.perf_counter() - t0, 3)})
+        summary = engine.run(job, jobs=a.jobs, cluster=a.cluster, progress=True).summary()
+        where = {"jobs": a.jobs} if a.cluster is None else {"cluster": a.cluster}
+        summary.update({"seed": a.seed, **where, "wall_s": round(time.perf_counter() - t0, 3)})
         summaries.append(summary)
     if a.json:
         print(json.dumps(summaries[0] if len(summaries) == 1 else summaries, indent=1))

@@ -45,6 +45,7 @@ the hazards of commands that began in the killed or cut program's own bytes (see
 from __future__ import annotations
 
 import json
+import logging
 import multiprocessing as mp
 import random
 import sys
@@ -59,6 +60,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import campaign_engine as engine  # noqa: E402
 import safety_campaign as sc  # noqa: E402
 
 from tactdeform_hw.clock import SimulatedClock  # noqa: E402
@@ -856,6 +858,12 @@ def run_seams(sessions: int, *, seed: int = 0, jobs: int = 1, first: int = 0) ->
         return list(pool.imap(_worker, tasks, chunksize=max(1, min(32, sessions // (jobs * 8) or 1))))
 
 
+def results_chunk(seed: int, first: int, count: int) -> engine.Results:
+    """Sessions ``first .. first + count - 1`` (a chunk of a distributed run)."""
+    logging.disable(logging.WARNING)
+    return engine.Results([run_session(i, seed) for i in range(first, first + count)])
+
+
 def summarize(results: Sequence[SeamResult]) -> dict[str, Any]:
     """Per scenario × firmware × link: sessions, pulses, over-limit, late, bytes lost, defects by kind."""
     rows: dict[str, dict[str, Any]] = {}
@@ -928,9 +936,19 @@ def main(a: Any) -> int:
             print(f"FAILED session {r.index}: {r.failure()} -- reproduce: {r.reproduce()}", file=sys.stderr)
         return 0 if r.ok else 1
     t0 = time.perf_counter()
-    results = run_seams(a.sessions, seed=a.seed, jobs=a.jobs, first=a.first)
+    job = engine.Job(
+        "seam_sessions",
+        "results_chunk",
+        (a.seed,),
+        a.sessions,
+        first=a.first,
+        chunk=a.chunk,
+        fingerprint=engine.fingerprint(),
+    )
+    results = engine.run(job, jobs=a.jobs, cluster=a.cluster, progress=True).ordered()
     summary = summarize(results)
-    summary.update({"seed": a.seed, "jobs": a.jobs, "wall_s": round(time.perf_counter() - t0, 3)})
+    where = {"jobs": a.jobs} if a.cluster is None else {"cluster": a.cluster}
+    summary.update({"seed": a.seed, **where, "wall_s": round(time.perf_counter() - t0, 3)})
     print(json.dumps(summary, indent=1) if a.json else table(summary))
     for f in summary["failures"]:
         print(f"FAILED session {f['index']}: {f['why']} -- reproduce: {f['reproduce']}", file=sys.stderr)
