@@ -10,6 +10,8 @@ from typing import Any
 
 import pytest
 
+from tactdeform_hw.errors import install_command
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import campaign_engine as engine  # noqa: E402
 import safety_campaign as sc  # noqa: E402
@@ -84,7 +86,7 @@ def test_a_missing_dask_is_one_line_naming_the_extra(
     assert captured.out == ""
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in captured.err
-    assert "--cluster" in lines[0] and "pip install 'tactdeform_hw[cluster]'" in lines[0]
+    assert "--cluster" in lines[0] and install_command("cluster") in lines[0]
 
 
 @pytest.mark.parametrize(
