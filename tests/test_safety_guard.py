@@ -276,6 +276,8 @@ COVERED = {
     "last_pattern": "property",
     "busy": "property",
     "writing": "property",
+    "pacer": "property: the wire's pacer, which only spaces the writes",
+    "last_state_write": "property: a time, no bytes",
 }
 
 

@@ -436,11 +436,11 @@ def test_a_guardian_is_given_the_v2_stop() -> None:
     port, emu = _untimed("v2")
     dev = EtactileKitDevice(port)
     g = _Guardian()
-    dev._guardian = g  # type: ignore[assignment]
+    dev.guardians.guardian = g  # type: ignore[assignment]
     dev.speak(V2)
     assert g.stops == [off_packet(0)]
-    dev._guardian = None
-    dev._closed = True
+    dev.guardians.guardian = None
+    dev.wire.closed = True
     # the stop leaves a v2 pattern in progress complete with zeros, and no height above 0
     emu.feed(c2.encode_electrode_num(8) + bytes([0xFE, 0x20]) + g.stops[0])
     assert emu.state()["stim_pattern"][:8] == [0x20] + [0] * 7 and emu.state()["electrode_num"] == 0

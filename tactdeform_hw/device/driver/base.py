@@ -4,10 +4,12 @@ Every public method checks its input, passes currents through the safety guard, 
 that would trigger a known firmware defect, and only then builds bytes with :mod:`tactdeform_hw.protocol`
 and writes them — one write per command.  ``close`` is idempotent and leaves every channel off.
 
-Every byte leaves through :meth:`Device._send`, which passes it through the safety interlock
+Every byte leaves through the device's :class:`~.wire.Wire`, which passes it through the safety interlock
 (:class:`~tactdeform_hw.device.safety.interlock.WireInterlock`), the pacer (:mod:`.pacing`: never faster
-than the firmware reads) and the session's audit log (:mod:`.audit`).  Public methods hold one lock, so a
-fail-safe thread's all-off can never interleave with a half-written frame.
+than the firmware reads) and the session's audit log (:mod:`.audit`); the dialect's link operations send
+through the same wire.  The opening (port, identification, guardian, proof at open) is an
+:class:`~.opening.Opener`'s.  Public methods hold one lock, so a fail-safe thread's all-off can never
+interleave with a half-written frame.
 
 Nothing that carries a value — a height, a width, an electrode count, a pattern — is written unless the
 device has proved its parser at a command boundary with room in its queue: at open, after a failed or cut
@@ -37,21 +39,20 @@ from types import TracebackType
 from typing import Concatenate, ParamSpec, TypeVar
 
 from tactdeform_hw import protocol as p
-from tactdeform_hw.clock import Clock, InstantClock, MonotonicClock
+from tactdeform_hw.clock import Clock, MonotonicClock
 from tactdeform_hw.device.driver.audit import AuditLog
 from tactdeform_hw.device.driver.config import StimConfig, robust_refusal
 from tactdeform_hw.device.driver.dialect import Dialect, DriverState, LinkOps, worst_scan_s
 from tactdeform_hw.device.driver.dialects import DIALECTS
 from tactdeform_hw.device.driver.firmware_probe import (
     Detection,
-    FirmwareMismatchError,
-    check_firmware,
     check_firmware_choice,
-    identify,
     recheck_firmware,
 )
-from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, default_pacer, padding_for
-from tactdeform_hw.device.links.port import Port, PortLink, no_delay
+from tactdeform_hw.device.driver.opening import GuardianSlot, Opener
+from tactdeform_hw.device.driver.pacing import Pacer
+from tactdeform_hw.device.driver.wire import Wire
+from tactdeform_hw.device.links.port import Port, PortLink
 from tactdeform_hw.device.links.recovery import (
     PROBE_LEAD_ZEROS,
     RECOVERY_ATTEMPTS,
@@ -63,24 +64,21 @@ from tactdeform_hw.device.links.recovery import (
 )
 from tactdeform_hw.device.participant.mapping import ChannelMapping
 from tactdeform_hw.device.safety.guard import SafetyGuard
-from tactdeform_hw.device.safety.guardian import Guardian, pace_for, start_guardian
+from tactdeform_hw.device.safety.guardian import Guardian
 from tactdeform_hw.errors import (
     DeviceTimeoutError,
     LimitError,
     NotStoppedError,
-    PortNotOpenError,
     ProtocolMisuseError,
     SafetyError,
     ShortReplyError,
     TactDeformError,
     TransportError,
 )
-from tactdeform_hw.ports import is_instant
 from tactdeform_hw.protocol.constants import (
     PATTERN_BIPHASIC,
     PATTERN_MONOPHASIC,
     PATTERN_SENSE,
-    USB_PACKET_SIZE,
 )
 from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
@@ -88,21 +86,6 @@ from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 #: Pattern levels a host may send: off (a sense pulse, 0 µA while sense current is 0), mono, biphasic.
 ALLOWED_LEVELS = frozenset({PATTERN_SENSE, PATTERN_MONOPHASIC, PATTERN_BIPHASIC})
 _ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
-#: Commands that change what the scans deliver (a measure right after one reads the old pulses).
-_STATE_OPCODES = frozenset(
-    {
-        p.Opcode.PATTERN,
-        p.Opcode.PULSE_HEIGHT,
-        p.Opcode.PULSE_WIDTH,
-        p.Opcode.SENSE_HEIGHT,
-        p.Opcode.SENSE_WIDTH,
-        p.Opcode.ELECTRODE_NUM,
-        p.Opcode.POLARITY,
-        p.Opcode.FREQUENCY,
-    }
-)
-
-
 #: Times ``close`` reopens a link that failed under its all-off before it gives up and says so.
 CLOSE_RECONNECTS = 3
 
@@ -186,32 +169,6 @@ class Device:
         settle_s: float | None = None,
     ) -> None:
         check_firmware_choice(firmware)
-        self._init_state(mapping, transfer, guard, pacer, audit)
-        self.port_link = PortLink(port, lambda s: self.pacer.clock.sleep(s))
-        self._guardian: Guardian | None = None
-        if not port.is_open:
-            try:
-                self.port_link.open()
-            except BaseException:
-                self._closed = True
-                raise
-        no_delay(port)
-        if pacer is None:  # what a port needs is known only once it is open (a URL builds its device then)
-            self.pacer = default_pacer(port)
-            if offline_clock is not None and is_instant(port):
-                # a port that answers at once (the in-process emulator) runs the session on the caller's clock
-                self.pacer = Pacer(clock=offline_clock, policy=self.pacer.policy)
-        self.identification = probe if probe is not None else self._identify(settle_s)
-        self._open(firmware, guardian)
-
-    def _init_state(
-        self,
-        mapping: ChannelMapping | None,
-        transfer: CurrentTransfer,
-        guard: SafetyGuard | None,
-        pacer: Pacer | None,
-        audit: AuditLog | None,
-    ) -> None:
         self._lock = threading.RLock()
         self._op: str | None = None
         #: Called under the device lock before each operation in :data:`STIMULATING_OPS`: a fail-safe's
@@ -223,9 +180,6 @@ class Device:
         self.mapping = mapping
         self.transfer = transfer
         self.guard = guard if guard is not None else SafetyGuard()
-        self.pacer = pacer if pacer is not None else Pacer(clock=MonotonicClock())
-        self._audit: AuditLog | None = None
-        self.audit = audit
         #: What the host believes the firmware holds, and what the caller asked for.
         self.state = DriverState()
         #: The recovery state machine: what is proved about the firmware's parser (see :class:`LinkState`).
@@ -233,47 +187,33 @@ class Device:
         # (time s, from, to, why) of the latest transitions, and when a reply last proved the parser
         self.transitions = self.link.transitions
         self.proofs = self.link.proofs
-        self._recovery_write = False
         self._resetting = False
         self.last_frame_time: float | None = None
-        self.last_state_write: float | None = None  # the last write that changed what the scans deliver
-        self._writing = False  # True while bytes are being handed to the transport
-        self._closed = False
         #: How this board's firmware expresses each operation (v1.2 until the board proves another).
         self.dialect: Dialect = DIALECTS[V1_2]
-
-    def _open(self, firmware: str, guardian: bool | None) -> None:
-        """After the identification: its bytes counted and logged, the version checked, the guardian, the
-        dialect, the proof at open, and the stop session's watch."""
-        probe = self.identification
-        # the identification wrote before anything else: its bytes are this device's own
-        self.pacer.stats.bytes_written += probe.bytes_sent
-        if self.audit is not None:
-            self.audit.event(
-                "firmware_probe",
-                firmware=probe.name,
-                attempts=probe.attempts,
-                bytes=probe.bytes_sent,
-                reply=probe.reply.hex(),
-                settle_s=probe.settle_s,
-            )
-        if firmware != "auto" and probe.name != firmware:
-            self._refuse()
-            check_firmware(firmware, probe, self.port_link.name)
-        self._want_guardian = bool(getattr(self.port, "guardable", False)) if guardian is None else guardian
-        if self._want_guardian:
-            try:
-                self._start_guardian()
-            except BaseException:
-                self._closed = True
-                self.port_link.close()
-                raise
-        self.speak(probe.firmware)
-        try:
-            self._open_proof()
-        except FirmwareMismatchError:
-            self._refuse()  # the board answered as another firmware: stopped, refused, released
-            raise  # a board in an unknown state: nothing is sent before it proves its parser
+        self.port_link = PortLink(port, lambda s: self.pacer.clock.sleep(s))
+        #: The send path and reply reading (pacer, interlock, audit), shared with the dialect's link ops.
+        self.wire = Wire(
+            self.port_link,
+            self.guard,
+            self.link,
+            pacer if pacer is not None else Pacer(clock=MonotonicClock()),
+            mapping=mapping,
+            transfer=transfer,
+            kind=self.kind,
+            unknown_reply_s=self.unknown_reply_s,
+            op=lambda: self._op or "",
+        )
+        self.audit = audit
+        self.guardians = GuardianSlot(lambda: repr(self))
+        opener = Opener(self.wire, self.guardians)
+        opener.open_port(own_pacer=pacer is None, offline_clock=offline_clock)
+        self.identification = (
+            probe if probe is not None else opener.identify(self.link, settle_s=settle_s, boot_s=self.boot_s)
+        )
+        opener.accept(self.identification, firmware, guardian)
+        self.speak(self.identification.firmware)
+        opener.prove(self._lock, self._recover, self._suspect)
         from tactdeform_hw.device.safety.failsafe import adopt
 
         adopt(self)  # a command's stop session watches every device opened under it
@@ -293,28 +233,7 @@ class Device:
             audit.event("firmware", firmware=firmware.name)
         # v1.2's stop (a few zeros, then 0xFB 00 00 …) would complete a v2 pattern in progress with 0xFB as
         # a height's high byte: the guardian is given the dialect's stop
-        stop = self.dialect.guardian_open_stop()
-        if stop is not None and self._guardian is not None:
-            self._guardian.set_stop(stop)
-
-    def _identify(self, settle_s: float | None) -> Detection:
-        """Prove which firmware runs the board (:func:`~.firmware_probe.identify`); refuse it otherwise."""
-        self.link.unproved_since = self.pacer.clock.now()
-        try:
-            return identify(
-                self.port_link, self.pacer.clock, self.audit, settle_s=settle_s, boot_s=self.boot_s
-            )
-        except BaseException:
-            self._refuse()
-            raise
-
-    def _refuse(self) -> None:
-        """Give up a board before driving it: the guardian let go, the port closed, nothing more written."""
-        self._closed = True
-        g, self._guardian = self._guardian, None
-        if g is not None:
-            g.release()
-        self.port_link.close()
+        self.guardians.set_stop(self.dialect.guardian_open_stop())
 
     @property
     def port(self) -> Port:
@@ -325,35 +244,19 @@ class Device:
     def port(self, port: Port) -> None:
         self.port_link.port = port
 
-    # --- the guardian ---------------------------------------------------------------------------------------
+    @property
+    def pacer(self) -> Pacer:
+        """The pacer that spaces this device's writes (the wire's)."""
+        return self.wire.pacer
+
+    @pacer.setter
+    def pacer(self, pacer: Pacer) -> None:
+        self.wire.pacer = pacer
 
     @property
     def guardian(self) -> Guardian | None:
         """The guardian process watching this device's owner (None on a port that cannot be guarded)."""
-        return self._guardian
-
-    def _start_guardian(self) -> None:
-        self._guardian = start_guardian(self.port, repr(self))
-        self._tell_guardian()
-
-    def _tell_guardian(self) -> None:
-        g, cfg = self._guardian, self.config
-        if g is None or cfg is None:
-            return
-        drain_s, zeros_s = pace_for(
-            cfg.rate_hz, cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us
-        )
-        g.configure(self.dialect.guardian_stop(cfg.electrode_count), drain_s, zeros_s)
-
-    def _reopen_transport(self) -> None:
-        # the guardian shares the old descriptor (and its lock): let it try to switch off through it, then
-        # start a new one on the new descriptor
-        g, self._guardian = self._guardian, None
-        if g is not None:
-            g.abandon()
-        self.port_link.reopen()
-        if self._want_guardian:
-            self._start_guardian()
+        return self.guardians.guardian
 
     # --- state ---------------------------------------------------------------------------------------------
 
@@ -374,12 +277,12 @@ class Device:
 
     @property
     def audit(self) -> AuditLog | None:
-        return self._audit
+        return self.wire.audit
 
     @audit.setter
     def audit(self, log: AuditLog | None) -> None:
         """Enable (or with None, disable) the audit log; the guard's refusals and clips go there too."""
-        self._audit = log
+        self.wire.audit = log
         if log is not None and self.guard.sink is None:
             self.guard.sink = log.safety
 
@@ -417,7 +320,12 @@ class Device:
     @property
     def writing(self) -> bool:
         """True while bytes are being handed to the transport: a stop now may leave half a command."""
-        return self._writing
+        return self.wire.writing
+
+    @property
+    def last_state_write(self) -> float | None:
+        """When a write last changed what the scans deliver (None: none yet)."""
+        return self.wire.last_state_write
 
     def mark_unknown(self) -> None:
         """Forget what the firmware holds (a cut write, an unanswered probe, a wrong readback): the next
@@ -436,7 +344,7 @@ class Device:
         sets it to about 10 mA — including the duplicate of the ``f9`` a refresh writes.  So a caller
         whose readback already watches the off channels (sense current 0) passes ``sense=False`` and
         leaves the wire fewer bytes to turn into that current."""
-        if self.state.config is None or self._closed:
+        if self.state.config is None or self.wire.closed:
             return
         self.dialect.refresh(self._ops(), self.state, sense=sense)
 
@@ -460,7 +368,7 @@ class Device:
 
     @property
     def closed(self) -> bool:
-        return self._closed
+        return self.wire.closed
 
     @property
     def firmware(self) -> str:
@@ -496,7 +404,7 @@ class Device:
         stale channel above the old count comes back), polarity changes while all is off, and the
         participant's current comes last.  The order and bytes are the dialect's.
         """
-        self._check_open()
+        self.wire.check_open()
         try:
             config = self.dialect.validated(config, self.transfer)
         except LimitError as exc:
@@ -524,7 +432,7 @@ class Device:
         self.state.requested = None
         self.state.suspended = False
         self.dialect.configure(self._ops(), self.state, config)
-        self._tell_guardian()
+        self.guardians.tell(self.dialect, self.state.config)
 
     @_locked
     def set_current(self, current_ua: int) -> None:
@@ -588,7 +496,7 @@ class Device:
         """The caller produced a frame identical to the last one (an event-driven renderer sends nothing
         then): feed the fail-safe watchdog, and if a fail-safe stop or a ramp left the firmware short of
         that frame, send what is missing (ramped)."""
-        self._check_open()
+        self.wire.check_open()
         self._mark_frame()
         if self.state.config is None or self.state.requested is None:
             return
@@ -609,7 +517,7 @@ class Device:
         self._off(keep_target=True)
 
     def _off(self, *, keep_target: bool) -> None:
-        self._check_open()
+        self.wire.check_open()
         if self.state.config is None:
             return
         if not keep_target:
@@ -624,17 +532,6 @@ class Device:
         if keep_target:
             self.state.suspended = self.state.requested is not None
 
-    def _open_proof(self) -> None:
-        """Right after opening, prove the parser in step (best effort: a board that does not answer yet is
-        proved by the first command, which raises if it still cannot be)."""
-        with self._lock:
-            try:
-                self._recover()  # a locked or hung board (perhaps still stimulating) gets the reset line
-            except FirmwareMismatchError:
-                raise  # another firmware than the one this device speaks: refused, never driven
-            except TactDeformError:
-                self._suspect("no proof at open")
-
     @_locked
     def measure(self) -> list[int]:
         """ADC codes (``raw >> 2``) of each hardware channel's last pulse, in hardware channel order.  A
@@ -648,14 +545,7 @@ class Device:
     def _measured(self, n: int, what: str) -> list[int]:
         """0xFF and its whole reply, which proves every byte before it read; a short one marks the device
         for a resync and raises (``what`` names the request in the error)."""
-        self.port_link.discard_input()
-        mark = self._send_marked(p.MEASURE_REQUEST)
-        data = self._await_reply(2 * n)
-        if len(data) != 2 * n:
-            self._suspect("short reply to 0xFF")
-            raise ShortReplyError(what, 2 * n, data)
-        self._proved(mark)
-        return p.parse_measure_reply(data, n)
+        return p.parse_measure_reply(self.wire.request(p.MEASURE_REQUEST, 2 * n, what), n)
 
     @_locked
     def probe(self) -> bool:
@@ -663,7 +553,7 @@ class Device:
         per channel; a parser that swallowed it as payload, a locked one, or one rebooted to electrode
         count 0 does not.  A failed probe (or a device not yet proved in step) marks the device for a
         resync and returns False."""
-        self._check_open()
+        self.wire.check_open()
         if self._needs_resync:
             return False
         if self.state.config is None:
@@ -678,17 +568,10 @@ class Device:
     @_locked
     def hv513_count(self) -> int:
         """Ask the board how many HV513 chips it detects (this re-initialises their outputs)."""
-        self._check_open()
+        self.wire.check_open()
         if self._needs_resync:
             self._recover()
-        self.port_link.discard_input()
-        mark = self._send_marked(p.HV513_COUNT_REQUEST)
-        data = self._await_reply(1)
-        if len(data) != 1:
-            self._suspect("short reply to 0xF5")
-            raise ShortReplyError("hv513_count", 1, data)
-        self._proved(mark)
-        return p.parse_hv513_reply(data)
+        return p.parse_hv513_reply(self.wire.request(p.HV513_COUNT_REQUEST, 1, "hv513_count"))
 
     @_locked
     def resync(self) -> None:
@@ -701,7 +584,7 @@ class Device:
         Without a configuration (a fresh session on a board in unknown state) the electrode count is
         unknown, so no pattern can be sent safely; pulse height 0 and sense height 0 already stop every
         current the firmware can deliver."""
-        self._check_open()
+        self.wire.check_open()
         self._suspect("resync")
         self._recover()
         self._reconfigure()
@@ -758,9 +641,9 @@ class Device:
         """Reopen the link after it failed, then resynchronise before any pattern (the firmware may still
         hold a half-received command from before the failure, and the bytes written before it may still
         be in its queue: they are not assumed gone)."""
-        self._check_open()
+        self.wire.check_open()
         self._suspect("reconnect")
-        self._reopen_transport()
+        self.guardians.reopen(self.wire)
         self.guard.mark_unknown()
         self.state.scan_us = None
         self._recover()
@@ -786,7 +669,7 @@ class Device:
         nothing of ours is left on the link, so no pattern lands on the freshly reset firmware whose
         electrode count is 0), RESETTING, BOOTING (``boot_s``, nothing written), then the closed-loop
         resync.  False when the transport has no reset line."""
-        self._check_open()
+        self.wire.check_open()
         if not self.port_link.can_reset():
             return False
         in_step = self.link.state is LinkState.IN_STEP
@@ -810,11 +693,8 @@ class Device:
 
     def _recovery_prove(self, electrodes: int) -> None:
         """:meth:`_prove` as a write of the recovery itself (allowed before the proof: the drain's)."""
-        self._recovery_write = True
-        try:
+        with self.wire.recovery():
             self._prove(electrodes)
-        finally:
-            self._recovery_write = False
 
     @_locked
     def close(self) -> None:
@@ -828,15 +708,10 @@ class Device:
             self._close_link()
             done = True
         finally:
-            g, self._guardian = self._guardian, None
-            if g is not None:
-                if done:
-                    g.release()
-                else:
-                    g.abandon()
+            self.guardians.let_go(switched_off=done)
 
     def _close_link(self) -> None:
-        if self._closed:
+        if self.wire.closed:
             return
         try:
             try:
@@ -853,7 +728,7 @@ class Device:
                     except TactDeformError:
                         raise failed from None
         finally:
-            self._closed = True
+            self.wire.closed = True
             self.port_link.close()
 
     def _stop_and_prove(self) -> None:
@@ -886,79 +761,19 @@ class Device:
         self.close()
 
     def __repr__(self) -> str:
-        return f"{self.kind}({self.port_link.name}, closed={self._closed})"
+        return f"{self.kind}({self.port_link.name}, closed={self.wire.closed})"
 
     def __del__(self) -> None:
-        if not getattr(self, "_closed", True):
+        wire = getattr(self, "wire", None)
+        if wire is not None and not wire.closed:
             warnings.warn(f"{self.kind} was never closed", ResourceWarning, stacklevel=1)
 
     # --- helpers -------------------------------------------------------------------------------------------
 
     def _send(self, data: bytes, *, pad: bool | None = None) -> None:
-        """The one exit for bytes: gate, interlock, pacing, transport, audit.  Outside the recovery's own
-        writes nothing leaves unless the parser is proved in step (:class:`LinkState`).  A failed write
-        leaves the firmware's state unknown, so the interlock forgets it and the next frame resyncs first."""
-        self._send_paced(bytes(data), None, pad)
-
-    def _send_commands(self, commands: Sequence[bytes], *, pad: bool | None = None) -> None:
-        """Whole commands in one write (:meth:`Pacer.write_commands`): they reach the device's queue
-        together, so v2's parser applies them back to back.  Gated, checked and audited as :meth:`_send`
-        does a single command (the interlock reads the commands in order, every state between them
-        included)."""
-        cmds = [bytes(c) for c in commands if c]
-        self._send_paced(b"".join(cmds), cmds, pad)
-
-    def _send_paced(self, data: bytes, commands: list[bytes] | None, pad: bool | None) -> None:
-        self._check_open()
-        if not data:
-            return
-        if self.link.state is not LinkState.IN_STEP and not self._recovery_write:
-            raise ProtocolMisuseError(
-                f"0x{data[0]:02X} while the firmware's parser is not proved in step "
-                f"({self.link.state.value}): resync first"
-            )
-        shadow = self.guard.interlock.check_wire(data, mapping=self.mapping, transfer=self.transfer)
-        audit = self._audit
-        op = self._op or ""
-
-        def write(chunk: bytes) -> None:
-            self._writing = True
-            try:
-                self.port_link.write(chunk)
-            except BaseException:
-                if audit is not None:
-                    audit.tx(chunk, t=self.pacer.clock.now(), ok=False, op=op, logical=data[:1] + chunk[1:])
-                raise
-            finally:
-                self._writing = False
-            if audit is None:
-                return
-            now = self.pacer.clock.now()
-            if commands is not None:
-                # one write of several commands: one record per command (its padding with it), so a
-                # reader of the log sees every command as the firmware reads it
-                padded = self.pacer.policy.robust_encoding if pad is None else pad
-                pos = 0
-                for c in commands:
-                    size = len(c) + (len(padding_for(c, self.pacer.policy.firmware)) if padded else 0)
-                    audit.tx(chunk[pos : pos + size], t=now, op=op, logical=c)
-                    pos += size
-                return
-            logical = data if chunk[:1] == data[:1] and chunk[0] >= COMMAND_BYTE_MIN else chunk
-            audit.tx(chunk, t=now, op=op, logical=logical)
-
-        try:
-            if commands is None:
-                self.pacer.write(write, data, pad=pad)
-            else:
-                self.pacer.write_commands(write, commands, pad=pad)
-        except BaseException:
-            self.guard.mark_unknown()
-            self._suspect("write failed")
-            raise
-        changed = self.guard.commit(shadow)
-        if changed and (data[0] in _STATE_OPCODES or data[0] < COMMAND_BYTE_MIN):
-            self.last_state_write = self.pacer.clock.now()  # a rewrite of the same state does not count
+        """One command through the wire (:meth:`.wire.Wire.send`): gate, interlock, pacing, transport,
+        audit."""
+        self.wire.send(data, pad=pad)
 
     def _enter(self, state: LinkState, why: str) -> None:
         """One transition of the recovery state machine (only those in :data:`TRANSITIONS`)."""
@@ -973,68 +788,11 @@ class Device:
         """Whatever the state, nothing is proved any more (the queue model freezes too)."""
         self.link.suspect(why)
 
-    def _recovery_send(self, data: bytes, *, pad: bool | None = True) -> int:
-        """A write of the recovery itself (by default with the loss-tolerant padding); the written offset
-        just past it, for :meth:`Pacer.proven`."""
-        self._recovery_write = True
-        try:
-            self._send(data, pad=pad)
-        finally:
-            self._recovery_write = False
-        return self.pacer.offset
-
-    def _proved(self, mark: int) -> None:
-        """A reply proved every byte before ``mark`` read, the parser at a command boundary."""
-        self.pacer.proven(mark)
-        self.guard.note_in_step()  # the interlock stops assuming a full queue could cut this write's packets
-        self.link.proofs.append(self.pacer.clock.now())
-
     def _prove(self, electrodes: int) -> None:
         """In step: the dialect's request whose reply proves every byte written before it read (and
         empties the queue model).  No whole reply: the device is marked for a resync and
         :class:`ShortReplyError` raised."""
         self.dialect.prove(self._ops(), electrodes)
-
-    def _pace_for(self, timings: Sequence[tuple[float, float]]) -> None:
-        """Pace for the slowest of several (period µs, scan µs) that may be in force."""
-
-        def cost(t: tuple[float, float]) -> tuple[float, float]:
-            self.pacer.set_timing(t[0] / 1e6, t[1] / 1e6)
-            return (self.pacer.payload_interval_s(), self.pacer.skip_s(USB_PACKET_SIZE))
-
-        period_us, scan_us = max(timings, key=cost)
-        self.pacer.set_timing(period_us / 1e6, scan_us / 1e6)
-
-    def _send_marked(self, data: bytes) -> int:
-        self._send(data)
-        return self.pacer.offset
-
-    def _reply_slack_s(self, size: int) -> float:
-        """How long after the queue model's worst drain time a reply of ``size`` bytes may still come:
-        its transfer (a USB frame), one alarm period of margin, and more when the period is unknown."""
-        period = self.pacer.period_s
-        extra = period if period is not None else self.unknown_reply_s
-        return 0.003 + size * self.pacer.policy.byte_s + extra
-
-    def _await_reply(self, size: int) -> bytes:
-        """Read up to ``size`` bytes until the reply's deadline (the worst case, not the typical)."""
-        if size <= 0:
-            return b""
-        clock = self.pacer.clock
-        deadline = self.pacer.drained_by() + self._reply_slack_s(size)
-        got = bytearray()
-        while True:
-            waiting = self.port_link.waiting()
-            had = len(got)
-            if waiting is None or waiting >= size - len(got):
-                got += self.port_link.read(size - len(got))
-            elif waiting:
-                # what has arrived (a socket says only "readable": at least one byte); the rest follows
-                got += self.port_link.read(waiting)
-            if len(got) >= size or isinstance(clock, InstantClock) or clock.now() >= deadline:
-                return bytes(got)
-            if len(got) == had:
-                clock.sleep(min(REPLY_POLL_S, max(0.0, deadline - clock.now())))
 
     def _frame(self, levels: Sequence[int], *, force_pattern: bool) -> None:
         """Put one application-order frame on the firmware (the dialect's order of heights and pattern)."""
@@ -1054,13 +812,13 @@ class Device:
             mapping=self.mapping,
             transfer=self.transfer,
             unknown_reply_s=self.unknown_reply_s,
-            send=self._send,
-            send_critical=self._send_critical,
-            send_critical_commands=self._send_critical_commands,
-            recovery_send=self._recovery_send,
+            send=self.wire.send,
+            send_critical=self.wire.send_critical,
+            send_critical_commands=self.wire.send_critical_commands,
+            recovery_send=self.wire.recovery_send,
             discard_input=self.port_link.discard_input,
-            await_reply=self._await_reply,
-            proved=self._proved,
+            await_reply=self.wire.await_reply,
+            proved=self.wire.proved,
             suspect=self._suspect,
             enter=self._enter,
             link_state=lambda: self.link.state,
@@ -1068,35 +826,17 @@ class Device:
             recovery_prove=self._recovery_prove,
             recover=self._recover,
             measured=self._measured,
-            pace_for=self._pace_for,
+            pace_for=self.wire.pace_for,
             can_reset=self.port_link.can_reset,
             resetting=lambda: self._resetting,
             needs_resync=lambda: self._needs_resync,
         )
 
-    def _send_critical(self, data: bytes) -> None:
-        """Heights and patterns: under robust encoding written twice, so a byte lost, corrupted or
-        duplicated in one copy is put right by the other a millisecond later (the copies are identical,
-        so a firmware in step sees no change)."""
-        self._send(data)
-        if self.pacer.robust:
-            self._send(data)
-
-    def _send_critical_commands(self, commands: Sequence[bytes]) -> None:
-        """:meth:`_send_commands` with :meth:`_send_critical`'s second copy under robust encoding."""
-        self._send_commands(commands)
-        if self.pacer.robust:
-            self._send_commands(commands)
-
     def _mark_frame(self) -> None:
         self.last_frame_time = self.pacer.clock.now()
 
-    def _check_open(self) -> None:
-        if self._closed:
-            raise PortNotOpenError(f"{self.kind} is closed")
-
     def _require_config(self, what: str) -> StimConfig:
-        self._check_open()
+        self.wire.check_open()
         if self.state.config is None:
             raise ProtocolMisuseError(
                 f"{what} before configure(): the firmware's electrode count is still 0, and a pattern now "
