@@ -20,6 +20,7 @@ import serial
 from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
 from tactdeform_hw.device.driver.base import TRANSITIONS, LinkState
+from tactdeform_hw.device.driver.dialect import worst_scan_s
 from tactdeform_hw.device.driver.firmware_probe import UnidentifiedBoardError
 from tactdeform_hw.device.driver.pacing import Pacer, estimate_scan_us, firmware_period_us
 from tactdeform_hw.device.safety.guard import SafetyGuard
@@ -175,9 +176,7 @@ def test_worst_case_scan_counts_biphasic_channels() -> None:
     dev.configure(cfg)
     mono = estimate_scan_us([1] * 32, 100, 10) / 1e6
     bi = estimate_scan_us([2] * 32, 100, 10) / 1e6
-    assert bi > mono and dev._worst_scan_s(cfg) == pytest.approx(
-        min(bi, firmware_period_us(60) / 1e6 - 50e-6)
-    )
+    assert bi > mono and worst_scan_s(cfg) == pytest.approx(min(bi, firmware_period_us(60) / 1e6 - 50e-6))
 
 
 @pytest.mark.parametrize(("link", "robust"), BOTH, ids=IDS)

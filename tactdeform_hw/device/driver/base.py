@@ -36,13 +36,15 @@ import threading
 import warnings
 from collections.abc import Callable, Sequence
 from types import TracebackType
-from typing import Concatenate, ParamSpec, TypeVar
+from typing import Concatenate, Generic, ParamSpec, TypeVar, cast, overload
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import Clock, MonotonicClock
 from tactdeform_hw.device.driver.audit import AuditLog
-from tactdeform_hw.device.driver.config import StimConfig, robust_refusal
-from tactdeform_hw.device.driver.dialect import Dialect, DriverState, LinkOps, worst_scan_s
+from tactdeform_hw.device.driver.checks import ALLOWED_LEVELS, check_levels, checked_config
+from tactdeform_hw.device.driver.closing import CLOSE_RECONNECTS, close_link, stop_and_prove
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.dialect import Dialect, DriverState, LinkOps
 from tactdeform_hw.device.driver.dialects import DIALECTS
 from tactdeform_hw.device.driver.firmware_probe import (
     Detection,
@@ -68,31 +70,17 @@ from tactdeform_hw.device.safety.guardian import Guardian
 from tactdeform_hw.errors import (
     DeviceTimeoutError,
     LimitError,
-    NotStoppedError,
     ProtocolMisuseError,
     SafetyError,
     ShortReplyError,
-    TactDeformError,
-    TransportError,
-)
-from tactdeform_hw.protocol.constants import (
-    PATTERN_BIPHASIC,
-    PATTERN_MONOPHASIC,
-    PATTERN_SENSE,
 )
 from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
-#: Pattern levels a host may send: off (a sense pulse, 0 µA while sense current is 0), mono, biphasic.
-ALLOWED_LEVELS = frozenset({PATTERN_SENSE, PATTERN_MONOPHASIC, PATTERN_BIPHASIC})
-_ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
-#: Times ``close`` reopens a link that failed under its all-off before it gives up and says so.
-CLOSE_RECONNECTS = 3
-
-
 _D = TypeVar("_D", bound="Device")
 _P = ParamSpec("_P")
 _R = TypeVar("_R")
+_T = TypeVar("_T")
 
 
 #: The public operations that keep the board stimulating without proving that its parser reads: before
@@ -122,6 +110,26 @@ def _locked(fn: Callable[Concatenate[_D, _P], _R]) -> Callable[Concatenate[_D, _
                     self._op = None
 
     return wrapper
+
+
+class StateField(Generic[_T]):
+    """A read-only attribute of a device that shows one field of its :class:`DriverState` (what the host
+    believes the firmware holds, and what the caller asked for): the state has one owner."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    @overload
+    def __get__(self, obj: None, owner: type) -> StateField[_T]: ...
+    @overload
+    def __get__(self, obj: Device, owner: type) -> _T: ...
+    def __get__(self, obj: Device | None, owner: type) -> StateField[_T] | _T:
+        if obj is None:
+            return self
+        return cast(_T, getattr(obj.state, self.name))
+
+    def __set__(self, obj: Device, value: _T) -> None:
+        raise AttributeError(f"{self.name} is read-only: it follows what the device sends")
 
 
 class Device:
@@ -260,20 +268,18 @@ class Device:
 
     # --- state ---------------------------------------------------------------------------------------------
 
-    @property
-    def config(self) -> StimConfig | None:
-        """The configuration last sent (None until ``configure``)."""
-        return self.state.config
-
-    @property
-    def current_ua(self) -> int:
-        """The pulse height in force (µA): what an active channel receives now."""
-        return self.state.current_ua
-
-    @property
-    def target_ua(self) -> int:
-        """The current the caller asked for; frames carry it lowered to their limits."""
-        return self.state.target_ua
+    #: The configuration last sent (None until ``configure``).
+    config: StateField[StimConfig | None] = StateField()
+    #: The pulse height in force (µA): what an active channel receives now.
+    current_ua: StateField[int] = StateField()
+    #: The current the caller asked for; frames carry it lowered to their limits.
+    target_ua: StateField[int] = StateField()
+    #: The pattern the firmware should hold, in hardware order (None: unknown, e.g. after a resync).
+    last_pattern: StateField[bytes | None] = StateField()
+    #: True after a fail-safe stop; the next frame (or keepalive) resumes, ramped.
+    suspended: StateField[bool] = StateField()
+    #: Patterns written (a rewrite of the same pattern by ``keepalive`` is not one).
+    frames_sent: StateField[int] = StateField()
 
     @property
     def audit(self) -> AuditLog | None:
@@ -306,11 +312,6 @@ class Device:
         # a fail-safe (or a signal handler) that saw a timeout, a bad readback or a cut write says so here
         if value:
             self._suspect("marked for resync")
-
-    @property
-    def last_pattern(self) -> bytes | None:
-        """The pattern the firmware should hold, in hardware order (None: unknown, e.g. after a resync)."""
-        return self.state.last_pattern
 
     @property
     def busy(self) -> bool:
@@ -349,22 +350,9 @@ class Device:
         self.dialect.refresh(self._ops(), self.state, sense=sense)
 
     @property
-    def suspended(self) -> bool:
-        """True after a fail-safe stop; the next frame (or keepalive) resumes, ramped."""
-        return self.state.suspended
-
-    @property
     def stimulating(self) -> bool:
         """Whether the firmware, as far as the host knows, is delivering current to any channel."""
-        if self.state.config is None:
-            return False
-        if self.state.config.sense_current_ua:
-            return True
-        return (
-            bool(self.state.current_ua)
-            and self.state.last_pattern is not None
-            and any(v in _ACTIVE for v in self.state.last_pattern)
-        )
+        return self.state.stimulating
 
     @property
     def closed(self) -> bool:
@@ -374,11 +362,6 @@ class Device:
     def firmware(self) -> str:
         """The firmware version this device speaks to its board (``"v1.2"`` or ``"v2"``)."""
         return self.dialect.firmware.name
-
-    @property
-    def frames_sent(self) -> int:
-        """Patterns written (a rewrite of the same pattern by ``keepalive`` is not one)."""
-        return self.state.frames_sent
 
     @property
     def heights_in_force(self) -> list[int] | None:
@@ -405,28 +388,16 @@ class Device:
         participant's current comes last.  The order and bytes are the dialect's.
         """
         self.wire.check_open()
-        try:
-            config = self.dialect.validated(config, self.transfer)
-        except LimitError as exc:
-            self.guard.note_refusal(exc)
-            raise
-        config = self.guard.check_config(
+        config = checked_config(
             config,
+            dialect=self.dialect,
+            guard=self.guard,
+            transfer=self.transfer,
+            mapping=self.mapping,
+            robust=self.pacer.robust,
             stimulating=self.stimulating,
             polarity_in_force=self.state.config.polarity if self.state.config is not None else None,
-            transfer=self.transfer,
         )
-        if self.mapping is not None and self.mapping.hw_channels != config.electrode_count:
-            raise LimitError(
-                "electrode_count",
-                config.electrode_count,
-                f"the channel mapping's hardware channel count {self.mapping.hw_channels}",
-            )
-        refusal = robust_refusal(config, self.transfer) if self.pacer.robust else None
-        if refusal is not None:
-            self.guard.note_refusal(refusal)
-            raise refusal
-        self.dialect.check_idle_scan(self.guard, config)
         # the caller's frame is superseded now, whether or not the writes below get through: no keepalive
         # after a failed configure brings the old frame back
         self.state.requested = None
@@ -446,7 +417,7 @@ class Device:
         if self._needs_resync:
             self.resync()
             return
-        levels = None if self.state.suspended else self._application_levels()
+        levels = None if self.state.suspended else self.state.application_levels(self.mapping)
         self.dialect.set_current(self._ops(), self.state, levels)
 
     @_locked
@@ -457,11 +428,7 @@ class Device:
         (see :mod:`.safety`); a needed height change is written before the pattern when it lowers the
         height and after it when it raises it."""
         self._require_config("send_pattern")
-        try:
-            self._check_levels(levels)
-        except (LimitError, ProtocolMisuseError) as exc:
-            self.guard.note_refusal(exc)
-            raise
+        check_levels(levels, self.electrodes, self.dialect, self.guard)
         previous = self.state.requested
         self.state.requested = list(levels)
         try:
@@ -474,22 +441,6 @@ class Device:
             self.state.requested = previous
             raise
         self._mark_frame()
-
-    def _check_levels(self, levels: Sequence[int]) -> None:
-        expected = self.electrodes
-        try:
-            count = len(levels)
-        except TypeError as exc:
-            raise LimitError("pattern", levels, "a sequence of levels") from exc
-        if count != expected:
-            raise ProtocolMisuseError(
-                f"pattern has {count} level(s) but the device is configured for {expected} electrode(s); "
-                "a short pattern would swallow the next command and a long one would leak into it"
-            )
-        for i, v in enumerate(levels):
-            if isinstance(v, bool) or not isinstance(v, int) or v not in ALLOWED_LEVELS:
-                raise LimitError(f"pattern[{i}]", v, "0 (off), 1 (monophasic) or 2 (biphasic)")
-        self.dialect.check_levels(levels)
 
     @_locked
     def keepalive(self) -> None:
@@ -540,12 +491,7 @@ class Device:
         n = cfg.electrode_count
         if self._needs_resync:
             self._recover()
-        return self._measured(n, "measure")
-
-    def _measured(self, n: int, what: str) -> list[int]:
-        """0xFF and its whole reply, which proves every byte before it read; a short one marks the device
-        for a resync and raises (``what`` names the request in the error)."""
-        return p.parse_measure_reply(self.wire.request(p.MEASURE_REQUEST, 2 * n, what), n)
+        return self.wire.measured(n, "measure")
 
     @_locked
     def probe(self) -> bool:
@@ -621,20 +567,17 @@ class Device:
         fail-safe adds to its recovery time before it reaches for the reset line."""
         return self.dialect.resync_bound_now_s(self._ops(), self.state)
 
-    def _frame_commands(self, n: int) -> list[bytes]:
-        """The longest frame this driver writes at electrode count ``n``, command by command (under the
-        loss-tolerant encoding each critical command goes twice): what may still be in flight."""
-        copies = 2 if self.pacer.robust else 1
-        return [c for c in self.dialect.frame_commands(n) for _ in range(copies)]
-
     def probe_bound_s(self) -> float:
         """The longest a probe (a measure request: the fail-safe's) waits for its reply at the configuration
         in force before it counts as unanswered (:func:`~tactdeform_hw.device.links.recovery.probe_bound_s`);
-        0 before a configuration (the fail-safe does not probe then)."""
+        0 before a configuration (the fail-safe does not probe then).  What may still be in flight is the
+        longest frame this driver writes, each critical command twice under the loss-tolerant encoding."""
         cfg = self.state.config
         if cfg is None:
             return 0.0
-        return probe_bound_s(self.pacer.policy, cfg, self._frame_commands(cfg.electrode_count))
+        copies = 2 if self.pacer.robust else 1
+        frame = [c for c in self.dialect.frame_commands(cfg.electrode_count) for _ in range(copies)]
+        return probe_bound_s(self.pacer.policy, cfg, frame)
 
     @_locked
     def reconnect(self) -> None:
@@ -675,21 +618,14 @@ class Device:
         in_step = self.link.state is LinkState.IN_STEP
         self._resetting = True
         try:
-            self._hardware_reset(in_step)
+            reset = self.port_link.reset
+            self.link.reset_board(
+                self._ops(), self.state, in_step=in_step, pulse=reset, boot_s=self.boot_s, who=self.kind
+            )
+            self.resync()
         finally:
             self._resetting = False
         return True
-
-    def _hardware_reset(self, in_step: bool) -> None:
-        self.link.reset_board(
-            self._ops(),
-            self.state,
-            in_step=in_step,
-            pulse=self.port_link.reset,
-            boot_s=self.boot_s,
-            who=self.kind,
-        )
-        self.resync()
 
     def _recovery_prove(self, electrodes: int) -> None:
         """:meth:`_prove` as a write of the recovery itself (allowed before the proof: the drain's)."""
@@ -705,49 +641,19 @@ class Device:
         succeeded — otherwise it switches the board off itself before it exits."""
         done = False
         try:
-            self._close_link()
+            close_link(self.wire, stop=self._stop_and_prove, reconnect=self.reconnect)
             done = True
         finally:
             self.guardians.let_go(switched_off=done)
 
-    def _close_link(self) -> None:
-        if self.wire.closed:
-            return
-        try:
-            try:
-                self._stop_and_prove()
-            except TransportError as failed:
-                for attempt in range(CLOSE_RECONNECTS):
-                    try:
-                        self.reconnect()
-                        self._stop_and_prove()
-                        break
-                    except TransportError:
-                        if attempt == CLOSE_RECONNECTS - 1:
-                            raise failed from None
-                    except TactDeformError:
-                        raise failed from None
-        finally:
-            self.wire.closed = True
-            self.port_link.close()
-
     def _stop_and_prove(self) -> None:
-        """All off, and proof that nothing stimulates.  A proof that fails (a board that rebooted or hung
-        under the all-off, or one whose answer shows current still flowing) is followed by a recovery —
-        with the reset line if need be — and the all-off and its proof again."""
-        for attempt in range(1, RECOVERY_ATTEMPTS + 2):
-            if self.state.config is not None:
-                self.all_off()
-            if self.link.state is not LinkState.IN_STEP:
-                return
-            try:
-                # v1.2: the readings of the all-off; v2: count 0, proved by the sync reply's value
-                self.dialect.prove_stopped(self._ops(), self.state)
-                return
-            except (ShortReplyError, NotStoppedError):
-                if attempt > RECOVERY_ATTEMPTS:
-                    raise
-                self._recover()
+        stop_and_prove(
+            self.link,
+            configured=lambda: self.state.config is not None,
+            all_off=self.all_off,
+            prove_stopped=lambda: self.dialect.prove_stopped(self._ops(), self.state),
+            recover=self._recover,
+        )
 
     def __enter__(self) -> Device:
         return self
@@ -799,37 +705,14 @@ class Device:
         assert self.state.config is not None
         self.dialect.frame(self._ops(), self.state, levels, force_pattern=force_pattern)
 
-    def _worst_scan_s(self, cfg: StimConfig) -> float:
-        """The longest scan a frame the guard allows can have (see :func:`.dialect.worst_scan_s`)."""
-        return worst_scan_s(cfg)
-
     def _ops(self) -> LinkOps:
         """The link operations a dialect is handed (bound now: a transport hook replaced on this device
         is the one the dialect uses)."""
-        return LinkOps(
-            pacer=lambda: self.pacer,
-            guard=self.guard,
-            mapping=self.mapping,
-            transfer=self.transfer,
-            unknown_reply_s=self.unknown_reply_s,
-            send=self.wire.send,
-            send_critical=self.wire.send_critical,
-            send_critical_commands=self.wire.send_critical_commands,
-            recovery_send=self.wire.recovery_send,
-            discard_input=self.port_link.discard_input,
-            await_reply=self.wire.await_reply,
-            proved=self.wire.proved,
-            suspect=self._suspect,
-            enter=self._enter,
-            link_state=lambda: self.link.state,
+        return self.wire.link_ops(
             prove=self._prove,
             recovery_prove=self._recovery_prove,
             recover=self._recover,
-            measured=self._measured,
-            pace_for=self.wire.pace_for,
-            can_reset=self.port_link.can_reset,
             resetting=lambda: self._resetting,
-            needs_resync=lambda: self._needs_resync,
         )
 
     def _mark_frame(self) -> None:
@@ -843,13 +726,6 @@ class Device:
                 "would lock its parser"
             )
         return self.state.config
-
-    def _application_levels(self) -> list[int] | None:
-        if self.state.last_pattern is None:
-            return None
-        if self.mapping is not None:
-            return self.mapping.to_application(self.state.last_pattern)
-        return list(self.state.last_pattern)
 
 
 __all__ = [

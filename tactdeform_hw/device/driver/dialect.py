@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Protocol
 
 from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
-from tactdeform_hw.protocol.constants import PATTERN_BIPHASIC
+from tactdeform_hw.protocol.constants import PATTERN_BIPHASIC, PATTERN_MONOPHASIC
 from tactdeform_hw.protocol.firmware import FirmwareSpec
 from tactdeform_hw.protocol.firmware_math import estimate_scan_us, firmware_period_us
 
@@ -51,6 +51,28 @@ class DriverState:
     heights_ua: list[int] = field(default_factory=list)  # height per application electrode in force
     answered: bool = False  # the board has answered a sync check in this session (it runs v2)
     covers: int = 0  # patterns written under the mode-2 cover
+
+    @property
+    def stimulating(self) -> bool:
+        """Whether the firmware, as far as the host knows, is delivering current to any channel."""
+        if self.config is None:
+            return False
+        if self.config.sense_current_ua:
+            return True
+        active = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
+        return (
+            bool(self.current_ua)
+            and self.last_pattern is not None
+            and any(v in active for v in self.last_pattern)
+        )
+
+    def application_levels(self, mapping: ChannelMapping | None) -> list[int] | None:
+        """The pattern in force in application order (None: unknown)."""
+        if self.last_pattern is None:
+            return None
+        if mapping is not None:
+            return mapping.to_application(self.last_pattern)
+        return list(self.last_pattern)
 
 
 @dataclass(frozen=True)

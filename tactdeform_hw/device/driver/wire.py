@@ -19,6 +19,7 @@ from contextlib import contextmanager
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import InstantClock
 from tactdeform_hw.device.driver.audit import AuditLog
+from tactdeform_hw.device.driver.dialect import LinkOps
 from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, padding_for
 from tactdeform_hw.device.links.port import PortLink
 from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkRecovery, LinkState
@@ -241,6 +242,47 @@ class Wire:
             raise ShortReplyError(what, size, reply)
         self.proved(mark)
         return reply
+
+    def measured(self, n: int, what: str) -> list[int]:
+        """0xFF and its whole reply of two bytes per channel (the levels of each hardware channel's last
+        pulse), which proves every byte before it read; a short one marks the link suspect and raises."""
+        return p.parse_measure_reply(self.request(p.MEASURE_REQUEST, 2 * n, what), n)
+
+    def link_ops(
+        self,
+        *,
+        prove: Callable[[int], None],
+        recovery_prove: Callable[[int], None],
+        recover: Callable[[], None],
+        resetting: Callable[[], bool],
+    ) -> LinkOps:
+        """The link operations a dialect is handed: this wire's, and the device's proof, recovery and
+        reset state (bound now: a transport hook replaced on the port link is the one the dialect uses)."""
+        return LinkOps(
+            pacer=lambda: self.pacer,
+            guard=self.guard,
+            mapping=self.mapping,
+            transfer=self.transfer,
+            unknown_reply_s=self.unknown_reply_s,
+            send=self.send,
+            send_critical=self.send_critical,
+            send_critical_commands=self.send_critical_commands,
+            recovery_send=self.recovery_send,
+            discard_input=self.port_link.discard_input,
+            await_reply=self.await_reply,
+            proved=self.proved,
+            suspect=self.link.suspect,
+            enter=self.link.enter,
+            link_state=lambda: self.link.state,
+            prove=prove,
+            recovery_prove=recovery_prove,
+            recover=recover,
+            measured=self.measured,
+            pace_for=self.pace_for,
+            can_reset=self.port_link.can_reset,
+            resetting=resetting,
+            needs_resync=lambda: self.link.state is not LinkState.IN_STEP,
+        )
 
 
 __all__ = ["STATE_OPCODES", "Wire"]
