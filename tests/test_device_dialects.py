@@ -201,3 +201,17 @@ def test_a_configuration_whose_idle_scan_fills_the_period_is_refused_before_a_by
     assert port.writes == []
     dev.configure(fits)
     dev.close()
+
+
+def test_a_refresh_is_the_dialects_plan_sent_as_planned(dev: EtactileKitDevice, port: RecordingPort) -> None:
+    """The dialect plans a refresh from the state in force without writing; the device sends exactly
+    those commands, and the board is left holding the same frame."""
+    dev.configure(StimConfig(electrode_count=8, current_ua=600, sense_current_ua=0))
+    dev.send_pattern([1, 0, 1, 0, 0, 1, 0, 0])
+    before = _levels(dev)
+    port.writes.clear()
+    plan = dev.dialect.refresh(dev.state, dev.transfer, sense=True)
+    assert port.writes == [] and plan
+    dev.refresh()
+    assert b"".join(port.writes) == b"".join(w.data for w in plan)
+    assert _levels(dev) == before

@@ -347,7 +347,7 @@ class Device:
         leaves the wire fewer bytes to turn into that current."""
         if self.state.config is None or self.wire.closed:
             return
-        self.dialect.refresh(self._ops(), self.state, sense=sense)
+        self.wire.run(self.dialect.refresh(self.state, self.transfer, sense=sense))
 
     @property
     def stimulating(self) -> bool:

@@ -2,10 +2,16 @@
 
 A :class:`~tactdeform_hw.device.driver.base.Device` sends, paces, audits and keeps the link's proofs; a
 :class:`Dialect` decides which bytes express an operation on its firmware version, from the state in force
-(:class:`DriverState`) and through the narrow set of link operations it is handed (:class:`LinkOps`).  A
-dialect never sees the device: everything it may use is in those two objects, so both versions are read
-and tested against the same interface, and :data:`~tactdeform_hw.device.driver.dialects.DIALECTS` picks
-one per firmware spec.
+(:class:`DriverState`).  A dialect never sees the device, so both versions are read and tested against the
+same interface, and :data:`~tactdeform_hw.device.driver.dialects.DIALECTS` picks one per firmware spec.
+
+Where an operation is a fixed sequence of bytes that changes no state the host keeps (``refresh``, the
+guardian's stops, the longest frame), the dialect is a pure planner: it returns the writes (a :data:`Plan`)
+and the device sends them.  Everywhere else it is handed the narrow set of link operations
+(:class:`LinkOps`): the recovery's branches depend on replies, and a configuration, a frame or an all-off
+records in :class:`DriverState` what each write put in force as soon as it is written — a write cut half
+way leaves the state of the writes that got through, which decides what the next frame writes first, so
+planning those sequences whole would change the bytes after a failed write.
 """
 
 from __future__ import annotations
@@ -73,6 +79,18 @@ class DriverState:
         if mapping is not None:
             return mapping.to_application(self.last_pattern)
         return list(self.last_pattern)
+
+
+@dataclass(frozen=True)
+class Write:
+    """One planned command: ``critical`` ones (heights, patterns) go twice under robust encoding."""
+
+    data: bytes
+    critical: bool = False
+
+
+#: The writes of a planned operation, in order.
+Plan = list[Write]
 
 
 @dataclass(frozen=True)
@@ -171,7 +189,7 @@ class Dialect(Protocol):
     def off(self, ops: LinkOps, st: DriverState) -> None:
         """Every channel off and every height 0 (at a proved boundary)."""
 
-    def refresh(self, ops: LinkOps, st: DriverState, *, sense: bool) -> None:
+    def refresh(self, st: DriverState, transfer: CurrentTransfer, *, sense: bool) -> Plan:
         """The same registers again, so a firmware that lost or mis-read a byte is put right."""
 
     def flush_parser(self, ops: LinkOps, st: DriverState) -> None:
@@ -199,4 +217,4 @@ class Dialect(Protocol):
         """The guardian's stop once the board proved this firmware (None: keep the guardian's default)."""
 
 
-__all__ = ["Dialect", "DriverState", "LinkOps", "recovery_timing", "scan_of", "worst_scan_s"]
+__all__ = ["Dialect", "DriverState", "LinkOps", "Plan", "Write", "recovery_timing", "scan_of", "worst_scan_s"]

@@ -16,7 +16,15 @@ from collections.abc import Sequence
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig, sense_code
-from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, recovery_timing, scan_of, worst_scan_s
+from tactdeform_hw.device.driver.dialect import (
+    DriverState,
+    LinkOps,
+    Plan,
+    Write,
+    recovery_timing,
+    scan_of,
+    worst_scan_s,
+)
 from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, SCAN_GAP_MIN_US, Pacer, firmware_period_us
 from tactdeform_hw.device.driver.readback import OFF_READING_CODES
 from tactdeform_hw.device.links.recovery import (
@@ -221,14 +229,14 @@ class V12Dialect:
         st.scan_us = scan_of(cfg, bytes(n))
         ops.pacer().set_timing(firmware_period_us(cfg.rate_hz) / 1e6, st.scan_us / 1e6)
 
-    def refresh(self, ops: LinkOps, st: DriverState, *, sense: bool) -> None:
+    def refresh(self, st: DriverState, transfer: CurrentTransfer, *, sense: bool) -> Plan:
         cfg = st.config
         assert cfg is not None
         pattern = st.last_pattern if st.last_pattern is not None else bytes(cfg.electrode_count)
-        if sense and st.sense_byte is not None:
-            ops.send(p.encode_sense_height(st.sense_byte))
-        ops.send(p.encode_pulse_height(ops.transfer.to_code(st.current_ua)))
-        ops.send(p.encode_pattern(pattern, electrode_num=cfg.electrode_count))
+        plan = [Write(p.encode_sense_height(st.sense_byte))] if sense and st.sense_byte is not None else []
+        plan.append(Write(p.encode_pulse_height(transfer.to_code(st.current_ua))))
+        plan.append(Write(p.encode_pattern(pattern, electrode_num=cfg.electrode_count)))
+        return plan
 
     def heights_in_force(self, st: DriverState, mapping: ChannelMapping | None) -> list[int] | None:
         return None

@@ -46,7 +46,7 @@ from typing import TYPE_CHECKING, Any
 
 from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig
-from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, recovery_timing
+from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, Plan, Write, recovery_timing
 from tactdeform_hw.device.driver.firmware_probe import PROBE, SYNC_CHECK, FirmwareMismatchError
 from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
 from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkState
@@ -558,17 +558,17 @@ class V2Dialect:
             raise ShortReplyError("sync check after the close's electrode count 0", 1, b"")
         st.codes = []
 
-    def refresh(self, ops: LinkOps, st: DriverState, *, sense: bool) -> None:
+    def refresh(self, st: DriverState, transfer: CurrentTransfer, *, sense: bool) -> Plan:
         """The mode and the pattern of heights again (``sense`` has no meaning here: v2 uses the sense
         height only in mode 2)."""
         cfg = st.config
         assert cfg is not None
         n = cfg.electrode_count
         codes = st.codes if st.codes is not None and len(st.codes) == n else [0] * n
-        if st.mode is not None:
-            # a mode byte mis-read as 2 gives every channel the sense pulse, whatever the pattern
-            ops.send(c2.encode_stim_mode(st.mode))
-        ops.send(c2.encode_pattern(codes, electrode_num=n))
+        # a mode byte mis-read as 2 gives every channel the sense pulse, whatever the pattern
+        plan = [Write(c2.encode_stim_mode(st.mode))] if st.mode is not None else []
+        plan.append(Write(c2.encode_pattern(codes, electrode_num=n)))
+        return plan
 
     def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
         """The target changed: the frame in force follows (each electrode to its own limit and ramp)."""

@@ -19,7 +19,7 @@ from contextlib import contextmanager
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import InstantClock
 from tactdeform_hw.device.driver.audit import AuditLog
-from tactdeform_hw.device.driver.dialect import LinkOps
+from tactdeform_hw.device.driver.dialect import LinkOps, Plan
 from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, padding_for
 from tactdeform_hw.device.links.port import PortLink
 from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkRecovery, LinkState
@@ -117,6 +117,14 @@ class Wire:
         self.send_commands(commands)
         if self.pacer.robust:
             self.send_commands(commands)
+
+    def run(self, plan: Plan) -> None:
+        """A dialect's planned writes, in order (a critical one twice under robust encoding)."""
+        for w in plan:
+            if w.critical:
+                self.send_critical(w.data)
+            else:
+                self.send(w.data)
 
     @contextmanager
     def recovery(self) -> Iterator[None]:
