@@ -35,7 +35,6 @@ import functools
 import threading
 import warnings
 from collections.abc import Callable, Sequence
-from types import TracebackType
 from typing import Concatenate, Generic, ParamSpec, TypeVar, cast, overload
 
 from tactdeform_hw import protocol as p
@@ -658,12 +657,7 @@ class Device:
     def __enter__(self) -> Device:
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc_info: object) -> None:
         self.close()
 
     def __repr__(self) -> str:

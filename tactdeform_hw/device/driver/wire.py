@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import InstantClock
@@ -44,6 +45,7 @@ STATE_OPCODES = frozenset(
 )
 
 
+@dataclass(eq=False, repr=False)
 class Wire:
     """A device's send path and reply reading, over ``port_link``.
 
@@ -52,37 +54,24 @@ class Wire:
     sent it).  ``kind`` names the device in the error a closed one raises; ``unknown_reply_s`` is the
     extra wait for a reply while the alarm period is unknown."""
 
-    def __init__(
-        self,
-        port_link: PortLink,
-        guard: SafetyGuard,
-        link: LinkRecovery,
-        pacer: Pacer,
-        *,
-        mapping: ChannelMapping | None,
-        transfer: CurrentTransfer,
-        kind: str,
-        unknown_reply_s: float,
-        op: Callable[[], str],
-    ) -> None:
-        self.port_link = port_link
-        self.guard = guard
-        self.link = link
-        self.pacer = pacer
-        self.audit: AuditLog | None = None
-        self.mapping = mapping
-        self.transfer = transfer
-        self.kind = kind
-        self.unknown_reply_s = unknown_reply_s
-        self.op = op
-        #: True once the device is closed (or refused its board): nothing more is written.
-        self.closed = False
-        #: True while bytes are being handed to the transport: a stop now may leave half a command.
-        self.writing = False
-        #: True during a write of the recovery itself, the only writes allowed before the proof.
-        self.recovery_write = False
-        #: When a write last changed what the scans deliver (a rewrite of the same state does not count).
-        self.last_state_write: float | None = None
+    port_link: PortLink
+    guard: SafetyGuard
+    link: LinkRecovery
+    pacer: Pacer
+    mapping: ChannelMapping | None
+    transfer: CurrentTransfer
+    kind: str
+    unknown_reply_s: float
+    op: Callable[[], str]
+    audit: AuditLog | None = None
+    #: True once the device is closed (or refused its board): nothing more is written.
+    closed: bool = False
+    #: True while bytes are being handed to the transport: a stop now may leave half a command.
+    writing: bool = False
+    #: True during a write of the recovery itself, the only writes allowed before the proof.
+    recovery_write: bool = False
+    #: When a write last changed what the scans deliver (a rewrite of the same state does not count).
+    last_state_write: float | None = None
 
     def check_open(self) -> None:
         if self.closed:
