@@ -371,16 +371,6 @@ def test_a_missing_sync_reply_waits_past_the_2s_timeout_then_proves_again() -> N
     dev.close()
 
 
-def test_close_on_v2_leaves_everything_off_on_the_timed_model() -> None:
-    dev, port, board = _timed_v2()
-    dev.configure(StimConfig(electrode_count=16, current_ua=900))
-    dev.send_pattern([2] * 16)
-    dev.close()
-    t = port.now_s
-    port.advance(0.05)
-    assert board.peak_current_ua(since_us=t * 1e6) == {}
-
-
 def test_v12_bytes_never_reach_the_v2_dialect() -> None:
     assert c12.encode_pulse_height(100)[0] == OpcodeV2.STIM_MODE  # the same byte, another meaning
     port, emu = _untimed("v2")
