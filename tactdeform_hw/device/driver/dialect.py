@@ -124,6 +124,9 @@ class LinkOps:
     recovery_prove: Callable[[int], None]
     #: the closed-loop recovery (with the reset line if need be)
     recover: Callable[[], None]
+    #: a request byte and its whole reply of the given size, which proves every byte before it read (a
+    #: short one: the link suspect and :class:`ShortReplyError` naming the request)
+    request: Callable[[bytes, int, str], bytes]
     #: 0xFF and its whole reply (levels of each hardware channel's last pulse)
     measured: Callable[[int, str], list[int]]
     pace_for: Callable[[Sequence[tuple[float, float]]], None]

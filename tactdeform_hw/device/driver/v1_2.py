@@ -252,18 +252,11 @@ class V12Dialect:
     def prove(self, ops: LinkOps, electrodes: int) -> None:
         """0xFF when the firmware's electrode count is ``electrodes`` >= 1 (cheap, and its length proves the
         count too), else 0xF5 (about a millisecond of board detection)."""
-        ops.discard_input()
         if electrodes >= 1:
             request, size, what = p.MEASURE_REQUEST, 2 * electrodes, "measure"
         else:
             request, size, what = p.HV513_COUNT_REQUEST, 1, "hv513 count"
-        ops.send(request)
-        mark = ops.pacer().offset
-        reply = ops.await_reply(size)
-        if len(reply) != size:
-            ops.suspect(f"short reply to 0x{request[0]:02X}")
-            raise ShortReplyError(f"{what} (proof that the queue was read)", size, reply)
-        ops.proved(mark)
+        ops.request(request, size, f"{what} (proof that the queue was read)")
 
     def flush_parser(self, ops: LinkOps, st: DriverState) -> None:
         """SUSPECT → SYNCING (→ FLUSHING) → SAFE → VERIFYING → IN_STEP.

@@ -274,6 +274,7 @@ class Wire:
             prove=prove,
             recovery_prove=recovery_prove,
             recover=recover,
+            request=self.request,
             measured=self.measured,
             pace_for=self.pace_for,
             can_reset=self.port_link.can_reset,
