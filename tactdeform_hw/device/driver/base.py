@@ -346,7 +346,7 @@ class Device:
         leaves the wire fewer bytes to turn into that current."""
         if self.state.config is None or self.wire.closed:
             return
-        self.wire.run(self.dialect.refresh(self.state, self.transfer, sense=sense))
+        self.wire.run(self.dialect.refresh(self.state, self.transfer, sense=sense), self.state)
 
     @property
     def stimulating(self) -> bool:
@@ -478,7 +478,7 @@ class Device:
             self.state.config = self.state.config.with_current(0)
         if self._needs_resync:
             self._recover()  # closed loop: heights 0 and every channel off once the device proves it
-        self.dialect.off(self._ops(), self.state)
+        self.wire.run(self.dialect.off(self.state, self.mapping, self.pacer.scan_s), self.state)
         if keep_target:
             self.state.suspended = self.state.requested is not None
 

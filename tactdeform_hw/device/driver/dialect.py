@@ -16,9 +16,10 @@ planning those sequences whole would change the bytes after a failed write.
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING, Any, Protocol
 
 from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
@@ -83,14 +84,59 @@ class DriverState:
 
 @dataclass(frozen=True)
 class Write:
-    """One planned command: ``critical`` ones (heights, patterns) go twice under robust encoding."""
+    """One planned write: ``data`` (one command), or ``commands`` written at once (v2's parser applies
+    them back to back).  ``critical`` ones (heights, patterns) go twice under robust encoding; a
+    ``recovery`` one is the recovery's own (allowed before the proof); ``pad`` forces the loss-tolerant
+    padding on or off.  ``puts``: the fields of :class:`DriverState` in force once this write is written
+    (applied only then: after a write that fails, the state is that of the writes that got through)."""
 
-    data: bytes
+    data: bytes = b""
+    commands: tuple[bytes, ...] = ()
     critical: bool = False
+    recovery: bool = False
+    pad: bool | None = None
+    puts: dict[str, Any] = field(default_factory=dict)
 
 
-#: The writes of a planned operation, in order.
-Plan = list[Write]
+@dataclass
+class Plan:
+    """The writes of a planned operation, in order; ``puts_before``, the state put in force before the
+    first (a change that needs no byte, e.g. a ramp restarted); ``pace_after``, the (period s, scan s)
+    the pacer paces for once the last is written."""
+
+    writes: list[Write] = field(default_factory=list)
+    puts_before: dict[str, Any] = field(default_factory=dict)
+    pace_after: tuple[float, float] | None = None
+
+
+class PlanBuilder:
+    """Plans writes against a copy of the state in force: the planning code reads and changes ``st`` as
+    if each write had been written, and every change is recorded on the write it follows (so it is put
+    in force only once that write is), or before the first write.  The dialects' code assigns new values
+    to the state's fields and never changes a list in place, so a shallow copy is the whole state."""
+
+    def __init__(self, st: DriverState) -> None:
+        self.st = copy.copy(st)
+        self._seen = copy.copy(st)
+        self.plan = Plan()
+        self._target = self.plan.puts_before
+
+    def _record(self) -> None:
+        for f in fields(DriverState):
+            value = getattr(self.st, f.name)
+            if value is not getattr(self._seen, f.name):
+                self._target[f.name] = value
+                setattr(self._seen, f.name, value)
+
+    def add(self, write: Write) -> None:
+        self._record()
+        self.plan.writes.append(write)
+        self._target = write.puts
+
+    def done(self, pace_after: tuple[float, float] | None = None) -> Plan:
+        self._record()
+        self.plan.pace_after = pace_after
+        return self.plan
 
 
 @dataclass(frozen=True)
@@ -127,6 +173,8 @@ class LinkOps:
     #: a request byte and its whole reply of the given size, which proves every byte before it read (a
     #: short one: the link suspect and :class:`ShortReplyError` naming the request)
     request: Callable[[bytes, int, str], bytes]
+    #: a dialect's planned writes (:class:`Plan`), each putting its state in force once written
+    run: Callable[[Plan, DriverState], None]
     #: 0xFF and its whole reply (levels of each hardware channel's last pulse)
     measured: Callable[[int, str], list[int]]
     pace_for: Callable[[Sequence[tuple[float, float]]], None]
@@ -189,8 +237,9 @@ class Dialect(Protocol):
     def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
         """The target changed: the frame in force (``levels``, None when suspended or unknown) follows."""
 
-    def off(self, ops: LinkOps, st: DriverState) -> None:
-        """Every channel off and every height 0 (at a proved boundary)."""
+    def off(self, st: DriverState, mapping: ChannelMapping | None, scan_s: float | None) -> Plan:
+        """Every channel off and every height 0 (at a proved boundary); ``scan_s`` is the scan the pacer
+        paces for now (None: unknown)."""
 
     def refresh(self, st: DriverState, transfer: CurrentTransfer, *, sense: bool) -> Plan:
         """The same registers again, so a firmware that lost or mis-read a byte is put right."""
@@ -220,4 +269,14 @@ class Dialect(Protocol):
         """The guardian's stop once the board proved this firmware (None: keep the guardian's default)."""
 
 
-__all__ = ["Dialect", "DriverState", "LinkOps", "Plan", "Write", "recovery_timing", "scan_of", "worst_scan_s"]
+__all__ = [
+    "Dialect",
+    "DriverState",
+    "LinkOps",
+    "Plan",
+    "PlanBuilder",
+    "Write",
+    "recovery_timing",
+    "scan_of",
+    "worst_scan_s",
+]

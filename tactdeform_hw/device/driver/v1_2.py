@@ -215,28 +215,31 @@ class V12Dialect:
             ops.send_critical(p.encode_pulse_height(ops.transfer.to_code(height)))
             st.current_ua = height
 
-    def off(self, ops: LinkOps, st: DriverState) -> None:
+    def off(self, st: DriverState, mapping: ChannelMapping | None, scan_s: float | None) -> Plan:
         cfg = st.config
         assert cfg is not None
         n = cfg.electrode_count
-        ops.send_critical(p.encode_pattern(bytes(n)))
-        ops.send_critical(p.encode_pulse_height(0))
-        st.last_pattern = bytes(n)
-        st.current_ua = 0
-        # the sense pulse is a current too, and a fault may have set it whatever the host believes
-        ops.send_critical(p.encode_sense_height(0))
-        st.sense_byte = 0
-        st.scan_us = scan_of(cfg, bytes(n))
-        ops.pacer().set_timing(firmware_period_us(cfg.rate_hz) / 1e6, st.scan_us / 1e6)
+        scan_us = scan_of(cfg, bytes(n))
+        return Plan(
+            [
+                Write(p.encode_pattern(bytes(n)), critical=True),
+                Write(
+                    p.encode_pulse_height(0), critical=True, puts={"last_pattern": bytes(n), "current_ua": 0}
+                ),
+                # the sense pulse is a current too, and a fault may have set it whatever the host believes
+                Write(p.encode_sense_height(0), critical=True, puts={"sense_byte": 0, "scan_us": scan_us}),
+            ],
+            pace_after=(firmware_period_us(cfg.rate_hz) / 1e6, scan_us / 1e6),
+        )
 
     def refresh(self, st: DriverState, transfer: CurrentTransfer, *, sense: bool) -> Plan:
         cfg = st.config
         assert cfg is not None
         pattern = st.last_pattern if st.last_pattern is not None else bytes(cfg.electrode_count)
-        plan = [Write(p.encode_sense_height(st.sense_byte))] if sense and st.sense_byte is not None else []
-        plan.append(Write(p.encode_pulse_height(transfer.to_code(st.current_ua))))
-        plan.append(Write(p.encode_pattern(pattern, electrode_num=cfg.electrode_count)))
-        return plan
+        writes = [Write(p.encode_sense_height(st.sense_byte))] if sense and st.sense_byte is not None else []
+        writes.append(Write(p.encode_pulse_height(transfer.to_code(st.current_ua))))
+        writes.append(Write(p.encode_pattern(pattern, electrode_num=cfg.electrode_count)))
+        return Plan(writes)
 
     def heights_in_force(self, st: DriverState, mapping: ChannelMapping | None) -> list[int] | None:
         return None

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import InstantClock
 from tactdeform_hw.device.driver.audit import AuditLog
-from tactdeform_hw.device.driver.dialect import LinkOps, Plan
+from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, Plan
 from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, padding_for
 from tactdeform_hw.device.links.port import PortLink
 from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkRecovery, LinkState
@@ -107,13 +107,27 @@ class Wire:
         if self.pacer.robust:
             self.send_commands(commands)
 
-    def run(self, plan: Plan) -> None:
-        """A dialect's planned writes, in order (a critical one twice under robust encoding)."""
-        for w in plan:
-            if w.critical:
+    def run(self, plan: Plan, st: DriverState) -> None:
+        """A dialect's planned writes, in order (a critical one twice under robust encoding), each putting
+        its state in force in ``st`` once it is written; then the pace the plan ends with."""
+        for name, value in plan.puts_before.items():
+            setattr(st, name, value)
+        for w in plan.writes:
+            if w.commands:
+                if w.critical:
+                    self.send_critical_commands(w.commands)
+                else:
+                    self.send_commands(w.commands, pad=w.pad)
+            elif w.recovery:
+                self.recovery_send(w.data, pad=w.pad)
+            elif w.critical:
                 self.send_critical(w.data)
             else:
-                self.send(w.data)
+                self.send(w.data, pad=w.pad)
+            for name, value in w.puts.items():
+                setattr(st, name, value)
+        if plan.pace_after is not None:
+            self.pacer.set_timing(*plan.pace_after)
 
     @contextmanager
     def recovery(self) -> Iterator[None]:
@@ -275,6 +289,7 @@ class Wire:
             recovery_prove=recovery_prove,
             recover=recover,
             request=self.request,
+            run=self.run,
             measured=self.measured,
             pace_for=self.pace_for,
             can_reset=self.port_link.can_reset,
