@@ -5,13 +5,17 @@ A :class:`~tactdeform_hw.device.driver.base.Device` sends, paces, audits and kee
 (:class:`DriverState`).  A dialect never sees the device, so both versions are read and tested against the
 same interface, and :data:`~tactdeform_hw.device.driver.dialects.DIALECTS` picks one per firmware spec.
 
-Where an operation is a fixed sequence of bytes that changes no state the host keeps (``refresh``, the
-guardian's stops, the longest frame), the dialect is a pure planner: it returns the writes (a :data:`Plan`)
-and the device sends them.  Everywhere else it is handed the narrow set of link operations
-(:class:`LinkOps`): the recovery's branches depend on replies, and a configuration, a frame or an all-off
-records in :class:`DriverState` what each write put in force as soon as it is written — a write cut half
-way leaves the state of the writes that got through, which decides what the next frame writes first, so
-planning those sequences whole would change the bytes after a failed write.
+Where an operation is a fixed sequence of writes, the dialect is a pure planner: it returns them (a
+:class:`Plan`) and the device sends them — ``refresh``, ``off`` (the all-off), the guardian's stops, the
+longest frame, and on v2 the count raised without stale channels and the covered pattern, which its other
+steps run as sub-plans.  A plan is made on a copy of the state (:class:`PlanBuilder`) and every write
+carries the state it puts in force, applied only once it is written: a write cut half way leaves the
+state of the writes that got through, as it always did, so the next frame writes the same bytes.
+
+The dialect is handed the link operations (:class:`LinkOps`) only where a step depends on a reply or
+on a refusal part way: the closed-loop recovery (``flush_parser``) and the proofs, a configuration
+(proofs between its writes), and a frame or a change of current (v2 restarts the ramp on a change of mode
+before a refusal can come, and that restart is kept even when the frame is refused).
 """
 
 from __future__ import annotations
