@@ -111,24 +111,31 @@ def _locked(fn: Callable[Concatenate[_D, _P], _R]) -> Callable[Concatenate[_D, _
     return wrapper
 
 
-class StateField(Generic[_T]):
-    """A read-only attribute of a device that shows one field of its :class:`DriverState` (what the host
-    believes the firmware holds, and what the caller asked for): the state has one owner."""
+class Part(Generic[_T]):
+    """An attribute of a device that is one of its parts' (``part``: ``"state"``, the
+    :class:`DriverState` — what the host believes the firmware holds, read-only here since it follows what
+    the device sends — or ``"wire"``, the :class:`~.wire.Wire`, so the send path and the device never
+    disagree on it)."""
+
+    def __init__(self, part: str) -> None:
+        self.part = part
 
     def __set_name__(self, owner: type, name: str) -> None:
         self.name = name
 
     @overload
-    def __get__(self, obj: None, owner: type) -> StateField[_T]: ...
+    def __get__(self, obj: None, owner: type) -> Part[_T]: ...
     @overload
     def __get__(self, obj: Device, owner: type) -> _T: ...
-    def __get__(self, obj: Device | None, owner: type) -> StateField[_T] | _T:
+    def __get__(self, obj: Device | None, owner: type) -> Part[_T] | _T:
         if obj is None:
             return self
-        return cast(_T, getattr(obj.state, self.name))
+        return cast(_T, getattr(getattr(obj, self.part), self.name))
 
     def __set__(self, obj: Device, value: _T) -> None:
-        raise AttributeError(f"{self.name} is read-only: it follows what the device sends")
+        if self.part == "state":
+            raise AttributeError(f"{self.name} is read-only: it follows what the device sends")
+        setattr(getattr(obj, self.part), self.name, value)
 
 
 class Device:
@@ -184,8 +191,6 @@ class Device:
         if guard is not None:
             # before anything is written: the calibrated channels must be the wired ones
             guard.check_wiring(mapping)
-        self.mapping = mapping
-        self.transfer = transfer
         self.guard = guard if guard is not None else SafetyGuard()
         #: What the host believes the firmware holds, and what the caller asked for.
         self.state = DriverState()
@@ -251,14 +256,12 @@ class Device:
     def port(self, port: Port) -> None:
         self.port_link.port = port
 
-    @property
-    def pacer(self) -> Pacer:
-        """The pacer that spaces this device's writes (the wire's)."""
-        return self.wire.pacer
-
-    @pacer.setter
-    def pacer(self, pacer: Pacer) -> None:
-        self.wire.pacer = pacer
+    #: The pacer that spaces this device's writes.
+    pacer: Part[Pacer] = Part("wire")
+    #: Application electrode order to hardware channels (None: identity), as the interlock reads it.
+    mapping: Part[ChannelMapping | None] = Part("wire")
+    #: µA to DAC codes, as the interlock reads it.
+    transfer: Part[CurrentTransfer] = Part("wire")
 
     @property
     def guardian(self) -> Guardian | None:
@@ -268,17 +271,17 @@ class Device:
     # --- state ---------------------------------------------------------------------------------------------
 
     #: The configuration last sent (None until ``configure``).
-    config: StateField[StimConfig | None] = StateField()
+    config: Part[StimConfig | None] = Part("state")
     #: The pulse height in force (µA): what an active channel receives now.
-    current_ua: StateField[int] = StateField()
+    current_ua: Part[int] = Part("state")
     #: The current the caller asked for; frames carry it lowered to their limits.
-    target_ua: StateField[int] = StateField()
+    target_ua: Part[int] = Part("state")
     #: The pattern the firmware should hold, in hardware order (None: unknown, e.g. after a resync).
-    last_pattern: StateField[bytes | None] = StateField()
+    last_pattern: Part[bytes | None] = Part("state")
     #: True after a fail-safe stop; the next frame (or keepalive) resumes, ramped.
-    suspended: StateField[bool] = StateField()
+    suspended: Part[bool] = Part("state")
     #: Patterns written (a rewrite of the same pattern by ``keepalive`` is not one).
-    frames_sent: StateField[int] = StateField()
+    frames_sent: Part[int] = Part("state")
 
     @property
     def audit(self) -> AuditLog | None:
