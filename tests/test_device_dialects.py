@@ -4,12 +4,14 @@ version, and reads the board back through the version-independent readback."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from typing import Any
 
 import pytest
 
 from tactdeform_hw.device import ChannelMapping, EtactileKitDevice, SafetyGuard, StimConfig
+from tactdeform_hw.device.driver.dialect import Plan
 from tactdeform_hw.device.driver.dialects import DIALECTS
 from tactdeform_hw.device.driver.readback import pattern_readback
 from tactdeform_hw.device.driver.v2 import buffer_levels
@@ -201,3 +203,43 @@ def test_a_configuration_whose_idle_scan_fills_the_period_is_refused_before_a_by
     assert port.writes == []
     dev.configure(fits)
     dev.close()
+
+
+def test_a_refresh_is_the_dialects_plan_sent_as_planned(dev: EtactileKitDevice, port: RecordingPort) -> None:
+    """The dialect plans a refresh from the state in force without writing; the device sends exactly
+    those commands, and the board is left holding the same frame."""
+    dev.configure(StimConfig(electrode_count=8, current_ua=600, sense_current_ua=0))
+    dev.send_pattern([1, 0, 1, 0, 0, 1, 0, 0])
+    before = _levels(dev)
+    port.writes.clear()
+    plan = dev.dialect.refresh(dev.state, dev.transfer, sense=True)
+    assert port.writes == [] and plan.writes
+    dev.refresh()
+    assert b"".join(port.writes) == _planned_bytes(dev, plan)
+    assert _levels(dev) == before
+
+
+def _planned_bytes(dev: EtactileKitDevice, plan: Plan) -> bytes:
+    """The bytes a plan stands for on this device's link (no loss-tolerant padding here)."""
+    assert not dev.pacer.robust  # each write once, unpadded
+    return b"".join(b"".join(w.commands) or w.data for w in plan.writes)
+
+
+@pytest.mark.parametrize("mode_known", [True, False], ids=["mode-known", "after-a-failed-write"])
+def test_the_all_off_is_the_dialects_plan_and_the_state_changes_only_as_it_is_written(
+    dev: EtactileKitDevice, port: RecordingPort, mode_known: bool
+) -> None:
+    """The dialect plans the all-off from a copy of the state (the state in force is untouched until a
+    write is written); the device sends exactly the planned bytes and the board is off."""
+    dev.configure(StimConfig(electrode_count=8, current_ua=600))
+    dev.send_pattern([1] * 8)
+    if not mode_known:
+        dev.state.mode = None  # as after a cut write on v2: the mode in force is unknown
+    before = dataclasses.replace(dev.state)
+    plan = dev.dialect.off(dev.state, dev.mapping, dev.pacer.scan_s)
+    assert dev.state == before and plan.writes and plan.pace_after is not None
+    port.writes.clear()
+    dev.all_off()
+    assert b"".join(port.writes) == _planned_bytes(dev, plan)
+    assert dev.state.current_ua == 0 and dev.state.last_pattern == bytes(8)
+    assert set(_levels(dev)) == {0}

@@ -81,7 +81,7 @@ def test_signal_handler_starts_with_a_resync_when_it_cut_a_write() -> None:
     dev.configure(StimConfig(current_ua=500))
     dev.send_pattern(ALL)
     port.emulator.feed(b"\xfe\x01\x01")  # the signal arrived while a pattern was half on the wire
-    dev._writing = True
+    dev.wire.writing = True
     n = len(port.writes)
     with pytest.raises(SystemExit) as exc:
         fs._on_signal(signal.SIGTERM, None)

@@ -276,6 +276,10 @@ COVERED = {
     "last_pattern": "property",
     "busy": "property",
     "writing": "property",
+    "pacer": "property: the wire's pacer, which only spaces the writes",
+    "mapping": "the wire's: the interlock reads the same mapping the frames are built with",
+    "transfer": "the wire's: the interlock reads the same transfer the heights are coded with",
+    "last_state_write": "property: a time, no bytes",
 }
 
 

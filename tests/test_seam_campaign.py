@@ -15,7 +15,7 @@ from .safety_helpers import OPEN_DEFECTS
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import seam_sessions as ss  # noqa: E402
 
-from tactdeform_hw.device.driver import base, firmware_probe, serial_driver  # noqa: E402
+from tactdeform_hw.device.driver import firmware_probe, opening, serial_driver  # noqa: E402
 from tactdeform_hw.device.driver.firmware_probe import Detection  # noqa: E402
 from tactdeform_hw.device.safety.guard import SafetyGuard  # noqa: E402
 from tactdeform_hw.protocol.firmware import V1_2, V2  # noqa: E402
@@ -78,7 +78,7 @@ def test_the_mismatch_check_fails_when_the_other_version_is_not_refused(
 ) -> None:
     indices = _sessions("mismatch", 3)
     assert all(ss.run_session(i).ok for i in indices)
-    monkeypatch.setattr(base, "check_firmware", lambda *a, **k: None)
+    monkeypatch.setattr(opening, "check_firmware", lambda *a, **k: None)
     assert all("was not refused" in ss.run_session(i).failure() for i in indices)
 
 

@@ -373,16 +373,6 @@ def test_a_missing_sync_reply_waits_past_the_2s_timeout_then_proves_again() -> N
     dev.close()
 
 
-def test_close_on_v2_leaves_everything_off_on_the_timed_model() -> None:
-    dev, port, board = _timed_v2()
-    dev.configure(StimConfig(electrode_count=16, current_ua=900))
-    dev.send_pattern([2] * 16)
-    dev.close()
-    t = port.now_s
-    port.advance(0.05)
-    assert board.peak_current_ua(since_us=t * 1e6) == {}
-
-
 def test_v12_bytes_never_reach_the_v2_dialect() -> None:
     assert c12.encode_pulse_height(100)[0] == OpcodeV2.STIM_MODE  # the same byte, another meaning
     port, emu = _untimed("v2")
@@ -438,11 +428,11 @@ def test_a_guardian_is_given_the_v2_stop() -> None:
     port, emu = _untimed("v2")
     dev = EtactileKitDevice(port)
     g = _Guardian()
-    dev._guardian = g  # type: ignore[assignment]
+    dev.guardians.guardian = g  # type: ignore[assignment]
     dev.speak(V2)
     assert g.stops == [off_packet(0)]
-    dev._guardian = None
-    dev._closed = True
+    dev.guardians.guardian = None
+    dev.wire.closed = True
     # the stop leaves a v2 pattern in progress complete with zeros, and no height above 0
     emu.feed(c2.encode_electrode_num(8) + bytes([0xFE, 0x20]) + g.stops[0])
     assert list(emu.state().stim_pattern[:8]) == [0x20] + [0] * 7 and emu.state().electrode_num == 0

@@ -4,10 +4,12 @@ Every public method checks its input, passes currents through the safety guard, 
 that would trigger a known firmware defect, and only then builds bytes with :mod:`tactdeform_hw.protocol`
 and writes them — one write per command.  ``close`` is idempotent and leaves every channel off.
 
-Every byte leaves through :meth:`Device._send`, which passes it through the safety interlock
+Every byte leaves through the device's :class:`~.wire.Wire`, which passes it through the safety interlock
 (:class:`~tactdeform_hw.device.safety.interlock.WireInterlock`), the pacer (:mod:`.pacing`: never faster
-than the firmware reads) and the session's audit log (:mod:`.audit`).  Public methods hold one lock, so a
-fail-safe thread's all-off can never interleave with a half-written frame.
+than the firmware reads) and the session's audit log (:mod:`.audit`); the dialect's link operations send
+through the same wire.  The opening (port, identification, guardian, proof at open) is an
+:class:`~.opening.Opener`'s.  Public methods hold one lock, so a fail-safe thread's all-off can never
+interleave with a half-written frame.
 
 Nothing that carries a value — a height, a width, an electrode count, a pattern — is written unless the
 device has proved its parser at a command boundary with room in its queue: at open, after a failed or cut
@@ -33,25 +35,25 @@ import functools
 import threading
 import warnings
 from collections.abc import Callable, Sequence
-from types import TracebackType
-from typing import Concatenate, ParamSpec, TypeVar
+from typing import Concatenate, Generic, ParamSpec, TypeVar, cast, overload
 
 from tactdeform_hw import protocol as p
-from tactdeform_hw.clock import Clock, InstantClock, MonotonicClock
+from tactdeform_hw.clock import Clock, MonotonicClock
 from tactdeform_hw.device.driver.audit import AuditLog
-from tactdeform_hw.device.driver.config import StimConfig, robust_refusal
-from tactdeform_hw.device.driver.dialect import Dialect, DriverState, LinkOps, worst_scan_s
+from tactdeform_hw.device.driver.checks import ALLOWED_LEVELS, check_levels, checked_config
+from tactdeform_hw.device.driver.closing import CLOSE_RECONNECTS, close_link, stop_and_prove
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.dialect import Dialect, DriverState, LinkOps
 from tactdeform_hw.device.driver.dialects import DIALECTS
 from tactdeform_hw.device.driver.firmware_probe import (
     Detection,
-    FirmwareMismatchError,
-    check_firmware,
     check_firmware_choice,
-    identify,
     recheck_firmware,
 )
-from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, default_pacer, padding_for
-from tactdeform_hw.device.links.port import Port, PortLink, no_delay
+from tactdeform_hw.device.driver.opening import GuardianSlot, Opener
+from tactdeform_hw.device.driver.pacing import Pacer
+from tactdeform_hw.device.driver.wire import Wire
+from tactdeform_hw.device.links.port import Port, PortLink
 from tactdeform_hw.device.links.recovery import (
     PROBE_LEAD_ZEROS,
     RECOVERY_ATTEMPTS,
@@ -63,53 +65,21 @@ from tactdeform_hw.device.links.recovery import (
 )
 from tactdeform_hw.device.participant.mapping import ChannelMapping
 from tactdeform_hw.device.safety.guard import SafetyGuard
-from tactdeform_hw.device.safety.guardian import Guardian, pace_for, start_guardian
+from tactdeform_hw.device.safety.guardian import Guardian
 from tactdeform_hw.errors import (
     DeviceTimeoutError,
     LimitError,
-    NotStoppedError,
-    PortNotOpenError,
     ProtocolMisuseError,
     SafetyError,
     ShortReplyError,
-    TactDeformError,
-    TransportError,
-)
-from tactdeform_hw.ports import is_instant
-from tactdeform_hw.protocol.constants import (
-    PATTERN_BIPHASIC,
-    PATTERN_MONOPHASIC,
-    PATTERN_SENSE,
-    USB_PACKET_SIZE,
 )
 from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
-#: Pattern levels a host may send: off (a sense pulse, 0 µA while sense current is 0), mono, biphasic.
-ALLOWED_LEVELS = frozenset({PATTERN_SENSE, PATTERN_MONOPHASIC, PATTERN_BIPHASIC})
-_ACTIVE = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
-#: Commands that change what the scans deliver (a measure right after one reads the old pulses).
-_STATE_OPCODES = frozenset(
-    {
-        p.Opcode.PATTERN,
-        p.Opcode.PULSE_HEIGHT,
-        p.Opcode.PULSE_WIDTH,
-        p.Opcode.SENSE_HEIGHT,
-        p.Opcode.SENSE_WIDTH,
-        p.Opcode.ELECTRODE_NUM,
-        p.Opcode.POLARITY,
-        p.Opcode.FREQUENCY,
-    }
-)
-
-
-#: Times ``close`` reopens a link that failed under its all-off before it gives up and says so.
-CLOSE_RECONNECTS = 3
-
-
 _D = TypeVar("_D", bound="Device")
 _P = ParamSpec("_P")
 _R = TypeVar("_R")
+_T = TypeVar("_T")
 
 
 #: The public operations that keep the board stimulating without proving that its parser reads: before
@@ -139,6 +109,33 @@ def _locked(fn: Callable[Concatenate[_D, _P], _R]) -> Callable[Concatenate[_D, _
                     self._op = None
 
     return wrapper
+
+
+class Part(Generic[_T]):
+    """An attribute of a device that is one of its parts' (``part``: ``"state"``, the
+    :class:`DriverState` — what the host believes the firmware holds, read-only here since it follows what
+    the device sends — or ``"wire"``, the :class:`~.wire.Wire`, so the send path and the device never
+    disagree on it)."""
+
+    def __init__(self, part: str) -> None:
+        self.part = part
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    @overload
+    def __get__(self, obj: None, owner: type) -> Part[_T]: ...
+    @overload
+    def __get__(self, obj: Device, owner: type) -> _T: ...
+    def __get__(self, obj: Device | None, owner: type) -> Part[_T] | _T:
+        if obj is None:
+            return self
+        return cast(_T, getattr(getattr(obj, self.part), self.name))
+
+    def __set__(self, obj: Device, value: _T) -> None:
+        if self.part == "state":
+            raise AttributeError(f"{self.name} is read-only: it follows what the device sends")
+        setattr(getattr(obj, self.part), self.name, value)
 
 
 class Device:
@@ -186,32 +183,6 @@ class Device:
         settle_s: float | None = None,
     ) -> None:
         check_firmware_choice(firmware)
-        self._init_state(mapping, transfer, guard, pacer, audit)
-        self.port_link = PortLink(port, lambda s: self.pacer.clock.sleep(s))
-        self._guardian: Guardian | None = None
-        if not port.is_open:
-            try:
-                self.port_link.open()
-            except BaseException:
-                self._closed = True
-                raise
-        no_delay(port)
-        if pacer is None:  # what a port needs is known only once it is open (a URL builds its device then)
-            self.pacer = default_pacer(port)
-            if offline_clock is not None and is_instant(port):
-                # a port that answers at once (the in-process emulator) runs the session on the caller's clock
-                self.pacer = Pacer(clock=offline_clock, policy=self.pacer.policy)
-        self.identification = probe if probe is not None else self._identify(settle_s)
-        self._open(firmware, guardian)
-
-    def _init_state(
-        self,
-        mapping: ChannelMapping | None,
-        transfer: CurrentTransfer,
-        guard: SafetyGuard | None,
-        pacer: Pacer | None,
-        audit: AuditLog | None,
-    ) -> None:
         self._lock = threading.RLock()
         self._op: str | None = None
         #: Called under the device lock before each operation in :data:`STIMULATING_OPS`: a fail-safe's
@@ -220,12 +191,7 @@ class Device:
         if guard is not None:
             # before anything is written: the calibrated channels must be the wired ones
             guard.check_wiring(mapping)
-        self.mapping = mapping
-        self.transfer = transfer
         self.guard = guard if guard is not None else SafetyGuard()
-        self.pacer = pacer if pacer is not None else Pacer(clock=MonotonicClock())
-        self._audit: AuditLog | None = None
-        self.audit = audit
         #: What the host believes the firmware holds, and what the caller asked for.
         self.state = DriverState()
         #: The recovery state machine: what is proved about the firmware's parser (see :class:`LinkState`).
@@ -233,47 +199,33 @@ class Device:
         # (time s, from, to, why) of the latest transitions, and when a reply last proved the parser
         self.transitions = self.link.transitions
         self.proofs = self.link.proofs
-        self._recovery_write = False
         self._resetting = False
         self.last_frame_time: float | None = None
-        self.last_state_write: float | None = None  # the last write that changed what the scans deliver
-        self._writing = False  # True while bytes are being handed to the transport
-        self._closed = False
         #: How this board's firmware expresses each operation (v1.2 until the board proves another).
         self.dialect: Dialect = DIALECTS[V1_2]
-
-    def _open(self, firmware: str, guardian: bool | None) -> None:
-        """After the identification: its bytes counted and logged, the version checked, the guardian, the
-        dialect, the proof at open, and the stop session's watch."""
-        probe = self.identification
-        # the identification wrote before anything else: its bytes are this device's own
-        self.pacer.stats.bytes_written += probe.bytes_sent
-        if self.audit is not None:
-            self.audit.event(
-                "firmware_probe",
-                firmware=probe.name,
-                attempts=probe.attempts,
-                bytes=probe.bytes_sent,
-                reply=probe.reply.hex(),
-                settle_s=probe.settle_s,
-            )
-        if firmware != "auto" and probe.name != firmware:
-            self._refuse()
-            check_firmware(firmware, probe, self.port_link.name)
-        self._want_guardian = bool(getattr(self.port, "guardable", False)) if guardian is None else guardian
-        if self._want_guardian:
-            try:
-                self._start_guardian()
-            except BaseException:
-                self._closed = True
-                self.port_link.close()
-                raise
-        self.speak(probe.firmware)
-        try:
-            self._open_proof()
-        except FirmwareMismatchError:
-            self._refuse()  # the board answered as another firmware: stopped, refused, released
-            raise  # a board in an unknown state: nothing is sent before it proves its parser
+        self.port_link = PortLink(port, lambda s: self.pacer.clock.sleep(s))
+        #: The send path and reply reading (pacer, interlock, audit), shared with the dialect's link ops.
+        self.wire = Wire(
+            self.port_link,
+            self.guard,
+            self.link,
+            pacer if pacer is not None else Pacer(clock=MonotonicClock()),
+            mapping=mapping,
+            transfer=transfer,
+            kind=self.kind,
+            unknown_reply_s=self.unknown_reply_s,
+            op=lambda: self._op or "",
+        )
+        self.audit = audit
+        self.guardians = GuardianSlot(lambda: repr(self))
+        opener = Opener(self.wire, self.guardians)
+        opener.open_port(own_pacer=pacer is None, offline_clock=offline_clock)
+        self.identification = (
+            probe if probe is not None else opener.identify(self.link, settle_s=settle_s, boot_s=self.boot_s)
+        )
+        opener.accept(self.identification, firmware, guardian)
+        self.speak(self.identification.firmware)
+        opener.prove(self._lock, self._recover, self._suspect)
         from tactdeform_hw.device.safety.failsafe import adopt
 
         adopt(self)  # a command's stop session watches every device opened under it
@@ -293,28 +245,7 @@ class Device:
             audit.event("firmware", firmware=firmware.name)
         # v1.2's stop (a few zeros, then 0xFB 00 00 …) would complete a v2 pattern in progress with 0xFB as
         # a height's high byte: the guardian is given the dialect's stop
-        stop = self.dialect.guardian_open_stop()
-        if stop is not None and self._guardian is not None:
-            self._guardian.set_stop(stop)
-
-    def _identify(self, settle_s: float | None) -> Detection:
-        """Prove which firmware runs the board (:func:`~.firmware_probe.identify`); refuse it otherwise."""
-        self.link.unproved_since = self.pacer.clock.now()
-        try:
-            return identify(
-                self.port_link, self.pacer.clock, self.audit, settle_s=settle_s, boot_s=self.boot_s
-            )
-        except BaseException:
-            self._refuse()
-            raise
-
-    def _refuse(self) -> None:
-        """Give up a board before driving it: the guardian let go, the port closed, nothing more written."""
-        self._closed = True
-        g, self._guardian = self._guardian, None
-        if g is not None:
-            g.release()
-        self.port_link.close()
+        self.guardians.set_stop(self.dialect.guardian_open_stop())
 
     @property
     def port(self) -> Port:
@@ -325,61 +256,41 @@ class Device:
     def port(self, port: Port) -> None:
         self.port_link.port = port
 
-    # --- the guardian ---------------------------------------------------------------------------------------
+    #: The pacer that spaces this device's writes.
+    pacer: Part[Pacer] = Part("wire")
+    #: Application electrode order to hardware channels (None: identity), as the interlock reads it.
+    mapping: Part[ChannelMapping | None] = Part("wire")
+    #: µA to DAC codes, as the interlock reads it.
+    transfer: Part[CurrentTransfer] = Part("wire")
 
     @property
     def guardian(self) -> Guardian | None:
         """The guardian process watching this device's owner (None on a port that cannot be guarded)."""
-        return self._guardian
-
-    def _start_guardian(self) -> None:
-        self._guardian = start_guardian(self.port, repr(self))
-        self._tell_guardian()
-
-    def _tell_guardian(self) -> None:
-        g, cfg = self._guardian, self.config
-        if g is None or cfg is None:
-            return
-        drain_s, zeros_s = pace_for(
-            cfg.rate_hz, cfg.electrode_count, cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us
-        )
-        g.configure(self.dialect.guardian_stop(cfg.electrode_count), drain_s, zeros_s)
-
-    def _reopen_transport(self) -> None:
-        # the guardian shares the old descriptor (and its lock): let it try to switch off through it, then
-        # start a new one on the new descriptor
-        g, self._guardian = self._guardian, None
-        if g is not None:
-            g.abandon()
-        self.port_link.reopen()
-        if self._want_guardian:
-            self._start_guardian()
+        return self.guardians.guardian
 
     # --- state ---------------------------------------------------------------------------------------------
 
-    @property
-    def config(self) -> StimConfig | None:
-        """The configuration last sent (None until ``configure``)."""
-        return self.state.config
-
-    @property
-    def current_ua(self) -> int:
-        """The pulse height in force (µA): what an active channel receives now."""
-        return self.state.current_ua
-
-    @property
-    def target_ua(self) -> int:
-        """The current the caller asked for; frames carry it lowered to their limits."""
-        return self.state.target_ua
+    #: The configuration last sent (None until ``configure``).
+    config: Part[StimConfig | None] = Part("state")
+    #: The pulse height in force (µA): what an active channel receives now.
+    current_ua: Part[int] = Part("state")
+    #: The current the caller asked for; frames carry it lowered to their limits.
+    target_ua: Part[int] = Part("state")
+    #: The pattern the firmware should hold, in hardware order (None: unknown, e.g. after a resync).
+    last_pattern: Part[bytes | None] = Part("state")
+    #: True after a fail-safe stop; the next frame (or keepalive) resumes, ramped.
+    suspended: Part[bool] = Part("state")
+    #: Patterns written (a rewrite of the same pattern by ``keepalive`` is not one).
+    frames_sent: Part[int] = Part("state")
 
     @property
     def audit(self) -> AuditLog | None:
-        return self._audit
+        return self.wire.audit
 
     @audit.setter
     def audit(self, log: AuditLog | None) -> None:
         """Enable (or with None, disable) the audit log; the guard's refusals and clips go there too."""
-        self._audit = log
+        self.wire.audit = log
         if log is not None and self.guard.sink is None:
             self.guard.sink = log.safety
 
@@ -405,11 +316,6 @@ class Device:
             self._suspect("marked for resync")
 
     @property
-    def last_pattern(self) -> bytes | None:
-        """The pattern the firmware should hold, in hardware order (None: unknown, e.g. after a resync)."""
-        return self.state.last_pattern
-
-    @property
     def busy(self) -> bool:
         """True while a public operation runs: another thread must not start one between its commands."""
         return self._op is not None
@@ -417,7 +323,12 @@ class Device:
     @property
     def writing(self) -> bool:
         """True while bytes are being handed to the transport: a stop now may leave half a command."""
-        return self._writing
+        return self.wire.writing
+
+    @property
+    def last_state_write(self) -> float | None:
+        """When a write last changed what the scans deliver (None: none yet)."""
+        return self.wire.last_state_write
 
     def mark_unknown(self) -> None:
         """Forget what the firmware holds (a cut write, an unanswered probe, a wrong readback): the next
@@ -436,41 +347,23 @@ class Device:
         sets it to about 10 mA — including the duplicate of the ``f9`` a refresh writes.  So a caller
         whose readback already watches the off channels (sense current 0) passes ``sense=False`` and
         leaves the wire fewer bytes to turn into that current."""
-        if self.state.config is None or self._closed:
+        if self.state.config is None or self.wire.closed:
             return
-        self.dialect.refresh(self._ops(), self.state, sense=sense)
-
-    @property
-    def suspended(self) -> bool:
-        """True after a fail-safe stop; the next frame (or keepalive) resumes, ramped."""
-        return self.state.suspended
+        self.wire.run(self.dialect.refresh(self.state, self.transfer, sense=sense), self.state)
 
     @property
     def stimulating(self) -> bool:
         """Whether the firmware, as far as the host knows, is delivering current to any channel."""
-        if self.state.config is None:
-            return False
-        if self.state.config.sense_current_ua:
-            return True
-        return (
-            bool(self.state.current_ua)
-            and self.state.last_pattern is not None
-            and any(v in _ACTIVE for v in self.state.last_pattern)
-        )
+        return self.state.stimulating
 
     @property
     def closed(self) -> bool:
-        return self._closed
+        return self.wire.closed
 
     @property
     def firmware(self) -> str:
         """The firmware version this device speaks to its board (``"v1.2"`` or ``"v2"``)."""
         return self.dialect.firmware.name
-
-    @property
-    def frames_sent(self) -> int:
-        """Patterns written (a rewrite of the same pattern by ``keepalive`` is not one)."""
-        return self.state.frames_sent
 
     @property
     def heights_in_force(self) -> list[int] | None:
@@ -496,35 +389,23 @@ class Device:
         stale channel above the old count comes back), polarity changes while all is off, and the
         participant's current comes last.  The order and bytes are the dialect's.
         """
-        self._check_open()
-        try:
-            config = self.dialect.validated(config, self.transfer)
-        except LimitError as exc:
-            self.guard.note_refusal(exc)
-            raise
-        config = self.guard.check_config(
+        self.wire.check_open()
+        config = checked_config(
             config,
+            dialect=self.dialect,
+            guard=self.guard,
+            transfer=self.transfer,
+            mapping=self.mapping,
+            robust=self.pacer.robust,
             stimulating=self.stimulating,
             polarity_in_force=self.state.config.polarity if self.state.config is not None else None,
-            transfer=self.transfer,
         )
-        if self.mapping is not None and self.mapping.hw_channels != config.electrode_count:
-            raise LimitError(
-                "electrode_count",
-                config.electrode_count,
-                f"the channel mapping's hardware channel count {self.mapping.hw_channels}",
-            )
-        refusal = robust_refusal(config, self.transfer) if self.pacer.robust else None
-        if refusal is not None:
-            self.guard.note_refusal(refusal)
-            raise refusal
-        self.dialect.check_idle_scan(self.guard, config)
         # the caller's frame is superseded now, whether or not the writes below get through: no keepalive
         # after a failed configure brings the old frame back
         self.state.requested = None
         self.state.suspended = False
         self.dialect.configure(self._ops(), self.state, config)
-        self._tell_guardian()
+        self.guardians.tell(self.dialect, self.state.config)
 
     @_locked
     def set_current(self, current_ua: int) -> None:
@@ -538,7 +419,7 @@ class Device:
         if self._needs_resync:
             self.resync()
             return
-        levels = None if self.state.suspended else self._application_levels()
+        levels = None if self.state.suspended else self.state.application_levels(self.mapping)
         self.dialect.set_current(self._ops(), self.state, levels)
 
     @_locked
@@ -549,11 +430,7 @@ class Device:
         (see :mod:`.safety`); a needed height change is written before the pattern when it lowers the
         height and after it when it raises it."""
         self._require_config("send_pattern")
-        try:
-            self._check_levels(levels)
-        except (LimitError, ProtocolMisuseError) as exc:
-            self.guard.note_refusal(exc)
-            raise
+        check_levels(levels, self.electrodes, self.dialect, self.guard)
         previous = self.state.requested
         self.state.requested = list(levels)
         try:
@@ -567,28 +444,12 @@ class Device:
             raise
         self._mark_frame()
 
-    def _check_levels(self, levels: Sequence[int]) -> None:
-        expected = self.electrodes
-        try:
-            count = len(levels)
-        except TypeError as exc:
-            raise LimitError("pattern", levels, "a sequence of levels") from exc
-        if count != expected:
-            raise ProtocolMisuseError(
-                f"pattern has {count} level(s) but the device is configured for {expected} electrode(s); "
-                "a short pattern would swallow the next command and a long one would leak into it"
-            )
-        for i, v in enumerate(levels):
-            if isinstance(v, bool) or not isinstance(v, int) or v not in ALLOWED_LEVELS:
-                raise LimitError(f"pattern[{i}]", v, "0 (off), 1 (monophasic) or 2 (biphasic)")
-        self.dialect.check_levels(levels)
-
     @_locked
     def keepalive(self) -> None:
         """The caller produced a frame identical to the last one (an event-driven renderer sends nothing
         then): feed the fail-safe watchdog, and if a fail-safe stop or a ramp left the firmware short of
         that frame, send what is missing (ramped)."""
-        self._check_open()
+        self.wire.check_open()
         self._mark_frame()
         if self.state.config is None or self.state.requested is None:
             return
@@ -609,7 +470,7 @@ class Device:
         self._off(keep_target=True)
 
     def _off(self, *, keep_target: bool) -> None:
-        self._check_open()
+        self.wire.check_open()
         if self.state.config is None:
             return
         if not keep_target:
@@ -620,20 +481,9 @@ class Device:
             self.state.config = self.state.config.with_current(0)
         if self._needs_resync:
             self._recover()  # closed loop: heights 0 and every channel off once the device proves it
-        self.dialect.off(self._ops(), self.state)
+        self.wire.run(self.dialect.off(self.state, self.mapping, self.pacer.scan_s), self.state)
         if keep_target:
             self.state.suspended = self.state.requested is not None
-
-    def _open_proof(self) -> None:
-        """Right after opening, prove the parser in step (best effort: a board that does not answer yet is
-        proved by the first command, which raises if it still cannot be)."""
-        with self._lock:
-            try:
-                self._recover()  # a locked or hung board (perhaps still stimulating) gets the reset line
-            except FirmwareMismatchError:
-                raise  # another firmware than the one this device speaks: refused, never driven
-            except TactDeformError:
-                self._suspect("no proof at open")
 
     @_locked
     def measure(self) -> list[int]:
@@ -643,19 +493,7 @@ class Device:
         n = cfg.electrode_count
         if self._needs_resync:
             self._recover()
-        return self._measured(n, "measure")
-
-    def _measured(self, n: int, what: str) -> list[int]:
-        """0xFF and its whole reply, which proves every byte before it read; a short one marks the device
-        for a resync and raises (``what`` names the request in the error)."""
-        self.port_link.discard_input()
-        mark = self._send_marked(p.MEASURE_REQUEST)
-        data = self._await_reply(2 * n)
-        if len(data) != 2 * n:
-            self._suspect("short reply to 0xFF")
-            raise ShortReplyError(what, 2 * n, data)
-        self._proved(mark)
-        return p.parse_measure_reply(data, n)
+        return self.wire.measured(n, "measure")
 
     @_locked
     def probe(self) -> bool:
@@ -663,7 +501,7 @@ class Device:
         per channel; a parser that swallowed it as payload, a locked one, or one rebooted to electrode
         count 0 does not.  A failed probe (or a device not yet proved in step) marks the device for a
         resync and returns False."""
-        self._check_open()
+        self.wire.check_open()
         if self._needs_resync:
             return False
         if self.state.config is None:
@@ -678,17 +516,10 @@ class Device:
     @_locked
     def hv513_count(self) -> int:
         """Ask the board how many HV513 chips it detects (this re-initialises their outputs)."""
-        self._check_open()
+        self.wire.check_open()
         if self._needs_resync:
             self._recover()
-        self.port_link.discard_input()
-        mark = self._send_marked(p.HV513_COUNT_REQUEST)
-        data = self._await_reply(1)
-        if len(data) != 1:
-            self._suspect("short reply to 0xF5")
-            raise ShortReplyError("hv513_count", 1, data)
-        self._proved(mark)
-        return p.parse_hv513_reply(data)
+        return p.parse_hv513_reply(self.wire.request(p.HV513_COUNT_REQUEST, 1, "hv513_count"))
 
     @_locked
     def resync(self) -> None:
@@ -701,7 +532,7 @@ class Device:
         Without a configuration (a fresh session on a board in unknown state) the electrode count is
         unknown, so no pattern can be sent safely; pulse height 0 and sense height 0 already stop every
         current the firmware can deliver."""
-        self._check_open()
+        self.wire.check_open()
         self._suspect("resync")
         self._recover()
         self._reconfigure()
@@ -738,29 +569,26 @@ class Device:
         fail-safe adds to its recovery time before it reaches for the reset line."""
         return self.dialect.resync_bound_now_s(self._ops(), self.state)
 
-    def _frame_commands(self, n: int) -> list[bytes]:
-        """The longest frame this driver writes at electrode count ``n``, command by command (under the
-        loss-tolerant encoding each critical command goes twice): what may still be in flight."""
-        copies = 2 if self.pacer.robust else 1
-        return [c for c in self.dialect.frame_commands(n) for _ in range(copies)]
-
     def probe_bound_s(self) -> float:
         """The longest a probe (a measure request: the fail-safe's) waits for its reply at the configuration
         in force before it counts as unanswered (:func:`~tactdeform_hw.device.links.recovery.probe_bound_s`);
-        0 before a configuration (the fail-safe does not probe then)."""
+        0 before a configuration (the fail-safe does not probe then).  What may still be in flight is the
+        longest frame this driver writes, each critical command twice under the loss-tolerant encoding."""
         cfg = self.state.config
         if cfg is None:
             return 0.0
-        return probe_bound_s(self.pacer.policy, cfg, self._frame_commands(cfg.electrode_count))
+        copies = 2 if self.pacer.robust else 1
+        frame = [c for c in self.dialect.frame_commands(cfg.electrode_count) for _ in range(copies)]
+        return probe_bound_s(self.pacer.policy, cfg, frame)
 
     @_locked
     def reconnect(self) -> None:
         """Reopen the link after it failed, then resynchronise before any pattern (the firmware may still
         hold a half-received command from before the failure, and the bytes written before it may still
         be in its queue: they are not assumed gone)."""
-        self._check_open()
+        self.wire.check_open()
         self._suspect("reconnect")
-        self._reopen_transport()
+        self.guardians.reopen(self.wire)
         self.guard.mark_unknown()
         self.state.scan_us = None
         self._recover()
@@ -786,35 +614,25 @@ class Device:
         nothing of ours is left on the link, so no pattern lands on the freshly reset firmware whose
         electrode count is 0), RESETTING, BOOTING (``boot_s``, nothing written), then the closed-loop
         resync.  False when the transport has no reset line."""
-        self._check_open()
+        self.wire.check_open()
         if not self.port_link.can_reset():
             return False
         in_step = self.link.state is LinkState.IN_STEP
         self._resetting = True
         try:
-            self._hardware_reset(in_step)
+            reset = self.port_link.reset
+            self.link.reset_board(
+                self._ops(), self.state, in_step=in_step, pulse=reset, boot_s=self.boot_s, who=self.kind
+            )
+            self.resync()
         finally:
             self._resetting = False
         return True
 
-    def _hardware_reset(self, in_step: bool) -> None:
-        self.link.reset_board(
-            self._ops(),
-            self.state,
-            in_step=in_step,
-            pulse=self.port_link.reset,
-            boot_s=self.boot_s,
-            who=self.kind,
-        )
-        self.resync()
-
     def _recovery_prove(self, electrodes: int) -> None:
         """:meth:`_prove` as a write of the recovery itself (allowed before the proof: the drain's)."""
-        self._recovery_write = True
-        try:
+        with self.wire.recovery():
             self._prove(electrodes)
-        finally:
-            self._recovery_write = False
 
     @_locked
     def close(self) -> None:
@@ -825,140 +643,40 @@ class Device:
         succeeded — otherwise it switches the board off itself before it exits."""
         done = False
         try:
-            self._close_link()
+            close_link(self.wire, stop=self._stop_and_prove, reconnect=self.reconnect)
             done = True
         finally:
-            g, self._guardian = self._guardian, None
-            if g is not None:
-                if done:
-                    g.release()
-                else:
-                    g.abandon()
-
-    def _close_link(self) -> None:
-        if self._closed:
-            return
-        try:
-            try:
-                self._stop_and_prove()
-            except TransportError as failed:
-                for attempt in range(CLOSE_RECONNECTS):
-                    try:
-                        self.reconnect()
-                        self._stop_and_prove()
-                        break
-                    except TransportError:
-                        if attempt == CLOSE_RECONNECTS - 1:
-                            raise failed from None
-                    except TactDeformError:
-                        raise failed from None
-        finally:
-            self._closed = True
-            self.port_link.close()
+            self.guardians.let_go(switched_off=done)
 
     def _stop_and_prove(self) -> None:
-        """All off, and proof that nothing stimulates.  A proof that fails (a board that rebooted or hung
-        under the all-off, or one whose answer shows current still flowing) is followed by a recovery —
-        with the reset line if need be — and the all-off and its proof again."""
-        for attempt in range(1, RECOVERY_ATTEMPTS + 2):
-            if self.state.config is not None:
-                self.all_off()
-            if self.link.state is not LinkState.IN_STEP:
-                return
-            try:
-                # v1.2: the readings of the all-off; v2: count 0, proved by the sync reply's value
-                self.dialect.prove_stopped(self._ops(), self.state)
-                return
-            except (ShortReplyError, NotStoppedError):
-                if attempt > RECOVERY_ATTEMPTS:
-                    raise
-                self._recover()
+        stop_and_prove(
+            self.link,
+            configured=lambda: self.state.config is not None,
+            all_off=self.all_off,
+            prove_stopped=lambda: self.dialect.prove_stopped(self._ops(), self.state),
+            recover=self._recover,
+        )
 
     def __enter__(self) -> Device:
         return self
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc_info: object) -> None:
         self.close()
 
     def __repr__(self) -> str:
-        return f"{self.kind}({self.port_link.name}, closed={self._closed})"
+        return f"{self.kind}({self.port_link.name}, closed={self.wire.closed})"
 
     def __del__(self) -> None:
-        if not getattr(self, "_closed", True):
+        wire = getattr(self, "wire", None)
+        if wire is not None and not wire.closed:
             warnings.warn(f"{self.kind} was never closed", ResourceWarning, stacklevel=1)
 
     # --- helpers -------------------------------------------------------------------------------------------
 
     def _send(self, data: bytes, *, pad: bool | None = None) -> None:
-        """The one exit for bytes: gate, interlock, pacing, transport, audit.  Outside the recovery's own
-        writes nothing leaves unless the parser is proved in step (:class:`LinkState`).  A failed write
-        leaves the firmware's state unknown, so the interlock forgets it and the next frame resyncs first."""
-        self._send_paced(bytes(data), None, pad)
-
-    def _send_commands(self, commands: Sequence[bytes], *, pad: bool | None = None) -> None:
-        """Whole commands in one write (:meth:`Pacer.write_commands`): they reach the device's queue
-        together, so v2's parser applies them back to back.  Gated, checked and audited as :meth:`_send`
-        does a single command (the interlock reads the commands in order, every state between them
-        included)."""
-        cmds = [bytes(c) for c in commands if c]
-        self._send_paced(b"".join(cmds), cmds, pad)
-
-    def _send_paced(self, data: bytes, commands: list[bytes] | None, pad: bool | None) -> None:
-        self._check_open()
-        if not data:
-            return
-        if self.link.state is not LinkState.IN_STEP and not self._recovery_write:
-            raise ProtocolMisuseError(
-                f"0x{data[0]:02X} while the firmware's parser is not proved in step "
-                f"({self.link.state.value}): resync first"
-            )
-        shadow = self.guard.interlock.check_wire(data, mapping=self.mapping, transfer=self.transfer)
-        audit = self._audit
-        op = self._op or ""
-
-        def write(chunk: bytes) -> None:
-            self._writing = True
-            try:
-                self.port_link.write(chunk)
-            except BaseException:
-                if audit is not None:
-                    audit.tx(chunk, t=self.pacer.clock.now(), ok=False, op=op, logical=data[:1] + chunk[1:])
-                raise
-            finally:
-                self._writing = False
-            if audit is None:
-                return
-            now = self.pacer.clock.now()
-            if commands is not None:
-                # one write of several commands: one record per command (its padding with it), so a
-                # reader of the log sees every command as the firmware reads it
-                padded = self.pacer.policy.robust_encoding if pad is None else pad
-                pos = 0
-                for c in commands:
-                    size = len(c) + (len(padding_for(c, self.pacer.policy.firmware)) if padded else 0)
-                    audit.tx(chunk[pos : pos + size], t=now, op=op, logical=c)
-                    pos += size
-                return
-            logical = data if chunk[:1] == data[:1] and chunk[0] >= COMMAND_BYTE_MIN else chunk
-            audit.tx(chunk, t=now, op=op, logical=logical)
-
-        try:
-            if commands is None:
-                self.pacer.write(write, data, pad=pad)
-            else:
-                self.pacer.write_commands(write, commands, pad=pad)
-        except BaseException:
-            self.guard.mark_unknown()
-            self._suspect("write failed")
-            raise
-        changed = self.guard.commit(shadow)
-        if changed and (data[0] in _STATE_OPCODES or data[0] < COMMAND_BYTE_MIN):
-            self.last_state_write = self.pacer.clock.now()  # a rewrite of the same state does not count
+        """One command through the wire (:meth:`.wire.Wire.send`): gate, interlock, pacing, transport,
+        audit."""
+        self.wire.send(data, pad=pad)
 
     def _enter(self, state: LinkState, why: str) -> None:
         """One transition of the recovery state machine (only those in :data:`TRANSITIONS`)."""
@@ -973,143 +691,38 @@ class Device:
         """Whatever the state, nothing is proved any more (the queue model freezes too)."""
         self.link.suspect(why)
 
-    def _recovery_send(self, data: bytes, *, pad: bool | None = True) -> int:
-        """A write of the recovery itself (by default with the loss-tolerant padding); the written offset
-        just past it, for :meth:`Pacer.proven`."""
-        self._recovery_write = True
-        try:
-            self._send(data, pad=pad)
-        finally:
-            self._recovery_write = False
-        return self.pacer.offset
-
-    def _proved(self, mark: int) -> None:
-        """A reply proved every byte before ``mark`` read, the parser at a command boundary."""
-        self.pacer.proven(mark)
-        self.guard.note_in_step()  # the interlock stops assuming a full queue could cut this write's packets
-        self.link.proofs.append(self.pacer.clock.now())
-
     def _prove(self, electrodes: int) -> None:
         """In step: the dialect's request whose reply proves every byte written before it read (and
         empties the queue model).  No whole reply: the device is marked for a resync and
         :class:`ShortReplyError` raised."""
         self.dialect.prove(self._ops(), electrodes)
 
-    def _pace_for(self, timings: Sequence[tuple[float, float]]) -> None:
-        """Pace for the slowest of several (period µs, scan µs) that may be in force."""
-
-        def cost(t: tuple[float, float]) -> tuple[float, float]:
-            self.pacer.set_timing(t[0] / 1e6, t[1] / 1e6)
-            return (self.pacer.payload_interval_s(), self.pacer.skip_s(USB_PACKET_SIZE))
-
-        period_us, scan_us = max(timings, key=cost)
-        self.pacer.set_timing(period_us / 1e6, scan_us / 1e6)
-
-    def _send_marked(self, data: bytes) -> int:
-        self._send(data)
-        return self.pacer.offset
-
-    def _reply_slack_s(self, size: int) -> float:
-        """How long after the queue model's worst drain time a reply of ``size`` bytes may still come:
-        its transfer (a USB frame), one alarm period of margin, and more when the period is unknown."""
-        period = self.pacer.period_s
-        extra = period if period is not None else self.unknown_reply_s
-        return 0.003 + size * self.pacer.policy.byte_s + extra
-
-    def _await_reply(self, size: int) -> bytes:
-        """Read up to ``size`` bytes until the reply's deadline (the worst case, not the typical)."""
-        if size <= 0:
-            return b""
-        clock = self.pacer.clock
-        deadline = self.pacer.drained_by() + self._reply_slack_s(size)
-        got = bytearray()
-        while True:
-            waiting = self.port_link.waiting()
-            had = len(got)
-            if waiting is None or waiting >= size - len(got):
-                got += self.port_link.read(size - len(got))
-            elif waiting:
-                # what has arrived (a socket says only "readable": at least one byte); the rest follows
-                got += self.port_link.read(waiting)
-            if len(got) >= size or isinstance(clock, InstantClock) or clock.now() >= deadline:
-                return bytes(got)
-            if len(got) == had:
-                clock.sleep(min(REPLY_POLL_S, max(0.0, deadline - clock.now())))
-
     def _frame(self, levels: Sequence[int], *, force_pattern: bool) -> None:
         """Put one application-order frame on the firmware (the dialect's order of heights and pattern)."""
         assert self.state.config is not None
         self.dialect.frame(self._ops(), self.state, levels, force_pattern=force_pattern)
 
-    def _worst_scan_s(self, cfg: StimConfig) -> float:
-        """The longest scan a frame the guard allows can have (see :func:`.dialect.worst_scan_s`)."""
-        return worst_scan_s(cfg)
-
     def _ops(self) -> LinkOps:
         """The link operations a dialect is handed (bound now: a transport hook replaced on this device
         is the one the dialect uses)."""
-        return LinkOps(
-            pacer=lambda: self.pacer,
-            guard=self.guard,
-            mapping=self.mapping,
-            transfer=self.transfer,
-            unknown_reply_s=self.unknown_reply_s,
-            send=self._send,
-            send_critical=self._send_critical,
-            send_critical_commands=self._send_critical_commands,
-            recovery_send=self._recovery_send,
-            discard_input=self.port_link.discard_input,
-            await_reply=self._await_reply,
-            proved=self._proved,
-            suspect=self._suspect,
-            enter=self._enter,
-            link_state=lambda: self.link.state,
+        return self.wire.link_ops(
             prove=self._prove,
             recovery_prove=self._recovery_prove,
             recover=self._recover,
-            measured=self._measured,
-            pace_for=self._pace_for,
-            can_reset=self.port_link.can_reset,
             resetting=lambda: self._resetting,
-            needs_resync=lambda: self._needs_resync,
         )
-
-    def _send_critical(self, data: bytes) -> None:
-        """Heights and patterns: under robust encoding written twice, so a byte lost, corrupted or
-        duplicated in one copy is put right by the other a millisecond later (the copies are identical,
-        so a firmware in step sees no change)."""
-        self._send(data)
-        if self.pacer.robust:
-            self._send(data)
-
-    def _send_critical_commands(self, commands: Sequence[bytes]) -> None:
-        """:meth:`_send_commands` with :meth:`_send_critical`'s second copy under robust encoding."""
-        self._send_commands(commands)
-        if self.pacer.robust:
-            self._send_commands(commands)
 
     def _mark_frame(self) -> None:
         self.last_frame_time = self.pacer.clock.now()
 
-    def _check_open(self) -> None:
-        if self._closed:
-            raise PortNotOpenError(f"{self.kind} is closed")
-
     def _require_config(self, what: str) -> StimConfig:
-        self._check_open()
+        self.wire.check_open()
         if self.state.config is None:
             raise ProtocolMisuseError(
                 f"{what} before configure(): the firmware's electrode count is still 0, and a pattern now "
                 "would lock its parser"
             )
         return self.state.config
-
-    def _application_levels(self) -> list[int] | None:
-        if self.state.last_pattern is None:
-            return None
-        if self.mapping is not None:
-            return self.mapping.to_application(self.state.last_pattern)
-        return list(self.state.last_pattern)
 
 
 __all__ = [

@@ -2,21 +2,32 @@
 
 A :class:`~tactdeform_hw.device.driver.base.Device` sends, paces, audits and keeps the link's proofs; a
 :class:`Dialect` decides which bytes express an operation on its firmware version, from the state in force
-(:class:`DriverState`) and through the narrow set of link operations it is handed (:class:`LinkOps`).  A
-dialect never sees the device: everything it may use is in those two objects, so both versions are read
-and tested against the same interface, and :data:`~tactdeform_hw.device.driver.dialects.DIALECTS` picks
-one per firmware spec.
+(:class:`DriverState`).  A dialect never sees the device, so both versions are read and tested against the
+same interface, and :data:`~tactdeform_hw.device.driver.dialects.DIALECTS` picks one per firmware spec.
+
+Where an operation is a fixed sequence of writes, the dialect is a pure planner: it returns them (a
+:class:`Plan`) and the device sends them — ``refresh``, ``off`` (the all-off), the guardian's stops, the
+longest frame, and on v2 the count raised without stale channels and the covered pattern, which its other
+steps run as sub-plans.  A plan is made on a copy of the state (:class:`PlanBuilder`) and every write
+carries the state it puts in force, applied only once it is written: a write cut half way leaves the
+state of the writes that got through, as it always did, so the next frame writes the same bytes.
+
+The dialect is handed the link operations (:class:`LinkOps`) only where a step depends on a reply or
+on a refusal part way: the closed-loop recovery (``flush_parser``) and the proofs, a configuration
+(proofs between its writes), and a frame or a change of current (v2 restarts the ramp on a change of mode
+before a refusal can come, and that restart is kept even when the frame is refused).
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol
+from dataclasses import dataclass, field, fields
+from typing import TYPE_CHECKING, Any, Protocol
 
 from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
-from tactdeform_hw.protocol.constants import PATTERN_BIPHASIC
+from tactdeform_hw.protocol.constants import PATTERN_BIPHASIC, PATTERN_MONOPHASIC
 from tactdeform_hw.protocol.firmware import FirmwareSpec
 from tactdeform_hw.protocol.firmware_math import estimate_scan_us, firmware_period_us
 
@@ -52,6 +63,85 @@ class DriverState:
     answered: bool = False  # the board has answered a sync check in this session (it runs v2)
     covers: int = 0  # patterns written under the mode-2 cover
 
+    @property
+    def stimulating(self) -> bool:
+        """Whether the firmware, as far as the host knows, is delivering current to any channel."""
+        if self.config is None:
+            return False
+        if self.config.sense_current_ua:
+            return True
+        active = (PATTERN_MONOPHASIC, PATTERN_BIPHASIC)
+        return (
+            bool(self.current_ua)
+            and self.last_pattern is not None
+            and any(v in active for v in self.last_pattern)
+        )
+
+    def application_levels(self, mapping: ChannelMapping | None) -> list[int] | None:
+        """The pattern in force in application order (None: unknown)."""
+        if self.last_pattern is None:
+            return None
+        if mapping is not None:
+            return mapping.to_application(self.last_pattern)
+        return list(self.last_pattern)
+
+
+@dataclass(frozen=True)
+class Write:
+    """One planned write: ``data`` (one command), or ``commands`` written at once (v2's parser applies
+    them back to back).  ``critical`` ones (heights, patterns) go twice under robust encoding; a
+    ``recovery`` one is the recovery's own (allowed before the proof); ``pad`` forces the loss-tolerant
+    padding on or off.  ``puts``: the fields of :class:`DriverState` in force once this write is written
+    (applied only then: after a write that fails, the state is that of the writes that got through)."""
+
+    data: bytes = b""
+    commands: tuple[bytes, ...] = ()
+    critical: bool = False
+    recovery: bool = False
+    pad: bool | None = None
+    puts: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Plan:
+    """The writes of a planned operation, in order; ``puts_before``, the state put in force before the
+    first (a change that needs no byte, e.g. a ramp restarted); ``pace_after``, the (period s, scan s)
+    the pacer paces for once the last is written."""
+
+    writes: list[Write] = field(default_factory=list)
+    puts_before: dict[str, Any] = field(default_factory=dict)
+    pace_after: tuple[float, float] | None = None
+
+
+class PlanBuilder:
+    """Plans writes against a copy of the state in force: the planning code reads and changes ``st`` as
+    if each write had been written, and every change is recorded on the write it follows (so it is put
+    in force only once that write is), or before the first write.  The dialects' code assigns new values
+    to the state's fields and never changes a list in place, so a shallow copy is the whole state."""
+
+    def __init__(self, st: DriverState) -> None:
+        self.st = copy.copy(st)
+        self._seen = copy.copy(st)
+        self.plan = Plan()
+        self._target = self.plan.puts_before
+
+    def _record(self) -> None:
+        for f in fields(DriverState):
+            value = getattr(self.st, f.name)
+            if value is not getattr(self._seen, f.name):
+                self._target[f.name] = value
+                setattr(self._seen, f.name, value)
+
+    def add(self, write: Write) -> None:
+        self._record()
+        self.plan.writes.append(write)
+        self._target = write.puts
+
+    def done(self, pace_after: tuple[float, float] | None = None) -> Plan:
+        self._record()
+        self.plan.pace_after = pace_after
+        return self.plan
+
 
 @dataclass(frozen=True)
 class LinkOps:
@@ -84,6 +174,11 @@ class LinkOps:
     recovery_prove: Callable[[int], None]
     #: the closed-loop recovery (with the reset line if need be)
     recover: Callable[[], None]
+    #: a request byte and its whole reply of the given size, which proves every byte before it read (a
+    #: short one: the link suspect and :class:`ShortReplyError` naming the request)
+    request: Callable[[bytes, int, str], bytes]
+    #: a dialect's planned writes (:class:`Plan`), each putting its state in force once written
+    run: Callable[[Plan, DriverState], None]
     #: 0xFF and its whole reply (levels of each hardware channel's last pulse)
     measured: Callable[[int, str], list[int]]
     pace_for: Callable[[Sequence[tuple[float, float]]], None]
@@ -146,10 +241,11 @@ class Dialect(Protocol):
     def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
         """The target changed: the frame in force (``levels``, None when suspended or unknown) follows."""
 
-    def off(self, ops: LinkOps, st: DriverState) -> None:
-        """Every channel off and every height 0 (at a proved boundary)."""
+    def off(self, st: DriverState, mapping: ChannelMapping | None, scan_s: float | None) -> Plan:
+        """Every channel off and every height 0 (at a proved boundary); ``scan_s`` is the scan the pacer
+        paces for now (None: unknown)."""
 
-    def refresh(self, ops: LinkOps, st: DriverState, *, sense: bool) -> None:
+    def refresh(self, st: DriverState, transfer: CurrentTransfer, *, sense: bool) -> Plan:
         """The same registers again, so a firmware that lost or mis-read a byte is put right."""
 
     def flush_parser(self, ops: LinkOps, st: DriverState) -> None:
@@ -177,4 +273,14 @@ class Dialect(Protocol):
         """The guardian's stop once the board proved this firmware (None: keep the guardian's default)."""
 
 
-__all__ = ["Dialect", "DriverState", "LinkOps", "recovery_timing", "scan_of", "worst_scan_s"]
+__all__ = [
+    "Dialect",
+    "DriverState",
+    "LinkOps",
+    "Plan",
+    "PlanBuilder",
+    "Write",
+    "recovery_timing",
+    "scan_of",
+    "worst_scan_s",
+]

@@ -16,7 +16,15 @@ from collections.abc import Sequence
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig, sense_code
-from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, recovery_timing, scan_of, worst_scan_s
+from tactdeform_hw.device.driver.dialect import (
+    DriverState,
+    LinkOps,
+    Plan,
+    Write,
+    recovery_timing,
+    scan_of,
+    worst_scan_s,
+)
 from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, SCAN_GAP_MIN_US, Pacer, firmware_period_us
 from tactdeform_hw.device.driver.readback import OFF_READING_CODES
 from tactdeform_hw.device.links.recovery import (
@@ -207,28 +215,31 @@ class V12Dialect:
             ops.send_critical(p.encode_pulse_height(ops.transfer.to_code(height)))
             st.current_ua = height
 
-    def off(self, ops: LinkOps, st: DriverState) -> None:
+    def off(self, st: DriverState, mapping: ChannelMapping | None, scan_s: float | None) -> Plan:
         cfg = st.config
         assert cfg is not None
         n = cfg.electrode_count
-        ops.send_critical(p.encode_pattern(bytes(n)))
-        ops.send_critical(p.encode_pulse_height(0))
-        st.last_pattern = bytes(n)
-        st.current_ua = 0
-        # the sense pulse is a current too, and a fault may have set it whatever the host believes
-        ops.send_critical(p.encode_sense_height(0))
-        st.sense_byte = 0
-        st.scan_us = scan_of(cfg, bytes(n))
-        ops.pacer().set_timing(firmware_period_us(cfg.rate_hz) / 1e6, st.scan_us / 1e6)
+        scan_us = scan_of(cfg, bytes(n))
+        return Plan(
+            [
+                Write(p.encode_pattern(bytes(n)), critical=True),
+                Write(
+                    p.encode_pulse_height(0), critical=True, puts={"last_pattern": bytes(n), "current_ua": 0}
+                ),
+                # the sense pulse is a current too, and a fault may have set it whatever the host believes
+                Write(p.encode_sense_height(0), critical=True, puts={"sense_byte": 0, "scan_us": scan_us}),
+            ],
+            pace_after=(firmware_period_us(cfg.rate_hz) / 1e6, scan_us / 1e6),
+        )
 
-    def refresh(self, ops: LinkOps, st: DriverState, *, sense: bool) -> None:
+    def refresh(self, st: DriverState, transfer: CurrentTransfer, *, sense: bool) -> Plan:
         cfg = st.config
         assert cfg is not None
         pattern = st.last_pattern if st.last_pattern is not None else bytes(cfg.electrode_count)
-        if sense and st.sense_byte is not None:
-            ops.send(p.encode_sense_height(st.sense_byte))
-        ops.send(p.encode_pulse_height(ops.transfer.to_code(st.current_ua)))
-        ops.send(p.encode_pattern(pattern, electrode_num=cfg.electrode_count))
+        writes = [Write(p.encode_sense_height(st.sense_byte))] if sense and st.sense_byte is not None else []
+        writes.append(Write(p.encode_pulse_height(transfer.to_code(st.current_ua))))
+        writes.append(Write(p.encode_pattern(pattern, electrode_num=cfg.electrode_count)))
+        return Plan(writes)
 
     def heights_in_force(self, st: DriverState, mapping: ChannelMapping | None) -> list[int] | None:
         return None
@@ -244,18 +255,11 @@ class V12Dialect:
     def prove(self, ops: LinkOps, electrodes: int) -> None:
         """0xFF when the firmware's electrode count is ``electrodes`` >= 1 (cheap, and its length proves the
         count too), else 0xF5 (about a millisecond of board detection)."""
-        ops.discard_input()
         if electrodes >= 1:
             request, size, what = p.MEASURE_REQUEST, 2 * electrodes, "measure"
         else:
             request, size, what = p.HV513_COUNT_REQUEST, 1, "hv513 count"
-        ops.send(request)
-        mark = ops.pacer().offset
-        reply = ops.await_reply(size)
-        if len(reply) != size:
-            ops.suspect(f"short reply to 0x{request[0]:02X}")
-            raise ShortReplyError(f"{what} (proof that the queue was read)", size, reply)
-        ops.proved(mark)
+        ops.request(request, size, f"{what} (proof that the queue was read)")
 
     def flush_parser(self, ops: LinkOps, st: DriverState) -> None:
         """SUSPECT → SYNCING (→ FLUSHING) → SAFE → VERIFYING → IN_STEP.

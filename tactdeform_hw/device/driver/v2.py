@@ -46,7 +46,14 @@ from typing import TYPE_CHECKING
 
 from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig
-from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, recovery_timing
+from tactdeform_hw.device.driver.dialect import (
+    DriverState,
+    LinkOps,
+    Plan,
+    PlanBuilder,
+    Write,
+    recovery_timing,
+)
 from tactdeform_hw.device.driver.firmware_probe import PROBE, SYNC_CHECK, FirmwareMismatchError
 from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
 from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkState
@@ -76,6 +83,21 @@ def mode_for(levels: Sequence[int]) -> int | None:
     if not active:
         return None
     return c2.STIM_MODE_BIPHASIC if PATTERN_BIPHASIC in active else c2.STIM_MODE_MONOPHASIC
+
+
+def _critical_write(data: bytes) -> Write:
+    return Write(data, critical=True)
+
+
+def _count_write(data: bytes) -> Write:
+    """The electrode count: never padded (v1.2's loss-tolerant echo of a count of 0xF4 would be a sync
+    check)."""
+    return Write(data, pad=False)
+
+
+def _recovery_write(data: bytes) -> Write:
+    """A write of the recovery itself, never padded (a v1.2 padding byte could be a v2 command)."""
+    return Write(data, recovery=True, pad=False)
 
 
 def covered_pattern(
@@ -150,8 +172,8 @@ class V2Dialect:
         )
 
     @staticmethod
-    def _app_count(ops: LinkOps, n: int) -> int:
-        return ops.mapping.electrodes if ops.mapping is not None else n
+    def _app_count(mapping: ChannelMapping | None, n: int) -> int:
+        return mapping.electrodes if mapping is not None else n
 
     def _sync(self, ops: LinkOps, expected: int) -> bool:
         """0xF4 alone at a proved boundary; True when answered with ``expected`` (the count)."""
@@ -164,52 +186,57 @@ class V2Dialect:
             return True
         return False
 
-    def _zero_pattern(self, ops: LinkOps, st: DriverState, n: int) -> None:
+    def _zero_pattern(
+        self, b: PlanBuilder, n: int, mapping: ChannelMapping | None, scan_s: float | None
+    ) -> None:
+        st = b.st
         data = c2.encode_pattern([0] * n, electrode_num=n)
         if st.codes is not None and len(st.codes) == n and not any(st.codes):
-            ops.send_critical(data)  # the same zeros again: no scan can mix two patterns
+            b.add(Write(data, critical=True))  # the same zeros again: no scan can mix two patterns
         else:
             mode = st.mode if st.mode in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC) else 0
-            self._write_covered(ops, st, [0] * n, mode)
+            self._write_covered(b, [0] * n, mode, scan_s)
         st.codes = [0] * n
-        st.heights_ua = [0] * self._app_count(ops, n)
+        st.heights_ua = [0] * self._app_count(mapping, n)
         st.current_ua = 0
         st.last_pattern = bytes(n)
 
     def _raise_count(
-        self, st: DriverState, n: int, send: Callable[[bytes], object], send_count: Callable[[bytes], object]
+        self, b: PlanBuilder, n: int, write: Callable[[bytes], Write], write_count: Callable[[bytes], Write]
     ) -> None:
         """Electrode count ``n`` with no stale channel scanned: sense height 0, mode 2 (every pulse at the
         sense height, 0), sense width 0, the count, its zero pattern, mode 0.  Mode 2 comes right after the
         sense height: from there on no pattern height is scanned at all, so every later command is safe
         whatever the interlock could not know of the registers (after a write it reads as a resync, such
-        as the firmware check's zeros, the heights and the mode are unknown to it).  ``send_count`` writes
+        as the firmware check's zeros, the heights and the mode are unknown to it).  ``write_count`` plans
         the count: never v1.2's loss-tolerant echo of it (a count of 0xF4 would echo a sync check)."""
-        send(c2.encode_sense_height(0))
+        st = b.st
+        b.add(write(c2.encode_sense_height(0)))
         st.sense_byte = 0
-        send(c2.encode_stim_mode(c2.STIM_MODE_IMPEDANCE))
-        send(c2.encode_sense_width(0))
-        send_count(c2.encode_electrode_num(n))
-        send(c2.encode_pattern([0] * n, electrode_num=n))
-        send(c2.encode_stim_mode(c2.STIM_MODE_MONOPHASIC))
+        b.add(write(c2.encode_stim_mode(c2.STIM_MODE_IMPEDANCE)))
+        b.add(write(c2.encode_sense_width(0)))
+        b.add(write_count(c2.encode_electrode_num(n)))
+        b.add(write(c2.encode_pattern([0] * n, electrode_num=n)))
+        b.add(write(c2.encode_stim_mode(c2.STIM_MODE_MONOPHASIC)))
         st.mode = c2.STIM_MODE_MONOPHASIC
         st.codes = [0] * n
         st.last_pattern = bytes(n)
         st.current_ua = 0
 
-    def _write_covered(self, ops: LinkOps, st: DriverState, codes: Sequence[int], mode: int) -> None:
+    def _write_covered(self, b: PlanBuilder, codes: Sequence[int], mode: int, scan_s: float | None) -> None:
         """``codes`` and then ``mode`` in force, written under the cover of :func:`covered_pattern` (the
-        frame path's only way of changing a pattern that may differ from the one in force)."""
+        frame path's only way of changing a pattern that may differ from the one in force); ``scan_s`` is
+        the scan the pacer paces for."""
+        st = b.st
         cfg = st.config
         wide: int | None = None
         if cfg is not None and cfg.sense_width_us:
             n = len(codes)
             sense_scan = estimate_scan_us(bytes(n), cfg.pulse_width_us, cfg.discharge_us, cfg.sense_width_us)
-            if sense_scan > (ops.pacer().scan_s or 0.0) * 1e6:
+            if sense_scan > (scan_s or 0.0) * 1e6:
                 wide = cfg.sense_width_us  # a sense pulse longer than the frame's: mode 2 at width 0
-        ops.send_critical_commands(
-            covered_pattern(codes, mode, sense_code=st.sense_byte, sense_width_us=wide)
-        )
+        cover = covered_pattern(codes, mode, sense_code=st.sense_byte, sense_width_us=wide)
+        b.add(Write(commands=tuple(cover), critical=True))
         if st.sense_byte is None:
             st.sense_byte = 0  # not restored: the cover proved it 0 and nothing wrote it since
         st.codes = list(codes)
@@ -333,7 +360,9 @@ class V2Dialect:
             if cfg is None:
                 ops.enter(LinkState.IN_STEP, "count 0; no electrode count to prove")
                 return
-            self._raise_count(st, n, lambda data: self._rsend(ops, data), lambda data: self._rsend(ops, data))
+            b = PlanBuilder(st)
+            self._raise_count(b, n, _recovery_write, _recovery_write)
+            ops.run(b.done(), st)
             ops.enter(LinkState.VERIFYING, f"electrode count {n} written")
             if self._sync(ops, n):
                 ops.enter(LinkState.IN_STEP, f"sync check answered the count {n}")
@@ -343,7 +372,7 @@ class V2Dialect:
                 raise ShortReplyError("sync check after resync", 1, b"")
             ops.enter(LinkState.SUSPECT, f"sync check did not answer the count {n}")
         assert cfg is not None
-        st.heights_ua = [0] * self._app_count(ops, n)
+        st.heights_ua = [0] * self._app_count(ops.mapping, n)
         st.scan_us = self._scan_us(cfg, st.mode)
         pacer.set_timing(firmware_period_us(cfg.rate_hz) / 1e6, st.scan_us / 1e6)
 
@@ -395,16 +424,20 @@ class V2Dialect:
         in_force = old.electrode_count if old is not None else (len(st.codes) if st.codes is not None else 0)
         if in_force and any(st.codes or [1]):
             mode = st.mode if st.mode in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC) else 0
-            self._write_covered(ops, st, [0] * in_force, mode)
+            b = PlanBuilder(st)
+            self._write_covered(b, [0] * in_force, mode, pacer.scan_s)
+            ops.run(b.done(), st)
             ops.prove(in_force)  # a long pattern: proved read before the next one
         n = config.electrode_count
-        self._raise_count(st, n, ops.send, lambda data: ops.send(data, pad=False))
+        b = PlanBuilder(st)
+        self._raise_count(b, n, Write, _count_write)
+        ops.run(b.done(), st)
         ops.prove(n)
         self._write_timing(ops, st, config, old)
         st.config = config
         st.target_ua = config.current_ua
         st.current_ua = 0
-        st.heights_ua = [0] * self._app_count(ops, n)
+        st.heights_ua = [0] * self._app_count(ops.mapping, n)
         st.requested = None
         st.suspended = False
         st.scan_us = self._scan_us(config, None)
@@ -522,7 +555,9 @@ class V2Dialect:
         if mode != st.mode or codes != st.codes:
             # a scan that pre-empts the copy would mix the two patterns (or run the new heights in the old
             # mode): mode 2 at sense height 0 covers the copy, and the new mode follows it
-            self._write_covered(ops, st, codes, mode)
+            b = PlanBuilder(st)
+            self._write_covered(b, codes, mode, pacer.scan_s)
+            ops.run(b.done(), st)
             st.frames_sent += 1
         elif force_pattern:
             ops.send_critical(c2.encode_pattern(codes, electrode_num=n))  # the same heights again
@@ -534,19 +569,20 @@ class V2Dialect:
         st.scan_us = scan
         pacer.set_timing(period / 1e6, scan / 1e6)
 
-    def off(self, ops: LinkOps, st: DriverState) -> None:
+    def off(self, st: DriverState, mapping: ChannelMapping | None, scan_s: float | None) -> Plan:
         """Every height 0 (mode 0 or 1 stays: a zero pattern there is no current)."""
         cfg = st.config
         assert cfg is not None
         n = cfg.electrode_count
-        if st.mode not in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC):
-            ops.send_critical(c2.encode_electrode_num(0))  # mode unknown: nothing scanned at all
-            ops.send_critical(c2.encode_stim_mode(c2.STIM_MODE_MONOPHASIC))
-            st.mode = c2.STIM_MODE_MONOPHASIC
-            self._raise_count(st, n, ops.send_critical, lambda data: ops.send(data, pad=False))
-        self._zero_pattern(ops, st, n)
-        st.scan_us = self._scan_us(cfg, st.mode)
-        ops.pacer().set_timing(firmware_period_us(cfg.rate_hz) / 1e6, st.scan_us / 1e6)
+        b = PlanBuilder(st)
+        if b.st.mode not in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC):
+            b.add(Write(c2.encode_electrode_num(0), critical=True))  # mode unknown: nothing scanned at all
+            b.add(Write(c2.encode_stim_mode(c2.STIM_MODE_MONOPHASIC), critical=True))
+            b.st.mode = c2.STIM_MODE_MONOPHASIC
+            self._raise_count(b, n, _critical_write, _count_write)
+        self._zero_pattern(b, n, mapping, scan_s)
+        b.st.scan_us = self._scan_us(cfg, b.st.mode)
+        return b.done((firmware_period_us(cfg.rate_hz) / 1e6, b.st.scan_us / 1e6))
 
     def prove_stopped(self, ops: LinkOps, st: DriverState) -> None:
         """``close``'s proof on v2: electrode count 0, then the sync check must answer 00.  The sync reply
@@ -559,17 +595,17 @@ class V2Dialect:
             raise ShortReplyError("sync check after the close's electrode count 0", 1, b"")
         st.codes = []
 
-    def refresh(self, ops: LinkOps, st: DriverState, *, sense: bool) -> None:
+    def refresh(self, st: DriverState, transfer: CurrentTransfer, *, sense: bool) -> Plan:
         """The mode and the pattern of heights again (``sense`` has no meaning here: v2 uses the sense
         height only in mode 2)."""
         cfg = st.config
         assert cfg is not None
         n = cfg.electrode_count
         codes = st.codes if st.codes is not None and len(st.codes) == n else [0] * n
-        if st.mode is not None:
-            # a mode byte mis-read as 2 gives every channel the sense pulse, whatever the pattern
-            ops.send(c2.encode_stim_mode(st.mode))
-        ops.send(c2.encode_pattern(codes, electrode_num=n))
+        # a mode byte mis-read as 2 gives every channel the sense pulse, whatever the pattern
+        writes = [Write(c2.encode_stim_mode(st.mode))] if st.mode is not None else []
+        writes.append(Write(c2.encode_pattern(codes, electrode_num=n)))
+        return Plan(writes)
 
     def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
         """The target changed: the frame in force follows (each electrode to its own limit and ramp)."""

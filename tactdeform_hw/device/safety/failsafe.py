@@ -275,19 +275,16 @@ class StopSession:
         self.watched.append(fs)
         return fs
 
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
+    def __exit__(self, *exc_info: Any) -> None:
+        """Every device watched stopped as its fail-safe's own exit does (``exc_info`` passed on)."""
+        exc = exc_info[1]
         try:
             if self in _sessions:
                 _sessions.remove(self)
             failed: BaseException | None = None
             for fs in self.watched:
                 try:
-                    fs.__exit__(exc_type, exc, tb)
+                    fs.__exit__(*exc_info)
                 except BaseException as e:  # close the others first, then report the first failure
                     failed = failed or e
             self.watched.clear()

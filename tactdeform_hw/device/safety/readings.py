@@ -95,20 +95,15 @@ class V12Reading(ChannelReading):
         within = height_ua <= low + EPS and sense_ua <= low + EPS
         for ch in range(0 if within else num):
             level = sh.pattern[ch]
-            if level is None or level in ACTIVE:
-                if height_ua > limits[ch] + EPS:
+            # an active (or unknown) level gets the pulse height, an off (or unknown) one the sense height
+            for applies, current_ua, received in (
+                (level is None or level in ACTIVE, height_ua, "{:g} µA, above its limit of"),
+                (level is None or level not in ACTIVE, sense_ua, "a sense current of {:g} µA, above"),
+            ):
+                if applies and current_ua > limits[ch] + EPS:
                     raise lock.refuse(
                         "interlock",
-                        f"{what}: channel {ch} would receive {height_ua:g} µA, above its limit of "
-                        f"{limits[ch]} µA",
-                        channel=ch,
-                    )
-            if level is None or level not in ACTIVE:
-                if sense_ua > limits[ch] + EPS:
-                    raise lock.refuse(
-                        "interlock",
-                        f"{what}: channel {ch} would receive a sense current of {sense_ua:g} µA, above "
-                        f"{limits[ch]} µA",
+                        f"{what}: channel {ch} would receive {received.format(current_ua)} {limits[ch]} µA",
                         channel=ch,
                     )
         if sense_ua > 0 and sh.sense_code is not None:

@@ -1,0 +1,301 @@
+"""The one exit for a device's bytes and the one entrance for its replies.
+
+A :class:`Wire` owns the pacer (:mod:`.pacing`: never faster than the firmware reads) and the session's
+audit log (:mod:`.audit`), and every write passes it in the same order: the gate (nothing that carries a
+value leaves unless the recovery has proved the parser in step, :class:`LinkState`), the safety interlock
+(:class:`~tactdeform_hw.device.safety.interlock.WireInterlock`), the pacer, the transport, the audit, and
+the interlock's commit.  Replies are read to their worst-case deadline and their proofs recorded.
+
+The :class:`~tactdeform_hw.device.driver.base.Device` and the link operations it hands its dialect
+(:class:`~tactdeform_hw.device.driver.dialect.LinkOps`) both send through it, so there is one path for
+bytes whichever object decided them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+from tactdeform_hw import protocol as p
+from tactdeform_hw.clock import InstantClock
+from tactdeform_hw.device.driver.audit import AuditLog
+from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, Plan
+from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, padding_for
+from tactdeform_hw.device.links.port import PortLink
+from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkRecovery, LinkState
+from tactdeform_hw.device.participant.mapping import ChannelMapping
+from tactdeform_hw.device.safety.guard import SafetyGuard
+from tactdeform_hw.errors import PortNotOpenError, ProtocolMisuseError, ShortReplyError
+from tactdeform_hw.protocol.constants import USB_PACKET_SIZE
+from tactdeform_hw.protocol.units import CurrentTransfer
+
+#: Commands that change what the scans deliver (a measure right after one reads the old pulses).
+STATE_OPCODES = frozenset(
+    {
+        p.Opcode.PATTERN,
+        p.Opcode.PULSE_HEIGHT,
+        p.Opcode.PULSE_WIDTH,
+        p.Opcode.SENSE_HEIGHT,
+        p.Opcode.SENSE_WIDTH,
+        p.Opcode.ELECTRODE_NUM,
+        p.Opcode.POLARITY,
+        p.Opcode.FREQUENCY,
+    }
+)
+
+
+@dataclass(eq=False, repr=False)
+class Wire:
+    """A device's send path and reply reading, over ``port_link``.
+
+    ``guard`` checks and commits every write; ``link`` gates it and records the proofs; ``pacer`` spaces
+    the writes; ``audit`` (None: none) records them, each named after ``op()`` (the public operation that
+    sent it).  ``kind`` names the device in the error a closed one raises; ``unknown_reply_s`` is the
+    extra wait for a reply while the alarm period is unknown."""
+
+    port_link: PortLink
+    guard: SafetyGuard
+    link: LinkRecovery
+    pacer: Pacer
+    mapping: ChannelMapping | None
+    transfer: CurrentTransfer
+    kind: str
+    unknown_reply_s: float
+    op: Callable[[], str]
+    audit: AuditLog | None = None
+    #: True once the device is closed (or refused its board): nothing more is written.
+    closed: bool = False
+    #: True while bytes are being handed to the transport: a stop now may leave half a command.
+    writing: bool = False
+    #: True during a write of the recovery itself, the only writes allowed before the proof.
+    recovery_write: bool = False
+    #: When a write last changed what the scans deliver (a rewrite of the same state does not count).
+    last_state_write: float | None = None
+
+    def check_open(self) -> None:
+        if self.closed:
+            raise PortNotOpenError(f"{self.kind} is closed")
+
+    # --- sending -------------------------------------------------------------------------------------------
+
+    def send(self, data: bytes, *, pad: bool | None = None) -> None:
+        """One command: gate, interlock, pacing, transport, audit.  Outside the recovery's own writes
+        nothing leaves unless the parser is proved in step (:class:`LinkState`).  A failed write leaves the
+        firmware's state unknown, so the interlock forgets it and the next frame resyncs first."""
+        self._send_paced(bytes(data), None, pad)
+
+    def send_commands(self, commands: Sequence[bytes], *, pad: bool | None = None) -> None:
+        """Whole commands in one write (:meth:`Pacer.write_commands`): they reach the device's queue
+        together, so v2's parser applies them back to back.  Gated, checked and audited as :meth:`send`
+        does a single command (the interlock reads the commands in order, every state between them
+        included)."""
+        cmds = [bytes(c) for c in commands if c]
+        self._send_paced(b"".join(cmds), cmds, pad)
+
+    def send_critical(self, data: bytes) -> None:
+        """Heights and patterns: under robust encoding written twice, so a byte lost, corrupted or
+        duplicated in one copy is put right by the other a millisecond later (the copies are identical,
+        so a firmware in step sees no change)."""
+        self.send(data)
+        if self.pacer.robust:
+            self.send(data)
+
+    def send_critical_commands(self, commands: Sequence[bytes]) -> None:
+        """:meth:`send_commands` with :meth:`send_critical`'s second copy under robust encoding."""
+        self.send_commands(commands)
+        if self.pacer.robust:
+            self.send_commands(commands)
+
+    def run(self, plan: Plan, st: DriverState) -> None:
+        """A dialect's planned writes, in order (a critical one twice under robust encoding), each putting
+        its state in force in ``st`` once it is written; then the pace the plan ends with."""
+        for name, value in plan.puts_before.items():
+            setattr(st, name, value)
+        for w in plan.writes:
+            if w.commands:
+                if w.critical:
+                    self.send_critical_commands(w.commands)
+                else:
+                    self.send_commands(w.commands, pad=w.pad)
+            elif w.recovery:
+                self.recovery_send(w.data, pad=w.pad)
+            elif w.critical:
+                self.send_critical(w.data)
+            else:
+                self.send(w.data, pad=w.pad)
+            for name, value in w.puts.items():
+                setattr(st, name, value)
+        if plan.pace_after is not None:
+            self.pacer.set_timing(*plan.pace_after)
+
+    @contextmanager
+    def recovery(self) -> Iterator[None]:
+        """The writes inside are the recovery's own (allowed before the proof)."""
+        self.recovery_write = True
+        try:
+            yield
+        finally:
+            self.recovery_write = False
+
+    def recovery_send(self, data: bytes, *, pad: bool | None = True) -> int:
+        """A write of the recovery itself (by default with the loss-tolerant padding); the written offset
+        just past it, for :meth:`Pacer.proven`."""
+        with self.recovery():
+            self.send(data, pad=pad)
+        return self.pacer.offset
+
+    def _send_paced(self, data: bytes, commands: list[bytes] | None, pad: bool | None) -> None:
+        self.check_open()
+        if not data:
+            return
+        if self.link.state is not LinkState.IN_STEP and not self.recovery_write:
+            raise ProtocolMisuseError(
+                f"0x{data[0]:02X} while the firmware's parser is not proved in step "
+                f"({self.link.state.value}): resync first"
+            )
+        shadow = self.guard.interlock.check_wire(data, mapping=self.mapping, transfer=self.transfer)
+        audit = self.audit
+        op = self.op()
+
+        def write(chunk: bytes) -> None:
+            self.writing = True
+            try:
+                self.port_link.write(chunk)
+            except BaseException:
+                if audit is not None:
+                    audit.tx(chunk, t=self.pacer.clock.now(), ok=False, op=op, logical=data[:1] + chunk[1:])
+                raise
+            finally:
+                self.writing = False
+            if audit is None:
+                return
+            now = self.pacer.clock.now()
+            if commands is not None:
+                # one write of several commands: one record per command (its padding with it), so a
+                # reader of the log sees every command as the firmware reads it
+                padded = self.pacer.policy.robust_encoding if pad is None else pad
+                pos = 0
+                for c in commands:
+                    size = len(c) + (len(padding_for(c, self.pacer.policy.firmware)) if padded else 0)
+                    audit.tx(chunk[pos : pos + size], t=now, op=op, logical=c)
+                    pos += size
+                return
+            logical = data if chunk[:1] == data[:1] and chunk[0] >= COMMAND_BYTE_MIN else chunk
+            audit.tx(chunk, t=now, op=op, logical=logical)
+
+        try:
+            if commands is None:
+                self.pacer.write(write, data, pad=pad)
+            else:
+                self.pacer.write_commands(write, commands, pad=pad)
+        except BaseException:
+            self.guard.mark_unknown()
+            self.link.suspect("write failed")
+            raise
+        changed = self.guard.commit(shadow)
+        if changed and (data[0] in STATE_OPCODES or data[0] < COMMAND_BYTE_MIN):
+            self.last_state_write = self.pacer.clock.now()  # a rewrite of the same state does not count
+
+    def pace_for(self, timings: Sequence[tuple[float, float]]) -> None:
+        """Pace for the slowest of several (period µs, scan µs) that may be in force."""
+
+        def cost(t: tuple[float, float]) -> tuple[float, float]:
+            self.pacer.set_timing(t[0] / 1e6, t[1] / 1e6)
+            return (self.pacer.payload_interval_s(), self.pacer.skip_s(USB_PACKET_SIZE))
+
+        period_us, scan_us = max(timings, key=cost)
+        self.pacer.set_timing(period_us / 1e6, scan_us / 1e6)
+
+    # --- replies -------------------------------------------------------------------------------------------
+
+    def proved(self, mark: int) -> None:
+        """A reply proved every byte before ``mark`` read, the parser at a command boundary."""
+        self.link.proved(mark)
+        self.guard.note_in_step()  # the interlock stops assuming a full queue could cut this write's packets
+
+    def reply_slack_s(self, size: int) -> float:
+        """How long after the queue model's worst drain time a reply of ``size`` bytes may still come:
+        its transfer (a USB frame), one alarm period of margin, and more when the period is unknown."""
+        period = self.pacer.period_s
+        extra = period if period is not None else self.unknown_reply_s
+        return 0.003 + size * self.pacer.policy.byte_s + extra
+
+    def await_reply(self, size: int) -> bytes:
+        """Read up to ``size`` bytes until the reply's deadline (the worst case, not the typical)."""
+        if size <= 0:
+            return b""
+        clock = self.pacer.clock
+        deadline = self.pacer.drained_by() + self.reply_slack_s(size)
+        got = bytearray()
+        while True:
+            waiting = self.port_link.waiting()
+            had = len(got)
+            if waiting is None or waiting >= size - len(got):
+                got += self.port_link.read(size - len(got))
+            elif waiting:
+                # what has arrived (a socket says only "readable": at least one byte); the rest follows
+                got += self.port_link.read(waiting)
+            if len(got) >= size or isinstance(clock, InstantClock) or clock.now() >= deadline:
+                return bytes(got)
+            if len(got) == had:
+                clock.sleep(min(REPLY_POLL_S, max(0.0, deadline - clock.now())))
+
+    def request(self, data: bytes, size: int, what: str) -> bytes:
+        """``data`` (a request byte) and its whole reply of ``size`` bytes, which proves every byte before
+        it read; a short one marks the link suspect and raises (``what`` names the request)."""
+        self.port_link.discard_input()
+        self.send(data)
+        mark = self.pacer.offset
+        reply = self.await_reply(size)
+        if len(reply) != size:
+            self.link.suspect(f"short reply to 0x{data[0]:02X}")
+            raise ShortReplyError(what, size, reply)
+        self.proved(mark)
+        return reply
+
+    def measured(self, n: int, what: str) -> list[int]:
+        """0xFF and its whole reply of two bytes per channel (the levels of each hardware channel's last
+        pulse), which proves every byte before it read; a short one marks the link suspect and raises."""
+        return p.parse_measure_reply(self.request(p.MEASURE_REQUEST, 2 * n, what), n)
+
+    def link_ops(
+        self,
+        *,
+        prove: Callable[[int], None],
+        recovery_prove: Callable[[int], None],
+        recover: Callable[[], None],
+        resetting: Callable[[], bool],
+    ) -> LinkOps:
+        """The link operations a dialect is handed: this wire's, and the device's proof, recovery and
+        reset state (bound now: a transport hook replaced on the port link is the one the dialect uses)."""
+        return LinkOps(
+            pacer=lambda: self.pacer,
+            guard=self.guard,
+            mapping=self.mapping,
+            transfer=self.transfer,
+            unknown_reply_s=self.unknown_reply_s,
+            send=self.send,
+            send_critical=self.send_critical,
+            send_critical_commands=self.send_critical_commands,
+            recovery_send=self.recovery_send,
+            discard_input=self.port_link.discard_input,
+            await_reply=self.await_reply,
+            proved=self.proved,
+            suspect=self.link.suspect,
+            enter=self.link.enter,
+            link_state=lambda: self.link.state,
+            prove=prove,
+            recovery_prove=recovery_prove,
+            recover=recover,
+            request=self.request,
+            run=self.run,
+            measured=self.measured,
+            pace_for=self.pace_for,
+            can_reset=self.port_link.can_reset,
+            resetting=resetting,
+            needs_resync=lambda: self.link.state is not LinkState.IN_STEP,
+        )
+
+
+__all__ = ["STATE_OPCODES", "Wire"]

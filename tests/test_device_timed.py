@@ -1,0 +1,77 @@
+"""What the device promises on the timed model of whatever firmware its board runs: every test here runs
+once per dialect of the registry (:data:`~tactdeform_hw.device.driver.dialects.DIALECTS`), and judges the
+pulses the emulated board delivered, never the bytes the host meant to send."""
+
+from __future__ import annotations
+
+import pytest
+
+from tactdeform_hw.device.driver.base import LinkState
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.dialects import DIALECTS
+from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice
+from tactdeform_hw.emulator.faults import TimedPort
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
+from tactdeform_hw.protocol.firmware import V2, FirmwareSpec
+
+SPECS = sorted(DIALECTS, key=lambda spec: spec.name)
+LINKS = ["usb", "uart"]
+
+
+def _timed(spec: FirmwareSpec, link: str = "usb") -> tuple[EtactileKitDevice, TimedPort]:
+    """A device on the timed model of ``spec``'s firmware over ``link`` (loss-tolerant encoding)."""
+    board = TimedEmulatorV2(link=link) if spec is V2 else TimedEmulator("compact", 1, link=link)
+    port = TimedPort(board, link=link)
+    dev = EtactileKitDevice(port, firmware=spec.name)
+    assert dev.dialect is DIALECTS[spec]
+    return dev, port
+
+
+def _delivered_ua(port: TimedPort, t0_s: float, t1_s: float | None = None) -> list[float]:
+    """The current of every pulse with current that the board delivered from ``t0_s`` (to ``t1_s``);
+    v1.2 also records the off channels' sense pulses, 0 µA at sense current 0."""
+    table = port.emulator.reports.pulse_table(t0_s * 1e6, None if t1_s is None else t1_s * 1e6)
+    return [float(v) for v in table["current_ua"] if v > 0]
+
+
+@pytest.mark.parametrize("spec", SPECS, ids=lambda spec: spec.name)
+def test_close_leaves_everything_off_on_the_timed_model(spec: FirmwareSpec) -> None:
+    dev, port = _timed(spec)
+    dev.configure(StimConfig(electrode_count=16, current_ua=900))
+    dev.send_pattern([2] * 16)
+    t = port.now_s
+    port.advance(0.05)
+    assert max(_delivered_ua(port, t)) > 0  # the frame was delivered: the check below can see current
+    dev.close()
+    t = port.now_s
+    port.advance(0.05)
+    assert _delivered_ua(port, t) == [] and dev.closed and not port.is_open
+
+
+@pytest.mark.parametrize("link", LINKS)
+@pytest.mark.parametrize("spec", SPECS, ids=lambda spec: spec.name)
+def test_a_hung_board_gets_the_reset_line_within_the_resync_bound_and_comes_back(
+    spec: FirmwareSpec, link: str
+) -> None:
+    """A main loop that stopped reading while the board stimulates: the recovery's proofs time out and
+    the reset line follows within ``resync_bound_s`` — the figure the fail-safe's recovery bound uses.
+    After the scan the reset caught nothing is delivered until a frame asks for it, and that frame is
+    delivered again at its current."""
+    dev, port = _timed(spec, link)
+    dev.configure(StimConfig(electrode_count=32, current_ua=500))
+    dev.send_pattern([1] * 32)
+    dev.keepalive()
+    port.emulator.stop_reading()
+    t0 = port.now_s
+    dev.resync()  # FAILED, then the reset line, then in step again
+    reset_at = next(t for t, _, new, _ in dev.transitions if t >= t0 and new == LinkState.RESETTING.value)
+    assert 0 < reset_at - t0 <= dev.resync_bound_s()
+    assert dev.link_state is LinkState.IN_STEP and port.line_resets == 1
+    port.advance(0.02)
+    t = port.now_s
+    assert _delivered_ua(port, reset_at + 0.0085, t) == []
+    dev.send_pattern([1] * 32)
+    port.advance(0.05)
+    assert max(_delivered_ua(port, t)) == pytest.approx(500, abs=25)
+    dev.close()
