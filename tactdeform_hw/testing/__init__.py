@@ -8,6 +8,7 @@ from tactdeform_hw.testing.board import (
     HazardReport,
     RecordingBoard,
     delivered_pulses,
+    driver_spans,
     identification_spans,
 )
 
@@ -17,5 +18,6 @@ __all__ = [
     "HazardReport",
     "RecordingBoard",
     "delivered_pulses",
+    "driver_spans",
     "identification_spans",
 ]
