@@ -8,8 +8,9 @@ a timed emulated eTactileKit board without a line of set-up.
   chooses the board; so does indirect parametrization
   (``@pytest.mark.parametrize("etactile_board", [{"firmware": "v2"}], indirect=True)``; the parameter's
   keys win over the marker's).
-* option ``--etactile-device NAME``: the device the conformance checks run against
-  (:mod:`tactdeform_hw.testing.conformance`); read it with the ``etactile_device`` fixture.
+* option ``--etactile-device NAME``: the device the conformance checks run against — a test module that
+  star-imports :mod:`tactdeform_hw.testing.conformance.checks_v1_2` (or ``checks_v2``) runs them on it, or
+  on every emulated target when none is named; the ``etactile_device`` fixture reads it.
 """
 
 from __future__ import annotations
@@ -20,6 +21,9 @@ from typing import Any
 import pytest
 
 from tactdeform_hw.testing.board import BOARD_OPTIONS, EmulatedBoard
+
+# the conformance checks a project star-imports report their failures with pytest's assertion rewriting
+pytest.register_assert_rewrite("tactdeform_hw.testing.conformance")
 
 MARKER = "etactile_board"
 
@@ -66,6 +70,13 @@ def board_options(request: pytest.FixtureRequest) -> dict[str, Any]:
             f"etactile_board: unknown option(s) {unknown}; use {', '.join(BOARD_OPTIONS)}"
         )
     return opts
+
+
+def pytest_terminal_summary(terminalreporter: Any, exitstatus: int, config: pytest.Config) -> None:
+    """The conformance report, when conformance checks ran and measured figures."""
+    from tactdeform_hw.testing.conformance.targets import write_report
+
+    write_report(terminalreporter)
 
 
 @pytest.fixture
