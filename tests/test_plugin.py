@@ -184,3 +184,25 @@ def test_the_marker_is_registered(pytester: pytest.Pytester) -> None:
     result = pytester.runpytest(*PLUGIN, "--markers")
     result.stdout.fnmatch_lines(["@pytest.mark.etactile_board(firmware='v1.2', transport='pty'*"])
     assert "--etactile-device" in pytester.runpytest(*PLUGIN, "--help").stdout.str()
+
+
+def test_a_project_runs_the_conformance_checks_on_its_device(pytester: pytest.Pytester) -> None:
+    checks = "from tactdeform_hw.testing.conformance.checks_v1_2 import *  # noqa: F403\n"
+    pytester.makepyfile(test_etactile_conformance=checks)
+    result = pytester.runpytest(
+        *PLUGIN, "--etactile-device", "etactile://?timed=0", "-k", "hv513_reply or locks_the_parser", "-v"
+    )
+    result.assert_outcomes(passed=2)
+    result.stdout.fnmatch_lines(
+        [
+            "*test_hv513_reply?etactile://?timed=0? PASSED*",
+            "*eTactileKit conformance report*",
+            "target etactile://?timed=0:",
+            "*HV513 count*4",
+        ]
+    )
+    absent = pytester.runpytest(
+        *PLUGIN, "--etactile-device", "/dev/no-such-board", "-k", "hv513_reply", "-rs"
+    )
+    absent.assert_outcomes(skipped=1)
+    absent.stdout.fnmatch_lines(["*no board at /dev/no-such-board*"])
