@@ -23,8 +23,8 @@ from typing import Any
 import pytest
 
 from tactdeform_hw.device import EtactileKitDevice, StimConfig
-from tactdeform_hw.protocol import decode
-from tactdeform_hw.protocol.constants import RX_QUEUE_SIZE
+from tactdeform_hw.protocol import Opcode, decode, encode_electrode_num
+from tactdeform_hw.protocol.constants import MAX_ELECTRODES, RX_QUEUE_SIZE
 from tactdeform_hw.testing.conformance.targets import REPLY_TIMEOUT_S, Target, report_fixture, target_fixture  # noqa: F401
 from tactdeform_hw.testing.conformance.targets import generate_v1_2_targets as pytest_generate_tests  # noqa: F401
 
@@ -73,7 +73,7 @@ class Probe:
         Paced so the 256-byte receive queue never overflows."""
         self.send(bytes(RX_QUEUE_SIZE))
         self.target.settle(1)
-        self.send(BASELINE + bytes([0xFC, electrodes]))
+        self.send(BASELINE + encode_electrode_num(electrodes))
         self.target.settle(BASELINE_COMMANDS + 1)
         self.send(b"\xfe" + bytes(electrodes))
         self.target.settle(1)
@@ -118,7 +118,7 @@ def test_hv513_reply(probe: Probe, target: Target, report: Report) -> None:
 # --- measure ------------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("electrodes", [1, 8, 32, 255])
+@pytest.mark.parametrize("electrodes", [1, 8, 32, MAX_ELECTRODES])
 def test_measure_reply_length(probe: Probe, target: Target, electrodes: int, report: Report) -> None:
     """0xFF answers with exactly 2 bytes per electrode (u16 little-endian ADC codes, ``raw >> 2`` of a
     12-bit reading, so below 1024), then nothing."""
@@ -126,7 +126,7 @@ def test_measure_reply_length(probe: Probe, target: Target, electrodes: int, rep
     reply, latency = probe.request(b"\xff", 2 * electrodes)
     assert len(reply) == 2 * electrodes, f"measure reply of {len(reply)} bytes for {electrodes} electrodes"
     assert probe.quiet() == b"", "bytes after the measure reply"
-    codes = [reply[i] | reply[i + 1] << 8 for i in range(0, len(reply), 2)]
+    codes = [int.from_bytes(reply[i : i + 2], "little") for i in range(0, len(reply), 2)]
     assert max(codes) < 1024, f"ADC code {max(codes)} does not fit raw >> 2 of a 12-bit reading"
     if target.state is not None:
         assert target.state().electrode_num == electrodes
@@ -171,7 +171,7 @@ def test_measure_reply_timing(probe: Probe, target: Target, report: Report) -> N
 N = 8
 SILENT = [
     ("polarity", b"\xfd\x01"),
-    ("electrode_num", bytes([0xFC, N])),
+    ("electrode_num", encode_electrode_num(N)),
     ("pulse_height_0", b"\xfb\x00\x00"),
     ("pulse_width", b"\xfa\xc8\x00"),
     ("pulse_width_0_ignored", b"\xfa\x00\x00"),
@@ -216,7 +216,7 @@ def test_truncated_pattern_swallows_the_next_command_and_zeros_resynchronise(
     assert probe.quiet() == b"", "0xF5 was answered although it should be pattern payload (channel 10)"
     target.settle(1)
     if target.state is not None:
-        assert target.state().stim_pattern[10] == 0xF5
+        assert target.state().stim_pattern[10] == Opcode.HV513_COUNT
     probe.send(bytes(RX_QUEUE_SIZE))
     target.settle(1)
     probe.send(b"\xfb\x00\x00" + b"\xfc\x20")

@@ -25,7 +25,7 @@ from tactdeform_hw.device.driver.firmware_probe import detect_firmware
 from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice
 from tactdeform_hw.device.driver.v2 import V2Dialect
 from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
-from tactdeform_hw.protocol.firmware import V2
+from tactdeform_hw.protocol.firmware import V2, OpcodeV2
 from tactdeform_hw.testing.conformance.targets import (
     REPLY_TIMEOUT_S,
     V2_TARGETS,
@@ -89,7 +89,7 @@ def test_v2_sync_check_replies_the_electrode_count(v2_target: Target, request: p
     try:
         command_boundary(port)
         worst = 0.0
-        for n in (0, 1, 32, 255):
+        for n in (0, 1, 32, V2.max_electrodes):
             port.write(c2.encode_electrode_num(n))
             t0 = time.monotonic()
             port.write(c2.SYNC_CHECK)
@@ -119,7 +119,9 @@ def test_v2_measure_reply_is_two_bytes_per_electrode(v2_target: Target) -> None:
 def test_v2_is_detected_before_any_stimulating_byte(v2_target: Target) -> None:
     port = v2_target.open()
     try:
-        port.write(c2.encode_electrode_num(32) + bytes([0xFE, 0x10]))  # a pattern cut after one byte
+        port.write(
+            c2.encode_electrode_num(32) + bytes([OpcodeV2.PATTERN, 0x10])
+        )  # a pattern cut after one byte
         det = detect_firmware(port.write, lambda n: read_reply(port, n), port.reset_input_buffer)
         assert det.firmware is V2
         if v2_target.state is not None:
@@ -164,7 +166,7 @@ def test_v2_cut_command_is_discarded_after_two_seconds(
     port = v2_target.open()
     try:
         command_boundary(port)
-        port.write(bytes([0xFA]))  # a pulse width whose payload never comes
+        port.write(bytes([OpcodeV2.PULSE_WIDTH]))  # a pulse width whose payload never comes
         port.write(c2.SYNC_CHECK)
         assert read_reply(port, 1, 0.2) == b"", "0xF4 answered while a command was pending"
         time.sleep(2.2)
