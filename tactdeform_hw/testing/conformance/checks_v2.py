@@ -25,37 +25,26 @@ from tactdeform_hw.device.driver.firmware_probe import detect_firmware
 from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice
 from tactdeform_hw.device.driver.v2 import V2Dialect
 from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
-from tactdeform_hw.protocol.firmware import V2, OpcodeV2
+from tactdeform_hw.protocol.firmware import V2, OpcodeV2, get_firmware
 from tactdeform_hw.testing.conformance.targets import (
     REPLY_TIMEOUT_S,
     V2_TARGETS,
     Target,
     build_target,
     chosen_device,
-    is_board_name,
-    name_firmware,
+    target_params,
 )
 
 #: the wall-clock target that waits out the 2 s command timeout in the default run (one is enough to show
 #: the timeout runs on a served board; every timed target runs it when named with ``--device``)
 TIMEOUT_TARGET = "pty?firmware=v2"
+#: the firmware these checks are about
+CHECKED_FIRMWARE = "v2"
 
 
 def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
-    if "v2_target_name" not in metafunc.fixturenames:
-        return
-    chosen = chosen_device(metafunc.config)
-    if not chosen:
-        names = [pytest.param(n, id=n) for n in V2_TARGETS]
-    elif is_board_name(chosen):
-        names = [pytest.param(chosen, id=chosen, marks=[pytest.mark.hardware])]
-    elif name_firmware(chosen) == "v2":
-        names = [pytest.param(chosen, id=chosen)]
-    else:
-        names = [
-            pytest.param(chosen, id=chosen, marks=[pytest.mark.skip(reason=f"{chosen} serves firmware v1.2")])
-        ]
-    metafunc.parametrize("v2_target_name", names)
+    if "v2_target_name" in metafunc.fixturenames:
+        metafunc.parametrize("v2_target_name", target_params(metafunc.config, CHECKED_FIRMWARE, V2_TARGETS))
 
 
 @pytest.fixture
@@ -123,7 +112,7 @@ def test_v2_is_detected_before_any_stimulating_byte(v2_target: Target) -> None:
             c2.encode_electrode_num(32) + bytes([OpcodeV2.PATTERN, 0x10])
         )  # a pattern cut after one byte
         det = detect_firmware(port.write, lambda n: read_reply(port, n), port.reset_input_buffer)
-        assert det.firmware is V2
+        assert det.firmware is get_firmware(CHECKED_FIRMWARE)
         if v2_target.state is not None:
             s = v2_target.state()
             assert s.electrode_num == 0 and not s.command_in_progress

@@ -379,19 +379,26 @@ def chosen_device(config: pytest.Config) -> str | None:
     return None
 
 
+def target_params(config: pytest.Config, firmware: str, defaults: tuple[str, ...]) -> list[Any]:
+    """The targets a module of ``firmware``'s checks runs on: the chosen device, or ``defaults``.  A board
+    is marked ``hardware``; an emulated target serving another firmware is skipped with the reason."""
+    chosen = chosen_device(config)
+    params = []
+    for n in [chosen] if chosen else list(defaults):
+        marks: list[Any] = [pytest.mark.hardware] if is_board_name(n) else []
+        served = name_firmware(n)
+        if served not in (None, firmware):
+            marks.append(
+                pytest.mark.skip(reason=f"{n} serves firmware {served}: these are the {firmware} checks")
+            )
+        params.append(pytest.param(n, id=n, marks=marks))
+    return params
+
+
 def generate_v1_2_targets(metafunc: pytest.Metafunc) -> None:
     """Parametrize ``target_name``: the chosen device, or every emulated v1.2 target."""
-    if "target_name" not in metafunc.fixturenames:
-        return
-    chosen = chosen_device(metafunc.config)
-    names = [chosen] if chosen else list(EMULATED_TARGETS)
-    params = []
-    for n in names:
-        marks: list[Any] = [pytest.mark.hardware] if is_board_name(n) else []
-        if name_firmware(n) == "v2":
-            marks.append(pytest.mark.skip(reason=f"{n} serves firmware v2: these are the v1.2 checks"))
-        params.append(pytest.param(n, id=n, marks=marks))
-    metafunc.parametrize("target_name", params)
+    if "target_name" in metafunc.fixturenames:
+        metafunc.parametrize("target_name", target_params(metafunc.config, "v1.2", EMULATED_TARGETS))
 
 
 @pytest.fixture(name="target")
