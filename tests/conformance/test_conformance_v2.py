@@ -1,173 +1,31 @@
-"""Conformance of a firmware v2 target: the sync check, the measure reply, version detection, the
-device layer driving per-electrode heights, the 2 s command timeout, and an upstream-style host (8-byte
-chunks, 3 ms apart) reaching the state the golden vectors predict.
+"""Conformance of a firmware v2 target: the package's checks
+(:mod:`~tactdeform_hw.testing.conformance.checks_v2`: the sync check, the measure reply, version
+detection, the device layer driving per-electrode heights, the 2 s command timeout), and an
+upstream-style host (8-byte chunks, 3 ms apart) reaching the state the golden vectors of this repository
+predict.
 
-Emulated v2 targets (:data:`~.conftest.V2_TARGETS`), each transport the v1.2 suite runs on, serving v2:
-the pyserial URL handler with the untimed v2 emulator (``etactile://?firmware=v2&timed=0``) and with the
-timed v2 board on the wall clock (``etactile://?firmware=v2``), a pseudo-terminal (``pty?firmware=v2``),
-a TCP port with the Wi-Fi build's rules (``tcp?firmware=v2``) and the emulated USB device through pyusb
-(``usb-emulator?firmware=v2``).  ``--device`` with a real v2 board (a serial port or ``usb:``) runs the
-same checks on it, except the vector replay, which sets non-zero heights; ``--device`` naming a v1.2
-emulated target skips this file.
+Emulated v2 targets (:data:`~tactdeform_hw.testing.conformance.targets.V2_TARGETS`), each transport the
+v1.2 suite runs on, serving v2: the pyserial URL handler with the untimed v2 emulator
+(``etactile://?firmware=v2&timed=0``) and with the timed v2 board on the wall clock
+(``etactile://?firmware=v2``), a pseudo-terminal (``pty?firmware=v2``), a TCP port with the Wi-Fi build's
+rules (``tcp?firmware=v2``) and the emulated USB device through pyusb (``usb-emulator?firmware=v2``).
+``--device`` with a real v2 board (a serial port or ``usb:``) runs the same checks on it, except the
+vector replay, which sets non-zero heights; ``--device`` naming a v1.2 emulated target skips this file.
 """
 
 from __future__ import annotations
 
 import json
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from tactdeform_hw.device.driver.config import StimConfig
-from tactdeform_hw.device.driver.firmware_probe import detect_firmware
-from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice
-from tactdeform_hw.device.driver.v2 import V2Dialect
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS
-from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
-from tactdeform_hw.protocol.firmware import V2
-
-from .conftest import REPLY_TIMEOUT_S, V2_TARGETS, Target, _is_board_name, build_target, name_firmware
-
-#: the wall-clock target that waits out the 2 s command timeout in the default run (one is enough to show
-#: the timeout runs on a served board; every timed target runs it when named with ``--device``)
-TIMEOUT_TARGET = "pty?firmware=v2"
-
-
-def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
-    if "v2_target_name" not in metafunc.fixturenames:
-        return
-    chosen = metafunc.config.getoption("--device", default=None)
-    if not chosen:
-        names = [pytest.param(n, id=n) for n in V2_TARGETS]
-    elif _is_board_name(chosen):
-        names = [pytest.param(chosen, id=chosen, marks=[pytest.mark.hardware])]
-    elif name_firmware(chosen) == "v2":
-        names = [pytest.param(chosen, id=chosen)]
-    else:
-        names = [
-            pytest.param(chosen, id=chosen, marks=[pytest.mark.skip(reason=f"{chosen} serves firmware v1.2")])
-        ]
-    metafunc.parametrize("v2_target_name", names)
-
-
-@pytest.fixture
-def v2_target(v2_target_name: str) -> Iterator[Target]:
-    t = build_target(v2_target_name)
-    try:
-        yield t
-    finally:
-        for fn in reversed(t.cleanup):
-            fn()
-
-
-def _read(port: object, n: int, timeout: float = REPLY_TIMEOUT_S) -> bytes:
-    port.timeout = timeout  # type: ignore[attr-defined]
-    out = b""
-    deadline = time.monotonic() + timeout
-    while len(out) < n and time.monotonic() < deadline:
-        out += port.read(n - len(out))  # type: ignore[attr-defined]
-    return out
-
-
-def _boundary(port: object) -> None:
-    """Zeros that complete any command in progress (the longest payload is 2 × 255 bytes), then count 0."""
-    port.write(bytes(512) + c2.encode_electrode_num(0))  # type: ignore[attr-defined]
-    time.sleep(0.02)
-    port.reset_input_buffer()  # type: ignore[attr-defined]
-
-
-def test_v2_sync_check_replies_the_electrode_count(v2_target: Target, request: pytest.FixtureRequest) -> None:
-    port = v2_target.open()
-    try:
-        _boundary(port)
-        worst = 0.0
-        for n in (0, 1, 32, 255):
-            port.write(c2.encode_electrode_num(n))
-            t0 = time.monotonic()
-            port.write(c2.SYNC_CHECK)
-            reply = _read(port, 1)
-            worst = max(worst, time.monotonic() - t0)
-            assert reply == bytes([n]), f"0xF4 after electrode count {n} answered {reply.hex() or 'nothing'}"
-        port.write(c2.encode_electrode_num(0))
-        request.node.user_properties.append(("v2 0xF4 reply latency (worst)", f"{worst * 1000:.2f} ms"))
-    finally:
-        port.close()
-
-
-def test_v2_measure_reply_is_two_bytes_per_electrode(v2_target: Target) -> None:
-    port = v2_target.open()
-    try:
-        _boundary(port)
-        for n in (1, 8, 32):
-            port.write(c2.encode_electrode_num(n) + c2.encode_pattern([0] * n))
-            port.reset_input_buffer()
-            port.write(c2.MEASURE_REQUEST)
-            assert len(_read(port, 2 * n)) == 2 * n
-        port.write(c2.encode_electrode_num(0))
-    finally:
-        port.close()
-
-
-def test_v2_is_detected_before_any_stimulating_byte(v2_target: Target) -> None:
-    port = v2_target.open()
-    try:
-        port.write(c2.encode_electrode_num(32) + bytes([0xFE, 0x10]))  # a pattern cut after one byte
-        det = detect_firmware(port.write, lambda n: _read(port, n), port.reset_input_buffer)
-        assert det.firmware is V2
-        if v2_target.state is not None:
-            s = v2_target.state()
-            assert s.electrode_num == 0 and not s.command_in_progress
-    finally:
-        port.close()
-
-
-def test_v2_driver_round_trip_with_per_electrode_heights(v2_target: Target) -> None:
-    from tactdeform_hw.device.safety.guard import SafetyGuard
-
-    port = v2_target.open()
-    guard = SafetyGuard(2000, regions_ua=[400, 800, 1200, 1600, 2000, 2000, 2000, 2000, 2000])
-    dev = EtactileKitDevice(port, firmware="v2", guard=guard, guardian=False, settle_s=v2_target.settle_s)
-    try:
-        assert isinstance(dev.dialect, V2Dialect)
-        dev.configure(StimConfig(electrode_count=32, current_ua=1000))
-        dev.send_pattern([1] * 32)
-        assert len(dev.measure()) == 32
-        if v2_target.state is not None:
-            want = [dev.transfer.to_code(min(1000, lim)) for lim in guard.electrode_limits(32)]
-            assert list(v2_target.state().stim_pattern[:32]) == want
-        dev.all_off()
-        v2_target.settle(12)  # a timed board reads the all-off after the link and its queue
-        if v2_target.state is not None:
-            assert list(v2_target.state().stim_pattern[:32]) == [0] * 32
-            assert v2_target.state().stim_mode in (0, 1)
-    finally:
-        dev.close()
-
-
-def test_v2_cut_command_is_discarded_after_two_seconds(
-    v2_target: Target, request: pytest.FixtureRequest
-) -> None:
-    if not v2_target.timed:
-        pytest.skip("the untimed emulator has no clock: the 2 s timeout needs a timed target")
-    if not request.config.getoption("--device", default=None) and v2_target.name != TIMEOUT_TARGET:
-        pytest.skip(
-            f"waits 2 s: checked on {TIMEOUT_TARGET} only (name this target with --device to check it)"
-        )
-    port = v2_target.open()
-    try:
-        _boundary(port)
-        port.write(bytes([0xFA]))  # a pulse width whose payload never comes
-        port.write(c2.SYNC_CHECK)
-        assert _read(port, 1, 0.2) == b"", "0xF4 answered while a command was pending"
-        time.sleep(2.2)
-        port.write(c2.SYNC_CHECK)
-        assert _read(port, 1) == b"\x00"
-    finally:
-        port.close()
-
+from tactdeform_hw.testing.conformance.checks_v2 import *  # noqa: F403 - the checks, their fixture and hook
+from tactdeform_hw.testing.conformance.checks_v2 import read_reply
+from tactdeform_hw.testing.conformance.targets import Target
 
 # --- an upstream-style host: 8-byte chunks, 3 ms apart -----------------------------------------------------
 
@@ -225,7 +83,7 @@ def test_v2_upstream_host_in_8_byte_chunks_reaches_the_vectors_state(
         for i in range(0, len(stream), CHUNK_BYTES):
             port.write(stream[i : i + CHUNK_BYTES])
             time.sleep(CHUNK_GAP_S)
-        replies = _read(port, len(want_tx)) if want_tx else b""
+        replies = read_reply(port, len(want_tx)) if want_tx else b""
         v2_target.settle(len(stream))
         port.timeout = v2_target.quiet_s
         extra = bytes(port.read(1))
