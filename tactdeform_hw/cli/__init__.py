@@ -26,6 +26,7 @@ COMMANDS: tuple[str, ...] = (
     "timing",
     "calibrate",
     "replay_log",
+    "diff_firmware",
 )
 
 
