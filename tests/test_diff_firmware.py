@@ -17,7 +17,7 @@ import pytest
 
 from tactdeform_hw.cli import main
 from tactdeform_hw.emulator.hostbuild import find_compiler
-from tactdeform_hw.emulator.hostbuild.diff import Differ, compare, diff_firmware, Observation, Comparison
+from tactdeform_hw.emulator.hostbuild.diff import Comparison, Differ, Observation, compare, diff_firmware
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap
 from tactdeform_hw.emulator.hostbuild.streams import Stream, off_tick, random_stream
 from tactdeform_hw.errors import FirmwareBuildError
@@ -124,8 +124,19 @@ def test_pulses_compare_within_the_stated_tolerance_only() -> None:
 @needs_cxx
 def test_cli_exit_0_on_identical_trees(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     twin = _copy(tmp_path, "twin")
-    code = main(["diff-firmware", "--firmware-src", str(TINY), "--against", str(twin), "--streams", "10",
-                 "--no-edges", "--json"])
+    code = main(
+        [
+            "diff-firmware",
+            "--firmware-src",
+            str(TINY),
+            "--against",
+            str(twin),
+            "--streams",
+            "10",
+            "--no-edges",
+            "--json",
+        ]
+    )
     out = json.loads(capsys.readouterr().out)
     assert code == 0
     assert out["divergences"] == 0 and out["streams_run"] == 10
@@ -135,8 +146,19 @@ def test_cli_exit_0_on_identical_trees(tmp_path: Path, capsys: pytest.CaptureFix
 def test_cli_exit_1_on_a_divergence_with_its_reproduction(
     planted: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    code = main(["diff-firmware", "--firmware-src", str(TINY), "--against", str(planted), "--streams", "200",
-                 "--no-edges", "--json"])
+    code = main(
+        [
+            "diff-firmware",
+            "--firmware-src",
+            str(TINY),
+            "--against",
+            str(planted),
+            "--streams",
+            "200",
+            "--no-edges",
+            "--json",
+        ]
+    )
     out = json.loads(capsys.readouterr().out)
     assert code == 1
     assert out["divergences"] == 1
@@ -146,8 +168,18 @@ def test_cli_exit_1_on_a_divergence_with_its_reproduction(
 
 @needs_cxx
 def test_cli_text_report_names_both_sides(planted: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    code = main(["diff-firmware", "--firmware-src", str(TINY), "--against", str(planted), "--streams", "200",
-                 "--no-edges"])
+    code = main(
+        [
+            "diff-firmware",
+            "--firmware-src",
+            str(TINY),
+            "--against",
+            str(planted),
+            "--streams",
+            "200",
+            "--no-edges",
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 1
     assert "DIVERGENCE" in out and "minimal reproduction (2 bytes" in out and "45 " in out

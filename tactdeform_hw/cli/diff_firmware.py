@@ -1,4 +1,4 @@
-"""``tactdeform-hw diff-firmware``: a firmware tree built on the host against another tree or the Python model.
+"""``tactdeform-hw diff-firmware``: a firmware tree built on the host against another tree or the model.
 
 The same byte streams (edge cases, then seeded random ones, and optionally a golden-vector file) go to both
 sides; the first divergence in registers, replies or delivered pulses is reported with the bytes that
@@ -70,16 +70,16 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--against", required=True, help="v1.2 or v2 (the Python model), or another PlatformIO tree's folder"
     )
-    p.add_argument("--streams", type=_count, default=200, help="streams to run, edge cases first (default 200)")
+    p.add_argument(
+        "--streams", type=_count, default=200, help="streams to run, edge cases first (default 200)"
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the random streams (default 0)")
     p.add_argument(
         "--recorded",
         type=Path,
         help="also run these recorded streams first (a golden-vector .jsonl: 'stream' hex or 'arrivals')",
     )
-    p.add_argument(
-        "--no-edges", action="store_true", help="skip the edge-case streams: random streams only"
-    )
+    p.add_argument("--no-edges", action="store_true", help="skip the edge-case streams: random streams only")
     p.add_argument(
         "--pulse-tolerance-us",
         type=_tolerance,
@@ -160,21 +160,27 @@ def run(args: argparse.Namespace) -> int:
 
 def _print_text(report: Any) -> None:
     rate = report.streams_run / report.seconds if report.seconds else 0.0
-    print(f"{report.tree} against {report.against}: {report.streams_run} streams in {report.seconds:.1f} s "
-          f"({rate:.1f}/s)")
+    print(
+        f"{report.tree} against {report.against}: {report.streams_run} streams in {report.seconds:.1f} s "
+        f"({rate:.1f}/s)"
+    )
     if report.equivalences:
         print("modulo: " + ", ".join(report.equivalences))
     d = report.divergence
     if d is None:
         print("no divergence")
         return
-    print(f"DIVERGENCE on {report.stream.label}: {d.kind} {d.field} at {d.at_us:.3f} us "
-          f"(arose after {d.since_us:.3f} us)")
+    print(
+        f"DIVERGENCE on {report.stream.label}: {d.kind} {d.field} at {d.at_us:.3f} us "
+        f"(arose after {d.since_us:.3f} us)"
+    )
     print(f"  {report.tree}: {d.left!r}")
     print(f"  {report.against}: {d.right!r}")
     print(f"  bytes written before it: {d.delivered.hex(' ') or '(none)'}")
     m, md = report.minimal, report.minimal_divergence
-    print(f"minimal reproduction ({sum(len(b) for _, b in m.writes)} bytes, run to {m.end_us:.0f} us): "
-          f"{md.kind} {md.field} at {md.at_us:.3f} us: {md.left!r} vs {md.right!r}")
+    print(
+        f"minimal reproduction ({sum(len(b) for _, b in m.writes)} bytes, run to {m.end_us:.0f} us): "
+        f"{md.kind} {md.field} at {md.at_us:.3f} us: {md.left!r} vs {md.right!r}"
+    )
     for t, data in m.writes:
         print(f"  at {t:.3f} us: {data.hex(' ')}")

@@ -48,6 +48,11 @@ EQUIVALENCES: dict[str, str] = {
     "adc-reads-skin": "the host build's ADC reads the DAC code, the model's the skin's voltage: the "
     "voltage registers are not compared, and a stream holding the readback opcode has its replies "
     "compared by byte count",
+    "rx-unread": "the receive queue is compared as the bytes that arrived and were not read yet "
+    "(rx_unread): the host build moves arrived bytes into its queue at the firmware's next call "
+    "(rx_pending + rx_in_flight), v2's model hands them to its parser only when it calls it",
+    "tick-ties": "no write arrives exactly on an RTOS tick: at a tie the host build delivers the bytes "
+    "before the main loop wakes, the model wakes the loop first (a convention of each)",
     "registers-in-common": "only registers both sides hold are compared (the host build's receive-queue "
     "counters and the model's command_in_progress have no counterpart)",
 }
@@ -132,6 +137,7 @@ class HostSide:
 
     def observe(self, upto_us: float) -> Observation:
         st = self.emu.state()
+        st["rx_unread"] = st["rx_pending"] + st["rx_in_flight"]
         replies = b"".join(b for _, b in self.emu.tx_log)
         entries = [a for a, _ in self.emu.scans()]
         pulses = _number_in_scans(
@@ -152,7 +158,9 @@ class DirectLink(LinkModel):
 
     def schedule(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Delivery]:
         return [
-            Delivery(t_ns, bytes(data[i : i + USB_PACKET_BYTES]), host_offset + i if host_offset >= 0 else -1, t_ns)
+            Delivery(
+                t_ns, bytes(data[i : i + USB_PACKET_BYTES]), host_offset + i if host_offset >= 0 else -1, t_ns
+            )
             for i in range(0, len(data), USB_PACKET_BYTES)
         ]
 
@@ -170,11 +178,15 @@ class ModelSide:
         if version == "v1.2":
             from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
-            self.emu: Any = TimedEmulator("compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model)
+            self.emu: Any = TimedEmulator(
+                "compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model
+            )
         else:
             from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 
-            self.emu = TimedEmulatorV2("compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model)
+            self.emu = TimedEmulatorV2(
+                "compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model
+            )
         self.version = version
         self._replies = bytearray()
         # v2's model starts its timer at boot whatever timer_start_us says: its pulses are moved instead
@@ -191,6 +203,7 @@ class ModelSide:
 
     def observe(self, upto_us: float) -> Observation:
         st = dict(self.emu.state())
+        st["rx_unread"] = st["rx_pending"] + self.emu.in_flight
         replies = b"".join(b for _, b in self.emu.tx_log) if self.version == "v1.2" else self._v2_replies()
         limit = upto_us - PULSE_MARGIN_US
         raw: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
@@ -275,7 +288,14 @@ def _same_number(key: str, a: Any, b: Any, exact: bool) -> bool:
     return bool(a == b)
 
 
-_NOT_COMPARED_MODEL = {"voltage", "voltage_bytes", "command_in_progress", "rx_in_flight", "rx_capacity"}
+_NOT_COMPARED_MODEL = {
+    "voltage",
+    "voltage_bytes",
+    "command_in_progress",
+    "rx_pending",
+    "rx_in_flight",
+    "rx_capacity",
+}
 
 
 def compare(
@@ -297,8 +317,8 @@ def compare(
             return ("state", k, a, b, None)
     if cmp.exact or not stream_has_readback:
         if left.replies != right.replies:
-            i = next((j for j, (x, y) in enumerate(zip(left.replies, right.replies)) if x != y), None)
-            i = min(len(left.replies), len(right.replies)) if i is None else i
+            shorter = min(len(left.replies), len(right.replies))
+            i = next((j for j, (x, y) in enumerate(zip(left.replies, right.replies)) if x != y), shorter)
             return ("replies", f"replies[{i}]", left.replies[i : i + 16], right.replies[i : i + 16], None)
     elif len(left.replies) != len(right.replies):
         return ("replies", "replies (count)", len(left.replies), len(right.replies), None)
@@ -377,16 +397,23 @@ class Differ:
         ops = {op for op, c in spec.by_opcode.items() if c.reply == "measure"}
         return any(b in ops for _, data in stream.writes for b in data)
 
-    def first_divergence(self, stream: Stream) -> Divergence | None:
-        """Run ``stream`` on fresh sides; the first checkpoint at which they differ."""
+    def first_divergence(self, stream: Stream, at_us: float | None = None) -> Divergence | None:
+        """Run ``stream`` on fresh sides; the first checkpoint at which they differ.  With ``at_us``, a
+        single checkpoint there (the writes before it written)."""
         self.runs += 1
         left, right = self.sides()
         readback = self.has_readback(stream)
-        checkpoints = sorted({t for t, _ in stream.writes} | {stream.end_us})
+        if at_us is None:
+            checkpoints = sorted({t for t, _ in stream.writes} | {stream.end_us})
+        else:
+            checkpoints = [at_us]
         pending = list(stream.writes)
         prev = 0.0
-        written = b""
         for cp in checkpoints:
+            while pending and pending[0][0] < cp:
+                t_w, data = pending.pop(0)
+                left.write(data, t_w)
+                right.write(data, t_w)
             left.advance_to(cp)
             right.advance_to(cp)
             found = compare(left.observe(cp), right.observe(cp), self.cmp, readback)
@@ -394,13 +421,23 @@ class Differ:
                 kind, fld, a, b, t = found
                 at = t if t is not None else cp
                 return Divergence(kind, fld, at, prev, a, b, _written_by(stream, at))
-            while pending and pending[0][0] <= cp:
-                t_w, data = pending.pop(0)
-                left.write(data, t_w)
-                right.write(data, t_w)
-                written += data
             prev = cp
         return None
+
+    def locate(self, stream: Stream, found: Divergence, resolution_us: float = 1.0) -> Divergence:
+        """Narrow a state or reply divergence seen at a checkpoint to within ``resolution_us`` of when it
+        arose (by bisection between the checkpoint and the one before, each probe a fresh run)."""
+        if found.kind not in ("state", "replies"):
+            return found
+        lo, hi, best = found.since_us, found.at_us, found
+        while hi - lo > resolution_us:
+            mid = round((lo + hi) / 2, 3)
+            d = self.first_divergence(stream, at_us=mid)
+            if d is not None and d.signature == found.signature:
+                hi, best = mid, d
+            else:
+                lo = mid
+        return dataclasses.replace(best, at_us=hi, since_us=lo)
 
 
 def _written_by(stream: Stream, t_us: float) -> bytes:
@@ -459,12 +496,12 @@ def shrink(
                     pos += chunk
         if not progress:
             chunk //= 2
+    best_div = differ.locate(best, best_div)
     end = math.ceil(best_div.at_us + 2 * PULSE_MARGIN_US + 1000.0)
     if end < best.end_us:
         cand = Stream(best.writes, end, best.label)
-        d = still(cand)
-        if d is not None:
-            best, best_div = cand, d
+        if still(cand) is not None:  # the run can stop soon after (the located divergence stands)
+            best = cand
     return Stream(best.writes, best.end_us, f"minimal reproduction of {stream.label}"), best_div
 
 
@@ -534,7 +571,9 @@ def diff_firmware(
     ``streams`` generated ones; stop at the first divergence and shrink it."""
     tree = Path(tree)
     if not (tree / "src").is_dir():
-        raise ConfigurationError(f"--firmware-src={str(tree)!r} is not a PlatformIO tree: it has no src/ folder")
+        raise ConfigurationError(
+            f"--firmware-src={str(tree)!r} is not a PlatformIO tree: it has no src/ folder"
+        )
     if against not in MODELS and not (Path(against) / "src").is_dir():
         raise ConfigurationError(
             f"--against={against!r} is neither v1.2, v2 nor a PlatformIO tree (a folder with src/)"

@@ -152,7 +152,11 @@ def random_stream(spec: FirmwareSpec | None, seed: int, settle_us: float = 20_00
             elif roll > 0.75 and len(data) > 1:  # cut: the rest arrives later
                 cut = rng.randrange(1, len(data))
                 writes.append((t, data[:cut]))
-                t += rng.uniform(1_900_000, 2_100_000) if rng.random() < 0.03 else rng.choice((0.0, 40.0, rng.uniform(0, 4000)))
+                t += (
+                    rng.uniform(1_900_000, 2_100_000)
+                    if rng.random() < 0.03
+                    else rng.choice((0.0, 40.0, rng.uniform(0, 4000)))
+                )
                 data = data[cut:]
         writes.append((t, data))
         t += rng.choice((0.0, 10.0, rng.uniform(0, 1500), rng.uniform(0, 12_000)))
