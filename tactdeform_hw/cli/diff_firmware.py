@@ -53,6 +53,16 @@ def _tolerance(text: str) -> float:
     return v
 
 
+def _tolerance_s(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not (v > 0 and v < 1e7):
+        raise argparse.ArgumentTypeError(f"{v} is out of range: 0 < s < 1e7")
+    return v
+
+
 def register(sub: Any) -> None:
     p: argparse.ArgumentParser = sub.add_parser(
         "diff-firmware",
@@ -91,6 +101,16 @@ def register(sub: Any) -> None:
         type=Path,
         help="TOML naming the firmware variables to compare (default: the tree's hostbuild_state.toml, "
         "else the upstream v1.2/v2 map its unit matches)",
+    )
+    p.add_argument(
+        "--keep-going",
+        action="store_true",
+        help="run every stream: count the divergences per kind and shrink the first of each",
+    )
+    p.add_argument(
+        "--time-limit-s",
+        type=_tolerance_s,
+        help="start no new stream after this many seconds of wall time (the report says how many ran)",
     )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
@@ -147,6 +167,8 @@ def run(args: argparse.Namespace) -> int:
             pulse_tolerance_us=args.pulse_tolerance_us,
             state_map=state_map,
             progress=tell,
+            keep_going=args.keep_going,
+            time_limit_s=args.time_limit_s,
         )
     except FirmwareBuildError as exc:
         _error(str(exc).splitlines()[0] if not args.debug else str(exc))
@@ -164,6 +186,8 @@ def _print_text(report: Any) -> None:
         f"{report.tree} against {report.against}: {report.streams_run} streams in {report.seconds:.1f} s "
         f"({rate:.1f}/s)"
     )
+    if report.stopped_by_time:
+        print("stopped by --time-limit-s: the streams after these were not run")
     if report.equivalences:
         print("modulo: " + ", ".join(report.equivalences))
     d = report.divergence
@@ -177,6 +201,12 @@ def _print_text(report: Any) -> None:
     print(f"  {report.tree}: {d.left!r}")
     print(f"  {report.against}: {d.right!r}")
     print(f"  bytes written before it: {d.delivered.hex(' ') or '(none)'}")
+    if len(report.kinds) > 1 or report.diverged > 1:
+        print(f"{report.diverged} streams diverged:")
+        for key, row in report.kinds.items():
+            md = row["minimal_divergence"]
+            where = f"minimal: {md['field']} at {md['at_us']} us"
+            print(f"  {key}: {row['streams']} (first {row['first']}; {where})")
     m, md = report.minimal, report.minimal_divergence
     print(
         f"minimal reproduction ({sum(len(b) for _, b in m.writes)} bytes, run to {m.end_us:.0f} us): "

@@ -518,7 +518,9 @@ class DiffReport:
     divergence: Divergence | None = None
     minimal: Stream | None = None
     minimal_divergence: Divergence | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
+    stopped_by_time: bool = False
+    diverged: int = 0  # streams that diverged (more than 1 only with keep_going)
+    kinds: dict[str, dict[str, Any]] = field(default_factory=dict)  # keep_going: per signature
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -528,7 +530,9 @@ class DiffReport:
             "seconds": round(self.seconds, 3),
             "streams_per_s": round(self.streams_run / self.seconds, 2) if self.seconds else None,
             "equivalences": {k: EQUIVALENCES[k] for k in self.equivalences},
-            "divergences": 0 if self.divergence is None else 1,
+            "stopped_by_time": self.stopped_by_time,
+            "divergences": self.diverged,
+            "by_kind": self.kinds,
             "stream": self.stream.to_dict() if self.stream else None,
             "divergence": self.divergence.to_dict() if self.divergence else None,
             "minimal": self.minimal.to_dict() if self.minimal else None,
@@ -566,9 +570,13 @@ def diff_firmware(
     edges: bool = True,
     cache: Path | None = None,
     progress: Callable[[int, float], None] | None = None,
+    keep_going: bool = False,
+    time_limit_s: float | None = None,
 ) -> DiffReport:
     """Compare ``tree`` with ``against`` (``"v1.2"``, ``"v2"`` or another tree) on ``extra_streams`` then
-    ``streams`` generated ones; stop at the first divergence and shrink it."""
+    ``streams`` generated ones; stop at the first divergence and shrink it.  With ``keep_going`` run every
+    stream, count the divergences per signature (kind and field) and shrink the first of each.
+    ``time_limit_s`` stops starting new streams after that much wall time (the report says how many ran)."""
     tree = Path(tree)
     if not (tree / "src").is_dir():
         raise ConfigurationError(
@@ -582,15 +590,36 @@ def diff_firmware(
     spec = differ.cmp.spec if against not in MODELS else differ.cmp.spec
     report = DiffReport(str(tree), against, equivalences=differ.cmp.equivalences)
     t0 = time.perf_counter()
-    every = max(1, min(1000, streams // 20 or 1))
+    told = t0
     for n, stream in enumerate(_chain(extra_streams, streams_for(spec, streams, seed, edges)), 1):
         d = differ.first_divergence(stream)
         report.streams_run = n
-        if progress is not None and n % every == 0:
-            progress(n, time.perf_counter() - t0)
-        if d is not None:
+        now = time.perf_counter()
+        if progress is not None and now - told >= 2.0:  # at most one line every 2 s
+            progress(n, now - t0)
+            told = now
+        if time_limit_s is not None and now - t0 >= time_limit_s:
+            report.stopped_by_time = True
+            if d is None:
+                break
+        if d is None:
+            continue
+        report.diverged += 1
+        key = " ".join(d.signature)
+        if key in report.kinds:
+            report.kinds[key]["streams"] += 1
+            continue
+        minimal, md = shrink(differ, stream, d, shrink_runs)
+        report.kinds[key] = {
+            "streams": 1,
+            "first": stream.label,
+            "minimal": minimal.to_dict(),
+            "minimal_divergence": md.to_dict(),
+        }
+        if report.divergence is None:
             report.stream, report.divergence = stream, d
-            report.minimal, report.minimal_divergence = shrink(differ, stream, d, shrink_runs)
+            report.minimal, report.minimal_divergence = minimal, md
+        if not keep_going or report.stopped_by_time:
             break
     report.seconds = time.perf_counter() - t0
     return report
