@@ -152,9 +152,8 @@ def run(args: argparse.Namespace) -> int:
         _error(f"--state-map: {exc}")
         return EXIT_USAGE
 
-    def tell(n: int, seconds: float) -> None:
-        total = args.streams + len(extra)
-        progress(f"tactdeform-hw diff-firmware: {n}/{total} streams, {seconds:.1f} s, {n / seconds:.1f}/s")
+    def tell(message: str) -> None:
+        progress(f"tactdeform-hw diff-firmware: {message}")
 
     try:
         report = diff_firmware(

@@ -28,11 +28,11 @@ from tactdeform_hw.emulator.hostbuild.emulator import USB_PACKET_BYTES, HostBuil
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap
 from tactdeform_hw.emulator.hostbuild.streams import SETUP_US, Stream, edge_streams, random_stream
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel
-from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL
+from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError
-from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec
+from tactdeform_hw.protocol.firmware import FIRMWARES, V1_2, V2, FirmwareSpec
 
-MODELS = ("v1.2", "v2")
+MODELS = tuple(FIRMWARES)
 
 EQUIVALENCES: dict[str, str] = {
     "timer-origin": "the firmware starts its stimulation timer after setup() (1010.25 us: the stack "
@@ -169,28 +169,18 @@ class DirectLink(LinkModel):
 
 
 class ModelSide:
-    """The package's Python timed model of firmware ``version``."""
+    """The package's Python timed model of one firmware version (a subclass per version)."""
 
-    def __init__(self, version: str, *, timer_origin_us: float, hv513_count: int) -> None:
-        self.name = f"model {version}"
+    version = ""
+
+    def __init__(self, *, timer_origin_us: float, hv513_count: int) -> None:
+        self.name = f"model {self.version}"
         model = dataclasses.replace(DEFAULT_MODEL, timer_start_us=timer_origin_us)
-        boards = max(1, hv513_count // 4)
-        if version == "v1.2":
-            from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+        self.emu: Any = self._make(max(1, hv513_count // 4), model)
+        self.timer_origin_us = timer_origin_us
 
-            self.emu: Any = TimedEmulator(
-                "compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model
-            )
-        else:
-            from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
-
-            self.emu = TimedEmulatorV2(
-                "compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model
-            )
-        self.version = version
-        self._replies = bytearray()
-        # v2's model starts its timer at boot whatever timer_start_us says: its pulses are moved instead
-        self.shift_us = timer_origin_us if version == "v2" else 0.0
+    def _make(self, boards: int, model: TimingModel) -> Any:
+        raise NotImplementedError
 
     def write(self, data: bytes, at_us: float) -> None:
         if at_us > self.emu.now_us:
@@ -204,28 +194,69 @@ class ModelSide:
     def observe(self, upto_us: float) -> Observation:
         st = dict(self.emu.state())
         st["rx_unread"] = st["rx_pending"] + self.emu.in_flight
-        replies = b"".join(b for _, b in self.emu.tx_log) if self.version == "v1.2" else self._v2_replies()
-        limit = upto_us - PULSE_MARGIN_US
-        raw: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
-        if self.version == "v1.2":
-            for p in self.emu.reports.pulses(t1_us=limit):
-                end = p.start_us + p.width_us
-                if p.height_code > 0 and p.outputs and end <= limit:
-                    pol = int(p.polarity == "anodic")
-                    raw.append((p.start_us, end, p.height_code, tuple(p.outputs), pol, p.cycle))
-        else:
-            for r in self.emu.delivered():
-                end = r["t_us"] + r["width_us"]
-                if r["code"] > 0 and end <= limit:
-                    pol = int(r["polarity"] == "anodic")
-                    t = r["t_us"] + self.shift_us
-                    raw.append((t, end + self.shift_us, r["code"], (r["channel"],), pol, r["scan"]))
-        return Observation(st, replies, _number_in_scans(raw), None)
+        pulses = _number_in_scans(self._pulses(upto_us - PULSE_MARGIN_US))
+        return Observation(st, self._replies(), pulses, None)
 
-    def _v2_replies(self) -> bytes:
-        """v2's model keeps no reply log: the replies that reached the host (no reply link: at once)."""
-        self._replies += self.emu.read_tx()
-        return bytes(self._replies)
+    def _replies(self) -> bytes:
+        raise NotImplementedError
+
+    def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
+        raise NotImplementedError
+
+
+class ModelSideV1_2(ModelSide):
+    """:class:`~..timed.model_v1_2.TimedEmulator`: its timer starts at ``timer_start_us``."""
+
+    version = "v1.2"
+
+    def _make(self, boards: int, model: TimingModel) -> Any:
+        from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+
+        return TimedEmulator("compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model)
+
+    def _replies(self) -> bytes:
+        return b"".join(b for _, b in self.emu.tx_log)
+
+    def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
+        out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
+        for p in self.emu.reports.pulses(t1_us=limit_us):
+            end = p.start_us + p.width_us
+            if p.height_code > 0 and p.outputs and end <= limit_us:
+                pol = int(p.polarity == "anodic")
+                out.append((p.start_us, end, p.height_code, tuple(p.outputs), pol, p.cycle))
+        return out
+
+
+class ModelSideV2(ModelSide):
+    """:class:`~..timed.model_v2.TimedEmulatorV2`: it starts its timer at boot whatever
+    ``timer_start_us`` says, so its pulses are moved by the timer origin instead; it keeps no reply log,
+    so the replies are those that reached the host (no reply link: at once)."""
+
+    version = "v2"
+
+    def _make(self, boards: int, model: TimingModel) -> Any:
+        from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
+
+        self._got = bytearray()
+        return TimedEmulatorV2("compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model)
+
+    def _replies(self) -> bytes:
+        self._got += self.emu.read_tx()
+        return bytes(self._got)
+
+    def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
+        out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
+        shift = self.timer_origin_us
+        for r in self.emu.delivered():
+            t, end = r["t_us"] + shift, r["t_us"] + r["width_us"] + shift
+            if r["code"] > 0 and end <= limit_us:
+                pol = int(r["polarity"] == "anodic")
+                out.append((t, end, r["code"], (r["channel"],), pol, r["scan"]))
+        return out
+
+
+MODEL_SIDES: dict[str, type[ModelSide]] = {"v1.2": ModelSideV1_2, "v2": ModelSideV2}
+"""The Python model of each firmware version, by the name ``--against`` takes."""
 
 
 @dataclass(frozen=True)
@@ -242,8 +273,11 @@ class Divergence:
 
     @property
     def signature(self) -> tuple[str, str]:
-        base = self.field.split("[")[0] if self.kind == "state" else self.kind
-        return (self.kind, base)
+        if self.kind == "state":
+            return (self.kind, self.field.split("[")[0])
+        if self.kind == "pulses":  # what differs: outputs, code, polarity, start, width or count
+            return (self.kind, self.field.split("(")[-1].rstrip(")"))
+        return (self.kind, self.kind)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -329,14 +363,27 @@ def compare(
             or abs(p[0] - q[0]) > tol * (1 + min(p[5], q[5])) + 1e-9
             or abs((p[1] - p[0]) - (q[1] - q[0])) > tol + 1e-9
         ):
-            return ("pulses", f"pulse {i}", _pulse(p), _pulse(q), min(p[0], q[0]))
+            return (
+                "pulses",
+                f"pulse {i} ({_pulse_reason(p, q, tol)})",
+                _pulse(p),
+                _pulse(q),
+                min(p[0], q[0]),
+            )
     if len(left.pulses) != len(right.pulses):
         i = min(len(left.pulses), len(right.pulses))
         more = left.pulses if len(left.pulses) > i else right.pulses
         lp = _pulse(left.pulses[i]) if len(left.pulses) > i else None
         rp = _pulse(right.pulses[i]) if len(right.pulses) > i else None
-        return ("pulses", f"pulse {i}", lp, rp, more[i][0])
+        return ("pulses", f"pulse {i} (count)", lp, rp, more[i][0])
     return None
+
+
+def _pulse_reason(p: Pulse, q: Pulse, tol: float) -> str:
+    for name, i in (("outputs", 3), ("code", 2), ("polarity", 4)):
+        if p[i] != q[i]:
+            return name
+    return "start" if abs(p[0] - q[0]) > tol * (1 + min(p[5], q[5])) + 1e-9 else "width"
 
 
 def _pulse(p: Pulse) -> dict[str, Any]:
@@ -367,7 +414,7 @@ class Differ:
     def __post_init__(self) -> None:
         self.tree = Path(self.tree)
         if self.against in MODELS:
-            self.cmp = Comparison(False, V1_2 if self.against == "v1.2" else V2, self.pulse_tolerance_us)
+            self.cmp = Comparison(False, FIRMWARES[self.against], self.pulse_tolerance_us)
         else:
             other = Path(self.against)
             if not other.is_dir():
@@ -385,7 +432,8 @@ class Differ:
                 probe = HostSide(self.tree, name="probe", state_map=self.state_map, **kw)
                 probe.advance_to(SETUP_US)
                 self._origin = probe.timer_origin_us or 0.0
-            right = ModelSide(self.against, timer_origin_us=self._origin, hv513_count=self.hv513_count)
+            side = MODEL_SIDES[self.against]
+            right = side(timer_origin_us=self._origin, hv513_count=self.hv513_count)
         else:
             right = HostSide(Path(self.against), name=self.against, state_map=self.state_map, **kw)
         return left, right
@@ -569,7 +617,7 @@ def diff_firmware(
     shrink_runs: int = 400,
     edges: bool = True,
     cache: Path | None = None,
-    progress: Callable[[int, float], None] | None = None,
+    progress: Callable[[str], None] | None = None,
     keep_going: bool = False,
     time_limit_s: float | None = None,
 ) -> DiffReport:
@@ -596,7 +644,7 @@ def diff_firmware(
         report.streams_run = n
         now = time.perf_counter()
         if progress is not None and now - told >= 2.0:  # at most one line every 2 s
-            progress(n, now - t0)
+            progress(f"{n}/{streams} streams, {now - t0:.1f} s, {n / (now - t0):.1f}/s")
             told = now
         if time_limit_s is not None and now - t0 >= time_limit_s:
             report.stopped_by_time = True
@@ -609,6 +657,10 @@ def diff_firmware(
         if key in report.kinds:
             report.kinds[key]["streams"] += 1
             continue
+        if progress is not None:
+            progress(
+                f"{d.kind} {d.field} differs on {stream.label}: shrinking it (at most {shrink_runs} runs)"
+            )
         minimal, md = shrink(differ, stream, d, shrink_runs)
         report.kinds[key] = {
             "streams": 1,
