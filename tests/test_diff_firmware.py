@@ -252,5 +252,43 @@ def test_upstream_v1_2_against_itself_is_exact(tmp_path: Path) -> None:
     twin = tmp_path / "twin"
     shutil.copytree(tree / "src", twin / "src")
     shutil.copytree(tree / "lib", twin / "lib")
-    report = diff_firmware(tree, str(twin), streams=12, seed=1, edges=False)
-    assert report.divergence is None and report.streams_run == 12
+    report = diff_firmware(tree, str(twin), streams=4, seed=1, edges=False)
+    assert report.divergence is None and report.streams_run == 4
+
+
+@needs_cxx
+def test_cli_runs_recorded_streams_first(
+    planted: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    vectors = tmp_path / "vectors.jsonl"
+    vectors.write_text(
+        json.dumps({"id": "quiet", "stream": "4300"})
+        + "\n"
+        + json.dumps({"id": "echo", "stream": "4507"})
+        + "\n"
+    )
+    args = ["diff-firmware", "--firmware-src", str(TINY), "--against", str(planted)]
+    code = main([*args, "--streams", "0", "--recorded", str(vectors), "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 1
+    assert out["streams_run"] == 2 and out["stream"]["label"] == "recorded echo"
+    assert (out["divergence"]["left"], out["divergence"]["right"]) == ("08", "09")
+
+
+def test_cli_exit_2_on_a_recorded_file_that_is_not_golden_vectors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text('{"id": "x"}\n')
+    code = main(["diff-firmware", "--firmware-src", str(TINY), "--against", "v1.2", "--recorded", str(bad)])
+    err = capsys.readouterr().err
+    assert code == 2 and "--recorded" in err and "bad.jsonl:1" in err
+
+
+def test_upstream_v2_against_itself_is_exact(tmp_path: Path) -> None:
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    twin = tmp_path / "twin"
+    shutil.copytree(tree / "src", twin / "src")
+    shutil.copytree(tree / "lib", twin / "lib")
+    report = diff_firmware(tree, str(twin), streams=4, seed=1, edges=False)
+    assert report.divergence is None and report.streams_run == 4
