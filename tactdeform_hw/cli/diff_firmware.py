@@ -108,6 +108,12 @@ def register(sub: Any) -> None:
         help="run every stream: count the divergences per kind and shrink the first of each",
     )
     p.add_argument(
+        "--shrink-runs",
+        type=_count,
+        default=400,
+        help="comparisons a minimal reproduction may cost, at most (default 400)",
+    )
+    p.add_argument(
         "--time-limit-s",
         type=_tolerance_s,
         help="start no new stream after this many seconds of wall time (the report says how many ran)",
@@ -168,6 +174,7 @@ def run(args: argparse.Namespace) -> int:
             progress=tell,
             keep_going=args.keep_going,
             time_limit_s=args.time_limit_s,
+            shrink_runs=args.shrink_runs,
         )
     except FirmwareBuildError as exc:
         _error(str(exc).splitlines()[0] if not args.debug else str(exc))
