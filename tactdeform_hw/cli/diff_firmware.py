@@ -93,8 +93,9 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--pulse-tolerance-us",
         type=_tolerance,
-        default=0.5,
-        help="against the model: pulse starts and widths agree within this (default 0.5 µs; trees: exact)",
+        default=0.7,
+        help="against the model: pulse widths agree within this, the n-th pulse of a scan starts within "
+        "(n + 1) times this (default 0.7 µs; two trees: exact)",
     )
     p.add_argument(
         "--state-map",
