@@ -53,6 +53,8 @@ EQUIVALENCES: dict[str, str] = {
     "(rx_pending + rx_in_flight), v2's model hands them to its parser only when it calls it",
     "tick-ties": "no write arrives exactly on an RTOS tick: at a tie the host build delivers the bytes "
     "before the main loop wakes, the model wakes the loop first (a convention of each)",
+    "watchdog": "the host build does not model the interrupt watchdog: a stream is compared up to the "
+    "last checkpoint before the model's watchdog resets the board (the report counts these streams)",
     "registers-in-common": "only registers both sides hold are compared (the host build's receive-queue "
     "counters and the model's command_in_progress have no counterpart)",
 }
@@ -68,7 +70,8 @@ before it than in the model; 0.7 µs covers that and still catches a 1 µs chang
 step)."""
 
 PULSE_MARGIN_US = 500.0
-"""Pulses are compared once ended this long before the checkpoint on both sides."""
+"""A pulse is compared once it ended this long before a checkpoint (on either side): its counterpart may
+start later by the drift :data:`PULSE_TOLERANCE_US` allows, and must have ended by the checkpoint."""
 
 STALL_CALLS = 2_000_000
 """Shim calls without time passing after which a side is declared stuck (the outcome is compared)."""
@@ -97,6 +100,7 @@ class Observation:
     replies: bytes
     pulses: list[Pulse]
     stuck: str | None = None
+    reset: bool = False  # the model's interrupt watchdog has reset the board
 
 
 class Side(Protocol):
@@ -150,7 +154,7 @@ class HostSide:
             [
                 (p.start_us, p.end_us, p.code, p.outputs, p.polarity, bisect_right(entries, p.start_us))
                 for p in self.emu.delivered_pulses()
-                if p.end_us <= upto_us - PULSE_MARGIN_US
+                if p.end_us <= upto_us
             ]
         )
         return Observation(st, replies, pulses, self.stuck)
@@ -200,8 +204,8 @@ class ModelSide:
     def observe(self, upto_us: float) -> Observation:
         st = dict(self.emu.state())
         st["rx_unread"] = st["rx_pending"] + self.emu.in_flight
-        pulses = _number_in_scans(self._pulses(upto_us - PULSE_MARGIN_US))
-        return Observation(st, self._replies(), pulses, None)
+        pulses = _number_in_scans(self._pulses(upto_us))
+        return Observation(st, self._replies(), pulses, None, self.emu.reboots > 0)
 
     def _replies(self) -> bytes:
         raise NotImplementedError
@@ -339,9 +343,15 @@ _NOT_COMPARED_MODEL = {
 
 
 def compare(
-    left: Observation, right: Observation, cmp: Comparison, stream_has_readback: bool
+    left: Observation,
+    right: Observation,
+    cmp: Comparison,
+    stream_has_readback: bool,
+    upto_us: float = math.inf,
 ) -> tuple[str, str, Any, Any, float | None] | None:
-    """The first difference between two observations: (kind, field, left, right, time if known)."""
+    """The first difference between two observations made at ``upto_us``: (kind, field, left, right, time
+    if known).  The pulses compared are those either side ended :data:`PULSE_MARGIN_US` before
+    ``upto_us``; their counterparts on the other side may have ended any time before ``upto_us``."""
     if left.stuck != right.stuck:
         return ("stuck", "stuck", left.stuck, right.stuck, None)
     keys = [k for k in left.state if k in right.state or cmp.exact]
@@ -363,7 +373,9 @@ def compare(
     elif len(left.replies) != len(right.replies):
         return ("replies", "replies (count)", len(left.replies), len(right.replies), None)
     tol = cmp.pulse_tolerance_us
-    for i, (p, q) in enumerate(zip(left.pulses, right.pulses)):
+    settled = upto_us - PULSE_MARGIN_US
+    n = max(sum(1 for p in side.pulses if p[1] <= settled) for side in (left, right))
+    for i, (p, q) in enumerate(zip(left.pulses[:n], right.pulses[:n])):
         if (
             p[2:5] != q[2:5]
             or abs(p[0] - q[0]) > tol * (1 + min(p[5], q[5])) + 1e-9
@@ -376,7 +388,7 @@ def compare(
                 _pulse(q),
                 min(p[0], q[0]),
             )
-    if len(left.pulses) != len(right.pulses):
+    if min(len(left.pulses), len(right.pulses)) < n:
         i = min(len(left.pulses), len(right.pulses))
         more = left.pulses if len(left.pulses) > i else right.pulses
         lp = _pulse(left.pulses[i]) if len(left.pulses) > i else None
@@ -415,6 +427,7 @@ class Differ:
     pulse_tolerance_us: float = PULSE_TOLERANCE_US
     cache: Path | None = None
     runs: int = 0
+    watchdog_cut: int = 0  # runs compared only up to the model's watchdog reset
     _origin: float | None = None
 
     def __post_init__(self) -> None:
@@ -470,7 +483,11 @@ class Differ:
                 right.write(data, t_w)
             left.advance_to(cp)
             right.advance_to(cp)
-            found = compare(left.observe(cp), right.observe(cp), self.cmp, readback)
+            seen_left, seen_right = left.observe(cp), right.observe(cp)
+            if seen_left.reset or seen_right.reset:  # see EQUIVALENCES["watchdog"]
+                self.watchdog_cut += 1
+                return None
+            found = compare(seen_left, seen_right, self.cmp, readback, cp)
             if found is not None:
                 kind, fld, a, b, t = found
                 at = t if t is not None else cp
@@ -573,6 +590,7 @@ class DiffReport:
     minimal: Stream | None = None
     minimal_divergence: Divergence | None = None
     stopped_by_time: bool = False
+    watchdog_cut: int = 0  # streams compared only up to the model's watchdog reset
     diverged: int = 0  # streams that diverged (more than 1 only with keep_going)
     kinds: dict[str, dict[str, Any]] = field(default_factory=dict)  # keep_going: per signature
 
@@ -585,6 +603,7 @@ class DiffReport:
             "streams_per_s": round(self.streams_run / self.seconds, 2) if self.seconds else None,
             "equivalences": {k: EQUIVALENCES[k] for k in self.equivalences},
             "stopped_by_time": self.stopped_by_time,
+            "watchdog_cut": self.watchdog_cut,
             "divergences": self.diverged,
             "by_kind": self.kinds,
             "stream": self.stream.to_dict() if self.stream else None,
@@ -646,8 +665,10 @@ def diff_firmware(
     t0 = time.perf_counter()
     told = t0
     for n, stream in enumerate(_chain(extra_streams, streams_for(spec, streams, seed, edges)), 1):
+        cut_before = differ.watchdog_cut
         d = differ.first_divergence(stream)
         report.streams_run = n
+        report.watchdog_cut += differ.watchdog_cut - cut_before
         now = time.perf_counter()
         if progress is not None and now - told >= 2.0:  # at most one line every 2 s
             progress(f"{n}/{streams} streams, {now - t0:.1f} s, {n / (now - t0):.1f}/s")
