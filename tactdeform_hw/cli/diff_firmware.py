@@ -197,7 +197,7 @@ def _print_text(report: Any) -> None:
         print("stopped by --time-limit-s: the streams after these were not run")
     if report.watchdog_cut:
         print(
-            f"{report.watchdog_cut} streams compared up to the model's watchdog reset (equivalence 'watchdog')"
+            f"{report.watchdog_cut} streams compared up to the model's watchdog reset (equivalence watchdog)"
         )
     if report.equivalences:
         print("modulo: " + ", ".join(report.equivalences))
