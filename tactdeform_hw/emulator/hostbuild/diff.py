@@ -389,12 +389,12 @@ def compare(
     for i, (p, q) in enumerate(zip(left.pulses[:n], right.pulses[:n])):
         if (
             p[2:5] != q[2:5]
-            or abs(p[0] - q[0]) > tol * (1 + min(p[5], q[5])) + 1e-9
+            or abs(p[0] - q[0]) > tol * (1 + min(p[5], q[5])) + late + 1e-9
             or abs((p[1] - p[0]) - (q[1] - q[0])) > tol + 1e-9
         ):
             return (
                 "pulses",
-                f"pulse {i} ({_pulse_reason(p, q, tol)})",
+                f"pulse {i} ({_pulse_reason(p, q, tol, late)})",
                 _pulse(p),
                 _pulse(q),
                 min(p[0], q[0]),
