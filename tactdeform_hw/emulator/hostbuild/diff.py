@@ -215,9 +215,9 @@ class ModelSide:
         st = dict(self.emu.state())
         st["rx_unread"] = st["rx_pending"] + self.emu.in_flight
         pulses = _number_in_scans(self._pulses(upto_us))
-        return Observation(st, self._replies(), pulses, None, self.emu.reboots > 0)
+        return Observation(st, self._replies(upto_us), pulses, None, self.emu.reboots > 0)
 
-    def _replies(self) -> bytes:
+    def _replies(self, upto_us: float) -> bytes:
         raise NotImplementedError
 
     def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
@@ -234,8 +234,10 @@ class ModelSideV1_2(ModelSide):
 
         return TimedEmulator("compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model)
 
-    def _replies(self) -> bytes:
-        return b"".join(b for _, b in self.emu.tx_log)
+    def _replies(self, upto_us: float) -> bytes:
+        """The replies written by ``upto_us`` (a parser call's reply is logged at its start, stamped with
+        the time the call writes it)."""
+        return b"".join(b for t, b in self.emu.tx_log if t <= upto_us)
 
     def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
         out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
@@ -260,7 +262,7 @@ class ModelSideV2(ModelSide):
         self._got = bytearray()
         return TimedEmulatorV2("compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model)
 
-    def _replies(self) -> bytes:
+    def _replies(self, upto_us: float) -> bytes:
         self._got += self.emu.read_tx()
         return bytes(self._got)
 
