@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -43,24 +44,24 @@ def _count(text: str) -> int:
     return n
 
 
-def _tolerance(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of µs") from None
-    if not (0 <= v < 1000):
-        raise argparse.ArgumentTypeError(f"{v} is out of range: 0 <= µs < 1000")
-    return v
+def _in_range(unit: str, low: float, high: float, low_included: bool) -> Callable[[str], float]:
+    """An argparse type: a number of ``unit`` in [low, high) (or (low, high)), refused while parsing."""
+
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number of {unit}") from None
+        if not ((v >= low if low_included else v > low) and v < high):
+            sign = "<=" if low_included else "<"
+            raise argparse.ArgumentTypeError(f"{v} is out of range: {low:g} {sign} {unit} < {high:g}")
+        return v
+
+    return parse
 
 
-def _tolerance_s(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not (v > 0 and v < 1e7):
-        raise argparse.ArgumentTypeError(f"{v} is out of range: 0 < s < 1e7")
-    return v
+_tolerance = _in_range("µs", 0, 1000, True)
+_tolerance_s = _in_range("s", 0, 1e7, False)
 
 
 def register(sub: Any) -> None:
