@@ -4,7 +4,7 @@ A :class:`Stream` is a list of writes, each a time and bytes, and an end time: b
 are fed the same writes at the same virtual times.  Three sources:
 
 * :func:`edge_streams` — every opcode of the protocol with the payload edges (0, 1, the clamp, the
-  largest value, a value the firmware ignores), electrode counts 0/1/255 before and after a pattern, a
+  largest value, a value the firmware ignores), electrode counts 0, 1 and 255 before and after a pattern, a
   command cut in half with the rest arriving later, a burst larger than the receive queue, unknown bytes;
 * :func:`random_stream` — a seeded mix of well-formed commands, cut commands, overflowing bursts and raw
   random bytes, at random arrival times;
@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tactdeform_hw.errors import ConfigurationError
+from tactdeform_hw.protocol.constants import U8_MAX
 from tactdeform_hw.protocol.firmware import FirmwareSpec
 
 SETUP_US = 2000.5
@@ -75,7 +76,7 @@ def _command(spec: FirmwareSpec, op: int, value: int, electrodes: int, rng: rand
         per = spec.pattern_bytes_per_electrode
         body = bytearray()
         for _ in range(electrodes):
-            level = rng.choice((0, 1, 2, 3, 255, rng.randrange(1 << (8 * per))))
+            level = rng.choice((0, 1, 2, 3, U8_MAX, rng.randrange(1 << (8 * per))))
             body += level.to_bytes(per, "little")
         return bytes([op]) + bytes(body)
     return bytes([op]) + (value & ((1 << (8 * size)) - 1)).to_bytes(size, "little")
@@ -98,14 +99,14 @@ def edge_streams(spec: FirmwareSpec | None, settle_us: float = 30_000.0) -> list
     out: list[Stream] = []
     if spec is None:
         for first in range(256):
-            w = [(SETUP_US, bytes([first, 0, 1, 255, 0x10, 0x0F]))]
+            w = [(SETUP_US, bytes([first, 0, 1, U8_MAX, 0x10, 0x0F]))]
             out.append(Stream(tuple(w), _end(w, settle_us), f"edge byte 0x{first:02X}"))
         return out
     pat = spec.pattern_command.opcode
     en = spec.opcode_of("electrode_num")
     for op in sorted(spec.by_opcode):
         for v in _edges(spec, op):
-            for n in (0, 1, 255):
+            for n in (0, 1, U8_MAX):
                 data = bytes([en, n]) + _command(spec, pat, 0, n, rng) + _command(spec, op, v, n, rng)
                 w = [(SETUP_US, data)]
                 out.append(Stream(tuple(w), _end(w, settle_us), f"edge 0x{op:02X}={v} electrodes={n}"))
@@ -118,7 +119,7 @@ def edge_streams(spec: FirmwareSpec | None, settle_us: float = 30_000.0) -> list
     unknown = bytes(b for b in range(256) if b not in known)
     w = [(SETUP_US, unknown)]
     out.append(Stream(tuple(w), _end(w, settle_us), "edge unknown bytes"))
-    burst = bytes([en, 255]) + _command(spec, pat, 0, 255, rng) + _command(spec, pat, 0, 255, rng)
+    burst = bytes([en, U8_MAX]) + _command(spec, pat, 0, U8_MAX, rng) + _command(spec, pat, 0, U8_MAX, rng)
     w = [(SETUP_US, burst)]
     out.append(Stream(tuple(w), _end(w, settle_us), "edge overflowing burst"))
     return out
@@ -140,7 +141,7 @@ def random_stream(spec: FirmwareSpec | None, seed: int, settle_us: float = 20_00
             for _ in range(rng.randint(1, 5)):
                 op = rng.choice(ops)
                 if spec.by_opcode[op].register == "electrode_num":
-                    v = rng.choice((0, 1, 2, 4, 8, 32, 255, rng.randrange(256)))
+                    v = rng.choice((0, 1, 2, 4, 8, 32, U8_MAX, rng.randrange(256)))
                 else:
                     v = rng.choice([*_edges(spec, op), rng.randrange(1 << 16)])
                 cmd = _command(spec, op, v, electrodes, rng)
