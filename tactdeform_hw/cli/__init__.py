@@ -28,6 +28,7 @@ COMMANDS: tuple[str, ...] = (
     "timing",
     "calibrate",
     "replay_log",
+    "diff_firmware",
 )
 
 

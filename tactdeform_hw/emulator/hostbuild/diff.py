@@ -1,0 +1,722 @@
+"""The firmware differential: one firmware tree, built on the host, against another tree or the Python model.
+
+Both sides are fed the same :class:`~.streams.Stream` (writes at virtual times) and observed at
+checkpoints (before each write and at the stream's end): the firmware's registers under the golden
+vectors' names, the reply bytes, and the pulses the board delivered (those ended a margin before the
+checkpoint, so a pulse crossing it is compared at the next one).  The first difference is a
+:class:`Divergence`; :func:`shrink` then drops writes, runs of bytes and single bytes while the same
+difference persists, leaving a minimal reproduction.
+
+Against another tree everything is compared exactly (the same shim, the same costs).  Against the Python
+model (``v1.2``: :class:`~..timed.model_v1_2.TimedEmulator`, ``v2``: :class:`~..timed.model_v2.
+TimedEmulatorV2`) the comparison is made modulo the named, documented equivalences of :data:`EQUIVALENCES`
+and nothing else; each report lists the ones it applied.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from bisect import bisect_right
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+from tactdeform_hw.emulator.hostbuild.emulator import USB_PACKET_BYTES, HostBuildEmulator
+from tactdeform_hw.emulator.hostbuild.statemap import StateMap
+from tactdeform_hw.emulator.hostbuild.streams import SETUP_US, Stream, edge_streams, random_stream
+from tactdeform_hw.emulator.timed.link import Delivery, LinkModel
+from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
+from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError
+from tactdeform_hw.protocol.firmware import FIRMWARES, V1_2, V2, FirmwareSpec
+
+MODELS = tuple(FIRMWARES)
+
+EQUIVALENCES: dict[str, str] = {
+    "timer-origin": "the firmware starts its stimulation timer after setup() (1010.25 us: the stack "
+    "detection); the model's timer_start_us is set to the time the host build measured (v1.2), or, "
+    "as v2's model starts its timer at boot whatever timer_start_us says, its pulses are compared "
+    "that much later (v2)",
+    "setup-before-bytes": "the host's first byte arrives at 2000 us, after the firmware's setup(); the "
+    "model's parser runs from 0",
+    "pulse-width": "delivered pulse widths agree within pulse_tolerance_us (0.7 us), and the n-th pulse "
+    "of a scan (from 0) starts within (n + 1) x pulse_tolerance_us: the firmware's chip-select writes "
+    "(0.1 us each, two per SPI exchange), which the model does not count, make a pulse 0.2 us longer "
+    "(196.8 vs 196.6 us) and each pulse start up to 0.6 us later after the one before it",
+    "preempt-at-calls": "the host build runs a due interrupt at the main loop's next shim call, the model "
+    "(like the chip) at the alarm: a scan's pulses may start up to PREEMPT_US (20 us: one of 0xF5's "
+    "analogRead calls; 2 us otherwise) later on the host build",
+    "adc-reads-skin": "the host build's ADC reads the DAC code, the model's the skin's voltage: the "
+    "voltage registers are not compared, and a stream holding the readback opcode has its replies "
+    "compared by byte count",
+    "rx-unread": "the receive queue is compared as the bytes that arrived and were not read yet "
+    "(rx_unread): the host build moves arrived bytes into its queue at the firmware's next call "
+    "(rx_pending + rx_in_flight), v2's model hands them to its parser only when it calls it",
+    "tick-ties": "no write arrives exactly on an RTOS tick: at a tie the host build delivers the bytes "
+    "before the main loop wakes, the model wakes the loop first (a convention of each)",
+    "watchdog": "the host build does not model the interrupt watchdog: a stream is compared up to the "
+    "last checkpoint before the model's watchdog resets the board (the report counts these streams)",
+    "registers-in-common": "only registers both sides hold are compared (the host build's receive-queue "
+    "counters and the model's command_in_progress have no counterpart)",
+}
+"""What a comparison against the Python model is made modulo (none apply between two trees)."""
+
+STATE_MAP_FILE = "hostbuild_state.toml"
+"""A tree's own state map, by convention at its root (``tests/data/firmware_tiny`` has one)."""
+
+PULSE_TOLERANCE_US = 0.7
+"""Against the model: the firmware's chip-select writes (0.1 µs each, two per SPI exchange), which the model
+does not count, make a pulse 0.2 µs longer and each pulse of a scan start up to 0.6 µs later after the one
+before it than in the model; 0.7 µs covers that and still catches a 1 µs change (the protocol's width
+step)."""
+
+PREEMPT_US = max(
+    DEFAULT_MODEL.parser_call_us, DEFAULT_MODEL.parser_byte_us, DEFAULT_MODEL.hv513_detect_us / 50
+)
+"""Against the model: the host build runs a due interrupt only at the main loop's next shim call, so a scan
+may start up to one call's cost late (``Serial.available()`` 2 µs, a byte 1 µs, one of 0xF5's
+``analogRead`` calls 20 µs); the model pre-empts the loop exactly at the alarm, as the chip does."""
+
+PULSE_MARGIN_US = 500.0
+"""A pulse is compared once it ended this long before a checkpoint (on either side): its counterpart may
+start later by the drift :data:`PULSE_TOLERANCE_US` allows, and must have ended by the checkpoint."""
+
+STALL_CALLS = 2_000_000
+"""Shim calls without time passing after which a side is declared stuck (the outcome is compared)."""
+
+
+Pulse = tuple[float, float, int, tuple[int, ...], int, int]
+"""A delivered pulse: start µs, end µs, DAC code, outputs, polarity (1 anodic), its index within its scan."""
+
+
+def _number_in_scans(pulses: list[tuple[float, float, int, tuple[int, ...], int, int]]) -> list[Pulse]:
+    """Replace the scan number (last field) by the pulse's index within that scan."""
+    out: list[Pulse] = []
+    last, k = None, 0
+    for p in sorted(pulses):
+        k = k + 1 if p[5] == last else 0
+        last = p[5]
+        out.append((*p[:5], k))
+    return out
+
+
+@dataclass
+class Observation:
+    """What a side shows at a checkpoint."""
+
+    state: dict[str, Any]
+    replies: bytes
+    pulses: list[Pulse]
+    stuck: str | None = None
+    reset: bool = False  # the model's interrupt watchdog has reset the board
+
+
+class Side(Protocol):
+    name: str
+
+    def write(self, data: bytes, at_us: float) -> None: ...
+
+    def advance_to(self, t_us: float) -> None: ...
+
+    def observe(self, upto_us: float) -> Observation: ...
+
+
+class HostSide:
+    """A firmware tree built on the host."""
+
+    def __init__(self, tree: Path, *, name: str, state_map: StateMap | None, **kw: Any) -> None:
+        self.name = name
+        self.emu = HostBuildEmulator(tree, state_map=state_map, stall_calls=STALL_CALLS, **kw)
+        self.stuck: str | None = None
+
+    @property
+    def timer_origin_us(self) -> float | None:
+        """When the firmware first enabled a timer alarm (its stimulation timer's start)."""
+        for e in self.emu.shim_events():
+            if e.kind == "ALARM_ENABLE":
+                return e.t_us
+        return None
+
+    def write(self, data: bytes, at_us: float) -> None:
+        if self.stuck is None:
+            self.advance_to(at_us)
+        if self.stuck is None:
+            self.emu.write(data, at_us=at_us)
+
+    def advance_to(self, t_us: float) -> None:
+        if self.stuck is not None or t_us <= self.emu.now_us:
+            return
+        try:
+            self.emu.advance_to(t_us)
+        except FirmwareBuildError as exc:
+            if "without time passing" not in str(exc):
+                raise
+            self.stuck = f"stuck at {self.emu.firmware_now_us:.3f} us (a loop on calls that cost no time)"
+
+    def observe(self, upto_us: float) -> Observation:
+        st = self.emu.state()
+        st["rx_unread"] = st["rx_pending"] + st["rx_in_flight"]
+        replies = b"".join(b for _, b in self.emu.tx_log)
+        entries = [a for a, _ in self.emu.scans()]
+        pulses = _number_in_scans(
+            [
+                (p.start_us, p.end_us, p.code, p.outputs, p.polarity, bisect_right(entries, p.start_us))
+                for p in self.emu.delivered_pulses()
+                if p.end_us <= upto_us
+            ]
+        )
+        return Observation(st, replies, pulses, self.stuck)
+
+
+class DirectLink(LinkModel):
+    """The host build's receive path: a write reaches the queue at its own time, in 64-byte packets (no USB
+    frames).  The model is given the same, so both sides see the same arrivals."""
+
+    name = "direct"
+
+    def schedule(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Delivery]:
+        return [
+            Delivery(
+                t_ns, bytes(data[i : i + USB_PACKET_BYTES]), host_offset + i if host_offset >= 0 else -1, t_ns
+            )
+            for i in range(0, len(data), USB_PACKET_BYTES)
+        ]
+
+    def wire_ns(self, nbytes: int) -> int:
+        return 0
+
+
+class ModelSide:
+    """The package's Python timed model of one firmware version (a subclass per version)."""
+
+    version = ""
+
+    def __init__(self, *, timer_origin_us: float, hv513_count: int) -> None:
+        self.name = f"model {self.version}"
+        model = dataclasses.replace(DEFAULT_MODEL, timer_start_us=timer_origin_us)
+        self.emu: Any = self._make(max(1, hv513_count // 4), model)
+        self.timer_origin_us = timer_origin_us
+
+    def _make(self, boards: int, model: TimingModel) -> Any:
+        raise NotImplementedError
+
+    def write(self, data: bytes, at_us: float) -> None:
+        if at_us > self.emu.now_us:
+            self.emu.advance_to(at_us)
+        self.emu.write(data, at_us=at_us)
+
+    def advance_to(self, t_us: float) -> None:
+        if t_us > self.emu.now_us:
+            self.emu.advance_to(t_us)
+
+    def observe(self, upto_us: float) -> Observation:
+        st = dict(self.emu.state())
+        st["rx_unread"] = st["rx_pending"] + self.emu.in_flight
+        pulses = _number_in_scans(self._pulses(upto_us))
+        return Observation(st, self._replies(upto_us), pulses, None, self.emu.reboots > 0)
+
+    def _replies(self, upto_us: float) -> bytes:
+        raise NotImplementedError
+
+    def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
+        raise NotImplementedError
+
+
+class ModelSideV1_2(ModelSide):
+    """:class:`~..timed.model_v1_2.TimedEmulator`: its timer starts at ``timer_start_us``."""
+
+    version = "v1.2"
+
+    def _make(self, boards: int, model: TimingModel) -> Any:
+        from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+
+        return TimedEmulator("compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model)
+
+    def _replies(self, upto_us: float) -> bytes:
+        """The replies written by ``upto_us`` (a parser call's reply is logged at its start, stamped with
+        the time the call writes it)."""
+        return b"".join(b for t, b in self.emu.tx_log if t <= upto_us)
+
+    def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
+        out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
+        for p in self.emu.reports.pulses(t1_us=limit_us):
+            end = p.start_us + p.width_us
+            if p.height_code > 0 and p.outputs and end <= limit_us:
+                pol = int(p.polarity == "anodic")
+                out.append((p.start_us, end, p.height_code, tuple(p.outputs), pol, p.cycle))
+        return out
+
+
+class ModelSideV2(ModelSide):
+    """:class:`~..timed.model_v2.TimedEmulatorV2`: it starts its timer at boot whatever
+    ``timer_start_us`` says, so its pulses are moved by the timer origin instead; it keeps no reply log,
+    so the replies are those that reached the host (no reply link: at once)."""
+
+    version = "v2"
+
+    def _make(self, boards: int, model: TimingModel) -> Any:
+        from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
+
+        self._got = bytearray()
+        return TimedEmulatorV2("compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model)
+
+    def _replies(self, upto_us: float) -> bytes:
+        self._got += self.emu.read_tx()
+        return bytes(self._got)
+
+    def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
+        out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
+        shift = self.timer_origin_us
+        for r in self.emu.delivered():
+            t, end = r["t_us"] + shift, r["t_us"] + r["width_us"] + shift
+            if r["code"] > 0 and end <= limit_us:
+                pol = int(r["polarity"] == "anodic")
+                out.append((t, end, r["code"], (r["channel"],), pol, r["scan"]))
+        return out
+
+
+MODEL_SIDES: dict[str, type[ModelSide]] = {"v1.2": ModelSideV1_2, "v2": ModelSideV2}
+"""The Python model of each firmware version, by the name ``--against`` takes."""
+
+
+@dataclass(frozen=True)
+class Divergence:
+    """The first difference between the two sides on one stream."""
+
+    kind: str  # "state", "replies", "pulses", "stuck"
+    field: str  # the register, "replies", "pulse N" or "stuck"
+    at_us: float  # the checkpoint where it shows (the pulse's start for pulses, the reply's time if known)
+    since_us: float  # the previous checkpoint: it arose in (since_us, at_us]
+    left: Any
+    right: Any
+    delivered: bytes  # the host's bytes written by at_us
+
+    @property
+    def signature(self) -> tuple[str, str]:
+        if self.kind == "state":
+            return (self.kind, self.field.split("[")[0])
+        if self.kind == "pulses":  # what differs: outputs, code, polarity, start, width or count
+            return (self.kind, self.field.split("(")[-1].rstrip(")"))
+        return (self.kind, self.kind)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "kind": self.kind,
+            "field": self.field,
+            "at_us": self.at_us,
+            "since_us": self.since_us,
+            "left": _jsonable(self.left),
+            "right": _jsonable(self.right),
+            "delivered_hex": self.delivered.hex(),
+        }
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, bytes):
+        return v.hex()
+    if isinstance(v, tuple):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, list):
+        return [_jsonable(x) for x in v]
+    return v
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """How the two sides are compared."""
+
+    exact: bool
+    spec: FirmwareSpec | None
+    pulse_tolerance_us: float = 0.0
+
+    @property
+    def equivalences(self) -> tuple[str, ...]:
+        return () if self.exact else tuple(EQUIVALENCES)
+
+
+def _same_number(key: str, a: Any, b: Any, exact: bool) -> bool:
+    if not exact and key == "period_us" and isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        import numpy as np
+
+        return bool(np.float32(a) == np.float32(b))
+    return bool(a == b)
+
+
+_NOT_COMPARED_MODEL = {
+    "voltage",
+    "voltage_bytes",
+    "command_in_progress",
+    "rx_pending",
+    "rx_in_flight",
+    "rx_capacity",
+}
+
+
+def compare(
+    left: Observation,
+    right: Observation,
+    cmp: Comparison,
+    stream_has_readback: bool,
+    upto_us: float = math.inf,
+) -> tuple[str, str, Any, Any, float | None] | None:
+    """The first difference between two observations made at ``upto_us``: (kind, field, left, right, time
+    if known).  The pulses compared are those either side ended :data:`PULSE_MARGIN_US` before
+    ``upto_us``; their counterparts on the other side may have ended any time before ``upto_us``."""
+    if left.stuck != right.stuck:
+        return ("stuck", "stuck", left.stuck, right.stuck, None)
+    keys = [k for k in left.state if k in right.state or cmp.exact]
+    if not cmp.exact:
+        keys = [k for k in keys if k not in _NOT_COMPARED_MODEL]
+    for k in keys:
+        a, b = left.state.get(k), right.state.get(k)
+        if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
+            for i, (x, y) in enumerate(zip(a, b)):
+                if x != y:
+                    return ("state", f"{k}[{i}]", x, y, None)
+        elif not _same_number(k, a, b, cmp.exact):
+            return ("state", k, a, b, None)
+    if cmp.exact or not stream_has_readback:
+        if left.replies != right.replies:
+            shorter = min(len(left.replies), len(right.replies))
+            i = next((j for j, (x, y) in enumerate(zip(left.replies, right.replies)) if x != y), shorter)
+            return ("replies", f"replies[{i}]", left.replies[i : i + 16], right.replies[i : i + 16], None)
+    elif len(left.replies) != len(right.replies):
+        return ("replies", "replies (count)", len(left.replies), len(right.replies), None)
+    tol = cmp.pulse_tolerance_us
+    late = 0.0 if cmp.exact else PREEMPT_US  # see EQUIVALENCES["preempt-at-calls"]
+    settled = upto_us - PULSE_MARGIN_US
+    n = max(sum(1 for p in side.pulses if p[1] <= settled) for side in (left, right))
+    for i, (p, q) in enumerate(zip(left.pulses[:n], right.pulses[:n])):
+        if (
+            p[2:5] != q[2:5]
+            or abs(p[0] - q[0]) > tol * (1 + min(p[5], q[5])) + late + 1e-9
+            or abs((p[1] - p[0]) - (q[1] - q[0])) > tol + 1e-9
+        ):
+            return (
+                "pulses",
+                f"pulse {i} ({_pulse_reason(p, q, tol, late)})",
+                _pulse(p),
+                _pulse(q),
+                min(p[0], q[0]),
+            )
+    if min(len(left.pulses), len(right.pulses)) < n:
+        i = min(len(left.pulses), len(right.pulses))
+        more = left.pulses if len(left.pulses) > i else right.pulses
+        lp = _pulse(left.pulses[i]) if len(left.pulses) > i else None
+        rp = _pulse(right.pulses[i]) if len(right.pulses) > i else None
+        return ("pulses", f"pulse {i} (count)", lp, rp, more[i][0])
+    return None
+
+
+def _pulse_reason(p: Pulse, q: Pulse, tol: float, late: float) -> str:
+    for name, i in (("outputs", 3), ("code", 2), ("polarity", 4)):
+        if p[i] != q[i]:
+            return name
+    return "start" if abs(p[0] - q[0]) > tol * (1 + min(p[5], q[5])) + late + 1e-9 else "width"
+
+
+def _pulse(p: Pulse) -> dict[str, Any]:
+    return {
+        "start_us": round(p[0], 3),
+        "width_us": round(p[1] - p[0], 3),
+        "code": p[2],
+        "outputs": list(p[3]),
+        "polarity": p[4],
+        "index_in_scan": p[5],
+    }
+
+
+@dataclass
+class Differ:
+    """Makes the two sides for each run: ``left`` is always a host-built tree, ``right`` another tree or a
+    model version."""
+
+    tree: Path
+    against: str  # "v1.2", "v2" or a tree path
+    hv513_count: int = 4
+    state_map: StateMap | None = None
+    pulse_tolerance_us: float = PULSE_TOLERANCE_US
+    cache: Path | None = None
+    runs: int = 0
+    watchdog_cut: int = 0  # runs compared only up to the model's watchdog reset
+    _origin: float | None = None
+
+    def __post_init__(self) -> None:
+        self.tree = Path(self.tree)
+        if self.against in MODELS:
+            self.cmp = Comparison(False, FIRMWARES[self.against], self.pulse_tolerance_us)
+        else:
+            other = Path(self.against)
+            if not other.is_dir():
+                raise ConfigurationError(
+                    f"--against={self.against!r} is neither v1.2, v2 nor a firmware tree folder"
+                )
+            self.cmp = Comparison(True, _spec_of(self.tree), 0.0)
+
+    def sides(self) -> tuple[Side, Side]:
+        kw: dict[str, Any] = {"hv513_count": self.hv513_count, "cache": self.cache}
+        left = HostSide(self.tree, name=str(self.tree), state_map=self.state_map, **kw)
+        right: Side
+        if self.against in MODELS:
+            if self._origin is None:  # measured once, on a probe run past setup()
+                probe = HostSide(self.tree, name="probe", state_map=self.state_map, **kw)
+                probe.advance_to(SETUP_US)
+                self._origin = probe.timer_origin_us or 0.0
+            side = MODEL_SIDES[self.against]
+            right = side(timer_origin_us=self._origin, hv513_count=self.hv513_count)
+        else:
+            right = HostSide(Path(self.against), name=self.against, state_map=self.state_map, **kw)
+        return left, right
+
+    def has_readback(self, stream: Stream) -> bool:
+        spec = self.cmp.spec
+        if spec is None:
+            return False
+        ops = {op for op, c in spec.by_opcode.items() if c.reply == "measure"}
+        return any(b in ops for _, data in stream.writes for b in data)
+
+    def first_divergence(self, stream: Stream, at_us: float | None = None) -> Divergence | None:
+        """Run ``stream`` on fresh sides; the first checkpoint at which they differ.  With ``at_us``, a
+        single checkpoint there (the writes before it written)."""
+        self.runs += 1
+        left, right = self.sides()
+        readback = self.has_readback(stream)
+        if at_us is None:
+            checkpoints = sorted({t for t, _ in stream.writes} | {stream.end_us})
+        else:
+            checkpoints = [at_us]
+        pending = list(stream.writes)
+        prev = 0.0
+        for cp in checkpoints:
+            while pending and pending[0][0] < cp:
+                t_w, data = pending.pop(0)
+                left.write(data, t_w)
+                right.write(data, t_w)
+            left.advance_to(cp)
+            right.advance_to(cp)
+            seen_left, seen_right = left.observe(cp), right.observe(cp)
+            if seen_left.reset or seen_right.reset:  # see EQUIVALENCES["watchdog"]
+                self.watchdog_cut += 1
+                return None
+            found = compare(seen_left, seen_right, self.cmp, readback, cp)
+            if found is not None:
+                kind, fld, a, b, t = found
+                at = t if t is not None else cp
+                return Divergence(kind, fld, at, prev, a, b, _written_by(stream, at))
+            prev = cp
+        return None
+
+    def locate(self, stream: Stream, found: Divergence, resolution_us: float = 1.0) -> Divergence:
+        """Narrow a state or reply divergence seen at a checkpoint to within ``resolution_us`` of when it
+        arose (by bisection between the checkpoint and the one before, each probe a fresh run)."""
+        if found.kind not in ("state", "replies"):
+            return found
+        lo, hi, best = found.since_us, found.at_us, found
+        while hi - lo > resolution_us:
+            mid = round((lo + hi) / 2, 3)
+            d = self.first_divergence(stream, at_us=mid)
+            if d is not None and d.signature == found.signature:
+                hi, best = mid, d
+            else:
+                lo = mid
+        return dataclasses.replace(best, at_us=hi, since_us=lo)
+
+
+def _written_by(stream: Stream, t_us: float) -> bytes:
+    """The host's bytes written before ``t_us`` (a checkpoint is taken before that time's write)."""
+    return b"".join(d for t, d in stream.writes if t < t_us)
+
+
+def _spec_of(tree: Path) -> FirmwareSpec | None:
+    from tactdeform_hw.emulator.hostbuild.statemap import UPSTREAM_V1_2, UPSTREAM_V2
+
+    if (tree / UPSTREAM_V1_2.unit).is_file():
+        return V1_2
+    if (tree / UPSTREAM_V2.unit).is_file():
+        return V2
+    return None
+
+
+def shrink(
+    differ: Differ, stream: Stream, found: Divergence, max_runs: int = 400
+) -> tuple[Stream, Divergence]:
+    """Drop writes, then runs of bytes, then single bytes while a divergence of the same signature
+    persists; then cut the run's end to just after it.  At most ``max_runs`` comparisons."""
+    best, best_div = stream, found
+    budget = [max_runs]
+
+    def still(candidate: Stream) -> Divergence | None:
+        if budget[0] <= 0:
+            return None
+        budget[0] -= 1
+        d = differ.first_divergence(candidate)
+        return d if d is not None and d.signature == found.signature else None
+
+    i = len(best.writes) - 1
+    while i >= 0 and len(best.writes) > 1:  # whole writes
+        cand = Stream(best.writes[:i] + best.writes[i + 1 :], best.end_us, best.label)
+        d = still(cand)
+        if d is not None:
+            best, best_div = cand, d
+        i -= 1
+    chunk = max(1, max(len(b) for _, b in best.writes) // 2)
+    while chunk >= 1 and budget[0] > 0:  # runs of bytes, halving
+        progress = False
+        for w in range(len(best.writes)):
+            pos = 0
+            while pos < len(best.writes[w][1]) and budget[0] > 0:
+                t, data = best.writes[w]
+                cut = data[:pos] + data[pos + chunk :]
+                if not cut:
+                    pos += chunk
+                    continue
+                writes = best.writes[:w] + ((t, cut),) + best.writes[w + 1 :]
+                d = still(Stream(writes, best.end_us, best.label))
+                if d is not None:
+                    best, best_div, progress = Stream(writes, best.end_us, best.label), d, True
+                else:
+                    pos += chunk
+        if not progress:
+            chunk //= 2
+    best_div = differ.locate(best, best_div)
+    end = math.ceil(best_div.at_us + 2 * PULSE_MARGIN_US + 1000.0)
+    if end < best.end_us:
+        cand = Stream(best.writes, end, best.label)
+        if still(cand) is not None:  # the run can stop soon after (the located divergence stands)
+            best = cand
+    return Stream(best.writes, best.end_us, f"minimal reproduction of {stream.label}"), best_div
+
+
+@dataclass
+class DiffReport:
+    """The outcome of a differential run."""
+
+    tree: str
+    against: str
+    streams_run: int = 0
+    seconds: float = 0.0
+    equivalences: tuple[str, ...] = ()
+    stream: Stream | None = None
+    divergence: Divergence | None = None
+    minimal: Stream | None = None
+    minimal_divergence: Divergence | None = None
+    stopped_by_time: bool = False
+    watchdog_cut: int = 0  # streams compared only up to the model's watchdog reset
+    diverged: int = 0  # streams that diverged (more than 1 only with keep_going)
+    kinds: dict[str, dict[str, Any]] = field(default_factory=dict)  # keep_going: per signature
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "tree": self.tree,
+            "against": self.against,
+            "streams_run": self.streams_run,
+            "seconds": round(self.seconds, 3),
+            "streams_per_s": round(self.streams_run / self.seconds, 2) if self.seconds else None,
+            "equivalences": {k: EQUIVALENCES[k] for k in self.equivalences},
+            "stopped_by_time": self.stopped_by_time,
+            "watchdog_cut": self.watchdog_cut,
+            "divergences": self.diverged,
+            "by_kind": self.kinds,
+            "stream": self.stream.to_dict() if self.stream else None,
+            "divergence": self.divergence.to_dict() if self.divergence else None,
+            "minimal": self.minimal.to_dict() if self.minimal else None,
+            "minimal_divergence": self.minimal_divergence.to_dict() if self.minimal_divergence else None,
+        }
+
+
+def streams_for(spec: FirmwareSpec | None, count: int, seed: int, edges: bool = True) -> Iterator[Stream]:
+    """``count`` streams: the edge streams first (when ``edges``), then seeded random ones."""
+    made = 0
+    if edges:
+        for s in edge_streams(spec):
+            if made >= count:
+                return
+            yield s
+            made += 1
+    k = 0
+    while made < count:
+        yield random_stream(spec, seed * 1_000_003 + k)
+        k += 1
+        made += 1
+
+
+def diff_firmware(
+    tree: str | Path,
+    against: str,
+    *,
+    streams: int = 100,
+    seed: int = 0,
+    extra_streams: Iterable[Stream] = (),
+    hv513_count: int = 4,
+    state_map: StateMap | None = None,
+    pulse_tolerance_us: float = PULSE_TOLERANCE_US,
+    shrink_runs: int = 400,
+    edges: bool = True,
+    cache: Path | None = None,
+    progress: Callable[[str], None] | None = None,
+    keep_going: bool = False,
+    time_limit_s: float | None = None,
+) -> DiffReport:
+    """Compare ``tree`` with ``against`` (``"v1.2"``, ``"v2"`` or another tree) on ``extra_streams`` then
+    ``streams`` generated ones; stop at the first divergence and shrink it.  With ``keep_going`` run every
+    stream, count the divergences per signature (kind and field) and shrink the first of each.
+    ``time_limit_s`` stops starting new streams after that much wall time (the report says how many ran)."""
+    tree = Path(tree)
+    if not (tree / "src").is_dir():
+        raise ConfigurationError(
+            f"--firmware-src={str(tree)!r} is not a PlatformIO tree: it has no src/ folder"
+        )
+    if against not in MODELS and not (Path(against) / "src").is_dir():
+        raise ConfigurationError(
+            f"--against={against!r} is neither v1.2, v2 nor a PlatformIO tree (a folder with src/)"
+        )
+    differ = Differ(tree, against, hv513_count, state_map, pulse_tolerance_us, cache)
+    spec = differ.cmp.spec if against not in MODELS else differ.cmp.spec
+    report = DiffReport(str(tree), against, equivalences=differ.cmp.equivalences)
+    t0 = time.perf_counter()
+    told = t0
+    for n, stream in enumerate(_chain(extra_streams, streams_for(spec, streams, seed, edges)), 1):
+        cut_before = differ.watchdog_cut
+        d = differ.first_divergence(stream)
+        report.streams_run = n
+        report.watchdog_cut += differ.watchdog_cut - cut_before
+        now = time.perf_counter()
+        if progress is not None and now - told >= 2.0:  # at most one line every 2 s
+            progress(f"{n}/{streams} streams, {now - t0:.1f} s, {n / (now - t0):.1f}/s")
+            told = now
+        if time_limit_s is not None and now - t0 >= time_limit_s:
+            report.stopped_by_time = True
+            if d is None:
+                break
+        if d is None:
+            continue
+        report.diverged += 1
+        key = " ".join(d.signature)
+        if key in report.kinds:
+            report.kinds[key]["streams"] += 1
+            continue
+        if progress is not None:
+            progress(
+                f"{d.kind} {d.field} differs on {stream.label}: shrinking it (at most {shrink_runs} runs)"
+            )
+        minimal, md = shrink(differ, stream, d, shrink_runs)
+        report.kinds[key] = {
+            "streams": 1,
+            "first": stream.label,
+            "minimal": minimal.to_dict(),
+            "minimal_divergence": md.to_dict(),
+        }
+        if report.divergence is None:
+            report.stream, report.divergence = stream, d
+            report.minimal, report.minimal_divergence = minimal, md
+        if not keep_going or report.stopped_by_time:
+            break
+    report.seconds = time.perf_counter() - t0
+    return report
+
+
+def _chain(*its: Iterable[Stream]) -> Iterator[Stream]:
+    for it in its:
+        yield from it

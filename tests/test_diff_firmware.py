@@ -1,0 +1,294 @@
+"""The firmware differential: a tree built on the host against another tree (or the Python model).
+
+The small test firmware (``tests/data/firmware_tiny``) is compared with itself (no divergence) and with a
+copy in which one constant changed (its ``'E'`` command answers its byte + 2 instead of + 1): the diff must
+find it and shrink the stream to the two bytes that show it.  Built trees are cached by hash in the
+package's cache (``$TACTDEFORM_HW_CACHE``), so only the first run of the suite compiles.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pytest
+
+from tactdeform_hw.cli import main
+from tactdeform_hw.emulator.hostbuild import find_compiler
+from tactdeform_hw.emulator.hostbuild.diff import Comparison, Differ, Observation, compare, diff_firmware
+from tactdeform_hw.emulator.hostbuild.statemap import StateMap
+from tactdeform_hw.emulator.hostbuild.streams import Stream, off_tick, random_stream
+from tactdeform_hw.errors import FirmwareBuildError
+
+TINY = Path(__file__).parent / "data" / "firmware_tiny"
+MAP = StateMap.from_toml(TINY / "hostbuild_state.toml")
+
+try:
+    find_compiler()
+    NO_CXX = ""
+except FirmwareBuildError as exc:
+    NO_CXX = str(exc)
+
+needs_cxx = pytest.mark.skipif(bool(NO_CXX), reason=f"no C++ compiler: {NO_CXX}")
+
+
+def _copy(tmp_path: Path, name: str, old: str = "", new: str = "") -> Path:
+    tree = tmp_path / name
+    shutil.copytree(TINY, tree)
+    if old:
+        unit = tree / "lib" / "Tiny" / "tiny.cpp"
+        text = unit.read_text()
+        assert text.count(old) == 1
+        unit.write_text(text.replace(old, new))
+    return tree
+
+
+@pytest.fixture()
+def planted(tmp_path: Path) -> Path:
+    """The test firmware with one constant changed: 'E' answers its byte + 2."""
+    return _copy(tmp_path, "tiny_plus2", "readByteBlocking() + 1)", "readByteBlocking() + 2)")
+
+
+@needs_cxx
+def test_two_identical_trees_never_diverge(tmp_path: Path) -> None:
+    twin = _copy(tmp_path, "twin")
+    report = diff_firmware(TINY, str(twin), streams=40, seed=3, state_map=MAP, edges=False)
+    assert report.streams_run == 40
+    assert report.divergence is None and report.minimal is None
+    assert report.equivalences == ()  # two trees: compared exactly
+
+
+@needs_cxx
+def test_the_planted_change_is_found_and_shrunk_to_its_two_bytes(planted: Path) -> None:
+    report = diff_firmware(TINY, str(planted), streams=200, seed=0, state_map=MAP, edges=False)
+    d = report.divergence
+    assert d is not None and report.stream is not None
+    assert d.kind == "replies"
+    assert 0x45 in d.delivered  # the 'E' that shows it reached both firmwares
+    m, md = report.minimal, report.minimal_divergence
+    assert m is not None and md is not None
+    assert len(m.writes) == 1
+    at, data = m.writes[0]
+    assert len(data) == 2 and data[0] == ord("E")
+    # both sides' values: the original answers byte + 1, the planted copy byte + 2
+    assert (md.left, md.right) == (bytes([(data[1] + 1) & 0xFF]), bytes([(data[1] + 2) & 0xFF]))
+    # the reproduction replays: the same divergence again, and none once the 'E' is gone
+    differ = Differ(TINY, str(planted), state_map=MAP)
+    again = differ.first_divergence(m)
+    assert again is not None and again.signature == md.signature
+    assert differ.first_divergence(Stream(((at, data[1:]),), m.end_us)) is None
+
+
+@needs_cxx
+def test_a_change_in_a_register_is_reported_by_its_name(tmp_path: Path) -> None:
+    changed = _copy(tmp_path, "clamp", "constrain(v, 0, 4095)", "constrain(v, 0, 4000)")
+    stream = Stream(((off_tick(2000.0), b"V" + (4095).to_bytes(2, "little")),), 12_000.0, "clamp")
+    d = Differ(TINY, str(changed), state_map=MAP).first_divergence(stream)
+    assert d is not None
+    assert (d.kind, d.field, d.left, d.right) == ("state", "dac_code", 4095, 4000)
+    assert d.delivered == b"V\xff\x0f"
+
+
+@needs_cxx
+def test_a_firmware_stuck_on_both_sides_is_no_divergence(tmp_path: Path) -> None:
+    twin = _copy(tmp_path, "twin")
+    stream = Stream(((2000.5, b"H"),), 8000.0, "hang")
+    assert Differ(TINY, str(twin), state_map=MAP).first_divergence(stream) is None
+
+
+def test_random_streams_are_reproducible_and_off_the_tick_grid() -> None:
+    a, b = random_stream(None, 11), random_stream(None, 11)
+    assert a == b and a != random_stream(None, 12)
+    for seed in range(200):
+        for t, _ in random_stream(None, seed).writes:
+            assert t % 1000.0 != 0.0
+
+
+def test_pulses_compare_within_the_stated_tolerance_only() -> None:
+    def obs(start: float, width: float) -> Observation:
+        return Observation({}, b"", [(start, start + width, 100, (0,), 1, 0)])
+
+    model = Comparison(exact=False, spec=None, pulse_tolerance_us=0.5)
+    assert compare(obs(100.0, 196.8), obs(100.1, 196.6), model, False) is None
+    found = compare(obs(100.0, 197.2), obs(100.0, 196.6), model, False)
+    assert found is not None and found[0] == "pulses"
+    exact = Comparison(exact=True, spec=None)
+    assert compare(obs(100.0, 196.8), obs(100.0, 196.6), exact, False) is not None
+
+
+# --- the command line ------------------------------------------------------------------------------------
+
+
+@needs_cxx
+def test_cli_exit_0_on_identical_trees(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    twin = _copy(tmp_path, "twin")
+    code = main(
+        [
+            "diff-firmware",
+            "--firmware-src",
+            str(TINY),
+            "--against",
+            str(twin),
+            "--streams",
+            "10",
+            "--no-edges",
+            "--json",
+        ]
+    )
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0
+    assert out["divergences"] == 0 and out["streams_run"] == 10
+
+
+@needs_cxx
+def test_cli_exit_1_on_a_divergence_with_its_reproduction(
+    planted: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code = main(
+        [
+            "diff-firmware",
+            "--firmware-src",
+            str(TINY),
+            "--against",
+            str(planted),
+            "--streams",
+            "200",
+            "--no-edges",
+            "--json",
+        ]
+    )
+    out = json.loads(capsys.readouterr().out)
+    assert code == 1
+    assert out["divergences"] == 1
+    assert out["divergence"]["kind"] == "replies"
+    assert len(out["minimal"]["writes"]) == 1 and out["minimal"]["writes"][0]["hex"].startswith("45")
+
+
+@needs_cxx
+def test_cli_text_report_names_both_sides(planted: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(
+        [
+            "diff-firmware",
+            "--firmware-src",
+            str(TINY),
+            "--against",
+            str(planted),
+            "--streams",
+            "200",
+            "--no-edges",
+        ]
+    )
+    out = capsys.readouterr().out
+    assert code == 1
+    assert "DIVERGENCE" in out and "minimal reproduction (2 bytes" in out and "45 " in out
+
+
+def test_cli_exit_2_on_a_missing_tree(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    code = main(["diff-firmware", "--firmware-src", str(tmp_path / "nope"), "--against", "v1.2"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "--firmware-src" in err and "does not exist" in err and "Traceback" not in err
+
+
+def test_cli_exit_2_on_an_against_that_is_neither_model_nor_tree(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    code = main(["diff-firmware", "--firmware-src", str(TINY), "--against", "v3"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--against 'v3' is neither v1.2, v2 nor a PlatformIO tree" in err
+
+
+def test_cli_exit_2_on_a_negative_stream_count(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["diff-firmware", "--firmware-src", str(TINY), "--against", "v1.2", "--streams", "-1"])
+    assert exc.value.code == 2
+    assert "--streams" in capsys.readouterr().err
+
+
+def test_cli_exit_3_without_a_compiler(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    twin = _copy(tmp_path, "twin")
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))
+    monkeypatch.delenv("CXX", raising=False)
+    code = main(["diff-firmware", "--firmware-src", str(TINY), "--against", str(twin), "--streams", "1"])
+    err = capsys.readouterr().err
+    assert code == 3
+    assert "needs a C++ compiler" in err and "Traceback" not in err
+
+
+@needs_cxx
+def test_cli_exit_3_names_the_file_and_line_of_a_build_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    broken = _copy(tmp_path, "broken", "isr_count++;", "isr_count++ +;")
+    code = main(["diff-firmware", "--firmware-src", str(TINY), "--against", str(broken), "--streams", "1"])
+    err = capsys.readouterr().err
+    assert code == 3
+    assert "lib/Tiny/tiny.cpp:" in err and "error:" in err and "Traceback" not in err
+
+
+# --- upstream trees (not part of the repository) ----------------------------------------------------------
+
+
+def _upstream(var: str) -> Path:
+    if NO_CXX:
+        pytest.skip(f"no C++ compiler: {NO_CXX}")
+    raw = os.environ.get(var)
+    if not raw:
+        pytest.skip(f"{var} is not set (a checkout of eTactileKit's 2_Firmware/platform_io_project)")
+    path = Path(raw)
+    if (path / "2_Firmware" / "platform_io_project").is_dir():
+        path = path / "2_Firmware" / "platform_io_project"
+    if not (path / "src").is_dir():
+        pytest.skip(f"{var}={raw} holds no PlatformIO tree (src/)")
+    return path
+
+
+def test_upstream_v1_2_against_itself_is_exact(tmp_path: Path) -> None:
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V1_2")
+    twin = tmp_path / "twin"
+    shutil.copytree(tree / "src", twin / "src")
+    shutil.copytree(tree / "lib", twin / "lib")
+    report = diff_firmware(tree, str(twin), streams=4, seed=1, edges=False)
+    assert report.divergence is None and report.streams_run == 4
+
+
+@needs_cxx
+def test_cli_runs_recorded_streams_first(
+    planted: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    vectors = tmp_path / "vectors.jsonl"
+    vectors.write_text(
+        json.dumps({"id": "quiet", "stream": "4300"})
+        + "\n"
+        + json.dumps({"id": "echo", "stream": "4507"})
+        + "\n"
+    )
+    args = ["diff-firmware", "--firmware-src", str(TINY), "--against", str(planted)]
+    code = main([*args, "--streams", "0", "--recorded", str(vectors), "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 1
+    assert out["streams_run"] == 2 and out["stream"]["label"] == "recorded echo"
+    assert (out["divergence"]["left"], out["divergence"]["right"]) == ("08", "09")
+
+
+def test_cli_exit_2_on_a_recorded_file_that_is_not_golden_vectors(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text('{"id": "x"}\n')
+    code = main(["diff-firmware", "--firmware-src", str(TINY), "--against", "v1.2", "--recorded", str(bad)])
+    err = capsys.readouterr().err
+    assert code == 2 and "--recorded" in err and "bad.jsonl:1" in err
+
+
+def test_upstream_v2_against_itself_is_exact(tmp_path: Path) -> None:
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    twin = tmp_path / "twin"
+    shutil.copytree(tree / "src", twin / "src")
+    shutil.copytree(tree / "lib", twin / "lib")
+    report = diff_firmware(tree, str(twin), streams=4, seed=1, edges=False)
+    assert report.divergence is None and report.streams_run == 4
