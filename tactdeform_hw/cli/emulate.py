@@ -162,10 +162,6 @@ def _check(args: argparse.Namespace) -> None:
         raise ConfigurationError(f"--build {args.build}: a board on USB runs the serial build; drop --build")
     if not 1 <= args.switching_boards <= 16:
         raise LimitError("--switching-boards", args.switching_boards, "1..16")
-    if args.trace and args.firmware == "v2":
-        raise ConfigurationError(
-            "--trace records the v1.2 timed model's waveform; it is not available with --firmware v2"
-        )
     if args.untimed and args.trace:
         raise ConfigurationError(
             "--trace records the timed model that answers the client; drop --untimed to use it"

@@ -29,7 +29,7 @@ import numpy as np
 
 from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.scan import POWER_ON_LEVELS, SIGNAL_BITS, Signal
-from tactdeform_hw.emulator.records.reports import ScanRun
+from tactdeform_hw.emulator.records.reports import EventRun, ScanRun
 from tactdeform_hw.emulator.timed.link import LinkModel
 from tactdeform_hw.emulator.timed.timing import TimingModel
 from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
@@ -37,8 +37,12 @@ from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
 SIGNAL_NAMES = {s: s.name for s in Signal}
 
 
-def run_events(run: ScanRun) -> Iterator[tuple[int, int, int]]:
+def run_events(run: ScanRun | EventRun) -> Iterator[tuple[int, int, int]]:
     """(absolute time ns, Signal, value) of every event of every scan in ``run``."""
+    if isinstance(run, EventRun):
+        T, S, V = run.events
+        yield from zip((T + run.start_ns).tolist(), S.tolist(), V.tolist())
+        return
     T, S, V = run.template.events()
     if run.cut_ns is not None:
         keep = T < run.cut_ns
@@ -54,7 +58,7 @@ class TraceSink:
     :meth:`_marker`."""
 
     def __init__(self) -> None:
-        self._held: list[ScanRun] = []
+        self._held: list[ScanRun | EventRun] = []
         self._markers: list[tuple[int, int, str, dict[str, Any]]] = []
         self._seq = 0
         self._closed = False
@@ -65,7 +69,7 @@ class TraceSink:
         for sig, val in POWER_ON_LEVELS.items():
             self._signal(t_ns, int(sig), val)
 
-    def scan_run(self, run: ScanRun) -> None:
+    def scan_run(self, run: ScanRun | EventRun) -> None:
         self._flush(run.start_ns)
         self._held.append(run)
 
