@@ -7,7 +7,8 @@ inside it has arrived (the parser never runs during a scan and deliveries are pr
 
 Signals: ``BL LE POL CLK DIN`` (1 bit), ``DAC`` (12-bit code), ``SEL`` (the lowest HV513 output latched
 on, ``x`` when none), ``ADC`` (the 12-bit reading the firmware stores), and, in VCD, a string variable
-``event`` carrying the markers.  Time resolution 1 ns.
+``event`` carrying the markers.  Time resolution 1 ns.  A VCD has no ``$date``: the same session gives
+the same bytes.
 
 :class:`LiveTrace` runs a timed emulator against the wall clock, for recording while a session is served
 (``tactdeform-hw emulate --pty --trace FILE``).  The VCD writer needs ``pyvcd`` (extra ``trace``),
@@ -209,7 +210,9 @@ class VcdSink(TraceSink):
             raise MissingDependencyError("pyvcd", "trace", "writing VCD waveform traces") from exc
         super().__init__()
         self._f, self._own = _open_text(target)
-        self._w = VCDWriter(self._f, timescale="1 ns", version="tactdeform_hw emulator")
+        # no $date (pyvcd's default is the wall clock): a trace is a function of its session alone, so two
+        # recordings of the same input are byte-identical and can be compared with cmp or diff
+        self._w = VCDWriter(self._f, timescale="1 ns", date="", version="tactdeform_hw emulator")
         self._vars = {}
         for sig in Signal:
             bits = SIGNAL_BITS[sig]
