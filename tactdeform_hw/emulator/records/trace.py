@@ -36,6 +36,8 @@ from tactdeform_hw.emulator.timed.timing import TimingModel
 from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
 
 SIGNAL_NAMES = {s: s.name for s in Signal}
+#: The clock every trace counts, named in a VCD's header: the one ``emulate`` prints its times in (µs).
+TIME_BASE = "time: the emulated board's virtual time since its clock started (emulate: since serving began)"
 
 
 def run_events(run: ScanRun | EventRun) -> Iterator[tuple[int, int, int]]:
@@ -212,7 +214,13 @@ class VcdSink(TraceSink):
         self._f, self._own = _open_text(target)
         # no $date (pyvcd's default is the wall clock): a trace is a function of its session alone, so two
         # recordings of the same input are byte-identical and can be compared with cmp or diff
-        self._w = VCDWriter(self._f, timescale="1 ns", date="", version="tactdeform_hw emulator")
+        self._w = VCDWriter(
+            self._f,
+            timescale="1 ns",
+            date="",
+            comment=TIME_BASE,
+            version="tactdeform_hw emulator",
+        )
         self._vars = {}
         for sig in Signal:
             bits = SIGNAL_BITS[sig]
