@@ -74,3 +74,13 @@ def test_ports_lists_discovered_kits(capsys: pytest.CaptureFixture[str]) -> None
         assert main(["ports", "--no-usb", "--wifi", f"127.0.0.1:{r.address[1]}"]) == 0
     out = capsys.readouterr().out
     assert "etactilekit://ABC123" in out and "127.0.0.1:18083" in out
+
+
+def test_a_responder_on_every_interface_advertises_the_address_facing_the_requester() -> None:
+    """Bound to 0.0.0.0 the reply's ip= is where the requester can connect (here loopback), never
+    0.0.0.0."""
+    with DiscoveryResponder("ABC123", host="0.0.0.0", port=0, tcp_port=18084) as r:
+        kits = discover([("127.0.0.1", r.address[1])], listen_s=0.2, bursts=1)
+    assert r.address[0] == "0.0.0.0"
+    assert [(k.ip, k.port) for k in kits] == [("127.0.0.1", 18084)]
+    assert kits[0].url == "socket://127.0.0.1:18084"
