@@ -84,3 +84,15 @@ def test_a_responder_on_every_interface_advertises_the_address_facing_the_reques
     assert r.address[0] == "0.0.0.0"
     assert [(k.ip, k.port) for k in kits] == [("127.0.0.1", 18084)]
     assert kits[0].url == "socket://127.0.0.1:18084"
+
+
+def test_etactilekit_url_that_finds_no_kit_names_where_and_how_long_it_asked() -> None:
+    from tactdeform_hw.device.driver.serial_driver import open_port
+
+    with DiscoveryResponder("ABC123", port=0, tcp_port=18086) as r:
+        with pytest.raises(ConfigurationError) as info:
+            open_port(f"etactilekit://C0FFEE?discovery=127.0.0.1:{r.address[1]}", timeout=0.5)
+    msg = str(info.value)
+    assert f"UDP 127.0.0.1:{r.address[1]}" in msg
+    assert "2 time(s), listening 0.3 s after each (0.6 s in all)" in msg
+    assert "kits answered with id(s) ABC123" in msg and "?discovery=HOST:PORT" in msg
