@@ -84,3 +84,38 @@ def test_v2_trace_marks_a_reset_and_stops_when_detached() -> None:
     after = [s for s in emu.scans if s.start_ns > 10_000_000]
     assert before and after  # the board scanned again after the reset, into no sink
     assert max(e[0] for e in mem.events) == before[-1].end_ns
+
+
+def test_emulate_trace_records_a_served_v2_board(tmp_path: Path) -> None:
+    """``emulate --pty --firmware v2 --trace FILE --spy``: a client's setting is scanned into the trace
+    (its DAC codes, the command markers), and the spy stamps bytes with the board's µs."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import serial
+
+    path = tmp_path / "served.csv"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tactdeform_hw.cli", "emulate", "--pty", "--firmware", "v2", "--quiet"]
+        + ["--spy", "--trace", str(path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        device = proc.stdout.readline().strip()  # type: ignore[union-attr]
+        with serial.Serial(device, timeout=1) as port:
+            port.write(SETUP)
+            time.sleep(0.3)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    assert f"trace written to {path}" in err and "Traceback" not in err
+    assert any(line.startswith("t=") and "us host->dev f" in line for line in err.splitlines())
+    rows = list(csv.DictReader(path.open()))
+    assert {r["value"] for r in rows if r["name"] == "DAC"} >= {"100", "0"}
+    names = [r["name"] for r in rows if r["kind"] == "command"]
+    assert names[:2] == ["ELECTRODE_NUM", "STIM_MODE"]
