@@ -65,7 +65,9 @@ class WifiDiscovery(list[Kit]):
     """The distinct replies of one :func:`discover` (a list of :class:`Kit`), and where and how long it
     asked, so a caller that finds no kit can say so (:meth:`asked`)."""
 
-    def __init__(self, kits: Iterable[Kit], targets: list[tuple[str, int]], listen_s: float, bursts: int):
+    def __init__(
+        self, kits: Iterable[Kit], targets: list[tuple[str, int]], listen_s: float, bursts: int
+    ) -> None:
         super().__init__(kits)
         self.targets = targets
         self.listen_s = listen_s
