@@ -136,3 +136,13 @@ def test_live_trace_as_a_pty_server_hook(tmp_path: Path) -> None:
     text = path.read_text()
     assert "event" in text and "command:ELECTRODE_NUM" in text and "command:HV513_COUNT" in text
     assert live.emulator.registers.electrode_num == 4
+
+
+def test_vcd_of_the_same_session_is_byte_identical_and_carries_no_date(tmp_path: Path) -> None:
+    """Two recordings of the same input give the same bytes: no wall-clock ``$date`` in the header."""
+    pytest.importorskip("vcd")
+    first, second = tmp_path / "a.vcd", tmp_path / "b.vcd"
+    record(VcdSink(first), until_us=4_500)
+    record(VcdSink(second), until_us=4_500)  # pyvcd's own date has microseconds: it would differ
+    assert first.read_bytes() == second.read_bytes()
+    assert "$date" not in first.read_text()

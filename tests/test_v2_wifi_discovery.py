@@ -74,3 +74,57 @@ def test_ports_lists_discovered_kits(capsys: pytest.CaptureFixture[str]) -> None
         assert main(["ports", "--no-usb", "--wifi", f"127.0.0.1:{r.address[1]}"]) == 0
     out = capsys.readouterr().out
     assert "etactilekit://ABC123" in out and "127.0.0.1:18083" in out
+
+
+def test_a_responder_on_every_interface_advertises_the_address_facing_the_requester() -> None:
+    """Bound to 0.0.0.0 the reply's ip= is where the requester can connect (here loopback), never
+    0.0.0.0."""
+    with DiscoveryResponder("ABC123", host="0.0.0.0", port=0, tcp_port=18084) as r:
+        kits = discover([("127.0.0.1", r.address[1])], listen_s=0.2, bursts=1)
+    assert r.address[0] == "0.0.0.0"
+    assert [(k.ip, k.port) for k in kits] == [("127.0.0.1", 18084)]
+    assert kits[0].url == "socket://127.0.0.1:18084"
+
+
+def test_ports_with_only_a_wifi_kit_does_not_say_none_was_found(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from tactdeform_hw.cli import main
+    from tactdeform_hw.device.driver import discovery
+
+    monkeypatch.setattr(discovery, "serial_candidates", lambda *a, **k: [])  # no serial port here
+    with DiscoveryResponder("ABC123", port=0, tcp_port=18085) as r:
+        assert main(["ports", "--no-usb", "--wifi", f"127.0.0.1:{r.address[1]}"]) == 0
+    out = capsys.readouterr().out
+    assert "etactilekit://ABC123" in out and "no candidate boards found" not in out
+    assert out.index("DEVICE") < out.index("etactilekit://ABC123")  # the header heads the kit's row
+    assert "1 Wi-Fi kit(s) answered discovery" in out
+
+
+def test_ports_with_no_kit_answering_says_where_it_asked(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from tactdeform_hw.cli import main
+    from tactdeform_hw.device.driver import discovery
+
+    monkeypatch.setattr(discovery, "serial_candidates", lambda *a, **k: [])
+    silent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    silent.bind(("127.0.0.1", 0))
+    with silent:
+        port = silent.getsockname()[1]
+        assert main(["ports", "--no-usb", "--wifi", f"127.0.0.1:{port}"]) == 0
+    out = capsys.readouterr().out
+    assert "no candidate boards found" in out
+    assert f"no Wi-Fi kit answered discovery (sent ETK? to UDP 127.0.0.1:{port} 2 time(s)" in out
+
+
+def test_etactilekit_url_that_finds_no_kit_names_where_and_how_long_it_asked() -> None:
+    from tactdeform_hw.device.driver.serial_driver import open_port
+
+    with DiscoveryResponder("ABC123", port=0, tcp_port=18086) as r:
+        with pytest.raises(ConfigurationError) as info:
+            open_port(f"etactilekit://C0FFEE?discovery=127.0.0.1:{r.address[1]}", timeout=0.5)
+    msg = str(info.value)
+    assert f"UDP 127.0.0.1:{r.address[1]}" in msg
+    assert "2 time(s), listening 0.3 s after each (0.6 s in all)" in msg
+    assert "kits answered with id(s) ABC123" in msg and "?discovery=HOST:PORT" in msg

@@ -395,7 +395,6 @@ def test_emulate_pty_v2_serves_the_timed_v2_board() -> None:
         (["--tcp", "host:port"], "--tcp", "host:port"),
         (["--tcp", "70000"], "--tcp", "70000"),
         (["--tcp", "0", "--firmware", "v2", "--discovery-port", "70000"], "--discovery-port", "70000"),
-        (["--pty", "--firmware", "v2", "--trace", "t.csv"], "--trace", "--firmware v2"),
     ],
 )
 def test_emulate_refuses_bad_wifi_options_naming_them(

@@ -6,6 +6,7 @@ import argparse
 import signal
 import sys
 import time
+from collections.abc import Callable
 from typing import Any
 
 from ..errors import ConfigurationError, LimitError
@@ -29,7 +30,8 @@ def register(sub: Any) -> None:
         "command discarded after 2 s), replies leave when the model delivers them, scans run. "
         "--untimed answers every write at once instead. Point the eTactileKit GUI, its Python "
         "library, a Unity app or a terminal at it. Once a second, when something changed, stderr "
-        "shows the registers in force, the queue depth, scans per second, overruns and hazards. "
+        "shows the registers in force, the queue depth, scans per second, overruns and hazards; each "
+        "hazard prints at once, late wake-ups at most once a second with their count and worst lag. "
         "SIGUSR1 power-cycles the board. Serves until interrupted (Ctrl-C or SIGTERM).",
     )
     _where_options(p)
@@ -108,10 +110,16 @@ def _board_options(p: argparse.ArgumentParser) -> None:
 def _output_options(p: argparse.ArgumentParser) -> None:
     """What the command shows and records while it serves."""
     p.add_argument(
-        "--spy", action="store_true", help="hex-dump every byte both ways with timestamps to stderr"
+        "--spy",
+        action="store_true",
+        help="hex-dump every byte both ways to stderr, stamped with the board's virtual µs since serving "
+        "began (t=…us, the clock of the live view, the hazards and --trace)",
     )
     p.add_argument(
-        "--quiet", action="store_true", help="no live view (resets, fall-behinds and the summary still print)"
+        "--quiet",
+        action="store_true",
+        help="no live view and no fall-behind lines unless a lag exceeds 100 ms, beyond which the emulated "
+        "board cannot show the 150 ms stop bound (resets, hazards and the summary still print)",
     )
     p.add_argument(
         "--trace",
@@ -162,10 +170,6 @@ def _check(args: argparse.Namespace) -> None:
         raise ConfigurationError(f"--build {args.build}: a board on USB runs the serial build; drop --build")
     if not 1 <= args.switching_boards <= 16:
         raise LimitError("--switching-boards", args.switching_boards, "1..16")
-    if args.trace and args.firmware == "v2":
-        raise ConfigurationError(
-            "--trace records the v1.2 timed model's waveform; it is not available with --firmware v2"
-        )
     if args.untimed and args.trace:
         raise ConfigurationError(
             "--trace records the timed model that answers the client; drop --untimed to use it"
@@ -248,7 +252,8 @@ def _announce(args: argparse.Namespace, where: str, mode: str, responder: Any) -
     print(where, flush=True)
     progress(
         f"emulating a {args.board} board with {args.switching_boards} switching board(s) on {where}, "
-        f"{mode}; SIGUSR1 resets it"
+        f"{mode}; SIGUSR1 resets it; times (t=…us) are the board's virtual µs since serving began"
+        + (" (the trace counts the same clock in ns)" if args.trace else "")
     )
     if responder is not None:
         progress(
@@ -258,48 +263,61 @@ def _announce(args: argparse.Namespace, where: str, mode: str, responder: Any) -
         )
 
 
-def _report_behind(behind: list[Any]) -> None:
-    """The board's fall-behinds since the last look: the first three, then how many more."""
-    n = len(behind)
-    for fb in behind[:3]:
-        progress(str(fb))
-    if n > 3:
-        progress(
-            f"fell behind the wall clock {n - 3} more time(s) (worst "
-            f"{max(b.lag_us for b in behind) / 1000:.2f} ms)"
-        )
-    del behind[:n]
+class _Notices:
+    """What the serving loop prints besides the live view: resets, fall-behinds (aggregated, at most one
+    line a second; under ``--quiet`` only lags beyond :data:`~.notices.QUIET_LAG_LIMIT_US`) and hazards
+    (at once, one line each, at most one a second per kind).  Every time is the board's virtual µs since
+    serving began (``t=…us``)."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        from tactdeform_hw.emulator.serving.notices import BehindNotices, HazardNotices
+        from tactdeform_hw.emulator.serving.realtime import LiveView
+
+        self.behind = BehindNotices(quiet=args.quiet)
+        self.hazards = HazardNotices()
+        self.view = None if args.quiet or args.untimed else LiveView(hazards=False)
+        self.resets: list[Any] = []
+
+    def lines(self, board: Any, now_s: float, force: bool = False) -> list[str]:
+        """The lines to print at wall time ``now_s`` (``force``: everything held back, when stopping)."""
+        out = [str(self.resets.pop(0)) for _ in range(len(self.resets))]
+        out += self.behind.lines(now_s, force)
+        if hasattr(board, "advance_now"):  # a timed board: up to now, as the serving thread keeps it
+            with board.lock:
+                board.advance_now()
+                hazards = list(board.hazards)
+        else:
+            hazards = list(board.hazards)
+        out += self.hazards.lines(hazards, now_s, force)
+        if self.view is not None and not force:
+            out += self.view.poll(board, now_s)
+        return out
+
+
+def _spy(args: argparse.Namespace, board: Any, origin: list[float]) -> Callable[[str, bytes, float], None]:
+    """``--spy``'s byte hook: every byte both ways, stamped with the board's virtual µs since serving
+    began (a timed board's own clock origin; for ``--untimed``, ``origin[0]``)."""
+
+    def spy(direction: str, data: bytes, t: float) -> None:
+        t0 = origin[0] if args.untimed else board.t0
+        progress(f"t={(t - t0) * 1e6:.1f}us {direction} {data.hex(' ')}")
+
+    return spy
 
 
 def _serve(
-    args: argparse.Namespace,
     board: Any,
     server: Any,
-    behind: list[Any],
-    resets: list[Any],
+    notices: _Notices,
     reset_requested: list[str],
 ) -> None:
-    """Watch the served board until interrupted: apply resets, report resets, fall-behinds, hazards and
-    (unless ``--quiet``) the live view."""
-    from tactdeform_hw.emulator.serving.realtime import LiveView
-
-    seen_hazards = 0
-    view = LiveView()
+    """Watch the served board until interrupted: apply resets, print what :class:`_Notices` has."""
     while True:
         time.sleep(0.05)
         while reset_requested:
             server.reset(reset_requested.pop())
-        while resets:
-            progress(str(resets.pop(0)))
-        if behind:
-            _report_behind(behind)
-        if args.untimed:
-            while seen_hazards < len(board.hazards):
-                progress(f"hazard: {board.hazards[seen_hazards]}")
-                seen_hazards += 1
-        elif not args.quiet:
-            for line in view.poll(board, time.monotonic()):
-                progress(line)
+        for line in notices.lines(board, time.monotonic()):
+            progress(line)
 
 
 def _stopped(args: argparse.Namespace, board: Any, server: Any) -> str:
@@ -320,24 +338,20 @@ def _stopped(args: argparse.Namespace, board: Any, server: Any) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tactdeform_hw.emulator.serving.realtime import BUILD_RULES, FallBehind, ResetRecord
+    from tactdeform_hw.emulator.serving.realtime import BUILD_RULES
 
     _check(args)
     rules = BUILD_RULES[args.build or ("wifi" if args.tcp is not None else "serial")]
     board = _board(args, rules)
-    behind: list[FallBehind] = []
-    resets: list[ResetRecord] = []
-
-    def spy(direction: str, data: bytes, t: float) -> None:
-        progress(f"{t:.6f} {direction} {data.hex(' ')}")
-
+    notices = _Notices(args)
+    origin = [time.monotonic()]  # an untimed board's time 0: set again when serving begins
     sink = _trace_sink(args, board)
     if not args.untimed:
-        board.on_behind = behind.append
+        board.on_behind = notices.behind.add
     opts: dict[str, Any] = {
-        "hook": spy if args.spy else None,
+        "hook": _spy(args, board, origin) if args.spy else None,
         "reset_on_open": args.reset_on_open,
-        "on_reset": resets.append,
+        "on_reset": notices.resets.append,
     }
     server, where = _server(args, board, rules, opts)
     mode = "untimed (instant)" if args.untimed else f"in real time, {rules.name} build rules"
@@ -356,13 +370,16 @@ def run(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGTERM, _term)
         if hasattr(signal, "SIGUSR1"):
             signal.signal(signal.SIGUSR1, _usr1)
+        origin[0] = time.monotonic()
         server.start()
         _announce(args, where, mode, responder)
-        _serve(args, board, server, behind, resets, reset_requested)
+        _serve(board, server, notices, reset_requested)
     except KeyboardInterrupt:
         pass
     finally:
         server.stop()
+        for line in notices.lines(board, time.monotonic(), force=True):
+            progress(line)
         if responder is not None:
             responder.close()
         summary = _stopped(args, board, server)

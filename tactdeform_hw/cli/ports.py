@@ -49,6 +49,11 @@ def register(sub: Any) -> None:
 
 def wifi_kits(target: str) -> list[dict[str, Any]]:
     """Kits that answer UDP discovery at ``target`` (HOST:PORT), with what ``--device`` takes for each."""
+    return _wifi(target)[0]
+
+
+def _wifi(target: str) -> tuple[list[dict[str, Any]], str]:
+    """:func:`wifi_kits`, and where discovery asked and how long it listened (in words)."""
     from tactdeform_hw.device.driver.wifi_discovery import discover
 
     from ..errors import LimitError
@@ -60,7 +65,7 @@ def wifi_kits(target: str) -> list[dict[str, Any]]:
         raise LimitError("--wifi", target, "HOST:PORT") from exc
     kits = discover([addr])
     ids = [k.id for k in kits]
-    return [
+    rows = [
         {
             "device": k.url if ids.count(k.id) > 1 else f"etactilekit://{k.id}",
             "id": k.id,
@@ -73,6 +78,7 @@ def wifi_kits(target: str) -> list[dict[str, Any]]:
         }
         for k in kits
     ]
+    return rows, kits.asked()
 
 
 def serial_candidates() -> list[dict[str, Any]]:
@@ -91,23 +97,27 @@ def run(args: argparse.Namespace) -> int:
 
         backend = EmulatedUsbBackend()
     result = discover(usb=not args.no_usb, usb_backend=backend, include_all=args.all)
-    kits = wifi_kits(args.wifi) if args.wifi else []
+    kits, asked = _wifi(args.wifi) if args.wifi else ([], "")
     if args.json:
         out = result.to_dict()
         if args.wifi:
             out["wifi"] = kits
         print_json(out)
         return 0
+    if not result.candidates and not kits:
+        print("no candidate boards found (the emulator is always available as --device emulator)")
+    else:
+        print(f"{'ROUTE':<7} {'DEVICE':<36} {'VID:PID':<9}  DESCRIPTION")
     for k in kits:
         shared = "  (id shared with another kit: use the socket:// address)" if k["id_shared"] else ""
         print(
             f"{'wifi':<7} {k['device']:<36} {'':<9}  {k['name']} {k['ip']}:{k['port']} {k['mode']} "
             f"fw={k['fw']}{shared}"
         )
-    if not result.candidates:
-        print("no candidate boards found (the emulator is always available as --device emulator)")
-    else:
-        print(f"{'ROUTE':<7} {'DEVICE':<36} {'VID:PID':<9}  DESCRIPTION")
+    if kits and not result.candidates:
+        print(f"{len(kits)} Wi-Fi kit(s) answered discovery; no serial port or USB device looks like a board")
+    if args.wifi and not kits:
+        print(f"note: no Wi-Fi kit answered discovery ({asked})")
     for c in result.candidates:
         desc = " ".join(
             x for x in (c.product, f"[{c.location}]" if c.location and c.transport == "usb" else None) if x

@@ -61,14 +61,36 @@ def parse_reply(data: bytes, sender: tuple[str, int] = ("", 0)) -> Kit | None:
         return None
 
 
+class WifiDiscovery(list[Kit]):
+    """The distinct replies of one :func:`discover` (a list of :class:`Kit`), and where and how long it
+    asked, so a caller that finds no kit can say so (:meth:`asked`)."""
+
+    def __init__(
+        self, kits: Iterable[Kit], targets: list[tuple[str, int]], listen_s: float, bursts: int
+    ) -> None:
+        super().__init__(kits)
+        self.targets = targets
+        self.listen_s = listen_s
+        self.bursts = bursts
+
+    def asked(self) -> str:
+        """Where discovery asked and how long it listened, in words."""
+        where = ", ".join(f"UDP {h}:{p}" for h, p in self.targets) or "no address"
+        return (
+            f"sent ETK? to {where} {self.bursts} time(s), listening {self.listen_s:g} s after each "
+            f"({self.bursts * self.listen_s:g} s in all)"
+        )
+
+
 def discover(
     targets: Iterable[tuple[str, int]] = (("127.0.0.1", DISCOVERY_PORT),),
     *,
     listen_s: float = 0.3,
     bursts: int = 2,
-) -> list[Kit]:
+) -> WifiDiscovery:
     """Send ``ETK?`` to each target (``bursts`` times, listening ``listen_s`` after each) and return the
-    distinct replies.  Loopback by default; pass a broadcast address to search a network."""
+    distinct replies (with where it asked: :class:`WifiDiscovery`).  Loopback by default; pass a broadcast
+    address to search a network."""
     found: dict[tuple[str, str, int], Kit] = {}
     try:
         sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -93,14 +115,23 @@ def discover(
                 kit = parse_reply(data, sender[:2])
                 if kit is not None:
                     found.setdefault((kit.id, kit.ip, kit.port), kit)
-    return list(found.values())
+    return WifiDiscovery(found.values(), targets, listen_s, bursts)
 
 
 def resolve(kit_id: str, kits: Iterable[Kit]) -> Kit:
     """The one kit answering to ``kit_id``; refuses none and refuses several (ids can collide)."""
+    kits = kits if isinstance(kits, WifiDiscovery) else list(kits)
     matches = [k for k in kits if k.id.upper() == kit_id.upper()]
     if not matches:
-        raise ConfigurationError(f"etactilekit://{kit_id}: no kit with id {kit_id!r} answered discovery")
+        others = sorted({k.id for k in kits})
+        heard = f"kits answered with id(s) {', '.join(others)}" if others else "no kit answered at all"
+        if isinstance(kits, WifiDiscovery):
+            heard = f"{kits.asked()}; {heard}"
+        raise ConfigurationError(
+            f"etactilekit://{kit_id}: no kit with id {kit_id!r} answered discovery ({heard}); a kit on "
+            "another network or port is asked with etactilekit://ID?discovery=HOST:PORT, or connect "
+            "with socket://IP:PORT"
+        )
     if len(matches) > 1:
         where = ", ".join(f"{k.ip}:{k.port}" for k in matches)
         raise ConfigurationError(

@@ -83,6 +83,21 @@ class ScanRun:
         return self.start_ns + self.stride_ns * np.arange(self.count, dtype=np.int64)
 
 
+@dataclass(frozen=True)
+class EventRun:
+    """One scan given by its own signal events, for trace sinks: firmware v2's timed model keeps no
+    :class:`~.scan.ScanTemplate` (its scans are walked statement by statement), so it hands the walk's
+    events over directly.  ``events`` are (time ns after ``start_ns``, Signal, value) columns."""
+
+    start_ns: int
+    duration_ns: int
+    events: tuple[np.ndarray, np.ndarray, np.ndarray]
+
+    @property
+    def end_ns(self) -> int:
+        return self.start_ns + self.duration_ns
+
+
 @dataclass
 class ChannelLatency:
     """When a pattern command's byte for one channel was written, and when that channel's next pulse

@@ -7,7 +7,8 @@ inside it has arrived (the parser never runs during a scan and deliveries are pr
 
 Signals: ``BL LE POL CLK DIN`` (1 bit), ``DAC`` (12-bit code), ``SEL`` (the lowest HV513 output latched
 on, ``x`` when none), ``ADC`` (the 12-bit reading the firmware stores), and, in VCD, a string variable
-``event`` carrying the markers.  Time resolution 1 ns.
+``event`` carrying the markers.  Time resolution 1 ns.  A VCD has no ``$date``: the same session gives
+the same bytes.
 
 :class:`LiveTrace` runs a timed emulator against the wall clock, for recording while a session is served
 (``tactdeform-hw emulate --pty --trace FILE``).  The VCD writer needs ``pyvcd`` (extra ``trace``),
@@ -29,16 +30,22 @@ import numpy as np
 
 from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.scan import POWER_ON_LEVELS, SIGNAL_BITS, Signal
-from tactdeform_hw.emulator.records.reports import ScanRun
+from tactdeform_hw.emulator.records.reports import EventRun, ScanRun
 from tactdeform_hw.emulator.timed.link import LinkModel
 from tactdeform_hw.emulator.timed.timing import TimingModel
 from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
 
 SIGNAL_NAMES = {s: s.name for s in Signal}
+#: The clock every trace counts, named in a VCD's header: the one ``emulate`` prints its times in (µs).
+TIME_BASE = "time: the emulated board's virtual time since its clock started (emulate: since serving began)"
 
 
-def run_events(run: ScanRun) -> Iterator[tuple[int, int, int]]:
+def run_events(run: ScanRun | EventRun) -> Iterator[tuple[int, int, int]]:
     """(absolute time ns, Signal, value) of every event of every scan in ``run``."""
+    if isinstance(run, EventRun):
+        T, S, V = run.events
+        yield from zip((T + run.start_ns).tolist(), S.tolist(), V.tolist())
+        return
     T, S, V = run.template.events()
     if run.cut_ns is not None:
         keep = T < run.cut_ns
@@ -54,7 +61,7 @@ class TraceSink:
     :meth:`_marker`."""
 
     def __init__(self) -> None:
-        self._held: list[ScanRun] = []
+        self._held: list[ScanRun | EventRun] = []
         self._markers: list[tuple[int, int, str, dict[str, Any]]] = []
         self._seq = 0
         self._closed = False
@@ -65,7 +72,7 @@ class TraceSink:
         for sig, val in POWER_ON_LEVELS.items():
             self._signal(t_ns, int(sig), val)
 
-    def scan_run(self, run: ScanRun) -> None:
+    def scan_run(self, run: ScanRun | EventRun) -> None:
         self._flush(run.start_ns)
         self._held.append(run)
 
@@ -205,7 +212,15 @@ class VcdSink(TraceSink):
             raise MissingDependencyError("pyvcd", "trace", "writing VCD waveform traces") from exc
         super().__init__()
         self._f, self._own = _open_text(target)
-        self._w = VCDWriter(self._f, timescale="1 ns", version="tactdeform_hw emulator")
+        # no $date (pyvcd's default is the wall clock): a trace is a function of its session alone, so two
+        # recordings of the same input are byte-identical and can be compared with cmp or diff
+        self._w = VCDWriter(
+            self._f,
+            timescale="1 ns",
+            date="",
+            comment=TIME_BASE,
+            version="tactdeform_hw emulator",
+        )
         self._vars = {}
         for sig in Signal:
             bits = SIGNAL_BITS[sig]

@@ -110,7 +110,7 @@ class FallBehind:
     lag_us: float
 
     def __str__(self) -> str:
-        return f"fell behind the wall clock by {self.lag_us / 1000:.2f} ms at t={self.due_us / 1e6:.3f} s"
+        return f"fell behind the wall clock by {self.lag_us / 1000:.2f} ms at t={self.due_us:.1f}us"
 
 
 class LagRecorder:
@@ -166,7 +166,7 @@ class ResetRecord:
         regs = ", ".join(f"{k}={d[k]}" for k in _SHOWN if k in d)
         on = d.get("channels_on", [])
         return (
-            f"reset ({self.reason}) at t={self.time_us / 1e6:.3f} s, discarded: {regs}; "
+            f"reset ({self.reason}) at t={self.time_us:.1f}us, discarded: {regs}; "
             f"{len(on)} channel(s) on {_ranges(on)}; {d.get('queue_bytes', 0)} byte(s) in the queue; "
             f"parser {d.get('parser', '?')}"
         )
@@ -258,7 +258,7 @@ class LiveStatus:
             else f"height={r.get('pulse_height')}"
         )
         head = (
-            f"t={self.time_us / 1e6:.1f}s electrodes={r.get('electrode_num')} polarity={r.get('polarity')} "
+            f"t={self.time_us:.0f}us electrodes={r.get('electrode_num')} polarity={r.get('polarity')} "
             f"{drive} width={r.get('pulse_width')}µs "
             f"sense={r.get('sense_pulse_height')}/{r.get('sense_pulse_width')}µs "
             f"discharge={r.get('discharge_time')}µs period={r.get('period_us'):.2f}µs "
@@ -278,10 +278,12 @@ class LiveStatus:
 
 class LiveView:
     """The firmware developer's live view: at most once per ``interval_s``, and only when something
-    changed (registers in force, queue depth, scan rate, overruns, hazards, losses, resets, fall-behinds)."""
+    changed (registers in force, queue depth, scan rate, overruns, hazards, losses, resets, fall-behinds).
+    ``hazards=False`` leaves out the hazard lines, for a caller that prints each hazard at once."""
 
-    def __init__(self, interval_s: float = 1.0) -> None:
+    def __init__(self, interval_s: float = 1.0, hazards: bool = True) -> None:
         self.interval_s = interval_s
+        self.hazards = hazards
         self._key: tuple[Any, ...] | None = None
         self._last = -float("inf")
 
@@ -290,6 +292,8 @@ class LiveView:
         if now - self._last < self.interval_s:
             return []
         status = board.status()
+        if not self.hazards:
+            status.new_hazards = []
         key = status.key()
         if key == self._key and not status.new_hazards:
             return []

@@ -7,7 +7,10 @@ anything else is ignored.  The ID is ``"%06X" % (ESP.getEfuseMac() & 0xFFFFFF)``
 bytes 0-2 reversed: the manufacturer's OUI, the same on every board with an Espressif OUI.
 :func:`device_id_from_mac` reproduces that, so two emulated kits can collide as real ones do.
 
-Loopback only by default: the responder binds 127.0.0.1 and tests pass port 0 (any free port).
+Loopback only by default: the responder binds 127.0.0.1 and tests pass port 0 (any free port).  Bound
+to every interface (``0.0.0.0``), it advertises in ``ip=`` the address of the interface facing each
+requester (what the firmware's ``WiFi.localIP()`` is to a host on its network), never ``0.0.0.0``, which
+no host can connect to.
 """
 
 from __future__ import annotations
@@ -30,6 +33,18 @@ def device_id_from_mac(mac: bytes) -> str:
         raise ConfigurationError(f"mac={mac.hex(':')!r} is not 6 bytes")
     efuse = int.from_bytes(mac, "little")
     return f"{efuse & 0xFFFFFF:06X}"
+
+
+def facing_address(peer: str) -> str | None:
+    """The local address this host uses to reach ``peer`` (the interface facing it; None if no route).
+    A UDP socket's ``connect`` only picks the route: nothing is sent."""
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.connect((peer, DISCOVERY_PORT))
+            local = probe.getsockname()[0]
+    except OSError:
+        return None
+    return str(local) if local not in ("0.0.0.0", "") else None
 
 
 def reply_for(device_id: str, ip: str, *, tcp_port: int = TCP_PORT, mode: str = "AP") -> bytes:
@@ -62,7 +77,10 @@ class DiscoveryResponder:
         except OSError as exc:
             raise TransportError(f"cannot listen for discovery on UDP {host}:{port}: {exc}") from exc
         self.address: tuple[str, int] = self._sock.getsockname()[:2]
-        self._reply = reply_for(device_id, advertised_ip or self.address[0], tcp_port=tcp_port, mode=mode)
+        self._advertised_ip = advertised_ip
+        self._tcp_port = tcp_port
+        self._mode = mode
+        reply_for(device_id, advertised_ip or self.address[0], tcp_port=tcp_port, mode=mode)  # checks mode
         self.queries = 0
         self.ignored = 0
         self._sock.settimeout(0.05)
@@ -81,11 +99,19 @@ class DiscoveryResponder:
             if len(data) >= 4 and data[:4] == QUERY:
                 self.queries += 1
                 try:
-                    self._sock.sendto(self._reply, sender)
+                    self._sock.sendto(self.reply_to(sender[0]), sender)
                 except OSError:
                     pass
             else:
                 self.ignored += 1
+
+    def reply_to(self, peer: str) -> bytes:
+        """The reply to a query from ``peer``: ``ip=`` is the advertised address if one was given, else
+        the bound one, else (bound to every interface) the address of the interface facing ``peer``."""
+        ip = self._advertised_ip or self.address[0]
+        if ip in ("0.0.0.0", ""):
+            ip = facing_address(peer) or ip
+        return reply_for(self.device_id, ip, tcp_port=self._tcp_port, mode=self._mode)
 
     def close(self) -> None:
         self._stop.set()

@@ -40,7 +40,12 @@ import numpy as np
 from tactdeform_hw.emulator.core import Emulator
 from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.firmware_scan import (
+    BL,
+    CLK,
     DEFAULT_CONVENTIONS,
+    DIN,
+    LE,
+    POL,
     FirmwareScanConfig,
     ScanConventions,
     trace_scan,
@@ -48,12 +53,13 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.firmware.parser_v2 import ParserV2
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
-from tactdeform_hw.emulator.firmware.scan import PulseKind
-from tactdeform_hw.emulator.records.reports import LossReport
+from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal
+from tactdeform_hw.emulator.records.reports import EventRun, LossReport
 from tactdeform_hw.emulator.timed.base import TimedModelBase
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link, reply_link
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
+from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
 from tactdeform_hw.protocol.firmware import V2, FirmwareSpec, OpcodeV2
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
@@ -139,6 +145,54 @@ def _shape(
         tuple(tr.voltage),
         _pulse_rows(tr.events, starts),
     )
+
+
+#: The scan's GPIO pins as traced signals (the chip selects are not traced, as on v1.2).
+_TRACED_PINS = {BL: Signal.BL, LE: Signal.LE, POL: Signal.POL, CLK: Signal.CLK, DIN: Signal.DIN}
+
+
+@lru_cache(maxsize=256)
+def _trace_events(
+    cfg: FirmwareScanConfig, conv: ScanConventions
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(time ns after the alarm, Signal, value) of one v2 scan, for trace sinks: the statement walker's
+    GPIO and DAC events in its order, plus the signals v1.2's traces derive — ``SEL`` (the lowest HV513
+    output latched on, -1 for none) at each rising LE, from the shift register the CLK/DIN edges fill
+    (8 outputs per HV513, ``hv513_num`` chips), and ``ADC`` (the reading the handler stores for a
+    channel) at the channel's last DAC write, the exchange that reads it.  Walked only while a sink is
+    attached."""
+    tr = trace_scan(cfg, "v2", conv)
+    starts = tr.channel_start_us + [tr.clear_start_us]
+    last_dac: dict[int, int] = {}
+    rows: list[tuple[int, int, int]] = []
+    mask = (1 << (OUTPUTS_PER_HV513 * cfg.hv513_num)) - 1
+    bits, din, clk, ch = 0, 0, 0, -1
+    for t_us, kind, pin, value in tr.events:
+        t_ns = round(t_us * 1000)
+        while ch + 1 < len(starts) and t_us >= starts[ch + 1]:
+            ch += 1
+        if kind == "DAC":
+            rows.append((t_ns, int(Signal.DAC), int(value)))
+            if 0 <= ch < cfg.electrode_num:
+                last_dac[ch] = len(rows)
+            continue
+        sig = _TRACED_PINS.get(pin)
+        if sig is None:
+            continue
+        rows.append((t_ns, int(sig), int(value)))
+        if sig is Signal.DIN:
+            din = value
+        elif sig is Signal.CLK:
+            if value and not clk:
+                bits = ((bits << 1) | din) & mask
+            clk = value
+        elif sig is Signal.LE and value:
+            rows.append((t_ns, int(Signal.SEL), (bits & -bits).bit_length() - 1))
+    for c, k in sorted(last_dac.items(), key=lambda kv: -kv[1]):
+        if c < len(tr.voltage):
+            rows.insert(k, (rows[k - 1][0], int(Signal.ADC), int(tr.voltage[c])))
+    arr = np.array(rows, dtype=np.int64).reshape(-1, 3)
+    return arr[:, 0], arr[:, 1].astype(np.int8), arr[:, 2]
 
 
 def _scan_shape(
@@ -298,6 +352,7 @@ class TimedEmulatorV2(TimedModelBase):
         self.scan_count = 0  # scans since power-up (``scans`` may have been trimmed)
         # (time ns, opcode, value) when a command took effect
         self.applied: list[tuple[int, int, object]] = []
+        self._sinks: list[Any] = []  # trace sinks (:meth:`attach`)
         self.queue = _QueueView(self)
         self.reboots = 0
         #: Bytes written to the board since power-on (0: no program can have left a command in its parser).
@@ -465,6 +520,7 @@ class TimedEmulatorV2(TimedModelBase):
         self.emulator.reset()
         self._clients.clear()
         self._boot(self.now_ns, boot_delay=True)
+        self._mark(self.now_ns, "reset", {"reason": reason})
 
     def stop_reading(self) -> None:
         """The main loop hangs: nothing is read any more until a reset, while arrivals keep filling the
@@ -477,6 +533,7 @@ class TimedEmulatorV2(TimedModelBase):
         self.losses.append(
             LossReport(t / 1000, host_offset, count, b"", reason, p.pending, self.parser_status())
         )
+        self._mark(t, "loss", {"bytes": count, "host_offset": host_offset, "reason": reason})
 
     def _host_of(self, dev_offset: int) -> int:
         """The host offset of a byte the queue took (-1: unknown, e.g. after a byte fault changed a chunk's
@@ -519,9 +576,19 @@ class TimedEmulatorV2(TimedModelBase):
         del self._clients[:-2]
 
     def attach(self, sink: Any) -> None:
-        raise ConfigurationError("waveform traces record the v1.2 timed model; firmware v2 has none yet")
+        """Send every scan and marker (command applied, bytes lost, reset) from now on to ``sink`` (see
+        :mod:`~tactdeform_hw.emulator.records.trace`), as the v1.2 model does."""
+        self._sinks.append(sink)
+        if hasattr(sink, "begin"):
+            sink.begin(self.now_ns)
 
-    detach = attach
+    def detach(self, sink: Any) -> None:
+        if sink in self._sinks:
+            self._sinks.remove(sink)
+
+    def _mark(self, t: int, kind: str, detail: dict[str, Any]) -> None:
+        for s in self._sinks:
+            s.marker(t, kind, detail)
 
     def discard_history(self, before_us: float) -> None:
         """Forget scans, applied-command, command and loss records older than ``before_us`` (a board
@@ -592,6 +659,10 @@ class TimedEmulatorV2(TimedModelBase):
         )
         self.scans.append(rec)
         self.scan_count += 1
+        if self._sinks:
+            run = EventRun(t, duration, _trace_events(cfg, self.conventions))
+            for sink in self._sinks:
+                sink.scan_run(run)
         self._last_alarm = t
         regs.voltage[:n] = list(volts)
         end = t + duration
@@ -729,6 +800,14 @@ class TimedEmulatorV2(TimedModelBase):
         host = self._host_of(offset)
         in_sync = host >= 0 and self._host_stream.starts.get(host) == op
         self.commands.append(CommandRecordV2(self._call_time_ns / 1000, op, host, in_sync))
+        if self._sinks:
+            name = self.emulator.parser.spec.command(op).name
+            shown = list(value) if isinstance(value, (bytes, bytearray)) else value
+            self._mark(
+                self._call_time_ns,
+                "command",
+                {"name": name, "value": shown, "host_offset": host, "in_sync": in_sync},
+            )
         self._host_stream.forget_before(host)
         for k in range(len(self.hazards) - 1, max(-1, len(self.hazards) - 4), -1):
             h = self.hazards[k]
