@@ -90,6 +90,10 @@ _USB_FAULTS = (
 _UART_FAULTS = tuple(FaultKind)
 #: Firmware versions a campaign can run (``both``: each in turn).
 FIRMWARES = ("v1.2", "v2")
+
+#: ``--firmware-src``: every session's board runs this firmware tree built on the host (its state map's
+#: version must be ``--firmware``); None: the Python timed models.  Worker processes inherit it (fork).
+FIRMWARE_SRC: str | None = None
 #: Regional limits (µA) of a participant's map, as the v2 driver tests use them.
 REGIONS_UA = (400, 800, 1200, 1600, 2000, 2000, 2000, 2000, 2000)
 #: Hazards the emulated board records that are the firmware doing what the driver asks of it on purpose,
@@ -319,7 +323,11 @@ class Session:
             plan = random_plan(seed, kinds, rng.randint(1, 3), 0.02, 0.25)
         boards = (self.cfg.electrode_count + 31) // 32  # 4 HV513 (32 outputs) per switching board
         emu: TimedEmulator | TimedEmulatorV2
-        if firmware == "v2":
+        if FIRMWARE_SRC is not None:  # --firmware-src: the firmware's own code, built on this machine
+            from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+
+            emu = HostBuildTimedModel(FIRMWARE_SRC, "compact", boards, link=self.link)  # type: ignore[assignment]
+        elif firmware == "v2":
             emu = TimedEmulatorV2("compact", boards, link=self.link)
         else:
             emu = TimedEmulator("compact", boards, link=self.link)
@@ -842,6 +850,21 @@ def _report_failures(failures: list[dict[str, Any]], total: int | None = None, f
         print(f"... and {total - shown} more failed {firmware} sessions", file=sys.stderr)
 
 
+def _use_firmware_src(ap: argparse.ArgumentParser, src: str, firmware: str) -> None:
+    """Check the tree declares ``firmware`` and make every session run it."""
+    global FIRMWARE_SRC
+    from tactdeform_hw.emulator.hostbuild.statemap import detect
+
+    smap = detect(Path(src))
+    declared = smap.firmware if smap is not None else ""
+    if declared != firmware:
+        ap.error(
+            f"--firmware-src {src}: its state map declares firmware {declared or 'none'!r}, "
+            f"--firmware is {firmware!r}"
+        )
+    FIRMWARE_SRC = src
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
@@ -867,7 +890,17 @@ def main(argv: list[str] | None = None) -> int:
         help="sessions at the seams between programs, firmware versions, links and calibration files "
         "(tools/seam_sessions.py); --firmware and --faults do not apply",
     )
+    ap.add_argument(
+        "--firmware-src",
+        metavar="DIR",
+        default=None,
+        help="run every session's board on this firmware tree built on the host "
+        "(docs/firmware-host-build.md); "
+        "its state map's version must be --firmware",
+    )
     a = ap.parse_args(argv)
+    if a.firmware_src is not None:
+        _use_firmware_src(ap, a.firmware_src, a.firmware)
     logging.disable(logging.WARNING)  # the guard logs each refusal; the summary counts them
     if a.sessions < 1:
         ap.error(f"--sessions must be at least 1 (got {a.sessions})")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import os
+from bisect import bisect_right
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
@@ -29,6 +30,7 @@ import numpy as np
 
 from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
+from tactdeform_hw.emulator.firmware.scan import PulseKind
 from tactdeform_hw.emulator.hostbuild.delivered import DeliveredPulse
 from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
@@ -83,22 +85,44 @@ class DeliveredReports:
 
     def pulse_table(self, t0_us: float | None = None, t1_us: float | None = None) -> dict[str, np.ndarray]:
         """Columns ``channel`` (the output on the HV513 chain), ``start_us``, ``width_us``, ``code`` (the
-        DAC code), ``pol`` (the POL pin) and ``current_ua`` (0: the campaigns convert the code)."""
+        DAC code), ``pol`` (the POL pin), ``kind`` and ``current_ua`` (0: the campaigns convert the code).
+
+        ``kind`` is read from the pins and the registers, since the firmware's pattern at each pulse is
+        not recorded: a pulse at the sense height that is not also v1.2's pulse height, both as the
+        firmware held them when the pulse started, is a sense pulse (:attr:`PulseKind.SENSE`), any other a
+        stimulation pulse (``MONO``).  The registers are sampled at the end of every ``advance_to``
+        (:attr:`HostBuildTimedModel.height_history`): a pulse in the same step as a change of them is
+        read with the values before it."""
+        heights = self._owner.height_history
+        times = [t for t, _, _ in heights]
         rows = [
-            (out, p.start_us, p.width_us, p.code, p.polarity)
+            (out, p.start_us, p.width_us, p.code, p.polarity, _kind(p.code, heights, times, p.start_us))
             for p in self._owner.delivered_pulses()
             if (t0_us is None or p.start_us >= t0_us) and (t1_us is None or p.start_us < t1_us)
             for out in p.outputs
         ]
-        cols = list(zip(*rows)) if rows else [(), (), (), (), ()]
+        cols = list(zip(*rows)) if rows else [(), (), (), (), (), ()]
         return {
             "channel": np.asarray(cols[0], dtype=np.int64),
             "start_us": np.asarray(cols[1], dtype=np.float64),
             "width_us": np.asarray(cols[2], dtype=np.float64),
             "code": np.asarray(cols[3], dtype=np.int64),
             "pol": np.asarray(cols[4], dtype=np.int64),
+            "kind": np.asarray(cols[5], dtype=np.int64),
             "current_ua": np.zeros(len(rows), dtype=np.float64),
         }
+
+
+def _kind(
+    code: int, heights: list[tuple[float, int | None, int | None]], times: list[float], t_us: float
+) -> int:
+    k = bisect_right(times, t_us) - 1
+    if k < 0:
+        return int(PulseKind.MONO)
+    _, sense, height = heights[k]
+    if sense is not None and code == sense and code != height:
+        return int(PulseKind.SENSE)
+    return int(PulseKind.MONO)
 
 
 class HostBuildTimedModel:
@@ -153,6 +177,9 @@ class HostBuildTimedModel:
         self.boot_ns = 0
         self.now_ns = 0
         self.host = self._power_up()
+        #: (model µs, sense height, v1.2 pulse height) whenever a step ended with them changed
+        self.height_history: list[tuple[float, int | None, int | None]] = []
+        self._sample_heights()
         self.reports = DeliveredReports(self)
         self._pulses: list[DeliveredPulse] = []  # the previous power-ups' pulses, in model time
 
@@ -193,6 +220,12 @@ class HostBuildTimedModel:
         self.host.advance_to((target - self.boot_ns) / 1000.0)
         self.now_ns = target
         self._collect()
+        self._sample_heights()
+
+    def _sample_heights(self) -> None:
+        sample = self.sense_and_pulse_height()
+        if not self.height_history or self.height_history[-1][1:] != sample:
+            self.height_history.append((self.now_us, *sample))
 
     def advance(self, dt_us: float) -> None:
         if not dt_us >= 0:
@@ -325,6 +358,20 @@ class HostBuildTimedModel:
             rx_pending=int(snap["rx_pending"]),
             rx_dropped=None if self.firmware.name == "v1.2" else int(snap["rx_dropped"]),
         )
+
+    def sense_and_pulse_height(self) -> tuple[int | None, int | None]:
+        """The sense pulse's DAC code and v1.2's pulse height as the firmware holds them now (``None``:
+        the state map does not name them)."""
+        snap = self.host.state()
+        sense = snap.get("sense_pulse_height")
+        height = snap.get("pulse_height")
+        return (None if sense is None else int(sense), None if height is None else int(height))
+
+    @property
+    def commands(self) -> list[Any]:
+        """The commands the parser completed, as the Python model records them: none here (the firmware's
+        parser keeps its progress in function-local statics), so no command is counted out of step."""
+        return []
 
     def parser_status(self) -> str:
         return "not readable (the firmware keeps its parser's progress in function-local statics)"
