@@ -217,3 +217,16 @@ def test_timing_measures_the_budget_on_upstream_v1_2(
     ev = json.loads(events.read_text())
     assert sum(1 for e in ev if e[1] == "DAC" and e[3] > 0) == 2 * 32  # one pulse per electrode per scan
     assert "$var" in vcd.read_text()
+
+
+def test_a_state_map_declares_its_firmware(tmp_path: Path) -> None:
+    from tactdeform_hw.emulator.hostbuild.statemap import UPSTREAM_V1_2, UPSTREAM_V2
+
+    assert (UPSTREAM_V1_2.firmware, UPSTREAM_V2.firmware) == ("v1.2", "v2")
+    good = tmp_path / "good.toml"
+    good.write_text('unit = "a.cpp"\nfirmware = "v2"\n[registers]\nx = "x"\n')
+    assert StateMap.from_toml(good).firmware == "v2"
+    bad = tmp_path / "bad.toml"
+    bad.write_text('unit = "a.cpp"\nfirmware = 2\n[registers]\nx = "x"\n')
+    with pytest.raises(ConfigurationError, match="firmware must be a version's name"):
+        StateMap.from_toml(bad)
