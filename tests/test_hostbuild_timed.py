@@ -109,12 +109,12 @@ def test_the_url_handler_refuses_an_untimed_host_build() -> None:
         open_device(f"etactile://?firmware_src={TINY}&timed=0", guardian=False)
 
 
-def _session(model: object) -> TimedPort:
+def _session(model: object, firmware: str = "v1.2") -> TimedPort:
     port = TimedPort(model, link="usb")  # type: ignore[arg-type]
     dev = EtactileKitDevice(port, firmware="auto", guardian=False)
-    assert dev.firmware == "v1.2"
+    assert dev.firmware == firmware
     dev.configure(StimConfig(electrode_count=32, current_ua=1000))
-    dev.send_pattern(PATTERN)
+    dev.send_pattern(PATTERN if firmware == "v1.2" else tuple(min(v, 1) for v in PATTERN))
     port.advance(0.1)
     dev.all_off()
     port.advance(0.05)
@@ -230,3 +230,25 @@ def test_a_state_map_declares_its_firmware(tmp_path: Path) -> None:
     bad.write_text('unit = "a.cpp"\nfirmware = 2\n[registers]\nx = "x"\n')
     with pytest.raises(ConfigurationError, match="firmware must be a version's name"):
         StateMap.from_toml(bad)
+
+
+def test_the_driver_runs_upstream_v2_as_it_runs_the_model() -> None:
+    """v2: the same registers but ``command_in_progress`` (a function-local static: ``None`` on the host
+    build) and the same pulses, electrode by electrode and code by code."""
+    from dataclasses import replace
+
+    from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
+
+    raw = os.environ.get("TACTDEFORM_HW_UPSTREAM_V2")
+    if not raw or not (Path(raw) / "src").is_dir():
+        pytest.skip("set TACTDEFORM_HW_UPSTREAM_V2 to the v2 PlatformIO tree (platform_io_project)")
+    built = _session(HostBuildTimedModel(raw), "v2").emulator
+    python = _session(TimedEmulatorV2("compact", 1), "v2").emulator
+    assert built.state().command_in_progress is None
+    assert replace(built.state(), command_in_progress=False) == python.state()
+    a = built.reports.pulse_table()
+    b = python.reports.pulse_table()
+    live = b["code"] > 0
+    assert a["code"].size == int(live.sum()) > 20
+    assert a["channel"].tolist() == b["channel"][live].tolist()
+    assert a["code"].tolist() == b["code"][live].tolist()
