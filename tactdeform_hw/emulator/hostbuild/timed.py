@@ -30,6 +30,7 @@ import numpy as np
 
 from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
+from tactdeform_hw.emulator.firmware.models import model_entry
 from tactdeform_hw.emulator.firmware.scan import PulseKind
 from tactdeform_hw.emulator.hostbuild.delivered import DeliveredPulse
 from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator
@@ -356,7 +357,8 @@ class HostBuildTimedModel:
             hv513_num=int(snap["hv513_num"]),
             stim_pattern=pattern,
             rx_pending=int(snap["rx_pending"]),
-            rx_dropped=None if self.firmware.name == "v1.2" else int(snap["rx_dropped"]),
+            # what the queue dropped is the board's state where the firmware's parser owns the queue (v2)
+            rx_dropped=int(snap["rx_dropped"]) if model_entry(self.firmware).parser_owns_queue else None,
         )
 
     def sense_and_pulse_height(self) -> tuple[int | None, int | None]:
