@@ -23,6 +23,7 @@ from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap
 from tactdeform_hw.emulator.timed.timing import TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
+from tactdeform_hw.protocol.firmware import Opcode, OpcodeV2
 
 #: When the configuration is written: after the boot's stack detection (50 readings, 1 ms) and its set-up.
 CONFIGURE_AT_US = 2000.0
@@ -46,14 +47,16 @@ def wire_v1_2(
 ) -> bytes:
     """The v1.2 commands that set a configuration (the payloads as the protocol sends them; the sense
     height as its stored DAC code, sent shifted right by 2)."""
-    b = bytearray(b"\xf6" + struct.pack("<H", frequency_hz))
-    b += bytes([0xFC, electrode_num])
+    o = Opcode
+    b = bytearray([o.FREQUENCY]) + struct.pack("<H", frequency_hz)
+    b += bytes([o.ELECTRODE_NUM, electrode_num])
     if electrode_num:
-        b += b"\xfe" + bytes(pattern[:electrode_num])
-    b += b"\xfb" + struct.pack("<H", pulse_height)
-    if pulse_width_us:
-        b += b"\xfa" + struct.pack("<H", pulse_width_us)
-    b += bytes([0xF9, sense_height_code >> 2, 0xF8, sense_width_us, 0xF7, discharge_us, 0xFD, polarity])
+        b += bytes([o.PATTERN]) + bytes(pattern[:electrode_num])
+    b += bytes([o.PULSE_HEIGHT]) + struct.pack("<H", pulse_height)
+    if pulse_width_us:  # 0 is ignored by the parser (and is the power-on value)
+        b += bytes([o.PULSE_WIDTH]) + struct.pack("<H", pulse_width_us)
+    b += bytes([o.SENSE_HEIGHT, sense_height_code >> 2, o.SENSE_WIDTH, sense_width_us])
+    b += bytes([o.DISCHARGE, discharge_us, o.POLARITY, polarity])
     return bytes(b)
 
 
@@ -70,12 +73,14 @@ def wire_v2(
     polarity: int,
 ) -> bytes:
     """The v2 commands that set a configuration (a u16 DAC code per electrode)."""
-    b = bytearray(b"\xf6" + struct.pack("<H", frequency_hz))
-    b += bytes([0xFC, electrode_num, 0xFB, stim_mode])
+    o = OpcodeV2
+    b = bytearray([o.FREQUENCY]) + struct.pack("<H", frequency_hz)
+    b += bytes([o.ELECTRODE_NUM, electrode_num, o.STIM_MODE, stim_mode])
     if electrode_num:
-        b += b"\xfe" + b"".join(struct.pack("<H", h) for h in heights[:electrode_num])
-    b += b"\xfa" + struct.pack("<H", pulse_width_us)
-    b += bytes([0xF9, sense_height, 0xF8, sense_width_us, 0xF7, discharge_us, 0xFD, polarity])
+        b += bytes([o.PATTERN]) + b"".join(struct.pack("<H", h) for h in heights[:electrode_num])
+    b += bytes([o.PULSE_WIDTH]) + struct.pack("<H", pulse_width_us)
+    b += bytes([o.SENSE_HEIGHT, sense_height, o.SENSE_WIDTH, sense_width_us])
+    b += bytes([o.DISCHARGE, discharge_us, o.POLARITY, polarity])
     return bytes(b)
 
 
