@@ -101,6 +101,10 @@ _USB_FAULTS = (
 _UART_FAULTS = tuple(FaultKind)
 #: Firmware versions a campaign can run (``both``: each in turn).
 FIRMWARES = ("v1.2", "v2")
+
+#: ``--firmware-src``: every session's board runs this firmware tree built on the host (its state map's
+#: version must be ``--firmware``); None: the Python timed models.  Worker processes inherit it (fork).
+FIRMWARE_SRC: str | None = None
 #: Regional limits (µA) of a participant's map, as the v2 driver tests use them.
 REGIONS_UA = (400, 800, 1200, 1600, 2000, 2000, 2000, 2000, 2000)
 #: Hazards the emulated board records that are the firmware doing what the driver asks of it on purpose,
@@ -330,7 +334,11 @@ class Session:
             plan = random_plan(seed, kinds, rng.randint(1, 3), 0.02, 0.25)
         boards = (self.cfg.electrode_count + 31) // 32  # 4 HV513 (32 outputs) per switching board
         emu: TimedEmulator | TimedEmulatorV2
-        if firmware == "v2":
+        if FIRMWARE_SRC is not None:  # --firmware-src: the firmware's own code, built on this machine
+            from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+
+            emu = HostBuildTimedModel(FIRMWARE_SRC, "compact", boards, link=self.link)  # type: ignore[assignment]
+        elif firmware == "v2":
             emu = TimedEmulatorV2("compact", boards, link=self.link)
         else:
             emu = TimedEmulator("compact", boards, link=self.link)
@@ -942,8 +950,14 @@ def tally(results: Iterable[SessionResult], *, faults: bool) -> CampaignTally:
     return out
 
 
-def tally_chunk(seed: int, faults: bool, firmware: str, first: int, count: int) -> CampaignTally:
-    """Run sessions ``first .. first + count - 1`` and tally them (a chunk of a distributed campaign)."""
+def tally_chunk(
+    seed: int, faults: bool, firmware: str, firmware_src: str | None, first: int, count: int
+) -> CampaignTally:
+    """Run sessions ``first .. first + count - 1`` and tally them (a chunk of a distributed campaign);
+    ``firmware_src``: the boards run that firmware tree built on the host (set in the worker itself, so a
+    cluster's workers run it too)."""
+    global FIRMWARE_SRC
+    FIRMWARE_SRC = firmware_src
     logging.disable(logging.WARNING)  # the guard logs each refusal; the summary counts them
     return tally((run_session(i, seed, faults, firmware) for i in range(first, first + count)), faults=faults)
 
@@ -979,6 +993,7 @@ def campaign_job(
     first: int = 0,
     firmware: str = "v1.2",
     chunk: int = engine.DEFAULT_CHUNK,
+    firmware_src: str | None = None,
 ) -> engine.Job:
     """Sessions ``first .. first + sessions - 1`` as chunks for :func:`campaign_engine.run`."""
     if firmware not in FIRMWARES:
@@ -986,12 +1001,27 @@ def campaign_job(
     return engine.Job(
         "safety_campaign",
         "tally_chunk",
-        (seed, faults, firmware),
+        (seed, faults, firmware, firmware_src),
         sessions,
         first=first,
         chunk=chunk,
         fingerprint=engine.fingerprint(),
     )
+
+
+def _use_firmware_src(ap: argparse.ArgumentParser, src: str, firmware: str) -> None:
+    """Check the tree declares ``firmware`` and make every session run it."""
+    global FIRMWARE_SRC
+    from tactdeform_hw.emulator.hostbuild.statemap import detect
+
+    smap = detect(Path(src))
+    declared = smap.firmware if smap is not None else ""
+    if declared != firmware:
+        ap.error(
+            f"--firmware-src {src}: its state map declares firmware {declared or 'none'!r}, "
+            f"--firmware is {firmware!r}"
+        )
+    FIRMWARE_SRC = src
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -1052,7 +1082,20 @@ def _main(argv: list[str] | None = None) -> int:
     ap.add_argument(
         "--depth", type=int, default=4, help="--exhaustive: the longest sequence of calls (default 4)"
     )
+    ap.add_argument(
+        "--firmware-src",
+        metavar="DIR",
+        default=None,
+        help="run every session's board on this firmware tree built on the host "
+        "(docs/firmware-host-build.md); "
+        "its state map's version must be --firmware",
+    )
     a = ap.parse_args(argv)
+    if a.firmware_src is not None:
+        if a.seams or a.exhaustive:
+            ap.error("--firmware-src runs the random sessions only (not --seams or --exhaustive)")
+        a.firmware = a.firmware or "v1.2"
+        _use_firmware_src(ap, a.firmware_src, a.firmware)
     logging.disable(logging.WARNING)  # the guard logs each refusal; the summary counts them
     if a.sessions < 1:
         ap.error(f"--sessions must be at least 1 (got {a.sessions})")
@@ -1089,7 +1132,13 @@ def _main(argv: list[str] | None = None) -> int:
     for fw in firmwares:
         t0 = time.perf_counter()
         job = campaign_job(
-            a.sessions, seed=a.seed, faults=a.faults, first=a.first, firmware=fw, chunk=a.chunk
+            a.sessions,
+            seed=a.seed,
+            faults=a.faults,
+            first=a.first,
+            firmware=fw,
+            chunk=a.chunk,
+            firmware_src=a.firmware_src,
         )
         summary = engine.run(job, jobs=a.jobs, cluster=a.cluster, progress=True).summary()
         where = {"jobs": a.jobs} if a.cluster is None else {"cluster": a.cluster}

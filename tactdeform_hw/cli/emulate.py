@@ -69,6 +69,17 @@ def _firmware_options(p: argparse.ArgumentParser) -> None:
         help="the firmware the board runs (default v1.2; v2 is upstream's current firmware)",
     )
     p.add_argument(
+        "--firmware-src",
+        metavar="DIR",
+        help="serve the firmware's own C++ tree built on this machine (docs/firmware-host-build.md) in place "
+        "of the Python model; the version the driver finds is the one its state map declares",
+    )
+    p.add_argument(
+        "--state-map",
+        metavar="FILE",
+        help="with --firmware-src: the TOML state map of a tree the package ships none for",
+    )
+    p.add_argument(
         "--discovery-port",
         type=int,
         default=None,
@@ -144,7 +155,19 @@ def _tcp_address(args: argparse.Namespace) -> tuple[str, int]:
     return (host.strip("[]") if sep and host else args.host), number
 
 
+def _check_firmware_src(args: argparse.Namespace) -> None:
+    """``--firmware-src`` serves the built tree behind the real-time pty or TCP server only."""
+    if args.firmware_src is None:
+        if args.state_map is not None:
+            raise ConfigurationError("--state-map names the state map of a --firmware-src tree; add one")
+        return
+    for flag, given in (("--untimed", args.untimed), ("--usb", args.usb), ("--trace", args.trace)):
+        if given:
+            raise ConfigurationError(f"--firmware-src serves on a pty or --tcp in real time; drop {flag}")
+
+
 def _check(args: argparse.Namespace) -> None:
+    _check_firmware_src(args)
     if args.tcp is not None:
         args.tcp_address = _tcp_address(args)
     if args.discovery_port is not None:
@@ -189,7 +212,34 @@ def _board(args: argparse.Namespace, rules: Any) -> Any:
 
     if args.untimed:
         return Emulator(args.board, args.switching_boards, firmware=args.firmware)
+    if args.firmware_src is not None:
+        return _host_build_board(args, rules)
     return RealtimeEmulator(args.board, args.switching_boards, rules=rules, firmware=args.firmware)
+
+
+def _host_build_board(args: argparse.Namespace, rules: Any) -> Any:
+    """``--firmware-src``: the tree built on this machine, served in real time over the build's link."""
+    from pathlib import Path
+
+    from tactdeform_hw.emulator.hostbuild.statemap import StateMap
+    from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+    from tactdeform_hw.emulator.serving.realtime import RealtimeEmulator
+
+    if not Path(args.firmware_src).is_dir():
+        raise ConfigurationError(f"--firmware-src {args.firmware_src}: not a folder")
+    smap = StateMap.from_toml(Path(args.state_map)) if args.state_map else None
+    model = HostBuildTimedModel(
+        args.firmware_src,
+        args.board,
+        args.switching_boards,
+        state_map=smap,
+        link=rules.make_link(),
+        model=rules.timing(None),
+    )
+    args.firmware = model.firmware.name if model.firmware is not None else "none declared"
+    if model.firmware is None:
+        args.quiet = True  # the live view reads a board state; this tree's map declares none
+    return RealtimeEmulator(rules=rules, timed=model)  # type: ignore[arg-type]
 
 
 def _trace_sink(args: argparse.Namespace, board: Any) -> Any:

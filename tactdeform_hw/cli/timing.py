@@ -44,6 +44,7 @@ def register(sub: Any) -> None:
         "interrupt WATCHDOG (the board resets); 1 for a refused value, 2 for a usage error.",
     )
     _firmware_options(p)
+    _firmware_src_option(p)
     _scan_options(p)
     _board_options(p)
     _output_options(p)
@@ -78,6 +79,17 @@ def _firmware_options(p: argparse.ArgumentParser) -> None:
         default="mid_exchange",
         help="when the DAC output changes: 3.3 µs into the exchange (default, the firmware comment) or "
         "when DA_CS rises (the converter's load moment)",
+    )
+
+
+def _firmware_src_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--firmware-src",
+        metavar="DIR",
+        default=None,
+        help="measure the firmware's own C++ tree built on this machine (docs/firmware-host-build.md): "
+        "configured through its parser, the budget measured on its scans; its state map says the version "
+        "(--firmware is not read)",
     )
 
 
@@ -526,6 +538,8 @@ def run(args: argparse.Namespace) -> int:
             for r in rows:
                 print(f"{r['name']:<26}{r['value']!s:>12} {r['unit']:<8} {r['source']:<17} {r['doc']}")
         return 0
+    if args.firmware_src is not None:
+        return _run_host_build(args, model)
     if args.firmware == "v2" or args.cs_writes == "costed" or args.dac_load != "mid_exchange":
         return _run_walker(args)
     if args.mode is not None:
@@ -577,6 +591,56 @@ def run(args: argparse.Namespace) -> int:
     if args.png:
         print(f"wrote {args.png}")
     return verdict_status(budget)
+
+
+def _run_host_build(args: argparse.Namespace, model: Any) -> int:
+    """``--firmware-src``: the budget, events, VCD and picture measured on the built firmware's scans."""
+    from tactdeform_hw.emulator.hostbuild import timing_run as hb
+    from tactdeform_hw.emulator.hostbuild.statemap import detect
+
+    if args.latency:
+        raise ConfigurationError("--latency is the Python model's; drop it with --firmware-src")
+    if args.events:
+        _events_format(args.events)
+    smap = detect(Path(args.firmware_src))
+    if smap is None or not smap.firmware:
+        raise ConfigurationError(
+            f"--firmware-src {args.firmware_src}: no shipped state map fits the tree (v1.2 or v2 upstream)"
+        )
+    if smap.firmware == "v2":
+        c = v2_config_from_args(args)
+        wire = hb.wire_v2(
+            c.electrode_num, list(c.stim_pattern), frequency_hz=c.frequency_hz, stim_mode=c.stim_mode,
+            pulse_width_us=c.pulse_width, sense_height=c.sense_pulse_height,
+            sense_width_us=c.sense_pulse_width, discharge_us=c.discharge_time, polarity=c.polarity,
+        )  # fmt: skip
+        hv = c.hv513_num
+    else:
+        cfg = config_from_args(args)
+        wire = hb.wire_v1_2(
+            cfg.electrode_num, cfg.pattern, frequency_hz=args.frequency, pulse_height=cfg.pulse_height,
+            pulse_width_us=cfg.pulse_width, sense_height_code=cfg.sense_pulse_height,
+            sense_width_us=cfg.sense_pulse_width, discharge_us=cfg.discharge_time, polarity=cfg.polarity,
+        )  # fmt: skip
+        hv = cfg.hv513_num
+    budget, events, _ = hb.measure(args.firmware_src, wire, args.cycles, hv513_count=hv, timing=model)
+    result: dict[str, Any] = budget.to_dict()
+    written = [p for p in (args.events, args.vcd) if p]
+    if args.events:
+        hb.write_events(args.events, events)
+    if args.vcd:
+        hb.write_vcd(args.vcd, events)
+    if args.png:
+        result["png"] = hb.draw_png(args.png, events, f"{args.firmware_src}: {len(budget.scans)} scans")
+    if written:
+        result["traces"] = written
+    if args.json:
+        print_json(result)
+    else:
+        print(budget.table())
+        for path in written + ([args.png] if args.png else []):
+            print(f"wrote {path}")
+    return EXIT_OVERRUN if budget.overrun else 0
 
 
 def _draw_png(args: argparse.Namespace, cfg: Any, model: Any) -> dict[str, Any]:

@@ -43,6 +43,9 @@ class StateMap:
     unit: str
     registers: dict[str, str] = field(default_factory=dict)
     name: str = ""
+    #: The firmware table the tree speaks ("v1.2", "v2"; "" for a firmware that is no eTactileKit): what a
+    #: driver's identification finds on it, and the version of the board state read through the map.
+    firmware: str = ""
 
     def parsed(self) -> list[Register]:
         out: list[Register] = []
@@ -94,7 +97,10 @@ class StateMap:
             raise ConfigurationError(
                 f"state map {path}: register(s) {', '.join(bad)} must name a variable (a string)"
             )
-        return cls(unit=unit, registers=dict(regs), name=str(path))
+        firmware = data.get("firmware", "")
+        if not isinstance(firmware, str):
+            raise ConfigurationError(f'state map {path}: firmware must be a version\'s name ("v1.2", "v2")')
+        return cls(unit=unit, registers=dict(regs), name=str(path), firmware=firmware)
 
 
 # The upstream trees' maps.  Register names are the emulator's (protocol.md); the expressions are the
@@ -114,12 +120,14 @@ _UPSTREAM_COMMON = {
 UPSTREAM_V1_2 = StateMap(
     name="eTactileKit v1.2 (936c6c08)",
     unit="lib/EtactileKit/etactielkit.cpp",
+    firmware="v1.2",
     registers={**_UPSTREAM_COMMON, "pulse_height": "PulseHeight", "voltage": "voltage[256]"},
 )
 
 UPSTREAM_V2 = StateMap(
     name="eTactileKit v2 (71adee21)",
     unit="lib/EtactileKit/etactilekit.cpp",
+    firmware="v2",
     registers={**_UPSTREAM_COMMON, "stim_mode": "StimulationMode", "voltage_bytes": "voltage[512]"},
 )
 """v2's pattern entries are pulse heights (u16); its voltages are stored as bytes, low first.  It keeps the

@@ -320,19 +320,29 @@ class RealtimeEmulator:
         follow_scans: bool = True,
         history_us: float = HISTORY_US,
         firmware: str | FirmwareSpec = "v1.2",
+        timed: TimedModel | None = None,
     ) -> None:
+        """``timed``: a model already made (a host-built firmware,
+        :class:`~tactdeform_hw.emulator.hostbuild.timed.HostBuildTimedModel`) served in place of the
+        Python model of ``firmware``; its own ``firmware`` is the one served (``None``: a firmware that is
+        no eTactileKit)."""
         self.rules = rules
-        entry = model_entry(firmware)
-        self.firmware: FirmwareSpec = entry.spec
-        self.timed: TimedModel = entry.timed_class().served(
-            board,
-            switching_boards,
-            link=rules.make_link(),
-            tx_link=TcpLink() if rules.link == "tcp" else None,
-            model=rules.timing(model),
-            skin=skin,
-            stack_reading=stack_reading,
-        )
+        self.firmware: FirmwareSpec | None
+        if timed is not None:
+            self.firmware = timed.firmware
+            self.timed: TimedModel = timed
+        else:
+            entry = model_entry(firmware)
+            self.firmware = entry.spec
+            self.timed = entry.timed_class().served(
+                board,
+                switching_boards,
+                link=rules.make_link(),
+                tx_link=TcpLink() if rules.link == "tcp" else None,
+                model=rules.timing(model),
+                skin=skin,
+                stack_reading=stack_reading,
+            )
         self.lock = threading.RLock()
         self._clock = clock
         self._t0 = clock()  # wall-clock time of device time 0
@@ -468,9 +478,11 @@ class RealtimeEmulator:
         """Power-cycle the board now; the record names the state that was discarded."""
         with self.lock:
             at = self.advance_now()
-            regs = self.timed.state()
-            discarded = _shown(regs)
-            discarded["channels_on"] = _channels_on(regs)
+            discarded: dict[str, Any] = {}
+            if self.firmware is not None:  # a host build's firmware may declare no board state
+                regs = self.timed.state()
+                discarded = _shown(regs)
+                discarded["channels_on"] = _channels_on(regs)
             discarded["queue_bytes"] = len(self.timed.queue)
             discarded["parser"] = self.timed.parser_status()
             discarded["replies_unread"] = len(self.timed.read_tx())

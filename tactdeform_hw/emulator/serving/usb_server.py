@@ -107,6 +107,10 @@ class UsbServer(BoardServer):
         check_served_firmware(self.board, firmware)
         if not isinstance(self.board, RealtimeEmulator):
             raise ConfigurationError("the USB device serves the timed firmware model: drop --untimed")
+        if self.board.firmware is None:
+            raise ConfigurationError(
+                "the USB device enumerates as an eTactileKit; this host build's map declares no firmware"
+            )
         self.device = EmulatedUsbDevice(firmware=self.board.firmware, serial_number=serial_number)
         self.backend = EmulatedUsbBackend([self.device], lock=self.board.lock)
         self._usb_error = self.backend.usb_error

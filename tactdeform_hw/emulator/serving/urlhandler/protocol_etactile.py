@@ -1,7 +1,11 @@
-"""``etactile://[NAME][?board=compact|large&switching_boards=N&stack_reading=R&timed=1|0&link=usb|uart&firmware=v1.2|v2&spy=1]``
+"""``etactile://[NAME][?board=compact|large&switching_boards=N&stack_reading=R&timed=1|0&link=usb|uart&firmware=v1.2|v2&firmware_src=DIR&spy=1]``
 
 The emulated eTactileKit as a pyserial port, so ``serial.serial_for_url("etactile://")`` gives the same
 object type, exceptions and calls as a real board on ``/dev/ttyACM0``.
+
+``firmware_src=DIR`` serves a firmware's own C++ tree built on this machine
+(:class:`~tactdeform_hw.emulator.hostbuild.timed.HostBuildTimedModel`, docs/firmware-host-build.md) in
+place of the Python model; the version it speaks is its state map's, so ``firmware=`` is not read.
 
 By default (``timed=1``) the board is the timed model locked to the wall clock
 (:class:`~tactdeform_hw.emulator.serving.realtime.RealtimeEmulator`): a write enters the USB link
@@ -53,7 +57,7 @@ from tactdeform_hw.errors import ConfigurationError
 from tactdeform_hw.ports import PortBase
 from tactdeform_hw.protocol.state import BoardState
 
-_OPTIONS = ("board", "switching_boards", "stack_reading", "spy", "timed", "link", "firmware")
+_OPTIONS = ("board", "switching_boards", "stack_reading", "spy", "timed", "link", "firmware", "firmware_src")
 _shared: dict[str, Emulator | RealtimeEmulator] = {}
 _shared_lock = threading.Lock()
 _FALSE = ("0", "", "false", "no", "off")
@@ -189,7 +193,15 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         timed = opts.get("timed", "1").lower() not in _FALSE
         rules = BUILD_RULES["serial" if opts.get("link", "usb") == "usb" else "serial-uart"]
 
+        source = opts.get("firmware_src")
+        if source is not None and not timed:
+            raise SerialException(
+                f"{url!r}: firmware_src= runs the built firmware in real time; drop timed=0"
+            )
+
         def make() -> Emulator | RealtimeEmulator:
+            if source is not None:
+                return _host_build(source, board, switching, reading, rules)
             if timed:
                 return RealtimeEmulator(
                     board, switching, rules=rules, stack_reading=reading, firmware=firmware
@@ -203,11 +215,13 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
                 emu = _shared.get(name)
                 if emu is None:
                     emu = _shared[name] = make()
-                elif isinstance(emu, RealtimeEmulator) != timed or emu.firmware is not firmware:
+                elif source is None and (
+                    isinstance(emu, RealtimeEmulator) != timed or emu.firmware is not firmware
+                ):
                     have = "timed" if isinstance(emu, RealtimeEmulator) else "untimed"
+                    served = emu.firmware.name if emu.firmware is not None else "(a host build)"
                     raise SerialException(
-                        f"{url!r}: the board {name!r} is already open {have} "
-                        f"with firmware {emu.firmware.name}"
+                        f"{url!r}: the board {name!r} is already open {have} with firmware {served}"
                     )
                 return emu
         except (ValueError, ConfigurationError) as exc:
@@ -346,3 +360,20 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
     @property
     def cd(self) -> bool:
         return True
+
+
+def _host_build(
+    source: str, board: str, switching: int, reading: float | None, rules: Any
+) -> RealtimeEmulator:
+    """``firmware_src=DIR``: the firmware's own tree built on this machine, locked to the wall clock."""
+    from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+
+    model = HostBuildTimedModel(
+        source,
+        board,
+        switching,
+        stack_reading=reading,
+        link=rules.make_link(),
+        model=rules.timing(None),
+    )
+    return RealtimeEmulator(rules=rules, timed=model)  # type: ignore[arg-type]

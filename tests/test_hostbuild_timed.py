@@ -1,0 +1,254 @@
+"""A host-built firmware behind the timed models' API: the driver, the servers and the URL handler run it.
+
+The tiny test firmware is no eTactileKit: its state map declares no version, so a board state is refused
+and the driver's identification refuses the board.  With an upstream v1.2 tree
+(``TACTDEFORM_HW_UPSTREAM_V1_2``) the driver identifies, configures and stimulates the firmware's own code,
+and the pulses it delivers match the Python model's but for the documented equivalences: every start
+shifted by one constant (the firmware starts its timer after its boot's stack detection, the model at 0)
+and every pulse 0.2 µs longer (the two chip-select writes between the DAC changes, 0.1 µs each).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tactdeform_hw.device import EtactileKitDevice, open_device
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError
+from tactdeform_hw.emulator.faults import TimedPort
+from tactdeform_hw.emulator.hostbuild import find_compiler
+from tactdeform_hw.emulator.hostbuild.statemap import StateMap
+from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+from tactdeform_hw.emulator.serving.pty_server import PtyServer
+from tactdeform_hw.emulator.serving.realtime import RealtimeEmulator
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.errors import (
+    ConfigurationError,
+    DeviceGoneError,
+    FirmwareBuildError,
+    ShortReplyError,
+    TransportError,
+)
+
+TINY = Path(__file__).parent / "data" / "firmware_tiny"
+TINY_MAP = StateMap.from_toml(TINY / "hostbuild_state.toml")
+
+try:
+    find_compiler()
+    HAVE_CXX = True
+except FirmwareBuildError:
+    HAVE_CXX = False
+
+pytestmark = pytest.mark.skipif(not HAVE_CXX, reason="no C++ compiler on PATH (c++, g++ or clang++)")
+
+#: The pulse the driver asks for in the comparison: electrodes 3 and 10 monophasic, 20 biphasic.
+PATTERN = tuple(1 if i in (3, 10) else 2 if i == 20 else 0 for i in range(32))
+
+
+def _v1_2_tree() -> Path:
+    raw = os.environ.get("TACTDEFORM_HW_UPSTREAM_V1_2")
+    if not raw:
+        pytest.skip("set TACTDEFORM_HW_UPSTREAM_V1_2 to the v1.2 PlatformIO tree (platform_io_project)")
+    tree = Path(raw)
+    if not (tree / "src").is_dir():
+        pytest.skip(f"TACTDEFORM_HW_UPSTREAM_V1_2={raw} holds no PlatformIO tree (src/)")
+    return tree
+
+
+def test_a_firmware_without_a_declared_version_has_no_board_state() -> None:
+    model = HostBuildTimedModel(TINY, state_map=TINY_MAP)
+    model.advance_to(3000)
+    assert model.firmware is None
+    with pytest.raises(ConfigurationError, match="firmware = 'v1.2' or 'v2'.*electrode_num"):
+        model.state()
+
+
+def test_the_tiny_firmware_replies_through_the_link() -> None:
+    """'E' n replies n + 1, once the USB link has carried the bytes and the firmware's loop read them."""
+    model = HostBuildTimedModel(TINY, state_map=TINY_MAP)
+    model.write(b"E\x29", at_us=0)
+    assert model.in_flight == 2
+    assert model.run_until_idle()
+    assert model.read_tx() == b"\x2a"
+    assert model.in_flight == 0
+
+
+def test_the_driver_refuses_a_served_firmware_that_is_no_etactilekit() -> None:
+    board = RealtimeEmulator(timed=HostBuildTimedModel(TINY, state_map=TINY_MAP))  # type: ignore[arg-type]
+    assert board.firmware is None
+    server = PtyServer(board)
+    server.start()
+    try:
+        with pytest.raises((FirmwareMismatchError, DeviceGoneError)) as refused:
+            open_device(server.path, guardian=False, settle_s=0.05, timeout=0.2)
+    finally:
+        server.stop()
+    # the identification's refusal; on a pty the driver's retry then finds no reset line (no RTS ioctl)
+    chain: list[BaseException] = []
+    exc: BaseException | None = refused.value
+    while exc is not None:
+        chain.append(exc)
+        exc = exc.__cause__ or exc.__context__
+    first = next(e for e in chain if isinstance(e, FirmwareMismatchError))
+    assert "identification did not answer" in str(first) and "only bytes that stop current" in str(first)
+
+
+def test_the_url_handler_serves_a_host_build() -> None:
+    with pytest.raises(FirmwareMismatchError):
+        open_device(f"etactile://?firmware_src={TINY}", guardian=False, settle_s=0.05, timeout=0.2)
+
+
+def test_the_url_handler_refuses_an_untimed_host_build() -> None:
+    with pytest.raises(
+        TransportError, match="firmware_src= runs the built firmware in real time; drop timed=0"
+    ):
+        open_device(f"etactile://?firmware_src={TINY}&timed=0", guardian=False)
+
+
+def _session(model: object, firmware: str = "v1.2") -> TimedPort:
+    port = TimedPort(model, link="usb")  # type: ignore[arg-type]
+    dev = EtactileKitDevice(port, firmware="auto", guardian=False)
+    assert dev.firmware == firmware
+    dev.configure(StimConfig(electrode_count=32, current_ua=1000))
+    dev.send_pattern(PATTERN if firmware == "v1.2" else tuple(min(v, 1) for v in PATTERN))
+    port.advance(0.1)
+    dev.all_off()
+    port.advance(0.05)
+    return port
+
+
+def test_the_driver_runs_upstream_v1_2_as_it_runs_the_model() -> None:
+    tree = _v1_2_tree()
+    built = _session(HostBuildTimedModel(tree)).emulator
+    python = _session(TimedEmulator("compact", 1)).emulator
+    assert built.state() == python.state()  # every register, read from the firmware's own variables
+    a = built.reports.pulse_table()
+    b = python.reports.pulse_table()
+    live = b["code"] > 0
+    assert a["code"].size == int(live.sum()) > 30
+    assert a["channel"].tolist() == b["channel"][live].tolist()
+    assert a["code"].tolist() == b["code"][live].tolist()
+    assert np.allclose(a["width_us"], b["width_us"][live] + 0.2)  # the chip-select writes
+    # one timer origin for the whole session: every scan is shifted alike, pulse by pulse.  Within a
+    # scan the shifts differ by up to 10.6 us (987.85, 983.65, 977.65, 977.25 here): the pulse table's
+    # start inside a scan is not yet the same instant in both records (docs/firmware-host-build.md)
+    per_scan = int(live.sum()) // len(set(np.round(b["start_us"][live] // 8000).tolist()))
+    shift = (b["start_us"][live] - a["start_us"]).reshape(-1, per_scan)
+    assert np.allclose(shift, shift[0])
+
+
+@pytest.mark.xfail(
+    reason="intermittent on a loaded machine: the configure's measure proof sometimes gets no reply on "
+    "the pty (ShortReplyError), not seen in virtual time; not yet explained",
+    raises=ShortReplyError,
+    strict=False,
+)
+def test_upstream_v1_2_served_on_a_pty_is_identified_and_stimulates() -> None:
+    tree = _v1_2_tree()
+    model = HostBuildTimedModel(tree)
+    board = RealtimeEmulator(timed=model)  # type: ignore[arg-type]
+    server = PtyServer(board)
+    server.start()
+    try:
+        dev = open_device(server.path, guardian=False, settle_s=0.05, timeout=2.0)  # a loaded machine
+        assert dev.firmware == "v1.2"
+        dev.configure(StimConfig(electrode_count=32, current_ua=1000))
+        dev.send_pattern(PATTERN)
+        state = board.state()
+        dev.close()
+    finally:
+        server.stop()
+    assert state.electrode_num == 32
+    with board.lock:
+        pulses = model.delivered_pulses()
+    assert {out for p in pulses for out in p.outputs} <= {3, 10, 20}
+    assert {p.code for p in pulses} <= {100}
+    assert all(abs(p.width_us - 196.8) < 1e-6 for p in pulses)
+
+
+def test_emulate_refuses_firmware_src_with_untimed(capsys: pytest.CaptureFixture[str]) -> None:
+    from tactdeform_hw.cli import main
+
+    assert main(["emulate", "--pty", "--untimed", "--firmware-src", str(TINY)]) != 0
+    err = capsys.readouterr().err
+    assert "--firmware-src" in err and "--untimed" in err and "Traceback" not in err
+
+
+def test_timing_refuses_a_tree_without_a_shipped_state_map(capsys: pytest.CaptureFixture[str]) -> None:
+    from tactdeform_hw.cli import main
+
+    assert main(["timing", "--firmware-src", str(TINY)]) != 0
+    err = capsys.readouterr().err
+    assert "--firmware-src" in err and "state map" in err and "Traceback" not in err
+
+
+def test_timing_measures_the_budget_on_upstream_v1_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The TactDeform setting: the firmware's own scan is 7869.45 µs of its 8000 µs period (the Python
+    model's budget says 7850.25: 0.6 µs a channel of chip-select writes it counts inside the exchange)."""
+    import json
+
+    from tactdeform_hw.cli import main
+
+    tree = _v1_2_tree()
+    events = tmp_path / "ev.json"
+    vcd = tmp_path / "scan.vcd"
+    argv = [
+        "timing",
+        "--firmware-src",
+        str(tree),
+        "--cycles",
+        "2",
+        "--events",
+        str(events),
+        "--vcd",
+        str(vcd),
+    ]
+    assert main([*argv, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["firmware"] == "v1.2" and out["period_us"] == 8000 and out["scans"] == 2
+    assert out["scan_us"]["max"] == pytest.approx(7869.45)
+    assert out["margin_us"] == pytest.approx(130.55) and out["overrun"] is False
+    ev = json.loads(events.read_text())
+    assert sum(1 for e in ev if e[1] == "DAC" and e[3] > 0) == 2 * 32  # one pulse per electrode per scan
+    assert "$var" in vcd.read_text()
+
+
+def test_a_state_map_declares_its_firmware(tmp_path: Path) -> None:
+    from tactdeform_hw.emulator.hostbuild.statemap import UPSTREAM_V1_2, UPSTREAM_V2
+
+    assert (UPSTREAM_V1_2.firmware, UPSTREAM_V2.firmware) == ("v1.2", "v2")
+    good = tmp_path / "good.toml"
+    good.write_text('unit = "a.cpp"\nfirmware = "v2"\n[registers]\nx = "x"\n')
+    assert StateMap.from_toml(good).firmware == "v2"
+    bad = tmp_path / "bad.toml"
+    bad.write_text('unit = "a.cpp"\nfirmware = 2\n[registers]\nx = "x"\n')
+    with pytest.raises(ConfigurationError, match="firmware must be a version's name"):
+        StateMap.from_toml(bad)
+
+
+def test_the_driver_runs_upstream_v2_as_it_runs_the_model() -> None:
+    """v2: the same registers but ``command_in_progress`` (a function-local static: ``None`` on the host
+    build) and the same pulses, electrode by electrode and code by code."""
+    from dataclasses import replace
+
+    from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
+
+    raw = os.environ.get("TACTDEFORM_HW_UPSTREAM_V2")
+    if not raw or not (Path(raw) / "src").is_dir():
+        pytest.skip("set TACTDEFORM_HW_UPSTREAM_V2 to the v2 PlatformIO tree (platform_io_project)")
+    built = _session(HostBuildTimedModel(raw), "v2").emulator
+    python = _session(TimedEmulatorV2("compact", 1), "v2").emulator
+    assert built.state().command_in_progress is None
+    assert replace(built.state(), command_in_progress=False) == python.state()
+    a = built.reports.pulse_table()
+    b = python.reports.pulse_table()
+    live = b["code"] > 0
+    assert a["code"].size == int(live.sum()) > 20
+    assert a["channel"].tolist() == b["channel"][live].tolist()
+    assert a["code"].tolist() == b["code"][live].tolist()
