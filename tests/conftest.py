@@ -47,6 +47,8 @@ SLOW = frozenset(
         "benchmarks",
         "conformance",
         "test_campaign_cluster.py",
+        "test_hostbuild_campaign.py",
+        "test_hostbuild_timed.py",
         "test_identification_seams.py",
         "test_live_tools.py",
         "test_safety_campaign.py",

@@ -195,7 +195,7 @@ def _url_target(name: str) -> Target:
         state=emu.state,
         hv513_expected=emu.board.detect_hv513(),
         settle_fn=_settle_on(emu) if timed else (lambda n: None),
-        firmware=emu.firmware.name,
+        firmware=emu.firmware.name if emu.firmware is not None else "",
     )
     t.cleanup += [first.close, lambda: forget_shared(shared)]
     return t
