@@ -4,6 +4,8 @@ holds (untimed) and on the pulses it delivered (the timed v2 model)."""
 
 from __future__ import annotations
 
+import random
+
 import pytest
 
 from tactdeform_hw.device.driver import serial_driver
@@ -541,3 +543,32 @@ def test_a_hung_v2_board_gets_the_reset_line_and_comes_back() -> None:
     port.advance(0.02)
     assert list(board.state().stim_pattern[:8]) == [50] * 8
     dev.close()
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_the_loss_tolerant_encoding_never_echoes_the_electrode_count(seed: int) -> None:
+    """v1.2's loss-tolerant encoding repeats the electrode count after it; v2 never gets that echo (a count
+    of 0xF4 would echo a sync check), on no path: configure, raise, recovery or a new program."""
+    rng = random.Random(seed)
+    dev, port, board = _timed_v2(robust=True)
+    sent: list[bytes] = []
+    write = port.write
+
+    def logged(data: bytes) -> int:
+        sent.append(bytes(data))
+        return write(data)
+
+    port.write = logged  # type: ignore[method-assign]
+    for _ in range(12):
+        n = rng.choice([1, 4, 16, 32])
+        dev.configure(StimConfig(electrode_count=n, current_ua=500, pulse_width_us=100, rate_hz=60))
+        dev.send_pattern([rng.choice([0, 1]) for _ in range(n)])
+        getattr(dev, rng.choice(["resync", "reconnect", "hardware_reset", "keepalive", "all_off"]))()
+    dev.close()
+    wire = b"".join(sent)
+    echoes = [
+        i
+        for i in range(len(wire) - 2)
+        if wire[i] == 0xFC and 0 < wire[i + 1] <= 32 and wire[i + 2] == wire[i + 1]
+    ]
+    assert echoes == [], f"electrode count echoed at byte offsets {echoes[:5]}"
