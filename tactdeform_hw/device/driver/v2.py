@@ -53,6 +53,7 @@ from tactdeform_hw.device.driver.dialect import (
     PlanBuilder,
     Write,
     recovery_timing,
+    timing_before_count,
 )
 from tactdeform_hw.device.driver.firmware_probe import PROBE, SYNC_CHECK, FirmwareMismatchError
 from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
@@ -429,11 +430,20 @@ class V2Dialect:
             ops.run(b.done(), st)
             ops.prove(in_force)  # a long pattern: proved read before the next one
         n = config.electrode_count
+        timing_first = timing_before_count(old, config)
+        if timing_first:
+            self._write_rate_and_widths(ops, config, old)
         b = PlanBuilder(st)
         self._raise_count(b, n, Write, _count_write)
         ops.run(b.done(), st)
         ops.prove(n)
-        self._write_timing(ops, st, config, old)
+        if timing_first:
+            ops.send(c2.encode_sense_width(config.sense_width_us))  # the count's raise set it to 0
+        else:
+            self._write_rate_and_widths(ops, config, old)
+        sense = ops.transfer.to_code(config.sense_current_ua, "sense_current_ua")
+        ops.send(c2.encode_sense_height(sense))  # used only in mode 2, which never runs with heights
+        st.sense_byte = sense
         st.config = config
         st.target_ua = config.current_ua
         st.current_ua = 0
@@ -445,10 +455,11 @@ class V2Dialect:
         ops.prove(n)
         pacer.set_timing(new_period / 1e6, st.scan_us / 1e6)
 
-    def _write_timing(
-        self, ops: LinkOps, st: DriverState, config: StimConfig, old: StimConfig | None
-    ) -> None:
-        """Rate (a longer period first, a shorter one last), polarity, widths and the sense height."""
+    @staticmethod
+    def _write_rate_and_widths(ops: LinkOps, config: StimConfig, old: StimConfig | None) -> None:
+        """Rate (a longer period first, a shorter one last), polarity and widths.  Written after the count,
+        except when the count rises (:func:`~.dialect.timing_before_count`): then before it, so the longer
+        scan meets the new period rather than the old."""
         new_period = firmware_period_us(config.rate_hz)
         longer = old is None or new_period >= firmware_period_us(old.rate_hz)
         if longer:
@@ -459,9 +470,6 @@ class V2Dialect:
         ops.send(c2.encode_discharge(config.discharge_us))
         if not longer:
             ops.send(c2.encode_frequency(config.rate_hz))
-        sense = ops.transfer.to_code(config.sense_current_ua, "sense_current_ua")
-        ops.send(c2.encode_sense_height(sense))  # used only in mode 2, which never runs with heights
-        st.sense_byte = sense
 
     # --- frames ---------------------------------------------------------------------------------------------
 
