@@ -82,7 +82,9 @@ class V12Dialect:
     def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
         """The height to 0 and every channel off first (no pulse uses a mixture of old and new settings),
         the electrode count followed at once by an all-off pattern of the new length (no stale channel
-        above the old count comes back), polarity while all is off, the participant's current last."""
+        above the old count comes back), polarity while all is off, the participant's current last.  A
+        count that rises goes after the rate and widths, so its longer scan never meets the old period
+        (:func:`~.dialect.timing_before_count`)."""
         if ops.needs_resync():
             ops.recover()
         pacer = ops.pacer()

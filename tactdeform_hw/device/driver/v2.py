@@ -403,7 +403,9 @@ class V2Dialect:
 
     def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
         """Everything off first (zero pattern), the count raised without stale channels, mode 0, polarity
-        while all is off, widths and rate, then a proof by the sync check."""
+        while all is off, widths and rate, then a proof by the sync check.  A count that rises goes after
+        the rate, polarity and widths (:func:`~.dialect.timing_before_count`): its longer scan never meets
+        the old period."""
         # v2 pulses every channel in every scan (an off one at height 0): a configuration whose monophasic
         # scan fills the period starves the parser whatever the pattern, so it is refused before any byte
         ops.guard.check_scan(
