@@ -271,7 +271,7 @@ def test_a_raised_count_is_paced_by_its_own_scan_at_the_new_period() -> None:
     new = StimConfig(electrode_count=255, current_ua=1500, pulse_width_us=50, rate_hz=26)
     assert timing_before_count(old, new)
     assert not timing_before_count(new, old) and not timing_before_count(old, old)
-    assert not timing_before_count(None, new)  # a board just opened: its count is not the host's to know
+    assert timing_before_count(None, new)  # a first configuration: from the count 0 the identification leaves
     period_us, scan_us = count_raise_timing(new)
     assert period_us == firmware_period_us(new.rate_hz)
     assert scan_us == pytest.approx(worst_scan_s(new) * 1e6)

@@ -201,19 +201,19 @@ def worst_scan_s(cfg: StimConfig) -> float:
 
 
 def timing_before_count(old: StimConfig | None, new: StimConfig) -> bool:
-    """Whether a configuration writes its rate and widths before its electrode count: when it raises the
-    count of a configuration in force.
+    """Whether a configuration writes its rate and widths before its electrode count: when the count
+    rises — above the configuration in force, or from the count 0 the identification leaves (the first
+    configuration of a device).
 
     The firmware scans the new count at whatever rate and widths are in force when it reads the count.
     Written after it, the old rate runs the longer scan for as long as the rest of the configuration takes
-    to read: from 32 to 255 channels at 100 Hz that scan is longer than the period, the alarm fires back
-    to back, the main loop never reads again and everything written behind the count is lost in the
-    queue.  Written first, the new timing is in force when the count rises, so the scans of the
-    transition are the old count's at the new timing (shorter than the new count's, which the guard
-    checked) and the new count's own.  A count that stays or falls keeps the order it always had; the
-    count of a board just opened is not the host's to know (the first configuration proves its queue
-    read before any long write)."""
-    return old is not None and new.electrode_count > old.electrode_count
+    to read: from 32 to 255 channels at 100 Hz (a configuration in force, or the rate a previous program
+    left on the board) that scan is longer than the period, the alarm fires back to back, the main loop
+    never reads again and everything written behind the count is lost in the queue.  Written first, the
+    new timing is in force when the count rises, so the scans of the transition are the old count's at the
+    new timing (no longer than the new count's, which the guard checked; none at all at count 0) and the
+    new count's own.  A count that stays or falls keeps the order it always had."""
+    return old is None or new.electrode_count > old.electrode_count
 
 
 def count_raise_timing(new: StimConfig) -> tuple[float, float]:
