@@ -151,3 +151,15 @@ def test_the_raised_count_is_the_one_the_board_scans(firmware: str) -> None:
     on = {int(c) for c in table["channel"][stim]}
     assert on == set(range(0, 255, 2))
     assert table["current_ua"].max() <= ex.CAP_UA
+
+
+@pytest.mark.parametrize("firmware", ["v1.2", "v2"])
+def test_a_program_that_opens_the_board_again_raises_the_count_without_loss(firmware: str) -> None:
+    """Depth-2 sequence 707: a new device on the board a program left at 32 electrodes and 100 Hz
+    configures 255.  Its first configuration raises the count from the identification's 0 at that rate:
+    written before the new rate, the 255-channel scan would overrun it (v1.2 lost bytes, v2's sync proof
+    failed)."""
+    assert ex.describe(707, 2, (firmware,)) == f"{firmware} from stimulating: close+reopen, configure(255)"
+    r = ex.run_sequence(707, 2, (firmware,))
+    assert r.lost_bytes == 0 and r.errors == [], (r.hazard_counts, r.errors)
+    assert "queue_overflow" not in r.hazards and "overrun" not in r.hazards, r.hazard_counts
