@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
@@ -18,8 +19,10 @@ import safety_campaign as sc  # noqa: E402
 
 from tactdeform_hw.device.driver.base import LinkState  # noqa: E402
 from tactdeform_hw.device.safety.guard import SafetyGuard  # noqa: E402
+from tactdeform_hw.emulator.firmware.scan import PulseKind  # noqa: E402
 
 FW = ("v2",)
+STIM_KINDS = (int(PulseKind.MONO), int(PulseKind.BI_ANODIC), int(PulseKind.BI_CATHODIC))
 
 
 def slice_after(first_call: str, start: str = "stimulating", depth: int = 2) -> tuple[int, int]:
@@ -114,3 +117,49 @@ def test_the_command_line_prints_the_count_and_replays_one_sequence(
     assert '"sequences": 3' in out.out and "exhaustive: 3 sequences of up to 0 calls" in out.err
     assert sc.main(["--exhaustive", "--depth", "1", "--firmware", "v1.2", "--only", "29"]) == 0
     assert '"sequence": "v1.2 from stimulating: set_current(cap+step)"' in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("firmware", ["v1.2", "v2"])
+def test_raising_the_count_while_stimulating_loses_no_byte(firmware: str) -> None:
+    """Depth-1 sequence 23: from 32 electrodes stimulating to 255.  Were the count read at the old, shorter
+    period, the 255-channel scan would overrun it and starve the parser: the bytes behind the count would be
+    lost in the device's queue."""
+    assert ex.decode(23, 1, (firmware,)) == (firmware, "stimulating", (2,))
+    assert ex.CALLS[2].name == "configure(255)"
+    r = ex.run_sequence(23, 1, (firmware,))
+    assert r.lost_bytes == 0 and r.losses == 0, r.hazard_counts
+    assert "queue_overflow" not in r.hazards and "overrun" not in r.hazards, r.hazard_counts
+    assert r.errors == [] and r.over_limit == 0 and r.meant_off == 0
+    assert sc.main(["--exhaustive", "--depth", "1", "--firmware", firmware, "--only", "23"]) == 0
+
+
+@pytest.mark.parametrize("firmware", ["v1.2", "v2"])
+def test_the_raised_count_is_the_one_the_board_scans(firmware: str) -> None:
+    """After the raise, the even electrodes up to 254 deliver at the cap and no odd one delivers: every
+    byte of the configuration and of the pattern behind it was read (on the delivered pulses)."""
+    s = ex.ExhaustiveSession(23, firmware, "stimulating")
+    emu = s.port.emulator
+    s.configure(255)
+    s.pattern(1)
+    since_s = s.port.now_s
+    s.port.advance(3 * 1e6 / ex.config(255).rate_hz / 1e6)
+    assert s.res.errors == []
+    assert [h.kind.value for h in emu.hazards if h.kind.value in ("queue_overflow", "overrun")] == []
+    assert sum(lo.count for lo in emu.losses) == 0
+    table = emu.reports.pulse_table(t0_us=since_s * 1e6)
+    stim = np.isin(table["kind"], STIM_KINDS) & (table["current_ua"] > 0)
+    on = {int(c) for c in table["channel"][stim]}
+    assert on == set(range(0, 255, 2))
+    assert table["current_ua"].max() <= ex.CAP_UA
+
+
+@pytest.mark.parametrize("firmware", ["v1.2", "v2"])
+def test_a_program_that_opens_the_board_again_raises_the_count_without_loss(firmware: str) -> None:
+    """Depth-2 sequence 707: a new device on the board a program left at 32 electrodes and 100 Hz
+    configures 255.  Its first configuration raises the count from the identification's 0 at that rate:
+    written before the new rate, the 255-channel scan would overrun it (v1.2 lost bytes, v2's sync proof
+    failed)."""
+    assert ex.describe(707, 2, (firmware,)) == f"{firmware} from stimulating: close+reopen, configure(255)"
+    r = ex.run_sequence(707, 2, (firmware,))
+    assert r.lost_bytes == 0 and r.errors == [], (r.hazard_counts, r.errors)
+    assert "queue_overflow" not in r.hazards and "overrun" not in r.hazards, r.hazard_counts

@@ -10,13 +10,17 @@ import pytest
 
 from tactdeform_hw.clock import InstantClock, MonotonicClock, SimulatedClock
 from tactdeform_hw.device import EtactileKitDevice, StimConfig, open_device
+from tactdeform_hw.device.driver.dialect import count_raise_timing, scan_of, timing_before_count, worst_scan_s
 from tactdeform_hw.device.driver.pacing import Pacer, PacingPolicy, default_pacer, padding_for
 from tactdeform_hw.device.safety.guard import TACTDEFORM_REGION_OF, SafetyGuard
 from tactdeform_hw.emulator.faults import TimedPort
 from tactdeform_hw.emulator.firmware.hazards import HazardKind
 from tactdeform_hw.emulator.serving.in_process import EmulatorPort
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.errors import ShortReplyError
-from tactdeform_hw.protocol.constants import PAYLOAD_KIND
+from tactdeform_hw.protocol.constants import PAYLOAD_KIND, Opcode
+from tactdeform_hw.protocol.firmware_math import firmware_period_us
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import safety_scenarios as ss  # noqa: E402
@@ -257,3 +261,50 @@ def test_v2_a_pattern_written_alone_is_torn_when_the_parsers_tick_falls_just_bef
     torn = [h for h in emu.hazards if h.kind is HazardKind.TORN_PATTERN]
     assert len(torn) == 1 and torn[0].time_us == alarm / 1000
     assert 0 < torn[0].detail["new_channels"] < n
+
+
+def test_a_raised_count_is_paced_by_its_own_scan_at_the_new_period() -> None:
+    """The pacing rule of a count raised while a configuration is in force: the new rate and widths go
+    first, and the bytes behind the count are paced by the new count's longest scan at the new period —
+    never by the old count's scan, and never at the old period, which the new count's scan overruns."""
+    old = StimConfig(electrode_count=32, current_ua=1500, pulse_width_us=50, rate_hz=100)
+    new = StimConfig(electrode_count=255, current_ua=1500, pulse_width_us=50, rate_hz=26)
+    assert timing_before_count(old, new)
+    assert not timing_before_count(new, old) and not timing_before_count(old, old)
+    assert timing_before_count(None, new)  # a first configuration: from the count 0 the identification leaves
+    period_us, scan_us = count_raise_timing(new)
+    assert period_us == firmware_period_us(new.rate_hz)
+    assert scan_us == pytest.approx(worst_scan_s(new) * 1e6)
+    idle_us = scan_of(new, bytes(255))
+    assert idle_us <= scan_us < period_us  # the raised count's scans leave a gap at the new period...
+    assert idle_us > firmware_period_us(old.rate_hz)  # ...and none at the old one: why the timing goes first
+    pacer = Pacer(clock=SimulatedClock())
+    pacer.set_timing(firmware_period_us(old.rate_hz) / 1e6, scan_of(old, bytes(32)) / 1e6)
+    old_interval_s = pacer.payload_interval_s()
+    pacer.set_timing(period_us / 1e6, scan_us / 1e6)
+    assert pacer.payload_interval_s() > period_us / 1e6 > old_interval_s  # one command per scan at most
+
+
+@pytest.mark.parametrize("firmware", ["v1.2", "v2"])
+def test_a_raised_count_is_written_after_the_new_rate(firmware: str) -> None:
+    """On the wire: raising 32 -> 255 writes the rate before the count; lowering 255 -> 32 keeps the count
+    first (the scan shortens: the order every other configuration has always had)."""
+    emu = (TimedEmulatorV2 if firmware == "v2" else TimedEmulator)("compact", 8, link="usb")
+    port = TimedPort(emu, link="usb", faults=[], seed=0, robust_encoding=False)
+    dev = EtactileKitDevice(port, firmware=firmware, guard=SafetyGuard(1500))  # type: ignore[arg-type]
+    small = StimConfig(electrode_count=32, current_ua=1500, pulse_width_us=50, rate_hz=100)
+    large = StimConfig(electrode_count=255, current_ua=1500, pulse_width_us=50, rate_hz=26)
+    dev.configure(small)
+    writes: list[bytes] = []
+    write = port.write
+    port.write = lambda data: writes.append(bytes(data)) or write(data)  # type: ignore[method-assign]
+    dev.configure(large)
+    order = [w[:2] for w in writes]
+    rate = bytes((Opcode.FREQUENCY, 26))
+    assert order.index(rate) < order.index(bytes((Opcode.ELECTRODE_NUM, 255)))
+    writes.clear()
+    dev.configure(small)
+    order = [w[:2] for w in writes]
+    assert order.index(bytes((Opcode.ELECTRODE_NUM, 32))) < order.index(bytes((Opcode.FREQUENCY, 100)))
+    assert sum(lo.count for lo in emu.losses) == 0
+    dev.close()

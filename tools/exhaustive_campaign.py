@@ -33,10 +33,12 @@ random campaign's sessions and run on ``--jobs`` or ``--cluster`` with the same 
 
 The verdict, on the delivered pulses alone: no pulse above the session's limit (the cap, whatever the
 guard believes: the judge does not ask the guard), and no stimulation pulse on an electrode the host had
-switched off for longer than the settle time (``safety_campaign.SETTLE_S``).  Hazards the emulated board
-recorded are counted by kind beside the verdict, with the bytes lost in the device's receive queue and the
-defects (the hazards the random campaign judges: every kind not designed on that firmware, such as v1.2's
-torn patterns); they are reported, not judged here.
+switched off for longer than the settle time (``safety_campaign.SETTLE_S``), and no byte lost in the
+device's receive queue (as the random campaign's fault-free verdict: no fault is injected here, so a byte
+the queue discarded is one the driver wrote faster than the firmware reads — on v1.2 a loss the host may
+never notice).  Hazards the emulated board recorded are counted by kind beside the verdict, with the
+defects (the other hazards the random campaign judges: every kind not designed on that firmware, such as
+v1.2's torn patterns); those are reported, not judged here.
 """
 
 from __future__ import annotations
@@ -291,7 +293,7 @@ _REFUSALS = frozenset(c.__name__ for c in sc.REFUSALS)
 
 
 def _failed(r: sc.SessionResult) -> bool:
-    return bool(r.over_limit or r.meant_off or any(e.startswith("CRASH") for e in r.errors))
+    return bool(r.over_limit or r.meant_off or r.lost_bytes or any(e.startswith("CRASH") for e in r.errors))
 
 
 @dataclass
@@ -309,7 +311,7 @@ class ExhaustiveTally:
     errors: int = 0
     max_stim_ua: float = 0.0
     hazards: dict[str, int] = field(default_factory=dict)
-    lost_bytes: int = 0  # bytes lost in the device's receive queue (counted, not judged here)
+    lost_bytes: int = 0  # bytes lost in the device's receive queue (a sequence that loses any fails)
     defect_sequences: int = 0  # sequences that hit a hazard not designed on their firmware
     defects: dict[str, int] = field(default_factory=dict)  # records per kind, per firmware
     failures: list[tuple[int, dict[str, Any]]] = field(default_factory=list)

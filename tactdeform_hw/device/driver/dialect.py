@@ -200,6 +200,30 @@ def worst_scan_s(cfg: StimConfig) -> float:
     return min(full, period - SCAN_GAP_MIN_US) / 1e6
 
 
+def timing_before_count(old: StimConfig | None, new: StimConfig) -> bool:
+    """Whether a configuration writes its rate and widths before its electrode count: when the count
+    rises — above the configuration in force, or from the count 0 the identification leaves (the first
+    configuration of a device).
+
+    The firmware scans the new count at whatever rate and widths are in force when it reads the count.
+    Written after it, the old rate runs the longer scan for as long as the rest of the configuration takes
+    to read: from 32 to 255 channels at 100 Hz (a configuration in force, or the rate a previous program
+    left on the board) that scan is longer than the period, the alarm fires back to back, the main loop
+    never reads again and everything written behind the count is lost in the queue.  Written first, the
+    new timing is in force when the count rises, so the scans of the transition are the old count's at the
+    new timing (no longer than the new count's, which the guard checked; none at all at count 0) and the
+    new count's own.  A count that stays or falls keeps the order it always had."""
+    return old is None or new.electrode_count > old.electrode_count
+
+
+def count_raise_timing(new: StimConfig) -> tuple[float, float]:
+    """(period µs, scan µs) that paces the bytes behind a raised electrode count (the new timing is in
+    force, :func:`timing_before_count`): the new period and the longest scan the new count can run until
+    its all-off pattern is read — the channels above the old count hold whatever they last held, so every
+    channel counts as biphasic (:func:`worst_scan_s`)."""
+    return firmware_period_us(new.rate_hz), worst_scan_s(new) * 1e6
+
+
 def recovery_timing(state: DriverState) -> tuple[float | None, float | None]:
     """(period s, scan s) to pace and time the recovery for: the scan of the pattern last sent (a
     pattern the host does not know — after a reset, a reconnect, or before any — counts as every channel
@@ -280,7 +304,9 @@ __all__ = [
     "Plan",
     "PlanBuilder",
     "Write",
+    "count_raise_timing",
     "recovery_timing",
     "scan_of",
+    "timing_before_count",
     "worst_scan_s",
 ]

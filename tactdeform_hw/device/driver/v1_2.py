@@ -11,7 +11,7 @@ electrode count, and 0xFF whose reply length proves the count before any pattern
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import SimulatedClock
@@ -21,8 +21,10 @@ from tactdeform_hw.device.driver.dialect import (
     LinkOps,
     Plan,
     Write,
+    count_raise_timing,
     recovery_timing,
     scan_of,
+    timing_before_count,
     worst_scan_s,
 )
 from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, SCAN_GAP_MIN_US, Pacer, firmware_period_us
@@ -80,7 +82,9 @@ class V12Dialect:
     def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
         """The height to 0 and every channel off first (no pulse uses a mixture of old and new settings),
         the electrode count followed at once by an all-off pattern of the new length (no stale channel
-        above the old count comes back), polarity while all is off, the participant's current last."""
+        above the old count comes back), polarity while all is off, the participant's current last.  A
+        count that rises goes after the rate and widths, so its longer scan never meets the old period
+        (:func:`~.dialect.timing_before_count`)."""
         if ops.needs_resync():
             ops.recover()
         pacer = ops.pacer()
@@ -145,11 +149,25 @@ class V12Dialect:
             send(p.encode_pattern(bytes(old.electrode_count)))
         send(p.encode_sense_height(0))
         st.sense_byte = 0
+        timing_first = timing_before_count(old, config)
+        if timing_first:
+            self._write_timing(send, config, old)
         send(p.encode_electrode_num(n))
+        if timing_first and pacer.period_s is not None and pacer.scan_s is not None:
+            # behind the raised count, until its all-off pattern is read, the new count's longest scan runs
+            ops.pace_for([(pacer.period_s * 1e6, pacer.scan_s * 1e6), count_raise_timing(config)])
         send(p.encode_pattern(bytes(n)))
         st.last_pattern = bytes(n)
-        # a longer period goes first and a shorter one last, so no scan of the new widths meets the old,
-        # shorter period (the board's own period is unknown after opening or a reset: 10 ms at power-on)
+        if not timing_first:
+            self._write_timing(send, config, old)
+        send(p.encode_sense_height(sense_code(config.sense_current_ua, ops.transfer)))
+        st.sense_byte = sense_code(config.sense_current_ua, ops.transfer)
+
+    @staticmethod
+    def _write_timing(send: Callable[[bytes], None], config: StimConfig, old: StimConfig | None) -> None:
+        """Rate, polarity and widths.  A longer period goes first and a shorter one last, so no scan of the
+        new widths meets the old, shorter period (the board's own period is unknown after opening or a
+        reset: 10 ms at power-on)."""
         longer = old is None or firmware_period_us(config.rate_hz) >= firmware_period_us(old.rate_hz)
         if longer:
             send(p.encode_frequency(config.rate_hz))
@@ -159,8 +177,6 @@ class V12Dialect:
         send(p.encode_discharge(config.discharge_us))
         if not longer:
             send(p.encode_frequency(config.rate_hz))
-        send(p.encode_sense_height(sense_code(config.sense_current_ua, ops.transfer)))
-        st.sense_byte = sense_code(config.sense_current_ua, ops.transfer)
 
     # --- frames ---------------------------------------------------------------------------------------------
 

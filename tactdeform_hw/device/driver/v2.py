@@ -53,6 +53,7 @@ from tactdeform_hw.device.driver.dialect import (
     PlanBuilder,
     Write,
     recovery_timing,
+    timing_before_count,
 )
 from tactdeform_hw.device.driver.firmware_probe import PROBE, SYNC_CHECK, FirmwareMismatchError
 from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
@@ -202,7 +203,12 @@ class V2Dialect:
         st.last_pattern = bytes(n)
 
     def _raise_count(
-        self, b: PlanBuilder, n: int, write: Callable[[bytes], Write], write_count: Callable[[bytes], Write]
+        self,
+        b: PlanBuilder,
+        n: int,
+        write: Callable[[bytes], Write],
+        write_count: Callable[[bytes], Write],
+        before_count: Sequence[bytes] = (),
     ) -> None:
         """Electrode count ``n`` with no stale channel scanned: sense height 0, mode 2 (every pulse at the
         sense height, 0), sense width 0, the count, its zero pattern, mode 0.  Mode 2 comes right after the
@@ -215,6 +221,8 @@ class V2Dialect:
         st.sense_byte = 0
         b.add(write(c2.encode_stim_mode(c2.STIM_MODE_IMPEDANCE)))
         b.add(write(c2.encode_sense_width(0)))
+        for data in before_count:  # (a configuration's new rate and widths: no pattern height is scanned)
+            b.add(write(data))
         b.add(write_count(c2.encode_electrode_num(n)))
         b.add(write(c2.encode_pattern([0] * n, electrode_num=n)))
         b.add(write(c2.encode_stim_mode(c2.STIM_MODE_MONOPHASIC)))
@@ -402,7 +410,9 @@ class V2Dialect:
 
     def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
         """Everything off first (zero pattern), the count raised without stale channels, mode 0, polarity
-        while all is off, widths and rate, then a proof by the sync check."""
+        while all is off, widths and rate, then a proof by the sync check.  A count that rises goes after
+        the rate, polarity and widths (:func:`~.dialect.timing_before_count`): its longer scan never meets
+        the old period."""
         # v2 pulses every channel in every scan (an off one at height 0): a configuration whose monophasic
         # scan fills the period starves the parser whatever the pattern, so it is refused before any byte
         ops.guard.check_scan(
@@ -429,11 +439,22 @@ class V2Dialect:
             ops.run(b.done(), st)
             ops.prove(in_force)  # a long pattern: proved read before the next one
         n = config.electrode_count
+        timing_first = timing_before_count(old, config)
         b = PlanBuilder(st)
-        self._raise_count(b, n, Write, _count_write)
+        # a rising count: rate and widths before it, once mode 2 holds every pulse at sense height 0
+        timing = self._rate_and_widths(config, old, after_count=False) if timing_first else []
+        self._raise_count(b, n, Write, _count_write, timing)
         ops.run(b.done(), st)
         ops.prove(n)
-        self._write_timing(ops, st, config, old)
+        if timing_first:
+            ops.send(c2.encode_polarity(POLARITY_CODE[config.polarity]))  # all is off: mode 0, zero pattern
+            ops.send(c2.encode_sense_width(config.sense_width_us))  # the count's raise set it to 0
+        else:
+            for data in self._rate_and_widths(config, old, after_count=True):
+                ops.send(data)
+        sense = ops.transfer.to_code(config.sense_current_ua, "sense_current_ua")
+        ops.send(c2.encode_sense_height(sense))  # used only in mode 2, which never runs with heights
+        st.sense_byte = sense
         st.config = config
         st.target_ua = config.current_ua
         st.current_ua = 0
@@ -445,23 +466,25 @@ class V2Dialect:
         ops.prove(n)
         pacer.set_timing(new_period / 1e6, st.scan_us / 1e6)
 
-    def _write_timing(
-        self, ops: LinkOps, st: DriverState, config: StimConfig, old: StimConfig | None
-    ) -> None:
-        """Rate (a longer period first, a shorter one last), polarity, widths and the sense height."""
+    @staticmethod
+    def _rate_and_widths(config: StimConfig, old: StimConfig | None, *, after_count: bool) -> list[bytes]:
+        """Rate (a longer period first, a shorter one last), polarity and widths.  Written after the count,
+        except when the count rises (:func:`~.dialect.timing_before_count`): then rate, pulse width and
+        discharge go before it, under mode 2, so the longer scan meets the new period rather than the old;
+        polarity (no scan's length depends on it) and the sense width (the raise holds it at 0) follow the
+        count, once the zero pattern and mode 0 are in force."""
         new_period = firmware_period_us(config.rate_hz)
         longer = old is None or new_period >= firmware_period_us(old.rate_hz)
-        if longer:
-            ops.send(c2.encode_frequency(config.rate_hz))
-        ops.send(c2.encode_polarity(POLARITY_CODE[config.polarity]))
-        ops.send(c2.encode_pulse_width(config.pulse_width_us))  # >= 1: a width of 0 would still pulse
-        ops.send(c2.encode_sense_width(config.sense_width_us))
-        ops.send(c2.encode_discharge(config.discharge_us))
+        out = [c2.encode_frequency(config.rate_hz)] if longer else []
+        if after_count:
+            out.append(c2.encode_polarity(POLARITY_CODE[config.polarity]))
+        out.append(c2.encode_pulse_width(config.pulse_width_us))  # >= 1: a width of 0 would still pulse
+        if after_count:
+            out.append(c2.encode_sense_width(config.sense_width_us))
+        out.append(c2.encode_discharge(config.discharge_us))
         if not longer:
-            ops.send(c2.encode_frequency(config.rate_hz))
-        sense = ops.transfer.to_code(config.sense_current_ua, "sense_current_ua")
-        ops.send(c2.encode_sense_height(sense))  # used only in mode 2, which never runs with heights
-        st.sense_byte = sense
+            out.append(c2.encode_frequency(config.rate_hz))
+        return out
 
     # --- frames ---------------------------------------------------------------------------------------------
 
