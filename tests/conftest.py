@@ -50,6 +50,7 @@ SLOW = frozenset(
         "test_hostbuild_campaign.py",
         "test_hostbuild_timed.py",
         "test_identification_seams.py",
+        "test_live_lsl.py",
         "test_live_tools.py",
         "test_safety_campaign.py",
         "test_safety_failsafe.py",

@@ -322,6 +322,8 @@ class LslTrackingSource:
                     f"{resolve_timeout_s:g} s"
                 )
             inlet = pylsl.StreamInlet(found[0])
+            # connected now, not at the first pull: the samples sent from here on are all received
+            inlet.open_stream(timeout=resolve_timeout_s)
         self._inlet = inlet
 
     def receive(self, timeout_s: float) -> tuple[Sequence[float], float] | None:
