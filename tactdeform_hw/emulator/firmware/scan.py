@@ -453,6 +453,11 @@ class ScanTemplate:
         return self._events
 
 
+#: template, block and skin-outcome caches shared by the engines of one (model, skin, outputs, cache size)
+_SHARED_CACHES: dict[tuple[Any, ...], tuple[OrderedDict[Any, Any], dict[Any, Any], dict[Any, Any]]] = {}
+_SHARED_CACHE_MODELS = 8  # distinct models kept at once (a campaign uses one or two)
+
+
 class ScanEngine:
     """Builds, caches and hands out :class:`ScanTemplate` s (LRU over configuration × chain state)."""
 
@@ -467,10 +472,19 @@ class ScanEngine:
         self.skin = skin
         self.outputs = outputs
         self.cache_size = cache_size
-        self._cache: OrderedDict[tuple[ScanConfig, ChainState], ScanTemplate] = OrderedDict()
-        self._blocks: dict[tuple[Any, ...], Any] = {}
-        self._outcomes: dict[tuple[int, int, int], Any] = {}
-        self.built = 0  # templates built (cache misses)
+        # A template is a pure function of (timing model, skin, outputs, configuration, chain state) and is
+        # never written to, so engines of equal models share their caches: a campaign that builds a new
+        # emulator per session builds each scan once, not once per session.
+        shared = _SHARED_CACHES.get((model, skin, outputs, cache_size))
+        if shared is None:
+            if len(_SHARED_CACHES) >= _SHARED_CACHE_MODELS:
+                _SHARED_CACHES.clear()
+            shared = (OrderedDict(), {}, {})
+            _SHARED_CACHES[(model, skin, outputs, cache_size)] = shared
+        self._cache: OrderedDict[tuple[ScanConfig, ChainState], ScanTemplate] = shared[0]
+        self._blocks: dict[tuple[Any, ...], Any] = shared[1]
+        self._outcomes: dict[tuple[int, int, int], Any] = shared[2]
+        self.built = 0  # templates this engine built (misses of the shared cache)
 
     def template(self, cfg: ScanConfig, chain: ChainState = POWER_ON_CHAIN) -> ScanTemplate:
         key = (cfg, chain)

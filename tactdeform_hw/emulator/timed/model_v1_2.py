@@ -390,11 +390,11 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
             return
         took = self.queue.offer(d.data)
         if took:
-            host = d.host_offset
-            self.host.seg_dev.append(self.host.dev_total)
-            self.host.segments.append((self.host.dev_total, host, took, t))
-            self.host.dev_total += took
-            if self.parser.locked:
+            hl = self.host
+            hl.seg_dev.append(hl.dev_total)
+            hl.segments.append((hl.dev_total, d.host_offset, took, t))
+            hl.dev_total += took
+            if self.emulator.parser.locked:
                 self.hazards.append(
                     Hazard(
                         HazardKind.UNREAD_WHILE_LOCKED,
@@ -405,15 +405,16 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                 )
         if took < len(d.data):
             self._loss(t, d.data[took:], d.host_offset + took if d.host_offset >= 0 else -1, "queue_full")
-        if took and self.fw.main_wait is not None and self.fw.main_wait != _WAIT_LOCKED:
-            if self.fw.main_wait == _WAIT_TICK:
+        fw = self.fw
+        if took and fw.main_wait is not None and fw.main_wait != _WAIT_LOCKED:
+            if fw.main_wait == _WAIT_TICK:
                 nxt = self._tick_at_or_after(t)
             else:  # spinning on a u16: reads as soon as the byte is there
                 nxt = t
-            if self.fw.busy_from <= nxt < self.fw.busy_until:
-                nxt = self.fw.busy_until
-            self.fw.main_next = nxt
-            self.fw.main_wait = None
+            if fw.busy_from <= nxt < fw.busy_until:
+                nxt = fw.busy_until
+            fw.main_next = nxt
+            fw.main_wait = None
 
     def parser_status(self) -> str:
         """What the parser is doing, in words."""
@@ -440,11 +441,14 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
 
     def _main_call(self, tc: int) -> None:
         m = self.model
-        cpu0, k0 = self.fw.call if self.fw.call is not None else (0, 0)
-        n, outcome = self.parser.plan(self.queue.buf)
+        fw = self.fw
+        p = self.parser
+        buf = self.queue.buf
+        cpu0, k0 = fw.call if fw.call is not None else (0, 0)
+        n, outcome = p.plan(buf)
         if n == 0:
-            self.fw.call = None
-            self.fw.main_next = None
+            fw.call = None
+            fw.main_next = None
             if outcome is CallResult.LOCKED:
                 self.fw.main_wait = _WAIT_LOCKED
             elif outcome is CallResult.STUCK_U16:
@@ -452,12 +456,13 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
             else:
                 self.fw.main_wait = _WAIT_TICK
             return
-        extra = m.hv513_detect_ns if (self.parser.cmd is None and self.queue.buf[0] == _HV513) else 0
+        extra = m.hv513_detect_ns if (p.cmd is None and buf[0] == _HV513) else 0
         base = tc + m.call_ns + extra - cpu0
-        ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
+        byte_ns = m.byte_ns
+        ends = [base + (k0 + i) * byte_ns for i in range(1, n + 1)]
         ta = self.next_alarm
         if ta < ends[-1]:
-            j = self.parser.read_before_interrupt(self.queue.buf, sum(1 for e in ends if e < ta))
+            j = p.read_before_interrupt(buf, sum(1 for e in ends if e < ta))
             if j:
                 self._feed(j, ends[:j], None)
             self.rec.interrupted_calls += 1
@@ -506,35 +511,37 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
     def _feed(self, j: int, ends: list[int], outcome: CallResult | None) -> None:
         """Hand ``j`` bytes to the parser and run one call over them (times: ``ends``)."""
         p = self.parser
+        fw = self.fw
+        rec = self.rec
         data = self.queue.take(j)
-        dev0 = self.fw.parser_base + p.offset
+        dev0 = fw.parser_base + p.offset
         if p.cmd is None:
             op = data[0]
             if p.is_command(op):
                 host = self._host_of(dev0)
                 rep = CommandReport(dev0, host, op, Opcode(op).name, sent_us=us_of(self._sent_at(host)))
-                self.rec.cur = rep
-                self.fw.stuck_reported = False
-                self.fw.stuck_at = None
+                rec.cur = rep
+                fw.stuck_reported = False
+                fw.stuck_at = None
                 if op == _PATTERN:
                     regs = self.registers
-                    self.rec.cur_old = bytes(regs.stim_pattern[: regs.electrode_num])
-                    self.rec.cur_written = {}
-                    self.rec.cur_first = {}
+                    rec.cur_old = bytes(regs.stim_pattern[: regs.electrode_num])
+                    rec.cur_written = {}
+                    rec.cur_first = {}
                 first_ch, skip = 0, 1
             else:
                 first_ch, skip = 0, j
         else:
             first_ch, skip = p.count, 0
         if (
-            self.rec.cur is not None
-            and self.rec.cur.opcode == _PATTERN
+            rec.cur is not None
+            and rec.cur.opcode == _PATTERN
             and (p.cmd == _PATTERN or (p.cmd is None and data[0] == _PATTERN))
         ):
             for i in range(skip, j):
-                self.rec.cur_written[first_ch + i - skip] = ends[i]
-        self.fw.call_end_ns = ends[-1]
-        self.fw.call_dev_last = dev0 + j - 1
+                rec.cur_written[first_ch + i - skip] = ends[i]
+        fw.call_end_ns = ends[-1]
+        fw.call_dev_last = dev0 + j - 1
         p.receive(data)
         r = p.step()
         if p.pending and not p.locked:  # pragma: no cover - the plan hands over whole units only
