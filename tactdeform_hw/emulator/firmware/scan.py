@@ -430,6 +430,8 @@ class ScanTemplate:
     #: makes the GPIO/DAC event arrays of this template on first demand (they are rarely needed)
     event_builder: Any = field(repr=False, default=None)
     _events: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(repr=False, default=None)
+    #: :meth:`first_of` answers by kinds asked (a template never changes; the timed model asks per scan)
+    _firsts: dict[tuple[int, ...] | None, int | None] = field(repr=False, compare=False, default_factory=dict)
 
     @property
     def steady(self) -> bool:
@@ -438,6 +440,13 @@ class ScanTemplate:
 
     def first_of(self, kinds: tuple[int, ...] | None = None) -> int | None:
         """Earliest onset among pulses of the given PulseKinds (all when None); None if there is none."""
+        if kinds in self._firsts:
+            return self._firsts[kinds]
+        first = self._first_of(kinds)
+        self._firsts[kinds] = first
+        return first
+
+    def _first_of(self, kinds: tuple[int, ...] | None) -> int | None:
         k = self.pulses.kind
         if k.size == 0:
             return None

@@ -378,8 +378,45 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                 self._deliver(heapq.heappop(dq)[2])
             elif ta == t:
                 self._scan(int(ta), target)
-            else:
+            elif not self._skip_unknown(int(tm), min(td, ta), target):
                 self._main_call(int(tm))
+
+    def _skip_unknown(self, tc: int, before: float, target: int) -> bool:
+        """Run, in one go, the calls that each read and ignore one non-command byte (a resync's zeros, a
+        probe's filler: most calls of a session), as long as each comes before anything else would happen
+        (a delivery, an alarm, the end of the run) and no alarm cuts it -- exactly what :meth:`_main_call`
+        does call by call.  False (nothing done) when the next call is not such a call."""
+        fw = self.fw
+        p = self.parser
+        if fw.call is not None or p.cmd is not None:
+            return False
+        buf = self.queue.buf
+        m = self.model
+        step_ns = m.call_ns + m.byte_ns
+        ta = self.next_alarm
+        k, t = 0, tc
+        for b in buf:
+            if p.is_command(b) or b == _HV513:
+                break
+            if k and not (t < before and t <= target):  # _run would take the other event first
+                break
+            end = t + step_ns
+            if ta < end:  # an alarm interrupts this call: the full path times it
+                break
+            k, t = k + 1, end
+        if k == 0:
+            return False
+        dev0 = fw.parser_base + p.offset
+        p.receive(self.queue.take(k))
+        p.ignore_unknown(k)
+        fw.call_end_ns = t
+        fw.call_dev_last = dev0 + k - 1
+        fw.call = None
+        fw.main_next = t
+        tx = p.take_tx()
+        if tx:  # pragma: no cover - an ignored byte writes nothing
+            self._send_tx(tx, t)
+        return True
 
     # --- deliveries and the queue ---------------------------------------------------------------------------
 
