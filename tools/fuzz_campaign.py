@@ -493,7 +493,7 @@ def fuzz_trajectory(src: Source) -> None:
 
     name = src.choice((*TRAJECTORIES, "", "nope"))
     # numbers only: the parameters are typed floats (the command line parses them as such)
-    kw = {
+    kw: dict[str, Any] = {
         src.choice(
             ("speed_mm_s", "rate_hz", "tremor_mm", "noise_mm", "dwell_s", "penetration_mm")
         ): src.float()
