@@ -44,6 +44,7 @@ from __future__ import annotations
 import copy
 import heapq
 import math
+from collections.abc import Callable
 from typing import Any
 
 from tactdeform_hw.emulator.core import Emulator
@@ -94,6 +95,32 @@ _PATTERN = int(Opcode.PATTERN)
 _HV513 = int(Opcode.HV513_COUNT)
 
 _WAIT_TICK, _WAIT_STUCK, _WAIT_LOCKED = "tick", "stuck", "locked"
+
+
+def _ignored_run(
+    buf: bytearray,
+    is_command: Callable[[int], bool],
+    tc: int,
+    step_ns: int,
+    before: float,
+    target: int,
+    alarm: float,
+) -> tuple[int, int]:
+    """How many calls from ``tc`` on each read one waiting non-command byte, and when the last ends: each
+    call must start before anything else happens (``before``: the next delivery or alarm; the run's
+    ``target``) -- the event loop would take that first -- and end before the next alarm, which would
+    interrupt it (the full path times that call)."""
+    k, t = 0, tc
+    for b in buf:
+        if is_command(b) or b == _HV513:
+            break
+        if k and not (t < before and t <= target):
+            break
+        end = t + step_ns
+        if alarm < end:
+            break
+        k, t = k + 1, end
+    return k, t
 
 
 class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
@@ -382,41 +409,22 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                 self._main_call(int(tm))
 
     def _skip_unknown(self, tc: int, before: float, target: int) -> bool:
-        """Run, in one go, the calls that each read and ignore one non-command byte (a resync's zeros, a
-        probe's filler: most calls of a session), as long as each comes before anything else would happen
-        (a delivery, an alarm, the end of the run) and no alarm cuts it -- exactly what :meth:`_main_call`
-        does call by call.  False (nothing done) when the next call is not such a call."""
+        """Run the calls that each read and ignore one non-command byte (a resync's zeros: most calls of a
+        session) in one go, exactly as :meth:`_main_call` would one by one (see :func:`_ignored_run`).
+        False (nothing done) when the next call is not such a call."""
         fw = self.fw
         p = self.parser
         if fw.call is not None or p.cmd is not None:
             return False
-        buf = self.queue.buf
-        m = self.model
-        step_ns = m.call_ns + m.byte_ns
-        ta = self.next_alarm
-        k, t = 0, tc
-        for b in buf:
-            if p.is_command(b) or b == _HV513:
-                break
-            if k and not (t < before and t <= target):  # _run would take the other event first
-                break
-            end = t + step_ns
-            if ta < end:  # an alarm interrupts this call: the full path times it
-                break
-            k, t = k + 1, end
+        step_ns = self.model.call_ns + self.model.byte_ns
+        k, t = _ignored_run(self.queue.buf, p.is_command, tc, step_ns, before, target, self.next_alarm)
         if k == 0:
             return False
         dev0 = fw.parser_base + p.offset
         p.receive(self.queue.take(k))
         p.ignore_unknown(k)
-        fw.call_end_ns = t
-        fw.call_dev_last = dev0 + k - 1
-        fw.call = None
-        fw.main_next = t
-        tx = p.take_tx()
-        if tx:  # pragma: no cover - an ignored byte writes nothing
-            self._send_tx(tx, t)
-        return True
+        fw.call_end_ns, fw.call_dev_last, fw.main_next = t, dev0 + k - 1, t  # fw.call stays None
+        return True  # (an ignored byte writes no reply)
 
     # --- deliveries and the queue ---------------------------------------------------------------------------
 
@@ -495,8 +503,7 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
             return
         extra = m.hv513_detect_ns if (p.cmd is None and buf[0] == _HV513) else 0
         base = tc + m.call_ns + extra - cpu0
-        byte_ns = m.byte_ns
-        ends = [base + (k0 + i) * byte_ns for i in range(1, n + 1)]
+        ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
         ta = self.next_alarm
         if ta < ends[-1]:
             j = p.read_before_interrupt(buf, sum(1 for e in ends if e < ta))
