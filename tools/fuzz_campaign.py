@@ -58,7 +58,7 @@ DEFAULT_BUDGET = 200
 #: Examples per chunk: a chunk of the slowest target (the timed models) takes about a second.
 DEFAULT_CHUNK = 100
 #: Checks a shrink may make before it reports what it has (a shrink is bounded, whatever the example).
-SHRINK_CHECKS = 2000
+SHRINK_CHECKS = 400
 #: Longest example a generator makes (bytes).
 MAX_EXAMPLE_BYTES = 600
 
