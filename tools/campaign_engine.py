@@ -56,7 +56,13 @@ CHUNK_ATTEMPTS = 4
 #: How long a run waits for a remote scheduler to answer.
 CONNECT_TIMEOUT_S = 10.0
 #: Tool files a cluster's workers need beside the installed package (uploaded to them).
-TOOL_FILES = ("campaign_engine.py", "safety_campaign.py", "seam_sessions.py", "exhaustive_campaign.py")
+TOOL_FILES = (
+    "campaign_engine.py",
+    "safety_campaign.py",
+    "seam_sessions.py",
+    "exhaustive_campaign.py",
+    "fuzz_campaign.py",
+)
 
 
 class EngineError(TactDeformError):

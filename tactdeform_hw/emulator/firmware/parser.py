@@ -218,6 +218,17 @@ class Parser(ParserBase, UnknownRuns):
             self._start(op, size, self.base + self.pos - 1)
         return self._consume_payload()
 
+    def ignore_unknown(self, count: int) -> None:
+        """``count`` calls that each read one non-command byte and ignore it, in one go: what ``count``
+        calls of :meth:`step` do on them (the timed model's fast path for a resync's zeros)."""
+        start, end = self.pos, self.pos + count
+        if self.cmd is not None or end > len(self.rx) or any(b in _SIZE for b in self.rx[start:end]):
+            raise AssertionError("ignore_unknown: not a run of non-command bytes between commands")
+        if count > 0:
+            self._note_unknown(self.base + start)
+            self._unknown_len += count - 1
+            self.pos = end
+
     # --- untimed fast path ---------------------------------------------------------------------------------
 
     def poll_until(self, to_us: int, settle: bool) -> None:

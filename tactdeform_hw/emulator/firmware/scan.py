@@ -430,6 +430,8 @@ class ScanTemplate:
     #: makes the GPIO/DAC event arrays of this template on first demand (they are rarely needed)
     event_builder: Any = field(repr=False, default=None)
     _events: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(repr=False, default=None)
+    #: :meth:`first_of` answers by kinds asked (a template never changes; the timed model asks per scan)
+    _firsts: dict[tuple[int, ...] | None, int | None] = field(repr=False, compare=False, default_factory=dict)
 
     @property
     def steady(self) -> bool:
@@ -438,6 +440,13 @@ class ScanTemplate:
 
     def first_of(self, kinds: tuple[int, ...] | None = None) -> int | None:
         """Earliest onset among pulses of the given PulseKinds (all when None); None if there is none."""
+        if kinds in self._firsts:
+            return self._firsts[kinds]
+        first = self._first_of(kinds)
+        self._firsts[kinds] = first
+        return first
+
+    def _first_of(self, kinds: tuple[int, ...] | None) -> int | None:
         k = self.pulses.kind
         if k.size == 0:
             return None
@@ -451,6 +460,11 @@ class ScanTemplate:
         if self._events is None:
             self._events = self.event_builder(self)
         return self._events
+
+
+#: template, block and skin-outcome caches shared by the engines of one (model, skin, outputs, cache size)
+_SHARED_CACHES: dict[tuple[Any, ...], tuple[OrderedDict[Any, Any], dict[Any, Any], dict[Any, Any]]] = {}
+_SHARED_CACHE_MODELS = 8  # distinct models kept at once (a campaign uses one or two)
 
 
 class ScanEngine:
@@ -467,10 +481,19 @@ class ScanEngine:
         self.skin = skin
         self.outputs = outputs
         self.cache_size = cache_size
-        self._cache: OrderedDict[tuple[ScanConfig, ChainState], ScanTemplate] = OrderedDict()
-        self._blocks: dict[tuple[Any, ...], Any] = {}
-        self._outcomes: dict[tuple[int, int, int], Any] = {}
-        self.built = 0  # templates built (cache misses)
+        # A template is a pure function of (timing model, skin, outputs, configuration, chain state) and is
+        # never written to, so engines of equal models share their caches: a campaign that builds a new
+        # emulator per session builds each scan once, not once per session.
+        shared = _SHARED_CACHES.get((model, skin, outputs, cache_size))
+        if shared is None:
+            if len(_SHARED_CACHES) >= _SHARED_CACHE_MODELS:
+                _SHARED_CACHES.clear()
+            shared = (OrderedDict(), {}, {})
+            _SHARED_CACHES[(model, skin, outputs, cache_size)] = shared
+        self._cache: OrderedDict[tuple[ScanConfig, ChainState], ScanTemplate] = shared[0]
+        self._blocks: dict[tuple[Any, ...], Any] = shared[1]
+        self._outcomes: dict[tuple[int, int, int], Any] = shared[2]
+        self.built = 0  # templates this engine built (misses of the shared cache)
 
     def template(self, cfg: ScanConfig, chain: ChainState = POWER_ON_CHAIN) -> ScanTemplate:
         key = (cfg, chain)

@@ -44,6 +44,7 @@ from __future__ import annotations
 import copy
 import heapq
 import math
+from collections.abc import Callable
 from typing import Any
 
 from tactdeform_hw.emulator.core import Emulator
@@ -94,6 +95,32 @@ _PATTERN = int(Opcode.PATTERN)
 _HV513 = int(Opcode.HV513_COUNT)
 
 _WAIT_TICK, _WAIT_STUCK, _WAIT_LOCKED = "tick", "stuck", "locked"
+
+
+def _ignored_run(
+    buf: bytearray,
+    is_command: Callable[[int], bool],
+    tc: int,
+    step_ns: int,
+    before: float,
+    target: int,
+    alarm: float,
+) -> tuple[int, int]:
+    """How many calls from ``tc`` on each read one waiting non-command byte, and when the last ends: each
+    call must start before anything else happens (``before``: the next delivery or alarm; the run's
+    ``target``) -- the event loop would take that first -- and end before the next alarm, which would
+    interrupt it (the full path times that call)."""
+    k, t = 0, tc
+    for b in buf:
+        if is_command(b) or b == _HV513:
+            break
+        if k and not (t < before and t <= target):
+            break
+        end = t + step_ns
+        if alarm < end:
+            break
+        k, t = k + 1, end
+    return k, t
 
 
 class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
@@ -378,8 +405,26 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                 self._deliver(heapq.heappop(dq)[2])
             elif ta == t:
                 self._scan(int(ta), target)
-            else:
+            elif not self._skip_unknown(int(tm), min(td, ta), target):
                 self._main_call(int(tm))
+
+    def _skip_unknown(self, tc: int, before: float, target: int) -> bool:
+        """Run the calls that each read and ignore one non-command byte (a resync's zeros: most calls of a
+        session) in one go, exactly as :meth:`_main_call` would one by one (see :func:`_ignored_run`).
+        False (nothing done) when the next call is not such a call."""
+        fw = self.fw
+        p = self.parser
+        if fw.call is not None or p.cmd is not None:
+            return False
+        step_ns = self.model.call_ns + self.model.byte_ns
+        k, t = _ignored_run(self.queue.buf, p.is_command, tc, step_ns, before, target, self.next_alarm)
+        if k == 0:
+            return False
+        dev0 = fw.parser_base + p.offset
+        p.receive(self.queue.take(k))
+        p.ignore_unknown(k)
+        fw.call_end_ns, fw.call_dev_last, fw.main_next = t, dev0 + k - 1, t  # fw.call stays None
+        return True  # (an ignored byte writes no reply)
 
     # --- deliveries and the queue ---------------------------------------------------------------------------
 
@@ -390,11 +435,11 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
             return
         took = self.queue.offer(d.data)
         if took:
-            host = d.host_offset
-            self.host.seg_dev.append(self.host.dev_total)
-            self.host.segments.append((self.host.dev_total, host, took, t))
-            self.host.dev_total += took
-            if self.parser.locked:
+            hl = self.host
+            hl.seg_dev.append(hl.dev_total)
+            hl.segments.append((hl.dev_total, d.host_offset, took, t))
+            hl.dev_total += took
+            if self.emulator.parser.locked:
                 self.hazards.append(
                     Hazard(
                         HazardKind.UNREAD_WHILE_LOCKED,
@@ -405,15 +450,16 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                 )
         if took < len(d.data):
             self._loss(t, d.data[took:], d.host_offset + took if d.host_offset >= 0 else -1, "queue_full")
-        if took and self.fw.main_wait is not None and self.fw.main_wait != _WAIT_LOCKED:
-            if self.fw.main_wait == _WAIT_TICK:
+        fw = self.fw
+        if took and fw.main_wait is not None and fw.main_wait != _WAIT_LOCKED:
+            if fw.main_wait == _WAIT_TICK:
                 nxt = self._tick_at_or_after(t)
             else:  # spinning on a u16: reads as soon as the byte is there
                 nxt = t
-            if self.fw.busy_from <= nxt < self.fw.busy_until:
-                nxt = self.fw.busy_until
-            self.fw.main_next = nxt
-            self.fw.main_wait = None
+            if fw.busy_from <= nxt < fw.busy_until:
+                nxt = fw.busy_until
+            fw.main_next = nxt
+            fw.main_wait = None
 
     def parser_status(self) -> str:
         """What the parser is doing, in words."""
@@ -440,11 +486,14 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
 
     def _main_call(self, tc: int) -> None:
         m = self.model
-        cpu0, k0 = self.fw.call if self.fw.call is not None else (0, 0)
-        n, outcome = self.parser.plan(self.queue.buf)
+        fw = self.fw
+        p = self.parser
+        buf = self.queue.buf
+        cpu0, k0 = fw.call if fw.call is not None else (0, 0)
+        n, outcome = p.plan(buf)
         if n == 0:
-            self.fw.call = None
-            self.fw.main_next = None
+            fw.call = None
+            fw.main_next = None
             if outcome is CallResult.LOCKED:
                 self.fw.main_wait = _WAIT_LOCKED
             elif outcome is CallResult.STUCK_U16:
@@ -452,12 +501,12 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
             else:
                 self.fw.main_wait = _WAIT_TICK
             return
-        extra = m.hv513_detect_ns if (self.parser.cmd is None and self.queue.buf[0] == _HV513) else 0
+        extra = m.hv513_detect_ns if (p.cmd is None and buf[0] == _HV513) else 0
         base = tc + m.call_ns + extra - cpu0
         ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
         ta = self.next_alarm
         if ta < ends[-1]:
-            j = self.parser.read_before_interrupt(self.queue.buf, sum(1 for e in ends if e < ta))
+            j = p.read_before_interrupt(buf, sum(1 for e in ends if e < ta))
             if j:
                 self._feed(j, ends[:j], None)
             self.rec.interrupted_calls += 1
@@ -506,35 +555,37 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
     def _feed(self, j: int, ends: list[int], outcome: CallResult | None) -> None:
         """Hand ``j`` bytes to the parser and run one call over them (times: ``ends``)."""
         p = self.parser
+        fw = self.fw
+        rec = self.rec
         data = self.queue.take(j)
-        dev0 = self.fw.parser_base + p.offset
+        dev0 = fw.parser_base + p.offset
         if p.cmd is None:
             op = data[0]
             if p.is_command(op):
                 host = self._host_of(dev0)
                 rep = CommandReport(dev0, host, op, Opcode(op).name, sent_us=us_of(self._sent_at(host)))
-                self.rec.cur = rep
-                self.fw.stuck_reported = False
-                self.fw.stuck_at = None
+                rec.cur = rep
+                fw.stuck_reported = False
+                fw.stuck_at = None
                 if op == _PATTERN:
                     regs = self.registers
-                    self.rec.cur_old = bytes(regs.stim_pattern[: regs.electrode_num])
-                    self.rec.cur_written = {}
-                    self.rec.cur_first = {}
+                    rec.cur_old = bytes(regs.stim_pattern[: regs.electrode_num])
+                    rec.cur_written = {}
+                    rec.cur_first = {}
                 first_ch, skip = 0, 1
             else:
                 first_ch, skip = 0, j
         else:
             first_ch, skip = p.count, 0
         if (
-            self.rec.cur is not None
-            and self.rec.cur.opcode == _PATTERN
+            rec.cur is not None
+            and rec.cur.opcode == _PATTERN
             and (p.cmd == _PATTERN or (p.cmd is None and data[0] == _PATTERN))
         ):
             for i in range(skip, j):
-                self.rec.cur_written[first_ch + i - skip] = ends[i]
-        self.fw.call_end_ns = ends[-1]
-        self.fw.call_dev_last = dev0 + j - 1
+                rec.cur_written[first_ch + i - skip] = ends[i]
+        fw.call_end_ns = ends[-1]
+        fw.call_dev_last = dev0 + j - 1
         p.receive(data)
         r = p.step()
         if p.pending and not p.locked:  # pragma: no cover - the plan hands over whole units only

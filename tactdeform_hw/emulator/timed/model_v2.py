@@ -699,21 +699,34 @@ class TimedEmulatorV2(TimedModelBase):
         self._last_sense_hazard = live_zero
 
     def _main_call(self, t: int) -> None:
-        parser = self.emulator.parser
+        parser = self.parser
         regs = self.registers
         self._land(t)
-        hazards_before = len(self.hazards)
+        m = self.model
         self._call_time_ns = t
         self._applied_in_call = None
         self._reply_offset = None
-        before = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
-        old_pattern = list(regs.stim_pattern)
+        pending = parser.pending
+        if pending == 0 and not parser.processing and not self._hv513_in_call and not parser.tx:
+            # an idle poll (most calls): nothing to read, nothing to write, the task sleeps to the next
+            # tick -- what the full path below computes for a call that consumes nothing
+            tick = m.rtos_tick_ns
+            self._next_call_ns = ((t + m.call_ns) // tick + 1) * tick
+            return
+        hazards_before = len(self.hazards)
+        # the registers before the call matter only to a scan that can interrupt it: one whose alarm falls
+        # before the call's latest possible end (it cannot read more than the bytes waiting)
+        latest_end = t + m.call_ns + pending * m.byte_ns + m.hv513_detect_ns
+        before: dict[str, Any] = {}
+        old_pattern: list[int] = []
+        if t < self._next_alarm_ns < latest_end:
+            before = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
+            old_pattern = list(regs.stim_pattern)
         out = parser.call(t // 1000)
         for h in self.hazards[hazards_before:]:
             if h.kind is HazardKind.COMMAND_TIMEOUT:
                 # the cut command and every byte queued behind it never take effect
                 self._loss(t, 1 + int(h.detail["discarded"]), self._host_of(h.offset), "command_timeout")
-        m = self.model
         cost = m.call_ns + out.consumed * m.byte_ns
         sensed = self._hv513_in_call
         if sensed:
