@@ -16,6 +16,7 @@ from tactdeform_hw.device.driver.dialects import DIALECTS
 from tactdeform_hw.device.driver.readback import pattern_readback
 from tactdeform_hw.device.driver.v2 import buffer_levels
 from tactdeform_hw.emulator import Emulator
+from tactdeform_hw.emulator.serving.in_process import EmulatorPort
 from tactdeform_hw.errors import LimitError, PortNotOpenError, ProtocolMisuseError, SafetyError
 from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec
 
@@ -243,3 +244,15 @@ def test_the_all_off_is_the_dialects_plan_and_the_state_changes_only_as_it_is_wr
     assert b"".join(port.writes) == _planned_bytes(dev, plan)
     assert dev.state.current_ua == 0 and dev.state.last_pattern == bytes(8)
     assert set(_levels(dev)) == {0}
+
+
+@pytest.mark.parametrize("firmware", list(DIALECTS), ids=lambda f: f.name)
+def test_an_integral_float_is_sent_as_the_integer_it_is(firmware: FirmwareSpec) -> None:
+    """A configuration read from JSON may carry ``32.0``: it is held and sent as 32, never computed with as
+    a float (found by fuzzing ``configure``: ``electrode_count=1.0`` crashed the guard's scan estimate)."""
+    emu = Emulator(firmware=firmware.name)
+    dev = EtactileKitDevice(EmulatorPort(emu), firmware=firmware.name)
+    dev.configure(StimConfig(electrode_count=1.0, current_ua=500.0, rate_hz=125.0))  # type: ignore[arg-type]
+    assert dev.config is not None and type(dev.config.electrode_count) is int
+    assert emu.state().electrode_num == 1
+    dev.close()

@@ -352,3 +352,12 @@ def test_bad_requests_are_refused(cube) -> None:
         make_trajectory("approach-face", cube, rate_hz=math.nan)
     with pytest.raises(LimitError, match="start_distance_mm"):
         make_trajectory("approach-face", cube, start_distance_mm=50.0)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"), [("penetration_mm", 1e300), ("penetration_mm", 101.0), ("start_distance_mm", 1e300)]
+)
+def test_a_trajectory_beyond_a_touch_is_refused_naming_the_field(cube, field: str, value: float) -> None:
+    """Found by fuzzing: a penetration of 1e300 mm overflowed the trajectory's arithmetic."""
+    with pytest.raises(LimitError, match=field):
+        make_trajectory("approach-face", cube, **{field: value})

@@ -548,6 +548,13 @@ def scene_for_trajectory(name: str, scene: Scene) -> Scene:
         return scene.with_texture_level(level)
 
 
+#: A finger presses a few millimetres into a surface; beyond this a trajectory is not a touch (and its
+#: arithmetic leaves the floats).
+MAX_PENETRATION_MM = 100.0
+#: Ten metres: further than any tracked room.
+MAX_START_DISTANCE_MM = 10_000.0
+
+
 def make_trajectory(
     name: str,
     scene: Scene,
@@ -582,8 +589,14 @@ def make_trajectory(
     ):
         if not math.isfinite(float(value)) or float(value) < 0:
             raise LimitError(field_name, value, "a finite number ≥ 0")
+    if float(penetration_mm) > MAX_PENETRATION_MM:
+        raise LimitError(
+            "penetration_mm", penetration_mm, f"at most {MAX_PENETRATION_MM:g} mm into the surface"
+        )
     if not math.isfinite(float(start_distance_mm)) or start_distance_mm < 80.0:
         raise LimitError("start_distance_mm", start_distance_mm, "≥ 80 mm (the studies withdrew beyond 8 cm)")
+    if start_distance_mm > MAX_START_DISTANCE_MM:
+        raise LimitError("start_distance_mm", start_distance_mm, f"at most {MAX_START_DISTANCE_MM:g} mm")
     prm = _Params(
         speed_mm_s=speed,
         approach_speed_mm_s=_positive("approach_speed_mm_s", approach_speed_mm_s, 1e5, "mm/s"),

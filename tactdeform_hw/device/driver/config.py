@@ -34,17 +34,29 @@ class StimConfig:
     sense_width_us: int = 0
 
     def validated(self, transfer: CurrentTransfer) -> StimConfig:
-        """Return self after checking every field (raises :class:`LimitError` naming the field)."""
-        check_int("electrode_count", self.electrode_count, 1, MAX_ELECTRODES)
-        transfer.check_current(self.current_ua, "current_ua")
-        check_int("pulse_width_us", self.pulse_width_us, 1, U16_MAX, "µs")
-        check_int("discharge_us", self.discharge_us, 0, U8_MAX, "µs")
-        check_int("rate_hz", self.rate_hz, 1, U16_MAX, "Hz")
+        """The configuration with every field checked (raises :class:`LimitError` naming the field) and
+        held as the integers it is sent as: an integral float read from JSON (``32.0``) becomes ``32``,
+        so nothing downstream computes with a float where the firmware holds an integer."""
+        electrode_count = check_int("electrode_count", self.electrode_count, 1, MAX_ELECTRODES)
+        current_ua = transfer.check_current(self.current_ua, "current_ua")
+        pulse_width_us = check_int("pulse_width_us", self.pulse_width_us, 1, U16_MAX, "µs")
+        discharge_us = check_int("discharge_us", self.discharge_us, 0, U8_MAX, "µs")
+        rate_hz = check_int("rate_hz", self.rate_hz, 1, U16_MAX, "Hz")
         if not isinstance(self.polarity, str) or self.polarity not in POLARITY_CODE:
             raise LimitError("polarity", self.polarity, "'anodic' or 'cathodic'")
         sense_code(self.sense_current_ua, transfer)
-        check_int("sense_width_us", self.sense_width_us, 0, U8_MAX, "µs")
-        return self
+        sense_current_ua = transfer.check_current(self.sense_current_ua, "sense_current_ua")
+        sense_width_us = check_int("sense_width_us", self.sense_width_us, 0, U8_MAX, "µs")
+        return replace(
+            self,
+            electrode_count=electrode_count,
+            current_ua=current_ua,
+            pulse_width_us=pulse_width_us,
+            discharge_us=discharge_us,
+            rate_hz=rate_hz,
+            sense_current_ua=sense_current_ua,
+            sense_width_us=sense_width_us,
+        )
 
     def with_current(self, current_ua: int) -> StimConfig:
         return replace(self, current_ua=current_ua)

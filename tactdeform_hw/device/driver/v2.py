@@ -394,7 +394,7 @@ class V2Dialect:
 
     def validated(self, config: StimConfig, transfer: CurrentTransfer) -> StimConfig:
         """v1.2's checks, except the sense current: v2 stores 0xF9 unshifted, so any DAC code up to 255."""
-        replace(config, sense_current_ua=0).validated(transfer)
+        checked = replace(config, sense_current_ua=0).validated(transfer)
         code = transfer.to_code(config.sense_current_ua, "sense_current_ua")
         top = V2.value_max("sense_pulse_height")
         if code > top:
@@ -403,7 +403,7 @@ class V2Dialect:
                 config.sense_current_ua,
                 f"a DAC code of at most {top} on firmware v2 (0xF9 is stored unshifted; this one is {code})",
             )
-        return config
+        return replace(checked, sense_current_ua=transfer.check_current(config.sense_current_ua))
 
     def check_idle_scan(self, guard: SafetyGuard, config: StimConfig) -> None:
         """v2 checks its scan in :meth:`configure`, once the caller's frame is superseded."""
