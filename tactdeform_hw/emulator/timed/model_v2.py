@@ -19,7 +19,10 @@ timing does not depend on its height (:func:`_scan_shape`).
 
 Every scan is recorded (:class:`ScanRecordV2`) with the parameters it ran and when each channel's
 current started, so safety can be judged on the pulses delivered; mode 2 with a zero pattern that
-still drives the sense current is a :data:`~.hazards.HazardKind.MODE_SENSE_ALL` hazard.  The same
+still drives the sense current is a :data:`~.hazards.HazardKind.MODE_SENSE_ALL` hazard.  A channel at or past
+the stack's last HV513 output (:attr:`TimedEmulatorV2.outputs`) is clocked out of the chain's end: its DAC
+code is written, but no pulse is delivered (as v1.2's physical chain; the count of chips the firmware
+believes in is not modelled beyond that: extra ones left in a longer chain are v1.2's alone).  The same
 judgement as on v1.2 needs the same books, kept here in v1.2's shapes: ``reports.pulse_table()`` (every
 pulse as numpy columns), ``losses`` (:class:`~.reports.LossReport`: bytes that never took effect — a full
 queue, a reboot, a command the 2 s timeout discarded) and ``commands`` (each command applied, with
@@ -48,12 +51,13 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.firmware.parser_v2 import ParserV2
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
-from tactdeform_hw.emulator.firmware.scan import PulseKind
+from tactdeform_hw.emulator.firmware.scan import PulseKind, physical_outputs
 from tactdeform_hw.emulator.records.reports import LossReport
 from tactdeform_hw.emulator.timed.base import TimedModelBase
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link, reply_link
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
+from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
 from tactdeform_hw.protocol.firmware import V2, FirmwareSpec, OpcodeV2
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
@@ -288,6 +292,8 @@ class TimedEmulatorV2(TimedModelBase):
     ) -> None:
         self.emulator = Emulator(board, switching_boards, firmware=V2, stack_reading=stack_reading)
         self.board = self.emulator.board
+        #: HV513 outputs the stack really has: a channel at or past this is clocked out of the chain's end.
+        self.outputs = physical_outputs(self.board.kind, self.board.switching_boards)
         self.model = model
         self.conventions = conventions
         self.link = make_link(link)
@@ -325,6 +331,7 @@ class TimedEmulatorV2(TimedModelBase):
         self._next_alarm_ns = start + self._period_ns()
         self._busy_until_ns = 0
         self._last_sense_hazard = False
+        self._last_beyond_hazard = False
         self._chain_pos = 0
         self._call_time_ns = start
         self._last_alarm = start
@@ -575,6 +582,7 @@ class TimedEmulatorV2(TimedModelBase):
             prior_scans=0,
         )
         duration, onsets, codes, volts, pulses = _scan_shape(cfg, self.conventions)
+        pulses = self._on_outputs(pulses, t)
         rec = ScanRecordV2(
             self.scan_count,
             t,
@@ -608,6 +616,31 @@ class TimedEmulatorV2(TimedModelBase):
             self._next_alarm_ns = t + period
         if self._next_call_ns < end:
             self._next_call_ns = end  # the interrupt pre-empts the main loop
+
+    def _on_outputs(self, pulses: tuple[PulseRow, ...], t: int) -> tuple[PulseRow, ...]:
+        """The pulses an output delivers: hv513FastScan clocks a channel's bit ``channel`` places down the
+        chain, so past the stack's last output it falls off the end and no electrode gets that current
+        (as v1.2's physical chain).  A firmware that believes in more chips than the stack has (a miscounted
+        0xF5) drives such channels without the parser's :data:`~.hazards.HazardKind.CHANNELS_BEYOND_HV513`
+        (raised only past its own count): the scan records it then, once per stretch of such scans."""
+        limit = self.outputs
+        kept = tuple(row for row in pulses if row[0] < limit)
+        beyond = len(kept) < len(pulses)
+        if beyond and not self._last_beyond_hazard and self.registers.hv513_num * OUTPUTS_PER_HV513 > limit:
+            self.hazards.append(
+                Hazard(
+                    HazardKind.CHANNELS_BEYOND_HV513,
+                    -1,
+                    {
+                        "electrode_num": self.registers.electrode_num,
+                        "hv513_num": self.registers.hv513_num,
+                        "channels_driven": limit,
+                    },
+                    t / 1000,
+                )
+            )
+        self._last_beyond_hazard = beyond
+        return kept
 
     def _check_sense(self, rec: ScanRecordV2) -> None:
         live_zero = rec.stim_mode == 2 and rec.sense_pulse_height > 0 and any(h == 0 for h in rec.heights)

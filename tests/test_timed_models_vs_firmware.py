@@ -1,0 +1,41 @@
+"""The timed models where the upstream firmware's own C++ (the host build's differential) showed them wrong:
+each test is the minimal reproduction, checked on the model alone (no compiler needed)."""
+
+from __future__ import annotations
+
+from tactdeform_hw.emulator import HazardKind
+from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
+from tactdeform_hw.protocol import firmware_math as fm
+from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
+
+
+def test_v2_channels_past_the_stacks_outputs_deliver_nothing() -> None:
+    # electrode count 255, pulse width 255, every pulse parameter at its largest, on one switching board
+    # (4 HV513, 32 outputs): the firmware clocks channel 32's bit out of the chain's end
+    emu = TimedEmulatorV2("compact", 1)
+    emu.write(bytes.fromhex("fc ff fb ff f9 ff f7 ff"), 2000.5)
+    emu.advance_to(30_000.0)
+    assert emu.outputs == 32
+    delivered = emu.delivered()
+    assert delivered and max(r["channel"] for r in delivered) == 31
+    assert {int(ch) for ch in emu.reports.pulse_table()["channel"]} <= set(range(32))
+    # the parser said so when the count went past its 4 chips (no second hazard from the scans)
+    beyond = [h for h in emu.hazards if h.kind is HazardKind.CHANNELS_BEYOND_HV513]
+    assert len(beyond) == 1 and beyond[0].detail["channels_driven"] == 32
+
+
+def test_v2_a_miscounted_stack_drives_channels_no_output_has_and_says_so() -> None:
+    # one switching board really stacked, the stack reading of three: the firmware believes in 12 chips
+    # (96 outputs), so a count of 40 raises nothing in the parser
+    emu = TimedEmulatorV2("compact", 1, stack_reading=fm.reading_for_stack(4))
+    assert emu.registers.hv513_num == 12 and emu.outputs == 32
+    n = 40
+    emu.write(
+        c2.encode_electrode_num(n) + c2.encode_stim_mode(0) + c2.encode_pattern([50] * n),
+        0.0,
+    )
+    emu.advance_to(40_000.0)
+    assert {r["channel"] for r in emu.delivered()} == set(range(32))
+    beyond = [h for h in emu.hazards if h.kind is HazardKind.CHANNELS_BEYOND_HV513]
+    assert len(beyond) == 1  # from the scans, once for the stretch of such scans
+    assert beyond[0].detail == {"electrode_num": n, "hv513_num": 12, "channels_driven": 32}
