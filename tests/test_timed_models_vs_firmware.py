@@ -3,8 +3,11 @@ each test is the minimal reproduction, checked on the model alone (no compiler n
 
 from __future__ import annotations
 
+import dataclasses
+
 from tactdeform_hw.emulator import HazardKind
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
+from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL
 from tactdeform_hw.protocol import firmware_math as fm
 from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
 
@@ -39,3 +42,25 @@ def test_v2_a_miscounted_stack_drives_channels_no_output_has_and_says_so() -> No
     beyond = [h for h in emu.hazards if h.kind is HazardKind.CHANNELS_BEYOND_HV513]
     assert len(beyond) == 1  # from the scans, once for the stretch of such scans
     assert beyond[0].detail == {"electrode_num": n, "hv513_num": 12, "channels_driven": 32}
+
+
+def test_v2_the_stimulation_timer_starts_timer_start_us_after_boot() -> None:
+    # the host build's timer starts after setup(), 1010.25 us after boot; period 10 ms at power-on
+    emu = TimedEmulatorV2(model=dataclasses.replace(DEFAULT_MODEL, timer_start_us=1010.25))
+    emu.advance_to(40_000.0)
+    assert [s.start_ns for s in emu.scans] == [11_010_250, 21_010_250, 31_010_250]
+    emu.reset()  # and again after a reboot, from the end of the boot
+    emu.advance_to(emu.now_us + DEFAULT_MODEL.boot_us + 10_000.0 + 1010.25)
+    assert emu.scans[-1].start_ns == round((40_000.0 + DEFAULT_MODEL.boot_us + 10_000.0 + 1010.25) * 1000)
+
+
+def test_v2_the_main_loop_wakes_on_ticks_shifted_by_tick_phase_us() -> None:
+    # f8 b2 (sense width 178) at 2000.5 us over USB: the sleeping main loop reads it at the first tick
+    # after it landed
+    applied = {}
+    for phase_us in (0.0, 250.0):
+        emu = TimedEmulatorV2(model=dataclasses.replace(DEFAULT_MODEL, tick_phase_us=phase_us))
+        emu.write(bytes.fromhex("f8 b2"), 2000.5)
+        emu.advance_to(5000.0)
+        applied[phase_us] = [(t, int(op), v) for t, op, v in emu.applied]
+    assert applied == {0.0: [(4_000_000, 0xF8, 178)], 250.0: [(3_250_000, 0xF8, 178)]}

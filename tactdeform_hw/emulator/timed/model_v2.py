@@ -1,15 +1,16 @@
 """Firmware v2 in time: its parser on the command timer, its scans on the stimulation timer, a link.
 
-The same pieces as the v1.2 timed model, with v2's rules: the main loop sleeps one RTOS tick only after
-a call that made no progress (:class:`~.parser_v2.ParserV2`), the parser reads Timer2 (µs) for the 2 s
+The same pieces as the v1.2 timed model, with v2's rules: the main loop sleeps one RTOS tick only after a
+call that made no progress (:class:`~.parser_v2.ParserV2`), the parser reads Timer2 (µs) for the 2 s
 command timeout, 0xF5 disables the stimulation alarm while it senses the stack (a scan due meanwhile
-fires when the alarm is re-enabled), and each scan is the v2 interrupt of :mod:`.firmware_scan`:
-parameters snapshotted at its start, a DAC code per channel, the mode choosing the waveform, no DAC
-write in the discharge.  The interrupt pre-empts the parser, never the reverse: a parser call costs
-its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm inside the
-call that copies a pattern scans the elements copied so far at their new heights and the rest at their
-old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer — and
-only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).
+fires when the alarm is re-enabled; as on v1.2, the stimulation timer starts ``timer_start_us`` after
+boot and the RTOS ticks run from boot shifted by ``tick_phase_us``), and each scan is the v2 interrupt of
+:mod:`.firmware_scan`: parameters snapshotted at its start, a DAC code per channel, the mode choosing the
+waveform, no DAC write in the discharge.  The interrupt pre-empts the parser, never the reverse: a parser
+call costs its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm
+inside the call that copies a pattern scans the elements copied so far at their new heights and the rest
+at their old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer
+— and only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).
 
 Served on the wall clock (:class:`~.realtime.RealtimeEmulator` with ``firmware="v2"``) it tells the
 runner when it next does something a host could notice (:meth:`TimedEmulatorV2.next_event_us`: not the
@@ -328,13 +329,17 @@ class TimedEmulatorV2(TimedModelBase):
         start = t + (self.model.boot_ns if boot_delay else 0)
         self._booting_until = start
         self._next_call_ns = start
-        self._next_alarm_ns = start + self._period_ns()
+        # as v1.2's model: the stimulation timer starts ``timer_start_us`` after boot (the firmware's
+        # setup() runs first), the RTOS ticks from boot at ``tick_phase_us``
+        reload = start + self.model.timer_start_ns
+        self._tick_base = start + self.model.tick_phase_ns
+        self._next_alarm_ns = reload + self._period_ns()
         self._busy_until_ns = 0
         self._last_sense_hazard = False
         self._last_beyond_hazard = False
         self._chain_pos = 0
         self._call_time_ns = start
-        self._last_alarm = start
+        self._last_alarm = reload
         self._hv513_in_call = False
         self._applied_in_call: int | None = None
         self._frozen = False
@@ -708,10 +713,17 @@ class TimedEmulatorV2(TimedModelBase):
         if paused and self._next_alarm_ns < end:
             self._next_alarm_ns = end  # the alarm was disabled; a passed alarm fires on re-enable
         if out.slept:
-            tick = m.rtos_tick_ns
-            self._next_call_ns = (end // tick + 1) * tick
+            self._next_call_ns = self._tick_after(end)
         else:
             self._next_call_ns = end
+
+    def _tick_after(self, t: int) -> int:
+        """The first RTOS tick after ``t`` (the ticks run from boot, shifted by ``tick_phase_us``)."""
+        base = self._tick_base
+        if t < base:
+            return base
+        tick = self.model.rtos_tick_ns
+        return base + ((t - base) // tick + 1) * tick
 
     def _preempt(
         self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
