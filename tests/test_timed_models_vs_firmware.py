@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 
 from tactdeform_hw.emulator import HazardKind
+from tactdeform_hw.emulator.hostbuild.diff import DirectLink
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL
 from tactdeform_hw.protocol import firmware_math as fm
@@ -64,3 +66,15 @@ def test_v2_the_main_loop_wakes_on_ticks_shifted_by_tick_phase_us() -> None:
         emu.advance_to(5000.0)
         applied[phase_us] = [(t, int(op), v) for t, op, v in emu.applied]
     assert applied == {0.0: [(4_000_000, 0xF8, 178)], 250.0: [(3_250_000, 0xF8, 178)]}
+
+
+def test_v1_2_hv513_count_replies_after_hv513_init_clears_the_chain() -> None:
+    # f5 at 2623.59 us (the differential's link: at once); the firmware replies at 4006.45 us: the call
+    # (2 us + a byte's 1 us) from the tick at 3000, 1000 us of analogRead, and hv513Init's 5 + 2 x 32 pin
+    # writes of 0.05 us (4 HV513 detected)
+    model = dataclasses.replace(DEFAULT_MODEL, timer_start_us=1010.25)
+    emu = TimedEmulator("compact", 1, link=DirectLink(), tx_link=DirectLink(), model=model)
+    emu.write(bytes.fromhex("f5"), 2623.59)
+    emu.advance_to(10_000.0)
+    assert emu.registers.hv513_num == 4
+    assert [(round(t * 1000), data) for t, data in emu.tx_log] == [(4_006_450, b"\x04")]

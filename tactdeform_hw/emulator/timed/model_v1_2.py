@@ -85,7 +85,7 @@ from tactdeform_hw.emulator.timed.link import (
 )
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
-from tactdeform_hw.protocol.constants import Opcode
+from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513, Opcode
 from tactdeform_hw.protocol.decoder import StreamDecoder
 from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 
@@ -452,7 +452,7 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
             else:
                 self.fw.main_wait = _WAIT_TICK
             return
-        extra = m.hv513_detect_ns if (self.parser.cmd is None and self.queue.buf[0] == _HV513) else 0
+        extra = self._hv513_count_ns() if (self.parser.cmd is None and self.queue.buf[0] == _HV513) else 0
         base = tc + m.call_ns + extra - cpu0
         ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
         ta = self.next_alarm
@@ -482,6 +482,14 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                 self.rec.cur = None
         else:
             self.fw.main_next = self._tick_after(end)
+
+    def _hv513_count_ns(self) -> int:
+        """0xF5's work before its reply: stackSense()'s 50 ``analogRead`` calls, then hv513Init() on the
+        count it detected: four pin writes (POL, LE, CLK, BL), DIN low, and a CLK high and low per output
+        (``gpio_write_us`` each; upstream switching.cpp)."""
+        m = self.model
+        writes = 5 + 2 * OUTPUTS_PER_HV513 * self.parser.hv513_detect()
+        return m.hv513_detect_ns + writes * m.gpio_ns
 
     def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
         self.fw.call = (cpu, k)
