@@ -30,6 +30,13 @@ back and the main loop never runs again: nothing more is read until a reset.  (M
 assumptions: a call reads the bytes waiting when it starts; RTOS ticks and USB frames are phase-aligned
 at boot unless ``tick_phase_us`` says otherwise.)
 
+:meth:`state` is exact at the granularity of a parser call: a call's effects (the bytes it reads, the
+register it stores, its reply in ``tx_log``) show from the call's start, while the firmware stores the
+register when it has read the payload — ``CommandReport.effect_us`` is that later moment (the call's
+last byte read; the firmware's own store follows within a microsecond).  Between a call's start and its
+end, a few µs, ``state()`` is ahead of the firmware; holding the old registers back until
+``effect_us`` would cost a copy of the registers on every call for that window alone.
+
 ``stimulation=False`` leaves the stimulation timer stopped: the link and the parser's rhythm alone.
 
 Hooks for fault injection: pass a :class:`~.link.LinkFilter` as ``link`` (or ``tx_link``), inject bytes

@@ -15,8 +15,10 @@ at their old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is t
 Served on the wall clock (:class:`~.realtime.RealtimeEmulator` with ``firmware="v2"``) it tells the
 runner when it next does something a host could notice (:meth:`TimedEmulatorV2.next_event_us`: not the
 idle polls, which change nothing), resets, and records a command a new host connection inherits
-(:meth:`TimedEmulatorV2.new_client`).  Scan shapes are walked once per configuration: on v2 a channel's
-timing does not depend on its height (:func:`_scan_shape`).
+(:meth:`TimedEmulatorV2.new_client`).  As on v1.2, :meth:`~.base.TimedModelBase.state` is exact at the
+granularity of a parser call: a call's effects show from its start (``applied`` and ``commands`` are
+stamped with it), a few µs before the firmware stores the register it has read.  Scan shapes are walked
+once per configuration: on v2 a channel's timing does not depend on its height (:func:`_scan_shape`).
 
 Every scan is recorded (:class:`ScanRecordV2`) with the parameters it ran and when each channel's
 current started, so safety can be judged on the pulses delivered; mode 2 with a zero pattern that
