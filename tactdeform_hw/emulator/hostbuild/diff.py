@@ -36,9 +36,7 @@ MODELS = tuple(FIRMWARES)
 
 EQUIVALENCES: dict[str, str] = {
     "timer-origin": "the firmware starts its stimulation timer after setup() (1010.25 us: the stack "
-    "detection); the model's timer_start_us is set to the time the host build measured (v1.2), or, "
-    "as v2's model starts its timer at boot whatever timer_start_us says, its pulses are compared "
-    "that much later (v2)",
+    "detection); the model's timer_start_us is set to the time the host build measured (both versions)",
     "setup-before-bytes": "the host's first byte arrives at 2000 us, after the firmware's setup(); the "
     "model's parser runs from 0",
     "pulse-width": "delivered pulse widths agree within pulse_tolerance_us (0.7 us), and the n-th pulse "
@@ -212,7 +210,7 @@ class ModelSide:
             self.emu.advance_to(t_us)
 
     def observe(self, upto_us: float) -> Observation:
-        st = dict(self.emu.state())
+        st = self.emu.state().as_dict()
         st["rx_unread"] = st["rx_pending"] + self.emu.in_flight
         pulses = _number_in_scans(self._pulses(upto_us))
         return Observation(st, self._replies(upto_us), pulses, None, self.emu.reboots > 0)
@@ -268,9 +266,8 @@ class ModelSideV2(ModelSide):
 
     def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
         out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
-        shift = self.timer_origin_us
-        for r in self.emu.delivered():
-            t, end = r["t_us"] + shift, r["t_us"] + r["width_us"] + shift
+        for r in self.emu.delivered():  # the model starts its timer at timer_start_us itself, as v1.2's
+            t, end = r["t_us"], r["t_us"] + r["width_us"]
             if r["code"] > 0 and end <= limit_us:
                 pol = int(r["polarity"] == "anodic")
                 out.append((t, end, r["code"], (r["channel"],), pol, r["scan"]))

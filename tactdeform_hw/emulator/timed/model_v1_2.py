@@ -30,6 +30,13 @@ back and the main loop never runs again: nothing more is read until a reset.  (M
 assumptions: a call reads the bytes waiting when it starts; RTOS ticks and USB frames are phase-aligned
 at boot unless ``tick_phase_us`` says otherwise.)
 
+:meth:`state` is exact at the granularity of a parser call: a call's effects (the bytes it reads, the
+register it stores, its reply in ``tx_log``) show from the call's start, while the firmware stores the
+register when it has read the payload — ``CommandReport.effect_us`` is that later moment (the call's
+last byte read; the firmware's own store follows within a microsecond).  Between a call's start and its
+end, a few µs, ``state()`` is ahead of the firmware; holding the old registers back until
+``effect_us`` would cost a copy of the registers on every call for that window alone.
+
 ``stimulation=False`` leaves the stimulation timer stopped: the link and the parser's rhythm alone.
 
 Hooks for fault injection: pass a :class:`~.link.LinkFilter` as ``link`` (or ``tx_link``), inject bytes
@@ -86,7 +93,7 @@ from tactdeform_hw.emulator.timed.link import (
 )
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
-from tactdeform_hw.protocol.constants import Opcode
+from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513, Opcode
 from tactdeform_hw.protocol.decoder import StreamDecoder
 from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 
@@ -501,7 +508,7 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
             else:
                 self.fw.main_wait = _WAIT_TICK
             return
-        extra = m.hv513_detect_ns if (p.cmd is None and buf[0] == _HV513) else 0
+        extra = self._hv513_count_ns() if (p.cmd is None and buf[0] == _HV513) else 0
         base = tc + m.call_ns + extra - cpu0
         ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
         ta = self.next_alarm
@@ -531,6 +538,14 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                 self.rec.cur = None
         else:
             self.fw.main_next = self._tick_after(end)
+
+    def _hv513_count_ns(self) -> int:
+        """0xF5's work before its reply: stackSense()'s 50 ``analogRead`` calls, then hv513Init() on the
+        count it detected: four pin writes (POL, LE, CLK, BL), DIN low, and a CLK high and low per output
+        (``gpio_write_us`` each; upstream switching.cpp)."""
+        m = self.model
+        writes = 5 + 2 * OUTPUTS_PER_HV513 * self.parser.hv513_detect()
+        return m.hv513_detect_ns + writes * m.gpio_ns
 
     def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
         self.fw.call = (cpu, k)

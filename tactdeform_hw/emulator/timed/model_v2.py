@@ -1,25 +1,31 @@
 """Firmware v2 in time: its parser on the command timer, its scans on the stimulation timer, a link.
 
-The same pieces as the v1.2 timed model, with v2's rules: the main loop sleeps one RTOS tick only after
-a call that made no progress (:class:`~.parser_v2.ParserV2`), the parser reads Timer2 (µs) for the 2 s
+The same pieces as the v1.2 timed model, with v2's rules: the main loop sleeps one RTOS tick only after a
+call that made no progress (:class:`~.parser_v2.ParserV2`), the parser reads Timer2 (µs) for the 2 s
 command timeout, 0xF5 disables the stimulation alarm while it senses the stack (a scan due meanwhile
-fires when the alarm is re-enabled), and each scan is the v2 interrupt of :mod:`.firmware_scan`:
-parameters snapshotted at its start, a DAC code per channel, the mode choosing the waveform, no DAC
-write in the discharge.  The interrupt pre-empts the parser, never the reverse: a parser call costs
-its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm inside the
-call that copies a pattern scans the elements copied so far at their new heights and the rest at their
-old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer — and
-only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).
+fires when the alarm is re-enabled; as on v1.2, the stimulation timer starts ``timer_start_us`` after
+boot and the RTOS ticks run from boot shifted by ``tick_phase_us``), and each scan is the v2 interrupt of
+:mod:`.firmware_scan`: parameters snapshotted at its start, a DAC code per channel, the mode choosing the
+waveform, no DAC write in the discharge.  The interrupt pre-empts the parser, never the reverse: a parser
+call costs its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm
+inside the call that copies a pattern scans the elements copied so far at their new heights and the rest
+at their old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer
+— and only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).
 
 Served on the wall clock (:class:`~.realtime.RealtimeEmulator` with ``firmware="v2"``) it tells the
 runner when it next does something a host could notice (:meth:`TimedEmulatorV2.next_event_us`: not the
 idle polls, which change nothing), resets, and records a command a new host connection inherits
-(:meth:`TimedEmulatorV2.new_client`).  Scan shapes are walked once per configuration: on v2 a channel's
-timing does not depend on its height (:func:`_scan_shape`).
+(:meth:`TimedEmulatorV2.new_client`).  As on v1.2, :meth:`~.base.TimedModelBase.state` is exact at the
+granularity of a parser call: a call's effects show from its start (``applied`` and ``commands`` are
+stamped with it), a few µs before the firmware stores the register it has read.  Scan shapes are walked
+once per configuration: on v2 a channel's timing does not depend on its height (:func:`_scan_shape`).
 
 Every scan is recorded (:class:`ScanRecordV2`) with the parameters it ran and when each channel's
 current started, so safety can be judged on the pulses delivered; mode 2 with a zero pattern that
-still drives the sense current is a :data:`~.hazards.HazardKind.MODE_SENSE_ALL` hazard.  The same
+still drives the sense current is a :data:`~.hazards.HazardKind.MODE_SENSE_ALL` hazard.  A channel at or past
+the stack's last HV513 output (:attr:`TimedEmulatorV2.outputs`) is clocked out of the chain's end: its DAC
+code is written, but no pulse is delivered (as v1.2's physical chain; the count of chips the firmware
+believes in is not modelled beyond that: extra ones left in a longer chain are v1.2's alone).  The same
 judgement as on v1.2 needs the same books, kept here in v1.2's shapes: ``reports.pulse_table()`` (every
 pulse as numpy columns), ``losses`` (:class:`~.reports.LossReport`: bytes that never took effect — a full
 queue, a reboot, a command the 2 s timeout discarded) and ``commands`` (each command applied, with
@@ -53,7 +59,7 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.firmware.parser_v2 import ParserV2
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
-from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal
+from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal, physical_outputs
 from tactdeform_hw.emulator.records.reports import EventRun, LossReport
 from tactdeform_hw.emulator.timed.base import TimedModelBase
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link, reply_link
@@ -342,6 +348,8 @@ class TimedEmulatorV2(TimedModelBase):
     ) -> None:
         self.emulator = Emulator(board, switching_boards, firmware=V2, stack_reading=stack_reading)
         self.board = self.emulator.board
+        #: HV513 outputs the stack really has: a channel at or past this is clocked out of the chain's end.
+        self.outputs = physical_outputs(self.board.kind, self.board.switching_boards)
         self.model = model
         self.conventions = conventions
         self.link = make_link(link)
@@ -377,12 +385,17 @@ class TimedEmulatorV2(TimedModelBase):
         start = t + (self.model.boot_ns if boot_delay else 0)
         self._booting_until = start
         self._next_call_ns = start
-        self._next_alarm_ns = start + self._period_ns()
+        # as v1.2's model: the stimulation timer starts ``timer_start_us`` after boot (the firmware's
+        # setup() runs first), the RTOS ticks from boot at ``tick_phase_us``
+        reload = start + self.model.timer_start_ns
+        self._tick_base = start + self.model.tick_phase_ns
+        self._next_alarm_ns = reload + self._period_ns()
         self._busy_until_ns = 0
         self._last_sense_hazard = False
+        self._last_beyond_hazard = False
         self._chain_pos = 0
         self._call_time_ns = start
-        self._last_alarm = start
+        self._last_alarm = reload
         self._hv513_in_call = False
         self._applied_in_call: int | None = None
         self._frozen = False
@@ -642,6 +655,7 @@ class TimedEmulatorV2(TimedModelBase):
             prior_scans=0,
         )
         duration, onsets, codes, volts, pulses = _scan_shape(cfg, self.conventions)
+        pulses = self._on_outputs(pulses, t)
         rec = ScanRecordV2(
             self.scan_count,
             t,
@@ -680,6 +694,31 @@ class TimedEmulatorV2(TimedModelBase):
         if self._next_call_ns < end:
             self._next_call_ns = end  # the interrupt pre-empts the main loop
 
+    def _on_outputs(self, pulses: tuple[PulseRow, ...], t: int) -> tuple[PulseRow, ...]:
+        """The pulses an output delivers: hv513FastScan clocks a channel's bit ``channel`` places down the
+        chain, so past the stack's last output it falls off the end and no electrode gets that current
+        (as v1.2's physical chain).  A firmware that believes in more chips than the stack has (a miscounted
+        0xF5) drives such channels without the parser's :data:`~.hazards.HazardKind.CHANNELS_BEYOND_HV513`
+        (raised only past its own count): the scan records it then, once per stretch of such scans."""
+        limit = self.outputs
+        kept = tuple(row for row in pulses if row[0] < limit)
+        beyond = len(kept) < len(pulses)
+        if beyond and not self._last_beyond_hazard and self.registers.hv513_num * OUTPUTS_PER_HV513 > limit:
+            self.hazards.append(
+                Hazard(
+                    HazardKind.CHANNELS_BEYOND_HV513,
+                    -1,
+                    {
+                        "electrode_num": self.registers.electrode_num,
+                        "hv513_num": self.registers.hv513_num,
+                        "channels_driven": limit,
+                    },
+                    t / 1000,
+                )
+            )
+        self._last_beyond_hazard = beyond
+        return kept
+
     def _check_sense(self, rec: ScanRecordV2) -> None:
         live_zero = rec.stim_mode == 2 and rec.sense_pulse_height > 0 and any(h == 0 for h in rec.heights)
         if live_zero and not self._last_sense_hazard:
@@ -710,8 +749,7 @@ class TimedEmulatorV2(TimedModelBase):
         if pending == 0 and not parser.processing and not self._hv513_in_call and not parser.tx:
             # an idle poll (most calls): nothing to read, nothing to write, the task sleeps to the next
             # tick -- what the full path below computes for a call that consumes nothing
-            tick = m.rtos_tick_ns
-            self._next_call_ns = ((t + m.call_ns) // tick + 1) * tick
+            self._next_call_ns = self._tick_after(t + m.call_ns)
             return
         hazards_before = len(self.hazards)
         # the registers before the call matter only to a scan that can interrupt it: one whose alarm falls
@@ -759,10 +797,17 @@ class TimedEmulatorV2(TimedModelBase):
         if paused and self._next_alarm_ns < end:
             self._next_alarm_ns = end  # the alarm was disabled; a passed alarm fires on re-enable
         if out.slept:
-            tick = m.rtos_tick_ns
-            self._next_call_ns = (end // tick + 1) * tick
+            self._next_call_ns = self._tick_after(end)
         else:
             self._next_call_ns = end
+
+    def _tick_after(self, t: int) -> int:
+        """The first RTOS tick after ``t`` (the ticks run from boot, shifted by ``tick_phase_us``)."""
+        base = self._tick_base
+        if t < base:
+            return base
+        tick = self.model.rtos_tick_ns
+        return base + ((t - base) // tick + 1) * tick
 
     def _preempt(
         self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
