@@ -193,6 +193,13 @@ def as_points(points_mm: object, field: str = "points_mm") -> np.ndarray:
     return p
 
 
+def _finger_component(world_from_finger: np.ndarray, v: np.ndarray, axis: int) -> float:
+    """Component ``axis`` (0 x, 1 y, 2 z) of the world vector ``v`` in the finger frame: the dot product
+    with that column of the rotation, written out so every caller sums in the same order."""
+    r = world_from_finger
+    return float(r[0, axis] * v[0] + r[1, axis] * v[1] + r[2, axis] * v[2])
+
+
 def contact_theta_deg(world_from_finger: np.ndarray, normal: np.ndarray) -> float:
     """θ of eq. 4: the angle at which the surface meets the pad, left negative, right positive.
 
@@ -212,8 +219,8 @@ def contact_theta_deg(world_from_finger: np.ndarray, normal: np.ndarray) -> floa
     """
     r = np.asarray(world_from_finger, dtype=float)
     n = np.asarray(normal, dtype=float)
-    nx = float(r[0, 0] * n[0] + r[1, 0] * n[1] + r[2, 0] * n[2])
-    nz = float(r[0, 2] * n[0] + r[1, 2] * n[1] + r[2, 2] * n[2])
+    nx = _finger_component(r, n, 0)
+    nz = _finger_component(r, n, 2)
     if nx == 0.0 and nz == 0.0:
         return 0.0
     theta = math.degrees(math.atan2(-nx, -nz))
@@ -229,8 +236,8 @@ def edge_angle_in_finger_deg(world_from_finger: np.ndarray, edge_direction: np.n
     """
     r = np.asarray(world_from_finger, dtype=float)
     e = np.asarray(edge_direction, dtype=float)
-    ex = float(r[0, 0] * e[0] + r[1, 0] * e[1] + r[2, 0] * e[2])
-    ey = float(r[0, 1] * e[0] + r[1, 1] * e[1] + r[2, 1] * e[2])
+    ex = _finger_component(r, e, 0)
+    ey = _finger_component(r, e, 1)
     if ex == 0.0 and ey == 0.0:
         return 0.0
     angle = math.degrees(math.atan2(ey, ex)) % 180.0
