@@ -426,21 +426,17 @@ def calibration_guard(
     electrode's region
     in reports.  Pass ``ChannelMapping(profile.mapping(), profile.electrode_count)`` as ``mapping`` to both
     this and ``open_device`` to drive the profile's own wiring."""
-    from tactdeform_hw.device.safety.guard import DEFAULT_MAX_CHARGE_NC, SafetyGuard
+    from tactdeform_hw.device.safety.guard import SafetyGuard
 
     channels = calibrated_channels(profile, transfer=transfer, channel_offset=channel_offset)
     channels.check_wiring(mapping, against)
     person = to_participant(profile, region_of, participant=participant, transfer=transfer)
-    return SafetyGuard(
-        person.cap_ua,
+    return SafetyGuard.from_profile(
+        person,
         region_of=region_map if region_map is not None else tuple(region_of),
-        max_charge_nc=min(person.charge_limit_nc, DEFAULT_MAX_CHARGE_NC),
-        ramp_ua_per_frame=person.ramp_ua_per_frame,
-        polarity=person.polarity,
-        max_pulse_width_us=person.pulse_width_us,
-        participant=person.participant,
         sink=sink,
         channels=channels,
+        regional=False,
     )
 
 

@@ -193,11 +193,15 @@ def as_points(points_mm: object, field: str = "points_mm") -> np.ndarray:
     return p
 
 
-def _finger_component(world_from_finger: np.ndarray, v: np.ndarray, axis: int) -> float:
-    """Component ``axis`` (0 x, 1 y, 2 z) of the world vector ``v`` in the finger frame: the dot product
-    with that column of the rotation, written out so every caller sums in the same order."""
-    r = world_from_finger
-    return float(r[0, axis] * v[0] + r[1, axis] * v[1] + r[2, axis] * v[2])
+def _finger_components(world_from_finger: np.ndarray, v: np.ndarray, a: int, b: int) -> tuple[float, float]:
+    """Components ``a`` and ``b`` (0 x, 1 y, 2 z) of the world vector ``v`` in the finger frame: dot
+    products with those columns of the rotation, written out so every caller sums in the same order."""
+    r = np.asarray(world_from_finger, dtype=float)
+    w = np.asarray(v, dtype=float)
+    return (
+        float(r[0, a] * w[0] + r[1, a] * w[1] + r[2, a] * w[2]),
+        float(r[0, b] * w[0] + r[1, b] * w[1] + r[2, b] * w[2]),
+    )
 
 
 def contact_theta_deg(world_from_finger: np.ndarray, normal: np.ndarray) -> float:
@@ -217,10 +221,7 @@ def contact_theta_deg(world_from_finger: np.ndarray, normal: np.ndarray) -> floa
     the contact point on the right of the pad.  A surface facing away from the pad (−n_f.z < 0) clips to
     ±90°.  ``world_from_finger`` is the pose's 3 × 3 rotation.
     """
-    r = np.asarray(world_from_finger, dtype=float)
-    n = np.asarray(normal, dtype=float)
-    nx = _finger_component(r, n, 0)
-    nz = _finger_component(r, n, 2)
+    nx, nz = _finger_components(world_from_finger, normal, 0, 2)
     if nx == 0.0 and nz == 0.0:
         return 0.0
     theta = math.degrees(math.atan2(-nx, -nz))
@@ -234,10 +235,7 @@ def edge_angle_in_finger_deg(world_from_finger: np.ndarray, edge_direction: np.n
     The edge is projected onto the pad plane (finger x–y); an edge pointing straight out of the pad has
     no orientation there and reads 0°.
     """
-    r = np.asarray(world_from_finger, dtype=float)
-    e = np.asarray(edge_direction, dtype=float)
-    ex = _finger_component(r, e, 0)
-    ey = _finger_component(r, e, 1)
+    ex, ey = _finger_components(world_from_finger, edge_direction, 0, 1)
     if ex == 0.0 and ey == 0.0:
         return 0.0
     angle = math.degrees(math.atan2(ey, ex)) % 180.0
