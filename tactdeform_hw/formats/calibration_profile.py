@@ -262,14 +262,11 @@ def _code_limit(transfer: CurrentTransfer) -> int:
 
 def read_json_file(path: str | os.PathLike[str]) -> Any:
     """A JSON document from ``path`` (strict JSON, duplicate keys refused), errors naming the file."""
+    from tactdeform_hw.device.participant.profiles import read_profile_bytes
+
     p = Path(path)
     source = str(p)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise _fail(source, "file", f"cannot be read ({exc.strerror or exc})") from exc
-    if len(raw) > MAX_FILE_BYTES:
-        raise _fail(source, "file", f"is {len(raw)} bytes; a calibration profile is at most {MAX_FILE_BYTES}")
+    raw = read_profile_bytes(p, MAX_FILE_BYTES, "a calibration profile")
 
     def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
         out: dict[str, Any] = {}

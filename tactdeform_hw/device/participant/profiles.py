@@ -284,17 +284,25 @@ def _toml_loads(text: str, source: str) -> dict[str, Any]:
     return data
 
 
+def read_profile_bytes(path: Path, max_bytes: int, kind: str) -> bytes:
+    """The bytes of a profile file, refused with a :class:`ProfileError` naming the file when it cannot be
+    read or is larger than ``max_bytes`` (``kind`` names what the limit is for, "a profile")."""
+    source = str(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ProfileError(source, "file", f"cannot be read ({exc.strerror or exc})") from exc
+    if len(raw) > max_bytes:
+        raise ProfileError(source, "file", f"is {len(raw)} bytes; {kind} is at most {max_bytes}")
+    return raw
+
+
 def load_profile(path: str | os.PathLike[str]) -> ParticipantProfile:
     """Read and check a profile; JSON or TOML by extension."""
     p = Path(path)
     source = str(p)
     fmt = _file_format(p)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise ProfileError(source, "file", f"cannot be read ({exc.strerror or exc})") from exc
-    if len(raw) > MAX_PROFILE_BYTES:
-        raise ProfileError(source, "file", f"is {len(raw)} bytes; a profile is at most {MAX_PROFILE_BYTES}")
+    raw = read_profile_bytes(p, MAX_PROFILE_BYTES, "a profile")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
