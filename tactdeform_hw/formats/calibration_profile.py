@@ -262,22 +262,13 @@ def _code_limit(transfer: CurrentTransfer) -> int:
 
 def read_json_file(path: str | os.PathLike[str]) -> Any:
     """A JSON document from ``path`` (strict JSON, duplicate keys refused), errors naming the file."""
-    from tactdeform_hw.device.participant.profiles import read_profile_bytes
+    from tactdeform_hw.device.participant.profiles import no_duplicate_keys, read_profile_bytes
 
     p = Path(path)
     source = str(p)
     raw = read_profile_bytes(p, MAX_FILE_BYTES, "a calibration profile")
-
-    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for k, v in items:
-            if k in out:
-                raise ValueError(f"duplicate key {k!r}")
-            out[k] = v
-        return out
-
     try:
-        return json.loads(raw.decode("utf-8"), object_pairs_hook=pairs)
+        return json.loads(raw.decode("utf-8"), object_pairs_hook=no_duplicate_keys)
     except (UnicodeDecodeError, ValueError) as exc:
         raise _fail(source, "file", f"is not valid JSON: {exc}") from exc
 

@@ -248,7 +248,9 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Partic
 # --- files -----------------------------------------------------------------------------------------------
 
 
-def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+def no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``object_pairs_hook`` for ``json.loads`` that refuses a key given twice: the standard library keeps
+    the last one silently, and a profile whose limit is written twice must not pick one unseen."""
     out: dict[str, Any] = {}
     for k, v in pairs:
         if k in out:
@@ -309,7 +311,7 @@ def load_profile(path: str | os.PathLike[str]) -> ParticipantProfile:
         raise ProfileError(source, "file", f"is not UTF-8 text ({exc})") from exc
     try:
         if fmt == "json":
-            data = json.loads(text, object_pairs_hook=_no_duplicates, parse_constant=_reject_constant)
+            data = json.loads(text, object_pairs_hook=no_duplicate_keys, parse_constant=_reject_constant)
         else:
             data = _toml_loads(text, source)
     except ValueError as exc:  # json.JSONDecodeError and tomllib.TOMLDecodeError are ValueErrors
