@@ -11,6 +11,7 @@ from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from .common import progress
+from .options import add_firmware_version
 
 
 def register(sub: Any) -> None:
@@ -62,11 +63,8 @@ def _where_options(p: argparse.ArgumentParser) -> None:
 
 def _firmware_options(p: argparse.ArgumentParser) -> None:
     """The firmware the board runs and the discovery its Wi-Fi build answers."""
-    p.add_argument(
-        "--firmware",
-        choices=("v1.2", "v2"),
-        default="v1.2",
-        help="the firmware the board runs (default v1.2; v2 is upstream's current firmware)",
+    add_firmware_version(
+        p, help="the firmware the board runs (default v1.2; v2 is upstream's current firmware)"
     )
     p.add_argument(
         "--firmware-src",

@@ -134,6 +134,12 @@ def add_option(
     return action
 
 
+def add_firmware_version(parser: argparse.ArgumentParser, *, help: str) -> None:
+    """``--firmware v1.2|v2`` (default v1.2) for commands that run a model of the board rather than
+    identify one, so there is no ``auto``."""
+    parser.add_argument("--firmware", choices=("v1.2", "v2"), default="v1.2", help=help)
+
+
 def add_pulse_width(parser: argparse.ArgumentParser, *, default: int | None, help: str) -> None:
     """``--pulse-width-us`` (earlier ``--pulse-width``), read as ``args.pulse_width``."""
     add_option(

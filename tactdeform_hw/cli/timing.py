@@ -20,6 +20,7 @@ from .options import (
     PolarityCode,
     add_discharge,
     add_finisher,
+    add_firmware_version,
     add_frequency,
     add_option,
     add_pulse_width,
@@ -53,11 +54,8 @@ def register(sub: Any) -> None:
 
 def _firmware_options(p: argparse.ArgumentParser) -> None:
     """The firmware version and the timing model's reading of its exchanges."""
-    p.add_argument(
-        "--firmware",
-        choices=("v1.2", "v2"),
-        default="v1.2",
-        help="firmware version (default v1.2). v2: --pattern holds DAC codes and --mode picks the waveform",
+    add_firmware_version(
+        p, help="firmware version (default v1.2). v2: --pattern holds DAC codes and --mode picks the waveform"
     )
     p.add_argument(
         "--mode",
@@ -115,15 +113,7 @@ def _scan_options(p: argparse.ArgumentParser) -> None:
         default=None,
         help="pulse current in µA, 10 µA steps, ≤ 10000 (default 1000 = DAC code 100)",
     )
-    p.add_argument(
-        "--pulse-height",
-        type=int,
-        default=100,
-        help=argparse.SUPPRESS,
-        action=DeprecatedAlias,
-        canonical="--current-ua",
-        note="--pulse-height took a DAC code; --current-ua takes µA, 10 µA per code",
-    )
+    _code_alias(p, "--pulse-height", 100, "--current-ua", "a DAC code; --current-ua takes µA, 10 µA per code")
     add_discharge(p, help="channel discharge time in µs, 0-255 (default 45)")
     add_frequency(p, help="stimulation rate in Hz, 1-65535 (default 125)")
     p.add_argument(
@@ -146,15 +136,7 @@ def _sense_options(p: argparse.ArgumentParser) -> None:
         help="sense pulse current in µA (default 0): v1.2 stores the byte sent << 2, so 40 µA steps up to "
         "10200; v2 stores the byte itself, so 10 µA steps up to 2550",
     )
-    p.add_argument(
-        "--sense-height",
-        type=int,
-        default=0,
-        help=argparse.SUPPRESS,
-        action=DeprecatedAlias,
-        canonical="--sense-current-ua",
-        note="--sense-height took the byte sent; --sense-current-ua takes µA",
-    )
+    _code_alias(p, "--sense-height", 0, "--sense-current-ua", "the byte sent; --sense-current-ua takes µA")
     add_option(
         p,
         "--sense-width-us",
@@ -165,6 +147,20 @@ def _sense_options(p: argparse.ArgumentParser) -> None:
         help="sense pulse width in µs, 0-255",
     )
     add_finisher(p, currents_from_ua)
+
+
+def _code_alias(p: argparse.ArgumentParser, flag: str, default: int, canonical: str, took: str) -> None:
+    """A hidden, warning spelling that takes the code the firmware stores where ``canonical`` takes µA: it
+    keeps its own dest (the code), which :func:`currents_from_ua` reads when the µA option is not given."""
+    p.add_argument(
+        flag,
+        type=int,
+        default=default,
+        help=argparse.SUPPRESS,
+        action=DeprecatedAlias,
+        canonical=canonical,
+        note=f"{flag} took {took}",
+    )
 
 
 def _board_options(p: argparse.ArgumentParser) -> None:

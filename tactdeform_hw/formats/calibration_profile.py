@@ -262,25 +262,13 @@ def _code_limit(transfer: CurrentTransfer) -> int:
 
 def read_json_file(path: str | os.PathLike[str]) -> Any:
     """A JSON document from ``path`` (strict JSON, duplicate keys refused), errors naming the file."""
+    from tactdeform_hw.device.participant.profiles import no_duplicate_keys, read_profile_bytes
+
     p = Path(path)
     source = str(p)
+    raw = read_profile_bytes(p, MAX_FILE_BYTES, "a calibration profile")
     try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise _fail(source, "file", f"cannot be read ({exc.strerror or exc})") from exc
-    if len(raw) > MAX_FILE_BYTES:
-        raise _fail(source, "file", f"is {len(raw)} bytes; a calibration profile is at most {MAX_FILE_BYTES}")
-
-    def pairs(items: list[tuple[str, Any]]) -> dict[str, Any]:
-        out: dict[str, Any] = {}
-        for k, v in items:
-            if k in out:
-                raise ValueError(f"duplicate key {k!r}")
-            out[k] = v
-        return out
-
-    try:
-        return json.loads(raw.decode("utf-8"), object_pairs_hook=pairs)
+        return json.loads(raw.decode("utf-8"), object_pairs_hook=no_duplicate_keys)
     except (UnicodeDecodeError, ValueError) as exc:
         raise _fail(source, "file", f"is not valid JSON: {exc}") from exc
 
@@ -426,21 +414,17 @@ def calibration_guard(
     electrode's region
     in reports.  Pass ``ChannelMapping(profile.mapping(), profile.electrode_count)`` as ``mapping`` to both
     this and ``open_device`` to drive the profile's own wiring."""
-    from tactdeform_hw.device.safety.guard import DEFAULT_MAX_CHARGE_NC, SafetyGuard
+    from tactdeform_hw.device.safety.guard import SafetyGuard
 
     channels = calibrated_channels(profile, transfer=transfer, channel_offset=channel_offset)
     channels.check_wiring(mapping, against)
     person = to_participant(profile, region_of, participant=participant, transfer=transfer)
-    return SafetyGuard(
-        person.cap_ua,
+    return SafetyGuard.from_profile(
+        person,
         region_of=region_map if region_map is not None else tuple(region_of),
-        max_charge_nc=min(person.charge_limit_nc, DEFAULT_MAX_CHARGE_NC),
-        ramp_ua_per_frame=person.ramp_ua_per_frame,
-        polarity=person.polarity,
-        max_pulse_width_us=person.pulse_width_us,
-        participant=person.participant,
         sink=sink,
         channels=channels,
+        regional=False,
     )
 
 

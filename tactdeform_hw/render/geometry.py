@@ -193,6 +193,17 @@ def as_points(points_mm: object, field: str = "points_mm") -> np.ndarray:
     return p
 
 
+def _finger_components(world_from_finger: np.ndarray, v: np.ndarray, a: int, b: int) -> tuple[float, float]:
+    """Components ``a`` and ``b`` (0 x, 1 y, 2 z) of the world vector ``v`` in the finger frame: dot
+    products with those columns of the rotation, written out so every caller sums in the same order."""
+    r = np.asarray(world_from_finger, dtype=float)
+    w = np.asarray(v, dtype=float)
+    return (
+        float(r[0, a] * w[0] + r[1, a] * w[1] + r[2, a] * w[2]),
+        float(r[0, b] * w[0] + r[1, b] * w[1] + r[2, b] * w[2]),
+    )
+
+
 def contact_theta_deg(world_from_finger: np.ndarray, normal: np.ndarray) -> float:
     """θ of eq. 4: the angle at which the surface meets the pad, left negative, right positive.
 
@@ -210,10 +221,7 @@ def contact_theta_deg(world_from_finger: np.ndarray, normal: np.ndarray) -> floa
     the contact point on the right of the pad.  A surface facing away from the pad (−n_f.z < 0) clips to
     ±90°.  ``world_from_finger`` is the pose's 3 × 3 rotation.
     """
-    r = np.asarray(world_from_finger, dtype=float)
-    n = np.asarray(normal, dtype=float)
-    nx = float(r[0, 0] * n[0] + r[1, 0] * n[1] + r[2, 0] * n[2])
-    nz = float(r[0, 2] * n[0] + r[1, 2] * n[1] + r[2, 2] * n[2])
+    nx, nz = _finger_components(world_from_finger, normal, 0, 2)
     if nx == 0.0 and nz == 0.0:
         return 0.0
     theta = math.degrees(math.atan2(-nx, -nz))
@@ -227,10 +235,7 @@ def edge_angle_in_finger_deg(world_from_finger: np.ndarray, edge_direction: np.n
     The edge is projected onto the pad plane (finger x–y); an edge pointing straight out of the pad has
     no orientation there and reads 0°.
     """
-    r = np.asarray(world_from_finger, dtype=float)
-    e = np.asarray(edge_direction, dtype=float)
-    ex = float(r[0, 0] * e[0] + r[1, 0] * e[1] + r[2, 0] * e[2])
-    ey = float(r[0, 1] * e[0] + r[1, 1] * e[1] + r[2, 1] * e[2])
+    ex, ey = _finger_components(world_from_finger, edge_direction, 0, 1)
     if ex == 0.0 and ey == 0.0:
         return 0.0
     angle = math.degrees(math.atan2(ey, ex)) % 180.0

@@ -248,7 +248,9 @@ def profile_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> Partic
 # --- files -----------------------------------------------------------------------------------------------
 
 
-def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+def no_duplicate_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``object_pairs_hook`` for ``json.loads`` that refuses a key given twice: the standard library keeps
+    the last one silently, and a profile whose limit is written twice must not pick one unseen."""
     out: dict[str, Any] = {}
     for k, v in pairs:
         if k in out:
@@ -284,24 +286,32 @@ def _toml_loads(text: str, source: str) -> dict[str, Any]:
     return data
 
 
+def read_profile_bytes(path: Path, max_bytes: int, kind: str) -> bytes:
+    """The bytes of a profile file, refused with a :class:`ProfileError` naming the file when it cannot be
+    read or is larger than ``max_bytes`` (``kind`` names what the limit is for, "a profile")."""
+    source = str(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise ProfileError(source, "file", f"cannot be read ({exc.strerror or exc})") from exc
+    if len(raw) > max_bytes:
+        raise ProfileError(source, "file", f"is {len(raw)} bytes; {kind} is at most {max_bytes}")
+    return raw
+
+
 def load_profile(path: str | os.PathLike[str]) -> ParticipantProfile:
     """Read and check a profile; JSON or TOML by extension."""
     p = Path(path)
     source = str(p)
     fmt = _file_format(p)
-    try:
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise ProfileError(source, "file", f"cannot be read ({exc.strerror or exc})") from exc
-    if len(raw) > MAX_PROFILE_BYTES:
-        raise ProfileError(source, "file", f"is {len(raw)} bytes; a profile is at most {MAX_PROFILE_BYTES}")
+    raw = read_profile_bytes(p, MAX_PROFILE_BYTES, "a profile")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise ProfileError(source, "file", f"is not UTF-8 text ({exc})") from exc
     try:
         if fmt == "json":
-            data = json.loads(text, object_pairs_hook=_no_duplicates, parse_constant=_reject_constant)
+            data = json.loads(text, object_pairs_hook=no_duplicate_keys, parse_constant=_reject_constant)
         else:
             data = _toml_loads(text, source)
     except ValueError as exc:  # json.JSONDecodeError and tomllib.TOMLDecodeError are ValueErrors

@@ -230,10 +230,14 @@ class SafetyGuard:
         region_of: Sequence[int] | RegionMap | None = None,
         sink: Callable[[dict[str, Any]], None] | None = None,
         channels: CalibratedChannels | None = None,
+        regional: bool = True,
     ) -> SafetyGuard:
+        """The guard of a participant profile: its cap, charge limit, ramp, polarity and pulse width.
+        ``regional=False`` leaves out the profile's regional limits, for a guard whose ``channels`` hold
+        every electrode's own calibrated current (the regional view would hold most of them lower)."""
         return cls(
             profile.cap_ua,
-            regions_ua=profile.regions_ua,
+            regions_ua=profile.regions_ua if regional else None,
             region_of=region_of,
             max_charge_nc=min(profile.charge_limit_nc, DEFAULT_MAX_CHARGE_NC),
             ramp_ua_per_frame=profile.ramp_ua_per_frame,

@@ -201,6 +201,26 @@ def _url_target(name: str) -> Target:
     return t
 
 
+def _served_target(name: str, route: str, firmware: str, server: Any, open_raw: Callable[[], Any]) -> Target:
+    """A target on a started server of the timed board (pty or TCP): the port counts the bytes written so
+    the settle step can wait for the board to have taken them all, and the server stops at clean-up."""
+    written = [0]
+    t = Target(
+        settle_s=0.0,
+        name=name,
+        kind="emulator",
+        route=route,
+        timed=True,
+        make_port=lambda: _CountingPort(open_raw(), written),
+        state=server.state,
+        hv513_expected=server.board.board.detect_hv513(),
+        settle_fn=_settle_on(server.board, server, written),
+        firmware=firmware,
+    )
+    t.cleanup.append(server.stop)
+    return t
+
+
 def _pty_target(name: str) -> Target:
     if sys.platform == "win32":
         pytest.skip("the pty target needs a POSIX pseudo-terminal")
@@ -209,54 +229,27 @@ def _pty_target(name: str) -> Target:
     firmware = _server_firmware(name)
     server = PtyServer(firmware=firmware)  # the timed board on the wall clock
     server.start()
-    written = [0]
-    t = Target(
-        settle_s=0.0,
-        name=name,
-        kind="emulator",
-        route="pty",
-        timed=True,
-        make_port=lambda: _CountingPort(open_port(server.path, timeout=REPLY_TIMEOUT_S), written),
-        state=server.state,
-        hv513_expected=server.board.board.detect_hv513(),
-        settle_fn=_settle_on(server.board, server, written),
-        firmware=firmware,
+    return _served_target(
+        name, "pty", firmware, server, lambda: open_port(server.path, timeout=REPLY_TIMEOUT_S)
     )
-    t.cleanup.append(server.stop)
-    return t
 
 
 def _tcp_target(name: str) -> Target:
     from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 
-    firmware = _server_firmware(name)
     # the Wi-Fi build's rules: one client at a time, TCP flow control
+    firmware = _server_firmware(name)
     server = TcpServer(port=0, firmware=firmware)
     server.start()
-    written = [0]
 
-    def make_port() -> Any:
+    def open_raw() -> Any:
         import serial
 
-        port = serial.serial_for_url(
+        return serial.serial_for_url(
             server.url, do_not_open=True, timeout=REPLY_TIMEOUT_S, write_timeout=REPLY_TIMEOUT_S
         )
-        return _CountingPort(port, written)
 
-    t = Target(
-        settle_s=0.0,
-        name=name,
-        kind="emulator",
-        route="tcp",
-        timed=True,
-        make_port=make_port,
-        state=server.state,
-        hv513_expected=server.board.board.detect_hv513(),
-        settle_fn=_settle_on(server.board, server, written),
-        firmware=firmware,
-    )
-    t.cleanup.append(server.stop)
-    return t
+    return _served_target(name, "tcp", firmware, server, open_raw)
 
 
 def _usb_emulator_target(name: str) -> Target:
