@@ -130,6 +130,13 @@ def _ignored_run(
     return k, t
 
 
+def hv513_count_ns(m: TimingModel, detected: int) -> int:
+    """0xF5's work before its reply: stackSense()'s 50 ``analogRead`` calls, then hv513Init() on the
+    ``detected`` count: four pin writes (POL, LE, CLK, BL), DIN low, and a CLK high and low per output
+    (``gpio_write_us`` each; upstream switching.cpp)."""
+    return m.hv513_detect_ns + (5 + 2 * OUTPUTS_PER_HV513 * detected) * m.gpio_ns
+
+
 class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
     """The eTactileKit controller in simulated time.  See the module documentation."""
 
@@ -508,7 +515,11 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
             else:
                 self.fw.main_wait = _WAIT_TICK
             return
-        extra = self._hv513_count_ns() if (p.cmd is None and buf[0] == _HV513) else 0
+        extra = (
+            hv513_count_ns(self.model, self.parser.hv513_detect())
+            if (p.cmd is None and buf[0] == _HV513)
+            else 0
+        )
         base = tc + m.call_ns + extra - cpu0
         ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
         ta = self.next_alarm
@@ -538,14 +549,6 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                 self.rec.cur = None
         else:
             self.fw.main_next = self._tick_after(end)
-
-    def _hv513_count_ns(self) -> int:
-        """0xF5's work before its reply: stackSense()'s 50 ``analogRead`` calls, then hv513Init() on the
-        count it detected: four pin writes (POL, LE, CLK, BL), DIN low, and a CLK high and low per output
-        (``gpio_write_us`` each; upstream switching.cpp)."""
-        m = self.model
-        writes = 5 + 2 * OUTPUTS_PER_HV513 * self.parser.hv513_detect()
-        return m.hv513_detect_ns + writes * m.gpio_ns
 
     def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
         self.fw.call = (cpu, k)

@@ -329,7 +329,49 @@ class _QueueView:
         return int(self._owner.emulator.parser.spec.rx_queue_bytes) - len(self)
 
 
-class TimedEmulatorV2(TimedModelBase):
+class DeliveredV2:
+    """What the v2 model's scans delivered, per pulse (a mixin of :class:`TimedEmulatorV2`, which keeps
+    ``scans``)."""
+
+    scans: Any
+
+    def delivered(
+        self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0
+    ) -> list[dict[str, Any]]:
+        """Every pulse the scans delivered from ``since_us`` on: time, channel, DAC code, current, width,
+        charge, polarity (anodic / cathodic)."""
+        out: list[dict[str, Any]] = []
+        since = round(since_us * 1000)
+        for s in self.scans:
+            if s.start_ns < since:
+                continue
+            for ch, onset, code, width, pol in s.pulses:
+                ua = transfer.to_ua(code)
+                out.append(
+                    {
+                        "scan": s.index,
+                        "t_us": (s.start_ns + onset) / 1000,
+                        "channel": ch,
+                        "code": code,
+                        "current_ua": ua,
+                        "width_us": width / 1000,
+                        "charge_nc": ua * width / 1e6,
+                        "polarity": "anodic" if pol else "cathodic",
+                    }
+                )
+        return out
+
+    def peak_current_ua(
+        self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0
+    ) -> dict[int, float]:
+        """The highest current each channel received (channels that received none are absent)."""
+        peak: dict[int, float] = {}
+        for row in self.delivered(transfer, since_us):
+            peak[row["channel"]] = max(peak.get(row["channel"], 0.0), row["current_ua"])
+        return peak
+
+
+class TimedEmulatorV2(DeliveredV2, TimedModelBase):
     """The v2 board in simulated time.  ``write(data, at_us)`` hands bytes to the link; ``advance_to``
     runs the firmware until then; ``read_tx`` returns what reached the host."""
 
@@ -914,43 +956,6 @@ class TimedEmulatorV2(TimedModelBase):
                     )
                 )
                 return
-
-    # --- reports: what the board delivered --------------------------------------------------------------
-
-    def delivered(
-        self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0
-    ) -> list[dict[str, Any]]:
-        """Every pulse the scans delivered from ``since_us`` on: time, channel, DAC code, current, width,
-        charge, polarity (anodic / cathodic)."""
-        out: list[dict[str, Any]] = []
-        since = round(since_us * 1000)
-        for s in self.scans:
-            if s.start_ns < since:
-                continue
-            for ch, onset, code, width, pol in s.pulses:
-                ua = transfer.to_ua(code)
-                out.append(
-                    {
-                        "scan": s.index,
-                        "t_us": (s.start_ns + onset) / 1000,
-                        "channel": ch,
-                        "code": code,
-                        "current_ua": ua,
-                        "width_us": width / 1000,
-                        "charge_nc": ua * width / 1e6,
-                        "polarity": "anodic" if pol else "cathodic",
-                    }
-                )
-        return out
-
-    def peak_current_ua(
-        self, transfer: CurrentTransfer = DEFAULT_TRANSFER, since_us: float = 0.0
-    ) -> dict[int, float]:
-        """The highest current each channel received (channels that received none are absent)."""
-        peak: dict[int, float] = {}
-        for row in self.delivered(transfer, since_us):
-            peak[row["channel"]] = max(peak.get(row["channel"], 0.0), row["current_ua"])
-        return peak
 
 
 def pattern_in_force_v2(
