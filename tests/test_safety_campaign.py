@@ -100,19 +100,19 @@ def test_cli_json_and_refusals(capsys: pytest.CaptureFixture[str]) -> None:
 def test_a_defect_fails_the_campaign_with_the_command_that_replays_it(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
-    """Seed 0, fault-free v1.2 session 1 (200 electrodes over USB): a pattern is still arriving when a scan
+    """Seed 0, fault-free v1.2 session 32 (3 electrodes over USB): a pattern is still arriving when a scan
     starts, so the scan takes part of it new (v1.2 applies a pattern byte by byte: a torn scan no host
     pacing avoids, see the no-defect test).  No pulse is above a limit, yet the session fails, counted by
     kind, with the line that replays it."""
-    res = sc.run_session(1, seed=0, firmware="v1.2")
+    res = sc.run_session(32, seed=0, firmware="v1.2")
     assert res.over_limit == 0 and res.meant_off == 0 and res.lost_bytes == 0
     assert res.defect_counts == {"torn_pattern": 1} and not res.ok
-    assert res.reproduce() == "python tools/safety_campaign.py --firmware v1.2 --seed 0 --only 1"
+    assert res.reproduce() == "python tools/safety_campaign.py --firmware v1.2 --seed 0 --only 32"
     summary = sc.summarize([res], faults=False)
     assert summary["defects_by_kind"] == {"torn_pattern": 1} and summary["defect_sessions"] == 1
     assert summary["failures"] == [
-        {"index": 1, "seed": 0, "why": "defects torn_pattern x1", "reproduce": res.reproduce()}
+        {"index": 32, "seed": 0, "why": "defects torn_pattern x1", "reproduce": res.reproduce()}
     ]
-    assert sc.main(["--firmware", "v1.2", "--seed", "0", "--only", "1"]) == 1
+    assert sc.main(["--firmware", "v1.2", "--seed", "0", "--only", "32"]) == 1
     err = capsys.readouterr().err
-    assert f"FAILED session 1: defects torn_pattern x1 -- reproduce: {res.reproduce()}" in err
+    assert f"FAILED session 32: defects torn_pattern x1 -- reproduce: {res.reproduce()}" in err

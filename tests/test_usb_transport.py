@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import re
 import struct
 import sys
 import threading
@@ -31,6 +32,7 @@ from tactdeform_hw.errors import (  # noqa: E402
     MissingDependencyError,
     PortNotOpenError,
     TransportError,
+    install_command,
 )
 from tactdeform_hw.protocol import encode_electrode_num, encode_pulse_height  # noqa: E402
 
@@ -395,7 +397,7 @@ def test_missing_pyusb_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
     for mod in [m for m in sys.modules if m == "usb" or m.startswith("usb.")]:
         monkeypatch.setitem(sys.modules, mod, None)
     monkeypatch.setitem(sys.modules, "usb", None)
-    with pytest.raises(MissingDependencyError, match=r"pip install 'tactdeform_hw\[usb\]'") as ei:
+    with pytest.raises(MissingDependencyError, match=re.escape(install_command("usb"))) as ei:
         open_port("usb:303a:1001")
     assert ei.value.package == "pyusb" and ei.value.extra == "usb"
     with pytest.raises(MissingDependencyError):
