@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import threading
@@ -21,7 +22,7 @@ import pytest
 
 from tactdeform_hw.device import StimConfig, open_device
 from tactdeform_hw.device.safety.failsafe import DEFAULT_WATCHDOG_S
-from tactdeform_hw.errors import ConfigurationError, LimitError
+from tactdeform_hw.errors import ConfigurationError, LimitError, install_command
 from tactdeform_hw.protocol.firmware_math import firmware_period_us
 from tactdeform_hw.render.array import ElectrodeArray
 from tactdeform_hw.render.live import (
@@ -269,9 +270,9 @@ def test_lsl_without_pylsl_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> N
         return real(name, *a, **k)
 
     monkeypatch.setattr(builtins, "__import__", no_pylsl)
-    with pytest.raises(ConfigurationError, match=r"tactdeform_hw\[lsl\]"):
+    with pytest.raises(ConfigurationError, match=re.escape(install_command("lsl"))):
         open_tracking("lsl://hand")
-    with pytest.raises(ConfigurationError, match=r"--lsl-out.*tactdeform_hw\[lsl\]"):
+    with pytest.raises(ConfigurationError, match="--lsl-out.*" + re.escape(install_command("lsl"))):
         LslPatternOutlet("pads", 32)
 
 
@@ -366,4 +367,4 @@ def test_lsl_without_pylsl_is_refused_naming_the_extra(
 
     code = main(["render", "--scene", "cube", *extra])
     err = capsys.readouterr().err
-    assert code == 1 and "pip install 'tactdeform_hw[lsl]'" in err and "Traceback" not in err
+    assert code == 1 and install_command("lsl") in err and "Traceback" not in err

@@ -36,7 +36,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from ..errors import ConfigurationError, LimitError
+from ..errors import ConfigurationError, LimitError, install_command
 from .pipeline import FrameRecord, Renderer
 
 #: The columns of a sample, in order (those of a recorded trajectory CSV).
@@ -343,9 +343,7 @@ def import_pylsl(what: str) -> Any:
     try:
         import pylsl  # type: ignore[import-not-found,unused-ignore]
     except ImportError as exc:
-        raise ConfigurationError(
-            f"{what} needs pylsl: pip install 'tactdeform_hw[lsl]' (the lsl extra)"
-        ) from exc
+        raise ConfigurationError(f"{what} needs pylsl: {install_command('lsl')} (the lsl extra)") from exc
     return pylsl
 
 
