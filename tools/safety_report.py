@@ -224,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     print(
         f"longest a channel stayed on after its owner stopped: {stops['longest_on_after_stop_s']} s "
-        f"(limit: watchdog 0.1 s + one scan period = {stops['limit_s']} s) over {stops['runs']} runs"
+        f"(limit: watchdog 0.1 s + one scan period = {stops['limit_s']:.4g} s) over {stops['runs']} runs"
     )
     print(
         f"bytes lost without being reported: {report['bytes_lost_unreported']} "
