@@ -51,6 +51,7 @@ if str(TOOLS) not in sys.path:
 
 import campaign_engine as engine  # noqa: E402
 
+from tactdeform_hw.device.participant.profiles import OPTIONAL_KEYS, REQUIRED_KEYS  # noqa: E402
 from tactdeform_hw.errors import ConfigurationError, TactDeformError  # noqa: E402
 
 #: Examples per target unless the command line says otherwise.
@@ -265,20 +266,8 @@ def fuzz_timed_v2(src: Source) -> None:
     _fuzz_timed(src, TimedEmulatorV2)
 
 
-_PROFILE_FIELDS = (
-    "version",
-    "participant",
-    "cap_ua",
-    "regions_ua",
-    "pulse_width_us",
-    "polarity",
-    "contact_mode",
-    "calibrated_on",
-    "max_charge_nc",
-    "ramp_ua_per_frame",
-    "notes",
-    "extra",
-)
+#: Every key a profile may hold, and one it may not.
+_PROFILE_FIELDS = (*REQUIRED_KEYS, *OPTIONAL_KEYS, "extra")
 
 
 def _profile() -> Any:
