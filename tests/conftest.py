@@ -46,6 +46,7 @@ SLOW = frozenset(
     {
         "benchmarks",
         "conformance",
+        "test_docs_commands_slow.py",
         "test_campaign_cluster.py",
         "test_hostbuild_campaign.py",
         "test_hostbuild_timed.py",
