@@ -20,6 +20,7 @@ from tactdeform_hw.viz.array_picture import (  # noqa: E402
     PictureFrame,
     draw_array_gif,
     draw_array_png,
+    draw_frames_gif,
     frames_from_frames,
     frames_from_sequence,
 )
@@ -331,3 +332,44 @@ def test_render_cli_gif_shows_what_the_device_held(tmp_path: Path, capsys) -> No
     img = Image.open(gif)
     assert summary["gif"]["frames"] == img.n_frames == len(runs) >= 2
     assert img.size == (480, 450)
+
+
+# --- text that fits the picture -----------------------------------------------------------------------------
+
+
+def test_a_long_gif_title_is_fitted_to_the_480_px_picture(pad: ElectrodeArray, tmp_path: Path) -> None:
+    records = [
+        {"t": k / 72.0, "electrodes": [1 if i == k else 0 for i in range(32)], "sent": True} for k in range(3)
+    ]
+    title = "recordings/2025-03-14/P07/session-3/approach-edge-d2.csv over task1"
+    info = draw_frames_gif(pad, records, tmp_path / "t.gif", title=title)
+    width = info.size_px[0]
+    assert width == 480
+    left, top, right, bottom = info.title_box_px
+    assert 0 <= left and right <= width and 0 <= top < bottom  # measured on the drawn text
+    assert info.title == title or "…" in info.title
+    short = draw_frames_gif(pad, records, tmp_path / "s.gif", title="approach-face over cube")
+    assert short.title == "approach-face over cube"  # a title that fits is left as it is
+
+
+def test_a_timing_diagrams_overrun_label_and_title_stay_inside(tmp_path: Path) -> None:
+    pulses, cycles = synthetic_trace(255, cycles=3)
+    # the window ends just before the second cycle's overrun begins: its label is anchored past the
+    # right edge of the plot (where the overrun begins)
+    end_us = cycles[1]["start_us"] + 7800
+    info = draw_timing_png(
+        pulses,
+        cycles,
+        tmp_path / "t.png",
+        period_us=8000,
+        window_us=(0.0, end_us),
+        width_px=700,
+        title="scan of 32 electrodes at 125 Hz, 255 µs per channel: the scan overruns its period",
+    )
+    plot_left, _, plot_right, _ = info.plot_box_px
+    labels = [(text, box) for text, box in info.text_boxes_px if text.startswith("overrun +")]
+    assert len(labels) == info.overruns_drawn == 2
+    for text, (left, _, right, _) in labels:
+        assert plot_left <= left and right <= plot_right, (text, left, right, info.plot_box_px)
+    title, (left, _, right, _) = info.text_boxes_px[0]
+    assert 0 <= left and right <= info.size_px[0], (title, left, right)

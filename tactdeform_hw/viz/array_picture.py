@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigurationError
-from ._plot import canvas_rgb, require
+from ._plot import TITLE_MARGIN_PX, box_px, canvas_rgb, fit_width, require
 
 OFF_COLOUR = "#c8c8c8"
 OUTLINE_FILL = "#f4f1ea"
@@ -58,6 +58,9 @@ class PictureInfo:
     radius_px: float
     durations_ms: tuple[int, ...] = ()
     notes: tuple[str, ...] = field(default_factory=tuple)
+    #: the title as drawn (shrunk or elided to fit) and its extent, (left, top, right, bottom) in pixels
+    title: str = ""
+    title_box_px: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
 
 
 # --- inputs -------------------------------------------------------------------------------------------------
@@ -194,7 +197,8 @@ class _Scene:
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
         self.discs = self._discs(numbers)
-        self.fig.suptitle(title, fontsize=11, y=1 - 8 / h_px, va="top")
+        self.heading = self.fig.suptitle(title, fontsize=11, y=1 - 8 / h_px, va="top")
+        fit_width(self.heading, w_px - 2 * TITLE_MARGIN_PX, self.canvas.get_renderer())
         self.label = self.fig.text(
             0.5, 1 - 40 / h_px, "", ha="center", va="center", fontsize=9, color="#222222"
         )
@@ -286,6 +290,9 @@ class _Scene:
         bar.set_label("current (mA)", fontsize=8)
         bar.ax.tick_params(labelsize=7)
 
+    def title_box_px(self) -> tuple[float, float, float, float]:
+        return box_px(self.heading, self.canvas.get_renderer(), self.canvas.get_width_height()[1])
+
     def render(self, frame: PictureFrame) -> np.ndarray:
         if len(frame.levels) != len(self.discs):
             raise ConfigurationError(
@@ -334,7 +341,15 @@ def draw_array_png(
     rgb = scene.render(PictureFrame(tuple(int(v) for v in levels), 0.0, label, current_ua))
     p = Path(path)
     Image.fromarray(rgb).save(p, format="PNG")
-    return PictureInfo(p, (rgb.shape[1], rgb.shape[0]), 1, scene.centres_px, scene.radius_px)
+    return PictureInfo(
+        p,
+        (rgb.shape[1], rgb.shape[0]),
+        1,
+        scene.centres_px,
+        scene.radius_px,
+        title=str(scene.heading.get_text()),
+        title_box_px=scene.title_box_px(),
+    )
 
 
 def draw_array_gif(
@@ -404,7 +419,15 @@ def draw_array_gif(
         options["loop"] = 0  # 0 = forever; without the key the GIF plays once
     images[0].save(p, format="GIF", **options)
     return PictureInfo(
-        p, images[0].size, len(images), scene.centres_px, scene.radius_px, tuple(durations), tuple(notes)
+        p,
+        images[0].size,
+        len(images),
+        scene.centres_px,
+        scene.radius_px,
+        tuple(durations),
+        tuple(notes),
+        str(scene.heading.get_text()),
+        scene.title_box_px(),
     )
 
 

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigurationError
-from ._plot import canvas_rgb, require
+from ._plot import TITLE_MARGIN_PX, canvas_rgb, fit_width, require
 from .array_picture import OFF_COLOUR, level_colour
 
 _PURPOSE = "drawing a strip of electrode-array frames"
@@ -140,7 +140,8 @@ def draw_frames_strip(
     heading = title or getattr(array, "name", "") or "frames"
     if left_out:
         heading += f"  (first {n} of {len(panels)} frames)"
-    fig.text(0.5, 1 - 16 / h_px, heading, ha="center", va="center", fontsize=10)
+    heading_text = fig.text(0.5, 1 - 16 / h_px, heading, ha="center", va="center", fontsize=10)
+    fit_width(heading_text, w_px - 2 * TITLE_MARGIN_PX, canvas.get_renderer())
     lo, hi = pos.min(axis=0) - radius * 1.6, pos.max(axis=0) + radius * 1.6
     for i, rec in enumerate(shown):
         r, c = divmod(i, cols)

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigurationError
-from ._plot import canvas_rgb, require
+from ._plot import TITLE_MARGIN_PX, box_px, canvas_rgb, fit_width, keep_inside, require
 
 _PURPOSE = "drawing timing diagrams"
 KIND_COLOURS = {
@@ -49,6 +49,8 @@ _KIND_ALIASES = {
     "biphasic-cathodic": "bi_cathodic",
 }
 OVERRUN_COLOUR = "#e31a1c"
+#: The id of each overrun's label, by which it is kept inside the plot once drawn.
+OVERRUN_LABEL_GID = "overrun-label"
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,10 @@ class TimingInfo:
     pulses_drawn: int
     cycles_drawn: int
     overruns_drawn: int
+    #: the plot area and each text drawn on the figure (the title, the overrun labels), as (text, box);
+    #: boxes are (left, top, right, bottom) in image pixels, so a test can see that none is cut off
+    plot_box_px: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    text_boxes_px: tuple[tuple[str, tuple[float, float, float, float]], ...] = ()
 
 
 def _field(
@@ -257,6 +263,8 @@ def _draw_cycles(
                 va="center",
                 fontweight="bold",
                 clip_on=True,
+                annotation_clip=False,  # drawn even when its anchor lies past the window, moved inside
+                gid=OVERRUN_LABEL_GID,
             )
     return overruns
 
@@ -368,12 +376,17 @@ def draw_timing_png(
     ax.set_yticklabels([str(c) for c in channels], fontsize=7 if len(channels) > 16 else 9)
     ax.set_ylabel("channel")
     ax.set_xlabel(f"time ({unit})")
-    ax.set_title(title, fontsize=11)
+    heading = ax.set_title(title, fontsize=11)
+    fit_width(heading, width_px - 2 * TITLE_MARGIN_PX, canvas.get_renderer())
     ax.grid(axis="x", color="#eeeeee", lw=0.6)
     for k in range(len(channels)):
         ax.axhline(k + 0.4, color="#f0f0f0", lw=0.5, zorder=0)
 
     overruns = _draw_cycles(ax, vis_c, period_us, scale, (t0, t1))
+    plot_box = ax.get_window_extent(canvas.get_renderer())
+    for label in ax.texts:
+        if label.get_gid() == OVERRUN_LABEL_GID:
+            keep_inside(label, plot_box.x0 + 2, plot_box.x1 - 2, canvas.get_renderer())
     _draw_period(ax, vis_c, period_us, scale)
 
     kinds_seen = _draw_pulses(ax, vis, row, full, scale, (t0, t1))
@@ -393,7 +406,19 @@ def draw_timing_png(
     rgb = canvas_rgb(canvas)
     p_out = Path(path)
     Image.fromarray(rgb).save(p_out, format="PNG")
-    return TimingInfo(p_out, (rgb.shape[1], rgb.shape[0]), (t0, t1), channels, len(vis), len(vis_c), overruns)
+    renderer, height = canvas.get_renderer(), rgb.shape[0]
+    texts = [heading, *(t for t in ax.texts if t.get_gid() == OVERRUN_LABEL_GID)]
+    return TimingInfo(
+        p_out,
+        (rgb.shape[1], height),
+        (t0, t1),
+        channels,
+        len(vis),
+        len(vis_c),
+        overruns,
+        box_px(ax, renderer, height),
+        tuple((str(t.get_text()), box_px(t, renderer, height)) for t in texts),
+    )
 
 
 def _rect(x: float, y: float, w: float, h: float, colour: str, zorder: float = 2) -> Any:
