@@ -214,3 +214,38 @@ def test_a_scan_that_preempts_the_pattern_copy_is_torn_and_recorded() -> None:
     assert 0 < k < n and first.heights == (200,) * k + (10,) * (n - k)
     assert emu.scans[1].heights == (200,) * n  # the next scan has all of it
     assert [t for t, op, _ in emu.applied if op == 0xFE][-1] == 33_000_000
+
+
+def test_a_measure_reply_carries_the_skin_models_readings_as_on_v1_2() -> None:
+    """``AD = DAAD(0)`` is the ADC's reading as the pulse ends, stored unshifted (v1.2 keeps ``raw >> 2``):
+    the same electrode–skin model answers on both versions, not the DAC code sent."""
+    from tactdeform_hw.emulator.firmware.skin import SkinModel
+    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+    from tactdeform_hw.protocol.commands import V1_2_COMMANDS as c1
+
+    def v2_readings(heights: list[int], **options: object) -> list[int]:
+        emu = TimedEmulatorV2(**options)  # type: ignore[arg-type]
+        setup = c.encode_electrode_num(4) + c.encode_stim_mode(0) + c.encode_pulse_width(200)
+        emu.write(setup + c.encode_discharge(45) + c.encode_frequency(125) + c.encode_pattern(heights), 0.0)
+        emu.advance_to(30_000.0)
+        emu.write(bytes([0xFF]), 30_000.0)
+        emu.advance_to(60_000.0)
+        reply = emu.read_tx()
+        return [int.from_bytes(reply[2 * i : 2 * i + 2], "little") for i in range(4)]
+
+    v1 = TimedEmulator()
+    setup = c1.encode_electrode_num(4) + c1.encode_pulse_height(100) + c1.encode_pulse_width(200)
+    v1.write(
+        setup + c1.encode_discharge(45) + c1.encode_frequency(125) + c1.encode_pattern([1, 1, 0, 1]), 0.0
+    )
+    v1.advance_to(30_000.0)
+
+    got = v2_readings([100, 100, 0, 100])
+    assert got != [100, 100, 0, 100]  # not the code sent
+    assert [r >> 2 for r in got] == v1.registers.voltage[:4]  # v1.2's stored reading, per electrode
+    assert len(set(got[:2] + got[3:])) == 3  # each electrode's own contact
+    doubled = v2_readings([200, 200, 0, 200])
+    assert all(1.8 * a < b < 2.2 * a for a, b in zip(got[:2] + got[3:], doubled[:2] + doubled[3:]))
+    lifted = v2_readings([100, 100, 0, 100], skin=SkinModel(open_electrodes=frozenset({1})))
+    assert lifted[1] > got[1] and lifted[0] == got[0]  # off the skin: the source's compliance
+    assert v2_readings([100, 100, 0, 100], skin=None) == [100, 100, 0, 100]  # the host build's loop-back

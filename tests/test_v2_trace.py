@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from tactdeform_hw.emulator.firmware.firmware_scan import HOST_BUILD
+from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
 from tactdeform_hw.emulator.records.trace import CsvSink, MemorySink
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.protocol.commands import V2_COMMANDS as c
@@ -31,8 +32,10 @@ def _golden() -> dict:
     return next(g for g in map(json.loads, filter(None, lines)) if g["name"] == GOLDEN)
 
 
-def _record(*sinks: object) -> TimedEmulatorV2:
-    emu = TimedEmulatorV2(conventions=HOST_BUILD)
+def _record(*sinks: object, skin: SkinModel | None = None) -> TimedEmulatorV2:
+    """The golden setting on the host build's conventions; ``skin=None``: the ADC reads back the DAC code
+    as the host build's SPI stub does (what the golden traces hold)."""
+    emu = TimedEmulatorV2(conventions=HOST_BUILD, skin=skin)
     for s in sinks:
         emu.attach(s)
     emu.write(SETUP, 0.0)
@@ -119,3 +122,12 @@ def test_emulate_trace_records_a_served_v2_board(tmp_path: Path) -> None:
     assert {r["value"] for r in rows if r["name"] == "DAC"} >= {"100", "0"}
     names = [r["name"] for r in rows if r["kind"] == "command"]
     assert names[:2] == ["ELECTRODE_NUM", "STIM_MODE"]
+
+
+def test_v2_trace_adc_holds_the_readings_the_measure_reply_returns() -> None:
+    """With the skin model the ADC rows are the readings stored, so a trace and a measure reply agree."""
+    mem = MemorySink()
+    emu = _record(mem, skin=DEFAULT_SKIN)
+    scan = next(s for s in emu.scans if s.electrode_num == 32)
+    inside = [e for e in mem.events if scan.start_ns <= e[0] <= scan.end_ns]
+    assert [v for _, n, v in inside if n == "ADC"] == emu.registers.voltage[:32]

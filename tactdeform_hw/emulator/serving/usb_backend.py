@@ -222,7 +222,7 @@ class EmulatedUsbDevice:
     gets
     fresh copies.  ``firmware``: the version the board runs — ``"v1.2"`` (:class:`TimedEmulator`) or
     ``"v2"`` (:class:`~tactdeform_hw.emulator.timed.model_v2.TimedEmulatorV2`: its 1024-byte queue, whole
-    payloads, the 2 s command timeout; it reads back DAC codes, so it takes no ``skin``).
+    payloads, the 2 s command timeout; its ADC reads the same ``skin`` model, stored unshifted).
     ``kernel_driver``: True — Linux with ``cdc_acm`` bound to the CDC interfaces (the
     transport must detach it and re-attach on close); False — nothing bound; None — the platform cannot
     tell (pyusb raises ``NotImplementedError``, as on Windows and macOS).

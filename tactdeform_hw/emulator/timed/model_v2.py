@@ -60,6 +60,7 @@ from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.firmware.parser_v2 import ParserV2
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
 from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal, physical_outputs
+from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
 from tactdeform_hw.emulator.records.reports import EventRun, LossReport
 from tactdeform_hw.emulator.timed.base import TimedModelBase
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link, reply_link
@@ -387,8 +388,13 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         model: TimingModel = DEFAULT_MODEL,
         conventions: ScanConventions = DEFAULT_CONVENTIONS,
         stack_reading: float | None = None,
+        skin: SkinModel | None = DEFAULT_SKIN,
     ) -> None:
         self.emulator = Emulator(board, switching_boards, firmware=V2, stack_reading=stack_reading)
+        #: What the ADC reads at the end of each pulse (``AD = DAAD(0)``, the spec's scan step 3c): the
+        #: electrode–skin model v1.2 reads too, stored unshifted as v2 stores it.  ``None``: the DAC code
+        #: itself, as the host build's SPI stub loops the exchange back (what its golden traces record).
+        self.skin = skin
         self.board = self.emulator.board
         #: HV513 outputs the stack really has: a channel at or past this is clocked out of the chain's end.
         self.outputs = physical_outputs(self.board.kind, self.board.switching_boards)
@@ -474,15 +480,15 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
 
     @classmethod
     def _served_options(cls, options: dict[str, Any]) -> dict[str, Any]:
-        """v2 reads back DAC codes, not a skin model (``skin`` is refused); without ``tx_link`` replies
-        travel back over the same kind of link as the host's bytes (as on v1.2)."""
-        if options["skin"] is not None:
-            raise ConfigurationError("skin: the v2 timed model reads back the DAC codes, not a skin model")
-        tx_link, model = options["tx_link"], options["model"]
+        """The ADC reads the same skin model as on v1.2 (``skin``: default :data:`~.skin.DEFAULT_SKIN`);
+        without ``tx_link`` replies travel back over the same kind of link as the host's bytes (as on
+        v1.2)."""
+        tx_link, model, skin = options["tx_link"], options["model"], options["skin"]
         return {
             "link": options["link"],
             "tx_link": tx_link if tx_link is not None else reply_link(options["link"]),
             "model": model if model is not None else DEFAULT_MODEL,
+            "skin": skin if skin is not None else DEFAULT_SKIN,
         }
 
     def write(self, data: bytes, at_us: float | None = None) -> int:
@@ -697,6 +703,8 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
             prior_scans=0,
         )
         duration, onsets, codes, volts, pulses = _scan_shape(cfg, self.conventions)
+        if self.skin is not None:
+            volts = self._readings(n, pulses)
         pulses = self._on_outputs(pulses, t)
         rec = ScanRecordV2(
             self.scan_count,
@@ -716,7 +724,7 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         self.scans.append(rec)
         self.scan_count += 1
         if self._sinks:
-            run = EventRun(t, duration, _trace_events(cfg, self.conventions))
+            run = EventRun(t, duration, self._with_readings(_trace_events(cfg, self.conventions), volts))
             for sink in self._sinks:
                 sink.scan_run(run)
         self._last_alarm = t
@@ -735,6 +743,35 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
             self._next_alarm_ns = t + period
         if self._next_call_ns < end:
             self._next_call_ns = end  # the interrupt pre-empts the main loop
+
+    def _readings(self, n: int, pulses: tuple[PulseRow, ...]) -> tuple[int, ...]:
+        """What each channel's ``AD = DAAD(0)`` reads: the skin model's ADC reading of the channel's last
+        pulse (biphasic: the second phase), sampled ``adc_sample_at_us`` into the exchange that ends it,
+        on the channel's own output — none past the stack's last output, where the source meets no
+        electrode and reads its compliance.  A channel with no current (height 0) reads 0."""
+        assert self.skin is not None
+        last: dict[int, PulseRow] = {row[0]: row for row in pulses}  # rows are in time order
+        into_exchange_ns = self.model.adc_at_ns - self.conventions.dac_change_at_ns
+        readings = [0] * n
+        for ch, (_, _, code, width_ns, _) in last.items():
+            if ch < n:
+                outputs = (ch,) if ch < self.outputs else ()
+                sample_us = max(0.0, (width_ns + into_exchange_ns) / 1000.0)
+                readings[ch] = self.skin.pulse(outputs, code, sample_us).adc_raw
+        return tuple(readings)
+
+    def _with_readings(
+        self, events: tuple[np.ndarray, np.ndarray, np.ndarray], volts: tuple[int, ...]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A scan's trace events with the ``ADC`` rows holding the readings stored (one per channel, in
+        channel order), when they come from the skin model rather than the walker's loop-back."""
+        if self.skin is None:
+            return events
+        times, signals, values = events
+        at = np.flatnonzero(signals == int(Signal.ADC))
+        values = values.copy()
+        values[at] = np.asarray(volts[: at.size], dtype=values.dtype)
+        return times, signals, values
 
     def _on_outputs(self, pulses: tuple[PulseRow, ...], t: int) -> tuple[PulseRow, ...]:
         """The pulses an output delivers: hv513FastScan clocks a channel's bit ``channel`` places down the

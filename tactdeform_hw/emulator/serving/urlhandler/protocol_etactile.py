@@ -14,7 +14,7 @@ a 921600-baud UART) and the receive queue at the moment it is made, the parser r
 rhythm (``firmware=v1.2``, the default: 256-byte queue, one command with a payload per RTOS tick;
 ``firmware=v2``: 1024-byte queue, whole payloads, a cut command discarded 2 s after its command byte),
 replies become readable when the model delivers them, scans run (0xFF answers with the skin model's
-voltages on v1.2, with the DAC codes the scan last read back on v2).  The port is lazy: each call first brings
+readings: ``raw >> 2`` on v1.2, the whole reading on v2).  The port is lazy: each call first brings
 the model up to the wall clock.  It declares ``pacing_clock`` (wall time) so a driver paces its writes as for
 a board, and the other capabilities of :mod:`tactdeform_hw.ports`: ``instant``, ``pulse_reset()`` (the reset
 line pulsed), ``board_state()`` and ``board_hazards``.
