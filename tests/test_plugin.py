@@ -132,8 +132,38 @@ def test_app(etactile_board):
     result = pytester.runpytest(*PLUGIN)
     result.assert_outcomes(failed=1)
     result.stdout.fnmatch_lines(
-        ["*the emulated board hit * firmware defect(s):*", "*[[]defect, from *] parser_locked @byte*"]
+        ["*the emulated board hit * firmware defect(s):*", "*[[]defect, from host] parser_locked @byte*"]
     )
+
+
+@pytest.mark.parametrize("transport", ["url", "usb"])
+def test_every_transport_tells_the_drivers_bytes_from_the_programs(
+    pytester: pytest.Pytester, transport: str
+) -> None:
+    """On the in-process URL (its board's bytes seen through ``watch_shared``) and on the emulated USB
+    device (through its server's hook), as on the pty: the package's clean session leaves records of the
+    driver's own bytes only, delivered pulses are read, and a program's byte of its own is the host's."""
+    if transport == "usb":
+        pytest.importorskip("usb.core", reason="the usb transport is opened through pyusb")
+    pytester.makepyfile(
+        SESSION
+        + f"""
+@pytest.mark.etactile_board(transport="{transport}")
+def test_app(etactile_board):
+    prefix = "etactile://" if "{transport}" == "url" else "usb-emulator://"
+    assert etactile_board.name.startswith(prefix), etactile_board.name
+    dev = run_session(etactile_board)
+    pulses = [p for p in etactile_board.delivered() if p.current_ua > 0]
+    assert pulses and {{p.electrode for p in pulses}} == {{0}}
+    hazards = etactile_board.hazards
+    assert len(hazards) > 0 and hazards.defects() == []
+    assert all(a.origin.value == "driver" for a in hazards), list(hazards)
+    assert len(etactile_board.received) > 0
+    dev.close()
+"""
+    )
+    result = pytester.runpytest(*PLUGIN)
+    result.assert_outcomes(passed=1)
 
 
 def test_the_marker_selects_v2_on_tcp(pytester: pytest.Pytester) -> None:

@@ -26,8 +26,9 @@ from tactdeform_hw.emulator.serving.realtime import RealtimeEmulator, settle
 from tactdeform_hw.errors import ConfigurationError
 from tactdeform_hw.protocol.state import BoardState
 
-#: The transports a board can be served on: the in-process pyserial URL handler, a pseudo-terminal, TCP.
-TRANSPORTS = ("url", "pty", "tcp")
+#: The transports a board can be served on: the in-process pyserial URL handler, a pseudo-terminal, TCP,
+#: the board's own USB device (``usb-emulator://PATH``, opened through pyusb).
+TRANSPORTS = ("url", "pty", "tcp", "usb")
 #: The options a board takes (the marker's keywords and an indirect parameter's keys).
 BOARD_OPTIONS = ("firmware", "transport", "board", "switching_boards")
 
@@ -179,7 +180,10 @@ class HazardReport(Sequence[Assessment]):
 
 class EmulatedBoard:
     """A timed emulated board served on one transport.  A program under test opens :attr:`name` (the
-    in-process URL ``etactile://...``, the pty's path, or the TCP server's ``socket://`` URL)."""
+    in-process URL ``etactile://...``, the pty's path, the TCP server's ``socket://`` URL, or the USB
+    device's ``usb-emulator://PATH``).  Every byte that reaches the board is kept (:attr:`received`), so
+    the hazards the package's own driver causes by design are told from the program's on every
+    transport."""
 
     def __init__(
         self,
@@ -198,23 +202,28 @@ class EmulatedBoard:
         self.url: str | None = None
         self.path: str | None = None
         self._cleanup: list[Callable[[], None]] = []
-        self._recording: RecordingBoard | None = None
+        self._received = bytearray()
+        self.emulator: RealtimeEmulator
         if transport == "url":
             self.emulator = self._serve_url(firmware, board, switching_boards)
             return
-        self._recording = RecordingBoard(board, switching_boards, firmware=firmware, **self._rules(transport))
-        self.emulator = self._recording
+        if transport == "usb":
+            self.emulator = self._serve_usb(firmware, board, switching_boards)
+            return
+        recording = RecordingBoard(board, switching_boards, firmware=firmware, **self._rules(transport))
+        self._received = recording.received
+        self.emulator = recording
         if transport == "pty":
             from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
-            pty = PtyServer(self._recording, firmware=firmware)
+            pty = PtyServer(recording, firmware=firmware)
             pty.start()
             self._cleanup.append(pty.stop)
             self.path = pty.path
         else:
             from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 
-            tcp = TcpServer(self._recording, port=0, firmware=firmware)
+            tcp = TcpServer(recording, port=0, firmware=firmware)
             tcp.start()
             self._cleanup.append(tcp.stop)
             self.url = tcp.url
@@ -227,7 +236,11 @@ class EmulatedBoard:
 
     def _serve_url(self, firmware: str, board: str, switching_boards: int) -> RealtimeEmulator:
         from tactdeform_hw.device import open_port
-        from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
+        from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import (
+            forget_shared,
+            shared_emulator,
+            watch_shared,
+        )
 
         shared = f"board-{uuid.uuid4().hex[:8]}"
         self.url = (
@@ -236,9 +249,33 @@ class EmulatedBoard:
         first = open_port(self.url, timeout=0.1)
         first.open()  # creates the shared board every later port of this URL talks to
         self._cleanup += [lambda: forget_shared(shared), first.close]
+        self._cleanup.append(watch_shared(shared, self._keep))
         emu = shared_emulator(shared)
         assert isinstance(emu, RealtimeEmulator)
         return emu
+
+    def _serve_usb(self, firmware: str, board: str, switching_boards: int) -> RealtimeEmulator:
+        """The board's USB device on a socket of its own (:class:`~.usb_server.UsbServer`); a program
+        opens ``usb-emulator://PATH`` with pyusb, as ``tactdeform-hw emulate --usb`` serves it."""
+        from tactdeform_hw.emulator.serving.usb_server import UsbServer
+
+        emu = RealtimeEmulator(board, switching_boards, firmware=firmware)
+        usb = UsbServer(emu, firmware=firmware, hook=self._keep)
+        usb.start()
+        self._cleanup.append(usb.stop)
+        self.url = usb.name
+        return emu
+
+    def _keep(self, direction: str, data: bytes, t: float) -> None:
+        """A transport's byte hook: keep what reached the board."""
+        if direction == "host->dev":
+            self._received += data
+
+    @property
+    def received(self) -> bytes:
+        """Every byte that reached the board since it was made (what :attr:`Hazard.offset` counts while
+        no byte is lost in the receive queue)."""
+        return bytes(self._received)
 
     @property
     def name(self) -> str:
@@ -270,10 +307,9 @@ class EmulatedBoard:
 
     @property
     def hazards(self) -> HazardReport:
-        """Every hazard recorded, each with severity and origin; the origin is ``unknown`` on the in-process
-        URL transport (whose board the URL handler makes, so its bytes are not kept)."""
-        rec = self._recording
-        spans = driver_spans(bytes(rec.received), self.firmware) if rec is not None else None
+        """Every hazard recorded, each with severity and origin (``driver`` or ``host``, from the bytes
+        :attr:`received` on every transport)."""
+        spans = driver_spans(self.received, self.firmware)
         with self.emulator.lock:
             records = list(self.emulator.hazards)
         return HazardReport([assess(h, spans) for h in records])

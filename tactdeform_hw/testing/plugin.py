@@ -5,7 +5,7 @@ a timed emulated eTactileKit board without a line of set-up.
   emulator's defaults (firmware v1.2, the compact board, one switching board) on a pseudo-terminal;
   stopped after the test.
 * marker ``@pytest.mark.etactile_board(firmware="v2", transport="tcp", board=..., switching_boards=...)``
-  chooses the board; so does indirect parametrization
+  chooses the board (transport ``url``, ``pty``, ``tcp`` or ``usb``); so does indirect parametrization
   (``@pytest.mark.parametrize("etactile_board", [{"firmware": "v2"}], indirect=True)``; the parameter's
   keys win over the marker's).
 * option ``--etactile-device NAME``: the device the conformance checks run against — a test module that
@@ -43,7 +43,7 @@ def pytest_configure(config: pytest.Config) -> None:
     config.addinivalue_line(
         "markers",
         f"{MARKER}(firmware='v1.2', transport='pty', board='compact', switching_boards=1): the emulated "
-        "eTactileKit board the etactile_board fixture serves (transport: url, pty or tcp)",
+        "eTactileKit board the etactile_board fixture serves (transport: url, pty, tcp or usb)",
     )
 
 

@@ -40,6 +40,7 @@ import sys
 import threading
 import time
 import urllib.parse as urlparse
+from collections.abc import Callable
 from typing import Any
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException, Timeout
@@ -49,6 +50,7 @@ from tactdeform_hw.emulator.core import Emulator
 from tactdeform_hw.emulator.firmware.models import model_entry
 from tactdeform_hw.emulator.serving.realtime import (
     BUILD_RULES,
+    ByteHook,
     RealtimeEmulator,
     UsbSerialJtagLines,
     reset_untimed,
@@ -60,6 +62,7 @@ from tactdeform_hw.protocol.state import BoardState
 _OPTIONS = ("board", "switching_boards", "stack_reading", "spy", "timed", "link", "firmware", "firmware_src")
 _shared: dict[str, Emulator | RealtimeEmulator] = {}
 _shared_lock = threading.Lock()
+_watchers: dict[str, list[ByteHook]] = {}
 _FALSE = ("0", "", "false", "no", "off")
 
 
@@ -70,12 +73,34 @@ def shared_emulator(name: str) -> Emulator | RealtimeEmulator | None:
 
 
 def forget_shared(name: str | None = None) -> None:
-    """Drop one (or every) named board, e.g. between tests."""
+    """Drop one (or every) named board, e.g. between tests, with its watchers."""
     with _shared_lock:
         if name is None:
             _shared.clear()
+            _watchers.clear()
         else:
             _shared.pop(name, None)
+            _watchers.pop(name, None)
+
+
+def watch_shared(name: str, hook: ByteHook) -> Callable[[], None]:
+    """Call ``hook(direction, data, t)`` — the ``hook`` of the pty, TCP and USB servers — with every byte
+    that reaches the board behind ``etactile://NAME`` from any of its ports (``host->dev``: bytes held
+    back by a reset line never reach it) and every byte read from it (``dev->host``), from now on;
+    ``t`` is ``time.monotonic()``.  A test sees on the in-process URL the bytes a server shows it (which
+    of them the package's own driver wrote, say).  Returns the function that stops the calls."""
+    if not name:
+        raise ConfigurationError("watch_shared: a board is shared by its NAME (etactile://NAME)")
+    with _shared_lock:
+        _watchers.setdefault(name, []).append(hook)
+
+    def stop() -> None:
+        with _shared_lock:
+            hooks = _watchers.get(name, [])
+            if hook in hooks:
+                hooks.remove(hook)
+
+    return stop
 
 
 def _parse(url: str) -> tuple[str, dict[str, str]]:
@@ -114,6 +139,7 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         self._rx = bytearray()  # untimed replies not read yet
         self._lock = threading.Lock()
         self._spy = False
+        self._shared_name = ""  # the NAME of etactile://NAME, whose watchers see this port's bytes
         self._instant_clock = InstantClock()
         super().__init__(*args, **kwargs)
 
@@ -182,6 +208,7 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
 
     def from_url(self, url: str) -> Any:
         name, opts = _parse(url)
+        self._shared_name = name
         try:
             board = opts.get("board", "compact")
             switching = int(opts.get("switching_boards", "1"))
@@ -234,6 +261,14 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         if self._spy and data:
             sys.stderr.write(f"{time.monotonic():.6f} {direction} {data.hex(' ')}\n")
 
+    def _tell(self, direction: str, data: bytes) -> None:
+        """The board's watchers (:func:`watch_shared`) see bytes that reached it or came from it."""
+        hooks = _watchers.get(self._shared_name) if self._shared_name and data else None
+        if hooks:
+            now = time.monotonic()
+            for hook in list(hooks):
+                hook(direction, data, now)
+
     def _note(self, text: str) -> None:
         if self._spy:
             sys.stderr.write(f"{time.monotonic():.6f} {text}\n")
@@ -264,6 +299,7 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
                 got = board.read(size - len(out))
                 if got:
                     self._dump("dev->host", got)
+                    self._tell("dev->host", got)
                     out += got
                     continue
             if timeout.expired():
@@ -280,11 +316,13 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
         if not self.lines.running:
             self.bytes_dropped += len(data)  # held in reset, or the ROM bootloader: the firmware gets nothing
             return len(data)
+        self._tell("host->dev", data)
         if self.timed:
             return int(self.emulator.write(data))
         with self._lock:
             reply = self.emulator.feed(data)
             self._dump("dev->host", reply)
+            self._tell("dev->host", reply)
             self._rx += reply
         return len(data)
 
