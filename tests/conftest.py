@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -27,6 +28,17 @@ def shared_path(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"{path} is not available (the shared reference data sits beside the repository in CI)")
     return path
+
+
+@pytest.fixture
+def fresh_emulators() -> Iterator[None]:
+    """No named in-process board (``etactile://NAME``) left by another test, and none left to the next:
+    a test that proves a command opened no port looks for the board by its name."""
+    from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared
+
+    forget_shared()
+    yield
+    forget_shared()
 
 
 @pytest.fixture

@@ -18,9 +18,11 @@ import pytest
 
 from tactdeform_hw.cli import EXIT_STATUS_HELP, build_parser, main
 from tactdeform_hw.cli import timing as timing_cli
-from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
+from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import shared_emulator
 from tactdeform_hw.errors import install_command
 from tactdeform_hw.formats import PatternSequence, PatternStep, write_pattern_file
+
+from .cli_helpers import run
 
 ROOT = Path(__file__).resolve().parents[1]
 PROFILE = {
@@ -35,17 +37,7 @@ PROFILE = {
 }
 
 
-@pytest.fixture(autouse=True)
-def _fresh_emulators():
-    forget_shared()
-    yield
-    forget_shared()
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    code = main(argv)
-    out = capsys.readouterr()
-    return code, out.out, out.err
+pytestmark = pytest.mark.usefixtures("fresh_emulators")
 
 
 def usage_error(argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:

@@ -10,20 +10,11 @@ import pytest
 import serial
 
 from tactdeform_hw.cli import main
-from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared, shared_emulator
+from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import shared_emulator
 
+from .cli_helpers import run
 
-@pytest.fixture(autouse=True)
-def _fresh_emulators():
-    forget_shared()
-    yield
-    forget_shared()
-
-
-def run(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
-    code = main(argv)
-    out = capsys.readouterr()
-    return code, out.out, out.err
+pytestmark = pytest.mark.usefixtures("fresh_emulators")
 
 
 def _board(name: str, firmware: str = "v1.2") -> object:

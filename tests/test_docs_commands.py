@@ -319,11 +319,7 @@ COMMANDS = all_commands()
 BY_KEY = {c.key: c for c in COMMANDS}
 
 
-@pytest.fixture(autouse=True)
-def _fresh_emulators():
-    forget_shared()
-    yield
-    forget_shared()
+pytestmark = pytest.mark.usefixtures("fresh_emulators")
 
 
 def test_every_documented_command_is_listed_once() -> None:
