@@ -331,6 +331,16 @@ def _legend(fig: Any, kinds_seen: set[str], overruns: int) -> None:
     )
 
 
+def _fit_texts(ax: Any, heading: Any, renderer: Any, width_px: int) -> list[Any]:
+    """The title fitted to the figure's width, each overrun label moved inside the plot; the labels."""
+    fit_width(heading, width_px - 2 * TITLE_MARGIN_PX, renderer)
+    plot_box = ax.get_window_extent(renderer)
+    labels = [t for t in ax.texts if t.get_gid() == OVERRUN_LABEL_GID]
+    for label in labels:
+        keep_inside(label, plot_box.x0 + 2, plot_box.x1 - 2, renderer)
+    return labels
+
+
 def draw_timing_png(
     pulses: Iterable[Any],
     cycles: Iterable[Any] = (),
@@ -377,16 +387,12 @@ def draw_timing_png(
     ax.set_ylabel("channel")
     ax.set_xlabel(f"time ({unit})")
     heading = ax.set_title(title, fontsize=11)
-    fit_width(heading, width_px - 2 * TITLE_MARGIN_PX, canvas.get_renderer())
     ax.grid(axis="x", color="#eeeeee", lw=0.6)
     for k in range(len(channels)):
         ax.axhline(k + 0.4, color="#f0f0f0", lw=0.5, zorder=0)
 
     overruns = _draw_cycles(ax, vis_c, period_us, scale, (t0, t1))
-    plot_box = ax.get_window_extent(canvas.get_renderer())
-    for label in ax.texts:
-        if label.get_gid() == OVERRUN_LABEL_GID:
-            keep_inside(label, plot_box.x0 + 2, plot_box.x1 - 2, canvas.get_renderer())
+    labels = _fit_texts(ax, heading, canvas.get_renderer(), width_px)
     _draw_period(ax, vis_c, period_us, scale)
 
     kinds_seen = _draw_pulses(ax, vis, row, full, scale, (t0, t1))
@@ -406,18 +412,18 @@ def draw_timing_png(
     rgb = canvas_rgb(canvas)
     p_out = Path(path)
     Image.fromarray(rgb).save(p_out, format="PNG")
-    renderer, height = canvas.get_renderer(), rgb.shape[0]
-    texts = [heading, *(t for t in ax.texts if t.get_gid() == OVERRUN_LABEL_GID)]
+    boxes = _boxes(ax, [heading, *labels], canvas.get_renderer(), rgb.shape[0])
     return TimingInfo(
-        p_out,
-        (rgb.shape[1], height),
-        (t0, t1),
-        channels,
-        len(vis),
-        len(vis_c),
-        overruns,
-        box_px(ax, renderer, height),
-        tuple((str(t.get_text()), box_px(t, renderer, height)) for t in texts),
+        p_out, (rgb.shape[1], rgb.shape[0]), (t0, t1), channels, len(vis), len(vis_c), overruns, *boxes
+    )
+
+
+def _boxes(
+    ax: Any, texts: list[Any], renderer: Any, height_px: int
+) -> tuple[tuple[float, float, float, float], tuple[tuple[str, tuple[float, float, float, float]], ...]]:
+    """The plot's box and each text's, as :class:`TimingInfo` reports them."""
+    return box_px(ax, renderer, height_px), tuple(
+        (str(t.get_text()), box_px(t, renderer, height_px)) for t in texts
     )
 
 

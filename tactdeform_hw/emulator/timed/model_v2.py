@@ -202,6 +202,35 @@ def _trace_events(
     return arr[:, 0], arr[:, 1].astype(np.int8), arr[:, 2]
 
 
+def adc_readings(
+    skin: SkinModel, n: int, pulses: tuple[PulseRow, ...], outputs: int, into_exchange_ns: int
+) -> tuple[int, ...]:
+    """What each of ``n`` channels' ``AD = DAAD(0)`` reads: the skin model's ADC reading of the channel's
+    last pulse (biphasic: the second phase), sampled ``into_exchange_ns`` after the DAC change of the
+    exchange that ends it, on the channel's own output — none at or past the stack's ``outputs``, where
+    the source meets no electrode and reads its compliance.  A channel with no current (height 0) reads
+    0.  Stored whole, as v2 stores it (v1.2 keeps ``raw >> 2``)."""
+    last: dict[int, PulseRow] = {row[0]: row for row in pulses}  # rows are in time order
+    readings = [0] * n
+    for ch, (_, _, code, width_ns, _) in last.items():
+        if ch < n:
+            on = (ch,) if ch < outputs else ()
+            readings[ch] = skin.pulse(on, code, max(0.0, (width_ns + into_exchange_ns) / 1000.0)).adc_raw
+    return tuple(readings)
+
+
+def _with_readings(
+    events: tuple[np.ndarray, np.ndarray, np.ndarray], volts: tuple[int, ...]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A scan's trace events with the ``ADC`` rows (one per channel, in channel order) holding the
+    readings stored, when they come from the skin model rather than the walker's loop-back."""
+    times, signals, values = events
+    at = np.flatnonzero(signals == int(Signal.ADC))
+    values = values.copy()
+    values[at] = np.asarray(volts[: at.size], dtype=values.dtype)
+    return times, signals, values
+
+
 def _scan_shape(
     cfg: FirmwareScanConfig, conv: ScanConventions
 ) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]:
@@ -704,7 +733,8 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         )
         duration, onsets, codes, volts, pulses = _scan_shape(cfg, self.conventions)
         if self.skin is not None:
-            volts = self._readings(n, pulses)
+            into_exchange_ns = self.model.adc_at_ns - self.conventions.dac_change_at_ns
+            volts = adc_readings(self.skin, n, pulses, self.outputs, into_exchange_ns)
         pulses = self._on_outputs(pulses, t)
         rec = ScanRecordV2(
             self.scan_count,
@@ -724,7 +754,8 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         self.scans.append(rec)
         self.scan_count += 1
         if self._sinks:
-            run = EventRun(t, duration, self._with_readings(_trace_events(cfg, self.conventions), volts))
+            events = _trace_events(cfg, self.conventions)
+            run = EventRun(t, duration, events if self.skin is None else _with_readings(events, volts))
             for sink in self._sinks:
                 sink.scan_run(run)
         self._last_alarm = t
@@ -743,35 +774,6 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
             self._next_alarm_ns = t + period
         if self._next_call_ns < end:
             self._next_call_ns = end  # the interrupt pre-empts the main loop
-
-    def _readings(self, n: int, pulses: tuple[PulseRow, ...]) -> tuple[int, ...]:
-        """What each channel's ``AD = DAAD(0)`` reads: the skin model's ADC reading of the channel's last
-        pulse (biphasic: the second phase), sampled ``adc_sample_at_us`` into the exchange that ends it,
-        on the channel's own output — none past the stack's last output, where the source meets no
-        electrode and reads its compliance.  A channel with no current (height 0) reads 0."""
-        assert self.skin is not None
-        last: dict[int, PulseRow] = {row[0]: row for row in pulses}  # rows are in time order
-        into_exchange_ns = self.model.adc_at_ns - self.conventions.dac_change_at_ns
-        readings = [0] * n
-        for ch, (_, _, code, width_ns, _) in last.items():
-            if ch < n:
-                outputs = (ch,) if ch < self.outputs else ()
-                sample_us = max(0.0, (width_ns + into_exchange_ns) / 1000.0)
-                readings[ch] = self.skin.pulse(outputs, code, sample_us).adc_raw
-        return tuple(readings)
-
-    def _with_readings(
-        self, events: tuple[np.ndarray, np.ndarray, np.ndarray], volts: tuple[int, ...]
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """A scan's trace events with the ``ADC`` rows holding the readings stored (one per channel, in
-        channel order), when they come from the skin model rather than the walker's loop-back."""
-        if self.skin is None:
-            return events
-        times, signals, values = events
-        at = np.flatnonzero(signals == int(Signal.ADC))
-        values = values.copy()
-        values[at] = np.asarray(volts[: at.size], dtype=values.dtype)
-        return times, signals, values
 
     def _on_outputs(self, pulses: tuple[PulseRow, ...], t: int) -> tuple[PulseRow, ...]:
         """The pulses an output delivers: hv513FastScan clocks a channel's bit ``channel`` places down the
