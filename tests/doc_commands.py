@@ -24,6 +24,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib.util
+import inspect
 import io
 import re
 import shlex
@@ -154,6 +155,44 @@ def all_commands() -> list[DocCommand]:
     return [c for doc in DOCS for c in commands(doc)]
 
 
+_INLINE = re.compile(r"`((?:tactdeform-hw|python tools/)[^`]*)`")
+#: What marks an inline command as a synopsis rather than a line to type: an elision, alternatives, an
+#: optional part, a placeholder (``DIR``, ``FILE``, ``N``, ``<...>``).
+_SYNOPSIS = re.compile(
+    r"…|\.\.\.|\||\[|<|\b(?:CMD|COMMAND|DIR2?|FILE|FRAMES|OUT|N|J|S|P|F|HOST|PORT|ID|NAME)\b"
+)
+
+
+#: A quoted line of output (``tactdeform-hw render: stopped by SIGTERM``), not a command.
+_OUTPUT_QUOTE = re.compile(r"tactdeform-hw [\w-]+:")
+
+
+def parse_check_mention(text: str) -> str | None:
+    """:func:`parse_check` of a command the prose mentions (``tactdeform-hw decode``, ``emulate --firmware
+    v2``): every option given must exist and take its value; the ones left out are not asked for."""
+    return parse_check(text, mention=True)
+
+
+def inline_commands() -> list[DocCommand]:
+    """The commands the documents' prose shows in backticks (outside code blocks), synopses aside: each
+    is a line a reader may type, so each must parse (they are not run: the figures beside them are the
+    campaigns' and benchmarks' own, measured at full size)."""
+    found: list[DocCommand] = []
+    for doc in DOCS:
+        in_block = False
+        for number, line in enumerate((ROOT / doc).read_text(encoding="utf-8").splitlines(), 1):
+            if line.startswith("```"):
+                in_block = not in_block
+                continue
+            if in_block:
+                continue
+            for m in _INLINE.finditer(line):
+                text = m.group(1).strip()
+                if not _SYNOPSIS.search(text) and not _OUTPUT_QUOTE.match(text):
+                    found.append(DocCommand(doc, number, text, None))
+    return found
+
+
 # --- comparing output ------------------------------------------------------------------------------------
 
 
@@ -214,6 +253,22 @@ def _tool(path: str) -> ModuleType:
     return module
 
 
+def _tool_main(path: str, argv: list[str]) -> int | None:
+    """``python tools/X.py ARGV``: the script's ``main(argv)``, or ``main()`` with ``sys.argv`` set for a
+    script whose ``main`` reads ``sys.argv`` itself."""
+    main = _tool(path).main
+    if inspect.signature(main).parameters:
+        code: int | None = main(argv)
+        return code
+    saved = sys.argv
+    sys.argv = [path, *argv]
+    try:
+        code = main()
+    finally:
+        sys.argv = saved
+    return code
+
+
 def argv_of(text: str) -> list[str]:
     return shlex.split(text)
 
@@ -231,7 +286,7 @@ class Parsed(Exception):
     """Raised in place of a tool's run once its arguments are parsed."""
 
 
-def parse_check(text: str) -> str | None:
+def parse_check(text: str, *, mention: bool = False) -> str | None:
     """Argparse's verdict on one documented command: ``None`` when it accepts every flag, else its
     message.  ``tactdeform-hw`` and ``python tools/X.py`` are parsed by their own parsers (nothing runs);
     ``python -c`` is compiled."""
@@ -246,7 +301,7 @@ def parse_check(text: str) -> str | None:
         try:
             with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
                 if words[0] == "tactdeform-hw":
-                    _parse_cli(words[1:])
+                    _parse_cli(words[1:], mention)
                 elif words[:2] == ["python", "-c"]:
                     compile(words[2], "<doc>", "exec")
                 elif words[0] == "python" and words[1].startswith("tools/"):
@@ -308,11 +363,25 @@ def _plugin_options() -> set[str]:
     return names
 
 
-def _parse_cli(argv: list[str]) -> None:
+def _parse_cli(argv: list[str], mention: bool = False) -> None:
     from tactdeform_hw.cli import build_parser
 
     parser = build_parser()
-    args, extra = parser.parse_known_args([w for w in argv if w != "--debug"])
+    words = [w for w in argv if w != "--debug"]
+    if mention and words and not words[0].startswith("-"):
+        # the prose names a command with some of its options: those must exist, none is required
+        command = parser.commands.get(words[0])
+        if command is None:
+            parser.error(f"argument COMMAND: invalid choice: {words[0]!r}")
+        listed = command.format_help()
+        for word in words[1:]:
+            flag = word.split("=", 1)[0]
+            if flag.startswith("-") and not re.search(rf"(?<![\w-]){re.escape(flag)}(?![\w-])", listed):
+                command.error(f"unrecognized arguments: {word}")
+        return
+    if mention and not words:
+        return  # the program named alone
+    args, extra = parser.parse_known_args(words)
     if extra:
         (parser.commands.get(getattr(args, "command", None) or "") or parser).error(
             f"unrecognized arguments: {' '.join(extra)}"
@@ -328,7 +397,7 @@ def _parse_tool(path: str, argv: list[str]) -> None:
 
     argparse.ArgumentParser.parse_args = parse_then_stop  # type: ignore[assignment,method-assign]
     try:
-        _tool(path).main(argv)
+        _tool_main(path, argv)
     except Parsed:
         return
     finally:
@@ -345,8 +414,7 @@ def _run_one(words: list[str]) -> int | None:
         exec(compile(words[2], "<doc>", "exec"), {"__name__": "__main__"})  # noqa: S102 — the document's code
         return 0
     if words[0] == "python" and words[1].startswith("tools/"):
-        code: int | None = _tool(words[1]).main(words[2:])
-        return code
+        return _tool_main(words[1], words[2:])
     raise AssertionError(f"cannot run {' '.join(words)!r} in process")
 
 

@@ -11,7 +11,9 @@ output that varies between machines) is in exactly one of three lists:
   project's own files, a live tracker).
 
 Whatever the list, every command is parsed by its own argument parser here: a documented flag that no
-longer exists fails this file.
+longer exists fails this file.  So is every command the prose names in backticks
+(:func:`~tests.doc_commands.inline_commands`: synopses with placeholders aside), as a mention: the
+options it gives must exist, the ones it leaves out are not asked for.
 """
 
 from __future__ import annotations
@@ -27,7 +29,15 @@ import pytest
 from tactdeform_hw.emulator.serving.urlhandler.protocol_etactile import forget_shared
 
 from .conftest import shared_path
-from .doc_commands import DocCommand, all_commands, matches, parse_check, run
+from .doc_commands import (
+    DocCommand,
+    all_commands,
+    inline_commands,
+    matches,
+    parse_check,
+    parse_check_mention,
+    run,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 GUIDE = "docs/researcher-guide.md"
@@ -350,6 +360,12 @@ def test_every_documented_command_parses(key: str) -> None:
     assert problem is None, f"{command.doc}:{command.line}: {command.text}\n{problem}"
 
 
+@pytest.mark.parametrize("command", inline_commands(), ids=lambda c: f"{c.doc}:{c.line}: {c.text}")
+def test_every_command_in_the_prose_parses(command: DocCommand) -> None:
+    problem = parse_check_mention(command.text)
+    assert problem is None, f"{command.doc}:{command.line}: {command.text}\n{problem}"
+
+
 def run_documented(key: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, case: Case) -> None:
     """Run the command ``key`` in ``tmp_path`` after making the files it reads; compare with the shown."""
     command = BY_KEY[key]
@@ -388,6 +404,10 @@ def test_a_flag_that_no_longer_exists_fails_the_parse() -> None:
     assert "unrecognized arguments: --no-such" in (parse_check("python tools/scene_cost.py --no-such") or "")
     assert "no option --etactile-nothing" in (parse_check("pytest t.py --etactile-nothing x") or "")
     assert "no extra" in (parse_check("pip install -e '.[nothing]'") or "")
+    assert parse_check_mention("tactdeform-hw decode") is None  # a command named, its input left out
+    assert "unrecognized arguments: --nothing" in (
+        parse_check_mention("tactdeform-hw decode --nothing") or ""
+    )
 
 
 def test_the_output_convention() -> None:
