@@ -8,6 +8,7 @@ import sys
 
 import pytest
 
+from tactdeform_hw.emulator.firmware.skin import SkinModel
 from tactdeform_hw.emulator.serving.realtime import RealtimeEmulator
 from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
@@ -68,5 +69,6 @@ def test_usb_emulator_serves_the_named_firmware_across_a_replug() -> None:
     assert isinstance(backend_from_name("usb-emulator").device.timed, TimedEmulator)
     with pytest.raises(ConfigurationError):
         backend_from_name("usb-emulator?firmware=v3")
-    with pytest.raises(ConfigurationError):
-        EmulatedUsbDevice(firmware="v2", skin=object())  # type: ignore[arg-type]
+    # v2's ADC reads the skin model v1.2 reads: the device hands the one it is given to either firmware
+    skin = SkinModel(spread=0.0)
+    assert EmulatedUsbDevice(firmware="v2", skin=skin).timed.skin is skin  # type: ignore[attr-defined]
