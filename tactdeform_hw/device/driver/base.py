@@ -703,14 +703,18 @@ class Device:
         self.dialect.frame(self._ops(), self.state, levels, force_pattern=force_pattern)
 
     def _ops(self) -> LinkOps:
-        """The link operations a dialect is handed (bound now: a transport hook replaced on this device
-        is the one the dialect uses)."""
+        """The link operations a dialect is handed (looked up now: a transport hook replaced on this
+        device is the one the dialect uses; the wire keeps them while nothing they bind changes)."""
         return self.wire.link_ops(
             prove=self._prove,
             recovery_prove=self._recovery_prove,
             recover=self._recover,
-            resetting=lambda: self._resetting,
+            resetting=self._is_resetting,
         )
+
+    def _is_resetting(self) -> bool:
+        """True while the reset line's sequence runs (:meth:`hardware_reset`)."""
+        return self._resetting
 
     def _mark_frame(self) -> None:
         self.last_frame_time = self.pacer.clock.now()

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import InstantClock
@@ -72,6 +73,8 @@ class Wire:
     recovery_write: bool = False
     #: When a write last changed what the scans deliver (a rewrite of the same state does not count).
     last_state_write: float | None = None
+    #: The link operations last built (:meth:`link_ops`), with the tuple of what they bind.
+    _ops_cache: tuple[tuple[Any, ...], LinkOps] | None = field(default=None, init=False)
 
     def check_open(self) -> None:
         if self.closed:
@@ -259,6 +262,18 @@ class Wire:
         pulse), which proves every byte before it read; a short one marks the link suspect and raises."""
         return p.parse_measure_reply(self.request(p.MEASURE_REQUEST, 2 * n, what), n)
 
+    def current_pacer(self) -> Pacer:
+        """The pacer in force (a caller may put another in its place)."""
+        return self.pacer
+
+    def link_state(self) -> LinkState:
+        """Where the recovery state machine stands."""
+        return self.link.state
+
+    def needs_resync(self) -> bool:
+        """True until the parser is proved in step."""
+        return self.link.state is not LinkState.IN_STEP
+
     def link_ops(
         self,
         *,
@@ -268,33 +283,59 @@ class Wire:
         resetting: Callable[[], bool],
     ) -> LinkOps:
         """The link operations a dialect is handed: this wire's, and the device's proof, recovery and
-        reset state (bound now: a transport hook replaced on the port link is the one the dialect uses)."""
-        return LinkOps(
-            pacer=lambda: self.pacer,
-            guard=self.guard,
-            mapping=self.mapping,
-            transfer=self.transfer,
-            unknown_reply_s=self.unknown_reply_s,
-            send=self.send,
-            send_critical=self.send_critical,
-            send_critical_commands=self.send_critical_commands,
-            recovery_send=self.recovery_send,
-            discard_input=self.port_link.discard_input,
-            await_reply=self.await_reply,
-            proved=self.proved,
-            suspect=self.link.suspect,
-            enter=self.link.enter,
-            link_state=lambda: self.link.state,
-            prove=prove,
-            recovery_prove=recovery_prove,
-            recover=recover,
-            request=self.request,
-            run=self.run,
-            measured=self.measured,
-            pace_for=self.pace_for,
-            can_reset=self.port_link.can_reset,
-            resetting=resetting,
-            needs_resync=lambda: self.link.state is not LinkState.IN_STEP,
+        reset state.  Each is looked up now, so a hook replaced on the wire, its port link or recovery
+        record, or the device, is the one the dialect uses.
+
+        Building the operations costs more than a frame's bookkeeping, so they are kept between calls:
+        the cache's key is the very tuple of what they bind, field by field (:meth:`_bindings`), and the
+        operations are built again from that tuple whenever it differs (a bound method compares equal to
+        another only when it binds the same function to the same object; the values are compared as
+        Python does, and the mutable ones — the guard — compare by identity).  A stale cache is thus
+        impossible by construction: whatever the operations bind is what was looked up on this call."""
+        bound = self._bindings(prove, recovery_prove, recover, resetting)
+        cached = self._ops_cache
+        if cached is not None and cached[0] == bound:
+            return cached[1]
+        ops = LinkOps(*bound)
+        self._ops_cache = (bound, ops)
+        return ops
+
+    def _bindings(
+        self,
+        prove: Callable[[int], None],
+        recovery_prove: Callable[[int], None],
+        recover: Callable[[], None],
+        resetting: Callable[[], bool],
+    ) -> tuple[Any, ...]:
+        """What :class:`LinkOps` binds, in the order of its fields."""
+        link = self.link
+        port_link = self.port_link
+        return (
+            self.current_pacer,
+            self.guard,
+            self.mapping,
+            self.transfer,
+            self.unknown_reply_s,
+            self.send,
+            self.send_critical,
+            self.send_critical_commands,
+            self.recovery_send,
+            port_link.discard_input,
+            self.await_reply,
+            self.proved,
+            link.suspect,
+            link.enter,
+            self.link_state,
+            prove,
+            recovery_prove,
+            recover,
+            self.request,
+            self.run,
+            self.measured,
+            self.pace_for,
+            port_link.can_reset,
+            resetting,
+            self.needs_resync,
         )
 
 
