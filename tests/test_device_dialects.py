@@ -246,6 +246,65 @@ def test_the_all_off_is_the_dialects_plan_and_the_state_changes_only_as_it_is_wr
     assert set(_levels(dev)) == {0}
 
 
+def test_a_frame_and_a_change_of_current_are_the_dialects_plans_sent_as_planned(
+    dev: EtactileKitDevice, port: RecordingPort
+) -> None:
+    """The dialect plans a frame and a change of current from a copy of the state in force, writing
+    nothing; the device sends exactly the planned bytes and puts the planned state in force."""
+    dev.configure(StimConfig(electrode_count=8, current_ua=600))
+    dev.send_pattern([1, 0, 1, 0, 0, 0, 0, 0])
+    for send, plan_of in (
+        (
+            lambda: dev.send_pattern([0, 1, 1, 0, 0, 1, 0, 0]),
+            lambda: dev.dialect.frame(
+                dev.wire.plan_context(), dev.state, [0, 1, 1, 0, 0, 1, 0, 0], force_pattern=True
+            ),
+        ),
+        (
+            lambda: dev.set_current(300),
+            lambda: dev.dialect.set_current(
+                dev.wire.plan_context(),
+                dataclasses.replace(dev.state, target_ua=300, config=dev.config.with_current(300)),
+                dev.state.application_levels(dev.mapping),
+            ),
+        ),
+    ):
+        before = dataclasses.replace(dev.state)
+        plan = plan_of()
+        assert dev.state == before and plan.writes and plan.refusal is None
+        port.writes.clear()
+        send()
+        assert b"".join(port.writes) == _planned_bytes(dev, plan)
+        after = dataclasses.replace(before, **plan.puts_before)
+        for w in plan.writes:
+            after = dataclasses.replace(after, **w.puts)
+        assert (after.current_ua, after.last_pattern, after.frames_sent) == (
+            dev.state.current_ua,
+            dev.state.last_pattern,
+            dev.state.frames_sent,
+        )
+    assert dev.current_ua == 300
+    dev.close()
+
+
+def test_a_frame_refused_after_a_change_of_mode_keeps_the_ramp_restarted() -> None:
+    """Firmware v2: a change of waveform restarts the ramp from 0 before the guard can refuse the frame,
+    and the restart holds when it does (the plan is the restart and the refusal, and no byte)."""
+    rec = RecordingPort(Emulator(firmware="v2"))
+    dev = EtactileKitDevice(rec)
+    dev.configure(StimConfig(current_ua=500))
+    dev.send_pattern([1] * 8 + [0] * 24)
+    assert dev.state.heights_ua
+    plan = dev.dialect.frame(dev.wire.plan_context(), dev.state, [2] * 32, force_pattern=True)
+    assert isinstance(plan.refusal, SafetyError) and plan.puts_before == {"heights_ua": []}
+    assert plan.writes == []
+    n = len(rec.writes)
+    with pytest.raises(SafetyError):
+        dev.send_pattern([2] * 32)
+    assert dev.state.heights_ua == [] and rec.writes[n:] == []
+    dev.close()
+
+
 @pytest.mark.parametrize("firmware", list(DIALECTS), ids=lambda f: f.name)
 def test_an_integral_float_is_sent_as_the_integer_it_is(firmware: FirmwareSpec) -> None:
     """A configuration read from JSON may carry ``32.0``: it is held and sent as 32, never computed with as

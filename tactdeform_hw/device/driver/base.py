@@ -420,7 +420,7 @@ class Device:
             self.resync()
             return
         levels = None if self.state.suspended else self.state.application_levels(self.mapping)
-        self.dialect.set_current(self._ops(), self.state, levels)
+        self.wire.run(self.dialect.set_current(self.wire.plan_context(), self.state, levels), self.state)
 
     @_locked
     def send_pattern(self, levels: Sequence[int]) -> None:
@@ -698,9 +698,11 @@ class Device:
         self.dialect.prove(self._ops(), electrodes)
 
     def _frame(self, levels: Sequence[int], *, force_pattern: bool) -> None:
-        """Put one application-order frame on the firmware (the dialect's order of heights and pattern)."""
+        """Put one application-order frame on the firmware (the dialect's order of heights and pattern,
+        planned from the state in force; the wire sends it and puts each write's state in force)."""
         assert self.state.config is not None
-        self.dialect.frame(self._ops(), self.state, levels, force_pattern=force_pattern)
+        plan = self.dialect.frame(self.wire.plan_context(), self.state, levels, force_pattern=force_pattern)
+        self.wire.run(plan, self.state)
 
     def _ops(self) -> LinkOps:
         """The link operations a dialect is handed (looked up now: a transport hook replaced on this

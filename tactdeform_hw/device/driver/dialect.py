@@ -6,16 +6,19 @@ A :class:`~tactdeform_hw.device.driver.base.Device` sends, paces, audits and kee
 same interface, and :data:`~tactdeform_hw.device.driver.dialects.DIALECTS` picks one per firmware spec.
 
 Where an operation is a fixed sequence of writes, the dialect is a pure planner: it returns them (a
-:class:`Plan`) and the device sends them — ``refresh``, ``off`` (the all-off), the guardian's stops, the
-longest frame, and on v2 the count raised without stale channels and the covered pattern, which its other
-steps run as sub-plans.  A plan is made on a copy of the state (:class:`PlanBuilder`) and every write
-carries the state it puts in force, applied only once it is written: a write cut half way leaves the
-state of the writes that got through, as it always did, so the next frame writes the same bytes.
+:class:`Plan`) and the device sends them — ``frame``, ``set_current``, ``refresh``, ``off`` (the all-off),
+the guardian's stops, the longest frame, and on v2 the count raised without stale channels and the covered
+pattern, which its other steps run as sub-plans.  A plan is made on a copy of the state
+(:class:`PlanBuilder`) against a :class:`PlanContext` (the guard, which judges its currents before any
+byte, the mapping, the transfer, the encoding), and every write carries the state it puts in force,
+applied only once it is written: a write cut half way leaves the state of the writes that got through, as
+it always did, so the next frame writes the same bytes.  A refusal part way that must leave a change in
+force (v2 restarts the ramp on a change of mode before a refusal can come, and that restart is kept even
+when the frame is refused) is a plan too: the change, then the refusal, and no write.
 
-The dialect is handed the link operations (:class:`LinkOps`) only where a step depends on a reply or
-on a refusal part way: the closed-loop recovery (``flush_parser``) and the proofs, a configuration
-(proofs between its writes), and a frame or a change of current (v2 restarts the ramp on a change of mode
-before a refusal can come, and that restart is kept even when the frame is refused).
+The dialect is handed the link operations (:class:`LinkOps`) only where a step depends on a reply: the
+closed-loop recovery (``flush_parser``) and the proofs, and a configuration (proofs between its writes,
+and on v1.2 a proof before a long pattern that depends on the pacer's queue model at that write).
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
@@ -105,12 +108,29 @@ class Write:
 @dataclass
 class Plan:
     """The writes of a planned operation, in order; ``puts_before``, the state put in force before the
-    first (a change that needs no byte, e.g. a ramp restarted); ``pace_after``, the (period s, scan s)
-    the pacer paces for once the last is written."""
+    first (a change that needs no byte, e.g. a ramp restarted); ``pace_before``, the (period s, scan s)
+    the pacer paces the writes for; ``pace_after``, the one it paces for once the last is written.
+
+    ``refusal``: the planning refused the operation part way, after a change that must hold all the same
+    (v2's ramp restarted by a change of mode): the executor puts ``puts_before`` in force and raises it,
+    writing nothing."""
 
     writes: list[Write] = field(default_factory=list)
     puts_before: dict[str, Any] = field(default_factory=dict)
     pace_after: tuple[float, float] | None = None
+    pace_before: tuple[float, float] | None = None
+    refusal: Exception | None = None
+
+
+class PlanContext(NamedTuple):
+    """What a plan is made against besides the state in force: the guard that judges its currents (and
+    records its clips and refusals), the channel mapping, the µA-to-code transfer, and whether the pacer
+    writes the loss-tolerant encoding (no payload byte may then look like a command byte)."""
+
+    guard: SafetyGuard
+    mapping: ChannelMapping | None
+    transfer: CurrentTransfer
+    robust: bool
 
 
 class PlanBuilder:
@@ -141,6 +161,13 @@ class PlanBuilder:
         self._record()
         self.plan.pace_after = pace_after
         return self.plan
+
+    def refused(self, error: Exception) -> Plan:
+        """The operation refused by ``error`` after the changes made so far (before any write): they are
+        put in force, nothing is written, and the executor raises ``error``."""
+        self._record()
+        assert not self.plan.writes, "a refusal comes before any write"
+        return Plan(puts_before=self.plan.puts_before, refusal=error)
 
 
 @dataclass(frozen=True)
@@ -185,6 +212,12 @@ class LinkOps:
     can_reset: Callable[[], bool]
     resetting: Callable[[], bool]
     needs_resync: Callable[[], bool]
+
+
+def plan_context(ops: LinkOps) -> PlanContext:
+    """The plan context of the link operations in force (for a planned step of an operation that still
+    sends through them)."""
+    return PlanContext(ops.guard, ops.mapping, ops.transfer, ops.pacer().robust)
 
 
 def scan_of(cfg: StimConfig, hw: bytes) -> float:
@@ -259,10 +292,11 @@ class Dialect(Protocol):
     def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
         """Send a whole configuration in an order that never stimulates with a half-set state."""
 
-    def frame(self, ops: LinkOps, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> None:
-        """Put one application-order frame on the firmware."""
+    def frame(self, ctx: PlanContext, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> Plan:
+        """One application-order frame on the firmware (refused before any byte when the guard refuses
+        it)."""
 
-    def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
+    def set_current(self, ctx: PlanContext, st: DriverState, levels: list[int] | None) -> Plan:
         """The target changed: the frame in force (``levels``, None when suspended or unknown) follows."""
 
     def off(self, st: DriverState, mapping: ChannelMapping | None, scan_s: float | None) -> Plan:
@@ -303,8 +337,10 @@ __all__ = [
     "LinkOps",
     "Plan",
     "PlanBuilder",
+    "PlanContext",
     "Write",
     "count_raise_timing",
+    "plan_context",
     "recovery_timing",
     "scan_of",
     "timing_before_count",

@@ -20,8 +20,11 @@ from tactdeform_hw.device.driver.dialect import (
     DriverState,
     LinkOps,
     Plan,
+    PlanBuilder,
+    PlanContext,
     Write,
     count_raise_timing,
+    plan_context,
     recovery_timing,
     scan_of,
     timing_before_count,
@@ -44,15 +47,15 @@ from tactdeform_hw.protocol.firmware import V1_2
 from tactdeform_hw.protocol.units import CurrentTransfer
 
 
-def encodable(ops: LinkOps, height_ua: int) -> int:
+def encodable(ctx: PlanContext, height_ua: int) -> int:
     """Under robust encoding no payload byte may look like a command byte: lower such heights."""
-    if not ops.pacer().robust or height_ua <= 0:
+    if not ctx.robust or height_ua <= 0:
         return height_ua
     h = height_ua
-    while h > 0 and (ops.transfer.to_code(h) & 0xFF) >= COMMAND_BYTE_MIN:
+    while h > 0 and (ctx.transfer.to_code(h) & 0xFF) >= COMMAND_BYTE_MIN:
         h -= CURRENT_STEP_UA
     if h != height_ua:
-        ops.guard.note_clip(
+        ctx.guard.note_clip(
             "encoding", height_ua, h, "pulse-height code whose low byte looks like a command byte"
         )
     return h
@@ -108,7 +111,7 @@ class V12Dialect:
         ops.pace_for(timings)
         self._write_configuration(ops, st, config, unknown_timing)
         height = encodable(
-            ops,
+            plan_context(ops),
             ops.guard.frame_height(None, config.current_ua, 0, config.pulse_width_us, raise_when_idle=True),
         )
         ops.send(p.encode_pulse_height(ops.transfer.to_code(height)))
@@ -180,56 +183,66 @@ class V12Dialect:
 
     # --- frames ---------------------------------------------------------------------------------------------
 
-    def frame(self, ops: LinkOps, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> None:
+    def frame(self, ctx: PlanContext, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> Plan:
         """Height down first, pattern, height up last; the sense height likewise."""
         cfg = st.config
         assert cfg is not None
-        pacer = ops.pacer()
         height = encodable(
-            ops,
-            ops.guard.frame_height(
+            ctx,
+            ctx.guard.frame_height(
                 levels, st.target_ua, st.current_ua, cfg.pulse_width_us, raise_when_idle=False
             ),
         )
-        hw = ops.mapping.to_hardware(levels) if ops.mapping is not None else bytes(levels)
+        hw = ctx.mapping.to_hardware(levels) if ctx.mapping is not None else bytes(levels)
         period = firmware_period_us(cfg.rate_hz)
         scan = scan_of(cfg, hw)
-        ops.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
+        ctx.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
         before = st.scan_us if st.scan_us is not None else worst_scan_s(cfg) * 1e6
-        pacer.set_timing(period / 1e6, max(before, scan) / 1e6)
-        sense = sense_code(cfg.sense_current_ua, ops.transfer)  # an all-off stop set it to 0
+        b = PlanBuilder(st)
+        st = b.st
+        sense = sense_code(cfg.sense_current_ua, ctx.transfer)  # an all-off stop set it to 0
         if st.sense_byte is None or sense < st.sense_byte:
-            ops.send_critical(p.encode_sense_height(sense))
+            b.add(Write(p.encode_sense_height(sense), critical=True))
             st.sense_byte = sense
         if height < st.current_ua:
-            ops.send_critical(p.encode_pulse_height(ops.transfer.to_code(height)))
+            b.add(Write(p.encode_pulse_height(ctx.transfer.to_code(height)), critical=True))
             st.current_ua = height
         if force_pattern or hw != st.last_pattern:
-            ops.send_critical(p.encode_pattern(hw, electrode_num=cfg.electrode_count))
+            b.add(Write(p.encode_pattern(hw, electrode_num=cfg.electrode_count), critical=True))
             st.last_pattern = hw
             st.frames_sent += 1
         if height > st.current_ua:
-            ops.send_critical(p.encode_pulse_height(ops.transfer.to_code(height)))
+            b.add(Write(p.encode_pulse_height(ctx.transfer.to_code(height)), critical=True))
             st.current_ua = height
         if sense > st.sense_byte:
-            ops.send_critical(p.encode_sense_height(sense))
+            b.add(Write(p.encode_sense_height(sense), critical=True))
             st.sense_byte = sense
         st.suspended = False
         st.scan_us = scan
-        pacer.set_timing(period / 1e6, scan / 1e6)
+        plan = b.done((period / 1e6, scan / 1e6))
+        plan.pace_before = (period / 1e6, max(before, scan) / 1e6)
+        return plan
 
-    def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
+    def set_current(self, ctx: PlanContext, st: DriverState, levels: list[int] | None) -> Plan:
         cfg = st.config
         assert cfg is not None
         height = encodable(
-            ops,
-            ops.guard.frame_height(
+            ctx,
+            ctx.guard.frame_height(
                 levels, st.target_ua, st.current_ua, cfg.pulse_width_us, raise_when_idle=True
             ),
         )
-        if height != st.current_ua:
-            ops.send_critical(p.encode_pulse_height(ops.transfer.to_code(height)))
-            st.current_ua = height
+        if height == st.current_ua:
+            return Plan()
+        return Plan(
+            [
+                Write(
+                    p.encode_pulse_height(ctx.transfer.to_code(height)),
+                    critical=True,
+                    puts={"current_ua": height},
+                )
+            ]
+        )
 
     def off(self, st: DriverState, mapping: ChannelMapping | None, scan_s: float | None) -> Plan:
         cfg = st.config

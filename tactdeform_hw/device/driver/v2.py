@@ -51,6 +51,7 @@ from tactdeform_hw.device.driver.dialect import (
     LinkOps,
     Plan,
     PlanBuilder,
+    PlanContext,
     Write,
     recovery_timing,
     timing_before_count,
@@ -506,11 +507,11 @@ class V2Dialect:
                 "(monophasic) or every one 2 (biphasic)",
             )
 
-    def heights_for(self, ops: LinkOps, st: DriverState, levels: Sequence[int]) -> list[int]:
+    def heights_for(self, ctx: PlanContext, st: DriverState, levels: Sequence[int]) -> list[int]:
         """Each application electrode's height (µA): the target lowered to its own limit and ramp."""
         cfg = st.config
         assert cfg is not None
-        guard = ops.guard
+        guard = ctx.guard
         n = len(levels)
         active = [v in _ACTIVE for v in levels]
         if any(active) and guard.positions_matter:
@@ -520,7 +521,7 @@ class V2Dialect:
         prev = st.heights_ua if len(st.heights_ua) == n else [0] * n
         target = st.target_ua
         ramp = guard.ramp_ua_per_frame
-        robust = ops.pacer().robust
+        robust = ctx.robust
         out: list[int] = []
         clipped: list[tuple[int, int]] = []
         ramped: list[tuple[int, int]] = []
@@ -536,7 +537,7 @@ class V2Dialect:
                 h = prev[i] + ramp
                 ramped.append((i, h))
             if robust:
-                while h > 0 and (ops.transfer.to_code(h) & 0xFF) >= V2.command_byte_min:
+                while h > 0 and (ctx.transfer.to_code(h) & 0xFF) >= V2.command_byte_min:
                     h -= CURRENT_STEP_UA
             out.append(max(0, h))
         for rule, rows, why in (
@@ -554,43 +555,50 @@ class V2Dialect:
                 )
         return out
 
-    def frame(self, ops: LinkOps, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> None:
+    def frame(self, ctx: PlanContext, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> Plan:
+        """A pattern that may differ from the one in force under the cover (:func:`covered_pattern`), the
+        same heights again when ``force_pattern``.  A change of mode restarts the ramp from 0, and that
+        holds even when the guard then refuses the frame."""
         cfg = st.config
         assert cfg is not None
-        pacer = ops.pacer()
         self.check_levels(levels)
+        b = PlanBuilder(st)
+        st = b.st
         want = mode_for(levels)
         mode = st.mode if want is None and st.mode in (0, 1) else (want if want is not None else 0)
         if mode != st.mode:
             st.heights_ua = []  # after a mode change the ramp starts from 0
-        heights = self.heights_for(ops, st, levels)
-        n = cfg.electrode_count
-        codes = [0] * n
-        app_to_hw = ops.mapping.app_to_hw if ops.mapping is not None else range(n)
-        for i, ch in enumerate(app_to_hw):
-            if ch < n:
-                codes[ch] = ops.transfer.to_code(heights[i])
-        period = firmware_period_us(cfg.rate_hz)
-        scan = self._scan_us(cfg, mode)
-        ops.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
+        try:
+            heights = self.heights_for(ctx, st, levels)
+            n = cfg.electrode_count
+            codes = [0] * n
+            app_to_hw = ctx.mapping.app_to_hw if ctx.mapping is not None else range(n)
+            for i, ch in enumerate(app_to_hw):
+                if ch < n:
+                    codes[ch] = ctx.transfer.to_code(heights[i])
+            period = firmware_period_us(cfg.rate_hz)
+            scan = self._scan_us(cfg, mode)
+            ctx.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
+        except Exception as refusal:
+            return b.refused(refusal)
         before = st.scan_us if st.scan_us is not None else self._scan_us(cfg, None)
-        pacer.set_timing(period / 1e6, max(before, scan) / 1e6)
+        paced = (period / 1e6, max(before, scan) / 1e6)
         if mode != st.mode or codes != st.codes:
             # a scan that pre-empts the copy would mix the two patterns (or run the new heights in the old
             # mode): mode 2 at sense height 0 covers the copy, and the new mode follows it
-            b = PlanBuilder(st)
-            self._write_covered(b, codes, mode, pacer.scan_s)
-            ops.run(b.done(), st)
+            self._write_covered(b, codes, mode, paced[1])
             st.frames_sent += 1
         elif force_pattern:
-            ops.send_critical(c2.encode_pattern(codes, electrode_num=n))  # the same heights again
+            b.add(Write(c2.encode_pattern(codes, electrode_num=n), critical=True))  # the same heights again
             st.frames_sent += 1
         st.heights_ua = heights
-        st.last_pattern = ops.mapping.to_hardware(levels) if ops.mapping is not None else bytes(levels)
+        st.last_pattern = ctx.mapping.to_hardware(levels) if ctx.mapping is not None else bytes(levels)
         st.current_ua = max(heights, default=0)
         st.suspended = False
         st.scan_us = scan
-        pacer.set_timing(period / 1e6, scan / 1e6)
+        plan = b.done((period / 1e6, scan / 1e6))
+        plan.pace_before = paced
+        return plan
 
     def off(self, st: DriverState, mapping: ChannelMapping | None, scan_s: float | None) -> Plan:
         """Every height 0 (mode 0 or 1 stays: a zero pattern there is no current)."""
@@ -630,10 +638,11 @@ class V2Dialect:
         writes.append(Write(c2.encode_pattern(codes, electrode_num=n)))
         return Plan(writes)
 
-    def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
+    def set_current(self, ctx: PlanContext, st: DriverState, levels: list[int] | None) -> Plan:
         """The target changed: the frame in force follows (each electrode to its own limit and ramp)."""
-        if levels is not None:
-            self.frame(ops, st, levels, force_pattern=False)
+        if levels is None:
+            return Plan()
+        return self.frame(ctx, st, levels, force_pattern=False)
 
 
 def buffer_levels(state: BoardState) -> list[int]:

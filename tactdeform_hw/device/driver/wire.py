@@ -21,7 +21,7 @@ from typing import Any
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import InstantClock
 from tactdeform_hw.device.driver.audit import AuditLog
-from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, Plan
+from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, Plan, PlanContext
 from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, padding_for
 from tactdeform_hw.device.links.port import PortLink
 from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkRecovery, LinkState
@@ -110,11 +110,22 @@ class Wire:
         if self.pacer.robust:
             self.send_commands(commands)
 
+    def plan_context(self) -> PlanContext:
+        """What a dialect plans against besides the state: this wire's guard, mapping, transfer and
+        encoding."""
+        return PlanContext(self.guard, self.mapping, self.transfer, self.pacer.robust)
+
     def run(self, plan: Plan, st: DriverState) -> None:
-        """A dialect's planned writes, in order (a critical one twice under robust encoding), each putting
-        its state in force in ``st`` once it is written; then the pace the plan ends with."""
+        """A dialect's planned operation: its state put in force before the first write, then (a refused
+        one) its refusal raised; else its pace for the writes, the writes in order (a critical one twice
+        under robust encoding), each putting its state in force in ``st`` once it is written, and the pace
+        the plan ends with."""
         for name, value in plan.puts_before.items():
             setattr(st, name, value)
+        if plan.refusal is not None:
+            raise plan.refusal
+        if plan.pace_before is not None:
+            self.pacer.set_timing(*plan.pace_before)
         for w in plan.writes:
             if w.commands:
                 if w.critical:
