@@ -12,16 +12,15 @@ electrode count, and 0xFF whose reply length proves the count before any pattern
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig, sense_code
 from tactdeform_hw.device.driver.dialect import (
     DriverState,
-    LinkOps,
     Plan,
     PlanBuilder,
-    PlanContext,
     Write,
     count_raise_timing,
     plan_context,
@@ -45,6 +44,9 @@ from tactdeform_hw.errors import NotStoppedError, ShortReplyError
 from tactdeform_hw.protocol.constants import CURRENT_STEP_UA, RX_QUEUE_SIZE
 from tactdeform_hw.protocol.firmware import V1_2
 from tactdeform_hw.protocol.units import CurrentTransfer
+
+if TYPE_CHECKING:
+    from tactdeform_hw.device.driver.dialect import LinkOps, PlanContext
 
 
 def encodable(ctx: PlanContext, height_ua: int) -> int:
@@ -187,12 +189,7 @@ class V12Dialect:
         """Height down first, pattern, height up last; the sense height likewise."""
         cfg = st.config
         assert cfg is not None
-        height = encodable(
-            ctx,
-            ctx.guard.frame_height(
-                levels, st.target_ua, st.current_ua, cfg.pulse_width_us, raise_when_idle=False
-            ),
-        )
+        height = self._frame_height(ctx, st, levels, raise_when_idle=False)
         hw = ctx.mapping.to_hardware(levels) if ctx.mapping is not None else bytes(levels)
         period = firmware_period_us(cfg.rate_hz)
         scan = scan_of(cfg, hw)
@@ -223,15 +220,25 @@ class V12Dialect:
         plan.pace_before = (period / 1e6, max(before, scan) / 1e6)
         return plan
 
+    @staticmethod
+    def _frame_height(
+        ctx: PlanContext, st: DriverState, levels: Sequence[int] | None, *, raise_when_idle: bool
+    ) -> int:
+        """The height of the frame ``levels``: the target lowered to its lowest limit and ramp, and to a
+        code the encoding can carry."""
+        cfg = st.config
+        assert cfg is not None
+        return encodable(
+            ctx,
+            ctx.guard.frame_height(
+                levels, st.target_ua, st.current_ua, cfg.pulse_width_us, raise_when_idle=raise_when_idle
+            ),
+        )
+
     def set_current(self, ctx: PlanContext, st: DriverState, levels: list[int] | None) -> Plan:
         cfg = st.config
         assert cfg is not None
-        height = encodable(
-            ctx,
-            ctx.guard.frame_height(
-                levels, st.target_ua, st.current_ua, cfg.pulse_width_us, raise_when_idle=True
-            ),
-        )
+        height = self._frame_height(ctx, st, levels, raise_when_idle=True)
         if height == st.current_ua:
             return Plan()
         return Plan(

@@ -48,10 +48,8 @@ from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig
 from tactdeform_hw.device.driver.dialect import (
     DriverState,
-    LinkOps,
     Plan,
     PlanBuilder,
-    PlanContext,
     Write,
     recovery_timing,
     timing_before_count,
@@ -67,6 +65,7 @@ from tactdeform_hw.protocol.firmware_math import estimate_scan_us, firmware_peri
 from tactdeform_hw.protocol.state import BoardState
 
 if TYPE_CHECKING:
+    from tactdeform_hw.device.driver.dialect import LinkOps, PlanContext
     from tactdeform_hw.device.participant.mapping import ChannelMapping
     from tactdeform_hw.device.safety.guard import SafetyGuard
     from tactdeform_hw.protocol.units import CurrentTransfer
