@@ -404,7 +404,11 @@ class Device:
         # after a failed configure brings the old frame back
         self.state.requested = None
         self.state.suspended = False
-        self.dialect.configure(self._ops(), self.state, config)
+        self.dialect.check_configuration(self.wire.guard, config)
+        if self._needs_resync:
+            self._recover()
+        plan = self.dialect.configure(self.wire.plan_context(), self.state, config, self.wire.pace_in_force())
+        self.wire.run(plan, self.state, prove=self._prove)
         self.guardians.tell(self.dialect, self.state.config)
 
     @_locked

@@ -5,20 +5,24 @@ A :class:`~tactdeform_hw.device.driver.base.Device` sends, paces, audits and kee
 (:class:`DriverState`).  A dialect never sees the device, so both versions are read and tested against the
 same interface, and :data:`~tactdeform_hw.device.driver.dialects.DIALECTS` picks one per firmware spec.
 
-Where an operation is a fixed sequence of writes, the dialect is a pure planner: it returns them (a
-:class:`Plan`) and the device sends them — ``frame``, ``set_current``, ``refresh``, ``off`` (the all-off),
-the guardian's stops, the longest frame, and on v2 the count raised without stale channels and the covered
+The dialect is a pure planner: it returns an operation's steps (a :class:`Plan`) and the device's wire
+carries them out — ``configure``, ``frame``, ``set_current``, ``refresh``, ``off`` (the all-off), the
+guardian's stops, the longest frame, and on v2 the count raised without stale channels and the covered
 pattern, which its other steps run as sub-plans.  A plan is made on a copy of the state
 (:class:`PlanBuilder`) against a :class:`PlanContext` (the guard, which judges its currents before any
-byte, the mapping, the transfer, the encoding), and every write carries the state it puts in force,
-applied only once it is written: a write cut half way leaves the state of the writes that got through, as
-it always did, so the next frame writes the same bytes.  A refusal part way that must leave a change in
-force (v2 restarts the ramp on a change of mode before a refusal can come, and that restart is kept even
-when the frame is refused) is a plan too: the change, then the refusal, and no write.
+byte, the mapping, the transfer, the encoding) and, for a configuration, the pace in force
+(:class:`PaceInForce`).  Its steps (:data:`Step`) are writes, proofs (:class:`Prove`: the dialect's
+request and its reply; a proof that is not answered stops the plan), changes of pace (:class:`Pace`,
+:class:`PaceFor`, :class:`Settle`) and the guard's records where the operation makes them
+(:class:`Note`); every step carries the state it puts in force, applied only once it is done: a write cut
+half way leaves the state of the writes that got through, as it always did, so the next frame writes the
+same bytes.  A refusal part way that must leave a change in force (v2 restarts the ramp on a change of
+mode before a refusal can come, and that restart is kept even when the frame is refused) is a plan too:
+the change, then the refusal, and no write.
 
-The dialect is handed the link operations (:class:`LinkOps`) only where a step depends on a reply: the
-closed-loop recovery (``flush_parser``) and the proofs, and a configuration (proofs between its writes,
-and on v1.2 a proof before a long pattern that depends on the pacer's queue model at that write).
+The dialect is handed the link operations (:class:`LinkOps`) only where a step depends on a reply in a
+way a plan does not express: the closed-loop recovery (``flush_parser``), whose branches follow the
+replies, the proofs themselves, close's proof and the firmware check.
 """
 
 from __future__ import annotations
@@ -105,17 +109,86 @@ class Write:
     puts: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class Prove:
+    """A proof at this point of a plan: the dialect's request whose reply proves every byte written before
+    it read, at electrode count ``electrodes`` (no whole reply: the plan stops there,
+    :class:`~tactdeform_hw.errors.ShortReplyError`).  ``unless_room_for``: only when the pacer's queue
+    model, at that moment, has no room for a write of that many bytes (a long pattern goes into a queue
+    proved empty)."""
+
+    electrodes: int
+    unless_room_for: int | None = None
+    puts: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Pace:
+    """From here on the pacer paces for ``timing`` (period s, scan s; None: unknown)."""
+
+    timing: tuple[float | None, float | None]
+    puts: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class PaceFor:
+    """From here on the pacer paces for the slowest of ``timings`` (period µs, scan µs) that may be in
+    force, with ``with_current`` the timing it paces for now among them (when known)."""
+
+    timings: tuple[tuple[float, float], ...]
+    with_current: bool = False
+    puts: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Settle:
+    """The pacer paces for ``timing`` (period s, scan s) from here on; when that is faster than the pace
+    in force (or ``always``), a proof at electrode count ``electrodes``, paced as before, comes first: the
+    faster pace only once the device proves it has read every command written at the slower one."""
+
+    timing: tuple[float, float]
+    electrodes: int
+    always: bool = False
+    puts: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Note:
+    """A height lowered to what the encoding can carry, recorded by the guard at this point of the plan
+    (where the operation computed it)."""
+
+    rule: str
+    requested_ua: int
+    sent_ua: int
+    why: str
+    puts: dict[str, Any] = field(default_factory=dict)
+
+
+#: One step of a plan: a write, or what the executor does between writes.
+Step = Write | Prove | Pace | PaceFor | Settle | Note
+
+
+class PaceInForce(NamedTuple):
+    """The pacer's timing when a plan is made (period s, scan s; None: unknown), and its choice of the
+    slowest of several (period µs, scan µs) that may be in force (what :class:`PaceFor` paces for)."""
+
+    period_s: float | None
+    scan_s: float | None
+    slowest: Callable[[Sequence[tuple[float, float]]], tuple[float, float]]
+
+
 @dataclass
 class Plan:
-    """The writes of a planned operation, in order; ``puts_before``, the state put in force before the
-    first (a change that needs no byte, e.g. a ramp restarted); ``pace_before``, the (period s, scan s)
-    the pacer paces the writes for; ``pace_after``, the one it paces for once the last is written.
+    """The steps of a planned operation, in order (:data:`Step`: mostly writes; a configuration's proofs
+    and changes of pace between them); ``puts_before``, the state put in force before the first (a change
+    that needs no byte, e.g. a ramp restarted); ``pace_before``, the (period s, scan s) the pacer paces the
+    writes for; ``pace_after``, the one it paces for once the last is written.
 
     ``refusal``: the planning refused the operation part way, after a change that must hold all the same
     (v2's ramp restarted by a change of mode): the executor puts ``puts_before`` in force and raises it,
     writing nothing."""
 
-    writes: list[Write] = field(default_factory=list)
+    writes: list[Step] = field(default_factory=list)
     puts_before: dict[str, Any] = field(default_factory=dict)
     pace_after: tuple[float, float] | None = None
     pace_before: tuple[float, float] | None = None
@@ -152,10 +225,10 @@ class PlanBuilder:
                 self._target[f.name] = value
                 setattr(self._seen, f.name, value)
 
-    def add(self, write: Write) -> None:
+    def add(self, step: Step) -> None:
         self._record()
-        self.plan.writes.append(write)
-        self._target = write.puts
+        self.plan.writes.append(step)
+        self._target = step.puts
 
     def done(self, pace_after: tuple[float, float] | None = None) -> Plan:
         self._record()
@@ -212,12 +285,6 @@ class LinkOps:
     can_reset: Callable[[], bool]
     resetting: Callable[[], bool]
     needs_resync: Callable[[], bool]
-
-
-def plan_context(ops: LinkOps) -> PlanContext:
-    """The plan context of the link operations in force (for a planned step of an operation that still
-    sends through them)."""
-    return PlanContext(ops.guard, ops.mapping, ops.transfer, ops.pacer().robust)
 
 
 def scan_of(cfg: StimConfig, hw: bytes) -> float:
@@ -289,8 +356,13 @@ class Dialect(Protocol):
     def check_levels(self, levels: Sequence[int]) -> None:
         """Refuse a frame of valid levels this firmware cannot express."""
 
-    def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
-        """Send a whole configuration in an order that never stimulates with a half-set state."""
+    def check_configuration(self, guard: SafetyGuard, config: StimConfig) -> None:
+        """Refuse, before any byte but once the caller's frame is superseded, a configuration this version
+        cannot run (where the version refuses it there)."""
+
+    def configure(self, ctx: PlanContext, st: DriverState, config: StimConfig, pace: PaceInForce) -> Plan:
+        """A whole configuration in an order that never stimulates with a half-set state, planned from the
+        state in force once the link is proved in step (its proofs are steps of the plan)."""
 
     def frame(self, ctx: PlanContext, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> Plan:
         """One application-order frame on the firmware (refused before any byte when the guard refuses
@@ -335,12 +407,18 @@ __all__ = [
     "Dialect",
     "DriverState",
     "LinkOps",
+    "Note",
+    "Pace",
+    "PaceFor",
+    "PaceInForce",
     "Plan",
     "PlanBuilder",
     "PlanContext",
+    "Prove",
+    "Settle",
+    "Step",
     "Write",
     "count_raise_timing",
-    "plan_context",
     "recovery_timing",
     "scan_of",
     "timing_before_count",

@@ -48,8 +48,12 @@ from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig
 from tactdeform_hw.device.driver.dialect import (
     DriverState,
+    Pace,
+    PaceFor,
     Plan,
     PlanBuilder,
+    Prove,
+    Step,
     Write,
     recovery_timing,
     timing_before_count,
@@ -65,7 +69,7 @@ from tactdeform_hw.protocol.firmware_math import estimate_scan_us, firmware_peri
 from tactdeform_hw.protocol.state import BoardState
 
 if TYPE_CHECKING:
-    from tactdeform_hw.device.driver.dialect import LinkOps, PlanContext
+    from tactdeform_hw.device.driver.dialect import LinkOps, PaceInForce, PlanContext
     from tactdeform_hw.device.participant.mapping import ChannelMapping
     from tactdeform_hw.device.safety.guard import SafetyGuard
     from tactdeform_hw.protocol.units import CurrentTransfer
@@ -406,65 +410,64 @@ class V2Dialect:
         return replace(checked, sense_current_ua=transfer.check_current(config.sense_current_ua))
 
     def check_idle_scan(self, guard: SafetyGuard, config: StimConfig) -> None:
-        """v2 checks its scan in :meth:`configure`, once the caller's frame is superseded."""
+        """v2 checks its scan once the caller's frame is superseded (:meth:`check_configuration`)."""
 
-    def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
-        """Everything off first (zero pattern), the count raised without stale channels, mode 0, polarity
-        while all is off, widths and rate, then a proof by the sync check.  A count that rises goes after
-        the rate, polarity and widths (:func:`~.dialect.timing_before_count`): its longer scan never meets
-        the old period."""
-        # v2 pulses every channel in every scan (an off one at height 0): a configuration whose monophasic
-        # scan fills the period starves the parser whatever the pattern, so it is refused before any byte
-        ops.guard.check_scan(
+    def check_configuration(self, guard: SafetyGuard, config: StimConfig) -> None:
+        """v2 pulses every channel in every scan (an off one at height 0): a configuration whose
+        monophasic scan fills the period starves the parser whatever the pattern, so it is refused before
+        any byte."""
+        guard.check_scan(
             self._scan_us(config, c2.STIM_MODE_MONOPHASIC),
             firmware_period_us(config.rate_hz),
             SCAN_GAP_MIN_US,
         )
-        if ops.needs_resync():
-            ops.recover()
-        pacer = ops.pacer()
+
+    def configure(self, ctx: PlanContext, st: DriverState, config: StimConfig, pace: PaceInForce) -> Plan:
+        """Everything off first (zero pattern), the count raised without stale channels, mode 0, polarity
+        while all is off, widths and rate, then a proof by the sync check.  A count that rises goes after
+        the rate, polarity and widths (:func:`~.dialect.timing_before_count`): its longer scan never meets
+        the old period."""
         old = st.config
         new_period = firmware_period_us(config.rate_hz)
         timings = [(new_period, self._scan_us(config, None))]
         if old is not None:
             timings.append((firmware_period_us(old.rate_hz), self._scan_us(old, None)))
-        elif pacer.period_s is not None and pacer.scan_s is not None:
-            timings.append((pacer.period_s * 1e6, pacer.scan_s * 1e6))
-        ops.pace_for(timings)
+        elif pace.period_s is not None and pace.scan_s is not None:
+            timings.append((pace.period_s * 1e6, pace.scan_s * 1e6))
+        b = PlanBuilder(st)
+        st = b.st
+        b.add(PaceFor(tuple(timings)))
         in_force = old.electrode_count if old is not None else (len(st.codes) if st.codes is not None else 0)
         if in_force and any(st.codes or [1]):
             mode = st.mode if st.mode in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC) else 0
-            b = PlanBuilder(st)
-            self._write_covered(b, [0] * in_force, mode, pacer.scan_s)
-            ops.run(b.done(), st)
-            ops.prove(in_force)  # a long pattern: proved read before the next one
+            self._write_covered(b, [0] * in_force, mode, pace.slowest(timings)[1] / 1e6)
+            b.add(Prove(in_force))  # a long pattern: proved read before the next one
         n = config.electrode_count
         timing_first = timing_before_count(old, config)
-        b = PlanBuilder(st)
         # a rising count: rate and widths before it, once mode 2 holds every pulse at sense height 0
         timing = self._rate_and_widths(config, old, after_count=False) if timing_first else []
         self._raise_count(b, n, Write, _count_write, timing)
-        ops.run(b.done(), st)
-        ops.prove(n)
+        b.add(Prove(n))
         if timing_first:
-            ops.send(c2.encode_polarity(POLARITY_CODE[config.polarity]))  # all is off: mode 0, zero pattern
-            ops.send(c2.encode_sense_width(config.sense_width_us))  # the count's raise set it to 0
+            b.add(Write(c2.encode_polarity(POLARITY_CODE[config.polarity])))  # all is off: mode 0, zeros
+            b.add(Write(c2.encode_sense_width(config.sense_width_us)))  # the count's raise set it to 0
         else:
             for data in self._rate_and_widths(config, old, after_count=True):
-                ops.send(data)
-        sense = ops.transfer.to_code(config.sense_current_ua, "sense_current_ua")
-        ops.send(c2.encode_sense_height(sense))  # used only in mode 2, which never runs with heights
+                b.add(Write(data))
+        sense = ctx.transfer.to_code(config.sense_current_ua, "sense_current_ua")
+        b.add(Write(c2.encode_sense_height(sense)))  # used only in mode 2, which never runs with heights
         st.sense_byte = sense
         st.config = config
         st.target_ua = config.current_ua
         st.current_ua = 0
-        st.heights_ua = [0] * self._app_count(ops.mapping, n)
+        st.heights_ua = [0] * self._app_count(ctx.mapping, n)
         st.requested = None
         st.suspended = False
         st.scan_us = self._scan_us(config, None)
-        pacer.set_timing(timings[-1][0] / 1e6, max(t[1] for t in timings) / 1e6)
-        ops.prove(n)
-        pacer.set_timing(new_period / 1e6, st.scan_us / 1e6)
+        b.add(Pace((timings[-1][0] / 1e6, max(t[1] for t in timings) / 1e6)))
+        b.add(Prove(n))
+        b.add(Pace((new_period / 1e6, st.scan_us / 1e6)))
+        return b.done()
 
     @staticmethod
     def _rate_and_widths(config: StimConfig, old: StimConfig | None, *, after_count: bool) -> list[bytes]:
@@ -633,7 +636,7 @@ class V2Dialect:
         n = cfg.electrode_count
         codes = st.codes if st.codes is not None and len(st.codes) == n else [0] * n
         # a mode byte mis-read as 2 gives every channel the sense pulse, whatever the pattern
-        writes = [Write(c2.encode_stim_mode(st.mode))] if st.mode is not None else []
+        writes: list[Step] = [Write(c2.encode_stim_mode(st.mode))] if st.mode is not None else []
         writes.append(Write(c2.encode_pattern(codes, electrode_num=n)))
         return Plan(writes)
 

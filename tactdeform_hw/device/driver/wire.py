@@ -6,9 +6,10 @@ value leaves unless the recovery has proved the parser in step, :class:`LinkStat
 (:class:`~tactdeform_hw.device.safety.interlock.WireInterlock`), the pacer, the transport, the audit, and
 the interlock's commit.  Replies are read to their worst-case deadline and their proofs recorded.
 
-The :class:`~tactdeform_hw.device.driver.base.Device` and the link operations it hands its dialect
-(:class:`~tactdeform_hw.device.driver.dialect.LinkOps`) both send through it, so there is one path for
-bytes whichever object decided them.
+A dialect's plans (:class:`~tactdeform_hw.device.driver.dialect.Plan`) are carried out here
+(:meth:`Wire.run`), and the :class:`~tactdeform_hw.device.driver.base.Device` and the link operations it
+hands its dialect's recovery (:class:`~tactdeform_hw.device.driver.dialect.LinkOps`) send through it too,
+so there is one path for bytes whichever object decided them.
 """
 
 from __future__ import annotations
@@ -21,7 +22,20 @@ from typing import Any
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import InstantClock
 from tactdeform_hw.device.driver.audit import AuditLog
-from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, Plan, PlanContext
+from tactdeform_hw.device.driver.dialect import (
+    DriverState,
+    LinkOps,
+    Note,
+    Pace,
+    PaceFor,
+    PaceInForce,
+    Plan,
+    PlanContext,
+    Prove,
+    Settle,
+    Step,
+    Write,
+)
 from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, padding_for
 from tactdeform_hw.device.links.port import PortLink
 from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkRecovery, LinkState
@@ -115,11 +129,12 @@ class Wire:
         encoding."""
         return PlanContext(self.guard, self.mapping, self.transfer, self.pacer.robust)
 
-    def run(self, plan: Plan, st: DriverState) -> None:
-        """A dialect's planned operation: its state put in force before the first write, then (a refused
-        one) its refusal raised; else its pace for the writes, the writes in order (a critical one twice
-        under robust encoding), each putting its state in force in ``st`` once it is written, and the pace
-        the plan ends with."""
+    def run(self, plan: Plan, st: DriverState, prove: Callable[[int], None] | None = None) -> None:
+        """A dialect's planned operation: its state put in force before the first step, then (a refused
+        one) its refusal raised; else its pace for the writes, its steps in order — each write (a critical
+        one twice under robust encoding), each proof (``prove``, the dialect's proof at an electrode
+        count) and each change of pace putting its state in force in ``st`` once done — and the pace the
+        plan ends with."""
         for name, value in plan.puts_before.items():
             setattr(st, name, value)
         if plan.refusal is not None:
@@ -127,21 +142,58 @@ class Wire:
         if plan.pace_before is not None:
             self.pacer.set_timing(*plan.pace_before)
         for w in plan.writes:
-            if w.commands:
-                if w.critical:
-                    self.send_critical_commands(w.commands)
-                else:
-                    self.send_commands(w.commands, pad=w.pad)
-            elif w.recovery:
-                self.recovery_send(w.data, pad=w.pad)
-            elif w.critical:
-                self.send_critical(w.data)
+            if isinstance(w, Write):
+                self._write(w)
             else:
-                self.send(w.data, pad=w.pad)
+                self._step(w, prove)
             for name, value in w.puts.items():
                 setattr(st, name, value)
         if plan.pace_after is not None:
             self.pacer.set_timing(*plan.pace_after)
+
+    def _write(self, w: Write) -> None:
+        if w.commands:
+            if w.critical:
+                self.send_critical_commands(w.commands)
+            else:
+                self.send_commands(w.commands, pad=w.pad)
+        elif w.recovery:
+            self.recovery_send(w.data, pad=w.pad)
+        elif w.critical:
+            self.send_critical(w.data)
+        else:
+            self.send(w.data, pad=w.pad)
+
+    def _step(self, step: Step, prove: Callable[[int], None] | None) -> None:
+        """One step of a plan that is not a write (see :data:`~.dialect.Step`)."""
+        pacer = self.pacer
+        if isinstance(step, Prove):
+            if step.unless_room_for is not None:
+                if pacer.queue_estimate() + step.unless_room_for + 4 <= pacer.limit_bytes:
+                    return
+            if prove is None:
+                raise ProtocolMisuseError("a plan with a proof run without the dialect's proof")
+            prove(step.electrodes)
+        elif isinstance(step, Pace):
+            pacer.set_timing(*step.timing)
+        elif isinstance(step, PaceFor):
+            timings = list(step.timings)
+            if step.with_current:
+                if pacer.period_s is None or pacer.scan_s is None:
+                    return
+                timings.insert(0, (pacer.period_s * 1e6, pacer.scan_s * 1e6))
+            self.pace_for(timings)
+        elif isinstance(step, Settle):
+            slower = pacer.payload_interval_s(), pacer.period_s, pacer.scan_s
+            pacer.set_timing(*step.timing)
+            if step.always or pacer.payload_interval_s() < slower[0]:
+                pacer.set_timing(slower[1], slower[2])
+                if prove is None:
+                    raise ProtocolMisuseError("a plan with a proof run without the dialect's proof")
+                prove(step.electrodes)
+                pacer.set_timing(*step.timing)
+        elif isinstance(step, Note):
+            self.guard.note_clip(step.rule, step.requested_ua, step.sent_ua, step.why)
 
     @contextmanager
     def recovery(self) -> Iterator[None]:
@@ -213,13 +265,26 @@ class Wire:
 
     def pace_for(self, timings: Sequence[tuple[float, float]]) -> None:
         """Pace for the slowest of several (period µs, scan µs) that may be in force."""
+        period_us, scan_us = self.slowest(timings)
+        self.pacer.set_timing(period_us / 1e6, scan_us / 1e6)
+
+    def slowest(self, timings: Sequence[tuple[float, float]]) -> tuple[float, float]:
+        """The slowest of several (period µs, scan µs) to pace for (the pace in force is left as it was)."""
+        pacer = self.pacer
+        was = pacer.period_s, pacer.scan_s
 
         def cost(t: tuple[float, float]) -> tuple[float, float]:
-            self.pacer.set_timing(t[0] / 1e6, t[1] / 1e6)
-            return (self.pacer.payload_interval_s(), self.pacer.skip_s(USB_PACKET_SIZE))
+            pacer.set_timing(t[0] / 1e6, t[1] / 1e6)
+            return (pacer.payload_interval_s(), pacer.skip_s(USB_PACKET_SIZE))
 
-        period_us, scan_us = max(timings, key=cost)
-        self.pacer.set_timing(period_us / 1e6, scan_us / 1e6)
+        try:
+            return max(timings, key=cost)
+        finally:
+            pacer.set_timing(*was)
+
+    def pace_in_force(self) -> PaceInForce:
+        """The pacer's timing now, and its choice among timings, for a dialect's plan."""
+        return PaceInForce(self.pacer.period_s, self.pacer.scan_s, self.slowest)
 
     # --- replies -------------------------------------------------------------------------------------------
 
