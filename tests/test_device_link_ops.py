@@ -22,16 +22,12 @@ def _prove(electrodes: int) -> None:
     pass
 
 
-def _recover() -> None:
-    pass
-
-
 def _resetting() -> bool:
     return False
 
 
 def _ops(dev: EtactileKitDevice) -> LinkOps:
-    return dev.wire.link_ops(prove=_prove, recovery_prove=_prove, recover=_recover, resetting=_resetting)
+    return dev.wire.link_ops(prove=_prove, recovery_prove=_prove, resetting=_resetting)
 
 
 def test_link_ops_are_kept_while_nothing_they_bind_changes() -> None:
@@ -48,11 +44,8 @@ def test_link_ops_bind_what_their_names_say() -> None:
         "pacer": wire.current_pacer,
         "guard": wire.guard,
         "mapping": wire.mapping,
-        "transfer": wire.transfer,
         "unknown_reply_s": wire.unknown_reply_s,
         "send": wire.send,
-        "send_critical": wire.send_critical,
-        "send_critical_commands": wire.send_critical_commands,
         "recovery_send": wire.recovery_send,
         "discard_input": wire.port_link.discard_input,
         "await_reply": wire.await_reply,
@@ -62,14 +55,11 @@ def test_link_ops_bind_what_their_names_say() -> None:
         "link_state": wire.link_state,
         "prove": _prove,
         "recovery_prove": _prove,
-        "recover": _recover,
         "request": wire.request,
         "run": wire.run,
         "measured": wire.measured,
-        "pace_for": wire.pace_for,
         "can_reset": wire.port_link.can_reset,
         "resetting": _resetting,
-        "needs_resync": wire.needs_resync,
     }
     assert {f.name: getattr(ops, f.name) for f in fields(LinkOps)} == expected
     dev.close()
@@ -91,14 +81,12 @@ def test_a_hook_replaced_after_caching_is_the_one_the_link_ops_bind() -> None:
     dev.mapping = other
     assert _ops(dev).mapping is other
 
-    def recover_differently() -> None:
-        pass
+    def resetting_differently() -> bool:
+        return True
 
     assert (
-        dev.wire.link_ops(
-            prove=_prove, recovery_prove=_prove, recover=recover_differently, resetting=_resetting
-        ).recover
-        is recover_differently
+        dev.wire.link_ops(prove=_prove, recovery_prove=_prove, resetting=resetting_differently).resetting
+        is resetting_differently
     )
     dev.close()
 

@@ -714,7 +714,6 @@ class Device:
         return self.wire.link_ops(
             prove=self._prove,
             recovery_prove=self._recovery_prove,
-            recover=self._recover,
             resetting=self._is_resetting,
         )
 

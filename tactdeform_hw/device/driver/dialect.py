@@ -251,14 +251,9 @@ class LinkOps:
     pacer: Callable[[], Pacer]
     guard: SafetyGuard
     mapping: ChannelMapping | None
-    transfer: CurrentTransfer
     unknown_reply_s: float
     #: one command (``pad``: None the pacer's policy, True/False forced)
     send: Callable[..., None]
-    #: heights and patterns: twice under robust encoding
-    send_critical: Callable[[bytes], None]
-    #: whole commands in one write, twice under robust encoding
-    send_critical_commands: Callable[[Sequence[bytes]], None]
     #: a write of the recovery itself (allowed before the proof); the written offset just past it
     recovery_send: Callable[..., int]
     discard_input: Callable[[], None]
@@ -272,8 +267,6 @@ class LinkOps:
     prove: Callable[[int], None]
     #: the same proof as a write of the recovery itself (the drain before the reset line)
     recovery_prove: Callable[[int], None]
-    #: the closed-loop recovery (with the reset line if need be)
-    recover: Callable[[], None]
     #: a request byte and its whole reply of the given size, which proves every byte before it read (a
     #: short one: the link suspect and :class:`ShortReplyError` naming the request)
     request: Callable[[bytes, int, str], bytes]
@@ -281,10 +274,8 @@ class LinkOps:
     run: Callable[[Plan, DriverState], None]
     #: 0xFF and its whole reply (levels of each hardware channel's last pulse)
     measured: Callable[[int, str], list[int]]
-    pace_for: Callable[[Sequence[tuple[float, float]]], None]
     can_reset: Callable[[], bool]
     resetting: Callable[[], bool]
-    needs_resync: Callable[[], bool]
 
 
 def scan_of(cfg: StimConfig, hw: bytes) -> float:

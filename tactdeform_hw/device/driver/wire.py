@@ -346,21 +346,16 @@ class Wire:
         """Where the recovery state machine stands."""
         return self.link.state
 
-    def needs_resync(self) -> bool:
-        """True until the parser is proved in step."""
-        return self.link.state is not LinkState.IN_STEP
-
     def link_ops(
         self,
         *,
         prove: Callable[[int], None],
         recovery_prove: Callable[[int], None],
-        recover: Callable[[], None],
         resetting: Callable[[], bool],
     ) -> LinkOps:
-        """The link operations a dialect is handed: this wire's, and the device's proof, recovery and
-        reset state.  Each is looked up now, so a hook replaced on the wire, its port link or recovery
-        record, or the device, is the one the dialect uses.
+        """The link operations a dialect is handed: this wire's, and the device's proof and reset state.
+        Each is looked up now, so a hook replaced on the wire, its port link or recovery record, or the
+        device, is the one the dialect uses.
 
         Building the operations costs more than a frame's bookkeeping, so they are kept between calls:
         the cache's key is the very tuple of what they bind, field by field (:meth:`_bindings`), and the
@@ -368,7 +363,7 @@ class Wire:
         another only when it binds the same function to the same object; the values are compared as
         Python does, and the mutable ones — the guard — compare by identity).  A stale cache is thus
         impossible by construction: whatever the operations bind is what was looked up on this call."""
-        bound = self._bindings(prove, recovery_prove, recover, resetting)
+        bound = self._bindings(prove, recovery_prove, resetting)
         cached = self._ops_cache
         if cached is not None and cached[0] == bound:
             return cached[1]
@@ -380,7 +375,6 @@ class Wire:
         self,
         prove: Callable[[int], None],
         recovery_prove: Callable[[int], None],
-        recover: Callable[[], None],
         resetting: Callable[[], bool],
     ) -> tuple[Any, ...]:
         """What :class:`LinkOps` binds, in the order of its fields."""
@@ -390,11 +384,8 @@ class Wire:
             self.current_pacer,
             self.guard,
             self.mapping,
-            self.transfer,
             self.unknown_reply_s,
             self.send,
-            self.send_critical,
-            self.send_critical_commands,
             self.recovery_send,
             port_link.discard_input,
             self.await_reply,
@@ -404,14 +395,11 @@ class Wire:
             self.link_state,
             prove,
             recovery_prove,
-            recover,
             self.request,
             self.run,
             self.measured,
-            self.pace_for,
             port_link.can_reset,
             resetting,
-            self.needs_resync,
         )
 
 
