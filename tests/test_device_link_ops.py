@@ -1,5 +1,6 @@
 """The link operations a device hands its dialect are kept between operations, and built again whenever
-anything they bind changed: a hook or a value replaced after frames is the one the next operation uses."""
+anything they bind changed: a hook or a value replaced after frames is the one the next operation uses
+(frames themselves are planned against the wire's values as they stand)."""
 
 from __future__ import annotations
 
@@ -92,8 +93,9 @@ def test_a_hook_replaced_after_caching_is_the_one_the_link_ops_bind() -> None:
 
 
 def test_a_reset_line_removed_after_frames_is_honoured_by_the_recovery() -> None:
-    """Frames fill the cache; the transport then loses its reset line: the recovery of a locked parser
-    must not reach for it (a cache that kept the old hook would pulse it and succeed)."""
+    """The recovery at open fills the cache; after frames the transport loses its reset line: the
+    recovery of a locked parser must not reach for it (a cache that kept the old hook would pulse it and
+    succeed)."""
     port = RecordingPort()
     dev = EtactileKitDevice(port, guard=SafetyGuard())
     dev.configure(StimConfig(current_ua=400))
