@@ -27,9 +27,8 @@ replies, the proofs themselves, close's proof and the firmware check.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 from tactdeform_hw.device.driver.config import StimConfig
@@ -93,7 +92,7 @@ class DriverState:
         return list(self.last_pattern)
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Write:
     """One planned write: ``data`` (one command), or ``commands`` written at once (v2's parser applies
     them back to back).  ``critical`` ones (heights, patterns) go twice under robust encoding; a
@@ -206,24 +205,44 @@ class PlanContext(NamedTuple):
     robust: bool
 
 
+class PlannedState(DriverState):
+    """A copy of the state in force that notes the name of every field the planning code assigns (for
+    :class:`PlanBuilder`: what it notes since the last step is put in force with that step)."""
+
+    __slots__ = ("assigned",)
+    assigned: list[str]
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        self.__dict__[name] = value
+        self.assigned.append(name)
+
+
 class PlanBuilder:
     """Plans writes against a copy of the state in force: the planning code reads and changes ``st`` as
     if each write had been written, and every change is recorded on the write it follows (so it is put
     in force only once that write is), or before the first write.  The dialects' code assigns new values
-    to the state's fields and never changes a list in place, so a shallow copy is the whole state."""
+    to the state's fields and never changes a list in place, so a shallow copy is the whole state.  Every
+    frame is planned here, so the copy is one of the fields' dictionary and the record follows the
+    assignments (``copy.copy`` and a comparison of every field cost several times as much)."""
 
     def __init__(self, st: DriverState) -> None:
-        self.st = copy.copy(st)
-        self._seen = copy.copy(st)
+        planned = PlannedState.__new__(PlannedState)
+        planned.__dict__.update(st.__dict__)
+        object.__setattr__(planned, "assigned", [])
+        self.st: DriverState = planned
+        self._assigned = planned.assigned
+        self._fields = planned.__dict__
         self.plan = Plan()
         self._target = self.plan.puts_before
 
     def _record(self) -> None:
-        for f in fields(DriverState):
-            value = getattr(self.st, f.name)
-            if value is not getattr(self._seen, f.name):
-                self._target[f.name] = value
-                setattr(self._seen, f.name, value)
+        assigned = self._assigned
+        if assigned:
+            fields_ = self._fields
+            target = self._target
+            for name in assigned:
+                target[name] = fields_[name]
+            assigned.clear()
 
     def add(self, step: Step) -> None:
         self._record()
@@ -405,6 +424,7 @@ __all__ = [
     "Plan",
     "PlanBuilder",
     "PlanContext",
+    "PlannedState",
     "Prove",
     "Settle",
     "Step",

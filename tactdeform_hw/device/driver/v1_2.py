@@ -209,30 +209,37 @@ class V12Dialect:
         scan = scan_of(cfg, hw)
         ctx.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
         before = st.scan_us if st.scan_us is not None else worst_scan_s(cfg) * 1e6
-        b = PlanBuilder(st)
-        st = b.st
+        # each write puts its own fields in force (spelled out: every frame is planned here)
         sense = sense_code(cfg.sense_current_ua, ctx.transfer)  # an all-off stop set it to 0
-        if st.sense_byte is None or sense < st.sense_byte:
-            b.add(Write(p.encode_sense_height(sense), critical=True))
-            st.sense_byte = sense
-        if height < st.current_ua:
-            b.add(Write(p.encode_pulse_height(ctx.transfer.to_code(height)), critical=True))
-            st.current_ua = height
+        sense_byte = st.sense_byte
+        current_ua = st.current_ua
+        writes: list[Step] = []
+        if sense_byte is None or sense < sense_byte:
+            writes.append(Write(p.encode_sense_height(sense), critical=True, puts={"sense_byte": sense}))
+            sense_byte = sense
+        if height < current_ua:
+            data = p.encode_pulse_height(ctx.transfer.to_code(height))
+            writes.append(Write(data, critical=True, puts={"current_ua": height}))
+            current_ua = height
         if force_pattern or hw != st.last_pattern:
-            b.add(Write(p.encode_pattern(hw, electrode_num=cfg.electrode_count), critical=True))
-            st.last_pattern = hw
-            st.frames_sent += 1
-        if height > st.current_ua:
-            b.add(Write(p.encode_pulse_height(ctx.transfer.to_code(height)), critical=True))
-            st.current_ua = height
-        if sense > st.sense_byte:
-            b.add(Write(p.encode_sense_height(sense), critical=True))
-            st.sense_byte = sense
-        st.suspended = False
-        st.scan_us = scan
-        plan = b.done((period / 1e6, scan / 1e6))
-        plan.pace_before = (period / 1e6, max(before, scan) / 1e6)
-        return plan
+            data = p.encode_pattern(hw, electrode_num=cfg.electrode_count)
+            puts = {"last_pattern": hw, "frames_sent": st.frames_sent + 1}
+            writes.append(Write(data, critical=True, puts=puts))
+        if height > current_ua:
+            data = p.encode_pulse_height(ctx.transfer.to_code(height))
+            writes.append(Write(data, critical=True, puts={"current_ua": height}))
+        if sense > sense_byte:
+            writes.append(Write(p.encode_sense_height(sense), critical=True, puts={"sense_byte": sense}))
+        done = {"suspended": False, "scan_us": scan}
+        if writes:
+            writes[-1].puts.update(done)
+            done = {}
+        return Plan(
+            writes,
+            done,
+            pace_after=(period / 1e6, scan / 1e6),
+            pace_before=(period / 1e6, max(before, scan) / 1e6),
+        )
 
     @staticmethod
     def _frame_height(

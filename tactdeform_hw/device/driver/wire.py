@@ -142,27 +142,23 @@ class Wire:
         if plan.pace_before is not None:
             self.pacer.set_timing(*plan.pace_before)
         for w in plan.writes:
-            if isinstance(w, Write):
-                self._write(w)
-            else:
+            if type(w) is not Write:
                 self._step(w, prove)
+            elif w.commands:
+                if w.critical:
+                    self.send_critical_commands(w.commands)
+                else:
+                    self.send_commands(w.commands, pad=w.pad)
+            elif w.recovery:
+                self.recovery_send(w.data, pad=w.pad)
+            elif w.critical:
+                self.send_critical(w.data)
+            else:
+                self.send(w.data, pad=w.pad)
             for name, value in w.puts.items():
                 setattr(st, name, value)
         if plan.pace_after is not None:
             self.pacer.set_timing(*plan.pace_after)
-
-    def _write(self, w: Write) -> None:
-        if w.commands:
-            if w.critical:
-                self.send_critical_commands(w.commands)
-            else:
-                self.send_commands(w.commands, pad=w.pad)
-        elif w.recovery:
-            self.recovery_send(w.data, pad=w.pad)
-        elif w.critical:
-            self.send_critical(w.data)
-        else:
-            self.send(w.data, pad=w.pad)
 
     def _step(self, step: Step, prove: Callable[[int], None] | None) -> None:
         """One step of a plan that is not a write (see :data:`~.dialect.Step`)."""

@@ -56,8 +56,9 @@ class Shadow:
         it reads from, so it copies the fields as they stand, whatever they are (``dataclasses.replace``
         costs several times as much), and then the pattern."""
         new = Shadow.__new__(Shadow)
-        new.__dict__.update(self.__dict__)
-        new.pattern = list(self.pattern)
+        fields = new.__dict__
+        fields.update(self.__dict__)
+        fields["pattern"] = self.pattern[:]
         return new
 
     def key(self) -> tuple[Any, ...]:
