@@ -10,9 +10,11 @@ from typing import Any
 
 import pytest
 
+from tactdeform_hw import protocol as p
 from tactdeform_hw.device import ChannelMapping, EtactileKitDevice, SafetyGuard, StimConfig
-from tactdeform_hw.device.driver.dialect import Plan
+from tactdeform_hw.device.driver.dialect import Plan, Prove, Settle, Write
 from tactdeform_hw.device.driver.dialects import DIALECTS
+from tactdeform_hw.device.driver.firmware_probe import SYNC_CHECK
 from tactdeform_hw.device.driver.readback import pattern_readback
 from tactdeform_hw.device.driver.v2 import buffer_levels
 from tactdeform_hw.emulator import Emulator
@@ -244,6 +246,117 @@ def test_the_all_off_is_the_dialects_plan_and_the_state_changes_only_as_it_is_wr
     assert b"".join(port.writes) == _planned_bytes(dev, plan)
     assert dev.state.current_ua == 0 and dev.state.last_pattern == bytes(8)
     assert set(_levels(dev)) == {0}
+
+
+def test_a_frame_and_a_change_of_current_are_the_dialects_plans_sent_as_planned(
+    dev: EtactileKitDevice, port: RecordingPort
+) -> None:
+    """The dialect plans a frame and a change of current from a copy of the state in force, writing
+    nothing; the device sends exactly the planned bytes and puts the planned state in force."""
+    dev.configure(StimConfig(electrode_count=8, current_ua=600))
+    dev.send_pattern([1, 0, 1, 0, 0, 0, 0, 0])
+    for send, plan_of in (
+        (
+            lambda: dev.send_pattern([0, 1, 1, 0, 0, 1, 0, 0]),
+            lambda: dev.dialect.frame(
+                dev.wire.plan_context(), dev.state, [0, 1, 1, 0, 0, 1, 0, 0], force_pattern=True
+            ),
+        ),
+        (
+            lambda: dev.set_current(300),
+            lambda: dev.dialect.set_current(
+                dev.wire.plan_context(),
+                dataclasses.replace(dev.state, target_ua=300, config=dev.config.with_current(300)),
+                dev.state.application_levels(dev.mapping),
+            ),
+        ),
+    ):
+        before = dataclasses.replace(dev.state)
+        plan = plan_of()
+        assert dev.state == before and plan.writes and plan.refusal is None
+        port.writes.clear()
+        send()
+        assert b"".join(port.writes) == _planned_bytes(dev, plan)
+        after = dataclasses.replace(before, **plan.puts_before)
+        for w in plan.writes:
+            after = dataclasses.replace(after, **w.puts)
+        assert (after.current_ua, after.last_pattern, after.frames_sent) == (
+            dev.state.current_ua,
+            dev.state.last_pattern,
+            dev.state.frames_sent,
+        )
+    assert dev.current_ua == 300
+    dev.close()
+
+
+@pytest.mark.parametrize(
+    "configs",
+    [
+        [StimConfig(electrode_count=8, current_ua=600)],
+        [
+            StimConfig(electrode_count=8, current_ua=600),
+            StimConfig(electrode_count=40, current_ua=900, rate_hz=50),
+        ],
+        [
+            StimConfig(electrode_count=40, current_ua=900, rate_hz=50),
+            StimConfig(electrode_count=8, current_ua=300),
+        ],
+    ],
+    ids=["first", "count-rises", "count-falls"],
+)
+def test_a_configuration_is_the_dialects_plan_its_proofs_steps_of_it(
+    dev: EtactileKitDevice, port: RecordingPort, configs: list[StimConfig]
+) -> None:
+    """The dialect plans a configuration from a copy of the state in force, writing nothing; the device
+    sends exactly the planned writes, with nothing between them but the requests of the planned proofs."""
+    for config in configs[:-1]:
+        dev.configure(config)
+        dev.send_pattern([1] + [0] * (config.electrode_count - 1))
+    config = configs[-1]
+    before = dataclasses.replace(dev.state)
+    plan = dev.dialect.configure(dev.wire.plan_context(), dev.state, config, dev.wire.pace_in_force())
+    assert dev.state == before and plan.refusal is None
+    planned = [b"".join(w.commands) or w.data for w in plan.writes if isinstance(w, Write)]
+    proofs = sum(isinstance(w, (Prove, Settle)) for w in plan.writes)
+    assert planned and proofs
+    port.writes.clear()
+    dev.configure(config)
+    requests = {p.MEASURE_REQUEST, p.HV513_COUNT_REQUEST, SYNC_CHECK}
+    assert [w for w in port.writes if w not in requests] == planned
+    assert len([w for w in port.writes if w in requests]) <= proofs
+    assert dev.config == config
+    dev.close()
+
+
+def test_a_configuration_refused_by_its_scan_sends_nothing_even_before_a_resync(
+    spec: FirmwareSpec, dev: EtactileKitDevice, port: RecordingPort
+) -> None:
+    """The refusal comes before the recovery a link that is not proved in step needs: not a byte."""
+    dev.configure(IDLE_SCAN[spec][2])
+    dev.mark_unknown()
+    port.writes.clear()
+    with pytest.raises(SafetyError, match=IDLE_SCAN[spec][1]):
+        dev.configure(IDLE_SCAN[spec][0])
+    assert port.writes == []
+    dev.close()
+
+
+def test_a_frame_refused_after_a_change_of_mode_keeps_the_ramp_restarted() -> None:
+    """Firmware v2: a change of waveform restarts the ramp from 0 before the guard can refuse the frame,
+    and the restart holds when it does (the plan is the restart and the refusal, and no byte)."""
+    rec = RecordingPort(Emulator(firmware="v2"))
+    dev = EtactileKitDevice(rec)
+    dev.configure(StimConfig(current_ua=500))
+    dev.send_pattern([1] * 8 + [0] * 24)
+    assert dev.state.heights_ua
+    plan = dev.dialect.frame(dev.wire.plan_context(), dev.state, [2] * 32, force_pattern=True)
+    assert isinstance(plan.refusal, SafetyError) and plan.puts_before == {"heights_ua": []}
+    assert plan.writes == []
+    n = len(rec.writes)
+    with pytest.raises(SafetyError):
+        dev.send_pattern([2] * 32)
+    assert dev.state.heights_ua == [] and rec.writes[n:] == []
+    dev.close()
 
 
 @pytest.mark.parametrize("firmware", list(DIALECTS), ids=lambda f: f.name)

@@ -21,6 +21,10 @@ from .patterns import Pattern
 from .scene import APPROACHES as APPROACHES
 from .tracking import QUAT_NORM_TOLERANCE
 
+#: A position (mm) and a unit quaternion (w, x, y, z), as the pose checks return them.
+Vec3 = tuple[float, float, float]
+Quat = tuple[float, ...]
+
 
 class ContainsScene(Protocol):
     def contains(self, points_mm: np.ndarray) -> np.ndarray: ...
@@ -45,7 +49,11 @@ class _Baseline:
         n = self.array.count
         self.off: Pattern = (0,) * n
         self.all_on: Pattern = (on_level,) * n
+        self._prepare()
         self.reset()
+
+    def _prepare(self) -> None:
+        """What a baseline derives from its array once (none by default)."""
 
     def reset(self) -> None:
         self._t: float | None = None
@@ -96,14 +104,7 @@ class _Baseline:
         texture = getattr(query, "texture_level", None) if state == INTERACTING else None
         return ManagerOutput(t, state, feature, None, texture, self.name, pat, frames)
 
-    def _pattern(
-        self,
-        p: tuple[float, float, float],
-        q: tuple[float, ...],
-        sd: float | None,
-        scene: Any,
-        query: Any = None,
-    ) -> Pattern:
+    def _pattern(self, p: Vec3, q: Quat, sd: float | None, scene: Any, query: Any = None) -> Pattern:
         raise NotImplementedError
 
 
@@ -112,14 +113,7 @@ class UniformActivation(_Baseline):
 
     name = "ua"
 
-    def _pattern(
-        self,
-        p: tuple[float, float, float],
-        q: tuple[float, ...],
-        sd: float | None,
-        scene: Any,
-        query: Any = None,
-    ) -> Pattern:
+    def _pattern(self, p: Vec3, q: Quat, sd: float | None, scene: Any, query: Any = None) -> Pattern:
         return self.all_on if (sd is not None and sd <= 0.0) else self.off
 
 
@@ -135,18 +129,11 @@ class ContactAreaMapping(_Baseline):
 
     name = "cam"
 
-    def __init__(
-        self,
-        array: ElectrodeArray | None = None,
-        *,
-        on_level: int = 1,
-        quat_norm_tolerance: float = QUAT_NORM_TOLERANCE,
-    ) -> None:
-        super().__init__(array, on_level=on_level, quat_norm_tolerance=quat_norm_tolerance)
+    def _prepare(self) -> None:
         rel = self.array.world_offsets()
         self._rel = np.ascontiguousarray(rel, dtype=float)
         self.reach_mm = float(np.hypot(rel[:, 0], rel[:, 1]).max()) + 1e-6
-        self._levels = np.array([0, on_level], dtype=np.int64)
+        self._levels = np.array([0, self.on_level], dtype=np.int64)
         self._offsets = np.ascontiguousarray(self.array.positions_mm - self.array.centre_mm, dtype=float)
         self._scene_seen: Any = None
         self._scene_plane = False
@@ -159,21 +146,14 @@ class ContactAreaMapping(_Baseline):
             self._scene_plane = bool(getattr(scene, "has_plane_test", False))
         return self._scene_plane
 
-    def electrode_positions(self, p: tuple[float, float, float], q: tuple[float, ...]) -> np.ndarray:
+    def electrode_positions(self, p: Vec3, q: Quat) -> np.ndarray:
         """World positions (N, 3) of the electrode centres for a pad pose."""
         X, Y, _ = quat_axes(*q)
         basis = np.array((X, Y))
         world: np.ndarray = np.asarray(p) + self._rel @ basis
         return world
 
-    def _pattern(
-        self,
-        p: tuple[float, float, float],
-        q: tuple[float, ...],
-        sd: float | None,
-        scene: Any,
-        query: Any = None,
-    ) -> Pattern:
+    def _pattern(self, p: Vec3, q: Quat, sd: float | None, scene: Any, query: Any = None) -> Pattern:
         if sd is None or sd > self.reach_mm or scene is None:
             return self.off
         if sd < -self.reach_mm and getattr(scene, "is_single_object", False):

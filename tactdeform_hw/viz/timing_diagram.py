@@ -13,15 +13,17 @@ microseconds.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from ..errors import ConfigurationError
 from ._plot import TITLE_MARGIN_PX, box_px, canvas_rgb, fit_width, keep_inside, require
+
+_R = TypeVar("_R")
 
 _PURPOSE = "drawing timing diagrams"
 KIND_COLOURS = {
@@ -143,59 +145,59 @@ def _rows(records: Any) -> Iterable[Any]:
     return rows
 
 
+def _normalised(
+    records: Iterable[Any], kind: type[_R], name: str, convert: Callable[[Any, str], _R]
+) -> list[_R]:
+    """Each record as ``kind``: one already is kept, any other converted by ``convert(record, where)``
+    (``where`` names it in errors, ``name[i]``)."""
+    return [
+        rec if isinstance(rec, kind) else convert(rec, f"{name}[{i}]") for i, rec in enumerate(_rows(records))
+    ]
+
+
 def to_pulses(records: Iterable[Any]) -> list[Pulse]:
     """Normalise per-pulse records (objects or dicts, or a columnar trace; times in µs or ns)."""
-    out = []
-    for i, rec in enumerate(_rows(records)):
-        if isinstance(rec, Pulse):
-            out.append(rec)
-            continue
-        w = f"pulses[{i}]"
-        ch = int(_finite(_field(rec, ("channel", "ch"), where=w), f"{w}.channel"))
-        start = _time_us(
-            rec, ("start_us", "start", "t_us", "time_us"), ("start_ns", "t_ns", "time_ns"), w, "start_us"
-        )
-        width = _time_us(
-            rec, ("width_us", "width", "duration_us"), ("width_ns", "duration_ns"), w, "width_us"
-        )
-        cur = _finite(
-            _field(rec, ("current_ua", "current", "height_ua"), 0.0, required=False), f"{w}.current_ua"
-        )
-        kind = _kind(_field(rec, ("kind", "type", "shape"), "mono", required=False))
-        out.append(Pulse(ch, start, max(width, 0.0), cur, kind))
-    return out
+    return _normalised(records, Pulse, "pulses", _pulse)
+
+
+def _pulse(rec: Any, w: str) -> Pulse:
+    ch = int(_finite(_field(rec, ("channel", "ch"), where=w), f"{w}.channel"))
+    start = _time_us(
+        rec, ("start_us", "start", "t_us", "time_us"), ("start_ns", "t_ns", "time_ns"), w, "start_us"
+    )
+    width = _time_us(rec, ("width_us", "width", "duration_us"), ("width_ns", "duration_ns"), w, "width_us")
+    cur = _finite(_field(rec, ("current_ua", "current", "height_ua"), 0.0, required=False), f"{w}.current_ua")
+    kind = _kind(_field(rec, ("kind", "type", "shape"), "mono", required=False))
+    return Pulse(ch, start, max(width, 0.0), cur, kind)
 
 
 def to_cycles(records: Iterable[Any], period_us: float | None = None) -> list[Cycle]:
     """Normalise per-cycle records; ``overrun`` may be a bool or the excess in µs."""
-    out = []
-    for i, rec in enumerate(_rows(records)):
-        if isinstance(rec, Cycle):
-            out.append(rec)
-            continue
-        w = f"cycles[{i}]"
-        start = _time_us(rec, ("start_us", "start", "t_us"), ("start_ns", "t_ns"), w, "start_us")
-        dur = _time_us(
-            rec,
-            ("duration_us", "scan_us", "duration", "length_us"),
-            ("duration_ns", "scan_ns"),
-            w,
-            "duration_us",
-        )
-        try:
-            per: float | None = _time_us(rec, ("period_us", "period"), ("period_ns",), w, "period_us")
-        except ConfigurationError:
-            per = period_us
-        over = _field(rec, ("overrun_us", "overrun"), None, required=False)
-        if over is None and _field(rec, ("overrun_ns",), None, required=False) is not None:
-            over = _finite(_field(rec, ("overrun_ns",)), f"{w}.overrun_ns") / 1000.0
-        if isinstance(over, bool) or over is None:
-            flag = bool(over) if over is not None else (per is not None and dur > per)
-            excess = (dur - per) if (flag and per is not None) else (1.0 if flag else 0.0)
-        else:
-            excess = _finite(over, f"{w}.overrun_us")
-        out.append(Cycle(start, dur, per, max(excess, 0.0)))
-    return out
+    return _normalised(records, Cycle, "cycles", lambda rec, w: _cycle(rec, w, period_us))
+
+
+def _cycle(rec: Any, w: str, period_us: float | None) -> Cycle:
+    start = _time_us(rec, ("start_us", "start", "t_us"), ("start_ns", "t_ns"), w, "start_us")
+    dur = _time_us(
+        rec,
+        ("duration_us", "scan_us", "duration", "length_us"),
+        ("duration_ns", "scan_ns"),
+        w,
+        "duration_us",
+    )
+    try:
+        per: float | None = _time_us(rec, ("period_us", "period"), ("period_ns",), w, "period_us")
+    except ConfigurationError:
+        per = period_us
+    over = _field(rec, ("overrun_us", "overrun"), None, required=False)
+    if over is None and _field(rec, ("overrun_ns",), None, required=False) is not None:
+        over = _finite(_field(rec, ("overrun_ns",)), f"{w}.overrun_ns") / 1000.0
+    if isinstance(over, bool) or over is None:
+        flag = bool(over) if over is not None else (per is not None and dur > per)
+        excess = (dur - per) if (flag and per is not None) else (1.0 if flag else 0.0)
+    else:
+        excess = _finite(over, f"{w}.overrun_us")
+    return Cycle(start, dur, per, max(excess, 0.0))
 
 
 def _period_of(cycles: list[Cycle]) -> float | None:

@@ -404,7 +404,11 @@ class Device:
         # after a failed configure brings the old frame back
         self.state.requested = None
         self.state.suspended = False
-        self.dialect.configure(self._ops(), self.state, config)
+        self.dialect.check_configuration(self.wire.guard, config)
+        if self._needs_resync:
+            self._recover()
+        plan = self.dialect.configure(self.wire.plan_context(), self.state, config, self.wire.pace_in_force())
+        self.wire.run(plan, self.state, prove=self._prove)
         self.guardians.tell(self.dialect, self.state.config)
 
     @_locked
@@ -420,7 +424,7 @@ class Device:
             self.resync()
             return
         levels = None if self.state.suspended else self.state.application_levels(self.mapping)
-        self.dialect.set_current(self._ops(), self.state, levels)
+        self.wire.run(self.dialect.set_current(self.wire.plan_context(), self.state, levels), self.state)
 
     @_locked
     def send_pattern(self, levels: Sequence[int]) -> None:
@@ -698,19 +702,24 @@ class Device:
         self.dialect.prove(self._ops(), electrodes)
 
     def _frame(self, levels: Sequence[int], *, force_pattern: bool) -> None:
-        """Put one application-order frame on the firmware (the dialect's order of heights and pattern)."""
+        """Put one application-order frame on the firmware (the dialect's order of heights and pattern,
+        planned from the state in force; the wire sends it and puts each write's state in force)."""
         assert self.state.config is not None
-        self.dialect.frame(self._ops(), self.state, levels, force_pattern=force_pattern)
+        plan = self.dialect.frame(self.wire.plan_context(), self.state, levels, force_pattern=force_pattern)
+        self.wire.run(plan, self.state)
 
     def _ops(self) -> LinkOps:
-        """The link operations a dialect is handed (bound now: a transport hook replaced on this device
-        is the one the dialect uses)."""
+        """The link operations a dialect is handed (looked up now: a transport hook replaced on this
+        device is the one the dialect uses; the wire keeps them while nothing they bind changes)."""
         return self.wire.link_ops(
             prove=self._prove,
             recovery_prove=self._recovery_prove,
-            recover=self._recover,
-            resetting=lambda: self._resetting,
+            resetting=self._is_resetting,
         )
+
+    def _is_resetting(self) -> bool:
+        """True while the reset line's sequence runs (:meth:`hardware_reset`)."""
+        return self._resetting
 
     def _mark_frame(self) -> None:
         self.last_frame_time = self.pacer.clock.now()

@@ -5,25 +5,31 @@ A :class:`~tactdeform_hw.device.driver.base.Device` sends, paces, audits and kee
 (:class:`DriverState`).  A dialect never sees the device, so both versions are read and tested against the
 same interface, and :data:`~tactdeform_hw.device.driver.dialects.DIALECTS` picks one per firmware spec.
 
-Where an operation is a fixed sequence of writes, the dialect is a pure planner: it returns them (a
-:class:`Plan`) and the device sends them — ``refresh``, ``off`` (the all-off), the guardian's stops, the
-longest frame, and on v2 the count raised without stale channels and the covered pattern, which its other
-steps run as sub-plans.  A plan is made on a copy of the state (:class:`PlanBuilder`) and every write
-carries the state it puts in force, applied only once it is written: a write cut half way leaves the
-state of the writes that got through, as it always did, so the next frame writes the same bytes.
+The dialect is a pure planner: it returns an operation's steps (a :class:`Plan`) and the device's wire
+carries them out — ``configure``, ``frame``, ``set_current``, ``refresh``, ``off`` (the all-off), the
+guardian's stops, the longest frame, and on v2 the count raised without stale channels and the covered
+pattern, which its other steps run as sub-plans.  A plan is made on a copy of the state
+(:class:`PlanBuilder`) against a :class:`PlanContext` (the guard, which judges its currents before any
+byte, the mapping, the transfer, the encoding) and, for a configuration, the pace in force
+(:class:`PaceInForce`).  Its steps (:data:`Step`) are writes, proofs (:class:`Prove`: the dialect's
+request and its reply; a proof that is not answered stops the plan), changes of pace (:class:`Pace`,
+:class:`PaceFor`, :class:`Settle`) and the guard's records where the operation makes them
+(:class:`Note`); every step carries the state it puts in force, applied only once it is done: a write cut
+half way leaves the state of the writes that got through, as it always did, so the next frame writes the
+same bytes.  A refusal part way that must leave a change in force (v2 restarts the ramp on a change of
+mode before a refusal can come, and that restart is kept even when the frame is refused) is a plan too:
+the change, then the refusal, and no write.
 
-The dialect is handed the link operations (:class:`LinkOps`) only where a step depends on a reply or
-on a refusal part way: the closed-loop recovery (``flush_parser``) and the proofs, a configuration
-(proofs between its writes), and a frame or a change of current (v2 restarts the ramp on a change of mode
-before a refusal can come, and that restart is kept even when the frame is refused).
+The dialect is handed the link operations (:class:`LinkOps`) only where a step depends on a reply in a
+way a plan does not express: the closed-loop recovery (``flush_parser``), whose branches follow the
+replies, the proofs themselves, close's proof and the firmware check.
 """
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields
-from typing import TYPE_CHECKING, Any, Protocol
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
 from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
@@ -86,7 +92,7 @@ class DriverState:
         return list(self.last_pattern)
 
 
-@dataclass(frozen=True)
+@dataclass(slots=True)
 class Write:
     """One planned write: ``data`` (one command), or ``commands`` written at once (v2's parser applies
     them back to back).  ``critical`` ones (heights, patterns) go twice under robust encoding; a
@@ -102,45 +108,158 @@ class Write:
     puts: dict[str, Any] = field(default_factory=dict)
 
 
+@dataclass(frozen=True)
+class Prove:
+    """A proof at this point of a plan: the dialect's request whose reply proves every byte written before
+    it read, at electrode count ``electrodes`` (no whole reply: the plan stops there,
+    :class:`~tactdeform_hw.errors.ShortReplyError`).  ``unless_room_for``: only when the pacer's queue
+    model, at that moment, has no room for a write of that many bytes (a long pattern goes into a queue
+    proved empty)."""
+
+    electrodes: int
+    unless_room_for: int | None = None
+    puts: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Pace:
+    """From here on the pacer paces for ``timing`` (period s, scan s; None: unknown)."""
+
+    timing: tuple[float | None, float | None]
+    puts: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class PaceFor:
+    """From here on the pacer paces for the slowest of ``timings`` (period µs, scan µs) that may be in
+    force, with ``with_current`` the timing it paces for now among them (when known)."""
+
+    timings: tuple[tuple[float, float], ...]
+    with_current: bool = False
+    puts: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Settle:
+    """The pacer paces for ``timing`` (period s, scan s) from here on; when that is faster than the pace
+    in force (or ``always``), a proof at electrode count ``electrodes``, paced as before, comes first: the
+    faster pace only once the device proves it has read every command written at the slower one."""
+
+    timing: tuple[float, float]
+    electrodes: int
+    always: bool = False
+    puts: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Note:
+    """A height lowered to what the encoding can carry, recorded by the guard at this point of the plan
+    (where the operation computed it)."""
+
+    rule: str
+    requested_ua: int
+    sent_ua: int
+    why: str
+    puts: dict[str, Any] = field(default_factory=dict)
+
+
+#: One step of a plan: a write, or what the executor does between writes.
+Step = Write | Prove | Pace | PaceFor | Settle | Note
+
+
+class PaceInForce(NamedTuple):
+    """The pacer's timing when a plan is made (period s, scan s; None: unknown), and its choice of the
+    slowest of several (period µs, scan µs) that may be in force (what :class:`PaceFor` paces for)."""
+
+    period_s: float | None
+    scan_s: float | None
+    slowest: Callable[[Sequence[tuple[float, float]]], tuple[float, float]]
+
+
 @dataclass
 class Plan:
-    """The writes of a planned operation, in order; ``puts_before``, the state put in force before the
-    first (a change that needs no byte, e.g. a ramp restarted); ``pace_after``, the (period s, scan s)
-    the pacer paces for once the last is written."""
+    """The steps of a planned operation, in order (:data:`Step`: mostly writes; a configuration's proofs
+    and changes of pace between them); ``puts_before``, the state put in force before the first (a change
+    that needs no byte, e.g. a ramp restarted); ``pace_before``, the (period s, scan s) the pacer paces the
+    writes for; ``pace_after``, the one it paces for once the last is written.
 
-    writes: list[Write] = field(default_factory=list)
+    ``refusal``: the planning refused the operation part way, after a change that must hold all the same
+    (v2's ramp restarted by a change of mode): the executor puts ``puts_before`` in force and raises it,
+    writing nothing."""
+
+    writes: list[Step] = field(default_factory=list)
     puts_before: dict[str, Any] = field(default_factory=dict)
     pace_after: tuple[float, float] | None = None
+    pace_before: tuple[float, float] | None = None
+    refusal: Exception | None = None
+
+
+class PlanContext(NamedTuple):
+    """What a plan is made against besides the state in force: the guard that judges its currents (and
+    records its clips and refusals), the channel mapping, the µA-to-code transfer, and whether the pacer
+    writes the loss-tolerant encoding (no payload byte may then look like a command byte)."""
+
+    guard: SafetyGuard
+    mapping: ChannelMapping | None
+    transfer: CurrentTransfer
+    robust: bool
+
+
+class PlannedState(DriverState):
+    """A copy of the state in force that notes the name of every field the planning code assigns (for
+    :class:`PlanBuilder`: what it notes since the last step is put in force with that step)."""
+
+    __slots__ = ("assigned",)
+    assigned: list[str]
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        self.__dict__[name] = value
+        self.assigned.append(name)
 
 
 class PlanBuilder:
     """Plans writes against a copy of the state in force: the planning code reads and changes ``st`` as
     if each write had been written, and every change is recorded on the write it follows (so it is put
     in force only once that write is), or before the first write.  The dialects' code assigns new values
-    to the state's fields and never changes a list in place, so a shallow copy is the whole state."""
+    to the state's fields and never changes a list in place, so a shallow copy is the whole state.  Every
+    frame is planned here, so the copy is one of the fields' dictionary and the record follows the
+    assignments (``copy.copy`` and a comparison of every field cost several times as much)."""
 
     def __init__(self, st: DriverState) -> None:
-        self.st = copy.copy(st)
-        self._seen = copy.copy(st)
+        planned = PlannedState.__new__(PlannedState)
+        planned.__dict__.update(st.__dict__)
+        object.__setattr__(planned, "assigned", [])
+        self.st: DriverState = planned
+        self._assigned = planned.assigned
+        self._fields = planned.__dict__
         self.plan = Plan()
         self._target = self.plan.puts_before
 
     def _record(self) -> None:
-        for f in fields(DriverState):
-            value = getattr(self.st, f.name)
-            if value is not getattr(self._seen, f.name):
-                self._target[f.name] = value
-                setattr(self._seen, f.name, value)
+        assigned = self._assigned
+        if assigned:
+            fields_ = self._fields
+            target = self._target
+            for name in assigned:
+                target[name] = fields_[name]
+            assigned.clear()
 
-    def add(self, write: Write) -> None:
+    def add(self, step: Step) -> None:
         self._record()
-        self.plan.writes.append(write)
-        self._target = write.puts
+        self.plan.writes.append(step)
+        self._target = step.puts
 
     def done(self, pace_after: tuple[float, float] | None = None) -> Plan:
         self._record()
         self.plan.pace_after = pace_after
         return self.plan
+
+    def refused(self, error: Exception) -> Plan:
+        """The operation refused by ``error`` after the changes made so far (before any write): they are
+        put in force, nothing is written, and the executor raises ``error``."""
+        self._record()
+        assert not self.plan.writes, "a refusal comes before any write"
+        return Plan(puts_before=self.plan.puts_before, refusal=error)
 
 
 @dataclass(frozen=True)
@@ -151,14 +270,9 @@ class LinkOps:
     pacer: Callable[[], Pacer]
     guard: SafetyGuard
     mapping: ChannelMapping | None
-    transfer: CurrentTransfer
     unknown_reply_s: float
     #: one command (``pad``: None the pacer's policy, True/False forced)
     send: Callable[..., None]
-    #: heights and patterns: twice under robust encoding
-    send_critical: Callable[[bytes], None]
-    #: whole commands in one write, twice under robust encoding
-    send_critical_commands: Callable[[Sequence[bytes]], None]
     #: a write of the recovery itself (allowed before the proof); the written offset just past it
     recovery_send: Callable[..., int]
     discard_input: Callable[[], None]
@@ -172,8 +286,6 @@ class LinkOps:
     prove: Callable[[int], None]
     #: the same proof as a write of the recovery itself (the drain before the reset line)
     recovery_prove: Callable[[int], None]
-    #: the closed-loop recovery (with the reset line if need be)
-    recover: Callable[[], None]
     #: a request byte and its whole reply of the given size, which proves every byte before it read (a
     #: short one: the link suspect and :class:`ShortReplyError` naming the request)
     request: Callable[[bytes, int, str], bytes]
@@ -181,10 +293,8 @@ class LinkOps:
     run: Callable[[Plan, DriverState], None]
     #: 0xFF and its whole reply (levels of each hardware channel's last pulse)
     measured: Callable[[int, str], list[int]]
-    pace_for: Callable[[Sequence[tuple[float, float]]], None]
     can_reset: Callable[[], bool]
     resetting: Callable[[], bool]
-    needs_resync: Callable[[], bool]
 
 
 def scan_of(cfg: StimConfig, hw: bytes) -> float:
@@ -256,13 +366,19 @@ class Dialect(Protocol):
     def check_levels(self, levels: Sequence[int]) -> None:
         """Refuse a frame of valid levels this firmware cannot express."""
 
-    def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
-        """Send a whole configuration in an order that never stimulates with a half-set state."""
+    def check_configuration(self, guard: SafetyGuard, config: StimConfig) -> None:
+        """Refuse, before any byte but once the caller's frame is superseded, a configuration this version
+        cannot run (where the version refuses it there)."""
 
-    def frame(self, ops: LinkOps, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> None:
-        """Put one application-order frame on the firmware."""
+    def configure(self, ctx: PlanContext, st: DriverState, config: StimConfig, pace: PaceInForce) -> Plan:
+        """A whole configuration in an order that never stimulates with a half-set state, planned from the
+        state in force once the link is proved in step (its proofs are steps of the plan)."""
 
-    def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
+    def frame(self, ctx: PlanContext, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> Plan:
+        """One application-order frame on the firmware (refused before any byte when the guard refuses
+        it)."""
+
+    def set_current(self, ctx: PlanContext, st: DriverState, levels: list[int] | None) -> Plan:
         """The target changed: the frame in force (``levels``, None when suspended or unknown) follows."""
 
     def off(self, st: DriverState, mapping: ChannelMapping | None, scan_s: float | None) -> Plan:
@@ -301,8 +417,17 @@ __all__ = [
     "Dialect",
     "DriverState",
     "LinkOps",
+    "Note",
+    "Pace",
+    "PaceFor",
+    "PaceInForce",
     "Plan",
     "PlanBuilder",
+    "PlanContext",
+    "PlannedState",
+    "Prove",
+    "Settle",
+    "Step",
     "Write",
     "count_raise_timing",
     "recovery_timing",

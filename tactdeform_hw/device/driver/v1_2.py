@@ -12,14 +12,20 @@ electrode count, and 0xFF whose reply length proves the count before any pattern
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig, sense_code
 from tactdeform_hw.device.driver.dialect import (
     DriverState,
-    LinkOps,
+    Note,
+    PaceFor,
     Plan,
+    PlanBuilder,
+    Prove,
+    Settle,
+    Step,
     Write,
     count_raise_timing,
     recovery_timing,
@@ -43,18 +49,30 @@ from tactdeform_hw.protocol.constants import CURRENT_STEP_UA, RX_QUEUE_SIZE
 from tactdeform_hw.protocol.firmware import V1_2
 from tactdeform_hw.protocol.units import CurrentTransfer
 
+if TYPE_CHECKING:
+    from tactdeform_hw.device.driver.dialect import LinkOps, PaceInForce, PlanContext
 
-def encodable(ops: LinkOps, height_ua: int) -> int:
-    """Under robust encoding no payload byte may look like a command byte: lower such heights."""
-    if not ops.pacer().robust or height_ua <= 0:
+
+#: Why :func:`encodable` lowers a height (the guard's record of the clip).
+ENCODING_CLIP = "pulse-height code whose low byte looks like a command byte"
+
+
+def encodable_height(ctx: PlanContext, height_ua: int) -> int:
+    """Under robust encoding no payload byte may look like a command byte: the height lowered so that
+    none does (unrecorded; :func:`encodable` records the clip)."""
+    if not ctx.robust or height_ua <= 0:
         return height_ua
     h = height_ua
-    while h > 0 and (ops.transfer.to_code(h) & 0xFF) >= COMMAND_BYTE_MIN:
+    while h > 0 and (ctx.transfer.to_code(h) & 0xFF) >= COMMAND_BYTE_MIN:
         h -= CURRENT_STEP_UA
+    return h
+
+
+def encodable(ctx: PlanContext, height_ua: int) -> int:
+    """:func:`encodable_height`, the clip recorded by the guard."""
+    h = encodable_height(ctx, height_ua)
     if h != height_ua:
-        ops.guard.note_clip(
-            "encoding", height_ua, h, "pulse-height code whose low byte looks like a command byte"
-        )
+        ctx.guard.note_clip("encoding", height_ua, h, ENCODING_CLIP)
     return h
 
 
@@ -79,15 +97,15 @@ class V12Dialect:
     def check_levels(self, levels: Sequence[int]) -> None:
         """Every valid level is expressible on v1.2."""
 
-    def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
+    def check_configuration(self, guard: SafetyGuard, config: StimConfig) -> None:
+        """v1.2 refuses its idle scan before the caller's frame is superseded (:meth:`check_idle_scan`)."""
+
+    def configure(self, ctx: PlanContext, st: DriverState, config: StimConfig, pace: PaceInForce) -> Plan:
         """The height to 0 and every channel off first (no pulse uses a mixture of old and new settings),
         the electrode count followed at once by an all-off pattern of the new length (no stale channel
         above the old count comes back), polarity while all is off, the participant's current last.  A
         count that rises goes after the rate and widths, so its longer scan never meets the old period
         (:func:`~.dialect.timing_before_count`)."""
-        if ops.needs_resync():
-            ops.recover()
-        pacer = ops.pacer()
         n = config.electrode_count
         old = st.config
         new_period = firmware_period_us(config.rate_hz)
@@ -99,19 +117,23 @@ class V12Dialect:
             timings.append(
                 (firmware_period_us(old.rate_hz), max(before, scan_of(old, bytes(old.electrode_count))))
             )
-        elif pacer.period_s is not None and pacer.scan_s is not None:
-            timings.append((pacer.period_s * 1e6, pacer.scan_s * 1e6))  # from the resync
+        elif pace.period_s is not None and pace.scan_s is not None:
+            timings.append((pace.period_s * 1e6, pace.scan_s * 1e6))  # from the resync
         # nothing known of the firmware's timing (a board just opened): the queue was proved empty and the
         # configuration fits it (a long pattern waits for a proof first); the new rate is proved in force
         # before anything else is paced by it
-        unknown_timing = old is None and (pacer.period_s is None or pacer.scan_s is None)
-        ops.pace_for(timings)
-        self._write_configuration(ops, st, config, unknown_timing)
-        height = encodable(
-            ops,
-            ops.guard.frame_height(None, config.current_ua, 0, config.pulse_width_us, raise_when_idle=True),
+        unknown_timing = old is None and (pace.period_s is None or pace.scan_s is None)
+        b = PlanBuilder(st)
+        b.add(PaceFor(tuple(timings)))
+        self._write_configuration(b, ctx, config, unknown_timing)
+        st = b.st
+        target = ctx.guard.frame_height(
+            None, config.current_ua, 0, config.pulse_width_us, raise_when_idle=True
         )
-        ops.send(p.encode_pulse_height(ops.transfer.to_code(height)))
+        height = encodable_height(ctx, target)
+        if height != target:
+            b.add(Note("encoding", target, height, ENCODING_CLIP))
+        b.add(Write(p.encode_pulse_height(ctx.transfer.to_code(height))))
         st.config = config
         st.current_ua = height
         st.target_ua = config.current_ua
@@ -119,27 +141,24 @@ class V12Dialect:
         st.suspended = False
         st.scan_us = idle_scan
         # a faster pace for the new timing only once the device proves it has read every command above
-        slower = pacer.payload_interval_s(), pacer.period_s, pacer.scan_s
-        pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
-        if unknown_timing or pacer.payload_interval_s() < slower[0]:
-            pacer.set_timing(slower[1], slower[2])
-            ops.prove(n)
-            pacer.set_timing(new_period / 1e6, idle_scan / 1e6)
+        b.add(Settle((new_period / 1e6, idle_scan / 1e6), n, always=unknown_timing))
+        return b.done()
 
     def _write_configuration(
-        self, ops: LinkOps, st: DriverState, config: StimConfig, unknown_timing: bool
+        self, b: PlanBuilder, ctx: PlanContext, config: StimConfig, unknown_timing: bool
     ) -> None:
         """Everything but the participant's current, in the order :meth:`configure` gives."""
-        pacer = ops.pacer()
+        st = b.st
         n = config.electrode_count
         old = st.config
         in_force = [old.electrode_count if old is not None else 0]
 
         def send(data: bytes) -> None:
-            long = data[0] == p.Opcode.PATTERN and pacer.queue_estimate() + len(data) + 4 > pacer.limit_bytes
-            if unknown_timing and long:
-                ops.prove(in_force[0])  # a long pattern goes into a queue proved empty
-            ops.send(data)
+            if unknown_timing and data[0] == p.Opcode.PATTERN:
+                b.add(
+                    Prove(in_force[0], unless_room_for=len(data))
+                )  # a long pattern: into a queue proved empty
+            b.add(Write(data))
             if data[0] == p.Opcode.ELECTRODE_NUM:
                 in_force[0] = data[1]
 
@@ -153,15 +172,15 @@ class V12Dialect:
         if timing_first:
             self._write_timing(send, config, old)
         send(p.encode_electrode_num(n))
-        if timing_first and pacer.period_s is not None and pacer.scan_s is not None:
+        if timing_first:
             # behind the raised count, until its all-off pattern is read, the new count's longest scan runs
-            ops.pace_for([(pacer.period_s * 1e6, pacer.scan_s * 1e6), count_raise_timing(config)])
+            b.add(PaceFor((count_raise_timing(config),), with_current=True))
         send(p.encode_pattern(bytes(n)))
         st.last_pattern = bytes(n)
         if not timing_first:
             self._write_timing(send, config, old)
-        send(p.encode_sense_height(sense_code(config.sense_current_ua, ops.transfer)))
-        st.sense_byte = sense_code(config.sense_current_ua, ops.transfer)
+        send(p.encode_sense_height(sense_code(config.sense_current_ua, ctx.transfer)))
+        st.sense_byte = sense_code(config.sense_current_ua, ctx.transfer)
 
     @staticmethod
     def _write_timing(send: Callable[[bytes], None], config: StimConfig, old: StimConfig | None) -> None:
@@ -180,56 +199,78 @@ class V12Dialect:
 
     # --- frames ---------------------------------------------------------------------------------------------
 
-    def frame(self, ops: LinkOps, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> None:
+    def frame(self, ctx: PlanContext, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> Plan:
         """Height down first, pattern, height up last; the sense height likewise."""
         cfg = st.config
         assert cfg is not None
-        pacer = ops.pacer()
-        height = encodable(
-            ops,
-            ops.guard.frame_height(
-                levels, st.target_ua, st.current_ua, cfg.pulse_width_us, raise_when_idle=False
-            ),
-        )
-        hw = ops.mapping.to_hardware(levels) if ops.mapping is not None else bytes(levels)
+        height = self._frame_height(ctx, st, levels, raise_when_idle=False)
+        hw = ctx.mapping.to_hardware(levels) if ctx.mapping is not None else bytes(levels)
         period = firmware_period_us(cfg.rate_hz)
         scan = scan_of(cfg, hw)
-        ops.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
+        ctx.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
         before = st.scan_us if st.scan_us is not None else worst_scan_s(cfg) * 1e6
-        pacer.set_timing(period / 1e6, max(before, scan) / 1e6)
-        sense = sense_code(cfg.sense_current_ua, ops.transfer)  # an all-off stop set it to 0
-        if st.sense_byte is None or sense < st.sense_byte:
-            ops.send_critical(p.encode_sense_height(sense))
-            st.sense_byte = sense
-        if height < st.current_ua:
-            ops.send_critical(p.encode_pulse_height(ops.transfer.to_code(height)))
-            st.current_ua = height
+        # each write puts its own fields in force (spelled out: every frame is planned here)
+        sense = sense_code(cfg.sense_current_ua, ctx.transfer)  # an all-off stop set it to 0
+        sense_byte = st.sense_byte
+        current_ua = st.current_ua
+        writes: list[Step] = []
+        if sense_byte is None or sense < sense_byte:
+            writes.append(Write(p.encode_sense_height(sense), critical=True, puts={"sense_byte": sense}))
+            sense_byte = sense
+        if height < current_ua:
+            data = p.encode_pulse_height(ctx.transfer.to_code(height))
+            writes.append(Write(data, critical=True, puts={"current_ua": height}))
+            current_ua = height
         if force_pattern or hw != st.last_pattern:
-            ops.send_critical(p.encode_pattern(hw, electrode_num=cfg.electrode_count))
-            st.last_pattern = hw
-            st.frames_sent += 1
-        if height > st.current_ua:
-            ops.send_critical(p.encode_pulse_height(ops.transfer.to_code(height)))
-            st.current_ua = height
-        if sense > st.sense_byte:
-            ops.send_critical(p.encode_sense_height(sense))
-            st.sense_byte = sense
-        st.suspended = False
-        st.scan_us = scan
-        pacer.set_timing(period / 1e6, scan / 1e6)
+            data = p.encode_pattern(hw, electrode_num=cfg.electrode_count)
+            puts = {"last_pattern": hw, "frames_sent": st.frames_sent + 1}
+            writes.append(Write(data, critical=True, puts=puts))
+        if height > current_ua:
+            data = p.encode_pulse_height(ctx.transfer.to_code(height))
+            writes.append(Write(data, critical=True, puts={"current_ua": height}))
+        if sense > sense_byte:
+            writes.append(Write(p.encode_sense_height(sense), critical=True, puts={"sense_byte": sense}))
+        done = {"suspended": False, "scan_us": scan}
+        if writes:
+            writes[-1].puts.update(done)
+            done = {}
+        return Plan(
+            writes,
+            done,
+            pace_after=(period / 1e6, scan / 1e6),
+            pace_before=(period / 1e6, max(before, scan) / 1e6),
+        )
 
-    def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
+    @staticmethod
+    def _frame_height(
+        ctx: PlanContext, st: DriverState, levels: Sequence[int] | None, *, raise_when_idle: bool
+    ) -> int:
+        """The height of the frame ``levels``: the target lowered to its lowest limit and ramp, and to a
+        code the encoding can carry."""
         cfg = st.config
         assert cfg is not None
-        height = encodable(
-            ops,
-            ops.guard.frame_height(
-                levels, st.target_ua, st.current_ua, cfg.pulse_width_us, raise_when_idle=True
+        return encodable(
+            ctx,
+            ctx.guard.frame_height(
+                levels, st.target_ua, st.current_ua, cfg.pulse_width_us, raise_when_idle=raise_when_idle
             ),
         )
-        if height != st.current_ua:
-            ops.send_critical(p.encode_pulse_height(ops.transfer.to_code(height)))
-            st.current_ua = height
+
+    def set_current(self, ctx: PlanContext, st: DriverState, levels: list[int] | None) -> Plan:
+        cfg = st.config
+        assert cfg is not None
+        height = self._frame_height(ctx, st, levels, raise_when_idle=True)
+        if height == st.current_ua:
+            return Plan()
+        return Plan(
+            [
+                Write(
+                    p.encode_pulse_height(ctx.transfer.to_code(height)),
+                    critical=True,
+                    puts={"current_ua": height},
+                )
+            ]
+        )
 
     def off(self, st: DriverState, mapping: ChannelMapping | None, scan_s: float | None) -> Plan:
         cfg = st.config
@@ -252,7 +293,9 @@ class V12Dialect:
         cfg = st.config
         assert cfg is not None
         pattern = st.last_pattern if st.last_pattern is not None else bytes(cfg.electrode_count)
-        writes = [Write(p.encode_sense_height(st.sense_byte))] if sense and st.sense_byte is not None else []
+        writes: list[Step] = []
+        if sense and st.sense_byte is not None:
+            writes.append(Write(p.encode_sense_height(st.sense_byte)))
         writes.append(Write(p.encode_pulse_height(transfer.to_code(st.current_ua))))
         writes.append(Write(p.encode_pattern(pattern, electrode_num=cfg.electrode_count)))
         return Plan(writes)

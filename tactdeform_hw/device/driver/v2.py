@@ -48,9 +48,12 @@ from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig
 from tactdeform_hw.device.driver.dialect import (
     DriverState,
-    LinkOps,
+    Pace,
+    PaceFor,
     Plan,
     PlanBuilder,
+    Prove,
+    Step,
     Write,
     recovery_timing,
     timing_before_count,
@@ -66,6 +69,7 @@ from tactdeform_hw.protocol.firmware_math import estimate_scan_us, firmware_peri
 from tactdeform_hw.protocol.state import BoardState
 
 if TYPE_CHECKING:
+    from tactdeform_hw.device.driver.dialect import LinkOps, PaceInForce, PlanContext
     from tactdeform_hw.device.participant.mapping import ChannelMapping
     from tactdeform_hw.device.safety.guard import SafetyGuard
     from tactdeform_hw.protocol.units import CurrentTransfer
@@ -406,65 +410,64 @@ class V2Dialect:
         return replace(checked, sense_current_ua=transfer.check_current(config.sense_current_ua))
 
     def check_idle_scan(self, guard: SafetyGuard, config: StimConfig) -> None:
-        """v2 checks its scan in :meth:`configure`, once the caller's frame is superseded."""
+        """v2 checks its scan once the caller's frame is superseded (:meth:`check_configuration`)."""
 
-    def configure(self, ops: LinkOps, st: DriverState, config: StimConfig) -> None:
-        """Everything off first (zero pattern), the count raised without stale channels, mode 0, polarity
-        while all is off, widths and rate, then a proof by the sync check.  A count that rises goes after
-        the rate, polarity and widths (:func:`~.dialect.timing_before_count`): its longer scan never meets
-        the old period."""
-        # v2 pulses every channel in every scan (an off one at height 0): a configuration whose monophasic
-        # scan fills the period starves the parser whatever the pattern, so it is refused before any byte
-        ops.guard.check_scan(
+    def check_configuration(self, guard: SafetyGuard, config: StimConfig) -> None:
+        """v2 pulses every channel in every scan (an off one at height 0): a configuration whose
+        monophasic scan fills the period starves the parser whatever the pattern, so it is refused before
+        any byte."""
+        guard.check_scan(
             self._scan_us(config, c2.STIM_MODE_MONOPHASIC),
             firmware_period_us(config.rate_hz),
             SCAN_GAP_MIN_US,
         )
-        if ops.needs_resync():
-            ops.recover()
-        pacer = ops.pacer()
+
+    def configure(self, ctx: PlanContext, st: DriverState, config: StimConfig, pace: PaceInForce) -> Plan:
+        """Everything off first (zero pattern), the count raised without stale channels, mode 0, polarity
+        while all is off, widths and rate, then a proof by the sync check.  A count that rises goes after
+        the rate, polarity and widths (:func:`~.dialect.timing_before_count`): its longer scan never meets
+        the old period."""
         old = st.config
         new_period = firmware_period_us(config.rate_hz)
         timings = [(new_period, self._scan_us(config, None))]
         if old is not None:
             timings.append((firmware_period_us(old.rate_hz), self._scan_us(old, None)))
-        elif pacer.period_s is not None and pacer.scan_s is not None:
-            timings.append((pacer.period_s * 1e6, pacer.scan_s * 1e6))
-        ops.pace_for(timings)
+        elif pace.period_s is not None and pace.scan_s is not None:
+            timings.append((pace.period_s * 1e6, pace.scan_s * 1e6))
+        b = PlanBuilder(st)
+        st = b.st
+        b.add(PaceFor(tuple(timings)))
         in_force = old.electrode_count if old is not None else (len(st.codes) if st.codes is not None else 0)
         if in_force and any(st.codes or [1]):
             mode = st.mode if st.mode in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC) else 0
-            b = PlanBuilder(st)
-            self._write_covered(b, [0] * in_force, mode, pacer.scan_s)
-            ops.run(b.done(), st)
-            ops.prove(in_force)  # a long pattern: proved read before the next one
+            self._write_covered(b, [0] * in_force, mode, pace.slowest(timings)[1] / 1e6)
+            b.add(Prove(in_force))  # a long pattern: proved read before the next one
         n = config.electrode_count
         timing_first = timing_before_count(old, config)
-        b = PlanBuilder(st)
         # a rising count: rate and widths before it, once mode 2 holds every pulse at sense height 0
         timing = self._rate_and_widths(config, old, after_count=False) if timing_first else []
         self._raise_count(b, n, Write, _count_write, timing)
-        ops.run(b.done(), st)
-        ops.prove(n)
+        b.add(Prove(n))
         if timing_first:
-            ops.send(c2.encode_polarity(POLARITY_CODE[config.polarity]))  # all is off: mode 0, zero pattern
-            ops.send(c2.encode_sense_width(config.sense_width_us))  # the count's raise set it to 0
+            b.add(Write(c2.encode_polarity(POLARITY_CODE[config.polarity])))  # all is off: mode 0, zeros
+            b.add(Write(c2.encode_sense_width(config.sense_width_us)))  # the count's raise set it to 0
         else:
             for data in self._rate_and_widths(config, old, after_count=True):
-                ops.send(data)
-        sense = ops.transfer.to_code(config.sense_current_ua, "sense_current_ua")
-        ops.send(c2.encode_sense_height(sense))  # used only in mode 2, which never runs with heights
+                b.add(Write(data))
+        sense = ctx.transfer.to_code(config.sense_current_ua, "sense_current_ua")
+        b.add(Write(c2.encode_sense_height(sense)))  # used only in mode 2, which never runs with heights
         st.sense_byte = sense
         st.config = config
         st.target_ua = config.current_ua
         st.current_ua = 0
-        st.heights_ua = [0] * self._app_count(ops.mapping, n)
+        st.heights_ua = [0] * self._app_count(ctx.mapping, n)
         st.requested = None
         st.suspended = False
         st.scan_us = self._scan_us(config, None)
-        pacer.set_timing(timings[-1][0] / 1e6, max(t[1] for t in timings) / 1e6)
-        ops.prove(n)
-        pacer.set_timing(new_period / 1e6, st.scan_us / 1e6)
+        b.add(Pace((timings[-1][0] / 1e6, max(t[1] for t in timings) / 1e6)))
+        b.add(Prove(n))
+        b.add(Pace((new_period / 1e6, st.scan_us / 1e6)))
+        return b.done()
 
     @staticmethod
     def _rate_and_widths(config: StimConfig, old: StimConfig | None, *, after_count: bool) -> list[bytes]:
@@ -506,11 +509,11 @@ class V2Dialect:
                 "(monophasic) or every one 2 (biphasic)",
             )
 
-    def heights_for(self, ops: LinkOps, st: DriverState, levels: Sequence[int]) -> list[int]:
+    def heights_for(self, ctx: PlanContext, st: DriverState, levels: Sequence[int]) -> list[int]:
         """Each application electrode's height (µA): the target lowered to its own limit and ramp."""
         cfg = st.config
         assert cfg is not None
-        guard = ops.guard
+        guard = ctx.guard
         n = len(levels)
         active = [v in _ACTIVE for v in levels]
         if any(active) and guard.positions_matter:
@@ -520,7 +523,7 @@ class V2Dialect:
         prev = st.heights_ua if len(st.heights_ua) == n else [0] * n
         target = st.target_ua
         ramp = guard.ramp_ua_per_frame
-        robust = ops.pacer().robust
+        robust = ctx.robust
         out: list[int] = []
         clipped: list[tuple[int, int]] = []
         ramped: list[tuple[int, int]] = []
@@ -536,7 +539,7 @@ class V2Dialect:
                 h = prev[i] + ramp
                 ramped.append((i, h))
             if robust:
-                while h > 0 and (ops.transfer.to_code(h) & 0xFF) >= V2.command_byte_min:
+                while h > 0 and (ctx.transfer.to_code(h) & 0xFF) >= V2.command_byte_min:
                     h -= CURRENT_STEP_UA
             out.append(max(0, h))
         for rule, rows, why in (
@@ -554,43 +557,50 @@ class V2Dialect:
                 )
         return out
 
-    def frame(self, ops: LinkOps, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> None:
+    def frame(self, ctx: PlanContext, st: DriverState, levels: Sequence[int], *, force_pattern: bool) -> Plan:
+        """A pattern that may differ from the one in force under the cover (:func:`covered_pattern`), the
+        same heights again when ``force_pattern``.  A change of mode restarts the ramp from 0, and that
+        holds even when the guard then refuses the frame."""
         cfg = st.config
         assert cfg is not None
-        pacer = ops.pacer()
         self.check_levels(levels)
+        b = PlanBuilder(st)
+        st = b.st
         want = mode_for(levels)
         mode = st.mode if want is None and st.mode in (0, 1) else (want if want is not None else 0)
         if mode != st.mode:
             st.heights_ua = []  # after a mode change the ramp starts from 0
-        heights = self.heights_for(ops, st, levels)
-        n = cfg.electrode_count
-        codes = [0] * n
-        app_to_hw = ops.mapping.app_to_hw if ops.mapping is not None else range(n)
-        for i, ch in enumerate(app_to_hw):
-            if ch < n:
-                codes[ch] = ops.transfer.to_code(heights[i])
-        period = firmware_period_us(cfg.rate_hz)
-        scan = self._scan_us(cfg, mode)
-        ops.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
+        try:
+            heights = self.heights_for(ctx, st, levels)
+            n = cfg.electrode_count
+            codes = [0] * n
+            app_to_hw = ctx.mapping.app_to_hw if ctx.mapping is not None else range(n)
+            for i, ch in enumerate(app_to_hw):
+                if ch < n:
+                    codes[ch] = ctx.transfer.to_code(heights[i])
+            period = firmware_period_us(cfg.rate_hz)
+            scan = self._scan_us(cfg, mode)
+            ctx.guard.check_scan(scan, period, SCAN_GAP_MIN_US)
+        except Exception as refusal:
+            return b.refused(refusal)
         before = st.scan_us if st.scan_us is not None else self._scan_us(cfg, None)
-        pacer.set_timing(period / 1e6, max(before, scan) / 1e6)
+        paced = (period / 1e6, max(before, scan) / 1e6)
         if mode != st.mode or codes != st.codes:
             # a scan that pre-empts the copy would mix the two patterns (or run the new heights in the old
             # mode): mode 2 at sense height 0 covers the copy, and the new mode follows it
-            b = PlanBuilder(st)
-            self._write_covered(b, codes, mode, pacer.scan_s)
-            ops.run(b.done(), st)
+            self._write_covered(b, codes, mode, paced[1])
             st.frames_sent += 1
         elif force_pattern:
-            ops.send_critical(c2.encode_pattern(codes, electrode_num=n))  # the same heights again
+            b.add(Write(c2.encode_pattern(codes, electrode_num=n), critical=True))  # the same heights again
             st.frames_sent += 1
         st.heights_ua = heights
-        st.last_pattern = ops.mapping.to_hardware(levels) if ops.mapping is not None else bytes(levels)
+        st.last_pattern = ctx.mapping.to_hardware(levels) if ctx.mapping is not None else bytes(levels)
         st.current_ua = max(heights, default=0)
         st.suspended = False
         st.scan_us = scan
-        pacer.set_timing(period / 1e6, scan / 1e6)
+        plan = b.done((period / 1e6, scan / 1e6))
+        plan.pace_before = paced
+        return plan
 
     def off(self, st: DriverState, mapping: ChannelMapping | None, scan_s: float | None) -> Plan:
         """Every height 0 (mode 0 or 1 stays: a zero pattern there is no current)."""
@@ -626,14 +636,15 @@ class V2Dialect:
         n = cfg.electrode_count
         codes = st.codes if st.codes is not None and len(st.codes) == n else [0] * n
         # a mode byte mis-read as 2 gives every channel the sense pulse, whatever the pattern
-        writes = [Write(c2.encode_stim_mode(st.mode))] if st.mode is not None else []
+        writes: list[Step] = [Write(c2.encode_stim_mode(st.mode))] if st.mode is not None else []
         writes.append(Write(c2.encode_pattern(codes, electrode_num=n)))
         return Plan(writes)
 
-    def set_current(self, ops: LinkOps, st: DriverState, levels: list[int] | None) -> None:
+    def set_current(self, ctx: PlanContext, st: DriverState, levels: list[int] | None) -> Plan:
         """The target changed: the frame in force follows (each electrode to its own limit and ramp)."""
-        if levels is not None:
-            self.frame(ops, st, levels, force_pattern=False)
+        if levels is None:
+            return Plan()
+        return self.frame(ctx, st, levels, force_pattern=False)
 
 
 def buffer_levels(state: BoardState) -> list[int]:

@@ -6,21 +6,36 @@ value leaves unless the recovery has proved the parser in step, :class:`LinkStat
 (:class:`~tactdeform_hw.device.safety.interlock.WireInterlock`), the pacer, the transport, the audit, and
 the interlock's commit.  Replies are read to their worst-case deadline and their proofs recorded.
 
-The :class:`~tactdeform_hw.device.driver.base.Device` and the link operations it hands its dialect
-(:class:`~tactdeform_hw.device.driver.dialect.LinkOps`) both send through it, so there is one path for
-bytes whichever object decided them.
+A dialect's plans (:class:`~tactdeform_hw.device.driver.dialect.Plan`) are carried out here
+(:meth:`Wire.run`), and the :class:`~tactdeform_hw.device.driver.base.Device` and the link operations it
+hands its dialect's recovery (:class:`~tactdeform_hw.device.driver.dialect.LinkOps`) send through it too,
+so there is one path for bytes whichever object decided them.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import InstantClock
 from tactdeform_hw.device.driver.audit import AuditLog
-from tactdeform_hw.device.driver.dialect import DriverState, LinkOps, Plan
+from tactdeform_hw.device.driver.dialect import (
+    DriverState,
+    LinkOps,
+    Note,
+    Pace,
+    PaceFor,
+    PaceInForce,
+    Plan,
+    PlanContext,
+    Prove,
+    Settle,
+    Step,
+    Write,
+)
 from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, padding_for
 from tactdeform_hw.device.links.port import PortLink
 from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkRecovery, LinkState
@@ -72,6 +87,8 @@ class Wire:
     recovery_write: bool = False
     #: When a write last changed what the scans deliver (a rewrite of the same state does not count).
     last_state_write: float | None = None
+    #: The link operations last built (:meth:`link_ops`), with the tuple of what they bind.
+    _ops_cache: tuple[tuple[Any, ...], LinkOps] | None = field(default=None, init=False)
 
     def check_open(self) -> None:
         if self.closed:
@@ -107,13 +124,27 @@ class Wire:
         if self.pacer.robust:
             self.send_commands(commands)
 
-    def run(self, plan: Plan, st: DriverState) -> None:
-        """A dialect's planned writes, in order (a critical one twice under robust encoding), each putting
-        its state in force in ``st`` once it is written; then the pace the plan ends with."""
+    def plan_context(self) -> PlanContext:
+        """What a dialect plans against besides the state: this wire's guard, mapping, transfer and
+        encoding."""
+        return PlanContext(self.guard, self.mapping, self.transfer, self.pacer.robust)
+
+    def run(self, plan: Plan, st: DriverState, prove: Callable[[int], None] | None = None) -> None:
+        """A dialect's planned operation: its state put in force before the first step, then (a refused
+        one) its refusal raised; else its pace for the writes, its steps in order — each write (a critical
+        one twice under robust encoding), each proof (``prove``, the dialect's proof at an electrode
+        count) and each change of pace putting its state in force in ``st`` once done — and the pace the
+        plan ends with."""
         for name, value in plan.puts_before.items():
             setattr(st, name, value)
+        if plan.refusal is not None:
+            raise plan.refusal
+        if plan.pace_before is not None:
+            self.pacer.set_timing(*plan.pace_before)
         for w in plan.writes:
-            if w.commands:
+            if type(w) is not Write:
+                self._step(w, prove)
+            elif w.commands:
                 if w.critical:
                     self.send_critical_commands(w.commands)
                 else:
@@ -128,6 +159,37 @@ class Wire:
                 setattr(st, name, value)
         if plan.pace_after is not None:
             self.pacer.set_timing(*plan.pace_after)
+
+    def _step(self, step: Step, prove: Callable[[int], None] | None) -> None:
+        """One step of a plan that is not a write (see :data:`~.dialect.Step`)."""
+        pacer = self.pacer
+        if isinstance(step, Prove):
+            if step.unless_room_for is not None:
+                if pacer.queue_estimate() + step.unless_room_for + 4 <= pacer.limit_bytes:
+                    return
+            if prove is None:
+                raise ProtocolMisuseError("a plan with a proof run without the dialect's proof")
+            prove(step.electrodes)
+        elif isinstance(step, Pace):
+            pacer.set_timing(*step.timing)
+        elif isinstance(step, PaceFor):
+            timings = list(step.timings)
+            if step.with_current:
+                if pacer.period_s is None or pacer.scan_s is None:
+                    return
+                timings.insert(0, (pacer.period_s * 1e6, pacer.scan_s * 1e6))
+            self.pace_for(timings)
+        elif isinstance(step, Settle):
+            slower = pacer.payload_interval_s(), pacer.period_s, pacer.scan_s
+            pacer.set_timing(*step.timing)
+            if step.always or pacer.payload_interval_s() < slower[0]:
+                pacer.set_timing(slower[1], slower[2])
+                if prove is None:
+                    raise ProtocolMisuseError("a plan with a proof run without the dialect's proof")
+                prove(step.electrodes)
+                pacer.set_timing(*step.timing)
+        elif isinstance(step, Note):
+            self.guard.note_clip(step.rule, step.requested_ua, step.sent_ua, step.why)
 
     @contextmanager
     def recovery(self) -> Iterator[None]:
@@ -199,13 +261,26 @@ class Wire:
 
     def pace_for(self, timings: Sequence[tuple[float, float]]) -> None:
         """Pace for the slowest of several (period µs, scan µs) that may be in force."""
+        period_us, scan_us = self.slowest(timings)
+        self.pacer.set_timing(period_us / 1e6, scan_us / 1e6)
+
+    def slowest(self, timings: Sequence[tuple[float, float]]) -> tuple[float, float]:
+        """The slowest of several (period µs, scan µs) to pace for (the pace in force is left as it was)."""
+        pacer = self.pacer
+        was = pacer.period_s, pacer.scan_s
 
         def cost(t: tuple[float, float]) -> tuple[float, float]:
-            self.pacer.set_timing(t[0] / 1e6, t[1] / 1e6)
-            return (self.pacer.payload_interval_s(), self.pacer.skip_s(USB_PACKET_SIZE))
+            pacer.set_timing(t[0] / 1e6, t[1] / 1e6)
+            return (pacer.payload_interval_s(), pacer.skip_s(USB_PACKET_SIZE))
 
-        period_us, scan_us = max(timings, key=cost)
-        self.pacer.set_timing(period_us / 1e6, scan_us / 1e6)
+        try:
+            return max(timings, key=cost)
+        finally:
+            pacer.set_timing(*was)
+
+    def pace_in_force(self) -> PaceInForce:
+        """The pacer's timing now, and its choice among timings, for a dialect's plan."""
+        return PaceInForce(self.pacer.period_s, self.pacer.scan_s, self.slowest)
 
     # --- replies -------------------------------------------------------------------------------------------
 
@@ -259,42 +334,68 @@ class Wire:
         pulse), which proves every byte before it read; a short one marks the link suspect and raises."""
         return p.parse_measure_reply(self.request(p.MEASURE_REQUEST, 2 * n, what), n)
 
+    def current_pacer(self) -> Pacer:
+        """The pacer in force (a caller may put another in its place)."""
+        return self.pacer
+
+    def link_state(self) -> LinkState:
+        """Where the recovery state machine stands."""
+        return self.link.state
+
     def link_ops(
         self,
         *,
         prove: Callable[[int], None],
         recovery_prove: Callable[[int], None],
-        recover: Callable[[], None],
         resetting: Callable[[], bool],
     ) -> LinkOps:
-        """The link operations a dialect is handed: this wire's, and the device's proof, recovery and
-        reset state (bound now: a transport hook replaced on the port link is the one the dialect uses)."""
-        return LinkOps(
-            pacer=lambda: self.pacer,
-            guard=self.guard,
-            mapping=self.mapping,
-            transfer=self.transfer,
-            unknown_reply_s=self.unknown_reply_s,
-            send=self.send,
-            send_critical=self.send_critical,
-            send_critical_commands=self.send_critical_commands,
-            recovery_send=self.recovery_send,
-            discard_input=self.port_link.discard_input,
-            await_reply=self.await_reply,
-            proved=self.proved,
-            suspect=self.link.suspect,
-            enter=self.link.enter,
-            link_state=lambda: self.link.state,
-            prove=prove,
-            recovery_prove=recovery_prove,
-            recover=recover,
-            request=self.request,
-            run=self.run,
-            measured=self.measured,
-            pace_for=self.pace_for,
-            can_reset=self.port_link.can_reset,
-            resetting=resetting,
-            needs_resync=lambda: self.link.state is not LinkState.IN_STEP,
+        """The link operations a dialect is handed: this wire's, and the device's proof and reset state.
+        Each is looked up now, so a hook replaced on the wire, its port link or recovery record, or the
+        device, is the one the dialect uses.
+
+        Building the operations costs more than a frame's bookkeeping, so they are kept between calls:
+        the cache's key is the very tuple of what they bind, field by field (:meth:`_bindings`), and the
+        operations are built again from that tuple whenever it differs (a bound method compares equal to
+        another only when it binds the same function to the same object; the values are compared as
+        Python does, and the mutable ones — the guard — compare by identity).  A stale cache is thus
+        impossible by construction: whatever the operations bind is what was looked up on this call."""
+        bound = self._bindings(prove, recovery_prove, resetting)
+        cached = self._ops_cache
+        if cached is not None and cached[0] == bound:
+            return cached[1]
+        ops = LinkOps(*bound)
+        self._ops_cache = (bound, ops)
+        return ops
+
+    def _bindings(
+        self,
+        prove: Callable[[int], None],
+        recovery_prove: Callable[[int], None],
+        resetting: Callable[[], bool],
+    ) -> tuple[Any, ...]:
+        """What :class:`LinkOps` binds, in the order of its fields."""
+        link = self.link
+        port_link = self.port_link
+        return (
+            self.current_pacer,
+            self.guard,
+            self.mapping,
+            self.unknown_reply_s,
+            self.send,
+            self.recovery_send,
+            port_link.discard_input,
+            self.await_reply,
+            self.proved,
+            link.suspect,
+            link.enter,
+            self.link_state,
+            prove,
+            recovery_prove,
+            self.request,
+            self.run,
+            self.measured,
+            port_link.can_reset,
+            resetting,
         )
 
 

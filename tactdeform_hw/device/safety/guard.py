@@ -295,6 +295,17 @@ class SafetyGuard:
         """Electrodes whose own heights were lowered (firmware v2: each electrode to its own limit)."""
         self._record("clipped", rule, message, **detail)
 
+    def _check_charge(self, rule: str, charge_nc: float, what: str, **detail: Any) -> None:
+        """Refuse (rule ``rule``) a pulse whose charge exceeds the limit; ``what`` names the pulse and its
+        charge in the message."""
+        if charge_nc > self.max_charge_nc + _EPS:
+            raise self.refusal(
+                rule,
+                f"{what} exceeds the charge limit of {self.max_charge_nc:g} nC",
+                charge_nc=charge_nc,
+                **detail,
+            )
+
     def refusal(self, rule: str, message: str, **detail: Any) -> SafetyError:
         """A refusal under ``rule``, recorded (log, logger, sink); the caller raises it."""
         self._record("refused", rule, message, **detail)
@@ -459,14 +470,13 @@ class SafetyGuard:
                 limit=self.max_pulse_width_us,
             )
         charge = config.current_ua * config.pulse_width_us / 1000.0
-        if charge > self.max_charge_nc + _EPS:
-            raise self.refusal(
-                "charge",
-                f"current_ua={config.current_ua} × pulse_width_us={config.pulse_width_us} = {charge:g} nC "
-                f"per pulse exceeds the charge limit of {self.max_charge_nc:g} nC",
-                charge_nc=charge,
-                limit_nc=self.max_charge_nc,
-            )
+        self._check_charge(
+            "charge",
+            charge,
+            f"current_ua={config.current_ua} × pulse_width_us={config.pulse_width_us} = {charge:g} nC "
+            "per pulse",
+            limit_nc=self.max_charge_nc,
+        )
         if config.sense_current_ua:
             sense_ua = transfer.to_ua(transfer.to_code(config.sense_current_ua, "sense_current_ua"))
             low = min(self.electrode_limits(config.electrode_count) or [self.cap_ua])
@@ -479,13 +489,7 @@ class SafetyGuard:
                     limit_ua=low,
                 )
             sense_charge = sense_ua * config.sense_width_us / 1000.0
-            if sense_charge > self.max_charge_nc + _EPS:
-                raise self.refusal(
-                    "sense_charge",
-                    f"sense pulse of {sense_charge:g} nC exceeds the charge limit of "
-                    f"{self.max_charge_nc:g} nC",
-                    charge_nc=sense_charge,
-                )
+            self._check_charge("sense_charge", sense_charge, f"sense pulse of {sense_charge:g} nC")
         scan = worst_scan_us(
             config.electrode_count, config.pulse_width_us, config.discharge_us, config.sense_width_us
         )
