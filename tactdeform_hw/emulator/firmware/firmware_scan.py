@@ -318,6 +318,15 @@ def scan_duration_us(
 # --- the budget of one configuration, by firmware version ---------------------------------------------------
 
 
+def budget_verdict(overrun: bool, watchdog_reset: bool) -> str:
+    """A scan budget's outcome in the words the timing command and the reports print, one rule for the
+    statement walker's budget and the closed-form one so the two never name the same outcome differently:
+    a watchdog reset, the graver, is named before an overrun."""
+    if watchdog_reset:
+        return "watchdog reset"
+    return "overrun" if overrun else "fits"
+
+
 @dataclass(frozen=True)
 class FirmwareBudget:
     """One scan of a configuration against its timer period, from the statement walker."""
@@ -341,9 +350,7 @@ class FirmwareBudget:
 
     @property
     def verdict(self) -> str:
-        if self.watchdog_reset:
-            return "watchdog reset"
-        return "overrun" if self.overrun else "fits"
+        return budget_verdict(self.overrun, self.watchdog_reset)
 
     def to_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from tactdeform_hw.emulator.firmware.firmware_scan import budget_verdict
 from tactdeform_hw.emulator.firmware.scan import (
     ChannelKind,
     PulseKind,
@@ -362,9 +363,7 @@ class Budget:
 
     @property
     def verdict(self) -> str:
-        if self.watchdog_reset:
-            return "watchdog reset"
-        return "overrun" if self.overrun else "fits"
+        return budget_verdict(self.overrun, self.watchdog_reset)
 
     @classmethod
     def of(
