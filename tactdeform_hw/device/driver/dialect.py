@@ -31,6 +31,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, NamedTuple, Protocol
 
+from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
 from tactdeform_hw.protocol.constants import PATTERN_BIPHASIC, PATTERN_MONOPHASIC
@@ -346,6 +347,26 @@ def recovery_timing(state: DriverState) -> tuple[float | None, float | None]:
     return firmware_period_us(cfg.rate_hz) / 1e6, scan
 
 
+def rehearsal_in_flight(
+    ops: LinkOps, st: DriverState, frame_commands: Callable[[int], list[bytes]], *, pad: bool | None
+) -> tuple[int, SimulatedClock, Pacer]:
+    """Where a resync's bound starts, rehearsed without touching the port: (the electrode count in force,
+    a simulated clock, a scratch pacer on it with the live pacer's policy and the recovery's timing) with
+    the all-off frame of that count already written through the pacer (twice under robust encoding, as
+    the live path writes it) — the frame the failing resync finds still in flight.  ``pad``: as
+    :meth:`~tactdeform_hw.device.driver.pacing.Pacer.write`.  Each dialect then adds its own probes and
+    reply deadlines."""
+    cfg = st.config
+    n = cfg.electrode_count if cfg is not None else 0
+    clock = SimulatedClock()
+    scratch = Pacer(clock=clock, policy=ops.pacer().policy)
+    scratch.set_timing(*recovery_timing(st))
+    copies = 2 if ops.pacer().robust else 1
+    for data in [c for c in frame_commands(n) for _ in range(copies)]:
+        scratch.write(lambda _chunk: None, data, pad=pad)
+    return n, clock, scratch
+
+
 class Dialect(Protocol):
     """How one firmware version expresses the device's operations (see :mod:`.v1_2` and :mod:`.v2`).
 
@@ -431,6 +452,7 @@ __all__ = [
     "Write",
     "count_raise_timing",
     "recovery_timing",
+    "rehearsal_in_flight",
     "scan_of",
     "timing_before_count",
     "worst_scan_s",

@@ -15,7 +15,6 @@ from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
 from tactdeform_hw import protocol as p
-from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig, sense_code
 from tactdeform_hw.device.driver.dialect import (
     DriverState,
@@ -29,11 +28,12 @@ from tactdeform_hw.device.driver.dialect import (
     Write,
     count_raise_timing,
     recovery_timing,
+    rehearsal_in_flight,
     scan_of,
     timing_before_count,
     worst_scan_s,
 )
-from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, SCAN_GAP_MIN_US, Pacer, firmware_period_us
+from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, SCAN_GAP_MIN_US, firmware_period_us
 from tactdeform_hw.device.driver.readback import OFF_READING_CODES
 from tactdeform_hw.device.links.recovery import (
     PROBE_LEAD_ZEROS,
@@ -428,15 +428,8 @@ class V12Dialect:
     def resync_bound_now_s(self, ops: LinkOps, st: DriverState) -> float:
         """The request behind the zeros, then 256 zeros and the request again (and 0xF5 after 0xFF), each
         until its deadline, behind one frame still in flight; on a simulated clock with a scratch pacer."""
-        cfg = st.config
-        n = cfg.electrode_count if cfg is not None else 0
-        clock = SimulatedClock()
-        scratch = Pacer(clock=clock, policy=ops.pacer().policy)
-        scratch.set_timing(*recovery_timing(st))
+        n, clock, scratch = rehearsal_in_flight(ops, st, self.frame_commands, pad=None)
         request, reply = (p.MEASURE_REQUEST, 2 * n) if n else (p.HV513_COUNT_REQUEST, 1)
-        copies = 2 if ops.pacer().robust else 1
-        for data in [c for c in self.frame_commands(n) for _ in range(copies)]:  # a frame still in flight
-            scratch.write(lambda _chunk: None, data)
         steps = [(bytes(PROBE_LEAD_ZEROS) + request, reply), (bytes(RX_QUEUE_SIZE) + request, reply)]
         if n and not ops.can_reset():
             steps.append((bytes(PROBE_LEAD_ZEROS) + p.HV513_COUNT_REQUEST, 1))

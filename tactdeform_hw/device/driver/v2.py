@@ -44,7 +44,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
-from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import POLARITY_CODE, StimConfig
 from tactdeform_hw.device.driver.dialect import (
     DriverState,
@@ -56,10 +55,11 @@ from tactdeform_hw.device.driver.dialect import (
     Step,
     Write,
     recovery_timing,
+    rehearsal_in_flight,
     timing_before_count,
 )
 from tactdeform_hw.device.driver.firmware_probe import PROBE, SYNC_CHECK, FirmwareMismatchError
-from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US, Pacer
+from tactdeform_hw.device.driver.pacing import SCAN_GAP_MIN_US
 from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkState
 from tactdeform_hw.errors import LimitError, ShortReplyError
 from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
@@ -282,11 +282,7 @@ class V2Dialect:
         the wait until every byte has arrived plus the firmware's 2 s command timeout and the margin, then
         the probe and its deadline again.  A probe answered in between proves count 0, mode 0 and sense 0
         in force (no current), so no slower failing path leaves the board stimulating longer."""
-        cfg = st.config
-        n = cfg.electrode_count if cfg is not None else 0
-        clock = SimulatedClock()
-        scratch = Pacer(clock=clock, policy=ops.pacer().policy)
-        scratch.set_timing(*recovery_timing(st))
+        _n, clock, scratch = rehearsal_in_flight(ops, st, self.frame_commands, pad=False)
 
         def written(data: bytes) -> None:
             scratch.write(lambda _chunk: None, data, pad=False)
@@ -296,9 +292,6 @@ class V2Dialect:
             deadline = scratch.drained_by() + 0.003 + scratch.policy.byte_s + period
             clock.advance(max(0.0, deadline - clock.now()) + REPLY_POLL_S)
 
-        copies = 2 if ops.pacer().robust else 1
-        for data in [c for c in self.frame_commands(n) for _ in range(copies)]:
-            written(data)
         written(PROBE)
         await_reply()
         clock.advance(max(0.0, scratch.arrived_by() + COMMAND_TIMEOUT_S + TIMEOUT_MARGIN_S - clock.now()))
