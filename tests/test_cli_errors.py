@@ -255,6 +255,32 @@ def test_a_usage_error_in_a_real_process_exits_2() -> None:
     )
 
 
+@pytest.mark.parametrize(
+    ("argv", "last_line"),
+    [
+        (
+            ["send", "--pattern", "all:1", "--hold-ms", "soon"],
+            "tactdeform-hw send: error: argument --hold-ms: 'soon' is not a number of ms",
+        ),
+        (
+            ["send", "--pattern", "all:1", "--timeout-s", "soon"],
+            "tactdeform-hw send: error: argument --timeout-s: 'soon' is not a number of s",
+        ),
+        (
+            ["send", "--pattern", "all:1", "--timeout-s", "0"],
+            "tactdeform-hw send: error: argument --timeout-s: 0 is out of range: a number > 0 s",
+        ),
+    ],
+)
+def test_a_duration_or_a_positive_number_that_is_not_one_names_the_text_and_unit(
+    argv: list[str], last_line: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        run(argv, capsys)
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1] == last_line
+
+
 def test_an_os_error_while_writing_is_one_line(tmp_path, capsys, monkeypatch) -> None:
     import tactdeform_hw.formats as formats
 

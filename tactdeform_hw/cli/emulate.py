@@ -11,7 +11,7 @@ from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from .common import progress
-from .options import add_firmware_version
+from .options import add_board, add_firmware_version
 
 
 def register(sub: Any) -> None:
@@ -107,10 +107,7 @@ def _board_options(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--untimed", action="store_true", help="answer every write at once (no link, queue, tick or scans)"
     )
-    p.add_argument(
-        "--board", choices=("compact", "large"), default="compact", help="board kind (default compact)"
-    )
-    p.add_argument("--switching-boards", type=int, default=1, help="stacked switching boards (default 1)")
+    add_board(p)
     p.add_argument(
         "--reset-on-open", action="store_true", help="power-cycle the board whenever a client opens the port"
     )

@@ -140,6 +140,17 @@ def add_firmware_version(parser: argparse.ArgumentParser, *, help: str) -> None:
     parser.add_argument("--firmware", choices=("v1.2", "v2"), default="v1.2", help=help)
 
 
+def add_board(parser: argparse.ArgumentParser) -> None:
+    """``--board`` and ``--switching-boards``: the emulated board's kind and its stacked switching boards,
+    declared once so every command that models a board offers them alike."""
+    parser.add_argument(
+        "--board", choices=("compact", "large"), default="compact", help="board kind (default compact)"
+    )
+    parser.add_argument(
+        "--switching-boards", type=int, default=1, help="stacked switching boards (default 1)"
+    )
+
+
 def add_pulse_width(parser: argparse.ArgumentParser, *, default: int | None, help: str) -> None:
     """``--pulse-width-us`` (earlier ``--pulse-width``), read as ``args.pulse_width``."""
     add_option(
@@ -191,15 +202,21 @@ def finish(args: argparse.Namespace) -> None:
 # --- value kinds (argparse types: a value of the wrong kind is a usage error, exit status 2) ------------
 
 
+def _number(text: str, unit: str) -> float:
+    """``text`` as a float, or the parse error argparse shows naming the text and the unit expected (the
+    ranges are each caller's own)."""
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of {unit}") from None
+
+
 def duration(unit: str, *, to_s: bool = False) -> Callable[[str], float]:
     """A finite number ≥ 0 in ``unit``: a negative or infinite duration is refused while parsing.  With
     ``to_s`` a value in ms is returned in seconds (the unit the command's body works in)."""
 
     def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number of {unit}") from None
+        value = _number(text, unit)
         if not math.isfinite(value) or value < 0:
             raise argparse.ArgumentTypeError(f"{text} is out of range: a duration ≥ 0 {unit}")
         return value / 1000.0 if to_s and unit == "ms" else value
@@ -212,10 +229,7 @@ def positive(unit: str) -> Callable[[str], float]:
     """A finite number > 0 in ``unit`` (a timeout, a rate)."""
 
     def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number of {unit}") from None
+        value = _number(text, unit)
         if not math.isfinite(value) or value <= 0:
             raise argparse.ArgumentTypeError(f"{text} is out of range: a number > 0 {unit}")
         return value

@@ -18,6 +18,7 @@ from .common import print_json
 from .options import (
     DeprecatedAlias,
     PolarityCode,
+    add_board,
     add_discharge,
     add_finisher,
     add_firmware_version,
@@ -165,10 +166,7 @@ def _code_alias(p: argparse.ArgumentParser, flag: str, default: int, canonical: 
 
 def _board_options(p: argparse.ArgumentParser) -> None:
     """The board and the timing model's constants."""
-    p.add_argument(
-        "--board", choices=("compact", "large"), default="compact", help="board kind (default compact)"
-    )
-    p.add_argument("--switching-boards", type=int, default=1, help="stacked switching boards (default 1)")
+    add_board(p)
     p.add_argument(
         "--hv513",
         type=int,
