@@ -164,6 +164,12 @@ def add_pulse_width(parser: argparse.ArgumentParser, *, default: int | None, hel
     )
 
 
+def add_tracking_rate(parser: argparse.ArgumentParser, *, default: float | None, help: str) -> None:
+    """``--rate-hz`` (earlier ``--rate``), the tracking rate of a synthetic trajectory, read as
+    ``args.rate``."""
+    add_option(parser, "--rate-hz", old=("--rate",), dest="rate", type=float, default=default, help=help)
+
+
 def add_discharge(
     parser: argparse.ArgumentParser, *, help: str = "discharge time in µs (default 45)"
 ) -> None:

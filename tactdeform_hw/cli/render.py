@@ -22,7 +22,7 @@ import sys
 from typing import Any
 
 from .common import add_device_arg, add_participant_arg, print_json, progress, session_from_args
-from .options import add_option
+from .options import add_option, add_tracking_rate
 from .outputs import writing
 
 
@@ -80,15 +80,7 @@ def _trajectory_options(p: argparse.ArgumentParser) -> None:
         default=None,
         help="finger speed in mm/s (default: the trajectory's own; synthetic only)",
     )
-    add_option(
-        p,
-        "--rate-hz",
-        old=("--rate",),
-        dest="rate",
-        type=float,
-        default=None,
-        help="tracking rate in Hz (default 72, the VR loop; synthetic only)",
-    )
+    add_tracking_rate(p, default=None, help="tracking rate in Hz (default 72, the VR loop; synthetic only)")
 
 
 def _live_options(p: argparse.ArgumentParser) -> None:

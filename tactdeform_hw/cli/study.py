@@ -24,7 +24,7 @@ from typing import Any
 
 from ..errors import ConfigurationError
 from .common import add_device_arg, add_participant_arg, print_json, progress, session_from_args
-from .options import add_option
+from .options import add_tracking_rate
 
 EXIT_CHECK_FAILED = 3
 
@@ -72,15 +72,7 @@ def register(sub: Any) -> None:
         help="stimulation current in µA (default: the participant's; without one, 1000 µA on the "
         "emulator so delivered charges are reported, 0 — patterns only — on a real device)",
     )
-    add_option(
-        p,
-        "--rate-hz",
-        old=("--rate",),
-        dest="rate",
-        type=float,
-        default=72.0,
-        help="tracking rate in Hz (default 72, the VR loop)",
-    )
+    add_tracking_rate(p, default=72.0, help="tracking rate in Hz (default 72, the VR loop)")
     p.add_argument(
         "--tremor-mm",
         type=float,
