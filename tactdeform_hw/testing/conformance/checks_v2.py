@@ -30,7 +30,7 @@ from tactdeform_hw.testing.conformance.targets import (
     REPLY_TIMEOUT_S,
     V2_TARGETS,
     Target,
-    build_target,
+    built_target,
     chosen_device,
     target_params,
 )
@@ -49,12 +49,8 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
 
 @pytest.fixture
 def v2_target(v2_target_name: str) -> Iterator[Target]:
-    t = build_target(v2_target_name)
-    try:
+    with built_target(v2_target_name) as t:
         yield t
-    finally:
-        for fn in reversed(t.cleanup):
-            fn()
 
 
 def read_reply(port: object, n: int, timeout: float = REPLY_TIMEOUT_S) -> bytes:

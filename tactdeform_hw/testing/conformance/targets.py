@@ -30,6 +30,7 @@ import time
 import urllib.parse as urlparse
 import uuid
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -394,14 +395,22 @@ def generate_v1_2_targets(metafunc: pytest.Metafunc) -> None:
         metafunc.parametrize("target_name", target_params(metafunc.config, "v1.2", EMULATED_TARGETS))
 
 
-@pytest.fixture(name="target")
-def target_fixture(target_name: str) -> Iterator[Target]:
-    t = build_target(target_name)
+@contextmanager
+def built_target(name: str) -> Iterator[Target]:
+    """The target ``name`` built for one check (:func:`build_target`), its cleanups run in reverse order
+    when the check ends, however it ends: the fixtures of both versions' checks hold their targets so."""
+    t = build_target(name)
     try:
         yield t
     finally:
         for fn in reversed(t.cleanup):
             fn()
+
+
+@pytest.fixture(name="target")
+def target_fixture(target_name: str) -> Iterator[Target]:
+    with built_target(target_name) as t:
+        yield t
 
 
 #: (target, check: figure, text) of every figure measured in this run, until the summary prints them
