@@ -289,6 +289,17 @@ def test_channels_beyond_the_chain_reach_no_electrode() -> None:
     assert p.current_ua[32:].tolist() == [0.0] * 8 and p.limited[32:].all()
 
 
+def test_both_budgets_name_channels_beyond_the_chain_in_the_same_note() -> None:
+    from tactdeform_hw.emulator.firmware.firmware_scan import FirmwareScanConfig, budget
+
+    note = "channels 32..39 lie beyond the 4 HV513 chip(s)"
+    closed_form = Budget.of(ScanConfig.make(40, 1, hv513_num=4), MODEL, 125)
+    walker = budget(FirmwareScanConfig(40, [1] * 40, pulse_width=200, discharge_time=45, hv513_num=4), "v1.2")
+    assert note in closed_form.notes and note in walker.notes
+    within = Budget.of(ScanConfig.make(32, 1, hv513_num=4), MODEL, 125)
+    assert not any("beyond" in n for n in within.notes)
+
+
 # --- voltages -----------------------------------------------------------------------------------------------
 
 

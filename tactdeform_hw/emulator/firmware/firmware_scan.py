@@ -318,6 +318,16 @@ def scan_duration_us(
 # --- the budget of one configuration, by firmware version ---------------------------------------------------
 
 
+def beyond_chain_notes(electrode_num: int, hv513_num: int) -> list[str]:
+    """The note of a budget whose electrode count runs past the chips' outputs (``OUTPUTS_PER_HV513``
+    each), in the same words for the walker's budget and the closed-form one; [] when every channel has
+    an output."""
+    driven = OUTPUTS_PER_HV513 * hv513_num
+    if electrode_num <= driven:
+        return []
+    return [f"channels {driven}..{electrode_num - 1} lie beyond the {hv513_num} HV513 chip(s)"]
+
+
 def budget_verdict(overrun: bool, watchdog_reset: bool) -> str:
     """A scan budget's outcome in the words the timing command and the reports print, one rule for the
     statement walker's budget and the closed-form one so the two never name the same outcome differently:
@@ -440,11 +450,7 @@ def budget(
         and any(cfg.stim_pattern[: cfg.electrode_num])
     ):
         notes.append(f"pulse width {width} µs: the pulse is still one SPI exchange long")
-    driven = OUTPUTS_PER_HV513 * cfg.hv513_num
-    if cfg.electrode_num > driven:
-        notes.append(
-            f"channels {driven}..{cfg.electrode_num - 1} lie beyond the {cfg.hv513_num} HV513 chip(s)"
-        )
+    notes.extend(beyond_chain_notes(cfg.electrode_num, cfg.hv513_num))
     return FirmwareBudget(
         firmware=spec.name,
         electrodes=cfg.electrode_num,

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from tactdeform_hw.emulator.firmware.firmware_scan import budget_verdict
+from tactdeform_hw.emulator.firmware.firmware_scan import beyond_chain_notes, budget_verdict
 from tactdeform_hw.emulator.firmware.scan import (
     ChannelKind,
     PulseKind,
@@ -318,11 +318,7 @@ def _budget_notes(
             f"{int(counts[ChannelKind.SENSE])} channel(s) off in the pattern still get a sense pulse "
             f"of code {cfg.sense_pulse_height}"
         )
-    driven = OUTPUTS_PER_HV513 * cfg.hv513_num
-    if cfg.electrode_num > driven:
-        notes.append(
-            f"channels {driven}..{cfg.electrode_num - 1} lie beyond the {cfg.hv513_num} HV513 chip(s)"
-        )
+    notes.extend(beyond_chain_notes(cfg.electrode_num, cfg.hv513_num))
     if cfg.hv513_num == 0 and cfg.electrode_num:
         notes.append("HV513 count 0: the clear loads a 1 and leaves output 0 selected")
     return notes
