@@ -48,6 +48,28 @@ def test_json_and_toml_round_trip(tmp_path: Path) -> None:
     assert "calibrated_on = 2024-05-01" in toml_text and 'participant = "P01"' in toml_text
 
 
+def test_a_write_cut_short_leaves_the_profile_that_was_there(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The new text goes to a file beside the profile and replaces it only once whole: a crash mid-write
+    (here: the disk fills after half the text) leaves the earlier profile loadable."""
+    path = save_profile(profile_from_dict(GOOD), tmp_path / "P01.json")
+    before = path.read_text(encoding="utf-8")
+    raised = dict(GOOD, cap_ua=1800)
+
+    def half_then_full(self: Path, text: str, encoding: str | None = None) -> int:
+        with open(self, "w", encoding=encoding) as f:
+            f.write(text[: len(text) // 2])
+        raise OSError(28, "No space left on device", str(self))
+
+    monkeypatch.setattr(Path, "write_text", half_then_full)
+    with pytest.raises(OSError):
+        save_profile(profile_from_dict(raised), path)
+    monkeypatch.undo()
+    assert path.read_text(encoding="utf-8") == before
+    assert load_profile(path) == profile_from_dict(GOOD)
+
+
 def test_optional_keys(tmp_path: Path) -> None:
     prof = load_profile(
         write_json(tmp_path, {**GOOD, "max_charge_nc": 250.5, "ramp_ua_per_frame": 300, "notes": "x"})

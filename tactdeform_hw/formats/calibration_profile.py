@@ -42,6 +42,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import LimitError, ProfileError
+from ..files import write_text_atomically
 from ..protocol.constants import CURRENT_STEP_UA, DAC_MAX_CODE, MAX_ELECTRODES
 from ..protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
@@ -288,10 +289,7 @@ def save_calibration_profile(profile: CalibrationProfile, path: str | os.PathLik
     p = Path(path)
     text = dumps_calibration_profile(profile)
     calibration_from_dict(json.loads(text), str(p))
-    tmp = p.with_name(f".{p.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, p)
-    return p
+    return write_text_atomically(p, text)
 
 
 # --- conversion to and from participant profiles ------------------------------------------------------------

@@ -43,6 +43,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from tactdeform_hw.errors import ProfileError
+from tactdeform_hw.files import write_text_atomically
 from tactdeform_hw.protocol.constants import CURRENT_STEP_UA, MAX_CURRENT_UA, U16_MAX
 
 PROFILE_VERSION = 1
@@ -345,7 +346,4 @@ def save_profile(profile: ParticipantProfile, path: str | os.PathLike[str]) -> P
     p = Path(path)
     text = dumps_profile(profile, _file_format(p))
     profile_from_dict(json.loads(dumps_profile(profile, "json")), str(p))  # what we write must load back
-    tmp = p.with_name(f".{p.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, p)
-    return p
+    return write_text_atomically(p, text)
