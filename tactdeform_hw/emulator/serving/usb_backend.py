@@ -654,26 +654,20 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
 
     def is_kernel_driver_active(self, dev_handle: _Handle, intf: int) -> bool:
         with self.lock:
-            d = self._live(dev_handle)
-            if not d.kernel_driver_supported:
-                raise NotImplementedError("Operation not supported or unimplemented on this platform")
+            d = self._with_kernel_drivers(dev_handle)
             self._interface(d, intf)
             return intf in d.kernel_bound
 
     def detach_kernel_driver(self, dev_handle: _Handle, intf: int) -> None:
         with self.lock:
-            d = self._live(dev_handle)
-            if not d.kernel_driver_supported:
-                raise NotImplementedError("Operation not supported or unimplemented on this platform")
+            d = self._with_kernel_drivers(dev_handle)
             if intf not in d.kernel_bound:
                 raise self._error("not_found")
             d.kernel_bound.discard(intf)
 
     def attach_kernel_driver(self, dev_handle: _Handle, intf: int) -> None:
         with self.lock:
-            d = self._live(dev_handle)
-            if not d.kernel_driver_supported:
-                raise NotImplementedError("Operation not supported or unimplemented on this platform")
+            d = self._with_kernel_drivers(dev_handle)
             self._interface(d, intf)
             if intf in d.kernel_bound or intf in d.claims:
                 raise self._error("busy")
@@ -731,10 +725,7 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
                         sent += len(pkt)
                     return sent
             # every packet is NAKed: the transfer waits (out its timeout) without sending a byte
-            now = self.clock.now()
-            if deadline is not None and now >= deadline:
-                raise self._error("timeout")
-            self.clock.sleep(_POLL_S if deadline is None else min(_POLL_S, deadline - now))
+            self._poll_until(deadline)
 
     def bulk_read(self, dev_handle: _Handle, ep: int, intf: int, buff: Any, timeout: int) -> int:
         """Bytes that have crossed the link by now, up to the buffer's size; otherwise wait for them,
@@ -750,10 +741,7 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
                         return len(data)
                 else:
                     d.advance()  # the JTAG interface never sends here
-            now = self.clock.now()
-            if deadline is not None and now >= deadline:
-                raise self._error("timeout")
-            self.clock.sleep(_POLL_S if deadline is None else min(_POLL_S, deadline - now))
+            self._poll_until(deadline)
 
     def intr_read(self, dev_handle: _Handle, ep: int, intf: int, buff: Any, timeout: int) -> int:
         """The CDC notification endpoint: the USB Serial/JTAG controller never sends serial-state
@@ -762,6 +750,22 @@ class EmulatedUsbBackend(EmulatedBoardBackend):
             self._check_transfer(dev_handle, ep, intf, direction_in=True)
         self.clock.sleep((timeout or 1) / 1000.0)
         raise self._error("timeout")
+
+    def _poll_until(self, deadline: float | None) -> None:
+        """One wait of a transfer that cannot complete yet: a poll interval on the firmware's clock, cut
+        to the deadline, or the timeout error once the deadline has passed (``None``: no deadline)."""
+        now = self.clock.now()
+        if deadline is not None and now >= deadline:
+            raise self._error("timeout")
+        self.clock.sleep(_POLL_S if deadline is None else min(_POLL_S, deadline - now))
+
+    def _with_kernel_drivers(self, dev_handle: _Handle) -> EmulatedUsbDevice:
+        """The open device behind ``dev_handle``, for a kernel-driver call; on a device emulating a
+        platform without kernel drivers, the ``NotImplementedError`` pyusb raises there."""
+        d = self._live(dev_handle)
+        if not d.kernel_driver_supported:
+            raise NotImplementedError("Operation not supported or unimplemented on this platform")
+        return d
 
     @staticmethod
     def _cdc_endpoint(d: EmulatedUsbDevice, direction_in: bool) -> int | None:
