@@ -553,3 +553,23 @@ def test_the_failsafes_refresh_leaves_the_sense_height_to_its_readback_only_wher
     fs.poll(0.0)
     assert (emu.state().sense_pulse_height != 0xF9 << 2) is rewritten
     dev.close()
+
+
+@pytest.mark.parametrize("name", ["emulator", "etactile://?firmware=v2"])
+def test_a_recovery_keeps_the_bound_of_the_configuration_it_began_at(name: str) -> None:
+    """Each version's recovery records its failing-resync bound before its first byte: a later, smaller
+    configuration does not shrink the bound a fail-safe reads below the one a recovery ran under."""
+    from tactdeform_hw.device import open_device
+
+    def bound_after(resync_at_32: bool) -> tuple[float, float]:
+        with open_device(name, guardian=False, settle_s=0.0) as dev:
+            dev.configure(StimConfig(electrode_count=32, current_ua=500))
+            at_32 = dev.resync_bound_s()
+            if resync_at_32:
+                dev.resync()
+            dev.configure(StimConfig(electrode_count=1, current_ua=500))
+            return at_32, dev.resync_bound_s()
+
+    at_32, without = bound_after(resync_at_32=False)
+    assert without < at_32  # one electrode alone has the smaller bound
+    assert bound_after(resync_at_32=True) == (at_32, at_32)

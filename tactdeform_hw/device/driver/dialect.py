@@ -347,6 +347,23 @@ def recovery_timing(state: DriverState) -> tuple[float | None, float | None]:
     return firmware_period_us(cfg.rate_hz) / 1e6, scan
 
 
+def begin_recovery(
+    ops: LinkOps, st: DriverState, bound_now_s: Callable[[LinkOps, DriverState], float]
+) -> tuple[StimConfig | None, int]:
+    """What every version's recovery does first; returns the configuration in force and its electrode
+    count (None and 0 before a configuration).  On a configured board the resync bound at this
+    configuration (``bound_now_s``, the dialect's own) is kept in ``st.bound_seen_s`` before any byte, so
+    :meth:`~.base.Device.resync_bound_s` covers the recovery under way; then the pacer is timed for the
+    recovery (:func:`recovery_timing`).  Before a configuration the wait is the unknown board's,
+    ``unknown_reply_s``."""
+    cfg = st.config
+    n = cfg.electrode_count if cfg is not None else 0
+    if cfg is not None:
+        st.bound_seen_s = max(st.bound_seen_s, bound_now_s(ops, st))
+    ops.pacer().set_timing(*recovery_timing(st))
+    return cfg, n
+
+
 def rehearsal_in_flight(
     ops: LinkOps, st: DriverState, frame_commands: Callable[[int], list[bytes]], *, pad: bool | None
 ) -> tuple[int, SimulatedClock, Pacer]:
@@ -450,6 +467,7 @@ __all__ = [
     "Settle",
     "Step",
     "Write",
+    "begin_recovery",
     "count_raise_timing",
     "recovery_timing",
     "rehearsal_in_flight",

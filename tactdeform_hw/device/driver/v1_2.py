@@ -26,8 +26,8 @@ from tactdeform_hw.device.driver.dialect import (
     Settle,
     Step,
     Write,
+    begin_recovery,
     count_raise_timing,
-    recovery_timing,
     rehearsal_in_flight,
     scan_of,
     timing_before_count,
@@ -336,11 +336,7 @@ class V12Dialect:
           Otherwise one more round, then FAILED.
 
         Time alone never proves anything here: each deadline only decides when to stop waiting."""
-        cfg = st.config
-        n = cfg.electrode_count if cfg is not None else 0
-        if cfg is not None:  # (before a configuration the wait is the unknown board's, ``unknown_reply_s``)
-            st.bound_seen_s = max(st.bound_seen_s, self.resync_bound_now_s(ops, st))
-        ops.pacer().set_timing(*recovery_timing(st))
+        cfg, n = begin_recovery(ops, st, self.resync_bound_now_s)
         for attempt in range(1, RECOVERY_ATTEMPTS + 1):
             if ops.link_state() is not LinkState.SUSPECT:
                 ops.enter(LinkState.SUSPECT, f"recovery attempt {attempt}")

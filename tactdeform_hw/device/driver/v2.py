@@ -54,7 +54,7 @@ from tactdeform_hw.device.driver.dialect import (
     Prove,
     Step,
     Write,
-    recovery_timing,
+    begin_recovery,
     rehearsal_in_flight,
     timing_before_count,
 )
@@ -338,13 +338,8 @@ class V2Dialect:
 
     def flush_parser(self, ops: LinkOps, st: DriverState) -> None:
         """SUSPECT → SYNCING (→ FLUSHING after the 2 s timeout) → SAFE → VERIFYING → IN_STEP, on v2."""
-        cfg = st.config
-        n = cfg.electrode_count if cfg is not None else 0
-        if cfg is not None:  # (before a configuration the wait is the unknown board's, ``unknown_reply_s``)
-            st.bound_seen_s = max(st.bound_seen_s, self.resync_bound_now_s(ops, st))
-        timing = recovery_timing(st)
+        cfg, n = begin_recovery(ops, st, self.resync_bound_now_s)
         pacer = ops.pacer()
-        pacer.set_timing(timing[0], timing[1])
         st.mode = st.codes = None
         for attempt in (1, 2):
             if ops.link_state() is not LinkState.SUSPECT:
