@@ -181,10 +181,16 @@ def socket_port_class() -> type:
 
 def open_socket_port(name: str, *, timeout: float | None, baudrate: int) -> Any:
     """``socket://HOST:PORT`` as an unopened :func:`socket_port_class` port (guardable)."""
+    return unopened_port(socket_port_class(), name, timeout=timeout, baudrate=baudrate)
+
+
+def unopened_port(port_class: Callable[..., Any], name: str, *, timeout: float | None, baudrate: int) -> Any:
+    """A pyserial port of ``port_class`` named ``name`` but not yet opened (the device opens it); a name or
+    setting pyserial refuses is a :class:`~tactdeform_hw.errors.TransportError` naming the port."""
     import serial
 
     try:
-        port = socket_port_class()(None, baudrate=baudrate, timeout=timeout, write_timeout=timeout)
+        port = port_class(port=None, baudrate=baudrate, timeout=timeout, write_timeout=timeout)
         port.port = name
     except (serial.SerialException, ValueError) as exc:
         raise TransportError(f"cannot create port {name!r}: {exc}") from exc
@@ -231,4 +237,5 @@ __all__ = [
     "port_for_name",
     "register_transport",
     "scheme_of",
+    "unopened_port",
 ]

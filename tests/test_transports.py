@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 
@@ -130,3 +131,11 @@ def test_capabilities_by_port() -> None:
         assert is_instant(port) and board_state(port).electrode_num == 0 and port.board_hazards == []
     with pytest.raises(TransportError, match="not open"):
         port.out_waiting  # noqa: B018 - the property is the check
+
+
+@pytest.mark.parametrize("name", ["/dev/ttyNOPE9", "socket://127.0.0.1:9"])
+def test_a_path_or_socket_port_is_made_unopened_and_a_refused_setting_names_the_port(name: str) -> None:
+    port = open_port(name, timeout=0.1)
+    assert port.port == name and not port.is_open and port.write_timeout == 0.1
+    with pytest.raises(TransportError, match=rf"^cannot create port '{re.escape(name)}': .*-1"):
+        open_port(name, timeout=0.1, baudrate=-1)

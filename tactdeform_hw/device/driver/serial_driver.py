@@ -31,7 +31,7 @@ from tactdeform_hw.device.driver.pacing import Pacer
 from tactdeform_hw.device.links.port import BUSY_ERRNOS, Port
 from tactdeform_hw.device.participant.mapping import ChannelMapping
 from tactdeform_hw.device.safety.guard import SafetyGuard
-from tactdeform_hw.errors import DeviceBusyError, TransportError
+from tactdeform_hw.errors import DeviceBusyError
 from tactdeform_hw.protocol.constants import BAUD_RATE
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
@@ -110,14 +110,9 @@ def open_port(name: str, *, timeout: float = DEFAULT_TIMEOUT_S, baudrate: int = 
 
 def open_serial_path(name: str, *, timeout: float | None, baudrate: int) -> Any:
     """A serial port path as an unopened :func:`exclusive_port_class` port (locked on open, guardable)."""
-    import serial
+    from tactdeform_hw.transports import unopened_port
 
-    try:
-        port = exclusive_port_class()(port=None, baudrate=baudrate, timeout=timeout, write_timeout=timeout)
-        port.port = name
-    except (serial.SerialException, ValueError) as exc:
-        raise TransportError(f"cannot create port {name!r}: {exc}") from exc
-    return port
+    return unopened_port(exclusive_port_class(), name, timeout=timeout, baudrate=baudrate)
 
 
 def open_kit_url(name: str, *, timeout: float | None, baudrate: int) -> Any:
