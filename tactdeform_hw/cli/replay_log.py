@@ -110,19 +110,14 @@ def replay(
     import numpy as np
 
     from tactdeform_hw.device.driver.audit import read_log
-    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+    from tactdeform_hw.emulator.firmware.models import model_entry
 
     ran, source = log_firmware(path, firmware)
     records = [r for r in read_log(path) if r["type"] == "tx" and r.get("ok", True)]
     if not records:
         raise ConfigurationError(f"audit log {path}: no commands to replay")
     v2 = ran == V2.name
-    if v2:
-        from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
-
-        emu: Any = TimedEmulatorV2(link=link)
-    else:
-        emu = TimedEmulator(link=link)
+    emu: Any = model_entry(ran).timed(link=link)
     t_last = 0.0
     for r in records:
         t = max(float(r["t"]), t_last)  # writes must come in time order

@@ -818,19 +818,14 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
     """Replay the session's writes into the timed model of the firmware that ran and attach, per trial,
     the pulses delivered (per electrode: pulses, largest current, charge; on v2 also the heights each
     electrode was pulsed at), the timing hazards in the trial's window and the replay time of each write."""
-    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+    from tactdeform_hw.emulator.firmware.models import model_entry
 
     writes = result.writes
     if not writes:
         result.timed_note = "nothing was written"
         return
     v2 = result.firmware == V2.name
-    if v2:
-        from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
-
-        emu: Any = TimedEmulatorV2(link=link)
-    else:
-        emu = TimedEmulator(link=link)
+    emu: Any = model_entry(result.firmware).timed(link=link)
     at = _replay_writes(emu, writes)
     offsets = [0]
     for w in writes[:-1]:
