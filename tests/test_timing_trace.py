@@ -146,3 +146,24 @@ def test_vcd_of_the_same_session_is_byte_identical_and_carries_no_date(tmp_path:
     record(VcdSink(second), until_us=4_500)  # pyvcd's own date has microseconds: it would differ
     assert first.read_bytes() == second.read_bytes()
     assert "$date" not in first.read_text()
+
+
+@pytest.mark.parametrize("sink_class", [CsvSink, JsonSink, VcdSink])
+def test_a_sink_leaves_a_passed_stream_open_and_flushed_and_a_file_it_opened_whole(
+    sink_class: type[CsvSink] | type[JsonSink] | type[VcdSink], tmp_path: Path
+) -> None:
+    import io
+
+    if sink_class is VcdSink:
+        pytest.importorskip("vcd")
+    stream = io.StringIO()
+    flushed: list[bool] = []
+    stream.flush = lambda: flushed.append(True)  # type: ignore[method-assign]
+    path = tmp_path / "t.trace"
+    for target in (stream, path):
+        sink = sink_class(target)
+        sink.begin(0)
+        sink.marker(1000, "command", {"name": "MEASURE"})
+        sink.close()
+    assert not stream.closed and flushed and stream.getvalue()
+    assert path.read_bytes().decode("utf-8") == stream.getvalue()  # the whole trace reached the file

@@ -141,6 +141,15 @@ def _open_text(target: str | Path | IO[str]) -> tuple[IO[str], bool]:
     return target, False
 
 
+def _release_text(f: IO[str], own: bool) -> None:
+    """The end of a sink's writing: a file it opened (``own``, from :func:`_open_text`) is closed; a
+    stream the caller passed stays open for the caller, flushed so the trace is all in it."""
+    if own:
+        f.close()
+    else:
+        f.flush()
+
+
 class CsvSink(TraceSink):
     """``time_ns,time_us,kind,name,value``: one row per signal change or marker (JSON detail)."""
 
@@ -159,10 +168,7 @@ class CsvSink(TraceSink):
         )
 
     def _finish(self) -> None:
-        if self._own:
-            self._f.close()
-        else:
-            self._f.flush()
+        _release_text(self._f, self._own)
 
 
 class JsonSink(TraceSink):
@@ -196,10 +202,7 @@ class JsonSink(TraceSink):
 
     def _finish(self) -> None:
         self._f.write("\n]\n")
-        if self._own:
-            self._f.close()
-        else:
-            self._f.flush()
+        _release_text(self._f, self._own)
 
 
 class VcdSink(TraceSink):
@@ -240,10 +243,7 @@ class VcdSink(TraceSink):
 
     def _finish(self) -> None:
         self._w.close()
-        if self._own:
-            self._f.close()
-        else:
-            self._f.flush()
+        _release_text(self._f, self._own)
 
 
 TRACE_FORMATS: dict[str, type[VcdSink] | type[CsvSink] | type[JsonSink]] = {
