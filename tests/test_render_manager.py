@@ -581,3 +581,15 @@ def test_frame_error_tool_shows_displacement_has_no_drift() -> None:
     # Sampling latency only: under a tenth of a frame on average, never more than 2 frames.
     assert max(disp["mean_abs"]) < 0.15 and max(disp["max_abs"]) <= 2
     assert vel["mean_abs"][-1] > disp["mean_abs"][-1]
+
+
+def test_tactdeform_and_the_baselines_count_updates_drops_and_renormalised_quaternions_alike() -> None:
+    from tactdeform_hw.render.baselines import UniformActivation
+
+    q = tuple(1.005 * c for c in PAD_DOWN)
+    samples = [(0.0, (0, 0, 5.0), q), (1.0, (0, 0, 5.0), PAD_DOWN), (0.5, (0, 0, 5.0), q), (2.0, (0, 0), q)]
+    for manager in (PatternManager(), UniformActivation()):
+        dropped = [manager.update(t, p, o, None).dropped for t, p, o in samples]
+        assert dropped == [None, None, "time-backwards", "position"]
+        assert manager.stats.updates == 4 and manager.stats.normalised_quaternions == 1
+        assert manager.stats.dropped == {"time-backwards": 1, "position": 1}

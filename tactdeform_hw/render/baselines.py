@@ -16,7 +16,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from .array import ElectrodeArray
-from .manager import IDLE, INTERACTING, ManagerOutput, ManagerStats, check_pose, count_drop, quat_axes
+from .manager import IDLE, INTERACTING, ManagerOutput, ManagerStats, count_drop, counted_pose, quat_axes
 from .patterns import Pattern
 from .scene import APPROACHES as APPROACHES
 from .tracking import QUAT_NORM_TOLERANCE
@@ -73,13 +73,12 @@ class _Baseline:
     def update(
         self, t_s: float, position_mm: Any, orientation_wxyz: Any, query: Any, scene: Any = None
     ) -> ManagerOutput:
-        self.stats.updates += 1
-        checked = check_pose(t_s, position_mm, orientation_wxyz, self._t, self.quat_norm_tolerance)
+        checked = counted_pose(
+            self.stats, t_s, position_mm, orientation_wxyz, self._t, self.quat_norm_tolerance
+        )
         if isinstance(checked, str):
             return self._drop(t_s, checked)
-        t, p, q, renormed = checked
-        if renormed:
-            self.stats.normalised_quaternions += 1
+        t, p, q = checked
         sd = None
         if query is not None:
             try:

@@ -372,6 +372,27 @@ def check_query(query: Any) -> tuple[float, tuple[float, float, float] | None, s
     return sd, (raw_normal[0] / nn, raw_normal[1] / nn, raw_normal[2] / nn), feat
 
 
+def counted_pose(
+    stats: ManagerStats,
+    t_s: Any,
+    position_mm: Any,
+    orientation_wxyz: Any,
+    t_prev: float | None,
+    quat_tolerance: float,
+) -> tuple[float, tuple[float, float, float], tuple[float, float, float, float]] | str:
+    """A pattern manager's sample, counted in ``stats`` alike for TactDeform and the baselines: the
+    update, then :func:`check_pose` — its reason when the sample cannot be used (for the manager's own
+    drop), else time, position and unit quaternion, a renormalised quaternion counted."""
+    stats.updates += 1
+    checked = check_pose(t_s, position_mm, orientation_wxyz, t_prev, quat_tolerance)
+    if isinstance(checked, str):
+        return checked
+    t, p, q, renormed = checked
+    if renormed:
+        stats.normalised_quaternions += 1
+    return t, p, q
+
+
 def count_drop(stats: ManagerStats, t: Any, reason: str) -> float:
     """Count a dropped sample under ``reason``; its time as a float (NaN when it is not a number)."""
     stats.dropped[reason] = stats.dropped.get(reason, 0) + 1
@@ -480,14 +501,13 @@ class PatternManager:
         """Advance by one tracking sample.  ``query`` is the scene's
         :class:`~tactdeform_hw.render.geometry.SurfaceQuery` for the pad centre, or None (no object);
         ``scene`` is unused (the query holds all TactDeform needs; the baselines' CAM asks the scene)."""
-        self.stats.updates += 1
         # --- validate everything before any state changes ------------------------------------------------
-        checked = check_pose(t_s, position_mm, orientation_wxyz, self._t, self.config.quat_norm_tolerance)
+        checked = counted_pose(
+            self.stats, t_s, position_mm, orientation_wxyz, self._t, self.config.quat_norm_tolerance
+        )
         if isinstance(checked, str):
             return self._drop(t_s, checked)
-        t, p, q, renormed = checked
-        if renormed:
-            self.stats.normalised_quaternions += 1
+        t, p, q = checked
         surface = check_query(query)
         if isinstance(surface, str):
             return self._drop(t, surface)
