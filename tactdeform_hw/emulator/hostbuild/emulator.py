@@ -23,7 +23,7 @@ from tactdeform_hw.emulator.hostbuild.build import BuildResult, build
 from tactdeform_hw.emulator.hostbuild.delivered import ChainDecoder, DeliveredPulse
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
-from tactdeform_hw.errors import FirmwareBuildError, LimitError
+from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError, LimitError
 
 STACK_SENSE_PIN = 6
 """The compact board's stack-sense input (``STACK_SENSE`` in the firmware's configuration)."""
@@ -57,6 +57,21 @@ class _Event(ctypes.Structure):
         ("b", ctypes.c_int64),
         ("c", ctypes.c_int64),
     ]
+
+
+class _Sample(ctypes.Structure):
+    _fields_ = [("t_ns", ctypes.c_int64), ("slot", ctypes.c_int64), ("value", ctypes.c_double)]
+
+
+@dataclass(frozen=True)
+class IsrSample:
+    """A watched register's value at an interrupt's entry, recorded when it differs from the previous
+    entry's (see :meth:`HostBuildEmulator.watch_at_isr`)."""
+
+    t_us: float
+    register: str
+    index: int
+    value: int | float
 
 
 @dataclass(frozen=True)
@@ -171,6 +186,8 @@ class HostBuildEmulator:
         self._tx_log: list[tuple[float, bytes]] = []
         self._drops: list[RxDrop] = []
         self._chain = ChainDecoder(8 * hv513_count if chain_outputs is None else chain_outputs)
+        self._watched: list[tuple[str, int]] = []  # per watch slot: (register, index)
+        self._samples: list[IsrSample] = []
         self._run(0)  # setup() runs up to its first shim call
 
     # --- the library --------------------------------------------------------------------------------------
@@ -193,6 +210,9 @@ class HostBuildEmulator:
             "hb_events_take": (i64, [ctypes.POINTER(_Event), i64]),
             "hb_timer_info": (i32, [i32, ctypes.POINTER(i64)]),
             "hb_pin_levels": (i64, []),
+            "hb_watch_add": (i64, [ctypes.c_void_p, i32]),
+            "hb_sample_count": (i64, []),
+            "hb_samples_take": (i64, [ctypes.POINTER(_Sample), i64]),
         }
         for name, (res, args) in sig.items():
             fn = getattr(lib, name)
@@ -348,6 +368,35 @@ class HostBuildEmulator:
 
     def isr_returns_us(self) -> list[float]:
         return [e.t_us for e in self._events if e.kind == "ISR_RETURN"]
+
+    def watch_at_isr(self, register: str) -> None:
+        """Read ``register`` (every element of an array) at each timer interrupt's entry from now on.
+
+        A scan is made from the values the main loop left: the loop cannot run again before the handler
+        returns, so the reading at entry is what every pulse of that scan used, to the nanosecond, however
+        seldom Python looks.  :meth:`isr_samples` gives the readings that changed."""
+        reg = next((r for r in self.built.registers if r.name == register), None)
+        if reg is None:
+            raise ConfigurationError(
+                f"watch_at_isr: register {register!r} is not in the state map "
+                f"({', '.join(r.name for r in self.built.registers) or 'no registers'})"
+            )
+        address = ctypes.cast(self._getters[register], ctypes.c_void_p).value
+        for i in range(1 if reg.length is None else reg.length):
+            self._lib.hb_watch_add(address, i)
+            self._watched.append((register, i))
+
+    def isr_samples(self) -> list[IsrSample]:
+        """Every watched value at the interrupt entries so far, when it differed from the entry before
+        (the first entry records them all), in time order."""
+        n = self._lib.hb_sample_count()
+        if n > 0:
+            buf = (_Sample * n)()
+            got = self._lib.hb_samples_take(buf, n)
+            for smp in buf[:got]:
+                name, index = self._watched[smp.slot]
+                self._samples.append(IsrSample(smp.t_ns / 1000.0, name, index, _num(smp.value)))
+        return self._samples
 
     def timer(self, num: int) -> dict[str, Any] | None:
         """A hardware timer's state (``None``: the firmware never began it)."""

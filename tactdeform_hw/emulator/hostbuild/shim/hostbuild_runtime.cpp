@@ -48,6 +48,35 @@ struct Event {
 static std::vector<Event> events;
 static void record(int64_t t, int kind, int a, int64_t b, int64_t c) { events.push_back({t, kind, a, b, c}); }
 
+// Firmware variables read at every interrupt's entry (the generated accessor unit's getters, registered
+// from Python): a scan uses the values the main loop left, which cannot change until the handler returns,
+// so one reading per entry says exactly what every pulse of the scan was made from.  Only changes are kept.
+typedef double (*Getter)(int);
+struct Watch {
+    Getter get;
+    int index;
+    double last;
+    bool seen;
+};
+struct Sample {
+    int64_t t_ns;
+    int64_t slot;
+    double value;
+};
+static std::vector<Watch> watches;
+static std::vector<Sample> samples;
+static void sample_watches(int64_t t) {
+    for (size_t i = 0; i < watches.size(); ++i) {
+        Watch& w = watches[i];
+        double v = w.get(w.index);
+        if (!w.seen || v != w.last) {
+            samples.push_back({t, (int64_t)i, v});
+            w.last = v;
+            w.seen = true;
+        }
+    }
+}
+
 static const int64_t NEVER = INT64_MAX;
 static int64_t now = 0;
 static int64_t target = 0;
@@ -209,6 +238,7 @@ static void run_isr(Timer* t) {
     }
     in_isr = true;
     record(now, EV_ISR_ENTER, t->num, fired, 0);
+    sample_watches(now);
     now += cost[C_ISR_ENTRY];
     t->isr();
     now += cost[C_ISR_EXIT];
@@ -534,5 +564,19 @@ int hb_timer_info(int num, int64_t* out) {
 }
 int64_t hb_pin_levels() { return (int64_t)pin_level; }
 int hb_in_isr() { return in_isr ? 1 : 0; }
+
+int64_t hb_watch_add(void* getter, int index) {
+    watches.push_back({reinterpret_cast<Getter>(getter), index, 0.0, false});
+    return (int64_t)watches.size() - 1;
+}
+int64_t hb_sample_count() { return (int64_t)samples.size(); }
+int64_t hb_samples_take(Sample* dst, int64_t max) {
+    int64_t n = std::min<int64_t>(max, (int64_t)samples.size());
+    if (n > 0) {
+        std::memcpy(dst, samples.data(), sizeof(Sample) * (size_t)n);
+        samples.erase(samples.begin(), samples.begin() + n);
+    }
+    return n;
+}
 
 }  // extern "C"
