@@ -264,3 +264,14 @@ def test_watching_a_register_the_state_map_does_not_name_is_refused(cache: Path)
     emu = tiny(cache)
     with pytest.raises(ConfigurationError, match="'pulse_height' is not in the state map.*isr_count"):
         emu.watch_at_isr("pulse_height")
+
+
+def test_a_timed_host_build_keeps_a_bounded_event_record(cache: Path) -> None:
+    from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+
+    model = HostBuildTimedModel(TINY, state_map=MAP, cache=cache, event_history_us=10_000)
+    for t_us in range(1000, 100_001, 1000):
+        model.advance_to(t_us)
+    kept = model.host.shim_events()
+    assert kept and kept[0].t_us >= 100_000 - 2 * 10_000  # trimmed every 10 ms to the last 10 ms
+    assert len(model.scans()) < 40  # of the 142 interrupt runs (700 us period)

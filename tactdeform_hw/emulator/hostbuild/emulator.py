@@ -325,8 +325,12 @@ class HostBuildEmulator:
         """Everything recorded so far, in the shim's terms (GPIO, SPI, ISR entry/return, timer ops, TX)."""
         return list(self._events)
 
-    def clear_events(self) -> None:
-        self._events.clear()
+    def clear_events(self, before_us: float | None = None) -> None:
+        """Forget the recorded events (those before ``before_us``).  Delivered pulses and replies stay."""
+        if before_us is None:
+            self._events.clear()
+        else:
+            self._events = [e for e in self._events if e.t_us >= before_us]
 
     def events(self, since_us: float = 0.0) -> list[list[Any]]:
         """GPIO and DAC events in the golden scan traces' conventions: ``[t_us, "GPIO", pin, level]`` when

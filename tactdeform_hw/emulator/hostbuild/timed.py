@@ -60,6 +60,11 @@ BOARD_STATE_REGISTERS = (
 #: When nothing else is due, a server wakes the firmware this often (µs): its replies are found by running
 #: it, not announced in advance.
 POLL_US = 1000.0
+#: The firmware's raw events (pins, SPI, interrupt runs) a timed model keeps (µs): only the last scans are
+#: read (:meth:`HostBuildTimedModel.scan_rate`).  They are about 100 000 Python objects per second of
+#: stimulation: kept for a served board's 10 s of history they took hundreds of megabytes, and the garbage
+#: collector's full passes walked them all (100 to 300 ms each, measured).
+EVENT_HISTORY_US = 100_000.0
 
 
 class _Queue:
@@ -163,7 +168,8 @@ class HostBuildTimedModel:
     compact board: 4 HV513 chips per switching board, sensed by the firmware's own stack detection).
     ``state_map``: which variables hold the registers and which firmware table the tree speaks (default:
     the shipped map whose unit the tree holds).  ``link``: how the host's bytes travel (``usb``, ``uart``
-    or a :class:`LinkModel`).  Other keywords go to :class:`HostBuildEmulator` (``defines``, ``cache``,
+    or a :class:`LinkModel`).  ``event_history_us``: how much of the firmware's raw event record is kept
+    (:data:`EVENT_HISTORY_US`).  Other keywords go to :class:`HostBuildEmulator` (``defines``, ``cache``,
     ``compiler``, ``rx_buffer_bytes``, ``chain_outputs``)."""
 
     def __init__(
@@ -176,6 +182,7 @@ class HostBuildTimedModel:
         link: str | LinkModel = "usb",
         model: TimingModel | None = None,
         stack_reading: float | None = None,
+        event_history_us: float = EVENT_HISTORY_US,
         **host_options: Any,
     ) -> None:
         self.board = board if isinstance(board, Board) else Board(board, switching_boards, stack_reading)
@@ -198,6 +205,8 @@ class HostBuildTimedModel:
         self.hazards: list[Hazard] = []
         self._losses: list[LossReport] = []
         self.reboots = 0
+        self.event_history_us = event_history_us
+        self._trimmed_us = 0.0
         self.received_bytes = 0
         self._host_offset = 0
         self._deliveries: list[tuple[int, bytes, int]] = []  # (arrival ns, data, host offset), time order
@@ -208,7 +217,6 @@ class HostBuildTimedModel:
         self.boot_ns = 0
         self.now_ns = 0
         self.host = self._power_up()
-        self.reports = DeliveredReports(self)
         self._pulses: list[DeliveredPulse] = []  # the previous power-ups' pulses, in model time
         self._kinds: list[tuple[int, ...]] = []  # their kinds per output
 
@@ -226,6 +234,13 @@ class HostBuildTimedModel:
             if name in mapped:
                 host.watch_at_isr(name)
         return host
+
+    @property
+    def reports(self) -> DeliveredReports:
+        """The delivered pulses as the campaigns read them.  Made on each use, not kept: a model that holds
+        no reference to itself is freed, with its firmware's records, the moment it is dropped, not at the
+        next full garbage collection."""
+        return DeliveredReports(self)
 
     @property
     def emulator(self) -> Emulator:
@@ -254,6 +269,10 @@ class HostBuildTimedModel:
         self.host.advance_to((target - self.boot_ns) / 1000.0)
         self.now_ns = target
         self._collect()
+        host_us = (target - self.boot_ns) / 1000.0
+        if host_us - self._trimmed_us > self.event_history_us:
+            self.host.clear_events(host_us - self.event_history_us)
+            self._trimmed_us = host_us
 
     def advance(self, dt_us: float) -> None:
         if not dt_us >= 0:
@@ -405,6 +424,7 @@ class HostBuildTimedModel:
             self._pulses.append(p)
             self._kinds.append(kinds)
         self.host = self._power_up()
+        self._trimmed_us = 0.0
         self.boot_ns = self.now_ns
         self._drops_seen = 0
         self._stopped = False
