@@ -78,6 +78,22 @@ def test_the_tiny_firmware_replies_through_the_link() -> None:
     assert model.in_flight == 0
 
 
+def test_a_stopped_main_loop_reads_nothing_until_a_reset() -> None:
+    """``stop_reading`` (the fault campaigns' hung main loop): the firmware keeps running but its reads find
+    nothing, so 'E' gets no reply and its bytes wait in the queue; a power-up reads again."""
+    model = HostBuildTimedModel(TINY, state_map=TINY_MAP)
+    model.advance_to(2000)
+    model.stop_reading()
+    model.write(b"E\x29")
+    model.advance(20_000)
+    assert model.read_tx() == b""
+    assert len(model.queue) == 2
+    model.reset()
+    model.write(b"E\x29")
+    model.advance(20_000)
+    assert model.read_tx() == b"\x2a"
+
+
 def test_the_driver_refuses_a_served_firmware_that_is_no_etactilekit() -> None:
     board = RealtimeEmulator(timed=HostBuildTimedModel(TINY, state_map=TINY_MAP))  # type: ignore[arg-type]
     assert board.firmware is None

@@ -199,6 +199,7 @@ class HostBuildEmulator:
             "hb_configure": (i32, [ctypes.POINTER(i64), i32]),
             "hb_set_analog": (None, [i32, i32]),
             "hb_set_interrupts": (None, [i32]),
+            "hb_set_reading": (None, [i32]),
             "hb_run_until": (i32, [i64]),
             "hb_now": (i64, []),
             "hb_rx_push": (None, [ctypes.c_char_p, i64, i64, i64]),
@@ -357,6 +358,11 @@ class HostBuildEmulator:
         """Let the timer interrupt run (or hold it off).  An alarm that fell due while held off fires at the
         firmware's next shim call, as a masked interrupt does when unmasked."""
         self._lib.hb_set_interrupts(1 if enabled else 0)
+
+    def set_reading(self, enabled: bool) -> None:
+        """Let the firmware read its receive queue (or not: ``available()`` is 0 and a read finds nothing,
+        while the host's bytes still arrive, fill the queue and are dropped when it is full)."""
+        self._lib.hb_set_reading(1 if enabled else 0)
 
     def scans(self) -> list[tuple[float, float]]:
         """Every interrupt handler run so far: (entry µs, return µs)."""

@@ -40,6 +40,7 @@ from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.firmware import FirmwareSpec, get_firmware
 from tactdeform_hw.protocol.state import BoardState
+from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 if TYPE_CHECKING:
     from tactdeform_hw.emulator.core import Emulator
@@ -88,9 +89,15 @@ class DeliveredReports:
     def __init__(self, owner: HostBuildTimedModel) -> None:
         self._owner = owner
 
-    def pulse_table(self, t0_us: float | None = None, t1_us: float | None = None) -> dict[str, np.ndarray]:
+    def pulse_table(
+        self,
+        t0_us: float | None = None,
+        t1_us: float | None = None,
+        transfer: CurrentTransfer = DEFAULT_TRANSFER,
+    ) -> dict[str, np.ndarray]:
         """Columns ``channel`` (the output on the HV513 chain), ``start_us``, ``width_us``, ``code`` (the
-        DAC code), ``pol`` (the POL pin), ``kind`` and ``current_ua`` (0: the campaigns convert the code).
+        DAC code), ``pol`` (the POL pin), ``kind`` and ``current_ua`` (the code through ``transfer``, as
+        the Python models give it).
 
         ``kind`` is what the firmware's interrupt handler chose, read from the registers it chose by as they
         stood when the scan began (:func:`pulse_kind`): a scan cannot see the main loop change them, so the
@@ -109,7 +116,7 @@ class DeliveredReports:
             "code": np.asarray(cols[3], dtype=np.int64),
             "pol": np.asarray(cols[4], dtype=np.int64),
             "kind": np.asarray(cols[5], dtype=np.int64),
-            "current_ua": np.zeros(len(rows), dtype=np.float64),
+            "current_ua": np.asarray([transfer.to_ua(int(c)) for c in cols[3]], dtype=np.float64),
         }
 
 
@@ -431,8 +438,10 @@ class HostBuildTimedModel:
         self.reboots += 1
 
     def stop_reading(self) -> None:
-        """The main loop hangs: refused, the built firmware's loop cannot be stopped from outside."""
-        raise ConfigurationError("stop_reading: a host build runs the firmware's own loop; it cannot hang it")
+        """The main loop stops reading until a reset, as the Python model's does: the firmware's reads find
+        nothing from now on (it keeps polling, its interrupt keeps scanning), the host's bytes still fill
+        the receive queue and are dropped when it is full."""
+        self.host.set_reading(False)
 
     def discard_history(self, before_us: float) -> None:
         """Forget recorded events before ``before_us`` (delivered pulses are kept: safety reads them)."""
@@ -478,6 +487,34 @@ class HostBuildTimedModel:
         return [p.start_us for p in self.delivered_pulses() if since_us <= p.start_us < now_us]
 
 
+def realtime_host_build(
+    firmware_src: str | os.PathLike[str],
+    board: str = "compact",
+    switching_boards: int = 1,
+    *,
+    rules: Any = None,
+    state_map: StateMap | None = None,
+    stack_reading: float | None = None,
+    cls: Any = None,
+) -> Any:
+    """The tree built on this machine as a board on the wall clock: a :class:`HostBuildTimedModel` on the
+    serving rules' link and timing (``rules``: a :class:`~..serving.realtime.BuildRules`, default the USB
+    build's) inside a :class:`~..serving.realtime.RealtimeEmulator` (or ``cls``, a subclass of it)."""
+    from tactdeform_hw.emulator.serving.realtime import SERIAL_USB, RealtimeEmulator
+
+    rules = SERIAL_USB if rules is None else rules
+    model = HostBuildTimedModel(
+        firmware_src,
+        board,
+        switching_boards,
+        state_map=state_map,
+        stack_reading=stack_reading,
+        link=rules.make_link(),
+        model=rules.timing(None),
+    )
+    return (cls or RealtimeEmulator)(rules=rules, timed=model)  # type: ignore[arg-type]
+
+
 def host_build_timed(firmware_src: str | os.PathLike[str], *args: Any, **kwargs: Any) -> HostBuildTimedModel:
     """:class:`HostBuildTimedModel` (the same arguments)."""
     return HostBuildTimedModel(firmware_src, *args, **kwargs)
@@ -491,4 +528,5 @@ __all__ = [
     "classify",
     "host_build_timed",
     "pulse_kind",
+    "realtime_host_build",
 ]

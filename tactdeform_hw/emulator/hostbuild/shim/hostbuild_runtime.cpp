@@ -153,6 +153,8 @@ struct Packet {
 static std::deque<Packet> rx_pending;
 static std::deque<uint8_t> rx_queue;
 static size_t rx_capacity = 256;
+// false: the firmware's reads find nothing (a main loop that stopped reading; the queue still fills)
+static bool reading = true;
 static int64_t rx_dropped = 0;
 
 static void admit_rx() {
@@ -454,14 +456,14 @@ void serial_set_rx_buffer(size_t bytes) {
 }
 int serial_available() {
     point();
-    int n = (int)rx_queue.size();
+    int n = reading ? (int)rx_queue.size() : 0;
     now += cost[C_AVAILABLE];
     return n;
 }
 int serial_read() {
     point();
     now += cost[C_READ_BYTE];
-    if (rx_queue.empty()) return -1;
+    if (rx_queue.empty() || !reading) return -1;
     int v = rx_queue.front();
     rx_queue.pop_front();
     return v;
@@ -469,7 +471,7 @@ int serial_read() {
 size_t serial_read_buf(uint8_t* buf, size_t len) {
     point();
     size_t n = 0;
-    while (n < len && !rx_queue.empty()) {
+    while (reading && n < len && !rx_queue.empty()) {
         buf[n++] = rx_queue.front();
         rx_queue.pop_front();
     }
@@ -478,7 +480,7 @@ size_t serial_read_buf(uint8_t* buf, size_t len) {
 }
 int serial_peek() {
     point();
-    return rx_queue.empty() ? -1 : rx_queue.front();
+    return rx_queue.empty() || !reading ? -1 : rx_queue.front();
 }
 size_t serial_write(const uint8_t* buf, size_t len) {
     point();
@@ -503,6 +505,7 @@ void hb_set_analog(int pin, int value) {
     if (pin >= 0 && pin < 64) analog_value[pin] = value;
 }
 void hb_set_interrupts(int enabled) { interrupts_enabled = enabled != 0; }
+void hb_set_reading(int enabled) { reading = enabled != 0; }
 
 int hb_run_until(int64_t t_ns) {
     if (status) return status;
