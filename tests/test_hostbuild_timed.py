@@ -78,6 +78,18 @@ def test_the_tiny_firmware_replies_through_the_link() -> None:
     assert model.in_flight == 0
 
 
+def test_the_large_board_runs_the_firmwares_large_branch_upstream_v1_2() -> None:
+    """``board="large"`` builds the tree with ``ETACTILEKIT_BOARD`` (its own cached build): the firmware's
+    stack detection then counts 8 HV513 per board, as the Python model of the large board does."""
+    tree = _v1_2_tree()
+    for boards in (1, 2):
+        large = HostBuildTimedModel(tree, "large", boards)
+        large.advance_to(5000)
+        compact = HostBuildTimedModel(tree, "compact", boards)
+        assert large.state().hv513_num == TimedEmulator("large", boards).state().hv513_num == 8 * boards
+        assert compact.host.built.key != large.host.built.key
+
+
 def test_a_stopped_main_loop_reads_nothing_until_a_reset() -> None:
     """``stop_reading`` (the fault campaigns' hung main loop): the firmware keeps running but its reads find
     nothing, so 'E' gets no reply and its bytes wait in the queue; a power-up reads again."""

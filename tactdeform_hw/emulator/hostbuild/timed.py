@@ -58,6 +58,11 @@ BOARD_STATE_REGISTERS = (
     "stim_pattern",
 )
 
+#: The build defines of the large board's branch (``board="large"``): the upstream firmware chooses its
+#: board at compile time, ``ETACTILEKIT_BOARD`` against the configuration header's
+#: ``ETACTILEKIT_COMPACT_BOARD`` (its stack detection tests the large board first).
+LARGE_BOARD_DEFINES: dict[str, str] = {"ETACTILEKIT_BOARD": "", "SERIAL_COMMUNICATION": ""}
+
 #: When nothing else is due, a server wakes the firmware this often (µs): its replies are found by running
 #: it, not announced in advance.
 POLL_US = 1000.0
@@ -193,11 +198,12 @@ class HostBuildTimedModel:
         **host_options: Any,
     ) -> None:
         self.board = board if isinstance(board, Board) else Board(board, switching_boards, stack_reading)
-        if self.board.kind != "compact":
-            raise ConfigurationError(
-                f"board={self.board.kind!r}: a host build runs the compact board's branch only "
-                "(pass defines= for another branch and board='compact')"
-            )
+        if self.board.kind == "large":
+            # the large board's stack detection: the firmware's #if defined(ETACTILEKIT_BOARD) branch, which
+            # wins over the configuration header's own ETACTILEKIT_COMPACT_BOARD (a build of its own key)
+            host_options = {"defines": LARGE_BOARD_DEFINES, **host_options}
+            if stack_reading is None:
+                stack_reading = self.board.reading()
         self.firmware_src = firmware_src
         self.state_map = state_map if state_map is not None else detect(Path(firmware_src))
         self.firmware: FirmwareSpec | None = (
@@ -523,6 +529,7 @@ def host_build_timed(firmware_src: str | os.PathLike[str], *args: Any, **kwargs:
 __all__ = [
     "BOARD_STATE_REGISTERS",
     "KIND_REGISTERS",
+    "LARGE_BOARD_DEFINES",
     "DeliveredReports",
     "HostBuildTimedModel",
     "classify",
