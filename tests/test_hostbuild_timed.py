@@ -319,3 +319,39 @@ def test_the_driver_runs_upstream_v2_as_it_runs_the_model() -> None:
     assert a["code"].size == int(live.sum()) > 20
     assert a["channel"].tolist() == b["channel"][live].tolist()
     assert a["code"].tolist() == b["code"][live].tolist()
+
+
+def test_emulate_serves_upstream_v1_2_as_its_usb_device() -> None:
+    """``emulate --usb --firmware-src``: the built firmware behind the emulated USB device, in its own
+    process; the driver opens the printed name through pyusb, and the board reports what it delivered."""
+    import signal
+    import subprocess
+    import sys
+
+    pytest.importorskip("usb.core", reason="the USB device needs pyusb (pip install 'tactdeform_hw[usb]')")
+    tree = _v1_2_tree()
+    cmd = [sys.executable, "-m", "tactdeform_hw.cli", "emulate", "--usb", "--firmware-src", str(tree)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        name = proc.stdout.readline().strip()
+        assert name.startswith("usb-emulator://"), proc.stderr.read() if proc.stderr else ""
+        dev = open_device(name, guardian=False, settle_s=0.05)
+        assert dev.firmware == "v1.2"
+        dev.configure(StimConfig(electrode_count=8, current_ua=500, rate_hz=20))
+        dev.send_pattern([0, 0, 1, 0, 0, 0, 0, 0])
+        dev.all_off()
+        dev.close()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=10)
+    assert "Traceback" not in err
+    assert "firmware v1.2" in err, err
+
+
+def test_emulate_refuses_a_trace_of_a_host_build(capsys: pytest.CaptureFixture[str]) -> None:
+    from tactdeform_hw.cli import main
+
+    assert main(["emulate", "--pty", "--trace", "t.vcd", "--firmware-src", str(TINY)]) != 0
+    err = capsys.readouterr().err
+    assert "--trace" in err and "timing --firmware-src DIR --vcd" in err and "Traceback" not in err
