@@ -567,6 +567,7 @@ def run_study(
     firmware: str = "auto",
     session: Any = None,
     on_trial: Callable[[TrialRun], None] | None = None,
+    firmware_src: str | None = None,
 ) -> StudyRun:
     """Run every trial of ``study`` on one device session; return the raw results (see :mod:`.checks`
     and :mod:`.report` for what is made of them).
@@ -578,7 +579,9 @@ def run_study(
     (``profile.stimulation_ua``), else to :data:`NOMINAL_EMULATOR_UA` on the emulator and 0 (patterns
     only) on a real device.  ``realtime`` paces every pose to the session clock (a real device then shows
     each trial at its real speed); otherwise the run goes as fast as it can, which changes nothing the
-    checks look at: the timed replay restores the session's timing.  ``on_trial`` gets each trial done."""
+    checks look at: the timed replay restores the session's timing.  ``on_trial`` gets each trial done.
+    ``firmware_src``: the timed replay runs that firmware tree built on this machine
+    (docs/firmware-host-build.md) instead of the Python model."""
     from ..clock import SimulatedClock
 
     say = progress or (lambda _msg: None)
@@ -625,19 +628,20 @@ def run_study(
         writes=list(tap.writes),
         firmware=ran,
     )
-    _replay(result, timed, say)
+    _replay(result, timed, say, firmware_src)
     result.wall_s = time.perf_counter() - wall0
     return result
 
 
-def _replay(result: StudyRun, timed: bool, say: ProgressFn) -> None:
-    """The timed replay of the study's writes, or the report's note on why there is none."""
+def _replay(result: StudyRun, timed: bool, say: ProgressFn, firmware_src: str | None = None) -> None:
+    """The timed replay of the study's writes (into ``firmware_src`` built on this machine, when given),
+    or the report's note on why there is none."""
     if not timed:
         result.timed_note = "timed replay not run (--no-timed)"
         return
     try:
         say(f"study {result.study.name}: replaying {len(result.writes)} writes into the timed emulator")
-        replay_timed(result)
+        replay_timed(result, firmware_src=firmware_src)
     except TactDeformError as exc:  # the report says why there are no delivered currents
         result.timed_note = f"timed replay failed: {exc}"
 
@@ -708,6 +712,41 @@ def _account_v2(emu: Any, result: StudyRun) -> _TimedAccount:
     result.timed_summary = {
         "firmware": V2.name,
         "scans": int(emu.scan_count),
+        "pulses": int(pulses["channel"].size),
+        "hazards": dict(sorted(Counter(h.kind.value for h in hazards).items())),
+    }
+
+    def pulse_table(lo_us: float, hi_us: float) -> dict[str, np.ndarray]:
+        sel = (pulses["start_us"] >= lo_us) & (pulses["start_us"] < hi_us)
+        return {k: v[sel] for k, v in pulses.items()}
+
+    return _TimedAccount(pulse_table, [], list(emu.losses), hazards)
+
+
+def _host_build(firmware_src: str, ran: str, link: str) -> Any:
+    """The firmware tree built on this machine, as the replay's timed model: it must speak the version
+    the session ran."""
+    from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+
+    emu = HostBuildTimedModel(firmware_src, link=link)
+    declared = emu.firmware.name if emu.firmware is not None else None
+    if declared != ran:
+        raise ConfigurationError(
+            f"--firmware-src {firmware_src}: its state map declares firmware {declared or 'none'}, "
+            f"the session ran {ran}"
+        )
+    return emu
+
+
+def _account_host_build(emu: Any, result: StudyRun) -> _TimedAccount:
+    """A host build records the pulses its firmware delivered and the receive queue's losses; firmware
+    defects (torn patterns, overruns) are the Python models' reading of the code and are not recorded."""
+    pulses = emu.reports.pulse_table()
+    hazards = list(emu.hazards)
+    result.timed = True
+    result.timed_summary = {
+        "firmware": result.firmware,
+        "firmware_src": str(emu.firmware_src),
         "pulses": int(pulses["channel"].size),
         "hazards": dict(sorted(Counter(h.kind.value for h in hazards).items())),
     }
@@ -814,10 +853,12 @@ def _hazards_in(
     return found
 
 
-def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
-    """Replay the session's writes into the timed model of the firmware that ran and attach, per trial,
-    the pulses delivered (per electrode: pulses, largest current, charge; on v2 also the heights each
-    electrode was pulsed at), the timing hazards in the trial's window and the replay time of each write."""
+def replay_timed(result: StudyRun, *, link: str = "usb", firmware_src: str | None = None) -> None:
+    """Replay the session's writes into the timed model of the firmware that ran (``firmware_src``: into
+    that firmware tree built on this machine, which must declare the version that ran) and attach, per
+    trial, the pulses delivered (per electrode: pulses, largest current, charge; on v2 also the heights
+    each electrode was pulsed at), the timing hazards in the trial's window and the replay time of each
+    write."""
     from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
     writes = result.writes
@@ -825,10 +866,12 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         result.timed_note = "nothing was written"
         return
     v2 = result.firmware == V2.name
-    if v2:
+    if firmware_src is not None:
+        emu: Any = _host_build(firmware_src, result.firmware, link)
+    elif v2:
         from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 
-        emu: Any = TimedEmulatorV2(link=link)
+        emu = TimedEmulatorV2(link=link)
     else:
         emu = TimedEmulator(link=link)
     at = _replay_writes(emu, writes)
@@ -837,7 +880,10 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         offsets.append(offsets[-1] + len(w.data))
     mapping = result.array.channel_mapping()
     hw_to_app = {ch: i for i, ch in enumerate(mapping.app_to_hw)}
-    account = _account_v2(emu, result) if v2 else _account_v1_2(emu, result)
+    if firmware_src is not None:
+        account = _account_host_build(emu, result)
+    else:
+        account = _account_v2(emu, result) if v2 else _account_v1_2(emu, result)
     for run in result.trials:
         if run.skipped is not None or not run.writes:
             continue

@@ -101,8 +101,8 @@ class DeliveredReports:
         transfer: CurrentTransfer = DEFAULT_TRANSFER,
     ) -> dict[str, np.ndarray]:
         """Columns ``channel`` (the output on the HV513 chain), ``start_us``, ``width_us``, ``code`` (the
-        DAC code), ``pol`` (the POL pin), ``kind`` and ``current_ua`` (the code through ``transfer``, as
-        the Python models give it).
+        DAC code), ``pol`` (the POL pin), ``kind``, ``current_ua`` (the code through ``transfer``, as
+        the Python models give it) and ``charge_nc`` (current × width).
 
         ``kind`` is what the firmware's interrupt handler chose, read from the registers it chose by as they
         stood when the scan began (:func:`pulse_kind`): a scan cannot see the main loop change them, so the
@@ -114,6 +114,7 @@ class DeliveredReports:
             for out, kind in zip(p.outputs, kinds)
         ]
         cols = list(zip(*rows)) if rows else [(), (), (), (), (), ()]
+        current = np.asarray([transfer.to_ua(int(c)) for c in cols[3]], dtype=np.float64)
         return {
             "channel": np.asarray(cols[0], dtype=np.int64),
             "start_us": np.asarray(cols[1], dtype=np.float64),
@@ -121,7 +122,8 @@ class DeliveredReports:
             "code": np.asarray(cols[3], dtype=np.int64),
             "pol": np.asarray(cols[4], dtype=np.int64),
             "kind": np.asarray(cols[5], dtype=np.int64),
-            "current_ua": np.asarray([transfer.to_ua(int(c)) for c in cols[3]], dtype=np.float64),
+            "current_ua": current,
+            "charge_nc": current * np.asarray(cols[2], dtype=np.float64) / 1e3,
         }
 
 
