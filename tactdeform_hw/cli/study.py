@@ -96,13 +96,7 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--no-timed", action="store_true", help="skip the timed-emulator replay (no delivered currents)"
     )
-    p.add_argument(
-        "--firmware-src",
-        metavar="DIR",
-        help="replay the session's writes into this firmware tree (PlatformIO) built on this machine instead "
-        "of the Python timed model: what the firmware's own code delivered (docs/firmware-host-build.md); "
-        "its state map must declare the version the session ran",
-    )
+    _replay_options(p)
     p.add_argument("--no-pictures", action="store_true", help="write the JSON and Markdown only")
     p.add_argument("--gif", action="store_true", help="also draw every trial as an animated GIF (slower)")
     p.add_argument("--json", action="store_true", help="print the report's summary as JSON on stdout")
@@ -115,6 +109,17 @@ def register(sub: Any) -> None:
         "refused before the device is opened",
     )
     p.set_defaults(func=run)
+
+
+def _replay_options(p: argparse.ArgumentParser) -> None:
+    """Where the timed replay runs."""
+    p.add_argument(
+        "--firmware-src",
+        metavar="DIR",
+        help="replay the session's writes into this firmware tree (PlatformIO) built on this machine instead "
+        "of the Python timed model: what the firmware's own code delivered (docs/firmware-host-build.md); "
+        "its state map must declare the version the session ran",
+    )
 
 
 def run(args: argparse.Namespace) -> int:

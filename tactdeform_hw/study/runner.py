@@ -569,8 +569,7 @@ def run_study(
     on_trial: Callable[[TrialRun], None] | None = None,
     firmware_src: str | None = None,
 ) -> StudyRun:
-    """Run every trial of ``study`` on one device session; return the raw results (see :mod:`.checks`
-    and :mod:`.report` for what is made of them).
+    """Run every trial of ``study`` on one device session; return the raw results (:mod:`.checks`).
 
     ``session`` (a :class:`~tactdeform_hw.session.Session` on the TactDeform array, its delivery log made)
     gives the device, the guard, the participant's profile and the log; without one they come from
@@ -579,9 +578,8 @@ def run_study(
     (``profile.stimulation_ua``), else to :data:`NOMINAL_EMULATOR_UA` on the emulator and 0 (patterns
     only) on a real device.  ``realtime`` paces every pose to the session clock (a real device then shows
     each trial at its real speed); otherwise the run goes as fast as it can, which changes nothing the
-    checks look at: the timed replay restores the session's timing.  ``on_trial`` gets each trial done.
-    ``firmware_src``: the timed replay runs that firmware tree built on this machine
-    (docs/firmware-host-build.md) instead of the Python model."""
+    checks look at: the timed replay restores the session's timing (on ``firmware_src``, a tree built on
+    this machine, when given).  ``on_trial`` gets each trial done."""
     from ..clock import SimulatedClock
 
     say = progress or (lambda _msg: None)
