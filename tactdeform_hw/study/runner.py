@@ -704,12 +704,17 @@ class _TimedAccount:
 def _account_v2(emu: Any, result: StudyRun) -> _TimedAccount:
     """v2 records every scan (a torn pattern is one hazard per scan it tore, with its time): the hazard
     list and the model's loss reports are the whole account."""
+    return _account_of_pulses(emu, result, {"firmware": V2.name, "scans": int(emu.scan_count)})
+
+
+def _account_of_pulses(emu: Any, result: StudyRun, summary: dict[str, Any]) -> _TimedAccount:
+    """The account of a model whose pulse table, hazard list and loss reports say it all (``summary``:
+    the report's first fields)."""
     pulses = emu.reports.pulse_table()  # once; each trial takes its window of it
     hazards = list(emu.hazards)
     result.timed = True
     result.timed_summary = {
-        "firmware": V2.name,
-        "scans": int(emu.scan_count),
+        **summary,
         "pulses": int(pulses["channel"].size),
         "hazards": dict(sorted(Counter(h.kind.value for h in hazards).items())),
     }
@@ -739,21 +744,8 @@ def _host_build(firmware_src: str, ran: str, link: str) -> Any:
 def _account_host_build(emu: Any, result: StudyRun) -> _TimedAccount:
     """A host build records the pulses its firmware delivered and the receive queue's losses; firmware
     defects (torn patterns, overruns) are the Python models' reading of the code and are not recorded."""
-    pulses = emu.reports.pulse_table()
-    hazards = list(emu.hazards)
-    result.timed = True
-    result.timed_summary = {
-        "firmware": result.firmware,
-        "firmware_src": str(emu.firmware_src),
-        "pulses": int(pulses["channel"].size),
-        "hazards": dict(sorted(Counter(h.kind.value for h in hazards).items())),
-    }
-
-    def pulse_table(lo_us: float, hi_us: float) -> dict[str, np.ndarray]:
-        sel = (pulses["start_us"] >= lo_us) & (pulses["start_us"] < hi_us)
-        return {k: v[sel] for k, v in pulses.items()}
-
-    return _TimedAccount(pulse_table, [], list(emu.losses), hazards)
+    source = {"firmware": result.firmware, "firmware_src": str(emu.firmware_src)}
+    return _account_of_pulses(emu, result, source)
 
 
 def _account_v1_2(emu: Any, result: StudyRun) -> _TimedAccount:
