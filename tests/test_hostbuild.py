@@ -15,7 +15,7 @@ from tactdeform_hw.emulator.hostbuild import build, find_compiler
 from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL
-from tactdeform_hw.errors import FirmwareBuildError
+from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError
 
 TINY = Path(__file__).parent / "data" / "firmware_tiny"
 MAP = StateMap.from_toml(TINY / "hostbuild_state.toml")
@@ -238,3 +238,40 @@ def test_a_loop_that_lets_no_time_pass_is_reported(cache: Path) -> None:
     emu.write(b"H", at_us=0)
     with pytest.raises(FirmwareBuildError, match="10000 shim calls.*without time passing"):
         emu.advance_to(2000)
+
+
+def test_watched_registers_are_read_at_every_interrupt_entry(cache: Path) -> None:
+    """A watched register is read when each handler run begins, however seldom Python looks: the readings
+    carry the entries' own times, and a value the main loop changed between two entries is seen at the
+    second."""
+    emu = tiny(cache)
+    emu.watch_at_isr("isr_count")
+    emu.watch_at_isr("dac_code")
+    emu.write(b"V" + (321).to_bytes(2, "little"), at_us=2500)
+    emu.advance_to(5000)  # one step across several interrupts and the command
+    entries = [a for a, _ in emu.scans()]
+    counts = [s for s in emu.isr_samples() if s.register == "isr_count"]
+    assert [s.t_us for s in counts] == entries  # it changes at every run
+    assert [s.value for s in counts] == list(range(len(entries)))
+    codes = [(s.t_us, s.value) for s in emu.isr_samples() if s.register == "dac_code"]
+    assert codes[0] == (entries[0], 0)
+    assert len(codes) == 2 and codes[1][1] == 321
+    # the loop reads the command on its next RTOS tick (3000 us): the first run after that one uses it
+    assert codes[1][0] == min(t for t in entries if t > 3000) == 3500
+
+
+def test_watching_a_register_the_state_map_does_not_name_is_refused(cache: Path) -> None:
+    emu = tiny(cache)
+    with pytest.raises(ConfigurationError, match="'pulse_height' is not in the state map.*isr_count"):
+        emu.watch_at_isr("pulse_height")
+
+
+def test_a_timed_host_build_keeps_a_bounded_event_record(cache: Path) -> None:
+    from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+
+    model = HostBuildTimedModel(TINY, state_map=MAP, cache=cache, event_history_us=10_000)
+    for t_us in range(1000, 100_001, 1000):
+        model.advance_to(t_us)
+    kept = model.host.shim_events()
+    assert kept and kept[0].t_us >= 100_000 - 2 * 10_000  # trimmed every 10 ms to the last 10 ms
+    assert len(model.scans()) < 40  # of the 142 interrupt runs (700 us period)

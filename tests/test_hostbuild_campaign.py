@@ -40,3 +40,16 @@ def test_a_session_runs_on_the_host_build(monkeypatch: pytest.MonkeyPatch) -> No
     assert res.pulses > 0
     assert res.over_limit == 0 and res.meant_off == 0
     assert res.ok
+
+
+def test_a_fault_session_runs_on_the_host_build(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--faults`` on upstream v1.2: session 7 of seed 3 resets the board, hangs its main loop
+    (``stop_reading``: the firmware's reads find nothing until the next power-up) and cuts the link; the
+    fail-safe recovers and nothing delivered breaks a limit."""
+    monkeypatch.setattr(sc, "FIRMWARE_SRC", str(_v1_2_tree()))
+    res = sc.run_session(7, 3, True)
+    assert {"reset", "stop_reading", "cut"} <= set(res.faults)
+    assert "driver_crash" not in res.hazards
+    assert res.pulses > 0
+    assert res.over_limit == 0 and res.meant_off == 0
+    assert res.ok

@@ -20,6 +20,7 @@ from tactdeform_hw.device import EtactileKitDevice, open_device
 from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError
 from tactdeform_hw.emulator.faults import TimedPort
+from tactdeform_hw.emulator.firmware.scan import PulseKind
 from tactdeform_hw.emulator.hostbuild import find_compiler
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap
 from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
@@ -77,6 +78,34 @@ def test_the_tiny_firmware_replies_through_the_link() -> None:
     assert model.in_flight == 0
 
 
+def test_the_large_board_runs_the_firmwares_large_branch_upstream_v1_2() -> None:
+    """``board="large"`` builds the tree with ``ETACTILEKIT_BOARD`` (its own cached build): the firmware's
+    stack detection then counts 8 HV513 per board, as the Python model of the large board does."""
+    tree = _v1_2_tree()
+    for boards in (1, 2):
+        large = HostBuildTimedModel(tree, "large", boards)
+        large.advance_to(5000)
+        compact = HostBuildTimedModel(tree, "compact", boards)
+        assert large.state().hv513_num == TimedEmulator("large", boards).state().hv513_num == 8 * boards
+        assert compact.host.built.key != large.host.built.key
+
+
+def test_a_stopped_main_loop_reads_nothing_until_a_reset() -> None:
+    """``stop_reading`` (the fault campaigns' hung main loop): the firmware keeps running but its reads find
+    nothing, so 'E' gets no reply and its bytes wait in the queue; a power-up reads again."""
+    model = HostBuildTimedModel(TINY, state_map=TINY_MAP)
+    model.advance_to(2000)
+    model.stop_reading()
+    model.write(b"E\x29")
+    model.advance(20_000)
+    assert model.read_tx() == b""
+    assert len(model.queue) == 2
+    model.reset()
+    model.write(b"E\x29")
+    model.advance(20_000)
+    assert model.read_tx() == b"\x2a"
+
+
 def test_the_driver_refuses_a_served_firmware_that_is_no_etactilekit() -> None:
     board = RealtimeEmulator(timed=HostBuildTimedModel(TINY, state_map=TINY_MAP))  # type: ignore[arg-type]
     assert board.firmware is None
@@ -128,22 +157,60 @@ def test_the_driver_runs_upstream_v1_2_as_it_runs_the_model() -> None:
     assert built.state() == python.state()  # every register, read from the firmware's own variables
     a = built.reports.pulse_table()
     b = python.reports.pulse_table()
-    live = b["code"] > 0
-    assert a["code"].size == int(live.sum()) > 30
-    assert a["channel"].tolist() == b["channel"][live].tolist()
-    assert a["code"].tolist() == b["code"][live].tolist()
-    assert np.allclose(a["width_us"], b["width_us"][live] + 0.2)  # the chip-select writes
+    live = np.nonzero(b["code"] > 0)[0]
+    # the driver's calls end about 3 ms earlier on the host build (its replies have no link delay), so
+    # the final all-off may land one scan (4 pulses: electrodes 3, 10 and 20's two phases) apart
+    n = min(a["code"].size, live.size)
+    assert n > 30 and abs(a["code"].size - live.size) <= 4
+    live = live[:n]
+    assert a["channel"][:n].tolist() == b["channel"][live].tolist()
+    assert a["code"][:n].tolist() == b["code"][live].tolist()
+    assert a["kind"][:n].tolist() == b["kind"][live].tolist()  # monophasic and both biphasic phases
+    assert np.allclose(a["width_us"][:n], b["width_us"][live] + 0.2)  # the chip-select writes
     # one timer origin for the whole session: every scan is shifted alike, pulse by pulse.  Within a
     # scan the shifts differ by up to 10.6 us (987.85, 983.65, 977.65, 977.25 here): the pulse table's
     # start inside a scan is not yet the same instant in both records (docs/firmware-host-build.md)
-    per_scan = int(live.sum()) // len(set(np.round(b["start_us"][live] // 8000).tolist()))
-    shift = (b["start_us"][live] - a["start_us"]).reshape(-1, per_scan)
+    shift = (b["start_us"][live] - a["start_us"][:n]).reshape(-1, 4)
     assert np.allclose(shift, shift[0])
 
 
+def test_pulse_kinds_are_the_firmwares_choice_at_each_scan_upstream_v1_2() -> None:
+    """v1.2 chooses a channel's pulse by its pattern value when the scan reaches it: 1 monophasic, 2
+    biphasic, anything else a sense pulse.  Here the sense height equals the pulse height (12), so a DAC
+    code cannot tell them apart, and the configuration lands inside one long step: the kinds must still
+    follow the pattern as each scan found it (channels 1 and 3 stimulate once the pattern is read,
+    everything else is sensed)."""
+    tree = _v1_2_tree()
+    model = HostBuildTimedModel(tree)
+    # 4 electrodes, sense height 3 << 2 = 12, sense width 30, pulse height 12, pulse width 30, then the
+    # pattern (channel 1 monophasic, channel 3 biphasic) 20 ms later
+    model.write(bytes([0xFC, 4, 0xF9, 3, 0xF8, 30, 0xFB, 12, 0, 0xFA, 30, 0]), at_us=0)
+    model.write(bytes([0xFE, 0, 1, 0, 2]), at_us=20_000)
+    model.advance_to(60_000)  # one step: the registers changed several times inside it
+    table = model.reports.pulse_table()
+    assert set(table["code"].tolist()) == {12}
+    pattern_read = min(
+        s.t_us for s in model.host.isr_samples() if s.register == "stim_pattern" and s.value == 2
+    )
+    before = table["start_us"] < pattern_read
+    sense = int(PulseKind.SENSE)
+    assert before.sum() > 0 and set(table["kind"][before].tolist()) == {sense}
+    after = ~before
+    by_channel = {ch: set(table["kind"][after & (table["channel"] == ch)].tolist()) for ch in range(4)}
+    assert by_channel == {
+        0: {sense},
+        1: {int(PulseKind.MONO)},
+        2: {sense},
+        3: {int(PulseKind.BI_ANODIC), int(PulseKind.BI_CATHODIC)},
+    }
+
+
 @pytest.mark.xfail(
-    reason="intermittent on a loaded machine: the configure's measure proof sometimes gets no reply on "
-    "the pty (ShortReplyError), not seen in virtual time; not yet explained",
+    reason="needs the CPU to keep pace with the wall clock: the driver waits for the configure's measure "
+    "proof about one scan period (8 ms) plus 3 ms past the drain, and the served host build costs 0.2 to "
+    "0.5 s of CPU per second in Python (32 electrodes, 125 Hz); on 2 cores at load 6 to 7 its serving "
+    "thread got 16 ms of CPU in 290 ms and fell 30 to 90 ms behind (4 to 5 runs in 40 failed, the same "
+    "before and after the event record was bounded); docs/firmware-host-build.md",
     raises=ShortReplyError,
     strict=False,
 )
@@ -252,3 +319,39 @@ def test_the_driver_runs_upstream_v2_as_it_runs_the_model() -> None:
     assert a["code"].size == int(live.sum()) > 20
     assert a["channel"].tolist() == b["channel"][live].tolist()
     assert a["code"].tolist() == b["code"][live].tolist()
+
+
+def test_emulate_serves_upstream_v1_2_as_its_usb_device() -> None:
+    """``emulate --usb --firmware-src``: the built firmware behind the emulated USB device, in its own
+    process; the driver opens the printed name through pyusb, and the board reports what it delivered."""
+    import signal
+    import subprocess
+    import sys
+
+    pytest.importorskip("usb.core", reason="the USB device needs pyusb (pip install 'tactdeform_hw[usb]')")
+    tree = _v1_2_tree()
+    cmd = [sys.executable, "-m", "tactdeform_hw.cli", "emulate", "--usb", "--firmware-src", str(tree)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        name = proc.stdout.readline().strip()
+        assert name.startswith("usb-emulator://"), proc.stderr.read() if proc.stderr else ""
+        dev = open_device(name, guardian=False, settle_s=0.05)
+        assert dev.firmware == "v1.2"
+        dev.configure(StimConfig(electrode_count=8, current_ua=500, rate_hz=20))
+        dev.send_pattern([0, 0, 1, 0, 0, 0, 0, 0])
+        dev.all_off()
+        dev.close()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=10)
+    assert "Traceback" not in err
+    assert "firmware v1.2" in err, err
+
+
+def test_emulate_refuses_a_trace_of_a_host_build(capsys: pytest.CaptureFixture[str]) -> None:
+    from tactdeform_hw.cli import main
+
+    assert main(["emulate", "--pty", "--trace", "t.vcd", "--firmware-src", str(TINY)]) != 0
+    err = capsys.readouterr().err
+    assert "--trace" in err and "timing --firmware-src DIR --vcd" in err and "Traceback" not in err

@@ -236,3 +236,46 @@ def test_a_project_runs_the_conformance_checks_on_its_device(pytester: pytest.Py
     )
     absent.assert_outcomes(skipped=1)
     absent.stdout.fnmatch_lines(["*no board at /dev/no-such-board*"])
+
+
+def test_the_marker_serves_a_host_built_firmware(pytester: pytest.Pytester) -> None:
+    """``firmware_src=``: the upstream v1.2 tree built on this machine is the board; the same session and
+    assertions run on the firmware's own code (``TACTDEFORM_HW_UPSTREAM_V1_2``)."""
+    import os
+
+    tree = os.environ.get("TACTDEFORM_HW_UPSTREAM_V1_2")
+    if not tree:
+        pytest.skip("set TACTDEFORM_HW_UPSTREAM_V1_2 to the v1.2 PlatformIO tree (platform_io_project)")
+    pytester.makepyfile(
+        SESSION
+        + f"""
+@pytest.mark.parametrize("etactile_board", [{{"transport": "pty"}}, {{"transport": "url"}}], indirect=True)
+@pytest.mark.etactile_board(firmware_src={tree!r})
+def test_app(etactile_board):
+    assert etactile_board.firmware == "v1.2"
+    dev = run_session(etactile_board, levels=(0, 0, 1, 0, 0, 0, 0, 0))
+    assert etactile_board.state().electrode_num == 8
+    pulses = [p for p in etactile_board.delivered() if p.current_ua > 0]
+    assert pulses and {{p.electrode for p in pulses}} == {{2}}
+    assert all(p.current_ua == 500 and p.kind == "monophasic" for p in pulses)
+    etactile_board.assert_no_pulse_above(500)
+    dev.all_off()
+    etactile_board.assert_off_within(20)
+    dev.close()
+"""
+    )
+    result = pytester.runpytest(*PLUGIN)
+    result.assert_outcomes(passed=2)
+
+
+def test_a_host_built_firmware_must_declare_the_version_asked_for() -> None:
+    from pathlib import Path
+
+    from tactdeform_hw.errors import ConfigurationError
+    from tactdeform_hw.testing.board import EmulatedBoard
+
+    tiny = Path(__file__).parent / "data" / "firmware_tiny"
+    with pytest.raises(ConfigurationError, match="firmware='v2', but firmware_src=.*declares no version"):
+        EmulatedBoard(firmware="v2", firmware_src=tiny)
+    with pytest.raises(ConfigurationError, match="etactile_board firmware_src='/nonexistent'.*src/"):
+        EmulatedBoard(firmware_src="/nonexistent")

@@ -580,3 +580,45 @@ def test_v2_missing_pulses_fail_the_delivery_check(v2_result):
         run.delivered["_table"] = table
         check_trial(run, v2_result)
     assert run.passed
+
+
+def test_study_replays_into_a_host_built_firmware(tmp_path, capsys):
+    """``--firmware-src``: the timed replay runs the upstream v1.2 firmware's own code; trial 1 delivers
+    the pulses the Python model's replay delivers, each 0.2 µs longer (the chip-select writes), so the
+    charge per pulse is 196.8 nC at 1000 µA (``TACTDEFORM_HW_UPSTREAM_V1_2``)."""
+    import json
+    import os
+
+    from tactdeform_hw.cli import main
+
+    tree = os.environ.get("TACTDEFORM_HW_UPSTREAM_V1_2")
+    if not tree:
+        pytest.skip("set TACTDEFORM_HW_UPSTREAM_V1_2 to the v1.2 PlatformIO tree (platform_io_project)")
+    delivered = {}
+    for name, extra in (("model", []), ("built", ["--firmware-src", tree])):
+        out = tmp_path / name
+        argv = ["study", "task1", "--trials", "1", "--out", str(out), "--quiet", "--no-pictures", *extra]
+        assert main(argv) == 0
+        report = json.loads((out / "report.json").read_text())
+        delivered[name] = report["trials"][0]["delivered"]
+        if name == "built":
+            assert report["timed"]["summary"]["firmware_src"] == tree
+    capsys.readouterr()
+    built, model = delivered["built"], delivered["model"]
+    assert built["sense_pulses_with_current"] == model["sense_pulses_with_current"] == 0
+    assert abs(built["stimulation_pulses"] - model["stimulation_pulses"]) <= 1  # the scans' phase
+    assert built["max_current_ua"] == model["max_current_ua"] == 1000.0
+    assert built["max_charge_per_pulse_nc"] == pytest.approx(196.8)
+
+
+def test_study_refuses_a_tree_of_no_declared_version(tmp_path, capsys):
+    from pathlib import Path
+
+    from tactdeform_hw.cli import main
+
+    tiny = Path(__file__).parent / "data" / "firmware_tiny"
+    argv = ["study", "task1", "--out", str(tmp_path / "r"), "--firmware-src", str(tiny), "--quiet"]
+    assert main(argv) != 0
+    err = capsys.readouterr().err
+    assert "--firmware-src" in err and "declares firmware none" in err and "nothing was sent" in err
+    assert "Traceback" not in err

@@ -88,6 +88,7 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--no-timed", action="store_true", help="skip the timed-emulator replay (no delivered currents)"
     )
+    _replay_options(p)
     p.add_argument("--no-pictures", action="store_true", help="write the JSON and Markdown only")
     p.add_argument("--gif", action="store_true", help="also draw every trial as an animated GIF (slower)")
     p.add_argument("--json", action="store_true", help="print the report's summary as JSON on stdout")
@@ -100,6 +101,17 @@ def register(sub: Any) -> None:
         "refused before the device is opened",
     )
     p.set_defaults(func=run)
+
+
+def _replay_options(p: argparse.ArgumentParser) -> None:
+    """Where the timed replay runs."""
+    p.add_argument(
+        "--firmware-src",
+        metavar="DIR",
+        help="replay the session's writes into this firmware tree (PlatformIO) built on this machine instead "
+        "of the Python timed model: what the firmware's own code delivered (docs/firmware-host-build.md); "
+        "its state map must declare the version the session ran",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -139,6 +151,7 @@ def run(args: argparse.Namespace) -> int:
                 rate_hz=args.rate,
                 current_ua=args.current_ua,
                 timed=not args.no_timed,
+                firmware_src=args.firmware_src,
                 tremor_mm=args.tremor_mm,
                 progress=say,
                 realtime=args.realtime,
@@ -184,6 +197,20 @@ def _check_options(args: argparse.Namespace) -> None:
         raise LimitError("--current-ua", args.current_ua, "≥ 0 µA")
     if not (math.isfinite(args.tremor_mm) and 0 <= args.tremor_mm <= 5):
         raise LimitError("--tremor-mm", args.tremor_mm, "0 to 5 mm")
+    if args.firmware_src is not None:
+        from ..emulator.hostbuild.statemap import declared_firmware
+
+        declared = declared_firmware(args.firmware_src, "--firmware-src")
+        if args.no_timed:
+            raise ConfigurationError(
+                "--firmware-src runs the timed replay on the built firmware; drop --no-timed"
+            )
+        if declared not in ("v1.2", "v2") or args.firmware not in ("auto", declared):
+            needs = "v1.2 or v2" if args.firmware == "auto" else args.firmware
+            raise ConfigurationError(
+                f"--firmware-src {args.firmware_src}: its state map declares firmware "
+                f"{declared or 'none'}; the study needs {needs}; nothing was sent"
+            )
     old = earlier_report(args.out)
     if old and not args.force:
         raise ConfigurationError(

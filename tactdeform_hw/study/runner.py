@@ -567,9 +567,9 @@ def run_study(
     firmware: str = "auto",
     session: Any = None,
     on_trial: Callable[[TrialRun], None] | None = None,
+    firmware_src: str | None = None,
 ) -> StudyRun:
-    """Run every trial of ``study`` on one device session; return the raw results (see :mod:`.checks`
-    and :mod:`.report` for what is made of them).
+    """Run every trial of ``study`` on one device session; return the raw results (:mod:`.checks`).
 
     ``session`` (a :class:`~tactdeform_hw.session.Session` on the TactDeform array, its delivery log made)
     gives the device, the guard, the participant's profile and the log; without one they come from
@@ -578,7 +578,8 @@ def run_study(
     (``profile.stimulation_ua``), else to :data:`NOMINAL_EMULATOR_UA` on the emulator and 0 (patterns
     only) on a real device.  ``realtime`` paces every pose to the session clock (a real device then shows
     each trial at its real speed); otherwise the run goes as fast as it can, which changes nothing the
-    checks look at: the timed replay restores the session's timing.  ``on_trial`` gets each trial done."""
+    checks look at: the timed replay restores the session's timing (on ``firmware_src``, a tree built on
+    this machine, when given).  ``on_trial`` gets each trial done."""
     from ..clock import SimulatedClock
 
     say = progress or (lambda _msg: None)
@@ -625,19 +626,20 @@ def run_study(
         writes=list(tap.writes),
         firmware=ran,
     )
-    _replay(result, timed, say)
+    _replay(result, timed, say, firmware_src)
     result.wall_s = time.perf_counter() - wall0
     return result
 
 
-def _replay(result: StudyRun, timed: bool, say: ProgressFn) -> None:
-    """The timed replay of the study's writes, or the report's note on why there is none."""
+def _replay(result: StudyRun, timed: bool, say: ProgressFn, firmware_src: str | None = None) -> None:
+    """The timed replay of the study's writes (into ``firmware_src`` built on this machine, when given),
+    or the report's note on why there is none."""
     if not timed:
         result.timed_note = "timed replay not run (--no-timed)"
         return
     try:
         say(f"study {result.study.name}: replaying {len(result.writes)} writes into the timed emulator")
-        replay_timed(result)
+        replay_timed(result, firmware_src=firmware_src)
     except TactDeformError as exc:  # the report says why there are no delivered currents
         result.timed_note = f"timed replay failed: {exc}"
 
@@ -702,12 +704,17 @@ class _TimedAccount:
 def _account_v2(emu: Any, result: StudyRun) -> _TimedAccount:
     """v2 records every scan (a torn pattern is one hazard per scan it tore, with its time): the hazard
     list and the model's loss reports are the whole account."""
+    return _account_of_pulses(emu, result, {"firmware": V2.name, "scans": int(emu.scan_count)})
+
+
+def _account_of_pulses(emu: Any, result: StudyRun, summary: dict[str, Any]) -> _TimedAccount:
+    """The account of a model whose pulse table, hazard list and loss reports say it all (``summary``:
+    the report's first fields)."""
     pulses = emu.reports.pulse_table()  # once; each trial takes its window of it
     hazards = list(emu.hazards)
     result.timed = True
     result.timed_summary = {
-        "firmware": V2.name,
-        "scans": int(emu.scan_count),
+        **summary,
         "pulses": int(pulses["channel"].size),
         "hazards": dict(sorted(Counter(h.kind.value for h in hazards).items())),
     }
@@ -717,6 +724,28 @@ def _account_v2(emu: Any, result: StudyRun) -> _TimedAccount:
         return {k: v[sel] for k, v in pulses.items()}
 
     return _TimedAccount(pulse_table, [], list(emu.losses), hazards)
+
+
+def _host_build(firmware_src: str, ran: str, link: str) -> Any:
+    """The firmware tree built on this machine, as the replay's timed model: it must speak the version
+    the session ran."""
+    from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+
+    emu = HostBuildTimedModel(firmware_src, link=link)
+    declared = emu.firmware.name if emu.firmware is not None else None
+    if declared != ran:
+        raise ConfigurationError(
+            f"--firmware-src {firmware_src}: its state map declares firmware {declared or 'none'}, "
+            f"the session ran {ran}"
+        )
+    return emu
+
+
+def _account_host_build(emu: Any, result: StudyRun) -> _TimedAccount:
+    """A host build records the pulses its firmware delivered and the receive queue's losses; firmware
+    defects (torn patterns, overruns) are the Python models' reading of the code and are not recorded."""
+    source = {"firmware": result.firmware, "firmware_src": str(emu.firmware_src)}
+    return _account_of_pulses(emu, result, source)
 
 
 def _account_v1_2(emu: Any, result: StudyRun) -> _TimedAccount:
@@ -814,10 +843,12 @@ def _hazards_in(
     return found
 
 
-def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
-    """Replay the session's writes into the timed model of the firmware that ran and attach, per trial,
-    the pulses delivered (per electrode: pulses, largest current, charge; on v2 also the heights each
-    electrode was pulsed at), the timing hazards in the trial's window and the replay time of each write."""
+def replay_timed(result: StudyRun, *, link: str = "usb", firmware_src: str | None = None) -> None:
+    """Replay the session's writes into the timed model of the firmware that ran (``firmware_src``: into
+    that firmware tree built on this machine, which must declare the version that ran) and attach, per
+    trial, the pulses delivered (per electrode: pulses, largest current, charge; on v2 also the heights
+    each electrode was pulsed at), the timing hazards in the trial's window and the replay time of each
+    write."""
     from tactdeform_hw.emulator.firmware.models import model_entry
 
     writes = result.writes
@@ -825,14 +856,20 @@ def replay_timed(result: StudyRun, *, link: str = "usb") -> None:
         result.timed_note = "nothing was written"
         return
     v2 = result.firmware == V2.name
-    emu: Any = model_entry(result.firmware).timed(link=link)
+    if firmware_src is not None:
+        emu: Any = _host_build(firmware_src, result.firmware, link)
+    else:
+        emu = model_entry(result.firmware).timed(link=link)
     at = _replay_writes(emu, writes)
     offsets = [0]
     for w in writes[:-1]:
         offsets.append(offsets[-1] + len(w.data))
     mapping = result.array.channel_mapping()
     hw_to_app = {ch: i for i, ch in enumerate(mapping.app_to_hw)}
-    account = _account_v2(emu, result) if v2 else _account_v1_2(emu, result)
+    if firmware_src is not None:
+        account = _account_host_build(emu, result)
+    else:
+        account = _account_v2(emu, result) if v2 else _account_v1_2(emu, result)
     for run in result.trials:
         if run.skipped is not None or not run.writes:
             continue

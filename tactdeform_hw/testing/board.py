@@ -8,7 +8,9 @@ for :meth:`EmulatedBoard.delivered` and the assertions.  See ``docs/testing-down
 
 from __future__ import annotations
 
+import os
 import time
+import urllib.parse as urlparse
 import uuid
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -21,6 +23,7 @@ from tactdeform_hw.emulator.firmware.hazards import (
     assess,
 )
 from tactdeform_hw.emulator.firmware.scan import PulseKind
+from tactdeform_hw.emulator.hostbuild.statemap import declared_firmware
 from tactdeform_hw.emulator.records.reports import PULSE_KIND_NAMES
 from tactdeform_hw.emulator.serving.realtime import RealtimeEmulator, settle
 from tactdeform_hw.errors import ConfigurationError
@@ -30,7 +33,7 @@ from tactdeform_hw.protocol.state import BoardState
 #: the board's own USB device (``usb-emulator://PATH``, opened through pyusb).
 TRANSPORTS = ("url", "pty", "tcp", "usb")
 #: The options a board takes (the marker's keywords and an indirect parameter's keys).
-BOARD_OPTIONS = ("firmware", "transport", "board", "switching_boards")
+BOARD_OPTIONS = ("firmware", "transport", "board", "switching_boards", "firmware_src")
 
 
 @dataclass(frozen=True)
@@ -188,16 +191,27 @@ class EmulatedBoard:
     def __init__(
         self,
         *,
-        firmware: str = "v1.2",
+        firmware: str | None = None,
         transport: str = "pty",
         board: str = "compact",
         switching_boards: int = 1,
+        firmware_src: str | os.PathLike[str] | None = None,
     ) -> None:
+        """``firmware``: the Python model's version (default v1.2).  ``firmware_src``: a firmware's own
+        PlatformIO tree, built on this machine and served in its place (docs/firmware-host-build.md); it
+        serves the version its state map declares, which ``firmware``, if given, must name."""
         if transport not in TRANSPORTS:
             raise ConfigurationError(
                 f"etactile_board transport={transport!r}: use one of {', '.join(TRANSPORTS)}"
             )
-        self.firmware = firmware
+        served = declared_firmware(firmware_src, "etactile_board firmware_src") if firmware_src else None
+        if firmware_src is not None and firmware is not None and firmware != served:
+            raise ConfigurationError(
+                f"etactile_board firmware={firmware!r}, but firmware_src={str(firmware_src)!r} declares "
+                f"{served or 'no version'} in its state map"
+            )
+        self.firmware = served or firmware or "v1.2"
+        self.firmware_src = None if firmware_src is None else str(firmware_src)
         self.transport = transport
         self.url: str | None = None
         self.path: str | None = None
@@ -205,31 +219,43 @@ class EmulatedBoard:
         self._received = bytearray()
         self.emulator: RealtimeEmulator
         if transport == "url":
-            self.emulator = self._serve_url(firmware, board, switching_boards)
+            self.emulator = self._serve_url(self.firmware, board, switching_boards)
             return
         if transport == "usb":
-            self.emulator = self._serve_usb(firmware, board, switching_boards)
+            self.emulator = self._serve_usb(self.firmware, board, switching_boards)
             return
-        recording = RecordingBoard(board, switching_boards, firmware=firmware, **self._rules(transport))
+        recording = self._recording_board(board, switching_boards, self._rules(transport))
         self._received = recording.received
         self.emulator = recording
         if transport == "pty":
             from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
-            pty = PtyServer(recording, firmware=firmware)
+            pty = PtyServer(recording, firmware=self.firmware)
             pty.start()
             self._cleanup.append(pty.stop)
             self.path = pty.path
         else:
             from tactdeform_hw.emulator.serving.tcp_server import TcpServer
 
-            tcp = TcpServer(recording, port=0, firmware=firmware)
+            tcp = TcpServer(recording, port=0, firmware=self.firmware)
             tcp.start()
             self._cleanup.append(tcp.stop)
             self.url = tcp.url
 
+    def _recording_board(self, board: str, switching_boards: int, rules: dict[str, Any]) -> RecordingBoard:
+        """The served board that keeps its bytes: the firmware tree's host build, or the Python model."""
+        if self.firmware_src is not None:
+            from tactdeform_hw.emulator.hostbuild.timed import realtime_host_build
+
+            built: RecordingBoard = realtime_host_build(
+                self.firmware_src, board, switching_boards, cls=RecordingBoard, **rules
+            )
+            return built
+        return RecordingBoard(board, switching_boards, firmware=self.firmware, **rules)
+
     @staticmethod
     def _rules(transport: str) -> dict[str, Any]:
+        """The serving rules' keywords: the Wi-Fi build's on TCP, the USB build's otherwise."""
         from tactdeform_hw.emulator.serving.realtime import WIFI_TCP
 
         return {"rules": WIFI_TCP} if transport == "tcp" else {}
@@ -243,9 +269,12 @@ class EmulatedBoard:
         )
 
         shared = f"board-{uuid.uuid4().hex[:8]}"
-        self.url = (
-            f"etactile://{shared}?firmware={firmware}&board={board}&switching_boards={switching_boards}"
+        source = (
+            f"firmware_src={urlparse.quote(self.firmware_src)}"
+            if self.firmware_src is not None
+            else f"firmware={firmware}"
         )
+        self.url = f"etactile://{shared}?{source}&board={board}&switching_boards={switching_boards}"
         first = open_port(self.url, timeout=0.1)
         first.open()  # creates the shared board every later port of this URL talks to
         self._cleanup += [lambda: forget_shared(shared), first.close]
@@ -259,7 +288,12 @@ class EmulatedBoard:
         opens ``usb-emulator://PATH`` with pyusb, as ``tactdeform-hw emulate --usb`` serves it."""
         from tactdeform_hw.emulator.serving.usb_server import UsbServer
 
-        emu = RealtimeEmulator(board, switching_boards, firmware=firmware)
+        if self.firmware_src is not None:
+            from tactdeform_hw.emulator.hostbuild.timed import realtime_host_build
+
+            emu: RealtimeEmulator = realtime_host_build(self.firmware_src, board, switching_boards)
+        else:
+            emu = RealtimeEmulator(board, switching_boards, firmware=firmware)
         usb = UsbServer(emu, firmware=firmware, hook=self._keep)
         usb.start()
         self._cleanup.append(usb.stop)

@@ -26,6 +26,17 @@ def test_target_names_say_their_firmware() -> None:
         name_firmware("pty?firmware=v3")
 
 
+def test_a_host_build_target_serves_the_version_its_tree_declares() -> None:
+    """``etactile://?firmware_src=DIR`` gets the checks of the version the tree's state map declares (a
+    tree that declares none gets neither module's); a folder without a PlatformIO tree is a usage error."""
+    from pathlib import Path
+
+    tiny = Path(__file__).resolve().parents[1] / "data" / "firmware_tiny"
+    assert name_firmware(f"etactile://?firmware_src={tiny}") == ""
+    with pytest.raises(pytest.UsageError, match="firmware_src='/nonexistent'.*src/"):
+        name_firmware("etactile://?firmware_src=/nonexistent")
+
+
 def test_tcp_server_serves_the_named_firmware() -> None:
     server = TcpServer(port=0, firmware="v2")
     try:

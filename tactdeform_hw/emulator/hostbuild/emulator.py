@@ -23,7 +23,7 @@ from tactdeform_hw.emulator.hostbuild.build import BuildResult, build
 from tactdeform_hw.emulator.hostbuild.delivered import ChainDecoder, DeliveredPulse
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
-from tactdeform_hw.errors import FirmwareBuildError, LimitError
+from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError, LimitError
 
 STACK_SENSE_PIN = 6
 """The compact board's stack-sense input (``STACK_SENSE`` in the firmware's configuration)."""
@@ -57,6 +57,21 @@ class _Event(ctypes.Structure):
         ("b", ctypes.c_int64),
         ("c", ctypes.c_int64),
     ]
+
+
+class _Sample(ctypes.Structure):
+    _fields_ = [("t_ns", ctypes.c_int64), ("slot", ctypes.c_int64), ("value", ctypes.c_double)]
+
+
+@dataclass(frozen=True)
+class IsrSample:
+    """A watched register's value at an interrupt's entry, recorded when it differs from the previous
+    entry's (see :meth:`HostBuildEmulator.watch_at_isr`)."""
+
+    t_us: float
+    register: str
+    index: int
+    value: int | float
 
 
 @dataclass(frozen=True)
@@ -171,6 +186,8 @@ class HostBuildEmulator:
         self._tx_log: list[tuple[float, bytes]] = []
         self._drops: list[RxDrop] = []
         self._chain = ChainDecoder(8 * hv513_count if chain_outputs is None else chain_outputs)
+        self._watched: list[tuple[str, int]] = []  # per watch slot: (register, index)
+        self._samples: list[IsrSample] = []
         self._run(0)  # setup() runs up to its first shim call
 
     # --- the library --------------------------------------------------------------------------------------
@@ -182,6 +199,7 @@ class HostBuildEmulator:
             "hb_configure": (i32, [ctypes.POINTER(i64), i32]),
             "hb_set_analog": (None, [i32, i32]),
             "hb_set_interrupts": (None, [i32]),
+            "hb_set_reading": (None, [i32]),
             "hb_run_until": (i32, [i64]),
             "hb_now": (i64, []),
             "hb_rx_push": (None, [ctypes.c_char_p, i64, i64, i64]),
@@ -193,6 +211,9 @@ class HostBuildEmulator:
             "hb_events_take": (i64, [ctypes.POINTER(_Event), i64]),
             "hb_timer_info": (i32, [i32, ctypes.POINTER(i64)]),
             "hb_pin_levels": (i64, []),
+            "hb_watch_add": (i64, [ctypes.c_void_p, i32]),
+            "hb_sample_count": (i64, []),
+            "hb_samples_take": (i64, [ctypes.POINTER(_Sample), i64]),
         }
         for name, (res, args) in sig.items():
             fn = getattr(lib, name)
@@ -305,8 +326,12 @@ class HostBuildEmulator:
         """Everything recorded so far, in the shim's terms (GPIO, SPI, ISR entry/return, timer ops, TX)."""
         return list(self._events)
 
-    def clear_events(self) -> None:
-        self._events.clear()
+    def clear_events(self, before_us: float | None = None) -> None:
+        """Forget the recorded events (those before ``before_us``).  Delivered pulses and replies stay."""
+        if before_us is None:
+            self._events.clear()
+        else:
+            self._events = [e for e in self._events if e.t_us >= before_us]
 
     def events(self, since_us: float = 0.0) -> list[list[Any]]:
         """GPIO and DAC events in the golden scan traces' conventions: ``[t_us, "GPIO", pin, level]`` when
@@ -334,6 +359,11 @@ class HostBuildEmulator:
         firmware's next shim call, as a masked interrupt does when unmasked."""
         self._lib.hb_set_interrupts(1 if enabled else 0)
 
+    def set_reading(self, enabled: bool) -> None:
+        """Let the firmware read its receive queue (or not: ``available()`` is 0 and a read finds nothing,
+        while the host's bytes still arrive, fill the queue and are dropped when it is full)."""
+        self._lib.hb_set_reading(1 if enabled else 0)
+
     def scans(self) -> list[tuple[float, float]]:
         """Every interrupt handler run so far: (entry µs, return µs)."""
         out: list[tuple[float, float]] = []
@@ -348,6 +378,35 @@ class HostBuildEmulator:
 
     def isr_returns_us(self) -> list[float]:
         return [e.t_us for e in self._events if e.kind == "ISR_RETURN"]
+
+    def watch_at_isr(self, register: str) -> None:
+        """Read ``register`` (every element of an array) at each timer interrupt's entry from now on.
+
+        A scan is made from the values the main loop left: the loop cannot run again before the handler
+        returns, so the reading at entry is what every pulse of that scan used, to the nanosecond, however
+        seldom Python looks.  :meth:`isr_samples` gives the readings that changed."""
+        reg = next((r for r in self.built.registers if r.name == register), None)
+        if reg is None:
+            raise ConfigurationError(
+                f"watch_at_isr: register {register!r} is not in the state map "
+                f"({', '.join(r.name for r in self.built.registers) or 'no registers'})"
+            )
+        address = ctypes.cast(self._getters[register], ctypes.c_void_p).value
+        for i in range(1 if reg.length is None else reg.length):
+            self._lib.hb_watch_add(address, i)
+            self._watched.append((register, i))
+
+    def isr_samples(self) -> list[IsrSample]:
+        """Every watched value at the interrupt entries so far, when it differed from the entry before
+        (the first entry records them all), in time order."""
+        n = self._lib.hb_sample_count()
+        if n > 0:
+            buf = (_Sample * n)()
+            got = self._lib.hb_samples_take(buf, n)
+            for smp in buf[:got]:
+                name, index = self._watched[smp.slot]
+                self._samples.append(IsrSample(smp.t_ns / 1000.0, name, index, _num(smp.value)))
+        return self._samples
 
     def timer(self, num: int) -> dict[str, Any] | None:
         """A hardware timer's state (``None``: the firmware never began it)."""

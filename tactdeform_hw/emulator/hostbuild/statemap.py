@@ -16,6 +16,7 @@ A map is a :class:`StateMap`, or a TOML file::
 
 from __future__ import annotations
 
+import os
 import re
 import sys
 from dataclasses import dataclass, field
@@ -142,3 +143,14 @@ def detect(tree: Path) -> StateMap | None:
         if (tree / m.unit).is_file():
             return m
     return None
+
+
+def declared_firmware(tree: str | os.PathLike[str], option: str = "firmware_src") -> str:
+    """The version a firmware tree's shipped state map declares (``""``: none fits, or it declares none:
+    a firmware that is no eTactileKit).  ``option`` names the setting in the error when ``tree`` holds no
+    PlatformIO tree."""
+    path = Path(tree)
+    if not (path / "src").is_dir():
+        raise ConfigurationError(f"{option}={str(tree)!r}: holds no PlatformIO tree (src/)")
+    found = detect(path)
+    return found.firmware if found is not None else ""

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import math
 import os
-from bisect import bisect_right
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
@@ -33,7 +32,7 @@ from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.firmware.models import model_entry
 from tactdeform_hw.emulator.firmware.scan import PulseKind
 from tactdeform_hw.emulator.hostbuild.delivered import DeliveredPulse
-from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator
+from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator, IsrSample
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
 from tactdeform_hw.emulator.records.reports import LossReport
 from tactdeform_hw.emulator.timed.link import LinkModel, make_link
@@ -41,6 +40,7 @@ from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.firmware import FirmwareSpec, get_firmware
 from tactdeform_hw.protocol.state import BoardState
+from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 if TYPE_CHECKING:
     from tactdeform_hw.emulator.core import Emulator
@@ -58,9 +58,19 @@ BOARD_STATE_REGISTERS = (
     "stim_pattern",
 )
 
+#: The build defines of the large board's branch (``board="large"``): the upstream firmware chooses its
+#: board at compile time, ``ETACTILEKIT_BOARD`` against the configuration header's
+#: ``ETACTILEKIT_COMPACT_BOARD`` (its stack detection tests the large board first).
+LARGE_BOARD_DEFINES: dict[str, str] = {"ETACTILEKIT_BOARD": "", "SERIAL_COMMUNICATION": ""}
+
 #: When nothing else is due, a server wakes the firmware this often (µs): its replies are found by running
 #: it, not announced in advance.
 POLL_US = 1000.0
+#: The firmware's raw events (pins, SPI, interrupt runs) a timed model keeps (µs): only the last scans are
+#: read (:meth:`HostBuildTimedModel.scan_rate`).  They are about 100 000 Python objects per second of
+#: stimulation: kept for a served board's 10 s of history they took hundreds of megabytes, and the garbage
+#: collector's full passes walked them all (100 to 300 ms each, measured).
+EVENT_HISTORY_US = 100_000.0
 
 
 class _Queue:
@@ -84,25 +94,27 @@ class DeliveredReports:
     def __init__(self, owner: HostBuildTimedModel) -> None:
         self._owner = owner
 
-    def pulse_table(self, t0_us: float | None = None, t1_us: float | None = None) -> dict[str, np.ndarray]:
+    def pulse_table(
+        self,
+        t0_us: float | None = None,
+        t1_us: float | None = None,
+        transfer: CurrentTransfer = DEFAULT_TRANSFER,
+    ) -> dict[str, np.ndarray]:
         """Columns ``channel`` (the output on the HV513 chain), ``start_us``, ``width_us``, ``code`` (the
-        DAC code), ``pol`` (the POL pin), ``kind`` and ``current_ua`` (0: the campaigns convert the code).
+        DAC code), ``pol`` (the POL pin), ``kind``, ``current_ua`` (the code through ``transfer``, as
+        the Python models give it) and ``charge_nc`` (current × width).
 
-        ``kind`` is read from the pins and the registers, since the firmware's pattern at each pulse is
-        not recorded: a pulse at the sense height that is not also v1.2's pulse height, both as the
-        firmware held them when the pulse started, is a sense pulse (:attr:`PulseKind.SENSE`), any other a
-        stimulation pulse (``MONO``).  The registers are sampled at the end of every ``advance_to``
-        (:attr:`HostBuildTimedModel.height_history`): a pulse in the same step as a change of them is
-        read with the values before it."""
-        heights = self._owner.height_history
-        times = [t for t, _, _ in heights]
+        ``kind`` is what the firmware's interrupt handler chose, read from the registers it chose by as they
+        stood when the scan began (:func:`pulse_kind`): a scan cannot see the main loop change them, so the
+        reading at the handler's entry is exact for every pulse of the scan."""
         rows = [
-            (out, p.start_us, p.width_us, p.code, p.polarity, _kind(p.code, heights, times, p.start_us))
-            for p in self._owner.delivered_pulses()
+            (out, p.start_us, p.width_us, p.code, p.polarity, kind)
+            for p, kinds in self._owner.classified_pulses()
             if (t0_us is None or p.start_us >= t0_us) and (t1_us is None or p.start_us < t1_us)
-            for out in p.outputs
+            for out, kind in zip(p.outputs, kinds)
         ]
         cols = list(zip(*rows)) if rows else [(), (), (), (), (), ()]
+        current = np.asarray([transfer.to_ua(int(c)) for c in cols[3]], dtype=np.float64)
         return {
             "channel": np.asarray(cols[0], dtype=np.int64),
             "start_us": np.asarray(cols[1], dtype=np.float64),
@@ -110,20 +122,57 @@ class DeliveredReports:
             "code": np.asarray(cols[3], dtype=np.int64),
             "pol": np.asarray(cols[4], dtype=np.int64),
             "kind": np.asarray(cols[5], dtype=np.int64),
-            "current_ua": np.zeros(len(rows), dtype=np.float64),
+            "current_ua": current,
+            "charge_nc": current * np.asarray(cols[2], dtype=np.float64) / 1e3,
         }
 
 
-def _kind(
-    code: int, heights: list[tuple[float, int | None, int | None]], times: list[float], t_us: float
-) -> int:
-    k = bisect_right(times, t_us) - 1
-    if k < 0:
+#: Registers read at every interrupt entry to tell the pulses' kinds (those the state map names).
+KIND_REGISTERS = ("stim_mode", "stim_pattern", "sense_pulse_height", "pulse_height")
+
+
+def pulse_kind(declared: bool, regs: dict[tuple[str, int], int | float], output: int, pulse: Any) -> int:
+    """The :class:`PulseKind` of ``pulse`` on ``output``, from the registers ``regs`` (``(name, index)``)
+    as the scan that made it began, by the firmware's own choice when the state map declares the
+    firmware's table (``declared``):
+
+    - a firmware with a scan mode (v2's ``StimulationMode``): 0 monophasic, 1 biphasic, 2 sense, for the
+      whole scan, as the Python model reads it;
+    - otherwise (v1.2) the channel's pattern value: 1 monophasic, 2 biphasic, any other a sense pulse at
+      the sense height; the firmware selects output ``ch`` for channel ``ch``;
+    - a firmware that declares no table: a pulse at the sense height that is not also the pulse height is
+      a sense pulse, any other a stimulation pulse.
+
+    A biphasic phase is told by its POL level, as the Python model tells it."""
+    if declared and ("stim_mode", 0) in regs:
+        value = {0: 1, 1: 2}.get(int(regs["stim_mode", 0]), 0)
+    elif declared and ("stim_pattern", output) in regs:
+        value = int(regs["stim_pattern", output])
+    else:
+        sense = regs.get(("sense_pulse_height", 0))
+        height = regs.get(("pulse_height", 0))
+        value = 0 if sense is not None and pulse.code == sense and pulse.code != height else 1
+    if value == 1:
         return int(PulseKind.MONO)
-    _, sense, height = heights[k]
-    if sense is not None and code == sense and code != height:
-        return int(PulseKind.SENSE)
-    return int(PulseKind.MONO)
+    if value == 2:
+        return int(PulseKind.BI_ANODIC if pulse.polarity else PulseKind.BI_CATHODIC)
+    return int(PulseKind.SENSE)
+
+
+def classify(declared: bool, pulses: list[DeliveredPulse], samples: list[IsrSample]) -> list[tuple[int, ...]]:
+    """Each pulse's kind per output (:func:`pulse_kind`), from the registers sampled at the interrupt
+    entries up to its start (``pulses`` and ``samples`` in the same clock)."""
+    order = sorted(range(len(pulses)), key=lambda i: pulses[i].start_us)
+    regs: dict[tuple[str, int], int | float] = {}
+    out: list[tuple[int, ...]] = [()] * len(pulses)
+    j = 0
+    for i in order:
+        p = pulses[i]
+        while j < len(samples) and samples[j].t_us <= p.start_us:
+            regs[samples[j].register, samples[j].index] = samples[j].value
+            j += 1
+        out[i] = tuple(pulse_kind(declared, regs, o, p) for o in p.outputs)
+    return out
 
 
 class HostBuildTimedModel:
@@ -133,7 +182,8 @@ class HostBuildTimedModel:
     compact board: 4 HV513 chips per switching board, sensed by the firmware's own stack detection).
     ``state_map``: which variables hold the registers and which firmware table the tree speaks (default:
     the shipped map whose unit the tree holds).  ``link``: how the host's bytes travel (``usb``, ``uart``
-    or a :class:`LinkModel`).  Other keywords go to :class:`HostBuildEmulator` (``defines``, ``cache``,
+    or a :class:`LinkModel`).  ``event_history_us``: how much of the firmware's raw event record is kept
+    (:data:`EVENT_HISTORY_US`).  Other keywords go to :class:`HostBuildEmulator` (``defines``, ``cache``,
     ``compiler``, ``rx_buffer_bytes``, ``chain_outputs``)."""
 
     def __init__(
@@ -146,14 +196,16 @@ class HostBuildTimedModel:
         link: str | LinkModel = "usb",
         model: TimingModel | None = None,
         stack_reading: float | None = None,
+        event_history_us: float = EVENT_HISTORY_US,
         **host_options: Any,
     ) -> None:
         self.board = board if isinstance(board, Board) else Board(board, switching_boards, stack_reading)
-        if self.board.kind != "compact":
-            raise ConfigurationError(
-                f"board={self.board.kind!r}: a host build runs the compact board's branch only "
-                "(pass defines= for another branch and board='compact')"
-            )
+        if self.board.kind == "large":
+            # the large board's stack detection: the firmware's #if defined(ETACTILEKIT_BOARD) branch, which
+            # wins over the configuration header's own ETACTILEKIT_COMPACT_BOARD (a build of its own key)
+            host_options = {"defines": LARGE_BOARD_DEFINES, **host_options}
+            if stack_reading is None:
+                stack_reading = self.board.reading()
         self.firmware_src = firmware_src
         self.state_map = state_map if state_map is not None else detect(Path(firmware_src))
         self.firmware: FirmwareSpec | None = (
@@ -168,6 +220,8 @@ class HostBuildTimedModel:
         self.hazards: list[Hazard] = []
         self._losses: list[LossReport] = []
         self.reboots = 0
+        self.event_history_us = event_history_us
+        self._trimmed_us = 0.0
         self.received_bytes = 0
         self._host_offset = 0
         self._deliveries: list[tuple[int, bytes, int]] = []  # (arrival ns, data, host offset), time order
@@ -178,14 +232,11 @@ class HostBuildTimedModel:
         self.boot_ns = 0
         self.now_ns = 0
         self.host = self._power_up()
-        #: (model µs, sense height, v1.2 pulse height) whenever a step ended with them changed
-        self.height_history: list[tuple[float, int | None, int | None]] = []
-        self._sample_heights()
-        self.reports = DeliveredReports(self)
         self._pulses: list[DeliveredPulse] = []  # the previous power-ups' pulses, in model time
+        self._kinds: list[tuple[int, ...]] = []  # their kinds per output
 
     def _power_up(self) -> HostBuildEmulator:
-        return HostBuildEmulator(
+        host = HostBuildEmulator(
             self.firmware_src,
             hv513_count=self.board.detect_hv513(),
             timing=self.model,
@@ -193,6 +244,18 @@ class HostBuildTimedModel:
             stack_reading=self._stack_reading,
             **self._options,
         )
+        mapped = {r.name for r in host.built.registers}
+        for name in KIND_REGISTERS:
+            if name in mapped:
+                host.watch_at_isr(name)
+        return host
+
+    @property
+    def reports(self) -> DeliveredReports:
+        """The delivered pulses as the campaigns read them.  Made on each use, not kept: a model that holds
+        no reference to itself is freed, with its firmware's records, the moment it is dropped, not at the
+        next full garbage collection."""
+        return DeliveredReports(self)
 
     @property
     def emulator(self) -> Emulator:
@@ -221,12 +284,10 @@ class HostBuildTimedModel:
         self.host.advance_to((target - self.boot_ns) / 1000.0)
         self.now_ns = target
         self._collect()
-        self._sample_heights()
-
-    def _sample_heights(self) -> None:
-        sample = self.sense_and_pulse_height()
-        if not self.height_history or self.height_history[-1][1:] != sample:
-            self.height_history.append((self.now_us, *sample))
+        host_us = (target - self.boot_ns) / 1000.0
+        if host_us - self._trimmed_us > self.event_history_us:
+            self.host.clear_events(host_us - self.event_history_us)
+            self._trimmed_us = host_us
 
     def advance(self, dt_us: float) -> None:
         if not dt_us >= 0:
@@ -361,14 +422,6 @@ class HostBuildTimedModel:
             rx_dropped=int(snap["rx_dropped"]) if model_entry(self.firmware).parser_owns_queue else None,
         )
 
-    def sense_and_pulse_height(self) -> tuple[int | None, int | None]:
-        """The sense pulse's DAC code and v1.2's pulse height as the firmware holds them now (``None``:
-        the state map does not name them)."""
-        snap = self.host.state()
-        sense = snap.get("sense_pulse_height")
-        height = snap.get("pulse_height")
-        return (None if sense is None else int(sense), None if height is None else int(height))
-
     @property
     def commands(self) -> list[Any]:
         """The commands the parser completed, as the Python model records them: none here (the firmware's
@@ -382,16 +435,21 @@ class HostBuildTimedModel:
 
     def reset(self, reason: str = "reset") -> None:
         """Power-cycle: a fresh copy of the firmware boots now; bytes on the link still land."""
-        self._pulses += self._shifted(self.host.delivered_pulses())
+        for p, kinds in self._current_classified():
+            self._pulses.append(p)
+            self._kinds.append(kinds)
         self.host = self._power_up()
+        self._trimmed_us = 0.0
         self.boot_ns = self.now_ns
         self._drops_seen = 0
         self._stopped = False
         self.reboots += 1
 
     def stop_reading(self) -> None:
-        """The main loop hangs: refused, the built firmware's loop cannot be stopped from outside."""
-        raise ConfigurationError("stop_reading: a host build runs the firmware's own loop; it cannot hang it")
+        """The main loop stops reading until a reset, as the Python model's does: the firmware's reads find
+        nothing from now on (it keeps polling, its interrupt keeps scanning), the host's bytes still fill
+        the receive queue and are dropped when it is full."""
+        self.host.set_reading(False)
 
     def discard_history(self, before_us: float) -> None:
         """Forget recorded events before ``before_us`` (delivered pulses are kept: safety reads them)."""
@@ -407,6 +465,15 @@ class HostBuildTimedModel:
         if b == 0:
             return pulses
         return [DeliveredPulse(p.start_us + b, p.end_us + b, p.code, p.outputs, p.polarity) for p in pulses]
+
+    def _current_classified(self) -> list[tuple[DeliveredPulse, tuple[int, ...]]]:
+        own = self.host.delivered_pulses()
+        kinds = classify(self.firmware is not None, own, self.host.isr_samples())
+        return list(zip(self._shifted(own), kinds))
+
+    def classified_pulses(self) -> list[tuple[DeliveredPulse, tuple[int, ...]]]:
+        """Every delivered pulse (model time) with its :class:`PulseKind` per output (:func:`classify`)."""
+        return list(zip(self._pulses, self._kinds)) + self._current_classified()
 
     def delivered_pulses(self) -> list[DeliveredPulse]:
         """Every stretch of current delivered since the model was made, in the model's time."""
@@ -428,9 +495,47 @@ class HostBuildTimedModel:
         return [p.start_us for p in self.delivered_pulses() if since_us <= p.start_us < now_us]
 
 
+def realtime_host_build(
+    firmware_src: str | os.PathLike[str],
+    board: str = "compact",
+    switching_boards: int = 1,
+    *,
+    rules: Any = None,
+    state_map: StateMap | None = None,
+    stack_reading: float | None = None,
+    cls: Any = None,
+) -> Any:
+    """The tree built on this machine as a board on the wall clock: a :class:`HostBuildTimedModel` on the
+    serving rules' link and timing (``rules``: a :class:`~..serving.realtime.BuildRules`, default the USB
+    build's) inside a :class:`~..serving.realtime.RealtimeEmulator` (or ``cls``, a subclass of it)."""
+    from tactdeform_hw.emulator.serving.realtime import SERIAL_USB, RealtimeEmulator
+
+    rules = SERIAL_USB if rules is None else rules
+    model = HostBuildTimedModel(
+        firmware_src,
+        board,
+        switching_boards,
+        state_map=state_map,
+        stack_reading=stack_reading,
+        link=rules.make_link(),
+        model=rules.timing(None),
+    )
+    return (cls or RealtimeEmulator)(rules=rules, timed=model)  # type: ignore[arg-type]
+
+
 def host_build_timed(firmware_src: str | os.PathLike[str], *args: Any, **kwargs: Any) -> HostBuildTimedModel:
     """:class:`HostBuildTimedModel` (the same arguments)."""
     return HostBuildTimedModel(firmware_src, *args, **kwargs)
 
 
-__all__ = ["BOARD_STATE_REGISTERS", "DeliveredReports", "HostBuildTimedModel", "host_build_timed"]
+__all__ = [
+    "BOARD_STATE_REGISTERS",
+    "KIND_REGISTERS",
+    "LARGE_BOARD_DEFINES",
+    "DeliveredReports",
+    "HostBuildTimedModel",
+    "classify",
+    "host_build_timed",
+    "pulse_kind",
+    "realtime_host_build",
+]

@@ -37,7 +37,7 @@ from typing import Any
 import pytest
 
 from tactdeform_hw.device import open_port
-from tactdeform_hw.errors import MissingDependencyError, TransportError
+from tactdeform_hw.errors import ConfigurationError, MissingDependencyError, TransportError
 from tactdeform_hw.protocol.firmware import FIRMWARES
 from tactdeform_hw.protocol.state import BoardState
 
@@ -120,11 +120,20 @@ class Target:
 
 
 def name_firmware(name: str) -> str | None:
-    """The firmware an emulated target name asks for (``firmware=v2`` in its query; v1.2 otherwise);
-    ``None`` for a board, whose version the name does not tell."""
+    """The firmware an emulated target name asks for (``firmware=v2`` in its query, the declared version
+    of a ``firmware_src=`` tree; v1.2 otherwise); ``None`` for a board, whose version the name does not
+    tell."""
     if is_board_name(name):
         return None
-    fw = urlparse.parse_qs(name.partition("?")[2]).get("firmware", ["v1.2"])[-1]
+    query = urlparse.parse_qs(name.partition("?")[2])
+    if "firmware_src" in query:
+        from tactdeform_hw.emulator.hostbuild.statemap import declared_firmware
+
+        try:
+            return declared_firmware(query["firmware_src"][-1], f"--device {name}: firmware_src")
+        except ConfigurationError as exc:
+            raise pytest.UsageError(str(exc)) from None
+    fw = query.get("firmware", ["v1.2"])[-1]
     if fw not in FIRMWARES:
         raise pytest.UsageError(f"--device {name}: firmware={fw!r} is not one of {', '.join(FIRMWARES)}")
     return fw
@@ -382,8 +391,9 @@ def target_params(config: pytest.Config, firmware: str, defaults: tuple[str, ...
         marks: list[Any] = [pytest.mark.hardware] if is_board_name(n) else []
         served = name_firmware(n)
         if served not in (None, firmware):
+            what = served or "(none declared)"
             marks.append(
-                pytest.mark.skip(reason=f"{n} serves firmware {served}: these are the {firmware} checks")
+                pytest.mark.skip(reason=f"{n} serves firmware {what}: these are the {firmware} checks")
             )
         params.append(pytest.param(n, id=n, marks=marks))
     return params

@@ -48,6 +48,35 @@ struct Event {
 static std::vector<Event> events;
 static void record(int64_t t, int kind, int a, int64_t b, int64_t c) { events.push_back({t, kind, a, b, c}); }
 
+// Firmware variables read at every interrupt's entry (the generated accessor unit's getters, registered
+// from Python): a scan uses the values the main loop left, which cannot change until the handler returns,
+// so one reading per entry says exactly what every pulse of the scan was made from.  Only changes are kept.
+typedef double (*Getter)(int);
+struct Watch {
+    Getter get;
+    int index;
+    double last;
+    bool seen;
+};
+struct Sample {
+    int64_t t_ns;
+    int64_t slot;
+    double value;
+};
+static std::vector<Watch> watches;
+static std::vector<Sample> samples;
+static void sample_watches(int64_t t) {
+    for (size_t i = 0; i < watches.size(); ++i) {
+        Watch& w = watches[i];
+        double v = w.get(w.index);
+        if (!w.seen || v != w.last) {
+            samples.push_back({t, (int64_t)i, v});
+            w.last = v;
+            w.seen = true;
+        }
+    }
+}
+
 static const int64_t NEVER = INT64_MAX;
 static int64_t now = 0;
 static int64_t target = 0;
@@ -124,6 +153,8 @@ struct Packet {
 static std::deque<Packet> rx_pending;
 static std::deque<uint8_t> rx_queue;
 static size_t rx_capacity = 256;
+// false: the firmware's reads find nothing (a main loop that stopped reading; the queue still fills)
+static bool reading = true;
 static int64_t rx_dropped = 0;
 
 static void admit_rx() {
@@ -209,6 +240,7 @@ static void run_isr(Timer* t) {
     }
     in_isr = true;
     record(now, EV_ISR_ENTER, t->num, fired, 0);
+    sample_watches(now);
     now += cost[C_ISR_ENTRY];
     t->isr();
     now += cost[C_ISR_EXIT];
@@ -424,14 +456,14 @@ void serial_set_rx_buffer(size_t bytes) {
 }
 int serial_available() {
     point();
-    int n = (int)rx_queue.size();
+    int n = reading ? (int)rx_queue.size() : 0;
     now += cost[C_AVAILABLE];
     return n;
 }
 int serial_read() {
     point();
     now += cost[C_READ_BYTE];
-    if (rx_queue.empty()) return -1;
+    if (rx_queue.empty() || !reading) return -1;
     int v = rx_queue.front();
     rx_queue.pop_front();
     return v;
@@ -439,7 +471,7 @@ int serial_read() {
 size_t serial_read_buf(uint8_t* buf, size_t len) {
     point();
     size_t n = 0;
-    while (n < len && !rx_queue.empty()) {
+    while (reading && n < len && !rx_queue.empty()) {
         buf[n++] = rx_queue.front();
         rx_queue.pop_front();
     }
@@ -448,7 +480,7 @@ size_t serial_read_buf(uint8_t* buf, size_t len) {
 }
 int serial_peek() {
     point();
-    return rx_queue.empty() ? -1 : rx_queue.front();
+    return rx_queue.empty() || !reading ? -1 : rx_queue.front();
 }
 size_t serial_write(const uint8_t* buf, size_t len) {
     point();
@@ -473,6 +505,7 @@ void hb_set_analog(int pin, int value) {
     if (pin >= 0 && pin < 64) analog_value[pin] = value;
 }
 void hb_set_interrupts(int enabled) { interrupts_enabled = enabled != 0; }
+void hb_set_reading(int enabled) { reading = enabled != 0; }
 
 int hb_run_until(int64_t t_ns) {
     if (status) return status;
@@ -534,5 +567,19 @@ int hb_timer_info(int num, int64_t* out) {
 }
 int64_t hb_pin_levels() { return (int64_t)pin_level; }
 int hb_in_isr() { return in_isr ? 1 : 0; }
+
+int64_t hb_watch_add(void* getter, int index) {
+    watches.push_back({reinterpret_cast<Getter>(getter), index, 0.0, false});
+    return (int64_t)watches.size() - 1;
+}
+int64_t hb_sample_count() { return (int64_t)samples.size(); }
+int64_t hb_samples_take(Sample* dst, int64_t max) {
+    int64_t n = std::min<int64_t>(max, (int64_t)samples.size());
+    if (n > 0) {
+        std::memcpy(dst, samples.data(), sizeof(Sample) * (size_t)n);
+        samples.erase(samples.begin(), samples.begin() + n);
+    }
+    return n;
+}
 
 }  // extern "C"

@@ -404,14 +404,9 @@ def _host_build(
     source: str, board: str, switching: int, reading: float | None, rules: Any
 ) -> RealtimeEmulator:
     """``firmware_src=DIR``: the firmware's own tree built on this machine, locked to the wall clock."""
-    from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+    from tactdeform_hw.emulator.hostbuild.timed import realtime_host_build
 
-    model = HostBuildTimedModel(
-        source,
-        board,
-        switching,
-        stack_reading=reading,
-        link=rules.make_link(),
-        model=rules.timing(None),
+    served: RealtimeEmulator = realtime_host_build(
+        source, board, switching, rules=rules, stack_reading=reading
     )
-    return RealtimeEmulator(rules=rules, timed=model)  # type: ignore[arg-type]
+    return served
