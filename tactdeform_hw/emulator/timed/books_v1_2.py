@@ -25,7 +25,7 @@ from tactdeform_hw.emulator.records.reports import (
     ScanRun,
     TornInfo,
 )
-from tactdeform_hw.emulator.timed.link import Delivery, ReceiveQueue
+from tactdeform_hw.emulator.timed.link import ReceiveQueue, Scheduled
 from tactdeform_hw.protocol.constants import Opcode
 from tactdeform_hw.protocol.decoder import StreamDecoder
 
@@ -88,10 +88,10 @@ class HostLedger:
     write_starts: list[int] = field(default_factory=list)
     intended: dict[int, tuple[int, int]] = field(default_factory=dict)  # host offset -> (opcode, end offset)
     intended_starts: list[int] = field(default_factory=list)
-    deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)  # heap: bytes on their way in
+    deliveries: list[tuple[int, int, Scheduled]] = field(default_factory=list)  # heap: bytes on their way in
     seq: int = 0
     # heap: replies on their way out
-    tx_deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)
+    tx_deliveries: list[tuple[int, int, Scheduled]] = field(default_factory=list)
     rx: bytearray = field(default_factory=bytearray)  # replies that reached the host, unread
     dev_total: int = 0  # device stream: accepted bytes, session-wide offsets
     seg_dev: list[int] = field(default_factory=list)

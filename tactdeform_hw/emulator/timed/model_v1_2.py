@@ -85,10 +85,13 @@ from tactdeform_hw.emulator.timed.books_v1_2 import (
     us_of,
 )
 from tactdeform_hw.emulator.timed.link import (
+    ByteBurst,
     Delivery,
     LinkModel,
     ReceiveQueue,
+    Scheduled,
     make_link,
+    next_key,
     reply_link,
 )
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
@@ -272,7 +275,7 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                 self.host.intended[c.offset] = (c.opcode, c.offset + len(c.raw))
                 self.host.intended_starts.append(c.offset)
         self.host.offset += len(data)
-        for d in self.link.schedule(data, t, off):
+        for d in self.link.schedule_bursts(data, t, off):
             self._push_delivery(d)
         return len(data)
 
@@ -400,8 +403,13 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
 
     # --- the event loop -------------------------------------------------------------------------------------
 
-    def _push_delivery(self, d: Delivery) -> None:
-        if d.t_ns < self.now_ns:
+    def _push_delivery(self, d: Scheduled) -> None:
+        if isinstance(d, ByteBurst):
+            if d.t_ns < self.now_ns:  # (a link's bursts never start in the past) each byte as a delivery
+                for one in d.deliveries():
+                    self._push_delivery(one)
+                return
+        elif d.t_ns < self.now_ns:
             d = Delivery(self.now_ns, d.data, d.host_offset, d.sent_ns)
         self.host.seq += 1
         heapq.heappush(self.host.deliveries, (d.t_ns, self.host.seq, d))
@@ -416,7 +424,12 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
             if t > target:
                 return
             if td == t:
-                self._deliver(heapq.heappop(dq)[2])
+                head = dq[0][2]
+                if isinstance(head, ByteBurst):
+                    self._deliver_burst(dq, target)
+                else:
+                    heapq.heappop(dq)
+                    self._deliver(head)
             elif ta == t:
                 self._scan(int(ta), target)
             elif not self._skip_unknown(int(tm), min(td, ta), target):
@@ -441,6 +454,39 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
         return True  # (an ignored byte writes no reply)
 
     # --- deliveries and the queue ---------------------------------------------------------------------------
+
+    def _deliver_burst(self, dq: list[tuple[int, int, Any]], target: int) -> None:
+        """The burst at the head of the delivery heap: its next byte as a delivery of its own (it may
+        wake the main loop, be lost, ...), then at once the bytes after it that arrive before anything
+        else happens -- an alarm, a parser call (a delivery comes first on a tie), ``target``, another
+        delivery -- as long as each would simply join the queue (no reboot under way, no locked parser,
+        room for all of them); what a byte at a time does then is what :meth:`_deliver` does for each."""
+        _, seq, b = dq[0]
+        self._deliver(b.pop())
+        fw = self.fw
+        if len(b) and b.t_ns >= fw.booting_until and not self.emulator.parser.locked:
+            bound = min(self.next_alarm, fw.main_next if fw.main_next is not None else _INF, target)
+            j = b.end_before(bound, next_key(dq), seq)
+            q = self.queue
+            j = min(j, b.pos + q.capacity - len(q.buf))
+            if j > b.pos:
+                hl = self.host
+                k0 = b.pos
+                hosts = b.host_offsets(j)
+                times = b.times[k0:j]
+                dev0 = hl.dev_total
+                q.offer(b.take(j))
+                devs = range(dev0, dev0 + j - k0)
+                hl.seg_dev.extend(devs)
+                if hosts is None:
+                    hl.segments.extend([(dv, -1, 1, t) for dv, t in zip(devs, times)])
+                else:
+                    hl.segments.extend([(dv, h, 1, t) for dv, h, t in zip(devs, hosts, times)])
+                hl.dev_total = dev0 + j - k0
+        if len(b):
+            heapq.heapreplace(dq, (b.t_ns, seq, b))
+        else:
+            heapq.heappop(dq)
 
     def _deliver(self, d: Delivery) -> None:
         t = d.t_ns
@@ -619,10 +665,10 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
     def _send_tx(self, data: bytes, t: int) -> None:
         self.rec.tx_log.append((t / 1000, data))
         last = 0
-        for d in self.tx_link.schedule(data, t, -1):
+        for d in self.tx_link.schedule_bursts(data, t, -1):
             self.host.seq += 1
             heapq.heappush(self.host.tx_deliveries, (d.t_ns, self.host.seq, d))
-            last = max(last, d.t_ns)
+            last = max(last, d.times[-1] if isinstance(d, ByteBurst) else d.t_ns)
         rep = self.rec.last_rep
         if rep is not None and rep.opcode in (Opcode.MEASURE, Opcode.HV513_COUNT) and rep.reply_us is None:
             rep.reply_us = last / 1000
@@ -630,7 +676,7 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
     def _host_replies(self) -> bytearray:
         return self.host.rx
 
-    def _deliveries(self) -> list[tuple[int, int, Delivery]]:
+    def _deliveries(self) -> list[tuple[int, int, Scheduled]]:
         return self.host.deliveries
 
     def _idle(self) -> bool:
@@ -641,8 +687,17 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
 
     def _collect_tx(self) -> None:
         q = self.host.tx_deliveries
-        while q and q[0][0] <= self.now_ns:
-            self.host.rx += heapq.heappop(q)[2].data
+        now = self.now_ns
+        while q and q[0][0] <= now:
+            _, seq, d = q[0]
+            if isinstance(d, ByteBurst):  # its bytes up to now, and before any other reply's
+                self.host.rx += d.take(d.end_before(now, next_key(q), seq))
+                if len(d):
+                    heapq.heapreplace(q, (d.t_ns, seq, d))
+                    continue
+            else:
+                self.host.rx += d.data
+            heapq.heappop(q)
 
     # --- parser hooks ---------------------------------------------------------------------------------------
 

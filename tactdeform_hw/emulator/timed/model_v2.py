@@ -62,7 +62,16 @@ from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, Registe
 from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal, physical_outputs
 from tactdeform_hw.emulator.records.reports import EventRun, LossReport
 from tactdeform_hw.emulator.timed.base import TimedModelBase
-from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link, reply_link
+from tactdeform_hw.emulator.timed.link import (
+    ByteBurst,
+    Delivery,
+    LinkModel,
+    Scheduled,
+    expanded,
+    make_link,
+    next_key,
+    reply_link,
+)
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
@@ -409,9 +418,10 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         self.received_bytes = 0
         self.replies_dropped = 0  # reply bytes to commands of a host that had gone (see new_client)
         self._reply_offset: int | None = None
-        self._delivery_heap: list[tuple[int, int, Delivery]] = []
+        self._delivery_heap: list[tuple[int, int, Scheduled]] = []
         self._seq = 0
-        self._tx: list[tuple[int, bytes]] = []
+        # replies on their way to the host, in the order written: (arrival ns, bytes) or a burst
+        self._tx: list[tuple[int, bytes | ByteBurst]] = []
         self._host_rx = bytearray()
         self._host_offset = 0
         self._clients: list[tuple[int, str]] = []  # (device offset where a client's bytes start, its name)
@@ -492,7 +502,7 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
             raise ConfigurationError(f"at_us={at_us} is before the emulator's clock ({self.now_us} us)")
         self.advance_to(t / 1000)
         self._host_stream.feed(bytes(data), self._host_offset)
-        for d in self.link.schedule(bytes(data), t, self._host_offset):
+        for d in self.link.schedule_bursts(bytes(data), t, self._host_offset):
             heapq.heappush(self._delivery_heap, (d.t_ns, self._seq, d))
             self._seq += 1
         self._host_offset += len(data)
@@ -506,7 +516,7 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
     def _host_replies(self) -> bytearray:
         return self._host_rx
 
-    def _deliveries(self) -> list[tuple[int, int, Delivery]]:
+    def _deliveries(self) -> list[tuple[int, int, Scheduled]]:
         return self._delivery_heap
 
     def _idle(self) -> bool:
@@ -517,9 +527,19 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         return self.parser.pending
 
     def _collect_tx(self) -> None:
-        if self._tx and self._tx[0][0] <= self.now_ns:
-            self._host_rx += b"".join(b for t, b in self._tx if t <= self.now_ns)
-            self._tx = [(t, b) for t, b in self._tx if t > self.now_ns]
+        now = self.now_ns
+        if self._tx and self._tx[0][0] <= now:
+            keep: list[tuple[int, bytes | ByteBurst]] = []
+            for t, b in self._tx:
+                if isinstance(b, ByteBurst):  # its bytes that have arrived; the rest stays on its way
+                    self._host_rx += b.take(b.end_before(now))
+                    if len(b):
+                        keep.append((b.t_ns, b))
+                elif t <= now:
+                    self._host_rx += b
+                else:
+                    keep.append((t, b))
+            self._tx = keep
 
     # --- what a real-time server needs ---------------------------------------------------------------
 
@@ -567,7 +587,10 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         p = self.parser
         if p.pending:
             self._loss(self.now_ns, p.pending, self._host_of(p.offset), "reboot")
-        for _, _, d in sorted(self._delivery_heap):
+        in_flight = [
+            (d.t_ns, seq, d) for _, seq, item in self._delivery_heap for d in expanded(item)
+        ]  # each byte of a burst a delivery of its own, in arrival order
+        for _, _, d in sorted(in_flight):
             self._loss(self.now_ns, len(d.data), d.host_offset, "reboot")
         self._delivery_heap.clear()
         self._tx.clear()
@@ -602,8 +625,20 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
     def _land(self, t: int) -> None:
         """Arrivals up to ``t`` into the receive queue (lost while the board boots or the queue is full)."""
         parser = self.parser
-        while self._delivery_heap and self._delivery_heap[0][0] <= t:
-            _, _, d = heapq.heappop(self._delivery_heap)
+        heap = self._delivery_heap
+        while heap and heap[0][0] <= t:
+            _, seq, item = heap[0]
+            if isinstance(item, ByteBurst):
+                d = self._land_burst(item, seq, t)
+                if len(item):
+                    heapq.heapreplace(heap, (item.t_ns, seq, item))
+                else:
+                    heapq.heappop(heap)
+                if d is None:
+                    continue
+            else:
+                heapq.heappop(heap)
+                d = item
             if d.t_ns < self._booting_until:  # bytes that came while the board booted are lost
                 self._loss(d.t_ns, len(d.data), d.host_offset, "rebooting")
                 continue
@@ -614,6 +649,23 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
             if lost:
                 host = d.host_offset + len(d.data) - lost if d.host_offset >= 0 else -1
                 self._loss(d.t_ns, lost, host, "queue_full")
+
+    def _land_burst(self, b: ByteBurst, seq: int, t: int) -> Delivery | None:
+        """The bytes of a burst that have arrived by ``t`` (before any other delivery's) join the queue at
+        once when nothing sets one apart -- no reboot under way, room for all of them: no main-loop call
+        runs between their arrivals, so the queue holds what it would after taking them one by one.
+        Otherwise the next byte alone, as a delivery for :meth:`_land` (None: the bytes were taken)."""
+        parser = self.parser
+        j = b.end_before(t, next_key(self._delivery_heap), seq)
+        if b.t_ns < self._booting_until or j - b.pos > parser.spec.rx_queue_bytes - parser.pending:
+            return b.pop()
+        start = parser.offset + parser.pending
+        hosts = b.host_offsets(j)
+        lost = parser.receive(b.take(j))
+        assert lost == 0  # there was room for every byte
+        if hosts is not None:
+            self._segments.extend([(start + i, h, 1) for i, h in enumerate(hosts)])
+        return None
 
     def new_client(self, name: str) -> None:
         """A new host connection starts here: its bytes follow the ones already taken.  Nothing in the
@@ -835,7 +887,10 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
             if self.tx_link is None:
                 self._tx.append((end, tx))
             else:
-                self._tx += [(d.t_ns, d.data) for d in self.tx_link.schedule(tx, end)]
+                self._tx += [
+                    (d.t_ns, d if isinstance(d, ByteBurst) else d.data)
+                    for d in self.tx_link.schedule_bursts(tx, end)
+                ]
         if paused and self._next_alarm_ns < end:
             self._next_alarm_ns = end  # the alarm was disabled; a passed alarm fires on re-enable
         if out.slept:
