@@ -22,6 +22,7 @@ from tactdeform_hw.emulator.timed.link import (
     LinkFilter,
     LinkModel,
     UartLink,
+    UsbFsLink,
     expanded,
 )
 from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
@@ -189,10 +190,17 @@ def _drive(emu: Any, seed: int, firmware: str) -> list[Any]:
     return seen
 
 
-def _model(firmware: str, link: LinkModel, tx_link: LinkModel, boot_us: float) -> Any:
+class CallByCallV2(TimedEmulatorV2):
+    """The v2 model with every main-loop call made on its own (no chunk of unknown-byte calls)."""
+
+    def _skip_unknown(self, t: int, alarm: int, target: int) -> bool:
+        return False
+
+
+def _model(firmware: str, link: LinkModel, tx_link: LinkModel, boot_us: float, cls: Any = None) -> Any:
     if firmware == "v1.2":
         return TimedEmulator(link=link, tx_link=tx_link, model=TimingModel(boot_us=boot_us))
-    return TimedEmulatorV2(link=link, tx_link=tx_link, model=TimingModel(boot_us=boot_us))
+    return (cls or TimedEmulatorV2)(link=link, tx_link=tx_link, model=TimingModel(boot_us=boot_us))
 
 
 @pytest.mark.parametrize("firmware", ["v1.2", "v2"])
@@ -213,3 +221,33 @@ def test_bursts_leave_the_same_books_as_one_delivery_per_byte(firmware: str) -> 
     assert {"queue_full", "rebooting", "reboot"} <= reasons
     assert "hv513_reinit" in kinds
     assert firmware == "v2" or "unread_while_locked" in kinds
+
+
+@pytest.mark.parametrize("link", ["uart", "usb"])
+def test_v2_runs_of_unknown_bytes_in_chunks_as_call_by_call(link: str) -> None:
+    """The v2 model's chunks of calls that each skip one unknown byte (the zeros of a flush) give what
+    one call at a time gives, over either link (bursts against one delivery per byte on a UART)."""
+    make = UartLink if link == "uart" else UsbFsLink
+    unknown = 0
+    for seed in range(8, 14):
+        boot_us = (0.0, 700.0)[seed % 2]
+        one = _model("v2", OneByOne(make()), OneByOne(make()), boot_us, CallByCallV2)
+        fast = _model("v2", make(), make(), boot_us)
+        assert _drive(fast, seed, "v2") == _drive(one, seed, "v2"), f"seed {seed}"
+        unknown += sum(h.detail["count"] for h in fast.hazards if h.kind.value == "unknown_bytes")
+    assert unknown > 2000  # the zeros were skipped in long runs
+
+
+@pytest.mark.parametrize("cls", [TimedEmulatorV2, CallByCallV2])
+def test_v2_an_alarm_due_as_an_unknown_byte_call_would_start_scans_first(cls: Any) -> None:
+    """1010 zeros queued when the main loop wakes at 7 ms: calls of 3 µs each read one, the 1000th ends
+    at 10 ms -- the first alarm -- so the scan runs before the next call and 10 zeros wait through it."""
+    emu = cls(link="usb")
+    emu.write(bytes(1010), 5500.0)  # the packets land from 6.05 ms: after the tick at 6 ms
+    emu.advance_to(10_000.0)
+    assert [s.start_ns for s in emu.scans] == [10_000_000]
+    assert len(emu.queue) == 10
+    emu.advance_to(emu.scans[0].end_ns / 1000 - 0.001)
+    assert len(emu.queue) == 10
+    emu.advance_to(emu.scans[0].end_ns / 1000)
+    assert len(emu.queue) == 9  # the next call starts as the scan ends

@@ -730,8 +730,45 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
                 return
             if alarm <= call:
                 self._scan(alarm)
-            else:
+            elif not self._skip_unknown(call, alarm, target):
                 self._main_call(call)
+
+    def _skip_unknown(self, t: int, alarm: int, target: int) -> bool:
+        """Run the calls that each read one unknown byte and skip it (the zeros of a flush: most calls of
+        a session) in chunks, exactly as :meth:`_main_call` would one by one: each such call lands what
+        has arrived by its start, reads one byte and returns at once (no sleep), so the next call starts
+        ``call_ns + byte_ns`` later, if before the alarm and by ``target``.  A chunk ends where a delivery
+        lands (at the next call's start, as :meth:`_land` would) or the run of unknown bytes ends.  False
+        (nothing done) when the call at ``t`` is not such a call."""
+        parser = self.parser
+        if parser.processing or self._hv513_in_call or parser.tx or self._frozen:
+            return False
+        self._land(t)
+        m = self.model
+        step = m.call_ns + m.byte_ns
+        heap = self._delivery_heap
+        limit = min(alarm - 1, target)  # the latest start of a call that runs now
+        calls = 0
+        while True:
+            run = parser.unknown_run()
+            if run == 0:
+                break
+            count = min(run, (limit - t) // step + 1)
+            if heap:  # the calls before the next arrival (it lands at the start of the first call after it)
+                count = min(count, -(-(heap[0][0] - t) // step))
+            parser.skip_unknown(count)
+            calls += count
+            t += count * step
+            if t > limit:
+                break
+            self._land(t)
+        if calls == 0:
+            return False
+        self._call_time_ns = t - step
+        self._applied_in_call = None
+        self._reply_offset = None
+        self._next_call_ns = t
+        return True
 
     def _scan(self, t: int) -> None:
         regs = self.registers
