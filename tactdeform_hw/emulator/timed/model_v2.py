@@ -210,21 +210,34 @@ def _trace_events(
     return arr[:, 0], arr[:, 1].astype(np.int8), arr[:, 2]
 
 
-def _scan_shape(
-    cfg: FirmwareScanConfig, conv: ScanConventions
-) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]:
+#: (duration ns, onsets, codes, voltages, pulses) of one scan.
+ScanShape = tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]
+
+
+def _scan_shape(cfg: FirmwareScanConfig, conv: ScanConventions) -> ScanShape:
     """:func:`_shape` without walking the statements again for every new pattern.
 
     On v2 a channel's timing does not depend on its height (a height of 0 is still a DAC write of 0 for
     the pulse width), so the walk of a pattern of ones gives every edge; the heights only fill in the DAC
     codes (the ADC reading is the code held when the second exchange starts: the height again), and a
     height of 0 delivers no pulse.  Mode 2 ignores the pattern.  Equal to :func:`_shape` for every
-    pattern (tested)."""
+    pattern (tested).  The walk is keyed only by what the handler reads in the scan's mode (modes 0 and 1:
+    not the sense pulse; mode 2: not the pulse width; never v1.2's pulse height or the rate), so scans
+    that differ elsewhere share it."""
     n = cfg.electrode_num
     if cfg.stim_mode not in (0, 1):
-        return _shape(replace(cfg, stim_pattern=(0,) * n), conv)
+        walked = replace(cfg, stim_pattern=(0,) * n, pulse_width=0, pulse_height=0, frequency_hz=None)
+        return _shape(walked, conv)
     heights = cfg.stim_pattern
-    duration, onsets, _, _, rows = _shape(replace(cfg, stim_pattern=(1,) * n), conv)
+    walked = replace(
+        cfg,
+        stim_pattern=(1,) * n,
+        sense_pulse_height=0,
+        sense_pulse_width=0,
+        pulse_height=0,
+        frequency_hz=None,
+    )
+    duration, onsets, _, _, rows = _shape(walked, conv)
     pulses = tuple((ch, t0, heights[ch], w, pol) for ch, t0, _, w, pol in rows if heights[ch])
     return duration, onsets, tuple(heights), tuple(heights), pulses
 
@@ -431,6 +444,8 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         self._host_stream = _HostStream()
         # (device offset, host offset, length) of each arrival taken into the queue since power-on
         self._segments: list[tuple[int, int, int]] = []
+        self._last_scan_key: tuple[Any, ...] | None = None  # the registers of the last scan, and its shape
+        self._last_scan: tuple[FirmwareScanConfig, ScanShape]
         self._boot(0)
 
     def _boot(self, t: int, boot_delay: bool = False) -> None:
@@ -770,22 +785,42 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         self._next_call_ns = t
         return True
 
+    def _scan_of(self, regs: RegistersV2) -> tuple[FirmwareScanConfig, ScanShape]:
+        """The scan the registers give (:func:`_scan_shape`), kept for the next alarm: most scans run
+        the same registers as the one before."""
+        n = regs.electrode_num
+        pattern = tuple(regs.stim_pattern[:n])
+        key = (
+            pattern,
+            regs.pulse_width,
+            regs.discharge_time,
+            regs.polarity,
+            regs.hv513_num,
+            regs.sense_pulse_height,
+            regs.sense_pulse_width,
+            regs.stim_mode,
+        )
+        if key != self._last_scan_key:
+            cfg = FirmwareScanConfig(
+                electrode_num=n,
+                stim_pattern=pattern,
+                pulse_width=regs.pulse_width,
+                discharge_time=regs.discharge_time,
+                polarity=regs.polarity,
+                hv513_num=regs.hv513_num,
+                sense_pulse_height=regs.sense_pulse_height,
+                sense_pulse_width=regs.sense_pulse_width,
+                stim_mode=regs.stim_mode,
+                prior_scans=0,
+            )
+            self._last_scan = (cfg, _scan_shape(cfg, self.conventions))
+            self._last_scan_key = key
+        return self._last_scan
+
     def _scan(self, t: int) -> None:
         regs = self.registers
         n = regs.electrode_num
-        cfg = FirmwareScanConfig(
-            electrode_num=n,
-            stim_pattern=tuple(regs.stim_pattern[:n]),
-            pulse_width=regs.pulse_width,
-            discharge_time=regs.discharge_time,
-            polarity=regs.polarity,
-            hv513_num=regs.hv513_num,
-            sense_pulse_height=regs.sense_pulse_height,
-            sense_pulse_width=regs.sense_pulse_width,
-            stim_mode=regs.stim_mode,
-            prior_scans=0,
-        )
-        duration, onsets, codes, volts, pulses = _scan_shape(cfg, self.conventions)
+        cfg, (duration, onsets, codes, volts, pulses) = self._scan_of(regs)
         pulses = self._on_outputs(pulses, t)
         rec = ScanRecordV2(
             self.scan_count,
