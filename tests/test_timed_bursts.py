@@ -173,7 +173,11 @@ def _drive(emu: Any, seed: int, firmware: str) -> list[Any]:
         elif k < 0.97 and firmware == "v1.2":  # noise among the bytes in flight, e.g. at a byte's own time
             gap = rng.choice((0.0, 10.85, 21.7, 100.0))
             emu.deliver(bytes(rng.randrange(256) for _ in range(rng.randint(1, 3))), emu.now_us + gap)
-        else:
+        elif k < 0.97:  # a host cuts a pattern and goes; the next one's bytes complete it
+            last_write = max(emu.now_us, last_write)
+            emu.write(bytes((0xFE, 1, 0)), last_write)
+            emu.new_client(f"host {len(seen)}")
+        elif k < 0.985:
             emu.stop_reading()
         seen.append(("step", emu.now_us, emu.next_event_us(), emu.in_flight, emu.in_waiting, emu.state()))
     emu.advance_to(emu.now_us + 50_000.0)

@@ -52,6 +52,7 @@ import copy
 import heapq
 import math
 from collections.abc import Callable
+from itertools import repeat
 from typing import Any
 
 from tactdeform_hw.emulator.core import Emulator
@@ -478,10 +479,7 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                 q.offer(b.take(j))
                 devs = range(dev0, dev0 + j - k0)
                 hl.seg_dev.extend(devs)
-                if hosts is None:
-                    hl.segments.extend([(dv, -1, 1, t) for dv, t in zip(devs, times)])
-                else:
-                    hl.segments.extend([(dv, h, 1, t) for dv, h, t in zip(devs, hosts, times)])
+                hl.segments.extend(zip(devs, repeat(-1) if hosts is None else hosts, repeat(1), times))
                 hl.dev_total = dev0 + j - k0
         if len(b):
             heapq.heapreplace(dq, (b.t_ns, seq, b))

@@ -39,6 +39,7 @@ import heapq
 from bisect import bisect_right
 from dataclasses import dataclass, replace
 from functools import lru_cache
+from itertools import repeat
 from typing import Any
 
 import numpy as np
@@ -665,6 +666,23 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
                 host = d.host_offset + len(d.data) - lost if d.host_offset >= 0 else -1
                 self._loss(d.t_ns, lost, host, "queue_full")
 
+    def _lands_alike(self, t: int, count: int, step: int) -> bool:
+        """Whether the bytes arriving during ``count`` calls from ``t`` (each reading one byte already
+        queued) may land after the last of them instead of at each call's start: nothing they do depends
+        on when -- no reboot under way, room for all of them even if none were read, and no arrival in
+        that time forgets the bytes read (:meth:`~.contract.ByteQueue.keeps_read_bytes`)."""
+        parser = self.parser
+        if t < self._booting_until or not parser.keeps_read_bytes(count):
+            return False
+        last = t + (count - 1) * step
+        arriving = 0
+        for t0, _, item in self._delivery_heap:
+            if t0 <= last:
+                arriving += (
+                    item.end_before(last) - item.pos if isinstance(item, ByteBurst) else len(item.data)
+                )
+        return parser.pending + arriving <= parser.spec.rx_queue_bytes
+
     def _land_burst(self, b: ByteBurst, seq: int, t: int) -> Delivery | None:
         """The bytes of a burst that have arrived by ``t`` (before any other delivery's) join the queue at
         once when nothing sets one apart -- no reboot under way, room for all of them: no main-loop call
@@ -679,7 +697,7 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         lost = parser.receive(b.take(j))
         assert lost == 0  # there was room for every byte
         if hosts is not None:
-            self._segments.extend([(start + i, h, 1) for i, h in enumerate(hosts)])
+            self._segments.extend(zip(range(start, start + len(hosts)), hosts, repeat(1)))
         return None
 
     def new_client(self, name: str) -> None:
@@ -764,16 +782,21 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         heap = self._delivery_heap
         limit = min(alarm - 1, target)  # the latest start of a call that runs now
         calls = 0
+        run = 0
         while True:
-            run = parser.unknown_run()
             if run == 0:
-                break
+                run = parser.unknown_run()
+                if run == 0:
+                    break
             count = min(run, (limit - t) // step + 1)
-            if heap:  # the calls before the next arrival (it lands at the start of the first call after it)
-                count = min(count, -(-(heap[0][0] - t) // step))
+            if heap and heap[0][0] <= t + (count - 1) * step and not self._lands_alike(t, count, step):
+                # the calls before the next arrival (it lands at the start of the first call after it)
+                count = -(-(heap[0][0] - t) // step)
             parser.skip_unknown(count)
+            run -= count
             calls += count
             t += count * step
+            self._land(t - step)  # what arrived during the chunk (nothing unless _lands_alike said so)
             if t > limit:
                 break
             self._land(t)
