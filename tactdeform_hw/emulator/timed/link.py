@@ -430,6 +430,12 @@ class ReceiveQueue:
                 self.high_water = len(self.buf)
         return max(take, 0)
 
+    def join(self, data: bytes, peak: int) -> None:
+        """Bytes that arrived one by one while the parser read (all fitted); ``peak`` is the most bytes
+        that waited at one of their arrivals."""
+        self.buf += data
+        self.high_water = max(self.high_water, peak)
+
     def take(self, n: int) -> bytes:
         out = bytes(self.buf[:n])
         del self.buf[:n]

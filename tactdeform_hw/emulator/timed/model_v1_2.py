@@ -433,26 +433,76 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                     self._deliver(head)
             elif ta == t:
                 self._scan(int(ta), target)
-            elif not self._skip_unknown(int(tm), min(td, ta), target):
+            elif not self._skip_unknown(int(tm), ta, target):
                 self._main_call(int(tm))
 
-    def _skip_unknown(self, tc: int, before: float, target: int) -> bool:
+    def _skip_unknown(self, tc: int, alarm: float, target: int) -> bool:
         """Run the calls that each read and ignore one non-command byte (a resync's zeros: most calls of a
         session) in one go, exactly as :meth:`_main_call` would one by one (see :func:`_ignored_run`).
-        False (nothing done) when the next call is not such a call."""
+        Bytes of a burst arriving meanwhile land with them when nothing they do depends on when
+        (:meth:`_arrivals_alike`); else the run stops at the next delivery, which the event loop takes
+        first.  False (nothing done) when the next call is not such a call."""
         fw = self.fw
         p = self.parser
         if fw.call is not None or p.cmd is not None:
             return False
         step_ns = self.model.call_ns + self.model.byte_ns
-        k, t = _ignored_run(self.queue.buf, p.is_command, tc, step_ns, before, target, self.next_alarm)
+        q = self.queue
+        dq = self.host.deliveries
+        k, t = _ignored_run(q.buf, p.is_command, tc, step_ns, alarm, target, alarm)
         if k == 0:
             return False
+        arriving = 0
+        if dq and dq[0][0] <= t - step_ns:  # something lands before the run's last call
+            arriving = self._arrivals_alike(tc, t - step_ns)
+            if not arriving:
+                k, t = _ignored_run(q.buf, p.is_command, tc, step_ns, min(dq[0][0], alarm), target, alarm)
+        queued = len(q.buf)
         dev0 = fw.parser_base + p.offset
-        p.receive(self.queue.take(k))
+        p.receive(q.take(k))
         p.ignore_unknown(k)
         fw.call_end_ns, fw.call_dev_last, fw.main_next = t, dev0 + k - 1, t  # fw.call stays None
+        if arriving:
+            self._land_during_run(tc, step_ns, k, queued, arriving)
         return True  # (an ignored byte writes no reply)
+
+    def _arrivals_alike(self, tc: int, last: int) -> int:
+        """How many bytes land from ``tc`` to ``last`` (the start of a run's last call) when they may
+        land after the run instead of between its calls, else 0: they are the next bytes of the burst at
+        the head of the delivery heap and nothing else arrives meanwhile, no reboot is under way, the
+        parser is not locked and the queue has room for all of them even if no call read a byte."""
+        dq = self.host.deliveries
+        _, seq, b = dq[0]
+        key = next_key(dq)
+        if not isinstance(b, ByteBurst) or (key is not None and key[0] <= last):
+            return 0
+        if b.t_ns < self.fw.booting_until or self.emulator.parser.locked:
+            return 0
+        n = b.end_before(last, key, seq) - b.pos
+        return n if len(self.queue.buf) + n <= self.queue.capacity else 0
+
+    def _land_during_run(self, tc: int, step_ns: int, calls: int, queued: int, n: int) -> None:
+        """The ``n`` next bytes of the head burst, which arrived during a run of ``calls`` ignored-byte
+        calls from ``tc`` (``queued`` bytes waited before it): they join the queue, each with its own
+        arrival time in the books, and the queue's high-water mark is what it was at each arrival (the
+        bytes waiting then: those queued, minus one per call started before it, plus the arrivals)."""
+        dq = self.host.deliveries
+        _, seq, b = dq[0]
+        k0 = b.pos
+        times = b.times[k0 : k0 + n]
+        peak = max(queued - min(calls, -(-(a - tc) // step_ns)) + i + 1 for i, a in enumerate(times))
+        hosts = b.host_offsets(k0 + n)
+        hl = self.host
+        dev0 = hl.dev_total
+        self.queue.join(b.take(k0 + n), peak)
+        devs = range(dev0, dev0 + n)
+        hl.seg_dev.extend(devs)
+        hl.segments.extend(zip(devs, repeat(-1) if hosts is None else hosts, repeat(1), times))
+        hl.dev_total = dev0 + n
+        if len(b):
+            heapq.heapreplace(dq, (b.t_ns, seq, b))
+        else:
+            heapq.heappop(dq)
 
     # --- deliveries and the queue ---------------------------------------------------------------------------
 
