@@ -488,6 +488,7 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
         bytes waiting then: those queued, minus one per call started before it, plus the arrivals)."""
         dq = self.host.deliveries
         _, seq, b = dq[0]
+        assert isinstance(b, ByteBurst)  # (_arrivals_alike counted its bytes)
         k0 = b.pos
         times = b.times[k0 : k0 + n]
         peak = max(queued - min(calls, -(-(a - tc) // step_ns)) + i + 1 for i, a in enumerate(times))
