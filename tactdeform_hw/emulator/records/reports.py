@@ -625,8 +625,13 @@ class TimingReports:
                 continue
             reps = starts.size
             cycle = np.repeat(r.first_index + np.arange(reps), sel.size)
-            cols["cycle"].append(cycle[mask])
-            cols["start_ns"].append(abs_start[mask])
+            # the template's pulse behind each row kept (its pulses once per repetition), to index every
+            # column with at once
+            idx = np.tile(sel, reps) if reps > 1 else sel
+            if lo is not None or hi is not None:
+                idx, cycle, abs_start = idx[mask], cycle[mask], abs_start[mask]
+            cols["cycle"].append(cycle)
+            cols["start_ns"].append(abs_start)
             for name, arr in (
                 ("channel", p.channel),
                 ("kind", p.kind),
@@ -638,10 +643,10 @@ class TimingReports:
                 ("output", p.output),
                 ("limited", p.limited),
             ):
-                cols[name].append(np.tile(arr[sel], reps)[mask])
-            w = np.tile(width[sel], reps)[mask]
+                cols[name].append(arr[idx])
+            w = width[idx]
             cols["width_ns"].append(w)
-            cols["charge_nc"].append(np.tile(p.current_ua[sel], reps)[mask] * w / 1e6)
+            cols["charge_nc"].append(p.current_ua[idx] * w / 1e6)
         out: dict[str, np.ndarray] = {}
         for k, v in cols.items():
             out[k] = np.concatenate(v) if v else np.zeros(0)
