@@ -195,9 +195,13 @@ def _drive(emu: Any, seed: int, firmware: str) -> list[Any]:
 
 
 class CallByCallV2(TimedEmulatorV2):
-    """The v2 model with every main-loop call made on its own (no chunk of unknown-byte calls)."""
+    """The v2 model with every main-loop call made on its own (no chunk of unknown-byte calls, no run of
+    idle polls)."""
 
     def _skip_unknown(self, t: int, alarm: int, target: int) -> bool:
+        return False
+
+    def _idle_polls(self, t: int, alarm: int, target: int) -> bool:
         return False
 
 
@@ -229,8 +233,9 @@ def test_bursts_leave_the_same_books_as_one_delivery_per_byte(firmware: str) -> 
 
 @pytest.mark.parametrize("link", ["uart", "usb"])
 def test_v2_runs_of_unknown_bytes_in_chunks_as_call_by_call(link: str) -> None:
-    """The v2 model's chunks of calls that each skip one unknown byte (the zeros of a flush) give what
-    one call at a time gives, over either link (bursts against one delivery per byte on a UART)."""
+    """The v2 model's chunks of calls that each skip one unknown byte (the zeros of a flush) and its runs
+    of idle polls give what one call at a time gives, over either link (bursts against one delivery per
+    byte on a UART)."""
     make = UartLink if link == "uart" else UsbFsLink
     unknown = 0
     for seed in range(8, 14):
@@ -291,3 +296,15 @@ def test_v1_2_bytes_arriving_during_ignored_calls_keep_their_books(byte_us: floa
     assert len({row[1] for row in got["steps"]}) > 3  # the high-water mark rose step by step
     # bytes lost only where the parser reads slower than the UART delivers
     assert bool(got["losses"]) == (byte_us > 10.85)
+
+
+@pytest.mark.parametrize("cls", [TimedEmulatorV2, CallByCallV2])
+def test_v2_a_poll_due_with_the_alarm_runs_after_the_scan(cls: Any) -> None:
+    """The first alarm (10 ms) falls on an RTOS tick: the scan runs first and the poll due then runs as
+    it ends, so a sync check arriving during the scan is read then, not at the next tick."""
+    emu = cls(link="uart")
+    emu.write(bytes((0xF4,)), 9991.15)  # its stop bit ends at 10.002 ms, inside the scan
+    emu.advance_to(12_000.0)
+    scan = emu.scans[0]
+    assert (scan.start_ns, scan.end_ns) == (10_000_000, 10_005_350)
+    assert [(c.time_us, c.opcode) for c in emu.commands] == [(10_005.35, 0xF4)]

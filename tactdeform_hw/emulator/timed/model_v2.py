@@ -763,8 +763,33 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
                 return
             if alarm <= call:
                 self._scan(alarm)
-            elif not self._skip_unknown(call, alarm, target):
+            elif not self._idle_polls(call, alarm, target) and not self._skip_unknown(call, alarm, target):
                 self._main_call(call)
+
+    def _idle_polls(self, t: int, alarm: int, target: int) -> bool:
+        """Run the idle polls from ``t`` on in one go, exactly as :meth:`_main_call` would one by one:
+        with nothing queued, no command pending and no reply, a call changes nothing and the task sleeps
+        to the next RTOS tick -- so the polls fall on the ticks, up to the last one before the alarm,
+        ``target`` or the next arrival (a poll from then on lands it: the full path).  False (nothing
+        done) when the call at ``t`` is not an idle poll."""
+        parser = self.parser
+        if parser.pending or parser.processing or self._hv513_in_call or parser.tx or self._frozen:
+            return False
+        heap = self._delivery_heap
+        last = min(alarm - 1, target, heap[0][0] - 1 if heap else target)  # the latest poll run here
+        if t > last:
+            return False  # a delivery lands at this call
+        call_ns = self.model.call_ns
+        nxt = self._tick_after(t + call_ns)
+        if nxt <= last:  # the next polls fall a whole number of ticks apart, from a tick
+            stride = self._tick_after(nxt + call_ns) - nxt
+            t = nxt + (last - nxt) // stride * stride
+            nxt = self._tick_after(t + call_ns)
+        self._call_time_ns = t
+        self._applied_in_call = None
+        self._reply_offset = None
+        self._next_call_ns = nxt
+        return True
 
     def _skip_unknown(self, t: int, alarm: int, target: int) -> bool:
         """Run the calls that each read one unknown byte and skip it (the zeros of a flush: most calls of
