@@ -117,7 +117,8 @@ PulseRow = tuple[int, int, int, int, int]
 
 
 def _pulse_rows(events: list[list[Any]], starts: list[float]) -> tuple[PulseRow, ...]:
-    """Every non-zero DAC level of a scan, from its edge to the next DAC edge, with the POL level then."""
+    """Every non-zero DAC level of a scan, from its edge to the next DAC edge, with the POL level then
+    (times in ns)."""
     rows: list[PulseRow] = []
     pol = 1
     ch = -1
@@ -128,7 +129,7 @@ def _pulse_rows(events: list[list[Any]], starts: list[float]) -> tuple[PulseRow,
         if kind == "GPIO" and pin == 3:
             pol = value
         elif kind == "DAC":
-            t_ns = round(t * 1000)
+            t_ns = t
             if open_ is not None:
                 c0, t0, code, p0 = open_
                 rows.append((c0, t0, code, t_ns - t0, p0))
@@ -142,9 +143,9 @@ def _pulse_rows(events: list[list[Any]], starts: list[float]) -> tuple[PulseRow,
 def _shape(
     cfg: FirmwareScanConfig, conv: ScanConventions
 ) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]:
-    """(duration, onsets, codes, voltages, pulses) of one scan, from the statement walker."""
-    tr = trace_scan(cfg, "v2", conv)
-    starts = tr.channel_start_us
+    """(duration, onsets, codes, voltages, pulses) of one scan, from the statement walker (in ns)."""
+    tr = trace_scan(cfg, "v2", conv, times_ns=True)
+    starts = tr.channel_start_us  # (ns: times_ns)
     dacs = [(e[0], e[3]) for e in tr.events if e[1] == "DAC"]
     onsets: list[int] = []
     codes: list[int] = []
@@ -152,10 +153,10 @@ def _shape(
     for s in starts:
         while k < len(dacs) and dacs[k][0] < s:
             k += 1
-        onsets.append(round(dacs[k][0] * 1000) if k < len(dacs) else 0)
+        onsets.append(dacs[k][0] if k < len(dacs) else 0)
         codes.append(dacs[k][1] if k < len(dacs) else 0)
     return (
-        round(tr.isr_return_us * 1000),
+        int(tr.isr_return_us),
         tuple(onsets),
         tuple(codes),
         tuple(tr.voltage),
