@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from bisect import bisect_right
 from dataclasses import dataclass, field
+from operator import attrgetter
 from typing import Any
 
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
@@ -121,6 +122,9 @@ class Records:
     cur_first: dict[int, int] = field(default_factory=dict)  # channels a scan used while still being read
     cur_old: bytes = b""
     last_rep: CommandReport | None = None
+
+
+_channel_of = attrgetter("channel")
 
 
 def ns_of(us: float) -> int:
@@ -278,22 +282,24 @@ class CommandBooks(_ModelState):
         self.rec.commands.append(rep)
         if self.fw.stuck_at is not None:
             self._late_u16(op, t)
-        self._mark(
-            t,
-            "command",
-            {
-                "name": rep.name,
-                "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
-                "host_offset": rep.host_offset,
-                "in_sync": rep.in_sync,
-            },
-        )
+        if self.rec.sinks:  # (the marker's detail is made only for a sink to receive)
+            self._mark(
+                t,
+                "command",
+                {
+                    "name": rep.name,
+                    "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
+                    "host_offset": rep.host_offset,
+                    "in_sync": rep.in_sync,
+                },
+            )
         self._follow_losses(rep)
         if op == Opcode.FREQUENCY and value:
             self._retime_alarm(t)
         if op == _PATTERN:
             chans = {ch: ChannelLatency(ch, wt / 1000) for ch, wt in self.rec.cur_written.items()}
-            felt = {ch: chans.pop(ch) for ch in list(chans) if ch in self.rec.cur_first}
+            cur_first = self.rec.cur_first
+            felt = {ch: chans.pop(ch) for ch in list(chans) if ch in cur_first} if cur_first else {}
             for ch, cl in felt.items():
                 cl.first_pulse_us = self.rec.cur_first[ch] / 1000
             self.rec.cur_first = {}
@@ -303,7 +309,7 @@ class CommandBooks(_ModelState):
                     for ch in chans:
                         if ch in pend.channels:
                             pend.channels.pop(ch).note = "overwritten before its next pulse"
-            rep.channels = sorted([*chans.values(), *felt.values()], key=lambda cl: cl.channel)
+            rep.channels = sorted([*chans.values(), *felt.values()], key=_channel_of)
             if felt:
                 rep.first_pulse_us = min(
                     cl.first_pulse_us for cl in felt.values() if cl.first_pulse_us is not None
