@@ -379,10 +379,12 @@ class CommandBooks(_ModelState):
         """First pulses: every command waiting to be felt that this scan makes felt (and the channels of a
         pattern still being read that this scan already uses)."""
         n = tmpl.config.electrode_num
+        onsets: list[int] = []  # each channel's first onset, as ints when a channel asks
         if self.rec.cur_written and self.rec.cur is not None and self.rec.cur.opcode == _PATTERN:
+            onsets = tmpl.first_pulse_ns.tolist()
             for ch in self.rec.cur_written:
                 if ch < n and ch not in self.rec.cur_first:
-                    t = int(tmpl.first_pulse_ns[ch])
+                    t = onsets[ch]
                     if cut is None or t < cut:
                         self.rec.cur_first[ch] = ta + t
         if not self.rec.awaiting:
@@ -394,9 +396,11 @@ class CommandBooks(_ModelState):
                 continue
             if pend.channels is not None:
                 done = []
+                if pend.channels and not onsets:
+                    onsets = tmpl.first_pulse_ns.tolist()
                 for ch, cl in pend.channels.items():
                     if ch < n:
-                        t = int(tmpl.first_pulse_ns[ch])
+                        t = onsets[ch]
                         if cut is None or t < cut:
                             cl.first_pulse_us = (ta + t) / 1000
                             done.append(ch)
