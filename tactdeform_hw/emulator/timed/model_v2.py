@@ -395,7 +395,198 @@ class DeliveredV2:
         return peak
 
 
-class TimedEmulatorV2(DeliveredV2, TimedModelBase):
+class MainLoopRunsV2:
+    """What the v2 model does many times over, done in one go exactly as one at a time (a mixin of
+    :class:`TimedEmulatorV2`, which keeps the state): the idle polls, the calls that each skip one unknown
+    byte, the arrivals that land meanwhile, and the scan the registers give (kept for the next alarm)."""
+
+    model: TimingModel
+    conventions: ScanConventions
+    _last_scan_key: tuple[Any, ...] | None
+    _last_scan: tuple[FirmwareScanConfig, ScanShape]
+    _delivery_heap: list[tuple[int, int, Scheduled]]
+    _booting_until: int
+    _segments: list[tuple[int, int, int]]
+    _frozen: bool
+    _hv513_in_call: bool
+    _call_time_ns: int
+    _applied_in_call: int | None
+    _reply_offset: int | None
+    _next_call_ns: int
+
+    @property
+    def parser(self) -> ParserV2:
+        raise NotImplementedError
+
+    def _loss(self, t: int, count: int, host_offset: int, reason: str) -> None:
+        raise NotImplementedError
+
+    def _tick_after(self, t: int) -> int:
+        raise NotImplementedError
+
+    def _idle_polls(self, t: int, alarm: int, target: int) -> bool:
+        """Run the idle polls from ``t`` on in one go, exactly as :meth:`_main_call` would one by one:
+        with nothing queued, no command pending and no reply, a call changes nothing and the task sleeps
+        to the next RTOS tick -- so the polls fall on the ticks, up to the last one before the alarm,
+        ``target`` or the next arrival (a poll from then on lands it: the full path).  False (nothing
+        done) when the call at ``t`` is not an idle poll."""
+        parser = self.parser
+        if parser.pending or parser.processing or self._hv513_in_call or parser.tx or self._frozen:
+            return False
+        heap = self._delivery_heap
+        last = min(alarm - 1, target, heap[0][0] - 1 if heap else target)  # the latest poll run here
+        if t > last:
+            return False  # a delivery lands at this call
+        call_ns = self.model.call_ns
+        nxt = self._tick_after(t + call_ns)
+        if nxt <= last:  # the next polls fall a whole number of ticks apart, from a tick
+            stride = self._tick_after(nxt + call_ns) - nxt
+            t = nxt + (last - nxt) // stride * stride
+            nxt = self._tick_after(t + call_ns)
+        self._call_time_ns = t
+        self._applied_in_call = None
+        self._reply_offset = None
+        self._next_call_ns = nxt
+        return True
+
+    def _skip_unknown(self, t: int, alarm: int, target: int) -> bool:
+        """Run the calls that each read one unknown byte and skip it (the zeros of a flush: most calls of
+        a session) in chunks, exactly as :meth:`_main_call` would one by one: each such call lands what
+        has arrived by its start, reads one byte and returns at once (no sleep), so the next call starts
+        ``call_ns + byte_ns`` later, if before the alarm and by ``target``.  A chunk ends where a delivery
+        lands (at the next call's start, as :meth:`_land` would) or the run of unknown bytes ends.  False
+        (nothing done) when the call at ``t`` is not such a call."""
+        parser = self.parser
+        if parser.processing or self._hv513_in_call or parser.tx or self._frozen:
+            return False
+        self._land(t)
+        m = self.model
+        step = m.call_ns + m.byte_ns
+        heap = self._delivery_heap
+        limit = min(alarm - 1, target)  # the latest start of a call that runs now
+        calls = 0
+        run = 0
+        while True:
+            if run == 0:
+                run = parser.unknown_run()
+                if run == 0:
+                    break
+            count = min(run, (limit - t) // step + 1)
+            if heap and heap[0][0] <= t + (count - 1) * step and not self._lands_alike(t, count, step):
+                # the calls before the next arrival (it lands at the start of the first call after it)
+                count = -(-(heap[0][0] - t) // step)
+            parser.skip_unknown(count)
+            run -= count
+            calls += count
+            t += count * step
+            self._land(t - step)  # what arrived during the chunk (nothing unless _lands_alike said so)
+            if t > limit:
+                break
+            self._land(t)
+        if calls == 0:
+            return False
+        self._call_time_ns = t - step
+        self._applied_in_call = None
+        self._reply_offset = None
+        self._next_call_ns = t
+        return True
+
+    def _land(self, t: int) -> None:
+        """Arrivals up to ``t`` into the receive queue (lost while the board boots or the queue is full)."""
+        parser = self.parser
+        heap = self._delivery_heap
+        while heap and heap[0][0] <= t:
+            _, seq, item = heap[0]
+            if isinstance(item, ByteBurst):
+                d = self._land_burst(item, seq, t)
+                if len(item):
+                    heapq.heapreplace(heap, (item.t_ns, seq, item))
+                else:
+                    heapq.heappop(heap)
+                if d is None:
+                    continue
+            else:
+                heapq.heappop(heap)
+                d = item
+            if d.t_ns < self._booting_until:  # bytes that came while the board booted are lost
+                self._loss(d.t_ns, len(d.data), d.host_offset, "rebooting")
+                continue
+            start = parser.offset + parser.pending
+            lost = parser.receive(d.data)
+            if d.host_offset >= 0 and len(d.data) > lost:
+                self._segments.append((start, d.host_offset, len(d.data) - lost))
+            if lost:
+                host = d.host_offset + len(d.data) - lost if d.host_offset >= 0 else -1
+                self._loss(d.t_ns, lost, host, "queue_full")
+
+    def _lands_alike(self, t: int, count: int, step: int) -> bool:
+        """Whether the bytes arriving during ``count`` calls from ``t`` (each reading one byte already
+        queued) may land after the last of them instead of at each call's start: nothing they do depends
+        on when -- no reboot under way, room for all of them even if none were read, and no arrival in
+        that time forgets the bytes read (:meth:`~.contract.ByteQueue.keeps_read_bytes`)."""
+        parser = self.parser
+        if t < self._booting_until or not parser.keeps_read_bytes(count):
+            return False
+        last = t + (count - 1) * step
+        arriving = 0
+        for t0, _, item in self._delivery_heap:
+            if t0 <= last:
+                arriving += (
+                    item.end_before(last) - item.pos if isinstance(item, ByteBurst) else len(item.data)
+                )
+        return parser.pending + arriving <= parser.spec.rx_queue_bytes
+
+    def _land_burst(self, b: ByteBurst, seq: int, t: int) -> Delivery | None:
+        """The bytes of a burst that have arrived by ``t`` (before any other delivery's) join the queue at
+        once when nothing sets one apart -- no reboot under way, room for all of them: no main-loop call
+        runs between their arrivals, so the queue holds what it would after taking them one by one.
+        Otherwise the next byte alone, as a delivery for :meth:`_land` (None: the bytes were taken)."""
+        parser = self.parser
+        j = b.end_before(t, next_key(self._delivery_heap), seq)
+        if b.t_ns < self._booting_until or j - b.pos > parser.spec.rx_queue_bytes - parser.pending:
+            return b.pop()
+        start = parser.offset + parser.pending
+        hosts = b.host_offsets(j)
+        lost = parser.receive(b.take(j))
+        assert lost == 0  # there was room for every byte
+        if hosts is not None:
+            self._segments.extend(zip(range(start, start + len(hosts)), hosts, repeat(1)))
+        return None
+
+    def _scan_of(self, regs: RegistersV2) -> tuple[FirmwareScanConfig, ScanShape]:
+        """The scan the registers give (:func:`_scan_shape`), kept for the next alarm: most scans run
+        the same registers as the one before."""
+        n = regs.electrode_num
+        pattern = tuple(regs.stim_pattern[:n])
+        key = (
+            pattern,
+            regs.pulse_width,
+            regs.discharge_time,
+            regs.polarity,
+            regs.hv513_num,
+            regs.sense_pulse_height,
+            regs.sense_pulse_width,
+            regs.stim_mode,
+        )
+        if key != self._last_scan_key:
+            cfg = FirmwareScanConfig(
+                electrode_num=n,
+                stim_pattern=pattern,
+                pulse_width=regs.pulse_width,
+                discharge_time=regs.discharge_time,
+                polarity=regs.polarity,
+                hv513_num=regs.hv513_num,
+                sense_pulse_height=regs.sense_pulse_height,
+                sense_pulse_width=regs.sense_pulse_width,
+                stim_mode=regs.stim_mode,
+                prior_scans=0,
+            )
+            self._last_scan = (cfg, _scan_shape(cfg, self.conventions))
+            self._last_scan_key = key
+        return self._last_scan
+
+
+class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
     """The v2 board in simulated time.  ``write(data, at_us)`` hands bytes to the link; ``advance_to``
     runs the firmware until then; ``read_tx`` returns what reached the host."""
 
@@ -447,7 +638,6 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         # (device offset, host offset, length) of each arrival taken into the queue since power-on
         self._segments: list[tuple[int, int, int]] = []
         self._last_scan_key: tuple[Any, ...] | None = None  # the registers of the last scan, and its shape
-        self._last_scan: tuple[FirmwareScanConfig, ScanShape]
         self._boot(0)
 
     def _boot(self, t: int, boot_delay: bool = False) -> None:
@@ -639,68 +829,6 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         dev, host, length = self._segments[k]
         return host + dev_offset - dev if dev_offset < dev + length else -1
 
-    def _land(self, t: int) -> None:
-        """Arrivals up to ``t`` into the receive queue (lost while the board boots or the queue is full)."""
-        parser = self.parser
-        heap = self._delivery_heap
-        while heap and heap[0][0] <= t:
-            _, seq, item = heap[0]
-            if isinstance(item, ByteBurst):
-                d = self._land_burst(item, seq, t)
-                if len(item):
-                    heapq.heapreplace(heap, (item.t_ns, seq, item))
-                else:
-                    heapq.heappop(heap)
-                if d is None:
-                    continue
-            else:
-                heapq.heappop(heap)
-                d = item
-            if d.t_ns < self._booting_until:  # bytes that came while the board booted are lost
-                self._loss(d.t_ns, len(d.data), d.host_offset, "rebooting")
-                continue
-            start = parser.offset + parser.pending
-            lost = parser.receive(d.data)
-            if d.host_offset >= 0 and len(d.data) > lost:
-                self._segments.append((start, d.host_offset, len(d.data) - lost))
-            if lost:
-                host = d.host_offset + len(d.data) - lost if d.host_offset >= 0 else -1
-                self._loss(d.t_ns, lost, host, "queue_full")
-
-    def _lands_alike(self, t: int, count: int, step: int) -> bool:
-        """Whether the bytes arriving during ``count`` calls from ``t`` (each reading one byte already
-        queued) may land after the last of them instead of at each call's start: nothing they do depends
-        on when -- no reboot under way, room for all of them even if none were read, and no arrival in
-        that time forgets the bytes read (:meth:`~.contract.ByteQueue.keeps_read_bytes`)."""
-        parser = self.parser
-        if t < self._booting_until or not parser.keeps_read_bytes(count):
-            return False
-        last = t + (count - 1) * step
-        arriving = 0
-        for t0, _, item in self._delivery_heap:
-            if t0 <= last:
-                arriving += (
-                    item.end_before(last) - item.pos if isinstance(item, ByteBurst) else len(item.data)
-                )
-        return parser.pending + arriving <= parser.spec.rx_queue_bytes
-
-    def _land_burst(self, b: ByteBurst, seq: int, t: int) -> Delivery | None:
-        """The bytes of a burst that have arrived by ``t`` (before any other delivery's) join the queue at
-        once when nothing sets one apart -- no reboot under way, room for all of them: no main-loop call
-        runs between their arrivals, so the queue holds what it would after taking them one by one.
-        Otherwise the next byte alone, as a delivery for :meth:`_land` (None: the bytes were taken)."""
-        parser = self.parser
-        j = b.end_before(t, next_key(self._delivery_heap), seq)
-        if b.t_ns < self._booting_until or j - b.pos > parser.spec.rx_queue_bytes - parser.pending:
-            return b.pop()
-        start = parser.offset + parser.pending
-        hosts = b.host_offsets(j)
-        lost = parser.receive(b.take(j))
-        assert lost == 0  # there was room for every byte
-        if hosts is not None:
-            self._segments.extend(zip(range(start, start + len(hosts)), hosts, repeat(1)))
-        return None
-
     def new_client(self, name: str) -> None:
         """A new host connection starts here: its bytes follow the ones already taken.  Nothing in the
         firmware resets the parser on a new connection, so a command the previous host cut takes the new
@@ -766,105 +894,6 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
                 self._scan(alarm)
             elif not self._idle_polls(call, alarm, target) and not self._skip_unknown(call, alarm, target):
                 self._main_call(call)
-
-    def _idle_polls(self, t: int, alarm: int, target: int) -> bool:
-        """Run the idle polls from ``t`` on in one go, exactly as :meth:`_main_call` would one by one:
-        with nothing queued, no command pending and no reply, a call changes nothing and the task sleeps
-        to the next RTOS tick -- so the polls fall on the ticks, up to the last one before the alarm,
-        ``target`` or the next arrival (a poll from then on lands it: the full path).  False (nothing
-        done) when the call at ``t`` is not an idle poll."""
-        parser = self.parser
-        if parser.pending or parser.processing or self._hv513_in_call or parser.tx or self._frozen:
-            return False
-        heap = self._delivery_heap
-        last = min(alarm - 1, target, heap[0][0] - 1 if heap else target)  # the latest poll run here
-        if t > last:
-            return False  # a delivery lands at this call
-        call_ns = self.model.call_ns
-        nxt = self._tick_after(t + call_ns)
-        if nxt <= last:  # the next polls fall a whole number of ticks apart, from a tick
-            stride = self._tick_after(nxt + call_ns) - nxt
-            t = nxt + (last - nxt) // stride * stride
-            nxt = self._tick_after(t + call_ns)
-        self._call_time_ns = t
-        self._applied_in_call = None
-        self._reply_offset = None
-        self._next_call_ns = nxt
-        return True
-
-    def _skip_unknown(self, t: int, alarm: int, target: int) -> bool:
-        """Run the calls that each read one unknown byte and skip it (the zeros of a flush: most calls of
-        a session) in chunks, exactly as :meth:`_main_call` would one by one: each such call lands what
-        has arrived by its start, reads one byte and returns at once (no sleep), so the next call starts
-        ``call_ns + byte_ns`` later, if before the alarm and by ``target``.  A chunk ends where a delivery
-        lands (at the next call's start, as :meth:`_land` would) or the run of unknown bytes ends.  False
-        (nothing done) when the call at ``t`` is not such a call."""
-        parser = self.parser
-        if parser.processing or self._hv513_in_call or parser.tx or self._frozen:
-            return False
-        self._land(t)
-        m = self.model
-        step = m.call_ns + m.byte_ns
-        heap = self._delivery_heap
-        limit = min(alarm - 1, target)  # the latest start of a call that runs now
-        calls = 0
-        run = 0
-        while True:
-            if run == 0:
-                run = parser.unknown_run()
-                if run == 0:
-                    break
-            count = min(run, (limit - t) // step + 1)
-            if heap and heap[0][0] <= t + (count - 1) * step and not self._lands_alike(t, count, step):
-                # the calls before the next arrival (it lands at the start of the first call after it)
-                count = -(-(heap[0][0] - t) // step)
-            parser.skip_unknown(count)
-            run -= count
-            calls += count
-            t += count * step
-            self._land(t - step)  # what arrived during the chunk (nothing unless _lands_alike said so)
-            if t > limit:
-                break
-            self._land(t)
-        if calls == 0:
-            return False
-        self._call_time_ns = t - step
-        self._applied_in_call = None
-        self._reply_offset = None
-        self._next_call_ns = t
-        return True
-
-    def _scan_of(self, regs: RegistersV2) -> tuple[FirmwareScanConfig, ScanShape]:
-        """The scan the registers give (:func:`_scan_shape`), kept for the next alarm: most scans run
-        the same registers as the one before."""
-        n = regs.electrode_num
-        pattern = tuple(regs.stim_pattern[:n])
-        key = (
-            pattern,
-            regs.pulse_width,
-            regs.discharge_time,
-            regs.polarity,
-            regs.hv513_num,
-            regs.sense_pulse_height,
-            regs.sense_pulse_width,
-            regs.stim_mode,
-        )
-        if key != self._last_scan_key:
-            cfg = FirmwareScanConfig(
-                electrode_num=n,
-                stim_pattern=pattern,
-                pulse_width=regs.pulse_width,
-                discharge_time=regs.discharge_time,
-                polarity=regs.polarity,
-                hv513_num=regs.hv513_num,
-                sense_pulse_height=regs.sense_pulse_height,
-                sense_pulse_width=regs.sense_pulse_width,
-                stim_mode=regs.stim_mode,
-                prior_scans=0,
-            )
-            self._last_scan = (cfg, _scan_shape(cfg, self.conventions))
-            self._last_scan_key = key
-        return self._last_scan
 
     def _scan(self, t: int) -> None:
         regs = self.registers
