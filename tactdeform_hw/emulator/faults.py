@@ -48,7 +48,15 @@ import numpy as np
 from serial.serialutil import PortNotOpenError, SerialException
 
 from tactdeform_hw.emulator.timed.base import TimedModel
-from tactdeform_hw.emulator.timed.link import Delivery, LinkFilter, LinkModel, make_link
+from tactdeform_hw.emulator.timed.link import (
+    ByteBurst,
+    Delivery,
+    LinkFilter,
+    LinkModel,
+    Scheduled,
+    expanded,
+    make_link,
+)
 from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.protocol.state import BoardState
 
@@ -141,6 +149,22 @@ class FaultyLink(LinkFilter):
             )
         self.pending.append(fault)
         self.pending.sort(key=lambda f: f.at_s)
+
+    def schedule_bursts(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Scheduled]:
+        """The inner link's bursts unchanged when :meth:`transform` would change none of their bytes: no
+        fault due by the write's time and nothing delayed still ahead of them; else every byte through
+        :meth:`transform`, as :meth:`schedule` does."""
+        if self.pending and self.pending[0].at_s * 1e9 <= t_ns:
+            return list(self.schedule(data, t_ns, host_offset))
+        out = self.inner.schedule_bursts(data, t_ns, host_offset)
+        floor = self._floor_ns
+        for d in out:
+            if not isinstance(d, ByteBurst) or d.t_ns < floor:
+                # a delivery of another shape, or a delayed chunk still ahead (each byte waits behind it)
+                return list(self.transform([x for d in out for x in expanded(d)]))
+            floor = d.times[-1]
+        self._floor_ns = floor
+        return out
 
     def transform(self, deliveries: list[Delivery]) -> list[Delivery]:
         out: list[Delivery] = []

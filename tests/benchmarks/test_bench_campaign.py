@@ -89,3 +89,22 @@ def test_bench_campaign_sessions_emulator_only(  # type: ignore[no-untyped-def]
     assert len(runs) >= len(SESSIONS) and all(ops for _, ops in runs)
     simulated_us = benchmark(replay, firmware, runs)
     assert simulated_us > 0
+
+
+@pytest.mark.parametrize("firmware", ["v1.2", "v2"])
+def test_bench_uart_flush(benchmark, firmware: str) -> None:  # type: ignore[no-untyped-def]
+    """A recovery's probe over a UART (512 zeros, the safe tail, the sync check), run for 200 ms: a byte
+    per 10.85 µs on the link and a main-loop call per zero -- the traffic that made most of a session's
+    cost when each byte was an event of its own."""
+    from tactdeform_hw.device.driver.firmware_probe import PROBE
+
+    model: Any = TimedEmulatorV2 if firmware == "v2" else TimedEmulator
+
+    def flush() -> bytes:
+        emu = model(link="uart")
+        emu.write(PROBE, 1000.0)
+        emu.advance_to(200_000.0)
+        return bytes(emu.read_tx())
+
+    reply = benchmark(flush)
+    assert reply == (b"\x00" if firmware == "v2" else b"")  # v2 answers the sync check; v1.2 skips it

@@ -34,6 +34,10 @@ class CallOutcome:
         return self.consumed == 0 and self.wrote == 0
 
 
+#: Bytes read that an arrival never forgets (past them, it drops what was read once that is most of ``rx``).
+_KEEP_READ_BYTES = 4096
+
+
 class ByteQueue:
     """The bytes a parser has been handed and the bytes it wrote, as both versions' parsers keep them:
     ``rx`` from absolute offset ``base``, read up to ``pos``; ``tx`` until taken."""
@@ -60,9 +64,15 @@ class ByteQueue:
         self.tx.clear()
         return out
 
+    def keeps_read_bytes(self, reads: int) -> bool:
+        """Whether the bytes read so far stay in ``rx`` through ``reads`` more reads, whatever arrives
+        meanwhile (an arrival forgets them only past :data:`_KEEP_READ_BYTES`): then when bytes arrive
+        during those reads does not change ``rx``, ``base`` or ``pos``."""
+        return self.pos + reads <= _KEEP_READ_BYTES
+
     def _drop_read(self) -> None:
         """Forget bytes already read once they are most of the buffer (a long session stays bounded)."""
-        if self.pos > 4096 and self.pos * 2 > len(self.rx):
+        if self.pos > _KEEP_READ_BYTES and self.pos * 2 > len(self.rx):
             del self.rx[: self.pos]
             self.base += self.pos
             self.pos = 0

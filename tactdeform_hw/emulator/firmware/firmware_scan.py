@@ -26,7 +26,7 @@ engine to this walker event for event, so this walker stays the one definition o
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -131,8 +131,14 @@ def alarm_ticks_for(firmware: str | FirmwareSpec, frequency_hz: int | None) -> i
     return fm.alarm_ticks(period)
 
 
+def _ns_to_us(ns: int) -> float:
+    return round(ns / 1000, 3)
+
+
 class _Walker:
-    def __init__(self, spec: FirmwareSpec, conv: ScanConventions, log: bool) -> None:
+    def __init__(self, spec: FirmwareSpec, conv: ScanConventions, log: bool, times_ns: bool = False) -> None:
+        #: a time of the walk (integer ns) as the trace gives it: µs to the ns, or the ns themselves
+        self.us: Callable[[int], float] = int if times_ns else _ns_to_us
         self.spec = spec
         #: one register write per pin (v1.2: DA_CS then AD_CS) or one for both (v2), from the table
         self.cs_one_write = spec.timing.chip_select_writes_per_exchange == 2
@@ -143,9 +149,6 @@ class _Walker:
         self.dac = 0
         self.pos = 0
         self.marks: list[int] = []  # start of each channel, then of the chain clear
-
-    def us(self, ns: int) -> float:
-        return round(ns / 1000, 3)
 
     def gpio(self, *pins_levels: tuple[int, int]) -> None:
         """One register write (several pins: one event each, same time, ascending pin)."""
@@ -236,10 +239,15 @@ def trace_scan(
     conventions: ScanConventions = DEFAULT_CONVENTIONS,
     *,
     log: bool = True,
+    times_ns: bool = False,
 ) -> ScanTrace:
-    """One interrupt (after ``cfg.prior_scans`` unlogged ones), from a fresh process's chain state."""
+    """One interrupt (after ``cfg.prior_scans`` unlogged ones), from a fresh process's chain state.
+
+    ``times_ns``: every time in the trace (events, return, channel starts) as the integer ns the walk
+    keeps, not in µs (each µs value is that ns / 1000 to the ns, so nothing else differs) -- for a model
+    that works in ns and would only multiply back."""
     spec = get_firmware(firmware)
-    w = _Walker(spec, conventions, log=False)
+    w = _Walker(spec, conventions, log=False, times_ns=times_ns)
     volts: list[int] = []
     for k in range(cfg.prior_scans + 1):
         w.log = log and k == cfg.prior_scans

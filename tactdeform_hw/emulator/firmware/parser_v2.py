@@ -14,7 +14,9 @@ byte, the rest of a packet dropped silently at the first byte that does not fit.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
+from functools import lru_cache
 
 from tactdeform_hw.emulator.firmware.contract import CallOutcome, ParserBase
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind, UnknownRuns
@@ -23,6 +25,13 @@ from tactdeform_hw.protocol import firmware_math as fm
 from tactdeform_hw.protocol.commands import encode_measure_reply
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
 from tactdeform_hw.protocol.firmware import V2, CommandSpec, FirmwareSpec
+
+
+@lru_cache(maxsize=8)
+def _unknown_run(spec: FirmwareSpec) -> re.Pattern[bytes]:
+    """Matches a run of bytes no command of ``spec`` starts with."""
+    unknown = [b for b in range(256) if b not in spec.by_opcode]
+    return re.compile(b"[" + b"".join(b"\\x%02x" % b for b in unknown) + b"]*")
 
 
 class ParserV2(ParserBase, UnknownRuns):
@@ -140,6 +149,24 @@ class ParserV2(ParserBase, UnknownRuns):
                 self.processing = False
                 self.command = 0
         return CallOutcome(consumed, len(self.tx) - wrote_before, not made_progress)
+
+    def unknown_run(self) -> int:
+        """How many calls in a row would each read one unknown byte and skip it: the queued bytes, from
+        the next one, that no command starts with (0 while a command waits for its payload)."""
+        if self.processing:
+            return 0
+        m = _unknown_run(self.spec).match(self.rx, self.pos)
+        return m.end() - self.pos if m is not None else 0
+
+    def skip_unknown(self, count: int) -> None:
+        """``count`` calls that each read one unknown byte and skip it, in one go: what ``count`` calls of
+        :meth:`call` do on them (the timed model's fast path for the zeros of a flush)."""
+        if count > self.unknown_run():
+            raise AssertionError(f"skip_unknown({count}): not a run of unknown bytes between commands")
+        if count > 0:
+            self._note_unknown(self.offset)
+            self._unknown_len += count - 1
+            self.pos += count
 
     def run(self, now_us: int) -> None:
         """Call until a call neither consumes nor writes a byte (the golden vectors' driving rule)."""

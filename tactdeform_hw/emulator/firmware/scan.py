@@ -605,23 +605,26 @@ class ScanEngine:
         voltage, when it was sampled and the first onset."""
         skin = self.skin
         cache = self._outcomes
+        get = cache.get
         blocks_pulses = [b[1] for b in blocks]
         rows: list[tuple[int, ...]] = []
         flo: list[float] = []
         outs_list: list[tuple[int, ...]] = []
         raws: list[int] = []
         limited: list[bool] = []
-        voltages = np.zeros(n, dtype=np.int64)
-        v_at = np.zeros(n, dtype=np.int64)
-        first = np.zeros(n, dtype=np.int64)
+        # per channel, as Python ints (one numpy array each at the end: no element write per pulse)
+        volt_l = [0] * n
+        v_at_l = [0] * n
+        first_l = [0] * n
         kinds_l = kinds.tolist()
         starts_l = starts.tolist()
         for ch in range(n):
             st = starts_l[ch]
             bits = latched[ch]
-            for j, (pk, on, w, code, pol, sample) in enumerate(blocks_pulses[kinds_l[ch]]):
+            chan_pulses = blocks_pulses[kinds_l[ch]]
+            for pk, on, w, code, pol, sample in chan_pulses:
                 key = (bits, code, sample - on)
-                o = cache.get(key)
+                o = get(key)
                 if o is None:
                     outs = _outputs(bits)
                     o = (outs, skin.pulse(outs, code, (sample - on) / 1000.0))
@@ -647,10 +650,13 @@ class ScanEngine:
                 outs_list.append(outs)
                 raws.append(oc.adc_raw)
                 limited.append(oc.compliance_limited)
-                if j == 0:
-                    first[ch] = st + on
-                voltages[ch] = oc.voltage_code
-                v_at[ch] = st + sample
+            if chan_pulses:
+                first_l[ch] = st + chan_pulses[0][1]
+                volt_l[ch] = oc.voltage_code
+                v_at_l[ch] = st + chan_pulses[-1][5]
+        voltages = np.array(volt_l, dtype=np.int64)
+        v_at = np.array(v_at_l, dtype=np.int64)
+        first = np.array(first_l, dtype=np.int64)
         return rows, flo, outs_list, raws, limited, (voltages, v_at, first)
 
     def _events(

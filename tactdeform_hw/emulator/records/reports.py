@@ -17,6 +17,7 @@ import numpy as np
 from tactdeform_hw.emulator.firmware.firmware_scan import beyond_chain_notes, budget_verdict
 from tactdeform_hw.emulator.firmware.scan import (
     ChannelKind,
+    PulseArrays,
     PulseKind,
     ScanConfig,
     ScanTemplate,
@@ -108,6 +109,24 @@ class ChannelLatency:
     written_us: float
     first_pulse_us: float | None = None
     note: str = ""
+
+
+#: The pulse table's columns, in its order.
+_PULSE_COLUMNS = (
+    "cycle",
+    "channel",
+    "kind",
+    "code",
+    "pol",
+    "current_ua",
+    "charge_nc",
+    "voltage_code",
+    "n_outputs",
+    "output",
+    "limited",
+    "start_us",
+    "width_us",
+)
 
 
 @dataclass
@@ -578,27 +597,19 @@ class TimingReports:
 
     def pulse_table(self, t0_us: float | None = None, t1_us: float | None = None) -> dict[str, np.ndarray]:
         """Every pulse as numpy columns (``cycle, channel, kind, start_us, width_us, code, pol, current_ua,
-        charge_nc, voltage_code, n_outputs, output, limited``), optionally within ``[t0_us, t1_us)``."""
-        cols: dict[str, list[np.ndarray]] = {
-            k: []
-            for k in (
-                "cycle",
-                "channel",
-                "kind",
-                "start_ns",
-                "width_ns",
-                "code",
-                "pol",
-                "current_ua",
-                "charge_nc",
-                "voltage_code",
-                "n_outputs",
-                "output",
-                "limited",
-            )
-        }
+        charge_nc, voltage_code, n_outputs, output, limited``), optionally within ``[t0_us, t1_us)``.
+
+        Each run gives the rows of its template's pulses it keeps (as indices into the columns of every
+        template met, laid end to end); each column is gathered once at the end."""
         lo = None if t0_us is None else int(round(t0_us * 1000))
         hi = None if t1_us is None else int(round(t1_us * 1000))
+        templates: dict[int, int] = {}  # id of a template's pulses -> where its rows start end to end
+        met: list[PulseArrays] = []
+        rows = 0
+        cycles: list[np.ndarray] = []
+        starts_ns: list[np.ndarray] = []
+        widths: list[np.ndarray] = []
+        picks: list[np.ndarray] = []
         for r in self.runs:
             p = r.template.pulses
             if p.channel.size == 0:
@@ -620,28 +631,32 @@ class TimingReports:
                 continue
             reps = starts.size
             cycle = np.repeat(r.first_index + np.arange(reps), sel.size)
-            cols["cycle"].append(cycle[mask])
-            cols["start_ns"].append(abs_start[mask])
-            for name, arr in (
-                ("channel", p.channel),
-                ("kind", p.kind),
-                ("code", p.code),
-                ("pol", p.pol),
-                ("current_ua", p.current_ua),
-                ("voltage_code", p.voltage_code),
-                ("n_outputs", p.n_outputs),
-                ("output", p.output),
-                ("limited", p.limited),
-            ):
-                cols[name].append(np.tile(arr[sel], reps)[mask])
-            w = np.tile(width[sel], reps)[mask]
-            cols["width_ns"].append(w)
-            cols["charge_nc"].append(np.tile(p.current_ua[sel], reps)[mask] * w / 1e6)
-        out: dict[str, np.ndarray] = {}
-        for k, v in cols.items():
-            out[k] = np.concatenate(v) if v else np.zeros(0)
-        out["start_us"] = out.pop("start_ns") / 1000.0
-        out["width_us"] = out.pop("width_ns") / 1000.0
+            # the template's pulse behind each row kept (its pulses once per repetition)
+            idx = np.tile(sel, reps) if reps > 1 else sel
+            if lo is not None or hi is not None:
+                idx, cycle, abs_start = idx[mask], cycle[mask], abs_start[mask]
+            at = templates.get(id(p))
+            if at is None:
+                at = templates[id(p)] = rows
+                met.append(p)
+                rows += p.channel.size
+            cycles.append(cycle)
+            starts_ns.append(abs_start)
+            widths.append(width[idx])
+            picks.append(idx + at)
+        if not picks:
+            return {k: np.zeros(0) / 1000.0 if k.endswith("_us") else np.zeros(0) for k in _PULSE_COLUMNS}
+        pick = np.concatenate(picks)
+        w = np.concatenate(widths)
+        out = {"cycle": np.concatenate(cycles)}
+        for name in _PULSE_COLUMNS[1:-2]:
+            if name == "charge_nc":
+                out[name] = out["current_ua"] * w / 1e6
+                continue
+            col = np.concatenate([getattr(p, name) for p in met]) if len(met) > 1 else getattr(met[0], name)
+            out[name] = col[pick]
+        out["start_us"] = np.concatenate(starts_ns) / 1000.0
+        out["width_us"] = w / 1000.0
         return out
 
     def pulses(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from bisect import bisect_right
 from dataclasses import dataclass, field
+from operator import attrgetter
 from typing import Any
 
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
@@ -25,7 +26,7 @@ from tactdeform_hw.emulator.records.reports import (
     ScanRun,
     TornInfo,
 )
-from tactdeform_hw.emulator.timed.link import Delivery, ReceiveQueue
+from tactdeform_hw.emulator.timed.link import ReceiveQueue, Scheduled
 from tactdeform_hw.protocol.constants import Opcode
 from tactdeform_hw.protocol.decoder import StreamDecoder
 
@@ -88,10 +89,10 @@ class HostLedger:
     write_starts: list[int] = field(default_factory=list)
     intended: dict[int, tuple[int, int]] = field(default_factory=dict)  # host offset -> (opcode, end offset)
     intended_starts: list[int] = field(default_factory=list)
-    deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)  # heap: bytes on their way in
+    deliveries: list[tuple[int, int, Scheduled]] = field(default_factory=list)  # heap: bytes on their way in
     seq: int = 0
     # heap: replies on their way out
-    tx_deliveries: list[tuple[int, int, Delivery]] = field(default_factory=list)
+    tx_deliveries: list[tuple[int, int, Scheduled]] = field(default_factory=list)
     rx: bytearray = field(default_factory=bytearray)  # replies that reached the host, unread
     dev_total: int = 0  # device stream: accepted bytes, session-wide offsets
     seg_dev: list[int] = field(default_factory=list)
@@ -121,6 +122,9 @@ class Records:
     cur_first: dict[int, int] = field(default_factory=dict)  # channels a scan used while still being read
     cur_old: bytes = b""
     last_rep: CommandReport | None = None
+
+
+_channel_of = attrgetter("channel")
 
 
 def ns_of(us: float) -> int:
@@ -278,22 +282,24 @@ class CommandBooks(_ModelState):
         self.rec.commands.append(rep)
         if self.fw.stuck_at is not None:
             self._late_u16(op, t)
-        self._mark(
-            t,
-            "command",
-            {
-                "name": rep.name,
-                "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
-                "host_offset": rep.host_offset,
-                "in_sync": rep.in_sync,
-            },
-        )
+        if self.rec.sinks:  # (the marker's detail is made only for a sink to receive)
+            self._mark(
+                t,
+                "command",
+                {
+                    "name": rep.name,
+                    "value": list(rep.value) if isinstance(rep.value, bytes) else rep.value,
+                    "host_offset": rep.host_offset,
+                    "in_sync": rep.in_sync,
+                },
+            )
         self._follow_losses(rep)
         if op == Opcode.FREQUENCY and value:
             self._retime_alarm(t)
         if op == _PATTERN:
             chans = {ch: ChannelLatency(ch, wt / 1000) for ch, wt in self.rec.cur_written.items()}
-            felt = {ch: chans.pop(ch) for ch in list(chans) if ch in self.rec.cur_first}
+            cur_first = self.rec.cur_first
+            felt = {ch: chans.pop(ch) for ch in list(chans) if ch in cur_first} if cur_first else {}
             for ch, cl in felt.items():
                 cl.first_pulse_us = self.rec.cur_first[ch] / 1000
             self.rec.cur_first = {}
@@ -303,7 +309,7 @@ class CommandBooks(_ModelState):
                     for ch in chans:
                         if ch in pend.channels:
                             pend.channels.pop(ch).note = "overwritten before its next pulse"
-            rep.channels = sorted([*chans.values(), *felt.values()], key=lambda cl: cl.channel)
+            rep.channels = sorted([*chans.values(), *felt.values()], key=_channel_of)
             if felt:
                 rep.first_pulse_us = min(
                     cl.first_pulse_us for cl in felt.values() if cl.first_pulse_us is not None
@@ -373,10 +379,12 @@ class CommandBooks(_ModelState):
         """First pulses: every command waiting to be felt that this scan makes felt (and the channels of a
         pattern still being read that this scan already uses)."""
         n = tmpl.config.electrode_num
+        onsets: list[int] = []  # each channel's first onset, as ints when a channel asks
         if self.rec.cur_written and self.rec.cur is not None and self.rec.cur.opcode == _PATTERN:
+            onsets = tmpl.first_pulse_ns.tolist()
             for ch in self.rec.cur_written:
                 if ch < n and ch not in self.rec.cur_first:
-                    t = int(tmpl.first_pulse_ns[ch])
+                    t = onsets[ch]
                     if cut is None or t < cut:
                         self.rec.cur_first[ch] = ta + t
         if not self.rec.awaiting:
@@ -388,9 +396,11 @@ class CommandBooks(_ModelState):
                 continue
             if pend.channels is not None:
                 done = []
+                if pend.channels and not onsets:
+                    onsets = tmpl.first_pulse_ns.tolist()
                 for ch, cl in pend.channels.items():
                     if ch < n:
-                        t = int(tmpl.first_pulse_ns[ch])
+                        t = onsets[ch]
                         if cut is None or t < cut:
                             cl.first_pulse_us = (ta + t) / 1000
                             done.append(ch)

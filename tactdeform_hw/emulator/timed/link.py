@@ -25,6 +25,7 @@ held back nor told.
 
 from __future__ import annotations
 
+from bisect import bisect_left, bisect_right
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -64,6 +65,109 @@ def _delivery(t_ns: int, data: bytes, host_offset: int, sent_ns: int) -> Deliver
     return d
 
 
+class ByteBurst:
+    """The single-byte deliveries of one write, kept together: byte ``k`` of the write reaches the device
+    on its own at ``times[k]``, exactly as the :class:`Delivery` :meth:`UartLink.schedule` makes for it
+    (the same time, host offset and send time).  A UART delivers one byte per 10.85 µs; a model that moved
+    each through its event queue spent most of a session doing so.  With the times known up front it
+    moves, at once, the bytes that arrive before anything else can happen (a scan, a parser call, another
+    delivery), and still takes one byte at a time wherever one byte matters (a full queue, a reboot).
+
+    ``pos`` is the first byte not delivered yet; ``t_ns``, ``data`` and ``host_offset`` describe the
+    bytes still on their way (from ``pos``), as a :class:`Delivery`'s fields do, so code that only sums
+    or inspects what is in flight reads either alike."""
+
+    __slots__ = ("_data", "times", "_host0", "sent_ns", "pos")
+
+    def __init__(self, data: bytes, times: list[int], host_offset: int, sent_ns: int) -> None:
+        if len(times) != len(data) or not data:
+            raise ConfigurationError(
+                f"a byte burst needs one arrival time per byte ({len(data)} bytes, {len(times)} times)"
+            )
+        self._data = data
+        self.times = times
+        self._host0 = host_offset
+        self.sent_ns = sent_ns
+        self.pos = 0
+
+    def __len__(self) -> int:
+        """Bytes still on their way."""
+        return len(self._data) - self.pos
+
+    @property
+    def t_ns(self) -> int:
+        """When the next byte arrives."""
+        return self.times[self.pos]
+
+    @property
+    def data(self) -> bytes:
+        """The bytes still on their way."""
+        return self._data[self.pos :]
+
+    @property
+    def host_offset(self) -> int:
+        """The host offset of the next byte (-1: not from the host's stream)."""
+        return self._host0 + self.pos if self._host0 >= 0 else -1
+
+    def pop(self) -> Delivery:
+        """The next byte, as the single-byte :class:`Delivery` it stands for."""
+        k = self.pos
+        self.pos = k + 1
+        return _delivery(
+            self.times[k], self._data[k : k + 1], self._host0 + k if self._host0 >= 0 else -1, self.sent_ns
+        )
+
+    def deliveries(self) -> list[Delivery]:
+        """Every byte still on its way, as single-byte deliveries (the burst is left as it was)."""
+        h0, sent, data = self._host0, self.sent_ns, self._data
+        return [
+            _delivery(self.times[k], data[k : k + 1], h0 + k if h0 >= 0 else -1, sent)
+            for k in range(self.pos, len(data))
+        ]
+
+    def end_before(self, t_ns: float, key: tuple[int, int] | None = None, seq: int = 0) -> int:
+        """The index past the last byte that comes first: arriving at or before ``t_ns`` and, when another
+        entry of the same event queue is keyed ``key`` = (time, sequence), before it (this burst's own
+        sequence ``seq`` breaks a tie in time, as it would for each of its bytes)."""
+        j = bisect_right(self.times, t_ns, self.pos)
+        if key is not None:
+            other_t, other_seq = key
+            if other_t <= t_ns:
+                cut = bisect_right if seq < other_seq else bisect_left
+                j = min(j, cut(self.times, other_t, self.pos))
+        return j
+
+    def take(self, j: int) -> bytes:
+        """The bytes up to index ``j`` (delivered: they leave the burst)."""
+        out = self._data[self.pos : j]
+        self.pos = j
+        return out
+
+    def host_offsets(self, j: int) -> range | None:
+        """The host offsets of the bytes from ``pos`` up to index ``j`` (None: not from the host)."""
+        return range(self._host0 + self.pos, self._host0 + j) if self._host0 >= 0 else None
+
+
+#: What a link schedules for one write: deliveries, and runs of single-byte deliveries kept together.
+Scheduled = Delivery | ByteBurst
+
+
+def expanded(item: Scheduled) -> list[Delivery]:
+    """What a link scheduled, as the deliveries it stands for (a burst: one per byte still on its way)."""
+    return item.deliveries() if isinstance(item, ByteBurst) else [item]
+
+
+def next_key(heap: list[tuple[int, int, Any]]) -> tuple[int, int] | None:
+    """(time, sequence) of the earliest entry of an event heap after its root (the root's two children)."""
+    n = len(heap)
+    if n < 2:
+        return None
+    a = heap[1]
+    if n > 2 and (heap[2][0], heap[2][1]) < (a[0], a[1]):
+        a = heap[2]
+    return (a[0], a[1])
+
+
 class LinkModel:
     """Base class: ``schedule`` turns one host write into deliveries (and advances the link's state)."""
 
@@ -71,6 +175,11 @@ class LinkModel:
 
     def schedule(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Delivery]:
         raise NotImplementedError
+
+    def schedule_bursts(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Scheduled]:
+        """:meth:`schedule`, where a run of single-byte deliveries may come as one :class:`ByteBurst`
+        standing for exactly those deliveries (by default, never)."""
+        return list(self.schedule(data, t_ns, host_offset))
 
     def arrival_times(self, data: bytes, t_ns: int) -> np.ndarray:
         """Per-byte delivery times of one write (advances the link's state like :meth:`schedule`)."""
@@ -128,6 +237,17 @@ class UartLink(LinkModel):
         if data:
             self._busy_until_ns = start + self._offset_ns(len(data))
         return out
+
+    def schedule_bursts(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Scheduled]:
+        """The write as one :class:`ByteBurst`: the bytes and times of :meth:`schedule`."""
+        if not data:
+            return []
+        start = max(t_ns, self._busy_until_ns)
+        step = self.bits_per_byte * 1_000_000_000
+        baud = self.baud
+        times = [start + (i * step) // baud for i in range(1, len(data) + 1)]
+        self._busy_until_ns = start + self._offset_ns(len(data))
+        return [ByteBurst(bytes(data), times, host_offset, t_ns)]
 
     def arrival_times(self, data: bytes, t_ns: int) -> np.ndarray:
         start = max(t_ns, self._busy_until_ns)
@@ -243,6 +363,11 @@ class LinkFilter(LinkModel):
     def schedule(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Delivery]:
         return self.transform(self.inner.schedule(data, t_ns, host_offset))
 
+    def schedule_bursts(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Scheduled]:
+        """Every delivery through :meth:`transform` (a filter that lets a burst through unchanged
+        overrides this)."""
+        return list(self.schedule(data, t_ns, host_offset))
+
     def transform(self, deliveries: list[Delivery]) -> list[Delivery]:
         return deliveries
 
@@ -304,6 +429,12 @@ class ReceiveQueue:
             if len(self.buf) > self.high_water:
                 self.high_water = len(self.buf)
         return max(take, 0)
+
+    def join(self, data: bytes, peak: int) -> None:
+        """Bytes that arrived one by one while the parser read (all fitted); ``peak`` is the most bytes
+        that waited at one of their arrivals."""
+        self.buf += data
+        self.high_water = max(self.high_water, peak)
 
     def take(self, n: int) -> bytes:
         out = bytes(self.buf[:n])

@@ -52,6 +52,7 @@ import copy
 import heapq
 import math
 from collections.abc import Callable
+from itertools import repeat
 from typing import Any
 
 from tactdeform_hw.emulator.core import Emulator
@@ -85,10 +86,13 @@ from tactdeform_hw.emulator.timed.books_v1_2 import (
     us_of,
 )
 from tactdeform_hw.emulator.timed.link import (
+    ByteBurst,
     Delivery,
     LinkModel,
     ReceiveQueue,
+    Scheduled,
     make_link,
+    next_key,
     reply_link,
 )
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
@@ -137,7 +141,139 @@ def hv513_count_ns(m: TimingModel, detected: int) -> int:
     return m.hv513_detect_ns + (5 + 2 * OUTPUTS_PER_HV513 * detected) * m.gpio_ns
 
 
-class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
+class ArrivalRuns:
+    """Where the v1.2 model's event loop would take one byte or one call at a time for long stretches,
+    the stretch in one go, exactly as one at a time (a mixin of :class:`TimedEmulator`, which keeps the
+    state): a burst's bytes that arrive before anything else happens, and a run of calls that each
+    ignore one non-command byte with the bytes arriving meanwhile."""
+
+    fw: MainLoop
+    host: HostLedger
+    queue: ReceiveQueue
+    emulator: Emulator
+    model: TimingModel
+    next_alarm: float
+    now_ns: int
+
+    @property
+    def parser(self) -> Parser:
+        raise NotImplementedError
+
+    def _deliver(self, d: Delivery) -> None:
+        raise NotImplementedError
+
+    def _skip_unknown(self, tc: int, alarm: float, target: int) -> bool:
+        """Run the calls that each read and ignore one non-command byte (a resync's zeros: most calls of a
+        session) in one go, exactly as :meth:`_main_call` would one by one (see :func:`_ignored_run`).
+        Bytes of a burst arriving meanwhile land with them when nothing they do depends on when
+        (:meth:`_arrivals_alike`); else the run stops at the next delivery, which the event loop takes
+        first.  False (nothing done) when the next call is not such a call."""
+        fw = self.fw
+        p = self.parser
+        if fw.call is not None or p.cmd is not None:
+            return False
+        step_ns = self.model.call_ns + self.model.byte_ns
+        q = self.queue
+        dq = self.host.deliveries
+        k, t = _ignored_run(q.buf, p.is_command, tc, step_ns, alarm, target, alarm)
+        if k == 0:
+            return False
+        arriving = 0
+        if dq and dq[0][0] <= t - step_ns:  # something lands before the run's last call
+            arriving = self._arrivals_alike(tc, t - step_ns)
+            if not arriving:
+                k, t = _ignored_run(q.buf, p.is_command, tc, step_ns, min(dq[0][0], alarm), target, alarm)
+        queued = len(q.buf)
+        dev0 = fw.parser_base + p.offset
+        p.receive(q.take(k))
+        p.ignore_unknown(k)
+        fw.call_end_ns, fw.call_dev_last, fw.main_next = t, dev0 + k - 1, t  # fw.call stays None
+        if arriving:
+            self._land_during_run(tc, step_ns, k, queued, arriving)
+        return True  # (an ignored byte writes no reply)
+
+    def _arrivals_alike(self, tc: int, last: int) -> int:
+        """How many bytes land from ``tc`` to ``last`` (the start of a run's last call) when they may
+        land after the run instead of between its calls, else 0: they are the next bytes of the burst at
+        the head of the delivery heap and nothing else arrives meanwhile, no reboot is under way, the
+        parser is not locked and the queue has room for all of them even if no call read a byte."""
+        dq = self.host.deliveries
+        _, seq, b = dq[0]
+        key = next_key(dq)
+        if not isinstance(b, ByteBurst) or (key is not None and key[0] <= last):
+            return 0
+        if b.t_ns < self.fw.booting_until or self.emulator.parser.locked:
+            return 0
+        n = b.end_before(last, key, seq) - b.pos
+        return n if len(self.queue.buf) + n <= self.queue.capacity else 0
+
+    def _land_during_run(self, tc: int, step_ns: int, calls: int, queued: int, n: int) -> None:
+        """The ``n`` next bytes of the head burst, which arrived during a run of ``calls`` ignored-byte
+        calls from ``tc`` (``queued`` bytes waited before it): they join the queue, each with its own
+        arrival time in the books, and the queue's high-water mark is what it was at each arrival (the
+        bytes waiting then: those queued, minus one per call started before it, plus the arrivals)."""
+        dq = self.host.deliveries
+        _, seq, b = dq[0]
+        assert isinstance(b, ByteBurst)  # (_arrivals_alike counted its bytes)
+        k0 = b.pos
+        times = b.times[k0 : k0 + n]
+        peak = max(queued - min(calls, -(-(a - tc) // step_ns)) + i + 1 for i, a in enumerate(times))
+        hosts = b.host_offsets(k0 + n)
+        hl = self.host
+        dev0 = hl.dev_total
+        self.queue.join(b.take(k0 + n), peak)
+        devs = range(dev0, dev0 + n)
+        hl.seg_dev.extend(devs)
+        hl.segments.extend(zip(devs, repeat(-1) if hosts is None else hosts, repeat(1), times))
+        hl.dev_total = dev0 + n
+        if len(b):
+            heapq.heapreplace(dq, (b.t_ns, seq, b))
+        else:
+            heapq.heappop(dq)
+
+    def _deliver_burst(self, dq: list[tuple[int, int, Any]], target: int) -> None:
+        """The burst at the head of the delivery heap: its next byte as a delivery of its own (it may
+        wake the main loop, be lost, ...), then at once the bytes after it that arrive before anything
+        else happens -- an alarm, a parser call (a delivery comes first on a tie), ``target``, another
+        delivery -- as long as each would simply join the queue (no reboot under way, no locked parser,
+        room for all of them); what a byte at a time does then is what :meth:`_deliver` does for each."""
+        _, seq, b = dq[0]
+        self._deliver(b.pop())
+        fw = self.fw
+        if len(b) and b.t_ns >= fw.booting_until and not self.emulator.parser.locked:
+            bound = min(self.next_alarm, fw.main_next if fw.main_next is not None else _INF, target)
+            j = b.end_before(bound, next_key(dq), seq)
+            q = self.queue
+            j = min(j, b.pos + q.capacity - len(q.buf))
+            if j > b.pos:
+                hl = self.host
+                k0 = b.pos
+                hosts = b.host_offsets(j)
+                times = b.times[k0:j]
+                dev0 = hl.dev_total
+                q.offer(b.take(j))
+                devs = range(dev0, dev0 + j - k0)
+                hl.seg_dev.extend(devs)
+                hl.segments.extend(zip(devs, repeat(-1) if hosts is None else hosts, repeat(1), times))
+                hl.dev_total = dev0 + j - k0
+        if len(b):
+            heapq.heapreplace(dq, (b.t_ns, seq, b))
+        else:
+            heapq.heappop(dq)
+
+    def _push_delivery(self, d: Scheduled) -> None:
+        if isinstance(d, ByteBurst):
+            if d.t_ns < self.now_ns:  # (a link's bursts never start in the past) each byte as a delivery
+                for one in d.deliveries():
+                    self._push_delivery(one)
+                return
+        elif d.t_ns < self.now_ns:
+            d = Delivery(self.now_ns, d.data, d.host_offset, d.sent_ns)
+        self.host.seq += 1
+        heapq.heappush(self.host.deliveries, (d.t_ns, self.host.seq, d))
+
+
+class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
     """The eTactileKit controller in simulated time.  See the module documentation."""
 
     firmware: FirmwareSpec = V1_2
@@ -272,7 +408,7 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
                 self.host.intended[c.offset] = (c.opcode, c.offset + len(c.raw))
                 self.host.intended_starts.append(c.offset)
         self.host.offset += len(data)
-        for d in self.link.schedule(data, t, off):
+        for d in self.link.schedule_bursts(data, t, off):
             self._push_delivery(d)
         return len(data)
 
@@ -400,12 +536,6 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
 
     # --- the event loop -------------------------------------------------------------------------------------
 
-    def _push_delivery(self, d: Delivery) -> None:
-        if d.t_ns < self.now_ns:
-            d = Delivery(self.now_ns, d.data, d.host_offset, d.sent_ns)
-        self.host.seq += 1
-        heapq.heappush(self.host.deliveries, (d.t_ns, self.host.seq, d))
-
     def _run(self, target: int) -> None:
         dq = self.host.deliveries
         while True:
@@ -416,29 +546,16 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
             if t > target:
                 return
             if td == t:
-                self._deliver(heapq.heappop(dq)[2])
+                head = dq[0][2]
+                if isinstance(head, ByteBurst):
+                    self._deliver_burst(dq, target)
+                else:
+                    heapq.heappop(dq)
+                    self._deliver(head)
             elif ta == t:
                 self._scan(int(ta), target)
-            elif not self._skip_unknown(int(tm), min(td, ta), target):
+            elif not self._skip_unknown(int(tm), ta, target):
                 self._main_call(int(tm))
-
-    def _skip_unknown(self, tc: int, before: float, target: int) -> bool:
-        """Run the calls that each read and ignore one non-command byte (a resync's zeros: most calls of a
-        session) in one go, exactly as :meth:`_main_call` would one by one (see :func:`_ignored_run`).
-        False (nothing done) when the next call is not such a call."""
-        fw = self.fw
-        p = self.parser
-        if fw.call is not None or p.cmd is not None:
-            return False
-        step_ns = self.model.call_ns + self.model.byte_ns
-        k, t = _ignored_run(self.queue.buf, p.is_command, tc, step_ns, before, target, self.next_alarm)
-        if k == 0:
-            return False
-        dev0 = fw.parser_base + p.offset
-        p.receive(self.queue.take(k))
-        p.ignore_unknown(k)
-        fw.call_end_ns, fw.call_dev_last, fw.main_next = t, dev0 + k - 1, t  # fw.call stays None
-        return True  # (an ignored byte writes no reply)
 
     # --- deliveries and the queue ---------------------------------------------------------------------------
 
@@ -619,10 +736,10 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
     def _send_tx(self, data: bytes, t: int) -> None:
         self.rec.tx_log.append((t / 1000, data))
         last = 0
-        for d in self.tx_link.schedule(data, t, -1):
+        for d in self.tx_link.schedule_bursts(data, t, -1):
             self.host.seq += 1
             heapq.heappush(self.host.tx_deliveries, (d.t_ns, self.host.seq, d))
-            last = max(last, d.t_ns)
+            last = max(last, d.times[-1] if isinstance(d, ByteBurst) else d.t_ns)
         rep = self.rec.last_rep
         if rep is not None and rep.opcode in (Opcode.MEASURE, Opcode.HV513_COUNT) and rep.reply_us is None:
             rep.reply_us = last / 1000
@@ -630,7 +747,7 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
     def _host_replies(self) -> bytearray:
         return self.host.rx
 
-    def _deliveries(self) -> list[tuple[int, int, Delivery]]:
+    def _deliveries(self) -> list[tuple[int, int, Scheduled]]:
         return self.host.deliveries
 
     def _idle(self) -> bool:
@@ -641,8 +758,17 @@ class TimedEmulator(CommandBooks, ScanBooks, TimedModelBase):
 
     def _collect_tx(self) -> None:
         q = self.host.tx_deliveries
-        while q and q[0][0] <= self.now_ns:
-            self.host.rx += heapq.heappop(q)[2].data
+        now = self.now_ns
+        while q and q[0][0] <= now:
+            _, seq, d = q[0]
+            if isinstance(d, ByteBurst):  # its bytes up to now, and before any other reply's
+                self.host.rx += d.take(d.end_before(now, next_key(q), seq))
+                if len(d):
+                    heapq.heapreplace(q, (d.t_ns, seq, d))
+                    continue
+            else:
+                self.host.rx += d.data
+            heapq.heappop(q)
 
     # --- parser hooks ---------------------------------------------------------------------------------------
 

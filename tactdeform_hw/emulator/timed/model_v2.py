@@ -39,6 +39,7 @@ import heapq
 from bisect import bisect_right
 from dataclasses import dataclass, replace
 from functools import lru_cache
+from itertools import repeat
 from typing import Any
 
 import numpy as np
@@ -63,7 +64,16 @@ from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal, physical_out
 from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
 from tactdeform_hw.emulator.records.reports import EventRun, LossReport
 from tactdeform_hw.emulator.timed.base import TimedModelBase
-from tactdeform_hw.emulator.timed.link import Delivery, LinkModel, make_link, reply_link
+from tactdeform_hw.emulator.timed.link import (
+    ByteBurst,
+    Delivery,
+    LinkModel,
+    Scheduled,
+    expanded,
+    make_link,
+    next_key,
+    reply_link,
+)
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
@@ -108,7 +118,8 @@ PulseRow = tuple[int, int, int, int, int]
 
 
 def _pulse_rows(events: list[list[Any]], starts: list[float]) -> tuple[PulseRow, ...]:
-    """Every non-zero DAC level of a scan, from its edge to the next DAC edge, with the POL level then."""
+    """Every non-zero DAC level of a scan, from its edge to the next DAC edge, with the POL level then
+    (times in ns)."""
     rows: list[PulseRow] = []
     pol = 1
     ch = -1
@@ -119,7 +130,7 @@ def _pulse_rows(events: list[list[Any]], starts: list[float]) -> tuple[PulseRow,
         if kind == "GPIO" and pin == 3:
             pol = value
         elif kind == "DAC":
-            t_ns = round(t * 1000)
+            t_ns = t
             if open_ is not None:
                 c0, t0, code, p0 = open_
                 rows.append((c0, t0, code, t_ns - t0, p0))
@@ -133,9 +144,9 @@ def _pulse_rows(events: list[list[Any]], starts: list[float]) -> tuple[PulseRow,
 def _shape(
     cfg: FirmwareScanConfig, conv: ScanConventions
 ) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]:
-    """(duration, onsets, codes, voltages, pulses) of one scan, from the statement walker."""
-    tr = trace_scan(cfg, "v2", conv)
-    starts = tr.channel_start_us
+    """(duration, onsets, codes, voltages, pulses) of one scan, from the statement walker (in ns)."""
+    tr = trace_scan(cfg, "v2", conv, times_ns=True)
+    starts = tr.channel_start_us  # (ns: times_ns)
     dacs = [(e[0], e[3]) for e in tr.events if e[1] == "DAC"]
     onsets: list[int] = []
     codes: list[int] = []
@@ -143,10 +154,10 @@ def _shape(
     for s in starts:
         while k < len(dacs) and dacs[k][0] < s:
             k += 1
-        onsets.append(round(dacs[k][0] * 1000) if k < len(dacs) else 0)
+        onsets.append(dacs[k][0] if k < len(dacs) else 0)
         codes.append(dacs[k][1] if k < len(dacs) else 0)
     return (
-        round(tr.isr_return_us * 1000),
+        int(tr.isr_return_us),
         tuple(onsets),
         tuple(codes),
         tuple(tr.voltage),
@@ -231,21 +242,34 @@ def _with_readings(
     return times, signals, values
 
 
-def _scan_shape(
-    cfg: FirmwareScanConfig, conv: ScanConventions
-) -> tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]:
+#: (duration ns, onsets, codes, voltages, pulses) of one scan.
+ScanShape = tuple[int, tuple[int, ...], tuple[int, ...], tuple[int, ...], tuple[PulseRow, ...]]
+
+
+def _scan_shape(cfg: FirmwareScanConfig, conv: ScanConventions) -> ScanShape:
     """:func:`_shape` without walking the statements again for every new pattern.
 
     On v2 a channel's timing does not depend on its height (a height of 0 is still a DAC write of 0 for
     the pulse width), so the walk of a pattern of ones gives every edge; the heights only fill in the DAC
     codes (the ADC reading is the code held when the second exchange starts: the height again), and a
     height of 0 delivers no pulse.  Mode 2 ignores the pattern.  Equal to :func:`_shape` for every
-    pattern (tested)."""
+    pattern (tested).  The walk is keyed only by what the handler reads in the scan's mode (modes 0 and 1:
+    not the sense pulse; mode 2: not the pulse width; never v1.2's pulse height or the rate), so scans
+    that differ elsewhere share it."""
     n = cfg.electrode_num
     if cfg.stim_mode not in (0, 1):
-        return _shape(replace(cfg, stim_pattern=(0,) * n), conv)
+        walked = replace(cfg, stim_pattern=(0,) * n, pulse_width=0, pulse_height=0, frequency_hz=None)
+        return _shape(walked, conv)
     heights = cfg.stim_pattern
-    duration, onsets, _, _, rows = _shape(replace(cfg, stim_pattern=(1,) * n), conv)
+    walked = replace(
+        cfg,
+        stim_pattern=(1,) * n,
+        sense_pulse_height=0,
+        sense_pulse_width=0,
+        pulse_height=0,
+        frequency_hz=None,
+    )
+    duration, onsets, _, _, rows = _shape(walked, conv)
     pulses = tuple((ch, t0, heights[ch], w, pol) for ch, t0, _, w, pol in rows if heights[ch])
     return duration, onsets, tuple(heights), tuple(heights), pulses
 
@@ -401,7 +425,207 @@ class DeliveredV2:
         return peak
 
 
-class TimedEmulatorV2(DeliveredV2, TimedModelBase):
+class MainLoopRunsV2:
+    """What the v2 model does many times over, done in one go exactly as one at a time (a mixin of
+    :class:`TimedEmulatorV2`, which keeps the state): the idle polls, the calls that each skip one unknown
+    byte, the arrivals that land meanwhile, and the scan the registers give (kept for the next alarm)."""
+
+    model: TimingModel
+    conventions: ScanConventions
+    skin: SkinModel | None
+    outputs: int
+    _last_scan_key: tuple[Any, ...] | None
+    _last_scan: tuple[FirmwareScanConfig, ScanShape]
+    _delivery_heap: list[tuple[int, int, Scheduled]]
+    _booting_until: int
+    _segments: list[tuple[int, int, int]]
+    _frozen: bool
+    _hv513_in_call: bool
+    _call_time_ns: int
+    _applied_in_call: int | None
+    _reply_offset: int | None
+    _next_call_ns: int
+
+    @property
+    def parser(self) -> ParserV2:
+        raise NotImplementedError
+
+    def _loss(self, t: int, count: int, host_offset: int, reason: str) -> None:
+        raise NotImplementedError
+
+    def _tick_after(self, t: int) -> int:
+        raise NotImplementedError
+
+    def _idle_polls(self, t: int, alarm: int, target: int) -> bool:
+        """Run the idle polls from ``t`` on in one go, exactly as :meth:`_main_call` would one by one:
+        with nothing queued, no command pending and no reply, a call changes nothing and the task sleeps
+        to the next RTOS tick -- so the polls fall on the ticks, up to the last one before the alarm,
+        ``target`` or the next arrival (a poll from then on lands it: the full path).  False (nothing
+        done) when the call at ``t`` is not an idle poll."""
+        parser = self.parser
+        if parser.pending or parser.processing or self._hv513_in_call or parser.tx or self._frozen:
+            return False
+        heap = self._delivery_heap
+        last = min(alarm - 1, target, heap[0][0] - 1 if heap else target)  # the latest poll run here
+        if t > last:
+            return False  # a delivery lands at this call
+        call_ns = self.model.call_ns
+        nxt = self._tick_after(t + call_ns)
+        if nxt <= last:  # the next polls fall a whole number of ticks apart, from a tick
+            stride = self._tick_after(nxt + call_ns) - nxt
+            t = nxt + (last - nxt) // stride * stride
+            nxt = self._tick_after(t + call_ns)
+        self._call_time_ns = t
+        self._applied_in_call = None
+        self._reply_offset = None
+        self._next_call_ns = nxt
+        return True
+
+    def _skip_unknown(self, t: int, alarm: int, target: int) -> bool:
+        """Run the calls that each read one unknown byte and skip it (the zeros of a flush: most calls of
+        a session) in chunks, exactly as :meth:`_main_call` would one by one: each such call lands what
+        has arrived by its start, reads one byte and returns at once (no sleep), so the next call starts
+        ``call_ns + byte_ns`` later, if before the alarm and by ``target``.  A chunk ends where a delivery
+        lands (at the next call's start, as :meth:`_land` would) or the run of unknown bytes ends.  False
+        (nothing done) when the call at ``t`` is not such a call."""
+        parser = self.parser
+        if parser.processing or self._hv513_in_call or parser.tx or self._frozen:
+            return False
+        self._land(t)
+        m = self.model
+        step = m.call_ns + m.byte_ns
+        heap = self._delivery_heap
+        limit = min(alarm - 1, target)  # the latest start of a call that runs now
+        calls = 0
+        run = 0
+        while True:
+            if run == 0:
+                run = parser.unknown_run()
+                if run == 0:
+                    break
+            count = min(run, (limit - t) // step + 1)
+            if heap and heap[0][0] <= t + (count - 1) * step and not self._lands_alike(t, count, step):
+                # the calls before the next arrival (it lands at the start of the first call after it)
+                count = -(-(heap[0][0] - t) // step)
+            parser.skip_unknown(count)
+            run -= count
+            calls += count
+            t += count * step
+            self._land(t - step)  # what arrived during the chunk (nothing unless _lands_alike said so)
+            if t > limit:
+                break
+            self._land(t)
+        if calls == 0:
+            return False
+        self._call_time_ns = t - step
+        self._applied_in_call = None
+        self._reply_offset = None
+        self._next_call_ns = t
+        return True
+
+    def _land(self, t: int) -> None:
+        """Arrivals up to ``t`` into the receive queue (lost while the board boots or the queue is full)."""
+        parser = self.parser
+        heap = self._delivery_heap
+        while heap and heap[0][0] <= t:
+            _, seq, item = heap[0]
+            if isinstance(item, ByteBurst):
+                d = self._land_burst(item, seq, t)
+                if len(item):
+                    heapq.heapreplace(heap, (item.t_ns, seq, item))
+                else:
+                    heapq.heappop(heap)
+                if d is None:
+                    continue
+            else:
+                heapq.heappop(heap)
+                d = item
+            if d.t_ns < self._booting_until:  # bytes that came while the board booted are lost
+                self._loss(d.t_ns, len(d.data), d.host_offset, "rebooting")
+                continue
+            start = parser.offset + parser.pending
+            lost = parser.receive(d.data)
+            if d.host_offset >= 0 and len(d.data) > lost:
+                self._segments.append((start, d.host_offset, len(d.data) - lost))
+            if lost:
+                host = d.host_offset + len(d.data) - lost if d.host_offset >= 0 else -1
+                self._loss(d.t_ns, lost, host, "queue_full")
+
+    def _lands_alike(self, t: int, count: int, step: int) -> bool:
+        """Whether the bytes arriving during ``count`` calls from ``t`` (each reading one byte already
+        queued) may land after the last of them instead of at each call's start: nothing they do depends
+        on when -- no reboot under way, room for all of them even if none were read, and no arrival in
+        that time forgets the bytes read (:meth:`~.contract.ByteQueue.keeps_read_bytes`)."""
+        parser = self.parser
+        if t < self._booting_until or not parser.keeps_read_bytes(count):
+            return False
+        last = t + (count - 1) * step
+        arriving = 0
+        for t0, _, item in self._delivery_heap:
+            if t0 <= last:
+                arriving += (
+                    item.end_before(last) - item.pos if isinstance(item, ByteBurst) else len(item.data)
+                )
+        return parser.pending + arriving <= parser.spec.rx_queue_bytes
+
+    def _land_burst(self, b: ByteBurst, seq: int, t: int) -> Delivery | None:
+        """The bytes of a burst that have arrived by ``t`` (before any other delivery's) join the queue at
+        once when nothing sets one apart -- no reboot under way, room for all of them: no main-loop call
+        runs between their arrivals, so the queue holds what it would after taking them one by one.
+        Otherwise the next byte alone, as a delivery for :meth:`_land` (None: the bytes were taken)."""
+        parser = self.parser
+        j = b.end_before(t, next_key(self._delivery_heap), seq)
+        if b.t_ns < self._booting_until or j - b.pos > parser.spec.rx_queue_bytes - parser.pending:
+            return b.pop()
+        start = parser.offset + parser.pending
+        hosts = b.host_offsets(j)
+        lost = parser.receive(b.take(j))
+        assert lost == 0  # there was room for every byte
+        if hosts is not None:
+            self._segments.extend(zip(range(start, start + len(hosts)), hosts, repeat(1)))
+        return None
+
+    def _scan_of(self, regs: RegistersV2) -> tuple[FirmwareScanConfig, ScanShape]:
+        """The scan the registers give (:func:`_scan_shape`), kept for the next alarm: most scans run
+        the same registers as the one before."""
+        n = regs.electrode_num
+        pattern = tuple(regs.stim_pattern[:n])
+        key = (
+            pattern,
+            regs.pulse_width,
+            regs.discharge_time,
+            regs.polarity,
+            regs.hv513_num,
+            regs.sense_pulse_height,
+            regs.sense_pulse_width,
+            regs.stim_mode,
+            id(self.skin),
+        )
+        if key != self._last_scan_key:
+            cfg = FirmwareScanConfig(
+                electrode_num=n,
+                stim_pattern=pattern,
+                pulse_width=regs.pulse_width,
+                discharge_time=regs.discharge_time,
+                polarity=regs.polarity,
+                hv513_num=regs.hv513_num,
+                sense_pulse_height=regs.sense_pulse_height,
+                sense_pulse_width=regs.sense_pulse_width,
+                stim_mode=regs.stim_mode,
+                prior_scans=0,
+            )
+            shape = _scan_shape(cfg, self.conventions)
+            if self.skin is not None:
+                duration, onsets, codes, _, pulses = shape
+                into_exchange_ns = self.model.adc_at_ns - self.conventions.dac_change_at_ns
+                volts = adc_readings(self.skin, n, pulses, self.outputs, into_exchange_ns)
+                shape = (duration, onsets, codes, volts, pulses)
+            self._last_scan = (cfg, shape)
+            self._last_scan_key = key
+        return self._last_scan
+
+
+class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
     """The v2 board in simulated time.  ``write(data, at_us)`` hands bytes to the link; ``advance_to``
     runs the firmware until then; ``read_tx`` returns what reached the host."""
 
@@ -444,9 +668,10 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         self.received_bytes = 0
         self.replies_dropped = 0  # reply bytes to commands of a host that had gone (see new_client)
         self._reply_offset: int | None = None
-        self._delivery_heap: list[tuple[int, int, Delivery]] = []
+        self._delivery_heap: list[tuple[int, int, Scheduled]] = []
         self._seq = 0
-        self._tx: list[tuple[int, bytes]] = []
+        # replies on their way to the host, in the order written: (arrival ns, bytes) or a burst
+        self._tx: list[tuple[int, bytes | ByteBurst]] = []
         self._host_rx = bytearray()
         self._host_offset = 0
         self._clients: list[tuple[int, str]] = []  # (device offset where a client's bytes start, its name)
@@ -456,6 +681,7 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         self._host_stream = _HostStream()
         # (device offset, host offset, length) of each arrival taken into the queue since power-on
         self._segments: list[tuple[int, int, int]] = []
+        self._last_scan_key: tuple[Any, ...] | None = None  # the registers of the last scan, and its shape
         self._boot(0)
 
     def _boot(self, t: int, boot_delay: bool = False) -> None:
@@ -527,7 +753,7 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
             raise ConfigurationError(f"at_us={at_us} is before the emulator's clock ({self.now_us} us)")
         self.advance_to(t / 1000)
         self._host_stream.feed(bytes(data), self._host_offset)
-        for d in self.link.schedule(bytes(data), t, self._host_offset):
+        for d in self.link.schedule_bursts(bytes(data), t, self._host_offset):
             heapq.heappush(self._delivery_heap, (d.t_ns, self._seq, d))
             self._seq += 1
         self._host_offset += len(data)
@@ -541,7 +767,7 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
     def _host_replies(self) -> bytearray:
         return self._host_rx
 
-    def _deliveries(self) -> list[tuple[int, int, Delivery]]:
+    def _deliveries(self) -> list[tuple[int, int, Scheduled]]:
         return self._delivery_heap
 
     def _idle(self) -> bool:
@@ -552,9 +778,19 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         return self.parser.pending
 
     def _collect_tx(self) -> None:
-        if self._tx and self._tx[0][0] <= self.now_ns:
-            self._host_rx += b"".join(b for t, b in self._tx if t <= self.now_ns)
-            self._tx = [(t, b) for t, b in self._tx if t > self.now_ns]
+        now = self.now_ns
+        if self._tx and self._tx[0][0] <= now:
+            keep: list[tuple[int, bytes | ByteBurst]] = []
+            for t, b in self._tx:
+                if isinstance(b, ByteBurst):  # its bytes that have arrived; the rest stays on its way
+                    self._host_rx += b.take(b.end_before(now))
+                    if len(b):
+                        keep.append((b.t_ns, b))
+                elif t <= now:
+                    self._host_rx += b
+                else:
+                    keep.append((t, b))
+            self._tx = keep
 
     # --- what a real-time server needs ---------------------------------------------------------------
 
@@ -602,7 +838,10 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
         p = self.parser
         if p.pending:
             self._loss(self.now_ns, p.pending, self._host_of(p.offset), "reboot")
-        for _, _, d in sorted(self._delivery_heap):
+        in_flight = [
+            (d.t_ns, seq, d) for _, seq, item in self._delivery_heap for d in expanded(item)
+        ]  # each byte of a burst a delivery of its own, in arrival order
+        for _, _, d in sorted(in_flight):
             self._loss(self.now_ns, len(d.data), d.host_offset, "reboot")
         self._delivery_heap.clear()
         self._tx.clear()
@@ -633,22 +872,6 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
             return -1
         dev, host, length = self._segments[k]
         return host + dev_offset - dev if dev_offset < dev + length else -1
-
-    def _land(self, t: int) -> None:
-        """Arrivals up to ``t`` into the receive queue (lost while the board boots or the queue is full)."""
-        parser = self.parser
-        while self._delivery_heap and self._delivery_heap[0][0] <= t:
-            _, _, d = heapq.heappop(self._delivery_heap)
-            if d.t_ns < self._booting_until:  # bytes that came while the board booted are lost
-                self._loss(d.t_ns, len(d.data), d.host_offset, "rebooting")
-                continue
-            start = parser.offset + parser.pending
-            lost = parser.receive(d.data)
-            if d.host_offset >= 0 and len(d.data) > lost:
-                self._segments.append((start, d.host_offset, len(d.data) - lost))
-            if lost:
-                host = d.host_offset + len(d.data) - lost if d.host_offset >= 0 else -1
-                self._loss(d.t_ns, lost, host, "queue_full")
 
     def new_client(self, name: str) -> None:
         """A new host connection starts here: its bytes follow the ones already taken.  Nothing in the
@@ -713,28 +936,13 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
                 return
             if alarm <= call:
                 self._scan(alarm)
-            else:
+            elif not self._idle_polls(call, alarm, target) and not self._skip_unknown(call, alarm, target):
                 self._main_call(call)
 
     def _scan(self, t: int) -> None:
         regs = self.registers
         n = regs.electrode_num
-        cfg = FirmwareScanConfig(
-            electrode_num=n,
-            stim_pattern=tuple(regs.stim_pattern[:n]),
-            pulse_width=regs.pulse_width,
-            discharge_time=regs.discharge_time,
-            polarity=regs.polarity,
-            hv513_num=regs.hv513_num,
-            sense_pulse_height=regs.sense_pulse_height,
-            sense_pulse_width=regs.sense_pulse_width,
-            stim_mode=regs.stim_mode,
-            prior_scans=0,
-        )
-        duration, onsets, codes, volts, pulses = _scan_shape(cfg, self.conventions)
-        if self.skin is not None:
-            into_exchange_ns = self.model.adc_at_ns - self.conventions.dac_change_at_ns
-            volts = adc_readings(self.skin, n, pulses, self.outputs, into_exchange_ns)
+        cfg, (duration, onsets, codes, volts, pulses) = self._scan_of(regs)
         pulses = self._on_outputs(pulses, t)
         rec = ScanRecordV2(
             self.scan_count,
@@ -874,7 +1082,10 @@ class TimedEmulatorV2(DeliveredV2, TimedModelBase):
             if self.tx_link is None:
                 self._tx.append((end, tx))
             else:
-                self._tx += [(d.t_ns, d.data) for d in self.tx_link.schedule(tx, end)]
+                self._tx += [
+                    (d.t_ns, d if isinstance(d, ByteBurst) else d.data)
+                    for d in self.tx_link.schedule_bursts(tx, end)
+                ]
         if paused and self._next_alarm_ns < end:
             self._next_alarm_ns = end  # the alarm was disabled; a passed alarm fires on re-enable
         if out.slept:
