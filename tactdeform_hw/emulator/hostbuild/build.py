@@ -14,6 +14,7 @@ the flags and the generated accessor unit.  A second build of the same tree is a
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -73,6 +74,17 @@ def find_compiler(preferred: str | None = None) -> str:
 
 
 def compiler_identity(compiler: str) -> str:
+    """The compiler's path and ``--version`` (part of every build's cache key); asked once per compiler
+    binary and process, as each emulator made looks its build up again."""
+    try:
+        st = os.stat(compiler)
+    except OSError as exc:
+        raise FirmwareBuildError(f"the C++ compiler {compiler} does not run: {exc}") from exc
+    return _identity(compiler, os.path.realpath(compiler), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=16)
+def _identity(compiler: str, real: str, mtime_ns: int, size: int) -> str:
     try:
         out = subprocess.run([compiler, "--version"], capture_output=True, text=True, timeout=30)
     except (OSError, subprocess.TimeoutExpired) as exc:

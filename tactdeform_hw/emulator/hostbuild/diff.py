@@ -18,11 +18,12 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from bisect import bisect_right
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
+
+import numpy as np
 
 from tactdeform_hw.emulator.hostbuild.emulator import USB_PACKET_BYTES, HostBuildEmulator
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap
@@ -120,22 +121,27 @@ class Side(Protocol):
 
     def observe(self, upto_us: float) -> Observation: ...
 
+    def close(self) -> None: ...
+
 
 class HostSide:
-    """A firmware tree built on the host."""
+    """A firmware tree built on the host (keeping no pin events: its delivered pulses are decoded in the
+    shim)."""
 
     def __init__(self, tree: Path, *, name: str, state_map: StateMap | None, **kw: Any) -> None:
         self.name = name
-        self.emu = HostBuildEmulator(tree, state_map=state_map, stall_calls=STALL_CALLS, **kw)
+        self.emu = HostBuildEmulator(
+            tree, state_map=state_map, stall_calls=STALL_CALLS, pin_events=False, **kw
+        )
         self.stuck: str | None = None
 
     @property
     def timer_origin_us(self) -> float | None:
         """When the firmware first enabled a timer alarm (its stimulation timer's start)."""
-        for e in self.emu.shim_events():
-            if e.kind == "ALARM_ENABLE":
-                return e.t_us
-        return None
+        return self.emu.first_event_us("ALARM_ENABLE")
+
+    def close(self) -> None:
+        self.emu.close()
 
     def write(self, data: bytes, at_us: float) -> None:
         if self.stuck is None:
@@ -157,15 +163,28 @@ class HostSide:
         st = self.emu.state()
         st["rx_unread"] = st["rx_pending"] + st["rx_in_flight"]
         replies = b"".join(b for _, b in self.emu.tx_log)
-        entries = [a for a, _ in self.emu.scans()]
-        pulses = _number_in_scans(
-            [
-                (p.start_us, p.end_us, p.code, p.outputs, p.polarity, bisect_right(entries, p.start_us))
-                for p in self.emu.delivered_pulses()
-                if p.end_us <= upto_us
-            ]
-        )
-        return Observation(st, replies, pulses, self.stuck)
+        return Observation(st, replies, _number_in_scans(self._pulses(upto_us)), self.stuck)
+
+    def _pulses(self, upto_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
+        """The delivered pulses ended by ``upto_us``, each with the number of its scan (the interrupt runs
+        entered by its start), read from the shim's columns."""
+        arr = self.emu.delivered_arrays()
+        start_us, end_us = arr.start_ns / 1000.0, arr.end_ns / 1000.0
+        keep = np.flatnonzero(end_us <= upto_us)
+        entries = np.array([a for a, _ in self.emu.scans()], dtype=np.float64)
+        scan = np.searchsorted(entries, start_us[keep], side="right")
+        offsets, outputs = arr.offsets.tolist(), arr.outputs.tolist()
+        return [
+            (s, e, code, tuple(outputs[offsets[i] : offsets[i + 1]]), pol, n)
+            for i, s, e, code, pol, n in zip(
+                keep.tolist(),
+                start_us[keep].tolist(),
+                end_us[keep].tolist(),
+                arr.code[keep].tolist(),
+                arr.polarity[keep].tolist(),
+                scan.tolist(),
+            )
+        ]
 
 
 class DirectLink(LinkModel):
@@ -209,6 +228,9 @@ class ModelSide:
         if t_us > self.emu.now_us:
             self.emu.advance_to(t_us)
 
+    def close(self) -> None:
+        """Nothing to release: the model is plain Python."""
+
     def observe(self, upto_us: float) -> Observation:
         st = self.emu.state().as_dict()
         st["rx_unread"] = st["rx_pending"] + self.emu.in_flight
@@ -238,12 +260,28 @@ class ModelSideV1_2(ModelSide):
         return b"".join(b for t, b in self.emu.tx_log if t <= upto_us)
 
     def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
+        """The pulses of a non-zero code through at least one output, ended by ``limit_us`` (read from the
+        reports' columns: no report object per pulse)."""
+        reports = self.emu.reports
+        t = reports.pulse_table(t1_us=limit_us)
+        end_us = t["start_us"] + t["width_us"]
+        keep = (t["code"] > 0) & (end_us <= limit_us)
+        outputs_of = reports.outputs_lookup()
         out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
-        for p in self.emu.reports.pulses(t1_us=limit_us):
-            end = p.start_us + p.width_us
-            if p.height_code > 0 and p.outputs and end <= limit_us:
-                pol = int(p.polarity == "anodic")
-                out.append((p.start_us, end, p.height_code, tuple(p.outputs), pol, p.cycle))
+        col = {k: t[k][keep].tolist() for k in ("start_us", "code", "pol", "cycle", "channel", "output")}
+        for start, end, code, pol, cycle, channel, output, n_out in zip(
+            col["start_us"],
+            end_us[keep].tolist(),
+            col["code"],
+            col["pol"],
+            col["cycle"],
+            col["channel"],
+            col["output"],
+            t["n_outputs"][keep].tolist(),
+        ):
+            outputs = outputs_of(int(cycle), int(channel), int(output), int(n_out))
+            if outputs:
+                out.append((float(start), float(end), int(code), tuple(outputs), int(bool(pol)), int(cycle)))
         return out
 
 
@@ -266,11 +304,12 @@ class ModelSideV2(ModelSide):
 
     def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
         out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
-        for r in self.emu.delivered():  # the model starts its timer at timer_start_us itself, as v1.2's
-            t, end = r["t_us"], r["t_us"] + r["width_us"]
-            if r["code"] > 0 and end <= limit_us:
-                pol = int(r["polarity"] == "anodic")
-                out.append((t, end, r["code"], (r["channel"],), pol, r["scan"]))
+        for scan in self.emu.scans:  # the model starts its timer at timer_start_us itself, as v1.2's
+            for channel, onset_ns, code, width_ns, pol in scan.pulses:  # as delivered() reads them
+                t = (scan.start_ns + onset_ns) / 1000
+                end = t + width_ns / 1000
+                if code > 0 and end <= limit_us:
+                    out.append((t, end, code, (channel,), int(bool(pol)), scan.index))
         return out
 
 
@@ -461,6 +500,7 @@ class Differ:
                 probe = HostSide(self.tree, name="probe", state_map=self.state_map, **kw)
                 probe.advance_to(SETUP_US)
                 self._origin = probe.timer_origin_us or 0.0
+                probe.close()
             side = MODEL_SIDES[self.against]
             right = side(timer_origin_us=self._origin, hv513_count=self.hv513_count)
         else:
@@ -479,6 +519,15 @@ class Differ:
         single checkpoint there (the writes before it written)."""
         self.runs += 1
         left, right = self.sides()
+        try:
+            return self._first_divergence(left, right, stream, at_us)
+        finally:
+            left.close()
+            right.close()
+
+    def _first_divergence(
+        self, left: Side, right: Side, stream: Stream, at_us: float | None
+    ) -> Divergence | None:
         readback = self.has_readback(stream)
         if at_us is None:
             checkpoints = sorted({t for t, _ in stream.writes} | {stream.end_us})
