@@ -20,7 +20,7 @@ from tactdeform_hw.emulator.hostbuild import find_compiler
 from tactdeform_hw.emulator.hostbuild.diff import Comparison, Differ, Observation, compare, diff_firmware
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap
 from tactdeform_hw.emulator.hostbuild.streams import Stream, off_tick, random_stream
-from tactdeform_hw.errors import FirmwareBuildError
+from tactdeform_hw.errors import FirmwareBuildError, LimitError
 
 TINY = Path(__file__).parent / "data" / "firmware_tiny"
 MAP = StateMap.from_toml(TINY / "hostbuild_state.toml")
@@ -96,6 +96,28 @@ def test_a_firmware_stuck_on_both_sides_is_no_divergence(tmp_path: Path) -> None
     twin = _copy(tmp_path, "twin")
     stream = Stream(((2000.5, b"H"),), 8000.0, "hang")
     assert Differ(TINY, str(twin), state_map=MAP).first_divergence(stream) is None
+
+
+@needs_cxx
+def test_any_number_of_jobs_gives_the_same_report(tmp_path: Path) -> None:
+    """Two planted changes (a reply and a register clamp), every stream run: the streams shared by two worker
+    processes give the report one process gives, divergence counts, kinds and minimal reproductions alike."""
+    tree = _copy(tmp_path, "two_changes", "readByteBlocking() + 1)", "readByteBlocking() + 2)")
+    unit = tree / "lib" / "Tiny" / "tiny.cpp"
+    unit.write_text(unit.read_text().replace("constrain(v, 0, 4095)", "constrain(v, 0, 4000)"))
+    kw: dict[str, object] = {"streams": 60, "seed": 5, "state_map": MAP, "edges": False, "keep_going": True}
+    kw["shrink_runs"] = 60
+    one = diff_firmware(TINY, str(tree), jobs=1, **kw).to_dict()  # type: ignore[arg-type]
+    two = diff_firmware(TINY, str(tree), jobs=2, **kw).to_dict()  # type: ignore[arg-type]
+    assert len(one["by_kind"]) >= 2 and one["divergences"] > 2
+    for report in (one, two):
+        del report["seconds"], report["streams_per_s"]
+    assert two == one
+
+
+def test_jobs_below_one_is_refused_before_anything_runs() -> None:
+    with pytest.raises(LimitError, match="jobs=0"):
+        diff_firmware(TINY, "v1.2", streams=1, jobs=0)
 
 
 def test_random_streams_are_reproducible_and_off_the_tick_grid() -> None:
@@ -198,6 +220,13 @@ def test_cli_exit_2_on_an_against_that_is_neither_model_nor_tree(
     code = main(["diff-firmware", "--firmware-src", str(TINY), "--against", "v3"])
     err = capsys.readouterr().err
     assert code == 2 and "--against 'v3' is neither v1.2, v2 nor a PlatformIO tree" in err
+
+
+def test_cli_exit_2_on_no_worker_process(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["diff-firmware", "--firmware-src", str(TINY), "--against", "v1.2", "--jobs", "0"])
+    assert exc.value.code == 2
+    assert "--jobs: 0 is out of range: jobs >= 1" in capsys.readouterr().err
 
 
 def test_cli_exit_2_on_a_negative_stream_count(capsys: pytest.CaptureFixture[str]) -> None:

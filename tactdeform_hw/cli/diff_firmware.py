@@ -44,6 +44,16 @@ def _count(text: str) -> int:
     return n
 
 
+def _jobs(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{n} is out of range: jobs >= 1 (worker processes)")
+    return n
+
+
 def _in_range(unit: str, low: float, high: float, low_included: bool) -> Callable[[str], float]:
     """An argparse type: a number of ``unit`` in [low, high) (or (low, high)), refused while parsing."""
 
@@ -120,6 +130,12 @@ def register(sub: Any) -> None:
         type=_tolerance_s,
         help="start no new stream after this many seconds of wall time (the report says how many ran)",
     )
+    p.add_argument(
+        "--jobs",
+        type=_jobs,
+        default=1,
+        help="worker processes sharing the streams (default 1); the report is the same for any number",
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
 
@@ -177,6 +193,7 @@ def run(args: argparse.Namespace) -> int:
             keep_going=args.keep_going,
             time_limit_s=args.time_limit_s,
             shrink_runs=args.shrink_runs,
+            jobs=args.jobs,
         )
     except FirmwareBuildError as exc:
         _error(str(exc).splitlines()[0] if not args.debug else str(exc))

@@ -16,21 +16,26 @@ and nothing else; each report lists the ones it applied.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
+import multiprocessing
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
+from tactdeform_hw.emulator.hostbuild.build import build
 from tactdeform_hw.emulator.hostbuild.emulator import USB_PACKET_BYTES, HostBuildEmulator
-from tactdeform_hw.emulator.hostbuild.statemap import StateMap
+from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
 from tactdeform_hw.emulator.hostbuild.streams import SETUP_US, Stream, edge_streams, random_stream
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
-from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError
+from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError, LimitError
 from tactdeform_hw.protocol.firmware import FIRMWARES, V1_2, V2, FirmwareSpec
 
 MODELS = tuple(FIRMWARES)
@@ -688,6 +693,120 @@ def streams_for(spec: FirmwareSpec | None, count: int, seed: int, edges: bool = 
         made += 1
 
 
+class _Runner:
+    """Runs the streams of one differential, in this process (``jobs=1``) or in ``jobs`` worker processes
+    (each with its own :class:`Differ`), and hands back each stream's outcome in the streams' order: any
+    ``jobs`` gives the same outcomes, so the same report."""
+
+    BATCH = 8
+    """Streams per task sent to a worker (a stream takes tens of ms; a task's round trip far less)."""
+
+    def __init__(self, differ: Differ, jobs: int) -> None:
+        self.differ = differ
+        self.jobs = jobs
+        self._pool: Executor | None = None
+        if jobs > 1:
+            self._prebuild()
+            self._pool = ProcessPoolExecutor(
+                max_workers=jobs,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_start_worker,
+                initargs=(_DifferArgs.of(differ),),
+            )
+
+    def _prebuild(self) -> None:
+        """Build the trees here first, so a build error is raised here and the workers find them cached."""
+        d = self.differ
+        trees = [d.tree] + ([] if d.against in MODELS else [Path(d.against)])
+        for tree in trees:
+            build(tree, state_map=d.state_map if d.state_map is not None else detect(tree), cache=d.cache)
+
+    def __enter__(self) -> _Runner:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def outcomes(self, streams: Iterable[Stream]) -> Iterator[tuple[Stream, Divergence | None, int]]:
+        """(stream, its first divergence, 1 if it was compared only up to the model's watchdog reset)."""
+        if self._pool is None:
+            for stream in streams:
+                yield (stream, *_outcome(self.differ, stream))
+            return
+        pool = self._pool
+        it = iter(streams)
+        window: deque[tuple[list[Stream], Future[list[tuple[Divergence | None, int]]]]] = deque()
+
+        def submit() -> bool:
+            batch = list(itertools.islice(it, self.BATCH))
+            if batch:
+                window.append((batch, pool.submit(_worker_batch, batch)))
+            return bool(batch)
+
+        while len(window) < 4 * self.jobs and submit():
+            pass
+        while window:
+            batch, fut = window.popleft()
+            results = fut.result()
+            submit()
+            for stream, (d, cut) in zip(batch, results):
+                yield stream, d, cut
+
+    def shrink(
+        self, stream: Stream, found: Divergence, max_runs: int
+    ) -> Callable[[], tuple[Stream, Divergence]]:
+        """Start shrinking ``found``; the returned call gives the minimal reproduction (at once with
+        ``jobs=1``, as the sequential run always did; in a worker otherwise, beside the streams)."""
+        if self._pool is None:
+            done = shrink(self.differ, stream, found, max_runs)
+            return lambda: done
+        fut = self._pool.submit(_worker_shrink, stream, found, max_runs)
+        return fut.result
+
+
+def _outcome(differ: Differ, stream: Stream) -> tuple[Divergence | None, int]:
+    cut_before = differ.watchdog_cut
+    d = differ.first_divergence(stream)
+    return d, differ.watchdog_cut - cut_before
+
+
+@dataclass(frozen=True)
+class _DifferArgs:
+    """What a worker process needs to make the same :class:`Differ` (its fields, without its state)."""
+
+    tree: Path
+    against: str
+    hv513_count: int
+    state_map: StateMap | None
+    pulse_tolerance_us: float
+    cache: Path | None
+
+    @classmethod
+    def of(cls, d: Differ) -> _DifferArgs:
+        return cls(d.tree, d.against, d.hv513_count, d.state_map, d.pulse_tolerance_us, d.cache)
+
+    def make(self) -> Differ:
+        return Differ(
+            self.tree, self.against, self.hv513_count, self.state_map, self.pulse_tolerance_us, self.cache
+        )
+
+
+_WORKER: list[Differ] = []  # the worker process's own Differ (set once, by its initializer)
+
+
+def _start_worker(args: _DifferArgs) -> None:
+    _WORKER[:] = [args.make()]
+
+
+def _worker_batch(streams: list[Stream]) -> list[tuple[Divergence | None, int]]:
+    return [_outcome(_WORKER[0], s) for s in streams]
+
+
+def _worker_shrink(stream: Stream, found: Divergence, max_runs: int) -> tuple[Stream, Divergence]:
+    return shrink(_WORKER[0], stream, found, max_runs)
+
+
 def diff_firmware(
     tree: str | Path,
     against: str,
@@ -704,11 +823,14 @@ def diff_firmware(
     progress: Callable[[str], None] | None = None,
     keep_going: bool = False,
     time_limit_s: float | None = None,
+    jobs: int = 1,
 ) -> DiffReport:
     """Compare ``tree`` with ``against`` (``"v1.2"``, ``"v2"`` or another tree) on ``extra_streams`` then
     ``streams`` generated ones; stop at the first divergence and shrink it.  With ``keep_going`` run every
     stream, count the divergences per signature (kind and field) and shrink the first of each.
-    ``time_limit_s`` stops starting new streams after that much wall time (the report says how many ran)."""
+    ``time_limit_s`` stops starting new streams after that much wall time (the report says how many ran).
+    ``jobs`` worker processes share the streams; the report is the same for any ``jobs`` (but for its
+    times, and for where a ``time_limit_s`` cuts the run)."""
     tree = Path(tree)
     if not (tree / "src").is_dir():
         raise ConfigurationError(
@@ -718,47 +840,50 @@ def diff_firmware(
         raise ConfigurationError(
             f"--against={against!r} is neither v1.2, v2 nor a PlatformIO tree (a folder with src/)"
         )
+    if jobs < 1:
+        raise LimitError("jobs", jobs, "an integer >= 1 (worker processes)")
     differ = Differ(tree, against, hv513_count, state_map, pulse_tolerance_us, cache)
-    spec = differ.cmp.spec if against not in MODELS else differ.cmp.spec
+    spec = differ.cmp.spec
     report = DiffReport(str(tree), against, equivalences=differ.cmp.equivalences)
+    shrinks: dict[str, Callable[[], tuple[Stream, Divergence]]] = {}
     t0 = time.perf_counter()
     told = t0
-    for n, stream in enumerate(_chain(extra_streams, streams_for(spec, streams, seed, edges)), 1):
-        cut_before = differ.watchdog_cut
-        d = differ.first_divergence(stream)
-        report.streams_run = n
-        report.watchdog_cut += differ.watchdog_cut - cut_before
-        now = time.perf_counter()
-        if progress is not None and now - told >= 2.0:  # at most one line every 2 s
-            progress(f"{n}/{streams} streams, {now - t0:.1f} s, {n / (now - t0):.1f}/s")
-            told = now
-        if time_limit_s is not None and now - t0 >= time_limit_s:
-            report.stopped_by_time = True
+    with _Runner(differ, jobs) as runner:
+        outcomes = runner.outcomes(_chain(extra_streams, streams_for(spec, streams, seed, edges)))
+        for n, (stream, d, cut) in enumerate(outcomes, 1):
+            report.streams_run = n
+            report.watchdog_cut += cut
+            now = time.perf_counter()
+            if progress is not None and now - told >= 2.0:  # at most one line every 2 s
+                progress(f"{n}/{streams} streams, {now - t0:.1f} s, {n / (now - t0):.1f}/s")
+                told = now
+            if time_limit_s is not None and now - t0 >= time_limit_s:
+                report.stopped_by_time = True
+                if d is None:
+                    break
             if d is None:
+                continue
+            report.diverged += 1
+            key = " ".join(d.signature)
+            if key in report.kinds:
+                report.kinds[key]["streams"] += 1
+                continue
+            if progress is not None:
+                progress(
+                    f"{d.kind} {d.field} differs on {stream.label}: shrinking it (at most {shrink_runs} runs)"
+                )
+            report.kinds[key] = {"streams": 1, "first": stream.label}
+            shrinks[key] = runner.shrink(stream, d, shrink_runs)
+            if report.divergence is None:
+                report.stream, report.divergence = stream, d
+            if not keep_going or report.stopped_by_time:
                 break
-        if d is None:
-            continue
-        report.diverged += 1
-        key = " ".join(d.signature)
-        if key in report.kinds:
-            report.kinds[key]["streams"] += 1
-            continue
-        if progress is not None:
-            progress(
-                f"{d.kind} {d.field} differs on {stream.label}: shrinking it (at most {shrink_runs} runs)"
-            )
-        minimal, md = shrink(differ, stream, d, shrink_runs)
-        report.kinds[key] = {
-            "streams": 1,
-            "first": stream.label,
-            "minimal": minimal.to_dict(),
-            "minimal_divergence": md.to_dict(),
-        }
-        if report.divergence is None:
-            report.stream, report.divergence = stream, d
-            report.minimal, report.minimal_divergence = minimal, md
-        if not keep_going or report.stopped_by_time:
-            break
+        for i, (key, result) in enumerate(shrinks.items()):
+            minimal, md = result()
+            report.kinds[key]["minimal"] = minimal.to_dict()
+            report.kinds[key]["minimal_divergence"] = md.to_dict()
+            if i == 0:
+                report.minimal, report.minimal_divergence = minimal, md
     report.seconds = time.perf_counter() - t0
     return report
 
