@@ -321,3 +321,37 @@ def test_upstream_v2_against_itself_is_exact(tmp_path: Path) -> None:
     shutil.copytree(tree / "lib", twin / "lib")
     report = diff_firmware(tree, str(twin), streams=4, seed=1, edges=False)
     assert report.divergence is None and report.streams_run == 4
+
+
+def test_a_pulse_deep_in_a_run_of_back_to_back_scans_may_start_later_by_the_drift_allowance() -> None:
+    """Overrun scans run back to back: the host build numbers a pulse within its run (49 here), the model
+    within its scan (0); the start tolerance takes the larger number (equivalence overrun-drift)."""
+
+    def obs(start: float, index: int) -> Observation:
+        return Observation({}, b"", [(start, start + 6.6, 3, (0,), 1, index)])
+
+    model = Comparison(exact=False, spec=None, pulse_tolerance_us=0.7)
+    assert compare(obs(3966.45, 49), obs(3945.6, 0), model, False) is None
+    found = compare(obs(3966.45, 0), obs(3945.6, 0), model, False)  # one scan of its own: too late
+    assert found is not None and found[1] == "pulse 0 (start)"
+
+
+def test_upstream_v1_2_a_register_mid_call_is_the_models_call_resolution() -> None:
+    """0xFC 4 arrives at 2000.5 µs; the parser call at the 3000 µs tick stores it some µs into the call, the
+    model at the call's start: a checkpoint at 3000.218 µs (the next write) sees 0 against 4, which is gone
+    once the call is over (equivalence call-resolution, counted), so the stream does not diverge."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V1_2")
+    stream = Stream(((2000.5, bytes.fromhex("fc04")), (3000.218, bytes.fromhex("17"))), 5001.0, "mid-call")
+    differ = Differ(tree, "v1.2")
+    assert differ.first_divergence(stream) is None
+    assert differ.call_resolved == 1
+    held = differ.first_divergence(stream, at_us=3000.218)  # a single checkpoint: nothing to wait for
+    assert held is not None and (held.field, held.left, held.right) == ("electrode_num", 0, 4)
+
+
+def test_upstream_v2_overrunning_scans_drift_within_the_run_allowance() -> None:
+    """0xF6 65534 makes every scan overrun (an alarm of 15 µs, a scan of 19.2 µs): the firmware's 49th scan
+    in a row starts 20.85 µs after the model's, within the run's allowance (equivalence overrun-drift)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    stream = Stream(((2000.5, bytes.fromhex("fc01fe0300f6feff")),), 5946.0, "overrun")
+    assert Differ(tree, "v2").first_divergence(stream) is None

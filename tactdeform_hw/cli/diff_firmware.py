@@ -217,6 +217,11 @@ def _print_text(report: Any) -> None:
         print(
             f"{report.watchdog_cut} streams compared up to the model's watchdog reset (equivalence watchdog)"
         )
+    if report.call_resolved:
+        print(
+            f"{report.call_resolved} streams had a difference gone once the parser call was over "
+            "(equivalence call-resolution)"
+        )
     if report.equivalences:
         print("modulo: " + ", ".join(report.equivalences))
     d = report.divergence

@@ -15,6 +15,7 @@ and nothing else; each report lists the ones it applied.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import itertools
 import math
@@ -49,6 +50,11 @@ EQUIVALENCES: dict[str, str] = {
     "of a scan (from 0) starts within (n + 1) x pulse_tolerance_us: the firmware's chip-select writes "
     "(0.1 us each, two per SPI exchange), which the model does not count, make a pulse 0.2 us longer "
     "(196.8 vs 196.6 us) and each pulse start up to 0.6 us later after the one before it",
+    "overrun-drift": "when scans overrun (the next alarm is due before a scan returns), the firmware runs "
+    "them back to back and the chip-select writes the model does not count (see pulse-width) accumulate from "
+    "scan to scan instead of being reset by the next alarm: on the host build a pulse is numbered within "
+    "its run of back-to-back scans, and the start tolerance (n + 1) x pulse_tolerance_us takes the larger "
+    "of the two sides' numbers",
     "preempt-at-calls": "the host build runs a due interrupt at the main loop's next shim call, the model "
     "(like the chip) at the alarm: a scan's pulses may start up to PREEMPT_US (20 us: one of 0xF5's "
     "analogRead calls; 2 us otherwise) later on the host build",
@@ -62,10 +68,24 @@ EQUIVALENCES: dict[str, str] = {
     "before the main loop wakes, the model wakes the loop first (a convention of each)",
     "watchdog": "the host build does not model the interrupt watchdog: a stream is compared up to the "
     "last checkpoint before the model's watchdog resets the board (the report counts these streams)",
+    "call-resolution": "the model applies a parser call's effects (registers, the receive queue, v1.2's "
+    "logged reply) at the call's start, the firmware as its code reads and stores: a state or reply "
+    "difference seen at a checkpoint that is gone by CALL_WINDOW_US (the longest parser call) later, with "
+    "no difference in between outlasting it, is this resolution (the report counts these streams); one "
+    "still there then is reported as it was first seen",
     "registers-in-common": "only registers both sides hold are compared (the host build's receive-queue "
     "counters and the model's command_in_progress have no counterpart)",
 }
 """What a comparison against the Python model is made modulo (none apply between two trees)."""
+
+CALL_WINDOW_US = (
+    DEFAULT_MODEL.parser_call_us
+    + DEFAULT_MODEL.rx_queue_bytes * DEFAULT_MODEL.parser_byte_us
+    + DEFAULT_MODEL.hv513_detect_us
+)
+"""Against the model: the longest a parser call can take (its overhead, a full receive queue read a byte at
+a time, and 0xF5's stack detection): a state or reply difference that is gone by this long after it was
+seen is the model showing the call's effects from its start (see EQUIVALENCES["call-resolution"])."""
 
 STATE_MAP_FILE = "hostbuild_state.toml"
 """A tree's own state map, by convention at its root (``tests/data/firmware_tiny`` has one)."""
@@ -92,7 +112,8 @@ STALL_CALLS = 2_000_000
 
 
 Pulse = tuple[float, float, int, tuple[int, ...], int, int]
-"""A delivered pulse: start µs, end µs, DAC code, outputs, polarity (1 anodic), its index within its scan."""
+"""A delivered pulse: start µs, end µs, DAC code, outputs, polarity (1 anodic), its index within its scan
+(on the host build: within its run of back-to-back scans, see :meth:`HostSide._pulses`)."""
 
 
 def _number_in_scans(pulses: list[tuple[float, float, int, tuple[int, ...], int, int]]) -> list[Pulse]:
@@ -171,12 +192,18 @@ class HostSide:
         return Observation(st, replies, _number_in_scans(self._pulses(upto_us)), self.stuck)
 
     def _pulses(self, upto_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
-        """The delivered pulses ended by ``upto_us``, each with the number of its scan (the interrupt runs
-        entered by its start), read from the shim's columns."""
+        """The delivered pulses ended by ``upto_us``, each with the number of its run of scans, read from the
+        shim's columns.  A run is a scan its alarm started and the scans that followed it back to back (an
+        overrun: the next alarm was due before the scan returned, so the next scan starts at its return):
+        the firmware's costs the model does not count accumulate along such a run as along one scan
+        (see EQUIVALENCES["overrun-drift"])."""
         arr = self.emu.delivered_arrays()
         start_us, end_us = arr.start_ns / 1000.0, arr.end_ns / 1000.0
         keep = np.flatnonzero(end_us <= upto_us)
-        entries = np.array([a for a, _ in self.emu.scans()], dtype=np.float64)
+        scans = self.emu.scans()
+        entries = np.array(
+            [a for i, (a, _) in enumerate(scans) if i == 0 or a != scans[i - 1][1]], dtype=np.float64
+        )
         scan = np.searchsorted(entries, start_us[keep], side="right")
         offsets, outputs = arr.offsets.tolist(), arr.outputs.tolist()
         return [
@@ -432,7 +459,7 @@ def compare(
     for i, (p, q) in enumerate(zip(left.pulses[:n], right.pulses[:n])):
         if (
             p[2:5] != q[2:5]
-            or abs(p[0] - q[0]) > tol * (1 + min(p[5], q[5])) + late + 1e-9
+            or abs(p[0] - q[0]) > tol * (1 + max(p[5], q[5])) + late + 1e-9
             or abs((p[1] - p[0]) - (q[1] - q[0])) > tol + 1e-9
         ):
             return (
@@ -455,7 +482,7 @@ def _pulse_reason(p: Pulse, q: Pulse, tol: float, late: float) -> str:
     for name, i in (("outputs", 3), ("code", 2), ("polarity", 4)):
         if p[i] != q[i]:
             return name
-    return "start" if abs(p[0] - q[0]) > tol * (1 + min(p[5], q[5])) + late + 1e-9 else "width"
+    return "start" if abs(p[0] - q[0]) > tol * (1 + max(p[5], q[5])) + late + 1e-9 else "width"
 
 
 def _pulse(p: Pulse) -> dict[str, Any]:
@@ -482,6 +509,7 @@ class Differ:
     cache: Path | None = None
     runs: int = 0
     watchdog_cut: int = 0  # runs compared only up to the model's watchdog reset
+    call_resolved: int = 0  # state or reply differences gone once the model's parser call was over
     _origin: float | None = None
 
     def __post_init__(self) -> None:
@@ -540,7 +568,12 @@ class Differ:
             checkpoints = [at_us]
         pending = list(stream.writes)
         prev = 0.0
-        for cp in checkpoints:
+        held: Divergence | None = None  # a state or reply difference waiting for the parser call to end
+        held_until = math.inf
+        i = 0
+        while i < len(checkpoints):
+            cp = checkpoints[i]
+            i += 1
             while pending and pending[0][0] < cp:
                 t_w, data = pending.pop(0)
                 left.write(data, t_w)
@@ -552,12 +585,24 @@ class Differ:
                 self.watchdog_cut += 1
                 return None
             found = compare(seen_left, seen_right, self.cmp, readback, cp)
+            in_call = found is not None and found[0] in ("state", "replies")
+            if held is not None and (not in_call or cp >= held_until):
+                if in_call:  # still different once the longest parser call is over: a divergence
+                    return held
+                self.call_resolved += 1  # see EQUIVALENCES["call-resolution"]
+                held = None
             if found is not None:
                 kind, fld, a, b, t = found
                 at = t if t is not None else cp
-                return Divergence(kind, fld, at, prev, a, b, _written_by(stream, at))
+                d = Divergence(kind, fld, at, prev, a, b, _written_by(stream, at))
+                if not in_call or self.cmp.exact or at_us is not None:
+                    return d
+                if held is None:
+                    held, held_until = d, cp + CALL_WINDOW_US
+                    if held_until not in checkpoints:
+                        bisect.insort(checkpoints, held_until)
             prev = cp
-        return None
+        return held
 
     def locate(self, stream: Stream, found: Divergence, resolution_us: float = 1.0) -> Divergence:
         """Narrow a state or reply divergence seen at a checkpoint to within ``resolution_us`` of when it
@@ -655,6 +700,7 @@ class DiffReport:
     minimal_divergence: Divergence | None = None
     stopped_by_time: bool = False
     watchdog_cut: int = 0  # streams compared only up to the model's watchdog reset
+    call_resolved: int = 0  # streams with a difference that was the model's call resolution
     diverged: int = 0  # streams that diverged (more than 1 only with keep_going)
     kinds: dict[str, dict[str, Any]] = field(default_factory=dict)  # keep_going: per signature
 
@@ -668,6 +714,7 @@ class DiffReport:
             "equivalences": {k: EQUIVALENCES[k] for k in self.equivalences},
             "stopped_by_time": self.stopped_by_time,
             "watchdog_cut": self.watchdog_cut,
+            "call_resolved": self.call_resolved,
             "divergences": self.diverged,
             "by_kind": self.kinds,
             "stream": self.stream.to_dict() if self.stream else None,
@@ -728,15 +775,15 @@ class _Runner:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
 
-    def outcomes(self, streams: Iterable[Stream]) -> Iterator[tuple[Stream, Divergence | None, int]]:
-        """(stream, its first divergence, 1 if it was compared only up to the model's watchdog reset)."""
+    def outcomes(self, streams: Iterable[Stream]) -> Iterator[tuple[Stream, Divergence | None, int, int]]:
+        """(stream, then :func:`_outcome`'s three), in the streams' order."""
         if self._pool is None:
             for stream in streams:
                 yield (stream, *_outcome(self.differ, stream))
             return
         pool = self._pool
         it = iter(streams)
-        window: deque[tuple[list[Stream], Future[list[tuple[Divergence | None, int]]]]] = deque()
+        window: deque[tuple[list[Stream], Future[list[tuple[Divergence | None, int, int]]]]] = deque()
 
         def submit() -> bool:
             batch = list(itertools.islice(it, self.BATCH))
@@ -750,8 +797,8 @@ class _Runner:
             batch, fut = window.popleft()
             results = fut.result()
             submit()
-            for stream, (d, cut) in zip(batch, results):
-                yield stream, d, cut
+            for stream, (d, cut, resolved) in zip(batch, results):
+                yield stream, d, cut, resolved
 
     def shrink(
         self, stream: Stream, found: Divergence, max_runs: int
@@ -765,10 +812,12 @@ class _Runner:
         return fut.result
 
 
-def _outcome(differ: Differ, stream: Stream) -> tuple[Divergence | None, int]:
-    cut_before = differ.watchdog_cut
+def _outcome(differ: Differ, stream: Stream) -> tuple[Divergence | None, int, int]:
+    """A stream's first divergence, whether it was compared only up to the model's watchdog reset (1 or 0),
+    and whether a difference in it was the model's call resolution (1 or 0)."""
+    cut_before, resolved_before = differ.watchdog_cut, differ.call_resolved
     d = differ.first_divergence(stream)
-    return d, differ.watchdog_cut - cut_before
+    return d, differ.watchdog_cut - cut_before, int(differ.call_resolved > resolved_before)
 
 
 @dataclass(frozen=True)
@@ -799,7 +848,7 @@ def _start_worker(args: _DifferArgs) -> None:
     _WORKER[:] = [args.make()]
 
 
-def _worker_batch(streams: list[Stream]) -> list[tuple[Divergence | None, int]]:
+def _worker_batch(streams: list[Stream]) -> list[tuple[Divergence | None, int, int]]:
     return [_outcome(_WORKER[0], s) for s in streams]
 
 
@@ -850,9 +899,10 @@ def diff_firmware(
     told = t0
     with _Runner(differ, jobs) as runner:
         outcomes = runner.outcomes(_chain(extra_streams, streams_for(spec, streams, seed, edges)))
-        for n, (stream, d, cut) in enumerate(outcomes, 1):
+        for n, (stream, d, cut, resolved) in enumerate(outcomes, 1):
             report.streams_run = n
             report.watchdog_cut += cut
+            report.call_resolved += resolved
             now = time.perf_counter()
             if progress is not None and now - told >= 2.0:  # at most one line every 2 s
                 progress(f"{n}/{streams} streams, {now - t0:.1f} s, {n / (now - t0):.1f}/s")
