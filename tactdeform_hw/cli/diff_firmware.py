@@ -34,21 +34,22 @@ Against v1.2 or v2 (the package's Python model) the comparison is made modulo na
 docs/firmware-host-build.md, 'Differential against the model'."""
 
 
-def _count(text: str) -> int:
+def _whole(text: str) -> int:
     try:
-        n = int(text)
+        return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+
+
+def _count(text: str) -> int:
+    n = _whole(text)
     if n < 0:
         raise argparse.ArgumentTypeError(f"{n} is negative (>= 0 streams)")
     return n
 
 
 def _jobs(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    n = _whole(text)
     if n < 1:
         raise argparse.ArgumentTypeError(f"{n} is out of range: jobs >= 1 (worker processes)")
     return n
