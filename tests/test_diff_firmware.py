@@ -20,7 +20,7 @@ from tactdeform_hw.emulator.hostbuild import find_compiler
 from tactdeform_hw.emulator.hostbuild.diff import Comparison, Differ, Observation, compare, diff_firmware
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap
 from tactdeform_hw.emulator.hostbuild.streams import Stream, off_tick, random_stream
-from tactdeform_hw.errors import FirmwareBuildError
+from tactdeform_hw.errors import FirmwareBuildError, LimitError
 
 TINY = Path(__file__).parent / "data" / "firmware_tiny"
 MAP = StateMap.from_toml(TINY / "hostbuild_state.toml")
@@ -96,6 +96,28 @@ def test_a_firmware_stuck_on_both_sides_is_no_divergence(tmp_path: Path) -> None
     twin = _copy(tmp_path, "twin")
     stream = Stream(((2000.5, b"H"),), 8000.0, "hang")
     assert Differ(TINY, str(twin), state_map=MAP).first_divergence(stream) is None
+
+
+@needs_cxx
+def test_any_number_of_jobs_gives_the_same_report(tmp_path: Path) -> None:
+    """Two planted changes (a reply and a register clamp), every stream run: the streams shared by two worker
+    processes give the report one process gives, divergence counts, kinds and minimal reproductions alike."""
+    tree = _copy(tmp_path, "two_changes", "readByteBlocking() + 1)", "readByteBlocking() + 2)")
+    unit = tree / "lib" / "Tiny" / "tiny.cpp"
+    unit.write_text(unit.read_text().replace("constrain(v, 0, 4095)", "constrain(v, 0, 4000)"))
+    kw: dict[str, object] = {"streams": 60, "seed": 5, "state_map": MAP, "edges": False, "keep_going": True}
+    kw["shrink_runs"] = 60
+    one = diff_firmware(TINY, str(tree), jobs=1, **kw).to_dict()  # type: ignore[arg-type]
+    two = diff_firmware(TINY, str(tree), jobs=2, **kw).to_dict()  # type: ignore[arg-type]
+    assert len(one["by_kind"]) >= 2 and one["divergences"] > 2
+    for report in (one, two):
+        del report["seconds"], report["streams_per_s"]
+    assert two == one
+
+
+def test_jobs_below_one_is_refused_before_anything_runs() -> None:
+    with pytest.raises(LimitError, match="jobs=0"):
+        diff_firmware(TINY, "v1.2", streams=1, jobs=0)
 
 
 def test_random_streams_are_reproducible_and_off_the_tick_grid() -> None:
@@ -200,6 +222,13 @@ def test_cli_exit_2_on_an_against_that_is_neither_model_nor_tree(
     assert code == 2 and "--against 'v3' is neither v1.2, v2 nor a PlatformIO tree" in err
 
 
+def test_cli_exit_2_on_no_worker_process(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["diff-firmware", "--firmware-src", str(TINY), "--against", "v1.2", "--jobs", "0"])
+    assert exc.value.code == 2
+    assert "--jobs: 0 is out of range: jobs >= 1" in capsys.readouterr().err
+
+
 def test_cli_exit_2_on_a_negative_stream_count(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as exc:
         main(["diff-firmware", "--firmware-src", str(TINY), "--against", "v1.2", "--streams", "-1"])
@@ -292,3 +321,37 @@ def test_upstream_v2_against_itself_is_exact(tmp_path: Path) -> None:
     shutil.copytree(tree / "lib", twin / "lib")
     report = diff_firmware(tree, str(twin), streams=4, seed=1, edges=False)
     assert report.divergence is None and report.streams_run == 4
+
+
+def test_a_pulse_deep_in_a_run_of_back_to_back_scans_may_start_later_by_the_drift_allowance() -> None:
+    """Overrun scans run back to back: the host build numbers a pulse within its run (49 here), the model
+    within its scan (0); the start tolerance takes the larger number (equivalence overrun-drift)."""
+
+    def obs(start: float, index: int) -> Observation:
+        return Observation({}, b"", [(start, start + 6.6, 3, (0,), 1, index)])
+
+    model = Comparison(exact=False, spec=None, pulse_tolerance_us=0.7)
+    assert compare(obs(3966.45, 49), obs(3945.6, 0), model, False) is None
+    found = compare(obs(3966.45, 0), obs(3945.6, 0), model, False)  # one scan of its own: too late
+    assert found is not None and found[1] == "pulse 0 (start)"
+
+
+def test_upstream_v1_2_a_register_mid_call_is_the_models_call_resolution() -> None:
+    """0xFC 4 arrives at 2000.5 µs; the parser call at the 3000 µs tick stores it some µs into the call, the
+    model at the call's start: a checkpoint at 3000.218 µs (the next write) sees 0 against 4, which is gone
+    once the call is over (equivalence call-resolution, counted), so the stream does not diverge."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V1_2")
+    stream = Stream(((2000.5, bytes.fromhex("fc04")), (3000.218, bytes.fromhex("17"))), 5001.0, "mid-call")
+    differ = Differ(tree, "v1.2")
+    assert differ.first_divergence(stream) is None
+    assert differ.call_resolved == 1
+    held = differ.first_divergence(stream, at_us=3000.218)  # a single checkpoint: nothing to wait for
+    assert held is not None and (held.field, held.left, held.right) == ("electrode_num", 0, 4)
+
+
+def test_upstream_v2_overrunning_scans_drift_within_the_run_allowance() -> None:
+    """0xF6 65534 makes every scan overrun (an alarm of 15 µs, a scan of 19.2 µs): the firmware's 49th scan
+    in a row starts 20.85 µs after the model's, within the run's allowance (equivalence overrun-drift)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    stream = Stream(((2000.5, bytes.fromhex("fc01fe0300f6feff")),), 5946.0, "overrun")
+    assert Differ(tree, "v2").first_divergence(stream) is None

@@ -226,6 +226,35 @@ def test_two_instances_do_not_share_the_firmware_globals(cache: Path) -> None:
     assert b.now_us == 1000.0 and a.now_us == 3000.0
 
 
+def _mapped_copies() -> int:
+    """Private firmware copies mapped into this process (each instance dlopens its own)."""
+    maps = Path("/proc/self/maps").read_text()
+    return len({line.split()[-2] for line in maps.splitlines() if "tactdeform-fw-" in line})
+
+
+@pytest.mark.skipif(not Path("/proc/self/maps").is_file(), reason="needs /proc/self/maps (Linux)")
+def test_close_unloads_the_firmware_copy_and_a_collected_instance_is_unloaded_too(cache: Path) -> None:
+    before = _mapped_copies()
+    emu = tiny(cache)
+    emu.write(b"E\x05", at_us=0)
+    emu.advance_to(2500)
+    assert _mapped_copies() == before + 1
+    emu.close()
+    assert _mapped_copies() == before
+    assert emu.read() == b"\x06"  # what was already taken stays readable
+    with pytest.raises(FirmwareBuildError, match="closed"):
+        emu.advance_to(3000)
+    with pytest.raises(FirmwareBuildError, match="closed"):
+        emu.state()
+    emu.close()  # twice is harmless
+    with tiny(cache) as other:
+        other.advance_to(1000)
+        assert _mapped_copies() == before + 1
+    assert _mapped_copies() == before
+    tiny(cache).advance_to(1000)  # dropped at once: collected, unloaded
+    assert _mapped_copies() == before
+
+
 def test_state_reads_static_variables_through_the_map(cache: Path) -> None:
     emu = tiny(cache)
     emu.write(b"C" + b"E\x05", at_us=0)

@@ -4,13 +4,16 @@ scan traces the firmware's own interrupt code produced (tests/data/scan_traces_*
 from __future__ import annotations
 
 import json
+import random
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from tactdeform_hw.emulator.hostbuild import build, find_compiler
 from tactdeform_hw.emulator.hostbuild.delivered import ChainDecoder, DeliveredPulse
-from tactdeform_hw.errors import LimitError
+from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator
+from tactdeform_hw.errors import FirmwareBuildError, LimitError
 
 DATA = Path(__file__).parent / "data"
 
@@ -77,3 +80,62 @@ def test_no_chain_means_no_outputs() -> None:
     assert pulses == []
     with pytest.raises(LimitError, match="chain_outputs=-1"):
         ChainDecoder(-1)
+
+
+# --- the shim's own decoder against this reference ----------------------------------------------------------
+
+CHAIN_FIRMWARE = DATA / "firmware_chain"
+
+
+def _cxx() -> str:
+    try:
+        find_compiler()
+    except FirmwareBuildError as exc:
+        return str(exc)
+    return ""
+
+
+needs_cxx = pytest.mark.skipif(bool(_cxx()), reason=f"no C++ compiler: {_cxx()}")
+
+
+@pytest.fixture(scope="module")
+def chain_cache(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    where = tmp_path_factory.mktemp("fwcache")
+    build(CHAIN_FIRMWARE, state_map=None, cache=where)
+    return where
+
+
+def _reference(emu: HostBuildEmulator, chain_outputs: int) -> list[DeliveredPulse]:
+    """The pin and DAC events the host build recorded, through :class:`ChainDecoder`."""
+    dec = ChainDecoder(chain_outputs)
+    for e in emu.shim_events():
+        t_ns = round(e.t_us * 1000)
+        if e.kind == "GPIO":
+            dec.gpio(t_ns, e.a, e.b)
+        elif e.kind == "SPI":
+            dec.dac(t_ns + emu.timing.dac_at_ns, (e.b >> 2) & 0xFFF)
+    return dec.pulses
+
+
+@needs_cxx
+@pytest.mark.parametrize(("seed", "chain_outputs"), [(1, 8), (2, 8), (3, 3), (4, 1), (5, 0), (6, 32)])
+def test_the_shim_decodes_the_chain_exactly_as_the_reference(
+    chain_cache: Path, seed: int, chain_outputs: int
+) -> None:
+    """Random actions on the chain's pins and the DAC: the pulses the shim decoded while the firmware ran are
+    the reference decoder's, pulse for pulse (times, codes, outputs, polarity)."""
+    rng = random.Random(seed)
+    emu = HostBuildEmulator(
+        CHAIN_FIRMWARE, state_map=None, cache=chain_cache, chain_outputs=chain_outputs, stack_reading=0
+    )
+    t = 100.5
+    for _ in range(40):
+        emu.write(bytes(rng.randrange(256) for _ in range(rng.randint(1, 60))), at_us=t)
+        t += rng.uniform(50, 3000)
+        emu.advance_to(t)
+    emu.advance_to(t + 5000)
+    expected = _reference(emu, chain_outputs)
+    assert len(expected) > (20 if chain_outputs else -1)
+    assert emu.delivered_pulses() == expected
+    arrays = emu.delivered_arrays()
+    assert [arrays.outputs_of(i) for i in range(len(arrays))] == [p.outputs for p in expected]

@@ -34,13 +34,24 @@ Against v1.2 or v2 (the package's Python model) the comparison is made modulo na
 docs/firmware-host-build.md, 'Differential against the model'."""
 
 
-def _count(text: str) -> int:
+def _whole(text: str) -> int:
     try:
-        n = int(text)
+        return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+
+
+def _count(text: str) -> int:
+    n = _whole(text)
     if n < 0:
         raise argparse.ArgumentTypeError(f"{n} is negative (>= 0 streams)")
+    return n
+
+
+def _jobs(text: str) -> int:
+    n = _whole(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{n} is out of range: jobs >= 1 (worker processes)")
     return n
 
 
@@ -120,6 +131,12 @@ def register(sub: Any) -> None:
         type=_tolerance_s,
         help="start no new stream after this many seconds of wall time (the report says how many ran)",
     )
+    p.add_argument(
+        "--jobs",
+        type=_jobs,
+        default=1,
+        help="worker processes sharing the streams (default 1); the report is the same for any number",
+    )
     p.add_argument("--json", action="store_true", help="print the report as JSON")
     p.set_defaults(func=run)
 
@@ -177,6 +194,7 @@ def run(args: argparse.Namespace) -> int:
             keep_going=args.keep_going,
             time_limit_s=args.time_limit_s,
             shrink_runs=args.shrink_runs,
+            jobs=args.jobs,
         )
     except FirmwareBuildError as exc:
         _error(str(exc).splitlines()[0] if not args.debug else str(exc))
@@ -199,6 +217,11 @@ def _print_text(report: Any) -> None:
     if report.watchdog_cut:
         print(
             f"{report.watchdog_cut} streams compared up to the model's watchdog reset (equivalence watchdog)"
+        )
+    if report.call_resolved:
+        print(
+            f"{report.call_resolved} streams had a difference gone once the parser call was over "
+            "(equivalence call-resolution)"
         )
     if report.equivalences:
         print("modulo: " + ", ".join(report.equivalences))

@@ -14,6 +14,8 @@ the flags and the generated accessor unit.  A second build of the same tree is a
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -73,6 +75,17 @@ def find_compiler(preferred: str | None = None) -> str:
 
 
 def compiler_identity(compiler: str) -> str:
+    """The compiler's path and ``--version`` (part of every build's cache key); asked once per compiler
+    binary and process, as each emulator made looks its build up again."""
+    try:
+        st = os.stat(compiler)
+    except OSError as exc:
+        raise FirmwareBuildError(f"the C++ compiler {compiler} does not run: {exc}") from exc
+    return _identity(compiler, os.path.realpath(compiler), st.st_mtime_ns, st.st_size)
+
+
+@functools.lru_cache(maxsize=16)
+def _identity(compiler: str, real: str, mtime_ns: int, size: int) -> str:
     try:
         out = subprocess.run([compiler, "--version"], capture_output=True, text=True, timeout=30)
     except (OSError, subprocess.TimeoutExpired) as exc:
@@ -214,6 +227,39 @@ def _key(plan: _Plan) -> str:
     return _digest(parts)
 
 
+_SEEN: dict[tuple[object, ...], BuildResult] = {}
+"""Builds this process already looked up, by :func:`_stat_key`: a campaign that makes an emulator per run
+finds its build without hashing the tree each time."""
+
+
+def _stat_key(
+    tree: str | os.PathLike[str],
+    state_map: StateMap | None,
+    defines: dict[str, str] | None,
+    compiler: str | None,
+    extra_flags: tuple[str, ...],
+    where: Path,
+) -> tuple[object, ...]:
+    """Everything a build depends on, with the tree's and the shim's files by name, size and modification
+    time (any edit changes it) and the compiler's environment; the content hash is taken when it changes."""
+    root = Path(tree).resolve()
+    files = [*_tree_files(root), *(p for p in sorted(SHIM_DIR.rglob("*")) if p.is_file())]
+    stats = tuple((str(p), st.st_size, st.st_mtime_ns) for p in files for st in (p.stat(),))
+    return (
+        root,
+        stats,
+        None
+        if state_map is None
+        else (state_map.unit, tuple(state_map.registers.items()), state_map.firmware),
+        tuple(sorted((defines or {}).items())) if defines is not None else None,
+        compiler,
+        os.environ.get("CXX"),
+        os.environ.get("PATH"),
+        extra_flags,
+        where.resolve(),
+    )
+
+
 def build(
     tree: str | os.PathLike[str],
     *,
@@ -226,12 +272,18 @@ def build(
     """Build ``tree`` (cached).  Raises :class:`FirmwareBuildError` naming the file and line of the first
     compiler error, or the undefined symbol at link time."""
     t0 = time.perf_counter()
+    where = Path(cache) if cache is not None else cache_dir()
+    tree_key = _stat_key(tree, state_map, defines, compiler, extra_flags, where)
+    seen = _SEEN.get(tree_key)
+    if seen is not None and seen.library.is_file():
+        return dataclasses.replace(seen, cached=True, seconds=time.perf_counter() - t0)
     plan = _plan(tree, state_map, defines, compiler, extra_flags)
     key = _key(plan)
-    where = Path(cache) if cache is not None else cache_dir()
     lib_path = where / f"{key}.so"
     if lib_path.is_file():
-        return BuildResult(lib_path, key, True, time.perf_counter() - t0, plan.cxx, plan.registers)
+        found = BuildResult(lib_path, key, True, time.perf_counter() - t0, plan.cxx, plan.registers)
+        _SEEN[tree_key] = found
+        return found
     where.mkdir(parents=True, exist_ok=True)
     _compile(plan, where, lib_path)
     meta = {
@@ -241,7 +293,9 @@ def build(
         "built_s": time.perf_counter() - t0,
     }
     (where / f"{key}.json").write_text(json.dumps(meta, indent=1), encoding="utf-8")
-    return BuildResult(lib_path, key, False, time.perf_counter() - t0, plan.cxx, plan.registers)
+    made = BuildResult(lib_path, key, False, time.perf_counter() - t0, plan.cxx, plan.registers)
+    _SEEN[tree_key] = made
+    return made
 
 
 def _compile(plan: _Plan, where: Path, lib_path: Path) -> None:

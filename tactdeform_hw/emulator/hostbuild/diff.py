@@ -15,21 +15,28 @@ and nothing else; each report lists the ones it applied.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
+import itertools
 import math
+import multiprocessing
 import time
-from bisect import bisect_right
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+import numpy as np
+
+from tactdeform_hw.emulator.hostbuild.build import build
 from tactdeform_hw.emulator.hostbuild.emulator import USB_PACKET_BYTES, HostBuildEmulator
-from tactdeform_hw.emulator.hostbuild.statemap import StateMap
+from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
 from tactdeform_hw.emulator.hostbuild.streams import SETUP_US, Stream, edge_streams, random_stream
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
-from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError
+from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError, LimitError
 from tactdeform_hw.protocol.firmware import FIRMWARES, V1_2, V2, FirmwareSpec
 
 MODELS = tuple(FIRMWARES)
@@ -43,6 +50,11 @@ EQUIVALENCES: dict[str, str] = {
     "of a scan (from 0) starts within (n + 1) x pulse_tolerance_us: the firmware's chip-select writes "
     "(0.1 us each, two per SPI exchange), which the model does not count, make a pulse 0.2 us longer "
     "(196.8 vs 196.6 us) and each pulse start up to 0.6 us later after the one before it",
+    "overrun-drift": "when scans overrun (the next alarm is due before a scan returns), the firmware runs "
+    "them back to back and the chip-select writes the model does not count (see pulse-width) accumulate from "
+    "scan to scan instead of being reset by the next alarm: on the host build a pulse is numbered within "
+    "its run of back-to-back scans, and the start tolerance (n + 1) x pulse_tolerance_us takes the larger "
+    "of the two sides' numbers",
     "preempt-at-calls": "the host build runs a due interrupt at the main loop's next shim call, the model "
     "(like the chip) at the alarm: a scan's pulses may start up to PREEMPT_US (20 us: one of 0xF5's "
     "analogRead calls; 2 us otherwise) later on the host build",
@@ -56,10 +68,24 @@ EQUIVALENCES: dict[str, str] = {
     "before the main loop wakes, the model wakes the loop first (a convention of each)",
     "watchdog": "the host build does not model the interrupt watchdog: a stream is compared up to the "
     "last checkpoint before the model's watchdog resets the board (the report counts these streams)",
+    "call-resolution": "the model applies a parser call's effects (registers, the receive queue, v1.2's "
+    "logged reply) at the call's start, the firmware as its code reads and stores: a state or reply "
+    "difference seen at a checkpoint that is gone by CALL_WINDOW_US (the longest parser call) later, with "
+    "no difference in between outlasting it, is this resolution (the report counts these streams); one "
+    "still there then is reported as it was first seen",
     "registers-in-common": "only registers both sides hold are compared (the host build's receive-queue "
     "counters and the model's command_in_progress have no counterpart)",
 }
 """What a comparison against the Python model is made modulo (none apply between two trees)."""
+
+CALL_WINDOW_US = (
+    DEFAULT_MODEL.parser_call_us
+    + DEFAULT_MODEL.rx_queue_bytes * DEFAULT_MODEL.parser_byte_us
+    + DEFAULT_MODEL.hv513_detect_us
+)
+"""Against the model: the longest a parser call can take (its overhead, a full receive queue read a byte at
+a time, and 0xF5's stack detection): a state or reply difference that is gone by this long after it was
+seen is the model showing the call's effects from its start (see EQUIVALENCES["call-resolution"])."""
 
 STATE_MAP_FILE = "hostbuild_state.toml"
 """A tree's own state map, by convention at its root (``tests/data/firmware_tiny`` has one)."""
@@ -86,7 +112,8 @@ STALL_CALLS = 2_000_000
 
 
 Pulse = tuple[float, float, int, tuple[int, ...], int, int]
-"""A delivered pulse: start µs, end µs, DAC code, outputs, polarity (1 anodic), its index within its scan."""
+"""A delivered pulse: start µs, end µs, DAC code, outputs, polarity (1 anodic), its index within its scan
+(on the host build: within its run of back-to-back scans, see :meth:`HostSide._pulses`)."""
 
 
 def _number_in_scans(pulses: list[tuple[float, float, int, tuple[int, ...], int, int]]) -> list[Pulse]:
@@ -120,22 +147,27 @@ class Side(Protocol):
 
     def observe(self, upto_us: float) -> Observation: ...
 
+    def close(self) -> None: ...
+
 
 class HostSide:
-    """A firmware tree built on the host."""
+    """A firmware tree built on the host (keeping no pin events: its delivered pulses are decoded in the
+    shim)."""
 
     def __init__(self, tree: Path, *, name: str, state_map: StateMap | None, **kw: Any) -> None:
         self.name = name
-        self.emu = HostBuildEmulator(tree, state_map=state_map, stall_calls=STALL_CALLS, **kw)
+        self.emu = HostBuildEmulator(
+            tree, state_map=state_map, stall_calls=STALL_CALLS, pin_events=False, **kw
+        )
         self.stuck: str | None = None
 
     @property
     def timer_origin_us(self) -> float | None:
         """When the firmware first enabled a timer alarm (its stimulation timer's start)."""
-        for e in self.emu.shim_events():
-            if e.kind == "ALARM_ENABLE":
-                return e.t_us
-        return None
+        return self.emu.first_event_us("ALARM_ENABLE")
+
+    def close(self) -> None:
+        self.emu.close()
 
     def write(self, data: bytes, at_us: float) -> None:
         if self.stuck is None:
@@ -157,15 +189,34 @@ class HostSide:
         st = self.emu.state()
         st["rx_unread"] = st["rx_pending"] + st["rx_in_flight"]
         replies = b"".join(b for _, b in self.emu.tx_log)
-        entries = [a for a, _ in self.emu.scans()]
-        pulses = _number_in_scans(
-            [
-                (p.start_us, p.end_us, p.code, p.outputs, p.polarity, bisect_right(entries, p.start_us))
-                for p in self.emu.delivered_pulses()
-                if p.end_us <= upto_us
-            ]
+        return Observation(st, replies, _number_in_scans(self._pulses(upto_us)), self.stuck)
+
+    def _pulses(self, upto_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
+        """The delivered pulses ended by ``upto_us``, each with the number of its run of scans, read from the
+        shim's columns.  A run is a scan its alarm started and the scans that followed it back to back (an
+        overrun: the next alarm was due before the scan returned, so the next scan starts at its return):
+        the firmware's costs the model does not count accumulate along such a run as along one scan
+        (see EQUIVALENCES["overrun-drift"])."""
+        arr = self.emu.delivered_arrays()
+        start_us, end_us = arr.start_ns / 1000.0, arr.end_ns / 1000.0
+        keep = np.flatnonzero(end_us <= upto_us)
+        scans = self.emu.scans()
+        entries = np.array(
+            [a for i, (a, _) in enumerate(scans) if i == 0 or a != scans[i - 1][1]], dtype=np.float64
         )
-        return Observation(st, replies, pulses, self.stuck)
+        scan = np.searchsorted(entries, start_us[keep], side="right")
+        offsets, outputs = arr.offsets.tolist(), arr.outputs.tolist()
+        return [
+            (s, e, code, tuple(outputs[offsets[i] : offsets[i + 1]]), pol, n)
+            for i, s, e, code, pol, n in zip(
+                keep.tolist(),
+                start_us[keep].tolist(),
+                end_us[keep].tolist(),
+                arr.code[keep].tolist(),
+                arr.polarity[keep].tolist(),
+                scan.tolist(),
+            )
+        ]
 
 
 class DirectLink(LinkModel):
@@ -209,6 +260,9 @@ class ModelSide:
         if t_us > self.emu.now_us:
             self.emu.advance_to(t_us)
 
+    def close(self) -> None:
+        """Nothing to release: the model is plain Python."""
+
     def observe(self, upto_us: float) -> Observation:
         st = self.emu.state().as_dict()
         st["rx_unread"] = st["rx_pending"] + self.emu.in_flight
@@ -238,12 +292,28 @@ class ModelSideV1_2(ModelSide):
         return b"".join(b for t, b in self.emu.tx_log if t <= upto_us)
 
     def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
+        """The pulses of a non-zero code through at least one output, ended by ``limit_us`` (read from the
+        reports' columns: no report object per pulse)."""
+        reports = self.emu.reports
+        t = reports.pulse_table(t1_us=limit_us)
+        end_us = t["start_us"] + t["width_us"]
+        keep = (t["code"] > 0) & (end_us <= limit_us)
+        outputs_of = reports.outputs_lookup()
         out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
-        for p in self.emu.reports.pulses(t1_us=limit_us):
-            end = p.start_us + p.width_us
-            if p.height_code > 0 and p.outputs and end <= limit_us:
-                pol = int(p.polarity == "anodic")
-                out.append((p.start_us, end, p.height_code, tuple(p.outputs), pol, p.cycle))
+        col = {k: t[k][keep].tolist() for k in ("start_us", "code", "pol", "cycle", "channel", "output")}
+        for start, end, code, pol, cycle, channel, output, n_out in zip(
+            col["start_us"],
+            end_us[keep].tolist(),
+            col["code"],
+            col["pol"],
+            col["cycle"],
+            col["channel"],
+            col["output"],
+            t["n_outputs"][keep].tolist(),
+        ):
+            outputs = outputs_of(int(cycle), int(channel), int(output), int(n_out))
+            if outputs:
+                out.append((float(start), float(end), int(code), tuple(outputs), int(bool(pol)), int(cycle)))
         return out
 
 
@@ -266,11 +336,12 @@ class ModelSideV2(ModelSide):
 
     def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
         out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
-        for r in self.emu.delivered():  # the model starts its timer at timer_start_us itself, as v1.2's
-            t, end = r["t_us"], r["t_us"] + r["width_us"]
-            if r["code"] > 0 and end <= limit_us:
-                pol = int(r["polarity"] == "anodic")
-                out.append((t, end, r["code"], (r["channel"],), pol, r["scan"]))
+        for scan in self.emu.scans:  # the model starts its timer at timer_start_us itself, as v1.2's
+            for channel, onset_ns, code, width_ns, pol in scan.pulses:  # as delivered() reads them
+                t = (scan.start_ns + onset_ns) / 1000
+                end = t + width_ns / 1000
+                if code > 0 and end <= limit_us:
+                    out.append((t, end, code, (channel,), int(bool(pol)), scan.index))
         return out
 
 
@@ -388,7 +459,7 @@ def compare(
     for i, (p, q) in enumerate(zip(left.pulses[:n], right.pulses[:n])):
         if (
             p[2:5] != q[2:5]
-            or abs(p[0] - q[0]) > tol * (1 + min(p[5], q[5])) + late + 1e-9
+            or abs(p[0] - q[0]) > tol * (1 + max(p[5], q[5])) + late + 1e-9
             or abs((p[1] - p[0]) - (q[1] - q[0])) > tol + 1e-9
         ):
             return (
@@ -411,7 +482,7 @@ def _pulse_reason(p: Pulse, q: Pulse, tol: float, late: float) -> str:
     for name, i in (("outputs", 3), ("code", 2), ("polarity", 4)):
         if p[i] != q[i]:
             return name
-    return "start" if abs(p[0] - q[0]) > tol * (1 + min(p[5], q[5])) + late + 1e-9 else "width"
+    return "start" if abs(p[0] - q[0]) > tol * (1 + max(p[5], q[5])) + late + 1e-9 else "width"
 
 
 def _pulse(p: Pulse) -> dict[str, Any]:
@@ -438,6 +509,7 @@ class Differ:
     cache: Path | None = None
     runs: int = 0
     watchdog_cut: int = 0  # runs compared only up to the model's watchdog reset
+    call_resolved: int = 0  # state or reply differences gone once the model's parser call was over
     _origin: float | None = None
 
     def __post_init__(self) -> None:
@@ -461,6 +533,7 @@ class Differ:
                 probe = HostSide(self.tree, name="probe", state_map=self.state_map, **kw)
                 probe.advance_to(SETUP_US)
                 self._origin = probe.timer_origin_us or 0.0
+                probe.close()
             side = MODEL_SIDES[self.against]
             right = side(timer_origin_us=self._origin, hv513_count=self.hv513_count)
         else:
@@ -479,6 +552,15 @@ class Differ:
         single checkpoint there (the writes before it written)."""
         self.runs += 1
         left, right = self.sides()
+        try:
+            return self._first_divergence(left, right, stream, at_us)
+        finally:
+            left.close()
+            right.close()
+
+    def _first_divergence(
+        self, left: Side, right: Side, stream: Stream, at_us: float | None
+    ) -> Divergence | None:
         readback = self.has_readback(stream)
         if at_us is None:
             checkpoints = sorted({t for t, _ in stream.writes} | {stream.end_us})
@@ -486,7 +568,12 @@ class Differ:
             checkpoints = [at_us]
         pending = list(stream.writes)
         prev = 0.0
-        for cp in checkpoints:
+        held: Divergence | None = None  # a state or reply difference waiting for the parser call to end
+        held_until = math.inf
+        i = 0
+        while i < len(checkpoints):
+            cp = checkpoints[i]
+            i += 1
             while pending and pending[0][0] < cp:
                 t_w, data = pending.pop(0)
                 left.write(data, t_w)
@@ -498,12 +585,24 @@ class Differ:
                 self.watchdog_cut += 1
                 return None
             found = compare(seen_left, seen_right, self.cmp, readback, cp)
+            in_call = found is not None and found[0] in ("state", "replies")
+            if held is not None and (not in_call or cp >= held_until):
+                if in_call:  # still different once the longest parser call is over: a divergence
+                    return held
+                self.call_resolved += 1  # see EQUIVALENCES["call-resolution"]
+                held = None
             if found is not None:
                 kind, fld, a, b, t = found
                 at = t if t is not None else cp
-                return Divergence(kind, fld, at, prev, a, b, _written_by(stream, at))
+                d = Divergence(kind, fld, at, prev, a, b, _written_by(stream, at))
+                if not in_call or self.cmp.exact or at_us is not None:
+                    return d
+                if held is None:
+                    held, held_until = d, cp + CALL_WINDOW_US
+                    if held_until not in checkpoints:
+                        bisect.insort(checkpoints, held_until)
             prev = cp
-        return None
+        return held
 
     def locate(self, stream: Stream, found: Divergence, resolution_us: float = 1.0) -> Divergence:
         """Narrow a state or reply divergence seen at a checkpoint to within ``resolution_us`` of when it
@@ -601,6 +700,7 @@ class DiffReport:
     minimal_divergence: Divergence | None = None
     stopped_by_time: bool = False
     watchdog_cut: int = 0  # streams compared only up to the model's watchdog reset
+    call_resolved: int = 0  # streams with a difference that was the model's call resolution
     diverged: int = 0  # streams that diverged (more than 1 only with keep_going)
     kinds: dict[str, dict[str, Any]] = field(default_factory=dict)  # keep_going: per signature
 
@@ -614,6 +714,7 @@ class DiffReport:
             "equivalences": {k: EQUIVALENCES[k] for k in self.equivalences},
             "stopped_by_time": self.stopped_by_time,
             "watchdog_cut": self.watchdog_cut,
+            "call_resolved": self.call_resolved,
             "divergences": self.diverged,
             "by_kind": self.kinds,
             "stream": self.stream.to_dict() if self.stream else None,
@@ -639,6 +740,122 @@ def streams_for(spec: FirmwareSpec | None, count: int, seed: int, edges: bool = 
         made += 1
 
 
+class _Runner:
+    """Runs the streams of one differential, in this process (``jobs=1``) or in ``jobs`` worker processes
+    (each with its own :class:`Differ`), and hands back each stream's outcome in the streams' order: any
+    ``jobs`` gives the same outcomes, so the same report."""
+
+    BATCH = 8
+    """Streams per task sent to a worker (a stream takes tens of ms; a task's round trip far less)."""
+
+    def __init__(self, differ: Differ, jobs: int) -> None:
+        self.differ = differ
+        self.jobs = jobs
+        self._pool: Executor | None = None
+        if jobs > 1:
+            self._prebuild()
+            self._pool = ProcessPoolExecutor(
+                max_workers=jobs,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=_start_worker,
+                initargs=(_DifferArgs.of(differ),),
+            )
+
+    def _prebuild(self) -> None:
+        """Build the trees here first, so a build error is raised here and the workers find them cached."""
+        d = self.differ
+        trees = [d.tree] + ([] if d.against in MODELS else [Path(d.against)])
+        for tree in trees:
+            build(tree, state_map=d.state_map if d.state_map is not None else detect(tree), cache=d.cache)
+
+    def __enter__(self) -> _Runner:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def outcomes(self, streams: Iterable[Stream]) -> Iterator[tuple[Stream, Divergence | None, int, int]]:
+        """(stream, then :func:`_outcome`'s three), in the streams' order."""
+        if self._pool is None:
+            for stream in streams:
+                yield (stream, *_outcome(self.differ, stream))
+            return
+        pool = self._pool
+        it = iter(streams)
+        window: deque[tuple[list[Stream], Future[list[tuple[Divergence | None, int, int]]]]] = deque()
+
+        def submit() -> bool:
+            batch = list(itertools.islice(it, self.BATCH))
+            if batch:
+                window.append((batch, pool.submit(_worker_batch, batch)))
+            return bool(batch)
+
+        while len(window) < 4 * self.jobs and submit():
+            pass
+        while window:
+            batch, fut = window.popleft()
+            results = fut.result()
+            submit()
+            for stream, (d, cut, resolved) in zip(batch, results):
+                yield stream, d, cut, resolved
+
+    def shrink(
+        self, stream: Stream, found: Divergence, max_runs: int
+    ) -> Callable[[], tuple[Stream, Divergence]]:
+        """Start shrinking ``found``; the returned call gives the minimal reproduction (at once with
+        ``jobs=1``, as the sequential run always did; in a worker otherwise, beside the streams)."""
+        if self._pool is None:
+            done = shrink(self.differ, stream, found, max_runs)
+            return lambda: done
+        fut = self._pool.submit(_worker_shrink, stream, found, max_runs)
+        return fut.result
+
+
+def _outcome(differ: Differ, stream: Stream) -> tuple[Divergence | None, int, int]:
+    """A stream's first divergence, whether it was compared only up to the model's watchdog reset (1 or 0),
+    and whether a difference in it was the model's call resolution (1 or 0)."""
+    cut_before, resolved_before = differ.watchdog_cut, differ.call_resolved
+    d = differ.first_divergence(stream)
+    return d, differ.watchdog_cut - cut_before, int(differ.call_resolved > resolved_before)
+
+
+@dataclass(frozen=True)
+class _DifferArgs:
+    """What a worker process needs to make the same :class:`Differ` (its fields, without its state)."""
+
+    tree: Path
+    against: str
+    hv513_count: int
+    state_map: StateMap | None
+    pulse_tolerance_us: float
+    cache: Path | None
+
+    @classmethod
+    def of(cls, d: Differ) -> _DifferArgs:
+        return cls(d.tree, d.against, d.hv513_count, d.state_map, d.pulse_tolerance_us, d.cache)
+
+    def make(self) -> Differ:
+        return Differ(
+            self.tree, self.against, self.hv513_count, self.state_map, self.pulse_tolerance_us, self.cache
+        )
+
+
+_WORKER: list[Differ] = []  # the worker process's own Differ (set once, by its initializer)
+
+
+def _start_worker(args: _DifferArgs) -> None:
+    _WORKER[:] = [args.make()]
+
+
+def _worker_batch(streams: list[Stream]) -> list[tuple[Divergence | None, int, int]]:
+    return [_outcome(_WORKER[0], s) for s in streams]
+
+
+def _worker_shrink(stream: Stream, found: Divergence, max_runs: int) -> tuple[Stream, Divergence]:
+    return shrink(_WORKER[0], stream, found, max_runs)
+
+
 def diff_firmware(
     tree: str | Path,
     against: str,
@@ -655,11 +872,14 @@ def diff_firmware(
     progress: Callable[[str], None] | None = None,
     keep_going: bool = False,
     time_limit_s: float | None = None,
+    jobs: int = 1,
 ) -> DiffReport:
     """Compare ``tree`` with ``against`` (``"v1.2"``, ``"v2"`` or another tree) on ``extra_streams`` then
     ``streams`` generated ones; stop at the first divergence and shrink it.  With ``keep_going`` run every
     stream, count the divergences per signature (kind and field) and shrink the first of each.
-    ``time_limit_s`` stops starting new streams after that much wall time (the report says how many ran)."""
+    ``time_limit_s`` stops starting new streams after that much wall time (the report says how many ran).
+    ``jobs`` worker processes share the streams; the report is the same for any ``jobs`` (but for its
+    times, and for where a ``time_limit_s`` cuts the run)."""
     tree = Path(tree)
     if not (tree / "src").is_dir():
         raise ConfigurationError(
@@ -669,47 +889,51 @@ def diff_firmware(
         raise ConfigurationError(
             f"--against={against!r} is neither v1.2, v2 nor a PlatformIO tree (a folder with src/)"
         )
+    if jobs < 1:
+        raise LimitError("jobs", jobs, "an integer >= 1 (worker processes)")
     differ = Differ(tree, against, hv513_count, state_map, pulse_tolerance_us, cache)
-    spec = differ.cmp.spec if against not in MODELS else differ.cmp.spec
+    spec = differ.cmp.spec
     report = DiffReport(str(tree), against, equivalences=differ.cmp.equivalences)
+    shrinks: dict[str, Callable[[], tuple[Stream, Divergence]]] = {}
     t0 = time.perf_counter()
     told = t0
-    for n, stream in enumerate(_chain(extra_streams, streams_for(spec, streams, seed, edges)), 1):
-        cut_before = differ.watchdog_cut
-        d = differ.first_divergence(stream)
-        report.streams_run = n
-        report.watchdog_cut += differ.watchdog_cut - cut_before
-        now = time.perf_counter()
-        if progress is not None and now - told >= 2.0:  # at most one line every 2 s
-            progress(f"{n}/{streams} streams, {now - t0:.1f} s, {n / (now - t0):.1f}/s")
-            told = now
-        if time_limit_s is not None and now - t0 >= time_limit_s:
-            report.stopped_by_time = True
+    with _Runner(differ, jobs) as runner:
+        outcomes = runner.outcomes(_chain(extra_streams, streams_for(spec, streams, seed, edges)))
+        for n, (stream, d, cut, resolved) in enumerate(outcomes, 1):
+            report.streams_run = n
+            report.watchdog_cut += cut
+            report.call_resolved += resolved
+            now = time.perf_counter()
+            if progress is not None and now - told >= 2.0:  # at most one line every 2 s
+                progress(f"{n}/{streams} streams, {now - t0:.1f} s, {n / (now - t0):.1f}/s")
+                told = now
+            if time_limit_s is not None and now - t0 >= time_limit_s:
+                report.stopped_by_time = True
+                if d is None:
+                    break
             if d is None:
+                continue
+            report.diverged += 1
+            key = " ".join(d.signature)
+            if key in report.kinds:
+                report.kinds[key]["streams"] += 1
+                continue
+            if progress is not None:
+                progress(
+                    f"{d.kind} {d.field} differs on {stream.label}: shrinking it (at most {shrink_runs} runs)"
+                )
+            report.kinds[key] = {"streams": 1, "first": stream.label}
+            shrinks[key] = runner.shrink(stream, d, shrink_runs)
+            if report.divergence is None:
+                report.stream, report.divergence = stream, d
+            if not keep_going or report.stopped_by_time:
                 break
-        if d is None:
-            continue
-        report.diverged += 1
-        key = " ".join(d.signature)
-        if key in report.kinds:
-            report.kinds[key]["streams"] += 1
-            continue
-        if progress is not None:
-            progress(
-                f"{d.kind} {d.field} differs on {stream.label}: shrinking it (at most {shrink_runs} runs)"
-            )
-        minimal, md = shrink(differ, stream, d, shrink_runs)
-        report.kinds[key] = {
-            "streams": 1,
-            "first": stream.label,
-            "minimal": minimal.to_dict(),
-            "minimal_divergence": md.to_dict(),
-        }
-        if report.divergence is None:
-            report.stream, report.divergence = stream, d
-            report.minimal, report.minimal_divergence = minimal, md
-        if not keep_going or report.stopped_by_time:
-            break
+        for i, (key, result) in enumerate(shrinks.items()):
+            minimal, md = result()
+            report.kinds[key]["minimal"] = minimal.to_dict()
+            report.kinds[key]["minimal_divergence"] = md.to_dict()
+            if i == 0:
+                report.minimal, report.minimal_divergence = minimal, md
     report.seconds = time.perf_counter() - t0
     return report
 

@@ -1,26 +1,37 @@
 """The host-built firmware as an emulator: bytes in at a time, virtual time advanced, replies and events out.
 
 Each instance loads its own copy of the built library (copied to a unique temporary path before
-``dlopen``), so two emulators never share the firmware's globals.  Virtual time is integer nanoseconds in
+``dlopen``), so two emulators never share the firmware's globals; :meth:`HostBuildEmulator.close` (or the
+instance being collected) unloads it again, so a long campaign that makes one emulator per run keeps only
+the live ones mapped.  Virtual time is integer nanoseconds in
 the shim; the Python side speaks microseconds like :class:`..timed.model_v1_2.TimedEmulator`.
 
 What this layer adds to the shim is the eTactileKit board: the stack-sense reading that tells the firmware
 how many HV513 chips are stacked, the DAC on the SPI bus (an exchange's outgoing word ``>> 2`` is the DAC
 code; it takes effect ``dac_change_at_us`` into the exchange), and the golden traces' event conventions.
+
+The shim records what the firmware did as fixed-size binary records, and decodes the HV513 chain and the DAC
+into delivered pulses as it goes (the same decoding as :class:`.delivered.ChainDecoder`, its reference):
+Python takes both in one copy per run step, as numpy arrays, and makes objects only of what is asked for.
 """
 
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import shutil
 import tempfile
+import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from tactdeform_hw.emulator.hostbuild.build import BuildResult, build
-from tactdeform_hw.emulator.hostbuild.delivered import ChainDecoder, DeliveredPulse
+from tactdeform_hw.emulator.hostbuild.delivered import ETACTILEKIT_PINS, DeliveredPulse
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError, LimitError
@@ -49,14 +60,40 @@ _KIND = {
 }
 
 
-class _Event(ctypes.Structure):
-    _fields_ = [
-        ("t_ns", ctypes.c_int64),
-        ("kind", ctypes.c_int32),
-        ("a", ctypes.c_int32),
-        ("b", ctypes.c_int64),
-        ("c", ctypes.c_int64),
-    ]
+_GPIO, _SPI, _ISR_ENTER, _ISR_RETURN, _TX, _RX_DROP = 1, 2, 3, 4, 7, 8
+
+EVENT_DTYPE = np.dtype([("t_ns", "<i8"), ("kind", "<i4"), ("a", "<i4"), ("b", "<i8"), ("c", "<i8")])
+"""One shim event record (``hostbuild_runtime.cpp``'s ``Event``)."""
+
+PULSE_DTYPE = np.dtype(
+    [("start_ns", "<i8"), ("end_ns", "<i8"), ("code", "<i4"), ("polarity", "<i4"), ("n_outputs", "<i8")]
+)
+"""One delivered-pulse record (``hostbuild_runtime.cpp``'s ``DeliveredRecord``); its outputs follow in a
+separate array of ``int32`` output numbers."""
+
+
+@dataclass(frozen=True)
+class PulseArrays:
+    """Delivered pulses as columns (what a comparison reads without making an object per pulse): start
+    and end in ns, DAC code, polarity (1 anodic), and each pulse's outputs as
+    ``outputs[offsets[i]:offsets[i + 1]]``."""
+
+    start_ns: np.ndarray
+    end_ns: np.ndarray
+    code: np.ndarray
+    polarity: np.ndarray
+    offsets: np.ndarray
+    outputs: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.start_ns)
+
+    def outputs_of(self, i: int) -> tuple[int, ...]:
+        return tuple(self.outputs[self.offsets[i] : self.offsets[i + 1]].tolist())
+
+
+def _pointer(array: np.ndarray) -> ctypes.c_void_p:
+    return ctypes.c_void_p(array.ctypes.data)
 
 
 class _Sample(ctypes.Structure):
@@ -137,7 +174,9 @@ class HostBuildEmulator:
     ``cache`` the build cache folder.  ``stall_calls``: shim calls in a row without virtual time passing
     after which the firmware is declared stuck (a loop polling a call that costs nothing would otherwise
     never return to Python).  ``chain_outputs``: the board's HV513 outputs (default ``8 * hv513_count``),
-    for :meth:`delivered_pulses`.
+    for :meth:`delivered_pulses`.  ``pin_events=False`` keeps no pin write or SPI exchange for
+    :meth:`events` and :meth:`shim_events` (the delivered pulses are decoded from them all the same): a run
+    that only compares pulses, replies and state then carries no per-event record.
     """
 
     def __init__(
@@ -155,6 +194,7 @@ class HostBuildEmulator:
         cache: str | os.PathLike[str] | None = None,
         stall_calls: int = STALL_CALLS,
         chain_outputs: int | None = None,
+        pin_events: bool = True,
     ) -> None:
         self.timing = timing if timing is not None else DEFAULT_MODEL
         tree = Path(firmware_src)
@@ -167,8 +207,13 @@ class HostBuildEmulator:
         if stall_calls < 1:
             raise LimitError("stall_calls", stall_calls, "an integer >= 1")
         self.stall_calls = stall_calls
-        self._lib = _load_private_copy(self.built.library)
+        outputs = 8 * hv513_count if chain_outputs is None else chain_outputs
+        if outputs < 0:
+            raise LimitError("chain_outputs", outputs, ">= 0")
+        self._closed = False
+        self._lib, handle = _load_private_copy(self.built.library)
         self._bind()
+        self._unload = weakref.finalize(self, _unload, handle, self._lib.hb_release)
         costs = _costs(self.timing, rx_buffer_bytes, stall_calls)
         arr = (ctypes.c_int64 * len(costs))(*costs)
         if self._lib.hb_configure(arr, len(costs)) != 0:
@@ -178,17 +223,37 @@ class HostBuildEmulator:
         reading = stack_reading if stack_reading is not None else stack_reading_for(hv513_count)
         self._lib.hb_set_analog(STACK_SENSE_PIN, reading)
         self._lib.hb_set_interrupts(1 if interrupts else 0)
+        self._lib.hb_set_record_pins(1 if pin_events else 0)
+        self.pin_events = pin_events
+        p = ETACTILEKIT_PINS
+        pins = (ctypes.c_int * 5)(p.bl, p.le, p.pol, p.clk, p.din)
+        if self._lib.hb_board_configure(outputs, self.timing.dac_at_ns, pins) != 0:
+            raise LimitError("chain_outputs", outputs, ">= 0")
         self.now_ns = 0
         self._last_write_ns = 0
         self._host_offset = 0
-        self._events: list[ShimEvent] = []
+        self._events: list[np.ndarray] = []  # EVENT_DTYPE chunks, in recording order
         self._tx = bytearray()
         self._tx_log: list[tuple[float, bytes]] = []
         self._drops: list[RxDrop] = []
-        self._chain = ChainDecoder(8 * hv513_count if chain_outputs is None else chain_outputs)
         self._watched: list[tuple[str, int]] = []  # per watch slot: (register, index)
         self._samples: list[IsrSample] = []
+        self._pulse_chunks: list[tuple[np.ndarray, np.ndarray]] = []  # (PULSE_DTYPE records, outputs)
+        self._pulse_arrays: PulseArrays | None = None
+        self._pulses: list[DeliveredPulse] = []
         self._run(0)  # setup() runs up to its first shim call
+
+    def close(self) -> None:
+        """Unload this instance's copy of the firmware (its globals, stack and buffers go with it).  What was
+        already read (replies, pulses, events) stays readable; running the firmware again is refused."""
+        self._closed = True
+        self._unload()
+
+    def __enter__(self) -> HostBuildEmulator:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     # --- the library --------------------------------------------------------------------------------------
 
@@ -208,12 +273,18 @@ class HostBuildEmulator:
             "hb_rx_capacity": (i64, []),
             "hb_rx_dropped": (i64, []),
             "hb_event_count": (i64, []),
-            "hb_events_take": (i64, [ctypes.POINTER(_Event), i64]),
+            "hb_events_take": (i64, [ctypes.c_void_p, i64]),
             "hb_timer_info": (i32, [i32, ctypes.POINTER(i64)]),
             "hb_pin_levels": (i64, []),
             "hb_watch_add": (i64, [ctypes.c_void_p, i32]),
             "hb_sample_count": (i64, []),
             "hb_samples_take": (i64, [ctypes.POINTER(_Sample), i64]),
+            "hb_board_configure": (i32, [i64, i64, ctypes.POINTER(i32)]),
+            "hb_delivered_count": (i64, []),
+            "hb_delivered_outputs_count": (i64, []),
+            "hb_delivered_take": (i64, [ctypes.c_void_p, ctypes.c_void_p]),
+            "hb_release": (None, []),
+            "hb_set_record_pins": (None, [i32]),
         }
         for name, (res, args) in sig.items():
             fn = getattr(lib, name)
@@ -221,12 +292,24 @@ class HostBuildEmulator:
             fn.argtypes = args
         self._getters: dict[str, Any] = {}
         for reg in self.built.registers:
-            fn = getattr(lib, f"hb_reg_{reg.name}")
-            fn.restype = ctypes.c_double
-            fn.argtypes = [ctypes.c_int]
+            if reg.length is None:
+                fn = getattr(lib, f"hb_reg_{reg.name}")
+                fn.restype = ctypes.c_double
+                fn.argtypes = [ctypes.c_int]
+            else:  # an array: read whole
+                fn = getattr(lib, f"hb_regs_{reg.name}")
+                fn.restype = None
+                fn.argtypes = [ctypes.c_void_p]
             self._getters[reg.name] = fn
 
+    def _live(self) -> ctypes.CDLL:
+        """The loaded library; refused once :meth:`close` unloaded it."""
+        if self._closed:
+            raise FirmwareBuildError("this host-build emulator was closed: its firmware is unloaded")
+        return self._lib
+
     def _run(self, target_ns: int) -> None:
+        self._live()
         status = self._lib.hb_run_until(target_ns)
         if status == 2:
             raise FirmwareBuildError("no memory for the firmware's 1 MiB stack: nothing was run")
@@ -239,30 +322,39 @@ class HostBuildEmulator:
         self._drain()
 
     def _drain(self) -> None:
-        n = self._lib.hb_event_count()
+        """Take the run step's event and pulse records in one copy each; only replies and queue losses
+        become Python objects here."""
+        lib = self._lib
+        n_pulses = lib.hb_delivered_count()
+        if n_pulses > 0:
+            records = np.empty(n_pulses, PULSE_DTYPE)
+            outputs = np.empty(lib.hb_delivered_outputs_count(), np.int32)
+            lib.hb_delivered_take(_pointer(records), _pointer(outputs))
+            self._pulse_chunks.append((records, outputs))
+            self._pulse_arrays = None
+        n = lib.hb_event_count()
         if n <= 0:
             return
-        buf = (_Event * n)()
-        got = self._lib.hb_events_take(buf, n)
-        tx_now: list[tuple[int, int]] = []
-        for e in buf[:got]:
-            kind = _KIND.get(e.kind, str(e.kind))
-            ev = ShimEvent(e.t_ns / 1000.0, kind, e.a, e.b, e.c)
-            self._events.append(ev)
-            if kind == "GPIO":
-                self._chain.gpio(e.t_ns, e.a, int(e.b))
-            elif kind == "SPI":
-                self._chain.dac(e.t_ns + self.timing.dac_at_ns, (e.b >> 2) & 0xFFF)
-            elif kind == "TX":
-                tx_now.append((e.t_ns, e.a))
-            elif kind == "RX_DROP":
-                self._drops.append(RxDrop(e.t_ns / 1000.0, e.a, e.b, e.c))
-        for t_ns, byte in tx_now:
-            self._tx.append(byte)
+        buf = np.empty(n, EVENT_DTYPE)
+        got = lib.hb_events_take(_pointer(buf), n)
+        buf = buf[:got]
+        self._events.append(buf)
+        kinds = buf["kind"]
+        rare = np.flatnonzero((kinds == _TX) | (kinds == _RX_DROP))
+        for t_ns, kind, a, b, c in buf[rare].tolist():
+            if kind == _RX_DROP:
+                self._drops.append(RxDrop(t_ns / 1000.0, a, b, c))
+                continue
+            self._tx.append(a)
             if self._tx_log and self._tx_log[-1][0] == t_ns / 1000.0:
-                self._tx_log[-1] = (self._tx_log[-1][0], self._tx_log[-1][1] + bytes([byte]))
+                self._tx_log[-1] = (self._tx_log[-1][0], self._tx_log[-1][1] + bytes([a]))
             else:
-                self._tx_log.append((t_ns / 1000.0, bytes([byte])))
+                self._tx_log.append((t_ns / 1000.0, bytes([a])))
+
+    def _all_events(self) -> np.ndarray:
+        if len(self._events) > 1:
+            self._events[:] = [np.concatenate(self._events)]
+        return self._events[0] if self._events else np.empty(0, EVENT_DTYPE)
 
     # --- the host's side ----------------------------------------------------------------------------------
 
@@ -274,7 +366,7 @@ class HostBuildEmulator:
     def firmware_now_us(self) -> float:
         """Where the firmware's own clock stands: at or past :attr:`now_us` by at most one shim call's cost
         (the firmware is suspended inside the call that crossed the target)."""
-        return float(self._lib.hb_now()) / 1000.0
+        return float(self._live().hb_now()) / 1000.0
 
     def write(self, data: bytes, at_us: float | None = None) -> int:
         """The host's bytes reach the firmware's receive queue at ``at_us`` (default: now), in packets of
@@ -286,9 +378,10 @@ class HostBuildEmulator:
         if t < self._last_write_ns:
             raise LimitError("at_us", at_us, f">= the previous write ({self._last_write_ns / 1000} us)")
         self._last_write_ns = t
+        lib = self._live()
         for i in range(0, len(data), USB_PACKET_BYTES):
             chunk = data[i : i + USB_PACKET_BYTES]
-            self._lib.hb_rx_push(chunk, len(chunk), t, self._host_offset + i)
+            lib.hb_rx_push(chunk, len(chunk), t, self._host_offset + i)
         self._host_offset += len(data)
         return len(data)
 
@@ -324,40 +417,86 @@ class HostBuildEmulator:
 
     def shim_events(self) -> list[ShimEvent]:
         """Everything recorded so far, in the shim's terms (GPIO, SPI, ISR entry/return, timer ops, TX)."""
-        return list(self._events)
+        return [
+            ShimEvent(t_ns / 1000.0, _KIND.get(kind, str(kind)), a, b, c)
+            for t_ns, kind, a, b, c in self._all_events().tolist()
+        ]
+
+    def first_event_us(self, kind: str) -> float | None:
+        """When the first event of ``kind`` (a :class:`ShimEvent` kind: ``"ALARM_ENABLE"``...) was recorded
+        (``None``: never)."""
+        code = next((k for k, name in _KIND.items() if name == kind), None)
+        if code is None:
+            raise LimitError("kind", kind, f"one of {', '.join(_KIND.values())}")
+        ev = self._all_events()
+        hit = np.flatnonzero(ev["kind"] == code)
+        return int(ev["t_ns"][hit[0]]) / 1000.0 if len(hit) else None
 
     def clear_events(self, before_us: float | None = None) -> None:
         """Forget the recorded events (those before ``before_us``).  Delivered pulses and replies stay."""
         if before_us is None:
             self._events.clear()
         else:
-            self._events = [e for e in self._events if e.t_us >= before_us]
+            ev = self._all_events()
+            self._events = [ev[ev["t_ns"] >= before_us * 1000.0]]
 
     def events(self, since_us: float = 0.0) -> list[list[Any]]:
         """GPIO and DAC events in the golden scan traces' conventions: ``[t_us, "GPIO", pin, level]`` when
         the register write completes (one per pin, ascending), ``[t_us, "DAC", "DAC", code]`` at the start
         of the exchange plus ``dac_change_at_us``; sorted by time."""
-        dac_ns = self.timing.dac_at_ns
-        out: list[tuple[int, int, list[Any]]] = []
-        for seq, e in enumerate(self._events):
-            t_ns = int(round(e.t_us * 1000))
-            if e.kind == "GPIO":
-                out.append((t_ns, seq, [t_ns / 1000.0, "GPIO", e.a, e.b]))
-            elif e.kind == "SPI":
-                t_dac = t_ns + dac_ns
-                out.append((t_dac, seq, [t_dac / 1000.0, "DAC", "DAC", (e.b >> 2) & 0xFFF]))
-        out.sort(key=lambda x: (x[0], x[1]))
-        return [ev for t, _, ev in out if t >= since_us * 1000]
+        if not self.pin_events:
+            raise ConfigurationError("events(): this emulator was made with pin_events=False: it kept none")
+        ev = self._all_events()
+        ev = ev[(ev["kind"] == _GPIO) | (ev["kind"] == _SPI)]  # recording order breaks ties in time
+        dac = ev["kind"] == _SPI
+        t = ev["t_ns"] + np.where(dac, self.timing.dac_at_ns, 0)
+        order = np.argsort(t, kind="stable")
+        out: list[list[Any]] = []
+        for t_ns, is_dac, pin, value in zip(
+            t[order].tolist(), dac[order].tolist(), ev["a"][order].tolist(), ev["b"][order].tolist()
+        ):
+            if t_ns >= since_us * 1000:
+                if is_dac:
+                    out.append([t_ns / 1000.0, "DAC", "DAC", (value >> 2) & 0xFFF])
+                else:
+                    out.append([t_ns / 1000.0, "GPIO", pin, value])
+        return out
 
     def delivered_pulses(self) -> list[DeliveredPulse]:
         """Every stretch of current the board delivered so far (a stretch still flowing is not included
         until it ends): what safety is judged on.  See :mod:`.delivered`."""
-        return list(self._chain.pulses)
+        arrays = self.delivered_arrays()
+        for i in range(len(self._pulses), len(arrays)):
+            self._pulses.append(
+                DeliveredPulse(
+                    int(arrays.start_ns[i]) / 1000.0,
+                    int(arrays.end_ns[i]) / 1000.0,
+                    int(arrays.code[i]),
+                    arrays.outputs_of(i),
+                    int(arrays.polarity[i]),
+                )
+            )
+        return list(self._pulses)
+
+    def delivered_arrays(self) -> PulseArrays:
+        """:meth:`delivered_pulses` as columns, for comparisons that need no object per pulse."""
+        if self._pulse_arrays is None:
+            if len(self._pulse_chunks) != 1:
+                records = np.concatenate([r for r, _ in self._pulse_chunks] or [np.empty(0, PULSE_DTYPE)])
+                outputs = np.concatenate([o for _, o in self._pulse_chunks] or [np.empty(0, np.int32)])
+                self._pulse_chunks[:] = [(records, outputs)]
+            records, outputs = self._pulse_chunks[0]
+            offsets = np.zeros(len(records) + 1, np.int64)
+            np.cumsum(records["n_outputs"], out=offsets[1:])
+            self._pulse_arrays = PulseArrays(
+                records["start_ns"], records["end_ns"], records["code"], records["polarity"], offsets, outputs
+            )
+        return self._pulse_arrays
 
     def set_interrupts(self, enabled: bool) -> None:
         """Let the timer interrupt run (or hold it off).  An alarm that fell due while held off fires at the
         firmware's next shim call, as a masked interrupt does when unmasked."""
-        self._lib.hb_set_interrupts(1 if enabled else 0)
+        self._live().hb_set_interrupts(1 if enabled else 0)
 
     def set_reading(self, enabled: bool) -> None:
         """Let the firmware read its receive queue (or not: ``available()`` is 0 and a read finds nothing,
@@ -366,18 +505,21 @@ class HostBuildEmulator:
 
     def scans(self) -> list[tuple[float, float]]:
         """Every interrupt handler run so far: (entry µs, return µs)."""
+        ev = self._all_events()
+        ev = ev[(ev["kind"] == _ISR_ENTER) | (ev["kind"] == _ISR_RETURN)]
         out: list[tuple[float, float]] = []
         start: float | None = None
-        for e in self._events:
-            if e.kind == "ISR_ENTER":
-                start = e.t_us
-            elif e.kind == "ISR_RETURN" and start is not None:
-                out.append((start, e.t_us))
+        for t_ns, kind in zip(ev["t_ns"].tolist(), ev["kind"].tolist()):
+            if kind == _ISR_ENTER:
+                start = t_ns / 1000.0
+            elif start is not None:
+                out.append((start, t_ns / 1000.0))
                 start = None
         return out
 
     def isr_returns_us(self) -> list[float]:
-        return [e.t_us for e in self._events if e.kind == "ISR_RETURN"]
+        ev = self._all_events()
+        return [t / 1000.0 for t in ev["t_ns"][ev["kind"] == _ISR_RETURN].tolist()]
 
     def watch_at_isr(self, register: str) -> None:
         """Read ``register`` (every element of an array) at each timer interrupt's entry from now on.
@@ -391,7 +533,9 @@ class HostBuildEmulator:
                 f"watch_at_isr: register {register!r} is not in the state map "
                 f"({', '.join(r.name for r in self.built.registers) or 'no registers'})"
             )
-        address = ctypes.cast(self._getters[register], ctypes.c_void_p).value
+        # the per-element getter, ``double hb_reg_NAME(int i)``, the signature the runtime calls at entry
+        element = getattr(self._lib, f"hb_reg_{register}")
+        address = ctypes.cast(element, ctypes.c_void_p).value
         for i in range(1 if reg.length is None else reg.length):
             self._lib.hb_watch_add(address, i)
             self._watched.append((register, i))
@@ -411,7 +555,7 @@ class HostBuildEmulator:
     def timer(self, num: int) -> dict[str, Any] | None:
         """A hardware timer's state (``None``: the firmware never began it)."""
         out = (ctypes.c_int64 * 7)()
-        if not self._lib.hb_timer_info(num, out):
+        if not self._live().hb_timer_info(num, out):
             return None
         return {
             "alarm_ticks": out[0],
@@ -426,12 +570,15 @@ class HostBuildEmulator:
     def state(self) -> dict[str, Any]:
         """The mapped firmware variables, the stimulation timer's alarm and the receive queue."""
         snap: dict[str, Any] = {}
+        self._live()
         for reg in self.built.registers:
             fn = self._getters[reg.name]
             if reg.length is None:
                 snap[reg.name] = _num(fn(0))
             else:
-                snap[reg.name] = [_num(fn(i)) for i in range(reg.length)]
+                values = np.empty(reg.length, np.float64)
+                fn(_pointer(values))
+                snap[reg.name] = [_num(v) for v in values.tolist()]
         for num in range(4):
             info = self.timer(num)
             if info is not None and info["has_interrupt"]:
@@ -447,12 +594,37 @@ def _num(v: float) -> int | float:
     return int(v) if v.is_integer() else v
 
 
-def _load_private_copy(library: Path) -> ctypes.CDLL:
-    """dlopen a private copy, so this instance's firmware globals are its own."""
+@functools.lru_cache(maxsize=1)
+def _dl() -> ctypes.CDLL:
+    """The process's own ``dlopen``/``dlclose``/``dlerror`` (libc's, or libdl's on older systems)."""
+    libc = ctypes.CDLL(None)
+    libc.dlopen.restype = ctypes.c_void_p
+    libc.dlopen.argtypes = [ctypes.c_char_p, ctypes.c_int]
+    libc.dlclose.argtypes = [ctypes.c_void_p]
+    libc.dlerror.restype = ctypes.c_char_p
+    return libc
+
+
+def _unload(handle: int, release: Callable[[], None]) -> None:
+    """Free the firmware run's memory, then unload the library."""
+    release()
+    _dl().dlclose(handle)
+
+
+def _load_private_copy(library: Path) -> tuple[ctypes.CDLL, int]:
+    """dlopen a private copy, so this instance's firmware globals are its own; returns the library and its
+    handle (for ``dlclose``)."""
     fd, path = tempfile.mkstemp(prefix="tactdeform-fw-", suffix=".so")
     os.close(fd)
     try:
         shutil.copyfile(library, path)
-        return ctypes.CDLL(path, mode=os.RTLD_LOCAL if hasattr(os, "RTLD_LOCAL") else 0)
+        dl = _dl()
+        handle = dl.dlopen(os.fsencode(path), os.RTLD_NOW | os.RTLD_LOCAL)
+        if not handle:
+            why = dl.dlerror()
+            raise FirmwareBuildError(
+                f"the built library {library} does not load: {why.decode(errors='replace') if why else '?'}"
+            )
+        return ctypes.CDLL(path, handle=handle), handle
     finally:
         os.unlink(path)  # the mapping stays; nothing is left on disk

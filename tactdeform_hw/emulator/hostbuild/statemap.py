@@ -76,7 +76,11 @@ class StateMap:
             index = "[i]" if reg.length is not None else ""
             where[len(lines) + 1] = reg.name
             body = f"(void)i; return (double)(({reg.expr}){index});"
-            lines.append(f'extern "C" double hb_reg_{reg.name}(int i) {{ {body} }}')
+            line = f'extern "C" double hb_reg_{reg.name}(int i) {{ {body} }}'
+            if reg.length is not None:  # the whole array in one call (on the same line: errors name it)
+                bulk = f"for (int i = 0; i < {reg.length}; ++i) out[i] = (double)(({reg.expr})[i]);"
+                line += f' extern "C" void hb_regs_{reg.name}(double* out) {{ {bulk} }}'
+            lines.append(line)
         return "\n".join(lines) + "\n", where
 
     @classmethod

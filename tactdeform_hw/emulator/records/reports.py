@@ -664,30 +664,45 @@ class TimingReports:
     ) -> list[PulseReport]:
         t = self.pulse_table(t0_us, t1_us)
         n = t["channel"].size if limit is None else min(limit, t["channel"].size)
-        out = []
-        outputs_of = self._outputs_lookup()
-        for i in range(n):
-            out.append(
-                PulseReport(
-                    int(t["cycle"][i]),
-                    int(t["channel"][i]),
-                    PULSE_KIND_NAMES[PulseKind(int(t["kind"][i]))],
-                    float(t["start_us"][i]),
-                    float(t["width_us"][i]),
-                    int(t["code"][i]),
-                    float(t["current_ua"][i]),
-                    float(t["charge_nc"][i]),
-                    "anodic" if t["pol"][i] else "cathodic",
-                    int(t["voltage_code"][i]),
-                    outputs_of(
-                        int(t["cycle"][i]), int(t["channel"][i]), int(t["output"][i]), int(t["n_outputs"][i])
-                    ),
-                    bool(t["limited"][i]),
-                )
+        outputs_of = self.outputs_lookup()
+        kind_name = {int(k): v for k, v in PULSE_KIND_NAMES.items()}
+        col = {k: t[k][:n].tolist() for k in t}  # one conversion per column, not one per value
+        rows = zip(
+            col["cycle"],
+            col["channel"],
+            col["kind"],
+            col["start_us"],
+            col["width_us"],
+            col["code"],
+            col["current_ua"],
+            col["charge_nc"],
+            col["pol"],
+            col["voltage_code"],
+            col["output"],
+            col["n_outputs"],
+            col["limited"],
+        )
+        return [
+            PulseReport(
+                int(cyc),
+                int(ch),
+                kind_name[int(kind)],
+                float(start),
+                float(width),
+                int(code),
+                float(ua),
+                float(nc),
+                "anodic" if pol else "cathodic",
+                int(volt),
+                outputs_of(int(cyc), int(ch), int(out), int(n_out)),
+                bool(limited),
             )
-        return out
+            for cyc, ch, kind, start, width, code, ua, nc, pol, volt, out, n_out, limited in rows
+        ]
 
-    def _outputs_lookup(self) -> Any:
+    def outputs_lookup(self) -> Any:
+        """The outputs of a :meth:`pulse_table` row, as ``lookup(cycle, channel, output, n_outputs)``: the
+        table keeps one output and a count; a pulse through several outputs is looked up in its run."""
         runs = self.runs
 
         def lookup(cycle: int, channel: int, low: int, n: int) -> tuple[int, ...]:

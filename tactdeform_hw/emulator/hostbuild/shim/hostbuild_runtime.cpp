@@ -46,7 +46,89 @@ struct Event {
     int64_t c;
 };
 static std::vector<Event> events;
-static void record(int64_t t, int kind, int a, int64_t b, int64_t c) { events.push_back({t, kind, a, b, c}); }
+
+// --- the board: the HV513 chain and the DAC, decoded into delivered pulses ------------------------------
+// The same decoding as the package's delivered.ChainDecoder (its reference), run here on every pin and DAC
+// event as it is recorded: DIN is shifted in on each CLK rising edge, the outputs follow the shift register
+// while LE is high, nothing flows while BL is low or the DAC code is 0, and a stretch of current ends at any
+// change of the code, the outputs, the polarity or BL.
+struct DeliveredRecord {
+    int64_t start_ns;
+    int64_t end_ns;
+    int32_t code;
+    int32_t polarity;
+    int64_t n_outputs;  // its outputs are the next n_outputs entries of delivered_outputs
+};
+enum BoardPin { BP_BL, BP_LE, BP_POL, BP_CLK, BP_DIN, BP_COUNT };
+static int board_pin[BP_COUNT] = {1, 2, 3, 4, 5};
+static uint64_t board_pin_mask = 0x3EULL;  // the pins the decoder follows
+static int board_level[64] = {0};
+static int64_t board_dac_at_ns = 0;
+static int32_t board_code = 0;
+static std::vector<uint8_t> chain_shift, chain_latched;
+static bool open_flowing = false;
+static int64_t open_start_ns = 0;
+static int32_t open_code = 0, open_polarity = 0;
+static std::vector<uint8_t> open_latched;
+static std::vector<DeliveredRecord> delivered;
+static std::vector<int32_t> delivered_outputs;
+
+static bool board_flowing() {
+    if (board_code <= 0 || !board_level[board_pin[BP_BL]]) return false;
+    for (uint8_t bit : chain_latched)
+        if (bit) return true;
+    return false;
+}
+static void board_update(int64_t t_ns) {
+    bool flowing = board_flowing();
+    int32_t pol = board_level[board_pin[BP_POL]];
+    if (open_flowing &&
+        (!flowing || board_code != open_code || pol != open_polarity || chain_latched != open_latched)) {
+        if (t_ns > open_start_ns) {
+            int64_t n = 0;
+            for (size_t i = 0; i < open_latched.size(); ++i)
+                if (open_latched[i]) {
+                    delivered_outputs.push_back((int32_t)i);
+                    ++n;
+                }
+            delivered.push_back({open_start_ns, t_ns, open_code, open_polarity, n});
+        }
+        open_flowing = false;
+    }
+    if (flowing && !open_flowing) {
+        open_flowing = true;
+        open_start_ns = t_ns;
+        open_code = board_code;
+        open_polarity = pol;
+        open_latched = chain_latched;
+    }
+}
+static void board_gpio(int64_t t_ns, int pin, int level) {
+    if (pin < 0 || pin >= 64 || !(board_pin_mask & (1ULL << pin))) return;
+    if (pin == board_pin[BP_CLK] && level && !board_level[pin] && !chain_shift.empty()) {
+        std::memmove(chain_shift.data() + 1, chain_shift.data(), chain_shift.size() - 1);
+        chain_shift[0] = (uint8_t)board_level[board_pin[BP_DIN]];
+    }
+    board_level[pin] = level;
+    if (board_level[board_pin[BP_LE]]) chain_latched = chain_shift;
+    board_update(t_ns);
+}
+static void board_dac(int64_t t_ns, int32_t code) {
+    board_code = code;
+    board_update(t_ns);
+}
+
+static bool record_pins = true;  // keep pin and SPI events too (they are decoded either way)
+static void record(int64_t t, int kind, int a, int64_t b, int64_t c) {
+    if (kind == EV_GPIO) {
+        board_gpio(t, a, (int)b);
+        if (!record_pins) return;
+    } else if (kind == EV_SPI) {
+        board_dac(t + board_dac_at_ns, (int32_t)((b >> 2) & 0xFFF));
+        if (!record_pins) return;
+    }
+    events.push_back({t, kind, a, b, c});
+}
 
 // Firmware variables read at every interrupt's entry (the generated accessor unit's getters, registered
 // from Python): a scan uses the values the main loop left, which cannot change until the handler returns,
@@ -80,11 +162,13 @@ static void sample_watches(int64_t t) {
 static const int64_t NEVER = INT64_MAX;
 static int64_t now = 0;
 static int64_t target = 0;
-static int status = 0;  // 0 running, 1 stalled (calls without time passing), 2 no memory for the stack
+static int status = 0;  // 0 running, 1 stalled (calls without time passing), 2 no memory for the stack,
+                        // 3 released (hb_release)
 static bool in_isr = false;
 static bool interrupts_enabled = true;
 static int64_t stall_calls = 0;
 static int64_t stall_at = -1;
+static bool released = false;  // hb_release ran: a shim call (a static destructor's) returns at once
 
 // --- the coroutine ------------------------------------------------------------------------------------
 static ucontext_t host_ctx, fw_ctx;
@@ -188,6 +272,7 @@ static void run_due_isrs() {
 // Every shim call starts here: arrivals up to now enter the queue, a due interrupt runs, and the firmware
 // is suspended while virtual time is at or past Python's target.
 static void enter() {
+    if (released) return;
     if (now == stall_at) {
         if (++stall_calls > cost[C_STALL_LIMIT]) {
             status = 1;
@@ -209,6 +294,7 @@ static void enter() {
 // Let virtual time pass up to `end` (a sleep or a busy-wait): interrupts run at their alarm's exact
 // time, and the firmware is suspended at Python's target.
 static void wait_until(int64_t end) {
+    if (released) return;
     for (;;) {
         admit_rx();
         int64_t next = end;
@@ -508,7 +594,7 @@ void hb_set_interrupts(int enabled) { interrupts_enabled = enabled != 0; }
 void hb_set_reading(int enabled) { reading = enabled != 0; }
 
 int hb_run_until(int64_t t_ns) {
-    if (status) return status;
+    if (status) return status;  // 3: released
     target = t_ns;
     if (!started) {
         started = true;
@@ -566,6 +652,51 @@ int hb_timer_info(int num, int64_t* out) {
     return 1;
 }
 int64_t hb_pin_levels() { return (int64_t)pin_level; }
+
+// The board the decoder models: `outputs` HV513 outputs, the DAC taking effect `dac_at_ns` into an SPI
+// exchange, and the pins (BL, LE, POL, CLK, DIN) in `pins`.  Call before the first hb_run_until.
+int hb_board_configure(int64_t outputs, int64_t dac_at_ns, const int* pins) {
+    if (outputs < 0) return -1;
+    uint64_t mask = 0;
+    for (int i = 0; i < BP_COUNT; ++i) {
+        if (pins[i] < 0 || pins[i] >= 64) return -1;
+        board_pin[i] = pins[i];
+        mask |= 1ULL << pins[i];
+    }
+    board_pin_mask = mask;
+    board_dac_at_ns = dac_at_ns;
+    chain_shift.assign((size_t)outputs, 0);
+    chain_latched.assign((size_t)outputs, 0);
+    return 0;
+}
+void hb_set_record_pins(int enabled) { record_pins = enabled != 0; }
+int64_t hb_delivered_count() { return (int64_t)delivered.size(); }
+int64_t hb_delivered_outputs_count() { return (int64_t)delivered_outputs.size(); }
+// Moves every pulse delivered so far out: `records` and `outputs` must hold hb_delivered_count() and
+// hb_delivered_outputs_count() entries.
+int64_t hb_delivered_take(DeliveredRecord* records, int32_t* outputs) {
+    int64_t n = (int64_t)delivered.size();
+    if (n > 0) std::memcpy(records, delivered.data(), sizeof(DeliveredRecord) * (size_t)n);
+    if (!delivered_outputs.empty())
+        std::memcpy(outputs, delivered_outputs.data(), sizeof(int32_t) * delivered_outputs.size());
+    delivered.clear();
+    delivered_outputs.clear();
+    return n;
+}
+
+// Frees what the firmware's run holds outside the library's own data (its stack, the event buffers), so
+// the library can be unloaded: after it the firmware cannot be run again.
+void hb_release() {
+    released = true;
+    status = 3;
+    std::free(fw_stack);
+    fw_stack = nullptr;
+    std::vector<Event>().swap(events);
+    std::vector<DeliveredRecord>().swap(delivered);
+    std::vector<int32_t>().swap(delivered_outputs);
+    rx_pending.clear();
+    rx_queue.clear();
+}
 int hb_in_isr() { return in_isr ? 1 : 0; }
 
 int64_t hb_watch_add(void* getter, int index) {
