@@ -31,7 +31,6 @@ from tactdeform_hw.errors import (
     ConfigurationError,
     DeviceGoneError,
     FirmwareBuildError,
-    ShortReplyError,
     TransportError,
 )
 
@@ -205,15 +204,6 @@ def test_pulse_kinds_are_the_firmwares_choice_at_each_scan_upstream_v1_2() -> No
     }
 
 
-@pytest.mark.xfail(
-    reason="needs the CPU to keep pace with the wall clock: the driver waits for the configure's measure "
-    "proof about one scan period (8 ms) plus 3 ms past the drain, and the served host build costs 0.2 to "
-    "0.5 s of CPU per second in Python (32 electrodes, 125 Hz); on 2 cores at load 6 to 7 its serving "
-    "thread got 16 ms of CPU in 290 ms and fell 30 to 90 ms behind (4 to 5 runs in 40 failed, the same "
-    "before and after the event record was bounded); docs/firmware-host-build.md",
-    raises=ShortReplyError,
-    strict=False,
-)
 def test_upstream_v1_2_served_on_a_pty_is_identified_and_stimulates() -> None:
     tree = _v1_2_tree()
     model = HostBuildTimedModel(tree)

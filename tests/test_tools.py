@@ -60,3 +60,17 @@ def test_identification_cost_reports_each_firmware_and_what_it_waited() -> None:
     )  # a board just made: no wait
     assert all(r["attempts_max"] == 1 and r["bytes"] == 527 for r in out.values())
     assert out["pty v1.2"]["open_median_s"] >= 2.2
+
+
+def test_serving_cpu_reports_the_cpu_a_served_board_costs_and_refuses_a_board_it_cannot_serve() -> None:
+    out = run_tool("tools/serving_cpu.py", "--electrodes", "8", "--seconds-s", "0.3", "--json")
+    assert isinstance(out, dict)
+    assert out["served"] == "model v1.2" and out["electrodes"] == 8
+    assert 0.29 <= out["seconds_s"] < 5 and 0.0 <= out["cpu_s_per_s"] < 2.0
+    done = subprocess.run(
+        [sys.executable, "tools/serving_cpu.py", "--electrodes", "40"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
+    assert done.returncode == 2 and "--electrodes 40" in done.stderr and "1 to 32" in done.stderr
