@@ -13,30 +13,11 @@ from tactdeform_hw.testing.conformance.checks_v2 import *  # noqa: F403 - the ch
 from tactdeform_hw.testing.conformance.targets import chosen_device, target_params
 
 from .host_build_targets import V2_ENV, host_build_target
-from .test_conformance_v2 import UPSTREAM_VECTORS, VECTORS
+from .test_conformance_v2 import UPSTREAM_VECTORS
 from .test_conformance_v2 import test_v2_upstream_host_in_8_byte_chunks_reaches_the_vectors_state as replay
 
-#: the electrode counts a served host build keeps pace with on this machine: its event decoding in Python
-#: costs about 0.5 s of CPU per second at 32 electrodes and grows with them, so at 56 to 255 electrodes
-#: (v2-0027, v2-0001, v2-0009, v2-0002, v2-0072) the board falls behind the wall clock without bound
-#: (measured: 1.68 s of CPU per second of stimulation at 116 electrodes, standalone; v2-0001 served was
-#: still catching up after 60 s at load 7, and one run that finished showed an extra 0x00 reply after it).
-#: Skipped with this reason, not run to a timeout.
-PACED_ELECTRODES = 32
 
-
-def _paced(vector_id: str) -> Any:
-    n = VECTORS[vector_id]["expect"]["electrode_num"]
-    if n <= PACED_ELECTRODES:
-        return vector_id
-    why = (
-        f"{n} electrodes: a served host build falls behind the wall clock above {PACED_ELECTRODES} "
-        "(its event decoding in Python; docs/firmware-host-build.md)"
-    )
-    return pytest.param(vector_id, marks=pytest.mark.skip(reason=why))
-
-
-@pytest.mark.parametrize("vector_id", [_paced(v) for v in UPSTREAM_VECTORS])
+@pytest.mark.parametrize("vector_id", UPSTREAM_VECTORS)
 def test_v2_upstream_host_in_8_byte_chunks_reaches_the_vectors_state(v2_target: Any, vector_id: str) -> None:
     """The upstream-style host's replay (``test_conformance_v2.py``) on the host build."""
     replay(v2_target, vector_id)
