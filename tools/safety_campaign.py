@@ -671,7 +671,6 @@ class Session:
             if dt > bound:
                 res.unexplained += 1
                 bad_faults.add(before[-1])
-        emu = self.port.emulator
         # a loss while the driver had no proof that the parser was in step is one the host knew of
         spans = [
             (a, b if b is not None else float("inf")) for d in self.devices for a, b in d.unproved_spans()
@@ -686,22 +685,26 @@ class Session:
         # a proof after the loss (a reply of the right length; the fail-safe's also reads back the voltages)
         # found the firmware in step: the loss had no effect the host could see
         proofs = [t for d in self.devices for t in d.proofs]
-        for lo in emu.losses:
-            t = lo.time_us / 1e6
+        for t, lost in self.lost_bytes_at():
             if any(t - bound <= nt <= t + bound for nt in notices) or any(a <= t <= b for a, b in spans):
                 continue
             if any(t <= rt <= t + bound for rt in repairs):
-                res.repaired_lost_bytes += lo.count
+                res.repaired_lost_bytes += lost
             elif any(t < pt <= t + bound for pt in proofs):
-                res.absorbed_lost_bytes += lo.count
+                res.absorbed_lost_bytes += lost
             else:
-                res.unreported_lost_bytes += lo.count
+                res.unreported_lost_bytes += lost
                 before = [i for i, f in enumerate(injected) if f.t_s <= t + 1e-6]
                 if before:
                     bad_faults.add(before[-1])
         res.faults_survived = (
             len(injected) - len(bad_faults) if not (res.unexplained or res.unreported_lost_bytes) else 0
         )
+
+    def lost_bytes_at(self) -> list[tuple[float, int]]:
+        """The bytes that never reached the parser, as (when in seconds, how many): the receive queue's
+        losses the emulated board recorded."""
+        return [(lo.time_us / 1e6, lo.count) for lo in self.port.emulator.losses]
 
     def recovery_bound_s(self) -> float:
         period = firmware_period_us(self.cfg.rate_hz) / 1e6
@@ -1083,6 +1086,22 @@ def _main(argv: list[str] | None = None) -> int:
         "--depth", type=int, default=4, help="--exhaustive: the longest sequence of calls (default 4)"
     )
     ap.add_argument(
+        "--byte-faults",
+        action="store_true",
+        help="--exhaustive: every sequence again once per fault at each byte the host writes from its "
+        "first call on, the fail-safe running (tools/byte_fault_campaign.py): on a UART each byte lost, "
+        "duplicated and corrupted (XOR 0xFF), on USB each packet's tail lost from each byte on; "
+        "3 x (UART bytes) + (USB bytes) runs, counted by a fault-free pass and printed before they start "
+        "(135 280 at depth 1, both firmwares), judged by the --faults verdict",
+    )
+    ap.add_argument(
+        "--byte-fault",
+        metavar="LINK:KIND:BYTE",
+        default=None,
+        help="--exhaustive --only SEQUENCE: replay that sequence with one byte fault "
+        "(uart:lose|duplicate|corrupt:BYTE or usb:tail_loss:BYTE), as a failed run prints it",
+    )
+    ap.add_argument(
         "--firmware-src",
         metavar="DIR",
         default=None,
@@ -1108,6 +1127,8 @@ def _main(argv: list[str] | None = None) -> int:
             engine.parse_cluster(a.cluster)
         except ConfigurationError as exc:
             ap.error(str(exc))
+    if (a.byte_faults or a.byte_fault is not None) and not a.exhaustive:
+        ap.error("--byte-faults and --byte-fault apply to --exhaustive")
     if a.seams:
         import seam_sessions
 
@@ -1115,6 +1136,20 @@ def _main(argv: list[str] | None = None) -> int:
     if a.exhaustive:
         if a.depth < 0:
             ap.error(f"--depth must be at least 0 (got {a.depth})")
+        if a.byte_fault is not None:
+            if a.only is None:
+                ap.error("--byte-fault replays one run: give the sequence with --only")
+            import byte_fault_campaign
+
+            try:
+                byte_fault_campaign.parse_spec(a.byte_fault)
+            except ValueError as exc:
+                ap.error(str(exc))
+            return byte_fault_campaign.main(a)
+        if a.byte_faults:
+            import byte_fault_campaign
+
+            return byte_fault_campaign.main(a)
         import exhaustive_campaign
 
         return exhaustive_campaign.main(a)
