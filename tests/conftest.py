@@ -46,6 +46,7 @@ SLOW = frozenset(
     {
         "benchmarks",
         "conformance",
+        "test_byte_fault_campaign_run.py",
         "test_campaign_cluster.py",
         "test_hostbuild_campaign.py",
         "test_hostbuild_timed.py",
