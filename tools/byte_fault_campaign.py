@@ -141,7 +141,7 @@ class ByteFaultSession(ex.ExhaustiveSession):
             for c in calls:
                 ex.CALLS[c].run(self)
             self._call("close", self.dev.close, (0,) * self.cfg.electrode_count)
-            self.port.advance(sc._FAULT_TAIL_V2_S if self.firmware == "v2" else sc._FAULT_TAIL_S)
+            self.port.advance(sc.fault_tail_s(self.firmware))
         finally:
             self.failsafe.stop()
 
@@ -185,6 +185,11 @@ def why(r: sc.SessionResult) -> str:
     return "; ".join(
         x for x in (r.failure(), *(e for e in r.errors if e.startswith(("CRASH", "NOT STRUCK")))) if x
     )
+
+
+def _add_counts(into: dict[str, int], more: dict[str, int]) -> None:
+    for k, n in more.items():
+        into[k] = into.get(k, 0) + n
 
 
 # --- the first pass: each sequence's bytes on each link -----------------------------------------------------
@@ -277,7 +282,7 @@ class ByteFaultTally:
         key = f"{run.link} {run.kind.value}"
         self.items += 1
         self.pulses += r.pulses
-        sc._add_counts(self.runs_by_kind, {key: 1})
+        _add_counts(self.runs_by_kind, {key: 1})
         self.over_limit += r.over_limit
         self.unexplained += r.unexplained
         self.wrong_deliveries += r.first_violation is not None
@@ -291,7 +296,7 @@ class ByteFaultTally:
         self.caller_errors += len(r.errors)
         if failed(r):
             self.failed += 1
-            sc._add_counts(self.failed_by_kind, {key: 1})
+            _add_counts(self.failed_by_kind, {key: 1})
             row = {
                 "index": index,
                 "sequence": ex.describe(run.sequence, self.depth, self.firmwares),
@@ -309,8 +314,8 @@ class ByteFaultTally:
             setattr(self, name, getattr(self, name) + getattr(o, name))
         for name in ("longest_wrong_s", "recovery_bound_s", "max_stim_ua"):
             setattr(self, name, max(getattr(self, name), getattr(o, name)))
-        sc._add_counts(self.runs_by_kind, o.runs_by_kind)
-        sc._add_counts(self.failed_by_kind, o.failed_by_kind)
+        _add_counts(self.runs_by_kind, o.runs_by_kind)
+        _add_counts(self.failed_by_kind, o.failed_by_kind)
         self.failures = sorted(self.failures + o.failures, key=lambda f: f[0])[: sc.LISTED_FAILURES]
 
     def summary(self) -> dict[str, Any]:

@@ -136,6 +136,12 @@ DESIGNED_V2: dict[str, str] = {
 _FAULT_TAIL_V2_S = 2.6
 
 
+def fault_tail_s(firmware: str) -> float:
+    """Simulated time a fault session keeps its fail-safe running after its last call, long enough for
+    the recovery bound on ``firmware``."""
+    return _FAULT_TAIL_V2_S if firmware == "v2" else _FAULT_TAIL_S
+
+
 def designed(firmware: str) -> dict[str, str]:
     """The hazard kinds that are not defects on ``firmware`` (see :data:`DESIGNED`)."""
     return DESIGNED_V2 if firmware == "v2" else DESIGNED
@@ -495,10 +501,7 @@ class Session:
         for _ in range(self.n_calls):
             self.step()
         self._call("close", self.dev.close, off)
-        tail = 0.03
-        if self.failsafe is not None:
-            tail = _FAULT_TAIL_V2_S if self.firmware == "v2" else _FAULT_TAIL_S
-        self.port.advance(tail)
+        self.port.advance(0.03 if self.failsafe is None else fault_tail_s(self.firmware))
         if self.failsafe is not None:
             self.failsafe.stop()
 
