@@ -87,6 +87,14 @@ class Run:
         return f"{self.link}:{self.kind.value}:{self.byte}"
 
 
+def parse_runs(text: str) -> tuple[int, int]:
+    """``FIRST:END`` (runs ``FIRST`` to ``END - 1``); a ``ValueError`` naming what is wrong."""
+    first, sep, end = text.partition(":")
+    if not (sep and first.isdigit() and end.isdigit() and int(first) < int(end)):
+        raise ValueError(f"--runs {text!r}: FIRST:END with 0 <= FIRST < END, e.g. 0:5000")
+    return int(first), int(end)
+
+
 def parse_spec(text: str) -> tuple[str, ByteFaultKind, int]:
     """``LINK:KIND:BYTE`` (``uart:corrupt:17``); a ``ValueError`` naming what is wrong."""
     parts = text.split(":")
@@ -276,6 +284,11 @@ class ByteFaultTally:
     absorbed: int = 0
     max_stim_ua: float = 0.0
     caller_errors: int = 0
+    wrong_by_kind: dict[str, int] = field(default_factory=dict)  # runs with a wrong delivery
+    over_limit_by_kind: dict[str, int] = field(default_factory=dict)  # pulses above the cap
+    absorbed_by_kind: dict[str, int] = field(default_factory=dict)
+    #: The run of the largest pulse above the cap (the lowest index among equals): (current, -index, row).
+    worst: tuple[float, int, dict[str, Any]] | None = None
     failures: list[tuple[int, dict[str, Any]]] = field(default_factory=list)
 
     def add(self, index: int, run: Run, r: sc.SessionResult) -> None:
@@ -283,6 +296,21 @@ class ByteFaultTally:
         self.items += 1
         self.pulses += r.pulses
         _add_counts(self.runs_by_kind, {key: 1})
+        _add_counts(self.wrong_by_kind, {key: int(r.first_violation is not None)})
+        _add_counts(self.over_limit_by_kind, {key: r.over_limit})
+        _add_counts(self.absorbed_by_kind, {key: r.absorbed_lost_bytes})
+        if r.over_limit:
+            row = {
+                "index": index,
+                "sequence": ex.describe(run.sequence, self.depth, self.firmwares),
+                "fault": run.spec(),
+                "largest_pulse_ua": round(r.max_stim_ua, 3),
+                "over_limit_pulses": r.over_limit,
+                "wrong_delivery_after_fault_s": round(r.wrong_after_fault_s, 6),
+                "recovery_bound_s": round(r.recovery_bound_s, 6),
+                "reproduce": reproduce(run, self.depth, self.firmwares),
+            }
+            self._keep_worst((r.max_stim_ua, -index, row))
         self.over_limit += r.over_limit
         self.unexplained += r.unexplained
         self.wrong_deliveries += r.first_violation is not None
@@ -307,7 +335,14 @@ class ByteFaultTally:
             }
             self.failures = sorted([*self.failures, (index, row)], key=lambda f: f[0])[: sc.LISTED_FAILURES]
 
+    def _keep_worst(self, cand: tuple[float, int, dict[str, Any]] | None) -> None:
+        if cand is not None and (self.worst is None or cand[:2] > self.worst[:2]):
+            self.worst = cand
+
     def merge(self, o: ByteFaultTally) -> None:
+        self._keep_worst(o.worst)
+        for name in ("wrong_by_kind", "over_limit_by_kind", "absorbed_by_kind"):
+            _add_counts(getattr(self, name), getattr(o, name))
         for name in ("items", "failed", "pulses", "wrong_deliveries", "over_limit", "unexplained"):
             setattr(self, name, getattr(self, name) + getattr(o, name))
         for name in ("queue_lost_bytes", "unreported", "repaired", "absorbed", "caller_errors"):
@@ -340,6 +375,10 @@ class ByteFaultTally:
             "bytes_lost_unnoticed_but_repaired": self.repaired,
             "bytes_lost_unnoticed_absorbed": self.absorbed,
             "caller_errors": self.caller_errors,
+            "runs_with_wrong_deliveries_by_kind": dict(sorted(self.wrong_by_kind.items())),
+            "over_limit_pulses_by_kind": dict(sorted(self.over_limit_by_kind.items())),
+            "bytes_lost_unnoticed_absorbed_by_kind": dict(sorted(self.absorbed_by_kind.items())),
+            "largest_pulse_run": self.worst[2] if self.worst is not None else None,
             "failures": [row for _, row in self.failures],
         }
 
@@ -359,6 +398,18 @@ def tally_chunk(
         run = decode_run(i, table, ends)
         t.add(i, run, run_one(run, depth, firmwares))
     return t
+
+
+def start_ranges(table: Sequence[Sequence[int]], depth: int, firmwares: Sequence[str]) -> list[str]:
+    """Per firmware and start, its runs as ``FIRST:END`` (a ``--runs`` slice of whole sequences)."""
+    out = []
+    ends = list(accumulate(runs_per_sequence(w) for w in table))
+    per = ex.per_start(depth)
+    for k in range(len(table) // per):
+        firmware, start, _ = ex.decode(k * per, depth, firmwares)
+        first = ends[k * per - 1] if k else 0
+        out.append(f"{firmware} {start}: runs {first}:{ends[(k + 1) * per - 1]}")
+    return out
 
 
 def byte_table(depth: int, firmwares: tuple[str, ...], a: Any) -> tuple[tuple[int, ...], ...]:
@@ -381,13 +432,17 @@ def job(
     firmwares: tuple[str, ...],
     table: tuple[tuple[int, ...], ...],
     chunk: int = engine.DEFAULT_CHUNK,
+    runs: tuple[int, int] | None = None,
 ) -> engine.Job:
-    """Every faulty run as chunks for :func:`campaign_engine.run`."""
+    """The faulty runs (``runs``: only ``first`` to ``end - 1``) as chunks for :func:`campaign_engine.run`."""
+    total = sum(runs_per_sequence(w) for w in table)
+    first, end = runs if runs is not None else (0, total)
     return engine.Job(
         "byte_fault_campaign",
         "tally_chunk",
         (depth, firmwares, table),
-        sum(runs_per_sequence(w) for w in table),
+        end - first,
+        first=first,
         chunk=chunk,
         fingerprint=engine.fingerprint(),
         unit="runs",
@@ -416,17 +471,26 @@ def main(a: Any) -> int:
     table = byte_table(a.depth, firmwares, a)
     uart = sum(w[0] for w in table)
     usb = sum(w[1] for w in table)
-    j = job(a.depth, firmwares, table, a.chunk)
+    total = sum(runs_per_sequence(w) for w in table)
     print(
-        f"exhaustive byte faults: {j.total} faulty runs = 3 x {uart} UART bytes (lost, duplicated, "
-        f"corrupted) + {usb} USB bytes (packet tail lost from each)",
+        f"exhaustive byte faults: {total} faulty runs = 3 x {uart} UART bytes (lost, duplicated, "
+        f"corrupted) + {usb} USB bytes (packet tail lost from each); "
+        + "; ".join(start_ranges(table, a.depth, firmwares)),
         file=sys.stderr,
     )
+    runs = None
+    if a.runs is not None:
+        runs = parse_runs(a.runs)
+        if runs[1] > total:
+            print(f"safety_campaign: --runs {a.runs}: the last run is {total - 1}", file=sys.stderr)
+            return 1
+        print(f"exhaustive byte faults: runs {runs[0]} to {runs[1] - 1} only (--runs)", file=sys.stderr)
+    j = job(a.depth, firmwares, table, a.chunk, runs)
     tally = engine.run(j, jobs=a.jobs, cluster=a.cluster, progress=True)
     summary = tally.summary()
     where = {"jobs": a.jobs} if a.cluster is None else {"cluster": a.cluster}
     summary.update(
-        {"sequences": sequences, "uart_bytes": uart, "usb_bytes": usb, **where},
+        {"sequences": sequences, "uart_bytes": uart, "usb_bytes": usb, "runs_in_enumeration": total, **where},
     )
     summary["wall_s"] = round(time.perf_counter() - t0, 3)
     if a.json:

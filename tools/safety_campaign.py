@@ -3,6 +3,7 @@
     python tools/safety_campaign.py --sessions 2000 [--firmware v1.2|v2|both] [--faults] [--jobs J] [--seed S]
         [--json] [--cluster dask://HOST:PORT|local:N] [--chunk C]
     python tools/safety_campaign.py --exhaustive [--depth 4] [--firmware v1.2|v2|both] (exhaustive_campaign)
+    python tools/safety_campaign.py --exhaustive --depth N --byte-faults               (byte_fault_campaign)
     python tools/safety_campaign.py --seams --sessions 3000                            (seam_sessions)
 
 The sessions run in fixed chunks by index (``tools/campaign_engine.py``) on this process, on ``--jobs``
@@ -1098,6 +1099,13 @@ def _main(argv: list[str] | None = None) -> int:
         "(135 280 at depth 1, both firmwares), judged by the --faults verdict",
     )
     ap.add_argument(
+        "--runs",
+        metavar="FIRST:END",
+        default=None,
+        help="--byte-faults: only runs FIRST to END - 1 of the enumeration (the count printed gives each "
+        "start's range), to split a long enumeration across runs or machines",
+    )
+    ap.add_argument(
         "--byte-fault",
         metavar="LINK:KIND:BYTE",
         default=None,
@@ -1132,6 +1140,15 @@ def _main(argv: list[str] | None = None) -> int:
             ap.error(str(exc))
     if (a.byte_faults or a.byte_fault is not None) and not a.exhaustive:
         ap.error("--byte-faults and --byte-fault apply to --exhaustive")
+    if a.runs is not None:
+        if not a.byte_faults:
+            ap.error("--runs applies to --exhaustive --byte-faults")
+        import byte_fault_campaign
+
+        try:
+            byte_fault_campaign.parse_runs(a.runs)
+        except ValueError as exc:
+            ap.error(str(exc))
     if a.seams:
         import seam_sessions
 
