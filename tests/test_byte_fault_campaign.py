@@ -176,3 +176,17 @@ def test_the_figures_are_the_same_on_one_and_two_workers() -> None:
         two = engine.run(job, jobs=2).summary()
         assert one == two and one["faulty_runs"] == job.total and one["failed_runs"] == 0
         assert one["pulses"] > 0
+
+
+def test_a_slice_of_runs_names_its_bounds() -> None:
+    assert bf.parse_runs("15648:41208") == (15648, 41208)
+    for bad in ("5:3", "5", "a:7", "-1:4"):
+        with pytest.raises(ValueError, match="FIRST:END with 0 <= FIRST < END"):
+            bf.parse_runs(bad)
+    assert bf.start_ranges(DEPTH0_V12, 0, FW) == [
+        "v1.2 fresh: runs 0:4",
+        "v1.2 stimulating: runs 4:164",
+        "v1.2 stimulating_suspect: runs 164:524",
+    ]
+    j = bf.job(0, FW, DEPTH0_V12, runs=(4, 164))
+    assert (j.first, j.total) == (4, 160)
