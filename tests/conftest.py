@@ -58,6 +58,7 @@ SLOW = frozenset(
     {
         "benchmarks",
         "conformance",
+        "test_byte_fault_campaign_run.py",
         "test_docs_commands_slow.py",
         "test_campaign_cluster.py",
         "test_hostbuild_campaign.py",

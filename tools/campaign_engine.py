@@ -61,6 +61,7 @@ TOOL_FILES = (
     "safety_campaign.py",
     "seam_sessions.py",
     "exhaustive_campaign.py",
+    "byte_fault_campaign.py",
     "fuzz_campaign.py",
 )
 

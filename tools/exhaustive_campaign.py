@@ -184,17 +184,17 @@ class ExhaustiveSession(sc.Session):
     """A session whose configuration and calls are given, not drawn; judged by the random campaign's
     judge (``Session.judge``), against the cap on every electrode."""
 
-    def __init__(self, index: int, firmware: str, start: str) -> None:  # noqa: PLR0915 - plain setup
+    def __init__(self, index: int, firmware: str, start: str, link: str = LINK) -> None:  # noqa: PLR0915
         self.firmware = firmware
-        self.link = LINK
+        self.link = link
         self.robust = False
         self.cfg = config(START_ELECTRODES)
         self.biphasic = True
         self.regions = False
         self.cap_ua = CAP_UA
         boards = (max(ELECTRODES) + 31) // 32
-        emu = (TimedEmulatorV2 if firmware == "v2" else TimedEmulator)("compact", boards, link=LINK)
-        self.port = TimedPort(emu, link=LINK, faults=[], seed=index, robust_encoding=False)
+        emu = (TimedEmulatorV2 if firmware == "v2" else TimedEmulator)("compact", boards, link=link)
+        self.port = TimedPort(emu, link=link, faults=[], seed=index, robust_encoding=False)
         self.notices = []
         self.refused_spans = []
         self.failsafe = None
@@ -257,6 +257,8 @@ class ExhaustiveSession(sc.Session):
             return
         self.devices.append(self.dev)
         self.cfg = config(START_ELECTRODES)  # a new program: nothing configured yet (judged as off)
+        if self.failsafe is not None:  # the new program runs its own fail-safe
+            self._start_failsafe()
 
     def wait_scan(self) -> None:
         self.res.calls.append("wait")

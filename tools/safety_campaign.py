@@ -3,6 +3,7 @@
     python tools/safety_campaign.py --sessions 2000 [--firmware v1.2|v2|both] [--faults] [--jobs J] [--seed S]
         [--json] [--cluster dask://HOST:PORT|local:N] [--chunk C]
     python tools/safety_campaign.py --exhaustive [--depth 4] [--firmware v1.2|v2|both] (exhaustive_campaign)
+    python tools/safety_campaign.py --exhaustive --depth N --byte-faults               (byte_fault_campaign)
     python tools/safety_campaign.py --seams --sessions 3000                            (seam_sessions)
 
 The sessions run in fixed chunks by index (``tools/campaign_engine.py``) on this process, on ``--jobs``
@@ -134,6 +135,12 @@ DESIGNED_V2: dict[str, str] = {
 #: Simulated time a v2 fault session keeps the fail-safe running after its last call: its recovery may
 #: wait out the firmware's 2 s command timeout.
 _FAULT_TAIL_V2_S = 2.6
+
+
+def fault_tail_s(firmware: str) -> float:
+    """Simulated time a fault session keeps its fail-safe running after its last call, long enough for
+    the recovery bound on ``firmware``."""
+    return _FAULT_TAIL_V2_S if firmware == "v2" else _FAULT_TAIL_S
 
 
 def designed(firmware: str) -> dict[str, str]:
@@ -495,10 +502,7 @@ class Session:
         for _ in range(self.n_calls):
             self.step()
         self._call("close", self.dev.close, off)
-        tail = 0.03
-        if self.failsafe is not None:
-            tail = _FAULT_TAIL_V2_S if self.firmware == "v2" else _FAULT_TAIL_S
-        self.port.advance(tail)
+        self.port.advance(0.03 if self.failsafe is None else fault_tail_s(self.firmware))
         if self.failsafe is not None:
             self.failsafe.stop()
 
@@ -671,7 +675,6 @@ class Session:
             if dt > bound:
                 res.unexplained += 1
                 bad_faults.add(before[-1])
-        emu = self.port.emulator
         # a loss while the driver had no proof that the parser was in step is one the host knew of
         spans = [
             (a, b if b is not None else float("inf")) for d in self.devices for a, b in d.unproved_spans()
@@ -686,22 +689,26 @@ class Session:
         # a proof after the loss (a reply of the right length; the fail-safe's also reads back the voltages)
         # found the firmware in step: the loss had no effect the host could see
         proofs = [t for d in self.devices for t in d.proofs]
-        for lo in emu.losses:
-            t = lo.time_us / 1e6
+        for t, lost in self.lost_bytes_at():
             if any(t - bound <= nt <= t + bound for nt in notices) or any(a <= t <= b for a, b in spans):
                 continue
             if any(t <= rt <= t + bound for rt in repairs):
-                res.repaired_lost_bytes += lo.count
+                res.repaired_lost_bytes += lost
             elif any(t < pt <= t + bound for pt in proofs):
-                res.absorbed_lost_bytes += lo.count
+                res.absorbed_lost_bytes += lost
             else:
-                res.unreported_lost_bytes += lo.count
+                res.unreported_lost_bytes += lost
                 before = [i for i, f in enumerate(injected) if f.t_s <= t + 1e-6]
                 if before:
                     bad_faults.add(before[-1])
         res.faults_survived = (
             len(injected) - len(bad_faults) if not (res.unexplained or res.unreported_lost_bytes) else 0
         )
+
+    def lost_bytes_at(self) -> list[tuple[float, int]]:
+        """The bytes that never reached the parser, as (when in seconds, how many): the receive queue's
+        losses the emulated board recorded."""
+        return [(lo.time_us / 1e6, lo.count) for lo in self.port.emulator.losses]
 
     def recovery_bound_s(self) -> float:
         period = firmware_period_us(self.cfg.rate_hz) / 1e6
@@ -1083,6 +1090,29 @@ def _main(argv: list[str] | None = None) -> int:
         "--depth", type=int, default=4, help="--exhaustive: the longest sequence of calls (default 4)"
     )
     ap.add_argument(
+        "--byte-faults",
+        action="store_true",
+        help="--exhaustive: every sequence again once per fault at each byte the host writes from its "
+        "first call on, the fail-safe running (tools/byte_fault_campaign.py): on a UART each byte lost, "
+        "duplicated and corrupted (XOR 0xFF), on USB each packet's tail lost from each byte on; "
+        "3 x (UART bytes) + (USB bytes) runs, counted by a fault-free pass and printed before they start "
+        "(135 280 at depth 1, both firmwares), judged by the --faults verdict",
+    )
+    ap.add_argument(
+        "--runs",
+        metavar="FIRST:END",
+        default=None,
+        help="--byte-faults: only runs FIRST to END - 1 of the enumeration (the count printed gives each "
+        "start's range), to split a long enumeration across runs or machines",
+    )
+    ap.add_argument(
+        "--byte-fault",
+        metavar="LINK:KIND:BYTE",
+        default=None,
+        help="--exhaustive --only SEQUENCE: replay that sequence with one byte fault "
+        "(uart:lose|duplicate|corrupt:BYTE or usb:tail_loss:BYTE), as a failed run prints it",
+    )
+    ap.add_argument(
         "--firmware-src",
         metavar="DIR",
         default=None,
@@ -1108,6 +1138,17 @@ def _main(argv: list[str] | None = None) -> int:
             engine.parse_cluster(a.cluster)
         except ConfigurationError as exc:
             ap.error(str(exc))
+    if (a.byte_faults or a.byte_fault is not None) and not a.exhaustive:
+        ap.error("--byte-faults and --byte-fault apply to --exhaustive")
+    if a.runs is not None:
+        if not a.byte_faults:
+            ap.error("--runs applies to --exhaustive --byte-faults")
+        import byte_fault_campaign
+
+        try:
+            byte_fault_campaign.parse_runs(a.runs)
+        except ValueError as exc:
+            ap.error(str(exc))
     if a.seams:
         import seam_sessions
 
@@ -1115,6 +1156,20 @@ def _main(argv: list[str] | None = None) -> int:
     if a.exhaustive:
         if a.depth < 0:
             ap.error(f"--depth must be at least 0 (got {a.depth})")
+        if a.byte_fault is not None:
+            if a.only is None:
+                ap.error("--byte-fault replays one run: give the sequence with --only")
+            import byte_fault_campaign
+
+            try:
+                byte_fault_campaign.parse_spec(a.byte_fault)
+            except ValueError as exc:
+                ap.error(str(exc))
+            return byte_fault_campaign.main(a)
+        if a.byte_faults:
+            import byte_fault_campaign
+
+            return byte_fault_campaign.main(a)
         import exhaustive_campaign
 
         return exhaustive_campaign.main(a)

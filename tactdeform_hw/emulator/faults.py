@@ -6,7 +6,9 @@ Two layers, both seeded (the same seed gives the same faults, byte for byte):
   the device's receive queue, applying **silent** byte faults: ``drop``, ``corrupt``, ``duplicate`` and
   ``delay``.  Nobody tells the host.  These are the faults of a link without a checksum (a UART) or of a
   host stack that loses data; on USB full speed the bus's CRC and retries make them reported errors
-  instead (``crc_error`` below).
+  instead (``crc_error`` below).  Besides the faults that strike at a time, a :class:`ByteFault` strikes
+  one chosen byte of the host's stream (lose it, duplicate it, corrupt it, or lose a USB packet's tail
+  from it on), so that a campaign can enumerate every byte of a run rather than sample times.
 * :class:`TimedPort` — a pyserial-like port over a
 :class:`~tactdeform_hw.emulator.timed.model_v1_2.TimedEmulator`
   that the driver uses unchanged, adding the faults the **host notices** or the **board** causes:
@@ -77,6 +79,21 @@ class FaultKind(str, Enum):
     WATCHDOG_REBOOT = "watchdog_reboot"
 
 
+class ByteFaultKind(str, Enum):
+    """What a :class:`ByteFault` does to its byte (see :class:`ByteFault`)."""
+
+    LOSE = "lose"
+    DUPLICATE = "duplicate"
+    CORRUPT = "corrupt"
+    TAIL_LOSS = "tail_loss"
+
+
+#: The value a corrupted byte is XORed with: every bit flipped, so that a value byte of 0 (an electrode
+#: off, a height of 0) becomes 0xFF and a command byte (>= 0xF5) becomes a value byte (<= 0x0A).  Fixed, so
+#: that an enumeration of corrupted bytes is deterministic and a run replays byte for byte.
+CORRUPT_XOR = 0xFF
+
+
 #: Faults applied to bytes in flight, silently (by :class:`FaultyLink`).
 LINK_FAULTS = frozenset({FaultKind.DROP, FaultKind.CORRUPT, FaultKind.DUPLICATE, FaultKind.DELAY})
 #: Faults of the port or the board (by :class:`TimedPort`).
@@ -106,11 +123,39 @@ class Fault:
             raise LimitError("delay_s", self.delay_s, "0 to 10 s")
 
 
+@dataclass(frozen=True)
+class ByteFault:
+    """A silent fault at one byte of the host's stream, the one at offset ``host_index`` (counted from
+    the first byte the host ever wrote to the emulator, as ``host_offset``), rather than at a time:
+
+    ``lose``
+        the byte never reaches the receive queue (a UART byte with a framing error the firmware drops);
+    ``duplicate``
+        the byte arrives twice;
+    ``corrupt``
+        the byte arrives XORed with :data:`CORRUPT_XOR`;
+    ``tail_loss``
+        the byte and every later byte of the same delivery (a USB bulk packet) are lost: the packet's
+        tail after its first ``host_index - packet start`` bytes (on a UART, a delivery is one byte: the
+        same as ``lose``).
+
+    It strikes once, when the delivery that carries that byte is scheduled, and is recorded like the
+    timed faults (:attr:`FaultyLink.injected`)."""
+
+    kind: ByteFaultKind
+    host_index: int
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "kind", ByteFaultKind(self.kind))
+        if isinstance(self.host_index, bool) or not isinstance(self.host_index, int) or self.host_index < 0:
+            raise LimitError("host_index", self.host_index, "an integer >= 0")
+
+
 @dataclass
 class InjectedFault:
     """A fault as it happened: when, where in the host's byte stream, and what it did."""
 
-    kind: FaultKind
+    kind: FaultKind | ByteFaultKind
     t_s: float
     host_offset: int
     detail: dict[str, Any] = field(default_factory=dict)
@@ -140,6 +185,7 @@ class FaultyLink(LinkFilter):
         self.pending = sorted((f for f in faults if f.kind in LINK_FAULTS), key=lambda f: f.at_s)
         self.rng = random.Random(seed)
         self.injected: list[InjectedFault] = []
+        self.byte_faults: list[ByteFault] = []
         self._floor_ns = 0
 
     def add(self, fault: Fault) -> None:
@@ -150,11 +196,15 @@ class FaultyLink(LinkFilter):
         self.pending.append(fault)
         self.pending.sort(key=lambda f: f.at_s)
 
+    def add_byte_fault(self, fault: ByteFault) -> None:
+        """Strike the host's byte ``fault.host_index`` when it is scheduled (it must not have been yet)."""
+        self.byte_faults.append(fault)
+
     def schedule_bursts(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Scheduled]:
         """The inner link's bursts unchanged when :meth:`transform` would change none of their bytes: no
         fault due by the write's time and nothing delayed still ahead of them; else every byte through
-        :meth:`transform`, as :meth:`schedule` does."""
-        if self.pending and self.pending[0].at_s * 1e9 <= t_ns:
+        :meth:`transform`, as :meth:`schedule` does (so does a byte fault still to strike)."""
+        if self.byte_faults or (self.pending and self.pending[0].at_s * 1e9 <= t_ns):
             return list(self.schedule(data, t_ns, host_offset))
         out = self.inner.schedule_bursts(data, t_ns, host_offset)
         floor = self._floor_ns
@@ -169,6 +219,8 @@ class FaultyLink(LinkFilter):
     def transform(self, deliveries: list[Delivery]) -> list[Delivery]:
         out: list[Delivery] = []
         for d in deliveries:
+            if self.byte_faults and d.host_offset >= 0:
+                d = self._strike_byte(d)
             while self.pending and self.pending[0].at_s * 1e9 <= d.sent_ns and d.data:
                 d = self._apply(self.pending.pop(0), d)
             if d.t_ns < self._floor_ns:  # first in, first out: nothing overtakes a delayed chunk
@@ -177,6 +229,41 @@ class FaultyLink(LinkFilter):
             if d.data:
                 out.append(d)
         return out
+
+    def _strike_byte(self, d: Delivery) -> Delivery:
+        """Apply the byte faults whose byte ``d`` carries (each once; after a fault that shifts the bytes
+        past it, their offsets are unknown and no further fault strikes this delivery)."""
+        while True:
+            hit = [
+                f
+                for f in self.byte_faults
+                if 0 <= d.host_offset <= f.host_index < d.host_offset + len(d.data)
+            ]
+            if not hit:
+                return d
+            f = hit[0]
+            self.byte_faults.remove(f)
+            pos = f.host_index - d.host_offset
+            data = bytearray(d.data)
+            offset = d.host_offset
+            detail: dict[str, Any]
+            if f.kind is ByteFaultKind.LOSE:
+                detail = {"bytes": 1, "data": data[pos : pos + 1].hex()}
+                del data[pos]
+                offset = offset if pos == len(data) else -1  # the bytes past it no longer line up
+            elif f.kind is ByteFaultKind.DUPLICATE:
+                detail = {"bytes": 1, "data": data[pos : pos + 1].hex()}
+                data.insert(pos, data[pos])
+                offset = -1
+            elif f.kind is ByteFaultKind.CORRUPT:
+                detail = {"bytes": 1, "before": data[pos : pos + 1].hex()}
+                data[pos] ^= CORRUPT_XOR
+                detail["after"] = data[pos : pos + 1].hex()
+            else:  # tail loss: the prefix still lines up with the host's stream
+                detail = {"bytes": len(data) - pos, "kept": pos, "data": data[pos:].hex()}
+                del data[pos:]
+            self.injected.append(InjectedFault(f.kind, d.t_ns / 1e9, f.host_index, detail))
+            d = Delivery(d.t_ns, bytes(data), offset, d.sent_ns)
 
     def _apply(self, f: Fault, d: Delivery) -> Delivery:
         data = bytearray(d.data)

@@ -1,0 +1,192 @@
+"""The exhaustive campaign's byte faults (``safety_campaign.py --exhaustive --byte-faults``,
+``tools/byte_fault_campaign.py``) and the byte-indexed fault of the link (``ByteFault``): each fault strikes
+the byte it names, the runs are enumerated once each with a count known before they start, the figures do
+not depend on the worker count, and the judge fails a run whose wrong delivery outlasts the recovery bound
+or whose lost byte the host was never told of."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+import byte_fault_campaign as bf  # noqa: E402
+import campaign_engine as engine  # noqa: E402
+import exhaustive_campaign as ex  # noqa: E402
+import safety_campaign as sc  # noqa: E402
+
+from tactdeform_hw.emulator.faults import (  # noqa: E402
+    CORRUPT_XOR,
+    ByteFault,
+    ByteFaultKind,
+    FaultyLink,
+)
+from tactdeform_hw.emulator.timed.link import UartLink, UsbFsLink  # noqa: E402
+from tactdeform_hw.errors import LimitError  # noqa: E402
+
+FW = ("v1.2",)
+#: The fault-free bytes of the depth-0 sequences on v1.2 (fresh, stimulating, stimulating and suspect),
+#: on a UART and on USB: the close, and from the suspect start the fail-safe's resync.
+DEPTH0_V12 = ((1, 1), (40, 40), (90, 90))
+#: v1.2, stimulating, ``send_pattern(even biphasic)`` (sequence 25 of depth 1 on both firmwares).
+PATTERN_SEQ = 25
+DEPTH = 1
+FW2 = ex.FIRMWARES
+
+
+def delivered(link: FaultyLink, data: bytes, offset: int = 0) -> bytes:
+    return b"".join(d.data for d in link.schedule(data, 0, offset))
+
+
+@pytest.mark.parametrize(
+    ("kind", "expected"),
+    [
+        (ByteFaultKind.LOSE, bytes([0, 1, 3, 4])),
+        (ByteFaultKind.DUPLICATE, bytes([0, 1, 2, 2, 3, 4])),
+        (ByteFaultKind.CORRUPT, bytes([0, 1, 2 ^ CORRUPT_XOR, 3, 4])),
+        (ByteFaultKind.TAIL_LOSS, bytes([0, 1, 3, 4])),  # a UART delivery is one byte: its tail is itself
+    ],
+)
+def test_a_byte_fault_strikes_the_byte_it_names_once_on_a_uart(kind: ByteFaultKind, expected: bytes) -> None:
+    link = FaultyLink(UartLink())
+    link.add_byte_fault(ByteFault(kind, 12))  # the host's byte 12: the third of a write that starts at 10
+    assert delivered(link, bytes(range(5)), 10) == expected
+    assert [(f.kind, f.host_offset) for f in link.injected] == [(kind, 12)]
+    assert delivered(link, bytes(range(5)), 15) == bytes(range(5))  # struck once
+
+
+def test_a_tail_loss_keeps_the_packets_head_and_the_other_packets() -> None:
+    link = FaultyLink(UsbFsLink())
+    link.add_byte_fault(ByteFault("tail_loss", 64 + 10))  # second packet, after its 10th byte
+    data = bytes(i % 200 for i in range(150))
+    assert delivered(link, data) == data[:74] + data[128:]
+    (f,) = link.injected
+    assert f.detail["kept"] == 10 and f.detail["bytes"] == 54
+
+
+def test_a_byte_fault_names_its_byte_and_kind() -> None:
+    with pytest.raises(LimitError, match="host_index"):
+        ByteFault(ByteFaultKind.LOSE, -1)
+    with pytest.raises(ValueError, match="'melt'"):
+        ByteFault("melt", 3)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="on usb the kind is one of tail_loss"):
+        bf.parse_spec("usb:lose:3")
+
+
+def test_the_runs_of_depth_0_are_counted_and_enumerated_once() -> None:
+    table = tuple(bf.count_chunk(0, FW, 0, ex.count(0, FW)).written[i] for i in range(3))
+    assert table == DEPTH0_V12
+    total = sum(bf.runs_per_sequence(w) for w in table)
+    assert total == 3 * 131 + 131 == 524
+    runs = [bf.decode_run(i, table) for i in range(total)]
+    expected = {
+        bf.Run(seq, link, kind, byte)
+        for seq, written in enumerate(table)
+        for link, n in zip(bf.LINKS, written, strict=True)
+        for kind in bf.KINDS[link]
+        for byte in range(n)
+    }
+    assert len(set(runs)) == total and set(runs) == expected
+    assert runs[0] == bf.Run(0, "uart", ByteFaultKind.LOSE, 0)
+    assert runs[-1] == bf.Run(2, "usb", ByteFaultKind.TAIL_LOSS, 89)
+    with pytest.raises(IndexError, match="0 to 523"):
+        bf.decode_run(total, table)
+
+
+def test_a_fault_past_the_last_byte_fails_as_not_struck() -> None:
+    r = bf.run_one(bf.Run(0, "uart", ByteFaultKind.LOSE, 1), 0, FW)  # the fresh start writes 1 byte
+    assert bf.failed(r) and "NOT STRUCK: byte 1 of 1 written" in bf.why(r)
+
+
+# --- the judge passes the driver and can fail ---------------------------------------------------------------
+
+#: A lost byte late in the closing of the biphasic pattern: a pulse above the cap follows (v1.2's plain
+#: encoding), 22.4 ms after the fault, within the recovery bound.
+WRONG = bf.Run(PATTERN_SEQ, "uart", ByteFaultKind.LOSE, 71)
+#: The first byte of that sequence lost: the host is told (nothing else is judged).
+LOST = bf.Run(PATTERN_SEQ, "uart", ByteFaultKind.LOSE, 0)
+
+
+def test_a_wrong_delivery_within_the_bound_passes_and_fails_past_a_broken_bound(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    r = bf.run_one(WRONG, DEPTH, FW2)
+    assert r.first_violation is not None and r.first_violation["why"] == "over_limit"
+    assert 0 < r.wrong_after_fault_s < r.recovery_bound_s and not bf.failed(r)
+    monkeypatch.setattr(bf.ByteFaultSession, "recovery_bound_s", lambda self: 0.005)
+    r = bf.run_one(WRONG, DEPTH, FW2)
+    assert bf.failed(r) and "wrong deliveries past the recovery bound" in bf.why(r)
+
+
+def erase_reports(self: bf.ByteFaultSession) -> sc.SessionResult:
+    """The judge of a host that was told nothing: every error, failed proof, recovery, proof and span
+    without proof erased before the verdict."""
+    self.notices.clear()
+    self.refused_spans.clear()
+    self.failsafe.events.clear()
+    for d in self.devices:
+        d.transitions.clear()
+        d.proofs.clear()
+        d.unproved_spans = list  # type: ignore[method-assign]
+    return sc.Session.judge(self)
+
+
+def test_a_lost_byte_the_host_is_not_told_of_fails(monkeypatch: pytest.MonkeyPatch) -> None:
+    r = bf.run_one(LOST, DEPTH, FW2)
+    assert r.faults == ["lose"] and not bf.failed(r) and r.unreported_lost_bytes == 0
+    monkeypatch.setattr(bf.ByteFaultSession, "judge", erase_reports)
+    r = bf.run_one(LOST, DEPTH, FW2)
+    assert bf.failed(r) and r.unreported_lost_bytes == 1 and "1 bytes lost unreported" in bf.why(r)
+    # a judge that counts only the receive queue's losses would not see the byte the link lost
+    monkeypatch.setattr(bf.ByteFaultSession, "lost_bytes_at", sc.Session.lost_bytes_at)
+    assert not bf.failed(bf.run_one(LOST, DEPTH, FW2))
+
+
+def failing_tally(monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
+    monkeypatch.setattr(bf.ByteFaultSession, "recovery_bound_s", lambda self: 0.005)
+    table = ((74, 74),) * (PATTERN_SEQ + 1)  # only the pattern sequence's runs are asked for
+    first = (PATTERN_SEQ) * bf.runs_per_sequence((74, 74)) + 70  # the UART's lost bytes 70 to 72
+    result: dict[str, Any] = bf.tally_chunk(DEPTH, FW2, table, first, 3).summary()
+    return result
+
+
+def test_a_failed_run_is_listed_with_the_command_that_replays_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    s = failing_tally(monkeypatch)
+    assert s["faulty_runs"] == 3 and s["failed_runs"] >= 1
+    f = s["failures"][0]
+    assert f["fault"] == "uart:lose:71"
+    assert f["reproduce"] == (
+        "python tools/safety_campaign.py --exhaustive --depth 1 --firmware both --only 25 "
+        "--byte-fault uart:lose:71"
+    )
+    assert sc.main(["--exhaustive", "--depth", "1", "--only", "25", "--byte-fault", "uart:lose:71"]) == 1
+
+
+def test_the_figures_are_the_same_on_one_and_two_workers() -> None:
+    table = DEPTH0_V12
+    j = bf.job(0, FW, table, chunk=3)
+    # the runs of the stimulating start's first bytes and the suspect start's last ones
+    slices = [engine.Job(j.module, j.function, j.args, 6, first=4 * 1 + 2, chunk=2, unit="runs")]
+    slices.append(engine.Job(j.module, j.function, j.args, 5, first=j.total - 5, chunk=2, unit="runs"))
+    for job in slices:
+        one = engine.run(job, jobs=1).summary()
+        two = engine.run(job, jobs=2).summary()
+        assert one == two and one["faulty_runs"] == job.total and one["failed_runs"] == 0
+        assert one["pulses"] > 0
+
+
+def test_a_slice_of_runs_names_its_bounds() -> None:
+    assert bf.parse_runs("15648:41208") == (15648, 41208)
+    for bad in ("5:3", "5", "a:7", "-1:4"):
+        with pytest.raises(ValueError, match="FIRST:END with 0 <= FIRST < END"):
+            bf.parse_runs(bad)
+    assert bf.start_ranges(DEPTH0_V12, 0, FW) == [
+        "v1.2 fresh: runs 0:4",
+        "v1.2 stimulating: runs 4:164",
+        "v1.2 stimulating_suspect: runs 164:524",
+    ]
+    j = bf.job(0, FW, DEPTH0_V12, runs=(4, 164))
+    assert (j.first, j.total) == (4, 160)
