@@ -83,11 +83,15 @@ SLOW = frozenset(
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Mark :data:`SLOW`; leave it out of a run given neither paths nor ``-m`` (the README's test command),
-    so that naming a file or folder (``pytest tests/conformance --device …``) or ``-m slow`` runs it."""
+    """Mark :data:`SLOW` (and take tests marked ``slow`` one by one); leave them out of a run given
+    neither paths nor ``-m`` (the README's test command), so that naming a file or folder (``pytest
+    tests/conformance --device …``) or ``-m slow`` runs them."""
     tests = REPO / "tests"
     slow: list[pytest.Item] = []
     for item in items:
+        if item.get_closest_marker("slow") is not None:  # one slow test in a fast file
+            slow.append(item)
+            continue
         try:
             first = Path(str(item.fspath)).resolve().relative_to(tests).parts[0]
         except ValueError:

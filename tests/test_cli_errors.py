@@ -770,6 +770,7 @@ def test_a_zero_timeout_is_refused(capsys) -> None:
 # --- 8. the study overview fits a screen ------------------------------------------------------------------
 
 
+@pytest.mark.slow  # a whole quick study with its pictures
 def test_study_overview_fits_a_screen(tmp_path, capsys) -> None:
     pytest.importorskip("matplotlib")
     from PIL import Image

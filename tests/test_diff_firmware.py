@@ -99,6 +99,7 @@ def test_a_firmware_stuck_on_both_sides_is_no_divergence(tmp_path: Path) -> None
 
 
 @needs_cxx
+@pytest.mark.slow  # worker processes
 def test_any_number_of_jobs_gives_the_same_report(tmp_path: Path) -> None:
     """Two planted changes (a reply and a register clamp), every stream run: the streams shared by two worker
     processes give the report one process gives, divergence counts, kinds and minimal reproductions alike."""
