@@ -355,3 +355,13 @@ def test_upstream_v2_overrunning_scans_drift_within_the_run_allowance() -> None:
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
     stream = Stream(((2000.5, bytes.fromhex("fc01fe0300f6feff")),), 5946.0, "overrun")
     assert Differ(tree, "v2").first_divergence(stream) is None
+
+
+def test_upstream_v2_a_call_interrupted_by_an_overrunning_scan_never_answers() -> None:
+    """0xF6 65535, then 228 electrodes and 0xFF: the scan that interrupts the 0xFF's call overruns, the
+    scans run back to back and neither the firmware nor the model ever answers (the model-only twin is in
+    test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((3901.495, "f6ff"), (3941.495, "ff"), (17119.009, "f8fefce4ff"))
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 30000.0, "starved")
+    assert Differ(tree, "v2").first_divergence(stream) is None

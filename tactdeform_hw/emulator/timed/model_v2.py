@@ -440,6 +440,7 @@ class MainLoopRunsV2:
     _booting_until: int
     _segments: list[tuple[int, int, int]]
     _frozen: bool
+    _voltages_held: bool
     _hv513_in_call: bool
     _call_time_ns: int
     _applied_in_call: int | None
@@ -702,6 +703,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         self._hv513_in_call = False
         self._applied_in_call: int | None = None
         self._frozen = False
+        self._voltages_held = False
         self._segments = []
         self.emulator.parser.on_command = self._on_command
 
@@ -967,7 +969,8 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             for sink in self._sinks:
                 sink.scan_run(run)
         self._last_alarm = t
-        regs.voltage[:n] = list(volts)
+        if not self._voltages_held:
+            regs.voltage[:n] = list(volts)
         end = t + duration
         self._check_sense(rec)
         period = self._period_ns()
@@ -1066,7 +1069,11 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         alarm = self._next_alarm_ns
         applied = self._applied_in_call
         if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
-            end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
+            scan_ns, seen_pattern = self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
+            end += scan_ns
+            if self._next_alarm_ns <= alarm + scan_ns:
+                self._starve(applied, before, seen_pattern)
+                return
         tx = parser.take_tx()
         if (
             tx
@@ -1093,6 +1100,27 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         else:
             self._next_call_ns = end
 
+    def _starve(self, op: int, before: dict[str, Any], seen_pattern: list[int]) -> None:
+        """The scan that interrupted this call overran: the firmware's ``Timer1_Stimulate_ISR`` re-enables
+        its alarm after the counter has passed it, so the next scan starts as the handler returns, and so on
+        -- the main loop (``runEtactileKit``) never resumes the call.  Nothing the call had still to do
+        happens: the registers stay as the interrupting scan saw them (a pattern stays torn), no reply is
+        written, and a 0xFF leaves ``SendingVoltages`` set, so no scan stores its readings again.  The loop
+        stays starved until a reset: its registers cannot change, so neither can the scans' length."""
+        regs = self.registers
+        if op == OpcodeV2.PATTERN:
+            regs.stim_pattern[:] = seen_pattern
+        else:
+            for f, v in before.items():
+                setattr(regs, f, v)
+        self.parser.take_tx()
+        if op == OpcodeV2.MEASURE:
+            self._voltages_held = True
+        if self.applied and self.applied[-1][1] == op:
+            self.applied.pop()
+        self._mark(self._call_time_ns, "starved", {"op": op})
+        self.stop_reading()
+
     def _tick_after(self, t: int) -> int:
         """The first RTOS tick after ``t`` (the ticks run from boot, shifted by ``tick_phase_us``)."""
         base = self._tick_base
@@ -1103,10 +1131,11 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
 
     def _preempt(
         self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
-    ) -> int:
+    ) -> tuple[int, list[int]]:
         """The scan interrupt fires while this call applies a command: the scan sees the registers as
         the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
-        old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
+        old — a torn pattern).  Returns the scan's duration, by which the call finishes later, and the
+        pattern the scan saw."""
         regs = self.registers
         m = self.model
         after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
@@ -1138,12 +1167,13 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         else:
             for f, v in before.items():
                 setattr(regs, f, v)
+        seen = list(regs.stim_pattern)
         self._scan(alarm)
         duration = self.scans[-1].duration_ns
         for f, v in after.items():
             setattr(regs, f, v)
         regs.stim_pattern[:] = new
-        return duration
+        return duration, seen
 
     def _on_command(self, op: int, value: object, offset: int) -> None:
         self.applied.append((self._call_time_ns, op, value))

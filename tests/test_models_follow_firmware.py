@@ -1,0 +1,60 @@
+"""The timed models follow the firmware exactly, its defects included: each case is the minimal reproduction
+of a difference the differential (``tactdeform-hw diff-firmware``) found between the upstream firmware built
+on the host and the package's model, run here on the model alone (no firmware tree needed), asserting what
+the firmware's code does.  The same streams against the upstream trees are in ``test_diff_firmware.py``."""
+
+from __future__ import annotations
+
+from tactdeform_hw.emulator.hostbuild.diff import ModelSideV2
+from tactdeform_hw.protocol.firmware import OpcodeV2
+
+# when the upstream v2 firmware's setup() has started its stimulation timer (the stack detection first)
+V2_TIMER_ORIGIN_US = 1010.25
+
+
+def _v2(writes: list[tuple[float, str]], end_us: float) -> ModelSideV2:
+    side = ModelSideV2(timer_origin_us=V2_TIMER_ORIGIN_US, hv513_count=4)
+    for at_us, data in writes:
+        side.write(bytes.fromhex(data), at_us)
+    side.advance_to(end_us)
+    return side
+
+
+# 0xF6 65535 (a 15 µs alarm), then sense width 254, 228 electrodes and a measure request: the 0xFF's call is
+# interrupted by the first scan of 228 channels (3114 µs), which overruns.
+STARVED = [(3901.495, "f6ff"), (3941.495, "ff"), (17119.009, "f8fefce4ff")]
+
+
+def test_v2_a_call_interrupted_by_an_overrunning_scan_never_resumes() -> None:
+    """Timer1_Stimulate_ISR re-enables its alarm once the counter has passed it, so the next scan starts as
+    the handler returns, and so on: runEtactileKit, interrupted inside the 0xFF's writeBytes, never gets the
+    processor back.  The firmware never answers, and the scans run back to back."""
+    side = _v2(STARVED, 60000.0)
+    seen = side.observe(60000.0)
+    assert seen.replies == b""
+    assert seen.state["electrode_num"] == 228
+    long_scans = [s for s in side.emu.scans if s.electrode_num == 228]
+    assert len(long_scans) > 10
+    for a, b in zip(long_scans, long_scans[1:]):
+        assert b.start_ns == a.start_ns + a.duration_ns  # back to back: the loop has no time between
+    assert OpcodeV2.MEASURE not in [op for _, op, _ in side.emu.applied[-3:]]
+
+
+def test_v2_a_starved_loop_reads_nothing_more_and_its_queue_fills() -> None:
+    """Bytes sent to a starved loop stay in the receive queue (1024 bytes in the firmware's serial build);
+    the rest is lost: nothing is applied, a 0xF4 is not answered."""
+    filler = "fc01" * 700  # 1400 bytes
+    side = _v2([*STARVED, (30000.0, filler), (31000.0, "f4")], 60000.0)
+    seen = side.observe(60000.0)
+    assert seen.replies == b""
+    assert seen.state["electrode_num"] == 228
+    assert seen.state["rx_unread"] == 1024
+    assert seen.state["rx_dropped"] == 1400 + 1 - 1024
+
+
+def test_v2_the_same_request_answers_when_the_scans_leave_the_loop_time() -> None:
+    """The contrast: with 0xF6 1000 (a 1 ms alarm) the 228-channel scan still interrupts the call, but the
+    next alarm is not due when it returns, so the loop finishes the 0xFF and answers 2 x 228 bytes."""
+    writes = [(3901.495, "f6e8"), (3941.495, "03"), (17119.009, "f8fefce4ff")]
+    side = _v2(writes, 60000.0)
+    assert len(side.observe(60000.0).replies) == 2 * 228
