@@ -17,7 +17,14 @@ import pytest
 
 from tactdeform_hw.cli import main
 from tactdeform_hw.emulator.hostbuild import find_compiler
-from tactdeform_hw.emulator.hostbuild.diff import Comparison, Differ, Observation, compare, diff_firmware
+from tactdeform_hw.emulator.hostbuild.diff import (
+    Comparison,
+    Differ,
+    ModelSideV1_2,
+    Observation,
+    compare,
+    diff_firmware,
+)
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap
 from tactdeform_hw.emulator.hostbuild.streams import Stream, off_tick, random_stream
 from tactdeform_hw.errors import FirmwareBuildError, LimitError
@@ -365,3 +372,30 @@ def test_upstream_v2_a_call_interrupted_by_an_overrunning_scan_never_answers() -
     writes = ((3901.495, "f6ff"), (3941.495, "ff"), (17119.009, "f8fefce4ff"))
     stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 30000.0, "starved")
     assert Differ(tree, "v2").first_divergence(stream) is None
+
+
+def test_v1_2_pulses_are_numbered_by_slot_across_a_run_of_back_to_back_scans() -> None:
+    """172 electrodes on a 32-output chain with a discharge of 254 µs: each scan (45.45 ms) overruns the
+    10 ms period and the next starts as it returns.  The firmware's chip-select writes (0.6 µs a channel,
+    which the model does not count) make its second scan start 103 µs later, after 172 channels of which
+    only 32 delivered a pulse: the model numbers the second scan's first pulse 172 (its slot in the run),
+    so the start tolerance covers the channels whose pulses fell off the chain (overrun-drift)."""
+    side = ModelSideV1_2(timer_origin_us=1010.25, hv513_count=4)
+    side.write(bytes.fromhex("f901"), 2360.073)
+    side.write(bytes.fromhex("f7fefcac"), 12448.198)
+    side.advance_to(68469.0)
+    pulses = side.observe(68469.0).pulses
+    first_scan = [p for p in pulses if p[0] < 66469.0]
+    assert [p[5] for p in first_scan] == list(range(32))  # outputs 0-31: slots 0-31 of the run
+    second = [p for p in pulses if p[0] >= 66469.0]
+    assert second[0][0] == 66469.0 and second[0][3] == (0,) and second[0][5] == 172
+
+
+def test_upstream_v1_2_channels_past_the_chain_drift_within_the_run_allowance() -> None:
+    """The stream above against the firmware: its second scan starts 103.2 µs after the model's (172
+    channels of 0.6 µs of chip-select writes), within the run's allowance (equivalence overrun-drift)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V1_2")
+    stream = Stream(
+        ((2360.073, bytes.fromhex("f901")), (12448.198, bytes.fromhex("f7fefcac"))), 68469.0, "past the chain"
+    )
+    assert Differ(tree, "v1.2").first_divergence(stream) is None

@@ -8,12 +8,13 @@ from __future__ import annotations
 from tactdeform_hw.emulator.hostbuild.diff import ModelSideV2
 from tactdeform_hw.protocol.firmware import OpcodeV2
 
-# when the upstream v2 firmware's setup() has started its stimulation timer (the stack detection first)
-V2_TIMER_ORIGIN_US = 1010.25
+# when the upstream firmware's setup() has started its stimulation timer, both versions (the stack detection
+# first; measured on the host build)
+TIMER_ORIGIN_US = 1010.25
 
 
 def _v2(writes: list[tuple[float, str]], end_us: float) -> ModelSideV2:
-    side = ModelSideV2(timer_origin_us=V2_TIMER_ORIGIN_US, hv513_count=4)
+    side = ModelSideV2(timer_origin_us=TIMER_ORIGIN_US, hv513_count=4)
     for at_us, data in writes:
         side.write(bytes.fromhex(data), at_us)
     side.advance_to(end_us)
