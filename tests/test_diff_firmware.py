@@ -18,6 +18,7 @@ import pytest
 from tactdeform_hw.cli import main
 from tactdeform_hw.emulator.hostbuild import find_compiler
 from tactdeform_hw.emulator.hostbuild.diff import (
+    PREEMPT_US,
     Comparison,
     Differ,
     ModelSideV1_2,
@@ -399,3 +400,29 @@ def test_upstream_v1_2_channels_past_the_chain_drift_within_the_run_allowance() 
         ((2360.073, bytes.fromhex("f901")), (12448.198, bytes.fromhex("f7fefcac"))), 68469.0, "past the chain"
     )
     assert Differ(tree, "v1.2").first_divergence(stream) is None
+
+
+def test_a_pulse_deep_in_a_run_is_required_of_the_other_side_only_past_its_drift_allowance() -> None:
+    """A pulse numbered 2000 in its run may start 1400.7 µs + PREEMPT_US later on the other side: 600 µs
+    after its end its counterpart is not yet missing; numbered 0 (allowance under the 500 µs margin), it
+    is (equivalence overrun-drift)."""
+    model = Comparison(exact=False, spec=None, pulse_tolerance_us=0.7)
+
+    def pulse(index: int) -> Observation:
+        return Observation({}, b"", [(1000.0, 1006.6, 4, (1,), 1, index)])
+
+    none = Observation({}, b"", [])
+    assert compare(none, pulse(2000), model, False, upto_us=1606.6) is None
+    found = compare(none, pulse(0), model, False, upto_us=1606.6)
+    assert found is not None and found[1] == "pulse 0 (count)"
+    past = 1006.6 + 0.7 * 2002 + PREEMPT_US + 0.01
+    assert compare(none, pulse(2000), model, False, upto_us=past) is not None
+
+
+def test_upstream_v1_2_a_long_run_of_overrunning_scans_falls_behind_within_its_allowance() -> None:
+    """0xF6 62810 (a 15 µs alarm) and 2 channels of sense pulses: 50 ms of back-to-back scans, each 1.2 µs
+    longer on the firmware (its chip-select writes): by 54020.5 µs the firmware has made 54 pulses fewer,
+    all within their drift allowance (equivalence overrun-drift)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V1_2")
+    writes = ((2000.5, bytes.fromhex("f901f65af5fbfe0f")), (2020.5, bytes.fromhex("fc02")))
+    assert Differ(tree, "v1.2").first_divergence(Stream(writes, 54020.5, "long run")) is None

@@ -56,7 +56,9 @@ EQUIVALENCES: dict[str, str] = {
     "its run of back-to-back scans, in the v1.2 model by its slot within its run (every pulse the scans "
     "make counts, those of channels past the chain's outputs included: their SPI exchanges cost the same "
     "writes, 0.6 us a channel), and the start tolerance (n + 1) x pulse_tolerance_us takes the larger "
-    "of the two sides' numbers",
+    "of the two sides' numbers; a run of thousands of scans falls behind by more than PULSE_MARGIN_US, so "
+    "a pulse is required of the other side only once the checkpoint is past its end by its own allowance "
+    "(n + 2) x pulse_tolerance_us + PREEMPT_US, if that is more than the margin",
     "preempt-at-calls": "the host build runs a due interrupt at the main loop's next shim call, the model "
     "(like the chip) at the alarm: a scan's pulses may start up to PREEMPT_US (20 us: one of 0xF5's "
     "analogRead calls; 2 us otherwise) later on the host build",
@@ -481,8 +483,9 @@ def compare(
     upto_us: float = math.inf,
 ) -> tuple[str, str, Any, Any, float | None] | None:
     """The first difference between two observations made at ``upto_us``: (kind, field, left, right, time
-    if known).  The pulses compared are those either side ended :data:`PULSE_MARGIN_US` before
-    ``upto_us``; their counterparts on the other side may have ended any time before ``upto_us``."""
+    if known).  The pulses compared are those either side ended :data:`PULSE_MARGIN_US` (or the drift their
+    start is allowed, if more) before ``upto_us``; their counterparts on the other side may have ended any
+    time before ``upto_us``."""
     if left.stuck != right.stuck:
         return ("stuck", "stuck", left.stuck, right.stuck, None)
     keys = [k for k in left.state if k in right.state or cmp.exact]
@@ -505,8 +508,12 @@ def compare(
         return ("replies", "replies (count)", len(left.replies), len(right.replies), None)
     tol = cmp.pulse_tolerance_us
     late = 0.0 if cmp.exact else PREEMPT_US  # see EQUIVALENCES["preempt-at-calls"]
-    settled = upto_us - PULSE_MARGIN_US
-    n = max(sum(1 for p in side.pulses if p[1] <= settled) for side in (left, right))
+    # a pulse's counterpart must exist once the checkpoint is past the pulse's end by the margin, or by the
+    # drift its start may have (a long run of back-to-back scans, see EQUIVALENCES["overrun-drift"])
+    n = max(
+        sum(1 for p in side.pulses if p[1] + max(PULSE_MARGIN_US, tol * (2 + p[5]) + late) <= upto_us)
+        for side in (left, right)
+    )
     for i, (p, q) in enumerate(zip(left.pulses[:n], right.pulses[:n])):
         if (
             p[2:5] != q[2:5]
