@@ -426,3 +426,13 @@ def test_upstream_v1_2_a_long_run_of_overrunning_scans_falls_behind_within_its_a
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V1_2")
     writes = ((2000.5, bytes.fromhex("f901f65af5fbfe0f")), (2020.5, bytes.fromhex("fc02")))
     assert Differ(tree, "v1.2").first_divergence(Stream(writes, 54020.5, "long run")) is None
+
+
+def test_upstream_v2_a_starved_loop_s_queue_overflows_on_both_sides() -> None:
+    """Scans back to back (0xFC 32, 0xF6 28466), then 1176 bytes at once: the firmware's serial driver and
+    the model both store them as they come and drop the 155 past the 1024-byte buffer (the model-only twin
+    is in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((2000.5, "fc20"), (4904.391, "f6326ff60100"), (9425.323, "00" * 1176))
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 9425.5, "overflow")
+    assert Differ(tree, "v2").first_divergence(stream) is None

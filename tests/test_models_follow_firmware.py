@@ -59,3 +59,15 @@ def test_v2_the_same_request_answers_when_the_scans_leave_the_loop_time() -> Non
     writes = [(3901.495, "f6e8"), (3941.495, "03"), (17119.009, "f8fefce4ff")]
     side = _v2(writes, 60000.0)
     assert len(side.observe(60000.0).replies) == 2 * 228
+
+
+def test_v2_a_starved_loop_s_queue_overflows_as_the_bytes_arrive() -> None:
+    """0xFC 32 and 0xF6 28466 (a 35 µs alarm): the scans run back to back and the loop never reads again.
+    The serial driver still stores what arrives (initCommunication's 1024-byte receive buffer), so 1176
+    bytes sent at once overflow it at once, before the next scan: the 3 bytes of the second 0xF6 were waiting
+    unread, so 3 + 1176 - 1024 = 155 are lost."""
+    writes = [(2000.5, "fc20"), (4904.391, "f6326ff60100"), (9425.323, "00" * 1176)]
+    side = _v2(writes, 9425.5)
+    seen = side.observe(9425.5)
+    assert seen.state["rx_dropped"] == 155
+    assert seen.state["rx_unread"] == 1024
