@@ -71,3 +71,33 @@ def test_v2_a_starved_loop_s_queue_overflows_as_the_bytes_arrive() -> None:
     seen = side.observe(9425.5)
     assert seen.state["rx_dropped"] == 155
     assert seen.state["rx_unread"] == 1024
+
+
+# discharge 214 µs, biphasic, 4 electrodes and a pattern, 0xF5, then 4 electrodes again and 0xF6 65535
+SENSED_THEN_FAST = [(2000.5, "f7d6fb01"), (2020.5, "fc04fe00008f910000cd8ef5"), (2580.973, "fc04f6fffff7")]
+
+
+def test_v2_a_call_that_reads_a_command_with_a_payload_checks_the_queue_twice() -> None:
+    """runEtactileKit calls isDataAvailable() before reading a command byte and again, in the same call,
+    before reading its payload: 2 x 2 µs + 1 µs a byte, so each of these 2-byte commands takes 6 µs (a call
+    on a payload already waiting checks once)."""
+    side = _v2(SENSED_THEN_FAST, 4400.0)
+    applied = [(round(t / 1000, 3), int(op)) for t, op, _ in side.emu.applied]
+    assert applied[:5] == [(3000.0, 0xF7), (3006.0, 0xFB), (3012.0, 0xFC), (3018.0, 0xFE), (3031.0, 0xF5)]
+
+
+def test_v2_a_new_frequency_s_alarm_is_enabled_at_the_end_of_its_call() -> None:
+    """setPeriodUs (timerAlarmDisable, timerAlarmWrite, timerAlarmEnable) runs after the u16's read, the
+    call's last: with the counter already past the new 30-tick alarm, the scan starts as the call ends
+    (4040 + 2 + 1 + 2 + 2 µs), not at its start."""
+    side = _v2(SENSED_THEN_FAST, 4400.0)
+    after = [s.start_ns for s in side.emu.scans if s.start_ns >= 4040_000]
+    assert after[0] == 4047_000
+
+
+def test_v2_a_scan_of_no_channel_clocks_the_chain_only_the_first_time() -> None:
+    """hv513FastScan's position is a static that only channel 0 resets: with no electrode, hv513Clear
+    clocks the 32 outputs (4 HV513) in the first scan after boot and none in the next (pin = 32 - 32)."""
+    side = _v2([], 1100000.0)
+    durations = [s.duration_ns for s in side.emu.scans[:3]]
+    assert durations == [2000 + 3 * 50 + 64 * 50, 2000 + 3 * 50, 2000 + 3 * 50]

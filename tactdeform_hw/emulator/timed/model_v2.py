@@ -441,6 +441,7 @@ class MainLoopRunsV2:
     _segments: list[tuple[int, int, int]]
     _frozen: bool
     _voltages_held: bool
+    _chain_pos: int  # hv513FastScan's static position, where the last scan's hv513Clear left it
     _hv513_in_call: bool
     _call_time_ns: int
     _applied_in_call: int | None
@@ -591,7 +592,12 @@ class MainLoopRunsV2:
         the same registers as the one before."""
         n = regs.electrode_num
         pattern = tuple(regs.stim_pattern[:n])
+        # hv513FastScan keeps its chain position in a static: channel 0 resets it, so only a scan of no
+        # channel depends on it -- its hv513Clear clocks from where the previous scan's clear left it
+        # (nothing at all after the first such scan since boot)
+        prior = 1 if n == 0 and self._chain_pos else 0
         key = (
+            prior,
             pattern,
             regs.pulse_width,
             regs.discharge_time,
@@ -613,7 +619,7 @@ class MainLoopRunsV2:
                 sense_pulse_height=regs.sense_pulse_height,
                 sense_pulse_width=regs.sense_pulse_width,
                 stim_mode=regs.stim_mode,
-                prior_scans=0,
+                prior_scans=prior,
             )
             shape = _scan_shape(cfg, self.conventions)
             if self.skin is not None:
@@ -976,6 +982,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             for sink in self._sinks:
                 sink.scan_run(run)
         self._last_alarm = t
+        self._chain_pos = OUTPUTS_PER_HV513 * regs.hv513_num  # where the scan's hv513Clear left it
         if not self._voltages_held:
             regs.voltage[:n] = list(volts)
         end = t + duration
@@ -1053,7 +1060,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         hazards_before = len(self.hazards)
         # the registers before the call matter only to a scan that can interrupt it: one whose alarm falls
         # before the call's latest possible end (it cannot read more than the bytes waiting)
-        latest_end = t + m.call_ns + pending * m.byte_ns + m.hv513_detect_ns
+        latest_end = t + 2 * m.call_ns + pending * m.byte_ns + m.hv513_detect_ns
         before: dict[str, Any] = {}
         old_pattern: list[int] = []
         if t < self._next_alarm_ns < latest_end:
@@ -1064,7 +1071,9 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             if h.kind is HazardKind.COMMAND_TIMEOUT:
                 # the cut command and every byte queued behind it never take effect
                 self._loss(t, 1 + int(h.detail["discarded"]), self._host_of(h.offset), "command_timeout")
-        cost = m.call_ns + out.consumed * m.byte_ns
+        # each Serial.available() of the call costs call_ns: runEtactileKit checks the queue again for the
+        # payload of a command byte it has just read
+        cost = m.call_ns * parser.checks + out.consumed * m.byte_ns
         sensed = self._hv513_in_call
         if sensed:
             cost += m.hv513_detect_ns
@@ -1073,8 +1082,12 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         paused = sensed and self.firmware.hv513_pauses_timer
         self._hv513_in_call = False
         end = t + cost
-        alarm = self._next_alarm_ns
         applied = self._applied_in_call
+        if applied == OpcodeV2.FREQUENCY:
+            # setPeriodUs re-enables the alarm at the call's end (its u16 read is the call's last): an
+            # alarm the counter has passed fires then, so the scans' phase follows the call's end
+            self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
+        alarm = self._next_alarm_ns
         if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
             scan_ns, seen_pattern = self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
             end += scan_ns
@@ -1150,7 +1163,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         if op == OpcodeV2.PATTERN:
             n = regs.electrode_num
             width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
-            start = t + m.call_ns + max(0, consumed - 2 * n) * m.byte_ns
+            start = t + m.call_ns * self.parser.checks + max(0, consumed - 2 * n) * m.byte_ns
             k = max(0, min(n, (alarm - start) // width)) if width else n
             regs.stim_pattern[:] = new[:k] + old[k:]
             # in mode 2 the scan gives every channel the sense pulse and discards the height it reads
