@@ -442,6 +442,7 @@ class MainLoopRunsV2:
     _frozen: bool
     _voltages_held: bool
     _chain_pos: int  # hv513FastScan's static position, where the last scan's hv513Clear left it
+    applied: list[tuple[int, int, object]]
     _hv513_in_call: bool
     _call_time_ns: int
     _applied_in_call: int | None
@@ -451,6 +452,25 @@ class MainLoopRunsV2:
     @property
     def parser(self) -> ParserV2:
         raise NotImplementedError
+
+    def _starve(self, regs: RegistersV2, op: int, before: dict[str, Any], seen_pattern: list[int]) -> None:
+        """The scan that interrupted this call overran: the firmware's ``Timer1_Stimulate_ISR`` re-enables
+        its alarm after the counter has passed it, so the next scan starts as the handler returns, and so on
+        -- the main loop (``runEtactileKit``) never resumes the call.  Nothing the call had still to do
+        happens: the registers stay as the interrupting scan saw them (a pattern stays torn), no reply is
+        written, and a 0xFF leaves ``SendingVoltages`` set, so no scan stores its readings again.  The loop
+        stays starved until a reset (the caller stops its reading): its registers cannot change, so neither
+        can the scans' length."""
+        if op == OpcodeV2.PATTERN:
+            regs.stim_pattern[:] = seen_pattern
+        else:
+            for f, v in before.items():
+                setattr(regs, f, v)
+        self.parser.take_tx()
+        if op == OpcodeV2.MEASURE:
+            self._voltages_held = True
+        if self.applied and self.applied[-1][1] == op:
+            self.applied.pop()
 
     def _loss(self, t: int, count: int, host_offset: int, reason: str) -> None:
         raise NotImplementedError
@@ -940,10 +960,8 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             call, alarm = self._next_call_ns, self._next_alarm_ns
             if self._frozen:
                 self._land(min(alarm, target))
-            # the serial driver stores arrivals as they come, whatever the main loop does: when the next
-            # scan comes before the loop's next call (scans back to back starve the loop), its queue fills
-            # and overflows meanwhile (nothing reads it before that call, so landing them now changes nothing
-            # else)
+            # the serial driver queues arrivals whatever the loop does: before a scan that comes first (a
+            # loop starved by back-to-back scans still overflows); nothing reads them before the call anyway
             if min(call, alarm) > target:
                 if alarm <= call:
                     self._land(target)
@@ -1071,8 +1089,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             if h.kind is HazardKind.COMMAND_TIMEOUT:
                 # the cut command and every byte queued behind it never take effect
                 self._loss(t, 1 + int(h.detail["discarded"]), self._host_of(h.offset), "command_timeout")
-        # each Serial.available() of the call costs call_ns: runEtactileKit checks the queue again for the
-        # payload of a command byte it has just read
+        # call_ns per Serial.available(): runEtactileKit checks again for the payload of a byte just read
         cost = m.call_ns * parser.checks + out.consumed * m.byte_ns
         sensed = self._hv513_in_call
         if sensed:
@@ -1083,16 +1100,16 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         self._hv513_in_call = False
         end = t + cost
         applied = self._applied_in_call
-        if applied == OpcodeV2.FREQUENCY:
-            # setPeriodUs re-enables the alarm at the call's end (its u16 read is the call's last): an
-            # alarm the counter has passed fires then, so the scans' phase follows the call's end
+        if applied == OpcodeV2.FREQUENCY:  # setPeriodUs re-enables the alarm after the call's last read
             self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
         alarm = self._next_alarm_ns
         if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
             scan_ns, seen_pattern = self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
             end += scan_ns
             if self._next_alarm_ns <= alarm + scan_ns:
-                self._starve(applied, before, seen_pattern)
+                self._starve(regs, applied, before, seen_pattern)
+                self._mark(self._call_time_ns, "starved", {"op": applied})
+                self.stop_reading()
                 return
         tx = parser.take_tx()
         if (
@@ -1119,27 +1136,6 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             self._next_call_ns = self._tick_after(end)
         else:
             self._next_call_ns = end
-
-    def _starve(self, op: int, before: dict[str, Any], seen_pattern: list[int]) -> None:
-        """The scan that interrupted this call overran: the firmware's ``Timer1_Stimulate_ISR`` re-enables
-        its alarm after the counter has passed it, so the next scan starts as the handler returns, and so on
-        -- the main loop (``runEtactileKit``) never resumes the call.  Nothing the call had still to do
-        happens: the registers stay as the interrupting scan saw them (a pattern stays torn), no reply is
-        written, and a 0xFF leaves ``SendingVoltages`` set, so no scan stores its readings again.  The loop
-        stays starved until a reset: its registers cannot change, so neither can the scans' length."""
-        regs = self.registers
-        if op == OpcodeV2.PATTERN:
-            regs.stim_pattern[:] = seen_pattern
-        else:
-            for f, v in before.items():
-                setattr(regs, f, v)
-        self.parser.take_tx()
-        if op == OpcodeV2.MEASURE:
-            self._voltages_held = True
-        if self.applied and self.applied[-1][1] == op:
-            self.applied.pop()
-        self._mark(self._call_time_ns, "starved", {"op": op})
-        self.stop_reading()
 
     def _tick_after(self, t: int) -> int:
         """The first RTOS tick after ``t`` (the ticks run from boot, shifted by ``tick_phase_us``)."""
