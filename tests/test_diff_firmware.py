@@ -17,7 +17,15 @@ import pytest
 
 from tactdeform_hw.cli import main
 from tactdeform_hw.emulator.hostbuild import find_compiler
-from tactdeform_hw.emulator.hostbuild.diff import Comparison, Differ, Observation, compare, diff_firmware
+from tactdeform_hw.emulator.hostbuild.diff import (
+    PREEMPT_US,
+    Comparison,
+    Differ,
+    ModelSideV1_2,
+    Observation,
+    compare,
+    diff_firmware,
+)
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap
 from tactdeform_hw.emulator.hostbuild.streams import Stream, off_tick, random_stream
 from tactdeform_hw.errors import FirmwareBuildError, LimitError
@@ -355,4 +363,87 @@ def test_upstream_v2_overrunning_scans_drift_within_the_run_allowance() -> None:
     in a row starts 20.85 µs after the model's, within the run's allowance (equivalence overrun-drift)."""
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
     stream = Stream(((2000.5, bytes.fromhex("fc01fe0300f6feff")),), 5946.0, "overrun")
+    assert Differ(tree, "v2").first_divergence(stream) is None
+
+
+def test_upstream_v2_a_call_interrupted_by_an_overrunning_scan_never_answers() -> None:
+    """0xF6 65535, then 228 electrodes and 0xFF: the scan that interrupts the 0xFF's call overruns, the
+    scans run back to back and neither the firmware nor the model ever answers (the model-only twin is in
+    test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((3901.495, "f6ff"), (3941.495, "ff"), (17119.009, "f8fefce4ff"))
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 30000.0, "starved")
+    assert Differ(tree, "v2").first_divergence(stream) is None
+
+
+def test_v1_2_pulses_are_numbered_by_slot_across_a_run_of_back_to_back_scans() -> None:
+    """172 electrodes on a 32-output chain with a discharge of 254 µs: each scan (45.45 ms) overruns the
+    10 ms period and the next starts as it returns.  The firmware's chip-select writes (0.6 µs a channel,
+    which the model does not count) make its second scan start 103 µs later, after 172 channels of which
+    only 32 delivered a pulse: the model numbers the second scan's first pulse 172 (its slot in the run),
+    so the start tolerance covers the channels whose pulses fell off the chain (overrun-drift)."""
+    side = ModelSideV1_2(timer_origin_us=1010.25, hv513_count=4)
+    side.write(bytes.fromhex("f901"), 2360.073)
+    side.write(bytes.fromhex("f7fefcac"), 12448.198)
+    side.advance_to(68469.0)
+    pulses = side.observe(68469.0).pulses
+    first_scan = [p for p in pulses if p[0] < 66469.0]
+    assert [p[5] for p in first_scan] == list(range(32))  # outputs 0-31: slots 0-31 of the run
+    second = [p for p in pulses if p[0] >= 66469.0]
+    assert second[0][0] == 66469.0 and second[0][3] == (0,) and second[0][5] == 172
+
+
+def test_upstream_v1_2_channels_past_the_chain_drift_within_the_run_allowance() -> None:
+    """The stream above against the firmware: its second scan starts 103.2 µs after the model's (172
+    channels of 0.6 µs of chip-select writes), within the run's allowance (equivalence overrun-drift)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V1_2")
+    stream = Stream(
+        ((2360.073, bytes.fromhex("f901")), (12448.198, bytes.fromhex("f7fefcac"))), 68469.0, "past the chain"
+    )
+    assert Differ(tree, "v1.2").first_divergence(stream) is None
+
+
+def test_a_pulse_deep_in_a_run_is_required_of_the_other_side_only_past_its_drift_allowance() -> None:
+    """A pulse numbered 2000 in its run may start 1400.7 µs + PREEMPT_US later on the other side: 600 µs
+    after its end its counterpart is not yet missing; numbered 0 (allowance under the 500 µs margin), it
+    is (equivalence overrun-drift)."""
+    model = Comparison(exact=False, spec=None, pulse_tolerance_us=0.7)
+
+    def pulse(index: int) -> Observation:
+        return Observation({}, b"", [(1000.0, 1006.6, 4, (1,), 1, index)])
+
+    none = Observation({}, b"", [])
+    assert compare(none, pulse(2000), model, False, upto_us=1606.6) is None
+    found = compare(none, pulse(0), model, False, upto_us=1606.6)
+    assert found is not None and found[1] == "pulse 0 (count)"
+    past = 1006.6 + 0.7 * 2002 + PREEMPT_US + 0.01
+    assert compare(none, pulse(2000), model, False, upto_us=past) is not None
+
+
+def test_upstream_v1_2_a_long_run_of_overrunning_scans_falls_behind_within_its_allowance() -> None:
+    """0xF6 62810 (a 15 µs alarm) and 2 channels of sense pulses: 50 ms of back-to-back scans, each 1.2 µs
+    longer on the firmware (its chip-select writes): by 54020.5 µs the firmware has made 54 pulses fewer,
+    all within their drift allowance (equivalence overrun-drift)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V1_2")
+    writes = ((2000.5, bytes.fromhex("f901f65af5fbfe0f")), (2020.5, bytes.fromhex("fc02")))
+    assert Differ(tree, "v1.2").first_divergence(Stream(writes, 54020.5, "long run")) is None
+
+
+def test_upstream_v2_a_starved_loop_s_queue_overflows_on_both_sides() -> None:
+    """Scans back to back (0xFC 32, 0xF6 28466), then 1176 bytes at once: the firmware's serial driver and
+    the model both store them as they come and drop the 155 past the 1024-byte buffer (the model-only twin
+    is in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((2000.5, "fc20"), (4904.391, "f6326ff60100"), (9425.323, "00" * 1176))
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 9425.5, "overflow")
+    assert Differ(tree, "v2").first_divergence(stream) is None
+
+
+def test_upstream_v2_a_scan_after_0xf5_and_a_new_frequency_starts_with_the_firmware_s() -> None:
+    """Four payload commands, 0xF5, then 0xF6 65535: the model's scan starts 3.45 µs before the firmware's
+    (hv513Init's pin writes after the detection), no longer 20.9 µs (the model-only twins are in
+    test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((2000.5, "f7d6fb01"), (2020.5, "fc04fe00008f910000cd8ef5"), (2580.973, "fc04f6fffff7"))
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 64630.973, "after 0xF5")
     assert Differ(tree, "v2").first_divergence(stream) is None

@@ -68,6 +68,9 @@ class ParserV2(ParserBase, UnknownRuns):
         self._unknown_start = -1
         self._unknown_len = 0
         self._sense_all = False
+        #: ``Serial.available()`` calls the last :meth:`call` made: 2 when it read a command byte that takes
+        #: a payload (runEtactileKit checks the queue again for the payload in the same call), else 1
+        self.checks = 1
 
     # --- the receive queue -----------------------------------------------------------------------------
 
@@ -104,6 +107,7 @@ class ParserV2(ParserBase, UnknownRuns):
         consumed = 0
         wrote_before = len(self.tx)
         made_progress = False
+        self.checks = 1
         if not self.processing and self.pending > 0:
             op = self.rx[self.pos]
             at = self.offset
@@ -124,6 +128,7 @@ class ParserV2(ParserBase, UnknownRuns):
             self.required = self.spec.size_of(op, self.regs.electrode_num) or 0
             self.processing = True
             self.command_start_us = now_us
+            self.checks = 2
         if self.processing:
             if self.pending >= self.required:
                 consumed += self.required

@@ -53,8 +53,12 @@ EQUIVALENCES: dict[str, str] = {
     "overrun-drift": "when scans overrun (the next alarm is due before a scan returns), the firmware runs "
     "them back to back and the chip-select writes the model does not count (see pulse-width) accumulate from "
     "scan to scan instead of being reset by the next alarm: on the host build a pulse is numbered within "
-    "its run of back-to-back scans, and the start tolerance (n + 1) x pulse_tolerance_us takes the larger "
-    "of the two sides' numbers",
+    "its run of back-to-back scans, in the v1.2 model by its slot within its run (every pulse the scans "
+    "make counts, those of channels past the chain's outputs included: their SPI exchanges cost the same "
+    "writes, 0.6 us a channel), and the start tolerance (n + 1) x pulse_tolerance_us takes the larger "
+    "of the two sides' numbers; a run of thousands of scans falls behind by more than PULSE_MARGIN_US, so "
+    "a pulse is required of the other side only once the checkpoint is past its end by its own allowance "
+    "(n + 2) x pulse_tolerance_us + PREEMPT_US, if that is more than the margin",
     "preempt-at-calls": "the host build runs a due interrupt at the main loop's next shim call, the model "
     "(like the chip) at the alarm: a scan's pulses may start up to PREEMPT_US (20 us: one of 0xF5's "
     "analogRead calls; 2 us otherwise) later on the host build",
@@ -266,8 +270,11 @@ class ModelSide:
     def observe(self, upto_us: float) -> Observation:
         st = self.emu.state().as_dict()
         st["rx_unread"] = st["rx_pending"] + self.emu.in_flight
-        pulses = _number_in_scans(self._pulses(upto_us))
-        return Observation(st, self._replies(upto_us), pulses, None, self.emu.reboots > 0)
+        return Observation(st, self._replies(upto_us), self._numbered(upto_us), None, self.emu.reboots > 0)
+
+    def _numbered(self, upto_us: float) -> list[Pulse]:
+        """The delivered pulses ended by ``upto_us``, each numbered within its scan."""
+        return _number_in_scans(self._pulses(upto_us))
 
     def _replies(self, upto_us: float) -> bytes:
         raise NotImplementedError
@@ -291,17 +298,38 @@ class ModelSideV1_2(ModelSide):
         the time the call writes it)."""
         return b"".join(b for t, b in self.emu.tx_log if t <= upto_us)
 
+    def _numbered(self, upto_us: float) -> list[Pulse]:
+        """The delivered pulses numbered by their pulse slot within their run of back-to-back scans: every
+        pulse the scans make counts, those of channels past the chain's outputs included (they go nowhere,
+        but their SPI exchanges cost the same chip-select writes: see EQUIVALENCES["overrun-drift"])."""
+        return sorted(self._pulses(upto_us))
+
+    def _run_offsets(self) -> dict[int, tuple[int, int, int]]:
+        """Per stretch of scans (by its first scan's index): the slots of its run's scans before it, the
+        slots of each of its scans, and whether its own scans run back to back."""
+        out: dict[int, tuple[int, int, int]] = {}
+        prev_end, carried = -1, 0
+        for run in self.emu.runs:
+            slots = int(run.template.pulses.channel.size)
+            before = carried if run.start_ns == prev_end else 0
+            chained = int(run.stride_ns == run.duration_ns)
+            out[run.first_index] = (before, slots, chained)
+            carried = before + run.count * slots if chained else (before if run.count == 1 else 0) + slots
+            prev_end = run.end_ns
+        return out
+
     def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
         """The pulses of a non-zero code through at least one output, ended by ``limit_us`` (read from the
-        reports' columns: no report object per pulse)."""
+        reports' columns: no report object per pulse), each numbered by :meth:`_numbered`'s slots."""
         reports = self.emu.reports
         t = reports.pulse_table(t1_us=limit_us)
         end_us = t["start_us"] + t["width_us"]
         keep = (t["code"] > 0) & (end_us <= limit_us)
+        slot = self._slots(t["cycle"], t["start_us"])
         outputs_of = reports.outputs_lookup()
         out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
         col = {k: t[k][keep].tolist() for k in ("start_us", "code", "pol", "cycle", "channel", "output")}
-        for start, end, code, pol, cycle, channel, output, n_out in zip(
+        for start, end, code, pol, cycle, channel, output, n_out, n in zip(
             col["start_us"],
             end_us[keep].tolist(),
             col["code"],
@@ -310,10 +338,35 @@ class ModelSideV1_2(ModelSide):
             col["channel"],
             col["output"],
             t["n_outputs"][keep].tolist(),
+            slot[keep].tolist(),
         ):
             outputs = outputs_of(int(cycle), int(channel), int(output), int(n_out))
             if outputs:
-                out.append((float(start), float(end), int(code), tuple(outputs), int(bool(pol)), int(cycle)))
+                out.append((float(start), float(end), int(code), tuple(outputs), int(bool(pol)), int(n)))
+        return out
+
+    def _slots(self, cycle: np.ndarray, start_us: np.ndarray) -> np.ndarray:
+        """Each pulse's slot within its run of back-to-back scans: its rank among all its scan's pulses
+        plus the slots of the run's earlier scans."""
+        if cycle.size == 0:
+            return np.zeros(0, dtype=np.int64)
+        order = np.lexsort((start_us, cycle))
+        cyc = cycle[order].astype(np.int64)
+        first = np.r_[True, cyc[1:] != cyc[:-1]]
+        group_start = np.maximum.accumulate(np.where(first, np.arange(cyc.size), 0))
+        rank = np.arange(cyc.size) - group_start
+        runs = self._run_offsets()
+        firsts = np.array(sorted(runs), dtype=np.int64)
+        table = np.array([runs[f] for f in firsts.tolist()], dtype=np.int64).reshape(-1, 3)
+        i = np.searchsorted(firsts, cyc, side="right") - 1
+        known = i >= 0
+        i = np.maximum(i, 0)
+        f, (before, slots, chained) = firsts[i], table[i].T
+        later = cyc - f
+        base = np.where(chained == 1, before + later * slots, np.where(later == 0, before, 0))
+        base = np.where(known, base, 0)
+        out = np.empty(cyc.size, dtype=np.int64)
+        out[order] = base + rank
         return out
 
 
@@ -430,8 +483,9 @@ def compare(
     upto_us: float = math.inf,
 ) -> tuple[str, str, Any, Any, float | None] | None:
     """The first difference between two observations made at ``upto_us``: (kind, field, left, right, time
-    if known).  The pulses compared are those either side ended :data:`PULSE_MARGIN_US` before
-    ``upto_us``; their counterparts on the other side may have ended any time before ``upto_us``."""
+    if known).  The pulses compared are those either side ended :data:`PULSE_MARGIN_US` (or the drift their
+    start is allowed, if more) before ``upto_us``; their counterparts on the other side may have ended any
+    time before ``upto_us``."""
     if left.stuck != right.stuck:
         return ("stuck", "stuck", left.stuck, right.stuck, None)
     keys = [k for k in left.state if k in right.state or cmp.exact]
@@ -454,8 +508,12 @@ def compare(
         return ("replies", "replies (count)", len(left.replies), len(right.replies), None)
     tol = cmp.pulse_tolerance_us
     late = 0.0 if cmp.exact else PREEMPT_US  # see EQUIVALENCES["preempt-at-calls"]
-    settled = upto_us - PULSE_MARGIN_US
-    n = max(sum(1 for p in side.pulses if p[1] <= settled) for side in (left, right))
+    # a pulse's counterpart must exist once the checkpoint is past the pulse's end by the margin, or by the
+    # drift its start may have (a long run of back-to-back scans, see EQUIVALENCES["overrun-drift"])
+    n = max(
+        sum(1 for p in side.pulses if p[1] + max(PULSE_MARGIN_US, tol * (2 + p[5]) + late) <= upto_us)
+        for side in (left, right)
+    )
     for i, (p, q) in enumerate(zip(left.pulses[:n], right.pulses[:n])):
         if (
             p[2:5] != q[2:5]

@@ -440,6 +440,9 @@ class MainLoopRunsV2:
     _booting_until: int
     _segments: list[tuple[int, int, int]]
     _frozen: bool
+    _voltages_held: bool
+    _chain_pos: int  # hv513FastScan's static position, where the last scan's hv513Clear left it
+    applied: list[tuple[int, int, object]]
     _hv513_in_call: bool
     _call_time_ns: int
     _applied_in_call: int | None
@@ -449,6 +452,25 @@ class MainLoopRunsV2:
     @property
     def parser(self) -> ParserV2:
         raise NotImplementedError
+
+    def _starve(self, regs: RegistersV2, op: int, before: dict[str, Any], seen_pattern: list[int]) -> None:
+        """The scan that interrupted this call overran: the firmware's ``Timer1_Stimulate_ISR`` re-enables
+        its alarm after the counter has passed it, so the next scan starts as the handler returns, and so on
+        -- the main loop (``runEtactileKit``) never resumes the call.  Nothing the call had still to do
+        happens: the registers stay as the interrupting scan saw them (a pattern stays torn), no reply is
+        written, and a 0xFF leaves ``SendingVoltages`` set, so no scan stores its readings again.  The loop
+        stays starved until a reset (the caller stops its reading): its registers cannot change, so neither
+        can the scans' length."""
+        if op == OpcodeV2.PATTERN:
+            regs.stim_pattern[:] = seen_pattern
+        else:
+            for f, v in before.items():
+                setattr(regs, f, v)
+        self.parser.take_tx()
+        if op == OpcodeV2.MEASURE:
+            self._voltages_held = True
+        if self.applied and self.applied[-1][1] == op:
+            self.applied.pop()
 
     def _loss(self, t: int, count: int, host_offset: int, reason: str) -> None:
         raise NotImplementedError
@@ -590,7 +612,12 @@ class MainLoopRunsV2:
         the same registers as the one before."""
         n = regs.electrode_num
         pattern = tuple(regs.stim_pattern[:n])
+        # hv513FastScan keeps its chain position in a static: channel 0 resets it, so only a scan of no
+        # channel depends on it -- its hv513Clear clocks from where the previous scan's clear left it
+        # (nothing at all after the first such scan since boot)
+        prior = 1 if n == 0 and self._chain_pos else 0
         key = (
+            prior,
             pattern,
             regs.pulse_width,
             regs.discharge_time,
@@ -612,7 +639,7 @@ class MainLoopRunsV2:
                 sense_pulse_height=regs.sense_pulse_height,
                 sense_pulse_width=regs.sense_pulse_width,
                 stim_mode=regs.stim_mode,
-                prior_scans=0,
+                prior_scans=prior,
             )
             shape = _scan_shape(cfg, self.conventions)
             if self.skin is not None:
@@ -702,6 +729,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         self._hv513_in_call = False
         self._applied_in_call: int | None = None
         self._frozen = False
+        self._voltages_held = False
         self._segments = []
         self.emulator.parser.on_command = self._on_command
 
@@ -932,9 +960,14 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             call, alarm = self._next_call_ns, self._next_alarm_ns
             if self._frozen:
                 self._land(min(alarm, target))
+            # the serial driver queues arrivals whatever the loop does: before a scan that comes first (a
+            # loop starved by back-to-back scans still overflows); nothing reads them before the call anyway
             if min(call, alarm) > target:
+                if alarm <= call:
+                    self._land(target)
                 return
             if alarm <= call:
+                self._land(alarm)
                 self._scan(alarm)
             elif not self._idle_polls(call, alarm, target) and not self._skip_unknown(call, alarm, target):
                 self._main_call(call)
@@ -967,7 +1000,9 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             for sink in self._sinks:
                 sink.scan_run(run)
         self._last_alarm = t
-        regs.voltage[:n] = list(volts)
+        self._chain_pos = OUTPUTS_PER_HV513 * regs.hv513_num  # where the scan's hv513Clear left it
+        if not self._voltages_held:
+            regs.voltage[:n] = list(volts)
         end = t + duration
         self._check_sense(rec)
         period = self._period_ns()
@@ -1043,7 +1078,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         hazards_before = len(self.hazards)
         # the registers before the call matter only to a scan that can interrupt it: one whose alarm falls
         # before the call's latest possible end (it cannot read more than the bytes waiting)
-        latest_end = t + m.call_ns + pending * m.byte_ns + m.hv513_detect_ns
+        latest_end = t + 2 * m.call_ns + pending * m.byte_ns + m.hv513_detect_ns
         before: dict[str, Any] = {}
         old_pattern: list[int] = []
         if t < self._next_alarm_ns < latest_end:
@@ -1054,7 +1089,8 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             if h.kind is HazardKind.COMMAND_TIMEOUT:
                 # the cut command and every byte queued behind it never take effect
                 self._loss(t, 1 + int(h.detail["discarded"]), self._host_of(h.offset), "command_timeout")
-        cost = m.call_ns + out.consumed * m.byte_ns
+        # call_ns per Serial.available(): runEtactileKit checks again for the payload of a byte just read
+        cost = m.call_ns * parser.checks + out.consumed * m.byte_ns
         sensed = self._hv513_in_call
         if sensed:
             cost += m.hv513_detect_ns
@@ -1063,10 +1099,18 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         paused = sensed and self.firmware.hv513_pauses_timer
         self._hv513_in_call = False
         end = t + cost
-        alarm = self._next_alarm_ns
         applied = self._applied_in_call
+        if applied == OpcodeV2.FREQUENCY:  # setPeriodUs re-enables the alarm after the call's last read
+            self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
+        alarm = self._next_alarm_ns
         if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
-            end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
+            scan_ns, seen_pattern = self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
+            end += scan_ns
+            if self._next_alarm_ns <= alarm + scan_ns:
+                self._starve(regs, applied, before, seen_pattern)
+                self._mark(self._call_time_ns, "starved", {"op": applied})
+                self.stop_reading()
+                return
         tx = parser.take_tx()
         if (
             tx
@@ -1103,10 +1147,11 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
 
     def _preempt(
         self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
-    ) -> int:
+    ) -> tuple[int, list[int]]:
         """The scan interrupt fires while this call applies a command: the scan sees the registers as
         the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
-        old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
+        old — a torn pattern).  Returns the scan's duration, by which the call finishes later, and the
+        pattern the scan saw."""
         regs = self.registers
         m = self.model
         after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
@@ -1114,7 +1159,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         if op == OpcodeV2.PATTERN:
             n = regs.electrode_num
             width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
-            start = t + m.call_ns + max(0, consumed - 2 * n) * m.byte_ns
+            start = t + m.call_ns * self.parser.checks + max(0, consumed - 2 * n) * m.byte_ns
             k = max(0, min(n, (alarm - start) // width)) if width else n
             regs.stim_pattern[:] = new[:k] + old[k:]
             # in mode 2 the scan gives every channel the sense pulse and discards the height it reads
@@ -1138,12 +1183,13 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         else:
             for f, v in before.items():
                 setattr(regs, f, v)
+        seen = list(regs.stim_pattern)
         self._scan(alarm)
         duration = self.scans[-1].duration_ns
         for f, v in after.items():
             setattr(regs, f, v)
         regs.stim_pattern[:] = new
-        return duration
+        return duration, seen
 
     def _on_command(self, op: int, value: object, offset: int) -> None:
         self.applied.append((self._call_time_ns, op, value))
