@@ -67,6 +67,7 @@ from tactdeform_hw.device.participant.mapping import ChannelMapping
 from tactdeform_hw.device.safety.guard import SafetyGuard
 from tactdeform_hw.device.safety.guardian import Guardian
 from tactdeform_hw.errors import (
+    ConfigurationError,
     DeviceTimeoutError,
     LimitError,
     ProtocolMisuseError,
@@ -154,7 +155,10 @@ class Device:
     ``mapping`` translates application electrode order to hardware channels (identity by default);
     ``transfer`` converts µA to DAC codes; ``guard`` enforces current limits; ``pacer`` spaces writes
     (by default what the port needs; ``offline_clock`` runs a port that answers at once on the caller's
-    clock); ``audit`` records every command sent.  ``guardian`` starts a guardian process with the device
+    clock); ``robust_encoding`` chooses the loss-tolerant encoding (True: for a link that can lose bytes, a
+    UART or a USB-to-UART bridge) or the plain one (False); None takes the port's own (plain on every real
+    port; a port that declares ``loses_bytes`` under the plain encoding is warned of in the log and the
+    audit log).  ``audit`` records every command sent.  ``guardian`` starts a guardian process with the device
     (default: when the port declares itself ``guardable``); a port that cannot be guarded with
     ``guardian=True`` is refused.
     """
@@ -181,8 +185,14 @@ class Device:
         firmware: str = "auto",
         probe: Detection | None = None,
         settle_s: float | None = None,
+        robust_encoding: bool | None = None,
     ) -> None:
         check_firmware_choice(firmware)
+        if pacer is not None and robust_encoding is not None and pacer.robust != robust_encoding:
+            raise ConfigurationError(
+                f"robust_encoding={robust_encoding} disagrees with the pacer given "
+                f"(its policy's robust_encoding is {pacer.robust}): give one or the other"
+            )
         self._lock = threading.RLock()
         self._op: str | None = None
         #: Called under the device lock before each operation in :data:`STIMULATING_OPS`: a fail-safe's
@@ -219,7 +229,9 @@ class Device:
         self.audit = audit
         self.guardians = GuardianSlot(lambda: repr(self))
         opener = Opener(self.wire, self.guardians)
-        opener.open_port(own_pacer=pacer is None, offline_clock=offline_clock)
+        opener.open_port(
+            own_pacer=pacer is None, offline_clock=offline_clock, robust_encoding=robust_encoding
+        )
         self.identification = (
             probe if probe is not None else opener.identify(self.link, settle_s=settle_s, boot_s=self.boot_s)
         )
