@@ -50,7 +50,7 @@ from tactdeform_hw.device.driver.firmware_probe import (
     check_firmware_choice,
     recheck_firmware,
 )
-from tactdeform_hw.device.driver.opening import GuardianSlot, Opener
+from tactdeform_hw.device.driver.opening import GuardianSlot, Opener, check_encoding_choice
 from tactdeform_hw.device.driver.pacing import Pacer
 from tactdeform_hw.device.driver.wire import Wire
 from tactdeform_hw.device.links.port import Port, PortLink
@@ -67,7 +67,6 @@ from tactdeform_hw.device.participant.mapping import ChannelMapping
 from tactdeform_hw.device.safety.guard import SafetyGuard
 from tactdeform_hw.device.safety.guardian import Guardian
 from tactdeform_hw.errors import (
-    ConfigurationError,
     DeviceTimeoutError,
     LimitError,
     ProtocolMisuseError,
@@ -155,12 +154,10 @@ class Device:
     ``mapping`` translates application electrode order to hardware channels (identity by default);
     ``transfer`` converts µA to DAC codes; ``guard`` enforces current limits; ``pacer`` spaces writes
     (by default what the port needs; ``offline_clock`` runs a port that answers at once on the caller's
-    clock); ``robust_encoding`` chooses the loss-tolerant encoding (True: for a link that can lose bytes, a
-    UART or a USB-to-UART bridge) or the plain one (False); None takes the port's own (plain on every real
-    port; a port that declares ``loses_bytes`` under the plain encoding is warned of in the log and the
-    audit log).  ``audit`` records every command sent.  ``guardian`` starts a guardian process with the device
-    (default: when the port declares itself ``guardable``); a port that cannot be guarded with
-    ``guardian=True`` is refused.
+    clock); ``robust_encoding``: the loss-tolerant encoding (True), the plain one (False) or the port's own
+    (None; see :func:`~.serial_driver.open_device`).  ``audit`` records every command sent.  ``guardian``
+    starts a guardian process with the device (default: when the port declares itself ``guardable``); a
+    port that cannot be guarded with ``guardian=True`` is refused.
     """
 
     #: The firmware's boot after the reset line, during which nothing is written (an ESP32-S3 starts its
@@ -188,11 +185,7 @@ class Device:
         robust_encoding: bool | None = None,
     ) -> None:
         check_firmware_choice(firmware)
-        if pacer is not None and robust_encoding is not None and pacer.robust != robust_encoding:
-            raise ConfigurationError(
-                f"robust_encoding={robust_encoding} disagrees with the pacer given "
-                f"(its policy's robust_encoding is {pacer.robust}): give one or the other"
-            )
+        check_encoding_choice(pacer, robust_encoding)
         self._lock = threading.RLock()
         self._op: str | None = None
         #: Called under the device lock before each operation in :data:`STIMULATING_OPS`: a fail-safe's

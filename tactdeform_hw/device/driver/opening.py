@@ -31,7 +31,7 @@ from tactdeform_hw.device.driver.wire import Wire
 from tactdeform_hw.device.links.port import no_delay
 from tactdeform_hw.device.links.recovery import LinkRecovery
 from tactdeform_hw.device.safety.guardian import Guardian, pace_for, start_guardian
-from tactdeform_hw.errors import TactDeformError
+from tactdeform_hw.errors import ConfigurationError, TactDeformError
 from tactdeform_hw.ports import is_instant, loses_bytes
 
 logger = logging.getLogger("tactdeform_hw.device")
@@ -42,6 +42,16 @@ PLAIN_ON_LOSSY_LINK = (
     "byte can turn a zero into a full-scale pulse (DAC code 4095) until the fail-safe's recovery; use the "
     "loss-tolerant encoding (--encoding robust, or open_device(..., robust_encoding=True))"
 )
+
+
+def check_encoding_choice(pacer: Pacer | None, robust_encoding: bool | None) -> None:
+    """A pacer given with an encoding it does not use is refused before the port is opened: which of the
+    two the caller meant cannot be guessed, and the encoding decides what a lost byte can do."""
+    if pacer is not None and robust_encoding is not None and pacer.robust != robust_encoding:
+        raise ConfigurationError(
+            f"robust_encoding={robust_encoding} disagrees with the pacer given "
+            f"(its policy's robust_encoding is {pacer.robust}): give one or the other"
+        )
 
 
 class GuardianSlot:
