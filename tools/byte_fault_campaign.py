@@ -546,9 +546,14 @@ def main(a: Any) -> int:
     uart = sum(w[0] for w in table)
     usb = sum(w[1] for w in table)
     total = sum(runs_per_sequence(w, mode) for w in table)
+    made = (
+        f"3 x {uart} UART bytes (lost, duplicated, corrupted) + {usb} USB bytes (packet tail lost from each)"
+        if mode.kinds == ALL_KINDS
+        else f"{', '.join(mode.kinds)} over {uart} UART bytes and {usb} USB bytes"
+    )
     print(
-        f"exhaustive byte faults: {total} faulty runs ({', '.join(mode.kinds)}) over {uart} UART bytes "
-        f"and {usb} USB bytes; " + "; ".join(start_ranges(table, a.depth, firmwares, mode)),
+        f"exhaustive byte faults: {total} faulty runs = {made}; "
+        + "; ".join(start_ranges(table, a.depth, firmwares, mode)),
         file=sys.stderr,
     )
     runs = None
