@@ -19,6 +19,10 @@ a real board (paced in wall time, reset through RTS, never inspected).  The capa
 ``board_state()`` the firmware's registers as the board holds them, a
                   :class:`~.protocol.state.BoardState`: what an emulated board can show and a real one cannot
 ``board_hazards`` the firmware defects the board has hit, as :class:`~.emulator.hazards.Hazard` records
+``loses_bytes``   ``True`` when the link can lose, corrupt or duplicate a byte without telling either end
+                  (a raw UART, a USB-to-UART bridge: no checksum): the plain encoding is then a risk, since
+                  one lost byte can turn a zero into a full-scale value (the driver warns; the
+                  loss-tolerant encoding is the remedy).  USB CDC (CRC-checked) and TCP do not declare it
 ================  ==========================================================================================
 
 This module sits at the package root because the device layer reads these capabilities and the emulator's
@@ -52,6 +56,11 @@ def pacing_clock(port: Any) -> Any:
 def board_untouched(port: Any) -> bool:
     """Whether ``port`` declares that its board has received no byte since power-on."""
     return bool(getattr(port, "board_untouched", False))
+
+
+def loses_bytes(port: Any) -> bool:
+    """Whether ``port`` declares a link that can lose a byte without telling (a UART)."""
+    return getattr(port, "loses_bytes", False) is True
 
 
 def serves_one_client(port: Any) -> bool:

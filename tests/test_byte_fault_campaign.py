@@ -77,7 +77,7 @@ def test_a_byte_fault_names_its_byte_and_kind() -> None:
 
 
 def test_the_runs_of_depth_0_are_counted_and_enumerated_once() -> None:
-    table = tuple(bf.count_chunk(0, FW, 0, ex.count(0, FW)).written[i] for i in range(3))
+    table = tuple(bf.count_chunk(0, FW, bf.PLAIN, 0, ex.count(0, FW)).written[i] for i in range(3))
     assert table == DEPTH0_V12
     total = sum(bf.runs_per_sequence(w) for w in table)
     assert total == 3 * 131 + 131 == 524
@@ -149,7 +149,7 @@ def failing_tally(monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
     monkeypatch.setattr(bf.ByteFaultSession, "recovery_bound_s", lambda self: 0.005)
     table = ((74, 74),) * (PATTERN_SEQ + 1)  # only the pattern sequence's runs are asked for
     first = (PATTERN_SEQ) * bf.runs_per_sequence((74, 74)) + 70  # the UART's lost bytes 70 to 72
-    result: dict[str, Any] = bf.tally_chunk(DEPTH, FW2, table, first, 3).summary()
+    result: dict[str, Any] = bf.tally_chunk(DEPTH, FW2, table, bf.PLAIN, first, 3).summary()
     return result
 
 
@@ -190,3 +190,49 @@ def test_a_slice_of_runs_names_its_bounds() -> None:
     ]
     j = bf.job(0, FW, DEPTH0_V12, runs=(4, 164))
     assert (j.first, j.total) == (4, 160)
+
+
+# --- the robust encoding: a lost byte above the limit fails the run -----------------------------------------
+
+#: v1.2 from the stimulating start, ``configure(1)``: under the plain encoding the first byte of its zero
+#: height ``FB 00 00`` lost gives one pulse at the DAC's full scale (code 4095, 40 950 uA).
+FULL_SCALE = bf.Run(21, "uart", ByteFaultKind.LOSE, 2)
+ROBUST = bf.Mode("robust", ("uart:lose",))
+
+
+def test_the_plain_encoding_passes_a_full_scale_pulse_after_a_lost_byte_within_the_bound() -> None:
+    r = bf.run_one(FULL_SCALE, DEPTH, FW)
+    assert r.max_stim_ua == 40950.0 and r.over_limit == 1 and not bf.failed(r)
+
+
+def test_under_the_robust_encoding_a_lost_byte_above_the_limit_fails_the_run(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    r = bf.run_one(FULL_SCALE, DEPTH, FW, ROBUST)  # the same byte of the robust encoding's stream
+    assert r.robust and r.over_limit == 0 and not bf.failed(r)
+    # a run that claims the robust encoding while its devices use the plain one: the pulse fails it
+    monkeypatch.setattr(
+        bf, "_session", lambda fw, start, seq, link, robust: bf.ByteFaultSession(seq, fw, start, link)
+    )
+    r = bf.run_one(FULL_SCALE, DEPTH, FW, ROBUST)
+    assert bf.failed(r) and r.wrong_after_fault_s < r.recovery_bound_s
+    assert "LOST BYTE ABOVE THE LIMIT: 1 pulses above 1500 uA under the robust encoding" in bf.why(r)
+
+
+def test_a_robust_enumeration_numbers_only_its_kinds_and_replays_with_its_encoding() -> None:
+    assert bf.parse_kinds("usb:tail_loss, uart:lose") == ("uart:lose", "usb:tail_loss")
+    for bad in ("", "uart:melt", "usb:lose"):
+        with pytest.raises(ValueError, match="--kinds"):
+            bf.parse_kinds(bad)
+    table = ((3, 5),)
+    assert bf.runs_per_sequence(table[0], ROBUST) == 3
+    assert [bf.decode_run(i, table, mode=ROBUST).spec() for i in range(3)] == [
+        "uart:lose:0",
+        "uart:lose:1",
+        "uart:lose:2",
+    ]
+    assert bf.reproduce(FULL_SCALE, DEPTH, FW, ROBUST) == (
+        "python tools/safety_campaign.py --exhaustive --depth 1 --firmware v1.2 --only 21 "
+        "--encoding robust --byte-fault uart:lose:2"
+    )
+    assert bf.count_chunk(0, FW, ROBUST, 0, 1).written == {0: (1, 0)}  # USB not run: no kind strikes it

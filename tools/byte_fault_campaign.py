@@ -70,6 +70,43 @@ KINDS: dict[str, tuple[ByteFaultKind, ...]] = {
 LINKS = tuple(KINDS)
 #: Faults that remove bytes (judged as lost bytes: each must be reported).
 _LOSING = (ByteFaultKind.LOSE, ByteFaultKind.TAIL_LOSS)
+#: Every ``LINK:KIND`` of the enumeration, in its order.
+ALL_KINDS = tuple(f"{link}:{kind.value}" for link in LINKS for kind in KINDS[link])
+ENCODINGS = ("plain", "robust")
+#: The error that fails a run in which a byte lost on a UART under the robust encoding was followed by a
+#: pulse above the limit: that encoding promises a lost byte can only lower a value or leave it.
+ROBUST_LOSS = "LOST BYTE ABOVE THE LIMIT"
+
+
+@dataclass(frozen=True)
+class Mode:
+    """What an enumeration runs: the devices' encoding (``plain``, every port's default, or ``robust``,
+    the loss-tolerant one) and the faults struck (``LINK:KIND`` of :data:`ALL_KINDS`, in its order).
+    Runs are numbered within the mode: a replay names its encoding, not its kinds."""
+
+    encoding: str = "plain"
+    kinds: tuple[str, ...] = ALL_KINDS
+
+    @property
+    def robust(self) -> bool:
+        return self.encoding == "robust"
+
+    def kinds_on(self, link: str) -> tuple[ByteFaultKind, ...]:
+        """The faults struck on ``link``, in the enumeration's order."""
+        return tuple(k for k in KINDS[link] if f"{link}:{k.value}" in self.kinds)
+
+
+PLAIN = Mode()
+
+
+def parse_kinds(text: str) -> tuple[str, ...]:
+    """``LINK:KIND[,LINK:KIND...]`` (``uart:lose``), in the enumeration's order; a ``ValueError`` naming
+    what is wrong."""
+    asked = [k.strip() for k in text.split(",") if k.strip()]
+    unknown = [k for k in asked if k not in ALL_KINDS]
+    if not asked or unknown:
+        raise ValueError(f"--kinds {text!r}: a comma-separated list of {', '.join(ALL_KINDS)}")
+    return tuple(k for k in ALL_KINDS if k in asked)
 
 
 @dataclass(frozen=True)
@@ -114,8 +151,8 @@ def parse_spec(text: str) -> tuple[str, ByteFaultKind, int]:
 class ByteFaultSession(ex.ExhaustiveSession):
     """An exhaustive sequence on ``link`` with the fail-safe running, and at most one byte fault."""
 
-    def __init__(self, index: int, firmware: str, start: str, link: str) -> None:
-        super().__init__(index, firmware, start, link)
+    def __init__(self, index: int, firmware: str, start: str, link: str, *, robust: bool = False) -> None:
+        super().__init__(index, firmware, start, link, robust=robust)
         self._start_failsafe()
         self.base: int = int(self.port.emulator.host_offset)  # the sequence's first byte
 
@@ -161,15 +198,17 @@ class ByteFaultSession(ex.ExhaustiveSession):
         return sorted(super().lost_bytes_at() + struck)
 
 
-def _session(firmware: str, start: str, sequence: int, link: str) -> ByteFaultSession:
-    return ByteFaultSession(sequence, firmware, start, link)
+def _session(firmware: str, start: str, sequence: int, link: str, robust: bool) -> ByteFaultSession:
+    return ByteFaultSession(sequence, firmware, start, link, robust=robust)
 
 
-def run_one(run: Run, depth: int, firmwares: Sequence[str]) -> sc.SessionResult:
-    """Run and judge one faulty run (a fault that did not strike is recorded as an error: a failure)."""
+def run_one(run: Run, depth: int, firmwares: Sequence[str], mode: Mode = PLAIN) -> sc.SessionResult:
+    """Run and judge one faulty run (a fault that did not strike is recorded as an error: a failure; under
+    the robust encoding, so is a byte lost on a UART followed by a pulse above the limit, whatever the
+    bound: that encoding promises a lost byte can only lower a value or leave it)."""
     firmware, start, calls = ex.decode(run.sequence, depth, firmwares)
     wall = time.perf_counter()
-    s = _session(firmware, start, run.sequence, run.link)
+    s = _session(firmware, start, run.sequence, run.link, mode.robust)
     s.strike(run.kind, run.byte)
     try:
         s.run_calls(calls)
@@ -178,21 +217,28 @@ def run_one(run: Run, depth: int, firmwares: Sequence[str]) -> sc.SessionResult:
     res = s.judge()
     if not s.port.faulty_link.injected:
         res.errors.append(f"NOT STRUCK: byte {run.byte} of {s.bytes_written} written")
+    if mode.robust and run.kind is ByteFaultKind.LOSE and res.over_limit:
+        res.errors.append(
+            f"{ROBUST_LOSS}: {res.over_limit} pulses above {ex.CAP_UA} uA under the robust encoding, the "
+            f"largest {res.max_stim_ua:.0f} uA"
+        )
     res.link = run.link
     res.wall_s = time.perf_counter() - wall
     return res
 
 
+#: The errors a run records of its own (not the caller's): each fails the run.
+_RUN_ERRORS = ("CRASH", "NOT STRUCK", ROBUST_LOSS)
+
+
 def failed(r: sc.SessionResult) -> bool:
     """The run's verdict: a wrong delivery past the bound, a loss unreported, a crash, a fault that did
-    not strike."""
-    return (not r.faults) or not r.ok or any(e.startswith(("CRASH", "NOT STRUCK")) for e in r.errors)
+    not strike, a lost byte above the limit under the robust encoding."""
+    return (not r.faults) or not r.ok or any(e.startswith(_RUN_ERRORS) for e in r.errors)
 
 
 def why(r: sc.SessionResult) -> str:
-    return "; ".join(
-        x for x in (r.failure(), *(e for e in r.errors if e.startswith(("CRASH", "NOT STRUCK")))) if x
-    )
+    return "; ".join(x for x in (r.failure(), *(e for e in r.errors if e.startswith(_RUN_ERRORS))) if x)
 
 
 def _add_counts(into: dict[str, int], more: dict[str, int]) -> None:
@@ -219,15 +265,19 @@ class CountTally:
         self.written.update(o.written)
 
 
-def count_chunk(depth: int, firmwares: tuple[str, ...], first: int, count_: int) -> CountTally:
-    """The fault-free runs of sequences ``first .. first + count_ - 1`` on each link: their byte counts."""
+def count_chunk(depth: int, firmwares: tuple[str, ...], mode: Mode, first: int, count_: int) -> CountTally:
+    """The fault-free runs of sequences ``first .. first + count_ - 1`` on each link the mode strikes: their
+    byte counts (0 on a link it does not)."""
     logging.disable(logging.WARNING)
     t = CountTally()
     for i in range(first, first + count_):
         firmware, start, calls = ex.decode(i, depth, firmwares)
         row = []
         for link in LINKS:
-            s = _session(firmware, start, i, link)
+            if not mode.kinds_on(link):
+                row.append(0)
+                continue
+            s = _session(firmware, start, i, link, mode.robust)
             try:
                 s.run_calls(calls)
             except Exception as exc:  # noqa: BLE001 - reported by the faulty runs of the sequence
@@ -238,21 +288,23 @@ def count_chunk(depth: int, firmwares: tuple[str, ...], first: int, count_: int)
     return t
 
 
-def runs_per_sequence(written: Sequence[int]) -> int:
+def runs_per_sequence(written: Sequence[int], mode: Mode = PLAIN) -> int:
     """Faulty runs of a sequence that writes ``written[k]`` bytes on ``LINKS[k]``."""
-    return sum(len(KINDS[link]) * n for link, n in zip(LINKS, written, strict=True))
+    return sum(len(mode.kinds_on(link)) * n for link, n in zip(LINKS, written, strict=True))
 
 
-def decode_run(index: int, table: Sequence[Sequence[int]], ends: Sequence[int] | None = None) -> Run:
+def decode_run(
+    index: int, table: Sequence[Sequence[int]], ends: Sequence[int] | None = None, mode: Mode = PLAIN
+) -> Run:
     """Run ``index`` of the enumeration whose sequences write ``table[s]`` bytes on each link; ``ends``:
     the running totals of runs per sequence (computed when not given)."""
-    ends = list(accumulate(runs_per_sequence(w) for w in table)) if ends is None else ends
+    ends = list(accumulate(runs_per_sequence(w, mode) for w in table)) if ends is None else ends
     if not 0 <= index < (ends[-1] if ends else 0):
         raise IndexError(f"run {index}: 0 to {(ends[-1] if ends else 0) - 1}")
     seq = bisect.bisect_right(ends, index)
     rest = index - (ends[seq - 1] if seq else 0)
     for link, n in zip(LINKS, table[seq], strict=True):
-        for kind in KINDS[link]:
+        for kind in mode.kinds_on(link):
             if rest < n:
                 return Run(seq, link, kind, rest)
             rest -= n
@@ -268,6 +320,7 @@ class ByteFaultTally:
 
     depth: int
     firmwares: tuple[str, ...]
+    mode: Mode = PLAIN
     items: int = 0
     failed: int = 0
     pulses: int = 0
@@ -308,7 +361,7 @@ class ByteFaultTally:
                 "over_limit_pulses": r.over_limit,
                 "wrong_delivery_after_fault_s": round(r.wrong_after_fault_s, 6),
                 "recovery_bound_s": round(r.recovery_bound_s, 6),
-                "reproduce": reproduce(run, self.depth, self.firmwares),
+                "reproduce": reproduce(run, self.depth, self.firmwares, self.mode),
             }
             self._keep_worst((r.max_stim_ua, -index, row))
         self.over_limit += r.over_limit
@@ -321,7 +374,7 @@ class ByteFaultTally:
         self.repaired += r.repaired_lost_bytes
         self.absorbed += r.absorbed_lost_bytes
         self.max_stim_ua = max(self.max_stim_ua, r.max_stim_ua)
-        self.caller_errors += len(r.errors)
+        self.caller_errors += sum(1 for e in r.errors if not e.startswith(ROBUST_LOSS))
         if failed(r):
             self.failed += 1
             _add_counts(self.failed_by_kind, {key: 1})
@@ -331,7 +384,7 @@ class ByteFaultTally:
                 "fault": run.spec(),
                 "why": why(r),
                 "first_violation": r.first_violation,
-                "reproduce": reproduce(run, self.depth, self.firmwares),
+                "reproduce": reproduce(run, self.depth, self.firmwares, self.mode),
             }
             self.failures = sorted([*self.failures, (index, row)], key=lambda f: f[0])[: sc.LISTED_FAILURES]
 
@@ -358,6 +411,8 @@ class ByteFaultTally:
             "mode": "exhaustive byte faults",
             "depth": self.depth,
             "firmware": "+".join(self.firmwares),
+            "encoding": self.mode.encoding,
+            "kinds": list(self.mode.kinds),
             "faulty_runs": self.items,
             "runs_by_link_and_kind": dict(sorted(self.runs_by_kind.items())),
             "failed_runs": self.failed,
@@ -383,27 +438,35 @@ class ByteFaultTally:
         }
 
 
-def reproduce(run: Run, depth: int, firmwares: Sequence[str]) -> str:
-    return f"{ex.reproduce(run.sequence, depth, firmwares)} --byte-fault {run.spec()}"
+def reproduce(run: Run, depth: int, firmwares: Sequence[str], mode: Mode = PLAIN) -> str:
+    encoding = " --encoding robust" if mode.robust else ""
+    return f"{ex.reproduce(run.sequence, depth, firmwares)}{encoding} --byte-fault {run.spec()}"
 
 
 def tally_chunk(
-    depth: int, firmwares: tuple[str, ...], table: tuple[tuple[int, ...], ...], first: int, count_: int
+    depth: int,
+    firmwares: tuple[str, ...],
+    table: tuple[tuple[int, ...], ...],
+    mode: Mode,
+    first: int,
+    count_: int,
 ) -> ByteFaultTally:
     """Faulty runs ``first .. first + count_ - 1`` (a chunk of a distributed enumeration)."""
     logging.disable(logging.WARNING)
-    ends = list(accumulate(runs_per_sequence(w) for w in table))
-    t = ByteFaultTally(depth, firmwares)
+    ends = list(accumulate(runs_per_sequence(w, mode) for w in table))
+    t = ByteFaultTally(depth, firmwares, mode)
     for i in range(first, first + count_):
-        run = decode_run(i, table, ends)
-        t.add(i, run, run_one(run, depth, firmwares))
+        run = decode_run(i, table, ends, mode)
+        t.add(i, run, run_one(run, depth, firmwares, mode))
     return t
 
 
-def start_ranges(table: Sequence[Sequence[int]], depth: int, firmwares: Sequence[str]) -> list[str]:
+def start_ranges(
+    table: Sequence[Sequence[int]], depth: int, firmwares: Sequence[str], mode: Mode = PLAIN
+) -> list[str]:
     """Per firmware and start, its runs as ``FIRST:END`` (a ``--runs`` slice of whole sequences)."""
     out = []
-    ends = list(accumulate(runs_per_sequence(w) for w in table))
+    ends = list(accumulate(runs_per_sequence(w, mode) for w in table))
     per = ex.per_start(depth)
     for k in range(len(table) // per):
         firmware, start, _ = ex.decode(k * per, depth, firmwares)
@@ -412,12 +475,14 @@ def start_ranges(table: Sequence[Sequence[int]], depth: int, firmwares: Sequence
     return out
 
 
-def byte_table(depth: int, firmwares: tuple[str, ...], a: Any) -> tuple[tuple[int, ...], ...]:
+def byte_table(
+    depth: int, firmwares: tuple[str, ...], a: Any, mode: Mode = PLAIN
+) -> tuple[tuple[int, ...], ...]:
     """The first pass: every sequence's fault-free bytes on each link, on the run's engine."""
     job = engine.Job(
         "byte_fault_campaign",
         "count_chunk",
-        (depth, firmwares),
+        (depth, firmwares, mode),
         ex.count(depth, firmwares),
         chunk=a.chunk,
         fingerprint=engine.fingerprint(),
@@ -433,14 +498,15 @@ def job(
     table: tuple[tuple[int, ...], ...],
     chunk: int = engine.DEFAULT_CHUNK,
     runs: tuple[int, int] | None = None,
+    mode: Mode = PLAIN,
 ) -> engine.Job:
     """The faulty runs (``runs``: only ``first`` to ``end - 1``) as chunks for :func:`campaign_engine.run`."""
-    total = sum(runs_per_sequence(w) for w in table)
+    total = sum(runs_per_sequence(w, mode) for w in table)
     first, end = runs if runs is not None else (0, total)
     return engine.Job(
         "byte_fault_campaign",
         "tally_chunk",
-        (depth, firmwares, table),
+        (depth, firmwares, table, mode),
         end - first,
         first=first,
         chunk=chunk,
@@ -452,11 +518,18 @@ def job(
 def main(a: Any) -> int:
     """``safety_campaign.py --exhaustive --byte-faults`` (or ``--only SEQUENCE --byte-fault SPEC``)."""
     firmwares = ex.FIRMWARES if a.firmware in (None, "both") else (a.firmware,)
+    kinds = parse_kinds(a.kinds) if getattr(a, "kinds", None) else ALL_KINDS
+    mode = Mode(getattr(a, "encoding", None) or "plain", kinds)
     if a.only is not None:
         link, kind, byte = parse_spec(a.byte_fault)
         run = Run(a.only, link, kind, byte)
-        r = run_one(run, a.depth, firmwares)
-        row = {"sequence": ex.describe(a.only, a.depth, firmwares), "fault": run.spec(), **asdict(r)}
+        r = run_one(run, a.depth, firmwares, mode)
+        row = {
+            "sequence": ex.describe(a.only, a.depth, firmwares),
+            "fault": run.spec(),
+            "encoding": mode.encoding,
+            **asdict(r),
+        }
         print(json.dumps({**row, "ok": not failed(r)}, indent=1, default=str))
         if failed(r):
             print(f"FAILED sequence {a.only} with {run.spec()}: {why(r)}", file=sys.stderr)
@@ -465,17 +538,22 @@ def main(a: Any) -> int:
     sequences = ex.count(a.depth, firmwares)
     print(
         f"exhaustive byte faults: counting the bytes of {sequences} sequences of up to {a.depth} calls on "
-        f"{' and '.join(LINKS)} ({' and '.join(firmwares)})",
+        f"{' and '.join(link for link in LINKS if mode.kinds_on(link))} ({' and '.join(firmwares)}), "
+        f"{mode.encoding} encoding",
         file=sys.stderr,
     )
-    table = byte_table(a.depth, firmwares, a)
+    table = byte_table(a.depth, firmwares, a, mode)
     uart = sum(w[0] for w in table)
     usb = sum(w[1] for w in table)
-    total = sum(runs_per_sequence(w) for w in table)
+    total = sum(runs_per_sequence(w, mode) for w in table)
+    made = (
+        f"3 x {uart} UART bytes (lost, duplicated, corrupted) + {usb} USB bytes (packet tail lost from each)"
+        if mode.kinds == ALL_KINDS
+        else f"{', '.join(mode.kinds)} over {uart} UART bytes and {usb} USB bytes"
+    )
     print(
-        f"exhaustive byte faults: {total} faulty runs = 3 x {uart} UART bytes (lost, duplicated, "
-        f"corrupted) + {usb} USB bytes (packet tail lost from each); "
-        + "; ".join(start_ranges(table, a.depth, firmwares)),
+        f"exhaustive byte faults: {total} faulty runs = {made}; "
+        + "; ".join(start_ranges(table, a.depth, firmwares, mode)),
         file=sys.stderr,
     )
     runs = None
@@ -485,7 +563,7 @@ def main(a: Any) -> int:
             print(f"safety_campaign: --runs {a.runs}: the last run is {total - 1}", file=sys.stderr)
             return 1
         print(f"exhaustive byte faults: runs {runs[0]} to {runs[1] - 1} only (--runs)", file=sys.stderr)
-    j = job(a.depth, firmwares, table, a.chunk, runs)
+    j = job(a.depth, firmwares, table, a.chunk, runs, mode)
     tally = engine.run(j, jobs=a.jobs, cluster=a.cluster, progress=True)
     summary = tally.summary()
     where = {"jobs": a.jobs} if a.cluster is None else {"cluster": a.cluster}

@@ -184,21 +184,25 @@ class ExhaustiveSession(sc.Session):
     """A session whose configuration and calls are given, not drawn; judged by the random campaign's
     judge (``Session.judge``), against the cap on every electrode."""
 
-    def __init__(self, index: int, firmware: str, start: str, link: str = LINK) -> None:  # noqa: PLR0915
+    def __init__(  # noqa: PLR0915
+        self, index: int, firmware: str, start: str, link: str = LINK, *, robust: bool = False
+    ) -> None:
+        """``robust``: the devices use the loss-tolerant encoding (the byte-fault mode's ``--encoding
+        robust``); the domain's own runs use the plain one, the default of every port."""
         self.firmware = firmware
         self.link = link
-        self.robust = False
+        self.robust = robust
         self.cfg = config(START_ELECTRODES)
         self.biphasic = True
         self.regions = False
         self.cap_ua = CAP_UA
         boards = (max(ELECTRODES) + 31) // 32
         emu = (TimedEmulatorV2 if firmware == "v2" else TimedEmulator)("compact", boards, link=link)
-        self.port = TimedPort(emu, link=link, faults=[], seed=index, robust_encoding=False)
+        self.port = TimedPort(emu, link=link, faults=[], seed=index, robust_encoding=robust)
         self.notices = []
         self.refused_spans = []
         self.failsafe = None
-        self.res = sc.SessionResult(index, index, LINK, False, START_ELECTRODES, [], CAP_UA, 0)
+        self.res = sc.SessionResult(index, index, LINK, robust, START_ELECTRODES, [], CAP_UA, 0)
         self.res.firmware = firmware
         self.res.cap_ua = CAP_UA
         self.dev = self._new_device()

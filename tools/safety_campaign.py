@@ -1113,6 +1113,21 @@ def _main(argv: list[str] | None = None) -> int:
         "(uart:lose|duplicate|corrupt:BYTE or usb:tail_loss:BYTE), as a failed run prints it",
     )
     ap.add_argument(
+        "--encoding",
+        choices=("plain", "robust"),
+        default=None,
+        help="--byte-faults / --byte-fault: the devices' encoding (default plain, every port's default); "
+        "robust, the loss-tolerant one, fails a run whose byte lost on a UART is followed by a pulse "
+        "above the limit",
+    )
+    ap.add_argument(
+        "--kinds",
+        metavar="LINK:KIND,...",
+        default=None,
+        help="--byte-faults: strike only these faults (uart:lose, uart:duplicate, uart:corrupt, "
+        "usb:tail_loss; default all), numbering the runs among them",
+    )
+    ap.add_argument(
         "--firmware-src",
         metavar="DIR",
         default=None,
@@ -1140,6 +1155,17 @@ def _main(argv: list[str] | None = None) -> int:
             ap.error(str(exc))
     if (a.byte_faults or a.byte_fault is not None) and not a.exhaustive:
         ap.error("--byte-faults and --byte-fault apply to --exhaustive")
+    if a.encoding is not None and not (a.byte_faults or a.byte_fault is not None):
+        ap.error("--encoding applies to --exhaustive --byte-faults and --byte-fault")
+    if a.kinds is not None:
+        if not a.byte_faults:
+            ap.error("--kinds applies to --exhaustive --byte-faults")
+        import byte_fault_campaign
+
+        try:
+            byte_fault_campaign.parse_kinds(a.kinds)
+        except ValueError as exc:
+            ap.error(str(exc))
     if a.runs is not None:
         if not a.byte_faults:
             ap.error("--runs applies to --exhaustive --byte-faults")

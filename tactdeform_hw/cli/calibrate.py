@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import ConfigurationError, LimitError
-from .common import add_device_arg, print_json, progress
+from .common import add_device_arg, print_json, progress, robust_encoding
 from .options import add_finisher, add_pulse_width, duration, range_check
 
 
@@ -352,6 +352,7 @@ def run(args: argparse.Namespace) -> int:
         device=args.device,
         timeout_s=args.timeout,
         firmware=getattr(args, "firmware", "auto"),
+        robust_encoding=robust_encoding(args),
         audit_path=args.audit_log,
         wiring=Wiring(mapping=mapping, positions=rmap),
         guard=SafetyGuard(cap_ua=args.max_ua, participant=pid),

@@ -36,6 +36,26 @@ def add_device_arg(parser: argparse.ArgumentParser) -> None:
         "the version it proved, v1.2 or v2 refuses a board that proved the other; a board that proves "
         "neither is refused",
     )
+    parser.add_argument(
+        "--encoding",
+        choices=ENCODINGS,
+        default=None,
+        help="how values are written: robust (loss-tolerant: a lost byte can only lower a value or leave "
+        "it) for any link that can lose bytes — a USB-to-UART bridge, a raw UART; plain for native USB "
+        "CDC (CRC-checked) or Wi-Fi/TCP (reliable). On a lossy link the plain encoding lets one lost byte "
+        "set a full-scale pulse until the fail-safe's recovery (docs/safety.md). Default: the port's own "
+        "(plain on every real port)",
+    )
+
+
+#: ``--encoding``'s choices, and the ``robust_encoding`` each gives the device.
+ENCODINGS = ("plain", "robust")
+
+
+def robust_encoding(args: argparse.Namespace) -> bool | None:
+    """``--encoding`` as ``open_device``'s ``robust_encoding``: None when not given (the port's own)."""
+    encoding = getattr(args, "encoding", None)
+    return None if encoding is None else encoding == "robust"
 
 
 def print_json(obj: Any) -> None:
@@ -82,15 +102,16 @@ def session_from_args(
     args: argparse.Namespace, wiring: Any = None, *, guard: Any = None, guard_now: bool = True
 ) -> Any:
     """The :class:`~tactdeform_hw.session.Session` of a stimulating command: ``--device``, ``--timeout-s``,
-    ``--firmware``, ``--participant`` and ``--audit-log`` on ``wiring``.  The profile is read here (and the
-    guard built, unless ``guard_now`` is False), so call it before anything is opened: a bad profile sends
-    nothing."""
+    ``--firmware``, ``--encoding``, ``--participant`` and ``--audit-log`` on ``wiring``.  The profile is
+    read here (and the guard built, unless ``guard_now`` is False), so call it before anything is opened: a
+    bad profile sends nothing."""
     from ..session import Session
 
     return Session(
         device=args.device,
         timeout_s=args.timeout,
         firmware=getattr(args, "firmware", "auto"),
+        robust_encoding=robust_encoding(args),
         participant_file=getattr(args, "participant", None),
         audit_path=getattr(args, "audit_log", None),
         wiring=wiring,

@@ -307,7 +307,13 @@ class TimedPort(PortBase):
     by itself through :func:`~tactdeform_hw.device.driver.pacing.default_pacer`); every wait advances the
     emulator, and ``hooks`` (e.g. a fail-safe's ``poll``) run after each advance.  ``robust_encoding``
     asks the driver for the loss-tolerant command encoding (see :mod:`tactdeform_hw.device.driver.pacing`).
+    ``loses_bytes`` (the port capability, :mod:`tactdeform_hw.ports`) is the link's: true on a UART.
     """
+
+    @property
+    def loses_bytes(self) -> bool:
+        """Whether the emulated link can lose a byte without telling (a UART), as a real port declares."""
+        return bool(self.faulty_link.loses_bytes)
 
     def __init__(
         self,

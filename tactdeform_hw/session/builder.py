@@ -152,6 +152,7 @@ class Session:
         device: str = "emulator",
         timeout_s: float = 0.5,
         firmware: str = "auto",
+        robust_encoding: bool | None = None,
         participant_file: str | None = None,
         audit_path: str | os.PathLike[str] | None = None,
         wiring: Wiring | None = None,
@@ -163,6 +164,7 @@ class Session:
         self.device = device
         self.timeout_s = timeout_s
         self.firmware = firmware
+        self.robust_encoding = robust_encoding
         self.participant_file = participant_file
         self.audit_path = audit_path
         self.wiring = wiring if wiring is not None else Wiring()
@@ -224,6 +226,7 @@ class Session:
             self.device,
             timeout=self.timeout_s,
             firmware=self.firmware,
+            robust_encoding=self.robust_encoding,
             mapping=self.wiring.mapping,
             guard=self.guard,
             audit=self.log,

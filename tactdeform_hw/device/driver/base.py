@@ -50,7 +50,7 @@ from tactdeform_hw.device.driver.firmware_probe import (
     check_firmware_choice,
     recheck_firmware,
 )
-from tactdeform_hw.device.driver.opening import GuardianSlot, Opener
+from tactdeform_hw.device.driver.opening import GuardianSlot, Opener, check_encoding_choice
 from tactdeform_hw.device.driver.pacing import Pacer
 from tactdeform_hw.device.driver.wire import Wire
 from tactdeform_hw.device.links.port import Port, PortLink
@@ -154,9 +154,10 @@ class Device:
     ``mapping`` translates application electrode order to hardware channels (identity by default);
     ``transfer`` converts µA to DAC codes; ``guard`` enforces current limits; ``pacer`` spaces writes
     (by default what the port needs; ``offline_clock`` runs a port that answers at once on the caller's
-    clock); ``audit`` records every command sent.  ``guardian`` starts a guardian process with the device
-    (default: when the port declares itself ``guardable``); a port that cannot be guarded with
-    ``guardian=True`` is refused.
+    clock); ``robust_encoding``: the loss-tolerant encoding (True), the plain one (False) or the port's own
+    (None; see :func:`~.serial_driver.open_device`).  ``audit`` records every command sent.  ``guardian``
+    starts a guardian process with the device (default: when the port declares itself ``guardable``); a
+    port that cannot be guarded with ``guardian=True`` is refused.
     """
 
     #: The firmware's boot after the reset line, during which nothing is written (an ESP32-S3 starts its
@@ -181,8 +182,10 @@ class Device:
         firmware: str = "auto",
         probe: Detection | None = None,
         settle_s: float | None = None,
+        robust_encoding: bool | None = None,
     ) -> None:
         check_firmware_choice(firmware)
+        check_encoding_choice(pacer, robust_encoding)
         self._lock = threading.RLock()
         self._op: str | None = None
         #: Called under the device lock before each operation in :data:`STIMULATING_OPS`: a fail-safe's
@@ -219,7 +222,9 @@ class Device:
         self.audit = audit
         self.guardians = GuardianSlot(lambda: repr(self))
         opener = Opener(self.wire, self.guardians)
-        opener.open_port(own_pacer=pacer is None, offline_clock=offline_clock)
+        opener.open_port(
+            own_pacer=pacer is None, offline_clock=offline_clock, robust_encoding=robust_encoding
+        )
         self.identification = (
             probe if probe is not None else opener.identify(self.link, settle_s=settle_s, boot_s=self.boot_s)
         )

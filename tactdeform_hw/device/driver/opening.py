@@ -13,6 +13,7 @@ every configuration; :class:`GuardianSlot` holds it for the device's whole life.
 
 from __future__ import annotations
 
+import logging
 import threading
 from collections.abc import Callable
 
@@ -30,8 +31,27 @@ from tactdeform_hw.device.driver.wire import Wire
 from tactdeform_hw.device.links.port import no_delay
 from tactdeform_hw.device.links.recovery import LinkRecovery
 from tactdeform_hw.device.safety.guardian import Guardian, pace_for, start_guardian
-from tactdeform_hw.errors import TactDeformError
-from tactdeform_hw.ports import is_instant
+from tactdeform_hw.errors import ConfigurationError, TactDeformError
+from tactdeform_hw.ports import is_instant, loses_bytes
+
+logger = logging.getLogger("tactdeform_hw.device")
+
+#: What the driver says when a port declares a link that can lose bytes and the plain encoding is in force.
+PLAIN_ON_LOSSY_LINK = (
+    "{port}: the link can lose bytes without telling (a UART) and the plain encoding is in force: one lost "
+    "byte can turn a zero into a full-scale pulse (DAC code 4095) until the fail-safe's recovery; use the "
+    "loss-tolerant encoding (--encoding robust, or open_device(..., robust_encoding=True))"
+)
+
+
+def check_encoding_choice(pacer: Pacer | None, robust_encoding: bool | None) -> None:
+    """A pacer given with an encoding it does not use is refused before the port is opened: which of the
+    two the caller meant cannot be guessed, and the encoding decides what a lost byte can do."""
+    if pacer is not None and robust_encoding is not None and pacer.robust != robust_encoding:
+        raise ConfigurationError(
+            f"robust_encoding={robust_encoding} disagrees with the pacer given "
+            f"(its policy's robust_encoding is {pacer.robust}): give one or the other"
+        )
 
 
 class GuardianSlot:
@@ -87,9 +107,12 @@ class Opener:
         self.wire = wire
         self.guardians = guardians
 
-    def open_port(self, *, own_pacer: bool, offline_clock: Clock | None) -> None:
+    def open_port(
+        self, *, own_pacer: bool, offline_clock: Clock | None, robust_encoding: bool | None = None
+    ) -> None:
         """Open the port if it is not (lines low first), and with ``own_pacer`` give the wire the pacer
-        that port needs — known only once it is open (a URL builds its device then)."""
+        that port needs — known only once it is open (a URL builds its device then) — in the encoding
+        ``robust_encoding`` chooses (None: the port's own)."""
         link = self.wire.port_link
         if not link.port.is_open:
             try:
@@ -99,10 +122,23 @@ class Opener:
                 raise
         no_delay(link.port)
         if own_pacer:
-            self.wire.pacer = default_pacer(link.port)
+            self.wire.pacer = default_pacer(link.port, robust_encoding)
             if offline_clock is not None and is_instant(link.port):
                 # a port that answers at once (the in-process emulator) runs the session on the caller's clock
                 self.wire.pacer = Pacer(clock=offline_clock, policy=self.wire.pacer.policy)
+
+    def warn_plain_on_lossy_link(self) -> None:
+        """A port that declares a link that can lose bytes (``loses_bytes``: a UART) driven in the plain
+        encoding: one lost byte can set a full-scale pulse until the recovery (docs/safety.md), and the
+        loss-tolerant encoding is the caller's to choose (the default stays plain, which every figure of
+        a USB board depends on), so the choice is said in the log and recorded in the audit log."""
+        wire = self.wire
+        if wire.pacer.robust or not loses_bytes(wire.port_link.port):
+            return
+        message = PLAIN_ON_LOSSY_LINK.format(port=wire.port_link.name)
+        logger.warning(message)
+        if wire.audit is not None:
+            wire.audit.event("plain_encoding_on_lossy_link", port=wire.port_link.name, message=message)
 
     def identify(self, link: LinkRecovery, *, settle_s: float | None, boot_s: float) -> Detection:
         """Prove which firmware runs the board (:func:`~.firmware_probe.identify`); refuse it otherwise."""
@@ -129,6 +165,7 @@ class Opener:
                 reply=probe.reply.hex(),
                 settle_s=probe.settle_s,
             )
+        self.warn_plain_on_lossy_link()
         if firmware != "auto" and probe.name != firmware:
             self.refuse()
             check_firmware(firmware, probe, wire.port_link.name)

@@ -420,19 +420,22 @@ class Pacer:
         self.stats.padding_bytes += len(out) - sum(len(c) for c in cmds)
 
 
-def default_pacer(port: Any) -> Pacer:
+def default_pacer(port: Any, robust_encoding: bool | None = None) -> Pacer:
     """The pacer a port needs.
 
     * A port that declares ``pacing_clock`` (a timed emulator) is paced in that clock.
-    * A port whose ``robust_encoding`` is true gets the loss-tolerant encoding.
+    * ``robust_encoding`` chooses the loss-tolerant encoding (True) or the plain one (False); None (the
+      default) takes the port's own ``robust_encoding`` (plain when it declares none: every real port).
     * A port that declares itself ``instant`` (every byte consumed as it is written) needs no waiting:
       its pacer only keeps the books.
     * Anything else — a real board, a pty — is paced in wall time.
     """
-    policy = PacingPolicy(robust_encoding=bool(getattr(port, "robust_encoding", False)))
+    if robust_encoding is None:
+        robust_encoding = bool(getattr(port, "robust_encoding", False))
+    policy = PacingPolicy(robust_encoding=robust_encoding)
     clock = getattr(port, "pacing_clock", None)
     if clock is not None:
         return Pacer(clock=clock, policy=policy)
     if getattr(port, "instant", False) is True:
-        return Pacer(clock=InstantClock())
-    return Pacer(clock=MonotonicClock())
+        return Pacer(clock=InstantClock(), policy=policy)
+    return Pacer(clock=MonotonicClock(), policy=policy)

@@ -165,6 +165,7 @@ def open_device(
     offline_clock: Clock | None = None,
     firmware: str = "auto",
     settle_s: float | None = None,
+    robust_encoding: bool | None = None,
 ) -> EtactileKitDevice:
     """Open a device by name: a serial port path, a pyserial URL, ``usb:VID:PID[:SERIAL]``,
     ``usb-emulator``, or ``emulator`` (the default).  ``pacer`` defaults to what the port needs (see
@@ -173,6 +174,12 @@ def open_device(
     holds it) and gets a guardian process (``guardian=False`` to do without).  ``offline_clock``: when the
     port declares itself ``instant`` (it answers every byte at once), pace on this clock instead of the wall
     clock, so an offline run keeps session time.
+
+    ``robust_encoding=True``: the loss-tolerant encoding, for any link that can lose bytes (a USB-to-UART
+    bridge, a raw UART): a lost byte can then only lower a value or leave it, where under the plain
+    encoding one lost byte can set a full-scale pulse until the fail-safe's recovery (docs/safety.md).
+    Native USB CDC (CRC-checked) and Wi-Fi/TCP do not lose bytes silently.  ``False``: the plain
+    encoding; None (the default): the port's own (plain on every real port).
 
     ``firmware``: "auto" (the default) drives the version the board proves; "v1.2" or "v2" drives only
     that version and refuses a board that proves the other.  Either way the board is identified first
@@ -205,6 +212,7 @@ def open_device(
         offline_clock=offline_clock,
         firmware=firmware,
         settle_s=settle_s,
+        robust_encoding=robust_encoding,
     )
 
 

@@ -172,6 +172,9 @@ class LinkModel:
     """Base class: ``schedule`` turns one host write into deliveries (and advances the link's state)."""
 
     name = "link"
+    #: Whether a byte can be lost, corrupted or duplicated on this link without either end being told
+    #: (a UART has no checksum; USB's CRC turns such faults into reported transfer errors).
+    loses_bytes = False
 
     def schedule(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Delivery]:
         raise NotImplementedError
@@ -210,6 +213,7 @@ class UartLink(LinkModel):
     bits_per_byte: int = UART_BITS_PER_BYTE
     _busy_until_ns: int = field(default=0, repr=False)
     name = "uart"
+    loses_bytes = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.baud, int) or self.baud <= 0:
@@ -359,6 +363,7 @@ class LinkFilter(LinkModel):
     def __init__(self, inner: LinkModel) -> None:
         self.inner = inner
         self.name = f"{type(self).__name__}({inner.name})"
+        self.loses_bytes = inner.loses_bytes
 
     def schedule(self, data: bytes, t_ns: int, host_offset: int = -1) -> list[Delivery]:
         return self.transform(self.inner.schedule(data, t_ns, host_offset))

@@ -156,6 +156,17 @@ class Serial(SerialBase, PortBase):  # type: ignore[misc]
             return False
 
     @property
+    def loses_bytes(self) -> bool:
+        """Whether the emulated link can lose a byte without telling: ``link=uart`` (a UART has no
+        checksum), so a driver warns of the plain encoding as on a real UART."""
+        if self._port is None:
+            return False
+        try:
+            return _parse(self._port)[1].get("link", "usb") == "uart"
+        except SerialException:
+            return False
+
+    @property
     def pacing_clock(self) -> Any:
         """The clock a driver must pace this port in: wall time for the real-time board, a clock that
         never waits for the instant one."""
