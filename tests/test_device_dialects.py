@@ -215,7 +215,7 @@ def test_a_refresh_is_the_dialects_plan_sent_as_planned(dev: EtactileKitDevice, 
     dev.send_pattern([1, 0, 1, 0, 0, 1, 0, 0])
     before = _levels(dev)
     port.writes.clear()
-    plan = dev.dialect.refresh(dev.state, dev.transfer, sense=True)
+    plan = dev.dialect.refresh(dev.wire.plan_context(), dev.state, sense=True)
     assert port.writes == [] and plan.writes
     dev.refresh()
     assert b"".join(port.writes) == _planned_bytes(dev, plan)

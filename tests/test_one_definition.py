@@ -140,7 +140,7 @@ def test_every_reader_follows_a_changed_table() -> None:
     # v2: 0xF4 is a command (the sync check) and 0xFB a u8
     assert not pacing.has_payload(b"\xf4") and pacing.command_like_payload(b"\xfe\xf4") is None
     assert pacing.command_like_payload(b"\xfe\x00\xf4", V2) == 2
-    assert pacing.padding_for(b"\xfb\x01") == b"\x00\x00" and pacing.padding_for(b"\xfb\x01", V2) == b"\x00"
+    assert pacing.padding_for(b"\xfb\x01") == b"\x00\x00" and pacing.padding_for(b"\xfb\x01", V2) == b"\x01"
     assert audit.describe_command(b"\xfb\x01\x00") == ("PULSE_HEIGHT", 1)
     assert audit.describe_command(b"\xfb\x01", V2) == ("STIM_MODE", 1)
     assert audit.describe_command(b"\xf4", V2) == ("SYNC_CHECK", None)

@@ -87,25 +87,21 @@ def test_the_pattern_that_tore_written_under_the_cover_is_not_torn() -> None:
     assert ops == [OpcodeV2.STIM_MODE, OpcodeV2.PATTERN, OpcodeV2.STIM_MODE]
 
 
-def test_the_cover_zeroes_a_sense_height_that_is_not_proved_0_and_restores_a_known_one() -> None:
-    """Mode 2 is never in force at a sense height above 0: a configured sense current (code 12) is set to
-    0 before the mode and written again after mode 0 returns; an unknown one is set to 0 and left there;
-    a sense width whose mode-2 scan would outlast the frame's is zeroed and restored the same way."""
+def test_the_cover_zeroes_a_sense_height_that_is_not_proved_0_and_leaves_it_there() -> None:
+    """Mode 2 is never in force at a sense height above 0: a configured sense current (code 12) or an
+    unknown one is set to 0 before the mode and left there (restored behind ``FB mode``, it would be a
+    current on every channel whenever that ``FB mode`` does not apply); a sense width whose mode-2 scan
+    would outlast the frame's is zeroed and restored after the mode (a width at height 0 is no current)."""
     codes = [5, 0, 7]
     bare = [c2.encode_stim_mode(2), c2.encode_pattern(codes, electrode_num=3), c2.encode_stim_mode(1)]
     assert covered_pattern(codes, 1, sense_code=0) == bare
-    assert covered_pattern(codes, 1, sense_code=12) == [
-        c2.encode_sense_height(0),
-        *bare,
-        c2.encode_sense_height(12),
-    ]
+    assert covered_pattern(codes, 1, sense_code=12) == [c2.encode_sense_height(0), *bare]
     assert covered_pattern(codes, 1, sense_code=None) == [c2.encode_sense_height(0), *bare]
     assert covered_pattern(codes, 1, sense_code=12, sense_width_us=90) == [
         c2.encode_sense_height(0),
         c2.encode_sense_width(0),
         *bare,
         c2.encode_sense_width(90),
-        c2.encode_sense_height(12),
     ]
 
 
@@ -115,7 +111,7 @@ def test_a_session_with_a_sense_current_writes_each_new_pattern_in_one_covered_w
     """The driver's frame path on the timed v2 board with a configured sense current: each frame is one
     write (so the pacing puts nothing between its commands), mode 2 is only ever in force at sense height
     0 (the interlock reads every command of the write in turn), the heights arrive whole, and the sense
-    height in force afterwards is the configured one."""
+    height the first cover zeroed stays 0 (modes 0 and 1 never use it)."""
     dev, port, _ = _timed_v2()
     writes: list[bytes] = []
     inner = port.write
@@ -139,17 +135,18 @@ def test_a_session_with_a_sense_current_writes_each_new_pattern_in_one_covered_w
     code = dev.transfer.to_code(1000)
     assert writes == [
         b"".join(covered_pattern([code, 0, code, 0, 0, 0, 0, code], 0, sense_code=sense)),
-        b"".join(covered_pattern([code, code, 0, 0, 0, 0, 0, 0], 1, sense_code=sense)),
+        b"".join(covered_pattern([code, code, 0, 0, 0, 0, 0, 0], 1, sense_code=0)),
     ]
     emu = port.emulator
     assert [h for h in emu.hazards if h.kind is HazardKind.TORN_PATTERN] == []
     assert all(s.sense_pulse_height == 0 for s in emu.scans if s.stim_mode == 2)
-    assert emu.registers.sense_pulse_height == sense and emu.registers.stim_mode == 1
+    assert emu.registers.sense_pulse_height == 0 and emu.registers.stim_mode == 1
     dev.close()
 
 
 def test_write_commands_is_one_write_padded_per_command_and_spaced_as_a_pattern() -> None:
-    """The pacing rule of the cover: one write, each command padded under robust encoding, the group
+    """The pacing rule of the cover: one write, each command padded under robust encoding — the mode by
+    its own value, the pattern not at all, since a command follows it (:func:`paddings`) — and the group
     spaced after the previous pattern as a pattern alone would be."""
     clock = SimulatedClock()
     pacer = Pacer(clock=clock, policy=PacingPolicy(firmware=V2, queue_bytes=1024, robust_encoding=True))
@@ -161,6 +158,42 @@ def test_write_commands_is_one_write_padded_per_command_and_spaced_as_a_pattern(
     group = covered_pattern([3, 4], 0, sense_code=0)
     pacer.write_commands(out.append, group)
     assert len(out) == 2
-    assert out[1] == b"\xfb\x02\x00" + c2.encode_pattern([3, 4], electrode_num=2) + b"\x00\x00\xfb\x00\x00"
+    assert out[0] == pattern + b"\x00\x00"  # a pattern alone: its two zeros
+    assert out[1] == b"\xfb\x02\x02" + c2.encode_pattern([3, 4], electrode_num=2) + b"\xfb\x00\x00"
     assert clock.now() - t0 >= pacer.payload_interval_s() - 1e-9
     assert pacer.stats.commands == 4 and pacer.stats.payload_commands == 4
+
+
+def test_under_the_robust_encoding_heights_in_force_are_written_again_only_under_the_cover(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A refresh and a forced pattern of the same heights, under the loss-tolerant encoding: each is the
+    cover written twice (a byte lost from a pattern written alone would shift its heights into the mode in
+    force); under the plain encoding they stay the mode and the pattern (refresh) and the pattern alone."""
+    for robust in (True, False):
+        dev, port, _ = _timed_v2(robust=robust)
+        writes: list[bytes] = []
+        inner = port.write
+
+        def spy(data: bytes, inner: object = inner) -> int:
+            writes.append(bytes(data))
+            return inner(data)  # type: ignore[operator]
+
+        monkeypatch.setattr(port, "write", spy)
+        dev.configure(StimConfig(electrode_count=4, current_ua=1000, pulse_width_us=100, rate_hz=100))
+        dev.send_pattern([2, 0, 2, 0])
+        port.advance(0.05)
+        code = dev.transfer.to_code(1000)
+        codes = [code, 0, code, 0]
+        pattern = c2.encode_pattern(codes, electrode_num=4)
+        cover = b"\xfb\x02\x02" + pattern + b"\xfb\x01\x01"
+        writes.clear()
+        dev.refresh()
+        port.advance(0.05)
+        assert writes == ([cover, cover] if robust else [c2.encode_stim_mode(1), pattern])
+        writes.clear()
+        dev.send_pattern([2, 0, 2, 0])  # the same frame again: written again, as it is
+        port.advance(0.05)
+        assert writes == ([cover, cover] if robust else [pattern])
+        assert port.emulator.registers.stim_pattern[:4] == codes
+        dev.close()

@@ -354,7 +354,7 @@ class Device:
         leaves the wire fewer bytes to turn into that current."""
         if self.state.config is None or self.wire.closed:
             return
-        self.wire.run(self.dialect.refresh(self.state, self.transfer, sense=sense), self.state)
+        self.wire.run(self.dialect.refresh(self.wire.plan_context(), self.state, sense=sense), self.state)
 
     @property
     def stimulating(self) -> bool:

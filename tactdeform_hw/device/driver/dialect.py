@@ -423,7 +423,7 @@ class Dialect(Protocol):
         """Every channel off and every height 0 (at a proved boundary); ``scan_s`` is the scan the pacer
         paces for now (None: unknown)."""
 
-    def refresh(self, st: DriverState, transfer: CurrentTransfer, *, sense: bool) -> Plan:
+    def refresh(self, ctx: PlanContext, st: DriverState, *, sense: bool) -> Plan:
         """The same registers again, so a firmware that lost or mis-read a byte is put right."""
 
     def flush_parser(self, ops: LinkOps, st: DriverState) -> None:

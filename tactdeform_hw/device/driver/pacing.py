@@ -44,10 +44,19 @@ value smaller or leave the old value, never larger, and never lock the parser:
 
 * after a u16 (pulse height, width, frequency): two 0x00 — losing the low byte leaves ``high`` (≤ the
   value), losing the high byte leaves ``low | 0 << 8`` (≤ the value), losing both gives 0;
-* after a u8 value ``v`` (electrode count, polarity): ``v`` itself — if the payload is lost the padding
-  becomes the payload and means the same; otherwise it is an unknown byte and ignored;
+* after a u8 value ``v`` (electrode count, polarity, v2's stimulation mode): ``v`` itself — if the
+  payload is lost the padding becomes the payload and means the same; otherwise it is an unknown byte and
+  ignored;
 * after other u8 values (sense height, sense width, discharge): one 0x00;
-* after a pattern: two 0x00 — a lost level byte makes the padding the last channel's level (off).
+* after a pattern: two 0x00 — a lost level byte makes the padding the last channel's level (off);
+* except after a pattern of two-byte heights (v2) that another command follows in the same write
+  (:func:`paddings`): nothing.  A byte lost inside such a pattern shifts every later height by one byte,
+  so the low byte of one channel becomes the high byte of the one before — a height far above the
+  value, whatever the padding.  Unpadded, the shifted pattern takes the next command's first byte as its
+  last and that command does not apply (its payload bytes are unknown ones).  The only such write is v2's
+  cover (:func:`~tactdeform_hw.device.driver.v2.covered_pattern`): ``FB 02``, the pattern, ``FB mode``;
+  the mode then stays 2 at sense height 0, where no pattern height is delivered, until the pattern is
+  written again.
 
 and no payload byte may be ≥ 0xF5 (a command byte), so a lost command byte turns its payload into
 ignored unknown bytes rather than into a command.  The device layer lowers pulse heights whose low byte
@@ -136,9 +145,29 @@ def padding_for(data: bytes, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> bytes
         return b""
     if c.kind in ("u16", "pattern"):
         return b"\x00\x00"
-    if c.register in ("electrode_num", "polarity") and len(data) >= 2 and data[1] < firmware.command_byte_min:
+    if (
+        c.register in ("electrode_num", "polarity", "stim_mode")
+        and len(data) >= 2
+        and data[1] < firmware.command_byte_min
+    ):
         return bytes([data[1]])
     return b"\x00"
+
+
+def paddings(commands: Sequence[bytes], firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> list[bytes]:
+    """The robust-encoding padding after each of ``commands`` written as one write: :func:`padding_for`,
+    except none after a pattern of two-byte heights that another command follows (see the module
+    docstring: a byte lost inside it then leaves the next command unapplied rather than applying it
+    after a shifted pattern)."""
+    last = len(commands) - 1
+    wide = firmware.pattern_bytes_per_electrode > 1
+    out: list[bytes] = []
+    for i, c in enumerate(commands):
+        if wide and i < last and c[:1] and c[0] == firmware.pattern_command.opcode:
+            out.append(b"")
+        else:
+            out.append(padding_for(c, firmware))
+    return out
 
 
 def command_like_payload(data: bytes, firmware: FirmwareSpec = DEFAULT_FIRMWARE) -> int | None:
@@ -395,7 +424,11 @@ class Pacer:
             raise ValueError("write_commands: every element must start with a command byte")
         fw = self.policy.firmware
         padded = self.policy.robust_encoding if pad is None else pad
-        out = b"".join(c + padding_for(c, fw) if padded else c for c in cmds)
+        out = (
+            b"".join(c + pad_ for c, pad_ in zip(cmds, paddings(cmds, fw), strict=True))
+            if padded
+            else b"".join(cmds)
+        )
         self._fit(len(out))
         interval = self.payload_interval_s()
         spaced = any(self.spaced(c) for c in cmds)

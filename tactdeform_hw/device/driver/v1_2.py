@@ -289,7 +289,8 @@ class V12Dialect:
             pace_after=(firmware_period_us(cfg.rate_hz) / 1e6, scan_us / 1e6),
         )
 
-    def refresh(self, st: DriverState, transfer: CurrentTransfer, *, sense: bool) -> Plan:
+    def refresh(self, ctx: PlanContext, st: DriverState, *, sense: bool) -> Plan:
+        transfer = ctx.transfer
         cfg = st.config
         assert cfg is not None
         pattern = st.last_pattern if st.last_pattern is not None else bytes(cfg.electrode_count)

@@ -111,29 +111,29 @@ def covered_pattern(
     """The commands that write the pattern ``codes`` under the cover: mode 2 while the firmware copies it,
     at sense height 0, so a scan that pre-empts the copy delivers no current instead of a torn pattern.
 
-    ``[F9 00]``, ``[F8 00]``, ``FB 02``, ``FE codes``, ``FB mode``, ``[F8 width]``, ``[F9 sense]``, written
-    as one write (:meth:`~tactdeform_hw.device.driver.pacing.Pacer.write_commands`).  v2 reads complete
-    commands
-    back to back, so mode 2 lasts from the parser reading ``FB 02`` to its reading ``FB mode``: the copy,
-    plus whatever part of the write is still crossing the link.  Every scan snapshots its mode when it
-    starts and, in mode 2, gives every channel the sense pulse whatever the pattern holds: a scan that
-    starts in that window is one without current (a dropout); any other scan runs the old pattern in the
-    old mode or the new pattern in the new one, whole.
+    ``[F9 00]``, ``[F8 00]``, ``FB 02``, ``FE codes``, ``FB mode``, ``[F8 width]``, written as one write
+    (:meth:`~tactdeform_hw.device.driver.pacing.Pacer.write_commands`).  v2 reads complete commands back
+    to back, so mode 2 lasts from the parser reading ``FB 02`` to its reading ``FB mode``: the copy, plus
+    whatever part of the write is still crossing the link.  Every scan snapshots its mode when it starts
+    and, in mode 2, gives every channel the sense pulse whatever the pattern holds: a scan that starts in
+    that window is one without current (a dropout); any other scan runs the old pattern in the old mode or
+    the new pattern in the new one, whole.
 
     Mode 2 is only ever in force at sense height 0 (``sense_code``: the height in force, None unknown): a
-    sense height that is not proved 0 is set to 0 before ``FB 02`` and, when it was known, restored after
-    ``FB mode`` — modes 0 and 1 never use it.  ``sense_width_us`` (given when the mode-2 scan at the
-    configured sense width would be longer than the frame's scan, which the pacing and the scan-gap check
-    were computed for) zeroes the sense width the same way and restores it after."""
+    sense height that is not proved 0 is set to 0 before ``FB 02`` and left at 0 — modes 0 and 1 never
+    use it, and a height restored behind ``FB mode`` would be a current on every channel whenever that
+    ``FB mode`` does not apply (under the loss-tolerant encoding a byte lost inside the pattern makes the
+    pattern take ``FB`` as its last byte: :func:`~tactdeform_hw.device.driver.pacing.paddings`).
+    ``sense_width_us`` (given when the mode-2 scan at the configured sense width would be longer than the
+    frame's scan, which the pacing and the scan-gap check were computed for) zeroes the sense width and
+    restores it after ``FB mode`` (a width alone, at height 0, is no current)."""
     pre: list[bytes] = []
     post: list[bytes] = []
     if sense_code != 0:
         pre.append(c2.encode_sense_height(0))
-        if sense_code:
-            post.append(c2.encode_sense_height(sense_code))
     if sense_width_us:
         pre.append(c2.encode_sense_width(0))
-        post.insert(0, c2.encode_sense_width(sense_width_us))
+        post.append(c2.encode_sense_width(sense_width_us))
     return [
         *pre,
         c2.encode_stim_mode(c2.STIM_MODE_IMPEDANCE),
@@ -249,8 +249,7 @@ class V2Dialect:
                 wide = cfg.sense_width_us  # a sense pulse longer than the frame's: mode 2 at width 0
         cover = covered_pattern(codes, mode, sense_code=st.sense_byte, sense_width_us=wide)
         b.add(Write(commands=tuple(cover), critical=True))
-        if st.sense_byte is None:
-            st.sense_byte = 0  # not restored: the cover proved it 0 and nothing wrote it since
+        st.sense_byte = 0  # never restored (see covered_pattern)
         st.codes = list(codes)
         st.mode = mode
         st.covers += 1
@@ -579,7 +578,11 @@ class V2Dialect:
             self._write_covered(b, codes, mode, paced[1])
             st.frames_sent += 1
         elif force_pattern:
-            b.add(Write(c2.encode_pattern(codes, electrode_num=n), critical=True))  # the same heights again
+            if ctx.robust and any(codes):
+                # a byte lost from a pattern written alone would shift its heights into the mode in force
+                self._write_covered(b, codes, mode, paced[1])
+            else:
+                b.add(Write(c2.encode_pattern(codes, electrode_num=n), critical=True))  # the same heights
             st.frames_sent += 1
         st.heights_ua = heights
         st.last_pattern = ctx.mapping.to_hardware(levels) if ctx.mapping is not None else bytes(levels)
@@ -616,13 +619,19 @@ class V2Dialect:
             raise ShortReplyError("sync check after the close's electrode count 0", 1, b"")
         st.codes = []
 
-    def refresh(self, st: DriverState, transfer: CurrentTransfer, *, sense: bool) -> Plan:
+    def refresh(self, ctx: PlanContext, st: DriverState, *, sense: bool) -> Plan:
         """The mode and the pattern of heights again (``sense`` has no meaning here: v2 uses the sense
-        height only in mode 2)."""
+        height only in mode 2).  Under the loss-tolerant encoding heights in force go under the cover
+        (:func:`covered_pattern`, twice): a byte lost from a pattern written alone would shift its heights
+        into the mode in force."""
         cfg = st.config
         assert cfg is not None
         n = cfg.electrode_count
         codes = st.codes if st.codes is not None and len(st.codes) == n else [0] * n
+        if ctx.robust and any(codes) and st.mode in (c2.STIM_MODE_MONOPHASIC, c2.STIM_MODE_BIPHASIC):
+            b = PlanBuilder(st)
+            self._write_covered(b, codes, st.mode, st.scan_us / 1e6 if st.scan_us is not None else None)
+            return b.done()
         # a mode byte mis-read as 2 gives every channel the sense pulse, whatever the pattern
         writes: list[Step] = [Write(c2.encode_stim_mode(st.mode))] if st.mode is not None else []
         writes.append(Write(c2.encode_pattern(codes, electrode_num=n)))

@@ -36,7 +36,7 @@ from tactdeform_hw.device.driver.dialect import (
     Step,
     Write,
 )
-from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, padding_for
+from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, paddings
 from tactdeform_hw.device.links.port import PortLink
 from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkRecovery, LinkState
 from tactdeform_hw.device.participant.mapping import ChannelMapping
@@ -238,8 +238,9 @@ class Wire:
                 # reader of the log sees every command as the firmware reads it
                 padded = self.pacer.policy.robust_encoding if pad is None else pad
                 pos = 0
-                for c in commands:
-                    size = len(c) + (len(padding_for(c, self.pacer.policy.firmware)) if padded else 0)
+                pads = paddings(commands, self.pacer.policy.firmware) if padded else [b""] * len(commands)
+                for c, pad_ in zip(commands, pads, strict=True):
+                    size = len(c) + len(pad_)
                     audit.tx(chunk[pos : pos + size], t=now, op=op, logical=c)
                     pos += size
                 return
