@@ -164,36 +164,36 @@ def test_write_commands_is_one_write_padded_per_command_and_spaced_as_a_pattern(
     assert pacer.stats.commands == 4 and pacer.stats.payload_commands == 4
 
 
+@pytest.mark.parametrize("robust", [True, False], ids=["robust", "plain"])
 def test_under_the_robust_encoding_heights_in_force_are_written_again_only_under_the_cover(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, robust: bool
 ) -> None:
     """A refresh and a forced pattern of the same heights, under the loss-tolerant encoding: each is the
     cover written twice (a byte lost from a pattern written alone would shift its heights into the mode in
     force); under the plain encoding they stay the mode and the pattern (refresh) and the pattern alone."""
-    for robust in (True, False):
-        dev, port, _ = _timed_v2(robust=robust)
-        writes: list[bytes] = []
-        inner = port.write
+    dev, port, _ = _timed_v2(robust=robust)
+    writes: list[bytes] = []
+    inner = port.write
 
-        def spy(data: bytes, inner: object = inner) -> int:
-            writes.append(bytes(data))
-            return inner(data)  # type: ignore[operator]
+    def spy(data: bytes) -> int:
+        writes.append(bytes(data))
+        return inner(data)
 
-        monkeypatch.setattr(port, "write", spy)
-        dev.configure(StimConfig(electrode_count=4, current_ua=1000, pulse_width_us=100, rate_hz=100))
-        dev.send_pattern([2, 0, 2, 0])
-        port.advance(0.05)
-        code = dev.transfer.to_code(1000)
-        codes = [code, 0, code, 0]
-        pattern = c2.encode_pattern(codes, electrode_num=4)
-        cover = b"\xfb\x02\x02" + pattern + b"\xfb\x01\x01"
-        writes.clear()
-        dev.refresh()
-        port.advance(0.05)
-        assert writes == ([cover, cover] if robust else [c2.encode_stim_mode(1), pattern])
-        writes.clear()
-        dev.send_pattern([2, 0, 2, 0])  # the same frame again: written again, as it is
-        port.advance(0.05)
-        assert writes == ([cover, cover] if robust else [pattern])
-        assert port.emulator.registers.stim_pattern[:4] == codes
-        dev.close()
+    monkeypatch.setattr(port, "write", spy)
+    dev.configure(StimConfig(electrode_count=4, current_ua=1000, pulse_width_us=100, rate_hz=100))
+    dev.send_pattern([2, 0, 2, 0])
+    port.advance(0.05)
+    code = dev.transfer.to_code(1000)
+    codes = [code, 0, code, 0]
+    pattern = c2.encode_pattern(codes, electrode_num=4)
+    cover = b"\xfb\x02\x02" + pattern + b"\xfb\x01\x01"
+    writes.clear()
+    dev.refresh()
+    port.advance(0.05)
+    assert writes == ([cover, cover] if robust else [c2.encode_stim_mode(1), pattern])
+    writes.clear()
+    dev.send_pattern([2, 0, 2, 0])  # the same frame again: written again, as it is
+    port.advance(0.05)
+    assert writes == ([cover, cover] if robust else [pattern])
+    assert port.emulator.registers.stim_pattern[:4] == codes
+    dev.close()
