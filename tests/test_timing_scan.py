@@ -4,6 +4,7 @@ against the step-through, and the electrode–skin readings."""
 from __future__ import annotations
 
 import random
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -22,6 +23,7 @@ from tactdeform_hw.emulator.firmware.skin import SkinModel
 from tactdeform_hw.emulator.records.reports import Budget
 from tactdeform_hw.emulator.timed.timing import TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
+from tactdeform_hw.protocol.firmware import V1_2, V2
 
 from .scan_reference import reference_scan
 
@@ -359,3 +361,47 @@ def test_untimed_emulator_scan_seam_fills_measure_replies() -> None:
     reply = c.parse_measure_reply(emu.feed(c.MEASURE_REQUEST), 3)
     expect = ScanEngine().template(ScanConfig.make(3, 1)).voltages.tolist()
     assert reply == expect and all(v > 0 for v in reply)
+
+
+def test_a_timing_model_for_a_firmware_takes_each_constant_from_its_table() -> None:
+    """``TimingModel.for_firmware`` copies the firmware table's constants by name: a table whose every
+    constant differs from v1.2's gives a model that carries each of them, and the table's queue size."""
+    table = replace(
+        V1_2.timing,
+        spi_exchange_us=7.0,
+        dac_change_at_us=3.5,
+        gpio_write_us=0.07,
+        isr_entry_us=2.5,
+        pulse_wait_offset_us=8,
+        discharge_wait_offset_us=9,
+        delay_min_us=4,
+        delay_ticks_per_us=2.5,
+        delay_offset_ticks=6.0,
+        timer_ticks_per_us=4,
+        watchdog_us=250_000.0,
+        rtos_tick_us=500.0,
+        parser_call_us=3.0,
+        parser_byte_us=1.5,
+        hv513_detect_us=900.0,
+    )
+    m = TimingModel.for_firmware(replace(V2, timing=table))
+    got = (
+        m.spi_exchange_us,
+        m.dac_change_at_us,
+        m.gpio_write_us,
+        m.isr_entry_us,
+        m.pulse_wait_offset_us,
+        m.discharge_wait_offset_us,
+        m.delay_min_us,
+        m.delay_ticks_per_us,
+        m.delay_offset_ticks,
+        m.timer_tick_us,
+        m.watchdog_us,
+        m.rtos_tick_us,
+        m.parser_call_us,
+        m.parser_byte_us,
+        m.hv513_detect_us,
+        m.rx_queue_bytes,
+    )
+    assert got == (7.0, 3.5, 0.07, 2.5, 8, 9, 4, 2.5, 6.0, 0.25, 250_000.0, 500.0, 3.0, 1.5, 900.0, 1024)
+    assert TimingModel.for_firmware(V1_2, gpio_write_us=0.1).gpio_write_us == 0.1  # a change wins

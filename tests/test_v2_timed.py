@@ -249,3 +249,31 @@ def test_a_measure_reply_carries_the_skin_models_readings_as_on_v1_2() -> None:
     lifted = v2_readings([100, 100, 0, 100], skin=SkinModel(open_electrodes=frozenset({1})))
     assert lifted[1] > got[1] and lifted[0] == got[0]  # off the skin: the source's compliance
     assert v2_readings([100, 100, 0, 100], skin=None) == [100, 100, 0, 100]  # the host build's loop-back
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        c.encode_pulse_width(120),
+        c.encode_discharge(20),
+        c.encode_polarity(0),
+        c.encode_stim_mode(1),
+        c.encode_stim_mode(2) + c.encode_sense_height(12) + c.encode_sense_width(30),
+    ],
+    ids=["pulse_width", "discharge", "polarity", "stim_mode", "sense"],
+)
+def test_a_register_change_that_keeps_the_pattern_is_felt_at_the_next_scan(change: bytes) -> None:
+    """Most scans repeat the one before, so the model keeps the last scan: a change of any register a scan
+    reads, with the pattern unchanged, must still give the scan a board set that way from the start
+    gives (a stale scan here would keep delivering the old width, polarity or mode)."""
+    changed = TimedEmulatorV2()
+    changed.write(SETUP, 0.0)
+    changed.advance_to(30_000.0)
+    changed.write(change, 30_000.0)
+    changed.advance_to(70_000.0)
+    fresh = TimedEmulatorV2()
+    fresh.write(SETUP + change, 0.0)
+    fresh.advance_to(70_000.0)
+    last, want = changed.scans[-1], fresh.scans[-1]
+    assert (last.duration_ns, last.pulses) == (want.duration_ns, want.pulses)
+    assert last.pulses != changed.scans[0].pulses or last.duration_ns != changed.scans[0].duration_ns

@@ -33,7 +33,7 @@ import socket
 import statistics
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 from typing import Any, Protocol
 
 from ..errors import ConfigurationError, LimitError, install_command
@@ -411,6 +411,7 @@ class LiveResult:
         return {"received_to_computed": stage_stats(compute), "received_to_written": stage_stats(write)}
 
 
+@dataclass(eq=False, repr=False)
 class LiveRun:
     """Render a live source through ``renderer`` until :meth:`stop` (another thread, a signal handler) or
     the source has said nothing for ``idle_exit_s`` (None: run until stopped).
@@ -419,29 +420,18 @@ class LiveRun:
     ``on_timing`` every valid sample's :class:`SampleTiming` as it completes; ``outlet`` gets every frame
     sent (see :class:`LslPatternOutlet`)."""
 
-    def __init__(
-        self,
-        renderer: Renderer,
-        source: TrackingSource,
-        *,
-        on_record: Callable[[FrameRecord], None] | None = None,
-        on_status: Callable[[str], None] | None = None,
-        on_timing: Callable[[SampleTiming], None] | None = None,
-        outlet: LslPatternOutlet | None = None,
-        status_every_s: float = 1.0,
-        keep_timings: bool = True,
-    ) -> None:
-        self.renderer = renderer
-        self.source = source
-        self.on_record = on_record
-        self.on_status = on_status
-        self.on_timing = on_timing
-        self.outlet = outlet
-        self.status_every_s = status_every_s
-        self.keep_timings = keep_timings
-        self.result = LiveResult(LiveStats(), [])
-        self._stop = False
-        self._sent: list[tuple[FrameRecord, float, float]] = []
+    renderer: Renderer
+    source: TrackingSource
+    _: KW_ONLY
+    on_record: Callable[[FrameRecord], None] | None = None
+    on_status: Callable[[str], None] | None = None
+    on_timing: Callable[[SampleTiming], None] | None = None
+    outlet: LslPatternOutlet | None = None
+    status_every_s: float = 1.0
+    keep_timings: bool = True
+    result: LiveResult = field(init=False, default_factory=lambda: LiveResult(LiveStats(), []))
+    _stop: bool = field(init=False, default=False)
+    _sent: list[tuple[FrameRecord, float, float]] = field(init=False, default_factory=list)
 
     def stop(self) -> None:
         self._stop = True

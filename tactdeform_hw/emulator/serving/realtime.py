@@ -721,6 +721,7 @@ def settle(board: RealtimeEmulator, timeout_s: float = 2.0, step_s: float = 0.00
         time.sleep(step_s)
 
 
+@dataclass(eq=False)
 class UsbSerialJtagLines:
     """DTR and RTS as the ESP32-S3's USB Serial/JTAG controller reads them.
 
@@ -732,13 +733,12 @@ class UsbSerialJtagLines:
     This is the emulator's reading of the controller's behaviour, consistent with both esptool sequences;
     the ROM bootloader itself is not emulated (in download mode the application does not run)."""
 
-    def __init__(self) -> None:
-        self.dtr = False
-        self.rts = False
-        self.held = False
-        self.armed = False
-        self.download_mode = False
-        self._boot_download = False
+    dtr: bool = False
+    rts: bool = False
+    held: bool = False
+    armed: bool = False
+    download_mode: bool = False
+    _boot_download: bool = field(default=False, init=False, repr=False)
 
     def set(self, dtr: bool, rts: bool) -> str | None:
         """New line levels; returns ``"held"`` when the chip enters reset, ``"released"`` when it leaves

@@ -616,8 +616,10 @@ class MainLoopRunsV2:
         # channel depends on it -- its hv513Clear clocks from where the previous scan's clear left it
         # (nothing at all after the first such scan since boot)
         prior = 1 if n == 0 and self._chain_pos else 0
-        key = (
-            prior,
+        # the config's leading fields, in its field order: the cache key is built of the very values the
+        # config is, so a register the scan reads cannot be left out of the key
+        leading = (
+            n,
             pattern,
             regs.pulse_width,
             regs.discharge_time,
@@ -625,22 +627,10 @@ class MainLoopRunsV2:
             regs.hv513_num,
             regs.sense_pulse_height,
             regs.sense_pulse_width,
-            regs.stim_mode,
-            id(self.skin),
         )
+        key = (leading, regs.stim_mode, prior, id(self.skin))
         if key != self._last_scan_key:
-            cfg = FirmwareScanConfig(
-                electrode_num=n,
-                stim_pattern=pattern,
-                pulse_width=regs.pulse_width,
-                discharge_time=regs.discharge_time,
-                polarity=regs.polarity,
-                hv513_num=regs.hv513_num,
-                sense_pulse_height=regs.sense_pulse_height,
-                sense_pulse_width=regs.sense_pulse_width,
-                stim_mode=regs.stim_mode,
-                prior_scans=prior,
-            )
+            cfg = FirmwareScanConfig(*leading, stim_mode=regs.stim_mode, prior_scans=prior)
             shape = _scan_shape(cfg, self.conventions)
             if self.skin is not None:
                 duration, onsets, codes, _, pulses = shape

@@ -34,6 +34,25 @@ from tactdeform_hw.protocol.firmware import (
 _FW = V1_2.timing  # the defaults: the v1.2 firmware's constants (protocol.firmware holds each version's)
 
 OVERRUN_POLICIES = ("immediate", "skip")
+#: The model's constants that each firmware version's table (:class:`FirmwareTiming`) gives, under the
+#: same names there (:meth:`TimingModel.for_firmware`); the others are the platform's or assumptions.
+FIRMWARE_TIMING_FIELDS = (
+    "spi_exchange_us",
+    "dac_change_at_us",
+    "gpio_write_us",
+    "isr_entry_us",
+    "pulse_wait_offset_us",
+    "discharge_wait_offset_us",
+    "delay_min_us",
+    "delay_ticks_per_us",
+    "delay_offset_ticks",
+    "timer_tick_us",
+    "watchdog_us",
+    "rtos_tick_us",
+    "parser_call_us",
+    "parser_byte_us",
+    "hv513_detect_us",
+)
 """What follows a scan longer than the timer period.
 
 ``immediate`` (the default, Espressif's documented behaviour): the auto-reload alarm is re-enabled when
@@ -148,25 +167,8 @@ class TimingModel:
     @classmethod
     def for_firmware(cls, firmware: FirmwareSpec, **changes: Any) -> TimingModel:
         """The model with a firmware version's own constants (its table in :mod:`..protocol.firmware`)."""
-        t = firmware.timing
-        base: dict[str, Any] = {
-            "spi_exchange_us": t.spi_exchange_us,
-            "dac_change_at_us": t.dac_change_at_us,
-            "gpio_write_us": t.gpio_write_us,
-            "isr_entry_us": t.isr_entry_us,
-            "pulse_wait_offset_us": t.pulse_wait_offset_us,
-            "discharge_wait_offset_us": t.discharge_wait_offset_us,
-            "delay_min_us": t.delay_min_us,
-            "delay_ticks_per_us": t.delay_ticks_per_us,
-            "delay_offset_ticks": t.delay_offset_ticks,
-            "timer_tick_us": t.timer_tick_us,
-            "watchdog_us": t.watchdog_us,
-            "rtos_tick_us": t.rtos_tick_us,
-            "parser_call_us": t.parser_call_us,
-            "parser_byte_us": t.parser_byte_us,
-            "hv513_detect_us": t.hv513_detect_us,
-            "rx_queue_bytes": firmware.rx_queue_bytes,
-        }
+        base: dict[str, Any] = {name: getattr(firmware.timing, name) for name in FIRMWARE_TIMING_FIELDS}
+        base["rx_queue_bytes"] = firmware.rx_queue_bytes
         base.update(changes)
         return cls(**base)
 
