@@ -23,7 +23,15 @@ import pytest
 from tactdeform_hw.device import StimConfig, open_device
 from tactdeform_hw.device.driver.serial_driver import find_holders
 from tactdeform_hw.device.safety import failsafe as fs_mod
-from tactdeform_hw.device.safety.guardian import LEAD_ZEROS, RESYNC_ZEROS, off_packet, stop_packet
+from tactdeform_hw.device.safety.guardian import (
+    LEAD_ZEROS,
+    PACKET_BYTES,
+    RESYNC_ZEROS,
+    off_packet,
+    pace_for,
+    stop_packet,
+    zeros_gap_s,
+)
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.serving.pty_server import PtyServer
 from tactdeform_hw.protocol.state import BoardState
@@ -463,12 +471,16 @@ def test_off_packet_after_the_proof_never_raises_and_never_locks(n: int) -> None
     assert st.electrode_num == n and list(st.stim_pattern[:n]) == [0] * n
 
 
-def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> tuple[float, float, int]:
+def _guardian_on_timed_board(
+    owner_tail: bytes, offset_us: float, link: str
+) -> tuple[float, float, int, list[int]]:
     """The timed firmware over ``link``: an owner drives 16 of 32 channels at 500 µA, dies having written
     ``owner_tail`` (a torn frame, or a burst that overflows the queue), and ``offset_us`` later the guardian's
-    bytes follow as it sends them when no proof comes back (the worst case: every retry).  Returns the
-    largest current delivered from the owner's death on, the largest once the guardian is done, and the
-    final pulse height."""
+    bytes follow as it sends them when no proof comes back (the worst case: every retry, each 20 ms after
+    the packet before, its zeros spaced by :func:`zeros_gap_s` for this configuration).  Returns the
+    largest current delivered from the owner's death on, the largest once the guardian is done, the final
+    pulse height, and the host offsets of the guardian's bytes the receive queue discarded."""
+    from tactdeform_hw.emulator import HazardKind
     from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 
     from .safety_helpers import configure_v12_tactdeform
@@ -482,21 +494,30 @@ def _guardian_on_timed_board(owner_tail: bytes, offset_us: float, link: str) -> 
     g = death + offset_us
     stop = stop_packet()
     emu.write(stop, at_us=g)
-    # no proof came: 256 zeros a packet at a time, let them be skipped, the packet again
-    for k in range(1, 4):
-        tk = g + k * 40_000
-        for i in range(RESYNC_ZEROS // 64):
-            emu.write(bytes(64), at_us=tk + i * 1200)
-        emu.write(stop, at_us=tk + 20_000)
-    emu.write(off_packet(32), at_us=g + 200_000)
-    emu.advance_to(g + 260_000)
+    gap_us = zeros_gap_s(pace_for(125, 32, 200, 45, 0)[1]) * 1e6
+    t_stop = g
+    for _ in range(3):  # no proof came: the zeros a packet at a time, then the packet again
+        tk = t_stop + 20_000
+        for i in range(RESYNC_ZEROS // PACKET_BYTES):
+            emu.write(bytes(PACKET_BYTES), at_us=tk + i * gap_us)
+        t_stop = tk + RESYNC_ZEROS // PACKET_BYTES * gap_us
+        emu.write(stop, at_us=t_stop)
+    t_off = t_stop + 20_000
+    emu.write(off_packet(32), at_us=t_off)
+    emu.advance_to(t_off + 60_000)
     table = emu.reports.pulse_table(death)
     current = table["current_ua"]
-    done = table["start_us"] > g + 200_000
+    done = table["start_us"] > t_off
+    lost = [
+        int(h.detail["host_offset"])
+        for h in emu.hazards
+        if h.kind is HazardKind.QUEUE_OVERFLOW and h.time_us is not None and h.time_us > g
+    ]
     return (
         float(current.max()) if current.size else 0.0,
         float(current[done].max()) if done.any() else 0.0,
         emu.state().pulse_height,
+        lost,
     )
 
 
@@ -512,8 +533,10 @@ def test_guardian_bytes_on_the_timed_board_never_deliver_more_than_the_owner_lef
     cases = [(frame[:k], off) for k in range(len(frame)) for off in (0.0, 36_400.0)]
     cases += [(frame * 8 + frame[:k], off) for k in range(0, len(frame), 5) for off in (0.0, 36_400.0)]
     for tail, off in cases:
-        peak, after, height = _guardian_on_timed_board(tail, off, link)
+        peak, after, height, lost = _guardian_on_timed_board(tail, off, link)
         assert peak <= 500.0 + 1e-6 and after == 0.0 and height == 0, (tail.hex(), off, peak, after, height)
+        if len(tail) < len(frame):  # (a burst that overflowed the queue may take the guardian's bytes too)
+            assert lost == [], (tail.hex(), off, lost)
 
 
 # --- exceptions and a blocked main thread -------------------------------------------------------------------

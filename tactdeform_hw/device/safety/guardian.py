@@ -159,6 +159,13 @@ def pace_for(
     return drain_s, pacer.skip_s(RESYNC_ZEROS)
 
 
+def zeros_gap_s(zeros_s: float) -> float:
+    """The wait after each packet of a retry's zeros: the time the firmware needs to skip one packet of
+    them (``zeros_s`` is its time for all :data:`RESYNC_ZEROS`).  Its parser reads only between scans, so
+    packets sent faster than that pile up in the receive queue, and the queue discards what does not fit."""
+    return max(0.0012, zeros_s * PACKET_BYTES / RESYNC_ZEROS)
+
+
 # --- owner side --------------------------------------------------------------------------------------------
 
 
@@ -568,13 +575,12 @@ def switch_off_on(
     while time.monotonic() < end:
         if attempt:
             # the packet, or its proof, was lost (a full queue) or swallowed by a half-received pattern:
-            # finish whatever is in progress with zeros, a packet at a time, let the parser skip them, and
-            # try again
+            # finish whatever is in progress with zeros, a packet at a time as fast as the parser skips
+            # them, and try again once they are skipped
             for _ in range(RESYNC_ZEROS // PACKET_BYTES):
                 if not link.write(bytes(PACKET_BYTES), end):
                     return "gave up: the port does not take bytes"
-                time.sleep(0.0012)
-            time.sleep(zeros_s)
+                time.sleep(zeros_gap_s(zeros_s))
         attempt += 1
         if not link.write(stop, end):
             return "gave up: the port does not take bytes"
