@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from tactdeform_hw.emulator.firmware.firmware_scan import beyond_chain_notes, budget_verdict
+from tactdeform_hw.emulator.firmware.firmware_scan import FirmwareBudget, beyond_chain_notes, budget_verdict
 from tactdeform_hw.emulator.firmware.scan import (
     ChannelKind,
     PulseArrays,
@@ -27,6 +27,7 @@ from tactdeform_hw.emulator.firmware.scan import (
 )
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513, Opcode
+from tactdeform_hw.protocol.firmware import V1_2
 
 if TYPE_CHECKING:
     from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
@@ -467,6 +468,62 @@ class Budget:
         ]
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
+
+
+def firmware_budget(cfg: ScanConfig, model: TimingModel = DEFAULT_MODEL) -> FirmwareBudget:
+    """One scan of ``cfg`` from power-on against its timer period, in the terms of the firmware's own
+    scan logs (what ``timing --cs-writes`` / ``--dac-load`` print, on either version): the cost of each
+    channel, entry, chain clear, scan, margin and verdict, and the exchange's readings it was timed under.
+    The times are the v1.2 scan engine's closed-form costs, each rounded to the ns as a logged µs is.
+    """
+    costs = channel_costs(cfg, model)
+    n = cfg.electrode_num
+    per_ns = [costs.channel_ns(k) for k in cfg.kinds().tolist()]
+    clear_start = _us3(costs.entry_ns + sum(per_ns))
+    scan_ns = scan_duration_ns(cfg, model, 0)  # a fresh process's chain: the firmware's position 0
+    scan = _us3(scan_ns)
+    period = cfg.alarm_ticks * model.tick_ns / 1000
+    wd = model.watchdog_ns
+    watchdog = wd is not None and scan_ns > wd
+    stride = max(scan, period)
+    wait = model.pulse_wait_ns(cfg.pulse_width) / 1000
+    cs_extra = model.chip_select_writes * model.cs_write_ns / 1000
+    notes: list[str] = []
+    if watchdog:
+        notes.append(f"the scan exceeds the {model.watchdog_us:.0f} µs interrupt watchdog: the board reboots")
+    elif scan > period:
+        notes.append(f"overrun by {scan - period:.2f} µs: the next scan follows at once")
+    notes.extend(beyond_chain_notes(n, cfg.hv513_num))
+    return FirmwareBudget(
+        firmware=V1_2.name,
+        electrodes=n,
+        stim_mode=None,
+        per_channel_us=[_us3(c) for c in per_ns],
+        isr_entry_us=model.isr_entry_ns / 1000,
+        clear_us=round(scan - clear_start, 3),
+        scan_us=scan,
+        period_us=period,
+        alarm_ticks=cfg.alarm_ticks,
+        margin_us=round(period - scan, 3),
+        overrun=scan > period,
+        watchdog_reset=watchdog,
+        actual_rate_hz=0.0 if watchdog or stride == 0 else 1e6 / stride,
+        effective_width_us=round(model.spi_ns / 1000 + cs_extra + wait, 3),
+        conventions={
+            "spi_exchange_us": model.spi_ns / 1000,
+            "dac_change_at_us": model.dac_at_ns / 1000,
+            "gpio_write_us": model.gpio_ns / 1000,
+            "isr_entry_us": model.isr_entry_ns / 1000,
+            "timer_tick_us": model.tick_ns / 1000,
+            **{k: v for k, v in model.readings().items() if k != "chip_select_writes"},
+        },
+        notes=notes,
+    )
+
+
+def _us3(ns: int) -> float:
+    """A time in ns as a scan log writes it: µs to the ns."""
+    return round(ns / 1000, 3)
 
 
 # --- the comparable outcome of a run (for fidelity comparisons) -------------------------------------------
