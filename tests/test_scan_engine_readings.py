@@ -171,3 +171,30 @@ def test_a_costed_reading_lengthens_each_exchange_by_its_four_chip_select_writes
     assert inside.width_ns.tolist() == [196_600] * 2 and costed.width_ns.tolist() == [196_800] * 2
     assert rising.width_ns.tolist() == costed.width_ns.tolist()
     assert (rising.start_ns - costed.start_ns).tolist() == [3_350] * 2  # 3.3 µs later, and DA_CS's write
+
+
+def test_timing_under_the_readings_runs_v12s_engine_not_the_walker(
+    tmp_path: Any, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``timing --cs-writes costed --dac-load cs_rise`` on v1.2: the budget and the logged events are the
+    engine's (the walker, v2's engine, is never asked)."""
+    from tactdeform_hw.emulator.firmware import firmware_scan
+
+    from .test_timing_cli import run_cli
+
+    def refuse(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError("the statement walker ran for v1.2")
+
+    for name in ("trace_scan", "budget", "scan_duration_us"):
+        monkeypatch.setattr(firmware_scan, name, refuse)
+    path = tmp_path / "v12.json"
+    argv = ["--cs-writes", "costed", "--dac-load", "cs_rise", "--pattern", "1,2,0,3", "--events", str(path)]
+    code, out, _ = run_cli([*argv, "--json"], capsys)
+    model = DEFAULT_MODEL.with_(cs_writes_costed=True, dac_load="cs_rise")
+    cfg = ScanConfig.make(4, [1, 2, 0, 3])
+    assert code == 0
+    assert json.loads(out) == {**firmware_budget(cfg, model).to_dict(), "traces": [str(path)]}
+    rows = json.loads(path.read_text())
+    events = firmware_trace(ScanEngine(model).template(cfg), model)
+    assert [(r["t_ns"], r["value"]) for r in rows] == [(e[0], e[3]) for e in events]
+    assert {r["name"] for r in rows} >= {"GPIO43", "GPIO44", "DAC"}
