@@ -360,6 +360,53 @@ class FirmwareBudget:
     conventions: dict[str, Any]
     notes: list[str]
 
+    @classmethod
+    def of_scan(
+        cls,
+        scan: ScanTrace,
+        *,
+        firmware: str,
+        stim_mode: int | None,
+        hv513_num: int,
+        period_us: float,
+        watchdog_us: float | None,
+        effective_width_us: float,
+        conventions: dict[str, Any],
+        mode_notes: Sequence[str] = (),
+    ) -> FirmwareBudget:
+        """The budget of one scan (its return, channel starts and clear start; events need not be logged)
+        against its period, by either version's engine: the verdict and the notes in the same words.
+        ``mode_notes`` go between the timing note and the chain's."""
+        end = scan.isr_return_us
+        starts = scan.channel_start_us + [scan.clear_start_us]
+        watchdog = watchdog_us is not None and end > watchdog_us
+        stride = max(end, period_us)
+        notes: list[str] = []
+        if watchdog:
+            notes.append(f"the scan exceeds the {watchdog_us:.0f} µs interrupt watchdog: the board reboots")
+        elif end > period_us:
+            notes.append(f"overrun by {end - period_us:.2f} µs: the next scan follows at once")
+        notes.extend(mode_notes)
+        notes.extend(beyond_chain_notes(len(scan.channel_start_us), hv513_num))
+        return cls(
+            firmware=firmware,
+            electrodes=len(scan.channel_start_us),
+            stim_mode=stim_mode,
+            per_channel_us=[round(b - a, 3) for a, b in zip(starts, starts[1:], strict=False)],
+            isr_entry_us=scan.timer_ops[0][0],
+            clear_us=round(end - scan.clear_start_us, 3),
+            scan_us=end,
+            period_us=period_us,
+            alarm_ticks=scan.alarm_ticks,
+            margin_us=round(period_us - end, 3),
+            overrun=end > period_us,
+            watchdog_reset=watchdog,
+            actual_rate_hz=0.0 if watchdog or stride == 0 else 1e6 / stride,
+            effective_width_us=effective_width_us,
+            conventions=conventions,
+            notes=notes,
+        )
+
     @property
     def verdict(self) -> str:
         return budget_verdict(self.overrun, self.watchdog_reset)
@@ -416,12 +463,6 @@ def budget(
     v2 only, as :func:`trace_scan` (v1.2's: :func:`~..records.reports.firmware_budget`)."""
     spec = _walked(firmware)
     tr = trace_scan(cfg, spec, conventions, log=False)
-    period = tr.alarm_ticks * conventions.timer_tick_ns / 1000
-    scan = tr.isr_return_us
-    starts = tr.channel_start_us + [tr.clear_start_us]
-    per = [round(b - a, 3) for a, b in zip(starts, starts[1:], strict=False)]
-    watchdog = scan > spec.timing.watchdog_us
-    stride = max(scan, period)
     width = cfg.sense_pulse_width if cfg.stim_mode == 2 else cfg.pulse_width
     wait = (
         spec.timing.delay_ticks(width - spec.timing.pulse_wait_offset_us) * conventions.timer_tick_ns / 1000
@@ -434,12 +475,6 @@ def budget(
         else 0.0
     )
     notes: list[str] = []
-    if watchdog:
-        notes.append(
-            f"the scan exceeds the {spec.timing.watchdog_us:.0f} µs interrupt watchdog: the board reboots"
-        )
-    elif scan > period:
-        notes.append(f"overrun by {scan - period:.2f} µs: the next scan follows at once")
     if cfg.stim_mode == 2 and cfg.electrode_num:
         notes.append(
             f"mode 2: every channel gets the sense pulse (code {cfg.sense_pulse_height}, "
@@ -451,22 +486,14 @@ def budget(
         and any(cfg.stim_pattern[: cfg.electrode_num])
     ):
         notes.append(f"pulse width {width} µs: the pulse is still one SPI exchange long")
-    notes.extend(beyond_chain_notes(cfg.electrode_num, cfg.hv513_num))
-    return FirmwareBudget(
+    return FirmwareBudget.of_scan(
+        tr,
         firmware=spec.name,
-        electrodes=cfg.electrode_num,
         stim_mode=cfg.stim_mode,
-        per_channel_us=per[: cfg.electrode_num],
-        isr_entry_us=conventions.isr_entry_ns / 1000,
-        clear_us=round(scan - tr.clear_start_us, 3),
-        scan_us=scan,
-        period_us=period,
-        alarm_ticks=tr.alarm_ticks,
-        margin_us=round(period - scan, 3),
-        overrun=scan > period,
-        watchdog_reset=watchdog,
-        actual_rate_hz=0.0 if watchdog or stride == 0 else 1e6 / stride,
+        hv513_num=cfg.hv513_num,
+        period_us=tr.alarm_ticks * conventions.timer_tick_ns / 1000,
+        watchdog_us=spec.timing.watchdog_us,
         effective_width_us=round(conventions.spi_exchange_ns / 1000 + cs_extra + wait, 3),
         conventions=conventions.describe(),
-        notes=notes,
+        mode_notes=notes,
     )

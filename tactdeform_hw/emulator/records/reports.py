@@ -14,7 +14,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from tactdeform_hw.emulator.firmware.firmware_scan import FirmwareBudget, beyond_chain_notes, budget_verdict
+from tactdeform_hw.emulator.firmware.firmware_scan import (
+    FirmwareBudget,
+    ScanTrace,
+    beyond_chain_notes,
+    budget_verdict,
+)
 from tactdeform_hw.emulator.firmware.scan import (
     ChannelKind,
     PulseArrays,
@@ -22,6 +27,7 @@ from tactdeform_hw.emulator.firmware.scan import (
     ScanConfig,
     ScanTemplate,
     channel_costs,
+    channel_offsets_ns,
     clear_clk_pulses,
     scan_duration_ns,
 )
@@ -477,47 +483,37 @@ def firmware_budget(cfg: ScanConfig, model: TimingModel = DEFAULT_MODEL) -> Firm
     The times are the v1.2 scan engine's closed-form costs, each rounded to the ns as a logged µs is.
     """
     costs = channel_costs(cfg, model)
-    n = cfg.electrode_num
-    per_ns = [costs.channel_ns(k) for k in cfg.kinds().tolist()]
-    clear_start = _us3(costs.entry_ns + sum(per_ns))
-    scan_ns = scan_duration_ns(cfg, model, 0)  # a fresh process's chain: the firmware's position 0
-    scan = _us3(scan_ns)
-    period = cfg.alarm_ticks * model.tick_ns / 1000
-    wd = model.watchdog_ns
-    watchdog = wd is not None and scan_ns > wd
-    stride = max(scan, period)
-    wait = model.pulse_wait_ns(cfg.pulse_width) / 1000
-    cs_extra = model.chip_select_writes * model.cs_write_ns / 1000
-    notes: list[str] = []
-    if watchdog:
-        notes.append(f"the scan exceeds the {model.watchdog_us:.0f} µs interrupt watchdog: the board reboots")
-    elif scan > period:
-        notes.append(f"overrun by {scan - period:.2f} µs: the next scan follows at once")
-    notes.extend(beyond_chain_notes(n, cfg.hv513_num))
-    return FirmwareBudget(
-        firmware=V1_2.name,
-        electrodes=n,
-        stim_mode=None,
-        per_channel_us=[_us3(c) for c in per_ns],
-        isr_entry_us=model.isr_entry_ns / 1000,
-        clear_us=round(scan - clear_start, 3),
-        scan_us=scan,
-        period_us=period,
+    starts, _ = channel_offsets_ns(cfg, model)
+    end = scan_duration_ns(cfg, model, 0)  # a fresh process's chain: the firmware's position 0
+    clear_start = costs.entry_ns + sum(costs.channel_ns(k) for k in cfg.kinds().tolist())
+    scan = ScanTrace(
+        isr_return_us=_us3(end),
+        timer_ops=[[_us3(model.isr_entry_ns), 1, "alarm_disable", 0], [_us3(end), 1, "alarm_enable", 0]],
         alarm_ticks=cfg.alarm_ticks,
-        margin_us=round(period - scan, 3),
-        overrun=scan > period,
-        watchdog_reset=watchdog,
-        actual_rate_hz=0.0 if watchdog or stride == 0 else 1e6 / stride,
-        effective_width_us=round(model.spi_ns / 1000 + cs_extra + wait, 3),
+        channel_start_us=[_us3(t) for t in starts.tolist()],
+        clear_start_us=_us3(clear_start),
+    )
+    cs_extra = model.chip_select_writes * model.cs_write_ns / 1000
+    readings = model.readings()
+    return FirmwareBudget.of_scan(
+        scan,
+        firmware=V1_2.name,
+        stim_mode=None,
+        hv513_num=cfg.hv513_num,
+        period_us=cfg.alarm_ticks * model.tick_ns / 1000,
+        watchdog_us=model.watchdog_us,
+        effective_width_us=round(
+            model.spi_ns / 1000 + cs_extra + model.pulse_wait_ns(cfg.pulse_width) / 1000, 3
+        ),
         conventions={
             "spi_exchange_us": model.spi_ns / 1000,
             "dac_change_at_us": model.dac_at_ns / 1000,
             "gpio_write_us": model.gpio_ns / 1000,
             "isr_entry_us": model.isr_entry_ns / 1000,
             "timer_tick_us": model.tick_ns / 1000,
-            **{k: v for k, v in model.readings().items() if k != "chip_select_writes"},
+            "cs_writes_costed": readings["cs_writes_costed"],
+            "dac_load": readings["dac_load"],
         },
-        notes=notes,
     )
 
 
