@@ -32,7 +32,8 @@ def reference_scan(
 ) -> ScanResult:
     """Step through one scan statement by statement.  Times are ns after the alarm."""
     mask = (1 << outputs) - 1
-    g, s, a, c = model.gpio_ns, model.spi_ns, model.dac_at_ns, model.adc_at_ns
+    # an exchange (``DAAD``) from its call: its length, its DAC change, its ADC sample
+    g, s, a, c = model.gpio_ns, model.exchange_ns, model.dac_in_exchange_ns, model.adc_in_exchange_ns
     ev: list[tuple[int, int, int]] = []
     pulses: list[tuple[Any, ...]] = []
     volts: dict[int, int] = {}

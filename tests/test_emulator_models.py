@@ -157,3 +157,53 @@ def test_the_url_handler_refuses_an_unknown_version_naming_the_choices() -> None
         serial.SerialException, match=r"in 'etactile://\?firmware=v3': firmware='v3' .*choices: v1\.2, v2"
     ):
         serial.serial_for_url("etactile://?firmware=v3", timeout=0.1)
+
+
+#: What running a scan takes from each version's scan engine module (the rest of a module, such as the
+#: engine's signal names, is vocabulary other models may share).
+SCAN_ENTRY_POINTS = {
+    "tactdeform_hw.emulator.firmware.scan": {"ScanEngine", "ScanVoltages", "firmware_trace"},
+    "tactdeform_hw.emulator.firmware.firmware_scan": {"trace_scan", "budget", "scan_duration_us"},
+}
+
+
+def _imported_names(module: str) -> set[tuple[str, str]]:
+    """(module, name) of every ``from module import name`` in ``module``'s source, deferred ones too."""
+    import ast
+    import importlib
+
+    source = importlib.import_module(module).__file__
+    assert source is not None
+    tree = ast.parse(open(source, encoding="utf-8").read())
+    return {
+        (node.module, alias.name)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.ImportFrom) and node.module
+        for alias in node.names
+    }
+
+
+def test_each_version_has_exactly_one_scan_engine() -> None:
+    """No two versions share a scan engine and every engine is some version's; the engine of one version
+    refuses another (the statement walker scans v2 alone)."""
+    from tactdeform_hw.emulator.firmware import firmware_scan
+
+    engines = [e.scan_module for e in ENTRIES]
+    assert len(set(engines)) == len(engines) and set(engines) == set(SCAN_ENTRY_POINTS)
+    for entry in ENTRIES:
+        if entry.scan_module == firmware_scan.__name__:
+            continue
+        cfg = firmware_scan.FirmwareScanConfig(1, [100], 200, 45)
+        for walk in (firmware_scan.trace_scan, firmware_scan.budget, firmware_scan.scan_duration_us):
+            with pytest.raises(
+                ConfigurationError, match=rf"firmware {entry.spec.name}: .* {entry.scan_module}"
+            ):
+                walk(cfg, entry.spec)
+
+
+@pytest.mark.parametrize("entry", ENTRIES, ids=IDS)
+def test_each_timed_model_scans_with_its_versions_engine_only(entry: ModelEntry) -> None:
+    imported = _imported_names(entry.timed_model.split(":")[0])
+    for module, entry_points in SCAN_ENTRY_POINTS.items():
+        used = {name for m, name in imported if m == module} & entry_points
+        assert bool(used) is (module == entry.scan_module), (module, used)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import random
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -199,9 +200,21 @@ def _rows(t: object) -> list[tuple[object, ...]]:
     ]
 
 
-def test_templates_are_identical_to_the_step_through_over_random_configurations() -> None:
+READINGS = [
+    {"cs_writes_costed": costed, "dac_load": load}
+    for costed in (False, True)
+    for load in ("mid_exchange", "cs_rise")
+]
+
+
+@pytest.mark.parametrize("reading", READINGS, ids=lambda r: f"{r['cs_writes_costed']}-{r['dac_load']}")
+def test_templates_are_identical_to_the_step_through_over_random_configurations(
+    reading: dict[str, Any],
+) -> None:
+    """Under every reading of the exchange (the default one drawn most)."""
+    model = MODEL.with_(**reading)
     rng = random.Random(4)
-    for _ in range(120):
+    for _ in range(120 if model == MODEL else 40):
         n = rng.choice([0, 1, 2, 4, 32, rng.randint(0, 255)])
         outputs = rng.choice([0, 8, 32, 64])
         mask = (1 << outputs) - 1
@@ -218,17 +231,17 @@ def test_templates_are_identical_to_the_step_through_over_random_configurations(
             bytes(rng.choice([0, 1, 2, 3, 255]) for _ in range(n)),
         )
         chain = ChainState(rng.randint(0, 40), rng.getrandbits(64) & mask, rng.getrandbits(64) & mask)
-        ref = reference_scan(cfg, chain, MODEL, outputs=outputs)
-        tmpl = ScanEngine(outputs=outputs).template(cfg, chain)
+        ref = reference_scan(cfg, chain, model, outputs=outputs)
+        tmpl = ScanEngine(model, outputs=outputs).template(cfg, chain)
         T, S, V = tmpl.events()
         assert list(zip(T.tolist(), S.tolist(), V.tolist())) == ref.events
-        assert tmpl.duration_ns == ref.duration_ns == scan_duration_ns(cfg, MODEL, chain.position)
+        assert tmpl.duration_ns == ref.duration_ns == scan_duration_ns(cfg, model, chain.position)
         assert tmpl.chain_end == ref.chain_end
         assert _rows(tmpl) == ref.pulses
         assert {i: int(v) for i, v in enumerate(tmpl.voltages)} == ref.voltages
         assert np.all(np.diff(T) >= 0)
         if n:
-            assert channel_offsets_ns(cfg, MODEL)[1].tolist() == tmpl.first_pulse_ns.tolist()
+            assert channel_offsets_ns(cfg, model)[1].tolist() == tmpl.first_pulse_ns.tolist()
 
 
 def test_a_run_of_scans_equals_stepping_each_scan_from_the_previous_chain_state() -> None:
@@ -293,11 +306,13 @@ def test_channels_beyond_the_chain_reach_no_electrode() -> None:
 
 def test_both_budgets_name_channels_beyond_the_chain_in_the_same_note() -> None:
     from tactdeform_hw.emulator.firmware.firmware_scan import FirmwareScanConfig, budget
+    from tactdeform_hw.emulator.records.reports import firmware_budget
 
     note = "channels 32..39 lie beyond the 4 HV513 chip(s)"
     closed_form = Budget.of(ScanConfig.make(40, 1, hv513_num=4), MODEL, 125)
-    walker = budget(FirmwareScanConfig(40, [1] * 40, pulse_width=200, discharge_time=45, hv513_num=4), "v1.2")
-    assert note in closed_form.notes and note in walker.notes
+    logged = firmware_budget(ScanConfig.make(40, 1, hv513_num=4), MODEL.with_(cs_writes_costed=True))
+    walker = budget(FirmwareScanConfig(40, [100] * 40, pulse_width=200, discharge_time=45, hv513_num=4), "v2")
+    assert note in closed_form.notes and note in logged.notes and note in walker.notes
     within = Budget.of(ScanConfig.make(32, 1, hv513_num=4), MODEL, 125)
     assert not any("beyond" in n for n in within.notes)
 

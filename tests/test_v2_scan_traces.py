@@ -1,8 +1,11 @@
-"""Both firmware versions' scan interrupts against the firmware's own code built on a host."""
+"""Both firmware versions' scan interrupts against the firmware's own code built on a host, each version
+by its one scan engine: v2 by the statement walker, v1.2 by its compiled engine (``scan.py``, held to the
+same traces under every reading in ``test_scan_engine_readings.py``)."""
 
 from __future__ import annotations
 
 import json
+from typing import Any
 
 import pytest
 
@@ -12,11 +15,14 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
     HOST_BUILD,
     FirmwareScanConfig,
     ScanConventions,
+    ScanTrace,
     scan_duration_us,
     trace_scan,
 )
+from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL
 
 from .conftest import DATA
+from .test_scan_engine_readings import LoopBack, logged, scan, scan_config
 
 TRACES = {
     fw: [json.loads(line) for line in (DATA / name).read_text().splitlines() if line.strip()]
@@ -41,6 +47,37 @@ def _conventions(golden: dict) -> ScanConventions:
     )
 
 
+def _v12_scan(config: dict[str, Any], conventions: ScanConventions) -> ScanTrace:
+    """v1.2's engine under the same readings, its scan as the walker's trace would hold it."""
+    model = DEFAULT_MODEL.with_(cs_writes_costed=conventions.cs_writes_costed, dac_load=conventions.dac_load)
+    tmpl = scan(config, model, LoopBack())
+    return ScanTrace(
+        events=logged(tmpl, model),
+        isr_return_us=round(tmpl.duration_ns / 1000, 3),
+        voltage=tmpl.voltages.tolist(),
+        timer_ops=[
+            [round(model.isr_entry_ns / 1000, 3), 1, "alarm_disable", 0],
+            [round(tmpl.duration_ns / 1000, 3), 1, "alarm_enable", 0],
+        ],
+        alarm_ticks=tmpl.config.alarm_ticks,
+    )
+
+
+def _scan(
+    firmware: str, config: dict[str, Any], conventions: ScanConventions = DEFAULT_CONVENTIONS
+) -> ScanTrace:
+    """One logged scan by the version's own scan engine."""
+    if firmware == "v1.2":
+        return _v12_scan(config, conventions)
+    return trace_scan(FirmwareScanConfig.from_dict(config), firmware, conventions)
+
+
+def _duration_us(
+    firmware: str, config: dict[str, Any], conventions: ScanConventions = DEFAULT_CONVENTIONS
+) -> float:
+    return _scan(firmware, config, conventions).isr_return_us
+
+
 @pytest.mark.parametrize(
     ("firmware", "index"), CASES, ids=[f"{fw}-{TRACES[fw][i]['name']}" for fw, i in CASES]
 )
@@ -48,7 +85,7 @@ def test_scan_trace_matches_the_firmware(firmware: str, index: int) -> None:
     """Every event in order and value, the return time, the voltages, the timer operations."""
     golden = TRACES[firmware][index]
     assert _conventions(golden) == HOST_BUILD
-    got = trace_scan(FirmwareScanConfig.from_dict(golden["config"]), firmware, HOST_BUILD)
+    got = _scan(firmware, golden["config"], HOST_BUILD)
     assert len(got.events) == len(golden["events"])
     for k, (a, b) in enumerate(zip(got.events, golden["events"], strict=True)):
         assert a == b, f"event {k}"
@@ -58,35 +95,34 @@ def test_scan_trace_matches_the_firmware(firmware: str, index: int) -> None:
     assert got.alarm_ticks == golden["alarm_ticks"]
 
 
-def _tactdeform(firmware: str) -> FirmwareScanConfig:
+def _tactdeform(firmware: str) -> dict[str, Any]:
     golden = TRACES[firmware][0]
     assert golden["name"].startswith("tactdeform_32mono")
-    return FirmwareScanConfig.from_dict(golden["config"])
+    return dict(golden["config"])
 
 
 def test_chip_select_readings() -> None:
     """The protocol notes' figures: 7869.45 / 7850.25 µs on v1.2; v2 7645.45 µs with the writes costed.
     The package's default reading counts them inside the exchange."""
     assert DEFAULT_CONVENTIONS == ScanConventions(cs_writes_costed=False)
-    assert scan_duration_us(_tactdeform("v1.2"), "v1.2", HOST_BUILD) == 7869.45
-    assert scan_duration_us(_tactdeform("v1.2"), "v1.2") == 7850.25
-    assert scan_duration_us(_tactdeform("v2"), "v2", HOST_BUILD) == 7645.45
-    assert scan_duration_us(_tactdeform("v2"), "v2") == 7639.05
+    assert _duration_us("v1.2", _tactdeform("v1.2"), HOST_BUILD) == 7869.45
+    assert _duration_us("v1.2", _tactdeform("v1.2")) == 7850.25
+    assert scan_duration_us(FirmwareScanConfig.from_dict(_tactdeform("v2")), "v2", HOST_BUILD) == 7645.45
+    assert scan_duration_us(FirmwareScanConfig.from_dict(_tactdeform("v2")), "v2") == 7639.05
 
 
 def test_discharge_50_fits_on_v2_only() -> None:
-    from dataclasses import replace
-
-    v12 = replace(_tactdeform("v1.2"), discharge_time=50)
-    v2 = replace(_tactdeform("v2"), discharge_time=50)
-    assert scan_duration_us(v2, "v2", HOST_BUILD) == 7805.45 < 8000
-    assert scan_duration_us(v12, "v1.2", ScanConventions(cs_writes_costed=False)) > 8000
+    v12 = {**_tactdeform("v1.2"), "discharge_time": 50}
+    v2 = {**_tactdeform("v2"), "discharge_time": 50}
+    assert _duration_us("v2", v2, HOST_BUILD) == 7805.45 < 8000
+    assert _duration_us("v1.2", v12, ScanConventions(cs_writes_costed=False)) > 8000
 
 
-def test_dac_load_at_cs_rise_moves_every_dac_edge_not_the_widths() -> None:
-    cfg = _tactdeform("v2")
-    mid = trace_scan(cfg, "v2", HOST_BUILD)
-    rise = trace_scan(cfg, "v2", ScanConventions(cs_writes_costed=True, dac_load="cs_rise"))
+@pytest.mark.parametrize("firmware", ["v1.2", "v2"])
+def test_dac_load_at_cs_rise_moves_every_dac_edge_not_the_widths(firmware: str) -> None:
+    cfg = _tactdeform(firmware)
+    mid = _scan(firmware, cfg, HOST_BUILD)
+    rise = _scan(firmware, cfg, ScanConventions(cs_writes_costed=True, dac_load="cs_rise"))
     dac_mid = [e for e in mid.events if e[1] == "DAC"]
     dac_rise = [e for e in rise.events if e[1] == "DAC"]
     assert [e[3] for e in dac_mid] == [e[3] for e in dac_rise]
@@ -102,7 +138,7 @@ def test_each_v2_channel_is_one_exchange_shorter() -> None:
     v12 = _tactdeform("v1.2")
     v2 = _tactdeform("v2")
     inside = ScanConventions(cs_writes_costed=False)
-    diff = scan_duration_us(v12, "v1.2", inside) - scan_duration_us(v2, "v2", inside)
+    diff = _duration_us("v1.2", v12, inside) - _duration_us("v2", v2, inside)
     assert round(diff / 32, 3) == 6.6
 
 
@@ -112,38 +148,28 @@ def test_v2_biphasic_first_phase_follows_polarity() -> None:
         cfg = FirmwareScanConfig(1, [100], 20, 10, polarity=pol, stim_mode=1)
         pols = [e[3] for e in trace_scan(cfg, "v2").events if e[1] == "GPIO" and e[2] == 3]
         assert pols[:2] == levels and pols[2] == 1  # then the discharge's POL high
-    v12 = FirmwareScanConfig(1, [2], 20, 10, polarity=0, pulse_height=100)
-    pols = [e[3] for e in trace_scan(v12, "v1.2").events if e[1] == "GPIO" and e[2] == 3]
+    v12 = {"electrode_num": 1, "stim_pattern": [2], "pulse_width": 20, "discharge_time": 10, "polarity": 0,
+           "pulse_height": 100, "hv513_num": 4}  # fmt: skip
+    pols = [e[3] for e in _scan("v1.2", v12).events if e[1] == "GPIO" and e[2] == 3]
     assert pols[:3] == [0, 1, 0]
 
 
-def test_the_v12_scan_engine_agrees_with_the_golden_traces() -> None:
-    """The timed model's step-through (which does not log chip selects and counts them inside the
-    exchange, the package's default reading) gives the golden order and values, pins for pins."""
-    from tactdeform_hw.emulator.firmware.scan import POWER_ON_CHAIN, ScanConfig, Signal
+def test_the_v12_step_through_agrees_with_the_golden_traces() -> None:
+    """The scan engine's test oracle, the statement-by-statement step-through (which does not log chip
+    selects), gives the golden order and values, pins for pins, under the host build's reading."""
+    from tactdeform_hw.emulator.firmware.scan import POWER_ON_CHAIN, Signal
 
     from .scan_reference import reference_scan
 
     pins = {Signal.BL: 1, Signal.LE: 2, Signal.POL: 3, Signal.CLK: 4, Signal.DIN: 5}
-    inside = ScanConventions(cs_writes_costed=False)
+    model = DEFAULT_MODEL.with_(cs_writes_costed=True)
     for golden in TRACES["v1.2"]:
         c = golden["config"]
-        cfg = ScanConfig(
-            c["electrode_num"],
-            c["polarity"],
-            c["pulse_height"],
-            c["pulse_width"],
-            c["sense_pulse_height"],
-            c["sense_pulse_width"],
-            c["discharge_time"],
-            golden["alarm_ticks"],
-            c["hv513_num"],
-            bytes(c["stim_pattern"]),
-        )
+        cfg = scan_config(c)
         chain = POWER_ON_CHAIN
         for _ in range(c["prior_scans"]):
-            chain = reference_scan(cfg, chain).chain_end
-        res = reference_scan(cfg, chain)
+            chain = reference_scan(cfg, chain, model).chain_end
+        res = reference_scan(cfg, chain, model)
         ours = [
             [round(t / 1000, 3), "DAC", "DAC", v]
             if sig == Signal.DAC
@@ -151,20 +177,24 @@ def test_the_v12_scan_engine_agrees_with_the_golden_traces() -> None:
             for t, sig, v in res.events
             if sig in pins or sig == Signal.DAC
         ]
-        walker = trace_scan(FirmwareScanConfig.from_dict(c), "v1.2", inside)
-        expected = [e for e in walker.events if not (e[1] == "GPIO" and e[2] in (43, 44))]
+        expected = [e for e in golden["events"] if not (e[1] == "GPIO" and e[2] in (43, 44))]
         assert ours == expected, golden["name"]
-        assert round(res.duration_ns / 1000, 3) == walker.isr_return_us
+        assert round(res.duration_ns / 1000, 3) == golden["isr_return_us"]
 
 
 def test_budget_widths_match_the_traces() -> None:
     """The budget's effective width is DAC edge to DAC edge in the golden trace, on both versions."""
     from tactdeform_hw.emulator.firmware.firmware_scan import budget
+    from tactdeform_hw.emulator.records.reports import firmware_budget
 
     for firmware in ("v1.2", "v2"):
         golden = TRACES[firmware][0]
         dac = [e[0] for e in golden["events"] if e[1] == "DAC"]
-        b = budget(FirmwareScanConfig.from_dict(golden["config"]), firmware, HOST_BUILD)
+        b = (
+            firmware_budget(scan_config(golden["config"]), DEFAULT_MODEL.with_(cs_writes_costed=True))
+            if firmware == "v1.2"
+            else budget(FirmwareScanConfig.from_dict(golden["config"]), firmware, HOST_BUILD)
+        )
         assert b.effective_width_us == round(dac[1] - dac[0], 3)
         assert b.scan_us == golden["isr_return_us"] and b.verdict == "fits"
         assert len(b.per_channel_us) == 32 and sum(

@@ -17,8 +17,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from tactdeform_hw.emulator import Emulator  # noqa: E402
 from tactdeform_hw.emulator.firmware.firmware_scan import HOST_BUILD, FirmwareScanConfig, budget  # noqa: E402
 from tactdeform_hw.emulator.firmware.scan import ScanConfig  # noqa: E402
+from tactdeform_hw.emulator.records.reports import firmware_budget  # noqa: E402
 from tactdeform_hw.emulator.timed.model_v1_2 import pattern_latency  # noqa: E402
 from tactdeform_hw.emulator.timed.model_v2 import pattern_in_force_v2  # noqa: E402
+from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL  # noqa: E402
 
 GOLDEN = Path(__file__).resolve().parents[1] / "tests" / "data" / "protocol_vectors_v2.jsonl"
 
@@ -46,17 +48,20 @@ def vectors_matched() -> dict[str, int]:
 
 
 def budgets() -> dict[str, dict[str, float]]:
-    out: dict[str, dict[str, float]] = {}
-    for fw, pattern, extra in (("v1.2", [1] * 32, {"pulse_height": 100}), ("v2", [100] * 32, {})):
-        for reading, conv in (("cs inside", None), ("cs costed", HOST_BUILD)):
-            cfg = FirmwareScanConfig(32, pattern, 200, 45, frequency_hz=125, **extra)  # type: ignore[arg-type]
-            b = budget(cfg, fw) if conv is None else budget(cfg, fw, conv)
-            out[f"{fw} {reading}"] = {
-                "scan_us": b.scan_us,
-                "per_channel_us": b.per_channel_us[0],
-                "margin_us": b.margin_us,
-            }
-    return out
+    """The TactDeform setting on each version, by its own scan engine, with the chip-select writes inside
+    the exchange and costed apart."""
+    v12 = ScanConfig.make(32, 1, pulse_width_us=200, pulse_height=100, discharge_us=45, rate_hz=125)
+    v2 = FirmwareScanConfig(32, [100] * 32, 200, 45, frequency_hz=125)
+    both = {
+        "v1.2 cs inside": firmware_budget(v12, DEFAULT_MODEL),
+        "v1.2 cs costed": firmware_budget(v12, DEFAULT_MODEL.with_(cs_writes_costed=True)),
+        "v2 cs inside": budget(v2, "v2"),
+        "v2 cs costed": budget(v2, "v2", HOST_BUILD),
+    }
+    return {
+        name: {"scan_us": b.scan_us, "per_channel_us": b.per_channel_us[0], "margin_us": b.margin_us}
+        for name, b in both.items()
+    }
 
 
 def latencies(phases: int) -> dict[str, dict[str, dict[str, float]]]:

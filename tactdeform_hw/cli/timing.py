@@ -449,39 +449,21 @@ def v2_config_from_args(args: argparse.Namespace) -> Any:
     )
 
 
-def _run_walker(args: argparse.Namespace) -> int:
-    """v2, or either version under the chip-select / DAC-load options: the statement walker's budget."""
-    from tactdeform_hw.emulator.firmware.firmware_scan import FirmwareScanConfig, budget, trace_scan
-
-    conv = conventions_from_args(args)
-    if args.firmware == "v2":
-        cfg = v2_config_from_args(args)
-    else:
-        v12 = config_from_args(args)
-        cfg = FirmwareScanConfig(
-            electrode_num=v12.electrode_num,
-            stim_pattern=list(v12.pattern),
-            pulse_width=v12.pulse_width,
-            discharge_time=v12.discharge_time,
-            polarity=v12.polarity,
-            hv513_num=v12.hv513_num,
-            sense_pulse_height=v12.sense_pulse_height,
-            sense_pulse_width=v12.sense_pulse_width,
-            pulse_height=v12.pulse_height,
-            frequency_hz=args.frequency,
-        )
+def _refuse_default_only(args: argparse.Namespace) -> None:
+    """``--latency``, ``--vcd`` and ``--png`` are drawn from v1.2's timed model under the default readings."""
     for flag in ("latency", "vcd", "png"):
         if getattr(args, flag):
             raise ConfigurationError(
                 f"--{flag} models v1.2 with the timing model's defaults; it does not take "
                 f"--firmware v2, --cs-writes costed or --dac-load cs_rise"
             )
-    b = budget(cfg, args.firmware, conv)
+
+
+def _print_firmware_budget(args: argparse.Namespace, b: Any, events: list[list[Any]] | None) -> int:
+    """A budget in the firmware's scan-log terms, and ``--events`` from the scan's logged events."""
     result = b.to_dict()
-    if args.events:
-        fmt = _events_format(args.events)
-        tr = trace_scan(cfg, args.firmware, conv)
-        _write_walker_events(Path(args.events), fmt, tr.events)
+    if events is not None:
+        _write_logged_events(Path(args.events), _events_format(args.events), events)
         result["traces"] = [args.events]
     if args.json:
         print_json(result)
@@ -492,10 +474,40 @@ def _run_walker(args: argparse.Namespace) -> int:
     return 0
 
 
-def walker_event_rows(events: list[list[Any]]) -> list[dict[str, Any]]:
-    """The statement walker's ``[time_us, kind, pin, value]`` events in the format ``--events`` writes
-    on both versions: ``{"t_ns", "t_us", "kind", "name", "value"}``, as the v1.2 trace's rows are (kind
-    ``gpio`` with name ``GPIO<n>``, or ``dac`` with name ``DAC``), so one reader takes either."""
+def _run_v2(args: argparse.Namespace) -> int:
+    """v2: the budget and events of firmware v2's scan engine, the statement walker."""
+    from tactdeform_hw.emulator.firmware.firmware_scan import budget, trace_scan
+
+    conv = conventions_from_args(args)
+    cfg = v2_config_from_args(args)
+    _refuse_default_only(args)
+    b = budget(cfg, args.firmware, conv)
+    events = trace_scan(cfg, args.firmware, conv).events if args.events else None
+    return _print_firmware_budget(args, b, events)
+
+
+def _run_v1_2_readings(args: argparse.Namespace, model: Any) -> int:
+    """v1.2 under ``--cs-writes costed`` or ``--dac-load cs_rise``: v1.2's scan engine timed under those
+    readings, its budget and events in the firmware's scan-log terms (chip selects included)."""
+    from tactdeform_hw.emulator.firmware.scan import ScanEngine, firmware_trace
+    from tactdeform_hw.emulator.records.reports import firmware_budget
+
+    cfg = config_from_args(args)
+    _refuse_default_only(args)
+    b = firmware_budget(cfg, model)
+    events = None
+    if args.events:
+        _events_format(args.events)  # a bad file name is refused before any work
+        scan = ScanEngine(model).template(cfg)
+        events = [[round(e[0] / 1000, 3), *e[1:]] for e in firmware_trace(scan, model)]
+    return _print_firmware_budget(args, b, events)
+
+
+def logged_event_rows(events: list[list[Any]]) -> list[dict[str, Any]]:
+    """A scan log's ``[time_us, kind, pin, value]`` events (either version's scan engine, as the firmware's
+    own code logs them) in the format ``--events`` writes on both versions: ``{"t_ns", "t_us", "kind",
+    "name", "value"}``, as the v1.2 trace's rows are (kind ``gpio`` with name ``GPIO<n>``, or ``dac`` with
+    name ``DAC``), so one reader takes either."""
     rows = []
     for t_us, kind, pin, value in events:
         t_ns = round(float(t_us) * 1000)
@@ -506,10 +518,10 @@ def walker_event_rows(events: list[list[Any]]) -> list[dict[str, Any]]:
     return rows
 
 
-def _write_walker_events(path: Path, fmt: str, events: list[list[Any]]) -> None:
+def _write_logged_events(path: Path, fmt: str, events: list[list[Any]]) -> None:
     import json
 
-    rows = walker_event_rows(events)
+    rows = logged_event_rows(events)
     with writing("--events", path):
         if fmt == "json":
             path.write_text("[\n" + ",\n".join(json.dumps(r) for r in rows) + ("\n]\n" if rows else "]\n"))
@@ -534,8 +546,12 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.firmware_src is not None:
         return _run_host_build(args, model)
-    if args.firmware == "v2" or args.cs_writes == "costed" or args.dac_load != "mid_exchange":
-        return _run_walker(args)
+    if args.firmware == "v2":
+        return _run_v2(args)
+    if args.cs_writes == "costed" or args.dac_load != "mid_exchange":
+        return _run_v1_2_readings(
+            args, model.with_(cs_writes_costed=args.cs_writes == "costed", dac_load=args.dac_load)
+        )
     if args.mode is not None:
         raise ConfigurationError(
             f"--mode {args.mode}: v1.2 has no stimulation mode (the pattern byte picks the "

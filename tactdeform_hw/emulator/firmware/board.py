@@ -9,6 +9,10 @@ from tactdeform_hw.protocol import firmware_math as fm
 
 BOARD_KINDS = ("compact", "large")
 
+#: The controller's pins as the firmware names them (configuration.h, both versions): the HV513 chain's
+#: BL, LE, POL, CLK and DIN, and the chip selects of the ADC and the DAC.
+BL, LE, POL, CLK, DIN, AD_CS, DA_CS = 1, 2, 3, 4, 5, 43, 44
+
 
 @dataclass
 class Board:

@@ -1,16 +1,11 @@
-"""The scan interrupt of each firmware version, statement by statement, chip-select pins included.
+"""Firmware v2's scan interrupt, statement by statement, chip-select pins included: v2's scan engine.
 
 This is the conformance walker: it produces the same event log as the firmware's own interrupt code
-built on a host (``tests/data/scan_traces_v12.jsonl`` and ``scan_traces_v2.jsonl``), in the same order
-and with the same values, for v1.2 (936c6c08) and v2 (71adee21).  The differences it carries:
-
-* v1.2 reads its parameters live and picks the waveform per channel from the pattern byte (1 mono,
-  2 biphasic anodic first, else a sense pulse); its discharge starts with one more DAC/ADC exchange.
-* v2 snapshots its parameters at scan start; the pattern is a DAC code per channel and a global mode
-  picks the waveform (0 mono, 1 biphasic with the first phase at the configured polarity, 2 the sense
-  pulse on every channel, pattern ignored); its discharge has no exchange.
-* every exchange is wrapped in chip-select writes: v1.2 lowers DA_CS then AD_CS (two writes) and raises
-  them the same way; v2 sets both in one register write.
+built on a host (``tests/data/scan_traces_v2.jsonl``), in the same order and with the same values, for
+v2 (71adee21): parameters snapshotted at scan start; the pattern is a DAC code per channel and a global
+mode picks the waveform (0 mono, 1 biphasic with the first phase at the configured polarity, 2 the sense
+pulse on every channel, pattern ignored); the discharge has no exchange; every exchange is wrapped in
+chip-select writes, both pins set in one register write.
 
 Two readings the firmware's code leaves open are options of :class:`ScanConventions`:
 ``cs_writes_costed`` (whether the 6.6 µs exchange excludes the chip-select writes, as the host build
@@ -18,10 +13,9 @@ costs them, or includes them) and ``dac_load`` (the DAC output changes 3.3 µs i
 firmware comment, or when DA_CS rises, as the converter's datasheet has it).  Times are kept in integer
 nanoseconds and reported in µs.
 
-This walker is the scan of each version; the v2 timed model runs it (its scan shapes cached per
-configuration).  The v1.2 timed model runs :mod:`.scan`, the same interrupt compiled into cached
-templates (and the skin and physical chain added); ``tests/test_scan_engine_vs_walker.py`` holds that
-engine to this walker event for event, so this walker stays the one definition of v1.2's scan.
+One scan engine per firmware version (:data:`~.models.MODELS` names each version's): the v2 timed model
+and ``timing --firmware v2`` run this walker (its scan shapes cached per configuration); v1.2 has its own,
+:mod:`.scan`, held to v1.2's firmware traces under the same readings, and this walker refuses v1.2.
 """
 
 from __future__ import annotations
@@ -30,15 +24,37 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from tactdeform_hw.emulator.firmware.board import AD_CS, BL, CLK, DA_CS, DIN, LE, POL
+from tactdeform_hw.emulator.firmware.models import model_entry
+from tactdeform_hw.emulator.timed.timing import DAC_LOADS
 from tactdeform_hw.errors import ConfigurationError
 from tactdeform_hw.protocol import firmware_math as fm
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513, POWER_ON_PERIOD_US
 from tactdeform_hw.protocol.firmware import FirmwareSpec, get_firmware
 
-# Pin numbers (configuration.h, both versions)
-BL, LE, POL, CLK, DIN, AD_CS, DA_CS = 1, 2, 3, 4, 5, 43, 44
-
-DAC_LOADS = ("mid_exchange", "cs_rise")
+__all__ = [
+    "AD_CS",
+    "BL",
+    "CLK",
+    "DAC_LOADS",
+    "DA_CS",
+    "DEFAULT_CONVENTIONS",
+    "DIN",
+    "HOST_BUILD",
+    "LE",
+    "MODE_NAMES",
+    "POL",
+    "FirmwareBudget",
+    "FirmwareScanConfig",
+    "ScanConventions",
+    "ScanTrace",
+    "alarm_ticks_for",
+    "beyond_chain_notes",
+    "budget",
+    "budget_verdict",
+    "scan_duration_us",
+    "trace_scan",
+]
 
 
 @dataclass(frozen=True)
@@ -46,9 +62,9 @@ class ScanConventions:
     """The timing conventions of a scan trace.
 
     The defaults are the host build's ``shim`` except ``cs_writes_costed``: the package reads the
-    firmware's "DAAD takes 6.6 µs" as the whole call, chip selects included (the protocol reference's
-    worked figure, 7850.25 µs for the TactDeform setting on v1.2); :data:`HOST_BUILD` costs them apart
-    as the host build does (7869.45 µs)."""
+    firmware's "DAAD takes 6.6 µs" as the whole call, chip selects included (7639.05 µs for the
+    TactDeform setting on v2); :data:`HOST_BUILD` costs them apart as the host build does (7645.45 µs).
+    v1.2's engine takes the same two readings from its timing model."""
 
     spi_exchange_ns: int = 6600
     dac_change_at_ns: int = 3300
@@ -80,10 +96,10 @@ HOST_BUILD = ScanConventions(cs_writes_costed=True)
 
 @dataclass(frozen=True)
 class FirmwareScanConfig:
-    """What a scan reads from the firmware's variables, with the golden files' names.
+    """What a v2 scan reads from the firmware's variables, with the golden files' names.
 
-    ``stim_pattern`` holds pattern bytes on v1.2 and DAC codes on v2; ``pulse_height`` is v1.2 only and
-    ``stim_mode`` v2 only.  ``frequency_hz`` None means no 0xF6 ever arrived (power-on period)."""
+    ``stim_pattern`` holds a DAC code per channel and ``stim_mode`` picks the waveform.  ``frequency_hz``
+    None means no 0xF6 ever arrived (power-on period)."""
 
     electrode_num: int
     stim_pattern: Sequence[int]
@@ -93,7 +109,6 @@ class FirmwareScanConfig:
     hv513_num: int = 4
     sense_pulse_height: int = 0
     sense_pulse_width: int = 0
-    pulse_height: int = 0
     stim_mode: int = 0
     frequency_hz: int | None = None
     prior_scans: int = 0
@@ -122,13 +137,12 @@ class ScanTrace:
         return self.isr_return_us
 
 
-def alarm_ticks_for(firmware: str | FirmwareSpec, frequency_hz: int | None) -> int:
-    """The Timer1 alarm the parser's 0xF6 statements leave (power-on 20000 when never set)."""
+def alarm_ticks_for(frequency_hz: int | None) -> int:
+    """The Timer1 alarm v2's parser leaves for 0xF6 (it divides in double; power-on 20000 when never
+    set)."""
     if not frequency_hz:
         return fm.alarm_ticks(POWER_ON_PERIOD_US)
-    double = get_firmware(firmware).command_timeout_us is not None  # v2's parser divides in double
-    period = fm.period_us_from_rate_double(frequency_hz) if double else fm.period_us_from_rate(frequency_hz)
-    return fm.alarm_ticks(period)
+    return fm.alarm_ticks(fm.period_us_from_rate_double(frequency_hz))
 
 
 def _ns_to_us(ns: int) -> float:
@@ -140,8 +154,6 @@ class _Walker:
         #: a time of the walk (integer ns) as the trace gives it: µs to the ns, or the ns themselves
         self.us: Callable[[int], float] = int if times_ns else _ns_to_us
         self.spec = spec
-        #: one register write per pin (v1.2: DA_CS then AD_CS) or one for both (v2), from the table
-        self.cs_one_write = spec.timing.chip_select_writes_per_exchange == 2
         self.c = conv
         self.log = log
         self.t = 0
@@ -158,17 +170,13 @@ class _Walker:
                 self.ev.append([self.us(self.t), "GPIO", pin, level])
 
     def _cs(self, level: int) -> None:
-        if self.cs_one_write:
-            self.gpio((AD_CS, level), (DA_CS, level))
-        else:
-            self.gpio((DA_CS, level))
-            self.gpio((AD_CS, level))
+        """Both chip selects in one register write."""
+        self.gpio((AD_CS, level), (DA_CS, level))
 
     def _cs_free(self, level: int) -> None:
         """Chip-select events inside the exchange's own time (the other reading)."""
         if self.log:
-            pins = [AD_CS, DA_CS] if self.cs_one_write else [DA_CS, AD_CS]
-            for pin in pins:
+            for pin in (AD_CS, DA_CS):
                 self.ev.append([self.us(self.t), "GPIO", pin, level])
 
     def exchange(self, code: int) -> int:
@@ -184,27 +192,15 @@ class _Walker:
         if c.dac_load == "mid_exchange" and self.log:
             self.ev.append([self.us(t0 + c.dac_change_at_ns), "DAC", "DAC", code])
         if c.cs_writes_costed:
-            if c.dac_load == "cs_rise":
-                self._cs_rise_with_dac(code)
-            else:
-                self._cs(1)
+            self._cs(1)
+            if c.dac_load == "cs_rise" and self.log:
+                self.ev.append([self.us(self.t), "DAC", "DAC", code])
         else:
             if c.dac_load == "cs_rise" and self.log:
                 self.ev.append([self.us(self.t), "DAC", "DAC", code])
             self._cs_free(1)
         self.dac = code
         return reading
-
-    def _cs_rise_with_dac(self, code: int) -> None:
-        if self.cs_one_write:
-            self.gpio((AD_CS, 1), (DA_CS, 1))
-            if self.log:
-                self.ev.append([self.us(self.t), "DAC", "DAC", code])
-        else:
-            self.gpio((DA_CS, 1))
-            if self.log:
-                self.ev.append([self.us(self.t), "DAC", "DAC", code])
-            self.gpio((AD_CS, 1))
 
     def delay(self, us: int) -> None:
         """``delay_exact_us``: minimum 3, then ``int(us * 2.0 - 5.4)`` ticks of the busy-wait timer."""
@@ -241,12 +237,13 @@ def trace_scan(
     log: bool = True,
     times_ns: bool = False,
 ) -> ScanTrace:
-    """One interrupt (after ``cfg.prior_scans`` unlogged ones), from a fresh process's chain state.
+    """One v2 interrupt (after ``cfg.prior_scans`` unlogged ones), from a fresh process's chain state.
 
+    ``firmware`` must be one this walker is the scan engine of (v2; v1.2's is :mod:`.scan`).
     ``times_ns``: every time in the trace (events, return, channel starts) as the integer ns the walk
     keeps, not in µs (each µs value is that ns / 1000 to the ns, so nothing else differs) -- for a model
     that works in ns and would only multiply back."""
-    spec = get_firmware(firmware)
+    spec = _walked(firmware)
     w = _Walker(spec, conventions, log=False, times_ns=times_ns)
     volts: list[int] = []
     for k in range(cfg.prior_scans + 1):
@@ -263,16 +260,26 @@ def trace_scan(
             [w.us(conventions.isr_entry_ns), 1, "alarm_disable", 0],
             [w.us(end), 1, "alarm_enable", 0],
         ],
-        alarm_ticks=alarm_ticks_for(spec.name, cfg.frequency_hz),
+        alarm_ticks=alarm_ticks_for(cfg.frequency_hz),
         chain_position=w.pos,
         channel_start_us=[w.us(t) for t in w.marks[:-1]],
         clear_start_us=w.us(w.marks[-1]),
     )
 
 
+def _walked(firmware: str | FirmwareSpec) -> FirmwareSpec:
+    """The version's table, if this walker is its scan engine (the registry says which engine is)."""
+    spec = get_firmware(firmware)
+    engine = model_entry(spec).scan_module
+    if engine != __name__:
+        raise ConfigurationError(
+            f"firmware {spec.name}: its scan engine is {engine}; the statement walker scans v2 only"
+        )
+    return spec
+
+
 def _isr(w: _Walker, cfg: FirmwareScanConfig, spec: FirmwareSpec) -> list[int]:
-    """The handler: v2's global mode when the version has one, v1.2's per-channel pattern byte else."""
-    moded = "stim_mode" in spec.power_on
+    """The handler: the global mode picks each channel's waveform; the pattern holds its DAC code."""
     n = cfg.electrode_num
     volts = [0] * n
     pol = cfg.polarity
@@ -282,28 +289,15 @@ def _isr(w: _Walker, cfg: FirmwareScanConfig, spec: FirmwareSpec) -> list[int]:
         w.select(ch)
         w.gpio((POL, 1 if pol else 0))
         value = cfg.stim_pattern[ch]
-        if moded:
-            if cfg.stim_mode == 0:
-                ad = w.mono(value, cfg.pulse_width)
-            elif cfg.stim_mode == 1:
-                w.mono(value, cfg.pulse_width)
-                w.gpio((POL, 1 if pol == 0 else 0))
-                ad = w.mono(value, cfg.pulse_width)
-            else:
-                ad = w.mono(cfg.sense_pulse_height, cfg.sense_pulse_width)
+        if cfg.stim_mode == 0:
+            ad = w.mono(value, cfg.pulse_width)
+        elif cfg.stim_mode == 1:
+            w.mono(value, cfg.pulse_width)
+            w.gpio((POL, 1 if pol == 0 else 0))
+            ad = w.mono(value, cfg.pulse_width)
         else:
-            if value == 1:
-                ad = w.mono(cfg.pulse_height, cfg.pulse_width)
-            elif value == 2:
-                w.gpio((POL, 1))
-                w.mono(cfg.pulse_height, cfg.pulse_width)
-                w.gpio((POL, 0))
-                ad = w.mono(cfg.pulse_height, cfg.pulse_width)
-            else:
-                ad = w.mono(cfg.sense_pulse_height, cfg.sense_pulse_width)
+            ad = w.mono(cfg.sense_pulse_height, cfg.sense_pulse_width)
         volts[ch] = ad
-        if spec.timing.discharge_exchange:
-            w.exchange(0)
         w.gpio((POL, 1))
         w.gpio((BL, 0))
         if cfg.discharge_time > spec.timing.discharge_wait_offset_us:
@@ -366,6 +360,53 @@ class FirmwareBudget:
     conventions: dict[str, Any]
     notes: list[str]
 
+    @classmethod
+    def of_scan(
+        cls,
+        scan: ScanTrace,
+        *,
+        firmware: str,
+        stim_mode: int | None,
+        hv513_num: int,
+        period_us: float,
+        watchdog_us: float | None,
+        effective_width_us: float,
+        conventions: dict[str, Any],
+        mode_notes: Sequence[str] = (),
+    ) -> FirmwareBudget:
+        """The budget of one scan (its return, channel starts and clear start; events need not be logged)
+        against its period, by either version's engine: the verdict and the notes in the same words.
+        ``mode_notes`` go between the timing note and the chain's."""
+        end = scan.isr_return_us
+        starts = scan.channel_start_us + [scan.clear_start_us]
+        watchdog = watchdog_us is not None and end > watchdog_us
+        stride = max(end, period_us)
+        notes: list[str] = []
+        if watchdog:
+            notes.append(f"the scan exceeds the {watchdog_us:.0f} µs interrupt watchdog: the board reboots")
+        elif end > period_us:
+            notes.append(f"overrun by {end - period_us:.2f} µs: the next scan follows at once")
+        notes.extend(mode_notes)
+        notes.extend(beyond_chain_notes(len(scan.channel_start_us), hv513_num))
+        return cls(
+            firmware=firmware,
+            electrodes=len(scan.channel_start_us),
+            stim_mode=stim_mode,
+            per_channel_us=[round(b - a, 3) for a, b in zip(starts, starts[1:], strict=False)],
+            isr_entry_us=scan.timer_ops[0][0],
+            clear_us=round(end - scan.clear_start_us, 3),
+            scan_us=end,
+            period_us=period_us,
+            alarm_ticks=scan.alarm_ticks,
+            margin_us=round(period_us - end, 3),
+            overrun=end > period_us,
+            watchdog_reset=watchdog,
+            actual_rate_hz=0.0 if watchdog or stride == 0 else 1e6 / stride,
+            effective_width_us=effective_width_us,
+            conventions=conventions,
+            notes=notes,
+        )
+
     @property
     def verdict(self) -> str:
         return budget_verdict(self.overrun, self.watchdog_reset)
@@ -418,17 +459,11 @@ def budget(
     firmware: str | FirmwareSpec = "v2",
     conventions: ScanConventions = DEFAULT_CONVENTIONS,
 ) -> FirmwareBudget:
-    """Scan time, period, margin and verdict of ``cfg`` on ``firmware`` (overruns: the next scan at once)."""
-    spec = get_firmware(firmware)
+    """Scan time, period, margin and verdict of ``cfg`` on ``firmware`` (overruns: the next scan at once);
+    v2 only, as :func:`trace_scan` (v1.2's: :func:`~..records.reports.firmware_budget`)."""
+    spec = _walked(firmware)
     tr = trace_scan(cfg, spec, conventions, log=False)
-    period = tr.alarm_ticks * conventions.timer_tick_ns / 1000
-    scan = tr.isr_return_us
-    starts = tr.channel_start_us + [tr.clear_start_us]
-    per = [round(b - a, 3) for a, b in zip(starts, starts[1:], strict=False)]
-    watchdog = scan > spec.timing.watchdog_us
-    stride = max(scan, period)
-    moded = "stim_mode" in spec.power_on
-    width = cfg.sense_pulse_width if moded and cfg.stim_mode == 2 else cfg.pulse_width
+    width = cfg.sense_pulse_width if cfg.stim_mode == 2 else cfg.pulse_width
     wait = (
         spec.timing.delay_ticks(width - spec.timing.pulse_wait_offset_us) * conventions.timer_tick_ns / 1000
         if width >= spec.timing.pulse_wait_offset_us
@@ -440,40 +475,25 @@ def budget(
         else 0.0
     )
     notes: list[str] = []
-    if watchdog:
-        notes.append(
-            f"the scan exceeds the {spec.timing.watchdog_us:.0f} µs interrupt watchdog: the board reboots"
-        )
-    elif scan > period:
-        notes.append(f"overrun by {scan - period:.2f} µs: the next scan follows at once")
-    if moded and cfg.stim_mode == 2 and cfg.electrode_num:
+    if cfg.stim_mode == 2 and cfg.electrode_num:
         notes.append(
             f"mode 2: every channel gets the sense pulse (code {cfg.sense_pulse_height}, "
             f"{cfg.sense_pulse_width} µs) whatever the pattern; a zero pattern does not stop current"
         )
     if (
-        moded
-        and cfg.stim_mode != 2
+        cfg.stim_mode != 2
         and width < spec.timing.pulse_wait_offset_us
         and any(cfg.stim_pattern[: cfg.electrode_num])
     ):
         notes.append(f"pulse width {width} µs: the pulse is still one SPI exchange long")
-    notes.extend(beyond_chain_notes(cfg.electrode_num, cfg.hv513_num))
-    return FirmwareBudget(
+    return FirmwareBudget.of_scan(
+        tr,
         firmware=spec.name,
-        electrodes=cfg.electrode_num,
-        stim_mode=cfg.stim_mode if moded else None,
-        per_channel_us=per[: cfg.electrode_num],
-        isr_entry_us=conventions.isr_entry_ns / 1000,
-        clear_us=round(scan - tr.clear_start_us, 3),
-        scan_us=scan,
-        period_us=period,
-        alarm_ticks=tr.alarm_ticks,
-        margin_us=round(period - scan, 3),
-        overrun=scan > period,
-        watchdog_reset=watchdog,
-        actual_rate_hz=0.0 if watchdog or stride == 0 else 1e6 / stride,
+        stim_mode=cfg.stim_mode,
+        hv513_num=cfg.hv513_num,
+        period_us=tr.alarm_ticks * conventions.timer_tick_ns / 1000,
+        watchdog_us=spec.timing.watchdog_us,
         effective_width_us=round(conventions.spi_exchange_ns / 1000 + cs_extra + wait, 3),
         conventions=conventions.describe(),
-        notes=notes,
+        mode_notes=notes,
     )

@@ -14,14 +14,15 @@ The firmware's handler, in the protocol reference's exact order, for ``ch`` in `
 then the chain is cleared by "scanning to position ``8 * hv513_count``" with the same select routine —
 which, with an HV513 count of 0, is ``ch == 0``: it loads a 1 and leaves output 0 selected.
 
-This engine is a compiled form of the statement-by-statement walker of :mod:`.firmware_scan` (the
-conformance walker the firmware's own traces hold, v1.2 and v2): one scan engine per firmware version,
-in two forms — the walker, exact and slow, and this engine, which the v1.2 timed model runs because it
-is fast enough for hours of scans and also models the skin and the physical HV513 chain.
-``tests/test_scan_engine_vs_walker.py`` checks the engine against the walker for every configuration it
-draws (the same pin writes and DAC codes at the same nanoseconds, the same interrupt length, one scan and
-the next with the chain carried over).  Within this module, two implementations must agree to the
-nanosecond:
+This is firmware v1.2's one scan engine (:data:`~.models.MODELS` names each version's): the timed and
+untimed models, ``timing`` under every option and the traces all run it.  It times each exchange under
+the two readings the firmware's code leaves open, from its :class:`~..timed.timing.TimingModel`: whether
+the chip-select writes around an exchange cost GPIO writes of their own (``cs_writes_costed``) and when
+the DAC output changes (``dac_load``); :func:`firmware_trace` writes a scan as the firmware's own code
+logs it, chip selects included, and ``tests/test_scan_engine_readings.py`` holds it to v1.2's firmware
+traces (``tests/data/scan_traces_v12.jsonl``) and to the statement walker's recorded v1.2 outputs under
+every reading (``tests/data/scan_walker_v12.jsonl``).  Within this module, two implementations must
+agree to the nanosecond:
 
 * the step-through in ``tests/scan_reference.py`` walks the firmware's statements one by one — slow,
   obviously right, the oracle the tests hold this module to;
@@ -49,6 +50,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from tactdeform_hw.emulator.firmware.board import AD_CS, BL, CLK, DA_CS, DIN, LE, POL
 from tactdeform_hw.emulator.firmware.registers import Registers
 from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
@@ -244,7 +246,7 @@ def channel_costs(cfg: ScanConfig, model: TimingModel = DEFAULT_MODEL) -> Channe
 
 @lru_cache(maxsize=4096)
 def _channel_costs(model: TimingModel, pulse_width: int, sense_width: int, discharge: int) -> ChannelCosts:
-    g, s = model.gpio_ns, model.spi_ns
+    g, s = model.gpio_ns, model.exchange_ns
     mono = 2 * s + model.pulse_wait_ns(pulse_width)
     sense = 2 * s + model.pulse_wait_ns(sense_width)
     bi = 2 * g + 2 * mono
@@ -298,7 +300,7 @@ def channel_offsets_ns(cfg: ScanConfig, model: TimingModel = DEFAULT_MODEL) -> t
     lead = (
         costs.select_ns
         + costs.pol_ns
-        + model.dac_at_ns
+        + model.dac_in_exchange_ns
         + np.where(kinds == ChannelKind.BIPHASIC, model.gpio_ns, 0)
     )
     return starts, starts + lead
@@ -367,7 +369,8 @@ def _block(
 ) -> tuple[list[tuple[int, int, int]], list[tuple[int, int, int, int, int, int]], int]:
     """One channel's events relative to its start, with placeholders for the per-channel values, its
     pulses as (phase index, kind, onset, width, code, pol, sample time) and its duration."""
-    g, s, a, c = model.gpio_ns, model.spi_ns, model.dac_at_ns, model.adc_at_ns
+    # an exchange (``DAAD``) from its call: its length, its DAC change, its ADC sample
+    g, s, a, c = model.gpio_ns, model.exchange_ns, model.dac_in_exchange_ns, model.adc_in_exchange_ns
     pol = 1 if cfg.polarity else 0
     ev: list[tuple[int, int, int]] = []
     pulses: list[Any] = []
@@ -724,6 +727,52 @@ class ScanEngine:
         V = np.concatenate(vals)
         order = np.argsort(np.concatenate(keys), kind="stable")
         return T[order], S[order].astype(np.int8), V[order]
+
+
+#: The engine's pin signals as the firmware's pins (the selected output and the ADC are no pins).
+_PIN_OF_SIGNAL = {
+    int(Signal.BL): BL,
+    int(Signal.LE): LE,
+    int(Signal.POL): POL,
+    int(Signal.CLK): CLK,
+    int(Signal.DIN): DIN,
+}
+
+
+def firmware_trace(tmpl: ScanTemplate, model: TimingModel = DEFAULT_MODEL) -> list[list[Any]]:
+    """One scan as the firmware's own code logs it built on a host (``tests/data/scan_traces_v12.jsonl``),
+    in the handler's order: ``[t_ns, "GPIO", pin, level]`` for every pin write, the chip selects included,
+    and ``[t_ns, "DAC", "DAC", code]`` for every DAC change (ns after the alarm).
+
+    Every exchange changes the DAC once, so each DAC change places its exchange, and the chip selects are
+    that exchange's edges: lowered before it and raised after it (DA_CS then AD_CS, one write each, or
+    both in one write), each write one GPIO write long when the model costs them and at the exchange's
+    own ends when it does not.  The DAC change lies between the raising writes when it loads as DA_CS
+    rises (costed), before them otherwise."""
+    w = model.cs_write_ns
+    edge = [[DA_CS], [AD_CS]] if model.chip_select_writes == 4 else [[AD_CS, DA_CS]]
+    out: list[list[Any]] = []
+
+    def chip_selects(at_ns: int, level: int, groups: list[list[int]], first: int = 1) -> None:
+        for k, pins in enumerate(groups, first):
+            out.extend([at_ns + k * w, "GPIO", pin, level] for pin in pins)
+
+    t, sig, val = tmpl.events()
+    for at, signal, value in zip(t.tolist(), sig.tolist(), val.tolist(), strict=True):
+        if signal == Signal.DAC:
+            call = at - model.dac_in_exchange_ns
+            spi_end = call + model.exchange_lead_ns + model.spi_ns
+            chip_selects(call, 0, edge)
+            if model.dac_load == "cs_rise" and w:
+                chip_selects(spi_end, 1, edge[:1])
+                out.append([at, "DAC", "DAC", value])
+                chip_selects(spi_end, 1, edge[1:], first=2)
+            else:
+                out.append([at, "DAC", "DAC", value])
+                chip_selects(spi_end, 1, edge)
+        elif signal in _PIN_OF_SIGNAL:
+            out.append([at, "GPIO", _PIN_OF_SIGNAL[signal], value])
+    return out
 
 
 class ScanVoltages:

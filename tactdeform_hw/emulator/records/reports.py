@@ -14,7 +14,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from tactdeform_hw.emulator.firmware.firmware_scan import beyond_chain_notes, budget_verdict
+from tactdeform_hw.emulator.firmware.firmware_scan import (
+    FirmwareBudget,
+    ScanTrace,
+    beyond_chain_notes,
+    budget_verdict,
+)
 from tactdeform_hw.emulator.firmware.scan import (
     ChannelKind,
     PulseArrays,
@@ -22,11 +27,13 @@ from tactdeform_hw.emulator.firmware.scan import (
     ScanConfig,
     ScanTemplate,
     channel_costs,
+    channel_offsets_ns,
     clear_clk_pulses,
     scan_duration_ns,
 )
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513, Opcode
+from tactdeform_hw.protocol.firmware import V1_2
 
 if TYPE_CHECKING:
     from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
@@ -467,6 +474,52 @@ class Budget:
         ]
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
+
+
+def firmware_budget(cfg: ScanConfig, model: TimingModel = DEFAULT_MODEL) -> FirmwareBudget:
+    """One scan of ``cfg`` from power-on against its timer period, in the terms of the firmware's own
+    scan logs (what ``timing --cs-writes`` / ``--dac-load`` print, on either version): the cost of each
+    channel, entry, chain clear, scan, margin and verdict, and the exchange's readings it was timed under.
+    The times are the v1.2 scan engine's closed-form costs, each rounded to the ns as a logged µs is.
+    """
+    costs = channel_costs(cfg, model)
+    starts, _ = channel_offsets_ns(cfg, model)
+    end = scan_duration_ns(cfg, model, 0)  # a fresh process's chain: the firmware's position 0
+    clear_start = costs.entry_ns + sum(costs.channel_ns(k) for k in cfg.kinds().tolist())
+    scan = ScanTrace(
+        isr_return_us=_us3(end),
+        timer_ops=[[_us3(model.isr_entry_ns), 1, "alarm_disable", 0], [_us3(end), 1, "alarm_enable", 0]],
+        alarm_ticks=cfg.alarm_ticks,
+        channel_start_us=[_us3(t) for t in starts.tolist()],
+        clear_start_us=_us3(clear_start),
+    )
+    cs_extra = model.chip_select_writes * model.cs_write_ns / 1000
+    readings = model.readings()
+    return FirmwareBudget.of_scan(
+        scan,
+        firmware=V1_2.name,
+        stim_mode=None,
+        hv513_num=cfg.hv513_num,
+        period_us=cfg.alarm_ticks * model.tick_ns / 1000,
+        watchdog_us=model.watchdog_us,
+        effective_width_us=round(
+            model.spi_ns / 1000 + cs_extra + model.pulse_wait_ns(cfg.pulse_width) / 1000, 3
+        ),
+        conventions={
+            "spi_exchange_us": model.spi_ns / 1000,
+            "dac_change_at_us": model.dac_at_ns / 1000,
+            "gpio_write_us": model.gpio_ns / 1000,
+            "isr_entry_us": model.isr_entry_ns / 1000,
+            "timer_tick_us": model.tick_ns / 1000,
+            "cs_writes_costed": readings["cs_writes_costed"],
+            "dac_load": readings["dac_load"],
+        },
+    )
+
+
+def _us3(ns: int) -> float:
+    """A time in ns as a scan log writes it: µs to the ns."""
+    return round(ns / 1000, 3)
 
 
 # --- the comparable outcome of a run (for fidelity comparisons) -------------------------------------------

@@ -254,11 +254,11 @@ def _scan_shape(cfg: FirmwareScanConfig, conv: ScanConventions) -> ScanShape:
     codes (the ADC reading is the code held when the second exchange starts: the height again), and a
     height of 0 delivers no pulse.  Mode 2 ignores the pattern.  Equal to :func:`_shape` for every
     pattern (tested).  The walk is keyed only by what the handler reads in the scan's mode (modes 0 and 1:
-    not the sense pulse; mode 2: not the pulse width; never v1.2's pulse height or the rate), so scans
+    not the sense pulse; mode 2: not the pulse width; never the rate), so scans
     that differ elsewhere share it."""
     n = cfg.electrode_num
     if cfg.stim_mode not in (0, 1):
-        walked = replace(cfg, stim_pattern=(0,) * n, pulse_width=0, pulse_height=0, frequency_hz=None)
+        walked = replace(cfg, stim_pattern=(0,) * n, pulse_width=0, frequency_hz=None)
         return _shape(walked, conv)
     heights = cfg.stim_pattern
     walked = replace(
@@ -266,7 +266,6 @@ def _scan_shape(cfg: FirmwareScanConfig, conv: ScanConventions) -> ScanShape:
         stim_pattern=(1,) * n,
         sense_pulse_height=0,
         sense_pulse_width=0,
-        pulse_height=0,
         frequency_hz=None,
     )
     duration, onsets, _, _, rows = _shape(walked, conv)

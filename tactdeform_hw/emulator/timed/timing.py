@@ -66,6 +66,17 @@ def _f(default: Any, unit: str, source: str, doc: str) -> Any:
     return field(default=default, metadata={"unit": unit, "source": source, "doc": doc})
 
 
+#: When the DAC output changes within an exchange: 3.3 µs in (the firmware comment) or when DA_CS rises
+#: (the converter's datasheet).
+DAC_LOADS = ("mid_exchange", "cs_rise")
+
+
+def _reading(default: Any, doc: str) -> Any:
+    """A reading of the exchange that the firmware's code leaves open: chosen by ``timing --cs-writes`` /
+    ``--dac-load``, which list it themselves, so it is kept out of :meth:`TimingModel.describe`."""
+    return field(default=default, metadata={"unit": "", "source": "option", "doc": doc, "reading": True})
+
+
 @dataclass(frozen=True)
 class TimingModel:
     """The controller's timing, from the SPI exchange to the interrupt watchdog.
@@ -133,8 +144,27 @@ class TimingModel:
         V1_2.rx_queue_bytes, "bytes", "firmware", "receive queue; the rest of a packet is discarded"
     )
 
+    # --- the exchange's readings (the same scan statements, timed two ways each) -------------------------
+    cs_writes_costed: bool = _reading(
+        False,
+        "whether each chip-select write around an exchange costs one GPIO write on top of the exchange "
+        "(the firmware's host build) or lies inside it (the firmware comment's reading, the default)",
+    )
+    dac_load: str = _reading("mid_exchange", "when the DAC output changes: " + " or ".join(DAC_LOADS))
+    chip_select_writes: int = _reading(
+        _FW.chip_select_writes_per_exchange, "chip-select writes around one exchange (lowered, then raised)"
+    )
+
     def __post_init__(self) -> None:
+        if not isinstance(self.cs_writes_costed, bool):
+            raise LimitError("cs_writes_costed", self.cs_writes_costed, "True or False")
+        if self.dac_load not in DAC_LOADS:
+            raise LimitError("dac_load", self.dac_load, " or ".join(DAC_LOADS))
+        if not isinstance(self.chip_select_writes, int) or self.chip_select_writes not in (2, 4):
+            raise LimitError("chip_select_writes", self.chip_select_writes, "2 (one write per edge) or 4")
         for f in fields(self):
+            if f.metadata.get("reading"):
+                continue
             value = getattr(self, f.name)
             if f.name == "overrun_policy":
                 if value not in OVERRUN_POLICIES:
@@ -169,6 +199,7 @@ class TimingModel:
         """The model with a firmware version's own constants (its table in :mod:`..protocol.firmware`)."""
         base: dict[str, Any] = {name: getattr(firmware.timing, name) for name in FIRMWARE_TIMING_FIELDS}
         base["rx_queue_bytes"] = firmware.rx_queue_bytes
+        base["chip_select_writes"] = firmware.timing.chip_select_writes_per_exchange
         base.update(changes)
         return cls(**base)
 
@@ -185,6 +216,35 @@ class TimingModel:
     @cached_property
     def adc_at_ns(self) -> int:
         return _ns(self.adc_sample_at_us)
+
+    @cached_property
+    def cs_write_ns(self) -> int:
+        """What one chip-select write adds to an exchange: a GPIO write when costed, else nothing."""
+        return self.gpio_ns if self.cs_writes_costed else 0
+
+    @cached_property
+    def exchange_ns(self) -> int:
+        """One ``DAAD`` call: the SPI exchange and the chip-select writes around it (lowered before,
+        raised after; they cost nothing apart under the default reading)."""
+        return self.spi_ns + self.chip_select_writes * self.cs_write_ns
+
+    @cached_property
+    def exchange_lead_ns(self) -> int:
+        """From a ``DAAD`` call to the start of its SPI exchange: the chip selects lowered."""
+        return self.chip_select_writes // 2 * self.cs_write_ns
+
+    @cached_property
+    def dac_in_exchange_ns(self) -> int:
+        """From a ``DAAD`` call to the DAC output's change: ``dac_change_at_us`` into the SPI exchange,
+        or (``dac_load="cs_rise"``) when DA_CS, raised first, rises after it."""
+        if self.dac_load == "cs_rise":
+            return self.exchange_lead_ns + self.spi_ns + self.cs_write_ns
+        return self.exchange_lead_ns + self.dac_at_ns
+
+    @cached_property
+    def adc_in_exchange_ns(self) -> int:
+        """From a ``DAAD`` call to the ADC's sample: ``adc_sample_at_us`` into the SPI exchange."""
+        return self.exchange_lead_ns + self.adc_at_ns
 
     @cached_property
     def gpio_ns(self) -> int:
@@ -261,9 +321,10 @@ class TimingModel:
     def pulse_width_ns(self, width_us: int) -> int:
         """Time the current flows in one monophasic pulse: DAC change to DAC change.
 
-        One full exchange plus the busy-wait: never shorter than the exchange (6.6 µs by default), and
-        about ``w - 3.4`` µs for long pulses (200 µs → 196.6 µs)."""
-        return self.spi_ns + self.pulse_wait_ns(width_us)
+        One full exchange plus the busy-wait: never shorter than the exchange (6.6 µs by default, its
+        chip-select writes added when costed), and about ``w - 3.4`` µs for long pulses (200 µs →
+        196.6 µs)."""
+        return self.exchange_ns + self.pulse_wait_ns(width_us)
 
     def alarm_period_ns(self, alarm_ticks: int) -> int:
         return alarm_ticks * self.tick_ns
@@ -271,7 +332,8 @@ class TimingModel:
     # --- documentation ------------------------------------------------------------------------------------
 
     def describe(self) -> list[dict[str, Any]]:
-        """One row per constant: name, value, unit, source and meaning (for reports and ``--json``)."""
+        """One row per constant: name, value, unit, source and meaning (for reports and ``--json``); the
+        exchange's readings are in :meth:`readings`."""
         return [
             {
                 "name": f.name,
@@ -280,12 +342,16 @@ class TimingModel:
                 "source": f.metadata.get("source", ""),
                 "doc": f.metadata.get("doc", ""),
             }
-            for f in fields(self)
+            for f in _constants()
         ]
+
+    def readings(self) -> dict[str, Any]:
+        """The exchange's readings: whether chip-select writes are costed, when the DAC loads."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.metadata.get("reading")}
 
     def assumptions(self) -> list[str]:
         """Names of the constants that are assumptions, not read from the firmware or the platform."""
-        return [f.name for f in fields(self) if f.metadata.get("source") == "assumption"]
+        return [f.name for f in _constants() if f.metadata.get("source") == "assumption"]
 
     def with_(self, **changes: Any) -> TimingModel:
         """A copy with some constants changed (validated like the original)."""
@@ -295,7 +361,13 @@ class TimingModel:
         return replace(self, **changes)
 
     def to_dict(self) -> dict[str, Any]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        """The constants (the readings apart: :meth:`readings`)."""
+        return {f.name: getattr(self, f.name) for f in _constants()}
+
+
+def _constants() -> list[Any]:
+    """The model's constants: its fields without the exchange's readings."""
+    return [f for f in fields(TimingModel) if not f.metadata.get("reading")]
 
 
 def _ns(us: float) -> int:
