@@ -58,7 +58,7 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
     trace_scan,
 )
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
-from tactdeform_hw.emulator.firmware.parser_v2 import ParserV2
+from tactdeform_hw.emulator.firmware.parser_v2 import CallCut, ParserV2, Reach, ReadPoint
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
 from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal, physical_outputs
 from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
@@ -507,17 +507,21 @@ class MainLoopRunsV2:
         """Run the calls that each read one unknown byte and skip it (the zeros of a flush: most calls of
         a session) in chunks, exactly as :meth:`_main_call` would one by one: each such call lands what
         has arrived by its start, reads one byte and returns at once (no sleep), so the next call starts
-        ``call_ns + byte_ns`` later, if before the alarm and by ``target``.  A chunk ends where a delivery
-        lands (at the next call's start, as :meth:`_land` would) or the run of unknown bytes ends.  False
-        (nothing done) when the call at ``t`` is not such a call."""
+        ``call_ns + byte_ns`` later, if it is over by the alarm and starts by ``target``.  A chunk ends
+        where a delivery lands (at the next call's start, as :meth:`_land` would) or the run of unknown
+        bytes ends.  False (nothing done) when the call at ``t`` is not such a call."""
         parser = self.parser
         if parser.processing or self._hv513_in_call or parser.tx or self._frozen:
             return False
-        self._land(t)
         m = self.model
         step = m.call_ns + m.byte_ns
+        # the latest start of a call that runs now: by ``target``, and over by the alarm (one the alarm
+        # falls into is :meth:`_main_call`'s: a scan that starves the loop may cut it before its read)
+        limit = min(alarm - step, target)
+        if t > limit:
+            return False
+        self._land(t)
         heap = self._delivery_heap
-        limit = min(alarm - 1, target)  # the latest start of a call that runs now
         calls = 0
         run = 0
         while True:
@@ -1081,10 +1085,16 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         latest_end = t + 2 * m.call_ns + pending * m.byte_ns + m.hv513_detect_ns
         before: dict[str, Any] = {}
         old_pattern: list[int] = []
-        if t < self._next_alarm_ns < latest_end:
+        alarm = self._next_alarm_ns
+        reach: Reach | None = None
+        if t < alarm < latest_end:
             before = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
             old_pattern = list(regs.stim_pattern)
-        out = parser.call(t // 1000)
+            reach = self._reach(t, alarm)
+        out = parser.call(t // 1000, reach)
+        if parser.cut is not None:
+            self._starve_at(parser.cut, alarm)
+            return
         for h in self.hazards[hazards_before:]:
             if h.kind is HazardKind.COMMAND_TIMEOUT:
                 # the cut command and every byte queued behind it never take effect
@@ -1136,6 +1146,54 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             self._next_call_ns = self._tick_after(end)
         else:
             self._next_call_ns = end
+
+    def _reach(self, t: int, alarm: int) -> Reach:
+        """Which read points of the call at ``t`` the main loop gets past (``reach`` of
+        :meth:`ParserV2.call`).  The scan due at ``alarm`` takes the processor at the first read point
+        that starts at or after it (where the host build's shim runs a due interrupt, before the point
+        does anything); if that scan, of the registers as the call has left them there, lasts a period or
+        more, ``Timer1_Stimulate_ISR`` re-enables an alarm already passed and the loop never gets the
+        processor back: the call stops at that point.  Each point costs what :meth:`_main_call` counts
+        (``call_ns`` a check, ``byte_ns`` a byte read, nothing for a timer read or a write)."""
+        m = self.model
+        clock = t
+        asked = False
+
+        def reach(point: ReadPoint, nbytes: int) -> bool:
+            nonlocal clock, asked
+            if not asked and clock >= alarm:
+                asked = True
+                if self._scan_of(self.registers)[1][0] >= self._period_ns():
+                    return False
+            clock += m.call_ns if point is ReadPoint.AVAILABLE else nbytes * m.byte_ns
+            return True
+
+        return reach
+
+    def _starve_at(self, cut: CallCut, alarm: int) -> None:
+        """The scan due at ``alarm`` took the processor at the call's read point ``cut`` and overran: the
+        loop never resumes the call (see :meth:`_starve`).  What the call read before that point is read
+        (a command byte, a pattern's first elements), the rest stays queued; 0xFF had set
+        ``SendingVoltages`` before its write, so no scan stores its readings again.  A pattern cut in
+        its copy is torn for good (in modes 0 and 1, where a scan reads it)."""
+        regs = self.registers
+        if cut.op == OpcodeV2.MEASURE:
+            self._voltages_held = True
+        if cut.torn is not None and regs.stim_mode < _MODE_IMPEDANCE:
+            k, rest = cut.torn
+            n = regs.electrode_num
+            if 0 < k < n and list(rest) != regs.stim_pattern[k:n]:
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.TORN_PATTERN,
+                        -1,
+                        {"scan": len(self.scans), "new_channels": k, "channels": n, "old_rest": True},
+                        alarm / 1000,
+                    )
+                )
+        self._scan(alarm)
+        self._mark(self._call_time_ns, "starved", {"op": cut.op, "at": cut.point.value})
+        self.stop_reading()
 
     def _tick_after(self, t: int) -> int:
         """The first RTOS tick after ``t`` (the ticks run from boot, shifted by ``tick_phase_us``)."""
