@@ -346,12 +346,13 @@ class ParserV2(ParserBase, UnknownRuns):
             return False, None
         payload = bytes(self.rx[self.pos : self.pos + self.required])
         self.pos += self.required
-        self.processing = False
-        self.command = 0
         if payload and max(payload) >= self.spec.command_byte_min:
             self._hazard(HazardKind.PAYLOAD_HOLDS_COMMAND_BYTE, command=cmd.name, payload=payload.hex())
         ivalue = int.from_bytes(payload, "little")
-        self._store(cmd, ivalue)
+        if not self._store(cmd, ivalue, go):
+            return False, None
+        self.processing = False
+        self.command = 0
         self._check_sense_all()
         if self.on_command is not None:
             self.on_command(cmd.opcode, ivalue, self.command_offset)
@@ -400,18 +401,23 @@ class ParserV2(ParserBase, UnknownRuns):
             )
         self._sense_all = live
 
-    def _store(self, cmd: CommandSpec, value: int) -> None:
+    def _store(self, cmd: CommandSpec, value: int, go: Reach) -> bool:
+        """Store a u8/u16 payload by the table.  False when the call stopped at 0xF6's ``setPeriodUs``
+        (its ``timerAlarmDisable``, a read point after ``StimulationTimePeriod`` is stored): the period
+        is new, the alarm still the old one."""
         regs = self.regs
         stored = cmd.stored(value)
         if stored is None:
             self._hazard(HazardKind.IGNORED_ZERO, field=cmd.register)
-            return
+            return True
         if stored != value << cmd.shift:
             self._hazard(HazardKind.CLAMPED, field=cmd.register, value=value, stored=stored)
         if cmd.register == "frequency":
             regs.period_us = fm.period_us_from_rate_double(value)
+            if not go(ReadPoint.TIMER, 0):
+                return False
             regs.timer_alarm_ticks = fm.alarm_ticks(regs.period_us)
-            return
+            return True
         if cmd.register == "electrode_num":
             old = regs.electrode_num
             if stored > old:
@@ -430,6 +436,7 @@ class ParserV2(ParserBase, UnknownRuns):
             self._hazard(HazardKind.SHORT_PULSE_WIDTH, field="pulse_width", value=stored)
         assert cmd.register is not None
         setattr(regs, cmd.register, stored)
+        return True
 
     @property
     def command_in_progress(self) -> bool:

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import heapq
 from bisect import bisect_right
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from itertools import repeat
@@ -58,7 +59,7 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
     trace_scan,
 )
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
-from tactdeform_hw.emulator.firmware.parser_v2 import CallCut, ParserV2, Reach, ReadPoint
+from tactdeform_hw.emulator.firmware.parser_v2 import CallCut, ParserV2, ReadPoint
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
 from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal, physical_outputs
 from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
@@ -425,6 +426,34 @@ class DeliveredV2:
         return peak
 
 
+class _ReadClock:
+    """Which read points of one main-loop call the loop gets past (``reach`` of :meth:`ParserV2.call`).
+
+    The scan due at ``alarm`` takes the processor at the first read point that starts at or after it
+    (where the host build's shim runs a due interrupt, before the point does anything).  If that scan,
+    of the registers as the call has left them there, overruns (``overruns``), the loop never gets the
+    processor back: the call stops at that point.  Each point costs what
+    :meth:`TimedEmulatorV2._main_call` counts for it: ``call_ns`` a queue check, ``byte_ns`` a byte
+    read, nothing for a timer read or a write.  ``asked``: whether the call reached a point at or after
+    the alarm (False: the alarm fell inside its last read, and the scan is taken after the call)."""
+
+    def __init__(self, t: int, alarm: int, model: TimingModel, overruns: Callable[[], bool]) -> None:
+        self.clock_ns = t
+        self.alarm_ns = alarm
+        self.call_ns = model.call_ns
+        self.byte_ns = model.byte_ns
+        self.overruns = overruns
+        self.asked = False
+
+    def __call__(self, point: ReadPoint, nbytes: int) -> bool:
+        if not self.asked and self.clock_ns >= self.alarm_ns:
+            self.asked = True
+            if self.overruns():
+                return False
+        self.clock_ns += self.call_ns if point is ReadPoint.AVAILABLE else nbytes * self.byte_ns
+        return True
+
+
 class MainLoopRunsV2:
     """What the v2 model does many times over, done in one go exactly as one at a time (a mixin of
     :class:`TimedEmulatorV2`, which keeps the state): the idle polls, the calls that each skip one unknown
@@ -452,25 +481,6 @@ class MainLoopRunsV2:
     @property
     def parser(self) -> ParserV2:
         raise NotImplementedError
-
-    def _starve(self, regs: RegistersV2, op: int, before: dict[str, Any], seen_pattern: list[int]) -> None:
-        """The scan that interrupted this call overran: the firmware's ``Timer1_Stimulate_ISR`` re-enables
-        its alarm after the counter has passed it, so the next scan starts as the handler returns, and so on
-        -- the main loop (``runEtactileKit``) never resumes the call.  Nothing the call had still to do
-        happens: the registers stay as the interrupting scan saw them (a pattern stays torn), no reply is
-        written, and a 0xFF leaves ``SendingVoltages`` set, so no scan stores its readings again.  The loop
-        stays starved until a reset (the caller stops its reading): its registers cannot change, so neither
-        can the scans' length."""
-        if op == OpcodeV2.PATTERN:
-            regs.stim_pattern[:] = seen_pattern
-        else:
-            for f, v in before.items():
-                setattr(regs, f, v)
-        self.parser.take_tx()
-        if op == OpcodeV2.MEASURE:
-            self._voltages_held = True
-        if self.applied and self.applied[-1][1] == op:
-            self.applied.pop()
 
     def _loss(self, t: int, count: int, host_offset: int, reason: str) -> None:
         raise NotImplementedError
@@ -1086,12 +1096,12 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         before: dict[str, Any] = {}
         old_pattern: list[int] = []
         alarm = self._next_alarm_ns
-        reach: Reach | None = None
+        clock: _ReadClock | None = None
         if t < alarm < latest_end:
             before = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
             old_pattern = list(regs.stim_pattern)
-            reach = self._reach(t, alarm)
-        out = parser.call(t // 1000, reach)
+            clock = _ReadClock(t, alarm, m, self._overruns)
+        out = parser.call(t // 1000, clock)
         if parser.cut is not None:
             self._starve_at(parser.cut, alarm)
             return
@@ -1114,13 +1124,17 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
         alarm = self._next_alarm_ns
         if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
-            scan_ns, seen_pattern = self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
-            end += scan_ns
-            if self._next_alarm_ns <= alarm + scan_ns:
-                self._starve(regs, applied, before, seen_pattern)
-                self._mark(self._call_time_ns, "starved", {"op": applied})
+            assert clock is not None  # the alarm is before the call's end, so before its latest end
+            if not clock.asked and self._overruns():
+                # the alarm fell inside the call's last read: the firmware stores what it read and takes
+                # the scan at its next read point (the next call's first), so the scan that starves the
+                # loop runs the registers the call stored
+                self._scan(alarm)
+                self._mark(self._call_time_ns, "starved", {"op": applied, "at": "next call"})
                 self.stop_reading()
                 return
+            # a scan that leaves the loop time: it sees the registers as the call had them at the alarm
+            end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
         tx = parser.take_tx()
         if (
             tx
@@ -1147,35 +1161,20 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         else:
             self._next_call_ns = end
 
-    def _reach(self, t: int, alarm: int) -> Reach:
-        """Which read points of the call at ``t`` the main loop gets past (``reach`` of
-        :meth:`ParserV2.call`).  The scan due at ``alarm`` takes the processor at the first read point
-        that starts at or after it (where the host build's shim runs a due interrupt, before the point
-        does anything); if that scan, of the registers as the call has left them there, lasts a period or
-        more, ``Timer1_Stimulate_ISR`` re-enables an alarm already passed and the loop never gets the
-        processor back: the call stops at that point.  Each point costs what :meth:`_main_call` counts
-        (``call_ns`` a check, ``byte_ns`` a byte read, nothing for a timer read or a write)."""
-        m = self.model
-        clock = t
-        asked = False
-
-        def reach(point: ReadPoint, nbytes: int) -> bool:
-            nonlocal clock, asked
-            if not asked and clock >= alarm:
-                asked = True
-                if self._scan_of(self.registers)[1][0] >= self._period_ns():
-                    return False
-            clock += m.call_ns if point is ReadPoint.AVAILABLE else nbytes * m.byte_ns
-            return True
-
-        return reach
+    def _overruns(self) -> bool:
+        """Whether a scan of the registers now lasts a period or more: ``Timer1_Stimulate_ISR`` then
+        re-enables an alarm the counter has already passed, the next scan starts as it returns, and so on
+        -- the main loop never gets the processor back."""
+        return self._scan_of(self.registers)[1][0] >= self._period_ns()
 
     def _starve_at(self, cut: CallCut, alarm: int) -> None:
-        """The scan due at ``alarm`` took the processor at the call's read point ``cut`` and overran: the
-        loop never resumes the call (see :meth:`_starve`).  What the call read before that point is read
-        (a command byte, a pattern's first elements), the rest stays queued; 0xFF had set
-        ``SendingVoltages`` before its write, so no scan stores its readings again.  A pattern cut in
-        its copy is torn for good (in modes 0 and 1, where a scan reads it)."""
+        """The scan due at ``alarm`` took the processor at the call's read point ``cut`` and overran
+        (:meth:`_overruns`): ``runEtactileKit`` never resumes.  What the call read and stored before that
+        point stays (a command byte, a pattern's first elements, 0xF6's period without its alarm); the
+        rest stays queued and is never read, no reply is written, and 0xFF had set ``SendingVoltages``
+        before its write, so no scan stores its readings again.  A pattern cut in its copy is torn for
+        good (in modes 0 and 1, where a scan reads it).  The loop stays starved until a reset (the caller
+        stops its reading): its registers cannot change, so neither can the scans' length."""
         regs = self.registers
         if cut.op == OpcodeV2.MEASURE:
             self._voltages_held = True
@@ -1205,11 +1204,10 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
 
     def _preempt(
         self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
-    ) -> tuple[int, list[int]]:
+    ) -> int:
         """The scan interrupt fires while this call applies a command: the scan sees the registers as
         the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
-        old — a torn pattern).  Returns the scan's duration, by which the call finishes later, and the
-        pattern the scan saw."""
+        old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
         regs = self.registers
         m = self.model
         after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
@@ -1241,13 +1239,12 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         else:
             for f, v in before.items():
                 setattr(regs, f, v)
-        seen = list(regs.stim_pattern)
         self._scan(alarm)
         duration = self.scans[-1].duration_ns
         for f, v in after.items():
             setattr(regs, f, v)
         regs.stim_pattern[:] = new
-        return duration, seen
+        return duration
 
     def _on_command(self, op: int, value: object, offset: int) -> None:
         self.applied.append((self._call_time_ns, op, value))
