@@ -666,7 +666,133 @@ class MainLoopRunsV2:
         return self._last_scan
 
 
-class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
+class InterruptedCallsV2:
+    """A scan whose alarm falls inside a v2 main-loop call (a mixin of :class:`TimedEmulatorV2`, which keeps
+    the state): what it sees of a command the call is applying, and the loop it starves when it overruns
+    -- it takes the processor at the first of ``runEtactileKit``'s read points at or after its alarm
+    (:class:`_ReadClock`) and never gives it back, so the call is left exactly where the firmware leaves
+    it."""
+
+    model: TimingModel
+    hazards: list[Hazard]
+    scans: list[ScanRecordV2]
+    _call_time_ns: int
+    _voltages_held: bool
+
+    @property
+    def registers(self) -> RegistersV2:
+        raise NotImplementedError
+
+    @property
+    def parser(self) -> ParserV2:
+        raise NotImplementedError
+
+    def _scan_of(self, regs: RegistersV2) -> tuple[FirmwareScanConfig, ScanShape]:
+        raise NotImplementedError
+
+    def _period_ns(self) -> int:
+        raise NotImplementedError
+
+    def _scan(self, t: int) -> None:
+        raise NotImplementedError
+
+    def _mark(self, t: int, kind: str, detail: dict[str, Any]) -> None:
+        raise NotImplementedError
+
+    def stop_reading(self) -> None:
+        raise NotImplementedError
+
+    def _overruns(self) -> bool:
+        """Whether a scan of the registers now lasts a period or more: ``Timer1_Stimulate_ISR`` then
+        re-enables an alarm the counter has already passed, the next scan starts as it returns, and so on
+        -- the main loop never gets the processor back."""
+        return self._scan_of(self.registers)[1][0] >= self._period_ns()
+
+    def _starve_at(self, cut: CallCut, alarm: int) -> None:
+        """The scan due at ``alarm`` took the processor at the call's read point ``cut`` and overran
+        (:meth:`_overruns`): ``runEtactileKit`` never resumes.  What the call read and stored before that
+        point stays (a command byte, a pattern's first elements, 0xF6's period without its alarm); the
+        rest stays queued and is never read, no reply is written, and 0xFF had set ``SendingVoltages``
+        before its write, so no scan stores its readings again.  A pattern cut in its copy is torn for
+        good (in modes 0 and 1, where a scan reads it).  The loop stays starved until a reset (the caller
+        stops its reading): its registers cannot change, so neither can the scans' length."""
+        regs = self.registers
+        if cut.op == OpcodeV2.MEASURE:
+            self._voltages_held = True
+        if cut.torn is not None and regs.stim_mode < _MODE_IMPEDANCE:
+            k, rest = cut.torn
+            n = regs.electrode_num
+            if 0 < k < n and list(rest) != regs.stim_pattern[k:n]:
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.TORN_PATTERN,
+                        -1,
+                        {"scan": len(self.scans), "new_channels": k, "channels": n, "old_rest": True},
+                        alarm / 1000,
+                    )
+                )
+        self._scan(alarm)
+        self._mark(self._call_time_ns, "starved", {"op": cut.op, "at": cut.point.value})
+        self.stop_reading()
+
+    def _preempt(
+        self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
+    ) -> int:
+        """The scan interrupt fires while this call applies a command: the scan sees the registers as
+        the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
+        old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
+        regs = self.registers
+        m = self.model
+        after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
+        new = list(regs.stim_pattern)
+        if op == OpcodeV2.PATTERN:
+            n = regs.electrode_num
+            width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
+            start = t + m.call_ns * self.parser.checks + max(0, consumed - 2 * n) * m.byte_ns
+            k = max(0, min(n, (alarm - start) // width)) if width else n
+            regs.stim_pattern[:] = new[:k] + old[k:]
+            # in mode 2 the scan gives every channel the sense pulse and discards the height it reads
+            # (spec "Stimulation scan", 3c): its pulses are the same whatever the buffer holds, so no scan
+            # in mode 2 uses part of an old and part of a new pattern
+            reads_pattern = regs.stim_mode < _MODE_IMPEDANCE
+            if reads_pattern and 0 < k < n and new[k:n] != old[k:n]:
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.TORN_PATTERN,
+                        -1,
+                        {
+                            "scan": len(self.scans),
+                            "new_channels": k,
+                            "channels": n,
+                            "old_rest": old[k:n] != new[k:n],
+                        },
+                        alarm / 1000,
+                    )
+                )
+        else:
+            for f, v in before.items():
+                setattr(regs, f, v)
+        self._scan(alarm)
+        duration = self.scans[-1].duration_ns
+        for f, v in after.items():
+            setattr(regs, f, v)
+        regs.stim_pattern[:] = new
+        return duration
+
+    def _starved_after_call(self, clock: _ReadClock, op: int) -> bool:
+        """The alarm fell inside the call's last read (no read point at or after it, ``clock.asked``
+        False): the firmware stores what it read and takes the scan at its next read point, the next
+        call's first.  True when that scan, of the registers the call stored, overruns: the loop is
+        starved there (the call is over, nothing of it is undone)."""
+        if clock.asked or not self._overruns():
+            return False
+        self._scan(clock.alarm_ns)
+        self._mark(self._call_time_ns, "starved", {"op": op, "at": "next call"})
+        self.stop_reading()
+        return True
+
+
+class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedModelBase):
     """The v2 board in simulated time.  ``write(data, at_us)`` hands bytes to the link; ``advance_to``
     runs the firmware until then; ``read_tx`` returns what reached the host."""
 
@@ -1125,13 +1251,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         alarm = self._next_alarm_ns
         if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
             assert clock is not None  # the alarm is before the call's end, so before its latest end
-            if not clock.asked and self._overruns():
-                # the alarm fell inside the call's last read: the firmware stores what it read and takes
-                # the scan at its next read point (the next call's first), so the scan that starves the
-                # loop runs the registers the call stored
-                self._scan(alarm)
-                self._mark(self._call_time_ns, "starved", {"op": applied, "at": "next call"})
-                self.stop_reading()
+            if self._starved_after_call(clock, applied):
                 return
             # a scan that leaves the loop time: it sees the registers as the call had them at the alarm
             end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
@@ -1161,39 +1281,6 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         else:
             self._next_call_ns = end
 
-    def _overruns(self) -> bool:
-        """Whether a scan of the registers now lasts a period or more: ``Timer1_Stimulate_ISR`` then
-        re-enables an alarm the counter has already passed, the next scan starts as it returns, and so on
-        -- the main loop never gets the processor back."""
-        return self._scan_of(self.registers)[1][0] >= self._period_ns()
-
-    def _starve_at(self, cut: CallCut, alarm: int) -> None:
-        """The scan due at ``alarm`` took the processor at the call's read point ``cut`` and overran
-        (:meth:`_overruns`): ``runEtactileKit`` never resumes.  What the call read and stored before that
-        point stays (a command byte, a pattern's first elements, 0xF6's period without its alarm); the
-        rest stays queued and is never read, no reply is written, and 0xFF had set ``SendingVoltages``
-        before its write, so no scan stores its readings again.  A pattern cut in its copy is torn for
-        good (in modes 0 and 1, where a scan reads it).  The loop stays starved until a reset (the caller
-        stops its reading): its registers cannot change, so neither can the scans' length."""
-        regs = self.registers
-        if cut.op == OpcodeV2.MEASURE:
-            self._voltages_held = True
-        if cut.torn is not None and regs.stim_mode < _MODE_IMPEDANCE:
-            k, rest = cut.torn
-            n = regs.electrode_num
-            if 0 < k < n and list(rest) != regs.stim_pattern[k:n]:
-                self.hazards.append(
-                    Hazard(
-                        HazardKind.TORN_PATTERN,
-                        -1,
-                        {"scan": len(self.scans), "new_channels": k, "channels": n, "old_rest": True},
-                        alarm / 1000,
-                    )
-                )
-        self._scan(alarm)
-        self._mark(self._call_time_ns, "starved", {"op": cut.op, "at": cut.point.value})
-        self.stop_reading()
-
     def _tick_after(self, t: int) -> int:
         """The first RTOS tick after ``t`` (the ticks run from boot, shifted by ``tick_phase_us``)."""
         base = self._tick_base
@@ -1201,50 +1288,6 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             return base
         tick = self.model.rtos_tick_ns
         return base + ((t - base) // tick + 1) * tick
-
-    def _preempt(
-        self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
-    ) -> int:
-        """The scan interrupt fires while this call applies a command: the scan sees the registers as
-        the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
-        old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
-        regs = self.registers
-        m = self.model
-        after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
-        new = list(regs.stim_pattern)
-        if op == OpcodeV2.PATTERN:
-            n = regs.electrode_num
-            width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
-            start = t + m.call_ns * self.parser.checks + max(0, consumed - 2 * n) * m.byte_ns
-            k = max(0, min(n, (alarm - start) // width)) if width else n
-            regs.stim_pattern[:] = new[:k] + old[k:]
-            # in mode 2 the scan gives every channel the sense pulse and discards the height it reads
-            # (spec "Stimulation scan", 3c): its pulses are the same whatever the buffer holds, so no scan
-            # in mode 2 uses part of an old and part of a new pattern
-            reads_pattern = regs.stim_mode < _MODE_IMPEDANCE
-            if reads_pattern and 0 < k < n and new[k:n] != old[k:n]:
-                self.hazards.append(
-                    Hazard(
-                        HazardKind.TORN_PATTERN,
-                        -1,
-                        {
-                            "scan": len(self.scans),
-                            "new_channels": k,
-                            "channels": n,
-                            "old_rest": old[k:n] != new[k:n],
-                        },
-                        alarm / 1000,
-                    )
-                )
-        else:
-            for f, v in before.items():
-                setattr(regs, f, v)
-        self._scan(alarm)
-        duration = self.scans[-1].duration_ns
-        for f, v in after.items():
-            setattr(regs, f, v)
-        regs.stim_pattern[:] = new
-        return duration
 
     def _on_command(self, op: int, value: object, offset: int) -> None:
         self.applied.append((self._call_time_ns, op, value))
