@@ -10,7 +10,10 @@ waveform, no DAC write in the discharge.  The interrupt pre-empts the parser, ne
 call costs its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm
 inside the call that copies a pattern scans the elements copied so far at their new heights and the rest
 at their old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer
-— and only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).
+— and only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).  A
+scan that overruns (a period or more) never gives the processor back: the call it interrupts stops for
+good at the first of ``runEtactileKit``'s read points at or after the alarm (:class:`InterruptedCallsV2`),
+with what it read and stored before that point and nothing after.
 
 Served on the wall clock (:class:`~.realtime.RealtimeEmulator` with ``firmware="v2"``) it tells the
 runner when it next does something a host could notice (:meth:`TimedEmulatorV2.next_event_us`: not the
