@@ -681,35 +681,21 @@ class InterruptedCallsV2:
     scans: list[ScanRecordV2]
     _call_time_ns: int
     _voltages_held: bool
-
-    @property
-    def registers(self) -> RegistersV2:
-        raise NotImplementedError
+    _scan_of: Callable[[RegistersV2], tuple[FirmwareScanConfig, ScanShape]]
+    _period_ns: Callable[[], int]
+    _scan: Callable[[int], None]
+    _mark: Callable[[int, str, dict[str, Any]], None]
+    stop_reading: Callable[[], None]
 
     @property
     def parser(self) -> ParserV2:
-        raise NotImplementedError
-
-    def _scan_of(self, regs: RegistersV2) -> tuple[FirmwareScanConfig, ScanShape]:
-        raise NotImplementedError
-
-    def _period_ns(self) -> int:
-        raise NotImplementedError
-
-    def _scan(self, t: int) -> None:
-        raise NotImplementedError
-
-    def _mark(self, t: int, kind: str, detail: dict[str, Any]) -> None:
-        raise NotImplementedError
-
-    def stop_reading(self) -> None:
         raise NotImplementedError
 
     def _overruns(self) -> bool:
         """Whether a scan of the registers now lasts a period or more: ``Timer1_Stimulate_ISR`` then
         re-enables an alarm the counter has already passed, the next scan starts as it returns, and so on
         -- the main loop never gets the processor back."""
-        return self._scan_of(self.registers)[1][0] >= self._period_ns()
+        return self._scan_of(self.parser.regs)[1][0] >= self._period_ns()
 
     def _starve_at(self, cut: CallCut, alarm: int) -> None:
         """The scan due at ``alarm`` took the processor at the call's read point ``cut`` and overran
@@ -719,7 +705,7 @@ class InterruptedCallsV2:
         before its write, so no scan stores its readings again.  A pattern cut in its copy is torn for
         good (in modes 0 and 1, where a scan reads it).  The loop stays starved until a reset (the caller
         stops its reading): its registers cannot change, so neither can the scans' length."""
-        regs = self.registers
+        regs = self.parser.regs
         if cut.op == OpcodeV2.MEASURE:
             self._voltages_held = True
         if cut.torn is not None and regs.stim_mode < _MODE_IMPEDANCE:
@@ -744,7 +730,7 @@ class InterruptedCallsV2:
         """The scan interrupt fires while this call applies a command: the scan sees the registers as
         the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
         old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
-        regs = self.registers
+        regs = self.parser.regs
         m = self.model
         after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
         new = list(regs.stim_pattern)
