@@ -447,3 +447,23 @@ def test_upstream_v2_a_scan_after_0xf5_and_a_new_frequency_starts_with_the_firmw
     writes = ((2000.5, "f7d6fb01"), (2020.5, "fc04fe00008f910000cd8ef5"), (2580.973, "fc04f6fffff7"))
     stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 64630.973, "after 0xF5")
     assert Differ(tree, "v2").first_divergence(stream) is None
+
+
+STARVED_AT_A_READ_POINT = {
+    "before the command byte": (((11286.611, "f6fefffc010065f8"),), 75265.01),
+    "inside a pattern copy": (((2000.5, "f6ffff"), (4000.5, "fc04feff0fff0fff0fff0f")), 7000.0),
+    "in setPeriodUs": (((2000.5, "f6fff4"), (18040.402, "fc01f60100")), 21012.0),
+    "after the last read": (((2010.5, "f6fff8"), (3115.983, "fc08fa09f8")), 127175.983),
+}
+
+
+@pytest.mark.parametrize("case", list(STARVED_AT_A_READ_POINT))
+def test_upstream_v2_a_starved_call_stops_at_the_firmware_s_read_point(case: str) -> None:
+    """An overrunning scan takes the processor at runEtactileKit's first call into the Arduino core at or
+    after its alarm and never gives it back: the firmware leaves 0xF8 unread, a pattern torn after two
+    elements, 0xF6's period without its alarm, 0xFA's width stored; the model leaves the same (the
+    model-only twins are in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes, end_us = STARVED_AT_A_READ_POINT[case]
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), end_us, case)
+    assert Differ(tree, "v2").first_divergence(stream) is None

@@ -5,6 +5,7 @@ the firmware's code does.  The same streams against the upstream trees are in ``
 
 from __future__ import annotations
 
+from tactdeform_hw.emulator.firmware.hazards import HazardKind
 from tactdeform_hw.emulator.hostbuild.diff import ModelSideV2
 from tactdeform_hw.protocol.firmware import OpcodeV2
 
@@ -101,3 +102,79 @@ def test_v2_a_scan_of_no_channel_clocks_the_chain_only_the_first_time() -> None:
     side = _v2([], 1100000.0)
     durations = [s.duration_ns for s in side.emu.scans[:3]]
     assert durations == [2000 + 3 * 50 + 64 * 50, 2000 + 3 * 50, 2000 + 3 * 50]
+
+
+# A loop starved by overrunning scans (the next alarm already passed when Timer1_Stimulate_ISR re-enables
+# it) is left where the scan took the processor: at the first of runEtactileKit's calls into the Arduino
+# core (isDataAvailable, readInt_8/readInt_16, timerRead, setPeriodUs, the reply's write) at or after the
+# alarm.  What it read and stored before stays; nothing after that call ever happens.
+
+# 0xF6 65534 (a 15 µs alarm), 0xFC 1 (a scan of one channel: 19.2 µs), an unknown byte, then 0xF8
+BEFORE_THE_COMMAND_BYTE = [(11286.611, "f6fefffc010065f8")]
+
+
+def test_v2_a_call_starved_before_its_command_byte_leaves_the_byte_queued() -> None:
+    """runEtactileKit has checked isDataAvailable() when the alarm falls; the overrunning scan takes the
+    processor at readInt_8 and never gives it back, so 0xF8 is never read: it stays in the receive queue
+    for good and the sense pulse width never changes."""
+    side = _v2(BEFORE_THE_COMMAND_BYTE, 75265.01)
+    seen = side.observe(75265.01)
+    assert seen.state["rx_unread"] == 1
+    assert seen.state["electrode_num"] == 1
+    assert [op for _, op, _ in side.emu.applied] == [OpcodeV2.FREQUENCY, OpcodeV2.ELECTRODE_NUM]
+    one_channel = [s for s in side.emu.scans if s.electrode_num == 1]
+    assert len(one_channel) > 1000
+    for a, b in zip(one_channel, one_channel[1:]):
+        assert b.start_ns == a.start_ns + a.duration_ns  # back to back: the call never resumes
+
+
+# 0xF6 65535, then 4 electrodes and a pattern of 4 x 4095: the alarm falls as the copy reads the third element
+TORN_FOR_GOOD = [(2000.5, "f6ffff"), (4000.5, "fc04feff0fff0fff0fff0f")]
+
+
+def test_v2_a_pattern_copy_starved_midway_keeps_the_elements_it_read() -> None:
+    """0xFE's copy loop stores each element as readInt_16 returns it: the scan of 4 channels (60 µs against
+    15 µs) takes the processor at the third element's read, so channels 0 and 1 are new, 2 and 3 keep their
+    old heights in every scan from then on, and the last 4 payload bytes are never read."""
+    side = _v2(TORN_FOR_GOOD, 7000.0)
+    seen = side.observe(7000.0)
+    assert seen.state["stim_pattern"][:4] == [4095, 4095, 0, 0]
+    assert seen.state["rx_unread"] == 4
+    four = [s for s in side.emu.scans if s.electrode_num == 4]
+    assert len(four) > 30 and {s.heights for s in four} == {(4095, 4095, 0, 0)}
+    torn = [h for h in side.emu.hazards if h.kind is HazardKind.TORN_PATTERN]
+    assert [(h.detail["new_channels"], h.detail["channels"]) for h in torn] == [(2, 4)]
+    assert OpcodeV2.PATTERN not in [op for _, op, _ in side.emu.applied]
+
+
+# 0xF6 62719 (a 15.5 µs alarm), then 0xFC 1 and 0xF6 1: the alarm falls as the second 0xF6's u16 is read
+PERIOD_WITHOUT_ITS_ALARM = [(2000.5, "f6fff4"), (18040.402, "fc01f60100")]
+
+
+def test_v2_a_frequency_starved_in_set_period_keeps_the_old_alarm() -> None:
+    """0xF6 stores StimulationTimePeriod, then calls setPeriodUs, whose timerAlarmDisable is where the scan
+    of one channel takes the processor and never gives it back: the period is 1 s, the alarm still the old
+    30 ticks, and the scans run back to back."""
+    side = _v2(PERIOD_WITHOUT_ITS_ALARM, 21012.0)
+    seen = side.observe(21012.0)
+    assert seen.state["period_us"] == 1_000_000.0
+    assert seen.state["timer_alarm_ticks"] == 30
+    last = [s for s in side.emu.scans if s.start_ns > 19_100_000]
+    assert len(last) > 50
+    assert all(b.start_ns == a.start_ns + a.duration_ns for a, b in zip(last, last[1:]))
+
+
+# 0xF6 63743 (a 15.5 µs alarm), 8 electrodes, 0xFA 63497: the alarm falls inside the read of 0xFA's u16
+LAST_READ_STORED = [(2010.5, "f6fff8"), (3115.983, "fc08fa09f8")]
+
+
+def test_v2_a_call_whose_last_read_the_alarm_falls_in_stores_what_it_read() -> None:
+    """readInt_16 returns and runEtactileKit stores PulseWidth before its next call into the core, where the
+    scan takes the processor: the scans that starve the loop run the new width (63497 µs), and so do the
+    registers from then on."""
+    side = _v2(LAST_READ_STORED, 127175.983)
+    seen = side.observe(127175.983)
+    assert seen.state["pulse_width"] == 63497
+    assert seen.state["rx_unread"] == 0
+    eight = [s for s in side.emu.scans if s.electrode_num == 8]
+    assert eight and {s.pulse_width for s in eight} == {63497}

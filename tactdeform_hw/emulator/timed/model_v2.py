@@ -10,7 +10,10 @@ waveform, no DAC write in the discharge.  The interrupt pre-empts the parser, ne
 call costs its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm
 inside the call that copies a pattern scans the elements copied so far at their new heights and the rest
 at their old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer
-— and only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).
+— and only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).  A
+scan that overruns (a period or more) never gives the processor back: the call it interrupts stops for
+good at the first of ``runEtactileKit``'s read points at or after the alarm (:class:`InterruptedCallsV2`),
+with what it read and stored before that point and nothing after.
 
 Served on the wall clock (:class:`~.realtime.RealtimeEmulator` with ``firmware="v2"``) it tells the
 runner when it next does something a host could notice (:meth:`TimedEmulatorV2.next_event_us`: not the
@@ -37,6 +40,7 @@ from __future__ import annotations
 
 import heapq
 from bisect import bisect_right
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from itertools import repeat
@@ -58,7 +62,7 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
     trace_scan,
 )
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
-from tactdeform_hw.emulator.firmware.parser_v2 import ParserV2
+from tactdeform_hw.emulator.firmware.parser_v2 import CallCut, ParserV2, ReadPoint
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
 from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal, physical_outputs
 from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
@@ -424,6 +428,34 @@ class DeliveredV2:
         return peak
 
 
+class _ReadClock:
+    """Which read points of one main-loop call the loop gets past (``reach`` of :meth:`ParserV2.call`).
+
+    The scan due at ``alarm`` takes the processor at the first read point that starts at or after it
+    (where the host build's shim runs a due interrupt, before the point does anything).  If that scan,
+    of the registers as the call has left them there, overruns (``overruns``), the loop never gets the
+    processor back: the call stops at that point.  Each point costs what
+    :meth:`TimedEmulatorV2._main_call` counts for it: ``call_ns`` a queue check, ``byte_ns`` a byte
+    read, nothing for a timer read or a write.  ``asked``: whether the call reached a point at or after
+    the alarm (False: the alarm fell inside its last read, and the scan is taken after the call)."""
+
+    def __init__(self, t: int, alarm: int, model: TimingModel, overruns: Callable[[], bool]) -> None:
+        self.clock_ns = t
+        self.alarm_ns = alarm
+        self.call_ns = model.call_ns
+        self.byte_ns = model.byte_ns
+        self.overruns = overruns
+        self.asked = False
+
+    def __call__(self, point: ReadPoint, nbytes: int) -> bool:
+        if not self.asked and self.clock_ns >= self.alarm_ns:
+            self.asked = True
+            if self.overruns():
+                return False
+        self.clock_ns += self.call_ns if point is ReadPoint.AVAILABLE else nbytes * self.byte_ns
+        return True
+
+
 class MainLoopRunsV2:
     """What the v2 model does many times over, done in one go exactly as one at a time (a mixin of
     :class:`TimedEmulatorV2`, which keeps the state): the idle polls, the calls that each skip one unknown
@@ -451,25 +483,6 @@ class MainLoopRunsV2:
     @property
     def parser(self) -> ParserV2:
         raise NotImplementedError
-
-    def _starve(self, regs: RegistersV2, op: int, before: dict[str, Any], seen_pattern: list[int]) -> None:
-        """The scan that interrupted this call overran: the firmware's ``Timer1_Stimulate_ISR`` re-enables
-        its alarm after the counter has passed it, so the next scan starts as the handler returns, and so on
-        -- the main loop (``runEtactileKit``) never resumes the call.  Nothing the call had still to do
-        happens: the registers stay as the interrupting scan saw them (a pattern stays torn), no reply is
-        written, and a 0xFF leaves ``SendingVoltages`` set, so no scan stores its readings again.  The loop
-        stays starved until a reset (the caller stops its reading): its registers cannot change, so neither
-        can the scans' length."""
-        if op == OpcodeV2.PATTERN:
-            regs.stim_pattern[:] = seen_pattern
-        else:
-            for f, v in before.items():
-                setattr(regs, f, v)
-        self.parser.take_tx()
-        if op == OpcodeV2.MEASURE:
-            self._voltages_held = True
-        if self.applied and self.applied[-1][1] == op:
-            self.applied.pop()
 
     def _loss(self, t: int, count: int, host_offset: int, reason: str) -> None:
         raise NotImplementedError
@@ -506,17 +519,21 @@ class MainLoopRunsV2:
         """Run the calls that each read one unknown byte and skip it (the zeros of a flush: most calls of
         a session) in chunks, exactly as :meth:`_main_call` would one by one: each such call lands what
         has arrived by its start, reads one byte and returns at once (no sleep), so the next call starts
-        ``call_ns + byte_ns`` later, if before the alarm and by ``target``.  A chunk ends where a delivery
-        lands (at the next call's start, as :meth:`_land` would) or the run of unknown bytes ends.  False
-        (nothing done) when the call at ``t`` is not such a call."""
+        ``call_ns + byte_ns`` later, if it is over by the alarm and starts by ``target``.  A chunk ends
+        where a delivery lands (at the next call's start, as :meth:`_land` would) or the run of unknown
+        bytes ends.  False (nothing done) when the call at ``t`` is not such a call."""
         parser = self.parser
         if parser.processing or self._hv513_in_call or parser.tx or self._frozen:
             return False
-        self._land(t)
         m = self.model
         step = m.call_ns + m.byte_ns
+        # the latest start of a call that runs now: by ``target``, and over by the alarm (one the alarm
+        # falls into is :meth:`_main_call`'s: a scan that starves the loop may cut it before its read)
+        limit = min(alarm - step, target)
+        if t > limit:
+            return False
+        self._land(t)
         heap = self._delivery_heap
-        limit = min(alarm - 1, target)  # the latest start of a call that runs now
         calls = 0
         run = 0
         while True:
@@ -641,7 +658,119 @@ class MainLoopRunsV2:
         return self._last_scan
 
 
-class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
+class InterruptedCallsV2:
+    """A scan whose alarm falls inside a v2 main-loop call (a mixin of :class:`TimedEmulatorV2`, which keeps
+    the state): what it sees of a command the call is applying, and the loop it starves when it overruns
+    -- it takes the processor at the first of ``runEtactileKit``'s read points at or after its alarm
+    (:class:`_ReadClock`) and never gives it back, so the call is left exactly where the firmware leaves
+    it."""
+
+    model: TimingModel
+    hazards: list[Hazard]
+    scans: list[ScanRecordV2]
+    _call_time_ns: int
+    _voltages_held: bool
+    _scan_of: Callable[[RegistersV2], tuple[FirmwareScanConfig, ScanShape]]
+    _period_ns: Callable[[], int]
+    _scan: Callable[[int], None]
+    _mark: Callable[[int, str, dict[str, Any]], None]
+    stop_reading: Callable[[], None]
+
+    @property
+    def parser(self) -> ParserV2:
+        raise NotImplementedError
+
+    def _overruns(self) -> bool:
+        """Whether a scan of the registers now lasts a period or more: ``Timer1_Stimulate_ISR`` then
+        re-enables an alarm the counter has already passed, the next scan starts as it returns, and so on
+        -- the main loop never gets the processor back."""
+        return self._scan_of(self.parser.regs)[1][0] >= self._period_ns()
+
+    def _starve_at(self, cut: CallCut, alarm: int) -> None:
+        """The scan due at ``alarm`` took the processor at the call's read point ``cut`` and overran
+        (:meth:`_overruns`): ``runEtactileKit`` never resumes.  What the call read and stored before that
+        point stays (a command byte, a pattern's first elements, 0xF6's period without its alarm); the
+        rest stays queued and is never read, no reply is written, and 0xFF had set ``SendingVoltages``
+        before its write, so no scan stores its readings again.  A pattern cut in its copy is torn for
+        good (in modes 0 and 1, where a scan reads it).  The loop stays starved until a reset (the caller
+        stops its reading): its registers cannot change, so neither can the scans' length."""
+        regs = self.parser.regs
+        if cut.op == OpcodeV2.MEASURE:
+            self._voltages_held = True
+        if cut.torn is not None and regs.stim_mode < _MODE_IMPEDANCE:
+            k, rest = cut.torn
+            n = regs.electrode_num
+            if 0 < k < n and list(rest) != regs.stim_pattern[k:n]:
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.TORN_PATTERN,
+                        -1,
+                        {"scan": len(self.scans), "new_channels": k, "channels": n, "old_rest": True},
+                        alarm / 1000,
+                    )
+                )
+        self._scan(alarm)
+        self._mark(self._call_time_ns, "starved", {"op": cut.op, "at": cut.point.value})
+        self.stop_reading()
+
+    def _preempt(
+        self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
+    ) -> int:
+        """The scan interrupt fires while this call applies a command: the scan sees the registers as
+        the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
+        old — a torn pattern).  Returns the scan's duration, by which the call finishes later."""
+        regs = self.parser.regs
+        m = self.model
+        after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
+        new = list(regs.stim_pattern)
+        if op == OpcodeV2.PATTERN:
+            n = regs.electrode_num
+            width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
+            start = t + m.call_ns * self.parser.checks + max(0, consumed - 2 * n) * m.byte_ns
+            k = max(0, min(n, (alarm - start) // width)) if width else n
+            regs.stim_pattern[:] = new[:k] + old[k:]
+            # in mode 2 the scan gives every channel the sense pulse and discards the height it reads
+            # (spec "Stimulation scan", 3c): its pulses are the same whatever the buffer holds, so no scan
+            # in mode 2 uses part of an old and part of a new pattern
+            reads_pattern = regs.stim_mode < _MODE_IMPEDANCE
+            if reads_pattern and 0 < k < n and new[k:n] != old[k:n]:
+                self.hazards.append(
+                    Hazard(
+                        HazardKind.TORN_PATTERN,
+                        -1,
+                        {
+                            "scan": len(self.scans),
+                            "new_channels": k,
+                            "channels": n,
+                            "old_rest": old[k:n] != new[k:n],
+                        },
+                        alarm / 1000,
+                    )
+                )
+        else:
+            for f, v in before.items():
+                setattr(regs, f, v)
+        self._scan(alarm)
+        duration = self.scans[-1].duration_ns
+        for f, v in after.items():
+            setattr(regs, f, v)
+        regs.stim_pattern[:] = new
+        return duration
+
+    def _starved_after_call(self, clock: _ReadClock, op: int) -> bool:
+        """The alarm fell inside the call's last read (no read point at or after it, ``clock.asked``
+        False): the firmware stores what it read and takes the scan at its next read point, the next
+        call's first.  True when that scan, of the registers the call stored, overruns: the loop is
+        starved there (the call is over, nothing of it is undone)."""
+        if clock.asked or not self._overruns():
+            return False
+        self._scan(clock.alarm_ns)
+        self._mark(self._call_time_ns, "starved", {"op": op, "at": "next call"})
+        self.stop_reading()
+        return True
+
+
+class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedModelBase):
     """The v2 board in simulated time.  ``write(data, at_us)`` hands bytes to the link; ``advance_to``
     runs the firmware until then; ``read_tx`` returns what reached the host."""
 
@@ -1070,10 +1199,16 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
         latest_end = t + 2 * m.call_ns + pending * m.byte_ns + m.hv513_detect_ns
         before: dict[str, Any] = {}
         old_pattern: list[int] = []
-        if t < self._next_alarm_ns < latest_end:
+        alarm = self._next_alarm_ns
+        clock: _ReadClock | None = None
+        if t < alarm < latest_end:
             before = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
             old_pattern = list(regs.stim_pattern)
-        out = parser.call(t // 1000)
+            clock = _ReadClock(t, alarm, m, self._overruns)
+        out = parser.call(t // 1000, clock)
+        if parser.cut is not None:
+            self._starve_at(parser.cut, alarm)
+            return
         for h in self.hazards[hazards_before:]:
             if h.kind is HazardKind.COMMAND_TIMEOUT:
                 # the cut command and every byte queued behind it never take effect
@@ -1093,13 +1228,11 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
         alarm = self._next_alarm_ns
         if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
-            scan_ns, seen_pattern = self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
-            end += scan_ns
-            if self._next_alarm_ns <= alarm + scan_ns:
-                self._starve(regs, applied, before, seen_pattern)
-                self._mark(self._call_time_ns, "starved", {"op": applied})
-                self.stop_reading()
+            assert clock is not None  # the alarm is before the call's end, so before its latest end
+            if self._starved_after_call(clock, applied):
                 return
+            # a scan that leaves the loop time: it sees the registers as the call had them at the alarm
+            end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
         tx = parser.take_tx()
         if (
             tx
@@ -1133,52 +1266,6 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, TimedModelBase):
             return base
         tick = self.model.rtos_tick_ns
         return base + ((t - base) // tick + 1) * tick
-
-    def _preempt(
-        self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
-    ) -> tuple[int, list[int]]:
-        """The scan interrupt fires while this call applies a command: the scan sees the registers as
-        the copy had left them at that moment (a pattern: the elements copied so far are new, the rest
-        old — a torn pattern).  Returns the scan's duration, by which the call finishes later, and the
-        pattern the scan saw."""
-        regs = self.registers
-        m = self.model
-        after = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
-        new = list(regs.stim_pattern)
-        if op == OpcodeV2.PATTERN:
-            n = regs.electrode_num
-            width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
-            start = t + m.call_ns * self.parser.checks + max(0, consumed - 2 * n) * m.byte_ns
-            k = max(0, min(n, (alarm - start) // width)) if width else n
-            regs.stim_pattern[:] = new[:k] + old[k:]
-            # in mode 2 the scan gives every channel the sense pulse and discards the height it reads
-            # (spec "Stimulation scan", 3c): its pulses are the same whatever the buffer holds, so no scan
-            # in mode 2 uses part of an old and part of a new pattern
-            reads_pattern = regs.stim_mode < _MODE_IMPEDANCE
-            if reads_pattern and 0 < k < n and new[k:n] != old[k:n]:
-                self.hazards.append(
-                    Hazard(
-                        HazardKind.TORN_PATTERN,
-                        -1,
-                        {
-                            "scan": len(self.scans),
-                            "new_channels": k,
-                            "channels": n,
-                            "old_rest": old[k:n] != new[k:n],
-                        },
-                        alarm / 1000,
-                    )
-                )
-        else:
-            for f, v in before.items():
-                setattr(regs, f, v)
-        seen = list(regs.stim_pattern)
-        self._scan(alarm)
-        duration = self.scans[-1].duration_ns
-        for f, v in after.items():
-            setattr(regs, f, v)
-        regs.stim_pattern[:] = new
-        return duration, seen
 
     def _on_command(self, op: int, value: object, offset: int) -> None:
         self.applied.append((self._call_time_ns, op, value))
