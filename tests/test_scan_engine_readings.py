@@ -124,12 +124,16 @@ def test_the_engine_logs_the_firmwares_own_scans(golden: dict[str, Any]) -> None
     assert tmpl.config.alarm_ticks == golden["alarm_ticks"]
 
 
+def _reading_id(row: dict[str, Any]) -> str:
+    conv = row["conventions"]
+    return f"{row['name']}-{'costed' if conv['cs_writes_costed'] else 'inside'}-{conv['dac_load']}"
+
+
 @pytest.mark.parametrize(
     "walked",
     TRACED,
-    ids=[f"{r['name']}-{'costed' if r['conventions']['cs_writes_costed'] else 'inside'}-"
-         f"{r['conventions']['dac_load']}" for r in TRACED],
-)  # fmt: skip
+    ids=[_reading_id(r) for r in TRACED],
+)
 def test_the_engine_logs_what_the_walker_logged_under_every_reading(walked: dict[str, Any]) -> None:
     model = DEFAULT_MODEL.with_(**walked["conventions"])
     tmpl = scan(walked["config"], model)
@@ -153,9 +157,8 @@ def _clear_clk(tmpl: ScanTemplate) -> int:
 @pytest.mark.parametrize(
     "walked",
     WALKED,
-    ids=[f"{r['name']}-{'costed' if r['conventions']['cs_writes_costed'] else 'inside'}-"
-         f"{r['conventions']['dac_load']}" for r in WALKED],
-)  # fmt: skip
+    ids=[_reading_id(r) for r in WALKED],
+)
 def test_the_budget_is_the_one_the_walker_printed(walked: dict[str, Any]) -> None:
     model = DEFAULT_MODEL.with_(**walked["conventions"])
     assert firmware_budget(scan_config(walked["config"]), model).to_dict() == walked["budget"]

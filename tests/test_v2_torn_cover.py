@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -24,6 +25,19 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
 import safety_campaign as sc  # noqa: E402
 
 N = 16
+
+
+def _recorded_writes(monkeypatch: pytest.MonkeyPatch, port: Any) -> list[bytes]:
+    """Every write the driver makes to ``port`` from now on, in order (each still reaches the board)."""
+    writes: list[bytes] = []
+    inner = port.write
+
+    def spy(data: bytes) -> int:
+        writes.append(bytes(data))
+        return int(inner(data))
+
+    monkeypatch.setattr(port, "write", spy)
+    return writes
 
 
 def _emulator_before_a_scan(mode: int) -> tuple[TimedEmulatorV2, int, int]:
@@ -113,14 +127,7 @@ def test_a_session_with_a_sense_current_writes_each_new_pattern_in_one_covered_w
     0 (the interlock reads every command of the write in turn), the heights arrive whole, and the sense
     height the first cover zeroed stays 0 (modes 0 and 1 never use it)."""
     dev, port, _ = _timed_v2()
-    writes: list[bytes] = []
-    inner = port.write
-
-    def spy(data: bytes) -> int:
-        writes.append(bytes(data))
-        return inner(data)
-
-    monkeypatch.setattr(port, "write", spy)
+    writes = _recorded_writes(monkeypatch, port)
     cfg = StimConfig(
         electrode_count=8, current_ua=1000, pulse_width_us=100, rate_hz=100, sense_current_ua=120
     )
@@ -172,14 +179,7 @@ def test_under_the_robust_encoding_heights_in_force_are_written_again_only_under
     cover written twice (a byte lost from a pattern written alone would shift its heights into the mode in
     force); under the plain encoding they stay the mode and the pattern (refresh) and the pattern alone."""
     dev, port, _ = _timed_v2(robust=robust)
-    writes: list[bytes] = []
-    inner = port.write
-
-    def spy(data: bytes) -> int:
-        writes.append(bytes(data))
-        return inner(data)
-
-    monkeypatch.setattr(port, "write", spy)
+    writes = _recorded_writes(monkeypatch, port)
     dev.configure(StimConfig(electrode_count=4, current_ua=1000, pulse_width_us=100, rate_hz=100))
     dev.send_pattern([2, 0, 2, 0])
     port.advance(0.05)
