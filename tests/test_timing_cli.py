@@ -155,3 +155,34 @@ def test_output_into_a_closed_pipe_ends_quietly() -> None:
         os.close(write_fd)
     assert proc.stderr == ""
     assert proc.returncode == EXIT_BROKEN_PIPE == 141
+
+
+@pytest.mark.parametrize(
+    "engine",
+    [["--firmware", "v2"], ["--cs-writes", "costed"], ["--dac-load", "cs_rise"]],
+    ids=["v2", "v1.2-cs-writes", "v1.2-dac-load"],
+)
+@pytest.mark.parametrize("json_out", [False, True], ids=["table", "json"])
+def test_every_scan_engine_exits_with_its_verdict(
+    engine: list[str], json_out: bool, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The exit status the help promises (0 fits, 3 overrun, 4 watchdog) on the paths that print the
+    firmware's scan-log budget, as on the default one: a script can branch on it."""
+    extra = ["--json"] if json_out else []
+    cases = [
+        (["--electrodes", "32", "--pulse-width", "200", "--frequency", "100"], 0, "fits"),
+        (
+            ["--electrodes", "32", "--pulse-width", "200", "--frequency", "250"],
+            timing.EXIT_OVERRUN,
+            "overrun",
+        ),
+        (
+            ["--electrodes", "255", "--pulse-width", "60000", "--frequency", "1"],
+            timing.EXIT_WATCHDOG,
+            "watchdog",
+        ),
+    ]
+    for argv, status, verdict in cases:
+        code, out, _ = run_cli([*argv, *engine, *extra], capsys)
+        assert code == status, (argv, out[-300:])
+        assert verdict in (json.loads(out)["verdict"] if json_out else out.lower())

@@ -7,14 +7,15 @@ from pathlib import Path
 
 import pytest
 
+from tactdeform_hw.cli import timing
 from tactdeform_hw.errors import LimitError
 
 from .test_timing_cli import TACTDEFORM, run_cli
 
 
-def _json(argv: list[str], capsys: pytest.CaptureFixture[str]) -> dict:
+def _json(argv: list[str], capsys: pytest.CaptureFixture[str], status: int = 0) -> dict:
     code, out, _ = run_cli([*argv, "--json"], capsys)
-    assert code == 0
+    assert code == status
     return json.loads(out)
 
 
@@ -80,8 +81,9 @@ def test_every_value_v2_holds_is_accepted(capsys: pytest.CaptureFixture[str]) ->
             "65535",
         ],
         capsys,
+        status=timing.EXIT_OVERRUN,  # accepted, and its verdict in the exit status
     )
-    assert d["effective_width_us"] == 6.6 and d["electrodes"] == 255
+    assert d["effective_width_us"] == 6.6 and d["electrodes"] == 255 and d["verdict"] == "overrun"
     assert any("one SPI exchange" in n for n in d["notes"])
     assert _json(["--firmware", "v2", "--electrodes", "0"], capsys)["electrodes"] == 0
 

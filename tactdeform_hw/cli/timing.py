@@ -467,11 +467,11 @@ def _print_firmware_budget(args: argparse.Namespace, b: Any, events: list[list[A
         result["traces"] = [args.events]
     if args.json:
         print_json(result)
-        return 0
+        return verdict_status(b)
     print(b.table())
     if args.events:
         print(f"wrote {args.events}")
-    return 0
+    return verdict_status(b)
 
 
 def _run_v2(args: argparse.Namespace) -> int:
