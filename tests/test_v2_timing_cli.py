@@ -106,8 +106,9 @@ def test_bad_v2_values_name_the_flag(argv: list[str], match: str, capsys: pytest
 def test_mode_is_refused_on_v12(capsys: pytest.CaptureFixture[str]) -> None:
     from tactdeform_hw.errors import ConfigurationError
 
-    with pytest.raises(ConfigurationError, match="--mode 1: v1.2 has no stimulation mode"):
-        run_cli(["--mode", "1"], capsys)
+    for readings in ([], ["--cs-writes", "costed"], ["--dac-load", "cs_rise"]):
+        with pytest.raises(ConfigurationError, match="--mode 1: v1.2 has no stimulation mode"):
+            run_cli(["--mode", "1", *readings], capsys)
 
 
 def test_list_model_says_which_chip_select_reading_is_default(capsys: pytest.CaptureFixture[str]) -> None:

@@ -548,14 +548,14 @@ def run(args: argparse.Namespace) -> int:
         return _run_host_build(args, model)
     if args.firmware == "v2":
         return _run_v2(args)
-    if args.cs_writes == "costed" or args.dac_load != "mid_exchange":
-        return _run_v1_2_readings(
-            args, model.with_(cs_writes_costed=args.cs_writes == "costed", dac_load=args.dac_load)
-        )
     if args.mode is not None:
         raise ConfigurationError(
             f"--mode {args.mode}: v1.2 has no stimulation mode (the pattern byte picks the "
             "waveform); use --firmware v2"
+        )
+    if args.cs_writes == "costed" or args.dac_load != "mid_exchange":
+        return _run_v1_2_readings(
+            args, model.with_(cs_writes_costed=args.cs_writes == "costed", dac_load=args.dac_load)
         )
     cfg = config_from_args(args)
     if args.events:
