@@ -164,12 +164,11 @@ def test_every_suffix_of_the_identification_is_safe_from_a_boundary() -> None:
     boundary with the count 0 and no height."""
     wire = IDENT_OFF + SIGNATURE
     for k in range(len(wire)):
-        for fw in ("v1.2", "v2"):
+        for fw in FIRMWARES:
             emu = Emulator(firmware=fw)
             emu.feed(wire[k:])
             s = emu.state()
-            busy = s.command_in_progress if fw == "v2" else emu.parser.cmd is not None
-            assert not busy, (fw, k)
+            assert not emu.parser.processing, (fw, k)
             assert max(s.stim_pattern) == 0, (fw, k)
             if k <= len(IDENT_OFF) - 7:
                 assert s.electrode_num == 0 and s.sense_pulse_height == 0, (fw, k)
@@ -356,7 +355,7 @@ def test_the_safe_tail_means_the_same_on_both_versions() -> None:
     assert 0xF4 not in V1_2.by_opcode
 
 
-@pytest.mark.parametrize("fw", ["v1.2", "v2"])
+@pytest.mark.parametrize("fw", list(FIRMWARES))
 def test_open_device_identifies_by_default_and_counts_the_identification_as_its_own(
     fw: str, tmp_path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
