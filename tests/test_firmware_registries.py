@@ -87,7 +87,6 @@ LITERAL_VERSION_LISTS = frozenset(
         "test_identification_transports.py",
         "test_safety_calibration_mapping.py",
         "test_safety_lost_tracking.py",
-        "test_safety_pacing.py",
         "test_safety_probe_turn.py",
         "test_safety_pty_timed.py",
         "test_safety_tcp_guardian.py",
