@@ -222,6 +222,27 @@ def test_a_refresh_is_the_dialects_plan_sent_as_planned(dev: EtactileKitDevice, 
     assert _levels(dev) == before
 
 
+def test_refresh_and_keepalive_rewrite_the_frame_in_force_and_suspend_stops_it(
+    spec: FirmwareSpec, dev: EtactileKitDevice, port: RecordingPort
+) -> None:
+    """Something else wrote an all-off pattern to the board: ``refresh`` writes the frame in force again;
+    ``suspend`` (a fail-safe stop) switches every channel off and keeps the frame, which ``keepalive``
+    puts back."""
+    dev.configure(StimConfig(electrode_count=3, current_ua=300))
+    dev.send_pattern([1, 1, 0])
+    assert _levels(dev) == (1, 1, 0)
+    pattern_off = bytes([spec.opcode_of("stim_pattern")]) + bytes(3 * spec.pattern_bytes_per_electrode)
+    port.emulator.feed(pattern_off)
+    assert _levels(dev) == (0, 0, 0)
+    dev.refresh()
+    assert _levels(dev) == (1, 1, 0)
+    dev.suspend()
+    assert _levels(dev) == (0, 0, 0)
+    dev.keepalive()
+    assert _levels(dev) == (1, 1, 0)
+    dev.close()
+
+
 def _planned_bytes(dev: EtactileKitDevice, plan: Plan) -> bytes:
     """The bytes a plan stands for on this device's link (no loss-tolerant padding here)."""
     assert not dev.pacer.robust  # each write once, unpadded

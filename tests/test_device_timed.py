@@ -4,11 +4,14 @@ pulses the emulated board delivered, never the bytes the host meant to send."""
 
 from __future__ import annotations
 
+import itertools
+
 import pytest
 
 from tactdeform_hw.device.driver.base import LinkState
 from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.dialects import DIALECTS
+from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError
 from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice
 from tactdeform_hw.emulator.faults import TimedPort
 from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
@@ -75,3 +78,25 @@ def test_a_hung_board_gets_the_reset_line_within_the_resync_bound_and_comes_back
     port.advance(0.05)
     assert max(_delivered_ua(port, t)) == pytest.approx(500, abs=25)
     dev.close()
+
+
+@pytest.mark.parametrize(
+    ("board", "driver"), list(itertools.permutations(SPECS, 2)), ids=lambda spec: spec.name
+)
+def test_a_driver_told_another_version_is_refused_and_stops_the_board(
+    board: FirmwareSpec, driver: FirmwareSpec
+) -> None:
+    """A board left stimulating by a session of its own version that never closed (killed), then a driver
+    told another version: the identification proves the board's own, the refusal is typed and names both,
+    the port is let go, and the board delivers nothing any more (its bytes stop current on every version)."""
+    earlier, port = _timed(board)
+    earlier.configure(StimConfig(electrode_count=8, current_ua=800))
+    earlier.send_pattern([1] * 8)
+    port.advance(0.03)
+    assert max(_delivered_ua(port, port.now_s - 0.02)) == pytest.approx(800, abs=25)
+    with pytest.raises(FirmwareMismatchError, match=f"runs firmware {board.name}.*firmware='{driver.name}'"):
+        EtactileKitDevice(port, firmware=driver.name)
+    assert not port.is_open
+    t = port.now_s
+    port.advance(0.05)
+    assert _delivered_ua(port, t) == [] and port.emulator.state().electrode_num == 0

@@ -23,7 +23,7 @@ from tactdeform_hw.emulator.serving.usb_backend import EmulatedUsbDevice
 from tactdeform_hw.emulator.timed.base import TimedModelBase
 from tactdeform_hw.emulator.timed.model_v1_2 import timed_emulator
 from tactdeform_hw.errors import ConfigurationError
-from tactdeform_hw.protocol.firmware import FIRMWARES
+from tactdeform_hw.protocol.firmware import DEFAULT_FIRMWARE, FIRMWARES
 from tactdeform_hw.protocol.state import BoardState
 
 from .conftest import DATA
@@ -51,8 +51,16 @@ def test_every_modelled_version_has_one_entry(entry: ModelEntry) -> None:
 
 
 def test_an_unknown_version_is_refused_naming_the_choices() -> None:
-    with pytest.raises(ConfigurationError, match=r"firmware='v3' .*choices: v1\.2, v2"):
-        Emulator(firmware="v3")
+    for build in (Emulator, timed_emulator):
+        with pytest.raises(ConfigurationError, match=r"firmware='v3' .*choices: v1\.2, v2"):
+            build(firmware="v3")
+
+
+@pytest.mark.parametrize("entry", ENTRIES, ids=IDS)
+def test_the_timed_factory_builds_the_versions_model_with_the_options_given(entry: ModelEntry) -> None:
+    timed = timed_emulator(firmware=entry.spec.name, link="uart")
+    assert type(timed) is entry.timed_class() and timed.link.name == "uart"
+    assert type(timed_emulator()) is model_entry(DEFAULT_FIRMWARE).timed_class()  # no version named
 
 
 @pytest.mark.parametrize("entry", ENTRIES, ids=IDS)

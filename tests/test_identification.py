@@ -9,6 +9,9 @@ import itertools
 
 import pytest
 
+from tactdeform_hw.device.driver.base import LinkState
+from tactdeform_hw.device.driver.config import StimConfig
+from tactdeform_hw.device.driver.dialects import DIALECTS
 from tactdeform_hw.device.driver.firmware_probe import (
     IDENT_OFF,
     SETTLE_S,
@@ -19,11 +22,13 @@ from tactdeform_hw.device.driver.firmware_probe import (
     classify,
     detect_firmware,
 )
+from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice
+from tactdeform_hw.device.driver.v2 import buffer_levels
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.serving.in_process import EmulatorPort
 from tactdeform_hw.protocol import commands as c12
 from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
-from tactdeform_hw.protocol.firmware import V1_2, V2
+from tactdeform_hw.protocol.firmware import FIRMWARES, V1_2, V2
 
 STIM_V12 = (
     c12.encode_electrode_num(32)
@@ -159,12 +164,11 @@ def test_every_suffix_of_the_identification_is_safe_from_a_boundary() -> None:
     boundary with the count 0 and no height."""
     wire = IDENT_OFF + SIGNATURE
     for k in range(len(wire)):
-        for fw in ("v1.2", "v2"):
+        for fw in FIRMWARES:
             emu = Emulator(firmware=fw)
             emu.feed(wire[k:])
             s = emu.state()
-            busy = s.command_in_progress if fw == "v2" else emu.parser.cmd is not None
-            assert not busy, (fw, k)
+            assert not emu.parser.processing, (fw, k)
             assert max(s.stim_pattern) == 0, (fw, k)
             if k <= len(IDENT_OFF) - 7:
                 assert s.electrode_num == 0 and s.sense_pulse_height == 0, (fw, k)
@@ -212,22 +216,68 @@ def test_silence_and_an_echo_are_refused_before_any_stimulating_byte(port_cls: t
     assert not port.is_open
 
 
-def test_open_device_v12_refuses_a_v2_board_and_accepts_v12(monkeypatch: pytest.MonkeyPatch) -> None:
+def _left_stimulating(firmware: str) -> tuple[EmulatorPort, Emulator]:
+    """A board of ``firmware`` left stimulating by a session of its own version that never closed."""
+    emu = Emulator(firmware=firmware)
+    port = EmulatorPort(emu)
+    earlier = EtactileKitDevice(port, firmware=firmware)
+    earlier.configure(StimConfig(electrode_count=4, current_ua=500))
+    earlier.send_pattern([1] * 4)
+    assert emu.state().electrode_num == 4 and set(buffer_levels(emu.state())[:4]) == {1}
+    return port, emu
+
+
+@pytest.mark.parametrize(
+    ("board", "driver"), list(itertools.product(FIRMWARES, FIRMWARES)), ids=lambda name: name
+)
+def test_open_device_drives_the_version_it_was_told_only_on_a_board_that_proves_it(
+    board: str, driver: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``open_device(firmware=X)`` on a board left stimulating: driven when the board proves X; refused
+    naming both versions otherwise, with the board stopped, the port let go and nothing written after the
+    identification."""
     from tactdeform_hw.device.driver import serial_driver
 
-    for fw, ok in (("v1.2", True), ("v2", False)):
-        emu = Emulator(firmware=fw)
+    port, emu = _left_stimulating(board)
+    mark = emu.received_bytes
+    monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
+    if board == driver:
+        dev = serial_driver.open_device("emulator", firmware=driver)
+        assert dev.firmware == board and dev.dialect is DIALECTS[FIRMWARES[board]]
+        dev.close()
+        return
+    with pytest.raises(FirmwareMismatchError, match=f"runs firmware {board}.*firmware='{driver}'"):
+        serial_driver.open_device("emulator", firmware=driver)
+    assert emu.received_bytes - mark == len(IDENT_OFF) + len(SIGNATURE)  # nothing after the identification
+    assert not port.is_open
+    assert emu.state().electrode_num == 0  # nothing is scanned any more
+
+
+@pytest.mark.parametrize("firmware", list(FIRMWARES))
+def test_auto_detects_the_version_from_every_parser_state_before_any_stimulating_byte(
+    firmware: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``firmware="auto"`` from every parser state an earlier program can leave: the identification (only
+    bytes that carry no current) comes first, the driver then speaks the version the board runs, and a
+    frame reaches the board as sent."""
+    from tactdeform_hw.device.driver import serial_driver
+
+    spec = FIRMWARES[firmware]
+    for name, prefix in _prefixes(spec, (1, 32, 255)):
+        emu = Emulator(firmware=firmware)
         port = EmulatorPort(emu)
+        emu.feed(prefix)
+        mark = len(emu.parser.rx)
         monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
-        if ok:
-            dev = serial_driver.open_device("emulator", firmware="v1.2")
-            dev.close()
-        else:
-            with pytest.raises(FirmwareMismatchError, match="runs firmware v2"):
-                serial_driver.open_device("emulator", firmware="v1.2")
-            assert emu.received_bytes == len(IDENT_OFF) + len(SIGNATURE)  # nothing after the identification
-            assert not port.is_open
-            assert emu.state().electrode_num == 0
+        dev = serial_driver.open_device("emulator", firmware="auto")
+        assert dev.dialect is DIALECTS[spec], name
+        first = bytes(emu.parser.rx)[mark : mark + 520]
+        assert set(first) <= set(IDENT_OFF + SIGNATURE) | {0x00}, name
+        assert dev.link_state is LinkState.IN_STEP, name
+        dev.configure(StimConfig(electrode_count=4, current_ua=200))
+        dev.send_pattern([1, 1, 0, 0])
+        assert buffer_levels(emu.state())[:4] == [1, 1, 0, 0], name
+        dev.close()
 
 
 def test_a_v12_expectation_on_a_v2_answer_and_the_reverse_are_refused() -> None:
@@ -305,7 +355,7 @@ def test_the_safe_tail_means_the_same_on_both_versions() -> None:
     assert 0xF4 not in V1_2.by_opcode
 
 
-@pytest.mark.parametrize("fw", ["v1.2", "v2"])
+@pytest.mark.parametrize("fw", list(FIRMWARES))
 def test_open_device_identifies_by_default_and_counts_the_identification_as_its_own(
     fw: str, tmp_path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

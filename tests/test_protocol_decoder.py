@@ -77,6 +77,10 @@ def test_cli_decodes_with_the_named_firmware(capsys) -> None:  # type: ignore[no
     )
     assert main(["decode", "fb 00 f9"]) == 0
     assert "pulse_height=63744 (stored as 4095)" in capsys.readouterr().out
+    assert main(["decode", "fa 00", "--firmware", "v2"]) == 0  # v2 discards a cut command after 2 s
+    assert "within 2 s of its command byte" in capsys.readouterr().err
+    assert main(["decode", "fa 00"]) == 0
+    assert "within 2 s" not in capsys.readouterr().err
     assert main(["decode", "fb 00", "--firmware", "v3"]) != 0
     err = capsys.readouterr().err
     assert "--firmware 'v3'" in err and "v1.2, v2" in err and "Traceback" not in err

@@ -9,6 +9,9 @@ from pathlib import Path
 
 import pytest
 
+from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
+from tactdeform_hw.protocol.firmware import FIRMWARES
+
 from .safety_helpers import CAMPAIGN_CALLS, OPEN_DEFECTS, assert_fault_free, assert_fault_free_but_for
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
@@ -51,17 +54,38 @@ def test_fault_free_campaign_covers_what_it_claims(fault_free: list[sc.SessionRe
     assert summary["biphasic"] > 500 and summary["sense_current"] > 100
 
 
-def test_the_judge_sees_a_pulse_above_the_limit_and_a_lost_byte() -> None:
-    """The control: a session that writes around the driver is caught by the same verdict."""
-    s = sc.Session(3, 3, False)
+#: Per firmware, bytes that put channel 0 alone at the DAC's maximum in that version's terms, written
+#: around the driver by the judge's control.
+OVER_LIMIT = {
+    "v1.2": b"\xfc\x01\xfe\x01\xfb\xff\x0f",  # count 1, pattern 1 (monophasic), pulse height 4095
+    "v2": c2.encode_electrode_num(1) + c2.encode_stim_mode(0) + c2.encode_pattern([4095]),
+}
+
+
+def test_every_firmware_has_an_over_limit_control() -> None:
+    assert set(OVER_LIMIT) == set(FIRMWARES)
+
+
+@pytest.mark.parametrize("firmware", list(FIRMWARES))
+def test_the_judge_sees_a_pulse_above_the_limit_and_a_lost_byte(firmware: str) -> None:
+    """The control: a session that writes around the driver (channel 0 at the DAC's maximum) and a hung
+    main loop whose queue overflows are caught by the same verdict that passes the clean session."""
+    s = sc.Session(3, 3, False, firmware)
+    s.run()
+    clean = s.judge()
+    assert clean.over_limit == clean.meant_off == clean.lost_bytes == 0
+    assert set(clean.defect_counts) <= OPEN_DEFECTS  # v1.2's torn scans apart, the clean session passes
+    s = sc.Session(3, 3, False, firmware)
     s.run()
     s.port.is_open = True
-    s.port.write(b"\xfc\x01\xfe\x01\xfb\xff\x0f")  # one channel on at 4095, past the driver
+    s.port.write(OVER_LIMIT[firmware])
     s.port.advance(0.05)
-    s.port.write(bytes(600))  # more than the queue takes at once
+    s.port.emulator.stop_reading()
+    s.port.write(bytes(2 * FIRMWARES[firmware].rx_queue_bytes))  # more than the queue takes
     s.port.advance(0.05)
     res = s.judge()
     assert res.over_limit > 0 and res.lost_bytes > 0 and not res.ok
+    assert res.first_violation is not None and res.first_violation["channel"] == 0
 
 
 def test_campaign_is_deterministic_per_seed_whatever_the_jobs() -> None:
@@ -95,6 +119,15 @@ def test_cli_json_and_refusals(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         sc.main(["--sessions", "0"])
     assert "--sessions must be at least 1 (got 0)" in capsys.readouterr().err
+
+
+def test_cli_names_the_firmware(capsys: pytest.CaptureFixture[str]) -> None:
+    rc = sc.main(["--sessions", "3", "--jobs", "1", "--json", "--firmware", "both"])
+    out = json.loads(capsys.readouterr().out)
+    assert [s["firmware"] for s in out] == ["v1.2", "v2"]
+    assert rc == (1 if any(s["failures"] for s in out) else 0)
+    sc.main(["--sessions", "3", "--jobs", "1", "--json"])
+    assert json.loads(capsys.readouterr().out)["firmware"] == "v1.2"
 
 
 def test_a_defect_fails_the_campaign_with_the_command_that_replays_it(

@@ -1,5 +1,5 @@
-"""Pacing: the driver never overflows the firmware's 256-byte queue nor outruns its 1 ms-per-command
-parser."""
+"""Pacing: the driver never overflows the firmware's receive queue (v1.2's 256 bytes, v2's 1024) nor
+outruns its parser (v1.2's 1 ms per command)."""
 
 from __future__ import annotations
 
@@ -12,14 +12,16 @@ from tactdeform_hw.clock import InstantClock, MonotonicClock, SimulatedClock
 from tactdeform_hw.device import EtactileKitDevice, StimConfig, open_device
 from tactdeform_hw.device.driver.dialect import count_raise_timing, scan_of, timing_before_count, worst_scan_s
 from tactdeform_hw.device.driver.pacing import Pacer, PacingPolicy, default_pacer, padding_for
+from tactdeform_hw.device.driver.v2 import buffer_levels
 from tactdeform_hw.device.safety.guard import TACTDEFORM_REGION_OF, SafetyGuard
 from tactdeform_hw.emulator.faults import TimedPort
 from tactdeform_hw.emulator.firmware.hazards import HazardKind
 from tactdeform_hw.emulator.serving.in_process import EmulatorPort
-from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator, timed_emulator
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.errors import ShortReplyError
 from tactdeform_hw.protocol.constants import PAYLOAD_KIND, Opcode
+from tactdeform_hw.protocol.firmware import FIRMWARES
 from tactdeform_hw.protocol.firmware_math import firmware_period_us
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
@@ -80,19 +82,26 @@ def test_zero_losses_at_the_renderers_highest_rate(link: str, robust: bool) -> N
 
 
 @pytest.mark.parametrize("link", ["usb", "uart"])
-def test_zero_losses_on_full_reconfigurations_and_resyncs(link: str) -> None:
-    port, dev = session(link, True, SafetyGuard())
-    for i in range(6):  # back to back: nothing waits between them but the pacer
-        n = 32 if i % 2 else 64  # 64 channels at 245 µs need a longer period: 60 Hz
+@pytest.mark.parametrize("firmware", list(FIRMWARES))
+def test_zero_losses_on_full_reconfigurations_and_resyncs(firmware: str, link: str) -> None:
+    """Back to back on every version's timed model: nothing waits between the calls but the pacer, and
+    the firmware's queue never drops a byte."""
+    port = TimedPort(timed_emulator(firmware=firmware, link=link), link=link, robust_encoding=True)
+    dev = EtactileKitDevice(port, guard=SafetyGuard())
+    for i in range(6):
+        n = 32 if i % 2 else 64  # 64 channels need a longer period: 60 Hz
         dev.configure(
             StimConfig(electrode_count=n, current_ua=500 + 100 * i, rate_hz=125 - i if n == 32 else 60)
         )
         dev.send_pattern([1] * dev.electrodes)
         dev.all_off()
         dev.resync()
-    assert_nothing_lost(port)
-    s = port.emulator.state()
-    assert s.electrode_num == 32 and s.pulse_height == 0
+    emu = port.emulator
+    emu.run_until_idle()
+    assert emu.losses == [], [lo.describe() for lo in emu.losses[:3]]
+    assert not [h for h in emu.hazards if h.kind is HazardKind.QUEUE_OVERFLOW]
+    s = emu.state()
+    assert s.electrode_num == 32 and set(buffer_levels(s)[:32]) == {0} and not s.rx_dropped
     dev.close()
 
 
@@ -285,7 +294,7 @@ def test_a_raised_count_is_paced_by_its_own_scan_at_the_new_period() -> None:
     assert pacer.payload_interval_s() > period_us / 1e6 > old_interval_s  # one command per scan at most
 
 
-@pytest.mark.parametrize("firmware", ["v1.2", "v2"])
+@pytest.mark.parametrize("firmware", list(FIRMWARES))
 def test_a_raised_count_is_written_after_the_new_rate(firmware: str) -> None:
     """On the wire: raising 32 -> 255 writes the rate before the count; lowering 255 -> 32 keeps the count
     first (the scan shortens: the order every other configuration has always had)."""

@@ -78,6 +78,17 @@ def test_model_overrides_and_listing(capsys: pytest.CaptureFixture[str]) -> None
     assert "spi_exchange_us" in out and "assumption" in out and "firmware comment" in out
 
 
+def test_list_model_says_which_chip_select_reading_is_default(capsys: pytest.CaptureFixture[str]) -> None:
+    rows = {r["name"]: r for r in json.loads(run_cli(["--list-model", "--json"], capsys)[1])}
+    assert (
+        rows["chip_select_writes"]["value"] == "inside"
+        and "default inside" in rows["chip_select_writes"]["doc"]
+    )
+    assert rows["dac_load"]["value"] == "mid_exchange"
+    _, out, _ = run_cli(["--list-model", "--cs-writes", "costed"], capsys)
+    assert "chip_select_writes" in out and "costed" in out
+
+
 def test_bad_input_names_field_value_and_limit(capsys: pytest.CaptureFixture[str]) -> None:
     from tactdeform_hw.errors import ConfigurationError, LimitError
 

@@ -12,9 +12,10 @@ import pytest
 
 from tactdeform_hw.emulator.firmware.scan import ScanConfig, Signal
 from tactdeform_hw.emulator.records.trace import CsvSink, JsonSink, LiveTrace, MemorySink, VcdSink, open_trace
-from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator, timed_emulator
 from tactdeform_hw.errors import ConfigurationError, MissingDependencyError
 from tactdeform_hw.protocol import commands as c
+from tactdeform_hw.protocol.firmware import FIRMWARES
 
 from .scan_reference import reference_scan
 
@@ -167,3 +168,23 @@ def test_a_sink_leaves_a_passed_stream_open_and_flushed_and_a_file_it_opened_who
         sink.close()
     assert not stream.closed and flushed and stream.getvalue()
     assert path.read_bytes().decode("utf-8") == stream.getvalue()  # the whole trace reached the file
+
+
+@pytest.mark.parametrize("firmware", list(FIRMWARES))
+def test_a_trace_marks_a_reset_and_stops_when_detached(firmware: str) -> None:
+    """On every version's timed model: a reset is a marker at its time, and a detached sink receives
+    nothing more while the board scans on after the reset."""
+    mem = MemorySink()
+    emu = timed_emulator(firmware=firmware)
+    emu.attach(mem)
+    emu.write(bytes([0xFC, 4]), 0.0)  # electrode count 4: the same command on every version
+    emu.advance_to(10_000.0)  # the power-on 100 Hz: scans at 0 and 10 ms
+    scans_at_reset = emu.scan_rate(emu.now_us)[0]
+    emu.reset("test")
+    emu.detach(mem)
+    emu.advance_to(40_000.0)
+    mem.close()
+    assert [e[0] for e in mem.events if e[1] == "MARK:reset"] == [10_000_000]
+    assert any(n == "DAC" for _, n, _ in mem.events)  # the scans before the reset were traced
+    assert emu.scan_rate(emu.now_us)[0] > scans_at_reset  # the board scanned again after the reset ...
+    assert max(e[0] for e in mem.events) < 10_500_000  # ... into no sink: nothing after the 10 ms scan

@@ -1,4 +1,5 @@
-"""``decode --firmware v2``: the capture decoder reads v2 streams as the v2 firmware does."""
+"""The capture decoder reads v2 streams as the v2 firmware does: replaying what it read gives the state the
+v2 golden vectors hold (the CLI's ``decode --firmware`` is in ``test_protocol_decoder.py``)."""
 
 from __future__ import annotations
 
@@ -50,27 +51,3 @@ def test_decoded_commands_rebuild_the_firmware_state(vector: dict) -> None:
         assert state[key] == expect[key], key
     assert pattern == expect["stim_pattern"]
     assert pending == expect["command_in_progress"]
-
-
-def test_cli_decodes_v2(capsys: pytest.CaptureFixture[str]) -> None:
-    import argparse
-
-    from tactdeform_hw.cli import decode as cli
-
-    parser = argparse.ArgumentParser()
-    cli.register(parser.add_subparsers())
-    for argv, want in (
-        (
-            ["--firmware", "v2", "fc 02 fe 64 00 ff 0f fb 01 f4"],
-            ["levels=[100,4095]", "STIM_MODE stim_mode=1", "SYNC_CHECK"],
-        ),
-        (["fc 02 fe 64 00 ff 0f fb 01 f4"], ["levels=[100,0]", "MEASURE", "PULSE_HEIGHT"]),
-    ):
-        args = parser.parse_args(["decode", *argv])
-        assert args.func(args) == 0
-        out = capsys.readouterr()
-        for w in want:
-            assert w in out.out
-    args = parser.parse_args(["decode", "--firmware", "v2", "fa 00"])
-    args.func(args)
-    assert "within 2 s of its command byte" in capsys.readouterr().err

@@ -1,6 +1,8 @@
-"""The device layer on firmware v2: configure, frames with per-electrode heights, all-off, close, recovery
-by the sync check and the 2 s timeout, version detection and refusals — judged on what the emulated board
-holds (untimed) and on the pulses it delivered (the timed v2 model)."""
+"""The device layer on firmware v2, where v2 differs: per-electrode heights and the stimulation mode,
+one waveform per frame, recovery by the sync check and the 2 s timeout, v2's stop — judged on what the
+emulated board holds (untimed) and on the pulses it delivered (the timed v2 model).  What the driver
+promises on every version runs over the registry in ``test_device_dialects.py``, ``test_device_driver.py``,
+``test_device_timed.py`` and ``test_identification.py``."""
 
 from __future__ import annotations
 
@@ -8,22 +10,19 @@ import random
 
 import pytest
 
-from tactdeform_hw.device.driver import serial_driver
 from tactdeform_hw.device.driver.base import LinkState
 from tactdeform_hw.device.driver.config import StimConfig
-from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError
 from tactdeform_hw.device.driver.serial_driver import EtactileKitDevice, open_device
 from tactdeform_hw.device.driver.v2 import V2Dialect, off_packet
 from tactdeform_hw.device.safety.guard import SafetyGuard
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.emulator.faults import TimedPort
 from tactdeform_hw.emulator.serving.in_process import EmulatorPort
-from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 from tactdeform_hw.errors import LimitError, SafetyError
 from tactdeform_hw.protocol import commands as c12
 from tactdeform_hw.protocol.commands import V2_COMMANDS as c2
-from tactdeform_hw.protocol.firmware import V1_2, V2, OpcodeV2
+from tactdeform_hw.protocol.firmware import V2, OpcodeV2
 from tactdeform_hw.protocol.reader import iter_commands
 
 from .safety_helpers import defects
@@ -209,20 +208,17 @@ def test_the_interlock_refuses_a_height_above_an_electrodes_own_limit() -> None:
     dev.close()
 
 
-def test_refresh_and_keepalive_rewrite_the_heights_in_force() -> None:
+def test_refresh_rewrites_the_mode_in_force_after_a_mode_2_misread() -> None:
+    """v2's mode byte read as mode 2 (the sense pulse on every channel): ``refresh`` puts the frame's mode
+    back with its heights (the version-neutral refresh, suspend and keepalive are in
+    ``test_device_dialects.py``)."""
     port, emu = _untimed("v2")
     dev = EtactileKitDevice(port, firmware="v2")
     dev.configure(StimConfig(electrode_count=3, current_ua=300))
     dev.send_pattern([1, 1, 0])
-    emu.feed(c2.encode_pattern([0, 0, 0]))  # something else changed the board
-    dev.refresh()
-    assert list(emu.state().stim_pattern[:3]) == [30, 30, 0]
     emu.feed(c2.encode_stim_mode(2))  # a mode byte mis-read: the sense pulse on every channel
     dev.refresh()
     assert emu.state().stim_mode == c2.STIM_MODE_MONOPHASIC
-    dev.suspend()
-    assert list(emu.state().stim_pattern[:3]) == [0, 0, 0]
-    dev.keepalive()
     assert list(emu.state().stim_pattern[:3]) == [30, 30, 0]
     dev.close()
 
@@ -235,99 +231,6 @@ def test_the_guardians_stop_on_v2_stops_current_from_any_parser_state() -> None:
         emu.feed(pkt)
         s = emu.state()
         assert s.electrode_num == 0 and s.stim_mode == 0 and not s.command_in_progress
-
-
-# --- detection and refusals ---------------------------------------------------------------------------------
-
-
-def _states(fw: str) -> list[bytes]:
-    """Byte prefixes that leave ``fw``'s parser in every kind of state: at a boundary, after every command
-    byte with every partial payload, a partial pattern of several counts (v1.2: a locked one too)."""
-    spec = V2 if fw == "v2" else V1_2
-    out = [b"", bytes([0x00])]
-    for op, c in spec.by_opcode.items():
-        if c.kind == "u8":
-            out.append(bytes([op]))
-        elif c.kind == "u16":
-            out += [bytes([op]), bytes([op, 0x10])]
-        elif c.kind == "pattern":
-            for n in (1, 32, 255):
-                per = spec.pattern_bytes_per_electrode
-                head = bytes([spec.opcode_of("electrode_num"), n, op])
-                out += [head, head + bytes([1]) * (per * n - 1)]
-    return out
-
-
-@pytest.mark.parametrize("fw", ["v1.2", "v2"])
-def test_auto_detects_the_version_from_every_parser_state_before_any_stimulating_byte(
-    fw: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    for prefix in _states(fw):
-        port, emu = _untimed(fw)
-        emu.feed(prefix)
-        mark = len(emu.parser.rx)
-        monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
-        dev = open_device("emulator", firmware="auto")
-        assert isinstance(dev.dialect, V2Dialect) == (fw == "v2"), prefix.hex()
-        # the probe (zeros, the safe tail, the sync check) came first: no command that carries a current
-        first = bytes(emu.parser.rx)[mark : mark + 520]
-        assert set(first) <= {0x00, 0xFC, 0xFB, 0xF9, 0xF4}, prefix.hex()
-        assert dev.link_state is LinkState.IN_STEP, prefix.hex()
-        dev.configure(StimConfig(electrode_count=4, current_ua=200))
-        dev.send_pattern([1, 1, 0, 0])
-        want = [20, 20, 0, 0] if fw == "v2" else [1, 1, 0, 0]
-        assert list(emu.state().stim_pattern[:4]) == want, prefix.hex()
-        dev.close()
-
-
-def test_a_v12_driver_is_refused_on_a_v2_board(monkeypatch: pytest.MonkeyPatch) -> None:
-    port, emu = _untimed("v2")
-    emu.feed(c2.encode_electrode_num(4) + c2.encode_pattern([150] * 4))  # a v2 board left stimulating
-    monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
-    with pytest.raises(FirmwareMismatchError, match="runs firmware v2"):
-        open_device("emulator", firmware="v1.2")
-    assert emu.state().electrode_num == 0  # nothing scanned any more
-    assert not port.is_open
-
-
-def test_a_v2_driver_is_refused_on_a_v12_board_and_stops_it() -> None:
-    """A v1.2 board left stimulating by a v1.2 session, then a driver forced to v2: the identification
-    proves v1.2, the board is stopped by bytes both versions read as less current, and the refusal is
-    typed."""
-    board = TimedEmulator()
-    port = TimedPort(board, robust_encoding=False)
-    v12 = EtactileKitDevice(port)
-    v12.configure(StimConfig(electrode_count=8, current_ua=800))
-    v12.send_pattern([1] * 8)
-    port.advance(0.03)
-    t = port.now_s
-    assert _peak_v12(board, (t - 0.02) * 1e6) == 800
-    v12._closed = True  # the session ends without its all-off (killed)
-    with pytest.raises(FirmwareMismatchError, match="runs firmware v1.2.*firmware='v2'"):
-        EtactileKitDevice(port, firmware="v2")
-    assert not port.is_open
-    t = port.now_s
-    port.advance(0.05)
-    assert _peak_v12(board, t * 1e6) == 0
-    s = board.state()
-    assert s.electrode_num == 0 and s.pulse_height == 0
-
-
-def _peak_v12(board: TimedEmulator, since_us: float) -> float:
-    table = board.reports.pulse_table(since_us)
-    return float(table["current_ua"].max()) if table["code"].size else 0.0
-
-
-def test_a_v2_driver_refused_on_a_v12_url(monkeypatch: pytest.MonkeyPatch) -> None:
-    port, emu = _untimed("v1.2")
-    monkeypatch.setattr(serial_driver, "open_port", lambda name, timeout, p=port: p)
-    emu.feed(c12.encode_electrode_num(4) + c12.encode_pulse_height(50) + c12.encode_pattern(bytes([1] * 4)))
-    with pytest.raises(FirmwareMismatchError, match="runs firmware v1.2.*firmware='v2'"):
-        open_device("emulator", firmware="v2")
-    assert not port.is_open
-    assert emu.state().electrode_num == 0 and emu.state().pulse_height == 0
-    # nothing but the identification's off bytes reached the board
-    assert set(bytes(emu.parser.rx)[30:]) <= {0x00, 0xFC, 0xFB, 0xF9, 0xF4, 0xF5}
 
 
 # --- recovery -----------------------------------------------------------------------------------------------
@@ -527,22 +430,6 @@ def test_cli_render_drives_a_v2_board_and_its_check_reads_heights(capsys: pytest
     )
     assert rc == 0, capsys.readouterr().err
     assert "0 mismatch(es) against the emulator" in capsys.readouterr().out
-
-
-def test_a_hung_v2_board_gets_the_reset_line_and_comes_back() -> None:
-    dev, port, board = _timed_v2()
-    dev.configure(StimConfig(electrode_count=8, current_ua=500))
-    dev.send_pattern([1] * 8)
-    board.drop_replies = 10**6  # the board stops answering (hung, as far as the host can tell)
-    dev.mark_unknown()
-    resets = []
-    real_reset = board.reset
-    board.reset = lambda why="reset": (resets.append(why), setattr(board, "drop_replies", 0), real_reset(why))  # type: ignore[method-assign]
-    dev.send_pattern([1] * 8)
-    assert resets and dev.link_state is LinkState.IN_STEP
-    port.advance(0.02)
-    assert list(board.state().stim_pattern[:8]) == [50] * 8
-    dev.close()
 
 
 @pytest.mark.parametrize("seed", range(6))

@@ -179,17 +179,6 @@ def test_width_zero_still_delivers_one_exchange() -> None:
     assert [h.kind for h in emu.hazards if h.kind is HazardKind.SHORT_PULSE_WIDTH]
 
 
-def test_timed_emulator_factory_picks_the_version() -> None:
-    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator, timed_emulator
-    from tactdeform_hw.errors import ConfigurationError
-
-    assert isinstance(timed_emulator(), TimedEmulator)
-    v2 = timed_emulator(firmware="v2", link="uart")
-    assert isinstance(v2, TimedEmulatorV2) and v2.link.name == "uart"
-    with pytest.raises(ConfigurationError, match="firmware='v3'"):
-        timed_emulator(firmware="v3")
-
-
 def test_a_scan_that_preempts_the_pattern_copy_is_torn_and_recorded() -> None:
     """v2 copies a complete pattern in one parser call; an alarm inside that call scans the channels
     already copied at their new heights and the rest at their old ones."""

@@ -111,17 +111,6 @@ def test_mode_is_refused_on_v12(capsys: pytest.CaptureFixture[str]) -> None:
             run_cli(["--mode", "1", *readings], capsys)
 
 
-def test_list_model_says_which_chip_select_reading_is_default(capsys: pytest.CaptureFixture[str]) -> None:
-    rows = {r["name"]: r for r in json.loads(run_cli(["--list-model", "--json"], capsys)[1])}
-    assert (
-        rows["chip_select_writes"]["value"] == "inside"
-        and "default inside" in rows["chip_select_writes"]["doc"]
-    )
-    assert rows["dac_load"]["value"] == "mid_exchange"
-    _, out, _ = run_cli(["--list-model", "--cs-writes", "costed"], capsys)
-    assert "chip_select_writes" in out and "costed" in out
-
-
 def test_events_of_a_v2_scan(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "v2.json"
     code, out, _ = run_cli(

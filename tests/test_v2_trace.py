@@ -72,23 +72,6 @@ def test_v2_trace_holds_each_scan_as_the_firmware_walks_it(tmp_path: Path) -> No
     assert [int(r["time_ns"]) for r in rows] == [e[0] for e in mem.events]
 
 
-def test_v2_trace_marks_a_reset_and_stops_when_detached() -> None:
-    mem = MemorySink()
-    emu = TimedEmulatorV2(conventions=HOST_BUILD)
-    emu.attach(mem)
-    emu.write(SETUP, 0.0)
-    emu.advance_to(10_000.0)
-    emu.reset("test")
-    emu.detach(mem)
-    emu.advance_to(40_000.0)
-    mem.close()
-    assert [e[0] for e in mem.events if e[1] == "MARK:reset"] == [10_000_000]
-    before = [s for s in emu.scans if s.start_ns < 10_000_000]
-    after = [s for s in emu.scans if s.start_ns > 10_000_000]
-    assert before and after  # the board scanned again after the reset, into no sink
-    assert max(e[0] for e in mem.events) == before[-1].end_ns
-
-
 def test_emulate_trace_records_a_served_v2_board(tmp_path: Path) -> None:
     """``emulate --pty --firmware v2 --trace FILE --spy``: a client's setting is scanned into the trace
     (its DAC codes, the command markers), and the spy stamps bytes with the board's µs."""

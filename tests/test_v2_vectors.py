@@ -1,105 +1,54 @@
-"""The v2 firmware's own parser is ground truth: all 300 golden streams, in one arrival and as recorded."""
+"""What only v2's golden vectors hold: recorded arrival times, the 2 s command timeout, the upstream host's
+8-byte chunks, and the hazards the emulator records on the way.  Every vector in one arrival and byte by
+byte, on every version, is in ``test_golden_vectors.py``."""
 
 from __future__ import annotations
 
-import json
-
-import numpy as np
 import pytest
 
 from tactdeform_hw.emulator import Emulator, HazardKind
+from tactdeform_hw.protocol.firmware import V2
 
-from .conftest import DATA
+from .test_golden_vectors import ONE_ARRIVAL, VECTORS, arrivals, check, drive, split_is_harmless
 
-VECTORS = [
-    json.loads(line) for line in (DATA / "protocol_vectors_v2.jsonl").read_text().splitlines() if line.strip()
-]
-TIMEOUT_US = 2_000_000
-
-
-def test_all_vectors_present() -> None:
-    assert len(VECTORS) == 300
+FIRMWARE = V2.name
+V2_VECTORS = VECTORS[FIRMWARE]
+TIMEOUT_US = V2.command_timeout_us
 
 
-def _arrivals(vector: dict) -> list[tuple[int, bytes]]:
-    if "arrivals" in vector:
-        return [(int(t), bytes.fromhex(h)) for t, h in vector["arrivals"]]
-    return [(0, bytes.fromhex(vector["stream"]))]
-
-
-def _drive(
-    vector: dict, arrivals: list[tuple[int, bytes]], final_time_us: int | None
-) -> tuple[Emulator, bytes]:
-    board = vector["board"]
-    emu = Emulator(
-        board["kind"], board["switching_boards"], stack_reading=board.get("stack_reading"), firmware="v2"
-    )
-    tx = b"".join(emu.feed(data, at_us=t) for t, data in arrivals)
-    if final_time_us is not None:
-        tx += emu.advance(final_time_us)
-    return emu, tx
-
-
-def _check(vector: dict, emu: Emulator, tx: bytes) -> None:
-    state = emu.state()
-    expect = vector["expect"]
-    assert tx.hex() == expect["tx"]
-    assert np.float32(state.period_us) == np.float32(expect["period_us"])
-    assert state.period_us == float(np.float32(expect["period_us"]))
-    assert set(expect) <= set(state.as_dict()) | {"tx"}
-    for key, value in expect.items():
-        if key in ("tx", "period_us"):
-            continue
-        assert state.as_dict()[key] == value, key
-
-
-@pytest.mark.parametrize("index", range(len(VECTORS)), ids=[v["id"] for v in VECTORS])
+@pytest.mark.parametrize("index", range(len(V2_VECTORS)), ids=[v["id"] for v in V2_VECTORS])
 def test_vector_as_recorded(index: int) -> None:
     """The recorded arrivals (the whole stream at t = 0 when none are recorded) and ``final_time_us``."""
-    vector = VECTORS[index]
-    emu, tx = _drive(vector, _arrivals(vector), vector.get("final_time_us"))
-    _check(vector, emu, tx)
-
-
-def _split_is_harmless(vector: dict) -> bool:
-    """Whether the firmware's state cannot depend on the split: no arrival or final poll is more than
-    the timeout after the first byte (a payload then always completes within 2 s of its command byte)."""
-    times = [t for t, _ in _arrivals(vector)] + [vector.get("final_time_us") or 0]
-    return max(times) <= TIMEOUT_US
-
-
-ONE_ARRIVAL = [i for i, v in enumerate(VECTORS) if _split_is_harmless(v)]
-
-
-@pytest.mark.parametrize("index", ONE_ARRIVAL, ids=[VECTORS[i]["id"] for i in ONE_ARRIVAL])
-def test_vector_in_one_arrival(index: int) -> None:
-    """The whole stream at once, then the recorded final time."""
-    vector = VECTORS[index]
-    emu, tx = _drive(vector, [(0, bytes.fromhex(vector["stream"]))], vector.get("final_time_us"))
-    _check(vector, emu, tx)
+    vector = V2_VECTORS[index]
+    emu, tx = drive(FIRMWARE, vector, arrivals(vector), vector.get("final_time_us"))
+    check(vector, emu, tx)
 
 
 def test_one_arrival_covers_the_set() -> None:
-    """Every vector whose state can be split-independent is checked in one arrival too."""
-    assert len(ONE_ARRIVAL) >= 270
-    assert sum(1 for i in ONE_ARRIVAL if "arrivals" in VECTORS[i]) >= 20
+    """Every vector whose state can be split-independent is checked in one arrival too, recorded arrival
+    times among them."""
+    one = [i for fw, i in ONE_ARRIVAL if fw == FIRMWARE]
+    assert len(one) >= 270
+    assert sum(1 for i in one if "arrivals" in V2_VECTORS[i]) >= 20
 
 
 UPSTREAM = [
-    i for i, v in enumerate(VECTORS) if _split_is_harmless(v) and not v["category"].startswith("overflow")
+    i
+    for i, v in enumerate(V2_VECTORS)
+    if split_is_harmless(FIRMWARE, v) and not v["category"].startswith("overflow")
 ]
 
 
 @pytest.mark.parametrize("index", UPSTREAM[::7])
 def test_vector_as_upstream_host_writes_it(index: int) -> None:
     """The upstream Python and Unity APIs write 8-byte chunks with 3 ms gaps: same state."""
-    vector = VECTORS[index]
+    vector = V2_VECTORS[index]
     data = bytes.fromhex(vector["stream"])
     chunks = [(3000 * k, data[i : i + 8]) for k, i in enumerate(range(0, len(data), 8))]
     if chunks and chunks[-1][0] > TIMEOUT_US:
         pytest.skip("stream longer than the timeout at 8 bytes per 3 ms")
-    emu, tx = _drive(vector, chunks, vector.get("final_time_us"))
-    _check(vector, emu, tx)
+    emu, tx = drive(FIRMWARE, vector, chunks, vector.get("final_time_us"))
+    check(vector, emu, tx)
 
 
 def _hazard_kinds(emu: Emulator) -> set[HazardKind]:
@@ -107,8 +56,8 @@ def _hazard_kinds(emu: Emulator) -> set[HazardKind]:
 
 
 def test_timeout_is_recorded_with_what_it_discarded() -> None:
-    vector = next(v for v in VECTORS if v["id"] == "v2-0276")
-    emu, _ = _drive(vector, _arrivals(vector), vector["final_time_us"])
+    vector = next(v for v in V2_VECTORS if v["id"] == "v2-0276")
+    emu, _ = drive(FIRMWARE, vector, arrivals(vector), vector["final_time_us"])
     timeouts = [h for h in emu.hazards if h.kind is HazardKind.COMMAND_TIMEOUT]
     assert len(timeouts) == 1
     assert timeouts[0].detail["command"] == "PATTERN" and timeouts[0].detail["discarded"] == 5
@@ -144,13 +93,6 @@ def test_queue_overflow_is_recorded() -> None:
     emu.feed(bytes(1500))
     assert emu.state().rx_dropped == 1500 - 1024
     assert HazardKind.QUEUE_OVERFLOW in _hazard_kinds(emu)
-
-
-def test_unknown_firmware_is_refused() -> None:
-    from tactdeform_hw.errors import ConfigurationError
-
-    with pytest.raises(ConfigurationError, match="firmware='v3'"):
-        Emulator(firmware="v3")
 
 
 def test_mode_2_with_zero_heights_is_recorded_when_it_starts() -> None:

@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 
+from tactdeform_hw.emulator.firmware import firmware_scan
 from tactdeform_hw.emulator.firmware.firmware_scan import (
     DA_CS,
     DEFAULT_CONVENTIONS,
@@ -19,20 +20,31 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
     scan_duration_us,
     trace_scan,
 )
+from tactdeform_hw.emulator.firmware.models import model_entry
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL
+from tactdeform_hw.protocol.firmware import FIRMWARES
 
 from .conftest import DATA
 from .test_scan_engine_readings import LoopBack, logged, scan, scan_config
 
+#: Each version's golden traces and how many the file holds.
+TRACE_FILES = {"v1.2": ("scan_traces_v12.jsonl", 22), "v2": ("scan_traces_v2.jsonl", 21)}
 TRACES = {
     fw: [json.loads(line) for line in (DATA / name).read_text().splitlines() if line.strip()]
-    for fw, name in (("v1.2", "scan_traces_v12.jsonl"), ("v2", "scan_traces_v2.jsonl"))
+    for fw, (name, _) in TRACE_FILES.items()
 }
-CASES = [(fw, i) for fw, lines in TRACES.items() for i in range(len(lines))]
+CASES = [(fw, i) for fw in FIRMWARES for i in range(len(TRACES[fw]))]
+EVERY_FIRMWARE = pytest.mark.parametrize("firmware", list(FIRMWARES))
 
 
 def test_trace_files_present() -> None:
-    assert len(TRACES["v1.2"]) == 22 and len(TRACES["v2"]) == 21
+    assert set(TRACE_FILES) == set(FIRMWARES)
+    assert {fw: len(t) for fw, t in TRACES.items()} == {fw: n for fw, (_, n) in TRACE_FILES.items()}
+
+
+def _walked(firmware: str) -> bool:
+    """Whether the version's scan engine is the statement walker (else its compiled engine)."""
+    return model_entry(firmware).scan_module == firmware_scan.__name__
 
 
 def _conventions(golden: dict) -> ScanConventions:
@@ -67,7 +79,7 @@ def _scan(
     firmware: str, config: dict[str, Any], conventions: ScanConventions = DEFAULT_CONVENTIONS
 ) -> ScanTrace:
     """One logged scan by the version's own scan engine."""
-    if firmware == "v1.2":
+    if not _walked(firmware):
         return _v12_scan(config, conventions)
     return trace_scan(FirmwareScanConfig.from_dict(config), firmware, conventions)
 
@@ -118,7 +130,7 @@ def test_discharge_50_fits_on_v2_only() -> None:
     assert _duration_us("v1.2", v12, ScanConventions(cs_writes_costed=False)) > 8000
 
 
-@pytest.mark.parametrize("firmware", ["v1.2", "v2"])
+@EVERY_FIRMWARE
 def test_dac_load_at_cs_rise_moves_every_dac_edge_not_the_widths(firmware: str) -> None:
     cfg = _tactdeform(firmware)
     mid = _scan(firmware, cfg, HOST_BUILD)
@@ -182,21 +194,21 @@ def test_the_v12_step_through_agrees_with_the_golden_traces() -> None:
         assert round(res.duration_ns / 1000, 3) == golden["isr_return_us"]
 
 
-def test_budget_widths_match_the_traces() -> None:
-    """The budget's effective width is DAC edge to DAC edge in the golden trace, on both versions."""
+@EVERY_FIRMWARE
+def test_budget_widths_match_the_traces(firmware: str) -> None:
+    """The budget's effective width is DAC edge to DAC edge in the golden trace, on every version."""
     from tactdeform_hw.emulator.firmware.firmware_scan import budget
     from tactdeform_hw.emulator.records.reports import firmware_budget
 
-    for firmware in ("v1.2", "v2"):
-        golden = TRACES[firmware][0]
-        dac = [e[0] for e in golden["events"] if e[1] == "DAC"]
-        b = (
-            firmware_budget(scan_config(golden["config"]), DEFAULT_MODEL.with_(cs_writes_costed=True))
-            if firmware == "v1.2"
-            else budget(FirmwareScanConfig.from_dict(golden["config"]), firmware, HOST_BUILD)
-        )
-        assert b.effective_width_us == round(dac[1] - dac[0], 3)
-        assert b.scan_us == golden["isr_return_us"] and b.verdict == "fits"
-        assert len(b.per_channel_us) == 32 and sum(
-            b.per_channel_us
-        ) + b.isr_entry_us + b.clear_us == pytest.approx(b.scan_us)
+    golden = TRACES[firmware][0]
+    dac = [e[0] for e in golden["events"] if e[1] == "DAC"]
+    b = (
+        budget(FirmwareScanConfig.from_dict(golden["config"]), firmware, HOST_BUILD)
+        if _walked(firmware)
+        else firmware_budget(scan_config(golden["config"]), DEFAULT_MODEL.with_(cs_writes_costed=True))
+    )
+    assert b.effective_width_us == round(dac[1] - dac[0], 3)
+    assert b.scan_us == golden["isr_return_us"] and b.verdict == "fits"
+    assert len(b.per_channel_us) == 32 and sum(
+        b.per_channel_us
+    ) + b.isr_entry_us + b.clear_us == pytest.approx(b.scan_us)
