@@ -7,7 +7,7 @@ import pytest
 from tactdeform_hw.device import ChannelMapping, EtactileKitDevice, StimConfig, open_device
 from tactdeform_hw.device.driver.base import LinkState
 from tactdeform_hw.device.driver.dialects import DIALECTS
-from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError, UnidentifiedBoardError
+from tactdeform_hw.device.driver.firmware_probe import UnidentifiedBoardError
 from tactdeform_hw.device.driver.v2 import buffer_levels
 from tactdeform_hw.emulator import Emulator
 from tactdeform_hw.errors import (
@@ -151,22 +151,7 @@ def test_short_reply_is_typed(firmware: str) -> None:
     assert dev.needs_resync and port.emulator.state().electrode_num == 0  # no configuration went out
 
 
-@pytest.mark.parametrize(
-    "firmware",
-    [
-        pytest.param(
-            name,
-            marks=pytest.mark.xfail(
-                name == "v2",
-                strict=True,
-                raises=FirmwareMismatchError,
-                reason="v2: a board silent even after the reset line is refused as 'runs v1.2, or its "
-                "parser is hung' (FirmwareMismatchError), not ShortReplyError as docs/safety.md says",
-            ),
-        )
-        for name in FIRMWARES
-    ],
-)
+@EVERY_FIRMWARE
 def test_a_board_silent_after_a_short_reply_fails_configure_with_a_short_reply(firmware: str) -> None:
     """docs/safety.md: a board that does not answer the recovery stays marked for it, and ``configure``
     raises :class:`ShortReplyError`, so the caller knows nothing went out."""

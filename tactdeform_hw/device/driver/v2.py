@@ -322,6 +322,15 @@ class V2Dialect:
                     raise ShortReplyError(
                         "sync check after the 2 s timeout (parser hung: reset the board)", 1, b""
                     )
+                if st.answered:
+                    # silent even after the reset line (or with none to pulse): not another firmware — the
+                    # board that answered as v2 in this session no longer answers at all
+                    raise ShortReplyError(
+                        "sync check after the 2 s timeout (the board answered as v2 before and is silent "
+                        "now: hung or unplugged)",
+                        1,
+                        b"",
+                    )
                 raise FirmwareMismatchError(
                     "the board does not answer the sync check 0xF4 as firmware v2 must (twice, the "
                     "second time more than 2 s after any command could have started): it runs v1.2, or "
