@@ -102,6 +102,22 @@ def log_firmware(path: str, asked: str | None = None) -> tuple[str, str]:
     return firmware, source
 
 
+def written(records: list[dict[str, Any]]) -> list[tuple[float, bytes]]:
+    """The writes the ``tx`` records stand for, in order: ``(t, bytes)``, the lines of one write of several
+    commands (``part`` ``[k, n]``) joined again into that write."""
+    out: list[tuple[float, bytes]] = []
+    joining = False
+    for r in records:
+        data = bytes.fromhex(r["hex"])
+        part = r.get("part")
+        if joining and part is not None and part[0] > 1:
+            out[-1] = (out[-1][0], out[-1][1] + data)
+        else:
+            out.append((float(r["t"]), data))
+        joining = part is not None and part[0] < part[1]
+    return out
+
+
 def replay(
     path: str, *, link: str = "usb", tail_s: float = 0.05, firmware: str | None = None
 ) -> dict[str, Any]:
@@ -119,11 +135,11 @@ def replay(
     v2 = ran == V2.name
     emu: Any = model_entry(ran).timed(link=link)
     t_last = 0.0
-    for r in records:
-        t = max(float(r["t"]), t_last)  # writes must come in time order
+    for t_rec, data in written(records):
+        t = max(t_rec, t_last)  # writes must come in time order
         t_last = t
         emu.advance_to(t * 1e6)
-        emu.write(bytes.fromhex(r["hex"]))
+        emu.write(data)
     emu.advance_to((t_last + tail_s) * 1e6)
     table = emu.reports.pulse_table()
     cur = table["current_ua"]

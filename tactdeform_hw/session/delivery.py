@@ -99,9 +99,16 @@ class DeliveryLog(AuditLog):
     # --- what the device wrote ---------------------------------------------------------------------------
 
     def tx(
-        self, data: bytes, *, t: float, ok: bool = True, op: str = "", logical: bytes | None = None
+        self,
+        data: bytes,
+        *,
+        t: float,
+        ok: bool = True,
+        op: str = "",
+        logical: bytes | None = None,
+        part: tuple[int, int] | None = None,
     ) -> None:
-        super().tx(data, t=t, ok=ok, op=op, logical=logical)
+        super().tx(data, t=t, ok=ok, op=op, logical=logical, part=part)
         if not ok:
             return
         name, value = describe_command(logical if logical is not None else data, self.firmware)

@@ -11,7 +11,9 @@ Line types (``type``):
 * ``tx`` — one write: ``seq``, ``t`` (seconds since the session started, on the device's pacing clock),
   ``wall`` (Unix time), ``cmd`` (command name), ``value`` (decoded value; a list for patterns), ``hex``
   (exactly the bytes written, padding included), ``ok`` (false when the transport failed) and ``op``
-  (the device method that sent it);
+  (the device method that sent it); a write of several commands at once (v2's cover around a pattern)
+  gives one line per command, each with ``part`` ``[k, n]`` (the k-th of the write's n commands, from 1),
+  so a reader sees every command as the firmware reads it and a replay writes them again as one write;
 * ``safety`` — a refusal or a clip by the guard (the guard's log entry);
 * ``event`` — fail-safe actions: watchdog stop, resync, reconnect, reset.
 
@@ -98,23 +100,31 @@ class AuditLog:
         return t - self._t0
 
     def tx(
-        self, data: bytes, *, t: float, ok: bool = True, op: str = "", logical: bytes | None = None
+        self,
+        data: bytes,
+        *,
+        t: float,
+        ok: bool = True,
+        op: str = "",
+        logical: bytes | None = None,
+        part: tuple[int, int] | None = None,
     ) -> None:
         name, value = describe_command(logical if logical is not None else data, self.firmware)
         self._seq += 1
-        self._line(
-            {
-                "type": "tx",
-                "seq": self._seq,
-                "t": round(self.rel(t), 7),
-                "wall": round(time.time(), 6),
-                "cmd": name,
-                "value": value,
-                "hex": bytes(data).hex(),
-                "ok": ok,
-                "op": op,
-            }
-        )
+        rec: dict[str, Any] = {
+            "type": "tx",
+            "seq": self._seq,
+            "t": round(self.rel(t), 7),
+            "wall": round(time.time(), 6),
+            "cmd": name,
+            "value": value,
+            "hex": bytes(data).hex(),
+            "ok": ok,
+            "op": op,
+        }
+        if part is not None:
+            rec["part"] = list(part)
+        self._line(rec)
 
     def safety(self, entry: dict[str, Any]) -> None:
         self._line({"type": "safety", **entry})

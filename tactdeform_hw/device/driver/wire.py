@@ -239,9 +239,11 @@ class Wire:
                 padded = self.pacer.policy.robust_encoding if pad is None else pad
                 pos = 0
                 pads = paddings(commands, self.pacer.policy.firmware) if padded else [b""] * len(commands)
-                for c, pad_ in zip(commands, pads, strict=True):
+                n = len(commands)
+                for k, (c, pad_) in enumerate(zip(commands, pads, strict=True), start=1):
                     size = len(c) + len(pad_)
-                    audit.tx(chunk[pos : pos + size], t=now, op=op, logical=c)
+                    part = (k, n) if n > 1 else None
+                    audit.tx(chunk[pos : pos + size], t=now, op=op, logical=c, part=part)
                     pos += size
                 return
             logical = data if chunk[:1] == data[:1] and chunk[0] >= COMMAND_BYTE_MIN else chunk
