@@ -19,6 +19,7 @@ firmware; :data:`V2_COMMANDS` carries v2's under the same names.
 from __future__ import annotations
 
 import functools
+import struct
 from collections.abc import Mapping, Sequence
 from types import MappingProxyType
 from typing import Any, NamedTuple
@@ -79,8 +80,9 @@ def build_measure_reply(adc: Sequence[int]) -> bytes:
 
 
 def encode_measure_reply(adc: Sequence[int]) -> bytes:
-    """Fast spelling of :data:`MeasureReply` (tested byte-identical): one u16 LE per channel."""
-    return b"".join(v.to_bytes(2, "little") for v in adc)
+    """Fast spelling of :data:`MeasureReply` (tested byte-identical): one u16 LE per channel, packed in
+    one call (the emulator answers every measure request with it)."""
+    return struct.pack(f"<{len(adc)}H", *adc)
 
 
 def encode_sync_reply(electrode_num: int) -> bytes:

@@ -51,7 +51,7 @@ from __future__ import annotations
 import copy
 import heapq
 import math
-from collections.abc import Callable
+from collections.abc import Container
 from itertools import repeat
 from typing import Any
 
@@ -104,13 +104,15 @@ from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 _INF = math.inf
 _PATTERN = int(Opcode.PATTERN)
 _HV513 = int(Opcode.HV513_COUNT)
+#: each opcode's name, for the report of every command read (an enum lookup per command costs more)
+_OPCODE_NAMES = {int(o): o.name for o in Opcode}
 
 _WAIT_TICK, _WAIT_STUCK, _WAIT_LOCKED = "tick", "stuck", "locked"
 
 
 def _ignored_run(
     buf: bytearray,
-    is_command: Callable[[int], bool],
+    stops: Container[int],
     tc: int,
     step_ns: int,
     before: float,
@@ -120,10 +122,11 @@ def _ignored_run(
     """How many calls from ``tc`` on each read one waiting non-command byte, and when the last ends: each
     call must start before anything else happens (``before``: the next delivery or alarm; the run's
     ``target``) -- the event loop would take that first -- and end before the next alarm, which would
-    interrupt it (the full path times that call)."""
+    interrupt it (the full path times that call).  ``stops``: the bytes such a run ends at
+    (:func:`_stop_bytes`)."""
     k, t = 0, tc
     for b in buf:
-        if is_command(b) or b == _HV513:
+        if b in stops:
             break
         if k and not (t < before and t <= target):
             break
@@ -132,6 +135,21 @@ def _ignored_run(
             break
         k, t = k + 1, end
     return k, t
+
+
+_STOP_BYTES: dict[type, frozenset[int]] = {}
+
+
+def _stop_bytes(p: Parser) -> frozenset[int]:
+    """The bytes a run of ignored-byte calls ends at: the commands ``p`` knows (whose reading is not a
+    skip) and 0xF5 (whose detection times the call otherwise).  What a parser knows is its firmware's
+    table, the same for every parser of a class, so the set is made once per class and looked up per
+    byte (a method call per byte of a resync's zeros cost more than the rest of the run)."""
+    kind = type(p)
+    stops = _STOP_BYTES.get(kind)
+    if stops is None:
+        stops = _STOP_BYTES[kind] = frozenset(b for b in range(256) if p.is_command(b) or b == _HV513)
+    return stops
 
 
 def hv513_count_ns(m: TimingModel, detected: int) -> int:
@@ -175,14 +193,15 @@ class ArrivalRuns:
         step_ns = self.model.call_ns + self.model.byte_ns
         q = self.queue
         dq = self.host.deliveries
-        k, t = _ignored_run(q.buf, p.is_command, tc, step_ns, alarm, target, alarm)
+        stops = _stop_bytes(p)
+        k, t = _ignored_run(q.buf, stops, tc, step_ns, alarm, target, alarm)
         if k == 0:
             return False
         arriving = 0
         if dq and dq[0][0] <= t - step_ns:  # something lands before the run's last call
             arriving = self._arrivals_alike(tc, t - step_ns)
             if not arriving:
-                k, t = _ignored_run(q.buf, p.is_command, tc, step_ns, min(dq[0][0], alarm), target, alarm)
+                k, t = _ignored_run(q.buf, stops, tc, step_ns, min(dq[0][0], alarm), target, alarm)
         queued = len(q.buf)
         dev0 = fw.parser_base + p.offset
         p.receive(q.take(k))
@@ -698,7 +717,7 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             op = data[0]
             if p.is_command(op):
                 host = self._host_of(dev0)
-                rep = CommandReport(dev0, host, op, Opcode(op).name, sent_us=us_of(self._sent_at(host)))
+                rep = CommandReport(dev0, host, op, _OPCODE_NAMES[op], sent_us=us_of(self._sent_at(host)))
                 rec.cur = rep
                 fw.stuck_reported = False
                 fw.stuck_at = None
