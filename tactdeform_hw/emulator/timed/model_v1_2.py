@@ -422,10 +422,9 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
         off = self.host.offset
         self.host.writes.append((off, len(data), t))
         self.host.write_starts.append(off)
-        for c in self.host.decoder.feed(data):
-            if c.opcode is not None:
-                self.host.intended[c.offset] = (c.opcode, c.offset + len(c.raw))
-                self.host.intended_starts.append(c.offset)
+        for start, op, end in self.host.decoder.feed_spans(data):
+            self.host.intended[start] = (op, end)
+            self.host.intended_starts.append(start)
         self.host.offset += len(data)
         for d in self.link.schedule_bursts(data, t, off):
             self._push_delivery(d)
