@@ -51,6 +51,7 @@ from __future__ import annotations
 import copy
 import heapq
 import math
+from bisect import bisect_left
 from collections.abc import Container
 from itertools import repeat
 from typing import Any
@@ -656,10 +657,14 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             else 0
         )
         base = tc + m.call_ns + extra - cpu0
-        ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
+        bn = m.byte_ns
+        if bn > 0:  # each byte's end, one read time apart (as a range: a call may read a whole pattern)
+            ends = list(range(base + (k0 + 1) * bn, base + (k0 + n) * bn + 1, bn))
+        else:
+            ends = [base + (k0 + i) * bn for i in range(1, n + 1)]
         ta = self.next_alarm
         if ta < ends[-1]:
-            j = p.read_before_interrupt(buf, sum(1 for e in ends if e < ta))
+            j = p.read_before_interrupt(buf, bisect_left(ends, ta))  # (the bytes read before the alarm)
             if j:
                 self._feed(j, ends[:j], None)
             self.rec.interrupted_calls += 1
@@ -735,8 +740,7 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             and rec.cur.opcode == _PATTERN
             and (p.cmd == _PATTERN or (p.cmd is None and data[0] == _PATTERN))
         ):
-            for i in range(skip, j):
-                rec.cur_written[first_ch + i - skip] = ends[i]
+            rec.cur_written.update(zip(range(first_ch, first_ch + j - skip), ends[skip:j]))
         fw.call_end_ns = ends[-1]
         fw.call_dev_last = dev0 + j - 1
         p.receive(data)
@@ -870,9 +874,8 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             self._stretch_hazard(
                 Hazard(HazardKind.OVERRUN, self.parser.offset, detail, ta / 1000), (dur, period)
             )
-        v = regs.voltage
-        for ch in range(cfg.electrode_num):
-            v[ch] = int(tmpl.voltages[ch])
+        n = cfg.electrode_num
+        regs.voltage[:n] = tmpl.voltages[:n].tolist()  # (one conversion, not one numpy scalar per channel)
         self.chain = tmpl.chain_end
         last = ta + (count - 1) * stride
         self.fw.last_reload = last
