@@ -615,21 +615,28 @@ class TimingReports:
             if p.channel.size == 0:
                 continue
             starts = r.starts_ns()
-            keep = np.ones(p.channel.size, dtype=bool)
-            width = p.width_ns
-            if r.cut_ns is not None:
-                keep = p.start_ns < r.cut_ns
-                width = np.minimum(p.width_ns, r.cut_ns - p.start_ns)
-            sel = np.nonzero(keep)[0]
-            abs_start = (starts[:, None] + p.start_ns[sel][None, :]).ravel()
-            mask = np.ones(abs_start.size, dtype=bool)
-            if lo is not None:
-                mask &= abs_start >= lo
-            if hi is not None:
-                mask &= abs_start < hi
-            if not mask.any():
-                continue
             reps = starts.size
+            width = p.width_ns
+            if r.cut_ns is None and lo is None and hi is None:
+                # every pulse of every repetition (a judge's whole table): nothing to select
+                if reps == 0:
+                    continue
+                sel = np.arange(p.channel.size)
+                abs_start = (starts[:, None] + p.start_ns[None, :]).ravel()
+            else:
+                keep = np.ones(p.channel.size, dtype=bool)
+                if r.cut_ns is not None:
+                    keep = p.start_ns < r.cut_ns
+                    width = np.minimum(p.width_ns, r.cut_ns - p.start_ns)
+                sel = np.nonzero(keep)[0]
+                abs_start = (starts[:, None] + p.start_ns[sel][None, :]).ravel()
+                mask = np.ones(abs_start.size, dtype=bool)
+                if lo is not None:
+                    mask &= abs_start >= lo
+                if hi is not None:
+                    mask &= abs_start < hi
+                if not mask.any():
+                    continue
             cycle = np.repeat(r.first_index + np.arange(reps), sel.size)
             # the template's pulse behind each row kept (its pulses once per repetition)
             idx = np.tile(sel, reps) if reps > 1 else sel
