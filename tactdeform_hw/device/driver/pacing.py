@@ -385,8 +385,8 @@ class Pacer:
         padded = self.policy.robust_encoding if pad is None else pad
         out = data + padding_for(data, fw) if padded else data
         self._fit(len(out))
-        interval = self.payload_interval_s()
         spaced = self.spaced(data)
+        interval = self.payload_interval_s() if spaced else 0.0  # (only a spaced write uses it)
         if spaced:
             self._wait_until(self._last_payload_write + interval)
         write(out)
