@@ -191,10 +191,12 @@ class ArrivalRuns:
         p = self.parser
         if fw.call is not None or p.cmd is not None:
             return False
-        step_ns = self.model.call_ns + self.model.byte_ns
         q = self.queue
-        dq = self.host.deliveries
         stops = _stop_bytes(p)
+        if not q.buf or q.buf[0] in stops:  # (the common case: a command waits, or nothing does)
+            return False
+        step_ns = self.model.call_ns + self.model.byte_ns
+        dq = self.host.deliveries
         k, t = _ignored_run(q.buf, stops, tc, step_ns, alarm, target, alarm)
         if k == 0:
             return False
@@ -560,8 +562,12 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
         while True:
             td = dq[0][0] if dq else _INF
             ta = self.next_alarm
-            tm = self.fw.main_next if self.fw.main_next is not None else _INF
-            t = min(td, ta, tm)
+            tm = self.fw.main_next
+            if tm is None:
+                tm = _INF
+            t = td if td <= ta else ta  # min(td, ta, tm), the first of equals as min takes it
+            if tm < t:
+                t = tm
             if t > target:
                 return
             if td == t:
