@@ -610,9 +610,23 @@ class TimingReports:
         starts_ns: list[np.ndarray] = []
         widths: list[np.ndarray] = []
         picks: list[np.ndarray] = []
+        whole = lo is None and hi is None
         for r in self.runs:
             p = r.template.pulses
-            if p.channel.size == 0:
+            size = p.channel.size
+            if size == 0:
+                continue
+            if whole and r.count == 1 and r.cut_ns is None:
+                # one scan kept whole (most runs): its template's rows, shifted to its start
+                at = templates.get(id(p))
+                if at is None:
+                    at = templates[id(p)] = rows
+                    met.append(p)
+                    rows += size
+                cycles.append(np.full(size, r.first_index, dtype=np.int64))
+                starts_ns.append(p.start_ns + r.start_ns)
+                widths.append(p.width_ns)
+                picks.append(np.arange(at, at + size))
                 continue
             starts = r.starts_ns()
             reps = starts.size
