@@ -163,6 +163,10 @@ def test_fast_replies_match_construct() -> None:
     for _ in range(100):
         adc = [rng.randint(0, 65535) for _ in range(rng.randint(0, 64))]
         assert c.encode_measure_reply(adc) == c.build_measure_reply(adc)
+        data = c.build_measure_reply(adc)
+        assert c.parse_measure_reply(data, len(adc)) == list(
+            c.MeasureReply.parse(data, electrode_num=len(adc)).adc
+        )
 
 
 @ALL

@@ -84,3 +84,28 @@ def test_cli_decodes_with_the_named_firmware(capsys) -> None:  # type: ignore[no
     assert main(["decode", "fb 00", "--firmware", "v3"]) != 0
     err = capsys.readouterr().err
     assert "--firmware 'v3'" in err and "v1.2, v2" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("fw", list(FIRMWARES.values()), ids=list(FIRMWARES))
+def test_spans_are_the_commands_feed_returns(fw: FirmwareSpec) -> None:
+    """``feed_spans`` (the timed emulators' ledger of what the host meant) gives, write by write, the
+    offset, opcode and end of every command ``feed`` returns with an opcode, and leaves the decoder where
+    ``feed`` does (its electrode count, its held-back bytes, a locked parser)."""
+    import random
+
+    rng = random.Random(7)
+    alphabet = [*range(0, 4), *range(0xF0, 0x100)]  # command bytes, small counts and levels, zeros
+    for _ in range(300):
+        data = bytes(rng.choice(alphabet) for _ in range(rng.randint(0, 60)))
+        full, lean = StreamDecoder(2, firmware=fw), StreamDecoder(2, firmware=fw)
+        pos = 0
+        while pos < len(data):
+            n = rng.randint(1, 9)
+            piece = data[pos : pos + n]
+            pos += n
+            want = [
+                (i.offset, i.opcode, i.offset + len(i.raw)) for i in full.feed(piece) if i.opcode is not None
+            ]
+            assert lean.feed_spans(piece) == want
+            assert lean.electrode_num == full.electrode_num
+        assert [i.to_dict() for i in lean.finish()] == [i.to_dict() for i in full.finish()]

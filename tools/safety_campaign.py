@@ -630,16 +630,18 @@ class Session:
         since: list[list[float | None]] = []  # per intent, per electrode: off since (None: meant on)
         prev: list[float | None] = [0.0] * 256
         for _, lv, eff in self.intents:
-            row = [
-                None if (e < len(lv) and lv[e] in (1, 2)) else (prev[e] if prev[e] is not None else eff)
-                for e in range(256)
-            ]
+            row = [eff if p is None else p for p in prev]
+            for e in range(min(len(lv), 256)):
+                if lv[e] in (1, 2):
+                    row[e] = None
             since.append(row)
             prev = row
         out = []
-        for k in idx:
-            t = float(table["start_us"][k]) / 1e6
-            ch = int(table["channel"][k])
+        ks = np.asarray(idx, dtype=np.intp)
+        for k, start_us, ch in zip(
+            ks.tolist(), table["start_us"][ks].tolist(), table["channel"][ks].tolist(), strict=True
+        ):
+            t = float(start_us) / 1e6
             i = bisect.bisect_right(times, t) - 1
             off = since[i][ch] if i >= 0 else 0.0
             if off is not None and t - off > SETTLE_S:

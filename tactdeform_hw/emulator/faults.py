@@ -375,6 +375,8 @@ class TimedPort(PortBase):
             self.pacing_clock.advance(t_s - self.now_s)
 
     def _strike_board_faults(self) -> None:
+        if not self.port_faults:  # (asked at every step of the clock: most sessions have none)
+            return
         now = self.now_s
         keep = []
         for f in self.port_faults:

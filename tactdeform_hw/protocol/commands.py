@@ -19,6 +19,7 @@ firmware; :data:`V2_COMMANDS` carries v2's under the same names.
 from __future__ import annotations
 
 import functools
+import struct
 from collections.abc import Mapping, Sequence
 from types import MappingProxyType
 from typing import Any, NamedTuple
@@ -55,7 +56,8 @@ def parse_measure_reply(data: bytes, electrode_num: int) -> list[int]:
     """ADC codes, one per channel, from a 0xFF reply of exactly ``2 * electrode_num`` bytes."""
     if len(data) != 2 * electrode_num:
         raise DecodeError(f"measure reply: expected {2 * electrode_num} bytes, got {len(data)}")
-    return list(MeasureReply.parse(data, electrode_num=electrode_num).adc)
+    # :data:`MeasureReply` spelled as one unpack (tested equal): the driver reads a reply at every proof
+    return list(struct.unpack(f"<{electrode_num}H", data))
 
 
 def parse_hv513_reply(data: bytes) -> int:
@@ -79,8 +81,9 @@ def build_measure_reply(adc: Sequence[int]) -> bytes:
 
 
 def encode_measure_reply(adc: Sequence[int]) -> bytes:
-    """Fast spelling of :data:`MeasureReply` (tested byte-identical): one u16 LE per channel."""
-    return b"".join(v.to_bytes(2, "little") for v in adc)
+    """Fast spelling of :data:`MeasureReply` (tested byte-identical): one u16 LE per channel, packed in
+    one call (the emulator answers every measure request with it)."""
+    return struct.pack(f"<{len(adc)}H", *adc)
 
 
 def encode_sync_reply(electrode_num: int) -> bytes:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 from .firmware import DEFAULT_FIRMWARE, FirmwareSpec
 from .reader import UNKNOWN as _UNKNOWN_KIND
-from .reader import ParserState, read_commands
+from .reader import ParserState, Reading, read_commands
 
 OK = "ok"
 TRUNCATED = "truncated"
@@ -92,28 +92,65 @@ class StreamDecoder:
         self._locked = False
         self._cmin = firmware.command_byte_min
 
+    def _read_buffer(self, data: bytes) -> Reading:
+        """What the firmware reads from the bytes held back and ``data``, offsets from the buffer's start
+        (a frame the interlock or an earlier feed read already is then found in the reader's cache)."""
+        self._buf += data
+        return read_commands(bytes(self._buf), firmware=self.firmware, state=ParserState(self.electrode_num))
+
+    def feed_spans(self, data: bytes) -> list[tuple[int, int, int]]:
+        """What :meth:`feed` does with ``data``, returning only (offset, opcode, end offset) of each command
+        it would return with an opcode (complete, or locking the parser): the span of every command a host
+        meant, which the timed emulators' books keep for each write, without the decoded records."""
+        if self._locked:
+            self._buf += data
+            return []
+        reading = self._read_buffer(data)
+        base = self._offset
+        out: list[tuple[int, int, int]] = []
+        consumed = 0
+        by_op = self.firmware.by_opcode
+        count: tuple[int | None] | None = None  # the last complete electrode-count command's stored value
+        for c in reading.commands:
+            if c.kind == _UNKNOWN_KIND:
+                pass
+            elif c.opcode is None:
+                break
+            elif c.locked:
+                self._locked = True
+                out.append((base + c.offset, c.opcode, base + c.offset + len(c.raw)))
+            elif not c.complete:
+                break
+            else:
+                out.append((base + c.offset, c.opcode, base + c.offset + len(c.raw)))
+                if by_op[c.opcode].register == "electrode_num":
+                    count = (c.value,)
+            consumed += len(c.raw)
+        if not self._locked and count is not None:  # (as :func:`_num_after` reads the decoded records)
+            self.electrode_num = count[0] if count[0] is not None else self.electrode_num
+        del self._buf[:consumed]
+        self._offset += consumed
+        return out
+
     def feed(self, data: bytes) -> list[DecodedCommand]:
         if self._locked:
             self._buf += data
             return []
-        self._buf += data
-        reading = read_commands(
-            bytes(self._buf),
-            firmware=self.firmware,
-            state=ParserState(self.electrode_num),
-            offset=self._offset,
-        )
+        reading = self._read_buffer(data)
+        base = self._offset
         out: list[DecodedCommand] = []
         consumed = 0
         by_op = self.firmware.by_opcode
         for c in reading.commands:
             if c.kind == _UNKNOWN_KIND:
-                out.append(DecodedCommand(c.offset, c.raw, None, "UNKNOWN", None, UNKNOWN))
+                out.append(DecodedCommand(base + c.offset, c.raw, None, "UNKNOWN", None, UNKNOWN))
             elif c.opcode is None:  # unread behind a locked parser: reported by finish()
                 break
             elif c.locked:
                 self._locked = True
-                out.append(DecodedCommand(c.offset, c.raw, c.opcode, by_op[c.opcode].name, None, LOCKED))
+                out.append(
+                    DecodedCommand(base + c.offset, c.raw, c.opcode, by_op[c.opcode].name, None, LOCKED)
+                )
             elif not c.complete:
                 break  # wait for more bytes
             else:
@@ -138,7 +175,9 @@ class StreamDecoder:
                         note = "pattern holds a command byte: an earlier command was probably cut short"
                 else:
                     value = c.read_value
-                out.append(DecodedCommand(c.offset, c.raw, c.opcode, spec.name, value, OK, note, c.value))
+                out.append(
+                    DecodedCommand(base + c.offset, c.raw, c.opcode, spec.name, value, OK, note, c.value)
+                )
             consumed += len(c.raw)
         if not self._locked:
             self.electrode_num = _num_after(self.electrode_num, out, self.firmware)

@@ -114,6 +114,21 @@ def estimate_scan_us(
 
     This is the host's budget (the device layer paces and refuses frames with it); the emulator's scan
     engine times the same sequence event by event from the same constants."""
+    key = levels if type(levels) is bytes else tuple(levels)
+    return _estimate_scan_us(key, width_us, discharge_us, sense_width_us, hv513, firmware)
+
+
+@functools.lru_cache(maxsize=1024)
+def _estimate_scan_us(
+    levels: bytes | tuple[int, ...],
+    width_us: int,
+    discharge_us: int,
+    sense_width_us: int,
+    hv513: int,
+    firmware: FirmwareSpec,
+) -> float:
+    """:func:`estimate_scan_us`, cached: the driver, its guard and a campaign's judge each ask for the
+    same frame's scan (the firmware table is keyed by identity; the sum keeps the order of the levels)."""
     base, mono, bi, sense = _scan_parts(firmware.timing, width_us, discharge_us, sense_width_us, hv513)
     total = base
     for v in levels:

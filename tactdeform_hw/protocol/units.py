@@ -25,6 +25,8 @@ def check_int(field: str, value: object, lo: int, hi: int, unit: str = "") -> in
     Floats are accepted only when integral (``200.0``), because a study config read from JSON may carry
     them; ``True``/``False``, NaN, infinities and fractional values are refused.
     """
+    if type(value) is int and lo <= value <= hi:  # the common case, without the abstract-class checks
+        return value
     suffix = f" {unit}" if unit else ""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise LimitError(field, value, f"an integer from {lo} to {hi}{suffix}")

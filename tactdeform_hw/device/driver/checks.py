@@ -22,6 +22,7 @@ if TYPE_CHECKING:
 
 #: Pattern levels a host may send: off (a sense pulse, 0 µA while sense current is 0), mono, biphasic.
 ALLOWED_LEVELS = frozenset({PATTERN_SENSE, PATTERN_MONOPHASIC, PATTERN_BIPHASIC})
+_INT_ONLY = frozenset({int})
 
 
 def checked_config(
@@ -72,9 +73,12 @@ def check_levels(levels: Sequence[int], expected: int, dialect: Dialect, guard: 
                 f"pattern has {count} level(s) but the device is configured for {expected} electrode(s); "
                 "a short pattern would swallow the next command and a long one would leak into it"
             )
-        for i, v in enumerate(levels):
-            if isinstance(v, bool) or not isinstance(v, int) or v not in ALLOWED_LEVELS:
-                raise LimitError(f"pattern[{i}]", v, "0 (off), 1 (monophasic) or 2 (biphasic)")
+        # every frame passes through here: plain ints of allowed values are told at C speed, and only a
+        # frame with something else is walked level by level to name the first wrong one
+        if not (set(map(type, levels)) <= _INT_ONLY and ALLOWED_LEVELS.issuperset(levels)):
+            for i, v in enumerate(levels):
+                if isinstance(v, bool) or not isinstance(v, int) or v not in ALLOWED_LEVELS:
+                    raise LimitError(f"pattern[{i}]", v, "0 (off), 1 (monophasic) or 2 (biphasic)")
         dialect.check_levels(levels)
     except (LimitError, ProtocolMisuseError) as exc:
         guard.note_refusal(exc)

@@ -201,6 +201,7 @@ class Pacer:
     def __post_init__(self) -> None:
         # (time the bytes are surely consumed, count, written offset just past them)
         self._inflight: deque[tuple[float, int, int]] = deque()
+        self._inflight_bytes = 0  # the sizes in ``_inflight``, summed (asked before every write)
         self._last_done = -1e18
         self._last_payload_write = -1e18
         self._arrived_by = -1e18  # when every byte written so far has surely crossed the link
@@ -295,7 +296,7 @@ class Pacer:
         """The device answered a request written just before ``offset``: every byte before it has been
         read.  Unfreezes the model (the parser reads, and was at a command boundary there)."""
         while self._inflight and self._inflight[0][2] <= offset:
-            self._inflight.popleft()
+            self._inflight_bytes -= self._inflight.popleft()[1]
         self.frozen = False
         if not self._inflight:
             self._last_done = min(self._last_done, self.clock.now())
@@ -305,8 +306,8 @@ class Pacer:
         if not self.frozen:
             t = self.clock.now() if now is None else now
             while self._inflight and self._inflight[0][0] <= t:
-                self._inflight.popleft()
-        return sum(n for _, n, _ in self._inflight)
+                self._inflight_bytes -= self._inflight.popleft()[1]
+        return self._inflight_bytes
 
     def drained_by(self) -> float:
         """When everything written so far is surely consumed, if the parser reads."""
@@ -334,8 +335,11 @@ class Pacer:
         while True:
             now = self.clock.now()
             occupied = self.queue_estimate(now)
-            pending = [e for e in self._inflight if e[0] > now] if self.frozen else list(self._inflight)
-            expected = sum(n for _, n, _ in pending)
+            if self.frozen:
+                pending: Sequence[tuple[float, int, int]] = [e for e in self._inflight if e[0] > now]
+                expected = sum(n for _, n, _ in pending)
+            else:  # (queue_estimate dropped what is done: the rest is pending)
+                pending, expected = self._inflight, occupied
             if not pending or (expected + size <= limit and (self.frozen or occupied + size <= limit)):
                 return
             need = expected + size - limit
@@ -358,6 +362,7 @@ class Pacer:
         self._last_done = done
         self.offset += size
         self._inflight.append((done + self.policy.tick_s, size, self.offset))
+        self._inflight_bytes += size
         self.stats.max_queue_estimate = max(self.stats.max_queue_estimate, self.queue_estimate(now))
 
     def write(self, write: Callable[[bytes], None], data: bytes, *, pad: bool | None = None) -> None:
@@ -380,8 +385,8 @@ class Pacer:
         padded = self.policy.robust_encoding if pad is None else pad
         out = data + padding_for(data, fw) if padded else data
         self._fit(len(out))
-        interval = self.payload_interval_s()
         spaced = self.spaced(data)
+        interval = self.payload_interval_s() if spaced else 0.0  # (only a spaced write uses it)
         if spaced:
             self._wait_until(self._last_payload_write + interval)
         write(out)

@@ -222,7 +222,7 @@ class Parser(ParserBase, UnknownRuns):
         """``count`` calls that each read one non-command byte and ignore it, in one go: what ``count``
         calls of :meth:`step` do on them (the timed model's fast path for a resync's zeros)."""
         start, end = self.pos, self.pos + count
-        if self.cmd is not None or end > len(self.rx) or any(b in _SIZE for b in self.rx[start:end]):
+        if self.cmd is not None or end > len(self.rx) or not _SIZE.keys().isdisjoint(self.rx[start:end]):
             raise AssertionError("ignore_unknown: not a run of non-command bytes between commands")
         if count > 0:
             self._note_unknown(self.base + start)

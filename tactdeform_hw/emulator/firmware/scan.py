@@ -46,6 +46,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from enum import IntEnum
 from functools import lru_cache
+from itertools import chain as _chained
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -349,13 +350,12 @@ def _lowest(bits: int) -> int:
 
 
 def _outputs(bits: int) -> tuple[int, ...]:
+    """The positions of the set bits, lowest first (one step per set bit: a chain has one or two)."""
     out = []
-    k = 0
     while bits:
-        if bits & 1:
-            out.append(k)
-        bits >>= 1
-        k += 1
+        low = bits & -bits
+        out.append(low.bit_length() - 1)
+        bits ^= low
     return tuple(out)
 
 
@@ -455,7 +455,9 @@ class ScanTemplate:
             return None
         if kinds is None:
             return int(self.pulses.start_ns.min())
-        m = np.isin(k, kinds)
+        m = np.zeros(k.shape, dtype=bool)
+        for kind in kinds:  # (a kind or three: cheaper than np.isin's set machinery on a short array)
+            m |= k == kind
         return int(self.pulses.start_ns[m].min()) if m.any() else None
 
     def events(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -803,7 +805,7 @@ def _pulse_arrays(
 ) -> tuple[PulseArrays, np.ndarray]:
     """The pulse rows as the columns of :class:`PulseArrays`, and the raw ADC readings."""
     m = len(rows)
-    a = np.array(rows, dtype=np.int64).reshape(m, 10)
+    a = np.fromiter(_chained.from_iterable(rows), dtype=np.int64, count=10 * m).reshape(m, 10)
     cur = np.array(flo, dtype=np.float64)
     raw = np.array(raws, dtype=np.int64)
     pulses = PulseArrays(

@@ -100,6 +100,8 @@ class SkinModel:
     impedances: Mapping[int, ElectrodeImpedance] | tuple[tuple[int, ElectrodeImpedance], ...] = ()
     open_electrodes: frozenset[int] = frozenset()
     _by_index: dict[int, ElectrodeImpedance] = field(init=False, repr=False, compare=False, hash=False)
+    #: the nominal circuits made so far (a pure function of the fields above; a template build asks per pulse)
+    _nominal: dict[int, ElectrodeImpedance] = field(init=False, repr=False, compare=False, hash=False)
 
     def __post_init__(self) -> None:
         for name in ("r_series_kohm", "r_parallel_kohm", "c_parallel_nf", "compliance_v"):
@@ -114,15 +116,22 @@ class SkinModel:
         object.__setattr__(self, "impedances", tuple(sorted(items.items())))
         object.__setattr__(self, "open_electrodes", frozenset(self.open_electrodes))
         object.__setattr__(self, "_by_index", items)
+        object.__setattr__(self, "_nominal", {})
 
     def electrode(self, index: int) -> ElectrodeImpedance:
         """Electrode ``index``'s circuit: an override, or the nominal one scaled by its fixed factor."""
         found = self._by_index.get(index)
         if found is not None:
             return found
-        k = 1.0 + self.spread * (2.0 * _hash01(index) - 1.0)
-        # a smaller contact area: resistances up, capacitance down (k is 1 / relative area)
-        return ElectrodeImpedance(self.r_series_kohm * k, self.r_parallel_kohm * k, self.c_parallel_nf / k)
+        found = self._nominal.get(index)
+        if found is None:
+            k = 1.0 + self.spread * (2.0 * _hash01(index) - 1.0)
+            # a smaller contact area: resistances up, capacitance down (k is 1 / relative area)
+            found = ElectrodeImpedance(
+                self.r_series_kohm * k, self.r_parallel_kohm * k, self.c_parallel_nf / k
+            )
+            self._nominal[index] = found
+        return found
 
     def pulse(self, outputs: tuple[int, ...], code: int, sample_after_us: float) -> PulseOutcome:
         """One pulse of DAC ``code`` into the electrodes ``outputs`` (the HV513 outputs that are on),

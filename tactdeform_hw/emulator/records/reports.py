@@ -581,6 +581,52 @@ class Timeline:
         }
 
 
+def _run_rows(
+    r: ScanRun, lo: int | None, hi: int | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """The rows a run keeps in ``[lo, hi)`` ns (None: unbounded) as (cycle, start ns, width ns, index of
+    the template's pulse behind each row); None when it keeps none.  A run kept whole needs no mask: a
+    single scan (most runs) is its template's rows shifted to its start."""
+    p = r.template.pulses
+    size = p.channel.size
+    whole = lo is None and hi is None and r.cut_ns is None
+    if whole and r.count == 1:
+        return (
+            np.full(size, r.first_index, dtype=np.int64),
+            p.start_ns + r.start_ns,
+            p.width_ns,
+            np.arange(size),
+        )
+    starts = r.starts_ns()
+    reps = starts.size
+    width = p.width_ns
+    if whole:
+        if reps == 0:
+            return None
+        sel = np.arange(size)
+        abs_start = (starts[:, None] + p.start_ns[None, :]).ravel()
+    else:
+        keep = np.ones(size, dtype=bool)
+        if r.cut_ns is not None:
+            keep = p.start_ns < r.cut_ns
+            width = np.minimum(p.width_ns, r.cut_ns - p.start_ns)
+        sel = np.nonzero(keep)[0]
+        abs_start = (starts[:, None] + p.start_ns[sel][None, :]).ravel()
+        mask = np.ones(abs_start.size, dtype=bool)
+        if lo is not None:
+            mask &= abs_start >= lo
+        if hi is not None:
+            mask &= abs_start < hi
+        if not mask.any():
+            return None
+    cycle = np.repeat(r.first_index + np.arange(reps), sel.size)
+    # the template's pulse behind each row kept (its pulses once per repetition)
+    idx = np.tile(sel, reps) if reps > 1 else sel
+    if lo is not None or hi is not None:
+        idx, cycle, abs_start = idx[mask], cycle[mask], abs_start[mask]
+    return cycle, abs_start, width[idx], idx
+
+
 # --- the view the emulator hands out ----------------------------------------------------------------------
 
 
@@ -667,27 +713,10 @@ class TimingReports:
             p = r.template.pulses
             if p.channel.size == 0:
                 continue
-            starts = r.starts_ns()
-            keep = np.ones(p.channel.size, dtype=bool)
-            width = p.width_ns
-            if r.cut_ns is not None:
-                keep = p.start_ns < r.cut_ns
-                width = np.minimum(p.width_ns, r.cut_ns - p.start_ns)
-            sel = np.nonzero(keep)[0]
-            abs_start = (starts[:, None] + p.start_ns[sel][None, :]).ravel()
-            mask = np.ones(abs_start.size, dtype=bool)
-            if lo is not None:
-                mask &= abs_start >= lo
-            if hi is not None:
-                mask &= abs_start < hi
-            if not mask.any():
+            kept = _run_rows(r, lo, hi)
+            if kept is None:
                 continue
-            reps = starts.size
-            cycle = np.repeat(r.first_index + np.arange(reps), sel.size)
-            # the template's pulse behind each row kept (its pulses once per repetition)
-            idx = np.tile(sel, reps) if reps > 1 else sel
-            if lo is not None or hi is not None:
-                idx, cycle, abs_start = idx[mask], cycle[mask], abs_start[mask]
+            cycle, abs_start, width, idx = kept
             at = templates.get(id(p))
             if at is None:
                 at = templates[id(p)] = rows
@@ -695,7 +724,7 @@ class TimingReports:
                 rows += p.channel.size
             cycles.append(cycle)
             starts_ns.append(abs_start)
-            widths.append(width[idx])
+            widths.append(width)
             picks.append(idx + at)
         if not picks:
             return {k: np.zeros(0) / 1000.0 if k.endswith("_us") else np.zeros(0) for k in _PULSE_COLUMNS}

@@ -266,17 +266,22 @@ class CommandBooks(_ModelState):
         self.rec.cur = None
         self.rec.last_rep = rep
         rep.effect_us = t / 1000
-        regs = self.registers
         if op == _PATTERN:
-            rep.value = bytes(regs.stim_pattern[: len(self.rec.cur_written)])
+            rep.value = bytes(self.registers.stim_pattern[: len(self.rec.cur_written)])
         else:
             rep.value = value
         last_dev = self.fw.call_dev_last
-        arr = self._delivered_at(last_dev)
-        rep.arrival_us = us_of(arr)
+        # the last byte's segment, once for both questions (:meth:`_delivered_at`, :meth:`_host_of`)
+        i = bisect_right(self.host.seg_dev, last_dev) - 1
+        if i < 0:
+            rep.arrival_us = us_of(None)
+            last_host = -1
+        else:
+            start, host, length, arr = self.host.segments[i]
+            rep.arrival_us = us_of(arr)
+            last_host = -1 if host < 0 or last_dev >= start + length else host + last_dev - start
         # in step with the host?  same opcode at the same host offset, ending where the host's ended
         intended = self.host.intended.get(rep.host_offset)
-        last_host = self._host_of(last_dev)
         rep.host_end = last_host + 1 if last_host >= 0 else -1
         rep.in_sync = bool(intended and intended[0] == op and intended[1] == last_host + 1)
         self.rec.commands.append(rep)

@@ -249,8 +249,13 @@ class UartLink(LinkModel):
         start = max(t_ns, self._busy_until_ns)
         step = self.bits_per_byte * 1_000_000_000
         baud = self.baud
-        times = [start + (i * step) // baud for i in range(1, len(data) + 1)]
-        self._busy_until_ns = start + self._offset_ns(len(data))
+        n = len(data)
+        if n >= 16 and type(start) is int and type(step) is int and type(baud) is int:
+            # the same integer arithmetic, one array operation per step (a pattern is a long write)
+            times = (np.arange(1, n + 1, dtype=np.int64) * step // baud + start).tolist()
+        else:
+            times = [start + (i * step) // baud for i in range(1, n + 1)]
+        self._busy_until_ns = start + self._offset_ns(n)
         return [ByteBurst(bytes(data), times, host_offset, t_ns)]
 
     def arrival_times(self, data: bytes, t_ns: int) -> np.ndarray:

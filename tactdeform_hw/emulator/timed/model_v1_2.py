@@ -51,7 +51,8 @@ from __future__ import annotations
 import copy
 import heapq
 import math
-from collections.abc import Callable
+from bisect import bisect_left
+from collections.abc import Container
 from itertools import repeat
 from typing import Any
 
@@ -104,13 +105,15 @@ from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 _INF = math.inf
 _PATTERN = int(Opcode.PATTERN)
 _HV513 = int(Opcode.HV513_COUNT)
+#: each opcode's name, for the report of every command read (an enum lookup per command costs more)
+_OPCODE_NAMES = {int(o): o.name for o in Opcode}
 
 _WAIT_TICK, _WAIT_STUCK, _WAIT_LOCKED = "tick", "stuck", "locked"
 
 
 def _ignored_run(
     buf: bytearray,
-    is_command: Callable[[int], bool],
+    stops: Container[int],
     tc: int,
     step_ns: int,
     before: float,
@@ -120,10 +123,11 @@ def _ignored_run(
     """How many calls from ``tc`` on each read one waiting non-command byte, and when the last ends: each
     call must start before anything else happens (``before``: the next delivery or alarm; the run's
     ``target``) -- the event loop would take that first -- and end before the next alarm, which would
-    interrupt it (the full path times that call)."""
+    interrupt it (the full path times that call).  ``stops``: the bytes such a run ends at
+    (:func:`_stop_bytes`)."""
     k, t = 0, tc
     for b in buf:
-        if is_command(b) or b == _HV513:
+        if b in stops:
             break
         if k and not (t < before and t <= target):
             break
@@ -132,6 +136,21 @@ def _ignored_run(
             break
         k, t = k + 1, end
     return k, t
+
+
+_STOP_BYTES: dict[type, frozenset[int]] = {}
+
+
+def _stop_bytes(p: Parser) -> frozenset[int]:
+    """The bytes a run of ignored-byte calls ends at: the commands ``p`` knows (whose reading is not a
+    skip) and 0xF5 (whose detection times the call otherwise).  What a parser knows is its firmware's
+    table, the same for every parser of a class, so the set is made once per class and looked up per
+    byte (a method call per byte of a resync's zeros cost more than the rest of the run)."""
+    kind = type(p)
+    stops = _STOP_BYTES.get(kind)
+    if stops is None:
+        stops = _STOP_BYTES[kind] = frozenset(b for b in range(256) if p.is_command(b) or b == _HV513)
+    return stops
 
 
 def hv513_count_ns(m: TimingModel, detected: int) -> int:
@@ -172,17 +191,20 @@ class ArrivalRuns:
         p = self.parser
         if fw.call is not None or p.cmd is not None:
             return False
-        step_ns = self.model.call_ns + self.model.byte_ns
         q = self.queue
+        stops = _stop_bytes(p)
+        if not q.buf or q.buf[0] in stops:  # (the common case: a command waits, or nothing does)
+            return False
+        step_ns = self.model.call_ns + self.model.byte_ns
         dq = self.host.deliveries
-        k, t = _ignored_run(q.buf, p.is_command, tc, step_ns, alarm, target, alarm)
+        k, t = _ignored_run(q.buf, stops, tc, step_ns, alarm, target, alarm)
         if k == 0:
             return False
         arriving = 0
         if dq and dq[0][0] <= t - step_ns:  # something lands before the run's last call
             arriving = self._arrivals_alike(tc, t - step_ns)
             if not arriving:
-                k, t = _ignored_run(q.buf, p.is_command, tc, step_ns, min(dq[0][0], alarm), target, alarm)
+                k, t = _ignored_run(q.buf, stops, tc, step_ns, min(dq[0][0], alarm), target, alarm)
         queued = len(q.buf)
         dev0 = fw.parser_base + p.offset
         p.receive(q.take(k))
@@ -403,10 +425,9 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
         off = self.host.offset
         self.host.writes.append((off, len(data), t))
         self.host.write_starts.append(off)
-        for c in self.host.decoder.feed(data):
-            if c.opcode is not None:
-                self.host.intended[c.offset] = (c.opcode, c.offset + len(c.raw))
-                self.host.intended_starts.append(c.offset)
+        for start, op, end in self.host.decoder.feed_spans(data):
+            self.host.intended[start] = (op, end)
+            self.host.intended_starts.append(start)
         self.host.offset += len(data)
         for d in self.link.schedule_bursts(data, t, off):
             self._push_delivery(d)
@@ -541,8 +562,12 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
         while True:
             td = dq[0][0] if dq else _INF
             ta = self.next_alarm
-            tm = self.fw.main_next if self.fw.main_next is not None else _INF
-            t = min(td, ta, tm)
+            tm = self.fw.main_next
+            if tm is None:
+                tm = _INF
+            t = td if td <= ta else ta  # min(td, ta, tm), the first of equals as min takes it
+            if tm < t:
+                t = tm
             if t > target:
                 return
             if td == t:
@@ -638,10 +663,14 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             else 0
         )
         base = tc + m.call_ns + extra - cpu0
-        ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
+        bn = m.byte_ns
+        if bn > 0:  # each byte's end, one read time apart (as a range: a call may read a whole pattern)
+            ends = list(range(base + (k0 + 1) * bn, base + (k0 + n) * bn + 1, bn))
+        else:
+            ends = [base + (k0 + i) * bn for i in range(1, n + 1)]
         ta = self.next_alarm
         if ta < ends[-1]:
-            j = p.read_before_interrupt(buf, sum(1 for e in ends if e < ta))
+            j = p.read_before_interrupt(buf, bisect_left(ends, ta))  # (the bytes read before the alarm)
             if j:
                 self._feed(j, ends[:j], None)
             self.rec.interrupted_calls += 1
@@ -698,7 +727,7 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             op = data[0]
             if p.is_command(op):
                 host = self._host_of(dev0)
-                rep = CommandReport(dev0, host, op, Opcode(op).name, sent_us=us_of(self._sent_at(host)))
+                rep = CommandReport(dev0, host, op, _OPCODE_NAMES[op], sent_us=us_of(self._sent_at(host)))
                 rec.cur = rep
                 fw.stuck_reported = False
                 fw.stuck_at = None
@@ -717,8 +746,7 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             and rec.cur.opcode == _PATTERN
             and (p.cmd == _PATTERN or (p.cmd is None and data[0] == _PATTERN))
         ):
-            for i in range(skip, j):
-                rec.cur_written[first_ch + i - skip] = ends[i]
+            rec.cur_written.update(zip(range(first_ch, first_ch + j - skip), ends[skip:j]))
         fw.call_end_ns = ends[-1]
         fw.call_dev_last = dev0 + j - 1
         p.receive(data)
@@ -852,9 +880,8 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             self._stretch_hazard(
                 Hazard(HazardKind.OVERRUN, self.parser.offset, detail, ta / 1000), (dur, period)
             )
-        v = regs.voltage
-        for ch in range(cfg.electrode_num):
-            v[ch] = int(tmpl.voltages[ch])
+        n = cfg.electrode_num
+        regs.voltage[:n] = tmpl.voltages[:n].tolist()  # (one conversion, not one numpy scalar per channel)
         self.chain = tmpl.chain_end
         last = ta + (count - 1) * stride
         self.fw.last_reload = last
