@@ -6,12 +6,20 @@ the firmware's code does.  The same streams against the upstream trees are in ``
 from __future__ import annotations
 
 from tactdeform_hw.emulator.firmware.hazards import HazardKind
-from tactdeform_hw.emulator.hostbuild.diff import ModelSideV2
+from tactdeform_hw.emulator.hostbuild.diff import ModelSideV1_2, ModelSideV2
 from tactdeform_hw.protocol.firmware import OpcodeV2
 
 # when the upstream firmware's setup() has started its stimulation timer, both versions (the stack detection
 # first; measured on the host build)
 TIMER_ORIGIN_US = 1010.25
+
+
+def _v1_2(writes: list[tuple[float, str]], end_us: float) -> ModelSideV1_2:
+    side = ModelSideV1_2(timer_origin_us=TIMER_ORIGIN_US, hv513_count=4)
+    for at_us, data in writes:
+        side.write(bytes.fromhex(data), at_us)
+    side.advance_to(end_us)
+    return side
 
 
 def _v2(writes: list[tuple[float, str]], end_us: float) -> ModelSideV2:
@@ -178,3 +186,26 @@ def test_v2_a_call_whose_last_read_the_alarm_falls_in_stores_what_it_read() -> N
     assert seen.state["rx_unread"] == 0
     eight = [s for s in side.emu.scans if s.electrode_num == 8]
     assert eight and {s.pulse_width for s in eight} == {63497}
+
+
+# sense height 4, pulse width 65535 then 65534, 221 electrodes, sense width 255, discharge 61, then two 0xF5:
+# the second 0xF5's stackSense() is interrupted by the first scan (221 channels, 69.9 ms), and the scans then
+# overrun back to back.
+F5_THEN_LONG_SCANS = [(2000.5, "f901fafffffafefffcddf8"), (2970.199, "fff73d"), (7509.598, "f5f5")]
+
+
+def test_v1_2_an_f5_interrupted_in_its_stack_detection_has_left_the_queue() -> None:
+    """runEtactileKit() reads the 0xF5 (readInt_8) before stackSense(): when the alarm interrupts the
+    detection, the byte is no longer in the receive queue, though the reply has not been written.  So the
+    256 bytes that arrive during the scan all fit (the firmware loses none; a model still holding the 0xF5
+    would lose one)."""
+    side = _v1_2(F5_THEN_LONG_SCANS, 10009.066)
+    seen = side.observe(10009.066)
+    assert seen.state["rx_unread"] == 0
+    assert seen.replies == b"\x04"  # the first 0xF5's; the second's comes after its detection
+    side.write(bytes(256), 20000.5)
+    side.advance_to(90000.0)
+    seen = side.observe(90000.0)
+    assert seen.state["rx_unread"] == 256
+    assert side.emu.losses == []
+    assert seen.replies == b"\x04"  # the scans overrun back to back: the loop never finishes the detection

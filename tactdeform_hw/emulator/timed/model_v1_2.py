@@ -470,6 +470,7 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
     def stop_reading(self) -> None:
         """The main loop hangs: nothing is read any more (the queue fills, the scans go on) until a reset."""
         self.fw.call = None
+        self.fw.held = b""
         self.fw.main_next = None
         self.fw.main_wait = _WAIT_LOCKED
 
@@ -621,6 +622,9 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
         p = self.parser
         buf = self.queue.buf
         cpu0, k0 = fw.call if fw.call is not None else (0, 0)
+        if fw.held:  # the 0xF5 this call read before the alarm: it goes on with its stack detection
+            buf[0:0] = fw.held
+            fw.held = b""
         n, outcome = p.plan(buf)
         if n == 0:
             fw.call = None
@@ -632,11 +636,8 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             else:
                 self.fw.main_wait = _WAIT_TICK
             return
-        extra = (
-            hv513_count_ns(self.model, self.parser.hv513_detect())
-            if (p.cmd is None and buf[0] == _HV513)
-            else 0
-        )
+        hv513 = p.cmd is None and buf[0] == _HV513
+        extra = hv513_count_ns(self.model, self.parser.hv513_detect()) if hv513 else 0
         base = tc + m.call_ns + extra - cpu0
         ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
         ta = self.next_alarm
@@ -644,6 +645,10 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             j = p.read_before_interrupt(buf, sum(1 for e in ends if e < ta))
             if j:
                 self._feed(j, ends[:j], None)
+            elif hv513 and tc + m.call_ns + m.byte_ns - cpu0 < ta:
+                # runEtactileKit() reads the 0xF5 before stackSense(): the byte has left the queue when the
+                # alarm interrupts the detection, though the reply and the chain's re-init come after it
+                fw.held = self.queue.take(1)
             self.rec.interrupted_calls += 1
             self.fw.call = (cpu0 + int(ta) - tc, k0 + j)
             self.fw.main_next = ta  # the scan at ta pushes this to its end
