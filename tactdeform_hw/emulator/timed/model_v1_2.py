@@ -7,10 +7,9 @@ The same :class:`~tactdeform_hw.emulator.firmware.parser.Parser` and registers a
   chunks at their delivery times; a chunk that does not fit loses its rest (a :class:`LossReport`).
 * **Main loop** — the parser's calls happen between scans (the Arduino loop task and the timer interrupt
   share core 1, so the interrupt pre-empts the parser — the parser never runs during a scan).  A call
-  costs ``parser_call_us`` per ``Serial.available()`` its code makes and ``parser_byte_us`` per byte read
-  (:func:`call_reads_ns`; 0xF5 reads its byte before the stack detection); one that reads a command with a
-  payload (or reads nothing) ends with ``vTaskDelay(1)`` and resumes at the next RTOS tick — or, when that
-  tick falls inside a scan, when the scan ends.  Calls that answer 0xFF/0xF5 or skip an unknown byte return
+  costs ``parser_call_us`` plus ``parser_byte_us`` per byte read; one that reads a command with a payload
+  (or reads nothing) ends with ``vTaskDelay(1)`` and resumes at the next RTOS tick — or, when that tick
+  falls inside a scan, when the scan ends.  Calls that answer 0xFF/0xF5 or skip an unknown byte return
   at once.  A u16 with one byte waiting spins until the other arrives.  Replies are written at once and
   travel back over ``tx_link``.  A call the alarm interrupts mid-read resumes after the scan with what
   has arrived by then — which is how a pattern gets torn.
