@@ -141,32 +141,6 @@ def hv513_count_ns(m: TimingModel, detected: int) -> int:
     return m.hv513_detect_ns + (5 + 2 * OUTPUTS_PER_HV513 * detected) * m.gpio_ns
 
 
-_U16_SIZE = 2
-_SIZE = V1_2.size_table()
-
-
-def call_reads_ns(m: TimingModel, lead: bool, payload_size: int, reads: int) -> list[int]:
-    """When each of a parser call's first ``reads`` byte reads ends, in ns from the call's start, as
-    runEtactileKit()'s code spends them: ``Serial.available()`` (``call_ns``) before the command byte (a
-    call that ``lead`` s with one) and at every check of the payload loop -- before each payload byte, and a
-    second time before a u16 (``isDataAvailable() >= 2``), whose two bytes are read together -- and
-    ``byte_ns`` per byte read.  ``payload_size`` is the command's payload unit (2 for a u16, else 1)."""
-    a, b = m.call_ns, m.byte_ns
-    out: list[int] = []
-    t = 0
-    if lead:
-        t = a + b
-        out.append(t)
-    while len(out) < reads:
-        if payload_size == _U16_SIZE:
-            t += 2 * a + 2 * b
-            out += [t, t]
-        else:
-            t += a + b
-            out.append(t)
-    return out[:reads]
-
-
 class ArrivalRuns:
     """Where the v1.2 model's event loop would take one byte or one call at a time for long stretches,
     the stretch in one go, exactly as one at a time (a mixin of :class:`TimedEmulator`, which keeps the
@@ -651,9 +625,6 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
         if fw.held:  # the 0xF5 this call read before the alarm: it goes on with its stack detection
             buf[0:0] = fw.held
             fw.held = b""
-        lead = fw.call_lead if fw.call is not None else p.cmd is None
-        op = p.cmd if p.cmd is not None else buf[0] if buf else None
-        unit = _U16_SIZE if op is not None and _SIZE.get(op) == _U16_SIZE else 1
         n, outcome = p.plan(buf)
         if n == 0:
             fw.call = None
@@ -661,42 +632,35 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             if outcome is CallResult.LOCKED:
                 self.fw.main_wait = _WAIT_LOCKED
             elif outcome is CallResult.STUCK_U16:
-                done = call_reads_ns(m, lead, unit, k0)
-                self.fw.call_lead = lead
-                self._enter_stuck(tc, max(cpu0, done[-1] if done else 0), k0)
+                self._enter_stuck(tc, max(cpu0, m.call_ns + k0 * m.byte_ns), k0)
             else:
                 self.fw.main_wait = _WAIT_TICK
             return
         hv513 = p.cmd is None and buf[0] == _HV513
         extra = hv513_count_ns(self.model, self.parser.hv513_detect()) if hv513 else 0
-        start = tc - cpu0
-        ends = [start + t for t in call_reads_ns(m, lead, unit, k0 + n)[k0:]]
+        base = tc + m.call_ns + extra - cpu0
+        ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
         ta = self.next_alarm
-        if ta < ends[-1] + extra:
+        if ta < ends[-1]:
             j = p.read_before_interrupt(buf, sum(1 for e in ends if e < ta))
-            if j and not hv513:
+            if j:
                 self._feed(j, ends[:j], None)
-            elif hv513 and ends[0] < ta:
+            elif hv513 and tc + m.call_ns + m.byte_ns - cpu0 < ta:
                 # runEtactileKit() reads the 0xF5 before stackSense(): the byte has left the queue when the
                 # alarm interrupts the detection, though the reply and the chain's re-init come after it
                 fw.held = self.queue.take(1)
-                j = 0
             self.rec.interrupted_calls += 1
             self.fw.call = (cpu0 + int(ta) - tc, k0 + j)
-            self.fw.call_lead = lead
             self.fw.main_next = ta  # the scan at ta pushes this to its end
             self.fw.main_wait = None
             return
-        if hv513:
-            ends[-1] += extra  # the reply is written after the detection
         self._feed(n, ends, outcome)
         self.fw.call = None
         end = ends[-1]
         if outcome is CallResult.IGNORED or outcome is CallResult.REPLIED:
             self.fw.main_next = end
         elif outcome is CallResult.STUCK_U16:
-            self.fw.call_lead = lead
-            self._enter_stuck(end, end - start, k0 + n)
+            self._enter_stuck(end, m.call_ns + (k0 + n) * m.byte_ns, k0 + n)
         elif outcome is CallResult.LOCKED:
             self.fw.main_next = None
             self.fw.main_wait = _WAIT_LOCKED
@@ -705,8 +669,8 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
                 self.rec.cur.arrival_us = us_of(self._delivered_at(self.fw.call_dev_last))
                 self.rec.commands.append(self.rec.cur)
                 self.rec.cur = None
-        else:  # the payload loop's last check (Serial.available()), then vTaskDelay(1)
-            self.fw.main_next = self._tick_after(end + m.call_ns)
+        else:
+            self.fw.main_next = self._tick_after(end)
 
     def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
         self.fw.call = (cpu, k)
