@@ -6,6 +6,7 @@ the firmware's code does.  The same streams against the upstream trees are in ``
 from __future__ import annotations
 
 from tactdeform_hw.emulator.firmware.hazards import HazardKind
+from tactdeform_hw.emulator.firmware.scan import ChainState, ScanConfig, ScanEngine
 from tactdeform_hw.emulator.hostbuild.diff import ModelSideV1_2, ModelSideV2
 from tactdeform_hw.protocol.firmware import OpcodeV2
 
@@ -209,3 +210,29 @@ def test_v1_2_an_f5_interrupted_in_its_stack_detection_has_left_the_queue() -> N
     assert seen.state["rx_unread"] == 256
     assert side.emu.losses == []
     assert seen.replies == b"\x04"  # the scans overrun back to back: the loop never finishes the detection
+
+
+# sense height 552, sense width 0 then 2, 32 electrodes, then two 0xF5: the second one's hv513Init() runs from
+# 11 009.45 us (after the tick-aligned first reply and 1000 us of analogRead), and the first alarm, at
+# 11 010.25 us, comes right after its 16th pin write: the 6th CLK high of the zeros it clocks in.
+F5_INIT_AT_THE_ALARM = [(4817.812, "f98af800fc20f802"), (4867.812, "f5f5")]
+
+
+def test_v1_2_an_alarm_inside_hv513_init_with_clk_high_leaves_that_scan_dark() -> None:
+    """hv513Init() clocks zeros with CLK high then low; the timer interrupt pre-empts it between the two, so
+    the scan's hv513FastScan(0) writes CLK high on a CLK already high: no rising edge, its 1 is never
+    shifted in, and the 32 channels' pulses reach no output.  The next scan selects normally."""
+    side = _v1_2(F5_INIT_AT_THE_ALARM, 22000.0)
+    seen = side.observe(22000.0)
+    assert seen.replies == b"\x04\x04"
+    assert not [p for p in seen.pulses if p[0] < 21000.0]  # the scan at 11 010.25 us: no output lit
+    assert [p[3] for p in seen.pulses][:3] == [(0,), (1,), (2,)]  # the scan at 21 010.25 us
+    assert seen.pulses[0][0] > 21010.25
+
+
+def test_v1_2_a_scan_starting_with_clk_high_loses_its_first_clock_edge() -> None:
+    """The scan engine, from a chain whose CLK the pre-empted code left high (ChainState.clk_high)."""
+    cfg = ScanConfig.make(2, 0)
+    engine = ScanEngine(outputs=32)
+    assert engine.template(cfg, ChainState(0, 0, 0)).pulse_outputs[:2] == [(0,), (1,)]
+    assert engine.template(cfg, ChainState(0, 0, 0, True)).pulse_outputs[:2] == [(), ()]

@@ -637,7 +637,8 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
                 self.fw.main_wait = _WAIT_TICK
             return
         hv513 = p.cmd is None and buf[0] == _HV513
-        extra = hv513_count_ns(self.model, self.parser.hv513_detect()) if hv513 else 0
+        detected = self.parser.hv513_detect() if hv513 else 0
+        extra = hv513_count_ns(self.model, detected) if hv513 else 0
         base = tc + m.call_ns + extra - cpu0
         ends = [base + (k0 + i) * m.byte_ns for i in range(1, n + 1)]
         ta = self.next_alarm
@@ -649,6 +650,8 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
                 # runEtactileKit() reads the 0xF5 before stackSense(): the byte has left the queue when the
                 # alarm interrupts the detection, though the reply and the chain's re-init come after it
                 fw.held = self.queue.take(1)
+            if hv513:
+                self._init_interrupted(ends[-1], int(ta), detected)
             self.rec.interrupted_calls += 1
             self.fw.call = (cpu0 + int(ta) - tc, k0 + j)
             self.fw.main_next = ta  # the scan at ta pushes this to its end
@@ -778,7 +781,37 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
     # --- parser hooks ---------------------------------------------------------------------------------------
 
     def _on_hv513_reinit(self) -> None:
-        self.chain = ChainState(self.chain.position, 0, 0)
+        fw = self.fw
+        if fw.init_edges is None:
+            self.chain = ChainState(self.chain.position, 0, 0)
+            return
+        # hv513Init() was interrupted: it goes on clocking zeros, and the scan left LE high, so the outputs
+        # follow the shift register
+        left = OUTPUTS_PER_HV513 * self.registers.hv513_num - fw.init_edges
+        bits = (self.chain.bits << max(0, left)) & ((1 << self.engine.outputs) - 1)
+        self.chain = ChainState(self.chain.position, bits, bits)
+        fw.init_edges = None
+
+    def _init_interrupted(self, call_end: int, ta: int, detected: int) -> None:
+        """The alarm at ``ta`` interrupts an 0xF5 call ending at ``call_end``: if hv513Init() has begun (its
+        ``5 + 16 x detected`` pin writes end the call), the scan starts from the chain it left -- the zeros
+        it clocked in so far, and CLK high when the interrupt came between a CLK high and its CLK low (the
+        scan's first CLK pulse then shifts nothing in: the scan lights no output).  The interrupt comes
+        between two writes, after every write begun before ``ta``."""
+        g = self.model.gpio_ns
+        total = 5 + 2 * OUTPUTS_PER_HV513 * detected
+        start = call_end - total * g
+        if ta <= start:
+            return  # still in stackSense()'s analogRead calls
+        done = min(total, -(-(ta - start) // g))
+        clocks = max(0, done - 5)
+        edges = (clocks + 1) // 2
+        fw = self.fw
+        before = fw.init_edges if fw.init_edges is not None else 0
+        ch = self.chain
+        bits = (ch.bits << (edges - before)) & ((1 << self.engine.outputs) - 1)
+        self.chain = ChainState(ch.position, bits, ch.latched, clocks % 2 == 1)
+        fw.init_edges = edges
 
     def _retime_alarm(self, t: int) -> None:
         """The parser wrote a new alarm value: an alarm the running counter has passed fires at once."""
