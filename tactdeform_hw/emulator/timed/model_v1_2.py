@@ -141,6 +141,39 @@ def hv513_count_ns(m: TimingModel, detected: int) -> int:
     return m.hv513_detect_ns + (5 + 2 * OUTPUTS_PER_HV513 * detected) * m.gpio_ns
 
 
+def init_interrupted(
+    chain: ChainState,
+    outputs: int,
+    m: TimingModel,
+    call_end: int,
+    ta: int,
+    detected: int,
+    edges_before: int | None,
+) -> tuple[ChainState, int] | None:
+    """The chain a scan at ``ta`` starts from when it interrupts an 0xF5 call ending at ``call_end``, and the
+    CLK rising edges hv513Init() has made by then; ``None`` while still in stackSense()'s analogRead calls.
+    hv513Init()'s ``5 + 16 x detected`` pin writes end the call (POL, LE low, CLK low, BL, DIN low, then a
+    CLK high and low per output); the interrupt comes between two writes, after every write begun before
+    ``ta``: the zeros clocked in so far are in the shift register, and CLK is high when it came between a
+    CLK high and its CLK low (the scan's first CLK pulse then shifts nothing in: it lights no output)."""
+    g = m.gpio_ns
+    total = 5 + 2 * OUTPUTS_PER_HV513 * detected
+    start = call_end - total * g
+    if ta <= start:
+        return None
+    clocks = max(0, min(total, -(-(ta - start) // g)) - 5)
+    edges = (clocks + 1) // 2
+    bits = (chain.bits << (edges - (edges_before or 0))) & ((1 << outputs) - 1)
+    return ChainState(chain.position, bits, chain.latched, clocks % 2 == 1), edges
+
+
+def init_finished(chain: ChainState, outputs: int, edges_left: int) -> ChainState:
+    """The chain once an interrupted hv513Init() has clocked its last ``edges_left`` zeros: the scan left LE
+    high, so the outputs follow the shift register."""
+    bits = (chain.bits << max(0, edges_left)) & ((1 << outputs) - 1)
+    return ChainState(chain.position, bits, bits)
+
+
 class ArrivalRuns:
     """Where the v1.2 model's event loop would take one byte or one call at a time for long stretches,
     the stretch in one go, exactly as one at a time (a mixin of :class:`TimedEmulator`, which keeps the
@@ -273,7 +306,36 @@ class ArrivalRuns:
         heapq.heappush(self.host.deliveries, (d.t_ns, self.host.seq, d))
 
 
-class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
+class Hv513Reinit:
+    """0xF5's hv513Init() and the chain the scans see (a mixin of :class:`TimedEmulator`, which keeps the
+    state): cleared when it ran whole, as far as it got when a scan interrupted it."""
+
+    fw: MainLoop
+    chain: ChainState
+    engine: ScanEngine
+    model: TimingModel
+    emulator: Emulator
+
+    def _on_hv513_reinit(self) -> None:
+        fw = self.fw
+        if fw.init_edges is None:
+            self.chain = ChainState(self.chain.position, 0, 0)
+        else:
+            left = OUTPUTS_PER_HV513 * self.emulator.registers.hv513_num - fw.init_edges
+            self.chain = init_finished(self.chain, self.engine.outputs, left)
+            fw.init_edges = None
+
+    def _init_interrupted(self, call_end: int, ta: int, detected: int) -> None:
+        """An alarm at ``ta`` interrupts an 0xF5 call ending at ``call_end``: see :func:`init_interrupted`."""
+        fw = self.fw
+        got = init_interrupted(
+            self.chain, self.engine.outputs, self.model, call_end, ta, detected, fw.init_edges
+        )
+        if got is not None:
+            self.chain, fw.init_edges = got
+
+
+class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
     """The eTactileKit controller in simulated time.  See the module documentation."""
 
     firmware: FirmwareSpec = V1_2
@@ -779,39 +841,6 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             heapq.heappop(q)
 
     # --- parser hooks ---------------------------------------------------------------------------------------
-
-    def _on_hv513_reinit(self) -> None:
-        fw = self.fw
-        if fw.init_edges is None:
-            self.chain = ChainState(self.chain.position, 0, 0)
-            return
-        # hv513Init() was interrupted: it goes on clocking zeros, and the scan left LE high, so the outputs
-        # follow the shift register
-        left = OUTPUTS_PER_HV513 * self.registers.hv513_num - fw.init_edges
-        bits = (self.chain.bits << max(0, left)) & ((1 << self.engine.outputs) - 1)
-        self.chain = ChainState(self.chain.position, bits, bits)
-        fw.init_edges = None
-
-    def _init_interrupted(self, call_end: int, ta: int, detected: int) -> None:
-        """The alarm at ``ta`` interrupts an 0xF5 call ending at ``call_end``: if hv513Init() has begun (its
-        ``5 + 16 x detected`` pin writes end the call), the scan starts from the chain it left -- the zeros
-        it clocked in so far, and CLK high when the interrupt came between a CLK high and its CLK low (the
-        scan's first CLK pulse then shifts nothing in: the scan lights no output).  The interrupt comes
-        between two writes, after every write begun before ``ta``."""
-        g = self.model.gpio_ns
-        total = 5 + 2 * OUTPUTS_PER_HV513 * detected
-        start = call_end - total * g
-        if ta <= start:
-            return  # still in stackSense()'s analogRead calls
-        done = min(total, -(-(ta - start) // g))
-        clocks = max(0, done - 5)
-        edges = (clocks + 1) // 2
-        fw = self.fw
-        before = fw.init_edges if fw.init_edges is not None else 0
-        ch = self.chain
-        bits = (ch.bits << (edges - before)) & ((1 << self.engine.outputs) - 1)
-        self.chain = ChainState(ch.position, bits, ch.latched, clocks % 2 == 1)
-        fw.init_edges = edges
 
     def _retime_alarm(self, t: int) -> None:
         """The parser wrote a new alarm value: an alarm the running counter has passed fires at once."""
