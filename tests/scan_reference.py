@@ -43,6 +43,7 @@ def reference_scan(
         "latched": chain.latched,
         "pos": chain.position,
         "din": 0,
+        "clk": 1 if chain.clk_high else 0,
     }
 
     def gpio(sig: Signal, val: int) -> None:
@@ -50,8 +51,10 @@ def reference_scan(
         ev.append((st["t"], int(sig), val))
         if sig == Signal.DIN:
             st["din"] = val
-        elif sig == Signal.CLK and val == 1:
-            st["bits"] = ((st["bits"] << 1) | st["din"]) & mask
+        elif sig == Signal.CLK:
+            if val == 1 and st["clk"] == 0:  # a rising edge shifts DIN in
+                st["bits"] = ((st["bits"] << 1) | st["din"]) & mask
+            st["clk"] = val
         elif sig == Signal.LE and val == 1:
             st["latched"] = st["bits"]
             ev.append((st["t"], int(Signal.SEL), _lowest(st["latched"])))
@@ -133,4 +136,5 @@ def reference_scan(
     # the clear: "scan to position 8 * hv513" (signed loop count: no pulses when already past it)
     select(OUTPUTS_PER_HV513 * cfg.hv513_num)
     duration = st["t"] + model.isr_exit_ns
-    return ScanResult(ev, pulses, duration, ChainState(st["pos"], st["bits"], st["latched"]), volts)
+    chain_end = ChainState(st["pos"], st["bits"], st["latched"], st["clk"] == 1)
+    return ScanResult(ev, pulses, duration, chain_end, volts)

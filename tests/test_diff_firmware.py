@@ -467,3 +467,26 @@ def test_upstream_v2_a_starved_call_stops_at_the_firmware_s_read_point(case: str
     writes, end_us = STARVED_AT_A_READ_POINT[case]
     stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), end_us, case)
     assert Differ(tree, "v2").first_divergence(stream) is None
+
+
+UPSTREAM_V1_2_F5_CASES = {
+    # sense height 4, widths 65535/65534, 221 electrodes, sense width 255, discharge 61, 0xF5 0xF5: the second
+    # 0xF5's stackSense() is interrupted by a 69.9 ms scan, its byte already read
+    "0xF5 read before its detection": (
+        ((2000.5, "f901fafffffafefffcddf8"), (2970.199, "fff73d"), (7509.598, "f5f5")),
+        12010.0,
+    ),
+    # sense height 552, sense width 2, 32 electrodes, 0xF5 0xF5: the first alarm pre-empts the second 0xF5's
+    # hv513Init() with CLK high, and that scan lights no output
+    "alarm inside hv513Init with CLK high": (((4817.812, "f98af800fc20f802"), (4867.812, "f5f5")), 32000.0),
+}
+
+
+@pytest.mark.parametrize("case", list(UPSTREAM_V1_2_F5_CASES))
+def test_upstream_v1_2_an_interrupted_0xf5_matches_the_model(case: str) -> None:
+    """runEtactileKit() reads the 0xF5 before stackSense(), and an alarm inside hv513Init() starts its scan
+    from the chain hv513Init() left (the model-only twins are in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V1_2")
+    writes, end_us = UPSTREAM_V1_2_F5_CASES[case]
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), end_us, case)
+    assert Differ(tree, "v1.2").first_divergence(stream) is None

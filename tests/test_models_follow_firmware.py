@@ -6,12 +6,21 @@ the firmware's code does.  The same streams against the upstream trees are in ``
 from __future__ import annotations
 
 from tactdeform_hw.emulator.firmware.hazards import HazardKind
-from tactdeform_hw.emulator.hostbuild.diff import ModelSideV2
+from tactdeform_hw.emulator.firmware.scan import ChainState, ScanConfig, ScanEngine
+from tactdeform_hw.emulator.hostbuild.diff import ModelSideV1_2, ModelSideV2
 from tactdeform_hw.protocol.firmware import OpcodeV2
 
 # when the upstream firmware's setup() has started its stimulation timer, both versions (the stack detection
 # first; measured on the host build)
 TIMER_ORIGIN_US = 1010.25
+
+
+def _v1_2(writes: list[tuple[float, str]], end_us: float) -> ModelSideV1_2:
+    side = ModelSideV1_2(timer_origin_us=TIMER_ORIGIN_US, hv513_count=4)
+    for at_us, data in writes:
+        side.write(bytes.fromhex(data), at_us)
+    side.advance_to(end_us)
+    return side
 
 
 def _v2(writes: list[tuple[float, str]], end_us: float) -> ModelSideV2:
@@ -178,3 +187,52 @@ def test_v2_a_call_whose_last_read_the_alarm_falls_in_stores_what_it_read() -> N
     assert seen.state["rx_unread"] == 0
     eight = [s for s in side.emu.scans if s.electrode_num == 8]
     assert eight and {s.pulse_width for s in eight} == {63497}
+
+
+# sense height 4, pulse width 65535 then 65534, 221 electrodes, sense width 255, discharge 61, then two 0xF5:
+# the second 0xF5's stackSense() is interrupted by the first scan (221 channels, 69.9 ms), and the scans then
+# overrun back to back.
+F5_THEN_LONG_SCANS = [(2000.5, "f901fafffffafefffcddf8"), (2970.199, "fff73d"), (7509.598, "f5f5")]
+
+
+def test_v1_2_an_f5_interrupted_in_its_stack_detection_has_left_the_queue() -> None:
+    """runEtactileKit() reads the 0xF5 (readInt_8) before stackSense(): when the alarm interrupts the
+    detection, the byte is no longer in the receive queue, though the reply has not been written.  So the
+    256 bytes that arrive during the scan all fit (the firmware loses none; a model still holding the 0xF5
+    would lose one)."""
+    side = _v1_2(F5_THEN_LONG_SCANS, 10009.066)
+    seen = side.observe(10009.066)
+    assert seen.state["rx_unread"] == 0
+    assert seen.replies == b"\x04"  # the first 0xF5's; the second's comes after its detection
+    side.write(bytes(256), 20000.5)
+    side.advance_to(90000.0)
+    seen = side.observe(90000.0)
+    assert seen.state["rx_unread"] == 256
+    assert side.emu.losses == []
+    assert seen.replies == b"\x04"  # the scans overrun back to back: the loop never finishes the detection
+
+
+# sense height 552, sense width 0 then 2, 32 electrodes, then two 0xF5: the second one's hv513Init() runs from
+# 11 009.45 us (after the tick-aligned first reply and 1000 us of analogRead), and the first alarm, at
+# 11 010.25 us, comes right after its 16th pin write: the 6th CLK high of the zeros it clocks in.
+F5_INIT_AT_THE_ALARM = [(4817.812, "f98af800fc20f802"), (4867.812, "f5f5")]
+
+
+def test_v1_2_an_alarm_inside_hv513_init_with_clk_high_leaves_that_scan_dark() -> None:
+    """hv513Init() clocks zeros with CLK high then low; the timer interrupt pre-empts it between the two, so
+    the scan's hv513FastScan(0) writes CLK high on a CLK already high: no rising edge, its 1 is never
+    shifted in, and the 32 channels' pulses reach no output.  The next scan selects normally."""
+    side = _v1_2(F5_INIT_AT_THE_ALARM, 22000.0)
+    seen = side.observe(22000.0)
+    assert seen.replies == b"\x04\x04"
+    assert not [p for p in seen.pulses if p[0] < 21000.0]  # the scan at 11 010.25 us: no output lit
+    assert [p[3] for p in seen.pulses][:3] == [(0,), (1,), (2,)]  # the scan at 21 010.25 us
+    assert seen.pulses[0][0] > 21010.25
+
+
+def test_v1_2_a_scan_starting_with_clk_high_loses_its_first_clock_edge() -> None:
+    """The scan engine, from a chain whose CLK the pre-empted code left high (ChainState.clk_high)."""
+    cfg = ScanConfig.make(2, 0)
+    engine = ScanEngine(outputs=32)
+    assert engine.template(cfg, ChainState(0, 0, 0)).pulse_outputs[:2] == [(0,), (1,)]
+    assert engine.template(cfg, ChainState(0, 0, 0, True)).pulse_outputs[:2] == [(), ()]

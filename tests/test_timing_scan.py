@@ -230,7 +230,9 @@ def test_templates_are_identical_to_the_step_through_over_random_configurations(
             rng.choice([0, 1, 4, 8]),
             bytes(rng.choice([0, 1, 2, 3, 255]) for _ in range(n)),
         )
-        chain = ChainState(rng.randint(0, 40), rng.getrandbits(64) & mask, rng.getrandbits(64) & mask)
+        chain = ChainState(
+            rng.randint(0, 40), rng.getrandbits(64) & mask, rng.getrandbits(64) & mask, rng.random() < 0.25
+        )
         ref = reference_scan(cfg, chain, model, outputs=outputs)
         tmpl = ScanEngine(model, outputs=outputs).template(cfg, chain)
         T, S, V = tmpl.events()

@@ -137,6 +137,9 @@ class ChainState:
     position: int = 0
     bits: int = 0
     latched: int = 0
+    #: CLK left high by the code the interrupt pre-empted (0xF5's hv513Init() between a CLK high and its CLK
+    #: low): the scan's first CLK high is then no rising edge and shifts nothing in
+    clk_high: bool = False
 
 
 POWER_ON_CHAIN = ChainState()
@@ -535,10 +538,12 @@ class ScanEngine:
         """Latched bits after each channel's select, the end state and the clear's CLK pulses."""
         mask = (1 << self.outputs) - 1
         bits, pos = chain.bits, chain.position
+        lost = chain.clk_high  # the first CLK pulse's edge is lost (see ChainState.clk_high)
         latched_after: list[int] = []
         for ch in range(cfg.electrode_num):
-            if ch == 0:
-                bits = ((bits << 1) | 1) & mask
+            if ch == 0:  # a scan's first select: its first CLK pulse
+                bits = bits if lost else ((bits << 1) | 1) & mask
+                lost = False
             else:
                 bits = (bits << (ch - pos)) & mask if ch > pos else bits
             pos = ch
@@ -546,10 +551,12 @@ class ScanEngine:
         clear = clear_clk_pulses(cfg, pos)
         target = OUTPUTS_PER_HV513 * cfg.hv513_num
         if target == 0:
-            bits = ((bits << 1) | 1) & mask
-        else:
-            bits = (bits << clear) & mask
-        return latched_after, ChainState(target, bits, bits), clear
+            bits = bits if lost else ((bits << 1) | 1) & mask
+            lost = False
+        elif clear:
+            bits = (bits << (clear - 1 if lost else clear)) & mask
+            lost = False
+        return latched_after, ChainState(target, bits, bits, lost), clear
 
     def _build(self, cfg: ScanConfig, chain: ChainState) -> ScanTemplate:
         self.built += 1

@@ -69,6 +69,8 @@ class MainLoop:
     main_next: float | None = None  # when the main loop next calls the parser
     main_wait: str | None = None  # what it waits for otherwise (_WAIT_*)
     call: tuple[int, int] | None = None  # (cpu ns spent, bytes read) of an interrupted call
+    held: bytes = b""  # an interrupted 0xF5 call's byte: read (out of the queue), not yet acted on
+    init_edges: int | None = None  # an interrupted hv513Init(): the CLK rising edges it has made so far
     busy_from: int = -1  # the scan in progress: the main loop does not run inside it
     busy_until: int = -1
     stuck_reported: bool = False  # spinning on a half u16: reported once, from stuck_at

@@ -160,6 +160,39 @@ def hv513_count_ns(m: TimingModel, detected: int) -> int:
     return m.hv513_detect_ns + (5 + 2 * OUTPUTS_PER_HV513 * detected) * m.gpio_ns
 
 
+def init_interrupted(
+    chain: ChainState,
+    outputs: int,
+    m: TimingModel,
+    call_end: int,
+    ta: int,
+    detected: int,
+    edges_before: int | None,
+) -> tuple[ChainState, int] | None:
+    """The chain a scan at ``ta`` starts from when it interrupts an 0xF5 call ending at ``call_end``, and the
+    CLK rising edges hv513Init() has made by then; ``None`` while still in stackSense()'s analogRead calls.
+    hv513Init()'s ``5 + 16 x detected`` pin writes end the call (POL, LE low, CLK low, BL, DIN low, then a
+    CLK high and low per output); the interrupt comes between two writes, after every write begun before
+    ``ta``: the zeros clocked in so far are in the shift register, and CLK is high when it came between a
+    CLK high and its CLK low (the scan's first CLK pulse then shifts nothing in: it lights no output)."""
+    g = m.gpio_ns
+    total = 5 + 2 * OUTPUTS_PER_HV513 * detected
+    start = call_end - total * g
+    if ta <= start:
+        return None
+    clocks = max(0, min(total, -(-(ta - start) // g)) - 5)
+    edges = (clocks + 1) // 2
+    bits = (chain.bits << (edges - (edges_before or 0))) & ((1 << outputs) - 1)
+    return ChainState(chain.position, bits, chain.latched, clocks % 2 == 1), edges
+
+
+def init_finished(chain: ChainState, outputs: int, edges_left: int) -> ChainState:
+    """The chain once an interrupted hv513Init() has clocked its last ``edges_left`` zeros: the scan left LE
+    high, so the outputs follow the shift register."""
+    bits = (chain.bits << max(0, edges_left)) & ((1 << outputs) - 1)
+    return ChainState(chain.position, bits, bits)
+
+
 class ArrivalRuns:
     """Where the v1.2 model's event loop would take one byte or one call at a time for long stretches,
     the stretch in one go, exactly as one at a time (a mixin of :class:`TimedEmulator`, which keeps the
@@ -295,7 +328,36 @@ class ArrivalRuns:
         heapq.heappush(self.host.deliveries, (d.t_ns, self.host.seq, d))
 
 
-class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
+class Hv513Reinit:
+    """0xF5's hv513Init() and the chain the scans see (a mixin of :class:`TimedEmulator`, which keeps the
+    state): cleared when it ran whole, as far as it got when a scan interrupted it."""
+
+    fw: MainLoop
+    chain: ChainState
+    engine: ScanEngine
+    model: TimingModel
+    emulator: Emulator
+
+    def _on_hv513_reinit(self) -> None:
+        fw = self.fw
+        if fw.init_edges is None:
+            self.chain = ChainState(self.chain.position, 0, 0)
+        else:
+            left = OUTPUTS_PER_HV513 * self.emulator.registers.hv513_num - fw.init_edges
+            self.chain = init_finished(self.chain, self.engine.outputs, left)
+            fw.init_edges = None
+
+    def _init_interrupted(self, call_end: int, ta: int, detected: int) -> None:
+        """An alarm at ``ta`` interrupts an 0xF5 call ending at ``call_end``: see :func:`init_interrupted`."""
+        fw = self.fw
+        got = init_interrupted(
+            self.chain, self.engine.outputs, self.model, call_end, ta, detected, fw.init_edges
+        )
+        if got is not None:
+            self.chain, fw.init_edges = got
+
+
+class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
     """The eTactileKit controller in simulated time.  See the module documentation."""
 
     firmware: FirmwareSpec = V1_2
@@ -491,6 +553,7 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
     def stop_reading(self) -> None:
         """The main loop hangs: nothing is read any more (the queue fills, the scans go on) until a reset."""
         self.fw.call = None
+        self.fw.held = b""
         self.fw.main_next = None
         self.fw.main_wait = _WAIT_LOCKED
 
@@ -646,6 +709,9 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
         p = self.parser
         buf = self.queue.buf
         cpu0, k0 = fw.call if fw.call is not None else (0, 0)
+        if fw.held:  # the 0xF5 this call read before the alarm: it goes on with its stack detection
+            buf[0:0] = fw.held
+            fw.held = b""
         n, outcome = p.plan(buf)
         if n == 0:
             fw.call = None
@@ -657,11 +723,9 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             else:
                 self.fw.main_wait = _WAIT_TICK
             return
-        extra = (
-            hv513_count_ns(self.model, self.parser.hv513_detect())
-            if (p.cmd is None and buf[0] == _HV513)
-            else 0
-        )
+        hv513 = p.cmd is None and buf[0] == _HV513
+        detected = self.parser.hv513_detect() if hv513 else 0
+        extra = hv513_count_ns(self.model, detected) if hv513 else 0
         base = tc + m.call_ns + extra - cpu0
         bn = m.byte_ns
         if bn > 0:  # each byte's end, one read time apart (as a range: a call may read a whole pattern)
@@ -673,6 +737,12 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             j = p.read_before_interrupt(buf, bisect_left(ends, ta))  # (the bytes read before the alarm)
             if j:
                 self._feed(j, ends[:j], None)
+            elif hv513 and tc + m.call_ns + m.byte_ns - cpu0 < ta:
+                # runEtactileKit() reads the 0xF5 before stackSense(): the byte has left the queue when the
+                # alarm interrupts the detection, though the reply and the chain's re-init come after it
+                fw.held = self.queue.take(1)
+            if hv513:
+                self._init_interrupted(ends[-1], int(ta), detected)
             self.rec.interrupted_calls += 1
             self.fw.call = (cpu0 + int(ta) - tc, k0 + j)
             self.fw.main_next = ta  # the scan at ta pushes this to its end
@@ -799,9 +869,6 @@ class TimedEmulator(ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
             heapq.heappop(q)
 
     # --- parser hooks ---------------------------------------------------------------------------------------
-
-    def _on_hv513_reinit(self) -> None:
-        self.chain = ChainState(self.chain.position, 0, 0)
 
     def _retime_alarm(self, t: int) -> None:
         """The parser wrote a new alarm value: an alarm the running counter has passed fires at once."""
