@@ -236,3 +236,24 @@ def test_v1_2_a_scan_starting_with_clk_high_loses_its_first_clock_edge() -> None
     engine = ScanEngine(outputs=32)
     assert engine.template(cfg, ChainState(0, 0, 0)).pulse_outputs[:2] == [(0,), (1,)]
     assert engine.template(cfg, ChainState(0, 0, 0, True)).pulse_outputs[:2] == [(), ()]
+
+
+# pulse height 1, sense height 4, sense width 1; then sense width 0, 255 electrodes, discharge 1,
+# 32 electrodes, discharge 1 and the first 3 bytes of a pattern: one command a tick, the pattern's call at
+# 11 000 us.
+PATTERN_AT_THE_ALARM = [
+    (2000.5, "fb0100f901f801"),
+    (3026.305, "f800fcfff701fc20"),
+    (3036.305, "f701fe00ff02"),
+]
+
+
+def test_v1_2_a_pattern_byte_costs_a_serial_available_check_and_a_read() -> None:
+    """runEtactileKit()'s payload loop calls isDataAvailable() before every byte it reads: from the tick at
+    11 000 us the call reads 0xFE at 11 003 us and the pattern bytes at 11 006, 11 009 and 11 012 us, so the
+    alarm at 11 010.25 us comes before channel 2's byte (2): the first scan gives channel 2 a sense pulse
+    (code 4), and the byte is read after the scan."""
+    side = _v1_2(PATTERN_AT_THE_ALARM, 13000.0)
+    first_scan = [p for p in side.observe(13000.0).pulses if 11010.25 < p[0] < 12000.0]
+    assert [(p[2], p[3]) for p in first_scan[:3]] == [(4, (0,)), (4, (1,)), (4, (2,))]
+    assert side.observe(13000.0).state["stim_pattern"][:3] == [0, 255, 2]

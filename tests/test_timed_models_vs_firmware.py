@@ -81,12 +81,13 @@ def test_v1_2_hv513_count_replies_after_hv513_init_clears_the_chain() -> None:
 
 
 def test_v1_2_state_is_exact_at_a_parser_calls_granularity() -> None:
-    # f8 b2 at 2000.5 us: the call at the 3000 us tick reads it and effect_us says 3004 us (the firmware
-    # stores at 3005.0 us); state() shows the call's effects from its start, as the module says
+    # f8 b2 at 2000.5 us: the call at the 3000 us tick reads it and effect_us says 3006 us, when the payload
+    # byte's read ends (Serial.available() and a byte read, twice: the firmware's store shows from 3005.0
+    # us, when that read begins); state() shows the call's effects from its start, as the module says
     emu = TimedEmulator("compact", 1, link=DirectLink(), tx_link=DirectLink())
     emu.write(bytes.fromhex("f8 b2"), 2000.5)
     emu.advance_to(2999.999)
     assert emu.state().sense_pulse_width_us == 0
     emu.advance_to(3000.0)
     assert emu.state().sense_pulse_width_us == 178
-    assert [(c.effect_us, c.value) for c in emu.commands] == [(3004.0, 178)]
+    assert [(c.effect_us, c.value) for c in emu.commands] == [(3006.0, 178)]

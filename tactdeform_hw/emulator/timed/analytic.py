@@ -35,11 +35,14 @@ from tactdeform_hw.emulator.firmware.registers import Registers
 from tactdeform_hw.emulator.firmware.scan import ScanConfig, channel_offsets_ns, scan_duration_ns
 from tactdeform_hw.emulator.records.reports import Timeline
 from tactdeform_hw.emulator.timed.link import LinkModel, make_link
-from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator, call_reads_ns
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513, Opcode
 from tactdeform_hw.protocol.decoder import StreamDecoder
+from tactdeform_hw.protocol.firmware import V1_2
+
+_SIZE = V1_2.size_table()
 
 
 @dataclass
@@ -237,10 +240,9 @@ class _Analytic:
                         effects[c.offset] = None
                         self.notes.append("scans run back to back: later commands are never read")
                         continue
-                    cost = (
-                        m.call_ns
-                        + len(c.raw) * m.byte_ns
-                        + (m.hv513_detect_ns if c.opcode == Opcode.HV513_COUNT else 0)
+                    unit = 2 if _SIZE.get(int(c.opcode)) == 2 else 1  # a u16's bytes are read together
+                    cost = call_reads_ns(m, True, unit, len(c.raw))[-1] + (
+                        m.hv513_detect_ns if c.opcode == Opcode.HV513_COUNT else 0
                     )
                     eff = placed + cost
                     if self.next_alarm < eff:
@@ -264,7 +266,7 @@ class _Analytic:
                     ready = (
                         eff
                         if c.opcode in (Opcode.MEASURE, Opcode.HV513_COUNT)
-                        else self.tick_at_or_after(eff + 1)
+                        else self.tick_at_or_after(eff + m.call_ns + 1)  # the payload loop's last check
                     )
         self.scans_until(duration)
         return self._timeline(duration, effects)

@@ -71,6 +71,7 @@ class MainLoop:
     call: tuple[int, int] | None = None  # (cpu ns spent, bytes read) of an interrupted call
     held: bytes = b""  # an interrupted 0xF5 call's byte: read (out of the queue), not yet acted on
     init_edges: int | None = None  # an interrupted hv513Init(): the CLK rising edges it has made so far
+    call_lead: bool = True  # the interrupted call began by reading a command byte (see call_reads_ns)
     busy_from: int = -1  # the scan in progress: the main loop does not run inside it
     busy_until: int = -1
     stuck_reported: bool = False  # spinning on a half u16: reported once, from stuck_at

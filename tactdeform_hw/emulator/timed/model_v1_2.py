@@ -7,9 +7,10 @@ The same :class:`~tactdeform_hw.emulator.firmware.parser.Parser` and registers a
   chunks at their delivery times; a chunk that does not fit loses its rest (a :class:`LossReport`).
 * **Main loop** — the parser's calls happen between scans (the Arduino loop task and the timer interrupt
   share core 1, so the interrupt pre-empts the parser — the parser never runs during a scan).  A call
-  costs ``parser_call_us`` plus ``parser_byte_us`` per byte read; one that reads a command with a payload
-  (or reads nothing) ends with ``vTaskDelay(1)`` and resumes at the next RTOS tick — or, when that tick
-  falls inside a scan, when the scan ends.  Calls that answer 0xFF/0xF5 or skip an unknown byte return
+  costs ``parser_call_us`` per ``Serial.available()`` its code makes and ``parser_byte_us`` per byte read
+  (:func:`call_reads_ns`; 0xF5 reads its byte before the stack detection); one that reads a command with a
+  payload (or reads nothing) ends with ``vTaskDelay(1)`` and resumes at the next RTOS tick — or, when that
+  tick falls inside a scan, when the scan ends.  Calls that answer 0xFF/0xF5 or skip an unknown byte return
   at once.  A u16 with one byte waiting spins until the other arrives.  Replies are written at once and
   travel back over ``tx_link``.  A call the alarm interrupts mid-read resumes after the scan with what
   has arrived by then — which is how a pattern gets torn.
@@ -191,6 +192,49 @@ def init_finished(chain: ChainState, outputs: int, edges_left: int) -> ChainStat
     high, so the outputs follow the shift register."""
     bits = (chain.bits << max(0, edges_left)) & ((1 << outputs) - 1)
     return ChainState(chain.position, bits, bits)
+
+
+_U16_SIZE = 2
+
+
+def u16_waiting(p: Parser, queued: bytearray, t: int) -> Hazard:
+    """The hazard of a parser spinning on a u16's missing byte, from ``t`` (ns)."""
+    detail = {
+        "command": Opcode(p.cmd).name if p.cmd is not None else None,
+        "low_byte": queued[0] if queued else None,
+    }
+    return Hazard(HazardKind.U16_WAITING, p.offset, detail, t / 1000)
+
+
+def payload_unit(cmd: int | None, buf: bytearray) -> int:
+    """The payload unit of the command a parser call works on (the one in progress, ``cmd``, else the
+    queue's first byte): 2 for a u16 (the firmware waits for both bytes and reads them together), else 1;
+    from the version's table."""
+    op = cmd if cmd is not None else buf[0] if buf else None
+    spec = V1_2.by_opcode.get(op) if op is not None else None
+    return _U16_SIZE if spec is not None and spec.kind == "u16" else 1
+
+
+def call_reads_ns(m: TimingModel, lead: bool, payload_size: int, reads: int) -> list[int]:
+    """When each of a parser call's first ``reads`` byte reads ends, in ns from the call's start, as
+    runEtactileKit()'s code spends them: ``Serial.available()`` (``call_ns``) before the command byte (a
+    call that ``lead`` s with one) and at every check of the payload loop -- before each payload byte, and a
+    second time before a u16 (``isDataAvailable() >= 2``), whose two bytes are read together -- and
+    ``byte_ns`` per byte read.  ``payload_size`` is the command's payload unit (2 for a u16, else 1)."""
+    a, b = m.call_ns, m.byte_ns
+    out: list[int] = []
+    t = 0
+    if lead:
+        t = a + b
+        out.append(t)
+    while len(out) < reads:
+        if payload_size == _U16_SIZE:
+            t += 2 * a + 2 * b
+            out += [t, t]
+        else:
+            t += a + b
+            out.append(t)
+    return out[:reads]
 
 
 class ArrivalRuns:
@@ -712,6 +756,7 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
         if fw.held:  # the 0xF5 this call read before the alarm: it goes on with its stack detection
             buf[0:0] = fw.held
             fw.held = b""
+        lead, unit = fw.call_lead if fw.call is not None else p.cmd is None, payload_unit(p.cmd, buf)
         n, outcome = p.plan(buf)
         if n == 0:
             fw.call = None
@@ -719,42 +764,45 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
             if outcome is CallResult.LOCKED:
                 self.fw.main_wait = _WAIT_LOCKED
             elif outcome is CallResult.STUCK_U16:
-                self._enter_stuck(tc, max(cpu0, m.call_ns + k0 * m.byte_ns), k0)
+                done = call_reads_ns(m, lead, unit, k0)
+                self.fw.call_lead = lead
+                self._enter_stuck(tc, max(cpu0, done[-1] if done else 0), k0)
             else:
                 self.fw.main_wait = _WAIT_TICK
             return
         hv513 = p.cmd is None and buf[0] == _HV513
         detected = self.parser.hv513_detect() if hv513 else 0
         extra = hv513_count_ns(self.model, detected) if hv513 else 0
-        base = tc + m.call_ns + extra - cpu0
-        bn = m.byte_ns
-        if bn > 0:  # each byte's end, one read time apart (as a range: a call may read a whole pattern)
-            ends = list(range(base + (k0 + 1) * bn, base + (k0 + n) * bn + 1, bn))
-        else:
-            ends = [base + (k0 + i) * bn for i in range(1, n + 1)]
+        start = tc - cpu0
+        ends = [start + t for t in call_reads_ns(m, lead, unit, k0 + n)[k0:]]
         ta = self.next_alarm
-        if ta < ends[-1]:
+        if ta < ends[-1] + extra:
             j = p.read_before_interrupt(buf, bisect_left(ends, ta))  # (the bytes read before the alarm)
-            if j:
+            if j and not hv513:
                 self._feed(j, ends[:j], None)
-            elif hv513 and tc + m.call_ns + m.byte_ns - cpu0 < ta:
+            elif hv513 and ends[0] < ta:
                 # runEtactileKit() reads the 0xF5 before stackSense(): the byte has left the queue when the
                 # alarm interrupts the detection, though the reply and the chain's re-init come after it
                 fw.held = self.queue.take(1)
+                j = 0
             if hv513:
-                self._init_interrupted(ends[-1], int(ta), detected)
+                self._init_interrupted(ends[-1] + extra, int(ta), detected)
             self.rec.interrupted_calls += 1
             self.fw.call = (cpu0 + int(ta) - tc, k0 + j)
+            self.fw.call_lead = lead
             self.fw.main_next = ta  # the scan at ta pushes this to its end
             self.fw.main_wait = None
             return
+        if hv513:
+            ends[-1] += extra  # the reply is written after the detection
         self._feed(n, ends, outcome)
         self.fw.call = None
         end = ends[-1]
         if outcome is CallResult.IGNORED or outcome is CallResult.REPLIED:
             self.fw.main_next = end
         elif outcome is CallResult.STUCK_U16:
-            self._enter_stuck(end, m.call_ns + (k0 + n) * m.byte_ns, k0 + n)
+            self.fw.call_lead = lead
+            self._enter_stuck(end, end - start, k0 + n)
         elif outcome is CallResult.LOCKED:
             self.fw.main_next = None
             self.fw.main_wait = _WAIT_LOCKED
@@ -763,8 +811,8 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
                 self.rec.cur.arrival_us = us_of(self._delivered_at(self.fw.call_dev_last))
                 self.rec.commands.append(self.rec.cur)
                 self.rec.cur = None
-        else:
-            self.fw.main_next = self._tick_after(end)
+        else:  # the payload loop's last check (Serial.available()), then vTaskDelay(1)
+            self.fw.main_next = self._tick_after(end + m.call_ns)
 
     def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
         self.fw.call = (cpu, k)
@@ -773,18 +821,7 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
         if not self.fw.stuck_reported:
             self.fw.stuck_reported = True
             self.fw.stuck_at = t
-            p = self.parser
-            self.hazards.append(
-                Hazard(
-                    HazardKind.U16_WAITING,
-                    p.offset,
-                    {
-                        "command": Opcode(p.cmd).name if p.cmd is not None else None,
-                        "low_byte": self.queue.buf[0] if self.queue.buf else None,
-                    },
-                    t / 1000,
-                )
-            )
+            self.hazards.append(u16_waiting(self.parser, self.queue.buf, t))
 
     def _feed(self, j: int, ends: list[int], outcome: CallResult | None) -> None:
         """Hand ``j`` bytes to the parser and run one call over them (times: ``ends``)."""

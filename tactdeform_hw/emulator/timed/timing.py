@@ -132,7 +132,10 @@ class TimingModel:
     )
     tick_phase_us: float = _f(0.0, "µs", "assumption", "first RTOS tick after boot, modulo the tick period")
     parser_call_us: float = _f(
-        _FW.parser_call_us, "µs", "assumption", "one parser call's overhead (Serial.available() and the loop)"
+        _FW.parser_call_us,
+        "µs",
+        "assumption",
+        "one Serial.available() call (v1.2's parser makes one per check)",
     )
     parser_byte_us: float = _f(
         _FW.parser_byte_us, "µs", "assumption", "reading one byte from the receive queue"
