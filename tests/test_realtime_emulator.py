@@ -192,10 +192,13 @@ def test_history_is_trimmed_while_serving() -> None:
     clock = FakeClock()
     rt = RealtimeEmulator(clock=clock, history_us=1e6)
     rt.write(CONFIG)
+    # a frame whose scan fits the 8 ms period (6.5 ms; PATTERN's overruns it by 1.4 µs, and a loop starved
+    # by back-to-back scans reads a pattern only a few bytes at a time)
+    fitting = c.encode_pattern([1, 0, 2, 0] * 8)
     for _ in range(400):  # 72 patterns a second for 5.5 s of device time
         clock.t += 1 / 72
         rt.catch_up()
-        rt.write(PATTERN)
+        rt.write(fitting)
     clock.t += 0.05
     rt.catch_up()
     t = rt.timed
