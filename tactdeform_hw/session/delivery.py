@@ -15,7 +15,7 @@ import os
 from collections.abc import Sequence
 from typing import IO, Any
 
-from tactdeform_hw.device.driver.audit import AuditLog, describe_command
+from tactdeform_hw.device.driver.audit import AuditLog
 from tactdeform_hw.device.participant.regions import RegionMap, tactdeform_region_map
 from tactdeform_hw.protocol.firmware import FirmwareSpec, get_firmware
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
@@ -98,35 +98,14 @@ class DeliveryLog(AuditLog):
 
     # --- what the device wrote ---------------------------------------------------------------------------
 
-    def tx(
-        self,
-        data: bytes,
-        *,
-        t: float,
-        ok: bool = True,
-        op: str = "",
-        logical: bytes | None = None,
-        part: tuple[int, int] | None = None,
-    ) -> None:
-        super().tx(data, t=t, ok=ok, op=op, logical=logical, part=part)
-        if not ok:
-            return
-        name, value = describe_command(logical if logical is not None else data, self.firmware)
+    def sent(self, name: str, value: Any) -> None:
+        """Keep what the report says of each command the device sent: the heights written and the highest
+        height each active channel received."""
         if per_electrode_heights(self.firmware):  # each pattern element is its own height
             self._tx_heights(name, value)
             return
         if name == "PULSE_HEIGHT" and isinstance(value, int):
-            ua = int(round(self.transfer.to_ua(min(value, self.firmware.dac_max_code))))
-            if ua != self._height:
-                self.height_changes += 1
-                if (
-                    ua
-                    and len(self.heights_ua) < HEIGHTS_SHOWN
-                    and (not self.heights_ua or self.heights_ua[-1] != ua)
-                ):
-                    self.heights_ua.append(ua)
-            self._height = ua
-            self.max_ua = max(self.max_ua, ua)
+            self._height_written(int(round(self.transfer.to_ua(min(value, self.firmware.dac_max_code)))))
         elif name == "PATTERN" and isinstance(value, list):
             self._pattern = bytes(value)
         else:
@@ -142,20 +121,24 @@ class DeliveryLog(AuditLog):
             return
         top = self.firmware.dac_max_code
         uas = [int(round(self.transfer.to_ua(min(int(v), top)))) for v in value]
-        height = max(uas, default=0)
-        if height != self._height:
-            self.height_changes += 1
-            if (
-                height
-                and len(self.heights_ua) < HEIGHTS_SHOWN
-                and (not self.heights_ua or self.heights_ua[-1] != height)
-            ):
-                self.heights_ua.append(height)
-        self._height = height
-        self.max_ua = max(self.max_ua, height)
+        self._height_written(max(uas, default=0))
         for ch, ua in enumerate(uas):
             if ua and self.channel_max_ua.get(ch, 0) < ua:
                 self.channel_max_ua[ch] = ua
+
+    def _height_written(self, ua: int) -> None:
+        """The pulse height in force is now ``ua`` (v1.2's register, or v2's highest pattern element):
+        count a change, list a new non-zero height (up to :data:`HEIGHTS_SHOWN`), keep the highest."""
+        if ua != self._height:
+            self.height_changes += 1
+            if (
+                ua
+                and len(self.heights_ua) < HEIGHTS_SHOWN
+                and (not self.heights_ua or self.heights_ua[-1] != ua)
+            ):
+                self.heights_ua.append(ua)
+        self._height = ua
+        self.max_ua = max(self.max_ua, ua)
 
     def safety(self, entry: dict[str, Any]) -> None:
         super().safety(entry)

@@ -125,6 +125,13 @@ class AuditLog:
         if part is not None:
             rec["part"] = list(part)
         self._line(rec)
+        if ok:
+            self.sent(name, value)
+
+    def sent(self, name: str, value: Any) -> None:
+        """A command the transport took, as :func:`describe_command` read it for its ``tx`` line.  Nothing
+        here: a log that also reports what a session sent (the session's delivery log) keeps it, from the
+        same reading as the line it wrote."""
 
     def safety(self, entry: dict[str, Any]) -> None:
         self._line({"type": "safety", **entry})
