@@ -35,7 +35,7 @@ import functools
 import threading
 import warnings
 from collections.abc import Callable, Sequence
-from typing import Concatenate, Generic, ParamSpec, TypeVar, cast, overload
+from typing import Concatenate, Generic, ParamSpec, TypedDict, TypeVar, cast, overload
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.clock import Clock, MonotonicClock
@@ -136,6 +136,23 @@ class Part(Generic[_T]):
         if self.part == "state":
             raise AttributeError(f"{self.name} is read-only: it follows what the device sends")
         setattr(getattr(obj, self.part), self.name, value)
+
+
+class DeviceOptions(TypedDict, total=False):
+    """The keyword options of :class:`Device` (each documented there, with its default) that
+    :func:`~.serial_driver.open_device` passes on to it: named once, so what opening a device by name
+    accepts is what the device takes, and the type checker holds the two together."""
+
+    mapping: ChannelMapping | None
+    transfer: CurrentTransfer
+    guard: SafetyGuard | None
+    pacer: Pacer | None
+    audit: AuditLog | None
+    guardian: bool | None
+    offline_clock: Clock | None
+    firmware: str
+    settle_s: float | None
+    robust_encoding: bool | None
 
 
 class Device:

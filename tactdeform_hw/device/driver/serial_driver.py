@@ -20,20 +20,17 @@ code.  The in-process emulator declares nothing: the board it models dies with t
 from __future__ import annotations
 
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from tactdeform_hw.clock import Clock
-from tactdeform_hw.device.driver.audit import AuditLog
-from tactdeform_hw.device.driver.base import Device
+from tactdeform_hw.device.driver.base import Device, DeviceOptions
 from tactdeform_hw.device.driver.firmware_probe import FIRMWARE_CHOICES, check_firmware_choice
 from tactdeform_hw.device.driver.holders import find_holders
-from tactdeform_hw.device.driver.pacing import Pacer
 from tactdeform_hw.device.links.port import BUSY_ERRNOS, Port
-from tactdeform_hw.device.participant.mapping import ChannelMapping
-from tactdeform_hw.device.safety.guard import SafetyGuard
 from tactdeform_hw.errors import DeviceBusyError
 from tactdeform_hw.protocol.constants import BAUD_RATE
-from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack  # typing's own from Python 3.11
 
 DEFAULT_TIMEOUT_S = 0.5
 
@@ -153,22 +150,11 @@ def _resolve_kit(url: str) -> str:
 
 
 def open_device(
-    name: str = "emulator",
-    *,
-    timeout: float = DEFAULT_TIMEOUT_S,
-    mapping: ChannelMapping | None = None,
-    transfer: CurrentTransfer = DEFAULT_TRANSFER,
-    guard: SafetyGuard | None = None,
-    pacer: Pacer | None = None,
-    audit: AuditLog | None = None,
-    guardian: bool | None = None,
-    offline_clock: Clock | None = None,
-    firmware: str = "auto",
-    settle_s: float | None = None,
-    robust_encoding: bool | None = None,
+    name: str = "emulator", *, timeout: float = DEFAULT_TIMEOUT_S, **options: Unpack[DeviceOptions]
 ) -> EtactileKitDevice:
     """Open a device by name: a serial port path, a pyserial URL, ``usb:VID:PID[:SERIAL]``,
-    ``usb-emulator``, or ``emulator`` (the default).  ``pacer`` defaults to what the port needs (see
+    ``usb-emulator``, or ``emulator`` (the default), with the :class:`~.base.Device` constructor's keyword
+    options (:class:`~.base.DeviceOptions`).  ``pacer`` defaults to what the port needs (see
     :func:`~tactdeform_hw.device.driver.pacing.default_pacer`); ``audit`` enables the session's audit log.  A
     port path is locked for this program alone (:class:`~tactdeform_hw.errors.DeviceBusyError` if another
     holds it) and gets a guardian process (``guardian=False`` to do without).  ``offline_clock``: when the
@@ -195,25 +181,18 @@ def open_device(
     board untouched since power-on).  Shorter is safe only when no other program can have written to the
     board since its power-on or since a session that ended with a proved ``close``: a v2 pattern an
     earlier program left cut would otherwise be completed, its heights with it."""
-    check_firmware_choice(firmware)
+    unknown = sorted(options.keys() - DeviceOptions.__optional_keys__)
+    if unknown:  # refused before any port exists, as a misspelt parameter always was
+        raise TypeError(f"open_device() got an unexpected keyword argument {unknown[0]!r}")
+    if "firmware" in options:
+        check_firmware_choice(options["firmware"])
+    guard = options.get("guard")
     if guard is not None:
         # calibrated limits bind hardware channels: a mapping that wires an electrode elsewhere is refused
         # before the port is opened
-        guard.check_wiring(mapping)
+        guard.check_wiring(options.get("mapping"))
     port = open_port(name, timeout=timeout)
-    return EtactileKitDevice(
-        port,
-        mapping=mapping,
-        transfer=transfer,
-        guard=guard,
-        pacer=pacer,
-        audit=audit,
-        guardian=guardian,
-        offline_clock=offline_clock,
-        firmware=firmware,
-        settle_s=settle_s,
-        robust_encoding=robust_encoding,
-    )
+    return EtactileKitDevice(port, **options)
 
 
 __all__ = [
