@@ -57,20 +57,21 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from ..errors import ConfigurationError, MissingDependencyError
 from .geometry import (
-    DEFAULT_FEATURE_BAND_MM,
     SurfaceQuery,
     SurfaceSite,
-    TextureRegion,
     as_point,
     as_points,
 )
-from .primitives import PlacedSolid
+from .primitives import PlacedSolid, SurfaceOptions
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack  # typing's own from Python 3.11
 
 DEFAULT_FIT_MM = 200.0
 """Largest extent of a mesh in the studies' Phase 2: every object fits a 20 × 20 × 20 cm box."""
@@ -1076,7 +1077,8 @@ def _fit_factor(name: str, extent: float, fit_mm: float | None, scale: float) ->
 
 
 class TriangleMesh(PlacedSolid):
-    """A solid bounded by a triangle mesh, placed in the world and fitted into a box."""
+    """A solid bounded by a triangle mesh, placed in the world and fitted into a box.  ``surface``:
+    :class:`~.primitives.SurfaceOptions`."""
 
     kind = "mesh"
 
@@ -1090,10 +1092,6 @@ class TriangleMesh(PlacedSolid):
         rotation: object | None = None,
         fit_mm: float | None = DEFAULT_FIT_MM,
         scale: float = 1.0,
-        texture_level: int = 0,
-        texture_regions: Sequence[TextureRegion] = (),
-        feature_band_mm: float = DEFAULT_FEATURE_BAND_MM,
-        classify_features: bool = True,
         sharp_angle_deg: float = 40.0,
         min_chain_mm: float = 10.0,
         concave_edges: bool = False,
@@ -1103,10 +1101,9 @@ class TriangleMesh(PlacedSolid):
         sign_method: str = "auto",
         sample_spacing_mm: float | None = None,
         source: str = "",
+        **surface: Unpack[SurfaceOptions],
     ) -> None:
-        super().__init__(
-            name, center_mm, rotation, texture_level, texture_regions, feature_band_mm, classify_features
-        )
+        super().__init__(name, center_mm, rotation, **surface)
         v, f = _mesh_arrays(name, vertices, faces)
         if sign_method not in ("auto", "pseudonormal", "winding"):
             raise ConfigurationError(

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 
@@ -33,6 +34,9 @@ from .geometry import (
     check_band_mm,
     check_texture_level,
 )
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack  # typing's own from Python 3.11
 
 
 def _check_vec3(field: str, value: object) -> np.ndarray:
@@ -56,18 +60,32 @@ def _check_rotation(field: str, value: object | None) -> np.ndarray | None:
     return r
 
 
+class SurfaceOptions(TypedDict, total=False):
+    """The surface options every kind of object takes by keyword (defaults and checks:
+    :class:`PlacedSolid`): its texture level, its textured regions, how near an edge or a corner a contact
+    reads as one (``feature_band_mm``), and whether features are classified at all."""
+
+    texture_level: int
+    texture_regions: Sequence[TextureRegion]
+    feature_band_mm: float
+    classify_features: bool
+
+
 class PlacedSolid:
-    """What every object shares: a name, a pose in the world, a texture level and its regions."""
+    """What every object shares: a name, a pose in the world, a texture level and its regions.  The
+    surface options (:class:`SurfaceOptions`) have their defaults here, so every kind of object takes the
+    same ones."""
 
     def __init__(
         self,
         name: str,
         center_mm: Sequence[float],
         rotation: object | None,
-        texture_level: int,
-        texture_regions: Sequence[TextureRegion],
-        feature_band_mm: float,
-        classify_features: bool,
+        *,
+        texture_level: int = 0,
+        texture_regions: Sequence[TextureRegion] = (),
+        feature_band_mm: float = DEFAULT_FEATURE_BAND_MM,
+        classify_features: bool = True,
     ) -> None:
         if not isinstance(name, str) or not name:
             raise ConfigurationError(f"object name={name!r} must be a non-empty string")
@@ -141,7 +159,7 @@ class PlacedSolid:
 
 
 class Sphere(PlacedSolid):
-    """A sphere: every contact is a face."""
+    """A sphere: every contact is a face.  ``surface``: :class:`SurfaceOptions`."""
 
     kind = "sphere"
 
@@ -150,15 +168,9 @@ class Sphere(PlacedSolid):
         name: str,
         radius_mm: float,
         center_mm: Sequence[float] = (0.0, 0.0, 0.0),
-        *,
-        texture_level: int = 0,
-        texture_regions: Sequence[TextureRegion] = (),
-        feature_band_mm: float = DEFAULT_FEATURE_BAND_MM,
-        classify_features: bool = True,
+        **surface: Unpack[SurfaceOptions],
     ) -> None:
-        super().__init__(
-            name, center_mm, None, texture_level, texture_regions, feature_band_mm, classify_features
-        )
+        super().__init__(name, center_mm, None, **surface)
         r = float(radius_mm)
         if not math.isfinite(r) or r <= 0:
             raise ConfigurationError(f"{name}.radius_mm={radius_mm!r} must be a positive finite number")
@@ -207,7 +219,8 @@ class Sphere(PlacedSolid):
 
 
 class Box(PlacedSolid):
-    """A rectangular box (the cube when all sizes are equal), optionally rotated."""
+    """A rectangular box (the cube when all sizes are equal), optionally rotated.  ``surface``:
+    :class:`SurfaceOptions`."""
 
     kind = "box"
 
@@ -218,14 +231,9 @@ class Box(PlacedSolid):
         center_mm: Sequence[float] = (0.0, 0.0, 0.0),
         *,
         rotation: object | None = None,
-        texture_level: int = 0,
-        texture_regions: Sequence[TextureRegion] = (),
-        feature_band_mm: float = DEFAULT_FEATURE_BAND_MM,
-        classify_features: bool = True,
+        **surface: Unpack[SurfaceOptions],
     ) -> None:
-        super().__init__(
-            name, center_mm, rotation, texture_level, texture_regions, feature_band_mm, classify_features
-        )
+        super().__init__(name, center_mm, rotation, **surface)
         size = np.broadcast_to(np.asarray(size_mm, dtype=float), (3,)).copy()
         if not np.isfinite(size).all() or (size <= 0).any():
             raise ConfigurationError(f"{name}.size_mm={size_mm!r} must be positive finite lengths")

@@ -61,7 +61,7 @@ from .geometry import (
     check_texture_level,
 )
 from .mesh import MESH_SUFFIXES, MeshData, TriangleMesh, read_mesh
-from .primitives import Box, Sphere
+from .primitives import Box, Sphere, SurfaceOptions
 from .tracking import rotation_from_euler_deg
 
 CONTACT_MODES: tuple[str, ...] = ("orientation", "uniform")
@@ -473,7 +473,7 @@ def _build_object(
     classify = approach == "tactdeform"
     # Region look-ups exist only where texture is rendered.
     regions = spec.texture_regions if needs.needs_texture and approach == "tactdeform" else ()
-    common: dict[str, Any] = dict(
+    common = SurfaceOptions(
         texture_level=spec.texture_level,
         texture_regions=regions,
         feature_band_mm=spec.feature_band_mm,
