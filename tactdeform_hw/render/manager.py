@@ -530,7 +530,7 @@ class PatternManager:
         else:
             # In contact implies a query (no query loses contact) and a previous sample.
             assert normal is not None and feat is not None and p_prev is not None
-            seq = self._in_contact(t, p, p_prev, q, sd, normal, feat, query)
+            seq = self._in_contact(t, p, p_prev, q, normal, feat, query)
         if self.state != old_state:
             self.stats.transitions += 1
         self._n = normal
@@ -566,17 +566,23 @@ class PatternManager:
     # --- internals -----------------------------------------------------------------------------------------
 
     def _drop(self, t: Any, reason: str) -> ManagerOutput:
-        tf = count_drop(self.stats, t, reason)
+        return self._output(count_drop(self.stats, t, reason), [], reason)
+
+    def _output(
+        self, t: float, frames: list[tuple[float, Pattern]], dropped: str | None = None
+    ) -> ManagerOutput:
+        """The manager as a sample at ``t`` leaves it (state, parameters, context, pattern), with the frames
+        that sample sends; a dropped sample sends none and says why."""
         return ManagerOutput(
-            tf,
+            t,
             self.state.value,
             self.feature.value,
             self._orient_value_name(),
             self.texture.value,
             self.context,
             self.pattern,
-            [],
-            reason,
+            frames,
+            dropped,
         )
 
     def _to_idle(self) -> None:
@@ -690,7 +696,6 @@ class PatternManager:
         p: tuple[float, ...],
         p_prev: tuple[float, ...],
         q: tuple[float, ...],
-        sd: float,
         normal: tuple[float, ...],
         feat: str,
         query: Any,
@@ -947,16 +952,7 @@ class PatternManager:
             self.stats.interpolated += m - 1
         if seq:
             self.pattern = seq[-1]
-        return ManagerOutput(
-            t,
-            self.state.value,
-            self.feature.value,
-            self._orient_value_name(),
-            self.texture.value,
-            self.context,
-            self.pattern,
-            frames,
-        )
+        return self._output(t, frames)
 
     def _orient_value_name(self) -> str | None:
         if self.feature.value != "edge" or self.orientation.value is None:
