@@ -62,6 +62,7 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
     trace_scan,
 )
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
+from tactdeform_hw.emulator.firmware.models import entry_part
 from tactdeform_hw.emulator.firmware.parser_v2 import CallCut, ParserV2, ReadPoint
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
 from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal, physical_outputs
@@ -855,15 +856,11 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
 
     @property
     def registers(self) -> RegistersV2:
-        regs = self.emulator.registers
-        assert isinstance(regs, RegistersV2)  # the v2 entry's registers
-        return regs
+        return entry_part(self.emulator.registers, RegistersV2)
 
     @property
     def parser(self) -> ParserV2:
-        p = self.emulator.parser
-        assert isinstance(p, ParserV2)  # the v2 entry's parser
-        return p
+        return entry_part(self.emulator.parser, ParserV2)
 
     def scan_rate(self, at_us: float) -> tuple[int, float]:
         """Scans since power-up and the current scan rate in Hz (0 when the scans stopped)."""
