@@ -65,7 +65,7 @@ from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.firmware.models import entry_part
 from tactdeform_hw.emulator.firmware.parser_v2 import CallCut, ParserV2, ReadPoint
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
-from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal, physical_outputs
+from tactdeform_hw.emulator.firmware.scan import Signal, physical_outputs, pulse_kind_of
 from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
 from tactdeform_hw.emulator.records.reports import EventRun, LossReport
 from tactdeform_hw.emulator.timed.base import TimedModelBase
@@ -313,12 +313,7 @@ class ReportsV2:
                 t = s.start_ns + onset
                 if (lo is not None and t < lo) or (hi is not None and t >= hi):
                     continue
-                if s.stim_mode == 0:
-                    kind = PulseKind.MONO
-                elif s.stim_mode == 1:
-                    kind = PulseKind.BI_ANODIC if pol else PulseKind.BI_CATHODIC
-                else:
-                    kind = PulseKind.SENSE
+                kind = pulse_kind_of(s.stim_mode, pol)
                 rows.append((s.index, ch, int(kind), t, width, code, pol))
         a = np.array(rows, dtype=np.int64).reshape(-1, 7)
         codes = a[:, 5]
