@@ -92,6 +92,30 @@ def test_a_state_is_a_frozen_copy(entry: ModelEntry) -> None:
 
 
 @pytest.mark.parametrize("entry", ENTRIES, ids=IDS)
+def test_a_state_read_back_from_its_variables_is_the_same_state(entry: ModelEntry) -> None:
+    """``from_variables`` reads exactly the names ``as_dict`` writes: every register, the pattern and the
+    register the version lacks (None) come back equal."""
+    emu = Emulator(firmware=entry.spec)
+    emu.feed(_configure(5) + bytes([0xFD, 0, 0xF7, 40]))
+    state = emu.state()
+    again = BoardState.from_variables(
+        state.firmware,
+        state.as_dict(),
+        rx_pending=state.rx_pending,
+        rx_dropped=state.rx_dropped,
+        command_in_progress=state.command_in_progress,
+    )
+    assert again == state and (again.polarity, again.discharge_time_us) == (0, 40)
+
+
+def test_a_state_missing_a_variable_is_refused_naming_it() -> None:
+    variables = Emulator(firmware="v2").state().as_dict()
+    del variables["sense_pulse_width"]
+    with pytest.raises(ConfigurationError, match="sense_pulse_width missing, a v2 board state needs"):
+        BoardState.from_variables(FIRMWARES["v2"], variables, rx_pending=0)
+
+
+@pytest.mark.parametrize("entry", ENTRIES, ids=IDS)
 @settings(max_examples=60, deadline=None)
 @given(data=streams)
 def test_call_by_call_equals_the_fast_path(entry: ModelEntry, data: bytes) -> None:

@@ -16,9 +16,11 @@ them, and neither may import the other.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from ..errors import ConfigurationError
 from .firmware import FirmwareSpec
 
 #: BoardState field -> the firmware variable's name (the golden vectors' ``expect`` key), in the order the
@@ -29,7 +31,8 @@ _WIRE_NAMES = {
     "discharge_time_us": "discharge_time",
 }
 
-_ORDER = (
+#: The fields that are the firmware's variables.
+_REGISTERS = (
     "electrode_num",
     "polarity",
     "stim_mode",
@@ -42,10 +45,12 @@ _ORDER = (
     "timer_alarm_ticks",
     "hv513_num",
     "stim_pattern",
-    "rx_pending",
-    "rx_dropped",
-    "command_in_progress",
 )
+
+#: The registers one version lacks (``None`` there): v1.2's stimulation mode, v2's global pulse height.
+_VERSION_REGISTERS = ("stim_mode", "pulse_height")
+
+_ORDER = (*_REGISTERS, "rx_pending", "rx_dropped", "command_in_progress")
 
 
 @dataclass(frozen=True)
@@ -87,6 +92,41 @@ class BoardState:
     def scanned_pattern(self) -> tuple[int, ...]:
         """The pattern entries the scan reads: the first ``electrode_num``."""
         return self.stim_pattern[: self.electrode_num]
+
+    @classmethod
+    def from_variables(
+        cls,
+        firmware: FirmwareSpec,
+        variables: Mapping[str, Any],
+        *,
+        rx_pending: int,
+        rx_dropped: int | None = None,
+        command_in_progress: bool | None = None,
+    ) -> BoardState:
+        """The state of a board whose firmware holds ``variables`` (by the firmware's own names, the keys
+        :meth:`as_dict` gives; any other name is not read), with its receive queue: a model whose
+        registers carry the firmware's names hands them over as they are, and the names are mapped to
+        fields here, beside :meth:`as_dict` that maps them back.  A register the version lacks
+        (``stim_mode``, ``pulse_height``) is absent and becomes ``None``; any other absent is refused,
+        naming it."""
+        missing = [
+            _WIRE_NAMES.get(name, name)
+            for name in _REGISTERS
+            if name not in _VERSION_REGISTERS and _WIRE_NAMES.get(name, name) not in variables
+        ]
+        if missing:
+            raise ConfigurationError(
+                f"variables: {', '.join(missing)} missing, a {firmware.name} board state needs them"
+            )
+        regs: dict[str, Any] = {name: variables.get(_WIRE_NAMES.get(name, name)) for name in _REGISTERS}
+        regs["stim_pattern"] = tuple(regs["stim_pattern"])
+        return cls(
+            firmware=firmware,
+            **regs,
+            rx_pending=rx_pending,
+            rx_dropped=rx_dropped,
+            command_in_progress=command_in_progress,
+        )
 
     def as_dict(self) -> dict[str, Any]:
         """The firmware's variable names (the golden vectors' ``expect`` keys) to their values; registers

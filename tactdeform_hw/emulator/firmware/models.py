@@ -19,7 +19,7 @@ import importlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from tactdeform_hw.emulator.firmware.contract import CallOutcome, FirmwareParser
 from tactdeform_hw.emulator.firmware.hazards import Hazard
@@ -34,6 +34,17 @@ if TYPE_CHECKING:
 
 #: The registers of any version (their fields differ: v1.2's ``pulse_height``, v2's ``stim_mode``).
 BoardRegisters = Registers | RegistersV2
+
+_Part = TypeVar("_Part")
+
+
+def entry_part(part: object, cls: type[_Part]) -> _Part:
+    """``part``, one of an emulator's registers or parser, as ``cls``, the class its version's entry makes.
+
+    The emulator types its parts as any version's; a model of one version reads its own fields (v1.2's
+    ``pulse_height``, v2's ``stim_mode``) and states here, once, which class its entry gave it."""
+    assert isinstance(part, cls), f"{type(part).__name__} is not the {cls.__name__} of this version's entry"
+    return part
 
 
 class FirmwareModel(Protocol):
@@ -125,4 +136,4 @@ def model_entry(firmware: str | FirmwareSpec, field_name: str = "firmware") -> M
     return MODELS[get_firmware(firmware, field_name)]
 
 
-__all__ = ["MODELS", "BoardRegisters", "FirmwareModel", "ModelEntry", "model_entry"]
+__all__ = ["MODELS", "BoardRegisters", "FirmwareModel", "ModelEntry", "entry_part", "model_entry"]

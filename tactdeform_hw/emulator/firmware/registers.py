@@ -2,39 +2,12 @@
 
 from __future__ import annotations
 
+from typing import Any, ClassVar
+
 from tactdeform_hw.protocol import firmware_math as fm
 from tactdeform_hw.protocol.constants import PATTERN_BUFFER_SIZE, POWER_ON_PERIOD_US, POWER_ON_POLARITY
 from tactdeform_hw.protocol.firmware import V1_2, V2, FirmwareSpec
 from tactdeform_hw.protocol.state import BoardState
-
-
-def _board_state(
-    regs: Registers | RegistersV2,
-    firmware: FirmwareSpec,
-    stim_mode: int | None,
-    pulse_height: int | None,
-    rx_pending: int,
-    rx_dropped: int | None,
-    command_in_progress: bool | None,
-) -> BoardState:
-    return BoardState(
-        firmware=firmware,
-        electrode_num=regs.electrode_num,
-        polarity=regs.polarity,
-        stim_mode=stim_mode,
-        pulse_height=pulse_height,
-        pulse_width_us=regs.pulse_width,
-        sense_pulse_height=regs.sense_pulse_height,
-        sense_pulse_width_us=regs.sense_pulse_width,
-        discharge_time_us=regs.discharge_time,
-        period_us=regs.period_us,
-        timer_alarm_ticks=regs.timer_alarm_ticks,
-        hv513_num=regs.hv513_num,
-        stim_pattern=tuple(regs.stim_pattern),
-        rx_pending=rx_pending,
-        rx_dropped=rx_dropped,
-        command_in_progress=command_in_progress,
-    )
 
 
 class _RegisterFile:
@@ -54,6 +27,9 @@ class _RegisterFile:
         "voltage",
     )
 
+    #: The version whose globals these are: the board state's version.
+    firmware: ClassVar[FirmwareSpec]
+
     def __init__(self, hv513_num: int) -> None:
         self.electrode_num = 0
         self.polarity = POWER_ON_POLARITY
@@ -66,23 +42,37 @@ class _RegisterFile:
         self.hv513_num = hv513_num
         self.voltage = [0] * PATTERN_BUFFER_SIZE
 
+    def variables(self) -> dict[str, Any]:
+        """Every global by its name in the firmware's source (the attribute names are those names)."""
+        return {
+            name: getattr(self, name) for cls in type(self).__mro__ for name in getattr(cls, "__slots__", ())
+        }
+
+    def board_state(
+        self, rx_pending: int, rx_dropped: int | None = None, command_in_progress: bool | None = None
+    ) -> BoardState:
+        """These registers as a :class:`BoardState`; the register this version lacks (v1.2's stimulation
+        mode, v2's global pulse height) is ``None`` there."""
+        return BoardState.from_variables(
+            self.firmware,
+            self.variables(),
+            rx_pending=rx_pending,
+            rx_dropped=rx_dropped,
+            command_in_progress=command_in_progress,
+        )
+
 
 class Registers(_RegisterFile):
     """The v1.2 firmware's globals: one global pulse height, one pattern byte per electrode.
     ``voltage[ch]`` holds the ADC reading (raw >> 2) of the channel's last pulse; 0 until a scan runs."""
 
     __slots__ = ("pulse_height", "stim_pattern")
+    firmware = V1_2
 
     def __init__(self, hv513_num: int = 0) -> None:
         super().__init__(hv513_num)
         self.pulse_height = 0
         self.stim_pattern = bytearray(PATTERN_BUFFER_SIZE)
-
-    def board_state(
-        self, rx_pending: int, rx_dropped: int | None = None, command_in_progress: bool | None = None
-    ) -> BoardState:
-        """These registers as a :class:`BoardState` (no stimulation mode on v1.2)."""
-        return _board_state(self, V1_2, None, self.pulse_height, rx_pending, rx_dropped, command_in_progress)
 
 
 #: The v2 registers a scan reads once, at its start (``etk.cpp:110-116``): what the timed model snapshots
@@ -104,14 +94,9 @@ class RegistersV2(_RegisterFile):
     reading when biphasic)."""
 
     __slots__ = ("stim_mode", "stim_pattern")
+    firmware = V2
 
     def __init__(self, hv513_num: int = 0) -> None:
         super().__init__(hv513_num)
         self.stim_mode = 0
         self.stim_pattern = [0] * PATTERN_BUFFER_SIZE
-
-    def board_state(
-        self, rx_pending: int, rx_dropped: int | None = None, command_in_progress: bool | None = None
-    ) -> BoardState:
-        """These registers as a :class:`BoardState` (no global pulse height on v2)."""
-        return _board_state(self, V2, self.stim_mode, None, rx_pending, rx_dropped, command_in_progress)

@@ -116,14 +116,36 @@ class PulseKind(IntEnum):
 
 
 class ChannelKind(IntEnum):
+    """What a channel's scan step delivers.  v2's stimulation mode takes these values, for every channel."""
+
     MONO = 0
     BIPHASIC = 1
     SENSE = 2
 
 
-_KIND_OF_VALUE = np.full(256, int(ChannelKind.SENSE), dtype=np.int64)
-_KIND_OF_VALUE[PATTERN_MONOPHASIC] = ChannelKind.MONO
-_KIND_OF_VALUE[PATTERN_BIPHASIC] = ChannelKind.BIPHASIC
+def channel_kind(pattern_value: int) -> ChannelKind:
+    """The kind of a v1.2 channel whose pattern byte is ``pattern_value``: 1 monophasic, 2 biphasic, any
+    other value the sense pulse."""
+    if pattern_value == PATTERN_MONOPHASIC:
+        return ChannelKind.MONO
+    if pattern_value == PATTERN_BIPHASIC:
+        return ChannelKind.BIPHASIC
+    return ChannelKind.SENSE
+
+
+def pulse_kind_of(kind: int, polarity: int) -> PulseKind:
+    """The kind of a pulse delivered on a channel of kind ``kind`` (a :class:`ChannelKind`, or v2's
+    stimulation mode) with the POL pin at ``polarity``: a biphasic phase is told by its POL level, and any
+    value but monophasic or biphasic is a sense pulse, as the scans read the mode."""
+    if kind == ChannelKind.MONO:
+        return PulseKind.MONO
+    if kind == ChannelKind.BIPHASIC:
+        return PulseKind.BI_ANODIC if polarity else PulseKind.BI_CATHODIC
+    return PulseKind.SENSE
+
+
+#: :func:`channel_kind` of every pattern byte, for a whole pattern at once.
+_KIND_OF_VALUE = np.array([channel_kind(v) for v in range(256)], dtype=np.int64)
 
 
 # --- the scan's inputs -------------------------------------------------------------------------------------

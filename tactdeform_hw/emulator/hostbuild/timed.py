@@ -30,7 +30,7 @@ import numpy as np
 from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.firmware.models import model_entry
-from tactdeform_hw.emulator.firmware.scan import PulseKind
+from tactdeform_hw.emulator.firmware.scan import ChannelKind, channel_kind, pulse_kind_of
 from tactdeform_hw.emulator.hostbuild.delivered import DeliveredPulse
 from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator, IsrSample
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
@@ -144,19 +144,17 @@ def pulse_kind(declared: bool, regs: dict[tuple[str, int], int | float], output:
       a sense pulse, any other a stimulation pulse.
 
     A biphasic phase is told by its POL level, as the Python model tells it."""
+    kind: int
     if declared and ("stim_mode", 0) in regs:
-        value = {0: 1, 1: 2}.get(int(regs["stim_mode", 0]), 0)
+        kind = int(regs["stim_mode", 0])  # v2's mode: every channel's ChannelKind
     elif declared and ("stim_pattern", output) in regs:
-        value = int(regs["stim_pattern", output])
+        kind = channel_kind(int(regs["stim_pattern", output]))
     else:
         sense = regs.get(("sense_pulse_height", 0))
         height = regs.get(("pulse_height", 0))
-        value = 0 if sense is not None and pulse.code == sense and pulse.code != height else 1
-    if value == 1:
-        return int(PulseKind.MONO)
-    if value == 2:
-        return int(PulseKind.BI_ANODIC if pulse.polarity else PulseKind.BI_CATHODIC)
-    return int(PulseKind.SENSE)
+        is_sense = sense is not None and pulse.code == sense and pulse.code != height
+        kind = ChannelKind.SENSE if is_sense else ChannelKind.MONO
+    return int(pulse_kind_of(kind, pulse.polarity))
 
 
 def classify(declared: bool, pulses: list[DeliveredPulse], samples: list[IsrSample]) -> list[tuple[int, ...]]:

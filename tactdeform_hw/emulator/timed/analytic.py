@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from tactdeform_hw.emulator.core import Emulator
+from tactdeform_hw.emulator.firmware.models import entry_part
 from tactdeform_hw.emulator.firmware.registers import Registers
 from tactdeform_hw.emulator.firmware.scan import ScanConfig, channel_offsets_ns, scan_duration_ns
 from tactdeform_hw.emulator.records.reports import Timeline
@@ -130,8 +131,7 @@ class _Analytic:
         )
 
     def _reconfigure(self, first: bool = False) -> None:
-        regs = self.emu.registers
-        assert isinstance(regs, Registers)  # the analytic model is v1.2's
+        regs = entry_part(self.emu.registers, Registers)  # the analytic model is v1.2's
         self.cfg = ScanConfig.from_registers(regs)
         self.period = self.m.alarm_period_ns(regs.timer_alarm_ticks)
         self.target = OUTPUTS_PER_HV513 * self.cfg.hv513_num

@@ -60,7 +60,7 @@ from typing import Any
 from tactdeform_hw.emulator.core import Emulator
 from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
-from tactdeform_hw.emulator.firmware.models import model_entry
+from tactdeform_hw.emulator.firmware.models import entry_part, model_entry
 from tactdeform_hw.emulator.firmware.parser import CallResult, Parser
 from tactdeform_hw.emulator.firmware.registers import Registers
 from tactdeform_hw.emulator.firmware.scan import (
@@ -445,9 +445,7 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
 
     @property
     def registers(self) -> Registers:
-        regs = self.emulator.registers
-        assert isinstance(regs, Registers)  # the v1.2 entry's registers
-        return regs
+        return entry_part(self.emulator.registers, Registers)
 
     # --- the records, by their public names ---
 
@@ -482,9 +480,7 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
 
     @property
     def parser(self) -> Parser:
-        p = self.emulator.parser
-        assert isinstance(p, Parser)  # the v1.2 entry's parser
-        return p
+        return entry_part(self.emulator.parser, Parser)
 
     @property
     def reports(self) -> TimingReports:

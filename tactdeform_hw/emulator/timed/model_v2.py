@@ -62,9 +62,10 @@ from tactdeform_hw.emulator.firmware.firmware_scan import (
     trace_scan,
 )
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
+from tactdeform_hw.emulator.firmware.models import entry_part
 from tactdeform_hw.emulator.firmware.parser_v2 import CallCut, ParserV2, ReadPoint
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
-from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal, physical_outputs
+from tactdeform_hw.emulator.firmware.scan import Signal, physical_outputs, pulse_kind_of
 from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
 from tactdeform_hw.emulator.records.reports import EventRun, LossReport
 from tactdeform_hw.emulator.timed.base import TimedModelBase
@@ -312,12 +313,7 @@ class ReportsV2:
                 t = s.start_ns + onset
                 if (lo is not None and t < lo) or (hi is not None and t >= hi):
                     continue
-                if s.stim_mode == 0:
-                    kind = PulseKind.MONO
-                elif s.stim_mode == 1:
-                    kind = PulseKind.BI_ANODIC if pol else PulseKind.BI_CATHODIC
-                else:
-                    kind = PulseKind.SENSE
+                kind = pulse_kind_of(s.stim_mode, pol)
                 rows.append((s.index, ch, int(kind), t, width, code, pol))
         a = np.array(rows, dtype=np.int64).reshape(-1, 7)
         codes = a[:, 5]
@@ -855,15 +851,11 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
 
     @property
     def registers(self) -> RegistersV2:
-        regs = self.emulator.registers
-        assert isinstance(regs, RegistersV2)  # the v2 entry's registers
-        return regs
+        return entry_part(self.emulator.registers, RegistersV2)
 
     @property
     def parser(self) -> ParserV2:
-        p = self.emulator.parser
-        assert isinstance(p, ParserV2)  # the v2 entry's parser
-        return p
+        return entry_part(self.emulator.parser, ParserV2)
 
     def scan_rate(self, at_us: float) -> tuple[int, float]:
         """Scans since power-up and the current scan rate in Hz (0 when the scans stopped)."""
