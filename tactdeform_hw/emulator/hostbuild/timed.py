@@ -11,7 +11,8 @@ the bytes reach the firmware's receive queue).  What is the firmware's own: ever
 the firmware's variables through the tree's state map.  What it cannot know: the parser's progress (a
 function-local static in both upstream versions), so ``parser_status`` says so and ``command_in_progress``
 is ``None``; the only hazards it records are the link's (bytes the receive queue dropped), since firmware
-defects are the Python model's reading of the code, not something the built code reports.
+defects are the Python model's reading of the code, not something the built code reports.  A trace sink
+(:meth:`HostBuildTimedModel.attach`) receives the firmware's own pin and DAC events.
 
 Replies reach the host when the firmware writes them (no reply-link delay).  The model's clock and the
 firmware's differ only after a reset: each power-up starts a fresh copy of the firmware at its own time 0
@@ -30,11 +31,11 @@ import numpy as np
 from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.firmware.models import model_entry
-from tactdeform_hw.emulator.firmware.scan import PulseKind
-from tactdeform_hw.emulator.hostbuild.delivered import DeliveredPulse
+from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal
+from tactdeform_hw.emulator.hostbuild.delivered import ETACTILEKIT_PINS, DeliveredPulse
 from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator, IsrSample
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
-from tactdeform_hw.emulator.records.reports import LossReport
+from tactdeform_hw.emulator.records.reports import EventRun, LossReport
 from tactdeform_hw.emulator.timed.link import LinkModel, make_link
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
@@ -126,6 +127,15 @@ class DeliveredReports:
             "charge_nc": current * np.asarray(cols[2], dtype=np.float64) / 1e3,
         }
 
+
+#: The board's control pins as the trace signals name them (:meth:`HostBuildTimedModel.attach`).
+_PIN_SIGNALS = {
+    ETACTILEKIT_PINS.bl: Signal.BL,
+    ETACTILEKIT_PINS.le: Signal.LE,
+    ETACTILEKIT_PINS.pol: Signal.POL,
+    ETACTILEKIT_PINS.clk: Signal.CLK,
+    ETACTILEKIT_PINS.din: Signal.DIN,
+}
 
 #: Registers read at every interrupt entry to tell the pulses' kinds (those the state map names).
 KIND_REGISTERS = ("stim_mode", "stim_pattern", "sense_pulse_height", "pulse_height")
@@ -229,6 +239,8 @@ class HostBuildTimedModel:
         self._tx_seen = 0
         self._drops_seen = 0
         self._stopped = False
+        self._sinks: list[Any] = []  # trace sinks (:meth:`attach`)
+        self._traced_to_ns = 0  # the sinks hold every event before this (model clock)
         self.boot_ns = 0
         self.now_ns = 0
         self.host = self._power_up()
@@ -284,6 +296,7 @@ class HostBuildTimedModel:
         self.host.advance_to((target - self.boot_ns) / 1000.0)
         self.now_ns = target
         self._collect()
+        self._feed_sinks()
         host_us = (target - self.boot_ns) / 1000.0
         if host_us - self._trimmed_us > self.event_history_us:
             self.host.clear_events(host_us - self.event_history_us)
@@ -312,6 +325,8 @@ class HostBuildTimedModel:
             self._losses.append(
                 LossReport(t_us, d.host_offset, d.count, b"", "queue_full", d.queued, self.parser_status())
             )
+            detail = {"bytes": d.count, "host_offset": d.host_offset, "reason": "queue_full"}
+            self._mark(int(round(t_us * 1000)), "loss", detail)
             self.hazards.append(
                 Hazard(
                     HazardKind.QUEUE_OVERFLOW,
@@ -435,6 +450,8 @@ class HostBuildTimedModel:
 
     def reset(self, reason: str = "reset") -> None:
         """Power-cycle: a fresh copy of the firmware boots now; bytes on the link still land."""
+        self._feed_sinks()
+        self._mark(self.now_ns, "reset", {"reason": reason})
         for p, kinds in self._current_classified():
             self._pulses.append(p)
             self._kinds.append(kinds)
@@ -453,10 +470,64 @@ class HostBuildTimedModel:
 
     def discard_history(self, before_us: float) -> None:
         """Forget recorded events before ``before_us`` (delivered pulses are kept: safety reads them)."""
+        self._feed_sinks()
         self.host.clear_events()
 
     def attach(self, sink: Any) -> None:
-        raise ConfigurationError("attach: a host build records events() and delivered_pulses(), not a sink")
+        """Send the firmware's pin and DAC events and the link's markers (bytes lost, resets) from now on to
+        ``sink`` (see :mod:`~tactdeform_hw.emulator.records.trace`), as the Python models send their scans.
+
+        The events are the firmware's own writes in the golden traces' conventions
+        (:meth:`.emulator.HostBuildEmulator.events`): BL, LE, POL, CLK and DIN on the board's pins, and the
+        DAC code.  SEL and ADC are the Python models' readings of the HV513 chain and the ADC; a host build
+        has no such reading, so they keep their power-on levels.  Events reach the sink as the model's clock
+        passes them, in time order, before the history they come from is trimmed."""
+        if not self.host.pin_events:
+            raise ConfigurationError("attach: this host build keeps no pin events (pin_events=False)")
+        self._sinks.append(sink)
+        if len(self._sinks) == 1:
+            self._traced_to_ns = self.now_ns
+        if hasattr(sink, "begin"):
+            sink.begin(self.now_ns)
+
+    def detach(self, sink: Any) -> None:
+        """Stop sending to ``sink``, after handing it every event up to now."""
+        if sink in self._sinks:
+            self._feed_sinks()
+            self._sinks.remove(sink)
+
+    def _mark(self, t_ns: int, kind: str, detail: dict[str, Any]) -> None:
+        for s in self._sinks:
+            s.marker(t_ns, kind, detail)
+
+    def _feed_sinks(self) -> None:
+        """Every event of the running firmware from where the sinks stand to now, as one
+        :class:`~..records.reports.EventRun` (events in the model's clock)."""
+        if not self._sinks or self.now_ns <= self._traced_to_ns:
+            return
+        since_us = max(0.0, (self._traced_to_ns - self.boot_ns) / 1000.0)
+        until_ns = self.now_ns - self.boot_ns
+        rows = [e for e in self.host.events(since_us) if e[0] * 1000.0 < until_ns]
+        self._traced_to_ns = self.now_ns
+        t_ns: list[int] = []
+        sig: list[int] = []
+        val: list[int] = []
+        for t_us, kind, pin, value in rows:
+            s = Signal.DAC if kind == "DAC" else _PIN_SIGNALS.get(pin)
+            if s is not None:
+                t_ns.append(int(round(t_us * 1000.0)) + self.boot_ns)
+                sig.append(int(s))
+                val.append(int(value))
+        if not t_ns:
+            return
+        start = t_ns[0]
+        run = EventRun(
+            start,
+            t_ns[-1] - start,
+            (np.asarray(t_ns, np.int64) - start, np.asarray(sig, np.int64), np.asarray(val, np.int64)),
+        )
+        for s in self._sinks:
+            s.scan_run(run)
 
     # --- records ------------------------------------------------------------------------------------------
 
