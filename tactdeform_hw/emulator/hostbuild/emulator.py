@@ -411,6 +411,11 @@ class HostBuildEmulator:
         return self._tx_log
 
     @property
+    def rx_in_flight(self) -> int:
+        """Bytes written that have not reached the receive queue yet (nor been dropped at it)."""
+        return int(self._live().hb_rx_in_flight())
+
+    @property
     def rx_drops(self) -> list[RxDrop]:
         """Every loss at the receive queue."""
         return self._drops

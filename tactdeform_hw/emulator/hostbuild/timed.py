@@ -35,6 +35,7 @@ from tactdeform_hw.emulator.firmware.scan import PulseKind, Signal
 from tactdeform_hw.emulator.hostbuild.delivered import ETACTILEKIT_PINS, DeliveredPulse
 from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator, IsrSample
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
+from tactdeform_hw.emulator.hostbuild.torn import TornPatternWatch
 from tactdeform_hw.emulator.records.reports import EventRun, LossReport
 from tactdeform_hw.emulator.timed.link import LinkModel, make_link
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
@@ -240,6 +241,10 @@ class HostBuildTimedModel:
         self._drops_seen = 0
         self._stopped = False
         self._sinks: list[Any] = []  # trace sinks (:meth:`attach`)
+        self._torn: TornPatternWatch | None = None  # this power-up's torn-scan finder (:mod:`.torn`)
+        self._landed: list[tuple[int, bytes]] = []  # (host offset, bytes) written, not yet read for it
+        self._samples_seen = 0  # interrupt-entry samples already handed to it
+        self._scan_regs: dict[tuple[str, int], int | float] = {}  # the registers at the last entry
         self._traced_to_ns = 0  # the sinks hold every event before this (model clock)
         self.boot_ns = 0
         self.now_ns = 0
@@ -260,6 +265,15 @@ class HostBuildTimedModel:
         for name in KIND_REGISTERS:
             if name in mapped:
                 host.watch_at_isr(name)
+        self._torn = None
+        self._landed.clear()
+        self._samples_seen = 0
+        self._scan_regs.clear()
+        if self.firmware is not None and {"stim_pattern", "electrode_num"} <= mapped:
+            host.watch_at_isr("electrode_num")
+            snap = host.state()
+            pattern = [int(v) for v in snap["stim_pattern"]]
+            self._torn = TornPatternWatch(self.firmware, pattern, int(snap["electrode_num"]))
         return host
 
     @property
@@ -313,6 +327,8 @@ class HostBuildTimedModel:
         at = max(t_ns, self.now_ns, self.boot_ns) - self.boot_ns
         self.host.advance_to(at / 1000.0)
         self.host.write(data, at / 1000.0)
+        if self._torn is not None:
+            self._landed.append((offset, data))
         self.received_bytes += len(data)
         self._collect()
 
@@ -336,6 +352,59 @@ class HostBuildTimedModel:
                 )
             )
         self._drops_seen = len(drops)
+        if self._torn is not None:
+            self._find_torn()
+
+    def _find_torn(self) -> None:
+        """Hand the torn-scan finder the bytes the queue kept and the scans' registers, and record what it
+        finds as ``torn_pattern`` hazards (see :mod:`.torn`)."""
+        watch = self._torn
+        assert watch is not None
+        if self._landed:
+            arrived = sum(len(d) for _o, d in self._landed) - self.host.rx_in_flight
+            drops = self.host.rx_drops
+            while self._landed and len(self._landed[0][1]) <= arrived:
+                offset, data = self._landed.pop(0)
+                arrived -= len(data)
+                end = offset + len(data)
+                cut = [
+                    (d.host_offset, d.host_offset + d.count) for d in drops if offset <= d.host_offset < end
+                ]
+                kept = (
+                    data
+                    if not cut
+                    else bytes(
+                        b for i, b in enumerate(data, offset) if not any(lo <= i < hi for lo, hi in cut)
+                    )
+                )
+                if kept:
+                    watch.read(kept, offset)
+        samples = self.host.isr_samples()
+        regs = self._scan_regs
+        i = self._samples_seen
+        while i < len(samples):
+            t_us = samples[i].t_us
+            while i < len(samples) and samples[i].t_us == t_us:
+                regs[samples[i].register, samples[i].index] = samples[i].value
+                i += 1
+            n = int(regs.get(("electrode_num", 0), 0))
+            pattern = [int(regs.get(("stim_pattern", ch), 0)) for ch in range(n)]
+            reads = int(regs.get(("stim_mode", 0), 0)) < 2  # v2's mode 2 uses no height
+            watch.scan(t_us, pattern, n, reads)
+        self._samples_seen = i
+        for torn in watch.torn:
+            detail = {
+                "scan_start_us": torn.t_us + self.boot_us,
+                "command_host_offset": torn.command_host_offset,
+                "new_channels": torn.new_channels,
+                "new_channels_up_to": torn.new_channels_up_to,
+                "channels": torn.channels,
+                "changed": [list(c) for c in torn.changed],
+            }
+            self.hazards.append(
+                Hazard(HazardKind.TORN_PATTERN, torn.command_host_offset, detail, torn.t_us + self.boot_us)
+            )
+        watch.torn.clear()
 
     def next_event_us(self, scans: bool = True) -> float:
         """When the model next needs running: a delivery landing, the stimulation timer's alarm (with
@@ -455,6 +524,8 @@ class HostBuildTimedModel:
         for p, kinds in self._current_classified():
             self._pulses.append(p)
             self._kinds.append(kinds)
+        if self._torn is not None:
+            self._torn.close()
         self.host = self._power_up()
         self._trimmed_us = 0.0
         self.boot_ns = self.now_ns
