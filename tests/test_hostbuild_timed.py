@@ -20,10 +20,11 @@ from tactdeform_hw.device import EtactileKitDevice, open_device
 from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.firmware_probe import FirmwareMismatchError
 from tactdeform_hw.emulator.faults import TimedPort
-from tactdeform_hw.emulator.firmware.scan import PulseKind
+from tactdeform_hw.emulator.firmware.scan import POWER_ON_LEVELS, PulseKind
 from tactdeform_hw.emulator.hostbuild import find_compiler
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap
 from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+from tactdeform_hw.emulator.records.trace import MemorySink
 from tactdeform_hw.emulator.serving.pty_server import PtyServer
 from tactdeform_hw.emulator.serving.realtime import RealtimeEmulator
 from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
@@ -339,9 +340,102 @@ def test_emulate_serves_upstream_v1_2_as_its_usb_device() -> None:
     assert "firmware v1.2" in err, err
 
 
-def test_emulate_refuses_a_trace_of_a_host_build(capsys: pytest.CaptureFixture[str]) -> None:
-    from tactdeform_hw.cli import main
+def _signals(sink: MemorySink) -> list[tuple[int, str, int]]:
+    """The sink's signal changes after the power-on levels ``begin`` wrote, as (ns, name, value)."""
+    return [(t, n, v) for t, n, v in sink.events if not n.startswith("MARK:")][len(POWER_ON_LEVELS) :]
 
-    assert main(["emulate", "--pty", "--trace", "t.vcd", "--firmware-src", str(TINY)]) != 0
-    err = capsys.readouterr().err
-    assert "--trace" in err and "timing --firmware-src DIR --vcd" in err and "Traceback" not in err
+
+def test_a_trace_of_a_host_build_is_the_firmwares_own_pin_and_dac_events() -> None:
+    """A sink attached to a host build receives every pin and DAC event the firmware wrote, as the
+    firmware's record has them (:meth:`HostBuildEmulator.events`), however the clock was advanced."""
+    model = HostBuildTimedModel(TINY, state_map=TINY_MAP)
+    sink = MemorySink()
+    model.attach(sink)
+    model.write(b"V\x23\x01", at_us=0)
+    for step_us in (1.0, 333.0, 2500.0, 17.0, 4000.0):  # steps inside and across scans
+        model.advance(step_us)
+    expected = model.host.events()
+    model.detach(sink)
+    sink.close()  # a sink holds its last run until the next one or its close
+    got = _signals(sink)
+    assert got == [  # the chip select (pin 40) is no board signal
+        (round(t_us * 1000), "DAC" if kind == "DAC" else "DIN", value)
+        for t_us, kind, pin, value in expected
+        if pin in ("DAC", 5)
+    ]
+    codes = [v for _t, n, v in got if n == "DAC"]
+    assert len(codes) >= 9 and codes[-1] == 0x123  # one exchange per interrupt; the command's code lands
+    assert [v for _t, n, v in got if n == "DIN"][:4] == [1, 0, 1, 0]  # TINY_PIN is the board's DIN pin
+
+
+def test_a_host_build_trace_keeps_the_events_the_model_trims() -> None:
+    """The model keeps only ``event_history_us`` of the firmware's record; the trace has every scan."""
+    model = HostBuildTimedModel(TINY, state_map=TINY_MAP, event_history_us=2000.0)
+    sink = MemorySink()
+    model.attach(sink)
+    for _ in range(40):
+        model.advance(500.0)
+    model.detach(sink)
+    sink.close()
+    isr_count = int(model.host.state()["isr_count"])
+    got = _signals(sink)
+    assert isr_count == 28  # 20 ms at the 700 µs period
+    assert sum(1 for _t, n, _v in got if n == "DAC") == isr_count
+    assert sum(1 for _t, n, v in got if n == "DIN" and v == 1) == isr_count
+
+
+def test_a_host_build_trace_marks_losses_and_resets_and_continues_in_model_time() -> None:
+    """A full receive queue's loss and a power-up are markers; the next copy's events come in the model's
+    clock (shifted by its boot time), after the marker."""
+    model = HostBuildTimedModel(TINY, state_map=TINY_MAP)
+    sink = MemorySink()
+    model.attach(sink)
+    model.advance_to(2000)
+    model.stop_reading()
+    model.write(b"\x00" * 300)  # past the firmware's 128-byte queue
+    model.advance(3000)
+    model.reset("test")
+    model.advance(3000)
+    model.detach(sink)
+    sink.close()  # a sink holds its last run until the next one or its close
+    marks = [(t, n, d) for t, n, d in sink.events if n.startswith("MARK:")]
+    loss = [m for m in marks if m[1] == "MARK:loss"]
+    assert loss and sum(d["bytes"] for _t, _n, d in loss) == sum(lo.count for lo in model.losses)
+    (reset,) = [m for m in marks if m[1] == "MARK:reset"]
+    assert reset[0] == 5_000_000 and reset[2] == {"reason": "test"}
+    after = [t for t, n, _v in _signals(sink) if n == "DAC" and t > reset[0]]
+    first_dac_us = next(e[0] for e in model.host.events() if e[1] == "DAC")  # the new copy's own clock
+    assert after and min(after) - model.boot_ns == round(first_dac_us * 1000)
+    times = [t for t, _n, _v in sink.events]
+    assert times == sorted(times)
+
+
+def test_emulate_traces_a_host_build(tmp_path: Path) -> None:
+    """``emulate --pty --trace F.json --firmware-src``: the served firmware's own events reach the file."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "t.json"
+    cmd = [sys.executable, "-m", "tactdeform_hw.cli", "emulate", "--pty", "--quiet", "--trace", str(out)]
+    proc = subprocess.Popen(
+        [*cmd, "--firmware-src", str(TINY), "--state-map", str(TINY / "hostbuild_state.toml")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().startswith("/dev/")
+        time.sleep(0.3)
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0 and "Traceback" not in err, err
+    assert "trace written to" in err
+    rows = json.loads(out.read_text())
+    names = {r["name"] for r in rows if r["kind"] == "signal"}
+    assert {"DAC", "DIN"} <= names
+    assert sum(1 for r in rows if r["name"] == "DIN" and r["value"] == 1) >= 2  # scans ran while served

@@ -151,19 +151,14 @@ def _tcp_address(args: argparse.Namespace) -> tuple[str, int]:
 
 
 def _check_firmware_src(args: argparse.Namespace) -> None:
-    """``--firmware-src`` serves the built tree in real time (pty, TCP or USB); a trace of it is the
-    firmware's own event record, which ``timing --firmware-src --vcd`` writes, not the model's scan runs."""
+    """``--firmware-src`` serves the built tree in real time (pty, TCP or USB); its ``--trace`` is the
+    firmware's own pin and DAC events (:meth:`~..emulator.hostbuild.timed.HostBuildTimedModel.attach`)."""
     if args.firmware_src is None:
         if args.state_map is not None:
             raise ConfigurationError("--state-map names the state map of a --firmware-src tree; add one")
         return
     if args.untimed:
         raise ConfigurationError("--firmware-src serves the built firmware in real time; drop --untimed")
-    if args.trace:
-        raise ConfigurationError(
-            "--trace records the Python model's scan runs; a --firmware-src build records its own pin and "
-            "DAC events: use `tactdeform-hw timing --firmware-src DIR --vcd F.vcd` (drop --trace)"
-        )
 
 
 def _check(args: argparse.Namespace) -> None:

@@ -411,6 +411,11 @@ class HostBuildEmulator:
         return self._tx_log
 
     @property
+    def rx_in_flight(self) -> int:
+        """Bytes written that have not reached the receive queue yet (nor been dropped at it)."""
+        return int(self._live().hb_rx_in_flight())
+
+    @property
     def rx_drops(self) -> list[RxDrop]:
         """Every loss at the receive queue."""
         return self._drops
@@ -447,6 +452,9 @@ class HostBuildEmulator:
         if not self.pin_events:
             raise ConfigurationError("events(): this emulator was made with pin_events=False: it kept none")
         ev = self._all_events()
+        since_ns = since_us * 1000
+        if since_ns > 0:  # a DAC event counts from its exchange's start plus ``dac_at_ns``
+            ev = ev[ev["t_ns"] >= since_ns - max(0, self.timing.dac_at_ns)]
         ev = ev[(ev["kind"] == _GPIO) | (ev["kind"] == _SPI)]  # recording order breaks ties in time
         dac = ev["kind"] == _SPI
         t = ev["t_ns"] + np.where(dac, self.timing.dac_at_ns, 0)
@@ -455,7 +463,7 @@ class HostBuildEmulator:
         for t_ns, is_dac, pin, value in zip(
             t[order].tolist(), dac[order].tolist(), ev["a"][order].tolist(), ev["b"][order].tolist()
         ):
-            if t_ns >= since_us * 1000:
+            if t_ns >= since_ns:
                 if is_dac:
                     out.append([t_ns / 1000.0, "DAC", "DAC", (value >> 2) & 0xFFF])
                 else:

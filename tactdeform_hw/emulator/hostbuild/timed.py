@@ -11,7 +11,8 @@ the bytes reach the firmware's receive queue).  What is the firmware's own: ever
 the firmware's variables through the tree's state map.  What it cannot know: the parser's progress (a
 function-local static in both upstream versions), so ``parser_status`` says so and ``command_in_progress``
 is ``None``; the only hazards it records are the link's (bytes the receive queue dropped), since firmware
-defects are the Python model's reading of the code, not something the built code reports.
+defects are the Python model's reading of the code, not something the built code reports.  A trace sink
+(:meth:`HostBuildTimedModel.attach`) receives the firmware's own pin and DAC events.
 
 Replies reach the host when the firmware writes them (no reply-link delay).  The model's clock and the
 firmware's differ only after a reset: each power-up starts a fresh copy of the firmware at its own time 0
@@ -30,11 +31,12 @@ import numpy as np
 from tactdeform_hw.emulator.firmware.board import Board
 from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.firmware.models import model_entry
-from tactdeform_hw.emulator.firmware.scan import ChannelKind, channel_kind, pulse_kind_of
-from tactdeform_hw.emulator.hostbuild.delivered import DeliveredPulse
+from tactdeform_hw.emulator.firmware.scan import ChannelKind, Signal, channel_kind, pulse_kind_of
+from tactdeform_hw.emulator.hostbuild.delivered import ETACTILEKIT_PINS, DeliveredPulse
 from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator, IsrSample
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
-from tactdeform_hw.emulator.records.reports import LossReport
+from tactdeform_hw.emulator.hostbuild.torn import TornPatternWatch
+from tactdeform_hw.emulator.records.reports import EventRun, LossReport
 from tactdeform_hw.emulator.timed.link import LinkModel, make_link
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
@@ -126,6 +128,15 @@ class DeliveredReports:
             "charge_nc": current * np.asarray(cols[2], dtype=np.float64) / 1e3,
         }
 
+
+#: The board's control pins as the trace signals name them (:meth:`HostBuildTimedModel.attach`).
+_PIN_SIGNALS = {
+    ETACTILEKIT_PINS.bl: Signal.BL,
+    ETACTILEKIT_PINS.le: Signal.LE,
+    ETACTILEKIT_PINS.pol: Signal.POL,
+    ETACTILEKIT_PINS.clk: Signal.CLK,
+    ETACTILEKIT_PINS.din: Signal.DIN,
+}
 
 #: Registers read at every interrupt entry to tell the pulses' kinds (those the state map names).
 KIND_REGISTERS = ("stim_mode", "stim_pattern", "sense_pulse_height", "pulse_height")
@@ -227,6 +238,12 @@ class HostBuildTimedModel:
         self._tx_seen = 0
         self._drops_seen = 0
         self._stopped = False
+        self._sinks: list[Any] = []  # trace sinks (:meth:`attach`)
+        self._torn: TornPatternWatch | None = None  # this power-up's torn-scan finder (:mod:`.torn`)
+        self._landed: list[tuple[int, bytes]] = []  # (host offset, bytes) written, not yet read for it
+        self._samples_seen = 0  # interrupt-entry samples already handed to it
+        self._scan_regs: dict[tuple[str, int], int | float] = {}  # the registers at the last entry
+        self._traced_to_ns = 0  # the sinks hold every event before this (model clock)
         self.boot_ns = 0
         self.now_ns = 0
         self.host = self._power_up()
@@ -246,6 +263,15 @@ class HostBuildTimedModel:
         for name in KIND_REGISTERS:
             if name in mapped:
                 host.watch_at_isr(name)
+        self._torn = None
+        self._landed.clear()
+        self._samples_seen = 0
+        self._scan_regs.clear()
+        if self.firmware is not None and {"stim_pattern", "electrode_num"} <= mapped:
+            host.watch_at_isr("electrode_num")
+            snap = host.state()
+            pattern = [int(v) for v in snap["stim_pattern"]]
+            self._torn = TornPatternWatch(self.firmware, pattern, int(snap["electrode_num"]))
         return host
 
     @property
@@ -282,6 +308,7 @@ class HostBuildTimedModel:
         self.host.advance_to((target - self.boot_ns) / 1000.0)
         self.now_ns = target
         self._collect()
+        self._feed_sinks()
         host_us = (target - self.boot_ns) / 1000.0
         if host_us - self._trimmed_us > self.event_history_us:
             self.host.clear_events(host_us - self.event_history_us)
@@ -298,6 +325,8 @@ class HostBuildTimedModel:
         at = max(t_ns, self.now_ns, self.boot_ns) - self.boot_ns
         self.host.advance_to(at / 1000.0)
         self.host.write(data, at / 1000.0)
+        if self._torn is not None:
+            self._landed.append((offset, data))
         self.received_bytes += len(data)
         self._collect()
 
@@ -310,6 +339,8 @@ class HostBuildTimedModel:
             self._losses.append(
                 LossReport(t_us, d.host_offset, d.count, b"", "queue_full", d.queued, self.parser_status())
             )
+            detail = {"bytes": d.count, "host_offset": d.host_offset, "reason": "queue_full"}
+            self._mark(int(round(t_us * 1000)), "loss", detail)
             self.hazards.append(
                 Hazard(
                     HazardKind.QUEUE_OVERFLOW,
@@ -319,6 +350,59 @@ class HostBuildTimedModel:
                 )
             )
         self._drops_seen = len(drops)
+        if self._torn is not None:
+            self._find_torn()
+
+    def _find_torn(self) -> None:
+        """Hand the torn-scan finder the bytes the queue kept and the scans' registers, and record what it
+        finds as ``torn_pattern`` hazards (see :mod:`.torn`)."""
+        watch = self._torn
+        assert watch is not None
+        if self._landed:
+            arrived = sum(len(d) for _o, d in self._landed) - self.host.rx_in_flight
+            drops = self.host.rx_drops
+            while self._landed and len(self._landed[0][1]) <= arrived:
+                offset, data = self._landed.pop(0)
+                arrived -= len(data)
+                end = offset + len(data)
+                cut = [
+                    (d.host_offset, d.host_offset + d.count) for d in drops if offset <= d.host_offset < end
+                ]
+                kept = (
+                    data
+                    if not cut
+                    else bytes(
+                        b for i, b in enumerate(data, offset) if not any(lo <= i < hi for lo, hi in cut)
+                    )
+                )
+                if kept:
+                    watch.read(kept, offset)
+        samples = self.host.isr_samples()
+        regs = self._scan_regs
+        i = self._samples_seen
+        while i < len(samples):
+            t_us = samples[i].t_us
+            while i < len(samples) and samples[i].t_us == t_us:
+                regs[samples[i].register, samples[i].index] = samples[i].value
+                i += 1
+            n = int(regs.get(("electrode_num", 0), 0))
+            pattern = [int(regs.get(("stim_pattern", ch), 0)) for ch in range(n)]
+            reads = int(regs.get(("stim_mode", 0), 0)) < 2  # v2's mode 2 uses no height
+            watch.scan(t_us, pattern, n, reads)
+        self._samples_seen = i
+        for torn in watch.torn:
+            detail = {
+                "scan_start_us": torn.t_us + self.boot_us,
+                "command_host_offset": torn.command_host_offset,
+                "new_channels": torn.new_channels,
+                "new_channels_up_to": torn.new_channels_up_to,
+                "channels": torn.channels,
+                "changed": [list(c) for c in torn.changed],
+            }
+            self.hazards.append(
+                Hazard(HazardKind.TORN_PATTERN, torn.command_host_offset, detail, torn.t_us + self.boot_us)
+            )
+        watch.torn.clear()
 
     def next_event_us(self, scans: bool = True) -> float:
         """When the model next needs running: a delivery landing, the stimulation timer's alarm (with
@@ -433,9 +517,13 @@ class HostBuildTimedModel:
 
     def reset(self, reason: str = "reset") -> None:
         """Power-cycle: a fresh copy of the firmware boots now; bytes on the link still land."""
+        self._feed_sinks()
+        self._mark(self.now_ns, "reset", {"reason": reason})
         for p, kinds in self._current_classified():
             self._pulses.append(p)
             self._kinds.append(kinds)
+        if self._torn is not None:
+            self._torn.close()
         self.host = self._power_up()
         self._trimmed_us = 0.0
         self.boot_ns = self.now_ns
@@ -451,10 +539,64 @@ class HostBuildTimedModel:
 
     def discard_history(self, before_us: float) -> None:
         """Forget recorded events before ``before_us`` (delivered pulses are kept: safety reads them)."""
+        self._feed_sinks()
         self.host.clear_events()
 
     def attach(self, sink: Any) -> None:
-        raise ConfigurationError("attach: a host build records events() and delivered_pulses(), not a sink")
+        """Send the firmware's pin and DAC events and the link's markers (bytes lost, resets) from now on to
+        ``sink`` (see :mod:`~tactdeform_hw.emulator.records.trace`), as the Python models send their scans.
+
+        The events are the firmware's own writes in the golden traces' conventions
+        (:meth:`.emulator.HostBuildEmulator.events`): BL, LE, POL, CLK and DIN on the board's pins, and the
+        DAC code.  SEL and ADC are the Python models' readings of the HV513 chain and the ADC; a host build
+        has no such reading, so they keep their power-on levels.  Events reach the sink as the model's clock
+        passes them, in time order, before the history they come from is trimmed."""
+        if not self.host.pin_events:
+            raise ConfigurationError("attach: this host build keeps no pin events (pin_events=False)")
+        self._sinks.append(sink)
+        if len(self._sinks) == 1:
+            self._traced_to_ns = self.now_ns
+        if hasattr(sink, "begin"):
+            sink.begin(self.now_ns)
+
+    def detach(self, sink: Any) -> None:
+        """Stop sending to ``sink``, after handing it every event up to now."""
+        if sink in self._sinks:
+            self._feed_sinks()
+            self._sinks.remove(sink)
+
+    def _mark(self, t_ns: int, kind: str, detail: dict[str, Any]) -> None:
+        for s in self._sinks:
+            s.marker(t_ns, kind, detail)
+
+    def _feed_sinks(self) -> None:
+        """Every event of the running firmware from where the sinks stand to now, as one
+        :class:`~..records.reports.EventRun` (events in the model's clock)."""
+        if not self._sinks or self.now_ns <= self._traced_to_ns:
+            return
+        since_us = max(0.0, (self._traced_to_ns - self.boot_ns) / 1000.0)
+        until_ns = self.now_ns - self.boot_ns
+        rows = [e for e in self.host.events(since_us) if e[0] * 1000.0 < until_ns]
+        self._traced_to_ns = self.now_ns
+        t_ns: list[int] = []
+        sig: list[int] = []
+        val: list[int] = []
+        for t_us, kind, pin, value in rows:
+            s = Signal.DAC if kind == "DAC" else _PIN_SIGNALS.get(pin)
+            if s is not None:
+                t_ns.append(int(round(t_us * 1000.0)) + self.boot_ns)
+                sig.append(int(s))
+                val.append(int(value))
+        if not t_ns:
+            return
+        start = t_ns[0]
+        run = EventRun(
+            start,
+            t_ns[-1] - start,
+            (np.asarray(t_ns, np.int64) - start, np.asarray(sig, np.int64), np.asarray(val, np.int64)),
+        )
+        for s in self._sinks:
+            s.scan_run(run)
 
     # --- records ------------------------------------------------------------------------------------------
 
