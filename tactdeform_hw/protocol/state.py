@@ -52,6 +52,12 @@ _VERSION_REGISTERS = ("stim_mode", "pulse_height")
 
 _ORDER = (*_REGISTERS, "rx_pending", "rx_dropped", "command_in_progress")
 
+#: The firmware variables (by the firmware's names) every version's board state is read from: what
+#: :meth:`BoardState.from_variables` needs, and what a host build's state map must name.
+STATE_VARIABLES: tuple[str, ...] = tuple(
+    _WIRE_NAMES.get(name, name) for name in _REGISTERS if name not in _VERSION_REGISTERS
+)
+
 
 @dataclass(frozen=True)
 class BoardState:
@@ -109,11 +115,7 @@ class BoardState:
         fields here, beside :meth:`as_dict` that maps them back.  A register the version lacks
         (``stim_mode``, ``pulse_height``) is absent and becomes ``None``; any other absent is refused,
         naming it."""
-        missing = [
-            _WIRE_NAMES.get(name, name)
-            for name in _REGISTERS
-            if name not in _VERSION_REGISTERS and _WIRE_NAMES.get(name, name) not in variables
-        ]
+        missing = [name for name in STATE_VARIABLES if name not in variables]
         if missing:
             raise ConfigurationError(
                 f"variables: {', '.join(missing)} missing, a {firmware.name} board state needs them"

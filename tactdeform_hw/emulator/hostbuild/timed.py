@@ -41,24 +41,15 @@ from tactdeform_hw.emulator.timed.link import LinkModel, make_link
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.firmware import FirmwareSpec, get_firmware
-from tactdeform_hw.protocol.state import BoardState
+from tactdeform_hw.protocol.state import STATE_VARIABLES, BoardState
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 if TYPE_CHECKING:
     from tactdeform_hw.emulator.core import Emulator
 
-#: The registers a state map must name for :meth:`HostBuildTimedModel.state` to give a BoardState.
-BOARD_STATE_REGISTERS = (
-    "electrode_num",
-    "polarity",
-    "pulse_width",
-    "sense_pulse_height",
-    "sense_pulse_width",
-    "discharge_time",
-    "period_us",
-    "hv513_num",
-    "stim_pattern",
-)
+#: The registers a state map must name for :meth:`HostBuildTimedModel.state` to give a BoardState: the
+#: board state's variables but the stimulation timer's alarm, which is read from the timer itself.
+BOARD_STATE_REGISTERS = tuple(name for name in STATE_VARIABLES if name != "timer_alarm_ticks")
 
 #: The build defines of the large board's branch (``board="large"``): the upstream firmware chooses its
 #: board at compile time, ``ETACTILEKIT_BOARD`` against the configuration header's
@@ -484,21 +475,16 @@ class HostBuildTimedModel:
                 f"state map {self.state_map.name if self.state_map else '(none)'}: a board state needs "
                 f"firmware = 'v1.2' or 'v2' and the registers {', '.join(missing or BOARD_STATE_REGISTERS)}"
             )
-        pattern = tuple(int(v) for v in snap["stim_pattern"])
-        return BoardState(
-            firmware=self.firmware,
-            electrode_num=int(snap["electrode_num"]),
-            polarity=int(snap["polarity"]),
-            stim_mode=None if "stim_mode" not in snap else int(snap["stim_mode"]),
-            pulse_height=None if "pulse_height" not in snap else int(snap["pulse_height"]),
-            pulse_width_us=int(snap["pulse_width"]),
-            sense_pulse_height=int(snap["sense_pulse_height"]),
-            sense_pulse_width_us=int(snap["sense_pulse_width"]),
-            discharge_time_us=int(snap["discharge_time"]),
-            period_us=float(snap["period_us"]),
-            timer_alarm_ticks=int(snap.get("timer_alarm_ticks", 0)),
-            hv513_num=int(snap["hv513_num"]),
-            stim_pattern=pattern,
+        # the firmware's variables as its own types: the shim reads every one as a double
+        variables: dict[str, Any] = {
+            name: [int(v) for v in value] if isinstance(value, list) else int(value)
+            for name, value in snap.items()
+        }
+        variables["period_us"] = float(snap["period_us"])
+        variables.setdefault("timer_alarm_ticks", 0)  # no interrupt attached yet
+        return BoardState.from_variables(
+            self.firmware,
+            variables,
             rx_pending=int(snap["rx_pending"]),
             # what the queue dropped is the board's state where the firmware's parser owns the queue (v2)
             rx_dropped=int(snap["rx_dropped"]) if model_entry(self.firmware).parser_owns_queue else None,
