@@ -59,7 +59,7 @@ import math
 from bisect import bisect_left
 from collections.abc import Container
 from itertools import repeat
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tactdeform_hw.emulator.core import Emulator
 from tactdeform_hw.emulator.firmware.board import Board
@@ -423,7 +423,67 @@ class Hv513Reinit:
             self.chain, fw.init_edges = got
 
 
-class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
+class CallEnds:
+    """What the main loop does once a parser call has read what it could (a mixin of
+    :class:`TimedEmulator`, which keeps the state)."""
+
+    fw: MainLoop
+    rec: Records
+    model: TimingModel
+    next_alarm: float
+    hazards: list[Hazard]
+    queue: ReceiveQueue
+
+    if TYPE_CHECKING:  # (TimedEmulator's and CommandBooks' own)
+
+        @property
+        def parser(self) -> Parser: ...
+
+        def _tick_after(self, t: int) -> int: ...
+
+        def _delivered_at(self, dev_offset: int) -> int | None: ...
+
+    def _end_call(self, outcome: CallResult, end: int, cpu: int, k: int, lead: bool) -> None:
+        """What the main loop does after a call whose last read ends at ``end`` (``cpu`` ns and ``k`` bytes
+        into the call) -- a scan due before then is taken first, and pushes what follows to its end."""
+        fw = self.fw
+        fw.call = None
+        if outcome is CallResult.IGNORED or outcome is CallResult.REPLIED:
+            fw.main_next = end
+        elif outcome is CallResult.STUCK_U16:
+            fw.call_lead = lead
+            self._enter_stuck(end, cpu, k)
+        elif outcome is CallResult.LOCKED:
+            fw.main_next = None
+            fw.main_wait = _WAIT_LOCKED
+            if self.rec.cur is not None:
+                self.rec.cur.note = "locks the parser: pattern command with electrode_num 0"
+                self.rec.cur.arrival_us = us_of(self._delivered_at(fw.call_dev_last))
+                self.rec.commands.append(self.rec.cur)
+                self.rec.cur = None
+        elif outcome is CallResult.PROGRESS or self.next_alarm <= end:
+            # runEtactileKit()'s payload loop checks Serial.available() again when its last read ends: the
+            # bytes that arrived meanwhile are read by this same call (_main_call goes on at that check);
+            # a call that has read its command sleeps after that check, and after the scan its alarm
+            # brings first (the host build takes a due interrupt at the check)
+            fw.call = (cpu, k)
+            fw.call_lead = lead
+            fw.checking = True
+            fw.main_next = end
+        else:  # the payload loop's last check (Serial.available()), then vTaskDelay(1)
+            fw.main_next = self._tick_after(end + self.model.call_ns)
+
+    def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
+        self.fw.call = (cpu, k)
+        self.fw.main_next = None
+        self.fw.main_wait = _WAIT_STUCK
+        if not self.fw.stuck_reported:
+            self.fw.stuck_reported = True
+            self.fw.stuck_at = t
+            self.hazards.append(u16_waiting(self.parser, self.queue.buf, t))
+
+
+class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
     """The eTactileKit controller in simulated time.  See the module documentation."""
 
     firmware: FirmwareSpec = V1_2
@@ -619,6 +679,7 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
     def stop_reading(self) -> None:
         """The main loop hangs: nothing is read any more (the queue fills, the scans go on) until a reset."""
         self.fw.call = None
+        self.fw.checking = False
         self.fw.held = b""
         self.fw.main_next = None
         self.fw.main_wait = _WAIT_LOCKED
@@ -831,45 +892,6 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
             ends[-1] += extra  # the reply is written after the detection
         self._feed(n, [min(e, int(ta)) for e in ends] if ta < ends[-1] else ends, outcome)
         self._end_call(outcome, ends[-1], ends[-1] - start, k0 + n, lead)
-
-    def _end_call(self, outcome: CallResult, end: int, cpu: int, k: int, lead: bool) -> None:
-        """What the main loop does after a call whose last read ends at ``end`` (``cpu`` ns and ``k`` bytes
-        into the call) -- a scan due before then is taken first, and pushes what follows to its end."""
-        fw = self.fw
-        fw.call = None
-        if outcome is CallResult.IGNORED or outcome is CallResult.REPLIED:
-            fw.main_next = end
-        elif outcome is CallResult.STUCK_U16:
-            fw.call_lead = lead
-            self._enter_stuck(end, cpu, k)
-        elif outcome is CallResult.LOCKED:
-            fw.main_next = None
-            fw.main_wait = _WAIT_LOCKED
-            if self.rec.cur is not None:
-                self.rec.cur.note = "locks the parser: pattern command with electrode_num 0"
-                self.rec.cur.arrival_us = us_of(self._delivered_at(fw.call_dev_last))
-                self.rec.commands.append(self.rec.cur)
-                self.rec.cur = None
-        elif outcome is CallResult.PROGRESS or self.next_alarm <= end:
-            # runEtactileKit()'s payload loop checks Serial.available() again when its last read ends: the
-            # bytes that arrived meanwhile are read by this same call (_main_call goes on at that check);
-            # a call that has read its command sleeps after that check, and after the scan its alarm
-            # brings first (the host build takes a due interrupt at the check)
-            fw.call = (cpu, k)
-            fw.call_lead = lead
-            fw.checking = True
-            fw.main_next = end
-        else:  # the payload loop's last check (Serial.available()), then vTaskDelay(1)
-            fw.main_next = self._tick_after(end + self.model.call_ns)
-
-    def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
-        self.fw.call = (cpu, k)
-        self.fw.main_next = None
-        self.fw.main_wait = _WAIT_STUCK
-        if not self.fw.stuck_reported:
-            self.fw.stuck_reported = True
-            self.fw.stuck_at = t
-            self.hazards.append(u16_waiting(self.parser, self.queue.buf, t))
 
     def _feed(self, j: int, ends: list[int], outcome: CallResult | None) -> None:
         """Hand ``j`` bytes to the parser and run one call over them (times: ``ends``)."""
