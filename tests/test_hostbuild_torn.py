@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tactdeform_hw.emulator.firmware.hazards import HazardKind
+from tactdeform_hw.emulator.firmware.hazards import Hazard, HazardKind
 from tactdeform_hw.emulator.hostbuild.torn import TornPatternWatch
 from tactdeform_hw.protocol.commands import commands_for
 from tactdeform_hw.protocol.firmware import FIRMWARES, get_firmware
@@ -120,3 +120,61 @@ def test_the_host_build_records_the_firmwares_torn_scans_upstream_v1_2() -> None
     for h in torn:
         assert h.detail["command_host_offset"] in offsets
         assert 1 <= h.detail["new_channels"] <= h.detail["new_channels_up_to"] < 32
+
+
+def _observable(hazards: list[Hazard], patterns: dict[int, tuple[list[int], list[int]]]) -> dict[float, int]:
+    """The model's torn scans whose stored and unstored channels both changed (the only ones heights
+    show): time -> channels stored, ``patterns`` giving each pattern command's (old, new) by host offset."""
+    out: dict[float, int] = {}
+    for h in hazards:
+        if h.kind is not HazardKind.TORN_PATTERN:
+            continue
+        k = h.detail["new_channels"]
+        old, new = patterns[h.detail["command_host_offset"]]
+        if old[:k] != new[:k] and old[k:] != new[k:]:
+            out[round(h.time_us, 1)] = k
+    return out
+
+
+@pytest.mark.parametrize(("link", "seed"), [("uart", 1), ("usb", 3)])
+def test_the_model_tears_the_patterns_the_firmware_tears_upstream_v1_2(link: str, seed: int) -> None:
+    """The same timed stream of 32-electrode patterns (500 Hz) into the built v1.2 firmware and into the
+    Python model: the model's torn scans that show in the heights are the host build's, and the channels it
+    had stored at each lie in the range the host build's heights allow.  (The model once stored fewer:
+    its calls read only the bytes waiting when they began, and a read ending on the alarm was not counted.)"""
+    from tactdeform_hw.emulator.hostbuild import find_compiler
+    from tactdeform_hw.emulator.hostbuild.timed import HostBuildTimedModel
+    from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+
+    raw = os.environ.get("TACTDEFORM_HW_UPSTREAM_V1_2")
+    if not raw or not (Path(raw) / "src").is_dir():
+        pytest.skip("set TACTDEFORM_HW_UPSTREAM_V1_2 to the v1.2 PlatformIO tree (platform_io_project)")
+    find_compiler()
+    c = commands_for(V1_2)
+    setup = c.encode_electrode_num(32) + c.encode_pulse_height(1000) + c.encode_frequency(500)
+    rng = random.Random(seed)
+    writes = [(1000.0, setup)]
+    patterns: dict[int, tuple[list[int], list[int]]] = {}
+    t_us, offset, old = 20_000.0, len(setup), [0] * 32
+    for _ in range(40):
+        new = [rng.choice([0, 1, 2]) for _ in range(32)]
+        writes.append((t_us, c.encode_pattern(new)))
+        patterns[offset] = (old, new)
+        offset, old = offset + 33, new
+        t_us += rng.uniform(1500, 4000)
+    firmware = HostBuildTimedModel(raw, link=link)
+    model = TimedEmulator(link=link)
+    for side in (firmware, model):
+        for at_us, data in writes:
+            side.advance_to(at_us)
+            side.write(data, at_us=at_us)
+        side.advance_to(t_us + 20_000)
+    seen = {
+        round(h.time_us, 1): (h.detail["new_channels"], h.detail["new_channels_up_to"])
+        for h in firmware.hazards
+        if h.kind is HazardKind.TORN_PATTERN
+    }
+    mine = _observable(model.hazards, patterns)
+    assert len(seen) >= 10
+    assert sorted(mine) == sorted(seen)
+    assert {t: k for t, k in mine.items() if not seen[t][0] <= k <= seen[t][1]} == {}

@@ -8,6 +8,9 @@ from __future__ import annotations
 from tactdeform_hw.emulator.firmware.hazards import HazardKind
 from tactdeform_hw.emulator.firmware.scan import ChainState, ScanConfig, ScanEngine
 from tactdeform_hw.emulator.hostbuild.diff import ModelSideV1_2, ModelSideV2
+from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
+from tactdeform_hw.emulator.timed.timing import TimingModel
+from tactdeform_hw.protocol.commands import encode_pattern
 from tactdeform_hw.protocol.firmware import OpcodeV2
 
 # when the upstream firmware's setup() has started its stimulation timer, both versions (the stack detection
@@ -257,3 +260,24 @@ def test_v1_2_a_pattern_byte_costs_a_serial_available_check_and_a_read() -> None
     first_scan = [p for p in side.observe(13000.0).pulses if 11010.25 < p[0] < 12000.0]
     assert [(p[2], p[3]) for p in first_scan[:3]] == [(4, (0,)), (4, (1,)), (4, (2,))]
     assert side.observe(13000.0).state["stim_pattern"][:3] == [0, 255, 2]
+
+
+def test_v1_2_a_pattern_call_reads_the_bytes_that_arrive_while_it_reads() -> None:
+    """runEtactileKit()'s payload loop, ``while (isDataAvailable() > 0 && bytesRead < requiredBytes)``,
+    checks the queue again before every byte: a call reads the bytes that arrive during it, and ends only
+    at a check that finds none.  A 32-electrode pattern over the UART (one byte per 10.85 us) written at
+    70 841.5 us: at the tick at 71 000 us its first 14 bytes wait; the call reads the command byte at
+    71 003 us and channel j at 71 006 + 3j us, and channel j's byte (byte j + 1, arriving at
+    70 841.5 + 10.85 (j + 2) us) is there at its check, 71 003 + 3j us, up to j = 17; channel 18's is not
+    (71 058.5 > 71 057).  The scan at 71 100 us is torn after 18 channels (a call that read only the 13
+    waiting when it began would have left it 13), and the rest are read at the next tick."""
+    emu = TimedEmulator(link="uart", model=TimingModel(timer_start_us=1100.0))  # alarms at 1100 + 2000k us
+    emu.configure(ScanConfig.make(32, 0, pulse_width_us=10, discharge_us=0, rate_hz=500))
+    emu.advance_to(70_000.0)
+    emu.write(encode_pattern([1] * 32), 70_841.5)
+    emu.advance_to(75_000.0)
+    torn = [(h.time_us, h.detail["new_channels"]) for h in emu.hazards if h.kind is HazardKind.TORN_PATTERN]
+    assert torn == [(71_100.0, 18)]
+    written = [ch.written_us for ch in emu.commands[-1].channels]
+    assert written[:18] == [71_006.0 + 3 * j for j in range(18)]
+    assert written[18:] == [72_003.0 + 3 * j for j in range(14)]

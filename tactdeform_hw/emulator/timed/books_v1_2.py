@@ -72,6 +72,7 @@ class MainLoop:
     held: bytes = b""  # an interrupted 0xF5 call's byte: read (out of the queue), not yet acted on
     init_edges: int | None = None  # an interrupted hv513Init(): the CLK rising edges it has made so far
     call_lead: bool = True  # the interrupted call began by reading a command byte (see call_reads_ns)
+    checking: bool = False  # ``call`` goes on at its payload loop's next Serial.available() check
     busy_from: int = -1  # the scan in progress: the main loop does not run inside it
     busy_until: int = -1
     stuck_reported: bool = False  # spinning on a half u16: reported once, from stuck_at

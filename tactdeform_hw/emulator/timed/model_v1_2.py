@@ -11,9 +11,13 @@ The same :class:`~tactdeform_hw.emulator.firmware.parser.Parser` and registers a
   (:func:`call_reads_ns`; 0xF5 reads its byte before the stack detection); one that reads a command with a
   payload (or reads nothing) ends with ``vTaskDelay(1)`` and resumes at the next RTOS tick — or, when that
   tick falls inside a scan, when the scan ends.  Calls that answer 0xFF/0xF5 or skip an unknown byte return
-  at once.  A u16 with one byte waiting spins until the other arrives.  Replies are written at once and
-  travel back over ``tx_link``.  A call the alarm interrupts mid-read resumes after the scan with what
-  has arrived by then — which is how a pattern gets torn.
+  at once.  A u16 with one byte waiting spins until the other arrives.  A call reading a payload goes on
+  while bytes keep arriving: runEtactileKit()'s ``while (isDataAvailable() > 0 && bytesRead <
+  requiredBytes)`` checks the queue again after every read, so a byte that arrived during the call is read
+  by it, and the call ends only at a check that finds nothing.  Replies are written at once and travel
+  back over ``tx_link``.  A scan finds the bytes whose read had begun before its alarm stored
+  (:func:`call_read_starts_ns`); the rest are read when the call resumes after the scan, with what has
+  arrived by then — which is how a pattern gets torn.
 * **Scans** — on each alarm the handler runs a :class:`~.scan.ScanTemplate` of the registers at that
   moment (the parser cannot change them mid-scan); the next alarm follows the overrun policy.  Long
   stretches without host traffic are simulated as one :class:`~.reports.ScanRun` (a template repeated at
@@ -27,9 +31,9 @@ channel* (``CommandReport.channels``).
 
 Two consequences worth knowing.  When scans fill the period, the parser runs only in the gaps: at most
 one command with a payload per period.  When scans overrun under the default policy they run back to
-back and the main loop never runs again: nothing more is read until a reset.  (Modelling choices that are
-assumptions: a call reads the bytes waiting when it starts; RTOS ticks and USB frames are phase-aligned
-at boot unless ``tick_phase_us`` says otherwise.)
+back and the main loop never runs again: nothing more is read until a reset.  (A modelling choice that
+is an assumption: RTOS ticks and USB frames are phase-aligned at boot unless ``tick_phase_us`` says
+otherwise.)
 
 :meth:`state` is exact at the granularity of a parser call: a call's effects (the bytes it reads, the
 register it stores, its reply in ``tx_log``) show from the call's start, while the firmware stores the
@@ -55,7 +59,7 @@ import math
 from bisect import bisect_left
 from collections.abc import Container
 from itertools import repeat
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from tactdeform_hw.emulator.core import Emulator
 from tactdeform_hw.emulator.firmware.board import Board
@@ -237,6 +241,24 @@ def call_reads_ns(m: TimingModel, lead: bool, payload_size: int, reads: int) -> 
     return out[:reads]
 
 
+def call_read_starts_ns(m: TimingModel, lead: bool, payload_size: int, reads: int) -> list[int]:
+    """When each of a parser call's first ``reads`` byte reads begins, in ns from the call's start: the
+    ends of :func:`call_reads_ns` less the read's own ``byte_ns`` (a u16's two bytes: one read of both,
+    ``Serial.read(arr, 2)``).
+
+    Which bytes a scan finds stored: those whose read had begun before its alarm.  The firmware's code
+    takes the interrupt between two of its calls into the platform (the host build's shim runs a due
+    interrupt at the next such call, and the v2 model's ``_ReadClock`` reads it the same way), so a read
+    in progress at the alarm -- or ending on it -- stores its byte first; the scan itself is still timed
+    from its alarm (the host build's starts at most one read later: ``preempt-at-calls`` in
+    :mod:`~tactdeform_hw.emulator.hostbuild.diff`)."""
+    b = m.byte_ns
+    ends = call_reads_ns(m, lead, payload_size, reads)
+    return [
+        e - (2 * b if payload_size == _U16_SIZE and not (lead and i == 0) else b) for i, e in enumerate(ends)
+    ]
+
+
 class ArrivalRuns:
     """Where the v1.2 model's event loop would take one byte or one call at a time for long stretches,
     the stretch in one go, exactly as one at a time (a mixin of :class:`TimedEmulator`, which keeps the
@@ -401,7 +423,67 @@ class Hv513Reinit:
             self.chain, fw.init_edges = got
 
 
-class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
+class CallEnds:
+    """What the main loop does once a parser call has read what it could (a mixin of
+    :class:`TimedEmulator`, which keeps the state)."""
+
+    fw: MainLoop
+    rec: Records
+    model: TimingModel
+    next_alarm: float
+    hazards: list[Hazard]
+    queue: ReceiveQueue
+
+    if TYPE_CHECKING:  # (TimedEmulator's and CommandBooks' own)
+
+        @property
+        def parser(self) -> Parser: ...
+
+        def _tick_after(self, t: int) -> int: ...
+
+        def _delivered_at(self, dev_offset: int) -> int | None: ...
+
+    def _end_call(self, outcome: CallResult, end: int, cpu: int, k: int, lead: bool) -> None:
+        """What the main loop does after a call whose last read ends at ``end`` (``cpu`` ns and ``k`` bytes
+        into the call) -- a scan due before then is taken first, and pushes what follows to its end."""
+        fw = self.fw
+        fw.call = None
+        if outcome is CallResult.IGNORED or outcome is CallResult.REPLIED:
+            fw.main_next = end
+        elif outcome is CallResult.STUCK_U16:
+            fw.call_lead = lead
+            self._enter_stuck(end, cpu, k)
+        elif outcome is CallResult.LOCKED:
+            fw.main_next = None
+            fw.main_wait = _WAIT_LOCKED
+            if self.rec.cur is not None:
+                self.rec.cur.note = "locks the parser: pattern command with electrode_num 0"
+                self.rec.cur.arrival_us = us_of(self._delivered_at(fw.call_dev_last))
+                self.rec.commands.append(self.rec.cur)
+                self.rec.cur = None
+        elif outcome is CallResult.PROGRESS or self.next_alarm <= end:
+            # runEtactileKit()'s payload loop checks Serial.available() again when its last read ends: the
+            # bytes that arrived meanwhile are read by this same call (_main_call goes on at that check);
+            # a call that has read its command sleeps after that check, and after the scan its alarm
+            # brings first (the host build takes a due interrupt at the check)
+            fw.call = (cpu, k)
+            fw.call_lead = lead
+            fw.checking = True
+            fw.main_next = end
+        else:  # the payload loop's last check (Serial.available()), then vTaskDelay(1)
+            fw.main_next = self._tick_after(end + self.model.call_ns)
+
+    def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
+        self.fw.call = (cpu, k)
+        self.fw.main_next = None
+        self.fw.main_wait = _WAIT_STUCK
+        if not self.fw.stuck_reported:
+            self.fw.stuck_reported = True
+            self.fw.stuck_at = t
+            self.hazards.append(u16_waiting(self.parser, self.queue.buf, t))
+
+
+class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks, TimedModelBase):
     """The eTactileKit controller in simulated time.  See the module documentation."""
 
     firmware: FirmwareSpec = V1_2
@@ -593,6 +675,7 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
     def stop_reading(self) -> None:
         """The main loop hangs: nothing is read any more (the queue fills, the scans go on) until a reset."""
         self.fw.call = None
+        self.fw.checking = False
         self.fw.held = b""
         self.fw.main_next = None
         self.fw.main_wait = _WAIT_LOCKED
@@ -749,6 +832,11 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
         p = self.parser
         buf = self.queue.buf
         cpu0, k0 = fw.call if fw.call is not None else (0, 0)
+        checking, fw.checking = fw.checking, False
+        if checking and p.cmd is None:  # a read command's last check, after the scan that came first
+            fw.call = None
+            fw.main_next = self._tick_after(tc + m.call_ns)  # then vTaskDelay(1)
+            return
         if fw.held:  # the 0xF5 this call read before the alarm: it goes on with its stack detection
             buf[0:0] = fw.held
             fw.held = b""
@@ -759,6 +847,9 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
             fw.main_next = None
             if outcome is CallResult.LOCKED:
                 self.fw.main_wait = _WAIT_LOCKED
+            elif checking and outcome is CallResult.PROGRESS:
+                # the payload loop's check found nothing: it costs its Serial.available(), then vTaskDelay(1)
+                self.fw.main_next = self._tick_after(tc + m.call_ns)
             elif outcome is CallResult.STUCK_U16:
                 done = call_reads_ns(m, lead, unit, k0)
                 self.fw.call_lead = lead
@@ -772,15 +863,19 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
         start = tc - cpu0
         ends = [start + t for t in call_reads_ns(m, lead, unit, k0 + n)[k0:]]
         ta = self.next_alarm
+        j = n
         if ta < ends[-1] + extra:
-            j = p.read_before_interrupt(buf, bisect_left(ends, ta))  # (the bytes read before the alarm)
-            if j and not hv513:
-                self._feed(j, ends[:j], None)
+            j = 0
+            if not hv513:  # the reads begun when the alarm came (call_read_starts_ns)
+                begun = [start + t for t in call_read_starts_ns(m, lead, unit, k0 + n)[k0:]]
+                j = p.read_before_interrupt(buf, bisect_left(begun, ta))
+        if j < n:
+            if j:  # (timed by the alarm at the latest: the scan starts there and finds them stored)
+                self._feed(j, [min(e, int(ta)) for e in ends[:j]], None)
             elif hv513 and ends[0] < ta:
                 # runEtactileKit() reads the 0xF5 before stackSense(): the byte has left the queue when the
                 # alarm interrupts the detection, though the reply and the chain's re-init come after it
                 fw.held = self.queue.take(1)
-                j = 0
             if hv513:
                 self._init_interrupted(ends[-1] + extra, int(ta), detected)
             self.rec.interrupted_calls += 1
@@ -791,33 +886,8 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
             return
         if hv513:
             ends[-1] += extra  # the reply is written after the detection
-        self._feed(n, ends, outcome)
-        self.fw.call = None
-        end = ends[-1]
-        if outcome is CallResult.IGNORED or outcome is CallResult.REPLIED:
-            self.fw.main_next = end
-        elif outcome is CallResult.STUCK_U16:
-            self.fw.call_lead = lead
-            self._enter_stuck(end, end - start, k0 + n)
-        elif outcome is CallResult.LOCKED:
-            self.fw.main_next = None
-            self.fw.main_wait = _WAIT_LOCKED
-            if self.rec.cur is not None:
-                self.rec.cur.note = "locks the parser: pattern command with electrode_num 0"
-                self.rec.cur.arrival_us = us_of(self._delivered_at(self.fw.call_dev_last))
-                self.rec.commands.append(self.rec.cur)
-                self.rec.cur = None
-        else:  # the payload loop's last check (Serial.available()), then vTaskDelay(1)
-            self.fw.main_next = self._tick_after(end + m.call_ns)
-
-    def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
-        self.fw.call = (cpu, k)
-        self.fw.main_next = None
-        self.fw.main_wait = _WAIT_STUCK
-        if not self.fw.stuck_reported:
-            self.fw.stuck_reported = True
-            self.fw.stuck_at = t
-            self.hazards.append(u16_waiting(self.parser, self.queue.buf, t))
+        self._feed(n, [min(e, int(ta)) for e in ends] if ta < ends[-1] else ends, outcome)
+        self._end_call(outcome, ends[-1], ends[-1] - start, k0 + n, lead)
 
     def _feed(self, j: int, ends: list[int], outcome: CallResult | None) -> None:
         """Hand ``j`` bytes to the parser and run one call over them (times: ``ends``)."""
@@ -904,9 +974,14 @@ class TimedEmulator(Hv513Reinit, ArrivalRuns, CommandBooks, ScanBooks, TimedMode
     # --- parser hooks ---------------------------------------------------------------------------------------
 
     def _retime_alarm(self, t: int) -> None:
-        """The parser wrote a new alarm value: an alarm the running counter has passed fires at once."""
+        """The parser wrote a new alarm value: an alarm the running counter has passed fires at once.
+
+        setPeriodUs() runs after the frequency's read, and its first call into the platform is where a
+        due interrupt is taken: an alarm due by ``t`` (a read that ended on it or ran across it) fires
+        first, with the old alarm, and the scan's reload then follows the new period (:meth:`_scan`)
+        as the re-armed timer does -- at the scan's end when the counter has passed it."""
         period = self.model.alarm_period_ns(self.registers.timer_alarm_ticks)
-        if not self.stimulation:
+        if not self.stimulation or self.next_alarm <= t:
             return
         if t - self.fw.last_reload >= period:
             self.next_alarm = t
