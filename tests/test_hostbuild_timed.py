@@ -90,6 +90,22 @@ def test_the_large_board_runs_the_firmwares_large_branch_upstream_v1_2() -> None
         assert compact.host.built.key != large.host.built.key
 
 
+def test_replies_travel_back_over_the_link() -> None:
+    """A reply byte reaches the host one UART byte time (10.85 µs at 921 600 baud) after the firmware wrote
+    it, as the Python models' replies do; not the moment the firmware wrote it."""
+    model = HostBuildTimedModel(TINY, state_map=TINY_MAP, link="uart")
+    model.write(b"E\x29", at_us=0)
+    assert model.run_until_idle()
+    ((written_us, data),) = model.host.tx_log
+    assert data == b"\x2a"
+    model2 = HostBuildTimedModel(TINY, state_map=TINY_MAP, link="uart")
+    model2.write(b"E\x29", at_us=0)
+    model2.advance_to(written_us + 10.8)
+    assert model2.in_waiting == 0
+    model2.advance_to(written_us + 10.9)
+    assert model2.read_tx() == b"\x2a"
+
+
 def test_a_stopped_main_loop_reads_nothing_until_a_reset() -> None:
     """``stop_reading`` (the fault campaigns' hung main loop): the firmware keeps running but its reads find
     nothing, so 'E' gets no reply and its bytes wait in the queue; a power-up reads again."""

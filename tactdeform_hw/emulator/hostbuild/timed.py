@@ -14,7 +14,8 @@ is ``None``; the only hazards it records are the link's (bytes the receive queue
 defects are the Python model's reading of the code, not something the built code reports.  A trace sink
 (:meth:`HostBuildTimedModel.attach`) receives the firmware's own pin and DAC events.
 
-Replies reach the host when the firmware writes them (no reply-link delay).  The model's clock and the
+Replies travel back over ``tx_link`` (by default the same kind of link as the host's, as in the Python
+models) from the time the firmware writes each byte.  The model's clock and the
 firmware's differ only after a reset: each power-up starts a fresh copy of the firmware at its own time 0
 (:attr:`boot_us` is when the current one booted, in the model's time).
 """
@@ -23,6 +24,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections import deque
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
@@ -37,7 +39,7 @@ from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator, IsrSamp
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
 from tactdeform_hw.emulator.hostbuild.torn import TornPatternWatch
 from tactdeform_hw.emulator.records.reports import EventRun, LossReport
-from tactdeform_hw.emulator.timed.link import LinkModel, make_link
+from tactdeform_hw.emulator.timed.link import LinkModel, make_link, reply_link
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.firmware import FirmwareSpec, get_firmware
@@ -194,6 +196,7 @@ class HostBuildTimedModel:
         *,
         state_map: StateMap | None = None,
         link: str | LinkModel = "usb",
+        tx_link: str | LinkModel | None = None,
         model: TimingModel | None = None,
         stack_reading: float | None = None,
         event_history_us: float = EVENT_HISTORY_US,
@@ -215,6 +218,7 @@ class HostBuildTimedModel:
         )
         self.model = model if model is not None else DEFAULT_MODEL
         self.link = make_link(link)
+        self.tx_link = make_link(tx_link) if tx_link is not None else reply_link(self.link)
         self._stack_reading = None if stack_reading is None else int(stack_reading)
         self._options = host_options
         self.hazards: list[Hazard] = []
@@ -225,8 +229,9 @@ class HostBuildTimedModel:
         self.received_bytes = 0
         self._host_offset = 0
         self._deliveries: list[tuple[int, bytes, int]] = []  # (arrival ns, data, host offset), time order
-        self._replies = bytearray()
-        self._tx_seen = 0
+        self._replies = bytearray()  # reply bytes that have reached the host
+        self._tx_flight: deque[tuple[int, int]] = deque()  # (arrival ns, byte) still on the reply link
+        self._tx_cursor = (0, 0)  # the firmware's reply writes handed to the link: (write, byte in it)
         self._drops_seen = 0
         self._stopped = False
         self._sinks: list[Any] = []  # trace sinks (:meth:`attach`)
@@ -255,6 +260,7 @@ class HostBuildTimedModel:
             if name in mapped:
                 host.watch_at_isr(name)
         self._torn = None
+        self._tx_cursor = (0, 0)  # a fresh copy's reply log (bytes on the link still arrive)
         self._landed.clear()
         self._samples_seen = 0
         self._scan_regs.clear()
@@ -323,7 +329,8 @@ class HostBuildTimedModel:
 
     def _collect(self) -> None:
         """Replies the firmware wrote and the queue's drops, into the host's view and the hazard list."""
-        self._replies += self.host.read()
+        self.host.read()  # (the bytes travel as the firmware's reply log has them, below)
+        self._send_replies()
         drops = self.host.rx_drops
         for d in drops[self._drops_seen :]:
             t_us = d.t_us + self.boot_us
@@ -401,6 +408,8 @@ class HostBuildTimedModel:
         t = self.now_us + POLL_US
         if self._deliveries:
             t = min(t, self._deliveries[0][0] / 1000.0)
+        if self._tx_flight:
+            t = min(t, self._tx_flight[0][0] / 1000.0)
         if scans:
             for num in range(4):
                 info = self.host.timer(num)
@@ -414,6 +423,8 @@ class HostBuildTimedModel:
         while True:
             if not self._deliveries and len(self.queue) == 0:
                 self.advance(step_us)  # the firmware's reply to the last bytes it read
+                while self._tx_flight and self.now_ns < end:  # and its way back
+                    self.advance_to(min(end, self._tx_flight[-1][0]) / 1000.0)
                 return True
             if self.now_ns >= end:
                 return False
@@ -437,8 +448,28 @@ class HostBuildTimedModel:
         self._host_offset += len(data)
         return len(data)
 
+    def _send_replies(self) -> None:
+        """Put the firmware's new reply writes on the reply link, each byte at the time of its write, and
+        hand the host the bytes that have arrived by now, as the Python models' replies travel."""
+        log = self.host.tx_log
+        i, k = self._tx_cursor
+        while i < len(log):
+            t_us, data = log[i]
+            if k < len(data):  # (a write at the same time as the last one extends its entry)
+                part = data[k:]
+                times = self.tx_link.arrival_times(part, round(t_us * 1000) + self.boot_ns)
+                self._tx_flight.extend(zip(times.tolist(), part))
+            if i == len(log) - 1:
+                k = len(data)
+                break
+            i, k = i + 1, 0
+        self._tx_cursor = (i, k)
+        flight = self._tx_flight
+        while flight and flight[0][0] <= self.now_ns:
+            self._replies.append(flight.popleft()[1])
+
     def read_tx(self, size: int | None = None) -> bytes:
-        """Replies the firmware wrote by now (all, or at most ``size``)."""
+        """Reply bytes that have reached the host by now, over the reply link (all, or at most ``size``)."""
         n = len(self._replies) if size is None else min(size, len(self._replies))
         out = bytes(self._replies[:n])
         del self._replies[:n]
