@@ -22,6 +22,7 @@ from tactdeform_hw.emulator.hostbuild.diff import (
     Comparison,
     Differ,
     ModelSideV1_2,
+    ModelSideV2,
     Observation,
     compare,
     diff_firmware,
@@ -333,8 +334,8 @@ def test_upstream_v2_against_itself_is_exact(tmp_path: Path) -> None:
 
 
 def test_a_pulse_deep_in_a_run_of_back_to_back_scans_may_start_later_by_the_drift_allowance() -> None:
-    """Overrun scans run back to back: the host build numbers a pulse within its run (49 here), the model
-    within its scan (0); the start tolerance takes the larger number (equivalence overrun-drift)."""
+    """Overrun scans run back to back: the host build numbers a pulse within its run (49 here), the other
+    side 0 here; the start tolerance takes the larger number (equivalence overrun-drift)."""
 
     def obs(start: float, index: int) -> Observation:
         return Observation({}, b"", [(start, start + 6.6, 3, (0,), 1, index)])
@@ -391,6 +392,89 @@ def test_v1_2_pulses_are_numbered_by_slot_across_a_run_of_back_to_back_scans() -
     assert [p[5] for p in first_scan] == list(range(32))  # outputs 0-31: slots 0-31 of the run
     second = [p for p in pulses if p[0] >= 66469.0]
     assert second[0][0] == 66469.0 and second[0][3] == (0,) and second[0][5] == 172
+
+
+# 0xFC 255, a pattern of 255 heights and 0xF6 65534 (a 15 µs alarm): one write, as the differential shrank it
+START_RUN_HEX = (
+    "fcfffe000003000300ff00ff0001009649ff00010001000000a1c4543bff00ff00020003006ba3ff0001003f130200ff"
+    "00010003000200ff00ff00ff00000000000100020003000000e9786ff442b00000ff00030058930100f90dff00ff0002"
+    "000300ff00030002000200010001000300ff00ff0002000100ff00ff0003000100ff00ff00867fff0001000300ff0002"
+    "00020000000100ff000000ff0056930300dca0000000000100ff00020003000100e92d0d29ff00f9086fa9ff00000000"
+    "00000064c8ff0002000100ff000100010003000100010001000100ff000200a0f59c400000ff000000010003000100ff"
+    "00ff00010003001aa20100f98c0000030002000100ff0000000300ff00ff00e64601000200010002000200ff000200b0"
+    "c7ff007140cb4d0200ff00010001000000ff000000e1ee0000010000000300ff00ff00010000000000ff00ff00ff0030"
+    "ca318653f10200010001000100000001000300ff00588d030078a84c98ff000300ff000100030000000200ff0085bd00"
+    "00020002000100ff0002d90300010000005993ff00ff000200ff00ff00020000000100ff0001000200ff00aa2bbcbb00"
+    "00010000000300248582830100a579733e030000000100dc49ff00000002000200ff00ff000000010000000200048203"
+    "0002000100ff0001000300000003002242eda901000000ebe30100020002000300f6feff"
+)
+
+
+# 0xF9 1, then mode 3 (stored as 2: sense pulses), 2 electrodes and 0xF6 64511 (a 15 µs alarm): every scan
+# of the two channels (32.55 µs in the model) overruns and the next starts as it returns.
+SENSE_RUN = ((2360.073, "f901"), (12448.198, "fb03fc02"), (12448.198, "f6fffb"))
+
+
+def _v2_side(writes: tuple[tuple[float, str], ...], end_us: float) -> ModelSideV2:
+    side = ModelSideV2(timer_origin_us=1010.25, hv513_count=4)
+    for at_us, data in writes:
+        side.write(bytes.fromhex(data), at_us)
+    side.advance_to(end_us)
+    return side
+
+
+def test_v2_pulses_are_numbered_by_slot_across_a_run_of_back_to_back_scans() -> None:
+    """The v2 model numbers a pulse as the v1.2 model does: by its slot within its run of back-to-back scans
+    (one slot a channel; each costs the firmware two DAAD exchanges of chip-select writes the model does not
+    count), so the start tolerance grows along the run as the firmware falls behind (overrun-drift)."""
+    side = _v2_side(SENSE_RUN, 14000.0)
+    run = [s for s in side.emu.scans if s.electrode_num == 2]
+    assert len(run) > 20
+    assert all(b.start_ns == a.end_ns for a, b in zip(run, run[1:]))
+    pulses = [p for p in side.observe(14000.0).pulses if p[0] * 1000 >= run[0].start_ns]
+    assert [p[5] for p in pulses] == list(range(len(pulses)))  # 2 slots a scan, counted from the run's start
+    assert [p[3] for p in pulses[:4]] == [(0,), (1,), (0,), (1,)]
+
+
+def test_v2_a_channel_of_zero_height_and_one_past_the_chain_keep_their_slots() -> None:
+    """255 electrodes on 32 outputs at a 15 µs alarm (0xF6 65534): channel 0 has height 0 and channels 32 to
+    254 fall off the chain, so a scan delivers far fewer pulses than it has slots; the next scan's first
+    pulse (channel 1) is numbered 255 + 1, its slot in the run, not its rank among the pulses delivered."""
+    pattern = "0000" + "0300" * 254
+    side = _v2_side(((2000.5, "fcff"), (2010.5, "fe" + pattern + "f6feff")), 12000.0)
+    pulses = side.observe(12000.0).pulses
+    scans = [s for s in side.emu.scans if s.electrode_num == 255]
+    assert len(scans) >= 2 and scans[1].start_ns == scans[0].end_ns
+    second = [p for p in pulses if p[0] * 1000 >= scans[1].start_ns]
+    assert second[0][3] == (1,) and second[0][5] == 255 + 1
+
+
+def test_v2_biphasic_scans_number_two_slots_a_channel() -> None:
+    """In mode 1 ``biPhasicPulse`` makes two pulses a channel (four DAAD exchanges): each phase has a slot."""
+    side = _v2_side(((2000.5, "fb01fc02fe03000300f6feff"),), 4000.0)
+    scans = [s for s in side.emu.scans if s.electrode_num == 2]
+    pulses = [p for p in side.observe(4000.0).pulses if p[0] * 1000 >= scans[0].start_ns]
+    assert scans[1].start_ns == scans[0].end_ns
+    slots = [(p[3][0], p[5]) for p in pulses[:6]]
+    assert slots == [(0, 0), (0, 1), (1, 2), (1, 3), (0, 4), (0, 5)]  # (channel, slot)
+
+
+def test_upstream_v2_a_long_run_of_sense_scans_falls_behind_within_its_allowance() -> None:
+    """The run above against the firmware: each scan is 0.4 µs longer there (two channels of chip-select
+    writes), so by 68448.198 µs it has delivered 42 pulses fewer, each within its slot's allowance (the
+    minimal reproduction of the 'pulses count' divergence before the model numbered by slot)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = tuple((t, bytes.fromhex(h)) for t, h in SENSE_RUN)
+    assert Differ(tree, "v2").first_divergence(Stream(writes, 68448.198, "sense run")) is None
+
+
+def test_upstream_v2_channels_past_the_chain_drift_within_the_run_allowance() -> None:
+    """255 electrodes on 32 outputs at a 15 µs alarm: the firmware's second scan starts 51 µs after the
+    model's (255 channels of 0.2 µs of chip-select writes) though only 28 pulses were delivered before it
+    (the minimal reproduction of the 'pulses start' divergence before the model numbered by slot)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((2000.5, bytes.fromhex(START_RUN_HEX)),)
+    assert Differ(tree, "v2").first_divergence(Stream(writes, 548000.5, "past the chain")) is None
 
 
 def test_upstream_v1_2_channels_past_the_chain_drift_within_the_run_allowance() -> None:
