@@ -513,6 +513,34 @@ def test_upstream_v1_2_a_long_run_of_overrunning_scans_falls_behind_within_its_a
     assert Differ(tree, "v1.2").first_divergence(Stream(writes, 54020.5, "long run")) is None
 
 
+def test_upstream_v2_a_scan_inside_a_call_that_skips_an_unknown_byte_delays_both_loops() -> None:
+    """0xF6 65534, four unknown bytes, 0xFC 2, 0xFF, 0x00: the scan inside the call that skips 0x39 delays
+    the loop by its 2.15 µs on both sides, so the overrunning scans starve it with 0x00 unread on both (the
+    model-only twin is in test_models_follow_firmware.py; the 'state rx_unread' minimal reproduction)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = tuple((2000.5, bytes.fromhex(h)) for h in ("f6feff", "d8459539", "fc02ff00"))
+    assert Differ(tree, "v2").first_divergence(Stream(writes, 5013.0, "unknown bytes")) is None
+
+
+def test_upstream_v2_a_scan_due_inside_a_frequency_call_runs_on_both_sides() -> None:
+    """The alarm inside the second 0xF6's u16 read: both sides scan before setPeriodUs and store 0xFC 141 and
+    0xF9 1 before the loop starves (the model-only twin is in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((3303.434, bytes.fromhex("f6fffd01f6b291fc8d")), (3303.434, bytes.fromhex("f901")))
+    assert Differ(tree, "v2").first_divergence(Stream(writes, 6037.0, "alarm in 0xF6")) is None
+
+
+def test_upstream_v2_a_scan_inside_an_idle_poll_delays_its_sleep_on_both_sides() -> None:
+    """The alarm of 49 001 µs inside the idle poll of the 49 000 µs tick: both sides sleep from the scan's end
+    to the 51 000 µs tick, so neither has stored 0xF9 1 at 51 000 µs (a single checkpoint: the difference
+    would last 1.7 ms, less than call-resolution's window; the model-only twin is in
+    test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((2000.5, bytes.fromhex("fc08fa8200f64b02")), (49100.0, bytes.fromhex("f901")))
+    stream = Stream(writes, 53000.0, "alarm in an idle poll")
+    assert Differ(tree, "v2").first_divergence(stream, at_us=51000.0) is None
+
+
 def test_upstream_v2_a_starved_loop_s_queue_overflows_on_both_sides() -> None:
     """Scans back to back (0xFC 32, 0xF6 28466), then 1176 bytes at once: the firmware's serial driver and
     the model both store them as they come and drop the 155 past the 1024-byte buffer (the model-only twin

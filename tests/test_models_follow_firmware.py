@@ -189,6 +189,59 @@ def test_v2_a_call_whose_last_read_the_alarm_falls_in_stores_what_it_read() -> N
     assert eight and {s.pulse_width for s in eight} == {63497}
 
 
+# A scan whose alarm falls inside a main-loop call pre-empts it (Timer1_Stimulate_ISR takes the processor from
+# runEtactileKit and gives it back when it returns): the call ends the scan's duration later, whatever the
+# call does -- a command applied, an unknown byte skipped, a payload awaited, nothing at all.
+
+# 0xF6 65534 (a 15 µs alarm), four unknown bytes, 0xFC 2, 0xFF and 0x00, all at 2000.5 µs
+UNKNOWN_BYTES_THEN_STARVED = [(2000.5, "f6feff"), (2000.5, "d8459539"), (2000.5, "fc02ff00")]
+
+
+def test_v2_a_scan_inside_a_call_that_skips_an_unknown_byte_delays_the_loop() -> None:
+    """The call that reads and skips 0x39 (3021.35 µs: isDataAvailable 2 µs, readInt_8 1 µs) is pre-empted
+    by the scan of no channel due at 3022 µs (2.15 µs): it ends at 3026.5 µs, so 0xFC 2's call starts then
+    and 0xFF's at 3032.5; the next call's isDataAvailable() is under way at 3037 µs, when the first scan of
+    two channels (32.55 µs against a 15 µs alarm) takes the processor for good: 0x00 is never read."""
+    side = _v2(UNKNOWN_BYTES_THEN_STARVED, 5013.0)
+    applied = [(t, int(op)) for t, op, _ in side.emu.applied]
+    assert applied == [(3_000_000, 0xF6), (3_026_500, 0xFC), (3_032_500, 0xFF)]
+    seen = side.observe(5013.0)
+    assert seen.state["rx_unread"] == 1
+    assert len(seen.replies) == 4  # 0xFF answered its two channels' readings
+
+
+# 0xF6 65023 (a 15 µs alarm), an unknown byte, 0xF6 37298 (26 µs), 141 electrodes, then 0xF9 1
+ALARM_IN_A_FREQUENCY_CALL = [(3303.434, "f6fffd01f6b291fc8d"), (3303.434, "f901")]
+
+
+def test_v2_a_scan_due_inside_a_frequency_call_runs_before_set_period() -> None:
+    """The alarm of 4022 µs falls inside the second 0xF6's read of its u16 (4020.35 to 4022.35 µs): the scan
+    runs at the call's next point, setPeriodUs's timerAlarmDisable, with the old alarm; setPeriodUs then arms
+    26 µs from that alarm (4048 µs), so 0xFC 141 (4024.5 µs, after the scan) and 0xF9 1 are stored before the
+    first scan of 141 channels starves the loop."""
+    side = _v2(ALARM_IN_A_FREQUENCY_CALL, 6037.0)
+    starts = [s.start_ns for s in side.emu.scans]
+    assert starts[:3] == [4_007_000, 4_022_000, 4_048_000]
+    applied = [(t, int(op)) for t, op, _ in side.emu.applied]
+    assert applied[1:] == [(4_015_350, 0xF6), (4_024_500, 0xFC), (4_030_500, 0xF9)]
+    assert side.observe(6037.0).state["sense_pulse_height"] == 1
+
+
+# 8 electrodes, pulse width 130 µs, 0xF6 587 (a 1703 µs alarm): the scans last 1073.85 µs, and the alarm of
+# 49 001 µs falls inside the idle poll of the 49 000 µs tick; 0xF9 1 arrives during that scan
+ALARM_IN_AN_IDLE_POLL = [(2000.5, "fc08fa8200f64b02"), (49100.0, "f901")]
+
+
+def test_v2_a_scan_inside_an_idle_poll_delays_its_sleep() -> None:
+    """The poll's isDataAvailable() (49 000 to 49 002 µs) finds nothing; the scan takes the processor at
+    vTaskDelay(1), which is called as the scan returns (50 075.85 µs) and sleeps to the 51 000 µs tick; the
+    next scan (50 704 µs) holds the processor past that tick, so 0xF9 1 is read as it returns (51 777.85
+    µs), not as the first scan returns."""
+    side = _v2(ALARM_IN_AN_IDLE_POLL, 53000.0)
+    assert any(s.start_ns == 49_001_000 and s.duration_ns == 1_073_850 for s in side.emu.scans)
+    assert side.emu.applied[-1][:2] == (51_777_850, OpcodeV2.SENSE_HEIGHT)
+
+
 # sense height 4, pulse width 65535 then 65534, 221 electrodes, sense width 255, discharge 61, then two 0xF5:
 # the second 0xF5's stackSense() is interrupted by the first scan (221 channels, 69.9 ms), and the scans then
 # overrun back to back.

@@ -7,7 +7,9 @@ fires when the alarm is re-enabled; as on v1.2, the stimulation timer starts ``t
 boot and the RTOS ticks run from boot shifted by ``tick_phase_us``), and each scan is the v2 interrupt of
 :mod:`.firmware_scan`: parameters snapshotted at its start, a DAC code per channel, the mode choosing the
 waveform, no DAC write in the discharge.  The interrupt pre-empts the parser, never the reverse: a parser
-call costs its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm
+call costs its overhead plus one byte time per byte read (the timing model's assumptions), plus the
+duration of a scan whose alarm falls inside it, whatever the call does (an idle poll then sleeps from the
+scan's end; 0xF6 lets in the old alarm's scan before ``setPeriodUs`` re-arms the timer), and an alarm
 inside the call that copies a pattern scans the elements copied so far at their new heights and the rest
 at their old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer
 — and only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).  A
@@ -496,7 +498,9 @@ class MainLoopRunsV2:
         if parser.pending or parser.processing or self._hv513_in_call or parser.tx or self._frozen:
             return False
         heap = self._delivery_heap
-        last = min(alarm - 1, target, heap[0][0] - 1 if heap else target)  # the latest poll run here
+        # the latest poll run here: over by the alarm (one the alarm falls into is _main_call's), by
+        # ``target`` and before the next arrival
+        last = min(alarm - self.model.call_ns, target, heap[0][0] - 1 if heap else target)
         if t > last:
             return False  # a delivery lands at this call
         call_ns = self.model.call_ns
@@ -709,6 +713,18 @@ class InterruptedCallsV2:
         self._mark(self._call_time_ns, "starved", {"op": cut.op, "at": cut.point.value})
         self.stop_reading()
 
+    def _scan_in_idle_call(self, alarm: int, end: int) -> int:
+        """The alarm fell inside an idle poll's ``Serial.available()``: the scan takes the processor at the
+        next point, ``vTaskDelay``'s, so the task sleeps from the scan's end (the end returned).  -1 when
+        that scan overruns: the loop never gets the processor back (as :meth:`_starved_after_call`)."""
+        if self._overruns():
+            self._scan(alarm)
+            self._mark(self._call_time_ns, "starved", {"op": None, "at": "vTaskDelay"})
+            self.stop_reading()
+            return -1
+        self._scan(alarm)
+        return end + self.scans[-1].duration_ns
+
     def _preempt(
         self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
     ) -> int:
@@ -753,7 +769,7 @@ class InterruptedCallsV2:
         regs.stim_pattern[:] = new
         return duration
 
-    def _starved_after_call(self, clock: _ReadClock, op: int) -> bool:
+    def _starved_after_call(self, clock: _ReadClock, op: int | None) -> bool:
         """The alarm fell inside the call's last read (no read point at or after it, ``clock.asked``
         False): the firmware stores what it read and takes the scan at its next read point, the next
         call's first.  True when that scan, of the registers the call stored, overruns: the loop is
@@ -1183,7 +1199,12 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         if pending == 0 and not parser.processing and not self._hv513_in_call and not parser.tx:
             # an idle poll (most calls): nothing to read, nothing to write, the task sleeps to the next
             # tick -- what the full path below computes for a call that consumes nothing
-            self._next_call_ns = self._tick_after(t + m.call_ns)
+            end = t + m.call_ns
+            if t < self._next_alarm_ns < end:  # the scan takes the processor before vTaskDelay
+                end = self._scan_in_idle_call(self._next_alarm_ns, end)
+                if end < 0:
+                    return
+            self._next_call_ns = self._tick_after(end)
             return
         hazards_before = len(self.hazards)
         # the registers before the call matter only to a scan that can interrupt it: one whose alarm falls
@@ -1191,7 +1212,8 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         latest_end = t + 2 * m.call_ns + pending * m.byte_ns + m.hv513_detect_ns
         before: dict[str, Any] = {}
         old_pattern: list[int] = []
-        alarm = self._next_alarm_ns
+        old_ticks = regs.timer_alarm_ticks
+        alarm = self._next_alarm_ns  # armed when the call starts (0xF6 re-arms it only at the call's end)
         clock: _ReadClock | None = None
         if t < alarm < latest_end:
             before = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
@@ -1216,15 +1238,25 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         self._hv513_in_call = False
         end = t + cost
         applied = self._applied_in_call
-        if applied == OpcodeV2.FREQUENCY:  # setPeriodUs re-enables the alarm after the call's last read
-            self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
-        alarm = self._next_alarm_ns
-        if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
+        frequency = applied == OpcodeV2.FREQUENCY
+        # an alarm inside the call pre-empts it, whatever the call did (a command applied, a byte skipped, a
+        # payload still awaited): the call ends the scan's duration later.  0xF6's setPeriodUs comes after
+        # its last read, and its timerAlarmDisable is itself a point where a due alarm is taken (the tie)
+        if not paused and t < alarm and (alarm < end or (frequency and alarm == end)):
             assert clock is not None  # the alarm is before the call's end, so before its latest end
             if self._starved_after_call(clock, applied):
                 return
             # a scan that leaves the loop time: it sees the registers as the call had them at the alarm
-            end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
+            if applied is None:
+                self._scan(alarm)
+                end += self.scans[-1].duration_ns
+            else:
+                new_ticks = regs.timer_alarm_ticks
+                regs.timer_alarm_ticks = old_ticks  # the alarm is still the old one (setPeriodUs comes after)
+                end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
+                regs.timer_alarm_ticks = new_ticks
+        if frequency:  # setPeriodUs re-enables the alarm after the call's last read (and the scan it let in)
+            self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
         tx = parser.take_tx()
         if (
             tx
