@@ -552,13 +552,22 @@ def test_upstream_v2_a_starved_loop_s_queue_overflows_on_both_sides() -> None:
 
 
 def test_upstream_v2_a_scan_after_0xf5_and_a_new_frequency_starts_with_the_firmware_s() -> None:
-    """Four payload commands, 0xF5, then 0xF6 65535: the model's scan starts 3.45 µs before the firmware's
-    (hv513Init's pin writes after the detection), no longer 20.9 µs (the model-only twins are in
+    """Four payload commands, 0xF5, then 0xF6 65535: the scans start together, 0xF5's call counting
+    hv513Init's pin writes after the detection (the model-only twins are in
     test_models_follow_firmware.py)."""
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
     writes = ((2000.5, "f7d6fb01"), (2020.5, "fc04fe00008f910000cd8ef5"), (2580.973, "fc04f6fffff7"))
     stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 64630.973, "after 0xF5")
     assert Differ(tree, "v2").first_divergence(stream) is None
+
+
+def test_upstream_v2_a_run_of_0xf5_calls_keeps_the_scans_with_the_firmware_s() -> None:
+    """Eight 0xF5 in a row, each call ending after hv513Init's 69 pin writes (3.45 µs): the next scan starts
+    with the firmware's, not 27.6 µs before it (the 'pulses start' minimal reproduction left once the
+    pulses were numbered by slot)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((2000.5, bytes.fromhex("fc04fe0100010001000100" + "f5" * 8)),)
+    assert Differ(tree, "v2").first_divergence(Stream(writes, 30000.0, "0xF5 run")) is None
 
 
 STARVED_AT_A_READ_POINT = {

@@ -99,10 +99,20 @@ def test_v2_a_call_that_reads_a_command_with_a_payload_checks_the_queue_twice() 
 def test_v2_a_new_frequency_s_alarm_is_enabled_at_the_end_of_its_call() -> None:
     """setPeriodUs (timerAlarmDisable, timerAlarmWrite, timerAlarmEnable) runs after the u16's read, the
     call's last: with the counter already past the new 30-tick alarm, the scan starts as the call ends
-    (4040 + 2 + 1 + 2 + 2 µs), not at its start."""
+    (4043.45 + 2 + 1 + 2 + 2 µs), not at its start."""
     side = _v2(SENSED_THEN_FAST, 4400.0)
     after = [s.start_ns for s in side.emu.scans if s.start_ns >= 4040_000]
-    assert after[0] == 4047_000
+    assert after[0] == 4050_450
+
+
+def test_v2_an_f5_call_ends_after_hv513_init_s_pin_writes() -> None:
+    """stackSense() makes its 50 analogRead calls (1000 µs), then hv513Init() on the count it found: POL, LE,
+    CLK, BL and DIN, then a CLK high and low per output (5 + 2 x 32 pin writes of 0.05 µs with 4 HV513), so
+    the 0xF5 read at 3031 µs answers at 3031 + 2 + 1 + 1000 + 3.45 µs and the next call starts then."""
+    side = _v2(SENSED_THEN_FAST, 4400.0)
+    assert side.observe(4400.0).replies == bytes([4])
+    applied = [(t, int(op)) for t, op, _ in side.emu.applied]
+    assert applied[4:7] == [(3_031_000, 0xF5), (4_037_450, 0xFC), (4_043_450, 0xF6)]
 
 
 def test_v2_a_scan_of_no_channel_clocks_the_chain_only_the_first_time() -> None:

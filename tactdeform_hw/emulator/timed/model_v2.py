@@ -81,6 +81,7 @@ from tactdeform_hw.emulator.timed.link import (
     next_key,
     reply_link,
 )
+from tactdeform_hw.emulator.timed.model_v1_2 import hv513_count_ns
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
@@ -1230,8 +1231,8 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         # call_ns per Serial.available(): runEtactileKit checks again for the payload of a byte just read
         cost = m.call_ns * parser.checks + out.consumed * m.byte_ns
         sensed = self._hv513_in_call
-        if sensed:
-            cost += m.hv513_detect_ns
+        if sensed:  # stackSense(): the detection, then hv513Init() on the count it found
+            cost += hv513_count_ns(m, regs.hv513_num)
         # while 0xF5 senses the stack the table says whether the stimulation timer is stopped (v2: it is,
         # so no alarm interrupts that call; one due meanwhile fires when the timer is re-enabled)
         paused = sensed and self.firmware.hv513_pauses_timer
