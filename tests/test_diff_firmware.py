@@ -570,6 +570,18 @@ def test_upstream_v2_a_run_of_0xf5_calls_keeps_the_scans_with_the_firmware_s() -
     assert Differ(tree, "v2").first_divergence(Stream(writes, 30000.0, "0xF5 run")) is None
 
 
+def test_upstream_v2_an_alarm_before_0xf5_disables_the_timer_runs_on_both_sides() -> None:
+    """The alarm of 8017 µs falls inside the read of an 0xF5 byte, before its timerAlarmDisable: both sides
+    scan there and re-enable the alarm 2.15 µs later, so the starving scans of 244 channels after 0xFC 244
+    find the final 0xFE read on both (the 'state rx_unread' minimal reproduction left after the main-loop
+    fix; the model-only twin is in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((4369.366, "fefef6"), (4369.366, "ffff"), (7959.381, "f9f60000f5"), (9385.218, "52fc"))
+    writes += ((9395.218, "f4fe"),)
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 12012.0, "alarm before 0xF5's disable")
+    assert Differ(tree, "v2").first_divergence(stream) is None
+
+
 STARVED_AT_A_READ_POINT = {
     "before the command byte": (((11286.611, "f6fefffc010065f8"),), 75265.01),
     "inside a pattern copy": (((2000.5, "f6ffff"), (4000.5, "fc04feff0fff0fff0fff0f")), 7000.0),

@@ -252,6 +252,20 @@ def test_v2_a_scan_inside_an_idle_poll_delays_its_sleep() -> None:
     assert side.emu.applied[-1][:2] == (51_777_850, OpcodeV2.SENSE_HEIGHT)
 
 
+# 0xF6 65535 (a 15 µs alarm), then 0xF9 246, two unknown bytes and 0xF5: the 0xF5 is read from 8014.15 µs on
+# and the alarm of 8017 µs falls inside its read
+ALARM_BEFORE_F5_DISABLES_IT = [(4369.366, "fefef6ffff"), (7959.381, "f9f60000f5")]
+
+
+def test_v2_an_alarm_before_0xf5_disables_the_timer_pre_empts_its_call() -> None:
+    """runEtactileKit disables the stimulation alarm (timerAlarmDisable) only after reading the 0xF5 byte
+    (8014.15 + 2 + 1 µs): the alarm of 8017 µs comes first, so its scan runs then and the call, the detection
+    and hv513Init after it, ends 2.15 µs later (9022.75 µs), where the re-enabled alarm fires at once."""
+    side = _v2(ALARM_BEFORE_F5_DISABLES_IT, 9100.0)
+    starts = [s.start_ns for s in side.emu.scans if 8_000_000 < s.start_ns < 9_050_000]
+    assert starts == [8_002_000, 8_017_000, 9_022_750, 9_037_750]
+
+
 # sense height 4, pulse width 65535 then 65534, 221 electrodes, sense width 255, discharge 61, then two 0xF5:
 # the second 0xF5's stackSense() is interrupted by the first scan (221 channels, 69.9 ms), and the scans then
 # overrun back to back.

@@ -770,6 +770,33 @@ class InterruptedCallsV2:
         regs.stim_pattern[:] = new
         return duration
 
+    def _scan_inside(
+        self,
+        alarm: int,
+        t: int,
+        consumed: int,
+        op: int | None,
+        before: dict[str, Any],
+        old: list[int],
+        held: dict[str, int],
+    ) -> int:
+        """The scan whose alarm fell inside the call at ``t``: it sees the registers as the firmware has
+        them at the alarm (:meth:`_preempt` for a call that applied ``op``; ``held``: registers the call
+        stores only after the point where the scan took the processor, at their values before it).
+        Returns the scan's duration, by which the call finishes later."""
+        if op is None:  # nothing stored: the registers are those before the call
+            self._scan(alarm)
+            return self.scans[-1].duration_ns
+        regs = self.parser.regs
+        after = {f: getattr(regs, f) for f in held}
+        for f, v in held.items():
+            setattr(regs, f, v)
+        try:
+            return self._preempt(alarm, t, consumed, op, before, old)
+        finally:
+            for f, v in after.items():
+                setattr(regs, f, v)
+
     def _starved_after_call(self, clock: _ReadClock, op: int | None) -> bool:
         """The alarm fell inside the call's last read (no read point at or after it, ``clock.asked``
         False): the firmware stores what it read and takes the scan at its next read point, the next
@@ -1213,7 +1240,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         latest_end = t + 2 * m.call_ns + pending * m.byte_ns + m.hv513_detect_ns
         before: dict[str, Any] = {}
         old_pattern: list[int] = []
-        old_ticks = regs.timer_alarm_ticks
+        old_ticks, old_hv513 = regs.timer_alarm_ticks, regs.hv513_num
         alarm = self._next_alarm_ns  # armed when the call starts (0xF6 re-arms it only at the call's end)
         clock: _ReadClock | None = None
         if t < alarm < latest_end:
@@ -1229,33 +1256,31 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
                 # the cut command and every byte queued behind it never take effect
                 self._loss(t, 1 + int(h.detail["discarded"]), self._host_of(h.offset), "command_timeout")
         # call_ns per Serial.available(): runEtactileKit checks again for the payload of a byte just read
-        cost = m.call_ns * parser.checks + out.consumed * m.byte_ns
+        reads_end = t + m.call_ns * parser.checks + out.consumed * m.byte_ns
         sensed = self._hv513_in_call
-        if sensed:  # stackSense(): the detection, then hv513Init() on the count it found
-            cost += hv513_count_ns(m, regs.hv513_num)
-        # while 0xF5 senses the stack the table says whether the stimulation timer is stopped (v2: it is,
-        # so no alarm interrupts that call; one due meanwhile fires when the timer is re-enabled)
+        # stackSense(): the detection, then hv513Init() on the count it found.  While it senses the stack
+        # the table says whether the stimulation timer is stopped (v2: from the timerAlarmDisable after
+        # the byte's read, so no alarm interrupts the detection; one due meanwhile fires at the re-enable)
+        end = reads_end + (hv513_count_ns(m, regs.hv513_num) if sensed else 0)
         paused = sensed and self.firmware.hv513_pauses_timer
         self._hv513_in_call = False
-        end = t + cost
         applied = self._applied_in_call
         frequency = applied == OpcodeV2.FREQUENCY
         # an alarm inside the call pre-empts it, whatever the call did (a command applied, a byte skipped, a
-        # payload still awaited): the call ends the scan's duration later.  0xF6's setPeriodUs comes after
-        # its last read, and its timerAlarmDisable is itself a point where a due alarm is taken (the tie)
-        if not paused and t < alarm and (alarm < end or (frequency and alarm == end)):
+        # payload still awaited): the call ends the scan's duration later.  0xF6's setPeriodUs and 0xF5's
+        # timerAlarmDisable come after the call's reads and are themselves points where a due alarm is
+        # taken (the ties); 0xF5's alarm is disabled from then on
+        if paused:
+            inside = t < alarm <= reads_end
+        else:
+            inside = t < alarm and (alarm < end or (frequency and alarm == end))
+        if inside:
             assert clock is not None  # the alarm is before the call's end, so before its latest end
             if self._starved_after_call(clock, applied):
                 return
-            # a scan that leaves the loop time: it sees the registers as the call had them at the alarm
-            if applied is None:
-                self._scan(alarm)
-                end += self.scans[-1].duration_ns
-            else:
-                new_ticks = regs.timer_alarm_ticks
-                regs.timer_alarm_ticks = old_ticks  # the alarm is still the old one (setPeriodUs comes after)
-                end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
-                regs.timer_alarm_ticks = new_ticks
+            # 0xF6's alarm and 0xF5's count are stored after the point where the scan took the processor
+            held = {"timer_alarm_ticks": old_ticks, "hv513_num": old_hv513}
+            end += self._scan_inside(alarm, t, out.consumed, applied, before, old_pattern, held)
         if frequency:  # setPeriodUs re-enables the alarm after the call's last read (and the scan it let in)
             self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
         tx = parser.take_tx()
