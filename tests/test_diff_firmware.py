@@ -18,12 +18,14 @@ import pytest
 from tactdeform_hw.cli import main
 from tactdeform_hw.emulator.hostbuild import find_compiler
 from tactdeform_hw.emulator.hostbuild.diff import (
+    CALL_WINDOW_US,
     PREEMPT_US,
     Comparison,
     Differ,
     ModelSideV1_2,
     ModelSideV2,
     Observation,
+    Side,
     compare,
     diff_firmware,
 )
@@ -344,6 +346,120 @@ def test_a_pulse_deep_in_a_run_of_back_to_back_scans_may_start_later_by_the_drif
     assert compare(obs(3966.45, 49), obs(3945.6, 0), model, False) is None
     found = compare(obs(3966.45, 0), obs(3945.6, 0), model, False)  # one scan of its own: too late
     assert found is not None and found[1] == "pulse 0 (start)"
+
+
+class _Scripted:
+    """A side showing, at each checkpoint, the state of the last script entry at or before it."""
+
+    def __init__(self, name: str, script: list[tuple[float, dict[str, object]]]) -> None:
+        self.name = name
+        self.script = script
+
+    def write(self, data: bytes, at_us: float) -> None:
+        """Nothing to run: the script is the side."""
+
+    def advance_to(self, t_us: float) -> None:
+        """Nothing to run: the script is the side."""
+
+    def observe(self, upto_us: float) -> Observation:
+        state = [st for t, st in self.script if t <= upto_us][-1]
+        return Observation(dict(state), b"", [])
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+class _ScriptedDiffer(Differ):
+    """A differ whose two sides are scripted observations (no firmware is built)."""
+
+    def __init__(self, left: _Scripted, right: _Scripted) -> None:
+        super().__init__(Path("unused"), "v2")
+        self.scripted = (left, right)
+
+    def sides(self) -> tuple[Side, Side]:
+        return self.scripted
+
+
+def test_a_held_difference_gone_at_its_window_s_end_is_resolved_though_another_register_differs() -> None:
+    """``electrode_num`` differs at 1000 µs (a call's effects seen at its start); at the end of its window it
+    is the same on both sides and ``pulse_width`` differs instead -- a later call's own resolution, held with
+    a window of its own and gone by its end: no divergence, two call resolutions (call-resolution)."""
+    w = CALL_WINDOW_US
+    left = _Scripted(
+        "host",
+        [
+            (0, {"electrode_num": 0, "pulse_width": 0}),
+            (1000 + w, {"electrode_num": 8, "pulse_width": 0}),
+            (1000 + 2 * w, {"electrode_num": 8, "pulse_width": 5}),
+        ],
+    )
+    right = _Scripted("model", [(0, {"electrode_num": 8, "pulse_width": 5})])
+    differ = _ScriptedDiffer(left, right)
+    stream = Stream(((1000.0, b"\x00"),), 1000 + 3 * w, "scripted")
+    assert differ.first_divergence(stream) is None
+    assert differ.call_resolved == 2
+
+
+def test_a_held_difference_still_there_at_its_window_s_end_is_the_divergence() -> None:
+    """The same, but ``electrode_num`` still differs at the window's end: it is reported as first seen."""
+    w = CALL_WINDOW_US
+    left = _Scripted("host", [(0, {"electrode_num": 0, "pulse_width": 0})])
+    right = _Scripted("model", [(0, {"electrode_num": 8, "pulse_width": 5})])
+    differ = _ScriptedDiffer(left, right)
+    found = differ.first_divergence(Stream(((1000.0, b"\x00"),), 1000 + 3 * w, "scripted"))
+    assert found is not None and (found.field, found.at_us, found.left, found.right) == (
+        "electrode_num",
+        1000.0,
+        0,
+        8,
+    )
+
+
+def test_an_element_of_an_array_register_is_held_on_its_own() -> None:
+    """``stim_pattern[1]`` differs (a pattern's copy seen at its call's start); at the window's end element 1
+    is the same and element 3 differs (the next pattern's copy under way): the held one is gone."""
+    w = CALL_WINDOW_US
+    left = _Scripted(
+        "host",
+        [
+            (0, {"stim_pattern": [0, 0, 0, 0]}),
+            (1000 + w, {"stim_pattern": [3, 3, 0, 0]}),
+            (1000 + 2 * w, {"stim_pattern": [3, 3, 0, 4]}),
+        ],
+    )
+    right = _Scripted("model", [(0, {"stim_pattern": [3, 3, 0, 4]})])
+    differ = _ScriptedDiffer(left, right)
+    assert differ.first_divergence(Stream(((1000.0, b"\x00"),), 1000 + 3 * w, "scripted")) is None
+
+
+# 1011 bytes at once: 10, then a 39-byte run of commands repeated
+_BURST = (
+    bytes.fromhex("000100ff00ff00ff00fa")
+    + (bytes.fromhex("fffff801fe03000000020001000000ff000200ff00fe0200f5d3ff0002000100ff00ff00ff00fa") * 26)[
+        :1001
+    ]
+)
+
+
+def test_upstream_v2_a_drop_counted_when_the_model_lands_the_bytes_is_a_call_resolution() -> None:
+    """A scan of 255 channels holds the loop while a 1011-byte burst fills the queue past its 1024 bytes: the
+    firmware's serial driver drops the last byte as it arrives, the model when its next call lands the
+    bytes (after the scan); by the end of the window a pattern's copy under way differs instead, a
+    resolution of its own (the 'state rx_dropped' minimal reproduction)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = [(2051.696, "fefcfffd00"), (11634.045, "fcb4f60000fc20fdfefb01"), (12685.187, "08f8fe")]
+    stream = Stream(
+        (
+            *((t, bytes.fromhex(h)) for t, h in writes),
+            (13866.204, _BURST),
+            (14436.824, bytes.fromhex("fd02fb02")),
+        ),
+        634436.824,
+        "drop while scanning",
+    )
+    differ = Differ(tree, "v2")
+    assert differ.first_divergence(stream) is None
+    assert differ.call_resolved == 2
 
 
 def test_upstream_v1_2_a_register_mid_call_is_the_models_call_resolution() -> None:

@@ -78,7 +78,10 @@ EQUIVALENCES: dict[str, str] = {
     "logged reply) at the call's start, the firmware as its code reads and stores: a state or reply "
     "difference seen at a checkpoint that is gone by CALL_WINDOW_US (the longest parser call) later, with "
     "no difference in between outlasting it, is this resolution (the report counts these streams); one "
-    "still there then is reported as it was first seen",
+    "still there then is reported as it was first seen (gone: that register, or that element of an "
+    "array, or the replies, the same on both sides; another one differing then is a later call's, held "
+    "with a window of its own; the model also lands arrived bytes, and counts those the full queue "
+    "drops, at its next call)",
     "registers-in-common": "only registers both sides hold are compared (the host build's receive-queue "
     "counters and the model's command_in_progress have no counterpart)",
 }
@@ -665,15 +668,19 @@ class Differ:
                 return None
             found = compare(seen_left, seen_right, self.cmp, readback, cp)
             in_call = found is not None and found[0] in ("state", "replies")
-            if held is not None and (not in_call or cp >= held_until):
-                if in_call:  # still different once the longest parser call is over: a divergence
-                    return held
-                self.call_resolved += 1  # see EQUIVALENCES["call-resolution"]
-                held = None
+            d: Divergence | None = None
             if found is not None:
                 kind, fld, a, b, t = found
                 at = t if t is not None else cp
                 d = Divergence(kind, fld, at, prev, a, b, _written_by(stream, at))
+            if held is not None and (not in_call or cp >= held_until):
+                if in_call and _still_differs(held, seen_left, seen_right, self.cmp, readback):
+                    return held  # still different once the longest parser call is over: a divergence
+                # gone (another register or element differing now is a difference of its own: a later call's
+                # effects, with a window of its own)
+                self.call_resolved += 1  # see EQUIVALENCES["call-resolution"]
+                held = None
+            if d is not None:
                 if not in_call or self.cmp.exact or at_us is not None:
                     return d
                 if held is None:
@@ -697,6 +704,23 @@ class Differ:
             else:
                 lo = mid
         return dataclasses.replace(best, at_us=hi, since_us=lo)
+
+
+def _still_differs(
+    held: Divergence, left: Observation, right: Observation, cmp: Comparison, readback: bool
+) -> bool:
+    """Whether the state or reply difference ``held`` (its register, or its element of an array register;
+    the replies) is still there in these observations."""
+    if held.kind == "replies":
+        if cmp.exact or not readback:
+            return left.replies != right.replies
+        return len(left.replies) != len(right.replies)
+    key, _, index = held.field.partition("[")
+    a, b = left.state.get(key), right.state.get(key)
+    if index and isinstance(a, list) and isinstance(b, list):
+        i = int(index.rstrip("]"))
+        return i >= min(len(a), len(b)) or a[i] != b[i]
+    return not _same_number(key, a, b, cmp.exact)
 
 
 def _written_by(stream: Stream, t_us: float) -> bytes:
