@@ -432,6 +432,31 @@ def test_an_element_of_an_array_register_is_held_on_its_own() -> None:
     assert differ.first_divergence(Stream(((1000.0, b"\x00"),), 1000 + 3 * w, "scripted")) is None
 
 
+def test_a_held_difference_is_gone_once_the_firmware_holds_the_value_the_model_showed() -> None:
+    """``electrode_num`` is 0 on the firmware, 8 in the model (a call seen at its start); at the window's end
+    the firmware has 8 and the model already 16 (the next command, seen at its call's start): the first
+    call is over on both, the second is held on its own and gone by its window's end."""
+    w = CALL_WINDOW_US
+    left = _Scripted(
+        "host",
+        [(0, {"electrode_num": 0}), (1000 + w, {"electrode_num": 8}), (1000 + 2 * w, {"electrode_num": 16})],
+    )
+    right = _Scripted("model", [(0, {"electrode_num": 8}), (1000 + w, {"electrode_num": 16})])
+    differ = _ScriptedDiffer(left, right)
+    assert differ.first_divergence(Stream(((1000.0, b"\x00"),), 1000 + 3 * w, "scripted")) is None
+    assert differ.call_resolved == 2
+
+
+def test_a_later_difference_that_outlasts_its_own_window_is_the_divergence() -> None:
+    """The same, but the firmware never gets to 16: the second difference is reported as it was first seen."""
+    w = CALL_WINDOW_US
+    left = _Scripted("host", [(0, {"electrode_num": 0}), (1000 + w, {"electrode_num": 8})])
+    right = _Scripted("model", [(0, {"electrode_num": 8}), (1000 + w, {"electrode_num": 16})])
+    differ = _ScriptedDiffer(left, right)
+    found = differ.first_divergence(Stream(((1000.0, b"\x00"),), 1000 + 3 * w, "scripted"))
+    assert found is not None and (found.at_us, found.left, found.right) == (1000 + w, 8, 16)
+
+
 # 1011 bytes at once: 10, then a 39-byte run of commands repeated
 _BURST = (
     bytes.fromhex("000100ff00ff00ff00fa")

@@ -79,7 +79,8 @@ EQUIVALENCES: dict[str, str] = {
     "difference seen at a checkpoint that is gone by CALL_WINDOW_US (the longest parser call) later, with "
     "no difference in between outlasting it, is this resolution (the report counts these streams); one "
     "still there then is reported as it was first seen (gone: that register, or that element of an "
-    "array, or the replies, the same on both sides; another one differing then is a later call's, held "
+    "array, or the replies, the same on both sides, or the firmware's register at the value the model "
+    "showed: the call is over on the firmware too; another difference then is a later call's, held "
     "with a window of its own; the model also lands arrived bytes, and counts those the full queue "
     "drops, at its next call)",
     "registers-in-common": "only registers both sides hold are compared (the host build's receive-queue "
@@ -710,17 +711,21 @@ def _still_differs(
     held: Divergence, left: Observation, right: Observation, cmp: Comparison, readback: bool
 ) -> bool:
     """Whether the state or reply difference ``held`` (its register, or its element of an array register;
-    the replies) is still there in these observations."""
+    the replies) is still there in these observations: a register is no longer different once both sides
+    agree or once the firmware (``left``) holds the value the model showed when it was held -- the call
+    is over on the firmware too, and what differs now is a later call's (the model at its start)."""
     if held.kind == "replies":
         if cmp.exact or not readback:
             return left.replies != right.replies
         return len(left.replies) != len(right.replies)
     key, _, index = held.field.partition("[")
     a, b = left.state.get(key), right.state.get(key)
-    if index and isinstance(a, list) and isinstance(b, list):
+    if index:
         i = int(index.rstrip("]"))
-        return i >= min(len(a), len(b)) or a[i] != b[i]
-    return not _same_number(key, a, b, cmp.exact)
+        if not (isinstance(a, list) and isinstance(b, list) and i < min(len(a), len(b))):
+            return True
+        a, b = a[i], b[i]
+    return not (_same_number(key, a, b, cmp.exact) or _same_number(key, a, held.right, cmp.exact))
 
 
 def _written_by(stream: Stream, t_us: float) -> bytes:
