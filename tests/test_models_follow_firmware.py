@@ -252,6 +252,22 @@ def test_v2_a_scan_inside_an_idle_poll_delays_its_sleep() -> None:
     assert side.emu.applied[-1][:2] == (51_777_850, OpcodeV2.SENSE_HEIGHT)
 
 
+# 0xF6 48662 (a 20 µs alarm), 1 electrode (a scan of 19 µs), then 0xFE and, 3.7 ms later, its two bytes: the
+# loop has 1 µs between scans
+SLIVERS = [(2000.5, "f616befc01"), (3081.22, "fe"), (6776.817, "fffc")]
+
+
+def test_v2_a_call_spanning_several_scans_is_pre_empted_by_each() -> None:
+    """The call that reads 0xFE's payload starts at 7006 µs and needs 4 µs (isDataAvailable, readInt_16):
+    the alarms of 7007, 7027 and 7047 µs each take the processor for 19 µs, so the call stores the height
+    only at 7067 µs and those three scans still run height 0 (the model had counted one scan in the call
+    and run the next two with the new height)."""
+    side = _v2(SLIVERS, 9033.0)
+    scans = [(s.start_ns, s.heights) for s in side.emu.scans if 7_000_000 < s.start_ns < 7_100_000]
+    assert scans[:3] == [(7_007_000, (0,)), (7_027_000, (0,)), (7_047_000, (0,))]
+    assert scans[4] == (7_087_000, (4095,))
+
+
 # 0xF6 65535 (a 15 µs alarm), then 0xF9 246, two unknown bytes and 0xF5: the 0xF5 is read from 8014.15 µs on
 # and the alarm of 8017 µs falls inside its read
 ALARM_BEFORE_F5_DISABLES_IT = [(4369.366, "fefef6ffff"), (7959.381, "f9f60000f5")]

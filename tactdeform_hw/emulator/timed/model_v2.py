@@ -670,6 +670,7 @@ class InterruptedCallsV2:
     hazards: list[Hazard]
     scans: list[ScanRecordV2]
     _call_time_ns: int
+    _next_alarm_ns: int
     _voltages_held: bool
     _scan_of: Callable[[RegistersV2], tuple[FirmwareScanConfig, ScanShape]]
     _period_ns: Callable[[], int]
@@ -723,8 +724,11 @@ class InterruptedCallsV2:
             self._mark(self._call_time_ns, "starved", {"op": None, "at": "vTaskDelay"})
             self.stop_reading()
             return -1
-        self._scan(alarm)
-        return end + self.scans[-1].duration_ns
+        while alarm < end:  # each alarm before vTaskDelay's point (a period barely longer than a scan)
+            self._scan(alarm)
+            end += self.scans[-1].duration_ns
+            alarm = self._next_alarm_ns
+        return end
 
     def _preempt(
         self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
@@ -1270,17 +1274,23 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         # payload still awaited): the call ends the scan's duration later.  0xF6's setPeriodUs and 0xF5's
         # timerAlarmDisable come after the call's reads and are themselves points where a due alarm is
         # taken (the ties); 0xF5's alarm is disabled from then on
-        if paused:
-            inside = t < alarm <= reads_end
-        else:
-            inside = t < alarm and (alarm < end or (frequency and alarm == end))
-        if inside:
+        # (the point until which an alarm pre-empts the call, and whether one due there still does)
+        limit, tie = (reads_end, True) if paused else (end, frequency)
+        if t < alarm and (alarm < limit or (tie and alarm == limit)):
             assert clock is not None  # the alarm is before the call's end, so before its latest end
             if self._starved_after_call(clock, applied):
                 return
             # 0xF6's alarm and 0xF5's count are stored after the point where the scan took the processor
             held = {"timer_alarm_ticks": old_ticks, "hv513_num": old_hv513}
-            end += self._scan_inside(alarm, t, out.consumed, applied, before, old_pattern, held)
+            shift = 0  # the scans' time inside the call so far: the call's work is that much later
+            while True:
+                shift += self._scan_inside(alarm, t + shift, out.consumed, applied, before, old_pattern, held)
+                # the next alarm may fall inside the call too (a period barely longer than a scan): the scan
+                # has the same length (v2's does not depend on the heights), so it does not overrun either
+                alarm = self._next_alarm_ns
+                if not (alarm < limit + shift or (tie and alarm == limit + shift)):
+                    break
+            end += shift
         if frequency:  # setPeriodUs re-enables the alarm after the call's last read (and the scan it let in)
             self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
         tx = parser.take_tx()
