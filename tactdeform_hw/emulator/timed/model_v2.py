@@ -1229,14 +1229,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         self._reply_offset = None
         pending = parser.pending
         if pending == 0 and not parser.processing and not self._hv513_in_call and not parser.tx:
-            # an idle poll (most calls): nothing to read, nothing to write, the task sleeps to the next
-            # tick -- what the full path below computes for a call that consumes nothing
-            end = t + m.call_ns
-            if t < self._next_alarm_ns < end:  # the scan takes the processor before vTaskDelay
-                end = self._scan_in_idle_call(self._next_alarm_ns, end)
-                if end < 0:
-                    return
-            self._next_call_ns = self._tick_after(end)
+            self._idle_call(t)
             return
         hazards_before = len(self.hazards)
         # the registers before the call matter only to a scan that can interrupt it: one whose alarm falls
@@ -1293,7 +1286,27 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
             end += shift
         if frequency:  # setPeriodUs re-enables the alarm after the call's last read (and the scan it let in)
             self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
-        tx = parser.take_tx()
+        self._send_replies(end)
+        if paused and self._next_alarm_ns < end:
+            self._next_alarm_ns = end  # the alarm was disabled; a passed alarm fires on re-enable
+        if out.slept:
+            self._next_call_ns = self._tick_after(end)
+        else:
+            self._next_call_ns = end
+
+    def _idle_call(self, t: int) -> None:
+        """An idle poll (most calls): nothing to read, nothing to write, the task sleeps to the next tick --
+        what :meth:`_main_call`'s full path computes for a call that consumes nothing."""
+        end = t + self.model.call_ns
+        if t < self._next_alarm_ns < end:  # the scan takes the processor before vTaskDelay
+            end = self._scan_in_idle_call(self._next_alarm_ns, end)
+            if end < 0:
+                return
+        self._next_call_ns = self._tick_after(end)
+
+    def _send_replies(self, end: int) -> None:
+        """The call's replies, written as it ends (through the reply link, if any)."""
+        tx = self.parser.take_tx()
         if (
             tx
             and self._reply_offset is not None
@@ -1312,12 +1325,6 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
                     (d.t_ns, d if isinstance(d, ByteBurst) else d.data)
                     for d in self.tx_link.schedule_bursts(tx, end)
                 ]
-        if paused and self._next_alarm_ns < end:
-            self._next_alarm_ns = end  # the alarm was disabled; a passed alarm fires on re-enable
-        if out.slept:
-            self._next_call_ns = self._tick_after(end)
-        else:
-            self._next_call_ns = end
 
     def _tick_after(self, t: int) -> int:
         """The first RTOS tick after ``t`` (the ticks run from boot, shifted by ``tick_phase_us``)."""
