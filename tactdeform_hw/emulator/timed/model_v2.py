@@ -8,8 +8,9 @@ boot and the RTOS ticks run from boot shifted by ``tick_phase_us``), and each sc
 :mod:`.firmware_scan`: parameters snapshotted at its start, a DAC code per channel, the mode choosing the
 waveform, no DAC write in the discharge.  The interrupt pre-empts the parser, never the reverse: a parser
 call costs its overhead plus one byte time per byte read (the timing model's assumptions), plus the
-duration of a scan whose alarm falls inside it, whatever the call does (an idle poll then sleeps from the
-scan's end; 0xF6 lets in the old alarm's scan before ``setPeriodUs`` re-arms the timer), and an alarm
+duration of each scan whose alarm falls inside it, whatever the call does (an idle poll then sleeps from
+the scans' end; 0xF6 lets in the old alarm's scan before ``setPeriodUs`` re-arms the timer, 0xF5 those due
+before its ``timerAlarmDisable``, and its detection ends with ``hv513Init``'s pin writes), and an alarm
 inside the call that copies a pattern scans the elements copied so far at their new heights and the rest
 at their old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer
 — and only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).  A
