@@ -18,11 +18,14 @@ import pytest
 from tactdeform_hw.cli import main
 from tactdeform_hw.emulator.hostbuild import find_compiler
 from tactdeform_hw.emulator.hostbuild.diff import (
+    CALL_WINDOW_US,
     PREEMPT_US,
     Comparison,
     Differ,
     ModelSideV1_2,
+    ModelSideV2,
     Observation,
+    Side,
     compare,
     diff_firmware,
 )
@@ -333,8 +336,8 @@ def test_upstream_v2_against_itself_is_exact(tmp_path: Path) -> None:
 
 
 def test_a_pulse_deep_in_a_run_of_back_to_back_scans_may_start_later_by_the_drift_allowance() -> None:
-    """Overrun scans run back to back: the host build numbers a pulse within its run (49 here), the model
-    within its scan (0); the start tolerance takes the larger number (equivalence overrun-drift)."""
+    """Overrun scans run back to back: the host build numbers a pulse within its run (49 here), the other
+    side 0 here; the start tolerance takes the larger number (equivalence overrun-drift)."""
 
     def obs(start: float, index: int) -> Observation:
         return Observation({}, b"", [(start, start + 6.6, 3, (0,), 1, index)])
@@ -343,6 +346,145 @@ def test_a_pulse_deep_in_a_run_of_back_to_back_scans_may_start_later_by_the_drif
     assert compare(obs(3966.45, 49), obs(3945.6, 0), model, False) is None
     found = compare(obs(3966.45, 0), obs(3945.6, 0), model, False)  # one scan of its own: too late
     assert found is not None and found[1] == "pulse 0 (start)"
+
+
+class _Scripted:
+    """A side showing, at each checkpoint, the state of the last script entry at or before it."""
+
+    def __init__(self, name: str, script: list[tuple[float, dict[str, object]]]) -> None:
+        self.name = name
+        self.script = script
+
+    def write(self, data: bytes, at_us: float) -> None:
+        """Nothing to run: the script is the side."""
+
+    def advance_to(self, t_us: float) -> None:
+        """Nothing to run: the script is the side."""
+
+    def observe(self, upto_us: float) -> Observation:
+        state = [st for t, st in self.script if t <= upto_us][-1]
+        return Observation(dict(state), b"", [])
+
+    def close(self) -> None:
+        """Nothing to release."""
+
+
+class _ScriptedDiffer(Differ):
+    """A differ whose two sides are scripted observations (no firmware is built)."""
+
+    def __init__(self, left: _Scripted, right: _Scripted) -> None:
+        super().__init__(Path("unused"), "v2")
+        self.scripted = (left, right)
+
+    def sides(self) -> tuple[Side, Side]:
+        return self.scripted
+
+
+def test_a_held_difference_gone_at_its_window_s_end_is_resolved_though_another_register_differs() -> None:
+    """``electrode_num`` differs at 1000 µs (a call's effects seen at its start); at the end of its window it
+    is the same on both sides and ``pulse_width`` differs instead -- a later call's own resolution, held with
+    a window of its own and gone by its end: no divergence, two call resolutions (call-resolution)."""
+    w = CALL_WINDOW_US
+    left = _Scripted(
+        "host",
+        [
+            (0, {"electrode_num": 0, "pulse_width": 0}),
+            (1000 + w, {"electrode_num": 8, "pulse_width": 0}),
+            (1000 + 2 * w, {"electrode_num": 8, "pulse_width": 5}),
+        ],
+    )
+    right = _Scripted("model", [(0, {"electrode_num": 8, "pulse_width": 5})])
+    differ = _ScriptedDiffer(left, right)
+    stream = Stream(((1000.0, b"\x00"),), 1000 + 3 * w, "scripted")
+    assert differ.first_divergence(stream) is None
+    assert differ.call_resolved == 2
+
+
+def test_a_held_difference_still_there_at_its_window_s_end_is_the_divergence() -> None:
+    """The same, but ``electrode_num`` still differs at the window's end: it is reported as first seen."""
+    w = CALL_WINDOW_US
+    left = _Scripted("host", [(0, {"electrode_num": 0, "pulse_width": 0})])
+    right = _Scripted("model", [(0, {"electrode_num": 8, "pulse_width": 5})])
+    differ = _ScriptedDiffer(left, right)
+    found = differ.first_divergence(Stream(((1000.0, b"\x00"),), 1000 + 3 * w, "scripted"))
+    assert found is not None and (found.field, found.at_us, found.left, found.right) == (
+        "electrode_num",
+        1000.0,
+        0,
+        8,
+    )
+
+
+def test_an_element_of_an_array_register_is_held_on_its_own() -> None:
+    """``stim_pattern[1]`` differs (a pattern's copy seen at its call's start); at the window's end element 1
+    is the same and element 3 differs (the next pattern's copy under way): the held one is gone."""
+    w = CALL_WINDOW_US
+    left = _Scripted(
+        "host",
+        [
+            (0, {"stim_pattern": [0, 0, 0, 0]}),
+            (1000 + w, {"stim_pattern": [3, 3, 0, 0]}),
+            (1000 + 2 * w, {"stim_pattern": [3, 3, 0, 4]}),
+        ],
+    )
+    right = _Scripted("model", [(0, {"stim_pattern": [3, 3, 0, 4]})])
+    differ = _ScriptedDiffer(left, right)
+    assert differ.first_divergence(Stream(((1000.0, b"\x00"),), 1000 + 3 * w, "scripted")) is None
+
+
+def test_a_held_difference_is_gone_once_the_firmware_holds_the_value_the_model_showed() -> None:
+    """``electrode_num`` is 0 on the firmware, 8 in the model (a call seen at its start); at the window's end
+    the firmware has 8 and the model already 16 (the next command, seen at its call's start): the first
+    call is over on both, the second is held on its own and gone by its window's end."""
+    w = CALL_WINDOW_US
+    left = _Scripted(
+        "host",
+        [(0, {"electrode_num": 0}), (1000 + w, {"electrode_num": 8}), (1000 + 2 * w, {"electrode_num": 16})],
+    )
+    right = _Scripted("model", [(0, {"electrode_num": 8}), (1000 + w, {"electrode_num": 16})])
+    differ = _ScriptedDiffer(left, right)
+    assert differ.first_divergence(Stream(((1000.0, b"\x00"),), 1000 + 3 * w, "scripted")) is None
+    assert differ.call_resolved == 2
+
+
+def test_a_later_difference_that_outlasts_its_own_window_is_the_divergence() -> None:
+    """The same, but the firmware never gets to 16: the second difference is reported as it was first seen."""
+    w = CALL_WINDOW_US
+    left = _Scripted("host", [(0, {"electrode_num": 0}), (1000 + w, {"electrode_num": 8})])
+    right = _Scripted("model", [(0, {"electrode_num": 8}), (1000 + w, {"electrode_num": 16})])
+    differ = _ScriptedDiffer(left, right)
+    found = differ.first_divergence(Stream(((1000.0, b"\x00"),), 1000 + 3 * w, "scripted"))
+    assert found is not None and (found.at_us, found.left, found.right) == (1000 + w, 8, 16)
+
+
+# 1011 bytes at once: 10, then a 39-byte run of commands repeated
+_BURST = (
+    bytes.fromhex("000100ff00ff00ff00fa")
+    + (bytes.fromhex("fffff801fe03000000020001000000ff000200ff00fe0200f5d3ff0002000100ff00ff00ff00fa") * 26)[
+        :1001
+    ]
+)
+
+
+def test_upstream_v2_a_drop_counted_when_the_model_lands_the_bytes_is_a_call_resolution() -> None:
+    """A scan of 255 channels holds the loop while a 1011-byte burst fills the queue past its 1024 bytes: the
+    firmware's serial driver drops the last byte as it arrives, the model when its next call lands the
+    bytes (after the scan); by the end of the window a pattern's copy under way differs instead, a
+    resolution of its own (the 'state rx_dropped' minimal reproduction)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = [(2051.696, "fefcfffd00"), (11634.045, "fcb4f60000fc20fdfefb01"), (12685.187, "08f8fe")]
+    stream = Stream(
+        (
+            *((t, bytes.fromhex(h)) for t, h in writes),
+            (13866.204, _BURST),
+            (14436.824, bytes.fromhex("fd02fb02")),
+        ),
+        634436.824,
+        "drop while scanning",
+    )
+    differ = Differ(tree, "v2")
+    assert differ.first_divergence(stream) is None
+    assert differ.call_resolved == 2
 
 
 def test_upstream_v1_2_a_register_mid_call_is_the_models_call_resolution() -> None:
@@ -393,6 +535,89 @@ def test_v1_2_pulses_are_numbered_by_slot_across_a_run_of_back_to_back_scans() -
     assert second[0][0] == 66469.0 and second[0][3] == (0,) and second[0][5] == 172
 
 
+# 0xFC 255, a pattern of 255 heights and 0xF6 65534 (a 15 µs alarm): one write, as the differential shrank it
+START_RUN_HEX = (
+    "fcfffe000003000300ff00ff0001009649ff00010001000000a1c4543bff00ff00020003006ba3ff0001003f130200ff"
+    "00010003000200ff00ff00ff00000000000100020003000000e9786ff442b00000ff00030058930100f90dff00ff0002"
+    "000300ff00030002000200010001000300ff00ff0002000100ff00ff0003000100ff00ff00867fff0001000300ff0002"
+    "00020000000100ff000000ff0056930300dca0000000000100ff00020003000100e92d0d29ff00f9086fa9ff00000000"
+    "00000064c8ff0002000100ff000100010003000100010001000100ff000200a0f59c400000ff000000010003000100ff"
+    "00ff00010003001aa20100f98c0000030002000100ff0000000300ff00ff00e64601000200010002000200ff000200b0"
+    "c7ff007140cb4d0200ff00010001000000ff000000e1ee0000010000000300ff00ff00010000000000ff00ff00ff0030"
+    "ca318653f10200010001000100000001000300ff00588d030078a84c98ff000300ff000100030000000200ff0085bd00"
+    "00020002000100ff0002d90300010000005993ff00ff000200ff00ff00020000000100ff0001000200ff00aa2bbcbb00"
+    "00010000000300248582830100a579733e030000000100dc49ff00000002000200ff00ff000000010000000200048203"
+    "0002000100ff0001000300000003002242eda901000000ebe30100020002000300f6feff"
+)
+
+
+# 0xF9 1, then mode 3 (stored as 2: sense pulses), 2 electrodes and 0xF6 64511 (a 15 µs alarm): every scan
+# of the two channels (32.55 µs in the model) overruns and the next starts as it returns.
+SENSE_RUN = ((2360.073, "f901"), (12448.198, "fb03fc02"), (12448.198, "f6fffb"))
+
+
+def _v2_side(writes: tuple[tuple[float, str], ...], end_us: float) -> ModelSideV2:
+    side = ModelSideV2(timer_origin_us=1010.25, hv513_count=4)
+    for at_us, data in writes:
+        side.write(bytes.fromhex(data), at_us)
+    side.advance_to(end_us)
+    return side
+
+
+def test_v2_pulses_are_numbered_by_slot_across_a_run_of_back_to_back_scans() -> None:
+    """The v2 model numbers a pulse as the v1.2 model does: by its slot within its run of back-to-back scans
+    (one slot a channel; each costs the firmware two DAAD exchanges of chip-select writes the model does not
+    count), so the start tolerance grows along the run as the firmware falls behind (overrun-drift)."""
+    side = _v2_side(SENSE_RUN, 14000.0)
+    run = [s for s in side.emu.scans if s.electrode_num == 2]
+    assert len(run) > 20
+    assert all(b.start_ns == a.end_ns for a, b in zip(run, run[1:]))
+    pulses = [p for p in side.observe(14000.0).pulses if p[0] * 1000 >= run[0].start_ns]
+    assert [p[5] for p in pulses] == list(range(len(pulses)))  # 2 slots a scan, counted from the run's start
+    assert [p[3] for p in pulses[:4]] == [(0,), (1,), (0,), (1,)]
+
+
+def test_v2_a_channel_of_zero_height_and_one_past_the_chain_keep_their_slots() -> None:
+    """255 electrodes on 32 outputs at a 15 µs alarm (0xF6 65534): channel 0 has height 0 and channels 32 to
+    254 fall off the chain, so a scan delivers far fewer pulses than it has slots; the next scan's first
+    pulse (channel 1) is numbered 255 + 1, its slot in the run, not its rank among the pulses delivered."""
+    pattern = "0000" + "0300" * 254
+    side = _v2_side(((2000.5, "fcff"), (2010.5, "fe" + pattern + "f6feff")), 12000.0)
+    pulses = side.observe(12000.0).pulses
+    scans = [s for s in side.emu.scans if s.electrode_num == 255]
+    assert len(scans) >= 2 and scans[1].start_ns == scans[0].end_ns
+    second = [p for p in pulses if p[0] * 1000 >= scans[1].start_ns]
+    assert second[0][3] == (1,) and second[0][5] == 255 + 1
+
+
+def test_v2_biphasic_scans_number_two_slots_a_channel() -> None:
+    """In mode 1 ``biPhasicPulse`` makes two pulses a channel (four DAAD exchanges): each phase has a slot."""
+    side = _v2_side(((2000.5, "fb01fc02fe03000300f6feff"),), 4000.0)
+    scans = [s for s in side.emu.scans if s.electrode_num == 2]
+    pulses = [p for p in side.observe(4000.0).pulses if p[0] * 1000 >= scans[0].start_ns]
+    assert scans[1].start_ns == scans[0].end_ns
+    slots = [(p[3][0], p[5]) for p in pulses[:6]]
+    assert slots == [(0, 0), (0, 1), (1, 2), (1, 3), (0, 4), (0, 5)]  # (channel, slot)
+
+
+def test_upstream_v2_a_long_run_of_sense_scans_falls_behind_within_its_allowance() -> None:
+    """The run above against the firmware: each scan is 0.4 µs longer there (two channels of chip-select
+    writes), so by 68448.198 µs it has delivered 42 pulses fewer, each within its slot's allowance (the
+    minimal reproduction of the 'pulses count' divergence before the model numbered by slot)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = tuple((t, bytes.fromhex(h)) for t, h in SENSE_RUN)
+    assert Differ(tree, "v2").first_divergence(Stream(writes, 68448.198, "sense run")) is None
+
+
+def test_upstream_v2_channels_past_the_chain_drift_within_the_run_allowance() -> None:
+    """255 electrodes on 32 outputs at a 15 µs alarm: the firmware's second scan starts 51 µs after the
+    model's (255 channels of 0.2 µs of chip-select writes) though only 28 pulses were delivered before it
+    (the minimal reproduction of the 'pulses start' divergence before the model numbered by slot)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((2000.5, bytes.fromhex(START_RUN_HEX)),)
+    assert Differ(tree, "v2").first_divergence(Stream(writes, 548000.5, "past the chain")) is None
+
+
 def test_upstream_v1_2_channels_past_the_chain_drift_within_the_run_allowance() -> None:
     """The stream above against the firmware: its second scan starts 103.2 µs after the model's (172
     channels of 0.6 µs of chip-select writes), within the run's allowance (equivalence overrun-drift)."""
@@ -429,6 +654,34 @@ def test_upstream_v1_2_a_long_run_of_overrunning_scans_falls_behind_within_its_a
     assert Differ(tree, "v1.2").first_divergence(Stream(writes, 54020.5, "long run")) is None
 
 
+def test_upstream_v2_a_scan_inside_a_call_that_skips_an_unknown_byte_delays_both_loops() -> None:
+    """0xF6 65534, four unknown bytes, 0xFC 2, 0xFF, 0x00: the scan inside the call that skips 0x39 delays
+    the loop by its 2.15 µs on both sides, so the overrunning scans starve it with 0x00 unread on both (the
+    model-only twin is in test_models_follow_firmware.py; the 'state rx_unread' minimal reproduction)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = tuple((2000.5, bytes.fromhex(h)) for h in ("f6feff", "d8459539", "fc02ff00"))
+    assert Differ(tree, "v2").first_divergence(Stream(writes, 5013.0, "unknown bytes")) is None
+
+
+def test_upstream_v2_a_scan_due_inside_a_frequency_call_runs_on_both_sides() -> None:
+    """The alarm inside the second 0xF6's u16 read: both sides scan before setPeriodUs and store 0xFC 141 and
+    0xF9 1 before the loop starves (the model-only twin is in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((3303.434, bytes.fromhex("f6fffd01f6b291fc8d")), (3303.434, bytes.fromhex("f901")))
+    assert Differ(tree, "v2").first_divergence(Stream(writes, 6037.0, "alarm in 0xF6")) is None
+
+
+def test_upstream_v2_a_scan_inside_an_idle_poll_delays_its_sleep_on_both_sides() -> None:
+    """The alarm of 49 001 µs inside the idle poll of the 49 000 µs tick: both sides sleep from the scan's end
+    to the 51 000 µs tick, so neither has stored 0xF9 1 at 51 000 µs (a single checkpoint: the difference
+    would last 1.7 ms, less than call-resolution's window; the model-only twin is in
+    test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((2000.5, bytes.fromhex("fc08fa8200f64b02")), (49100.0, bytes.fromhex("f901")))
+    stream = Stream(writes, 53000.0, "alarm in an idle poll")
+    assert Differ(tree, "v2").first_divergence(stream, at_us=51000.0) is None
+
+
 def test_upstream_v2_a_starved_loop_s_queue_overflows_on_both_sides() -> None:
     """Scans back to back (0xFC 32, 0xF6 28466), then 1176 bytes at once: the firmware's serial driver and
     the model both store them as they come and drop the 155 past the 1024-byte buffer (the model-only twin
@@ -440,12 +693,33 @@ def test_upstream_v2_a_starved_loop_s_queue_overflows_on_both_sides() -> None:
 
 
 def test_upstream_v2_a_scan_after_0xf5_and_a_new_frequency_starts_with_the_firmware_s() -> None:
-    """Four payload commands, 0xF5, then 0xF6 65535: the model's scan starts 3.45 µs before the firmware's
-    (hv513Init's pin writes after the detection), no longer 20.9 µs (the model-only twins are in
+    """Four payload commands, 0xF5, then 0xF6 65535: the scans start together, 0xF5's call counting
+    hv513Init's pin writes after the detection (the model-only twins are in
     test_models_follow_firmware.py)."""
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
     writes = ((2000.5, "f7d6fb01"), (2020.5, "fc04fe00008f910000cd8ef5"), (2580.973, "fc04f6fffff7"))
     stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 64630.973, "after 0xF5")
+    assert Differ(tree, "v2").first_divergence(stream) is None
+
+
+def test_upstream_v2_a_run_of_0xf5_calls_keeps_the_scans_with_the_firmware_s() -> None:
+    """Eight 0xF5 in a row, each call ending after hv513Init's 69 pin writes (3.45 µs): the next scan starts
+    with the firmware's, not 27.6 µs before it (the 'pulses start' minimal reproduction left once the
+    pulses were numbered by slot)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((2000.5, bytes.fromhex("fc04fe0100010001000100" + "f5" * 8)),)
+    assert Differ(tree, "v2").first_divergence(Stream(writes, 30000.0, "0xF5 run")) is None
+
+
+def test_upstream_v2_an_alarm_before_0xf5_disables_the_timer_runs_on_both_sides() -> None:
+    """The alarm of 8017 µs falls inside the read of an 0xF5 byte, before its timerAlarmDisable: both sides
+    scan there and re-enable the alarm 2.15 µs later, so the starving scans of 244 channels after 0xFC 244
+    find the final 0xFE read on both (the 'state rx_unread' minimal reproduction left after the main-loop
+    fix; the model-only twin is in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((4369.366, "fefef6"), (4369.366, "ffff"), (7959.381, "f9f60000f5"), (9385.218, "52fc"))
+    writes += ((9395.218, "f4fe"),)
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 12012.0, "alarm before 0xF5's disable")
     assert Differ(tree, "v2").first_divergence(stream) is None
 
 

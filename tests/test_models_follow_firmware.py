@@ -102,10 +102,20 @@ def test_v2_a_call_that_reads_a_command_with_a_payload_checks_the_queue_twice() 
 def test_v2_a_new_frequency_s_alarm_is_enabled_at_the_end_of_its_call() -> None:
     """setPeriodUs (timerAlarmDisable, timerAlarmWrite, timerAlarmEnable) runs after the u16's read, the
     call's last: with the counter already past the new 30-tick alarm, the scan starts as the call ends
-    (4040 + 2 + 1 + 2 + 2 µs), not at its start."""
+    (4043.45 + 2 + 1 + 2 + 2 µs), not at its start."""
     side = _v2(SENSED_THEN_FAST, 4400.0)
     after = [s.start_ns for s in side.emu.scans if s.start_ns >= 4040_000]
-    assert after[0] == 4047_000
+    assert after[0] == 4050_450
+
+
+def test_v2_an_f5_call_ends_after_hv513_init_s_pin_writes() -> None:
+    """stackSense() makes its 50 analogRead calls (1000 µs), then hv513Init() on the count it found: POL, LE,
+    CLK, BL and DIN, then a CLK high and low per output (5 + 2 x 32 pin writes of 0.05 µs with 4 HV513), so
+    the 0xF5 read at 3031 µs answers at 3031 + 2 + 1 + 1000 + 3.45 µs and the next call starts then."""
+    side = _v2(SENSED_THEN_FAST, 4400.0)
+    assert side.observe(4400.0).replies == bytes([4])
+    applied = [(t, int(op)) for t, op, _ in side.emu.applied]
+    assert applied[4:7] == [(3_031_000, 0xF5), (4_037_450, 0xFC), (4_043_450, 0xF6)]
 
 
 def test_v2_a_scan_of_no_channel_clocks_the_chain_only_the_first_time() -> None:
@@ -190,6 +200,89 @@ def test_v2_a_call_whose_last_read_the_alarm_falls_in_stores_what_it_read() -> N
     assert seen.state["rx_unread"] == 0
     eight = [s for s in side.emu.scans if s.electrode_num == 8]
     assert eight and {s.pulse_width for s in eight} == {63497}
+
+
+# A scan whose alarm falls inside a main-loop call pre-empts it (Timer1_Stimulate_ISR takes the processor from
+# runEtactileKit and gives it back when it returns): the call ends the scan's duration later, whatever the
+# call does -- a command applied, an unknown byte skipped, a payload awaited, nothing at all.
+
+# 0xF6 65534 (a 15 µs alarm), four unknown bytes, 0xFC 2, 0xFF and 0x00, all at 2000.5 µs
+UNKNOWN_BYTES_THEN_STARVED = [(2000.5, "f6feff"), (2000.5, "d8459539"), (2000.5, "fc02ff00")]
+
+
+def test_v2_a_scan_inside_a_call_that_skips_an_unknown_byte_delays_the_loop() -> None:
+    """The call that reads and skips 0x39 (3021.35 µs: isDataAvailable 2 µs, readInt_8 1 µs) is pre-empted
+    by the scan of no channel due at 3022 µs (2.15 µs): it ends at 3026.5 µs, so 0xFC 2's call starts then
+    and 0xFF's at 3032.5; the next call's isDataAvailable() is under way at 3037 µs, when the first scan of
+    two channels (32.55 µs against a 15 µs alarm) takes the processor for good: 0x00 is never read."""
+    side = _v2(UNKNOWN_BYTES_THEN_STARVED, 5013.0)
+    applied = [(t, int(op)) for t, op, _ in side.emu.applied]
+    assert applied == [(3_000_000, 0xF6), (3_026_500, 0xFC), (3_032_500, 0xFF)]
+    seen = side.observe(5013.0)
+    assert seen.state["rx_unread"] == 1
+    assert len(seen.replies) == 4  # 0xFF answered its two channels' readings
+
+
+# 0xF6 65023 (a 15 µs alarm), an unknown byte, 0xF6 37298 (26 µs), 141 electrodes, then 0xF9 1
+ALARM_IN_A_FREQUENCY_CALL = [(3303.434, "f6fffd01f6b291fc8d"), (3303.434, "f901")]
+
+
+def test_v2_a_scan_due_inside_a_frequency_call_runs_before_set_period() -> None:
+    """The alarm of 4022 µs falls inside the second 0xF6's read of its u16 (4020.35 to 4022.35 µs): the scan
+    runs at the call's next point, setPeriodUs's timerAlarmDisable, with the old alarm; setPeriodUs then arms
+    26 µs from that alarm (4048 µs), so 0xFC 141 (4024.5 µs, after the scan) and 0xF9 1 are stored before the
+    first scan of 141 channels starves the loop."""
+    side = _v2(ALARM_IN_A_FREQUENCY_CALL, 6037.0)
+    starts = [s.start_ns for s in side.emu.scans]
+    assert starts[:3] == [4_007_000, 4_022_000, 4_048_000]
+    applied = [(t, int(op)) for t, op, _ in side.emu.applied]
+    assert applied[1:] == [(4_015_350, 0xF6), (4_024_500, 0xFC), (4_030_500, 0xF9)]
+    assert side.observe(6037.0).state["sense_pulse_height"] == 1
+
+
+# 8 electrodes, pulse width 130 µs, 0xF6 587 (a 1703 µs alarm): the scans last 1073.85 µs, and the alarm of
+# 49 001 µs falls inside the idle poll of the 49 000 µs tick; 0xF9 1 arrives during that scan
+ALARM_IN_AN_IDLE_POLL = [(2000.5, "fc08fa8200f64b02"), (49100.0, "f901")]
+
+
+def test_v2_a_scan_inside_an_idle_poll_delays_its_sleep() -> None:
+    """The poll's isDataAvailable() (49 000 to 49 002 µs) finds nothing; the scan takes the processor at
+    vTaskDelay(1), which is called as the scan returns (50 075.85 µs) and sleeps to the 51 000 µs tick; the
+    next scan (50 704 µs) holds the processor past that tick, so 0xF9 1 is read as it returns (51 777.85
+    µs), not as the first scan returns."""
+    side = _v2(ALARM_IN_AN_IDLE_POLL, 53000.0)
+    assert any(s.start_ns == 49_001_000 and s.duration_ns == 1_073_850 for s in side.emu.scans)
+    assert side.emu.applied[-1][:2] == (51_777_850, OpcodeV2.SENSE_HEIGHT)
+
+
+# 0xF6 48662 (a 20 µs alarm), 1 electrode (a scan of 19 µs), then 0xFE and, 3.7 ms later, its two bytes: the
+# loop has 1 µs between scans
+SLIVERS = [(2000.5, "f616befc01"), (3081.22, "fe"), (6776.817, "fffc")]
+
+
+def test_v2_a_call_spanning_several_scans_is_pre_empted_by_each() -> None:
+    """The call that reads 0xFE's payload starts at 7006 µs and needs 4 µs (isDataAvailable, readInt_16):
+    the alarms of 7007, 7027 and 7047 µs each take the processor for 19 µs, so the call stores the height
+    only at 7067 µs and those three scans still run height 0 (the model had counted one scan in the call
+    and run the next two with the new height)."""
+    side = _v2(SLIVERS, 9033.0)
+    scans = [(s.start_ns, s.heights) for s in side.emu.scans if 7_000_000 < s.start_ns < 7_100_000]
+    assert scans[:3] == [(7_007_000, (0,)), (7_027_000, (0,)), (7_047_000, (0,))]
+    assert scans[4] == (7_087_000, (4095,))
+
+
+# 0xF6 65535 (a 15 µs alarm), then 0xF9 246, two unknown bytes and 0xF5: the 0xF5 is read from 8014.15 µs on
+# and the alarm of 8017 µs falls inside its read
+ALARM_BEFORE_F5_DISABLES_IT = [(4369.366, "fefef6ffff"), (7959.381, "f9f60000f5")]
+
+
+def test_v2_an_alarm_before_0xf5_disables_the_timer_pre_empts_its_call() -> None:
+    """runEtactileKit disables the stimulation alarm (timerAlarmDisable) only after reading the 0xF5 byte
+    (8014.15 + 2 + 1 µs): the alarm of 8017 µs comes first, so its scan runs then and the call, the detection
+    and hv513Init after it, ends 2.15 µs later (9022.75 µs), where the re-enabled alarm fires at once."""
+    side = _v2(ALARM_BEFORE_F5_DISABLES_IT, 9100.0)
+    starts = [s.start_ns for s in side.emu.scans if 8_000_000 < s.start_ns < 9_050_000]
+    assert starts == [8_002_000, 8_017_000, 9_022_750, 9_037_750]
 
 
 # sense height 4, pulse width 65535 then 65534, 221 electrodes, sense width 255, discharge 61, then two 0xF5:

@@ -37,6 +37,7 @@ from tactdeform_hw.emulator.hostbuild.streams import SETUP_US, Stream, edge_stre
 from tactdeform_hw.emulator.timed.link import Delivery, LinkModel
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, FirmwareBuildError, LimitError
+from tactdeform_hw.protocol.commands import STIM_MODE_BIPHASIC
 from tactdeform_hw.protocol.firmware import FIRMWARES, V1_2, V2, FirmwareSpec
 
 MODELS = tuple(FIRMWARES)
@@ -53,9 +54,10 @@ EQUIVALENCES: dict[str, str] = {
     "overrun-drift": "when scans overrun (the next alarm is due before a scan returns), the firmware runs "
     "them back to back and the chip-select writes the model does not count (see pulse-width) accumulate from "
     "scan to scan instead of being reset by the next alarm: on the host build a pulse is numbered within "
-    "its run of back-to-back scans, in the v1.2 model by its slot within its run (every pulse the scans "
+    "its run of back-to-back scans, in the models by its slot within its run (every pulse the scans "
     "make counts, those of channels past the chain's outputs included: their SPI exchanges cost the same "
-    "writes, 0.6 us a channel), and the start tolerance (n + 1) x pulse_tolerance_us takes the larger "
+    "writes, 0.6 us a channel on v1.2; on v2 a channel has a slot per phase, 0.2 us each, those of zero "
+    "height included), and the start tolerance (n + 1) x pulse_tolerance_us takes the larger "
     "of the two sides' numbers; a run of thousands of scans falls behind by more than PULSE_MARGIN_US, so "
     "a pulse is required of the other side only once the checkpoint is past its end by its own allowance "
     "(n + 2) x pulse_tolerance_us + PREEMPT_US, if that is more than the margin",
@@ -76,7 +78,11 @@ EQUIVALENCES: dict[str, str] = {
     "logged reply) at the call's start, the firmware as its code reads and stores: a state or reply "
     "difference seen at a checkpoint that is gone by CALL_WINDOW_US (the longest parser call) later, with "
     "no difference in between outlasting it, is this resolution (the report counts these streams); one "
-    "still there then is reported as it was first seen",
+    "still there then is reported as it was first seen (gone: that register, or that element of an "
+    "array, or the replies, the same on both sides, or the firmware's register at the value the model "
+    "showed: the call is over on the firmware too; another difference then is a later call's, held "
+    "with a window of its own; the model also lands arrived bytes, and counts those the full queue "
+    "drops, at its next call)",
     "registers-in-common": "only registers both sides hold are compared (the host build's receive-queue "
     "counters and the model's command_in_progress have no counterpart)",
 }
@@ -387,14 +393,33 @@ class ModelSideV2(ModelSide):
         self._got += self.emu.read_tx()
         return bytes(self._got)
 
+    def _numbered(self, upto_us: float) -> list[Pulse]:
+        """The delivered pulses numbered by their slot within their run of back-to-back scans (see
+        :meth:`_pulses`)."""
+        return sorted(self._pulses(upto_us))
+
     def _pulses(self, limit_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
+        """The pulses of a non-zero code ended by ``limit_us``, each numbered by its slot within its run of
+        back-to-back scans (a scan that starts at the previous one's end continues the run).  Every pulse
+        the scans make has a slot, those of zero height and of channels past the chain's outputs included:
+        they deliver nothing, but the firmware's ``DAAD`` calls for them cost the same chip-select writes
+        (two exchanges a slot, 0.2 µs on the host build: see EQUIVALENCES["overrun-drift"]).  A channel
+        has one slot per phase: two in mode 1 (``biPhasicPulse``), one otherwise."""
         out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
+        base, prev_end, prev_slots = 0, -1, 0
         for scan in self.emu.scans:  # the model starts its timer at timer_start_us itself, as v1.2's
+            base = base + prev_slots if scan.start_ns == prev_end else 0
+            phases = 2 if scan.stim_mode == STIM_MODE_BIPHASIC else 1
+            prev_end, prev_slots = scan.end_ns, scan.electrode_num * phases
+            seen: dict[int, int] = {}
             for channel, onset_ns, code, width_ns, pol in scan.pulses:  # as delivered() reads them
+                phase = seen.get(channel, 0)
+                seen[channel] = phase + 1
                 t = (scan.start_ns + onset_ns) / 1000
                 end = t + width_ns / 1000
                 if code > 0 and end <= limit_us:
-                    out.append((t, end, code, (channel,), int(bool(pol)), scan.index))
+                    slot = base + channel * phases + min(phase, phases - 1)
+                    out.append((t, end, code, (channel,), int(bool(pol)), slot))
         return out
 
 
@@ -644,15 +669,19 @@ class Differ:
                 return None
             found = compare(seen_left, seen_right, self.cmp, readback, cp)
             in_call = found is not None and found[0] in ("state", "replies")
-            if held is not None and (not in_call or cp >= held_until):
-                if in_call:  # still different once the longest parser call is over: a divergence
-                    return held
-                self.call_resolved += 1  # see EQUIVALENCES["call-resolution"]
-                held = None
+            d: Divergence | None = None
             if found is not None:
                 kind, fld, a, b, t = found
                 at = t if t is not None else cp
                 d = Divergence(kind, fld, at, prev, a, b, _written_by(stream, at))
+            if held is not None and (not in_call or cp >= held_until):
+                if in_call and _still_differs(held, seen_left, seen_right, self.cmp, readback):
+                    return held  # still different once the longest parser call is over: a divergence
+                # gone (another register or element differing now is a difference of its own: a later call's
+                # effects, with a window of its own)
+                self.call_resolved += 1  # see EQUIVALENCES["call-resolution"]
+                held = None
+            if d is not None:
                 if not in_call or self.cmp.exact or at_us is not None:
                     return d
                 if held is None:
@@ -676,6 +705,27 @@ class Differ:
             else:
                 lo = mid
         return dataclasses.replace(best, at_us=hi, since_us=lo)
+
+
+def _still_differs(
+    held: Divergence, left: Observation, right: Observation, cmp: Comparison, readback: bool
+) -> bool:
+    """Whether the state or reply difference ``held`` (its register, or its element of an array register;
+    the replies) is still there in these observations: a register is no longer different once both sides
+    agree or once the firmware (``left``) holds the value the model showed when it was held -- the call
+    is over on the firmware too, and what differs now is a later call's (the model at its start)."""
+    if held.kind == "replies":
+        if cmp.exact or not readback:
+            return left.replies != right.replies
+        return len(left.replies) != len(right.replies)
+    key, _, index = held.field.partition("[")
+    a, b = left.state.get(key), right.state.get(key)
+    if index:
+        i = int(index.rstrip("]"))
+        if not (isinstance(a, list) and isinstance(b, list) and i < min(len(a), len(b))):
+            return True
+        a, b = a[i], b[i]
+    return not (_same_number(key, a, b, cmp.exact) or _same_number(key, a, held.right, cmp.exact))
 
 
 def _written_by(stream: Stream, t_us: float) -> bytes:

@@ -7,7 +7,10 @@ fires when the alarm is re-enabled; as on v1.2, the stimulation timer starts ``t
 boot and the RTOS ticks run from boot shifted by ``tick_phase_us``), and each scan is the v2 interrupt of
 :mod:`.firmware_scan`: parameters snapshotted at its start, a DAC code per channel, the mode choosing the
 waveform, no DAC write in the discharge.  The interrupt pre-empts the parser, never the reverse: a parser
-call costs its overhead plus one byte time per byte read (the timing model's assumptions), and an alarm
+call costs its overhead plus one byte time per byte read (the timing model's assumptions), plus the
+duration of each scan whose alarm falls inside it, whatever the call does (an idle poll then sleeps from
+the scans' end; 0xF6 lets in the old alarm's scan before ``setPeriodUs`` re-arms the timer, 0xF5 those due
+before its ``timerAlarmDisable``, and its detection ends with ``hv513Init``'s pin writes), and an alarm
 inside the call that copies a pattern scans the elements copied so far at their new heights and the rest
 at their old ones (a :data:`~.hazards.HazardKind.TORN_PATTERN`; v2's window is the copy, not the transfer
 — and only in modes 0 and 1: a scan in mode 2 uses no height of the pattern, so it cannot be torn).  A
@@ -79,6 +82,7 @@ from tactdeform_hw.emulator.timed.link import (
     next_key,
     reply_link,
 )
+from tactdeform_hw.emulator.timed.model_v1_2 import hv513_count_ns
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
@@ -496,7 +500,9 @@ class MainLoopRunsV2:
         if parser.pending or parser.processing or self._hv513_in_call or parser.tx or self._frozen:
             return False
         heap = self._delivery_heap
-        last = min(alarm - 1, target, heap[0][0] - 1 if heap else target)  # the latest poll run here
+        # the latest poll run here: over by the alarm (one the alarm falls into is _main_call's), by
+        # ``target`` and before the next arrival
+        last = min(alarm - self.model.call_ns, target, heap[0][0] - 1 if heap else target)
         if t > last:
             return False  # a delivery lands at this call
         call_ns = self.model.call_ns
@@ -665,6 +671,7 @@ class InterruptedCallsV2:
     hazards: list[Hazard]
     scans: list[ScanRecordV2]
     _call_time_ns: int
+    _next_alarm_ns: int
     _voltages_held: bool
     _scan_of: Callable[[RegistersV2], tuple[FirmwareScanConfig, ScanShape]]
     _period_ns: Callable[[], int]
@@ -708,6 +715,21 @@ class InterruptedCallsV2:
         self._scan(alarm)
         self._mark(self._call_time_ns, "starved", {"op": cut.op, "at": cut.point.value})
         self.stop_reading()
+
+    def _scan_in_idle_call(self, alarm: int, end: int) -> int:
+        """The alarm fell inside an idle poll's ``Serial.available()``: the scan takes the processor at the
+        next point, ``vTaskDelay``'s, so the task sleeps from the scan's end (the end returned).  -1 when
+        that scan overruns: the loop never gets the processor back (as :meth:`_starved_after_call`)."""
+        if self._overruns():
+            self._scan(alarm)
+            self._mark(self._call_time_ns, "starved", {"op": None, "at": "vTaskDelay"})
+            self.stop_reading()
+            return -1
+        while alarm < end:  # each alarm before vTaskDelay's point (a period barely longer than a scan)
+            self._scan(alarm)
+            end += self.scans[-1].duration_ns
+            alarm = self._next_alarm_ns
+        return end
 
     def _preempt(
         self, alarm: int, t: int, consumed: int, op: int, before: dict[str, Any], old: list[int]
@@ -753,7 +775,34 @@ class InterruptedCallsV2:
         regs.stim_pattern[:] = new
         return duration
 
-    def _starved_after_call(self, clock: _ReadClock, op: int) -> bool:
+    def _scan_inside(
+        self,
+        alarm: int,
+        t: int,
+        consumed: int,
+        op: int | None,
+        before: dict[str, Any],
+        old: list[int],
+        held: dict[str, int],
+    ) -> int:
+        """The scan whose alarm fell inside the call at ``t``: it sees the registers as the firmware has
+        them at the alarm (:meth:`_preempt` for a call that applied ``op``; ``held``: registers the call
+        stores only after the point where the scan took the processor, at their values before it).
+        Returns the scan's duration, by which the call finishes later."""
+        if op is None:  # nothing stored: the registers are those before the call
+            self._scan(alarm)
+            return self.scans[-1].duration_ns
+        regs = self.parser.regs
+        after = {f: getattr(regs, f) for f in held}
+        for f, v in held.items():
+            setattr(regs, f, v)
+        try:
+            return self._preempt(alarm, t, consumed, op, before, old)
+        finally:
+            for f, v in after.items():
+                setattr(regs, f, v)
+
+    def _starved_after_call(self, clock: _ReadClock, op: int | None) -> bool:
         """The alarm fell inside the call's last read (no read point at or after it, ``clock.asked``
         False): the firmware stores what it read and takes the scan at its next read point, the next
         call's first.  True when that scan, of the registers the call stored, overruns: the loop is
@@ -1181,9 +1230,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         self._reply_offset = None
         pending = parser.pending
         if pending == 0 and not parser.processing and not self._hv513_in_call and not parser.tx:
-            # an idle poll (most calls): nothing to read, nothing to write, the task sleeps to the next
-            # tick -- what the full path below computes for a call that consumes nothing
-            self._next_call_ns = self._tick_after(t + m.call_ns)
+            self._idle_call(t)
             return
         hazards_before = len(self.hazards)
         # the registers before the call matter only to a scan that can interrupt it: one whose alarm falls
@@ -1191,7 +1238,8 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         latest_end = t + 2 * m.call_ns + pending * m.byte_ns + m.hv513_detect_ns
         before: dict[str, Any] = {}
         old_pattern: list[int] = []
-        alarm = self._next_alarm_ns
+        old_ticks, old_hv513 = regs.timer_alarm_ticks, regs.hv513_num
+        alarm = self._next_alarm_ns  # armed when the call starts (0xF6 re-arms it only at the call's end)
         clock: _ReadClock | None = None
         if t < alarm < latest_end:
             before = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
@@ -1206,26 +1254,60 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
                 # the cut command and every byte queued behind it never take effect
                 self._loss(t, 1 + int(h.detail["discarded"]), self._host_of(h.offset), "command_timeout")
         # call_ns per Serial.available(): runEtactileKit checks again for the payload of a byte just read
-        cost = m.call_ns * parser.checks + out.consumed * m.byte_ns
+        reads_end = t + m.call_ns * parser.checks + out.consumed * m.byte_ns
         sensed = self._hv513_in_call
-        if sensed:
-            cost += m.hv513_detect_ns
-        # while 0xF5 senses the stack the table says whether the stimulation timer is stopped (v2: it is,
-        # so no alarm interrupts that call; one due meanwhile fires when the timer is re-enabled)
+        # stackSense(): the detection, then hv513Init() on the count it found.  While it senses the stack
+        # the table says whether the stimulation timer is stopped (v2: from the timerAlarmDisable after
+        # the byte's read, so no alarm interrupts the detection; one due meanwhile fires at the re-enable)
+        end = reads_end + (hv513_count_ns(m, regs.hv513_num) if sensed else 0)
         paused = sensed and self.firmware.hv513_pauses_timer
         self._hv513_in_call = False
-        end = t + cost
         applied = self._applied_in_call
-        if applied == OpcodeV2.FREQUENCY:  # setPeriodUs re-enables the alarm after the call's last read
-            self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
-        alarm = self._next_alarm_ns
-        if not paused and applied is not None and applied != OpcodeV2.FREQUENCY and t < alarm < end:
+        frequency = applied == OpcodeV2.FREQUENCY
+        # an alarm inside the call pre-empts it, whatever the call did (a command applied, a byte skipped, a
+        # payload still awaited): the call ends the scan's duration later.  0xF6's setPeriodUs and 0xF5's
+        # timerAlarmDisable come after the call's reads and are themselves points where a due alarm is
+        # taken (the ties); 0xF5's alarm is disabled from then on
+        # (the point until which an alarm pre-empts the call, and whether one due there still does)
+        limit, tie = (reads_end, True) if paused else (end, frequency)
+        if t < alarm and (alarm < limit or (tie and alarm == limit)):
             assert clock is not None  # the alarm is before the call's end, so before its latest end
             if self._starved_after_call(clock, applied):
                 return
-            # a scan that leaves the loop time: it sees the registers as the call had them at the alarm
-            end += self._preempt(alarm, t, out.consumed, applied, before, old_pattern)
-        tx = parser.take_tx()
+            # 0xF6's alarm and 0xF5's count are stored after the point where the scan took the processor
+            held = {"timer_alarm_ticks": old_ticks, "hv513_num": old_hv513}
+            shift = 0  # the scans' time inside the call so far: the call's work is that much later
+            while True:
+                shift += self._scan_inside(alarm, t + shift, out.consumed, applied, before, old_pattern, held)
+                # the next alarm may fall inside the call too (a period barely longer than a scan): the scan
+                # has the same length (v2's does not depend on the heights), so it does not overrun either
+                alarm = self._next_alarm_ns
+                if not (alarm < limit + shift or (tie and alarm == limit + shift)):
+                    break
+            end += shift
+        if frequency:  # setPeriodUs re-enables the alarm after the call's last read (and the scan it let in)
+            self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
+        self._send_replies(end)
+        if paused and self._next_alarm_ns < end:
+            self._next_alarm_ns = end  # the alarm was disabled; a passed alarm fires on re-enable
+        if out.slept:
+            self._next_call_ns = self._tick_after(end)
+        else:
+            self._next_call_ns = end
+
+    def _idle_call(self, t: int) -> None:
+        """An idle poll (most calls): nothing to read, nothing to write, the task sleeps to the next tick --
+        what :meth:`_main_call`'s full path computes for a call that consumes nothing."""
+        end = t + self.model.call_ns
+        if t < self._next_alarm_ns < end:  # the scan takes the processor before vTaskDelay
+            end = self._scan_in_idle_call(self._next_alarm_ns, end)
+            if end < 0:
+                return
+        self._next_call_ns = self._tick_after(end)
+
+    def _send_replies(self, end: int) -> None:
+        """The call's replies, written as it ends (through the reply link, if any)."""
+        tx = self.parser.take_tx()
         if (
             tx
             and self._reply_offset is not None
@@ -1244,12 +1326,6 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
                     (d.t_ns, d if isinstance(d, ByteBurst) else d.data)
                     for d in self.tx_link.schedule_bursts(tx, end)
                 ]
-        if paused and self._next_alarm_ns < end:
-            self._next_alarm_ns = end  # the alarm was disabled; a passed alarm fires on re-enable
-        if out.slept:
-            self._next_call_ns = self._tick_after(end)
-        else:
-            self._next_call_ns = end
 
     def _tick_after(self, t: int) -> int:
         """The first RTOS tick after ``t`` (the ticks run from boot, shifted by ``tick_phase_us``)."""
