@@ -342,7 +342,7 @@ def test_guardian_switches_off_when_the_owner_dies_without_running_code(board: B
     t0 = time.monotonic()
     if how == "SIGKILL":
         os.kill(proc.pid, signal.SIGKILL)
-    assert board.watch.wait(False, WAIT_S), board.watch.state()
+    assert board.watch.wait(False, WAIT_S), _still_on(board, proc, guardian_pid)
     assert board.watch.safe_since is not None
     if how == "SIGKILL":  # a loose bound; tools/stop_latency.py measures the real figure
         assert board.watch.safe_since - t0 < 1.0
@@ -359,10 +359,25 @@ def test_guardian_survives_the_terminal_signals_that_kill_its_owner(board: Board
     guardian_pid = int(proc.stdout.readline())  # type: ignore[union-attr]
     assert board.watch.wait(True, WAIT_S)
     os.killpg(proc.pid, signal.SIGHUP)  # the owner has no handler: it dies of it, running no code
-    assert board.watch.wait(False, WAIT_S), board.watch.state()
+    assert board.watch.wait(False, WAIT_S), _still_on(board, proc, guardian_pid)
     proc.communicate(timeout=WAIT_S)
     assert board.wait_free()
     assert _gone(guardian_pid)  # done and gone
+
+
+def _still_on(board: Board, proc: subprocess.Popen[str], guardian_pid: int) -> str:
+    """What a failed stop leaves to read: the board's state, the bytes it took in, and what the owner and
+    its guardian wrote on stderr (the guardian is killed first: it holds the same pipe)."""
+    bytes_in = board.watch.bytes_in
+    try:
+        os.kill(guardian_pid, signal.SIGKILL)
+    except OSError:
+        pass
+    try:
+        _, err = proc.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        err = "(stderr still open after 10 s)"
+    return f"{board.watch.state()}; {bytes_in} bytes in; stderr:\n{err}"
 
 
 def _gone(pid: int) -> bool:
