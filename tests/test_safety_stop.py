@@ -321,8 +321,9 @@ def test_a_stop_never_glues_its_line_onto_an_unfinished_progress_line(
 
 
 OWNER = """
-import os, sys, time
+import os, signal, sys, time
 from tactdeform_hw.device import StimConfig, open_device
+signal.signal(signal.SIGHUP, signal.SIG_DFL)  # a hang-up kills it, even under nohup (SIG_IGN inherited)
 dev = open_device(sys.argv[1])
 dev.configure(StimConfig(current_ua=1000))
 dev.send_pattern([1, 2, 0, 0] * 8)
