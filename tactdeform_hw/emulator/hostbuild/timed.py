@@ -261,6 +261,7 @@ class HostBuildTimedModel:
                 host.watch_at_isr(name)
         self._torn = None
         self._tx_cursor = (0, 0)  # a fresh copy's reply log (bytes on the link still arrive)
+        self._drops_read = 0  # the fresh copy's queue drops handed to the torn-scan finder
         self._landed.clear()
         self._samples_seen = 0
         self._scan_regs.clear()
@@ -363,9 +364,12 @@ class HostBuildTimedModel:
                 offset, data = self._landed.pop(0)
                 arrived -= len(data)
                 end = offset + len(data)
-                cut = [
-                    (d.host_offset, d.host_offset + d.count) for d in drops if offset <= d.host_offset < end
-                ]
+                # the queue drops bytes as they land, in the host's order: one pass over the drops in all
+                cut = []
+                while self._drops_read < len(drops) and drops[self._drops_read].host_offset < end:
+                    d = drops[self._drops_read]
+                    cut.append((d.host_offset, d.host_offset + d.count))
+                    self._drops_read += 1
                 kept = (
                     data
                     if not cut
