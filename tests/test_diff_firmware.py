@@ -764,3 +764,31 @@ def test_upstream_v1_2_an_interrupted_0xf5_matches_the_model(case: str) -> None:
     writes, end_us = UPSTREAM_V1_2_F5_CASES[case]
     stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), end_us, case)
     assert Differ(tree, "v1.2").first_divergence(stream) is None
+
+
+UPSTREAM_V1_2_MAIN_LOOP_CASES = {
+    # the 100 000-stream run's first `pulses start` (random seed 619, minimal): 4 electrodes, sense width 255,
+    # discharge 254 (2 ms scans), one command a tick; at the 21 000 us tick 0xF9 1's last Serial.available()
+    # check runs across the alarm at 21 010.25 us, so vTaskDelay(1) is called after the scan and the next
+    # command is read at 24 000 us, not as the scan returns: the scan at 31 010.25 us has the old sense
+    # height 0 on both sides (the model had had the next one, 4)
+    "alarm inside the last check, seed 619": (
+        (
+            (4127.656, "fc8df7fe"),
+            (4388.984, "fc01f60000f802"),
+            (4438.984, "fafffff5f8fffd24"),
+            (4448.984, "f900fb0100fc04f902f901f900fb00fc04f901f900fb0100fc04f902f901fb0100fc04f900f901"),
+        ),
+        45000.0,
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(UPSTREAM_V1_2_MAIN_LOOP_CASES))
+def test_upstream_v1_2_main_loop_around_a_scan_matches_the_model(case: str) -> None:
+    """runEtactileKit()'s calls around a scan, on the firmware and in the model (the model-only twins are
+    in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V1_2")
+    writes, end_us = UPSTREAM_V1_2_MAIN_LOOP_CASES[case]
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), end_us, case)
+    assert Differ(tree, "v1.2").first_divergence(stream) is None

@@ -374,3 +374,26 @@ def test_v1_2_a_pattern_call_reads_the_bytes_that_arrive_while_it_reads() -> Non
     written = [ch.written_us for ch in emu.commands[-1].channels]
     assert written[:18] == [71_006.0 + 3 * j for j in range(18)]
     assert written[18:] == [72_003.0 + 3 * j for j in range(14)]
+
+
+# 4 electrodes, sense width 255, discharge 254 (a scan of 2.04 ms); at the tick at 11 000 us an unknown byte,
+# then 0xF9 1 and 0xF9 2 wait: the call for 0xF9 1 starts at 11 003 us, its last read ends at 11 009 us and
+# the payload loop's last Serial.available() check runs to 11 011 us, across the alarm at 11 010.25 us.
+CHECK_AT_THE_ALARM = [(2000.5, "fc04f8fff7fe"), (10500.5, "04f901f902")]
+
+
+def test_v1_2_a_scan_inside_the_last_check_delays_the_call_s_sleep() -> None:
+    """runEtactileKit()'s payload loop checks isDataAvailable() once more after the command's last byte and
+    only then calls vTaskDelay(1): the alarm inside that check runs its scan (to 13 052.3 us) first, so
+    vTaskDelay is called after the scan and the loop sleeps to the tick at 14 000 us.  Had vTaskDelay come
+    before the scan, its tick (12 000 us) would fall inside it and the loop would read 0xF9 2 as the scan
+    returns."""
+    side = _v1_2(CHECK_AT_THE_ALARM, 13_900.0)
+    seen = side.observe(13_900.0)
+    assert (seen.state["sense_pulse_height"], seen.state["rx_unread"]) == (4, 2)
+    assert [(r.start_ns, r.duration_ns) for r in side.emu.runs if r.start_ns > 11_000_000][:1] == [
+        (11_010_250, 2_042_050)
+    ]
+    side.advance_to(14_010.0)
+    seen = side.observe(14_010.0)
+    assert (seen.state["sense_pulse_height"], seen.state["rx_unread"]) == (8, 0)

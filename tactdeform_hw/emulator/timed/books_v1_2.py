@@ -73,6 +73,9 @@ class MainLoop:
     init_edges: int | None = None  # an interrupted hv513Init(): the CLK rising edges it has made so far
     call_lead: bool = True  # the interrupted call began by reading a command byte (see call_reads_ns)
     checking: bool = False  # ``call`` goes on at its payload loop's next Serial.available() check
+    # a scan pre-empted a call's last Serial.available() check: this much of the check is left when the loop
+    # resumes, then vTaskDelay(1) (its tick counted from there, after the scan)
+    check_left_ns: int | None = None
     busy_from: int = -1  # the scan in progress: the main loop does not run inside it
     busy_until: int = -1
     stuck_reported: bool = False  # spinning on a half u16: reported once, from stuck_at

@@ -471,7 +471,24 @@ class CallEnds:
             fw.checking = True
             fw.main_next = end
         else:  # the payload loop's last check (Serial.available()), then vTaskDelay(1)
-            fw.main_next = self._tick_after(end + self.model.call_ns)
+            self._last_check(end)
+
+    def _last_check(self, t: int) -> None:
+        """The payload loop's last ``Serial.available()`` check from ``t`` finds nothing to read, then
+        runEtactileKit() calls ``vTaskDelay(1)``: the loop sleeps to the next RTOS tick after the check.  An
+        alarm due before the check returns pre-empts it, so ``vTaskDelay`` is called only after the scan,
+        with what was left of the check, and the tick the loop sleeps to is the one after that -- not
+        the tick inside the scan the check's own end would give, which would let the loop read again as
+        the scan returns (the host build takes the interrupt at ``vTaskDelay``'s own call, after the
+        check: its scan starts that much later, so it calls ``vTaskDelay`` at the same moment)."""
+        fw = self.fw
+        check_end = t + self.model.call_ns
+        ta = self.next_alarm
+        if ta <= check_end:
+            fw.check_left_ns = check_end - int(ta)
+            fw.main_next = ta  # the scan at ta pushes this to its end
+        else:
+            fw.main_next = self._tick_after(check_end)
 
     def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
         self.fw.call = (cpu, k)
@@ -676,6 +693,7 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
         """The main loop hangs: nothing is read any more (the queue fills, the scans go on) until a reset."""
         self.fw.call = None
         self.fw.checking = False
+        self.fw.check_left_ns = None
         self.fw.held = b""
         self.fw.main_next = None
         self.fw.main_wait = _WAIT_LOCKED
@@ -832,6 +850,10 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
         p = self.parser
         buf = self.queue.buf
         cpu0, k0 = fw.call if fw.call is not None else (0, 0)
+        if fw.check_left_ns is not None:  # the rest of a check a scan pre-empted, then vTaskDelay(1)
+            fw.main_next = self._tick_after(tc + fw.check_left_ns)
+            fw.check_left_ns = None
+            return
         checking, fw.checking = fw.checking, False
         if checking and p.cmd is None:  # a read command's last check, after the scan that came first
             fw.call = None
@@ -849,7 +871,7 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
                 self.fw.main_wait = _WAIT_LOCKED
             elif checking and outcome is CallResult.PROGRESS:
                 # the payload loop's check found nothing: it costs its Serial.available(), then vTaskDelay(1)
-                self.fw.main_next = self._tick_after(tc + m.call_ns)
+                self._last_check(tc)
             elif outcome is CallResult.STUCK_U16:
                 done = call_reads_ns(m, lead, unit, k0)
                 self.fw.call_lead = lead
