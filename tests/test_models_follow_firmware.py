@@ -384,7 +384,7 @@ CHECK_AT_THE_ALARM = [(2000.5, "fc04f8fff7fe"), (10500.5, "04f901f902")]
 
 def test_v1_2_a_scan_inside_the_last_check_delays_the_call_s_sleep() -> None:
     """runEtactileKit()'s payload loop checks isDataAvailable() once more after the command's last byte and
-    only then calls vTaskDelay(1): the alarm inside that check runs its scan (to 13 052.3 us) first, so
+    only then calls vTaskDelay(1): the alarm inside that check runs its scan (to 13 054.7 us) first, so
     vTaskDelay is called after the scan and the loop sleeps to the tick at 14 000 us.  Had vTaskDelay come
     before the scan, its tick (12 000 us) would fall inside it and the loop would read 0xF9 2 as the scan
     returns."""
@@ -392,8 +392,34 @@ def test_v1_2_a_scan_inside_the_last_check_delays_the_call_s_sleep() -> None:
     seen = side.observe(13_900.0)
     assert (seen.state["sense_pulse_height"], seen.state["rx_unread"]) == (4, 2)
     assert [(r.start_ns, r.duration_ns) for r in side.emu.runs if r.start_ns > 11_000_000][:1] == [
-        (11_010_250, 2_042_050)
+        (11_010_250, 2_044_450)
     ]
     side.advance_to(14_010.0)
     seen = side.observe(14_010.0)
     assert (seen.state["sense_pulse_height"], seen.state["rx_unread"]) == (8, 0)
+
+
+def test_v1_2_the_differential_s_model_costs_chip_selects_as_the_host_build() -> None:
+    """DAAD() lowers and raises DA_CS and AD_CS around its SPI exchange: four GPIO writes the host build's
+    shim costs (0.05 us each) and the model's default reading counts inside the 6.6 us exchange.  The
+    differential's model side takes the shim's reading: with 0xF6 11402 (an 87 us period) a scan of 4
+    sense pulses is 88.45 us (3 DAAD calls a channel, 0.6 us), longer than the period, so the scans run
+    back to back and the loop never reads the 0xF7 22 that waits (86.05 us under the default reading: the
+    loop runs between scans and stores it)."""
+    writes = [(2000.5, "f68a2c"), (2000.5, "fd"), (2000.5, "02fc04f716")]
+    side = _v1_2(writes, 8489.0)
+    assert side.emu.model.cs_writes_costed
+    four = [r for r in side.emu.runs if r.template.duration_ns > 80_000]
+    assert four[0].duration_ns == 88_450 and four[0].starved
+    assert side.observe(8489.0).state["discharge_time"] == 0
+
+    class DefaultReading(ModelSideV1_2):
+        readings = {}
+
+    default = DefaultReading(timer_origin_us=TIMER_ORIGIN_US, hv513_count=4)
+    for at_us, data in writes:
+        default.write(bytes.fromhex(data), at_us)
+    default.advance_to(8489.0)
+    assert not default.emu.model.cs_writes_costed
+    assert [r.duration_ns for r in default.emu.runs if r.duration_ns > 80_000][0] == 86_050
+    assert default.observe(8489.0).state["discharge_time"] == 22
