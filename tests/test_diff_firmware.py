@@ -775,6 +775,24 @@ UPSTREAM_V1_2_MAIN_LOOP_CASES = {
         ((2000.5, "f68a2c"), (2000.5, "fd"), (2000.5, "02fc04f716")),
         8489.0,
     ),
+    # 125 x 0xF7 254 fill the receive queue to 250; 8 bytes arrive at 3002.5 us, while the call at the 3000 us
+    # tick reads 0xF7 (its 254 not yet): one is lost on both sides
+    "a byte arriving during a call": (((2000.5, "f7fe" * 125), (3002.5, "00" * 8)), 6000.0),
+    # the 100 000-stream run's first `state rx_unread` (random seed 422, minimal): 12 bytes arrive at
+    # 6002.839 us while the call at the 6000 us tick has read 0xFA but not its u16
+    "a byte arriving during a call, seed 422": (
+        (
+            (
+                2000.5,
+                "f60200f5f7fefa91c7f801"
+                + "f60200f5f7fefa91fe0200f5f7fefa91c7f801"
+                + "f60200f5f7fefa91c7f801" * 20
+                + "f602",
+            ),
+            (6002.839, "8f28f4fb025629110818a1cb"),
+        ),
+        8100.0,
+    ),
     # the 100 000-stream run's first `pulses start` (random seed 619, minimal): 4 electrodes, sense width 255,
     # discharge 254 (2 ms scans), one command a tick; at the 21 000 us tick 0xF9 1's last Serial.available()
     # check runs across the alarm at 21 010.25 us, so vTaskDelay(1) is called after the scan and the next
@@ -793,9 +811,9 @@ UPSTREAM_V1_2_MAIN_LOOP_CASES = {
 
 
 @pytest.mark.parametrize("case", list(UPSTREAM_V1_2_MAIN_LOOP_CASES))
-def test_upstream_v1_2_main_loop_around_a_scan_matches_the_model(case: str) -> None:
-    """runEtactileKit()'s calls around a scan, on the firmware and in the model (the model-only twins are
-    in test_models_follow_firmware.py)."""
+def test_upstream_v1_2_main_loop_matches_the_model(case: str) -> None:
+    """runEtactileKit()'s calls around a scan, the scans' own length and the receive queue while a call
+    reads, on the firmware and in the model (the model-only twins are in test_models_follow_firmware.py)."""
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V1_2")
     writes, end_us = UPSTREAM_V1_2_MAIN_LOOP_CASES[case]
     stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), end_us, case)

@@ -423,3 +423,15 @@ def test_v1_2_the_differential_s_model_costs_chip_selects_as_the_host_build() ->
     assert not default.emu.model.cs_writes_costed
     assert [r.duration_ns for r in default.emu.runs if r.duration_ns > 80_000][0] == 86_050
     assert default.observe(8489.0).state["discharge_time"] == 22
+
+
+def test_v1_2_a_byte_arriving_during_a_call_finds_the_bytes_it_has_not_read_yet() -> None:
+    """runEtactileKit() reads a command and its payload one Serial.read() at a time: 125 x 0xF7 254 fill
+    the 256-byte receive queue to 250; the call at the 3000 us tick reads 0xF7 from 3002 us and 254 from
+    3005 us, so 8 bytes arriving at 3002.5 us find 249 waiting (the model had taken both bytes at the
+    call's start: 248) and the last one is lost."""
+    side = _v1_2([(2000.5, "f7fe" * 125), (3002.5, "00" * 8)], 3020.0)
+    assert [(lo.time_us, lo.count, lo.reason) for lo in side.emu.losses] == [(3002.5, 1, "queue_full")]
+    assert side.observe(3020.0).state["rx_unread"] == 255
+    early = _v1_2([(2000.5, "f7fe" * 125), (3001.5, "00" * 8)], 3020.0)  # before 0xF7's read: 2 lost
+    assert [(lo.time_us, lo.count) for lo in early.emu.losses] == [(3001.5, 2)]

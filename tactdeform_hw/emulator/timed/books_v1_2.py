@@ -76,6 +76,10 @@ class MainLoop:
     # a scan pre-empted a call's last Serial.available() check: this much of the check is left when the loop
     # resumes, then vTaskDelay(1) (its tick counted from there, after the scan)
     check_left_ns: int | None = None
+    # when the firmware's read of each byte the last parser call took from the queue begins (ns, ascending):
+    # the model takes a call's bytes at its start, the firmware reads them one at a time, so a byte arriving
+    # up to its read still finds it in the receive queue
+    read_starts: list[int] = field(default_factory=list)
     busy_from: int = -1  # the scan in progress: the main loop does not run inside it
     busy_until: int = -1
     stuck_reported: bool = False  # spinning on a half u16: reported once, from stuck_at

@@ -431,9 +431,11 @@ class ReceiveQueue:
     def free(self) -> int:
         return self.capacity - len(self.buf)
 
-    def offer(self, data: bytes) -> int:
-        """Move a chunk in byte by byte; return how many bytes fitted (the rest is discarded)."""
-        take = min(len(data), self.capacity - len(self.buf))
+    def offer(self, data: bytes, unread: int = 0) -> int:
+        """Move a chunk in byte by byte; return how many bytes fitted (the rest is discarded).  ``unread``:
+        bytes a parser call has taken out of ``buf`` that the firmware has not read yet -- they still
+        take room in its queue."""
+        take = min(len(data), self.capacity - len(self.buf) - unread)
         if take > 0:
             self.buf += data[:take]
             if len(self.buf) > self.high_water:

@@ -363,6 +363,8 @@ class ArrivalRuns:
         fw = self.fw
         if len(b) and b.t_ns >= fw.booting_until and not self.emulator.parser.locked:
             bound = min(self.next_alarm, fw.main_next if fw.main_next is not None else _INF, target)
+            if fw.read_starts and fw.read_starts[-1] >= b.t_ns:  # a byte at a time while a call reads
+                bound = min(bound, fw.read_starts[-1] + 1)
             j = b.end_before(bound, next_key(dq), seq)
             q = self.queue
             j = min(j, b.pos + q.capacity - len(q.buf))
@@ -793,7 +795,7 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
         if t < self.fw.booting_until:
             self._loss(t, d.data, d.host_offset, "rebooting")
             return
-        took = self.queue.offer(d.data)
+        took = self.queue.offer(d.data, self._taken_unread(t))
         if took:
             hl = self.host
             hl.seg_dev.append(hl.dev_total)
@@ -820,6 +822,17 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
                 nxt = fw.busy_until
             fw.main_next = nxt
             fw.main_wait = None
+
+    def _taken_unread(self, t: int) -> int:
+        """Bytes the last parser call took from the queue whose read the firmware begins at ``t`` or later
+        (``MainLoop.read_starts``): runEtactileKit() reads a payload one byte at a time (a u16's two
+        together), so a byte arriving while it reads finds those still in the firmware's queue, and may not
+        fit.  (The host build moves an arrival into the queue at the firmware's next call into the
+        platform: before a read that starts at or after it, after one under way.)"""
+        starts = self.fw.read_starts
+        if not starts or starts[-1] < t:
+            return 0
+        return len(starts) - bisect_left(starts, t)
 
     def parser_status(self) -> str:
         """What the parser is doing, in words."""
@@ -893,6 +906,7 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
                 j = p.read_before_interrupt(buf, bisect_left(begun, ta))
         if j < n:
             if j:  # (timed by the alarm at the latest: the scan starts there and finds them stored)
+                fw.read_starts = begun[:j]
                 self._feed(j, [min(e, int(ta)) for e in ends[:j]], None)
             elif hv513 and ends[0] < ta:
                 # runEtactileKit() reads the 0xF5 before stackSense(): the byte has left the queue when the
@@ -906,6 +920,7 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
             self.fw.main_next = ta  # the scan at ta pushes this to its end
             self.fw.main_wait = None
             return
+        fw.read_starts = [start + t for t in call_read_starts_ns(m, lead, unit, k0 + n)[k0:]]
         if hv513:
             ends[-1] += extra  # the reply is written after the detection
         self._feed(n, [min(e, int(ta)) for e in ends] if ta < ends[-1] else ends, outcome)
