@@ -793,6 +793,17 @@ UPSTREAM_V1_2_MAIN_LOOP_CASES = {
         ),
         8100.0,
     ),
+    # the 100 000-stream run's first `state timer_alarm_ticks` (random seed 18387, minimal): 0xF6 1's u16 read
+    # runs across the alarm, whose scan of 254 channels overruns the old period: setPeriodUs() never runs
+    "a frequency whose scan overruns": (
+        ((4876.87, "71"), (6206.937, "f7"), (6206.937, "fefc"), (23379.394, "fe"), (30450.161, "fff60100")),
+        120000.0,
+    ),
+    # the same with 32 channels: the scan returns in time and setPeriodUs() writes the 1 s alarm after it
+    "a frequency whose scan returns in time": (
+        ((4876.87, "71"), (6206.937, "f7"), (6206.937, "fefc"), (23379.394, "20"), (30450.161, "fff60100")),
+        1040000.0,
+    ),
     # the 100 000-stream run's first `pulses start` (random seed 619, minimal): 4 electrodes, sense width 255,
     # discharge 254 (2 ms scans), one command a tick; at the 21 000 us tick 0xF9 1's last Serial.available()
     # check runs across the alarm at 21 010.25 us, so vTaskDelay(1) is called after the scan and the next

@@ -435,3 +435,39 @@ def test_v1_2_a_byte_arriving_during_a_call_finds_the_bytes_it_has_not_read_yet(
     assert side.observe(3020.0).state["rx_unread"] == 255
     early = _v1_2([(2000.5, "f7fe" * 125), (3001.5, "00" * 8)], 3020.0)  # before 0xF7's read: 2 lost
     assert [(lo.time_us, lo.count) for lo in early.emu.losses] == [(3001.5, 2)]
+
+
+# discharge 254, then 254 (or 32) electrodes, a measure request and 0xF6 1: the call for 0xF6 reads its u16
+# from 31 010 us to 31 012 us, across the alarm at 31 010.25 us, and setPeriodUs() comes after that read.
+def _frequency_at_the_alarm(electrodes: str) -> list[tuple[float, str]]:
+    return [
+        (4876.87, "71"),
+        (6206.937, "f7"),
+        (6206.937, "fefc"),
+        (23379.394, electrodes),
+        (30450.161, "fff60100"),
+    ]
+
+
+def test_v1_2_a_frequency_whose_scan_overruns_never_reaches_set_period() -> None:
+    """runEtactileKit() stores StimulationTimePeriod, then calls setPeriodUs(), whose timerAlarmDisable()
+    is where the alarm due during the u16's read is taken: the handler re-enables the old 10 ms alarm as
+    it returns, but its scan of 254 channels takes 67.3 ms, so the next scan starts at once, and so on:
+    the loop never resumes and the timer's alarm stays 20 000 ticks, though period_us shows 1 s."""
+    side = _v1_2(_frequency_at_the_alarm("fe"), 300_000.0)
+    seen = side.observe(300_000.0)
+    assert (seen.state["timer_alarm_ticks"], seen.state["period_us"]) == (20_000, 1_000_000.0)
+    long_scans = [r for r in side.emu.runs if r.start_ns > 31_000_000]
+    assert long_scans[0].start_ns == 31_010_250 and long_scans[0].starved
+
+
+def test_v1_2_a_frequency_whose_scan_returns_in_time_sets_the_period_after_it() -> None:
+    """The contrast: with 32 channels the scan (8.48 ms) returns before the old alarm's next one, the loop
+    resumes and setPeriodUs() writes the 1 s alarm then: the register holds the old alarm during the scan,
+    the new one from its end, and the next scan follows 1 s after the one the call let in."""
+    side = _v1_2(_frequency_at_the_alarm("20"), 35_000.0)
+    assert side.observe(35_000.0).state["timer_alarm_ticks"] == 20_000
+    side.advance_to(1_040_000.0)
+    assert side.observe(1_040_000.0).state["timer_alarm_ticks"] == 2_000_000
+    starts = [r.start_ns for r in side.emu.runs if r.start_ns > 31_000_000]
+    assert starts == [31_010_250, 1_031_010_250]

@@ -80,6 +80,9 @@ class MainLoop:
     # the model takes a call's bytes at its start, the firmware reads them one at a time, so a byte arriving
     # up to its read still finds it in the receive queue
     read_starts: list[int] = field(default_factory=list)
+    ticks_before_call: int = 0  # the alarm register when the call being fed began
+    # 0xF6's new alarm when the scan its call let in came before setPeriodUs(): written once the loop resumes
+    period_pending: int | None = None
     busy_from: int = -1  # the scan in progress: the main loop does not run inside it
     busy_until: int = -1
     stuck_reported: bool = False  # spinning on a half u16: reported once, from stuck_at
@@ -168,7 +171,7 @@ class _ModelState:
     def parser_status(self) -> str:
         raise NotImplementedError
 
-    def _retime_alarm(self, t: int) -> None:
+    def _retime_alarm(self, t: int, by_call: bool = False) -> None:
         raise NotImplementedError
 
     def _mark(self, t: int, kind: str, detail: dict[str, Any]) -> None:
@@ -311,7 +314,7 @@ class CommandBooks(_ModelState):
             )
         self._follow_losses(rep)
         if op == Opcode.FREQUENCY and value:
-            self._retime_alarm(t)
+            self._retime_alarm(t, by_call=True)
         if op == _PATTERN:
             chans = {ch: ChannelLatency(ch, wt / 1000) for ch, wt in self.rec.cur_written.items()}
             cur_first = self.rec.cur_first

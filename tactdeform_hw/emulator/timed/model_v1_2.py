@@ -696,6 +696,7 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
         self.fw.call = None
         self.fw.checking = False
         self.fw.check_left_ns = None
+        self.fw.period_pending = None
         self.fw.held = b""
         self.fw.main_next = None
         self.fw.main_wait = _WAIT_LOCKED
@@ -863,6 +864,9 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
         p = self.parser
         buf = self.queue.buf
         cpu0, k0 = fw.call if fw.call is not None else (0, 0)
+        if fw.period_pending is not None:  # setPeriodUs() as the loop resumes (see _retime_alarm)
+            self.registers.timer_alarm_ticks, fw.period_pending = fw.period_pending, None
+            self._retime_alarm(tc)
         if fw.check_left_ns is not None:  # the rest of a check a scan pre-empted, then vTaskDelay(1)
             fw.main_next = self._tick_after(tc + fw.check_left_ns)
             fw.check_left_ns = None
@@ -959,6 +963,7 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
             rec.cur_written.update(zip(range(first_ch, first_ch + j - skip), ends[skip:j]))
         fw.call_end_ns = ends[-1]
         fw.call_dev_last = dev0 + j - 1
+        fw.ticks_before_call = self.registers.timer_alarm_ticks
         p.receive(data)
         r = p.step()
         if p.pending and not p.locked:  # pragma: no cover - the plan hands over whole units only
@@ -1010,16 +1015,24 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
 
     # --- parser hooks ---------------------------------------------------------------------------------------
 
-    def _retime_alarm(self, t: int) -> None:
+    def _retime_alarm(self, t: int, by_call: bool = False) -> None:
         """The parser wrote a new alarm value: an alarm the running counter has passed fires at once.
 
         setPeriodUs() runs after the frequency's read, and its first call into the platform is where a
         due interrupt is taken: an alarm due by ``t`` (a read that ended on it or ran across it) fires
-        first, with the old alarm, and the scan's reload then follows the new period (:meth:`_scan`)
-        as the re-armed timer does -- at the scan's end when the counter has passed it."""
-        period = self.model.alarm_period_ns(self.registers.timer_alarm_ticks)
-        if not self.stimulation or self.next_alarm <= t:
+        first, with the old alarm -- the handler re-enables that one as it returns -- and setPeriodUs()
+        writes the new one only when the main loop gets the processor back (:meth:`_scan`): never, if
+        that scan overruns the old period and the scans run back to back (``StimulationTimePeriod`` is
+        stored before the call, ``period_us`` shows it)."""
+        regs = self.registers
+        if not self.stimulation:
             return
+        if self.next_alarm <= t:
+            if by_call:
+                self.fw.period_pending = regs.timer_alarm_ticks
+                regs.timer_alarm_ticks = self.fw.ticks_before_call
+            return
+        period = self.model.alarm_period_ns(regs.timer_alarm_ticks)
         if t - self.fw.last_reload >= period:
             self.next_alarm = t
         else:
@@ -1102,6 +1115,8 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
         self.next_alarm = last + stride
         if self.fw.main_next is not None and self.fw.main_next < self.fw.busy_until:
             self.fw.main_next = self.fw.busy_until
+        if starved:  # the loop never resumes: an 0xF6 call's setPeriodUs() never runs (see _retime_alarm)
+            self.fw.period_pending = None
 
     # --- traces ---------------------------------------------------------------------------------------------
 
