@@ -778,6 +778,12 @@ UPSTREAM_V1_2_MAIN_LOOP_CASES = {
     # 125 x 0xF7 254 fill the receive queue to 250; 8 bytes arrive at 3002.5 us, while the call at the 3000 us
     # tick reads 0xF7 (its 254 not yet): one is lost on both sides
     "a byte arriving during a call": (((2000.5, "f7fe" * 125), (3002.5, "00" * 8)), 6000.0),
+    # the same while calls skip unknown bytes: the call at 3012 us reads its byte from 3014 us, so the last
+    # two bytes (04 00) are lost and 0xFC waits for its payload (one lost: 0xFC 4 would be stored)
+    "a byte arriving during a call that skips a byte": (
+        ((2990.5, "00" * 6), (3002.5, "00" * 248), (3012.5, "0000000000fc0400")),
+        5000.0,
+    ),
     # the 100 000-stream run's first `state rx_unread` (random seed 422, minimal): 12 bytes arrive at
     # 6002.839 us while the call at the 6000 us tick has read 0xFA but not its u16
     "a byte arriving during a call, seed 422": (

@@ -471,3 +471,11 @@ def test_v1_2_a_frequency_whose_scan_returns_in_time_sets_the_period_after_it() 
     assert side.observe(1_040_000.0).state["timer_alarm_ticks"] == 2_000_000
     starts = [r.start_ns for r in side.emu.runs if r.start_ns > 31_000_000]
     assert starts == [31_010_250, 1_031_010_250]
+
+
+def test_v1_2_a_byte_arriving_during_a_call_that_skips_an_unknown_byte_finds_it_still_queued() -> None:
+    """The same in a run of calls that each read and ignore one unknown byte (3 us each: Serial.available()
+    then Serial.read()): the call at 3012 us reads its byte from 3014 us, so 8 bytes arriving at 3012.5 us
+    find 250 waiting, not 249, and two are lost."""
+    side = _v1_2([(2990.5, "00" * 6), (3002.5, "00" * 248), (3012.5, "00" * 8)], 3016.0)
+    assert [(lo.time_us, lo.count) for lo in side.emu.losses] == [(3012.5, 2)]

@@ -309,6 +309,7 @@ class ArrivalRuns:
         p.receive(q.take(k))
         p.ignore_unknown(k)
         fw.call_end_ns, fw.call_dev_last, fw.main_next = t, dev0 + k - 1, t  # fw.call stays None
+        fw.read_starts = [t - step_ns + self.model.call_ns]  # the last call's read (see _taken_unread)
         if arriving:
             self._land_during_run(tc, step_ns, k, queued, arriving)
         return True  # (an ignored byte writes no reply)
