@@ -810,6 +810,18 @@ UPSTREAM_V1_2_MAIN_LOOP_CASES = {
         ((4876.87, "71"), (6206.937, "f7"), (6206.937, "fefc"), (23379.394, "20"), (30450.161, "fff60100")),
         1040000.0,
     ),
+    # 0xF6 32158 (a 31 us alarm), 1 electrode, then 0xF5 (random seed 1484, minimal): the
+    # scans pre-empt the stack detection's analogRead calls at their alarms, and stay on the timer's grid
+    "0xF5's analogRead pre-empted at the alarm": (
+        ((5127.734, "f920"), (5137.734, "fc01f69e7d"), (6609.525, "f5")),
+        11100.0,
+    ),
+    # 0xF6 12721 (a 78 us alarm), 2 biphasic channels (74.35 us scans), 0xF5 0xF5 (random seed 13864,
+    # minimal): the detection runs in the 3.65 us the scans leave; both answer the first at 38 500.05 us
+    "0xF5 between scans that leave the loop 3.65 us": (
+        ((13293.406, "f6b131fc02fe0202"), (13333.406, "f5"), (13333.406, "f5")),
+        40576.0,
+    ),
     # the 100 000-stream run's first `pulses start` (random seed 619, minimal): 4 electrodes, sense width 255,
     # discharge 254 (2 ms scans), one command a tick; at the 21 000 us tick 0xF9 1's last Serial.available()
     # check runs across the alarm at 21 010.25 us, so vTaskDelay(1) is called after the scan and the next

@@ -178,6 +178,23 @@ def test_busy_wait_on_timer_read_is_exact_and_preempted_by_the_interrupt(cache: 
     assert (9100.0, 9100.0 + us(ISR_NS)) in emu.scans()  # which fell inside the wait
 
 
+def test_an_analog_read_is_pre_empted_at_the_alarm_and_finishes_after_the_interrupt(cache: Path) -> None:
+    """An analogRead() (``hv513_detect_us / 50``, 20 µs) is work the interrupt pre-empts where its alarm
+    falls, as the chip takes it, not at the firmware's next call: 255 reads from 4006 µs (the 4000 µs tick:
+    available, read 'A', available, read n) put the alarm of 4200 µs inside the 10th, whose handler runs at
+    4200 µs exactly; the rest of each read follows its handler, so the reply comes 255 reads and one
+    handler per alarm of the stretch after the start."""
+    emu = tiny(cache)
+    emu.write(b"A\xff", at_us=3500.5)
+    emu.advance_to(10_000)
+    start = 4000 + us(2 * M.call_ns + 2 * M.byte_ns)
+    assert (4200.0, 4200.0 + us(ISR_NS)) in emu.scans()
+    handlers = [e for e, _ in emu.scans() if e >= start]
+    assert handlers == [700.0 * k for k in range(6, 15)]  # 4200 ... 9800 µs, each on its alarm
+    # 255 reads of 20 µs from 4006 µs end at 9106 µs plus the 8 handlers of 4200 ... 9100 µs
+    assert emu.tx_log == [(start + us(255 * (M.hv513_detect_ns // 50) + 8 * ISR_NS), b"a")]
+
+
 def test_interrupt_count_reply(cache: Path) -> None:
     emu = tiny(cache)
     emu.write(b"C", at_us=4500)

@@ -61,9 +61,10 @@ EQUIVALENCES: dict[str, str] = {
     "of the two sides' numbers; a run of thousands of scans falls behind by more than PULSE_MARGIN_US, so "
     "a pulse is required of the other side only once the checkpoint is past its end by its own allowance "
     "(n + 2) x pulse_tolerance_us + PREEMPT_US, if that is more than the margin",
-    "preempt-at-calls": "the host build runs a due interrupt at the main loop's next shim call, the model "
-    "(like the chip) at the alarm: a scan's pulses may start up to PREEMPT_US (20 us: one of 0xF5's "
-    "analogRead calls; 2 us otherwise) later on the host build",
+    "preempt-at-calls": "the host build runs an interrupt due inside a Serial call at the main loop's next "
+    "shim call (an analogRead is pre-empted at the alarm), the model (like the chip) at the alarm: a "
+    "scan's pulses may start up to PREEMPT_US (20 us, one analogRead's cost; the Serial calls cost 2 us at "
+    "most) later on the host build",
     "adc-reads-skin": "the host build's ADC reads the DAC code, the model's the skin's voltage: the "
     "voltage registers are not compared, and a stream holding the readback opcode has its replies "
     "compared by byte count",
@@ -109,9 +110,11 @@ step)."""
 PREEMPT_US = max(
     DEFAULT_MODEL.parser_call_us, DEFAULT_MODEL.parser_byte_us, DEFAULT_MODEL.hv513_detect_us / 50
 )
-"""Against the model: the host build runs a due interrupt only at the main loop's next shim call, so a scan
-may start up to one call's cost late (``Serial.available()`` 2 µs, a byte 1 µs, one of 0xF5's
-``analogRead`` calls 20 µs); the model pre-empts the loop exactly at the alarm, as the chip does."""
+"""Against the model: the host build runs an interrupt due inside a ``Serial`` call at the main loop's next
+shim call, so a scan may start up to one such call's cost late (``Serial.available()`` 2 µs, a u16's
+two-byte read 2 µs, a byte 1 µs); the model pre-empts the loop exactly at the alarm, as the chip does.
+An ``analogRead`` is pre-empted at its alarm on both sides; the allowance is still one of its calls
+(20 µs): 2 µs makes one more v2 stream of the 2 000-stream run diverge (``pulses start``), not analysed."""
 
 PULSE_MARGIN_US = 500.0
 """A pulse is compared once it ended this long before a checkpoint (on either side): its counterpart may

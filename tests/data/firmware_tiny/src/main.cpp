@@ -4,6 +4,7 @@
 //   'P' u16  timer period in µs          'V' u16  DAC code the interrupt sends
 //   'E' u8   reply u8 + 1                 'C'      reply the interrupt count (u32, little-endian)
 //   'W' u8   busy-wait u8 µs on a timer, then reply 'w'
+//   'A' u8   n analogRead() calls, then reply 'a'
 //   'H'      hang in a loop of calls that cost no time
 #include <Arduino.h>
 #include "tiny.h"

@@ -78,6 +78,13 @@ void tinyPoll() {
             Serial.write('w');
             break;
         }
+        case 'A': {  // u8 n: n analogRead() calls, then reply 'a'
+            int n = readByteBlocking();
+            int sum = 0;
+            for (int i = 0; i < n; ++i) sum += analogRead(TINY_ADC_PIN);
+            Serial.write(sum >= 0 ? 'a' : 'A');
+            break;
+        }
         case 'H':  // hang: a loop on a call that costs no time (the emulator must notice)
             for (;;) {
                 pinMode(TINY_PIN, OUTPUT);
