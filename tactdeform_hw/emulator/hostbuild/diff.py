@@ -47,6 +47,10 @@ EQUIVALENCES: dict[str, str] = {
     "detection); the model's timer_start_us is set to the time the host build measured (both versions)",
     "setup-before-bytes": "the host's first byte arrives at 2000 us, after the firmware's setup(); the "
     "model's parser runs from 0",
+    "exchange-reading": "the v1.2 model runs under the host build's reading of the SPI exchange: each "
+    "chip-select write around it costs a GPIO write (cs_writes_costed; the model's default counts them "
+    "inside the 6.6 us exchange, which makes a channel 0.6 us shorter, so a scan that overruns its period "
+    "on the firmware fits it in the model); v2's model keeps its own reading (pulse-width, overrun-drift)",
     "pulse-width": "delivered pulse widths agree within pulse_tolerance_us (0.7 us), and the n-th pulse "
     "of a scan (from 0) starts within (n + 1) x pulse_tolerance_us: the firmware's chip-select writes "
     "(0.1 us each, two per SPI exchange), which the model does not count, make a pulse 0.2 us longer "

@@ -353,6 +353,17 @@ class ArrivalRuns:
         else:
             heapq.heappop(dq)
 
+    def _taken_unread(self, t: int) -> int:
+        """Bytes the last parser call took from the queue whose read the firmware begins at ``t`` or later
+        (``MainLoop.read_starts``): runEtactileKit() reads a payload one byte at a time (a u16's two
+        together), so a byte arriving while it reads finds those still in the firmware's queue, and may not
+        fit.  (The host build moves an arrival into the queue at the firmware's next call into the
+        platform: before a read that starts at or after it, after one under way.)"""
+        starts = self.fw.read_starts
+        if not starts or starts[-1] < t:
+            return 0
+        return len(starts) - bisect_left(starts, t)
+
     def _deliver_burst(self, dq: list[tuple[int, int, Any]], target: int) -> None:
         """The burst at the head of the delivery heap: its next byte as a delivery of its own (it may
         wake the main loop, be lost, ...), then at once the bytes after it that arrive before anything
@@ -436,11 +447,15 @@ class CallEnds:
     next_alarm: float
     hazards: list[Hazard]
     queue: ReceiveQueue
+    stimulation: bool
 
     if TYPE_CHECKING:  # (TimedEmulator's and CommandBooks' own)
 
         @property
         def parser(self) -> Parser: ...
+
+        @property
+        def registers(self) -> Registers: ...
 
         def _tick_after(self, t: int) -> int: ...
 
@@ -492,6 +507,29 @@ class CallEnds:
             fw.main_next = ta  # the scan at ta pushes this to its end
         else:
             fw.main_next = self._tick_after(check_end)
+
+    def _retime_alarm(self, t: int, by_call: bool = False) -> None:
+        """The parser wrote a new alarm value: an alarm the running counter has passed fires at once.
+
+        setPeriodUs() runs after the frequency's read, and its first call into the platform is where a
+        due interrupt is taken: an alarm due by ``t`` (a read that ended on it or ran across it) fires
+        first, with the old alarm -- the handler re-enables that one as it returns -- and setPeriodUs()
+        writes the new one only when the main loop gets the processor back (:meth:`_scan`): never, if
+        that scan overruns the old period and the scans run back to back (``StimulationTimePeriod`` is
+        stored before the call, ``period_us`` shows it)."""
+        regs = self.registers
+        if not self.stimulation:
+            return
+        if self.next_alarm <= t:
+            if by_call:
+                self.fw.period_pending = regs.timer_alarm_ticks
+                regs.timer_alarm_ticks = self.fw.ticks_before_call
+            return
+        period = self.model.alarm_period_ns(regs.timer_alarm_ticks)
+        if t - self.fw.last_reload >= period:
+            self.next_alarm = t
+        else:
+            self.next_alarm = self.fw.last_reload + period
 
     def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
         self.fw.call = (cpu, k)
@@ -825,17 +863,6 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
             fw.main_next = nxt
             fw.main_wait = None
 
-    def _taken_unread(self, t: int) -> int:
-        """Bytes the last parser call took from the queue whose read the firmware begins at ``t`` or later
-        (``MainLoop.read_starts``): runEtactileKit() reads a payload one byte at a time (a u16's two
-        together), so a byte arriving while it reads finds those still in the firmware's queue, and may not
-        fit.  (The host build moves an arrival into the queue at the firmware's next call into the
-        platform: before a read that starts at or after it, after one under way.)"""
-        starts = self.fw.read_starts
-        if not starts or starts[-1] < t:
-            return 0
-        return len(starts) - bisect_left(starts, t)
-
     def parser_status(self) -> str:
         """What the parser is doing, in words."""
         p = self.parser
@@ -1013,31 +1040,6 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
             else:
                 self.host.rx += d.data
             heapq.heappop(q)
-
-    # --- parser hooks ---------------------------------------------------------------------------------------
-
-    def _retime_alarm(self, t: int, by_call: bool = False) -> None:
-        """The parser wrote a new alarm value: an alarm the running counter has passed fires at once.
-
-        setPeriodUs() runs after the frequency's read, and its first call into the platform is where a
-        due interrupt is taken: an alarm due by ``t`` (a read that ended on it or ran across it) fires
-        first, with the old alarm -- the handler re-enables that one as it returns -- and setPeriodUs()
-        writes the new one only when the main loop gets the processor back (:meth:`_scan`): never, if
-        that scan overruns the old period and the scans run back to back (``StimulationTimePeriod`` is
-        stored before the call, ``period_us`` shows it)."""
-        regs = self.registers
-        if not self.stimulation:
-            return
-        if self.next_alarm <= t:
-            if by_call:
-                self.fw.period_pending = regs.timer_alarm_ticks
-                regs.timer_alarm_ticks = self.fw.ticks_before_call
-            return
-        period = self.model.alarm_period_ns(regs.timer_alarm_ticks)
-        if t - self.fw.last_reload >= period:
-            self.next_alarm = t
-        else:
-            self.next_alarm = self.fw.last_reload + period
 
     # --- scans ----------------------------------------------------------------------------------------------
 
