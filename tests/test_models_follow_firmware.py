@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from tactdeform_hw.emulator.firmware.hazards import HazardKind
 from tactdeform_hw.emulator.firmware.scan import ChainState, ScanConfig, ScanEngine
-from tactdeform_hw.emulator.hostbuild.diff import ModelSideV1_2, ModelSideV2
+from tactdeform_hw.emulator.hostbuild.diff import DirectLink, ModelSideV1_2, ModelSideV2
 from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
 from tactdeform_hw.emulator.timed.timing import TimingModel
 from tactdeform_hw.protocol.commands import encode_pattern
@@ -412,17 +412,19 @@ def test_v1_2_the_differential_s_model_costs_chip_selects_as_the_host_build() ->
     four = [r for r in side.emu.runs if r.template.duration_ns > 80_000]
     assert four[0].duration_ns == 88_450 and four[0].starved
     assert side.observe(8489.0).state["discharge_time"] == 0
-
-    class DefaultReading(ModelSideV1_2):
-        readings = {}
-
-    default = DefaultReading(timer_origin_us=TIMER_ORIGIN_US, hv513_count=4)
+    default = TimedEmulator(
+        "compact",
+        1,
+        link=DirectLink(),
+        tx_link=DirectLink(),
+        model=TimingModel(timer_start_us=TIMER_ORIGIN_US),
+    )
     for at_us, data in writes:
         default.write(bytes.fromhex(data), at_us)
     default.advance_to(8489.0)
-    assert not default.emu.model.cs_writes_costed
-    assert [r.duration_ns for r in default.emu.runs if r.duration_ns > 80_000][0] == 86_050
-    assert default.observe(8489.0).state["discharge_time"] == 22
+    assert not default.model.cs_writes_costed
+    assert [r.duration_ns for r in default.runs if r.duration_ns > 80_000][0] == 86_050
+    assert default.registers.discharge_time == 22
 
 
 def test_v1_2_a_byte_arriving_during_a_call_finds_the_bytes_it_has_not_read_yet() -> None:
