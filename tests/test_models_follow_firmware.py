@@ -374,3 +374,32 @@ def test_v1_2_a_pattern_call_reads_the_bytes_that_arrive_while_it_reads() -> Non
     written = [ch.written_us for ch in emu.commands[-1].channels]
     assert written[:18] == [71_006.0 + 3 * j for j in range(18)]
     assert written[18:] == [72_003.0 + 3 * j for j in range(14)]
+
+
+# 0xF6 65279 (a 15 µs alarm), mode 2 (the sense pulse on every channel) at sense width 254, then 0xFC 4
+# and 0xFC 0 back to back: the alarm due at 14123.4 µs falls inside the second's last read
+COUNT_LOWERED_IN_ITS_LAST_READ = [
+    (4881.184, "f4f5f60100fd00fb3f"),
+    (12153.317, "f6fefffb02f8fefbccf4"),
+    (12163.317, "91de64b3b1a8c39978e8"),
+    (12163.317, "f5f762fdfefd01"),
+    (12173.317, "f4fbfffc04fc00f4"),
+]
+
+
+def test_v2_an_alarm_in_a_call_s_last_read_scans_the_registers_it_stored() -> None:
+    """readInt_8 returns and runEtactileKit stores ElectrodeNum = 0 before the next call into the core, where
+    the scan due during the read takes the processor: that scan, and every one after it, is of no channel
+    (2.15 µs against the 15 µs alarm).  No scan of the four channels 0xFC 4 had set runs (one would last
+    1.39 ms in mode 2 and starve the loop), and the 0xF4 after them is answered."""
+    side = _v2(COUNT_LOWERED_IN_ITS_LAST_READ, 15000.0)
+    assert [(t, int(op)) for t, op, _ in side.emu.applied][-3:] == [
+        (14_111_850, 0xFC),
+        (14_117_850, 0xFC),
+        (14_126_000, 0xF4),
+    ]
+    late = [s for s in side.emu.scans if s.start_ns >= 14_111_850]
+    assert late and {(s.electrode_num, s.duration_ns) for s in late} == {(0, 2150)}
+    seen = side.observe(15000.0)
+    assert seen.state["electrode_num"] == 0
+    assert seen.replies.endswith(bytes.fromhex("0000"))
