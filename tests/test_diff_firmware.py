@@ -764,3 +764,21 @@ def test_upstream_v1_2_an_interrupted_0xf5_matches_the_model(case: str) -> None:
     writes, end_us = UPSTREAM_V1_2_F5_CASES[case]
     stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), end_us, case)
     assert Differ(tree, "v1.2").first_divergence(stream) is None
+
+
+def test_upstream_v2_an_alarm_in_a_call_s_last_read_scans_what_it_stored_on_both_sides() -> None:
+    """0xFC 4 and 0xFC 0 back to back at a 15 µs alarm in mode 2: the alarm inside the second's last read is
+    taken after it stored the count 0 on both sides, so neither runs a scan of four channels (random seed
+    10111, on which the model used to loop; the model-only twin is in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = tuple(
+        (t, bytes.fromhex(h))
+        for t, h in (
+            (4881.184, "f4f5f60100fd00fb3f"),
+            (12153.317, "f6fefffb02f8fefbccf4"),
+            (12163.317, "91de64b3b1a8c39978e8"),
+            (12163.317, "f5f762fdfefd01"),
+            (12173.317, "f4fbfffc04fc00f4"),
+        )
+    )
+    assert Differ(tree, "v2").first_divergence(Stream(writes, 15000.0, "count lowered")) is None
