@@ -240,19 +240,19 @@ def test_v2_a_scan_due_inside_a_frequency_call_runs_before_set_period() -> None:
     assert side.observe(6037.0).state["sense_pulse_height"] == 1
 
 
-# 8 electrodes, pulse width 130 µs, 0xF6 587 (a 1703 µs alarm): the scans last 1073.85 µs, and the alarm of
+# 8 electrodes, pulse width 130 µs, 0xF6 587 (a 1703 µs alarm): the scans last 1075.45 µs, and the alarm of
 # 49 001 µs falls inside the idle poll of the 49 000 µs tick; 0xF9 1 arrives during that scan
 ALARM_IN_AN_IDLE_POLL = [(2000.5, "fc08fa8200f64b02"), (49100.0, "f901")]
 
 
 def test_v2_a_scan_inside_an_idle_poll_delays_its_sleep() -> None:
     """The poll's isDataAvailable() (49 000 to 49 002 µs) finds nothing; the scan takes the processor at
-    vTaskDelay(1), which is called as the scan returns (50 075.85 µs) and sleeps to the 51 000 µs tick; the
-    next scan (50 704 µs) holds the processor past that tick, so 0xF9 1 is read as it returns (51 777.85
+    vTaskDelay(1), which is called as the scan returns (50 076.45 µs) and sleeps to the 51 000 µs tick; the
+    next scan (50 704 µs) holds the processor past that tick, so 0xF9 1 is read as it returns (51 779.45
     µs), not as the first scan returns."""
     side = _v2(ALARM_IN_AN_IDLE_POLL, 53000.0)
-    assert any(s.start_ns == 49_001_000 and s.duration_ns == 1_073_850 for s in side.emu.scans)
-    assert side.emu.applied[-1][:2] == (51_777_850, OpcodeV2.SENSE_HEIGHT)
+    assert any(s.start_ns == 49_001_000 and s.duration_ns == 1_075_450 for s in side.emu.scans)
+    assert side.emu.applied[-1][:2] == (51_779_450, OpcodeV2.SENSE_HEIGHT)
 
 
 # 0xF6 48662 (a 20 µs alarm), 1 electrode (a scan of 19 µs), then 0xFE and, 3.7 ms later, its two bytes: the
