@@ -240,19 +240,19 @@ def test_v2_a_scan_due_inside_a_frequency_call_runs_before_set_period() -> None:
     assert side.observe(6037.0).state["sense_pulse_height"] == 1
 
 
-# 8 electrodes, pulse width 130 µs, 0xF6 587 (a 1703 µs alarm): the scans last 1073.85 µs, and the alarm of
+# 8 electrodes, pulse width 130 µs, 0xF6 587 (a 1703 µs alarm): the scans last 1075.45 µs, and the alarm of
 # 49 001 µs falls inside the idle poll of the 49 000 µs tick; 0xF9 1 arrives during that scan
 ALARM_IN_AN_IDLE_POLL = [(2000.5, "fc08fa8200f64b02"), (49100.0, "f901")]
 
 
 def test_v2_a_scan_inside_an_idle_poll_delays_its_sleep() -> None:
     """The poll's isDataAvailable() (49 000 to 49 002 µs) finds nothing; the scan takes the processor at
-    vTaskDelay(1), which is called as the scan returns (50 075.85 µs) and sleeps to the 51 000 µs tick; the
-    next scan (50 704 µs) holds the processor past that tick, so 0xF9 1 is read as it returns (51 777.85
+    vTaskDelay(1), which is called as the scan returns (50 076.45 µs) and sleeps to the 51 000 µs tick; the
+    next scan (50 704 µs) holds the processor past that tick, so 0xF9 1 is read as it returns (51 779.45
     µs), not as the first scan returns."""
     side = _v2(ALARM_IN_AN_IDLE_POLL, 53000.0)
-    assert any(s.start_ns == 49_001_000 and s.duration_ns == 1_073_850 for s in side.emu.scans)
-    assert side.emu.applied[-1][:2] == (51_777_850, OpcodeV2.SENSE_HEIGHT)
+    assert any(s.start_ns == 49_001_000 and s.duration_ns == 1_075_450 for s in side.emu.scans)
+    assert side.emu.applied[-1][:2] == (51_779_450, OpcodeV2.SENSE_HEIGHT)
 
 
 # 0xF6 48662 (a 20 µs alarm), 1 electrode (a scan of 19 µs), then 0xFE and, 3.7 ms later, its two bytes: the
@@ -481,3 +481,32 @@ def test_v1_2_a_byte_arriving_during_a_call_that_skips_an_unknown_byte_finds_it_
     find 250 waiting, not 249, and two are lost."""
     side = _v1_2([(2990.5, "00" * 6), (3002.5, "00" * 248), (3012.5, "00" * 8)], 3016.0)
     assert [(lo.time_us, lo.count) for lo in side.emu.losses] == [(3012.5, 2)]
+
+
+# 0xF6 65279 (a 15 µs alarm), mode 2 (the sense pulse on every channel) at sense width 254, then 0xFC 4
+# and 0xFC 0 back to back: the alarm due at 14123.4 µs falls inside the second's last read
+COUNT_LOWERED_IN_ITS_LAST_READ = [
+    (4881.184, "f4f5f60100fd00fb3f"),
+    (12153.317, "f6fefffb02f8fefbccf4"),
+    (12163.317, "91de64b3b1a8c39978e8"),
+    (12163.317, "f5f762fdfefd01"),
+    (12173.317, "f4fbfffc04fc00f4"),
+]
+
+
+def test_v2_an_alarm_in_a_call_s_last_read_scans_the_registers_it_stored() -> None:
+    """readInt_8 returns and runEtactileKit stores ElectrodeNum = 0 before the next call into the core, where
+    the scan due during the read takes the processor: that scan, and every one after it, is of no channel
+    (2.15 µs against the 15 µs alarm).  No scan of the four channels 0xFC 4 had set runs (one would last
+    1.39 ms in mode 2 and starve the loop), and the 0xF4 after them is answered."""
+    side = _v2(COUNT_LOWERED_IN_ITS_LAST_READ, 15000.0)
+    assert [(t, int(op)) for t, op, _ in side.emu.applied][-3:] == [
+        (14_111_850, 0xFC),
+        (14_117_850, 0xFC),
+        (14_126_000, 0xF4),
+    ]
+    late = [s for s in side.emu.scans if s.start_ns >= 14_111_850]
+    assert late and {(s.electrode_num, s.duration_ns) for s in late} == {(0, 2150)}
+    seen = side.observe(15000.0)
+    assert seen.state["electrode_num"] == 0
+    assert seen.replies.endswith(bytes.fromhex("0000"))

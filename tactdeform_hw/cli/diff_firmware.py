@@ -105,9 +105,9 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--pulse-tolerance-us",
         type=_tolerance,
-        default=0.7,
+        default=None,
         help="against the model: pulse widths agree within this, the n-th pulse of a scan starts within "
-        "(n + 1) times this (default 0.7 µs; two trees: exact)",
+        "(n + 1) times this (default 0: exact, the model running under the host build's readings)",
     )
     p.add_argument(
         "--state-map",
@@ -147,7 +147,7 @@ def _error(msg: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..emulator.hostbuild.diff import MODELS, STATE_MAP_FILE, diff_firmware
+    from ..emulator.hostbuild.diff import MODELS, PULSE_TOLERANCE_US, STATE_MAP_FILE, diff_firmware
     from ..emulator.hostbuild.statemap import StateMap
     from ..emulator.hostbuild.streams import recorded_streams
     from ..errors import ConfigurationError, FirmwareBuildError
@@ -188,7 +188,9 @@ def run(args: argparse.Namespace) -> int:
             seed=args.seed,
             extra_streams=extra,
             edges=not args.no_edges,
-            pulse_tolerance_us=args.pulse_tolerance_us,
+            pulse_tolerance_us=PULSE_TOLERANCE_US
+            if args.pulse_tolerance_us is None
+            else args.pulse_tolerance_us,
             state_map=state_map,
             progress=tell,
             keep_going=args.keep_going,

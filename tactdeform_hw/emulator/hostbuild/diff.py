@@ -47,24 +47,17 @@ EQUIVALENCES: dict[str, str] = {
     "detection); the model's timer_start_us is set to the time the host build measured (both versions)",
     "setup-before-bytes": "the host's first byte arrives at 2000 us, after the firmware's setup(); the "
     "model's parser runs from 0",
-    "exchange-reading": "the v1.2 model runs under the host build's reading of the SPI exchange: each "
-    "chip-select write around it costs a GPIO write (cs_writes_costed; the model's default counts them "
-    "inside the 6.6 us exchange, which makes a channel 0.6 us shorter, so a scan that overruns its period "
-    "on the firmware fits it in the model); v2's model keeps its own reading (pulse-width, overrun-drift)",
-    "pulse-width": "delivered pulse widths agree within pulse_tolerance_us (0.7 us), and the n-th pulse "
-    "of a scan (from 0) starts within (n + 1) x pulse_tolerance_us: the firmware's chip-select writes "
-    "(0.1 us each, two per SPI exchange), which the model does not count, make a pulse 0.2 us longer "
-    "(196.8 vs 196.6 us) and each pulse start up to 0.6 us later after the one before it",
-    "overrun-drift": "when scans overrun (the next alarm is due before a scan returns), the firmware runs "
-    "them back to back and the chip-select writes the model does not count (see pulse-width) accumulate from "
-    "scan to scan instead of being reset by the next alarm: on the host build a pulse is numbered within "
-    "its run of back-to-back scans, in the models by its slot within its run (every pulse the scans "
-    "make counts, those of channels past the chain's outputs included: their SPI exchanges cost the same "
-    "writes, 0.6 us a channel on v1.2; on v2 a channel has a slot per phase, 0.2 us each, those of zero "
-    "height included), and the start tolerance (n + 1) x pulse_tolerance_us takes the larger "
-    "of the two sides' numbers; a run of thousands of scans falls behind by more than PULSE_MARGIN_US, so "
-    "a pulse is required of the other side only once the checkpoint is past its end by its own allowance "
-    "(n + 2) x pulse_tolerance_us + PREEMPT_US, if that is more than the margin",
+    "readings": "the model runs under the host build's readings of what the firmware's code leaves open "
+    "(TimingModel.cs_writes_costed, v2's firmware_scan.HOST_BUILD): each chip-select write around an SPI "
+    "exchange costs one GPIO write on top of the 6.6 us exchange (0.1 us each), as the shim's digitalWrite "
+    "does; the package's default reading puts them inside the exchange (a pulse 0.2 us shorter). Pulse "
+    "widths and starts are then compared exactly (pulse_tolerance_us 0), preempt-at-calls aside",
+    "pulse-numbering": "when scans overrun (the next alarm is due before a scan returns), the firmware runs "
+    "them back to back: on the host build a pulse is numbered within its run of back-to-back scans, in the "
+    "models by its slot within its run (every pulse the scans make counts, those of channels past the "
+    "chain's outputs included; on v2 a channel has a slot per phase, those of zero height included), so a "
+    "run's n-th pulse is compared with the other side's n-th, and a pulse_tolerance_us given on the command "
+    "line allows the n-th a start (n + 1) times that late",
     "preempt-at-calls": "the host build runs an interrupt due inside a Serial call at the main loop's next "
     "shim call (an analogRead is pre-empted at the alarm), the model (like the chip) at the alarm: a "
     "scan's pulses may start up to PREEMPT_US (20 us, one analogRead's cost; the Serial calls cost 2 us at "
@@ -105,11 +98,9 @@ seen is the model showing the call's effects from its start (see EQUIVALENCES["c
 STATE_MAP_FILE = "hostbuild_state.toml"
 """A tree's own state map, by convention at its root (``tests/data/firmware_tiny`` has one)."""
 
-PULSE_TOLERANCE_US = 0.7
-"""Against the model: the firmware's chip-select writes (0.1 µs each, two per SPI exchange), which the model
-does not count, make a pulse 0.2 µs longer and each pulse of a scan start up to 0.6 µs later after the one
-before it than in the model; 0.7 µs covers that and still catches a 1 µs change (the protocol's width
-step)."""
+PULSE_TOLERANCE_US = 0.0
+"""Against the model: pulse widths and starts agree exactly (the model runs under the host build's readings,
+EQUIVALENCES["readings"]); ``--pulse-tolerance-us`` loosens it, to compare a tree whose shim costs differ."""
 
 PREEMPT_US = max(
     DEFAULT_MODEL.parser_call_us, DEFAULT_MODEL.parser_byte_us, DEFAULT_MODEL.hv513_detect_us / 50
@@ -212,8 +203,9 @@ class HostSide:
         """The delivered pulses ended by ``upto_us``, each with the number of its run of scans, read from the
         shim's columns.  A run is a scan its alarm started and the scans that followed it back to back (an
         overrun: the next alarm was due before the scan returned, so the next scan starts at its return):
-        the firmware's costs the model does not count accumulate along such a run as along one scan
-        (see EQUIVALENCES["overrun-drift"])."""
+        a cost one side counts and the other does not (a tree's own shim costs, compared with
+        ``--pulse-tolerance-us``) accumulates along such a run as along one scan
+        (see EQUIVALENCES["pulse-numbering"])."""
         arr = self.emu.delivered_arrays()
         start_us, end_us = arr.start_ns / 1000.0, arr.end_ns / 1000.0
         keep = np.flatnonzero(end_us <= upto_us)
@@ -258,7 +250,7 @@ class ModelSide:
     """The package's Python timed model of one firmware version (a subclass per version)."""
 
     version = ""
-    readings: ClassVar[dict[str, Any]] = {}
+    readings: ClassVar[dict[str, Any]] = {"cs_writes_costed": True}
     """The model's readings of what the firmware's code leaves open (``TimingModel``'s ``cs_writes_costed``,
     ``dac_load``), taken as the host build's shim takes them, so both sides time the same statements alike
     and a difference is the code's, not a reading's."""
@@ -304,9 +296,6 @@ class ModelSideV1_2(ModelSide):
     """:class:`~..timed.model_v1_2.TimedEmulator`: its timer starts at ``timer_start_us``."""
 
     version = "v1.2"
-    # the shim costs each chip-select write around an SPI exchange as the GPIO write it is (0.05 us, four a
-    # DAAD call); the model's default reading counts them inside the 6.6 us exchange (the firmware comment)
-    readings: ClassVar[dict[str, Any]] = {"cs_writes_costed": True}
 
     def _make(self, boards: int, model: TimingModel) -> Any:
         from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
@@ -321,7 +310,7 @@ class ModelSideV1_2(ModelSide):
     def _numbered(self, upto_us: float) -> list[Pulse]:
         """The delivered pulses numbered by their pulse slot within their run of back-to-back scans: every
         pulse the scans make counts, those of channels past the chain's outputs included (they go nowhere,
-        but their SPI exchanges cost the same chip-select writes: see EQUIVALENCES["overrun-drift"])."""
+        but their SPI exchanges cost the same: see EQUIVALENCES["pulse-numbering"])."""
         return sorted(self._pulses(upto_us))
 
     def _run_offsets(self) -> dict[int, tuple[int, int, int]]:
@@ -401,7 +390,11 @@ class ModelSideV2(ModelSide):
         from tactdeform_hw.emulator.timed.model_v2 import TimedEmulatorV2
 
         self._got = bytearray()
-        return TimedEmulatorV2("compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model)
+        from tactdeform_hw.emulator.firmware.firmware_scan import HOST_BUILD
+
+        return TimedEmulatorV2(
+            "compact", boards, link=DirectLink(), tx_link=DirectLink(), model=model, conventions=HOST_BUILD
+        )
 
     def _replies(self, upto_us: float) -> bytes:
         self._got += self.emu.read_tx()
@@ -416,8 +409,8 @@ class ModelSideV2(ModelSide):
         """The pulses of a non-zero code ended by ``limit_us``, each numbered by its slot within its run of
         back-to-back scans (a scan that starts at the previous one's end continues the run).  Every pulse
         the scans make has a slot, those of zero height and of channels past the chain's outputs included:
-        they deliver nothing, but the firmware's ``DAAD`` calls for them cost the same chip-select writes
-        (two exchanges a slot, 0.2 µs on the host build: see EQUIVALENCES["overrun-drift"]).  A channel
+        they deliver nothing, but the firmware's ``DAAD`` calls for them cost the same (two exchanges a
+        slot: see EQUIVALENCES["pulse-numbering"]).  A channel
         has one slot per phase: two in mode 1 (``biPhasicPulse``), one otherwise."""
         out: list[tuple[float, float, int, tuple[int, ...], int, int]] = []
         base, prev_end, prev_slots = 0, -1, 0
@@ -548,7 +541,7 @@ def compare(
     tol = cmp.pulse_tolerance_us
     late = 0.0 if cmp.exact else PREEMPT_US  # see EQUIVALENCES["preempt-at-calls"]
     # a pulse's counterpart must exist once the checkpoint is past the pulse's end by the margin, or by the
-    # drift its start may have (a long run of back-to-back scans, see EQUIVALENCES["overrun-drift"])
+    # drift its start may have (a long run of back-to-back scans, see EQUIVALENCES["pulse-numbering"])
     n = max(
         sum(1 for p in side.pulses if p[1] + max(PULSE_MARGIN_US, tol * (2 + p[5]) + late) <= upto_us)
         for side in (left, right)

@@ -789,14 +789,14 @@ class InterruptedCallsV2:
         them at the alarm (:meth:`_preempt` for a call that applied ``op``; ``held``: registers the call
         stores only after the point where the scan took the processor, at their values before it).
         Returns the scan's duration, by which the call finishes later."""
-        if op is None:  # nothing stored: the registers are those before the call
-            self._scan(alarm)
-            return self.scans[-1].duration_ns
         regs = self.parser.regs
         after = {f: getattr(regs, f) for f in held}
         for f, v in held.items():
             setattr(regs, f, v)
         try:
+            if op is None:  # the registers the call has stored (none, or all it stores before ``held``)
+                self._scan(alarm)
+                return self.scans[-1].duration_ns
             return self._preempt(alarm, t, consumed, op, before, old)
         finally:
             for f, v in after.items():
@@ -1276,11 +1276,21 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
                 return
             # 0xF6's alarm and 0xF5's count are stored after the point where the scan took the processor
             held = {"timer_alarm_ticks": old_ticks, "hv513_num": old_hv513}
+            # an alarm inside the call's last read is taken at the next read point, after the call's stores
+            # (:meth:`_starved_after_call`): the scan sees what the call stored, ``held`` aside
+            seen = applied if clock.asked else None
             shift = 0  # the scans' time inside the call so far: the call's work is that much later
             while True:
-                shift += self._scan_inside(alarm, t + shift, out.consumed, applied, before, old_pattern, held)
+                duration = self._scan_inside(alarm, t + shift, out.consumed, seen, before, old_pattern, held)
+                shift += duration
                 # the next alarm may fall inside the call too (a period barely longer than a scan): the scan
-                # has the same length (v2's does not depend on the heights), so it does not overrun either
+                # has the same length (v2's does not depend on the heights), so it does not overrun either;
+                # one that did would have been caught where it took the processor (``clock``)
+                if self._next_alarm_ns <= alarm + duration:
+                    raise RuntimeError(
+                        f"v2 model: a scan inside the call at {t} ns overran although the call's read "
+                        "points found no overrun (the registers a scan sees are inconsistent)"
+                    )
                 alarm = self._next_alarm_ns
                 if not (alarm < limit + shift or (tie and alarm == limit + shift)):
                     break
