@@ -4,8 +4,11 @@ come from the full runs)."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
+
+import pytest
 
 from .conftest import REPO
 
@@ -74,3 +77,30 @@ def test_serving_cpu_reports_the_cpu_a_served_board_costs_and_refuses_a_board_it
         cwd=REPO,
     )
     assert done.returncode == 2 and "--electrodes 40" in done.stderr and "1 to 32" in done.stderr
+
+
+def test_realtime_lag_refuses_a_firmware_src_that_is_no_tree_naming_it() -> None:
+    """``--firmware-src`` naming no PlatformIO tree: exit 3, the flag and the value in one line."""
+    done = subprocess.run(
+        [sys.executable, "tools/realtime_lag.py", "--firmware-src", "/nonexistent", "--idle", "1"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
+    assert done.returncode == 3
+    assert "--firmware-src /nonexistent" in done.stderr and "no src/ folder" in done.stderr
+    assert "Traceback" not in done.stderr
+
+
+@pytest.mark.skipif(
+    not os.environ.get("TACTDEFORM_HW_UPSTREAM_V1_2"),
+    reason="TACTDEFORM_HW_UPSTREAM_V1_2 is not set (eTactileKit v1.2's 2_Firmware/platform_io_project)",
+)
+def test_realtime_lag_serves_an_upstream_host_build_on_a_pty() -> None:
+    """The lag of a host build's serving loop, configured and streamed over a real pty."""
+    tree = os.environ["TACTDEFORM_HW_UPSTREAM_V1_2"]
+    out = run_tool("tools/realtime_lag.py", "--firmware-src", tree, "--idle", "1", "--stream", "1", "--json")
+    assert isinstance(out, dict)
+    assert out["served"] == tree and out["configured"]
+    for phase in ("idle", "stream"):
+        assert out[phase]["wakeups"] > 100 and out[phase]["lag_median_ms"] >= 0.0

@@ -16,10 +16,15 @@ For the stream: the latency from each host write (the client's clock) to the fir
 pattern (the model's report of that command, on the same clock), against the timed model's prediction
 for the same configuration and link (:func:`tactdeform_hw.emulator.timed.model_v1_2.pattern_latency`, no pty).
 
+``--firmware-src DIR`` serves a firmware tree built on this machine instead of the Python model (the same
+pty server, the USB build's link and timing): the lag and CPU of its serving loop.  The firmware keeps no
+record of the commands it completed, so the write-to-pulse latency is measured on the Python model only.
+
 Usage::
 
     python tools/realtime_lag.py                     # 5 s idle, 10 s stream at 72 Hz
     python tools/realtime_lag.py --idle 2 --stream 5 --json
+    python tools/realtime_lag.py --firmware-src ~/eTactileKit/2_Firmware/platform_io_project
 """
 
 from __future__ import annotations
@@ -140,6 +145,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rate", type=float, default=72.0, help="patterns per second in the stream (default 72)")
     ap.add_argument("--electrodes", type=int, default=32)
     ap.add_argument("--frequency", type=int, default=125, help="stimulation rate, Hz (default 125)")
+    ap.add_argument(
+        "--firmware-src",
+        metavar="DIR",
+        help="serve this firmware tree built on the host (needs a C++ compiler) instead of the Python model",
+    )
     ap.add_argument("--json", action="store_true", help="print the figures as JSON")
     args = ap.parse_args(argv)
     for name in ("idle", "stream", "rate"):
@@ -152,7 +162,17 @@ def main(argv: list[str] | None = None) -> int:
     from tactdeform_hw.emulator.serving.pty_server import PtyServer
 
     cfg = tactdeform_config(args.electrodes, 200, 45, args.frequency, 100)
-    server = PtyServer(RealtimeEmulator()).start()
+    board = RealtimeEmulator()
+    if args.firmware_src is not None:
+        from tactdeform_hw.emulator.hostbuild.timed import realtime_host_build
+        from tactdeform_hw.errors import TactDeformError
+
+        try:
+            board = realtime_host_build(args.firmware_src)
+        except TactDeformError as e:
+            print(f"realtime_lag.py: --firmware-src {args.firmware_src}: {e}", file=sys.stderr)
+            return 3
+    server = PtyServer(board).start()
     try:
         port = serial.Serial(server.path, 921600, timeout=0.5)
         configure(port, cfg, args.frequency)
@@ -167,6 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         server.stop()
     pred = pattern_latency(cfg, "usb", phases=64)["first_channel_us"]
     out = {
+        "served": args.firmware_src or "model v1.2",
         "config": {"electrodes": args.electrodes, "frequency_hz": args.frequency, "stream_hz": args.rate},
         "idle": idle,
         "stream": stream,
@@ -180,7 +201,8 @@ def main(argv: list[str] | None = None) -> int:
         json.dump(out, sys.stdout, indent=2)
         sys.stdout.write("\n")
         return 0
-    print(f"real-time emulator on a pty: {args.electrodes} electrodes at {args.frequency} Hz")
+    where = out["served"]
+    print(f"real-time emulator on a pty ({where}): {args.electrodes} electrodes at {args.frequency} Hz")
     print(f"{'phase':<8} {'lag median':>11} {'p99':>9} {'max':>9} {'wake-ups':>9} {'> 1 ms':>7} {'CPU':>7}")
     for name, ph in (("idle", idle), (f"{args.rate:g} Hz", stream)):
         print(
