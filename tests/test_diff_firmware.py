@@ -821,6 +821,12 @@ UPSTREAM_V1_2_MAIN_LOOP_CASES = {
         ((13293.406, "f6b131fc02fe0202"), (13333.406, "f5"), (13333.406, "f5")),
         40576.0,
     ),
+    # sense width 255, discharge 245, 4 electrodes (2 ms scans), 0xF5 arriving during the scan of 11 010.25 us
+    # (random seed 17450, minimal): the idle loop's poll of the 12 000 us tick runs as the scan returns
+    "the idle loop's poll after a scan": (
+        ((2010.5, "f8fff7f5fc04"), (13010.214, "f5"), (13247.777, "4f")),
+        15022.0,
+    ),
     # the 100 000-stream run's first `pulses start` (random seed 619, minimal): 4 electrodes, sense width 255,
     # discharge 254 (2 ms scans), one command a tick; at the 21 000 us tick 0xF9 1's last Serial.available()
     # check runs across the alarm at 21 010.25 us, so vTaskDelay(1) is called after the scan and the next

@@ -510,3 +510,15 @@ def test_v2_an_alarm_in_a_call_s_last_read_scans_the_registers_it_stored() -> No
     seen = side.observe(15000.0)
     assert seen.state["electrode_num"] == 0
     assert seen.replies.endswith(bytes.fromhex("0000"))
+
+
+def test_v1_2_the_idle_loop_s_poll_of_a_tick_inside_a_scan_reads_what_arrived_during_the_scan() -> None:
+    """An idle runEtactileKit() finds nothing, calls vTaskDelay(1) and polls again at every tick; a tick
+    inside a scan (the one of 12 000 us inside the scan from 11 010.25 to 13 018.7 us: 4 sense pulses of
+    255 us, discharge 245 us) wakes the loop as the scan returns, and that poll reads the 0xF5 that arrived
+    at 13 010.214 us during the scan: its reply comes 1 ms of detection later, at 14 025.15 us, not after
+    the tick of 14 000 us."""
+    side = _v1_2([(2010.5, "f8fff7f5fc04"), (13010.214, "f5")], 13100.0)
+    assert side.observe(13100.0).state["rx_unread"] == 0
+    side.advance_to(15022.0)
+    assert side.emu.tx_log == [(14025.15, b"\x04")]

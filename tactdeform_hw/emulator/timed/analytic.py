@@ -205,6 +205,28 @@ class _Analytic:
             return base
         return base + -(-(t - base) // tick) * tick
 
+    def _idle_poll(self, first: int, a: int, ready: int) -> int:
+        """The idle loop's poll that reads a command whose first byte arrives at ``first`` and last at
+        ``a``: the first tick at or after ``a``, or the end of the scan under way at ``first`` when a tick
+        the loop polls at (from ``ready``) falls inside that scan -- the poll runs as the scan returns
+        (``TimedEmulator``'s idle wait) and its call reads the bytes as they arrive."""
+        self.scans_until(first)
+        start, end = self.last_reload, self.last_end
+        if start <= first <= end and self.tick_at_or_after(max(start, ready)) < end:
+            return max(end, a - self.m.call_ns)  # (a call cannot read a byte before it arrives)
+        return self.tick_at_or_after(a)
+
+    def _last_check(self, eff: int) -> int:
+        """When the loop next reads after a command that took effect at ``eff``: the payload loop's last
+        ``Serial.available()`` check, then ``vTaskDelay(1)`` to the next tick -- after the scan whose alarm
+        falls inside that check, with the rest of the check (``TimedEmulator._last_check``)."""
+        check_end = eff + self.m.call_ns
+        alarm = self.next_alarm
+        if alarm > check_end:
+            return self.tick_at_or_after(check_end + 1)
+        self.scans_until(alarm)
+        return self.tick_at_or_after(self.last_end + check_end - alarm + 1)
+
     # --- the run --------------------------------------------------------------------------------------------
 
     def run(self) -> Timeline:
@@ -233,7 +255,8 @@ class _Analytic:
                     if ready is None:
                         effects[c.offset] = None
                         continue
-                    call = ready if a <= ready else self.tick_at_or_after(a)
+                    first = int(arrivals[max(0, c.offset - base)])
+                    call = ready if a <= ready else self._idle_poll(first, a, ready)
                     placed = self.place(call)
                     if placed is None:
                         ready = None
@@ -263,11 +286,7 @@ class _Analytic:
                     # felt at the next scan, whatever configuration it runs (an older pattern is overwritten)
                     self.pending = [(c.offset, len(c.raw) - 1)]
                 if not self.nominal:
-                    ready = (
-                        eff
-                        if c.opcode in (Opcode.MEASURE, Opcode.HV513_COUNT)
-                        else self.tick_at_or_after(eff + m.call_ns + 1)  # the payload loop's last check
-                    )
+                    ready = eff if c.opcode in (Opcode.MEASURE, Opcode.HV513_COUNT) else self._last_check(eff)
         self.scans_until(duration)
         return self._timeline(duration, effects)
 

@@ -856,6 +856,13 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
         if took and fw.main_wait is not None and fw.main_wait != _WAIT_LOCKED:
             if fw.main_wait == _WAIT_TICK:
                 nxt = self._tick_at_or_after(t)
+                if (
+                    fw.busy_from <= t <= fw.busy_until
+                    and self._tick_at_or_after(fw.busy_from) < fw.busy_until
+                ):
+                    # the idle loop's poll of a tick inside the scan runs as the scan returns: it finds
+                    # the bytes that arrived during the scan
+                    nxt = fw.busy_until
             else:  # spinning on a u16: reads as soon as the byte is there
                 nxt = t
             if fw.busy_from <= nxt < fw.busy_until:
