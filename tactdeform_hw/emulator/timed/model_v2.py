@@ -802,6 +802,37 @@ class InterruptedCallsV2:
             for f, v in after.items():
                 setattr(regs, f, v)
 
+    def _scans_in_call(
+        self,
+        alarm: int,
+        t: int,
+        consumed: int,
+        op: int | None,
+        before: dict[str, Any],
+        old: list[int],
+        held: dict[str, int],
+        limit: int,
+        tie: bool,
+    ) -> int:
+        """The scans whose alarms fall inside the call at ``t`` (before ``limit``, or at it with ``tie``),
+        each seeing the registers as :meth:`_scan_inside` gives them; returns their time, by which the call
+        ends later."""
+        shift = 0  # the scans' time inside the call so far: the call's work is that much later
+        while True:
+            duration = self._scan_inside(alarm, t + shift, consumed, op, before, old, held)
+            shift += duration
+            # the next alarm may fall inside the call too (a period barely longer than a scan): the scan has
+            # the same length (v2's does not depend on the heights), so it does not overrun either; one that
+            # did would have been caught where it took the processor (the call's read clock)
+            if self._next_alarm_ns <= alarm + duration:
+                raise RuntimeError(
+                    f"v2 model: a scan inside the call at {t} ns overran although the call's read points "
+                    "found no overrun (the registers a scan sees are inconsistent)"
+                )
+            alarm = self._next_alarm_ns
+            if not (alarm < limit + shift or (tie and alarm == limit + shift)):
+                return shift
+
     def _starved_after_call(self, clock: _ReadClock, op: int | None) -> bool:
         """The alarm fell inside the call's last read (no read point at or after it, ``clock.asked``
         False): the firmware stores what it read and takes the scan at its next read point, the next
@@ -1279,22 +1310,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
             # an alarm inside the call's last read is taken at the next read point, after the call's stores
             # (:meth:`_starved_after_call`): the scan sees what the call stored, ``held`` aside
             seen = applied if clock.asked else None
-            shift = 0  # the scans' time inside the call so far: the call's work is that much later
-            while True:
-                duration = self._scan_inside(alarm, t + shift, out.consumed, seen, before, old_pattern, held)
-                shift += duration
-                # the next alarm may fall inside the call too (a period barely longer than a scan): the scan
-                # has the same length (v2's does not depend on the heights), so it does not overrun either;
-                # one that did would have been caught where it took the processor (``clock``)
-                if self._next_alarm_ns <= alarm + duration:
-                    raise RuntimeError(
-                        f"v2 model: a scan inside the call at {t} ns overran although the call's read "
-                        "points found no overrun (the registers a scan sees are inconsistent)"
-                    )
-                alarm = self._next_alarm_ns
-                if not (alarm < limit + shift or (tie and alarm == limit + shift)):
-                    break
-            end += shift
+            end += self._scans_in_call(alarm, t, out.consumed, seen, before, old_pattern, held, limit, tie)
         if frequency:  # setPeriodUs re-enables the alarm after the call's last read (and the scan it let in)
             self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
         self._send_replies(end)
