@@ -22,6 +22,7 @@ from tactdeform_hw.emulator.hostbuild.diff import (
     PREEMPT_US,
     Comparison,
     Differ,
+    HostSide,
     ModelSideV1_2,
     ModelSideV2,
     Observation,
@@ -864,3 +865,28 @@ def test_upstream_v2_an_alarm_in_a_call_s_last_read_scans_what_it_stored_on_both
         )
     )
     assert Differ(tree, "v2").first_divergence(Stream(writes, 15000.0, "count lowered")) is None
+
+
+def test_upstream_v2_a_call_pre_empted_by_a_long_scan_resolves_after_the_scan() -> None:
+    """0xFC 255, then 0xFB 0xFD at the tick before the alarm: the scan of 255 channels (3.5 ms) takes the
+    processor before the firmware reads 0xFB's payload, so the call stores mode 2 only after the scan; the
+    model shows it from the call's start.  The call-resolution window runs in main-loop time and waits for
+    that scan (the scans agree exactly; random seed 51369's minimal reproduction)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((10101.773, "fcff"), (10111.773, "fbfd"), (12506.575, "00"))
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 13007.0, "pre-empted call")
+    differ = Differ(tree, "v2")
+    assert differ.first_divergence(stream) is None
+    assert differ.call_resolved == 1
+    left, right = differ.sides()
+    try:
+        for t, h in writes[:2]:
+            left.write(bytes.fromhex(h), t)
+            right.write(bytes.fromhex(h), t)
+        for side in (left, right):
+            side.advance_to(12506.0)
+        assert (left.observe(12506.0).state["stim_mode"], right.observe(12506.0).state["stim_mode"]) == (0, 2)
+        assert isinstance(left, HostSide) and left.scanning_us(11000.0, 12506.0) == (12506.0 - 11011.0, 1)
+    finally:
+        left.close()
+        right.close()
