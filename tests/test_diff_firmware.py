@@ -470,8 +470,9 @@ _BURST = (
 def test_upstream_v2_a_drop_counted_when_the_model_lands_the_bytes_is_a_call_resolution() -> None:
     """A scan of 255 channels holds the loop while a 1011-byte burst fills the queue past its 1024 bytes: the
     firmware's serial driver drops the last byte as it arrives, the model when its next call lands the
-    bytes (after the scan); by the end of the window a pattern's copy under way differs instead, a
-    resolution of its own (the 'state rx_dropped' minimal reproduction)."""
+    bytes (after the scan), one call resolution (the 'state rx_dropped' minimal reproduction; the pattern's
+    copy under way at the window's end, once a second one, now leaves its unread bytes in the model's queue
+    as in the firmware's: test_models_follow_firmware.py)."""
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
     writes = [(2051.696, "fefcfffd00"), (11634.045, "fcb4f60000fc20fdfefb01"), (12685.187, "08f8fe")]
     stream = Stream(
@@ -485,7 +486,7 @@ def test_upstream_v2_a_drop_counted_when_the_model_lands_the_bytes_is_a_call_res
     )
     differ = Differ(tree, "v2")
     assert differ.first_divergence(stream) is None
-    assert differ.call_resolved == 2
+    assert differ.call_resolved == 1
 
 
 def test_upstream_v1_2_a_register_mid_call_is_the_models_call_resolution() -> None:
@@ -887,6 +888,36 @@ def test_upstream_v2_a_call_pre_empted_by_a_long_scan_resolves_after_the_scan() 
             side.advance_to(12506.0)
         assert (left.observe(12506.0).state["stim_mode"], right.observe(12506.0).state["stim_mode"]) == (0, 2)
         assert isinstance(left, HostSide) and left.scanning_us(11000.0, 12506.0) == (12506.0 - 11011.0, 1)
+    finally:
+        left.close()
+        right.close()
+
+
+@pytest.mark.parametrize(
+    "writes",
+    [
+        ((2000.5, "f801fb01"), (3002.5, "f4"), (3004.0, "f4"), (3008.5, "f4"), (3011.5, "f4")),
+        ((2000.5, "f801" * 512), (3003.0, "f801"), (3100.0, "f4")),
+    ],
+    ids=["read-one-at-a-time", "arrival-mid-call"],
+)
+def test_upstream_v2_a_call_s_unread_bytes_stay_in_the_queue(writes: tuple[tuple[float, str], ...]) -> None:
+    """runEtactileKit() reads a call's bytes one at a time: the queue keeps each until its read, and an
+    arrival meanwhile finds them there (the model-only twins are in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 3200.0, "unread")
+    differ = Differ(tree, "v2")
+    assert differ.first_divergence(stream) is None
+    left, right = differ.sides()
+    try:
+        for t, h in writes:
+            seen = []
+            for side in (left, right):
+                side.advance_to(t)
+                st = side.observe(t).state
+                seen.append((st["rx_unread"], st["rx_dropped"]))
+                side.write(bytes.fromhex(h), t)
+            assert seen[0] == seen[1], t
     finally:
         left.close()
         right.close()

@@ -510,3 +510,23 @@ def test_v2_an_alarm_in_a_call_s_last_read_scans_the_registers_it_stored() -> No
     seen = side.observe(15000.0)
     assert seen.state["electrode_num"] == 0
     assert seen.replies.endswith(bytes.fromhex("0000"))
+
+
+def test_v2_a_call_s_bytes_leave_the_queue_as_run_etactile_kit_reads_them() -> None:
+    """runEtactileKit() reads a command byte after one isDataAvailable() (2 µs) and its payload after a
+    second (readInt_8, 1 µs a byte): the queue keeps a byte until its read starts, though the model's call
+    takes them at its start (the 'state rx_unread' cause)."""
+    side = _v2([(2000.5, "f801fb01")], 2999.0)
+    seen = []
+    for t_us in (2999.0, 3001.0, 3002.5, 3004.0, 3005.5, 3007.0, 3008.5, 3010.0, 3011.5):
+        side.advance_to(t_us)
+        seen.append(side.observe(t_us).state["rx_unread"])  # waiting, or landing at the model's next call
+    assert seen == [4, 4, 3, 3, 2, 2, 1, 1, 0]
+
+
+def test_v2_a_byte_arriving_while_a_call_reads_finds_its_unread_bytes_in_the_queue() -> None:
+    """1024 bytes fill the queue; the call at the 3000 µs tick reads 0xF8 at 3002 µs and its payload at
+    3005 µs, so two bytes arriving at 3003 µs find 1023 queued: one fits, the HWCDC driver drops the other
+    (the 'state rx_dropped' and 'state stim_pattern' cause)."""
+    side = _v2([(2000.5, "f801" * 512), (3003.0, "f801")], 3100.0)
+    assert side.emu.state().rx_dropped == 1
