@@ -921,3 +921,13 @@ def test_upstream_v2_a_call_s_unread_bytes_stay_in_the_queue(writes: tuple[tuple
     finally:
         left.close()
         right.close()
+
+
+def test_upstream_v2_a_later_alarm_inside_a_call_s_last_read_scans_what_it_stored() -> None:
+    """The 0xFC 0 call pre-empted by one scan, then the next alarm inside its last read: the firmware and
+    the model both run that scan with no channel (the model-only twin is in test_models_follow_firmware.py;
+    the 'pulses count' minimal reproduction of random seed 5426)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((2761.842, "fc01"), (3049.205, "f9fffb02f6eaaafc00"))
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 6069.0, "later alarm in last read")
+    assert Differ(tree, "v2").first_divergence(stream) is None

@@ -262,12 +262,14 @@ SLIVERS = [(2000.5, "f616befc01"), (3081.22, "fe"), (6776.817, "fffc")]
 
 def test_v2_a_call_spanning_several_scans_is_pre_empted_by_each() -> None:
     """The call that reads 0xFE's payload starts at 7006 µs and needs 4 µs (isDataAvailable, readInt_16):
-    the alarms of 7007, 7027 and 7047 µs each take the processor for 19 µs, so the call stores the height
-    only at 7067 µs and those three scans still run height 0 (the model had counted one scan in the call
-    and run the next two with the new height)."""
+    the alarms of 7007 and 7027 µs each take the processor for 19.2 µs inside isDataAvailable, so those two
+    scans still run height 0 (the model had counted one scan in the call and run the next with the new
+    height); the alarm of 7047 µs falls inside the readInt_16 that starts at 7046.4 µs, the call's last
+    read, so, as a first alarm there would, its scan is taken after the call's store and runs 4095 (the
+    host build's third scan too; the model had run it with height 0)."""
     side = _v2(SLIVERS, 9033.0)
     scans = [(s.start_ns, s.heights) for s in side.emu.scans if 7_000_000 < s.start_ns < 7_100_000]
-    assert scans[:3] == [(7_007_000, (0,)), (7_027_000, (0,)), (7_047_000, (0,))]
+    assert scans[:3] == [(7_007_000, (0,)), (7_027_000, (0,)), (7_047_000, (4095,))]
     assert scans[4] == (7_087_000, (4095,))
 
 
@@ -530,3 +532,19 @@ def test_v2_a_byte_arriving_while_a_call_reads_finds_its_unread_bytes_in_the_que
     (the 'state rx_dropped' and 'state stim_pattern' cause)."""
     side = _v2([(2000.5, "f801" * 512), (3003.0, "f801")], 3100.0)
     assert side.emu.state().rx_dropped == 1
+
+
+# 1 electrode in mode 2 (sense height 255), then 0xF6 43754 (a 22 µs alarm) and 0xFC 0: the scans of 4019
+# and 4041 µs take the processor inside the 0xFC call, the alarm of 4063 µs falls inside its last read
+LATER_ALARM_IN_LAST_READ = [(2761.842, "fc01"), (3049.205, "f9fffb02f6eaaafc00")]
+
+
+def test_v2_a_later_alarm_inside_a_call_s_last_read_scans_what_it_stored() -> None:
+    """runEtactileKit's 0xFC call reads its byte from 4040.2 µs; the scan of 4041 µs pre-empts it, the call
+    resumes at 4060.2 µs and reads the count from 4062.2 to 4063.2 µs: the alarm of 4063 µs falls inside that
+    last read, so its scan is taken after ElectrodeNum = 0 is stored, as a first alarm there is, and
+    delivers nothing (the model had run it with the count before the call: one pulse more, the
+    'pulses count' minimal reproduction)."""
+    side = _v2(LATER_ALARM_IN_LAST_READ, 4100.0)
+    scans = [(s.start_ns, s.electrode_num) for s in side.emu.scans]
+    assert scans == [(4_019_000, 1), (4_041_000, 1), (4_063_000, 0), (4_085_000, 0)]

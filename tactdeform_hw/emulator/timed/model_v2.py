@@ -450,12 +450,14 @@ class _ReadClock:
         self.overruns = overruns
         self.asked = False
         self.starts: list[int] = []
+        self.last_point_ns = t  # where the call's last read point starts (a later alarm is in its read)
 
     def __call__(self, point: ReadPoint, nbytes: int) -> bool:
         if not self.asked and self.clock_ns >= self.alarm_ns:
             self.asked = True
             if self.overruns():
                 return False
+        self.last_point_ns = self.clock_ns
         if point is ReadPoint.AVAILABLE:
             self.clock_ns += self.call_ns
         elif point is ReadPoint.READ:
@@ -1322,6 +1324,11 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
                     )
                 alarm = self._next_alarm_ns
                 if not (alarm < limit + shift or (tie and alarm == limit + shift)):
+                    break
+                # a later alarm past the call's last read point falls inside its last read: as for the
+                # first, the scan is taken after the call's stores and sees them -- the loop's own scan,
+                # due before its next call (and starving it if it overruns)
+                if alarm > clock.last_point_ns + shift:
                     break
             end += shift
             first = clock.alarm_ns  # the reads from the first scan on are that scan (or scans) later
