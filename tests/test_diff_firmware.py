@@ -931,3 +931,20 @@ def test_upstream_v2_a_later_alarm_inside_a_call_s_last_read_scans_what_it_store
     writes = ((2761.842, "fc01"), (3049.205, "f9fffb02f6eaaafc00"))
     stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 6069.0, "later alarm in last read")
     assert Differ(tree, "v2").first_divergence(stream) is None
+
+
+def test_upstream_v2_a_pattern_element_whose_read_the_alarm_falls_in_is_stored_before_the_scan() -> None:
+    """The scan that interrupts a pattern's copy inside element 2's read runs elements 0-2 new on the
+    firmware and in the model (the model-only twin is in test_models_follow_firmware.py; the 'pulses
+    outputs' minimal reproduction of random seed 8958)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = (
+        (2242.218, "fc20"),
+        (
+            10172.698,
+            "fe03000100fcdec4180000010001000100ff00ff00cb8c020003004dad030001000000c5a103000200010002000100ff00"
+            "ffd6ff00030000000100327b01000100",
+        ),
+    )
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 120172.698, "torn at an element")
+    assert Differ(tree, "v2").first_divergence(stream) is None

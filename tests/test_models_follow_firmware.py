@@ -548,3 +548,26 @@ def test_v2_a_later_alarm_inside_a_call_s_last_read_scans_what_it_stored() -> No
     side = _v2(LATER_ALARM_IN_LAST_READ, 4100.0)
     scans = [(s.start_ns, s.electrode_num) for s in side.emu.scans]
     assert scans == [(4_019_000, 1), (4_041_000, 1), (4_063_000, 0), (4_085_000, 0)]
+
+
+# 32 electrodes, then a pattern whose copy the alarm of 11010.25 µs interrupts
+TORN_AT_AN_ELEMENT = [
+    (2242.218, "fc20"),
+    (
+        10172.698,
+        "fe03000100fcdec4180000010001000100ff00ff00cb8c020003004dad030001000000c5a103000200010002000100ff00"
+        "ffd6ff00030000000100327b01000100",
+    ),
+]
+
+
+def test_v2_a_pattern_element_whose_read_the_alarm_falls_in_is_stored_before_the_scan() -> None:
+    """The call at the 11000 µs tick reads 0xFE by 11003 µs and copies one element (readInt_16, 2 µs) at a
+    time from 11005 µs: the alarm of 11010.25 µs falls inside element 2's read, and the scan takes the
+    processor at the next read point (element 3's), so it runs elements 0-2 new and the rest old (the model
+    had counted only the elements read by the alarm: element 2 old; the 'pulses outputs' and 'pulses code'
+    minimal reproductions)."""
+    side = _v2(TORN_AT_AN_ELEMENT, 11100.0)
+    assert [(s.start_ns, s.heights[:4]) for s in side.emu.scans] == [(11_010_250, (3, 1, 4095, 0))]
+    torn = [h.detail["new_channels"] for h in side.emu.hazards if h.kind is HazardKind.TORN_PATTERN]
+    assert torn == [3]

@@ -768,7 +768,9 @@ class InterruptedCallsV2:
             n = regs.electrode_num
             width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
             start = t + m.call_ns * self.parser.checks + max(0, consumed - 2 * n) * m.byte_ns
-            k = max(0, min(n, (alarm - start) // width)) if width else n
+            # the scan takes the processor at the first element read that starts at or after the alarm
+            # (_ReadClock): an element whose read the alarm falls in is stored before it
+            k = max(0, min(n, -(-(alarm - start) // width))) if width else n
             regs.stim_pattern[:] = new[:k] + old[k:]
             # in mode 2 the scan gives every channel the sense pulse and discards the height it reads
             # (spec "Stimulation scan", 3c): its pulses are the same whatever the buffer holds, so no scan
