@@ -827,6 +827,49 @@ class InterruptedCallsV2:
             for f, v in after.items():
                 setattr(regs, f, v)
 
+    def _scans_in_call(
+        self,
+        clock: _ReadClock,
+        t: int,
+        consumed: int,
+        applied: int | None,
+        before: dict[str, Any],
+        old: list[int],
+        held: dict[str, int],
+        limit: int,
+        tie: bool,
+    ) -> int:
+        """The scans whose alarms fall inside the call at ``t`` (before ``limit``, or at it with ``tie``),
+        each where it takes the processor; returns their time, by which the call's work ends later (its
+        reads too: ``_read_starts``)."""
+        alarm = clock.alarm_ns
+        # an alarm inside the call's last read is taken at the next read point, after the call's stores
+        # (:meth:`_starved_after_call`): the scan sees what the call stored, ``held`` aside
+        seen = applied if clock.asked else None
+        shift = 0  # the scans' time inside the call so far: the call's work is that much later
+        while True:
+            duration = self._scan_inside(alarm, t + shift, consumed, seen, before, old, held)
+            shift += duration
+            # the next alarm may fall inside the call too (a period barely longer than a scan): the scan
+            # has the same length (v2's does not depend on the heights), so it does not overrun either;
+            # one that did would have been caught where it took the processor (``clock``)
+            if self._next_alarm_ns <= alarm + duration:
+                raise RuntimeError(
+                    f"v2 model: a scan inside the call at {t} ns overran although the call's read "
+                    "points found no overrun (the registers a scan sees are inconsistent)"
+                )
+            alarm = self._next_alarm_ns
+            if not (alarm < limit + shift or (tie and alarm == limit + shift)):
+                break
+            # a later alarm past the call's last read point falls inside its last read: as for the
+            # first, the scan is taken after the call's stores and sees them -- the loop's own scan,
+            # due before its next call (and starving it if it overruns)
+            if alarm > clock.last_point_ns + shift:
+                break
+        first = clock.alarm_ns  # the reads from the first scan on are that scan (or scans) later
+        self._read_starts = [r + shift if r >= first else r for r in clock.starts]
+        return shift
+
     def _starved_after_call(self, clock: _ReadClock, op: int | None) -> bool:
         """The alarm fell inside the call's last read (no read point at or after it, ``clock.asked``
         False): the firmware stores what it read and takes the scan at its next read point, the next
@@ -1305,36 +1348,12 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         # (the point until which an alarm pre-empts the call, and whether one due there still does)
         limit, tie = (reads_end, True) if paused else (end, frequency)
         if t < alarm and (alarm < limit or (tie and alarm == limit)):
+            assert clock.alarm_ns == alarm  # the alarm is before the call's end, so before its latest end
             if self._starved_after_call(clock, applied):
                 return
             # 0xF6's alarm and 0xF5's count are stored after the point where the scan took the processor
             held = {"timer_alarm_ticks": old_ticks, "hv513_num": old_hv513}
-            # an alarm inside the call's last read is taken at the next read point, after the call's stores
-            # (:meth:`_starved_after_call`): the scan sees what the call stored, ``held`` aside
-            seen = applied if clock.asked else None
-            shift = 0  # the scans' time inside the call so far: the call's work is that much later
-            while True:
-                duration = self._scan_inside(alarm, t + shift, out.consumed, seen, before, old_pattern, held)
-                shift += duration
-                # the next alarm may fall inside the call too (a period barely longer than a scan): the scan
-                # has the same length (v2's does not depend on the heights), so it does not overrun either;
-                # one that did would have been caught where it took the processor (``clock``)
-                if self._next_alarm_ns <= alarm + duration:
-                    raise RuntimeError(
-                        f"v2 model: a scan inside the call at {t} ns overran although the call's read "
-                        "points found no overrun (the registers a scan sees are inconsistent)"
-                    )
-                alarm = self._next_alarm_ns
-                if not (alarm < limit + shift or (tie and alarm == limit + shift)):
-                    break
-                # a later alarm past the call's last read point falls inside its last read: as for the
-                # first, the scan is taken after the call's stores and sees them -- the loop's own scan,
-                # due before its next call (and starving it if it overruns)
-                if alarm > clock.last_point_ns + shift:
-                    break
-            end += shift
-            first = clock.alarm_ns  # the reads from the first scan on are that scan (or scans) later
-            self._read_starts = [r + shift if r >= first else r for r in clock.starts]
+            end += self._scans_in_call(clock, t, out.consumed, applied, before, old_pattern, held, limit, tie)
         if frequency:  # setPeriodUs re-enables the alarm after the call's last read (and the scan it let in)
             self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
         self._send_replies(end)
