@@ -380,7 +380,7 @@ class _QueueView:
         self._owner = owner
 
     def __len__(self) -> int:
-        return int(self._owner.emulator.parser.pending)
+        return self._owner.queued_bytes()
 
     @property
     def free(self) -> int:
@@ -1033,9 +1033,13 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
     def _rx_pending(self) -> int:
         return self.parser.pending
 
+    def queued_bytes(self) -> int:
+        """The bytes in the firmware's receive queue now: those the parser call under way has taken but
+        the firmware has not read yet included (see _taken_unread)."""
+        return self.parser.pending + self._taken_unread(self.now_ns)
+
     def state(self) -> BoardState:
-        """The firmware's registers, and the bytes waiting in the receive queue: those the parser call
-        under way has taken but the firmware has not read yet included (see _taken_unread)."""
+        """The firmware's registers, and the bytes waiting in the receive queue (:meth:`queued_bytes`)."""
         st = super().state()
         unread = self._taken_unread(self.now_ns)
         return replace(st, rx_pending=st.rx_pending + unread) if unread else st
