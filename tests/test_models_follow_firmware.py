@@ -262,12 +262,14 @@ SLIVERS = [(2000.5, "f616befc01"), (3081.22, "fe"), (6776.817, "fffc")]
 
 def test_v2_a_call_spanning_several_scans_is_pre_empted_by_each() -> None:
     """The call that reads 0xFE's payload starts at 7006 µs and needs 4 µs (isDataAvailable, readInt_16):
-    the alarms of 7007, 7027 and 7047 µs each take the processor for 19 µs, so the call stores the height
-    only at 7067 µs and those three scans still run height 0 (the model had counted one scan in the call
-    and run the next two with the new height)."""
+    the alarms of 7007 and 7027 µs each take the processor for 19.2 µs inside isDataAvailable, so those two
+    scans still run height 0 (the model had counted one scan in the call and run the next with the new
+    height); the alarm of 7047 µs falls inside the readInt_16 that starts at 7046.4 µs, the call's last
+    read, so, as a first alarm there would, its scan is taken after the call's store and runs 4095 (the
+    host build's third scan too; the model had run it with height 0)."""
     side = _v2(SLIVERS, 9033.0)
     scans = [(s.start_ns, s.heights) for s in side.emu.scans if 7_000_000 < s.start_ns < 7_100_000]
-    assert scans[:3] == [(7_007_000, (0,)), (7_027_000, (0,)), (7_047_000, (0,))]
+    assert scans[:3] == [(7_007_000, (0,)), (7_027_000, (0,)), (7_047_000, (4095,))]
     assert scans[4] == (7_087_000, (4095,))
 
 
@@ -522,3 +524,62 @@ def test_v1_2_the_idle_loop_s_poll_of_a_tick_inside_a_scan_reads_what_arrived_du
     assert side.observe(13100.0).state["rx_unread"] == 0
     side.advance_to(15022.0)
     assert side.emu.tx_log == [(14025.15, b"\x04")]
+
+
+def test_v2_a_call_s_bytes_leave_the_queue_as_run_etactile_kit_reads_them() -> None:
+    """runEtactileKit() reads a command byte after one isDataAvailable() (2 µs) and its payload after a
+    second (readInt_8, 1 µs a byte): the queue keeps a byte until its read starts, though the model's call
+    takes them at its start (the 'state rx_unread' cause)."""
+    side = _v2([(2000.5, "f801fb01")], 2999.0)
+    seen = []
+    for t_us in (2999.0, 3001.0, 3002.5, 3004.0, 3005.5, 3007.0, 3008.5, 3010.0, 3011.5):
+        side.advance_to(t_us)
+        seen.append(side.observe(t_us).state["rx_unread"])  # waiting, or landing at the model's next call
+    assert seen == [4, 4, 3, 3, 2, 2, 1, 1, 0]
+
+
+def test_v2_a_byte_arriving_while_a_call_reads_finds_its_unread_bytes_in_the_queue() -> None:
+    """1024 bytes fill the queue; the call at the 3000 µs tick reads 0xF8 at 3002 µs and its payload at
+    3005 µs, so two bytes arriving at 3003 µs find 1023 queued: one fits, the HWCDC driver drops the other
+    (the 'state rx_dropped' and 'state stim_pattern' cause)."""
+    side = _v2([(2000.5, "f801" * 512), (3003.0, "f801")], 3100.0)
+    assert side.emu.state().rx_dropped == 1
+
+
+# 1 electrode in mode 2 (sense height 255), then 0xF6 43754 (a 22 µs alarm) and 0xFC 0: the scans of 4019
+# and 4041 µs take the processor inside the 0xFC call, the alarm of 4063 µs falls inside its last read
+LATER_ALARM_IN_LAST_READ = [(2761.842, "fc01"), (3049.205, "f9fffb02f6eaaafc00")]
+
+
+def test_v2_a_later_alarm_inside_a_call_s_last_read_scans_what_it_stored() -> None:
+    """runEtactileKit's 0xFC call reads its byte from 4040.2 µs; the scan of 4041 µs pre-empts it, the call
+    resumes at 4060.2 µs and reads the count from 4062.2 to 4063.2 µs: the alarm of 4063 µs falls inside that
+    last read, so its scan is taken after ElectrodeNum = 0 is stored, as a first alarm there is, and
+    delivers nothing (the model had run it with the count before the call: one pulse more, the
+    'pulses count' minimal reproduction)."""
+    side = _v2(LATER_ALARM_IN_LAST_READ, 4100.0)
+    scans = [(s.start_ns, s.electrode_num) for s in side.emu.scans]
+    assert scans == [(4_019_000, 1), (4_041_000, 1), (4_063_000, 0), (4_085_000, 0)]
+
+
+# 32 electrodes, then a pattern whose copy the alarm of 11010.25 µs interrupts
+TORN_AT_AN_ELEMENT = [
+    (2242.218, "fc20"),
+    (
+        10172.698,
+        "fe03000100fcdec4180000010001000100ff00ff00cb8c020003004dad030001000000c5a103000200010002000100ff00"
+        "ffd6ff00030000000100327b01000100",
+    ),
+]
+
+
+def test_v2_a_pattern_element_whose_read_the_alarm_falls_in_is_stored_before_the_scan() -> None:
+    """The call at the 11000 µs tick reads 0xFE by 11003 µs and copies one element (readInt_16, 2 µs) at a
+    time from 11005 µs: the alarm of 11010.25 µs falls inside element 2's read, and the scan takes the
+    processor at the next read point (element 3's), so it runs elements 0-2 new and the rest old (the model
+    had counted only the elements read by the alarm: element 2 old; the 'pulses outputs' and 'pulses code'
+    minimal reproductions)."""
+    side = _v2(TORN_AT_AN_ELEMENT, 11100.0)
+    assert [(s.start_ns, s.heights[:4]) for s in side.emu.scans] == [(11_010_250, (3, 1, 4095, 0))]
+    torn = [h.detail["new_channels"] for h in side.emu.hazards if h.kind is HazardKind.TORN_PATTERN]
+    assert torn == [3]

@@ -259,7 +259,9 @@ def test_v2_an_alarm_due_as_an_unknown_byte_call_would_start_scans_first(cls: An
     emu.advance_to(emu.scans[0].end_ns / 1000 - 0.001)
     assert len(emu.queue) == 10
     emu.advance_to(emu.scans[0].end_ns / 1000)
-    assert len(emu.queue) == 9  # the next call starts as the scan ends
+    assert len(emu.queue) == 10  # the next call starts as the scan ends; it reads its byte 2 µs in
+    emu.advance_to(emu.scans[0].end_ns / 1000 + 2.001)
+    assert len(emu.queue) == 9
 
 
 @pytest.mark.parametrize("byte_us", [1.0, 30.0])

@@ -122,15 +122,17 @@ class ParserV2(ParserBase, UnknownRuns):
 
     # --- the receive queue -----------------------------------------------------------------------------
 
-    def receive(self, data: bytes) -> int:
-        """Queue one arrival packet by packet; return the bytes dropped because the queue was full."""
+    def receive(self, data: bytes, unread: int = 0) -> int:
+        """Queue one arrival packet by packet; return the bytes dropped because the queue was full.
+        ``unread``: bytes the parser has taken but the firmware has not read yet when this arrives (a
+        timed model's call takes them at its start): they still fill the firmware's queue."""
         self._drop_read()
         capacity = self.spec.rx_queue_bytes
         packet = self.spec.usb_packet_bytes
         lost = 0
         for start in range(0, len(data), packet):
             chunk = data[start : start + packet]
-            free = capacity - self.pending
+            free = capacity - unread - self.pending
             if free >= len(chunk):
                 self.rx += chunk
                 continue

@@ -80,7 +80,8 @@ EQUIVALENCES: dict[str, str] = {
     "array, or the replies, the same on both sides, or the firmware's register at the value the model "
     "showed: the call is over on the firmware too; another difference then is a later call's, held "
     "with a window of its own; the model also lands arrived bytes, and counts those the full queue "
-    "drops, at its next call)",
+    "drops, at its next call; the window is the firmware's main-loop time: a scan that pre-empts the call "
+    "stretches it by the scan's length, unless scans then run back to back)",
     "registers-in-common": "only registers both sides hold are compared (the host build's receive-queue "
     "counters and the model's command_in_progress have no counterpart)",
 }
@@ -198,6 +199,22 @@ class HostSide:
         st["rx_unread"] = st["rx_pending"] + st["rx_in_flight"]
         replies = b"".join(b for _, b in self.emu.tx_log)
         return Observation(st, replies, _number_in_scans(self._pulses(upto_us)), self.stuck)
+
+    def scanning_us(self, since_us: float, upto_us: float) -> tuple[float, int]:
+        """How long the firmware spent in its interrupt handlers between ``since_us`` and ``upto_us`` (a
+        handler still running counts up to ``upto_us``), time a pre-empted parser call does not advance in
+        (see EQUIVALENCES["call-resolution"]), and how many handlers it entered meanwhile."""
+        total, entered, entry = 0.0, 0, None
+        for e in self.emu.shim_events():
+            if e.kind == "ISR_ENTER":
+                entry = e.t_us
+                entered += since_us <= e.t_us < upto_us
+            elif e.kind == "ISR_RETURN" and entry is not None:
+                total += max(0.0, min(e.t_us, upto_us) - max(entry, since_us))
+                entry = None
+        if entry is not None:
+            total += max(0.0, upto_us - max(entry, since_us))
+        return total, entered
 
     def _pulses(self, upto_us: float) -> list[tuple[float, float, int, tuple[int, ...], int, int]]:
         """The delivered pulses ended by ``upto_us``, each with the number of its run of scans, read from the
@@ -683,6 +700,12 @@ class Differ:
                 d = Divergence(kind, fld, at, prev, a, b, _written_by(stream, at))
             if held is not None and (not in_call or cp >= held_until):
                 if in_call and _still_differs(held, seen_left, seen_right, self.cmp, readback):
+                    later = _call_window_end(left, held, cp, prev)
+                    if later is not None:  # scans pre-empted the firmware's call: it is not over yet
+                        held_until = later
+                        bisect.insort(checkpoints, later)
+                        prev = cp
+                        continue
                     return held  # still different once the longest parser call is over: a divergence
                 # gone (another register or element differing now is a difference of its own: a later call's
                 # effects, with a window of its own)
@@ -712,6 +735,21 @@ class Differ:
             else:
                 lo = mid
         return dataclasses.replace(best, at_us=hi, since_us=lo)
+
+
+def _call_window_end(left: Side, held: Divergence, cp: float, prev: float) -> float | None:
+    """When the firmware's longest parser call begun by ``held.at_us`` is over, if later than ``cp``: the
+    call advances only while no scan runs, so the CALL_WINDOW_US of main-loop time end later by the time the
+    firmware spent in scans since (a scan of 255 channels takes 3.5 ms, a call 1 ms at most).  ``None``:
+    the window is over, or since the checkpoint before (``prev``) the loop had no time while a scan began
+    (scans back to back: the call never ends)."""
+    if not isinstance(left, HostSide):
+        return None
+    end = held.at_us + CALL_WINDOW_US + left.scanning_us(held.at_us, cp)[0]
+    busy_us, entered = left.scanning_us(prev, cp)
+    if end <= cp or (busy_us >= cp - prev and entered > 0):
+        return None
+    return end
 
 
 def _still_differs(

@@ -42,7 +42,7 @@ it is written).
 from __future__ import annotations
 
 import heapq
-from bisect import bisect_right
+from bisect import bisect_left, bisect_right
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -87,6 +87,7 @@ from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513
 from tactdeform_hw.protocol.firmware import V2, FirmwareSpec, OpcodeV2
+from tactdeform_hw.protocol.state import BoardState
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 #: StimulationMode 2 (impedance only): every channel gets the sense pulse, the pattern's heights unused.
@@ -379,7 +380,7 @@ class _QueueView:
         self._owner = owner
 
     def __len__(self) -> int:
-        return int(self._owner.emulator.parser.pending)
+        return self._owner.queued_bytes()
 
     @property
     def free(self) -> int:
@@ -437,7 +438,9 @@ class _ReadClock:
     processor back: the call stops at that point.  Each point costs what
     :meth:`TimedEmulatorV2._main_call` counts for it: ``call_ns`` a queue check, ``byte_ns`` a byte
     read, nothing for a timer read or a write.  ``asked``: whether the call reached a point at or after
-    the alarm (False: the alarm fell inside its last read, and the scan is taken after the call)."""
+    the alarm (False: the alarm fell inside its last read, and the scan is taken after the call).
+    ``starts``: when each byte read leaves the firmware's queue (a read's bytes at its start: a u16's
+    two together), before any scan inside the call moves them (``_NEVER``: no alarm inside the call)."""
 
     def __init__(self, t: int, alarm: int, model: TimingModel, overruns: Callable[[], bool]) -> None:
         self.clock_ns = t
@@ -446,13 +449,20 @@ class _ReadClock:
         self.byte_ns = model.byte_ns
         self.overruns = overruns
         self.asked = False
+        self.starts: list[int] = []
+        self.last_point_ns = t  # where the call's last read point starts (a later alarm is in its read)
 
     def __call__(self, point: ReadPoint, nbytes: int) -> bool:
         if not self.asked and self.clock_ns >= self.alarm_ns:
             self.asked = True
             if self.overruns():
                 return False
-        self.clock_ns += self.call_ns if point is ReadPoint.AVAILABLE else nbytes * self.byte_ns
+        self.last_point_ns = self.clock_ns
+        if point is ReadPoint.AVAILABLE:
+            self.clock_ns += self.call_ns
+        elif point is ReadPoint.READ:
+            self.starts.extend(repeat(self.clock_ns, nbytes))
+            self.clock_ns += nbytes * self.byte_ns
         return True
 
 
@@ -551,6 +561,7 @@ class MainLoopRunsV2:
             run -= count
             calls += count
             t += count * step
+            self._read_starts = [t - step + m.call_ns]  # the chunk's last call's byte (see _taken_unread)
             self._land(t - step)  # what arrived during the chunk (nothing unless _lands_alike said so)
             if t > limit:
                 break
@@ -584,12 +595,23 @@ class MainLoopRunsV2:
                 self._loss(d.t_ns, len(d.data), d.host_offset, "rebooting")
                 continue
             start = parser.offset + parser.pending
-            lost = parser.receive(d.data)
+            lost = parser.receive(d.data, self._taken_unread(d.t_ns))
             if d.host_offset >= 0 and len(d.data) > lost:
                 self._segments.append((start, d.host_offset, len(d.data) - lost))
             if lost:
                 host = d.host_offset + len(d.data) - lost if d.host_offset >= 0 else -1
                 self._loss(d.t_ns, lost, host, "queue_full")
+
+    def _taken_unread(self, t: int) -> int:
+        """Bytes the last parser call took from the queue whose read starts at ``t`` or later
+        (``_read_starts``): runEtactileKit() reads one byte (a u16's two, a pattern element) at a time,
+        so a byte arriving meanwhile finds those still in the firmware's queue, and may not fit; and
+        ``rx_pending`` shows them until they are read.  (The host build moves an arrival into the queue
+        at the firmware's next call into the platform: before a read that starts at or after it.)"""
+        starts = self._read_starts
+        if not starts or starts[-1] < t:
+            return 0
+        return len(starts) - bisect_left(starts, t)
 
     def _lands_alike(self, t: int, count: int, step: int) -> bool:
         """Whether the bytes arriving during ``count`` calls from ``t`` (each reading one byte already
@@ -615,7 +637,8 @@ class MainLoopRunsV2:
         Otherwise the next byte alone, as a delivery for :meth:`_land` (None: the bytes were taken)."""
         parser = self.parser
         j = b.end_before(t, next_key(self._delivery_heap), seq)
-        if b.t_ns < self._booting_until or j - b.pos > parser.spec.rx_queue_bytes - parser.pending:
+        room = parser.spec.rx_queue_bytes - parser.pending - self._taken_unread(b.t_ns)
+        if b.t_ns < self._booting_until or j - b.pos > room:
             return b.pop()
         start = parser.offset + parser.pending
         hosts = b.host_offsets(j)
@@ -745,7 +768,9 @@ class InterruptedCallsV2:
             n = regs.electrode_num
             width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
             start = t + m.call_ns * self.parser.checks + max(0, consumed - 2 * n) * m.byte_ns
-            k = max(0, min(n, (alarm - start) // width)) if width else n
+            # the scan takes the processor at the first element read that starts at or after the alarm
+            # (_ReadClock): an element whose read the alarm falls in is stored before it
+            k = max(0, min(n, -(-(alarm - start) // width))) if width else n
             regs.stim_pattern[:] = new[:k] + old[k:]
             # in mode 2 the scan gives every channel the sense pulse and discards the height it reads
             # (spec "Stimulation scan", 3c): its pulses are the same whatever the buffer holds, so no scan
@@ -804,10 +829,10 @@ class InterruptedCallsV2:
 
     def _scans_in_call(
         self,
-        alarm: int,
+        clock: _ReadClock,
         t: int,
         consumed: int,
-        op: int | None,
+        applied: int | None,
         before: dict[str, Any],
         old: list[int],
         held: dict[str, int],
@@ -815,23 +840,35 @@ class InterruptedCallsV2:
         tie: bool,
     ) -> int:
         """The scans whose alarms fall inside the call at ``t`` (before ``limit``, or at it with ``tie``),
-        each seeing the registers as :meth:`_scan_inside` gives them; returns their time, by which the call
-        ends later."""
+        each where it takes the processor; returns their time, by which the call's work ends later (its
+        reads too: ``_read_starts``)."""
+        alarm = clock.alarm_ns
+        # an alarm inside the call's last read is taken at the next read point, after the call's stores
+        # (:meth:`_starved_after_call`): the scan sees what the call stored, ``held`` aside
+        seen = applied if clock.asked else None
         shift = 0  # the scans' time inside the call so far: the call's work is that much later
         while True:
-            duration = self._scan_inside(alarm, t + shift, consumed, op, before, old, held)
+            duration = self._scan_inside(alarm, t + shift, consumed, seen, before, old, held)
             shift += duration
-            # the next alarm may fall inside the call too (a period barely longer than a scan): the scan has
-            # the same length (v2's does not depend on the heights), so it does not overrun either; one that
-            # did would have been caught where it took the processor (the call's read clock)
+            # the next alarm may fall inside the call too (a period barely longer than a scan): the scan
+            # has the same length (v2's does not depend on the heights), so it does not overrun either;
+            # one that did would have been caught where it took the processor (``clock``)
             if self._next_alarm_ns <= alarm + duration:
                 raise RuntimeError(
-                    f"v2 model: a scan inside the call at {t} ns overran although the call's read points "
-                    "found no overrun (the registers a scan sees are inconsistent)"
+                    f"v2 model: a scan inside the call at {t} ns overran although the call's read "
+                    "points found no overrun (the registers a scan sees are inconsistent)"
                 )
             alarm = self._next_alarm_ns
             if not (alarm < limit + shift or (tie and alarm == limit + shift)):
-                return shift
+                break
+            # a later alarm past the call's last read point falls inside its last read: as for the
+            # first, the scan is taken after the call's stores and sees them -- the loop's own scan,
+            # due before its next call (and starving it if it overruns)
+            if alarm > clock.last_point_ns + shift:
+                break
+        first = clock.alarm_ns  # the reads from the first scan on are that scan (or scans) later
+        self._read_starts = [r + shift if r >= first else r for r in clock.starts]
+        return shift
 
     def _starved_after_call(self, clock: _ReadClock, op: int | None) -> bool:
         """The alarm fell inside the call's last read (no read point at or after it, ``clock.asked``
@@ -919,6 +956,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         self._last_beyond_hazard = False
         self._chain_pos = 0
         self._call_time_ns = start
+        self._read_starts: list[int] = []
         self._last_alarm = reload
         self._hv513_in_call = False
         self._applied_in_call: int | None = None
@@ -994,6 +1032,17 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
 
     def _rx_pending(self) -> int:
         return self.parser.pending
+
+    def queued_bytes(self) -> int:
+        """The bytes in the firmware's receive queue now: those the parser call under way has taken but
+        the firmware has not read yet included (see _taken_unread)."""
+        return self.parser.pending + self._taken_unread(self.now_ns)
+
+    def state(self) -> BoardState:
+        """The firmware's registers, and the bytes waiting in the receive queue (:meth:`queued_bytes`)."""
+        st = super().state()
+        unread = self._taken_unread(self.now_ns)
+        return replace(st, rx_pending=st.rx_pending + unread) if unread else st
 
     def _collect_tx(self) -> None:
         now = self.now_ns
@@ -1271,12 +1320,13 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         old_pattern: list[int] = []
         old_ticks, old_hv513 = regs.timer_alarm_ticks, regs.hv513_num
         alarm = self._next_alarm_ns  # armed when the call starts (0xF6 re-arms it only at the call's end)
-        clock: _ReadClock | None = None
-        if t < alarm < latest_end:
+        inside = t < alarm < latest_end
+        clock = _ReadClock(t, alarm if inside else _NEVER, m, self._overruns)
+        if inside:
             before = {f: getattr(regs, f) for f in V2_SCAN_REGISTERS}
             old_pattern = list(regs.stim_pattern)
-            clock = _ReadClock(t, alarm, m, self._overruns)
         out = parser.call(t // 1000, clock)
+        self._read_starts = clock.starts
         if parser.cut is not None:
             self._starve_at(parser.cut, alarm)
             return
@@ -1302,15 +1352,12 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         # (the point until which an alarm pre-empts the call, and whether one due there still does)
         limit, tie = (reads_end, True) if paused else (end, frequency)
         if t < alarm and (alarm < limit or (tie and alarm == limit)):
-            assert clock is not None  # the alarm is before the call's end, so before its latest end
+            assert clock.alarm_ns == alarm  # the alarm is before the call's end, so before its latest end
             if self._starved_after_call(clock, applied):
                 return
             # 0xF6's alarm and 0xF5's count are stored after the point where the scan took the processor
             held = {"timer_alarm_ticks": old_ticks, "hv513_num": old_hv513}
-            # an alarm inside the call's last read is taken at the next read point, after the call's stores
-            # (:meth:`_starved_after_call`): the scan sees what the call stored, ``held`` aside
-            seen = applied if clock.asked else None
-            end += self._scans_in_call(alarm, t, out.consumed, seen, before, old_pattern, held, limit, tie)
+            end += self._scans_in_call(clock, t, out.consumed, applied, before, old_pattern, held, limit, tie)
         if frequency:  # setPeriodUs re-enables the alarm after the call's last read (and the scan it let in)
             self._next_alarm_ns = max(end, self._last_alarm_ns() + self._period_ns())
         self._send_replies(end)
