@@ -771,5 +771,10 @@ def _latency_table(lat: dict[str, Any]) -> str:
                 lines.append(f"{link:<6}{label:<14}{'never':>10}")
                 continue
             lines.append(f"{link:<6}{label:<14}{s['min']:>10.1f}{s['mean']:>10.1f}{s['max']:>10.1f}")
+        if d.get("mid_copy"):
+            lines.append(
+                f"{'':<6}{d['mid_copy']} of {d['phases']} runs felt channel 0 from a scan inside the "
+                "pattern's copy (no scan wait)"
+            )
         link = ""
     return "\n".join(lines)

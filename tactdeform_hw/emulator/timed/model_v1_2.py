@@ -1220,6 +1220,8 @@ def pattern_latency(
         "period_us": period_us,
         "phases": phases,
         "felt": sum(1 for row in rows if row["first_channel_us"] is not None),
+        # runs whose first channel was felt from a scan inside the pattern's copy (their scan wait is None)
+        "mid_copy": sum(1 for row in rows if row["mid_copy"]),
         **{
             k: _stats(rows, k)
             for k in ("wire_us", "loop_wait_us", "scan_wait_us", "first_channel_us", "last_channel_us")
@@ -1243,16 +1245,22 @@ def _latency_run(emu: TimedEmulator, data: bytes, t: float, until_us: float) -> 
             "wire_us": None if arrived is None else arrived - t,
             "loop_wait_us": None,
             "scan_wait_us": None,
+            "mid_copy": False,
             "first_channel_us": None,
             "last_channel_us": None,
         }
     r = reps[-1]
     last = r.last_channel_us
+    # the firmware stores a pattern byte by byte as it reads it: a scan that takes the processor during the
+    # copy lights channel 0 with its new height before the last byte is stored -- no wait for a scan at all
+    scan_wait = r.scan_wait_us
+    mid_copy = scan_wait is not None and scan_wait < 0
     return {
         "sent_us": t,
         "wire_us": r.wire_us,
         "loop_wait_us": r.loop_wait_us,
-        "scan_wait_us": r.scan_wait_us,
+        "scan_wait_us": None if mid_copy else scan_wait,
+        "mid_copy": mid_copy,
         "first_channel_us": r.latency_us,
         "last_channel_us": None if last is None or r.sent_us is None else last - r.sent_us,
     }
