@@ -414,6 +414,16 @@ def reply_link(link: str | LinkModel) -> LinkModel:
     return UartLink(inner.baud, inner.bits_per_byte) if isinstance(inner, UartLink) else UsbFsLink()
 
 
+def unread_after(read_starts_ns: list[int], t_ns: int) -> int:
+    """How many of a parser call's reads (``read_starts_ns``, ascending: when the firmware begins each byte's
+    read) start at ``t_ns`` or later: bytes the call took from the model's queue that the firmware has not
+    read yet at ``t_ns``, which still take room in its queue (``ReceiveQueue.offer``'s ``unread``).  Both
+    timed models ask it for an arrival: runEtactileKit() reads a payload a byte (a u16's two) at a time."""
+    if not read_starts_ns or read_starts_ns[-1] < t_ns:
+        return 0
+    return len(read_starts_ns) - bisect_left(read_starts_ns, t_ns)
+
+
 class ReceiveQueue:
     """The firmware's receive queue: bytes delivered and not yet read by the parser."""
 

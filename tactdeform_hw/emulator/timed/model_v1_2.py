@@ -100,6 +100,7 @@ from tactdeform_hw.emulator.timed.link import (
     make_link,
     next_key,
     reply_link,
+    unread_after,
 )
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
@@ -359,10 +360,7 @@ class ArrivalRuns:
         together), so a byte arriving while it reads finds those still in the firmware's queue, and may not
         fit.  (The host build moves an arrival into the queue at the firmware's next call into the
         platform: before a read that starts at or after it, after one under way.)"""
-        starts = self.fw.read_starts
-        if not starts or starts[-1] < t:
-            return 0
-        return len(starts) - bisect_left(starts, t)
+        return unread_after(self.fw.read_starts, t)
 
     def _deliver_burst(self, dq: list[tuple[int, int, Any]], target: int) -> None:
         """The burst at the head of the delivery heap: its next byte as a delivery of its own (it may

@@ -42,7 +42,7 @@ it is written).
 from __future__ import annotations
 
 import heapq
-from bisect import bisect_left, bisect_right
+from bisect import bisect_right
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -81,6 +81,7 @@ from tactdeform_hw.emulator.timed.link import (
     make_link,
     next_key,
     reply_link,
+    unread_after,
 )
 from tactdeform_hw.emulator.timed.model_v1_2 import hv513_count_ns
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
@@ -608,10 +609,7 @@ class MainLoopRunsV2:
         so a byte arriving meanwhile finds those still in the firmware's queue, and may not fit; and
         ``rx_pending`` shows them until they are read.  (The host build moves an arrival into the queue
         at the firmware's next call into the platform: before a read that starts at or after it.)"""
-        starts = self._read_starts
-        if not starts or starts[-1] < t:
-            return 0
-        return len(starts) - bisect_left(starts, t)
+        return unread_after(self._read_starts, t)
 
     def _lands_alike(self, t: int, count: int, step: int) -> bool:
         """Whether the bytes arriving during ``count`` calls from ``t`` (each reading one byte already
