@@ -31,6 +31,28 @@ def test_the_package_says_it_is_typed_and_ships_the_marker() -> None:
     assert "py.typed" in project["tool"]["setuptools"]["package-data"]["tactdeform_hw"]
 
 
+def test_every_data_file_of_the_package_is_in_its_package_data() -> None:
+    """A file the code reads at run time that is not Python (the teapot's patch tables, the host build's
+    shim) reaches an installed wheel only through pyproject's package-data: every such file under the
+    package matches one of its globs."""
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]
+    package = ROOT / "tactdeform_hw"
+    missing = []
+    for path in sorted(package.rglob("*")):
+        if not path.is_file() or path.suffix in (".py", ".pyc") or "__pycache__" in path.parts:
+            continue
+        shipped = any(
+            path.is_relative_to(ROOT / name.replace(".", "/"))
+            and path.relative_to(ROOT / name.replace(".", "/")).match(glob)
+            for name, globs in declared.items()
+            for glob in globs
+        )
+        if not shipped:
+            missing.append(str(path.relative_to(ROOT)))
+    assert (package / "render" / "data" / "teapot_points.txt").is_file()
+    assert missing == [], f"files a wheel would not have: {missing}"
+
+
 def test_the_licence_file_is_the_licence_pyproject_names() -> None:
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())
     assert project["project"]["license"]["text"] == "MIT"
