@@ -12,7 +12,7 @@ except ModuleNotFoundError:  # Python 3.10
 from pathlib import Path
 
 from tactdeform_hw.cli import build_parser
-from tactdeform_hw.cli.options import DeprecatedAlias, PolarityCode
+from tactdeform_hw.cli.options import EarlierSpelling
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -63,7 +63,7 @@ def _deprecated_spellings() -> set[str]:
     found: set[str] = set()
     for name, sub in build_parser().commands.items():
         for action in sub._actions:
-            if isinstance(action, DeprecatedAlias | PolarityCode):
+            if isinstance(action, EarlierSpelling):
                 found.update(f"{name} {flag}" for flag in action.option_strings)
     return found
 

@@ -48,7 +48,37 @@ def _remember(namespace: argparse.Namespace, canonical: str, typed: str) -> None
     setattr(namespace, TYPED_ATTR, seen)
 
 
-class DeprecatedAlias(argparse.Action):
+class EarlierSpelling(argparse.Action):
+    """An option that still takes an earlier spelling for one release: of the flag (:class:`DeprecatedAlias`)
+    or of a value (:class:`PolarityCode`).  What :meth:`take` makes of the value is stored; an earlier
+    spelling warns on stderr in the one sentence every such option uses, naming what to use instead."""
+
+    def take(self, namespace: argparse.Namespace, values: Any, typed: str) -> tuple[Any, str | None, str]:
+        """The value to store, the earlier spelling it came in (``None``: the current one) and the
+        spelling to use instead.  An :class:`argparse.ArgumentTypeError` is a usage error naming the
+        flag ``typed``."""
+        raise NotImplementedError
+
+    def __call__(
+        self,
+        parser: argparse.ArgumentParser,
+        namespace: argparse.Namespace,
+        values: Any,
+        option_string: str | None = None,
+    ) -> None:
+        typed = option_string or self.option_strings[0]
+        try:
+            value, earlier, instead = self.take(namespace, values, typed)
+        except argparse.ArgumentTypeError as exc:
+            parser.error(f"argument {typed}: {exc}")
+        if earlier is not None:
+            warn(
+                parser.prog, f"{earlier} is deprecated and will be removed in the next release; use {instead}"
+            )
+        setattr(namespace, self.dest, value)
+
+
+class DeprecatedAlias(EarlierSpelling):
     """An earlier spelling of an option: warns, converts to the new unit, stores under the new dest."""
 
     def __init__(
@@ -68,25 +98,14 @@ class DeprecatedAlias(argparse.Action):
         self.convert = convert
         self.note = note
 
-    def __call__(
-        self,
-        parser: argparse.ArgumentParser,
-        namespace: argparse.Namespace,
-        values: Any,
-        option_string: str | None = None,
-    ) -> None:
-        typed = option_string or self.option_strings[0]
-        warn(
-            parser.prog,
-            f"{typed} is deprecated and will be removed in the next release; use {self.canonical}"
-            + (f" ({self.note})" if self.note else ""),
-        )
+    def take(self, namespace: argparse.Namespace, values: Any, typed: str) -> tuple[Any, str | None, str]:
+        """The value in the new unit; the flag typed is remembered, so an error about the value names it."""
         if self.convert is not None:
             values = self.convert(values)
         elif self.scale is not None:
             values = values * self.scale
         _remember(namespace, self.canonical, typed)
-        setattr(namespace, self.dest, values)
+        return values, typed, self.canonical + (f" ({self.note})" if self.note else "")
 
 
 _UNIT_SUFFIXES = ("us", "ms", "s", "hz", "ua", "mm")
@@ -252,31 +271,16 @@ def polarity_code(text: str) -> int:
         raise argparse.ArgumentTypeError(f"{text!r} is not a polarity: anodic or cathodic") from None
 
 
-class PolarityCode(argparse.Action):
+class PolarityCode(EarlierSpelling):
     """``--polarity anodic|cathodic`` stored as the firmware's code; the earlier ``1``/``0`` still work,
     with a warning."""
 
-    def __call__(
-        self,
-        parser: argparse.ArgumentParser,
-        namespace: argparse.Namespace,
-        values: Any,
-        option_string: str | None = None,
-    ) -> None:
+    def take(self, namespace: argparse.Namespace, values: Any, typed: str) -> tuple[Any, str | None, str]:
         text = str(values).strip()
         if text in ("0", "1"):
             name = "anodic" if text == "1" else "cathodic"
-            warn(
-                parser.prog,
-                f"{option_string} {text} is deprecated and will be removed in the next release; "
-                f"use {option_string} {name}",
-            )
-            setattr(namespace, self.dest, int(text))
-            return
-        try:
-            setattr(namespace, self.dest, polarity_code(text))
-        except argparse.ArgumentTypeError as exc:
-            parser.error(f"argument {option_string}: {exc}")
+            return int(text), f"{typed} {text}", f"{typed} {name}"
+        return polarity_code(text), None, typed
 
 
 # --- field names of the device layer → the flags that carried them --------------------------------------
