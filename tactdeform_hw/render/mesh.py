@@ -253,12 +253,38 @@ def _topology(faces: np.ndarray, n_vertices: int) -> _Topology:
 # --- the index: closest triangles ---------------------------------------------------------------------
 
 
+_Xyz = tuple[float, float, float]
+
+
+def _corner_region(
+    p: _Xyz, a: _Xyz, x: _Xyz, own: _Xyz, other: _Xyz, a_dots: tuple[float, float], regions: tuple[int, int]
+) -> tuple[tuple[float, float, float, int] | None, float, float, float]:
+    """Ericson's test of a corner X of triangle A, X, Y and of its edge AX: B with edge AB, or C with edge
+    AC, the same test with the triangle's two edges from A (``own`` = X − A, ``other`` = Y − A) swapped.
+
+    ``a_dots`` are (own·(p − A), other·(p − A)); ``regions`` the region codes of the corner and the edge.
+    Returns the closest point and its region when p lies in either (else ``None``), then own·(p − X),
+    other·(p − X) and the barycentric area the face test reads (Ericson's vc for B, vb for C)."""
+    (px, py, pz), (ax, ay, az), (xx, xy, xz), (ox, oy, oz), (tx, ty, tz) = p, a, x, own, other
+    qx, qy, qz = px - xx, py - xy, pz - xz
+    d_own = ox * qx + oy * qy + oz * qz
+    d_other = tx * qx + ty * qy + tz * qz
+    if d_own >= 0.0 and d_other <= d_own:
+        return (xx, xy, xz, regions[0]), d_own, d_other, 0.0
+    area = a_dots[0] * d_other - d_own * a_dots[1]
+    if area <= 0.0 and a_dots[0] >= 0.0 and d_own <= 0.0:
+        v = a_dots[0] / (a_dots[0] - d_own)
+        return (ax + v * ox, ay + v * oy, az + v * oz, regions[1]), d_own, d_other, area
+    return None, d_own, d_other, area
+
+
 def _closest_on_triangle(
     px: float, py: float, pz: float, tri: Sequence[Sequence[float]]
 ) -> tuple[float, float, float, int]:
     """Closest point of a triangle to p, and its region: 0 face, 1/2/3 vertex A/B/C, 4/5/6 edge AB/BC/CA.
 
     Ericson, Real-Time Collision Detection, 5.1.5, on Python floats: cheaper than numpy for one triangle.
+    Its tests of corner B with edge AB and of corner C with edge CA are one (:func:`_corner_region`).
     """
     (ax, ay, az), (bx, by, bz), (cx, cy, cz) = tri
     abx, aby, abz = bx - ax, by - ay, bz - az
@@ -268,24 +294,13 @@ def _closest_on_triangle(
     d2 = acx * apx + acy * apy + acz * apz
     if d1 <= 0.0 and d2 <= 0.0:
         return ax, ay, az, 1
-    bpx, bpy, bpz = px - bx, py - by, pz - bz
-    d3 = abx * bpx + aby * bpy + abz * bpz
-    d4 = acx * bpx + acy * bpy + acz * bpz
-    if d3 >= 0.0 and d4 <= d3:
-        return bx, by, bz, 2
-    vc = d1 * d4 - d3 * d2
-    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        v = d1 / (d1 - d3)
-        return ax + v * abx, ay + v * aby, az + v * abz, 4
-    cpx, cpy, cpz = px - cx, py - cy, pz - cz
-    d5 = abx * cpx + aby * cpy + abz * cpz
-    d6 = acx * cpx + acy * cpy + acz * cpz
-    if d6 >= 0.0 and d5 <= d6:
-        return cx, cy, cz, 3
-    vb = d5 * d2 - d1 * d6
-    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        w = d2 / (d2 - d6)
-        return ax + w * acx, ay + w * acy, az + w * acz, 6
+    p, a, ab, ac = (px, py, pz), (ax, ay, az), (abx, aby, abz), (acx, acy, acz)
+    hit, d3, d4, vc = _corner_region(p, a, (bx, by, bz), ab, ac, (d1, d2), (2, 4))
+    if hit is not None:
+        return hit
+    hit, d6, d5, vb = _corner_region(p, a, (cx, cy, cz), ac, ab, (d2, d1), (3, 6))
+    if hit is not None:
+        return hit
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
         w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
