@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Literal
+from typing import Literal, cast
 
 from tactdeform_hw import protocol as p
 from tactdeform_hw.device.driver.pacing import command_like_payload
@@ -36,30 +36,38 @@ class StimConfig:
     def validated(self, transfer: CurrentTransfer) -> StimConfig:
         """The configuration with every field checked (raises :class:`LimitError` naming the field) and
         held as the integers it is sent as: an integral float read from JSON (``32.0``) becomes ``32``,
-        so nothing downstream computes with a float where the firmware holds an integer."""
-        electrode_count = check_int("electrode_count", self.electrode_count, 1, MAX_ELECTRODES)
-        current_ua = transfer.check_current(self.current_ua, "current_ua")
-        pulse_width_us = check_int("pulse_width_us", self.pulse_width_us, 1, U16_MAX, "µs")
-        discharge_us = check_int("discharge_us", self.discharge_us, 0, U8_MAX, "µs")
-        rate_hz = check_int("rate_hz", self.rate_hz, 1, U16_MAX, "Hz")
-        if not isinstance(self.polarity, str) or self.polarity not in POLARITY_CODE:
-            raise LimitError("polarity", self.polarity, "'anodic' or 'cathodic'")
-        sense_code(self.sense_current_ua, transfer)
-        sense_current_ua = transfer.check_current(self.sense_current_ua, "sense_current_ua")
-        sense_width_us = check_int("sense_width_us", self.sense_width_us, 0, U8_MAX, "µs")
+        so nothing downstream computes with a float where the firmware holds an integer.  Each field is
+        stored as its own check returns it, so no field can be checked and then sent unconverted; the
+        fields are checked in their order, so the first bad one is the one named."""
         return replace(
             self,
-            electrode_count=electrode_count,
-            current_ua=current_ua,
-            pulse_width_us=pulse_width_us,
-            discharge_us=discharge_us,
-            rate_hz=rate_hz,
-            sense_current_ua=sense_current_ua,
-            sense_width_us=sense_width_us,
+            electrode_count=check_int("electrode_count", self.electrode_count, 1, MAX_ELECTRODES),
+            current_ua=transfer.check_current(self.current_ua, "current_ua"),
+            pulse_width_us=check_int("pulse_width_us", self.pulse_width_us, 1, U16_MAX, "µs"),
+            discharge_us=check_int("discharge_us", self.discharge_us, 0, U8_MAX, "µs"),
+            rate_hz=check_int("rate_hz", self.rate_hz, 1, U16_MAX, "Hz"),
+            polarity=_checked_polarity(self.polarity),
+            sense_current_ua=_checked_sense_current(self.sense_current_ua, transfer),
+            sense_width_us=check_int("sense_width_us", self.sense_width_us, 0, U8_MAX, "µs"),
         )
 
     def with_current(self, current_ua: int) -> StimConfig:
         return replace(self, current_ua=current_ua)
+
+
+def _checked_polarity(polarity: object) -> Polarity:
+    """``polarity`` when the firmware has a code for it (:data:`POLARITY_CODE`), else the refusal naming
+    the field."""
+    if not isinstance(polarity, str) or polarity not in POLARITY_CODE:
+        raise LimitError("polarity", polarity, "'anodic' or 'cathodic'")
+    return cast(Polarity, polarity)
+
+
+def _checked_sense_current(sense_current_ua: int, transfer: CurrentTransfer) -> int:
+    """``sense_current_ua`` as an integer when the 0xF9 byte can carry it (:func:`sense_code`: every
+    fourth DAC code) and it is a current ``transfer`` allows, else the refusal naming the field."""
+    sense_code(sense_current_ua, transfer)
+    return transfer.check_current(sense_current_ua, "sense_current_ua")
 
 
 def sense_code(sense_current_ua: int, transfer: CurrentTransfer) -> int:
