@@ -95,3 +95,20 @@ def test_the_delivery_log_reports_from_the_audit_logs_reading() -> None:
     assert report["max_height_ua"] == 1000
     assert report["pulse_heights_ua"] == [1000]
     assert report["pulse_height_changes"] == 1
+
+
+def test_every_command_that_runs_a_firmware_tree_offers_it_alike() -> None:
+    """``--firmware-src DIR`` is declared once (cli/options.py): emulate, timing and study take it with the
+    same metavar, optional, ``None`` when not given; diff-firmware, which cannot run without a tree,
+    requires it."""
+    from tactdeform_hw.cli import build_parser
+
+    commands = build_parser().commands
+    taking = {name for name, sub in commands.items() if "--firmware-src" in sub.format_usage()}
+    assert taking == {"emulate", "timing", "study", "diff-firmware"}
+    for name in ("emulate", "timing", "study"):
+        usage = " ".join(commands[name].format_usage().split())
+        assert "[--firmware-src DIR]" in usage, name
+        assert commands[name].get_default("firmware_src") is None, name
+    usage = " ".join(commands["diff-firmware"].format_usage().split())
+    assert "--firmware-src FIRMWARE_SRC" in usage and "[--firmware-src" not in usage

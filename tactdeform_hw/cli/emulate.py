@@ -11,7 +11,7 @@ from typing import Any
 
 from ..errors import ConfigurationError, LimitError
 from .common import progress
-from .options import add_board, add_firmware_version
+from .options import add_board, add_firmware_src, add_firmware_version
 
 
 def register(sub: Any) -> None:
@@ -66,9 +66,8 @@ def _firmware_options(p: argparse.ArgumentParser) -> None:
     add_firmware_version(
         p, help="the firmware the board runs (default v1.2; v2 is upstream's current firmware)"
     )
-    p.add_argument(
-        "--firmware-src",
-        metavar="DIR",
+    add_firmware_src(
+        p,
         help="serve the firmware's own C++ tree built on this machine (docs/firmware-host-build.md) in place "
         "of the Python model; the version the driver finds is the one its state map declares",
     )

@@ -159,6 +159,13 @@ def add_firmware_version(parser: argparse.ArgumentParser, *, help: str) -> None:
     parser.add_argument("--firmware", choices=("v1.2", "v2"), default="v1.2", help=help)
 
 
+def add_firmware_src(parser: argparse.ArgumentParser, *, help: str) -> None:
+    """``--firmware-src DIR``: the firmware's own tree (PlatformIO, with ``src/``) built on this machine
+    and run in place of the Python model (docs/firmware-host-build.md), read as ``args.firmware_src``
+    (``None`` when not given); ``help`` says what the command does with it."""
+    parser.add_argument("--firmware-src", metavar="DIR", default=None, help=help)
+
+
 def add_board(parser: argparse.ArgumentParser) -> None:
     """``--board`` and ``--switching-boards``: the emulated board's kind and its stacked switching boards,
     declared once so every command that models a board offers them alike."""

@@ -24,7 +24,7 @@ from typing import Any
 
 from ..errors import ConfigurationError
 from .common import add_device_arg, add_participant_arg, print_json, progress, session_from_args
-from .options import add_tracking_rate
+from .options import add_firmware_src, add_tracking_rate
 
 EXIT_CHECK_FAILED = 3
 
@@ -105,9 +105,8 @@ def register(sub: Any) -> None:
 
 def _replay_options(p: argparse.ArgumentParser) -> None:
     """Where the timed replay runs."""
-    p.add_argument(
-        "--firmware-src",
-        metavar="DIR",
+    add_firmware_src(
+        p,
         help="replay the session's writes into this firmware tree (PlatformIO) built on this machine instead "
         "of the Python timed model: what the firmware's own code delivered (docs/firmware-host-build.md); "
         "its state map must declare the version the session ran",

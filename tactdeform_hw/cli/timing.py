@@ -21,6 +21,7 @@ from .options import (
     add_board,
     add_discharge,
     add_finisher,
+    add_firmware_src,
     add_firmware_version,
     add_frequency,
     add_option,
@@ -82,10 +83,9 @@ def _firmware_options(p: argparse.ArgumentParser) -> None:
 
 
 def _firmware_src_option(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--firmware-src",
-        metavar="DIR",
-        default=None,
+    """The firmware tree whose own scans are measured in place of the timing model's."""
+    add_firmware_src(
+        p,
         help="measure the firmware's own C++ tree built on this machine (docs/firmware-host-build.md): "
         "configured through its parser, the budget measured on its scans; its state map says the version "
         "(--firmware is not read)",
