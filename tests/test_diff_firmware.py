@@ -19,7 +19,6 @@ from tactdeform_hw.cli import main
 from tactdeform_hw.emulator.hostbuild import find_compiler
 from tactdeform_hw.emulator.hostbuild.diff import (
     CALL_WINDOW_US,
-    PREEMPT_US,
     Comparison,
     Differ,
     HostSide,
@@ -631,7 +630,7 @@ def test_upstream_v1_2_channels_past_the_chain_drift_within_the_run_allowance() 
 
 
 def test_a_pulse_deep_in_a_run_is_required_of_the_other_side_only_past_its_drift_allowance() -> None:
-    """A pulse numbered 2000 in its run may start 1400.7 µs + PREEMPT_US later on the other side: 600 µs
+    """A pulse numbered 2000 in its run may start 1400.7 µs later on the other side: 600 µs
     after its end its counterpart is not yet missing; numbered 0 (allowance under the 500 µs margin), it
     is (equivalence pulse-numbering)."""
     model = Comparison(exact=False, spec=None, pulse_tolerance_us=0.7)
@@ -643,7 +642,7 @@ def test_a_pulse_deep_in_a_run_is_required_of_the_other_side_only_past_its_drift
     assert compare(none, pulse(2000), model, False, upto_us=1606.6) is None
     found = compare(none, pulse(0), model, False, upto_us=1606.6)
     assert found is not None and found[1] == "pulse 0 (count)"
-    past = 1006.6 + 0.7 * 2002 + PREEMPT_US + 0.01
+    past = 1006.6 + 0.7 * 2002 + 0.01
     assert compare(none, pulse(2000), model, False, upto_us=past) is not None
 
 
@@ -856,10 +855,11 @@ def test_upstream_v1_2_main_loop_matches_the_model(case: str) -> None:
     assert Differ(tree, "v1.2").first_divergence(stream) is None
 
 
-def test_upstream_v2_an_alarm_in_a_call_s_last_read_scans_what_it_stored_on_both_sides() -> None:
+def test_upstream_v2_an_alarm_in_a_call_s_last_read_scans_the_registers_from_before_it_on_both_sides() -> None:
     """0xFC 4 and 0xFC 0 back to back at a 15 µs alarm in mode 2: the alarm inside the second's last read is
-    taken after it stored the count 0 on both sides, so neither runs a scan of four channels (random seed
-    10111, on which the model used to loop; the model-only twin is in test_models_follow_firmware.py)."""
+    taken inside it, before the count 0 is stored, on both sides, so both run the scan of four channels
+    that starves the loop (random seed 10111, on which the model used to loop; the model-only twin is in
+    test_models_follow_firmware.py)."""
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
     writes = tuple(
         (t, bytes.fromhex(h))
@@ -878,7 +878,8 @@ def test_upstream_v2_a_call_pre_empted_by_a_long_scan_resolves_after_the_scan() 
     """0xFC 255, then 0xFB 0xFD at the tick before the alarm: the scan of 255 channels (3.5 ms) takes the
     processor before the firmware reads 0xFB's payload, so the call stores mode 2 only after the scan; the
     model shows it from the call's start.  The call-resolution window runs in main-loop time and waits for
-    that scan (the scans agree exactly; random seed 51369's minimal reproduction)."""
+    that scan, which the firmware enters at its alarm (11010.25 µs), inside the call's isDataAvailable (the
+    scans agree exactly; random seed 51369's minimal reproduction)."""
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
     writes = ((10101.773, "fcff"), (10111.773, "fbfd"), (12506.575, "00"))
     stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 13007.0, "pre-empted call")
@@ -893,7 +894,7 @@ def test_upstream_v2_a_call_pre_empted_by_a_long_scan_resolves_after_the_scan() 
         for side in (left, right):
             side.advance_to(12506.0)
         assert (left.observe(12506.0).state["stim_mode"], right.observe(12506.0).state["stim_mode"]) == (0, 2)
-        assert isinstance(left, HostSide) and left.scanning_us(11000.0, 12506.0) == (12506.0 - 11011.0, 1)
+        assert isinstance(left, HostSide) and left.scanning_us(11000.0, 12506.0) == (12506.0 - 11010.25, 1)
     finally:
         left.close()
         right.close()
@@ -929,9 +930,9 @@ def test_upstream_v2_a_call_s_unread_bytes_stay_in_the_queue(writes: tuple[tuple
         right.close()
 
 
-def test_upstream_v2_a_later_alarm_inside_a_call_s_last_read_scans_what_it_stored() -> None:
+def test_upstream_v2_a_later_alarm_inside_a_call_s_last_read_scans_what_was_stored_before_it() -> None:
     """The 0xFC 0 call pre-empted by one scan, then the next alarm inside its last read: the firmware and
-    the model both run that scan with no channel (the model-only twin is in test_models_follow_firmware.py;
+    the model both run that scan on the one channel stored before it (the model-only twin is in test_models_follow_firmware.py;
     the 'pulses count' minimal reproduction of random seed 5426)."""
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
     writes = ((2761.842, "fc01"), (3049.205, "f9fffb02f6eaaafc00"))
@@ -939,8 +940,8 @@ def test_upstream_v2_a_later_alarm_inside_a_call_s_last_read_scans_what_it_store
     assert Differ(tree, "v2").first_divergence(stream) is None
 
 
-def test_upstream_v2_a_pattern_element_whose_read_the_alarm_falls_in_is_stored_before_the_scan() -> None:
-    """The scan that interrupts a pattern's copy inside element 2's read runs elements 0-2 new on the
+def test_upstream_v2_a_pattern_element_whose_read_the_alarm_falls_in_is_stored_after_the_scan() -> None:
+    """The scan that interrupts a pattern's copy inside element 2's read runs elements 0 and 1 new on the
     firmware and in the model (the model-only twin is in test_models_follow_firmware.py; the 'pulses
     outputs' minimal reproduction of random seed 8958)."""
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")

@@ -195,6 +195,23 @@ def test_an_analog_read_is_pre_empted_at_the_alarm_and_finishes_after_the_interr
     assert emu.tx_log == [(start + us(255 * (M.hv513_detect_ns // 50) + 8 * ISR_NS), b"a")]
 
 
+def test_a_serial_read_is_pre_empted_at_the_alarm_before_the_firmware_stores_what_it_read(cache: Path) -> None:
+    """Serial calls are work the interrupt pre-empts where its alarm falls, as the chip takes it: 'V' and
+    the first byte of its u16 wait at the 4000 µs tick; readU16() polls Serial.available() (2 µs) from
+    4003 µs until the second byte, arriving at 4196 µs, is seen at 4197 µs; its Serial.read(b, 2) runs from
+    4199 to 4201 µs, so the handler of the 4200 µs alarm runs at 4200 µs exactly, inside it, and sends the
+    DAC code from before ('V' stores the code after the read returns); the next handler sends the new
+    one."""
+    emu = tiny(cache)
+    emu.write(b"V\x10", at_us=3500.5)
+    emu.write(b"\x00", at_us=4196.0)
+    emu.advance_to(5000)
+    entries = [e.t_us for e in emu.shim_events() if e.kind == "ISR_ENTER" and e.t_us > 4000]
+    assert entries == [4200.0, 4900.0]
+    sent = [e.b >> 2 for e in emu.shim_events() if e.kind == "SPI" and e.t_us > 4000]
+    assert sent == [0, 0x10]
+
+
 def test_interrupt_count_reply(cache: Path) -> None:
     emu = tiny(cache)
     emu.write(b"C", at_us=4500)

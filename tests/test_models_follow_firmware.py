@@ -5,6 +5,8 @@ the firmware's code does.  The same streams against the upstream trees are in ``
 
 from __future__ import annotations
 
+import pytest
+
 from tactdeform_hw.emulator.firmware.hazards import HazardKind
 from tactdeform_hw.emulator.firmware.scan import ChainState, ScanConfig, ScanEngine
 from tactdeform_hw.emulator.hostbuild.diff import DirectLink, ModelSideV1_2, ModelSideV2
@@ -156,16 +158,17 @@ TORN_FOR_GOOD = [(2000.5, "f6ffff"), (4000.5, "fc04feff0fff0fff0fff0f")]
 
 def test_v2_a_pattern_copy_starved_midway_keeps_the_elements_it_read() -> None:
     """0xFE's copy loop stores each element as readInt_16 returns it: the scan of 4 channels (60 µs against
-    15 µs) takes the processor at the third element's read, so channels 0 and 1 are new, 2 and 3 keep their
-    old heights in every scan from then on, and the last 4 payload bytes are never read."""
+    15 µs) takes the processor inside the second element's read, so channel 0 is new and 1 to 3 keep their
+    old heights in every scan from then on.  The second element's two bytes have left the queue, but
+    nothing stores them; the last 4 payload bytes are never read."""
     side = _v2(TORN_FOR_GOOD, 7000.0)
     seen = side.observe(7000.0)
-    assert seen.state["stim_pattern"][:4] == [4095, 4095, 0, 0]
+    assert seen.state["stim_pattern"][:4] == [4095, 0, 0, 0]
     assert seen.state["rx_unread"] == 4
     four = [s for s in side.emu.scans if s.electrode_num == 4]
-    assert len(four) > 30 and {s.heights for s in four} == {(4095, 4095, 0, 0)}
+    assert len(four) > 30 and {s.heights for s in four} == {(4095, 0, 0, 0)}
     torn = [h for h in side.emu.hazards if h.kind is HazardKind.TORN_PATTERN]
-    assert [(h.detail["new_channels"], h.detail["channels"]) for h in torn] == [(2, 4)]
+    assert [(h.detail["new_channels"], h.detail["channels"]) for h in torn] == [(1, 4)]
     assert OpcodeV2.PATTERN not in [op for _, op, _ in side.emu.applied]
 
 
@@ -173,14 +176,15 @@ def test_v2_a_pattern_copy_starved_midway_keeps_the_elements_it_read() -> None:
 PERIOD_WITHOUT_ITS_ALARM = [(2000.5, "f6fff4"), (18040.402, "fc01f60100")]
 
 
-def test_v2_a_frequency_starved_in_set_period_keeps_the_old_alarm() -> None:
-    """0xF6 stores StimulationTimePeriod, then calls setPeriodUs, whose timerAlarmDisable is where the scan
-    of one channel takes the processor and never gives it back: the period is 1 s, the alarm still the old
-    30 ticks, and the scans run back to back."""
+def test_v2_a_frequency_starved_in_its_read_keeps_the_old_period_and_alarm() -> None:
+    """The scan of one channel takes the processor inside 0xF6's readInt_16 and never gives it back:
+    StimulationTimePeriod is never stored nor setPeriodUs called, so the period stays the old 15.9 µs and
+    the alarm 30 ticks, the payload has left the queue, and the scans run back to back."""
     side = _v2(PERIOD_WITHOUT_ITS_ALARM, 21012.0)
     seen = side.observe(21012.0)
-    assert seen.state["period_us"] == 1_000_000.0
+    assert seen.state["period_us"] == pytest.approx(15.944131851196289)
     assert seen.state["timer_alarm_ticks"] == 30
+    assert seen.state["rx_unread"] == 0
     last = [s for s in side.emu.scans if s.start_ns > 19_100_000]
     assert len(last) > 50
     assert all(b.start_ns == a.start_ns + a.duration_ns for a, b in zip(last, last[1:]))
@@ -190,16 +194,16 @@ def test_v2_a_frequency_starved_in_set_period_keeps_the_old_alarm() -> None:
 LAST_READ_STORED = [(2010.5, "f6fff8"), (3115.983, "fc08fa09f8")]
 
 
-def test_v2_a_call_whose_last_read_the_alarm_falls_in_stores_what_it_read() -> None:
-    """readInt_16 returns and runEtactileKit stores PulseWidth before its next call into the core, where the
-    scan takes the processor: the scans that starve the loop run the new width (63497 µs), and so do the
-    registers from then on."""
+def test_v2_a_read_the_starving_scan_falls_in_is_never_stored() -> None:
+    """The scan takes the processor inside 0xF8's readInt_16, before runEtactileKit stores PulseWidth, and
+    never gives it back: the scans that starve the loop run the old width (0), and so do the registers
+    from then on, though the payload has left the queue."""
     side = _v2(LAST_READ_STORED, 127175.983)
     seen = side.observe(127175.983)
-    assert seen.state["pulse_width"] == 63497
+    assert seen.state["pulse_width"] == 0
     assert seen.state["rx_unread"] == 0
     eight = [s for s in side.emu.scans if s.electrode_num == 8]
-    assert eight and {s.pulse_width for s in eight} == {63497}
+    assert eight and {s.pulse_width for s in eight} == {0}
 
 
 # A scan whose alarm falls inside a main-loop call pre-empts it (Timer1_Stimulate_ISR takes the processor from
@@ -264,13 +268,18 @@ def test_v2_a_call_spanning_several_scans_is_pre_empted_by_each() -> None:
     """The call that reads 0xFE's payload starts at 7006 µs and needs 4 µs (isDataAvailable, readInt_16):
     the alarms of 7007 and 7027 µs each take the processor for 19.2 µs inside isDataAvailable, so those two
     scans still run height 0 (the model had counted one scan in the call and run the next with the new
-    height); the alarm of 7047 µs falls inside the readInt_16 that starts at 7046.4 µs, the call's last
-    read, so, as a first alarm there would, its scan is taken after the call's store and runs 4095 (the
-    host build's third scan too; the model had run it with height 0)."""
+    height); the alarms of 7047 and 7067 µs fall inside the readInt_16 that starts at 7046.4 µs, the
+    call's last read, so their scans are taken inside it, before the store, and run height 0 too; the
+    scan of 7087 µs runs 4095."""
     side = _v2(SLIVERS, 9033.0)
     scans = [(s.start_ns, s.heights) for s in side.emu.scans if 7_000_000 < s.start_ns < 7_100_000]
-    assert scans[:3] == [(7_007_000, (0,)), (7_027_000, (0,)), (7_047_000, (4095,))]
-    assert scans[4] == (7_087_000, (4095,))
+    assert scans[:5] == [
+        (7_007_000, (0,)),
+        (7_027_000, (0,)),
+        (7_047_000, (0,)),
+        (7_067_000, (0,)),
+        (7_087_000, (4095,)),
+    ]
 
 
 # 0xF6 65535 (a 15 µs alarm), then 0xF9 246, two unknown bytes and 0xF5: the 0xF5 is read from 8014.15 µs on
@@ -453,14 +462,14 @@ def _frequency_at_the_alarm(electrodes: str) -> list[tuple[float, str]]:
     ]
 
 
-def test_v1_2_a_frequency_whose_scan_overruns_never_reaches_set_period() -> None:
-    """runEtactileKit() stores StimulationTimePeriod, then calls setPeriodUs(), whose timerAlarmDisable()
-    is where the alarm due during the u16's read is taken: the handler re-enables the old 10 ms alarm as
-    it returns, but its scan of 254 channels takes 67.3 ms, so the next scan starts at once, and so on:
-    the loop never resumes and the timer's alarm stays 20 000 ticks, though period_us shows 1 s."""
+def test_v1_2_a_frequency_whose_scan_overruns_never_stores_the_period() -> None:
+    """The alarm comes inside the u16's read, before runEtactileKit() stores StimulationTimePeriod: the
+    handler re-enables the old 10 ms alarm as it returns, but its scan of 254 channels takes 67.3 ms, so
+    the next scan starts at once, and so on: the loop never resumes, and the period stays 10 ms and the
+    timer's alarm 20 000 ticks."""
     side = _v1_2(_frequency_at_the_alarm("fe"), 300_000.0)
     seen = side.observe(300_000.0)
-    assert (seen.state["timer_alarm_ticks"], seen.state["period_us"]) == (20_000, 1_000_000.0)
+    assert (seen.state["timer_alarm_ticks"], seen.state["period_us"]) == (20_000, 10_000.0)
     long_scans = [r for r in side.emu.runs if r.start_ns > 31_000_000]
     assert long_scans[0].start_ns == 31_010_250 and long_scans[0].starved
 
@@ -496,22 +505,19 @@ COUNT_LOWERED_IN_ITS_LAST_READ = [
 ]
 
 
-def test_v2_an_alarm_in_a_call_s_last_read_scans_the_registers_it_stored() -> None:
-    """readInt_8 returns and runEtactileKit stores ElectrodeNum = 0 before the next call into the core, where
-    the scan due during the read takes the processor: that scan, and every one after it, is of no channel
-    (2.15 µs against the 15 µs alarm).  No scan of the four channels 0xFC 4 had set runs (one would last
-    1.39 ms in mode 2 and starve the loop), and the 0xF4 after them is answered."""
+def test_v2_an_alarm_in_a_call_s_last_read_scans_the_registers_from_before_it() -> None:
+    """The alarm comes inside the readInt_8 of 0xFC 0, before runEtactileKit stores ElectrodeNum = 0: the
+    scan is of the four channels 0xFC 4 had set, in mode 2, and lasts 1.39 ms against the 15 µs alarm, so
+    it starves the loop.  The count stays 4, the byte read has left the queue, and the 0xF4 behind it is
+    never answered."""
     side = _v2(COUNT_LOWERED_IN_ITS_LAST_READ, 15000.0)
-    assert [(t, int(op)) for t, op, _ in side.emu.applied][-3:] == [
-        (14_111_850, 0xFC),
-        (14_117_850, 0xFC),
-        (14_126_000, 0xF4),
-    ]
+    assert [(t, int(op)) for t, op, _ in side.emu.applied][-1] == (14_111_850, 0xFC)
     late = [s for s in side.emu.scans if s.start_ns >= 14_111_850]
-    assert late and {(s.electrode_num, s.duration_ns) for s in late} == {(0, 2150)}
+    assert late and {(s.electrode_num, s.duration_ns) for s in late} == {(4, 1_388_450)}
     seen = side.observe(15000.0)
-    assert seen.state["electrode_num"] == 0
-    assert seen.replies.endswith(bytes.fromhex("0000"))
+    assert seen.state["electrode_num"] == 4
+    assert seen.state["rx_unread"] == 1
+    assert seen.replies.endswith(bytes.fromhex("04000400"))
 
 
 def test_v1_2_the_idle_loop_s_poll_of_a_tick_inside_a_scan_reads_what_arrived_during_the_scan() -> None:
@@ -551,15 +557,14 @@ def test_v2_a_byte_arriving_while_a_call_reads_finds_its_unread_bytes_in_the_que
 LATER_ALARM_IN_LAST_READ = [(2761.842, "fc01"), (3049.205, "f9fffb02f6eaaafc00")]
 
 
-def test_v2_a_later_alarm_inside_a_call_s_last_read_scans_what_it_stored() -> None:
+def test_v2_a_later_alarm_inside_a_call_s_last_read_scans_what_was_stored_before_it() -> None:
     """runEtactileKit's 0xFC call reads its byte from 4040.2 µs; the scan of 4041 µs pre-empts it, the call
     resumes at 4060.2 µs and reads the count from 4062.2 to 4063.2 µs: the alarm of 4063 µs falls inside that
-    last read, so its scan is taken after ElectrodeNum = 0 is stored, as a first alarm there is, and
-    delivers nothing (the model had run it with the count before the call: one pulse more, the
-    'pulses count' minimal reproduction)."""
+    last read, so its scan, like a first alarm there, runs before ElectrodeNum = 0 is stored, on one
+    channel; the scan of 4085 µs runs none."""
     side = _v2(LATER_ALARM_IN_LAST_READ, 4100.0)
     scans = [(s.start_ns, s.electrode_num) for s in side.emu.scans]
-    assert scans == [(4_019_000, 1), (4_041_000, 1), (4_063_000, 0), (4_085_000, 0)]
+    assert scans == [(4_019_000, 1), (4_041_000, 1), (4_063_000, 1), (4_085_000, 0)]
 
 
 # 32 electrodes, then a pattern whose copy the alarm of 11010.25 µs interrupts
@@ -573,13 +578,11 @@ TORN_AT_AN_ELEMENT = [
 ]
 
 
-def test_v2_a_pattern_element_whose_read_the_alarm_falls_in_is_stored_before_the_scan() -> None:
+def test_v2_a_pattern_element_whose_read_the_alarm_falls_in_is_stored_after_the_scan() -> None:
     """The call at the 11000 µs tick reads 0xFE by 11003 µs and copies one element (readInt_16, 2 µs) at a
     time from 11005 µs: the alarm of 11010.25 µs falls inside element 2's read, and the scan takes the
-    processor at the next read point (element 3's), so it runs elements 0-2 new and the rest old (the model
-    had counted only the elements read by the alarm: element 2 old; the 'pulses outputs' and 'pulses code'
-    minimal reproductions)."""
+    processor there, before the element is stored, so it runs elements 0 and 1 new and the rest old."""
     side = _v2(TORN_AT_AN_ELEMENT, 11100.0)
-    assert [(s.start_ns, s.heights[:4]) for s in side.emu.scans] == [(11_010_250, (3, 1, 4095, 0))]
+    assert [(s.start_ns, s.heights[:4]) for s in side.emu.scans] == [(11_010_250, (3, 1, 0, 0))]
     torn = [h.detail["new_channels"] for h in side.emu.hazards if h.kind is HazardKind.TORN_PATTERN]
-    assert torn == [3]
+    assert torn == [2]

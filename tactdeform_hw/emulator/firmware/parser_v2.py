@@ -226,6 +226,14 @@ class ParserV2(ParserBase, UnknownRuns):
         self.cut = CallCut(point, op, torn)
         return CallOutcome(self.pos - start, len(self.tx) - wrote_before, False)
 
+    def drop_unstored(self, count: int) -> None:
+        """After a call stopped for good inside a read (:attr:`cut`): the ``count`` bytes that read had
+        taken from the queue before the interrupt that never gave the processor back.  They have left the
+        queue, and nothing stores them."""
+        if self.cut is None or not 0 <= count <= self.pending:
+            raise AssertionError(f"drop_unstored({count}): no read under way with that many bytes queued")
+        self.pos += count
+
     def _time_out(self, now_us: int) -> None:
         """The payload did not complete within the timeout: every queued byte is discarded."""
         discarded = self.pending

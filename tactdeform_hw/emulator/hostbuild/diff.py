@@ -51,17 +51,13 @@ EQUIVALENCES: dict[str, str] = {
     "(TimingModel.cs_writes_costed, v2's firmware_scan.HOST_BUILD): each chip-select write around an SPI "
     "exchange costs one GPIO write on top of the 6.6 us exchange (0.1 us each), as the shim's digitalWrite "
     "does; the package's default reading puts them inside the exchange (a pulse 0.2 us shorter). Pulse "
-    "widths and starts are then compared exactly (pulse_tolerance_us 0), preempt-at-calls aside",
+    "widths and starts are then compared exactly (pulse_tolerance_us 0)",
     "pulse-numbering": "when scans overrun (the next alarm is due before a scan returns), the firmware runs "
     "them back to back: on the host build a pulse is numbered within its run of back-to-back scans, in the "
     "models by its slot within its run (every pulse the scans make counts, those of channels past the "
     "chain's outputs included; on v2 a channel has a slot per phase, those of zero height included), so a "
     "run's n-th pulse is compared with the other side's n-th, and a pulse_tolerance_us given on the command "
     "line allows the n-th a start (n + 1) times that late",
-    "preempt-at-calls": "the host build runs an interrupt due inside a Serial call at the main loop's next "
-    "shim call (an analogRead is pre-empted at the alarm), the model (like the chip) at the alarm: a "
-    "scan's pulses may start up to PREEMPT_US (20 us, one analogRead's cost; the Serial calls cost 2 us at "
-    "most) later on the host build",
     "adc-reads-skin": "the host build's ADC reads the DAC code, the model's the skin's voltage: the "
     "voltage registers are not compared, and a stream holding the readback opcode has its replies "
     "compared by byte count",
@@ -102,15 +98,6 @@ STATE_MAP_FILE = "hostbuild_state.toml"
 PULSE_TOLERANCE_US = 0.0
 """Against the model: pulse widths and starts agree exactly (the model runs under the host build's readings,
 EQUIVALENCES["readings"]); ``--pulse-tolerance-us`` loosens it, to compare a tree whose shim costs differ."""
-
-PREEMPT_US = max(
-    DEFAULT_MODEL.parser_call_us, DEFAULT_MODEL.parser_byte_us, DEFAULT_MODEL.hv513_detect_us / 50
-)
-"""Against the model: the host build runs an interrupt due inside a ``Serial`` call at the main loop's next
-shim call, so a scan may start up to one such call's cost late (``Serial.available()`` 2 µs, a u16's
-two-byte read 2 µs, a byte 1 µs); the model pre-empts the loop exactly at the alarm, as the chip does.
-An ``analogRead`` is pre-empted at its alarm on both sides; the allowance is still one of its calls
-(20 µs): 2 µs makes one more v2 stream of the 2 000-stream run diverge (``pulses start``), not analysed."""
 
 PULSE_MARGIN_US = 500.0
 """A pulse is compared once it ended this long before a checkpoint (on either side): its counterpart may
@@ -556,22 +543,21 @@ def compare(
     elif len(left.replies) != len(right.replies):
         return ("replies", "replies (count)", len(left.replies), len(right.replies), None)
     tol = cmp.pulse_tolerance_us
-    late = 0.0 if cmp.exact else PREEMPT_US  # see EQUIVALENCES["preempt-at-calls"]
     # a pulse's counterpart must exist once the checkpoint is past the pulse's end by the margin, or by the
     # drift its start may have (a long run of back-to-back scans, see EQUIVALENCES["pulse-numbering"])
     n = max(
-        sum(1 for p in side.pulses if p[1] + max(PULSE_MARGIN_US, tol * (2 + p[5]) + late) <= upto_us)
+        sum(1 for p in side.pulses if p[1] + max(PULSE_MARGIN_US, tol * (2 + p[5])) <= upto_us)
         for side in (left, right)
     )
     for i, (p, q) in enumerate(zip(left.pulses[:n], right.pulses[:n])):
         if (
             p[2:5] != q[2:5]
-            or abs(p[0] - q[0]) > tol * (1 + max(p[5], q[5])) + late + 1e-9
+            or abs(p[0] - q[0]) > tol * (1 + max(p[5], q[5])) + 1e-9
             or abs((p[1] - p[0]) - (q[1] - q[0])) > tol + 1e-9
         ):
             return (
                 "pulses",
-                f"pulse {i} ({_pulse_reason(p, q, tol, late)})",
+                f"pulse {i} ({_pulse_reason(p, q, tol)})",
                 _pulse(p),
                 _pulse(q),
                 min(p[0], q[0]),
@@ -585,11 +571,11 @@ def compare(
     return None
 
 
-def _pulse_reason(p: Pulse, q: Pulse, tol: float, late: float) -> str:
+def _pulse_reason(p: Pulse, q: Pulse, tol: float) -> str:
     for name, i in (("outputs", 3), ("code", 2), ("polarity", 4)):
         if p[i] != q[i]:
             return name
-    return "start" if abs(p[0] - q[0]) > tol * (1 + max(p[5], q[5])) + late + 1e-9 else "width"
+    return "start" if abs(p[0] - q[0]) > tol * (1 + max(p[5], q[5])) + 1e-9 else "width"
 
 
 def _pulse(p: Pulse) -> dict[str, Any]:

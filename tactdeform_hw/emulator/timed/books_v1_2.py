@@ -69,7 +69,7 @@ class MainLoop:
     main_next: float | None = None  # when the main loop next calls the parser
     main_wait: str | None = None  # what it waits for otherwise (_WAIT_*)
     call: tuple[int, int] | None = None  # (cpu ns spent, bytes read) of an interrupted call
-    held: bytes = b""  # an interrupted 0xF5 call's byte: read (out of the queue), not yet acted on
+    held: bytes = b""  # an interrupted call's bytes: read (out of the queue), not yet stored or acted on
     init_edges: int | None = None  # an interrupted hv513Init(): the CLK rising edges it has made so far
     call_lead: bool = True  # the interrupted call began by reading a command byte (see call_reads_ns)
     checking: bool = False  # ``call`` goes on at its payload loop's next Serial.available() check

@@ -15,9 +15,9 @@ The same :class:`~tactdeform_hw.emulator.firmware.parser.Parser` and registers a
   while bytes keep arriving: runEtactileKit()'s ``while (isDataAvailable() > 0 && bytesRead <
   requiredBytes)`` checks the queue again after every read, so a byte that arrived during the call is read
   by it, and the call ends only at a check that finds nothing.  Replies are written at once and travel
-  back over ``tx_link``.  A scan finds the bytes whose read had begun before its alarm stored
-  (:func:`call_read_starts_ns`); the rest are read when the call resumes after the scan, with what has
-  arrived by then — which is how a pattern gets torn.
+  back over ``tx_link``.  A scan finds stored the bytes whose read had ended by its alarm; a read under
+  way then has taken its bytes from the queue (:func:`call_read_starts_ns`) and stores them after the
+  scan; the rest are read when the call resumes after the scan, with what has arrived by then — which is how a pattern gets torn.
 * **Scans** — on each alarm the handler runs a :class:`~.scan.ScanTemplate` of the registers at that
   moment (the parser cannot change them mid-scan); the next alarm follows the overrun policy.  Long
   stretches without host traffic are simulated as one :class:`~.reports.ScanRun` (a template repeated at
@@ -56,7 +56,7 @@ from __future__ import annotations
 import copy
 import heapq
 import math
-from bisect import bisect_left
+from bisect import bisect_left, bisect_right
 from collections.abc import Container
 from itertools import repeat
 from typing import TYPE_CHECKING, Any
@@ -247,12 +247,12 @@ def call_read_starts_ns(m: TimingModel, lead: bool, payload_size: int, reads: in
     ends of :func:`call_reads_ns` less the read's own ``byte_ns`` (a u16's two bytes: one read of both,
     ``Serial.read(arr, 2)``).
 
-    Which bytes a scan finds stored: those whose read had begun before its alarm.  The firmware's code
-    takes the interrupt between two of its calls into the platform (the host build's shim runs a due
-    interrupt at the next such call, and the v2 model's ``_ReadClock`` reads it the same way), so a read
-    in progress at the alarm -- or ending on it -- stores its byte first; the scan itself is still timed
-    from its alarm (the host build's starts at most one read later: ``preempt-at-calls`` in
-    :mod:`~tactdeform_hw.emulator.hostbuild.diff`)."""
+    Which bytes have left the queue when a scan comes: those whose read had begun before its alarm.  The
+    interrupt takes the processor at its alarm, inside a ``Serial`` call under way as the chip does (and
+    the host build's shim), and the firmware stores a byte only when its read has returned: the scan
+    finds stored the reads ended by its alarm (:func:`call_reads_ns`), and a read under way then has
+    taken its bytes, which are stored after the scan (the v2 model's ``_ReadClock`` reads it the same
+    way)."""
     b = m.byte_ns
     ends = call_reads_ns(m, lead, payload_size, reads)
     return [
@@ -909,7 +909,7 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
             fw.call = None
             fw.main_next = self._tick_after(tc + m.call_ns)  # then vTaskDelay(1)
             return
-        if fw.held:  # the 0xF5 this call read before the alarm: it goes on with its stack detection
+        if fw.held:  # the bytes this call read before the alarm (a 0xF5 goes on with its stack detection)
             buf[0:0] = fw.held
             fw.held = b""
         lead, unit = fw.call_lead if fw.call is not None else p.cmd is None, payload_unit(p.cmd, buf)
@@ -937,18 +937,24 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
         ta = self.next_alarm
         j = n
         if ta < ends[-1] + extra:
-            j = 0
-            if not hv513:  # the reads begun when the alarm came (call_read_starts_ns)
-                begun = [start + t for t in call_read_starts_ns(m, lead, unit, k0 + n)[k0:]]
-                j = p.read_before_interrupt(buf, bisect_left(begun, ta))
+            j = taken = 0
+            begun = [start + t for t in call_read_starts_ns(m, lead, unit, k0 + n)[k0:]]
+            if not hv513:
+                # the scan finds stored the reads ended by its alarm; a read under way at the alarm has
+                # taken its bytes from the queue (call_read_starts_ns) and stores them after the scan
+                j = p.read_before_interrupt(buf, bisect_right(ends, ta))
+                taken = p.read_before_interrupt(buf, bisect_left(begun, ta))
         if j < n:
-            if j:  # (timed by the alarm at the latest: the scan starts there and finds them stored)
+            if j:
                 fw.read_starts = begun[:j]
-                self._feed(j, [min(e, int(ta)) for e in ends[:j]], None)
-            elif hv513 and ends[0] < ta:
+                self._feed(j, ends[:j], None)
+            if hv513 and begun[0] < ta:
                 # runEtactileKit() reads the 0xF5 before stackSense(): the byte has left the queue when the
-                # alarm interrupts the detection, though the reply and the chain's re-init come after it
+                # alarm interrupts its read or the detection, though the reply and the chain's re-init
+                # come after it
                 fw.held = self.queue.take(1)
+            elif taken > j:  # out of the queue, in the firmware's hands until the call resumes
+                fw.held = self.queue.take(taken - j)
             if hv513:
                 self._init_interrupted(ends[-1] + extra, int(ta), detected)
             self.rec.interrupted_calls += 1

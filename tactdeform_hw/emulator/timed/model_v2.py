@@ -433,15 +433,17 @@ class DeliveredV2:
 class _ReadClock:
     """Which read points of one main-loop call the loop gets past (``reach`` of :meth:`ParserV2.call`).
 
-    The scan due at ``alarm`` takes the processor at the first read point that starts at or after it
-    (where the host build's shim runs a due interrupt, before the point does anything).  If that scan,
-    of the registers as the call has left them there, overruns (``overruns``), the loop never gets the
-    processor back: the call stops at that point.  Each point costs what
-    :meth:`TimedEmulatorV2._main_call` counts for it: ``call_ns`` a queue check, ``byte_ns`` a byte
-    read, nothing for a timer read or a write.  ``asked``: whether the call reached a point at or after
-    the alarm (False: the alarm fell inside its last read, and the scan is taken after the call).
-    ``starts``: when each byte read leaves the firmware's queue (a read's bytes at its start: a u16's
-    two together), before any scan inside the call moves them (``_NEVER``: no alarm inside the call)."""
+    The scan due at ``alarm`` takes the processor inside the read point whose work the alarm falls in, or
+    at the first point that starts at or after it, before that point stores anything (the firmware stores
+    a value after its read returns; the host build's shim runs a due interrupt at its alarm inside a
+    ``Serial`` call, as the chip does).  If that scan, of the registers as the call has left them there,
+    overruns (``overruns``), the loop never gets the processor back: the call stops at that point, and a
+    read the alarm came in has taken its bytes from the queue (``taken``) without storing them.  Each
+    point costs what :meth:`TimedEmulatorV2._main_call` counts for it: ``call_ns`` a queue check,
+    ``byte_ns`` a byte read, nothing for a timer read or a write.  ``asked``: whether the alarm came
+    inside the call's read points.  ``starts``: when each byte read leaves the firmware's queue (a
+    read's bytes at its start: a u16's two together), before any scan inside the call moves them
+    (``_NEVER``: no alarm inside the call)."""
 
     def __init__(self, t: int, alarm: int, model: TimingModel, overruns: Callable[[], bool]) -> None:
         self.clock_ns = t
@@ -450,20 +452,20 @@ class _ReadClock:
         self.byte_ns = model.byte_ns
         self.overruns = overruns
         self.asked = False
+        self.taken = 0
         self.starts: list[int] = []
-        self.last_point_ns = t  # where the call's last read point starts (a later alarm is in its read)
 
     def __call__(self, point: ReadPoint, nbytes: int) -> bool:
-        if not self.asked and self.clock_ns >= self.alarm_ns:
+        cost = self.call_ns if point is ReadPoint.AVAILABLE else nbytes * self.byte_ns if point is ReadPoint.READ else 0
+        if not self.asked and (self.alarm_ns <= self.clock_ns or self.alarm_ns < self.clock_ns + cost):
             self.asked = True
             if self.overruns():
+                if point is ReadPoint.READ and self.clock_ns < self.alarm_ns:
+                    self.taken = nbytes
                 return False
-        self.last_point_ns = self.clock_ns
-        if point is ReadPoint.AVAILABLE:
-            self.clock_ns += self.call_ns
-        elif point is ReadPoint.READ:
+        if point is ReadPoint.READ:
             self.starts.extend(repeat(self.clock_ns, nbytes))
-            self.clock_ns += nbytes * self.byte_ns
+        self.clock_ns += cost
         return True
 
 
@@ -738,9 +740,10 @@ class InterruptedCallsV2:
         self.stop_reading()
 
     def _scan_in_idle_call(self, alarm: int, end: int) -> int:
-        """The alarm fell inside an idle poll's ``Serial.available()``: the scan takes the processor at the
-        next point, ``vTaskDelay``'s, so the task sleeps from the scan's end (the end returned).  -1 when
-        that scan overruns: the loop never gets the processor back (as :meth:`_starved_after_call`)."""
+        """The alarm fell inside an idle poll's ``Serial.available()``: the scan takes the processor there,
+        and the rest of the check and ``vTaskDelay`` follow it, so the task sleeps from the poll's end a
+        scan later (the end returned).  -1 when that scan overruns: the loop never gets the processor
+        back."""
         if self._overruns():
             self._scan(alarm)
             self._mark(self._call_time_ns, "starved", {"op": None, "at": "vTaskDelay"})
@@ -766,9 +769,9 @@ class InterruptedCallsV2:
             n = regs.electrode_num
             width = 2 * m.byte_ns  # one u16 read per element (readInt_16)
             start = t + m.call_ns * self.parser.checks + max(0, consumed - 2 * n) * m.byte_ns
-            # the scan takes the processor at the first element read that starts at or after the alarm
-            # (_ReadClock): an element whose read the alarm falls in is stored before it
-            k = max(0, min(n, -(-(alarm - start) // width))) if width else n
+            # the scan takes the processor inside the element read the alarm falls in, or at the next one
+            # to start (_ReadClock): the elements whose read ended by the alarm are stored
+            k = max(0, min(n, (alarm - start) // width)) if width else n
             regs.stim_pattern[:] = new[:k] + old[k:]
             # in mode 2 the scan gives every channel the sense pulse and discards the height it reads
             # (spec "Stimulation scan", 3c): its pulses are the same whatever the buffer holds, so no scan
@@ -841,12 +844,9 @@ class InterruptedCallsV2:
         each where it takes the processor; returns their time, by which the call's work ends later (its
         reads too: ``_read_starts``)."""
         alarm = clock.alarm_ns
-        # an alarm inside the call's last read is taken at the next read point, after the call's stores
-        # (:meth:`_starved_after_call`): the scan sees what the call stored, ``held`` aside
-        seen = applied if clock.asked else None
         shift = 0  # the scans' time inside the call so far: the call's work is that much later
         while True:
-            duration = self._scan_inside(alarm, t + shift, consumed, seen, before, old, held)
+            duration = self._scan_inside(alarm, t + shift, consumed, applied, before, old, held)
             shift += duration
             # the next alarm may fall inside the call too (a period barely longer than a scan): the scan
             # has the same length (v2's does not depend on the heights), so it does not overrun either;
@@ -859,26 +859,9 @@ class InterruptedCallsV2:
             alarm = self._next_alarm_ns
             if not (alarm < limit + shift or (tie and alarm == limit + shift)):
                 break
-            # a later alarm past the call's last read point falls inside its last read: as for the
-            # first, the scan is taken after the call's stores and sees them -- the loop's own scan,
-            # due before its next call (and starving it if it overruns)
-            if alarm > clock.last_point_ns + shift:
-                break
         first = clock.alarm_ns  # the reads from the first scan on are that scan (or scans) later
         self._read_starts = [r + shift if r >= first else r for r in clock.starts]
         return shift
-
-    def _starved_after_call(self, clock: _ReadClock, op: int | None) -> bool:
-        """The alarm fell inside the call's last read (no read point at or after it, ``clock.asked``
-        False): the firmware stores what it read and takes the scan at its next read point, the next
-        call's first.  True when that scan, of the registers the call stored, overruns: the loop is
-        starved there (the call is over, nothing of it is undone)."""
-        if clock.asked or not self._overruns():
-            return False
-        self._scan(clock.alarm_ns)
-        self._mark(self._call_time_ns, "starved", {"op": op, "at": "next call"})
-        self.stop_reading()
-        return True
 
 
 class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedModelBase):
@@ -1326,6 +1309,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         out = parser.call(t // 1000, clock)
         self._read_starts = clock.starts
         if parser.cut is not None:
+            parser.drop_unstored(clock.taken)
             self._starve_at(parser.cut, alarm)
             return
         for h in self.hazards[hazards_before:]:
@@ -1342,7 +1326,8 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         paused = sensed and self.firmware.hv513_pauses_timer
         self._hv513_in_call = False
         applied = self._applied_in_call
-        frequency = applied == OpcodeV2.FREQUENCY
+        # 0xF6 calls setPeriodUs (a read point) only for a non-zero rate: 0xF6 0 is ignored
+        frequency = applied == OpcodeV2.FREQUENCY and self.applied[-1][2] != 0
         # an alarm inside the call pre-empts it, whatever the call did (a command applied, a byte skipped, a
         # payload still awaited): the call ends the scan's duration later.  0xF6's setPeriodUs and 0xF5's
         # timerAlarmDisable come after the call's reads and are themselves points where a due alarm is
@@ -1350,9 +1335,8 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         # (the point until which an alarm pre-empts the call, and whether one due there still does)
         limit, tie = (reads_end, True) if paused else (end, frequency)
         if t < alarm and (alarm < limit or (tie and alarm == limit)):
-            assert clock.alarm_ns == alarm  # the alarm is before the call's end, so before its latest end
-            if self._starved_after_call(clock, applied):
-                return
+            # the alarm is before the call's end, so before its latest end, and inside its read points
+            assert clock.alarm_ns == alarm and clock.asked
             # 0xF6's alarm and 0xF5's count are stored after the point where the scan took the processor
             held = {"timer_alarm_ticks": old_ticks, "hv513_num": old_hv513}
             end += self._scans_in_call(clock, t, out.consumed, applied, before, old_pattern, held, limit, tie)
@@ -1434,8 +1418,8 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
             self._reply_offset = offset
         if op == OpcodeV2.HV513_COUNT:
             self._hv513_in_call = True
-        elif op == OpcodeV2.FREQUENCY:
-            # setPeriodUs: the new alarm value applies from the current counter
+        elif op == OpcodeV2.FREQUENCY and value:
+            # setPeriodUs (0xF6 0 is ignored): the new alarm value applies from the current counter
             self._next_alarm_ns = max(self._call_time_ns, self._last_alarm_ns() + self._period_ns())
 
     def _last_alarm_ns(self) -> int:

@@ -4,8 +4,11 @@
 // The firmware's setup()/loop() run on their own stack (ucontext).  Python asks for a target time with
 // hb_run_until(); the firmware runs until a shim call finds virtual time at or past the target, then
 // control returns to Python with the firmware suspended inside that call.  Between shim calls firmware
-// code costs no virtual time, so a timer interrupt pre-empts the main loop only at a shim call (an idle
-// wait — vTaskDelay, delay, a busy-wait — is cut at the alarm's exact time).
+// code costs no virtual time.  A timer interrupt pre-empts the main loop at its alarm's exact time inside
+// a call's work (an idle wait — vTaskDelay, delay, a busy-wait —, an analogRead, a Serial call), and at
+// the next shim call otherwise (a GPIO write, 50 ns; an SPI exchange, which the upstream eTactileKit
+// firmwares make only in their interrupt handler's pulses).  A Serial read takes its bytes
+// from the queue as it starts, so an interrupt inside it comes before the firmware stores them.
 #include <ucontext.h>
 
 #include <climits>
@@ -560,15 +563,17 @@ void serial_set_rx_buffer(size_t bytes) {
 int serial_available() {
     point();
     int n = reading ? (int)rx_queue.size() : 0;
-    now += cost[C_AVAILABLE];
+    spend(cost[C_AVAILABLE]);
     return n;
 }
 int serial_read() {
     point();
-    now += cost[C_READ_BYTE];
-    if (rx_queue.empty() || !reading) return -1;
-    int v = rx_queue.front();
-    rx_queue.pop_front();
+    int v = -1;
+    if (!rx_queue.empty() && reading) {
+        v = rx_queue.front();
+        rx_queue.pop_front();
+    }
+    spend(cost[C_READ_BYTE]);
     return v;
 }
 size_t serial_read_buf(uint8_t* buf, size_t len) {
@@ -578,7 +583,7 @@ size_t serial_read_buf(uint8_t* buf, size_t len) {
         buf[n++] = rx_queue.front();
         rx_queue.pop_front();
     }
-    now += cost[C_READ_BYTE] * (int64_t)n;
+    spend(cost[C_READ_BYTE] * (int64_t)n);
     return n;
 }
 int serial_peek() {
