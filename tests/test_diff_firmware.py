@@ -800,7 +800,8 @@ UPSTREAM_V1_2_MAIN_LOOP_CASES = {
         8100.0,
     ),
     # the 100 000-stream run's first `state timer_alarm_ticks` (random seed 18387, minimal): 0xF6 1's u16 read
-    # runs across the alarm, whose scan of 254 channels overruns the old period: setPeriodUs() never runs
+    # runs across the alarm, whose scan of 254 channels overruns the old period: the period is never stored
+    # and setPeriodUs() never runs
     "a frequency whose scan overruns": (
         ((4876.87, "71"), (6206.937, "f7"), (6206.937, "fefc"), (23379.394, "fe"), (30450.161, "fff60100")),
         120000.0,
@@ -841,6 +842,13 @@ UPSTREAM_V1_2_MAIN_LOOP_CASES = {
             (4448.984, "f900fb0100fc04f902f901f900fb00fc04f901f900fb0100fc04f902f901fb0100fc04f900f901"),
         ),
         45000.0,
+    ),
+    # 0xF6 21027 (a 47 us alarm), 2 electrodes (46.95 us scans), discharge 2, then 0xF9 2 (random seed 29034,
+    # minimal): the loop runs 50 ns between scans, so 0xFD's last check spans 40 of them and vTaskDelay(1)
+    # sleeps to the 12 000 us tick; the first pulse of height 2 is at 18 618.7 us on both sides
+    "a last check in the slivers between scans, seed 29034": (
+        ((2000.5, "f62352fc02fd02"), (2010.5, "f902")),
+        19000.0,
     ),
 }
 

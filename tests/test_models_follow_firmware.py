@@ -462,6 +462,18 @@ def _frequency_at_the_alarm(electrodes: str) -> list[tuple[float, str]]:
     ]
 
 
+def test_v1_2_a_last_check_pre_empted_by_many_scans_sleeps_after_the_last_of_them() -> None:
+    """A 47 µs alarm and scans of 46.95 µs leave the loop 50 ns a period: after 0xFD 2's payload is read
+    (9730 µs), the payload loop's last Serial.available() (2 µs) spans 40 scans, so vTaskDelay(1) is
+    called at about 11 610 µs and the loop reads 0xF9 from the 12 000 µs tick, in slivers too (14 900 µs),
+    and its payload at 17 720 µs: the first pulse of height 2 is at 18 618.7 µs.  (The model had ended the
+    check as the first scan returned and read 0xF9 from the 10 000 µs tick: 16 644.7 µs.)"""
+    side = _v1_2([(2000.5, "f62352fc02fd02"), (2010.5, "f902")], 14899.0)
+    assert side.observe(14899.0).state["rx_unread"] == 2
+    side.advance_to(19000.0)
+    assert side.observe(19000.0).pulses[0][:3] == (18618.7, 18625.5, 8)
+
+
 def test_v1_2_a_frequency_whose_scan_overruns_never_stores_the_period() -> None:
     """The alarm comes inside the u16's read, before runEtactileKit() stores StimulationTimePeriod: the
     handler re-enables the old 10 ms alarm as it returns, but its scan of 254 channels takes 67.3 ms, so

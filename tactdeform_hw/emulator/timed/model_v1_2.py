@@ -489,16 +489,16 @@ class CallEnds:
         else:  # the payload loop's last check (Serial.available()), then vTaskDelay(1)
             self._last_check(end)
 
-    def _last_check(self, t: int) -> None:
+    def _last_check(self, t: int, work_ns: int | None = None) -> None:
         """The payload loop's last ``Serial.available()`` check from ``t`` finds nothing to read, then
         runEtactileKit() calls ``vTaskDelay(1)``: the loop sleeps to the next RTOS tick after the check.  An
         alarm due before the check returns pre-empts it, so ``vTaskDelay`` is called only after the scan,
-        with what was left of the check, and the tick the loop sleeps to is the one after that -- not
-        the tick inside the scan the check's own end would give, which would let the loop read again as
-        the scan returns (the host build takes the interrupt at ``vTaskDelay``'s own call, after the
-        check: its scan starts that much later, so it calls ``vTaskDelay`` at the same moment)."""
+        with what was left of the check (``work_ns``, the whole check's ``call_ns`` by default), and the
+        tick the loop sleeps to is the one after that -- not the tick inside the scan the check's own end
+        would give, which would let the loop read again as the scan returns.  The rest may be pre-empted
+        again: where the period leaves the loop a sliver between scans, a check spans many of them."""
         fw = self.fw
-        check_end = t + self.model.call_ns
+        check_end = t + (self.model.call_ns if work_ns is None else work_ns)
         ta = self.next_alarm
         if ta <= check_end:
             fw.check_left_ns = check_end - int(ta)
@@ -901,13 +901,13 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
             self.registers.timer_alarm_ticks, fw.period_pending = fw.period_pending, None
             self._retime_alarm(tc)
         if fw.check_left_ns is not None:  # the rest of a check a scan pre-empted, then vTaskDelay(1)
-            fw.main_next = self._tick_after(tc + fw.check_left_ns)
-            fw.check_left_ns = None
+            left, fw.check_left_ns = fw.check_left_ns, None
+            self._last_check(tc, left)
             return
         checking, fw.checking = fw.checking, False
         if checking and p.cmd is None:  # a read command's last check, after the scan that came first
             fw.call = None
-            fw.main_next = self._tick_after(tc + m.call_ns)  # then vTaskDelay(1)
+            self._last_check(tc)  # then vTaskDelay(1)
             return
         if fw.held:  # the bytes this call read before the alarm (a 0xF5 goes on with its stack detection)
             buf[0:0] = fw.held
