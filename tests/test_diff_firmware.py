@@ -863,7 +863,7 @@ def test_upstream_v1_2_main_loop_matches_the_model(case: str) -> None:
     assert Differ(tree, "v1.2").first_divergence(stream) is None
 
 
-def test_upstream_v2_an_alarm_in_a_call_s_last_read_scans_the_registers_from_before_it_on_both_sides() -> None:
+def test_upstream_v2_an_alarm_in_a_call_s_last_read_scans_the_registers_from_before_it() -> None:
     """0xFC 4 and 0xFC 0 back to back at a 15 µs alarm in mode 2: the alarm inside the second's last read is
     taken inside it, before the count 0 is stored, on both sides, so both run the scan of four channels
     that starves the loop (random seed 10111, on which the model used to loop; the model-only twin is in
@@ -880,6 +880,32 @@ def test_upstream_v2_an_alarm_in_a_call_s_last_read_scans_the_registers_from_bef
         )
     )
     assert Differ(tree, "v2").first_divergence(Stream(writes, 15000.0, "count lowered")) is None
+
+
+@pytest.mark.parametrize(
+    "writes",
+    [
+        # random seed 87056, minimal: the payload of 0xF6 arrives as the call reads its command byte
+        ((4992.748, "fc01fdfffeff00fd01fd01"), (4992.748, "f6"), (5032.748, "88d0")),
+        # random seed 41964, minimal: the same for 0xF6 0, ignored, before 255 electrodes whose scans then
+        # starve the loop at a 15.3 us period before 0xF6 1 is stored (the model had stored it)
+        (
+            (3928.188, "67ae9d117d8ddd81f05628d5"),
+            (3939.568, "f6feff"),
+            (12972.299, "f802f902f6"),
+            (13012.299, "0000fcfff60100"),
+        ),
+    ],
+    ids=["seed 87056", "seed 41964"],
+)
+def test_upstream_v2_a_payload_arriving_while_its_command_byte_is_read_is_read_by_the_same_call(
+    writes: tuple[tuple[float, str], ...],
+) -> None:
+    """The call's second isDataAvailable() counts the payload that arrived while it read the command byte,
+    on the firmware and in the model (the model-only twin is in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 60000.0, "payload during its call")
+    assert Differ(tree, "v2").first_divergence(stream) is None
 
 
 def test_upstream_v2_a_call_pre_empted_by_a_long_scan_resolves_after_the_scan() -> None:
@@ -940,8 +966,8 @@ def test_upstream_v2_a_call_s_unread_bytes_stay_in_the_queue(writes: tuple[tuple
 
 def test_upstream_v2_a_later_alarm_inside_a_call_s_last_read_scans_what_was_stored_before_it() -> None:
     """The 0xFC 0 call pre-empted by one scan, then the next alarm inside its last read: the firmware and
-    the model both run that scan on the one channel stored before it (the model-only twin is in test_models_follow_firmware.py;
-    the 'pulses count' minimal reproduction of random seed 5426)."""
+    the model both run that scan on the one channel stored before it (the model-only twin is in
+    test_models_follow_firmware.py; the 'pulses count' minimal reproduction of random seed 5426)."""
     tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
     writes = ((2761.842, "fc01"), (3049.205, "f9fffb02f6eaaafc00"))
     stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 6069.0, "later alarm in last read")

@@ -195,7 +195,7 @@ def test_an_analog_read_is_pre_empted_at_the_alarm_and_finishes_after_the_interr
     assert emu.tx_log == [(start + us(255 * (M.hv513_detect_ns // 50) + 8 * ISR_NS), b"a")]
 
 
-def test_a_serial_read_is_pre_empted_at_the_alarm_before_the_firmware_stores_what_it_read(cache: Path) -> None:
+def test_a_serial_read_is_pre_empted_at_the_alarm_before_the_firmware_stores_its_bytes(cache: Path) -> None:
     """Serial calls are work the interrupt pre-empts where its alarm falls, as the chip takes it: 'V' and
     the first byte of its u16 wait at the 4000 µs tick; readU16() polls Serial.available() (2 µs) from
     4003 µs until the second byte, arriving at 4196 µs, is seen at 4197 µs; its Serial.read(b, 2) runs from

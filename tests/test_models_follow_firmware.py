@@ -598,3 +598,24 @@ def test_v2_a_pattern_element_whose_read_the_alarm_falls_in_is_stored_after_the_
     assert [(s.start_ns, s.heights[:4]) for s in side.emu.scans] == [(11_010_250, (3, 1, 0, 0))]
     torn = [h.detail["new_channels"] for h in side.emu.hazards if h.kind is HazardKind.TORN_PATTERN]
     assert torn == [2]
+
+
+# 1 electrode, then 0xF6 whose payload (53384: a 19.2 us scan every 18 us) comes 40 us later (random seed
+# 87056, minimal)
+PAYLOAD_DURING_ITS_COMMAND_CALL = [(4992.748, "fc01fdfffeff00fd01fd01f6"), (5032.748, "88d0")]
+
+
+def test_v2_a_payload_arriving_while_its_command_byte_is_read_is_read_by_the_same_call() -> None:
+    """The call at 5031 µs reads 0xF6 from 5033 µs; its payload, arriving at 5032.748 µs, is counted by the
+    call's second isDataAvailable() at 5034 µs and read by it, so setPeriodUs writes the new alarm at 5038
+    µs and the first scan at the new rate starts then (the model had read the payload in the next call, 2 µs
+    later: the 'pulses start' and 'state period_us' of the 100 000-stream run).  The same whether the
+    payload is written after the model ran the call or before."""
+    late = _v2(PAYLOAD_DURING_ITS_COMMAND_CALL, 5100.0)
+    ahead = ModelSideV2(timer_origin_us=TIMER_ORIGIN_US, hv513_count=4)
+    for at_us, data in PAYLOAD_DURING_ITS_COMMAND_CALL:
+        ahead.emu.write(bytes.fromhex(data), at_us)
+    ahead.advance_to(5100.0)
+    for side in (late, ahead):
+        assert [s.start_ns for s in side.emu.scans if s.start_ns > 5_000_000][:2] == [5_038_000, 5_057_200]
+        assert side.emu.applied[-1][:2] == (5_034_000, OpcodeV2.FREQUENCY)

@@ -17,7 +17,8 @@ The same :class:`~tactdeform_hw.emulator.firmware.parser.Parser` and registers a
   by it, and the call ends only at a check that finds nothing.  Replies are written at once and travel
   back over ``tx_link``.  A scan finds stored the bytes whose read had ended by its alarm; a read under
   way then has taken its bytes from the queue (:func:`call_read_starts_ns`) and stores them after the
-  scan; the rest are read when the call resumes after the scan, with what has arrived by then — which is how a pattern gets torn.
+  scan; the rest are read when the call resumes after the scan, with what has arrived by then -- which is
+  how a pattern gets torn.
 * **Scans** — on each alarm the handler runs a :class:`~.scan.ScanTemplate` of the registers at that
   moment (the parser cannot change them mid-scan); the next alarm follows the overrun policy.  Long
   stretches without host traffic are simulated as one :class:`~.reports.ScanRun` (a template repeated at

@@ -456,7 +456,11 @@ class _ReadClock:
         self.starts: list[int] = []
 
     def __call__(self, point: ReadPoint, nbytes: int) -> bool:
-        cost = self.call_ns if point is ReadPoint.AVAILABLE else nbytes * self.byte_ns if point is ReadPoint.READ else 0
+        cost = 0
+        if point is ReadPoint.AVAILABLE:
+            cost = self.call_ns
+        elif point is ReadPoint.READ:
+            cost = nbytes * self.byte_ns
         if not self.asked and (self.alarm_ns <= self.clock_ns or self.alarm_ns < self.clock_ns + cost):
             self.asked = True
             if self.overruns():
@@ -492,6 +496,7 @@ class MainLoopRunsV2:
     _applied_in_call: int | None
     _reply_offset: int | None
     _next_call_ns: int
+    _second_check_ns: int | None
 
     @property
     def parser(self) -> ParserV2:
@@ -927,6 +932,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
         start = t + (self.model.boot_ns if boot_delay else 0)
         self._booting_until = start
         self._next_call_ns = start
+        self._second_check_ns = None
         # as v1.2's model: the stimulation timer starts ``timer_start_us`` after boot (the firmware's
         # setup() runs first), the RTOS ticks from boot at ``tick_phase_us``
         reload = start + self.model.timer_start_ns
@@ -1284,6 +1290,13 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
     def _main_call(self, t: int) -> None:
         parser = self.parser
         regs = self.registers
+        cont, self._second_check_ns = self._second_check_ns, None
+        if cont is not None and t == cont + self.model.call_ns and self._delivery_heap[:1]:
+            if self._delivery_heap[0][0] <= cont:
+                # bytes arriving by the last call's second queue check (which the model ran with the bytes
+                # landed at the call's start; written later, or in flight then): that check counts them,
+                # and the call goes on reading them -- the same check and read as a call from there
+                t = cont
         self._land(t)
         m = self.model
         self._call_time_ns = t
@@ -1349,6 +1362,16 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
             self._next_call_ns = self._tick_after(end)
         else:
             self._next_call_ns = end
+            # a call that read a command byte and found its payload short ends with that second check:
+            # remembered, unless a scan took the processor inside it (the check counted before the scan)
+            second = end - m.call_ns
+            if (
+                parser.processing
+                and out.consumed == 1
+                and parser.checks == 2
+                and (alarm >= end or self.scans[-1].start_ns + self.scans[-1].duration_ns <= second)
+            ):
+                self._second_check_ns = second
 
     def _idle_call(self, t: int) -> None:
         """An idle poll (most calls): nothing to read, nothing to write, the task sleeps to the next tick --
