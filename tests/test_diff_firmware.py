@@ -850,6 +850,22 @@ UPSTREAM_V1_2_MAIN_LOOP_CASES = {
         ((2000.5, "f62352fc02fd02"), (2010.5, "f902")),
         19000.0,
     ),
+    # the same slivers while the loop is idle: each poll (Serial.available(), then vTaskDelay(1)) spans
+    # scans, and a command written between ticks is read at the poll after it on both sides
+    "idle polls in the slivers between scans": (((2000.5, "f62352fc02"), (21500.5, "f902")), 30000.0),
+    # random seed 20543, minimal: the poll right after 0xF5's reply is pre-empted by a 7.2 ms scan, so the
+    # bytes that arrived during it are read from the 19 000 us tick (the model had read them as it returned)
+    "a poll the alarm pre-empts, seed 20543": (
+        (
+            (2000.5, "f9fffc20f5f8d6fa0000"),
+            (2546.995, "fa0100"),
+            (2546.995, "fafffffff5"),
+            (12999.82, "fdfef8fffb96fffa"),
+            (21879.248, "00"),
+            (21879.248, "ffff"),
+        ),
+        23000.0,
+    ),
 }
 
 

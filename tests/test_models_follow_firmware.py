@@ -619,3 +619,29 @@ def test_v2_a_payload_arriving_while_its_command_byte_is_read_is_read_by_the_sam
     for side in (late, ahead):
         assert [s.start_ns for s in side.emu.scans if s.start_ns > 5_000_000][:2] == [5_038_000, 5_057_200]
         assert side.emu.applied[-1][:2] == (5_034_000, OpcodeV2.FREQUENCY)
+
+
+# 32 electrodes of sense width 214 (7.2 ms scans), pulse width 65535, then 0xFF and 0xF5 (random seed 20543,
+# minimal, but for its last write): 0xF5 is answered at 11 009.45 us, just before the alarm of 11 010.25 us
+POLL_AFTER_A_REPLY = [
+    (2000.5, "f9fffc20f5f8d6fa0000"),
+    (2546.995, "fa0100"),
+    (2546.995, "fafffffff5"),
+    (12999.82, "fdfef8fffb96fffa"),
+]
+
+
+def test_v1_2_a_poll_the_alarm_pre_empts_sleeps_to_the_tick_after_the_scan() -> None:
+    """runEtactileKit() returns after answering 0xF5 without vTaskDelay(1), so the loop polls again at once
+    (Serial.available(), 2 µs, then vTaskDelay(1)); the alarm of 11 010.25 µs pre-empts that poll, so after
+    the scan (to 18 207.7 µs) and the rest of the poll the loop sleeps to the 19 000 µs tick: the bytes that
+    arrived during the scan are read from then (the model had read them as the scan returned: the 'state
+    rx_unread' of the 100 000-stream run)."""
+    side = _v1_2(POLL_AFTER_A_REPLY, 18900.0)
+    assert side.observe(18900.0).state["rx_unread"] == 8
+    side.advance_to(21000.0)
+    assert [(c.name, c.effect_us) for c in side.emu.commands][-3:] == [
+        ("POLARITY", 19006.0),
+        ("SENSE_WIDTH", 20006.0),
+        ("PULSE_HEIGHT", 21009.0),
+    ]

@@ -927,6 +927,10 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
                 done = call_reads_ns(m, lead, unit, k0)
                 self.fw.call_lead = lead
                 self._enter_stuck(tc, max(cpu0, done[-1] if done else 0), k0)
+            elif self.next_alarm <= tc + m.call_ns:
+                # a poll (Serial.available(), then vTaskDelay(1)) the alarm pre-empts: the loop sleeps to
+                # the tick after the scan and the rest of the poll, not as the scan returns
+                self._last_check(tc)
             else:
                 self.fw.main_wait = _WAIT_TICK
             return
@@ -1034,7 +1038,14 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
         return self.host.deliveries
 
     def _idle(self) -> bool:
-        return not self.host.deliveries and self.fw.main_wait is not None
+        """Nothing left to land or read: the loop waits (for a tick, a u16's byte, a reset), or polls a
+        queue that stays empty (a poll the scans pre-empt, so the loop never settles into waiting)."""
+        if self.host.deliveries:
+            return False
+        fw = self.fw
+        return fw.main_wait is not None or (
+            not self.queue.buf and fw.call is None and not fw.held and fw.period_pending is None
+        )
 
     def _rx_pending(self) -> int:
         return len(self.queue)
