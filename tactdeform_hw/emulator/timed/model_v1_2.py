@@ -490,6 +490,29 @@ class CallEnds:
         else:  # the payload loop's last check (Serial.available()), then vTaskDelay(1)
             self._last_check(end)
 
+    def _read_nothing(self, tc: int, outcome: CallResult, checking: bool, lead: bool, unit: int) -> None:
+        """A call at ``tc`` that finds nothing to read: the loop waits for a reset (a locked parser), for a
+        u16's second byte, or polls and sleeps to the next tick (``vTaskDelay(1)``)."""
+        fw = self.fw
+        cpu0, k0 = fw.call if fw.call is not None else (0, 0)
+        fw.call = None
+        fw.main_next = None
+        if outcome is CallResult.LOCKED:
+            fw.main_wait = _WAIT_LOCKED
+        elif checking and outcome is CallResult.PROGRESS:
+            # the payload loop's check found nothing: it costs its Serial.available(), then vTaskDelay(1)
+            self._last_check(tc)
+        elif outcome is CallResult.STUCK_U16:
+            done = call_reads_ns(self.model, lead, unit, k0)
+            fw.call_lead = lead
+            self._enter_stuck(tc, max(cpu0, done[-1] if done else 0), k0)
+        elif self.next_alarm <= tc + self.model.call_ns:
+            # a poll (Serial.available(), then vTaskDelay(1)) the alarm pre-empts: the loop sleeps to the
+            # tick after the scan and the rest of the poll, not as the scan returns
+            self._last_check(tc)
+        else:
+            fw.main_wait = _WAIT_TICK
+
     def _last_check(self, t: int, work_ns: int | None = None) -> None:
         """The payload loop's last ``Serial.available()`` check from ``t`` finds nothing to read, then
         runEtactileKit() calls ``vTaskDelay(1)``: the loop sleeps to the next RTOS tick after the check.  An
@@ -916,23 +939,7 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
         lead, unit = fw.call_lead if fw.call is not None else p.cmd is None, payload_unit(p.cmd, buf)
         n, outcome = p.plan(buf)
         if n == 0:
-            fw.call = None
-            fw.main_next = None
-            if outcome is CallResult.LOCKED:
-                self.fw.main_wait = _WAIT_LOCKED
-            elif checking and outcome is CallResult.PROGRESS:
-                # the payload loop's check found nothing: it costs its Serial.available(), then vTaskDelay(1)
-                self._last_check(tc)
-            elif outcome is CallResult.STUCK_U16:
-                done = call_reads_ns(m, lead, unit, k0)
-                self.fw.call_lead = lead
-                self._enter_stuck(tc, max(cpu0, done[-1] if done else 0), k0)
-            elif self.next_alarm <= tc + m.call_ns:
-                # a poll (Serial.available(), then vTaskDelay(1)) the alarm pre-empts: the loop sleeps to
-                # the tick after the scan and the rest of the poll, not as the scan returns
-                self._last_check(tc)
-            else:
-                self.fw.main_wait = _WAIT_TICK
+            self._read_nothing(tc, outcome, checking, lead, unit)
             return
         hv513 = p.cmd is None and buf[0] == _HV513
         detected = self.parser.hv513_detect() if hv513 else 0

@@ -476,7 +476,8 @@ class _ReadClock:
 class MainLoopRunsV2:
     """What the v2 model does many times over, done in one go exactly as one at a time (a mixin of
     :class:`TimedEmulatorV2`, which keeps the state): the idle polls, the calls that each skip one unknown
-    byte, the arrivals that land meanwhile, and the scan the registers give (kept for the next alarm)."""
+    byte, the arrivals that land meanwhile, the scan the registers give (kept for the next alarm), and a
+    call that goes on from the last one's second queue check."""
 
     model: TimingModel
     conventions: ScanConventions
@@ -497,6 +498,7 @@ class MainLoopRunsV2:
     _reply_offset: int | None
     _next_call_ns: int
     _second_check_ns: int | None
+    scans: list[ScanRecordV2]
 
     @property
     def parser(self) -> ParserV2:
@@ -504,6 +506,31 @@ class MainLoopRunsV2:
 
     def _loss(self, t: int, count: int, host_offset: int, reason: str) -> None:
         raise NotImplementedError
+
+    def _call_start(self, t: int) -> int:
+        """Where the call due at ``t`` starts: at the last call's second queue check when bytes arrived by
+        it (the model ran that call with the bytes landed at its start; they were written later, or in
+        flight then): that check counts them, and the call goes on reading them -- the same check and
+        read as a call from there (:meth:`_note_second_check`)."""
+        cont, self._second_check_ns = self._second_check_ns, None
+        heap = self._delivery_heap
+        if cont is not None and t == cont + self.model.call_ns and heap and heap[0][0] <= cont:
+            return cont
+        return t
+
+    def _note_second_check(self, consumed: int, alarm: int, end: int) -> None:
+        """A call that read a command byte and found its payload short ends with that second check (at
+        ``end`` less a check's cost): remembered for :meth:`_call_start`, unless a scan (the alarm due at
+        the call's start) took the processor inside it, after the check had counted."""
+        second = end - self.model.call_ns
+        parser = self.parser
+        if (
+            parser.processing
+            and consumed == 1
+            and parser.checks == 2
+            and (alarm >= end or self.scans[-1].start_ns + self.scans[-1].duration_ns <= second)
+        ):
+            self._second_check_ns = second
 
     def _tick_after(self, t: int) -> int:
         raise NotImplementedError
@@ -691,9 +718,9 @@ class MainLoopRunsV2:
 class InterruptedCallsV2:
     """A scan whose alarm falls inside a v2 main-loop call (a mixin of :class:`TimedEmulatorV2`, which keeps
     the state): what it sees of a command the call is applying, and the loop it starves when it overruns
-    -- it takes the processor at the first of ``runEtactileKit``'s read points at or after its alarm
-    (:class:`_ReadClock`) and never gives it back, so the call is left exactly where the firmware leaves
-    it."""
+    -- it takes the processor inside the one of ``runEtactileKit``'s read points its alarm falls in, or at
+    the first that starts after it (:class:`_ReadClock`), and never gives it back, so the call is left
+    exactly where the firmware leaves it."""
 
     model: TimingModel
     hazards: list[Hazard]
@@ -1290,13 +1317,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
     def _main_call(self, t: int) -> None:
         parser = self.parser
         regs = self.registers
-        cont, self._second_check_ns = self._second_check_ns, None
-        if cont is not None and t == cont + self.model.call_ns and self._delivery_heap[:1]:
-            if self._delivery_heap[0][0] <= cont:
-                # bytes arriving by the last call's second queue check (which the model ran with the bytes
-                # landed at the call's start; written later, or in flight then): that check counts them,
-                # and the call goes on reading them -- the same check and read as a call from there
-                t = cont
+        t = self._call_start(t)
         self._land(t)
         m = self.model
         self._call_time_ns = t
@@ -1362,16 +1383,7 @@ class TimedEmulatorV2(DeliveredV2, MainLoopRunsV2, InterruptedCallsV2, TimedMode
             self._next_call_ns = self._tick_after(end)
         else:
             self._next_call_ns = end
-            # a call that read a command byte and found its payload short ends with that second check:
-            # remembered, unless a scan took the processor inside it (the check counted before the scan)
-            second = end - m.call_ns
-            if (
-                parser.processing
-                and out.consumed == 1
-                and parser.checks == 2
-                and (alarm >= end or self.scans[-1].start_ns + self.scans[-1].duration_ns <= second)
-            ):
-                self._second_check_ns = second
+            self._note_second_check(out.consumed, alarm, end)
 
     def _idle_call(self, t: int) -> None:
         """An idle poll (most calls): nothing to read, nothing to write, the task sleeps to the next tick --
