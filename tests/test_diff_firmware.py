@@ -853,6 +853,12 @@ UPSTREAM_V1_2_MAIN_LOOP_CASES = {
     # the same slivers while the loop is idle: each poll (Serial.available(), then vTaskDelay(1)) spans
     # scans, and a command written between ticks is read at the poll after it on both sides
     "idle polls in the slivers between scans": (((2000.5, "f62352fc02"), (21500.5, "f902")), 30000.0),
+    # random seed 31686, minimal: 0xF6's u16 waits 2 s for its second byte; the spin's checks run in the
+    # main loop's time between scans, and the one for two bytes after the arrival finds it on both sides
+    "a spin on a half u16, seed 31686": (
+        ((4136.06, "fc01f9"), (5173.543, "fef6ff"), (2073447.451, "ff")),
+        2075000.0,
+    ),
     # random seed 20543, minimal: the poll right after 0xF5's reply is pre-empted by a 7.2 ms scan, so the
     # bytes that arrived during it are read from the 19 000 us tick (the model had read them as it returned)
     "a poll the alarm pre-empts, seed 20543": (

@@ -645,3 +645,14 @@ def test_v1_2_a_poll_the_alarm_pre_empts_sleeps_to_the_tick_after_the_scan() -> 
         ("SENSE_WIDTH", 20006.0),
         ("PULSE_HEIGHT", 21009.0),
     ]
+
+
+def test_v1_2_a_spin_on_a_half_u16_reads_at_its_next_check_for_two_bytes() -> None:
+    """0xF6 with one byte of its u16: runEtactileKit() spins, ``isDataAvailable() > 0`` then ``>= 2``, 2 µs
+    each, for 2 s, pre-empted by the scans; the second byte arrives at 2 073 447.451 µs, inside a check for
+    two bytes begun before it, so the next one (from 2 073 448.4 µs) finds it and setPeriodUs() runs at
+    2 073 452.4 µs, where its scan starts (the model had restarted the spin at the arrival: 2 073 453.451
+    µs, the 'pulses start' of the 100 000-stream run, random seed 31686)."""
+    side = _v1_2([(4136.06, "fc01f9"), (5173.543, "fef6ff"), (2073447.451, "ff")], 2073470.0)
+    assert [(c.name, c.effect_us) for c in side.emu.commands][-1] == ("FREQUENCY", 2073452.4)
+    assert side.emu.runs[-1].start_ns == 2_073_452_400

@@ -87,6 +87,10 @@ class MainLoop:
     busy_until: int = -1
     stuck_reported: bool = False  # spinning on a half u16: reported once, from stuck_at
     stuck_at: int | None = None
+    # the spin on a half u16: when its first Serial.available() began, and the scans' time since (the
+    # spin runs in the main loop's time, one check after another)
+    spin_from: int = 0
+    spin_scanned_ns: int = 0
     call_end_ns: int = 0  # when the call being fed ends, and the device offset of its last byte
     call_dev_last: int = 0
 

@@ -553,10 +553,24 @@ class CallEnds:
         else:
             self.next_alarm = self.fw.last_reload + period
 
+    def _spin_sees(self, t: int) -> int:
+        """The spin on a half u16 (``while (isDataAvailable() > 0 ...)`` then ``if (isDataAvailable() >=
+        2)``, ``call_ns`` each, pre-empted by the scans) when the second byte has arrived by ``t``, outside
+        any scan: the call goes on from ``t``, with the spin's phase in its progress, so the first check
+        for two bytes that begins at or after ``t`` finds them and the read follows (returns ``t``)."""
+        fw = self.fw
+        a = self.model.call_ns
+        phase = (t - fw.spin_from - fw.spin_scanned_ns) % (2 * a)  # into the current pair of checks
+        cpu, k = fw.call if fw.call is not None else (0, 0)
+        # begun before the arrival, the check for two bytes found one: the next pair's is the one
+        fw.call = (cpu + (phase if phase <= a else phase - 2 * a), k)
+        return t
+
     def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
         self.fw.call = (cpu, k)
         self.fw.main_next = None
         self.fw.main_wait = _WAIT_STUCK
+        self.fw.spin_from, self.fw.spin_scanned_ns = t, 0
         if not self.fw.stuck_reported:
             self.fw.stuck_reported = True
             self.fw.stuck_at = t
@@ -885,8 +899,8 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
                     # the idle loop's poll of a tick inside the scan runs as the scan returns: it finds
                     # the bytes that arrived during the scan
                     nxt = fw.busy_until
-            else:  # spinning on a u16: reads as soon as the byte is there
-                nxt = t
+            else:  # spinning on a u16: the next check for both bytes to begin at or after the arrival
+                nxt = self._spin_sees(max(t, fw.busy_until) if fw.busy_from <= t else t)
             if fw.busy_from <= nxt < fw.busy_until:
                 nxt = fw.busy_until
             fw.main_next = nxt
@@ -1145,6 +1159,8 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
         self.fw.last_reload = last
         self.fw.busy_from = last
         self.fw.busy_until = last + dur
+        if self.fw.main_wait == _WAIT_STUCK:
+            self.fw.spin_scanned_ns += count * dur
         self.next_alarm = last + stride
         if self.fw.main_next is not None and self.fw.main_next < self.fw.busy_until:
             self.fw.main_next = self.fw.busy_until
