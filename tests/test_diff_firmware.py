@@ -859,6 +859,17 @@ UPSTREAM_V1_2_MAIN_LOOP_CASES = {
         ((4136.06, "fc01f9"), (5173.543, "fef6ff"), (2073447.451, "ff")),
         2075000.0,
     ),
+    # random seed 74129, minimal: an unknown byte waits for the rest of the check a 5 ms scan pre-empted
+    # and the tick after it, on both sides
+    "an unknown byte after a pre-empted check, seed 74129": (
+        (
+            (3249.849, "fdfff9c1"),
+            (3299.849, "fdfffc1cf702fafffffc20"),
+            (3299.849, "e6f8931e"),
+            (10801.614, "f6fff8"),
+        ),
+        18000.0,
+    ),
     # random seed 20543, minimal: the poll right after 0xF5's reply is pre-empted by a 7.2 ms scan, so the
     # bytes that arrived during it are read from the 19 000 us tick (the model had read them as it returned)
     "a poll the alarm pre-empts, seed 20543": (

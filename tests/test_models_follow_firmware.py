@@ -656,3 +656,14 @@ def test_v1_2_a_spin_on_a_half_u16_reads_at_its_next_check_for_two_bytes() -> No
     side = _v1_2([(4136.06, "fc01f9"), (5173.543, "fef6ff"), (2073447.451, "ff")], 2073470.0)
     assert [(c.name, c.effect_us) for c in side.emu.commands][-1] == ("FREQUENCY", 2073452.4)
     assert side.emu.runs[-1].start_ns == 2_073_452_400
+
+
+def test_v1_2_an_unknown_byte_waits_for_the_rest_of_a_pre_empted_check() -> None:
+    """0xF8 147 is read by 11 009 µs; the payload loop's last check is pre-empted by the scan of 11 010.25 µs
+    (5.05 ms), so after it the check's rest runs, then vTaskDelay(1) sleeps to the 17 000 µs tick, where the
+    unknown 0x1E is read (3 µs) and then 0xF6, whose setPeriodUs() runs at 17 012 µs (the model's run of
+    calls that skip unknown bytes had read 0x1E as the scan returned: 17 009 µs, random seed 74129)."""
+    writes = [(3249.849, "fdfff9c1"), (3299.849, "fdfffc1cf702fafffffc20"), (3299.849, "e6f8931e")]
+    side = _v1_2([*writes, (10801.614, "f6fff8")], 17100.0)
+    assert [(c.name, c.effect_us) for c in side.emu.commands][-1] == ("FREQUENCY", 17012.0)
+    assert side.emu.runs[-1].start_ns == 17_012_000

@@ -290,8 +290,10 @@ class ArrivalRuns:
         first.  False (nothing done) when the next call is not such a call."""
         fw = self.fw
         p = self.parser
-        if fw.call is not None or p.cmd is not None:
-            return False
+        if fw.call is not None or p.cmd is not None or fw.checking or fw.check_left_ns is not None:
+            return False  # (the loop goes on with a call or a check first)
+        if fw.period_pending is not None:
+            return False  # (setPeriodUs() first, as the loop resumes)
         q = self.queue
         stops = _stop_bytes(p)
         if not q.buf or q.buf[0] in stops:  # (the common case: a command waits, or nothing does)
