@@ -212,6 +212,21 @@ def test_a_serial_read_is_pre_empted_at_the_alarm_before_the_firmware_stores_its
     assert sent == [0, 0x10]
 
 
+def test_a_function_local_static_is_read_through_the_symbol_table(cache: Path) -> None:
+    """``tinyPoll()::polls`` (a function-local static no expression can name) counts the loop's polls: one
+    per 1 ms tick from the first, read from the library's symbol table in each instance's own copy."""
+    first, second = tiny(cache), tiny(cache)
+    first.advance_to(5500)
+    second.advance_to(2500)
+    assert (first.state()["polls"], second.state()["polls"]) == (6, 3)  # ticks 0 ... 5000, 0 ... 2000
+
+
+def test_a_local_static_the_firmware_does_not_have_is_named_in_the_error(cache: Path) -> None:
+    bad = StateMap(unit=MAP.unit, registers={**MAP.registers, "ghost": "tinyPoll()::ghost"}, name="bad map")
+    with pytest.raises(ConfigurationError, match=r"'ghost'.*tinyPoll\(\)::ghost"):
+        HostBuildEmulator(TINY, state_map=bad, cache=cache)
+
+
 def test_interrupt_count_reply(cache: Path) -> None:
     emu = tiny(cache)
     emu.write(b"C", at_us=4500)

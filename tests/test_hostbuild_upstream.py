@@ -97,10 +97,14 @@ V2_T0_US = 5000.0  # arrivals start after boot; only differences of Timer2 readi
 
 
 def test_v2_golden_vectors_through_the_host_build() -> None:
-    """All fields but ``command_in_progress`` (a function-local static no map can reach).  A timeout case
-    (the parser called last at ``final_time_us``) is read after the loop's first poll at or after that
-    instant (+100 µs for the drain), since the loop looks at Timer2 only on its RTOS ticks: the vector at
-    exactly 2 000 000 µs falls on a tick, where the command has not timed out yet, as in the vector."""
+    """Every field; ``command_in_progress`` (a function-local static) is read through the symbol table.  A
+    timeout case (the parser called last at ``final_time_us``) is read after the loop's first poll at or
+    after that instant (+100 µs for the drain), since the loop looks at Timer2 only on its RTOS ticks: the
+    vector at exactly 2 000 000 µs falls on a tick, where the command has not timed out yet, as in the
+    vector.  One vector's clock the loop cannot keep: v2-0190 (random bytes, two 0xF5 among them) times out
+    by 2 000 791 µs in the vector, but the board's loop spends 1 ms sensing the stack for each 0xF5 and
+    reads the command byte about 2 ms after the bytes arrive, so at that time its command is still
+    pending (its queue is empty either way)."""
     tree = _tree("TACTDEFORM_HW_UPSTREAM_V2")
     vectors = _lines("protocol_vectors_v2.jsonl")
     wrong = {}
@@ -122,10 +126,10 @@ def test_v2_golden_vectors_through_the_host_build() -> None:
             while (key := (emu.state()["rx_pending"], len(emu.tx_log))) != last:
                 last = key
                 emu.advance(5000)
-        bad = _diff(emu, v["expect"], skip=("command_in_progress",))
+        bad = _diff(emu, v["expect"])
         if bad:
             wrong[v["id"]] = bad
-    assert len(vectors) == 300 and wrong == {}
+    assert len(vectors) == 300 and wrong == {"v2-0190": ["command_in_progress"]}
 
 
 # --- scan traces --------------------------------------------------------------------------------------------

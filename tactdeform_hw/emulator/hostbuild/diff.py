@@ -79,7 +79,8 @@ EQUIVALENCES: dict[str, str] = {
     "drops, at its next call; the window is the firmware's main-loop time: a scan that pre-empts the call "
     "stretches it by the scan's length, unless scans then run back to back)",
     "registers-in-common": "only registers both sides hold are compared (the host build's receive-queue "
-    "counters and the model's command_in_progress have no counterpart)",
+    "counters have no counterpart; command_in_progress, which only v2's map reads, is the parser's progress "
+    "flag, which the model sets at a call's start: call-resolution)",
 }
 """What a comparison against the Python model is made modulo (none apply between two trees)."""
 

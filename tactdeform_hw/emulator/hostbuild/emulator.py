@@ -292,6 +292,9 @@ class HostBuildEmulator:
             fn.argtypes = args
         self._getters: dict[str, Any] = {}
         for reg in self.built.registers:
+            if reg.local_static:
+                self._getters[reg.name] = _local_static_reader(lib, self.built.library, reg.name, reg.expr)
+                continue
             if reg.length is None:
                 fn = getattr(lib, f"hb_reg_{reg.name}")
                 fn.restype = ctypes.c_double
@@ -541,6 +544,11 @@ class HostBuildEmulator:
                 f"watch_at_isr: register {register!r} is not in the state map "
                 f"({', '.join(r.name for r in self.built.registers) or 'no registers'})"
             )
+        if reg.local_static:
+            raise ConfigurationError(
+                f"watch_at_isr: register {register!r} is a function-local static ({reg.expr}), read through "
+                "the symbol table only: the interrupt's entry needs a getter the build generates"
+            )
         # the per-element getter, ``double hb_reg_NAME(int i)``, the signature the runtime calls at entry
         element = getattr(self._lib, f"hb_reg_{register}")
         address = ctypes.cast(element, ctypes.c_void_p).value
@@ -596,6 +604,53 @@ class HostBuildEmulator:
         snap["rx_capacity"] = self._lib.hb_rx_capacity()
         snap["rx_dropped"] = self._lib.hb_rx_dropped()
         return snap
+
+
+@functools.lru_cache(maxsize=64)
+def _symbols(library: Path) -> dict[str, tuple[int, int]]:
+    """Demangled name -> (value, size) of the library's defined symbols, from binutils' ``nm``: the one way
+    to a function-local static, which the dynamic table does not export."""
+    nm = shutil.which("nm")
+    if nm is None:
+        raise FirmwareBuildError(
+            "reading a function-local static needs binutils' nm (apt install binutils); nm is not on PATH"
+        )
+    import subprocess
+
+    out = subprocess.run(
+        [nm, "-C", "-S", "--defined-only", str(library)], capture_output=True, text=True, check=False
+    )
+    if out.returncode != 0:
+        raise FirmwareBuildError(f"nm could not read {library}: {out.stderr.strip()}")
+    table: dict[str, tuple[int, int]] = {}
+    for line in out.stdout.splitlines():
+        parts = line.split(maxsplit=3)
+        if len(parts) == 4:  # value size type name
+            table[parts[3]] = (int(parts[0], 16), int(parts[1], 16))
+    return table
+
+
+def _local_static_reader(lib: ctypes.CDLL, library: Path, register: str, expr: str) -> Callable[[int], float]:
+    """A getter for the function-local static ``expr`` (``function()::variable``) in this instance's copy:
+    its offset and size from the symbol table, its address from that of an exported function of the same
+    library (``hb_now``)."""
+    table = _symbols(library)
+    if expr not in table:
+        raise ConfigurationError(
+            f"state map register {register!r}: no function-local static {expr!r} in the built firmware "
+            "(nm names it function()::variable)"
+        )
+    offset, size = table[expr]
+    anchor = table.get("hb_now")
+    if anchor is None or size not in (1, 2, 4, 8):
+        raise ConfigurationError(f"state map register {register!r}: {expr!r} is {size} bytes, not an integer")
+    base = int(ctypes.cast(lib.hb_now, ctypes.c_void_p).value or 0) - anchor[0]
+    address = base + offset
+
+    def read(_index: int) -> float:
+        return float(int.from_bytes(ctypes.string_at(address, size), "little"))
+
+    return read
 
 
 def _num(v: float) -> int | float:

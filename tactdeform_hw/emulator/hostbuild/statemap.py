@@ -6,6 +6,11 @@ the map names one translation unit (``unit``) and, per register, a C++ expressio
 unit, a generated one that ``#include``s it and exports one ``extern "C"`` getter per register: statics
 and globals alike become readable, and a wrong name is a compile error that names the register.
 
+A function-local static no expression can name (v2's parser keeps its progress in ``runEtactileKit``'s
+``static bool processingCommand``) is written as the compiler names it,
+``"runEtactileKit()::processingCommand"``: it is read from the library's symbol table (its address and size,
+through binutils' ``nm``), as an unsigned little-endian integer.
+
 A map is a :class:`StateMap`, or a TOML file::
 
     unit = "lib/EtactileKit/etactielkit.cpp"
@@ -26,6 +31,7 @@ from tactdeform_hw.errors import ConfigurationError
 
 _NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 _ARRAY = re.compile(r"^(?P<expr>.+)\[(?P<n>[0-9]+)\]\s*$")
+_LOCAL = re.compile(r"^[A-Za-z_][A-Za-z0-9_:]*\([^()]*\)::[A-Za-z_][A-Za-z0-9_]*$")
 
 
 @dataclass(frozen=True)
@@ -35,6 +41,11 @@ class Register:
     name: str
     expr: str
     length: int | None
+
+    @property
+    def local_static(self) -> bool:
+        """A function-local static, ``function()::variable``: read through the symbol table."""
+        return _LOCAL.match(self.expr) is not None
 
 
 @dataclass(frozen=True)
@@ -56,7 +67,9 @@ class StateMap:
                     f"state map {self.name or self.unit}: register name {reg!r} is not a C identifier"
                 )
             m = _ARRAY.match(spec)
-            if m:
+            if _LOCAL.match(spec.strip()):
+                out.append(Register(reg, spec.strip(), None))
+            elif m:
                 n = int(m.group("n"))
                 if n < 1:
                     raise ConfigurationError(f"state map: register {reg!r}: array length {n} must be >= 1")
@@ -73,6 +86,8 @@ class StateMap:
         ]
         where: dict[int, str] = {}
         for reg in self.parsed():
+            if reg.local_static:  # no expression names it: read through the symbol table
+                continue
             index = "[i]" if reg.length is not None else ""
             where[len(lines) + 1] = reg.name
             body = f"(void)i; return (double)(({reg.expr}){index});"
@@ -133,10 +148,15 @@ UPSTREAM_V2 = StateMap(
     name="eTactileKit v2 (71adee21)",
     unit="lib/EtactileKit/etactilekit.cpp",
     firmware="v2",
-    registers={**_UPSTREAM_COMMON, "stim_mode": "StimulationMode", "voltage_bytes": "voltage[512]"},
+    registers={
+        **_UPSTREAM_COMMON,
+        "stim_mode": "StimulationMode",
+        "voltage_bytes": "voltage[512]",
+        "command_in_progress": "runEtactileKit()::processingCommand",
+    },
 )
 """v2's pattern entries are pulse heights (u16); its voltages are stored as bytes, low first.  It keeps the
-parser's progress in function-local statics (``processingCommand``): no map reaches them."""
+parser's progress in function-local statics (``processingCommand``), read through the symbol table."""
 
 KNOWN_MAPS: tuple[StateMap, ...] = (UPSTREAM_V1_2, UPSTREAM_V2)
 

@@ -8,8 +8,9 @@ that face, so a driver cannot tell a host build from the Python model by the API
 
 What it keeps from the Python model: the host's link (``link``: the same USB or UART timing decides when
 the bytes reach the firmware's receive queue).  What is the firmware's own: everything else, read from
-the firmware's variables through the tree's state map.  What it cannot know: the parser's progress (a
-function-local static in both upstream versions), so ``parser_status`` says so and ``command_in_progress``
+the firmware's variables through the tree's state map.  What it cannot know without a map that reads it:
+the parser's progress (a function-local static in both upstream versions; the v2 map reads it through the
+symbol table, and ``parser_status`` reports it), so ``parser_status`` says so and ``command_in_progress``
 is ``None``; the only hazards it records are the link's (bytes the receive queue dropped), since firmware
 defects are the Python model's reading of the code, not something the built code reports.  A trace sink
 (:meth:`HostBuildTimedModel.attach`) receives the firmware's own pin and DAC events.
@@ -532,6 +533,9 @@ class HostBuildTimedModel:
         return []
 
     def parser_status(self) -> str:
+        snap = self.host.state()
+        if "command_in_progress" in snap:  # the map reads the parser's function-local static
+            return "reading a command's payload" if snap["command_in_progress"] else "between commands"
         return "not readable (the firmware keeps its parser's progress in function-local statics)"
 
     # --- power, faults, history ---------------------------------------------------------------------------

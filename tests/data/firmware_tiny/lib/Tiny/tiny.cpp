@@ -43,6 +43,8 @@ static uint16_t readU16() {
 }
 
 void tinyPoll() {
+    static uint32_t polls = 0;  // a function-local static: the state map reads it through the symbol table
+    ++polls;
     if (Serial.available() <= 0) return;
     int cmd = Serial.read();
     for (int i = 3; i > 0; --i) history[i] = history[i - 1];
