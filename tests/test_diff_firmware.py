@@ -915,6 +915,15 @@ def test_upstream_v2_an_alarm_in_a_call_s_last_read_scans_the_registers_from_bef
     assert Differ(tree, "v2").first_divergence(Stream(writes, 15000.0, "count lowered")) is None
 
 
+def test_upstream_v2_an_ignored_rate_calls_no_set_period() -> None:
+    """0xF6 0's call ends on the alarm: both take that scan as the loop's own, after the call (random seed
+    3392; the model-only twin is in test_models_follow_firmware.py)."""
+    tree = _upstream("TACTDEFORM_HW_UPSTREAM_V2")
+    writes = ((4823.451, "fefef6fefff8b2"), (5853.361, "f600"), (5853.361, "00fb00fd01"))
+    stream = Stream(tuple((t, bytes.fromhex(h)) for t, h in writes), 8000.0, "ignored rate")
+    assert Differ(tree, "v2").first_divergence(stream) is None
+
+
 @pytest.mark.parametrize(
     "writes",
     [

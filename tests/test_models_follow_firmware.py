@@ -667,3 +667,19 @@ def test_v1_2_an_unknown_byte_waits_for_the_rest_of_a_pre_empted_check() -> None
     side = _v1_2([*writes, (10801.614, "f6fff8")], 17100.0)
     assert [(c.name, c.effect_us) for c in side.emu.commands][-1] == ("FREQUENCY", 17012.0)
     assert side.emu.runs[-1].start_ns == 17_012_000
+
+
+# 0xF6 65534 (a 15 us alarm), then 0xF6 0 whose call (6000-6007 us) ends on the alarm (random seed 3392)
+IGNORED_RATE_ON_THE_ALARM = [(4823.451, "fefef6fefff8b2"), (5853.361, "f600"), (5853.361, "00fb00fd01")]
+
+
+def test_v2_an_ignored_rate_calls_no_set_period_and_the_alarm_at_its_end_is_the_loop_s_own() -> None:
+    """``if (rcv != 0) setPeriodUs(...)``: 0xF6 0 stores nothing and reaches no read point after its u16, so
+    the alarm of 6007 µs, where its call ends, is taken at the loop's next call, and the scans stay on the
+    15 µs grid (the model had counted setPeriodUs' read point for it, and stopped on its own check that
+    an alarm inside a call comes at one)."""
+    side = _v2(IGNORED_RATE_ON_THE_ALARM, 6100.0)
+    starts = [s.start_ns for s in side.emu.scans if 5_990_000 <= s.start_ns <= 6_040_000]
+    assert starts == [5_992_000, 6_007_000, 6_022_000, 6_037_000]
+    assert side.emu.applied[-3][:2] == (6_000_000, OpcodeV2.FREQUENCY)
+
