@@ -682,4 +682,3 @@ def test_v2_an_ignored_rate_calls_no_set_period_and_the_alarm_at_its_end_is_the_
     starts = [s.start_ns for s in side.emu.scans if 5_990_000 <= s.start_ns <= 6_040_000]
     assert starts == [5_992_000, 6_007_000, 6_022_000, 6_037_000]
     assert side.emu.applied[-3][:2] == (6_000_000, OpcodeV2.FREQUENCY)
-
