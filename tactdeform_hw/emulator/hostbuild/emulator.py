@@ -21,6 +21,7 @@ import ctypes
 import functools
 import os
 import shutil
+import subprocess
 import tempfile
 import weakref
 from collections.abc import Callable
@@ -615,8 +616,6 @@ def _symbols(library: Path) -> dict[str, tuple[int, int]]:
         raise FirmwareBuildError(
             "reading a function-local static needs binutils' nm (apt install binutils); nm is not on PATH"
         )
-    import subprocess
-
     out = subprocess.run(
         [nm, "-C", "-S", "--defined-only", str(library)], capture_output=True, text=True, check=False
     )
@@ -641,9 +640,11 @@ def _local_static_reader(lib: ctypes.CDLL, library: Path, register: str, expr: s
             "(nm names it function()::variable)"
         )
     offset, size = table[expr]
-    anchor = table.get("hb_now")
-    if anchor is None or size not in (1, 2, 4, 8):
+    if size not in (1, 2, 4, 8):
         raise ConfigurationError(f"state map register {register!r}: {expr!r} is {size} bytes, not an integer")
+    anchor = table.get("hb_now")
+    if anchor is None:  # (the shim defines it in every build)
+        raise FirmwareBuildError(f"{library}: no hb_now in its symbol table, so no load address to read from")
     base = int(ctypes.cast(lib.hb_now, ctypes.c_void_p).value or 0) - anchor[0]
     address = base + offset
 

@@ -555,18 +555,17 @@ class CallEnds:
         else:
             self.next_alarm = self.fw.last_reload + period
 
-    def _spin_sees(self, t: int) -> int:
+    def _spin_sees(self, t: int) -> None:
         """The spin on a half u16 (``while (isDataAvailable() > 0 ...)`` then ``if (isDataAvailable() >=
         2)``, ``call_ns`` each, pre-empted by the scans) when the second byte has arrived by ``t``, outside
         any scan: the call goes on from ``t``, with the spin's phase in its progress, so the first check
-        for two bytes that begins at or after ``t`` finds them and the read follows (returns ``t``)."""
+        for two bytes that begins at or after ``t`` finds them and the read follows."""
         fw = self.fw
         a = self.model.call_ns
         phase = (t - fw.spin_from - fw.spin_scanned_ns) % (2 * a)  # into the current pair of checks
         cpu, k = fw.call if fw.call is not None else (0, 0)
         # begun before the arrival, the check for two bytes found one: the next pair's is the one
         fw.call = (cpu + (phase if phase <= a else phase - 2 * a), k)
-        return t
 
     def _enter_stuck(self, t: int, cpu: int, k: int) -> None:
         self.fw.call = (cpu, k)
@@ -902,7 +901,8 @@ class TimedEmulator(Hv513Reinit, CallEnds, ArrivalRuns, CommandBooks, ScanBooks,
                     # the bytes that arrived during the scan
                     nxt = fw.busy_until
             else:  # spinning on a u16: the next check for both bytes to begin at or after the arrival
-                nxt = self._spin_sees(max(t, fw.busy_until) if fw.busy_from <= t else t)
+                nxt = max(t, fw.busy_until) if fw.busy_from <= t else t
+                self._spin_sees(nxt)
             if fw.busy_from <= nxt < fw.busy_until:
                 nxt = fw.busy_until
             fw.main_next = nxt
