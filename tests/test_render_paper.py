@@ -14,6 +14,7 @@ import pytest
 
 from tactdeform_hw.render.array import ElectrodeArray
 from tactdeform_hw.render.contexts import THETA_TOLERANCE_DEG, theta_level
+from tactdeform_hw.render.geometry import PadPlane
 from tactdeform_hw.render.manager import APPROACHING, IDLE, INTERACTING, ManagerConfig, PatternManager
 from tactdeform_hw.render.patterns import DIRECTIONS, EDGE_ORIENTATIONS, PatternSet
 from tactdeform_hw.render.pipeline import LOST_TRACKING_S, Renderer
@@ -439,7 +440,7 @@ def test_cam_plane_test_agrees_with_the_per_electrode_test(name: str, teapot: An
     some_in = some_mixed = 0
     for p, q in cam_poses(scene):
         X, Y, _ = quat_axes(*q)
-        fast = scene.contains_on_pad(p, np.array(X), np.array(Y), cam._offsets, scene.query(p))
+        fast = scene.contains_on_pad(PadPlane.of(p, X, Y, cam._offsets), scene.query(p))
         slow = scene.contains(cam.electrode_positions(tuple(p), q))
         assert fast.tolist() == slow.tolist()
         some_in += bool(fast.any())

@@ -16,6 +16,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from .array import ElectrodeArray
+from .geometry import PadPlane
 from .manager import IDLE, INTERACTING, ManagerOutput, ManagerStats, count_drop, counted_pose, quat_axes
 from .patterns import Pattern
 from .scene import APPROACHES as APPROACHES
@@ -163,9 +164,7 @@ class ContactAreaMapping(_Baseline):
         on_pad = getattr(scene, "contains_on_pad", None) if self._plane_test(scene) else None
         if on_pad is not None:
             X, Y, _ = quat_axes(*q)
-            inside = np.asarray(
-                on_pad(np.asarray(p), np.asarray(X), np.asarray(Y), self._offsets, query), dtype=bool
-            )
+            inside = np.asarray(on_pad(PadPlane.of(p, X, Y, self._offsets), query), dtype=bool)
         else:
             inside = np.asarray(scene.contains(self.electrode_positions(p, q)), dtype=bool)
         pat: Pattern = tuple(self._levels[inside.astype(np.int64)].tolist())

@@ -174,6 +174,31 @@ class RegionLookup:
         return self._levels[i], self._names[i]
 
 
+@dataclass(frozen=True, eq=False)
+class PadPlane:
+    """The pad's electrodes as points of one plane, what a plane test (``contains_on_pad``) is asked
+    about: ``centre_mm + u·x_axis + v·y_axis`` for the rows (u, v) of ``offsets_mm`` (mm).  One value, so
+    the scene and each object that answers for a plane at once read the same points the same way."""
+
+    centre_mm: np.ndarray
+    x_axis: np.ndarray
+    y_axis: np.ndarray
+    offsets_mm: np.ndarray
+
+    @classmethod
+    def of(cls, centre_mm: object, x_axis: object, y_axis: object, offsets_mm: object) -> PadPlane:
+        """The plane from anything array-like, as float arrays (an ``offsets_mm`` array already of floats
+        is kept as it is: a mesh keeps what it derives from it by its identity)."""
+        c, x, y, off = (np.asarray(v, dtype=float) for v in (centre_mm, x_axis, y_axis, offsets_mm))
+        return cls(c, x, y, off)
+
+    def points(self) -> np.ndarray:
+        """(N, 3) the electrodes' positions in mm."""
+        off = self.offsets_mm
+        pts: np.ndarray = self.centre_mm + off[:, 0:1] * self.x_axis + off[:, 1:2] * self.y_axis
+        return pts
+
+
 def as_point(point_mm: object, field: str = "point_mm") -> np.ndarray:
     """A finite (3,) float array, or a clear error: NaN never reaches the distance code."""
     p = np.asarray(point_mm, dtype=float)

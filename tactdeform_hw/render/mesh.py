@@ -63,6 +63,7 @@ import numpy as np
 
 from ..errors import ConfigurationError, MissingDependencyError
 from .geometry import (
+    PadPlane,
     SurfaceQuery,
     SurfaceSite,
     as_point,
@@ -1251,17 +1252,10 @@ class TriangleMesh(PlacedSolid):
             sd[i], cp[i], _, _ = index.finish(p, tri, remember=False)
         return sd, cp + index.origin
 
-    def contains_on_pad(
-        self,
-        centre_mm: np.ndarray,
-        x_axis: np.ndarray,
-        y_axis: np.ndarray,
-        offsets_mm: np.ndarray,
-        centre_inside: bool | None = None,
-    ) -> np.ndarray:
+    def contains_on_pad(self, pad: PadPlane, centre_inside: bool | None = None) -> np.ndarray:
         """Which of many points of one plane are inside: the contact-area mapping's 32 electrodes.
 
-        The points are ``centre + u·x_axis + v·y_axis`` for the rows (u, v) of ``offsets_mm``.  Exact for
+        The points are ``centre + u·x_axis + v·y_axis`` for the rows (u, v) of the pad's offsets.  Exact for
         a closed mesh, and cheap because it stays local: the mesh's cross-section by the pad plane is
         taken from the triangles near the pad only (the index's samples within the points' reach plus the
         triangles' covering radius hold every triangle that can meet the disc), and a point is inside
@@ -1273,12 +1267,12 @@ class TriangleMesh(PlacedSolid):
         :data:`HOLE_MARGIN_MM` of a hole's border are tested one by one with the winding number instead,
         so the answer is always :meth:`contains`'s."""
         index = self._ensure_index()
-        c = as_point(centre_mm, "centre_mm")
-        off = np.asarray(offsets_mm, dtype=float)
+        c = as_point(pad.centre_mm, "centre_mm")
+        off = pad.offsets_mm
         if centre_inside is None:
             centre_inside = self.query(c).signed_distance_mm <= 0.0
-        x0, x1, x2 = (float(v) for v in x_axis)
-        y0, y1, y2 = (float(v) for v in y_axis)
+        x0, x1, x2 = (float(v) for v in pad.x_axis)
+        y0, y1, y2 = (float(v) for v in pad.y_axis)
         frame = np.array(
             ((x0, y0, x1 * y2 - x2 * y1), (x1, y1, x2 * y0 - x0 * y2), (x2, y2, x0 * y1 - x1 * y0))
         )

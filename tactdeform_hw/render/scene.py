@@ -52,6 +52,7 @@ import numpy as np
 from ..errors import ConfigurationError
 from .geometry import (
     DEFAULT_FEATURE_BAND_MM,
+    PadPlane,
     SceneObject,
     SurfaceQuery,
     TextureRegion,
@@ -378,28 +379,17 @@ class Scene:
         """Whether an object answers for a plane of points at once (:meth:`contains_on_pad`)."""
         return any(hasattr(o, "contains_on_pad") for o in self.objects)
 
-    def contains_on_pad(
-        self,
-        centre_mm: np.ndarray,
-        x_axis: np.ndarray,
-        y_axis: np.ndarray,
-        offsets_mm: np.ndarray,
-        query: Any = None,
-    ) -> np.ndarray:
-        """(N,) inside any object, for points ``centre + u·x_axis + v·y_axis`` of one plane (the pad's
-        electrodes, offsets (u, v) in mm).  Objects that can answer for a plane at once (meshes) do;
-        the others get the points.  ``query`` (the scene's answer at the centre) saves the nearest
-        object's own query."""
-        off = np.asarray(offsets_mm, dtype=float)
-        c = np.asarray(centre_mm, dtype=float)
-        ex = np.asarray(x_axis, dtype=float)
-        ey = np.asarray(y_axis, dtype=float)
+    def contains_on_pad(self, pad: PadPlane, query: Any = None) -> np.ndarray:
+        """(N,) inside any object, for the points of ``pad`` (the pad's electrodes).  Objects that can
+        answer for a plane at once (meshes) do; the others get the points.  ``query`` (the scene's answer
+        at the centre) saves the nearest object's own query."""
+        off, c = pad.offsets_mm, pad.centre_mm
         single = self._single
         if single is not None and hasattr(single, "contains_on_pad"):
             inside = None
             if query is not None and getattr(query, "object_name", None) == single.name:
                 inside = float(query.signed_distance_mm) <= 0.0
-            result: np.ndarray = single.contains_on_pad(c, ex, ey, off, inside)
+            result: np.ndarray = single.contains_on_pad(pad, inside)
             return result
         reach = float(np.sqrt((off * off).sum(axis=1).max())) if len(off) else 0.0
         out = np.zeros(len(off), dtype=bool)
@@ -412,10 +402,10 @@ class Scene:
                 inside = None
                 if query is not None and getattr(query, "object_name", None) == obj.name:
                     inside = float(query.signed_distance_mm) <= 0.0
-                out |= on_pad(c, ex, ey, off, inside)
+                out |= on_pad(pad, inside)
             else:
                 if pts is None:
-                    pts = c + off[:, 0:1] * ex + off[:, 1:2] * ey
+                    pts = pad.points()
                 box = np.all((pts >= lo) & (pts <= hi), axis=1)
                 if box.any():
                     out[box] |= obj.contains(pts[box])

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tactdeform_hw.render.geometry import PadPlane
 from tactdeform_hw.render.scene import Scene, load_scene
 from tactdeform_hw.render.trajectories import make_trajectory
 
@@ -147,7 +148,7 @@ def test_contains_on_pad_meshes(benchmark, name: str, request) -> None:  # type:
     def one():  # type: ignore[no-untyped-def]
         c, x, y, q = calls[state["i"] % len(calls)]
         state["i"] += 1
-        return scene.contains_on_pad(c, x, y, offsets, q)
+        return scene.contains_on_pad(PadPlane.of(c, x, y, offsets), q)
 
     last = benchmark(one)
     assert np.asarray(last).shape == (len(offsets),)
@@ -155,6 +156,6 @@ def test_contains_on_pad_meshes(benchmark, name: str, request) -> None:  # type:
     # the surface itself, to rounding, may go either way)
     for c, x, y, q in calls:
         points = c + offsets[:, :1] * x + offsets[:, 1:] * y
-        differ = np.asarray(scene.contains_on_pad(c, x, y, offsets, q)) != scene.contains(points)
+        differ = np.asarray(scene.contains_on_pad(PadPlane.of(c, x, y, offsets), q)) != scene.contains(points)
         assert all(abs(scene.query(p).signed_distance_mm) < 1e-9 for p in points[differ])
     _note(benchmark, 250.0)

@@ -51,7 +51,7 @@ __all__ = [
     "alarm_ticks_for",
     "beyond_chain_notes",
     "budget",
-    "budget_verdict",
+    "ScanBudget",
     "scan_duration_us",
     "trace_scan",
 ]
@@ -330,24 +330,12 @@ def beyond_chain_notes(electrode_num: int, hv513_num: int) -> list[str]:
     return [f"channels {driven}..{electrode_num - 1} lie beyond the {hv513_num} HV513 chip(s)"]
 
 
-def budget_verdict(overrun: bool, watchdog_reset: bool) -> str:
-    """A scan budget's outcome in the words the timing command and the reports print, one rule for the
-    statement walker's budget and the closed-form one so the two never name the same outcome differently:
-    a watchdog reset, the graver, is named before an overrun."""
-    if watchdog_reset:
-        return "watchdog reset"
-    return "overrun" if overrun else "fits"
-
-
 @dataclass(frozen=True)
-class FirmwareBudget:
-    """One scan of a configuration against its timer period, from the statement walker."""
+class ScanBudget:
+    """A scan's cost against its timer period: what every budget states, from the statement walker
+    (:class:`FirmwareBudget`) or from the closed-form costs (``reports.Budget``), with one verdict rule
+    so the two never name the same outcome differently."""
 
-    firmware: str
-    electrodes: int
-    stim_mode: int | None
-    per_channel_us: list[float]
-    isr_entry_us: float
     clear_us: float
     scan_us: float
     period_us: float
@@ -355,6 +343,25 @@ class FirmwareBudget:
     margin_us: float
     overrun: bool
     watchdog_reset: bool
+
+    @property
+    def verdict(self) -> str:
+        """The outcome in the words the timing command and the reports print: a watchdog reset, the
+        graver, is named before an overrun."""
+        if self.watchdog_reset:
+            return "watchdog reset"
+        return "overrun" if self.overrun else "fits"
+
+
+@dataclass(frozen=True)
+class FirmwareBudget(ScanBudget):
+    """One scan of a configuration against its timer period, from the statement walker."""
+
+    firmware: str
+    electrodes: int
+    stim_mode: int | None
+    per_channel_us: list[float]
+    isr_entry_us: float
     actual_rate_hz: float
     effective_width_us: float
     conventions: dict[str, Any]
@@ -406,10 +413,6 @@ class FirmwareBudget:
             conventions=conventions,
             notes=notes,
         )
-
-    @property
-    def verdict(self) -> str:
-        return budget_verdict(self.overrun, self.watchdog_reset)
 
     def to_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)

@@ -39,13 +39,12 @@ from tactdeform_hw.emulator.hostbuild.delivered import ETACTILEKIT_PINS, Deliver
 from tactdeform_hw.emulator.hostbuild.emulator import HostBuildEmulator, IsrSample
 from tactdeform_hw.emulator.hostbuild.statemap import StateMap, detect
 from tactdeform_hw.emulator.hostbuild.torn import TornPatternWatch
-from tactdeform_hw.emulator.records.reports import EventRun, LossReport
+from tactdeform_hw.emulator.records.reports import EventRun, LossReport, RowPulseTable
 from tactdeform_hw.emulator.timed.link import LinkModel, make_link, reply_link
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.errors import ConfigurationError, LimitError
 from tactdeform_hw.protocol.firmware import FirmwareSpec, get_firmware
 from tactdeform_hw.protocol.state import STATE_VARIABLES, BoardState
-from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 if TYPE_CHECKING:
     from tactdeform_hw.emulator.core import Emulator
@@ -84,43 +83,25 @@ class _Queue:
         return max(0, int(snap["rx_capacity"]) - int(snap["rx_pending"]))
 
 
-class DeliveredReports:
-    """The delivered pulses as the campaigns read them (:meth:`pulse_table`): one row per output per pulse."""
+class DeliveredReports(RowPulseTable):
+    """The delivered pulses as the campaigns read them (:meth:`pulse_table`): one row per output per pulse.
 
-    def __init__(self, owner: HostBuildTimedModel) -> None:
-        self._owner = owner
+    Columns ``channel`` (the output on the HV513 chain), ``start_us``, ``width_us``, ``code`` (the DAC
+    code), ``pol`` (the POL pin) and ``kind``, then ``current_ua`` and ``charge_nc``.  ``kind`` is what
+    the firmware's interrupt handler chose, read from the registers it chose by as they stood when the scan
+    began (:func:`pulse_kind`): a scan cannot see the main loop change them, so the reading at the
+    handler's entry is exact for every pulse of the scan."""
 
-    def pulse_table(
-        self,
-        t0_us: float | None = None,
-        t1_us: float | None = None,
-        transfer: CurrentTransfer = DEFAULT_TRANSFER,
-    ) -> dict[str, np.ndarray]:
-        """Columns ``channel`` (the output on the HV513 chain), ``start_us``, ``width_us``, ``code`` (the
-        DAC code), ``pol`` (the POL pin), ``kind``, ``current_ua`` (the code through ``transfer``, as
-        the Python models give it) and ``charge_nc`` (current × width).
+    row_columns = ("channel", "start_us", "width_us", "code", "pol", "kind")
+    _owner: HostBuildTimedModel
 
-        ``kind`` is what the firmware's interrupt handler chose, read from the registers it chose by as they
-        stood when the scan began (:func:`pulse_kind`): a scan cannot see the main loop change them, so the
-        reading at the handler's entry is exact for every pulse of the scan."""
-        rows = [
+    def _rows(self, t0_us: float | None, t1_us: float | None) -> list[tuple[float, ...]]:
+        return [
             (out, p.start_us, p.width_us, p.code, p.polarity, kind)
             for p, kinds in self._owner.classified_pulses()
             if (t0_us is None or p.start_us >= t0_us) and (t1_us is None or p.start_us < t1_us)
             for out, kind in zip(p.outputs, kinds)
         ]
-        cols = list(zip(*rows)) if rows else [(), (), (), (), (), ()]
-        current = np.asarray([transfer.to_ua(int(c)) for c in cols[3]], dtype=np.float64)
-        return {
-            "channel": np.asarray(cols[0], dtype=np.int64),
-            "start_us": np.asarray(cols[1], dtype=np.float64),
-            "width_us": np.asarray(cols[2], dtype=np.float64),
-            "code": np.asarray(cols[3], dtype=np.int64),
-            "pol": np.asarray(cols[4], dtype=np.int64),
-            "kind": np.asarray(cols[5], dtype=np.int64),
-            "current_ua": current,
-            "charge_nc": current * np.asarray(cols[2], dtype=np.float64) / 1e3,
-        }
 
 
 #: The board's control pins as the trace signals name them (:meth:`HostBuildTimedModel.attach`).

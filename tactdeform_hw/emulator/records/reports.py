@@ -16,9 +16,9 @@ import numpy as np
 
 from tactdeform_hw.emulator.firmware.firmware_scan import (
     FirmwareBudget,
+    ScanBudget,
     ScanTrace,
     beyond_chain_notes,
-    budget_verdict,
 )
 from tactdeform_hw.emulator.firmware.scan import (
     ChannelKind,
@@ -34,6 +34,7 @@ from tactdeform_hw.emulator.firmware.scan import (
 from tactdeform_hw.emulator.timed.timing import DEFAULT_MODEL, TimingModel
 from tactdeform_hw.protocol.constants import OUTPUTS_PER_HV513, Opcode
 from tactdeform_hw.protocol.firmware import V1_2
+from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
 
 if TYPE_CHECKING:
     from tactdeform_hw.emulator.timed.model_v1_2 import TimedEmulator
@@ -362,30 +363,19 @@ class BudgetRow:
 
 
 @dataclass(frozen=True)
-class Budget:
+class Budget(ScanBudget):
     """A configuration's scan cost against its timer period, from the closed-form costs."""
 
     electrodes: int
     rows: list[BudgetRow]
     isr_us: float
     clear_clk_pulses: int
-    clear_us: float
-    scan_us: float
-    period_us: float
-    alarm_ticks: int
-    margin_us: float
-    overrun: bool
-    watchdog_reset: bool
     parser_starved: bool
     actual_rate_hz: float
     requested_rate_hz: float | None
     effective_width_us: float
     overrun_policy: str
     notes: list[str]
-
-    @property
-    def verdict(self) -> str:
-        return budget_verdict(self.overrun, self.watchdog_reset)
 
     @classmethod
     def of(
@@ -628,6 +618,42 @@ def _run_rows(
 
 
 # --- the view the emulator hands out ----------------------------------------------------------------------
+
+
+class RowPulseTable:
+    """The delivered pulses as the campaigns read them, for the models that record them row by row (the
+    v2 model, a host build): a subclass lists the rows (:meth:`_rows`, the columns :attr:`row_columns`),
+    and the columns every reader needs past them (``current_ua``, the DAC code through ``transfer`` as the
+    Python models give it, and ``charge_nc``, current × width) are made here, by one rule for both."""
+
+    #: The columns of a row, in order; ``code`` and ``width_us`` among them.
+    row_columns: tuple[str, ...] = ()
+
+    def __init__(self, owner: Any) -> None:
+        self._owner = owner
+
+    def _rows(self, t0_us: float | None, t1_us: float | None) -> list[tuple[float, ...]]:
+        """The rows of the pulses that start within ``[t0_us, t1_us)`` (a bound of None: no bound)."""
+        raise NotImplementedError
+
+    def pulse_table(
+        self,
+        t0_us: float | None = None,
+        t1_us: float | None = None,
+        transfer: CurrentTransfer = DEFAULT_TRANSFER,
+    ) -> dict[str, np.ndarray]:
+        """Every pulse (the subclass says which) as numpy columns: :attr:`row_columns`, then ``current_ua``
+        and ``charge_nc``, optionally starting within ``[t0_us, t1_us)``."""
+        rows = self._rows(t0_us, t1_us)
+        cols = list(zip(*rows)) if rows else [()] * len(self.row_columns)
+        out: dict[str, np.ndarray] = {
+            name: np.asarray(col, dtype=np.float64 if name.endswith("_us") else np.int64)
+            for name, col in zip(self.row_columns, cols, strict=True)
+        }
+        current = np.asarray([transfer.to_ua(int(c)) for c in out["code"]], dtype=np.float64)
+        out["current_ua"] = current
+        out["charge_nc"] = current * out["width_us"] / 1e3
+        return out
 
 
 class TimingReports:

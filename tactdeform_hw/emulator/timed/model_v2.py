@@ -70,7 +70,7 @@ from tactdeform_hw.emulator.firmware.parser_v2 import CallCut, ParserV2, ReadPoi
 from tactdeform_hw.emulator.firmware.registers import V2_SCAN_REGISTERS, RegistersV2
 from tactdeform_hw.emulator.firmware.scan import Signal, physical_outputs, pulse_kind_of
 from tactdeform_hw.emulator.firmware.skin import DEFAULT_SKIN, SkinModel
-from tactdeform_hw.emulator.records.reports import EventRun, LossReport
+from tactdeform_hw.emulator.records.reports import EventRun, LossReport, RowPulseTable
 from tactdeform_hw.emulator.timed.base import TimedModelBase
 from tactdeform_hw.emulator.timed.link import (
     ByteBurst,
@@ -296,45 +296,27 @@ class CommandRecordV2:
     in_sync: bool
 
 
-class ReportsV2:
-    """The v2 model's delivered pulses in the columns of the v1.2 reports (``pulse_table``)."""
+class ReportsV2(RowPulseTable):
+    """The v2 model's delivered pulses in the columns of the v1.2 reports (``pulse_table``): every non-zero
+    pulse (``cycle, channel, kind, start_us, width_us, code, pol``, then ``current_ua, charge_nc``).
+    ``kind`` is v1.2's :class:`~.scan.PulseKind`: mode 0 monophasic, mode 1 the phase by its POL level,
+    mode 2 sense."""
 
-    def __init__(self, owner: TimedEmulatorV2) -> None:
-        self._owner = owner
+    row_columns = ("cycle", "channel", "kind", "start_us", "width_us", "code", "pol")
+    _owner: TimedEmulatorV2
 
-    def pulse_table(
-        self,
-        t0_us: float | None = None,
-        t1_us: float | None = None,
-        transfer: CurrentTransfer = DEFAULT_TRANSFER,
-    ) -> dict[str, np.ndarray]:
-        """Every non-zero pulse as numpy columns (``cycle, channel, kind, start_us, width_us, code, pol,
-        current_ua, charge_nc``), optionally starting within ``[t0_us, t1_us)``.  ``kind`` is v1.2's
-        :class:`~.scan.PulseKind`: mode 0 monophasic, mode 1 the phase by its POL level, mode 2 sense."""
+    def _rows(self, t0_us: float | None, t1_us: float | None) -> list[tuple[float, ...]]:
         lo = None if t0_us is None else round(t0_us * 1000)
         hi = None if t1_us is None else round(t1_us * 1000)
-        rows: list[tuple[int, int, int, int, int, int, int]] = []
+        rows: list[tuple[float, ...]] = []
         for s in self._owner.scans:
             for ch, onset, code, width, pol in s.pulses:
                 t = s.start_ns + onset
                 if (lo is not None and t < lo) or (hi is not None and t >= hi):
                     continue
                 kind = pulse_kind_of(s.stim_mode, pol)
-                rows.append((s.index, ch, int(kind), t, width, code, pol))
-        a = np.array(rows, dtype=np.int64).reshape(-1, 7)
-        codes = a[:, 5]
-        ua = np.array([transfer.to_ua(int(c)) for c in codes], dtype=np.float64)
-        return {
-            "cycle": a[:, 0],
-            "channel": a[:, 1],
-            "kind": a[:, 2],
-            "start_us": a[:, 3] / 1000.0,
-            "width_us": a[:, 4] / 1000.0,
-            "code": codes,
-            "pol": a[:, 6],
-            "current_ua": ua,
-            "charge_nc": ua * a[:, 4].astype(np.float64) / 1e6,
-        }
+                rows.append((s.index, ch, int(kind), t / 1000.0, width / 1000.0, code, pol))
+        return rows
 
 
 class _HostStream:
