@@ -6,6 +6,7 @@ or whose lost byte the host was never told of."""
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 from typing import Any
@@ -190,6 +191,67 @@ def test_a_slice_of_runs_names_its_bounds() -> None:
     ]
     j = bf.job(0, FW, DEPTH0_V12, runs=(4, 164))
     assert (j.first, j.total) == (4, 160)
+
+
+# --- a sample of the runs -----------------------------------------------------------------------------------
+
+
+def test_a_sampled_run_is_a_run_of_the_enumeration_drawn_the_same_on_any_chunking() -> None:
+    """Each sample is one of the enumeration's runs (its sequence's byte counted by the fault-free pass the
+    enumeration makes), and the same whichever chunk, worker or engine draws it."""
+    table = DEPTH0_V12
+    ends = [sum(bf.runs_per_sequence(w) for w in table[: k + 1]) for k in range(len(table))]
+    drawn = [bf.sample_run(i, 5, 0, FW) for i in range(12)]
+    for run in drawn:
+        first = ends[run.sequence - 1] if run.sequence else 0
+        in_sequence = [bf.decode_run(k, table, ends) for k in range(first, ends[run.sequence])]
+        assert run in in_sequence
+    assert len({r.sequence for r in drawn}) == 3  # each start drawn
+    assert drawn == [bf.sample_run(i, 5, 0, FW) for i in range(12)]
+    assert drawn != [bf.sample_run(i, 6, 0, FW) for i in range(12)]
+    j = engine.Job("byte_fault_campaign", "sample_chunk", (0, FW, bf.PLAIN, 5), 8, chunk=3, unit="runs")
+    one = engine.run(j, jobs=1).summary()
+    two = engine.run(j, jobs=2).summary()
+    assert one == two and one["faulty_runs"] == 8 and one["failed_runs"] == 0 and one["pulses"] > 0
+
+
+def test_a_sample_states_the_share_it_rules_out_and_replays_each_failure(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert bf.upper_bound_95(0, 1) == pytest.approx(0.95)
+    assert bf.upper_bound_95(0, 100_000) == pytest.approx(2.996e-5, rel=1e-3)
+    assert bf.upper_bound_95(1, 100_000) is None
+    assert sc.main(["--exhaustive", "--depth", "0", "--firmware", "v1.2", "--byte-faults", "--sample", "4",
+                    "--seed", "3", "--json"]) == 0  # fmt: skip
+    out = json.loads(capsys.readouterr().out)
+    assert out["mode"] == "sampled byte faults" and out["sampled_runs"] == out["faulty_runs"] == 4
+    assert out["failing_share_below_95"] == pytest.approx(1 - 0.05**0.25, rel=1e-3)
+    # a run the judge fails is listed with the one command that replays it
+    monkeypatch.setattr(bf, "failed", lambda r: True)
+    monkeypatch.setattr(bf, "why", lambda r: "JUDGED FAILED")
+    assert sc.main(["--exhaustive", "--depth", "0", "--firmware", "v1.2", "--byte-faults", "--sample", "2",
+                    "--seed", "3", "--json"]) == 1  # fmt: skip
+    captured = capsys.readouterr()
+    out = json.loads(captured.out)
+    assert out["failed_runs"] == 2 and out["failing_share_below_95"] is None
+    run = bf.sample_run(0, 3, 0, FW)
+    assert f"--only {run.sequence} --byte-fault {run.spec()}" in captured.err
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--sample", "5"], "--sample applies to --exhaustive --byte-faults"),
+        (["--exhaustive", "--byte-faults", "--sample", "0"], "--sample must be at least 1 (got 0)"),
+        (["--exhaustive", "--byte-faults", "--sample", "5", "--runs", "0:9"], "give it or --runs, not both"),
+    ],
+)
+def test_a_sample_asked_for_wrongly_is_refused_naming_the_flag(
+    args: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as exc:
+        sc.main(args)
+    assert exc.value.code == 2 and message in capsys.readouterr().err
 
 
 # --- the robust encoding: a lost byte above the limit fails the run -----------------------------------------

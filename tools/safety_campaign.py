@@ -1108,6 +1108,15 @@ def _main(argv: list[str] | None = None) -> int:
         "start's range), to split a long enumeration across runs or machines",
     )
     ap.add_argument(
+        "--sample",
+        metavar="N",
+        type=int,
+        default=None,
+        help="--byte-faults: run N runs drawn from the enumeration instead of all of them (each a sequence "
+        "drawn uniformly, then one of its faulty runs; --seed picks them), with no first pass, so any "
+        "--depth can be sampled; prints the share of failing runs the sample rules out at 95 %%",
+    )
+    ap.add_argument(
         "--byte-fault",
         metavar="LINK:KIND:BYTE",
         default=None,
@@ -1177,6 +1186,13 @@ def _main(argv: list[str] | None = None) -> int:
             byte_fault_campaign.parse_runs(a.runs)
         except ValueError as exc:
             ap.error(str(exc))
+    if a.sample is not None:
+        if not a.byte_faults:
+            ap.error("--sample applies to --exhaustive --byte-faults")
+        if a.runs is not None:
+            ap.error("--sample draws from the whole enumeration: give it or --runs, not both")
+        if a.sample < 1:
+            ap.error(f"--sample must be at least 1 (got {a.sample})")
     if a.seams:
         import seam_sessions
 
