@@ -202,17 +202,18 @@ def test_a_sampled_run_is_a_run_of_the_enumeration_drawn_the_same_on_any_chunkin
     table = DEPTH0_V12
     ends = [sum(bf.runs_per_sequence(w) for w in table[: k + 1]) for k in range(len(table))]
     drawn = [bf.sample_run(i, 5, 0, FW) for i in range(12)]
-    for run in drawn:
+    for run, runs in drawn:
         first = ends[run.sequence - 1] if run.sequence else 0
         in_sequence = [bf.decode_run(k, table, ends) for k in range(first, ends[run.sequence])]
-        assert run in in_sequence
-    assert len({r.sequence for r in drawn}) == 3  # each start drawn
+        assert run in in_sequence and runs == len(in_sequence)
+    assert len({r.sequence for r, _ in drawn}) == 3  # each start drawn
     assert drawn == [bf.sample_run(i, 5, 0, FW) for i in range(12)]
     assert drawn != [bf.sample_run(i, 6, 0, FW) for i in range(12)]
     j = engine.Job("byte_fault_campaign", "sample_chunk", (0, FW, bf.PLAIN, 5), 8, chunk=3, unit="runs")
-    one = engine.run(j, jobs=1).summary()
-    two = engine.run(j, jobs=2).summary()
+    t1, t2 = engine.run(j, jobs=1), engine.run(j, jobs=2)
+    one, two = t1.summary(), t2.summary()
     assert one == two and one["faulty_runs"] == 8 and one["failed_runs"] == 0 and one["pulses"] > 0
+    assert t1.sequence_runs == t2.sequence_runs == sum(bf.sample_run(i, 5, 0, FW)[1] for i in range(8))
 
 
 def test_a_sample_states_the_share_it_rules_out_and_replays_each_failure(
@@ -226,6 +227,10 @@ def test_a_sample_states_the_share_it_rules_out_and_replays_each_failure(
     out = json.loads(capsys.readouterr().out)
     assert out["mode"] == "sampled byte faults" and out["sampled_runs"] == out["faulty_runs"] == 4
     assert out["failing_share_below_95"] == pytest.approx(1 - 0.05**0.25, rel=1e-3)
+    # the enumeration's size, estimated from the sequences drawn (depth 0 on v1.2: 524 runs, counted)
+    drawn = [bf.sample_run(i, 3, 0, FW)[1] for i in range(4)]
+    assert out["runs_in_enumeration_estimated"] == round(sum(drawn) / 4 * 3)
+    assert set(drawn) <= {bf.runs_per_sequence(w) for w in DEPTH0_V12}
     # a run the judge fails is listed with the one command that replays it
     monkeypatch.setattr(bf, "failed", lambda r: True)
     monkeypatch.setattr(bf, "why", lambda r: "JUDGED FAILED")
@@ -234,7 +239,7 @@ def test_a_sample_states_the_share_it_rules_out_and_replays_each_failure(
     captured = capsys.readouterr()
     out = json.loads(captured.out)
     assert out["failed_runs"] == 2 and out["failing_share_below_95"] is None
-    run = bf.sample_run(0, 3, 0, FW)
+    run, _ = bf.sample_run(0, 3, 0, FW)
     assert f"--only {run.sequence} --byte-fault {run.spec()}" in captured.err
 
 

@@ -344,6 +344,8 @@ class ByteFaultTally:
     #: The run of the largest pulse above the cap (the lowest index among equals): (current, -index, row).
     worst: tuple[float, int, dict[str, Any]] | None = None
     failures: list[tuple[int, dict[str, Any]]] = field(default_factory=list)
+    #: A sample's sum, over its runs, of the faulty runs of the sequence each was drawn from.
+    sequence_runs: int = 0
 
     def add(self, index: int, run: Run, r: sc.SessionResult) -> None:
         key = f"{run.link} {run.kind.value}"
@@ -399,7 +401,14 @@ class ByteFaultTally:
             _add_counts(getattr(self, name), getattr(o, name))
         for name in ("items", "failed", "pulses", "wrong_deliveries", "over_limit", "unexplained"):
             setattr(self, name, getattr(self, name) + getattr(o, name))
-        for name in ("queue_lost_bytes", "unreported", "repaired", "absorbed", "caller_errors"):
+        for name in (
+            "queue_lost_bytes",
+            "unreported",
+            "repaired",
+            "absorbed",
+            "caller_errors",
+            "sequence_runs",
+        ):
             setattr(self, name, getattr(self, name) + getattr(o, name))
         for name in ("longest_wrong_s", "recovery_bound_s", "max_stim_ua"):
             setattr(self, name, max(getattr(self, name), getattr(o, name)))
@@ -465,11 +474,15 @@ def tally_chunk(
 # --- a sample of the runs, at any depth ---------------------------------------------------------------------
 
 
-def sample_run(index: int, seed: int, depth: int, firmwares: tuple[str, ...], mode: Mode = PLAIN) -> Run:
+def sample_run(
+    index: int, seed: int, depth: int, firmwares: tuple[str, ...], mode: Mode = PLAIN
+) -> tuple[Run, int]:
     """Sample ``index`` of seed ``seed``: a sequence of the enumeration drawn uniformly, then one of its
     faulty runs drawn uniformly, its bytes counted by its own fault-free run (:func:`count_chunk`), so no
     first pass over every sequence is needed and any depth can be sampled.  Each sample has its own
-    generator (seeded by the seed and its index): the same sample on any chunking, worker or engine."""
+    generator (seeded by the seed and its index): the same sample on any chunking, worker or engine.
+    Returns the run and its sequence's count of faulty runs (their mean over the sample, times the
+    sequences, estimates the enumeration's size without counting it)."""
     rng = random.Random(f"byte-fault sample {seed} {index}")
     sequence = rng.randrange(ex.count(depth, firmwares))
     u = rng.random()
@@ -477,9 +490,9 @@ def sample_run(index: int, seed: int, depth: int, firmwares: tuple[str, ...], mo
     runs = runs_per_sequence(written, mode)
     if runs == 0:  # nothing written on the struck links: the run at byte 0 fails as not struck
         link = next(name for name in LINKS if mode.kinds_on(name))
-        return Run(sequence, link, mode.kinds_on(link)[0], 0)
+        return Run(sequence, link, mode.kinds_on(link)[0], 0), 0
     run = decode_run(int(u * runs), (written,), mode=mode)
-    return Run(sequence, run.link, run.kind, run.byte)
+    return Run(sequence, run.link, run.kind, run.byte), runs
 
 
 def sample_chunk(
@@ -489,7 +502,8 @@ def sample_chunk(
     logging.disable(logging.WARNING)
     t = ByteFaultTally(depth, firmwares, mode)
     for i in range(first, first + count_):
-        run = sample_run(i, seed, depth, firmwares, mode)
+        run, runs = sample_run(i, seed, depth, firmwares, mode)
+        t.sequence_runs += runs
         t.add(i, run, run_one(run, depth, firmwares, mode))
     return t
 
@@ -646,6 +660,7 @@ def _sampled(a: Any, firmwares: tuple[str, ...], mode: Mode, sequences: int, t0:
             "sampled_runs": tally.items,
             "seed": a.seed,
             "failing_share_below_95": None if bound is None else float(f"{bound:.3g}"),
+            "runs_in_enumeration_estimated": round(tally.sequence_runs / max(1, tally.items) * sequences),
             **where,
         }
     )
