@@ -51,7 +51,9 @@ _ERRORS = (
     "MissingDependencyError",
     "ProtocolError",
     "DecodeError",
+    "ReplyLengthError",
     "ShortReplyError",
+    "LongReplyError",
     "ProtocolMisuseError",
     "TransportError",
     "PortNotOpenError",
@@ -76,11 +78,13 @@ if TYPE_CHECKING:
     from .errors import DeviceGoneError as DeviceGoneError
     from .errors import DeviceTimeoutError as DeviceTimeoutError
     from .errors import LimitError as LimitError
+    from .errors import LongReplyError as LongReplyError
     from .errors import MissingDependencyError as MissingDependencyError
     from .errors import PortNotOpenError as PortNotOpenError
     from .errors import ProfileError as ProfileError
     from .errors import ProtocolError as ProtocolError
     from .errors import ProtocolMisuseError as ProtocolMisuseError
+    from .errors import ReplyLengthError as ReplyLengthError
     from .errors import SafetyError as SafetyError
     from .errors import ShortReplyError as ShortReplyError
     from .errors import TactDeformError as TactDeformError

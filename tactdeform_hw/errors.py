@@ -85,16 +85,26 @@ class DecodeError(ProtocolError):
     """Bytes that cannot be read as the expected reply or command (wraps ``construct.ConstructError``)."""
 
 
-class ShortReplyError(ProtocolError):
-    """The device answered with fewer bytes than the command's reply holds."""
+class ReplyLengthError(ProtocolError):
+    """The device's reply is not the length the command's reply holds: the reply proves nothing."""
 
     def __init__(self, command: str, expected: int, received: bytes) -> None:
+        shown = received.hex() if len(received) <= 16 else f"{received[:16].hex()}…"
         super().__init__(
-            f"{command}: expected a {expected}-byte reply, got {len(received)} byte(s) "
-            f"({received.hex() or 'nothing'})"
+            f"{command}: expected a {expected}-byte reply, got {len(received)} byte(s) ({shown or 'nothing'})"
         )
         self.expected = expected
         self.received = received
+
+
+class ShortReplyError(ReplyLengthError):
+    """The device answered with fewer bytes than the command's reply holds."""
+
+
+class LongReplyError(ReplyLengthError):
+    """The device answered with more bytes than the command's reply holds: on v1.2 a 0xFF answered for
+    more channels than the host's electrode count, so the board's count (and the pattern it scans) is not
+    the one the host believes in force."""
 
 
 class NotStoppedError(ProtocolError):

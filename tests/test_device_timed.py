@@ -100,3 +100,34 @@ def test_a_driver_told_another_version_is_refused_and_stops_the_board(
     t = port.now_s
     port.advance(0.05)
     assert _delivered_ua(port, t) == [] and port.emulator.state().electrode_num == 0
+
+
+@pytest.mark.parametrize("link", LINKS)
+def test_v1_2_a_measure_reply_longer_than_the_hosts_count_is_no_proof(link: str) -> None:
+    """A board whose electrode count is larger than the host believes (bytes another writer sent, or a
+    lost packet tail that made a pattern swallow the count) answers 0xFF for every channel it scans.  The
+    proof reads the whole reply: one longer than the host's count is a mismatch, not a proof, so ``close``
+    recovers and switches the board off, judged on the pulses it delivered after the close."""
+    from tactdeform_hw import protocol as p
+    from tactdeform_hw.errors import LongReplyError
+    from tactdeform_hw.protocol.firmware import V1_2
+
+    dev, port = _timed(V1_2, link)
+    dev.configure(StimConfig(electrode_count=1, current_ua=900))
+    dev.send_pattern([0])
+    port.advance(0.05)
+    # behind the host's back: the count 32 and the odd channels stimulating at the height in force
+    port.write(p.encode_pulse_height(90) + p.encode_electrode_num(32))
+    port.write(p.encode_pattern(bytes([0, 1] * 16), electrode_num=32))
+    port.advance(0.05)
+    t = port.now_s
+    port.advance(0.05)
+    assert max(_delivered_ua(port, t)) > 0  # the odd channels are on: the check below can see them
+    with pytest.raises(LongReplyError, match="expected a 2-byte reply, got 64 byte"):
+        dev.measure()  # a proof in step: the longer reply is reported, the link suspect
+    assert any("longer than 2 bytes" in why for _, _, _, why in dev.transitions)
+    assert dev.probe() is False
+    dev.close()
+    t = port.now_s
+    port.advance(0.05)
+    assert _delivered_ua(port, t) == [] and port.emulator.registers.electrode_num in (0, 1)

@@ -70,8 +70,8 @@ from tactdeform_hw.errors import (
     DeviceTimeoutError,
     LimitError,
     ProtocolMisuseError,
+    ReplyLengthError,
     SafetyError,
-    ShortReplyError,
 )
 from tactdeform_hw.protocol.firmware import V1_2, FirmwareSpec
 from tactdeform_hw.protocol.units import DEFAULT_TRANSFER, CurrentTransfer
@@ -534,7 +534,7 @@ class Device:
             return True
         try:
             self.measure()
-        except (ShortReplyError, LimitError, DeviceTimeoutError):
+        except (ReplyLengthError, LimitError, DeviceTimeoutError):
             self._suspect("probe failed")
             return False
         return True
@@ -720,7 +720,7 @@ class Device:
     def _prove(self, electrodes: int) -> None:
         """In step: the dialect's request whose reply proves every byte written before it read (and
         empties the queue model).  No whole reply: the device is marked for a resync and
-        :class:`ShortReplyError` raised."""
+        :class:`~tactdeform_hw.errors.ReplyLengthError` raised."""
         self.dialect.prove(self._ops(), electrodes)
 
     def _frame(self, levels: Sequence[int], *, force_pattern: bool) -> None:

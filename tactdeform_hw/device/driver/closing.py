@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 from tactdeform_hw.device.driver.wire import Wire
 from tactdeform_hw.device.links.recovery import RECOVERY_ATTEMPTS, LinkRecovery, LinkState
-from tactdeform_hw.errors import NotStoppedError, ShortReplyError, TactDeformError, TransportError
+from tactdeform_hw.errors import NotStoppedError, ReplyLengthError, TactDeformError, TransportError
 
 #: Times ``close`` reopens a link that failed under its all-off before it gives up and says so.
 CLOSE_RECONNECTS = 3
@@ -37,7 +37,7 @@ def stop_and_prove(
         try:
             prove_stopped()
             return
-        except (ShortReplyError, NotStoppedError):
+        except (ReplyLengthError, NotStoppedError):
             if attempt > RECOVERY_ATTEMPTS:
                 raise
             recover()

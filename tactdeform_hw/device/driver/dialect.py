@@ -277,7 +277,8 @@ class LinkOps:
     #: a write of the recovery itself (allowed before the proof); the written offset just past it
     recovery_send: Callable[..., int]
     discard_input: Callable[[], None]
-    await_reply: Callable[[int], bytes]
+    #: up to n bytes of a reply until its deadline (``whole=True``: and any more that follow at once)
+    await_reply: Callable[..., bytes]
     #: a reply proved every byte before the mark read
     proved: Callable[[int], None]
     suspect: Callable[[str], None]
@@ -288,7 +289,7 @@ class LinkOps:
     #: the same proof as a write of the recovery itself (the drain before the reset line)
     recovery_prove: Callable[[int], None]
     #: a request byte and its whole reply of the given size, which proves every byte before it read (a
-    #: short one: the link suspect and :class:`ShortReplyError` naming the request)
+    #: short or a longer one: the link suspect and a :class:`ReplyLengthError` naming the request)
     request: Callable[[bytes, int, str], bytes]
     #: a dialect's planned writes (:class:`Plan`), each putting its state in force once written
     run: Callable[[Plan, DriverState], None]

@@ -39,6 +39,7 @@ from tactdeform_hw.device.links.recovery import (
     PROBE_LEAD_ZEROS,
     RECOVERY_ATTEMPTS,
     REPLY_POLL_S,
+    REPLY_TAIL_S,
     LinkState,
 )
 from tactdeform_hw.device.participant.mapping import ChannelMapping
@@ -358,7 +359,7 @@ class V12Dialect:
             ops.discard_input()
             # the padding above ends every command before it
             mark = ops.recovery_send(p.MEASURE_REQUEST, pad=True)
-            reply = ops.await_reply(2 * n)
+            reply = ops.await_reply(2 * n, whole=True)
             if len(reply) == 2 * n:
                 ops.proved(mark)
                 ops.enter(LinkState.IN_STEP, f"0xFF answered with {2 * n} bytes")
@@ -378,7 +379,7 @@ class V12Dialect:
         ops.enter(LinkState.SYNCING, "zeros and a request")
         if electrodes >= 1:
             first = ops.recovery_send(bytes(PROBE_LEAD_ZEROS) + p.MEASURE_REQUEST, pad=True)
-            if len(ops.await_reply(2 * electrodes)) == 2 * electrodes:
+            if len(ops.await_reply(2 * electrodes, whole=True)) == 2 * electrodes:
                 ops.proved(first)
                 return
             ops.discard_input()
@@ -393,7 +394,7 @@ class V12Dialect:
         if electrodes >= 1:
             # 0xFF again: cheap, and its length proves the count
             ops.recovery_send(bytes(RX_QUEUE_SIZE) + p.MEASURE_REQUEST, pad=True)
-            reply = ops.await_reply(2 * electrodes)
+            reply = ops.await_reply(2 * electrodes, whole=True)
             if len(reply) == 2 * electrodes:
                 ops.proved(first)
                 return
@@ -434,7 +435,8 @@ class V12Dialect:
             scratch.write(lambda _chunk: None, data)
             period = scratch.period_s if scratch.period_s is not None else ops.unknown_reply_s
             deadline = scratch.drained_by() + 0.003 + size * scratch.policy.byte_s + period
-            clock.advance(deadline - clock.now() + REPLY_POLL_S)
+            # the deadline, or a reply by it and the listening for more (REPLY_TAIL_S)
+            clock.advance(deadline - clock.now() + REPLY_POLL_S + REPLY_TAIL_S + 2 * scratch.policy.byte_s)
         return clock.now()
 
     def frame_commands(self, n: int) -> list[bytes]:

@@ -38,10 +38,10 @@ from tactdeform_hw.device.driver.dialect import (
 )
 from tactdeform_hw.device.driver.pacing import COMMAND_BYTE_MIN, Pacer, paddings
 from tactdeform_hw.device.links.port import PortLink
-from tactdeform_hw.device.links.recovery import REPLY_POLL_S, LinkRecovery, LinkState
+from tactdeform_hw.device.links.recovery import REPLY_POLL_S, REPLY_TAIL_S, LinkRecovery, LinkState
 from tactdeform_hw.device.participant.mapping import ChannelMapping
 from tactdeform_hw.device.safety.guard import SafetyGuard
-from tactdeform_hw.errors import PortNotOpenError, ProtocolMisuseError, ShortReplyError
+from tactdeform_hw.errors import LongReplyError, PortNotOpenError, ProtocolMisuseError, ShortReplyError
 from tactdeform_hw.protocol.constants import USB_PACKET_SIZE
 from tactdeform_hw.protocol.units import CurrentTransfer
 
@@ -299,8 +299,12 @@ class Wire:
         extra = period if period is not None else self.unknown_reply_s
         return 0.003 + size * self.pacer.policy.byte_s + extra
 
-    def await_reply(self, size: int) -> bytes:
-        """Read up to ``size`` bytes until the reply's deadline (the worst case, not the typical)."""
+    def await_reply(self, size: int, whole: bool = False) -> bytes:
+        """Read up to ``size`` bytes until the reply's deadline (the worst case, not the typical).
+
+        ``whole``: once ``size`` bytes are in, listen :data:`REPLY_TAIL_S` and two byte times more and
+        take what else came, so a reply longer than asked for shows as longer (a caller comparing its
+        length sees it) instead of passing, read to its expected length, for the proof it is not."""
         if size <= 0:
             return b""
         clock = self.pacer.clock
@@ -315,20 +319,34 @@ class Wire:
                 # what has arrived (a socket says only "readable": at least one byte); the rest follows
                 got += self.port_link.read(waiting)
             if len(got) >= size or isinstance(clock, InstantClock) or clock.now() >= deadline:
+                if whole and len(got) >= size:
+                    got += self._reply_tail()
                 return bytes(got)
             if len(got) == had:
                 clock.sleep(min(REPLY_POLL_S, max(0.0, deadline - clock.now())))
 
+    def _reply_tail(self) -> bytes:
+        """What arrives in the :data:`REPLY_TAIL_S` (and two byte times) after a whole reply."""
+        clock = self.pacer.clock
+        if not isinstance(clock, InstantClock):
+            clock.sleep(REPLY_TAIL_S + 2 * self.pacer.policy.byte_s)
+        waiting = self.port_link.waiting()
+        return self.port_link.read(waiting) if waiting else b""
+
     def request(self, data: bytes, size: int, what: str) -> bytes:
-        """``data`` (a request byte) and its whole reply of ``size`` bytes, which proves every byte before
-        it read; a short one marks the link suspect and raises (``what`` names the request)."""
+        """``data`` (a request byte) and its whole reply of exactly ``size`` bytes, which proves every byte
+        before it read; a short or a longer one marks the link suspect and raises (``what`` names the
+        request): a longer one is a board whose state is not the host's (v1.2: its electrode count)."""
         self.port_link.discard_input()
         self.send(data)
         mark = self.pacer.offset
-        reply = self.await_reply(size)
-        if len(reply) != size:
+        reply = self.await_reply(size, whole=True)
+        if len(reply) < size:
             self.link.suspect(f"short reply to 0x{data[0]:02X}")
             raise ShortReplyError(what, size, reply)
+        if len(reply) > size:
+            self.link.suspect(f"reply to 0x{data[0]:02X} longer than {size} bytes")
+            raise LongReplyError(what, size, reply)
         self.proved(mark)
         return reply
 

@@ -18,7 +18,7 @@ from tactdeform_hw.clock import SimulatedClock
 from tactdeform_hw.device.driver.config import StimConfig
 from tactdeform_hw.device.driver.dialect import worst_scan_s
 from tactdeform_hw.device.driver.pacing import Pacer, PacingPolicy, firmware_period_us
-from tactdeform_hw.errors import ProtocolMisuseError, ShortReplyError, TransportError
+from tactdeform_hw.errors import ProtocolMisuseError, ReplyLengthError, TransportError
 
 if TYPE_CHECKING:
     from tactdeform_hw.device.driver.dialect import Dialect, DriverState, LinkOps
@@ -65,6 +65,10 @@ TRANSITIONS: dict[LinkState, frozenset[LinkState]] = {
 PROBE_LEAD_ZEROS = 4
 #: How often a reply is polled while its deadline runs.
 REPLY_POLL_S = 0.0005
+#: How long the driver listens past a whole reply for more of it (then two byte times more): one USB
+#: full-speed frame, the time a reply longer than a packet takes to send its next packet.  A longer reply
+#: than asked for is no proof: on v1.2 it is a 0xFF answered for more channels than the host's count.
+REPLY_TAIL_S = 0.001
 #: Verification rounds (sync, safe, verify) before the recovery gives up.
 RECOVERY_ATTEMPTS = 2
 
@@ -121,7 +125,7 @@ class LinkRecovery:
         — the reset line and its own resync — at once, if there is a line."""
         try:
             dialect.flush_parser(ops, st)
-        except ShortReplyError:
+        except ReplyLengthError:
             if self.state is not LinkState.FAILED or ops.resetting() or not ops.can_reset():
                 raise
             reset()  # its own resync proves the board in step again, or raises
@@ -167,7 +171,7 @@ class LinkRecovery:
         if in_step:
             try:
                 ops.recovery_prove(st.config.electrode_count if st.config is not None else 0)
-            except (TransportError, ShortReplyError):
+            except (TransportError, ReplyLengthError):
                 # no proof: the reset is the remedy, after the link has surely delivered everything
                 if self.state is not LinkState.DRAINING:
                     self.enter(LinkState.DRAINING, "no proof: reset anyway")

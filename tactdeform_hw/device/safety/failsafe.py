@@ -77,7 +77,7 @@ from tactdeform_hw.errors import (
     DeviceGoneError,
     LimitError,
     PortNotOpenError,
-    ShortReplyError,
+    ReplyLengthError,
     TactDeformError,
     TransportError,
 )
@@ -553,7 +553,7 @@ class FailSafe:
             return True
         try:
             volts = dev.measure()
-        except (ShortReplyError, LimitError, DecodeError):
+        except (ReplyLengthError, LimitError, DecodeError):
             dev.mark_unknown()
             self._probe_failure = "probe unanswered"
             return False
