@@ -181,10 +181,11 @@ class V2Dialect:
         return mapping.electrodes if mapping is not None else n
 
     def _sync(self, ops: LinkOps, expected: int) -> bool:
-        """0xF4 alone at a proved boundary; True when answered with ``expected`` (the count)."""
+        """0xF4 alone at a proved boundary; True when answered with ``expected`` (the count) and nothing
+        more (a second answer is a request the board read that the host did not send)."""
         ops.discard_input()
         mark = self._rsend(ops, SYNC_CHECK)
-        reply = ops.await_reply(1)
+        reply = ops.await_reply(1, whole=True)
         if reply == bytes((expected & 0xFF,)):
             ops.proved(mark)
             ops.guard.note_in_step(expected)  # the reply is the count in force
