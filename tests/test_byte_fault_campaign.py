@@ -298,6 +298,18 @@ def test_under_the_robust_encoding_a_lost_byte_above_the_limit_fails_the_run(
     assert "LOST BYTE ABOVE THE LIMIT: 16 pulses above 1500 uA under the robust encoding" in bf.why(r)
 
 
+def test_v2_a_refresh_after_a_cover_a_lost_byte_shifted_writes_its_zeros_before_the_mode() -> None:
+    """From the stimulating start, the watchdog's cover (``FB 02``, zeros, ``FB 00``) loses a zero: the
+    shifted pattern takes ``FB`` as its last height (clamped to 4095) and the mode stays 2 at sense height
+    0, where it delivers nothing.  The host believes zeros in mode 0, so the fail-safe's refresh writes
+    them again: with the mode first, a scan between the two ran the shifted heights in mode 0 (one pulse
+    of 40 950 uA, under the robust encoding); zeros first, nothing above the cap."""
+    robust_lose = bf.Mode("robust", ("uart:lose",))
+    for byte in (75, 88, 94):
+        r = bf.run_one(bf.Run(39, "uart", ByteFaultKind.LOSE, byte), DEPTH, ("v2",), robust_lose)
+        assert not bf.failed(r) and r.over_limit == 0, bf.why(r)
+
+
 def test_a_robust_enumeration_numbers_only_its_kinds_and_replays_with_its_encoding() -> None:
     assert bf.parse_kinds("usb:tail_loss, uart:lose") == ("uart:lose", "usb:tail_loss")
     for bad in ("", "uart:melt", "usb:lose"):

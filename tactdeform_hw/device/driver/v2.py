@@ -642,10 +642,13 @@ class V2Dialect:
             b = PlanBuilder(st)
             self._write_covered(b, codes, st.mode, st.scan_us / 1e6 if st.scan_us is not None else None)
             return b.done()
-        # a mode byte mis-read as 2 gives every channel the sense pulse, whatever the pattern
-        writes: list[Step] = [Write(c2.encode_stim_mode(st.mode))] if st.mode is not None else []
-        writes.append(Write(c2.encode_pattern(codes, electrode_num=n)))
-        return Plan(writes)
+        # the mode again (a mode byte mis-read as 2 gives every channel the sense pulse, whatever the
+        # pattern) and the pattern again.  Zeros go first: the board's pattern may not be the one the host
+        # believes (a byte lost inside a covered pattern leaves its shifted heights under mode 2, and the
+        # cover's closing mode unapplied), and a mode 0 or 1 read before the zeros would deliver them.
+        mode: list[Step] = [Write(c2.encode_stim_mode(st.mode))] if st.mode is not None else []
+        pattern: list[Step] = [Write(c2.encode_pattern(codes, electrode_num=n))]
+        return Plan(pattern + mode if not any(codes) else mode + pattern)
 
     def set_current(self, ctx: PlanContext, st: DriverState, levels: list[int] | None) -> Plan:
         """The target changed: the frame in force follows (each electrode to its own limit and ramp)."""
