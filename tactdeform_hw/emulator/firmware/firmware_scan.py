@@ -46,12 +46,12 @@ __all__ = [
     "POL",
     "FirmwareBudget",
     "FirmwareScanConfig",
+    "ScanBudget",
     "ScanConventions",
     "ScanTrace",
     "alarm_ticks_for",
     "beyond_chain_notes",
     "budget",
-    "ScanBudget",
     "scan_duration_us",
     "trace_scan",
 ]
